@@ -1,0 +1,1 @@
+//! The gRPC API between Tessera processes. Not written yet: see issue 5 (the farm).

@@ -1,0 +1,103 @@
+//! The CPU renderer: rayon over small tiles, one ray at a time per thread.
+
+use rayon::prelude::*;
+
+use super::whitted::trace;
+use super::{PreparedFrame, RenderError};
+use crate::film::{Film, RayCounts, Rect, SampleRange};
+use crate::geometry::PrimId;
+use crate::math::{Real, Vector3};
+use crate::sampling::{pixel_seed, sample_offset};
+use crate::world::World;
+
+/// Side of the square tiles the threads take in turn: small enough to
+/// balance load on a few cores, large enough that scheduling is negligible.
+pub const TILE: u32 = 16;
+
+pub struct CpuRenderer {
+    pool: rayon::ThreadPool,
+}
+
+impl CpuRenderer {
+    /// `threads`: `None` uses every core.
+    pub fn new(threads: Option<usize>) -> Result<Self, RenderError> {
+        let mut b = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("tessera-cpu-{i}"));
+        if let Some(n) = threads {
+            b = b.num_threads(n.max(1));
+        }
+        Ok(CpuRenderer { pool: b.build().map_err(|e| RenderError::Threads(e.to_string()))? })
+    }
+
+    pub fn threads(&self) -> usize {
+        self.pool.current_num_threads()
+    }
+
+    /// Renders `rect` of `frame` over sample indices `samples`. `progress` is
+    /// called from the worker threads with the number of pixel-samples each
+    /// finished tile covered.
+    pub fn render(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<Film, RenderError> {
+        prepared.check_request(rect, samples)?;
+        Ok(match prepared {
+            PreparedFrame::F32(w) => self.render_world(w, frame, rect, samples, progress),
+            PreparedFrame::F64(w) => self.render_world(w, frame, rect, samples, progress),
+        })
+    }
+
+    fn render_world<R: Real>(
+        &self,
+        world: &World<R>,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Film {
+        let tiles = rect.tiles(TILE);
+        let films: Vec<Film> = self.pool.install(|| {
+            tiles
+                .par_iter()
+                .map(|&tile| {
+                    let film = render_tile(world, frame, tile, samples);
+                    progress(tile.area() as u64 * samples.len() as u64);
+                    film
+                })
+                .collect()
+        });
+        let mut out = Film::new(rect);
+        for f in &films {
+            out.merge(f).expect("tiles lie inside their rect and sums cannot overflow");
+        }
+        out
+    }
+}
+
+/// Renders one tile on the calling thread.
+pub fn render_tile<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    let mut film = Film::new(tile);
+    let mut rays = RayCounts::default();
+    let s = &world.settings;
+    let mut i = 0;
+    for y in tile.y..tile.y + tile.height {
+        for x in tile.x..tile.x + tile.width {
+            let seed = pixel_seed(x, y, frame);
+            for sample in samples.start..samples.end {
+                let (u, v) = sample_offset(s.sampler, s.samples, seed, sample);
+                let sx = R::from_u32(x) + R::from_f64(u as f64);
+                let sy = R::from_u32(y) + R::from_f64(v as f64);
+                let ray = world.camera.ray(sx, sy);
+                rays.primary += 1;
+                let c = trace(world, &ray, 0, PrimId::NONE, &mut rays);
+                film.add_sample::<R>(i, [c.x(), c.y(), c.z()]);
+            }
+            i += 1;
+        }
+    }
+    film.rays = rays;
+    film
+}

@@ -1,0 +1,154 @@
+//! Where in a pixel each sample goes, deterministically.
+//!
+//! Every random number is a pure function of (pixel, sample index, frame,
+//! dimension), computed with 32-bit integer hashing only, so the CPU (f32 and
+//! f64) and the GPU (WGSL has `u32` but no `u64`) produce the same positions,
+//! and any tile or sample range traced anywhere gives the same values.
+//! Keep in sync with `render/gpu/sampling.wgsl`.
+
+use serde::{Deserialize, Serialize};
+
+/// How sample positions are placed inside a pixel.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Sampler {
+    /// The thesis's regular n x n grid: sample (i, j) at ((i+0.5)/n, (j+0.5)/n).
+    /// Needs a square sample count; other counts fall back to [`Sampler::Jittered`]'s
+    /// low-discrepancy pattern.
+    #[default]
+    Grid,
+    /// Stratified jitter: one uniformly random point in each cell of the
+    /// n x n grid for square counts; a per-pixel rotated R2 sequence otherwise.
+    Jittered,
+}
+
+impl Sampler {
+    pub fn name(self) -> &'static str {
+        match self {
+            Sampler::Grid => "grid",
+            Sampler::Jittered => "jittered",
+        }
+    }
+}
+
+impl std::str::FromStr for Sampler {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "grid" => Ok(Sampler::Grid),
+            "jittered" => Ok(Sampler::Jittered),
+            _ => Err(format!("unknown sampler {s:?}: expected \"grid\" or \"jittered\"")),
+        }
+    }
+}
+
+/// A 32-bit integer mixer (Chris Wellons' "lowbias32"): good avalanche, cheap, and
+/// identical on every backend.
+#[inline(always)]
+pub fn hash_u32(mut x: u32) -> u32 {
+    x ^= x >> 16;
+    x = x.wrapping_mul(0x7feb_352d);
+    x ^= x >> 15;
+    x = x.wrapping_mul(0x846c_a68b);
+    x ^= x >> 16;
+    x
+}
+
+/// The per-pixel, per-frame seed all of a pixel's random numbers derive from.
+#[inline(always)]
+pub fn pixel_seed(x: u32, y: u32, frame: u32) -> u32 {
+    hash_u32(x ^ hash_u32(y ^ hash_u32(frame.wrapping_add(0x9e37_79b9))))
+}
+
+/// Uniform number in [0, 1) for (pixel seed, sample index, dimension), with 24
+/// bits so it is exact in `f32` and `f64` alike.
+#[inline(always)]
+pub fn uniform(seed: u32, sample: u32, dim: u32) -> f32 {
+    let h = hash_u32(seed ^ hash_u32(sample.wrapping_mul(0x68e3_1da4) ^ hash_u32(dim)));
+    (h >> 8) as f32 * (1.0 / 16_777_216.0)
+}
+
+/// Integer square root if `n` is a perfect square.
+pub fn exact_sqrt(n: u32) -> Option<u32> {
+    let r = (n as f64).sqrt().round() as u32;
+    (r * r == n).then_some(r)
+}
+
+// R2 sequence step (Roberts 2018), as 0.32 fixed point.
+const R2_A1: u32 = 3_242_174_889; // 0.7548776662466927 * 2^32
+const R2_A2: u32 = 2_447_445_413; // 0.5698402909980532 * 2^32
+
+/// Offset of sample `sample` (of `count`) inside its pixel, each coordinate in [0, 1).
+#[inline]
+pub fn sample_offset(sampler: Sampler, count: u32, seed: u32, sample: u32) -> (f32, f32) {
+    match exact_sqrt(count) {
+        Some(n) => {
+            let (i, j) = (sample % n, sample / n);
+            let (jx, jy) = match sampler {
+                Sampler::Grid => (0.5, 0.5),
+                Sampler::Jittered => (uniform(seed, sample, 0), uniform(seed, sample, 1)),
+            };
+            ((i as f32 + jx) / n as f32, (j as f32 + jy) / n as f32)
+        }
+        None => {
+            // Low-discrepancy points, rotated per pixel so neighbours decorrelate.
+            let rx = hash_u32(seed ^ 0x5bd1_e995);
+            let ry = hash_u32(seed ^ 0x1b87_3593);
+            let u = sample.wrapping_mul(R2_A1).wrapping_add(rx);
+            let v = sample.wrapping_mul(R2_A2).wrapping_add(ry);
+            (
+                (u >> 8) as f32 * (1.0 / 16_777_216.0),
+                (v >> 8) as f32 * (1.0 / 16_777_216.0),
+            )
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_matches_thesis_layout() {
+        // 2x2 grid: (0.25,0.25), (0.75,0.25), (0.25,0.75), (0.75,0.75)
+        let pts: Vec<_> = (0..4).map(|s| sample_offset(Sampler::Grid, 4, 7, s)).collect();
+        assert_eq!(pts, vec![(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]);
+        assert_eq!(sample_offset(Sampler::Grid, 1, 7, 0), (0.5, 0.5));
+    }
+
+    #[test]
+    fn jitter_stays_in_its_stratum_and_is_deterministic() {
+        for s in 0..9 {
+            let (u, v) = sample_offset(Sampler::Jittered, 9, pixel_seed(3, 4, 0), s);
+            let (i, j) = (s % 3, s / 3);
+            assert!(u >= i as f32 / 3.0 && u < (i + 1) as f32 / 3.0, "{u} not in column {i}");
+            assert!(v >= j as f32 / 3.0 && v < (j + 1) as f32 / 3.0, "{v} not in row {j}");
+            assert_eq!((u, v), sample_offset(Sampler::Jittered, 9, pixel_seed(3, 4, 0), s));
+        }
+        // A different frame moves the jitter.
+        assert_ne!(
+            sample_offset(Sampler::Jittered, 9, pixel_seed(3, 4, 0), 0),
+            sample_offset(Sampler::Jittered, 9, pixel_seed(3, 4, 1), 0)
+        );
+    }
+
+    #[test]
+    fn non_square_counts_cover_the_pixel() {
+        let pts: Vec<_> = (0..8).map(|s| sample_offset(Sampler::Grid, 8, pixel_seed(1, 2, 0), s)).collect();
+        for &(u, v) in &pts {
+            assert!((0.0..1.0).contains(&u) && (0.0..1.0).contains(&v));
+        }
+        // R2 points are well spread: every quadrant gets at least one of eight.
+        for q in 0..4 {
+            let (qx, qy) = ((q % 2) as f32 * 0.5, (q / 2) as f32 * 0.5);
+            assert!(pts.iter().any(|&(u, v)| u >= qx && u < qx + 0.5 && v >= qy && v < qy + 0.5), "quadrant {q} empty: {pts:?}");
+        }
+    }
+
+    #[test]
+    fn uniform_is_roughly_uniform() {
+        let n = 100_000;
+        let mean: f64 = (0..n).map(|s| uniform(12345, s, 0) as f64).sum::<f64>() / n as f64;
+        assert!((mean - 0.5).abs() < 0.005, "mean {mean}");
+    }
+}

@@ -1,0 +1,483 @@
+//! The scene file: parsed from TOML, validated, kept in `f64` as plain
+//! description records. Render-ready state is built from it per precision
+//! by [`crate::world::World::build`]. The format is documented in
+//! `docs/scene-format.md`; it is a contract other tools write against.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::de::{self, Deserializer, SeqAccess, Visitor};
+use serde::Deserialize;
+use toml::Spanned;
+
+use super::error::{Location, SceneError};
+use crate::sampling::Sampler;
+
+/// A number that TOML may write as an integer or a float (`1` or `1.0`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Num(pub f64);
+
+impl<'de> Deserialize<'de> for Num {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl Visitor<'_> for V {
+            type Value = Num;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a number")
+            }
+            fn visit_f64<E: de::Error>(self, v: f64) -> Result<Num, E> {
+                Ok(Num(v))
+            }
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<Num, E> {
+                Ok(Num(v as f64))
+            }
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<Num, E> {
+                Ok(Num(v as f64))
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
+/// Three numbers: a point, a direction or a linear RGB colour.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Vec3(pub [f64; 3]);
+
+impl<'de> Deserialize<'de> for Vec3 {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = Vec3;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("an array of three numbers, like [0.0, 1.0, 0.0]")
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec3, A::Error> {
+                let mut out = [0.0; 3];
+                for (i, slot) in out.iter_mut().enumerate() {
+                    *slot = seq.next_element::<Num>()?.ok_or_else(|| de::Error::invalid_length(i, &self))?.0;
+                }
+                if seq.next_element::<de::IgnoredAny>()?.is_some() {
+                    return Err(de::Error::invalid_length(4, &self));
+                }
+                Ok(Vec3(out))
+            }
+        }
+        d.deserialize_seq(V)
+    }
+}
+
+impl Vec3 {
+    fn is_finite(&self) -> bool {
+        self.0.iter().all(|v| v.is_finite())
+    }
+    fn dot(&self, o: &Vec3) -> f64 {
+        self.0[0] * o.0[0] + self.0[1] * o.0[1] + self.0[2] * o.0[2]
+    }
+    fn sub(&self, o: &Vec3) -> Vec3 {
+        Vec3([self.0[0] - o.0[0], self.0[1] - o.0[1], self.0[2] - o.0[2]])
+    }
+    fn cross(&self, o: &Vec3) -> Vec3 {
+        let (a, b) = (self.0, o.0);
+        Vec3([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+    }
+    fn length(&self) -> f64 {
+        self.dot(self).sqrt()
+    }
+}
+
+/// Image and sampling settings. The file's `[render]` table gives defaults;
+/// the command line overrides them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct RenderSettings {
+    pub width: u32,
+    pub height: u32,
+    /// Samples per pixel.
+    pub samples: u32,
+    /// Generations of secondary rays; 0 = none.
+    pub max_depth: u32,
+    pub sampler: Sampler,
+}
+
+impl Default for RenderSettings {
+    fn default() -> Self {
+        RenderSettings { width: 800, height: 600, samples: 4, max_depth: 10, sampler: Sampler::Grid }
+    }
+}
+
+/// Largest values accepted: beyond them the fixed-point film could overflow
+/// (samples) or the work is surely a typo.
+pub const MAX_IMAGE_SIDE: u32 = 32_768;
+pub const MAX_SAMPLES: u32 = 65_536;
+pub const MAX_DEPTH: u32 = 64;
+
+impl RenderSettings {
+    /// Checks the limits; `source` names where the values came from in errors.
+    pub fn validate(&self) -> Result<(), String> {
+        let check = |name: &str, v: u32, lo: u32, hi: u32| {
+            if v < lo || v > hi {
+                Err(format!("{name} must be in {lo}..={hi}, got {v}"))
+            } else {
+                Ok(())
+            }
+        };
+        check("width", self.width, 1, MAX_IMAGE_SIDE)?;
+        check("height", self.height, 1, MAX_IMAGE_SIDE)?;
+        check("samples", self.samples, 1, MAX_SAMPLES)?;
+        check("max_depth", self.max_depth, 0, MAX_DEPTH)?;
+        Ok(())
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RenderTable {
+    width: Option<u32>,
+    height: Option<u32>,
+    samples: Option<u32>,
+    max_depth: Option<u32>,
+    sampler: Option<Sampler>,
+}
+
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CameraDesc {
+    pub position: Vec3,
+    pub look_at: Vec3,
+    #[serde(default = "default_up")]
+    pub up: Vec3,
+    /// Vertical field of view in degrees.
+    #[serde(default = "default_fov")]
+    pub fov_y: Num,
+}
+
+fn default_up() -> Vec3 {
+    Vec3([0.0, 1.0, 0.0])
+}
+fn default_fov() -> Num {
+    Num(60.0)
+}
+
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct WorldDesc {
+    #[serde(default)]
+    pub ambient: Vec3,
+    #[serde(default)]
+    pub background: Vec3,
+}
+
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MaterialDesc {
+    #[serde(default)]
+    pub ambient: Vec3,
+    #[serde(default)]
+    pub diffuse: Vec3,
+    #[serde(default)]
+    pub specular: Vec3,
+    #[serde(default = "one")]
+    pub shininess: Num,
+    #[serde(default)]
+    pub reflectivity: Num,
+    #[serde(default)]
+    pub transparency: Num,
+    #[serde(default = "one")]
+    pub ior: Num,
+}
+
+fn one() -> Num {
+    Num(1.0)
+}
+fn white() -> Vec3 {
+    Vec3([1.0; 3])
+}
+
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LightDesc {
+    pub position: Vec3,
+    #[serde(default = "white")]
+    pub diffuse: Vec3,
+    #[serde(default = "white")]
+    pub specular: Vec3,
+}
+
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(tag = "type", rename_all = "lowercase", deny_unknown_fields)]
+pub enum ObjectDesc {
+    Sphere { center: Vec3, radius: Num, material: String },
+    Plane { normal: Vec3, distance: Num, material: String },
+}
+
+impl ObjectDesc {
+    pub fn material(&self) -> &str {
+        match self {
+            ObjectDesc::Sphere { material, .. } | ObjectDesc::Plane { material, .. } => material,
+        }
+    }
+    pub fn kind(&self) -> &'static str {
+        match self {
+            ObjectDesc::Sphere { .. } => "sphere",
+            ObjectDesc::Plane { .. } => "plane",
+        }
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SceneFile {
+    render: Option<RenderTable>,
+    camera: CameraDesc,
+    #[serde(default)]
+    world: WorldDesc,
+    #[serde(default)]
+    materials: BTreeMap<String, Spanned<MaterialDesc>>,
+    #[serde(default)]
+    lights: Vec<Spanned<LightDesc>>,
+    #[serde(default)]
+    objects: Vec<Spanned<ObjectDesc>>,
+}
+
+/// A validated scene, in the file's own (`f64`, world-space) terms.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneDesc {
+    /// Where it was loaded from (for messages, and to resolve relative paths).
+    pub path: PathBuf,
+    pub render: RenderSettings,
+    pub camera: CameraDesc,
+    pub world: WorldDesc,
+    /// Materials by name, in name order; objects refer to them by index.
+    pub materials: Vec<(String, MaterialDesc)>,
+    pub lights: Vec<LightDesc>,
+    pub objects: Vec<ObjectDesc>,
+    /// Index into `materials` for each object.
+    pub object_materials: Vec<u32>,
+}
+
+impl SceneDesc {
+    /// Reads and validates a scene file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, SceneError> {
+        let path = path.as_ref();
+        let src = std::fs::read_to_string(path).map_err(|source| SceneError::Io { path: path.to_owned(), source })?;
+        Self::parse(&src, path)
+    }
+
+    /// Parses and validates scene text; `path` is used in messages.
+    pub fn parse(src: &str, path: impl AsRef<Path>) -> Result<Self, SceneError> {
+        let path = path.as_ref().to_path_buf();
+        let file: SceneFile = toml::from_str(src).map_err(|e| {
+            let location = e.span().map(|s| Location::of_offset(src, s.start)).unwrap_or_default();
+            SceneError::Parse { path: path.clone(), location, message: e.message().trim_end().to_string() }
+        })?;
+        // Points at the offending key's line when it is written inside the
+        // span (`radius = -1`), else at the start of the span (its table).
+        let invalid = |span: std::ops::Range<usize>, field: String, message: String| {
+            let key = field.rsplit('.').next().unwrap_or("");
+            let offset = key_offset(src, span.clone(), key).unwrap_or(span.start);
+            SceneError::Invalid { path: path.clone(), location: Location::of_offset(src, offset), field, message }
+        };
+        // Spans of the top-level tables, for errors about values in them.
+        let table_span = |name: &str| -> std::ops::Range<usize> {
+            let header = format!("[{name}]");
+            src.find(&header).map(|i| i..i + header.len()).unwrap_or(0..0)
+        };
+
+        let mut render = RenderSettings::default();
+        if let Some(t) = file.render {
+            render.width = t.width.unwrap_or(render.width);
+            render.height = t.height.unwrap_or(render.height);
+            render.samples = t.samples.unwrap_or(render.samples);
+            render.max_depth = t.max_depth.unwrap_or(render.max_depth);
+            render.sampler = t.sampler.unwrap_or(render.sampler);
+        }
+        render.validate().map_err(|m| invalid(table_span("render"), "render".into(), m))?;
+
+        let cam = &file.camera;
+        let cam_err = |field: &str, m: String| invalid(table_span("camera"), format!("camera.{field}"), m);
+        for (name, v) in [("position", &cam.position), ("look_at", &cam.look_at), ("up", &cam.up)] {
+            if !v.is_finite() {
+                return Err(cam_err(name, format!("must be finite, got {:?}", v.0)));
+            }
+        }
+        let forward = cam.look_at.sub(&cam.position);
+        if forward.length() == 0.0 {
+            return Err(cam_err("look_at", "must differ from camera.position".into()));
+        }
+        if cam.up.cross(&forward).length() <= 1e-12 * cam.up.length() * forward.length() {
+            return Err(cam_err("up", "must not be zero or parallel to the view direction (look_at - position)".into()));
+        }
+        if !(cam.fov_y.0 > 0.0 && cam.fov_y.0 < 180.0) {
+            return Err(cam_err("fov_y", format!("must be in (0, 180) degrees, got {}", cam.fov_y.0)));
+        }
+
+        let world_span = table_span("world");
+        check_colour(&file.world.ambient).map_err(|m| invalid(world_span.clone(), "world.ambient".into(), m))?;
+        check_colour(&file.world.background).map_err(|m| invalid(world_span, "world.background".into(), m))?;
+
+        let mut materials = Vec::with_capacity(file.materials.len());
+        for (name, m) in &file.materials {
+            let field = |f: &str| format!("materials.{name}.{f}");
+            let err = |f: &str, msg: String| invalid(m.span(), field(f), msg);
+            let mv = m.get_ref();
+            for (f, c) in [("ambient", &mv.ambient), ("diffuse", &mv.diffuse), ("specular", &mv.specular)] {
+                check_colour(c).map_err(|msg| err(f, msg))?;
+            }
+            for (f, v) in [("shininess", mv.shininess), ("reflectivity", mv.reflectivity), ("transparency", mv.transparency)] {
+                if !(v.0.is_finite() && v.0 >= 0.0) {
+                    return Err(err(f, format!("must be a finite number >= 0, got {}", v.0)));
+                }
+            }
+            if !(mv.ior.0.is_finite() && mv.ior.0 > 0.0) {
+                return Err(err("ior", format!("must be a finite number > 0, got {}", mv.ior.0)));
+            }
+            materials.push((name.clone(), mv.clone()));
+        }
+
+        let mut lights = Vec::with_capacity(file.lights.len());
+        for (i, l) in file.lights.iter().enumerate() {
+            let lv = l.get_ref();
+            if !lv.position.is_finite() {
+                return Err(invalid(l.span(), format!("lights[{i}].position"), format!("must be finite, got {:?}", lv.position.0)));
+            }
+            for (f, c) in [("diffuse", &lv.diffuse), ("specular", &lv.specular)] {
+                check_colour(c).map_err(|m| invalid(l.span(), format!("lights[{i}].{f}"), m))?;
+            }
+            lights.push(lv.clone());
+        }
+
+        let mut objects = Vec::with_capacity(file.objects.len());
+        let mut object_materials = Vec::with_capacity(file.objects.len());
+        for (i, o) in file.objects.iter().enumerate() {
+            let ov = o.get_ref();
+            let err = |f: &str, m: String| invalid(o.span(), format!("objects[{i}] ({}).{f}", ov.kind()), m);
+            let mut ov = ov.clone();
+            match &mut ov {
+                ObjectDesc::Sphere { center, radius, .. } => {
+                    if !center.is_finite() {
+                        return Err(err("center", format!("must be finite, got {:?}", center.0)));
+                    }
+                    if !(radius.0.is_finite() && radius.0 > 0.0) {
+                        return Err(err("radius", format!("must be a finite number > 0, got {}", radius.0)));
+                    }
+                }
+                ObjectDesc::Plane { normal, distance, .. } => {
+                    let len = normal.length();
+                    if !normal.is_finite() || !(len > 0.0) {
+                        return Err(err("normal", format!("must be a finite, non-zero vector, got {:?}", normal.0)));
+                    }
+                    if !distance.0.is_finite() {
+                        return Err(err("distance", format!("must be finite, got {}", distance.0)));
+                    }
+                    // Normalise: { p : p.n = d } is the same plane as { p : p.(n/|n|) = d/|n| }.
+                    normal.0 = normal.0.map(|v| v / len);
+                    distance.0 /= len;
+                }
+            }
+            let name = ov.material();
+            let Some(index) = materials.iter().position(|(n, _)| n == name) else {
+                let known: Vec<_> = materials.iter().map(|(n, _)| n.as_str()).collect();
+                return Err(err(
+                    "material",
+                    format!("unknown material {name:?}; defined materials: {}", if known.is_empty() { "none".to_string() } else { known.join(", ") }),
+                ));
+            };
+            object_materials.push(index as u32);
+            objects.push(ov);
+        }
+
+        Ok(SceneDesc { path, render, camera: file.camera, world: file.world, materials, lights, objects, object_materials })
+    }
+}
+
+/// Byte offset of a line `key = ...` in the table that starts at `span`
+/// (toml spans of array-of-tables elements cover only their header, so
+/// the search runs on to the next table header).
+fn key_offset(src: &str, span: std::ops::Range<usize>, key: &str) -> Option<usize> {
+    if key.is_empty() {
+        return None;
+    }
+    let text = src.get(span.start..)?;
+    let mut offset = 0;
+    for (i, line) in text.split_inclusive('\n').enumerate() {
+        let trimmed = line.trim_start();
+        if i > 0 && trimmed.starts_with('[') {
+            break;
+        }
+        if let Some(rest) = trimmed.strip_prefix(key) {
+            if rest.trim_start().starts_with('=') {
+                return Some(span.start + offset + (line.len() - trimmed.len()));
+            }
+        }
+        offset += line.len();
+    }
+    None
+}
+
+fn check_colour(c: &Vec3) -> Result<(), String> {
+    if c.is_finite() && c.0.iter().all(|&v| v >= 0.0) {
+        Ok(())
+    } else {
+        Err(format!("must be three finite numbers >= 0, got {:?}", c.0))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str = r#"
+[camera]
+position = [0, 1, -6]
+look_at = [0.0, 1.0, 0.0]
+
+[materials.red]
+diffuse = [1, 0, 0]
+
+[[objects]]
+type = "sphere"
+center = [0.0, 1.0, 0.0]
+radius = 1
+material = "red"
+"#;
+
+    #[test]
+    fn minimal_scene_takes_defaults() {
+        let s = SceneDesc::parse(MINIMAL, "min.toml").unwrap();
+        assert_eq!(s.render, RenderSettings::default());
+        assert_eq!(s.camera.fov_y, Num(60.0));
+        assert_eq!(s.objects.len(), 1);
+        assert_eq!(s.materials[0].1.ior, Num(1.0));
+    }
+
+    fn err(src: &str) -> String {
+        SceneDesc::parse(src, "bad.toml").unwrap_err().to_string()
+    }
+
+    #[test]
+    fn errors_name_file_line_and_field() {
+        let e = err(&MINIMAL.replace("radius = 1", "radius = -1"));
+        assert!(e.starts_with("bad.toml:12:1: objects[0] (sphere).radius: must be a finite number > 0, got -1"), "{e}");
+        let e = err(&MINIMAL.replace("material = \"red\"", "material = \"blue\""));
+        assert!(e.contains("objects[0] (sphere).material: unknown material \"blue\"; defined materials: red"), "{e}");
+        let e = err(&MINIMAL.replace("radius = 1", "radius = 1\ncolour = 3"));
+        assert!(e.starts_with("bad.toml:") && e.contains("unknown field `colour`"), "{e}");
+        let e = err(&MINIMAL.replace("radius = 1", "radius = \"big\""));
+        assert!(e.contains("bad.toml:") && e.contains("a number"), "{e}");
+        let e = err(&MINIMAL.replace("[camera]", "[camera"));
+        assert!(e.starts_with("bad.toml:2:"), "{e}");
+        let e = err(&MINIMAL.replace("radius = 1", "radius = nan"));
+        assert!(e.contains("radius: must be a finite number > 0, got NaN"), "{e}");
+    }
+
+    #[test]
+    fn plane_normal_is_normalised_with_its_distance() {
+        let src = MINIMAL.replace(
+            "type = \"sphere\"\ncenter = [0.0, 1.0, 0.0]\nradius = 1",
+            "type = \"plane\"\nnormal = [0, 2, 0]\ndistance = 4",
+        );
+        let s = SceneDesc::parse(&src, "p.toml").unwrap();
+        assert_eq!(s.objects[0], ObjectDesc::Plane { normal: Vec3([0.0, 1.0, 0.0]), distance: Num(2.0), material: "red".into() });
+        let e = err(&src.replace("[0, 2, 0]", "[0, 0, 0]"));
+        assert!(e.contains("objects[0] (plane).normal: must be a finite, non-zero vector"), "{e}");
+    }
+}

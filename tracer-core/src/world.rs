@@ -1,0 +1,228 @@
+//! Render-ready scene state for one precision and one frame.
+//!
+//! Built from a [`SceneDesc`] in `f64` and only then rounded to the render
+//! precision, *relative to the camera*: every position is stored as an
+//! offset from the camera. Points near the camera, where precision matters
+//! most, then have small coordinates, so a 1e-4 sphere placed 1e5 from the
+//! world origin is still resolved in `f32`.
+
+use crate::geometry::{Plane, PrimId, Sphere};
+use crate::math::{Ray, Real, Vector3};
+use crate::scene::{ObjectDesc, RenderSettings, SceneDesc, Vec3};
+
+#[derive(Clone, Copy, Debug)]
+pub struct Material<R: Real> {
+    pub ambient: R::V3,
+    pub diffuse: R::V3,
+    pub specular: R::V3,
+    pub shininess: R,
+    pub reflectivity: R,
+    pub transparency: R,
+    pub ior: R,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct PointLight<R: Real> {
+    pub position: R::V3,
+    pub diffuse: R::V3,
+    pub specular: R::V3,
+}
+
+/// Pinhole camera at the (camera-relative) origin.
+#[derive(Clone, Copy, Debug)]
+pub struct Camera<R: Real> {
+    pub forward: R::V3,
+    /// right * tan(fov_y/2) * aspect
+    pub right: R::V3,
+    /// up * tan(fov_y/2)
+    pub up: R::V3,
+    pub inv_width: R,
+    pub inv_height: R,
+}
+
+impl<R: Real> Camera<R> {
+    /// The ray through raster point (sx, sy): direction
+    /// normalize(f + (2 sx/W - 1) t (W/H) r + (1 - 2 sy/H) t u).
+    #[inline(always)]
+    pub fn ray(&self, sx: R, sy: R) -> Ray<R> {
+        let a = R::TWO * sx * self.inv_width - R::ONE;
+        let b = R::ONE - R::TWO * sy * self.inv_height;
+        let d = self.forward + self.right * a + self.up * b;
+        Ray::new(R::V3::zero(), d.normalize())
+    }
+}
+
+/// Which optional stages a scene can reach, so the renderers skip the rest.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Features {
+    pub reflection: bool,
+    pub refraction: bool,
+}
+
+#[derive(Clone, Debug)]
+pub struct World<R: Real> {
+    pub spheres: Vec<Sphere<R>>,
+    pub planes: Vec<Plane<R>>,
+    pub materials: Vec<Material<R>>,
+    pub lights: Vec<PointLight<R>>,
+    pub ambient: R::V3,
+    pub background: R::V3,
+    pub camera: Camera<R>,
+    pub settings: RenderSettings,
+    pub features: Features,
+    /// World-space position of the camera, which is this world's origin.
+    pub camera_position: [f64; 3],
+}
+
+fn v<R: Real>(a: &Vec3) -> R::V3 {
+    R::V3::from_array(a.0)
+}
+
+fn rel<R: Real>(p: &Vec3, origin: &[f64; 3]) -> R::V3 {
+    R::V3::from_array([p.0[0] - origin[0], p.0[1] - origin[1], p.0[2] - origin[2]])
+}
+
+impl<R: Real> World<R> {
+    /// Builds the render-ready state of `desc` for `settings` (validated by
+    /// the caller) and `frame`.
+    pub fn build(desc: &SceneDesc, settings: &RenderSettings, _frame: u32) -> Self {
+        let cam = &desc.camera;
+        let origin = cam.position.0;
+        // Camera basis in f64, then rounded.
+        let f = normalize64(sub64(cam.look_at.0, origin));
+        let r = normalize64(cross64(f, cam.up.0));
+        let u = cross64(r, f);
+        let t = (cam.fov_y.0.to_radians() * 0.5).tan();
+        let aspect = settings.width as f64 / settings.height as f64;
+        let camera = Camera {
+            forward: R::V3::from_array(f),
+            right: R::V3::from_array(r.map(|x| x * t * aspect)),
+            up: R::V3::from_array(u.map(|x| x * t)),
+            inv_width: R::from_f64(1.0 / settings.width as f64),
+            inv_height: R::from_f64(1.0 / settings.height as f64),
+        };
+
+        let materials: Vec<Material<R>> = desc
+            .materials
+            .iter()
+            .map(|(_, m)| Material {
+                ambient: v::<R>(&m.ambient),
+                diffuse: v::<R>(&m.diffuse),
+                specular: v::<R>(&m.specular),
+                shininess: R::from_f64(m.shininess.0),
+                reflectivity: R::from_f64(m.reflectivity.0),
+                transparency: R::from_f64(m.transparency.0),
+                ior: R::from_f64(m.ior.0),
+            })
+            .collect();
+
+        let mut spheres = Vec::new();
+        let mut planes = Vec::new();
+        let mut features = Features::default();
+        for (o, &mat) in desc.objects.iter().zip(&desc.object_materials) {
+            let m = &materials[mat as usize];
+            // Depth 0 reaches no secondary ray at all.
+            features.reflection |= m.reflectivity > R::ZERO && settings.max_depth > 0;
+            features.refraction |= m.transparency > R::ZERO && settings.max_depth > 0;
+            match o {
+                ObjectDesc::Sphere { center, radius, .. } => spheres.push(Sphere {
+                    center: rel::<R>(center, &origin),
+                    radius: R::from_f64(radius.0),
+                    material: mat,
+                }),
+                ObjectDesc::Plane { normal, distance, .. } => {
+                    let n = normal.0;
+                    let d = distance.0 - (n[0] * origin[0] + n[1] * origin[1] + n[2] * origin[2]);
+                    planes.push(Plane { normal: R::V3::from_array(n), distance: R::from_f64(d), material: mat })
+                }
+            }
+        }
+        // Total internal reflection sends transparency into a reflected ray.
+        if features.refraction {
+            features.reflection = true;
+        }
+
+        let lights = desc
+            .lights
+            .iter()
+            .map(|l| PointLight { position: rel::<R>(&l.position, &origin), diffuse: v::<R>(&l.diffuse), specular: v::<R>(&l.specular) })
+            .collect();
+
+        World {
+            spheres,
+            planes,
+            materials,
+            lights,
+            ambient: v::<R>(&desc.world.ambient),
+            background: v::<R>(&desc.world.background),
+            camera,
+            settings: *settings,
+            features,
+            camera_position: origin,
+        }
+    }
+
+    /// Nearest hit in (0, t_max); `skip` is the primitive the ray starts on.
+    #[inline(always)]
+    pub fn closest_hit(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+        let mut best = R::INFINITY;
+        let mut id = PrimId::NONE;
+        for (i, s) in self.spheres.iter().enumerate() {
+            let pid = PrimId::new(PrimId::SPHERE, i as u32);
+            if let Some(t) = s.intersect(ray, best, pid == skip) {
+                best = t;
+                id = pid;
+            }
+        }
+        for (i, p) in self.planes.iter().enumerate() {
+            let pid = PrimId::new(PrimId::PLANE, i as u32);
+            if let Some(t) = p.intersect(ray, best, pid == skip) {
+                best = t;
+                id = pid;
+            }
+        }
+        (id != PrimId::NONE).then_some((best, id))
+    }
+
+    /// Whether anything lies on the ray before `t_max`.
+    #[inline(always)]
+    pub fn occluded(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
+        self.spheres
+            .iter()
+            .enumerate()
+            .any(|(i, s)| s.intersect(ray, t_max, PrimId::new(PrimId::SPHERE, i as u32) == skip).is_some())
+            || self
+                .planes
+                .iter()
+                .enumerate()
+                .any(|(i, p)| p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip).is_some())
+    }
+
+    /// Surface point (snapped onto the primitive), outward normal and material of a hit.
+    #[inline(always)]
+    pub fn surface(&self, id: PrimId, p: R::V3) -> (R::V3, R::V3, u32) {
+        match id.kind() {
+            PrimId::SPHERE => {
+                let s = &self.spheres[id.index()];
+                let (p, n) = s.surface(p);
+                (p, n, s.material)
+            }
+            _ => {
+                let pl = &self.planes[id.index()];
+                let (p, n) = pl.surface(p);
+                (p, n, pl.material)
+            }
+        }
+    }
+}
+
+fn sub64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn cross64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+fn normalize64(a: [f64; 3]) -> [f64; 3] {
+    let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+    a.map(|x| x / l)
+}
