@@ -1,5 +1,6 @@
 //! Command-line interface: one subcommand per module.
 
+mod bench;
 mod render;
 
 use std::process::ExitCode;
@@ -21,10 +22,13 @@ pub struct Cli {
 pub enum Command {
     /// Render a scene in this process (no coordinator, no workers).
     Render(render::RenderArgs),
+    /// Benchmark suites: speed and error against a converged reference, as CSV and plots.
+    Bench(bench::BenchArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Render(args) => render::run(args),
+        Command::Bench(args) => bench::run(args),
     }
 }
