@@ -222,6 +222,7 @@ fn a_worker_killed_mid_job_loses_nothing() {
     let job = submit(&c.url(), &scene, &args);
     wait_for("some units done", Duration::from_secs(60), || status(&c.url(), &job).units_done >= 4);
     victim.sigkill();
+    assert!(status(&c.url(), &job).units_done < 108, "the worker was killed mid-job");
     let s = wait_done(&c.url(), &job, Duration::from_secs(120));
     assert_eq!((s.units_accepted, s.units_total, s.results_duplicate), (108, 108, 0));
     assert!(c.proc.log().contains("worker left"), "the coordinator noticed the dead worker");
@@ -237,11 +238,11 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
     let url = c.url();
     let _w: Vec<Proc> = (0..2).map(|i| start_worker(dir.path(), &url, &format!("w{i}"))).collect();
     let scene = repo("examples/animation.toml");
-    let settings = ["--width", "128", "--height", "96", "--samples", "4"];
+    let settings = ["--width", "192", "--height", "144", "--samples", "16"];
     let mut args = settings.to_vec();
     args.extend(["--frames", "1..3", "--tile-size", "16"]);
     let job = submit(&url, &scene, &args);
-    let total = 3 * 48;
+    let total = 3 * 108;
     let mut before = 0;
     wait_for("a third of the units", Duration::from_secs(60), || {
         before = status(&url, &job).units_done;
@@ -253,11 +254,15 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
     let restored = status(&url, &job);
     assert!(restored.units_done >= before, "restored {} finished units, {} were reported before the kill", restored.units_done, before);
     assert_eq!(restored.units_accepted, restored.units_done, "every restored unit was accepted exactly once");
+    assert!(restored.units_done < total, "the coordinator was killed mid-job");
     let s = wait_done(&url, &job, Duration::from_secs(120));
     // units_accepted is committed with each unit's film: had a finished unit
     // been rendered and accepted again, it would exceed units_total.
     assert_eq!((s.units_accepted, s.units_total, s.results_duplicate), (total, total, 0));
     assert!(c.proc.log().contains("job restored"));
+    for w in &_w {
+        assert_eq!(w.log().matches("registered").count(), 2, "the worker reconnected: {}", w.log());
+    }
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 
