@@ -89,12 +89,12 @@ fn rel<R: Real>(p: &Vec3, origin: &[f64; 3]) -> R::V3 {
 impl<R: Real> World<R> {
     /// Builds the render-ready state of `desc` for `settings` (validated by
     /// the caller) and `frame`.
-    pub fn build(desc: &SceneDesc, settings: &RenderSettings, _frame: u32) -> Self {
-        let cam = &desc.camera;
+    pub fn build(desc: &SceneDesc, settings: &RenderSettings, frame: u32) -> Self {
+        let cam = desc.camera.at(frame);
         let origin = cam.position.0;
         // Camera basis in f64, then rounded.
         let f = normalize64(sub64(cam.look_at.0, origin));
-        let r = normalize64(cross64(f, cam.up.0));
+        let r = normalize64(cross64(f, desc.camera.up.0));
         let u = cross64(r, f);
         let t = (cam.fov_y.0.to_radians() * 0.5).tan();
         let aspect = settings.width as f64 / settings.height as f64;

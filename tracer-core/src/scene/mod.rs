@@ -4,7 +4,7 @@ mod desc;
 mod error;
 
 pub use desc::{
-    CameraDesc, LightDesc, MaterialDesc, Num, ObjectDesc, RenderSettings, SceneDesc, Vec3, WorldDesc, MAX_DEPTH,
+    CameraDesc, CameraKeyframe, CameraPose, LightDesc, MaterialDesc, Num, ObjectDesc, RenderSettings, SceneDesc, Vec3, WorldDesc, MAX_DEPTH,
     MAX_IMAGE_SIDE, MAX_SAMPLES,
 };
 pub use error::{Location, SceneError};
