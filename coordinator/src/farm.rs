@@ -1151,3 +1151,77 @@ type UnitIndex = u32;
 pub fn rays_of(c: &Counters) -> RayCounts {
     RayCounts { primary: c.rays[0], shadow: c.rays[1], reflection: c.rays[2], refraction: c.rays[3] }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SCENE: &str = r#"
+[camera]
+position = [0, 1, -6]
+look_at = [0, 1, 0]
+[materials.red]
+diffuse = [1, 0, 0]
+[[objects]]
+type = "sphere"
+center = [0, 1, 0]
+radius = 1
+material = "red"
+"#;
+
+    /// A well-formed result for a lease, as a worker taking `seconds` would send.
+    fn result(worker: &str, l: &LeaseView, seconds: f64) -> ResultData {
+        let mut film = Film::new(l.rect);
+        film.counts.iter_mut().for_each(|c| *c = l.samples.len());
+        film.rays.primary = l.rect.area() as u64 * l.samples.len() as u64;
+        ResultData {
+            worker_id: worker.into(),
+            lease_id: l.lease_id.clone(),
+            rect: l.rect,
+            samples: l.samples,
+            film: Ok(film),
+            render_seconds: seconds,
+            failure: None,
+        }
+    }
+
+    #[tokio::test]
+    async fn faster_workers_get_larger_units_and_results_count_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let job = farm
+            .submit(Submission {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                scene: SCENE.as_bytes().to_vec(),
+                assets: vec![],
+                overrides: Overrides { width: Some(512), height: Some(64), samples: Some(4), ..Default::default() },
+                first_frame: 0,
+                last_frame: 0,
+                priority: 0,
+                tile_size: 16,
+                samples_per_unit: 0,
+                max_attempts: 0,
+            })
+            .await
+            .unwrap();
+        let fast = farm.register("fast".into(), 8, "cpu".into(), String::new(), String::new());
+        let slow = farm.register("slow".into(), 1, "cpu".into(), String::new(), String::new());
+        // Unknown speed: one tile each.
+        let (f1, s1) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
+        assert_eq!((f1.rect.width, s1.rect.width), (16, 16));
+        // A 16x16x4 unit in 1 ms vs in 1 s.
+        assert_eq!(farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap(), Outcome::Accepted);
+        let (f2, s2) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
+        assert_eq!(f2.rect.width, 16 * farm.config.max_tiles_per_lease, "the fast worker gets a row of joined tiles");
+        assert_eq!(s2.rect.width, 16, "the slow worker keeps single tiles");
+        // A result counts once; the same lease again is a duplicate, dropped.
+        assert_eq!(farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(), Outcome::Accepted);
+        assert!(matches!(farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(), Outcome::Duplicate(_)));
+        // Another worker cannot complete a lease it does not hold.
+        assert!(matches!(farm.submit_result(result(&fast, &s2, 0.01)).await.unwrap(), Outcome::Rejected(_)));
+        let v = farm.job(&job).unwrap();
+        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate), (18, 18, 1));
+    }
+}
