@@ -454,7 +454,7 @@ fn python_grpcio_client_submits_and_watches_a_job() {
         assert!(pip.is_ok_and(|s| s.success()) && has(&python), "this test needs Python with grpcio and grpcio-tools (pip install grpcio grpcio-tools)");
     }
     let dir = tempfile::tempdir().expect("tempdir");
-    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--log-format", "json"]);
     let _w = start_worker(dir.path(), &c.url(), "py");
     let stubs = dir.path().join("stubs");
     std::fs::create_dir_all(&stubs).expect("mkdir");
@@ -479,6 +479,10 @@ fn python_grpcio_client_submits_and_watches_a_job() {
     let job = stdout.lines().next().and_then(|l| l.strip_prefix("job ")).expect("job id line").to_string();
     assert!(stdout.lines().any(|l| l == "final JOB_STATE_DONE 100.0"), "{stdout}");
     assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
+    // --log-format json: one JSON object per line.
+    let log = c.proc.log();
+    assert!(log.lines().all(|l| l.starts_with('{') && l.ends_with('}')), "{log}");
+    assert!(log.contains(r#""message":"job accepted""#) && log.contains(r#""message":"job done""#), "{log}");
 }
 
 #[test]

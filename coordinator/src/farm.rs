@@ -653,7 +653,7 @@ impl Farm {
     /// Takes a worker's result: accepted only from the lease's holder, only
     /// once, and only if it is exactly the leased unit's data.
     pub async fn submit_result(self: &Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
-        let taken: Result<(String, Vec<u32>, u32), (Outcome, Option<JobRecord>, Option<(String, Counters)>)> = 'take: {
+        let taken: Result<Taken, Refused> = 'take: {
             let mut st = self.state.lock().expect("state lock");
             let st = &mut *st;
             if let Some(w) = st.workers.get_mut(&r.worker_id) {
@@ -905,10 +905,8 @@ impl Farm {
                 w.name.clone()
             });
             tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
-            if let Some(job) = st.jobs.get_mut(&l.job) {
-                if !job.state.is_terminal() {
-                    job.pending.extend(l.units.iter().copied());
-                }
+            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                job.pending.extend(l.units.iter().copied());
             }
             st.end_lease(id, l.job, false);
         }
@@ -950,6 +948,11 @@ impl Farm {
         }
     }
 }
+
+/// A result's lease, taken for commit: (job, units, frame).
+type Taken = (String, Vec<u32>, u32);
+/// A result not taken: its outcome, and a job record and counters to persist.
+type Refused = (Outcome, Option<JobRecord>, Option<(String, Counters)>);
 
 fn unknown_worker(id: &str) -> FarmError {
     FarmError::NotFound(format!("unknown worker {id:?}: register again (the coordinator restarted or timed the worker out)"))
