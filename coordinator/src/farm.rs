@@ -559,6 +559,7 @@ impl Farm {
         let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
         let speed = worker.speed;
+        let workers = st.workers.len();
         let mut order: Vec<(&String, &Job)> = st.jobs.iter().filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty()).collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
         let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
@@ -568,8 +569,12 @@ impl Farm {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
                 let Some(&first) = job.pending.iter().next() else { break };
                 let base = job.layout.unit_samples(job.layout.unit(first)).max(1) as f64;
+                // Near the end of a job, big leases would leave the other
+                // workers idle while one finishes: keep at least two leases'
+                // worth of pending units per worker.
+                let fair = (job.pending.len() / (2 * workers).max(1)).max(1) as u32;
                 let want = if speed > 0.0 {
-                    ((speed * self.config.target_unit_seconds / base).floor() as u32).clamp(1, self.config.max_tiles_per_lease)
+                    ((speed * self.config.target_unit_seconds / base).floor() as u32).clamp(1, self.config.max_tiles_per_lease).min(fair)
                 } else {
                     1
                 };
