@@ -493,7 +493,8 @@ fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
     let mut w = start_worker(dir.path(), &c.url(), "drainer");
     let scene = repo("examples/resolution.toml");
-    let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "16", "--tile-size", "128"]);
+    // Two units of over a second each, so SIGTERM lands inside the first.
+    let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "64", "--tile-size", "128"]);
     wait_for("the worker to hold a unit", Duration::from_secs(30), || {
         rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
             .iter()
