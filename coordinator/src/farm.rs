@@ -226,6 +226,8 @@ struct Lease {
     rect: Rect,
     samples: SampleRange,
     deadline: Instant,
+    /// Pixel-samples the worker reports done (heartbeats).
+    progress: u64,
 }
 
 struct Worker {
@@ -626,6 +628,7 @@ impl Farm {
                         rect,
                         samples,
                         deadline: Instant::now() + self.config.lease_timeout,
+                        progress: 0,
                     },
                 );
                 st.workers.get_mut(worker_id).expect("worker checked").leases.insert(lease_id.clone());
@@ -646,9 +649,12 @@ impl Farm {
         worker.last_seen = Instant::now();
         let deadline = Instant::now() + self.config.lease_timeout;
         let mut gone = Vec::new();
-        for (id, _samples_done) in leases {
+        for (id, samples_done) in leases {
             match st.leases.get_mut(id) {
-                Some(l) if l.worker == worker_id => l.deadline = deadline,
+                Some(l) if l.worker == worker_id => {
+                    l.deadline = deadline;
+                    l.progress = *samples_done;
+                }
                 _ => gone.push(id.clone()),
             }
         }
@@ -948,6 +954,7 @@ impl Farm {
                 rays_per_s = format!("{:.3e}", v.rays_per_second),
                 eta_s = format!("{:.1}", v.eta_seconds),
                 leases = st.leases.values().filter(|l| l.job == job.rec.id).count(),
+                in_flight_samples = st.leases.values().filter(|l| l.job == job.rec.id).map(|l| l.progress).sum::<u64>(),
                 "progress"
             );
         }
