@@ -24,9 +24,15 @@ SAMPLES=${SAMPLES:-64}
 LOAD_CLIENTS=${LOAD_CLIENTS:-64}
 LOAD_SECONDS=${LOAD_SECONDS:-10}
 
-cargo build --release --quiet --bin tessera
-cargo build --release --quiet -p tessera-coordinator --example result_load
-T=$PWD/target/release/tessera
+# TESSERA_BIN / RESULT_LOAD_BIN: prebuilt binaries (machines without cargo).
+if [ -z "${TESSERA_BIN:-}" ]; then
+    cargo build --release --quiet --bin tessera
+    cargo build --release --quiet -p tessera-coordinator --example result_load
+fi
+T=${TESSERA_BIN:-$PWD/target/release/tessera}
+LOAD=${RESULT_LOAD_BIN:-$PWD/target/release/examples/result_load}
+# Arithmetic with awk: bc is not on every machine.
+calc() { awk "BEGIN { print $* }"; }
 OUT=${OUT:-bench-out/farm}
 mkdir -p "$OUT"
 TICK=$(getconf CLK_TCK)
@@ -52,7 +58,7 @@ echo "machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -
 echo "scene: $SCENE ${WIDTH}x${HEIGHT} ${SAMPLES} spp; workers of $THREADS threads"
 start=$(date +%s.%N)
 "$T" render "$SCENE" --width "$WIDTH" --height "$HEIGHT" --samples "$SAMPLES" --threads "$THREADS" -o "$OUT/local.png" | tail -1
-echo "local render (tessera render --threads $THREADS): $(echo "$(date +%s.%N) - $start" | bc) s"
+echo "local render (tessera render --threads $THREADS): $(calc "$(date +%s.%N) - $start") s"
 echo
 printf "%8s %10s %9s %11s %14s %8s %15s\n" workers seconds speedup efficiency coordinator_cpu units bytes_per_unit
 base=""
@@ -69,13 +75,13 @@ for n in $(seq 1 "$MAX"); do
     t0=$(date +%s.%N)
     id=$("$T" submit "$SCENE" --coordinator "$URL" --width "$WIDTH" --height "$HEIGHT" --samples "$SAMPLES" --wait)
     t1=$(date +%s.%N)
-    secs=$(echo "$t1 - $t0" | bc -l)
+    secs=$(calc "$t1 - $t0")
     cpu=$(cpu_seconds "$COORD")
     units=$("$T" status "$id" --coordinator "$URL" | sed -n 's/.*(\([0-9]*\) of [0-9]* units).*/\1/p')
     bytes=0; for p in "${wpids[@]}"; do bytes=$((bytes + $(wchar "$p"))); done
     [ -z "$base" ] && base=$secs
-    printf "%8d %10.2f %9.2f %10.1f%% %13ss %8d %15d\n" "$n" "$secs" "$(echo "$base / $secs" | bc -l)" \
-        "$(echo "100 * $base / $secs / $n" | bc -l)" "$cpu" "$units" "$((bytes / units))"
+    printf "%8d %10.2f %9.2f %10.1f%% %13ss %8d %15d\n" "$n" "$secs" "$(calc "$base / $secs")" \
+        "$(calc "100 * $base / $secs / $n")" "$cpu" "$units" "$((bytes / units))"
     "$T" fetch "$id" --coordinator "$URL" -o "$OUT/frames-$n" 2>/dev/null
     cmp -s "$OUT/frames-$n/frame_0000.png" "$OUT/local.png" || echo "   WARNING: image differs from tessera render"
     cleanup
@@ -84,5 +90,5 @@ done
 echo
 start_coordinator "$OUT/data-load"
 cpu0=$(cpu_seconds "$COORD")
-target/release/examples/result_load "$URL" "$SCENE" "$LOAD_CLIENTS" "$LOAD_SECONDS"
-echo "coordinator CPU during the load: $(echo "$(cpu_seconds "$COORD") - $cpu0" | bc) s over ${LOAD_SECONDS} s"
+"$LOAD" "$URL" "$SCENE" "$LOAD_CLIENTS" "$LOAD_SECONDS"
+echo "coordinator CPU during the load: $(calc "$(cpu_seconds "$COORD") - $cpu0") s over ${LOAD_SECONDS} s"
