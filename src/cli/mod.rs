@@ -1,5 +1,7 @@
 //! Command-line interface: one subcommand per module.
 
+#[cfg(feature = "gpu")]
+mod gpus;
 mod render;
 
 use std::process::ExitCode;
@@ -21,10 +23,15 @@ pub struct Cli {
 pub enum Command {
     /// Render a scene in this process (no coordinator, no workers).
     Render(render::RenderArgs),
+    /// List the GPU adapters `--backend gpu --adapter NAME|INDEX` can use.
+    #[cfg(feature = "gpu")]
+    Gpus,
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Render(args) => render::run(args),
+        #[cfg(feature = "gpu")]
+        Command::Gpus => gpus::run(),
     }
 }

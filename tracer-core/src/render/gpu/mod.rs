@@ -1,0 +1,736 @@
+//! The GPU renderer: the same renders as [`super::CpuRenderer`] through a
+//! wgpu compute shader (Vulkan, Metal or DX12; lavapipe in CI).
+//!
+//! Data flow: a [`PreparedFrame::F32`] is packed into [`layout::SceneData`]
+//! (per-kind primitive arrays, materials, lights, camera) and uploaded once;
+//! the compute pipeline is specialised to the scene through overridable
+//! constants (primitive and light counts, `max_depth`, whether reflection or
+//! refraction can happen at all) and cached with it, so tiles of the same
+//! frame reuse both. A render clears a per-pixel buffer of 32.32 fixed-point
+//! sums (two u32 words per channel; WGSL has no u64), splits the rectangle x
+//! sample range into dispatches of bounded size, groups them into bounded
+//! submissions (no single submission long enough for a driver watchdog),
+//! and reads back sums and ray counters into a [`Film`] whose `u64` sums
+//! merge exactly with CPU films.
+//!
+//! `whitted.wgsl` mirrors `render/whitted.rs`; `sampling.wgsl` mirrors
+//! `sampling.rs`; `layout.rs` mirrors the WGSL structs.
+
+pub mod layout;
+
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use wgpu::util::DeviceExt as _;
+
+use self::layout::{DispatchParams, SceneData, COUNTERS, SUM_WORDS};
+use super::{PreparedFrame, RenderError};
+use crate::film::{Film, RayCounts, Rect, SampleRange};
+
+const SAMPLING_WGSL: &str = include_str!("sampling.wgsl");
+const WHITTED_WGSL: &str = include_str!("whitted.wgsl");
+
+/// Dynamic uniform offsets must be multiples of this (256 is the largest
+/// alignment any adapter asks for).
+const PARAMS_STRIDE: u64 = 256;
+/// Dispatch parameter slots per submission.
+const PARAMS_SLOTS: usize = 64;
+/// How long to wait for one submission before calling the device hung.
+const SUBMISSION_TIMEOUT: Duration = Duration::from_secs(120);
+
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error("no GPU adapter found (wgpu saw no Vulkan/Metal/DX12 device; on Linux install mesa-vulkan-drivers for lavapipe)")]
+    NoAdapter,
+    #[error("no GPU adapter matches {wanted:?}; available: {available}")]
+    AdapterNotFound { wanted: String, available: String },
+    #[error("cannot open GPU device on {adapter}: {message}")]
+    RequestDevice { adapter: String, message: String },
+    #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
+    F64Unsupported,
+    #[error(transparent)]
+    Request(#[from] RenderError),
+    #[error("{what} needs {needed} bytes but the GPU allows at most {limit} ({limit_name}); render a smaller rectangle")]
+    TooLarge { what: &'static str, needed: u64, limit: u64, limit_name: &'static str },
+    #[error("invalid workgroup shape {x}x{y}: need 1..={max} invocations and each side within the adapter's limits")]
+    Workgroup { x: u32, y: u32, max: u32 },
+    #[error("GPU out of memory: {0}")]
+    OutOfMemory(String),
+    #[error("GPU device lost: {0}")]
+    DeviceLost(String),
+    #[error("GPU error: {0}")]
+    Device(String),
+    #[error("GPU did not finish a submission within {0:?} (hung or far too much work per submission)")]
+    Timeout(Duration),
+    #[error("cannot read GPU results back: {0}")]
+    Readback(String),
+}
+
+/// One adapter as `tessera gpus` lists it.
+#[derive(Clone, Debug)]
+pub struct AdapterSummary {
+    pub index: usize,
+    pub name: String,
+    pub device_type: String,
+    pub backend: String,
+    pub driver: String,
+    pub driver_info: String,
+}
+
+impl std::fmt::Display for AdapterSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {} ({}, {}, driver {} {})", self.index, self.name, self.device_type, self.backend, self.driver, self.driver_info)
+    }
+}
+
+fn instance() -> wgpu::Instance {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
+    // No validation layers by default (slow, and absent on most machines);
+    // WGPU_DEBUG / WGPU_VALIDATION and WGPU_BACKEND still apply.
+    desc.flags = wgpu::InstanceFlags::empty();
+    wgpu::Instance::new(desc.with_env())
+}
+
+fn adapters(instance: &wgpu::Instance) -> Vec<wgpu::Adapter> {
+    pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()))
+}
+
+fn summary(index: usize, a: &wgpu::Adapter) -> AdapterSummary {
+    let i = a.get_info();
+    AdapterSummary {
+        index,
+        name: i.name,
+        device_type: format!("{:?}", i.device_type),
+        backend: format!("{:?}", i.backend),
+        driver: i.driver,
+        driver_info: i.driver_info,
+    }
+}
+
+/// Every adapter wgpu can use on this machine, in a stable order (the
+/// indices `--adapter N` takes).
+pub fn list_adapters() -> Vec<AdapterSummary> {
+    adapters(&instance()).iter().enumerate().map(|(i, a)| summary(i, a)).collect()
+}
+
+fn type_rank(t: wgpu::DeviceType) -> u32 {
+    match t {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Cpu => 3,
+        wgpu::DeviceType::Other => 4,
+    }
+}
+
+/// Launch shape and work split. The defaults are the best of the
+/// launch-shape sweep (see docs/benchmarks.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct GpuOptions {
+    /// Workgroup size in pixels (x, y).
+    pub workgroup: (u32, u32),
+    /// Upper bound on pixel-samples one dispatch traces.
+    pub dispatch_pixel_samples: u64,
+    /// Upper bound on pixel-samples one submission traces: bounds the time
+    /// of a submission, so no driver watchdog kills it.
+    pub submit_pixel_samples: u64,
+}
+
+impl Default for GpuOptions {
+    fn default() -> Self {
+        GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1 << 22, submit_pixel_samples: 1 << 24 }
+    }
+}
+
+/// Timings of the last render.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct GpuStats {
+    /// GPU time of the tracing passes from timestamp queries, if the adapter has them.
+    pub gpu_time: Option<Duration>,
+    /// Host wall time from the first submission to the last trace
+    /// submission's completion, read-back excluded.
+    pub trace_wall: Duration,
+    /// Host wall time of the whole render call (upload of parameters,
+    /// tracing, read-back, conversion into a Film).
+    pub total_wall: Duration,
+    pub dispatches: u32,
+    pub submissions: u32,
+}
+
+/// Scene state kept between renders: buffers and the specialised pipeline.
+struct SceneState {
+    data: SceneData,
+    options: GpuOptions,
+    pipeline: wgpu::ComputePipeline,
+    frame: wgpu::Buffer,
+    spheres: wgpu::Buffer,
+    planes: wgpu::Buffer,
+    materials: wgpu::Buffer,
+    lights: wgpu::Buffer,
+}
+
+/// Output buffers, grown on demand and reused.
+struct Outputs {
+    pixels: usize,
+    sums: wgpu::Buffer,
+    sums_read: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    counters_read: wgpu::Buffer,
+    params: wgpu::Buffer,
+}
+
+/// Errors reported by wgpu outside any call's return value.
+#[derive(Default)]
+struct Fault {
+    lost: Option<String>,
+    error: Option<GpuError>,
+}
+
+pub struct GpuRenderer {
+    info: AdapterSummary,
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    layout: wgpu::BindGroupLayout,
+    pipeline_layout: wgpu::PipelineLayout,
+    timestamps: bool,
+    options: GpuOptions,
+    fault: Arc<Mutex<Fault>>,
+    scene: Mutex<Option<SceneState>>,
+    outputs: Mutex<Option<Outputs>>,
+    stats: Mutex<GpuStats>,
+}
+
+impl GpuRenderer {
+    /// Opens the adapter named by `adapter` (an index into [`list_adapters`]
+    /// or a case-insensitive part of its name), else the best one (discrete
+    /// over integrated over software).
+    pub fn new(adapter: Option<&str>, options: GpuOptions) -> Result<Self, GpuError> {
+        let instance = instance();
+        let all = adapters(&instance);
+        if all.is_empty() {
+            return Err(GpuError::NoAdapter);
+        }
+        let chosen = match adapter {
+            Some(wanted) => {
+                let found = match wanted.trim().parse::<usize>() {
+                    Ok(i) => all.get(i),
+                    Err(_) => {
+                        let w = wanted.to_lowercase();
+                        all.iter().find(|a| a.get_info().name.to_lowercase().contains(&w))
+                    }
+                };
+                found.ok_or_else(|| GpuError::AdapterNotFound {
+                    wanted: wanted.to_string(),
+                    available: all.iter().enumerate().map(|(i, a)| format!("{i}: {}", a.get_info().name)).collect::<Vec<_>>().join(", "),
+                })?
+            }
+            None => all.iter().min_by_key(|a| type_rank(a.get_info().device_type)).expect("not empty"),
+        };
+        let index = all.iter().position(|a| std::ptr::eq(a, chosen)).unwrap_or(0);
+        let info = summary(index, chosen);
+
+        let (x, y) = options.workgroup;
+        let alimits = chosen.limits();
+        if x == 0
+            || y == 0
+            || x * y > alimits.max_compute_invocations_per_workgroup
+            || x > alimits.max_compute_workgroup_size_x
+            || y > alimits.max_compute_workgroup_size_y
+        {
+            return Err(GpuError::Workgroup { x, y, max: alimits.max_compute_invocations_per_workgroup });
+        }
+        let timestamps = chosen.features().contains(wgpu::Features::TIMESTAMP_QUERY);
+        let (device, queue) = pollster::block_on(chosen.request_device(&wgpu::DeviceDescriptor {
+            label: Some("tessera"),
+            required_features: if timestamps { wgpu::Features::TIMESTAMP_QUERY } else { wgpu::Features::empty() },
+            // Everything the adapter allows: large films need large storage bindings.
+            required_limits: alimits,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::RequestDevice { adapter: info.name.clone(), message: e.to_string() })?;
+
+        let fault = Arc::new(Mutex::new(Fault::default()));
+        {
+            let f = fault.clone();
+            device.set_device_lost_callback(move |reason, msg| {
+                if let Ok(mut f) = f.lock() {
+                    f.lost = Some(format!("{reason:?}: {msg}"));
+                }
+            });
+            // The default handler panics; record instead and fail the render.
+            let f = fault.clone();
+            device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+                if let Ok(mut f) = f.lock() {
+                    if f.error.is_none() {
+                        f.error = Some(classify(e));
+                    }
+                }
+            }));
+        }
+
+        let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Storage { read_only }, has_dynamic_offset: false, min_binding_size: None },
+            count: None,
+        };
+        let uniform = |binding, dynamic| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: dynamic, min_binding_size: None },
+            count: None,
+        };
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("tessera scene"),
+            entries: &[
+                uniform(0, false),
+                uniform(1, true),
+                storage(2, true),
+                storage(3, true),
+                storage(4, true),
+                storage(5, true),
+                storage(6, false),
+                storage(7, false),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("tessera"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        Ok(GpuRenderer {
+            info,
+            device,
+            queue,
+            layout,
+            pipeline_layout,
+            timestamps,
+            options,
+            fault,
+            scene: Mutex::new(None),
+            outputs: Mutex::new(None),
+            stats: Mutex::new(GpuStats::default()),
+        })
+    }
+
+    pub fn adapter(&self) -> &AdapterSummary {
+        &self.info
+    }
+
+    pub fn has_timestamps(&self) -> bool {
+        self.timestamps
+    }
+
+    pub fn options(&self) -> GpuOptions {
+        self.options
+    }
+
+    /// Timings of the last completed render.
+    pub fn last_stats(&self) -> GpuStats {
+        self.stats.lock().map(|s| *s).unwrap_or_default()
+    }
+
+    fn check_fault(&self) -> Result<(), GpuError> {
+        let mut f = self.fault.lock().map_err(|_| GpuError::Device("fault record poisoned".into()))?;
+        if let Some(msg) = &f.lost {
+            return Err(GpuError::DeviceLost(msg.clone()));
+        }
+        match f.error.take() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+
+    /// Renders `rect` of `frame` over sample indices `samples`, like
+    /// [`super::CpuRenderer::render`]. `progress` gets the pixel-samples of
+    /// each finished submission.
+    pub fn render(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<Film, GpuError> {
+        prepared.check_request(rect, samples)?;
+        let world = match prepared {
+            PreparedFrame::F32(w) => w,
+            PreparedFrame::F64(_) => return Err(GpuError::F64Unsupported),
+        };
+        self.check_fault()?;
+        let start = Instant::now();
+        let data = SceneData::from_world(world);
+
+        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let result = self.render_inner(data, frame, rect, samples, progress, start);
+        // Scopes pop in reverse order.
+        let v = pollster::block_on(validation.pop());
+        let o = pollster::block_on(oom.pop());
+        self.check_fault()?;
+        if let Some(e) = o.or(v) {
+            // A failed scene upload must not be reused.
+            if let Ok(mut s) = self.scene.lock() {
+                *s = None;
+            }
+            return Err(classify(e));
+        }
+        result
+    }
+
+    fn render_inner(
+        &self,
+        data: SceneData,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+        start: Instant,
+    ) -> Result<Film, GpuError> {
+        let limits = self.device.limits();
+        let mut scene_guard = self.scene.lock().map_err(|_| GpuError::Device("scene cache poisoned".into()))?;
+        if scene_guard.as_ref().is_none_or(|s| s.data != data || s.options != self.options) {
+            *scene_guard = Some(self.upload_scene(data, &limits)?);
+        }
+        let scene = scene_guard.as_ref().expect("just set");
+
+        let pixels = rect.area();
+        let sums_bytes = (pixels * SUM_WORDS * 4) as u64;
+        check_size("the film's per-pixel sums", sums_bytes, limits.max_storage_buffer_binding_size as u64, "max_storage_buffer_binding_size")?;
+        check_size("the film's per-pixel sums", sums_bytes, limits.max_buffer_size, "max_buffer_size")?;
+        let mut out_guard = self.outputs.lock().map_err(|_| GpuError::Device("output cache poisoned".into()))?;
+        if out_guard.as_ref().is_none_or(|o| o.pixels < pixels) {
+            *out_guard = Some(self.create_outputs(pixels));
+        }
+        let out = out_guard.as_ref().expect("just set");
+
+        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tessera render"),
+            layout: &self.layout,
+            entries: &[
+                entire(0, &scene.frame),
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &out.params,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(size_of::<DispatchParams>() as u64),
+                    }),
+                },
+                entire(2, &scene.spheres),
+                entire(3, &scene.planes),
+                entire(4, &scene.materials),
+                entire(5, &scene.lights),
+                wgpu::BindGroupEntry {
+                    binding: 6,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &out.sums,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(sums_bytes),
+                    }),
+                },
+                entire(7, &out.counters),
+            ],
+        });
+
+        let groups = plan(rect, samples, frame, self.options);
+        let (wx, wy) = self.options.workgroup;
+        let query = self.timestamps.then(|| {
+            let n = (groups.len() * 2) as u32;
+            let set = self.device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("tessera timestamps"), ty: wgpu::QueryType::Timestamp, count: n });
+            let resolve = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("timestamps"),
+                size: n as u64 * 8,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            let read = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("timestamps read"),
+                size: n as u64 * 8,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            (set, resolve, read, n)
+        });
+
+        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera clear") });
+        enc.clear_buffer(&out.sums, 0, Some(sums_bytes));
+        enc.clear_buffer(&out.counters, 0, None);
+        let mut dispatches = 0u32;
+        let trace_start = Instant::now();
+        self.queue.submit([enc.finish()]);
+        for (g, group) in groups.iter().enumerate() {
+            let mut params = vec![0u8; group.len() * PARAMS_STRIDE as usize];
+            for (i, d) in group.iter().enumerate() {
+                let at = i * PARAMS_STRIDE as usize;
+                params[at..at + size_of::<DispatchParams>()].copy_from_slice(bytemuck::bytes_of(d));
+            }
+            self.queue.write_buffer(&out.params, 0, &params);
+            let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera trace") });
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("tessera trace"),
+                    timestamp_writes: query.as_ref().map(|(set, ..)| wgpu::ComputePassTimestampWrites {
+                        query_set: set,
+                        beginning_of_pass_write_index: Some(2 * g as u32),
+                        end_of_pass_write_index: Some(2 * g as u32 + 1),
+                    }),
+                });
+                pass.set_pipeline(&scene.pipeline);
+                for (i, d) in group.iter().enumerate() {
+                    pass.set_bind_group(0, &bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
+                    pass.dispatch_workgroups(d.rect_w.div_ceil(wx), d.rows.div_ceil(wy), 1);
+                    dispatches += 1;
+                }
+            }
+            let index = self.queue.submit([enc.finish()]);
+            self.wait(index)?;
+            progress(group.iter().map(|d| d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64).sum());
+        }
+        let trace_wall = trace_start.elapsed();
+
+        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera read-back") });
+        enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
+        enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
+        if let Some((set, resolve, read, n)) = &query {
+            enc.resolve_query_set(set, 0..*n, resolve, 0);
+            enc.copy_buffer_to_buffer(resolve, 0, read, 0, None);
+        }
+        let index = self.queue.submit([enc.finish()]);
+        self.wait(index)?;
+
+        let sums_words: Vec<u32> = self.read(&out.sums_read, sums_bytes)?;
+        let counters: Vec<u32> = self.read(&out.counters_read, (COUNTERS * 8) as u64)?;
+        let gpu_time = match &query {
+            Some((_, _, read, n)) => {
+                let ticks: Vec<u64> = self.read(read, *n as u64 * 8)?;
+                let period = self.queue.get_timestamp_period() as f64;
+                let ns: f64 = ticks.chunks_exact(2).map(|p| p[1].saturating_sub(p[0]) as f64 * period).sum();
+                Some(Duration::from_nanos(ns as u64))
+            }
+            None => None,
+        };
+
+        let mut film = Film::new(rect);
+        for (px, w) in film.sums.iter_mut().zip(sums_words.chunks_exact(SUM_WORDS)) {
+            for c in 0..3 {
+                px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
+            }
+        }
+        film.counts.fill(samples.len());
+        let counter = |k: usize| counters[2 * k] as u64 | (counters[2 * k + 1] as u64) << 32;
+        film.rays = RayCounts {
+            primary: counter(layout::COUNTER_PRIMARY),
+            shadow: counter(layout::COUNTER_SHADOW),
+            reflection: counter(layout::COUNTER_REFLECTION),
+            refraction: counter(layout::COUNTER_REFRACTION),
+        };
+        film.nonfinite = counter(layout::COUNTER_NONFINITE);
+        if let Ok(mut s) = self.stats.lock() {
+            *s = GpuStats { gpu_time, trace_wall, total_wall: start.elapsed(), dispatches, submissions: groups.len() as u32 };
+        }
+        Ok(film)
+    }
+
+    fn upload_scene(&self, data: SceneData, limits: &wgpu::Limits) -> Result<SceneState, GpuError> {
+        let make = |label, bytes: &[u8], usage| {
+            self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: bytes, usage })
+        };
+        let st = wgpu::BufferUsages::STORAGE;
+        for (what, bytes) in [
+            ("the scene's spheres", std::mem::size_of_val(data.spheres.as_slice())),
+            ("the scene's planes", std::mem::size_of_val(data.planes.as_slice())),
+            ("the scene's materials", std::mem::size_of_val(data.materials.as_slice())),
+            ("the scene's lights", std::mem::size_of_val(data.lights.as_slice())),
+        ] {
+            check_size(what, bytes as u64, limits.max_storage_buffer_binding_size as u64, "max_storage_buffer_binding_size")?;
+        }
+        let frame = make("frame", bytemuck::bytes_of(&data.frame), wgpu::BufferUsages::UNIFORM);
+        let spheres = make("spheres", bytemuck::cast_slice(&data.spheres), st);
+        let planes = make("planes", bytemuck::cast_slice(&data.planes), st);
+        let materials = make("materials", bytemuck::cast_slice(&data.materials), st);
+        let lights = make("lights", bytemuck::cast_slice(&data.lights), st);
+
+        // Generated part: the stack's capacity must be a constant expression.
+        let source = format!("const STACK_CAP: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}", data.stack_capacity());
+        let module = self.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("whitted.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(source.into()),
+        });
+        let b = |v: bool| if v { 1.0 } else { 0.0 };
+        let constants = [
+            ("N_SPHERES", data.n_spheres as f64),
+            ("N_PLANES", data.n_planes as f64),
+            ("N_LIGHTS", data.n_lights as f64),
+            ("MAX_DEPTH", data.max_depth as f64),
+            ("HAS_REFLECTION", b(data.has_reflection)),
+            ("HAS_REFRACTION", b(data.has_refraction)),
+            ("WG_X", self.options.workgroup.0 as f64),
+            ("WG_Y", self.options.workgroup.1 as f64),
+        ];
+        let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("tessera whitted"),
+            layout: Some(&self.pipeline_layout),
+            module: &module,
+            entry_point: Some("render"),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants: &constants,
+                // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
+                zero_initialize_workgroup_memory: true,
+            },
+            cache: None,
+        });
+        Ok(SceneState { data, options: self.options, pipeline, frame, spheres, planes, materials, lights })
+    }
+
+    fn create_outputs(&self, pixels: usize) -> Outputs {
+        let buf = |label, size, usage| self.device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false });
+        let sums_bytes = (pixels * SUM_WORDS * 4) as u64;
+        let counters_bytes = (COUNTERS * 8) as u64;
+        use wgpu::BufferUsages as U;
+        Outputs {
+            pixels,
+            sums: buf("sums", sums_bytes, U::STORAGE | U::COPY_SRC | U::COPY_DST),
+            sums_read: buf("sums read", sums_bytes, U::MAP_READ | U::COPY_DST),
+            counters: buf("counters", counters_bytes, U::STORAGE | U::COPY_SRC | U::COPY_DST),
+            counters_read: buf("counters read", counters_bytes, U::MAP_READ | U::COPY_DST),
+            params: buf("dispatch params", PARAMS_STRIDE * PARAMS_SLOTS as u64, U::UNIFORM | U::COPY_DST),
+        }
+    }
+
+    /// Blocks until submission `index` is done, with a timeout, surfacing
+    /// device loss and errors instead of hanging.
+    fn wait(&self, index: wgpu::SubmissionIndex) -> Result<(), GpuError> {
+        let r = self.device.poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: Some(SUBMISSION_TIMEOUT) });
+        self.check_fault()?;
+        match r {
+            Ok(_) => Ok(()),
+            Err(wgpu::PollError::Timeout) => Err(GpuError::Timeout(SUBMISSION_TIMEOUT)),
+            Err(e) => Err(GpuError::Device(e.to_string())),
+        }
+    }
+
+    fn read<T: bytemuck::Pod>(&self, buffer: &wgpu::Buffer, bytes: u64) -> Result<Vec<T>, GpuError> {
+        let (tx, rx) = mpsc::channel();
+        buffer.map_async(wgpu::MapMode::Read, 0..bytes, move |r| {
+            let _ = tx.send(r);
+        });
+        let r = self.device.poll(wgpu::PollType::Wait { submission_index: None, timeout: Some(SUBMISSION_TIMEOUT) });
+        self.check_fault()?;
+        if let Err(e) = r {
+            return Err(GpuError::Readback(e.to_string()));
+        }
+        match rx.recv_timeout(SUBMISSION_TIMEOUT) {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(GpuError::Readback(e.to_string())),
+            Err(_) => return Err(GpuError::Readback("mapping never completed".into())),
+        }
+        let out = {
+            let view = buffer.get_mapped_range(0..bytes).map_err(|e| GpuError::Readback(e.to_string()))?;
+            let mut v = vec![<T as bytemuck::Zeroable>::zeroed(); bytes as usize / size_of::<T>()];
+            bytemuck::cast_slice_mut::<T, u8>(&mut v).copy_from_slice(&view);
+            v
+        };
+        buffer.unmap();
+        Ok(out)
+    }
+}
+
+fn entire(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry { binding, resource: buffer.as_entire_binding() }
+}
+
+fn check_size(what: &'static str, needed: u64, limit: u64, limit_name: &'static str) -> Result<(), GpuError> {
+    if needed > limit { Err(GpuError::TooLarge { what, needed, limit, limit_name }) } else { Ok(()) }
+}
+
+fn classify(e: wgpu::Error) -> GpuError {
+    match e {
+        wgpu::Error::OutOfMemory { .. } => GpuError::OutOfMemory(e.to_string()),
+        other => GpuError::Device(other.to_string()),
+    }
+}
+
+/// Splits a render into dispatches (bands of rows x ranges of samples, each
+/// at most `dispatch_pixel_samples`), grouped into submissions of at most
+/// `submit_pixel_samples` and [`PARAMS_SLOTS`] dispatches.
+fn plan(rect: Rect, samples: SampleRange, frame: u32, o: GpuOptions) -> Vec<Vec<DispatchParams>> {
+    let w = rect.width as u64;
+    let len = samples.len() as u64;
+    let budget = o.dispatch_pixel_samples.max(1);
+    let chunk = (budget / w).clamp(1, len);
+    let rows = (budget / (w * chunk)).clamp(1, rect.height as u64) as u32;
+    let mut groups: Vec<Vec<DispatchParams>> = vec![Vec::new()];
+    let mut in_group = 0u64;
+    let mut row0 = 0;
+    while row0 < rect.height {
+        let band = rows.min(rect.height - row0);
+        let mut s = samples.start;
+        while s < samples.end {
+            let e = (s as u64 + chunk).min(samples.end as u64) as u32;
+            let work = w * band as u64 * (e - s) as u64;
+            let last = groups.last_mut().expect("never empty");
+            if !last.is_empty() && (in_group + work > o.submit_pixel_samples || last.len() == PARAMS_SLOTS) {
+                groups.push(Vec::new());
+                in_group = 0;
+            }
+            groups.last_mut().expect("never empty").push(DispatchParams {
+                rect_x: rect.x,
+                rect_y: rect.y,
+                rect_w: rect.width,
+                rect_h: rect.height,
+                row0,
+                rows: band,
+                sample_start: s,
+                sample_end: e,
+                frame,
+                _pad: [0; 3],
+            });
+            in_group += work;
+            s = e;
+        }
+        row0 += band;
+    }
+    groups
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plan_covers_every_pixel_sample_once_within_budgets() {
+        let o = GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1000, submit_pixel_samples: 5000 };
+        let rect = Rect::new(3, 7, 37, 23);
+        let samples = SampleRange::new(2, 11);
+        let groups = plan(rect, samples, 0, o);
+        let mut hits = vec![0u32; rect.area() * 16];
+        for g in &groups {
+            assert!(g.len() <= PARAMS_SLOTS);
+            let work: u64 = g.iter().map(|d| d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64).sum();
+            assert!(work <= o.submit_pixel_samples || g.len() == 1, "group of {work}");
+            for d in g {
+                for r in d.row0..d.row0 + d.rows {
+                    for s in d.sample_start..d.sample_end {
+                        for c in 0..d.rect_w {
+                            hits[((r * rect.width + c) * 16 + s) as usize] += 1;
+                        }
+                    }
+                }
+            }
+        }
+        for r in 0..rect.height {
+            for c in 0..rect.width {
+                for s in 0..16 {
+                    let want = u32::from((samples.start..samples.end).contains(&s));
+                    assert_eq!(hits[((r * rect.width + c) * 16 + s) as usize], want);
+                }
+            }
+        }
+        // A row wider than the budget still gets one sample per dispatch.
+        let wide = plan(Rect::full(4000, 2), SampleRange::all(3), 0, o);
+        assert_eq!(wide.iter().map(|g| g.len()).sum::<usize>(), 6);
+    }
+}
