@@ -266,8 +266,15 @@ impl SceneDesc {
     pub fn parse(src: &str, path: impl AsRef<Path>) -> Result<Self, SceneError> {
         let path = path.as_ref().to_path_buf();
         let file: SceneFile = toml::from_str(src).map_err(|e| {
-            let location = e.span().map(|s| Location::of_offset(src, s.start)).unwrap_or_default();
-            SceneError::Parse { path: path.clone(), location, message: e.message().trim_end().to_string() }
+            let start = e.span().map_or(0, |s| s.start);
+            let mut message = e.message().trim_end().to_string();
+            // Errors inside an array-of-tables element point at its header:
+            // say which element, since the header line is the same for all.
+            if let Some(name) = src.get(start..).and_then(|r| r.strip_prefix("[[")).and_then(|r| r.split("]]").next()) {
+                let index = src[..start].matches(&format!("[[{name}]]")).count();
+                message = format!("{name}[{index}]: {message}");
+            }
+            SceneError::Parse { path: path.clone(), location: Location::of_offset(src, start), message }
         })?;
         // Points at the offending key's line when it is written inside the
         // span (`radius = -1`), else at the start of the span (its table).
