@@ -24,7 +24,7 @@ use std::sync::OnceLock;
 
 use common::*;
 use tracer_core::film::{Film, Rect, SampleRange};
-use tracer_core::render::gpu::{GpuError, GpuOptions, GpuRenderer};
+use tracer_core::render::gpu::{GpuError, GpuOptions, GpuRenderer, Strategy};
 use tracer_core::render::{Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
@@ -519,7 +519,7 @@ fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
     // rows and single samples, many submissions; the same sums.
     let s = RenderSettings { width: 67, height: 41, samples: 4, ..desc.render };
     let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
-    let small = GpuRenderer::new(Some(&g.adapter().index.to_string()), GpuOptions { workgroup: (16, 4), dispatch_pixel_samples: 150, submit_pixel_samples: 1000 }).unwrap();
+    let small = GpuRenderer::new(Some(&g.adapter().index.to_string()), GpuOptions { workgroup: (16, 4), dispatch_pixel_samples: 150, submit_pixel_samples: 1000, ..GpuOptions::default() }).unwrap();
     let split = small.render(&prepared, 0, Rect::full(67, 41), SampleRange::all(4), &|_| {}).unwrap();
     let stats = small.last_stats();
     assert!(stats.dispatches > 40 && stats.submissions > 10, "{stats:?}");
@@ -570,4 +570,45 @@ fn gpu_adapter_selection_errors_name_the_choices() {
     assert!(msg.contains(&g.adapter().name), "{msg}");
     let e = GpuRenderer::new(None, GpuOptions { workgroup: (4096, 4096), ..GpuOptions::default() }).err().expect("must fail");
     assert!(matches!(e, GpuError::Workgroup { x: 4096, y: 4096, .. }), "{e}");
+}
+
+// ---- The wavefront strategy --------------------------------------------
+
+/// The wavefront (one dispatch per generation of ray tasks) renders what the
+/// stack kernel renders: the same rays (counts equal exactly) and the same
+/// image within the stated tolerance of the f64 reference. Sums may differ
+/// in the last bits: the wavefront adds each task's weighted colour to its
+/// pixel separately, the stack kernel adds each sample's total.
+#[test]
+fn wavefront_strategy_matches_the_stack_kernel_and_the_reference() {
+    let Some(g) = gpu() else { return };
+    let wave = GpuRenderer::new(Some(&g.adapter().index.to_string()), GpuOptions { strategy: Strategy::Wavefront, ..GpuOptions::default() }).unwrap();
+    for rel in ["resolution.toml", "complexity/glass-9.toml", "complexity/chrome-6.toml", "depth.toml"] {
+        let desc = SceneDesc::load(examples_dir().join(rel)).unwrap();
+        let s = RenderSettings { width: W, height: H, samples: 4, ..desc.render };
+        let a = gpu_whole(&wave, &desc, &s);
+        let b = gpu_whole(g, &desc, &s);
+        assert_eq!(a.rays, b.rays, "{rel}: wavefront and stack kernels traced different rays");
+        assert_eq!(a.counts, b.counts);
+        assert_close(&format!("{rel} wavefront"), &a.resolve(), &render_with(&desc, &s, Precision::F64).resolve());
+    }
+}
+
+/// Queues far too small for glass: every generation overflows until the
+/// renderer has shrunk its dispatches enough; the result is still whole.
+#[test]
+fn wavefront_recovers_from_queue_overflow() {
+    let Some(g) = gpu() else { return };
+    // Queues of 512 tasks, first dispatches of 256 samples: glass trees outgrow them.
+    let opts = GpuOptions { strategy: Strategy::Wavefront, dispatch_pixel_samples: 256, ..GpuOptions::default() };
+    let wave = GpuRenderer::new(Some(&g.adapter().index.to_string()), opts).unwrap();
+    let desc = SceneDesc::load(examples_dir().join("complexity/glass-3.toml")).unwrap();
+    let s = RenderSettings { width: 40, height: 30, samples: 4, ..desc.render };
+    let a = gpu_whole(&wave, &desc, &s);
+    let retries = wave.last_stats().overflow_retries;
+    assert!(retries > 0, "the queues never overflowed: the test does not test");
+    eprintln!("wavefront overflowed and retried {retries} times");
+    let b = gpu_whole(g, &desc, &s);
+    assert_eq!(a.rays, b.rays);
+    assert_close("glass-3 wavefront after overflow", &a.resolve(), &b.resolve());
 }

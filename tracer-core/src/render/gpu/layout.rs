@@ -106,6 +106,13 @@ pub const COUNTER_REFLECTION: usize = 2;
 pub const COUNTER_REFRACTION: usize = 3;
 pub const COUNTER_NONFINITE: usize = 4;
 
+/// A ray task of the wavefront strategy. WGSL (wavefront.wgsl): `struct WaveTask`.
+pub const WAVE_TASK_BYTES: u64 = 48;
+/// WGSL: `struct WaveState` (count_in, count_out, overflow), padded.
+pub const WAVE_STATE_BYTES: u64 = 16;
+/// WGSL: `wave_args_out: array<u32, 3>`, an indirect dispatch's x, y, z.
+pub const WAVE_ARGS_BYTES: u64 = 12;
+
 const _: () = assert!(size_of::<FrameUniform>() == 80);
 const _: () = assert!(size_of::<DispatchParams>() == 48);
 const _: () = assert!(size_of::<GpuSphere>() == 32);

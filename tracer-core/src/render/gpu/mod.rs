@@ -30,6 +30,7 @@ use crate::film::{Film, RayCounts, Rect, SampleRange};
 
 const SAMPLING_WGSL: &str = include_str!("sampling.wgsl");
 const WHITTED_WGSL: &str = include_str!("whitted.wgsl");
+const WAVEFRONT_WGSL: &str = include_str!("wavefront.wgsl");
 
 /// Dynamic uniform offsets must be multiples of this (256 is the largest
 /// alignment any adapter asks for).
@@ -125,6 +126,19 @@ fn type_rank(t: wgpu::DeviceType) -> u32 {
     }
 }
 
+/// How the GPU walks each sample's ray tree (WGSL has no recursion).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Strategy {
+    /// One invocation per pixel walks each sample's whole tree with a
+    /// bounded per-thread task stack (whitted.wgsl `render`).
+    #[default]
+    Stack,
+    /// The thesis's weighted ray tasks: one dispatch per generation of rays
+    /// over a queue of tasks, children appended to the next queue
+    /// (wavefront.wgsl).
+    Wavefront,
+}
+
 /// Launch shape and work split. The defaults are the best of the
 /// launch-shape sweep (see docs/benchmarks.md).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -136,11 +150,12 @@ pub struct GpuOptions {
     /// Upper bound on pixel-samples one submission traces: bounds the time
     /// of a submission, so no driver watchdog kills it.
     pub submit_pixel_samples: u64,
+    pub strategy: Strategy,
 }
 
 impl Default for GpuOptions {
     fn default() -> Self {
-        GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1 << 22, submit_pixel_samples: 1 << 24 }
+        GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1 << 22, submit_pixel_samples: 1 << 24, strategy: Strategy::Stack }
     }
 }
 
@@ -157,6 +172,8 @@ pub struct GpuStats {
     pub total_wall: Duration,
     pub dispatches: u32,
     pub submissions: u32,
+    /// Times the wavefront's queues overflowed and the render was redone in smaller dispatches.
+    pub overflow_retries: u32,
 }
 
 /// Scene state kept between renders: buffers and the specialised pipeline.
@@ -169,6 +186,26 @@ struct SceneState {
     planes: wgpu::Buffer,
     materials: wgpu::Buffer,
     lights: wgpu::Buffer,
+    wave: Option<WavePipelines>,
+}
+
+struct WavePipelines {
+    primary: wgpu::ComputePipeline,
+    swap: wgpu::ComputePipeline,
+    shade: wgpu::ComputePipeline,
+    /// Tasks one queue holds.
+    queue_cap: u64,
+}
+
+/// The wavefront's task queues and state, grown on demand.
+struct WaveBuffers {
+    queue_cap: u64,
+    a: wgpu::Buffer,
+    b: wgpu::Buffer,
+    state: wgpu::Buffer,
+    state_read: wgpu::Buffer,
+    args: wgpu::Buffer,
+    args_group: wgpu::BindGroup,
 }
 
 /// Output buffers, grown on demand and reused.
@@ -194,11 +231,16 @@ pub struct GpuRenderer {
     queue: wgpu::Queue,
     layout: wgpu::BindGroupLayout,
     pipeline_layout: wgpu::PipelineLayout,
+    wave_layout: wgpu::BindGroupLayout,
+    wave_args_layout: wgpu::BindGroupLayout,
+    wave_pipeline_layout: wgpu::PipelineLayout,
+    wave_swap_layout: wgpu::PipelineLayout,
     timestamps: bool,
     options: GpuOptions,
     fault: Arc<Mutex<Fault>>,
     scene: Mutex<Option<SceneState>>,
     outputs: Mutex<Option<Outputs>>,
+    wave: Mutex<Option<WaveBuffers>>,
     stats: Mutex<GpuStats>,
 }
 
@@ -300,17 +342,40 @@ impl GpuRenderer {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
+        let wave_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("tessera wavefront queues"),
+            entries: &[storage(0, true), storage(1, false), storage(2, false), storage(3, false)],
+        });
+        let wave_args_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("tessera wavefront args"),
+            entries: &[storage(0, false)],
+        });
+        let wave_pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("tessera wavefront"),
+            bind_group_layouts: &[Some(&layout), Some(&wave_layout)],
+            immediate_size: 0,
+        });
+        let wave_swap_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("tessera wavefront swap"),
+            bind_group_layouts: &[Some(&layout), Some(&wave_layout), Some(&wave_args_layout)],
+            immediate_size: 0,
+        });
         Ok(GpuRenderer {
             info,
             device,
             queue,
             layout,
             pipeline_layout,
+            wave_layout,
+            wave_args_layout,
+            wave_pipeline_layout,
+            wave_swap_layout,
             timestamps,
             options,
             fault,
             scene: Mutex::new(None),
             outputs: Mutex::new(None),
+            wave: Mutex::new(None),
             stats: Mutex::new(GpuStats::default()),
         })
     }
@@ -365,7 +430,26 @@ impl GpuRenderer {
 
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let result = self.render_inner(data, frame, rect, samples, progress, start);
+        // The wavefront's queues hold a bounded number of tasks; if a
+        // generation overflows them, render again in smaller dispatches.
+        let mut budget = self.options.dispatch_pixel_samples;
+        let mut retries = 0;
+        let result = loop {
+            match self.render_inner(data.clone(), frame, rect, samples, progress, start, budget) {
+                Ok(None) if budget > 1 => {
+                    budget = (budget / 4).max(1);
+                    retries += 1;
+                }
+                Ok(None) => break Err(GpuError::Device("wavefront queues overflow even for tiny dispatches".into())),
+                Ok(Some(film)) => {
+                    if let Ok(mut s) = self.stats.lock() {
+                        s.overflow_retries = retries;
+                    }
+                    break Ok(film);
+                }
+                Err(e) => break Err(e),
+            }
+        };
         // Scopes pop in reverse order.
         let v = pollster::block_on(validation.pop());
         let o = pollster::block_on(oom.pop());
@@ -388,7 +472,8 @@ impl GpuRenderer {
         samples: SampleRange,
         progress: &(dyn Fn(u64) + Sync),
         start: Instant,
-    ) -> Result<Film, GpuError> {
+        budget: u64,
+    ) -> Result<Option<Film>, GpuError> {
         let limits = self.device.limits();
         let mut scene_guard = self.scene.lock().map_err(|_| GpuError::Device("scene cache poisoned".into()))?;
         if scene_guard.as_ref().is_none_or(|s| s.data != data || s.options != self.options) {
@@ -435,8 +520,50 @@ impl GpuRenderer {
             ],
         });
 
-        let groups = plan(rect, samples, frame, self.options);
         let (wx, wy) = self.options.workgroup;
+        let wave = match &scene.wave {
+            Some(p) => {
+                let mut guard = self.wave.lock().map_err(|_| GpuError::Device("wavefront cache poisoned".into()))?;
+                if guard.as_ref().is_none_or(|w| w.queue_cap < p.queue_cap) {
+                    let bytes = p.queue_cap * layout::WAVE_TASK_BYTES;
+                    check_size("a wavefront task queue", bytes, limits.max_storage_buffer_binding_size as u64, "max_storage_buffer_binding_size")?;
+                    *guard = Some(self.create_wave_buffers(p.queue_cap));
+                }
+                Some((p, guard))
+            }
+            None => None,
+        };
+        let wave_groups = wave.as_ref().map(|(_, w)| {
+            let w = w.as_ref().expect("just set");
+            let group = |inq: &wgpu::Buffer, outq: &wgpu::Buffer| {
+                self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("tessera wavefront queues"),
+                    layout: &self.wave_layout,
+                    entries: &[
+                        entire(0, inq),
+                        entire(1, outq),
+                        entire(2, &w.state),
+                        wgpu::BindGroupEntry {
+                            binding: 3,
+                            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                buffer: &out.sums,
+                                offset: 0,
+                                size: wgpu::BufferSize::new(sums_bytes),
+                            }),
+                        },
+                    ],
+                })
+            };
+            // Primary tasks go to A; generations then alternate A->B, B->A.
+            (group(&w.b, &w.a), group(&w.a, &w.b))
+        });
+        // Each wavefront dispatch's primary tasks must fit a queue, and a
+        // queue's tasks one indirect dispatch.
+        let budget = match &wave {
+            Some((p, _)) => budget.min(p.queue_cap / 2).max(1),
+            None => budget,
+        };
+        let groups = plan(rect, samples, frame, GpuOptions { dispatch_pixel_samples: budget, ..self.options });
         let query = self.timestamps.then(|| {
             let n = (groups.len() * 2) as u32;
             let set = self.device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("tessera timestamps"), ty: wgpu::QueryType::Timestamp, count: n });
@@ -458,6 +585,9 @@ impl GpuRenderer {
         let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera clear") });
         enc.clear_buffer(&out.sums, 0, Some(sums_bytes));
         enc.clear_buffer(&out.counters, 0, None);
+        if let Some((_, w)) = &wave {
+            enc.clear_buffer(&w.as_ref().expect("set").state, 0, None);
+        }
         let mut dispatches = 0u32;
         let trace_start = Instant::now();
         self.queue.submit([enc.finish()]);
@@ -478,11 +608,37 @@ impl GpuRenderer {
                         end_of_pass_write_index: Some(2 * g as u32 + 1),
                     }),
                 });
-                pass.set_pipeline(&scene.pipeline);
-                for (i, d) in group.iter().enumerate() {
-                    pass.set_bind_group(0, &bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
-                    pass.dispatch_workgroups(d.rect_w.div_ceil(wx), d.rows.div_ceil(wy), 1);
-                    dispatches += 1;
+                match (&wave, &wave_groups) {
+                    (Some((p, w)), Some((to_a, a_to_b))) => {
+                        let w = w.as_ref().expect("set");
+                        let threads = wx * wy;
+                        for (i, d) in group.iter().enumerate() {
+                            pass.set_bind_group(0, &bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
+                            pass.set_bind_group(1, to_a, &[]);
+                            pass.set_bind_group(2, &w.args_group, &[]);
+                            let n = d.rect_w * d.rows * (d.sample_end - d.sample_start);
+                            pass.set_pipeline(&p.primary);
+                            pass.dispatch_workgroups(n.div_ceil(threads), 1, 1);
+                            // Generation g reads the queue generation g-1 wrote.
+                            for g in 0..=scene.data.max_depth {
+                                pass.set_pipeline(&p.swap);
+                                pass.dispatch_workgroups(1, 1, 1);
+                                pass.set_bind_group(1, if g % 2 == 0 { a_to_b } else { to_a }, &[]);
+                                pass.set_pipeline(&p.shade);
+                                pass.dispatch_workgroups_indirect(&w.args, 0);
+                                dispatches += 2;
+                            }
+                            dispatches += 1;
+                        }
+                    }
+                    _ => {
+                        pass.set_pipeline(&scene.pipeline);
+                        for (i, d) in group.iter().enumerate() {
+                            pass.set_bind_group(0, &bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
+                            pass.dispatch_workgroups(d.rect_w.div_ceil(wx), d.rows.div_ceil(wy), 1);
+                            dispatches += 1;
+                        }
+                    }
                 }
             }
             let index = self.queue.submit([enc.finish()]);
@@ -494,6 +650,10 @@ impl GpuRenderer {
         let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera read-back") });
         enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
         enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
+        if let Some((_, w)) = &wave {
+            let w = w.as_ref().expect("set");
+            enc.copy_buffer_to_buffer(&w.state, 0, &w.state_read, 0, None);
+        }
         if let Some((set, resolve, read, n)) = &query {
             enc.resolve_query_set(set, 0..*n, resolve, 0);
             enc.copy_buffer_to_buffer(resolve, 0, read, 0, None);
@@ -501,6 +661,12 @@ impl GpuRenderer {
         let index = self.queue.submit([enc.finish()]);
         self.wait(index)?;
 
+        if let Some((_, w)) = &wave {
+            let state: Vec<u32> = self.read(&w.as_ref().expect("set").state_read, layout::WAVE_STATE_BYTES)?;
+            if state[2] != 0 {
+                return Ok(None);
+            }
+        }
         let sums_words: Vec<u32> = self.read(&out.sums_read, sums_bytes)?;
         let counters: Vec<u32> = self.read(&out.counters_read, (COUNTERS * 8) as u64)?;
         let gpu_time = match &query {
@@ -529,9 +695,29 @@ impl GpuRenderer {
         };
         film.nonfinite = counter(layout::COUNTER_NONFINITE);
         if let Ok(mut s) = self.stats.lock() {
-            *s = GpuStats { gpu_time, trace_wall, total_wall: start.elapsed(), dispatches, submissions: groups.len() as u32 };
+            *s = GpuStats { gpu_time, trace_wall, total_wall: start.elapsed(), dispatches, submissions: groups.len() as u32, overflow_retries: 0 };
         }
-        Ok(film)
+        Ok(Some(film))
+    }
+
+    fn create_wave_buffers(&self, queue_cap: u64) -> WaveBuffers {
+        use wgpu::BufferUsages as U;
+        let buf = |label, size, usage| self.device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false });
+        let args = buf("wavefront args", layout::WAVE_ARGS_BYTES, U::STORAGE | U::INDIRECT);
+        let args_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tessera wavefront args"),
+            layout: &self.wave_args_layout,
+            entries: &[entire(0, &args)],
+        });
+        WaveBuffers {
+            queue_cap,
+            a: buf("wavefront queue a", queue_cap * layout::WAVE_TASK_BYTES, U::STORAGE),
+            b: buf("wavefront queue b", queue_cap * layout::WAVE_TASK_BYTES, U::STORAGE),
+            state: buf("wavefront state", layout::WAVE_STATE_BYTES, U::STORAGE | U::COPY_SRC | U::COPY_DST),
+            state_read: buf("wavefront state read", layout::WAVE_STATE_BYTES, U::MAP_READ | U::COPY_DST),
+            args,
+            args_group,
+        }
     }
 
     fn upload_scene(&self, data: SceneData, limits: &wgpu::Limits) -> Result<SceneState, GpuError> {
@@ -554,7 +740,7 @@ impl GpuRenderer {
         let lights = make("lights", bytemuck::cast_slice(&data.lights), st);
 
         // Generated part: the stack's capacity must be a constant expression.
-        let source = format!("const STACK_CAP: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}", data.stack_capacity());
+        let source = format!("const STACK_CAP: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{WAVEFRONT_WGSL}", data.stack_capacity());
         let module = self.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("whitted.wgsl"),
             source: wgpu::ShaderSource::Wgsl(source.into()),
@@ -582,7 +768,33 @@ impl GpuRenderer {
             },
             cache: None,
         });
-        Ok(SceneState { data, options: self.options, pipeline, frame, spheres, planes, materials, lights })
+        let wave = (self.options.strategy == Strategy::Wavefront).then(|| {
+            // Twice the largest dispatch's primary tasks, within one indirect dispatch.
+            let (wx, wy) = self.options.workgroup;
+            let max_groups = limits.max_compute_workgroups_per_dimension as u64;
+            let queue_cap = (2 * self.options.dispatch_pixel_samples).min(max_groups * (wx * wy) as u64).min(
+                limits.max_storage_buffer_binding_size as u64 / layout::WAVE_TASK_BYTES,
+            );
+            let mut wave_constants = constants.to_vec();
+            wave_constants.push(("QUEUE_CAP", queue_cap as f64));
+            let make = |entry: &str, layout: &wgpu::PipelineLayout| {
+                self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(entry),
+                    layout: Some(layout),
+                    module: &module,
+                    entry_point: Some(entry),
+                    compilation_options: wgpu::PipelineCompilationOptions { constants: &wave_constants, zero_initialize_workgroup_memory: true },
+                    cache: None,
+                })
+            };
+            WavePipelines {
+                primary: make("wave_primary", &self.wave_pipeline_layout),
+                swap: make("wave_swap", &self.wave_swap_layout),
+                shade: make("wave_shade", &self.wave_pipeline_layout),
+                queue_cap,
+            }
+        });
+        Ok(SceneState { data, options: self.options, pipeline, frame, spheres, planes, materials, lights, wave })
     }
 
     fn create_outputs(&self, pixels: usize) -> Outputs {
@@ -702,7 +914,7 @@ mod tests {
 
     #[test]
     fn plan_covers_every_pixel_sample_once_within_budgets() {
-        let o = GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1000, submit_pixel_samples: 5000 };
+        let o = GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1000, submit_pixel_samples: 5000, strategy: Strategy::Stack };
         let rect = Rect::new(3, 7, 37, 23);
         let samples = SampleRange::new(2, 11);
         let groups = plan(rect, samples, 0, o);

@@ -225,6 +225,48 @@ fn surface(id: u32, p: vec3<f32>) -> Surface {
     return Surface(p - pl.normal * off, pl.normal, pl.material);
 }
 
+// Ambient plus every unblocked light at surface point p (render/whitted.rs):
+// n faces the viewer v, `above` is p offset to the viewer's side, `id` the
+// primitive p lies on.
+fn shade_local(p: vec3<f32>, n: vec3<f32>, v: vec3<f32>, m: Material, above: vec3<f32>, id: u32) -> vec3<f32> {
+    var local = frame.ambient * m.ambient;
+    for (var li = 0u; li < N_LIGHTS; li++) {
+        let light = lights[li];
+        let to_light = light.position - p;
+        let dist = length(to_light);
+        if (!(dist > 0.0)) {
+            continue;
+        }
+        let l = to_light * (1.0 / dist);
+        let ndotl = max(dot(n, l), 0.0);
+        let h = l + v;
+        let h_len = length(h);
+        var ndoth = 0.0;
+        if (h_len > 0.0) {
+            ndoth = max(dot(n, h) / h_len, 0.0);
+        }
+        var spec = 0.0;
+        if (ndoth > 0.0) {
+            spec = pow(ndoth, m.shininess);
+        }
+        let contrib = light.diffuse * m.diffuse * ndotl + light.specular * m.specular * spec;
+        // A light that can add nothing needs no shadow ray.
+        if (max(contrib.x, max(contrib.y, contrib.z)) <= 0.0) {
+            continue;
+        }
+        // Leave on the light's side of the surface.
+        var o = above;
+        if (dot(n, l) < 0.0) {
+            o = offset_origin(p, -n);
+        }
+        tally[C_SHADOW] += 1u;
+        if (!occluded(o, l, dist * (1.0 - SHADOW_SHORTEN), id)) {
+            local += contrib;
+        }
+    }
+    return local;
+}
+
 // A ray still to trace: its contribution is weight * (colour it sees).
 struct Task {
     origin: vec3<f32>,
@@ -256,42 +298,8 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> vec3<f32> {
             let n = select(-sf.n, sf.n, entering);
             let cos_i = abs(cos_out);
 
-            var local = frame.ambient * m.ambient;
             let above = offset_origin(p, n);
-            for (var li = 0u; li < N_LIGHTS; li++) {
-                let light = lights[li];
-                let to_light = light.position - p;
-                let dist = length(to_light);
-                if (!(dist > 0.0)) {
-                    continue;
-                }
-                let l = to_light * (1.0 / dist);
-                let ndotl = max(dot(n, l), 0.0);
-                let h = l + v;
-                let h_len = length(h);
-                var ndoth = 0.0;
-                if (h_len > 0.0) {
-                    ndoth = max(dot(n, h) / h_len, 0.0);
-                }
-                var spec = 0.0;
-                if (ndoth > 0.0) {
-                    spec = pow(ndoth, m.shininess);
-                }
-                let contrib = light.diffuse * m.diffuse * ndotl + light.specular * m.specular * spec;
-                // A light that can add nothing needs no shadow ray.
-                if (max(contrib.x, max(contrib.y, contrib.z)) <= 0.0) {
-                    continue;
-                }
-                var o = above;
-                if (dot(n, l) < 0.0) {
-                    o = offset_origin(p, -n);
-                }
-                tally[C_SHADOW] += 1u;
-                if (!occluded(o, l, dist * (1.0 - SHADOW_SHORTEN), hit.id)) {
-                    local += contrib;
-                }
-            }
-            colour += local * task.weight;
+            colour += shade_local(p, n, v, m, above, hit.id) * task.weight;
 
             if (task.depth < MAX_DEPTH) {
                 var reflect_w = m.reflectivity;
@@ -367,6 +375,26 @@ fn add64(a: vec2<u32>, b: vec2<u32>) -> vec2<u32> {
     return vec2<u32>(lo, a.y + b.y + select(0u, 1u, lo < a.x));
 }
 
+// Ray counts: per workgroup first, then one (carrying) global add per
+// counter. Call from uniform control flow (it has a barrier).
+fn flush_tally(lid: u32) {
+    for (var k = 0u; k < N_COUNTERS; k++) {
+        if (tally[k] != 0u) {
+            atomicAdd(&wg_counts[k], tally[k]);
+        }
+    }
+    workgroupBarrier();
+    if (lid < N_COUNTERS) {
+        let v = atomicLoad(&wg_counts[lid]);
+        if (v != 0u) {
+            let old = atomicAdd(&counters[2u * lid], v);
+            if (old + v < old) {
+                atomicAdd(&counters[2u * lid + 1u], 1u);
+            }
+        }
+    }
+}
+
 @compute @workgroup_size(WG_X, WG_Y, 1)
 fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let col = gid.x;
@@ -400,20 +428,5 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
         sums[base + 4u] = b.x;
         sums[base + 5u] = b.y;
     }
-    // Ray counts: per workgroup first, then one (carrying) global add each.
-    for (var k = 0u; k < N_COUNTERS; k++) {
-        if (tally[k] != 0u) {
-            atomicAdd(&wg_counts[k], tally[k]);
-        }
-    }
-    workgroupBarrier();
-    if (lid < N_COUNTERS) {
-        let v = atomicLoad(&wg_counts[lid]);
-        if (v != 0u) {
-            let old = atomicAdd(&counters[2u * lid], v);
-            if (old + v < old) {
-                atomicAdd(&counters[2u * lid + 1u], 1u);
-            }
-        }
-    }
+    flush_tally(lid);
 }
