@@ -72,25 +72,50 @@ struct GpuRun {
     gpu: Duration,
     trace: Duration,
     total: Duration,
+    readback: Duration,
     first: Duration,
 }
 
-fn run_gpu(g: &GpuRenderer, desc: &SceneDesc, s: &RenderSettings, reps: usize) -> Result<GpuRun, Box<dyn std::error::Error>> {
+/// Renders with several renderers, interleaved rep by rep (so clock ramps
+/// and other drift hit every one alike), after `WARMUP` renders each.
+fn run_interleaved(rs: &[&GpuRenderer], desc: &SceneDesc, s: &RenderSettings, reps: usize) -> Result<Vec<GpuRun>, Box<dyn std::error::Error>> {
+    const WARMUP: usize = 3;
     let prepared = PreparedFrame::build(desc, s, 0, Precision::F32)?;
     let rect = Rect::full(s.width, s.height);
     let samples = SampleRange::all(s.samples);
-    let t = Instant::now();
-    let mut film = g.render(&prepared, 0, rect, samples, &|_| {})?;
-    let first = t.elapsed();
-    let (mut gpu, mut trace, mut total) = (vec![], vec![], vec![]);
-    for _ in 0..reps {
-        film = g.render(&prepared, 0, rect, samples, &|_| {})?;
-        let st = g.last_stats();
-        gpu.push(st.gpu_time.unwrap_or(st.trace_wall));
-        trace.push(st.trace_wall);
-        total.push(st.total_wall);
+    let mut films = vec![];
+    let mut firsts = vec![];
+    for g in rs {
+        let t = Instant::now();
+        films.push(g.render(&prepared, 0, rect, samples, &|_| {})?);
+        firsts.push(t.elapsed());
     }
-    Ok(GpuRun { film, gpu: median(gpu), trace: median(trace), total: median(total), first })
+    for _ in 1..WARMUP {
+        for g in rs {
+            g.render(&prepared, 0, rect, samples, &|_| {})?;
+        }
+    }
+    let mut stats = vec![(vec![], vec![], vec![], vec![]); rs.len()];
+    for _ in 0..reps {
+        for (i, g) in rs.iter().enumerate() {
+            films[i] = g.render(&prepared, 0, rect, samples, &|_| {})?;
+            let st = g.last_stats();
+            stats[i].0.push(st.gpu_time.unwrap_or(st.trace_wall));
+            stats[i].1.push(st.trace_wall);
+            stats[i].2.push(st.total_wall);
+            stats[i].3.push(st.readback);
+        }
+    }
+    Ok(films
+        .into_iter()
+        .zip(stats)
+        .zip(firsts)
+        .map(|((film, (g, t, tot, rb)), first)| GpuRun { film, gpu: median(g), trace: median(t), total: median(tot), readback: median(rb), first })
+        .collect())
+}
+
+fn run_gpu(g: &GpuRenderer, desc: &SceneDesc, s: &RenderSettings, reps: usize) -> Result<GpuRun, Box<dyn std::error::Error>> {
+    Ok(run_interleaved(&[g], desc, s, reps)?.pop().expect("one run"))
 }
 
 fn mean_abs_diff(a: &Film, b: &Film) -> f64 {
@@ -115,7 +140,7 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
     println!("- adapter: {}", g.adapter());
     println!("- GPU time from: {}", if g.has_timestamps() { "timestamp queries" } else { "host wall time around the trace submissions (no timestamp queries)" });
     println!("- CPU renderer: {} threads; {} logical cores", cpu.threads(), std::thread::available_parallelism().map_or(0, |n| n.get()));
-    println!("- options: {:?}; median of {} renders after a warm-up\n", g.options(), args.reps);
+    println!("- options: {:?}; median of {} renders after 3 warm-up renders, stack and wavefront interleaved\n", g.options(), args.reps);
 
     let mut scenes = vec!["resolution.toml".to_string(), "depth.toml".to_string()];
     if !args.quick {
@@ -126,14 +151,15 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     let sizes = &args.sizes;
-    println!("| scene | size | spp | rays | wavefront GPU ms | stack GPU ms | trace wall ms | total ms (with read-back) | first render ms | M rays/s (stack GPU) | M rays/s (stack total) | CPU ms | CPU M rays/s | GPU total vs CPU | mean abs diff vs CPU f32 |");
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("| scene | size | spp | rays | wavefront GPU ms | stack GPU ms | trace wall ms | read-back ms | total ms (with read-back) | first render ms | M rays/s (stack GPU) | M rays/s (stack total) | CPU ms | CPU M rays/s | GPU total vs CPU | mean abs diff vs CPU f32 |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for name in &scenes {
         let desc = SceneDesc::load(examples().join(name))?;
         for &(w, h) in sizes.iter() {
             let s = RenderSettings { width: w, height: h, samples: 4, ..desc.render };
-            let r = run_gpu(&g, &desc, &s, args.reps)?;
-            let wr = run_gpu(&wave, &desc, &s, args.reps)?;
+            let mut runs = run_interleaved(&[&g, &wave], &desc, &s, args.reps)?;
+            let wr = runs.pop().expect("two runs");
+            let r = runs.pop().expect("two runs");
             if wr.film.rays != r.film.rays {
                 println!("<!-- {name}: wavefront traced {:?}, stack {:?} -->", wr.film.rays, r.film.rays);
             }
@@ -155,11 +181,12 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
                 "- | - | - | -".to_string()
             };
             println!(
-                "| {name} | {w}x{h} | 4 | {:.1} M | {} | {} | {} | {} | {} | {:.0} | {:.0} | {cpu_cols} |",
+                "| {name} | {w}x{h} | 4 | {:.1} M | {} | {} | {} | {} | {} | {} | {:.0} | {:.0} | {cpu_cols} |",
                 rays / 1e6,
                 ms(wr.gpu),
                 ms(r.gpu),
                 ms(r.trace),
+                ms(r.readback),
                 ms(r.total),
                 ms(r.first),
                 rays / r.gpu.as_secs_f64() / 1e6,

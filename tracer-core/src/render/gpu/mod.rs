@@ -155,7 +155,7 @@ pub struct GpuOptions {
 
 impl Default for GpuOptions {
     fn default() -> Self {
-        GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1 << 22, submit_pixel_samples: 1 << 24, strategy: Strategy::Stack }
+        GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1 << 24, submit_pixel_samples: 1 << 24, strategy: Strategy::Stack }
     }
 }
 
@@ -170,6 +170,8 @@ pub struct GpuStats {
     /// Host wall time of the whole render call (upload of parameters,
     /// tracing, read-back, conversion into a Film).
     pub total_wall: Duration,
+    /// Host wall time of the read-back: copy, map, conversion into the Film.
+    pub readback: Duration,
     pub dispatches: u32,
     pub submissions: u32,
     /// Times the wavefront's queues overflowed and the render was redone in smaller dispatches.
@@ -282,6 +284,13 @@ impl GpuRenderer {
             || y > alimits.max_compute_workgroup_size_y
         {
             return Err(GpuError::Workgroup { x, y, max: alimits.max_compute_invocations_per_workgroup });
+        }
+        // A software adapter (lavapipe) is ~1000x slower than a discrete GPU:
+        // smaller submissions keep each one far from the wait timeout.
+        let mut options = options;
+        if chosen.get_info().device_type == wgpu::DeviceType::Cpu {
+            options.dispatch_pixel_samples = options.dispatch_pixel_samples.min(1 << 20);
+            options.submit_pixel_samples = options.submit_pixel_samples.min(1 << 21);
         }
         let timestamps = chosen.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let (device, queue) = pollster::block_on(chosen.request_device(&wgpu::DeviceDescriptor {
@@ -646,6 +655,7 @@ impl GpuRenderer {
             progress(group.iter().map(|d| d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64).sum());
         }
         let trace_wall = trace_start.elapsed();
+        let readback_start = Instant::now();
 
         let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera read-back") });
         enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
@@ -667,8 +677,17 @@ impl GpuRenderer {
                 return Ok(None);
             }
         }
-        let sums_words: Vec<u32> = self.read(&out.sums_read, sums_bytes)?;
         let counters: Vec<u32> = self.read(&out.counters_read, (COUNTERS * 8) as u64)?;
+        let mut film = Film::new(rect);
+        // Straight from the mapped buffer into the film: no intermediate copy.
+        self.read_with(&out.sums_read, sums_bytes, |bytes| {
+            let words: &[u32] = bytemuck::cast_slice(bytes);
+            for (px, w) in film.sums.iter_mut().zip(words.chunks_exact(SUM_WORDS)) {
+                for c in 0..3 {
+                    px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
+                }
+            }
+        })?;
         let gpu_time = match &query {
             Some((_, _, read, n)) => {
                 let ticks: Vec<u64> = self.read(read, *n as u64 * 8)?;
@@ -679,12 +698,6 @@ impl GpuRenderer {
             None => None,
         };
 
-        let mut film = Film::new(rect);
-        for (px, w) in film.sums.iter_mut().zip(sums_words.chunks_exact(SUM_WORDS)) {
-            for c in 0..3 {
-                px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
-            }
-        }
         film.counts.fill(samples.len());
         let counter = |k: usize| counters[2 * k] as u64 | (counters[2 * k + 1] as u64) << 32;
         film.rays = RayCounts {
@@ -694,8 +707,9 @@ impl GpuRenderer {
             refraction: counter(layout::COUNTER_REFRACTION),
         };
         film.nonfinite = counter(layout::COUNTER_NONFINITE);
+        let readback = readback_start.elapsed();
         if let Ok(mut s) = self.stats.lock() {
-            *s = GpuStats { gpu_time, trace_wall, total_wall: start.elapsed(), dispatches, submissions: groups.len() as u32, overflow_retries: 0 };
+            *s = GpuStats { gpu_time, trace_wall, total_wall: start.elapsed(), dispatches, submissions: groups.len() as u32, overflow_retries: 0, readback };
         }
         Ok(Some(film))
     }
@@ -825,6 +839,15 @@ impl GpuRenderer {
     }
 
     fn read<T: bytemuck::Pod>(&self, buffer: &wgpu::Buffer, bytes: u64) -> Result<Vec<T>, GpuError> {
+        self.read_with(buffer, bytes, |view| {
+            let mut v = vec![<T as bytemuck::Zeroable>::zeroed(); view.len() / size_of::<T>()];
+            bytemuck::cast_slice_mut::<T, u8>(&mut v).copy_from_slice(view);
+            v
+        })
+    }
+
+    /// Maps the first `bytes` of `buffer` and hands them to `f`.
+    fn read_with<R>(&self, buffer: &wgpu::Buffer, bytes: u64, f: impl FnOnce(&[u8]) -> R) -> Result<R, GpuError> {
         let (tx, rx) = mpsc::channel();
         buffer.map_async(wgpu::MapMode::Read, 0..bytes, move |r| {
             let _ = tx.send(r);
@@ -841,9 +864,7 @@ impl GpuRenderer {
         }
         let out = {
             let view = buffer.get_mapped_range(0..bytes).map_err(|e| GpuError::Readback(e.to_string()))?;
-            let mut v = vec![<T as bytemuck::Zeroable>::zeroed(); bytes as usize / size_of::<T>()];
-            bytemuck::cast_slice_mut::<T, u8>(&mut v).copy_from_slice(&view);
-            v
+            f(&view)
         };
         buffer.unmap();
         Ok(out)
