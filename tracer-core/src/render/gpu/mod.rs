@@ -129,7 +129,7 @@ fn type_rank(t: wgpu::DeviceType) -> u32 {
 /// How the GPU walks each sample's ray tree (WGSL has no recursion).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Strategy {
-    /// One invocation per pixel walks each sample's whole tree with a
+    /// One invocation per pixel-sample walks that sample's whole ray tree with a
     /// bounded per-thread task stack (whitted.wgsl `render`).
     #[default]
     Stack,
@@ -353,7 +353,7 @@ impl GpuRenderer {
         });
         let wave_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tessera wavefront queues"),
-            entries: &[storage(0, true), storage(1, false), storage(2, false), storage(3, false)],
+            entries: &[storage(0, true), storage(1, false), storage(2, false)],
         });
         let wave_args_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tessera wavefront args"),
@@ -552,14 +552,6 @@ impl GpuRenderer {
                         entire(0, inq),
                         entire(1, outq),
                         entire(2, &w.state),
-                        wgpu::BindGroupEntry {
-                            binding: 3,
-                            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                                buffer: &out.sums,
-                                offset: 0,
-                                size: wgpu::BufferSize::new(sums_bytes),
-                            }),
-                        },
                     ],
                 })
             };
@@ -644,7 +636,8 @@ impl GpuRenderer {
                         pass.set_pipeline(&scene.pipeline);
                         for (i, d) in group.iter().enumerate() {
                             pass.set_bind_group(0, &bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
-                            pass.dispatch_workgroups(d.rect_w.div_ceil(wx), d.rows.div_ceil(wy), 1);
+                            // One invocation per pixel-sample.
+                            pass.dispatch_workgroups(d.rect_w.div_ceil(wx), d.rows.div_ceil(wy), d.sample_end - d.sample_start);
                             dispatches += 1;
                         }
                     }
@@ -893,7 +886,8 @@ fn plan(rect: Rect, samples: SampleRange, frame: u32, o: GpuOptions) -> Vec<Vec<
     let w = rect.width as u64;
     let len = samples.len() as u64;
     let budget = o.dispatch_pixel_samples.max(1);
-    let chunk = (budget / w).clamp(1, len);
+    // Samples are a dispatch's z dimension: at most 65535 workgroups.
+    let chunk = (budget / w).clamp(1, len).min(65_535);
     let rows = (budget / (w * chunk)).clamp(1, rect.height as u64) as u32;
     let mut groups: Vec<Vec<DispatchParams>> = vec![Vec::new()];
     let mut in_group = 0u64;

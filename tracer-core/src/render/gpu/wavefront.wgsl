@@ -30,7 +30,6 @@ override QUEUE_CAP: u32 = 1u;
 @group(1) @binding(0) var<storage, read> queue_in: array<WaveTask>;
 @group(1) @binding(1) var<storage, read_write> queue_out: array<WaveTask>;
 @group(1) @binding(2) var<storage, read_write> wave: WaveState;
-@group(1) @binding(3) var<storage, read_write> wsums: array<atomic<u32>>;
 // Indirect dispatch arguments of the next shade pass: a group of its own,
 // which only wave_swap's layout has, because a buffer may not be both
 // written by and the indirect argument of one dispatch.
@@ -84,19 +83,6 @@ fn wave_swap() {
     wave_args_out[0] = args.x;
     wave_args_out[1] = args.y;
     wave_args_out[2] = args.z;
-}
-
-fn add_fixed(word: u32, v: f32) {
-    let f = to_fixed(v);
-    if (f.x != 0u) {
-        let old = atomicAdd(&wsums[word], f.x);
-        if (old + f.x < old) {
-            atomicAdd(&wsums[word + 1u], 1u);
-        }
-    }
-    if (f.y != 0u) {
-        atomicAdd(&wsums[word + 1u], f.y);
-    }
 }
 
 fn push(t: WaveTask) {

@@ -1,6 +1,8 @@
-// The thesis's Whitted model on the GPU: one invocation per pixel, looping
-// over the dispatch's samples; each sample's ray tree is walked with a
-// bounded per-thread task stack (WGSL has no recursion). A pixel's colour
+// The thesis's Whitted model on the GPU: one invocation per pixel-sample;
+// the sample's ray tree is walked with a bounded per-thread task stack
+// (WGSL has no recursion), and its radiance, converted to 32.32 fixed point
+// exactly as the CPU does, is added atomically to its pixel's sums (integer
+// addition: the result does not depend on the order). A pixel's colour
 // is the sum over the tree of weight * local colour, the same quantity the
 // CPU's recursion in `render/whitted.rs` computes; the shading below
 // follows that file step by step (same self-skip, origin offsets, shadow
@@ -87,7 +89,7 @@ override WG_Y: u32 = 8u;
 @group(0) @binding(3) var<storage, read> planes: array<Plane>;
 @group(0) @binding(4) var<storage, read> materials: array<Material>;
 @group(0) @binding(5) var<storage, read> lights: array<Light>;
-@group(0) @binding(6) var<storage, read_write> sums: array<u32>;
+@group(0) @binding(6) var<storage, read_write> sums: array<atomic<u32>>;
 @group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 10>;
 
 var<workgroup> wg_counts: array<atomic<u32>, 5>;
@@ -370,9 +372,18 @@ fn to_fixed(v: f32) -> vec2<u32> {
     return vec2<u32>(u32(lo), u32(hi));
 }
 
-fn add64(a: vec2<u32>, b: vec2<u32>) -> vec2<u32> {
-    let lo = a.x + b.x;
-    return vec2<u32>(lo, a.y + b.y + select(0u, 1u, lo < a.x));
+// Adds v in fixed point to the (low, high) pair at sums[word], carrying.
+fn add_fixed(word: u32, v: f32) {
+    let f = to_fixed(v);
+    if (f.x != 0u) {
+        let old = atomicAdd(&sums[word], f.x);
+        if (old + f.x < old) {
+            atomicAdd(&sums[word + 1u], 1u);
+        }
+    }
+    if (f.y != 0u) {
+        atomicAdd(&sums[word + 1u], f.y);
+    }
 }
 
 // Ray counts: per workgroup first, then one (carrying) global add per
@@ -399,34 +410,23 @@ fn flush_tally(lid: u32) {
 fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let col = gid.x;
     let row = params.row0 + gid.y;
-    if (col < params.rect_w && gid.y < params.rows && row < params.rect_h) {
+    let s = params.sample_start + gid.z;
+    if (col < params.rect_w && gid.y < params.rows && row < params.rect_h && s < params.sample_end) {
         let px = params.rect_x + col;
         let py = params.rect_y + row;
-        let seed = pixel_seed(px, py, params.frame);
+        let off = sample_offset(frame.sampler, frame.grid_n, pixel_seed(px, py, params.frame), s);
+        let sx = f32(px) + off.x;
+        let sy = f32(py) + off.y;
+        // world.rs Camera::ray
+        let a = 2.0 * sx * frame.inv_width - 1.0;
+        let b = 1.0 - 2.0 * sy * frame.inv_height;
+        let d = normalize(frame.forward + frame.right * a + frame.up * b);
+        tally[C_PRIMARY] += 1u;
+        let c = trace(vec3<f32>(0.0), d);
         let base = (row * params.rect_w + col) * 6u;
-        var r = vec2<u32>(sums[base], sums[base + 1u]);
-        var g = vec2<u32>(sums[base + 2u], sums[base + 3u]);
-        var b = vec2<u32>(sums[base + 4u], sums[base + 5u]);
-        for (var s = params.sample_start; s < params.sample_end; s++) {
-            let off = sample_offset(frame.sampler, frame.grid_n, seed, s);
-            let sx = f32(px) + off.x;
-            let sy = f32(py) + off.y;
-            // world.rs Camera::ray
-            let a = 2.0 * sx * frame.inv_width - 1.0;
-            let bb = 1.0 - 2.0 * sy * frame.inv_height;
-            let d = normalize(frame.forward + frame.right * a + frame.up * bb);
-            tally[C_PRIMARY] += 1u;
-            let c = trace(vec3<f32>(0.0), d);
-            r = add64(r, to_fixed(c.x));
-            g = add64(g, to_fixed(c.y));
-            b = add64(b, to_fixed(c.z));
-        }
-        sums[base] = r.x;
-        sums[base + 1u] = r.y;
-        sums[base + 2u] = g.x;
-        sums[base + 3u] = g.y;
-        sums[base + 4u] = b.x;
-        sums[base + 5u] = b.y;
+        add_fixed(base, c.x);
+        add_fixed(base + 2u, c.y);
+        add_fixed(base + 4u, c.z);
     }
     flush_tally(lid);
 }
