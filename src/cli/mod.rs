@@ -5,6 +5,8 @@ mod cluster;
 mod coordinator;
 mod farm_common;
 mod jobs;
+#[cfg(feature = "gpu")]
+mod gpus;
 mod render;
 mod worker;
 
@@ -49,6 +51,9 @@ pub enum Command {
     Workers(jobs::ListArgs),
     /// Run a coordinator and N workers in this terminal.
     Cluster(cluster::ClusterArgs),
+    /// List the GPU adapters `--backend gpu --adapter NAME|INDEX` can use.
+    #[cfg(feature = "gpu")]
+    Gpus,
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
@@ -65,5 +70,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Fetch(args) => jobs::fetch(args),
         Command::Workers(args) => jobs::workers(args),
         Command::Cluster(args) => cluster::run(args),
+        #[cfg(feature = "gpu")]
+        Command::Gpus => gpus::run(),
     }
 }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{bail, Result};
 use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -68,6 +68,9 @@ impl From<PrecisionArg> for Precision {
 pub enum BackendArg {
     /// CPU threads (rayon)
     Cpu,
+    /// GPU compute shaders (wgpu: Vulkan/Metal/DX12); f32 only
+    #[cfg(feature = "gpu")]
+    Gpu,
 }
 
 #[derive(Args, Debug)]
@@ -88,6 +91,10 @@ pub struct RenderArgs {
     /// Where to trace
     #[arg(long, value_enum, default_value_t = BackendArg::Cpu)]
     pub backend: BackendArg,
+    /// GPU adapter for --backend gpu: index or part of the name as `tessera gpus` lists it [default: the best one]
+    #[cfg(feature = "gpu")]
+    #[arg(long, value_name = "NAME|INDEX")]
+    pub adapter: Option<String>,
     /// Frame number (seeds the jittered sampler)
     #[arg(long, default_value_t = 0)]
     pub frame: u32,
@@ -103,7 +110,20 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let settings = args.overrides.apply(&scene.render)?;
     let precision: Precision = args.precision.into();
 
-    let renderer = CpuRenderer::new(args.threads)?;
+    #[cfg(feature = "gpu")]
+    if args.backend != BackendArg::Gpu && args.adapter.is_some() {
+        bail!("--adapter only applies to --backend gpu");
+    }
+    let renderer = match args.backend {
+        BackendArg::Cpu => Backend::Cpu(CpuRenderer::new(args.threads)?),
+        #[cfg(feature = "gpu")]
+        BackendArg::Gpu => {
+            if precision != Precision::F32 {
+                bail!("--backend gpu renders in f32 only; use --precision f32 (f64 is the CPU reference)");
+            }
+            Backend::Gpu(Box::new(tracer_core::render::GpuRenderer::new(args.adapter.as_deref(), Default::default())?))
+        }
+    };
     let prepared = PreparedFrame::build(&scene, &settings, args.frame, precision)?;
     let total = settings.width as u64 * settings.height as u64 * settings.samples as u64;
     let bar = ProgressBar::new(total).with_style(
@@ -111,26 +131,26 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
             .expect("valid template"),
     );
     let start = Instant::now();
-    let film = renderer.render(
-        &prepared,
-        args.frame,
-        Rect::full(settings.width, settings.height),
-        SampleRange::all(settings.samples),
-        &|n| bar.inc(n),
-    )?;
+    let rect = Rect::full(settings.width, settings.height);
+    let samples = SampleRange::all(settings.samples);
+    let film = match &renderer {
+        Backend::Cpu(r) => r.render(&prepared, args.frame, rect, samples, &|n| bar.inc(n))?,
+        #[cfg(feature = "gpu")]
+        Backend::Gpu(r) => r.render(&prepared, args.frame, rect, samples, &|n| bar.inc(n))?,
+    };
     let secs = start.elapsed().as_secs_f64();
     bar.finish_and_clear();
     write_image(&output, &film)?;
 
     let r = film.rays;
     println!(
-        "{}x{} {} spp depth {} {} cpu:{}t  {:.3} s  {} rays (primary {}, shadow {}, reflection {}, refraction {})  {:.1} Mrays/s  -> {}",
+        "{}x{} {} spp depth {} {} {}  {:.3} s  {} rays (primary {}, shadow {}, reflection {}, refraction {})  {:.1} Mrays/s  -> {}",
         settings.width,
         settings.height,
         settings.samples,
         settings.max_depth,
         precision.name(),
-        renderer.threads(),
+        renderer.describe(),
         secs,
         r.total(),
         r.primary,
@@ -146,4 +166,21 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         eprintln!("warning: {} non-finite samples were replaced by 0", film.nonfinite);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The renderer a `tessera render` run uses.
+enum Backend {
+    Cpu(CpuRenderer),
+    #[cfg(feature = "gpu")]
+    Gpu(Box<tracer_core::render::GpuRenderer>),
+}
+
+impl Backend {
+    fn describe(&self) -> String {
+        match self {
+            Backend::Cpu(r) => format!("cpu:{}t", r.threads()),
+            #[cfg(feature = "gpu")]
+            Backend::Gpu(r) => format!("gpu:{}", r.adapter().name),
+        }
+    }
 }

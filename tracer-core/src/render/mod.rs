@@ -6,6 +6,8 @@
 //! (bit for bit on the CPU; within a stated tolerance on the GPU).
 
 pub mod cpu;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod whitted;
 
 use crate::film::{Rect, SampleRange};
@@ -13,6 +15,8 @@ use crate::scene::{RenderSettings, SceneDesc};
 use crate::world::World;
 
 pub use cpu::CpuRenderer;
+#[cfg(feature = "gpu")]
+pub use gpu::{GpuError, GpuOptions, GpuRenderer};
 
 /// Arithmetic precision of a render.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]

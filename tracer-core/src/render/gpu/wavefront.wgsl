@@ -1,0 +1,142 @@
+// The thesis's weighted ray tasks as a wavefront: instead of one thread
+// walking a sample's whole ray tree, each generation of rays is a queue of
+// tasks (pixel, weight, ray, depth, skip); one dispatch shades a whole
+// generation, adds weight * local colour to the task's pixel (atomically, in
+// 32.32 fixed point) and appends the children to the next queue. Compiled
+// after whitted.wgsl, whose structs, bindings and geometry it shares.
+
+// Keep in sync with layout.rs WaveTask (48 bytes).
+struct WaveTask {
+    origin: vec3<f32>,
+    weight: f32,
+    dir: vec3<f32>,
+    depth: u32,
+    skip: u32,
+    // Index of the task's pixel in the film (row-major over the rect).
+    pixel: u32,
+}
+
+// Keep in sync with layout.rs WaveState.
+struct WaveState {
+    // Tasks in the input queue, the output queue's append cursor.
+    count_in: atomic<u32>,
+    count_out: atomic<u32>,
+    // Set when a generation had more children than the queue holds.
+    overflow: atomic<u32>,
+}
+
+override QUEUE_CAP: u32 = 1u;
+
+@group(1) @binding(0) var<storage, read> queue_in: array<WaveTask>;
+@group(1) @binding(1) var<storage, read_write> queue_out: array<WaveTask>;
+@group(1) @binding(2) var<storage, read_write> wave: WaveState;
+// Indirect dispatch arguments of the next shade pass: a group of its own,
+// which only wave_swap's layout has, because a buffer may not be both
+// written by and the indirect argument of one dispatch.
+@group(2) @binding(0) var<storage, read_write> wave_args_out: array<u32, 3>;
+
+fn wave_args(n: u32) -> vec3<u32> {
+    return vec3<u32>((n + WG_X * WG_Y - 1u) / (WG_X * WG_Y), 1u, 1u);
+}
+
+// Primary tasks of the dispatch's band of rows x range of samples, written
+// to queue_out (the host then binds it as the next pass's queue_in).
+@compute @workgroup_size(WG_X * WG_Y, 1, 1)
+fn wave_primary(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let per_sample = params.rect_w * params.rows;
+    let n = per_sample * (params.sample_end - params.sample_start);
+    let i = gid.x;
+    if (i < n) {
+        let s = params.sample_start + i / per_sample;
+        let k = i % per_sample;
+        let col = k % params.rect_w;
+        let row = params.row0 + k / params.rect_w;
+        let px = params.rect_x + col;
+        let py = params.rect_y + row;
+        let off = sample_offset(frame.sampler, frame.grid_n, pixel_seed(px, py, params.frame), s);
+        let sx = f32(px) + off.x;
+        let sy = f32(py) + off.y;
+        let a = 2.0 * sx * frame.inv_width - 1.0;
+        let bb = 1.0 - 2.0 * sy * frame.inv_height;
+        let d = normalize(frame.forward + frame.right * a + frame.up * bb);
+        queue_out[i] = WaveTask(vec3<f32>(0.0), 1.0, d, 0u, NONE, row * params.rect_w + col);
+        tally[C_PRIMARY] += 1u;
+    }
+    if (i == 0u) {
+        atomicStore(&wave.count_out, n);
+    }
+    flush_tally(lid);
+}
+
+// Between generations (one invocation): the output queue becomes the next
+// input; its length sets the next shade dispatch's size.
+@compute @workgroup_size(1, 1, 1)
+fn wave_swap() {
+    let produced = atomicLoad(&wave.count_out);
+    let n = min(produced, QUEUE_CAP);
+    if (produced > QUEUE_CAP) {
+        atomicStore(&wave.overflow, 1u);
+    }
+    atomicStore(&wave.count_in, n);
+    atomicStore(&wave.count_out, 0u);
+    let args = wave_args(n);
+    wave_args_out[0] = args.x;
+    wave_args_out[1] = args.y;
+    wave_args_out[2] = args.z;
+}
+
+fn push(t: WaveTask) {
+    let at = atomicAdd(&wave.count_out, 1u);
+    if (at < QUEUE_CAP) {
+        queue_out[at] = t;
+    }
+}
+
+// One generation: every task of queue_in, shaded as render/whitted.rs does.
+@compute @workgroup_size(WG_X * WG_Y, 1, 1)
+fn wave_shade(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let i = gid.x;
+    if (i < atomicLoad(&wave.count_in)) {
+        let task = queue_in[i];
+        var colour: vec3<f32>;
+        let hit = closest_hit(task.origin, task.dir, task.skip);
+        if (hit.id == NONE) {
+            colour = frame.background * task.weight;
+        } else {
+            let sf = surface(hit.id, task.origin + task.dir * hit.t);
+            let p = sf.p;
+            let m = materials[sf.material];
+            let v = -task.dir;
+            let cos_out = dot(sf.n, v);
+            let entering = cos_out >= 0.0;
+            let n = select(-sf.n, sf.n, entering);
+            let cos_i = abs(cos_out);
+            let above = offset_origin(p, n);
+            colour = shade_local(p, n, v, m, above, hit.id) * task.weight;
+            if (task.depth < MAX_DEPTH) {
+                var reflect_w = m.reflectivity;
+                if (HAS_REFRACTION && m.transparency > 0.0) {
+                    let eta = select(m.ior, 1.0 / m.ior, entering);
+                    let k = 1.0 - eta * eta * (1.0 - cos_i * cos_i);
+                    if (k < 0.0) {
+                        reflect_w += m.transparency;
+                    } else {
+                        let rdir = normalize(-v * eta + n * (eta * cos_i - sqrt(k)));
+                        tally[C_REFRACTION] += 1u;
+                        push(WaveTask(offset_origin(p, -n), task.weight * m.transparency, rdir, task.depth + 1u, hit.id, task.pixel));
+                    }
+                }
+                if (HAS_REFLECTION && reflect_w > 0.0) {
+                    let rdir = normalize(n * (2.0 * cos_i) - v);
+                    tally[C_REFLECTION] += 1u;
+                    push(WaveTask(above, task.weight * reflect_w, rdir, task.depth + 1u, hit.id, task.pixel));
+                }
+            }
+        }
+        let base = task.pixel * 6u;
+        add_fixed(base, colour.x);
+        add_fixed(base + 2u, colour.y);
+        add_fixed(base + 4u, colour.z);
+    }
+    flush_tally(lid);
+}

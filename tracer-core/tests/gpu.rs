@@ -1,0 +1,615 @@
+//! The GPU backend against the CPU f64 reference: every example scene, the
+//! numerical hard cases of hard_cases.rs (same scenes), exact additivity of
+//! tiles, sample ranges and dispatch splits, and the error paths.
+//!
+//! Needs a wgpu adapter (lavapipe in CI: `apt-get install mesa-vulkan-drivers
+//! libvulkan1`). With `CI=true` and no adapter every test fails; elsewhere
+//! they skip with a message.
+//!
+//! Tolerance against the f64 reference, for every image comparison here
+//! unless a test states otherwise: the one `examples.rs` states for the
+//! CPU's own f32 path, mean absolute difference below 1/1000 and at most 1%
+//! of pixels off by more than 2/255. The GPU computes the same f32 formulas
+//! as the CPU's f32 path; what differs is rounding: Vulkan allows a few ulps
+//! in division, sqrt and normalize and more in pow (exp2(y log2 x)), the ray
+//! tree's weighted colours are summed in a different order, and the GPU
+//! flushes denormals. Each moves a hit by ~1e-7 relative, exactly like f32
+//! against f64, so the bound that holds for f32 must hold here; a wrong
+//! shading term, acne or a missing stage would break it by orders of
+//! magnitude (one light's contribution is ~0.5).
+
+mod common;
+
+use std::sync::OnceLock;
+
+use common::*;
+use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::render::gpu::{GpuError, GpuOptions, GpuRenderer, Strategy};
+use tracer_core::render::{Precision, PreparedFrame};
+use tracer_core::scene::{RenderSettings, SceneDesc};
+
+const W: u32 = 160;
+const H: u32 = 120;
+
+/// The shared renderer (one device for the whole test binary), or `None`
+/// (skip) when there is no adapter and this is not CI.
+fn gpu() -> Option<&'static GpuRenderer> {
+    static GPU: OnceLock<Option<GpuRenderer>> = OnceLock::new();
+    let r = GPU.get_or_init(|| match GpuRenderer::new(std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(), GpuOptions::default()) {
+        Ok(r) => Some(r),
+        Err(e) => {
+            if std::env::var("CI").is_ok_and(|v| v == "true") {
+                panic!("CI=true but no GPU adapter could be opened: {e}");
+            }
+            eprintln!("SKIPPING GPU tests: {e}");
+            None
+        }
+    });
+    if let Some(r) = r {
+        eprintln!("GPU tests use adapter {}", r.adapter());
+    }
+    r.as_ref()
+}
+
+fn gpu_render(g: &GpuRenderer, desc: &SceneDesc, settings: &RenderSettings, frame: u32, rect: Rect, samples: SampleRange) -> Film {
+    let prepared = PreparedFrame::build(desc, settings, frame, Precision::F32).expect("valid settings");
+    let film = g.render(&prepared, frame, rect, samples, &|_| {}).unwrap_or_else(|e| panic!("GPU render failed: {e}"));
+    assert_eq!(film.nonfinite, 0, "a NaN or infinite sample reached the GPU film");
+    film
+}
+
+fn gpu_whole(g: &GpuRenderer, desc: &SceneDesc, settings: &RenderSettings) -> Film {
+    gpu_render(g, desc, settings, 0, Rect::full(settings.width, settings.height), SampleRange::all(settings.samples))
+}
+
+/// Asserts the stated tolerance (module docs) of a GPU image against the f64 reference.
+fn assert_close(what: &str, gpu_img: &[[f32; 3]], reference: &[[f32; 3]]) {
+    assert_finite(gpu_img);
+    let d = diff(gpu_img, reference, 2.0 / 255.0);
+    eprintln!("{what}: mean |gpu - f64| = {:.2e}, max {:.3}, {} of {} pixels over 2/255", d.mean, d.max, d.over, d.pixels);
+    assert!(d.mean < 1e-3, "{what}: mean GPU/f64 difference {}", d.mean);
+    assert!(d.over * 100 <= d.pixels, "{what}: {} of {} pixels differ by > 2/255", d.over, d.pixels);
+}
+
+/// Ray counts agree with the CPU f32 path: primary exactly; secondary rays
+/// within 1% (a sample whose path flips at a silhouette changes its tree);
+/// shadow rays within 5%, because a light behind the surface whose specular
+/// term pow(N.H, s) underflows is skipped on the GPU (denormals flush to 0)
+/// but not on the CPU, whose f32 powf returns a denormal.
+fn assert_counts_close(what: &str, gpu: &Film, cpu: &Film) {
+    let (g, c) = (gpu.rays, cpu.rays);
+    assert_eq!(g.primary, c.primary, "{what}: primary rays");
+    let close = |a: u64, b: u64, rel: f64| (a as f64 - b as f64).abs() <= rel * b as f64 + 16.0;
+    assert!(close(g.reflection, c.reflection, 0.01), "{what}: reflection rays GPU {} CPU {}", g.reflection, c.reflection);
+    assert!(close(g.refraction, c.refraction, 0.01), "{what}: refraction rays GPU {} CPU {}", g.refraction, c.refraction);
+    assert!(close(g.shadow, c.shadow, 0.05), "{what}: shadow rays GPU {} CPU {}", g.shadow, c.shadow);
+}
+
+fn check_example(rel: &str) {
+    let Some(g) = gpu() else { return };
+    let path = examples_dir().join(rel);
+    let desc = SceneDesc::load(&path).unwrap();
+    let s = RenderSettings { width: W, height: H, samples: 4, ..desc.render };
+    let got = gpu_whole(g, &desc, &s);
+    let reference = render_with(&desc, &s, Precision::F64);
+    let cpu32 = render_with(&desc, &s, Precision::F32);
+    assert_close(rel, &got.resolve(), &reference.resolve());
+    assert_counts_close(rel, &got, &cpu32);
+    assert!(got.counts.iter().all(|&n| n == 4));
+}
+
+macro_rules! example_tests {
+    ($($name:ident => $file:expr),* $(,)?) => {
+        $(#[test] fn $name() { check_example($file); })*
+    };
+}
+
+example_tests! {
+    example_resolution => "resolution.toml",
+    example_depth => "depth.toml",
+    example_animation => "animation.toml",
+    example_showcase => "showcase.toml",
+    example_complexity_plastic_1 => "complexity/plastic-1.toml",
+    example_complexity_plastic_3 => "complexity/plastic-3.toml",
+    example_complexity_plastic_6 => "complexity/plastic-6.toml",
+    example_complexity_plastic_9 => "complexity/plastic-9.toml",
+    example_complexity_chrome_1 => "complexity/chrome-1.toml",
+    example_complexity_chrome_3 => "complexity/chrome-3.toml",
+    example_complexity_chrome_6 => "complexity/chrome-6.toml",
+    example_complexity_chrome_9 => "complexity/chrome-9.toml",
+    example_complexity_glass_1 => "complexity/glass-1.toml",
+    example_complexity_glass_3 => "complexity/glass-3.toml",
+    example_complexity_glass_6 => "complexity/glass-6.toml",
+    example_complexity_glass_9 => "complexity/glass-9.toml",
+    example_complexity_emerald_1 => "complexity/emerald-1.toml",
+    example_complexity_emerald_3 => "complexity/emerald-3.toml",
+    example_complexity_emerald_6 => "complexity/emerald-6.toml",
+    example_complexity_emerald_9 => "complexity/emerald-9.toml",
+}
+
+#[test]
+fn every_example_scene_has_a_gpu_test() {
+    let mut found = vec![];
+    for d in [examples_dir(), examples_dir().join("complexity")] {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.extension().is_some_and(|x| x == "toml") {
+                found.push(p.strip_prefix(examples_dir()).unwrap().to_string_lossy().replace('\\', "/"));
+            }
+        }
+    }
+    found.sort();
+    let src = include_str!("gpu.rs");
+    for f in &found {
+        assert!(src.contains(&format!("=> \"{f}\"")), "examples/{f} has no GPU test in tests/gpu.rs");
+    }
+}
+
+// ---- Hard cases: the scenes of hard_cases.rs, GPU against CPU f64 --------
+
+/// Compares GPU and CPU f64 renders of `desc` at its own settings with the
+/// stated tolerance, and returns both images.
+fn hard_case(what: &str, desc: &SceneDesc, settings: &RenderSettings) -> Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)> {
+    let g = gpu()?;
+    let got = gpu_whole(g, desc, settings).resolve();
+    let reference = render_with(desc, settings, Precision::F64).resolve();
+    assert_close(what, &got, &reference);
+    Some((got, reference))
+}
+
+/// A one-object scene as in hard_cases.rs.
+fn one_object(cam: &str, object: &str, light: [f64; 3], size: (u32, u32)) -> SceneDesc {
+    scene(&format!(
+        r#"
+[render]
+width = {w}
+height = {h}
+samples = 1
+max_depth = 0
+[camera]
+{cam}
+[world]
+ambient = [0.1, 0.1, 0.1]
+background = [0.0, 0.0, 0.3]
+[materials.m]
+ambient = [1.0, 1.0, 1.0]
+diffuse = [0.7, 0.6, 0.5]
+specular = [0.5, 0.5, 0.5]
+shininess = 20.0
+[[lights]]
+position = [{lx:e}, {ly:e}, {lz:e}]
+diffuse = [1.0, 1.0, 1.0]
+specular = [1.0, 1.0, 1.0]
+[[objects]]
+{object}
+material = "m"
+"#,
+        w = size.0,
+        h = size.1,
+        lx = light[0],
+        ly = light[1],
+        lz = light[2],
+    ))
+}
+
+/// For one-object scenes the pixels must agree far tighter than the general
+/// bound: no secondary rays, so only the hit's rounding differs. Acne or a
+/// leak is an error of a whole light (~0.5); `tol` per pixel, all pixels
+/// but silhouette flips (0.5%).
+fn one_object_case(what: &str, desc: &SceneDesc, tol: f32) {
+    let Some((got, reference)) = hard_case(what, desc, &desc.render) else { return };
+    let d = diff(&got, &reference, tol);
+    assert!(d.over * 200 <= d.pixels, "{what}: {} of {} pixels differ by > {tol}", d.over, d.pixels);
+}
+
+#[test]
+fn hard_shadow_rays_from_a_sphere_never_hit_it_again() {
+    let s = one_object("position = [0, 0, -4]\nlook_at = [0, 0, 0]", "type = \"sphere\"\ncenter = [0, 0, 0]\nradius = 1", [3.0, 4.0, -5.0], (96, 96));
+    one_object_case("sphere self-shadow", &s, 1e-3);
+}
+
+#[test]
+fn hard_grazing_rays_on_a_plane() {
+    let s = one_object(
+        "position = [0, 0.001, 0]\nlook_at = [0, 0.001, 10]",
+        "type = \"plane\"\nnormal = [0, 1, 0]\ndistance = 0",
+        [0.0, 2.0, 5.0],
+        (128, 64),
+    );
+    one_object_case("grazing plane", &s, 1e-3);
+}
+
+#[test]
+fn hard_inside_a_sphere_lit_from_inside() {
+    let s = one_object(
+        "position = [0, 0, -1]\nlook_at = [0, 0, 1]\nfov_y = 100",
+        "type = \"sphere\"\ncenter = [0, 0, 0]\nradius = 3",
+        [0.5, 1.0, 0.0],
+        (96, 96),
+    );
+    one_object_case("inside a sphere", &s, 1e-3);
+}
+
+#[test]
+fn hard_tiny_sphere_far_from_the_origin() {
+    let s = one_object(
+        "position = [100000.0, 100000.0, 99999.9995]\nlook_at = [100000.0, 100000.0, 100000.0]",
+        "type = \"sphere\"\ncenter = [100000.0, 100000.0, 100000.0]\nradius = 1e-4",
+        [100000.0003, 100000.0004, 99999.9995],
+        (64, 64),
+    );
+    one_object_case("tiny far sphere", &s, 1e-3);
+    // It is really there: most of the view is the lit sphere, not background.
+    if let Some(g) = gpu() {
+        let img = gpu_whole(g, &s, &s.render).resolve();
+        assert!(img.iter().filter(|p| p[2] != 0.3).count() > 300, "the 1e-4 sphere is missing on the GPU");
+    }
+}
+
+#[test]
+fn hard_huge_sphere_far_from_the_origin() {
+    let s = one_object(
+        "position = [100000.0, 1000003.0, 0.0]\nlook_at = [100000.0, 1000000.0, 10.0]",
+        "type = \"sphere\"\ncenter = [100000.0, 0.0, 0.0]\nradius = 1e6",
+        [100005.0, 1000010.0, 5.0],
+        (64, 64),
+    );
+    // The f32 centre is quantised to 0.06 units (hard_cases.rs allows 5e-3 for the CPU's f32).
+    one_object_case("huge far sphere", &s, 5e-3);
+}
+
+#[test]
+fn hard_huge_sphere_as_a_floor() {
+    let s = scene(
+        r#"
+[render]
+width = 128
+height = 96
+samples = 1
+max_depth = 0
+[camera]
+position = [0, 2, -6]
+look_at = [0, 0.5, 0]
+[world]
+ambient = [0.1, 0.1, 0.1]
+[materials.ground]
+ambient = [1, 1, 1]
+diffuse = [0.8, 0.8, 0.8]
+[[lights]]
+position = [0, 3, 6]
+[[objects]]
+type = "sphere"
+center = [0, -1000000, 0]
+radius = 1000000
+material = "ground"
+[[objects]]
+type = "sphere"
+center = [0, 0.5, 0]
+radius = 0.5
+material = "ground"
+"#,
+    );
+    let Some((img, _)) = hard_case("huge sphere floor", &s, &s.render) else { return };
+    let shadow = img[60 * 128 + 64];
+    assert!((shadow[0] - 0.1).abs() < 1e-5, "floor in the sphere's shadow = {shadow:?}, want ambient 0.1");
+    let lit_min = 0.1 + 0.8 * 0.2;
+    for y in 86..96 {
+        for x in 0..128 {
+            let v = img[y * 128 + x][0];
+            assert!(v as f64 > lit_min, "floor pixel ({x}, {y}) = {v}: shadow acne on the GPU");
+        }
+    }
+}
+
+#[test]
+fn hard_light_on_a_surface() {
+    let s = scene(
+        r#"
+[render]
+width = 128
+height = 96
+samples = 4
+[camera]
+position = [0, 2, -5]
+look_at = [0, 0.5, 0]
+[world]
+ambient = [0.1, 0.1, 0.1]
+[materials.m]
+ambient = [1, 1, 1]
+diffuse = [0.8, 0.8, 0.8]
+specular = [0.3, 0.3, 0.3]
+shininess = 10
+[materials.floor]
+ambient = [1, 1, 1]
+diffuse = [0.8, 0.8, 0.8]
+[[lights]]
+position = [1.5, 0, 0]
+[[lights]]
+position = [-1, 0.5, 0.0]
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+[[objects]]
+type = "sphere"
+center = [0, 0.5, 0]
+radius = 0.5
+material = "m"
+[[objects]]
+type = "sphere"
+center = [-1, 0.5, 0]
+radius = 0.25
+material = "m"
+"#,
+    );
+    let Some((img, _)) = hard_case("light on a surface", &s, &s.render) else { return };
+    let floor_px = img[95 * 128 + 2];
+    assert!((floor_px[0] - 0.1).abs() < 1e-6, "floor corner = {floor_px:?}, want ambient only");
+    let lit = img.iter().filter(|p| p[0] > 0.3).count();
+    assert!(lit > 15, "the sphere beside the light on the floor is not lit ({lit} pixels)");
+}
+
+/// hard_cases.rs's glass plane, seen from below through a 2-degree view
+/// centred on the critical angle: rows above the middle meet the plane
+/// nearer its normal (refract: 0.9 red sky + 0.1 blue reflection), rows
+/// below past the critical angle (total internal reflection: all blue).
+#[test]
+fn hard_total_internal_reflection_at_and_past_the_critical_angle() {
+    let critical = (1.0f64 / 1.5).asin();
+    let s = scene(&format!(
+        r#"
+[render]
+width = 8
+height = 64
+samples = 1
+max_depth = 2
+[camera]
+position = [0, -1, 0]
+look_at = [0, {ly}, {lz}]
+fov_y = 2.0
+[world]
+ambient = [1, 1, 1]
+background = [0, 0, 1]
+[materials.glass]
+transparency = 0.9
+reflectivity = 0.1
+ior = 1.5
+[materials.sky]
+ambient = [1, 0, 0]
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "glass"
+[[objects]]
+type = "plane"
+normal = [0, -1, 0]
+distance = -10
+material = "sky"
+"#,
+        ly = -1.0 + critical.cos(),
+        lz = critical.sin(),
+    ));
+    let Some(g) = gpu() else { return };
+    let film = gpu_whole(g, &s, &s.render);
+    let img = film.resolve();
+    let reference = render_with(&s, &s.render, Precision::F64).resolve();
+    for y in 0..64usize {
+        // Rows 0..=29 are over 0.05 degrees inside the critical angle, rows 34.. past it.
+        let want = if y < 30 {
+            Some([0.9, 0.0, 0.1])
+        } else if y >= 34 {
+            Some([0.0, 0.0, 1.0])
+        } else {
+            None
+        };
+        for x in 0..8usize {
+            let p = img[y * 8 + x];
+            let r = reference[y * 8 + x];
+            assert!(p.iter().all(|c| c.is_finite() && *c >= 0.0), "({x}, {y}) = {p:?}");
+            if let Some(w) = want {
+                for c in 0..3 {
+                    assert!((p[c] - w[c]).abs() < 1e-5, "row {y}: GPU {p:?}, want {w:?}");
+                    assert!((r[c] - w[c]).abs() < 1e-5, "row {y}: CPU f64 {r:?}, want {w:?}");
+                }
+            }
+        }
+    }
+    // Refraction happened only above the critical line.
+    assert!(film.rays.refraction >= 30 * 8 && film.rays.refraction <= 34 * 8, "refraction rays {}", film.rays.refraction);
+}
+
+#[test]
+fn hard_nested_and_touching_glass_spheres() {
+    let s = scene(
+        r#"
+[render]
+width = 96
+height = 72
+samples = 4
+max_depth = 12
+[camera]
+position = [0, 1, -5]
+look_at = [0, 0.8, 0]
+[world]
+ambient = [0.1, 0.1, 0.1]
+background = [0.2, 0.3, 0.5]
+[materials.glass]
+diffuse = [0.05, 0.05, 0.05]
+specular = [0.9, 0.9, 0.9]
+shininess = 80
+reflectivity = 0.1
+transparency = 0.9
+ior = 1.5
+[materials.water]
+reflectivity = 0.05
+transparency = 0.9
+ior = 1.33
+[materials.floor]
+ambient = [0.5, 0.5, 0.5]
+diffuse = [0.6, 0.6, 0.6]
+[[lights]]
+position = [-3, 5, -4]
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+[[objects]]
+type = "sphere"
+center = [-1, 1, 0]
+radius = 1
+material = "glass"
+[[objects]]
+type = "sphere"
+center = [-1, 1, 0]
+radius = 0.5
+material = "water"
+[[objects]]
+type = "sphere"
+center = [1, 0.5, 0]
+radius = 0.5
+material = "glass"
+[[objects]]
+type = "sphere"
+center = [1, 1.5, 0]
+radius = 0.5
+material = "glass"
+"#,
+    );
+    let Some((img, reference)) = hard_case("nested glass", &s, &s.render) else { return };
+    let d = diff(&img, &reference, 1.0 / 255.0);
+    assert!(d.max < 0.25, "largest GPU/f64 difference {}", d.max);
+}
+
+// ---- Splits and errors ----------------------------------------------------
+
+#[test]
+fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
+    let Some(g) = gpu() else { return };
+    let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
+    for (sampler, samples) in [("grid", 9), ("jittered", 9), ("jittered", 5)] {
+        let s = RenderSettings { width: 67, height: 41, samples, sampler: sampler.parse().unwrap(), ..desc.render };
+        let whole = gpu_render(g, &desc, &s, 3, Rect::full(67, 41), SampleRange::all(samples));
+        let mut parts = vec![];
+        for rect in [Rect::new(0, 0, 30, 41), Rect::new(30, 0, 37, 17), Rect::new(30, 17, 37, 24)] {
+            for range in [SampleRange::new(0, 2), SampleRange::new(2, 3), SampleRange::new(3, samples)] {
+                parts.push(gpu_render(g, &desc, &s, 3, rect, range));
+            }
+        }
+        let mut merged = Film::new(Rect::full(67, 41));
+        for i in [4, 0, 8, 2, 6, 1, 7, 3, 5] {
+            merged.merge(&parts[i]).unwrap();
+        }
+        assert_eq!(merged.sums, whole.sums, "{sampler} {samples}: tiles x sample ranges differ from the whole");
+        assert_eq!(merged.counts, whole.counts);
+        assert_eq!(merged.rays, whole.rays);
+
+        // Sample positions (which depend on the frame when jittered) match
+        // the CPU's: same image within the stated tolerance.
+        let f64_frame = PreparedFrame::build(&desc, &s, 3, Precision::F64).unwrap();
+        let reference = tracer_core::render::CpuRenderer::new(None)
+            .unwrap()
+            .render(&f64_frame, 3, Rect::full(67, 41), SampleRange::all(samples), &|_| {})
+            .unwrap();
+        assert_close(&format!("{sampler} {samples} frame 3 vs CPU f64"), &whole.resolve(), &reference.resolve());
+    }
+
+    // Tiny dispatch and submission budgets: many dispatches over bands of
+    // rows and single samples, many submissions; the same sums.
+    let s = RenderSettings { width: 67, height: 41, samples: 4, ..desc.render };
+    let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+    let small = GpuRenderer::new(Some(&g.adapter().index.to_string()), GpuOptions { workgroup: (16, 4), dispatch_pixel_samples: 150, submit_pixel_samples: 1000, ..GpuOptions::default() }).unwrap();
+    let split = small.render(&prepared, 0, Rect::full(67, 41), SampleRange::all(4), &|_| {}).unwrap();
+    let stats = small.last_stats();
+    assert!(stats.dispatches > 40 && stats.submissions > 10, "{stats:?}");
+    let whole = g.render(&prepared, 0, Rect::full(67, 41), SampleRange::all(4), &|_| {}).unwrap();
+    assert_eq!(split.sums, whole.sums);
+    assert_eq!(split.rays, whole.rays);
+}
+
+#[test]
+fn gpu_progress_reports_every_pixel_sample() {
+    let Some(g) = gpu() else { return };
+    let desc = SceneDesc::load(examples_dir().join("depth.toml")).unwrap();
+    let s = RenderSettings { width: 50, height: 30, samples: 3, ..desc.render };
+    let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+    let done = std::sync::atomic::AtomicU64::new(0);
+    g.render(&prepared, 0, Rect::new(5, 5, 40, 20), SampleRange::new(1, 3), &|n| {
+        done.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+    })
+    .unwrap();
+    assert_eq!(done.into_inner(), 40 * 20 * 2);
+}
+
+#[test]
+fn gpu_refuses_f64_and_requests_outside_the_image() {
+    let Some(g) = gpu() else { return };
+    let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
+    let s = RenderSettings { width: 16, height: 16, samples: 4, ..desc.render };
+    let f64_frame = PreparedFrame::build(&desc, &s, 0, Precision::F64).unwrap();
+    let e = g.render(&f64_frame, 0, Rect::full(16, 16), SampleRange::all(4), &|_| {}).unwrap_err();
+    assert!(matches!(e, GpuError::F64Unsupported), "{e}");
+    assert_eq!(e.to_string(), "the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)");
+    let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+    let e = g.render(&frame, 0, Rect::new(8, 8, 9, 1), SampleRange::all(4), &|_| {}).unwrap_err();
+    assert_eq!(e.to_string(), "rectangle Rect { x: 8, y: 8, width: 9, height: 1 } is empty or outside the 16x16 image");
+    let e = g.render(&frame, 0, Rect::full(16, 16), SampleRange::new(2, 5), &|_| {}).unwrap_err();
+    assert_eq!(e.to_string(), "sample range 2..5 is empty or outside 0..4");
+    // The renderer still works after refusing.
+    let ok = g.render(&frame, 0, Rect::full(16, 16), SampleRange::all(4), &|_| {}).unwrap();
+    assert!(ok.counts.iter().all(|&n| n == 4));
+}
+
+#[test]
+fn gpu_adapter_selection_errors_name_the_choices() {
+    let Some(g) = gpu() else { return };
+    let e = GpuRenderer::new(Some("no-such-gpu-xyz"), GpuOptions::default()).err().expect("must fail");
+    let msg = e.to_string();
+    assert!(msg.starts_with("no GPU adapter matches \"no-such-gpu-xyz\"; available: 0: "), "{msg}");
+    assert!(msg.contains(&g.adapter().name), "{msg}");
+    let e = GpuRenderer::new(None, GpuOptions { workgroup: (4096, 4096), ..GpuOptions::default() }).err().expect("must fail");
+    assert!(matches!(e, GpuError::Workgroup { x: 4096, y: 4096, .. }), "{e}");
+}
+
+// ---- The wavefront strategy --------------------------------------------
+
+/// The wavefront (one dispatch per generation of ray tasks) renders what the
+/// stack kernel renders: the same rays (counts equal exactly) and the same
+/// image within the stated tolerance of the f64 reference. Sums may differ
+/// in the last bits: the wavefront adds each task's weighted colour to its
+/// pixel separately, the stack kernel adds each sample's total.
+#[test]
+fn wavefront_strategy_matches_the_stack_kernel_and_the_reference() {
+    let Some(g) = gpu() else { return };
+    let wave = GpuRenderer::new(Some(&g.adapter().index.to_string()), GpuOptions { strategy: Strategy::Wavefront, ..GpuOptions::default() }).unwrap();
+    for rel in ["resolution.toml", "complexity/glass-9.toml", "complexity/chrome-6.toml", "depth.toml"] {
+        let desc = SceneDesc::load(examples_dir().join(rel)).unwrap();
+        let s = RenderSettings { width: W, height: H, samples: 4, ..desc.render };
+        let a = gpu_whole(&wave, &desc, &s);
+        let b = gpu_whole(g, &desc, &s);
+        assert_eq!(a.rays, b.rays, "{rel}: wavefront and stack kernels traced different rays");
+        assert_eq!(a.counts, b.counts);
+        assert_close(&format!("{rel} wavefront"), &a.resolve(), &render_with(&desc, &s, Precision::F64).resolve());
+    }
+}
+
+/// Queues far too small for glass: every generation overflows until the
+/// renderer has shrunk its dispatches enough; the result is still whole.
+#[test]
+fn wavefront_recovers_from_queue_overflow() {
+    let Some(g) = gpu() else { return };
+    // Queues of 512 tasks, first dispatches of 256 samples: glass trees outgrow them.
+    let opts = GpuOptions { strategy: Strategy::Wavefront, dispatch_pixel_samples: 256, ..GpuOptions::default() };
+    let wave = GpuRenderer::new(Some(&g.adapter().index.to_string()), opts).unwrap();
+    let desc = SceneDesc::load(examples_dir().join("complexity/glass-3.toml")).unwrap();
+    let s = RenderSettings { width: 40, height: 30, samples: 4, ..desc.render };
+    let a = gpu_whole(&wave, &desc, &s);
+    let retries = wave.last_stats().overflow_retries;
+    assert!(retries > 0, "the queues never overflowed: the test does not test");
+    eprintln!("wavefront overflowed and retried {retries} times");
+    let b = gpu_whole(g, &desc, &s);
+    assert_eq!(a.rays, b.rays);
+    assert_close("glass-3 wavefront after overflow", &a.resolve(), &b.resolve());
+}
