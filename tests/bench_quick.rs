@@ -1,5 +1,6 @@
-//! `tessera bench --quick`: the CI smoke test of the benchmark command. It
-//! checks that every suite's files exist and parse, not the speed.
+//! `tessera bench --quick --backend both`: the CI smoke test of the benchmark
+//! command, CPU and GPU (lavapipe in CI). It checks that every suite's files
+//! exist and parse, not the speed.
 
 use std::path::Path;
 use std::process::Command;
@@ -24,7 +25,7 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
     let dir = std::env::temp_dir().join(format!("tessera-bench-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
-        .args(["bench", "--quick", "--out"])
+        .args(["bench", "--quick", "--backend", "both", "--out"])
         .arg(dir.join("out"))
         .arg("--cache")
         .arg(dir.join("cache"))
@@ -55,12 +56,13 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
             assert!(p > 10.0, "{suite}: psnr {p}");
             let fl: f64 = f[flip].parse().unwrap();
             assert!((0.0..1.0).contains(&fl), "{suite}: flip {fl}");
-            assert_eq!(f[backend], "cpu");
+            assert!(f[backend] == "cpu" || f[backend] == "gpu", "{}", f[backend]);
             let img = image::open(dir.join("out").join(&f[image])).unwrap();
             assert!(img.width() > 0);
             rows += 1;
         }
-        assert!(rows >= 2, "{suite}.csv has {rows} rows");
+        assert!(rows >= 4, "{suite}.csv has {rows} rows");
+        assert!(csv.lines().skip(1).any(|l| split_csv(l)[backend] == "gpu"), "{suite}.csv has no GPU run");
     }
     // The headline plot and the others, as PNG and SVG.
     for plot in ["samples/error_vs_time", "resolution/time_vs_pixels", "complexity/rays_vs_spheres", "depth/time_vs_depth", "depth/error_vs_depth"] {
@@ -71,7 +73,11 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
     }
     // More samples must not make the error worse on the grid sampler (1 -> 9 spp).
     let csv = std::fs::read_to_string(dir.join("out/samples.csv")).unwrap();
-    let grid: Vec<f64> = csv.lines().skip(1).map(split_csv).filter(|f| f[8] == "grid").map(|f| f[19].parse().unwrap()).collect();
+    let header = split_csv(csv.lines().next().unwrap());
+    let col = |name: &str| header.iter().position(|h| h == name).unwrap();
+    let (sampler, backend, rmse) = (col("sampler"), col("backend"), col("rmse"));
+    let grid: Vec<f64> =
+        csv.lines().skip(1).map(split_csv).filter(|f| f[sampler] == "grid" && f[backend] == "cpu").map(|f| f[rmse].parse().unwrap()).collect();
     assert!(grid.first() > grid.last(), "grid error does not fall with samples: {grid:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -31,6 +31,8 @@ pub const SUITES: &[&str] = &["resolution", "samples", "complexity", "depth", "p
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BackendKind {
     Cpu,
+    #[cfg(feature = "gpu")]
+    Gpu,
 }
 
 pub struct Config {
@@ -43,6 +45,8 @@ pub struct Config {
     pub examples: PathBuf,
     /// Timed repetitions per run; the fastest counts.
     pub repeat: u32,
+    /// GPU adapter name or index for the GPU backend.
+    pub adapter: Option<String>,
 }
 
 /// One measured render.
@@ -56,6 +60,8 @@ pub struct Run {
     pub settings: RenderSettings,
     pub precision: Precision,
     pub seconds: f64,
+    /// GPU time alone (timestamp queries), for GPU runs on adapters that have them.
+    pub gpu_seconds: Option<f64>,
     pub rays: RayCounts,
     pub error: Option<ErrorMetrics>,
     pub image: String,
@@ -71,13 +77,13 @@ impl Run {
 }
 
 /// Column names of every suite's CSV (tests/bench_quick.rs checks them).
-const CSV_HEADER: &str = "suite,scene,backend,device,threads,width,height,samples,sampler,max_depth,precision,wall_s,rays_primary,rays_shadow,rays_reflection,rays_refraction,rays_total,mrays_per_s,pixels_per_s,rmse,psnr_db,rel_mse,flip_mean,image";
+const CSV_HEADER: &str = "suite,scene,backend,device,threads,width,height,samples,sampler,max_depth,precision,wall_s,rays_primary,rays_shadow,rays_reflection,rays_refraction,rays_total,mrays_per_s,pixels_per_s,gpu_s,rmse,psnr_db,rel_mse,flip_mean,image";
 
 fn csv_row(r: &Run) -> String {
     let e = r.error;
     let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.6e}"));
     format!(
-        "{},{},{},\"{}\",{},{},{},{},{},{},{},{:.6},{},{},{},{},{},{:.3},{:.1},{},{},{},{},{}",
+        "{},{},{},\"{}\",{},{},{},{},{},{},{},{:.6},{},{},{},{},{},{:.3},{:.1},{},{},{},{},{},{}",
         r.suite,
         r.scene,
         r.backend,
@@ -97,6 +103,7 @@ fn csv_row(r: &Run) -> String {
         r.rays.total(),
         r.mrays_per_s(),
         r.pixels_per_s(),
+        f(r.gpu_seconds),
         f(e.map(|e| e.rmse)),
         f(e.map(|e| e.psnr_db)),
         f(e.map(|e| e.rel_mse)),
@@ -115,6 +122,8 @@ fn cpu_model() -> String {
 struct Bench {
     cfg: Config,
     cpu: CpuRenderer,
+    #[cfg(feature = "gpu")]
+    gpu: Option<tracer_core::render::GpuRenderer>,
     cpu_name: String,
     refs: ReferenceCache,
 }
@@ -126,24 +135,34 @@ impl Bench {
         Ok((path, desc))
     }
 
-    /// Renders a whole frame, timing only the render itself (best of `repeat`).
-    fn render(&self, backend: BackendKind, desc: &SceneDesc, settings: &RenderSettings, precision: Precision) -> Result<(Film, f64)> {
+    /// Renders a whole frame, timing only the render itself (best of
+    /// `repeat`). Returns the film, the wall time, and the GPU time alone.
+    fn render(&self, backend: BackendKind, desc: &SceneDesc, settings: &RenderSettings, precision: Precision) -> Result<(Film, f64, Option<f64>)> {
         let frame = PreparedFrame::build(desc, settings, 0, precision)?;
-        let mut best: Option<(Film, f64)> = None;
+        let (rect, samples) = (Rect::full(settings.width, settings.height), SampleRange::all(settings.samples));
+        let once = || -> Result<(Film, Option<f64>)> {
+            Ok(match backend {
+                BackendKind::Cpu => (self.cpu.render(&frame, 0, rect, samples, &|_| {})?, None),
+                #[cfg(feature = "gpu")]
+                BackendKind::Gpu => {
+                    let gpu = self.gpu.as_ref().expect("GPU renderer made when the GPU backend is selected");
+                    let film = gpu.render(&frame, 0, rect, samples, &|_| {})?;
+                    (film, gpu.last_stats().gpu_time.map(|d| d.as_secs_f64()))
+                }
+            })
+        };
+        // The GPU compiles its pipeline for each new scene on first use: leave that out.
+        #[cfg(feature = "gpu")]
+        if backend == BackendKind::Gpu {
+            once()?;
+        }
+        let mut best: Option<(Film, f64, Option<f64>)> = None;
         for _ in 0..self.cfg.repeat.max(1) {
             let start = Instant::now();
-            let film = match backend {
-                BackendKind::Cpu => self.cpu.render(
-                    &frame,
-                    0,
-                    Rect::full(settings.width, settings.height),
-                    SampleRange::all(settings.samples),
-                    &|_| {},
-                )?,
-            };
+            let (film, gpu_secs) = once()?;
             let secs = start.elapsed().as_secs_f64();
             if best.as_ref().is_none_or(|b| secs < b.1) {
-                best = Some((film, secs));
+                best = Some((film, secs, gpu_secs));
             }
         }
         Ok(best.expect("at least one repetition"))
@@ -161,7 +180,7 @@ impl Bench {
         precision: Precision,
         reference: Option<&[[f32; 3]]>,
     ) -> Result<Run> {
-        let (film, seconds) = self.render(backend, desc, settings, precision)?;
+        let (film, seconds, gpu_seconds) = self.render(backend, desc, settings, precision)?;
         let linear = film.resolve();
         let error = reference.map(|r| compare(&linear, r, settings.width, settings.height));
         let image = format!(
@@ -186,11 +205,14 @@ impl Bench {
             backend: backend_name(backend),
             device: match backend {
                 BackendKind::Cpu => self.cpu_name.clone(),
+                #[cfg(feature = "gpu")]
+                BackendKind::Gpu => self.gpu.as_ref().map_or(String::new(), |g| g.adapter().name.clone()),
             },
-            threads: self.cpu.threads(),
+            threads: if backend == BackendKind::Cpu { self.cpu.threads() } else { 0 },
             settings: *settings,
             precision,
             seconds,
+            gpu_seconds,
             rays: film.rays,
             error,
             image,
@@ -369,10 +391,11 @@ impl Bench {
             let (width, height) = if self.cfg.quick { (64, 48) } else { (desc.render.width, desc.render.height) };
             let s = RenderSettings { width, height, ..desc.render };
             // Error of each precision against the f64 CPU render of the same settings.
-            let (f64_film, _) = self.render(BackendKind::Cpu, &desc, &s, Precision::F64)?;
+            let (f64_film, _, _) = self.render(BackendKind::Cpu, &desc, &s, Precision::F64)?;
             let reference = f64_film.resolve();
             for &b in &self.cfg.backends {
-                for p in [Precision::F32, Precision::F64] {
+                let precisions: &[Precision] = if b == BackendKind::Cpu { &[Precision::F32, Precision::F64] } else { &[Precision::F32] };
+                for &p in precisions {
                     runs.push(self.measure("precision", name, b, &desc, &s, p, Some(&reference))?);
                 }
             }
@@ -395,6 +418,8 @@ impl Bench {
 fn backend_name(b: BackendKind) -> &'static str {
     match b {
         BackendKind::Cpu => "cpu",
+        #[cfg(feature = "gpu")]
+        BackendKind::Gpu => "gpu",
     }
 }
 
@@ -406,7 +431,15 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
         }
     }
     std::fs::create_dir_all(&cfg.out).with_context(|| format!("cannot create {}", cfg.out.display()))?;
+    #[cfg(feature = "gpu")]
+    let gpu = if cfg.backends.contains(&BackendKind::Gpu) {
+        Some(tracer_core::render::GpuRenderer::new(cfg.adapter.as_deref(), Default::default())?)
+    } else {
+        None
+    };
     let bench = Bench {
+        #[cfg(feature = "gpu")]
+        gpu,
         cpu: CpuRenderer::new(cfg.threads)?,
         cpu_name: cpu_model(),
         refs: ReferenceCache::new(cfg.cache.clone(), cfg.threads)?,

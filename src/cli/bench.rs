@@ -11,6 +11,11 @@ use crate::bench::{self, BackendKind, Config};
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum BenchBackend {
     Cpu,
+    #[cfg(feature = "gpu")]
+    Gpu,
+    /// CPU and GPU, side by side in every suite
+    #[cfg(feature = "gpu")]
+    Both,
 }
 
 #[derive(Args, Debug)]
@@ -38,11 +43,18 @@ pub struct BenchArgs {
     /// Timed repetitions of each run; the fastest is reported
     #[arg(long, default_value_t = 1)]
     pub repeat: u32,
+    /// GPU adapter (name substring or index from `tessera gpus`) for the GPU backend
+    #[arg(long, value_name = "NAME|INDEX")]
+    pub adapter: Option<String>,
 }
 
 pub fn run(args: BenchArgs) -> Result<ExitCode> {
     let backends = match args.backend {
         BenchBackend::Cpu => vec![BackendKind::Cpu],
+        #[cfg(feature = "gpu")]
+        BenchBackend::Gpu => vec![BackendKind::Gpu],
+        #[cfg(feature = "gpu")]
+        BenchBackend::Both => vec![BackendKind::Cpu, BackendKind::Gpu],
     };
     let runs = bench::run(Config {
         suites: args.suites,
@@ -53,6 +65,7 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
         cache: args.cache.unwrap_or_else(bench::reference_dir),
         examples: args.examples,
         repeat: args.repeat,
+        adapter: args.adapter,
     })?;
     eprintln!("bench: {} runs written under {}", runs.len(), args.out.display());
     Ok(ExitCode::SUCCESS)
