@@ -663,7 +663,22 @@ impl Farm {
 
     /// Takes a worker's result: accepted only from the lease's holder, only
     /// once, and only if it is exactly the leased unit's data.
+    ///
+    /// The work runs in its own task because it must not be cancelled
+    /// half-way: once a result's units are taken from their lease they are
+    /// neither pending nor leased until the commit marks them done (or
+    /// queues them again). A gRPC handler's future is dropped when its
+    /// client goes away (a worker killed while its result is in flight), and
+    /// a drop at the commit's await would strand those units: the job would
+    /// never finish.
     pub async fn submit_result(self: &Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
+        let farm = self.clone();
+        tokio::spawn(async move { farm.take_result(r).await })
+            .await
+            .map_err(|e| FarmError::Internal(format!("result task failed: {e}")))?
+    }
+
+    async fn take_result(self: Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
         let taken: Result<Taken, Refused> = 'take: {
             let mut st = self.state.lock().expect("state lock");
             let st = &mut *st;
@@ -1170,6 +1185,7 @@ pub fn rays_of(c: &Counters) -> RayCounts {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::future::Future as _;
 
     const SCENE: &str = r#"
 [camera]
@@ -1198,6 +1214,52 @@ material = "red"
             render_seconds: seconds,
             failure: None,
         }
+    }
+
+    /// A worker killed while its result is being committed makes the gRPC
+    /// server drop the handler's future. The unit was already taken from its
+    /// lease; it must still be finished (before the fix it stayed in neither
+    /// the queue nor a lease, and the job never completed).
+    #[tokio::test]
+    async fn a_result_whose_sender_goes_away_mid_commit_still_finishes_its_unit() {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let job = farm
+            .submit(Submission {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                scene: SCENE.as_bytes().to_vec(),
+                assets: vec![],
+                overrides: Overrides { width: Some(16), height: Some(16), samples: Some(1), ..Default::default() },
+                first_frame: 0,
+                last_frame: 0,
+                priority: 0,
+                tile_size: 16,
+                samples_per_unit: 0,
+                max_attempts: 0,
+            })
+            .await
+            .unwrap();
+        let w = farm.register("w".into(), 1, "cpu".into(), String::new(), String::new());
+        let l = farm.lease(&w, 1).unwrap().remove(0);
+        // Poll the submission once (it takes the unit and waits for the
+        // database), then drop it, as hyper does on a reset stream.
+        {
+            let mut submission = Box::pin(farm.submit_result(result(&w, &l, 0.01)));
+            let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+            assert!(submission.as_mut().poll(&mut cx).is_pending(), "the commit waits for the database writer");
+        }
+        let start = Instant::now();
+        loop {
+            let v = farm.job(&job).unwrap();
+            if v.state == JobState::Done {
+                assert_eq!((v.units_done, v.counters.units_accepted), (1, 1));
+                break;
+            }
+            assert!(start.elapsed() < Duration::from_secs(10), "the unit was stranded: {} of 1 units done, state {:?}", v.units_done, v.state);
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        assert!(matches!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Duplicate(_)));
     }
 
     #[tokio::test]
