@@ -5,8 +5,12 @@
 //! coordinator, not the tracer, is the bottleneck. Each result is validated,
 //! committed to redb and merged like a real one.
 //!
+//! With BATCH > 1 each client leases BATCH units per LeaseWork and returns
+//! them in one SubmitResults; BATCH = 1 uses LeaseWork + SubmitResult per
+//! unit, as the worker does.
+//!
 //!     cargo run --release -p tessera-coordinator --example result_load -- \
-//!         http://127.0.0.1:7878 examples/resolution.toml [CLIENTS] [SECONDS]
+//!         http://127.0.0.1:7878 examples/resolution.toml [CLIENTS] [SECONDS] [BATCH]
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -23,6 +27,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let scene_path = args.get(2).cloned().unwrap_or_else(|| "examples/resolution.toml".into());
     let clients: usize = args.get(3).map_or(Ok(64), |s| s.parse())?;
     let seconds: f64 = args.get(4).map_or(Ok(5.0), |s| s.parse())?;
+    let batch: u32 = args.get(5).map_or(Ok(1), |s| s.parse())?;
 
     let mut jobs = JobServiceClient::connect(url.clone()).await?;
     let spec = pb::JobSpec {
@@ -48,28 +53,41 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
             let mut w = WorkerServiceClient::connect(url).await.map_err(|e| tonic::Status::unavailable(e.to_string()))?;
             let id = w.register(pb::RegisterRequest { name: format!("load-{i}"), capabilities: None }).await?.into_inner().worker_id;
             while Instant::now() < deadline {
-                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: 1 }).await?.into_inner().units;
-                let Some(u) = units.into_iter().next() else { continue };
-                let r = u.rect.unwrap_or_default();
-                let s = u.samples.unwrap_or_default();
-                let n = (r.width * r.height) as usize;
-                let req = pb::SubmitResultRequest {
-                    worker_id: id.clone(),
-                    lease_id: u.lease_id,
-                    rect: Some(r),
-                    samples: Some(s),
-                    sums: vec![0; n * 24],
-                    counts: (s.end - s.start).to_le_bytes().repeat(n),
-                    rays: Some(pb::RayCounts { primary: n as u64 * (s.end - s.start) as u64, ..Default::default() }),
-                    // Slow enough that the coordinator keeps units at one 8x8 tile.
-                    render_seconds: 1.0,
-                    ..Default::default()
-                };
-                bytes.fetch_add(prost::Message::encoded_len(&req) as u64, Ordering::Relaxed);
-                let out = w.submit_result(req).await?.into_inner();
-                if out.outcome == pb::ResultOutcome::Accepted as i32 {
-                    accepted.fetch_add(1, Ordering::Relaxed);
+                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: batch }).await?.into_inner().units;
+                if units.is_empty() {
+                    continue;
                 }
+                let results: Vec<pb::SubmitResultRequest> = units
+                    .into_iter()
+                    .map(|u| {
+                        let r = u.rect.unwrap_or_default();
+                        let s = u.samples.unwrap_or_default();
+                        let n = (r.width * r.height) as usize;
+                        pb::SubmitResultRequest {
+                            worker_id: id.clone(),
+                            lease_id: u.lease_id,
+                            rect: Some(r),
+                            samples: Some(s),
+                            sums: vec![0; n * 24],
+                            counts: (s.end - s.start).to_le_bytes().repeat(n),
+                            rays: Some(pb::RayCounts { primary: n as u64 * (s.end - s.start) as u64, ..Default::default() }),
+                            // Slow enough that the coordinator keeps units at one 8x8 tile.
+                            render_seconds: 1.0,
+                            ..Default::default()
+                        }
+                    })
+                    .collect();
+                let outcomes = if batch == 1 {
+                    let req = results.into_iter().next().expect("one unit");
+                    bytes.fetch_add(prost::Message::encoded_len(&req) as u64, Ordering::Relaxed);
+                    vec![w.submit_result(req).await?.into_inner()]
+                } else {
+                    let req = pb::SubmitResultsRequest { results };
+                    bytes.fetch_add(prost::Message::encoded_len(&req) as u64, Ordering::Relaxed);
+                    w.submit_results(req).await?.into_inner().outcomes
+                };
+                let n = outcomes.iter().filter(|o| o.outcome == pb::ResultOutcome::Accepted as i32).count();
+                accepted.fetch_add(n as u64, Ordering::Relaxed);
             }
             Ok::<_, tonic::Status>(())
         }));
@@ -84,7 +102,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let n = accepted.load(Ordering::Relaxed);
     jobs.cancel_job(pb::CancelJobRequest { job_id }).await?;
     println!(
-        "clients {clients}  results accepted {n} in {secs:.2} s  = {:.0} results/s  ({:.0} bytes per result message)",
+        "clients {clients}  batch {batch}  results accepted {n} in {secs:.2} s  = {:.0} results/s  ({:.0} bytes per result on the wire)",
         n as f64 / secs,
         bytes.load(Ordering::Relaxed) as f64 / n.max(1) as f64
     );

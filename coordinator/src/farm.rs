@@ -664,146 +664,193 @@ impl Farm {
     /// Takes a worker's result: accepted only from the lease's holder, only
     /// once, and only if it is exactly the leased unit's data.
     pub async fn submit_result(self: &Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
-        let taken: Result<Taken, Refused> = 'take: {
+        let mut outcomes = self.submit_results(vec![r]).await?;
+        outcomes.pop().ok_or_else(|| FarmError::Internal("no outcome for a result".into()))
+    }
+
+    /// Takes several results at once: each is judged as by
+    /// [`Farm::submit_result`]; the accepted ones share one commit and one
+    /// pass under the state lock. Outcomes are in the order of `rs`.
+    ///
+    /// The work runs in its own task because it must not be cancelled
+    /// half-way: once a result's units are taken from their lease they are
+    /// neither pending nor leased until the commit marks them done (or
+    /// queues them again). A gRPC handler's future is dropped when its
+    /// client goes away (a worker killed while its result is in flight), and
+    /// a drop at the commit's await would strand those units: the job would
+    /// never finish.
+    pub async fn submit_results(self: &Arc<Self>, rs: Vec<ResultData>) -> Result<Vec<Outcome>, FarmError> {
+        let farm = self.clone();
+        tokio::spawn(async move { farm.take_results(rs).await })
+            .await
+            .map_err(|e| FarmError::Internal(format!("result task failed: {e}")))?
+    }
+
+    async fn take_results(self: Arc<Self>, rs: Vec<ResultData>) -> Result<Vec<Outcome>, FarmError> {
+        let mut outcomes: Vec<Option<Outcome>> = Vec::with_capacity(rs.len());
+        let mut taken: Vec<(ResultData, Taken)> = Vec::new();
+        let mut ops: Vec<Op> = Vec::new();
+        {
             let mut st = self.state.lock().expect("state lock");
-            let st = &mut *st;
-            if let Some(w) = st.workers.get_mut(&r.worker_id) {
-                w.last_seen = Instant::now();
-            }
-            let Some(lease) = st.leases.get(&r.lease_id) else {
-                let (outcome, job) = if let Some(job) = st.consumed.get(&r.lease_id) {
-                    (Outcome::Duplicate(format!("lease {} was already completed; result dropped", r.lease_id)), Some(job.clone()))
-                } else if let Some(job) = st.gone.get(&r.lease_id) {
-                    (Outcome::Late(format!("lease {} expired or was withdrawn; result dropped", r.lease_id)), Some(job.clone()))
-                } else {
-                    (
-                        Outcome::Late(format!(
-                            "lease {} is unknown (expired before a coordinator restart, or never granted); result dropped",
-                            r.lease_id
-                        )),
-                        None,
-                    )
-                };
-                let mut snapshot = None;
-                if let Some(job) = job.and_then(|j| st.jobs.get_mut(&j)) {
-                    match outcome {
-                        Outcome::Duplicate(_) => job.counters.results_duplicate += 1,
-                        _ => job.counters.results_late += 1,
+            for r in rs {
+                match self.take(&mut st, &r) {
+                    Ok(t) => {
+                        outcomes.push(None);
+                        taken.push((r, t));
                     }
-                    snapshot = Some((job.rec.id.clone(), job.counters.clone()));
+                    Err((outcome, rec, counters)) => {
+                        outcomes.push(Some(outcome));
+                        ops.extend(rec.map(Op::PutJob));
+                        ops.extend(counters.map(|(job, counters)| Op::PutCounters { job, counters }));
+                    }
                 }
-                tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, outcome = ?outcome, "result dropped");
-                break 'take Err((outcome, None, snapshot));
-            };
-            if lease.worker != r.worker_id {
-                let reason = format!("lease {} is held by another worker; result dropped", r.lease_id);
-                let snapshot = st.jobs.get_mut(&lease.job).map(|job| {
-                    job.counters.results_rejected += 1;
-                    (job.rec.id.clone(), job.counters.clone())
-                });
-                tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, "{reason}");
-                break 'take Err((Outcome::Rejected(reason), None, snapshot));
             }
-            let lease = st.leases.remove(&r.lease_id).expect("present");
-            if let Some(w) = st.workers.get_mut(&r.worker_id) {
-                w.leases.remove(&r.lease_id);
-            }
-            let worker_name = st.workers.get(&r.worker_id).map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
-            let Some(job) = st.jobs.get_mut(&lease.job) else {
-                break 'take Err((Outcome::Late("the job no longer exists".into()), None, None));
-            };
-            if let Some(msg) = &r.failure {
-                tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
-                let rec = job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"));
-                st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
-                if let Some(rec) = &rec {
-                    self.withdraw_leases(st, &rec.id);
-                }
-                break 'take Err((Outcome::FailureRecorded, rec, None));
-            }
-            if let Err(reason) = validate_result(&lease, &r) {
-                job.counters.results_rejected += 1;
-                let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
-                tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
-                let rec = job.fail_units(&lease.units, format!("worker {worker_name} sent a malformed result: {reason}"));
-                st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
-                if let Some(rec) = &rec {
-                    self.withdraw_leases(st, &rec.id);
-                }
-                break 'take Err((Outcome::Rejected(reason), rec, snapshot));
-            }
-            st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
-            Ok((lease.job, lease.units, lease.frame))
-        };
-        let (job_id, units, frame) = match taken {
-            Ok(t) => t,
-            Err((outcome, rec, counters)) => {
-                let mut ops: Vec<Op> = rec.into_iter().map(Op::PutJob).collect();
-                ops.extend(counters.map(|(job, counters)| Op::PutCounters { job, counters }));
-                if !ops.is_empty() {
-                    self.store.write(ops).await?;
-                }
-                return Ok(outcome);
-            }
-        };
-        let film = r.film.expect("validated");
-        // Split the result into one film per unit for storage.
-        let per_unit = {
-            let st = self.state.lock().expect("state lock");
-            let Some(job) = st.jobs.get(&job_id) else { return Ok(Outcome::Late("the job no longer exists".into())) };
-            let mut per_unit = Vec::with_capacity(units.len());
-            for (i, &u) in units.iter().enumerate() {
-                let tile = job.layout.tiles[job.layout.unit(u).tile as usize];
-                let mut part = crop(&film, tile);
-                if i == 0 {
-                    part.rays = film.rays;
-                    part.nonfinite = film.nonfinite;
-                }
-                per_unit.push((u, part));
-            }
-            per_unit
-        };
-        let rays = [film.rays.primary, film.rays.shadow, film.rays.reflection, film.rays.refraction];
-        let write = self.store.write(vec![Op::AcceptUnits { job: job_id.clone(), units: per_unit, rays }]).await;
+        }
+        // Each unit's film is stored on its own (a lease may join several
+        // tiles); encoded outside the lock, straight from the result.
+        for (r, t) in &taken {
+            let film = r.film.as_ref().expect("validated");
+            let units = t
+                .units
+                .iter()
+                .enumerate()
+                .map(|(i, &(u, tile))| {
+                    // The first unit carries the result's ray counts.
+                    let (rays, nonfinite) = if i == 0 { (film.rays, film.nonfinite) } else { (RayCounts::default(), 0) };
+                    (u, encode_film_part(film, tile, rays, nonfinite))
+                })
+                .collect();
+            let rays = [film.rays.primary, film.rays.shadow, film.rays.reflection, film.rays.refraction];
+            ops.push(Op::AcceptUnits { job: t.job.clone(), units, rays });
+        }
+        let write = if ops.is_empty() { Ok(()) } else { self.store.write(ops).await };
         let mut to_write = Vec::new();
         {
             let mut st = self.state.lock().expect("state lock");
             let st = &mut *st;
-            let Some(job) = st.jobs.get_mut(&job_id) else { return Ok(Outcome::Late("the job no longer exists".into())) };
             if let Err(e) = write {
-                if !job.state.is_terminal() {
-                    job.pending.extend(units.iter().copied());
+                for (_, t) in &taken {
+                    if let Some(job) = st.jobs.get_mut(&t.job).filter(|j| !j.state.is_terminal()) {
+                        job.pending.extend(t.units.iter().map(|&(u, _)| u));
+                    }
                 }
                 return Err(e.into());
             }
-            job.counters.units_accepted += units.len() as u64;
-            let mut samples = 0;
-            for &u in &units {
-                samples += job.layout.unit_samples(job.layout.unit(u));
-                job.mark_done(u);
-            }
-            job.samples_this_run += samples;
-            job.rays_this_run += film.rays.total();
-            for (a, b) in job.counters.rays.iter_mut().zip(rays) {
-                *a += b;
-            }
-            if !job.state.is_terminal() {
-                let (w, h) = (job.layout.width, job.layout.height);
-                let acc = job.frames.get_mut(&frame).expect("frame of a unit");
-                acc.film.get_or_insert_with(|| Film::new(Rect::full(w, h))).merge(&film).map_err(|e| FarmError::Internal(e.to_string()))?;
-                to_write = job.complete_frames();
-            }
-            job.notify();
-            if let Some(w) = st.workers.get_mut(&r.worker_id) {
-                w.units_done += units.len() as u64;
-                if r.render_seconds > 0.0 {
-                    let s = samples as f64 / r.render_seconds;
-                    w.speed = if w.speed == 0.0 { s } else { 0.7 * w.speed + 0.3 * s };
-                }
+            let mut taken = taken.into_iter();
+            for outcome in outcomes.iter_mut().filter(|o| o.is_none()) {
+                let (r, t) = taken.next().expect("one taken result per open outcome");
+                *outcome = Some(self.finish_result(st, r, t, &mut to_write)?);
             }
         }
         for (job, frame) in to_write {
             self.clone().spawn_frame_write(job, frame);
+        }
+        Ok(outcomes.into_iter().map(|o| o.expect("every result judged")).collect())
+    }
+
+    /// Takes a result's lease for commit, or says why not (counting late,
+    /// duplicate and rejected results, and recording failures).
+    fn take(&self, st: &mut State, r: &ResultData) -> Result<Taken, Refused> {
+        if let Some(w) = st.workers.get_mut(&r.worker_id) {
+            w.last_seen = Instant::now();
+        }
+        let Some(lease) = st.leases.get(&r.lease_id) else {
+            let (outcome, job) = if let Some(job) = st.consumed.get(&r.lease_id) {
+                (Outcome::Duplicate(format!("lease {} was already completed; result dropped", r.lease_id)), Some(job.clone()))
+            } else if let Some(job) = st.gone.get(&r.lease_id) {
+                (Outcome::Late(format!("lease {} expired or was withdrawn; result dropped", r.lease_id)), Some(job.clone()))
+            } else {
+                (
+                    Outcome::Late(format!(
+                        "lease {} is unknown (expired before a coordinator restart, or never granted); result dropped",
+                        r.lease_id
+                    )),
+                    None,
+                )
+            };
+            let mut snapshot = None;
+            if let Some(job) = job.and_then(|j| st.jobs.get_mut(&j)) {
+                match outcome {
+                    Outcome::Duplicate(_) => job.counters.results_duplicate += 1,
+                    _ => job.counters.results_late += 1,
+                }
+                snapshot = Some((job.rec.id.clone(), job.counters.clone()));
+            }
+            tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, outcome = ?outcome, "result dropped");
+            return Err((outcome, None, snapshot));
+        };
+        if lease.worker != r.worker_id {
+            let reason = format!("lease {} is held by another worker; result dropped", r.lease_id);
+            let snapshot = st.jobs.get_mut(&lease.job).map(|job| {
+                job.counters.results_rejected += 1;
+                (job.rec.id.clone(), job.counters.clone())
+            });
+            tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, "{reason}");
+            return Err((Outcome::Rejected(reason), None, snapshot));
+        }
+        let lease = st.leases.remove(&r.lease_id).expect("present");
+        if let Some(w) = st.workers.get_mut(&r.worker_id) {
+            w.leases.remove(&r.lease_id);
+        }
+        let Some(job) = st.jobs.get_mut(&lease.job) else {
+            return Err((Outcome::Late("the job no longer exists".into()), None, None));
+        };
+        if let Some(msg) = &r.failure {
+            let worker_name = st.workers.get(&r.worker_id).map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
+            tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
+            let rec = job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"));
+            st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
+            if let Some(rec) = &rec {
+                self.withdraw_leases(st, &rec.id);
+            }
+            return Err((Outcome::FailureRecorded, rec, None));
+        }
+        if let Err(reason) = validate_result(&lease, r) {
+            let worker_name = st.workers.get(&r.worker_id).map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
+            job.counters.results_rejected += 1;
+            let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
+            tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
+            let rec = job.fail_units(&lease.units, format!("worker {worker_name} sent a malformed result: {reason}"));
+            st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
+            if let Some(rec) = &rec {
+                self.withdraw_leases(st, &rec.id);
+            }
+            return Err((Outcome::Rejected(reason), rec, snapshot));
+        }
+        let units = lease.units.iter().map(|&u| (u, job.layout.tiles[job.layout.unit(u).tile as usize])).collect();
+        st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
+        Ok(Taken { job: lease.job, units, frame: lease.frame })
+    }
+
+    /// Marks a committed result's units done and merges its film into its frame.
+    fn finish_result(&self, st: &mut State, r: ResultData, t: Taken, to_write: &mut Vec<(String, u32)>) -> Result<Outcome, FarmError> {
+        let Some(job) = st.jobs.get_mut(&t.job) else { return Ok(Outcome::Late("the job no longer exists".into())) };
+        let film = r.film.expect("validated");
+        job.counters.units_accepted += t.units.len() as u64;
+        let mut samples = 0;
+        for &(u, _) in &t.units {
+            samples += job.layout.unit_samples(job.layout.unit(u));
+            job.mark_done(u);
+        }
+        job.samples_this_run += samples;
+        job.rays_this_run += film.rays.total();
+        let rays = [film.rays.primary, film.rays.shadow, film.rays.reflection, film.rays.refraction];
+        for (a, b) in job.counters.rays.iter_mut().zip(rays) {
+            *a += b;
+        }
+        if !job.state.is_terminal() {
+            let (w, h) = (job.layout.width, job.layout.height);
+            let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
+            acc.film.get_or_insert_with(|| Film::new(Rect::full(w, h))).merge(&film).map_err(|e| FarmError::Internal(e.to_string()))?;
+            to_write.extend(job.complete_frames());
+        }
+        job.notify();
+        if let Some(w) = st.workers.get_mut(&r.worker_id) {
+            w.units_done += t.units.len() as u64;
+            if r.render_seconds > 0.0 {
+                let s = samples as f64 / r.render_seconds;
+                w.speed = if w.speed == 0.0 { s } else { 0.7 * w.speed + 0.3 * s };
+            }
         }
         Ok(Outcome::Accepted)
     }
@@ -961,8 +1008,13 @@ impl Farm {
     }
 }
 
-/// A result's lease, taken for commit: (job, units, frame).
-type Taken = (String, Vec<u32>, u32);
+/// A result's lease, taken for commit.
+struct Taken {
+    job: String,
+    /// The lease's units and their tiles.
+    units: Vec<(u32, Rect)>,
+    frame: u32,
+}
 /// A result not taken: its outcome, and a job record and counters to persist.
 type Refused = (Outcome, Option<JobRecord>, Option<(String, Counters)>);
 
@@ -1004,15 +1056,25 @@ fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
     Ok(())
 }
 
-/// The part of `film` inside `rect` (which lies inside it).
-fn crop(film: &Film, rect: Rect) -> Film {
-    let mut out = Film::new(rect);
+/// The part of `film` inside `rect` (which lies inside it), encoded for
+/// the store (see [`crate::store::encode_film`]) without an intermediate film.
+fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
+    let mut out = crate::store::film_header(rect, rays, nonfinite, rect.area());
+    let w = rect.width as usize;
+    let row_start = |row: u32| ((rect.y - film.rect.y + row) * film.rect.width + (rect.x - film.rect.x)) as usize;
     for row in 0..rect.height {
-        let src = ((rect.y - film.rect.y + row) * film.rect.width + (rect.x - film.rect.x)) as usize;
-        let dst = (row * rect.width) as usize;
-        let w = rect.width as usize;
-        out.sums[dst..dst + w].copy_from_slice(&film.sums[src..src + w]);
-        out.counts[dst..dst + w].copy_from_slice(&film.counts[src..src + w]);
+        let src = row_start(row);
+        for s in &film.sums[src..src + w] {
+            for c in s {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+    for row in 0..rect.height {
+        let src = row_start(row);
+        for c in &film.counts[src..src + w] {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
     }
     out
 }
@@ -1170,6 +1232,7 @@ pub fn rays_of(c: &Counters) -> RayCounts {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::future::Future as _;
 
     const SCENE: &str = r#"
 [camera]
@@ -1198,6 +1261,128 @@ material = "red"
             render_seconds: seconds,
             failure: None,
         }
+    }
+
+    /// A worker killed while its result is being committed makes the gRPC
+    /// server drop the handler's future. The unit was already taken from its
+    /// lease; it must still be finished (before the fix it stayed in neither
+    /// the queue nor a lease, and the job never completed).
+    #[tokio::test]
+    async fn a_result_whose_sender_goes_away_mid_commit_still_finishes_its_unit() {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let job = farm
+            .submit(Submission {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                scene: SCENE.as_bytes().to_vec(),
+                assets: vec![],
+                overrides: Overrides { width: Some(16), height: Some(16), samples: Some(1), ..Default::default() },
+                first_frame: 0,
+                last_frame: 0,
+                priority: 0,
+                tile_size: 16,
+                samples_per_unit: 0,
+                max_attempts: 0,
+            })
+            .await
+            .unwrap();
+        let w = farm.register("w".into(), 1, "cpu".into(), String::new(), String::new());
+        let l = farm.lease(&w, 1).unwrap().remove(0);
+        // Poll the submission once (it takes the unit and waits for the
+        // database), then drop it, as hyper does on a reset stream.
+        {
+            let mut submission = Box::pin(farm.submit_result(result(&w, &l, 0.01)));
+            let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+            assert!(submission.as_mut().poll(&mut cx).is_pending(), "the commit waits for the database writer");
+        }
+        let start = Instant::now();
+        loop {
+            let v = farm.job(&job).unwrap();
+            if v.state == JobState::Done {
+                assert_eq!((v.units_done, v.counters.units_accepted), (1, 1));
+                break;
+            }
+            assert!(start.elapsed() < Duration::from_secs(10), "the unit was stranded: {} of 1 units done, state {:?}", v.units_done, v.state);
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        assert!(matches!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Duplicate(_)));
+    }
+
+    #[test]
+    fn a_film_part_encodes_as_the_cropped_film() {
+        let mut film = Film::new(Rect::new(8, 4, 5, 3));
+        for (i, (s, c)) in film.sums.iter_mut().zip(film.counts.iter_mut()).enumerate() {
+            *s = [i as u64, (i as u64) << 40, u64::MAX - i as u64];
+            *c = 7 + i as u32;
+        }
+        film.rays = RayCounts { primary: 1, shadow: 2, reflection: 3, refraction: 4 };
+        assert_eq!(encode_film_part(&film, film.rect, film.rays, 9), crate::store::encode_film(&Film { nonfinite: 9, ..film.clone() }));
+        let part = Rect::new(9, 5, 3, 2);
+        let mut cropped = Film::new(part);
+        for row in 0..2 {
+            for col in 0..3 {
+                let src = ((row + 1) * 5 + col + 1) as usize;
+                cropped.sums[(row * 3 + col) as usize] = film.sums[src];
+                cropped.counts[(row * 3 + col) as usize] = film.counts[src];
+            }
+        }
+        let got = crate::store::decode_film(&encode_film_part(&film, part, RayCounts::default(), 0)).unwrap();
+        assert_eq!(got, cropped);
+    }
+
+    /// One SubmitResults carrying an accepted result, a duplicate, a result
+    /// for another worker's lease and a malformed one: each judged on its own.
+    #[tokio::test]
+    async fn batched_results_are_judged_one_by_one_and_commit_together() {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let job = farm
+            .submit(Submission {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                scene: SCENE.as_bytes().to_vec(),
+                assets: vec![],
+                overrides: Overrides { width: Some(64), height: Some(16), samples: Some(2), ..Default::default() },
+                first_frame: 0,
+                last_frame: 0,
+                priority: 0,
+                tile_size: 16,
+                samples_per_unit: 0,
+                max_attempts: 0,
+            })
+            .await
+            .unwrap();
+        let a = farm.register("a".into(), 1, "cpu".into(), String::new(), String::new());
+        let b = farm.register("b".into(), 1, "cpu".into(), String::new(), String::new());
+        let la = farm.lease(&a, 3).unwrap();
+        let lb = farm.lease(&b, 3).unwrap();
+        assert_eq!((la.len(), lb.len()), (3, 1), "a takes three units in one request, b the last");
+        let mut bad = result(&a, &la[2], 0.01);
+        bad.film.as_mut().unwrap().counts[5] = 1;
+        let outcomes = farm
+            .submit_results(vec![result(&a, &la[0], 0.01), result(&a, &la[1], 0.01), result(&a, &la[0], 0.01), result(&a, &lb[0], 0.01), bad])
+            .await
+            .unwrap();
+        assert_eq!(outcomes[..2], [Outcome::Accepted, Outcome::Accepted]);
+        assert!(matches!(outcomes[2], Outcome::Duplicate(_)), "{:?}", outcomes[2]);
+        assert!(matches!(outcomes[3], Outcome::Rejected(_)), "{:?}", outcomes[3]);
+        assert!(matches!(&outcomes[4], Outcome::Rejected(m) if m.contains("has 1 samples, expected 2")), "{:?}", outcomes[4]);
+        let v = farm.job(&job).unwrap();
+        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate, v.counters.results_rejected), (2, 2, 1, 2));
+        // The malformed unit is queued again; b and then a finish the job.
+        assert_eq!(farm.submit_results(vec![result(&b, &lb[0], 0.01)]).await.unwrap(), [Outcome::Accepted]);
+        let again = farm.lease(&a, 4).unwrap();
+        assert_eq!(again.len(), 1);
+        assert_eq!(again[0].rect, la[2].rect);
+        assert_eq!(farm.submit_results(vec![result(&a, &again[0], 0.01)]).await.unwrap(), [Outcome::Accepted]);
+        let start = Instant::now();
+        while farm.job(&job).unwrap().state != JobState::Done {
+            assert!(start.elapsed() < Duration::from_secs(10), "job not done");
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        let v = farm.job(&job).unwrap();
+        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_rejected), (4, 4, 2));
     }
 
     #[tokio::test]

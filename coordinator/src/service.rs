@@ -244,27 +244,14 @@ impl WorkerService for Api {
     }
 
     async fn submit_result(&self, req: Request<pb::SubmitResultRequest>) -> Result<Response<pb::SubmitResultResponse>, Status> {
-        let r = req.into_inner();
-        let rect = r.rect.unwrap_or_default().into();
-        let samples = r.samples.unwrap_or_default().into();
-        let film = film_codec::unpack(rect, &r.sums, &r.counts, r.rays.unwrap_or_default().into(), r.nonfinite).map_err(|e| e.to_string());
-        let data = ResultData {
-            worker_id: r.worker_id,
-            lease_id: r.lease_id,
-            rect,
-            samples,
-            film,
-            render_seconds: r.render_seconds,
-            failure: (!r.failure.is_empty()).then_some(r.failure),
-        };
-        let (outcome, reason) = match self.farm.submit_result(data).await? {
-            Outcome::Accepted => (pb::ResultOutcome::Accepted, String::new()),
-            Outcome::Rejected(m) => (pb::ResultOutcome::Rejected, m),
-            Outcome::Late(m) => (pb::ResultOutcome::Late, m),
-            Outcome::Duplicate(m) => (pb::ResultOutcome::Duplicate, m),
-            Outcome::FailureRecorded => (pb::ResultOutcome::FailureRecorded, String::new()),
-        };
-        Ok(Response::new(pb::SubmitResultResponse { outcome: outcome as i32, reason }))
+        let outcome = self.farm.submit_result(result_data(req.into_inner())).await?;
+        Ok(Response::new(outcome_pb(outcome)))
+    }
+
+    async fn submit_results(&self, req: Request<pb::SubmitResultsRequest>) -> Result<Response<pb::SubmitResultsResponse>, Status> {
+        let results = req.into_inner().results.into_iter().map(result_data).collect();
+        let outcomes = self.farm.submit_results(results).await?;
+        Ok(Response::new(pb::SubmitResultsResponse { outcomes: outcomes.into_iter().map(outcome_pb).collect() }))
     }
 
     async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Result<Response<pb::HeartbeatResponse>, Status> {
@@ -283,4 +270,31 @@ impl WorkerService for Api {
     async fn get_asset(&self, req: Request<pb::GetAssetRequest>) -> Result<Response<pb::GetAssetResponse>, Status> {
         Ok(Response::new(pb::GetAssetResponse { content: self.farm.asset(&req.into_inner().sha256)? }))
     }
+}
+
+/// A result from the wire; the packed film is decoded (and its size checked) here.
+fn result_data(r: pb::SubmitResultRequest) -> ResultData {
+    let rect = r.rect.unwrap_or_default().into();
+    let samples = r.samples.unwrap_or_default().into();
+    let film = film_codec::unpack(rect, &r.sums, &r.counts, r.rays.unwrap_or_default().into(), r.nonfinite).map_err(|e| e.to_string());
+    ResultData {
+        worker_id: r.worker_id,
+        lease_id: r.lease_id,
+        rect,
+        samples,
+        film,
+        render_seconds: r.render_seconds,
+        failure: (!r.failure.is_empty()).then_some(r.failure),
+    }
+}
+
+fn outcome_pb(o: Outcome) -> pb::SubmitResultResponse {
+    let (outcome, reason) = match o {
+        Outcome::Accepted => (pb::ResultOutcome::Accepted, String::new()),
+        Outcome::Rejected(m) => (pb::ResultOutcome::Rejected, m),
+        Outcome::Late(m) => (pb::ResultOutcome::Late, m),
+        Outcome::Duplicate(m) => (pb::ResultOutcome::Duplicate, m),
+        Outcome::FailureRecorded => (pb::ResultOutcome::FailureRecorded, String::new()),
+    };
+    pb::SubmitResultResponse { outcome: outcome as i32, reason }
 }

@@ -100,7 +100,8 @@ pub enum Op {
     PutCounters { job: String, counters: Counters },
     /// Finished units of a result, (unit index, film), and the job's accepted
     /// count and rays incremented with them.
-    AcceptUnits { job: String, units: Vec<(u32, Film)>, rays: [u64; 4] },
+    /// Films come encoded ([`encode_film`]) so that the writer thread only copies bytes.
+    AcceptUnits { job: String, units: Vec<(u32, Vec<u8>)>, rays: [u64; 4] },
     /// A frame's image is written: remember it and drop its units' films.
     FrameWritten { job: String, frame: u32, file: String, units: std::ops::Range<u32> },
 }
@@ -240,7 +241,7 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                 }
                 Op::AcceptUnits { job, units, rays } => {
                     for (unit, film) in units {
-                        films.insert((job.as_str(), *unit), encode_film(film).as_slice())?;
+                        films.insert((job.as_str(), *unit), film.as_slice())?;
                     }
                     let u = updates.entry(job.as_str()).or_default();
                     u.1 += units.len() as u64;
@@ -286,15 +287,21 @@ fn read_counters(t: &redb::Table<&str, &[u8]>, job: &str) -> Result<Counters, St
 
 /// Header (rect, ray counts, non-finite count) followed by the wire encoding.
 pub fn encode_film(f: &Film) -> Vec<u8> {
-    let mut out = Vec::with_capacity(56 + f.sums.len() * 28);
-    for v in [f.rect.x, f.rect.y, f.rect.width, f.rect.height] {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    for v in [f.rays.primary, f.rays.shadow, f.rays.reflection, f.rays.refraction, f.nonfinite] {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
+    let mut out = film_header(f.rect, f.rays, f.nonfinite, f.sums.len());
     out.extend_from_slice(&film_codec::pack_sums(f));
     out.extend_from_slice(&film_codec::pack_counts(f));
+    out
+}
+
+/// The 56-byte header of [`encode_film`], in a buffer with room for `pixels` pixels.
+pub fn film_header(rect: Rect, rays: RayCounts, nonfinite: u64, pixels: usize) -> Vec<u8> {
+    let mut out = Vec::with_capacity(56 + pixels * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES));
+    for v in [rect.x, rect.y, rect.width, rect.height] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    for v in [rays.primary, rays.shadow, rays.reflection, rays.refraction, nonfinite] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
     out
 }
 
