@@ -151,25 +151,30 @@ fn collect<'a>(node: gltf::Node<'a>, parent: DMat4, depth: usize, out: &mut Vec<
     Ok(())
 }
 
-/// glTF metallic-roughness -> Blinn-Phong: base colour is diffuse (and
-/// ambient), metallic is the mirror weight and tints the specular colour,
-/// roughness maps to a Phong exponent (2/r^4 - 2, the Beckmann match),
-/// alpha-blended materials are transparent by 1 - alpha.
+/// glTF metallic-roughness -> Blinn-Phong. A mirror in Whitted's model is
+/// perfectly sharp, so only smooth metals reflect: reflectivity =
+/// metallic * (1 - roughness)^2; the base colour (glTF defaults: metallic 1,
+/// roughness 1) is the diffuse colour (and ambient) for the rest, and tints
+/// the specular colour by metallic (0.04 for dielectrics); roughness maps to
+/// a Phong exponent 2/r^4 - 2 (the Beckmann match); alpha-blended materials
+/// are transparent by 1 - alpha, with ior 1.5.
 fn map_material(m: &gltf::Material) -> MaterialDesc {
     let pbr = m.pbr_metallic_roughness();
     let [r, g, b, a] = pbr.base_color_factor().map(f64::from);
     let metallic = (pbr.metallic_factor() as f64).clamp(0.0, 1.0);
-    let rough = (pbr.roughness_factor() as f64).clamp(0.05, 1.0);
+    let rough = (pbr.roughness_factor() as f64).clamp(0.0, 1.0);
+    let reflectivity = metallic * (1.0 - rough) * (1.0 - rough);
     let base = [r, g, b];
+    let diffuse = base.map(|c| c * (1.0 - reflectivity));
     let blend = matches!(m.alpha_mode(), gltf::material::AlphaMode::Blend);
     MaterialDesc {
-        ambient: Vec3(base),
-        diffuse: Vec3(base.map(|c| c * (1.0 - metallic))),
+        ambient: Vec3(diffuse),
+        diffuse: Vec3(diffuse),
         specular: Vec3(base.map(|c| 0.04 + (c - 0.04) * metallic)),
-        shininess: Num((2.0 / rough.powi(4) - 2.0).max(1.0)),
-        reflectivity: Num(metallic),
+        shininess: Num((2.0 / rough.max(0.05).powi(4) - 2.0).max(1.0)),
+        reflectivity: Num(reflectivity),
         transparency: Num(if blend { (1.0 - a).clamp(0.0, 1.0) } else { 0.0 }),
-        ior: Num(1.5), // glass-like; KHR_materials_ior is not read
+        ior: Num(1.5), // KHR_materials_ior is not read
     }
 }
 
