@@ -71,7 +71,7 @@ impl<R: Real> TriangleSet<R> {
             // A mirroring transform reverses the winding: restore it, so the
             // geometric normal stays outward.
             let t = if flip { [t[0], t[2], t[1]] } else { *t };
-            let tri: Triangle<R> = Triangle { v: t.map(|i| verts[i as usize]) };
+            let tri: Triangle<R> = Triangle::new(t.map(|i| verts[i as usize]));
             let cross = tri.cross();
             let len = cross.length();
             if !(len > R::ZERO && len.is_finite()) {
@@ -109,8 +109,9 @@ pub(crate) fn build_accel<R: Real>(world: &mut World<R>, force: Option<bool>) {
         ids.push(PrimId::new(PrimId::SPHERE, i as u32));
     }
     for (i, t) in world.triangles.iter().enumerate() {
-        let lo = t.v[0].min(t.v[1]).min(t.v[2]).to_array();
-        let hi = t.v[0].max(t.v[1]).max(t.v[2]).to_array();
+        let v = t.vertices();
+        let lo = v[0].min(v[1]).min(v[2]).to_array();
+        let hi = v[0].max(v[1]).max(v[2]).to_array();
         boxes.push(Aabb::outward(lo, hi));
         ids.push(PrimId::new(PrimId::TRIANGLE, i as u32));
     }
@@ -217,7 +218,7 @@ impl<R: Real> World<R> {
     #[inline]
     pub(crate) fn triangle_surface(&self, index: usize, p: R::V3) -> (R::V3, R::V3, u32) {
         let s = &self.triangle_shading[index];
-        let v0 = self.triangles[index].v[0];
+        let v0 = self.triangles[index].vertices()[0];
         let p = p - s.normal * s.normal.dot(p - v0);
         (p, s.normal, s.material)
     }

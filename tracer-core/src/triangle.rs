@@ -10,11 +10,15 @@
 
 use crate::math::{Ray, Real, Vector3};
 
-/// A triangle as the intersection test wants it: its three vertices.
-/// Kept apart from shading data so traversal touches only these 3 vectors.
+/// A triangle as the intersection test wants it: its vertices' x, y and z
+/// coordinates, vertex i in lane i (48 bytes in `f32`), so the test works
+/// on all three vertices at once. Kept apart from shading data so traversal
+/// touches only these.
 #[derive(Clone, Copy, Debug)]
 pub struct Triangle<R: Real> {
-    pub v: [R::V3; 3],
+    xs: R::V3,
+    ys: R::V3,
+    zs: R::V3,
 }
 
 /// What shading needs of a triangle once it has been hit.
@@ -27,101 +31,106 @@ pub struct TriangleShading<R: Real> {
     pub material: u32,
 }
 
-/// Per-ray precomputation of the watertight test: the ray-aligned shear
-/// written as three rows, so that a vertex's transformed coordinates are
-/// dot products. Each row has one entry 1 and at most one other non-zero
-/// entry, so `dot` rounds exactly like the paper's `A[kx] - Sx * A[kz]`.
+/// Per-ray precomputation of the watertight test: the origin and the
+/// ray-aligned shear written as three rows, so that a vertex's transformed
+/// coordinates are `row . (v - origin)`. Each row has one entry 1 (or Sz)
+/// and at most one other non-zero entry, so this rounds exactly like the
+/// paper's `A[kx] - Sx * A[kz]` (the other products are exact zeros).
 #[derive(Clone, Copy, Debug)]
 pub struct TriangleRay<R: Real> {
-    origin: R::V3,
-    row_x: R::V3,
-    row_y: R::V3,
-    /// Unit vector along the ray direction's dominant axis, times Sz.
-    row_z: R::V3,
+    origin: [R; 3],
+    row_x: [R; 3],
+    row_y: [R; 3],
+    row_z: [R; 3],
 }
 
 impl<R: Real> TriangleRay<R> {
     #[inline(always)]
     pub fn new(ray: &Ray<R>) -> Self {
-        let d = ray.dir;
-        let a = d.abs();
+        let d = [ray.dir.x(), ray.dir.y(), ray.dir.z()];
+        let a = d.map(|c| c.abs());
         // kz: the dominant axis; kx, ky the next two cyclically, swapped when
         // d[kz] < 0 to keep the winding (and so the sign of det) consistent.
-        let kz = if a.x() >= a.y() && a.x() >= a.z() {
+        let kz = if a[0] >= a[1] && a[0] >= a[2] {
             0
-        } else if a.y() >= a.z() {
+        } else if a[1] >= a[2] {
             1
         } else {
             2
         };
-        let comp = |k: usize| match k {
-            0 => d.x(),
-            1 => d.y(),
-            _ => d.z(),
-        };
-        let unit = |k: usize, s: R| match k {
-            0 => R::V3::new(s, R::ZERO, R::ZERO),
-            1 => R::V3::new(R::ZERO, s, R::ZERO),
-            _ => R::V3::new(R::ZERO, R::ZERO, s),
-        };
-        let dz = comp(kz);
         let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
-        if dz < R::ZERO {
+        if d[kz] < R::ZERO {
             std::mem::swap(&mut kx, &mut ky);
         }
-        let sx = comp(kx) / dz;
-        let sy = comp(ky) / dz;
-        let sz = R::ONE / dz;
-        TriangleRay {
-            origin: ray.origin,
-            row_x: unit(kx, R::ONE) + unit(kz, -sx),
-            row_y: unit(ky, R::ONE) + unit(kz, -sy),
-            row_z: unit(kz, sz),
-        }
+        let sz = R::ONE / d[kz];
+        let (sx, sy) = (d[kx] * sz, d[ky] * sz);
+        let mut row_x = [R::ZERO; 3];
+        let mut row_y = [R::ZERO; 3];
+        let mut row_z = [R::ZERO; 3];
+        row_x[kx] = R::ONE;
+        row_x[kz] = -sx;
+        row_y[ky] = R::ONE;
+        row_y[kz] = -sy;
+        row_z[kz] = sz;
+        TriangleRay { origin: [ray.origin.x(), ray.origin.y(), ray.origin.z()], row_x, row_y, row_z }
     }
 }
 
 impl<R: Real> Triangle<R> {
+    pub fn new(v: [R::V3; 3]) -> Self {
+        Triangle {
+            xs: R::V3::new(v[0].x(), v[1].x(), v[2].x()),
+            ys: R::V3::new(v[0].y(), v[1].y(), v[2].y()),
+            zs: R::V3::new(v[0].z(), v[1].z(), v[2].z()),
+        }
+    }
+
+    pub fn vertices(&self) -> [R::V3; 3] {
+        [
+            R::V3::new(self.xs.x(), self.ys.x(), self.zs.x()),
+            R::V3::new(self.xs.y(), self.ys.y(), self.zs.y()),
+            R::V3::new(self.xs.z(), self.ys.z(), self.zs.z()),
+        ]
+    }
+
     /// Distance to the hit in (0, t_max), or `None`. Degenerate triangles
     /// (zero area, or seen exactly edge-on) are never hit and never give NaN.
     #[inline(always)]
     pub fn intersect(&self, r: &TriangleRay<R>, t_max: R) -> Option<R> {
-        let a = self.v[0] - r.origin;
-        let b = self.v[1] - r.origin;
-        let c = self.v[2] - r.origin;
-        let (ax, ay) = (a.dot(r.row_x), a.dot(r.row_y));
-        let (bx, by) = (b.dot(r.row_x), b.dot(r.row_y));
-        let (cx, cy) = (c.dot(r.row_x), c.dot(r.row_y));
-        let mut u = cx * by - cy * bx;
-        let mut v = ax * cy - ay * cx;
-        let mut w = bx * ay - by * ax;
-        if u == R::ZERO || v == R::ZERO || w == R::ZERO {
+        // Vertices relative to the origin (lane i: vertex i), then sheared.
+        let dx = self.xs - R::V3::splat(r.origin[0]);
+        let dy = self.ys - R::V3::splat(r.origin[1]);
+        let dz = self.zs - R::V3::splat(r.origin[2]);
+        let row = |w: &[R; 3]| dx * w[0] + dy * w[1] + dz * w[2];
+        let x = row(&r.row_x); // (ax, bx, cx)
+        let y = row(&r.row_y); // (ay, by, cy)
+        // Edge functions (u, v, w) = (cx by - cy bx, ax cy - ay cx, bx ay - by ax).
+        let x1 = R::V3::new(x.z(), x.x(), x.y());
+        let y1 = R::V3::new(y.y(), y.z(), y.x());
+        let y2 = R::V3::new(y.z(), y.x(), y.y());
+        let x2 = R::V3::new(x.y(), x.z(), x.x());
+        let mut uvw = x1 * y1 - y2 * x2;
+        if uvw.abs().min_element() == R::ZERO {
             // On (or within rounding of) an edge: the sign decides which of
             // the two neighbours owns the ray, so get it exactly. Products of
             // f32 are exact in f64; in f64 this is the same computation.
-            let f = |p: R, q: R, s: R, t: R| R::from_f64(p.to_f64() * q.to_f64() - s.to_f64() * t.to_f64());
-            let (u64_, v64, w64) = (
-                cx.to_f64() * by.to_f64() - cy.to_f64() * bx.to_f64(),
-                ax.to_f64() * cy.to_f64() - ay.to_f64() * cx.to_f64(),
-                bx.to_f64() * ay.to_f64() - by.to_f64() * ax.to_f64(),
-            );
-            if (u64_ < 0.0 || v64 < 0.0 || w64 < 0.0) && (u64_ > 0.0 || v64 > 0.0 || w64 > 0.0) {
+            let e = |p: R, q: R, s: R, t: R| p.to_f64() * q.to_f64() - s.to_f64() * t.to_f64();
+            let (ax, bx, cx) = (x.x(), x.y(), x.z());
+            let (ay, by, cy) = (y.x(), y.y(), y.z());
+            let (u, v, w) = (e(cx, by, cy, bx), e(ax, cy, ay, cx), e(bx, ay, by, ax));
+            if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
                 return None;
             }
-            u = f(cx, by, cy, bx);
-            v = f(ax, cy, ay, cx);
-            w = f(bx, ay, by, ax);
-        } else if (u < R::ZERO || v < R::ZERO || w < R::ZERO) && (u > R::ZERO || v > R::ZERO || w > R::ZERO) {
+            uvw = R::V3::new(R::from_f64(u), R::from_f64(v), R::from_f64(w));
+        } else if uvw.min_element() < R::ZERO && uvw.max_element() > R::ZERO {
             return None;
         }
-        let det = u + v + w;
+        let det = uvw.x() + uvw.y() + uvw.z();
         if det == R::ZERO {
             return None;
         }
-        let az = a.dot(r.row_z);
-        let bz = b.dot(r.row_z);
-        let cz = c.dot(r.row_z);
-        let t_scaled = u * az + v * bz + w * cz;
+        let z = row(&r.row_z); // (az, bz, cz)
+        let t_scaled = uvw.dot(z);
         // t = t_scaled / det must lie in (0, t_max); test before dividing.
         let inside = if det > R::ZERO {
             t_scaled > R::ZERO && t_scaled < t_max * det
@@ -138,7 +147,8 @@ impl<R: Real> Triangle<R> {
     /// Unnormalised geometric normal (e1 x e2): outward for counter-clockwise winding.
     #[inline(always)]
     pub fn cross(&self) -> R::V3 {
-        (self.v[1] - self.v[0]).cross(self.v[2] - self.v[0])
+        let v = self.vertices();
+        (v[1] - v[0]).cross(v[2] - v[0])
     }
 }
 
@@ -150,9 +160,10 @@ impl<R: Real> TriangleShading<R> {
         let Some(ns) = self.vertex_normals else {
             return self.normal;
         };
-        let e1 = tri.v[1] - tri.v[0];
-        let e2 = tri.v[2] - tri.v[0];
-        let d = p - tri.v[0];
+        let v = tri.vertices();
+        let e1 = v[1] - v[0];
+        let e2 = v[2] - v[0];
+        let d = p - v[0];
         let n = e1.cross(e2);
         let nn = n.length_squared();
         // p = v0 + b1 e1 + b2 e2; clamped so points rounded just outside stay sane.
@@ -171,7 +182,7 @@ mod tests {
     use glam::{DVec3, Vec3A};
 
     fn tri64(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> Triangle<f64> {
-        Triangle { v: [DVec3::from_array(a), DVec3::from_array(b), DVec3::from_array(c)] }
+        Triangle::new([DVec3::from_array(a), DVec3::from_array(b), DVec3::from_array(c)])
     }
 
     #[test]
@@ -209,7 +220,7 @@ mod tests {
         assert!(edge_on.intersect(&r, f64::INFINITY).is_none_or(|t| t.is_finite() && t > 0.0));
         // Vertices a rounding error apart (a sliver with no area in f32).
         let q = Vec3A::new(0.5, 0.25, 4.0);
-        let sliver = Triangle::<f32> { v: [q, q + Vec3A::new(1e-30, 0.0, 0.0), q] };
+        let sliver = Triangle::<f32>::new([q, q + Vec3A::new(1e-30, 0.0, 0.0), q]);
         let r32 = TriangleRay::new(&Ray::<f32>::new(Vec3A::ZERO, q.normalize()));
         assert_eq!(sliver.intersect(&r32, f32::INFINITY), None);
     }
@@ -220,8 +231,8 @@ mod tests {
         // rays through points on the diagonal (ends excluded: the square's
         // corners are on the mesh boundary): at least one must report a hit.
         let q = [Vec3A::new(0.0, 0.0, 3.0), Vec3A::new(1.0, 0.0, 3.0), Vec3A::new(1.0, 1.0, 3.0), Vec3A::new(0.0, 1.0, 3.0)];
-        let t1 = Triangle::<f32> { v: [q[0], q[1], q[2]] };
-        let t2 = Triangle::<f32> { v: [q[0], q[2], q[3]] };
+        let t1 = Triangle::<f32>::new([q[0], q[1], q[2]]);
+        let t2 = Triangle::<f32>::new([q[0], q[2], q[3]]);
         let origin = Vec3A::new(0.123, 0.456, -0.7);
         for i in 1..1000 {
             let s = i as f32 / 1000.0;

@@ -407,7 +407,7 @@ fn transforms_place_vertices_as_documented() {
     let scene = SceneDesc::parse(&src, dir.join("t.toml")).unwrap();
     let w = world_of::<f64>(&scene);
     let cam = DVec3::from_array(w.camera_position);
-    let got: Vec<[f64; 3]> = w.triangles[0].v.iter().map(|p| (*p + cam).to_array()).collect();
+    let got: Vec<[f64; 3]> = w.triangles[0].vertices().iter().map(|p| (*p + cam).to_array()).collect();
     // scale, then z 90 (x->y, y->-x), then y 90 (x->-z, z->x), then translate.
     let want = [[10.0, 22.0, 30.0], [10.0, 20.0, 33.0], [14.0, 20.0, 30.0]];
     for (g, w) in got.iter().zip(want) {
@@ -419,8 +419,8 @@ fn transforms_place_vertices_as_documented() {
     let plain = SceneDesc::parse(&src.replace("scale = [2, 3, 4]", "scale = 1"), dir.join("t.toml")).unwrap();
     let wp = world_of::<f64>(&plain);
     let c = |w: &World<f64>| {
-        let t = &w.triangles[0];
-        (t.v[0] + t.v[1] + t.v[2]) * (1.0 / 3.0)
+        let v = w.triangles[0].vertices();
+        (v[0] + v[1] + v[2]) * (1.0 / 3.0)
     };
     // Outward = away from the model origin (which maps to the translation).
     let origin = DVec3::new(10.0, 20.0, 30.0) - cam;

@@ -135,23 +135,29 @@ fn header(r: &mut impl BufRead) -> Result<(Format, Vec<Element>), String> {
 struct Values<'a, R: BufRead> {
     r: &'a mut R,
     format: Format,
-    /// ASCII: tokens of the current line.
+    /// ASCII: the current line and how far it has been read.
     line: String,
-    tokens: std::vec::IntoIter<String>,
+    pos: usize,
 }
 
 impl<R: BufRead> Values<'_, R> {
     fn next(&mut self, ty: Scalar) -> Result<f64, String> {
         if self.format == Format::Ascii {
             let tok = loop {
-                if let Some(t) = self.tokens.next() {
-                    break t;
+                let rest = &self.line[self.pos..];
+                let start = rest.len() - rest.trim_start().len();
+                let rest = &rest[start..];
+                if !rest.is_empty() {
+                    let len = rest.find(|c: char| c.is_ascii_whitespace()).unwrap_or(rest.len());
+                    let tok = &rest[..len];
+                    self.pos += start + len;
+                    break tok;
                 }
                 self.line.clear();
+                self.pos = 0;
                 if self.r.read_line(&mut self.line).map_err(|e| e.to_string())? == 0 {
                     return Err("unexpected end of file".into());
                 }
-                self.tokens = self.line.split_ascii_whitespace().map(str::to_string).collect::<Vec<_>>().into_iter();
             };
             return tok.parse::<f64>().map_err(|_| format!("not a number: {tok:?}"));
         }
@@ -176,7 +182,7 @@ impl<R: BufRead> Values<'_, R> {
 
 fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Mesh, String> {
     let mut mesh = Mesh::default();
-    let mut vals = Values { r, format, line: String::new(), tokens: Vec::new().into_iter() };
+    let mut vals = Values { r, format, line: String::new(), pos: 0 };
     let mut vertex_seen = false;
     for el in elements {
         let scalar_index = |n: &str| el.props.iter().position(|p| matches!(p, Property::Scalar { name, .. } if name == n));
