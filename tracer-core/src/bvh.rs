@@ -131,6 +131,8 @@ impl BuildNode {
 struct Input<'a> {
     boxes: &'a [Aabb],
     centroids: &'a [Vec3A],
+    /// Traversal stack entries: leaves may be at most `stack - 1` deep.
+    stack: usize,
 }
 
 fn ceil_log2(n: usize) -> usize {
@@ -141,13 +143,20 @@ impl Bvh {
     /// Builds a tree over `ids[i]` bounded by `boxes[i]`. Empty input gives
     /// an empty tree (no nodes), which traversal treats as a miss.
     pub fn build(boxes: &[Aabb], ids: &[PrimId]) -> Bvh {
+        Self::build_with_stack(boxes, ids, MAX_DEPTH)
+    }
+
+    /// As [`Bvh::build`], for a traversal stack of `stack` entries (at least
+    /// 2 + ceil(log2(n)) for n primitives): no leaf deeper than `stack - 1`.
+    pub fn build_with_stack(boxes: &[Aabb], ids: &[PrimId], stack: usize) -> Bvh {
         assert_eq!(boxes.len(), ids.len());
+        assert!(stack >= 2 + ceil_log2(boxes.len()), "a stack of {stack} cannot hold a tree over {} primitives", boxes.len());
         let start = Instant::now();
         if boxes.is_empty() {
             return Bvh::default();
         }
         let centroids: Vec<Vec3A> = boxes.iter().map(Aabb::centroid).collect();
-        let input = Input { boxes, centroids: &centroids };
+        let input = Input { boxes, centroids: &centroids, stack };
         let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
         let root = build_node(&input, &mut order, 0, 0);
 
@@ -159,7 +168,7 @@ impl Bvh {
         stats.nodes = nodes.len();
         stats.bytes = nodes.len() * std::mem::size_of::<BvhNode>() + prims.len() * std::mem::size_of::<PrimId>();
         stats.build_time = start.elapsed();
-        debug_assert!(stats.depth < MAX_DEPTH);
+        debug_assert!(stats.depth < stack);
         Bvh { nodes, prims, stats }
     }
 }
@@ -184,7 +193,7 @@ fn build_node(input: &Input, idx: &mut [u32], offset: usize, depth: usize) -> Bu
     }
     // Depth budget: median splits finish any subtree within ceil(log2 n)
     // more levels, so use them once the SAH could overrun the stack.
-    let median = depth + ceil_log2(n) >= MAX_DEPTH - 1;
+    let median = depth + ceil_log2(n) >= input.stack - 1;
     let split = if median { None } else { sah_split(input, idx, &bounds, &cbounds) };
     let mid = match split {
         Some(Split::Leaf) => return BuildNode::Leaf { bounds, start: offset, count: n },
@@ -492,11 +501,11 @@ mod tests {
 
     /// Checks the layout invariants: every primitive in exactly one leaf,
     /// children inside their parents, leaves within the depth bound.
-    fn check(bvh: &Bvh, boxes: &[Aabb]) {
+    fn check(bvh: &Bvh, boxes: &[Aabb], limit: usize) {
         let mut seen = vec![0u32; boxes.len()];
         let mut stack = vec![(0usize, 0usize)];
         while let Some((i, depth)) = stack.pop() {
-            assert!(depth < MAX_DEPTH, "node {i} at depth {depth}");
+            assert!(depth < limit, "node {i} at depth {depth}");
             let n = bvh.nodes[i];
             let nb = Aabb { min: Vec3A::from_array(n.min), max: Vec3A::from_array(n.max) };
             if n.count == 0 {
@@ -526,7 +535,7 @@ mod tests {
             .collect();
         let ids: Vec<PrimId> = (0..boxes.len() as u32).map(|i| PrimId::new(PrimId::SPHERE, i)).collect();
         let bvh = Bvh::build(&boxes, &ids);
-        check(&bvh, &boxes);
+        check(&bvh, &boxes, MAX_DEPTH);
         assert!(bvh.stats.depth < 40 && !bvh.stats.depth_limited, "{:?}", bvh.stats);
     }
 
@@ -536,15 +545,19 @@ mod tests {
         let same = vec![unit_box([1.0, 2.0, 3.0], 0.0); 10_000];
         let ids: Vec<PrimId> = (0..same.len() as u32).map(|i| PrimId::new(PrimId::TRIANGLE, i)).collect();
         let bvh = Bvh::build(&same, &ids);
-        check(&bvh, &same);
+        check(&bvh, &same, MAX_DEPTH);
         assert!(bvh.stats.depth <= ceil_log2(10_000));
-        // Exponentially spaced boxes: the SAH peels one off per level, which
-        // would make a chain 2000 deep; the depth budget must take over.
-        let chain: Vec<Aabb> = (0..2000).map(|i| unit_box([1.01f32.powi(i) * 1e-3, 0.0, 0.0], 1e-6)).collect();
+        // Boxes at x = 2^i: the SAH peels off a few of the farthest at each
+        // level (the others share the first bin), a chain 34 deep. Built for
+        // a stack of 12 entries, the depth budget must take over.
+        let chain: Vec<Aabb> = (0..120).map(|i| unit_box([2f32.powi(i), 0.0, 0.0], 1e-3)).collect();
         let ids: Vec<PrimId> = (0..chain.len() as u32).map(|i| PrimId::new(PrimId::TRIANGLE, i)).collect();
-        let bvh = Bvh::build(&chain, &ids);
-        check(&bvh, &chain);
-        assert!(bvh.stats.depth < MAX_DEPTH, "{:?}", bvh.stats);
+        let free = Bvh::build(&chain, &ids);
+        check(&free, &chain, MAX_DEPTH);
+        assert!(free.stats.depth > 30 && !free.stats.depth_limited, "{:?}", free.stats);
+        let bounded = Bvh::build_with_stack(&chain, &ids, 12);
+        check(&bounded, &chain, 12);
+        assert!(bounded.stats.depth_limited && bounded.stats.depth == 11, "{:?}", bounded.stats);
     }
 
     #[test]

@@ -374,6 +374,11 @@ fn pathological_meshes_build_within_the_stack_and_render_without_nan() {
         let x = 1.005f64.powi(i) * 1e-6;
         tri(&mut s, [[x, -1.0, 2.0], [x + 1e-7, -1.0, 2.0], [x, -1.0 + 1e-7, 2.0]]);
     }
+    // Triangles at x = 2^i * 1e-20 (1e-20 .. 1e10): a chain for the SAH.
+    for i in 0..100 {
+        let x = 2f64.powi(i) * 1e-20;
+        tri(&mut s, [[x, 1.5, 3.0], [x * 1.25, 1.5, 3.0], [x, 1.5 + x * 0.25, 3.0]]);
+    }
     std::fs::write(dir.join("bad.obj"), s).unwrap();
     let src = format!("{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"bad.obj\"\nmaterial = \"mirror\"\n");
     let scene = SceneDesc::parse(&src, dir.join("p.toml")).unwrap();
