@@ -158,7 +158,8 @@ impl Bvh {
         let centroids: Vec<Vec3A> = boxes.iter().map(Aabb::centroid).collect();
         let input = Input { boxes, centroids: &centroids, stack };
         let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
-        let root = build_node(&input, &mut order, 0, 0);
+        let (bounds, cbounds) = bounds_of(&input, &order);
+        let root = build_node(&input, &mut order, 0, 0, bounds, cbounds);
 
         let mut nodes = Vec::with_capacity(2 * boxes.len() / 2 + 1);
         nodes.push(BvhNode::default());
@@ -184,10 +185,10 @@ fn bounds_of(input: &Input, idx: &[u32]) -> (Aabb, Aabb) {
 }
 
 /// Builds the subtree over `idx` (a slice of `order` starting at `offset`),
-/// at depth `depth`, partitioning `idx` in place.
-fn build_node(input: &Input, idx: &mut [u32], offset: usize, depth: usize) -> BuildNode {
+/// at depth `depth`, partitioning `idx` in place. `bounds` and `cbounds`
+/// bound the primitives' boxes and centroids.
+fn build_node(input: &Input, idx: &mut [u32], offset: usize, depth: usize, bounds: Aabb, cbounds: Aabb) -> BuildNode {
     let n = idx.len();
-    let (bounds, cbounds) = bounds_of(input, idx);
     if n == 1 {
         return BuildNode::Leaf { bounds, start: offset, count: 1 };
     }
@@ -195,28 +196,31 @@ fn build_node(input: &Input, idx: &mut [u32], offset: usize, depth: usize) -> Bu
     // more levels, so use them once the SAH could overrun the stack.
     let median = depth + ceil_log2(n) >= input.stack - 1;
     let split = if median { None } else { sah_split(input, idx, &bounds, &cbounds) };
-    let mid = match split {
+    let (mid, lb, rb) = match split {
         Some(Split::Leaf) => return BuildNode::Leaf { bounds, start: offset, count: n },
-        Some(Split::Bin { axis, bin }) => partition_bins(input, idx, &cbounds, axis, bin),
+        Some(Split::Bin { axis, bin, lo, scale, left, right }) => {
+            (partition_bins(input, idx, axis, bin, lo, scale), left, right)
+        }
         None => {
             if !median && n <= MAX_LEAF {
                 return BuildNode::Leaf { bounds, start: offset, count: n };
             }
-            median_split(input, idx, &cbounds)
+            let mid = median_split(input, idx, &cbounds);
+            (mid, bounds_of(input, &idx[..mid]), bounds_of(input, &idx[mid..]))
         }
     };
     let (left, right) = idx.split_at_mut(mid);
-    let (l, r) = if n >= PARALLEL_MIN {
-        rayon::join(|| build_node(input, left, offset, depth + 1), || build_node(input, right, offset + mid, depth + 1))
-    } else {
-        (build_node(input, left, offset, depth + 1), build_node(input, right, offset + mid, depth + 1))
-    };
+    let mut build_l = move || build_node(input, left, offset, depth + 1, lb.0, lb.1);
+    let mut build_r = move || build_node(input, right, offset + mid, depth + 1, rb.0, rb.1);
+    let (l, r) = if n >= PARALLEL_MIN { rayon::join(build_l, build_r) } else { (build_l(), build_r()) };
     BuildNode::Inner { bounds, children: Box::new([l, r]), median }
 }
 
 enum Split {
     Leaf,
-    Bin { axis: usize, bin: usize },
+    /// Primitives whose centroid bins below `bin` on `axis` go left; the
+    /// binning (`lo`, `scale`) and both sides' (box, centroid) bounds.
+    Bin { axis: usize, bin: usize, lo: f32, scale: f32, left: (Aabb, Aabb), right: (Aabb, Aabb) },
 }
 
 #[inline]
@@ -224,43 +228,57 @@ fn bin_of(c: f32, lo: f32, scale: f32) -> usize {
     (((c - lo) * scale) as usize).min(BINS - 1)
 }
 
-fn bin_scale(cb: &Aabb, axis: usize) -> Option<(f32, f32)> {
-    let lo = cb.min[axis];
-    let extent = cb.max[axis] - lo;
-    // No spread (or a spread too small to bin) on this axis.
-    let scale = BINS as f32 * (1.0 - 1e-6) / extent;
-    (extent > 0.0 && scale.is_finite()).then_some((lo, scale))
+#[derive(Clone, Copy)]
+struct Bin {
+    bounds: Aabb,
+    centroids: Aabb,
+    count: u32,
 }
 
 /// Best binned SAH split over the three axes, `Leaf` when a leaf is cheaper
 /// (and allowed), `None` when the centroids cannot be separated by bins.
+/// One pass over the primitives bins all three axes at once.
 fn sah_split(input: &Input, idx: &[u32], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
     let n = idx.len();
-    let mut best: Option<(f32, usize, usize)> = None;
-    for axis in 0..3 {
-        let Some((lo, scale)) = bin_scale(cbounds, axis) else { continue };
-        let mut bins = [(Aabb::EMPTY, 0u32); BINS];
-        for &i in idx {
-            let b = bin_of(input.centroids[i as usize][axis], lo, scale);
-            bins[b].0.grow(&input.boxes[i as usize]);
-            bins[b].1 += 1;
+    let lo = cbounds.min;
+    let extent = cbounds.max - lo;
+    // Axes with no spread (or one too small to bin) get scale 0: every
+    // primitive lands in bin 0 there, so they offer no split.
+    let scale = Vec3A::from_array([0, 1, 2].map(|a| {
+        let s = BINS as f32 * (1.0 - 1e-6) / extent[a];
+        if extent[a] > 0.0 && s.is_finite() { s } else { 0.0 }
+    }));
+    let empty = Bin { bounds: Aabb::EMPTY, centroids: Aabb::EMPTY, count: 0 };
+    let mut bins = [[empty; BINS]; 3];
+    for &i in idx {
+        let c = input.centroids[i as usize];
+        let b = input.boxes[i as usize];
+        let f = (c - lo) * scale;
+        for axis in 0..3 {
+            let bin = &mut bins[axis][(f[axis] as usize).min(BINS - 1)];
+            bin.bounds.grow(&b);
+            bin.centroids.grow_point(c);
+            bin.count += 1;
         }
+    }
+    let mut best: Option<(f32, usize, usize)> = None;
+    for (axis, bins) in bins.iter().enumerate() {
         // Sweep from the right to get the cost of each right side.
         let mut right_area = [0.0f32; BINS];
         let mut right_count = [0u32; BINS];
         let mut acc = Aabb::EMPTY;
         let mut cnt = 0;
         for b in (1..BINS).rev() {
-            acc.grow(&bins[b].0);
-            cnt += bins[b].1;
+            acc.grow(&bins[b].bounds);
+            cnt += bins[b].count;
             right_area[b] = acc.half_area();
             right_count[b] = cnt;
         }
         let mut acc = Aabb::EMPTY;
         let mut cnt = 0;
         for b in 0..BINS - 1 {
-            acc.grow(&bins[b].0);
-            cnt += bins[b].1;
+            acc.grow(&bins[b].bounds);
+            cnt += bins[b].count;
             let rc = right_count[b + 1];
             if cnt == 0 || rc == 0 {
                 continue;
@@ -279,12 +297,20 @@ fn sah_split(input: &Input, idx: &[u32], bounds: &Aabb, cbounds: &Aabb) -> Optio
     if n <= MAX_LEAF && parent > 0.0 && leaf_cost <= split_cost {
         return Some(Split::Leaf);
     }
-    Some(Split::Bin { axis, bin })
+    let side = |range: std::ops::Range<usize>| {
+        let mut b = (Aabb::EMPTY, Aabb::EMPTY);
+        for k in range {
+            b.0.grow(&bins[axis][k].bounds);
+            b.1.grow(&bins[axis][k].centroids);
+        }
+        b
+    };
+    Some(Split::Bin { axis, bin, lo: lo[axis], scale: scale[axis], left: side(0..bin), right: side(bin..BINS) })
 }
 
-/// Moves primitives of bins < `bin` to the front; returns how many.
-fn partition_bins(input: &Input, idx: &mut [u32], cbounds: &Aabb, axis: usize, bin: usize) -> usize {
-    let Some((lo, scale)) = bin_scale(cbounds, axis) else { unreachable!("a chosen axis has spread") };
+/// Moves primitives of bins < `bin` to the front; returns how many. Bins
+/// are computed exactly as in [`sah_split`], so the counts match.
+fn partition_bins(input: &Input, idx: &mut [u32], axis: usize, bin: usize, lo: f32, scale: f32) -> usize {
     let mut mid = 0;
     for k in 0..idx.len() {
         if bin_of(input.centroids[idx[k] as usize][axis], lo, scale) < bin {

@@ -53,8 +53,10 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
         buffers.push(data);
     }
 
-    let mut mesh = Mesh::default();
-    mesh.materials = doc.materials().map(|m| (m.name().unwrap_or("unnamed").to_string(), map_material(&m))).collect();
+    let mut mesh = Mesh {
+        materials: doc.materials().map(|m| (m.name().unwrap_or("unnamed").to_string(), map_material(&m))).collect(),
+        ..Default::default()
+    };
     let default_index = mesh.materials.len() as u32;
     let mut need_default = false;
     let mut any_normals = false;
@@ -183,12 +185,13 @@ fn percent_decode(s: &str) -> String {
     let mut out = Vec::with_capacity(b.len());
     let mut i = 0;
     while i < b.len() {
-        if b[i] == b'%' && i + 2 < b.len() {
-            if let Some(v) = std::str::from_utf8(&b[i + 1..i + 3]).ok().and_then(|h| u8::from_str_radix(h, 16).ok()) {
-                out.push(v);
-                i += 3;
-                continue;
-            }
+        let hex = (b[i] == b'%' && i + 2 < b.len())
+            .then(|| std::str::from_utf8(&b[i + 1..i + 3]).ok().and_then(|h| u8::from_str_radix(h, 16).ok()))
+            .flatten();
+        if let Some(v) = hex {
+            out.push(v);
+            i += 3;
+            continue;
         }
         out.push(b[i]);
         i += 1;

@@ -144,10 +144,8 @@ impl MeshDesc {
                 return Err(("rotate", format!("degrees must be finite, got {}", r.degrees.0)));
             }
         }
-        if let Some(e) = &self.rotate_euler {
-            if !e.0.iter().all(|v| v.is_finite()) {
-                return Err(("rotate_euler", format!("must be finite, got {:?}", e.0)));
-            }
+        if let Some(e) = self.rotate_euler.filter(|e| !e.0.iter().all(|v| v.is_finite())) {
+            return Err(("rotate_euler", format!("must be finite, got {:?}", e.0)));
         }
         Ok(())
     }
