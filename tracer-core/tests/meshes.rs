@@ -518,3 +518,37 @@ fn cornell_example_renders_its_coloured_walls() {
     // almost in the face's plane), so it stays nearly black.
     assert!(px(24, 30).iter().all(|&c| c < 0.05), "block front {:?}", px(24, 30));
 }
+
+#[test]
+fn sphere_scenes_render_identically_with_and_without_the_bvh() {
+    // The complexity scenes (9 spheres and a floor) get a BVH by default;
+    // it must change nothing but speed: the very same film, bit for bit.
+    for name in ["chrome-9", "glass-9", "emerald-9"] {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../examples/complexity/{name}.toml"));
+        let mut scene = SceneDesc::load(&path).unwrap();
+        scene.render.width = 80;
+        scene.render.height = 60;
+        for precision in [Precision::F32, Precision::F64] {
+            let frame = PreparedFrame::build(&scene, &scene.render, 0, precision).unwrap();
+            let (with, without) = match frame {
+                PreparedFrame::F32(w) => {
+                    assert!(w.accel.is_some(), "{name}: 9 spheres should get a BVH");
+                    let mut brute = w.clone();
+                    brute.set_accel(Some(false));
+                    (PreparedFrame::F32(w), PreparedFrame::F32(brute))
+                }
+                PreparedFrame::F64(w) => {
+                    let mut brute = w.clone();
+                    brute.set_accel(Some(false));
+                    (PreparedFrame::F64(w), PreparedFrame::F64(brute))
+                }
+            };
+            let r = CpuRenderer::new(Some(2)).unwrap();
+            let all = (Rect::full(80, 60), SampleRange::all(scene.render.samples));
+            let a = r.render(&with, 0, all.0, all.1, &|_| {}).unwrap();
+            let b = r.render(&without, 0, all.0, all.1, &|_| {}).unwrap();
+            assert!(a.sums == b.sums && a.counts == b.counts, "{name} {precision:?}: films differ");
+            assert_eq!(a.rays.total(), b.rays.total());
+        }
+    }
+}
