@@ -13,6 +13,7 @@
 //!   traversal stack of [`MAX_DEPTH`] entries never overflows: the builder
 //!   switches from SAH to median splits where a subtree could get deeper.
 
+use std::mem::MaybeUninit;
 use std::time::{Duration, Instant};
 
 use bytemuck::{Pod, Zeroable};
@@ -421,7 +422,8 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
     let tr = TriangleRay::new(ray);
     br.hit(&bvh.nodes[0], best)?;
     let mut found = PrimId::NONE;
-    let mut stack = [(0u32, R::ZERO); MAX_DEPTH];
+    // Uninitialised: zeroing 64 entries per ray costs more than a short traversal.
+    let mut stack = [const { MaybeUninit::<(u32, R)>::uninit() }; MAX_DEPTH];
     let mut sp = 0usize;
     let mut node = 0usize;
     loop {
@@ -433,7 +435,7 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
             match (hl, hr) {
                 (Some(a), Some(b)) => {
                     let (near, far, t_far) = if a <= b { (l, l + 1, b) } else { (l + 1, l, a) };
-                    stack[sp] = (far as u32, t_far);
+                    stack[sp].write((far as u32, t_far));
                     sp += 1;
                     node = near;
                     continue;
@@ -463,7 +465,8 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
                 return (found != PrimId::NONE).then_some((best, found));
             }
             sp -= 1;
-            let (next, t_enter) = stack[sp];
+            // SAFETY: entries below `sp` were written before `sp` was raised past them.
+            let (next, t_enter) = unsafe { stack[sp].assume_init() };
             if t_enter <= best {
                 node = next as usize;
                 break;
@@ -483,7 +486,7 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
     if br.hit(&bvh.nodes[0], t_max).is_none() {
         return false;
     }
-    let mut stack = [0u32; MAX_DEPTH];
+    let mut stack = [const { MaybeUninit::<u32>::uninit() }; MAX_DEPTH];
     let mut sp = 0usize;
     let mut node = 0usize;
     loop {
@@ -494,7 +497,7 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
             let hr = br.hit(&bvh.nodes[l + 1], t_max).is_some();
             if hl || hr {
                 if hl && hr {
-                    stack[sp] = (l + 1) as u32;
+                    stack[sp].write((l + 1) as u32);
                     sp += 1;
                 }
                 node = if hl { l } else { l + 1 };
@@ -512,7 +515,8 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
             return false;
         }
         sp -= 1;
-        node = stack[sp] as usize;
+        // SAFETY: entries below `sp` were written before `sp` was raised past them.
+        node = unsafe { stack[sp].assume_init() } as usize;
     }
 }
 
