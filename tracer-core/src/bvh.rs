@@ -4,8 +4,10 @@
 //! nodes that the CPU traverses here and a GPU can traverse as is.
 //!
 //! Layout (mirrored by any GPU traversal; `#[repr(C)]`, `Pod`):
-//! - `nodes[0]` is the root. An interior node (`count == 0`) has its two
-//!   children side by side at `first` and `first + 1`. A leaf (`count > 0`)
+//! - `nodes[0]` is the root (`nodes[1]` is unused padding). An interior node
+//!   (`count == 0`) has its two children side by side at `first` and
+//!   `first + 1`, `first` even: the pair is one 64-byte cache line (the
+//!   array is stored as 64-byte aligned [`NodePair`]s). A leaf (`count > 0`)
 //!   covers `prims[first .. first + count]`, which are packed [`PrimId`]s.
 //! - Bounds are `f32`, rounded outward from the world's coordinates, so
 //!   they are conservative for the `f64` reference as well.
@@ -47,6 +49,11 @@ pub struct BvhNode {
     /// 0 for an interior node, else the number of primitives of the leaf.
     pub count: u32,
 }
+
+/// Two sibling nodes, aligned to a cache line: a traversal step loads both.
+#[repr(C, align(64))]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct NodePair(pub [BvhNode; 2]);
 
 /// An axis-aligned box in `f32`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -110,7 +117,8 @@ pub struct BvhStats {
 
 #[derive(Clone, Debug, Default)]
 pub struct Bvh {
-    pub nodes: Vec<BvhNode>,
+    /// The node array, as cache-line pairs: node `i` is `pairs[i / 2].0[i % 2]`.
+    pub pairs: Vec<NodePair>,
     pub prims: Vec<PrimId>,
     pub stats: BvhStats,
 }
@@ -162,16 +170,29 @@ impl Bvh {
         let (bounds, cbounds) = bounds_of(&input, &order);
         let root = build_node(&input, &mut order, 0, 0, bounds, cbounds);
 
-        let mut nodes = Vec::with_capacity(2 * boxes.len() / 2 + 1);
+        let mut nodes = Vec::with_capacity(2 * boxes.len());
         nodes.push(BvhNode::default());
+        nodes.push(BvhNode::default()); // padding: sibling pairs start at even indices
         let mut stats = BvhStats { primitives: boxes.len(), ..Default::default() };
         flatten(&root, 0, 0, &mut nodes, &mut stats);
         let prims: Vec<PrimId> = order.iter().map(|&i| ids[i as usize]).collect();
-        stats.nodes = nodes.len();
-        stats.bytes = nodes.len() * std::mem::size_of::<BvhNode>() + prims.len() * std::mem::size_of::<PrimId>();
+        let pairs: Vec<NodePair> = nodes.chunks_exact(2).map(|c| NodePair([c[0], c[1]])).collect();
+        stats.nodes = nodes.len() - 1;
+        stats.bytes = pairs.len() * std::mem::size_of::<NodePair>() + prims.len() * std::mem::size_of::<PrimId>();
         stats.build_time = start.elapsed();
         debug_assert!(stats.depth < stack);
-        Bvh { nodes, prims, stats }
+        Bvh { pairs, prims, stats }
+    }
+
+    /// Node `i` of the flattened tree.
+    #[inline(always)]
+    pub fn node(&self, i: usize) -> &BvhNode {
+        &self.pairs[i >> 1].0[i & 1]
+    }
+
+    /// The node array as bytes, for upload to a GPU (32 bytes per node).
+    pub fn node_bytes(&self) -> &[u8] {
+        bytemuck::cast_slice(&self.pairs)
     }
 }
 
@@ -415,23 +436,24 @@ fn hit_prim<R: Real>(world: &World<R>, id: PrimId, ray: &Ray<R>, tri: &TriangleR
 /// Nearest hit in (0, t_max) of the tree's primitives.
 #[inline]
 pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best: R, skip: PrimId) -> Option<(R, PrimId)> {
-    if bvh.nodes.is_empty() {
+    if bvh.pairs.is_empty() {
         return None;
     }
     let br = BoxRay::new(ray);
     let tr = TriangleRay::new(ray);
-    br.hit(&bvh.nodes[0], best)?;
+    br.hit(bvh.node(0), best)?;
     let mut found = PrimId::NONE;
     // Uninitialised: zeroing 64 entries per ray costs more than a short traversal.
     let mut stack = [const { MaybeUninit::<(u32, R)>::uninit() }; MAX_DEPTH];
     let mut sp = 0usize;
     let mut node = 0usize;
     loop {
-        let n = &bvh.nodes[node];
+        let n = bvh.node(node);
         if n.count == 0 {
             let l = n.first as usize;
-            let hl = br.hit(&bvh.nodes[l], best);
-            let hr = br.hit(&bvh.nodes[l + 1], best);
+            let [cl, cr] = &bvh.pairs[l >> 1].0;
+            let hl = br.hit(cl, best);
+            let hr = br.hit(cr, best);
             match (hl, hr) {
                 (Some(a), Some(b)) => {
                     let (near, far, t_far) = if a <= b { (l, l + 1, b) } else { (l + 1, l, a) };
@@ -478,23 +500,24 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
 /// Whether any primitive of the tree lies on the ray before `t_max`.
 #[inline]
 pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
-    if bvh.nodes.is_empty() {
+    if bvh.pairs.is_empty() {
         return false;
     }
     let br = BoxRay::new(ray);
     let tr = TriangleRay::new(ray);
-    if br.hit(&bvh.nodes[0], t_max).is_none() {
+    if br.hit(bvh.node(0), t_max).is_none() {
         return false;
     }
     let mut stack = [const { MaybeUninit::<u32>::uninit() }; MAX_DEPTH];
     let mut sp = 0usize;
     let mut node = 0usize;
     loop {
-        let n = &bvh.nodes[node];
+        let n = bvh.node(node);
         if n.count == 0 {
             let l = n.first as usize;
-            let hl = br.hit(&bvh.nodes[l], t_max).is_some();
-            let hr = br.hit(&bvh.nodes[l + 1], t_max).is_some();
+            let [cl, cr] = &bvh.pairs[l >> 1].0;
+            let hl = br.hit(cl, t_max).is_some();
+            let hr = br.hit(cr, t_max).is_some();
             if hl || hr {
                 if hl && hr {
                     stack[sp].write((l + 1) as u32);
@@ -536,11 +559,12 @@ mod tests {
         let mut stack = vec![(0usize, 0usize)];
         while let Some((i, depth)) = stack.pop() {
             assert!(depth < limit, "node {i} at depth {depth}");
-            let n = bvh.nodes[i];
+            let n = *bvh.node(i);
             let nb = Aabb { min: Vec3A::from_array(n.min), max: Vec3A::from_array(n.max) };
             if n.count == 0 {
                 for c in [n.first as usize, n.first as usize + 1] {
-                    let cn = bvh.nodes[c];
+                    assert_eq!(n.first % 2, 0, "sibling pairs start at even indices");
+                    let cn = *bvh.node(c);
                     assert!(Vec3A::from_array(cn.min).cmpge(nb.min).all() && Vec3A::from_array(cn.max).cmple(nb.max).all());
                     stack.push((c, depth + 1));
                 }
@@ -594,5 +618,6 @@ mod tests {
     fn node_is_32_bytes_for_the_gpu() {
         assert_eq!(std::mem::size_of::<BvhNode>(), 32);
         assert_eq!(std::mem::align_of::<BvhNode>(), 4);
+        assert_eq!((std::mem::size_of::<NodePair>(), std::mem::align_of::<NodePair>()), (64, 64));
     }
 }
