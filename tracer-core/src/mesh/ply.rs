@@ -198,7 +198,7 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
                     (Some(a), Some(b), Some(c)) => Some([a, b, c]),
                     _ => None,
                 };
-                let cap = el.count.min(1 << 24);
+                let cap = el.count.min(1 << 20);
                 mesh.positions.reserve(cap);
                 for i in 0..el.count {
                     read_row(&mut vals, el, &mut row, &mut list).map_err(|e| format!("vertex {i}: {e}"))?;
@@ -217,7 +217,7 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
                     .iter()
                     .position(|p| matches!(p, Property::List { name, .. } if name == "vertex_indices" || name == "vertex_index"))
                     .ok_or("element face has no vertex_indices list")?;
-                mesh.triangles.reserve(el.count.min(1 << 24));
+                mesh.triangles.reserve(el.count.min(1 << 20));
                 let mut poly = Vec::new();
                 for i in 0..el.count {
                     poly.clear();
