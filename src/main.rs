@@ -1,6 +1,7 @@
 //! `tessera`: the one binary. Thin glue over the library crates; each
 //! subcommand lives in its own module under `cli/`.
 
+mod bench;
 mod cli;
 
 use std::process::ExitCode;

@@ -1,1 +1,17 @@
-//! The coordinator: accepts jobs, leases work units to workers, stitches frames. Not written yet: see issue 5 (the farm).
+//! The coordinator: accepts jobs, cuts them into work units, leases units to
+//! workers, validates and merges their results into frames, writes images,
+//! and keeps every accepted job and finished unit in a redb database so a
+//! restart resumes where it stopped.
+//!
+//! Map: [`units`] (how a job is cut), [`farm`] (scheduling state, leases,
+//! results), [`store`] (durable state), [`service`] (gRPC edge), [`server`]
+//! (serving, health, reflection, periodic tasks), [`image`] (PNG/EXR output).
+
+pub mod farm;
+pub mod image;
+pub mod server;
+pub mod service;
+pub mod store;
+pub mod units;
+
+pub use farm::{Config, Farm, FarmError};

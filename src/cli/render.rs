@@ -1,14 +1,14 @@
 //! `tessera render`: local mode, one process, no set-up.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::Result;
 use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
@@ -93,47 +93,7 @@ pub struct RenderArgs {
     pub frame: u32,
 }
 
-/// Image formats chosen by the output's extension.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ImageFormat {
-    Png,
-    Exr,
-}
-
-impl ImageFormat {
-    pub fn of(path: &Path) -> Result<Self> {
-        match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
-            Some("png") => Ok(ImageFormat::Png),
-            Some("exr") => Ok(ImageFormat::Exr),
-            other => bail!(
-                "{}: unsupported output extension {}; use .png (8-bit sRGB) or .exr (linear float)",
-                path.display(),
-                other.map_or("(none)".to_string(), |e| format!(".{e}"))
-            ),
-        }
-    }
-}
-
-/// Writes a resolved film as PNG or EXR, by extension.
-pub fn write_image(path: &Path, film: &Film) -> Result<()> {
-    let (w, h) = (film.rect.width, film.rect.height);
-    let linear = film.resolve();
-    match ImageFormat::of(path)? {
-        ImageFormat::Png => {
-            let bytes = tracer_core::film::to_srgb8(&linear);
-            image::RgbImage::from_raw(w, h, bytes)
-                .expect("buffer matches size")
-                .save_with_format(path, image::ImageFormat::Png)
-        }
-        ImageFormat::Exr => {
-            let data: Vec<f32> = linear.iter().flatten().copied().collect();
-            image::Rgb32FImage::from_raw(w, h, data)
-                .expect("buffer matches size")
-                .save_with_format(path, image::ImageFormat::OpenExr)
-        }
-    }
-    .with_context(|| format!("cannot write {}", path.display()))
-}
+pub use tessera_coordinator::image::{write_image, ImageFormat};
 
 pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let output = args.output.clone().unwrap_or_else(|| args.scene.with_extension("png"));

@@ -26,6 +26,8 @@ pub trait Real:
 {
     /// The 3-vector of this precision.
     type V3: Vector3<Self>;
+    /// Four lanes of this precision, for testing four primitives at once.
+    type V4: Lanes4<Self>;
 
     const ZERO: Self;
     const ONE: Self;
@@ -41,6 +43,10 @@ pub trait Real:
     /// Shadow rays stop this fraction short of the light, so that a light
     /// lying exactly on a surface is not shadowed by that surface.
     const SHADOW_SHORTEN: Self;
+    /// Specular terms below this fraction of the light's specular colour are
+    /// skipped (not computed with `powf`): 2^-24 in f32, where they cannot
+    /// change the colour's value; 0 in the f64 reference, which stays exact.
+    const SPECULAR_FLOOR: f64;
 
     fn from_f64(v: f64) -> Self;
     fn to_f64(self) -> f64;
@@ -102,10 +108,95 @@ pub trait Vector3<R: Real>:
     }
 }
 
+/// Four lanes of scalars (glam's `Vec4`, SSE2 on x86-64, and `DVec4`).
+pub trait Lanes4<R: Real>:
+    Copy + Send + Sync + Debug + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Div<Output = Self> + Neg<Output = Self>
+{
+    type Mask: Copy + std::ops::BitAnd<Output = Self::Mask> + std::ops::BitOr<Output = Self::Mask>;
+    fn splat(v: R) -> Self;
+    fn from_array(a: [R; 4]) -> Self;
+    fn to_array(self) -> [R; 4];
+    fn sqrt(self) -> Self;
+    fn min(self, o: Self) -> Self;
+    fn max(self, o: Self) -> Self;
+    fn copysign(self, sign: Self) -> Self;
+    fn cmpge(self, o: Self) -> Self::Mask;
+    fn cmpgt(self, o: Self) -> Self::Mask;
+    fn cmplt(self, o: Self) -> Self::Mask;
+    fn select(mask: Self::Mask, a: Self, b: Self) -> Self;
+    /// Bit i set when lane i of the mask is.
+    fn bitmask(mask: Self::Mask) -> u32;
+    /// Mask with only lane `i` set (none when i >= 4).
+    fn lane(i: usize) -> Self::Mask;
+}
+
+macro_rules! impl_lanes {
+    ($t:ty, $v:ty, $m:ty) => {
+        impl Lanes4<$t> for $v {
+            type Mask = $m;
+            #[inline(always)]
+            fn splat(v: $t) -> Self {
+                <$v>::splat(v)
+            }
+            #[inline(always)]
+            fn from_array(a: [$t; 4]) -> Self {
+                <$v>::from_array(a)
+            }
+            #[inline(always)]
+            fn to_array(self) -> [$t; 4] {
+                <$v>::to_array(&self)
+            }
+            #[inline(always)]
+            fn sqrt(self) -> Self {
+                <$v>::sqrt(self)
+            }
+            #[inline(always)]
+            fn min(self, o: Self) -> Self {
+                <$v>::min(self, o)
+            }
+            #[inline(always)]
+            fn max(self, o: Self) -> Self {
+                <$v>::max(self, o)
+            }
+            #[inline(always)]
+            fn copysign(self, sign: Self) -> Self {
+                <$v>::copysign(self, sign)
+            }
+            #[inline(always)]
+            fn cmpge(self, o: Self) -> $m {
+                <$v>::cmpge(self, o)
+            }
+            #[inline(always)]
+            fn cmpgt(self, o: Self) -> $m {
+                <$v>::cmpgt(self, o)
+            }
+            #[inline(always)]
+            fn cmplt(self, o: Self) -> $m {
+                <$v>::cmplt(self, o)
+            }
+            #[inline(always)]
+            fn select(mask: $m, a: Self, b: Self) -> Self {
+                <$v>::select(mask, a, b)
+            }
+            #[inline(always)]
+            fn bitmask(mask: $m) -> u32 {
+                mask.bitmask()
+            }
+            #[inline(always)]
+            fn lane(i: usize) -> $m {
+                <$m>::new(i == 0, i == 1, i == 2, i == 3)
+            }
+        }
+    };
+}
+impl_lanes!(f32, glam::Vec4, glam::BVec4A);
+impl_lanes!(f64, glam::DVec4, glam::BVec4);
+
 macro_rules! impl_real {
-    ($t:ty, $v:ty, $rel:expr, $min:expr, $shadow:expr) => {
+    ($t:ty, $v:ty, $v4:ty, $rel:expr, $min:expr, $shadow:expr, $spec:expr) => {
         impl Real for $t {
             type V3 = $v;
+            type V4 = $v4;
             const ZERO: Self = 0.0;
             const ONE: Self = 1.0;
             const TWO: Self = 2.0;
@@ -113,6 +204,7 @@ macro_rules! impl_real {
             const OFFSET_REL: Self = $rel;
             const OFFSET_MIN: Self = $min;
             const SHADOW_SHORTEN: Self = $shadow;
+            const SPECULAR_FLOOR: f64 = $spec;
             #[inline(always)]
             fn from_f64(v: f64) -> Self {
                 v as $t
@@ -225,8 +317,8 @@ macro_rules! impl_real {
 }
 
 // f32: offsets of 2^-18 of the coordinate (32 ulps); f64: 2^-44 (512 ulps).
-impl_real!(f32, glam::Vec3A, 3.814_697_3e-6, 1.0e-30, 1.0e-4);
-impl_real!(f64, glam::DVec3, 5.684_341_886_080_802e-14, 1.0e-290, 1.0e-9);
+impl_real!(f32, glam::Vec3A, glam::Vec4, 3.814_697_3e-6, 1.0e-30, 1.0e-4, 5.960_464_477_539_063e-8);
+impl_real!(f64, glam::DVec3, glam::DVec4, 5.684_341_886_080_802e-14, 1.0e-290, 1.0e-9, 0.0);
 
 /// Moves a point that lies on a surface off it, to the side `n` points to.
 ///

@@ -8,8 +8,8 @@
 
 use crate::accel::TriangleSet;
 use crate::bvh::Bvh;
-use crate::geometry::{Plane, PrimId, Sphere};
-use crate::math::{Ray, Real, Vector3};
+use crate::geometry::{Plane, PrimId, Sphere, SpherePack};
+use crate::math::{Lanes4, Ray, Real, Vector3};
 use crate::scene::{MaterialDesc, ObjectDesc, RenderSettings, SceneDesc, Vec3, FILE_MATERIALS};
 use crate::triangle::{Triangle, TriangleShading};
 
@@ -22,6 +22,8 @@ pub struct Material<R: Real> {
     pub reflectivity: R,
     pub transparency: R,
     pub ior: R,
+    /// N.H below which max(N.H,0)^shininess < `Real::SPECULAR_FLOOR`.
+    pub specular_cos_min: R,
 }
 
 impl<R: Real> Material<R> {
@@ -34,6 +36,7 @@ impl<R: Real> Material<R> {
             reflectivity: R::from_f64(m.reflectivity.0),
             transparency: R::from_f64(m.transparency.0),
             ior: R::from_f64(m.ior.0),
+            specular_cos_min: R::from_f64(if m.shininess.0 > 0.0 { R::SPECULAR_FLOOR.powf(1.0 / m.shininess.0) } else { 0.0 }),
         }
     }
 }
@@ -88,6 +91,8 @@ impl Features {
 #[derive(Clone, Debug)]
 pub struct World<R: Real> {
     pub spheres: Vec<Sphere<R>>,
+    /// The same spheres four to a pack, for the intersection loops.
+    pub sphere_packs: Vec<SpherePack<R>>,
     pub planes: Vec<Plane<R>>,
     /// Mesh triangles (vertices only: what traversal touches) ...
     pub triangles: Vec<Triangle<R>>,
@@ -120,12 +125,12 @@ fn rel<R: Real>(p: &Vec3, origin: &[f64; 3]) -> R::V3 {
 impl<R: Real> World<R> {
     /// Builds the render-ready state of `desc` for `settings` (validated by
     /// the caller) and `frame`.
-    pub fn build(desc: &SceneDesc, settings: &RenderSettings, _frame: u32) -> Self {
-        let cam = &desc.camera;
+    pub fn build(desc: &SceneDesc, settings: &RenderSettings, frame: u32) -> Self {
+        let cam = desc.camera.at(frame);
         let origin = cam.position.0;
         // Camera basis in f64, then rounded.
         let f = normalize64(sub64(cam.look_at.0, origin));
-        let r = normalize64(cross64(f, cam.up.0));
+        let r = normalize64(cross64(f, desc.camera.up.0));
         let u = cross64(r, f);
         let t = (cam.fov_y.0.to_radians() * 0.5).tan();
         let aspect = settings.width as f64 / settings.height as f64;
@@ -173,6 +178,7 @@ impl<R: Real> World<R> {
             .collect();
 
         let mut world = World {
+            sphere_packs: SpherePack::pack(&spheres),
             spheres,
             planes,
             triangles: tris.triangles,
@@ -192,7 +198,20 @@ impl<R: Real> World<R> {
         world
     }
 
-    /// Nearest hit in (0, t_max); `skip` is the primitive the ray starts on.
+    /// Lane of the starting sphere within pack `pack`, or 4 (none).
+    #[inline(always)]
+    fn self_lane(skip: PrimId, pack: usize) -> usize {
+        if skip.kind() == PrimId::SPHERE && skip.index() / 4 == pack { skip.index() % 4 } else { 4 }
+    }
+
+    #[inline(always)]
+    fn splat_ray(ray: &Ray<R>) -> ([R::V4; 3], [R::V4; 3]) {
+        let o = [R::V4::splat(ray.origin.x()), R::V4::splat(ray.origin.y()), R::V4::splat(ray.origin.z())];
+        let d = [R::V4::splat(ray.dir.x()), R::V4::splat(ray.dir.y()), R::V4::splat(ray.dir.z())];
+        (o, d)
+    }
+
+    /// Nearest hit in (0, inf); `skip` is the primitive the ray starts on.
     #[inline(always)]
     pub fn closest_hit(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
         if let Some(tree) = &self.accel {
@@ -203,11 +222,17 @@ impl<R: Real> World<R> {
         }
         let mut best = R::INFINITY;
         let mut id = PrimId::NONE;
-        for (i, s) in self.spheres.iter().enumerate() {
-            let pid = PrimId::new(PrimId::SPHERE, i as u32);
-            if let Some(t) = s.intersect(ray, best, pid == skip) {
-                best = t;
-                id = pid;
+        let (o, d) = Self::splat_ray(ray);
+        for (pi, pack) in self.sphere_packs.iter().enumerate() {
+            let t = pack.intersect(o, d, best, Self::self_lane(skip, pi));
+            // Every finite lane is closer than `best`; take the nearest.
+            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
+                for (j, tj) in t.to_array().into_iter().enumerate() {
+                    if tj < best {
+                        best = tj;
+                        id = PrimId::new(PrimId::SPHERE, (pi * 4 + j) as u32);
+                    }
+                }
             }
         }
         for (i, p) in self.planes.iter().enumerate() {
@@ -229,15 +254,17 @@ impl<R: Real> World<R> {
         if !self.triangles.is_empty() {
             return self.occluded_brute(ray, t_max, skip);
         }
-        self.spheres
+        let (o, d) = Self::splat_ray(ray);
+        for (pi, pack) in self.sphere_packs.iter().enumerate() {
+            let t = pack.intersect(o, d, t_max, Self::self_lane(skip, pi));
+            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
+                return true;
+            }
+        }
+        self.planes
             .iter()
             .enumerate()
-            .any(|(i, s)| s.intersect(ray, t_max, PrimId::new(PrimId::SPHERE, i as u32) == skip).is_some())
-            || self
-                .planes
-                .iter()
-                .enumerate()
-                .any(|(i, p)| p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip).is_some())
+            .any(|(i, p)| p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip).is_some())
     }
 
     /// Surface point (snapped onto the primitive), outward normal and material of a hit.

@@ -44,7 +44,7 @@ pub fn trace<R: Real>(world: &World<R>, ray: &Ray<R>, depth: u32, skip: PrimId, 
         let h = l + v;
         let h_len = h.length();
         let ndoth = if h_len > R::ZERO { (ns.dot(h) / h_len).max(R::ZERO) } else { R::ZERO };
-        let spec = if ndoth > R::ZERO { ndoth.powf(m.shininess) } else { R::ZERO };
+        let spec = if ndoth > m.specular_cos_min { ndoth.powf(m.shininess) } else { R::ZERO };
         let contrib = light.diffuse * m.diffuse * ndotl + light.specular * m.specular * spec;
         // A light that can add nothing needs no shadow ray.
         if contrib.max_element() <= R::ZERO {

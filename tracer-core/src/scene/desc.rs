@@ -151,6 +151,57 @@ pub struct CameraDesc {
     /// Vertical field of view in degrees.
     #[serde(default = "default_fov")]
     pub fov_y: Num,
+    /// Animation: camera poses at given frames, linearly interpolated between
+    /// them (and held before the first and after the last). Empty: a still camera.
+    #[serde(default)]
+    pub keyframes: Vec<CameraKeyframe>,
+}
+
+/// One `[[camera.keyframes]]` entry; fields left out take the `[camera]` table's values.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CameraKeyframe {
+    pub frame: u32,
+    pub position: Option<Vec3>,
+    pub look_at: Option<Vec3>,
+    pub fov_y: Option<Num>,
+}
+
+/// The camera's pose at one frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraPose {
+    pub position: Vec3,
+    pub look_at: Vec3,
+    pub fov_y: Num,
+}
+
+impl CameraDesc {
+    fn pose_of(&self, k: &CameraKeyframe) -> CameraPose {
+        CameraPose {
+            position: k.position.unwrap_or(self.position),
+            look_at: k.look_at.unwrap_or(self.look_at),
+            fov_y: k.fov_y.unwrap_or(self.fov_y),
+        }
+    }
+
+    /// The pose at `frame`: linear interpolation between the keyframes around
+    /// it (keyframes are sorted by frame, checked at parse time).
+    pub fn at(&self, frame: u32) -> CameraPose {
+        let still = CameraPose { position: self.position, look_at: self.look_at, fov_y: self.fov_y };
+        let (Some(first), Some(last)) = (self.keyframes.first(), self.keyframes.last()) else { return still };
+        if frame <= first.frame {
+            return self.pose_of(first);
+        }
+        if frame >= last.frame {
+            return self.pose_of(last);
+        }
+        let i = self.keyframes.partition_point(|k| k.frame <= frame);
+        let (a, b) = (self.pose_of(&self.keyframes[i - 1]), self.pose_of(&self.keyframes[i]));
+        let t = (frame - self.keyframes[i - 1].frame) as f64 / (self.keyframes[i].frame - self.keyframes[i - 1].frame) as f64;
+        let lerp = |x: f64, y: f64| x + (y - x) * t;
+        let lerp3 = |x: Vec3, y: Vec3| Vec3([lerp(x.0[0], y.0[0]), lerp(x.0[1], y.0[1]), lerp(x.0[2], y.0[2])]);
+        CameraPose { position: lerp3(a.position, b.position), look_at: lerp3(a.look_at, b.look_at), fov_y: Num(lerp(a.fov_y.0, b.fov_y.0)) }
+    }
 }
 
 fn default_up() -> Vec3 {
@@ -278,8 +329,15 @@ impl SceneDesc {
     pub fn parse(src: &str, path: impl AsRef<Path>) -> Result<Self, SceneError> {
         let path = path.as_ref().to_path_buf();
         let file: SceneFile = toml::from_str(src).map_err(|e| {
-            let location = e.span().map(|s| Location::of_offset(src, s.start)).unwrap_or_default();
-            SceneError::Parse { path: path.clone(), location, message: e.message().trim_end().to_string() }
+            let start = e.span().map_or(0, |s| s.start);
+            let mut message = e.message().trim_end().to_string();
+            // Errors inside an array-of-tables element point at its header:
+            // say which element, since the header line is the same for all.
+            if let Some(name) = src.get(start..).and_then(|r| r.strip_prefix("[[")).and_then(|r| r.split("]]").next()) {
+                let index = src[..start].matches(&format!("[[{name}]]")).count();
+                message = format!("{name}[{index}]: {message}");
+            }
+            SceneError::Parse { path: path.clone(), location: Location::of_offset(src, start), message }
         })?;
         // Points at the offending key's line when it is written inside the
         // span (`radius = -1`), else at the start of the span (its table).
@@ -306,20 +364,36 @@ impl SceneDesc {
 
         let cam = &file.camera;
         let cam_err = |field: &str, m: String| invalid(table_span("camera"), format!("camera.{field}"), m);
-        for (name, v) in [("position", &cam.position), ("look_at", &cam.look_at), ("up", &cam.up)] {
-            if !v.is_finite() {
-                return Err(cam_err(name, format!("must be finite, got {:?}", v.0)));
+        if !cam.up.is_finite() {
+            return Err(cam_err("up", format!("must be finite, got {:?}", cam.up.0)));
+        }
+        let still = CameraPose { position: cam.position, look_at: cam.look_at, fov_y: cam.fov_y };
+        let poses = std::iter::once((String::new(), still))
+            .chain(cam.keyframes.iter().enumerate().map(|(i, k)| (format!("keyframes[{i}]."), cam.pose_of(k))));
+        for (prefix, pose) in poses {
+            for (name, v) in [("position", &pose.position), ("look_at", &pose.look_at)] {
+                if !v.is_finite() {
+                    return Err(cam_err(&format!("{prefix}{name}"), format!("must be finite, got {:?}", v.0)));
+                }
+            }
+            let forward = pose.look_at.sub(&pose.position);
+            if forward.length() == 0.0 {
+                return Err(cam_err(&format!("{prefix}look_at"), "must differ from the camera position".into()));
+            }
+            if cam.up.cross(&forward).length() <= 1e-12 * cam.up.length() * forward.length() {
+                return Err(cam_err(&format!("{prefix}up"), "must not be zero or parallel to the view direction (look_at - position)".into()));
+            }
+            if !(pose.fov_y.0 > 0.0 && pose.fov_y.0 < 180.0) {
+                return Err(cam_err(&format!("{prefix}fov_y"), format!("must be in (0, 180) degrees, got {}", pose.fov_y.0)));
             }
         }
-        let forward = cam.look_at.sub(&cam.position);
-        if forward.length() == 0.0 {
-            return Err(cam_err("look_at", "must differ from camera.position".into()));
-        }
-        if cam.up.cross(&forward).length() <= 1e-12 * cam.up.length() * forward.length() {
-            return Err(cam_err("up", "must not be zero or parallel to the view direction (look_at - position)".into()));
-        }
-        if !(cam.fov_y.0 > 0.0 && cam.fov_y.0 < 180.0) {
-            return Err(cam_err("fov_y", format!("must be in (0, 180) degrees, got {}", cam.fov_y.0)));
+        for (i, w) in cam.keyframes.windows(2).enumerate() {
+            if w[1].frame <= w[0].frame {
+                return Err(cam_err(
+                    &format!("keyframes[{}].frame", i + 1),
+                    format!("keyframes must be in increasing frame order, got frame {} after frame {}", w[1].frame, w[0].frame),
+                ));
+            }
         }
 
         let world_span = table_span("world");
@@ -490,6 +564,33 @@ material = "red"
         assert!(e.starts_with("bad.toml:2:"), "{e}");
         let e = err(&MINIMAL.replace("radius = 1", "radius = nan"));
         assert!(e.contains("radius: must be a finite number > 0, got NaN"), "{e}");
+    }
+
+    #[test]
+    fn camera_keyframes_interpolate_linearly_and_hold_at_the_ends() {
+        let src = MINIMAL.replace(
+            "look_at = [0.0, 1.0, 0.0]\n",
+            "look_at = [0.0, 1.0, 0.0]\n[[camera.keyframes]]\nframe = 1\nposition = [0, 1, -6]\n\
+             [[camera.keyframes]]\nframe = 5\nposition = [4, 3, -2]\nfov_y = 40\n",
+        );
+        let s = SceneDesc::parse(&src, "anim.toml").unwrap();
+        let at = |f| s.camera.at(f);
+        assert_eq!(at(0), at(1));
+        assert_eq!(at(1).position, Vec3([0.0, 1.0, -6.0]));
+        assert_eq!(at(1).fov_y, Num(60.0)); // left out: the [camera] table's
+        assert_eq!(at(2).position, Vec3([1.0, 1.5, -5.0]));
+        assert_eq!(at(3).fov_y, Num(50.0));
+        assert_eq!(at(3).look_at, Vec3([0.0, 1.0, 0.0]));
+        assert_eq!(at(5).position, Vec3([4.0, 3.0, -2.0]));
+        assert_eq!(at(9), at(5));
+        // A still camera ignores the frame.
+        let still = SceneDesc::parse(MINIMAL, "still.toml").unwrap();
+        assert_eq!(still.camera.at(7).position, still.camera.position);
+        // Out-of-order keyframes and degenerate poses are refused by name.
+        let e = err(&src.replace("frame = 5", "frame = 1"));
+        assert!(e.contains("camera.keyframes[1].frame: keyframes must be in increasing frame order"), "{e}");
+        let e = err(&src.replace("position = [4, 3, -2]", "position = [0, 1, 0]"));
+        assert!(e.contains("camera.keyframes[1].look_at: must differ from the camera position"), "{e}");
     }
 
     #[test]

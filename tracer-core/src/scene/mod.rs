@@ -5,7 +5,8 @@ mod error;
 mod mesh_desc;
 
 pub use desc::{
-    Affine, CameraDesc, LightDesc, MaterialDesc, MeshDesc, MeshModel, Num, ObjectDesc, Rotation, Scale, FILE_MATERIALS, RenderSettings, SceneDesc, Vec3, WorldDesc, MAX_DEPTH,
+    Affine, CameraDesc, CameraKeyframe, CameraPose, LightDesc, MaterialDesc, MeshDesc, MeshModel, Num, ObjectDesc, Rotation, Scale,
+    FILE_MATERIALS, RenderSettings, SceneDesc, Vec3, WorldDesc, MAX_DEPTH,
     MAX_IMAGE_SIDE, MAX_SAMPLES,
 };
 pub use error::{Location, SceneError};

@@ -1,0 +1,1153 @@
+//! The coordinator's state: jobs, their units, leases and workers.
+//!
+//! All scheduling state lives behind one mutex, held only for short,
+//! non-blocking sections; durable writes happen outside it through the
+//! [`Store`]. A result moves its units from *leased* to *committing* (in
+//! neither the pending queue nor a lease) under the lock, is made durable,
+//! and only then is marked done and merged into its frame's film. So a
+//! result is accepted at most once, and a crash during the commit leaves
+//! the unit unfinished (it is rendered again), never half-counted.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet, VecDeque};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use sha2::{Digest, Sha256};
+use tokio::sync::watch;
+use tracer_core::film::{Film, FIXED_ONE, MAX_SAMPLE_VALUE, RayCounts, Rect, SampleRange};
+use tracer_core::sampling::Sampler;
+use tracer_core::scene::{RenderSettings, SceneDesc};
+
+use crate::store::{Counters, JobRecord, JobStateRec, Op, Store, StoreError};
+use crate::units::{Layout, Unit, DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE};
+
+/// Coordinator settings (see `tessera coordinator --help`).
+#[derive(Clone, Debug)]
+pub struct Config {
+    pub data_dir: PathBuf,
+    /// A lease not extended by a heartbeat for this long expires.
+    pub lease_timeout: Duration,
+    /// How often workers should send heartbeats.
+    pub heartbeat_interval: Duration,
+    /// A unit lease should take about this long on the worker it goes to.
+    pub target_unit_seconds: f64,
+    /// Most tiles joined into one lease for a fast worker.
+    pub max_tiles_per_lease: u32,
+    /// Largest gRPC message accepted.
+    pub max_message_bytes: usize,
+    /// Cadence of progress log lines.
+    pub progress_interval: Duration,
+}
+
+impl Config {
+    pub fn new(data_dir: PathBuf) -> Self {
+        Config {
+            data_dir,
+            lease_timeout: Duration::from_secs(10),
+            heartbeat_interval: Duration::from_secs(1),
+            target_unit_seconds: 0.5,
+            max_tiles_per_lease: 16,
+            max_message_bytes: 64 << 20,
+            progress_interval: Duration::from_secs(2),
+        }
+    }
+}
+
+/// Why a request was refused; maps onto gRPC status codes at the edge.
+#[derive(Debug, thiserror::Error)]
+pub enum FarmError {
+    #[error("{0}")]
+    InvalidArgument(String),
+    #[error("{0}")]
+    NotFound(String),
+    #[error("{0}")]
+    FailedPrecondition(String),
+    #[error("storage: {0}")]
+    Store(#[from] StoreError),
+    #[error("{0}")]
+    Internal(String),
+}
+
+/// Everything a submit carries, already unpacked from the wire.
+#[derive(Clone, Debug)]
+pub struct Submission {
+    pub name: String,
+    pub scene_name: String,
+    pub scene: Vec<u8>,
+    pub assets: Vec<(String, Vec<u8>)>,
+    /// Applied to the scene's `[render]` table.
+    pub overrides: Overrides,
+    pub first_frame: u32,
+    pub last_frame: u32,
+    pub priority: i32,
+    pub tile_size: u32,
+    pub samples_per_unit: u32,
+    pub max_attempts: u32,
+}
+
+/// Overrides of a scene's `[render]` table (as `tessera render`'s flags).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Overrides {
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    pub samples: Option<u32>,
+    pub max_depth: Option<u32>,
+    pub sampler: Option<Sampler>,
+}
+
+impl Overrides {
+    pub fn apply(&self, s: &RenderSettings) -> RenderSettings {
+        RenderSettings {
+            width: self.width.unwrap_or(s.width),
+            height: self.height.unwrap_or(s.height),
+            samples: self.samples.unwrap_or(s.samples),
+            max_depth: self.max_depth.unwrap_or(s.max_depth),
+            sampler: self.sampler.unwrap_or(s.sampler),
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum JobState {
+    Queued,
+    Running,
+    Done,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    pub fn is_terminal(self) -> bool {
+        matches!(self, JobState::Done | JobState::Failed | JobState::Cancelled)
+    }
+}
+
+/// A snapshot of a job for clients.
+#[derive(Clone, Debug)]
+pub struct JobView {
+    pub record: JobRecord,
+    pub state: JobState,
+    pub settings: RenderSettings,
+    pub counters: Counters,
+    pub units_total: u64,
+    pub units_done: u64,
+    pub samples_total: u64,
+    pub samples_done: u64,
+    /// (frame, units total, units done, output file if written)
+    pub frames: Vec<(u32, u64, u64, Option<String>)>,
+    pub rays_per_second: f64,
+    pub eta_seconds: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct WorkerView {
+    pub id: String,
+    pub name: String,
+    pub threads: u32,
+    pub backend: String,
+    pub gpu_name: String,
+    pub version: String,
+    pub leases: u32,
+    pub units_done: u64,
+    pub samples_per_second: f64,
+    pub last_seen_unix_ms: i64,
+}
+
+/// A leased piece of work as handed to a worker.
+#[derive(Clone, Debug)]
+pub struct LeaseView {
+    pub lease_id: String,
+    pub job_id: String,
+    pub scene_name: String,
+    pub scene_sha256: String,
+    pub assets: BTreeMap<String, String>,
+    pub settings: RenderSettings,
+    pub frame: u32,
+    pub rect: Rect,
+    pub samples: SampleRange,
+    pub deadline_unix_ms: i64,
+}
+
+/// A worker's result, unpacked from the wire (sizes already checked against `rect`).
+#[derive(Debug)]
+pub struct ResultData {
+    pub worker_id: String,
+    pub lease_id: String,
+    pub rect: Rect,
+    pub samples: SampleRange,
+    /// `Err` holds why the packed data did not decode.
+    pub film: Result<Film, String>,
+    pub render_seconds: f64,
+    pub failure: Option<String>,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    Accepted,
+    Rejected(String),
+    Late(String),
+    Duplicate(String),
+    FailureRecorded,
+}
+
+struct FrameAcc {
+    film: Option<Film>,
+    units_done: u64,
+    written: Option<String>,
+    writing: bool,
+}
+
+struct Job {
+    rec: JobRecord,
+    settings: RenderSettings,
+    layout: Layout,
+    state: JobState,
+    done: Vec<bool>,
+    pending: BTreeSet<u32>,
+    /// Failure messages per unit.
+    failures: HashMap<u32, Vec<String>>,
+    frames: BTreeMap<u32, FrameAcc>,
+    counters: Counters,
+    units_done: u64,
+    samples_done: u64,
+    /// Pixel-samples and rays finished in this coordinator's lifetime, and since when.
+    started: Option<Instant>,
+    samples_this_run: u64,
+    rays_this_run: u64,
+    watch: watch::Sender<u64>,
+}
+
+struct Lease {
+    worker: String,
+    job: String,
+    units: Vec<u32>,
+    frame: u32,
+    rect: Rect,
+    samples: SampleRange,
+    deadline: Instant,
+}
+
+struct Worker {
+    name: String,
+    threads: u32,
+    backend: String,
+    gpu_name: String,
+    version: String,
+    last_seen: Instant,
+    leases: HashSet<String>,
+    units_done: u64,
+    /// Smoothed pixel-samples per second, from its results.
+    speed: f64,
+}
+
+#[derive(Default)]
+struct State {
+    jobs: BTreeMap<String, Job>,
+    leases: HashMap<String, Lease>,
+    /// Leases that ended without a result (expired, withdrawn): lease -> job.
+    gone: HashMap<String, String>,
+    /// Leases whose result was accepted: lease -> job.
+    consumed: HashMap<String, String>,
+    ended_order: VecDeque<String>,
+    workers: HashMap<String, Worker>,
+    next_id: u64,
+}
+
+/// Remembered ended leases, to tell late and duplicate results from unknown ones.
+const REMEMBERED_LEASES: usize = 100_000;
+
+impl State {
+    fn end_lease(&mut self, id: String, job: String, consumed: bool) {
+        if consumed {
+            self.consumed.insert(id.clone(), job);
+        } else {
+            self.gone.insert(id.clone(), job);
+        }
+        self.ended_order.push_back(id);
+        while self.ended_order.len() > REMEMBERED_LEASES {
+            if let Some(old) = self.ended_order.pop_front() {
+                self.gone.remove(&old);
+                self.consumed.remove(&old);
+            }
+        }
+    }
+}
+
+pub struct Farm {
+    pub config: Config,
+    store: Store,
+    state: Mutex<State>,
+    /// Distinguishes this run's lease and worker ids from earlier runs'.
+    boot: String,
+}
+
+fn now_ms() -> i64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as i64)
+}
+
+pub fn sha256_hex(b: &[u8]) -> String {
+    Sha256::digest(b).iter().map(|x| format!("{x:02x}")).collect()
+}
+
+fn sampler_name(s: Sampler) -> &'static str {
+    match s {
+        Sampler::Grid => "grid",
+        Sampler::Jittered => "jittered",
+    }
+}
+
+fn settings_of(rec: &JobRecord) -> Result<RenderSettings, String> {
+    let sampler = rec.sampler.parse::<Sampler>().map_err(|e| format!("{e:?}"))?;
+    let s = RenderSettings { width: rec.width, height: rec.height, samples: rec.samples, max_depth: rec.max_depth, sampler };
+    s.validate()?;
+    Ok(s)
+}
+
+pub fn frame_file_name(frame: u32) -> String {
+    format!("frame_{frame:04}.png")
+}
+
+impl Farm {
+    /// Opens (or creates) the state under `config.data_dir` and resumes every unfinished job.
+    pub fn open(config: Config) -> Result<Arc<Self>, FarmError> {
+        std::fs::create_dir_all(&config.data_dir)
+            .map_err(|e| FarmError::Internal(format!("cannot create {}: {e}", config.data_dir.display())))?;
+        let store = Store::open(&config.data_dir.join("tessera.redb"))?;
+        let snap = store.load()?;
+        let boot = format!("{:x}", now_ms() as u64 ^ (std::process::id() as u64) << 40);
+        let farm = Arc::new(Farm { config, store, state: Mutex::new(State::default()), boot });
+        let mut to_write = Vec::new();
+        {
+            let mut st = farm.state.lock().expect("state lock");
+            let mut films = snap.unit_films;
+            let mut written = snap.frames_written;
+            for (rec, counters) in snap.jobs {
+                let settings = settings_of(&rec).map_err(|message| StoreError::Corrupt { what: format!("job {}", rec.id), message })?;
+                let mut job = Job::new(rec, settings, counters);
+                for (frame, file) in written.remove(&job.rec.id).unwrap_or_default() {
+                    for u in job.layout.frame_units(frame) {
+                        job.mark_done(u);
+                    }
+                    if let Some(f) = job.frames.get_mut(&frame) {
+                        f.written = Some(file);
+                    }
+                }
+                for (u, film) in films.remove(&job.rec.id).unwrap_or_default() {
+                    if u >= job.layout.total() || job.done[u as usize] {
+                        continue;
+                    }
+                    job.mark_done(u);
+                    let frame = job.layout.unit(u).frame;
+                    let w = job.layout.width;
+                    let h = job.layout.height;
+                    let acc = job.frames.get_mut(&frame).expect("frame of a unit");
+                    let target = acc.film.get_or_insert_with(|| Film::new(Rect::full(w, h)));
+                    target.merge(&film).map_err(|e| StoreError::Corrupt { what: format!("film of unit {u}"), message: e.to_string() })?;
+                }
+                if job.state == JobState::Running && job.units_done == 0 {
+                    job.state = JobState::Queued;
+                }
+                tracing::info!(
+                    job = %job.rec.id, name = %job.rec.name, state = ?job.state,
+                    units_done = job.units_done, units_total = job.layout.total(),
+                    "job restored"
+                );
+                if !job.state.is_terminal() {
+                    to_write.extend(job.complete_frames());
+                }
+                st.jobs.insert(job.rec.id.clone(), job);
+            }
+        }
+        for (job, frame) in to_write {
+            farm.clone().spawn_frame_write(job, frame);
+        }
+        farm.clone().check_all_done();
+        Ok(farm)
+    }
+
+    fn new_id(&self, st: &mut State, prefix: &str) -> String {
+        st.next_id += 1;
+        format!("{prefix}{}-{}", self.boot, st.next_id)
+    }
+
+    // ---- clients ----------------------------------------------------------
+
+    /// Validates and queues a job. Bad scenes are refused with the message
+    /// `tessera render` prints for them.
+    pub async fn submit(self: &Arc<Self>, s: Submission) -> Result<String, FarmError> {
+        let text = std::str::from_utf8(&s.scene)
+            .map_err(|e| FarmError::InvalidArgument(format!("{}: scene is not UTF-8 text: {e}", s.scene_name)))?;
+        let scene = SceneDesc::parse(text, &s.scene_name).map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
+        let settings = s.overrides.apply(&scene.render);
+        settings.validate().map_err(|e| FarmError::InvalidArgument(format!("invalid render settings: {e}")))?;
+        let (first, last) = if s.first_frame == 0 && s.last_frame == 0 { (0, 0) } else { (s.first_frame, s.last_frame) };
+        if first > last {
+            return Err(FarmError::InvalidArgument(format!("frame range {first}..{last} is empty (first frame after last)")));
+        }
+        if last - first >= 100_000 {
+            return Err(FarmError::InvalidArgument(format!("frame range {first}..{last} has more than 100000 frames")));
+        }
+        let tile_size = if s.tile_size == 0 { DEFAULT_TILE_SIZE } else { s.tile_size };
+        if !(8..=4096).contains(&tile_size) {
+            return Err(FarmError::InvalidArgument(format!("tile_size must be in 8..=4096, got {tile_size}")));
+        }
+        let samples_per_unit = if s.samples_per_unit == 0 { DEFAULT_SAMPLES_PER_UNIT } else { s.samples_per_unit };
+        let max_attempts = if s.max_attempts == 0 { DEFAULT_MAX_ATTEMPTS } else { s.max_attempts };
+        let layout = Layout::new(settings.width, settings.height, settings.samples, first, last, tile_size, samples_per_unit);
+        if layout.total() as u64 > 10_000_000 {
+            return Err(FarmError::InvalidArgument(format!(
+                "the job would have {} work units; use larger tiles or sample batches",
+                layout.total()
+            )));
+        }
+        for (name, _) in &s.assets {
+            if name.is_empty() || name.starts_with('/') || name.split('/').any(|p| p == "..") {
+                return Err(FarmError::InvalidArgument(format!("asset name {name:?} must be a relative path inside the scene's directory")));
+            }
+        }
+
+        let scene_sha256 = sha256_hex(&s.scene);
+        let mut ops = vec![Op::PutAsset { sha256: scene_sha256.clone(), content: s.scene.clone() }];
+        let mut assets = BTreeMap::new();
+        for (name, content) in &s.assets {
+            let h = sha256_hex(content);
+            assets.insert(name.clone(), h.clone());
+            ops.push(Op::PutAsset { sha256: h, content: content.clone() });
+        }
+        let id = {
+            let mut st = self.state.lock().expect("state lock");
+            st.next_id += 1;
+            format!("j{}", &sha256_hex(format!("{scene_sha256}{}{}{}", self.boot, st.next_id, now_ms()).as_bytes())[..10])
+        };
+        let name = if s.name.is_empty() {
+            std::path::Path::new(&s.scene_name).file_stem().map_or("job".into(), |n| n.to_string_lossy().into_owned())
+        } else {
+            s.name.clone()
+        };
+        let output_dir = self.config.data_dir.join("outputs").join(&id);
+        std::fs::create_dir_all(&output_dir)
+            .map_err(|e| FarmError::Internal(format!("cannot create {}: {e}", output_dir.display())))?;
+        let rec = JobRecord {
+            id: id.clone(),
+            name,
+            scene_name: s.scene_name.clone(),
+            scene_sha256,
+            assets,
+            width: settings.width,
+            height: settings.height,
+            samples: settings.samples,
+            max_depth: settings.max_depth,
+            sampler: sampler_name(settings.sampler).into(),
+            first_frame: first,
+            last_frame: last,
+            priority: s.priority,
+            tile_size,
+            samples_per_unit,
+            max_attempts,
+            state: JobStateRec::Active,
+            error: String::new(),
+            submitted_unix_ms: now_ms(),
+            finished_unix_ms: 0,
+            output_dir: output_dir.to_string_lossy().into_owned(),
+        };
+        ops.push(Op::PutJob(rec.clone()));
+        ops.push(Op::PutCounters { job: id.clone(), counters: Counters::default() });
+        self.store.write(ops).await?;
+        tracing::info!(
+            job = %id, name = %rec.name, scene = %rec.scene_name,
+            width = settings.width, height = settings.height, samples = settings.samples,
+            frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
+            "job accepted"
+        );
+        let job = Job::new(rec, settings, Counters::default());
+        self.state.lock().expect("state lock").jobs.insert(id.clone(), job);
+        Ok(id)
+    }
+
+    pub fn job(&self, id: &str) -> Result<JobView, FarmError> {
+        let st = self.state.lock().expect("state lock");
+        st.jobs.get(id).map(Job::view).ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
+    }
+
+    pub fn jobs(&self) -> Vec<JobView> {
+        let st = self.state.lock().expect("state lock");
+        let mut v: Vec<_> = st.jobs.values().map(Job::view).collect();
+        v.sort_by_key(|j| (j.record.submitted_unix_ms, j.record.id.clone()));
+        v
+    }
+
+    /// A receiver that changes whenever the job does.
+    pub fn watch(&self, id: &str) -> Result<watch::Receiver<u64>, FarmError> {
+        let st = self.state.lock().expect("state lock");
+        st.jobs.get(id).map(|j| j.watch.subscribe()).ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
+    }
+
+    pub async fn cancel(self: &Arc<Self>, id: &str) -> Result<JobView, FarmError> {
+        let rec = {
+            let mut st = self.state.lock().expect("state lock");
+            let job = st.jobs.get_mut(id).ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
+            if job.state.is_terminal() {
+                return Ok(job.view());
+            }
+            job.finish(JobState::Cancelled, "cancelled by request".into());
+            let rec = job.rec.clone();
+            self.withdraw_leases(&mut st, id);
+            rec
+        };
+        tracing::info!(job = %id, "job cancelled");
+        self.store.write(vec![Op::PutJob(rec)]).await?;
+        self.job(id)
+    }
+
+    /// Finished frames: (frame, file name, path).
+    pub fn outputs(&self, id: &str) -> Result<Vec<(u32, String, PathBuf)>, FarmError> {
+        let st = self.state.lock().expect("state lock");
+        let job = st.jobs.get(id).ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
+        Ok(job
+            .frames
+            .iter()
+            .filter_map(|(&f, acc)| acc.written.as_ref().map(|n| (f, n.clone(), PathBuf::from(&job.rec.output_dir).join(n))))
+            .collect())
+    }
+
+    pub fn workers(&self) -> Vec<WorkerView> {
+        let st = self.state.lock().expect("state lock");
+        let now = Instant::now();
+        let mut v: Vec<_> = st
+            .workers
+            .iter()
+            .map(|(id, w)| WorkerView {
+                id: id.clone(),
+                name: w.name.clone(),
+                threads: w.threads,
+                backend: w.backend.clone(),
+                gpu_name: w.gpu_name.clone(),
+                version: w.version.clone(),
+                leases: w.leases.len() as u32,
+                units_done: w.units_done,
+                samples_per_second: w.speed,
+                last_seen_unix_ms: now_ms() - now.duration_since(w.last_seen).as_millis() as i64,
+            })
+            .collect();
+        v.sort_by(|a, b| a.name.cmp(&b.name).then(a.id.cmp(&b.id)));
+        v
+    }
+
+    pub fn asset(&self, sha256: &str) -> Result<Vec<u8>, FarmError> {
+        self.store.asset(sha256)?.ok_or_else(|| FarmError::NotFound(format!("no asset with sha256 {sha256}")))
+    }
+
+    // ---- workers ----------------------------------------------------------
+
+    pub fn register(&self, name: String, threads: u32, backend: String, gpu_name: String, version: String) -> String {
+        let mut st = self.state.lock().expect("state lock");
+        let id = self.new_id(&mut st, "w");
+        tracing::info!(worker = %id, name = %name, threads, backend = %backend, "worker joined");
+        st.workers.insert(
+            id.clone(),
+            Worker { name, threads, backend, gpu_name, version, last_seen: Instant::now(), leases: HashSet::new(), units_done: 0, speed: 0.0 },
+        );
+        id
+    }
+
+    /// Leases up to `max_units` units to a worker, highest priority first,
+    /// joining neighbouring tiles into one lease for fast workers.
+    pub fn lease(&self, worker_id: &str, max_units: u32) -> Result<Vec<LeaseView>, FarmError> {
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
+        worker.last_seen = Instant::now();
+        let speed = worker.speed;
+        let mut order: Vec<(&String, &Job)> = st.jobs.iter().filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty()).collect();
+        order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
+        let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
+        let mut out = Vec::new();
+        for job_id in order {
+            while out.len() < max_units.max(1) as usize {
+                let job = st.jobs.get_mut(&job_id).expect("listed job");
+                let Some(&first) = job.pending.iter().next() else { break };
+                let base = job.layout.unit_samples(job.layout.unit(first)).max(1) as f64;
+                let want = if speed > 0.0 {
+                    ((speed * self.config.target_unit_seconds / base).floor() as u32).clamp(1, self.config.max_tiles_per_lease)
+                } else {
+                    1
+                };
+                let mut units = vec![first];
+                while (units.len() as u32) < want {
+                    let last = *units.last().expect("non-empty");
+                    if job.pending.contains(&(last + 1)) && job.layout.joins(last, last + 1) {
+                        units.push(last + 1);
+                    } else {
+                        break;
+                    }
+                }
+                for u in &units {
+                    job.pending.remove(u);
+                }
+                let u0 = job.layout.unit(first);
+                let t0 = job.layout.tiles[u0.tile as usize];
+                let t1 = job.layout.tiles[job.layout.unit(*units.last().expect("non-empty")).tile as usize];
+                let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t0.height);
+                let samples = job.layout.batches[u0.batch as usize];
+                if job.state == JobState::Queued {
+                    job.state = JobState::Running;
+                    job.notify();
+                }
+                if job.started.is_none() {
+                    job.started = Some(Instant::now());
+                }
+                let view = LeaseView {
+                    lease_id: String::new(),
+                    job_id: job_id.clone(),
+                    scene_name: job.rec.scene_name.clone(),
+                    scene_sha256: job.rec.scene_sha256.clone(),
+                    assets: job.rec.assets.clone(),
+                    settings: job.settings,
+                    frame: u0.frame,
+                    rect,
+                    samples,
+                    deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+                };
+                st.next_id += 1;
+                let lease_id = format!("l{}-{}", self.boot, st.next_id);
+                st.leases.insert(
+                    lease_id.clone(),
+                    Lease {
+                        worker: worker_id.to_string(),
+                        job: job_id.clone(),
+                        units,
+                        frame: u0.frame,
+                        rect,
+                        samples,
+                        deadline: Instant::now() + self.config.lease_timeout,
+                    },
+                );
+                st.workers.get_mut(worker_id).expect("worker checked").leases.insert(lease_id.clone());
+                out.push(LeaseView { lease_id, ..view });
+            }
+            if out.len() >= max_units.max(1) as usize {
+                break;
+            }
+        }
+        Ok(out)
+    }
+
+    /// Extends the worker's leases; returns those it no longer holds.
+    pub fn heartbeat(&self, worker_id: &str, leases: &[(String, u64)]) -> Result<Vec<String>, FarmError> {
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
+        worker.last_seen = Instant::now();
+        let deadline = Instant::now() + self.config.lease_timeout;
+        let mut gone = Vec::new();
+        for (id, _samples_done) in leases {
+            match st.leases.get_mut(id) {
+                Some(l) if l.worker == worker_id => l.deadline = deadline,
+                _ => gone.push(id.clone()),
+            }
+        }
+        Ok(gone)
+    }
+
+    /// Takes a worker's result: accepted only from the lease's holder, only
+    /// once, and only if it is exactly the leased unit's data.
+    pub async fn submit_result(self: &Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
+        let taken: Result<(String, Vec<u32>, u32), (Outcome, Option<JobRecord>, Option<(String, Counters)>)> = 'take: {
+            let mut st = self.state.lock().expect("state lock");
+            let st = &mut *st;
+            if let Some(w) = st.workers.get_mut(&r.worker_id) {
+                w.last_seen = Instant::now();
+            }
+            let Some(lease) = st.leases.get(&r.lease_id) else {
+                let (outcome, job) = if let Some(job) = st.consumed.get(&r.lease_id) {
+                    (Outcome::Duplicate(format!("lease {} was already completed; result dropped", r.lease_id)), Some(job.clone()))
+                } else if let Some(job) = st.gone.get(&r.lease_id) {
+                    (Outcome::Late(format!("lease {} expired or was withdrawn; result dropped", r.lease_id)), Some(job.clone()))
+                } else {
+                    (
+                        Outcome::Late(format!(
+                            "lease {} is unknown (expired before a coordinator restart, or never granted); result dropped",
+                            r.lease_id
+                        )),
+                        None,
+                    )
+                };
+                let mut snapshot = None;
+                if let Some(job) = job.and_then(|j| st.jobs.get_mut(&j)) {
+                    match outcome {
+                        Outcome::Duplicate(_) => job.counters.results_duplicate += 1,
+                        _ => job.counters.results_late += 1,
+                    }
+                    snapshot = Some((job.rec.id.clone(), job.counters.clone()));
+                }
+                tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, outcome = ?outcome, "result dropped");
+                break 'take Err((outcome, None, snapshot));
+            };
+            if lease.worker != r.worker_id {
+                let reason = format!("lease {} is held by another worker; result dropped", r.lease_id);
+                let snapshot = st.jobs.get_mut(&lease.job).map(|job| {
+                    job.counters.results_rejected += 1;
+                    (job.rec.id.clone(), job.counters.clone())
+                });
+                tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, "{reason}");
+                break 'take Err((Outcome::Rejected(reason), None, snapshot));
+            }
+            let lease = st.leases.remove(&r.lease_id).expect("present");
+            if let Some(w) = st.workers.get_mut(&r.worker_id) {
+                w.leases.remove(&r.lease_id);
+            }
+            let worker_name = st.workers.get(&r.worker_id).map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
+            let Some(job) = st.jobs.get_mut(&lease.job) else {
+                break 'take Err((Outcome::Late("the job no longer exists".into()), None, None));
+            };
+            if let Some(msg) = &r.failure {
+                tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
+                let rec = job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"));
+                st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
+                if let Some(rec) = &rec {
+                    self.withdraw_leases(st, &rec.id);
+                }
+                break 'take Err((Outcome::FailureRecorded, rec, None));
+            }
+            if let Err(reason) = validate_result(&lease, &r) {
+                job.counters.results_rejected += 1;
+                let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
+                tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
+                let rec = job.fail_units(&lease.units, format!("worker {worker_name} sent a malformed result: {reason}"));
+                st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
+                if let Some(rec) = &rec {
+                    self.withdraw_leases(st, &rec.id);
+                }
+                break 'take Err((Outcome::Rejected(reason), rec, snapshot));
+            }
+            st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
+            Ok((lease.job, lease.units, lease.frame))
+        };
+        let (job_id, units, frame) = match taken {
+            Ok(t) => t,
+            Err((outcome, rec, counters)) => {
+                let mut ops: Vec<Op> = rec.into_iter().map(Op::PutJob).collect();
+                ops.extend(counters.map(|(job, counters)| Op::PutCounters { job, counters }));
+                if !ops.is_empty() {
+                    self.store.write(ops).await?;
+                }
+                return Ok(outcome);
+            }
+        };
+        let film = r.film.expect("validated");
+        // Split the result into one film per unit for storage.
+        let per_unit = {
+            let st = self.state.lock().expect("state lock");
+            let Some(job) = st.jobs.get(&job_id) else { return Ok(Outcome::Late("the job no longer exists".into())) };
+            let mut per_unit = Vec::with_capacity(units.len());
+            for (i, &u) in units.iter().enumerate() {
+                let tile = job.layout.tiles[job.layout.unit(u).tile as usize];
+                let mut part = crop(&film, tile);
+                if i == 0 {
+                    part.rays = film.rays;
+                    part.nonfinite = film.nonfinite;
+                }
+                per_unit.push((u, part));
+            }
+            per_unit
+        };
+        let rays = [film.rays.primary, film.rays.shadow, film.rays.reflection, film.rays.refraction];
+        let write = self.store.write(vec![Op::AcceptUnits { job: job_id.clone(), units: per_unit, rays }]).await;
+        let mut to_write = Vec::new();
+        {
+            let mut st = self.state.lock().expect("state lock");
+            let st = &mut *st;
+            let Some(job) = st.jobs.get_mut(&job_id) else { return Ok(Outcome::Late("the job no longer exists".into())) };
+            if let Err(e) = write {
+                if !job.state.is_terminal() {
+                    job.pending.extend(units.iter().copied());
+                }
+                return Err(e.into());
+            }
+            job.counters.units_accepted += units.len() as u64;
+            let mut samples = 0;
+            for &u in &units {
+                samples += job.layout.unit_samples(job.layout.unit(u));
+                job.mark_done(u);
+            }
+            job.samples_this_run += samples;
+            job.rays_this_run += film.rays.total();
+            for (a, b) in job.counters.rays.iter_mut().zip(rays) {
+                *a += b;
+            }
+            if !job.state.is_terminal() {
+                let (w, h) = (job.layout.width, job.layout.height);
+                let acc = job.frames.get_mut(&frame).expect("frame of a unit");
+                acc.film.get_or_insert_with(|| Film::new(Rect::full(w, h))).merge(&film).map_err(|e| FarmError::Internal(e.to_string()))?;
+                to_write = job.complete_frames();
+            }
+            job.notify();
+            if let Some(w) = st.workers.get_mut(&r.worker_id) {
+                w.units_done += units.len() as u64;
+                if r.render_seconds > 0.0 {
+                    let s = samples as f64 / r.render_seconds;
+                    w.speed = if w.speed == 0.0 { s } else { 0.7 * w.speed + 0.3 * s };
+                }
+            }
+        }
+        for (job, frame) in to_write {
+            self.clone().spawn_frame_write(job, frame);
+        }
+        Ok(Outcome::Accepted)
+    }
+
+    /// Writes a finished frame's image, then records it (dropping its units' films).
+    fn spawn_frame_write(self: Arc<Self>, job_id: String, frame: u32) {
+        tokio::spawn(async move {
+            let (film, dir, units) = {
+                let mut st = self.state.lock().expect("state lock");
+                let Some(job) = st.jobs.get_mut(&job_id) else { return };
+                let units = job.layout.frame_units(frame);
+                let (w, h) = (job.layout.width, job.layout.height);
+                let Some(acc) = job.frames.get_mut(&frame) else { return };
+                (acc.film.take().unwrap_or_else(|| Film::new(Rect::full(w, h))), PathBuf::from(&job.rec.output_dir), units)
+            };
+            let file = frame_file_name(frame);
+            let path = dir.join(&file);
+            let tmp = dir.join(format!(".{file}.tmp.png"));
+            let result = tokio::task::spawn_blocking(move || -> Result<(), String> {
+                std::fs::create_dir_all(&dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+                crate::image::write_image(&tmp, &film).map_err(|e| e.to_string())?;
+                std::fs::rename(&tmp, &path).map_err(|e| format!("cannot rename {} to {}: {e}", tmp.display(), path.display()))
+            })
+            .await;
+            let err = match result {
+                Ok(Ok(())) => None,
+                Ok(Err(e)) => Some(e),
+                Err(e) => Some(e.to_string()),
+            };
+            if let Some(e) = err {
+                tracing::error!(job = %job_id, frame, error = %e, "cannot write frame");
+                let rec = {
+                    let mut st = self.state.lock().expect("state lock");
+                    st.jobs.get_mut(&job_id).map(|job| {
+                        job.finish(JobState::Failed, format!("cannot write frame {frame}: {e}"));
+                        job.rec.clone()
+                    })
+                };
+                if let Some(rec) = rec {
+                    let _ = self.store.write(vec![Op::PutJob(rec)]).await;
+                }
+                return;
+            }
+            if let Err(e) = self.store.write(vec![Op::FrameWritten { job: job_id.clone(), frame, file: file.clone(), units }]).await {
+                tracing::error!(job = %job_id, frame, error = %e, "cannot record written frame");
+                return;
+            }
+            tracing::info!(job = %job_id, frame, file = %file, "frame written");
+            {
+                let mut st = self.state.lock().expect("state lock");
+                if let Some(job) = st.jobs.get_mut(&job_id) {
+                    if let Some(acc) = job.frames.get_mut(&frame) {
+                        acc.written = Some(file);
+                        acc.writing = false;
+                    }
+                    job.notify();
+                }
+            }
+            self.check_all_done();
+        });
+    }
+
+    /// Marks jobs whose every frame is written as done.
+    fn check_all_done(self: Arc<Self>) {
+        let recs: Vec<JobRecord> = {
+            let mut st = self.state.lock().expect("state lock");
+            st.jobs
+                .values_mut()
+                .filter(|j| !j.state.is_terminal() && j.frames.values().all(|f| f.written.is_some()))
+                .map(|j| {
+                    j.finish(JobState::Done, String::new());
+                    tracing::info!(job = %j.rec.id, name = %j.rec.name, units = j.layout.total(), rays = j.counters.rays.iter().sum::<u64>(), "job done");
+                    j.rec.clone()
+                })
+                .collect()
+        };
+        if !recs.is_empty() {
+            let farm = self.clone();
+            tokio::spawn(async move {
+                if let Err(e) = farm.store.write(recs.into_iter().map(Op::PutJob).collect()).await {
+                    tracing::error!(error = %e, "cannot record finished jobs");
+                }
+            });
+        }
+    }
+
+    /// Ends every lease of a job (cancelled or failed): heartbeats name them gone.
+    fn withdraw_leases(&self, st: &mut State, job_id: &str) {
+        let ids: Vec<String> = st.leases.iter().filter(|(_, l)| l.job == job_id).map(|(id, _)| id.clone()).collect();
+        for id in ids {
+            if let Some(l) = st.leases.remove(&id) {
+                if let Some(w) = st.workers.get_mut(&l.worker) {
+                    w.leases.remove(&id);
+                }
+                st.end_lease(id, l.job, false);
+            }
+        }
+    }
+
+    /// Expires leases and workers past their deadlines. Called periodically.
+    pub fn expire(&self) {
+        let now = Instant::now();
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let expired: Vec<String> = st.leases.iter().filter(|(_, l)| l.deadline <= now).map(|(id, _)| id.clone()).collect();
+        for id in expired {
+            let l = st.leases.remove(&id).expect("listed");
+            let name = st.workers.get_mut(&l.worker).map(|w| {
+                w.leases.remove(&id);
+                w.name.clone()
+            });
+            tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
+            if let Some(job) = st.jobs.get_mut(&l.job) {
+                if !job.state.is_terminal() {
+                    job.pending.extend(l.units.iter().copied());
+                }
+            }
+            st.end_lease(id, l.job, false);
+        }
+        let silent: Vec<String> = st
+            .workers
+            .iter()
+            .filter(|(_, w)| now.duration_since(w.last_seen) > self.config.lease_timeout)
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in silent {
+            if let Some(w) = st.workers.remove(&id) {
+                tracing::info!(worker = %id, name = %w.name, units_done = w.units_done, "worker left (no heartbeat)");
+            }
+        }
+    }
+
+    /// Logs progress of running jobs. Called at the progress cadence.
+    pub fn log_progress(&self) {
+        let st = self.state.lock().expect("state lock");
+        for job in st.jobs.values().filter(|j| j.state == JobState::Running) {
+            let v = job.view();
+            let pct = 100.0 * v.samples_done as f64 / v.samples_total.max(1) as f64;
+            let frames: Vec<String> = v
+                .frames
+                .iter()
+                .filter(|f| f.3.is_none())
+                .take(8)
+                .map(|f| format!("{}:{:.0}%", f.0, 100.0 * f.2 as f64 / f.1.max(1) as f64))
+                .collect();
+            tracing::info!(
+                job = %job.rec.id,
+                percent = format!("{pct:.1}"),
+                frames = %frames.join(" "),
+                rays_per_s = format!("{:.3e}", v.rays_per_second),
+                eta_s = format!("{:.1}", v.eta_seconds),
+                leases = st.leases.values().filter(|l| l.job == job.rec.id).count(),
+                "progress"
+            );
+        }
+    }
+}
+
+fn unknown_worker(id: &str) -> FarmError {
+    FarmError::NotFound(format!("unknown worker {id:?}: register again (the coordinator restarted or timed the worker out)"))
+}
+
+/// Checks a result against its lease: same rect and samples, well-formed
+/// data, every pixel with exactly the unit's sample count, sums in range.
+fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
+    if r.rect != lease.rect {
+        return Err(format!("result rect {:?} does not match the leased rect {:?}", r.rect, lease.rect));
+    }
+    if r.samples != lease.samples {
+        return Err(format!(
+            "result samples {}..{} do not match the leased samples {}..{}",
+            r.samples.start, r.samples.end, lease.samples.start, lease.samples.end
+        ));
+    }
+    let film = r.film.as_ref().map_err(Clone::clone)?;
+    let n = lease.samples.len();
+    let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
+    for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
+        let (x, y) = (lease.rect.x + i as u32 % lease.rect.width, lease.rect.y + i as u32 / lease.rect.width);
+        if c != n {
+            return Err(format!("pixel ({x}, {y}) has {c} samples, expected {n}"));
+        }
+        if s.iter().any(|&v| v > max_sum) {
+            return Err(format!("pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"));
+        }
+    }
+    let primary = lease.rect.area() as u64 * n as u64;
+    if film.rays.primary != primary {
+        return Err(format!("result counts {} primary rays, the unit has {primary}", film.rays.primary));
+    }
+    if !(r.render_seconds.is_finite() && r.render_seconds >= 0.0) {
+        return Err(format!("render_seconds must be finite and >= 0, got {}", r.render_seconds));
+    }
+    Ok(())
+}
+
+/// The part of `film` inside `rect` (which lies inside it).
+fn crop(film: &Film, rect: Rect) -> Film {
+    let mut out = Film::new(rect);
+    for row in 0..rect.height {
+        let src = ((rect.y - film.rect.y + row) * film.rect.width + (rect.x - film.rect.x)) as usize;
+        let dst = (row * rect.width) as usize;
+        let w = rect.width as usize;
+        out.sums[dst..dst + w].copy_from_slice(&film.sums[src..src + w]);
+        out.counts[dst..dst + w].copy_from_slice(&film.counts[src..src + w]);
+    }
+    out
+}
+
+impl Job {
+    fn new(rec: JobRecord, settings: RenderSettings, counters: Counters) -> Self {
+        let layout = Layout::new(settings.width, settings.height, settings.samples, rec.first_frame, rec.last_frame, rec.tile_size, rec.samples_per_unit);
+        let total = layout.total();
+        let state = match rec.state {
+            JobStateRec::Active => JobState::Running,
+            JobStateRec::Done => JobState::Done,
+            JobStateRec::Failed => JobState::Failed,
+            JobStateRec::Cancelled => JobState::Cancelled,
+        };
+        let pending = if state.is_terminal() { BTreeSet::new() } else { (0..total).collect() };
+        let frames = (rec.first_frame..=rec.last_frame)
+            .map(|f| (f, FrameAcc { film: None, units_done: 0, written: None, writing: false }))
+            .collect();
+        Job {
+            rec,
+            settings,
+            layout,
+            state: if state == JobState::Running { JobState::Queued } else { state },
+            done: vec![false; total as usize],
+            pending,
+            failures: HashMap::new(),
+            frames,
+            counters,
+            units_done: 0,
+            samples_done: 0,
+            started: None,
+            samples_this_run: 0,
+            rays_this_run: 0,
+            watch: watch::channel(0).0,
+        }
+    }
+
+    fn notify(&self) {
+        self.watch.send_modify(|v| *v += 1);
+    }
+
+    fn mark_done(&mut self, u: UnitIndex) {
+        if self.done[u as usize] {
+            return;
+        }
+        self.done[u as usize] = true;
+        self.pending.remove(&u);
+        self.units_done += 1;
+        let unit: Unit = self.layout.unit(u);
+        self.samples_done += self.layout.unit_samples(unit);
+        if let Some(f) = self.frames.get_mut(&unit.frame) {
+            f.units_done += 1;
+        }
+        if self.state == JobState::Queued {
+            self.state = JobState::Running;
+        }
+    }
+
+    /// Frames with every unit done and no image yet; marks them as being written.
+    fn complete_frames(&mut self) -> Vec<(String, u32)> {
+        let per = self.layout.units_per_frame() as u64;
+        let mut out = Vec::new();
+        for (&f, acc) in self.frames.iter_mut() {
+            if acc.units_done == per && acc.written.is_none() && !acc.writing {
+                acc.writing = true;
+                tracing::info!(job = %self.rec.id, frame = f, "frame complete");
+                out.push((self.rec.id.clone(), f));
+            }
+        }
+        out
+    }
+
+    fn finish(&mut self, state: JobState, error: String) {
+        self.state = state;
+        self.rec.state = match state {
+            JobState::Done => JobStateRec::Done,
+            JobState::Failed => JobStateRec::Failed,
+            JobState::Cancelled => JobStateRec::Cancelled,
+            _ => JobStateRec::Active,
+        };
+        self.rec.error = error;
+        self.rec.finished_unix_ms = now_ms();
+        self.pending.clear();
+        for f in self.frames.values_mut() {
+            f.film = None;
+        }
+        self.notify();
+    }
+
+    /// Records a failed attempt of `units`; fails the job (returning its
+    /// record to persist) when a unit has failed `max_attempts` times.
+    fn fail_units(&mut self, units: &[u32], message: String) -> Option<JobRecord> {
+        if self.state.is_terminal() {
+            return None;
+        }
+        let mut exhausted = None;
+        for &u in units {
+            let f = self.failures.entry(u).or_default();
+            f.push(message.clone());
+            if f.len() as u32 >= self.rec.max_attempts && exhausted.is_none() {
+                exhausted = Some((u, f.clone()));
+            }
+            self.pending.insert(u);
+        }
+        self.notify();
+        let (u, messages) = exhausted?;
+        let unit = self.layout.unit(u);
+        let error = format!(
+            "work unit {u} (frame {}, tile {:?}, samples {}..{}) failed {} times: {}",
+            unit.frame,
+            self.layout.tiles[unit.tile as usize],
+            self.layout.batches[unit.batch as usize].start,
+            self.layout.batches[unit.batch as usize].end,
+            messages.len(),
+            messages.join("; ")
+        );
+        tracing::error!(job = %self.rec.id, %error, "job failed");
+        self.finish(JobState::Failed, error);
+        Some(self.rec.clone())
+    }
+
+    fn view(&self) -> JobView {
+        let per = self.layout.units_per_frame() as u64;
+        let samples_total = self.layout.width as u64 * self.layout.height as u64 * self.settings.samples as u64 * self.layout.frames as u64;
+        let elapsed = self.started.map_or(0.0, |t| t.elapsed().as_secs_f64());
+        let (rps, eta) = if elapsed > 0.0 && self.samples_this_run > 0 {
+            let rate = self.samples_this_run as f64 / elapsed;
+            (self.rays_this_run as f64 / elapsed, (samples_total - self.samples_done) as f64 / rate)
+        } else {
+            (0.0, if self.state.is_terminal() { 0.0 } else { -1.0 })
+        };
+        JobView {
+            record: self.rec.clone(),
+            state: self.state,
+            settings: self.settings,
+            counters: self.counters.clone(),
+            units_total: self.layout.total() as u64,
+            units_done: self.units_done,
+            samples_total,
+            samples_done: self.samples_done,
+            frames: self.frames.iter().map(|(&f, a)| (f, per, a.units_done, a.written.clone())).collect(),
+            rays_per_second: rps,
+            eta_seconds: if self.state.is_terminal() { 0.0 } else { eta },
+        }
+    }
+}
+
+type UnitIndex = u32;
+
+/// Rays of a counters record as tracer-core's type.
+pub fn rays_of(c: &Counters) -> RayCounts {
+    RayCounts { primary: c.rays[0], shadow: c.rays[1], reflection: c.rays[2], refraction: c.rays[3] }
+}

@@ -1,0 +1,59 @@
+//! Writing resolved films as image files (shared by `tessera render` and the
+//! coordinator, which writes each finished frame).
+
+use std::path::{Path, PathBuf};
+
+use tracer_core::film::Film;
+
+/// Image formats chosen by the output's extension.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ImageFormat {
+    Png,
+    Exr,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    #[error("{}: unsupported output extension {ext}; use .png (8-bit sRGB) or .exr (linear float)", path.display())]
+    Extension { path: PathBuf, ext: String },
+    #[error("cannot write {}: {source}", path.display())]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+}
+
+impl ImageFormat {
+    pub fn of(path: &Path) -> Result<Self, ImageError> {
+        match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
+            Some("png") => Ok(ImageFormat::Png),
+            Some("exr") => Ok(ImageFormat::Exr),
+            other => Err(ImageError::Extension {
+                path: path.to_owned(),
+                ext: other.map_or("(none)".to_string(), |e| format!(".{e}")),
+            }),
+        }
+    }
+}
+
+/// Writes a resolved film as PNG (8-bit sRGB) or EXR (linear float), by extension.
+pub fn write_image(path: &Path, film: &Film) -> Result<(), ImageError> {
+    let (w, h) = (film.rect.width, film.rect.height);
+    let linear = film.resolve();
+    match ImageFormat::of(path)? {
+        ImageFormat::Png => {
+            let bytes = tracer_core::film::to_srgb8(&linear);
+            image::RgbImage::from_raw(w, h, bytes)
+                .expect("buffer matches size")
+                .save_with_format(path, image::ImageFormat::Png)
+        }
+        ImageFormat::Exr => {
+            let data: Vec<f32> = linear.iter().flatten().copied().collect();
+            image::Rgb32FImage::from_raw(w, h, data)
+                .expect("buffer matches size")
+                .save_with_format(path, image::ImageFormat::OpenExr)
+        }
+    }
+    .map_err(|source| ImageError::Write { path: path.to_owned(), source })
+}

@@ -1,0 +1,286 @@
+//! The gRPC edge: protobuf messages in, [`Farm`] calls, protobuf out.
+
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status};
+use tessera_proto::convert::sampler_from_pb;
+use tessera_proto::film_codec;
+use tessera_proto::pb;
+use tessera_proto::pb::job_service_server::JobService;
+use tessera_proto::pb::worker_service_server::WorkerService;
+
+use crate::farm::{Farm, FarmError, JobState, JobView, Outcome, Overrides, ResultData, Submission};
+use crate::store::Counters;
+
+impl From<FarmError> for Status {
+    fn from(e: FarmError) -> Self {
+        match e {
+            FarmError::InvalidArgument(m) => Status::invalid_argument(m),
+            FarmError::NotFound(m) => Status::not_found(m),
+            FarmError::FailedPrecondition(m) => Status::failed_precondition(m),
+            FarmError::Store(e) => Status::internal(e.to_string()),
+            FarmError::Internal(m) => Status::internal(m),
+        }
+    }
+}
+
+fn state_pb(s: JobState) -> pb::JobState {
+    match s {
+        JobState::Queued => pb::JobState::Queued,
+        JobState::Running => pb::JobState::Running,
+        JobState::Done => pb::JobState::Done,
+        JobState::Failed => pb::JobState::Failed,
+        JobState::Cancelled => pb::JobState::Cancelled,
+    }
+}
+
+fn rays_pb(c: &Counters) -> pb::RayCounts {
+    crate::farm::rays_of(c).into()
+}
+
+pub fn job_status(v: &JobView) -> pb::JobStatus {
+    let r = &v.record;
+    pb::JobStatus {
+        job_id: r.id.clone(),
+        name: r.name.clone(),
+        state: state_pb(v.state) as i32,
+        priority: r.priority,
+        settings: Some(v.settings.into()),
+        first_frame: r.first_frame,
+        last_frame: r.last_frame,
+        units_total: v.units_total,
+        units_done: v.units_done,
+        samples_total: v.samples_total,
+        samples_done: v.samples_done,
+        frames: v
+            .frames
+            .iter()
+            .map(|(f, total, done, out)| pb::FrameStatus { frame: *f, units_total: *total, units_done: *done, output: out.clone().unwrap_or_default() })
+            .collect(),
+        error: r.error.clone(),
+        rays: Some(rays_pb(&v.counters)),
+        rays_per_second: v.rays_per_second,
+        eta_seconds: v.eta_seconds,
+        units_accepted: v.counters.units_accepted,
+        results_rejected: v.counters.results_rejected,
+        results_late: v.counters.results_late,
+        results_duplicate: v.counters.results_duplicate,
+        submitted_unix_ms: r.submitted_unix_ms,
+        finished_unix_ms: r.finished_unix_ms,
+        output_dir: r.output_dir.clone(),
+        tile_size: r.tile_size,
+        samples_per_unit: r.samples_per_unit,
+    }
+}
+
+/// Implements both services over one [`Farm`].
+#[derive(Clone)]
+pub struct Api {
+    pub farm: Arc<Farm>,
+}
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
+
+#[tonic::async_trait]
+impl JobService for Api {
+    async fn submit_job(&self, req: Request<pb::SubmitJobRequest>) -> Result<Response<pb::SubmitJobResponse>, Status> {
+        let spec = req.into_inner().spec.ok_or_else(|| Status::invalid_argument("missing field `spec`"))?;
+        let o = spec.overrides.unwrap_or_default();
+        let scene_name = if spec.scene_name.is_empty() { "scene.toml".to_string() } else { spec.scene_name };
+        let s = Submission {
+            name: spec.name,
+            scene_name,
+            scene: spec.scene,
+            assets: spec.assets.into_iter().map(|a| (a.name, a.content)).collect(),
+            overrides: Overrides {
+                width: o.width,
+                height: o.height,
+                samples: o.samples,
+                max_depth: o.max_depth,
+                sampler: sampler_from_pb(o.sampler),
+            },
+            first_frame: spec.first_frame,
+            last_frame: spec.last_frame,
+            priority: spec.priority,
+            tile_size: spec.tile_size,
+            samples_per_unit: spec.samples_per_unit,
+            max_attempts: spec.max_attempts,
+        };
+        let job_id = self.farm.submit(s).await?;
+        Ok(Response::new(pb::SubmitJobResponse { job_id }))
+    }
+
+    async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Result<Response<pb::JobStatus>, Status> {
+        Ok(Response::new(job_status(&self.farm.job(&req.into_inner().job_id)?)))
+    }
+
+    async fn list_jobs(&self, _req: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        Ok(Response::new(pb::ListJobsResponse { jobs: self.farm.jobs().iter().map(job_status).collect() }))
+    }
+
+    type WatchJobStream = BoxStream<pb::JobStatus>;
+
+    async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<Self::WatchJobStream>, Status> {
+        let id = req.into_inner().job_id;
+        let mut rx = self.farm.watch(&id)?;
+        let farm = self.farm.clone();
+        let (tx, out) = tokio::sync::mpsc::channel(4);
+        tokio::spawn(async move {
+            loop {
+                rx.borrow_and_update();
+                let v = match farm.job(&id) {
+                    Ok(v) => v,
+                    Err(e) => {
+                        let _ = tx.send(Err(e.into())).await;
+                        return;
+                    }
+                };
+                let terminal = v.state.is_terminal();
+                if tx.send(Ok(job_status(&v))).await.is_err() || terminal {
+                    return;
+                }
+                // At most 5 events a second; at least one a second (rates, ETA).
+                tokio::time::sleep(Duration::from_millis(200)).await;
+                let _ = tokio::time::timeout(Duration::from_millis(800), rx.changed()).await;
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out))))
+    }
+
+    async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Result<Response<pb::JobStatus>, Status> {
+        Ok(Response::new(job_status(&self.farm.cancel(&req.into_inner().job_id).await?)))
+    }
+
+    type FetchResultsStream = BoxStream<pb::FrameImage>;
+
+    async fn fetch_results(&self, req: Request<pb::FetchResultsRequest>) -> Result<Response<Self::FetchResultsStream>, Status> {
+        let outputs = self.farm.outputs(&req.into_inner().job_id)?;
+        let (tx, out) = tokio::sync::mpsc::channel(2);
+        tokio::spawn(async move {
+            for (frame, file_name, path) in outputs {
+                let msg = match tokio::fs::read(&path).await {
+                    Ok(data) => Ok(pb::FrameImage { frame, file_name, data }),
+                    Err(e) => Err(Status::internal(format!("cannot read {}: {e}", path.display()))),
+                };
+                let stop = msg.is_err();
+                if tx.send(msg).await.is_err() || stop {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out))))
+    }
+
+    async fn list_workers(&self, _req: Request<pb::ListWorkersRequest>) -> Result<Response<pb::ListWorkersResponse>, Status> {
+        let workers = self
+            .farm
+            .workers()
+            .into_iter()
+            .map(|w| pb::WorkerInfo {
+                worker_id: w.id,
+                name: w.name,
+                capabilities: Some(pb::Capabilities {
+                    threads: w.threads,
+                    backend: match w.backend.as_str() {
+                        "gpu" => pb::Backend::Gpu,
+                        _ => pb::Backend::Cpu,
+                    } as i32,
+                    gpu_name: w.gpu_name,
+                    version: w.version,
+                }),
+                leases: w.leases,
+                units_done: w.units_done,
+                samples_per_second: w.samples_per_second,
+                last_seen_unix_ms: w.last_seen_unix_ms,
+            })
+            .collect();
+        Ok(Response::new(pb::ListWorkersResponse { workers }))
+    }
+}
+
+#[tonic::async_trait]
+impl WorkerService for Api {
+    async fn register(&self, req: Request<pb::RegisterRequest>) -> Result<Response<pb::RegisterResponse>, Status> {
+        let r = req.into_inner();
+        let caps = r.capabilities.unwrap_or_default();
+        let backend = match pb::Backend::try_from(caps.backend).unwrap_or(pb::Backend::Unspecified) {
+            pb::Backend::Gpu => "gpu",
+            _ => "cpu",
+        };
+        let name = if r.name.is_empty() { "worker".to_string() } else { r.name };
+        let worker_id = self.farm.register(name, caps.threads, backend.into(), caps.gpu_name, caps.version);
+        Ok(Response::new(pb::RegisterResponse {
+            worker_id,
+            heartbeat_interval_ms: self.farm.config.heartbeat_interval.as_millis() as u32,
+            lease_timeout_ms: self.farm.config.lease_timeout.as_millis() as u32,
+        }))
+    }
+
+    async fn lease_work(&self, req: Request<pb::LeaseWorkRequest>) -> Result<Response<pb::LeaseWorkResponse>, Status> {
+        let r = req.into_inner();
+        let leases = self.farm.lease(&r.worker_id, r.max_units.clamp(1, 64))?;
+        let retry_after_ms = if leases.is_empty() { 250 } else { 0 };
+        let units = leases
+            .into_iter()
+            .map(|l| pb::WorkUnit {
+                lease_id: l.lease_id,
+                job: Some(pb::JobContext {
+                    job_id: l.job_id,
+                    scene_name: l.scene_name,
+                    scene_sha256: l.scene_sha256,
+                    assets: l.assets.into_iter().collect(),
+                    settings: Some(l.settings.into()),
+                }),
+                frame: l.frame,
+                rect: Some(l.rect.into()),
+                samples: Some(l.samples.into()),
+                deadline_unix_ms: l.deadline_unix_ms,
+            })
+            .collect();
+        Ok(Response::new(pb::LeaseWorkResponse { units, retry_after_ms }))
+    }
+
+    async fn submit_result(&self, req: Request<pb::SubmitResultRequest>) -> Result<Response<pb::SubmitResultResponse>, Status> {
+        let r = req.into_inner();
+        let rect = r.rect.unwrap_or_default().into();
+        let samples = r.samples.unwrap_or_default().into();
+        let film = film_codec::unpack(rect, &r.sums, &r.counts, r.rays.unwrap_or_default().into(), r.nonfinite).map_err(|e| e.to_string());
+        let data = ResultData {
+            worker_id: r.worker_id,
+            lease_id: r.lease_id,
+            rect,
+            samples,
+            film,
+            render_seconds: r.render_seconds,
+            failure: (!r.failure.is_empty()).then_some(r.failure),
+        };
+        let (outcome, reason) = match self.farm.submit_result(data).await? {
+            Outcome::Accepted => (pb::ResultOutcome::Accepted, String::new()),
+            Outcome::Rejected(m) => (pb::ResultOutcome::Rejected, m),
+            Outcome::Late(m) => (pb::ResultOutcome::Late, m),
+            Outcome::Duplicate(m) => (pb::ResultOutcome::Duplicate, m),
+            Outcome::FailureRecorded => (pb::ResultOutcome::FailureRecorded, String::new()),
+        };
+        Ok(Response::new(pb::SubmitResultResponse { outcome: outcome as i32, reason }))
+    }
+
+    async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Result<Response<pb::HeartbeatResponse>, Status> {
+        let r = req.into_inner();
+        let leases: Vec<(String, u64)> = r.leases.into_iter().map(|l| (l.lease_id, l.samples_done)).collect();
+        match self.farm.heartbeat(&r.worker_id, &leases) {
+            Ok(gone_leases) => Ok(Response::new(pb::HeartbeatResponse { gone_leases, reregister: false })),
+            Err(FarmError::NotFound(_)) => Ok(Response::new(pb::HeartbeatResponse {
+                gone_leases: leases.into_iter().map(|l| l.0).collect(),
+                reregister: true,
+            })),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    async fn get_asset(&self, req: Request<pb::GetAssetRequest>) -> Result<Response<pb::GetAssetResponse>, Status> {
+        Ok(Response::new(pb::GetAssetResponse { content: self.farm.asset(&req.into_inner().sha256)? }))
+    }
+}

@@ -1,0 +1,304 @@
+//! Durable state in redb: job specs, assets (content-addressed), finished
+//! units' films, written frames and per-job counters.
+//!
+//! Invariant: a unit is finished iff its film is in `UNIT_FILMS` or its whole
+//! frame is in `FRAMES_WRITTEN`; a finished unit's film, its "done" mark and
+//! the job's accepted-result counter are written in one transaction, so a
+//! crash can never lose a finished unit nor count it twice. Writes go through
+//! one thread that commits whatever is queued in a single transaction (group
+//! commit): one fsync serves many results.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::mpsc;
+
+use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
+use serde::{Deserialize, Serialize};
+use tokio::sync::oneshot;
+use tracer_core::film::{Film, RayCounts, Rect};
+use tessera_proto::film_codec;
+
+/// job id -> JSON [`JobRecord`]
+const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");
+/// job id -> JSON [`Counters`]
+const COUNTERS: TableDefinition<&str, &[u8]> = TableDefinition::new("counters");
+/// sha256 hex -> file content
+const ASSETS: TableDefinition<&str, &[u8]> = TableDefinition::new("assets");
+/// (job id, unit index) -> encoded film of the finished unit
+const UNIT_FILMS: TableDefinition<(&str, u32), &[u8]> = TableDefinition::new("unit_films");
+/// (job id, frame) -> output file name
+const FRAMES_WRITTEN: TableDefinition<(&str, u32), &str> = TableDefinition::new("frames_written");
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("database: {0}")]
+    Db(#[from] redb::Error),
+    #[error("corrupt record {what}: {message}")]
+    Corrupt { what: String, message: String },
+    #[error("the database writer has stopped")]
+    WriterGone,
+}
+
+macro_rules! db_err {
+    ($($t:ty),*) => {$(impl From<$t> for StoreError { fn from(e: $t) -> Self { StoreError::Db(e.into()) } })*};
+}
+db_err!(redb::DatabaseError, redb::TransactionError, redb::TableError, redb::StorageError, redb::CommitError);
+
+/// A job as accepted: everything needed to render it again after a restart.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct JobRecord {
+    pub id: String,
+    pub name: String,
+    pub scene_name: String,
+    pub scene_sha256: String,
+    /// Referenced files: name -> sha256.
+    pub assets: BTreeMap<String, String>,
+    pub width: u32,
+    pub height: u32,
+    pub samples: u32,
+    pub max_depth: u32,
+    /// "grid" or "jittered"
+    pub sampler: String,
+    pub first_frame: u32,
+    pub last_frame: u32,
+    pub priority: i32,
+    pub tile_size: u32,
+    pub samples_per_unit: u32,
+    pub max_attempts: u32,
+    pub state: JobStateRec,
+    pub error: String,
+    pub submitted_unix_ms: i64,
+    pub finished_unix_ms: i64,
+    pub output_dir: String,
+}
+
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+pub enum JobStateRec {
+    Active,
+    Done,
+    Failed,
+    Cancelled,
+}
+
+/// Per-job counters. `units_accepted` is written with each result.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq, Eq)]
+pub struct Counters {
+    pub units_accepted: u64,
+    pub results_rejected: u64,
+    pub results_late: u64,
+    pub results_duplicate: u64,
+    pub rays: [u64; 4],
+}
+
+/// One write of a group commit.
+#[derive(Debug)]
+pub enum Op {
+    PutJob(JobRecord),
+    PutAsset { sha256: String, content: Vec<u8> },
+    /// Updates the result counters that are not tied to accepted units
+    /// (rejected, late, duplicate); keeps the stored accepted count and rays.
+    PutCounters { job: String, counters: Counters },
+    /// Finished units of a result, (unit index, film), and the job's accepted
+    /// count and rays incremented with them.
+    AcceptUnits { job: String, units: Vec<(u32, Film)>, rays: [u64; 4] },
+    /// A frame's image is written: remember it and drop its units' films.
+    FrameWritten { job: String, frame: u32, file: String, units: std::ops::Range<u32> },
+}
+
+struct Request {
+    ops: Vec<Op>,
+    reply: oneshot::Sender<Result<(), String>>,
+}
+
+/// Handle to the database: reads directly, writes through the writer thread.
+pub struct Store {
+    db: std::sync::Arc<Database>,
+    tx: mpsc::Sender<Request>,
+}
+
+/// What is on disk at start-up.
+#[derive(Debug, Default)]
+pub struct Snapshot {
+    pub jobs: Vec<(JobRecord, Counters)>,
+    /// job -> finished unit index -> film
+    pub unit_films: BTreeMap<String, Vec<(u32, Film)>>,
+    /// job -> (frame, file)
+    pub frames_written: BTreeMap<String, Vec<(u32, String)>>,
+}
+
+impl Store {
+    pub fn open(path: &Path) -> Result<Self, StoreError> {
+        let db = Database::create(path)?;
+        {
+            // Create the tables so that reads of a fresh database succeed.
+            let w = db.begin_write()?;
+            w.open_table(JOBS)?;
+            w.open_table(COUNTERS)?;
+            w.open_table(ASSETS)?;
+            w.open_table(UNIT_FILMS)?;
+            w.open_table(FRAMES_WRITTEN)?;
+            w.commit()?;
+        }
+        let db = std::sync::Arc::new(db);
+        let (tx, rx) = mpsc::channel::<Request>();
+        let wdb = db.clone();
+        std::thread::Builder::new()
+            .name("tessera-db-writer".into())
+            .spawn(move || writer(&wdb, rx))
+            .map_err(|e| StoreError::Corrupt { what: "writer thread".into(), message: e.to_string() })?;
+        Ok(Store { db, tx })
+    }
+
+    /// Applies `ops` atomically (with whatever else is queued); returns once durable.
+    pub async fn write(&self, ops: Vec<Op>) -> Result<(), StoreError> {
+        let (reply, rx) = oneshot::channel();
+        self.tx.send(Request { ops, reply }).map_err(|_| StoreError::WriterGone)?;
+        rx.await.map_err(|_| StoreError::WriterGone)?.map_err(|message| StoreError::Corrupt { what: "commit".into(), message })
+    }
+
+    pub fn asset(&self, sha256: &str) -> Result<Option<Vec<u8>>, StoreError> {
+        let r = self.db.begin_read()?;
+        let t = r.open_table(ASSETS)?;
+        Ok(t.get(sha256)?.map(|v| v.value().to_vec()))
+    }
+
+    pub fn load(&self) -> Result<Snapshot, StoreError> {
+        let r = self.db.begin_read()?;
+        let mut snap = Snapshot::default();
+        let jobs = r.open_table(JOBS)?;
+        let counters = r.open_table(COUNTERS)?;
+        for entry in jobs.iter()? {
+            let (k, v) = entry?;
+            let id = k.value().to_string();
+            let rec: JobRecord = serde_json::from_slice(v.value())
+                .map_err(|e| StoreError::Corrupt { what: format!("job {id}"), message: e.to_string() })?;
+            let c = match counters.get(id.as_str())? {
+                Some(v) => serde_json::from_slice(v.value())
+                    .map_err(|e| StoreError::Corrupt { what: format!("counters of {id}"), message: e.to_string() })?,
+                None => Counters::default(),
+            };
+            snap.jobs.push((rec, c));
+        }
+        let films = r.open_table(UNIT_FILMS)?;
+        for entry in films.iter()? {
+            let (k, v) = entry?;
+            let (job, unit) = k.value();
+            let film = decode_film(v.value())
+                .map_err(|message| StoreError::Corrupt { what: format!("film of unit {unit} of {job}"), message })?;
+            snap.unit_films.entry(job.to_string()).or_default().push((unit, film));
+        }
+        let frames = r.open_table(FRAMES_WRITTEN)?;
+        for entry in frames.iter()? {
+            let (k, v) = entry?;
+            let (job, frame) = k.value();
+            snap.frames_written.entry(job.to_string()).or_default().push((frame, v.value().to_string()));
+        }
+        Ok(snap)
+    }
+}
+
+fn writer(db: &Database, rx: mpsc::Receiver<Request>) {
+    while let Ok(first) = rx.recv() {
+        let mut batch = vec![first];
+        while batch.len() < 512 {
+            match rx.try_recv() {
+                Ok(r) => batch.push(r),
+                Err(_) => break,
+            }
+        }
+        let result = commit(db, batch.iter().flat_map(|r| r.ops.iter())).map_err(|e| e.to_string());
+        if let Err(e) = &result {
+            tracing::error!(error = %e, "database commit failed");
+        }
+        for r in batch {
+            let _ = r.reply.send(result.clone());
+        }
+    }
+}
+
+fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), StoreError> {
+    let w = db.begin_write()?;
+    {
+        let mut jobs = w.open_table(JOBS)?;
+        let mut counters = w.open_table(COUNTERS)?;
+        let mut assets = w.open_table(ASSETS)?;
+        let mut films = w.open_table(UNIT_FILMS)?;
+        let mut frames = w.open_table(FRAMES_WRITTEN)?;
+        for op in ops {
+            match op {
+                Op::PutJob(rec) => {
+                    let json = serde_json::to_vec(rec).expect("records serialise");
+                    jobs.insert(rec.id.as_str(), json.as_slice())?;
+                }
+                Op::PutAsset { sha256, content } => {
+                    assets.insert(sha256.as_str(), content.as_slice())?;
+                }
+                Op::PutCounters { job, counters: c } => {
+                    let mut stored = read_counters(&counters, job)?;
+                    stored.results_rejected = c.results_rejected;
+                    stored.results_late = c.results_late;
+                    stored.results_duplicate = c.results_duplicate;
+                    let json = serde_json::to_vec(&stored).expect("counters serialise");
+                    counters.insert(job.as_str(), json.as_slice())?;
+                }
+                Op::AcceptUnits { job, units, rays } => {
+                    for (unit, film) in units {
+                        films.insert((job.as_str(), *unit), encode_film(film).as_slice())?;
+                    }
+                    let mut stored = read_counters(&counters, job)?;
+                    stored.units_accepted += units.len() as u64;
+                    for (a, b) in stored.rays.iter_mut().zip(rays) {
+                        *a += b;
+                    }
+                    let json = serde_json::to_vec(&stored).expect("counters serialise");
+                    counters.insert(job.as_str(), json.as_slice())?;
+                }
+                Op::FrameWritten { job, frame, file, units } => {
+                    frames.insert((job.as_str(), *frame), file.as_str())?;
+                    for u in units.clone() {
+                        films.remove((job.as_str(), u))?;
+                    }
+                }
+            }
+        }
+    }
+    w.commit()?;
+    Ok(())
+}
+
+fn read_counters(t: &redb::Table<&str, &[u8]>, job: &str) -> Result<Counters, StoreError> {
+    match t.get(job)? {
+        Some(v) => serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt { what: format!("counters of {job}"), message: e.to_string() }),
+        None => Ok(Counters::default()),
+    }
+}
+
+/// Header (rect, ray counts, non-finite count) followed by the wire encoding.
+pub fn encode_film(f: &Film) -> Vec<u8> {
+    let mut out = Vec::with_capacity(56 + f.sums.len() * 28);
+    for v in [f.rect.x, f.rect.y, f.rect.width, f.rect.height] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    for v in [f.rays.primary, f.rays.shadow, f.rays.reflection, f.rays.refraction, f.nonfinite] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.extend_from_slice(&film_codec::pack_sums(f));
+    out.extend_from_slice(&film_codec::pack_counts(f));
+    out
+}
+
+pub fn decode_film(b: &[u8]) -> Result<Film, String> {
+    if b.len() < 56 {
+        return Err(format!("{} bytes is shorter than the 56-byte header", b.len()));
+    }
+    let u32_at = |i: usize| u32::from_le_bytes(b[i..i + 4].try_into().expect("4 bytes"));
+    let u64_at = |i: usize| u64::from_le_bytes(b[i..i + 8].try_into().expect("8 bytes"));
+    let rect = Rect::new(u32_at(0), u32_at(4), u32_at(8), u32_at(12));
+    let rays = RayCounts { primary: u64_at(16), shadow: u64_at(24), reflection: u64_at(32), refraction: u64_at(40) };
+    let nonfinite = u64_at(48);
+    let split = 56 + rect.area() * film_codec::SUM_BYTES;
+    if b.len() < split {
+        return Err(format!("{} bytes is too short for a {}x{} film", b.len(), rect.width, rect.height));
+    }
+    film_codec::unpack(rect, &b[56..split], &b[split..], rays, nonfinite).map_err(|e| e.to_string())
+}

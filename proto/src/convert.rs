@@ -1,0 +1,131 @@
+//! Conversions between protobuf messages and tracer-core types.
+
+use tracer_core::film::{RayCounts, Rect, SampleRange};
+use tracer_core::sampling::Sampler;
+use tracer_core::scene::RenderSettings;
+
+use crate::pb;
+
+/// A message from the wire that does not make a valid value.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum ConvertError {
+    #[error("missing field `{0}`")]
+    Missing(&'static str),
+    #[error("field `{field}`: {message}")]
+    Invalid { field: &'static str, message: String },
+}
+
+impl From<Rect> for pb::Rect {
+    fn from(r: Rect) -> Self {
+        pb::Rect { x: r.x, y: r.y, width: r.width, height: r.height }
+    }
+}
+
+impl From<pb::Rect> for Rect {
+    fn from(r: pb::Rect) -> Self {
+        Rect::new(r.x, r.y, r.width, r.height)
+    }
+}
+
+impl From<SampleRange> for pb::SampleRange {
+    fn from(s: SampleRange) -> Self {
+        pb::SampleRange { start: s.start, end: s.end }
+    }
+}
+
+impl From<pb::SampleRange> for SampleRange {
+    fn from(s: pb::SampleRange) -> Self {
+        SampleRange::new(s.start, s.end)
+    }
+}
+
+impl From<RayCounts> for pb::RayCounts {
+    fn from(r: RayCounts) -> Self {
+        pb::RayCounts { primary: r.primary, shadow: r.shadow, reflection: r.reflection, refraction: r.refraction }
+    }
+}
+
+impl From<pb::RayCounts> for RayCounts {
+    fn from(r: pb::RayCounts) -> Self {
+        RayCounts { primary: r.primary, shadow: r.shadow, reflection: r.reflection, refraction: r.refraction }
+    }
+}
+
+impl From<Sampler> for pb::Sampler {
+    fn from(s: Sampler) -> Self {
+        match s {
+            Sampler::Grid => pb::Sampler::Grid,
+            Sampler::Jittered => pb::Sampler::Jittered,
+        }
+    }
+}
+
+/// `None` for UNSPECIFIED (and unknown values, which prost maps to it).
+pub fn sampler_from_pb(v: i32) -> Option<Sampler> {
+    match pb::Sampler::try_from(v).unwrap_or(pb::Sampler::Unspecified) {
+        pb::Sampler::Grid => Some(Sampler::Grid),
+        pb::Sampler::Jittered => Some(Sampler::Jittered),
+        pb::Sampler::Unspecified => None,
+    }
+}
+
+impl From<RenderSettings> for pb::RenderSettings {
+    fn from(s: RenderSettings) -> Self {
+        pb::RenderSettings {
+            width: s.width,
+            height: s.height,
+            samples: s.samples,
+            max_depth: s.max_depth,
+            sampler: pb::Sampler::from(s.sampler) as i32,
+        }
+    }
+}
+
+impl TryFrom<pb::RenderSettings> for RenderSettings {
+    type Error = ConvertError;
+    fn try_from(s: pb::RenderSettings) -> Result<Self, ConvertError> {
+        let sampler = sampler_from_pb(s.sampler)
+            .ok_or(ConvertError::Invalid { field: "settings.sampler", message: "must be GRID or JITTERED".into() })?;
+        let out = RenderSettings { width: s.width, height: s.height, samples: s.samples, max_depth: s.max_depth, sampler };
+        out.validate().map_err(|message| ConvertError::Invalid { field: "settings", message })?;
+        Ok(out)
+    }
+}
+
+/// The scene's settings with a request's overrides applied (not yet validated).
+pub fn apply_overrides(scene: &RenderSettings, o: Option<&pb::RenderOverrides>) -> RenderSettings {
+    let Some(o) = o else { return *scene };
+    RenderSettings {
+        width: o.width.unwrap_or(scene.width),
+        height: o.height.unwrap_or(scene.height),
+        samples: o.samples.unwrap_or(scene.samples),
+        max_depth: o.max_depth.unwrap_or(scene.max_depth),
+        sampler: sampler_from_pb(o.sampler).unwrap_or(scene.sampler),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn settings_round_trip_and_validate() {
+        let s = RenderSettings { width: 64, height: 48, samples: 9, max_depth: 3, sampler: Sampler::Jittered };
+        assert_eq!(RenderSettings::try_from(pb::RenderSettings::from(s)), Ok(s));
+        let mut bad = pb::RenderSettings::from(s);
+        bad.width = 0;
+        assert!(matches!(RenderSettings::try_from(bad), Err(ConvertError::Invalid { field: "settings", .. })));
+        let mut bad = pb::RenderSettings::from(s);
+        bad.sampler = 0;
+        assert!(RenderSettings::try_from(bad).is_err());
+    }
+
+    #[test]
+    fn overrides_replace_only_what_they_set() {
+        let scene = RenderSettings::default();
+        let o = pb::RenderOverrides { width: Some(10), samples: Some(1), ..Default::default() };
+        let s = apply_overrides(&scene, Some(&o));
+        assert_eq!((s.width, s.height, s.samples, s.max_depth), (10, scene.height, 1, scene.max_depth));
+        assert_eq!(s.sampler, scene.sampler);
+    }
+}

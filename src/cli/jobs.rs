@@ -1,0 +1,300 @@
+//! The farm's client commands: submit, jobs, status, watch, cancel, fetch, workers.
+
+use std::io::IsTerminal as _;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use tessera_proto::pb;
+use tokio_stream::StreamExt as _;
+use tracer_core::scene::SceneError;
+
+use super::farm_common::{connect, rpc, runtime, CoordinatorUrl, JobClient};
+use super::render::RenderOverrides;
+
+/// Exit codes of `tessera watch` and `tessera submit --wait`.
+pub const EXIT_DONE: u8 = 0;
+pub const EXIT_FAILED: u8 = 3;
+pub const EXIT_CANCELLED: u8 = 4;
+
+/// An inclusive frame range, written `A..B` (or `A..=B`, or one frame `N`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Frames {
+    pub first: u32,
+    pub last: u32,
+}
+
+impl std::str::FromStr for Frames {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let num = |t: &str| t.trim().parse::<u32>().map_err(|_| format!("{t:?} is not a frame number"));
+        let (first, last) = match s.split_once("..") {
+            Some((a, b)) => (num(a)?, num(b.strip_prefix('=').unwrap_or(b))?),
+            None => (num(s)?, num(s)?),
+        };
+        if first > last {
+            return Err(format!("frame range {s} is empty (first frame after last)"));
+        }
+        Ok(Frames { first, last })
+    }
+}
+
+#[derive(Args, Debug)]
+pub struct SubmitArgs {
+    /// Scene file (TOML; see docs/scene-format.md)
+    pub scene: PathBuf,
+    /// Frames to render, inclusive: `1..5` renders frames 1 to 5 [default: frame 0]
+    #[arg(long)]
+    pub frames: Option<Frames>,
+    #[command(flatten)]
+    pub overrides: RenderOverrides,
+    /// Higher priorities are rendered first
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    pub priority: i32,
+    /// Job name [default: the scene's file stem]
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Tile side in pixels [default: the coordinator's, 64]
+    #[arg(long)]
+    pub tile_size: Option<u32>,
+    /// Samples per pixel in one work unit [default: the coordinator's, 64]
+    #[arg(long)]
+    pub samples_per_unit: Option<u32>,
+    /// Failed attempts of one unit before the job fails [default: the coordinator's, 3]
+    #[arg(long)]
+    pub max_attempts: Option<u32>,
+    /// Wait for the job to finish (progress on stderr); the exit code is then the job's outcome
+    #[arg(long)]
+    pub wait: bool,
+    #[command(flatten)]
+    pub coordinator: CoordinatorUrl,
+}
+
+pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
+    let scene = std::fs::read(&args.scene).map_err(|source| SceneError::Io { path: args.scene.clone(), source })?;
+    let o = &args.overrides;
+    let frames = args.frames.unwrap_or(Frames { first: 0, last: 0 });
+    let spec = pb::JobSpec {
+        name: args.name.clone().unwrap_or_default(),
+        // The path as typed, so errors read exactly as `tessera render`'s.
+        scene_name: args.scene.display().to_string(),
+        scene,
+        // Scene files reference no other files yet; when they do (meshes),
+        // they are shipped here, content-addressed by the coordinator.
+        assets: Vec::new(),
+        overrides: Some(pb::RenderOverrides {
+            width: o.width,
+            height: o.height,
+            samples: o.samples,
+            max_depth: o.max_depth,
+            sampler: o.sampler.map_or(pb::Sampler::Unspecified, pb::Sampler::from) as i32,
+        }),
+        first_frame: frames.first,
+        last_frame: frames.last,
+        priority: args.priority,
+        tile_size: args.tile_size.unwrap_or(0),
+        samples_per_unit: args.samples_per_unit.unwrap_or(0),
+        max_attempts: args.max_attempts.unwrap_or(0),
+    };
+    runtime()?.block_on(async move {
+        let mut client = connect(&args.coordinator.url).await?;
+        let id = client.submit_job(pb::SubmitJobRequest { spec: Some(spec) }).await.map_err(rpc)?.into_inner().job_id;
+        println!("{id}");
+        if args.wait {
+            return watch_job(&mut client, &id).await;
+        }
+        Ok(ExitCode::SUCCESS)
+    })
+}
+
+#[derive(Args, Debug)]
+pub struct JobArg {
+    /// Job id (as printed by `tessera submit`)
+    pub job: String,
+    #[command(flatten)]
+    pub coordinator: CoordinatorUrl,
+}
+
+#[derive(Args, Debug)]
+pub struct ListArgs {
+    #[command(flatten)]
+    pub coordinator: CoordinatorUrl,
+}
+
+#[derive(Args, Debug)]
+pub struct FetchArgs {
+    /// Job id
+    pub job: String,
+    /// Directory to write the frames into
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub coordinator: CoordinatorUrl,
+}
+
+pub fn state_name(state: i32) -> &'static str {
+    match pb::JobState::try_from(state).unwrap_or(pb::JobState::Unspecified) {
+        pb::JobState::Queued => "queued",
+        pb::JobState::Running => "running",
+        pb::JobState::Done => "done",
+        pb::JobState::Failed => "failed",
+        pb::JobState::Cancelled => "cancelled",
+        pb::JobState::Unspecified => "unknown",
+    }
+}
+
+fn percent(j: &pb::JobStatus) -> f64 {
+    100.0 * j.samples_done as f64 / j.samples_total.max(1) as f64
+}
+
+pub fn jobs(args: ListArgs) -> Result<ExitCode> {
+    runtime()?.block_on(async move {
+        let mut client = connect(&args.coordinator.url).await?;
+        let jobs = client.list_jobs(pb::ListJobsRequest {}).await.map_err(rpc)?.into_inner().jobs;
+        println!("{:<12} {:<10} {:>6} {:>4} {:>11} {:>9}  NAME", "ID", "STATE", "DONE", "PRI", "SIZE", "FRAMES");
+        for j in jobs {
+            let s = j.settings.unwrap_or_default();
+            println!(
+                "{:<12} {:<10} {:>5.1}% {:>4} {:>11} {:>9}  {}",
+                j.job_id,
+                state_name(j.state),
+                percent(&j),
+                j.priority,
+                format!("{}x{}x{}", s.width, s.height, s.samples),
+                format!("{}..{}", j.first_frame, j.last_frame),
+                j.name
+            );
+        }
+        Ok(ExitCode::SUCCESS)
+    })
+}
+
+pub fn status(args: JobArg) -> Result<ExitCode> {
+    runtime()?.block_on(async move {
+        let mut client = connect(&args.coordinator.url).await?;
+        let j = client.get_job(pb::GetJobRequest { job_id: args.job }).await.map_err(rpc)?.into_inner();
+        let s = j.settings.unwrap_or_default();
+        let rays = j.rays.unwrap_or_default();
+        println!("job:       {} ({})", j.job_id, j.name);
+        println!("state:     {}", state_name(j.state));
+        println!("progress:  {:.1}% ({} of {} units)", percent(&j), j.units_done, j.units_total);
+        println!("image:     {}x{}, {} samples, depth {}, frames {}..{}", s.width, s.height, s.samples, s.max_depth, j.first_frame, j.last_frame);
+        println!("units:     tile {} px, {} samples per unit", j.tile_size, j.samples_per_unit);
+        println!("rays:      {} ({:.2} Mrays/s)", rays.primary + rays.shadow + rays.reflection + rays.refraction, j.rays_per_second / 1e6);
+        if j.eta_seconds >= 0.0 && j.state == pb::JobState::Running as i32 {
+            println!("eta:       {:.0} s", j.eta_seconds);
+        }
+        println!(
+            "results:   {} accepted, {} rejected, {} late, {} duplicate",
+            j.units_accepted, j.results_rejected, j.results_late, j.results_duplicate
+        );
+        println!("output:    {}", j.output_dir);
+        for f in &j.frames {
+            let done = if f.output.is_empty() { format!("{:.0}%", 100.0 * f.units_done as f64 / f.units_total.max(1) as f64) } else { f.output.clone() };
+            println!("  frame {:>5}: {done}", f.frame);
+        }
+        if !j.error.is_empty() {
+            println!("error:     {}", j.error);
+        }
+        Ok(ExitCode::SUCCESS)
+    })
+}
+
+pub fn watch(args: JobArg) -> Result<ExitCode> {
+    runtime()?.block_on(async move {
+        let mut client = connect(&args.coordinator.url).await?;
+        watch_job(&mut client, &args.job).await
+    })
+}
+
+/// Shows progress until the job ends; the exit code is its outcome
+/// ([`EXIT_DONE`], [`EXIT_FAILED`], [`EXIT_CANCELLED`]).
+async fn watch_job(client: &mut JobClient, id: &str) -> Result<ExitCode> {
+    let mut stream = client.watch_job(pb::WatchJobRequest { job_id: id.to_string() }).await.map_err(rpc)?.into_inner();
+    let bar = if std::io::stderr().is_terminal() {
+        ProgressBar::new(1000).with_style(
+            ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent:>3}% {msg}").expect("valid template"),
+        )
+    } else {
+        ProgressBar::hidden()
+    };
+    let mut last = None;
+    while let Some(ev) = stream.next().await {
+        let j = ev.map_err(rpc)?;
+        bar.set_position((percent(&j) * 10.0) as u64);
+        let eta = if j.eta_seconds >= 0.0 { format!("eta {:.0}s", j.eta_seconds) } else { String::new() };
+        bar.set_message(format!("{} {:.1} Mrays/s {eta}", state_name(j.state), j.rays_per_second / 1e6));
+        last = Some(j);
+    }
+    bar.finish_and_clear();
+    let Some(j) = last else { bail!("the coordinator ended the watch of {id} without any event") };
+    match pb::JobState::try_from(j.state).unwrap_or(pb::JobState::Unspecified) {
+        pb::JobState::Done => {
+            eprintln!("job {id} done: {} frame(s) in {}", j.frames.len(), j.output_dir);
+            Ok(ExitCode::from(EXIT_DONE))
+        }
+        pb::JobState::Failed => {
+            eprintln!("job {id} failed: {}", j.error);
+            Ok(ExitCode::from(EXIT_FAILED))
+        }
+        pb::JobState::Cancelled => {
+            eprintln!("job {id} cancelled");
+            Ok(ExitCode::from(EXIT_CANCELLED))
+        }
+        _ => bail!("the watch of {id} ended while the job is {}", state_name(j.state)),
+    }
+}
+
+pub fn cancel(args: JobArg) -> Result<ExitCode> {
+    runtime()?.block_on(async move {
+        let mut client = connect(&args.coordinator.url).await?;
+        let j = client.cancel_job(pb::CancelJobRequest { job_id: args.job }).await.map_err(rpc)?.into_inner();
+        eprintln!("job {} is {}", j.job_id, state_name(j.state));
+        Ok(ExitCode::SUCCESS)
+    })
+}
+
+pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
+    runtime()?.block_on(async move {
+        let mut client = connect(&args.coordinator.url).await?;
+        std::fs::create_dir_all(&args.output).with_context(|| format!("cannot create {}", args.output.display()))?;
+        let mut stream = client.fetch_results(pb::FetchResultsRequest { job_id: args.job.clone() }).await.map_err(rpc)?.into_inner();
+        let mut n = 0;
+        while let Some(img) = stream.next().await {
+            let img = img.map_err(rpc)?;
+            // Only a plain file name from the coordinator: never a path elsewhere.
+            let name = Path::new(&img.file_name).file_name().filter(|n| n.to_str() == Some(img.file_name.as_str()));
+            let Some(name) = name else { bail!("the coordinator sent an unsafe file name {:?}", img.file_name) };
+            let path = args.output.join(name);
+            std::fs::write(&path, &img.data).with_context(|| format!("cannot write {}", path.display()))?;
+            n += 1;
+        }
+        eprintln!("fetched {n} frame(s) of {} into {}", args.job, args.output.display());
+        Ok(ExitCode::SUCCESS)
+    })
+}
+
+pub fn workers(args: ListArgs) -> Result<ExitCode> {
+    runtime()?.block_on(async move {
+        let mut client = connect(&args.coordinator.url).await?;
+        let ws = client.list_workers(pb::ListWorkersRequest {}).await.map_err(rpc)?.into_inner().workers;
+        println!("{:<16} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12}", "ID", "NAME", "BACKEND", "THREADS", "LEASES", "UNITS", "MSAMPLES/S");
+        for w in ws {
+            let c = w.capabilities.unwrap_or_default();
+            let backend = if c.backend == pb::Backend::Gpu as i32 { "gpu" } else { "cpu" };
+            println!(
+                "{:<16} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2}",
+                w.worker_id,
+                w.name,
+                backend,
+                c.threads,
+                w.leases,
+                w.units_done,
+                w.samples_per_second / 1e6
+            );
+        }
+        Ok(ExitCode::SUCCESS)
+    })
+}

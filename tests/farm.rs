@@ -1,0 +1,512 @@
+//! End-to-end tests of the farm: the real `tessera` binary as coordinator,
+//! workers and CLI client, real gRPC over loopback sockets, the real redb
+//! database. Images are compared bit for bit with `tessera render` of the
+//! same scene and settings (CPU backend: exact fixed-point sums make the
+//! image independent of how the work was split and who rendered it).
+//!
+//! Tests run one at a time (the machines have few cores); every worker uses
+//! one thread.
+
+use std::io::{BufRead as _, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use tessera_proto::pb;
+use tessera_proto::pb::job_service_client::JobServiceClient;
+use tessera_proto::pb::worker_service_client::WorkerServiceClient;
+use tonic::transport::Channel;
+
+const TESSERA: &str = env!("CARGO_BIN_EXE_tessera");
+static SERIAL: Mutex<()> = Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn repo(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+/// A child process killed when dropped.
+struct Proc {
+    child: Child,
+    log: PathBuf,
+}
+
+impl Proc {
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+    fn sigkill(&mut self) {
+        self.child.kill().expect("kill");
+        self.child.wait().expect("reap");
+    }
+    fn sigterm(&self) {
+        let ok = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().expect("kill").success();
+        assert!(ok, "kill -TERM failed");
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+struct Coordinator {
+    proc: Proc,
+    addr: String,
+}
+
+impl Coordinator {
+    fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+}
+
+fn start_coordinator(dir: &Path, listen: &str, extra: &[&str]) -> Coordinator {
+    let log = dir.join(format!("coordinator-{}.log", Instant::now().elapsed().as_nanos() ^ rand_suffix()));
+    let mut child = Command::new(TESSERA)
+        .args(["coordinator", "--listen", listen, "--data"])
+        .arg(dir.join("data"))
+        .args(extra)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("start coordinator");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().expect("stdout")).read_line(&mut line).expect("read address");
+    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("coordinator did not start: {line:?}")).to_string();
+    Coordinator { proc: Proc { child, log }, addr }
+}
+
+fn rand_suffix() -> u128 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
+}
+
+fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
+    let log = dir.join(format!("worker-{name}-{}.log", rand_suffix()));
+    let child = Command::new(TESSERA)
+        .args(["worker", "--coordinator", url, "--threads", "1", "--name", name])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("start worker");
+    Proc { child, log }
+}
+
+fn tessera(args: &[&str], url: &str) -> Output {
+    Command::new(TESSERA).args(args).env("TESSERA_COORDINATOR", url).output().expect("run tessera")
+}
+
+fn ok_stdout(o: &Output) -> String {
+    assert!(o.status.success(), "tessera failed: {}\n{}", o.status, String::from_utf8_lossy(&o.stderr));
+    String::from_utf8(o.stdout.clone()).expect("utf-8")
+}
+
+fn pixels(path: &Path) -> Vec<u8> {
+    image::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).to_rgb8().into_raw()
+}
+
+/// `tessera render` of the same scene and settings, as the reference.
+fn reference(dir: &Path, scene: &Path, frame: u32, settings: &[&str]) -> Vec<u8> {
+    let out = dir.join(format!("reference_{frame}.png"));
+    let f = frame.to_string();
+    let mut args = vec!["render", scene.to_str().expect("path"), "-o", out.to_str().expect("path"), "--frame", &f];
+    args.extend_from_slice(settings);
+    ok_stdout(&Command::new(TESSERA).args(&args).output().expect("render"));
+    pixels(&out)
+}
+
+/// Fetches the job's frames and checks each equals `tessera render`'s bit for bit.
+fn assert_frames_match_render(dir: &Path, url: &str, job: &str, scene: &Path, frames: std::ops::RangeInclusive<u32>, settings: &[&str]) {
+    let out = dir.join(format!("fetched-{job}"));
+    tessera(&["fetch", job, "-o", out.to_str().expect("path")], url);
+    for f in frames {
+        let got = pixels(&out.join(format!("frame_{f:04}.png")));
+        let want = reference(dir, scene, f, settings);
+        assert_eq!(got.len(), want.len(), "frame {f}: size");
+        let diff = got.iter().zip(&want).filter(|(a, b)| a != b).count();
+        assert_eq!(diff, 0, "frame {f}: {diff} bytes differ from tessera render");
+    }
+}
+
+fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread().enable_all().build().expect("runtime")
+}
+
+async fn jobs_client(url: &str) -> JobServiceClient<Channel> {
+    JobServiceClient::connect(url.to_string()).await.expect("connect")
+}
+
+fn status(url: &str, job: &str) -> pb::JobStatus {
+    rt().block_on(async { jobs_client(url).await.get_job(pb::GetJobRequest { job_id: job.into() }).await.expect("get job").into_inner() })
+}
+
+fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !f() {
+        assert!(start.elapsed() < timeout, "timed out after {timeout:?} waiting for {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn submit(url: &str, scene: &Path, args: &[&str]) -> String {
+    let mut a = vec!["submit", scene.to_str().expect("path")];
+    a.extend_from_slice(args);
+    ok_stdout(&tessera(&a, url)).trim().to_string()
+}
+
+fn wait_done(url: &str, job: &str, timeout: Duration) -> pb::JobStatus {
+    let mut last = None;
+    wait_for(&format!("job {job} to finish"), timeout, || {
+        let s = status(url, job);
+        let done = s.state == pb::JobState::Done as i32;
+        assert!(s.state != pb::JobState::Failed as i32, "job failed: {}", s.error);
+        last = Some(s);
+        done
+    });
+    last.expect("status")
+}
+
+const SMALL: &[&str] = &["--width", "96", "--height", "72", "--samples", "4"];
+
+#[test]
+fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_tessera_render() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let _w: Vec<Proc> = (0..3).map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}"))).collect();
+
+    let scene = repo("examples/resolution.toml");
+    let settings = ["--width", "160", "--height", "120", "--samples", "4"];
+    let mut args = settings.to_vec();
+    args.extend(["--tile-size", "16", "--wait"]); // 80 units: every worker gets some
+    let job = submit(&c.url(), &scene, &args);
+    assert!(job.starts_with('j') && !job.contains(char::is_whitespace), "submit prints only the id: {job:?}");
+    let s = status(&c.url(), &job);
+    assert_eq!(s.state, pb::JobState::Done as i32);
+    assert_eq!((s.units_total, s.units_done, s.units_accepted, s.results_duplicate), (80, 80, 80, 0));
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+
+    let anim = repo("examples/animation.toml");
+    let mut args = SMALL.to_vec();
+    args.extend(["--frames", "1..5", "--tile-size", "32", "--samples-per-unit", "2"]);
+    let job = submit(&c.url(), &anim, &args);
+    let s = wait_done(&c.url(), &job, Duration::from_secs(120));
+    assert_eq!(s.frames.iter().map(|f| f.output.as_str()).collect::<Vec<_>>(), ["frame_0001.png", "frame_0002.png", "frame_0003.png", "frame_0004.png", "frame_0005.png"]);
+    assert_eq!(s.units_accepted, 5 * 9 * 2); // 9 tiles of 32 px, 2 sample batches, 5 frames
+    assert_frames_match_render(dir.path(), &c.url(), &job, &anim, 1..=5, SMALL);
+    // Every worker took part.
+    let workers = rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers });
+    assert_eq!(workers.len(), 3);
+    assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
+}
+
+#[test]
+fn a_worker_killed_mid_job_loses_nothing() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--lease-timeout", "1.5", "--heartbeat-interval", "0.3"]);
+    let mut victim = start_worker(dir.path(), &c.url(), "victim");
+    let _other = start_worker(dir.path(), &c.url(), "survivor");
+    let scene = repo("examples/resolution.toml");
+    let settings = ["--width", "192", "--height", "144", "--samples", "16"];
+    let mut args = settings.to_vec();
+    args.extend(["--tile-size", "16"]);
+    let job = submit(&c.url(), &scene, &args);
+    wait_for("some units done", Duration::from_secs(60), || status(&c.url(), &job).units_done >= 4);
+    victim.sigkill();
+    assert!(status(&c.url(), &job).units_done < 108, "the worker was killed mid-job");
+    let s = wait_done(&c.url(), &job, Duration::from_secs(120));
+    assert_eq!((s.units_accepted, s.units_total, s.results_duplicate), (108, 108, 0));
+    assert!(c.proc.log().contains("worker left"), "the coordinator noticed the dead worker");
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+}
+
+#[test]
+fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
+    let addr = c.addr.clone();
+    let url = c.url();
+    let _w: Vec<Proc> = (0..2).map(|i| start_worker(dir.path(), &url, &format!("w{i}"))).collect();
+    let scene = repo("examples/animation.toml");
+    let settings = ["--width", "192", "--height", "144", "--samples", "16"];
+    let mut args = settings.to_vec();
+    args.extend(["--frames", "1..3", "--tile-size", "16"]);
+    let job = submit(&url, &scene, &args);
+    let total = 3 * 108;
+    let mut before = 0;
+    wait_for("a third of the units", Duration::from_secs(60), || {
+        before = status(&url, &job).units_done;
+        before >= total / 3
+    });
+    c.proc.sigkill();
+    // Restart on the same address: the workers reconnect on their own.
+    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
+    let restored = status(&url, &job);
+    assert!(restored.units_done >= before, "restored {} finished units, {} were reported before the kill", restored.units_done, before);
+    assert_eq!(restored.units_accepted, restored.units_done, "every restored unit was accepted exactly once");
+    assert!(restored.units_done < total, "the coordinator was killed mid-job");
+    let s = wait_done(&url, &job, Duration::from_secs(120));
+    // units_accepted is committed with each unit's film: had a finished unit
+    // been rendered and accepted again, it would exceed units_total.
+    assert_eq!((s.units_accepted, s.units_total, s.results_duplicate), (total, total, 0));
+    assert!(c.proc.log().contains("job restored"));
+    for w in &_w {
+        assert_eq!(w.log().matches("registered").count(), 2, "the worker reconnected: {}", w.log());
+    }
+    assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
+}
+
+/// Speaks the worker protocol with bad data: a real gRPC client, not a mock.
+#[test]
+fn malformed_results_are_rejected_and_late_results_dropped() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--lease-timeout", "1"]);
+    let scene = repo("examples/resolution.toml");
+    // Three rejections of the same unit must not fail the job here.
+    let job = submit(&c.url(), &scene, &[SMALL, &["--tile-size", "32", "--max-attempts", "5"]].concat());
+    let url = c.url();
+    rt().block_on(async {
+        let mut w = WorkerServiceClient::connect(url.clone()).await.expect("connect");
+        let id = w.register(pb::RegisterRequest { name: "bad".into(), capabilities: None }).await.expect("register").into_inner().worker_id;
+        let lease = |w: &mut WorkerServiceClient<Channel>| {
+            let mut w = w.clone();
+            let id = id.clone();
+            async move {
+                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id, max_units: 1 }).await.expect("lease").into_inner().units;
+                units.into_iter().next().expect("a unit")
+            }
+        };
+        let result = |u: &pb::WorkUnit, sums: usize, count: u32| {
+            let r = u.rect.expect("rect");
+            let n = (r.width * r.height) as usize;
+            let s = u.samples.expect("samples");
+            pb::SubmitResultRequest {
+                worker_id: id.clone(),
+                lease_id: u.lease_id.clone(),
+                rect: Some(r),
+                samples: Some(s),
+                sums: vec![0; sums * 24],
+                counts: count.to_le_bytes().repeat(n),
+                rays: Some(pb::RayCounts { primary: n as u64 * (s.end - s.start) as u64, ..Default::default() }),
+                render_seconds: 0.01,
+                ..Default::default()
+            }
+        };
+        // Wrong size.
+        let u = lease(&mut w).await;
+        let n = (u.rect.unwrap().width * u.rect.unwrap().height) as usize;
+        let r = w.submit_result(result(&u, n - 1, 4)).await.expect("submit").into_inner();
+        assert_eq!(r.outcome, pb::ResultOutcome::Rejected as i32);
+        assert!(r.reason.contains(&format!("sums field has {} bytes, expected {}", (n - 1) * 24, n * 24)), "{}", r.reason);
+        // Right size, wrong sample counts.
+        let u = lease(&mut w).await;
+        let r = w.submit_result(result(&u, n, 5)).await.expect("submit").into_inner();
+        assert_eq!(r.outcome, pb::ResultOutcome::Rejected as i32);
+        assert!(r.reason.contains("has 5 samples, expected 4"), "{}", r.reason);
+        // A rect that is not the leased one.
+        let u = lease(&mut w).await;
+        let mut bad = result(&u, n, 4);
+        bad.rect.as_mut().unwrap().x += 1;
+        let r = w.submit_result(bad).await.expect("submit").into_inner();
+        assert_eq!(r.outcome, pb::ResultOutcome::Rejected as i32, "{}", r.reason);
+        assert!(r.reason.contains("does not match the leased rect"), "{}", r.reason);
+        // Well-formed but after the lease expired (no heartbeats): dropped.
+        let u = lease(&mut w).await;
+        tokio::time::sleep(Duration::from_millis(1600)).await;
+        let r = w.submit_result(result(&u, n, 4)).await.expect("submit").into_inner();
+        assert_eq!(r.outcome, pb::ResultOutcome::Late as i32, "{}", r.reason);
+    });
+    let log = c.proc.log();
+    assert!(log.contains("result rejected") && log.contains("lease expired"), "{log}");
+    // Real workers finish the job; nothing of the bad data got in.
+    let _w = start_worker(dir.path(), &c.url(), "good");
+    let s = wait_done(&c.url(), &job, Duration::from_secs(60));
+    assert_eq!((s.results_rejected, s.results_late, s.units_accepted), (3, 1, s.units_total));
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, SMALL);
+}
+
+#[test]
+fn a_unit_failing_repeatedly_fails_the_job_with_the_workers_messages() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let scene = repo("examples/resolution.toml");
+    let job = submit(&c.url(), &scene, &[SMALL, &["--max-attempts", "2"]].concat());
+    let url = c.url();
+    rt().block_on(async {
+        let mut w = WorkerServiceClient::connect(url.clone()).await.expect("connect");
+        for (name, msg) in [("flaky-a", "out of memory"), ("flaky-b", "device lost")] {
+            let id = w.register(pb::RegisterRequest { name: name.into(), capabilities: None }).await.expect("register").into_inner().worker_id;
+            let u = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: 1 }).await.expect("lease").into_inner().units;
+            let u = u.into_iter().next().expect("a unit");
+            let r = w
+                .submit_result(pb::SubmitResultRequest { worker_id: id, lease_id: u.lease_id, failure: msg.into(), ..Default::default() })
+                .await
+                .expect("submit")
+                .into_inner();
+            assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+        }
+    });
+    let s = status(&c.url(), &job);
+    assert_eq!(s.state, pb::JobState::Failed as i32);
+    assert!(s.error.contains("failed 2 times: worker flaky-a: out of memory; worker flaky-b: device lost"), "{}", s.error);
+    let watch = tessera(&["watch", &job], &c.url());
+    assert_eq!(watch.status.code(), Some(3), "watch exits 3 for a failed job");
+}
+
+#[test]
+fn cancel_stops_the_workers_within_a_heartbeat() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
+    let w = start_worker(dir.path(), &c.url(), "busy");
+    let scene = repo("examples/resolution.toml");
+    // One unit that takes many seconds on one thread.
+    let job = submit(&c.url(), &scene, &["--width", "320", "--height", "240", "--samples", "64", "--tile-size", "4096"]);
+    wait_for("the worker to start the unit", Duration::from_secs(30), || {
+        rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
+            .iter()
+            .any(|w| w.leases == 1)
+    });
+    std::thread::sleep(Duration::from_millis(300));
+    let cancelled_at = Instant::now();
+    let out = tessera(&["cancel", &job], &c.url());
+    assert!(out.status.success());
+    wait_for("the worker to abandon the unit", Duration::from_secs(5), || w.log().contains("abandoned its unit"));
+    let took = cancelled_at.elapsed();
+    // A heartbeat (0.3 s) plus one band of 16 rows (~0.5 s here) and slack.
+    assert!(took < Duration::from_secs(3), "worker stopped {took:?} after cancel");
+    let watch = tessera(&["watch", &job], &c.url());
+    assert_eq!(watch.status.code(), Some(4), "watch exits 4 for a cancelled job");
+    assert_eq!(status(&c.url(), &job).state, pb::JobState::Cancelled as i32);
+    // The worker is free again: a small job goes through at once.
+    let small = submit(&c.url(), &scene, &[SMALL, &["--wait"]].concat());
+    assert_eq!(status(&c.url(), &small).state, pb::JobState::Done as i32);
+}
+
+#[test]
+fn bad_requests_get_clear_errors() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--max-message-bytes", "65536"]);
+
+    // An invalid scene: refused at submit with exactly `tessera render`'s message.
+    let src = std::fs::read_to_string(repo("examples/resolution.toml")).expect("scene");
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, src.replacen("radius = 1.0", "radius = -1.0", 1)).expect("write");
+    let bad = bad.to_str().expect("path");
+    let rendered = Command::new(TESSERA).args(["render", bad, "-o", "/dev/null.png"]).output().expect("render");
+    let submitted = tessera(&["submit", bad], &c.url());
+    assert!(!rendered.status.success() && !submitted.status.success());
+    let msg = String::from_utf8_lossy(&submitted.stderr).to_string();
+    assert_eq!(msg, String::from_utf8_lossy(&rendered.stderr), "submit and render print the same error");
+    assert!(msg.contains("radius: must be a finite number > 0, got -1"), "{msg}");
+    assert!(submitted.stdout.is_empty());
+    // Bad settings too.
+    let out = tessera(&["submit", repo("examples/resolution.toml").to_str().expect("path"), "--samples", "0"], &c.url());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("invalid render settings: samples must be in 1..=65536, got 0"));
+
+    // A request over the coordinator's limit.
+    let big = dir.path().join("big.toml");
+    std::fs::write(&big, format!("{src}\n# {}\n", "x".repeat(100_000))).expect("write");
+    let out = tessera(&["submit", big.to_str().expect("path")], &c.url());
+    let msg = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && msg.contains("message length too large") && msg.contains("65536"), "{msg}");
+    let listed = ok_stdout(&tessera(&["jobs"], &c.url()));
+    assert_eq!(listed.lines().count(), 1, "no job was accepted: {listed}");
+
+    // A client speaking another protocol version.
+    let url = c.url();
+    let err = rt().block_on(async {
+        let mut client = jobs_client(&url).await;
+        let mut req = tonic::Request::new(pb::ListJobsRequest {});
+        req.metadata_mut().insert(tessera_proto::PROTOCOL_VERSION_KEY, "2".parse().expect("metadata"));
+        client.list_jobs(req).await.expect_err("refused")
+    });
+    assert_eq!(err.code(), tonic::Code::FailedPrecondition);
+    assert_eq!(
+        err.message(),
+        "protocol version mismatch: the client speaks tessera protocol 2, this coordinator speaks 1; \
+         use a client and coordinator from the same Tessera release"
+    );
+}
+
+/// A client that is not Tessera's Rust code: Python grpcio with stubs
+/// generated from proto/ at test time.
+#[test]
+fn python_grpcio_client_submits_and_watches_a_job() {
+    let _g = serial();
+    let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
+    let has = |py: &str| Command::new(py).args(["-c", "import grpc, grpc_tools"]).status().is_ok_and(|s| s.success());
+    if !has(&python) {
+        let pip = Command::new(&python).args(["-m", "pip", "install", "--quiet", "grpcio", "grpcio-tools"]).status();
+        assert!(pip.is_ok_and(|s| s.success()) && has(&python), "this test needs Python with grpcio and grpcio-tools (pip install grpcio grpcio-tools)");
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let _w = start_worker(dir.path(), &c.url(), "py");
+    let stubs = dir.path().join("stubs");
+    std::fs::create_dir_all(&stubs).expect("mkdir");
+    let protoc = Command::new(&python)
+        .args(["-m", "grpc_tools.protoc", "-I"])
+        .arg(repo("proto"))
+        .arg(format!("--python_out={}", stubs.display()))
+        .arg(format!("--grpc_python_out={}", stubs.display()))
+        .args(["tessera/v1/common.proto", "tessera/v1/jobs.proto", "tessera/v1/workers.proto"])
+        .output()
+        .expect("protoc");
+    assert!(protoc.status.success(), "{}", String::from_utf8_lossy(&protoc.stderr));
+    let out = Command::new(&python)
+        .arg(repo("tests/python/generic_client.py"))
+        .arg(&c.addr)
+        .arg(repo("examples/resolution.toml"))
+        .env("PYTHONPATH", &stubs)
+        .output()
+        .expect("python client");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    let job = stdout.lines().next().and_then(|l| l.strip_prefix("job ")).expect("job id line").to_string();
+    assert!(stdout.lines().any(|l| l == "final JOB_STATE_DONE 100.0"), "{stdout}");
+    assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
+}
+
+#[test]
+fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
+    let mut w = start_worker(dir.path(), &c.url(), "drainer");
+    let scene = repo("examples/resolution.toml");
+    let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "16", "--tile-size", "128"]);
+    wait_for("the worker to hold a unit", Duration::from_secs(30), || {
+        rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
+            .iter()
+            .any(|w| w.leases == 1)
+    });
+    w.sigterm();
+    let start = Instant::now();
+    let code = loop {
+        if let Some(s) = w.child.try_wait().expect("wait") {
+            break s;
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "worker did not exit after SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(code.success(), "drained worker exits 0, got {code}");
+    let s = status(&c.url(), &job);
+    assert_eq!(s.units_done, 1, "the unit in progress was finished and accepted, and no other started");
+    assert_eq!(s.units_accepted, 1);
+    assert!(w.log().contains("draining"), "{}", w.log());
+    assert!(!c.proc.log().contains("lease expired"));
+}

@@ -1,0 +1,59 @@
+//! Helpers shared by the tracer-core integration tests.
+#![allow(dead_code)]
+
+use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::scene::{RenderSettings, SceneDesc};
+
+pub fn scene(src: &str) -> SceneDesc {
+    SceneDesc::parse(src, "test.toml").unwrap_or_else(|e| panic!("test scene does not parse: {e}"))
+}
+
+pub fn examples_dir() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples")
+}
+
+/// Renders the whole image of `desc` with `settings`.
+pub fn render_with(desc: &SceneDesc, settings: &RenderSettings, precision: Precision) -> Film {
+    let frame = PreparedFrame::build(desc, settings, 0, precision).expect("settings are valid");
+    let film = CpuRenderer::new(None)
+        .unwrap()
+        .render(&frame, 0, Rect::full(settings.width, settings.height), SampleRange::all(settings.samples), &|_| {})
+        .unwrap();
+    assert_eq!(film.nonfinite, 0, "a NaN or infinite sample reached the film");
+    film
+}
+
+pub fn render(desc: &SceneDesc, precision: Precision) -> Film {
+    render_with(desc, &desc.render, precision)
+}
+
+/// Per-channel absolute differences of two resolved images.
+pub struct Diff {
+    pub max: f32,
+    pub mean: f64,
+    /// Pixels whose largest channel difference exceeds the threshold given to [`diff`].
+    pub over: usize,
+    pub pixels: usize,
+}
+
+pub fn diff(a: &[[f32; 3]], b: &[[f32; 3]], threshold: f32) -> Diff {
+    assert_eq!(a.len(), b.len());
+    let mut d = Diff { max: 0.0, mean: 0.0, over: 0, pixels: a.len() };
+    for (p, q) in a.iter().zip(b) {
+        let m = (0..3).map(|c| (p[c] - q[c]).abs()).fold(0.0f32, f32::max);
+        d.max = d.max.max(m);
+        d.mean += m as f64;
+        if m > threshold {
+            d.over += 1;
+        }
+    }
+    d.mean /= a.len() as f64;
+    d
+}
+
+pub fn assert_finite(img: &[[f32; 3]]) {
+    for (i, p) in img.iter().enumerate() {
+        assert!(p.iter().all(|c| c.is_finite()), "pixel {i} is not finite: {p:?}");
+    }
+}
