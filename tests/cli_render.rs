@@ -99,7 +99,7 @@ fn malformed_scenes_are_rejected_with_file_line_and_reason() {
     expect_failure(&GOOD.replace("normal = [0, 1, 0]", "normal = [0, 0, 0]"), &[], &["bad.toml:20:1: objects[1] (plane).normal: must be a finite, non-zero vector"]);
     expect_failure(&GOOD.replace("radius = 1", "radius = nan"), &[], &["objects[0] (sphere).radius: must be a finite number > 0, got NaN"]);
     expect_failure(&GOOD.replace("position = [0, 5, -5]", "position = [0, inf, -5]"), &[], &["bad.toml:12:1: lights[0].position: must be finite"]);
-    expect_failure(&GOOD.replace("look_at = [0, 1, 0]", "look_at = [0, 1, -6]"), &[], &["camera.look_at: must differ from camera.position"]);
+    expect_failure(&GOOD.replace("look_at = [0, 1, 0]", "look_at = [0, 1, -6]"), &[], &["camera.look_at: must differ from the camera position"]);
     expect_failure(&GOOD.replace("samples = 1", "samples = 0"), &[], &["render: samples must be in 1..=65536, got 0"]);
 }
 

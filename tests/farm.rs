@@ -225,7 +225,8 @@ fn a_worker_killed_mid_job_loses_nothing() {
     assert!(status(&c.url(), &job).units_done < 108, "the worker was killed mid-job");
     let s = wait_done(&c.url(), &job, Duration::from_secs(120));
     assert_eq!((s.units_accepted, s.units_total, s.results_duplicate), (108, 108, 0));
-    assert!(c.proc.log().contains("worker left"), "the coordinator noticed the dead worker");
+    // Within a lease timeout (1.5 s) of its last heartbeat.
+    wait_for("the coordinator to notice the dead worker", Duration::from_secs(5), || c.proc.log().contains("worker left"));
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
 }
 
@@ -454,7 +455,7 @@ fn python_grpcio_client_submits_and_watches_a_job() {
         assert!(pip.is_ok_and(|s| s.success()) && has(&python), "this test needs Python with grpcio and grpcio-tools (pip install grpcio grpcio-tools)");
     }
     let dir = tempfile::tempdir().expect("tempdir");
-    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--log-format", "json"]);
     let _w = start_worker(dir.path(), &c.url(), "py");
     let stubs = dir.path().join("stubs");
     std::fs::create_dir_all(&stubs).expect("mkdir");
@@ -479,6 +480,10 @@ fn python_grpcio_client_submits_and_watches_a_job() {
     let job = stdout.lines().next().and_then(|l| l.strip_prefix("job ")).expect("job id line").to_string();
     assert!(stdout.lines().any(|l| l == "final JOB_STATE_DONE 100.0"), "{stdout}");
     assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
+    // --log-format json: one JSON object per line.
+    let log = c.proc.log();
+    assert!(log.lines().all(|l| l.starts_with('{') && l.ends_with('}')), "{log}");
+    assert!(log.contains(r#""message":"job accepted""#) && log.contains(r#""message":"job done""#), "{log}");
 }
 
 #[test]
@@ -488,7 +493,8 @@ fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
     let mut w = start_worker(dir.path(), &c.url(), "drainer");
     let scene = repo("examples/resolution.toml");
-    let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "16", "--tile-size", "128"]);
+    // Two units of over a second each, so SIGTERM lands inside the first.
+    let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "64", "--tile-size", "128"]);
     wait_for("the worker to hold a unit", Duration::from_secs(30), || {
         rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
             .iter()

@@ -226,6 +226,8 @@ struct Lease {
     rect: Rect,
     samples: SampleRange,
     deadline: Instant,
+    /// Pixel-samples the worker reports done (heartbeats).
+    progress: u64,
 }
 
 struct Worker {
@@ -559,6 +561,7 @@ impl Farm {
         let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
         let speed = worker.speed;
+        let workers = st.workers.len();
         let mut order: Vec<(&String, &Job)> = st.jobs.iter().filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty()).collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
         let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
@@ -568,8 +571,12 @@ impl Farm {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
                 let Some(&first) = job.pending.iter().next() else { break };
                 let base = job.layout.unit_samples(job.layout.unit(first)).max(1) as f64;
+                // Near the end of a job, big leases would leave the other
+                // workers idle while one finishes: keep at least two leases'
+                // worth of pending units per worker.
+                let fair = (job.pending.len() / (2 * workers).max(1)).max(1) as u32;
                 let want = if speed > 0.0 {
-                    ((speed * self.config.target_unit_seconds / base).floor() as u32).clamp(1, self.config.max_tiles_per_lease)
+                    ((speed * self.config.target_unit_seconds / base).floor() as u32).clamp(1, self.config.max_tiles_per_lease).min(fair)
                 } else {
                     1
                 };
@@ -621,6 +628,7 @@ impl Farm {
                         rect,
                         samples,
                         deadline: Instant::now() + self.config.lease_timeout,
+                        progress: 0,
                     },
                 );
                 st.workers.get_mut(worker_id).expect("worker checked").leases.insert(lease_id.clone());
@@ -641,9 +649,12 @@ impl Farm {
         worker.last_seen = Instant::now();
         let deadline = Instant::now() + self.config.lease_timeout;
         let mut gone = Vec::new();
-        for (id, _samples_done) in leases {
+        for (id, samples_done) in leases {
             match st.leases.get_mut(id) {
-                Some(l) if l.worker == worker_id => l.deadline = deadline,
+                Some(l) if l.worker == worker_id => {
+                    l.deadline = deadline;
+                    l.progress = *samples_done;
+                }
                 _ => gone.push(id.clone()),
             }
         }
@@ -653,7 +664,7 @@ impl Farm {
     /// Takes a worker's result: accepted only from the lease's holder, only
     /// once, and only if it is exactly the leased unit's data.
     pub async fn submit_result(self: &Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
-        let taken: Result<(String, Vec<u32>, u32), (Outcome, Option<JobRecord>, Option<(String, Counters)>)> = 'take: {
+        let taken: Result<Taken, Refused> = 'take: {
             let mut st = self.state.lock().expect("state lock");
             let st = &mut *st;
             if let Some(w) = st.workers.get_mut(&r.worker_id) {
@@ -905,10 +916,8 @@ impl Farm {
                 w.name.clone()
             });
             tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
-            if let Some(job) = st.jobs.get_mut(&l.job) {
-                if !job.state.is_terminal() {
-                    job.pending.extend(l.units.iter().copied());
-                }
+            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                job.pending.extend(l.units.iter().copied());
             }
             st.end_lease(id, l.job, false);
         }
@@ -945,11 +954,17 @@ impl Farm {
                 rays_per_s = format!("{:.3e}", v.rays_per_second),
                 eta_s = format!("{:.1}", v.eta_seconds),
                 leases = st.leases.values().filter(|l| l.job == job.rec.id).count(),
+                in_flight_samples = st.leases.values().filter(|l| l.job == job.rec.id).map(|l| l.progress).sum::<u64>(),
                 "progress"
             );
         }
     }
 }
+
+/// A result's lease, taken for commit: (job, units, frame).
+type Taken = (String, Vec<u32>, u32);
+/// A result not taken: its outcome, and a job record and counters to persist.
+type Refused = (Outcome, Option<JobRecord>, Option<(String, Counters)>);
 
 fn unknown_worker(id: &str) -> FarmError {
     FarmError::NotFound(format!("unknown worker {id:?}: register again (the coordinator restarted or timed the worker out)"))
@@ -1150,4 +1165,78 @@ type UnitIndex = u32;
 /// Rays of a counters record as tracer-core's type.
 pub fn rays_of(c: &Counters) -> RayCounts {
     RayCounts { primary: c.rays[0], shadow: c.rays[1], reflection: c.rays[2], refraction: c.rays[3] }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SCENE: &str = r#"
+[camera]
+position = [0, 1, -6]
+look_at = [0, 1, 0]
+[materials.red]
+diffuse = [1, 0, 0]
+[[objects]]
+type = "sphere"
+center = [0, 1, 0]
+radius = 1
+material = "red"
+"#;
+
+    /// A well-formed result for a lease, as a worker taking `seconds` would send.
+    fn result(worker: &str, l: &LeaseView, seconds: f64) -> ResultData {
+        let mut film = Film::new(l.rect);
+        film.counts.iter_mut().for_each(|c| *c = l.samples.len());
+        film.rays.primary = l.rect.area() as u64 * l.samples.len() as u64;
+        ResultData {
+            worker_id: worker.into(),
+            lease_id: l.lease_id.clone(),
+            rect: l.rect,
+            samples: l.samples,
+            film: Ok(film),
+            render_seconds: seconds,
+            failure: None,
+        }
+    }
+
+    #[tokio::test]
+    async fn faster_workers_get_larger_units_and_results_count_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let job = farm
+            .submit(Submission {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                scene: SCENE.as_bytes().to_vec(),
+                assets: vec![],
+                overrides: Overrides { width: Some(512), height: Some(64), samples: Some(4), ..Default::default() },
+                first_frame: 0,
+                last_frame: 0,
+                priority: 0,
+                tile_size: 16,
+                samples_per_unit: 0,
+                max_attempts: 0,
+            })
+            .await
+            .unwrap();
+        let fast = farm.register("fast".into(), 8, "cpu".into(), String::new(), String::new());
+        let slow = farm.register("slow".into(), 1, "cpu".into(), String::new(), String::new());
+        // Unknown speed: one tile each.
+        let (f1, s1) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
+        assert_eq!((f1.rect.width, s1.rect.width), (16, 16));
+        // A 16x16x4 unit in 1 ms vs in 1 s.
+        assert_eq!(farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap(), Outcome::Accepted);
+        let (f2, s2) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
+        assert_eq!(f2.rect.width, 16 * farm.config.max_tiles_per_lease, "the fast worker gets a row of joined tiles");
+        assert_eq!(s2.rect.width, 16, "the slow worker keeps single tiles");
+        // A result counts once; the same lease again is a duplicate, dropped.
+        assert_eq!(farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(), Outcome::Accepted);
+        assert!(matches!(farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(), Outcome::Duplicate(_)));
+        // Another worker cannot complete a lease it does not hold.
+        assert!(matches!(farm.submit_result(result(&fast, &s2, 0.01)).await.unwrap(), Outcome::Rejected(_)));
+        let v = farm.job(&job).unwrap();
+        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate), (18, 18, 1));
+    }
 }

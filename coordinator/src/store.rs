@@ -224,6 +224,8 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
         let mut assets = w.open_table(ASSETS)?;
         let mut films = w.open_table(UNIT_FILMS)?;
         let mut frames = w.open_table(FRAMES_WRITTEN)?;
+        // Counter changes of the whole batch, applied once per job at the end.
+        let mut updates: BTreeMap<&str, (Option<&Counters>, u64, [u64; 4])> = BTreeMap::new();
         for op in ops {
             match op {
                 Op::PutJob(rec) => {
@@ -234,24 +236,17 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                     assets.insert(sha256.as_str(), content.as_slice())?;
                 }
                 Op::PutCounters { job, counters: c } => {
-                    let mut stored = read_counters(&counters, job)?;
-                    stored.results_rejected = c.results_rejected;
-                    stored.results_late = c.results_late;
-                    stored.results_duplicate = c.results_duplicate;
-                    let json = serde_json::to_vec(&stored).expect("counters serialise");
-                    counters.insert(job.as_str(), json.as_slice())?;
+                    updates.entry(job.as_str()).or_default().0 = Some(c);
                 }
                 Op::AcceptUnits { job, units, rays } => {
                     for (unit, film) in units {
                         films.insert((job.as_str(), *unit), encode_film(film).as_slice())?;
                     }
-                    let mut stored = read_counters(&counters, job)?;
-                    stored.units_accepted += units.len() as u64;
-                    for (a, b) in stored.rays.iter_mut().zip(rays) {
+                    let u = updates.entry(job.as_str()).or_default();
+                    u.1 += units.len() as u64;
+                    for (a, b) in u.2.iter_mut().zip(rays) {
                         *a += b;
                     }
-                    let json = serde_json::to_vec(&stored).expect("counters serialise");
-                    counters.insert(job.as_str(), json.as_slice())?;
                 }
                 Op::FrameWritten { job, frame, file, units } => {
                     frames.insert((job.as_str(), *frame), file.as_str())?;
@@ -260,6 +255,22 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                     }
                 }
             }
+        }
+        for (job, (set, accepted, rays)) in updates {
+            let mut stored = read_counters(&counters, job)?;
+            if let Some(c) = set {
+                // Counters not tied to accepted units; the accepted count and
+                // rays are only ever incremented with the units' films.
+                stored.results_rejected = c.results_rejected;
+                stored.results_late = c.results_late;
+                stored.results_duplicate = c.results_duplicate;
+            }
+            stored.units_accepted += accepted;
+            for (a, b) in stored.rays.iter_mut().zip(rays) {
+                *a += b;
+            }
+            let json = serde_json::to_vec(&stored).expect("counters serialise");
+            counters.insert(job, json.as_slice())?;
         }
     }
     w.commit()?;

@@ -92,18 +92,6 @@ impl TryFrom<pb::RenderSettings> for RenderSettings {
     }
 }
 
-/// The scene's settings with a request's overrides applied (not yet validated).
-pub fn apply_overrides(scene: &RenderSettings, o: Option<&pb::RenderOverrides>) -> RenderSettings {
-    let Some(o) = o else { return *scene };
-    RenderSettings {
-        width: o.width.unwrap_or(scene.width),
-        height: o.height.unwrap_or(scene.height),
-        samples: o.samples.unwrap_or(scene.samples),
-        max_depth: o.max_depth.unwrap_or(scene.max_depth),
-        sampler: sampler_from_pb(o.sampler).unwrap_or(scene.sampler),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -118,14 +106,5 @@ mod tests {
         let mut bad = pb::RenderSettings::from(s);
         bad.sampler = 0;
         assert!(RenderSettings::try_from(bad).is_err());
-    }
-
-    #[test]
-    fn overrides_replace_only_what_they_set() {
-        let scene = RenderSettings::default();
-        let o = pb::RenderOverrides { width: Some(10), samples: Some(1), ..Default::default() };
-        let s = apply_overrides(&scene, Some(&o));
-        assert_eq!((s.width, s.height, s.samples, s.max_depth), (10, scene.height, 1, scene.max_depth));
-        assert_eq!(s.sampler, scene.sampler);
     }
 }

@@ -74,11 +74,41 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
     }
     eprintln!("cluster: coordinator at {url} with {} worker(s) of {threads} thread(s); Ctrl-C stops everything", args.workers);
     eprintln!("try:     TESSERA_COORDINATOR={url} tessera submit examples/resolution.toml --wait");
-    // Ctrl-C reaches the whole process group; wait for the coordinator to go.
-    let status = children.0[0].wait().context("waiting for the coordinator")?;
-    for c in children.0.iter_mut().skip(1) {
-        let _ = c.wait();
+    // Ctrl-C on a terminal reaches every process of the group: the workers
+    // drain and the coordinator stops by themselves. A signal sent to this
+    // process alone gives them a few seconds, then they are killed (the
+    // coordinator's state is safe either way).
+    let rt = super::farm_common::runtime()?;
+    let stopped = rt.block_on(async {
+        tokio::select! {
+            _ = super::coordinator::shutdown_signal() => true,
+            _ = wait_exit(&mut children.0[0]) => false,
+        }
+    });
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(if stopped { 5 } else { 0 });
+    let mut ok = true;
+    for c in children.0.iter_mut() {
+        loop {
+            match c.try_wait() {
+                Ok(Some(s)) => {
+                    ok &= s.success();
+                    break;
+                }
+                Ok(None) if std::time::Instant::now() < deadline => std::thread::sleep(std::time::Duration::from_millis(50)),
+                _ => {
+                    let _ = c.kill();
+                    let _ = c.wait();
+                    break;
+                }
+            }
+        }
     }
     children.0.clear();
-    Ok(if status.success() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+    Ok(if ok || stopped { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+}
+
+async fn wait_exit(c: &mut Child) {
+    while let Ok(None) = c.try_wait() {
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
 }

@@ -280,12 +280,12 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator.url).await?;
         let ws = client.list_workers(pb::ListWorkersRequest {}).await.map_err(rpc)?.into_inner().workers;
-        println!("{:<16} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12}", "ID", "NAME", "BACKEND", "THREADS", "LEASES", "UNITS", "MSAMPLES/S");
+        println!("{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12}", "ID", "NAME", "BACKEND", "THREADS", "LEASES", "UNITS", "MSAMPLES/S");
         for w in ws {
             let c = w.capabilities.unwrap_or_default();
             let backend = if c.backend == pb::Backend::Gpu as i32 { "gpu" } else { "cpu" };
             println!(
-                "{:<16} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2}",
+                "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2}",
                 w.worker_id,
                 w.name,
                 backend,
