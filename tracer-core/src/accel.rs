@@ -13,10 +13,10 @@ use crate::world::{Features, Material, World};
 /// Scenes with fewer spheres than this and no triangles keep the plain loop
 /// over spheres: a tree only adds box tests there. Measured with
 /// `cargo run --release -p tracer-core --example accel_crossover` (2-core
-/// machine, one thread, rays per CPU-second): the loop wins at 1-2 spheres
-/// (25 vs 20 M rays/s), ties at 4, loses from 6 (18 vs 21) on. Re-measure
-/// when the sphere loop gets faster.
-pub const SPHERE_BVH_MIN: usize = 6;
+/// machine, one thread, rays per CPU-second, the 4-wide `SpherePack` loop):
+/// the loop wins up to 4 spheres (25 vs 23 M rays/s), ties at 6-8, loses
+/// from 10 on (20 vs 23; 9 vs 21 at 64). Re-measure when either gets faster.
+pub const SPHERE_BVH_MIN: usize = 10;
 
 /// Triangles of a world under construction.
 #[derive(Default)]
