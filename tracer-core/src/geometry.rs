@@ -15,6 +15,8 @@ impl PrimId {
     const KIND_SHIFT: u32 = 28;
     pub const SPHERE: u32 = 0;
     pub const PLANE: u32 = 1;
+    /// Index into `World::triangles` (see `triangle.rs`).
+    pub const TRIANGLE: u32 = 2;
 
     #[inline(always)]
     pub fn new(kind: u32, index: u32) -> Self {

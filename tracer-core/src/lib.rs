@@ -35,9 +35,13 @@
 //! ```
 
 pub mod film;
+pub mod accel;
+pub mod bvh;
 pub mod geometry;
 pub mod math;
+pub mod mesh;
 pub mod render;
 pub mod sampling;
 pub mod scene;
+pub mod triangle;
 pub mod world;

@@ -88,6 +88,10 @@ pub trait Vector3<R: Real>:
     fn length_squared(self) -> R;
     fn abs(self) -> Self;
     fn max_element(self) -> R;
+    fn min_element(self) -> R;
+    /// Component-wise minimum and maximum (bounding-box tests).
+    fn min(self, o: Self) -> Self;
+    fn max(self, o: Self) -> Self;
     fn is_finite(self) -> bool;
 
     fn zero() -> Self {
@@ -291,6 +295,18 @@ macro_rules! impl_real {
             #[inline(always)]
             fn max_element(self) -> $t {
                 <$v>::max_element(self)
+            }
+            #[inline(always)]
+            fn min_element(self) -> $t {
+                <$v>::min_element(self)
+            }
+            #[inline(always)]
+            fn min(self, o: Self) -> Self {
+                <$v>::min(self, o)
+            }
+            #[inline(always)]
+            fn max(self, o: Self) -> Self {
+                <$v>::max(self, o)
             }
             #[inline(always)]
             fn is_finite(self) -> bool {

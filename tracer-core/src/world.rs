@@ -6,9 +6,12 @@
 //! most, then have small coordinates, so a 1e-4 sphere placed 1e5 from the
 //! world origin is still resolved in `f32`.
 
+use crate::accel::TriangleSet;
+use crate::bvh::Bvh;
 use crate::geometry::{Plane, PrimId, Sphere, SpherePack};
 use crate::math::{Lanes4, Ray, Real, Vector3};
-use crate::scene::{ObjectDesc, RenderSettings, SceneDesc, Vec3};
+use crate::scene::{MaterialDesc, ObjectDesc, RenderSettings, SceneDesc, Vec3, FILE_MATERIALS};
+use crate::triangle::{Triangle, TriangleShading};
 
 #[derive(Clone, Copy, Debug)]
 pub struct Material<R: Real> {
@@ -21,6 +24,21 @@ pub struct Material<R: Real> {
     pub ior: R,
     /// N.H below which max(N.H,0)^shininess < `Real::SPECULAR_FLOOR`.
     pub specular_cos_min: R,
+}
+
+impl<R: Real> Material<R> {
+    pub fn from_desc(m: &MaterialDesc) -> Self {
+        Material {
+            ambient: v::<R>(&m.ambient),
+            diffuse: v::<R>(&m.diffuse),
+            specular: v::<R>(&m.specular),
+            shininess: R::from_f64(m.shininess.0),
+            reflectivity: R::from_f64(m.reflectivity.0),
+            transparency: R::from_f64(m.transparency.0),
+            ior: R::from_f64(m.ior.0),
+            specular_cos_min: R::from_f64(if m.shininess.0 > 0.0 { R::SPECULAR_FLOOR.powf(1.0 / m.shininess.0) } else { 0.0 }),
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -61,12 +79,30 @@ pub struct Features {
     pub refraction: bool,
 }
 
+impl Features {
+    /// Notes what a material in use can reach.
+    pub fn note<R: Real>(&mut self, m: &Material<R>, max_depth: u32) {
+        // Depth 0 reaches no secondary ray at all.
+        self.reflection |= m.reflectivity > R::ZERO && max_depth > 0;
+        self.refraction |= m.transparency > R::ZERO && max_depth > 0;
+    }
+}
+
 #[derive(Clone, Debug)]
 pub struct World<R: Real> {
     pub spheres: Vec<Sphere<R>>,
     /// The same spheres four to a pack, for the intersection loops.
     pub sphere_packs: Vec<SpherePack<R>>,
     pub planes: Vec<Plane<R>>,
+    /// Mesh triangles (vertices only: what traversal touches) ...
+    pub triangles: Vec<Triangle<R>>,
+    /// ... and, at the same index, what shading needs.
+    pub triangle_shading: Vec<TriangleShading<R>>,
+    /// Bounding volume hierarchy over spheres and triangles, when the scene
+    /// has meshes or many spheres (see `accel.rs`); planes stay outside it.
+    pub accel: Option<Bvh>,
+    /// Mesh triangles dropped at build because they have no area.
+    pub degenerate_triangles: usize,
     pub materials: Vec<Material<R>>,
     pub lights: Vec<PointLight<R>>,
     pub ambient: R::V3,
@@ -106,29 +142,16 @@ impl<R: Real> World<R> {
             inv_height: R::from_f64(1.0 / settings.height as f64),
         };
 
-        let materials: Vec<Material<R>> = desc
-            .materials
-            .iter()
-            .map(|(_, m)| Material {
-                ambient: v::<R>(&m.ambient),
-                diffuse: v::<R>(&m.diffuse),
-                specular: v::<R>(&m.specular),
-                shininess: R::from_f64(m.shininess.0),
-                reflectivity: R::from_f64(m.reflectivity.0),
-                transparency: R::from_f64(m.transparency.0),
-                ior: R::from_f64(m.ior.0),
-                specular_cos_min: R::from_f64(if m.shininess.0 > 0.0 { R::SPECULAR_FLOOR.powf(1.0 / m.shininess.0) } else { 0.0 }),
-            })
-            .collect();
+        let mut materials: Vec<Material<R>> = desc.materials.iter().map(|(_, m)| Material::from_desc(m)).collect();
 
         let mut spheres = Vec::new();
         let mut planes = Vec::new();
+        let mut tris = TriangleSet::default();
         let mut features = Features::default();
         for (o, &mat) in desc.objects.iter().zip(&desc.object_materials) {
-            let m = &materials[mat as usize];
-            // Depth 0 reaches no secondary ray at all.
-            features.reflection |= m.reflectivity > R::ZERO && settings.max_depth > 0;
-            features.refraction |= m.transparency > R::ZERO && settings.max_depth > 0;
+            if mat != FILE_MATERIALS {
+                features.note(&materials[mat as usize], settings.max_depth);
+            }
             match o {
                 ObjectDesc::Sphere { center, radius, .. } => spheres.push(Sphere {
                     center: rel::<R>(center, &origin),
@@ -140,6 +163,7 @@ impl<R: Real> World<R> {
                     let d = distance.0 - (n[0] * origin[0] + n[1] * origin[1] + n[2] * origin[2]);
                     planes.push(Plane { normal: R::V3::from_array(n), distance: R::from_f64(d), material: mat })
                 }
+                ObjectDesc::Mesh(m) => tris.add_mesh(m, mat, &mut materials, &mut features, settings.max_depth, origin),
             }
         }
         // Total internal reflection sends transparency into a reflected ray.
@@ -153,10 +177,14 @@ impl<R: Real> World<R> {
             .map(|l| PointLight { position: rel::<R>(&l.position, &origin), diffuse: v::<R>(&l.diffuse), specular: v::<R>(&l.specular) })
             .collect();
 
-        World {
+        let mut world = World {
             sphere_packs: SpherePack::pack(&spheres),
             spheres,
             planes,
+            triangles: tris.triangles,
+            triangle_shading: tris.shading,
+            accel: None,
+            degenerate_triangles: tris.degenerate,
             materials,
             lights,
             ambient: v::<R>(&desc.world.ambient),
@@ -165,7 +193,9 @@ impl<R: Real> World<R> {
             settings: *settings,
             features,
             camera_position: origin,
-        }
+        };
+        crate::accel::build_accel(&mut world, None);
+        world
     }
 
     /// Lane of the starting sphere within pack `pack`, or 4 (none).
@@ -184,6 +214,12 @@ impl<R: Real> World<R> {
     /// Nearest hit in (0, inf); `skip` is the primitive the ray starts on.
     #[inline(always)]
     pub fn closest_hit(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+        if let Some(tree) = &self.accel {
+            return self.closest_hit_accel(tree, ray, skip);
+        }
+        if !self.triangles.is_empty() {
+            return self.closest_hit_brute(ray, skip);
+        }
         let mut best = R::INFINITY;
         let mut id = PrimId::NONE;
         let (o, d) = Self::splat_ray(ray);
@@ -212,6 +248,12 @@ impl<R: Real> World<R> {
     /// Whether anything lies on the ray before `t_max`.
     #[inline(always)]
     pub fn occluded(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
+        if let Some(tree) = &self.accel {
+            return self.occluded_accel(tree, ray, t_max, skip);
+        }
+        if !self.triangles.is_empty() {
+            return self.occluded_brute(ray, t_max, skip);
+        }
         let (o, d) = Self::splat_ray(ray);
         for (pi, pack) in self.sphere_packs.iter().enumerate() {
             let t = pack.intersect(o, d, t_max, Self::self_lane(skip, pi));
@@ -234,6 +276,7 @@ impl<R: Real> World<R> {
                 let (p, n) = s.surface(p);
                 (p, n, s.material)
             }
+            PrimId::TRIANGLE => self.triangle_surface(id.index(), p),
             _ => {
                 let pl = &self.planes[id.index()];
                 let (p, n) = pl.surface(p);

@@ -32,6 +32,7 @@ fn analytic(desc: &SceneDesc, settings: &RenderSettings, px: u32, py: u32) -> Op
     let shape = match &desc.objects[0] {
         ObjectDesc::Sphere { center, radius, .. } => Shape::Sphere { c: DVec3::from_array(center.0), r: radius.0 },
         ObjectDesc::Plane { normal, distance, .. } => Shape::Plane { n: DVec3::from_array(normal.0), d: distance.0 },
+        ObjectDesc::Mesh(_) => panic!("the analytic reference covers spheres and planes only"),
     };
     let m = &desc.materials[desc.object_materials[0] as usize].1;
     let cam = &desc.camera;

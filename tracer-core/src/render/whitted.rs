@@ -26,7 +26,9 @@ pub fn trace<R: Real>(world: &World<R>, ray: &Ray<R>, depth: u32, skip: PrimId, 
     // Entering: arriving against the outward normal.
     let entering = cos_out >= R::ZERO;
     let n = if entering { n_out } else { -n_out };
-    let cos_i = cos_out.abs();
+    // Shading normal: differs from n only on smoothly shaded triangles.
+    let ns = world.shading_normal(id, p, n, v);
+    let cos_i = ns.dot(v);
 
     let mut colour = world.ambient * m.ambient;
     // Origin for rays leaving on the viewer's side.
@@ -38,10 +40,10 @@ pub fn trace<R: Real>(world: &World<R>, ray: &Ray<R>, depth: u32, skip: PrimId, 
             continue;
         }
         let l = to_light * (R::ONE / dist);
-        let ndotl = n.dot(l).max(R::ZERO);
+        let ndotl = ns.dot(l).max(R::ZERO);
         let h = l + v;
         let h_len = h.length();
-        let ndoth = if h_len > R::ZERO { (n.dot(h) / h_len).max(R::ZERO) } else { R::ZERO };
+        let ndoth = if h_len > R::ZERO { (ns.dot(h) / h_len).max(R::ZERO) } else { R::ZERO };
         let spec = if ndoth > m.specular_cos_min { ndoth.powf(m.shininess) } else { R::ZERO };
         let contrib = light.diffuse * m.diffuse * ndotl + light.specular * m.specular * spec;
         // A light that can add nothing needs no shadow ray.
@@ -68,7 +70,7 @@ pub fn trace<R: Real>(world: &World<R>, ray: &Ray<R>, depth: u32, skip: PrimId, 
         if k < R::ZERO {
             reflect_w += m.transparency; // total internal reflection
         } else {
-            let dir = (-v * eta + n * (eta * cos_i - k.sqrt())).normalize();
+            let dir = (-v * eta + ns * (eta * cos_i - k.sqrt())).normalize();
             rays.refraction += 1;
             let refr = Ray::new(offset_origin::<R>(p, -n), dir);
             colour += trace(world, &refr, depth + 1, id, rays) * m.transparency;
@@ -76,7 +78,7 @@ pub fn trace<R: Real>(world: &World<R>, ray: &Ray<R>, depth: u32, skip: PrimId, 
     }
     if reflect_w > R::ZERO {
         // R = 2(V.N)N - V
-        let dir = (n * (R::TWO * cos_i) - v).normalize();
+        let dir = (ns * (R::TWO * cos_i) - v).normalize();
         rays.reflection += 1;
         let refl = Ray::new(above, dir);
         colour += trace(world, &refl, depth + 1, id, rays) * reflect_w;

@@ -11,7 +11,10 @@ use serde::Deserialize;
 use toml::Spanned;
 
 use super::error::{Location, SceneError};
+use crate::mesh::Mesh;
 use crate::sampling::Sampler;
+
+pub use super::mesh_desc::{Affine, MeshDesc, MeshModel, Rotation, Scale};
 
 /// A number that TOML may write as an integer or a float (`1` or `1.0`).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -258,21 +261,30 @@ pub struct LightDesc {
 pub enum ObjectDesc {
     Sphere { center: Vec3, radius: Num, material: String },
     Plane { normal: Vec3, distance: Num, material: String },
+    /// A triangle mesh from a model file (see [`MeshDesc`]).
+    Mesh(MeshDesc),
 }
 
 impl ObjectDesc {
-    pub fn material(&self) -> &str {
+    /// The scene material named by the object; `None` for a mesh that uses its file's materials.
+    pub fn material(&self) -> Option<&str> {
         match self {
-            ObjectDesc::Sphere { material, .. } | ObjectDesc::Plane { material, .. } => material,
+            ObjectDesc::Sphere { material, .. } | ObjectDesc::Plane { material, .. } => Some(material),
+            ObjectDesc::Mesh(m) => m.material.as_deref(),
         }
     }
     pub fn kind(&self) -> &'static str {
         match self {
             ObjectDesc::Sphere { .. } => "sphere",
             ObjectDesc::Plane { .. } => "plane",
+            ObjectDesc::Mesh(_) => "mesh",
         }
     }
 }
+
+/// `object_materials` entry of a mesh without a `material`: each triangle
+/// uses its file's material (appended to the world's materials at build).
+pub const FILE_MATERIALS: u32 = u32::MAX;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -446,8 +458,19 @@ impl SceneDesc {
                     normal.0 = normal.0.map(|v| v / len);
                     distance.0 /= len;
                 }
+                ObjectDesc::Mesh(m) => {
+                    m.validate().map_err(|(f, msg)| err(f, msg))?;
+                    let file = path.parent().unwrap_or(Path::new("")).join(&m.path);
+                    let mesh = Mesh::load(&file, m.material.is_none())
+                        .map_err(|e| err("path", format!("cannot load model: {e}")))?;
+                    m.model = MeshModel::new(mesh);
+                }
             }
-            let name = ov.material();
+            let Some(name) = ov.material() else {
+                object_materials.push(FILE_MATERIALS);
+                objects.push(ov);
+                continue;
+            };
             let Some(index) = materials.iter().position(|(n, _)| n == name) else {
                 let known: Vec<_> = materials.iter().map(|(n, _)| n.as_str()).collect();
                 return Err(err(

@@ -1,0 +1,179 @@
+//! Mesh benchmark: BVH build time and memory, and closest-hit throughput
+//! for primary rays (1024x768 camera rays, one per pixel) and incoherent
+//! rays (one random hemisphere ray from each primary hit), on one thread
+//! and on all threads.
+//!
+//!   cargo run --release -p tracer-core --example mesh_bench -- [MODEL ...]
+//!
+//! Without arguments it reads the Stanford bunny and dragon from
+//! ../shared/meshes (they may not be committed: see examples/models/README.md)
+//! and skips, with a message, any that is not there.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::Vec3A;
+use rayon::prelude::*;
+use tracer_core::accel::triangle_bytes;
+use tracer_core::geometry::PrimId;
+use tracer_core::math::{offset_origin, Ray};
+use tracer_core::mesh::Mesh;
+use tracer_core::sampling::hash_u32;
+use tracer_core::scene::SceneDesc;
+use tracer_core::world::World;
+
+const WIDTH: u32 = 1024;
+const HEIGHT: u32 = 768;
+const REPEATS: usize = 5;
+
+/// CPU seconds used by this process so far (all threads). On a shared
+/// machine wall time includes waiting for the CPU; rays per CPU-second is
+/// the per-core throughput.
+fn cpu_seconds() -> f64 {
+    // SAFETY: getrusage writes into the zeroed struct we pass and reads nothing else.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    tv(u.ru_utime) + tv(u.ru_stime)
+}
+
+/// Best (wall, CPU) seconds of `REPEATS` runs of `f`.
+fn best_of(f: &mut dyn FnMut()) -> (f64, f64) {
+    let mut best = (f64::MAX, f64::MAX);
+    for _ in 0..REPEATS {
+        let (t, c) = (Instant::now(), cpu_seconds());
+        f();
+        best = (best.0.min(t.elapsed().as_secs_f64()), best.1.min(cpu_seconds() - c));
+    }
+    best
+}
+
+fn main() {
+    let args: Vec<PathBuf> = std::env::args().skip(1).map(PathBuf::from).collect();
+    let models = if args.is_empty() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/meshes");
+        vec![root.join("stanford-bunny.obj"), root.join("dragon_vrip.ply.gz")]
+    } else {
+        args
+    };
+    let threads = rayon::current_num_threads();
+    println!("mesh_bench: {WIDTH}x{HEIGHT} primary rays + as many incoherent rays, f32, best of {REPEATS}; {threads} threads available");
+    for path in models {
+        if !path.exists() {
+            println!("\n{}: not found, skipped", path.display());
+            continue;
+        }
+        if let Err(e) = bench(&path, threads) {
+            println!("\n{}: {e}", path.display());
+        }
+    }
+}
+
+fn bench(path: &Path, threads: usize) -> Result<(), String> {
+    let t = Instant::now();
+    let mesh = Mesh::load(path, false).map_err(|e| e.to_string())?;
+    let load = t.elapsed();
+    let (lo, hi) = mesh.positions.iter().fold(([f32::MAX; 3], [f32::MIN; 3]), |(lo, hi), p| {
+        ([0, 1, 2].map(|k| lo[k].min(p[k])), [0, 1, 2].map(|k| hi[k].max(p[k])))
+    });
+    let c = [0, 1, 2].map(|k| (lo[k] + hi[k]) as f64 / 2.0);
+    let diag = (0..3).map(|k| ((hi[k] - lo[k]) as f64).powi(2)).sum::<f64>().sqrt();
+    // Camera in front (+z, where both models face), framing the model.
+    let cam = [c[0], c[1] + 0.1 * diag, c[2] + 1.0 * diag];
+    let scene_src = format!(
+        "[render]\nwidth = {WIDTH}\nheight = {HEIGHT}\nsamples = 1\n[camera]\nposition = {cam:?}\nlook_at = {c:?}\nfov_y = 40\n\
+         [materials.grey]\ndiffuse = [0.8, 0.8, 0.8]\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"grey\"\n",
+        path.display().to_string()
+    );
+    let scene = SceneDesc::parse(&scene_src, "mesh_bench.toml").map_err(|e| e.to_string())?;
+
+    println!("\n{}: {} triangles, {} vertices (loaded in {:.0} ms)", path.display(), mesh.triangles.len(), mesh.positions.len(), load.as_secs_f64() * 1e3);
+    let mut world: World<f32> = World::build(&scene, &scene.render, 0);
+    // Build time: the tree alone (boxes in, flattened nodes out), as `Bvh::build` times it.
+    let build_with = |world: &mut World<f32>, n: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().expect("thread pool");
+        let mut best = (f64::MAX, f64::MAX);
+        for _ in 0..REPEATS {
+            let c = cpu_seconds();
+            pool.install(|| world.set_accel(Some(true)));
+            let wall = world.accel.as_ref().map_or(0.0, |b| b.stats.build_time.as_secs_f64());
+            best = (best.0.min(wall), best.1.min(cpu_seconds() - c));
+        }
+        best
+    };
+    let b1 = build_with(&mut world, 1);
+    let bn = build_with(&mut world, threads);
+    let stats = world.accel.as_ref().ok_or("no BVH was built")?.stats;
+    println!(
+        "  BVH build: {:.1} ms wall on 1 thread ({:.1} ms CPU incl. reordering), {:.1} ms wall on {threads}; {} nodes, {} leaves, depth {}, max leaf {}, {:.1} MiB (nodes+refs) + {:.1} MiB triangles, {} degenerate dropped",
+        b1.0 * 1e3,
+        b1.1 * 1e3,
+        bn.0 * 1e3,
+        stats.nodes,
+        stats.leaves,
+        stats.depth,
+        stats.max_leaf_size,
+        stats.bytes as f64 / (1 << 20) as f64,
+        triangle_bytes(&world) as f64 / (1 << 20) as f64,
+        world.degenerate_triangles
+    );
+
+    // Primary rays through pixel centres.
+    let primary: Vec<Ray<f32>> = (0..HEIGHT)
+        .flat_map(|y| (0..WIDTH).map(move |x| (x, y)))
+        .map(|(x, y)| world.camera.ray(x as f32 + 0.5, y as f32 + 0.5))
+        .collect();
+    let hits: Vec<Option<(f32, PrimId)>> = primary.iter().map(|r| world.closest_hit(r, PrimId::NONE)).collect();
+    // Incoherent rays: uniform on the hemisphere around the facing normal, from each hit.
+    let secondary: Vec<(Ray<f32>, PrimId)> = primary
+        .iter()
+        .zip(&hits)
+        .enumerate()
+        .filter_map(|(i, (r, h))| {
+            let (t, id) = (*h)?;
+            let (p, n, _) = world.surface(id, r.at(t));
+            let n = if n.dot(r.dir) < 0.0 { n } else { -n };
+            let u = |k: u32| hash_u32(i as u32 * 4 + k) as f32 / u32::MAX as f32 * 2.0 - 1.0;
+            let d = loop_free_sphere(u(0), u(1));
+            let d = if d.dot(n) < 0.0 { -d } else { d };
+            Some((Ray::new(offset_origin::<f32>(p, n), d), id))
+        })
+        .collect();
+    println!("  {} of {} primary rays hit; {} incoherent rays", secondary.len(), primary.len(), secondary.len());
+
+    for n in [1, threads] {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().expect("thread pool");
+        let time = |f: &(dyn Fn() -> usize + Sync)| {
+            best_of(&mut || {
+                std::hint::black_box(pool.install(f));
+            })
+        };
+        let tp = time(&|| primary.par_chunks(4096).map(|c| c.iter().filter(|r| world.closest_hit(r, PrimId::NONE).is_some()).count()).sum());
+        let ti = time(&|| {
+            secondary.par_chunks(4096).map(|c| c.iter().filter(|(r, id)| world.closest_hit(r, *id).is_some()).count()).sum()
+        });
+        let ts = time(&|| {
+            secondary
+                .par_chunks(4096)
+                .map(|c| c.iter().filter(|(r, id)| world.occluded(r, f32::INFINITY, *id)).count())
+                .sum()
+        });
+        let m = |rays: usize, (wall, cpu): (f64, f64)| format!("{:.2} ({:.2}/CPU-s)", rays as f64 / wall / 1e6, rays as f64 / cpu / 1e6);
+        println!(
+            "  {n} thread{}: Mrays/s wall (per CPU-second): primary {}, incoherent closest-hit {}, incoherent occlusion {}",
+            if n == 1 { " " } else { "s" },
+            m(primary.len(), tp),
+            m(secondary.len(), ti),
+            m(secondary.len(), ts)
+        );
+    }
+    Ok(())
+}
+
+/// A unit vector from two numbers in [-1, 1] (uniform on the sphere).
+fn loop_free_sphere(a: f32, b: f32) -> Vec3A {
+    let z = a;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = std::f32::consts::PI * b;
+    Vec3A::new(r * phi.cos(), r * phi.sin(), z)
+}

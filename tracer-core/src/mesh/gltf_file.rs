@@ -1,0 +1,200 @@
+//! glTF 2.0 (.gltf with embedded or external buffers, .glb), through `gltf`.
+//! Buffers are resolved here (data: URIs and files next to the model) so
+//! the crate's image-decoding `import` feature is not needed: textures are
+//! not used.
+
+use std::path::Path;
+
+use base64::Engine;
+use glam::{DMat3, DMat4, DVec3};
+use gltf::mesh::Mode;
+
+use super::{default_material, Mesh, MeshError};
+use crate::scene::{MaterialDesc, Num, Vec3};
+
+/// Deeper node hierarchies are rejected (they are surely cyclic or hostile).
+const MAX_NODE_DEPTH: usize = 64;
+
+pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
+    let err = |m: String| MeshError::new(path, m);
+    let bytes = std::fs::read(path).map_err(|e| err(format!("cannot read model file: {e}")))?;
+    let gltf = gltf::Gltf::from_slice(&bytes).map_err(|e| err(format!("invalid glTF: {e}")))?;
+    let doc = &gltf.document;
+
+    let mut buffers = Vec::new();
+    for b in doc.buffers() {
+        let data = match b.source() {
+            gltf::buffer::Source::Bin => {
+                gltf.blob.clone().ok_or_else(|| err(format!("invalid glTF: buffer {} uses the missing GLB binary chunk", b.index())))?
+            }
+            gltf::buffer::Source::Uri(uri) => {
+                if let Some(rest) = uri.strip_prefix("data:") {
+                    let (_, b64) = rest
+                        .split_once(";base64,")
+                        .ok_or_else(|| err(format!("invalid glTF: buffer {}: data URI is not base64", b.index())))?;
+                    base64::engine::general_purpose::STANDARD
+                        .decode(b64)
+                        .map_err(|e| err(format!("invalid glTF: buffer {}: bad base64: {e}", b.index())))?
+                } else {
+                    let file = path.parent().unwrap_or(Path::new("")).join(percent_decode(uri));
+                    std::fs::read(&file)
+                        .map_err(|e| err(format!("cannot read buffer {} file {}: {e}", b.index(), file.display())))?
+                }
+            }
+        };
+        if data.len() < b.length() {
+            return Err(err(format!(
+                "invalid glTF: buffer {} has {} bytes, the file declares {}",
+                b.index(),
+                data.len(),
+                b.length()
+            )));
+        }
+        buffers.push(data);
+    }
+
+    let mut mesh = Mesh {
+        materials: doc.materials().map(|m| (m.name().unwrap_or("unnamed").to_string(), map_material(&m))).collect(),
+        ..Default::default()
+    };
+    let default_index = mesh.materials.len() as u32;
+    let mut need_default = false;
+    let mut any_normals = false;
+    let mut normals: Vec<[f32; 3]> = Vec::new();
+
+    // Instances: the default (or first) scene's node tree; without scenes, each mesh once.
+    let mut instances: Vec<(gltf::Mesh, DMat4)> = Vec::new();
+    match doc.default_scene().or_else(|| doc.scenes().next()) {
+        Some(scene) => {
+            for node in scene.nodes() {
+                collect(node, DMat4::IDENTITY, 0, &mut instances).map_err(&err)?;
+            }
+        }
+        None => instances.extend(doc.meshes().map(|m| (m, DMat4::IDENTITY))),
+    }
+
+    for (gmesh, xf) in &instances {
+        let normal_xf = DMat3::from_mat4(*xf).inverse().transpose();
+        let flip = xf.determinant() < 0.0;
+        for prim in gmesh.primitives() {
+            let at = |what: &str| format!("mesh {} primitive {}: {what}", gmesh.index(), prim.index());
+            if !matches!(prim.mode(), Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan) {
+                continue; // points and lines have no surface
+            }
+            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| d.as_slice()));
+            let positions: Vec<[f32; 3]> = reader
+                .read_positions()
+                .ok_or_else(|| err(at("positions are missing or lie outside their buffer")))?
+                .collect();
+            let base = mesh.positions.len() as u32;
+            let n = positions.len() as u32;
+            mesh.positions.extend(positions.iter().map(|p| xf.transform_point3(DVec3::from_array(p.map(f64::from))).as_vec3().to_array()));
+            match reader.read_normals() {
+                Some(ns) => {
+                    any_normals = true;
+                    let before = normals.len();
+                    normals.extend(ns.map(|v| (normal_xf * DVec3::from_array(v.map(f64::from))).as_vec3().to_array()));
+                    if normals.len() - before != positions.len() {
+                        return Err(err(at("normal count differs from position count")));
+                    }
+                }
+                None => normals.extend(std::iter::repeat_n([0.0; 3], positions.len())),
+            }
+            let indices: Vec<u32> = match reader.read_indices() {
+                Some(i) => i.into_u32().collect(),
+                None => (0..n).collect(),
+            };
+            if let Some(bad) = indices.iter().find(|&&i| i >= n) {
+                return Err(err(at(&format!("index {bad} out of range ({n} vertices)"))));
+            }
+            let tris: Vec<[u32; 3]> = match prim.mode() {
+                Mode::Triangles => indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
+                // Strips alternate winding; fans share their first vertex.
+                Mode::TriangleStrip => (2..indices.len())
+                    .map(|i| if i % 2 == 0 { [indices[i - 2], indices[i - 1], indices[i]] } else { [indices[i - 1], indices[i - 2], indices[i]] })
+                    .collect(),
+                _ => (2..indices.len()).map(|i| [indices[0], indices[i - 1], indices[i]]).collect(),
+            };
+            let material = match prim.material().index() {
+                Some(i) => i as u32,
+                None => {
+                    need_default = true;
+                    default_index
+                }
+            };
+            for t in tris {
+                let t = t.map(|i| base + i);
+                mesh.triangles.push(if flip { [t[0], t[2], t[1]] } else { t });
+                mesh.triangle_materials.push(material);
+            }
+        }
+    }
+    if any_normals {
+        mesh.normals = normals;
+    }
+    if need_default {
+        mesh.materials.push(("default".into(), default_material()));
+    }
+    Ok(mesh)
+}
+
+fn collect<'a>(node: gltf::Node<'a>, parent: DMat4, depth: usize, out: &mut Vec<(gltf::Mesh<'a>, DMat4)>) -> Result<(), String> {
+    if depth > MAX_NODE_DEPTH {
+        return Err(format!("invalid glTF: node hierarchy deeper than {MAX_NODE_DEPTH} (a cycle?) at node {}", node.index()));
+    }
+    let m = node.transform().matrix();
+    let xf = parent * DMat4::from_cols_array_2d(&m.map(|c| c.map(f64::from)));
+    if let Some(mesh) = node.mesh() {
+        out.push((mesh, xf));
+    }
+    for child in node.children() {
+        collect(child, xf, depth + 1, out)?;
+    }
+    Ok(())
+}
+
+/// glTF metallic-roughness -> Blinn-Phong. A mirror in Whitted's model is
+/// perfectly sharp, so only smooth metals reflect: reflectivity =
+/// metallic * (1 - roughness)^2; the base colour (glTF defaults: metallic 1,
+/// roughness 1) is the diffuse colour (and ambient) for the rest, and tints
+/// the specular colour by metallic (0.04 for dielectrics); roughness maps to
+/// a Phong exponent 2/r^4 - 2 (the Beckmann match); alpha-blended materials
+/// are transparent by 1 - alpha, with ior 1.5.
+fn map_material(m: &gltf::Material) -> MaterialDesc {
+    let pbr = m.pbr_metallic_roughness();
+    let [r, g, b, a] = pbr.base_color_factor().map(f64::from);
+    let metallic = (pbr.metallic_factor() as f64).clamp(0.0, 1.0);
+    let rough = (pbr.roughness_factor() as f64).clamp(0.0, 1.0);
+    let reflectivity = metallic * (1.0 - rough) * (1.0 - rough);
+    let base = [r, g, b];
+    let diffuse = base.map(|c| c * (1.0 - reflectivity));
+    let blend = matches!(m.alpha_mode(), gltf::material::AlphaMode::Blend);
+    MaterialDesc {
+        ambient: Vec3(diffuse),
+        diffuse: Vec3(diffuse),
+        specular: Vec3(base.map(|c| 0.04 + (c - 0.04) * metallic)),
+        shininess: Num((2.0 / rough.max(0.05).powi(4) - 2.0).max(1.0)),
+        reflectivity: Num(reflectivity),
+        transparency: Num(if blend { (1.0 - a).clamp(0.0, 1.0) } else { 0.0 }),
+        ior: Num(1.5), // KHR_materials_ior is not read
+    }
+}
+
+fn percent_decode(s: &str) -> String {
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        let hex = (b[i] == b'%' && i + 2 < b.len())
+            .then(|| std::str::from_utf8(&b[i + 1..i + 3]).ok().and_then(|h| u8::from_str_radix(h, 16).ok()))
+            .flatten();
+        if let Some(v) = hex {
+            out.push(v);
+            i += 3;
+            continue;
+        }
+        out.push(b[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}

@@ -1,0 +1,246 @@
+//! Triangles: the watertight ray-triangle test of Woop, Benthin and Wald,
+//! "Watertight Ray/Triangle Intersection" (JCGT 2013), and shading data.
+//!
+//! Watertight means a ray through a shared edge or vertex of a closed mesh
+//! hits at least one of the triangles sharing it: the edge functions are
+//! computed from per-vertex values that do not depend on the triangle, in a
+//! ray-aligned frame, so two triangles sharing an edge compute the very same
+//! edge function for it (with opposite sign), and a zero edge function is
+//! re-evaluated in `f64` to get its sign right.
+
+use crate::math::{Ray, Real, Vector3};
+
+/// A triangle as the intersection test wants it: its vertices' x, y and z
+/// coordinates, vertex i in lane i (48 bytes in `f32`), so the test works
+/// on all three vertices at once. Kept apart from shading data so traversal
+/// touches only these.
+#[derive(Clone, Copy, Debug)]
+pub struct Triangle<R: Real> {
+    xs: R::V3,
+    ys: R::V3,
+    zs: R::V3,
+}
+
+/// What shading needs of a triangle once it has been hit.
+#[derive(Clone, Copy, Debug)]
+pub struct TriangleShading<R: Real> {
+    /// Unit geometric normal, outward by the winding (counter-clockwise seen from outside).
+    pub normal: R::V3,
+    /// Unit vertex normals for smooth shading, or `None` for flat shading.
+    pub vertex_normals: Option<[R::V3; 3]>,
+    pub material: u32,
+}
+
+/// Per-ray precomputation of the watertight test: the origin and the
+/// ray-aligned shear written as three rows, so that a vertex's transformed
+/// coordinates are `row . (v - origin)`. Each row has one entry 1 (or Sz)
+/// and at most one other non-zero entry, so this rounds exactly like the
+/// paper's `A[kx] - Sx * A[kz]` (the other products are exact zeros).
+#[derive(Clone, Copy, Debug)]
+pub struct TriangleRay<R: Real> {
+    origin: [R; 3],
+    row_x: [R; 3],
+    row_y: [R; 3],
+    row_z: [R; 3],
+}
+
+impl<R: Real> TriangleRay<R> {
+    #[inline(always)]
+    pub fn new(ray: &Ray<R>) -> Self {
+        let d = [ray.dir.x(), ray.dir.y(), ray.dir.z()];
+        let a = d.map(|c| c.abs());
+        // kz: the dominant axis; kx, ky the next two cyclically, swapped when
+        // d[kz] < 0 to keep the winding (and so the sign of det) consistent.
+        let kz = if a[0] >= a[1] && a[0] >= a[2] {
+            0
+        } else if a[1] >= a[2] {
+            1
+        } else {
+            2
+        };
+        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
+        if d[kz] < R::ZERO {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        let sz = R::ONE / d[kz];
+        let (sx, sy) = (d[kx] * sz, d[ky] * sz);
+        let mut row_x = [R::ZERO; 3];
+        let mut row_y = [R::ZERO; 3];
+        let mut row_z = [R::ZERO; 3];
+        row_x[kx] = R::ONE;
+        row_x[kz] = -sx;
+        row_y[ky] = R::ONE;
+        row_y[kz] = -sy;
+        row_z[kz] = sz;
+        TriangleRay { origin: [ray.origin.x(), ray.origin.y(), ray.origin.z()], row_x, row_y, row_z }
+    }
+}
+
+impl<R: Real> Triangle<R> {
+    pub fn new(v: [R::V3; 3]) -> Self {
+        Triangle {
+            xs: R::V3::new(v[0].x(), v[1].x(), v[2].x()),
+            ys: R::V3::new(v[0].y(), v[1].y(), v[2].y()),
+            zs: R::V3::new(v[0].z(), v[1].z(), v[2].z()),
+        }
+    }
+
+    pub fn vertices(&self) -> [R::V3; 3] {
+        [
+            R::V3::new(self.xs.x(), self.ys.x(), self.zs.x()),
+            R::V3::new(self.xs.y(), self.ys.y(), self.zs.y()),
+            R::V3::new(self.xs.z(), self.ys.z(), self.zs.z()),
+        ]
+    }
+
+    /// Distance to the hit in (0, t_max), or `None`. Degenerate triangles
+    /// (zero area, or seen exactly edge-on) are never hit and never give NaN.
+    #[inline(always)]
+    pub fn intersect(&self, r: &TriangleRay<R>, t_max: R) -> Option<R> {
+        // Vertices relative to the origin (lane i: vertex i), then sheared.
+        let dx = self.xs - R::V3::splat(r.origin[0]);
+        let dy = self.ys - R::V3::splat(r.origin[1]);
+        let dz = self.zs - R::V3::splat(r.origin[2]);
+        let row = |w: &[R; 3]| dx * w[0] + dy * w[1] + dz * w[2];
+        let x = row(&r.row_x); // (ax, bx, cx)
+        let y = row(&r.row_y); // (ay, by, cy)
+        // Edge functions (u, v, w) = (cx by - cy bx, ax cy - ay cx, bx ay - by ax).
+        let x1 = R::V3::new(x.z(), x.x(), x.y());
+        let y1 = R::V3::new(y.y(), y.z(), y.x());
+        let y2 = R::V3::new(y.z(), y.x(), y.y());
+        let x2 = R::V3::new(x.y(), x.z(), x.x());
+        let mut uvw = x1 * y1 - y2 * x2;
+        if uvw.abs().min_element() == R::ZERO {
+            // On (or within rounding of) an edge: the sign decides which of
+            // the two neighbours owns the ray, so get it exactly. Products of
+            // f32 are exact in f64; in f64 this is the same computation.
+            let e = |p: R, q: R, s: R, t: R| p.to_f64() * q.to_f64() - s.to_f64() * t.to_f64();
+            let (ax, bx, cx) = (x.x(), x.y(), x.z());
+            let (ay, by, cy) = (y.x(), y.y(), y.z());
+            let (u, v, w) = (e(cx, by, cy, bx), e(ax, cy, ay, cx), e(bx, ay, by, ax));
+            if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+                return None;
+            }
+            uvw = R::V3::new(R::from_f64(u), R::from_f64(v), R::from_f64(w));
+        } else if uvw.min_element() < R::ZERO && uvw.max_element() > R::ZERO {
+            return None;
+        }
+        let det = uvw.x() + uvw.y() + uvw.z();
+        if det == R::ZERO {
+            return None;
+        }
+        let z = row(&r.row_z); // (az, bz, cz)
+        let t_scaled = uvw.dot(z);
+        // t = t_scaled / det must lie in (0, t_max); test before dividing.
+        let inside = if det > R::ZERO {
+            t_scaled > R::ZERO && t_scaled < t_max * det
+        } else {
+            t_scaled < R::ZERO && t_scaled > t_max * det
+        };
+        if !inside {
+            return None;
+        }
+        let t = t_scaled / det;
+        (t > R::ZERO && t < t_max).then_some(t)
+    }
+
+    /// Unnormalised geometric normal (e1 x e2): outward for counter-clockwise winding.
+    #[inline(always)]
+    pub fn cross(&self) -> R::V3 {
+        let v = self.vertices();
+        (v[1] - v[0]).cross(v[2] - v[0])
+    }
+}
+
+impl<R: Real> TriangleShading<R> {
+    /// Shading normal at `p` (a point on `tri`): the vertex normals
+    /// interpolated by barycentric weights, or the geometric normal.
+    #[inline(always)]
+    pub fn normal_at(&self, tri: &Triangle<R>, p: R::V3) -> R::V3 {
+        let Some(ns) = self.vertex_normals else {
+            return self.normal;
+        };
+        let v = tri.vertices();
+        let e1 = v[1] - v[0];
+        let e2 = v[2] - v[0];
+        let d = p - v[0];
+        let n = e1.cross(e2);
+        let nn = n.length_squared();
+        // p = v0 + b1 e1 + b2 e2; clamped so points rounded just outside stay sane.
+        let b1 = (d.cross(e2).dot(n) / nn).max(R::ZERO).min(R::ONE);
+        let b2 = (e1.cross(d).dot(n) / nn).max(R::ZERO).min(R::ONE - b1);
+        let b0 = R::ONE - b1 - b2;
+        let s = ns[0] * b0 + ns[1] * b1 + ns[2] * b2;
+        let len = s.length();
+        if len > R::ZERO && len.is_finite() { s * (R::ONE / len) } else { self.normal }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::{DVec3, Vec3A};
+
+    fn tri64(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> Triangle<f64> {
+        Triangle::new([DVec3::from_array(a), DVec3::from_array(b), DVec3::from_array(c)])
+    }
+
+    #[test]
+    fn hits_inside_misses_outside_either_winding() {
+        let t = tri64([-1.0, -1.0, 5.0], [1.0, -1.0, 5.0], [0.0, 1.0, 5.0]);
+        let flipped = tri64([-1.0, -1.0, 5.0], [0.0, 1.0, 5.0], [1.0, -1.0, 5.0]);
+        for tri in [t, flipped] {
+            let r = Ray::<f64>::new(DVec3::ZERO, DVec3::Z);
+            assert_eq!(tri.intersect(&TriangleRay::new(&r), f64::INFINITY), Some(5.0));
+            assert_eq!(tri.intersect(&TriangleRay::new(&r), 5.0), None, "t_max is exclusive");
+            let back = Ray::<f64>::new(DVec3::ZERO, -DVec3::Z);
+            assert_eq!(tri.intersect(&TriangleRay::new(&back), f64::INFINITY), None);
+            let beside = Ray::<f64>::new(DVec3::new(2.0, 0.0, 0.0), DVec3::Z);
+            assert_eq!(tri.intersect(&TriangleRay::new(&beside), f64::INFINITY), None);
+        }
+    }
+
+    #[test]
+    fn degenerate_triangles_never_hit_and_never_nan() {
+        let dir = DVec3::new(0.3, 0.2, 1.0).normalize();
+        let r = TriangleRay::new(&Ray::<f64>::new(DVec3::ZERO, dir));
+        let p = dir * 5.0;
+        // A point, a segment containing the hit point, and a triangle seen edge-on.
+        assert_eq!(tri64(p.to_array(), p.to_array(), p.to_array()).intersect(&r, f64::INFINITY), None);
+        // A segment along the ray: rounding may leave it a sliver of area;
+        // touching it anywhere along [4, 6] is right, NaN or elsewhere is not.
+        let seg = tri64((p - dir).to_array(), p.to_array(), (p + dir).to_array());
+        assert!(seg.intersect(&r, f64::INFINITY).is_none_or(|t| (4.0 - 1e-9..=6.0 + 1e-9).contains(&t)));
+        let side = DVec3::new(1.0, 0.0, 0.0).cross(dir).normalize();
+        let edge_on = tri64((p - side).to_array(), (p + side).to_array(), (p + dir).to_array());
+        let plane_n = edge_on.cross();
+        assert!(plane_n.dot(dir).abs() < 1e-12);
+        // The ray lies in this triangle's plane: a hit or a miss are both
+        // fair (the paper's test may report one), but never a NaN.
+        assert!(edge_on.intersect(&r, f64::INFINITY).is_none_or(|t| t.is_finite() && t > 0.0));
+        // Vertices a rounding error apart (a sliver with no area in f32).
+        let q = Vec3A::new(0.5, 0.25, 4.0);
+        let sliver = Triangle::<f32>::new([q, q + Vec3A::new(1e-30, 0.0, 0.0), q]);
+        let r32 = TriangleRay::new(&Ray::<f32>::new(Vec3A::ZERO, q.normalize()));
+        assert_eq!(sliver.intersect(&r32, f32::INFINITY), None);
+    }
+
+    #[test]
+    fn ray_through_shared_edge_never_leaks_in_f32() {
+        // Two triangles sharing the diagonal of the unit square at z = 3,
+        // rays through points on the diagonal (ends excluded: the square's
+        // corners are on the mesh boundary): at least one must report a hit.
+        let q = [Vec3A::new(0.0, 0.0, 3.0), Vec3A::new(1.0, 0.0, 3.0), Vec3A::new(1.0, 1.0, 3.0), Vec3A::new(0.0, 1.0, 3.0)];
+        let t1 = Triangle::<f32>::new([q[0], q[1], q[2]]);
+        let t2 = Triangle::<f32>::new([q[0], q[2], q[3]]);
+        let origin = Vec3A::new(0.123, 0.456, -0.7);
+        for i in 1..1000 {
+            let s = i as f32 / 1000.0;
+            let target = Vec3A::new(s, s, 3.0);
+            let ray = Ray::<f32>::new(origin, (target - origin).normalize());
+            let tr = TriangleRay::new(&ray);
+            let hits = t1.intersect(&tr, f32::INFINITY).is_some() as u32 + t2.intersect(&tr, f32::INFINITY).is_some() as u32;
+            assert!(hits >= 1, "leak at s = {s}");
+        }
+    }
+}

@@ -1,0 +1,555 @@
+//! Meshes end to end: scene files with `type = "mesh"`, model loading,
+//! watertightness, the BVH against brute force, and renders against
+//! analytic references. Every mesh is generated here or committed under
+//! tests/data (see its README for sources and licences).
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use tracer_core::bvh::MAX_DEPTH;
+use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::geometry::PrimId;
+use tracer_core::math::{Ray, Real, Vector3};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::sampling::hash_u32;
+use tracer_core::scene::SceneDesc;
+use tracer_core::world::World;
+
+fn tmpdir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("tessera-meshtest-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Unit icosphere: an icosahedron subdivided `levels` times, vertices on the
+/// sphere, shared between triangles, counter-clockwise seen from outside.
+fn icosphere(levels: u32) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let mut v: Vec<DVec3> = [
+        [-1.0, t, 0.0], [1.0, t, 0.0], [-1.0, -t, 0.0], [1.0, -t, 0.0],
+        [0.0, -1.0, t], [0.0, 1.0, t], [0.0, -1.0, -t], [0.0, 1.0, -t],
+        [t, 0.0, -1.0], [t, 0.0, 1.0], [-t, 0.0, -1.0], [-t, 0.0, 1.0],
+    ]
+    .iter()
+    .map(|p| DVec3::from_array(*p).normalize())
+    .collect();
+    let mut f: Vec<[u32; 3]> = vec![
+        [0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
+        [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1],
+    ];
+    for _ in 0..levels {
+        let mut mid = std::collections::HashMap::new();
+        let mut midpoint = |a: u32, b: u32, v: &mut Vec<DVec3>| {
+            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
+                v.len() as u32 - 1
+            })
+        };
+        let mut next = Vec::with_capacity(f.len() * 4);
+        for [a, b, c] in f {
+            let (ab, bc, ca) = (midpoint(a, b, &mut v), midpoint(b, c, &mut v), midpoint(c, a, &mut v));
+            next.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        f = next;
+    }
+    (v.iter().map(|p| p.to_array()).collect(), f)
+}
+
+/// Writes an OBJ (1-based indices; with `vn` = the positions when `smooth`).
+fn write_obj(path: &Path, v: &[[f64; 3]], f: &[[u32; 3]], smooth: bool) {
+    let mut s = String::new();
+    for p in v {
+        writeln!(s, "v {} {} {}", p[0], p[1], p[2]).unwrap();
+        if smooth {
+            writeln!(s, "vn {} {} {}", p[0], p[1], p[2]).unwrap();
+        }
+    }
+    for t in f {
+        let [a, b, c] = t.map(|i| i + 1);
+        if smooth {
+            writeln!(s, "f {a}//{a} {b}//{b} {c}//{c}").unwrap();
+        } else {
+            writeln!(s, "f {a} {b} {c}").unwrap();
+        }
+    }
+    std::fs::write(path, s).unwrap();
+}
+
+const HEADER: &str = r#"
+[render]
+width = 64
+height = 48
+samples = 4
+max_depth = 3
+[camera]
+position = [0, 0.5, -5]
+look_at = [0, 0, 0]
+fov_y = 40
+[world]
+ambient = [0.1, 0.1, 0.1]
+background = [0.05, 0.1, 0.2]
+[materials.white]
+ambient = [1, 1, 1]
+diffuse = [0.7, 0.7, 0.7]
+specular = [0.5, 0.5, 0.5]
+shininess = 30
+[materials.mirror]
+diffuse = [0.1, 0.1, 0.1]
+reflectivity = 0.6
+[[lights]]
+position = [-4, 5, -4]
+"#;
+
+fn render(scene: &SceneDesc, precision: Precision) -> (Vec<[f32; 3]>, Film) {
+    let frame = PreparedFrame::build(scene, &scene.render, 0, precision).unwrap();
+    let r = &scene.render;
+    let film = CpuRenderer::new(Some(2))
+        .unwrap()
+        .render(&frame, 0, Rect::full(r.width, r.height), SampleRange::all(r.samples), &|_| {})
+        .unwrap();
+    (film.resolve(), film)
+}
+
+fn world_of<R: Real>(scene: &SceneDesc) -> World<R> {
+    World::build(scene, &scene.render, 0)
+}
+
+/// Direction to `target` from `origin`, in the precision's own arithmetic.
+fn ray_to<R: Real>(origin: [f64; 3], target: [f64; 3]) -> Ray<R> {
+    let o = R::V3::from_array(origin);
+    Ray::new(o, (R::V3::from_array(target) - o).normalize())
+}
+
+/// Rays from inside and from outside a closed sphere mesh, aimed exactly at
+/// its vertices, at points on its edges, and in random directions: none may
+/// miss. Returns the number of misses.
+fn count_leaks<R: Real>(world: &World<R>, verts: &[[f64; 3]], faces: &[[u32; 3]], center: [f64; 3], scale: f64) -> usize {
+    let cam = world.camera_position;
+    // Mesh vertices in the world's (camera-relative) frame.
+    let at = |p: [f64; 3]| [0, 1, 2].map(|k| p[k] * scale + center[k] - cam[k]);
+    let c = at([0.0; 3]);
+    let mut targets: Vec<[f64; 3]> = verts.iter().map(|&p| at(p)).collect();
+    for f in faces.iter().take(2000) {
+        for k in 0..3 {
+            let (a, b) = (at(verts[f[k] as usize]), at(verts[f[(k + 1) % 3] as usize]));
+            for s in [0.5, 0.25, 1.0 / 3.0] {
+                targets.push([0, 1, 2].map(|i| a[i] + (b[i] - a[i]) * s));
+            }
+        }
+    }
+    let mut misses = 0;
+    for (i, tgt) in targets.iter().enumerate() {
+        // From inside: the centre, and a point off-centre.
+        for origin in [c, [c[0] + 0.1 * scale, c[1] - 0.2 * scale, c[2] + 0.05 * scale]] {
+            if world.closest_hit(&ray_to::<R>(origin, *tgt), PrimId::NONE).is_none() {
+                misses += 1;
+            }
+        }
+        // From outside, at 3 radii in a pseudo-random direction, through the target.
+        let h = hash_u32(i as u32);
+        let d = DVec3::new((h & 255) as f64 - 127.5, ((h >> 8) & 255) as f64 - 127.5, ((h >> 16) & 255) as f64 - 127.5).normalize();
+        let dir_out = (DVec3::from_array(*tgt) - DVec3::from_array(c)).normalize();
+        // Keep the target well inside the silhouette seen from the origin
+        // (at 3 radii the silhouette is at 70.5 degrees from the axis).
+        let d = (d * 0.5 + dir_out * 2.0).normalize();
+        debug_assert!(d.dot(dir_out) > 0.8);
+        let origin = (DVec3::from_array(c) + d * 3.0 * scale).to_array();
+        if world.closest_hit(&ray_to::<R>(origin, *tgt), PrimId::NONE).is_none() {
+            misses += 1;
+        }
+    }
+    for i in 0..20_000u32 {
+        let h = [hash_u32(i * 3), hash_u32(i * 3 + 1), hash_u32(i * 3 + 2)];
+        let d = R::V3::new(
+            R::from_f64(h[0] as f64 / u32::MAX as f64 - 0.5),
+            R::from_f64(h[1] as f64 / u32::MAX as f64 - 0.5),
+            R::from_f64(h[2] as f64 / u32::MAX as f64 - 0.5),
+        );
+        if !(d.length() > R::ZERO) {
+            continue;
+        }
+        if world.closest_hit(&Ray::new(R::V3::from_array(c), d.normalize()), PrimId::NONE).is_none() {
+            misses += 1;
+        }
+    }
+    misses
+}
+
+#[test]
+fn closed_sphere_mesh_never_leaks_through_edges_or_vertices() {
+    let dir = tmpdir("leak");
+    let (v, f) = icosphere(4);
+    write_obj(&dir.join("ball.obj"), &v, &f, false);
+    // Off the origin and rotated, so coordinates are not round numbers.
+    let center = [0.3, -0.2, 1.7];
+    let scale = 1.3;
+    let src = format!(
+        "{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"ball.obj\"\ntranslate = {center:?}\nscale = {scale}\nmaterial = \"white\"\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("leak.toml")).unwrap();
+    let w32 = world_of::<f32>(&scene);
+    let w64 = world_of::<f64>(&scene);
+    assert_eq!(w32.triangles.len(), f.len());
+    assert!(w32.accel.is_some());
+    assert_eq!(count_leaks(&w32, &v, &f, center, scale), 0, "f32 leaks");
+    assert_eq!(count_leaks(&w64, &v, &f, center, scale), 0, "f64 leaks");
+    // Same rays without the tree: the triangle test alone is watertight.
+    let mut brute = w32.clone();
+    brute.set_accel(Some(false));
+    assert_eq!(count_leaks(&brute, &v, &f, center, scale), 0, "f32 brute-force leaks");
+}
+
+#[test]
+fn bvh_equals_brute_force_for_random_rays_in_f32_and_f64() {
+    let dir = tmpdir("brute");
+    let (v, f) = icosphere(3);
+    write_obj(&dir.join("ball.obj"), &v, &f, true);
+    // A triangle soup of random slivers and big triangles, plus spheres and a plane.
+    let mut soup = String::new();
+    for i in 0..3000u32 {
+        let r = |k: u32| (hash_u32(i * 16 + k) as f64 / u32::MAX as f64 - 0.5) * 4.0;
+        let c = [r(0), r(1), r(2)];
+        let size = if i % 10 == 0 { 1.5 } else { 0.1 };
+        for k in 0..3 {
+            writeln!(soup, "v {} {} {}", c[0] + r(3 + 3 * k) * size, c[1] + r(4 + 3 * k) * size, c[2] + r(5 + 3 * k) * size).unwrap();
+        }
+        writeln!(soup, "f {} {} {}", 3 * i + 1, 3 * i + 2, 3 * i + 3).unwrap();
+    }
+    std::fs::write(dir.join("soup.obj"), soup).unwrap();
+    let mut src = format!(
+        "{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"ball.obj\"\nmaterial = \"white\"\nrotate = {{ axis = [1, 1, 0], degrees = 30 }}\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"soup.obj\"\nmaterial = \"mirror\"\n\
+         [[objects]]\ntype = \"plane\"\nnormal = [0, 1, 0]\ndistance = -2\nmaterial = \"white\"\n"
+    );
+    for i in 0..20 {
+        write!(src, "[[objects]]\ntype = \"sphere\"\ncenter = [{}, {}, 0.5]\nradius = 0.3\nmaterial = \"white\"\n", i % 5 - 2, i / 5 - 2).unwrap();
+    }
+    let scene = SceneDesc::parse(&src, dir.join("brute.toml")).unwrap();
+    fn check<R: Real>(scene: &SceneDesc) {
+        let tree = world_of::<R>(scene);
+        assert!(tree.accel.is_some());
+        let mut brute = tree.clone();
+        brute.set_accel(Some(false));
+        let mut hits = 0;
+        for i in 0..30_000u32 {
+            let u = |k: u32| R::from_f64(hash_u32(i * 8 + k) as f64 / u32::MAX as f64 - 0.5);
+            let o = R::V3::new(u(0) * R::from_f64(8.0), u(1) * R::from_f64(8.0), u(2) * R::from_f64(8.0) + R::from_f64(5.0));
+            let d = R::V3::new(u(3), u(4), u(5));
+            if !(d.length() > R::ZERO) {
+                continue;
+            }
+            let ray = Ray::new(o, d.normalize());
+            let a = tree.closest_hit(&ray, PrimId::NONE);
+            let b = brute.closest_hit(&ray, PrimId::NONE);
+            // Same distance, bit for bit (same tests); the primitive may
+            // differ only where two are hit at the very same distance.
+            assert_eq!(a.map(|h| h.0), b.map(|h| h.0), "ray {i}");
+            hits += a.is_some() as u32;
+            if let Some((t, id)) = a {
+                // Shadow rays: occluded before the hit iff anything is nearer.
+                let short = t * R::from_f64(0.999);
+                assert_eq!(tree.occluded(&ray, short, PrimId::NONE), brute.occluded(&ray, short, PrimId::NONE), "ray {i}");
+                assert!(tree.occluded(&ray, t * R::from_f64(1.001), PrimId::NONE));
+                // A ray starting on the hit primitive never hits it again.
+                assert_eq!(tree.closest_hit(&ray, id).map(|h| h.0), brute.closest_hit(&ray, id).map(|h| h.0));
+            }
+        }
+        assert!(hits > 15_000, "too few hits ({hits}) to test much");
+    }
+    check::<f32>(&scene);
+    check::<f64>(&scene);
+}
+
+/// Mean absolute difference over channels, and the fraction of pixels that
+/// differ by more than `tol` in some channel.
+fn compare(a: &[[f32; 3]], b: &[[f32; 3]], tol: f32) -> (f32, f32) {
+    let mut sum = 0.0;
+    let mut off = 0;
+    for (p, q) in a.iter().zip(b) {
+        let d = (0..3).map(|k| (p[k].min(1.0) - q[k].min(1.0)).abs());
+        let m = d.clone().fold(0.0f32, f32::max);
+        sum += d.sum::<f32>();
+        off += (m > tol) as usize;
+    }
+    (sum / (3 * a.len()) as f32, off as f32 / a.len() as f32)
+}
+
+#[test]
+fn smooth_mesh_sphere_renders_like_the_analytic_sphere() {
+    let dir = tmpdir("smooth");
+    let (v, f) = icosphere(5); // 20480 triangles
+    write_obj(&dir.join("ball.obj"), &v, &f, true);
+    let rest = "[[objects]]\ntype = \"plane\"\nnormal = [0, 1, 0]\ndistance = -1\nmaterial = \"mirror\"\n";
+    let mesh = SceneDesc::parse(
+        &format!("{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"ball.obj\"\nmaterial = \"white\"\n{rest}"),
+        dir.join("m.toml"),
+    )
+    .unwrap();
+    let sphere = SceneDesc::parse(
+        &format!("{HEADER}\n[[objects]]\ntype = \"sphere\"\ncenter = [0, 0, 0]\nradius = 1\nmaterial = \"white\"\n{rest}"),
+        dir.join("s.toml"),
+    )
+    .unwrap();
+    for precision in [Precision::F32, Precision::F64] {
+        let (a, fa) = render(&mesh, precision);
+        let (b, _) = render(&sphere, precision);
+        assert_eq!(fa.nonfinite, 0);
+        let (mean, off) = compare(&a, &b, 0.05);
+        // Tolerance: the inscribed polyhedron is up to 0.1% smaller, which
+        // moves silhouette pixels; shading within 0.05 nearly everywhere.
+        assert!(mean < 0.004 && off < 0.03, "{precision:?}: mean {mean}, {off} of pixels off by > 0.05");
+    }
+}
+
+#[test]
+fn mesh_floor_renders_like_the_plane_it_tessellates() {
+    // A 40x40 grid of quads (3200 triangles) vs. the analytic plane: shadow
+    // rays and reflections start on triangles (self-skip and neighbours).
+    let dir = tmpdir("floor");
+    let n = 40;
+    let mut v = Vec::new();
+    let mut f = Vec::new();
+    for j in 0..=n {
+        for i in 0..=n {
+            // 2000 units across: its far edge is within a pixel of the horizon.
+            v.push([-1000.0 + 2000.0 * i as f64 / n as f64, 0.0, -1000.0 + 2000.0 * j as f64 / n as f64]);
+        }
+    }
+    for j in 0..n {
+        for i in 0..n {
+            let a = (j * (n + 1) + i) as u32;
+            let (b, c, d) = (a + 1, a + n as u32 + 2, a + n as u32 + 1);
+            f.push([a, d, c]);
+            f.push([a, c, b]); // counter-clockwise seen from above: normal +y
+        }
+    }
+    write_obj(&dir.join("floor.obj"), &v, &f, false);
+    let ball = "[[objects]]\ntype = \"sphere\"\ncenter = [0, 0, 0]\nradius = 0.8\nmaterial = \"white\"\n";
+    let mesh = SceneDesc::parse(
+        &format!("{HEADER}\n{ball}[[objects]]\ntype = \"mesh\"\npath = \"floor.obj\"\ntranslate = [0, -0.8, 0]\nmaterial = \"mirror\"\n"),
+        dir.join("m.toml"),
+    )
+    .unwrap();
+    let plane = SceneDesc::parse(
+        &format!("{HEADER}\n{ball}[[objects]]\ntype = \"plane\"\nnormal = [0, 1, 0]\ndistance = -0.8\nmaterial = \"mirror\"\n"),
+        dir.join("p.toml"),
+    )
+    .unwrap();
+    let (a, fa) = render(&mesh, Precision::F32);
+    let (b, _) = render(&plane, Precision::F32);
+    assert_eq!(fa.nonfinite, 0);
+    let (mean, off) = compare(&a, &b, 0.02);
+    assert!(mean < 0.002 && off < 0.01, "mean {mean}, {off} of pixels off");
+}
+
+#[test]
+fn pathological_meshes_build_within_the_stack_and_render_without_nan() {
+    let dir = tmpdir("patho");
+    let mut s = String::new();
+    let mut nv = 0;
+    let mut tri = |s: &mut String, p: [[f64; 3]; 3]| {
+        for q in p {
+            writeln!(s, "v {} {} {}", q[0], q[1], q[2]).unwrap();
+        }
+        writeln!(s, "f {} {} {}", nv + 1, nv + 2, nv + 3).unwrap();
+        nv += 3;
+    };
+    // 5000 identical triangles in one spot.
+    for _ in 0..5000 {
+        tri(&mut s, [[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]);
+    }
+    // Zero-area ones: a point and a segment.
+    tri(&mut s, [[0.5, 0.5, 0.5]; 3]);
+    tri(&mut s, [[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [2.0, 1.0, 0.0]]);
+    // One huge triangle behind everything.
+    tri(&mut s, [[-1e6, -1e6, 30.0], [1e6, -1e6, 30.0], [0.0, 1e6, 30.0]]);
+    // Thin slivers (1e-7 wide, 3 long) in a fan, and an exponential chain
+    // that a SAH build would split one triangle at a time.
+    for i in 0..2000 {
+        let a = i as f64 * 1e-3;
+        tri(&mut s, [[0.0, -0.5, 0.0], [3.0 * a.cos(), -0.5 + 3.0 * a.sin(), 1.0], [3.0 * a.cos(), -0.5 + 3.0 * a.sin() + 1e-7, 1.0]]);
+    }
+    for i in 0..3000 {
+        let x = 1.005f64.powi(i) * 1e-6;
+        tri(&mut s, [[x, -1.0, 2.0], [x + 1e-7, -1.0, 2.0], [x, -1.0 + 1e-7, 2.0]]);
+    }
+    // Triangles at x = 2^i * 1e-20 (1e-20 .. 1e10): a chain for the SAH.
+    for i in 0..100 {
+        let x = 2f64.powi(i) * 1e-20;
+        tri(&mut s, [[x, 1.5, 3.0], [x * 1.25, 1.5, 3.0], [x, 1.5 + x * 0.25, 3.0]]);
+    }
+    std::fs::write(dir.join("bad.obj"), s).unwrap();
+    let src = format!("{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"bad.obj\"\nmaterial = \"mirror\"\n");
+    let scene = SceneDesc::parse(&src, dir.join("p.toml")).unwrap();
+    for precision in [Precision::F32, Precision::F64] {
+        let frame = PreparedFrame::build(&scene, &scene.render, 0, precision).unwrap();
+        let stats = match &frame {
+            PreparedFrame::F32(w) => {
+                // The point and the segment, and slivers whose width rounds away in f32.
+                assert!(w.degenerate_triangles >= 2);
+                w.accel.as_ref().unwrap().stats
+            }
+            PreparedFrame::F64(w) => w.accel.as_ref().unwrap().stats,
+        };
+        assert!(stats.depth < MAX_DEPTH, "{stats:?}");
+        let (img, film) = render(&scene, precision);
+        assert_eq!(film.nonfinite, 0);
+        assert!(img.iter().flatten().all(|c| c.is_finite()));
+        // The huge triangle fills the background: no pixel sees the sky colour.
+        assert!(img.iter().all(|p| *p != [0.05, 0.1, 0.2]));
+    }
+}
+
+#[test]
+fn transforms_place_vertices_as_documented() {
+    let dir = tmpdir("xf");
+    std::fs::write(dir.join("t.obj"), "v 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n").unwrap();
+    let src = format!(
+        "{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"t.obj\"\nmaterial = \"white\"\nscale = [2, 3, 4]\n\
+         rotate_euler = [0, 0, 90]\nrotate = {{ axis = [0, 2, 0], degrees = 90 }}\ntranslate = [10, 20, 30]\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("t.toml")).unwrap();
+    let w = world_of::<f64>(&scene);
+    let cam = DVec3::from_array(w.camera_position);
+    let got: Vec<[f64; 3]> = w.triangles[0].vertices().iter().map(|p| (*p + cam).to_array()).collect();
+    // scale, then z 90 (x->y, y->-x), then y 90 (x->-z, z->x), then translate.
+    let want = [[10.0, 22.0, 30.0], [10.0, 20.0, 33.0], [14.0, 20.0, 30.0]];
+    for (g, w) in got.iter().zip(want) {
+        assert!((DVec3::from_array(*g) - DVec3::from_array(w)).length() < 1e-12, "{got:?}");
+    }
+    // A mirroring scale keeps the geometric normal outward (winding flipped back).
+    let mirrored = SceneDesc::parse(&src.replace("scale = [2, 3, 4]", "scale = [-1, 1, 1]"), dir.join("t.toml")).unwrap();
+    let wm = world_of::<f64>(&mirrored);
+    let plain = SceneDesc::parse(&src.replace("scale = [2, 3, 4]", "scale = 1"), dir.join("t.toml")).unwrap();
+    let wp = world_of::<f64>(&plain);
+    let c = |w: &World<f64>| {
+        let v = w.triangles[0].vertices();
+        (v[0] + v[1] + v[2]) * (1.0 / 3.0)
+    };
+    // Outward = away from the model origin (which maps to the translation).
+    let origin = DVec3::new(10.0, 20.0, 30.0) - cam;
+    assert!(wm.triangle_shading[0].normal.dot(c(&wm) - origin) > 0.0);
+    assert!(wp.triangle_shading[0].normal.dot(c(&wp) - origin) > 0.0);
+}
+
+fn scene_err(src: &str, dir: &Path) -> String {
+    SceneDesc::parse(src, dir.join("bad.toml")).unwrap_err().to_string()
+}
+
+#[test]
+fn bad_mesh_objects_are_rejected_with_file_line_and_problem() {
+    let dir = tmpdir("errors");
+    std::fs::write(dir.join("ok.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+    std::fs::write(dir.join("broken.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n").unwrap();
+    std::fs::write(dir.join("broken.gltf"), "{ \"asset\": { \"version\": \"2.0\" }, \"buffers\": [ { \"byteLength\": 12, \"uri\": \"data:application/octet-stream;base64,AAAA\" } ] }").unwrap();
+    let obj = |extra: &str| format!("{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"ok.obj\"\nmaterial = \"white\"\n{extra}");
+    let line = HEADER.lines().count() + 2; // the [[objects]] header line
+    let e = scene_err(&obj("").replace("ok.obj", "missing.obj"), &dir);
+    assert!(e.starts_with(&format!("{}:{}:", dir.join("bad.toml").display(), line + 2)), "{e}");
+    assert!(e.contains("objects[0] (mesh).path: cannot load model: ") && e.contains("missing.obj: cannot read model file"), "{e}");
+    let e = scene_err(&obj("").replace("ok.obj", "broken.obj"), &dir);
+    assert!(e.contains("objects[0] (mesh).path: cannot load model: ") && e.contains("broken.obj: invalid OBJ: face parse error"), "{e}");
+    let e = scene_err(&obj("").replace("ok.obj", "broken.gltf"), &dir);
+    assert!(e.contains("broken.gltf: invalid glTF: buffer 0 has 3 bytes, the file declares 12"), "{e}");
+    let e = scene_err(&obj("scale = 0"), &dir);
+    assert!(e.contains("objects[0] (mesh).scale: must be finite and non-zero"), "{e}");
+    let e = scene_err(&obj("rotate = { axis = [0, 0, 0], degrees = 3 }"), &dir);
+    assert!(e.contains("objects[0] (mesh).rotate: axis must be a finite, non-zero vector"), "{e}");
+    let e = scene_err(&obj("rotate = { axis = [0, 1, 0], degree = 3 }"), &dir);
+    assert!(e.contains("unknown field `degree`"), "{e}");
+    let e = scene_err(&obj("colour = 1"), &dir);
+    assert!(e.contains("unknown field `colour`"), "{e}");
+    let e = scene_err(&obj("").replace("material = \"white\"", "material = \"chalk\""), &dir);
+    assert!(e.contains("objects[0] (mesh).material: unknown material \"chalk\""), "{e}");
+    let e = scene_err(&obj("scale = [1, 2]"), &dir);
+    assert!(e.contains("scale") || e.contains("three numbers"), "{e}");
+}
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/models").join(name)
+}
+
+#[test]
+fn committed_models_load_with_their_materials() {
+    // Cornell box (MIT, see examples/models/README.md): 18 quads -> 36 triangles + MTL colours.
+    let m = tracer_core::mesh::Mesh::load(&data("cornell_box.obj"), true).unwrap();
+    assert_eq!(m.triangles.len(), 36);
+    let names: Vec<&str> = m.materials.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["white", "red", "green", "blue", "light"]);
+    assert_eq!(m.materials[1].1.diffuse.0, [1.0, 0.0, 0.0]);
+    assert_eq!(m.materials[4].1.ambient.0, [20.0, 20.0, 20.0]);
+    // Box.gltf (CC BY 4.0, Cesium): 12 triangles with normals, a red PBR material, a node matrix.
+    let b = tracer_core::mesh::Mesh::load(&data("Box.gltf"), true).unwrap();
+    assert_eq!(b.triangles.len(), 12);
+    assert_eq!(b.normals.len(), b.positions.len());
+    // baseColorFactor [0.8, 0, 0]; metallic and roughness default to 1: a rough red metal, no mirror.
+    let mat = &b.materials[b.triangle_materials[0] as usize].1;
+    let d = mat.diffuse.0;
+    assert!((d[0] - 0.8).abs() < 1e-6 && d[1] == 0.0 && d[2] == 0.0, "{mat:?}");
+    assert_eq!(mat.reflectivity.0, 0.0);
+    assert!((mat.specular.0[0] - 0.8).abs() < 1e-6 && mat.specular.0[1] == 0.0, "{mat:?}");
+    // The node's matrix swaps y and z (y-up from z-up): the box stays the unit cube.
+    for p in &b.positions {
+        assert!(p.iter().all(|c| (c.abs() - 0.5).abs() < 1e-6), "{p:?}");
+    }
+}
+
+#[test]
+fn cornell_example_renders_its_coloured_walls() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cornell.toml");
+    let mut scene = SceneDesc::load(&path).unwrap();
+    scene.render.width = 48;
+    scene.render.height = 48;
+    scene.render.samples = 1;
+    let (img, film) = render(&scene, Precision::F32);
+    assert_eq!(film.nonfinite, 0);
+    let px = |x: usize, y: usize| img[y * 48 + x];
+    // Camera looks down +z, so +x is to the left: the red wall (x = 552)
+    // is on the left, the green one (x = 0) on the right, as in the original.
+    let (left, right) = (px(3, 24), px(44, 24));
+    assert!(left[0] > 0.1 && left[0] > 4.0 * left[1] && left[0] > 4.0 * left[2], "left wall {left:?}");
+    assert!(right[1] > 0.1 && right[1] > 4.0 * right[0] && right[1] > 4.0 * right[2], "right wall {right:?}");
+    // The light panel glows (Ka 20 x ambient 0.05), the back wall is lit grey-white.
+    let back = px(24, 12);
+    assert!(back.iter().all(|&c| c > 0.2) && (back[0] - back[2]).abs() < 0.1, "back wall {back:?}");
+    // The front face of the tall block faces away from the light: only ambient (Ka 0).
+    // The tall block's front face: Ka 0, and the light grazes it (it lies
+    // almost in the face's plane), so it stays nearly black.
+    assert!(px(24, 30).iter().all(|&c| c < 0.05), "block front {:?}", px(24, 30));
+}
+
+#[test]
+fn sphere_scenes_render_identically_with_and_without_the_bvh() {
+    // The complexity scenes (9 spheres and a floor) with a BVH forced on,
+    // against the plain sphere loop: the very same film, bit for bit.
+    for name in ["chrome-9", "glass-9", "emerald-9"] {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../examples/complexity/{name}.toml"));
+        let mut scene = SceneDesc::load(&path).unwrap();
+        scene.render.width = 80;
+        scene.render.height = 60;
+        for precision in [Precision::F32, Precision::F64] {
+            let frame = PreparedFrame::build(&scene, &scene.render, 0, precision).unwrap();
+            let (with, without) = match frame {
+                PreparedFrame::F32(mut w) => {
+                    let brute = w.clone();
+                    w.set_accel(Some(true));
+                    assert!(w.accel.is_some() && brute.accel.is_none());
+                    (PreparedFrame::F32(w), PreparedFrame::F32(brute))
+                }
+                PreparedFrame::F64(mut w) => {
+                    let mut brute = w.clone();
+                    brute.set_accel(Some(false));
+                    w.set_accel(Some(true));
+                    (PreparedFrame::F64(w), PreparedFrame::F64(brute))
+                }
+            };
+            let r = CpuRenderer::new(Some(2)).unwrap();
+            let all = (Rect::full(80, 60), SampleRange::all(scene.render.samples));
+            let a = r.render(&with, 0, all.0, all.1, &|_| {}).unwrap();
+            let b = r.render(&without, 0, all.0, all.1, &|_| {}).unwrap();
+            assert!(a.sums == b.sums && a.counts == b.counts, "{name} {precision:?}: films differ");
+            assert_eq!(a.rays.total(), b.rays.total());
+        }
+    }
+}
