@@ -79,7 +79,9 @@ pub struct GpuMaterial {
     pub specular: [f32; 3],
     pub transparency: f32,
     pub ior: f32,
-    pub _pad: [f32; 3],
+    /// N.H below which the specular term is skipped (`Material::specular_cos_min`).
+    pub specular_cos_min: f32,
+    pub _pad: [f32; 2],
 }
 
 /// WGSL: `struct Light`.
@@ -178,7 +180,8 @@ impl SceneData {
             specular: a3(m.specular),
             transparency: m.transparency,
             ior: m.ior,
-            _pad: [0.0; 3],
+            specular_cos_min: m.specular_cos_min,
+            _pad: [0.0; 2],
         };
         let light = |l: &PointLight<f32>| GpuLight {
             position: a3(l.position),

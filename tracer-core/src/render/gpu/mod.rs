@@ -50,6 +50,8 @@ pub enum GpuError {
     RequestDevice { adapter: String, message: String },
     #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
     F64Unsupported,
+    #[error("the GPU backend cannot trace triangle meshes yet (the scene has {0} triangles); use --backend cpu")]
+    MeshesUnsupported(usize),
     #[error(transparent)]
     Request(#[from] RenderError),
     #[error("{what} needs {needed} bytes but the GPU allows at most {limit} ({limit_name}); render a smaller rectangle")]
@@ -435,6 +437,10 @@ impl GpuRenderer {
         };
         self.check_fault()?;
         let start = Instant::now();
+        // GPU BVH traversal is not written yet: refuse rather than render without the meshes.
+        if !world.triangles.is_empty() {
+            return Err(GpuError::MeshesUnsupported(world.triangles.len()));
+        }
         let data = SceneData::from_world(world);
 
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);

@@ -57,6 +57,7 @@ struct Material {
     specular: vec3<f32>,
     transparency: f32,
     ior: f32,
+    specular_cos_min: f32,
 }
 
 struct Light {
@@ -248,7 +249,8 @@ fn shade_local(p: vec3<f32>, n: vec3<f32>, v: vec3<f32>, m: Material, above: vec
             ndoth = max(dot(n, h) / h_len, 0.0);
         }
         var spec = 0.0;
-        if (ndoth > 0.0) {
+        // Same cut-off as the CPU's f32 path: terms below 2^-24 are skipped.
+        if (ndoth > m.specular_cos_min) {
             spec = pow(ndoth, m.shininess);
         }
         let contrib = light.diffuse * m.diffuse * ndotl + light.specular * m.specular * spec;
