@@ -4,7 +4,7 @@
 # Writes everything under $OUT (or bench-out/device).
 set -uo pipefail
 cd "$(dirname "$0")/.."
-OUT=${OUT:-bench-out/device}
+OUT=$(realpath -m "${OUT:-bench-out/device}")
 mkdir -p "$OUT"
 printf '{"file_format_version":"1.0.0","ICD":{"library_path":"/usr/local/nvidia/lib64/libEGL_nvidia.so.0","api_version":"1.3"}}' > /tmp/icd.json
 export VK_ICD_FILENAMES=/tmp/icd.json LD_LIBRARY_PATH=$PWD/.gpu:/usr/local/nvidia/lib64${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
@@ -21,7 +21,8 @@ T=$PWD/.gpu/tessera
 echo "== tessera bench --backend both (all suites)"
 timeout 330 "$T" bench --backend both --repeat 3 --out /tmp/bench --cache /tmp/bench-cache > "$OUT/bench-summary.txt" 2> "$OUT/bench-log.txt"
 echo "bench exit $?" >> "$OUT/bench-summary.txt"
-(cd /tmp/bench && tar czf "$OLDPWD/$OUT/bench.tar.gz" --exclude='*-*x*-s*.png' .)
+# CSVs and plots only: the per-run images are many and large.
+tar czf "$OUT/bench.tar.gz" -C /tmp/bench --exclude='*-*x*-s*.png' .
 echo "== farm scaling"
 TESSERA_BIN=$T RESULT_LOAD_BIN=$PWD/.gpu/result_load OUT=/tmp/farm LOAD_SECONDS=5 \
   timeout 200 scripts/bench-farm.sh 8 2 > "$OUT/farm.txt" 2>&1
