@@ -279,33 +279,7 @@ fn hard_huge_sphere_far_from_the_origin() {
 #[test]
 fn hard_huge_sphere_as_a_floor() {
     let s = scene(
-        r#"
-[render]
-width = 128
-height = 96
-samples = 1
-max_depth = 0
-[camera]
-position = [0, 2, -6]
-look_at = [0, 0.5, 0]
-[world]
-ambient = [0.1, 0.1, 0.1]
-[materials.ground]
-ambient = [1, 1, 1]
-diffuse = [0.8, 0.8, 0.8]
-[[lights]]
-position = [0, 3, 6]
-[[objects]]
-type = "sphere"
-center = [0, -1000000, 0]
-radius = 1000000
-material = "ground"
-[[objects]]
-type = "sphere"
-center = [0, 0.5, 0]
-radius = 0.5
-material = "ground"
-"#,
+        HUGE_SPHERE_FLOOR_SCENE,
     );
     let Some((img, _)) = hard_case("huge sphere floor", &s, &s.render) else { return };
     let shadow = img[60 * 128 + 64];
@@ -322,44 +296,7 @@ material = "ground"
 #[test]
 fn hard_light_on_a_surface() {
     let s = scene(
-        r#"
-[render]
-width = 128
-height = 96
-samples = 4
-[camera]
-position = [0, 2, -5]
-look_at = [0, 0.5, 0]
-[world]
-ambient = [0.1, 0.1, 0.1]
-[materials.m]
-ambient = [1, 1, 1]
-diffuse = [0.8, 0.8, 0.8]
-specular = [0.3, 0.3, 0.3]
-shininess = 10
-[materials.floor]
-ambient = [1, 1, 1]
-diffuse = [0.8, 0.8, 0.8]
-[[lights]]
-position = [1.5, 0, 0]
-[[lights]]
-position = [-1, 0.5, 0.0]
-[[objects]]
-type = "plane"
-normal = [0, 1, 0]
-distance = 0
-material = "floor"
-[[objects]]
-type = "sphere"
-center = [0, 0.5, 0]
-radius = 0.5
-material = "m"
-[[objects]]
-type = "sphere"
-center = [-1, 0.5, 0]
-radius = 0.25
-material = "m"
-"#,
+        LIGHT_ON_SURFACE_SCENE,
     );
     let Some((img, _)) = hard_case("light on a surface", &s, &s.render) else { return };
     let floor_px = img[95 * 128 + 2];

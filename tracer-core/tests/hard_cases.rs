@@ -238,33 +238,7 @@ fn huge_sphere_as_a_floor_has_no_acne_and_casts_correct_shadows() {
     // A radius-1e6 sphere used as ground, with a small sphere on it. The
     // floor's f32 centre is quantised to 0.06 units, so any method that
     // re-intersects the floor from its own surface speckles here.
-    let src = r#"
-[render]
-width = 128
-height = 96
-samples = 1
-max_depth = 0
-[camera]
-position = [0, 2, -6]
-look_at = [0, 0.5, 0]
-[world]
-ambient = [0.1, 0.1, 0.1]
-[materials.ground]
-ambient = [1, 1, 1]
-diffuse = [0.8, 0.8, 0.8]
-[[lights]]
-position = [0, 3, 6]
-[[objects]]
-type = "sphere"
-center = [0, -1000000, 0]
-radius = 1000000
-material = "ground"
-[[objects]]
-type = "sphere"
-center = [0, 0.5, 0]
-radius = 0.5
-material = "ground"
-"#;
+    let src = HUGE_SPHERE_FLOOR_SCENE;
     let s = scene(src);
     for p in [Precision::F32, Precision::F64] {
         let img = render(&s, p).resolve();
@@ -288,44 +262,7 @@ material = "ground"
 #[test]
 fn light_on_a_surface_and_inside_a_sphere() {
     // Light lying exactly on the floor plane, and a sphere beside it.
-    let src = r#"
-[render]
-width = 128
-height = 96
-samples = 4
-[camera]
-position = [0, 2, -5]
-look_at = [0, 0.5, 0]
-[world]
-ambient = [0.1, 0.1, 0.1]
-[materials.m]
-ambient = [1, 1, 1]
-diffuse = [0.8, 0.8, 0.8]
-specular = [0.3, 0.3, 0.3]
-shininess = 10
-[materials.floor]
-ambient = [1, 1, 1]
-diffuse = [0.8, 0.8, 0.8]
-[[lights]]
-position = [1.5, 0, 0]
-[[lights]]
-position = [-1, 0.5, 0.0]
-[[objects]]
-type = "plane"
-normal = [0, 1, 0]
-distance = 0
-material = "floor"
-[[objects]]
-type = "sphere"
-center = [0, 0.5, 0]
-radius = 0.5
-material = "m"
-[[objects]]
-type = "sphere"
-center = [-1, 0.5, 0]
-radius = 0.25
-material = "m"
-"#;
+    let src = LIGHT_ON_SURFACE_SCENE;
     let s = scene(src);
     let f32img = render(&s, Precision::F32).resolve();
     let f64img = render(&s, Precision::F64).resolve();

@@ -57,3 +57,74 @@ pub fn assert_finite(img: &[[f32; 3]]) {
         assert!(p.iter().all(|c| c.is_finite()), "pixel {i} is not finite: {p:?}");
     }
 }
+
+/// A radius-1e6 sphere as the ground with a small sphere on it, lit from behind
+/// the small sphere so its shadow falls towards the camera (hard cases, CPU and GPU).
+pub const HUGE_SPHERE_FLOOR_SCENE: &str = r#"
+[render]
+width = 128
+height = 96
+samples = 1
+max_depth = 0
+[camera]
+position = [0, 2, -6]
+look_at = [0, 0.5, 0]
+[world]
+ambient = [0.1, 0.1, 0.1]
+[materials.ground]
+ambient = [1, 1, 1]
+diffuse = [0.8, 0.8, 0.8]
+[[lights]]
+position = [0, 3, 6]
+[[objects]]
+type = "sphere"
+center = [0, -1000000, 0]
+radius = 1000000
+material = "ground"
+[[objects]]
+type = "sphere"
+center = [0, 0.5, 0]
+radius = 0.5
+material = "ground"
+"#;
+
+/// A light lying on the floor plane beside a sphere, and a second light inside
+/// a small sphere (hard cases, CPU and GPU).
+pub const LIGHT_ON_SURFACE_SCENE: &str = r#"
+[render]
+width = 128
+height = 96
+samples = 4
+[camera]
+position = [0, 2, -5]
+look_at = [0, 0.5, 0]
+[world]
+ambient = [0.1, 0.1, 0.1]
+[materials.m]
+ambient = [1, 1, 1]
+diffuse = [0.8, 0.8, 0.8]
+specular = [0.3, 0.3, 0.3]
+shininess = 10
+[materials.floor]
+ambient = [1, 1, 1]
+diffuse = [0.8, 0.8, 0.8]
+[[lights]]
+position = [1.5, 0, 0]
+[[lights]]
+position = [-1, 0.5, 0.0]
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+[[objects]]
+type = "sphere"
+center = [0, 0.5, 0]
+radius = 0.5
+material = "m"
+[[objects]]
+type = "sphere"
+center = [-1, 0.5, 0]
+radius = 0.25
+material = "m"
+"#;
