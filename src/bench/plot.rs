@@ -35,6 +35,17 @@ pub struct LinePlot {
 
 const SIZE: (u32, u32) = (900, 600);
 
+/// Short tick labels: plotters' default prints log-axis ticks like 0.0100000001.
+fn tick_label(v: f64) -> String {
+    let a = v.abs();
+    if a != 0.0 && !(1e-2..1e4).contains(&a) {
+        format!("{v:.1e}")
+    } else {
+        let s = format!("{v:.3}");
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    }
+}
+
 impl LinePlot {
     /// Writes `STEM.png` and `STEM.svg`.
     pub fn write(&self, stem: &Path) -> Result<()> {
@@ -111,6 +122,8 @@ impl LinePlot {
             .configure_mesh()
             .x_desc(&self.x_label)
             .y_desc(&self.y_label)
+            .x_label_formatter(&|v| tick_label(*v))
+            .y_label_formatter(&|v| tick_label(*v))
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(|e| err(&e))?;
