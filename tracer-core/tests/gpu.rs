@@ -377,63 +377,8 @@ material = "sky"
 
 #[test]
 fn hard_nested_and_touching_glass_spheres() {
-    let s = scene(
-        r#"
-[render]
-width = 96
-height = 72
-samples = 4
-max_depth = 12
-[camera]
-position = [0, 1, -5]
-look_at = [0, 0.8, 0]
-[world]
-ambient = [0.1, 0.1, 0.1]
-background = [0.2, 0.3, 0.5]
-[materials.glass]
-diffuse = [0.05, 0.05, 0.05]
-specular = [0.9, 0.9, 0.9]
-shininess = 80
-reflectivity = 0.1
-transparency = 0.9
-ior = 1.5
-[materials.water]
-reflectivity = 0.05
-transparency = 0.9
-ior = 1.33
-[materials.floor]
-ambient = [0.5, 0.5, 0.5]
-diffuse = [0.6, 0.6, 0.6]
-[[lights]]
-position = [-3, 5, -4]
-[[objects]]
-type = "plane"
-normal = [0, 1, 0]
-distance = 0
-material = "floor"
-[[objects]]
-type = "sphere"
-center = [-1, 1, 0]
-radius = 1
-material = "glass"
-[[objects]]
-type = "sphere"
-center = [-1, 1, 0]
-radius = 0.5
-material = "water"
-[[objects]]
-type = "sphere"
-center = [1, 0.5, 0]
-radius = 0.5
-material = "glass"
-[[objects]]
-type = "sphere"
-center = [1, 1.5, 0]
-radius = 0.5
-material = "glass"
-"#,
-    );
-    let Some((img, reference)) = hard_case("nested glass", &s, &s.render) else { return };
+    let (s, settings) = nested_glass_scene();
+    let Some((img, reference)) = hard_case("nested glass", &s, &settings) else { return };
     let d = diff(&img, &reference, 1.0 / 255.0);
     assert!(d.max < 0.25, "largest GPU/f64 difference {}", d.max);
 }

@@ -342,65 +342,9 @@ fn total_internal_reflection_at_and_past_the_critical_angle() {
 
 #[test]
 fn nested_and_touching_glass_spheres() {
-    let src = r#"
-[render]
-width = 96
-height = 72
-samples = 4
-max_depth = 12
-[camera]
-position = [0, 1, -5]
-look_at = [0, 0.8, 0]
-[world]
-ambient = [0.1, 0.1, 0.1]
-background = [0.2, 0.3, 0.5]
-[materials.glass]
-diffuse = [0.05, 0.05, 0.05]
-specular = [0.9, 0.9, 0.9]
-shininess = 80
-reflectivity = 0.1
-transparency = 0.9
-ior = 1.5
-[materials.water]
-reflectivity = 0.05
-transparency = 0.9
-ior = 1.33
-[materials.floor]
-ambient = [0.5, 0.5, 0.5]
-diffuse = [0.6, 0.6, 0.6]
-[[lights]]
-position = [-3, 5, -4]
-[[objects]]
-type = "plane"
-normal = [0, 1, 0]
-distance = 0
-material = "floor"
-# nested: a water sphere inside a glass sphere
-[[objects]]
-type = "sphere"
-center = [-1, 1, 0]
-radius = 1
-material = "glass"
-[[objects]]
-type = "sphere"
-center = [-1, 1, 0]
-radius = 0.5
-material = "water"
-# touching: two glass spheres meeting at one point, the second resting on the floor
-[[objects]]
-type = "sphere"
-center = [1, 0.5, 0]
-radius = 0.5
-material = "glass"
-[[objects]]
-type = "sphere"
-center = [1, 1.5, 0]
-radius = 0.5
-material = "glass"
-"#;
-    let s = scene(src);
-    let a = render(&s, Precision::F32).resolve();
-    let b = render(&s, Precision::F64).resolve();
+    let (s, settings) = nested_glass_scene();
+    let a = render_with(&s, &settings, Precision::F32).resolve();
+    let b = render_with(&s, &settings, Precision::F64).resolve();
     assert_finite(&a);
     // Speckles from self-intersection would be isolated pixels far off the
     // reference. Silhouettes seen through several refractions may flip a

@@ -128,3 +128,11 @@ center = [-1, 0.5, 0]
 radius = 0.25
 material = "m"
 "#;
+
+/// A water sphere nested in a glass sphere and two touching glass spheres
+/// (`examples/hard/nested-glass.toml`), at the hard-case tests' small size.
+pub fn nested_glass_scene() -> (SceneDesc, RenderSettings) {
+    let desc = SceneDesc::load(examples_dir().join("hard/nested-glass.toml")).expect("example scene loads");
+    let settings = RenderSettings { width: 96, height: 72, samples: 4, max_depth: 12, ..desc.render };
+    (desc, settings)
+}
