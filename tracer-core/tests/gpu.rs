@@ -175,41 +175,6 @@ fn hard_case(what: &str, desc: &SceneDesc, settings: &RenderSettings) -> Option<
     Some((got, reference))
 }
 
-/// A one-object scene as in hard_cases.rs.
-fn one_object(cam: &str, object: &str, light: [f64; 3], size: (u32, u32)) -> SceneDesc {
-    scene(&format!(
-        r#"
-[render]
-width = {w}
-height = {h}
-samples = 1
-max_depth = 0
-[camera]
-{cam}
-[world]
-ambient = [0.1, 0.1, 0.1]
-background = [0.0, 0.0, 0.3]
-[materials.m]
-ambient = [1.0, 1.0, 1.0]
-diffuse = [0.7, 0.6, 0.5]
-specular = [0.5, 0.5, 0.5]
-shininess = 20.0
-[[lights]]
-position = [{lx:e}, {ly:e}, {lz:e}]
-diffuse = [1.0, 1.0, 1.0]
-specular = [1.0, 1.0, 1.0]
-[[objects]]
-{object}
-material = "m"
-"#,
-        w = size.0,
-        h = size.1,
-        lx = light[0],
-        ly = light[1],
-        lz = light[2],
-    ))
-}
-
 /// For one-object scenes the pixels must agree far tighter than the general
 /// bound: no secondary rays, so only the hit's rounding differs. Acne or a
 /// leak is an error of a whole light (~0.5); `tol` per pixel, all pixels
@@ -222,40 +187,25 @@ fn one_object_case(what: &str, desc: &SceneDesc, tol: f32) {
 
 #[test]
 fn hard_shadow_rays_from_a_sphere_never_hit_it_again() {
-    let s = one_object("position = [0, 0, -4]\nlook_at = [0, 0, 0]", "type = \"sphere\"\ncenter = [0, 0, 0]\nradius = 1", [3.0, 4.0, -5.0], (96, 96));
+    let s = SPHERE_SELF_SHADOW.scene();
     one_object_case("sphere self-shadow", &s, 1e-3);
 }
 
 #[test]
 fn hard_grazing_rays_on_a_plane() {
-    let s = one_object(
-        "position = [0, 0.001, 0]\nlook_at = [0, 0.001, 10]",
-        "type = \"plane\"\nnormal = [0, 1, 0]\ndistance = 0",
-        [0.0, 2.0, 5.0],
-        (128, 64),
-    );
+    let s = GRAZING_PLANE.scene();
     one_object_case("grazing plane", &s, 1e-3);
 }
 
 #[test]
 fn hard_inside_a_sphere_lit_from_inside() {
-    let s = one_object(
-        "position = [0, 0, -1]\nlook_at = [0, 0, 1]\nfov_y = 100",
-        "type = \"sphere\"\ncenter = [0, 0, 0]\nradius = 3",
-        [0.5, 1.0, 0.0],
-        (96, 96),
-    );
+    let s = INSIDE_SPHERE.scene();
     one_object_case("inside a sphere", &s, 1e-3);
 }
 
 #[test]
 fn hard_tiny_sphere_far_from_the_origin() {
-    let s = one_object(
-        "position = [100000.0, 100000.0, 99999.9995]\nlook_at = [100000.0, 100000.0, 100000.0]",
-        "type = \"sphere\"\ncenter = [100000.0, 100000.0, 100000.0]\nradius = 1e-4",
-        [100000.0003, 100000.0004, 99999.9995],
-        (64, 64),
-    );
+    let s = TINY_FAR_SPHERE.scene();
     one_object_case("tiny far sphere", &s, 1e-3);
     // It is really there: most of the view is the lit sphere, not background.
     if let Some(g) = gpu() {
@@ -266,21 +216,14 @@ fn hard_tiny_sphere_far_from_the_origin() {
 
 #[test]
 fn hard_huge_sphere_far_from_the_origin() {
-    let s = one_object(
-        "position = [100000.0, 1000003.0, 0.0]\nlook_at = [100000.0, 1000000.0, 10.0]",
-        "type = \"sphere\"\ncenter = [100000.0, 0.0, 0.0]\nradius = 1e6",
-        [100005.0, 1000010.0, 5.0],
-        (64, 64),
-    );
+    let s = HUGE_FAR_SPHERE.scene();
     // The f32 centre is quantised to 0.06 units (hard_cases.rs allows 5e-3 for the CPU's f32).
     one_object_case("huge far sphere", &s, 5e-3);
 }
 
 #[test]
 fn hard_huge_sphere_as_a_floor() {
-    let s = scene(
-        HUGE_SPHERE_FLOOR_SCENE,
-    );
+    let s = scene(HUGE_SPHERE_FLOOR_SCENE);
     let Some((img, _)) = hard_case("huge sphere floor", &s, &s.render) else { return };
     let shadow = img[60 * 128 + 64];
     assert!((shadow[0] - 0.1).abs() < 1e-5, "floor in the sphere's shadow = {shadow:?}, want ambient 0.1");
@@ -295,9 +238,7 @@ fn hard_huge_sphere_as_a_floor() {
 
 #[test]
 fn hard_light_on_a_surface() {
-    let s = scene(
-        LIGHT_ON_SURFACE_SCENE,
-    );
+    let s = scene(LIGHT_ON_SURFACE_SCENE);
     let Some((img, _)) = hard_case("light on a surface", &s, &s.render) else { return };
     let floor_px = img[95 * 128 + 2];
     assert!((floor_px[0] - 0.1).abs() < 1e-6, "floor corner = {floor_px:?}, want ambient only");
@@ -312,37 +253,8 @@ fn hard_light_on_a_surface() {
 #[test]
 fn hard_total_internal_reflection_at_and_past_the_critical_angle() {
     let critical = (1.0f64 / 1.5).asin();
-    let s = scene(&format!(
-        r#"
-[render]
-width = 8
-height = 64
-samples = 1
-max_depth = 2
-[camera]
-position = [0, -1, 0]
-look_at = [0, {ly}, {lz}]
-fov_y = 2.0
-[world]
-ambient = [1, 1, 1]
-background = [0, 0, 1]
-[materials.glass]
-transparency = 0.9
-reflectivity = 0.1
-ior = 1.5
-[materials.sky]
-ambient = [1, 0, 0]
-[[objects]]
-type = "plane"
-normal = [0, 1, 0]
-distance = 0
-material = "glass"
-[[objects]]
-type = "plane"
-normal = [0, -1, 0]
-distance = -10
-material = "sky"
-"#,
+    let s = glass_plane_scene(&format!(
+        "[render]\nwidth = 8\nheight = 64\nsamples = 1\nmax_depth = 2\n[camera]\nposition = [0, -1, 0]\nlook_at = [0, {ly}, {lz}]\nfov_y = 2.0",
         ly = -1.0 + critical.cos(),
         lz = critical.sin(),
     ));

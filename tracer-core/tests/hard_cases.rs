@@ -123,39 +123,6 @@ fn check_against_analytic(desc: &SceneDesc, precision: Precision, tol: f64) -> u
     checked
 }
 
-/// A one-object scene: `object` is the TOML of its `[[objects]]` table body.
-fn one_object(cam: &str, object: &str, light: [f64; 3], size: (u32, u32)) -> SceneDesc {
-    scene(&format!(
-        r#"
-[render]
-width = {w}
-height = {h}
-[camera]
-{cam}
-[world]
-ambient = [0.1, 0.1, 0.1]
-background = [0.0, 0.0, 0.3]
-[materials.m]
-ambient = [1.0, 1.0, 1.0]
-diffuse = [0.7, 0.6, 0.5]
-specular = [0.5, 0.5, 0.5]
-shininess = 20.0
-[[lights]]
-position = [{lx:e}, {ly:e}, {lz:e}]
-diffuse = [1.0, 1.0, 1.0]
-specular = [1.0, 1.0, 1.0]
-[[objects]]
-{object}
-material = "m"
-"#,
-        w = size.0,
-        h = size.1,
-        lx = light[0],
-        ly = light[1],
-        lz = light[2],
-    ))
-}
-
 // f32 shading of a hit point is accurate to a few ulps of the colour;
 // 2e-4 leaves room for the pow() in the specular term. Acne would show as
 // an error of a whole light's contribution (~0.5).
@@ -165,67 +132,35 @@ const F64_TOL: f64 = 1e-6;
 
 #[test]
 fn shadow_rays_from_a_sphere_never_hit_it_again() {
-    let s = one_object(
-        "position = [0, 0, -4]\nlook_at = [0, 0, 0]",
-        "type = \"sphere\"\ncenter = [0, 0, 0]\nradius = 1",
-        [3.0, 4.0, -5.0],
-        (96, 96),
-    );
+    let s = SPHERE_SELF_SHADOW.scene();
     assert!(check_against_analytic(&s, Precision::F32, F32_TOL) > 1000);
     check_against_analytic(&s, Precision::F64, F64_TOL);
 }
 
 #[test]
 fn shadow_rays_from_a_plane_never_hit_it_again_even_grazing() {
-    // Camera 1e-3 above the plane looking at the horizon: most rays graze it.
-    let s = one_object(
-        "position = [0, 0.001, 0]\nlook_at = [0, 0.001, 10]",
-        "type = \"plane\"\nnormal = [0, 1, 0]\ndistance = 0",
-        [0.0, 2.0, 5.0],
-        (128, 64),
-    );
+    let s = GRAZING_PLANE.scene();
     assert!(check_against_analytic(&s, Precision::F32, F32_TOL) > 2000);
     check_against_analytic(&s, Precision::F64, F64_TOL);
 }
 
 #[test]
 fn inside_a_sphere_lit_from_inside() {
-    // Camera and light inside a sphere: shadow rays from its inner surface
-    // cross the interior and must reach the light, not the far wall.
-    let s = one_object(
-        "position = [0, 0, -1]\nlook_at = [0, 0, 1]\nfov_y = 100",
-        "type = \"sphere\"\ncenter = [0, 0, 0]\nradius = 3",
-        [0.5, 1.0, 0.0],
-        (96, 96),
-    );
+    let s = INSIDE_SPHERE.scene();
     assert!(check_against_analytic(&s, Precision::F32, F32_TOL) > 9000);
     check_against_analytic(&s, Precision::F64, F64_TOL);
 }
 
 #[test]
 fn tiny_sphere_far_from_the_origin() {
-    // Radius 1e-4 at 1e5 from the origin, seen from 5e-4 away. Without
-    // camera-relative coordinates f32 cannot even place the sphere (its ulp
-    // there is 8e-3, 80 radii).
-    let s = one_object(
-        "position = [100000.0, 100000.0, 99999.9995]\nlook_at = [100000.0, 100000.0, 100000.0]",
-        "type = \"sphere\"\ncenter = [100000.0, 100000.0, 100000.0]\nradius = 1e-4",
-        [100000.0003, 100000.0004, 99999.9995],
-        (64, 64),
-    );
+    let s = TINY_FAR_SPHERE.scene();
     assert!(check_against_analytic(&s, Precision::F32, F32_TOL) > 300);
     check_against_analytic(&s, Precision::F64, F64_TOL);
 }
 
 #[test]
 fn huge_sphere_far_from_the_origin() {
-    // Radius 1e6, centre 1e5 from the origin, seen from 3 units off its surface.
-    let s = one_object(
-        "position = [100000.0, 1000003.0, 0.0]\nlook_at = [100000.0, 1000000.0, 10.0]",
-        "type = \"sphere\"\ncenter = [100000.0, 0.0, 0.0]\nradius = 1e6",
-        [100005.0, 1000010.0, 5.0],
-        (64, 64),
-    );
+    let s = HUGE_FAR_SPHERE.scene();
     // In f32 the centre (1e6 from the camera) is quantised to 0.06 units, which
     // moves the surface seen from 3 units away and so its shading slightly;
     // acne would be an error of a whole light (~0.5).
@@ -281,40 +216,8 @@ fn light_on_a_surface_and_inside_a_sphere() {
     assert!(lit > 15, "the sphere beside the light on the floor is not lit ({lit} pixels)");
 }
 
-fn glass_plane_scene() -> SceneDesc {
-    // A transparent plane (normal +y: "inside" is below) with a red ambient
-    // sky plane above and a blue background below. A ray from below that
-    // refracts out sees red; under total internal reflection it sees blue.
-    scene(
-        r#"
-[camera]
-position = [0, -1, 0]
-look_at = [0, 0, 1]
-[world]
-ambient = [1, 1, 1]
-background = [0, 0, 1]
-[materials.glass]
-transparency = 0.9
-reflectivity = 0.1
-ior = 1.5
-[materials.sky]
-ambient = [1, 0, 0]
-[[objects]]
-type = "plane"
-normal = [0, 1, 0]
-distance = 0
-material = "glass"
-[[objects]]
-type = "plane"
-normal = [0, -1, 0]
-distance = -10
-material = "sky"
-"#,
-    )
-}
-
 fn trace_from_below(angle_from_normal_deg: f64) -> ([f64; 3], RayCounts) {
-    let s = glass_plane_scene();
+    let s = glass_plane_scene("[camera]\nposition = [0, -1, 0]\nlook_at = [0, 0, 1]");
     let PreparedFrame::F64(world) = PreparedFrame::build(&s, &s.render, 0, Precision::F64).unwrap() else { unreachable!() };
     let a = angle_from_normal_deg.to_radians();
     // World origin is the camera at (0, -1, 0): start the ray there, aimed up at the plane.

@@ -136,3 +136,127 @@ pub fn nested_glass_scene() -> (SceneDesc, RenderSettings) {
     let settings = RenderSettings { width: 96, height: 72, samples: 4, max_depth: 12, ..desc.render };
     (desc, settings)
 }
+
+/// A hard case with one object, lit by one light, at one centred sample per
+/// pixel and no secondary rays: the CPU checks it against an analytic model
+/// (hard_cases.rs), the GPU against the CPU's f64 reference (gpu.rs).
+pub struct OneObject {
+    /// Body of the `[camera]` table.
+    pub camera: &'static str,
+    /// Body of the `[[objects]]` table, without its material.
+    pub object: &'static str,
+    pub light: [f64; 3],
+    pub size: (u32, u32),
+}
+
+impl OneObject {
+    pub fn scene(&self) -> SceneDesc {
+        scene(&format!(
+            r#"
+[render]
+width = {w}
+height = {h}
+samples = 1
+max_depth = 0
+[camera]
+{cam}
+[world]
+ambient = [0.1, 0.1, 0.1]
+background = [0.0, 0.0, 0.3]
+[materials.m]
+ambient = [1.0, 1.0, 1.0]
+diffuse = [0.7, 0.6, 0.5]
+specular = [0.5, 0.5, 0.5]
+shininess = 20.0
+[[lights]]
+position = [{lx:e}, {ly:e}, {lz:e}]
+diffuse = [1.0, 1.0, 1.0]
+specular = [1.0, 1.0, 1.0]
+[[objects]]
+{object}
+material = "m"
+"#,
+            w = self.size.0,
+            h = self.size.1,
+            cam = self.camera,
+            object = self.object,
+            lx = self.light[0],
+            ly = self.light[1],
+            lz = self.light[2],
+        ))
+    }
+}
+
+/// A unit sphere lit from the side: shadow rays leave its own surface.
+pub const SPHERE_SELF_SHADOW: OneObject = OneObject {
+    camera: "position = [0, 0, -4]\nlook_at = [0, 0, 0]",
+    object: "type = \"sphere\"\ncenter = [0, 0, 0]\nradius = 1",
+    light: [3.0, 4.0, -5.0],
+    size: (96, 96),
+};
+
+/// Camera 1e-3 above a plane looking at the horizon: most rays graze it.
+pub const GRAZING_PLANE: OneObject = OneObject {
+    camera: "position = [0, 0.001, 0]\nlook_at = [0, 0.001, 10]",
+    object: "type = \"plane\"\nnormal = [0, 1, 0]\ndistance = 0",
+    light: [0.0, 2.0, 5.0],
+    size: (128, 64),
+};
+
+/// Camera and light inside a sphere: shadow rays from its inner surface
+/// cross the interior and must reach the light, not the far wall.
+pub const INSIDE_SPHERE: OneObject = OneObject {
+    camera: "position = [0, 0, -1]\nlook_at = [0, 0, 1]\nfov_y = 100",
+    object: "type = \"sphere\"\ncenter = [0, 0, 0]\nradius = 3",
+    light: [0.5, 1.0, 0.0],
+    size: (96, 96),
+};
+
+/// Radius 1e-4 at 1e5 from the origin, seen from 5e-4 away. Without
+/// camera-relative coordinates f32 cannot even place the sphere (its ulp
+/// there is 8e-3, 80 radii).
+pub const TINY_FAR_SPHERE: OneObject = OneObject {
+    camera: "position = [100000.0, 100000.0, 99999.9995]\nlook_at = [100000.0, 100000.0, 100000.0]",
+    object: "type = \"sphere\"\ncenter = [100000.0, 100000.0, 100000.0]\nradius = 1e-4",
+    light: [100000.0003, 100000.0004, 99999.9995],
+    size: (64, 64),
+};
+
+/// Radius 1e6, centre 1e5 from the origin, seen from 3 units off its surface.
+pub const HUGE_FAR_SPHERE: OneObject = OneObject {
+    camera: "position = [100000.0, 1000003.0, 0.0]\nlook_at = [100000.0, 1000000.0, 10.0]",
+    object: "type = \"sphere\"\ncenter = [100000.0, 0.0, 0.0]\nradius = 1e6",
+    light: [100005.0, 1000010.0, 5.0],
+    size: (64, 64),
+};
+
+/// A transparent plane (normal +y: "inside" is below) with a red ambient
+/// sky plane above and a blue background below. A ray from below that
+/// refracts out sees red; under total internal reflection it sees blue.
+/// `head` holds the `[render]` and `[camera]` tables.
+pub fn glass_plane_scene(head: &str) -> SceneDesc {
+    scene(&format!(
+        r#"
+{head}
+[world]
+ambient = [1, 1, 1]
+background = [0, 0, 1]
+[materials.glass]
+transparency = 0.9
+reflectivity = 0.1
+ior = 1.5
+[materials.sky]
+ambient = [1, 0, 0]
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "glass"
+[[objects]]
+type = "plane"
+normal = [0, -1, 0]
+distance = -10
+material = "sky"
+"#
+    ))
+}
