@@ -3,11 +3,19 @@
 //! rays (one random hemisphere ray from each primary hit), on one thread
 //! and on all threads.
 //!
-//!   cargo run --release -p tracer-core --example mesh_bench -- [MODEL ...]
+//!   cargo run --release -p tracer-core --example mesh_bench -- [--gpu] [--no-cpu] [MODEL ...]
 //!
-//! Without arguments it reads the Stanford bunny and dragon from
+//! Without model arguments it reads the Stanford bunny and dragon from
 //! ../shared/meshes (they may not be committed: see examples/models/README.md)
 //! and skips, with a message, any that is not there.
+//!
+//! `--gpu` adds the GPU backend (BVH traversal in bvh.wgsl) on the same
+//! model and camera: whole Whitted renders at 1920x1080, 4 samples, of (a)
+//! a diffuse model and one light (primary + shadow rays) and (b) a mirror
+//! model, depth 2 (adds reflection rays off the surface, which scatter, and
+//! their shadow rays); rays per second of GPU time (timestamp queries) and
+//! of wall time (whole render calls), and the GPU image against the CPU's
+//! f32 render of the same scene. `--no-cpu` skips the CPU ray timings.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -25,6 +33,11 @@ use tracer_core::world::World;
 const WIDTH: u32 = 1024;
 const HEIGHT: u32 = 768;
 const REPEATS: usize = 5;
+
+thread_local! {
+    /// GPU render size (width, height, samples); `--gpu-size`.
+    static GPU_SIZE: std::cell::Cell<(u32, u32, u32)> = const { std::cell::Cell::new((1920, 1080, 4)) };
+}
 
 /// CPU seconds used by this process so far (all threads). On a shared
 /// machine wall time includes waiting for the CPU; rays per CPU-second is
@@ -49,7 +62,27 @@ fn best_of(f: &mut dyn FnMut()) -> (f64, f64) {
 }
 
 fn main() {
-    let args: Vec<PathBuf> = std::env::args().skip(1).map(PathBuf::from).collect();
+    let mut gpu = false;
+    let mut cpu = true;
+    let mut args: Vec<PathBuf> = Vec::new();
+    for a in std::env::args().skip(1) {
+        match a.as_str() {
+            "--gpu" => gpu = true,
+            "--no-cpu" => cpu = false,
+            // Smaller GPU renders (e.g. 192x108x1 on a software adapter).
+            x if x.starts_with("--gpu-size=") => {
+                let v: Vec<u32> = x["--gpu-size=".len()..].split('x').filter_map(|n| n.parse().ok()).collect();
+                match v[..] {
+                    [w, h, s] if w > 0 && h > 0 && s > 0 => GPU_SIZE.with(|g| g.set((w, h, s))),
+                    _ => {
+                        eprintln!("--gpu-size=WxHxS, e.g. --gpu-size=1920x1080x4");
+                        std::process::exit(2);
+                    }
+                }
+            }
+            _ => args.push(PathBuf::from(a)),
+        }
+    }
     let models = if args.is_empty() {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/meshes");
         vec![root.join("stanford-bunny.obj"), root.join("dragon_vrip.ply.gz")]
@@ -63,13 +96,13 @@ fn main() {
             println!("\n{}: not found, skipped", path.display());
             continue;
         }
-        if let Err(e) = bench(&path, threads) {
+        if let Err(e) = bench(&path, threads, cpu, gpu) {
             println!("\n{}: {e}", path.display());
         }
     }
 }
 
-fn bench(path: &Path, threads: usize) -> Result<(), String> {
+fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String> {
     let t = Instant::now();
     let mesh = Mesh::load(path, false).map_err(|e| e.to_string())?;
     let load = t.elapsed();
@@ -141,6 +174,14 @@ fn bench(path: &Path, threads: usize) -> Result<(), String> {
         .collect();
     println!("  {} of {} primary rays hit; {} incoherent rays", secondary.len(), primary.len(), secondary.len());
 
+    if gpu {
+        if let Err(e) = gpu_bench(path, cam, c) {
+            println!("  GPU: {e}");
+        }
+    }
+    if !cpu {
+        return Ok(());
+    }
     for n in [1, threads] {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().expect("thread pool");
         let time = |f: &(dyn Fn() -> usize + Sync)| {
@@ -176,4 +217,99 @@ fn loop_free_sphere(a: f32, b: f32) -> Vec3A {
     let r = (1.0 - z * z).max(0.0).sqrt();
     let phi = std::f32::consts::PI * b;
     Vec3A::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// The GPU part (`--gpu`): see the module docs.
+fn gpu_bench(path: &Path, cam: [f64; 3], look_at: [f64; 3]) -> Result<(), String> {
+    use tracer_core::film::{Rect, SampleRange};
+    use tracer_core::render::gpu::{GpuOptions, GpuRenderer};
+    use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+
+    let g = GpuRenderer::new(None, GpuOptions::default()).map_err(|e| e.to_string())?;
+    println!("  GPU: {} (timestamps: {})", g.adapter(), g.has_timestamps());
+    let scene = |(w, h, samples): (u32, u32, u32), material: &str, depth: u32| {
+        let src = format!(
+            "[render]\nwidth = {w}\nheight = {h}\nsamples = {samples}\nmax_depth = {depth}\n[camera]\nposition = {cam:?}\nlook_at = {look_at:?}\nfov_y = 40\n\
+             [world]\nambient = [0.1, 0.1, 0.1]\nbackground = [0.2, 0.3, 0.5]\n\
+             [materials.grey]\ndiffuse = [0.8, 0.8, 0.8]\nspecular = [0.3, 0.3, 0.3]\nshininess = 20\n\
+             [materials.mirror]\ndiffuse = [0.2, 0.2, 0.2]\nreflectivity = 0.7\n\
+             [[lights]]\nposition = [{}, {}, {}]\n\
+             [[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"{material}\"\n",
+            cam[0] - (cam[2] - look_at[2]),
+            cam[1] + (cam[2] - look_at[2]),
+            cam[2],
+            path.display().to_string()
+        );
+        SceneDesc::parse(&src, "mesh_bench.toml").map_err(|e| e.to_string())
+    };
+    for (label, material, depth) in [("diffuse, depth 0 (primary + shadow)", "grey", 0), ("mirror, depth 2 (+ reflection, their shadows)", "mirror", 2)] {
+        let (w, h, spp) = GPU_SIZE.with(|g| g.get());
+        let desc = scene((w, h, spp), material, depth)?;
+        let t = Instant::now();
+        let frame = PreparedFrame::build(&desc, &desc.render, 0, Precision::F32).map_err(|e| e.to_string())?;
+        let build = t.elapsed();
+        let render = || g.render(&frame, 0, Rect::full(w, h), SampleRange::all(spp), &|_| {}).map_err(|e| e.to_string());
+        let t = Instant::now();
+        let first = render()?;
+        let warm = t.elapsed();
+        let mut gpu_s = Vec::new();
+        let mut wall_s = Vec::new();
+        for _ in 0..5 {
+            let t = Instant::now();
+            let film = render()?;
+            wall_s.push(t.elapsed().as_secs_f64());
+            if film.sums != first.sums {
+                return Err("two GPU renders of the same frame differ".into());
+            }
+            let st = g.last_stats();
+            gpu_s.push(st.gpu_time.unwrap_or(st.trace_wall).as_secs_f64());
+        }
+        let median = |v: &mut Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        let (gt, wt) = (median(&mut gpu_s), median(&mut wall_s));
+        let r = first.rays;
+        let total = r.primary + r.shadow + r.reflection + r.refraction;
+        println!(
+            "  GPU {w}x{h} {spp} spp, {label}: rays primary {} shadow {} reflection {}; GPU time {:.2} ms -> {:.0} Mrays/s ({:.0} M primary/s); whole render call {:.1} ms -> {:.0} Mrays/s; first render (upload, pipeline) {:.0} ms; world build {:.0} ms",
+            r.primary,
+            r.shadow,
+            r.reflection,
+            gt * 1e3,
+            total as f64 / gt / 1e6,
+            r.primary as f64 / gt / 1e6,
+            wt * 1e3,
+            total as f64 / wt / 1e6,
+            warm.as_secs_f64() * 1e3,
+            build.as_secs_f64() * 1e3
+        );
+
+        // Correctness: the same scene, smaller, on the CPU (f32, all threads).
+        let (cw, ch) = (w.min(480), h.min(270));
+        let small = scene((cw, ch, 1), material, depth)?;
+        let frame = PreparedFrame::build(&small, &small.render, 0, Precision::F32).map_err(|e| e.to_string())?;
+        let gf = g.render(&frame, 0, Rect::full(cw, ch), SampleRange::all(1), &|_| {}).map_err(|e| e.to_string())?;
+        let cf = CpuRenderer::new(None)
+            .map_err(|e| e.to_string())?
+            .render(&frame, 0, Rect::full(cw, ch), SampleRange::all(1), &|_| {})
+            .map_err(|e| e.to_string())?;
+        let (a, b) = (gf.resolve(), cf.resolve());
+        let mut mean = 0.0f64;
+        let mut over = 0;
+        for (p, q) in a.iter().zip(&b) {
+            let d = (0..3).map(|k| (p[k] - q[k]).abs()).fold(0.0f32, f32::max);
+            mean += d as f64;
+            over += (d > 2.0 / 255.0) as usize;
+        }
+        mean /= a.len() as f64;
+        println!(
+            "    vs CPU f32 at {cw}x{ch}: mean |gpu - cpu| {mean:.2e}, {over} of {} pixels over 2/255 ({:.3}%); rays GPU {:?} CPU {:?}",
+            a.len(),
+            over as f64 * 100.0 / a.len() as f64,
+            gf.rays,
+            cf.rays
+        );
+    }
+    Ok(())
 }

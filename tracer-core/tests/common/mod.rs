@@ -1,6 +1,8 @@
 //! Helpers shared by the tracer-core integration tests.
 #![allow(dead_code)]
 
+pub mod meshgen;
+
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};

@@ -1,14 +1,19 @@
 //! Host mirrors of every structure the WGSL kernel reads or writes.
 //!
-//! Keep in sync with the struct declarations at the top of `whitted.wgsl`:
+//! Keep in sync with the struct declarations at the top of `whitted.wgsl`
+//! (and, for meshes and the BVH, `bvh.wgsl`):
 //! same field order, same sizes, WGSL alignment rules (a `vec3<f32>` is
 //! 16-byte aligned, so each one is followed by a scalar that fills its
 //! fourth lane). The `const` asserts below pin the sizes WGSL expects.
 
 use bytemuck::{Pod, Zeroable};
 
-use crate::geometry::{Plane, Sphere};
+use crate::bvh::{Bvh, BvhNode, MAX_DEPTH};
+use crate::geometry::{Plane, PrimId, Sphere};
+use crate::triangle::{Triangle, TriangleShading};
 use crate::world::{Material, PointLight, World};
+
+use super::GpuError;
 
 /// Per-scene constants. WGSL: `struct Frame`.
 #[repr(C)]
@@ -96,6 +101,38 @@ pub struct GpuLight {
     pub _pad2: f32,
 }
 
+/// The vertices of a triangle. WGSL (bvh.wgsl): `struct Triangle`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct GpuTriangle {
+    pub v0: [f32; 3],
+    pub _pad0: f32,
+    pub v1: [f32; 3],
+    pub _pad1: f32,
+    pub v2: [f32; 3],
+    pub _pad2: f32,
+}
+
+/// What shading needs of a triangle (`TriangleShading`). WGSL (bvh.wgsl): `struct TriangleShading`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct GpuTriangleShading {
+    /// Unit geometric normal, outward by the winding.
+    pub normal: [f32; 3],
+    pub material: u32,
+    pub n0: [f32; 3],
+    /// 1 when `n0..n2` are vertex normals to interpolate, 0 for flat shading.
+    pub smooth_shaded: u32,
+    pub n1: [f32; 3],
+    pub _pad1: u32,
+    pub n2: [f32; 3],
+    pub _pad2: u32,
+}
+
+/// The BVH node is uploaded as is: `bvh::BvhNode` (32 bytes) is already the
+/// WGSL `struct BvhNode` (vec3 min, u32 first, vec3 max, u32 count).
+pub type GpuBvhNode = BvhNode;
+
 /// Per-pixel output: fixed-point sums as (low, high) u32 words per channel,
 /// i.e. the `u64` sums of [`crate::film::Film`]. WGSL: `sums: array<u32>`, 6 words a pixel.
 pub const SUM_WORDS: usize = 6;
@@ -121,6 +158,107 @@ const _: () = assert!(size_of::<GpuSphere>() == 32);
 const _: () = assert!(size_of::<GpuPlane>() == 32);
 const _: () = assert!(size_of::<GpuMaterial>() == 64);
 const _: () = assert!(size_of::<GpuLight>() == 48);
+const _: () = assert!(size_of::<GpuTriangle>() == 48);
+const _: () = assert!(size_of::<GpuTriangleShading>() == 64);
+const _: () = assert!(size_of::<GpuBvhNode>() == 32);
+
+/// A world's tree and what its leaves refer to, for scenes that have one
+/// (meshes, or many spheres): the pipeline then compiles `bvh.wgsl`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TreeData {
+    /// The flattened nodes exactly as the CPU traverses them (node 1 is padding).
+    pub nodes: Vec<GpuBvhNode>,
+    /// Leaf references: packed `PrimId`s (kind << 28 | index).
+    pub prims: Vec<u32>,
+    /// Never empty (one unused element when the tree holds only spheres).
+    pub triangles: Vec<GpuTriangle>,
+    pub shading: Vec<GpuTriangleShading>,
+    pub n_triangles: u32,
+    /// Depth of the deepest leaf, as measured at upload.
+    pub depth: u32,
+}
+
+impl TreeData {
+    /// Packs `tree` after checking that the GPU can traverse it: every index
+    /// in range and no leaf at depth `MAX_DEPTH` or more, since the kernel's
+    /// traversal stack has `MAX_DEPTH` entries. The builder guarantees both;
+    /// this refuses a tree from anywhere else rather than render a wrong image.
+    pub fn from_tree(w: &World<f32>, tree: &Bvh) -> Result<Self, GpuError> {
+        let nodes: Vec<BvhNode> = tree.pairs.iter().flat_map(|p| p.0).collect();
+        let depth = check_tree(&nodes, &tree.prims, w.spheres.len(), w.triangles.len())?;
+        let triangle = |t: &Triangle<f32>| {
+            let [v0, v1, v2] = t.vertices().map(a3);
+            GpuTriangle { v0, v1, v2, ..Default::default() }
+        };
+        let shading = |s: &TriangleShading<f32>| {
+            let ns = s.vertex_normals.map(|n| n.map(a3)).unwrap_or([[0.0; 3]; 3]);
+            GpuTriangleShading {
+                normal: a3(s.normal),
+                material: s.material,
+                n0: ns[0],
+                smooth_shaded: s.vertex_normals.is_some() as u32,
+                n1: ns[1],
+                n2: ns[2],
+                ..Default::default()
+            }
+        };
+        Ok(TreeData {
+            nodes: non_empty(nodes),
+            prims: non_empty(tree.prims.iter().map(|p| p.0).collect()),
+            triangles: non_empty(w.triangles.iter().map(triangle).collect()),
+            shading: non_empty(w.triangle_shading.iter().map(shading).collect()),
+            n_triangles: w.triangles.len() as u32,
+            depth,
+        })
+    }
+}
+
+/// Walks the tree from the root: children and leaf ranges in bounds, leaves
+/// referring to existing spheres or triangles, depth below the stack. Returns
+/// the depth of the deepest leaf.
+fn check_tree(nodes: &[BvhNode], prims: &[PrimId], spheres: usize, triangles: usize) -> Result<u32, GpuError> {
+    let bad = |why: String| Err(GpuError::BadTree(why));
+    if nodes.is_empty() {
+        return bad("the tree has no nodes".into());
+    }
+    let mut stack = vec![(0usize, 0usize)];
+    let mut deepest = 0;
+    let mut visited = 0usize;
+    while let Some((i, depth)) = stack.pop() {
+        if depth >= MAX_DEPTH {
+            return Err(GpuError::TreeTooDeep { depth, stack: MAX_DEPTH });
+        }
+        visited += 1;
+        if visited > nodes.len() {
+            return bad("nodes are shared or form a cycle".into());
+        }
+        let n = &nodes[i];
+        let first = n.first as usize;
+        if n.count == 0 {
+            if first % 2 != 0 || first + 1 >= nodes.len() || first == 0 {
+                return bad(format!("node {i} has children at {first}, outside the {} nodes or not a sibling pair", nodes.len()));
+            }
+            stack.push((first, depth + 1));
+            stack.push((first + 1, depth + 1));
+        } else {
+            deepest = deepest.max(depth);
+            let Some(leaf) = prims.get(first..first + n.count as usize) else {
+                return bad(format!("leaf {i} refers to primitives {first}..{} of {}", first + n.count as usize, prims.len()));
+            };
+            for p in leaf {
+                let ok = match p.kind() {
+                    PrimId::SPHERE => p.index() < spheres,
+                    PrimId::TRIANGLE => p.index() < triangles,
+                    _ => false,
+                };
+                if !ok {
+                    return bad(format!("leaf {i} refers to {p:?}, which is not a sphere or triangle of the scene"));
+                }
+            }
+        }
+    }
+    Ok(deepest as u32)
+}
 
 /// Everything the kernel needs of one frame of a scene, packed for upload.
 /// Arrays are never empty (bindings must not be): an absent kind gets one
@@ -138,6 +276,8 @@ pub struct SceneData {
     pub max_depth: u32,
     pub has_reflection: bool,
     pub has_refraction: bool,
+    /// The world's BVH over spheres and triangles, when it has one.
+    pub tree: Option<TreeData>,
 }
 
 fn a3(v: glam::Vec3A) -> [f32; 3] {
@@ -152,7 +292,7 @@ fn non_empty<T: Default>(mut v: Vec<T>) -> Vec<T> {
 }
 
 impl SceneData {
-    pub fn from_world(w: &World<f32>) -> Self {
+    pub fn from_world(w: &World<f32>) -> Result<Self, GpuError> {
         let s = &w.settings;
         let grid_n = crate::sampling::exact_sqrt(s.samples).unwrap_or(0);
         let frame = FrameUniform {
@@ -189,7 +329,13 @@ impl SceneData {
             specular: a3(l.specular),
             ..Default::default()
         };
-        SceneData {
+        let tree = w.accel.as_ref().filter(|t| !t.pairs.is_empty()).map(|t| TreeData::from_tree(w, t)).transpose()?;
+        if tree.is_none() && !w.triangles.is_empty() {
+            // Worlds always get a tree with their triangles (accel.rs); the
+            // kernel has no loop over triangles.
+            return Err(GpuError::BadTree(format!("the scene has {} triangles but no BVH over them", w.triangles.len())));
+        }
+        Ok(SceneData {
             frame,
             spheres: non_empty(w.spheres.iter().map(sphere).collect()),
             planes: non_empty(w.planes.iter().map(plane).collect()),
@@ -201,7 +347,8 @@ impl SceneData {
             max_depth: s.max_depth,
             has_reflection: w.features.reflection,
             has_refraction: w.features.refraction,
-        }
+            tree,
+        })
     }
 
     /// Entries of the per-thread task stack the kernel needs: the kernel

@@ -31,6 +31,10 @@ use crate::film::{Film, RayCounts, Rect, SampleRange};
 const SAMPLING_WGSL: &str = include_str!("sampling.wgsl");
 const WHITTED_WGSL: &str = include_str!("whitted.wgsl");
 const WAVEFRONT_WGSL: &str = include_str!("wavefront.wgsl");
+/// Scene queries for worlds without a tree: loops over spheres and planes.
+const ANALYTIC_WGSL: &str = include_str!("analytic.wgsl");
+/// Scene queries for worlds with a BVH (meshes, many spheres).
+const BVH_WGSL: &str = include_str!("bvh.wgsl");
 
 /// Dynamic uniform offsets must be multiples of this (256 is the largest
 /// alignment any adapter asks for).
@@ -50,8 +54,10 @@ pub enum GpuError {
     RequestDevice { adapter: String, message: String },
     #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
     F64Unsupported,
-    #[error("the GPU backend cannot trace triangle meshes yet (the scene has {0} triangles); use --backend cpu")]
-    MeshesUnsupported(usize),
+    #[error("the scene's BVH has a node at depth {depth}, too deep for the GPU traversal stack of {stack} entries (leaves must lie above depth {stack}); render it with --backend cpu")]
+    TreeTooDeep { depth: usize, stack: usize },
+    #[error("the scene's BVH cannot be traversed on the GPU: {0}")]
+    BadTree(String),
     #[error(transparent)]
     Request(#[from] RenderError),
     #[error("{what} needs {needed} bytes but the GPU allows at most {limit} ({limit_name}); render a smaller rectangle")]
@@ -190,6 +196,9 @@ struct SceneState {
     planes: wgpu::Buffer,
     materials: wgpu::Buffer,
     lights: wgpu::Buffer,
+    /// BVH nodes, leaf references, triangles, triangle shading (one-element
+    /// placeholders for scenes without a tree, whose kernel never reads them).
+    tree: [wgpu::Buffer; 4],
     wave: Option<WavePipelines>,
 }
 
@@ -346,6 +355,11 @@ impl GpuRenderer {
                 storage(5, true),
                 storage(6, false),
                 storage(7, false),
+                // The BVH: nodes, leaf references, triangles, triangle shading.
+                storage(8, true),
+                storage(9, true),
+                storage(10, true),
+                storage(11, true),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -437,11 +451,7 @@ impl GpuRenderer {
         };
         self.check_fault()?;
         let start = Instant::now();
-        // GPU BVH traversal is not written yet: refuse rather than render without the meshes.
-        if !world.triangles.is_empty() {
-            return Err(GpuError::MeshesUnsupported(world.triangles.len()));
-        }
-        let data = SceneData::from_world(world);
+        let data = SceneData::from_world(world)?;
 
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -532,6 +542,10 @@ impl GpuRenderer {
                     }),
                 },
                 entire(7, &out.counters),
+                entire(8, &scene.tree[0]),
+                entire(9, &scene.tree[1]),
+                entire(10, &scene.tree[2]),
+                entire(11, &scene.tree[3]),
             ],
         });
 
@@ -743,6 +757,9 @@ impl GpuRenderer {
             ("the scene's planes", std::mem::size_of_val(data.planes.as_slice())),
             ("the scene's materials", std::mem::size_of_val(data.materials.as_slice())),
             ("the scene's lights", std::mem::size_of_val(data.lights.as_slice())),
+            ("the scene's BVH nodes", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.nodes.as_slice()))),
+            ("the scene's triangles", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.triangles.as_slice()))),
+            ("the scene's triangle shading data", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.shading.as_slice()))),
         ] {
             check_size(what, bytes as u64, limits.max_storage_buffer_binding_size as u64, "max_storage_buffer_binding_size")?;
         }
@@ -751,9 +768,24 @@ impl GpuRenderer {
         let planes = make("planes", bytemuck::cast_slice(&data.planes), st);
         let materials = make("materials", bytemuck::cast_slice(&data.materials), st);
         let lights = make("lights", bytemuck::cast_slice(&data.lights), st);
+        let tree = match &data.tree {
+            Some(t) => [
+                make("bvh nodes", bytemuck::cast_slice(&t.nodes), st),
+                make("bvh prims", bytemuck::cast_slice(&t.prims), st),
+                make("triangles", bytemuck::cast_slice(&t.triangles), st),
+                make("triangle shading", bytemuck::cast_slice(&t.shading), st),
+            ],
+            None => ["bvh nodes", "bvh prims", "triangles", "triangle shading"].map(|label| make(label, &[0u8; 64], st)),
+        };
 
-        // Generated part: the stack's capacity must be a constant expression.
-        let source = format!("const STACK_CAP: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{WAVEFRONT_WGSL}", data.stack_capacity());
+        // Generated part: the stacks' capacities must be constant
+        // expressions. Only scenes with a tree compile the BVH traversal.
+        let queries = if data.tree.is_some() { BVH_WGSL } else { ANALYTIC_WGSL };
+        let source = format!(
+            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{queries}\n{WAVEFRONT_WGSL}",
+            data.stack_capacity(),
+            crate::bvh::MAX_DEPTH
+        );
         let module = self.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("whitted.wgsl"),
             source: wgpu::ShaderSource::Wgsl(source.into()),
@@ -807,7 +839,7 @@ impl GpuRenderer {
                 queue_cap,
             }
         });
-        Ok(SceneState { data, options: self.options, pipeline, frame, spheres, planes, materials, lights, wave })
+        Ok(SceneState { data, options: self.options, pipeline, frame, spheres, planes, materials, lights, tree, wave })
     }
 
     fn create_outputs(&self, pixels: usize) -> Outputs {

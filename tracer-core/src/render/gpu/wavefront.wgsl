@@ -110,9 +110,10 @@ fn wave_shade(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invo
             let cos_out = dot(sf.n, v);
             let entering = cos_out >= 0.0;
             let n = select(-sf.n, sf.n, entering);
-            let cos_i = abs(cos_out);
+            let ns = shading_normal(hit.id, p, n, v);
+            let cos_i = dot(ns, v);
             let above = offset_origin(p, n);
-            colour = shade_local(p, n, v, m, above, hit.id) * task.weight;
+            colour = shade_local(p, n, ns, v, m, above, hit.id) * task.weight;
             if (task.depth < MAX_DEPTH) {
                 var reflect_w = m.reflectivity;
                 if (HAS_REFRACTION && m.transparency > 0.0) {
@@ -121,13 +122,13 @@ fn wave_shade(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invo
                     if (k < 0.0) {
                         reflect_w += m.transparency;
                     } else {
-                        let rdir = normalize(-v * eta + n * (eta * cos_i - sqrt(k)));
+                        let rdir = normalize(-v * eta + ns * (eta * cos_i - sqrt(k)));
                         tally[C_REFRACTION] += 1u;
                         push(WaveTask(offset_origin(p, -n), task.weight * m.transparency, rdir, task.depth + 1u, hit.id, task.pixel));
                     }
                 }
                 if (HAS_REFLECTION && reflect_w > 0.0) {
-                    let rdir = normalize(n * (2.0 * cos_i) - v);
+                    let rdir = normalize(ns * (2.0 * cos_i) - v);
                     tally[C_REFLECTION] += 1u;
                     push(WaveTask(above, task.weight * reflect_w, rdir, task.depth + 1u, hit.id, task.pixel));
                 }

@@ -9,7 +9,8 @@
 // shortening, skipped shadow rays, TIR rule).
 //
 // Prepended by the host: `const STACK_CAP: u32 = N;` (see SceneData::stack_capacity),
-// then sampling.wgsl.
+// `const BVH_STACK: u32 = bvh::MAX_DEPTH;`, then sampling.wgsl; appended:
+// analytic.wgsl or bvh.wgsl (the scene queries), then wavefront.wgsl.
 
 // ---- Layouts: keep in sync with layout.rs -------------------------------
 struct Frame {
@@ -106,6 +107,7 @@ const NONE: u32 = 0xffffffffu;
 const KIND_SHIFT: u32 = 28u;
 const KIND_SPHERE: u32 = 0u;
 const KIND_PLANE: u32 = 1u;
+const KIND_TRIANGLE: u32 = 2u;
 
 fn offset_origin(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     let a = abs(p);
@@ -168,37 +170,47 @@ struct Hit {
     id: u32,
 }
 
-// world.rs closest_hit: spheres then planes, strictly nearer wins.
-fn closest_hit(o: vec3<f32>, d: vec3<f32>, skip: u32) -> Hit {
-    var best = BIG;
-    var id = NONE;
+// The scene queries `closest_hit`, `occluded`, `surface` and
+// `shading_normal` come from analytic.wgsl (no tree: the loops below over
+// every sphere and plane) or bvh.wgsl (a tree over spheres and triangles,
+// planes by loop), whichever the host compiles in.
+
+// world.rs closest_hit, sphere part: strictly nearer than h.t wins.
+fn spheres_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
+    var best = h;
     for (var i = 0u; i < N_SPHERES; i++) {
         let pid = (KIND_SPHERE << KIND_SHIFT) | i;
-        let t = hit_sphere(spheres[i], o, d, best, pid == skip);
+        let t = hit_sphere(spheres[i], o, d, best.t, pid == skip);
         if (t > 0.0) {
-            best = t;
-            id = pid;
+            best = Hit(t, pid);
         }
     }
-    for (var i = 0u; i < N_PLANES; i++) {
-        let pid = (KIND_PLANE << KIND_SHIFT) | i;
-        let t = hit_plane(planes[i], o, d, best, pid == skip);
-        if (t > 0.0) {
-            best = t;
-            id = pid;
-        }
-    }
-    return Hit(best, id);
+    return best;
 }
 
-// world.rs occluded: anything before t_max.
-fn occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
+fn planes_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
+    var best = h;
+    for (var i = 0u; i < N_PLANES; i++) {
+        let pid = (KIND_PLANE << KIND_SHIFT) | i;
+        let t = hit_plane(planes[i], o, d, best.t, pid == skip);
+        if (t > 0.0) {
+            best = Hit(t, pid);
+        }
+    }
+    return best;
+}
+
+fn spheres_occlude(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
     for (var i = 0u; i < N_SPHERES; i++) {
         let pid = (KIND_SPHERE << KIND_SHIFT) | i;
         if (hit_sphere(spheres[i], o, d, t_max, pid == skip) > 0.0) {
             return true;
         }
     }
+    return false;
+}
+
+fn planes_occlude(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
     for (var i = 0u; i < N_PLANES; i++) {
         let pid = (KIND_PLANE << KIND_SHIFT) | i;
         if (hit_plane(planes[i], o, d, t_max, pid == skip) > 0.0) {
@@ -214,8 +226,9 @@ struct Surface {
     material: u32,
 }
 
-// world.rs surface: the point snapped onto the primitive, outward normal.
-fn surface(id: u32, p: vec3<f32>) -> Surface {
+// world.rs surface for spheres and planes: the point snapped onto the
+// primitive, outward normal.
+fn analytic_surface(id: u32, p: vec3<f32>) -> Surface {
     let index = id & ((1u << KIND_SHIFT) - 1u);
     if ((id >> KIND_SHIFT) == KIND_SPHERE) {
         let s = spheres[index];
@@ -229,9 +242,10 @@ fn surface(id: u32, p: vec3<f32>) -> Surface {
 }
 
 // Ambient plus every unblocked light at surface point p (render/whitted.rs):
-// n faces the viewer v, `above` is p offset to the viewer's side, `id` the
-// primitive p lies on.
-fn shade_local(p: vec3<f32>, n: vec3<f32>, v: vec3<f32>, m: Material, above: vec3<f32>, id: u32) -> vec3<f32> {
+// n (the geometric normal) faces the viewer v, ns is the shading normal
+// (n except on smooth triangles), `above` is p offset to the viewer's side,
+// `id` the primitive p lies on.
+fn shade_local(p: vec3<f32>, n: vec3<f32>, ns: vec3<f32>, v: vec3<f32>, m: Material, above: vec3<f32>, id: u32) -> vec3<f32> {
     var local = frame.ambient * m.ambient;
     for (var li = 0u; li < N_LIGHTS; li++) {
         let light = lights[li];
@@ -241,12 +255,12 @@ fn shade_local(p: vec3<f32>, n: vec3<f32>, v: vec3<f32>, m: Material, above: vec
             continue;
         }
         let l = to_light * (1.0 / dist);
-        let ndotl = max(dot(n, l), 0.0);
+        let ndotl = max(dot(ns, l), 0.0);
         let h = l + v;
         let h_len = length(h);
         var ndoth = 0.0;
         if (h_len > 0.0) {
-            ndoth = max(dot(n, h) / h_len, 0.0);
+            ndoth = max(dot(ns, h) / h_len, 0.0);
         }
         var spec = 0.0;
         // Same cut-off as the CPU's f32 path: terms below 2^-24 are skipped.
@@ -300,10 +314,12 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> vec3<f32> {
             let cos_out = dot(sf.n, v);
             let entering = cos_out >= 0.0;
             let n = select(-sf.n, sf.n, entering);
-            let cos_i = abs(cos_out);
+            // Differs from n only on smoothly shaded triangles.
+            let ns = shading_normal(hit.id, p, n, v);
+            let cos_i = dot(ns, v);
 
             let above = offset_origin(p, n);
-            colour += shade_local(p, n, v, m, above, hit.id) * task.weight;
+            colour += shade_local(p, n, ns, v, m, above, hit.id) * task.weight;
 
             if (task.depth < MAX_DEPTH) {
                 var reflect_w = m.reflectivity;
@@ -313,14 +329,14 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> vec3<f32> {
                     if (k < 0.0) {
                         reflect_w += m.transparency; // total internal reflection
                     } else {
-                        let rdir = normalize(-v * eta + n * (eta * cos_i - sqrt(k)));
+                        let rdir = normalize(-v * eta + ns * (eta * cos_i - sqrt(k)));
                         tally[C_REFRACTION] += 1u;
                         next = Task(offset_origin(p, -n), task.weight * m.transparency, rdir, task.depth + 1u, hit.id);
                         have_next = true;
                     }
                 }
                 if (HAS_REFLECTION && reflect_w > 0.0) {
-                    let rdir = normalize(n * (2.0 * cos_i) - v);
+                    let rdir = normalize(ns * (2.0 * cos_i) - v);
                     tally[C_REFLECTION] += 1u;
                     let child = Task(above, task.weight * reflect_w, rdir, task.depth + 1u, hit.id);
                     if (have_next) {

@@ -1,0 +1,159 @@
+//! Meshes generated in code for the mesh tests (meshes.rs, gpu.rs): no
+//! model file is needed, so the tests are self-contained.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+pub fn tmpdir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("tessera-meshtest-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Unit icosphere: an icosahedron subdivided `levels` times, vertices on the
+/// sphere, shared between triangles, counter-clockwise seen from outside.
+pub fn icosphere(levels: u32) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let mut v: Vec<DVec3> = [
+        [-1.0, t, 0.0],
+        [1.0, t, 0.0],
+        [-1.0, -t, 0.0],
+        [1.0, -t, 0.0],
+        [0.0, -1.0, t],
+        [0.0, 1.0, t],
+        [0.0, -1.0, -t],
+        [0.0, 1.0, -t],
+        [t, 0.0, -1.0],
+        [t, 0.0, 1.0],
+        [-t, 0.0, -1.0],
+        [-t, 0.0, 1.0],
+    ]
+    .iter()
+    .map(|p| DVec3::from_array(*p).normalize())
+    .collect();
+    let mut f: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..levels {
+        let mut mid = std::collections::HashMap::new();
+        let mut midpoint = |a: u32, b: u32, v: &mut Vec<DVec3>| {
+            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
+                v.len() as u32 - 1
+            })
+        };
+        let mut next = Vec::with_capacity(f.len() * 4);
+        for [a, b, c] in f {
+            let (ab, bc, ca) = (
+                midpoint(a, b, &mut v),
+                midpoint(b, c, &mut v),
+                midpoint(c, a, &mut v),
+            );
+            next.extend([[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        f = next;
+    }
+    (v.iter().map(|p| p.to_array()).collect(), f)
+}
+
+/// Writes an OBJ (1-based indices; with `vn` = the positions when `smooth`).
+pub fn write_obj(path: &Path, v: &[[f64; 3]], f: &[[u32; 3]], smooth: bool) {
+    let mut s = String::new();
+    for p in v {
+        writeln!(s, "v {} {} {}", p[0], p[1], p[2]).unwrap();
+        if smooth {
+            writeln!(s, "vn {} {} {}", p[0], p[1], p[2]).unwrap();
+        }
+    }
+    for t in f {
+        let [a, b, c] = t.map(|i| i + 1);
+        if smooth {
+            writeln!(s, "f {a}//{a} {b}//{b} {c}//{c}").unwrap();
+        } else {
+            writeln!(s, "f {a} {b} {c}").unwrap();
+        }
+    }
+    std::fs::write(path, s).unwrap();
+}
+
+/// OBJ text of the pathological mesh: 5000 identical triangles in one spot,
+/// zero-area triangles, one huge triangle behind everything (it fills the
+/// background of the mesh tests' camera), thin slivers in a fan, and
+/// exponential chains that a pure SAH build would split one at a time.
+pub fn pathological_obj() -> String {
+    let mut s = String::new();
+    let mut nv = 0;
+    let mut tri = |s: &mut String, p: [[f64; 3]; 3]| {
+        for q in p {
+            writeln!(s, "v {} {} {}", q[0], q[1], q[2]).unwrap();
+        }
+        writeln!(s, "f {} {} {}", nv + 1, nv + 2, nv + 3).unwrap();
+        nv += 3;
+    };
+    // 5000 identical triangles in one spot.
+    for _ in 0..5000 {
+        tri(&mut s, [[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]);
+    }
+    // Zero-area ones: a point and a segment.
+    tri(&mut s, [[0.5, 0.5, 0.5]; 3]);
+    tri(&mut s, [[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [2.0, 1.0, 0.0]]);
+    // One huge triangle behind everything.
+    tri(
+        &mut s,
+        [[-1e6, -1e6, 30.0], [1e6, -1e6, 30.0], [0.0, 1e6, 30.0]],
+    );
+    // Thin slivers (1e-7 wide, 3 long) in a fan, and an exponential chain
+    // that a SAH build would split one triangle at a time.
+    for i in 0..2000 {
+        let a = i as f64 * 1e-3;
+        tri(
+            &mut s,
+            [
+                [0.0, -0.5, 0.0],
+                [3.0 * a.cos(), -0.5 + 3.0 * a.sin(), 1.0],
+                [3.0 * a.cos(), -0.5 + 3.0 * a.sin() + 1e-7, 1.0],
+            ],
+        );
+    }
+    for i in 0..3000 {
+        let x = 1.005f64.powi(i) * 1e-6;
+        tri(
+            &mut s,
+            [[x, -1.0, 2.0], [x + 1e-7, -1.0, 2.0], [x, -1.0 + 1e-7, 2.0]],
+        );
+    }
+    // Triangles at x = 2^i * 1e-20 (1e-20 .. 1e10): a chain for the SAH.
+    for i in 0..100 {
+        let x = 2f64.powi(i) * 1e-20;
+        tri(
+            &mut s,
+            [
+                [x, 1.5, 3.0],
+                [x * 1.25, 1.5, 3.0],
+                [x, 1.5 + x * 0.25, 3.0],
+            ],
+        );
+    }
+    s
+}
