@@ -124,7 +124,14 @@ pub struct Bvh {
     pub pairs: Vec<NodePair>,
     pub prims: Vec<PrimId>,
     pub stats: BvhStats,
+    /// Unique per build (never 0 for a built tree; 0 for a tree made any
+    /// other way): lets a GPU renderer keep an uploaded tree while the
+    /// same world renders tile after tile, without comparing its contents.
+    pub id: u64,
 }
+
+/// Source of [`Bvh::id`].
+static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 /// Build-time tree before flattening.
 enum BuildNode {
@@ -184,7 +191,7 @@ impl Bvh {
         stats.bytes = pairs.len() * std::mem::size_of::<NodePair>() + prims.len() * std::mem::size_of::<PrimId>();
         stats.build_time = start.elapsed();
         debug_assert!(stats.depth < stack);
-        Bvh { pairs, prims, stats }
+        Bvh { pairs, prims, stats, id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed) }
     }
 
     /// Node `i` of the flattened tree.
