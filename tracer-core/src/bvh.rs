@@ -1,9 +1,10 @@
 //! Bounding volume hierarchy over the bounded primitives of a world
 //! (triangles and spheres; infinite planes stay outside), built with the
 //! binned surface area heuristic and flattened into one array of 32-byte
-//! nodes that the CPU traverses here and a GPU can traverse as is.
+//! nodes that the CPU traverses here and the GPU (`render/gpu/bvh.wgsl`)
+//! traverses as is, uploaded unchanged.
 //!
-//! Layout (mirrored by any GPU traversal; `#[repr(C)]`, `Pod`):
+//! Layout (mirrored by `bvh.wgsl`'s `struct BvhNode`; `#[repr(C)]`, `Pod`):
 //! - `nodes[0]` is the root (`nodes[1]` is unused padding). An interior node
 //!   (`count == 0`) has its two children side by side at `first` and
 //!   `first + 1`, `first` even: the pair is one 64-byte cache line (the
