@@ -1,9 +1,10 @@
 //! Bounding volume hierarchy over the bounded primitives of a world
 //! (triangles and spheres; infinite planes stay outside), built with the
 //! binned surface area heuristic and flattened into one array of 32-byte
-//! nodes that the CPU traverses here and a GPU can traverse as is.
+//! nodes that the CPU traverses here and the GPU (`render/gpu/bvh.wgsl`)
+//! traverses as is, uploaded unchanged.
 //!
-//! Layout (mirrored by any GPU traversal; `#[repr(C)]`, `Pod`):
+//! Layout (mirrored by `bvh.wgsl`'s `struct BvhNode`; `#[repr(C)]`, `Pod`):
 //! - `nodes[0]` is the root (`nodes[1]` is unused padding). An interior node
 //!   (`count == 0`) has its two children side by side at `first` and
 //!   `first + 1`, `first` even: the pair is one 64-byte cache line (the
@@ -124,7 +125,14 @@ pub struct Bvh {
     pub pairs: Vec<NodePair>,
     pub prims: Vec<PrimId>,
     pub stats: BvhStats,
+    /// Unique per build (never 0 for a built tree; 0 for a tree made any
+    /// other way): lets a GPU renderer keep an uploaded tree while the
+    /// same world renders tile after tile, without comparing its contents.
+    pub id: u64,
 }
+
+/// Source of [`Bvh::id`].
+static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 /// Build-time tree before flattening.
 enum BuildNode {
@@ -184,7 +192,7 @@ impl Bvh {
         stats.bytes = pairs.len() * std::mem::size_of::<NodePair>() + prims.len() * std::mem::size_of::<PrimId>();
         stats.build_time = start.elapsed();
         debug_assert!(stats.depth < stack);
-        Bvh { pairs, prims, stats }
+        Bvh { pairs, prims, stats, id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed) }
     }
 
     /// Node `i` of the flattened tree.

@@ -277,7 +277,22 @@ pub struct SceneData {
     pub has_reflection: bool,
     pub has_refraction: bool,
     /// The world's BVH over spheres and triangles, when it has one.
-    pub tree: Option<TreeData>,
+    pub tree: Option<SharedTree>,
+}
+
+/// Packed tree data, shared between renders of the same world: equal when
+/// it is the same allocation (no O(n) comparison) or has equal contents.
+#[derive(Clone, Debug)]
+pub struct SharedTree {
+    /// `Bvh::id` of the tree it was packed from (0: unknown, never reused).
+    pub id: u64,
+    pub data: std::sync::Arc<TreeData>,
+}
+
+impl PartialEq for SharedTree {
+    fn eq(&self, other: &Self) -> bool {
+        std::sync::Arc::ptr_eq(&self.data, &other.data) || (self.id == other.id && self.data == other.data)
+    }
 }
 
 fn a3(v: glam::Vec3A) -> [f32; 3] {
@@ -292,7 +307,10 @@ fn non_empty<T: Default>(mut v: Vec<T>) -> Vec<T> {
 }
 
 impl SceneData {
-    pub fn from_world(w: &World<f32>) -> Result<Self, GpuError> {
+    /// Packs `w`. `packed` is a tree packed earlier, reused (not repacked)
+    /// when it was packed from this world's tree (same non-zero `Bvh::id`
+    /// and primitive counts).
+    pub fn from_world(w: &World<f32>, packed: Option<&SharedTree>) -> Result<Self, GpuError> {
         let s = &w.settings;
         let grid_n = crate::sampling::exact_sqrt(s.samples).unwrap_or(0);
         let frame = FrameUniform {
@@ -329,7 +347,15 @@ impl SceneData {
             specular: a3(l.specular),
             ..Default::default()
         };
-        let tree = w.accel.as_ref().filter(|t| !t.pairs.is_empty()).map(|t| TreeData::from_tree(w, t)).transpose()?;
+        let tree = match w.accel.as_ref().filter(|t| !t.pairs.is_empty()) {
+            None => None,
+            Some(t) => match packed {
+                Some(p) if t.id != 0 && p.id == t.id && p.data.n_triangles as usize == w.triangles.len() && p.data.prims.len() == t.prims.len() => {
+                    Some(p.clone())
+                }
+                _ => Some(SharedTree { id: t.id, data: std::sync::Arc::new(TreeData::from_tree(w, t)?) }),
+            },
+        };
         if tree.is_none() && !w.triangles.is_empty() {
             // Worlds always get a tree with their triangles (accel.rs); the
             // kernel has no loop over triangles.

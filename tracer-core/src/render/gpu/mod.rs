@@ -451,7 +451,10 @@ impl GpuRenderer {
         };
         self.check_fault()?;
         let start = Instant::now();
-        let data = SceneData::from_world(world)?;
+        // Tiles of one frame reuse the packed tree (packing a million
+        // triangles costs more than tracing them).
+        let packed = self.scene.lock().ok().and_then(|s| s.as_ref().and_then(|s| s.data.tree.clone()));
+        let data = SceneData::from_world(world, packed.as_ref())?;
 
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -757,9 +760,9 @@ impl GpuRenderer {
             ("the scene's planes", std::mem::size_of_val(data.planes.as_slice())),
             ("the scene's materials", std::mem::size_of_val(data.materials.as_slice())),
             ("the scene's lights", std::mem::size_of_val(data.lights.as_slice())),
-            ("the scene's BVH nodes", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.nodes.as_slice()))),
-            ("the scene's triangles", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.triangles.as_slice()))),
-            ("the scene's triangle shading data", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.shading.as_slice()))),
+            ("the scene's BVH nodes", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.data.nodes.as_slice()))),
+            ("the scene's triangles", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.data.triangles.as_slice()))),
+            ("the scene's triangle shading data", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.data.shading.as_slice()))),
         ] {
             check_size(what, bytes as u64, limits.max_storage_buffer_binding_size as u64, "max_storage_buffer_binding_size")?;
         }
@@ -770,10 +773,10 @@ impl GpuRenderer {
         let lights = make("lights", bytemuck::cast_slice(&data.lights), st);
         let tree = match &data.tree {
             Some(t) => [
-                make("bvh nodes", bytemuck::cast_slice(&t.nodes), st),
-                make("bvh prims", bytemuck::cast_slice(&t.prims), st),
-                make("triangles", bytemuck::cast_slice(&t.triangles), st),
-                make("triangle shading", bytemuck::cast_slice(&t.shading), st),
+                make("bvh nodes", bytemuck::cast_slice(&t.data.nodes), st),
+                make("bvh prims", bytemuck::cast_slice(&t.data.prims), st),
+                make("triangles", bytemuck::cast_slice(&t.data.triangles), st),
+                make("triangle shading", bytemuck::cast_slice(&t.data.shading), st),
             ],
             None => ["bvh nodes", "bvh prims", "triangles", "triangle shading"].map(|label| make(label, &[0u8; 64], st)),
         };
