@@ -14,6 +14,8 @@ use tracer_core::scene::RenderSettings;
 
 /// How long the farm may take to come up (listen, register workers).
 const START_TIMEOUT: Duration = Duration::from_secs(60);
+/// How long one job may take before the suite gives up.
+const JOB_TIMEOUT: Duration = Duration::from_secs(3600);
 
 /// A child process that is killed and reaped when dropped, so that no exit
 /// path of the benchmark (error, panic, Ctrl-C unwinding) leaves a
@@ -141,8 +143,9 @@ impl Farm {
 
     /// Submits `scene` with `settings` as overrides and waits for the job
     /// (`tessera submit --wait`); returns the job id and the wall time from
-    /// submission to the job's end.
-    pub fn submit_and_wait(&self, scene: &Path, settings: &RenderSettings, tile_size: u32) -> Result<(String, f64)> {
+    /// submission to the job's end. Fails, rather than hangs, if the
+    /// coordinator or a worker dies or the job outlasts `JOB_TIMEOUT`.
+    pub fn submit_and_wait(&mut self, scene: &Path, settings: &RenderSettings, tile_size: u32, log: &Path) -> Result<(String, f64)> {
         let scene_arg = scene.to_string_lossy();
         let (w, h, s, d) =
             (settings.width.to_string(), settings.height.to_string(), settings.samples.to_string(), settings.max_depth.to_string());
@@ -152,11 +155,33 @@ impl Farm {
             settings.sampler.name(), "--tile-size", &tile, "--wait",
         ];
         let start = Instant::now();
-        let out = self.cli(&args).output().context("cannot run tessera submit")?;
+        // stdout (the job id) is a few bytes; progress goes to the log, so no pipe can fill up.
+        let child = self.cli(&args).stdout(Stdio::piped()).stderr(log_file(log)?).spawn().context("cannot run tessera submit")?;
+        let mut submit = ChildGuard { what: "tessera submit --wait".into(), log: log.to_path_buf(), child };
+        let mut last_check = Instant::now();
+        let status = loop {
+            if let Some(status) = submit.child.try_wait()? {
+                break status;
+            }
+            if last_check.elapsed() > Duration::from_millis(100) {
+                self.coordinator.check_alive()?;
+                for w in &mut self.workers {
+                    w.check_alive()?;
+                }
+                if start.elapsed() > JOB_TIMEOUT {
+                    bail!("the job did not finish within {JOB_TIMEOUT:?}");
+                }
+                last_check = Instant::now();
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        };
         let secs = start.elapsed().as_secs_f64();
-        let stdout = String::from_utf8_lossy(&out.stdout);
-        if !out.status.success() {
-            bail!("tessera submit --wait failed ({}): {}{}", out.status, stdout, String::from_utf8_lossy(&out.stderr));
+        let mut stdout = String::new();
+        if let Some(mut out) = submit.child.stdout.take() {
+            std::io::Read::read_to_string(&mut out, &mut stdout).context("cannot read tessera submit's output")?;
+        }
+        if !status.success() {
+            bail!("tessera submit --wait failed ({status}): {stdout}\n{}", tail(log));
         }
         let id = stdout.lines().next().map(str::trim).filter(|l| !l.is_empty()).context("tessera submit printed no job id")?;
         Ok((id.to_string(), secs))

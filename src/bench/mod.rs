@@ -583,8 +583,9 @@ impl Bench {
             let data = dir.join(format!("data-{n}"));
             let _ = std::fs::remove_dir_all(&data);
             let (job_secs, identical, diff_bytes) = {
-                let farm = farm::Farm::start(&exe, &data, &dir.join(format!("run-{n}")), n, threads)?;
-                let (job, secs) = farm.submit_and_wait(&path, &s, tile)?;
+                let logs = dir.join(format!("run-{n}"));
+                let mut farm = farm::Farm::start(&exe, &data, &logs, n, threads)?;
+                let (job, secs) = farm.submit_and_wait(&path, &s, tile, &logs.with_extension("submit.log"))?;
                 let fetched = dir.join(format!("frames-{n}"));
                 let (w, h, pixels) = farm.fetch_frame0(&job, &fetched)?;
                 let same_size = (w, h) == (width, height);
