@@ -32,6 +32,16 @@ pub struct Timing {
     pub dispatches: u32,
 }
 
+/// The timed renders of one renderer.
+#[derive(Clone, Default)]
+struct Samples {
+    gpu: Vec<Duration>,
+    trace: Vec<Duration>,
+    total: Vec<Duration>,
+    readback: Vec<Duration>,
+    dispatches: u32,
+}
+
 fn median(mut v: Vec<Duration>) -> Duration {
     v.sort();
     v[v.len() / 2]
@@ -54,30 +64,31 @@ pub fn run_interleaved(rs: &[&GpuRenderer], prepared: &PreparedFrame, rect: Rect
             g.render(prepared, 0, rect, samples, &|_| {})?;
         }
     }
-    let mut stats: Vec<(Vec<Duration>, Vec<Duration>, Vec<Duration>, Vec<Duration>, u32)> = vec![Default::default(); rs.len()];
+    let mut stats = vec![Samples::default(); rs.len()];
     for _ in 0..reps.max(1) {
         for (i, g) in rs.iter().enumerate() {
             films[i] = g.render(prepared, 0, rect, samples, &|_| {})?;
             let st = g.last_stats();
-            stats[i].0.push(st.gpu_time.unwrap_or(st.trace_wall));
-            stats[i].1.push(st.trace_wall);
-            stats[i].2.push(st.total_wall);
-            stats[i].3.push(st.readback);
-            stats[i].4 = st.dispatches;
+            let t = &mut stats[i];
+            t.gpu.push(st.gpu_time.unwrap_or(st.trace_wall));
+            t.trace.push(st.trace_wall);
+            t.total.push(st.total_wall);
+            t.readback.push(st.readback);
+            t.dispatches = st.dispatches;
         }
     }
     Ok(films
         .into_iter()
         .zip(stats)
         .zip(firsts)
-        .map(|((film, (g, t, tot, rb, dispatches)), first)| Timing {
+        .map(|((film, t), first)| Timing {
             film,
-            gpu: median(g),
-            trace: median(t),
-            total: median(tot),
-            readback: median(rb),
+            gpu: median(t.gpu),
+            trace: median(t.trace),
+            total: median(t.total),
+            readback: median(t.readback),
             first,
-            dispatches,
+            dispatches: t.dispatches,
         })
         .collect())
 }
@@ -126,8 +137,11 @@ pub const WAVEFRONT_WORKGROUPS: &[(u32, u32)] = &[(32, 1), (64, 1), (128, 1), (2
 /// The points to sweep: the full grid, or (quick) a few that still cover
 /// both kernels, a 1-D and a 2-D workgroup, and a split and an unsplit frame.
 pub fn sweep_shapes(quick: bool) -> Vec<LaunchShape> {
-    let (stack_wg, wave_wg, sizes): (&[(u32, u32)], &[(u32, u32)], &[u64]) =
-        if quick { (&[(64, 1), (8, 8)], &[(64, 1)], &[1 << 10, 1 << 24]) } else { (STACK_WORKGROUPS, WAVEFRONT_WORKGROUPS, DISPATCH_SIZES) };
+    const QUICK_STACK: &[(u32, u32)] = &[(64, 1), (8, 8)];
+    const QUICK_WAVEFRONT: &[(u32, u32)] = &[(64, 1)];
+    const QUICK_SIZES: &[u64] = &[1 << 10, 1 << 24];
+    let (stack_wg, wave_wg, sizes) =
+        if quick { (QUICK_STACK, QUICK_WAVEFRONT, QUICK_SIZES) } else { (STACK_WORKGROUPS, WAVEFRONT_WORKGROUPS, DISPATCH_SIZES) };
     let mut out = vec![];
     for (strategy, wgs) in [(Strategy::Stack, stack_wg), (Strategy::Wavefront, wave_wg)] {
         for &workgroup in wgs {
@@ -174,6 +188,7 @@ pub fn max_abs_diff(a: &Film, b: &Film) -> f64 {
 /// `GpuRenderer::new` takes it), `reps` timed renders each, and compares
 /// each image with `baseline`. `each` sees every point as it is measured
 /// (progress output).
+#[allow(clippy::too_many_arguments)]
 pub fn sweep(
     adapter: &str,
     prepared: &PreparedFrame,

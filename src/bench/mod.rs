@@ -735,8 +735,8 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
 
 fn print_summary(runs: &[Run]) {
     println!(
-        "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9} {:>9} {:>10} {:>9} {:>7}  {}",
-        "suite", "scene", "back", "size", "spp", "sampler", "dep", "prec", "time_s", "Mrays/s", "RMSE", "PSNR_dB", "FLIP", "notes"
+        "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9} {:>9} {:>10} {:>9} {:>7}  notes",
+        "suite", "scene", "back", "size", "spp", "sampler", "dep", "prec", "time_s", "Mrays/s", "RMSE", "PSNR_dB", "FLIP"
     );
     for r in runs {
         let e = r.error.map_or(["-".to_string(), "-".to_string(), "-".to_string()], |e| {
