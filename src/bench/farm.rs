@@ -49,6 +49,28 @@ fn tail(log: &Path) -> String {
     lines[lines.len().saturating_sub(20)..].join("\n")
 }
 
+/// A command for a farm process. On Linux the child is also killed by the
+/// kernel if this process dies without unwinding (SIGKILL, SIGTERM), which
+/// no drop guard can cover.
+fn farm_command(exe: &Path) -> Command {
+    #[allow(unused_mut)]
+    let mut c = Command::new(exe);
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::unix::process::CommandExt as _;
+        // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
+        unsafe {
+            c.pre_exec(|| {
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+    }
+    c
+}
+
 fn log_file(path: &Path) -> Result<std::fs::File> {
     std::fs::OpenOptions::new().create(true).append(true).open(path).with_context(|| format!("cannot open {}", path.display()))
 }
@@ -68,7 +90,7 @@ impl Farm {
     /// every worker is registered. Logs go to `logs`.STEM.log.
     pub fn start(exe: &Path, data: &Path, logs: &Path, workers: usize, threads: usize) -> Result<Farm> {
         let coord_log = logs.with_extension("coordinator.log");
-        let mut child = Command::new(exe)
+        let mut child = farm_command(exe)
             .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
             .arg(data)
             .stdin(Stdio::null())
@@ -101,7 +123,7 @@ impl Farm {
         let mut farm = Farm { exe: exe.to_path_buf(), url, workers: vec![], coordinator };
         for i in 1..=workers {
             let log = logs.with_extension(format!("worker-{i}.log"));
-            let child = Command::new(exe)
+            let child = farm_command(exe)
                 .args(["worker", "--coordinator", &farm.url, "--threads", &threads.to_string(), "--name", &format!("bench-{i}")])
                 .stdin(Stdio::null())
                 .stdout(Stdio::null())
@@ -115,7 +137,7 @@ impl Farm {
     }
 
     fn cli(&self, args: &[&str]) -> Command {
-        let mut c = Command::new(&self.exe);
+        let mut c = farm_command(&self.exe);
         c.args(args).args(["--coordinator", &self.url]).stdin(Stdio::null());
         c
     }
