@@ -2,13 +2,20 @@
 # The benchmark run on the NVIDIA benchmark machine (see ../shared/GPU.md):
 # prebuilt binaries in .gpu/ (tessera, result_load, libvulkan.so.1), no cargo.
 # Writes everything under $OUT (or bench-out/device).
+#
+#   scripts/device-bench.sh [all|bench|farm]
+#
+# `bench` (about 5-7 min on the H200 box: every suite but farm) and `farm`
+# (about 3 min) fit one 10-minute device call each; `all` runs both.
 set -uo pipefail
+PHASE=${1:-all}
 cd "$(dirname "$0")/.."
 OUT=$(realpath -m "${OUT:-bench-out/device}")
 mkdir -p "$OUT"
 printf '{"file_format_version":"1.0.0","ICD":{"library_path":"/usr/local/nvidia/lib64/libEGL_nvidia.so.0","api_version":"1.3"}}' > /tmp/icd.json
 export VK_ICD_FILENAMES=/tmp/icd.json LD_LIBRARY_PATH=$PWD/.gpu:/usr/local/nvidia/lib64${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
 T=$PWD/.gpu/tessera
+if [ "$PHASE" != farm ]; then
 {
   echo "== machine"; nproc; grep -m1 'model name' /proc/cpuinfo; nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
   echo "== tessera gpus"; "$T" gpus
@@ -18,18 +25,22 @@ T=$PWD/.gpu/tessera
   "$T" render examples/resolution.toml --backend gpu -o /tmp/res-gpu.png
   "$T" render examples/resolution.toml --backend gpu --width 1920 --height 1080 -o /tmp/res-gpu-hd.png
 } > "$OUT/render.txt" 2>&1
-echo "== tessera bench --backend both (all suites)"
-timeout 330 "$T" bench --backend both --repeat 3 --out /tmp/bench --cache /tmp/bench-cache > "$OUT/bench-summary.txt" 2> "$OUT/bench-log.txt"
+echo "== tessera bench --backend both (every suite but farm)"
+timeout 500 "$T" bench resolution samples complexity depth precision launch --backend both --repeat 3 \
+  --out /tmp/bench --cache /tmp/bench-cache > "$OUT/bench-summary.txt" 2> "$OUT/bench-log.txt"
 echo "bench exit $?" >> "$OUT/bench-summary.txt"
-# CSVs and plots only: the per-run images are many and large.
-tar czf "$OUT/bench.tar.gz" -C /tmp/bench --exclude='*-*x*-s*.png' .
-echo "== farm scaling"
-TESSERA_BIN=$T RESULT_LOAD_BIN=$PWD/.gpu/result_load OUT=/tmp/farm LOAD_SECONDS=5 \
-  timeout 200 scripts/bench-farm.sh 8 2 > "$OUT/farm.txt" 2>&1
+fi
+if [ "$PHASE" != bench ]; then
+echo "== farm scaling (tessera bench farm) and result throughput"
+TESSERA_BIN=$T RESULT_LOAD_BIN=$PWD/.gpu/result_load OUT=/tmp/bench LOAD_SECONDS=5 \
+  timeout 240 scripts/bench-farm.sh 8 2 > "$OUT/farm.txt" 2>&1
 echo "farm exit $?" >> "$OUT/farm.txt"
 echo "== batched result throughput" >> "$OUT/farm.txt"
 "$T" coordinator --listen 127.0.0.1:7999 --data /tmp/load-data > /dev/null 2>&1 &
 C=$!; sleep 1
 timeout 30 .gpu/result_load http://127.0.0.1:7999 examples/resolution.toml 64 5 64 >> "$OUT/farm.txt" 2>&1
 kill $C
+fi
+# CSVs and plots only: the per-run images are many and large.
+tar czf "$OUT/bench-$PHASE.tar.gz" -C /tmp/bench --exclude='*-*x*-s*.png' --exclude='frames-*' --exclude='data-*' .
 ls -la "$OUT"

@@ -1,6 +1,9 @@
 //! `tessera bench`: the thesis's experiments redone, reporting speed *and*
 //! error against a converged f64 reference, as CSV, images and plots.
 
+mod farm;
+#[cfg(feature = "gpu")]
+mod launch;
 mod metrics;
 mod plot;
 mod reference;
@@ -25,7 +28,14 @@ use plot::{LinePlot, Series};
 use reference::ReferenceCache;
 
 /// The named suites, in the order `tessera bench` runs them.
-pub const SUITES: &[&str] = &["resolution", "samples", "complexity", "depth", "precision"];
+pub const SUITES: &[&str] = &["resolution", "samples", "complexity", "depth", "precision", "launch", "farm"];
+
+/// The depth suite's reference depth. Past 24 the f64 image changes by
+/// RMSE 4e-6 (measured against depth 32), 40x less than f32 rounding and
+/// 15x less than the error left at depth 16, while depth 32 traces 13x the
+/// rays of depth 24 on the emerald scene (the ray tree grows ~1.35x per
+/// generation): too slow for a 2-core machine.
+const DEPTH_REFERENCE: u32 = 24;
 
 /// Where a run was traced.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -47,6 +57,10 @@ pub struct Config {
     pub repeat: u32,
     /// GPU adapter name or index for the GPU backend.
     pub adapter: Option<String>,
+    /// Worker counts of the farm suite [default: 1,2,4,8; quick: 1,2].
+    pub workers: Option<Vec<usize>>,
+    /// CPU threads of each farm worker.
+    pub worker_threads: usize,
 }
 
 /// One measured render.
@@ -65,6 +79,9 @@ pub struct Run {
     pub rays: RayCounts,
     pub error: Option<ErrorMetrics>,
     pub image: String,
+    /// Suite-specific columns (launch shape, worker count...), appended to
+    /// the CSV after the common ones; every run of a suite has the same.
+    pub extra: Vec<(&'static str, String)>,
 }
 
 impl Run {
@@ -82,7 +99,7 @@ const CSV_HEADER: &str = "suite,scene,backend,device,threads,width,height,sample
 fn csv_row(r: &Run) -> String {
     let e = r.error;
     let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.6e}"));
-    format!(
+    let mut row = format!(
         "{},{},{},\"{}\",{},{},{},{},{},{},{},{:.6},{},{},{},{},{},{:.3},{:.1},{},{},{},{},{},{}",
         r.suite,
         r.scene,
@@ -109,7 +126,12 @@ fn csv_row(r: &Run) -> String {
         f(e.map(|e| e.rel_mse)),
         f(e.map(|e| e.flip_mean)),
         r.image
-    )
+    );
+    for (_, v) in &r.extra {
+        row.push(',');
+        row.push_str(v);
+    }
+    row
 }
 
 fn cpu_model() -> String {
@@ -216,6 +238,7 @@ impl Bench {
             rays: film.rays,
             error,
             image,
+            extra: vec![],
         };
         eprintln!(
             "  {suite:<10} {name:<14} {:<4} {:>4}x{:<4} {:>2} spp {:<8} d{:<2} {}  {:>8.3} s  {:>7.1} Mrays/s  {}",
@@ -348,37 +371,51 @@ impl Bench {
         let (path, desc) = self.scene("depth.toml")?;
         let (width, height) = self.size((800, 600));
         let depths: &[u32] = if self.cfg.quick { &[0, 1, 4] } else { &[0, 1, 2, 4, 8, 12, 16] };
-        // Reference: the same samples, depth 32, f64: isolates what depth buys.
-        let base = RenderSettings { width, height, samples: 4, max_depth: 32, sampler: Sampler::Grid };
-        let frame = PreparedFrame::build(&desc, &base, 0, Precision::F64)?;
-        let reference =
-            self.cpu.render(&frame, 0, Rect::full(width, height), SampleRange::all(4), &|_| {})?.resolve();
-        let _ = &path;
+        // Reference: the f64 render with the same samples (4, grid) at depth
+        // DEPTH_REFERENCE, so sampling error cancels and what remains is
+        // what the missing generations cost. The CPU also runs f64 at each
+        // depth: its curve is truncation alone, while the f32 curves level
+        // off at the f32 rounding error (docs/benchmarks.md has the figures).
+        let base = RenderSettings { width, height, samples: 4, max_depth: DEPTH_REFERENCE, sampler: Sampler::Grid };
+        let reference = self.refs.get_exact(&path, &desc, &base)?;
         let mut runs = vec![];
         for &d in depths {
             let s = RenderSettings { max_depth: d, ..base };
             for &b in &self.cfg.backends {
-                runs.push(self.measure("depth", "depth", b, &desc, &s, Precision::F32, Some(&reference))?);
+                let precisions: &[Precision] = if b == BackendKind::Cpu { &[Precision::F32, Precision::F64] } else { &[Precision::F32] };
+                for &p in precisions {
+                    runs.push(self.measure("depth", "depth", b, &desc, &s, p, Some(&reference))?);
+                }
             }
         }
-        let time = self.series_by_backend(&runs, |r| (r.settings.max_depth as f64, r.seconds));
+        let by_backend_and_precision = |f: fn(&Run) -> (f64, f64)| {
+            let mut series = vec![];
+            for &b in &self.cfg.backends {
+                for p in [Precision::F32, Precision::F64] {
+                    let points: Vec<(f64, f64)> = runs.iter().filter(|r| r.backend == backend_name(b) && r.precision == p).map(f).collect();
+                    if !points.is_empty() {
+                        series.push(Series { name: format!("{} {}", backend_name(b), p.name()), points });
+                    }
+                }
+            }
+            series
+        };
         LinePlot {
             title: "Time against max_depth (5 emerald spheres)".into(),
             x_label: "max_depth".into(),
             y_label: "time per frame (s)".into(),
             log_x: false,
             log_y: false,
-            series: time,
+            series: by_backend_and_precision(|r| (r.settings.max_depth as f64, r.seconds)),
         }
         .write(&self.cfg.out.join("depth/time_vs_depth"))?;
-        let err = self.series_by_backend(&runs, |r| (r.settings.max_depth as f64, r.error.map_or(f64::NAN, |e| e.rmse)));
         LinePlot {
-            title: "Error against max_depth (reference: depth 32, f64)".into(),
+            title: format!("Error against max_depth (reference: f64, depth {DEPTH_REFERENCE}, same 4 grid samples)"),
             x_label: "max_depth".into(),
             y_label: "RMSE".into(),
             log_x: false,
             log_y: true,
-            series: err,
+            series: by_backend_and_precision(|r| (r.settings.max_depth as f64, r.error.map_or(f64::NAN, |e| e.rmse))),
         }
         .write(&self.cfg.out.join("depth/error_vs_depth"))?;
         Ok(runs)
@@ -400,6 +437,220 @@ impl Bench {
                 }
             }
         }
+        Ok(runs)
+    }
+
+    /// `launch`: the GPU launch-shape sweep (see `launch.rs`) on the
+    /// resolution scene and a deep glass scene. `None` (skipped, with a
+    /// message) without a GPU backend.
+    fn suite_launch(&self) -> Result<Option<Vec<Run>>> {
+        #[cfg(feature = "gpu")]
+        if let Some(gpu) = self.gpu.as_ref().filter(|_| self.cfg.backends.contains(&BackendKind::Gpu)) {
+            return self.launch_sweep(gpu).map(Some);
+        }
+        eprintln!("bench: suite launch skipped: it sweeps GPU launch shapes and needs a GPU backend (--backend gpu or both)");
+        Ok(None)
+    }
+
+    #[cfg(feature = "gpu")]
+    fn launch_sweep(&self, gpu: &tracer_core::render::GpuRenderer) -> Result<Vec<Run>> {
+        use tracer_core::render::gpu::Strategy;
+        let adapter = gpu.adapter().index.to_string();
+        let (width, height) = self.size((1920, 1080));
+        let reps = if self.cfg.quick { 1 } else { self.cfg.repeat.max(3) as usize };
+        let shapes = launch::sweep_shapes(self.cfg.quick);
+        let mut runs = vec![];
+        for (name, file) in [("resolution", "resolution.toml"), ("glass-9", "complexity/glass-9.toml")] {
+            let (_, desc) = self.scene(file)?;
+            let s = RenderSettings { width, height, samples: 4, max_depth: 10, sampler: Sampler::Grid };
+            let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
+            let rect = Rect::full(width, height);
+            // Every shape must give the default options' image.
+            let baseline = launch::run_interleaved(&[gpu], &frame, rect, s.samples, 1)?.pop().expect("one timing").film;
+            let points = launch::sweep(&adapter, &frame, rect, s.samples, reps, &shapes, &baseline, |p| {
+                let sh = &p.shape;
+                match &p.result {
+                    Ok(t) => eprintln!(
+                        "  launch     {name:<14} {:<9} wg {:>3}x{:<2} dispatch {:>8}  GPU {:>8.3} ms  trace {:>8.3} ms  call {:>8.3} ms  max diff {:.1e}",
+                        sh.strategy_name(),
+                        sh.workgroup.0,
+                        sh.workgroup.1,
+                        sh.dispatch_pixel_samples,
+                        t.gpu.as_secs_f64() * 1e3,
+                        t.trace.as_secs_f64() * 1e3,
+                        t.total.as_secs_f64() * 1e3,
+                        t.max_abs_diff
+                    ),
+                    Err(e) => eprintln!(
+                        "  launch     {name:<14} {:<9} wg {:>3}x{:<2} dispatch {:>8}  not run: {e}",
+                        sh.strategy_name(),
+                        sh.workgroup.0,
+                        sh.workgroup.1,
+                        sh.dispatch_pixel_samples
+                    ),
+                }
+            });
+            for p in &points {
+                let Ok(t) = &p.result else { continue };
+                let sh = &p.shape;
+                runs.push(Run {
+                    suite: "launch",
+                    scene: name.to_string(),
+                    backend: "gpu",
+                    device: gpu.adapter().name.clone(),
+                    threads: 0,
+                    settings: s,
+                    precision: Precision::F32,
+                    seconds: t.total.as_secs_f64(),
+                    gpu_seconds: Some(t.gpu.as_secs_f64()),
+                    rays: t.rays,
+                    // Speed only: the image is checked against the default shape's instead.
+                    error: None,
+                    image: String::new(),
+                    extra: vec![
+                        ("strategy", sh.strategy_name().to_string()),
+                        ("workgroup_x", sh.workgroup.0.to_string()),
+                        ("workgroup_y", sh.workgroup.1.to_string()),
+                        ("dispatch_pixel_samples", sh.dispatch_pixel_samples.to_string()),
+                        ("dispatches", t.dispatches.to_string()),
+                        ("trace_wall_s", format!("{:.6}", t.trace.as_secs_f64())),
+                        ("readback_s", format!("{:.6}", t.readback.as_secs_f64())),
+                        ("first_render_s", format!("{:.6}", t.first.as_secs_f64())),
+                        ("max_abs_diff_vs_default", format!("{:.3e}", t.max_abs_diff)),
+                    ],
+                });
+            }
+            let mut series = vec![];
+            for strategy in [Strategy::Stack, Strategy::Wavefront] {
+                let mut wgs: Vec<(u32, u32)> = vec![];
+                for p in points.iter().filter(|p| p.shape.strategy == strategy) {
+                    if !wgs.contains(&p.shape.workgroup) {
+                        wgs.push(p.shape.workgroup);
+                    }
+                }
+                for wg in wgs {
+                    let pts = points
+                        .iter()
+                        .filter(|p| p.shape.strategy == strategy && p.shape.workgroup == wg)
+                        .filter_map(|p| p.result.as_ref().ok().map(|t| (p.shape.dispatch_pixel_samples as f64, t.gpu.as_secs_f64() * 1e3)))
+                        .collect();
+                    series.push(Series { name: format!("{} {}x{}", launch::strategy_name(strategy), wg.0, wg.1), points: pts });
+                }
+            }
+            LinePlot {
+                title: format!("GPU time against dispatch size: {name} {width}x{height}, 4 spp, depth 10"),
+                x_label: "pixel-samples per dispatch".into(),
+                y_label: if gpu.has_timestamps() { "GPU time per frame (ms, timestamps)" } else { "trace time per frame (ms, host)" }.into(),
+                log_x: true,
+                log_y: true,
+                series,
+            }
+            .write(&self.cfg.out.join(format!("launch/{name}_gpu_time")))?;
+        }
+        Ok(runs)
+    }
+
+    /// `farm`: one frame by 1..N worker processes over loopback gRPC,
+    /// against the local render of the same settings.
+    fn suite_farm(&self) -> Result<Vec<Run>> {
+        let exe = std::env::current_exe().context("cannot find this executable to start the farm's processes")?;
+        let (path, desc) = self.scene("resolution.toml")?;
+        let (width, height) = if self.cfg.quick { (64, 48) } else { (1920, 1080) };
+        let s = RenderSettings { width, height, samples: if self.cfg.quick { 4 } else { 16 }, max_depth: 10, sampler: Sampler::Grid };
+        // Small tiles in the quick run, so that two workers both get work.
+        let tile = if self.cfg.quick { 16 } else { 64 };
+        let counts = self.cfg.workers.clone().unwrap_or_else(|| if self.cfg.quick { vec![1, 2] } else { vec![1, 2, 4, 8] });
+        let threads = self.cfg.worker_threads.max(1);
+        let dir = self.cfg.out.join("farm");
+        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+
+        // The local render of the same frame with one worker's threads: the
+        // image every farm run must reproduce bit for bit, and its error.
+        let local = CpuRenderer::new(Some(threads))?;
+        let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
+        let start = Instant::now();
+        let film = local.render(&frame, 0, Rect::full(width, height), SampleRange::all(s.samples), &|_| {})?;
+        let local_secs = start.elapsed().as_secs_f64();
+        let linear = film.resolve();
+        let local_srgb = tracer_core::film::to_srgb8(&linear);
+        let reference = self.refs.get(&path, &desc, &s, self.reference_samples())?;
+        let local_error = compare(&linear, &reference, width, height);
+        eprintln!("  farm       local render, {threads} threads: {local_secs:.3} s");
+
+        let mut runs: Vec<Run> = vec![];
+        let mut base: Option<(usize, f64)> = None;
+        for &n in &counts {
+            let data = dir.join(format!("data-{n}"));
+            let _ = std::fs::remove_dir_all(&data);
+            let (job_secs, identical, diff_bytes) = {
+                let logs = dir.join(format!("run-{n}"));
+                let mut farm = farm::Farm::start(&exe, &data, &logs, n, threads)?;
+                let (job, secs) = farm.submit_and_wait(&path, &s, tile, &logs.with_extension("submit.log"))?;
+                let fetched = dir.join(format!("frames-{n}"));
+                let (w, h, pixels) = farm.fetch_frame0(&job, &fetched)?;
+                let same_size = (w, h) == (width, height);
+                let diff = if same_size { pixels.iter().zip(&local_srgb).filter(|(a, b)| a != b).count() } else { pixels.len().max(local_srgb.len()) };
+                (secs, same_size && diff == 0, diff)
+                // The farm's processes are stopped here (drop), on success and on error alike.
+            };
+            let _ = std::fs::remove_dir_all(&data);
+            let (n0, t0) = *base.get_or_insert((n, job_secs));
+            // Against the smallest count, scaled by its size (1 worker when it was run).
+            let speedup = t0 * n0 as f64 / job_secs;
+            let efficiency = speedup / n as f64;
+            eprintln!(
+                "  farm       {n:>2} workers x {threads} threads  {job_secs:>8.3} s  speed-up {speedup:>5.2}  efficiency {:>5.1}%  {}",
+                efficiency * 100.0,
+                if identical { "image identical to the local render".to_string() } else { format!("IMAGE DIFFERS from the local render ({diff_bytes} bytes)") }
+            );
+            runs.push(Run {
+                suite: "farm",
+                scene: "resolution".into(),
+                backend: "cpu",
+                device: self.cpu_name.clone(),
+                threads: n * threads,
+                settings: s,
+                precision: Precision::F32,
+                seconds: job_secs,
+                gpu_seconds: None,
+                // The local render's rays: the farm traced the same samples when the images are identical.
+                rays: film.rays,
+                error: identical.then_some(local_error),
+                image: format!("farm/frames-{n}/frame_0000.png"),
+                extra: vec![
+                    ("workers", n.to_string()),
+                    ("worker_threads", threads.to_string()),
+                    ("tile_size", tile.to_string()),
+                    ("local_wall_s", format!("{local_secs:.6}")),
+                    ("speedup", format!("{speedup:.4}")),
+                    ("efficiency", format!("{efficiency:.4}")),
+                    ("bit_identical", identical.to_string()),
+                ],
+            });
+        }
+        let workers_vs = |f: fn(&Run) -> f64| vec![Series { name: format!("workers of {threads} threads"), points: runs.iter().map(|r| (r.threads as f64 / threads as f64, f(r))).collect() }];
+        LinePlot {
+            title: format!("Farm speed-up: one {width}x{height} frame, {} spp, over loopback", s.samples),
+            x_label: "workers".into(),
+            y_label: "speed-up against 1 worker".into(),
+            log_x: false,
+            log_y: false,
+            series: {
+                let mut v = workers_vs(|r| r.extra.iter().find(|e| e.0 == "speedup").and_then(|e| e.1.parse().ok()).unwrap_or(f64::NAN));
+                v.push(Series { name: "ideal".into(), points: counts.iter().map(|&n| (n as f64, n as f64)).collect() });
+                v
+            },
+        }
+        .write(&dir.join("speedup"))?;
+        LinePlot {
+            title: format!("Farm wall time, submit to done ({width}x{height}, {} spp)", s.samples),
+            x_label: "workers".into(),
+            y_label: "seconds".into(),
+            log_x: false,
+            log_y: false,
+            series: workers_vs(|r| r.seconds),
+        }
+        .write(&dir.join("time"))?;
         Ok(runs)
     }
 
@@ -449,21 +700,33 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
     let suites: Vec<String> = if bench.cfg.suites.is_empty() { SUITES.iter().map(|s| s.to_string()).collect() } else { bench.cfg.suites.clone() };
     for suite in &suites {
         eprintln!("bench: suite {suite}");
+        let suite_start = Instant::now();
         let runs = match suite.as_str() {
             "resolution" => bench.suite_resolution()?,
             "samples" => bench.suite_samples()?,
             "complexity" => bench.suite_complexity()?,
             "depth" => bench.suite_depth()?,
             "precision" => bench.suite_precision()?,
+            "launch" => match bench.suite_launch()? {
+                Some(runs) => runs,
+                None => continue,
+            },
+            "farm" => bench.suite_farm()?,
             _ => unreachable!("checked above"),
         };
         let mut csv = String::from(CSV_HEADER);
+        for (name, _) in runs.first().map_or(&[][..], |r| &r.extra[..]) {
+            csv.push(',');
+            csv.push_str(name);
+        }
         csv.push('\n');
         for r in &runs {
             writeln!(csv, "{}", csv_row(r)).expect("write to String");
         }
         let file = bench.cfg.out.join(format!("{suite}.csv"));
         std::fs::write(&file, csv).with_context(|| format!("cannot write {}", file.display()))?;
+        // References made for the suite included: the cost of a first run.
+        eprintln!("bench: suite {suite} took {:.1} s", suite_start.elapsed().as_secs_f64());
         all.extend(runs);
     }
     print_summary(&all);
@@ -472,13 +735,16 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
 
 fn print_summary(runs: &[Run]) {
     println!(
-        "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9} {:>9} {:>10} {:>9} {:>7}",
+        "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9} {:>9} {:>10} {:>9} {:>7}  notes",
         "suite", "scene", "back", "size", "spp", "sampler", "dep", "prec", "time_s", "Mrays/s", "RMSE", "PSNR_dB", "FLIP"
     );
     for r in runs {
-        let e = r.error.unwrap_or_default();
+        let e = r.error.map_or(["-".to_string(), "-".to_string(), "-".to_string()], |e| {
+            [format!("{:.3e}", e.rmse), format!("{:.2}", e.psnr_db), format!("{:.4}", e.flip_mean)]
+        });
+        let notes: Vec<String> = r.extra.iter().map(|(k, v)| format!("{k}={v}")).collect();
         println!(
-            "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9.4} {:>9.1} {:>10.3e} {:>9.2} {:>7.4}",
+            "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9.4} {:>9.1} {:>10} {:>9} {:>7}  {}",
             r.suite,
             r.scene,
             r.backend,
@@ -489,9 +755,10 @@ fn print_summary(runs: &[Run]) {
             r.precision.name(),
             r.seconds,
             r.mrays_per_s(),
-            e.rmse,
-            e.psnr_db,
-            e.flip_mean
+            e[0],
+            e[1],
+            e[2],
+            notes.join(" ")
         );
     }
 }

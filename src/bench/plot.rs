@@ -53,6 +53,9 @@ impl LinePlot {
         if self.series.iter().all(|s| s.points.is_empty()) {
             return Ok(());
         }
+        if let Some(dir) = stem.parent() {
+            std::fs::create_dir_all(dir).map_err(|e| anyhow!("cannot create {}: {e}", dir.display()))?;
+        }
         let mut buf = vec![0u8; (SIZE.0 * SIZE.1 * 3) as usize];
         {
             let root = BitMapBackend::with_buffer(&mut buf, SIZE).into_drawing_area();

@@ -1,6 +1,7 @@
-//! Converged reference images: the f64 CPU renderer at many jittered samples,
-//! cached on disk under a hash of the scene file and the settings, so each is
-//! made once.
+//! Reference images: the f64 CPU renderer, cached on disk under a hash of the
+//! scene file and the settings, so each is made once. Converged references
+//! use many jittered samples; the depth suite's use the tested runs' own
+//! samples (see `get_exact`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -46,7 +47,14 @@ impl ReferenceCache {
     /// Linear RGB of the reference for `scene` (read from `path`) at
     /// `settings`, except that samples and sampler are the reference's own.
     pub fn get(&self, path: &Path, scene: &SceneDesc, settings: &RenderSettings, samples: u32) -> Result<Vec<[f32; 3]>> {
-        let settings = RenderSettings { samples, sampler: Sampler::Jittered, ..*settings };
+        self.get_exact(path, scene, &RenderSettings { samples, sampler: Sampler::Jittered, ..*settings })
+    }
+
+    /// Linear RGB of the f64 CPU render of `scene` at exactly `settings`
+    /// (same samples, same sampler), cached like [`Self::get`]'s.
+    pub fn get_exact(&self, path: &Path, scene: &SceneDesc, settings: &RenderSettings) -> Result<Vec<[f32; 3]>> {
+        let settings = *settings;
+        let samples = settings.samples;
         let text = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
         let key = format!(
             "v{CACHE_VERSION} {}x{} s{} d{} {}",
@@ -62,11 +70,12 @@ impl ReferenceCache {
             }
         }
         eprintln!(
-            "bench: making reference {} ({}x{}, {} jittered samples, f64, depth {})",
+            "bench: making reference {} ({}x{}, {} {} samples, f64, depth {})",
             file.display(),
             settings.width,
             settings.height,
             samples,
+            settings.sampler.name(),
             settings.max_depth
         );
         let start = Instant::now();

@@ -20,7 +20,9 @@ pub enum BenchBackend {
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
-    /// Suites to run [default: all]: resolution, samples, complexity, depth, precision
+    /// Suites to run [default: all]: resolution, samples, complexity, depth,
+    /// precision, launch (GPU launch-shape sweep; skipped without a GPU
+    /// backend), farm (1..N local worker processes on one frame)
     pub suites: Vec<String>,
     /// Where to trace
     #[arg(long, value_enum, default_value_t = BenchBackend::Cpu)]
@@ -46,6 +48,13 @@ pub struct BenchArgs {
     /// GPU adapter (name substring or index from `tessera gpus`) for the GPU backend
     #[arg(long, value_name = "NAME|INDEX")]
     pub adapter: Option<String>,
+    /// Farm suite: worker counts to run, e.g. 1,2,4,8 (one coordinator and
+    /// N `tessera worker` processes on this machine each) [default: 1,2,4,8; with --quick 1,2]
+    #[arg(long, value_name = "N,N,...", value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..))]
+    pub workers: Option<Vec<u32>>,
+    /// Farm suite: CPU threads of each worker (and of the local render it is compared with)
+    #[arg(long, value_name = "N", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..))]
+    pub worker_threads: u32,
 }
 
 pub fn run(args: BenchArgs) -> Result<ExitCode> {
@@ -66,6 +75,8 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
         examples: args.examples,
         repeat: args.repeat,
         adapter: args.adapter,
+        workers: args.workers.map(|v| v.into_iter().map(|n| n as usize).collect()),
+        worker_threads: args.worker_threads as usize,
     })?;
     eprintln!("bench: {} runs written under {}", runs.len(), args.out.display());
     Ok(ExitCode::SUCCESS)

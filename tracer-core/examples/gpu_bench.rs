@@ -3,8 +3,9 @@
 //!
 //!     cargo run --release -p tracer-core --example gpu_bench -- [--adapter NAME|INDEX] [--reps N] [--quick] [--no-sweep] [--no-cpu]
 //!
+//! `--quick`: two scenes, and a few launch shapes instead of the full grid.
 //! Prints markdown tables (for docs/benchmarks.md). Times are medians of
-//! `--reps` renders after one warm-up render (which builds the pipeline
+//! `--reps` renders after 3 warm-up renders (the first builds the pipeline
 //! and uploads the scene). "GPU" is the tracing passes' time from timestamp
 //! queries (or, without them, host wall time from submission to completion,
 //! read-back excluded); "total" is the whole render call: parameter upload,
@@ -17,6 +18,12 @@ use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::gpu::{GpuOptions, GpuRenderer, Strategy};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
+
+// The timing and the sweep are the ones `tessera bench launch` runs (one
+// implementation; this example cannot depend on the `tessera` binary crate).
+#[path = "../../src/bench/launch.rs"]
+#[allow(dead_code)]
+mod launch;
 
 struct Args {
     adapter: Option<String>,
@@ -58,64 +65,8 @@ fn examples() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples")
 }
 
-fn median(mut v: Vec<Duration>) -> Duration {
-    v.sort();
-    v[v.len() / 2]
-}
-
 fn ms(d: Duration) -> String {
     format!("{:.2}", d.as_secs_f64() * 1e3)
-}
-
-struct GpuRun {
-    film: Film,
-    gpu: Duration,
-    trace: Duration,
-    total: Duration,
-    readback: Duration,
-    first: Duration,
-}
-
-/// Renders with several renderers, interleaved rep by rep (so clock ramps
-/// and other drift hit every one alike), after `WARMUP` renders each.
-fn run_interleaved(rs: &[&GpuRenderer], desc: &SceneDesc, s: &RenderSettings, reps: usize) -> Result<Vec<GpuRun>, Box<dyn std::error::Error>> {
-    const WARMUP: usize = 3;
-    let prepared = PreparedFrame::build(desc, s, 0, Precision::F32)?;
-    let rect = Rect::full(s.width, s.height);
-    let samples = SampleRange::all(s.samples);
-    let mut films = vec![];
-    let mut firsts = vec![];
-    for g in rs {
-        let t = Instant::now();
-        films.push(g.render(&prepared, 0, rect, samples, &|_| {})?);
-        firsts.push(t.elapsed());
-    }
-    for _ in 1..WARMUP {
-        for g in rs {
-            g.render(&prepared, 0, rect, samples, &|_| {})?;
-        }
-    }
-    let mut stats = vec![(vec![], vec![], vec![], vec![]); rs.len()];
-    for _ in 0..reps {
-        for (i, g) in rs.iter().enumerate() {
-            films[i] = g.render(&prepared, 0, rect, samples, &|_| {})?;
-            let st = g.last_stats();
-            stats[i].0.push(st.gpu_time.unwrap_or(st.trace_wall));
-            stats[i].1.push(st.trace_wall);
-            stats[i].2.push(st.total_wall);
-            stats[i].3.push(st.readback);
-        }
-    }
-    Ok(films
-        .into_iter()
-        .zip(stats)
-        .zip(firsts)
-        .map(|((film, (g, t, tot, rb)), first)| GpuRun { film, gpu: median(g), trace: median(t), total: median(tot), readback: median(rb), first })
-        .collect())
-}
-
-fn run_gpu(g: &GpuRenderer, desc: &SceneDesc, s: &RenderSettings, reps: usize) -> Result<GpuRun, Box<dyn std::error::Error>> {
-    Ok(run_interleaved(&[g], desc, s, reps)?.pop().expect("one run"))
 }
 
 fn mean_abs_diff(a: &Film, b: &Film) -> f64 {
@@ -157,7 +108,8 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
         let desc = SceneDesc::load(examples().join(name))?;
         for &(w, h) in sizes.iter() {
             let s = RenderSettings { width: w, height: h, samples: 4, ..desc.render };
-            let mut runs = run_interleaved(&[&g, &wave], &desc, &s, args.reps)?;
+            let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
+            let mut runs = launch::run_interleaved(&[&g, &wave], &prepared, Rect::full(w, h), s.samples, args.reps)?;
             let wr = runs.pop().expect("two runs");
             let r = runs.pop().expect("two runs");
             if wr.film.rays != r.film.rays {
@@ -166,7 +118,6 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
             let rays = r.film.rays.total() as f64;
             // CPU: all scenes at 800x600, the resolution scene at both sizes.
             let cpu_cols = if args.cpu && (h == sizes[0].1 || name == "resolution.toml") {
-                let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
                 let t = Instant::now();
                 let cf = cpu.render(&prepared, 0, Rect::full(w, h), SampleRange::all(4), &|_| {})?;
                 let ct = t.elapsed();
@@ -199,47 +150,42 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
         let desc = SceneDesc::load(examples().join("resolution.toml"))?;
         let (w, h) = *sizes.last().ok_or("no --sizes")?;
         let s = RenderSettings { width: w, height: h, samples: 4, ..desc.render };
-        println!("\n## Launch-shape sweep: resolution scene, {w}x{h}, 4 spp, GPU ms / trace wall ms (medians)\n");
-        let shapes: &[(u32, u32)] = &[(32, 1), (64, 1), (128, 1), (256, 1), (8, 4), (8, 8), (16, 8), (16, 16), (32, 4), (32, 8)];
-        let budgets: &[u64] = &[1 << 16, 1 << 18, 1 << 20, 1 << 22, 1 << 24];
-        print!("| workgroup \\ pixel-samples per dispatch |");
-        for b in budgets {
-            print!(" {} |", b);
-        }
-        println!("\n|---|{}", "---|".repeat(budgets.len()));
-        for &wg in shapes {
-            print!("| {}x{} |", wg.0, wg.1);
-            for &b in budgets {
-                let opts = GpuOptions { workgroup: wg, dispatch_pixel_samples: b, submit_pixel_samples: (1 << 24).max(b), strategy: Strategy::Stack };
-                match GpuRenderer::new(Some(&idx), opts) {
-                    Ok(r) => match run_gpu(&r, &desc, &s, args.reps.min(5)) {
-                        Ok(run) => print!(" {} / {} |", ms(run.gpu), ms(run.trace)),
-                        Err(e) => print!(" error: {e} |"),
-                    },
-                    Err(e) => print!(" n/a ({e}) |"),
+        let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
+        let rect = Rect::full(w, h);
+        let baseline = launch::run_interleaved(&[&g], &prepared, rect, s.samples, 1)?.pop().expect("one timing").film;
+        let points = launch::sweep(&idx, &prepared, rect, s.samples, args.reps.min(5), &launch::sweep_shapes(args.quick), &baseline, |_| {});
+        for (strategy, title) in [
+            (Strategy::Stack, format!("Launch-shape sweep: resolution scene, {w}x{h}, 4 spp, GPU ms / trace wall ms (medians)")),
+            (Strategy::Wavefront, "Wavefront sweep: same frame, GPU ms / trace wall ms (medians); dispatches are capped at 65535 workgroups".to_string()),
+        ] {
+            let pts: Vec<&launch::SweepPoint> = points.iter().filter(|p| p.shape.strategy == strategy).collect();
+            let mut budgets: Vec<u64> = pts.iter().map(|p| p.shape.dispatch_pixel_samples).collect();
+            budgets.sort();
+            budgets.dedup();
+            let mut shapes: Vec<(u32, u32)> = vec![];
+            for p in &pts {
+                if !shapes.contains(&p.shape.workgroup) {
+                    shapes.push(p.shape.workgroup);
                 }
             }
-            println!();
-        }
-        println!("\n## Wavefront sweep: same frame, GPU ms / trace wall ms (medians); dispatches are capped at 65535 workgroups\n");
-        print!("| workgroup \\ pixel-samples per dispatch |");
-        for b in budgets {
-            print!(" {} |", b);
-        }
-        println!("\n|---|{}", "---|".repeat(budgets.len()));
-        for &wg in &[(32u32, 1u32), (64, 1), (128, 1), (256, 1)] {
-            print!("| {} |", wg.0);
-            for &b in budgets {
-                let opts = GpuOptions { workgroup: wg, dispatch_pixel_samples: b, submit_pixel_samples: (1 << 24).max(b), strategy: Strategy::Wavefront };
-                match GpuRenderer::new(Some(&idx), opts) {
-                    Ok(r) => match run_gpu(&r, &desc, &s, args.reps.min(5)) {
-                        Ok(run) => print!(" {} / {} |", ms(run.gpu), ms(run.trace)),
-                        Err(e) => print!(" error: {e} |"),
-                    },
-                    Err(e) => print!(" n/a ({e}) |"),
-                }
+            println!("\n## {title}\n");
+            print!("| workgroup \\ pixel-samples per dispatch |");
+            for b in &budgets {
+                print!(" {b} |");
             }
-            println!();
+            println!("\n|---|{}", "---|".repeat(budgets.len()));
+            for wg in shapes {
+                print!("| {}x{} |", wg.0, wg.1);
+                for &b in &budgets {
+                    match pts.iter().find(|p| p.shape.workgroup == wg && p.shape.dispatch_pixel_samples == b).map(|p| &p.result) {
+                        Some(Ok(t)) if t.max_abs_diff == 0.0 => print!(" {} / {} |", ms(t.gpu), ms(t.trace)),
+                        Some(Ok(t)) => print!(" {} / {} (image differs by {:.1e}) |", ms(t.gpu), ms(t.trace), t.max_abs_diff),
+                        Some(Err(e)) => print!(" n/a ({e}) |"),
+                        None => print!(" - |"),
+                    }
+                }
+                println!();
+            }
         }
     }
     Ok(())

@@ -1,0 +1,222 @@
+//! The `farm` suite's machinery: a real coordinator and real workers, child
+//! processes of this executable talking gRPC over loopback, driven through
+//! the same CLI a user types (`coordinator`, `worker`, `workers`, `submit
+//! --wait`, `fetch`).
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use tracer_core::scene::RenderSettings;
+
+/// How long the farm may take to come up (listen, register workers).
+const START_TIMEOUT: Duration = Duration::from_secs(60);
+/// How long one job may take before the suite gives up.
+const JOB_TIMEOUT: Duration = Duration::from_secs(3600);
+
+/// A child process that is killed and reaped when dropped, so that no exit
+/// path of the benchmark (error, panic, Ctrl-C unwinding) leaves a
+/// coordinator or worker running.
+pub struct ChildGuard {
+    what: String,
+    log: PathBuf,
+    child: Child,
+}
+
+impl ChildGuard {
+    /// `Err` with the end of its log if the process has exited.
+    fn check_alive(&mut self) -> Result<()> {
+        if let Some(status) = self.child.try_wait()? {
+            bail!("{} exited ({status}); log {}:\n{}", self.what, self.log.display(), tail(&self.log));
+        }
+        Ok(())
+    }
+}
+
+impl Drop for ChildGuard {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn tail(log: &Path) -> String {
+    let text = std::fs::read_to_string(log).unwrap_or_default();
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(20)..].join("\n")
+}
+
+/// A command for a farm process. On Linux the child is also killed by the
+/// kernel if this process dies without unwinding (SIGKILL, SIGTERM), which
+/// no drop guard can cover.
+fn farm_command(exe: &Path) -> Command {
+    #[allow(unused_mut)]
+    let mut c = Command::new(exe);
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::unix::process::CommandExt as _;
+        // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
+        unsafe {
+            c.pre_exec(|| {
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+    }
+    c
+}
+
+fn log_file(path: &Path) -> Result<std::fs::File> {
+    std::fs::OpenOptions::new().create(true).append(true).open(path).with_context(|| format!("cannot open {}", path.display()))
+}
+
+/// A coordinator and its workers; dropping it stops them all.
+pub struct Farm {
+    exe: PathBuf,
+    pub url: String,
+    // Workers first: they are dropped (killed) before the coordinator.
+    workers: Vec<ChildGuard>,
+    coordinator: ChildGuard,
+}
+
+impl Farm {
+    /// Starts a coordinator on a free loopback port with its state in
+    /// `data`, and `workers` workers of `threads` threads; returns once
+    /// every worker is registered. Logs go to `logs`.STEM.log.
+    pub fn start(exe: &Path, data: &Path, logs: &Path, workers: usize, threads: usize) -> Result<Farm> {
+        let coord_log = logs.with_extension("coordinator.log");
+        let mut child = farm_command(exe)
+            .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
+            .arg(data)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(log_file(&coord_log)?)
+            .spawn()
+            .with_context(|| format!("cannot start {} coordinator", exe.display()))?;
+        let stdout = child.stdout.take().expect("stdout is piped");
+        let mut coordinator = ChildGuard { what: "the coordinator".into(), log: coord_log, child };
+        // The coordinator prints its bound address on stdout; read it on a
+        // thread so a coordinator that never prints cannot hang the bench.
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let mut r = BufReader::new(stdout);
+            let mut line = String::new();
+            let _ = r.read_line(&mut line);
+            let _ = tx.send(line);
+            // Keep draining so the coordinator never writes into a closed pipe.
+            let _ = std::io::copy(&mut r, &mut std::io::sink());
+        });
+        let line = match rx.recv_timeout(START_TIMEOUT) {
+            Ok(line) => line,
+            Err(_) => bail!("the coordinator did not report its address within {START_TIMEOUT:?}"),
+        };
+        let Some(addr) = line.trim().strip_prefix("listening on ") else {
+            coordinator.check_alive()?;
+            bail!("unexpected first line from the coordinator: {line:?}");
+        };
+        let url = format!("http://{addr}");
+        let mut farm = Farm { exe: exe.to_path_buf(), url, workers: vec![], coordinator };
+        for i in 1..=workers {
+            let log = logs.with_extension(format!("worker-{i}.log"));
+            let child = farm_command(exe)
+                .args(["worker", "--coordinator", &farm.url, "--threads", &threads.to_string(), "--name", &format!("bench-{i}")])
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .stderr(log_file(&log)?)
+                .spawn()
+                .with_context(|| format!("cannot start worker {i}"))?;
+            farm.workers.push(ChildGuard { what: format!("worker {i}"), log, child });
+        }
+        farm.wait_for_workers(workers)?;
+        Ok(farm)
+    }
+
+    fn cli(&self, args: &[&str]) -> Command {
+        let mut c = farm_command(&self.exe);
+        c.args(args).args(["--coordinator", &self.url]).stdin(Stdio::null());
+        c
+    }
+
+    /// Polls `tessera workers` until `n` workers are listed.
+    fn wait_for_workers(&mut self, n: usize) -> Result<()> {
+        let start = Instant::now();
+        loop {
+            self.coordinator.check_alive()?;
+            for w in &mut self.workers {
+                w.check_alive()?;
+            }
+            let out = self.cli(&["workers"]).output().context("cannot run tessera workers")?;
+            // A header line, then one line per worker.
+            let listed = String::from_utf8_lossy(&out.stdout).lines().count().saturating_sub(1);
+            if out.status.success() && listed >= n {
+                return Ok(());
+            }
+            if start.elapsed() > START_TIMEOUT {
+                bail!("only {listed} of {n} workers registered within {START_TIMEOUT:?}");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Submits `scene` with `settings` as overrides and waits for the job
+    /// (`tessera submit --wait`); returns the job id and the wall time from
+    /// submission to the job's end. Fails, rather than hangs, if the
+    /// coordinator or a worker dies or the job outlasts `JOB_TIMEOUT`.
+    pub fn submit_and_wait(&mut self, scene: &Path, settings: &RenderSettings, tile_size: u32, log: &Path) -> Result<(String, f64)> {
+        let scene_arg = scene.to_string_lossy();
+        let (w, h, s, d) =
+            (settings.width.to_string(), settings.height.to_string(), settings.samples.to_string(), settings.max_depth.to_string());
+        let tile = tile_size.to_string();
+        let args = [
+            "submit", &scene_arg, "--width", &w, "--height", &h, "--samples", &s, "--max-depth", &d, "--sampler",
+            settings.sampler.name(), "--tile-size", &tile, "--wait",
+        ];
+        let start = Instant::now();
+        // stdout (the job id) is a few bytes; progress goes to the log, so no pipe can fill up.
+        let child = self.cli(&args).stdout(Stdio::piped()).stderr(log_file(log)?).spawn().context("cannot run tessera submit")?;
+        let mut submit = ChildGuard { what: "tessera submit --wait".into(), log: log.to_path_buf(), child };
+        let mut last_check = Instant::now();
+        let status = loop {
+            if let Some(status) = submit.child.try_wait()? {
+                break status;
+            }
+            if last_check.elapsed() > Duration::from_millis(100) {
+                self.coordinator.check_alive()?;
+                for w in &mut self.workers {
+                    w.check_alive()?;
+                }
+                if start.elapsed() > JOB_TIMEOUT {
+                    bail!("the job did not finish within {JOB_TIMEOUT:?}");
+                }
+                last_check = Instant::now();
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        };
+        let secs = start.elapsed().as_secs_f64();
+        let mut stdout = String::new();
+        if let Some(mut out) = submit.child.stdout.take() {
+            std::io::Read::read_to_string(&mut out, &mut stdout).context("cannot read tessera submit's output")?;
+        }
+        if !status.success() {
+            bail!("tessera submit --wait failed ({status}): {stdout}\n{}", tail(log));
+        }
+        let id = stdout.lines().next().map(str::trim).filter(|l| !l.is_empty()).context("tessera submit printed no job id")?;
+        Ok((id.to_string(), secs))
+    }
+
+    /// Fetches the job's frame 0 into `dir`; returns its 8-bit sRGB pixels.
+    pub fn fetch_frame0(&self, job: &str, dir: &Path) -> Result<(u32, u32, Vec<u8>)> {
+        let out = self.cli(&["fetch", job, "-o", &dir.to_string_lossy()]).output().context("cannot run tessera fetch")?;
+        if !out.status.success() {
+            bail!("tessera fetch failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
+        }
+        let file = dir.join("frame_0000.png");
+        let img = image::open(&file).with_context(|| format!("cannot read the fetched frame {}", file.display()))?.to_rgb8();
+        Ok((img.width(), img.height(), img.into_raw()))
+    }
+}
