@@ -55,6 +55,11 @@ pub struct BenchArgs {
     /// Farm suite: CPU threads of each worker (and of the local render it is compared with)
     #[arg(long, value_name = "N", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..))]
     pub worker_threads: u32,
+    /// Depth suite: max_depth of the f64 reference each depth is compared
+    /// with [default: 32; with --quick 12]. 24 is within RMSE 4e-6 of 32 on
+    /// the emerald scene at 1/13 of the rays (docs/benchmarks.md)
+    #[arg(long, value_name = "D", value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub depth_reference: Option<u32>,
 }
 
 pub fn run(args: BenchArgs) -> Result<ExitCode> {
@@ -77,6 +82,7 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
         adapter: args.adapter,
         workers: args.workers.map(|v| v.into_iter().map(|n| n as usize).collect()),
         worker_threads: args.worker_threads as usize,
+        depth_reference: args.depth_reference.unwrap_or(if args.quick { 12 } else { bench::DEPTH_REFERENCE }),
     })?;
     eprintln!("bench: {} runs written under {}", runs.len(), args.out.display());
     Ok(ExitCode::SUCCESS)
