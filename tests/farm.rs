@@ -495,10 +495,11 @@ fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
     let scene = repo("examples/resolution.toml");
     // Two units of over a second each, so SIGTERM lands inside the first.
     let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "64", "--tile-size", "128"]);
+    // It renders one and holds the other as its prefetched next unit.
     wait_for("the worker to hold a unit", Duration::from_secs(30), || {
         rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
             .iter()
-            .any(|w| w.leases == 1)
+            .any(|w| w.leases >= 1)
     });
     w.sigterm();
     let start = Instant::now();
@@ -514,5 +515,9 @@ fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
     assert_eq!(s.units_done, 1, "the unit in progress was finished and accepted, and no other started");
     assert_eq!(s.units_accepted, 1);
     assert!(w.log().contains("draining"), "{}", w.log());
+    // The prefetched unit was handed back, not left to expire.
     assert!(!c.proc.log().contains("lease expired"));
+    assert!(c.proc.log().contains("lease returned; unit queued again"), "{}", c.proc.log());
+    assert_eq!(s.state, pb::JobState::Running as i32);
+    assert_eq!(status(&c.url(), &job).units_done, 1);
 }

@@ -661,6 +661,32 @@ impl Farm {
         Ok(gone)
     }
 
+    /// Queues again the units of leases a worker hands back unstarted
+    /// (drain); no failed attempt is counted. Returns how many it held.
+    pub fn return_leases(&self, worker_id: &str, lease_ids: &[String]) -> Result<u32, FarmError> {
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
+        worker.last_seen = Instant::now();
+        let mut returned = 0;
+        for id in lease_ids {
+            if !st.leases.get(id).is_some_and(|l| l.worker == worker_id) {
+                continue;
+            }
+            let l = st.leases.remove(id).expect("checked");
+            if let Some(w) = st.workers.get_mut(worker_id) {
+                w.leases.remove(id);
+            }
+            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                job.pending.extend(l.units.iter().copied());
+            }
+            tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.frame, rect = ?l.rect, "lease returned; unit queued again");
+            st.end_lease(id.clone(), l.job, false);
+            returned += 1;
+        }
+        Ok(returned)
+    }
+
     /// Takes a worker's result: accepted only from the lease's holder, only
     /// once, and only if it is exactly the leased unit's data.
     pub async fn submit_result(self: &Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
@@ -729,9 +755,20 @@ impl Farm {
             let mut st = self.state.lock().expect("state lock");
             let st = &mut *st;
             if let Err(e) = write {
-                for (_, t) in &taken {
-                    if let Some(job) = st.jobs.get_mut(&t.job).filter(|j| !j.state.is_terminal()) {
-                        job.pending.extend(t.units.iter().map(|&(u, _)| u));
+                // Nothing of these results is recorded. Each lease goes back
+                // to its holder, as if the result had never come: the worker
+                // sends it again (or the lease expires and the unit is
+                // queued), and the resend is not mistaken for a duplicate.
+                let deadline = Instant::now() + self.config.lease_timeout;
+                for (_, t) in taken {
+                    st.consumed.remove(&t.lease_id);
+                    if st.jobs.get(&t.job).is_some_and(|j| !j.state.is_terminal()) {
+                        if let Some(w) = st.workers.get_mut(&t.lease.worker) {
+                            w.leases.insert(t.lease_id.clone());
+                        }
+                        st.leases.insert(t.lease_id, Lease { deadline, ..t.lease });
+                    } else {
+                        st.gone.insert(t.lease_id, t.job);
                     }
                 }
                 return Err(e.into());
@@ -819,7 +856,7 @@ impl Farm {
         }
         let units = lease.units.iter().map(|&u| (u, job.layout.tiles[job.layout.unit(u).tile as usize])).collect();
         st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
-        Ok(Taken { job: lease.job, units, frame: lease.frame })
+        Ok(Taken { job: lease.job.clone(), units, frame: lease.frame, lease_id: r.lease_id.clone(), lease })
     }
 
     /// Marks a committed result's units done and merges its film into its frame.
@@ -894,9 +931,29 @@ impl Farm {
                 }
                 return;
             }
-            if let Err(e) = self.store.write(vec![Op::FrameWritten { job: job_id.clone(), frame, file: file.clone(), units }]).await {
-                tracing::error!(job = %job_id, frame, error = %e, "cannot record written frame");
-                return;
+            // The image is on disk; until the record is too, the job cannot
+            // be done. Retry (a full disk or a transient error may pass); a
+            // restart would also recover it, as the units' films stay stored
+            // until the record replaces them.
+            let mut backoff = Duration::from_millis(100);
+            loop {
+                let op = Op::FrameWritten { job: job_id.clone(), frame, file: file.clone(), units: units.clone() };
+                match self.store.write(vec![op]).await {
+                    Ok(()) => break,
+                    Err(e @ StoreError::WriterGone) => {
+                        tracing::error!(job = %job_id, frame, error = %e, "cannot record written frame");
+                        return;
+                    }
+                    Err(e) => {
+                        tracing::error!(job = %job_id, frame, error = %e, retry_in_ms = backoff.as_millis() as u64, "cannot record written frame; retrying");
+                    }
+                }
+                tokio::time::sleep(backoff).await;
+                backoff = (backoff * 2).min(Duration::from_secs(10));
+                let st = self.state.lock().expect("state lock");
+                if st.jobs.get(&job_id).is_none_or(|j| j.state.is_terminal()) {
+                    return;
+                }
             }
             tracing::info!(job = %job_id, frame, file = %file, "frame written");
             {
@@ -1014,6 +1071,9 @@ struct Taken {
     /// The lease's units and their tiles.
     units: Vec<(u32, Rect)>,
     frame: u32,
+    /// The lease, to give back to its holder if the commit fails.
+    lease_id: String,
+    lease: Lease,
 }
 /// A result not taken: its outcome, and a job record and counters to persist.
 type Refused = (Outcome, Option<JobRecord>, Option<(String, Counters)>);
@@ -1263,12 +1323,9 @@ material = "red"
         }
     }
 
-    /// A worker killed while its result is being committed makes the gRPC
-    /// server drop the handler's future. The unit was already taken from its
-    /// lease; it must still be finished (before the fix it stayed in neither
-    /// the queue nor a lease, and the job never completed).
-    #[tokio::test]
-    async fn a_result_whose_sender_goes_away_mid_commit_still_finishes_its_unit() {
+    /// A farm in a fresh directory with one job of `SCENE` at `width`x`height`,
+    /// `samples` spp, in 16-pixel tiles.
+    async fn farm_with_job(width: u32, height: u32, samples: u32) -> (tempfile::TempDir, Arc<Farm>, String) {
         let dir = tempfile::tempdir().unwrap();
         let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
         let job = farm
@@ -1277,7 +1334,7 @@ material = "red"
                 scene_name: "t.toml".into(),
                 scene: SCENE.as_bytes().to_vec(),
                 assets: vec![],
-                overrides: Overrides { width: Some(16), height: Some(16), samples: Some(1), ..Default::default() },
+                overrides: Overrides { width: Some(width), height: Some(height), samples: Some(samples), ..Default::default() },
                 first_frame: 0,
                 last_frame: 0,
                 priority: 0,
@@ -1287,7 +1344,69 @@ material = "red"
             })
             .await
             .unwrap();
-        let w = farm.register("w".into(), 1, "cpu".into(), String::new(), String::new());
+        (dir, farm, job)
+    }
+
+    fn register(farm: &Farm, name: &str, threads: u32) -> String {
+        farm.register(name.into(), threads, "cpu".into(), String::new(), String::new())
+    }
+
+    async fn wait_done(farm: &Farm, job: &str) -> JobView {
+        let start = Instant::now();
+        loop {
+            let v = farm.job(job).unwrap();
+            if v.state == JobState::Done {
+                return v;
+            }
+            assert!(start.elapsed() < Duration::from_secs(10), "job not done: {} of {} units, state {:?}", v.units_done, v.units_total, v.state);
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+
+    /// A result whose database commit fails is not recorded: its lease goes
+    /// back to the worker, whose resend is accepted. (Before the fix the
+    /// lease stayed marked as consumed: the resend was dropped as a
+    /// duplicate and the unit was rendered again by someone else.)
+    #[tokio::test]
+    async fn a_result_whose_commit_fails_is_accepted_when_sent_again() {
+        let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
+        let w = register(&farm, "w", 1);
+        let l = farm.lease(&w, 1).unwrap().remove(0);
+        farm.store.fail_commits(|op| matches!(op, Op::AcceptUnits { .. }), 1);
+        let err = farm.submit_result(result(&w, &l, 0.01)).await.unwrap_err();
+        assert!(matches!(&err, FarmError::Store(e) if e.to_string().contains("injected commit failure")), "{err}");
+        assert_eq!(farm.job(&job).unwrap().units_done, 0);
+        assert_eq!(farm.workers()[0].leases, 1, "the lease is the worker's again");
+        assert_eq!(farm.heartbeat(&w, &[(l.lease_id.clone(), 0)]).unwrap(), Vec::<String>::new(), "and heartbeats extend it");
+        assert_eq!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Accepted);
+        let v = wait_done(&farm, &job).await;
+        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate), (1, 1, 0));
+    }
+
+    /// The image of a finished frame is written but recording that fails:
+    /// the record is retried and the job finishes. (Before the fix the job
+    /// stayed short of Done until a restart.)
+    #[tokio::test]
+    async fn a_frame_whose_written_record_fails_is_recorded_on_retry() {
+        let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
+        let w = register(&farm, "w", 1);
+        let l = farm.lease(&w, 1).unwrap().remove(0);
+        farm.store.fail_commits(|op| matches!(op, Op::FrameWritten { .. }), 2);
+        assert_eq!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Accepted);
+        let v = wait_done(&farm, &job).await;
+        assert_eq!(v.frames, vec![(0, 1, 1, Some(frame_file_name(0)))]);
+        let outputs = farm.outputs(&job).unwrap();
+        assert!(outputs[0].2.is_file(), "{:?}", outputs[0].2);
+    }
+
+    /// A worker killed while its result is being committed makes the gRPC
+    /// server drop the handler's future. The unit was already taken from its
+    /// lease; it must still be finished (before the fix it stayed in neither
+    /// the queue nor a lease, and the job never completed).
+    #[tokio::test]
+    async fn a_result_whose_sender_goes_away_mid_commit_still_finishes_its_unit() {
+        let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
+        let w = register(&farm, "w", 1);
         let l = farm.lease(&w, 1).unwrap().remove(0);
         // Poll the submission once (it takes the unit and waits for the
         // database), then drop it, as hyper does on a reset stream.
@@ -1335,26 +1454,9 @@ material = "red"
     /// for another worker's lease and a malformed one: each judged on its own.
     #[tokio::test]
     async fn batched_results_are_judged_one_by_one_and_commit_together() {
-        let dir = tempfile::tempdir().unwrap();
-        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
-        let job = farm
-            .submit(Submission {
-                name: "t".into(),
-                scene_name: "t.toml".into(),
-                scene: SCENE.as_bytes().to_vec(),
-                assets: vec![],
-                overrides: Overrides { width: Some(64), height: Some(16), samples: Some(2), ..Default::default() },
-                first_frame: 0,
-                last_frame: 0,
-                priority: 0,
-                tile_size: 16,
-                samples_per_unit: 0,
-                max_attempts: 0,
-            })
-            .await
-            .unwrap();
-        let a = farm.register("a".into(), 1, "cpu".into(), String::new(), String::new());
-        let b = farm.register("b".into(), 1, "cpu".into(), String::new(), String::new());
+        let (_dir, farm, job) = farm_with_job(64, 16, 2).await;
+        let a = register(&farm, "a", 1);
+        let b = register(&farm, "b", 1);
         let la = farm.lease(&a, 3).unwrap();
         let lb = farm.lease(&b, 3).unwrap();
         assert_eq!((la.len(), lb.len()), (3, 1), "a takes three units in one request, b the last");
@@ -1387,26 +1489,9 @@ material = "red"
 
     #[tokio::test]
     async fn faster_workers_get_larger_units_and_results_count_once() {
-        let dir = tempfile::tempdir().unwrap();
-        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
-        let job = farm
-            .submit(Submission {
-                name: "t".into(),
-                scene_name: "t.toml".into(),
-                scene: SCENE.as_bytes().to_vec(),
-                assets: vec![],
-                overrides: Overrides { width: Some(512), height: Some(64), samples: Some(4), ..Default::default() },
-                first_frame: 0,
-                last_frame: 0,
-                priority: 0,
-                tile_size: 16,
-                samples_per_unit: 0,
-                max_attempts: 0,
-            })
-            .await
-            .unwrap();
-        let fast = farm.register("fast".into(), 8, "cpu".into(), String::new(), String::new());
-        let slow = farm.register("slow".into(), 1, "cpu".into(), String::new(), String::new());
+        let (_dir, farm, job) = farm_with_job(512, 64, 4).await;
+        let fast = register(&farm, "fast", 8);
+        let slow = register(&farm, "slow", 1);
         // Unknown speed: one tile each.
         let (f1, s1) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
         assert_eq!((f1.rect.width, s1.rect.width), (16, 16));

@@ -21,7 +21,8 @@ impl From<FarmError> for Status {
             FarmError::InvalidArgument(m) => Status::invalid_argument(m),
             FarmError::NotFound(m) => Status::not_found(m),
             FarmError::FailedPrecondition(m) => Status::failed_precondition(m),
-            FarmError::Store(e) => Status::internal(e.to_string()),
+            // Nothing was recorded; the same request may be sent again.
+            FarmError::Store(e) => Status::unavailable(format!("storage: {e}; nothing was recorded, send the request again")),
             FarmError::Internal(m) => Status::internal(m),
         }
     }
@@ -265,6 +266,12 @@ impl WorkerService for Api {
             })),
             Err(e) => Err(e.into()),
         }
+    }
+
+    async fn return_leases(&self, req: Request<pb::ReturnLeasesRequest>) -> Result<Response<pb::ReturnLeasesResponse>, Status> {
+        let r = req.into_inner();
+        let returned = self.farm.return_leases(&r.worker_id, &r.lease_ids)?;
+        Ok(Response::new(pb::ReturnLeasesResponse { returned }))
     }
 
     async fn get_asset(&self, req: Request<pb::GetAssetRequest>) -> Result<Response<pb::GetAssetResponse>, Status> {
