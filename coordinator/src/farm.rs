@@ -282,6 +282,9 @@ pub struct Farm {
     state: Mutex<State>,
     /// Distinguishes this run's lease and worker ids from earlier runs'.
     boot: String,
+    /// Woken whenever units become pending (a job submitted, units queued
+    /// again), for workers waiting in [`Farm::lease_or_wait`].
+    work_ready: tokio::sync::Notify,
 }
 
 fn now_ms() -> i64 {
@@ -318,7 +321,7 @@ impl Farm {
         let store = Store::open(&config.data_dir.join("tessera.redb"))?;
         let snap = store.load()?;
         let boot = format!("{:x}", now_ms() as u64 ^ (std::process::id() as u64) << 40);
-        let farm = Arc::new(Farm { config, store, state: Mutex::new(State::default()), boot });
+        let farm = Arc::new(Farm { config, store, state: Mutex::new(State::default()), boot, work_ready: tokio::sync::Notify::new() });
         let mut to_write = Vec::new();
         {
             let mut st = farm.state.lock().expect("state lock");
@@ -464,6 +467,7 @@ impl Farm {
         );
         let job = Job::new(rec, settings, Counters::default());
         self.state.lock().expect("state lock").jobs.insert(id.clone(), job);
+        self.work_ready.notify_waiters();
         Ok(id)
     }
 
@@ -641,6 +645,22 @@ impl Farm {
         Ok(out)
     }
 
+    /// As [`Farm::lease`], but when nothing is pending waits up to `wait`
+    /// for work to appear (long poll): an idle worker starts on a new job at
+    /// once instead of after its retry interval.
+    pub async fn lease_or_wait(&self, worker_id: &str, max_units: u32, wait: Duration) -> Result<Vec<LeaseView>, FarmError> {
+        // Registered before looking, so a wake-up between the look and the
+        // wait is not missed.
+        let notified = self.work_ready.notified();
+        tokio::pin!(notified);
+        notified.as_mut().enable();
+        let leases = self.lease(worker_id, max_units)?;
+        if !leases.is_empty() || wait.is_zero() || tokio::time::timeout(wait, notified).await.is_err() {
+            return Ok(leases);
+        }
+        self.lease(worker_id, max_units)
+    }
+
     /// Extends the worker's leases; returns those it no longer holds.
     pub fn heartbeat(&self, worker_id: &str, leases: &[(String, u64)]) -> Result<Vec<String>, FarmError> {
         let mut st = self.state.lock().expect("state lock");
@@ -684,6 +704,9 @@ impl Farm {
             st.end_lease(id.clone(), l.job, false);
             returned += 1;
         }
+        if returned > 0 {
+            self.work_ready.notify_waiters();
+        }
         Ok(returned)
     }
 
@@ -725,6 +748,10 @@ impl Farm {
                         taken.push((r, t));
                     }
                     Err((outcome, rec, counters)) => {
+                        // A failed or malformed result queued its units again.
+                        if matches!(outcome, Outcome::Rejected(_) | Outcome::FailureRecorded) {
+                            self.work_ready.notify_waiters();
+                        }
                         outcomes.push(Some(outcome));
                         ops.extend(rec.map(Op::PutJob));
                         ops.extend(counters.map(|(job, counters)| Op::PutCounters { job, counters }));
@@ -1022,6 +1049,7 @@ impl Farm {
             tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
             if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
                 job.pending.extend(l.units.iter().copied());
+                self.work_ready.notify_waiters();
             }
             st.end_lease(id, l.job, false);
         }
@@ -1397,6 +1425,66 @@ material = "red"
         assert_eq!(v.frames, vec![(0, 1, 1, Some(frame_file_name(0)))]);
         let outputs = farm.outputs(&job).unwrap();
         assert!(outputs[0].2.is_file(), "{:?}", outputs[0].2);
+    }
+
+    /// A worker's prefetched lease handed back on drain is queued again at
+    /// once, with no failed attempt counted; leases it does not hold are ignored.
+    #[tokio::test]
+    async fn returned_leases_are_leased_again_at_once() {
+        let (_dir, farm, job) = farm_with_job(32, 16, 1).await;
+        let (a, b) = (register(&farm, "a", 1), register(&farm, "b", 1));
+        let la = farm.lease(&a, 2).unwrap();
+        assert_eq!(la.len(), 2);
+        assert!(farm.lease(&b, 1).unwrap().is_empty());
+        let ids = [la[1].lease_id.clone(), "l-unknown".to_string()];
+        assert_eq!(farm.return_leases(&b, &ids).unwrap(), 0, "b holds neither");
+        assert_eq!(farm.return_leases(&a, &ids).unwrap(), 1);
+        let lb = farm.lease(&b, 1).unwrap();
+        assert_eq!(lb.len(), 1);
+        assert_eq!(lb[0].rect, la[1].rect);
+        assert!(matches!(farm.submit_result(result(&a, &la[1], 0.01)).await.unwrap(), Outcome::Late(_)), "a returned that lease");
+        assert_eq!(farm.submit_result(result(&a, &la[0], 0.01)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(farm.submit_result(result(&b, &lb[0], 0.01)).await.unwrap(), Outcome::Accepted);
+        let v = wait_done(&farm, &job).await;
+        assert_eq!((v.counters.units_accepted, v.counters.results_late), (2, 1));
+    }
+
+    /// An idle worker's lease request waits at the coordinator and gets the
+    /// unit of a job submitted meanwhile, well before its wait is over.
+    #[tokio::test]
+    async fn a_waiting_lease_request_gets_work_submitted_meanwhile() {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let w = register(&farm, "w", 1);
+        let start = Instant::now();
+        assert!(farm.lease_or_wait(&w, 1, Duration::from_millis(50)).await.unwrap().is_empty());
+        assert!(start.elapsed() >= Duration::from_millis(50));
+        let waiting = {
+            let farm = farm.clone();
+            tokio::spawn(async move { farm.lease_or_wait(&w, 1, Duration::from_secs(30)).await })
+        };
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let start = Instant::now();
+        let job = farm
+            .submit(Submission {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                scene: SCENE.as_bytes().to_vec(),
+                assets: vec![],
+                overrides: Overrides { width: Some(16), height: Some(16), samples: Some(1), ..Default::default() },
+                first_frame: 0,
+                last_frame: 0,
+                priority: 0,
+                tile_size: 16,
+                samples_per_unit: 0,
+                max_attempts: 0,
+            })
+            .await
+            .unwrap();
+        let leases = waiting.await.unwrap().unwrap();
+        assert!(start.elapsed() < Duration::from_secs(5), "woken by the submit, not by the timeout");
+        assert_eq!(leases.len(), 1);
+        assert_eq!(leases[0].job_id, job);
     }
 
     /// A worker killed while its result is being committed makes the gRPC

@@ -115,6 +115,8 @@ struct Request {
 pub struct Store {
     db: std::sync::Arc<Database>,
     tx: mpsc::Sender<Request>,
+    // Set only by tests (`fail_commits`); the writer thread reads its clone.
+    #[cfg_attr(not(test), allow(dead_code))]
     faults: Faults,
 }
 

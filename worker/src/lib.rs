@@ -40,6 +40,9 @@ use tracer_core::scene::{RenderSettings, SceneDesc};
 const BAND_TILES_PER_THREAD: u32 = 32;
 /// Leases held ahead of the one being rendered.
 const PREFETCH: usize = 1;
+/// How long an idle worker's lease request waits at the coordinator for
+/// work to appear (drain waits for it too, so keep it short).
+const IDLE_LEASE_WAIT: Duration = Duration::from_millis(1000);
 /// Finished results waiting for the sender before the render loop waits.
 const SEND_QUEUE: usize = 4;
 /// Most results in one `SubmitResults`, and most bytes of film data in it.
@@ -259,7 +262,8 @@ impl Worker {
                 };
             }
             let Some(unit) = queue.pop_front() else {
-                let retry_after = lease(&mut client, &s.worker_id, &self.held, queue).await?;
+                // Idle: wait at the coordinator for work (long poll).
+                let retry_after = lease(&mut client, &s.worker_id, &self.held, queue, IDLE_LEASE_WAIT).await?;
                 if queue.is_empty() {
                     tokio::select! {
                         _ = tokio::time::sleep(retry_after) => {}
@@ -290,7 +294,8 @@ impl Worker {
                     let render = async { render.await.unwrap_or_else(|e| UnitEnd::Failed(format!("render panicked: {e}"))) };
                     // Lease the next unit while this one renders, unless draining.
                     if queue.len() < PREFETCH && !*drain.borrow() {
-                        let (end, leased) = tokio::join!(render, lease(&mut client, &s.worker_id, &self.held, queue));
+                        // No long poll here: the result must not wait for work to appear.
+                        let (end, leased) = tokio::join!(render, lease(&mut client, &s.worker_id, &self.held, queue, Duration::ZERO));
                         if let Err(e) = leased {
                             let _ = tx.send(out(end)).await;
                             return Err(e);
@@ -344,8 +349,9 @@ impl Worker {
 /// Leases more work into `queue`, registering each lease with the heartbeat
 /// before anything else can happen to it. Returns how long to wait when
 /// the coordinator had nothing.
-async fn lease(client: &mut Client, worker_id: &str, held: &HeldMap, queue: &mut VecDeque<pb::WorkUnit>) -> Result<Duration, tonic::Status> {
-    let resp = client.lease_work(pb::LeaseWorkRequest { worker_id: worker_id.to_string(), max_units: 1 }).await?.into_inner();
+async fn lease(client: &mut Client, worker_id: &str, held: &HeldMap, queue: &mut VecDeque<pb::WorkUnit>, wait: Duration) -> Result<Duration, tonic::Status> {
+    let req = pb::LeaseWorkRequest { worker_id: worker_id.to_string(), max_units: 1, wait_ms: wait.as_millis() as u32 };
+    let resp = client.lease_work(req).await?.into_inner();
     let mut h = held.lock().expect("held lock");
     for unit in resp.units {
         h.insert(unit.lease_id.clone(), Held { cancel: Arc::default(), samples_done: Arc::default() });
@@ -426,12 +432,13 @@ async fn send_results(mut client: Client, worker_id: String, mut rx: mpsc::Recei
         }
         let outcomes = submit_with_retry(&mut client, reqs.clone()).await?;
         let mut h = held.lock().expect("held lock");
-        for (req, resp) in reqs.iter().zip(outcomes) {
+        let sent = batch.iter().filter(|o| !matches!(o.end, UnitEnd::Abandoned));
+        for ((o, req), resp) in sent.zip(&reqs).zip(outcomes) {
             h.remove(&req.lease_id);
             match pb::ResultOutcome::try_from(resp.outcome).unwrap_or(pb::ResultOutcome::Unspecified) {
                 pb::ResultOutcome::Accepted => {
                     units_done.fetch_add(1, Ordering::Relaxed);
-                    tracing::debug!(lease = %req.lease_id, rect = ?req.rect, "result accepted");
+                    tracing::debug!(lease = %req.lease_id, frame = o.frame, rect = ?o.rect, batch = reqs.len(), "result accepted");
                 }
                 pb::ResultOutcome::FailureRecorded => {}
                 other => tracing::warn!(lease = %req.lease_id, outcome = ?other, reason = %resp.reason, "result not accepted"),
