@@ -603,3 +603,21 @@ fn grpcurl_finds_the_api_by_reflection_checks_health_and_runs_a_job() {
     assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &["--width", "64", "--height", "48", "--samples", "2"]);
 }
+
+/// What can be checked of deploy/ without docker or kubectl (deploy/check.py):
+/// the YAML parses, the probes are gRPC health probes, every `tessera`
+/// command line in compose, Kubernetes, the Dockerfile and the systemd units
+/// uses flags this binary has, and the systemd units verify.
+#[test]
+fn deploy_files_parse_and_their_command_lines_use_real_flags() {
+    let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
+    let has = || Command::new(&python).args(["-c", "import yaml"]).status().is_ok_and(|s| s.success());
+    if !has() {
+        let _ = Command::new(&python).args(["-m", "pip", "install", "--quiet", "pyyaml"]).status();
+        assert!(has(), "this test needs Python with PyYAML (pip install pyyaml)");
+    }
+    let out = Command::new(&python).arg(repo("deploy/check.py")).arg(TESSERA).output().expect("deploy/check.py");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("deploy check: 0 problem(s) in 4 YAML files, 2 systemd units"), "{stdout}");
+}
