@@ -9,7 +9,10 @@
 # For each worker count it reports wall time of the job (submit to done),
 # speed-up and parallel efficiency relative to 1 worker, the coordinator's
 # own CPU time (user+system, from /proc), the bytes each worker wrote per
-# work unit (results on the wire, from /proc/PID/io wchar), and finally the
+# work unit (results on the wire, from /proc/PID/io wchar), how busy the
+# workers' renderers were (sum of the units' render times, from the
+# workers' JSON debug logs, over workers x wall time: the rest is waiting
+# on the network, start-up and the job's tail), and finally the
 # result messages per second the coordinator accepts from the load generator
 # (coordinator/examples/result_load.rs). Linux only (/proc).
 set -euo pipefail
@@ -60,13 +63,14 @@ start=$(date +%s.%N)
 "$T" render "$SCENE" --width "$WIDTH" --height "$HEIGHT" --samples "$SAMPLES" --threads "$THREADS" -o "$OUT/local.png" | tail -1
 echo "local render (tessera render --threads $THREADS): $(calc "$(date +%s.%N) - $start") s"
 echo
-printf "%8s %10s %9s %11s %14s %8s %15s\n" workers seconds speedup efficiency coordinator_cpu units bytes_per_unit
+printf "%8s %10s %9s %11s %14s %8s %15s %12s\n" workers seconds speedup efficiency coordinator_cpu units bytes_per_unit render_busy
 base=""
 for n in $(seq 1 "$MAX"); do
     start_coordinator "$OUT/data-$n"
     wpids=()
     for i in $(seq "$n"); do
-        "$T" worker --coordinator "$URL" --threads "$THREADS" --name "bench-$i" 2>>"$OUT/data-$n.workers.log" &
+        RUST_LOG=info,tessera_worker=debug "$T" worker --coordinator "$URL" --threads "$THREADS" --name "bench-$i" \
+            --log-format json 2>>"$OUT/data-$n.workers.log" &
         wpids+=("$!"); pids+=("$!")
     done
     for _ in $(seq 200); do
@@ -80,8 +84,9 @@ for n in $(seq 1 "$MAX"); do
     units=$("$T" status "$id" --coordinator "$URL" | sed -n 's/.*(\([0-9]*\) of [0-9]* units).*/\1/p')
     bytes=0; for p in "${wpids[@]}"; do bytes=$((bytes + $(wchar "$p"))); done
     [ -z "$base" ] && base=$secs
-    printf "%8d %10.2f %9.2f %10.1f%% %13ss %8d %15d\n" "$n" "$secs" "$(calc "$base / $secs")" \
-        "$(calc "100 * $base / $secs / $n")" "$cpu" "$units" "$((bytes / units))"
+    render=$(sed -n 's/.*"message":"unit rendered".*"seconds":\([0-9.e-]*\).*/\1/p' "$OUT/data-$n.workers.log" | awk '{ s += $1 } END { print s + 0 }')
+    printf "%8d %10.2f %9.2f %10.1f%% %13ss %8d %15d %11.1f%%\n" "$n" "$secs" "$(calc "$base / $secs")" \
+        "$(calc "100 * $base / $secs / $n")" "$cpu" "$units" "$((bytes / units))" "$(calc "100 * $render / $secs / $n")"
     "$T" fetch "$id" --coordinator "$URL" -o "$OUT/frames-$n" 2>/dev/null
     cmp -s "$OUT/frames-$n/frame_0000.png" "$OUT/local.png" || echo "   WARNING: image differs from tessera render"
     cleanup

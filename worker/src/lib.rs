@@ -306,6 +306,9 @@ impl Worker {
                     }
                 }
             };
+            if let UnitEnd::Film(_, seconds) = &end {
+                tracing::debug!(lease = %unit.lease_id, frame = unit.frame, ?rect, seconds, "unit rendered");
+            }
             if tx.send(out(end)).await.is_err() {
                 return Err(tonic::Status::internal("the result sender stopped"));
             }
