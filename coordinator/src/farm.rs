@@ -46,7 +46,10 @@ impl Config {
             data_dir,
             lease_timeout: Duration::from_secs(10),
             heartbeat_interval: Duration::from_secs(1),
-            target_unit_seconds: 0.5,
+            // Short, because workers lease their next unit while rendering
+            // (prefetch): a lease costs them no idle time, while a long one
+            // on costly pixels can leave the others idle at a job's end.
+            target_unit_seconds: 0.25,
             max_tiles_per_lease: 16,
             max_message_bytes: 64 << 20,
             progress_interval: Duration::from_secs(2),
@@ -576,9 +579,10 @@ impl Farm {
                 let Some(&first) = job.pending.iter().next() else { break };
                 let base = job.layout.unit_samples(job.layout.unit(first)).max(1) as f64;
                 // Near the end of a job, big leases would leave the other
-                // workers idle while one finishes: keep at least two leases'
-                // worth of pending units per worker.
-                let fair = (job.pending.len() / (2 * workers).max(1)).max(1) as u32;
+                // workers idle while one finishes: a lease takes at most a
+                // quarter of a worker's share of what is pending (a worker
+                // holds two: the one it renders and the next).
+                let fair = (job.pending.len() / (4 * workers).max(1)).max(1) as u32;
                 let want = if speed > 0.0 {
                     ((speed * self.config.target_unit_seconds / base).floor() as u32).clamp(1, self.config.max_tiles_per_lease).min(fair)
                 } else {
@@ -913,7 +917,11 @@ impl Farm {
             w.units_done += t.units.len() as u64;
             if r.render_seconds > 0.0 {
                 let s = samples as f64 / r.render_seconds;
-                w.speed = if w.speed == 0.0 { s } else { 0.7 * w.speed + 0.3 * s };
+                // Cost per pixel varies across a frame (open sky against
+                // glass): a speed measured on cheap tiles would size the next
+                // lease far too large for costly ones (seen: 6 s leases for a
+                // 0.5 s target). So the estimate drops at once and rises slowly.
+                w.speed = if w.speed == 0.0 || s < w.speed { s } else { 0.7 * w.speed + 0.3 * s };
             }
         }
         Ok(Outcome::Accepted)
@@ -1427,6 +1435,28 @@ material = "red"
         assert!(outputs[0].2.is_file(), "{:?}", outputs[0].2);
     }
 
+    /// A result slower than the worker's estimate (costly pixels) shrinks
+    /// its next lease at once; a faster one grows it only gradually.
+    #[tokio::test]
+    async fn a_slow_result_shrinks_the_next_lease_at_once() {
+        let (_dir, farm, _job) = farm_with_job(1024, 64, 4).await;
+        let w = register(&farm, "w", 2);
+        let l1 = farm.lease(&w, 1).unwrap().remove(0);
+        assert_eq!(l1.rect.width, 16, "unknown speed: one tile");
+        // 16x16x4 in 1 ms: 1 M pixel-samples/s, a full lease of 16 tiles.
+        assert_eq!(farm.submit_result(result(&w, &l1, 0.001)).await.unwrap(), Outcome::Accepted);
+        let l2 = farm.lease(&w, 1).unwrap().remove(0);
+        assert_eq!(l2.rect.width, 16 * 16);
+        // Those 16 tiles took 1 s: 16384 pixel-samples/s, 4 tiles in 0.25 s.
+        assert_eq!(farm.submit_result(result(&w, &l2, 1.0)).await.unwrap(), Outcome::Accepted);
+        let l3 = farm.lease(&w, 1).unwrap().remove(0);
+        assert_eq!(l3.rect.width, 4 * 16, "the next lease is sized on the slow result");
+        // Fast again (4 tiles in 1 ms): the estimate rises by 30% of the step.
+        assert_eq!(farm.submit_result(result(&w, &l3, 0.001)).await.unwrap(), Outcome::Accepted);
+        let speed = farm.workers()[0].samples_per_second;
+        assert!((speed - (0.7 * 16384.0 + 0.3 * 4096.0 / 0.001)).abs() < 1e-6, "{speed}");
+    }
+
     /// A worker's prefetched lease handed back on drain is queued again at
     /// once, with no failed attempt counted; leases it does not hold are ignored.
     #[tokio::test]
@@ -1577,7 +1607,9 @@ material = "red"
 
     #[tokio::test]
     async fn faster_workers_get_larger_units_and_results_count_once() {
-        let (_dir, farm, job) = farm_with_job(512, 64, 4).await;
+        // 256 units: enough pending that the end-of-job cap (a quarter of
+        // each worker's share) does not limit the fast worker's lease.
+        let (_dir, farm, job) = farm_with_job(512, 128, 4).await;
         let fast = register(&farm, "fast", 8);
         let slow = register(&farm, "slow", 1);
         // Unknown speed: one tile each.
