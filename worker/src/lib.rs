@@ -2,11 +2,21 @@
 //! with tracer-core and sends back the per-pixel sums.
 //!
 //! Lifecycle: connect (with backoff while the coordinator is away) ->
-//! register -> loop { lease -> fetch the scene by hash (cached) -> render
-//! (the prepared frame is cached per job and frame) -> submit }. A
-//! heartbeat task extends held leases and learns which are gone (expired,
-//! cancelled): their render stops at the next band of rows and nothing is
-//! sent. Draining (SIGTERM) finishes the current unit and exits.
+//! register -> a pipeline of three parts, so the renderer never waits on
+//! the network:
+//! - the render loop takes the next leased unit, renders it (the prepared
+//!   frame is cached per job and frame, the scene per content hash) and,
+//!   while it renders, leases the next unit (prefetch: one lease ahead);
+//! - a sender task packs finished films and submits them, several at once
+//!   (`SubmitResults`) when more than one is ready, retrying a submission
+//!   the coordinator could not record;
+//! - a heartbeat task extends every held lease (rendering, queued or being
+//!   sent) and learns which are gone (expired, cancelled): a rendering unit
+//!   stops at the next band of rows, a queued one is skipped, nothing is sent.
+//!
+//! Draining (SIGTERM) finishes the unit being rendered, hands the prefetched
+//! leases back (`ReturnLeases`) so no one waits for them to expire, sends
+//! the last results and exits.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -15,15 +25,31 @@ use std::time::{Duration, Instant};
 
 use tessera_proto::pb::worker_service_client::WorkerServiceClient;
 use tessera_proto::{film_codec, pb, VersionStamp};
-use tokio::sync::watch;
+use tokio::sync::{mpsc, watch};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::render::cpu::TILE;
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
-/// Rows rendered between checks that the lease is still held.
-const BAND_ROWS: u32 = 16;
+/// Renderer tiles per thread in one band of rows: a band ends with a
+/// barrier (the lease is checked between bands), where threads that drew
+/// the last tiles keep the others waiting; with 32 tiles each that wait is
+/// a few percent at most.
+const BAND_TILES_PER_THREAD: u32 = 32;
+/// Leases held ahead of the one being rendered.
+const PREFETCH: usize = 1;
+/// How long an idle worker's lease request waits at the coordinator for
+/// work to appear (drain waits for it too, so keep it short).
+const IDLE_LEASE_WAIT: Duration = Duration::from_millis(1000);
+/// Finished results waiting for the sender before the render loop waits.
+const SEND_QUEUE: usize = 4;
+/// Most results in one `SubmitResults`, and most bytes of film data in it.
+const MAX_BATCH: usize = 16;
+const MAX_BATCH_BYTES: usize = 16 << 20;
+/// Submissions of one batch before the session is given up.
+const SUBMIT_TRIES: u32 = 5;
 /// Prepared frames kept (a worker usually serves one or two frames at a time).
 const PREPARED_CACHE: usize = 4;
 /// Largest message the worker accepts or sends.
@@ -57,11 +83,14 @@ pub enum WorkerError {
 
 type Client = WorkerServiceClient<InterceptedService<Channel, VersionStamp>>;
 
-/// Work in progress, as the heartbeat sees it.
+/// A lease this worker holds (queued, rendering or being sent), as the
+/// heartbeat sees it.
 struct Held {
     cancel: Arc<AtomicBool>,
     samples_done: Arc<AtomicU64>,
 }
+
+type HeldMap = Arc<Mutex<HashMap<String, Held>>>;
 
 struct Session {
     client: Client,
@@ -72,17 +101,26 @@ struct Session {
 pub struct Worker {
     config: WorkerConfig,
     renderer: Arc<CpuRenderer>,
-    held: Arc<Mutex<HashMap<String, Held>>>,
+    held: HeldMap,
     scenes: HashMap<String, Arc<SceneDesc>>,
     prepared: VecDeque<((String, u32), Arc<PreparedFrame>)>,
-    units_done: u64,
+    units_done: Arc<AtomicU64>,
 }
 
-/// Why a unit produced no result to send.
+/// How rendering a unit ended.
 enum UnitEnd {
     Film(Film, f64),
     Failed(String),
     Abandoned,
+}
+
+/// A finished unit on its way to the coordinator.
+struct Outgoing {
+    lease_id: String,
+    frame: u32,
+    rect: Rect,
+    samples: SampleRange,
+    end: UnitEnd,
 }
 
 impl Worker {
@@ -99,7 +137,7 @@ impl Worker {
             held: Arc::default(),
             scenes: HashMap::new(),
             prepared: VecDeque::new(),
-            units_done: 0,
+            units_done: Arc::default(),
         })
     }
 
@@ -131,6 +169,7 @@ impl Worker {
             let beat = tokio::spawn(heartbeat(session.client.clone(), session.worker_id.clone(), session.heartbeat, self.held.clone(), lost.clone()));
             let end = self.work(&session, &mut drain, &lost).await;
             beat.abort();
+            // Whatever is still held belongs to a session that is over.
             for (_, h) in self.held.lock().expect("held lock").drain() {
                 h.cancel.store(true, Ordering::Relaxed);
             }
@@ -139,7 +178,7 @@ impl Worker {
                 Err(e) => tracing::warn!(error = %e, "lost the coordinator; reconnecting"),
             }
         }
-        tracing::info!(units_done = self.units_done, "worker stopped");
+        tracing::info!(units_done = self.units_done.load(Ordering::Relaxed), "worker stopped");
         Ok(())
     }
 
@@ -174,8 +213,40 @@ impl Worker {
         })
     }
 
-    /// Leases and renders until drained (`Ok`) or the session breaks (`Err`).
+    /// Runs the render loop and the sender until drained (`Ok`) or the
+    /// session breaks (`Err`).
     async fn work(&mut self, s: &Session, drain: &mut watch::Receiver<bool>, lost: &AtomicBool) -> Result<(), tonic::Status> {
+        let (tx, rx) = mpsc::channel(SEND_QUEUE);
+        let mut sender = tokio::spawn(send_results(s.client.clone(), s.worker_id.clone(), rx, self.held.clone(), self.units_done.clone()));
+        let mut queue = VecDeque::new();
+        let end = self.render_loop(s, drain, lost, &tx, &mut queue, &mut sender).await;
+        drop(tx);
+        match end {
+            Ok(()) => {
+                // Drained: hand the prefetched leases back, then let the
+                // sender deliver what is finished.
+                return_leases(&mut s.client.clone(), &s.worker_id, &mut queue, &self.held).await;
+                match sender.await {
+                    Ok(r) => r,
+                    Err(e) => Err(tonic::Status::internal(format!("result sender failed: {e}"))),
+                }
+            }
+            Err(e) => {
+                sender.abort();
+                Err(e)
+            }
+        }
+    }
+
+    async fn render_loop(
+        &mut self,
+        s: &Session,
+        drain: &mut watch::Receiver<bool>,
+        lost: &AtomicBool,
+        tx: &mpsc::Sender<Outgoing>,
+        queue: &mut VecDeque<pb::WorkUnit>,
+        sender: &mut tokio::task::JoinHandle<Result<(), tonic::Status>>,
+    ) -> Result<(), tonic::Status> {
         let mut client = s.client.clone();
         loop {
             if *drain.borrow() {
@@ -184,80 +255,64 @@ impl Worker {
             if lost.load(Ordering::Relaxed) {
                 return Err(tonic::Status::unavailable("the coordinator no longer knows this worker"));
             }
-            let resp = client.lease_work(pb::LeaseWorkRequest { worker_id: s.worker_id.clone(), max_units: 1 }).await?.into_inner();
-            if resp.units.is_empty() {
-                tokio::select! {
-                    _ = tokio::time::sleep(Duration::from_millis(resp.retry_after_ms.clamp(10, 5000) as u64)) => {}
-                    _ = drain.changed() => {}
+            if sender.is_finished() {
+                return match sender.await {
+                    Ok(Err(e)) => Err(e),
+                    _ => Err(tonic::Status::internal("the result sender stopped")),
+                };
+            }
+            let Some(unit) = queue.pop_front() else {
+                // Idle: wait at the coordinator for work (long poll).
+                let retry_after = lease(&mut client, &s.worker_id, &self.held, queue, IDLE_LEASE_WAIT).await?;
+                if queue.is_empty() {
+                    tokio::select! {
+                        _ = tokio::time::sleep(retry_after) => {}
+                        _ = drain.changed() => {}
+                    }
                 }
                 continue;
+            };
+            let Some((cancel, samples_done)) = self.held.lock().expect("held lock").get(&unit.lease_id).map(|h| (h.cancel.clone(), h.samples_done.clone())) else {
+                continue;
+            };
+            let rect: Rect = unit.rect.unwrap_or_default().into();
+            let samples: SampleRange = unit.samples.unwrap_or_default().into();
+            let out = |end| Outgoing { lease_id: unit.lease_id.clone(), frame: unit.frame, rect, samples, end };
+            if cancel.load(Ordering::Relaxed) {
+                // Gone while queued (expired, cancelled): nothing to send.
+                self.held.lock().expect("held lock").remove(&unit.lease_id);
+                tracing::info!(lease = %unit.lease_id, "lease gone; abandoned its unit");
+                continue;
             }
-            for unit in resp.units {
-                self.unit(&mut client, &s.worker_id, unit).await?;
+            let end = match self.prepare(&mut client, &unit).await {
+                Err(e) if e.code() == tonic::Code::Unavailable || e.code() == tonic::Code::Unknown => return Err(e),
+                Err(e) => UnitEnd::Failed(e.message().to_string()),
+                Ok(prepared) => {
+                    let renderer = self.renderer.clone();
+                    let frame = unit.frame;
+                    let render = tokio::task::spawn_blocking(move || render_unit(&renderer, &prepared, frame, rect, samples, &cancel, &samples_done));
+                    let render = async { render.await.unwrap_or_else(|e| UnitEnd::Failed(format!("render panicked: {e}"))) };
+                    // Lease the next unit while this one renders, unless draining.
+                    if queue.len() < PREFETCH && !*drain.borrow() {
+                        // No long poll here: the result must not wait for work to appear.
+                        let (end, leased) = tokio::join!(render, lease(&mut client, &s.worker_id, &self.held, queue, Duration::ZERO));
+                        if let Err(e) = leased {
+                            let _ = tx.send(out(end)).await;
+                            return Err(e);
+                        }
+                        end
+                    } else {
+                        render.await
+                    }
+                }
+            };
+            if let UnitEnd::Film(_, seconds) = &end {
+                tracing::debug!(lease = %unit.lease_id, frame = unit.frame, ?rect, seconds, "unit rendered");
             }
-        }
-    }
-
-    async fn unit(&mut self, client: &mut Client, worker_id: &str, unit: pb::WorkUnit) -> Result<(), tonic::Status> {
-        let lease_id = unit.lease_id.clone();
-        let cancel = Arc::new(AtomicBool::new(false));
-        let samples_done = Arc::new(AtomicU64::new(0));
-        self.held
-            .lock()
-            .expect("held lock")
-            .insert(lease_id.clone(), Held { cancel: cancel.clone(), samples_done: samples_done.clone() });
-        let rect: Rect = unit.rect.unwrap_or_default().into();
-        let samples: SampleRange = unit.samples.unwrap_or_default().into();
-        let end = match self.prepare(client, &unit).await {
-            Err(e) if e.code() == tonic::Code::Unavailable || e.code() == tonic::Code::Unknown => {
-                self.held.lock().expect("held lock").remove(&lease_id);
-                return Err(e);
-            }
-            Err(e) => UnitEnd::Failed(e.message().to_string()),
-            Ok(prepared) => {
-                let renderer = self.renderer.clone();
-                let frame = unit.frame;
-                let cancel = cancel.clone();
-                tokio::task::spawn_blocking(move || render_unit(&renderer, &prepared, frame, rect, samples, &cancel, &samples_done))
-                    .await
-                    .unwrap_or_else(|e| UnitEnd::Failed(format!("render panicked: {e}")))
-            }
-        };
-        self.held.lock().expect("held lock").remove(&lease_id);
-        let mut req = pb::SubmitResultRequest {
-            worker_id: worker_id.to_string(),
-            lease_id: lease_id.clone(),
-            rect: Some(rect.into()),
-            samples: Some(samples.into()),
-            ..Default::default()
-        };
-        match end {
-            UnitEnd::Abandoned => {
-                tracing::info!(lease = %lease_id, "lease gone; abandoned its unit");
-                return Ok(());
-            }
-            UnitEnd::Failed(msg) => {
-                tracing::warn!(lease = %lease_id, error = %msg, "unit failed");
-                req.failure = msg;
-            }
-            UnitEnd::Film(film, secs) => {
-                req.sums = film_codec::pack_sums(&film);
-                req.counts = film_codec::pack_counts(&film);
-                req.rays = Some(film.rays.into());
-                req.nonfinite = film.nonfinite;
-                req.render_seconds = secs;
+            if tx.send(out(end)).await.is_err() {
+                return Err(tonic::Status::internal("the result sender stopped"));
             }
         }
-        let resp = client.submit_result(req).await?.into_inner();
-        match pb::ResultOutcome::try_from(resp.outcome).unwrap_or(pb::ResultOutcome::Unspecified) {
-            pb::ResultOutcome::Accepted => {
-                self.units_done += 1;
-                tracing::debug!(lease = %lease_id, frame = unit.frame, ?rect, "result accepted");
-            }
-            pb::ResultOutcome::FailureRecorded => {}
-            other => tracing::warn!(lease = %lease_id, outcome = ?other, reason = %resp.reason, "result not accepted"),
-        }
-        Ok(())
     }
 
     /// The prepared frame of a unit's job, from cache or built from the
@@ -294,6 +349,147 @@ impl Worker {
     }
 }
 
+/// Leases more work into `queue`, registering each lease with the heartbeat
+/// before anything else can happen to it. Returns how long to wait when
+/// the coordinator had nothing.
+async fn lease(client: &mut Client, worker_id: &str, held: &HeldMap, queue: &mut VecDeque<pb::WorkUnit>, wait: Duration) -> Result<Duration, tonic::Status> {
+    let req = pb::LeaseWorkRequest { worker_id: worker_id.to_string(), max_units: 1, wait_ms: wait.as_millis() as u32 };
+    let resp = client.lease_work(req).await?.into_inner();
+    let mut h = held.lock().expect("held lock");
+    for unit in resp.units {
+        h.insert(unit.lease_id.clone(), Held { cancel: Arc::default(), samples_done: Arc::default() });
+        queue.push_back(unit);
+    }
+    Ok(Duration::from_millis(resp.retry_after_ms.clamp(10, 5000) as u64))
+}
+
+/// Hands leased but unstarted units back on drain, so they are leased
+/// again at once instead of after their leases expire.
+async fn return_leases(client: &mut Client, worker_id: &str, queue: &mut VecDeque<pb::WorkUnit>, held: &HeldMap) {
+    if queue.is_empty() {
+        return;
+    }
+    let lease_ids: Vec<String> = queue.drain(..).map(|u| u.lease_id).collect();
+    {
+        let mut h = held.lock().expect("held lock");
+        for id in &lease_ids {
+            h.remove(id);
+        }
+    }
+    let n = lease_ids.len();
+    match client.return_leases(pb::ReturnLeasesRequest { worker_id: worker_id.to_string(), lease_ids }).await {
+        Ok(_) => tracing::info!(leases = n, "handed unstarted leases back"),
+        // They expire on the coordinator instead.
+        Err(e) => tracing::warn!(leases = n, error = %e, "cannot hand leases back; they will expire"),
+    }
+}
+
+/// Packs finished units and submits them, batching whatever is ready.
+/// A submission the coordinator could not record (`Unavailable`: its
+/// database write failed, or the connection broke) is sent again with
+/// backoff; the leases stay held (heartbeated) meanwhile.
+async fn send_results(mut client: Client, worker_id: String, mut rx: mpsc::Receiver<Outgoing>, held: HeldMap, units_done: Arc<AtomicU64>) -> Result<(), tonic::Status> {
+    while let Some(first) = rx.recv().await {
+        let mut batch = vec![first];
+        let mut bytes = 0;
+        while batch.len() < MAX_BATCH && bytes < MAX_BATCH_BYTES {
+            match rx.try_recv() {
+                Ok(o) => {
+                    bytes += o.rect.area() * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES);
+                    batch.push(o);
+                }
+                Err(_) => break,
+            }
+        }
+        let mut reqs = Vec::with_capacity(batch.len());
+        for o in &batch {
+            let mut req = pb::SubmitResultRequest {
+                worker_id: worker_id.clone(),
+                lease_id: o.lease_id.clone(),
+                rect: Some(o.rect.into()),
+                samples: Some(o.samples.into()),
+                ..Default::default()
+            };
+            match &o.end {
+                UnitEnd::Abandoned => {
+                    tracing::info!(lease = %o.lease_id, "lease gone; abandoned its unit");
+                    held.lock().expect("held lock").remove(&o.lease_id);
+                    continue;
+                }
+                UnitEnd::Failed(msg) => {
+                    tracing::warn!(lease = %o.lease_id, error = %msg, "unit failed");
+                    req.failure = msg.clone();
+                }
+                UnitEnd::Film(film, secs) => {
+                    req.sums = film_codec::pack_sums(film);
+                    req.counts = film_codec::pack_counts(film);
+                    req.rays = Some(film.rays.into());
+                    req.nonfinite = film.nonfinite;
+                    req.render_seconds = *secs;
+                }
+            }
+            reqs.push(req);
+        }
+        if reqs.is_empty() {
+            continue;
+        }
+        let outcomes = submit_with_retry(&mut client, reqs.clone()).await?;
+        let mut h = held.lock().expect("held lock");
+        let sent = batch.iter().filter(|o| !matches!(o.end, UnitEnd::Abandoned));
+        for ((o, req), resp) in sent.zip(&reqs).zip(outcomes) {
+            h.remove(&req.lease_id);
+            match pb::ResultOutcome::try_from(resp.outcome).unwrap_or(pb::ResultOutcome::Unspecified) {
+                pb::ResultOutcome::Accepted => {
+                    units_done.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!(lease = %req.lease_id, frame = o.frame, rect = ?o.rect, batch = reqs.len(), "result accepted");
+                }
+                pb::ResultOutcome::FailureRecorded => {}
+                other => tracing::warn!(lease = %req.lease_id, outcome = ?other, reason = %resp.reason, "result not accepted"),
+            }
+        }
+    }
+    Ok(())
+}
+
+/// One result as `SubmitResult`, several as one `SubmitResults`; retried
+/// while the coordinator answers `Unavailable`.
+async fn submit_with_retry(client: &mut Client, reqs: Vec<pb::SubmitResultRequest>) -> Result<Vec<pb::SubmitResultResponse>, tonic::Status> {
+    let mut backoff = Duration::from_millis(100);
+    let mut tries = 0;
+    loop {
+        tries += 1;
+        let sent = if reqs.len() == 1 {
+            client.submit_result(reqs[0].clone()).await.map(|r| vec![r.into_inner()])
+        } else {
+            client.submit_results(pb::SubmitResultsRequest { results: reqs.clone() }).await.map(|r| r.into_inner().outcomes)
+        };
+        match sent {
+            Ok(outcomes) if outcomes.len() == reqs.len() => return Ok(outcomes),
+            Ok(outcomes) => {
+                return Err(tonic::Status::internal(format!("the coordinator answered {} outcomes for {} results", outcomes.len(), reqs.len())))
+            }
+            Err(e) if e.code() == tonic::Code::Unavailable && tries < SUBMIT_TRIES => {
+                tracing::warn!(results = reqs.len(), error = %e.message(), retry_in_ms = backoff.as_millis() as u64, "results not recorded; sending them again");
+                tokio::time::sleep(backoff).await;
+                backoff *= 2;
+            }
+            Err(e) => return Err(e),
+        }
+    }
+}
+
+/// Rows per band: at least one renderer tile high, and with several threads
+/// enough renderer tiles that they share each band evenly. One thread has
+/// no one to wait for: its bands stay one tile high (fast cancel).
+fn band_rows(rect: Rect, threads: usize) -> u32 {
+    if threads <= 1 {
+        return TILE.min(rect.height.max(1));
+    }
+    let tiles_per_row = rect.width.div_ceil(TILE).max(1);
+    let rows_of_tiles = (BAND_TILES_PER_THREAD * threads.max(1) as u32).div_ceil(tiles_per_row);
+    (rows_of_tiles * TILE).max(TILE).min(rect.height.max(1))
+}
+
 /// Renders a unit band by band, stopping early when `cancel` is set.
 fn render_unit(
     renderer: &CpuRenderer,
@@ -306,12 +502,13 @@ fn render_unit(
 ) -> UnitEnd {
     let start = Instant::now();
     let mut film = Film::new(rect);
+    let rows = band_rows(rect, renderer.threads());
     let mut y = rect.y;
     while y < rect.y + rect.height {
         if cancel.load(Ordering::Relaxed) {
             return UnitEnd::Abandoned;
         }
-        let band = Rect::new(rect.x, y, rect.width, BAND_ROWS.min(rect.y + rect.height - y));
+        let band = Rect::new(rect.x, y, rect.width, rows.min(rect.y + rect.height - y));
         match renderer.render(prepared, frame, band, samples, &|n| {
             samples_done.fetch_add(n, Ordering::Relaxed);
         }) {
@@ -328,7 +525,7 @@ fn render_unit(
 }
 
 /// Sends heartbeats for held leases; cancels those the coordinator says are gone.
-async fn heartbeat(mut client: Client, worker_id: String, every: Duration, held: Arc<Mutex<HashMap<String, Held>>>, lost: Arc<AtomicBool>) {
+async fn heartbeat(mut client: Client, worker_id: String, every: Duration, held: HeldMap, lost: Arc<AtomicBool>) {
     let mut tick = tokio::time::interval(every);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
@@ -355,5 +552,25 @@ async fn heartbeat(mut client: Client, worker_id: String, every: Duration, held:
             }
             Err(e) => tracing::debug!(error = %e, "heartbeat failed"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bands_hold_enough_tiles_for_the_threads_and_stay_inside_the_unit() {
+        // One thread: bands one renderer tile high.
+        assert_eq!(band_rows(Rect::new(0, 0, 384, 64), 1), 16);
+        // One 64x64 tile, 2 threads: 64 renderer tiles wanted, 16 in the tile.
+        assert_eq!(band_rows(Rect::new(0, 0, 64, 64), 2), 64);
+        // Six joined tiles (384 wide, 24 renderer tiles per row of tiles).
+        assert_eq!(band_rows(Rect::new(0, 0, 384, 64), 2), 48);
+        assert_eq!(band_rows(Rect::new(0, 0, 384, 64), 8), 64);
+        // Wide units keep bands a few renderer tiles high (cancel latency).
+        assert_eq!(band_rows(Rect::new(0, 0, 4096, 4096), 16), 32);
+        // A unit lower than a renderer tile is one band.
+        assert_eq!(band_rows(Rect::new(0, 0, 10, 5), 4), 5);
     }
 }
