@@ -40,11 +40,13 @@ timeout 400 "$T" bench depth --backend both --repeat 3 \
 echo "depth exit $?" >> "$OUT/depth-summary.txt"
 fi
 if has farm; then
-echo "== farm scaling (tessera bench farm) and result throughput"
-TESSERA_BIN=$T RESULT_LOAD_BIN=$PWD/.gpu/result_load OUT=/tmp/bench LOAD_SECONDS=5 \
-  timeout 240 scripts/bench-farm.sh 8 2 > "$OUT/farm.txt" 2>&1
+echo "== farm scaling: tessera bench farm (CSV and plots), then scripts/bench-farm.sh (64 spp, with diagnostics) and result throughput"
+timeout 150 "$T" bench farm --workers 1,2,4,8 --worker-threads 2 --out /tmp/bench > "$OUT/farm-suite.txt" 2>&1
+echo "farm suite exit $?" >> "$OUT/farm-suite.txt"
+TESSERA_BIN=$T RESULT_LOAD_BIN=$PWD/.gpu/result_load OUT=/tmp/farm LOAD_SECONDS=5 \
+  timeout 330 scripts/bench-farm.sh 8 2 > "$OUT/farm.txt" 2>&1
 echo "farm exit $?" >> "$OUT/farm.txt"
-echo "== batched result throughput" >> "$OUT/farm.txt"
+echo "== batched result throughput (64 results a message)" >> "$OUT/farm.txt"
 "$T" coordinator --listen 127.0.0.1:7999 --data /tmp/load-data > /dev/null 2>&1 &
 C=$!; sleep 1
 timeout 30 .gpu/result_load http://127.0.0.1:7999 examples/resolution.toml 64 5 64 >> "$OUT/farm.txt" 2>&1
