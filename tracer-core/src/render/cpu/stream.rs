@@ -1,0 +1,300 @@
+//! The stream (wavefront) renderer: f32 scenes of spheres and planes only
+//! (no BVH, no triangles), which is every scene of the thesis's experiments.
+//!
+//! Instead of following one ray at a time down its tree of secondary rays,
+//! a batch of primary rays is traced generation by generation: closest hits
+//! for the whole generation ([`kernels::closest_hits`], `W` rays per lane
+//! group against each primitive), then all hits are shaded `W` at a time
+//! ([`shade_lanes`], the arithmetic of the recursive `whitted::trace`), then
+//! a scalar pass queues, hit by hit and in `trace`'s order, the shadow rays
+//! (tested together by [`kernels::occluded`]) and the refracted and
+//! reflected rays (the next generation, with the product of the weights
+//! along their path). Each path's colour is added to its sample.
+//!
+//! Determinism: a ray's value depends only on the ray (the kernels are
+//! lane-wise), and a sample's contributions are added generation by
+//! generation in spawn order, which does not depend on the other samples
+//! of the batch. So any tile, sample range, thread count or SIMD path gives
+//! the same bits. Against the recursive reference the sum is only
+//! reassociated (w1 (c1 + w2 c2) becomes w1 c1 + (w1 w2) c2): within a few
+//! ulps.
+
+use glam::Vec3A;
+
+use super::kernels::{self, Prims, RaySoa};
+use super::shade::{shade_lanes, Shaded, Tables};
+use crate::film::{Film, RayCounts, Rect, SampleRange};
+use crate::geometry::PrimId;
+use crate::sampling::{pixel_seed, sample_offset};
+use crate::world::World;
+
+/// Primary rays traced together: enough to fill the lane groups many times
+/// over, few enough that the queues stay in L2.
+const BATCH: usize = 1024;
+
+/// The instruction sets the stream renderer is compiled for, picked at run
+/// time. All give bit-identical results (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum SimdLevel {
+    /// What every CPU of the target has (SSE2 on x86-64, NEON on aarch64); 8 lanes.
+    Baseline,
+    /// x86-64 AVX2; 8 lanes.
+    Avx2,
+    /// x86-64 AVX-512F; 16 lanes.
+    Avx512,
+}
+
+impl SimdLevel {
+    /// Every level this CPU can run, baseline first.
+    pub fn available() -> Vec<SimdLevel> {
+        let mut v = vec![SimdLevel::Baseline];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                v.push(SimdLevel::Avx2);
+            }
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                v.push(SimdLevel::Avx512);
+            }
+        }
+        v
+    }
+
+    /// The best level this CPU can run.
+    pub fn detect() -> SimdLevel {
+        *Self::available().last().unwrap_or(&SimdLevel::Baseline)
+    }
+}
+
+impl SimdLevel {
+    pub fn name(self) -> &'static str {
+        match self {
+            SimdLevel::Baseline => "baseline",
+            SimdLevel::Avx2 => "avx2",
+            SimdLevel::Avx512 => "avx512",
+        }
+    }
+}
+
+impl std::str::FromStr for SimdLevel {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "baseline" => Ok(SimdLevel::Baseline),
+            "avx2" => Ok(SimdLevel::Avx2),
+            "avx512" => Ok(SimdLevel::Avx512),
+            _ => Err(format!("unknown SIMD level {s:?}: expected \"baseline\", \"avx2\" or \"avx512\"")),
+        }
+    }
+}
+
+/// Whether the stream renderer handles this world.
+pub fn supports(world: &World<f32>) -> bool {
+    world.accel.is_none() && world.triangles.is_empty()
+}
+
+/// Renders one tile with the stream renderer at SIMD level `level`, which
+/// must be one of [`SimdLevel::available`] (others fall back to the baseline).
+pub fn render_tile(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange, level: SimdLevel) -> Film {
+    debug_assert!(supports(world));
+    #[cfg(target_arch = "x86_64")]
+    {
+        let have = SimdLevel::available();
+        if level == SimdLevel::Avx512 && have.contains(&level) {
+            // SAFETY: the CPU supports AVX-512F (checked just above).
+            return unsafe { render_tile_avx512(world, frame, tile, samples) };
+        }
+        if level == SimdLevel::Avx2 && have.contains(&level) {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            return unsafe { render_tile_avx2(world, frame, tile, samples) };
+        }
+    }
+    let _ = level;
+    render_tile_lanes::<8>(world, frame, tile, samples)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn render_tile_avx2(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    render_tile_lanes::<8>(world, frame, tile, samples)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn render_tile_avx512(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    render_tile_lanes::<16>(world, frame, tile, samples)
+}
+
+/// Queues of one generation.
+#[derive(Default)]
+struct Queues {
+    /// Path rays of this generation ...
+    paths: RaySoa,
+    /// ... the batch sample each belongs to ...
+    sample: Vec<u32>,
+    /// ... and the product of the weights along its path.
+    weight: Vec<f32>,
+    /// Closest hits of `paths`.
+    t: Vec<f32>,
+    id: Vec<u32>,
+    /// Local colour of each path ray's hit (ambient, then lights added).
+    local: Vec<Vec3A>,
+    /// Whether each (light, hit) shadow ray is blocked.
+    blocked: Vec<bool>,
+}
+
+impl Queues {
+    #[inline(always)]
+    fn push(&mut self, o: [f32; 3], d: [f32; 3], skip: u32, sample: u32, weight: f32) {
+        self.paths.push(o, d, PrimId(skip));
+        self.sample.push(sample);
+        self.weight.push(weight);
+    }
+
+    fn clear(&mut self) {
+        self.paths.clear();
+        self.sample.clear();
+        self.weight.clear();
+    }
+}
+
+#[inline(always)]
+fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    let mut film = Film::new(tile);
+    let mut rays = RayCounts::default();
+    let prims = Prims::new(world);
+    let tab = Tables::new(world);
+    // Taken out and put back rather than borrowed in a closure: a closure
+    // would not inherit the caller's `target_feature`s.
+    let mut scratch = SCRATCH.take();
+    let Scratch { cur, next, sh, batch } = &mut scratch;
+    trace_tile::<W>(world, frame, tile, samples, &prims, &tab, cur, next, sh, batch, &mut film, &mut rays);
+    SCRATCH.set(scratch);
+    film.rays = rays;
+    film
+}
+
+/// Buffers reused from tile to tile on each thread (growing them anew for
+/// every tile costs more than the tracing of small tiles).
+#[derive(Default)]
+struct Scratch {
+    cur: Queues,
+    next: Queues,
+    sh: Shaded,
+    /// (film pixel, colour) of each sample of the batch.
+    batch: Vec<(usize, Vec3A)>,
+}
+
+/// Makes `v` at least `n` long; scratch is overwritten before it is read,
+/// so it is never shrunk (and refilled) between generations.
+fn grow<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
+}
+
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn trace_tile<const W: usize>(
+    world: &World<f32>,
+    frame: u32,
+    tile: Rect,
+    samples: SampleRange,
+    prims: &Prims,
+    tab: &Tables,
+    cur: &mut Queues,
+    next: &mut Queues,
+    sh: &mut Shaded,
+    batch: &mut Vec<(usize, Vec3A)>,
+    film: &mut Film,
+    rays: &mut RayCounts,
+) {
+    let s = &world.settings;
+    let nl = world.lights.len();
+
+    // (film pixel, x, y, sample index) in `render_tile`'s order.
+    let pixels = (tile.y..tile.y + tile.height).flat_map(|y| (tile.x..tile.x + tile.width).map(move |x| (x, y)));
+    let mut jobs = pixels.enumerate().flat_map(|(i, (x, y))| (samples.start..samples.end).map(move |s| (i, x, y, s))).peekable();
+    while jobs.peek().is_some() {
+        batch.clear();
+        cur.clear();
+        for (pixel, x, y, sample) in jobs.by_ref().take(BATCH) {
+            let seed = pixel_seed(x, y, frame);
+            let (u, v) = sample_offset(s.sampler, s.samples, seed, sample);
+            // As `render_tile`: R::from_u32(x) + R::from_f64(u as f64).
+            let ray = world.camera.ray(x as f32 + u, y as f32 + v);
+            cur.paths.push(ray.origin.into(), ray.dir.into(), PrimId::NONE);
+            cur.sample.push(batch.len() as u32);
+            cur.weight.push(1.0);
+            batch.push((pixel, Vec3A::ZERO));
+        }
+        rays.primary += batch.len() as u64;
+
+        for depth in 0..=s.max_depth {
+            let n = cur.paths.len();
+            if n == 0 {
+                break;
+            }
+            next.clear();
+            cur.paths.pad(W);
+            kernels::closest_hits::<W>(prims, &cur.paths, &mut cur.t, &mut cur.id);
+            let np = cur.paths.len();
+            let o = [&cur.paths.ox[..], &cur.paths.oy[..], &cur.paths.oz[..]];
+            let d = [&cur.paths.dx[..], &cur.paths.dy[..], &cur.paths.dz[..]];
+            shade_lanes::<W>(world, tab, o, d, &cur.t[..np], &cur.id[..np], depth, sh);
+            // Shadow rays, light by light over all hits (in place: a ray not
+            // wanted is a lane reported blocked). Each hit's lights are
+            // added in light order, as `trace` adds them.
+            cur.local.clear();
+            cur.local.extend((0..n).map(|i| if sh.hit[i] { tab.ambient[sh.mat[i] as usize] } else { world.background }));
+            grow(&mut cur.blocked, np);
+            for li in 0..nl {
+                let r = li * np..(li + 1) * np;
+                let o = [&sh.light_origin[0][r.clone()], &sh.light_origin[1][r.clone()], &sh.light_origin[2][r.clone()]];
+                let d = [&sh.light_dir[0][r.clone()], &sh.light_dir[1][r.clone()], &sh.light_dir[2][r.clone()]];
+                let on = &sh.light_on[r.clone()];
+                kernels::occluded::<W>(prims, o, d, &cur.id, &sh.light_t_max[r.clone()], on, &mut cur.blocked);
+                let base = li * np;
+                for i in 0..n {
+                    if on[i] {
+                        rays.shadow += 1;
+                        if !cur.blocked[i] {
+                            let j = base + i;
+                            cur.local[i] += Vec3A::new(sh.light_contrib[0][j], sh.light_contrib[1][j], sh.light_contrib[2][j]);
+                        }
+                    }
+                }
+            }
+            // The next generation, hit by hit: the refracted ray, then the
+            // reflected one, as `trace` spawns them.
+            for i in 0..n {
+                let from = cur.id[i];
+                let (sample, weight) = (cur.sample[i], cur.weight[i]);
+                if sh.refract_on[i] {
+                    let o = [sh.below[0][i], sh.below[1][i], sh.below[2][i]];
+                    let d = [sh.refract_dir[0][i], sh.refract_dir[1][i], sh.refract_dir[2][i]];
+                    next.push(o, d, from, sample, weight * sh.transparency[i]);
+                    rays.refraction += 1;
+                }
+                if sh.reflect_w[i] > 0.0 {
+                    let o = [sh.above[0][i], sh.above[1][i], sh.above[2][i]];
+                    let d = [sh.reflect_dir[0][i], sh.reflect_dir[1][i], sh.reflect_dir[2][i]];
+                    next.push(o, d, from, sample, weight * sh.reflect_w[i]);
+                    rays.reflection += 1;
+                }
+            }
+            for i in 0..n {
+                let b = &mut batch[cur.sample[i] as usize].1;
+                *b += cur.local[i] * cur.weight[i];
+            }
+            std::mem::swap(cur, next);
+        }
+        for &(pixel, c) in batch.iter() {
+            film.add_sample::<f32>(pixel, [c.x, c.y, c.z]);
+        }
+    }
+}
