@@ -1,8 +1,7 @@
 //! The CPU stream renderer (`render::cpu::stream`) against the recursive
 //! reference (`render::cpu::render_tile_recursive`, one ray at a time
-//! through `whitted::trace`): same rays, same pixels within a tight
-//! tolerance, and the same bits at every SIMD level and for any split of
-//! the work.
+//! through `whitted::trace`): the same rays and the same bits, at every
+//! SIMD level and for any split of the work.
 
 mod common;
 
@@ -12,13 +11,6 @@ use tracer_core::render::cpu::{render_tile_recursive, stream, SimdLevel};
 use tracer_core::render::{Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
 use tracer_core::world::World;
-
-/// Largest per-channel difference allowed between a stream pixel and the
-/// recursive one. Both do the same IEEE operations for every intersection
-/// and every local shading; only the sum along a path is reassociated
-/// (w1 (c1 + w2 c2) becomes w1 c1 + (w1 w2) c2), which moves a pixel by a
-/// few ulps of 1 (2^-24 = 6e-8 each), not by 1e-5.
-const TOL: f32 = 1e-5;
 
 fn world(desc: &SceneDesc, settings: &RenderSettings) -> World<f32> {
     match PreparedFrame::build(desc, settings, 0, Precision::F32).expect("settings are valid") {
@@ -63,7 +55,7 @@ fn scenes() -> Vec<(String, SceneDesc, RenderSettings)> {
 }
 
 #[test]
-fn stream_matches_the_recursive_renderer_on_every_scene() {
+fn stream_gives_the_recursive_renderers_bits_on_every_scene() {
     let mut checked = 0;
     for (name, desc, settings) in scenes() {
         let w = world(&desc, &settings);
@@ -78,11 +70,13 @@ fn stream_matches_the_recursive_renderer_on_every_scene() {
         assert_eq!(fast.nonfinite, 0, "{name}: a NaN or infinite sample reached the film");
         assert_eq!(reference.nonfinite, 0, "{name}");
         assert!(fast.rays.total() > fast.rays.primary, "{name}: the scene should spawn secondary or shadow rays");
-        let (a, b) = (fast.resolve(), reference.resolve());
-        assert_finite(&a);
-        let d = diff(&a, &b, TOL);
-        eprintln!("{name}: largest difference {:e}", d.max);
-        assert!(d.over == 0, "{name}: {} of {} pixels differ from the recursive renderer by more than {TOL} (max {})", d.over, d.pixels, d.max);
+        assert_finite(&fast.resolve());
+        // Bit for bit: the same IEEE operations in the same order (see
+        // `render/cpu/stream.rs`). Report how far off a failure is.
+        if fast != reference {
+            let d = diff(&fast.resolve(), &reference.resolve(), 1e-6);
+            panic!("{name}: {} of {} pixels differ from the recursive renderer by more than 1e-6 (largest {:e})", d.over, d.pixels, d.max);
+        }
         checked += 1;
     }
     assert!(checked >= 24, "expected every example and hard case to take the stream path, checked {checked}");

@@ -176,11 +176,13 @@ pub fn occluded<const W: usize>(prims: &Prims, o: [&[f32]; 3], d: [&[f32]; 3], s
         let mut sk = [0; W];
         sk.copy_from_slice(&skip[at..at + W]);
         let tm: [f32; W] = lanes(t_max, at);
-        let mut blocked = [false; W];
+        // Lane masks as u32 (0 or 1): their AND-reduction is a few vector
+        // instructions, where one over bools is a chain of scalar tests.
+        let mut blocked = [0u32; W];
         for l in 0..W {
-            blocked[l] = !active[at + l];
+            blocked[l] = !active[at + l] as u32;
         }
-        let all = |b: &[bool; W]| b.iter().fold(true, |a, &x| a & x);
+        let all = |b: &[u32; W]| b.iter().fold(1, |a, &x| a & x) != 0;
         'group: {
             if all(&blocked) {
                 break 'group;
@@ -188,7 +190,7 @@ pub fn occluded<const W: usize>(prims: &Prims, o: [&[f32]; 3], d: [&[f32]; 3], s
             for (k, &s) in prims.spheres.iter().enumerate() {
                 let id = PrimId::new(PrimId::SPHERE, k as u32).0;
                 for l in 0..W {
-                    blocked[l] |= sphere_t(s, id, &o, &d, &sk, tm[l], l) < f32::INFINITY;
+                    blocked[l] |= (sphere_t(s, id, &o, &d, &sk, tm[l], l) < f32::INFINITY) as u32;
                 }
                 if all(&blocked) {
                     break 'group;
@@ -197,13 +199,15 @@ pub fn occluded<const W: usize>(prims: &Prims, o: [&[f32]; 3], d: [&[f32]; 3], s
             for (k, &p) in prims.planes.iter().enumerate() {
                 let id = PrimId::new(PrimId::PLANE, k as u32).0;
                 for l in 0..W {
-                    blocked[l] |= plane_t(p, id, &o, &d, &sk, tm[l], l) < f32::INFINITY;
+                    blocked[l] |= (plane_t(p, id, &o, &d, &sk, tm[l], l) < f32::INFINITY) as u32;
                 }
                 if all(&blocked) {
                     break 'group;
                 }
             }
         }
-        out[at..at + W].copy_from_slice(&blocked);
+        for l in 0..W {
+            out[at + l] = blocked[l] != 0;
+        }
     }
 }

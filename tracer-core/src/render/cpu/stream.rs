@@ -5,19 +5,20 @@
 //! a batch of primary rays is traced generation by generation: closest hits
 //! for the whole generation ([`kernels::closest_hits`], `W` rays per lane
 //! group against each primitive), then all hits are shaded `W` at a time
-//! ([`shade_lanes`], the arithmetic of the recursive `whitted::trace`), then
-//! a scalar pass queues, hit by hit and in `trace`'s order, the shadow rays
-//! (tested together by [`kernels::occluded`]) and the refracted and
-//! reflected rays (the next generation, with the product of the weights
-//! along their path). Each path's colour is added to its sample.
+//! ([`shade_lanes`], the arithmetic of the recursive `whitted::trace`),
+//! their shadow rays tested light by light ([`kernels::occluded`]), and a
+//! scalar pass queues, hit by hit, the refracted and reflected rays: the
+//! next generation, each with its parent and weight. When no generation is
+//! left, colours are folded back up the tree, children into parents in
+//! spawn order.
 //!
-//! Determinism: a ray's value depends only on the ray (the kernels are
-//! lane-wise), and a sample's contributions are added generation by
-//! generation in spawn order, which does not depend on the other samples
-//! of the batch. So any tile, sample range, thread count or SIMD path gives
-//! the same bits. Against the recursive reference the sum is only
-//! reassociated (w1 (c1 + w2 c2) becomes w1 c1 + (w1 w2) c2): within a few
-//! ulps.
+//! Same bits as the recursive reference: every intersection and every
+//! local shading does the same IEEE operations in the same order (no FMA
+//! contraction: Rust never fuses a multiply and an add), and the fold adds
+//! a hit's lights and children in `trace`'s order. A ray's value depends
+//! only on the ray, so tiles, sample ranges, batches, thread counts and
+//! SIMD levels cannot change a sample (tests/cpu_stream.rs checks all of
+//! this).
 
 use glam::Vec3A;
 
@@ -29,8 +30,9 @@ use crate::sampling::{pixel_seed, sample_offset};
 use crate::world::World;
 
 /// Primary rays traced together: enough to fill the lane groups many times
-/// over, few enough that the queues stay in L2.
-const BATCH: usize = 1024;
+/// over, few enough that a generation's queues stay in L1/L2 (of 256, 1024
+/// and 4096, 256 was fastest on the resolution scene).
+const BATCH: usize = 256;
 
 /// The instruction sets the stream renderer is compiled for, picked at run
 /// time. All give bit-identical results (see the module docs).
@@ -125,35 +127,39 @@ fn render_tile_avx512(world: &World<f32>, frame: u32, tile: Rect, samples: Sampl
     render_tile_lanes::<16>(world, frame, tile, samples)
 }
 
-/// Queues of one generation.
+/// One generation of path rays of a batch.
 #[derive(Default)]
-struct Queues {
-    /// Path rays of this generation ...
-    paths: RaySoa,
-    /// ... the batch sample each belongs to ...
-    sample: Vec<u32>,
-    /// ... and the product of the weights along its path.
+struct Generation {
+    rays: RaySoa,
+    /// Index of the ray that spawned each (in the previous generation; for
+    /// primary rays, the sample in the batch) ...
+    parent: Vec<u32>,
+    /// ... and the weight its colour adds to its parent's with.
     weight: Vec<f32>,
-    /// Closest hits of `paths`.
+    /// Closest hits.
     t: Vec<f32>,
     id: Vec<u32>,
-    /// Local colour of each path ray's hit (ambient, then lights added).
-    local: Vec<Vec3A>,
-    /// Whether each (light, hit) shadow ray is blocked.
-    blocked: Vec<bool>,
+    /// Colour of each ray: local shading (ambient, then unblocked lights),
+    /// then its children's colours folded in.
+    colour: Vec<Vec3A>,
 }
 
-impl Queues {
+impl Generation {
     #[inline(always)]
-    fn push(&mut self, o: [f32; 3], d: [f32; 3], skip: u32, sample: u32, weight: f32) {
-        self.paths.push(o, d, PrimId(skip));
-        self.sample.push(sample);
+    fn push(&mut self, o: [f32; 3], d: [f32; 3], skip: u32, parent: u32, weight: f32) {
+        self.rays.push(o, d, PrimId(skip));
+        self.parent.push(parent);
         self.weight.push(weight);
     }
 
+    /// Rays in this generation (the queue itself may be padded).
+    fn len(&self) -> usize {
+        self.parent.len()
+    }
+
     fn clear(&mut self) {
-        self.paths.clear();
-        self.sample.clear();
+        self.rays.clear();
+        self.parent.clear();
         self.weight.clear();
     }
 }
@@ -167,8 +173,8 @@ fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect,
     // Taken out and put back rather than borrowed in a closure: a closure
     // would not inherit the caller's `target_feature`s.
     let mut scratch = SCRATCH.take();
-    let Scratch { cur, next, sh, batch } = &mut scratch;
-    trace_tile::<W>(world, frame, tile, samples, &prims, &tab, cur, next, sh, batch, &mut film, &mut rays);
+    let Scratch { gens, sh, blocked, batch } = &mut scratch;
+    trace_tile::<W>(world, frame, tile, samples, &prims, &tab, gens, sh, blocked, batch, &mut film, &mut rays);
     SCRATCH.set(scratch);
     film.rays = rays;
     film
@@ -178,11 +184,12 @@ fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect,
 /// every tile costs more than the tracing of small tiles).
 #[derive(Default)]
 struct Scratch {
-    cur: Queues,
-    next: Queues,
+    gens: Vec<Generation>,
     sh: Shaded,
-    /// (film pixel, colour) of each sample of the batch.
-    batch: Vec<(usize, Vec3A)>,
+    /// Whether each shadow ray of a light is blocked.
+    blocked: Vec<bool>,
+    /// Film pixel of each sample of the batch.
+    batch: Vec<usize>,
 }
 
 /// Makes `v` at least `n` long; scratch is overwritten before it is read,
@@ -206,66 +213,73 @@ fn trace_tile<const W: usize>(
     samples: SampleRange,
     prims: &Prims,
     tab: &Tables,
-    cur: &mut Queues,
-    next: &mut Queues,
+    gens: &mut Vec<Generation>,
     sh: &mut Shaded,
-    batch: &mut Vec<(usize, Vec3A)>,
+    blocked: &mut Vec<bool>,
+    batch: &mut Vec<usize>,
     film: &mut Film,
     rays: &mut RayCounts,
 ) {
     let s = &world.settings;
     let nl = world.lights.len();
+    if gens.is_empty() {
+        gens.push(Generation::default());
+    }
 
     // (film pixel, x, y, sample index) in `render_tile`'s order.
     let pixels = (tile.y..tile.y + tile.height).flat_map(|y| (tile.x..tile.x + tile.width).map(move |x| (x, y)));
     let mut jobs = pixels.enumerate().flat_map(|(i, (x, y))| (samples.start..samples.end).map(move |s| (i, x, y, s))).peekable();
     while jobs.peek().is_some() {
         batch.clear();
-        cur.clear();
+        gens[0].clear();
         for (pixel, x, y, sample) in jobs.by_ref().take(BATCH) {
             let seed = pixel_seed(x, y, frame);
             let (u, v) = sample_offset(s.sampler, s.samples, seed, sample);
             // As `render_tile`: R::from_u32(x) + R::from_f64(u as f64).
             let ray = world.camera.ray(x as f32 + u, y as f32 + v);
-            cur.paths.push(ray.origin.into(), ray.dir.into(), PrimId::NONE);
-            cur.sample.push(batch.len() as u32);
-            cur.weight.push(1.0);
-            batch.push((pixel, Vec3A::ZERO));
+            gens[0].push(ray.origin.into(), ray.dir.into(), PrimId::NONE.0, batch.len() as u32, 1.0);
+            batch.push(pixel);
         }
         rays.primary += batch.len() as u64;
 
-        for depth in 0..=s.max_depth {
-            let n = cur.paths.len();
-            if n == 0 {
+        // Down the tree, generation by generation.
+        let mut last = 0;
+        for depth in 0..=s.max_depth as usize {
+            if gens[depth].len() == 0 {
                 break;
             }
+            last = depth;
+            if gens.len() < depth + 2 {
+                gens.push(Generation::default());
+            }
+            let (done, rest) = gens.split_at_mut(depth + 1);
+            let (cur, next) = (&mut done[depth], &mut rest[0]);
             next.clear();
-            cur.paths.pad(W);
-            kernels::closest_hits::<W>(prims, &cur.paths, &mut cur.t, &mut cur.id);
-            let np = cur.paths.len();
-            let o = [&cur.paths.ox[..], &cur.paths.oy[..], &cur.paths.oz[..]];
-            let d = [&cur.paths.dx[..], &cur.paths.dy[..], &cur.paths.dz[..]];
-            shade_lanes::<W>(world, tab, o, d, &cur.t[..np], &cur.id[..np], depth, sh);
+            let n = cur.len();
+            cur.rays.pad(W);
+            kernels::closest_hits::<W>(prims, &cur.rays, &mut cur.t, &mut cur.id);
+            let np = cur.rays.len();
+            let o = [&cur.rays.ox[..], &cur.rays.oy[..], &cur.rays.oz[..]];
+            let d = [&cur.rays.dx[..], &cur.rays.dy[..], &cur.rays.dz[..]];
+            shade_lanes::<W>(world, tab, o, d, &cur.t[..np], &cur.id[..np], depth as u32, sh);
+            cur.colour.clear();
+            cur.colour.extend((0..n).map(|i| if sh.hit[i] { tab.ambient[sh.mat[i] as usize] } else { world.background }));
             // Shadow rays, light by light over all hits (in place: a ray not
             // wanted is a lane reported blocked). Each hit's lights are
             // added in light order, as `trace` adds them.
-            cur.local.clear();
-            cur.local.extend((0..n).map(|i| if sh.hit[i] { tab.ambient[sh.mat[i] as usize] } else { world.background }));
-            grow(&mut cur.blocked, np);
+            grow(blocked, np);
             for li in 0..nl {
                 let r = li * np..(li + 1) * np;
                 let o = [&sh.light_origin[0][r.clone()], &sh.light_origin[1][r.clone()], &sh.light_origin[2][r.clone()]];
                 let d = [&sh.light_dir[0][r.clone()], &sh.light_dir[1][r.clone()], &sh.light_dir[2][r.clone()]];
                 let on = &sh.light_on[r.clone()];
-                kernels::occluded::<W>(prims, o, d, &cur.id, &sh.light_t_max[r.clone()], on, &mut cur.blocked);
+                kernels::occluded::<W>(prims, o, d, &cur.id, &sh.light_t_max[r.clone()], on, blocked);
+                rays.shadow += on[..n].iter().map(|&b| b as u64).sum::<u64>();
                 let base = li * np;
                 for i in 0..n {
-                    if on[i] {
-                        rays.shadow += 1;
-                        if !cur.blocked[i] {
-                            let j = base + i;
-                            cur.local[i] += Vec3A::new(sh.light_contrib[0][j], sh.light_contrib[1][j], sh.light_contrib[2][j]);
-                        }
+                    if on[i] & !blocked[i] {
+                        let j = base + i;
+                        cur.colour[i] += Vec3A::new(sh.light_contrib[0][j], sh.light_contrib[1][j], sh.light_contrib[2][j]);
                     }
                 }
             }
@@ -273,27 +287,31 @@ fn trace_tile<const W: usize>(
             // reflected one, as `trace` spawns them.
             for i in 0..n {
                 let from = cur.id[i];
-                let (sample, weight) = (cur.sample[i], cur.weight[i]);
                 if sh.refract_on[i] {
                     let o = [sh.below[0][i], sh.below[1][i], sh.below[2][i]];
                     let d = [sh.refract_dir[0][i], sh.refract_dir[1][i], sh.refract_dir[2][i]];
-                    next.push(o, d, from, sample, weight * sh.transparency[i]);
+                    next.push(o, d, from, i as u32, sh.transparency[i]);
                     rays.refraction += 1;
                 }
                 if sh.reflect_w[i] > 0.0 {
                     let o = [sh.above[0][i], sh.above[1][i], sh.above[2][i]];
                     let d = [sh.reflect_dir[0][i], sh.reflect_dir[1][i], sh.reflect_dir[2][i]];
-                    next.push(o, d, from, sample, weight * sh.reflect_w[i]);
+                    next.push(o, d, from, i as u32, sh.reflect_w[i]);
                     rays.reflection += 1;
                 }
             }
-            for i in 0..n {
-                let b = &mut batch[cur.sample[i] as usize].1;
-                *b += cur.local[i] * cur.weight[i];
-            }
-            std::mem::swap(cur, next);
         }
-        for &(pixel, c) in batch.iter() {
+        // Back up the tree: each ray's colour, weighted, into its parent's,
+        // children in spawn order (refracted, then reflected), which is
+        // `trace`'s `colour += trace(..) * weight`, operation for operation.
+        for g in (1..=last).rev() {
+            let (upper, lower) = gens.split_at_mut(g);
+            let (parents, children) = (&mut upper[g - 1], &lower[0]);
+            for i in 0..children.len() {
+                parents.colour[children.parent[i] as usize] += children.colour[i] * children.weight[i];
+            }
+        }
+        for (&pixel, c) in batch.iter().zip(&gens[0].colour) {
             film.add_sample::<f32>(pixel, [c.x, c.y, c.z]);
         }
     }
