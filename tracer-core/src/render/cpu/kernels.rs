@@ -10,7 +10,8 @@
 use crate::geometry::PrimId;
 use crate::world::World;
 
-/// Rays in structure-of-arrays form, padded to a multiple of the lane count.
+/// Rays in structure-of-arrays form; the kernels read the first `n`, a
+/// multiple of the lane count.
 #[derive(Default)]
 pub struct RaySoa {
     pub ox: Vec<f32>,
@@ -24,32 +25,14 @@ pub struct RaySoa {
 }
 
 impl RaySoa {
-    pub fn clear(&mut self) {
-        for v in [&mut self.ox, &mut self.oy, &mut self.oz, &mut self.dx, &mut self.dy, &mut self.dz] {
-            v.clear();
-        }
-        self.skip.clear();
-    }
-
-    #[inline(always)]
-    pub fn push(&mut self, o: [f32; 3], d: [f32; 3], skip: PrimId) {
-        self.ox.push(o[0]);
-        self.oy.push(o[1]);
-        self.oz.push(o[2]);
-        self.dx.push(d[0]);
-        self.dy.push(d[1]);
-        self.dz.push(d[2]);
-        self.skip.push(skip.0);
-    }
-
-    pub fn len(&self) -> usize {
-        self.ox.len()
-    }
-
-    /// Pads with harmless rays (results ignored) to a multiple of `w`.
-    pub fn pad(&mut self, w: usize) {
-        while self.len() % w != 0 {
-            self.push([0.0; 3], [0.0, 0.0, 1.0], PrimId::NONE);
+    /// Makes every array at least `n` long (never shrinks: contents are
+    /// overwritten before they are read).
+    pub fn grow(&mut self, n: usize) {
+        if self.ox.len() < n {
+            for v in [&mut self.ox, &mut self.oy, &mut self.oz, &mut self.dx, &mut self.dy, &mut self.dz] {
+                v.resize(n, 0.0);
+            }
+            self.skip.resize(n, PrimId::NONE.0);
         }
     }
 }
@@ -127,8 +110,7 @@ fn load<const W: usize>(rays: &RaySoa, at: usize) -> ([[f32; W]; 3], [[f32; W]; 
 /// with `World::closest_hit`'s tie-breaking: spheres in order, then planes,
 /// an earlier primitive kept on equal distance.
 #[inline(always)]
-pub fn closest_hits<const W: usize>(prims: &Prims, rays: &RaySoa, t_out: &mut Vec<f32>, id_out: &mut Vec<u32>) {
-    let n = rays.len();
+pub fn closest_hits<const W: usize>(prims: &Prims, rays: &RaySoa, n: usize, t_out: &mut Vec<f32>, id_out: &mut Vec<u32>) {
     debug_assert_eq!(n % W, 0);
     if t_out.len() < n {
         t_out.resize(n, 0.0);

@@ -127,9 +127,21 @@ fn render_tile_avx512(world: &World<f32>, frame: u32, tile: Rect, samples: Sampl
     render_tile_lanes::<16>(world, frame, tile, samples)
 }
 
+/// A path ray as spawned: one push per ray (not one per array), turned
+/// into structure-of-arrays form when its generation is traced.
+#[derive(Clone, Copy)]
+struct Spawned {
+    o: [f32; 3],
+    d: [f32; 3],
+    skip: u32,
+    parent: u32,
+    weight: f32,
+}
+
 /// One generation of path rays of a batch.
 #[derive(Default)]
 struct Generation {
+    spawned: Vec<Spawned>,
     rays: RaySoa,
     /// Index of the ray that spawned each (in the previous generation; for
     /// primary rays, the sample in the batch) ...
@@ -147,20 +159,45 @@ struct Generation {
 impl Generation {
     #[inline(always)]
     fn push(&mut self, o: [f32; 3], d: [f32; 3], skip: u32, parent: u32, weight: f32) {
-        self.rays.push(o, d, PrimId(skip));
-        self.parent.push(parent);
-        self.weight.push(weight);
+        self.spawned.push(Spawned { o, d, skip, parent, weight });
     }
 
-    /// Rays in this generation (the queue itself may be padded).
+    /// Rays in this generation.
     fn len(&self) -> usize {
-        self.parent.len()
+        self.spawned.len()
     }
 
     fn clear(&mut self) {
-        self.rays.clear();
-        self.parent.clear();
-        self.weight.clear();
+        self.spawned.clear();
+    }
+
+    /// Lays the spawned rays out in `rays`, `parent` and `weight`, padded
+    /// with harmless rays (results ignored) to a multiple of `w`; returns
+    /// the padded count.
+    fn load(&mut self, w: usize) -> usize {
+        let n = self.spawned.len();
+        let np = n.div_ceil(w) * w;
+        self.rays.grow(np);
+        grow(&mut self.parent, np);
+        grow(&mut self.weight, np);
+        let r = &mut self.rays;
+        let (ox, oy, oz) = (&mut r.ox[..np], &mut r.oy[..np], &mut r.oz[..np]);
+        let (dx, dy, dz) = (&mut r.dx[..np], &mut r.dy[..np], &mut r.dz[..np]);
+        let (skip, parent, weight) = (&mut r.skip[..np], &mut self.parent[..np], &mut self.weight[..np]);
+        let pad = Spawned { o: [0.0; 3], d: [0.0, 0.0, 1.0], skip: PrimId::NONE.0, parent: 0, weight: 0.0 };
+        for i in 0..np {
+            let s = if i < n { self.spawned[i] } else { pad };
+            ox[i] = s.o[0];
+            oy[i] = s.o[1];
+            oz[i] = s.o[2];
+            dx[i] = s.d[0];
+            dy[i] = s.d[1];
+            dz[i] = s.d[2];
+            skip[i] = s.skip;
+            parent[i] = s.parent;
+            weight[i] = s.weight;
+        }
+        np
     }
 }
 
@@ -256,11 +293,10 @@ fn trace_tile<const W: usize>(
             let (cur, next) = (&mut done[depth], &mut rest[0]);
             next.clear();
             let n = cur.len();
-            cur.rays.pad(W);
-            kernels::closest_hits::<W>(prims, &cur.rays, &mut cur.t, &mut cur.id);
-            let np = cur.rays.len();
-            let o = [&cur.rays.ox[..], &cur.rays.oy[..], &cur.rays.oz[..]];
-            let d = [&cur.rays.dx[..], &cur.rays.dy[..], &cur.rays.dz[..]];
+            let np = cur.load(W);
+            kernels::closest_hits::<W>(prims, &cur.rays, np, &mut cur.t, &mut cur.id);
+            let o = [&cur.rays.ox[..np], &cur.rays.oy[..np], &cur.rays.oz[..np]];
+            let d = [&cur.rays.dx[..np], &cur.rays.dy[..np], &cur.rays.dz[..np]];
             shade_lanes::<W>(world, tab, o, d, &cur.t[..np], &cur.id[..np], depth as u32, sh);
             cur.colour.clear();
             cur.colour.extend((0..n).map(|i| if sh.hit[i] { tab.ambient[sh.mat[i] as usize] } else { world.background }));
