@@ -1,7 +1,7 @@
 //! Lane-wise Whitted shading for the stream renderer: the arithmetic of
-//! `whitted::shade` (same IEEE operations in the same order, so the same
-//! bits), over `W` hits at a time in structure-of-arrays form. Spawning
-//! rays, which appends to queues, is left to a scalar pass
+//! `whitted::trace`'s local shading (same IEEE operations in the same
+//! order, so the same bits), over `W` hits at a time in structure-of-arrays
+//! form. Spawning rays, which appends to queues, is left to a scalar pass
 //! ([`super::stream`]) that reads the flags computed here.
 
 use glam::Vec3A;
