@@ -1,4 +1,11 @@
-//! The CPU renderer: rayon over small tiles, one ray at a time per thread.
+//! The CPU renderer: rayon over small tiles. Scenes of spheres and planes
+//! in f32 take the stream renderer ([`stream`]), vectorised over rays; the
+//! rest (meshes, BVH scenes, the f64 reference) trace one ray at a time
+//! with the recursive [`trace`].
+
+pub mod kernels;
+pub mod shade;
+pub mod stream;
 
 use rayon::prelude::*;
 
@@ -17,6 +24,8 @@ pub const TILE: u32 = 16;
 pub struct CpuRenderer {
     pool: rayon::ThreadPool,
 }
+
+pub use stream::SimdLevel;
 
 impl CpuRenderer {
     /// `threads`: `None` uses every core.
@@ -77,8 +86,34 @@ impl CpuRenderer {
     }
 }
 
-/// Renders one tile on the calling thread.
+/// Renders one tile on the calling thread: the stream renderer where it
+/// applies (at the best SIMD level of this CPU), else [`render_tile_recursive`].
 pub fn render_tile<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    if let Some(w) = (world as &dyn std::any::Any).downcast_ref::<World<f32>>() {
+        if stream::supports(w) {
+            return stream::render_tile(w, frame, tile, samples, simd_level());
+        }
+    }
+    render_tile_recursive(world, frame, tile, samples)
+}
+
+/// The SIMD level of the stream renderer, chosen once: the best this CPU
+/// has, or a lower one named by `TESSERA_CPU_SIMD` (`baseline`, `avx2`,
+/// `avx512`), for benchmarks; results are the same bits at every level.
+pub fn simd_level() -> SimdLevel {
+    static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
+    *LEVEL.get_or_init(|| {
+        let best = SimdLevel::detect();
+        match std::env::var("TESSERA_CPU_SIMD").ok().and_then(|v| v.parse::<SimdLevel>().ok()) {
+            Some(l) if SimdLevel::available().contains(&l) => l,
+            _ => best,
+        }
+    })
+}
+
+/// Renders one tile on the calling thread with the recursive reference
+/// [`trace`], one ray at a time.
+pub fn render_tile_recursive<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
     let mut film = Film::new(tile);
     let mut rays = RayCounts::default();
     let s = &world.settings;

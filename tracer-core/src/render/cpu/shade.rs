@@ -1,0 +1,330 @@
+//! Lane-wise Whitted shading for the stream renderer: the arithmetic of
+//! `whitted::trace`'s local shading (same IEEE operations in the same
+//! order, so the same bits), over `W` hits at a time in structure-of-arrays
+//! form. Spawning rays, which appends to queues, is left to a scalar pass
+//! ([`super::stream`]) that reads the flags computed here.
+
+use glam::Vec3A;
+
+use crate::geometry::PrimId;
+use crate::math::Real;
+use crate::render::whitted::pow_f32;
+use crate::world::World;
+
+/// Per-material and per-(light, material) constants, built once per tile.
+pub struct Tables {
+    /// world.ambient * m.ambient per material.
+    pub ambient: Vec<Vec3A>,
+    /// shininess, specular_cos_min, reflectivity, transparency, ior per material.
+    mat: Vec<[f32; 5]>,
+    /// light.diffuse * m.diffuse and light.specular * m.specular, indexed
+    /// `light * materials + material`.
+    light_mat: Vec<[Vec3A; 2]>,
+    lights: Vec<[f32; 3]>,
+    /// Per primitive (spheres, then planes, then a last entry for a miss):
+    /// sphere centre and radius or plane normal and distance, and material.
+    prim_geom: Vec<[f32; 4]>,
+    prim_mat: Vec<u32>,
+    spheres: usize,
+    materials: usize,
+}
+
+impl Tables {
+    pub fn new(world: &World<f32>) -> Self {
+        // A scene without materials has no objects: every ray misses, but
+        // misses read entry 0 (harmlessly), so there must be one.
+        let none = world.materials.is_empty();
+        let materials = world.materials.len().max(1);
+        let zero = Vec3A::ZERO;
+        Tables {
+            ambient: world.materials.iter().map(|m| world.ambient * m.ambient).chain(none.then_some(zero)).collect(),
+            mat: (world.materials.iter().map(|m| [m.shininess, m.specular_cos_min, m.reflectivity, m.transparency, m.ior]))
+                .chain(none.then_some([0.0; 5]))
+                .collect(),
+            light_mat: world
+                .lights
+                .iter()
+                .flat_map(|l| {
+                    (world.materials.iter().map(move |m| [l.diffuse * m.diffuse, l.specular * m.specular])).chain(none.then_some([zero; 2]))
+                })
+                .collect(),
+            lights: world.lights.iter().map(|l| l.position.into()).collect(),
+            prim_geom: (world.spheres.iter().map(|s| [s.center.x, s.center.y, s.center.z, s.radius]))
+                .chain(world.planes.iter().map(|p| [p.normal.x, p.normal.y, p.normal.z, p.distance]))
+                .chain([[0.0, 1.0, 0.0, 0.0]])
+                .collect(),
+            prim_mat: (world.spheres.iter().map(|s| s.material)).chain(world.planes.iter().map(|p| p.material)).chain([0]).collect(),
+            spheres: world.spheres.len(),
+            materials,
+        }
+    }
+
+    /// Index of primitive `id` in `prim_geom` and `prim_mat`.
+    #[inline(always)]
+    fn entry(&self, id: PrimId) -> usize {
+        if id == PrimId::NONE {
+            self.prim_mat.len() - 1
+        } else if id.kind() == PrimId::SPHERE {
+            id.index()
+        } else {
+            self.spheres + id.index()
+        }
+    }
+}
+
+/// What shading decided for each hit of a generation (index `i`), and for
+/// each (light, hit) (index `light * n + i`).
+#[derive(Default)]
+pub struct Shaded {
+    /// Whether ray i hit anything, and the material it hit.
+    pub hit: Vec<bool>,
+    pub mat: Vec<u32>,
+    /// Transparency of the material hit: the refracted ray's weight.
+    pub transparency: Vec<f32>,
+    /// Origins offset to the viewer's side and to the other side.
+    pub above: [Vec<f32>; 3],
+    pub below: [Vec<f32>; 3],
+    /// Per (light, hit): shadow ray wanted, its origin (on the light's side),
+    /// direction and length, and what the light adds if unblocked.
+    pub light_on: Vec<bool>,
+    pub light_origin: [Vec<f32>; 3],
+    pub light_dir: [Vec<f32>; 3],
+    pub light_t_max: Vec<f32>,
+    pub light_contrib: [Vec<f32>; 3],
+    /// Refracted ray (from `below`) wanted, and its direction.
+    pub refract_on: Vec<bool>,
+    pub refract_dir: [Vec<f32>; 3],
+    /// Reflected ray (from `above`) weight (0: none), and its direction.
+    pub reflect_w: Vec<f32>,
+    pub reflect_dir: [Vec<f32>; 3],
+}
+
+/// Sizes a scratch array; every element is overwritten before it is read.
+fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
+    // Never shrunk, so never refilled when the next generation is larger.
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+}
+
+#[inline(always)]
+fn arr<const W: usize, T>(v: &[T], at: usize) -> &[T; W] {
+    v[at..at + W].try_into().expect("lane group inside the padded queue")
+}
+
+
+#[inline(always)]
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    // glam's Vec3A::dot order: (x + y) + z.
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline(always)]
+fn max0(x: f32) -> f32 {
+    // f32::max(x, 0) for the values shading sees (NaN only in masked-out lanes).
+    if x > 0.0 { x } else { 0.0 }
+}
+
+/// Shades the `n` (a multiple of `W`) rays `o`, `d` with closest hits `t`,
+/// `id` at generation `depth`.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub fn shade_lanes<const W: usize>(
+    world: &World<f32>,
+    tab: &Tables,
+    o: [&[f32]; 3],
+    d: [&[f32]; 3],
+    t: &[f32],
+    id: &[u32],
+    depth: u32,
+    s: &mut Shaded,
+) {
+    let n = t.len();
+    let nl = tab.lights.len();
+    sized(&mut s.hit, n);
+    sized(&mut s.mat, n);
+    sized(&mut s.transparency, n);
+    for v in s.above.iter_mut().chain(s.below.iter_mut()).chain(s.refract_dir.iter_mut()).chain(s.reflect_dir.iter_mut()) {
+        sized(v, n);
+    }
+    sized(&mut s.refract_on, n);
+    sized(&mut s.reflect_w, n);
+    for v in [&mut s.light_t_max].into_iter().chain(s.light_origin.iter_mut()).chain(s.light_dir.iter_mut()).chain(s.light_contrib.iter_mut()) {
+        sized(v, n * nl);
+    }
+    sized(&mut s.light_on, n * nl);
+    let secondary = depth < world.settings.max_depth;
+    let (rel, min) = (<f32 as Real>::OFFSET_REL, <f32 as Real>::OFFSET_MIN);
+    let shorten = 1.0 - <f32 as Real>::SHADOW_SHORTEN;
+
+    for at in (0..n).step_by(W) {
+        let (ox, oy, oz) = (arr::<W, _>(o[0], at), arr::<W, _>(o[1], at), arr::<W, _>(o[2], at));
+        let (dx, dy, dz) = (arr::<W, _>(d[0], at), arr::<W, _>(d[1], at), arr::<W, _>(d[2], at));
+        let tt = arr::<W, _>(t, at);
+        // Gather (scalar, into lane arrays): primitive and material constants.
+        let mut hit = [false; W];
+        let mut sphere = [false; W];
+        let mut mat = [0u32; W];
+        let mut g = [[0.0f32; W]; 4];
+        let mut mc = [[0.0f32; W]; 5];
+        for l in 0..W {
+            let e = tab.entry(PrimId(id[at + l]));
+            let (geom, m) = (tab.prim_geom[e], tab.prim_mat[e]);
+            hit[l] = e < tab.prim_mat.len() - 1;
+            sphere[l] = e < tab.spheres;
+            mat[l] = m;
+            let consts = tab.mat[m as usize];
+            for k in 0..4 {
+                g[k][l] = geom[k];
+            }
+            for k in 0..5 {
+                mc[k][l] = consts[k];
+            }
+        }
+        s.hit[at..at + W].copy_from_slice(&hit);
+        s.mat[at..at + W].copy_from_slice(&mat);
+        s.transparency[at..at + W].copy_from_slice(&mc[3]);
+        let mut p = [[0.0f32; W]; 3];
+        let mut nn = [[0.0f32; W]; 3];
+        let mut v = [[0.0f32; W]; 3];
+        let mut entering = [false; W];
+        let mut cos_i = [0.0f32; W];
+        for l in 0..W {
+            // ray.at(t), then World::surface.
+            let hp = [ox[l] + dx[l] * tt[l], oy[l] + dy[l] * tt[l], oz[l] + dz[l] * tt[l]];
+            let c = [g[0][l], g[1][l], g[2][l]];
+            // Sphere: normal (p - c) / |p - c|, point snapped to c + n r.
+            let dd = [hp[0] - c[0], hp[1] - c[1], hp[2] - c[2]];
+            let inv = 1.0 / dot(dd, dd).sqrt();
+            let ns = [dd[0] * inv, dd[1] * inv, dd[2] * inv];
+            let ps = [c[0] + ns[0] * g[3][l], c[1] + ns[1] * g[3][l], c[2] + ns[2] * g[3][l]];
+            // Plane: normal as given, point projected onto it.
+            let off = dot(c, hp) - g[3][l];
+            let pp = [hp[0] - c[0] * off, hp[1] - c[1] * off, hp[2] - c[2] * off];
+            let (pt, n_out) = if sphere[l] { (ps, ns) } else { (pp, c) };
+            let vv = [-dx[l], -dy[l], -dz[l]];
+            let ent = dot(n_out, vv) >= 0.0;
+            let nf = if ent { n_out } else { [-n_out[0], -n_out[1], -n_out[2]] };
+            for k in 0..3 {
+                p[k][l] = pt[k];
+                nn[k][l] = nf[k];
+                v[k][l] = vv[k];
+            }
+            entering[l] = ent;
+            cos_i[l] = dot(nf, vv);
+        }
+        // offset_origin: scale from the largest coordinate, to either side.
+        let mut above = [[0.0f32; W]; 3];
+        let mut below = [[0.0f32; W]; 3];
+        for l in 0..W {
+            let m = p[0][l].abs().max(p[1][l].abs()).max(p[2][l].abs());
+            let scale = m * rel + min;
+            for c in 0..3 {
+                above[c][l] = p[c][l] + nn[c][l] * scale;
+                below[c][l] = p[c][l] + -nn[c][l] * scale;
+            }
+        }
+        for c in 0..3 {
+            s.above[c][at..at + W].copy_from_slice(&above[c]);
+            s.below[c][at..at + W].copy_from_slice(&below[c]);
+        }
+        for (li, lp) in tab.lights.iter().enumerate() {
+            let base = li * n + at;
+            let mut lc = [[0.0f32; W]; 6];
+            for l in 0..W {
+                let lm = tab.light_mat[li * tab.materials + mat[l] as usize];
+                for c in 0..3 {
+                    lc[c][l] = lm[0][c];
+                    lc[3 + c][l] = lm[1][c];
+                }
+            }
+            // Results in lane arrays, stored after the loop: indexing the
+            // queues inside it would stop LLVM from vectorising it.
+            let mut on = [false; W];
+            let mut origin = [[0.0f32; W]; 3];
+            let mut t_max = [0.0f32; W];
+            let mut dir = [[0.0f32; W]; 3];
+            let mut add = [[0.0f32; W]; 3];
+            for l in 0..W {
+                let pt = [p[0][l], p[1][l], p[2][l]];
+                let ns = [nn[0][l], nn[1][l], nn[2][l]];
+                let vv = [v[0][l], v[1][l], v[2][l]];
+                let to = [lp[0] - pt[0], lp[1] - pt[1], lp[2] - pt[2]];
+                let dist = dot(to, to).sqrt();
+                let inv = 1.0 / dist;
+                let ld = [to[0] * inv, to[1] * inv, to[2] * inv];
+                let ndotl = max0(dot(ns, ld));
+                let h = [ld[0] + vv[0], ld[1] + vv[1], ld[2] + vv[2]];
+                let h_len = dot(h, h).sqrt();
+                let ndoth = if h_len > 0.0 { max0(dot(ns, h) / h_len) } else { 0.0 };
+                // Clamped base: the lanes that skip the specular term still
+                // evaluate the power, harmlessly.
+                let spec = pow_f32(if ndoth > 0.0 { ndoth } else { 1.0 }, mc[0][l]);
+                let spec = if ndoth > mc[1][l] { spec } else { 0.0 };
+                let contrib = [0, 1, 2].map(|c| lc[c][l] * ndotl + lc[3 + c][l] * spec);
+                on[l] = hit[l] & (dist > 0.0) & (contrib[0].max(contrib[1]).max(contrib[2]) > 0.0);
+                // Leave on the light's side of the surface.
+                let from_above = dot(ns, ld) >= 0.0;
+                for c in 0..3 {
+                    origin[c][l] = if from_above { above[c][l] } else { below[c][l] };
+                }
+                t_max[l] = dist * shorten;
+                for c in 0..3 {
+                    dir[c][l] = ld[c];
+                    add[c][l] = contrib[c];
+                }
+            }
+            let r = base..base + W;
+            s.light_on[r.clone()].copy_from_slice(&on);
+            for c in 0..3 {
+                s.light_origin[c][r.clone()].copy_from_slice(&origin[c]);
+            }
+            s.light_t_max[r.clone()].copy_from_slice(&t_max);
+            for c in 0..3 {
+                s.light_dir[c][r.clone()].copy_from_slice(&dir[c]);
+                s.light_contrib[c][r.clone()].copy_from_slice(&add[c]);
+            }
+        }
+        if !secondary {
+            s.refract_on[at..at + W].fill(false);
+            s.reflect_w[at..at + W].fill(0.0);
+            continue;
+        }
+        let mut refract = [false; W];
+        let mut refract_dir = [[0.0f32; W]; 3];
+        let mut reflect_w = [0.0f32; W];
+        let mut reflect_dir = [[0.0f32; W]; 3];
+        for l in 0..W {
+            let ns = [nn[0][l], nn[1][l], nn[2][l]];
+            let vv = [v[0][l], v[1][l], v[2][l]];
+            let (reflectivity, transparency, ior) = (mc[2][l], mc[3][l], mc[4][l]);
+            let ci = cos_i[l];
+            // Snell: eta = n1/n2; entering from outside goes 1 -> ior.
+            let eta = if entering[l] { 1.0 / ior } else { ior };
+            let k = 1.0 - eta * eta * (1.0 - ci * ci);
+            let transparent = transparency > 0.0;
+            let tir = transparent & (k < 0.0);
+            refract[l] = hit[l] & transparent & (k >= 0.0);
+            let a = eta * ci - max0(k).sqrt();
+            let r = [-vv[0] * eta + ns[0] * a, -vv[1] * eta + ns[1] * a, -vv[2] * eta + ns[2] * a];
+            let inv = 1.0 / dot(r, r).sqrt();
+            let w = if tir { reflectivity + transparency } else { reflectivity };
+            reflect_w[l] = if hit[l] { w } else { 0.0 };
+            // R = 2(V.N)N - V
+            let two_c = 2.0 * ci;
+            let rr = [ns[0] * two_c - vv[0], ns[1] * two_c - vv[1], ns[2] * two_c - vv[2]];
+            let inv2 = 1.0 / dot(rr, rr).sqrt();
+            for c in 0..3 {
+                refract_dir[c][l] = r[c] * inv;
+                reflect_dir[c][l] = rr[c] * inv2;
+            }
+        }
+        let r = at..at + W;
+        s.refract_on[r.clone()].copy_from_slice(&refract);
+        s.reflect_w[r.clone()].copy_from_slice(&reflect_w);
+        for c in 0..3 {
+            s.refract_dir[c][r.clone()].copy_from_slice(&refract_dir[c]);
+            s.reflect_dir[c][r.clone()].copy_from_slice(&reflect_dir[c]);
+        }
+    }
+}

@@ -1,0 +1,354 @@
+//! The stream (wavefront) renderer: f32 scenes of spheres and planes only
+//! (no BVH, no triangles), which is every scene of the thesis's experiments.
+//!
+//! Instead of following one ray at a time down its tree of secondary rays,
+//! a batch of primary rays is traced generation by generation: closest hits
+//! for the whole generation ([`kernels::closest_hits`], `W` rays per lane
+//! group against each primitive), then all hits are shaded `W` at a time
+//! ([`shade_lanes`], the arithmetic of the recursive `whitted::trace`),
+//! their shadow rays tested light by light ([`kernels::occluded`]), and a
+//! scalar pass queues, hit by hit, the refracted and reflected rays: the
+//! next generation, each with its parent and weight. When no generation is
+//! left, colours are folded back up the tree, children into parents in
+//! spawn order.
+//!
+//! Same bits as the recursive reference: every intersection and every
+//! local shading does the same IEEE operations in the same order (no FMA
+//! contraction: Rust never fuses a multiply and an add), and the fold adds
+//! a hit's lights and children in `trace`'s order. A ray's value depends
+//! only on the ray, so tiles, sample ranges, batches, thread counts and
+//! SIMD levels cannot change a sample (tests/cpu_stream.rs checks all of
+//! this).
+
+use glam::Vec3A;
+
+use super::kernels::{self, Prims, RaySoa};
+use super::shade::{shade_lanes, Shaded, Tables};
+use crate::film::{Film, RayCounts, Rect, SampleRange};
+use crate::geometry::PrimId;
+use crate::sampling::{pixel_seed, sample_offset};
+use crate::world::World;
+
+/// Primary rays traced together: enough to fill the lane groups many times
+/// over, few enough that a generation's queues stay in L1/L2 (of 256, 1024
+/// and 4096, 256 was fastest on the resolution scene).
+const BATCH: usize = 256;
+
+/// The instruction sets the stream renderer is compiled for, picked at run
+/// time. All give bit-identical results (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum SimdLevel {
+    /// What every CPU of the target has (SSE2 on x86-64, NEON on aarch64); 8 lanes.
+    Baseline,
+    /// x86-64 AVX2; 8 lanes.
+    Avx2,
+    /// x86-64 AVX-512F; 16 lanes.
+    Avx512,
+}
+
+impl SimdLevel {
+    /// Every level this CPU can run, baseline first.
+    pub fn available() -> Vec<SimdLevel> {
+        let mut v = vec![SimdLevel::Baseline];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                v.push(SimdLevel::Avx2);
+            }
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                v.push(SimdLevel::Avx512);
+            }
+        }
+        v
+    }
+
+    /// The best level this CPU can run.
+    pub fn detect() -> SimdLevel {
+        *Self::available().last().unwrap_or(&SimdLevel::Baseline)
+    }
+}
+
+impl SimdLevel {
+    pub fn name(self) -> &'static str {
+        match self {
+            SimdLevel::Baseline => "baseline",
+            SimdLevel::Avx2 => "avx2",
+            SimdLevel::Avx512 => "avx512",
+        }
+    }
+}
+
+impl std::str::FromStr for SimdLevel {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "baseline" => Ok(SimdLevel::Baseline),
+            "avx2" => Ok(SimdLevel::Avx2),
+            "avx512" => Ok(SimdLevel::Avx512),
+            _ => Err(format!("unknown SIMD level {s:?}: expected \"baseline\", \"avx2\" or \"avx512\"")),
+        }
+    }
+}
+
+/// Whether the stream renderer handles this world.
+pub fn supports(world: &World<f32>) -> bool {
+    world.accel.is_none() && world.triangles.is_empty()
+}
+
+/// Renders one tile with the stream renderer at SIMD level `level`, which
+/// must be one of [`SimdLevel::available`] (others fall back to the baseline).
+pub fn render_tile(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange, level: SimdLevel) -> Film {
+    debug_assert!(supports(world));
+    #[cfg(target_arch = "x86_64")]
+    {
+        let have = SimdLevel::available();
+        if level == SimdLevel::Avx512 && have.contains(&level) {
+            // SAFETY: the CPU supports AVX-512F (checked just above).
+            return unsafe { render_tile_avx512(world, frame, tile, samples) };
+        }
+        if level == SimdLevel::Avx2 && have.contains(&level) {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            return unsafe { render_tile_avx2(world, frame, tile, samples) };
+        }
+    }
+    let _ = level;
+    render_tile_lanes::<8>(world, frame, tile, samples)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn render_tile_avx2(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    render_tile_lanes::<8>(world, frame, tile, samples)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn render_tile_avx512(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    render_tile_lanes::<16>(world, frame, tile, samples)
+}
+
+/// A path ray as spawned: one push per ray (not one per array), turned
+/// into structure-of-arrays form when its generation is traced.
+#[derive(Clone, Copy)]
+struct Spawned {
+    o: [f32; 3],
+    d: [f32; 3],
+    skip: u32,
+    parent: u32,
+    weight: f32,
+}
+
+/// One generation of path rays of a batch.
+#[derive(Default)]
+struct Generation {
+    spawned: Vec<Spawned>,
+    rays: RaySoa,
+    /// Index of the ray that spawned each (in the previous generation; for
+    /// primary rays, the sample in the batch) ...
+    parent: Vec<u32>,
+    /// ... and the weight its colour adds to its parent's with.
+    weight: Vec<f32>,
+    /// Closest hits.
+    t: Vec<f32>,
+    id: Vec<u32>,
+    /// Colour of each ray: local shading (ambient, then unblocked lights),
+    /// then its children's colours folded in.
+    colour: Vec<Vec3A>,
+}
+
+impl Generation {
+    #[inline(always)]
+    fn push(&mut self, o: [f32; 3], d: [f32; 3], skip: u32, parent: u32, weight: f32) {
+        self.spawned.push(Spawned { o, d, skip, parent, weight });
+    }
+
+    /// Rays in this generation.
+    fn len(&self) -> usize {
+        self.spawned.len()
+    }
+
+    fn clear(&mut self) {
+        self.spawned.clear();
+    }
+
+    /// Lays the spawned rays out in `rays`, `parent` and `weight`, padded
+    /// with harmless rays (results ignored) to a multiple of `w`; returns
+    /// the padded count.
+    fn load(&mut self, w: usize) -> usize {
+        let n = self.spawned.len();
+        let np = n.div_ceil(w) * w;
+        self.rays.grow(np);
+        grow(&mut self.parent, np);
+        grow(&mut self.weight, np);
+        let r = &mut self.rays;
+        let (ox, oy, oz) = (&mut r.ox[..np], &mut r.oy[..np], &mut r.oz[..np]);
+        let (dx, dy, dz) = (&mut r.dx[..np], &mut r.dy[..np], &mut r.dz[..np]);
+        let (skip, parent, weight) = (&mut r.skip[..np], &mut self.parent[..np], &mut self.weight[..np]);
+        let pad = Spawned { o: [0.0; 3], d: [0.0, 0.0, 1.0], skip: PrimId::NONE.0, parent: 0, weight: 0.0 };
+        for i in 0..np {
+            let s = if i < n { self.spawned[i] } else { pad };
+            ox[i] = s.o[0];
+            oy[i] = s.o[1];
+            oz[i] = s.o[2];
+            dx[i] = s.d[0];
+            dy[i] = s.d[1];
+            dz[i] = s.d[2];
+            skip[i] = s.skip;
+            parent[i] = s.parent;
+            weight[i] = s.weight;
+        }
+        np
+    }
+}
+
+#[inline(always)]
+fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    let mut film = Film::new(tile);
+    let mut rays = RayCounts::default();
+    let prims = Prims::new(world);
+    let tab = Tables::new(world);
+    // Taken out and put back rather than borrowed in a closure: a closure
+    // would not inherit the caller's `target_feature`s.
+    let mut scratch = SCRATCH.take();
+    let Scratch { gens, sh, blocked, batch } = &mut scratch;
+    trace_tile::<W>(world, frame, tile, samples, &prims, &tab, gens, sh, blocked, batch, &mut film, &mut rays);
+    SCRATCH.set(scratch);
+    film.rays = rays;
+    film
+}
+
+/// Buffers reused from tile to tile on each thread (growing them anew for
+/// every tile costs more than the tracing of small tiles).
+#[derive(Default)]
+struct Scratch {
+    gens: Vec<Generation>,
+    sh: Shaded,
+    /// Whether each shadow ray of a light is blocked.
+    blocked: Vec<bool>,
+    /// Film pixel of each sample of the batch.
+    batch: Vec<usize>,
+}
+
+/// Makes `v` at least `n` long; scratch is overwritten before it is read,
+/// so it is never shrunk (and refilled) between generations.
+fn grow<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::default();
+}
+
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn trace_tile<const W: usize>(
+    world: &World<f32>,
+    frame: u32,
+    tile: Rect,
+    samples: SampleRange,
+    prims: &Prims,
+    tab: &Tables,
+    gens: &mut Vec<Generation>,
+    sh: &mut Shaded,
+    blocked: &mut Vec<bool>,
+    batch: &mut Vec<usize>,
+    film: &mut Film,
+    rays: &mut RayCounts,
+) {
+    let s = &world.settings;
+    let nl = world.lights.len();
+    if gens.is_empty() {
+        gens.push(Generation::default());
+    }
+
+    // (film pixel, x, y, sample index) in `render_tile`'s order.
+    let pixels = (tile.y..tile.y + tile.height).flat_map(|y| (tile.x..tile.x + tile.width).map(move |x| (x, y)));
+    let mut jobs = pixels.enumerate().flat_map(|(i, (x, y))| (samples.start..samples.end).map(move |s| (i, x, y, s))).peekable();
+    while jobs.peek().is_some() {
+        batch.clear();
+        gens[0].clear();
+        for (pixel, x, y, sample) in jobs.by_ref().take(BATCH) {
+            let seed = pixel_seed(x, y, frame);
+            let (u, v) = sample_offset(s.sampler, s.samples, seed, sample);
+            // As `render_tile`: R::from_u32(x) + R::from_f64(u as f64).
+            let ray = world.camera.ray(x as f32 + u, y as f32 + v);
+            gens[0].push(ray.origin.into(), ray.dir.into(), PrimId::NONE.0, batch.len() as u32, 1.0);
+            batch.push(pixel);
+        }
+        rays.primary += batch.len() as u64;
+
+        // Down the tree, generation by generation.
+        let mut last = 0;
+        for depth in 0..=s.max_depth as usize {
+            if gens[depth].len() == 0 {
+                break;
+            }
+            last = depth;
+            if gens.len() < depth + 2 {
+                gens.push(Generation::default());
+            }
+            let (done, rest) = gens.split_at_mut(depth + 1);
+            let (cur, next) = (&mut done[depth], &mut rest[0]);
+            next.clear();
+            let n = cur.len();
+            let np = cur.load(W);
+            kernels::closest_hits::<W>(prims, &cur.rays, np, &mut cur.t, &mut cur.id);
+            let o = [&cur.rays.ox[..np], &cur.rays.oy[..np], &cur.rays.oz[..np]];
+            let d = [&cur.rays.dx[..np], &cur.rays.dy[..np], &cur.rays.dz[..np]];
+            shade_lanes::<W>(world, tab, o, d, &cur.t[..np], &cur.id[..np], depth as u32, sh);
+            cur.colour.clear();
+            cur.colour.extend((0..n).map(|i| if sh.hit[i] { tab.ambient[sh.mat[i] as usize] } else { world.background }));
+            // Shadow rays, light by light over all hits (in place: a ray not
+            // wanted is a lane reported blocked). Each hit's lights are
+            // added in light order, as `trace` adds them.
+            grow(blocked, np);
+            for li in 0..nl {
+                let r = li * np..(li + 1) * np;
+                let o = [&sh.light_origin[0][r.clone()], &sh.light_origin[1][r.clone()], &sh.light_origin[2][r.clone()]];
+                let d = [&sh.light_dir[0][r.clone()], &sh.light_dir[1][r.clone()], &sh.light_dir[2][r.clone()]];
+                let on = &sh.light_on[r.clone()];
+                kernels::occluded::<W>(prims, o, d, &cur.id, &sh.light_t_max[r.clone()], on, blocked);
+                rays.shadow += on[..n].iter().map(|&b| b as u64).sum::<u64>();
+                let base = li * np;
+                for i in 0..n {
+                    if on[i] & !blocked[i] {
+                        let j = base + i;
+                        cur.colour[i] += Vec3A::new(sh.light_contrib[0][j], sh.light_contrib[1][j], sh.light_contrib[2][j]);
+                    }
+                }
+            }
+            // The next generation, hit by hit: the refracted ray, then the
+            // reflected one, as `trace` spawns them.
+            for i in 0..n {
+                let from = cur.id[i];
+                if sh.refract_on[i] {
+                    let o = [sh.below[0][i], sh.below[1][i], sh.below[2][i]];
+                    let d = [sh.refract_dir[0][i], sh.refract_dir[1][i], sh.refract_dir[2][i]];
+                    next.push(o, d, from, i as u32, sh.transparency[i]);
+                    rays.refraction += 1;
+                }
+                if sh.reflect_w[i] > 0.0 {
+                    let o = [sh.above[0][i], sh.above[1][i], sh.above[2][i]];
+                    let d = [sh.reflect_dir[0][i], sh.reflect_dir[1][i], sh.reflect_dir[2][i]];
+                    next.push(o, d, from, i as u32, sh.reflect_w[i]);
+                    rays.reflection += 1;
+                }
+            }
+        }
+        // Back up the tree: each ray's colour, weighted, into its parent's,
+        // children in spawn order (refracted, then reflected), which is
+        // `trace`'s `colour += trace(..) * weight`, operation for operation.
+        for g in (1..=last).rev() {
+            let (upper, lower) = gens.split_at_mut(g);
+            let (parents, children) = (&mut upper[g - 1], &lower[0]);
+            for i in 0..children.len() {
+                parents.colour[children.parent[i] as usize] += children.colour[i] * children.weight[i];
+            }
+        }
+        for (&pixel, c) in batch.iter().zip(&gens[0].colour) {
+            film.add_sample::<f32>(pixel, [c.x, c.y, c.z]);
+        }
+    }
+}

@@ -1,0 +1,122 @@
+//! The CPU stream renderer (`render::cpu::stream`) against the recursive
+//! reference (`render::cpu::render_tile_recursive`, one ray at a time
+//! through `whitted::trace`): the same rays and the same bits, at every
+//! SIMD level and for any split of the work.
+
+mod common;
+
+use common::*;
+use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::render::cpu::{render_tile_recursive, stream, SimdLevel};
+use tracer_core::render::{Precision, PreparedFrame};
+use tracer_core::scene::{RenderSettings, SceneDesc};
+use tracer_core::world::World;
+
+fn world(desc: &SceneDesc, settings: &RenderSettings) -> World<f32> {
+    match PreparedFrame::build(desc, settings, 0, Precision::F32).expect("settings are valid") {
+        PreparedFrame::F32(w) => w,
+        PreparedFrame::F64(_) => unreachable!("asked for f32"),
+    }
+}
+
+/// Renders the whole image tile by tile with `tile_fn`.
+fn render(w: &World<f32>, size: u32, samples: SampleRange, tile_fn: &dyn Fn(Rect, SampleRange) -> Film) -> Film {
+    let full = Rect::full(w.settings.width, w.settings.height);
+    let mut film = Film::new(full);
+    for tile in full.tiles(size) {
+        // Adds sums, counts, ray counts and non-finite counts.
+        film.merge(&tile_fn(tile, samples)).expect("tiles lie inside the image");
+    }
+    film
+}
+
+/// Every stream-capable scene the tests know: the examples (thesis
+/// experiments, showcase), the hard cases, and the hard-case test scenes.
+fn scenes() -> Vec<(String, SceneDesc, RenderSettings)> {
+    let dir = examples_dir();
+    let mut out = vec![];
+    for d in [dir.clone(), dir.join("complexity"), dir.join("hard")] {
+        let mut paths: Vec<_> = std::fs::read_dir(&d).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|x| x == "toml")).collect();
+        paths.sort();
+        for p in paths {
+            let desc = SceneDesc::load(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            let settings = RenderSettings { width: 96, height: 72, ..desc.render };
+            out.push((p.display().to_string(), desc, settings));
+        }
+    }
+    for (name, src) in [("huge sphere floor", HUGE_SPHERE_FLOOR_SCENE), ("light on surface", LIGHT_ON_SURFACE_SCENE)] {
+        let desc = scene(src);
+        let settings = RenderSettings { width: 96, height: 72, ..desc.render };
+        out.push((name.to_string(), desc, settings));
+    }
+    let (desc, settings) = nested_glass_scene();
+    out.push(("nested glass (hard-case settings)".to_string(), desc, settings));
+    out
+}
+
+#[test]
+fn stream_gives_the_recursive_renderers_bits_on_every_scene() {
+    let mut checked = 0;
+    for (name, desc, settings) in scenes() {
+        let w = world(&desc, &settings);
+        if !stream::supports(&w) {
+            continue; // meshes and BVH scenes keep the recursive path
+        }
+        let samples = SampleRange::all(settings.samples);
+        let level = SimdLevel::detect();
+        let fast = render(&w, 16, samples, &|t, s| stream::render_tile(&w, 0, t, s, level));
+        let reference = render(&w, 16, samples, &|t, s| render_tile_recursive(&w, 0, t, s));
+        assert_eq!(fast.rays, reference.rays, "{name}: the stream renderer must trace exactly the recursive renderer's rays");
+        assert_eq!(fast.nonfinite, 0, "{name}: a NaN or infinite sample reached the film");
+        assert_eq!(reference.nonfinite, 0, "{name}");
+        assert!(fast.rays.total() > fast.rays.primary, "{name}: the scene should spawn secondary or shadow rays");
+        assert_finite(&fast.resolve());
+        // Bit for bit: the same IEEE operations in the same order (see
+        // `render/cpu/stream.rs`). Report how far off a failure is.
+        if fast != reference {
+            let d = diff(&fast.resolve(), &reference.resolve(), 1e-6);
+            panic!("{name}: {} of {} pixels differ from the recursive renderer by more than 1e-6 (largest {:e})", d.over, d.pixels, d.max);
+        }
+        checked += 1;
+    }
+    assert!(checked >= 24, "expected every example and hard case to take the stream path, checked {checked}");
+}
+
+#[test]
+fn every_simd_level_gives_the_same_bits() {
+    let levels = SimdLevel::available();
+    eprintln!("SIMD levels on this machine: {levels:?}");
+    for (name, desc, settings) in scenes() {
+        let w = world(&desc, &settings);
+        if !stream::supports(&w) {
+            continue;
+        }
+        let samples = SampleRange::all(settings.samples);
+        let base = render(&w, 16, samples, &|t, s| stream::render_tile(&w, 0, t, s, SimdLevel::Baseline));
+        for &level in &levels[1..] {
+            let other = render(&w, 16, samples, &|t, s| stream::render_tile(&w, 0, t, s, level));
+            assert!(other == base, "{name}: SIMD level {level:?} differs from the baseline");
+        }
+    }
+}
+
+#[test]
+fn tiles_batches_and_sample_ranges_do_not_change_a_sample() {
+    // One big tile (several batches of primary rays), odd tiles, and sample
+    // ranges split in two, all against 16x16 tiles over all samples.
+    let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
+    let settings = RenderSettings { width: 90, height: 70, samples: 9, ..desc.render };
+    let w = world(&desc, &settings);
+    assert!(stream::supports(&w));
+    let level = SimdLevel::detect();
+    let all = SampleRange::all(9);
+    let whole = render(&w, 16, all, &|t, s| stream::render_tile(&w, 0, t, s, level));
+    let one_tile = render(&w, 90, all, &|t, s| stream::render_tile(&w, 0, t, s, level));
+    assert!(one_tile == whole, "a 90x70 tile renders differently from 16x16 tiles");
+    let odd = render(&w, 7, all, &|t, s| stream::render_tile(&w, 0, t, s, level));
+    assert!(odd == whole, "7x7 tiles render differently from 16x16 tiles");
+    let mut split = render(&w, 16, SampleRange::new(0, 4), &|t, s| stream::render_tile(&w, 0, t, s, level));
+    let rest = render(&w, 23, SampleRange::new(4, 9), &|t, s| stream::render_tile(&w, 0, t, s, level));
+    split.merge(&rest).unwrap();
+    assert!(split == whole, "sample ranges 0..4 + 4..9 differ from 0..9");
+}
