@@ -20,7 +20,6 @@
 //! SIMD levels cannot change a sample (tests/cpu_stream.rs checks all of
 //! this).
 
-use glam::Vec3A;
 
 use super::kernels::{self, Prims, RaySoa};
 use super::shade::{shade_lanes, Shaded, Tables};
@@ -127,21 +126,12 @@ fn render_tile_avx512(world: &World<f32>, frame: u32, tile: Rect, samples: Sampl
     render_tile_lanes::<16>(world, frame, tile, samples)
 }
 
-/// A path ray as spawned: one push per ray (not one per array), turned
-/// into structure-of-arrays form when its generation is traced.
-#[derive(Clone, Copy)]
-struct Spawned {
-    o: [f32; 3],
-    d: [f32; 3],
-    skip: u32,
-    parent: u32,
-    weight: f32,
-}
-
-/// One generation of path rays of a batch.
+/// One generation of path rays of a batch, in structure-of-arrays form
+/// from the start: spawning writes each ray straight into its lane arrays.
 #[derive(Default)]
 struct Generation {
-    spawned: Vec<Spawned>,
+    /// Rays spawned (the arrays are longer: padding and spare room).
+    n: usize,
     rays: RaySoa,
     /// Index of the ray that spawned each (in the previous generation; for
     /// primary rays, the sample in the batch) ...
@@ -151,51 +141,44 @@ struct Generation {
     /// Closest hits.
     t: Vec<f32>,
     id: Vec<u32>,
-    /// Colour of each ray: local shading (ambient, then unblocked lights),
-    /// then its children's colours folded in.
-    colour: Vec<Vec3A>,
+    /// Colour of each ray (x, y, z arrays): local shading (ambient, then
+    /// unblocked lights), then its children's colours folded in.
+    colour: [Vec<f32>; 3],
 }
 
 impl Generation {
-    #[inline(always)]
-    fn push(&mut self, o: [f32; 3], d: [f32; 3], skip: u32, parent: u32, weight: f32) {
-        self.spawned.push(Spawned { o, d, skip, parent, weight });
-    }
-
-    /// Rays in this generation.
-    fn len(&self) -> usize {
-        self.spawned.len()
-    }
-
-    fn clear(&mut self) {
-        self.spawned.clear();
-    }
-
-    /// Lays the spawned rays out in `rays`, `parent` and `weight`, padded
-    /// with harmless rays (results ignored) to a multiple of `w`; returns
-    /// the padded count.
-    fn load(&mut self, w: usize) -> usize {
-        let n = self.spawned.len();
-        let np = n.div_ceil(w) * w;
+    /// Makes room for `n` rays (plus padding to a lane group of `w`).
+    fn reserve(&mut self, n: usize, w: usize) {
+        let np = n.div_ceil(w) * w + w;
         self.rays.grow(np);
         grow(&mut self.parent, np);
         grow(&mut self.weight, np);
+    }
+
+    /// Writes ray `at` (room for it made by [`Self::reserve`]).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn set(&mut self, at: usize, o: [f32; 3], d: [f32; 3], skip: u32, parent: u32, weight: f32) {
         let r = &mut self.rays;
-        let (ox, oy, oz) = (&mut r.ox[..np], &mut r.oy[..np], &mut r.oz[..np]);
-        let (dx, dy, dz) = (&mut r.dx[..np], &mut r.dy[..np], &mut r.dz[..np]);
-        let (skip, parent, weight) = (&mut r.skip[..np], &mut self.parent[..np], &mut self.weight[..np]);
-        let pad = Spawned { o: [0.0; 3], d: [0.0, 0.0, 1.0], skip: PrimId::NONE.0, parent: 0, weight: 0.0 };
-        for i in 0..np {
-            let s = if i < n { self.spawned[i] } else { pad };
-            ox[i] = s.o[0];
-            oy[i] = s.o[1];
-            oz[i] = s.o[2];
-            dx[i] = s.d[0];
-            dy[i] = s.d[1];
-            dz[i] = s.d[2];
-            skip[i] = s.skip;
-            parent[i] = s.parent;
-            weight[i] = s.weight;
+        r.ox[at] = o[0];
+        r.oy[at] = o[1];
+        r.oz[at] = o[2];
+        r.dx[at] = d[0];
+        r.dy[at] = d[1];
+        r.dz[at] = d[2];
+        r.skip[at] = skip;
+        self.parent[at] = parent;
+        self.weight[at] = weight;
+    }
+
+    /// Pads the `n` rays with harmless ones (results ignored) to a multiple
+    /// of `w`; returns the padded count.
+    fn pad(&mut self, w: usize) -> usize {
+        let n = self.n;
+        let np = n.div_ceil(w) * w;
+        self.reserve(np, w);
+        for i in n..np {
+            self.set(i, [0.0; 3], [0.0, 0.0, 1.0], PrimId::NONE.0, 0, 0.0);
         }
         np
     }
@@ -268,21 +251,22 @@ fn trace_tile<const W: usize>(
     let mut jobs = pixels.enumerate().flat_map(|(i, (x, y))| (samples.start..samples.end).map(move |s| (i, x, y, s))).peekable();
     while jobs.peek().is_some() {
         batch.clear();
-        gens[0].clear();
+        gens[0].reserve(BATCH, W);
         for (pixel, x, y, sample) in jobs.by_ref().take(BATCH) {
             let seed = pixel_seed(x, y, frame);
             let (u, v) = sample_offset(s.sampler, s.samples, seed, sample);
             // As `render_tile`: R::from_u32(x) + R::from_f64(u as f64).
             let ray = world.camera.ray(x as f32 + u, y as f32 + v);
-            gens[0].push(ray.origin.into(), ray.dir.into(), PrimId::NONE.0, batch.len() as u32, 1.0);
+            gens[0].set(batch.len(), ray.origin.into(), ray.dir.into(), PrimId::NONE.0, batch.len() as u32, 1.0);
             batch.push(pixel);
         }
+        gens[0].n = batch.len();
         rays.primary += batch.len() as u64;
 
         // Down the tree, generation by generation.
         let mut last = 0;
         for depth in 0..=s.max_depth as usize {
-            if gens[depth].len() == 0 {
+            if gens[depth].n == 0 {
                 break;
             }
             last = depth;
@@ -291,15 +275,24 @@ fn trace_tile<const W: usize>(
             }
             let (done, rest) = gens.split_at_mut(depth + 1);
             let (cur, next) = (&mut done[depth], &mut rest[0]);
-            next.clear();
-            let n = cur.len();
-            let np = cur.load(W);
+            let n = cur.n;
+            let np = cur.pad(W);
             kernels::closest_hits::<W>(prims, &cur.rays, np, &mut cur.t, &mut cur.id);
             let o = [&cur.rays.ox[..np], &cur.rays.oy[..np], &cur.rays.oz[..np]];
             let d = [&cur.rays.dx[..np], &cur.rays.dy[..np], &cur.rays.dz[..np]];
             shade_lanes::<W>(world, tab, o, d, &cur.t[..np], &cur.id[..np], depth as u32, sh);
-            cur.colour.clear();
-            cur.colour.extend((0..n).map(|i| if sh.hit[i] { tab.ambient[sh.mat[i] as usize] } else { world.background }));
+            for c in 0..3 {
+                grow(&mut cur.colour[c], np);
+            }
+            {
+                let [cx, cy, cz] = &mut cur.colour;
+                let (cx, cy, cz) = (&mut cx[..n], &mut cy[..n], &mut cz[..n]);
+                let bg = world.background;
+                for (i, ((x, y), z)) in cx.iter_mut().zip(cy.iter_mut()).zip(cz.iter_mut()).enumerate() {
+                    let c = if sh.hit[i] { tab.ambient[sh.mat[i] as usize] } else { bg };
+                    (*x, *y, *z) = (c.x, c.y, c.z);
+                }
+            }
             // Shadow rays, light by light over all hits (in place: a ray not
             // wanted is a lane reported blocked). Each hit's lights are
             // added in light order, as `trace` adds them.
@@ -312,30 +305,40 @@ fn trace_tile<const W: usize>(
                 kernels::occluded::<W>(prims, o, d, &cur.id, &sh.light_t_max[r.clone()], on, blocked);
                 rays.shadow += on[..n].iter().map(|&b| b as u64).sum::<u64>();
                 let base = li * np;
+                let add = [&sh.light_contrib[0][base..base + n], &sh.light_contrib[1][base..base + n], &sh.light_contrib[2][base..base + n]];
+                let [cx, cy, cz] = &mut cur.colour;
+                let (cx, cy, cz) = (&mut cx[..n], &mut cy[..n], &mut cz[..n]);
+                let (on, bl) = (&on[..n], &blocked[..n]);
                 for i in 0..n {
-                    if on[i] & !blocked[i] {
-                        let j = base + i;
-                        cur.colour[i] += Vec3A::new(sh.light_contrib[0][j], sh.light_contrib[1][j], sh.light_contrib[2][j]);
+                    if on[i] & !bl[i] {
+                        cx[i] += add[0][i];
+                        cy[i] += add[1][i];
+                        cz[i] += add[2][i];
                     }
                 }
             }
             // The next generation, hit by hit: the refracted ray, then the
             // reflected one, as `trace` spawns them.
+            next.reserve(2 * n, W);
+            let mut k = 0;
             for i in 0..n {
                 let from = cur.id[i];
                 if sh.refract_on[i] {
                     let o = [sh.below[0][i], sh.below[1][i], sh.below[2][i]];
                     let d = [sh.refract_dir[0][i], sh.refract_dir[1][i], sh.refract_dir[2][i]];
-                    next.push(o, d, from, i as u32, sh.transparency[i]);
+                    next.set(k, o, d, from, i as u32, sh.transparency[i]);
+                    k += 1;
                     rays.refraction += 1;
                 }
                 if sh.reflect_w[i] > 0.0 {
                     let o = [sh.above[0][i], sh.above[1][i], sh.above[2][i]];
                     let d = [sh.reflect_dir[0][i], sh.reflect_dir[1][i], sh.reflect_dir[2][i]];
-                    next.push(o, d, from, i as u32, sh.reflect_w[i]);
+                    next.set(k, o, d, from, i as u32, sh.reflect_w[i]);
+                    k += 1;
                     rays.reflection += 1;
                 }
             }
+            next.n = k;
         }
         // Back up the tree: each ray's colour, weighted, into its parent's,
         // children in spawn order (refracted, then reflected), which is
@@ -343,12 +346,17 @@ fn trace_tile<const W: usize>(
         for g in (1..=last).rev() {
             let (upper, lower) = gens.split_at_mut(g);
             let (parents, children) = (&mut upper[g - 1], &lower[0]);
-            for i in 0..children.len() {
-                parents.colour[children.parent[i] as usize] += children.colour[i] * children.weight[i];
+            let m = children.n;
+            let (w, p) = (&children.weight[..m], &children.parent[..m]);
+            for (pc, cc) in parents.colour.iter_mut().zip(&children.colour) {
+                for ((&c, &w), &p) in cc[..m].iter().zip(w).zip(p) {
+                    pc[p as usize] += c * w;
+                }
             }
         }
-        for (&pixel, c) in batch.iter().zip(&gens[0].colour) {
-            film.add_sample::<f32>(pixel, [c.x, c.y, c.z]);
+        let [cx, cy, cz] = &gens[0].colour;
+        for (i, &pixel) in batch.iter().enumerate() {
+            film.add_sample::<f32>(pixel, [cx[i], cy[i], cz[i]]);
         }
     }
 }
