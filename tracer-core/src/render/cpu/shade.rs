@@ -27,6 +27,12 @@ pub struct Tables {
     prim_mat: Vec<u32>,
     spheres: usize,
     materials: usize,
+    /// Per entry of `prim_mat`: its geometry and its material's constants
+    /// together (one lookup per hit instead of two dependent ones) ...
+    ent: Vec<[f32; 9]>,
+    /// ... and per (light, entry), indexed `light * entries + entry`, the
+    /// light's diffuse and specular times the material's.
+    ent_light: Vec<[f32; 6]>,
 }
 
 impl Tables {
@@ -36,7 +42,7 @@ impl Tables {
         let none = world.materials.is_empty();
         let materials = world.materials.len().max(1);
         let zero = Vec3A::ZERO;
-        Tables {
+        let mut t = Tables {
             ambient: world.materials.iter().map(|m| world.ambient * m.ambient).chain(none.then_some(zero)).collect(),
             mat: (world.materials.iter().map(|m| [m.shininess, m.specular_cos_min, m.reflectivity, m.transparency, m.ior]))
                 .chain(none.then_some([0.0; 5]))
@@ -56,7 +62,21 @@ impl Tables {
             prim_mat: (world.spheres.iter().map(|s| s.material)).chain(world.planes.iter().map(|p| p.material)).chain([0]).collect(),
             spheres: world.spheres.len(),
             materials,
-        }
+            ent: Vec::new(),
+            ent_light: Vec::new(),
+        };
+        t.ent = t.prim_geom.iter().zip(&t.prim_mat).map(|(g, &m)| {
+            let c = t.mat[m as usize];
+            [g[0], g[1], g[2], g[3], c[0], c[1], c[2], c[3], c[4]]
+        }).collect();
+        t.ent_light = (0..world.lights.len())
+            .flat_map(|li| t.prim_mat.iter().map(move |&m| (li, m)))
+            .map(|(li, m)| {
+                let [d, s] = t.light_mat[li * t.materials + m as usize];
+                [d.x, d.y, d.z, s.x, s.y, s.z]
+            })
+            .collect();
+        t
     }
 
     /// Index of primitive `id` in `prim_geom` and `prim_mat`.
@@ -162,6 +182,7 @@ pub fn shade_lanes<const W: usize>(
         let (dx, dy, dz) = (arr::<W, _>(d[0], at), arr::<W, _>(d[1], at), arr::<W, _>(d[2], at));
         let tt = arr::<W, _>(t, at);
         // Gather (scalar, into lane arrays): primitive and material constants.
+        let mut ents = [0usize; W];
         let mut hit = [false; W];
         let mut sphere = [false; W];
         let mut mat = [0u32; W];
@@ -169,16 +190,16 @@ pub fn shade_lanes<const W: usize>(
         let mut mc = [[0.0f32; W]; 5];
         for l in 0..W {
             let e = tab.entry(PrimId(id[at + l]));
-            let (geom, m) = (tab.prim_geom[e], tab.prim_mat[e]);
+            let ent = tab.ent[e];
+            ents[l] = e;
             hit[l] = e < tab.prim_mat.len() - 1;
             sphere[l] = e < tab.spheres;
-            mat[l] = m;
-            let consts = tab.mat[m as usize];
+            mat[l] = tab.prim_mat[e];
             for k in 0..4 {
-                g[k][l] = geom[k];
+                g[k][l] = ent[k];
             }
             for k in 0..5 {
-                mc[k][l] = consts[k];
+                mc[k][l] = ent[4 + k];
             }
         }
         s.hit[at..at + W].copy_from_slice(&hit);
@@ -230,12 +251,13 @@ pub fn shade_lanes<const W: usize>(
         }
         for (li, lp) in tab.lights.iter().enumerate() {
             let base = li * n + at;
+            let entries = tab.ent.len();
+            let light = &tab.ent_light[li * entries..(li + 1) * entries];
             let mut lc = [[0.0f32; W]; 6];
             for l in 0..W {
-                let lm = tab.light_mat[li * tab.materials + mat[l] as usize];
-                for c in 0..3 {
-                    lc[c][l] = lm[0][c];
-                    lc[3 + c][l] = lm[1][c];
+                let lm = light[ents[l]];
+                for c in 0..6 {
+                    lc[c][l] = lm[c];
                 }
             }
             // Results in lane arrays, stored after the loop: indexing the
