@@ -27,9 +27,10 @@ pub struct Tables {
     prim_mat: Vec<u32>,
     spheres: usize,
     materials: usize,
-    /// Per entry of `prim_mat`: its geometry and its material's constants
-    /// together (one lookup per hit instead of two dependent ones) ...
-    ent: Vec<[f32; 9]>,
+    /// Per entry of `prim_mat`: its geometry, its material's constants and
+    /// the colour a ray starts from (ambient term; the background for the
+    /// miss entry), together: one lookup per hit ...
+    ent: Vec<[f32; 12]>,
     /// ... and per (light, entry), indexed `light * entries + entry`, the
     /// light's diffuse and specular times the material's.
     ent_light: Vec<[f32; 6]>,
@@ -65,10 +66,14 @@ impl Tables {
             ent: Vec::new(),
             ent_light: Vec::new(),
         };
-        t.ent = t.prim_geom.iter().zip(&t.prim_mat).map(|(g, &m)| {
-            let c = t.mat[m as usize];
-            [g[0], g[1], g[2], g[3], c[0], c[1], c[2], c[3], c[4]]
-        }).collect();
+        let last = t.prim_mat.len() - 1;
+        t.ent = (t.prim_geom.iter().zip(&t.prim_mat).enumerate())
+            .map(|(e, (g, &m))| {
+                let c = t.mat[m as usize];
+                let a = if e == last { world.background } else { t.ambient[m as usize] };
+                [g[0], g[1], g[2], g[3], c[0], c[1], c[2], c[3], c[4], a.x, a.y, a.z]
+            })
+            .collect();
         t.ent_light = (0..world.lights.len())
             .flat_map(|li| t.prim_mat.iter().map(move |&m| (li, m)))
             .map(|(li, m)| {
@@ -98,6 +103,8 @@ impl Tables {
 pub struct Shaded {
     /// Whether ray i hit anything, and the material it hit.
     pub hit: Vec<bool>,
+    /// The colour each ray starts from: the ambient term, or the background.
+    pub local: [Vec<f32>; 3],
     pub mat: Vec<u32>,
     /// Transparency of the material hit: the refracted ray's weight.
     pub transparency: Vec<f32>,
@@ -164,7 +171,7 @@ pub fn shade_lanes<const W: usize>(
     sized(&mut s.hit, n);
     sized(&mut s.mat, n);
     sized(&mut s.transparency, n);
-    for v in s.above.iter_mut().chain(s.below.iter_mut()).chain(s.refract_dir.iter_mut()).chain(s.reflect_dir.iter_mut()) {
+    for v in s.local.iter_mut().chain(s.above.iter_mut()).chain(s.below.iter_mut()).chain(s.refract_dir.iter_mut()).chain(s.reflect_dir.iter_mut()) {
         sized(v, n);
     }
     sized(&mut s.refract_on, n);
@@ -183,6 +190,7 @@ pub fn shade_lanes<const W: usize>(
         let tt = arr::<W, _>(t, at);
         // Gather (scalar, into lane arrays): primitive and material constants.
         let mut ents = [0usize; W];
+        let mut local = [[0.0f32; W]; 3];
         let mut hit = [false; W];
         let mut sphere = [false; W];
         let mut mat = [0u32; W];
@@ -201,8 +209,14 @@ pub fn shade_lanes<const W: usize>(
             for k in 0..5 {
                 mc[k][l] = ent[4 + k];
             }
+            for c in 0..3 {
+                local[c][l] = ent[9 + c];
+            }
         }
         s.hit[at..at + W].copy_from_slice(&hit);
+        for c in 0..3 {
+            s.local[c][at..at + W].copy_from_slice(&local[c]);
+        }
         s.mat[at..at + W].copy_from_slice(&mat);
         s.transparency[at..at + W].copy_from_slice(&mc[3]);
         let mut p = [[0.0f32; W]; 3];

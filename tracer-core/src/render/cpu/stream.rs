@@ -281,17 +281,10 @@ fn trace_tile<const W: usize>(
             let o = [&cur.rays.ox[..np], &cur.rays.oy[..np], &cur.rays.oz[..np]];
             let d = [&cur.rays.dx[..np], &cur.rays.dy[..np], &cur.rays.dz[..np]];
             shade_lanes::<W>(world, tab, o, d, &cur.t[..np], &cur.id[..np], depth as u32, sh);
-            for c in 0..3 {
-                grow(&mut cur.colour[c], np);
-            }
-            {
-                let [cx, cy, cz] = &mut cur.colour;
-                let (cx, cy, cz) = (&mut cx[..n], &mut cy[..n], &mut cz[..n]);
-                let bg = world.background;
-                for (i, ((x, y), z)) in cx.iter_mut().zip(cy.iter_mut()).zip(cz.iter_mut()).enumerate() {
-                    let c = if sh.hit[i] { tab.ambient[sh.mat[i] as usize] } else { bg };
-                    (*x, *y, *z) = (c.x, c.y, c.z);
-                }
+            // The local colours become this generation's (the buffers swap:
+            // shading overwrites them next time).
+            for (cc, sc) in cur.colour.iter_mut().zip(&mut sh.local) {
+                std::mem::swap(cc, sc);
             }
             // Shadow rays, light by light over all hits (in place: a ray not
             // wanted is a lane reported blocked). Each hit's lights are
