@@ -314,23 +314,35 @@ fn trace_tile<const W: usize>(
             // reflected one, as `trace` spawns them.
             next.reserve(2 * n, W);
             let mut k = 0;
-            for i in 0..n {
-                let from = cur.id[i];
-                if sh.refract_on[i] {
-                    let o = [sh.below[0][i], sh.below[1][i], sh.below[2][i]];
-                    let d = [sh.refract_dir[0][i], sh.refract_dir[1][i], sh.refract_dir[2][i]];
-                    next.set(k, o, d, from, i as u32, sh.transparency[i]);
-                    k += 1;
-                    rays.refraction += 1;
-                }
-                if sh.reflect_w[i] > 0.0 {
-                    let o = [sh.above[0][i], sh.above[1][i], sh.above[2][i]];
-                    let d = [sh.reflect_dir[0][i], sh.reflect_dir[1][i], sh.reflect_dir[2][i]];
-                    next.set(k, o, d, from, i as u32, sh.reflect_w[i]);
-                    k += 1;
-                    rays.reflection += 1;
+            {
+                // Sliced to their lengths up front, so that the loop's
+                // indexing is checked once, not per ray and array.
+                let r = &mut next.rays;
+                let cap = 2 * n;
+                let (nox, noy, noz) = (&mut r.ox[..cap], &mut r.oy[..cap], &mut r.oz[..cap]);
+                let (ndx, ndy, ndz) = (&mut r.dx[..cap], &mut r.dy[..cap], &mut r.dz[..cap]);
+                let (nskip, nparent, nweight) = (&mut r.skip[..cap], &mut next.parent[..cap], &mut next.weight[..cap]);
+                let (ids, refract_on, transparency, reflect_w) = (&cur.id[..n], &sh.refract_on[..n], &sh.transparency[..n], &sh.reflect_w[..n]);
+                let (below, rd) = (sh.below.each_ref().map(|v| &v[..n]), sh.refract_dir.each_ref().map(|v| &v[..n]));
+                let (above, fd) = (sh.above.each_ref().map(|v| &v[..n]), sh.reflect_dir.each_ref().map(|v| &v[..n]));
+                for i in 0..n {
+                    if refract_on[i] {
+                        (nox[k], noy[k], noz[k]) = (below[0][i], below[1][i], below[2][i]);
+                        (ndx[k], ndy[k], ndz[k]) = (rd[0][i], rd[1][i], rd[2][i]);
+                        (nskip[k], nparent[k], nweight[k]) = (ids[i], i as u32, transparency[i]);
+                        k += 1;
+                    }
+                    if reflect_w[i] > 0.0 {
+                        (nox[k], noy[k], noz[k]) = (above[0][i], above[1][i], above[2][i]);
+                        (ndx[k], ndy[k], ndz[k]) = (fd[0][i], fd[1][i], fd[2][i]);
+                        (nskip[k], nparent[k], nweight[k]) = (ids[i], i as u32, reflect_w[i]);
+                        k += 1;
+                    }
                 }
             }
+            let refractions = sh.refract_on[..n].iter().map(|&b| b as u64).sum::<u64>();
+            rays.refraction += refractions;
+            rays.reflection += k as u64 - refractions;
             next.n = k;
         }
         // Back up the tree: each ray's colour, weighted, into its parent's,
