@@ -160,9 +160,10 @@ pub fn occluded<const W: usize>(prims: &Prims, o: [&[f32]; 3], d: [&[f32]; 3], s
         let tm: [f32; W] = lanes(t_max, at);
         // Lane masks as u32 (0 or 1): their AND-reduction is a few vector
         // instructions, where one over bools is a chain of scalar tests.
+        let act: &[bool; W] = active[at..at + W].try_into().expect("lane group inside the padded queue");
         let mut blocked = [0u32; W];
         for l in 0..W {
-            blocked[l] = !active[at + l] as u32;
+            blocked[l] = !act[l] as u32;
         }
         let all = |b: &[u32; W]| b.iter().fold(1, |a, &x| a & x) != 0;
         'group: {
@@ -189,8 +190,9 @@ pub fn occluded<const W: usize>(prims: &Prims, o: [&[f32]; 3], d: [&[f32]; 3], s
                 }
             }
         }
+        let out: &mut [bool; W] = (&mut out[at..at + W]).try_into().expect("lane group inside the padded queue");
         for l in 0..W {
-            out[at + l] = blocked[l] != 0;
+            out[l] = blocked[l] != 0;
         }
     }
 }

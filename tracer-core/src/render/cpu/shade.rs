@@ -189,6 +189,7 @@ pub fn shade_lanes<const W: usize>(
         let (dx, dy, dz) = (arr::<W, _>(d[0], at), arr::<W, _>(d[1], at), arr::<W, _>(d[2], at));
         let tt = arr::<W, _>(t, at);
         // Gather (scalar, into lane arrays): primitive and material constants.
+        let ids = arr::<W, _>(id, at);
         let mut ents = [0usize; W];
         let mut local = [[0.0f32; W]; 3];
         let mut hit = [false; W];
@@ -197,7 +198,7 @@ pub fn shade_lanes<const W: usize>(
         let mut g = [[0.0f32; W]; 4];
         let mut mc = [[0.0f32; W]; 5];
         for l in 0..W {
-            let e = tab.entry(PrimId(id[at + l]));
+            let e = tab.entry(PrimId(ids[l]));
             let ent = tab.ent[e];
             ents[l] = e;
             hit[l] = e < tab.prim_mat.len() - 1;
