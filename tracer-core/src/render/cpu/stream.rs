@@ -353,10 +353,18 @@ fn trace_tile<const W: usize>(
             let (parents, children) = (&mut upper[g - 1], &lower[0]);
             let m = children.n;
             let (w, p) = (&children.weight[..m], &children.parent[..m]);
-            for (pc, cc) in parents.colour.iter_mut().zip(&children.colour) {
-                for ((&c, &w), &p) in cc[..m].iter().zip(w).zip(p) {
-                    pc[p as usize] += c * w;
-                }
+            let [px, py, pz] = &mut parents.colour;
+            let (px, py, pz) = (&mut px[..parents.n], &mut py[..parents.n], &mut pz[..parents.n]);
+            let [cx, cy, cz] = &children.colour;
+            let (cx, cy, cz) = (&cx[..m], &cy[..m], &cz[..m]);
+            // One pass over the children for all three components, over
+            // slices cut to length first (checked indexing per element
+            // cost more than the arithmetic).
+            for i in 0..m {
+                let (p, w) = (p[i] as usize, w[i]);
+                px[p] += cx[i] * w;
+                py[p] += cy[i] * w;
+                pz[p] += cz[i] * w;
             }
         }
         let [cx, cy, cz] = &gens[0].colour;
