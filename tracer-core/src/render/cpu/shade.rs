@@ -215,8 +215,8 @@ pub fn shade_lanes<const W: usize>(
             }
         }
         s.hit[at..at + W].copy_from_slice(&hit);
-        for c in 0..3 {
-            s.local[c][at..at + W].copy_from_slice(&local[c]);
+        for (to, from) in s.local.iter_mut().zip(&local) {
+            to[at..at + W].copy_from_slice(from);
         }
         s.mat[at..at + W].copy_from_slice(&mat);
         s.transparency[at..at + W].copy_from_slice(&mc[3]);
