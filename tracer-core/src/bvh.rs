@@ -322,7 +322,8 @@ fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
             bin.count += 1;
         }
     }
-    let mut best: Option<(f32, usize, usize)> = None;
+    // Best (cost, axis, bin); bin 0 means none yet (a split has bin >= 1).
+    let (mut best_cost, mut best_axis, mut best_bin) = (f32::INFINITY, 0usize, 0usize);
     for (axis, bins) in bins.iter().enumerate() {
         // Sweep from the right to get the cost of each right side.
         let mut right_area = [0.0f32; BINS];
@@ -341,16 +342,18 @@ fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
             acc.grow(&bins[b].bounds);
             cnt += bins[b].count;
             let rc = right_count[b + 1];
-            if cnt == 0 || rc == 0 {
-                continue;
-            }
             let cost = acc.half_area() * cnt as f32 + right_area[b + 1] * rc as f32;
-            if best.is_none_or(|(c, _, _)| cost < c) {
-                best = Some((cost, axis, b + 1));
-            }
+            // Branch-free: which bin wins is data-dependent and mispredicts.
+            let better = cnt != 0 && rc != 0 && (cost < best_cost || best_bin == 0);
+            best_cost = if better { cost } else { best_cost };
+            best_axis = if better { axis } else { best_axis };
+            best_bin = if better { b + 1 } else { best_bin };
         }
     }
-    let (cost, axis, bin) = best?;
+    if best_bin == 0 {
+        return None;
+    }
+    let (cost, axis, bin) = (best_cost, best_axis, best_bin);
     let parent = bounds.half_area();
     let split_cost = COST_TRAVERSE + COST_INTERSECT * cost / parent;
     let leaf_cost = COST_INTERSECT * n as f32;
