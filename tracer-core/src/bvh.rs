@@ -148,11 +148,25 @@ impl BuildNode {
     }
 }
 
-struct Input<'a> {
-    boxes: &'a [Aabb],
-    centroids: &'a [Vec3A],
-    /// Traversal stack entries: leaves may be at most `stack - 1` deep.
-    stack: usize,
+/// The primitives of a subtree under construction: their boxes and their
+/// indices into the caller's arrays, permuted together. Boxes are moved
+/// rather than indexed so that binning and partitioning stream through
+/// memory (an index array into 28 MB of boxes misses the cache on every
+/// access for a large mesh).
+struct Prims<'a> {
+    boxes: &'a mut [Aabb],
+    order: &'a mut [u32],
+}
+
+impl<'a> Prims<'a> {
+    fn len(&self) -> usize {
+        self.boxes.len()
+    }
+    fn split_at(self, mid: usize) -> (Prims<'a>, Prims<'a>) {
+        let (bl, br) = self.boxes.split_at_mut(mid);
+        let (ol, or) = self.order.split_at_mut(mid);
+        (Prims { boxes: bl, order: ol }, Prims { boxes: br, order: or })
+    }
 }
 
 fn ceil_log2(n: usize) -> usize {
@@ -175,11 +189,11 @@ impl Bvh {
         if boxes.is_empty() {
             return Bvh::default();
         }
-        let centroids: Vec<Vec3A> = boxes.iter().map(Aabb::centroid).collect();
-        let input = Input { boxes, centroids: &centroids, stack };
+        let mut work: Vec<Aabb> = boxes.to_vec();
         let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
-        let (bounds, cbounds) = bounds_of(&input, &order);
-        let root = build_node(&input, &mut order, 0, 0, bounds, cbounds);
+        let (bounds, cbounds) = bounds_of(&work);
+        let prims = Prims { boxes: &mut work, order: &mut order };
+        let root = build_node(stack, prims, 0, 0, bounds, cbounds);
 
         let mut nodes = Vec::with_capacity(2 * boxes.len());
         nodes.push(BvhNode::default());
@@ -207,44 +221,47 @@ impl Bvh {
     }
 }
 
-fn bounds_of(input: &Input, idx: &[u32]) -> (Aabb, Aabb) {
+fn bounds_of(boxes: &[Aabb]) -> (Aabb, Aabb) {
     let mut b = Aabb::EMPTY;
     let mut c = Aabb::EMPTY;
-    for &i in idx {
-        b.grow(&input.boxes[i as usize]);
-        c.grow_point(input.centroids[i as usize]);
+    for p in boxes {
+        b.grow(p);
+        c.grow_point(p.centroid());
     }
     (b, c)
 }
 
-/// Builds the subtree over `idx` (a slice of `order` starting at `offset`),
-/// at depth `depth`, partitioning `idx` in place. `bounds` and `cbounds`
-/// bound the primitives' boxes and centroids.
-fn build_node(input: &Input, idx: &mut [u32], offset: usize, depth: usize, bounds: Aabb, cbounds: Aabb) -> BuildNode {
-    let n = idx.len();
+/// Builds the subtree over `prims` (which start at `offset` in the final
+/// order), at depth `depth`, partitioning them in place. `bounds` and
+/// `cbounds` bound the primitives' boxes and centroids; `stack` is the
+/// traversal stack size (leaves at most `stack - 1` deep).
+fn build_node(stack: usize, prims: Prims, offset: usize, depth: usize, bounds: Aabb, cbounds: Aabb) -> BuildNode {
+    let n = prims.len();
     if n == 1 {
         return BuildNode::Leaf { bounds, start: offset, count: 1 };
     }
     // Depth budget: median splits finish any subtree within ceil(log2 n)
     // more levels, so use them once the SAH could overrun the stack.
-    let median = depth + ceil_log2(n) >= input.stack - 1;
-    let split = if median { None } else { sah_split(input, idx, &bounds, &cbounds) };
+    let median = depth + ceil_log2(n) >= stack - 1;
+    let split = if median { None } else { sah_split(prims.boxes, &bounds, &cbounds) };
+    let mut prims = prims;
     let (mid, lb, rb) = match split {
         Some(Split::Leaf) => return BuildNode::Leaf { bounds, start: offset, count: n },
         Some(Split::Bin { axis, bin, lo, scale, left, right }) => {
-            (partition_bins(input, idx, axis, bin, lo, scale), left, right)
+            let (mid, lc, rc) = partition_bins(&mut prims, axis, bin, lo, scale);
+            (mid, (left, lc), (right, rc))
         }
         None => {
             if !median && n <= MAX_LEAF {
                 return BuildNode::Leaf { bounds, start: offset, count: n };
             }
-            let mid = median_split(input, idx, &cbounds);
-            (mid, bounds_of(input, &idx[..mid]), bounds_of(input, &idx[mid..]))
+            let mid = median_split(&mut prims, &cbounds);
+            (mid, bounds_of(&prims.boxes[..mid]), bounds_of(&prims.boxes[mid..]))
         }
     };
-    let (left, right) = idx.split_at_mut(mid);
-    let mut build_l = move || build_node(input, left, offset, depth + 1, lb.0, lb.1);
-    let mut build_r = move || build_node(input, right, offset + mid, depth + 1, rb.0, rb.1);
+    let (left, right) = prims.split_at(mid);
+    let build_l = move || build_node(stack, left, offset, depth + 1, lb.0, lb.1);
+    let build_r = move || build_node(stack, right, offset + mid, depth + 1, rb.0, rb.1);
     let (l, r) = if n >= PARALLEL_MIN { rayon::join(build_l, build_r) } else { (build_l(), build_r()) };
     BuildNode::Inner { bounds, children: Box::new([l, r]), median }
 }
@@ -252,27 +269,41 @@ fn build_node(input: &Input, idx: &mut [u32], offset: usize, depth: usize, bound
 enum Split {
     Leaf,
     /// Primitives whose centroid bins below `bin` on `axis` go left; the
-    /// binning (`lo`, `scale`) and both sides' (box, centroid) bounds.
-    Bin { axis: usize, bin: usize, lo: f32, scale: f32, left: (Aabb, Aabb), right: (Aabb, Aabb) },
+    /// binning (`lo`, `scale`) and both sides' box bounds.
+    Bin { axis: usize, bin: usize, lo: Vec3A, scale: Vec3A, left: Aabb, right: Aabb },
 }
 
-#[inline]
-fn bin_of(c: f32, lo: f32, scale: f32) -> usize {
-    (((c - lo) * scale) as usize).min(BINS - 1)
+/// Bins of a centroid on the three axes: `(c - lo) * scale` truncated and
+/// clamped to [0, BINS - 1] (NaN lands in the last bin). The one function
+/// both binning and partitioning use, so their counts agree.
+#[inline(always)]
+fn bins_of(c: Vec3A, lo: Vec3A, scale: Vec3A) -> [usize; 3] {
+    // `min` first: SSE's min returns its second operand for a NaN.
+    let f = ((c - lo) * scale).min(Vec3A::splat((BINS - 1) as f32)).max(Vec3A::ZERO);
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{__m128, __m128i, _mm_cvttps_epi32};
+        // SAFETY: SSE2 is part of x86_64; both types are 16 plain bytes.
+        let i: [i32; 4] = unsafe { std::mem::transmute::<__m128i, [i32; 4]>(_mm_cvttps_epi32(__m128::from(f))) };
+        [i[0] as usize, i[1] as usize, i[2] as usize]
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        [f.x as usize, f.y as usize, f.z as usize]
+    }
 }
 
 #[derive(Clone, Copy)]
 struct Bin {
     bounds: Aabb,
-    centroids: Aabb,
     count: u32,
 }
 
 /// Best binned SAH split over the three axes, `Leaf` when a leaf is cheaper
 /// (and allowed), `None` when the centroids cannot be separated by bins.
 /// One pass over the primitives bins all three axes at once.
-fn sah_split(input: &Input, idx: &[u32], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
-    let n = idx.len();
+fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
+    let n = boxes.len();
     let lo = cbounds.min;
     let extent = cbounds.max - lo;
     // Axes with no spread (or one too small to bin) get scale 0: every
@@ -281,20 +312,18 @@ fn sah_split(input: &Input, idx: &[u32], bounds: &Aabb, cbounds: &Aabb) -> Optio
         let s = BINS as f32 * (1.0 - 1e-6) / extent[a];
         if extent[a] > 0.0 && s.is_finite() { s } else { 0.0 }
     }));
-    let empty = Bin { bounds: Aabb::EMPTY, centroids: Aabb::EMPTY, count: 0 };
+    let empty = Bin { bounds: Aabb::EMPTY, count: 0 };
     let mut bins = [[empty; BINS]; 3];
-    for &i in idx {
-        let c = input.centroids[i as usize];
-        let b = input.boxes[i as usize];
-        let f = (c - lo) * scale;
+    for b in boxes {
+        let k = bins_of(b.centroid(), lo, scale);
         for axis in 0..3 {
-            let bin = &mut bins[axis][(f[axis] as usize).min(BINS - 1)];
-            bin.bounds.grow(&b);
-            bin.centroids.grow_point(c);
+            let bin = &mut bins[axis][k[axis]];
+            bin.bounds.grow(b);
             bin.count += 1;
         }
     }
-    let mut best: Option<(f32, usize, usize)> = None;
+    // Best (cost, axis, bin); bin 0 means none yet (a split has bin >= 1).
+    let (mut best_cost, mut best_axis, mut best_bin) = (f32::INFINITY, 0usize, 0usize);
     for (axis, bins) in bins.iter().enumerate() {
         // Sweep from the right to get the cost of each right side.
         let mut right_area = [0.0f32; BINS];
@@ -313,16 +342,18 @@ fn sah_split(input: &Input, idx: &[u32], bounds: &Aabb, cbounds: &Aabb) -> Optio
             acc.grow(&bins[b].bounds);
             cnt += bins[b].count;
             let rc = right_count[b + 1];
-            if cnt == 0 || rc == 0 {
-                continue;
-            }
             let cost = acc.half_area() * cnt as f32 + right_area[b + 1] * rc as f32;
-            if best.is_none_or(|(c, _, _)| cost < c) {
-                best = Some((cost, axis, b + 1));
-            }
+            // Branch-free: which bin wins is data-dependent and mispredicts.
+            let better = cnt != 0 && rc != 0 && (cost < best_cost || best_bin == 0);
+            best_cost = if better { cost } else { best_cost };
+            best_axis = if better { axis } else { best_axis };
+            best_bin = if better { b + 1 } else { best_bin };
         }
     }
-    let (cost, axis, bin) = best?;
+    if best_bin == 0 {
+        return None;
+    }
+    let (cost, axis, bin) = (best_cost, best_axis, best_bin);
     let parent = bounds.half_area();
     let split_cost = COST_TRAVERSE + COST_INTERSECT * cost / parent;
     let leaf_cost = COST_INTERSECT * n as f32;
@@ -331,40 +362,68 @@ fn sah_split(input: &Input, idx: &[u32], bounds: &Aabb, cbounds: &Aabb) -> Optio
         return Some(Split::Leaf);
     }
     let side = |range: std::ops::Range<usize>| {
-        let mut b = (Aabb::EMPTY, Aabb::EMPTY);
+        let mut b = Aabb::EMPTY;
         for k in range {
-            b.0.grow(&bins[axis][k].bounds);
-            b.1.grow(&bins[axis][k].centroids);
+            b.grow(&bins[axis][k].bounds);
         }
         b
     };
-    Some(Split::Bin { axis, bin, lo: lo[axis], scale: scale[axis], left: side(0..bin), right: side(bin..BINS) })
+    Some(Split::Bin { axis, bin, lo, scale, left: side(0..bin), right: side(bin..BINS) })
 }
 
-/// Moves primitives of bins < `bin` to the front; returns how many. Bins
-/// are computed exactly as in [`sah_split`], so the counts match.
-fn partition_bins(input: &Input, idx: &mut [u32], axis: usize, bin: usize, lo: f32, scale: f32) -> usize {
-    let mut mid = 0;
-    for k in 0..idx.len() {
-        if bin_of(input.centroids[idx[k] as usize][axis], lo, scale) < bin {
-            idx.swap(k, mid);
-            mid += 1;
+/// Moves primitives of bins < `bin` to the front; returns how many and the
+/// centroid bounds of both sides (gathered here rather than per bin: one
+/// box grow per primitive instead of three). Bins are computed exactly as
+/// in [`sah_split`], so the counts match.
+fn partition_bins(prims: &mut Prims, axis: usize, bin: usize, lo: Vec3A, scale: Vec3A) -> (usize, Aabb, Aabb) {
+    let (mut lc, mut rc) = (Aabb::EMPTY, Aabb::EMPTY);
+    // Classifies a box, growing its side's centroid bounds.
+    let mut left = |b: &Aabb| {
+        let c = b.centroid();
+        let l = bins_of(c, lo, scale)[axis] < bin;
+        if l { lc.grow_point(c) } else { rc.grow_point(c) }
+        l
+    };
+    // Hoare's scheme: each primitive is classified once, each misplaced pair swapped once.
+    let (mut i, mut j) = (0, prims.len());
+    loop {
+        while i < j && left(&prims.boxes[i]) {
+            i += 1;
         }
+        if i == j {
+            break;
+        }
+        // boxes[i] goes right (and is counted so); find a left one from the end.
+        j -= 1;
+        while i < j && !left(&prims.boxes[j]) {
+            j -= 1;
+        }
+        if i == j {
+            break;
+        }
+        prims.boxes.swap(i, j);
+        prims.order.swap(i, j);
+        i += 1;
     }
-    debug_assert!(mid > 0 && mid < idx.len());
-    mid
+    debug_assert!(i > 0 && i < prims.len());
+    (i, lc, rc)
 }
 
-/// Halves `idx` by count along the widest centroid axis (by index order when
-/// all centroids coincide): always makes progress, whatever the geometry.
-fn median_split(input: &Input, idx: &mut [u32], cbounds: &Aabb) -> usize {
-    let mid = idx.len() / 2;
+/// Halves the primitives by count along the widest centroid axis (in their
+/// current order when all centroids coincide): always makes progress,
+/// whatever the geometry. Rare (degenerate or depth-limited subtrees), so it
+/// sorts pairs in a scratch vector.
+fn median_split(prims: &mut Prims, cbounds: &Aabb) -> usize {
+    let mid = prims.len() / 2;
     let ext = cbounds.max - cbounds.min;
     let axis = if ext.x >= ext.y && ext.x >= ext.z { 0 } else if ext.y >= ext.z { 1 } else { 2 };
     if ext[axis] > 0.0 {
-        idx.select_nth_unstable_by(mid, |&a, &b| {
-            input.centroids[a as usize][axis].total_cmp(&input.centroids[b as usize][axis])
-        });
+        let mut pairs: Vec<(Aabb, u32)> = prims.boxes.iter().copied().zip(prims.order.iter().copied()).collect();
+        pairs.select_nth_unstable_by(mid, |a, b| a.0.centroid()[axis].total_cmp(&b.0.centroid()[axis]));
+        for (k, (b, o)) in pairs.into_iter().enumerate() {
+            prims.boxes[k] = b;
+            prims.order[k] = o;
+        }
     }
     mid
 }
@@ -417,12 +476,36 @@ impl<R: Real> BoxRay<R> {
     /// traversal") so that rounding never culls a box the ray grazes.
     #[inline(always)]
     fn hit(&self, node: &BvhNode, t_max: R) -> Option<R> {
-        let lo = (load::<R>(&node.min) - self.origin) * self.inv;
-        let hi = (load::<R>(&node.max) - self.origin) * self.inv;
+        let (min, max) = load_box::<R>(node);
+        let lo = (min - self.origin) * self.inv;
+        let hi = (max - self.origin) * self.inv;
         let t0 = lo.min(hi).max_element().max(R::ZERO);
         let t1 = lo.max(hi).min_element() * R::from_f64(1.000_000_4);
         (t0 <= t1 && t0 <= t_max).then_some(t0)
     }
+}
+
+/// A node's box in the ray's precision. In `f32` on x86_64: two 16-byte
+/// loads with the fourth lane (`first`, `count`) zeroed, rather than six
+/// scalar loads and shuffles (zeroed, not ignored: as floats those integers
+/// are denormals, which slow arithmetic down even in an unused lane).
+#[inline(always)]
+fn load_box<R: Real>(node: &BvhNode) -> (R::V3, R::V3) {
+    #[cfg(target_arch = "x86_64")]
+    if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>() {
+        use std::arch::x86_64::{_mm_and_ps, _mm_castsi128_ps, _mm_loadu_ps, _mm_set_epi32};
+        // SAFETY: a node is 8 plain 4-byte fields, min then first, max then
+        // count (`#[repr(C)]`); SSE2 is part of x86_64; R is f32, whose V3
+        // is Vec3A, so the copies below are Vec3A to Vec3A.
+        unsafe {
+            let p = node as *const BvhNode as *const f32;
+            let xyz = _mm_castsi128_ps(_mm_set_epi32(0, -1, -1, -1));
+            let min = Vec3A::from(_mm_and_ps(_mm_loadu_ps(p), xyz));
+            let max = Vec3A::from(_mm_and_ps(_mm_loadu_ps(p.add(4)), xyz));
+            return (std::mem::transmute_copy::<Vec3A, R::V3>(&min), std::mem::transmute_copy::<Vec3A, R::V3>(&max));
+        }
+    }
+    (load::<R>(&node.min), load::<R>(&node.max))
 }
 
 #[inline(always)]

@@ -10,15 +10,14 @@
 
 use crate::math::{Ray, Real, Vector3};
 
-/// A triangle as the intersection test wants it: its vertices' x, y and z
-/// coordinates, vertex i in lane i (48 bytes in `f32`), so the test works
-/// on all three vertices at once. Kept apart from shading data so traversal
+/// A triangle as the intersection test wants it: `axes[k]` holds its
+/// vertices' coordinates on axis k, vertex i in lane i (48 bytes in `f32`),
+/// so the test works on all three vertices at once and picks the axes in
+/// the ray's order by index. Kept apart from shading data so traversal
 /// touches only these.
 #[derive(Clone, Copy, Debug)]
 pub struct Triangle<R: Real> {
-    xs: R::V3,
-    ys: R::V3,
-    zs: R::V3,
+    axes: [R::V3; 3],
 }
 
 /// What shading needs of a triangle once it has been hit.
@@ -31,17 +30,19 @@ pub struct TriangleShading<R: Real> {
     pub material: u32,
 }
 
-/// Per-ray precomputation of the watertight test: the origin and the
-/// ray-aligned shear written as three rows, so that a vertex's transformed
-/// coordinates are `row . (v - origin)`. Each row has one entry 1 (or Sz)
-/// and at most one other non-zero entry, so this rounds exactly like the
-/// paper's `A[kx] - Sx * A[kz]` (the other products are exact zeros).
+/// Per-ray precomputation of the watertight test: the axes in the ray's
+/// order (kx, ky, kz), and the origin and shear along them, each splatted
+/// over three lanes, so that a triangle's sheared vertices are
+/// `A[kx] - Sx * A[kz]`, `A[ky] - Sy * A[kz]`, `Sz * A[kz]` (A = vertex -
+/// origin), rounded as in the paper.
 #[derive(Clone, Copy, Debug)]
 pub struct TriangleRay<R: Real> {
-    origin: [R; 3],
-    row_x: [R; 3],
-    row_y: [R; 3],
-    row_z: [R; 3],
+    /// kx, ky, kz: each < 3.
+    k: [usize; 3],
+    /// Origin on kx, ky, kz.
+    o: [R::V3; 3],
+    /// Sx, Sy, Sz.
+    s: [R::V3; 3],
 }
 
 impl<R: Real> TriangleRay<R> {
@@ -64,33 +65,29 @@ impl<R: Real> TriangleRay<R> {
         }
         let sz = R::ONE / d[kz];
         let (sx, sy) = (d[kx] * sz, d[ky] * sz);
-        let mut row_x = [R::ZERO; 3];
-        let mut row_y = [R::ZERO; 3];
-        let mut row_z = [R::ZERO; 3];
-        row_x[kx] = R::ONE;
-        row_x[kz] = -sx;
-        row_y[ky] = R::ONE;
-        row_y[kz] = -sy;
-        row_z[kz] = sz;
-        TriangleRay { origin: [ray.origin.x(), ray.origin.y(), ray.origin.z()], row_x, row_y, row_z }
+        let o = [ray.origin.x(), ray.origin.y(), ray.origin.z()];
+        TriangleRay {
+            k: [kx, ky, kz],
+            o: [kx, ky, kz].map(|k| R::V3::splat(o[k])),
+            s: [sx, sy, sz].map(R::V3::splat),
+        }
     }
 }
 
 impl<R: Real> Triangle<R> {
     pub fn new(v: [R::V3; 3]) -> Self {
         Triangle {
-            xs: R::V3::new(v[0].x(), v[1].x(), v[2].x()),
-            ys: R::V3::new(v[0].y(), v[1].y(), v[2].y()),
-            zs: R::V3::new(v[0].z(), v[1].z(), v[2].z()),
+            axes: [
+                R::V3::new(v[0].x(), v[1].x(), v[2].x()),
+                R::V3::new(v[0].y(), v[1].y(), v[2].y()),
+                R::V3::new(v[0].z(), v[1].z(), v[2].z()),
+            ],
         }
     }
 
     pub fn vertices(&self) -> [R::V3; 3] {
-        [
-            R::V3::new(self.xs.x(), self.ys.x(), self.zs.x()),
-            R::V3::new(self.xs.y(), self.ys.y(), self.zs.y()),
-            R::V3::new(self.xs.z(), self.ys.z(), self.zs.z()),
-        ]
+        let [xs, ys, zs] = self.axes;
+        [R::V3::new(xs.x(), ys.x(), zs.x()), R::V3::new(xs.y(), ys.y(), zs.y()), R::V3::new(xs.z(), ys.z(), zs.z())]
     }
 
     /// Distance to the hit in (0, t_max), or `None`. Degenerate triangles
@@ -98,12 +95,11 @@ impl<R: Real> Triangle<R> {
     #[inline(always)]
     pub fn intersect(&self, r: &TriangleRay<R>, t_max: R) -> Option<R> {
         // Vertices relative to the origin (lane i: vertex i), then sheared.
-        let dx = self.xs - R::V3::splat(r.origin[0]);
-        let dy = self.ys - R::V3::splat(r.origin[1]);
-        let dz = self.zs - R::V3::splat(r.origin[2]);
-        let row = |w: &[R; 3]| dx * w[0] + dy * w[1] + dz * w[2];
-        let x = row(&r.row_x); // (ax, bx, cx)
-        let y = row(&r.row_y); // (ay, by, cy)
+        // SAFETY: `TriangleRay::new` makes every entry of `k` 0, 1 or 2.
+        let axis = |i: usize| unsafe { *self.axes.get_unchecked(r.k[i]) };
+        let dz = axis(2) - r.o[2];
+        let x = (axis(0) - r.o[0]) - dz * r.s[0]; // (ax, bx, cx)
+        let y = (axis(1) - r.o[1]) - dz * r.s[1]; // (ay, by, cy)
         // Edge functions (u, v, w) = (cx by - cy bx, ax cy - ay cx, bx ay - by ax).
         let x1 = R::V3::new(x.z(), x.x(), x.y());
         let y1 = R::V3::new(y.y(), y.z(), y.x());
@@ -129,7 +125,7 @@ impl<R: Real> Triangle<R> {
         if det == R::ZERO {
             return None;
         }
-        let z = row(&r.row_z); // (az, bz, cz)
+        let z = dz * r.s[2]; // (az, bz, cz)
         let t_scaled = uvw.dot(z);
         // t = t_scaled / det must lie in (0, t_max); test before dividing.
         let inside = if det > R::ZERO {
