@@ -117,7 +117,7 @@ impl<R: Real> SpherePack<R> {
         spheres
             .chunks(4)
             .map(|c| {
-                let nan = R::ZERO / R::ZERO;
+                let nan = R::from_f64(f64::NAN);
                 let lane = |f: &dyn Fn(&Sphere<R>) -> R, pad: R| {
                     let mut a = [pad; 4];
                     for (j, s) in c.iter().enumerate() {
