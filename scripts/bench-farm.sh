@@ -4,7 +4,8 @@
 #
 #   scripts/bench-farm.sh [MAX_WORKERS] [THREADS_PER_WORKER]
 #   env: SCENE (examples/resolution.toml) WIDTH (1920) HEIGHT (1080) SAMPLES (64)
-#        LOAD_CLIENTS (64) LOAD_SECONDS (10)
+#        LOAD_CLIENTS (64) LOAD_SECONDS (10) COUNTS (worker counts; default 1..MAX_WORKERS)
+#        LOAD_SECONDS=0 skips the result-throughput load
 #
 # For each worker count it reports wall time of the job (submit to done),
 # speed-up and parallel efficiency relative to 1 worker, the coordinator's
@@ -12,7 +13,8 @@
 # work unit (results on the wire, from /proc/PID/io wchar), how busy the
 # workers' renderers were (sum of the units' render times, from the
 # workers' JSON debug logs, over workers x wall time: the rest is waiting
-# on the network, start-up and the job's tail), and finally the
+# on the network, start-up and the job's tail; scripts/farm-timeline.py
+# breaks it down per worker from the same logs), and finally the
 # result messages per second the coordinator accepts from the load generator
 # (coordinator/examples/result_load.rs). Linux only (/proc).
 set -euo pipefail
@@ -65,12 +67,12 @@ echo "local render (tessera render --threads $THREADS): $(calc "$(date +%s.%N) -
 echo
 printf "%8s %10s %9s %11s %14s %8s %15s %12s\n" workers seconds speedup efficiency coordinator_cpu units bytes_per_unit render_busy
 base=""
-for n in $(seq 1 "$MAX"); do
+for n in ${COUNTS:-$(seq 1 "$MAX")}; do
     start_coordinator "$OUT/data-$n"
     wpids=()
     for i in $(seq "$n"); do
         RUST_LOG=info,tessera_worker=debug "$T" worker --coordinator "$URL" --threads "$THREADS" --name "bench-$i" \
-            --log-format json 2>>"$OUT/data-$n.workers.log" &
+            --log-format json 2>>"$OUT/data-$n.worker-$i.log" &
         wpids+=("$!"); pids+=("$!")
     done
     for _ in $(seq 200); do
@@ -84,7 +86,7 @@ for n in $(seq 1 "$MAX"); do
     units=$("$T" status "$id" --coordinator "$URL" | sed -n 's/.*(\([0-9]*\) of [0-9]* units).*/\1/p')
     bytes=0; for p in "${wpids[@]}"; do bytes=$((bytes + $(wchar "$p"))); done
     [ -z "$base" ] && base=$secs
-    render=$(sed -n 's/.*"message":"unit rendered".*"seconds":\([0-9.e-]*\).*/\1/p' "$OUT/data-$n.workers.log" | awk '{ s += $1 } END { print s + 0 }')
+    render=$(sed -n 's/.*"message":"unit rendered".*"seconds":\([0-9.e-]*\).*/\1/p' "$OUT"/data-$n.worker-*.log | awk '{ s += $1 } END { print s + 0 }')
     printf "%8d %10.2f %9.2f %10.1f%% %13ss %8d %15d %11.1f%%\n" "$n" "$secs" "$(calc "$base / $secs")" \
         "$(calc "100 * $base / $secs / $n")" "$cpu" "$units" "$((bytes / units))" "$(calc "100 * $render / $secs / $n")"
     "$T" fetch "$id" --coordinator "$URL" -o "$OUT/frames-$n" 2>/dev/null
@@ -92,6 +94,7 @@ for n in $(seq 1 "$MAX"); do
     cleanup
 done
 
+[ "$LOAD_SECONDS" = 0 ] && exit 0
 echo
 start_coordinator "$OUT/data-load"
 cpu0=$(cpu_seconds "$COORD")

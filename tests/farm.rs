@@ -208,6 +208,76 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
 }
 
+/// True when `tessera gpus` finds an adapter; with CI=true a missing one
+/// fails the test instead (CI installs lavapipe).
+fn gpu_adapter() -> bool {
+    let o = Command::new(TESSERA).arg("gpus").output().expect("tessera gpus");
+    if o.status.success() {
+        return true;
+    }
+    let why = String::from_utf8_lossy(&o.stderr);
+    assert!(!std::env::var("CI").is_ok_and(|v| v == "true"), "CI=true but `tessera gpus` found no adapter: {why}");
+    eprintln!("SKIPPING the GPU worker test: {why}");
+    false
+}
+
+#[test]
+fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_beside_cpu_workers() {
+    let _g = serial();
+    if !gpu_adapter() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let log = dir.path().join("worker-gpu.log");
+    let child = Command::new(TESSERA)
+        .args(["worker", "--coordinator", &c.url(), "--backend", "gpu", "--adapter", "0", "--name", "gpu"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("start gpu worker");
+    let gpu = Proc { child, log };
+    let scene = repo("examples/resolution.toml");
+    let settings = ["--width", "96", "--height", "72", "--samples", "4"];
+    let mut args = settings.to_vec();
+    args.extend(["--tile-size", "16", "--wait"]);
+    let job = submit(&c.url(), &scene, &args);
+    let s = status(&c.url(), &job);
+    assert_eq!((s.state, s.units_done, s.results_rejected), (pb::JobState::Done as i32, 30, 0), "{}", gpu.log());
+    let workers = rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers });
+    let caps = workers[0].capabilities.clone().expect("capabilities");
+    assert_eq!((caps.backend, caps.threads), (pb::Backend::Gpu as i32, 0));
+    assert!(!caps.gpu_name.is_empty(), "a GPU worker names its adapter");
+    // The GPU's fixed-point sums do not depend on how the frame was cut
+    // into leases either: the farm's image is `tessera render --backend gpu`'s.
+    let mut gpu_settings = settings.to_vec();
+    gpu_settings.extend(["--backend", "gpu", "--adapter", "0"]);
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &gpu_settings);
+
+    // With a CPU worker beside it, units go to both, and the image is the
+    // CPU render within the GPU's f32 rounding.
+    let _cpu = start_worker(dir.path(), &c.url(), "cpu");
+    wait_for("the CPU worker to register", Duration::from_secs(20), || {
+        rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers }).len() == 2
+    });
+    let mixed = ["--width", "96", "--height", "72", "--samples", "16"];
+    let mut args = mixed.to_vec();
+    args.extend(["--tile-size", "8", "--wait"]);
+    let job = submit(&c.url(), &scene, &args);
+    assert_eq!(status(&c.url(), &job).units_done, 108);
+    let workers = rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers });
+    assert!(workers.iter().all(|w| w.units_done > 0), "both workers took part: {workers:?}");
+    let out = dir.path().join("mixed");
+    tessera(&["fetch", &job, "-o", out.to_str().expect("path")], &c.url());
+    let got = pixels(&out.join("frame_0000.png"));
+    let want = reference(dir.path(), &scene, 0, &mixed);
+    // tests/cli_gpu.rs's tolerance: within 2/255 on 99% of the pixels
+    // (silhouette samples may flip between f32 on the GPU and on the CPU).
+    let off = got.chunks(3).zip(want.chunks(3)).filter(|(a, b)| a.iter().zip(b.iter()).any(|(x, y)| x.abs_diff(*y) > 2)).count();
+    assert!(off * 100 <= got.len() / 3, "{off} of {} pixels differ by more than 2/255", got.len() / 3);
+}
+
 #[test]
 fn a_worker_killed_mid_job_loses_nothing() {
     let _g = serial();

@@ -32,7 +32,8 @@ pub struct Config {
     pub heartbeat_interval: Duration,
     /// A unit lease should take about this long on the worker it goes to.
     pub target_unit_seconds: f64,
-    /// Most tiles joined into one lease for a fast worker.
+    /// Most tiles joined into one lease for a fast worker (a run of one
+    /// row of tiles, or whole rows: a GPU worker takes many).
     pub max_tiles_per_lease: u32,
     /// Largest gRPC message accepted.
     pub max_message_bytes: usize,
@@ -50,7 +51,7 @@ impl Config {
             // (prefetch): a lease costs them no idle time, while a long one
             // on costly pixels can leave the others idle at a job's end.
             target_unit_seconds: 0.25,
-            max_tiles_per_lease: 16,
+            max_tiles_per_lease: 256,
             max_message_bytes: 64 << 20,
             progress_interval: Duration::from_secs(2),
         }
@@ -568,6 +569,7 @@ impl Farm {
         let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
         let speed = worker.speed;
+        let holding = worker.leases.len();
         let workers = st.workers.len();
         let mut order: Vec<(&String, &Job)> = st.jobs.iter().filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty()).collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
@@ -576,6 +578,13 @@ impl Farm {
         for job_id in order {
             while out.len() < max_units.max(1) as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
+                // At a job's very end a worker that is still busy (it asks
+                // ahead, to have its next unit ready) gets no second lease
+                // while fewer units are pending than there are workers: the
+                // next idle worker takes them instead of waiting behind it.
+                if holding + out.len() > 0 && job.pending.len() < workers {
+                    break;
+                }
                 let Some(&first) = job.pending.iter().next() else { break };
                 let base = job.layout.unit_samples(job.layout.unit(first)).max(1) as f64;
                 // Near the end of a job, big leases would leave the other
@@ -588,22 +597,14 @@ impl Farm {
                 } else {
                     1
                 };
-                let mut units = vec![first];
-                while (units.len() as u32) < want {
-                    let last = *units.last().expect("non-empty");
-                    if job.pending.contains(&(last + 1)) && job.layout.joins(last, last + 1) {
-                        units.push(last + 1);
-                    } else {
-                        break;
-                    }
-                }
+                let units = job.layout.join(first, want, |u| job.pending.contains(&u));
                 for u in &units {
                     job.pending.remove(u);
                 }
                 let u0 = job.layout.unit(first);
                 let t0 = job.layout.tiles[u0.tile as usize];
                 let t1 = job.layout.tiles[job.layout.unit(*units.last().expect("non-empty")).tile as usize];
-                let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t0.height);
+                let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
                 let samples = job.layout.batches[u0.batch as usize];
                 if job.state == JobState::Queued {
                     job.state = JobState::Running;
@@ -1443,18 +1444,19 @@ material = "red"
         let w = register(&farm, "w", 2);
         let l1 = farm.lease(&w, 1).unwrap().remove(0);
         assert_eq!(l1.rect.width, 16, "unknown speed: one tile");
-        // 16x16x4 in 1 ms: 1 M pixel-samples/s, a full lease of 16 tiles.
+        // 16x16x4 in 1 ms: 1 M pixel-samples/s, 244 tiles in 0.25 s; the
+        // end-of-job cap (255 pending / 4) and the row's end leave 63.
         assert_eq!(farm.submit_result(result(&w, &l1, 0.001)).await.unwrap(), Outcome::Accepted);
         let l2 = farm.lease(&w, 1).unwrap().remove(0);
-        assert_eq!(l2.rect.width, 16 * 16);
-        // Those 16 tiles took 1 s: 16384 pixel-samples/s, 4 tiles in 0.25 s.
+        assert_eq!(l2.rect.width, 63 * 16);
+        // Those 63 tiles took 1 s: 64512 pixel-samples/s, 15 tiles in 0.25 s.
         assert_eq!(farm.submit_result(result(&w, &l2, 1.0)).await.unwrap(), Outcome::Accepted);
         let l3 = farm.lease(&w, 1).unwrap().remove(0);
-        assert_eq!(l3.rect.width, 4 * 16, "the next lease is sized on the slow result");
-        // Fast again (4 tiles in 1 ms): the estimate rises by 30% of the step.
+        assert_eq!(l3.rect.width, 15 * 16, "the next lease is sized on the slow result");
+        // Fast again (15 tiles in 1 ms): the estimate rises by 30% of the step.
         assert_eq!(farm.submit_result(result(&w, &l3, 0.001)).await.unwrap(), Outcome::Accepted);
         let speed = farm.workers()[0].samples_per_second;
-        assert!((speed - (0.7 * 16384.0 + 0.3 * 4096.0 / 0.001)).abs() < 1e-6, "{speed}");
+        assert!((speed - (0.7 * 64512.0 + 0.3 * 15360.0 / 0.001)).abs() < 1e-6, "{speed}");
     }
 
     /// A worker's prefetched lease handed back on drain is queued again at
@@ -1462,9 +1464,12 @@ material = "red"
     #[tokio::test]
     async fn returned_leases_are_leased_again_at_once() {
         let (_dir, farm, job) = farm_with_job(32, 16, 1).await;
-        let (a, b) = (register(&farm, "a", 1), register(&farm, "b", 1));
+        // b registers after a took both units (with b already there, a busy
+        // a would get no second unit at the job's very end).
+        let a = register(&farm, "a", 1);
         let la = farm.lease(&a, 2).unwrap();
         assert_eq!(la.len(), 2);
+        let b = register(&farm, "b", 1);
         assert!(farm.lease(&b, 1).unwrap().is_empty());
         let ids = [la[1].lease_id.clone(), "l-unknown".to_string()];
         assert_eq!(farm.return_leases(&b, &ids).unwrap(), 0, "b holds neither");
@@ -1606,6 +1611,41 @@ material = "red"
     }
 
     #[tokio::test]
+    async fn a_very_fast_worker_gets_whole_rows_of_tiles() {
+        // 16 x 16 tiles of 16 px; one worker as fast as a GPU.
+        let (_dir, farm, job) = farm_with_job(256, 256, 4).await;
+        let gpu = register(&farm, "gpu", 0);
+        let l1 = farm.lease(&gpu, 1).unwrap().remove(0);
+        assert_eq!(farm.submit_result(result(&gpu, &l1, 1e-6)).await.unwrap(), Outcome::Accepted);
+        // The speed asks for hundreds of tiles; the cap is 255 / 4 = 63 of
+        // the pending: the rest of the first row, then (once a lease
+        // starts a row) whole rows only.
+        let l2 = farm.lease(&gpu, 1).unwrap().remove(0);
+        assert_eq!((l2.rect.x, l2.rect.y, l2.rect.width, l2.rect.height), (16, 0, 240, 16));
+        assert_eq!(farm.submit_result(result(&gpu, &l2, 1e-6)).await.unwrap(), Outcome::Accepted);
+        let l3 = farm.lease(&gpu, 1).unwrap().remove(0);
+        // 240 pending / 4 = 60 tiles: three whole rows.
+        assert_eq!((l3.rect.x, l3.rect.y, l3.rect.width, l3.rect.height), (0, 16, 256, 48));
+        assert_eq!(farm.submit_result(result(&gpu, &l3, 1e-6)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(farm.job(&job).unwrap().units_done, 1 + 15 + 48);
+    }
+
+    #[tokio::test]
+    async fn a_busy_worker_gets_no_second_lease_at_the_very_end() {
+        // 4 units, 3 workers: the first asks ahead while rendering.
+        let (_dir, farm, _job) = farm_with_job(32, 32, 4).await;
+        let (a, b, c) = (register(&farm, "a", 1), register(&farm, "b", 1), register(&farm, "c", 1));
+        let la = farm.lease(&a, 1).unwrap();
+        assert_eq!(la.len(), 1);
+        // 3 pending, 3 workers: a may still take one ahead.
+        assert_eq!(farm.lease(&a, 1).unwrap().len(), 1);
+        // 2 pending < 3 workers: a, busy, gets none; b and c, idle, get one each.
+        assert!(farm.lease(&a, 1).unwrap().is_empty());
+        assert_eq!(farm.lease(&b, 1).unwrap().len(), 1);
+        assert_eq!(farm.lease(&c, 1).unwrap().len(), 1);
+    }
+
+    #[tokio::test]
     async fn faster_workers_get_larger_units_and_results_count_once() {
         // 256 units: enough pending that the end-of-job cap (a quarter of
         // each worker's share) does not limit the fast worker's lease.
@@ -1619,7 +1659,9 @@ material = "red"
         assert_eq!(farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap(), Outcome::Accepted);
         assert_eq!(farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap(), Outcome::Accepted);
         let (f2, s2) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
-        assert_eq!(f2.rect.width, 16 * farm.config.max_tiles_per_lease, "the fast worker gets a row of joined tiles");
+        // Joined tiles along the row, up to its end (30 tiles: the
+        // end-of-job cap, 254 pending / (4 x 2 workers), is 31).
+        assert_eq!((f2.rect.width, f2.rect.height), (16 * 30, 16), "the fast worker gets a row of joined tiles");
         assert_eq!(s2.rect.width, 16, "the slow worker keeps single tiles");
         // A result counts once; the same lease again is a duplicate, dropped.
         assert_eq!(farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(), Outcome::Accepted);
@@ -1627,6 +1669,6 @@ material = "red"
         // Another worker cannot complete a lease it does not hold.
         assert!(matches!(farm.submit_result(result(&fast, &s2, 0.01)).await.unwrap(), Outcome::Rejected(_)));
         let v = farm.job(&job).unwrap();
-        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate), (18, 18, 1));
+        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate), (32, 32, 1));
     }
 }

@@ -13,7 +13,7 @@ use super::farm_common::{init_logging, runtime, CoordinatorUrl, LogFormat};
 pub enum WorkerBackend {
     /// CPU threads
     Cpu,
-    /// GPU (not built yet)
+    /// One GPU through wgpu compute shaders (Vulkan/Metal/DX12; f32)
     Gpu,
 }
 
@@ -27,6 +27,9 @@ pub struct WorkerArgs {
     /// CPU threads [default: all cores]
     #[arg(long)]
     pub threads: Option<usize>,
+    /// GPU adapter for --backend gpu: index or part of the name as `tessera gpus` lists it [default: the best one]
+    #[arg(long)]
+    pub adapter: Option<String>,
     /// Name shown by `tessera workers` [default: host name and process id]
     #[arg(long)]
     pub name: Option<String>,
@@ -37,6 +40,9 @@ pub struct WorkerArgs {
 
 pub fn run(args: WorkerArgs) -> Result<ExitCode> {
     init_logging(args.log_format);
+    if args.backend != WorkerBackend::Gpu && args.adapter.is_some() {
+        anyhow::bail!("--adapter only applies to --backend gpu");
+    }
     let name = args.name.clone().unwrap_or_else(|| {
         let host = std::env::var("HOSTNAME").ok().or_else(|| std::fs::read_to_string("/etc/hostname").ok()).unwrap_or_default();
         format!("{}-{}", host.trim(), std::process::id())
@@ -45,6 +51,7 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
         coordinator: args.coordinator.url.clone(),
         name,
         threads: args.threads,
+        adapter: args.adapter.clone(),
         backend: match args.backend {
             WorkerBackend::Cpu => Backend::Cpu,
             WorkerBackend::Gpu => Backend::Gpu,

@@ -17,6 +17,11 @@
 //! Draining (SIGTERM) finishes the unit being rendered, hands the prefetched
 //! leases back (`ReturnLeases`) so no one waits for them to expire, sends
 //! the last results and exits.
+//!
+//! A worker renders on CPU threads or, with `Backend::Gpu` (feature `gpu`),
+//! on one GPU adapter through tracer-core's wgpu renderer. Either way a unit
+//! yields the same fixed-point [`Film`] sums, so the coordinator merges
+//! results from both kinds of worker alike.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -31,6 +36,8 @@ use tonic::transport::{Channel, Endpoint};
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::cpu::TILE;
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+#[cfg(feature = "gpu")]
+use tracer_core::render::GpuRenderer;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
 /// Renderer tiles per thread in one band of rows: a band ends with a
@@ -54,6 +61,10 @@ const SUBMIT_TRIES: u32 = 5;
 const PREPARED_CACHE: usize = 4;
 /// Largest message the worker accepts or sends.
 const MAX_MESSAGE_BYTES: usize = 256 << 20;
+/// Pixel-samples in one GPU render call of a unit: the lease is checked
+/// between calls, and one call of this size takes milliseconds on a
+/// discrete GPU (the unit's film is read back once per call).
+const GPU_BAND_PIXEL_SAMPLES: u64 = 1 << 24;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Backend {
@@ -65,13 +76,16 @@ pub enum Backend {
 pub struct WorkerConfig {
     pub coordinator: String,
     pub name: String,
+    /// CPU threads (CPU backend; the GPU backend uses the CPU only to feed the GPU).
     pub threads: Option<usize>,
     pub backend: Backend,
+    /// GPU backend: adapter index or part of its name (as `tessera gpus` lists them); `None` picks the best.
+    pub adapter: Option<String>,
 }
 
 #[derive(Debug, thiserror::Error)]
 pub enum WorkerError {
-    #[error("the GPU backend is not built yet; run workers with --backend cpu")]
+    #[error("this tessera was built without the `gpu` feature; run workers with --backend cpu or rebuild with --features gpu")]
     GpuNotBuilt,
     #[error("invalid coordinator URL {url:?}: {message}")]
     Url { url: String, message: String },
@@ -98,9 +112,54 @@ struct Session {
     heartbeat: Duration,
 }
 
+/// Where a worker traces.
+pub enum Renderer {
+    Cpu(CpuRenderer),
+    #[cfg(feature = "gpu")]
+    Gpu(Box<GpuRenderer>),
+}
+
+impl Renderer {
+    fn render(&self, prepared: &PreparedFrame, frame: u32, rect: Rect, samples: SampleRange, progress: &(dyn Fn(u64) + Sync)) -> Result<Film, String> {
+        match self {
+            Renderer::Cpu(r) => r.render(prepared, frame, rect, samples, progress).map_err(|e| e.to_string()),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => r.render(prepared, frame, rect, samples, progress).map_err(|e| e.to_string()),
+        }
+    }
+
+    /// CPU threads that render (0 for a GPU worker).
+    pub fn threads(&self) -> usize {
+        match self {
+            Renderer::Cpu(r) => r.threads(),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(_) => 0,
+        }
+    }
+
+    /// Rows of `rect` rendered in one call (the lease is checked between calls).
+    #[cfg_attr(not(feature = "gpu"), allow(unused_variables))]
+    fn band_rows(&self, rect: Rect, samples: SampleRange) -> u32 {
+        match self {
+            Renderer::Cpu(r) => band_rows(rect, r.threads()),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(_) => gpu_band_rows(rect, samples),
+        }
+    }
+
+    fn capabilities(&self) -> pb::Capabilities {
+        let (backend, gpu_name) = match self {
+            Renderer::Cpu(_) => (pb::Backend::Cpu, String::new()),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => (pb::Backend::Gpu, r.adapter().name.clone()),
+        };
+        pb::Capabilities { threads: self.threads() as u32, backend: backend as i32, gpu_name, version: env!("CARGO_PKG_VERSION").into() }
+    }
+}
+
 pub struct Worker {
     config: WorkerConfig,
-    renderer: Arc<CpuRenderer>,
+    renderer: Arc<Renderer>,
     held: HeldMap,
     scenes: HashMap<String, Arc<SceneDesc>>,
     prepared: VecDeque<((String, u32), Arc<PreparedFrame>)>,
@@ -125,12 +184,17 @@ struct Outgoing {
 
 impl Worker {
     pub fn new(config: WorkerConfig) -> Result<Self, WorkerError> {
-        if config.backend == Backend::Gpu {
-            return Err(WorkerError::GpuNotBuilt);
-        }
         Endpoint::from_shared(config.coordinator.clone())
             .map_err(|e| WorkerError::Url { url: config.coordinator.clone(), message: e.to_string() })?;
-        let renderer = CpuRenderer::new(config.threads).map_err(|e| WorkerError::Renderer(e.to_string()))?;
+        let renderer = match config.backend {
+            Backend::Cpu => Renderer::Cpu(CpuRenderer::new(config.threads).map_err(|e| WorkerError::Renderer(e.to_string()))?),
+            #[cfg(feature = "gpu")]
+            Backend::Gpu => Renderer::Gpu(Box::new(
+                GpuRenderer::new(config.adapter.as_deref(), Default::default()).map_err(|e| WorkerError::Renderer(e.to_string()))?,
+            )),
+            #[cfg(not(feature = "gpu"))]
+            Backend::Gpu => return Err(WorkerError::GpuNotBuilt),
+        };
         Ok(Worker {
             config,
             renderer: Arc::new(renderer),
@@ -164,7 +228,8 @@ impl Worker {
                     continue;
                 }
             };
-            tracing::info!(worker = %session.worker_id, coordinator = %self.config.coordinator, threads = self.renderer.threads(), "registered");
+            let caps = self.renderer.capabilities();
+            tracing::info!(worker = %session.worker_id, coordinator = %self.config.coordinator, threads = caps.threads, gpu = %caps.gpu_name, "registered");
             let lost = Arc::new(AtomicBool::new(false));
             let beat = tokio::spawn(heartbeat(session.client.clone(), session.worker_id.clone(), session.heartbeat, self.held.clone(), lost.clone()));
             let end = self.work(&session, &mut drain, &lost).await;
@@ -192,12 +257,7 @@ impl Worker {
         let mut client = WorkerServiceClient::with_interceptor(channel, VersionStamp)
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
-        let caps = pb::Capabilities {
-            threads: self.renderer.threads() as u32,
-            backend: pb::Backend::Cpu as i32,
-            gpu_name: String::new(),
-            version: env!("CARGO_PKG_VERSION").into(),
-        };
+        let caps = self.renderer.capabilities();
         let resp = client
             .register(pb::RegisterRequest { name: self.config.name.clone(), capabilities: Some(caps) })
             .await
@@ -490,9 +550,16 @@ fn band_rows(rect: Rect, threads: usize) -> u32 {
     (rows_of_tiles * TILE).max(TILE).min(rect.height.max(1))
 }
 
+/// GPU bands: whole rows, about [`GPU_BAND_PIXEL_SAMPLES`] each.
+#[cfg_attr(not(feature = "gpu"), allow(dead_code))]
+fn gpu_band_rows(rect: Rect, samples: SampleRange) -> u32 {
+    let per_row = rect.width.max(1) as u64 * samples.len().max(1) as u64;
+    (GPU_BAND_PIXEL_SAMPLES / per_row).clamp(1, rect.height.max(1) as u64) as u32
+}
+
 /// Renders a unit band by band, stopping early when `cancel` is set.
 fn render_unit(
-    renderer: &CpuRenderer,
+    renderer: &Renderer,
     prepared: &PreparedFrame,
     frame: u32,
     rect: Rect,
@@ -502,7 +569,7 @@ fn render_unit(
 ) -> UnitEnd {
     let start = Instant::now();
     let mut film = Film::new(rect);
-    let rows = band_rows(rect, renderer.threads());
+    let rows = renderer.band_rows(rect, samples);
     let mut y = rect.y;
     while y < rect.y + rect.height {
         if cancel.load(Ordering::Relaxed) {
@@ -517,7 +584,7 @@ fn render_unit(
                     return UnitEnd::Failed(e.to_string());
                 }
             }
-            Err(e) => return UnitEnd::Failed(e.to_string()),
+            Err(e) => return UnitEnd::Failed(e),
         }
         y += band.height;
     }
