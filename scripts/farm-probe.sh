@@ -41,4 +41,4 @@ done
 # Farm runs at 64 spp with the workers' logs kept for scripts/farm-timeline.py.
 TESSERA_BIN=$T RESULT_LOAD_BIN=/bin/true OUT=/tmp/probe-farm LOAD_SECONDS=0 COUNTS="${COUNTS:-1 8}" \
   timeout "${FARM_TIMEOUT:-200}" scripts/bench-farm.sh 8 2 > "$OUTD/farm.txt" 2>&1
-mkdir -p "$OUTD/logs"; cp /tmp/probe-farm/*.log "$OUTD/logs/" 2>/dev/null
+tar czf "$OUTD/farm-logs.tar.gz" -C /tmp/probe-farm $(cd /tmp/probe-farm && ls *.log)

@@ -354,7 +354,7 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
             let mut w = w.clone();
             let id = id.clone();
             async move {
-                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id, max_units: 1, wait_ms: 0 }).await.expect("lease").into_inner().units;
+                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id, max_units: 1, wait_ms: 0, ahead: false }).await.expect("lease").into_inner().units;
                 units.into_iter().next().expect("a unit")
             }
         };
@@ -419,7 +419,7 @@ fn a_unit_failing_repeatedly_fails_the_job_with_the_workers_messages() {
         let mut w = WorkerServiceClient::connect(url.clone()).await.expect("connect");
         for (name, msg) in [("flaky-a", "out of memory"), ("flaky-b", "device lost")] {
             let id = w.register(pb::RegisterRequest { name: name.into(), capabilities: None }).await.expect("register").into_inner().worker_id;
-            let u = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: 1, wait_ms: 0 }).await.expect("lease").into_inner().units;
+            let u = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: 1, wait_ms: 0, ahead: false }).await.expect("lease").into_inner().units;
             let u = u.into_iter().next().expect("a unit");
             let r = w
                 .submit_result(pb::SubmitResultRequest { worker_id: id, lease_id: u.lease_id, failure: msg.into(), ..Default::default() })

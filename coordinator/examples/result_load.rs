@@ -53,7 +53,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
             let mut w = WorkerServiceClient::connect(url).await.map_err(|e| tonic::Status::unavailable(e.to_string()))?;
             let id = w.register(pb::RegisterRequest { name: format!("load-{i}"), capabilities: None }).await?.into_inner().worker_id;
             while Instant::now() < deadline {
-                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: batch, wait_ms: 0 }).await?.into_inner().units;
+                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: batch, wait_ms: 0, ahead: false }).await?.into_inner().units;
                 if units.is_empty() {
                     continue;
                 }

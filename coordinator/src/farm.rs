@@ -562,14 +562,14 @@ impl Farm {
     }
 
     /// Leases up to `max_units` units to a worker, highest priority first,
-    /// joining neighbouring tiles into one lease for fast workers.
-    pub fn lease(&self, worker_id: &str, max_units: u32) -> Result<Vec<LeaseView>, FarmError> {
+    /// joining neighbouring tiles into one lease for fast workers. `ahead`:
+    /// the worker is still rendering and asks for its next unit early.
+    pub fn lease(&self, worker_id: &str, max_units: u32, ahead: bool) -> Result<Vec<LeaseView>, FarmError> {
         let mut st = self.state.lock().expect("state lock");
         let st = &mut *st;
         let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
         let speed = worker.speed;
-        let holding = worker.leases.len();
         let workers = st.workers.len();
         let mut order: Vec<(&String, &Job)> = st.jobs.iter().filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty()).collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
@@ -579,10 +579,10 @@ impl Farm {
             while out.len() < max_units.max(1) as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
                 // At a job's very end a worker that is still busy (it asks
-                // ahead, to have its next unit ready) gets no second lease
-                // while fewer units are pending than there are workers: the
-                // next idle worker takes them instead of waiting behind it.
-                if holding + out.len() > 0 && job.pending.len() < workers {
+                // ahead, to have its next unit ready) gets no more units
+                // while fewer are pending than there are workers: the next
+                // idle worker takes them instead of waiting behind it.
+                if (ahead || !out.is_empty()) && job.pending.len() < workers {
                     break;
                 }
                 let Some(&first) = job.pending.iter().next() else { break };
@@ -653,17 +653,17 @@ impl Farm {
     /// As [`Farm::lease`], but when nothing is pending waits up to `wait`
     /// for work to appear (long poll): an idle worker starts on a new job at
     /// once instead of after its retry interval.
-    pub async fn lease_or_wait(&self, worker_id: &str, max_units: u32, wait: Duration) -> Result<Vec<LeaseView>, FarmError> {
+    pub async fn lease_or_wait(&self, worker_id: &str, max_units: u32, ahead: bool, wait: Duration) -> Result<Vec<LeaseView>, FarmError> {
         // Registered before looking, so a wake-up between the look and the
         // wait is not missed.
         let notified = self.work_ready.notified();
         tokio::pin!(notified);
         notified.as_mut().enable();
-        let leases = self.lease(worker_id, max_units)?;
+        let leases = self.lease(worker_id, max_units, ahead)?;
         if !leases.is_empty() || wait.is_zero() || tokio::time::timeout(wait, notified).await.is_err() {
             return Ok(leases);
         }
-        self.lease(worker_id, max_units)
+        self.lease(worker_id, max_units, ahead)
     }
 
     /// Extends the worker's leases; returns those it no longer holds.
@@ -1408,7 +1408,7 @@ material = "red"
     async fn a_result_whose_commit_fails_is_accepted_when_sent_again() {
         let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
         let w = register(&farm, "w", 1);
-        let l = farm.lease(&w, 1).unwrap().remove(0);
+        let l = farm.lease(&w, 1, false).unwrap().remove(0);
         farm.store.fail_commits(|op| matches!(op, Op::AcceptUnits { .. }), 1);
         let err = farm.submit_result(result(&w, &l, 0.01)).await.unwrap_err();
         assert!(matches!(&err, FarmError::Store(e) if e.to_string().contains("injected commit failure")), "{err}");
@@ -1427,7 +1427,7 @@ material = "red"
     async fn a_frame_whose_written_record_fails_is_recorded_on_retry() {
         let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
         let w = register(&farm, "w", 1);
-        let l = farm.lease(&w, 1).unwrap().remove(0);
+        let l = farm.lease(&w, 1, false).unwrap().remove(0);
         farm.store.fail_commits(|op| matches!(op, Op::FrameWritten { .. }), 2);
         assert_eq!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Accepted);
         let v = wait_done(&farm, &job).await;
@@ -1442,16 +1442,16 @@ material = "red"
     async fn a_slow_result_shrinks_the_next_lease_at_once() {
         let (_dir, farm, _job) = farm_with_job(1024, 64, 4).await;
         let w = register(&farm, "w", 2);
-        let l1 = farm.lease(&w, 1).unwrap().remove(0);
+        let l1 = farm.lease(&w, 1, false).unwrap().remove(0);
         assert_eq!(l1.rect.width, 16, "unknown speed: one tile");
         // 16x16x4 in 1 ms: 1 M pixel-samples/s, 244 tiles in 0.25 s; the
         // end-of-job cap (255 pending / 4) and the row's end leave 63.
         assert_eq!(farm.submit_result(result(&w, &l1, 0.001)).await.unwrap(), Outcome::Accepted);
-        let l2 = farm.lease(&w, 1).unwrap().remove(0);
+        let l2 = farm.lease(&w, 1, false).unwrap().remove(0);
         assert_eq!(l2.rect.width, 63 * 16);
         // Those 63 tiles took 1 s: 64512 pixel-samples/s, 15 tiles in 0.25 s.
         assert_eq!(farm.submit_result(result(&w, &l2, 1.0)).await.unwrap(), Outcome::Accepted);
-        let l3 = farm.lease(&w, 1).unwrap().remove(0);
+        let l3 = farm.lease(&w, 1, false).unwrap().remove(0);
         assert_eq!(l3.rect.width, 15 * 16, "the next lease is sized on the slow result");
         // Fast again (15 tiles in 1 ms): the estimate rises by 30% of the step.
         assert_eq!(farm.submit_result(result(&w, &l3, 0.001)).await.unwrap(), Outcome::Accepted);
@@ -1467,14 +1467,14 @@ material = "red"
         // b registers after a took both units (with b already there, a busy
         // a would get no second unit at the job's very end).
         let a = register(&farm, "a", 1);
-        let la = farm.lease(&a, 2).unwrap();
+        let la = farm.lease(&a, 2, false).unwrap();
         assert_eq!(la.len(), 2);
         let b = register(&farm, "b", 1);
-        assert!(farm.lease(&b, 1).unwrap().is_empty());
+        assert!(farm.lease(&b, 1, false).unwrap().is_empty());
         let ids = [la[1].lease_id.clone(), "l-unknown".to_string()];
         assert_eq!(farm.return_leases(&b, &ids).unwrap(), 0, "b holds neither");
         assert_eq!(farm.return_leases(&a, &ids).unwrap(), 1);
-        let lb = farm.lease(&b, 1).unwrap();
+        let lb = farm.lease(&b, 1, false).unwrap();
         assert_eq!(lb.len(), 1);
         assert_eq!(lb[0].rect, la[1].rect);
         assert!(matches!(farm.submit_result(result(&a, &la[1], 0.01)).await.unwrap(), Outcome::Late(_)), "a returned that lease");
@@ -1492,11 +1492,11 @@ material = "red"
         let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
         let w = register(&farm, "w", 1);
         let start = Instant::now();
-        assert!(farm.lease_or_wait(&w, 1, Duration::from_millis(50)).await.unwrap().is_empty());
+        assert!(farm.lease_or_wait(&w, 1, false, Duration::from_millis(50)).await.unwrap().is_empty());
         assert!(start.elapsed() >= Duration::from_millis(50));
         let waiting = {
             let farm = farm.clone();
-            tokio::spawn(async move { farm.lease_or_wait(&w, 1, Duration::from_secs(30)).await })
+            tokio::spawn(async move { farm.lease_or_wait(&w, 1, false, Duration::from_secs(30)).await })
         };
         tokio::time::sleep(Duration::from_millis(50)).await;
         let start = Instant::now();
@@ -1530,7 +1530,7 @@ material = "red"
     async fn a_result_whose_sender_goes_away_mid_commit_still_finishes_its_unit() {
         let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
         let w = register(&farm, "w", 1);
-        let l = farm.lease(&w, 1).unwrap().remove(0);
+        let l = farm.lease(&w, 1, false).unwrap().remove(0);
         // Poll the submission once (it takes the unit and waits for the
         // database), then drop it, as hyper does on a reset stream.
         {
@@ -1580,8 +1580,8 @@ material = "red"
         let (_dir, farm, job) = farm_with_job(64, 16, 2).await;
         let a = register(&farm, "a", 1);
         let b = register(&farm, "b", 1);
-        let la = farm.lease(&a, 3).unwrap();
-        let lb = farm.lease(&b, 3).unwrap();
+        let la = farm.lease(&a, 3, false).unwrap();
+        let lb = farm.lease(&b, 3, false).unwrap();
         assert_eq!((la.len(), lb.len()), (3, 1), "a takes three units in one request, b the last");
         let mut bad = result(&a, &la[2], 0.01);
         bad.film.as_mut().unwrap().counts[5] = 1;
@@ -1597,7 +1597,7 @@ material = "red"
         assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate, v.counters.results_rejected), (2, 2, 1, 2));
         // The malformed unit is queued again; b and then a finish the job.
         assert_eq!(farm.submit_results(vec![result(&b, &lb[0], 0.01)]).await.unwrap(), [Outcome::Accepted]);
-        let again = farm.lease(&a, 4).unwrap();
+        let again = farm.lease(&a, 4, false).unwrap();
         assert_eq!(again.len(), 1);
         assert_eq!(again[0].rect, la[2].rect);
         assert_eq!(farm.submit_results(vec![result(&a, &again[0], 0.01)]).await.unwrap(), [Outcome::Accepted]);
@@ -1615,15 +1615,15 @@ material = "red"
         // 16 x 16 tiles of 16 px; one worker as fast as a GPU.
         let (_dir, farm, job) = farm_with_job(256, 256, 4).await;
         let gpu = register(&farm, "gpu", 0);
-        let l1 = farm.lease(&gpu, 1).unwrap().remove(0);
+        let l1 = farm.lease(&gpu, 1, false).unwrap().remove(0);
         assert_eq!(farm.submit_result(result(&gpu, &l1, 1e-6)).await.unwrap(), Outcome::Accepted);
         // The speed asks for hundreds of tiles; the cap is 255 / 4 = 63 of
         // the pending: the rest of the first row, then (once a lease
         // starts a row) whole rows only.
-        let l2 = farm.lease(&gpu, 1).unwrap().remove(0);
+        let l2 = farm.lease(&gpu, 1, false).unwrap().remove(0);
         assert_eq!((l2.rect.x, l2.rect.y, l2.rect.width, l2.rect.height), (16, 0, 240, 16));
         assert_eq!(farm.submit_result(result(&gpu, &l2, 1e-6)).await.unwrap(), Outcome::Accepted);
-        let l3 = farm.lease(&gpu, 1).unwrap().remove(0);
+        let l3 = farm.lease(&gpu, 1, false).unwrap().remove(0);
         // 240 pending / 4 = 60 tiles: three whole rows.
         assert_eq!((l3.rect.x, l3.rect.y, l3.rect.width, l3.rect.height), (0, 16, 256, 48));
         assert_eq!(farm.submit_result(result(&gpu, &l3, 1e-6)).await.unwrap(), Outcome::Accepted);
@@ -1632,17 +1632,21 @@ material = "red"
 
     #[tokio::test]
     async fn a_busy_worker_gets_no_second_lease_at_the_very_end() {
-        // 4 units, 3 workers: the first asks ahead while rendering.
-        let (_dir, farm, _job) = farm_with_job(32, 32, 4).await;
+        // 5 units, 3 workers; a asks ahead while it renders.
+        let (_dir, farm, _job) = farm_with_job(80, 16, 4).await;
         let (a, b, c) = (register(&farm, "a", 1), register(&farm, "b", 1), register(&farm, "c", 1));
-        let la = farm.lease(&a, 1).unwrap();
-        assert_eq!(la.len(), 1);
-        // 3 pending, 3 workers: a may still take one ahead.
-        assert_eq!(farm.lease(&a, 1).unwrap().len(), 1);
-        // 2 pending < 3 workers: a, busy, gets none; b and c, idle, get one each.
-        assert!(farm.lease(&a, 1).unwrap().is_empty());
-        assert_eq!(farm.lease(&b, 1).unwrap().len(), 1);
-        assert_eq!(farm.lease(&c, 1).unwrap().len(), 1);
+        assert_eq!(farm.lease(&a, 1, false).unwrap().len(), 1);
+        // 4 pending, 3 workers: a may still take one ahead.
+        assert_eq!(farm.lease(&a, 1, true).unwrap().len(), 1);
+        // 3 pending: still as many as workers.
+        assert_eq!(farm.lease(&a, 1, true).unwrap().len(), 1);
+        // 2 pending < 3 workers: a, busy, gets none ahead; b, idle, gets
+        // one, and so does a once it asks as an idle worker (the leases it
+        // holds, whose results may still be on their way, do not count).
+        assert!(farm.lease(&a, 1, true).unwrap().is_empty());
+        assert_eq!(farm.lease(&b, 1, false).unwrap().len(), 1);
+        assert_eq!(farm.lease(&a, 1, false).unwrap().len(), 1);
+        assert!(farm.lease(&c, 1, false).unwrap().is_empty(), "all five leased");
     }
 
     #[tokio::test]
@@ -1653,12 +1657,12 @@ material = "red"
         let fast = register(&farm, "fast", 8);
         let slow = register(&farm, "slow", 1);
         // Unknown speed: one tile each.
-        let (f1, s1) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
+        let (f1, s1) = (farm.lease(&fast, 1, false).unwrap().remove(0), farm.lease(&slow, 1, false).unwrap().remove(0));
         assert_eq!((f1.rect.width, s1.rect.width), (16, 16));
         // A 16x16x4 unit in 1 ms vs in 1 s.
         assert_eq!(farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap(), Outcome::Accepted);
         assert_eq!(farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap(), Outcome::Accepted);
-        let (f2, s2) = (farm.lease(&fast, 1).unwrap().remove(0), farm.lease(&slow, 1).unwrap().remove(0));
+        let (f2, s2) = (farm.lease(&fast, 1, false).unwrap().remove(0), farm.lease(&slow, 1, false).unwrap().remove(0));
         // Joined tiles along the row, up to its end (30 tiles: the
         // end-of-job cap, 254 pending / (4 x 2 workers), is 31).
         assert_eq!((f2.rect.width, f2.rect.height), (16 * 30, 16), "the fast worker gets a row of joined tiles");

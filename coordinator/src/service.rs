@@ -226,7 +226,7 @@ impl WorkerService for Api {
     async fn lease_work(&self, req: Request<pb::LeaseWorkRequest>) -> Result<Response<pb::LeaseWorkResponse>, Status> {
         let r = req.into_inner();
         let wait = Duration::from_millis(u64::from(r.wait_ms.min(MAX_LEASE_WAIT_MS)));
-        let leases = self.farm.lease_or_wait(&r.worker_id, r.max_units.clamp(1, 64), wait).await?;
+        let leases = self.farm.lease_or_wait(&r.worker_id, r.max_units.clamp(1, 64), r.ahead, wait).await?;
         // A worker that waited may ask again at once; one that did not, later.
         let retry_after_ms = if !leases.is_empty() { 0 } else if wait.is_zero() { 250 } else { 10 };
         let units = leases

@@ -323,7 +323,7 @@ impl Worker {
             }
             let Some(unit) = queue.pop_front() else {
                 // Idle: wait at the coordinator for work (long poll).
-                let retry_after = lease(&mut client, &s.worker_id, &self.held, queue, IDLE_LEASE_WAIT).await?;
+                let retry_after = lease(&mut client, &s.worker_id, &self.held, queue, false, IDLE_LEASE_WAIT).await?;
                 if queue.is_empty() {
                     tokio::select! {
                         _ = tokio::time::sleep(retry_after) => {}
@@ -355,7 +355,7 @@ impl Worker {
                     // Lease the next unit while this one renders, unless draining.
                     if queue.len() < PREFETCH && !*drain.borrow() {
                         // No long poll here: the result must not wait for work to appear.
-                        let (end, leased) = tokio::join!(render, lease(&mut client, &s.worker_id, &self.held, queue, Duration::ZERO));
+                        let (end, leased) = tokio::join!(render, lease(&mut client, &s.worker_id, &self.held, queue, true, Duration::ZERO));
                         if let Err(e) = leased {
                             let _ = tx.send(out(end)).await;
                             return Err(e);
@@ -412,8 +412,10 @@ impl Worker {
 /// Leases more work into `queue`, registering each lease with the heartbeat
 /// before anything else can happen to it. Returns how long to wait when
 /// the coordinator had nothing.
-async fn lease(client: &mut Client, worker_id: &str, held: &HeldMap, queue: &mut VecDeque<pb::WorkUnit>, wait: Duration) -> Result<Duration, tonic::Status> {
-    let req = pb::LeaseWorkRequest { worker_id: worker_id.to_string(), max_units: 1, wait_ms: wait.as_millis() as u32 };
+/// `ahead`: asked while a unit renders (the coordinator may say no at a
+/// job's very end, to leave the last units to idle workers).
+async fn lease(client: &mut Client, worker_id: &str, held: &HeldMap, queue: &mut VecDeque<pb::WorkUnit>, ahead: bool, wait: Duration) -> Result<Duration, tonic::Status> {
+    let req = pb::LeaseWorkRequest { worker_id: worker_id.to_string(), max_units: 1, wait_ms: wait.as_millis() as u32, ahead };
     let resp = client.lease_work(req).await?.into_inner();
     let mut h = held.lock().expect("held lock");
     for unit in resp.units {
