@@ -5,7 +5,7 @@
 #   scripts/bench-farm.sh [MAX_WORKERS] [THREADS_PER_WORKER]
 #   env: SCENE (examples/resolution.toml) WIDTH (1920) HEIGHT (1080) SAMPLES (64)
 #        LOAD_CLIENTS (64) LOAD_SECONDS (10) COUNTS (worker counts; default 1..MAX_WORKERS)
-#        LOAD_SECONDS=0 skips the result-throughput load
+#        LOAD_SECONDS=0 skips the result-throughput load; TILE (tile size; default the coordinator's)
 #
 # For each worker count it reports wall time of the job (submit to done),
 # speed-up and parallel efficiency relative to 1 worker, the coordinator's
@@ -79,7 +79,7 @@ for n in ${COUNTS:-$(seq 1 "$MAX")}; do
         [ "$("$T" workers --coordinator "$URL" | tail -n +2 | wc -l)" -ge "$n" ] && break; sleep 0.05
     done
     t0=$(date +%s.%N)
-    id=$("$T" submit "$SCENE" --coordinator "$URL" --width "$WIDTH" --height "$HEIGHT" --samples "$SAMPLES" --wait)
+    id=$("$T" submit "$SCENE" --coordinator "$URL" --width "$WIDTH" --height "$HEIGHT" --samples "$SAMPLES" ${TILE:+--tile-size "$TILE"} --wait)
     t1=$(date +%s.%N)
     secs=$(calc "$t1 - $t0")
     cpu=$(cpu_seconds "$COORD")

@@ -8,11 +8,13 @@
 use tracer_core::film::{Rect, SampleRange};
 
 /// Default side of a square tile, in pixels. Leases join tiles to suit each
-/// worker's speed, so the tile is the grain only at a job's end, where the
-/// last units decide when the frame is done: 32x32 (a result near 29 KB at
-/// 64 samples) keeps that tail short (measured on 8 workers: 64x64 tiles of
-/// costly pixels left the others idle for ~0.4 s of a 4 s frame).
-pub const DEFAULT_TILE_SIZE: u32 = 32;
+/// worker's speed, so the tile is the grain only at a job's end. 64x64
+/// gives a 2-thread CPU worker 16 renderer tiles to balance and keeps a
+/// result near 115 KB. Measured against 32x32 on the 16-vCPU benchmark
+/// machine (1920x1080, 16 spp, three alternations): the same time with 8
+/// workers (1.62 s), but one 2-thread worker took 10.1 s with 64 and 11.9 s
+/// with 32 (docs/benchmarks.md).
+pub const DEFAULT_TILE_SIZE: u32 = 64;
 /// Default samples per pixel in one unit: whole pixels for the usual sample
 /// counts, so a frame is one pass over its tiles.
 pub const DEFAULT_SAMPLES_PER_UNIT: u32 = 64;

@@ -560,7 +560,7 @@ impl Bench {
         let (width, height) = if self.cfg.quick { (64, 48) } else { (1920, 1080) };
         let s = RenderSettings { width, height, samples: if self.cfg.quick { 4 } else { 16 }, max_depth: 10, sampler: Sampler::Grid };
         // Small tiles in the quick run, so that two workers both get work.
-        let tile = if self.cfg.quick { 16 } else { 32 };
+        let tile = if self.cfg.quick { 16 } else { 64 };
         let counts = self.cfg.workers.clone().unwrap_or_else(|| if self.cfg.quick { vec![1, 2] } else { vec![1, 2, 4, 8] });
         let threads = self.cfg.worker_threads.max(1);
         let dir = self.cfg.out.join("farm");

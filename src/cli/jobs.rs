@@ -56,7 +56,7 @@ pub struct SubmitArgs {
     /// Job name [default: the scene's file stem]
     #[arg(long)]
     pub name: Option<String>,
-    /// Tile side in pixels [default: the coordinator's, 32]
+    /// Tile side in pixels [default: the coordinator's, 64]
     #[arg(long)]
     pub tile_size: Option<u32>,
     /// Samples per pixel in one work unit [default: the coordinator's, 64]
