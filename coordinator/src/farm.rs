@@ -695,7 +695,7 @@ impl Farm {
         worker.last_seen = Instant::now();
         let mut returned = 0;
         for id in lease_ids {
-            if !st.leases.get(id).is_some_and(|l| l.worker == worker_id) {
+            if st.leases.get(id).is_none_or(|l| l.worker != worker_id) {
                 continue;
             }
             let l = st.leases.remove(id).expect("checked");
@@ -819,6 +819,7 @@ impl Farm {
 
     /// Takes a result's lease for commit, or says why not (counting late,
     /// duplicate and rejected results, and recording failures).
+    #[allow(clippy::result_large_err)] // internal, short-lived: the refusal is consumed by the caller at once
     fn take(&self, st: &mut State, r: &ResultData) -> Result<Taken, Refused> {
         if let Some(w) = st.workers.get_mut(&r.worker_id) {
             w.last_seen = Instant::now();

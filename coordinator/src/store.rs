@@ -238,7 +238,7 @@ fn writer(db: &Database, rx: mpsc::Receiver<Request>, faults: &Faults) {
 fn injected_fault(faults: &Faults, batch: &[Request]) -> Option<String> {
     let mut f = faults.lock().expect("faults lock");
     let (when, times) = f.as_mut()?;
-    if *times == 0 || !batch.iter().flat_map(|r| r.ops.iter()).any(|op| when(op)) {
+    if *times == 0 || !batch.iter().flat_map(|r| r.ops.iter()).any(when) {
         return None;
     }
     *times -= 1;

@@ -111,7 +111,7 @@ impl Layout {
             let start = first + units.len() as u32;
             let row_ok = start + tpr <= total && {
                 let u = self.unit(start);
-                u.frame == u0.frame && u.batch == u0.batch && u.tile % tpr == 0 && (start..start + tpr).all(&pending)
+                u.frame == u0.frame && u.batch == u0.batch && u.tile.is_multiple_of(tpr) && (start..start + tpr).all(&pending)
             };
             if !row_ok {
                 break;
