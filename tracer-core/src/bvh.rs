@@ -32,7 +32,7 @@ use glam::Vec3A;
 
 use crate::geometry::PrimId;
 use crate::math::{Ray, Real, Vector3};
-use crate::triangle::TriangleRay;
+use crate::triangle::{finish, Triangle, Triangle4, TriangleRay};
 use crate::world::World;
 
 /// Binary levels of the tree as built: no leaf of the binary tree is this deep.
@@ -45,11 +45,11 @@ pub const STACK: usize = stack_for_depth(MAX_DEPTH);
 const MAX_LEAF: usize = 8;
 /// Binned SAH: bins per axis.
 const BINS: usize = 16;
-/// Relative costs of a node visit (two box tests) and a primitive test.
-/// Measured with `examples/mesh_bench` (bunny, dragon): 2 gives the same
-/// ray rates as 1 with 35% fewer nodes and a 20% faster build; 3 builds
-/// faster still but slows incoherent rays on the dragon by ~8%.
-const COST_TRAVERSE: f32 = 2.0;
+/// Relative costs of a node visit and a primitive test in the binary SAH.
+/// Measured with `examples/mesh_bench` (bunny, dragon) on the 4-wide tree:
+/// 3 gives the same ray rates as 2 (and 1) with a 15-20% faster build; 4
+/// slows primary rays on the bunny by ~4%.
+const COST_TRAVERSE: f32 = 3.0;
 const COST_INTERSECT: f32 = 1.0;
 /// Subtrees larger than this are built on another rayon task.
 const PARALLEL_MIN: usize = 4096;
@@ -170,7 +170,12 @@ pub struct BvhStats {
 pub struct Bvh {
     /// The 4-wide nodes; `nodes[0]` is the root (empty for an empty tree).
     pub nodes: Vec<BvhNode4>,
+    /// Leaf references: packed [`PrimId`]s, each leaf's starting at a
+    /// multiple of 4 (`PrimId::NONE` between leaves).
     pub prims: Vec<PrimId>,
+    /// For trees over `f32` triangles alone (else empty): the triangles of
+    /// `prims[4 i .. 4 i + 4]` as packet i, for the 4-wide triangle test (CPU only).
+    pub packets: Vec<Triangle4>,
     pub stats: BvhStats,
     /// Unique per build (never 0 for a built tree; 0 for a tree made any
     /// other way): lets a GPU renderer keep an uploaded tree while the
@@ -244,15 +249,42 @@ impl Bvh {
         let prims = Prims { boxes: &mut work, order: &mut order };
         let root = build_node(stack, prims, 0, 0, bounds, cbounds);
 
-        let mut nodes = Vec::with_capacity(boxes.len() / 2 + 1);
-        let mut stats = BvhStats { primitives: boxes.len(), ..Default::default() };
-        flatten4(&root, 0, 0, &mut nodes, &mut stats);
-        let prims: Vec<PrimId> = order.iter().map(|&i| ids[i as usize]).collect();
+        let mut flat = Flat {
+            nodes: Vec::with_capacity(boxes.len() / 2 + 1),
+            prims: Vec::with_capacity(boxes.len() * 3 / 2),
+            stats: BvhStats { primitives: boxes.len(), ..Default::default() },
+            order: &order,
+            ids,
+        };
+        flatten4(&root, 0, 0, &mut flat);
+        let Flat { nodes, prims, mut stats, .. } = flat;
         stats.nodes = nodes.len();
         stats.bytes = nodes.len() * std::mem::size_of::<BvhNode4>() + prims.len() * std::mem::size_of::<PrimId>();
         stats.build_time = start.elapsed();
         debug_assert!(stats.stack <= stack_for_depth(stack));
-        Bvh { nodes, prims, stats, id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed) }
+        Bvh { nodes, prims, packets: Vec::new(), stats, id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed) }
+    }
+
+    /// Fills [`Bvh::packets`] from `triangles` (the world's, in `f32`, which
+    /// `prims` refer to): lane j of packet i is the triangle at `prims[4 i + j]`.
+    /// Only for trees over triangles alone; others keep none.
+    pub fn pack_triangles(&mut self, triangles: &[Triangle<f32>]) {
+        self.packets.clear();
+        if self.prims.iter().any(|p| *p != PrimId::NONE && (p.kind() != PrimId::TRIANGLE || p.index() >= triangles.len())) {
+            return;
+        }
+        self.packets = self
+            .prims
+            .chunks(4)
+            .map(|c| {
+                let mut p = Triangle4::default();
+                for (j, id) in c.iter().enumerate().filter(|(_, id)| **id != PrimId::NONE) {
+                    p.set(j, &triangles[id.index()]);
+                }
+                p
+            })
+            .collect();
+        self.stats.bytes += self.packets.len() * std::mem::size_of::<Triangle4>();
     }
 
     /// The node array as bytes, for upload to a GPU (128 bytes per node).
@@ -473,10 +505,14 @@ fn median_split(prims: &mut Prims, cbounds: &Aabb) -> usize {
 /// its index. Its slots are the binary node's grandchildren, or a child
 /// itself where that is a leaf: each wide level is two binary levels, so
 /// the depth bound of the binary build carries over (see [`STACK`]).
-/// `need` is the traversal stack occupancy on arrival at this node.
-fn flatten4(node: &BuildNode, depth: usize, need: usize, nodes: &mut Vec<BvhNode4>, stats: &mut BvhStats) -> u32 {
-    let at = nodes.len();
-    nodes.push(BvhNode4::EMPTY);
+/// `need` is the traversal stack occupancy on arrival at this node. Leaves
+/// get their primitives copied to `out.prims` in this depth-first order,
+/// each leaf starting at a multiple of 4 (padded with `PrimId::NONE`), so
+/// that a leaf's triangles fill whole [`Triangle4`] packets.
+fn flatten4(node: &BuildNode, depth: usize, need: usize, out: &mut Flat) -> u32 {
+    let at = out.nodes.len();
+    out.nodes.push(BvhNode4::EMPTY);
+    let stats = &mut out.stats;
     let mut slots: [Option<&BuildNode>; 4] = [None; 4];
     let mut n = 0;
     match node {
@@ -505,23 +541,36 @@ fn flatten4(node: &BuildNode, depth: usize, need: usize, nodes: &mut Vec<BvhNode
     // This node pushes at most n - 1 entries before descending into one.
     let need = need + n - 1;
     stats.stack = stats.stack.max(need);
-    let mut out = BvhNode4::EMPTY;
+    let mut node = BvhNode4::EMPTY;
     for (k, c) in slots[..n].iter().flatten().enumerate() {
-        let b = c.bounds();
-        out.set_box(k, b);
+        node.set_box(k, c.bounds());
         match c {
             BuildNode::Leaf { start, count, .. } => {
-                out.child[k] = *start as u32;
-                out.count[k] = *count as u32;
+                let stats = &mut out.stats;
                 stats.leaves += 1;
                 stats.depth = stats.depth.max(depth + 1);
                 stats.max_leaf_size = stats.max_leaf_size.max(*count);
+                let first = out.prims.len().next_multiple_of(4);
+                out.prims.resize(first, PrimId::NONE);
+                out.prims.extend(out.order[*start..*start + *count].iter().map(|&i| out.ids[i as usize]));
+                node.child[k] = first as u32;
+                node.count[k] = *count as u32;
             }
-            BuildNode::Inner { .. } => out.child[k] = flatten4(c, depth + 1, need, nodes, stats),
+            BuildNode::Inner { .. } => node.child[k] = flatten4(c, depth + 1, need, out),
         }
     }
-    nodes[at] = out;
+    out.nodes[at] = node;
     at as u32
+}
+
+/// The flattened tree as it is written, and what the leaves refer to.
+struct Flat<'a> {
+    nodes: Vec<BvhNode4>,
+    prims: Vec<PrimId>,
+    stats: BvhStats,
+    /// The build's order: leaf `start..start + count` covers `ids[order[start..start + count]]`.
+    order: &'a [u32],
+    ids: &'a [PrimId],
 }
 
 /// Exit distances are widened by this factor (Ize 2013, "Robust BVH ray
@@ -643,6 +692,70 @@ fn hit_prim<R: Real>(world: &World<R>, id: PrimId, ray: &Ray<R>, tri: &TriangleR
     }
 }
 
+/// Tests the primitives `prims[first .. first + count]` of a leaf, nearest
+/// hit first-found-wins as in a loop over them in order: `best` and `found`
+/// are updated on each hit nearer than `best`. With `ANY`, stops at the first
+/// hit (and returns true). In `f32` over packed triangles the 4-wide test
+/// does the bulk of the work; lanes it leaves open are finished in order
+/// with the same arithmetic as the scalar test, so the result is the same.
+#[inline(always)]
+fn leaf<R: Real, const ANY: bool>(
+    world: &World<R>,
+    bvh: &Bvh,
+    ray: &Ray<R>,
+    tr: &TriangleRay<R>,
+    (first, count): (usize, usize),
+    best: &mut R,
+    found: &mut PrimId,
+    skip: PrimId,
+) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>() && first % 4 == 0 && (first + count).div_ceil(4) <= bvh.packets.len() {
+        // SAFETY: R is f32, so these are the same types.
+        let (tr, tris, best) = unsafe {
+            (
+                &*(tr as *const TriangleRay<R> as *const TriangleRay<f32>),
+                &*(world.triangles.as_slice() as *const [Triangle<R>] as *const [Triangle<f32>]),
+                &mut *(best as *mut R as *mut f32),
+            )
+        };
+        let end = first + count;
+        let mut p = first;
+        while p < end {
+            let e = tr.edges4(&bvh.packets[p / 4], (1u32 << (end - p).min(4)) - 1);
+            let mut m = e.candidates | e.exact;
+            while m != 0 {
+                let j = m.trailing_zeros() as usize;
+                m &= m - 1;
+                let id = bvh.prims[p + j];
+                if id == skip {
+                    continue;
+                }
+                let t = if (e.exact >> j) & 1 != 0 { tris[id.index()].intersect(tr, *best) } else { finish(e.t_scaled[j], e.det[j], *best) };
+                if let Some(t) = t {
+                    if ANY {
+                        return true;
+                    }
+                    *best = t;
+                    *found = id;
+                }
+            }
+            p += 4;
+        }
+        return false;
+    }
+    for &id in &bvh.prims[first..first + count] {
+        if let Some(t) = hit_prim(world, id, ray, tr, *best, skip) {
+            if ANY {
+                return true;
+            }
+            *best = t;
+            *found = id;
+        }
+    }
+    false
+}
+
 /// A subtree still to visit: a slot's `child` and `count` (a node when
 /// `count` is 0, else a leaf) and the distance at which the ray enters it.
 #[derive(Clone, Copy)]
@@ -711,13 +824,7 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
                 continue;
             }
         } else {
-            let first = cur.child as usize;
-            for &id in &bvh.prims[first..first + cur.count as usize] {
-                if let Some(t) = hit_prim(world, id, ray, &tr, best, skip) {
-                    best = t;
-                    found = id;
-                }
-            }
+            leaf::<R, false>(world, bvh, ray, &tr, (cur.child as usize, cur.count as usize), &mut best, &mut found, skip);
         }
         // Pop the next subtree that may still hold something nearer.
         loop {
@@ -755,11 +862,9 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
             let k = mask.trailing_zeros() as usize;
             mask &= mask - 1;
             if n.count[k] > 0 {
-                let first = n.child[k] as usize;
-                for &id in &bvh.prims[first..first + n.count[k] as usize] {
-                    if hit_prim(world, id, ray, &tr, t_max, skip).is_some() {
-                        return true;
-                    }
+                let (mut t, mut id) = (t_max, PrimId::NONE);
+                if leaf::<R, true>(world, bvh, ray, &tr, (n.child[k] as usize, n.count[k] as usize), &mut t, &mut id, skip) {
+                    return true;
                 }
             } else if next.is_none() {
                 next = Some(n.child[k] as usize);

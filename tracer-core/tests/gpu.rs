@@ -685,7 +685,7 @@ fn gpu_refuses_a_tree_deeper_than_its_stack() {
         })
         .collect();
     let prims: Vec<PrimId> = (0..12).map(|i| PrimId::new(PrimId::SPHERE, i)).collect();
-    w.accel = Some(Bvh { nodes, prims, stats: Default::default(), id: 0 });
+    w.accel = Some(Bvh { nodes, prims, packets: Vec::new(), stats: Default::default(), id: 0 });
     let e = g.render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {}).unwrap_err();
     // Node i has 3 (i + 1) entries on the stack once it has pushed: 99 > 96 at depth 32.
     assert!(matches!(e, GpuError::TreeTooDeep { depth: 32, stack: STACK }), "{e}");
