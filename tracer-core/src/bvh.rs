@@ -699,6 +699,7 @@ fn hit_prim<R: Real>(world: &World<R>, id: PrimId, ray: &Ray<R>, tri: &TriangleR
 /// does the bulk of the work; lanes it leaves open are finished in order
 /// with the same arithmetic as the scalar test, so the result is the same.
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn leaf<R: Real, const ANY: bool>(
     world: &World<R>,
     bvh: &Bvh,
