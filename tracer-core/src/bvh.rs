@@ -266,7 +266,8 @@ impl Bvh {
     }
 
     /// Fills [`Bvh::packets`] from `triangles` (the world's, in `f32`, which
-    /// `prims` refer to): lane j of packet i is the triangle at `prims[4 i + j]`.
+    /// `prims` refer to): lane j of packet i is the triangle at `prims[4 i + j]`,
+    /// with that `PrimId` in `ids[j]`.
     /// Only for trees over triangles alone; others keep none.
     pub fn pack_triangles(&mut self, triangles: &[Triangle<f32>]) {
         self.packets.clear();
@@ -280,6 +281,7 @@ impl Bvh {
                 let mut p = Triangle4::default();
                 for (j, id) in c.iter().enumerate().filter(|(_, id)| **id != PrimId::NONE) {
                     p.set(j, &triangles[id.index()]);
+                    p.ids[j] = id.0;
                 }
                 p
             })
@@ -723,12 +725,14 @@ fn leaf<R: Real, const ANY: bool>(
         let end = first + count;
         let mut p = first;
         while p < end {
-            let e = tr.edges4(&bvh.packets[p / 4], (1u32 << (end - p).min(4)) - 1);
+            let packet = &bvh.packets[p / 4];
+            let e = tr.edges4(packet, (1u32 << (end - p).min(4)) - 1);
             let mut m = e.candidates | e.exact;
             while m != 0 {
                 let j = m.trailing_zeros() as usize;
                 m &= m - 1;
-                let id = bvh.prims[p + j];
+                // The same as prims[p + j] (`pack_triangles`), without touching prims.
+                let id = PrimId(packet.ids[j]);
                 if id == skip {
                     continue;
                 }

@@ -158,15 +158,24 @@ pub fn finish<R: Real>(t_scaled: R, det: R, t_max: R) -> Option<R> {
 
 /// Four triangles in the form the 4-wide (SSE) pass of the test wants:
 /// `rows[3 * i + a]` holds vertex i's coordinate on axis a, triangle j in
-/// lane j (`f32` only; the BVH keeps these in leaf order, see `bvh.rs`).
+/// lane j (`f32` only; the BVH keeps these in leaf order, see `bvh.rs`),
+/// and what each lane is to the caller (the BVH: its packed `PrimId`, so a
+/// hit needs no second lookup; `u32::MAX` for an unused lane).
 #[repr(C, align(16))]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct Triangle4 {
     pub rows: [[f32; 4]; 9],
+    pub ids: [u32; 4],
+}
+
+impl Default for Triangle4 {
+    fn default() -> Self {
+        Triangle4 { rows: [[0.0; 4]; 9], ids: [u32::MAX; 4] }
+    }
 }
 
 impl Triangle4 {
-    /// Puts `t` into lane `j`.
+    /// Puts `t` into lane `j` (its id is left to the caller).
     pub fn set(&mut self, j: usize, t: &Triangle<f32>) {
         for (i, v) in t.vertices().iter().enumerate() {
             for a in 0..3 {
