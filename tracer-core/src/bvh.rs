@@ -777,7 +777,8 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
         return None;
     }
     let br = BoxRay::new(ray);
-    let tr = TriangleRay::new(ray);
+    // Set up at the first leaf: many rays (most primary rays past a model) never reach one.
+    let mut tr: Option<TriangleRay<R>> = None;
     let mut found = PrimId::NONE;
     // Uninitialised: zeroing the stack per ray costs more than a short traversal.
     let mut stack = [const { MaybeUninit::<Entry<R>>::uninit() }; STACK];
@@ -829,7 +830,8 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
                 continue;
             }
         } else {
-            leaf::<R, false>(world, bvh, ray, &tr, (cur.child as usize, cur.count as usize), &mut best, &mut found, skip);
+            let tr = tr.get_or_insert_with(|| TriangleRay::new(ray));
+            leaf::<R, false>(world, bvh, ray, tr, (cur.child as usize, cur.count as usize), &mut best, &mut found, skip);
         }
         // Pop the next subtree that may still hold something nearer.
         loop {
@@ -855,7 +857,8 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
         return false;
     }
     let br = BoxRay::new(ray);
-    let tr = TriangleRay::new(ray);
+    // Set up at the first leaf: many rays (most primary rays past a model) never reach one.
+    let mut tr: Option<TriangleRay<R>> = None;
     let mut stack = [const { MaybeUninit::<u32>::uninit() }; STACK];
     let mut sp = 0usize;
     let mut node = 0usize;
@@ -868,7 +871,8 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
             mask &= mask - 1;
             if n.count[k] > 0 {
                 let (mut t, mut id) = (t_max, PrimId::NONE);
-                if leaf::<R, true>(world, bvh, ray, &tr, (n.child[k] as usize, n.count[k] as usize), &mut t, &mut id, skip) {
+                let tr = tr.get_or_insert_with(|| TriangleRay::new(ray));
+                if leaf::<R, true>(world, bvh, ray, tr, (n.child[k] as usize, n.count[k] as usize), &mut t, &mut id, skip) {
                     return true;
                 }
             } else if next.is_none() {
