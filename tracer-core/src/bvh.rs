@@ -43,7 +43,7 @@ pub const MAX_DEPTH: usize = 64;
 pub const STACK: usize = stack_for_depth(MAX_DEPTH);
 /// Leaves hold at most this many primitives.
 const MAX_LEAF: usize = 8;
-/// Binned SAH: bins per axis.
+/// Binned SAH: bins per axis (at most; nodes of fewer primitives use as many bins, at least 4).
 const BINS: usize = 16;
 /// Relative costs of a node visit and a primitive test in the binary SAH.
 /// Measured with `examples/mesh_bench` (bunny, dragon) on the 4-wide tree:
@@ -321,8 +321,8 @@ fn build_node(stack: usize, prims: Prims, offset: usize, depth: usize, bounds: A
     let mut prims = prims;
     let (mid, lb, rb) = match split {
         Some(Split::Leaf) => return BuildNode::Leaf { bounds, start: offset, count: n },
-        Some(Split::Bin { axis, bin, lo, scale, left, right }) => {
-            let (mid, lc, rc) = partition_bins(&mut prims, axis, bin, lo, scale);
+        Some(Split::Bin { axis, bin, lo, scale, top, left, right }) => {
+            let (mid, lc, rc) = partition_bins(&mut prims, axis, bin, lo, scale, top);
             (mid, (left, lc), (right, rc))
         }
         None => {
@@ -344,16 +344,16 @@ enum Split {
     Leaf,
     /// Primitives whose centroid bins below `bin` on `axis` go left; the
     /// binning (`lo`, `scale`) and both sides' box bounds.
-    Bin { axis: usize, bin: usize, lo: Vec3A, scale: Vec3A, left: Aabb, right: Aabb },
+    Bin { axis: usize, bin: usize, lo: Vec3A, scale: Vec3A, top: f32, left: Aabb, right: Aabb },
 }
 
 /// Bins of a centroid on the three axes: `(c - lo) * scale` truncated and
-/// clamped to [0, BINS - 1] (NaN lands in the last bin). The one function
+/// clamped to [0, top] (NaN lands in the last bin, `top`). The one function
 /// both binning and partitioning use, so their counts agree.
 #[inline(always)]
-fn bins_of(c: Vec3A, lo: Vec3A, scale: Vec3A) -> [usize; 3] {
+fn bins_of(c: Vec3A, lo: Vec3A, scale: Vec3A, top: f32) -> [usize; 3] {
     // `min` first: SSE's min returns its second operand for a NaN.
-    let f = ((c - lo) * scale).min(Vec3A::splat((BINS - 1) as f32)).max(Vec3A::ZERO);
+    let f = ((c - lo) * scale).min(Vec3A::splat(top)).max(Vec3A::ZERO);
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{__m128, __m128i, _mm_cvttps_epi32};
@@ -379,17 +379,21 @@ struct Bin {
 fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
     let n = boxes.len();
     let lo = cbounds.min;
+    // Bins in use: as many as primitives, from 4 up to BINS (small nodes,
+    // which are most nodes, then sweep fewer empty bins).
+    let nb = n.clamp(4, BINS);
+    let top = (nb - 1) as f32;
     let extent = cbounds.max - lo;
     // Axes with no spread (or one too small to bin) get scale 0: every
     // primitive lands in bin 0 there, so they offer no split.
     let scale = Vec3A::from_array([0, 1, 2].map(|a| {
-        let s = BINS as f32 * (1.0 - 1e-6) / extent[a];
+        let s = nb as f32 * (1.0 - 1e-6) / extent[a];
         if extent[a] > 0.0 && s.is_finite() { s } else { 0.0 }
     }));
     let empty = Bin { bounds: Aabb::EMPTY, count: 0 };
     let mut bins = [[empty; BINS]; 3];
     for b in boxes {
-        let k = bins_of(b.centroid(), lo, scale);
+        let k = bins_of(b.centroid(), lo, scale, top);
         for axis in 0..3 {
             let bin = &mut bins[axis][k[axis]];
             bin.bounds.grow(b);
@@ -404,7 +408,7 @@ fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
         let mut right_count = [0u32; BINS];
         let mut acc = Aabb::EMPTY;
         let mut cnt = 0;
-        for b in (1..BINS).rev() {
+        for b in (1..nb).rev() {
             acc.grow(&bins[b].bounds);
             cnt += bins[b].count;
             right_area[b] = acc.half_area();
@@ -412,7 +416,7 @@ fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
         }
         let mut acc = Aabb::EMPTY;
         let mut cnt = 0;
-        for b in 0..BINS - 1 {
+        for b in 0..nb - 1 {
             acc.grow(&bins[b].bounds);
             cnt += bins[b].count;
             let rc = right_count[b + 1];
@@ -442,19 +446,19 @@ fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
         }
         b
     };
-    Some(Split::Bin { axis, bin, lo, scale, left: side(0..bin), right: side(bin..BINS) })
+    Some(Split::Bin { axis, bin, lo, scale, top, left: side(0..bin), right: side(bin..nb) })
 }
 
 /// Moves primitives of bins < `bin` to the front; returns how many and the
 /// centroid bounds of both sides (gathered here rather than per bin: one
 /// box grow per primitive instead of three). Bins are computed exactly as
 /// in [`sah_split`], so the counts match.
-fn partition_bins(prims: &mut Prims, axis: usize, bin: usize, lo: Vec3A, scale: Vec3A) -> (usize, Aabb, Aabb) {
+fn partition_bins(prims: &mut Prims, axis: usize, bin: usize, lo: Vec3A, scale: Vec3A, top: f32) -> (usize, Aabb, Aabb) {
     let (mut lc, mut rc) = (Aabb::EMPTY, Aabb::EMPTY);
     // Classifies a box, growing its side's centroid bounds.
     let mut left = |b: &Aabb| {
         let c = b.centroid();
-        let l = bins_of(c, lo, scale)[axis] < bin;
+        let l = bins_of(c, lo, scale, top)[axis] < bin;
         if l { lc.grow_point(c) } else { rc.grow_point(c) }
         l
     };
