@@ -138,13 +138,14 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
     let bn = build_with(&mut world, threads);
     let stats = world.accel.as_ref().ok_or("no BVH was built")?.stats;
     println!(
-        "  BVH build: {:.1} ms wall on 1 thread ({:.1} ms CPU incl. reordering), {:.1} ms wall on {threads}; {} nodes, {} leaves, depth {}, max leaf {}, {:.1} MiB (nodes+refs) + {:.1} MiB triangles, {} degenerate dropped",
+        "  BVH build: {:.1} ms wall on 1 thread ({:.1} ms CPU incl. reordering), {:.1} ms wall on {threads}; {} nodes (4-wide), {} leaves, depth {}, stack {}, max leaf {}, {:.1} MiB (nodes+refs+packets) + {:.1} MiB triangles, {} degenerate dropped",
         b1.0 * 1e3,
         b1.1 * 1e3,
         bn.0 * 1e3,
         stats.nodes,
         stats.leaves,
         stats.depth,
+        stats.stack,
         stats.max_leaf_size,
         stats.bytes as f64 / (1 << 20) as f64,
         triangle_bytes(&world) as f64 / (1 << 20) as f64,

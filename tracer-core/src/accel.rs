@@ -131,6 +131,12 @@ pub(crate) fn build_accel<R: Real>(world: &mut World<R>, force: Option<bool>) {
         world.triangles = triangles;
         world.triangle_shading = shading;
     }
+    // The 4-wide triangle test (f32 only) wants the leaves' triangles packed.
+    if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>() && world.spheres.is_empty() {
+        // SAFETY: R is f32, so this is the same type.
+        let tris = unsafe { &*(world.triangles.as_slice() as *const [Triangle<R>] as *const [Triangle<f32>]) };
+        tree.pack_triangles(tris);
+    }
     world.accel = Some(tree);
 }
 

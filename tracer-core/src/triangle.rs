@@ -127,17 +127,7 @@ impl<R: Real> Triangle<R> {
         }
         let z = dz * r.s[2]; // (az, bz, cz)
         let t_scaled = uvw.dot(z);
-        // t = t_scaled / det must lie in (0, t_max); test before dividing.
-        let inside = if det > R::ZERO {
-            t_scaled > R::ZERO && t_scaled < t_max * det
-        } else {
-            t_scaled < R::ZERO && t_scaled > t_max * det
-        };
-        if !inside {
-            return None;
-        }
-        let t = t_scaled / det;
-        (t > R::ZERO && t < t_max).then_some(t)
+        finish(t_scaled, det, t_max)
     }
 
     /// Unnormalised geometric normal (e1 x e2): outward for counter-clockwise winding.
@@ -145,6 +135,119 @@ impl<R: Real> Triangle<R> {
     pub fn cross(&self) -> R::V3 {
         let v = self.vertices();
         (v[1] - v[0]).cross(v[2] - v[0])
+    }
+}
+
+/// The last step of the test, given `t_scaled` and a non-zero `det`: the
+/// distance if it lies in (0, t_max). Shared by the scalar and the 4-wide
+/// forms, so that both round alike.
+#[inline(always)]
+pub fn finish<R: Real>(t_scaled: R, det: R, t_max: R) -> Option<R> {
+    // t = t_scaled / det must lie in (0, t_max); test before dividing.
+    let inside = if det > R::ZERO {
+        t_scaled > R::ZERO && t_scaled < t_max * det
+    } else {
+        t_scaled < R::ZERO && t_scaled > t_max * det
+    };
+    if !inside {
+        return None;
+    }
+    let t = t_scaled / det;
+    (t > R::ZERO && t < t_max).then_some(t)
+}
+
+/// Four triangles in the form the 4-wide (SSE) pass of the test wants:
+/// `rows[3 * i + a]` holds vertex i's coordinate on axis a, triangle j in
+/// lane j (`f32` only; the BVH keeps these in leaf order, see `bvh.rs`),
+/// and what each lane is to the caller (the BVH: its packed `PrimId`, so a
+/// hit needs no second lookup; `u32::MAX` for an unused lane).
+#[repr(C, align(16))]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct Triangle4 {
+    pub rows: [[f32; 4]; 9],
+    pub ids: [u32; 4],
+}
+
+impl Default for Triangle4 {
+    fn default() -> Self {
+        Triangle4 { rows: [[0.0; 4]; 9], ids: [u32::MAX; 4] }
+    }
+}
+
+impl Triangle4 {
+    /// Puts `t` into lane `j` (its id is left to the caller).
+    pub fn set(&mut self, j: usize, t: &Triangle<f32>) {
+        for (i, v) in t.vertices().iter().enumerate() {
+            for a in 0..3 {
+                self.rows[3 * i + a][j] = v[a];
+            }
+        }
+    }
+}
+
+/// What the 4-wide pass leaves to finish lane by lane: `candidates`, lanes
+/// whose edge functions agree in sign and whose `det` is non-zero (they hit
+/// if [`finish`]`(t_scaled, det, t_max)` says so); `exact`, lanes for the
+/// scalar [`Triangle::intersect`] (an edge function is zero, so it needs the
+/// exact re-evaluation, or some value is NaN). All other lanes miss.
+#[derive(Clone, Copy, Debug)]
+pub struct Edges4 {
+    pub candidates: u32,
+    pub exact: u32,
+    pub t_scaled: [f32; 4],
+    pub det: [f32; 4],
+}
+
+#[cfg(target_arch = "x86_64")]
+impl TriangleRay<f32> {
+    /// The watertight test of four triangles at once, up to the division,
+    /// for the lanes in `lanes` (bit j: lane j). Each lane does exactly the
+    /// IEEE operations of [`Triangle::intersect`] in the same order (the
+    /// products commute), so it rounds alike; where that test would branch
+    /// on NaN or take its exact path, the lane is left to it.
+    #[inline(always)]
+    pub fn edges4(&self, p: &Triangle4, lanes: u32) -> Edges4 {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE is part of x86_64; `k` entries are < 3, so the rows
+        // indexed are < 9; `Triangle4` is 16-byte aligned, so each row is.
+        unsafe {
+            let row = |v: usize, a: usize| _mm_load_ps(p.rows.get_unchecked(3 * v + *self.k.get_unchecked(a)).as_ptr());
+            let (ox, oy, oz) = (_mm_set1_ps(self.o[0].x), _mm_set1_ps(self.o[1].x), _mm_set1_ps(self.o[2].x));
+            let (sx, sy, sz) = (_mm_set1_ps(self.s[0].x), _mm_set1_ps(self.s[1].x), _mm_set1_ps(self.s[2].x));
+            let dz = [0, 1, 2].map(|v| _mm_sub_ps(row(v, 2), oz));
+            let x = [0, 1, 2].map(|v| _mm_sub_ps(_mm_sub_ps(row(v, 0), ox), _mm_mul_ps(dz[v], sx)));
+            let y = [0, 1, 2].map(|v| _mm_sub_ps(_mm_sub_ps(row(v, 1), oy), _mm_mul_ps(dz[v], sy)));
+            // (u, v, w) = (cx by - cy bx, ax cy - ay cx, bx ay - by ax).
+            let u = _mm_sub_ps(_mm_mul_ps(x[2], y[1]), _mm_mul_ps(y[2], x[1]));
+            let v = _mm_sub_ps(_mm_mul_ps(x[0], y[2]), _mm_mul_ps(y[0], x[2]));
+            let w = _mm_sub_ps(_mm_mul_ps(x[1], y[0]), _mm_mul_ps(y[1], x[0]));
+            let det = _mm_add_ps(_mm_add_ps(u, v), w);
+            // uvw . z, z = dz * sz, summed as glam's dot: (u az + v bz) + w cz.
+            let zu = _mm_mul_ps(u, _mm_mul_ps(dz[0], sz));
+            let zv = _mm_mul_ps(v, _mm_mul_ps(dz[1], sz));
+            let zw = _mm_mul_ps(w, _mm_mul_ps(dz[2], sz));
+            let t_scaled = _mm_add_ps(_mm_add_ps(zu, zv), zw);
+            let zero = _mm_setzero_ps();
+            macro_rules! any {
+                ($cmp:ident) => {
+                    _mm_or_ps(_mm_or_ps($cmp(u, zero), $cmp(v, zero)), $cmp(w, zero))
+                };
+            }
+            let on_edge = any!(_mm_cmpeq_ps);
+            let nan = _mm_or_ps(_mm_or_ps(_mm_cmpunord_ps(u, v), _mm_cmpunord_ps(w, det)), _mm_cmpunord_ps(t_scaled, t_scaled));
+            let exact = _mm_or_ps(on_edge, nan);
+            let mixed = _mm_and_ps(any!(_mm_cmplt_ps), any!(_mm_cmpgt_ps));
+            let out = _mm_or_ps(_mm_or_ps(mixed, _mm_cmpeq_ps(det, zero)), exact);
+            let mut e = Edges4 {
+                candidates: !(_mm_movemask_ps(out) as u32) & lanes,
+                exact: _mm_movemask_ps(exact) as u32 & lanes,
+                t_scaled: [0.0; 4],
+                det: [0.0; 4],
+            };
+            _mm_storeu_ps(e.t_scaled.as_mut_ptr(), t_scaled);
+            _mm_storeu_ps(e.det.as_mut_ptr(), det);
+            e
+        }
     }
 }
 
@@ -219,6 +322,56 @@ mod tests {
         let sliver = Triangle::<f32>::new([q, q + Vec3A::new(1e-30, 0.0, 0.0), q]);
         let r32 = TriangleRay::new(&Ray::<f32>::new(Vec3A::ZERO, q.normalize()));
         assert_eq!(sliver.intersect(&r32, f32::INFINITY), None);
+    }
+
+    /// The 4-wide pass, finished lane by lane, gives the scalar test's
+    /// result bit for bit: random triangles, slivers, points, vertices on a
+    /// small grid (rays through shared edges and vertices), huge coordinates.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn four_wide_test_matches_the_scalar_one_bit_for_bit() {
+        let h = |i: u32| crate::sampling::hash_u32(i) as f32 / u32::MAX as f32 - 0.5;
+        let mut n = 0u32;
+        let mut hits = 0;
+        for i in 0..40_000u32 {
+            let mut p = Triangle4::default();
+            let tris: Vec<Triangle<f32>> = (0..4u32)
+                .map(|j| {
+                    let k = (i * 4 + j) * 16;
+                    let v = |a: u32| match i % 4 {
+                        0 => Vec3A::new(h(k + a), h(k + a + 1), h(k + a + 2) + 2.0),
+                        1 => Vec3A::new((h(k + a) * 8.0).round() / 4.0, (h(k + a + 1) * 8.0).round() / 4.0, 2.0),
+                        2 => Vec3A::new(h(k), h(k + 1), 2.0) + Vec3A::splat(h(k + a) * 1e-6),
+                        _ => Vec3A::new(h(k + a), h(k + a + 1), h(k + a + 2)) * 3e19,
+                    };
+                    Triangle::new([v(3), v(6), v(9)])
+                })
+                .collect();
+            for (j, t) in tris.iter().enumerate() {
+                p.set(j, t);
+            }
+            let o = Vec3A::new(h(i * 7 + 1) * 0.1, h(i * 7 + 2) * 0.1, h(i * 7 + 3) * 0.1);
+            let target = if i % 4 == 1 { Vec3A::new((h(i * 7 + 4) * 8.0).round() / 8.0, (h(i * 7 + 5) * 8.0).round() / 8.0, 2.0) } else { Vec3A::new(h(i * 7 + 4), h(i * 7 + 5), 2.0) };
+            let r = TriangleRay::new(&Ray::<f32>::new(o, (target - o).normalize()));
+            let t_max = if i % 3 == 0 { f32::INFINITY } else { 2.0 + h(i * 7 + 6) };
+            let lanes = if i % 5 == 0 { 0b0111 } else { 0b1111 };
+            let e = r.edges4(&p, lanes);
+            assert_eq!(e.candidates & e.exact, 0);
+            for (j, t) in tris.iter().enumerate() {
+                let want = if (lanes >> j) & 1 != 0 { t.intersect(&r, t_max) } else { None };
+                let got = if (e.exact >> j) & 1 != 0 {
+                    n += 1;
+                    t.intersect(&r, t_max)
+                } else if (e.candidates >> j) & 1 != 0 {
+                    finish(e.t_scaled[j], e.det[j], t_max)
+                } else {
+                    None
+                };
+                assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits), "case {i} lane {j}");
+                hits += want.is_some() as u32;
+            }
+        }
+        assert!(n > 100 && hits > 3_000, "{n} exact lanes, {hits} hits");
     }
 
     #[test]

@@ -27,7 +27,7 @@ use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::gpu::{GpuError, GpuOptions, GpuRenderer, Strategy};
 use tracer_core::render::{Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
-use tracer_core::bvh::{Bvh, BvhNode, NodePair, MAX_DEPTH};
+use tracer_core::bvh::{Aabb, Bvh, BvhNode4, STACK};
 use tracer_core::geometry::PrimId;
 use common::meshgen::{icosphere, pathological_obj, tmpdir, write_obj};
 
@@ -651,9 +651,10 @@ material = "mirror"
 }
 
 /// A tree deeper than the kernel's traversal stack (here a hand-made chain
-/// of 70 levels; the builder never makes one) is refused with an error at
-/// upload, never traced into a wrong image. The builder's own deepest case
-/// is a depth-limited tree; that one must render.
+/// of 40 levels of nodes that push three slots each; the builder never
+/// makes one) is refused with an error at upload, never traced into a wrong
+/// image. The builder's own deepest case is a depth-limited tree; that one
+/// must render.
 #[test]
 fn gpu_refuses_a_tree_deeper_than_its_stack() {
     let Some(g) = gpu() else { return };
@@ -665,28 +666,37 @@ fn gpu_refuses_a_tree_deeper_than_its_stack() {
     let s = desc.render;
     let mut frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
     let PreparedFrame::F32(w) = &mut frame else { unreachable!() };
-    // Root, then pairs (leaf with sphere k, interior) down to depth 70.
-    let levels = 70;
-    let everything = BvhNode { min: [-1e3; 3], first: 0, max: [1e3; 3], count: 0 };
-    let mut nodes = vec![BvhNode { first: 2, ..everything }, BvhNode::default()];
-    for k in 0..levels {
-        let leaf = BvhNode { first: (k % 12) as u32, count: 1, ..everything };
-        let next = if k + 1 == levels { BvhNode { first: 0, count: 1, ..everything } } else { BvhNode { first: nodes.len() as u32 + 2, ..everything } };
-        nodes.extend([leaf, next]);
-    }
-    let pairs: Vec<NodePair> = nodes.chunks_exact(2).map(|c| NodePair([c[0], c[1]])).collect();
+    // A chain of nodes: three leaves (a sphere each) and the next node.
+    let levels = 40;
+    let everything = Aabb { min: glam::Vec3A::splat(-1e3), max: glam::Vec3A::splat(1e3) };
+    let nodes: Vec<BvhNode4> = (0..levels)
+        .map(|i| {
+            let mut n = BvhNode4::EMPTY;
+            for k in 0..4 {
+                n.set_box(k, &everything);
+                n.child[k] = ((3 * i + k) % 12) as u32;
+                n.count[k] = 1;
+            }
+            if i + 1 < levels {
+                n.child[3] = i as u32 + 1;
+                n.count[3] = 0;
+            }
+            n
+        })
+        .collect();
     let prims: Vec<PrimId> = (0..12).map(|i| PrimId::new(PrimId::SPHERE, i)).collect();
-    w.accel = Some(Bvh { pairs, prims, stats: Default::default(), id: 0 });
+    w.accel = Some(Bvh { nodes, prims, packets: Vec::new(), stats: Default::default(), id: 0 });
     let e = g.render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {}).unwrap_err();
-    assert!(matches!(e, GpuError::TreeTooDeep { depth: 64, stack: MAX_DEPTH }), "{e}");
+    // Node i has 3 (i + 1) entries on the stack once it has pushed: 99 > 96 at depth 32.
+    assert!(matches!(e, GpuError::TreeTooDeep { depth: 32, stack: STACK }), "{e}");
     assert_eq!(
         e.to_string(),
-        "the scene's BVH has a node at depth 64, too deep for the GPU traversal stack of 64 entries (leaves must lie above depth 64); render it with --backend cpu"
+        "the scene's BVH has a node at depth 32 whose traversal needs more than the GPU traversal stack of 96 entries; render it with --backend cpu"
     );
     // A broken tree (a child index past the end) is refused too.
     let PreparedFrame::F32(w) = &mut frame else { unreachable!() };
     let tree = w.accel.as_mut().unwrap();
-    tree.pairs.truncate(3);
+    tree.nodes.truncate(3);
     let e = g.render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {}).unwrap_err();
     assert!(matches!(e, GpuError::BadTree(_)), "{e}");
     // The same scene with the tree the builder makes renders.

@@ -165,6 +165,9 @@ fn bvh_equals_brute_force_for_random_rays_in_f32_and_f64() {
          [[objects]]\ntype = \"mesh\"\npath = \"soup.obj\"\nmaterial = \"mirror\"\n\
          [[objects]]\ntype = \"plane\"\nnormal = [0, 1, 0]\ndistance = -2\nmaterial = \"white\"\n"
     );
+    // Without spheres the f32 tree tests its leaves' triangles 4 at a time
+    // (`Bvh::packets`); with them, one by one: check both.
+    let meshes_only = SceneDesc::parse(&src, dir.join("brute.toml")).unwrap();
     for i in 0..20 {
         write!(src, "[[objects]]\ntype = \"sphere\"\ncenter = [{}, {}, 0.5]\nradius = 0.3\nmaterial = \"white\"\n", i % 5 - 2, i / 5 - 2).unwrap();
     }
@@ -172,6 +175,8 @@ fn bvh_equals_brute_force_for_random_rays_in_f32_and_f64() {
     fn check<R: Real>(scene: &SceneDesc) {
         let tree = world_of::<R>(scene);
         assert!(tree.accel.is_some());
+        let packed = !tree.accel.as_ref().unwrap().packets.is_empty();
+        assert_eq!(packed, tree.spheres.is_empty() && std::mem::size_of::<R>() == 4);
         let mut brute = tree.clone();
         brute.set_accel(Some(false));
         let mut hits = 0;
@@ -202,6 +207,8 @@ fn bvh_equals_brute_force_for_random_rays_in_f32_and_f64() {
     }
     check::<f32>(&scene);
     check::<f64>(&scene);
+    check::<f32>(&meshes_only);
+    check::<f64>(&meshes_only);
 }
 
 /// Mean absolute difference over channels, and the fraction of pixels that

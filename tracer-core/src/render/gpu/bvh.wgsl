@@ -1,24 +1,28 @@
 // Scene queries for worlds with a BVH (accel.rs, bvh.rs): planes by loop,
 // spheres and triangles through the tree. Mirrors `bvh::closest_hit` and
-// `bvh::occluded` (same node layout, same slab test, same near-first order
-// and culling), `Triangle::intersect` (the watertight test) and the
-// triangle parts of world.rs / accel.rs (`triangle_surface`,
-// `shading_normal`).
+// `bvh::occluded` (same 4-wide node layout, same slab test with planes
+// chosen by the direction's sign, same near-first order and culling),
+// `Triangle::intersect` (the watertight test) and the triangle parts of
+// world.rs / accel.rs (`triangle_surface`, `shading_normal`).
 //
-// The traversal stack has BVH_STACK (= bvh::MAX_DEPTH) entries. A push
-// happens at most once per level on the way down, so a tree whose leaves
-// are all shallower than BVH_STACK never overflows it; the builder
-// guarantees that and the host checks it at upload (layout.rs check_tree),
-// refusing deeper trees with an error.
+// The traversal stack has BVH_STACK entries: one more than the most the
+// tree can need on any path (a node pushes all its met slots but the one
+// it continues with), as measured by the host at upload (layout.rs
+// check_tree, which refuses trees needing more than bvh::STACK).
 
 // ---- Layouts: keep in sync with layout.rs (GpuBvhNode, GpuTriangle, GpuTriangleShading)
-struct BvhNode {
-    bmin: vec3<f32>,
-    // Interior: index of the left child (the right one follows). Leaf: first index into `prims`.
-    first: u32,
-    bmax: vec3<f32>,
-    // 0 for an interior node, else the leaf's primitive count.
-    count: u32,
+struct BvhNode4 {
+    // Rows of the four slots' boxes (bvh.rs BvhNode4::b).
+    min_x: vec4<f32>,
+    max_x: vec4<f32>,
+    min_y: vec4<f32>,
+    max_y: vec4<f32>,
+    min_z: vec4<f32>,
+    max_z: vec4<f32>,
+    // Slot k: a child node (count 0, child its index, never 0), a leaf
+    // (count > 0: prims[child .. child + count]) or nothing (both 0).
+    child: vec4<u32>,
+    count: vec4<u32>,
 }
 
 struct Triangle {
@@ -36,7 +40,7 @@ struct TriangleShading {
     n2: vec3<f32>,
 }
 
-@group(0) @binding(8) var<storage, read> nodes: array<BvhNode>;
+@group(0) @binding(8) var<storage, read> nodes: array<BvhNode4>;
 @group(0) @binding(9) var<storage, read> prims: array<u32>;
 @group(0) @binding(10) var<storage, read> triangles: array<Triangle>;
 @group(0) @binding(11) var<storage, read> shading: array<TriangleShading>;
@@ -54,16 +58,25 @@ fn reciprocal(d: vec3<f32>) -> vec3<f32> {
     return select(1.0 / d, big, abs(d) < vec3<f32>(1.1754944e-38));
 }
 
-// Entry distance into the node's box if the ray meets it within [0, t_max], else MISS.
-fn box_entry(n: BvhNode, o: vec3<f32>, inv: vec3<f32>, t_max: f32) -> f32 {
-    let lo = (n.bmin - o) * inv;
-    let hi = (n.bmax - o) * inv;
-    let near = min(lo, hi);
-    let far = max(lo, hi);
-    let t0 = max(max(max(near.x, near.y), near.z), 0.0);
-    let t1 = min(min(far.x, far.y), far.z) * EXIT_WIDEN;
-    return select(MISS, t0, t0 <= t1 && t0 <= t_max);
+// Entry distances into the node's four boxes where the ray meets them
+// within [0, t_max], else MISS. The near plane on each axis is the min one
+// where the direction is positive (bvh.rs BoxRay).
+fn box_entry4(n: BvhNode4, o: vec3<f32>, inv: vec3<f32>, t_max: f32) -> vec4<f32> {
+    let pos = inv >= vec3<f32>(0.0);
+    let t0x = (select(n.max_x, n.min_x, pos.x) - o.x) * inv.x;
+    let t1x = (select(n.min_x, n.max_x, pos.x) - o.x) * inv.x;
+    let t0y = (select(n.max_y, n.min_y, pos.y) - o.y) * inv.y;
+    let t1y = (select(n.min_y, n.max_y, pos.y) - o.y) * inv.y;
+    let t0z = (select(n.max_z, n.min_z, pos.z) - o.z) * inv.z;
+    let t1z = (select(n.min_z, n.max_z, pos.z) - o.z) * inv.z;
+    let t0 = max(max(t0x, t0y), max(t0z, vec4<f32>(0.0)));
+    let t1 = min(min(t1x, t1y), t1z) * EXIT_WIDEN;
+    let used = (n.count != vec4<u32>(0u)) | (n.child != vec4<u32>(0u));
+    return select(vec4<f32>(MISS), t0, used & (t0 <= t1) & (t0 <= vec4<f32>(t_max)));
 }
+
+// A stack entry for a leaf: LEAF_REF | node << 2 | slot (host-checked: fewer than 2^29 nodes).
+const LEAF_REF: u32 = 0x80000000u;
 
 // triangle.rs TriangleRay: the origin and the ray-aligned shear as three rows.
 struct TriRay {
@@ -174,39 +187,50 @@ fn tree_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
     var found = NONE;
     let inv = reciprocal(d);
     let tr = tri_ray(o, d);
-    if (box_entry(nodes[0], o, inv, best) < 0.0) {
-        return h;
-    }
-    var stack_node: array<u32, BVH_STACK>;
+    var stack_ref: array<u32, BVH_STACK>;
     var stack_t: array<f32, BVH_STACK>;
     var sp = 0u;
-    var node = 0u;
+    // The subtree being visited: a node index, or a LEAF_REF; first the root.
+    var cur = 0u;
     loop {
-        let n = nodes[node];
-        if (n.count == 0u) {
-            let l = n.first;
-            let hl = box_entry(nodes[l], o, inv, best);
-            let hr = box_entry(nodes[l + 1u], o, inv, best);
-            if (hl >= 0.0 && hr >= 0.0) {
-                // Both: visit the nearer first, keep the farther with its entry distance.
-                let left_first = hl <= hr;
-                stack_node[sp] = select(l, l + 1u, left_first);
-                stack_t[sp] = select(hl, hr, left_first);
-                sp = min(sp + 1u, BVH_STACK - 1u); // never clamps: depth checked at upload
-                node = select(l + 1u, l, left_first);
-                continue;
+        if ((cur & LEAF_REF) == 0u) {
+            let n = nodes[cur];
+            let t = box_entry4(n, o, inv, best);
+            // The met slots sorted nearest first (insertion).
+            var r: array<u32, 4>;
+            var rt: array<f32, 4>;
+            var c = 0u;
+            for (var k = 0u; k < 4u; k++) {
+                let tk = t[k];
+                if (tk >= 0.0) {
+                    var j = c;
+                    while (j > 0u && rt[j - 1u] > tk) {
+                        rt[j] = rt[j - 1u];
+                        r[j] = r[j - 1u];
+                        j -= 1u;
+                    }
+                    rt[j] = tk;
+                    r[j] = select(n.child[k], LEAF_REF | (cur << 2u) | k, n.count[k] != 0u);
+                    c += 1u;
+                }
             }
-            if (hl >= 0.0) {
-                node = l;
-                continue;
-            }
-            if (hr >= 0.0) {
-                node = l + 1u;
+            if (c > 0u) {
+                // Push all but the nearest, farthest first; continue with the nearest.
+                for (var j = c - 1u; j > 0u; j--) {
+                    stack_ref[sp] = r[j];
+                    stack_t[sp] = rt[j];
+                    sp = min(sp + 1u, BVH_STACK - 1u); // never clamps: stack need checked at upload
+                }
+                cur = r[0];
                 continue;
             }
         } else {
-            for (var k = n.first; k < n.first + n.count; k++) {
-                let id = prims[k];
+            let node = (cur & ~LEAF_REF) >> 2u;
+            let k = cur & 3u;
+            let first = nodes[node].child[k];
+            let count = nodes[node].count[k];
+            for (var i = first; i < first + count; i++) {
+                let id = prims[i];
                 let t = hit_prim(id, o, d, tr, best, skip);
                 if (t > 0.0) {
                     best = t;
@@ -222,7 +246,7 @@ fn tree_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
             }
             sp -= 1u;
             if (stack_t[sp] <= best) {
-                node = stack_node[sp];
+                cur = stack_ref[sp];
                 done = false;
                 break;
             }
@@ -237,36 +261,38 @@ fn tree_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
     return Hit(best, found);
 }
 
-// bvh.rs occluded: any primitive of the tree before t_max.
+// bvh.rs occluded: any primitive of the tree before t_max; leaves are
+// tested as soon as their box is met.
 fn tree_occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
     let inv = reciprocal(d);
     let tr = tri_ray(o, d);
-    if (box_entry(nodes[0], o, inv, t_max) < 0.0) {
-        return false;
-    }
     var stack_node: array<u32, BVH_STACK>;
     var sp = 0u;
     var node = 0u;
     loop {
         let n = nodes[node];
-        if (n.count == 0u) {
-            let l = n.first;
-            let hl = box_entry(nodes[l], o, inv, t_max) >= 0.0;
-            let hr = box_entry(nodes[l + 1u], o, inv, t_max) >= 0.0;
-            if (hl || hr) {
-                if (hl && hr) {
-                    stack_node[sp] = l + 1u;
-                    sp = min(sp + 1u, BVH_STACK - 1u); // never clamps: depth checked at upload
+        let t = box_entry4(n, o, inv, t_max);
+        var next = NONE;
+        for (var k = 0u; k < 4u; k++) {
+            if (t[k] >= 0.0) {
+                if (n.count[k] != 0u) {
+                    let first = n.child[k];
+                    for (var i = first; i < first + n.count[k]; i++) {
+                        if (hit_prim(prims[i], o, d, tr, t_max, skip) > 0.0) {
+                            return true;
+                        }
+                    }
+                } else if (next == NONE) {
+                    next = n.child[k];
+                } else {
+                    stack_node[sp] = n.child[k];
+                    sp = min(sp + 1u, BVH_STACK - 1u); // never clamps: stack need checked at upload
                 }
-                node = select(l + 1u, l, hl);
-                continue;
             }
-        } else {
-            for (var k = n.first; k < n.first + n.count; k++) {
-                if (hit_prim(prims[k], o, d, tr, t_max, skip) > 0.0) {
-                    return true;
-                }
-            }
+        }
+        if (next != NONE) {
+            node = next;
+            continue;
         }
         if (sp == 0u) {
             return false;

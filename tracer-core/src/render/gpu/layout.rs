@@ -8,7 +8,7 @@
 
 use bytemuck::{Pod, Zeroable};
 
-use crate::bvh::{Bvh, BvhNode, MAX_DEPTH};
+use crate::bvh::{Bvh, BvhNode4, STACK};
 use crate::geometry::{Plane, PrimId, Sphere};
 use crate::triangle::{Triangle, TriangleShading};
 use crate::world::{Material, PointLight, World};
@@ -129,9 +129,10 @@ pub struct GpuTriangleShading {
     pub _pad2: u32,
 }
 
-/// The BVH node is uploaded as is: `bvh::BvhNode` (32 bytes) is already the
-/// WGSL `struct BvhNode` (vec3 min, u32 first, vec3 max, u32 count).
-pub type GpuBvhNode = BvhNode;
+/// The BVH node is uploaded as is: `bvh::BvhNode4` (128 bytes) is already
+/// the WGSL `struct BvhNode4` (six vec4<f32> rows of the four slots' boxes,
+/// then vec4<u32> child and count).
+pub type GpuBvhNode = BvhNode4;
 
 /// Per-pixel output: fixed-point sums as (low, high) u32 words per channel,
 /// i.e. the `u64` sums of [`crate::film::Film`]. WGSL: `sums: array<u32>`, 6 words a pixel.
@@ -160,13 +161,13 @@ const _: () = assert!(size_of::<GpuMaterial>() == 64);
 const _: () = assert!(size_of::<GpuLight>() == 48);
 const _: () = assert!(size_of::<GpuTriangle>() == 48);
 const _: () = assert!(size_of::<GpuTriangleShading>() == 64);
-const _: () = assert!(size_of::<GpuBvhNode>() == 32);
+const _: () = assert!(size_of::<GpuBvhNode>() == 128);
 
 /// A world's tree and what its leaves refer to, for scenes that have one
 /// (meshes, or many spheres): the pipeline then compiles `bvh.wgsl`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TreeData {
-    /// The flattened nodes exactly as the CPU traverses them (node 1 is padding).
+    /// The flattened 4-wide nodes exactly as the CPU traverses them.
     pub nodes: Vec<GpuBvhNode>,
     /// Leaf references: packed `PrimId`s (kind << 28 | index).
     pub prims: Vec<u32>,
@@ -174,18 +175,18 @@ pub struct TreeData {
     pub triangles: Vec<GpuTriangle>,
     pub shading: Vec<GpuTriangleShading>,
     pub n_triangles: u32,
-    /// Depth of the deepest leaf, as measured at upload.
-    pub depth: u32,
+    /// Traversal stack entries the tree needs, as measured at upload.
+    pub stack: u32,
 }
 
 impl TreeData {
     /// Packs `tree` after checking that the GPU can traverse it: every index
-    /// in range and no leaf at depth `MAX_DEPTH` or more, since the kernel's
-    /// traversal stack has `MAX_DEPTH` entries. The builder guarantees both;
-    /// this refuses a tree from anywhere else rather than render a wrong image.
+    /// in range and no path from the root that pushes more than `STACK`
+    /// entries, since the kernel's traversal stack has `STACK` entries. The
+    /// builder guarantees both; this refuses a tree from anywhere else
+    /// rather than render a wrong image.
     pub fn from_tree(w: &World<f32>, tree: &Bvh) -> Result<Self, GpuError> {
-        let nodes: Vec<BvhNode> = tree.pairs.iter().flat_map(|p| p.0).collect();
-        let depth = check_tree(&nodes, &tree.prims, w.spheres.len(), w.triangles.len())?;
+        let stack = check_tree(&tree.nodes, &tree.prims, w.spheres.len(), w.triangles.len())?;
         let triangle = |t: &Triangle<f32>| {
             let [v0, v1, v2] = t.vertices().map(a3);
             GpuTriangle { v0, v1, v2, ..Default::default() }
@@ -203,47 +204,58 @@ impl TreeData {
             }
         };
         Ok(TreeData {
-            nodes: non_empty(nodes),
+            nodes: tree.nodes.clone(),
             prims: non_empty(tree.prims.iter().map(|p| p.0).collect()),
             triangles: non_empty(w.triangles.iter().map(triangle).collect()),
             shading: non_empty(w.triangle_shading.iter().map(shading).collect()),
             n_triangles: w.triangles.len() as u32,
-            depth,
+            stack,
         })
     }
 }
 
-/// Walks the tree from the root: children and leaf ranges in bounds, leaves
-/// referring to existing spheres or triangles, depth below the stack. Returns
-/// the depth of the deepest leaf.
-fn check_tree(nodes: &[BvhNode], prims: &[PrimId], spheres: usize, triangles: usize) -> Result<u32, GpuError> {
+/// Walks the tree from the root: child nodes and leaf ranges in bounds,
+/// leaves referring to existing spheres or triangles, and at most `STACK`
+/// entries on the traversal stack along any path (a node pushes all but one
+/// of its used slots). Returns the most entries any path needs.
+fn check_tree(nodes: &[BvhNode4], prims: &[PrimId], spheres: usize, triangles: usize) -> Result<u32, GpuError> {
     let bad = |why: String| Err(GpuError::BadTree(why));
     if nodes.is_empty() {
         return bad("the tree has no nodes".into());
     }
-    let mut stack = vec![(0usize, 0usize)];
-    let mut deepest = 0;
+    // The kernel's stack refers to a leaf as node << 2 | slot in 31 bits.
+    if nodes.len() >= 1 << 29 {
+        return bad(format!("the tree has {} nodes, more than the kernel can refer to", nodes.len()));
+    }
+    let mut stack = vec![(0usize, 0usize, 0usize)];
+    let mut most = 0;
     let mut visited = 0usize;
-    while let Some((i, depth)) = stack.pop() {
-        if depth >= MAX_DEPTH {
-            return Err(GpuError::TreeTooDeep { depth, stack: MAX_DEPTH });
-        }
+    while let Some((i, depth, need)) = stack.pop() {
         visited += 1;
         if visited > nodes.len() {
             return bad("nodes are shared or form a cycle".into());
         }
         let n = &nodes[i];
-        let first = n.first as usize;
-        if n.count == 0 {
-            if first % 2 != 0 || first + 1 >= nodes.len() || first == 0 {
-                return bad(format!("node {i} has children at {first}, outside the {} nodes or not a sibling pair", nodes.len()));
+        let used = (0..4).filter(|&k| !n.is_empty(k)).count();
+        if used == 0 {
+            return bad(format!("node {i} has no children"));
+        }
+        let need = need + used - 1;
+        if need > STACK {
+            return Err(GpuError::TreeTooDeep { depth, stack: STACK });
+        }
+        most = most.max(need);
+        for k in (0..4).filter(|&k| !n.is_empty(k)) {
+            let first = n.child[k] as usize;
+            if n.count[k] == 0 {
+                if first >= nodes.len() {
+                    return bad(format!("node {i} has a child at {first}, outside the {} nodes", nodes.len()));
+                }
+                stack.push((first, depth + 1, need));
+                continue;
             }
-            stack.push((first, depth + 1));
-            stack.push((first + 1, depth + 1));
-        } else {
-            deepest = deepest.max(depth);
-            let Some(leaf) = prims.get(first..first + n.count as usize) else {
-                return bad(format!("leaf {i} refers to primitives {first}..{} of {}", first + n.count as usize, prims.len()));
+            let Some(leaf) = prims.get(first..first + n.count[k] as usize) else {
+                return bad(format!("node {i} has a leaf of primitives {first}..{} of {}", first + n.count[k] as usize, prims.len()));
             };
             for p in leaf {
                 let ok = match p.kind() {
@@ -252,12 +264,12 @@ fn check_tree(nodes: &[BvhNode], prims: &[PrimId], spheres: usize, triangles: us
                     _ => false,
                 };
                 if !ok {
-                    return bad(format!("leaf {i} refers to {p:?}, which is not a sphere or triangle of the scene"));
+                    return bad(format!("node {i} has a leaf that refers to {p:?}, which is not a sphere or triangle of the scene"));
                 }
             }
         }
     }
-    Ok(deepest as u32)
+    Ok(most as u32)
 }
 
 /// Everything the kernel needs of one frame of a scene, packed for upload.
@@ -347,7 +359,7 @@ impl SceneData {
             specular: a3(l.specular),
             ..Default::default()
         };
-        let tree = match w.accel.as_ref().filter(|t| !t.pairs.is_empty()) {
+        let tree = match w.accel.as_ref().filter(|t| !t.nodes.is_empty()) {
             None => None,
             Some(t) => match packed {
                 Some(p) if t.id != 0 && p.id == t.id && p.data.n_triangles as usize == w.triangles.len() && p.data.prims.len() == t.prims.len() => {

@@ -54,7 +54,7 @@ pub enum GpuError {
     RequestDevice { adapter: String, message: String },
     #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
     F64Unsupported,
-    #[error("the scene's BVH has a node at depth {depth}, too deep for the GPU traversal stack of {stack} entries (leaves must lie above depth {stack}); render it with --backend cpu")]
+    #[error("the scene's BVH has a node at depth {depth} whose traversal needs more than the GPU traversal stack of {stack} entries; render it with --backend cpu")]
     TreeTooDeep { depth: usize, stack: usize },
     #[error("the scene's BVH cannot be traversed on the GPU: {0}")]
     BadTree(String),
@@ -787,7 +787,9 @@ impl GpuRenderer {
         let source = format!(
             "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{queries}\n{WAVEFRONT_WGSL}",
             data.stack_capacity(),
-            crate::bvh::MAX_DEPTH
+            // One more entry than this tree can need (checked at packing to
+            // be at most bvh::STACK; see bvh.wgsl), so shallow trees keep small stacks.
+            data.tree.as_ref().map_or(crate::bvh::STACK as u32, |t| t.data.stack) + 1
         );
         let module = self.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("whitted.wgsl"),

@@ -9,7 +9,7 @@
 // shortening, skipped shadow rays, TIR rule).
 //
 // Prepended by the host: `const STACK_CAP: u32 = N;` (see SceneData::stack_capacity),
-// `const BVH_STACK: u32 = bvh::MAX_DEPTH;`, then sampling.wgsl; appended:
+// `const BVH_STACK: u32 = N;` (the tree's stack need, at most bvh::STACK), then sampling.wgsl; appended:
 // analytic.wgsl or bvh.wgsl (the scene queries), then wavefront.wgsl.
 
 // ---- Layouts: keep in sync with layout.rs -------------------------------
