@@ -206,6 +206,9 @@ struct Job {
     rec: JobRecord,
     settings: RenderSettings,
     layout: Layout,
+    /// Expected rays of one pixel-sample pass over each tile (`cost::probe`):
+    /// leases are sized in rays.
+    tile_rays: Vec<f64>,
     state: JobState,
     done: Vec<bool>,
     pending: BTreeSet<u32>,
@@ -243,8 +246,10 @@ struct Worker {
     last_seen: Instant,
     leases: HashSet<String>,
     units_done: u64,
-    /// Smoothed pixel-samples per second, from its results.
+    /// Smoothed pixel-samples per second, from its results (shown to users).
     speed: f64,
+    /// Smoothed rays per second, from its results (sizes its leases).
+    ray_speed: f64,
 }
 
 #[derive(Default)]
@@ -334,6 +339,13 @@ impl Farm {
             for (rec, counters) in snap.jobs {
                 let settings = settings_of(&rec).map_err(|message| StoreError::Corrupt { what: format!("job {}", rec.id), message })?;
                 let mut job = Job::new(rec, settings, counters);
+                if !job.state.is_terminal() {
+                    // Derived state, not stored: probed again from the stored scene.
+                    let scene = farm.store.asset(&job.rec.scene_sha256).ok().flatten().and_then(|b| String::from_utf8(b).ok());
+                    if let Some(desc) = scene.and_then(|t| SceneDesc::parse(&t, &job.rec.scene_name).ok()) {
+                        job.tile_rays = crate::cost::probe(&desc, &job.settings, &job.layout);
+                    }
+                }
                 for (frame, file) in written.remove(&job.rec.id).unwrap_or_default() {
                     for u in job.layout.frame_units(frame) {
                         job.mark_done(u);
@@ -410,6 +422,13 @@ impl Farm {
                 layout.total()
             )));
         }
+        // Off the async threads: it traces a few rays of every tile.
+        let tile_rays = {
+            let layout = layout.clone();
+            tokio::task::spawn_blocking(move || crate::cost::probe(&scene, &settings, &layout))
+                .await
+                .map_err(|e| FarmError::Internal(format!("cost probe: {e}")))?
+        };
         for (name, _) in &s.assets {
             if name.is_empty() || name.starts_with('/') || name.split('/').any(|p| p == "..") {
                 return Err(FarmError::InvalidArgument(format!("asset name {name:?} must be a relative path inside the scene's directory")));
@@ -469,7 +488,8 @@ impl Farm {
             frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
             "job accepted"
         );
-        let job = Job::new(rec, settings, Counters::default());
+        let mut job = Job::new(rec, settings, Counters::default());
+        job.tile_rays = tile_rays;
         self.state.lock().expect("state lock").jobs.insert(id.clone(), job);
         self.work_ready.notify_waiters();
         Ok(id)
@@ -556,7 +576,7 @@ impl Farm {
         tracing::info!(worker = %id, name = %name, threads, backend = %backend, "worker joined");
         st.workers.insert(
             id.clone(),
-            Worker { name, threads, backend, gpu_name, version, last_seen: Instant::now(), leases: HashSet::new(), units_done: 0, speed: 0.0 },
+            Worker { name, threads, backend, gpu_name, version, last_seen: Instant::now(), leases: HashSet::new(), units_done: 0, speed: 0.0, ray_speed: 0.0 },
         );
         id
     }
@@ -569,7 +589,7 @@ impl Farm {
         let st = &mut *st;
         let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
-        let speed = worker.speed;
+        let speed = worker.ray_speed;
         let workers = st.workers.len();
         let mut order: Vec<(&String, &Job)> = st.jobs.iter().filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty()).collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
@@ -586,18 +606,23 @@ impl Farm {
                     break;
                 }
                 let Some(&first) = job.pending.iter().next() else { break };
-                let base = job.layout.unit_samples(job.layout.unit(first)).max(1) as f64;
-                // Near the end of a job, big leases would leave the other
-                // workers idle while one finishes: a lease takes at most a
-                // quarter of a worker's share of what is pending (a worker
-                // holds two: the one it renders and the next).
-                let fair = (job.pending.len() / (4 * workers).max(1)).max(1) as u32;
-                let want = if speed > 0.0 {
-                    ((speed * self.config.target_unit_seconds / base).floor() as u32).clamp(1, self.config.max_tiles_per_lease).min(fair)
-                } else {
-                    1
+                // A lease is sized in expected rays: the worker's rays per
+                // second times the target time. Near the end of a job, big
+                // leases would leave the other workers idle while one
+                // finishes: a lease takes at most a quarter of a worker's
+                // share of the rays pending (a worker holds two: the one it
+                // renders and the next).
+                let rays = |u: u32| {
+                    let unit = job.layout.unit(u);
+                    job.tile_rays[unit.tile as usize] * job.layout.batches[unit.batch as usize].len() as f64
                 };
-                let units = job.layout.join(first, want, |u| job.pending.contains(&u));
+                let units = if speed > 0.0 {
+                    let pending_rays: f64 = job.pending.iter().map(|&u| rays(u)).sum();
+                    let budget = (speed * self.config.target_unit_seconds).min(pending_rays / (4 * workers).max(1) as f64);
+                    job.layout.join(first, self.config.max_tiles_per_lease, |u| job.pending.contains(&u), rays, budget)
+                } else {
+                    vec![first]
+                };
                 for u in &units {
                     job.pending.remove(u);
                 }
@@ -918,12 +943,11 @@ impl Farm {
         if let Some(w) = st.workers.get_mut(&r.worker_id) {
             w.units_done += t.units.len() as u64;
             if r.render_seconds > 0.0 {
-                let s = samples as f64 / r.render_seconds;
-                // Cost per pixel varies across a frame (open sky against
-                // glass): a speed measured on cheap tiles would size the next
-                // lease far too large for costly ones (seen: 6 s leases for a
-                // 0.5 s target). So the estimate drops at once and rises slowly.
-                w.speed = if w.speed == 0.0 || s < w.speed { s } else { 0.7 * w.speed + 0.3 * s };
+                // The estimates drop at once and rise slowly: a lease that
+                // runs long costs the job's end more than one that runs short.
+                let smooth = |old: f64, new: f64| if old == 0.0 || new < old { new } else { 0.7 * old + 0.3 * new };
+                w.speed = smooth(w.speed, samples as f64 / r.render_seconds);
+                w.ray_speed = smooth(w.ray_speed, film.rays.total() as f64 / r.render_seconds);
             }
         }
         Ok(Outcome::Accepted)
@@ -1191,10 +1215,13 @@ impl Job {
         let frames = (rec.first_frame..=rec.last_frame)
             .map(|f| (f, FrameAcc { film: None, units_done: 0, written: None, writing: false }))
             .collect();
+        // Until probed: one ray a pixel-sample.
+        let tile_rays = layout.tiles.iter().map(|t| t.area() as f64).collect();
         Job {
             rec,
             settings,
             layout,
+            tile_rays,
             state: if state == JobState::Running { JobState::Queued } else { state },
             done: vec![false; total as usize],
             pending,
@@ -1629,6 +1656,30 @@ material = "red"
         assert_eq!((l3.rect.x, l3.rect.y, l3.rect.width, l3.rect.height), (0, 16, 256, 48));
         assert_eq!(farm.submit_result(result(&gpu, &l3, 1e-6)).await.unwrap(), Outcome::Accepted);
         assert_eq!(farm.job(&job).unwrap().units_done, 1 + 15 + 48);
+    }
+
+    /// Leases are sized in expected rays: where tiles cost 8x the rays
+    /// (glass), a worker gets an eighth of the pixels for the same time.
+    #[tokio::test]
+    async fn leases_are_sized_in_expected_rays_not_pixels() {
+        // One row of 64 tiles of 16 px, 4 spp; the right half costs 8 rays a pixel-sample.
+        let (_dir, farm, job) = farm_with_job(1024, 16, 4).await;
+        farm.state.lock().unwrap().jobs.get_mut(&job).unwrap().tile_rays = (0..64).map(|t| if t < 32 { 256.0 } else { 2048.0 }).collect();
+        let w = register(&farm, "w", 2);
+        // 65536 rays/s: 16384 rays in the 0.25 s target, 16 cheap tiles of 1024.
+        let l1 = farm.lease(&w, 1, false).unwrap().remove(0);
+        assert_eq!(farm.submit_result(result(&w, &l1, 1024.0 / 65536.0)).await.unwrap(), Outcome::Accepted);
+        let l2 = farm.lease(&w, 1, false).unwrap().remove(0);
+        assert_eq!((l2.rect.x, l2.rect.width), (16, 16 * 16));
+        // result() reports one ray a pixel-sample, as the cheap tiles cost.
+        assert_eq!(farm.submit_result(result(&w, &l2, 0.25)).await.unwrap(), Outcome::Accepted);
+        // The rest of the cheap half (15 tiles); the next tile would not fit.
+        let l3 = farm.lease(&w, 1, false).unwrap().remove(0);
+        assert_eq!((l3.rect.x, l3.rect.width), (17 * 16, 15 * 16));
+        assert_eq!(farm.submit_result(result(&w, &l3, 15.0 * 1024.0 / 65536.0)).await.unwrap(), Outcome::Accepted);
+        // Costly tiles: 8192 rays each, two fit.
+        let l4 = farm.lease(&w, 1, false).unwrap().remove(0);
+        assert_eq!((l4.rect.x, l4.rect.width), (32 * 16, 2 * 16));
     }
 
     #[tokio::test]

@@ -87,16 +87,20 @@ impl Layout {
         b == a + 1 && ua.frame == ub.frame && ua.batch == ub.batch && ua.tile / self.tiles_per_row == ub.tile / self.tiles_per_row
     }
 
-    /// Up to `want` units from `first` on, all `pending`, whose tiles make
-    /// one rectangle: a run along `first`'s row of tiles, and when that run
-    /// is the whole row, further whole rows below it (same frame and sample
-    /// batch). Unit numbers are row-major, so the result is consecutive.
-    pub fn join(&self, first: u32, want: u32, pending: impl Fn(u32) -> bool) -> Vec<u32> {
+    /// Units from `first` on, all `pending`, whose tiles make one
+    /// rectangle: a run along `first`'s row of tiles, and when that run is
+    /// the whole row, further whole rows below it (same frame and sample
+    /// batch); at most `max` units whose `cost` adds up to at most `budget`
+    /// (but always `first`). Unit numbers are row-major, so the result is
+    /// consecutive.
+    pub fn join(&self, first: u32, max: u32, pending: impl Fn(u32) -> bool, cost: impl Fn(u32) -> f64, budget: f64) -> Vec<u32> {
         let mut units = vec![first];
-        while (units.len() as u32) < want {
-            let last = *units.last().expect("non-empty");
-            if last < u32::MAX && self.joins(last, last + 1) && pending(last + 1) {
-                units.push(last + 1);
+        let mut spent = cost(first);
+        while (units.len() as u32) < max {
+            let next = *units.last().expect("non-empty") + 1;
+            if next < self.total() && self.joins(next - 1, next) && pending(next) && spent + cost(next) <= budget {
+                units.push(next);
+                spent += cost(next);
             } else {
                 break;
             }
@@ -106,17 +110,18 @@ impl Layout {
             return units;
         }
         let u0 = self.unit(first);
-        let total = self.total();
-        while units.len() as u32 + tpr <= want {
+        while units.len() as u32 + tpr <= max {
             let start = first + units.len() as u32;
-            let row_ok = start + tpr <= total && {
+            let row_ok = start + tpr <= self.total() && {
                 let u = self.unit(start);
                 u.frame == u0.frame && u.batch == u0.batch && u.tile.is_multiple_of(tpr) && (start..start + tpr).all(&pending)
             };
-            if !row_ok {
+            let row_cost: f64 = (start..start + tpr).map(&cost).sum();
+            if !row_ok || spent + row_cost > budget {
                 break;
             }
             units.extend(start..start + tpr);
+            spent += row_cost;
         }
         units
     }
@@ -150,14 +155,21 @@ mod tests {
         let l = Layout::new(64, 48, 8, 0, 0, 16, 4);
         assert_eq!(l.tiles_per_row, 4);
         let all = |_| true;
+        let one = |_| 1.0;
         // Within a row, stopping at its end.
-        assert_eq!(l.join(1, 10, all), vec![1, 2, 3]);
-        assert_eq!(l.join(0, 3, all), vec![0, 1, 2]);
+        assert_eq!(l.join(1, 10, all, one, 1e9), vec![1, 2, 3]);
+        assert_eq!(l.join(0, 3, all, one, 1e9), vec![0, 1, 2]);
         // From a row's start: whole rows, never past the batch.
-        assert_eq!(l.join(0, 9, all), (0..8).collect::<Vec<_>>());
-        assert_eq!(l.join(4, 100, all), (4..12).collect::<Vec<_>>());
+        assert_eq!(l.join(0, 9, all, one, 1e9), (0..8).collect::<Vec<_>>());
+        assert_eq!(l.join(4, 100, all, one, 1e9), (4..12).collect::<Vec<_>>());
         // A row with a unit taken is not joined.
-        assert_eq!(l.join(0, 12, |u| u != 9), (0..8).collect::<Vec<_>>());
-        assert_eq!(l.join(0, 12, |u| u != 2), vec![0, 1]);
+        assert_eq!(l.join(0, 12, |u| u != 9, one, 1e9), (0..8).collect::<Vec<_>>());
+        assert_eq!(l.join(0, 12, |u| u != 2, one, 1e9), vec![0, 1]);
+        // The budget: units along the row while they fit, whole rows only
+        // when the whole row fits; the first unit always.
+        assert_eq!(l.join(0, 12, all, one, 2.5), vec![0, 1]);
+        assert_eq!(l.join(0, 12, all, one, 7.0), vec![0, 1, 2, 3]);
+        assert_eq!(l.join(0, 12, all, |u| if u == 1 { 10.0 } else { 1.0 }, 5.0), vec![0]);
+        assert_eq!(l.join(0, 12, all, one, 0.0), vec![0]);
     }
 }
