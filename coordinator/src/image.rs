@@ -43,10 +43,17 @@ pub fn write_image(path: &Path, film: &Film) -> Result<(), ImageError> {
     let linear = film.resolve();
     match ImageFormat::of(path)? {
         ImageFormat::Png => {
+            use image::ImageEncoder as _;
+            use image::codecs::png::{CompressionType, FilterType, PngEncoder};
             let bytes = tracer_core::film::to_srgb8(&linear);
-            image::RgbImage::from_raw(w, h, bytes)
-                .expect("buffer matches size")
-                .save_with_format(path, image::ImageFormat::Png)
+            // Fast deflate: a farm's last frame is written while every
+            // worker waits for the job to end (1920x1080: ~25 ms instead
+            // of ~100 ms with the default level, files ~30% larger).
+            std::fs::File::create(path).map_err(image::ImageError::IoError).and_then(|f| {
+                let mut out = std::io::BufWriter::new(f);
+                PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Adaptive).write_image(&bytes, w, h, image::ExtendedColorType::Rgb8)?;
+                std::io::Write::flush(&mut out).map_err(image::ImageError::IoError)
+            })
         }
         ImageFormat::Exr => {
             let data: Vec<f32> = linear.iter().flatten().copied().collect();
