@@ -120,3 +120,23 @@ fn tiles_batches_and_sample_ranges_do_not_change_a_sample() {
     split.merge(&rest).unwrap();
     assert!(split == whole, "sample ranges 0..4 + 4..9 differ from 0..9");
 }
+
+#[test]
+fn every_sampler_gives_the_recursive_renderers_bits() {
+    // The stream renderer computes the grid's offsets once per tile and the
+    // other patterns' per sample: both must place samples as the reference
+    // does, for any frame and sample range.
+    use tracer_core::sampling::Sampler;
+    let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
+    for (sampler, count) in [(Sampler::Grid, 4), (Sampler::Grid, 3), (Sampler::Jittered, 4), (Sampler::Jittered, 5)] {
+        let settings = RenderSettings { width: 40, height: 30, samples: count, sampler, ..desc.render };
+        let w = world(&desc, &settings);
+        for frame in [0, 3] {
+            for samples in [SampleRange::all(count), SampleRange::new(1, count)] {
+                let fast = render(&w, 16, samples, &|t, s| stream::render_tile(&w, frame, t, s, SimdLevel::detect()));
+                let reference = render(&w, 16, samples, &|t, s| render_tile_recursive(&w, frame, t, s));
+                assert!(fast == reference, "{sampler:?} {count} spp, frame {frame}, samples {samples:?}: differs from the recursive renderer");
+            }
+        }
+    }
+}
