@@ -31,6 +31,8 @@ pub struct Tables {
     /// the colour a ray starts from (ambient term; the background for the
     /// miss entry), together: one lookup per hit ...
     ent: Vec<[f32; 12]>,
+    /// The `PrimId` of each entry (`PrimId::NONE` for the miss entry) ...
+    ent_key: Vec<u32>,
     /// ... and per (light, entry), indexed `light * entries + entry`, the
     /// light's diffuse and specular times the material's.
     ent_light: Vec<[f32; 6]>,
@@ -64,6 +66,10 @@ impl Tables {
             spheres: world.spheres.len(),
             materials,
             ent: Vec::new(),
+            ent_key: (0..world.spheres.len() as u32).map(|k| PrimId::new(PrimId::SPHERE, k).0)
+                .chain((0..world.planes.len() as u32).map(|k| PrimId::new(PrimId::PLANE, k).0))
+                .chain([PrimId::NONE.0])
+                .collect(),
             ent_light: Vec::new(),
         };
         let last = t.prim_mat.len() - 1;
@@ -101,11 +107,8 @@ impl Tables {
 /// each (light, hit) (index `light * n + i`).
 #[derive(Default)]
 pub struct Shaded {
-    /// Whether ray i hit anything, and the material it hit.
-    pub hit: Vec<bool>,
     /// The colour each ray starts from: the ambient term, or the background.
     pub local: [Vec<f32>; 3],
-    pub mat: Vec<u32>,
     /// Transparency of the material hit: the refracted ray's weight.
     pub transparency: Vec<f32>,
     /// Origins offset to the viewer's side and to the other side.
@@ -140,6 +143,58 @@ fn arr<const W: usize, T>(v: &[T], at: usize) -> &[T; W] {
 }
 
 
+/// Tables of at most this many entries are gathered by selection.
+const SELECT_MAX: usize = 16;
+
+/// Each lane's entry in the tables, for [`gather`]'s scalar path only.
+#[inline(always)]
+fn entries<const W: usize>(tab: &Tables, ids: &[u32; W]) -> [usize; W] {
+    let mut e = [0; W];
+    if tab.ent.len() > SELECT_MAX {
+        for l in 0..W {
+            e[l] = tab.entry(PrimId(ids[l]));
+        }
+    }
+    e
+}
+
+/// Row `ents[l]` of `table` (whose rows belong to the primitives `keys`)
+/// for each lane `l` whose primitive is `ids[l]`, as lane arrays. With a
+/// few rows (every thesis scene) each row is OR-ed, as bits, into the lanes
+/// that hit its primitive (exactly one row per lane), which vectorises; a
+/// scalar gather stores lane by lane into arrays that are read back as
+/// vectors, and those loads stall on store forwarding.
+#[inline(always)]
+fn gather<const W: usize, const K: usize>(table: &[[f32; K]], keys: &[u32], ids: &[u32; W], ents: &[usize; W]) -> [[f32; W]; K] {
+    let mut out = [[0.0f32; W]; K];
+    if table.len() <= SELECT_MAX {
+        let mut bits = [[0u32; W]; K];
+        for (row, &key) in table.iter().zip(keys) {
+            let v = row.map(f32::to_bits);
+            // Lanes outermost, as in the shading loops: LLVM vectorises over them.
+            for l in 0..W {
+                let m = 0u32.wrapping_sub((ids[l] == key) as u32);
+                for k in 0..K {
+                    bits[k][l] |= v[k] & m;
+                }
+            }
+        }
+        for k in 0..K {
+            for l in 0..W {
+                out[k][l] = f32::from_bits(bits[k][l]);
+            }
+        }
+    } else {
+        for l in 0..W {
+            let row = table[ents[l]];
+            for k in 0..K {
+                out[k][l] = row[k];
+            }
+        }
+    }
+    out
+}
+
 #[inline(always)]
 fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     // glam's Vec3A::dot order: (x + y) + z.
@@ -168,8 +223,6 @@ pub fn shade_lanes<const W: usize>(
 ) {
     let n = t.len();
     let nl = tab.lights.len();
-    sized(&mut s.hit, n);
-    sized(&mut s.mat, n);
     sized(&mut s.transparency, n);
     for v in s.local.iter_mut().chain(s.above.iter_mut()).chain(s.below.iter_mut()).chain(s.refract_dir.iter_mut()).chain(s.reflect_dir.iter_mut()) {
         sized(v, n);
@@ -188,37 +241,23 @@ pub fn shade_lanes<const W: usize>(
         let (ox, oy, oz) = (arr::<W, _>(o[0], at), arr::<W, _>(o[1], at), arr::<W, _>(o[2], at));
         let (dx, dy, dz) = (arr::<W, _>(d[0], at), arr::<W, _>(d[1], at), arr::<W, _>(d[2], at));
         let tt = arr::<W, _>(t, at);
-        // Gather (scalar, into lane arrays): primitive and material constants.
+        // Primitive and material constants of each lane's hit.
         let ids = arr::<W, _>(id, at);
-        let mut ents = [0usize; W];
-        let mut local = [[0.0f32; W]; 3];
+        let ents = entries::<W>(tab, ids);
+        let e = gather::<W, 12>(&tab.ent, &tab.ent_key, ids, &ents);
+        let g = [e[0], e[1], e[2], e[3]];
+        let mc = [e[4], e[5], e[6], e[7], e[8]];
+        let local = [e[9], e[10], e[11]];
         let mut hit = [false; W];
         let mut sphere = [false; W];
-        let mut mat = [0u32; W];
-        let mut g = [[0.0f32; W]; 4];
-        let mut mc = [[0.0f32; W]; 5];
         for l in 0..W {
-            let e = tab.entry(PrimId(ids[l]));
-            let ent = tab.ent[e];
-            ents[l] = e;
-            hit[l] = e < tab.prim_mat.len() - 1;
-            sphere[l] = e < tab.spheres;
-            mat[l] = tab.prim_mat[e];
-            for k in 0..4 {
-                g[k][l] = ent[k];
-            }
-            for k in 0..5 {
-                mc[k][l] = ent[4 + k];
-            }
-            for c in 0..3 {
-                local[c][l] = ent[9 + c];
-            }
+            hit[l] = ids[l] != PrimId::NONE.0;
+            // (PrimId::NONE's kind is not SPHERE.)
+            sphere[l] = PrimId(ids[l]).kind() == PrimId::SPHERE;
         }
-        s.hit[at..at + W].copy_from_slice(&hit);
         for (to, from) in s.local.iter_mut().zip(&local) {
             to[at..at + W].copy_from_slice(from);
         }
-        s.mat[at..at + W].copy_from_slice(&mat);
         s.transparency[at..at + W].copy_from_slice(&mc[3]);
         let mut p = [[0.0f32; W]; 3];
         let mut nn = [[0.0f32; W]; 3];
@@ -267,14 +306,7 @@ pub fn shade_lanes<const W: usize>(
         for (li, lp) in tab.lights.iter().enumerate() {
             let base = li * n + at;
             let entries = tab.ent.len();
-            let light = &tab.ent_light[li * entries..(li + 1) * entries];
-            let mut lc = [[0.0f32; W]; 6];
-            for l in 0..W {
-                let lm = light[ents[l]];
-                for c in 0..6 {
-                    lc[c][l] = lm[c];
-                }
-            }
+            let lc = gather::<W, 6>(&tab.ent_light[li * entries..(li + 1) * entries], &tab.ent_key, ids, &ents);
             // Results in lane arrays, stored after the loop: indexing the
             // queues inside it would stop LLVM from vectorising it.
             let mut on = [false; W];
