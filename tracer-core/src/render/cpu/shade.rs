@@ -314,6 +314,11 @@ pub fn shade_lanes<const W: usize>(
             let mut t_max = [0.0f32; W];
             let mut dir = [[0.0f32; W]; 3];
             let mut add = [[0.0f32; W]; 3];
+            let mut ndotl = [0.0f32; W];
+            let mut ndoth = [0.0f32; W];
+            // Lanes (of hits) whose specular term passes the cut-off, as u32
+            // (0 or 1) for a cheap OR-reduction.
+            let mut want_spec = [0u32; W];
             for l in 0..W {
                 let pt = [p[0][l], p[1][l], p[2][l]];
                 let ns = [nn[0][l], nn[1][l], nn[2][l]];
@@ -322,16 +327,12 @@ pub fn shade_lanes<const W: usize>(
                 let dist = dot(to, to).sqrt();
                 let inv = 1.0 / dist;
                 let ld = [to[0] * inv, to[1] * inv, to[2] * inv];
-                let ndotl = max0(dot(ns, ld));
+                ndotl[l] = max0(dot(ns, ld));
                 let h = [ld[0] + vv[0], ld[1] + vv[1], ld[2] + vv[2]];
                 let h_len = dot(h, h).sqrt();
-                let ndoth = if h_len > 0.0 { max0(dot(ns, h) / h_len) } else { 0.0 };
-                // Clamped base: the lanes that skip the specular term still
-                // evaluate the power, harmlessly.
-                let spec = pow_f32(if ndoth > 0.0 { ndoth } else { 1.0 }, mc[0][l]);
-                let spec = if ndoth > mc[1][l] { spec } else { 0.0 };
-                let contrib = [0, 1, 2].map(|c| lc[c][l] * ndotl + lc[3 + c][l] * spec);
-                on[l] = hit[l] & (dist > 0.0) & (contrib[0].max(contrib[1]).max(contrib[2]) > 0.0);
+                ndoth[l] = if h_len > 0.0 { max0(dot(ns, h) / h_len) } else { 0.0 };
+                want_spec[l] = (hit[l] & (ndoth[l] > mc[1][l])) as u32;
+                on[l] = hit[l] & (dist > 0.0);
                 // Leave on the light's side of the surface.
                 let from_above = dot(ns, ld) >= 0.0;
                 for c in 0..3 {
@@ -340,6 +341,24 @@ pub fn shade_lanes<const W: usize>(
                 t_max[l] = dist * shorten;
                 for c in 0..3 {
                     dir[c][l] = ld[c];
+                }
+            }
+            // The power only where some lane of the group needs it (a group
+            // without a highlight skips it): a lane below the cut-off gets 0
+            // either way, and misses are not lit at all.
+            let mut spec = [0.0f32; W];
+            if want_spec.iter().fold(0, |a, &x| a | x) != 0 {
+                for l in 0..W {
+                    // Clamped base: the lanes that skip the specular term
+                    // still evaluate the power, harmlessly.
+                    let sp = pow_f32(if ndoth[l] > 0.0 { ndoth[l] } else { 1.0 }, mc[0][l]);
+                    spec[l] = if ndoth[l] > mc[1][l] { sp } else { 0.0 };
+                }
+            }
+            for l in 0..W {
+                let contrib = [0, 1, 2].map(|c| lc[c][l] * ndotl[l] + lc[3 + c][l] * spec[l]);
+                on[l] &= contrib[0].max(contrib[1]).max(contrib[2]) > 0.0;
+                for c in 0..3 {
                     add[c][l] = contrib[c];
                 }
             }
