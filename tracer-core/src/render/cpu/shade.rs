@@ -36,6 +36,9 @@ pub struct Tables {
     /// ... and per (light, entry), indexed `light * entries + entry`, the
     /// light's diffuse and specular times the material's.
     ent_light: Vec<[f32; 6]>,
+    /// Rows `select` looks through (8 or 16, the tables padded to that), or
+    /// 0 for a scalar gather (more entries).
+    select_rows: usize,
 }
 
 impl Tables {
@@ -71,6 +74,7 @@ impl Tables {
                 .chain([PrimId::NONE.0])
                 .collect(),
             ent_light: Vec::new(),
+            select_rows: 0,
         };
         let last = t.prim_mat.len() - 1;
         t.ent = (t.prim_geom.iter().zip(&t.prim_mat).enumerate())
@@ -80,11 +84,22 @@ impl Tables {
                 [g[0], g[1], g[2], g[3], c[0], c[1], c[2], c[3], c[4], a.x, a.y, a.z]
             })
             .collect();
+        // Small tables are selected from with a fixed number of rows (see
+        // `select`): padded with rows no hit selects (the stream renderer
+        // never sees a triangle).
+        let rows = t.ent.len();
+        t.select_rows = [8, 16].into_iter().find(|&r| rows <= r).unwrap_or(0);
+        let stride = rows.max(t.select_rows);
+        t.ent.resize(stride, [0.0; 12]);
+        t.ent_key.resize(stride, PrimId::new(PrimId::TRIANGLE, 0).0);
         t.ent_light = (0..world.lights.len())
-            .flat_map(|li| t.prim_mat.iter().map(move |&m| (li, m)))
-            .map(|(li, m)| {
-                let [d, s] = t.light_mat[li * t.materials + m as usize];
-                [d.x, d.y, d.z, s.x, s.y, s.z]
+            .flat_map(|li| (0..stride).map(move |e| (li, e)))
+            .map(|(li, e)| match t.prim_mat.get(e) {
+                Some(&m) => {
+                    let [d, s] = t.light_mat[li * t.materials + m as usize];
+                    [d.x, d.y, d.z, s.x, s.y, s.z]
+                }
+                None => [0.0; 6],
             })
             .collect();
         t
@@ -143,14 +158,11 @@ fn arr<const W: usize, T>(v: &[T], at: usize) -> &[T; W] {
 }
 
 
-/// Tables of at most this many entries are gathered by selection.
-const SELECT_MAX: usize = 16;
-
 /// Each lane's entry in the tables, for [`gather`]'s scalar path only.
 #[inline(always)]
 fn entries<const W: usize>(tab: &Tables, ids: &[u32; W]) -> [usize; W] {
     let mut e = [0; W];
-    if tab.ent.len() > SELECT_MAX {
+    if tab.select_rows == 0 {
         for l in 0..W {
             e[l] = tab.entry(PrimId(ids[l]));
         }
@@ -159,37 +171,51 @@ fn entries<const W: usize>(tab: &Tables, ids: &[u32; W]) -> [usize; W] {
 }
 
 /// Row `ents[l]` of `table` (whose rows belong to the primitives `keys`)
-/// for each lane `l` whose primitive is `ids[l]`, as lane arrays. With a
-/// few rows (every thesis scene) each row is OR-ed, as bits, into the lanes
-/// that hit its primitive (exactly one row per lane), which vectorises; a
-/// scalar gather stores lane by lane into arrays that are read back as
-/// vectors, and those loads stall on store forwarding.
+/// for each lane `l` whose primitive is `ids[l]`, as lane arrays: by
+/// [`select`] for small tables (every thesis scene), else lane by lane.
 #[inline(always)]
-fn gather<const W: usize, const K: usize>(table: &[[f32; K]], keys: &[u32], ids: &[u32; W], ents: &[usize; W]) -> [[f32; W]; K] {
-    let mut out = [[0.0f32; W]; K];
-    if table.len() <= SELECT_MAX {
-        let mut bits = [[0u32; W]; K];
-        for (row, &key) in table.iter().zip(keys) {
-            let v = row.map(f32::to_bits);
-            // Lanes outermost, as in the shading loops: LLVM vectorises over them.
+fn gather<const W: usize, const K: usize>(tab: &Tables, table: &[[f32; K]], ids: &[u32; W], ents: &[usize; W]) -> [[f32; W]; K] {
+    match tab.select_rows {
+        8 => select::<W, K, 8>(table, &tab.ent_key, ids),
+        16 => select::<W, K, 16>(table, &tab.ent_key, ids),
+        _ => {
+            let mut out = [[0.0f32; W]; K];
             for l in 0..W {
-                let m = 0u32.wrapping_sub((ids[l] == key) as u32);
+                let row = table[ents[l]];
                 for k in 0..K {
-                    bits[k][l] |= v[k] & m;
+                    out[k][l] = row[k];
                 }
             }
+            out
         }
-        for k in 0..K {
-            for l in 0..W {
-                out[k][l] = f32::from_bits(bits[k][l]);
-            }
-        }
-    } else {
+    }
+}
+
+/// The row of `table` whose key is `ids[l]`, for each lane `l` (exactly
+/// one row matches): the rows' bits AND-ed with lane masks and OR-ed
+/// together, field by field over a fixed number of rows, which LLVM
+/// unrolls and vectorises over the lanes with the sums in registers. A
+/// scalar gather stores lane by lane into arrays that are read back as
+/// vectors, and an accumulation over a run-time number of rows goes
+/// through masked stores: both stall on store forwarding.
+#[inline(always)]
+fn select<const W: usize, const K: usize, const N: usize>(table: &[[f32; K]], keys: &[u32], ids: &[u32; W]) -> [[f32; W]; K] {
+    let table: &[[f32; K]; N] = table[..N].try_into().expect("tables padded to the selected rows");
+    let keys: &[u32; N] = keys[..N].try_into().expect("tables padded to the selected rows");
+    let mut masks = [[0u32; W]; N];
+    for e in 0..N {
         for l in 0..W {
-            let row = table[ents[l]];
-            for k in 0..K {
-                out[k][l] = row[k];
+            masks[e][l] = 0u32.wrapping_sub((ids[l] == keys[e]) as u32);
+        }
+    }
+    let mut out = [[0.0f32; W]; K];
+    for k in 0..K {
+        for l in 0..W {
+            let mut acc = 0u32;
+            for e in 0..N {
+                acc |= table[e][k].to_bits() & masks[e][l];
             }
+            out[k][l] = f32::from_bits(acc);
         }
     }
     out
@@ -244,7 +270,7 @@ pub fn shade_lanes<const W: usize>(
         // Primitive and material constants of each lane's hit.
         let ids = arr::<W, _>(id, at);
         let ents = entries::<W>(tab, ids);
-        let e = gather::<W, 12>(&tab.ent, &tab.ent_key, ids, &ents);
+        let e = gather::<W, 12>(tab, &tab.ent, ids, &ents);
         let g = [e[0], e[1], e[2], e[3]];
         let mc = [e[4], e[5], e[6], e[7], e[8]];
         let local = [e[9], e[10], e[11]];
@@ -306,7 +332,7 @@ pub fn shade_lanes<const W: usize>(
         for (li, lp) in tab.lights.iter().enumerate() {
             let base = li * n + at;
             let entries = tab.ent.len();
-            let lc = gather::<W, 6>(&tab.ent_light[li * entries..(li + 1) * entries], &tab.ent_key, ids, &ents);
+            let lc = gather::<W, 6>(tab, &tab.ent_light[li * entries..(li + 1) * entries], ids, &ents);
             // Results in lane arrays, stored after the loop: indexing the
             // queues inside it would stop LLVM from vectorising it.
             let mut on = [false; W];
