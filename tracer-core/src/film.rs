@@ -169,39 +169,26 @@ impl Film {
 
     /// Adds another film whose rect lies inside this one's.
     pub fn merge(&mut self, other: &Film) -> Result<(), FilmError> {
-        other.add_to(self.rect, &mut self.sums, &mut self.counts)?;
-        self.rays.add(&other.rays);
-        self.nonfinite += other.nonfinite;
-        Ok(())
-    }
-
-    /// Adds this film's sums and counts (not its ray counts) into `sums` and
-    /// `counts`, row-major over `rect`, which must contain this film's rect:
-    /// a part of a larger film, merged on its own.
-    pub fn add_to(&self, rect: Rect, sums: &mut [[u64; 3]], counts: &mut [u32]) -> Result<(), FilmError> {
-        self.validate()?;
-        if !rect.contains(&self.rect) {
-            return Err(FilmError::OutOfBounds { tile: self.rect, film: rect });
+        other.validate()?;
+        if !self.rect.contains(&other.rect) {
+            return Err(FilmError::OutOfBounds { tile: other.rect, film: self.rect });
         }
-        for got in [sums.len(), counts.len()] {
-            if got != rect.area() {
-                return Err(FilmError::WrongSize { rect, expected: rect.area(), got });
-            }
-        }
-        for row in 0..self.rect.height {
-            let src = (row * self.rect.width) as usize;
-            let dst = ((self.rect.y - rect.y + row) * rect.width + (self.rect.x - rect.x)) as usize;
-            for col in 0..self.rect.width as usize {
-                let (a, b) = (&mut sums[dst + col], &self.sums[src + col]);
+        for row in 0..other.rect.height {
+            let src = (row * other.rect.width) as usize;
+            let dst = ((other.rect.y - self.rect.y + row) * self.rect.width + (other.rect.x - self.rect.x)) as usize;
+            for col in 0..other.rect.width as usize {
+                let (a, b) = (&mut self.sums[dst + col], &other.sums[src + col]);
                 for c in 0..3 {
                     a[c] = a[c].checked_add(b[c]).ok_or(FilmError::Overflow {
-                        x: self.rect.x + col as u32,
-                        y: self.rect.y + row,
+                        x: other.rect.x + col as u32,
+                        y: other.rect.y + row,
                     })?;
                 }
-                counts[dst + col] += self.counts[src + col];
+                self.counts[dst + col] += other.counts[src + col];
             }
         }
+        self.rays.add(&other.rays);
+        self.nonfinite += other.nonfinite;
         Ok(())
     }
 

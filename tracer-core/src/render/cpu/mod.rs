@@ -67,39 +67,21 @@ impl CpuRenderer {
         samples: SampleRange,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Film {
-        // Bands of one row of tiles each: a band's tiles are traced in
-        // parallel, then merged into the band's rows by the thread that
-        // collected them, while others trace on; merging the whole film
-        // after the last tile would leave every other thread idle.
-        let mut out = Film::new(rect);
-        let band_len = TILE as usize * rect.width as usize;
-        let (rays, nonfinite) = self.pool.install(|| {
-            (out.sums.par_chunks_mut(band_len).zip(out.counts.par_chunks_mut(band_len)).enumerate())
-                .map(|(b, (sums, counts))| {
-                    let y = rect.y + b as u32 * TILE;
-                    let band = Rect::new(rect.x, y, rect.width, TILE.min(rect.y + rect.height - y));
-                    let films: Vec<Film> = (band.tiles(TILE).into_par_iter())
-                        .map(|tile| {
-                            let film = render_tile(world, frame, tile, samples);
-                            progress(tile.area() as u64 * samples.len() as u64);
-                            film
-                        })
-                        .collect();
-                    let (mut rays, mut nonfinite) = (RayCounts::default(), 0);
-                    for f in &films {
-                        f.add_to(band, sums, counts).expect("tiles lie inside their band and sums cannot overflow");
-                        rays.add(&f.rays);
-                        nonfinite += f.nonfinite;
-                    }
-                    (rays, nonfinite)
+        let tiles = rect.tiles(TILE);
+        let films: Vec<Film> = self.pool.install(|| {
+            tiles
+                .par_iter()
+                .map(|&tile| {
+                    let film = render_tile(world, frame, tile, samples);
+                    progress(tile.area() as u64 * samples.len() as u64);
+                    film
                 })
-                .reduce(|| (RayCounts::default(), 0), |(mut r, n), (r2, n2)| {
-                    r.add(&r2);
-                    (r, n + n2)
-                })
+                .collect()
         });
-        out.rays = rays;
-        out.nonfinite = nonfinite;
+        let mut out = Film::new(rect);
+        for f in &films {
+            out.merge(f).expect("tiles lie inside their rect and sums cannot overflow");
+        }
         out
     }
 }
