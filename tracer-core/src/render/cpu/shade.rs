@@ -42,7 +42,10 @@ pub struct Tables {
 }
 
 impl Tables {
-    pub fn new(world: &World<f32>) -> Self {
+    /// `select`: whether small tables are gathered by selection (see
+    /// `select`), which pays with AVX2 and AVX-512 but not with the
+    /// baseline's SSE2.
+    pub fn new(world: &World<f32>, select: bool) -> Self {
         // A scene without materials has no objects: every ray misses, but
         // misses read entry 0 (harmlessly), so there must be one.
         let none = world.materials.is_empty();
@@ -88,7 +91,7 @@ impl Tables {
         // `select`): padded with rows no hit selects (the stream renderer
         // never sees a triangle).
         let rows = t.ent.len();
-        t.select_rows = [8, 16].into_iter().find(|&r| rows <= r).unwrap_or(0);
+        t.select_rows = if select { [8, 16].into_iter().find(|&r| rows <= r).unwrap_or(0) } else { 0 };
         let stride = rows.max(t.select_rows);
         t.ent.resize(stride, [0.0; 12]);
         t.ent_key.resize(stride, PrimId::new(PrimId::TRIANGLE, 0).0);

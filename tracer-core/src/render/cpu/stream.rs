@@ -111,19 +111,19 @@ pub fn render_tile(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRa
         }
     }
     let _ = level;
-    render_tile_lanes::<8>(world, frame, tile, samples)
+    render_tile_lanes::<8>(world, frame, tile, samples, false)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn render_tile_avx2(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
-    render_tile_lanes::<8>(world, frame, tile, samples)
+    render_tile_lanes::<8>(world, frame, tile, samples, true)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 fn render_tile_avx512(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
-    render_tile_lanes::<16>(world, frame, tile, samples)
+    render_tile_lanes::<16>(world, frame, tile, samples, true)
 }
 
 /// One generation of path rays of a batch, in structure-of-arrays form
@@ -209,11 +209,11 @@ fn primary_rays(cam: &Camera<f32>, sx: &[f32], sy: &[f32], g: &mut Generation) {
 }
 
 #[inline(always)]
-fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange, select: bool) -> Film {
     let mut film = Film::new(tile);
     let mut rays = RayCounts::default();
     let prims = Prims::new(world);
-    let tab = Tables::new(world);
+    let tab = Tables::new(world, select);
     // Taken out and put back rather than borrowed in a closure: a closure
     // would not inherit the caller's `target_feature`s.
     let mut scratch = SCRATCH.take();
