@@ -78,6 +78,13 @@ pub fn exact_sqrt(n: u32) -> Option<u32> {
 const R2_A1: u32 = 3_242_174_889; // 0.7548776662466927 * 2^32
 const R2_A2: u32 = 2_447_445_413; // 0.5698402909980532 * 2^32
 
+/// Whether [`sample_offset`] ignores the pixel seed for this sampler and
+/// count (the regular grid), so that a renderer may compute each sample's
+/// offset once for all pixels.
+pub fn same_in_every_pixel(sampler: Sampler, count: u32) -> bool {
+    sampler == Sampler::Grid && exact_sqrt(count).is_some()
+}
+
 /// Offset of sample `sample` (of `count`) inside its pixel, each coordinate in [0, 1).
 #[inline]
 pub fn sample_offset(sampler: Sampler, count: u32, seed: u32, sample: u32) -> (f32, f32) {
@@ -114,6 +121,14 @@ mod tests {
         let pts: Vec<_> = (0..4).map(|s| sample_offset(Sampler::Grid, 4, 7, s)).collect();
         assert_eq!(pts, vec![(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]);
         assert_eq!(sample_offset(Sampler::Grid, 1, 7, 0), (0.5, 0.5));
+    }
+
+    #[test]
+    fn same_in_every_pixel_means_seed_ignored() {
+        for (sampler, count) in [(Sampler::Grid, 4), (Sampler::Grid, 9), (Sampler::Grid, 8), (Sampler::Jittered, 4), (Sampler::Jittered, 8)] {
+            let same = (0..count).all(|s| (0..50).all(|p| sample_offset(sampler, count, pixel_seed(p, 3 * p, 0), s) == sample_offset(sampler, count, 0, s)));
+            assert_eq!(same_in_every_pixel(sampler, count), same, "{sampler:?} {count}");
+        }
     }
 
     #[test]

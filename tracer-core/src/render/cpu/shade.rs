@@ -31,13 +31,21 @@ pub struct Tables {
     /// the colour a ray starts from (ambient term; the background for the
     /// miss entry), together: one lookup per hit ...
     ent: Vec<[f32; 12]>,
+    /// The `PrimId` of each entry (`PrimId::NONE` for the miss entry) ...
+    ent_key: Vec<u32>,
     /// ... and per (light, entry), indexed `light * entries + entry`, the
     /// light's diffuse and specular times the material's.
     ent_light: Vec<[f32; 6]>,
+    /// Rows `select` looks through (8 or 16, the tables padded to that), or
+    /// 0 for a scalar gather (more entries).
+    select_rows: usize,
 }
 
 impl Tables {
-    pub fn new(world: &World<f32>) -> Self {
+    /// `select`: whether small tables are gathered by selection (see
+    /// `select`), which pays with AVX2 and AVX-512 but not with the
+    /// baseline's SSE2.
+    pub fn new(world: &World<f32>, select: bool) -> Self {
         // A scene without materials has no objects: every ray misses, but
         // misses read entry 0 (harmlessly), so there must be one.
         let none = world.materials.is_empty();
@@ -64,7 +72,12 @@ impl Tables {
             spheres: world.spheres.len(),
             materials,
             ent: Vec::new(),
+            ent_key: (0..world.spheres.len() as u32).map(|k| PrimId::new(PrimId::SPHERE, k).0)
+                .chain((0..world.planes.len() as u32).map(|k| PrimId::new(PrimId::PLANE, k).0))
+                .chain([PrimId::NONE.0])
+                .collect(),
             ent_light: Vec::new(),
+            select_rows: 0,
         };
         let last = t.prim_mat.len() - 1;
         t.ent = (t.prim_geom.iter().zip(&t.prim_mat).enumerate())
@@ -74,11 +87,22 @@ impl Tables {
                 [g[0], g[1], g[2], g[3], c[0], c[1], c[2], c[3], c[4], a.x, a.y, a.z]
             })
             .collect();
+        // Small tables are selected from with a fixed number of rows (see
+        // `select`): padded with rows no hit selects (the stream renderer
+        // never sees a triangle).
+        let rows = t.ent.len();
+        t.select_rows = if select { [8, 16].into_iter().find(|&r| rows <= r).unwrap_or(0) } else { 0 };
+        let stride = rows.max(t.select_rows);
+        t.ent.resize(stride, [0.0; 12]);
+        t.ent_key.resize(stride, PrimId::new(PrimId::TRIANGLE, 0).0);
         t.ent_light = (0..world.lights.len())
-            .flat_map(|li| t.prim_mat.iter().map(move |&m| (li, m)))
-            .map(|(li, m)| {
-                let [d, s] = t.light_mat[li * t.materials + m as usize];
-                [d.x, d.y, d.z, s.x, s.y, s.z]
+            .flat_map(|li| (0..stride).map(move |e| (li, e)))
+            .map(|(li, e)| match t.prim_mat.get(e) {
+                Some(&m) => {
+                    let [d, s] = t.light_mat[li * t.materials + m as usize];
+                    [d.x, d.y, d.z, s.x, s.y, s.z]
+                }
+                None => [0.0; 6],
             })
             .collect();
         t
@@ -101,11 +125,8 @@ impl Tables {
 /// each (light, hit) (index `light * n + i`).
 #[derive(Default)]
 pub struct Shaded {
-    /// Whether ray i hit anything, and the material it hit.
-    pub hit: Vec<bool>,
     /// The colour each ray starts from: the ambient term, or the background.
     pub local: [Vec<f32>; 3],
-    pub mat: Vec<u32>,
     /// Transparency of the material hit: the refracted ray's weight.
     pub transparency: Vec<f32>,
     /// Origins offset to the viewer's side and to the other side.
@@ -140,6 +161,69 @@ fn arr<const W: usize, T>(v: &[T], at: usize) -> &[T; W] {
 }
 
 
+/// Each lane's entry in the tables, for [`gather`]'s scalar path only.
+#[inline(always)]
+fn entries<const W: usize>(tab: &Tables, ids: &[u32; W]) -> [usize; W] {
+    let mut e = [0; W];
+    if tab.select_rows == 0 {
+        for l in 0..W {
+            e[l] = tab.entry(PrimId(ids[l]));
+        }
+    }
+    e
+}
+
+/// Row `ents[l]` of `table` (whose rows belong to the primitives `keys`)
+/// for each lane `l` whose primitive is `ids[l]`, as lane arrays: by
+/// [`select`] for small tables (every thesis scene), else lane by lane.
+#[inline(always)]
+fn gather<const W: usize, const K: usize>(tab: &Tables, table: &[[f32; K]], ids: &[u32; W], ents: &[usize; W]) -> [[f32; W]; K] {
+    match tab.select_rows {
+        8 => select::<W, K, 8>(table, &tab.ent_key, ids),
+        16 => select::<W, K, 16>(table, &tab.ent_key, ids),
+        _ => {
+            let mut out = [[0.0f32; W]; K];
+            for l in 0..W {
+                let row = table[ents[l]];
+                for k in 0..K {
+                    out[k][l] = row[k];
+                }
+            }
+            out
+        }
+    }
+}
+
+/// The row of `table` whose key is `ids[l]`, for each lane `l` (exactly
+/// one row matches): the rows' bits AND-ed with lane masks and OR-ed
+/// together, field by field over a fixed number of rows, which LLVM
+/// unrolls and vectorises over the lanes with the sums in registers. A
+/// scalar gather stores lane by lane into arrays that are read back as
+/// vectors, and an accumulation over a run-time number of rows goes
+/// through masked stores: both stall on store forwarding.
+#[inline(always)]
+fn select<const W: usize, const K: usize, const N: usize>(table: &[[f32; K]], keys: &[u32], ids: &[u32; W]) -> [[f32; W]; K] {
+    let table: &[[f32; K]; N] = table[..N].try_into().expect("tables padded to the selected rows");
+    let keys: &[u32; N] = keys[..N].try_into().expect("tables padded to the selected rows");
+    let mut masks = [[0u32; W]; N];
+    for e in 0..N {
+        for l in 0..W {
+            masks[e][l] = 0u32.wrapping_sub((ids[l] == keys[e]) as u32);
+        }
+    }
+    let mut out = [[0.0f32; W]; K];
+    for k in 0..K {
+        for l in 0..W {
+            let mut acc = 0u32;
+            for e in 0..N {
+                acc |= table[e][k].to_bits() & masks[e][l];
+            }
+            out[k][l] = f32::from_bits(acc);
+        }
+    }
+    out
+}
+
 #[inline(always)]
 fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     // glam's Vec3A::dot order: (x + y) + z.
@@ -168,8 +252,6 @@ pub fn shade_lanes<const W: usize>(
 ) {
     let n = t.len();
     let nl = tab.lights.len();
-    sized(&mut s.hit, n);
-    sized(&mut s.mat, n);
     sized(&mut s.transparency, n);
     for v in s.local.iter_mut().chain(s.above.iter_mut()).chain(s.below.iter_mut()).chain(s.refract_dir.iter_mut()).chain(s.reflect_dir.iter_mut()) {
         sized(v, n);
@@ -188,37 +270,23 @@ pub fn shade_lanes<const W: usize>(
         let (ox, oy, oz) = (arr::<W, _>(o[0], at), arr::<W, _>(o[1], at), arr::<W, _>(o[2], at));
         let (dx, dy, dz) = (arr::<W, _>(d[0], at), arr::<W, _>(d[1], at), arr::<W, _>(d[2], at));
         let tt = arr::<W, _>(t, at);
-        // Gather (scalar, into lane arrays): primitive and material constants.
+        // Primitive and material constants of each lane's hit.
         let ids = arr::<W, _>(id, at);
-        let mut ents = [0usize; W];
-        let mut local = [[0.0f32; W]; 3];
+        let ents = entries::<W>(tab, ids);
+        let e = gather::<W, 12>(tab, &tab.ent, ids, &ents);
+        let g = [e[0], e[1], e[2], e[3]];
+        let mc = [e[4], e[5], e[6], e[7], e[8]];
+        let local = [e[9], e[10], e[11]];
         let mut hit = [false; W];
         let mut sphere = [false; W];
-        let mut mat = [0u32; W];
-        let mut g = [[0.0f32; W]; 4];
-        let mut mc = [[0.0f32; W]; 5];
         for l in 0..W {
-            let e = tab.entry(PrimId(ids[l]));
-            let ent = tab.ent[e];
-            ents[l] = e;
-            hit[l] = e < tab.prim_mat.len() - 1;
-            sphere[l] = e < tab.spheres;
-            mat[l] = tab.prim_mat[e];
-            for k in 0..4 {
-                g[k][l] = ent[k];
-            }
-            for k in 0..5 {
-                mc[k][l] = ent[4 + k];
-            }
-            for c in 0..3 {
-                local[c][l] = ent[9 + c];
-            }
+            hit[l] = ids[l] != PrimId::NONE.0;
+            // (PrimId::NONE's kind is not SPHERE.)
+            sphere[l] = PrimId(ids[l]).kind() == PrimId::SPHERE;
         }
-        s.hit[at..at + W].copy_from_slice(&hit);
         for (to, from) in s.local.iter_mut().zip(&local) {
             to[at..at + W].copy_from_slice(from);
         }
-        s.mat[at..at + W].copy_from_slice(&mat);
         s.transparency[at..at + W].copy_from_slice(&mc[3]);
         let mut p = [[0.0f32; W]; 3];
         let mut nn = [[0.0f32; W]; 3];
@@ -267,14 +335,7 @@ pub fn shade_lanes<const W: usize>(
         for (li, lp) in tab.lights.iter().enumerate() {
             let base = li * n + at;
             let entries = tab.ent.len();
-            let light = &tab.ent_light[li * entries..(li + 1) * entries];
-            let mut lc = [[0.0f32; W]; 6];
-            for l in 0..W {
-                let lm = light[ents[l]];
-                for c in 0..6 {
-                    lc[c][l] = lm[c];
-                }
-            }
+            let lc = gather::<W, 6>(tab, &tab.ent_light[li * entries..(li + 1) * entries], ids, &ents);
             // Results in lane arrays, stored after the loop: indexing the
             // queues inside it would stop LLVM from vectorising it.
             let mut on = [false; W];
@@ -282,6 +343,11 @@ pub fn shade_lanes<const W: usize>(
             let mut t_max = [0.0f32; W];
             let mut dir = [[0.0f32; W]; 3];
             let mut add = [[0.0f32; W]; 3];
+            let mut ndotl = [0.0f32; W];
+            let mut ndoth = [0.0f32; W];
+            // Lanes (of hits) whose specular term passes the cut-off, as u32
+            // (0 or 1) for a cheap OR-reduction.
+            let mut want_spec = [0u32; W];
             for l in 0..W {
                 let pt = [p[0][l], p[1][l], p[2][l]];
                 let ns = [nn[0][l], nn[1][l], nn[2][l]];
@@ -290,16 +356,12 @@ pub fn shade_lanes<const W: usize>(
                 let dist = dot(to, to).sqrt();
                 let inv = 1.0 / dist;
                 let ld = [to[0] * inv, to[1] * inv, to[2] * inv];
-                let ndotl = max0(dot(ns, ld));
+                ndotl[l] = max0(dot(ns, ld));
                 let h = [ld[0] + vv[0], ld[1] + vv[1], ld[2] + vv[2]];
                 let h_len = dot(h, h).sqrt();
-                let ndoth = if h_len > 0.0 { max0(dot(ns, h) / h_len) } else { 0.0 };
-                // Clamped base: the lanes that skip the specular term still
-                // evaluate the power, harmlessly.
-                let spec = pow_f32(if ndoth > 0.0 { ndoth } else { 1.0 }, mc[0][l]);
-                let spec = if ndoth > mc[1][l] { spec } else { 0.0 };
-                let contrib = [0, 1, 2].map(|c| lc[c][l] * ndotl + lc[3 + c][l] * spec);
-                on[l] = hit[l] & (dist > 0.0) & (contrib[0].max(contrib[1]).max(contrib[2]) > 0.0);
+                ndoth[l] = if h_len > 0.0 { max0(dot(ns, h) / h_len) } else { 0.0 };
+                want_spec[l] = (hit[l] & (ndoth[l] > mc[1][l])) as u32;
+                on[l] = hit[l] & (dist > 0.0);
                 // Leave on the light's side of the surface.
                 let from_above = dot(ns, ld) >= 0.0;
                 for c in 0..3 {
@@ -308,6 +370,24 @@ pub fn shade_lanes<const W: usize>(
                 t_max[l] = dist * shorten;
                 for c in 0..3 {
                     dir[c][l] = ld[c];
+                }
+            }
+            // The power only where some lane of the group needs it (a group
+            // without a highlight skips it): a lane below the cut-off gets 0
+            // either way, and misses are not lit at all.
+            let mut spec = [0.0f32; W];
+            if want_spec.iter().fold(0, |a, &x| a | x) != 0 {
+                for l in 0..W {
+                    // Clamped base: the lanes that skip the specular term
+                    // still evaluate the power, harmlessly.
+                    let sp = pow_f32(if ndoth[l] > 0.0 { ndoth[l] } else { 1.0 }, mc[0][l]);
+                    spec[l] = if ndoth[l] > mc[1][l] { sp } else { 0.0 };
+                }
+            }
+            for l in 0..W {
+                let contrib = [0, 1, 2].map(|c| lc[c][l] * ndotl[l] + lc[3 + c][l] * spec[l]);
+                on[l] &= contrib[0].max(contrib[1]).max(contrib[2]) > 0.0;
+                for c in 0..3 {
                     add[c][l] = contrib[c];
                 }
             }

@@ -25,8 +25,8 @@ use super::kernels::{self, Prims, RaySoa};
 use super::shade::{shade_lanes, Shaded, Tables};
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 use crate::geometry::PrimId;
-use crate::sampling::{pixel_seed, sample_offset};
-use crate::world::World;
+use crate::sampling::{pixel_seed, same_in_every_pixel, sample_offset};
+use crate::world::{Camera, World};
 
 /// Primary rays traced together: enough to fill the lane groups many times
 /// over, few enough that a generation's queues stay in L1/L2 (of 256, 1024
@@ -111,19 +111,19 @@ pub fn render_tile(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRa
         }
     }
     let _ = level;
-    render_tile_lanes::<8>(world, frame, tile, samples)
+    render_tile_lanes::<8>(world, frame, tile, samples, false)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn render_tile_avx2(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
-    render_tile_lanes::<8>(world, frame, tile, samples)
+    render_tile_lanes::<8>(world, frame, tile, samples, true)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 fn render_tile_avx512(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
-    render_tile_lanes::<16>(world, frame, tile, samples)
+    render_tile_lanes::<16>(world, frame, tile, samples, true)
 }
 
 /// One generation of path rays of a batch, in structure-of-arrays form
@@ -184,17 +184,40 @@ impl Generation {
     }
 }
 
+/// `Camera::ray` through each raster point (`sx`, `sy`), lane by lane: the
+/// same operations as glam's `Vec3A` arithmetic, component by component
+/// (its dot product adds (x + y) + z; `normalize` is d * (1 / |d|)).
 #[inline(always)]
-fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+fn primary_rays(cam: &Camera<f32>, sx: &[f32], sy: &[f32], g: &mut Generation) {
+    let n = sx.len();
+    let (f, r, u) = (<[f32; 3]>::from(cam.forward), <[f32; 3]>::from(cam.right), <[f32; 3]>::from(cam.up));
+    let rays = &mut g.rays;
+    let (ox, oy, oz) = (&mut rays.ox[..n], &mut rays.oy[..n], &mut rays.oz[..n]);
+    let (dx, dy, dz) = (&mut rays.dx[..n], &mut rays.dy[..n], &mut rays.dz[..n]);
+    let (skip, parent, weight) = (&mut rays.skip[..n], &mut g.parent[..n], &mut g.weight[..n]);
+    let sy = &sy[..n];
+    for i in 0..n {
+        let a = 2.0 * sx[i] * cam.inv_width - 1.0;
+        let b = 1.0 - 2.0 * sy[i] * cam.inv_height;
+        let d = [0, 1, 2].map(|c| f[c] + r[c] * a + u[c] * b);
+        let inv = 1.0 / (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        (ox[i], oy[i], oz[i]) = (0.0, 0.0, 0.0);
+        (dx[i], dy[i], dz[i]) = (d[0] * inv, d[1] * inv, d[2] * inv);
+        (skip[i], parent[i], weight[i]) = (PrimId::NONE.0, i as u32, 1.0);
+    }
+    g.n = n;
+}
+
+#[inline(always)]
+fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange, select: bool) -> Film {
     let mut film = Film::new(tile);
     let mut rays = RayCounts::default();
     let prims = Prims::new(world);
-    let tab = Tables::new(world);
+    let tab = Tables::new(world, select);
     // Taken out and put back rather than borrowed in a closure: a closure
     // would not inherit the caller's `target_feature`s.
     let mut scratch = SCRATCH.take();
-    let Scratch { gens, sh, blocked, batch } = &mut scratch;
-    trace_tile::<W>(world, frame, tile, samples, &prims, &tab, gens, sh, blocked, batch, &mut film, &mut rays);
+    trace_tile::<W>(world, frame, tile, samples, &prims, &tab, &mut scratch, &mut film, &mut rays);
     SCRATCH.set(scratch);
     film.rays = rays;
     film
@@ -208,8 +231,12 @@ struct Scratch {
     sh: Shaded,
     /// Whether each shadow ray of a light is blocked.
     blocked: Vec<bool>,
-    /// Film pixel of each sample of the batch.
+    /// Film pixel of each sample of the batch, and its raster position.
     batch: Vec<usize>,
+    raster_x: Vec<f32>,
+    raster_y: Vec<f32>,
+    /// Offset of each sample index, where the same in every pixel.
+    offsets: Vec<(f32, f32)>,
 }
 
 /// Makes `v` at least `n` long; scratch is overwritten before it is read,
@@ -233,35 +260,54 @@ fn trace_tile<const W: usize>(
     samples: SampleRange,
     prims: &Prims,
     tab: &Tables,
-    gens: &mut Vec<Generation>,
-    sh: &mut Shaded,
-    blocked: &mut Vec<bool>,
-    batch: &mut Vec<usize>,
+    scratch: &mut Scratch,
     film: &mut Film,
     rays: &mut RayCounts,
 ) {
+    let Scratch { gens, sh, blocked, batch, raster_x, raster_y, offsets } = scratch;
     let s = &world.settings;
     let nl = world.lights.len();
     if gens.is_empty() {
         gens.push(Generation::default());
     }
 
-    // (film pixel, x, y, sample index) in `render_tile`'s order.
-    let pixels = (tile.y..tile.y + tile.height).flat_map(|y| (tile.x..tile.x + tile.width).map(move |x| (x, y)));
-    let mut jobs = pixels.enumerate().flat_map(|(i, (x, y))| (samples.start..samples.end).map(move |s| (i, x, y, s))).peekable();
-    while jobs.peek().is_some() {
-        batch.clear();
-        gens[0].reserve(BATCH, W);
-        for (pixel, x, y, sample) in jobs.by_ref().take(BATCH) {
-            let seed = pixel_seed(x, y, frame);
-            let (u, v) = sample_offset(s.sampler, s.samples, seed, sample);
+    // Samples in `render_tile`'s order: pixels row by row, each pixel's
+    // samples in turn. Offsets that do not depend on the pixel (the grid)
+    // are computed once per tile, the same calls as per sample.
+    let shared = same_in_every_pixel(s.sampler, s.samples);
+    offsets.clear();
+    if shared {
+        offsets.extend((samples.start..samples.end).map(|k| sample_offset(s.sampler, s.samples, 0, k)));
+    }
+    let (x_end, y_end) = (tile.x + tile.width, tile.y + tile.height);
+    let (mut pixel, mut x, mut y, mut k) = (0, tile.x, tile.y, samples.start);
+    let mut seed = if shared { 0 } else { pixel_seed(x, y, frame) };
+    grow(raster_x, BATCH);
+    grow(raster_y, BATCH);
+    grow(batch, BATCH);
+    while y < y_end {
+        let mut n = 0;
+        while n < BATCH && y < y_end {
+            let (u, v) = if shared { offsets[(k - samples.start) as usize] } else { sample_offset(s.sampler, s.samples, seed, k) };
             // As `render_tile`: R::from_u32(x) + R::from_f64(u as f64).
-            let ray = world.camera.ray(x as f32 + u, y as f32 + v);
-            gens[0].set(batch.len(), ray.origin.into(), ray.dir.into(), PrimId::NONE.0, batch.len() as u32, 1.0);
-            batch.push(pixel);
+            raster_x[n] = x as f32 + u;
+            raster_y[n] = y as f32 + v;
+            batch[n] = pixel;
+            n += 1;
+            k += 1;
+            if k == samples.end {
+                (k, pixel, x) = (samples.start, pixel + 1, x + 1);
+                if x == x_end {
+                    (x, y) = (tile.x, y + 1);
+                }
+                if !shared && y < y_end {
+                    seed = pixel_seed(x, y, frame);
+                }
+            }
         }
-        gens[0].n = batch.len();
-        rays.primary += batch.len() as u64;
+        gens[0].reserve(n, W);
+        primary_rays(&world.camera, &raster_x[..n], &raster_y[..n], &mut gens[0]);
+        rays.primary += n as u64;
 
         // Down the tree, generation by generation.
         let mut last = 0;
@@ -368,7 +414,7 @@ fn trace_tile<const W: usize>(
             }
         }
         let [cx, cy, cz] = &gens[0].colour;
-        for (i, &pixel) in batch.iter().enumerate() {
+        for (i, &pixel) in batch[..n].iter().enumerate() {
             film.add_sample::<f32>(pixel, [cx[i], cy[i], cz[i]]);
         }
     }
