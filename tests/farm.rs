@@ -148,6 +148,10 @@ fn status(url: &str, job: &str) -> pb::JobStatus {
     rt().block_on(async { jobs_client(url).await.get_job(pb::GetJobRequest { job_id: job.into() }).await.expect("get job").into_inner() })
 }
 
+fn list_workers(url: &str) -> Vec<pb::WorkerInfo> {
+    rt().block_on(async { jobs_client(url).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
+}
+
 fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
     let start = Instant::now();
     while !f() {
@@ -203,7 +207,7 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
     assert_eq!(s.units_accepted, 5 * 9 * 2); // 9 tiles of 32 px, 2 sample batches, 5 frames
     assert_frames_match_render(dir.path(), &c.url(), &job, &anim, 1..=5, SMALL);
     // Every worker took part.
-    let workers = rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers });
+    let workers = list_workers(&c.url());
     assert_eq!(workers.len(), 3);
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
 }
@@ -245,7 +249,7 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
     let job = submit(&c.url(), &scene, &args);
     let s = status(&c.url(), &job);
     assert_eq!((s.state, s.units_done, s.results_rejected), (pb::JobState::Done as i32, 30, 0), "{}", gpu.log());
-    let workers = rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers });
+    let workers = list_workers(&c.url());
     let caps = workers[0].capabilities.clone().expect("capabilities");
     assert_eq!((caps.backend, caps.threads), (pb::Backend::Gpu as i32, 0));
     assert!(!caps.gpu_name.is_empty(), "a GPU worker names its adapter");
@@ -259,14 +263,14 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
     // CPU render within the GPU's f32 rounding.
     let _cpu = start_worker(dir.path(), &c.url(), "cpu");
     wait_for("the CPU worker to register", Duration::from_secs(20), || {
-        rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers }).len() == 2
+        list_workers(&c.url()).len() == 2
     });
     let mixed = ["--width", "96", "--height", "72", "--samples", "16"];
     let mut args = mixed.to_vec();
     args.extend(["--tile-size", "8", "--wait"]);
     let job = submit(&c.url(), &scene, &args);
     assert_eq!(status(&c.url(), &job).units_done, 108);
-    let workers = rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers });
+    let workers = list_workers(&c.url());
     assert!(workers.iter().all(|w| w.units_done > 0), "both workers took part: {workers:?}");
     let out = dir.path().join("mixed");
     tessera(&["fetch", &job, "-o", out.to_str().expect("path")], &c.url());
@@ -446,7 +450,7 @@ fn cancel_stops_the_workers_within_a_heartbeat() {
     // One unit that takes many seconds on one thread.
     let job = submit(&c.url(), &scene, &["--width", "320", "--height", "240", "--samples", "64", "--tile-size", "4096"]);
     wait_for("the worker to start the unit", Duration::from_secs(30), || {
-        rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
+        list_workers(&c.url())
             .iter()
             .any(|w| w.leases == 1)
     });
@@ -567,7 +571,7 @@ fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
     let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "64", "--tile-size", "128"]);
     // It renders one and holds the other as its prefetched next unit.
     wait_for("the worker to hold both units", Duration::from_secs(30), || {
-        rt().block_on(async { jobs_client(&c.url()).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
+        list_workers(&c.url())
             .iter()
             .any(|w| w.leases == 2)
     });
