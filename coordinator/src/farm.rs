@@ -617,8 +617,21 @@ impl Farm {
                     job.tile_rays[unit.tile as usize] * job.layout.batches[unit.batch as usize].len() as f64
                 };
                 let units = if speed > 0.0 {
-                    let pending_rays: f64 = job.pending.iter().map(|&u| rays(u)).sum();
-                    let budget = (speed * self.config.target_unit_seconds).min(pending_rays / (4 * workers).max(1) as f64);
+                    let want = speed * self.config.target_unit_seconds;
+                    let shares = (4 * workers).max(1) as f64;
+                    // Summed only until the cap cannot bind: this runs for
+                    // every lease, under the lock, and a long animation has
+                    // millions of pending units.
+                    let mut pending_rays = 0.0;
+                    let mut capped = true;
+                    for &u in &job.pending {
+                        pending_rays += rays(u);
+                        if pending_rays >= want * shares {
+                            capped = false;
+                            break;
+                        }
+                    }
+                    let budget = if capped { want.min(pending_rays / shares) } else { want };
                     job.layout.join(first, self.config.max_tiles_per_lease, |u| job.pending.contains(&u), rays, budget)
                 } else {
                     vec![first]
