@@ -9,7 +9,7 @@ use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use tracer_core::film::{Rect, SampleRange};
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
@@ -115,13 +115,13 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         bail!("--adapter only applies to --backend gpu");
     }
     let renderer = match args.backend {
-        BackendArg::Cpu => Backend::Cpu(CpuRenderer::new(args.threads)?),
+        BackendArg::Cpu => Renderer::Cpu(CpuRenderer::new(args.threads)?),
         #[cfg(feature = "gpu")]
         BackendArg::Gpu => {
             if precision != Precision::F32 {
                 bail!("--backend gpu renders in f32 only; use --precision f32 (f64 is the CPU reference)");
             }
-            Backend::Gpu(Box::new(tracer_core::render::GpuRenderer::new(args.adapter.as_deref(), Default::default())?))
+            Renderer::Gpu(Box::new(tracer_core::render::GpuRenderer::new(args.adapter.as_deref(), Default::default())?))
         }
     };
     let prepared = PreparedFrame::build(&scene, &settings, args.frame, precision)?;
@@ -133,11 +133,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let start = Instant::now();
     let rect = Rect::full(settings.width, settings.height);
     let samples = SampleRange::all(settings.samples);
-    let film = match &renderer {
-        Backend::Cpu(r) => r.render(&prepared, args.frame, rect, samples, &|n| bar.inc(n))?,
-        #[cfg(feature = "gpu")]
-        Backend::Gpu(r) => r.render(&prepared, args.frame, rect, samples, &|n| bar.inc(n))?,
-    };
+    let film = renderer.render(&prepared, args.frame, rect, samples, &|n| bar.inc(n))?;
     let secs = start.elapsed().as_secs_f64();
     bar.finish_and_clear();
     write_image(&output, &film)?;
@@ -166,21 +162,4 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         eprintln!("warning: {} non-finite samples were replaced by 0", film.nonfinite);
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// The renderer a `tessera render` run uses.
-enum Backend {
-    Cpu(CpuRenderer),
-    #[cfg(feature = "gpu")]
-    Gpu(Box<tracer_core::render::GpuRenderer>),
-}
-
-impl Backend {
-    fn describe(&self) -> String {
-        match self {
-            Backend::Cpu(r) => format!("cpu:{}t", r.threads()),
-            #[cfg(feature = "gpu")]
-            Backend::Gpu(r) => format!("gpu:{}", r.adapter().name),
-        }
-    }
 }

@@ -35,7 +35,7 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::cpu::TILE;
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 #[cfg(feature = "gpu")]
 use tracer_core::render::GpuRenderer;
 use tracer_core::scene::{RenderSettings, SceneDesc};
@@ -112,49 +112,18 @@ struct Session {
     heartbeat: Duration,
 }
 
-/// Where a worker traces.
-pub enum Renderer {
-    Cpu(CpuRenderer),
-    #[cfg(feature = "gpu")]
-    Gpu(Box<GpuRenderer>),
+/// What this worker tells the coordinator it is.
+fn capabilities(renderer: &Renderer) -> pb::Capabilities {
+    let (backend, gpu_name) = match renderer.adapter_name() {
+        None => (pb::Backend::Cpu, String::new()),
+        Some(name) => (pb::Backend::Gpu, name.to_string()),
+    };
+    pb::Capabilities { threads: renderer.threads() as u32, backend: backend as i32, gpu_name, version: env!("CARGO_PKG_VERSION").into() }
 }
 
-impl Renderer {
-    fn render(&self, prepared: &PreparedFrame, frame: u32, rect: Rect, samples: SampleRange, progress: &(dyn Fn(u64) + Sync)) -> Result<Film, String> {
-        match self {
-            Renderer::Cpu(r) => r.render(prepared, frame, rect, samples, progress).map_err(|e| e.to_string()),
-            #[cfg(feature = "gpu")]
-            Renderer::Gpu(r) => r.render(prepared, frame, rect, samples, progress).map_err(|e| e.to_string()),
-        }
-    }
-
-    /// CPU threads that render (0 for a GPU worker).
-    pub fn threads(&self) -> usize {
-        match self {
-            Renderer::Cpu(r) => r.threads(),
-            #[cfg(feature = "gpu")]
-            Renderer::Gpu(_) => 0,
-        }
-    }
-
-    /// Rows of `rect` rendered in one call (the lease is checked between calls).
-    #[cfg_attr(not(feature = "gpu"), allow(unused_variables))]
-    fn band_rows(&self, rect: Rect, samples: SampleRange) -> u32 {
-        match self {
-            Renderer::Cpu(r) => band_rows(rect, r.threads()),
-            #[cfg(feature = "gpu")]
-            Renderer::Gpu(_) => gpu_band_rows(rect, samples),
-        }
-    }
-
-    fn capabilities(&self) -> pb::Capabilities {
-        let (backend, gpu_name) = match self {
-            Renderer::Cpu(_) => (pb::Backend::Cpu, String::new()),
-            #[cfg(feature = "gpu")]
-            Renderer::Gpu(r) => (pb::Backend::Gpu, r.adapter().name.clone()),
-        };
-        pb::Capabilities { threads: self.threads() as u32, backend: backend as i32, gpu_name, version: env!("CARGO_PKG_VERSION").into() }
-    }
+/// Rows of `rect` rendered in one call (the lease is checked between calls).
+fn unit_band_rows(renderer: &Renderer, rect: Rect, samples: SampleRange) -> u32 {
+    if let Renderer::Cpu(r) = renderer { band_rows(rect, r.threads()) } else { gpu_band_rows(rect, samples) }
 }
 
 pub struct Worker {
@@ -228,7 +197,7 @@ impl Worker {
                     continue;
                 }
             };
-            let caps = self.renderer.capabilities();
+            let caps = capabilities(&self.renderer);
             tracing::info!(worker = %session.worker_id, coordinator = %self.config.coordinator, threads = caps.threads, gpu = %caps.gpu_name, "registered");
             let lost = Arc::new(AtomicBool::new(false));
             let beat = tokio::spawn(heartbeat(session.client.clone(), session.worker_id.clone(), session.heartbeat, self.held.clone(), lost.clone()));
@@ -257,7 +226,7 @@ impl Worker {
         let mut client = WorkerServiceClient::with_interceptor(channel, VersionStamp)
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
-        let caps = self.renderer.capabilities();
+        let caps = capabilities(&self.renderer);
         let resp = client
             .register(pb::RegisterRequest { name: self.config.name.clone(), capabilities: Some(caps) })
             .await
@@ -553,7 +522,6 @@ fn band_rows(rect: Rect, threads: usize) -> u32 {
 }
 
 /// GPU bands: whole rows, about [`GPU_BAND_PIXEL_SAMPLES`] each.
-#[cfg_attr(not(feature = "gpu"), allow(dead_code))]
 fn gpu_band_rows(rect: Rect, samples: SampleRange) -> u32 {
     let per_row = rect.width.max(1) as u64 * samples.len().max(1) as u64;
     (GPU_BAND_PIXEL_SAMPLES / per_row).clamp(1, rect.height.max(1) as u64) as u32
@@ -571,7 +539,7 @@ fn render_unit(
 ) -> UnitEnd {
     let start = Instant::now();
     let mut film = Film::new(rect);
-    let rows = renderer.band_rows(rect, samples);
+    let rows = unit_band_rows(renderer, rect, samples);
     let mut y = rect.y;
     while y < rect.y + rect.height {
         if cancel.load(Ordering::Relaxed) {
@@ -586,7 +554,7 @@ fn render_unit(
                     return UnitEnd::Failed(e.to_string());
                 }
             }
-            Err(e) => return UnitEnd::Failed(e),
+            Err(e) => return UnitEnd::Failed(e.to_string()),
         }
         y += band.height;
     }

@@ -10,7 +10,7 @@ pub mod cpu;
 pub mod gpu;
 pub mod whitted;
 
-use crate::film::{Rect, SampleRange};
+use crate::film::{Film, Rect, SampleRange};
 use crate::scene::{RenderSettings, SceneDesc};
 use crate::world::World;
 
@@ -95,4 +95,66 @@ pub enum RenderError {
     SamplesOutside { samples: SampleRange, count: u32 },
     #[error("cannot start render threads: {0}")]
     Threads(String),
+}
+
+/// A renderer of either backend, chosen at run time: the one interface
+/// `tessera render` and farm workers render through.
+pub enum Renderer {
+    Cpu(CpuRenderer),
+    #[cfg(feature = "gpu")]
+    Gpu(Box<GpuRenderer>),
+}
+
+/// Why a [`Renderer`] could not render.
+#[derive(Debug, thiserror::Error)]
+pub enum RendererError {
+    #[error(transparent)]
+    Cpu(#[from] RenderError),
+    #[cfg(feature = "gpu")]
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+impl Renderer {
+    /// Renders `rect` of `frame` over `samples`, as [`CpuRenderer::render`].
+    pub fn render(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<Film, RendererError> {
+        Ok(match self {
+            Renderer::Cpu(r) => r.render(prepared, frame, rect, samples, progress)?,
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => r.render(prepared, frame, rect, samples, progress)?,
+        })
+    }
+
+    /// CPU threads that trace (0 for the GPU backend).
+    pub fn threads(&self) -> usize {
+        match self {
+            Renderer::Cpu(r) => r.threads(),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(_) => 0,
+        }
+    }
+
+    /// The GPU adapter's name (`None` for the CPU backend).
+    pub fn adapter_name(&self) -> Option<&str> {
+        match self {
+            Renderer::Cpu(_) => None,
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => Some(&r.adapter().name),
+        }
+    }
+
+    /// `cpu:Nt` or `gpu:ADAPTER`, for summaries and logs.
+    pub fn describe(&self) -> String {
+        match self.adapter_name() {
+            None => format!("cpu:{}t", self.threads()),
+            Some(name) => format!("gpu:{name}"),
+        }
+    }
 }
