@@ -23,6 +23,7 @@ use std::time::Instant;
 use glam::Vec3A;
 use rayon::prelude::*;
 use tracer_core::accel::triangle_bytes;
+use tracer_core::bvh::closest_hits_avx512;
 use tracer_core::geometry::PrimId;
 use tracer_core::math::{offset_origin, Ray};
 use tracer_core::mesh::Mesh;
@@ -174,6 +175,39 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         })
         .collect();
     println!("  {} of {} primary rays hit; {} incoherent rays", secondary.len(), primary.len(), secondary.len());
+    // The same primary rays in packets of 4x4 pixels (`World::closest_hits`),
+    // checked against the single-ray answers: they must be the same bits.
+    let pr = &primary;
+    let blocks: Vec<Vec<Ray<f32>>> = (0..HEIGHT.div_ceil(4))
+        .flat_map(|by| (0..WIDTH.div_ceil(4)).map(move |bx| (bx, by)))
+        .map(|(bx, by)| {
+            (by * 4..(by * 4 + 4).min(HEIGHT))
+                .flat_map(|y| (bx * 4..(bx * 4 + 4).min(WIDTH)).map(move |x| pr[(y * WIDTH + x) as usize]))
+                .collect()
+        })
+        .collect();
+    let packet_hits = |block: &[Ray<f32>]| {
+        let mut out = [None; 16];
+        world.closest_hits(block, PrimId::NONE, &mut out[..block.len()]);
+        out
+    };
+    let differ: usize = blocks
+        .iter()
+        .map(|b| {
+            let got = packet_hits(b);
+            b.iter().zip(got).filter(|(r, g)| g.map(|(t, id)| (t.to_bits(), id)) != world.closest_hit(r, PrimId::NONE).map(|(t, id)| (t.to_bits(), id))).count()
+        })
+        .sum();
+    // The tree walk alone with the AVX-512 node test (no planes in this scene).
+    let tree = world.accel.as_ref().ok_or("no BVH was built")?;
+    let packet_hits_avx512 = |block: &[Ray<f32>]| {
+        let n = block.len();
+        let (mut best, mut found) = ([f32::INFINITY; 16], [PrimId::NONE; 16]);
+        closest_hits_avx512(&world, tree, block, &mut best[..n], &mut found[..n], PrimId::NONE);
+        found[..n].iter().filter(|&&id| id != PrimId::NONE).count()
+    };
+    let wide = closest_hits_avx512(&world, tree, &blocks[0], &mut [f32::INFINITY; 16][..blocks[0].len()], &mut [PrimId::NONE; 16][..blocks[0].len()], PrimId::NONE);
+    println!("  packets of 4x4 primary rays: {differ} answers differ from single rays");
 
     if gpu {
         if let Err(e) = gpu_bench(path, cam, c) {
@@ -191,6 +225,8 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
             })
         };
         let tp = time(&|| primary.par_chunks(4096).map(|c| c.iter().filter(|r| world.closest_hit(r, PrimId::NONE).is_some()).count()).sum());
+        let tk = time(&|| blocks.par_chunks(256).map(|c| c.iter().map(|b| packet_hits(b).iter().filter(|h| h.is_some()).count()).sum::<usize>()).sum());
+        let tw = wide.then(|| time(&|| blocks.par_chunks(256).map(|c| c.iter().map(|b| packet_hits_avx512(b)).sum::<usize>()).sum()));
         let ti = time(&|| {
             secondary.par_chunks(4096).map(|c| c.iter().filter(|(r, id)| world.closest_hit(r, *id).is_some()).count()).sum()
         });
@@ -202,9 +238,11 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         });
         let m = |rays: usize, (wall, cpu): (f64, f64)| format!("{:.2} ({:.2}/CPU-s)", rays as f64 / wall / 1e6, rays as f64 / cpu / 1e6);
         println!(
-            "  {n} thread{}: Mrays/s wall (per CPU-second): primary {}, incoherent closest-hit {}, incoherent occlusion {}",
+            "  {n} thread{}: Mrays/s wall (per CPU-second): primary {}, primary in 4x4 packets {} (AVX-512 node test: {}), incoherent closest-hit {}, incoherent occlusion {}",
             if n == 1 { " " } else { "s" },
             m(primary.len(), tp),
+            m(primary.len(), tk),
+            tw.map_or("no AVX-512F".to_string(), |t| m(primary.len(), t)),
             m(secondary.len(), ti),
             m(secondary.len(), ts)
         );

@@ -132,6 +132,8 @@ pub(crate) fn build_accel<R: Real>(world: &mut World<R>, force: Option<bool>) {
         world.triangle_shading = shading;
     }
     // The 4-wide triangle test (f32 only) wants the leaves' triangles packed.
+    // Not with spheres: packing them too (NaN lanes sent to the sphere test)
+    // made the bunny scene (a glass sphere in the tree) 9% slower.
     if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>() && world.spheres.is_empty() {
         // SAFETY: R is f32, so this is the same type.
         let tris = unsafe { &*(world.triangles.as_slice() as *const [Triangle<R>] as *const [Triangle<f32>]) };
@@ -151,19 +153,59 @@ impl<R: Real> World<R> {
     /// `closest_hit` of worlds with a tree: planes by loop, the rest by tree.
     #[inline]
     pub(crate) fn closest_hit_accel(&self, tree: &Bvh, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+        let (best, id) = self.closest_plane(ray, skip);
+        bvh::closest_hit(self, tree, ray, best, id, skip)
+    }
+
+    /// `out[j] = self.closest_hit(&rays[j], skip)` for every ray, the same
+    /// answers; in `f32` with a tree, packets of [`bvh::PACKET`] rays go
+    /// through the tree together ([`bvh::closest_hits`]), which pays for
+    /// coherent rays (neighbouring camera rays).
+    pub fn closest_hits(&self, rays: &[Ray<R>], skip: PrimId, out: &mut [Option<(R, PrimId)>]) {
+        assert_eq!(rays.len(), out.len());
+        let tree_f32 = (self as &dyn std::any::Any).downcast_ref::<World<f32>>().and_then(|w| Some((w, w.accel.as_ref()?)));
+        let Some((w, tree)) = tree_f32 else {
+            for (o, r) in out.iter_mut().zip(rays) {
+                *o = self.closest_hit(r, skip);
+            }
+            return;
+        };
+        // SAFETY: R is f32 here (the downcast succeeded), so these are the same types.
+        let (rays, out) = unsafe {
+            (
+                &*(rays as *const [Ray<R>] as *const [Ray<f32>]),
+                &mut *(out as *mut [Option<(R, PrimId)>] as *mut [Option<(f32, PrimId)>]),
+            )
+        };
+        for (rays, out) in rays.chunks(bvh::PACKET).zip(out.chunks_mut(bvh::PACKET)) {
+            let mut best = [f32::INFINITY; bvh::PACKET];
+            let mut found = [PrimId::NONE; bvh::PACKET];
+            for (j, r) in rays.iter().enumerate() {
+                (best[j], found[j]) = w.closest_plane(r, skip);
+            }
+            let n = rays.len();
+            bvh::closest_hits(w, tree, rays, &mut best[..n], &mut found[..n], skip);
+            for j in 0..n {
+                out[j] = (found[j] != PrimId::NONE).then_some((best[j], found[j]));
+            }
+        }
+    }
+
+    /// Nearest plane hit, as (distance, id), or (infinity, `PrimId::NONE`).
+    #[inline(always)]
+    pub(crate) fn closest_plane(&self, ray: &Ray<R>, skip: PrimId) -> (R, PrimId) {
         let mut best = R::INFINITY;
         let mut id = PrimId::NONE;
         for (i, p) in self.planes.iter().enumerate() {
             let pid = PrimId::new(PrimId::PLANE, i as u32);
-            if let Some(t) = p.intersect(ray, best, pid == skip) {
-                best = t;
-                id = pid;
+            if let Some(t) = p.intersect(ray, R::INFINITY, pid == skip) {
+                if pid.nearer(t, best, id) {
+                    best = t;
+                    id = pid;
+                }
             }
         }
-        match bvh::closest_hit(self, tree, ray, best, skip) {
-            Some(hit) => Some(hit),
-            None => (id != PrimId::NONE).then_some((best, id)),
-        }
+        (best, id)
     }
 
     #[inline]
@@ -175,33 +217,30 @@ impl<R: Real> World<R> {
             || bvh::occluded(self, tree, ray, t_max, skip)
     }
 
-    /// `closest_hit` without a tree when there are triangles: every primitive.
+    /// `closest_hit` without a tree when there are triangles: every
+    /// primitive, with the tree's order on ties ([`PrimId::nearer`]).
     pub(crate) fn closest_hit_brute(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
-        let mut best = R::INFINITY;
-        let mut id = PrimId::NONE;
+        let (mut best, mut id) = self.closest_plane(ray, skip);
         let tr = TriangleRay::new(ray);
         for (i, t) in self.triangles.iter().enumerate() {
             let pid = PrimId::new(PrimId::TRIANGLE, i as u32);
             if pid == skip {
                 continue;
             }
-            if let Some(d) = t.intersect(&tr, best) {
-                best = d;
-                id = pid;
+            if let Some(d) = t.distance(&tr, best) {
+                if pid.nearer(d, best, id) {
+                    best = d;
+                    id = pid;
+                }
             }
         }
         for (i, s) in self.spheres.iter().enumerate() {
             let pid = PrimId::new(PrimId::SPHERE, i as u32);
-            if let Some(t) = s.intersect(ray, best, pid == skip) {
-                best = t;
-                id = pid;
-            }
-        }
-        for (i, p) in self.planes.iter().enumerate() {
-            let pid = PrimId::new(PrimId::PLANE, i as u32);
-            if let Some(t) = p.intersect(ray, best, pid == skip) {
-                best = t;
-                id = pid;
+            if let Some(t) = s.intersect(ray, R::INFINITY, pid == skip) {
+                if pid.nearer(t, best, id) {
+                    best = t;
+                    id = pid;
+                }
             }
         }
         (id != PrimId::NONE).then_some((best, id))

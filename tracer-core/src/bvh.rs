@@ -24,6 +24,8 @@
 //!   pushes at most three) never overflows. `BvhStats::stack` is the exact
 //!   need of the tree built.
 
+mod packet;
+
 use std::mem::MaybeUninit;
 use std::time::{Duration, Instant};
 
@@ -34,6 +36,8 @@ use crate::geometry::PrimId;
 use crate::math::{Ray, Real, Vector3};
 use crate::triangle::{finish, Triangle, Triangle4, TriangleRay};
 use crate::world::World;
+
+pub use packet::{closest_hits, closest_hits_avx512, PACKET};
 
 /// Binary levels of the tree as built: no leaf of the binary tree is this deep.
 pub const MAX_DEPTH: usize = 64;
@@ -583,6 +587,16 @@ struct Flat<'a> {
 /// traversal") so that rounding never culls a box the ray grazes.
 const EXIT_WIDEN: f64 = 1.000_000_4;
 
+/// A box is culled only when the ray enters it beyond the nearest hit so far
+/// times this factor. The entry distance and a triangle's distance round
+/// differently, so a triangle inside a box can be hit a few ulps before the
+/// box's computed entry; without the slack a box could be culled or not
+/// depending on which hit was found first, and the answer (the distance, or
+/// the lower id of a tie) would depend on the visiting order, which differs
+/// between single rays, packets and brute force. 2^-14 is far above those
+/// ulps and costs only the rare visits of boxes entered just behind a hit.
+const CULL_WIDEN: f64 = 1.0 + 1.0 / 16384.0;
+
 /// Per-ray state of the 4-wide slab test: origin, reciprocal direction
 /// (zeros made huge-but-finite, so `0 * inv` is 0, never NaN), and for each
 /// axis the rows of [`BvhNode4::b`] holding the near and the far planes
@@ -640,11 +654,12 @@ impl<R: Real> BoxRay<R> {
 }
 
 /// The slab test of a ray against the four boxes of `node`: a bit mask of
-/// the slots it meets within [0, t_max], and their entry distances. In
+/// the slots it meets within [0, limit] (callers pass their nearest hit
+/// times [`CULL_WIDEN`]), and their entry distances. In
 /// `f32` on x86_64 one SSE pass over the node's rows; elsewhere (the `f64`
 /// reference) the same arithmetic slot by slot.
 #[inline(always)]
-fn test4<R: Real>(node: &BvhNode4, r: &BoxRay<R>, t_max: R) -> (u32, [R; 4]) {
+fn test4<R: Real>(node: &BvhNode4, r: &BoxRay<R>, limit: R) -> (u32, [R; 4]) {
     #[cfg(target_arch = "x86_64")]
     if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>() {
         use std::arch::x86_64::*;
@@ -652,7 +667,7 @@ fn test4<R: Real>(node: &BvhNode4, r: &BoxRay<R>, t_max: R) -> (u32, [R; 4]) {
         // [f32; 4]); `near`/`far` entries are < 6 by construction; a node
         // is 64-byte aligned, so each row is 16-byte aligned; SSE is part of x86_64.
         unsafe {
-            let tm: f32 = std::mem::transmute_copy::<R, f32>(&t_max);
+            let tm: f32 = std::mem::transmute_copy::<R, f32>(&limit);
             let row = |i: usize| _mm_load_ps(node.b.get_unchecked(i).as_ptr());
             let [ox, oy, oz, ix, iy, iz] = r.sse;
             let t0x = _mm_mul_ps(_mm_sub_ps(row(r.near[0]), ox), ix);
@@ -676,7 +691,7 @@ fn test4<R: Real>(node: &BvhNode4, r: &BoxRay<R>, t_max: R) -> (u32, [R; 4]) {
         let d = |rows: &[usize; 3], a: usize| (R::from_f64(node.b[rows[a]][k] as f64) - r.origin[a]) * r.inv[a];
         let t0 = d(&r.near, 0).max(d(&r.near, 1)).max(d(&r.near, 2).max(R::ZERO));
         let t1 = d(&r.far, 0).min(d(&r.far, 1)).min(d(&r.far, 2)) * widen;
-        if t0 <= t1 && t0 <= t_max {
+        if t0 <= t1 && t0 <= limit {
             mask |= 1 << k;
             *tk = t0;
         }
@@ -684,7 +699,9 @@ fn test4<R: Real>(node: &BvhNode4, r: &BoxRay<R>, t_max: R) -> (u32, [R; 4]) {
     (mask, t)
 }
 
-/// Tests the primitive `id` against the ray; `skip` is the primitive the ray starts on.
+/// Distance along the ray to the primitive `id`, if it may be at most
+/// `t_max` (a farther one may be returned: callers compare); `skip` is the
+/// primitive the ray starts on.
 #[inline(always)]
 fn hit_prim<R: Real>(world: &World<R>, id: PrimId, ray: &Ray<R>, tri: &TriangleRay<R>, t_max: R, skip: PrimId) -> Option<R> {
     if id.kind() == PrimId::TRIANGLE {
@@ -692,16 +709,15 @@ fn hit_prim<R: Real>(world: &World<R>, id: PrimId, ray: &Ray<R>, tri: &TriangleR
         if id == skip {
             return None;
         }
-        world.triangles[id.index()].intersect(tri, t_max)
+        world.triangles[id.index()].distance(tri, t_max)
     } else {
-        world.spheres[id.index()].intersect(ray, t_max, id == skip)
+        world.spheres[id.index()].intersect(ray, R::INFINITY, id == skip)
     }
 }
 
-/// Tests the primitives `prims[first .. first + count]` of a leaf, nearest
-/// hit first-found-wins as in a loop over them in order: `best` and `found`
-/// are updated on each hit nearer than `best`. With `ANY`, stops at the first
-/// hit (and returns true). In `f32` over packed triangles the 4-wide test
+/// Tests the primitives `prims[first .. first + count]` of a leaf: `best`
+/// and `found` are updated on each hit that is [`PrimId::nearer`]. With
+/// `ANY`, stops at the first hit before `best` (and returns true). In `f32` over packed triangles the 4-wide test
 /// does the bulk of the work; lanes it leaves open are finished in order
 /// with the same arithmetic as the scalar test, so the result is the same.
 #[inline(always)]
@@ -740,13 +756,16 @@ fn leaf<R: Real, const ANY: bool>(
                 if id == skip {
                     continue;
                 }
-                let t = if (e.exact >> j) & 1 != 0 { tris[id.index()].intersect(tr, *best) } else { finish(e.t_scaled[j], e.det[j], *best) };
+                let t = if (e.exact >> j) & 1 != 0 { tris[id.index()].distance(tr, *best) } else { finish(e.t_scaled[j], e.det[j], *best) };
                 if let Some(t) = t {
                     if ANY {
-                        return true;
+                        if t < *best {
+                            return true;
+                        }
+                    } else if id.nearer(t, *best, *found) {
+                        *best = t;
+                        *found = id;
                     }
-                    *best = t;
-                    *found = id;
                 }
             }
             p += 4;
@@ -756,10 +775,13 @@ fn leaf<R: Real, const ANY: bool>(
     for &id in &bvh.prims[first..first + count] {
         if let Some(t) = hit_prim(world, id, ray, tr, *best, skip) {
             if ANY {
-                return true;
+                if t < *best {
+                    return true;
+                }
+            } else if id.nearer(t, *best, *found) {
+                *best = t;
+                *found = id;
             }
-            *best = t;
-            *found = id;
         }
     }
     false
@@ -774,16 +796,19 @@ struct Entry<R> {
     t: R,
 }
 
-/// Nearest hit in (0, t_max) of the tree's primitives.
+/// The nearest of `(best, found)` (a hit found elsewhere, or infinity and
+/// `PrimId::NONE`) and the hits on the tree's primitives, by
+/// [`PrimId::nearer`]; `None` if there is none.
 #[inline]
-pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best: R, skip: PrimId) -> Option<(R, PrimId)> {
+pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best: R, mut found: PrimId, skip: PrimId) -> Option<(R, PrimId)> {
     if bvh.nodes.is_empty() {
-        return None;
+        return (found != PrimId::NONE).then_some((best, found));
     }
     let br = BoxRay::new(ray);
+    let widen = R::from_f64(CULL_WIDEN as f32 as f64);
+    let mut limit = best * widen;
     // Set up at the first leaf: many rays (most primary rays past a model) never reach one.
     let mut tr: Option<TriangleRay<R>> = None;
-    let mut found = PrimId::NONE;
     // Uninitialised: zeroing the stack per ray costs more than a short traversal.
     let mut stack = [const { MaybeUninit::<Entry<R>>::uninit() }; STACK];
     let mut sp = 0usize;
@@ -792,7 +817,7 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
     loop {
         if cur.count == 0 {
             let n = &bvh.nodes[cur.child as usize];
-            let (mask, t) = test4(n, &br, best);
+            let (mask, t) = test4(n, &br, limit);
             let slot = |k: usize| Entry { child: n.child[k], count: n.count[k], t: t[k] };
             if mask != 0 {
                 let a = mask.trailing_zeros() as usize;
@@ -836,6 +861,7 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
         } else {
             let tr = tr.get_or_insert_with(|| TriangleRay::new(ray));
             leaf::<R, false>(world, bvh, ray, tr, (cur.child as usize, cur.count as usize), &mut best, &mut found, skip);
+            limit = best * widen;
         }
         // Pop the next subtree that may still hold something nearer.
         loop {
@@ -845,7 +871,7 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
             sp -= 1;
             // SAFETY: entries below `sp` were written before `sp` was raised past them.
             let e = unsafe { stack[sp].assume_init() };
-            if e.t <= best {
+            if e.t <= limit {
                 cur = e;
                 break;
             }
@@ -861,6 +887,7 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
         return false;
     }
     let br = BoxRay::new(ray);
+    let limit = t_max * R::from_f64(CULL_WIDEN as f32 as f64);
     // Set up at the first leaf: many rays (most primary rays past a model) never reach one.
     let mut tr: Option<TriangleRay<R>> = None;
     let mut stack = [const { MaybeUninit::<u32>::uninit() }; STACK];
@@ -868,7 +895,7 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
     let mut node = 0usize;
     loop {
         let n = &bvh.nodes[node];
-        let (mut mask, _) = test4(n, &br, t_max);
+        let (mut mask, _) = test4(n, &br, limit);
         let mut next = None;
         while mask != 0 {
             let k = mask.trailing_zeros() as usize;

@@ -31,6 +31,15 @@ impl PrimId {
     pub fn index(self) -> usize {
         (self.0 & ((1 << Self::KIND_SHIFT) - 1)) as usize
     }
+
+    /// The order of closest-hit queries: a hit at `t` on `self` replaces the
+    /// nearest so far (`best` on `found`) if it is nearer, or as near on a
+    /// lower id. A total order, so the answer does not depend on the order
+    /// in which primitives are tested (tree, packets, brute force).
+    #[inline(always)]
+    pub fn nearer<R: PartialOrd>(self, t: R, best: R, found: PrimId) -> bool {
+        t < best || (t == best && self.0 < found.0)
+    }
 }
 
 #[derive(Clone, Copy, Debug)]

@@ -94,6 +94,14 @@ impl<R: Real> Triangle<R> {
     /// (zero area, or seen exactly edge-on) are never hit and never give NaN.
     #[inline(always)]
     pub fn intersect(&self, r: &TriangleRay<R>, t_max: R) -> Option<R> {
+        self.distance(r, t_max).filter(|&t| t < t_max)
+    }
+
+    /// Distance to the hit, positive and finite, if it may be at most
+    /// `t_max` (see [`finish`]: the distance itself does not depend on
+    /// `t_max`, and every hit at most `t_max` away is returned), or `None`.
+    #[inline(always)]
+    pub fn distance(&self, r: &TriangleRay<R>, t_max: R) -> Option<R> {
         // Vertices relative to the origin (lane i: vertex i), then sheared.
         // SAFETY: `TriangleRay::new` makes every entry of `k` 0, 1 or 2.
         let axis = |i: usize| unsafe { *self.axes.get_unchecked(r.k[i]) };
@@ -139,21 +147,24 @@ impl<R: Real> Triangle<R> {
 }
 
 /// The last step of the test, given `t_scaled` and a non-zero `det`: the
-/// distance if it lies in (0, t_max). Shared by the scalar and the 4-wide
-/// forms, so that both round alike.
+/// distance `t_scaled / det` if it is positive and finite and may be at
+/// most `t_max`. Shared by the scalar and the 4-wide forms, so that both
+/// round alike. The test before the division is conservative (its bound is
+/// widened by 2^-20, well above the rounding of `t_max * det` and of the
+/// quotient), so every distance at most `t_max` is returned, and a returned
+/// distance may exceed `t_max`: callers compare. A triangle's distance thus
+/// depends on it and the ray alone, and the nearest hit (ties to the lower
+/// [`PrimId`](crate::geometry::PrimId)) is the same whatever order the
+/// triangles are met in: by single rays, by packets or by brute force.
 #[inline(always)]
 pub fn finish<R: Real>(t_scaled: R, det: R, t_max: R) -> Option<R> {
-    // t = t_scaled / det must lie in (0, t_max); test before dividing.
-    let inside = if det > R::ZERO {
-        t_scaled > R::ZERO && t_scaled < t_max * det
-    } else {
-        t_scaled < R::ZERO && t_scaled > t_max * det
-    };
-    if !inside {
+    let bound = t_max * det * R::from_f64(1.0 + 1.0 / (1u64 << 20) as f64);
+    let may = if det > R::ZERO { t_scaled > R::ZERO && t_scaled <= bound } else { t_scaled < R::ZERO && t_scaled >= bound };
+    if !may {
         return None;
     }
     let t = t_scaled / det;
-    (t > R::ZERO && t < t_max).then_some(t)
+    (t > R::ZERO && t < R::INFINITY).then_some(t)
 }
 
 /// Four triangles in the form the 4-wide (SSE) pass of the test wants:
@@ -187,7 +198,7 @@ impl Triangle4 {
 
 /// What the 4-wide pass leaves to finish lane by lane: `candidates`, lanes
 /// whose edge functions agree in sign and whose `det` is non-zero (they hit
-/// if [`finish`]`(t_scaled, det, t_max)` says so); `exact`, lanes for the
+/// if [`finish`]`(t_scaled, det, t_max)` gives a distance within the limit); `exact`, lanes for the
 /// scalar [`Triangle::intersect`] (an edge function is zero, so it needs the
 /// exact re-evaluation, or some value is NaN). All other lanes miss.
 #[derive(Clone, Copy, Debug)]
@@ -363,7 +374,7 @@ mod tests {
                     n += 1;
                     t.intersect(&r, t_max)
                 } else if (e.candidates >> j) & 1 != 0 {
-                    finish(e.t_scaled[j], e.det[j], t_max)
+                    finish(e.t_scaled[j], e.det[j], t_max).filter(|&t| t < t_max)
                 } else {
                     None
                 };

@@ -22,7 +22,13 @@ use crate::world::World;
 /// Colour seen along `ray`, which starts on primitive `skip` (or none) and
 /// is of generation `depth` (primary rays are 0).
 pub fn trace<R: Real>(world: &World<R>, ray: &Ray<R>, depth: u32, skip: PrimId, rays: &mut RayCounts) -> R::V3 {
-    let Some((t, id)) = world.closest_hit(ray, skip) else {
+    shade(world, ray, world.closest_hit(ray, skip), depth, rays)
+}
+
+/// Colour seen along `ray` of generation `depth`, given its closest hit
+/// (`World::closest_hit`, or the same answer from `World::closest_hits`).
+pub fn shade<R: Real>(world: &World<R>, ray: &Ray<R>, hit: Option<(R, PrimId)>, depth: u32, rays: &mut RayCounts) -> R::V3 {
+    let Some((t, id)) = hit else {
         return world.background;
     };
     let (p, n_out, mat) = world.surface(id, ray.at(t));

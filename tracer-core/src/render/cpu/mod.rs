@@ -1,7 +1,8 @@
 //! The CPU renderer: rayon over small tiles. Scenes of spheres and planes
 //! in f32 take the stream renderer ([`stream`]), vectorised over rays; the
-//! rest (meshes, BVH scenes, the f64 reference) trace one ray at a time
-//! with the recursive [`trace`].
+//! rest (meshes, BVH scenes, the f64 reference) trace with the recursive
+//! [`shade`], camera rays in packets of 4x4 pixels ([`World::closest_hits`])
+//! and the rays they spawn one at a time.
 
 pub mod kernels;
 pub mod shade;
@@ -9,11 +10,11 @@ pub mod stream;
 
 use rayon::prelude::*;
 
-use super::whitted::trace;
+use super::whitted::shade;
 use super::{PreparedFrame, RenderError};
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 use crate::geometry::PrimId;
-use crate::math::{Real, Vector3};
+use crate::math::{Ray, Real, Vector3};
 use crate::sampling::{pixel_seed, sample_offset};
 use crate::world::World;
 
@@ -112,25 +113,45 @@ pub fn simd_level() -> SimdLevel {
 }
 
 /// Renders one tile on the calling thread with the recursive reference
-/// [`trace`], one ray at a time.
+/// [`shade`]. Camera rays go in packets: for each 4x4-pixel block of the
+/// tile and each sample index, the block's rays are traced together
+/// ([`World::closest_hits`]: in a tree, neighbouring camera rays visit the
+/// same nodes), which gives the same hits as one by one; the film's
+/// fixed-point sums do not depend on the order samples arrive in.
 pub fn render_tile_recursive<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+    const BLOCK: u32 = 4;
     let mut film = Film::new(tile);
     let mut rays = RayCounts::default();
     let s = &world.settings;
-    let mut i = 0;
-    for y in tile.y..tile.y + tile.height {
-        for x in tile.x..tile.x + tile.width {
-            let seed = pixel_seed(x, y, frame);
-            for sample in samples.start..samples.end {
-                let (u, v) = sample_offset(s.sampler, s.samples, seed, sample);
-                let sx = R::from_u32(x) + R::from_f64(u as f64);
-                let sy = R::from_u32(y) + R::from_f64(v as f64);
-                let ray = world.camera.ray(sx, sy);
-                rays.primary += 1;
-                let c = trace(world, &ray, 0, PrimId::NONE, &mut rays);
-                film.add_sample::<R>(i, [c.x(), c.y(), c.z()]);
+    let mut packet: Vec<Ray<R>> = Vec::with_capacity((BLOCK * BLOCK) as usize);
+    let mut hits = [None; (BLOCK * BLOCK) as usize];
+    let mut pixels = [(0usize, 0u32, 0u32, 0u32); (BLOCK * BLOCK) as usize];
+    for by in (tile.y..tile.y + tile.height).step_by(BLOCK as usize) {
+        for bx in (tile.x..tile.x + tile.width).step_by(BLOCK as usize) {
+            // The block's pixels: film index, position and seed.
+            let mut n = 0;
+            for y in by..(by + BLOCK).min(tile.y + tile.height) {
+                for x in bx..(bx + BLOCK).min(tile.x + tile.width) {
+                    let i = ((y - tile.y) * tile.width + (x - tile.x)) as usize;
+                    pixels[n] = (i, x, y, pixel_seed(x, y, frame));
+                    n += 1;
+                }
             }
-            i += 1;
+            for sample in samples.start..samples.end {
+                packet.clear();
+                for &(_, x, y, seed) in &pixels[..n] {
+                    let (u, v) = sample_offset(s.sampler, s.samples, seed, sample);
+                    let sx = R::from_u32(x) + R::from_f64(u as f64);
+                    let sy = R::from_u32(y) + R::from_f64(v as f64);
+                    packet.push(world.camera.ray(sx, sy));
+                }
+                world.closest_hits(&packet, PrimId::NONE, &mut hits[..n]);
+                for ((ray, hit), &(i, ..)) in packet.iter().zip(hits).zip(&pixels[..n]) {
+                    rays.primary += 1;
+                    let c = shade(world, ray, hit, 0, &mut rays);
+                    film.add_sample::<R>(i, [c.x(), c.y(), c.z()]);
+                }
+            }
         }
     }
     film.rays = rays;

@@ -1,0 +1,354 @@
+//! Packet traversal: up to [`PACKET`] rays through the tree together, for
+//! coherent rays (a block of camera rays). Each node is fetched once per
+//! packet and its four boxes are tested against all of the packet's rays
+//! that reached it, four rays per SSE pass (structure of arrays over rays);
+//! a subtree is visited with the mask of the rays that met its box, and a
+//! leaf is tested ray by ray with the single-ray leaf test. The single-ray
+//! traversal is bound by the latency of one chain of dependent loads and
+//! tests; here the rays of a packet are independent work for the same node.
+//!
+//! The answer is the single-ray [`closest_hit`]'s, bit for bit: every ray
+//! meets a superset of the boxes that hold a hit nearer than its nearest, a
+//! triangle's distance does not depend on what was found before
+//! (`triangle::finish`), and ties go by [`PrimId::nearer`], so only the
+//! order of the work differs. Rays whose direction signs differ from the
+//! first ray's go through [`closest_hit`] one by one (the packet picks each
+//! node's near and far planes once for all its rays).
+
+use std::mem::MaybeUninit;
+
+use super::{closest_hit, Bvh, CULL_WIDEN, EXIT_WIDEN, STACK};
+use crate::geometry::PrimId;
+use crate::math::Ray;
+use crate::world::World;
+
+/// Rays in a packet at most: 4 SSE groups of 4.
+pub const PACKET: usize = 16;
+
+/// A subtree still to visit, with the rays that met its box (bit j: ray j)
+/// and the nearest of their entry distances.
+#[derive(Clone, Copy)]
+struct Entry {
+    child: u32,
+    count: u32,
+    mask: u32,
+    t: f32,
+}
+
+/// One value per ray of a packet, 64-byte aligned for SSE and AVX-512 loads.
+#[repr(C, align(64))]
+#[derive(Clone, Copy)]
+struct Lanes([f32; PACKET]);
+
+/// For each ray j of `rays` (at most [`PACKET`]), `(best[j], found[j])`
+/// becomes the nearest of itself and the tree's hits along the ray, as
+/// [`closest_hit`] gives it. `skip` is the primitive all the rays start on
+/// (`PrimId::NONE` for camera rays). Nodes are tested four rays per SSE
+/// instruction, on every x86-64 CPU (elsewhere the rays go one by one).
+pub fn closest_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
+    assert!(rays.len() <= PACKET && best.len() == rays.len() && found.len() == rays.len(), "a packet holds at most {PACKET} rays");
+    if bvh.nodes.is_empty() || rays.is_empty() {
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if rays.len() > 1 {
+        walk_sse(world, bvh, rays, best, found, skip);
+        return;
+    }
+    for (j, ray) in rays.iter().enumerate() {
+        if let Some((t, id)) = closest_hit(world, bvh, ray, best[j], found[j], skip) {
+            (best[j], found[j]) = (t, id);
+        }
+    }
+}
+
+/// [`closest_hits`] with the nodes tested 16 rays per AVX-512 instruction,
+/// if this CPU has AVX-512F (else it does nothing and returns false): the
+/// same answers. Faster for ray queries alone (`examples/mesh_bench`), but
+/// the renderer does not use it: on the Xeons measured, the core's clock
+/// drops while it runs 512-bit code, and the shading around the packets
+/// then runs slower too (whole mesh renders were 4-5% slower than with
+/// [`closest_hits`]).
+pub fn closest_hits_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) -> bool {
+    assert!(rays.len() <= PACKET && best.len() == rays.len() && found.len() == rays.len(), "a packet holds at most {PACKET} rays");
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") {
+        if !bvh.nodes.is_empty() && !rays.is_empty() {
+            // SAFETY: the CPU has AVX-512F (checked just above).
+            unsafe { walk_avx512(world, bvh, rays, best, found, skip) };
+        }
+        return true;
+    }
+    let _ = (world, bvh, rays, best, found, skip);
+    false
+}
+
+#[cfg(target_arch = "x86_64")]
+#[inline(never)]
+fn walk_sse(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
+    walk::<false>(world, bvh, rays, best, found, skip)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline(never)]
+fn walk_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
+    walk::<true>(world, bvh, rays, best, found, skip)
+}
+
+/// A node's slot `k` against the 16 rays at once (AVX-512F): the mask of
+/// the rays in `mask` that meet its box within their `limit`, and the
+/// nearest of their entry distances. The same arithmetic as the SSE form.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn slot16(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[Lanes; 3], inv: &[Lanes; 3], limit: &Lanes, mask: u32) -> (u32, f32) {
+    use std::arch::x86_64::*;
+    // SAFETY: `Lanes` is 64-byte aligned and 16 wide; the row indices are < 6 and k < 4.
+    unsafe {
+        let l = |x: &Lanes| _mm512_load_ps(x.0.as_ptr());
+        let s = |i: usize| _mm512_set1_ps(*b.get_unchecked(i).get_unchecked(k));
+        let (ox, oy, oz) = (l(&o[0]), l(&o[1]), l(&o[2]));
+        let (ix, iy, iz) = (l(&inv[0]), l(&inv[1]), l(&inv[2]));
+        let t0x = _mm512_mul_ps(_mm512_sub_ps(s(near[0]), ox), ix);
+        let t0y = _mm512_mul_ps(_mm512_sub_ps(s(near[1]), oy), iy);
+        let t0z = _mm512_mul_ps(_mm512_sub_ps(s(near[2]), oz), iz);
+        let t1x = _mm512_mul_ps(_mm512_sub_ps(s(far[0]), ox), ix);
+        let t1y = _mm512_mul_ps(_mm512_sub_ps(s(far[1]), oy), iy);
+        let t1z = _mm512_mul_ps(_mm512_sub_ps(s(far[2]), oz), iz);
+        let t0 = _mm512_max_ps(_mm512_max_ps(t0x, t0y), _mm512_max_ps(t0z, _mm512_setzero_ps()));
+        let t1 = _mm512_mul_ps(_mm512_min_ps(_mm512_min_ps(t1x, t1y), t1z), _mm512_set1_ps(EXIT_WIDEN as f32));
+        let m = _mm512_mask_cmp_ps_mask::<_CMP_LE_OS>(mask as __mmask16, t0, t1);
+        let m = _mm512_mask_cmp_ps_mask::<_CMP_LE_OS>(m, t0, l(limit));
+        if m == 0 {
+            return (0, f32::INFINITY);
+        }
+        (m as u32, _mm512_mask_reduce_min_ps(m, t0))
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
+    // SAFETY: SSE is part of x86_64; `Lanes` and the node rows are 16-byte
+    // aligned and `g < 4`, so the loads stay inside them; the row indices
+    // `near`/`far` are < 6 by construction; stack entries below `sp` were
+    // written before `sp` passed them; a `tr[j]` is read only once set.
+    unsafe {
+        use std::arch::x86_64::*;
+
+        use super::leaf;
+        use crate::triangle::TriangleRay;
+
+        // Origins and directions by lanes, four rays transposed at a time
+        // (lane stores and vector loads would stall store forwarding);
+        // unused lanes repeat the first ray (masked off, but finite).
+        let ray_at = |j: usize| &rays[if j < rays.len() { j } else { 0 }];
+        let transpose = |v: [__m128; 4]| {
+            let (t0, t1) = (_mm_unpacklo_ps(v[0], v[1]), _mm_unpacklo_ps(v[2], v[3]));
+            let (t2, t3) = (_mm_unpackhi_ps(v[0], v[1]), _mm_unpackhi_ps(v[2], v[3]));
+            [_mm_movelh_ps(t0, t1), _mm_movehl_ps(t1, t0), _mm_movelh_ps(t2, t3)]
+        };
+        let og = [0, 1, 2, 3].map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).origin))));
+        let dg = [0, 1, 2, 3].map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).dir))));
+        // The same by lanes in memory, for the AVX-512 node test.
+        let mut o = [Lanes([0.0; PACKET]); 3];
+        if WIDE {
+            for g in 0..4 {
+                for a in 0..3 {
+                    _mm_store_ps(o[a].0.as_mut_ptr().add(4 * g), og[g][a]);
+                }
+            }
+        }
+        let group = |l: &Lanes, g: usize| _mm_load_ps(l.0.as_ptr().add(4 * g));
+        // Reciprocal directions as `BoxRay::new` makes them (a non-finite one
+        // becomes f32::MAX with the direction's sign), and their signs: bit
+        // 3a + k of `neg[g]` says ray 4g + k goes down axis a.
+        let big = _mm_set1_ps(f32::MAX);
+        let sign = _mm_set1_ps(-0.0);
+        let inf = _mm_set1_ps(f32::INFINITY);
+        let zero = _mm_setzero_ps();
+        let mut neg = [0u32; 4];
+        let mut invl = [Lanes([0.0; PACKET]); 3];
+        let ig = [0, 1, 2, 3].map(|g| {
+            [0, 1, 2].map(|a| {
+                let dv = dg[g][a];
+                let i = _mm_div_ps(_mm_set1_ps(1.0), dv);
+                let finite = _mm_cmplt_ps(_mm_andnot_ps(sign, i), inf);
+                let i = _mm_or_ps(_mm_and_ps(finite, i), _mm_andnot_ps(finite, _mm_or_ps(big, _mm_and_ps(sign, dv))));
+                neg[g] |= (_mm_movemask_ps(_mm_cmplt_ps(i, zero)) as u32) << (4 * a);
+                _mm_store_ps(invl[a].0.as_mut_ptr().add(4 * g), i);
+                i
+            })
+        });
+        // Rays in the packet: those with the first ray's direction signs (so
+        // the same near and far planes); the others go one by one.
+        let octant = |j: usize| {
+            let n = neg[j / 4] >> (j % 4);
+            (n & 1, (n >> 4) & 1, (n >> 8) & 1)
+        };
+        let (nx, ny, nz) = octant(0);
+        let near = [nx as usize, 2 + ny as usize, 4 + nz as usize];
+        let far = near.map(|r| r ^ 1);
+        let mut bt = Lanes([f32::INFINITY; PACKET]);
+        let mut fo = [PrimId::NONE; PACKET];
+        let mut active = 0u32;
+        for (j, ray) in rays.iter().enumerate() {
+            if octant(j) != (nx, ny, nz) {
+                if let Some((t, id)) = closest_hit(world, bvh, ray, best[j], found[j], skip) {
+                    (best[j], found[j]) = (t, id);
+                }
+                continue;
+            }
+            active |= 1 << j;
+            bt.0[j] = best[j];
+            fo[j] = found[j];
+        }
+        // Boxes are culled beyond the nearest hit times CULL_WIDEN (see there).
+        let cull = |t: f32| t * CULL_WIDEN as f32;
+        let mut lim = Lanes(bt.0.map(cull));
+        // In registers for the SSE node test; a leaf updates one lane of them.
+        let mut limv = [0, 1, 2, 3].map(|g| group(&lim, g));
+        let lane_mask = [0, 1, 2, 3].map(|k| _mm_castsi128_ps(_mm_set_epi32(-((k == 3) as i32), -((k == 2) as i32), -((k == 1) as i32), -((k == 0) as i32))));
+        let widen = _mm_set1_ps(EXIT_WIDEN as f32);
+
+        // Set up at a ray's first leaf.
+        let mut tr = [const { MaybeUninit::<TriangleRay<f32>>::uninit() }; PACKET];
+        let mut tr_ready = 0u32;
+        let mut stack = [const { MaybeUninit::<Entry>::uninit() }; STACK];
+        let mut sp = 0usize;
+        let mut cur = Entry { child: 0, count: 0, mask: active, t: 0.0 };
+        'walk: loop {
+            if cur.count == 0 {
+                let n = &bvh.nodes[cur.child as usize];
+                let rows = [0, 1, 2, 3, 4, 5].map(|i| _mm_load_ps(n.b.get_unchecked(i).as_ptr()));
+                let mut cm = [0u32; 4];
+                let mut ct = [f32::INFINITY; 4];
+                macro_rules! slot {
+                    ($k:literal) => {
+                        // An empty slot (child and count 0; node 0 is the root, never a child).
+                        if WIDE && (n.child[$k] != 0 || n.count[$k] != 0) {
+                            (cm[$k], ct[$k]) = slot16(&n.b, $k, near, far, &o, &invl, &lim, cur.mask);
+                        } else if n.child[$k] != 0 || n.count[$k] != 0 {
+                            let s = |i: usize| _mm_shuffle_ps::<{ $k * 0x55 }>(rows[i], rows[i]);
+                            let (n0, n1, n2) = (s(near[0]), s(near[1]), s(near[2]));
+                            let (f0, f1, f2) = (s(far[0]), s(far[1]), s(far[2]));
+                            let mut tmin = inf;
+                            let mut m = 0u32;
+                            for g in 0..4 {
+                                let gm = (cur.mask >> (4 * g)) & 15;
+                                if gm == 0 {
+                                    continue;
+                                }
+                                let [ox, oy, oz] = og[g];
+                                let [ix, iy, iz] = ig[g];
+                                // The arithmetic of `test4`, for four rays against one box.
+                                let t0x = _mm_mul_ps(_mm_sub_ps(n0, ox), ix);
+                                let t0y = _mm_mul_ps(_mm_sub_ps(n1, oy), iy);
+                                let t0z = _mm_mul_ps(_mm_sub_ps(n2, oz), iz);
+                                let t1x = _mm_mul_ps(_mm_sub_ps(f0, ox), ix);
+                                let t1y = _mm_mul_ps(_mm_sub_ps(f1, oy), iy);
+                                let t1z = _mm_mul_ps(_mm_sub_ps(f2, oz), iz);
+                                let t0 = _mm_max_ps(_mm_max_ps(t0x, t0y), _mm_max_ps(t0z, zero));
+                                let t1 = _mm_mul_ps(_mm_min_ps(_mm_min_ps(t1x, t1y), t1z), widen);
+                                let hit = _mm_and_ps(_mm_cmple_ps(t0, t1), _mm_cmple_ps(t0, limv[g]));
+                                let hm = _mm_movemask_ps(hit) as u32 & gm;
+                                if hm != 0 {
+                                    m |= hm << (4 * g);
+                                    tmin = _mm_min_ps(tmin, _mm_or_ps(_mm_and_ps(hit, t0), _mm_andnot_ps(hit, inf)));
+                                }
+                            }
+                            if m != 0 {
+                                let h = _mm_min_ps(tmin, _mm_movehl_ps(tmin, tmin));
+                                let h = _mm_min_ss(h, _mm_shuffle_ps::<0x55>(h, h));
+                                cm[$k] = m;
+                                ct[$k] = _mm_cvtss_f32(h);
+                            }
+                        }
+                    };
+                }
+                slot!(0);
+                slot!(1);
+                slot!(2);
+                slot!(3);
+                let entry = |k: usize| Entry { child: n.child[k], count: n.count[k], mask: cm[k], t: ct[k] };
+                let hits = (cm[0] != 0) as u32 | ((cm[1] != 0) as u32) << 1 | ((cm[2] != 0) as u32) << 2 | ((cm[3] != 0) as u32) << 3;
+                if hits != 0 {
+                    // Nearest first (by the nearest entry of any ray), the rest pushed far to near.
+                    let mut e = [entry(0); 4];
+                    let mut len = 0;
+                    let mut m = hits;
+                    while m != 0 {
+                        e[len] = entry(m.trailing_zeros() as usize);
+                        len += 1;
+                        m &= m - 1;
+                    }
+                    for i in 1..len {
+                        let mut j = i;
+                        while j > 0 && e[j - 1].t < e[j].t {
+                            e.swap(j - 1, j);
+                            j -= 1;
+                        }
+                    }
+                    for x in &e[..len - 1] {
+                        stack[sp].write(*x);
+                        sp += 1;
+                    }
+                    cur = e[len - 1];
+                    continue 'walk;
+                }
+            } else {
+                let mut m = cur.mask;
+                while m != 0 {
+                    let j = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    if tr_ready & (1 << j) == 0 {
+                        tr[j].write(TriangleRay::new(&rays[j]));
+                        tr_ready |= 1 << j;
+                    }
+                    leaf::<f32, false>(
+                        world,
+                        bvh,
+                        &rays[j],
+                        tr[j].assume_init_ref(),
+                        (cur.child as usize, cur.count as usize),
+                        &mut bt.0[j],
+                        &mut fo[j],
+                        skip,
+                    );
+                    let l = cull(bt.0[j]);
+                    lim.0[j] = l;
+                    let (g, k) = (j / 4, j % 4);
+                    limv[g] = _mm_or_ps(_mm_and_ps(lane_mask[k], _mm_set1_ps(l)), _mm_andnot_ps(lane_mask[k], limv[g]));
+                }
+            }
+            // Pop the next subtree, keeping the rays that may still find something nearer in it.
+            loop {
+                if sp == 0 {
+                    break 'walk;
+                }
+                sp -= 1;
+                // SAFETY: entries below `sp` were written before `sp` was raised past them.
+                let mut e = stack[sp].assume_init();
+                let t = _mm_set1_ps(e.t);
+                let mut keep = 0u32;
+                for g in 0..4 {
+                    if (e.mask >> (4 * g)) & 15 != 0 {
+                        keep |= (_mm_movemask_ps(_mm_cmple_ps(t, limv[g])) as u32) << (4 * g);
+                    }
+                }
+                e.mask &= keep;
+                if e.mask != 0 {
+                    cur = e;
+                    break;
+                }
+            }
+        }
+        let mut m = active;
+        while m != 0 {
+            let j = m.trailing_zeros() as usize;
+            m &= m - 1;
+            (best[j], found[j]) = (bt.0[j], fo[j]);
+        }
+    }
+}
