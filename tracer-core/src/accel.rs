@@ -198,11 +198,11 @@ impl<R: Real> World<R> {
         let mut id = PrimId::NONE;
         for (i, p) in self.planes.iter().enumerate() {
             let pid = PrimId::new(PrimId::PLANE, i as u32);
-            if let Some(t) = p.intersect(ray, R::INFINITY, pid == skip) {
-                if pid.nearer(t, best, id) {
-                    best = t;
-                    id = pid;
-                }
+            if let Some(t) = p.intersect(ray, R::INFINITY, pid == skip)
+                && pid.nearer(t, best, id)
+            {
+                best = t;
+                id = pid;
             }
         }
         (best, id)
@@ -227,20 +227,20 @@ impl<R: Real> World<R> {
             if pid == skip {
                 continue;
             }
-            if let Some(d) = t.distance(&tr, best) {
-                if pid.nearer(d, best, id) {
-                    best = d;
-                    id = pid;
-                }
+            if let Some(d) = t.distance(&tr, best)
+                && pid.nearer(d, best, id)
+            {
+                best = d;
+                id = pid;
             }
         }
         for (i, s) in self.spheres.iter().enumerate() {
             let pid = PrimId::new(PrimId::SPHERE, i as u32);
-            if let Some(t) = s.intersect(ray, R::INFINITY, pid == skip) {
-                if pid.nearer(t, best, id) {
-                    best = t;
-                    id = pid;
-                }
+            if let Some(t) = s.intersect(ray, R::INFINITY, pid == skip)
+                && pid.nearer(t, best, id)
+            {
+                best = t;
+                id = pid;
             }
         }
         (id != PrimId::NONE).then_some((best, id))

@@ -65,9 +65,9 @@ pub fn closest_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut
 /// [`closest_hits`] with the nodes tested 16 rays per AVX-512 instruction,
 /// if this CPU has AVX-512F (else it does nothing and returns false): the
 /// same answers. Faster for ray queries alone (`examples/mesh_bench`), but
-/// the renderer does not use it: on the Xeons measured, the core's clock
+/// the renderer does not use it: on the 2-core Xeon VM, the core's clock
 /// drops while it runs 512-bit code, and the shading around the packets
-/// then runs slower too (whole mesh renders were 4-5% slower than with
+/// then runs slower too (a whole mesh render was 5% slower than with
 /// [`closest_hits`]).
 pub fn closest_hits_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) -> bool {
     assert!(rays.len() <= PACKET && best.len() == rays.len() && found.len() == rays.len(), "a packet holds at most {PACKET} rays");
@@ -102,6 +102,7 @@ fn walk_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
+#[allow(clippy::too_many_arguments)]
 fn slot16(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[Lanes; 3], inv: &[Lanes; 3], limit: &Lanes, mask: u32) -> (u32, f32) {
     use std::arch::x86_64::*;
     // SAFETY: `Lanes` is 64-byte aligned and 16 wide; the row indices are < 6 and k < 4.
@@ -129,6 +130,7 @@ fn slot16(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[L
 
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
+#[allow(clippy::needless_range_loop)] // rays by group index, over several arrays
 fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
     // SAFETY: SSE is part of x86_64; `Lanes` and the node rows are 16-byte
     // aligned and `g < 4`, so the loads stay inside them; the row indices
