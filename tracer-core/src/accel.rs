@@ -191,6 +191,30 @@ impl<R: Real> World<R> {
         }
     }
 
+    /// `out[j] = self.occluded(&rays[j], t_max[j], skip[j])` for every ray,
+    /// the same answers; in `f32` with a tree, packets of [`bvh::PACKET`]
+    /// rays go through the tree together ([`bvh::occluded_hits`]).
+    pub fn occluded_many(&self, rays: &[Ray<R>], t_max: &[R], skip: &[PrimId], out: &mut [bool]) {
+        assert!(rays.len() == t_max.len() && rays.len() == skip.len() && rays.len() == out.len());
+        let tree_f32 = (self as &dyn std::any::Any).downcast_ref::<World<f32>>().and_then(|w| Some((w, w.accel.as_ref()?)));
+        let Some((w, tree)) = tree_f32 else {
+            for j in 0..rays.len() {
+                out[j] = self.occluded(&rays[j], t_max[j], skip[j]);
+            }
+            return;
+        };
+        // SAFETY: R is f32 here (the downcast succeeded), so these are the same types.
+        let (rays, t_max) = unsafe { (&*(rays as *const [Ray<R>] as *const [Ray<f32>]), &*(t_max as *const [R] as *const [f32])) };
+        let n = bvh::PACKET;
+        for ((rays, t_max), (skip, out)) in rays.chunks(n).zip(t_max.chunks(n)).zip(skip.chunks(n).zip(out.chunks_mut(n))) {
+            let blocked = bvh::occluded_hits(w, tree, rays, t_max, skip);
+            for (j, o) in out.iter_mut().enumerate() {
+                *o = (blocked >> j) & 1 != 0
+                    || w.planes.iter().enumerate().any(|(i, p)| p.intersect(&rays[j], t_max[j], PrimId::new(PrimId::PLANE, i as u32) == skip[j]).is_some());
+            }
+        }
+    }
+
     /// Nearest plane hit, as (distance, id), or (infinity, `PrimId::NONE`).
     #[inline(always)]
     pub(crate) fn closest_plane(&self, ray: &Ray<R>, skip: PrimId) -> (R, PrimId) {

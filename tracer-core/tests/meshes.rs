@@ -492,14 +492,15 @@ fn grid(n: u32, z: f64) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
 }
 
 /// Packets of rays (`World::closest_hits`, and the tree's packet walk with
-/// the SSE node test and with the AVX-512 one where the CPU has it) give
+/// the SSE node test and with the AVX-512 one where the CPU has it; shadow
+/// rays through `World::occluded_many` and `bvh::occluded_hits`) give
 /// every ray the single-ray answer, bit for bit: coherent camera-like
 /// packets (some aimed exactly at the shared vertices and edges of a flat
 /// grid, where coplanar triangles tie), packets whose rays point into
 /// different octants, partial packets, and packets leaving a surface.
 #[test]
 fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
-    use tracer_core::bvh::{closest_hits, closest_hits_avx512, PACKET};
+    use tracer_core::bvh::{closest_hits, closest_hits_avx512, occluded_hits, PACKET};
     use tracer_core::triangle::TriangleRay;
 
     let dir = tmpdir("packets");
@@ -530,6 +531,7 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
         let tree = world.accel.as_ref().expect("a tree");
         let h = |k: u32| hash_u32(k) as f64 / u32::MAX as f64 - 0.5;
         let (mut rays_tested, mut ties) = (0, 0);
+        let (mut blocked_seen, mut open_seen) = (0, 0);
         for p in 0..600u32 {
             let n = if p % 7 == 0 { 1 + p as usize % PACKET } else { PACKET };
             let origin = [h(p * 8) * 0.5, h(p * 8 + 1) * 0.5, -4.0];
@@ -573,6 +575,28 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
                 world.closest_hits(&leaving, id, &mut got);
                 assert_eq!(got, want, "{label}: packet {p} leaving {id:?}");
             }
+            // Shadow rays from the hits to a point light: each from its own
+            // primitive, some blocked by the ball or the spheres.
+            let (mut shadow, mut t_max, mut skips) = (Vec::new(), Vec::new(), Vec::new());
+            for (r, w) in packet.iter().zip(&want) {
+                if let Some((t, id)) = *w {
+                    let from = r.at(t) - r.dir * 1e-3;
+                    let light = glam::Vec3A::new(2.0 + h(p * 4) as f32, 2.0, -3.0);
+                    shadow.push(Ray::new(from, (light - from).normalize()));
+                    t_max.push((light - from).length());
+                    skips.push(id);
+                }
+            }
+            if !shadow.is_empty() {
+                let want: Vec<bool> = shadow.iter().zip(&t_max).zip(&skips).map(|((r, &t), &id)| world.occluded(r, t, id)).collect();
+                let mut got = vec![false; shadow.len()];
+                world.occluded_many(&shadow, &t_max, &skips, &mut got);
+                assert_eq!(got, want, "{label}: packet {p}, shadow rays");
+                let tree_want = shadow.iter().zip(&t_max).zip(&skips).enumerate().fold(0u32, |m, (j, ((r, &t), &id))| m | (tracer_core::bvh::occluded(&world, tree, r, t, id) as u32) << j);
+                assert_eq!(occluded_hits(&world, tree, &shadow, &t_max, &skips), tree_want, "{label}: packet {p}, shadow rays, tree walk");
+                blocked_seen += want.iter().filter(|&&b| b).count();
+                open_seen += want.iter().filter(|&&b| !b).count();
+            }
             // Rays where two triangles give the very same distance.
             for r in &packet {
                 let tr = TriangleRay::new(r);
@@ -583,13 +607,15 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
             rays_tested += n;
         }
         assert!(rays_tested > 8000);
+        assert!(blocked_seen > 200 && open_seen > 500, "{label}: shadow rays blocked {blocked_seen}, open {open_seen}");
         assert!(ties > 1000, "{label}: only {ties} rays meet two triangles at the same distance; the tie rule is not exercised");
     }
 }
 
-/// The CPU renderer's camera-ray packets give the films of single rays:
-/// a mesh scene rendered tile by tile equals, sum for sum, the same pixels
-/// traced one ray at a time with the recursive `trace`.
+/// The CPU renderer's camera-ray and shadow-ray packets give the films of
+/// single rays: a mesh scene (two lights) rendered tile by tile equals, sum
+/// for sum, the same pixels traced one ray at a time with the recursive
+/// `trace`.
 #[test]
 fn camera_ray_packets_render_the_films_of_single_rays() {
     use tracer_core::render::cpu::render_tile_recursive;
@@ -603,7 +629,8 @@ fn camera_ray_packets_render_the_films_of_single_rays() {
     write_obj(&dir.join("grid.obj"), &v, &f, false);
     let src = format!(
         "{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"ball.obj\"\nmaterial = \"mirror\"\n\
-         [[objects]]\ntype = \"mesh\"\npath = \"grid.obj\"\nmaterial = \"white\"\nrotate_euler = [90, 0, 0]\ntranslate = [0, -1, 0]\n"
+         [[objects]]\ntype = \"mesh\"\npath = \"grid.obj\"\nmaterial = \"white\"\nrotate_euler = [90, 0, 0]\ntranslate = [0, -1, 0]\n\
+         [[lights]]\nposition = [3, 4, -2]\n"
     );
     let scene = SceneDesc::parse(&src, dir.join("film.toml")).unwrap();
     let world: World<f32> = world_of(&scene);

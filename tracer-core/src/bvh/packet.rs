@@ -17,7 +17,7 @@
 
 use std::mem::MaybeUninit;
 
-use super::{closest_hit, Bvh, CULL_WIDEN, EXIT_WIDEN, STACK};
+use super::{closest_hit, occluded, Bvh, CULL_WIDEN, EXIT_WIDEN, STACK};
 use crate::geometry::PrimId;
 use crate::math::Ray;
 use crate::world::World;
@@ -52,7 +52,7 @@ pub fn closest_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut
     }
     #[cfg(target_arch = "x86_64")]
     if rays.len() > 1 {
-        walk_sse(world, bvh, rays, best, found, skip);
+        walk_sse::<false>(world, bvh, rays, best, found, &[skip; PACKET]);
         return;
     }
     for (j, ray) in rays.iter().enumerate() {
@@ -75,7 +75,7 @@ pub fn closest_hits_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], bes
     if std::arch::is_x86_feature_detected!("avx512f") {
         if !bvh.nodes.is_empty() && !rays.is_empty() {
             // SAFETY: the CPU has AVX-512F (checked just above).
-            unsafe { walk_avx512(world, bvh, rays, best, found, skip) };
+            unsafe { walk_avx512(world, bvh, rays, best, found, &[skip; PACKET]) };
         }
         return true;
     }
@@ -83,17 +83,38 @@ pub fn closest_hits_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], bes
     false
 }
 
+/// Bit j: whether ray j of `rays` (at most [`PACKET`]) meets a primitive
+/// of the tree before `t_max[j]`, leaving primitive `skip[j]`, as
+/// [`occluded`] answers it (the same boxes and leaves are tested for each
+/// ray). For coherent shadow rays (from neighbouring points to one light).
+pub fn occluded_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], t_max: &[f32], skip: &[PrimId]) -> u32 {
+    let n = rays.len();
+    assert!(n <= PACKET && t_max.len() == n && skip.len() == n, "a packet holds at most {PACKET} rays");
+    if bvh.nodes.is_empty() || n == 0 {
+        return 0;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if n > 1 {
+        let mut best = [0.0; PACKET];
+        best[..n].copy_from_slice(t_max);
+        let mut skips = [PrimId::NONE; PACKET];
+        skips[..n].copy_from_slice(skip);
+        return walk_sse::<true>(world, bvh, rays, &mut best[..n], &mut [PrimId::NONE; PACKET][..n], &skips);
+    }
+    (0..n).fold(0, |m, j| m | (occluded(world, bvh, &rays[j], t_max[j], skip[j]) as u32) << j)
+}
+
 #[cfg(target_arch = "x86_64")]
 #[inline(never)]
-fn walk_sse(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
-    walk::<false>(world, bvh, rays, best, found, skip)
+fn walk_sse<const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+    walk::<false, ANY>(world, bvh, rays, best, found, skip)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline(never)]
-fn walk_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
-    walk::<true>(world, bvh, rays, best, found, skip)
+fn walk_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) {
+    walk::<true, false>(world, bvh, rays, best, found, skip);
 }
 
 /// A node's slot `k` against the 16 rays at once (AVX-512F): the mask of
@@ -131,7 +152,10 @@ fn slot16(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[L
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // rays by group index, over several arrays
-fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
+/// The packet walk. Closest hits (`ANY` false): `best`/`found` in and out,
+/// returns 0. Occlusion (`ANY`): `best` holds each ray's `t_max`, returns
+/// the mask of blocked rays; a ray leaves the walk once blocked.
+fn walk<const WIDE: bool, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
     // SAFETY: SSE is part of x86_64; `Lanes` and the node rows are 16-byte
     // aligned and `g < 4`, so the loads stay inside them; the row indices
     // `near`/`far` are < 6 by construction; stack entries below `sp` were
@@ -195,9 +219,12 @@ fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best
         let mut bt = Lanes([f32::INFINITY; PACKET]);
         let mut fo = [PrimId::NONE; PACKET];
         let mut active = 0u32;
+        let mut blocked = 0u32;
         for (j, ray) in rays.iter().enumerate() {
             if octant(j) != (nx, ny, nz) {
-                if let Some((t, id)) = closest_hit(world, bvh, ray, best[j], found[j], skip) {
+                if ANY {
+                    blocked |= (occluded(world, bvh, ray, best[j], skip[j]) as u32) << j;
+                } else if let Some((t, id)) = closest_hit(world, bvh, ray, best[j], found[j], skip[j]) {
                     (best[j], found[j]) = (t, id);
                 }
                 continue;
@@ -213,6 +240,8 @@ fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best
         let mut limv = [0, 1, 2, 3].map(|g| group(&lim, g));
         let lane_mask = [0, 1, 2, 3].map(|k| _mm_castsi128_ps(_mm_set_epi32(-((k == 3) as i32), -((k == 2) as i32), -((k == 1) as i32), -((k == 0) as i32))));
         let widen = _mm_set1_ps(EXIT_WIDEN as f32);
+        // Rays still looking (occlusion: not blocked yet).
+        let mut open = active;
 
         // Set up at a ray's first leaf.
         let mut tr = [const { MaybeUninit::<TriangleRay<f32>>::uninit() }; PACKET];
@@ -300,7 +329,7 @@ fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best
                     continue 'walk;
                 }
             } else {
-                let mut m = cur.mask;
+                let mut m = cur.mask & open;
                 while m != 0 {
                     let j = m.trailing_zeros() as usize;
                     m &= m - 1;
@@ -308,16 +337,18 @@ fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best
                         tr[j].write(TriangleRay::new(&rays[j]));
                         tr_ready |= 1 << j;
                     }
-                    leaf::<f32, false>(
-                        world,
-                        bvh,
-                        &rays[j],
-                        tr[j].assume_init_ref(),
-                        (cur.child as usize, cur.count as usize),
-                        &mut bt.0[j],
-                        &mut fo[j],
-                        skip,
-                    );
+                    let leaf_ref = (cur.child as usize, cur.count as usize);
+                    if ANY {
+                        let (mut t, mut id) = (bt.0[j], PrimId::NONE);
+                        if leaf::<f32, true>(world, bvh, &rays[j], tr[j].assume_init_ref(), leaf_ref, &mut t, &mut id, skip[j]) {
+                            open &= !(1 << j);
+                            if open == 0 {
+                                break 'walk;
+                            }
+                        }
+                        continue;
+                    }
+                    leaf::<f32, false>(world, bvh, &rays[j], tr[j].assume_init_ref(), leaf_ref, &mut bt.0[j], &mut fo[j], skip[j]);
                     let l = cull(bt.0[j]);
                     lim.0[j] = l;
                     let (g, k) = (j / 4, j % 4);
@@ -339,12 +370,15 @@ fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best
                         keep |= (_mm_movemask_ps(_mm_cmple_ps(t, limv[g])) as u32) << (4 * g);
                     }
                 }
-                e.mask &= keep;
+                e.mask &= keep & open;
                 if e.mask != 0 {
                     cur = e;
                     break;
                 }
             }
+        }
+        if ANY {
+            return blocked | (active & !open);
         }
         let mut m = active;
         while m != 0 {
@@ -352,5 +386,6 @@ fn walk<const WIDE: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best
             m &= m - 1;
             (best[j], found[j]) = (bt.0[j], fo[j]);
         }
+        0
     }
 }

@@ -17,7 +17,7 @@ use std::any::TypeId;
 use crate::film::RayCounts;
 use crate::geometry::PrimId;
 use crate::math::{offset_origin, Ray, Real, Vector3};
-use crate::world::World;
+use crate::world::{PointLight, World};
 
 /// Colour seen along `ray`, which starts on primitive `skip` (or none) and
 /// is of generation `depth` (primary rays are 0).
@@ -28,28 +28,79 @@ pub fn trace<R: Real>(world: &World<R>, ray: &Ray<R>, depth: u32, skip: PrimId, 
 /// Colour seen along `ray` of generation `depth`, given its closest hit
 /// (`World::closest_hit`, or the same answer from `World::closest_hits`).
 pub fn shade<R: Real>(world: &World<R>, ray: &Ray<R>, hit: Option<(R, PrimId)>, depth: u32, rays: &mut RayCounts) -> R::V3 {
-    let Some((t, id)) = hit else {
+    let Some(hit) = hit else {
         return world.background;
     };
-    let (p, n_out, mat) = world.surface(id, ray.at(t));
-    let m = &world.materials[mat as usize];
-    let v = -ray.dir;
-    let cos_out = n_out.dot(v);
-    // Entering: arriving against the outward normal.
-    let entering = cos_out >= R::ZERO;
-    let n = if entering { n_out } else { -n_out };
-    // Shading normal: differs from n only on smoothly shaded triangles.
-    let ns = world.shading_normal(id, p, n, v);
-    let cos_i = ns.dot(v);
-
-    let mut colour = world.ambient * m.ambient;
-    // Origin for rays leaving on the viewer's side.
-    let above = offset_origin::<R>(p, n);
+    let s = Surface::at(world, ray, hit);
+    let mut colour = s.ambient(world);
     for light in &world.lights {
+        if let Some(l) = s.light(world, light) {
+            rays.shadow += 1;
+            if !world.occluded(&l.shadow, l.t_max, s.id) {
+                colour += l.contrib;
+            }
+        }
+    }
+    s.add_secondary(world, depth, rays, &mut colour);
+    colour
+}
+
+/// What shading needs of a hit: the point, the normals facing the viewer,
+/// the material. The steps of [`shade`] are its methods, so that a caller
+/// can trace the shadow rays of many hits together (the CPU renderer does,
+/// for camera rays) and still add every term in `shade`'s order.
+pub struct Surface<R: Real> {
+    pub id: PrimId,
+    p: R::V3,
+    /// Geometric normal on the viewer's side, and the shading normal.
+    n: R::V3,
+    ns: R::V3,
+    v: R::V3,
+    entering: bool,
+    cos_i: R,
+    material: u32,
+    /// Origin for rays leaving on the viewer's side.
+    above: R::V3,
+}
+
+/// A light's term at a surface: what it adds unless `shadow` (which starts
+/// on the surface) meets something before `t_max`.
+pub struct LightTerm<R: Real> {
+    pub contrib: R::V3,
+    pub shadow: Ray<R>,
+    pub t_max: R,
+}
+
+impl<R: Real> Surface<R> {
+    #[inline]
+    pub fn at(world: &World<R>, ray: &Ray<R>, (t, id): (R, PrimId)) -> Self {
+        let (p, n_out, material) = world.surface(id, ray.at(t));
+        let v = -ray.dir;
+        let cos_out = n_out.dot(v);
+        // Entering: arriving against the outward normal.
+        let entering = cos_out >= R::ZERO;
+        let n = if entering { n_out } else { -n_out };
+        // Shading normal: differs from n only on smoothly shaded triangles.
+        let ns = world.shading_normal(id, p, n, v);
+        let cos_i = ns.dot(v);
+        Surface { id, p, n, ns, v, entering, cos_i, material, above: offset_origin::<R>(p, n) }
+    }
+
+    /// The ambient term, where the colour starts.
+    #[inline]
+    pub fn ambient(&self, world: &World<R>) -> R::V3 {
+        world.ambient * world.materials[self.material as usize].ambient
+    }
+
+    /// The term of `light`, or `None` when it can add nothing (then it needs no shadow ray).
+    #[inline]
+    pub fn light(&self, world: &World<R>, light: &PointLight<R>) -> Option<LightTerm<R>> {
+        let m = &world.materials[self.material as usize];
+        let (p, n, ns, v) = (self.p, self.n, self.ns, self.v);
         let to_light = light.position - p;
         let dist = to_light.length();
         if !(dist > R::ZERO) {
-            continue;
+            return None;
         }
         let l = to_light * (R::ONE / dist);
         let ndotl = ns.dot(l).max(R::ZERO);
@@ -58,44 +109,45 @@ pub fn shade<R: Real>(world: &World<R>, ray: &Ray<R>, hit: Option<(R, PrimId)>, 
         let ndoth = if h_len > R::ZERO { (ns.dot(h) / h_len).max(R::ZERO) } else { R::ZERO };
         let spec = if ndoth > m.specular_cos_min { specular_pow(ndoth, m.shininess) } else { R::ZERO };
         let contrib = light.diffuse * m.diffuse * ndotl + light.specular * m.specular * spec;
-        // A light that can add nothing needs no shadow ray.
         if contrib.max_element() <= R::ZERO {
-            continue;
+            return None;
         }
         // Leave on the light's side of the surface.
-        let origin = if n.dot(l) >= R::ZERO { above } else { offset_origin::<R>(p, -n) };
-        rays.shadow += 1;
-        let shadow = Ray::new(origin, l);
-        if !world.occluded(&shadow, dist * (R::ONE - R::SHADOW_SHORTEN), id) {
-            colour += contrib;
-        }
+        let origin = if n.dot(l) >= R::ZERO { self.above } else { offset_origin::<R>(p, -n) };
+        Some(LightTerm { contrib, shadow: Ray::new(origin, l), t_max: dist * (R::ONE - R::SHADOW_SHORTEN) })
     }
 
-    if depth >= world.settings.max_depth {
-        return colour;
-    }
-    let mut reflect_w = m.reflectivity;
-    if m.transparency > R::ZERO {
-        // Snell: eta = n1/n2; entering from outside goes 1 -> ior.
-        let eta = if entering { R::ONE / m.ior } else { m.ior };
-        let k = R::ONE - eta * eta * (R::ONE - cos_i * cos_i);
-        if k < R::ZERO {
-            reflect_w += m.transparency; // total internal reflection
-        } else {
-            let dir = (-v * eta + ns * (eta * cos_i - k.sqrt())).normalize();
-            rays.refraction += 1;
-            let refr = Ray::new(offset_origin::<R>(p, -n), dir);
-            colour += trace(world, &refr, depth + 1, id, rays) * m.transparency;
+    /// Adds the refracted and reflected light (rays of generation
+    /// `depth + 1`, traced recursively), if `depth` allows.
+    #[inline]
+    pub fn add_secondary(&self, world: &World<R>, depth: u32, rays: &mut RayCounts, colour: &mut R::V3) {
+        if depth >= world.settings.max_depth {
+            return;
+        }
+        let m = &world.materials[self.material as usize];
+        let (p, n, ns, v, cos_i, id) = (self.p, self.n, self.ns, self.v, self.cos_i, self.id);
+        let mut reflect_w = m.reflectivity;
+        if m.transparency > R::ZERO {
+            // Snell: eta = n1/n2; entering from outside goes 1 -> ior.
+            let eta = if self.entering { R::ONE / m.ior } else { m.ior };
+            let k = R::ONE - eta * eta * (R::ONE - cos_i * cos_i);
+            if k < R::ZERO {
+                reflect_w += m.transparency; // total internal reflection
+            } else {
+                let dir = (-v * eta + ns * (eta * cos_i - k.sqrt())).normalize();
+                rays.refraction += 1;
+                let refr = Ray::new(offset_origin::<R>(p, -n), dir);
+                *colour += trace(world, &refr, depth + 1, id, rays) * m.transparency;
+            }
+        }
+        if reflect_w > R::ZERO {
+            // R = 2(V.N)N - V
+            let dir = (ns * (R::TWO * cos_i) - v).normalize();
+            rays.reflection += 1;
+            let refl = Ray::new(self.above, dir);
+            *colour += trace(world, &refl, depth + 1, id, rays) * reflect_w;
         }
     }
-    if reflect_w > R::ZERO {
-        // R = 2(V.N)N - V
-        let dir = (ns * (R::TWO * cos_i) - v).normalize();
-        rays.reflection += 1;
-        let refl = Ray::new(above, dir);
-        colour += trace(world, &refl, depth + 1, id, rays) * reflect_w;
-    }
-    colour
 }
 
 /// max(N.H,0)^shininess for `x` in (0, 1]. In f32 this avoids libm's

@@ -1,7 +1,8 @@
 //! The CPU renderer: rayon over small tiles. Scenes of spheres and planes
 //! in f32 take the stream renderer ([`stream`]), vectorised over rays; the
 //! rest (meshes, BVH scenes, the f64 reference) trace with the recursive
-//! [`shade`], camera rays in packets of 4x4 pixels ([`World::closest_hits`])
+//! Whitted shading (`whitted::shade`), camera rays and their shadow rays in
+//! packets of 4x4 pixels ([`World::closest_hits`], [`World::occluded_many`])
 //! and the rays they spawn one at a time.
 
 pub mod kernels;
@@ -10,7 +11,7 @@ pub mod stream;
 
 use rayon::prelude::*;
 
-use super::whitted::shade;
+use super::whitted::Surface;
 use super::{PreparedFrame, RenderError};
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 use crate::geometry::PrimId;
@@ -113,11 +114,14 @@ pub fn simd_level() -> SimdLevel {
 }
 
 /// Renders one tile on the calling thread with the recursive reference
-/// [`shade`]. Camera rays go in packets: for each 4x4-pixel block of the
-/// tile and each sample index, the block's rays are traced together
-/// ([`World::closest_hits`]: in a tree, neighbouring camera rays visit the
-/// same nodes), which gives the same hits as one by one; the film's
-/// fixed-point sums do not depend on the order samples arrive in.
+/// shading (`whitted::shade`, step by step). Camera rays go in packets: for
+/// each 4x4-pixel block of the tile and each sample index, the block's rays
+/// are traced together ([`World::closest_hits`]: in a tree, neighbouring
+/// camera rays visit the same nodes), then each light's shadow rays from
+/// their hits ([`World::occluded_many`]); both give the answers of one ray
+/// at a time, each colour adds its terms in `shade`'s order, and the film's
+/// fixed-point sums do not depend on the order samples arrive in, so the
+/// film is that of `shade` ray by ray.
 pub fn render_tile_recursive<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
     const BLOCK: u32 = 4;
     let mut film = Film::new(tile);
@@ -125,6 +129,14 @@ pub fn render_tile_recursive<R: Real>(world: &World<R>, frame: u32, tile: Rect, 
     let s = &world.settings;
     let mut packet: Vec<Ray<R>> = Vec::with_capacity((BLOCK * BLOCK) as usize);
     let mut hits = [None; (BLOCK * BLOCK) as usize];
+    let mut surfaces: Vec<Option<Surface<R>>> = Vec::with_capacity((BLOCK * BLOCK) as usize);
+    let mut colours: Vec<R::V3> = Vec::with_capacity((BLOCK * BLOCK) as usize);
+    // Each light's shadow rays of a block: pixel in the block and what it adds unblocked.
+    let mut shadows: Vec<(usize, R::V3)> = Vec::with_capacity((BLOCK * BLOCK) as usize);
+    let mut shadow_rays: Vec<Ray<R>> = Vec::with_capacity((BLOCK * BLOCK) as usize);
+    let mut shadow_t: Vec<R> = Vec::with_capacity((BLOCK * BLOCK) as usize);
+    let mut shadow_skip: Vec<PrimId> = Vec::with_capacity((BLOCK * BLOCK) as usize);
+    let mut blocked = [false; (BLOCK * BLOCK) as usize];
     let mut pixels = [(0usize, 0u32, 0u32, 0u32); (BLOCK * BLOCK) as usize];
     for by in (tile.y..tile.y + tile.height).step_by(BLOCK as usize) {
         for bx in (tile.x..tile.x + tile.width).step_by(BLOCK as usize) {
@@ -146,9 +158,43 @@ pub fn render_tile_recursive<R: Real>(world: &World<R>, frame: u32, tile: Rect, 
                     packet.push(world.camera.ray(sx, sy));
                 }
                 world.closest_hits(&packet, PrimId::NONE, &mut hits[..n]);
-                for ((ray, hit), &(i, ..)) in packet.iter().zip(hits).zip(&pixels[..n]) {
+                // `shade`'s steps, with each light's shadow rays of the block
+                // traced together; every colour sums its terms in `shade`'s order.
+                surfaces.clear();
+                colours.clear();
+                for (ray, hit) in packet.iter().zip(hits) {
                     rays.primary += 1;
-                    let c = shade(world, ray, hit, 0, &mut rays);
+                    let s = hit.map(|h| Surface::at(world, ray, h));
+                    colours.push(s.as_ref().map_or(world.background, |s| s.ambient(world)));
+                    surfaces.push(s);
+                }
+                for light in &world.lights {
+                    shadows.clear();
+                    shadow_rays.clear();
+                    shadow_t.clear();
+                    shadow_skip.clear();
+                    for (k, s) in surfaces.iter().enumerate() {
+                        let Some(s) = s else { continue };
+                        if let Some(l) = s.light(world, light) {
+                            rays.shadow += 1;
+                            shadow_rays.push(l.shadow);
+                            shadow_t.push(l.t_max);
+                            shadow_skip.push(s.id);
+                            shadows.push((k, l.contrib));
+                        }
+                    }
+                    let m = shadows.len();
+                    world.occluded_many(&shadow_rays, &shadow_t, &shadow_skip, &mut blocked[..m]);
+                    for (&(k, contrib), &b) in shadows.iter().zip(&blocked[..m]) {
+                        if !b {
+                            colours[k] += contrib;
+                        }
+                    }
+                }
+                for ((s, c), &(i, ..)) in surfaces.iter().zip(colours.iter_mut()).zip(&pixels[..n]) {
+                    if let Some(s) = s {
+                        s.add_secondary(world, 0, &mut rays, c);
+                    }
                     film.add_sample::<R>(i, [c.x(), c.y(), c.z()]);
                 }
             }
