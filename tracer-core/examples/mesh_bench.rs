@@ -1,7 +1,9 @@
-//! Mesh benchmark: BVH build time and memory, and closest-hit throughput
-//! for primary rays (1024x768 camera rays, one per pixel) and incoherent
-//! rays (one random hemisphere ray from each primary hit), on one thread
-//! and on all threads.
+//! Mesh benchmark: BVH build time and memory, and throughput for primary
+//! rays (1024x768 camera rays, one per pixel; closest hit, one by one and
+//! in packets of 4x4 pixels), shadow rays from the primary hits to a point
+//! light (one by one and in packets) and incoherent rays (one random
+//! hemisphere ray from each primary hit; closest hit and occlusion), on one
+//! thread and on all threads.
 //!
 //!   cargo run --release -p tracer-core --example mesh_bench -- [--gpu] [--no-cpu] [MODEL ...]
 //!
@@ -208,6 +210,43 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
     };
     let wide = closest_hits_avx512(&world, tree, &blocks[0], &mut [f32::INFINITY; 16][..blocks[0].len()], &mut [PrimId::NONE; 16][..blocks[0].len()], PrimId::NONE);
     println!("  packets of 4x4 primary rays: {differ} answers differ from single rays");
+    // Shadow rays from each block's hits to a point light above, left and in
+    // front of the model: coherent (neighbouring points, one light), traced
+    // one by one and as each block's packet (`World::occluded_many`).
+    let light = Vec3A::new((c[0] - 0.6 * diag) as f32, (c[1] + 0.8 * diag) as f32, (c[2] + 0.6 * diag) as f32);
+    let shadow_blocks: Vec<(Vec<Ray<f32>>, Vec<f32>, Vec<PrimId>)> = blocks
+        .iter()
+        .map(|b| {
+            let mut out = (Vec::new(), Vec::new(), Vec::new());
+            for (r, h) in b.iter().zip(packet_hits(b)) {
+                let Some((t, id)) = h else { continue };
+                let (p, n, _) = world.surface(id, r.at(t));
+                let to = light - p;
+                let n = if n.dot(to) >= 0.0 { n } else { -n };
+                let o = offset_origin::<f32>(p, n);
+                out.0.push(Ray::new(o, (light - o).normalize()));
+                out.1.push((light - o).length() * 0.9999);
+                out.2.push(id);
+            }
+            out
+        })
+        .collect();
+    let shadow_count: usize = shadow_blocks.iter().map(|b| b.0.len()).sum();
+    let occluded_packets = |(r, t, s): &(Vec<Ray<f32>>, Vec<f32>, Vec<PrimId>)| {
+        let mut out = [false; 16];
+        world.occluded_many(r, t, s, &mut out[..r.len()]);
+        out
+    };
+    let (mut shadow_differ, mut shadow_blocked) = (0, 0);
+    for b in &shadow_blocks {
+        let got = occluded_packets(b);
+        for (j, ((r, &t), &id)) in b.0.iter().zip(&b.1).zip(&b.2).enumerate() {
+            let want = world.occluded(r, t, id);
+            shadow_differ += (got[j] != want) as usize;
+            shadow_blocked += want as usize;
+        }
+    }
+    println!("  {shadow_count} shadow rays to a point light, {shadow_blocked} blocked; in packets: {shadow_differ} answers differ from single rays");
 
     if gpu {
         if let Err(e) = gpu_bench(path, cam, c) {
@@ -236,13 +275,22 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
                 .map(|c| c.iter().filter(|(r, id)| world.occluded(r, f32::INFINITY, *id)).count())
                 .sum()
         });
+        let tsh = time(&|| {
+            shadow_blocks
+                .par_chunks(256)
+                .map(|c| c.iter().map(|(r, t, s)| r.iter().zip(t).zip(s).filter(|((r, t), s)| world.occluded(r, **t, **s)).count()).sum::<usize>())
+                .sum()
+        });
+        let tshp = time(&|| shadow_blocks.par_chunks(256).map(|c| c.iter().map(|b| occluded_packets(b).iter().filter(|&&x| x).count()).sum::<usize>()).sum());
         let m = |rays: usize, (wall, cpu): (f64, f64)| format!("{:.2} ({:.2}/CPU-s)", rays as f64 / wall / 1e6, rays as f64 / cpu / 1e6);
         println!(
-            "  {n} thread{}: Mrays/s wall (per CPU-second): primary {}, primary in 4x4 packets {} (AVX-512 node test: {}), incoherent closest-hit {}, incoherent occlusion {}",
+            "  {n} thread{}: Mrays/s wall (per CPU-second): primary {}, primary in 4x4 packets {} (AVX-512 node test: {}), shadow {}, shadow in packets {}, incoherent closest-hit {}, incoherent occlusion {}",
             if n == 1 { " " } else { "s" },
             m(primary.len(), tp),
             m(primary.len(), tk),
             tw.map_or("no AVX-512F".to_string(), |t| m(primary.len(), t)),
+            m(shadow_count, tsh),
+            m(shadow_count, tshp),
             m(secondary.len(), ti),
             m(secondary.len(), ts)
         );
