@@ -787,6 +787,19 @@ fn leaf<R: Real, const ANY: bool>(
     false
 }
 
+/// Sorts subtrees to visit by entry distance, farthest first (insertion
+/// sort: there are at most four).
+#[inline(always)]
+fn far_to_near<E, T: PartialOrd>(e: &mut [E], t: impl Fn(&E) -> T) {
+    for i in 1..e.len() {
+        let mut j = i;
+        while j > 0 && t(&e[j - 1]) < t(&e[j]) {
+            e.swap(j - 1, j);
+            j -= 1;
+        }
+    }
+}
+
 /// A subtree still to visit: a slot's `child` and `count` (a node when
 /// `count` is 0, else a leaf) and the distance at which the ray enters it.
 #[derive(Clone, Copy)]
@@ -844,13 +857,7 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
                     e[3] = slot(rest.trailing_zeros() as usize);
                     len = 4;
                 }
-                for i in 1..len {
-                    let mut j = i;
-                    while j > 0 && e[j - 1].t < e[j].t {
-                        e.swap(j - 1, j);
-                        j -= 1;
-                    }
-                }
+                far_to_near(&mut e[..len], |x| x.t);
                 for x in &e[..len - 1] {
                     stack[sp].write(*x);
                     sp += 1;

@@ -17,7 +17,7 @@
 
 use std::mem::MaybeUninit;
 
-use super::{closest_hit, occluded, Bvh, CULL_WIDEN, EXIT_WIDEN, STACK};
+use super::{closest_hit, far_to_near, occluded, Bvh, CULL_WIDEN, EXIT_WIDEN, STACK};
 use crate::geometry::PrimId;
 use crate::math::Ray;
 use crate::world::World;
@@ -314,13 +314,7 @@ fn walk<const WIDE: bool, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: 
                         len += 1;
                         m &= m - 1;
                     }
-                    for i in 1..len {
-                        let mut j = i;
-                        while j > 0 && e[j - 1].t < e[j].t {
-                            e.swap(j - 1, j);
-                            j -= 1;
-                        }
-                    }
+                    far_to_near(&mut e[..len], |x| x.t);
                     for x in &e[..len - 1] {
                         stack[sp].write(*x);
                         sp += 1;
