@@ -1,5 +1,6 @@
 //! Packet traversal: up to [`PACKET`] rays through the tree together, for
-//! coherent rays (a block of camera rays). Each node is fetched once per
+//! coherent rays (a block of camera rays: [`closest_hits`]; their shadow
+//! rays to one light: [`occluded_hits`]). Each node is fetched once per
 //! packet and its four boxes are tested against all of the packet's rays
 //! that reached it, four rays per SSE pass (structure of arrays over rays);
 //! a subtree is visited with the mask of the rays that met its box, and a
@@ -12,8 +13,8 @@
 //! triangle's distance does not depend on what was found before
 //! (`triangle::finish`), and ties go by [`PrimId::nearer`], so only the
 //! order of the work differs. Rays whose direction signs differ from the
-//! first ray's go through [`closest_hit`] one by one (the packet picks each
-//! node's near and far planes once for all its rays).
+//! first ray's go through [`closest_hit`] (or [`occluded`]) one by one (the
+//! packet picks each node's near and far planes once for all its rays).
 
 use std::mem::MaybeUninit;
 
