@@ -496,8 +496,10 @@ fn grid(n: u32, z: f64) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
 /// rays through `World::occluded_many` and `bvh::occluded_hits`) give
 /// every ray the single-ray answer, bit for bit: coherent camera-like
 /// packets (some aimed exactly at the shared vertices and edges of a flat
-/// grid, where coplanar triangles tie), packets whose rays point into
-/// different octants, partial packets, and packets leaving a surface.
+/// grid, where coplanar triangles tie), packets of parallel rays along an
+/// axis (direction components 0 and -0, origins on the grid's lines),
+/// packets whose rays point into different octants, partial packets, and
+/// packets leaving a surface.
 #[test]
 fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
     use tracer_core::bvh::{closest_hits, closest_hits_avx512, occluded_hits, PACKET};
@@ -542,6 +544,12 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
             let jitter = if p % 3 == 0 { 0.0 } else { 0.1 };
             let packet: Vec<Ray<f32>> = (0..n as u32)
                 .map(|j| {
+                    if p % 11 == 1 {
+                        // Parallel rays along the z axis (direction components
+                        // exactly 0 or -0), from origins on the grid's lines.
+                        let d = glam::Vec3A::new(if p % 2 == 0 { 0.0 } else { -0.0 }, if p % 4 < 2 { 0.0 } else { -0.0 }, 1.0);
+                        return Ray::new(glam::Vec3A::new(cx as f32 + (j % 4) as f32 * 0.5, cy as f32 + (j / 4) as f32 * 0.5, -4.0), d);
+                    }
                     let t = [cx + (j % 4) as f64 * 0.125 - 0.1875 + jitter * h(p * 64 + j), cy + (j / 4) as f64 * 0.125 - 0.1875 + jitter * h(p * 64 + j + 16), 2.0];
                     let o = if p % 3 == 0 { [0.0, 0.0, -4.0] } else { origin };
                     ray_to::<f32>(o, t)
