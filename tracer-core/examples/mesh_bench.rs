@@ -25,7 +25,8 @@ use std::time::Instant;
 use glam::Vec3A;
 use rayon::prelude::*;
 use tracer_core::accel::triangle_bytes;
-use tracer_core::bvh::closest_hits_avx512;
+use tracer_core::bvh::closest_hits_at;
+use tracer_core::simd::SimdLevel;
 use tracer_core::geometry::PrimId;
 use tracer_core::math::{offset_origin, Ray};
 use tracer_core::mesh::Mesh;
@@ -205,10 +206,10 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
     let packet_hits_avx512 = |block: &[Ray<f32>]| {
         let n = block.len();
         let (mut best, mut found) = ([f32::INFINITY; 16], [PrimId::NONE; 16]);
-        closest_hits_avx512(&world, tree, block, &mut best[..n], &mut found[..n], PrimId::NONE);
+        closest_hits_at(SimdLevel::Avx512, &world, tree, block, &mut best[..n], &mut found[..n], PrimId::NONE);
         found[..n].iter().filter(|&&id| id != PrimId::NONE).count()
     };
-    let wide = closest_hits_avx512(&world, tree, &blocks[0], &mut [f32::INFINITY; 16][..blocks[0].len()], &mut [PrimId::NONE; 16][..blocks[0].len()], PrimId::NONE);
+    let wide = SimdLevel::Avx512.is_available();
     println!("  packets of 4x4 primary rays: {differ} answers differ from single rays");
     // Shadow rays from each block's hits to a point light above, left and in
     // front of the model: coherent (neighbouring points, one light), traced
@@ -284,10 +285,11 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         let tshp = time(&|| shadow_blocks.par_chunks(256).map(|c| c.iter().map(|b| occluded_packets(b).iter().filter(|&&x| x).count()).sum::<usize>()).sum());
         let m = |rays: usize, (wall, cpu): (f64, f64)| format!("{:.2} ({:.2}/CPU-s)", rays as f64 / wall / 1e6, rays as f64 / cpu / 1e6);
         println!(
-            "  {n} thread{}: Mrays/s wall (per CPU-second): primary {}, primary in 4x4 packets {} (AVX-512 node test: {}), shadow {}, shadow in packets {}, incoherent closest-hit {}, incoherent occlusion {}",
+            "  {n} thread{}: Mrays/s wall (per CPU-second): primary {}, primary in 4x4 packets {} ({} node test; AVX-512: {}), shadow {}, shadow in packets {}, incoherent closest-hit {}, incoherent occlusion {}",
             if n == 1 { " " } else { "s" },
             m(primary.len(), tp),
             m(primary.len(), tk),
+            tracer_core::bvh::render_level().name(),
             tw.map_or("no AVX-512F".to_string(), |t| m(primary.len(), t)),
             m(shadow_count, tsh),
             m(shadow_count, tshp),

@@ -37,7 +37,7 @@ use crate::math::{Ray, Real, Vector3};
 use crate::triangle::{finish, Triangle, Triangle4, TriangleRay};
 use crate::world::World;
 
-pub use packet::{closest_hits, closest_hits_avx512, occluded_hits, PACKET};
+pub use packet::{closest_hits, closest_hits_at, occluded_hits, occluded_hits_at, render_level, PACKET};
 
 /// Binary levels of the tree as built: no leaf of the binary tree is this deep.
 pub const MAX_DEPTH: usize = 64;

@@ -43,5 +43,6 @@ pub mod mesh;
 pub mod render;
 pub mod sampling;
 pub mod scene;
+pub mod simd;
 pub mod triangle;
 pub mod world;

@@ -492,8 +492,8 @@ fn grid(n: u32, z: f64) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
 }
 
 /// Packets of rays (`World::closest_hits`, and the tree's packet walk with
-/// the SSE node test and with the AVX-512 one where the CPU has it; shadow
-/// rays through `World::occluded_many` and `bvh::occluded_hits`) give
+/// the SSE, AVX2 and AVX-512 node tests where the CPU has them; shadow rays
+/// through `World::occluded_many` and `bvh::occluded_hits`) give
 /// every ray the single-ray answer, bit for bit: coherent camera-like
 /// packets (some aimed exactly at the shared vertices and edges of a flat
 /// grid, where coplanar triangles tie), packets of parallel rays along an
@@ -502,7 +502,8 @@ fn grid(n: u32, z: f64) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
 /// packets leaving a surface.
 #[test]
 fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
-    use tracer_core::bvh::{closest_hits, closest_hits_avx512, occluded_hits, PACKET};
+    use tracer_core::bvh::{closest_hits_at, occluded_hits, occluded_hits_at, PACKET};
+    use tracer_core::simd::SimdLevel;
     use tracer_core::triangle::TriangleRay;
 
     let dir = tmpdir("packets");
@@ -534,6 +535,7 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
         let h = |k: u32| hash_u32(k) as f64 / u32::MAX as f64 - 0.5;
         let (mut rays_tested, mut ties) = (0, 0);
         let (mut blocked_seen, mut open_seen) = (0, 0);
+        let mut levels_run = 0u32;
         for p in 0..600u32 {
             let n = if p % 7 == 0 { 1 + p as usize % PACKET } else { PACKET };
             let origin = [h(p * 8) * 0.5, h(p * 8 + 1) * 0.5, -4.0];
@@ -561,16 +563,16 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
             assert_eq!(got, want, "{label}: packet {p}");
             // The tree's walk itself, both node tests, with a prior hit to beat.
             let tree_want: Vec<_> = packet.iter().map(|r| tracer_core::bvh::closest_hit(&world, tree, r, 5.0, PrimId(7), PrimId::NONE)).collect();
-            for wide in [false, true] {
+            for level in [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512] {
                 let (mut best, mut found) = (vec![5.0f32; n], vec![PrimId(7); n]);
-                if !wide {
-                    closest_hits(&world, tree, &packet, &mut best, &mut found, PrimId::NONE);
-                } else if !closest_hits_avx512(&world, tree, &packet, &mut best, &mut found, PrimId::NONE) {
-                    continue; // no AVX-512F on this CPU
+                if !closest_hits_at(level, &world, tree, &packet, &mut best, &mut found, PrimId::NONE) {
+                    assert!(!level.is_available());
+                    continue;
                 }
+                levels_run |= 1 << level as u32;
                 let got: Vec<_> = best.iter().zip(&found).map(|(&t, &id)| Some((t, id))).collect();
                 let want: Vec<_> = tree_want.iter().map(|w| Some(w.unwrap_or((5.0, PrimId(7))))).collect();
-                assert_eq!(got, want, "{label}: packet {p}, tree walk");
+                assert_eq!(got, want, "{label}: packet {p}, tree walk at {level:?}");
             }
             // Rays leaving the nearest hit of the first ray, in a narrow cone.
             if let Some((t, id)) = want[0] {
@@ -602,6 +604,11 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
                 assert_eq!(got, want, "{label}: packet {p}, shadow rays");
                 let tree_want = shadow.iter().zip(&t_max).zip(&skips).enumerate().fold(0u32, |m, (j, ((r, &t), &id))| m | (tracer_core::bvh::occluded(&world, tree, r, t, id) as u32) << j);
                 assert_eq!(occluded_hits(&world, tree, &shadow, &t_max, &skips), tree_want, "{label}: packet {p}, shadow rays, tree walk");
+                for level in [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512] {
+                    if let Some(got) = occluded_hits_at(level, &world, tree, &shadow, &t_max, &skips) {
+                        assert_eq!(got, tree_want, "{label}: packet {p}, shadow rays, tree walk at {level:?}");
+                    }
+                }
                 blocked_seen += want.iter().filter(|&&b| b).count();
                 open_seen += want.iter().filter(|&&b| !b).count();
             }
@@ -615,6 +622,9 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
             rays_tested += n;
         }
         assert!(rays_tested > 8000);
+        // Every level this CPU has was checked (the baseline everywhere).
+        let have = SimdLevel::available().iter().fold(0u32, |m, &l| m | 1 << l as u32);
+        assert_eq!(levels_run, have, "{label}");
         assert!(blocked_seen > 200 && open_seen > 500, "{label}: shadow rays blocked {blocked_seen}, open {open_seen}");
         assert!(ties > 1000, "{label}: only {ties} rays meet two triangles at the same distance; the tie rule is not exercised");
     }

@@ -21,6 +21,7 @@ use std::mem::MaybeUninit;
 use super::{closest_hit, far_to_near, occluded, Bvh, CULL_WIDEN, EXIT_WIDEN, STACK};
 use crate::geometry::PrimId;
 use crate::math::Ray;
+use crate::simd::SimdLevel;
 use crate::world::World;
 
 /// Rays in a packet at most: 4 SSE groups of 4.
@@ -41,58 +42,72 @@ struct Entry {
 #[derive(Clone, Copy)]
 struct Lanes([f32; PACKET]);
 
+/// The node test for rendering at this process's SIMD level
+/// ([`crate::simd::level`]): AVX2 where the CPU has it, also on AVX-512
+/// CPUs. The AVX-512 walk is faster for ray queries alone (`mesh_bench`),
+/// but whole mesh renders on the 2-core Xeon VM were 5% slower with it
+/// than with SSE, and 4-9% faster with AVX2: while a core runs 512-bit
+/// code its clock drops, and the shading between the packets pays too.
+pub fn render_level() -> SimdLevel {
+    match crate::simd::level() {
+        SimdLevel::Avx512 => SimdLevel::Avx2,
+        l => l,
+    }
+}
+
 /// For each ray j of `rays` (at most [`PACKET`]), `(best[j], found[j])`
 /// becomes the nearest of itself and the tree's hits along the ray, as
 /// [`closest_hit`] gives it. `skip` is the primitive all the rays start on
-/// (`PrimId::NONE` for camera rays). Nodes are tested four rays per SSE
-/// instruction, on every x86-64 CPU (elsewhere the rays go one by one).
+/// (`PrimId::NONE` for camera rays). Nodes are tested at [`render_level`]:
+/// 4 rays per SSE instruction, or 8 per AVX2 one (elsewhere than x86-64,
+/// the rays go one by one).
 pub fn closest_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
+    let done = closest_hits_at(render_level(), world, bvh, rays, best, found, skip);
+    debug_assert!(done);
+}
+
+/// [`closest_hits`] with the node test of `level` (baseline: SSE, 4 rays
+/// per instruction; AVX2: 8; AVX-512: 16): the same answers at every level.
+/// False (and nothing done) if this CPU lacks the level.
+pub fn closest_hits_at(level: SimdLevel, world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) -> bool {
     assert!(rays.len() <= PACKET && best.len() == rays.len() && found.len() == rays.len(), "a packet holds at most {PACKET} rays");
+    if !level.is_available() {
+        return false;
+    }
     if bvh.nodes.is_empty() || rays.is_empty() {
-        return;
+        return true;
     }
     #[cfg(target_arch = "x86_64")]
     if rays.len() > 1 {
-        walk_sse::<false>(world, bvh, rays, best, found, &[skip; PACKET]);
-        return;
+        walk_at::<false>(level, world, bvh, rays, best, found, &[skip; PACKET]);
+        return true;
     }
     for (j, ray) in rays.iter().enumerate() {
         if let Some((t, id)) = closest_hit(world, bvh, ray, best[j], found[j], skip) {
             (best[j], found[j]) = (t, id);
         }
     }
-}
-
-/// [`closest_hits`] with the nodes tested 16 rays per AVX-512 instruction,
-/// if this CPU has AVX-512F (else it does nothing and returns false): the
-/// same answers. Faster for ray queries alone (`examples/mesh_bench`), but
-/// the renderer does not use it: on the 2-core Xeon VM, the core's clock
-/// drops while it runs 512-bit code, and the shading around the packets
-/// then runs slower too (a whole mesh render was 5% slower than with
-/// [`closest_hits`]).
-pub fn closest_hits_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) -> bool {
-    assert!(rays.len() <= PACKET && best.len() == rays.len() && found.len() == rays.len(), "a packet holds at most {PACKET} rays");
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") {
-        if !bvh.nodes.is_empty() && !rays.is_empty() {
-            // SAFETY: the CPU has AVX-512F (checked just above).
-            unsafe { walk_avx512(world, bvh, rays, best, found, &[skip; PACKET]) };
-        }
-        return true;
-    }
-    let _ = (world, bvh, rays, best, found, skip);
-    false
+    true
 }
 
 /// Bit j: whether ray j of `rays` (at most [`PACKET`]) meets a primitive
 /// of the tree before `t_max[j]`, leaving primitive `skip[j]`, as
 /// [`occluded`] answers it (the same boxes and leaves are tested for each
 /// ray). For coherent shadow rays (from neighbouring points to one light).
+/// Nodes are tested at [`render_level`].
 pub fn occluded_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], t_max: &[f32], skip: &[PrimId]) -> u32 {
+    occluded_hits_at(render_level(), world, bvh, rays, t_max, skip).expect("the render level is available")
+}
+
+/// [`occluded_hits`] with the node test of `level`; `None` if this CPU lacks it.
+pub fn occluded_hits_at(level: SimdLevel, world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], t_max: &[f32], skip: &[PrimId]) -> Option<u32> {
     let n = rays.len();
     assert!(n <= PACKET && t_max.len() == n && skip.len() == n, "a packet holds at most {PACKET} rays");
+    if !level.is_available() {
+        return None;
+    }
     if bvh.nodes.is_empty() || n == 0 {
-        return 0;
+        return Some(0);
     }
     #[cfg(target_arch = "x86_64")]
     if n > 1 {
@@ -100,22 +115,85 @@ pub fn occluded_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], t_max: &[
         best[..n].copy_from_slice(t_max);
         let mut skips = [PrimId::NONE; PACKET];
         skips[..n].copy_from_slice(skip);
-        return walk_sse::<true>(world, bvh, rays, &mut best[..n], &mut [PrimId::NONE; PACKET][..n], &skips);
+        return Some(walk_at::<true>(level, world, bvh, rays, &mut best[..n], &mut [PrimId::NONE; PACKET][..n], &skips));
     }
-    (0..n).fold(0, |m, j| m | (occluded(world, bvh, &rays[j], t_max[j], skip[j]) as u32) << j)
+    Some((0..n).fold(0, |m, j| m | (occluded(world, bvh, &rays[j], t_max[j], skip[j]) as u32) << j))
+}
+
+/// The walk at `level`, which this CPU has (checked by the callers).
+#[cfg(target_arch = "x86_64")]
+fn walk_at<const ANY: bool>(level: SimdLevel, world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+    match level {
+        // SAFETY: the callers checked that the CPU has the level.
+        SimdLevel::Avx512 => unsafe { walk_avx512::<ANY>(world, bvh, rays, best, found, skip) },
+        SimdLevel::Avx2 => unsafe { walk_avx2::<ANY>(world, bvh, rays, best, found, skip) },
+        SimdLevel::Baseline => walk_sse::<ANY>(world, bvh, rays, best, found, skip),
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[inline(never)]
 fn walk_sse<const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
-    walk::<false, ANY>(world, bvh, rays, best, found, skip)
+    walk::<4, ANY>(world, bvh, rays, best, found, skip)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline(never)]
-fn walk_avx512(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) {
-    walk::<true, false>(world, bvh, rays, best, found, skip);
+fn walk_avx512<const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+    walk::<16, ANY>(world, bvh, rays, best, found, skip)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline(never)]
+fn walk_avx2<const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+    walk::<8, ANY>(world, bvh, rays, best, found, skip)
+}
+
+/// A node's slot `k` against the 16 rays, 8 per AVX instruction; as [`slot16`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+fn slot8(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[Lanes; 3], inv: &[Lanes; 3], limit: &Lanes, mask: u32) -> (u32, f32) {
+    use std::arch::x86_64::*;
+    // SAFETY: `Lanes` is 64-byte aligned and 16 wide (h < 2); the row indices are < 6 and k < 4.
+    unsafe {
+        let s = |i: usize| _mm256_set1_ps(*b.get_unchecked(i).get_unchecked(k));
+        let (n0, n1, n2, f0, f1, f2) = (s(near[0]), s(near[1]), s(near[2]), s(far[0]), s(far[1]), s(far[2]));
+        let inf = _mm256_set1_ps(f32::INFINITY);
+        let mut tmin = inf;
+        let mut m = 0u32;
+        for h in 0..2 {
+            let hm = (mask >> (8 * h)) & 0xff;
+            if hm == 0 {
+                continue;
+            }
+            let l = |x: &Lanes| _mm256_load_ps(x.0.as_ptr().add(8 * h));
+            let t0x = _mm256_mul_ps(_mm256_sub_ps(n0, l(&o[0])), l(&inv[0]));
+            let t0y = _mm256_mul_ps(_mm256_sub_ps(n1, l(&o[1])), l(&inv[1]));
+            let t0z = _mm256_mul_ps(_mm256_sub_ps(n2, l(&o[2])), l(&inv[2]));
+            let t1x = _mm256_mul_ps(_mm256_sub_ps(f0, l(&o[0])), l(&inv[0]));
+            let t1y = _mm256_mul_ps(_mm256_sub_ps(f1, l(&o[1])), l(&inv[1]));
+            let t1z = _mm256_mul_ps(_mm256_sub_ps(f2, l(&o[2])), l(&inv[2]));
+            let t0 = _mm256_max_ps(_mm256_max_ps(t0x, t0y), _mm256_max_ps(t0z, _mm256_setzero_ps()));
+            let t1 = _mm256_mul_ps(_mm256_min_ps(_mm256_min_ps(t1x, t1y), t1z), _mm256_set1_ps(EXIT_WIDEN as f32));
+            let hit = _mm256_and_ps(_mm256_cmp_ps::<_CMP_LE_OS>(t0, t1), _mm256_cmp_ps::<_CMP_LE_OS>(t0, l(limit)));
+            let bits = _mm256_movemask_ps(hit) as u32 & hm;
+            if bits != 0 {
+                m |= bits << (8 * h);
+                tmin = _mm256_min_ps(tmin, _mm256_blendv_ps(inf, t0, hit));
+            }
+        }
+        if m == 0 {
+            return (0, f32::INFINITY);
+        }
+        let q = _mm_min_ps(_mm256_castps256_ps128(tmin), _mm256_extractf128_ps::<1>(tmin));
+        let q = _mm_min_ps(q, _mm_movehl_ps(q, q));
+        let q = _mm_min_ss(q, _mm_shuffle_ps::<0x55>(q, q));
+        (m, _mm_cvtss_f32(q))
+    }
 }
 
 /// A node's slot `k` against the 16 rays at once (AVX-512F): the mask of
@@ -156,7 +234,7 @@ fn slot16(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[L
 /// The packet walk. Closest hits (`ANY` false): `best`/`found` in and out,
 /// returns 0. Occlusion (`ANY`): `best` holds each ray's `t_max`, returns
 /// the mask of blocked rays; a ray leaves the walk once blocked.
-fn walk<const WIDE: bool, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
     // SAFETY: SSE is part of x86_64; `Lanes` and the node rows are 16-byte
     // aligned and `g < 4`, so the loads stay inside them; the row indices
     // `near`/`far` are < 6 by construction; stack entries below `sp` were
@@ -180,7 +258,7 @@ fn walk<const WIDE: bool, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: 
         let dg = [0, 1, 2, 3].map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).dir))));
         // The same by lanes in memory, for the AVX-512 node test.
         let mut o = [Lanes([0.0; PACKET]); 3];
-        if WIDE {
+        if W > 4 {
             for g in 0..4 {
                 for a in 0..3 {
                     _mm_store_ps(o[a].0.as_mut_ptr().add(4 * g), og[g][a]);
@@ -259,8 +337,10 @@ fn walk<const WIDE: bool, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: 
                 macro_rules! slot {
                     ($k:literal) => {
                         // An empty slot (child and count 0; node 0 is the root, never a child).
-                        if WIDE && (n.child[$k] != 0 || n.count[$k] != 0) {
+                        if W == 16 && (n.child[$k] != 0 || n.count[$k] != 0) {
                             (cm[$k], ct[$k]) = slot16(&n.b, $k, near, far, &o, &invl, &lim, cur.mask);
+                        } else if W == 8 && (n.child[$k] != 0 || n.count[$k] != 0) {
+                            (cm[$k], ct[$k]) = slot8(&n.b, $k, near, far, &o, &invl, &lim, cur.mask);
                         } else if n.child[$k] != 0 || n.count[$k] != 0 {
                             let s = |i: usize| _mm_shuffle_ps::<{ $k * 0x55 }>(rows[i], rows[i]);
                             let (n0, n1, n2) = (s(near[0]), s(near[1]), s(near[2]));

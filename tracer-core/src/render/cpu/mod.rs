@@ -99,18 +99,9 @@ pub fn render_tile<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: S
     render_tile_recursive(world, frame, tile, samples)
 }
 
-/// The SIMD level of the stream renderer, chosen once: the best this CPU
-/// has, or a lower one named by `TESSERA_CPU_SIMD` (`baseline`, `avx2`,
-/// `avx512`), for benchmarks; results are the same bits at every level.
+/// The SIMD level of the stream renderer, chosen once ([`crate::simd::level`]).
 pub fn simd_level() -> SimdLevel {
-    static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
-    *LEVEL.get_or_init(|| {
-        let best = SimdLevel::detect();
-        match std::env::var("TESSERA_CPU_SIMD").ok().and_then(|v| v.parse::<SimdLevel>().ok()) {
-            Some(l) if SimdLevel::available().contains(&l) => l,
-            _ => best,
-        }
-    })
+    crate::simd::level()
 }
 
 /// Renders one tile on the calling thread with the recursive reference

@@ -33,61 +33,7 @@ use crate::world::{Camera, World};
 /// and 4096, 256 was fastest on the resolution scene).
 const BATCH: usize = 256;
 
-/// The instruction sets the stream renderer is compiled for, picked at run
-/// time. All give bit-identical results (see the module docs).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum SimdLevel {
-    /// What every CPU of the target has (SSE2 on x86-64, NEON on aarch64); 8 lanes.
-    Baseline,
-    /// x86-64 AVX2; 8 lanes.
-    Avx2,
-    /// x86-64 AVX-512F; 16 lanes.
-    Avx512,
-}
-
-impl SimdLevel {
-    /// Every level this CPU can run, baseline first.
-    pub fn available() -> Vec<SimdLevel> {
-        let mut v = vec![SimdLevel::Baseline];
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx2") {
-                v.push(SimdLevel::Avx2);
-            }
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                v.push(SimdLevel::Avx512);
-            }
-        }
-        v
-    }
-
-    /// The best level this CPU can run.
-    pub fn detect() -> SimdLevel {
-        *Self::available().last().unwrap_or(&SimdLevel::Baseline)
-    }
-}
-
-impl SimdLevel {
-    pub fn name(self) -> &'static str {
-        match self {
-            SimdLevel::Baseline => "baseline",
-            SimdLevel::Avx2 => "avx2",
-            SimdLevel::Avx512 => "avx512",
-        }
-    }
-}
-
-impl std::str::FromStr for SimdLevel {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "baseline" => Ok(SimdLevel::Baseline),
-            "avx2" => Ok(SimdLevel::Avx2),
-            "avx512" => Ok(SimdLevel::Avx512),
-            _ => Err(format!("unknown SIMD level {s:?}: expected \"baseline\", \"avx2\" or \"avx512\"")),
-        }
-    }
-}
+pub use crate::simd::SimdLevel;
 
 /// Whether the stream renderer handles this world.
 pub fn supports(world: &World<f32>) -> bool {
