@@ -2,8 +2,8 @@
 //! coherent rays (a block of camera rays: [`closest_hits`]; their shadow
 //! rays to one light: [`occluded_hits`]). Each node is fetched once per
 //! packet and its four boxes are tested against all of the packet's rays
-//! that reached it, four rays per SSE pass (structure of arrays over rays);
-//! a subtree is visited with the mask of the rays that met its box, and a
+//! that reached it, 4, 8 or 16 rays per SSE, AVX2 or AVX-512 instruction
+//! (structure of arrays over rays); a subtree is visited with the mask of the rays that met its box, and a
 //! leaf is tested ray by ray with the single-ray leaf test. The single-ray
 //! traversal is bound by the latency of one chain of dependent loads and
 //! tests; here the rays of a packet are independent work for the same node.
@@ -24,7 +24,7 @@ use crate::math::Ray;
 use crate::simd::SimdLevel;
 use crate::world::World;
 
-/// Rays in a packet at most: 4 SSE groups of 4.
+/// Rays in a packet at most: 4 SSE groups of 4, 2 AVX2 groups of 8, one AVX-512 vector.
 pub const PACKET: usize = 16;
 
 /// A subtree still to visit, with the rays that met its box (bit j: ray j)
@@ -37,7 +37,7 @@ struct Entry {
     t: f32,
 }
 
-/// One value per ray of a packet, 64-byte aligned for SSE and AVX-512 loads.
+/// One value per ray of a packet, 64-byte aligned for SSE, AVX2 and AVX-512 loads.
 #[repr(C, align(64))]
 #[derive(Clone, Copy)]
 struct Lanes([f32; PACKET]);
