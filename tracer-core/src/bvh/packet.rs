@@ -3,8 +3,9 @@
 //! rays to one light: [`occluded_hits`]). Each node is fetched once per
 //! packet and its four boxes are tested against all of the packet's rays
 //! that reached it, 4, 8 or 16 rays per SSE, AVX2 or AVX-512 instruction
-//! (structure of arrays over rays); a subtree is visited with the mask of the rays that met its box, and a
-//! leaf is tested ray by ray with the single-ray leaf test. The single-ray
+//! (structure of arrays over rays); a subtree is visited with the mask of
+//! the rays that met its box, and a leaf is tested ray by ray with the
+//! single-ray leaf test. The single-ray
 //! traversal is bound by the latency of one chain of dependent loads and
 //! tests; here the rays of a packet are independent work for the same node.
 //!
