@@ -5,9 +5,9 @@
 //! that reached it, 4, 8 or 16 rays per SSE, AVX2 or AVX-512 instruction
 //! (structure of arrays over rays); a subtree is visited with the mask of
 //! the rays that met its box, and a leaf is tested ray by ray with the
-//! single-ray leaf test. The single-ray
-//! traversal is bound by the latency of one chain of dependent loads and
-//! tests; here the rays of a packet are independent work for the same node.
+//! single-ray leaf test. The single-ray traversal is bound by the latency
+//! of one chain of dependent loads and tests; here the rays of a packet are
+//! independent work for the same node.
 //!
 //! The answer is the single-ray [`closest_hit`]'s, bit for bit: every ray
 //! meets a superset of the boxes that hold a hit nearer than its nearest, a
