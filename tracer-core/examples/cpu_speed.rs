@@ -39,7 +39,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         settings.height,
         settings.samples,
         settings.max_depth,
-        tracer_core::render::cpu::simd_level().name()
+        tracer_core::simd::level().name()
     );
     for n in threads {
         let r = CpuRenderer::new(Some(n))?;

@@ -163,8 +163,7 @@ impl<R: Real> World<R> {
     /// coherent rays (neighbouring camera rays).
     pub fn closest_hits(&self, rays: &[Ray<R>], skip: PrimId, out: &mut [Option<(R, PrimId)>]) {
         assert_eq!(rays.len(), out.len());
-        let tree_f32 = (self as &dyn std::any::Any).downcast_ref::<World<f32>>().and_then(|w| Some((w, w.accel.as_ref()?)));
-        let Some((w, tree)) = tree_f32 else {
+        let Some((w, tree)) = self.f32_tree() else {
             for (o, r) in out.iter_mut().zip(rays) {
                 *o = self.closest_hit(r, skip);
             }
@@ -196,8 +195,7 @@ impl<R: Real> World<R> {
     /// rays go through the tree together ([`bvh::occluded_hits`]).
     pub fn occluded_many(&self, rays: &[Ray<R>], t_max: &[R], skip: &[PrimId], out: &mut [bool]) {
         assert!(rays.len() == t_max.len() && rays.len() == skip.len() && rays.len() == out.len());
-        let tree_f32 = (self as &dyn std::any::Any).downcast_ref::<World<f32>>().and_then(|w| Some((w, w.accel.as_ref()?)));
-        let Some((w, tree)) = tree_f32 else {
+        let Some((w, tree)) = self.f32_tree() else {
             for j in 0..rays.len() {
                 out[j] = self.occluded(&rays[j], t_max[j], skip[j]);
             }
@@ -213,6 +211,12 @@ impl<R: Real> World<R> {
                     || w.planes.iter().enumerate().any(|(i, p)| p.intersect(&rays[j], t_max[j], PrimId::new(PrimId::PLANE, i as u32) == skip[j]).is_some());
             }
         }
+    }
+
+    /// This world as `f32` with its tree, if it is one: what the packet walks take.
+    fn f32_tree(&self) -> Option<(&World<f32>, &Bvh)> {
+        let w = (self as &dyn std::any::Any).downcast_ref::<World<f32>>()?;
+        Some((w, w.accel.as_ref()?))
     }
 
     /// Nearest plane hit, as (distance, id), or (infinity, `PrimId::NONE`).

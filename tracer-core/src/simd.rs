@@ -21,17 +21,7 @@ pub enum SimdLevel {
 impl SimdLevel {
     /// Every level this CPU can run, baseline first.
     pub fn available() -> Vec<SimdLevel> {
-        let mut v = vec![SimdLevel::Baseline];
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx2") {
-                v.push(SimdLevel::Avx2);
-            }
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                v.push(SimdLevel::Avx512);
-            }
-        }
-        v
+        [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512].into_iter().filter(|l| l.is_available()).collect()
     }
 
     /// Whether this CPU can run the level (no allocation: for hot paths).
@@ -84,7 +74,7 @@ pub fn level() -> SimdLevel {
     *LEVEL.get_or_init(|| {
         let best = SimdLevel::detect();
         match std::env::var("TESSERA_CPU_SIMD").ok().and_then(|v| v.parse::<SimdLevel>().ok()) {
-            Some(l) if SimdLevel::available().contains(&l) => l,
+            Some(l) if l.is_available() => l,
             _ => best,
         }
     })

@@ -257,7 +257,7 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
         };
         let og = [0, 1, 2, 3].map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).origin))));
         let dg = [0, 1, 2, 3].map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).dir))));
-        // The same by lanes in memory, for the AVX-512 node test.
+        // The same by lanes in memory, for the AVX2 and AVX-512 node tests.
         let mut o = [Lanes([0.0; PACKET]); 3];
         if W > 4 {
             for g in 0..4 {
@@ -283,7 +283,9 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
                 let finite = _mm_cmplt_ps(_mm_andnot_ps(sign, i), inf);
                 let i = _mm_or_ps(_mm_and_ps(finite, i), _mm_andnot_ps(finite, _mm_or_ps(big, _mm_and_ps(sign, dv))));
                 neg[g] |= (_mm_movemask_ps(_mm_cmplt_ps(i, zero)) as u32) << (4 * a);
-                _mm_store_ps(invl[a].0.as_mut_ptr().add(4 * g), i);
+                if W > 4 {
+                    _mm_store_ps(invl[a].0.as_mut_ptr().add(4 * g), i);
+                }
                 i
             })
         });

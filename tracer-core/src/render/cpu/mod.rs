@@ -93,15 +93,10 @@ impl CpuRenderer {
 pub fn render_tile<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
     if let Some(w) = (world as &dyn std::any::Any).downcast_ref::<World<f32>>() {
         if stream::supports(w) {
-            return stream::render_tile(w, frame, tile, samples, simd_level());
+            return stream::render_tile(w, frame, tile, samples, crate::simd::level());
         }
     }
     render_tile_recursive(world, frame, tile, samples)
-}
-
-/// The SIMD level of the stream renderer, chosen once ([`crate::simd::level`]).
-pub fn simd_level() -> SimdLevel {
-    crate::simd::level()
 }
 
 /// Renders one tile on the calling thread with the recursive reference

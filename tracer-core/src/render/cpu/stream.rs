@@ -41,17 +41,17 @@ pub fn supports(world: &World<f32>) -> bool {
 }
 
 /// Renders one tile with the stream renderer at SIMD level `level`, which
-/// must be one of [`SimdLevel::available`] (others fall back to the baseline).
+/// must be available on this CPU ([`SimdLevel::is_available`]; others fall
+/// back to the baseline).
 pub fn render_tile(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange, level: SimdLevel) -> Film {
     debug_assert!(supports(world));
     #[cfg(target_arch = "x86_64")]
     {
-        let have = SimdLevel::available();
-        if level == SimdLevel::Avx512 && have.contains(&level) {
+        if level == SimdLevel::Avx512 && level.is_available() {
             // SAFETY: the CPU supports AVX-512F (checked just above).
             return unsafe { render_tile_avx512(world, frame, tile, samples) };
         }
-        if level == SimdLevel::Avx2 && have.contains(&level) {
+        if level == SimdLevel::Avx2 && level.is_available() {
             // SAFETY: the CPU supports AVX2 (checked just above).
             return unsafe { render_tile_avx2(world, frame, tile, samples) };
         }
