@@ -8,7 +8,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // SAFETY: build scripts are single-threaded; prost-build reads PROTOC.
     unsafe { std::env::set_var("PROTOC", protoc) };
     let out = PathBuf::from(std::env::var("OUT_DIR")?);
-    let files = ["tessera/v1/common.proto", "tessera/v1/jobs.proto", "tessera/v1/workers.proto"];
+    let files = [
+        "tessera/v1/common.proto",
+        "tessera/v1/jobs.proto",
+        "tessera/v1/workers.proto",
+    ];
     for f in files {
         println!("cargo:rerun-if-changed={f}");
     }

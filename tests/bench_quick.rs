@@ -12,7 +12,8 @@ const SUITES: &[&str] = &["resolution", "samples", "complexity", "depth", "preci
 
 /// The rows of `DIR/out/NAME.csv` as maps from column name to value.
 fn read_csv(dir: &Path, name: &str) -> Vec<std::collections::HashMap<String, String>> {
-    let csv = std::fs::read_to_string(dir.join(format!("out/{name}.csv"))).unwrap_or_else(|e| panic!("{name}.csv: {e}"));
+    let csv = std::fs::read_to_string(dir.join(format!("out/{name}.csv")))
+        .unwrap_or_else(|e| panic!("{name}.csv: {e}"));
     let mut lines = csv.lines();
     let header = split_csv(lines.next().unwrap());
     lines
@@ -56,16 +57,36 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "bench failed:\n{}\n{}", stdout, String::from_utf8_lossy(&out.stderr));
-    assert!(stdout.starts_with("suite      scene"), "summary table missing:\n{stdout}");
+    assert!(
+        out.status.success(),
+        "bench failed:\n{}\n{}",
+        stdout,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        stdout.starts_with("suite      scene"),
+        "summary table missing:\n{stdout}"
+    );
 
     for suite in SUITES {
         let csv = std::fs::read_to_string(dir.join(format!("out/{suite}.csv"))).unwrap();
         let mut lines = csv.lines();
         let header = split_csv(lines.next().unwrap());
-        let col = |name: &str| header.iter().position(|h| h == name).unwrap_or_else(|| panic!("{suite}.csv lacks column {name}"));
-        let (wall, rays, rmse, psnr, flip, image, backend) =
-            (col("wall_s"), col("rays_total"), col("rmse"), col("psnr_db"), col("flip_mean"), col("image"), col("backend"));
+        let col = |name: &str| {
+            header
+                .iter()
+                .position(|h| h == name)
+                .unwrap_or_else(|| panic!("{suite}.csv lacks column {name}"))
+        };
+        let (wall, rays, rmse, psnr, flip, image, backend) = (
+            col("wall_s"),
+            col("rays_total"),
+            col("rmse"),
+            col("psnr_db"),
+            col("flip_mean"),
+            col("image"),
+            col("backend"),
+        );
         let mut rows = 0;
         for line in lines {
             let f = split_csv(line);
@@ -84,30 +105,53 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
             rows += 1;
         }
         assert!(rows >= 4, "{suite}.csv has {rows} rows");
-        assert!(csv.lines().skip(1).any(|l| split_csv(l)[backend] == "gpu"), "{suite}.csv has no GPU run");
+        assert!(
+            csv.lines().skip(1).any(|l| split_csv(l)[backend] == "gpu"),
+            "{suite}.csv has no GPU run"
+        );
     }
     // The headline plot and the others, as PNG and SVG.
-    for plot in ["samples/error_vs_time", "resolution/time_vs_pixels", "complexity/rays_vs_spheres", "depth/time_vs_depth", "depth/error_vs_depth"] {
+    for plot in [
+        "samples/error_vs_time",
+        "resolution/time_vs_pixels",
+        "complexity/rays_vs_spheres",
+        "depth/time_vs_depth",
+        "depth/error_vs_depth",
+    ] {
         let png = image::open(dir.join("out").join(format!("{plot}.png"))).unwrap();
         assert_eq!((png.width(), png.height()), (900, 600));
         let svg = std::fs::read_to_string(dir.join("out").join(format!("{plot}.svg"))).unwrap();
-        assert!(svg.starts_with("<svg") && svg.contains("</svg>"), "{plot}.svg");
+        assert!(
+            svg.starts_with("<svg") && svg.contains("</svg>"),
+            "{plot}.svg"
+        );
     }
     // The headline plot (issue 6's "done when"): CPU and GPU curves for the
     // resolution scene, each point's error measured (every samples.csv row
     // has its RMSE, checked above).
     let svg = std::fs::read_to_string(dir.join("out/samples/error_vs_time.svg")).unwrap();
     for series in ["cpu grid", "cpu jittered", "gpu grid", "gpu jittered"] {
-        assert!(svg.contains(series), "error_vs_time.svg lacks the {series} curve");
+        assert!(
+            svg.contains(series),
+            "error_vs_time.svg lacks the {series} curve"
+        );
     }
     // More samples must not make the error worse on the grid sampler (1 -> 9 spp).
     let csv = std::fs::read_to_string(dir.join("out/samples.csv")).unwrap();
     let header = split_csv(csv.lines().next().unwrap());
     let col = |name: &str| header.iter().position(|h| h == name).unwrap();
     let (sampler, backend, rmse) = (col("sampler"), col("backend"), col("rmse"));
-    let grid: Vec<f64> =
-        csv.lines().skip(1).map(split_csv).filter(|f| f[sampler] == "grid" && f[backend] == "cpu").map(|f| f[rmse].parse().unwrap()).collect();
-    assert!(grid.first() > grid.last(), "grid error does not fall with samples: {grid:?}");
+    let grid: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .map(split_csv)
+        .filter(|f| f[sampler] == "grid" && f[backend] == "cpu")
+        .map(|f| f[rmse].parse().unwrap())
+        .collect();
+    assert!(
+        grid.first() > grid.last(),
+        "grid error does not fall with samples: {grid:?}"
+    );
 
     // Launch sweep (a GPU backend ran): both kernels, several shapes, both
     // scenes; the stack kernel's image does not depend on the launch shape
@@ -115,35 +159,71 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
     let launch = read_csv(&dir, "launch");
     for scene in ["resolution", "glass-9"] {
         for strategy in ["stack", "wavefront"] {
-            let rows: Vec<_> = launch.iter().filter(|r| r["scene"] == scene && r["strategy"] == strategy).collect();
-            assert!(!rows.is_empty(), "launch.csv: no {strategy} rows for {scene}");
+            let rows: Vec<_> = launch
+                .iter()
+                .filter(|r| r["scene"] == scene && r["strategy"] == strategy)
+                .collect();
+            assert!(
+                !rows.is_empty(),
+                "launch.csv: no {strategy} rows for {scene}"
+            );
             for r in rows {
                 assert_eq!(r["backend"], "gpu");
-                assert!(num(r, "gpu_s") > 0.0 && num(r, "wall_s") > 0.0 && num(r, "rays_total") > 0.0);
+                assert!(
+                    num(r, "gpu_s") > 0.0 && num(r, "wall_s") > 0.0 && num(r, "rays_total") > 0.0
+                );
                 assert!(num(r, "dispatches") >= 1.0);
                 let diff = num(r, "max_abs_diff_vs_default");
                 let tolerance = if strategy == "stack" { 0.0 } else { 1e-3 };
-                assert!(diff <= tolerance, "launch {scene} {strategy} {}x{} dispatch {}: image differs by {diff}", r["workgroup_x"], r["workgroup_y"], r["dispatch_pixel_samples"]);
+                assert!(
+                    diff <= tolerance,
+                    "launch {scene} {strategy} {}x{} dispatch {}: image differs by {diff}",
+                    r["workgroup_x"],
+                    r["workgroup_y"],
+                    r["dispatch_pixel_samples"]
+                );
             }
         }
     }
     // One dispatch per frame and split frames were both measured.
-    let dispatches: Vec<f64> = launch.iter().filter(|r| r["strategy"] == "stack").map(|r| num(r, "dispatches")).collect();
-    assert!(dispatches.contains(&1.0) && dispatches.iter().any(|&d| d > 1.0), "{dispatches:?}");
+    let dispatches: Vec<f64> = launch
+        .iter()
+        .filter(|r| r["strategy"] == "stack")
+        .map(|r| num(r, "dispatches"))
+        .collect();
+    assert!(
+        dispatches.contains(&1.0) && dispatches.iter().any(|&d| d > 1.0),
+        "{dispatches:?}"
+    );
 
     // Farm: a real coordinator and 1 then 2 worker processes; the fetched
     // frame equals the local render bit for bit.
     let farm = read_csv(&dir, "farm");
-    assert_eq!(farm.iter().map(|r| r["workers"].as_str()).collect::<Vec<_>>(), ["1", "2"]);
+    assert_eq!(
+        farm.iter()
+            .map(|r| r["workers"].as_str())
+            .collect::<Vec<_>>(),
+        ["1", "2"]
+    );
     for r in &farm {
-        assert_eq!(r["bit_identical"], "true", "farm with {} workers: image differs from the local render", r["workers"]);
+        assert_eq!(
+            r["bit_identical"], "true",
+            "farm with {} workers: image differs from the local render",
+            r["workers"]
+        );
         assert!(num(r, "wall_s") > 0.0 && num(r, "speedup") > 0.0 && num(r, "efficiency") > 0.0);
         assert!((0.0..1.0).contains(&num(r, "rmse")));
         assert!(image::open(dir.join("out").join(&r["image"])).is_ok());
     }
     assert_eq!(num(&farm[0], "speedup"), 1.0);
-    for plot in ["launch/resolution_gpu_time", "launch/glass-9_gpu_time", "farm/speedup", "farm/time"] {
-        let png = image::open(dir.join("out").join(format!("{plot}.png"))).unwrap_or_else(|e| panic!("{plot}.png: {e}"));
+    for plot in [
+        "launch/resolution_gpu_time",
+        "launch/glass-9_gpu_time",
+        "farm/speedup",
+        "farm/time",
+    ] {
+        let png = image::open(dir.join("out").join(format!("{plot}.png")))
+            .unwrap_or_else(|e| panic!("{plot}.png: {e}"));
         assert_eq!((png.width(), png.height()), (900, 600));
         assert!(dir.join("out").join(format!("{plot}.svg")).is_file());
     }
@@ -166,13 +246,19 @@ fn launch_suite_on_the_cpu_backend_is_skipped_with_a_message() {
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
-    assert!(stderr.contains("suite launch skipped") && stderr.contains("needs a GPU backend"), "{stderr}");
+    assert!(
+        stderr.contains("suite launch skipped") && stderr.contains("needs a GPU backend"),
+        "{stderr}"
+    );
     assert!(!dir.path().join("out/launch.csv").exists());
 }
 
 #[test]
 fn bad_worker_counts_are_rejected_naming_the_flag() {
-    let out = Command::new(env!("CARGO_BIN_EXE_tessera")).args(["bench", "farm", "--workers", "1,0"]).output().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
+        .args(["bench", "farm", "--workers", "1,0"])
+        .output()
+        .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("--workers"), "{stderr}");

@@ -60,10 +60,18 @@ fn renders_png_and_exr_with_a_summary_line() {
     let png = image::open(dir.join("scene.png")).unwrap();
     assert_eq!((png.width(), png.height()), (40, 30));
     assert!(stdout.starts_with("40x30 4 spp depth 10 f32"), "{stdout}");
-    assert!(stdout.contains("rays (primary 4800,") && stdout.contains("Mrays/s"), "{stdout}");
+    assert!(
+        stdout.contains("rays (primary 4800,") && stdout.contains("Mrays/s"),
+        "{stdout}"
+    );
 
     let exr = dir.join("out.exr");
-    let (out, _, stderr) = run(tessera().arg("render").arg(&scene).arg("-o").arg(&exr).args(["--width", "20", "--height", "10", "--precision", "f64"]));
+    let (out, _, stderr) = run(tessera()
+        .arg("render")
+        .arg(&scene)
+        .arg("-o")
+        .arg(&exr)
+        .args(["--width", "20", "--height", "10", "--precision", "f64"]));
     assert!(out.status.success(), "{stderr}");
     let img = image::open(&exr).unwrap().to_rgb32f();
     assert_eq!(img.dimensions(), (20, 10));
@@ -76,40 +84,102 @@ fn expect_failure(scene_src: &str, args: &[&str], want: &[&str]) {
     let dir = tmpdir(&format!("bad{}", want[0].len() * 31 + scene_src.len()));
     let scene = dir.join("bad.toml");
     std::fs::write(&scene, scene_src).unwrap();
-    let (out, stdout, stderr) = run(tessera().arg("render").arg(&scene).args(args).current_dir(&dir));
-    assert!(!out.status.success(), "expected failure, got success: {stdout}");
+    let (out, stdout, stderr) = run(tessera()
+        .arg("render")
+        .arg(&scene)
+        .args(args)
+        .current_dir(&dir));
+    assert!(
+        !out.status.success(),
+        "expected failure, got success: {stdout}"
+    );
     assert_eq!(out.status.code(), Some(1));
     for w in want {
         assert!(stderr.contains(w), "stderr lacks {w:?}:\n{stderr}");
     }
-    assert!(!Path::new(&dir.join("bad.png")).exists(), "no image is written on error");
+    assert!(
+        !Path::new(&dir.join("bad.png")).exists(),
+        "no image is written on error"
+    );
 }
 
 #[test]
 fn malformed_scenes_are_rejected_with_file_line_and_reason() {
-    expect_failure(&GOOD.replace("[camera]", "[camera"), &[], &["bad.toml:6:8: unclosed table", "error: "]);
-    expect_failure(&GOOD.replace("radius = 1", "radius = \"one\""), &[], &["bad.toml:13:1: objects[0]: invalid type: string \"one\", expected a number"]);
-    expect_failure(&GOOD.replace("radius = 1", "radius = 1\nshiny = true"), &[], &["bad.toml:", "unknown field `shiny`"]);
     expect_failure(
-        &GOOD.replace("material = \"red\"\n[[objects]]", "material = \"chrome\"\n[[objects]]"),
+        &GOOD.replace("[camera]", "[camera"),
         &[],
-        &["bad.toml:17:1: objects[0] (sphere).material: unknown material \"chrome\"; defined materials: red"],
+        &["bad.toml:6:8: unclosed table", "error: "],
     );
-    expect_failure(&GOOD.replace("radius = 1", "radius = -2"), &[], &["bad.toml:16:1: objects[0] (sphere).radius: must be a finite number > 0, got -2"]);
-    expect_failure(&GOOD.replace("normal = [0, 1, 0]", "normal = [0, 0, 0]"), &[], &["bad.toml:20:1: objects[1] (plane).normal: must be a finite, non-zero vector"]);
-    expect_failure(&GOOD.replace("radius = 1", "radius = nan"), &[], &["objects[0] (sphere).radius: must be a finite number > 0, got NaN"]);
-    expect_failure(&GOOD.replace("position = [0, 5, -5]", "position = [0, inf, -5]"), &[], &["bad.toml:12:1: lights[0].position: must be finite"]);
-    expect_failure(&GOOD.replace("look_at = [0, 1, 0]", "look_at = [0, 1, -6]"), &[], &["camera.look_at: must differ from the camera position"]);
-    expect_failure(&GOOD.replace("samples = 1", "samples = 0"), &[], &["render: samples must be in 1..=65536, got 0"]);
+    expect_failure(
+        &GOOD.replace("radius = 1", "radius = \"one\""),
+        &[],
+        &["bad.toml:13:1: objects[0]: invalid type: string \"one\", expected a number"],
+    );
+    expect_failure(
+        &GOOD.replace("radius = 1", "radius = 1\nshiny = true"),
+        &[],
+        &["bad.toml:", "unknown field `shiny`"],
+    );
+    expect_failure(
+        &GOOD.replace(
+            "material = \"red\"\n[[objects]]",
+            "material = \"chrome\"\n[[objects]]",
+        ),
+        &[],
+        &[
+            "bad.toml:17:1: objects[0] (sphere).material: unknown material \"chrome\"; defined materials: red",
+        ],
+    );
+    expect_failure(
+        &GOOD.replace("radius = 1", "radius = -2"),
+        &[],
+        &["bad.toml:16:1: objects[0] (sphere).radius: must be a finite number > 0, got -2"],
+    );
+    expect_failure(
+        &GOOD.replace("normal = [0, 1, 0]", "normal = [0, 0, 0]"),
+        &[],
+        &["bad.toml:20:1: objects[1] (plane).normal: must be a finite, non-zero vector"],
+    );
+    expect_failure(
+        &GOOD.replace("radius = 1", "radius = nan"),
+        &[],
+        &["objects[0] (sphere).radius: must be a finite number > 0, got NaN"],
+    );
+    expect_failure(
+        &GOOD.replace("position = [0, 5, -5]", "position = [0, inf, -5]"),
+        &[],
+        &["bad.toml:12:1: lights[0].position: must be finite"],
+    );
+    expect_failure(
+        &GOOD.replace("look_at = [0, 1, 0]", "look_at = [0, 1, -6]"),
+        &[],
+        &["camera.look_at: must differ from the camera position"],
+    );
+    expect_failure(
+        &GOOD.replace("samples = 1", "samples = 0"),
+        &[],
+        &["render: samples must be in 1..=65536, got 0"],
+    );
 }
 
 #[test]
 fn bad_arguments_and_files_are_reported() {
-    expect_failure(GOOD, &["-o", "x.jpg"], &["unsupported output extension .jpg"]);
-    expect_failure(GOOD, &["--width", "0"], &["invalid render settings: width must be in 1..=32768, got 0"]);
+    expect_failure(
+        GOOD,
+        &["-o", "x.jpg"],
+        &["unsupported output extension .jpg"],
+    );
+    expect_failure(
+        GOOD,
+        &["--width", "0"],
+        &["invalid render settings: width must be in 1..=32768, got 0"],
+    );
     let (out, _, stderr) = run(tessera().args(["render", "/nonexistent/scene.toml"]));
     assert_eq!(out.status.code(), Some(1));
-    assert!(stderr.contains("/nonexistent/scene.toml: cannot read scene:"), "{stderr}");
+    assert!(
+        stderr.contains("/nonexistent/scene.toml: cannot read scene:"),
+        "{stderr}"
+    );
     // clap's own usage errors exit with 2.
     let (out, _, stderr) = run(tessera().args(["render", "x.toml", "--precision", "f16"]));
     assert_eq!(out.status.code(), Some(2), "{stderr}");
@@ -122,7 +192,14 @@ fn threads_flag_gives_the_same_image() {
     let mut imgs = vec![];
     for t in ["1", "2"] {
         let o = dir.join(format!("t{t}.png"));
-        let (out, _, stderr) = run(tessera().arg("render").arg(&scene).arg("-o").arg(&o).args(["--width", "64", "--height", "48", "--threads", t]));
+        let (out, _, stderr) = run(tessera().arg("render").arg(&scene).arg("-o").arg(&o).args([
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--threads",
+            t,
+        ]));
         assert!(out.status.success(), "{stderr}");
         imgs.push(std::fs::read(&o).unwrap());
     }

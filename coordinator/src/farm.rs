@@ -15,12 +15,14 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use sha2::{Digest, Sha256};
 use tokio::sync::watch;
-use tracer_core::film::{Film, FIXED_ONE, MAX_SAMPLE_VALUE, RayCounts, Rect, SampleRange};
+use tracer_core::film::{FIXED_ONE, Film, MAX_SAMPLE_VALUE, RayCounts, Rect, SampleRange};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
 use crate::store::{Counters, JobRecord, JobStateRec, Op, Store, StoreError};
-use crate::units::{Layout, Unit, DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE};
+use crate::units::{
+    DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE, Layout, Unit,
+};
 
 /// Coordinator settings (see `tessera coordinator --help`).
 #[derive(Clone, Debug)]
@@ -123,7 +125,10 @@ pub enum JobState {
 
 impl JobState {
     pub fn is_terminal(self) -> bool {
-        matches!(self, JobState::Done | JobState::Failed | JobState::Cancelled)
+        matches!(
+            self,
+            JobState::Done | JobState::Failed | JobState::Cancelled
+        )
     }
 }
 
@@ -297,11 +302,16 @@ pub struct Farm {
 }
 
 fn now_ms() -> i64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_millis() as i64)
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
 }
 
 pub fn sha256_hex(b: &[u8]) -> String {
-    Sha256::digest(b).iter().map(|x| format!("{x:02x}")).collect()
+    Sha256::digest(b)
+        .iter()
+        .map(|x| format!("{x:02x}"))
+        .collect()
 }
 
 fn sampler_name(s: Sampler) -> &'static str {
@@ -312,8 +322,17 @@ fn sampler_name(s: Sampler) -> &'static str {
 }
 
 fn settings_of(rec: &JobRecord) -> Result<RenderSettings, String> {
-    let sampler = rec.sampler.parse::<Sampler>().map_err(|e| format!("{e:?}"))?;
-    let s = RenderSettings { width: rec.width, height: rec.height, samples: rec.samples, max_depth: rec.max_depth, sampler };
+    let sampler = rec
+        .sampler
+        .parse::<Sampler>()
+        .map_err(|e| format!("{e:?}"))?;
+    let s = RenderSettings {
+        width: rec.width,
+        height: rec.height,
+        samples: rec.samples,
+        max_depth: rec.max_depth,
+        sampler,
+    };
     s.validate()?;
     Ok(s)
 }
@@ -325,24 +344,41 @@ pub fn frame_file_name(frame: u32) -> String {
 impl Farm {
     /// Opens (or creates) the state under `config.data_dir` and resumes every unfinished job.
     pub fn open(config: Config) -> Result<Arc<Self>, FarmError> {
-        std::fs::create_dir_all(&config.data_dir)
-            .map_err(|e| FarmError::Internal(format!("cannot create {}: {e}", config.data_dir.display())))?;
+        std::fs::create_dir_all(&config.data_dir).map_err(|e| {
+            FarmError::Internal(format!("cannot create {}: {e}", config.data_dir.display()))
+        })?;
         let store = Store::open(&config.data_dir.join("tessera.redb"))?;
         let snap = store.load()?;
         let boot = format!("{:x}", now_ms() as u64 ^ (std::process::id() as u64) << 40);
-        let farm = Arc::new(Farm { config, store, state: Mutex::new(State::default()), boot, work_ready: tokio::sync::Notify::new() });
+        let farm = Arc::new(Farm {
+            config,
+            store,
+            state: Mutex::new(State::default()),
+            boot,
+            work_ready: tokio::sync::Notify::new(),
+        });
         let mut to_write = Vec::new();
         {
             let mut st = farm.state.lock().expect("state lock");
             let mut films = snap.unit_films;
             let mut written = snap.frames_written;
             for (rec, counters) in snap.jobs {
-                let settings = settings_of(&rec).map_err(|message| StoreError::Corrupt { what: format!("job {}", rec.id), message })?;
+                let settings = settings_of(&rec).map_err(|message| StoreError::Corrupt {
+                    what: format!("job {}", rec.id),
+                    message,
+                })?;
                 let mut job = Job::new(rec, settings, counters);
                 if !job.state.is_terminal() {
                     // Derived state, not stored: probed again from the stored scene.
-                    let scene = farm.store.asset(&job.rec.scene_sha256).ok().flatten().and_then(|b| String::from_utf8(b).ok());
-                    if let Some(desc) = scene.and_then(|t| SceneDesc::parse(&t, &job.rec.scene_name).ok()) {
+                    let scene = farm
+                        .store
+                        .asset(&job.rec.scene_sha256)
+                        .ok()
+                        .flatten()
+                        .and_then(|b| String::from_utf8(b).ok());
+                    if let Some(desc) =
+                        scene.and_then(|t| SceneDesc::parse(&t, &job.rec.scene_name).ok())
+                    {
                         job.tile_rays = crate::cost::probe(&desc, &job.settings, &job.layout);
                     }
                 }
@@ -364,7 +400,10 @@ impl Farm {
                     let h = job.layout.height;
                     let acc = job.frames.get_mut(&frame).expect("frame of a unit");
                     let target = acc.film.get_or_insert_with(|| Film::new(Rect::full(w, h)));
-                    target.merge(&film).map_err(|e| StoreError::Corrupt { what: format!("film of unit {u}"), message: e.to_string() })?;
+                    target.merge(&film).map_err(|e| StoreError::Corrupt {
+                        what: format!("film of unit {u}"),
+                        message: e.to_string(),
+                    })?;
                 }
                 if job.state == JobState::Running && job.units_done == 0 {
                     job.state = JobState::Queued;
@@ -397,25 +436,59 @@ impl Farm {
     /// Validates and queues a job. Bad scenes are refused with the message
     /// `tessera render` prints for them.
     pub async fn submit(self: &Arc<Self>, s: Submission) -> Result<String, FarmError> {
-        let text = std::str::from_utf8(&s.scene)
-            .map_err(|e| FarmError::InvalidArgument(format!("{}: scene is not UTF-8 text: {e}", s.scene_name)))?;
-        let scene = SceneDesc::parse(text, &s.scene_name).map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
+        let text = std::str::from_utf8(&s.scene).map_err(|e| {
+            FarmError::InvalidArgument(format!("{}: scene is not UTF-8 text: {e}", s.scene_name))
+        })?;
+        let scene = SceneDesc::parse(text, &s.scene_name)
+            .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
         let settings = s.overrides.apply(&scene.render);
-        settings.validate().map_err(|e| FarmError::InvalidArgument(format!("invalid render settings: {e}")))?;
-        let (first, last) = if s.first_frame == 0 && s.last_frame == 0 { (0, 0) } else { (s.first_frame, s.last_frame) };
+        settings
+            .validate()
+            .map_err(|e| FarmError::InvalidArgument(format!("invalid render settings: {e}")))?;
+        let (first, last) = if s.first_frame == 0 && s.last_frame == 0 {
+            (0, 0)
+        } else {
+            (s.first_frame, s.last_frame)
+        };
         if first > last {
-            return Err(FarmError::InvalidArgument(format!("frame range {first}..{last} is empty (first frame after last)")));
+            return Err(FarmError::InvalidArgument(format!(
+                "frame range {first}..{last} is empty (first frame after last)"
+            )));
         }
         if last - first >= 100_000 {
-            return Err(FarmError::InvalidArgument(format!("frame range {first}..{last} has more than 100000 frames")));
+            return Err(FarmError::InvalidArgument(format!(
+                "frame range {first}..{last} has more than 100000 frames"
+            )));
         }
-        let tile_size = if s.tile_size == 0 { DEFAULT_TILE_SIZE } else { s.tile_size };
+        let tile_size = if s.tile_size == 0 {
+            DEFAULT_TILE_SIZE
+        } else {
+            s.tile_size
+        };
         if !(8..=4096).contains(&tile_size) {
-            return Err(FarmError::InvalidArgument(format!("tile_size must be in 8..=4096, got {tile_size}")));
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size must be in 8..=4096, got {tile_size}"
+            )));
         }
-        let samples_per_unit = if s.samples_per_unit == 0 { DEFAULT_SAMPLES_PER_UNIT } else { s.samples_per_unit };
-        let max_attempts = if s.max_attempts == 0 { DEFAULT_MAX_ATTEMPTS } else { s.max_attempts };
-        let layout = Layout::new(settings.width, settings.height, settings.samples, first, last, tile_size, samples_per_unit);
+        let samples_per_unit = if s.samples_per_unit == 0 {
+            DEFAULT_SAMPLES_PER_UNIT
+        } else {
+            s.samples_per_unit
+        };
+        let max_attempts = if s.max_attempts == 0 {
+            DEFAULT_MAX_ATTEMPTS
+        } else {
+            s.max_attempts
+        };
+        let layout = Layout::new(
+            settings.width,
+            settings.height,
+            settings.samples,
+            first,
+            last,
+            tile_size,
+            samples_per_unit,
+        );
         if layout.total() as u64 > 10_000_000 {
             return Err(FarmError::InvalidArgument(format!(
                 "the job would have {} work units; use larger tiles or sample batches",
@@ -431,31 +504,47 @@ impl Farm {
         };
         for (name, _) in &s.assets {
             if name.is_empty() || name.starts_with('/') || name.split('/').any(|p| p == "..") {
-                return Err(FarmError::InvalidArgument(format!("asset name {name:?} must be a relative path inside the scene's directory")));
+                return Err(FarmError::InvalidArgument(format!(
+                    "asset name {name:?} must be a relative path inside the scene's directory"
+                )));
             }
         }
 
         let scene_sha256 = sha256_hex(&s.scene);
-        let mut ops = vec![Op::PutAsset { sha256: scene_sha256.clone(), content: s.scene.clone() }];
+        let mut ops = vec![Op::PutAsset {
+            sha256: scene_sha256.clone(),
+            content: s.scene.clone(),
+        }];
         let mut assets = BTreeMap::new();
         for (name, content) in &s.assets {
             let h = sha256_hex(content);
             assets.insert(name.clone(), h.clone());
-            ops.push(Op::PutAsset { sha256: h, content: content.clone() });
+            ops.push(Op::PutAsset {
+                sha256: h,
+                content: content.clone(),
+            });
         }
         let id = {
             let mut st = self.state.lock().expect("state lock");
             st.next_id += 1;
-            format!("j{}", &sha256_hex(format!("{scene_sha256}{}{}{}", self.boot, st.next_id, now_ms()).as_bytes())[..10])
+            format!(
+                "j{}",
+                &sha256_hex(
+                    format!("{scene_sha256}{}{}{}", self.boot, st.next_id, now_ms()).as_bytes()
+                )[..10]
+            )
         };
         let name = if s.name.is_empty() {
-            std::path::Path::new(&s.scene_name).file_stem().map_or("job".into(), |n| n.to_string_lossy().into_owned())
+            std::path::Path::new(&s.scene_name)
+                .file_stem()
+                .map_or("job".into(), |n| n.to_string_lossy().into_owned())
         } else {
             s.name.clone()
         };
         let output_dir = self.config.data_dir.join("outputs").join(&id);
-        std::fs::create_dir_all(&output_dir)
-            .map_err(|e| FarmError::Internal(format!("cannot create {}: {e}", output_dir.display())))?;
+        std::fs::create_dir_all(&output_dir).map_err(|e| {
+            FarmError::Internal(format!("cannot create {}: {e}", output_dir.display()))
+        })?;
         let rec = JobRecord {
             id: id.clone(),
             name,
@@ -480,7 +569,10 @@ impl Farm {
             output_dir: output_dir.to_string_lossy().into_owned(),
         };
         ops.push(Op::PutJob(rec.clone()));
-        ops.push(Op::PutCounters { job: id.clone(), counters: Counters::default() });
+        ops.push(Op::PutCounters {
+            job: id.clone(),
+            counters: Counters::default(),
+        });
         self.store.write(ops).await?;
         tracing::info!(
             job = %id, name = %rec.name, scene = %rec.scene_name,
@@ -490,14 +582,21 @@ impl Farm {
         );
         let mut job = Job::new(rec, settings, Counters::default());
         job.tile_rays = tile_rays;
-        self.state.lock().expect("state lock").jobs.insert(id.clone(), job);
+        self.state
+            .lock()
+            .expect("state lock")
+            .jobs
+            .insert(id.clone(), job);
         self.work_ready.notify_waiters();
         Ok(id)
     }
 
     pub fn job(&self, id: &str) -> Result<JobView, FarmError> {
         let st = self.state.lock().expect("state lock");
-        st.jobs.get(id).map(Job::view).ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
+        st.jobs
+            .get(id)
+            .map(Job::view)
+            .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
     }
 
     pub fn jobs(&self) -> Vec<JobView> {
@@ -510,13 +609,19 @@ impl Farm {
     /// A receiver that changes whenever the job does.
     pub fn watch(&self, id: &str) -> Result<watch::Receiver<u64>, FarmError> {
         let st = self.state.lock().expect("state lock");
-        st.jobs.get(id).map(|j| j.watch.subscribe()).ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
+        st.jobs
+            .get(id)
+            .map(|j| j.watch.subscribe())
+            .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
     }
 
     pub async fn cancel(self: &Arc<Self>, id: &str) -> Result<JobView, FarmError> {
         let rec = {
             let mut st = self.state.lock().expect("state lock");
-            let job = st.jobs.get_mut(id).ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
+            let job = st
+                .jobs
+                .get_mut(id)
+                .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
             if job.state.is_terminal() {
                 return Ok(job.view());
             }
@@ -533,11 +638,18 @@ impl Farm {
     /// Finished frames: (frame, file name, path).
     pub fn outputs(&self, id: &str) -> Result<Vec<(u32, String, PathBuf)>, FarmError> {
         let st = self.state.lock().expect("state lock");
-        let job = st.jobs.get(id).ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
+        let job = st
+            .jobs
+            .get(id)
+            .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
         Ok(job
             .frames
             .iter()
-            .filter_map(|(&f, acc)| acc.written.as_ref().map(|n| (f, n.clone(), PathBuf::from(&job.rec.output_dir).join(n))))
+            .filter_map(|(&f, acc)| {
+                acc.written
+                    .as_ref()
+                    .map(|n| (f, n.clone(), PathBuf::from(&job.rec.output_dir).join(n)))
+            })
             .collect())
     }
 
@@ -565,18 +677,38 @@ impl Farm {
     }
 
     pub fn asset(&self, sha256: &str) -> Result<Vec<u8>, FarmError> {
-        self.store.asset(sha256)?.ok_or_else(|| FarmError::NotFound(format!("no asset with sha256 {sha256}")))
+        self.store
+            .asset(sha256)?
+            .ok_or_else(|| FarmError::NotFound(format!("no asset with sha256 {sha256}")))
     }
 
     // ---- workers ----------------------------------------------------------
 
-    pub fn register(&self, name: String, threads: u32, backend: String, gpu_name: String, version: String) -> String {
+    pub fn register(
+        &self,
+        name: String,
+        threads: u32,
+        backend: String,
+        gpu_name: String,
+        version: String,
+    ) -> String {
         let mut st = self.state.lock().expect("state lock");
         let id = self.new_id(&mut st, "w");
         tracing::info!(worker = %id, name = %name, threads, backend = %backend, "worker joined");
         st.workers.insert(
             id.clone(),
-            Worker { name, threads, backend, gpu_name, version, last_seen: Instant::now(), leases: HashSet::new(), units_done: 0, speed: 0.0, ray_speed: 0.0 },
+            Worker {
+                name,
+                threads,
+                backend,
+                gpu_name,
+                version,
+                last_seen: Instant::now(),
+                leases: HashSet::new(),
+                units_done: 0,
+                speed: 0.0,
+                ray_speed: 0.0,
+            },
         );
         id
     }
@@ -584,14 +716,26 @@ impl Farm {
     /// Leases up to `max_units` units to a worker, highest priority first,
     /// joining neighbouring tiles into one lease for fast workers. `ahead`:
     /// the worker is still rendering and asks for its next unit early.
-    pub fn lease(&self, worker_id: &str, max_units: u32, ahead: bool) -> Result<Vec<LeaseView>, FarmError> {
+    pub fn lease(
+        &self,
+        worker_id: &str,
+        max_units: u32,
+        ahead: bool,
+    ) -> Result<Vec<LeaseView>, FarmError> {
         let mut st = self.state.lock().expect("state lock");
         let st = &mut *st;
-        let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
+        let worker = st
+            .workers
+            .get_mut(worker_id)
+            .ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
         let speed = worker.ray_speed;
         let workers = st.workers.len();
-        let mut order: Vec<(&String, &Job)> = st.jobs.iter().filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty()).collect();
+        let mut order: Vec<(&String, &Job)> = st
+            .jobs
+            .iter()
+            .filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty())
+            .collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
         let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
         let mut out = Vec::new();
@@ -605,7 +749,9 @@ impl Farm {
                 if (ahead || !out.is_empty()) && job.pending.len() < workers {
                     break;
                 }
-                let Some(&first) = job.pending.iter().next() else { break };
+                let Some(&first) = job.pending.iter().next() else {
+                    break;
+                };
                 // A lease is sized in expected rays: the worker's rays per
                 // second times the target time. Near the end of a job, big
                 // leases would leave the other workers idle while one
@@ -614,7 +760,8 @@ impl Farm {
                 // renders and the next).
                 let rays = |u: u32| {
                     let unit = job.layout.unit(u);
-                    job.tile_rays[unit.tile as usize] * job.layout.batches[unit.batch as usize].len() as f64
+                    job.tile_rays[unit.tile as usize]
+                        * job.layout.batches[unit.batch as usize].len() as f64
                 };
                 let units = if speed > 0.0 {
                     let want = speed * self.config.target_unit_seconds;
@@ -631,8 +778,18 @@ impl Farm {
                             break;
                         }
                     }
-                    let budget = if capped { want.min(pending_rays / shares) } else { want };
-                    job.layout.join(first, self.config.max_tiles_per_lease, |u| job.pending.contains(&u), rays, budget)
+                    let budget = if capped {
+                        want.min(pending_rays / shares)
+                    } else {
+                        want
+                    };
+                    job.layout.join(
+                        first,
+                        self.config.max_tiles_per_lease,
+                        |u| job.pending.contains(&u),
+                        rays,
+                        budget,
+                    )
                 } else {
                     vec![first]
                 };
@@ -641,7 +798,8 @@ impl Farm {
                 }
                 let u0 = job.layout.unit(first);
                 let t0 = job.layout.tiles[u0.tile as usize];
-                let t1 = job.layout.tiles[job.layout.unit(*units.last().expect("non-empty")).tile as usize];
+                let t1 = job.layout.tiles
+                    [job.layout.unit(*units.last().expect("non-empty")).tile as usize];
                 let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
                 let samples = job.layout.batches[u0.batch as usize];
                 if job.state == JobState::Queued {
@@ -678,7 +836,11 @@ impl Farm {
                         progress: 0,
                     },
                 );
-                st.workers.get_mut(worker_id).expect("worker checked").leases.insert(lease_id.clone());
+                st.workers
+                    .get_mut(worker_id)
+                    .expect("worker checked")
+                    .leases
+                    .insert(lease_id.clone());
                 out.push(LeaseView { lease_id, ..view });
             }
             if out.len() >= max_units.max(1) as usize {
@@ -691,24 +853,40 @@ impl Farm {
     /// As [`Farm::lease`], but when nothing is pending waits up to `wait`
     /// for work to appear (long poll): an idle worker starts on a new job at
     /// once instead of after its retry interval.
-    pub async fn lease_or_wait(&self, worker_id: &str, max_units: u32, ahead: bool, wait: Duration) -> Result<Vec<LeaseView>, FarmError> {
+    pub async fn lease_or_wait(
+        &self,
+        worker_id: &str,
+        max_units: u32,
+        ahead: bool,
+        wait: Duration,
+    ) -> Result<Vec<LeaseView>, FarmError> {
         // Registered before looking, so a wake-up between the look and the
         // wait is not missed.
         let notified = self.work_ready.notified();
         tokio::pin!(notified);
         notified.as_mut().enable();
         let leases = self.lease(worker_id, max_units, ahead)?;
-        if !leases.is_empty() || wait.is_zero() || tokio::time::timeout(wait, notified).await.is_err() {
+        if !leases.is_empty()
+            || wait.is_zero()
+            || tokio::time::timeout(wait, notified).await.is_err()
+        {
             return Ok(leases);
         }
         self.lease(worker_id, max_units, ahead)
     }
 
     /// Extends the worker's leases; returns those it no longer holds.
-    pub fn heartbeat(&self, worker_id: &str, leases: &[(String, u64)]) -> Result<Vec<String>, FarmError> {
+    pub fn heartbeat(
+        &self,
+        worker_id: &str,
+        leases: &[(String, u64)],
+    ) -> Result<Vec<String>, FarmError> {
         let mut st = self.state.lock().expect("state lock");
         let st = &mut *st;
-        let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
+        let worker = st
+            .workers
+            .get_mut(worker_id)
+            .ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
         let deadline = Instant::now() + self.config.lease_timeout;
         let mut gone = Vec::new();
@@ -729,7 +907,10 @@ impl Farm {
     pub fn return_leases(&self, worker_id: &str, lease_ids: &[String]) -> Result<u32, FarmError> {
         let mut st = self.state.lock().expect("state lock");
         let st = &mut *st;
-        let worker = st.workers.get_mut(worker_id).ok_or_else(|| unknown_worker(worker_id))?;
+        let worker = st
+            .workers
+            .get_mut(worker_id)
+            .ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
         let mut returned = 0;
         for id in lease_ids {
@@ -757,7 +938,9 @@ impl Farm {
     /// once, and only if it is exactly the leased unit's data.
     pub async fn submit_result(self: &Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
         let mut outcomes = self.submit_results(vec![r]).await?;
-        outcomes.pop().ok_or_else(|| FarmError::Internal("no outcome for a result".into()))
+        outcomes
+            .pop()
+            .ok_or_else(|| FarmError::Internal("no outcome for a result".into()))
     }
 
     /// Takes several results at once: each is judged as by
@@ -771,7 +954,10 @@ impl Farm {
     /// client goes away (a worker killed while its result is in flight), and
     /// a drop at the commit's await would strand those units: the job would
     /// never finish.
-    pub async fn submit_results(self: &Arc<Self>, rs: Vec<ResultData>) -> Result<Vec<Outcome>, FarmError> {
+    pub async fn submit_results(
+        self: &Arc<Self>,
+        rs: Vec<ResultData>,
+    ) -> Result<Vec<Outcome>, FarmError> {
         let farm = self.clone();
         tokio::spawn(async move { farm.take_results(rs).await })
             .await
@@ -797,7 +983,9 @@ impl Farm {
                         }
                         outcomes.push(Some(outcome));
                         ops.extend(rec.map(Op::PutJob));
-                        ops.extend(counters.map(|(job, counters)| Op::PutCounters { job, counters }));
+                        ops.extend(
+                            counters.map(|(job, counters)| Op::PutCounters { job, counters }),
+                        );
                     }
                 }
             }
@@ -812,14 +1000,31 @@ impl Farm {
                 .enumerate()
                 .map(|(i, &(u, tile))| {
                     // The first unit carries the result's ray counts.
-                    let (rays, nonfinite) = if i == 0 { (film.rays, film.nonfinite) } else { (RayCounts::default(), 0) };
+                    let (rays, nonfinite) = if i == 0 {
+                        (film.rays, film.nonfinite)
+                    } else {
+                        (RayCounts::default(), 0)
+                    };
                     (u, encode_film_part(film, tile, rays, nonfinite))
                 })
                 .collect();
-            let rays = [film.rays.primary, film.rays.shadow, film.rays.reflection, film.rays.refraction];
-            ops.push(Op::AcceptUnits { job: t.job.clone(), units, rays });
+            let rays = [
+                film.rays.primary,
+                film.rays.shadow,
+                film.rays.reflection,
+                film.rays.refraction,
+            ];
+            ops.push(Op::AcceptUnits {
+                job: t.job.clone(),
+                units,
+                rays,
+            });
         }
-        let write = if ops.is_empty() { Ok(()) } else { self.store.write(ops).await };
+        let write = if ops.is_empty() {
+            Ok(())
+        } else {
+            self.store.write(ops).await
+        };
         let mut to_write = Vec::new();
         {
             let mut st = self.state.lock().expect("state lock");
@@ -836,7 +1041,13 @@ impl Farm {
                         if let Some(w) = st.workers.get_mut(&t.lease.worker) {
                             w.leases.insert(t.lease_id.clone());
                         }
-                        st.leases.insert(t.lease_id, Lease { deadline, ..t.lease });
+                        st.leases.insert(
+                            t.lease_id,
+                            Lease {
+                                deadline,
+                                ..t.lease
+                            },
+                        );
                     } else {
                         st.gone.insert(t.lease_id, t.job);
                     }
@@ -852,7 +1063,10 @@ impl Farm {
         for (job, frame) in to_write {
             self.clone().spawn_frame_write(job, frame);
         }
-        Ok(outcomes.into_iter().map(|o| o.expect("every result judged")).collect())
+        Ok(outcomes
+            .into_iter()
+            .map(|o| o.expect("every result judged"))
+            .collect())
     }
 
     /// Takes a result's lease for commit, or says why not (counting late,
@@ -864,9 +1078,21 @@ impl Farm {
         }
         let Some(lease) = st.leases.get(&r.lease_id) else {
             let (outcome, job) = if let Some(job) = st.consumed.get(&r.lease_id) {
-                (Outcome::Duplicate(format!("lease {} was already completed; result dropped", r.lease_id)), Some(job.clone()))
+                (
+                    Outcome::Duplicate(format!(
+                        "lease {} was already completed; result dropped",
+                        r.lease_id
+                    )),
+                    Some(job.clone()),
+                )
             } else if let Some(job) = st.gone.get(&r.lease_id) {
-                (Outcome::Late(format!("lease {} expired or was withdrawn; result dropped", r.lease_id)), Some(job.clone()))
+                (
+                    Outcome::Late(format!(
+                        "lease {} expired or was withdrawn; result dropped",
+                        r.lease_id
+                    )),
+                    Some(job.clone()),
+                )
             } else {
                 (
                     Outcome::Late(format!(
@@ -888,7 +1114,10 @@ impl Farm {
             return Err((outcome, None, snapshot));
         };
         if lease.worker != r.worker_id {
-            let reason = format!("lease {} is held by another worker; result dropped", r.lease_id);
+            let reason = format!(
+                "lease {} is held by another worker; result dropped",
+                r.lease_id
+            );
             let snapshot = st.jobs.get_mut(&lease.job).map(|job| {
                 job.counters.results_rejected += 1;
                 (job.rec.id.clone(), job.counters.clone())
@@ -904,7 +1133,10 @@ impl Farm {
             return Err((Outcome::Late("the job no longer exists".into()), None, None));
         };
         if let Some(msg) = &r.failure {
-            let worker_name = st.workers.get(&r.worker_id).map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
+            let worker_name = st
+                .workers
+                .get(&r.worker_id)
+                .map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
             tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
             let rec = job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"));
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
@@ -914,25 +1146,49 @@ impl Farm {
             return Err((Outcome::FailureRecorded, rec, None));
         }
         if let Err(reason) = validate_result(&lease, r) {
-            let worker_name = st.workers.get(&r.worker_id).map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
+            let worker_name = st
+                .workers
+                .get(&r.worker_id)
+                .map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
             job.counters.results_rejected += 1;
             let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
             tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
-            let rec = job.fail_units(&lease.units, format!("worker {worker_name} sent a malformed result: {reason}"));
+            let rec = job.fail_units(
+                &lease.units,
+                format!("worker {worker_name} sent a malformed result: {reason}"),
+            );
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
             if let Some(rec) = &rec {
                 self.withdraw_leases(st, &rec.id);
             }
             return Err((Outcome::Rejected(reason), rec, snapshot));
         }
-        let units = lease.units.iter().map(|&u| (u, job.layout.tiles[job.layout.unit(u).tile as usize])).collect();
+        let units = lease
+            .units
+            .iter()
+            .map(|&u| (u, job.layout.tiles[job.layout.unit(u).tile as usize]))
+            .collect();
         st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
-        Ok(Taken { job: lease.job.clone(), units, frame: lease.frame, lease_id: r.lease_id.clone(), lease })
+        Ok(Taken {
+            job: lease.job.clone(),
+            units,
+            frame: lease.frame,
+            lease_id: r.lease_id.clone(),
+            lease,
+        })
     }
 
     /// Marks a committed result's units done and merges its film into its frame.
-    fn finish_result(&self, st: &mut State, r: ResultData, t: Taken, to_write: &mut Vec<(String, u32)>) -> Result<Outcome, FarmError> {
-        let Some(job) = st.jobs.get_mut(&t.job) else { return Ok(Outcome::Late("the job no longer exists".into())) };
+    fn finish_result(
+        &self,
+        st: &mut State,
+        r: ResultData,
+        t: Taken,
+        to_write: &mut Vec<(String, u32)>,
+    ) -> Result<Outcome, FarmError> {
+        let Some(job) = st.jobs.get_mut(&t.job) else {
+            return Ok(Outcome::Late("the job no longer exists".into()));
+        };
         let film = r.film.expect("validated");
         job.counters.units_accepted += t.units.len() as u64;
         let mut samples = 0;
@@ -942,14 +1198,22 @@ impl Farm {
         }
         job.samples_this_run += samples;
         job.rays_this_run += film.rays.total();
-        let rays = [film.rays.primary, film.rays.shadow, film.rays.reflection, film.rays.refraction];
+        let rays = [
+            film.rays.primary,
+            film.rays.shadow,
+            film.rays.reflection,
+            film.rays.refraction,
+        ];
         for (a, b) in job.counters.rays.iter_mut().zip(rays) {
             *a += b;
         }
         if !job.state.is_terminal() {
             let (w, h) = (job.layout.width, job.layout.height);
             let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
-            acc.film.get_or_insert_with(|| Film::new(Rect::full(w, h))).merge(&film).map_err(|e| FarmError::Internal(e.to_string()))?;
+            acc.film
+                .get_or_insert_with(|| Film::new(Rect::full(w, h)))
+                .merge(&film)
+                .map_err(|e| FarmError::Internal(e.to_string()))?;
             to_write.extend(job.complete_frames());
         }
         job.notify();
@@ -958,7 +1222,13 @@ impl Farm {
             if r.render_seconds > 0.0 {
                 // The estimates drop at once and rise slowly: a lease that
                 // runs long costs the job's end more than one that runs short.
-                let smooth = |old: f64, new: f64| if old == 0.0 || new < old { new } else { 0.7 * old + 0.3 * new };
+                let smooth = |old: f64, new: f64| {
+                    if old == 0.0 || new < old {
+                        new
+                    } else {
+                        0.7 * old + 0.3 * new
+                    }
+                };
                 w.speed = smooth(w.speed, samples as f64 / r.render_seconds);
                 w.ray_speed = smooth(w.ray_speed, film.rays.total() as f64 / r.render_seconds);
             }
@@ -971,19 +1241,32 @@ impl Farm {
         tokio::spawn(async move {
             let (film, dir, units) = {
                 let mut st = self.state.lock().expect("state lock");
-                let Some(job) = st.jobs.get_mut(&job_id) else { return };
+                let Some(job) = st.jobs.get_mut(&job_id) else {
+                    return;
+                };
                 let units = job.layout.frame_units(frame);
                 let (w, h) = (job.layout.width, job.layout.height);
-                let Some(acc) = job.frames.get_mut(&frame) else { return };
-                (acc.film.take().unwrap_or_else(|| Film::new(Rect::full(w, h))), PathBuf::from(&job.rec.output_dir), units)
+                let Some(acc) = job.frames.get_mut(&frame) else {
+                    return;
+                };
+                (
+                    acc.film
+                        .take()
+                        .unwrap_or_else(|| Film::new(Rect::full(w, h))),
+                    PathBuf::from(&job.rec.output_dir),
+                    units,
+                )
             };
             let file = frame_file_name(frame);
             let path = dir.join(&file);
             let tmp = dir.join(format!(".{file}.tmp.png"));
             let result = tokio::task::spawn_blocking(move || -> Result<(), String> {
-                std::fs::create_dir_all(&dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+                std::fs::create_dir_all(&dir)
+                    .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
                 crate::image::write_image(&tmp, &film).map_err(|e| e.to_string())?;
-                std::fs::rename(&tmp, &path).map_err(|e| format!("cannot rename {} to {}: {e}", tmp.display(), path.display()))
+                std::fs::rename(&tmp, &path).map_err(|e| {
+                    format!("cannot rename {} to {}: {e}", tmp.display(), path.display())
+                })
             })
             .await;
             let err = match result {
@@ -1011,7 +1294,12 @@ impl Farm {
             // until the record replaces them.
             let mut backoff = Duration::from_millis(100);
             loop {
-                let op = Op::FrameWritten { job: job_id.clone(), frame, file: file.clone(), units: units.clone() };
+                let op = Op::FrameWritten {
+                    job: job_id.clone(),
+                    frame,
+                    file: file.clone(),
+                    units: units.clone(),
+                };
                 match self.store.write(vec![op]).await {
                     Ok(()) => break,
                     Err(e @ StoreError::WriterGone) => {
@@ -1061,7 +1349,11 @@ impl Farm {
         if !recs.is_empty() {
             let farm = self.clone();
             tokio::spawn(async move {
-                if let Err(e) = farm.store.write(recs.into_iter().map(Op::PutJob).collect()).await {
+                if let Err(e) = farm
+                    .store
+                    .write(recs.into_iter().map(Op::PutJob).collect())
+                    .await
+                {
                     tracing::error!(error = %e, "cannot record finished jobs");
                 }
             });
@@ -1070,7 +1362,12 @@ impl Farm {
 
     /// Ends every lease of a job (cancelled or failed): heartbeats name them gone.
     fn withdraw_leases(&self, st: &mut State, job_id: &str) {
-        let ids: Vec<String> = st.leases.iter().filter(|(_, l)| l.job == job_id).map(|(id, _)| id.clone()).collect();
+        let ids: Vec<String> = st
+            .leases
+            .iter()
+            .filter(|(_, l)| l.job == job_id)
+            .map(|(id, _)| id.clone())
+            .collect();
         for id in ids {
             if let Some(l) = st.leases.remove(&id) {
                 if let Some(w) = st.workers.get_mut(&l.worker) {
@@ -1086,7 +1383,12 @@ impl Farm {
         let now = Instant::now();
         let mut st = self.state.lock().expect("state lock");
         let st = &mut *st;
-        let expired: Vec<String> = st.leases.iter().filter(|(_, l)| l.deadline <= now).map(|(id, _)| id.clone()).collect();
+        let expired: Vec<String> = st
+            .leases
+            .iter()
+            .filter(|(_, l)| l.deadline <= now)
+            .map(|(id, _)| id.clone())
+            .collect();
         for id in expired {
             let l = st.leases.remove(&id).expect("listed");
             let name = st.workers.get_mut(&l.worker).map(|w| {
@@ -1154,14 +1456,19 @@ struct Taken {
 type Refused = (Outcome, Option<JobRecord>, Option<(String, Counters)>);
 
 fn unknown_worker(id: &str) -> FarmError {
-    FarmError::NotFound(format!("unknown worker {id:?}: register again (the coordinator restarted or timed the worker out)"))
+    FarmError::NotFound(format!(
+        "unknown worker {id:?}: register again (the coordinator restarted or timed the worker out)"
+    ))
 }
 
 /// Checks a result against its lease: same rect and samples, well-formed
 /// data, every pixel with exactly the unit's sample count, sums in range.
 fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
     if r.rect != lease.rect {
-        return Err(format!("result rect {:?} does not match the leased rect {:?}", r.rect, lease.rect));
+        return Err(format!(
+            "result rect {:?} does not match the leased rect {:?}",
+            r.rect, lease.rect
+        ));
     }
     if r.samples != lease.samples {
         return Err(format!(
@@ -1173,20 +1480,31 @@ fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
     let n = lease.samples.len();
     let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
     for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
-        let (x, y) = (lease.rect.x + i as u32 % lease.rect.width, lease.rect.y + i as u32 / lease.rect.width);
+        let (x, y) = (
+            lease.rect.x + i as u32 % lease.rect.width,
+            lease.rect.y + i as u32 / lease.rect.width,
+        );
         if c != n {
             return Err(format!("pixel ({x}, {y}) has {c} samples, expected {n}"));
         }
         if s.iter().any(|&v| v > max_sum) {
-            return Err(format!("pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"));
+            return Err(format!(
+                "pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"
+            ));
         }
     }
     let primary = lease.rect.area() as u64 * n as u64;
     if film.rays.primary != primary {
-        return Err(format!("result counts {} primary rays, the unit has {primary}", film.rays.primary));
+        return Err(format!(
+            "result counts {} primary rays, the unit has {primary}",
+            film.rays.primary
+        ));
     }
     if !(r.render_seconds.is_finite() && r.render_seconds >= 0.0) {
-        return Err(format!("render_seconds must be finite and >= 0, got {}", r.render_seconds));
+        return Err(format!(
+            "render_seconds must be finite and >= 0, got {}",
+            r.render_seconds
+        ));
     }
     Ok(())
 }
@@ -1196,7 +1514,9 @@ fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
 fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
     let mut out = crate::store::film_header(rect, rays, nonfinite, rect.area());
     let w = rect.width as usize;
-    let row_start = |row: u32| ((rect.y - film.rect.y + row) * film.rect.width + (rect.x - film.rect.x)) as usize;
+    let row_start = |row: u32| {
+        ((rect.y - film.rect.y + row) * film.rect.width + (rect.x - film.rect.x)) as usize
+    };
     for row in 0..rect.height {
         let src = row_start(row);
         for s in &film.sums[src..src + w] {
@@ -1216,7 +1536,15 @@ fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) ->
 
 impl Job {
     fn new(rec: JobRecord, settings: RenderSettings, counters: Counters) -> Self {
-        let layout = Layout::new(settings.width, settings.height, settings.samples, rec.first_frame, rec.last_frame, rec.tile_size, rec.samples_per_unit);
+        let layout = Layout::new(
+            settings.width,
+            settings.height,
+            settings.samples,
+            rec.first_frame,
+            rec.last_frame,
+            rec.tile_size,
+            rec.samples_per_unit,
+        );
         let total = layout.total();
         let state = match rec.state {
             JobStateRec::Active => JobState::Running,
@@ -1224,9 +1552,23 @@ impl Job {
             JobStateRec::Failed => JobState::Failed,
             JobStateRec::Cancelled => JobState::Cancelled,
         };
-        let pending = if state.is_terminal() { BTreeSet::new() } else { (0..total).collect() };
+        let pending = if state.is_terminal() {
+            BTreeSet::new()
+        } else {
+            (0..total).collect()
+        };
         let frames = (rec.first_frame..=rec.last_frame)
-            .map(|f| (f, FrameAcc { film: None, units_done: 0, written: None, writing: false }))
+            .map(|f| {
+                (
+                    f,
+                    FrameAcc {
+                        film: None,
+                        units_done: 0,
+                        written: None,
+                        writing: false,
+                    },
+                )
+            })
             .collect();
         // Until probed: one ray a pixel-sample.
         let tile_rays = layout.tiles.iter().map(|t| t.area() as f64).collect();
@@ -1235,7 +1577,11 @@ impl Job {
             settings,
             layout,
             tile_rays,
-            state: if state == JobState::Running { JobState::Queued } else { state },
+            state: if state == JobState::Running {
+                JobState::Queued
+            } else {
+                state
+            },
             done: vec![false; total as usize],
             pending,
             failures: HashMap::new(),
@@ -1336,11 +1682,17 @@ impl Job {
 
     fn view(&self) -> JobView {
         let per = self.layout.units_per_frame() as u64;
-        let samples_total = self.layout.width as u64 * self.layout.height as u64 * self.settings.samples as u64 * self.layout.frames as u64;
+        let samples_total = self.layout.width as u64
+            * self.layout.height as u64
+            * self.settings.samples as u64
+            * self.layout.frames as u64;
         let elapsed = self.started.map_or(0.0, |t| t.elapsed().as_secs_f64());
         let (rps, eta) = if elapsed > 0.0 && self.samples_this_run > 0 {
             let rate = self.samples_this_run as f64 / elapsed;
-            (self.rays_this_run as f64 / elapsed, (samples_total - self.samples_done) as f64 / rate)
+            (
+                self.rays_this_run as f64 / elapsed,
+                (samples_total - self.samples_done) as f64 / rate,
+            )
         } else {
             (0.0, if self.state.is_terminal() { 0.0 } else { -1.0 })
         };
@@ -1353,7 +1705,11 @@ impl Job {
             units_done: self.units_done,
             samples_total,
             samples_done: self.samples_done,
-            frames: self.frames.iter().map(|(&f, a)| (f, per, a.units_done, a.written.clone())).collect(),
+            frames: self
+                .frames
+                .iter()
+                .map(|(&f, a)| (f, per, a.units_done, a.written.clone()))
+                .collect(),
             rays_per_second: rps,
             eta_seconds: if self.state.is_terminal() { 0.0 } else { eta },
         }
@@ -1364,7 +1720,12 @@ type UnitIndex = u32;
 
 /// Rays of a counters record as tracer-core's type.
 pub fn rays_of(c: &Counters) -> RayCounts {
-    RayCounts { primary: c.rays[0], shadow: c.rays[1], reflection: c.rays[2], refraction: c.rays[3] }
+    RayCounts {
+        primary: c.rays[0],
+        shadow: c.rays[1],
+        reflection: c.rays[2],
+        refraction: c.rays[3],
+    }
 }
 
 #[cfg(test)]
@@ -1403,7 +1764,11 @@ material = "red"
 
     /// A farm in a fresh directory with one job of `SCENE` at `width`x`height`,
     /// `samples` spp, in 16-pixel tiles.
-    async fn farm_with_job(width: u32, height: u32, samples: u32) -> (tempfile::TempDir, Arc<Farm>, String) {
+    async fn farm_with_job(
+        width: u32,
+        height: u32,
+        samples: u32,
+    ) -> (tempfile::TempDir, Arc<Farm>, String) {
         let dir = tempfile::tempdir().unwrap();
         let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
         let job = farm
@@ -1412,7 +1777,12 @@ material = "red"
                 scene_name: "t.toml".into(),
                 scene: SCENE.as_bytes().to_vec(),
                 assets: vec![],
-                overrides: Overrides { width: Some(width), height: Some(height), samples: Some(samples), ..Default::default() },
+                overrides: Overrides {
+                    width: Some(width),
+                    height: Some(height),
+                    samples: Some(samples),
+                    ..Default::default()
+                },
                 first_frame: 0,
                 last_frame: 0,
                 priority: 0,
@@ -1426,7 +1796,13 @@ material = "red"
     }
 
     fn register(farm: &Farm, name: &str, threads: u32) -> String {
-        farm.register(name.into(), threads, "cpu".into(), String::new(), String::new())
+        farm.register(
+            name.into(),
+            threads,
+            "cpu".into(),
+            String::new(),
+            String::new(),
+        )
     }
 
     async fn wait_done(farm: &Farm, job: &str) -> JobView {
@@ -1436,7 +1812,13 @@ material = "red"
             if v.state == JobState::Done {
                 return v;
             }
-            assert!(start.elapsed() < Duration::from_secs(10), "job not done: {} of {} units, state {:?}", v.units_done, v.units_total, v.state);
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "job not done: {} of {} units, state {:?}",
+                v.units_done,
+                v.units_total,
+                v.state
+            );
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
     }
@@ -1450,15 +1832,37 @@ material = "red"
         let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
         let w = register(&farm, "w", 1);
         let l = farm.lease(&w, 1, false).unwrap().remove(0);
-        farm.store.fail_commits(|op| matches!(op, Op::AcceptUnits { .. }), 1);
+        farm.store
+            .fail_commits(|op| matches!(op, Op::AcceptUnits { .. }), 1);
         let err = farm.submit_result(result(&w, &l, 0.01)).await.unwrap_err();
-        assert!(matches!(&err, FarmError::Store(e) if e.to_string().contains("injected commit failure")), "{err}");
+        assert!(
+            matches!(&err, FarmError::Store(e) if e.to_string().contains("injected commit failure")),
+            "{err}"
+        );
         assert_eq!(farm.job(&job).unwrap().units_done, 0);
-        assert_eq!(farm.workers()[0].leases, 1, "the lease is the worker's again");
-        assert_eq!(farm.heartbeat(&w, &[(l.lease_id.clone(), 0)]).unwrap(), Vec::<String>::new(), "and heartbeats extend it");
-        assert_eq!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            farm.workers()[0].leases,
+            1,
+            "the lease is the worker's again"
+        );
+        assert_eq!(
+            farm.heartbeat(&w, &[(l.lease_id.clone(), 0)]).unwrap(),
+            Vec::<String>::new(),
+            "and heartbeats extend it"
+        );
+        assert_eq!(
+            farm.submit_result(result(&w, &l, 0.01)).await.unwrap(),
+            Outcome::Accepted
+        );
         let v = wait_done(&farm, &job).await;
-        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate), (1, 1, 0));
+        assert_eq!(
+            (
+                v.units_done,
+                v.counters.units_accepted,
+                v.counters.results_duplicate
+            ),
+            (1, 1, 0)
+        );
     }
 
     /// The image of a finished frame is written but recording that fails:
@@ -1469,8 +1873,12 @@ material = "red"
         let (_dir, farm, job) = farm_with_job(16, 16, 1).await;
         let w = register(&farm, "w", 1);
         let l = farm.lease(&w, 1, false).unwrap().remove(0);
-        farm.store.fail_commits(|op| matches!(op, Op::FrameWritten { .. }), 2);
-        assert_eq!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Accepted);
+        farm.store
+            .fail_commits(|op| matches!(op, Op::FrameWritten { .. }), 2);
+        assert_eq!(
+            farm.submit_result(result(&w, &l, 0.01)).await.unwrap(),
+            Outcome::Accepted
+        );
         let v = wait_done(&farm, &job).await;
         assert_eq!(v.frames, vec![(0, 1, 1, Some(frame_file_name(0)))]);
         let outputs = farm.outputs(&job).unwrap();
@@ -1487,17 +1895,33 @@ material = "red"
         assert_eq!(l1.rect.width, 16, "unknown speed: one tile");
         // 16x16x4 in 1 ms: 1 M pixel-samples/s, 244 tiles in 0.25 s; the
         // end-of-job cap (255 pending / 4) and the row's end leave 63.
-        assert_eq!(farm.submit_result(result(&w, &l1, 0.001)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            farm.submit_result(result(&w, &l1, 0.001)).await.unwrap(),
+            Outcome::Accepted
+        );
         let l2 = farm.lease(&w, 1, false).unwrap().remove(0);
         assert_eq!(l2.rect.width, 63 * 16);
         // Those 63 tiles took 1 s: 64512 pixel-samples/s, 15 tiles in 0.25 s.
-        assert_eq!(farm.submit_result(result(&w, &l2, 1.0)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            farm.submit_result(result(&w, &l2, 1.0)).await.unwrap(),
+            Outcome::Accepted
+        );
         let l3 = farm.lease(&w, 1, false).unwrap().remove(0);
-        assert_eq!(l3.rect.width, 15 * 16, "the next lease is sized on the slow result");
+        assert_eq!(
+            l3.rect.width,
+            15 * 16,
+            "the next lease is sized on the slow result"
+        );
         // Fast again (15 tiles in 1 ms): the estimate rises by 30% of the step.
-        assert_eq!(farm.submit_result(result(&w, &l3, 0.001)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            farm.submit_result(result(&w, &l3, 0.001)).await.unwrap(),
+            Outcome::Accepted
+        );
         let speed = farm.workers()[0].samples_per_second;
-        assert!((speed - (0.7 * 64512.0 + 0.3 * 15360.0 / 0.001)).abs() < 1e-6, "{speed}");
+        assert!(
+            (speed - (0.7 * 64512.0 + 0.3 * 15360.0 / 0.001)).abs() < 1e-6,
+            "{speed}"
+        );
     }
 
     /// A worker's prefetched lease handed back on drain is queued again at
@@ -1518,9 +1942,21 @@ material = "red"
         let lb = farm.lease(&b, 1, false).unwrap();
         assert_eq!(lb.len(), 1);
         assert_eq!(lb[0].rect, la[1].rect);
-        assert!(matches!(farm.submit_result(result(&a, &la[1], 0.01)).await.unwrap(), Outcome::Late(_)), "a returned that lease");
-        assert_eq!(farm.submit_result(result(&a, &la[0], 0.01)).await.unwrap(), Outcome::Accepted);
-        assert_eq!(farm.submit_result(result(&b, &lb[0], 0.01)).await.unwrap(), Outcome::Accepted);
+        assert!(
+            matches!(
+                farm.submit_result(result(&a, &la[1], 0.01)).await.unwrap(),
+                Outcome::Late(_)
+            ),
+            "a returned that lease"
+        );
+        assert_eq!(
+            farm.submit_result(result(&a, &la[0], 0.01)).await.unwrap(),
+            Outcome::Accepted
+        );
+        assert_eq!(
+            farm.submit_result(result(&b, &lb[0], 0.01)).await.unwrap(),
+            Outcome::Accepted
+        );
         let v = wait_done(&farm, &job).await;
         assert_eq!((v.counters.units_accepted, v.counters.results_late), (2, 1));
     }
@@ -1533,11 +1969,19 @@ material = "red"
         let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
         let w = register(&farm, "w", 1);
         let start = Instant::now();
-        assert!(farm.lease_or_wait(&w, 1, false, Duration::from_millis(50)).await.unwrap().is_empty());
+        assert!(
+            farm.lease_or_wait(&w, 1, false, Duration::from_millis(50))
+                .await
+                .unwrap()
+                .is_empty()
+        );
         assert!(start.elapsed() >= Duration::from_millis(50));
         let waiting = {
             let farm = farm.clone();
-            tokio::spawn(async move { farm.lease_or_wait(&w, 1, false, Duration::from_secs(30)).await })
+            tokio::spawn(async move {
+                farm.lease_or_wait(&w, 1, false, Duration::from_secs(30))
+                    .await
+            })
         };
         tokio::time::sleep(Duration::from_millis(50)).await;
         let start = Instant::now();
@@ -1547,7 +1991,12 @@ material = "red"
                 scene_name: "t.toml".into(),
                 scene: SCENE.as_bytes().to_vec(),
                 assets: vec![],
-                overrides: Overrides { width: Some(16), height: Some(16), samples: Some(1), ..Default::default() },
+                overrides: Overrides {
+                    width: Some(16),
+                    height: Some(16),
+                    samples: Some(1),
+                    ..Default::default()
+                },
                 first_frame: 0,
                 last_frame: 0,
                 priority: 0,
@@ -1558,7 +2007,10 @@ material = "red"
             .await
             .unwrap();
         let leases = waiting.await.unwrap().unwrap();
-        assert!(start.elapsed() < Duration::from_secs(5), "woken by the submit, not by the timeout");
+        assert!(
+            start.elapsed() < Duration::from_secs(5),
+            "woken by the submit, not by the timeout"
+        );
         assert_eq!(leases.len(), 1);
         assert_eq!(leases[0].job_id, job);
     }
@@ -1577,7 +2029,10 @@ material = "red"
         {
             let mut submission = Box::pin(farm.submit_result(result(&w, &l, 0.01)));
             let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
-            assert!(submission.as_mut().poll(&mut cx).is_pending(), "the commit waits for the database writer");
+            assert!(
+                submission.as_mut().poll(&mut cx).is_pending(),
+                "the commit waits for the database writer"
+            );
         }
         let start = Instant::now();
         loop {
@@ -1586,10 +2041,18 @@ material = "red"
                 assert_eq!((v.units_done, v.counters.units_accepted), (1, 1));
                 break;
             }
-            assert!(start.elapsed() < Duration::from_secs(10), "the unit was stranded: {} of 1 units done, state {:?}", v.units_done, v.state);
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "the unit was stranded: {} of 1 units done, state {:?}",
+                v.units_done,
+                v.state
+            );
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
-        assert!(matches!(farm.submit_result(result(&w, &l, 0.01)).await.unwrap(), Outcome::Duplicate(_)));
+        assert!(matches!(
+            farm.submit_result(result(&w, &l, 0.01)).await.unwrap(),
+            Outcome::Duplicate(_)
+        ));
     }
 
     #[test]
@@ -1599,8 +2062,19 @@ material = "red"
             *s = [i as u64, (i as u64) << 40, u64::MAX - i as u64];
             *c = 7 + i as u32;
         }
-        film.rays = RayCounts { primary: 1, shadow: 2, reflection: 3, refraction: 4 };
-        assert_eq!(encode_film_part(&film, film.rect, film.rays, 9), crate::store::encode_film(&Film { nonfinite: 9, ..film.clone() }));
+        film.rays = RayCounts {
+            primary: 1,
+            shadow: 2,
+            reflection: 3,
+            refraction: 4,
+        };
+        assert_eq!(
+            encode_film_part(&film, film.rect, film.rays, 9),
+            crate::store::encode_film(&Film {
+                nonfinite: 9,
+                ..film.clone()
+            })
+        );
         let part = Rect::new(9, 5, 3, 2);
         let mut cropped = Film::new(part);
         for row in 0..2 {
@@ -1610,7 +2084,9 @@ material = "red"
                 cropped.counts[(row * 3 + col) as usize] = film.counts[src];
             }
         }
-        let got = crate::store::decode_film(&encode_film_part(&film, part, RayCounts::default(), 0)).unwrap();
+        let got =
+            crate::store::decode_film(&encode_film_part(&film, part, RayCounts::default(), 0))
+                .unwrap();
         assert_eq!(got, cropped);
     }
 
@@ -1623,32 +2099,79 @@ material = "red"
         let b = register(&farm, "b", 1);
         let la = farm.lease(&a, 3, false).unwrap();
         let lb = farm.lease(&b, 3, false).unwrap();
-        assert_eq!((la.len(), lb.len()), (3, 1), "a takes three units in one request, b the last");
+        assert_eq!(
+            (la.len(), lb.len()),
+            (3, 1),
+            "a takes three units in one request, b the last"
+        );
         let mut bad = result(&a, &la[2], 0.01);
         bad.film.as_mut().unwrap().counts[5] = 1;
         let outcomes = farm
-            .submit_results(vec![result(&a, &la[0], 0.01), result(&a, &la[1], 0.01), result(&a, &la[0], 0.01), result(&a, &lb[0], 0.01), bad])
+            .submit_results(vec![
+                result(&a, &la[0], 0.01),
+                result(&a, &la[1], 0.01),
+                result(&a, &la[0], 0.01),
+                result(&a, &lb[0], 0.01),
+                bad,
+            ])
             .await
             .unwrap();
         assert_eq!(outcomes[..2], [Outcome::Accepted, Outcome::Accepted]);
-        assert!(matches!(outcomes[2], Outcome::Duplicate(_)), "{:?}", outcomes[2]);
-        assert!(matches!(outcomes[3], Outcome::Rejected(_)), "{:?}", outcomes[3]);
-        assert!(matches!(&outcomes[4], Outcome::Rejected(m) if m.contains("has 1 samples, expected 2")), "{:?}", outcomes[4]);
+        assert!(
+            matches!(outcomes[2], Outcome::Duplicate(_)),
+            "{:?}",
+            outcomes[2]
+        );
+        assert!(
+            matches!(outcomes[3], Outcome::Rejected(_)),
+            "{:?}",
+            outcomes[3]
+        );
+        assert!(
+            matches!(&outcomes[4], Outcome::Rejected(m) if m.contains("has 1 samples, expected 2")),
+            "{:?}",
+            outcomes[4]
+        );
         let v = farm.job(&job).unwrap();
-        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate, v.counters.results_rejected), (2, 2, 1, 2));
+        assert_eq!(
+            (
+                v.units_done,
+                v.counters.units_accepted,
+                v.counters.results_duplicate,
+                v.counters.results_rejected
+            ),
+            (2, 2, 1, 2)
+        );
         // The malformed unit is queued again; b and then a finish the job.
-        assert_eq!(farm.submit_results(vec![result(&b, &lb[0], 0.01)]).await.unwrap(), [Outcome::Accepted]);
+        assert_eq!(
+            farm.submit_results(vec![result(&b, &lb[0], 0.01)])
+                .await
+                .unwrap(),
+            [Outcome::Accepted]
+        );
         let again = farm.lease(&a, 4, false).unwrap();
         assert_eq!(again.len(), 1);
         assert_eq!(again[0].rect, la[2].rect);
-        assert_eq!(farm.submit_results(vec![result(&a, &again[0], 0.01)]).await.unwrap(), [Outcome::Accepted]);
+        assert_eq!(
+            farm.submit_results(vec![result(&a, &again[0], 0.01)])
+                .await
+                .unwrap(),
+            [Outcome::Accepted]
+        );
         let start = Instant::now();
         while farm.job(&job).unwrap().state != JobState::Done {
             assert!(start.elapsed() < Duration::from_secs(10), "job not done");
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
         let v = farm.job(&job).unwrap();
-        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_rejected), (4, 4, 2));
+        assert_eq!(
+            (
+                v.units_done,
+                v.counters.units_accepted,
+                v.counters.results_rejected
+            ),
+            (4, 4, 2)
+        );
     }
 
     #[tokio::test]
@@ -1657,17 +2180,32 @@ material = "red"
         let (_dir, farm, job) = farm_with_job(256, 256, 4).await;
         let gpu = register(&farm, "gpu", 0);
         let l1 = farm.lease(&gpu, 1, false).unwrap().remove(0);
-        assert_eq!(farm.submit_result(result(&gpu, &l1, 1e-6)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            farm.submit_result(result(&gpu, &l1, 1e-6)).await.unwrap(),
+            Outcome::Accepted
+        );
         // The speed asks for hundreds of tiles; the cap is 255 / 4 = 63 of
         // the pending: the rest of the first row, then (once a lease
         // starts a row) whole rows only.
         let l2 = farm.lease(&gpu, 1, false).unwrap().remove(0);
-        assert_eq!((l2.rect.x, l2.rect.y, l2.rect.width, l2.rect.height), (16, 0, 240, 16));
-        assert_eq!(farm.submit_result(result(&gpu, &l2, 1e-6)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            (l2.rect.x, l2.rect.y, l2.rect.width, l2.rect.height),
+            (16, 0, 240, 16)
+        );
+        assert_eq!(
+            farm.submit_result(result(&gpu, &l2, 1e-6)).await.unwrap(),
+            Outcome::Accepted
+        );
         let l3 = farm.lease(&gpu, 1, false).unwrap().remove(0);
         // 240 pending / 4 = 60 tiles: three whole rows.
-        assert_eq!((l3.rect.x, l3.rect.y, l3.rect.width, l3.rect.height), (0, 16, 256, 48));
-        assert_eq!(farm.submit_result(result(&gpu, &l3, 1e-6)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            (l3.rect.x, l3.rect.y, l3.rect.width, l3.rect.height),
+            (0, 16, 256, 48)
+        );
+        assert_eq!(
+            farm.submit_result(result(&gpu, &l3, 1e-6)).await.unwrap(),
+            Outcome::Accepted
+        );
         assert_eq!(farm.job(&job).unwrap().units_done, 1 + 15 + 48);
     }
 
@@ -1677,19 +2215,40 @@ material = "red"
     async fn leases_are_sized_in_expected_rays_not_pixels() {
         // One row of 64 tiles of 16 px, 4 spp; the right half costs 8 rays a pixel-sample.
         let (_dir, farm, job) = farm_with_job(1024, 16, 4).await;
-        farm.state.lock().unwrap().jobs.get_mut(&job).unwrap().tile_rays = (0..64).map(|t| if t < 32 { 256.0 } else { 2048.0 }).collect();
+        farm.state
+            .lock()
+            .unwrap()
+            .jobs
+            .get_mut(&job)
+            .unwrap()
+            .tile_rays = (0..64)
+            .map(|t| if t < 32 { 256.0 } else { 2048.0 })
+            .collect();
         let w = register(&farm, "w", 2);
         // 65536 rays/s: 16384 rays in the 0.25 s target, 16 cheap tiles of 1024.
         let l1 = farm.lease(&w, 1, false).unwrap().remove(0);
-        assert_eq!(farm.submit_result(result(&w, &l1, 1024.0 / 65536.0)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            farm.submit_result(result(&w, &l1, 1024.0 / 65536.0))
+                .await
+                .unwrap(),
+            Outcome::Accepted
+        );
         let l2 = farm.lease(&w, 1, false).unwrap().remove(0);
         assert_eq!((l2.rect.x, l2.rect.width), (16, 16 * 16));
         // result() reports one ray a pixel-sample, as the cheap tiles cost.
-        assert_eq!(farm.submit_result(result(&w, &l2, 0.25)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            farm.submit_result(result(&w, &l2, 0.25)).await.unwrap(),
+            Outcome::Accepted
+        );
         // The rest of the cheap half (15 tiles); the next tile would not fit.
         let l3 = farm.lease(&w, 1, false).unwrap().remove(0);
         assert_eq!((l3.rect.x, l3.rect.width), (17 * 16, 15 * 16));
-        assert_eq!(farm.submit_result(result(&w, &l3, 15.0 * 1024.0 / 65536.0)).await.unwrap(), Outcome::Accepted);
+        assert_eq!(
+            farm.submit_result(result(&w, &l3, 15.0 * 1024.0 / 65536.0))
+                .await
+                .unwrap(),
+            Outcome::Accepted
+        );
         // Costly tiles: 8192 rays each, two fit.
         let l4 = farm.lease(&w, 1, false).unwrap().remove(0);
         assert_eq!((l4.rect.x, l4.rect.width), (32 * 16, 2 * 16));
@@ -1699,7 +2258,11 @@ material = "red"
     async fn a_busy_worker_gets_no_second_lease_at_the_very_end() {
         // 5 units, 3 workers; a asks ahead while it renders.
         let (_dir, farm, _job) = farm_with_job(80, 16, 4).await;
-        let (a, b, c) = (register(&farm, "a", 1), register(&farm, "b", 1), register(&farm, "c", 1));
+        let (a, b, c) = (
+            register(&farm, "a", 1),
+            register(&farm, "b", 1),
+            register(&farm, "c", 1),
+        );
         assert_eq!(farm.lease(&a, 1, false).unwrap().len(), 1);
         // 4 pending, 3 workers: a may still take one ahead.
         assert_eq!(farm.lease(&a, 1, true).unwrap().len(), 1);
@@ -1711,7 +2274,10 @@ material = "red"
         assert!(farm.lease(&a, 1, true).unwrap().is_empty());
         assert_eq!(farm.lease(&b, 1, false).unwrap().len(), 1);
         assert_eq!(farm.lease(&a, 1, false).unwrap().len(), 1);
-        assert!(farm.lease(&c, 1, false).unwrap().is_empty(), "all five leased");
+        assert!(
+            farm.lease(&c, 1, false).unwrap().is_empty(),
+            "all five leased"
+        );
     }
 
     #[tokio::test]
@@ -1722,22 +2288,54 @@ material = "red"
         let fast = register(&farm, "fast", 8);
         let slow = register(&farm, "slow", 1);
         // Unknown speed: one tile each.
-        let (f1, s1) = (farm.lease(&fast, 1, false).unwrap().remove(0), farm.lease(&slow, 1, false).unwrap().remove(0));
+        let (f1, s1) = (
+            farm.lease(&fast, 1, false).unwrap().remove(0),
+            farm.lease(&slow, 1, false).unwrap().remove(0),
+        );
         assert_eq!((f1.rect.width, s1.rect.width), (16, 16));
         // A 16x16x4 unit in 1 ms vs in 1 s.
-        assert_eq!(farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap(), Outcome::Accepted);
-        assert_eq!(farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap(), Outcome::Accepted);
-        let (f2, s2) = (farm.lease(&fast, 1, false).unwrap().remove(0), farm.lease(&slow, 1, false).unwrap().remove(0));
+        assert_eq!(
+            farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap(),
+            Outcome::Accepted
+        );
+        assert_eq!(
+            farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap(),
+            Outcome::Accepted
+        );
+        let (f2, s2) = (
+            farm.lease(&fast, 1, false).unwrap().remove(0),
+            farm.lease(&slow, 1, false).unwrap().remove(0),
+        );
         // Joined tiles along the row, up to its end (30 tiles: the
         // end-of-job cap, 254 pending / (4 x 2 workers), is 31).
-        assert_eq!((f2.rect.width, f2.rect.height), (16 * 30, 16), "the fast worker gets a row of joined tiles");
+        assert_eq!(
+            (f2.rect.width, f2.rect.height),
+            (16 * 30, 16),
+            "the fast worker gets a row of joined tiles"
+        );
         assert_eq!(s2.rect.width, 16, "the slow worker keeps single tiles");
         // A result counts once; the same lease again is a duplicate, dropped.
-        assert_eq!(farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(), Outcome::Accepted);
-        assert!(matches!(farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(), Outcome::Duplicate(_)));
+        assert_eq!(
+            farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(),
+            Outcome::Accepted
+        );
+        assert!(matches!(
+            farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(),
+            Outcome::Duplicate(_)
+        ));
         // Another worker cannot complete a lease it does not hold.
-        assert!(matches!(farm.submit_result(result(&fast, &s2, 0.01)).await.unwrap(), Outcome::Rejected(_)));
+        assert!(matches!(
+            farm.submit_result(result(&fast, &s2, 0.01)).await.unwrap(),
+            Outcome::Rejected(_)
+        ));
         let v = farm.job(&job).unwrap();
-        assert_eq!((v.units_done, v.counters.units_accepted, v.counters.results_duplicate), (32, 32, 1));
+        assert_eq!(
+            (
+                v.units_done,
+                v.counters.units_accepted,
+                v.counters.results_duplicate
+            ),
+            (32, 32, 1)
+        );
     }
 }

@@ -26,7 +26,12 @@ pub enum ImageError {
 
 impl ImageFormat {
     pub fn of(path: &Path) -> Result<Self, ImageError> {
-        match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
+        match path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase())
+            .as_deref()
+        {
             Some("png") => Ok(ImageFormat::Png),
             Some("exr") => Ok(ImageFormat::Exr),
             other => Err(ImageError::Extension {
@@ -49,11 +54,23 @@ pub fn write_image(path: &Path, film: &Film) -> Result<(), ImageError> {
             // Fast deflate: a farm's last frame is written while every
             // worker waits for the job to end (1920x1080: ~25 ms instead
             // of ~100 ms with the default level, files ~30% larger).
-            std::fs::File::create(path).map_err(image::ImageError::IoError).and_then(|f| {
-                let mut out = std::io::BufWriter::new(f);
-                PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Adaptive).write_image(&bytes, w, h, image::ExtendedColorType::Rgb8)?;
-                std::io::Write::flush(&mut out).map_err(image::ImageError::IoError)
-            })
+            std::fs::File::create(path)
+                .map_err(image::ImageError::IoError)
+                .and_then(|f| {
+                    let mut out = std::io::BufWriter::new(f);
+                    PngEncoder::new_with_quality(
+                        &mut out,
+                        CompressionType::Fast,
+                        FilterType::Adaptive,
+                    )
+                    .write_image(
+                        &bytes,
+                        w,
+                        h,
+                        image::ExtendedColorType::Rgb8,
+                    )?;
+                    std::io::Write::flush(&mut out).map_err(image::ImageError::IoError)
+                })
         }
         ImageFormat::Exr => {
             let data: Vec<f32> = linear.iter().flatten().copied().collect();
@@ -62,5 +79,8 @@ pub fn write_image(path: &Path, film: &Film) -> Result<(), ImageError> {
                 .save_with_format(path, image::ImageFormat::OpenExr)
         }
     }
-    .map_err(|source| ImageError::Write { path: path.to_owned(), source })
+    .map_err(|source| ImageError::Write {
+        path: path.to_owned(),
+        source,
+    })
 }

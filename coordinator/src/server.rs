@@ -5,11 +5,11 @@ use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
+use tessera_proto::pb::job_service_server::JobServiceServer;
+use tessera_proto::pb::worker_service_server::WorkerServiceServer;
 use tokio::net::TcpListener;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Status};
-use tessera_proto::pb::job_service_server::JobServiceServer;
-use tessera_proto::pb::worker_service_server::WorkerServiceServer;
 
 use crate::farm::{Farm, FarmError};
 use crate::service::Api;
@@ -20,11 +20,19 @@ fn check_version(req: Request<()>) -> Result<Request<()>, Status> {
 }
 
 /// Serves `farm` on `listener` until `shutdown` resolves.
-pub async fn serve(farm: Arc<Farm>, listener: TcpListener, shutdown: impl Future<Output = ()> + Send) -> Result<(), FarmError> {
+pub async fn serve(
+    farm: Arc<Farm>,
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), FarmError> {
     let limit = farm.config.max_message_bytes;
     let api = Api { farm: farm.clone() };
-    let jobs = JobServiceServer::new(api.clone()).max_decoding_message_size(limit).max_encoding_message_size(limit);
-    let workers = WorkerServiceServer::new(api).max_decoding_message_size(limit).max_encoding_message_size(limit);
+    let jobs = JobServiceServer::new(api.clone())
+        .max_decoding_message_size(limit)
+        .max_encoding_message_size(limit);
+    let workers = WorkerServiceServer::new(api)
+        .max_decoding_message_size(limit)
+        .max_encoding_message_size(limit);
 
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<JobServiceServer<Api>>().await;

@@ -4,13 +4,13 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
-use tokio_stream::Stream;
-use tonic::{Request, Response, Status};
 use tessera_proto::convert::sampler_from_pb;
 use tessera_proto::film_codec;
 use tessera_proto::pb;
 use tessera_proto::pb::job_service_server::JobService;
 use tessera_proto::pb::worker_service_server::WorkerService;
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status};
 
 use crate::farm::{Farm, FarmError, JobState, JobView, Outcome, Overrides, ResultData, Submission};
 use crate::store::Counters;
@@ -22,7 +22,9 @@ impl From<FarmError> for Status {
             FarmError::NotFound(m) => Status::not_found(m),
             FarmError::FailedPrecondition(m) => Status::failed_precondition(m),
             // Nothing was recorded; the same request may be sent again.
-            FarmError::Store(e) => Status::unavailable(format!("storage: {e}; nothing was recorded, send the request again")),
+            FarmError::Store(e) => Status::unavailable(format!(
+                "storage: {e}; nothing was recorded, send the request again"
+            )),
             FarmError::Internal(m) => Status::internal(m),
         }
     }
@@ -59,7 +61,12 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
         frames: v
             .frames
             .iter()
-            .map(|(f, total, done, out)| pb::FrameStatus { frame: *f, units_total: *total, units_done: *done, output: out.clone().unwrap_or_default() })
+            .map(|(f, total, done, out)| pb::FrameStatus {
+                frame: *f,
+                units_total: *total,
+                units_done: *done,
+                output: out.clone().unwrap_or_default(),
+            })
             .collect(),
         error: r.error.clone(),
         rays: Some(rays_pb(&v.counters)),
@@ -87,15 +94,29 @@ type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'stati
 
 #[tonic::async_trait]
 impl JobService for Api {
-    async fn submit_job(&self, req: Request<pb::SubmitJobRequest>) -> Result<Response<pb::SubmitJobResponse>, Status> {
-        let spec = req.into_inner().spec.ok_or_else(|| Status::invalid_argument("missing field `spec`"))?;
+    async fn submit_job(
+        &self,
+        req: Request<pb::SubmitJobRequest>,
+    ) -> Result<Response<pb::SubmitJobResponse>, Status> {
+        let spec = req
+            .into_inner()
+            .spec
+            .ok_or_else(|| Status::invalid_argument("missing field `spec`"))?;
         let o = spec.overrides.unwrap_or_default();
-        let scene_name = if spec.scene_name.is_empty() { "scene.toml".to_string() } else { spec.scene_name };
+        let scene_name = if spec.scene_name.is_empty() {
+            "scene.toml".to_string()
+        } else {
+            spec.scene_name
+        };
         let s = Submission {
             name: spec.name,
             scene_name,
             scene: spec.scene,
-            assets: spec.assets.into_iter().map(|a| (a.name, a.content)).collect(),
+            assets: spec
+                .assets
+                .into_iter()
+                .map(|a| (a.name, a.content))
+                .collect(),
             overrides: Overrides {
                 width: o.width,
                 height: o.height,
@@ -114,17 +135,30 @@ impl JobService for Api {
         Ok(Response::new(pb::SubmitJobResponse { job_id }))
     }
 
-    async fn get_job(&self, req: Request<pb::GetJobRequest>) -> Result<Response<pb::JobStatus>, Status> {
-        Ok(Response::new(job_status(&self.farm.job(&req.into_inner().job_id)?)))
+    async fn get_job(
+        &self,
+        req: Request<pb::GetJobRequest>,
+    ) -> Result<Response<pb::JobStatus>, Status> {
+        Ok(Response::new(job_status(
+            &self.farm.job(&req.into_inner().job_id)?,
+        )))
     }
 
-    async fn list_jobs(&self, _req: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
-        Ok(Response::new(pb::ListJobsResponse { jobs: self.farm.jobs().iter().map(job_status).collect() }))
+    async fn list_jobs(
+        &self,
+        _req: Request<pb::ListJobsRequest>,
+    ) -> Result<Response<pb::ListJobsResponse>, Status> {
+        Ok(Response::new(pb::ListJobsResponse {
+            jobs: self.farm.jobs().iter().map(job_status).collect(),
+        }))
     }
 
     type WatchJobStream = BoxStream<pb::JobStatus>;
 
-    async fn watch_job(&self, req: Request<pb::WatchJobRequest>) -> Result<Response<Self::WatchJobStream>, Status> {
+    async fn watch_job(
+        &self,
+        req: Request<pb::WatchJobRequest>,
+    ) -> Result<Response<Self::WatchJobStream>, Status> {
         let id = req.into_inner().job_id;
         let mut rx = self.farm.watch(&id)?;
         let farm = self.farm.clone();
@@ -148,23 +182,40 @@ impl JobService for Api {
                 let _ = tokio::time::timeout(Duration::from_millis(800), rx.changed()).await;
             }
         });
-        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out))))
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(out),
+        )))
     }
 
-    async fn cancel_job(&self, req: Request<pb::CancelJobRequest>) -> Result<Response<pb::JobStatus>, Status> {
-        Ok(Response::new(job_status(&self.farm.cancel(&req.into_inner().job_id).await?)))
+    async fn cancel_job(
+        &self,
+        req: Request<pb::CancelJobRequest>,
+    ) -> Result<Response<pb::JobStatus>, Status> {
+        Ok(Response::new(job_status(
+            &self.farm.cancel(&req.into_inner().job_id).await?,
+        )))
     }
 
     type FetchResultsStream = BoxStream<pb::FrameImage>;
 
-    async fn fetch_results(&self, req: Request<pb::FetchResultsRequest>) -> Result<Response<Self::FetchResultsStream>, Status> {
+    async fn fetch_results(
+        &self,
+        req: Request<pb::FetchResultsRequest>,
+    ) -> Result<Response<Self::FetchResultsStream>, Status> {
         let outputs = self.farm.outputs(&req.into_inner().job_id)?;
         let (tx, out) = tokio::sync::mpsc::channel(2);
         tokio::spawn(async move {
             for (frame, file_name, path) in outputs {
                 let msg = match tokio::fs::read(&path).await {
-                    Ok(data) => Ok(pb::FrameImage { frame, file_name, data }),
-                    Err(e) => Err(Status::internal(format!("cannot read {}: {e}", path.display()))),
+                    Ok(data) => Ok(pb::FrameImage {
+                        frame,
+                        file_name,
+                        data,
+                    }),
+                    Err(e) => Err(Status::internal(format!(
+                        "cannot read {}: {e}",
+                        path.display()
+                    ))),
                 };
                 let stop = msg.is_err();
                 if tx.send(msg).await.is_err() || stop {
@@ -172,10 +223,15 @@ impl JobService for Api {
                 }
             }
         });
-        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(out))))
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(out),
+        )))
     }
 
-    async fn list_workers(&self, _req: Request<pb::ListWorkersRequest>) -> Result<Response<pb::ListWorkersResponse>, Status> {
+    async fn list_workers(
+        &self,
+        _req: Request<pb::ListWorkersRequest>,
+    ) -> Result<Response<pb::ListWorkersResponse>, Status> {
         let workers = self
             .farm
             .workers()
@@ -207,15 +263,29 @@ const MAX_LEASE_WAIT_MS: u32 = 5_000;
 
 #[tonic::async_trait]
 impl WorkerService for Api {
-    async fn register(&self, req: Request<pb::RegisterRequest>) -> Result<Response<pb::RegisterResponse>, Status> {
+    async fn register(
+        &self,
+        req: Request<pb::RegisterRequest>,
+    ) -> Result<Response<pb::RegisterResponse>, Status> {
         let r = req.into_inner();
         let caps = r.capabilities.unwrap_or_default();
-        let backend = match pb::Backend::try_from(caps.backend).unwrap_or(pb::Backend::Unspecified) {
+        let backend = match pb::Backend::try_from(caps.backend).unwrap_or(pb::Backend::Unspecified)
+        {
             pb::Backend::Gpu => "gpu",
             _ => "cpu",
         };
-        let name = if r.name.is_empty() { "worker".to_string() } else { r.name };
-        let worker_id = self.farm.register(name, caps.threads, backend.into(), caps.gpu_name, caps.version);
+        let name = if r.name.is_empty() {
+            "worker".to_string()
+        } else {
+            r.name
+        };
+        let worker_id = self.farm.register(
+            name,
+            caps.threads,
+            backend.into(),
+            caps.gpu_name,
+            caps.version,
+        );
         Ok(Response::new(pb::RegisterResponse {
             worker_id,
             heartbeat_interval_ms: self.farm.config.heartbeat_interval.as_millis() as u32,
@@ -223,12 +293,24 @@ impl WorkerService for Api {
         }))
     }
 
-    async fn lease_work(&self, req: Request<pb::LeaseWorkRequest>) -> Result<Response<pb::LeaseWorkResponse>, Status> {
+    async fn lease_work(
+        &self,
+        req: Request<pb::LeaseWorkRequest>,
+    ) -> Result<Response<pb::LeaseWorkResponse>, Status> {
         let r = req.into_inner();
         let wait = Duration::from_millis(u64::from(r.wait_ms.min(MAX_LEASE_WAIT_MS)));
-        let leases = self.farm.lease_or_wait(&r.worker_id, r.max_units.clamp(1, 64), r.ahead, wait).await?;
+        let leases = self
+            .farm
+            .lease_or_wait(&r.worker_id, r.max_units.clamp(1, 64), r.ahead, wait)
+            .await?;
         // A worker that waited may ask again at once; one that did not, later.
-        let retry_after_ms = if !leases.is_empty() { 0 } else if wait.is_zero() { 250 } else { 10 };
+        let retry_after_ms = if !leases.is_empty() {
+            0
+        } else if wait.is_zero() {
+            250
+        } else {
+            10
+        };
         let units = leases
             .into_iter()
             .map(|l| pb::WorkUnit {
@@ -246,25 +328,54 @@ impl WorkerService for Api {
                 deadline_unix_ms: l.deadline_unix_ms,
             })
             .collect();
-        Ok(Response::new(pb::LeaseWorkResponse { units, retry_after_ms }))
+        Ok(Response::new(pb::LeaseWorkResponse {
+            units,
+            retry_after_ms,
+        }))
     }
 
-    async fn submit_result(&self, req: Request<pb::SubmitResultRequest>) -> Result<Response<pb::SubmitResultResponse>, Status> {
-        let outcome = self.farm.submit_result(result_data(req.into_inner())).await?;
+    async fn submit_result(
+        &self,
+        req: Request<pb::SubmitResultRequest>,
+    ) -> Result<Response<pb::SubmitResultResponse>, Status> {
+        let outcome = self
+            .farm
+            .submit_result(result_data(req.into_inner()))
+            .await?;
         Ok(Response::new(outcome_pb(outcome)))
     }
 
-    async fn submit_results(&self, req: Request<pb::SubmitResultsRequest>) -> Result<Response<pb::SubmitResultsResponse>, Status> {
-        let results = req.into_inner().results.into_iter().map(result_data).collect();
+    async fn submit_results(
+        &self,
+        req: Request<pb::SubmitResultsRequest>,
+    ) -> Result<Response<pb::SubmitResultsResponse>, Status> {
+        let results = req
+            .into_inner()
+            .results
+            .into_iter()
+            .map(result_data)
+            .collect();
         let outcomes = self.farm.submit_results(results).await?;
-        Ok(Response::new(pb::SubmitResultsResponse { outcomes: outcomes.into_iter().map(outcome_pb).collect() }))
+        Ok(Response::new(pb::SubmitResultsResponse {
+            outcomes: outcomes.into_iter().map(outcome_pb).collect(),
+        }))
     }
 
-    async fn heartbeat(&self, req: Request<pb::HeartbeatRequest>) -> Result<Response<pb::HeartbeatResponse>, Status> {
+    async fn heartbeat(
+        &self,
+        req: Request<pb::HeartbeatRequest>,
+    ) -> Result<Response<pb::HeartbeatResponse>, Status> {
         let r = req.into_inner();
-        let leases: Vec<(String, u64)> = r.leases.into_iter().map(|l| (l.lease_id, l.samples_done)).collect();
+        let leases: Vec<(String, u64)> = r
+            .leases
+            .into_iter()
+            .map(|l| (l.lease_id, l.samples_done))
+            .collect();
         match self.farm.heartbeat(&r.worker_id, &leases) {
-            Ok(gone_leases) => Ok(Response::new(pb::HeartbeatResponse { gone_leases, reregister: false })),
+            Ok(gone_leases) => Ok(Response::new(pb::HeartbeatResponse {
+                gone_leases,
+                reregister: false,
+            })),
             Err(FarmError::NotFound(_)) => Ok(Response::new(pb::HeartbeatResponse {
                 gone_leases: leases.into_iter().map(|l| l.0).collect(),
                 reregister: true,
@@ -273,14 +384,22 @@ impl WorkerService for Api {
         }
     }
 
-    async fn return_leases(&self, req: Request<pb::ReturnLeasesRequest>) -> Result<Response<pb::ReturnLeasesResponse>, Status> {
+    async fn return_leases(
+        &self,
+        req: Request<pb::ReturnLeasesRequest>,
+    ) -> Result<Response<pb::ReturnLeasesResponse>, Status> {
         let r = req.into_inner();
         let returned = self.farm.return_leases(&r.worker_id, &r.lease_ids)?;
         Ok(Response::new(pb::ReturnLeasesResponse { returned }))
     }
 
-    async fn get_asset(&self, req: Request<pb::GetAssetRequest>) -> Result<Response<pb::GetAssetResponse>, Status> {
-        Ok(Response::new(pb::GetAssetResponse { content: self.farm.asset(&req.into_inner().sha256)? }))
+    async fn get_asset(
+        &self,
+        req: Request<pb::GetAssetRequest>,
+    ) -> Result<Response<pb::GetAssetResponse>, Status> {
+        Ok(Response::new(pb::GetAssetResponse {
+            content: self.farm.asset(&req.into_inner().sha256)?,
+        }))
     }
 }
 
@@ -288,7 +407,14 @@ impl WorkerService for Api {
 fn result_data(r: pb::SubmitResultRequest) -> ResultData {
     let rect = r.rect.unwrap_or_default().into();
     let samples = r.samples.unwrap_or_default().into();
-    let film = film_codec::unpack(rect, &r.sums, &r.counts, r.rays.unwrap_or_default().into(), r.nonfinite).map_err(|e| e.to_string());
+    let film = film_codec::unpack(
+        rect,
+        &r.sums,
+        &r.counts,
+        r.rays.unwrap_or_default().into(),
+        r.nonfinite,
+    )
+    .map_err(|e| e.to_string());
     ResultData {
         worker_id: r.worker_id,
         lease_id: r.lease_id,
@@ -308,5 +434,8 @@ fn outcome_pb(o: Outcome) -> pb::SubmitResultResponse {
         Outcome::Duplicate(m) => (pb::ResultOutcome::Duplicate, m),
         Outcome::FailureRecorded => (pb::ResultOutcome::FailureRecorded, String::new()),
     };
-    pb::SubmitResultResponse { outcome: outcome as i32, reason }
+    pb::SubmitResultResponse {
+        outcome: outcome as i32,
+        reason,
+    }
 }

@@ -14,9 +14,9 @@ use std::sync::mpsc;
 
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
+use tessera_proto::film_codec;
 use tokio::sync::oneshot;
 use tracer_core::film::{Film, RayCounts, Rect};
-use tessera_proto::film_codec;
 
 /// job id -> JSON [`JobRecord`]
 const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");
@@ -42,7 +42,13 @@ pub enum StoreError {
 macro_rules! db_err {
     ($($t:ty),*) => {$(impl From<$t> for StoreError { fn from(e: $t) -> Self { StoreError::Db(e.into()) } })*};
 }
-db_err!(redb::DatabaseError, redb::TransactionError, redb::TableError, redb::StorageError, redb::CommitError);
+db_err!(
+    redb::DatabaseError,
+    redb::TransactionError,
+    redb::TableError,
+    redb::StorageError,
+    redb::CommitError
+);
 
 /// A job as accepted: everything needed to render it again after a restart.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -94,16 +100,31 @@ pub struct Counters {
 #[derive(Debug)]
 pub enum Op {
     PutJob(JobRecord),
-    PutAsset { sha256: String, content: Vec<u8> },
+    PutAsset {
+        sha256: String,
+        content: Vec<u8>,
+    },
     /// Updates the result counters that are not tied to accepted units
     /// (rejected, late, duplicate); keeps the stored accepted count and rays.
-    PutCounters { job: String, counters: Counters },
+    PutCounters {
+        job: String,
+        counters: Counters,
+    },
     /// Finished units of a result, (unit index, film), and the job's accepted
     /// count and rays incremented with them.
     /// Films come encoded ([`encode_film`]) so that the writer thread only copies bytes.
-    AcceptUnits { job: String, units: Vec<(u32, Vec<u8>)>, rays: [u64; 4] },
+    AcceptUnits {
+        job: String,
+        units: Vec<(u32, Vec<u8>)>,
+        rays: [u64; 4],
+    },
     /// A frame's image is written: remember it and drop its units' films.
-    FrameWritten { job: String, frame: u32, file: String, units: std::ops::Range<u32> },
+    FrameWritten {
+        job: String,
+        frame: u32,
+        file: String,
+        units: std::ops::Range<u32>,
+    },
 }
 
 struct Request {
@@ -155,7 +176,10 @@ impl Store {
         std::thread::Builder::new()
             .name("tessera-db-writer".into())
             .spawn(move || writer(&wdb, rx, &wfaults))
-            .map_err(|e| StoreError::Corrupt { what: "writer thread".into(), message: e.to_string() })?;
+            .map_err(|e| StoreError::Corrupt {
+                what: "writer thread".into(),
+                message: e.to_string(),
+            })?;
         Ok(Store { db, tx, faults })
     }
 
@@ -168,8 +192,15 @@ impl Store {
     /// Applies `ops` atomically (with whatever else is queued); returns once durable.
     pub async fn write(&self, ops: Vec<Op>) -> Result<(), StoreError> {
         let (reply, rx) = oneshot::channel();
-        self.tx.send(Request { ops, reply }).map_err(|_| StoreError::WriterGone)?;
-        rx.await.map_err(|_| StoreError::WriterGone)?.map_err(|message| StoreError::Corrupt { what: "commit".into(), message })
+        self.tx
+            .send(Request { ops, reply })
+            .map_err(|_| StoreError::WriterGone)?;
+        rx.await
+            .map_err(|_| StoreError::WriterGone)?
+            .map_err(|message| StoreError::Corrupt {
+                what: "commit".into(),
+                message,
+            })
     }
 
     pub fn asset(&self, sha256: &str) -> Result<Option<Vec<u8>>, StoreError> {
@@ -186,11 +217,16 @@ impl Store {
         for entry in jobs.iter()? {
             let (k, v) = entry?;
             let id = k.value().to_string();
-            let rec: JobRecord = serde_json::from_slice(v.value())
-                .map_err(|e| StoreError::Corrupt { what: format!("job {id}"), message: e.to_string() })?;
+            let rec: JobRecord =
+                serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt {
+                    what: format!("job {id}"),
+                    message: e.to_string(),
+                })?;
             let c = match counters.get(id.as_str())? {
-                Some(v) => serde_json::from_slice(v.value())
-                    .map_err(|e| StoreError::Corrupt { what: format!("counters of {id}"), message: e.to_string() })?,
+                Some(v) => serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt {
+                    what: format!("counters of {id}"),
+                    message: e.to_string(),
+                })?,
                 None => Counters::default(),
             };
             snap.jobs.push((rec, c));
@@ -199,15 +235,23 @@ impl Store {
         for entry in films.iter()? {
             let (k, v) = entry?;
             let (job, unit) = k.value();
-            let film = decode_film(v.value())
-                .map_err(|message| StoreError::Corrupt { what: format!("film of unit {unit} of {job}"), message })?;
-            snap.unit_films.entry(job.to_string()).or_default().push((unit, film));
+            let film = decode_film(v.value()).map_err(|message| StoreError::Corrupt {
+                what: format!("film of unit {unit} of {job}"),
+                message,
+            })?;
+            snap.unit_films
+                .entry(job.to_string())
+                .or_default()
+                .push((unit, film));
         }
         let frames = r.open_table(FRAMES_WRITTEN)?;
         for entry in frames.iter()? {
             let (k, v) = entry?;
             let (job, frame) = k.value();
-            snap.frames_written.entry(job.to_string()).or_default().push((frame, v.value().to_string()));
+            snap.frames_written
+                .entry(job.to_string())
+                .or_default()
+                .push((frame, v.value().to_string()));
         }
         Ok(snap)
     }
@@ -277,7 +321,12 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                         *a += b;
                     }
                 }
-                Op::FrameWritten { job, frame, file, units } => {
+                Op::FrameWritten {
+                    job,
+                    frame,
+                    file,
+                    units,
+                } => {
                     frames.insert((job.as_str(), *frame), file.as_str())?;
                     for u in units.clone() {
                         films.remove((job.as_str(), u))?;
@@ -308,7 +357,10 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
 
 fn read_counters(t: &redb::Table<&str, &[u8]>, job: &str) -> Result<Counters, StoreError> {
     match t.get(job)? {
-        Some(v) => serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt { what: format!("counters of {job}"), message: e.to_string() }),
+        Some(v) => serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt {
+            what: format!("counters of {job}"),
+            message: e.to_string(),
+        }),
         None => Ok(Counters::default()),
     }
 }
@@ -323,11 +375,18 @@ pub fn encode_film(f: &Film) -> Vec<u8> {
 
 /// The 56-byte header of [`encode_film`], in a buffer with room for `pixels` pixels.
 pub fn film_header(rect: Rect, rays: RayCounts, nonfinite: u64, pixels: usize) -> Vec<u8> {
-    let mut out = Vec::with_capacity(56 + pixels * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES));
+    let mut out =
+        Vec::with_capacity(56 + pixels * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES));
     for v in [rect.x, rect.y, rect.width, rect.height] {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    for v in [rays.primary, rays.shadow, rays.reflection, rays.refraction, nonfinite] {
+    for v in [
+        rays.primary,
+        rays.shadow,
+        rays.reflection,
+        rays.refraction,
+        nonfinite,
+    ] {
         out.extend_from_slice(&v.to_le_bytes());
     }
     out
@@ -335,16 +394,29 @@ pub fn film_header(rect: Rect, rays: RayCounts, nonfinite: u64, pixels: usize) -
 
 pub fn decode_film(b: &[u8]) -> Result<Film, String> {
     if b.len() < 56 {
-        return Err(format!("{} bytes is shorter than the 56-byte header", b.len()));
+        return Err(format!(
+            "{} bytes is shorter than the 56-byte header",
+            b.len()
+        ));
     }
     let u32_at = |i: usize| u32::from_le_bytes(b[i..i + 4].try_into().expect("4 bytes"));
     let u64_at = |i: usize| u64::from_le_bytes(b[i..i + 8].try_into().expect("8 bytes"));
     let rect = Rect::new(u32_at(0), u32_at(4), u32_at(8), u32_at(12));
-    let rays = RayCounts { primary: u64_at(16), shadow: u64_at(24), reflection: u64_at(32), refraction: u64_at(40) };
+    let rays = RayCounts {
+        primary: u64_at(16),
+        shadow: u64_at(24),
+        reflection: u64_at(32),
+        refraction: u64_at(40),
+    };
     let nonfinite = u64_at(48);
     let split = 56 + rect.area() * film_codec::SUM_BYTES;
     if b.len() < split {
-        return Err(format!("{} bytes is too short for a {}x{} film", b.len(), rect.width, rect.height));
+        return Err(format!(
+            "{} bytes is too short for a {}x{} film",
+            b.len(),
+            rect.width,
+            rect.height
+        ));
     }
     film_codec::unpack(rect, &b[56..split], &b[split..], rays, nonfinite).map_err(|e| e.to_string())
 }

@@ -42,12 +42,31 @@ pub struct Unit {
 }
 
 impl Layout {
-    pub fn new(width: u32, height: u32, samples: u32, first_frame: u32, last_frame: u32, tile_size: u32, samples_per_unit: u32) -> Self {
+    pub fn new(
+        width: u32,
+        height: u32,
+        samples: u32,
+        first_frame: u32,
+        last_frame: u32,
+        tile_size: u32,
+        samples_per_unit: u32,
+    ) -> Self {
         let tiles = Rect::full(width, height).tiles(tile_size);
         let tiles_per_row = width.div_ceil(tile_size.max(1));
         let per = samples_per_unit.max(1);
-        let batches = (0..samples.div_ceil(per)).map(|b| SampleRange::new(b * per, ((b + 1) * per).min(samples))).collect();
-        Layout { first_frame, frames: last_frame - first_frame + 1, width, height, tile_size, tiles, tiles_per_row, batches }
+        let batches = (0..samples.div_ceil(per))
+            .map(|b| SampleRange::new(b * per, ((b + 1) * per).min(samples)))
+            .collect();
+        Layout {
+            first_frame,
+            frames: last_frame - first_frame + 1,
+            width,
+            height,
+            tile_size,
+            tiles,
+            tiles_per_row,
+            batches,
+        }
     }
 
     pub fn units_per_frame(&self) -> u32 {
@@ -61,7 +80,11 @@ impl Layout {
     pub fn unit(&self, index: u32) -> Unit {
         let nt = self.tiles.len() as u32;
         let nb = self.batches.len() as u32;
-        Unit { frame: self.first_frame + index / (nt * nb), batch: (index / nt) % nb, tile: index % nt }
+        Unit {
+            frame: self.first_frame + index / (nt * nb),
+            batch: (index / nt) % nb,
+            tile: index % nt,
+        }
     }
 
     pub fn index(&self, u: Unit) -> u32 {
@@ -84,7 +107,10 @@ impl Layout {
     /// (so their rects join into one rectangle).
     pub fn joins(&self, a: u32, b: u32) -> bool {
         let (ua, ub) = (self.unit(a), self.unit(b));
-        b == a + 1 && ua.frame == ub.frame && ua.batch == ub.batch && ua.tile / self.tiles_per_row == ub.tile / self.tiles_per_row
+        b == a + 1
+            && ua.frame == ub.frame
+            && ua.batch == ub.batch
+            && ua.tile / self.tiles_per_row == ub.tile / self.tiles_per_row
     }
 
     /// Units from `first` on, all `pending`, whose tiles make one
@@ -93,12 +119,23 @@ impl Layout {
     /// batch); at most `max` units whose `cost` adds up to at most `budget`
     /// (but always `first`). Unit numbers are row-major, so the result is
     /// consecutive.
-    pub fn join(&self, first: u32, max: u32, pending: impl Fn(u32) -> bool, cost: impl Fn(u32) -> f64, budget: f64) -> Vec<u32> {
+    pub fn join(
+        &self,
+        first: u32,
+        max: u32,
+        pending: impl Fn(u32) -> bool,
+        cost: impl Fn(u32) -> f64,
+        budget: f64,
+    ) -> Vec<u32> {
         let mut units = vec![first];
         let mut spent = cost(first);
         while (units.len() as u32) < max {
             let next = *units.last().expect("non-empty") + 1;
-            if next < self.total() && self.joins(next - 1, next) && pending(next) && spent + cost(next) <= budget {
+            if next < self.total()
+                && self.joins(next - 1, next)
+                && pending(next)
+                && spent + cost(next) <= budget
+            {
                 units.push(next);
                 spent += cost(next);
             } else {
@@ -114,7 +151,10 @@ impl Layout {
             let start = first + units.len() as u32;
             let row_ok = start + tpr <= self.total() && {
                 let u = self.unit(start);
-                u.frame == u0.frame && u.batch == u0.batch && u.tile.is_multiple_of(tpr) && (start..start + tpr).all(&pending)
+                u.frame == u0.frame
+                    && u.batch == u0.batch
+                    && u.tile.is_multiple_of(tpr)
+                    && (start..start + tpr).all(&pending)
             };
             let row_cost: f64 = (start..start + tpr).map(&cost).sum();
             if !row_ok || spent + row_cost > budget {
@@ -135,7 +175,14 @@ mod tests {
     fn indices_round_trip_and_cover_every_sample_once() {
         let l = Layout::new(100, 70, 10, 3, 5, 32, 4);
         assert_eq!(l.tiles.len(), 4 * 3);
-        assert_eq!(l.batches, vec![SampleRange::new(0, 4), SampleRange::new(4, 8), SampleRange::new(8, 10)]);
+        assert_eq!(
+            l.batches,
+            vec![
+                SampleRange::new(0, 4),
+                SampleRange::new(4, 8),
+                SampleRange::new(8, 10)
+            ]
+        );
         assert_eq!(l.total(), 3 * 12 * 3);
         let mut per_frame = std::collections::BTreeMap::<u32, u64>::new();
         for i in 0..l.total() {
@@ -163,13 +210,19 @@ mod tests {
         assert_eq!(l.join(0, 9, all, one, 1e9), (0..8).collect::<Vec<_>>());
         assert_eq!(l.join(4, 100, all, one, 1e9), (4..12).collect::<Vec<_>>());
         // A row with a unit taken is not joined.
-        assert_eq!(l.join(0, 12, |u| u != 9, one, 1e9), (0..8).collect::<Vec<_>>());
+        assert_eq!(
+            l.join(0, 12, |u| u != 9, one, 1e9),
+            (0..8).collect::<Vec<_>>()
+        );
         assert_eq!(l.join(0, 12, |u| u != 2, one, 1e9), vec![0, 1]);
         // The budget: units along the row while they fit, whole rows only
         // when the whole row fits; the first unit always.
         assert_eq!(l.join(0, 12, all, one, 2.5), vec![0, 1]);
         assert_eq!(l.join(0, 12, all, one, 7.0), vec![0, 1, 2, 3]);
-        assert_eq!(l.join(0, 12, all, |u| if u == 1 { 10.0 } else { 1.0 }, 5.0), vec![0]);
+        assert_eq!(
+            l.join(0, 12, all, |u| if u == 1 { 10.0 } else { 1.0 }, 5.0),
+            vec![0]
+        );
         assert_eq!(l.join(0, 12, all, one, 0.0), vec![0]);
     }
 }

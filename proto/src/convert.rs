@@ -12,12 +12,20 @@ pub enum ConvertError {
     #[error("missing field `{0}`")]
     Missing(&'static str),
     #[error("field `{field}`: {message}")]
-    Invalid { field: &'static str, message: String },
+    Invalid {
+        field: &'static str,
+        message: String,
+    },
 }
 
 impl From<Rect> for pb::Rect {
     fn from(r: Rect) -> Self {
-        pb::Rect { x: r.x, y: r.y, width: r.width, height: r.height }
+        pb::Rect {
+            x: r.x,
+            y: r.y,
+            width: r.width,
+            height: r.height,
+        }
     }
 }
 
@@ -29,7 +37,10 @@ impl From<pb::Rect> for Rect {
 
 impl From<SampleRange> for pb::SampleRange {
     fn from(s: SampleRange) -> Self {
-        pb::SampleRange { start: s.start, end: s.end }
+        pb::SampleRange {
+            start: s.start,
+            end: s.end,
+        }
     }
 }
 
@@ -41,13 +52,23 @@ impl From<pb::SampleRange> for SampleRange {
 
 impl From<RayCounts> for pb::RayCounts {
     fn from(r: RayCounts) -> Self {
-        pb::RayCounts { primary: r.primary, shadow: r.shadow, reflection: r.reflection, refraction: r.refraction }
+        pb::RayCounts {
+            primary: r.primary,
+            shadow: r.shadow,
+            reflection: r.reflection,
+            refraction: r.refraction,
+        }
     }
 }
 
 impl From<pb::RayCounts> for RayCounts {
     fn from(r: pb::RayCounts) -> Self {
-        RayCounts { primary: r.primary, shadow: r.shadow, reflection: r.reflection, refraction: r.refraction }
+        RayCounts {
+            primary: r.primary,
+            shadow: r.shadow,
+            reflection: r.reflection,
+            refraction: r.refraction,
+        }
     }
 }
 
@@ -84,10 +105,21 @@ impl From<RenderSettings> for pb::RenderSettings {
 impl TryFrom<pb::RenderSettings> for RenderSettings {
     type Error = ConvertError;
     fn try_from(s: pb::RenderSettings) -> Result<Self, ConvertError> {
-        let sampler = sampler_from_pb(s.sampler)
-            .ok_or(ConvertError::Invalid { field: "settings.sampler", message: "must be GRID or JITTERED".into() })?;
-        let out = RenderSettings { width: s.width, height: s.height, samples: s.samples, max_depth: s.max_depth, sampler };
-        out.validate().map_err(|message| ConvertError::Invalid { field: "settings", message })?;
+        let sampler = sampler_from_pb(s.sampler).ok_or(ConvertError::Invalid {
+            field: "settings.sampler",
+            message: "must be GRID or JITTERED".into(),
+        })?;
+        let out = RenderSettings {
+            width: s.width,
+            height: s.height,
+            samples: s.samples,
+            max_depth: s.max_depth,
+            sampler,
+        };
+        out.validate().map_err(|message| ConvertError::Invalid {
+            field: "settings",
+            message,
+        })?;
         Ok(out)
     }
 }
@@ -98,11 +130,23 @@ mod tests {
 
     #[test]
     fn settings_round_trip_and_validate() {
-        let s = RenderSettings { width: 64, height: 48, samples: 9, max_depth: 3, sampler: Sampler::Jittered };
+        let s = RenderSettings {
+            width: 64,
+            height: 48,
+            samples: 9,
+            max_depth: 3,
+            sampler: Sampler::Jittered,
+        };
         assert_eq!(RenderSettings::try_from(pb::RenderSettings::from(s)), Ok(s));
         let mut bad = pb::RenderSettings::from(s);
         bad.width = 0;
-        assert!(matches!(RenderSettings::try_from(bad), Err(ConvertError::Invalid { field: "settings", .. })));
+        assert!(matches!(
+            RenderSettings::try_from(bad),
+            Err(ConvertError::Invalid {
+                field: "settings",
+                ..
+            })
+        ));
         let mut bad = pb::RenderSettings::from(s);
         bad.sampler = 0;
         assert!(RenderSettings::try_from(bad).is_err());

@@ -10,10 +10,24 @@ pub const COUNT_BYTES: usize = 4;
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum FilmCodecError {
-    #[error("sums field has {got} bytes, expected {expected} ({SUM_BYTES} per pixel of a {width}x{height} rect)")]
-    SumsSize { got: usize, expected: usize, width: u32, height: u32 },
-    #[error("counts field has {got} bytes, expected {expected} ({COUNT_BYTES} per pixel of a {width}x{height} rect)")]
-    CountsSize { got: usize, expected: usize, width: u32, height: u32 },
+    #[error(
+        "sums field has {got} bytes, expected {expected} ({SUM_BYTES} per pixel of a {width}x{height} rect)"
+    )]
+    SumsSize {
+        got: usize,
+        expected: usize,
+        width: u32,
+        height: u32,
+    },
+    #[error(
+        "counts field has {got} bytes, expected {expected} ({COUNT_BYTES} per pixel of a {width}x{height} rect)"
+    )]
+    CountsSize {
+        got: usize,
+        expected: usize,
+        width: u32,
+        height: u32,
+    },
 }
 
 pub fn pack_sums(film: &Film) -> Vec<u8> {
@@ -35,10 +49,21 @@ pub fn pack_counts(film: &Film) -> Vec<u8> {
 }
 
 /// Rebuilds a film from packed fields, checking their sizes against `rect`.
-pub fn unpack(rect: Rect, sums: &[u8], counts: &[u8], rays: RayCounts, nonfinite: u64) -> Result<Film, FilmCodecError> {
+pub fn unpack(
+    rect: Rect,
+    sums: &[u8],
+    counts: &[u8],
+    rays: RayCounts,
+    nonfinite: u64,
+) -> Result<Film, FilmCodecError> {
     let area = rect.area();
     if sums.len() != area * SUM_BYTES {
-        return Err(FilmCodecError::SumsSize { got: sums.len(), expected: area * SUM_BYTES, width: rect.width, height: rect.height });
+        return Err(FilmCodecError::SumsSize {
+            got: sums.len(),
+            expected: area * SUM_BYTES,
+            width: rect.width,
+            height: rect.height,
+        });
     }
     if counts.len() != area * COUNT_BYTES {
         return Err(FilmCodecError::CountsSize {
@@ -49,9 +74,21 @@ pub fn unpack(rect: Rect, sums: &[u8], counts: &[u8], rays: RayCounts, nonfinite
         });
     }
     let u64_at = |b: &[u8]| u64::from_le_bytes(b.try_into().expect("chunk of 8"));
-    let sums = sums.chunks_exact(SUM_BYTES).map(|p| [u64_at(&p[0..8]), u64_at(&p[8..16]), u64_at(&p[16..24])]).collect();
-    let counts = counts.chunks_exact(COUNT_BYTES).map(|c| u32::from_le_bytes(c.try_into().expect("chunk of 4"))).collect();
-    Ok(Film { rect, sums, counts, rays, nonfinite })
+    let sums = sums
+        .chunks_exact(SUM_BYTES)
+        .map(|p| [u64_at(&p[0..8]), u64_at(&p[8..16]), u64_at(&p[16..24])])
+        .collect();
+    let counts = counts
+        .chunks_exact(COUNT_BYTES)
+        .map(|c| u32::from_le_bytes(c.try_into().expect("chunk of 4")))
+        .collect();
+    Ok(Film {
+        rect,
+        sums,
+        counts,
+        rays,
+        nonfinite,
+    })
 }
 
 #[cfg(test)]
@@ -69,8 +106,16 @@ mod tests {
         assert_eq!(unpack(rect, &s, &c, f.rays, 0), Ok(f));
         assert_eq!(
             unpack(rect, &s[1..], &c, RayCounts::default(), 0),
-            Err(FilmCodecError::SumsSize { got: 143, expected: 144, width: 3, height: 2 })
+            Err(FilmCodecError::SumsSize {
+                got: 143,
+                expected: 144,
+                width: 3,
+                height: 2
+            })
         );
-        assert!(matches!(unpack(rect, &s, &c[..20], RayCounts::default(), 0), Err(FilmCodecError::CountsSize { .. })));
+        assert!(matches!(
+            unpack(rect, &s, &c[..20], RayCounts::default(), 0),
+            Err(FilmCodecError::CountsSize { .. })
+        ));
     }
 }

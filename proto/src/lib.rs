@@ -25,7 +25,9 @@ pub const PROTOCOL_VERSION_KEY: &str = "tessera-protocol-version";
 /// gRPC tools); a different or unreadable value is refused with a message that
 /// names both versions.
 pub fn check_protocol_version(meta: &tonic::metadata::MetadataMap) -> Result<(), tonic::Status> {
-    let Some(v) = meta.get(PROTOCOL_VERSION_KEY) else { return Ok(()) };
+    let Some(v) = meta.get(PROTOCOL_VERSION_KEY) else {
+        return Ok(());
+    };
     match v.to_str().ok().and_then(|s| s.trim().parse::<u32>().ok()) {
         Some(PROTOCOL_VERSION) => Ok(()),
         other => Err(tonic::Status::failed_precondition(format!(
@@ -42,7 +44,10 @@ pub struct VersionStamp;
 
 impl tonic::service::Interceptor for VersionStamp {
     fn call(&mut self, mut req: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
-        req.metadata_mut().insert(PROTOCOL_VERSION_KEY, tonic::metadata::MetadataValue::from(PROTOCOL_VERSION));
+        req.metadata_mut().insert(
+            PROTOCOL_VERSION_KEY,
+            tonic::metadata::MetadataValue::from(PROTOCOL_VERSION),
+        );
         Ok(req)
     }
 }

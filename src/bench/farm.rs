@@ -9,7 +9,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result, bail};
 use tracer_core::scene::RenderSettings;
 
 /// How long the farm may take to come up (listen, register workers).
@@ -30,7 +30,12 @@ impl ChildGuard {
     /// `Err` with the end of its log if the process has exited.
     fn check_alive(&mut self) -> Result<()> {
         if let Some(status) = self.child.try_wait()? {
-            bail!("{} exited ({status}); log {}:\n{}", self.what, self.log.display(), tail(&self.log));
+            bail!(
+                "{} exited ({status}); log {}:\n{}",
+                self.what,
+                self.log.display(),
+                tail(&self.log)
+            );
         }
         Ok(())
     }
@@ -72,7 +77,11 @@ fn farm_command(exe: &Path) -> Command {
 }
 
 fn log_file(path: &Path) -> Result<std::fs::File> {
-    std::fs::OpenOptions::new().create(true).append(true).open(path).with_context(|| format!("cannot open {}", path.display()))
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .with_context(|| format!("cannot open {}", path.display()))
 }
 
 /// A coordinator and its workers; dropping it stops them all.
@@ -88,7 +97,13 @@ impl Farm {
     /// Starts a coordinator on a free loopback port with its state in
     /// `data`, and `workers` workers of `threads` threads; returns once
     /// every worker is registered. Logs go to `logs`.STEM.log.
-    pub fn start(exe: &Path, data: &Path, logs: &Path, workers: usize, threads: usize) -> Result<Farm> {
+    pub fn start(
+        exe: &Path,
+        data: &Path,
+        logs: &Path,
+        workers: usize,
+        threads: usize,
+    ) -> Result<Farm> {
         let coord_log = logs.with_extension("coordinator.log");
         let mut child = farm_command(exe)
             .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
@@ -99,7 +114,11 @@ impl Farm {
             .spawn()
             .with_context(|| format!("cannot start {} coordinator", exe.display()))?;
         let stdout = child.stdout.take().expect("stdout is piped");
-        let mut coordinator = ChildGuard { what: "the coordinator".into(), log: coord_log, child };
+        let mut coordinator = ChildGuard {
+            what: "the coordinator".into(),
+            log: coord_log,
+            child,
+        };
         // The coordinator prints its bound address on stdout; read it on a
         // thread so a coordinator that never prints cannot hang the bench.
         let (tx, rx) = mpsc::channel();
@@ -120,17 +139,34 @@ impl Farm {
             bail!("unexpected first line from the coordinator: {line:?}");
         };
         let url = format!("http://{addr}");
-        let mut farm = Farm { exe: exe.to_path_buf(), url, workers: vec![], coordinator };
+        let mut farm = Farm {
+            exe: exe.to_path_buf(),
+            url,
+            workers: vec![],
+            coordinator,
+        };
         for i in 1..=workers {
             let log = logs.with_extension(format!("worker-{i}.log"));
             let child = farm_command(exe)
-                .args(["worker", "--coordinator", &farm.url, "--threads", &threads.to_string(), "--name", &format!("bench-{i}")])
+                .args([
+                    "worker",
+                    "--coordinator",
+                    &farm.url,
+                    "--threads",
+                    &threads.to_string(),
+                    "--name",
+                    &format!("bench-{i}"),
+                ])
                 .stdin(Stdio::null())
                 .stdout(Stdio::null())
                 .stderr(log_file(&log)?)
                 .spawn()
                 .with_context(|| format!("cannot start worker {i}"))?;
-            farm.workers.push(ChildGuard { what: format!("worker {i}"), log, child });
+            farm.workers.push(ChildGuard {
+                what: format!("worker {i}"),
+                log,
+                child,
+            });
         }
         farm.wait_for_workers(workers)?;
         Ok(farm)
@@ -138,7 +174,9 @@ impl Farm {
 
     fn cli(&self, args: &[&str]) -> Command {
         let mut c = farm_command(&self.exe);
-        c.args(args).args(["--coordinator", &self.url]).stdin(Stdio::null());
+        c.args(args)
+            .args(["--coordinator", &self.url])
+            .stdin(Stdio::null());
         c
     }
 
@@ -150,9 +188,15 @@ impl Farm {
             for w in &mut self.workers {
                 w.check_alive()?;
             }
-            let out = self.cli(&["workers"]).output().context("cannot run tessera workers")?;
+            let out = self
+                .cli(&["workers"])
+                .output()
+                .context("cannot run tessera workers")?;
             // A header line, then one line per worker.
-            let listed = String::from_utf8_lossy(&out.stdout).lines().count().saturating_sub(1);
+            let listed = String::from_utf8_lossy(&out.stdout)
+                .lines()
+                .count()
+                .saturating_sub(1);
             if out.status.success() && listed >= n {
                 return Ok(());
             }
@@ -167,19 +211,51 @@ impl Farm {
     /// (`tessera submit --wait`); returns the job id and the wall time from
     /// submission to the job's end. Fails, rather than hangs, if the
     /// coordinator or a worker dies or the job outlasts `JOB_TIMEOUT`.
-    pub fn submit_and_wait(&mut self, scene: &Path, settings: &RenderSettings, tile_size: u32, log: &Path) -> Result<(String, f64)> {
+    pub fn submit_and_wait(
+        &mut self,
+        scene: &Path,
+        settings: &RenderSettings,
+        tile_size: u32,
+        log: &Path,
+    ) -> Result<(String, f64)> {
         let scene_arg = scene.to_string_lossy();
-        let (w, h, s, d) =
-            (settings.width.to_string(), settings.height.to_string(), settings.samples.to_string(), settings.max_depth.to_string());
+        let (w, h, s, d) = (
+            settings.width.to_string(),
+            settings.height.to_string(),
+            settings.samples.to_string(),
+            settings.max_depth.to_string(),
+        );
         let tile = tile_size.to_string();
         let args = [
-            "submit", &scene_arg, "--width", &w, "--height", &h, "--samples", &s, "--max-depth", &d, "--sampler",
-            settings.sampler.name(), "--tile-size", &tile, "--wait",
+            "submit",
+            &scene_arg,
+            "--width",
+            &w,
+            "--height",
+            &h,
+            "--samples",
+            &s,
+            "--max-depth",
+            &d,
+            "--sampler",
+            settings.sampler.name(),
+            "--tile-size",
+            &tile,
+            "--wait",
         ];
         let start = Instant::now();
         // stdout (the job id) is a few bytes; progress goes to the log, so no pipe can fill up.
-        let child = self.cli(&args).stdout(Stdio::piped()).stderr(log_file(log)?).spawn().context("cannot run tessera submit")?;
-        let mut submit = ChildGuard { what: "tessera submit --wait".into(), log: log.to_path_buf(), child };
+        let child = self
+            .cli(&args)
+            .stdout(Stdio::piped())
+            .stderr(log_file(log)?)
+            .spawn()
+            .context("cannot run tessera submit")?;
+        let mut submit = ChildGuard {
+            what: "tessera submit --wait".into(),
+            log: log.to_path_buf(),
+            child,
+        };
         let mut last_check = Instant::now();
         let status = loop {
             if let Some(status) = submit.child.try_wait()? {
@@ -200,23 +276,41 @@ impl Farm {
         let secs = start.elapsed().as_secs_f64();
         let mut stdout = String::new();
         if let Some(mut out) = submit.child.stdout.take() {
-            std::io::Read::read_to_string(&mut out, &mut stdout).context("cannot read tessera submit's output")?;
+            std::io::Read::read_to_string(&mut out, &mut stdout)
+                .context("cannot read tessera submit's output")?;
         }
         if !status.success() {
-            bail!("tessera submit --wait failed ({status}): {stdout}\n{}", tail(log));
+            bail!(
+                "tessera submit --wait failed ({status}): {stdout}\n{}",
+                tail(log)
+            );
         }
-        let id = stdout.lines().next().map(str::trim).filter(|l| !l.is_empty()).context("tessera submit printed no job id")?;
+        let id = stdout
+            .lines()
+            .next()
+            .map(str::trim)
+            .filter(|l| !l.is_empty())
+            .context("tessera submit printed no job id")?;
         Ok((id.to_string(), secs))
     }
 
     /// Fetches the job's frame 0 into `dir`; returns its 8-bit sRGB pixels.
     pub fn fetch_frame0(&self, job: &str, dir: &Path) -> Result<(u32, u32, Vec<u8>)> {
-        let out = self.cli(&["fetch", job, "-o", &dir.to_string_lossy()]).output().context("cannot run tessera fetch")?;
+        let out = self
+            .cli(&["fetch", job, "-o", &dir.to_string_lossy()])
+            .output()
+            .context("cannot run tessera fetch")?;
         if !out.status.success() {
-            bail!("tessera fetch failed ({}): {}", out.status, String::from_utf8_lossy(&out.stderr));
+            bail!(
+                "tessera fetch failed ({}): {}",
+                out.status,
+                String::from_utf8_lossy(&out.stderr)
+            );
         }
         let file = dir.join("frame_0000.png");
-        let img = image::open(&file).with_context(|| format!("cannot read the fetched frame {}", file.display()))?.to_rgb8();
+        let img = image::open(&file)
+            .with_context(|| format!("cannot read the fetched frame {}", file.display()))?
+            .to_rgb8();
         Ok((img.width(), img.height(), img.into_raw()))
     }
 }

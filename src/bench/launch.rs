@@ -9,8 +9,8 @@
 use std::time::{Duration, Instant};
 
 use tracer_core::film::{Film, RayCounts, Rect, SampleRange};
-use tracer_core::render::gpu::{GpuError, GpuOptions, GpuRenderer, Strategy};
 use tracer_core::render::PreparedFrame;
+use tracer_core::render::gpu::{GpuError, GpuOptions, GpuRenderer, Strategy};
 
 /// Renders before the timed ones: the first builds the pipeline and uploads
 /// the scene, the others let clocks ramp up.
@@ -50,7 +50,13 @@ fn median(mut v: Vec<Duration>) -> Duration {
 /// Renders `prepared` (whole frame, all `samples`) with several renderers,
 /// interleaved render by render so that clock ramps and other drift hit
 /// every one alike, after [`WARMUP`] renders each; `reps` timed renders each.
-pub fn run_interleaved(rs: &[&GpuRenderer], prepared: &PreparedFrame, rect: Rect, samples: u32, reps: usize) -> Result<Vec<Timing>, GpuError> {
+pub fn run_interleaved(
+    rs: &[&GpuRenderer],
+    prepared: &PreparedFrame,
+    rect: Rect,
+    samples: u32,
+    reps: usize,
+) -> Result<Vec<Timing>, GpuError> {
     let samples = SampleRange::all(samples);
     let mut films = vec![];
     let mut firsts = vec![];
@@ -130,7 +136,18 @@ pub fn strategy_name(s: Strategy) -> &'static str {
 /// Pixel-samples per dispatch of the full sweep.
 pub const DISPATCH_SIZES: &[u64] = &[1 << 16, 1 << 18, 1 << 20, 1 << 22, 1 << 24];
 /// Workgroup shapes of the stack kernel (2-D tiles and 1-D rows).
-pub const STACK_WORKGROUPS: &[(u32, u32)] = &[(32, 1), (64, 1), (128, 1), (256, 1), (8, 4), (8, 8), (16, 8), (16, 16), (32, 4), (32, 8)];
+pub const STACK_WORKGROUPS: &[(u32, u32)] = &[
+    (32, 1),
+    (64, 1),
+    (128, 1),
+    (256, 1),
+    (8, 4),
+    (8, 8),
+    (16, 8),
+    (16, 16),
+    (32, 4),
+    (32, 8),
+];
 /// The wavefront kernel works on 1-D queues.
 pub const WAVEFRONT_WORKGROUPS: &[(u32, u32)] = &[(32, 1), (64, 1), (128, 1), (256, 1)];
 
@@ -140,13 +157,20 @@ pub fn sweep_shapes(quick: bool) -> Vec<LaunchShape> {
     const QUICK_STACK: &[(u32, u32)] = &[(64, 1), (8, 8)];
     const QUICK_WAVEFRONT: &[(u32, u32)] = &[(64, 1)];
     const QUICK_SIZES: &[u64] = &[1 << 10, 1 << 24];
-    let (stack_wg, wave_wg, sizes) =
-        if quick { (QUICK_STACK, QUICK_WAVEFRONT, QUICK_SIZES) } else { (STACK_WORKGROUPS, WAVEFRONT_WORKGROUPS, DISPATCH_SIZES) };
+    let (stack_wg, wave_wg, sizes) = if quick {
+        (QUICK_STACK, QUICK_WAVEFRONT, QUICK_SIZES)
+    } else {
+        (STACK_WORKGROUPS, WAVEFRONT_WORKGROUPS, DISPATCH_SIZES)
+    };
     let mut out = vec![];
     for (strategy, wgs) in [(Strategy::Stack, stack_wg), (Strategy::Wavefront, wave_wg)] {
         for &workgroup in wgs {
             for &dispatch_pixel_samples in sizes {
-                out.push(LaunchShape { strategy, workgroup, dispatch_pixel_samples });
+                out.push(LaunchShape {
+                    strategy,
+                    workgroup,
+                    dispatch_pixel_samples,
+                });
             }
         }
     }
@@ -181,7 +205,10 @@ pub fn max_abs_diff(a: &Film, b: &Film) -> f64 {
     if x.len() != y.len() {
         return f64::INFINITY;
     }
-    x.iter().zip(&y).flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs() as f64)).fold(0.0, f64::max)
+    x.iter()
+        .zip(&y)
+        .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs() as f64))
+        .fold(0.0, f64::max)
 }
 
 /// Times every shape on adapter `adapter` (an index or name, as
@@ -203,7 +230,11 @@ pub fn sweep(
         .iter()
         .map(|&shape| {
             let result = GpuRenderer::new(Some(adapter), shape.options())
-                .and_then(|r| Ok(run_interleaved(&[&r], prepared, rect, samples, reps)?.pop().expect("one renderer, one timing")))
+                .and_then(|r| {
+                    Ok(run_interleaved(&[&r], prepared, rect, samples, reps)?
+                        .pop()
+                        .expect("one renderer, one timing"))
+                })
                 .map(|t| SweepTiming {
                     gpu: t.gpu,
                     trace: t.trace,

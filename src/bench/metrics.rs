@@ -40,7 +40,12 @@ pub fn compare(test: &[[f32; 3]], reference: &[[f32; 3]], width: u32, height: u3
         );
         nv_flip::FlipPool::from_image(&map).mean() as f64
     };
-    ErrorMetrics { rmse, psnr_db: 20.0 * (1.0 / rmse).log10(), rel_mse: rel / n, flip_mean }
+    ErrorMetrics {
+        rmse,
+        psnr_db: 20.0 * (1.0 / rmse).log10(),
+        rel_mse: rel / n,
+        flip_mean,
+    }
 }
 
 #[cfg(test)]

@@ -12,13 +12,13 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result, bail};
 use tracer_core::film::{Film, RayCounts, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
-pub use metrics::{compare, ErrorMetrics};
+pub use metrics::{ErrorMetrics, compare};
 
 /// The default reference cache directory.
 pub fn reference_dir() -> PathBuf {
@@ -28,7 +28,15 @@ use plot::{LinePlot, Series};
 use reference::ReferenceCache;
 
 /// The named suites, in the order `tessera bench` runs them.
-pub const SUITES: &[&str] = &["resolution", "samples", "complexity", "depth", "precision", "launch", "farm"];
+pub const SUITES: &[&str] = &[
+    "resolution",
+    "samples",
+    "complexity",
+    "depth",
+    "precision",
+    "launch",
+    "farm",
+];
 
 /// The depth suite's default reference depth (issue 6 asks for 32). On the
 /// emerald scene depth 24 is within RMSE 4e-6 of it (40x less than f32
@@ -139,7 +147,12 @@ fn csv_row(r: &Run) -> String {
 fn cpu_model() -> String {
     std::fs::read_to_string("/proc/cpuinfo")
         .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|s| s.trim().to_string()))
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
         .unwrap_or_else(|| std::env::consts::ARCH.to_string())
 }
 
@@ -161,15 +174,27 @@ impl Bench {
 
     /// Renders a whole frame, timing only the render itself (best of
     /// `repeat`). Returns the film, the wall time, and the GPU time alone.
-    fn render(&self, backend: BackendKind, desc: &SceneDesc, settings: &RenderSettings, precision: Precision) -> Result<(Film, f64, Option<f64>)> {
+    fn render(
+        &self,
+        backend: BackendKind,
+        desc: &SceneDesc,
+        settings: &RenderSettings,
+        precision: Precision,
+    ) -> Result<(Film, f64, Option<f64>)> {
         let frame = PreparedFrame::build(desc, settings, 0, precision)?;
-        let (rect, samples) = (Rect::full(settings.width, settings.height), SampleRange::all(settings.samples));
+        let (rect, samples) = (
+            Rect::full(settings.width, settings.height),
+            SampleRange::all(settings.samples),
+        );
         let once = || -> Result<(Film, Option<f64>)> {
             Ok(match backend {
                 BackendKind::Cpu => (self.cpu.render(&frame, 0, rect, samples, &|_| {})?, None),
                 #[cfg(feature = "gpu")]
                 BackendKind::Gpu => {
-                    let gpu = self.gpu.as_ref().expect("GPU renderer made when the GPU backend is selected");
+                    let gpu = self
+                        .gpu
+                        .as_ref()
+                        .expect("GPU renderer made when the GPU backend is selected");
                     let film = gpu.render(&frame, 0, rect, samples, &|_| {})?;
                     (film, gpu.last_stats().gpu_time.map(|d| d.as_secs_f64()))
                 }
@@ -219,10 +244,14 @@ impl Bench {
         );
         let path = self.cfg.out.join(&image);
         std::fs::create_dir_all(path.parent().expect("has a parent"))?;
-        image::RgbImage::from_raw(settings.width, settings.height, tracer_core::film::to_srgb8(&linear))
-            .expect("buffer matches size")
-            .save(&path)
-            .with_context(|| format!("cannot write {}", path.display()))?;
+        image::RgbImage::from_raw(
+            settings.width,
+            settings.height,
+            tracer_core::film::to_srgb8(&linear),
+        )
+        .expect("buffer matches size")
+        .save(&path)
+        .with_context(|| format!("cannot write {}", path.display()))?;
         let run = Run {
             suite,
             scene: name.to_string(),
@@ -230,9 +259,16 @@ impl Bench {
             device: match backend {
                 BackendKind::Cpu => self.cpu_name.clone(),
                 #[cfg(feature = "gpu")]
-                BackendKind::Gpu => self.gpu.as_ref().map_or(String::new(), |g| g.adapter().name.clone()),
+                BackendKind::Gpu => self
+                    .gpu
+                    .as_ref()
+                    .map_or(String::new(), |g| g.adapter().name.clone()),
             },
-            threads: if backend == BackendKind::Cpu { self.cpu.threads() } else { 0 },
+            threads: if backend == BackendKind::Cpu {
+                self.cpu.threads()
+            } else {
+                0
+            },
             settings: *settings,
             precision,
             seconds,
@@ -253,7 +289,10 @@ impl Bench {
             precision.name(),
             seconds,
             run.mrays_per_s(),
-            error.map_or(String::new(), |e| format!("RMSE {:.2e}  PSNR {:.1} dB  FLIP {:.4}", e.rmse, e.psnr_db, e.flip_mean))
+            error.map_or(String::new(), |e| format!(
+                "RMSE {:.2e}  PSNR {:.1} dB  FLIP {:.4}",
+                e.rmse, e.psnr_db, e.flip_mean
+            ))
         );
         Ok(run)
     }
@@ -265,22 +304,54 @@ impl Bench {
     }
 
     fn size(&self, full: (u32, u32)) -> (u32, u32) {
-        if self.cfg.quick { (full.0 / 10, full.1 / 10) } else { full }
+        if self.cfg.quick {
+            (full.0 / 10, full.1 / 10)
+        } else {
+            full
+        }
     }
 
     fn suite_resolution(&self) -> Result<Vec<Run>> {
         let (path, desc) = self.scene("resolution.toml")?;
-        let sizes: &[(u32, u32)] =
-            if self.cfg.quick { &[(64, 48), (128, 96)] } else { &[(640, 480), (800, 600), (1024, 768), (1280, 720), (1920, 1080)] };
+        let sizes: &[(u32, u32)] = if self.cfg.quick {
+            &[(64, 48), (128, 96)]
+        } else {
+            &[
+                (640, 480),
+                (800, 600),
+                (1024, 768),
+                (1280, 720),
+                (1920, 1080),
+            ]
+        };
         let mut runs = vec![];
         for &(width, height) in sizes {
-            let s = RenderSettings { width, height, samples: 4, max_depth: 10, sampler: Sampler::Grid };
+            let s = RenderSettings {
+                width,
+                height,
+                samples: 4,
+                max_depth: 10,
+                sampler: Sampler::Grid,
+            };
             let reference = self.refs.get(&path, &desc, &s, self.reference_samples())?;
             for &b in &self.cfg.backends {
-                runs.push(self.measure("resolution", "resolution", b, &desc, &s, Precision::F32, Some(&reference))?);
+                runs.push(self.measure(
+                    "resolution",
+                    "resolution",
+                    b,
+                    &desc,
+                    &s,
+                    Precision::F32,
+                    Some(&reference),
+                )?);
             }
         }
-        let series = self.series_by_backend(&runs, |r| (r.settings.width as f64 * r.settings.height as f64 / 1e6, r.seconds));
+        let series = self.series_by_backend(&runs, |r| {
+            (
+                r.settings.width as f64 * r.settings.height as f64 / 1e6,
+                r.seconds,
+            )
+        });
         LinePlot {
             title: "Render time against resolution (resolution scene, 4 spp, depth 10)".into(),
             x_label: "megapixels".into(),
@@ -296,16 +367,40 @@ impl Bench {
     fn suite_samples(&self) -> Result<Vec<Run>> {
         let (path, desc) = self.scene("resolution.toml")?;
         let (width, height) = self.size((800, 600));
-        let counts: &[u32] = if self.cfg.quick { &[1, 4, 9] } else { &[1, 4, 9, 16, 25, 36] };
-        let base = RenderSettings { width, height, samples: 1, max_depth: 10, sampler: Sampler::Grid };
+        let counts: &[u32] = if self.cfg.quick {
+            &[1, 4, 9]
+        } else {
+            &[1, 4, 9, 16, 25, 36]
+        };
+        let base = RenderSettings {
+            width,
+            height,
+            samples: 1,
+            max_depth: 10,
+            sampler: Sampler::Grid,
+        };
         // The samples suite is the headline error curve: a finer reference than the others.
-        let reference = self.refs.get(&path, &desc, &base, if self.cfg.quick { 36 } else { 256 })?;
+        let reference =
+            self.refs
+                .get(&path, &desc, &base, if self.cfg.quick { 36 } else { 256 })?;
         let mut runs = vec![];
         for sampler in [Sampler::Grid, Sampler::Jittered] {
             for &samples in counts {
-                let s = RenderSettings { samples, sampler, ..base };
+                let s = RenderSettings {
+                    samples,
+                    sampler,
+                    ..base
+                };
                 for &b in &self.cfg.backends {
-                    runs.push(self.measure("samples", "resolution", b, &desc, &s, Precision::F32, Some(&reference))?);
+                    runs.push(self.measure(
+                        "samples",
+                        "resolution",
+                        b,
+                        &desc,
+                        &s,
+                        Precision::F32,
+                        Some(&reference),
+                    )?);
                 }
             }
         }
@@ -317,7 +412,15 @@ impl Bench {
                     .filter(|r| r.backend == backend_name(b) && r.settings.sampler == sampler)
                     .map(|r| (r.seconds, r.error.map_or(f64::NAN, |e| e.rmse)))
                     .collect();
-                series.push(Series { name: format!("{} {} (1..{} spp)", backend_name(b), sampler.name(), counts.last().unwrap()), points: pts });
+                series.push(Series {
+                    name: format!(
+                        "{} {} (1..{} spp)",
+                        backend_name(b),
+                        sampler.name(),
+                        counts.last().unwrap()
+                    ),
+                    points: pts,
+                });
             }
         }
         LinePlot {
@@ -339,10 +442,24 @@ impl Bench {
             for n in [1, 3, 6, 9] {
                 let name = format!("{material}-{n}");
                 let (path, desc) = self.scene(&format!("complexity/{name}.toml"))?;
-                let s = RenderSettings { width, height, samples: 4, max_depth: 10, sampler: Sampler::Grid };
+                let s = RenderSettings {
+                    width,
+                    height,
+                    samples: 4,
+                    max_depth: 10,
+                    sampler: Sampler::Grid,
+                };
                 let reference = self.refs.get(&path, &desc, &s, self.reference_samples())?;
                 for &b in &self.cfg.backends {
-                    runs.push(self.measure("complexity", &name, b, &desc, &s, Precision::F32, Some(&reference))?);
+                    runs.push(self.measure(
+                        "complexity",
+                        &name,
+                        b,
+                        &desc,
+                        &s,
+                        Precision::F32,
+                        Some(&reference),
+                    )?);
                 }
             }
         }
@@ -352,9 +469,21 @@ impl Bench {
                 let pts = runs
                     .iter()
                     .filter(|r| r.backend == backend_name(b) && r.scene.starts_with(material))
-                    .map(|r| (r.scene.rsplit('-').next().and_then(|n| n.parse::<f64>().ok()).unwrap_or(0.0), r.rays.total() as f64 / 1e6))
+                    .map(|r| {
+                        (
+                            r.scene
+                                .rsplit('-')
+                                .next()
+                                .and_then(|n| n.parse::<f64>().ok())
+                                .unwrap_or(0.0),
+                            r.rays.total() as f64 / 1e6,
+                        )
+                    })
                     .collect();
-                series.push(Series { name: format!("{} {material}", backend_name(b)), points: pts });
+                series.push(Series {
+                    name: format!("{} {material}", backend_name(b)),
+                    points: pts,
+                });
             }
         }
         LinePlot {
@@ -372,19 +501,36 @@ impl Bench {
     fn suite_depth(&self) -> Result<Vec<Run>> {
         let (path, desc) = self.scene("depth.toml")?;
         let (width, height) = self.size((800, 600));
-        let depths: &[u32] = if self.cfg.quick { &[0, 1, 4] } else { &[0, 1, 2, 4, 8, 12, 16] };
+        let depths: &[u32] = if self.cfg.quick {
+            &[0, 1, 4]
+        } else {
+            &[0, 1, 2, 4, 8, 12, 16]
+        };
         // Reference: the f64 render with the same samples (4, grid) at depth
         // `--depth-reference`, so sampling error cancels and what remains is
         // what the missing generations cost. The CPU also runs f64 at each
         // depth: its curve is truncation alone, while the f32 curves level
         // off at the f32 rounding error (docs/benchmarks.md has the figures).
-        let base = RenderSettings { width, height, samples: 4, max_depth: self.cfg.depth_reference, sampler: Sampler::Grid };
+        let base = RenderSettings {
+            width,
+            height,
+            samples: 4,
+            max_depth: self.cfg.depth_reference,
+            sampler: Sampler::Grid,
+        };
         let reference = self.refs.get_exact(&path, &desc, &base)?;
         let mut runs = vec![];
         for &d in depths {
-            let s = RenderSettings { max_depth: d, ..base };
+            let s = RenderSettings {
+                max_depth: d,
+                ..base
+            };
             for &b in &self.cfg.backends {
-                let precisions: &[Precision] = if b == BackendKind::Cpu { &[Precision::F32, Precision::F64] } else { &[Precision::F32] };
+                let precisions: &[Precision] = if b == BackendKind::Cpu {
+                    &[Precision::F32, Precision::F64]
+                } else {
+                    &[Precision::F32]
+                };
                 for &p in precisions {
                     runs.push(self.measure("depth", "depth", b, &desc, &s, p, Some(&reference))?);
                 }
@@ -394,9 +540,16 @@ impl Bench {
             let mut series = vec![];
             for &b in &self.cfg.backends {
                 for p in [Precision::F32, Precision::F64] {
-                    let points: Vec<(f64, f64)> = runs.iter().filter(|r| r.backend == backend_name(b) && r.precision == p).map(f).collect();
+                    let points: Vec<(f64, f64)> = runs
+                        .iter()
+                        .filter(|r| r.backend == backend_name(b) && r.precision == p)
+                        .map(f)
+                        .collect();
                     if !points.is_empty() {
-                        series.push(Series { name: format!("{} {}", backend_name(b), p.name()), points });
+                        series.push(Series {
+                            name: format!("{} {}", backend_name(b), p.name()),
+                            points,
+                        });
                     }
                 }
             }
@@ -412,12 +565,20 @@ impl Bench {
         }
         .write(&self.cfg.out.join("depth/time_vs_depth"))?;
         LinePlot {
-            title: format!("Error against max_depth (reference: f64, depth {}, same 4 grid samples)", self.cfg.depth_reference),
+            title: format!(
+                "Error against max_depth (reference: f64, depth {}, same 4 grid samples)",
+                self.cfg.depth_reference
+            ),
             x_label: "max_depth".into(),
             y_label: "RMSE".into(),
             log_x: false,
             log_y: true,
-            series: by_backend_and_precision(|r| (r.settings.max_depth as f64, r.error.map_or(f64::NAN, |e| e.rmse))),
+            series: by_backend_and_precision(|r| {
+                (
+                    r.settings.max_depth as f64,
+                    r.error.map_or(f64::NAN, |e| e.rmse),
+                )
+            }),
         }
         .write(&self.cfg.out.join("depth/error_vs_depth"))?;
         Ok(runs)
@@ -427,15 +588,35 @@ impl Bench {
         let mut runs = vec![];
         for name in ["tiny-far", "huge-floor", "grazing-plane", "nested-glass"] {
             let (_, desc) = self.scene(&format!("hard/{name}.toml"))?;
-            let (width, height) = if self.cfg.quick { (64, 48) } else { (desc.render.width, desc.render.height) };
-            let s = RenderSettings { width, height, ..desc.render };
+            let (width, height) = if self.cfg.quick {
+                (64, 48)
+            } else {
+                (desc.render.width, desc.render.height)
+            };
+            let s = RenderSettings {
+                width,
+                height,
+                ..desc.render
+            };
             // Error of each precision against the f64 CPU render of the same settings.
             let (f64_film, _, _) = self.render(BackendKind::Cpu, &desc, &s, Precision::F64)?;
             let reference = f64_film.resolve();
             for &b in &self.cfg.backends {
-                let precisions: &[Precision] = if b == BackendKind::Cpu { &[Precision::F32, Precision::F64] } else { &[Precision::F32] };
+                let precisions: &[Precision] = if b == BackendKind::Cpu {
+                    &[Precision::F32, Precision::F64]
+                } else {
+                    &[Precision::F32]
+                };
                 for &p in precisions {
-                    runs.push(self.measure("precision", name, b, &desc, &s, p, Some(&reference))?);
+                    runs.push(self.measure(
+                        "precision",
+                        name,
+                        b,
+                        &desc,
+                        &s,
+                        p,
+                        Some(&reference),
+                    )?);
                 }
             }
         }
@@ -447,10 +628,16 @@ impl Bench {
     /// message) without a GPU backend.
     fn suite_launch(&self) -> Result<Option<Vec<Run>>> {
         #[cfg(feature = "gpu")]
-        if let Some(gpu) = self.gpu.as_ref().filter(|_| self.cfg.backends.contains(&BackendKind::Gpu)) {
+        if let Some(gpu) = self
+            .gpu
+            .as_ref()
+            .filter(|_| self.cfg.backends.contains(&BackendKind::Gpu))
+        {
             return self.launch_sweep(gpu).map(Some);
         }
-        eprintln!("bench: suite launch skipped: it sweeps GPU launch shapes and needs a GPU backend (--backend gpu or both)");
+        eprintln!(
+            "bench: suite launch skipped: it sweeps GPU launch shapes and needs a GPU backend (--backend gpu or both)"
+        );
         Ok(None)
     }
 
@@ -459,39 +646,64 @@ impl Bench {
         use tracer_core::render::gpu::Strategy;
         let adapter = gpu.adapter().index.to_string();
         let (width, height) = self.size((1920, 1080));
-        let reps = if self.cfg.quick { 1 } else { self.cfg.repeat.max(3) as usize };
+        let reps = if self.cfg.quick {
+            1
+        } else {
+            self.cfg.repeat.max(3) as usize
+        };
         let shapes = launch::sweep_shapes(self.cfg.quick);
         let mut runs = vec![];
-        for (name, file) in [("resolution", "resolution.toml"), ("glass-9", "complexity/glass-9.toml")] {
+        for (name, file) in [
+            ("resolution", "resolution.toml"),
+            ("glass-9", "complexity/glass-9.toml"),
+        ] {
             let (_, desc) = self.scene(file)?;
-            let s = RenderSettings { width, height, samples: 4, max_depth: 10, sampler: Sampler::Grid };
+            let s = RenderSettings {
+                width,
+                height,
+                samples: 4,
+                max_depth: 10,
+                sampler: Sampler::Grid,
+            };
             let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
             let rect = Rect::full(width, height);
             // Every shape must give the default options' image.
-            let baseline = launch::run_interleaved(&[gpu], &frame, rect, s.samples, 1)?.pop().expect("one timing").film;
-            let points = launch::sweep(&adapter, &frame, rect, s.samples, reps, &shapes, &baseline, |p| {
-                let sh = &p.shape;
-                match &p.result {
-                    Ok(t) => eprintln!(
-                        "  launch     {name:<14} {:<9} wg {:>3}x{:<2} dispatch {:>8}  GPU {:>8.3} ms  trace {:>8.3} ms  call {:>8.3} ms  max diff {:.1e}",
-                        sh.strategy_name(),
-                        sh.workgroup.0,
-                        sh.workgroup.1,
-                        sh.dispatch_pixel_samples,
-                        t.gpu.as_secs_f64() * 1e3,
-                        t.trace.as_secs_f64() * 1e3,
-                        t.total.as_secs_f64() * 1e3,
-                        t.max_abs_diff
-                    ),
-                    Err(e) => eprintln!(
-                        "  launch     {name:<14} {:<9} wg {:>3}x{:<2} dispatch {:>8}  not run: {e}",
-                        sh.strategy_name(),
-                        sh.workgroup.0,
-                        sh.workgroup.1,
-                        sh.dispatch_pixel_samples
-                    ),
-                }
-            });
+            let baseline = launch::run_interleaved(&[gpu], &frame, rect, s.samples, 1)?
+                .pop()
+                .expect("one timing")
+                .film;
+            let points = launch::sweep(
+                &adapter,
+                &frame,
+                rect,
+                s.samples,
+                reps,
+                &shapes,
+                &baseline,
+                |p| {
+                    let sh = &p.shape;
+                    match &p.result {
+                        Ok(t) => eprintln!(
+                            "  launch     {name:<14} {:<9} wg {:>3}x{:<2} dispatch {:>8}  GPU {:>8.3} ms  trace {:>8.3} ms  call {:>8.3} ms  max diff {:.1e}",
+                            sh.strategy_name(),
+                            sh.workgroup.0,
+                            sh.workgroup.1,
+                            sh.dispatch_pixel_samples,
+                            t.gpu.as_secs_f64() * 1e3,
+                            t.trace.as_secs_f64() * 1e3,
+                            t.total.as_secs_f64() * 1e3,
+                            t.max_abs_diff
+                        ),
+                        Err(e) => eprintln!(
+                            "  launch     {name:<14} {:<9} wg {:>3}x{:<2} dispatch {:>8}  not run: {e}",
+                            sh.strategy_name(),
+                            sh.workgroup.0,
+                            sh.workgroup.1,
+                            sh.dispatch_pixel_samples
+                        ),
+                    }
+                },
+            );
             for p in &points {
                 let Ok(t) = &p.result else { continue };
                 let sh = &p.shape;
@@ -513,7 +725,10 @@ impl Bench {
                         ("strategy", sh.strategy_name().to_string()),
                         ("workgroup_x", sh.workgroup.0.to_string()),
                         ("workgroup_y", sh.workgroup.1.to_string()),
-                        ("dispatch_pixel_samples", sh.dispatch_pixel_samples.to_string()),
+                        (
+                            "dispatch_pixel_samples",
+                            sh.dispatch_pixel_samples.to_string(),
+                        ),
                         ("dispatches", t.dispatches.to_string()),
                         ("trace_wall_s", format!("{:.6}", t.trace.as_secs_f64())),
                         ("readback_s", format!("{:.6}", t.readback.as_secs_f64())),
@@ -534,15 +749,32 @@ impl Bench {
                     let pts = points
                         .iter()
                         .filter(|p| p.shape.strategy == strategy && p.shape.workgroup == wg)
-                        .filter_map(|p| p.result.as_ref().ok().map(|t| (p.shape.dispatch_pixel_samples as f64, t.gpu.as_secs_f64() * 1e3)))
+                        .filter_map(|p| {
+                            p.result.as_ref().ok().map(|t| {
+                                (
+                                    p.shape.dispatch_pixel_samples as f64,
+                                    t.gpu.as_secs_f64() * 1e3,
+                                )
+                            })
+                        })
                         .collect();
-                    series.push(Series { name: format!("{} {}x{}", launch::strategy_name(strategy), wg.0, wg.1), points: pts });
+                    series.push(Series {
+                        name: format!("{} {}x{}", launch::strategy_name(strategy), wg.0, wg.1),
+                        points: pts,
+                    });
                 }
             }
             LinePlot {
-                title: format!("GPU time against dispatch size: {name} {width}x{height}, 4 spp, depth 10"),
+                title: format!(
+                    "GPU time against dispatch size: {name} {width}x{height}, 4 spp, depth 10"
+                ),
                 x_label: "pixel-samples per dispatch".into(),
-                y_label: if gpu.has_timestamps() { "GPU time per frame (ms, timestamps)" } else { "trace time per frame (ms, host)" }.into(),
+                y_label: if gpu.has_timestamps() {
+                    "GPU time per frame (ms, timestamps)"
+                } else {
+                    "trace time per frame (ms, host)"
+                }
+                .into(),
                 log_x: true,
                 log_y: true,
                 series,
@@ -555,23 +787,47 @@ impl Bench {
     /// `farm`: one frame by 1..N worker processes over loopback gRPC,
     /// against the local render of the same settings.
     fn suite_farm(&self) -> Result<Vec<Run>> {
-        let exe = std::env::current_exe().context("cannot find this executable to start the farm's processes")?;
+        let exe = std::env::current_exe()
+            .context("cannot find this executable to start the farm's processes")?;
         let (path, desc) = self.scene("resolution.toml")?;
-        let (width, height) = if self.cfg.quick { (64, 48) } else { (1920, 1080) };
-        let s = RenderSettings { width, height, samples: if self.cfg.quick { 4 } else { 16 }, max_depth: 10, sampler: Sampler::Grid };
+        let (width, height) = if self.cfg.quick {
+            (64, 48)
+        } else {
+            (1920, 1080)
+        };
+        let s = RenderSettings {
+            width,
+            height,
+            samples: if self.cfg.quick { 4 } else { 16 },
+            max_depth: 10,
+            sampler: Sampler::Grid,
+        };
         // Small tiles in the quick run, so that two workers both get work.
         let tile = if self.cfg.quick { 16 } else { 64 };
-        let counts = self.cfg.workers.clone().unwrap_or_else(|| if self.cfg.quick { vec![1, 2] } else { vec![1, 2, 4, 8] });
+        let counts = self.cfg.workers.clone().unwrap_or_else(|| {
+            if self.cfg.quick {
+                vec![1, 2]
+            } else {
+                vec![1, 2, 4, 8]
+            }
+        });
         let threads = self.cfg.worker_threads.max(1);
         let dir = self.cfg.out.join("farm");
-        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        std::fs::create_dir_all(&dir)
+            .with_context(|| format!("cannot create {}", dir.display()))?;
 
         // The local render of the same frame with one worker's threads: the
         // image every farm run must reproduce bit for bit, and its error.
         let local = CpuRenderer::new(Some(threads))?;
         let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
         let start = Instant::now();
-        let film = local.render(&frame, 0, Rect::full(width, height), SampleRange::all(s.samples), &|_| {})?;
+        let film = local.render(
+            &frame,
+            0,
+            Rect::full(width, height),
+            SampleRange::all(s.samples),
+            &|_| {},
+        )?;
         let local_secs = start.elapsed().as_secs_f64();
         let linear = film.resolve();
         let local_srgb = tracer_core::film::to_srgb8(&linear);
@@ -587,11 +843,20 @@ impl Bench {
             let (job_secs, identical, diff_bytes) = {
                 let logs = dir.join(format!("run-{n}"));
                 let mut farm = farm::Farm::start(&exe, &data, &logs, n, threads)?;
-                let (job, secs) = farm.submit_and_wait(&path, &s, tile, &logs.with_extension("submit.log"))?;
+                let (job, secs) =
+                    farm.submit_and_wait(&path, &s, tile, &logs.with_extension("submit.log"))?;
                 let fetched = dir.join(format!("frames-{n}"));
                 let (w, h, pixels) = farm.fetch_frame0(&job, &fetched)?;
                 let same_size = (w, h) == (width, height);
-                let diff = if same_size { pixels.iter().zip(&local_srgb).filter(|(a, b)| a != b).count() } else { pixels.len().max(local_srgb.len()) };
+                let diff = if same_size {
+                    pixels
+                        .iter()
+                        .zip(&local_srgb)
+                        .filter(|(a, b)| a != b)
+                        .count()
+                } else {
+                    pixels.len().max(local_srgb.len())
+                };
                 (secs, same_size && diff == 0, diff)
                 // The farm's processes are stopped here (drop), on success and on error alike.
             };
@@ -603,7 +868,11 @@ impl Bench {
             eprintln!(
                 "  farm       {n:>2} workers x {threads} threads  {job_secs:>8.3} s  speed-up {speedup:>5.2}  efficiency {:>5.1}%  {}",
                 efficiency * 100.0,
-                if identical { "image identical to the local render".to_string() } else { format!("IMAGE DIFFERS from the local render ({diff_bytes} bytes)") }
+                if identical {
+                    "image identical to the local render".to_string()
+                } else {
+                    format!("IMAGE DIFFERS from the local render ({diff_bytes} bytes)")
+                }
             );
             runs.push(Run {
                 suite: "farm",
@@ -630,22 +899,45 @@ impl Bench {
                 ],
             });
         }
-        let workers_vs = |f: fn(&Run) -> f64| vec![Series { name: format!("workers of {threads} threads"), points: runs.iter().map(|r| (r.threads as f64 / threads as f64, f(r))).collect() }];
+        let workers_vs = |f: fn(&Run) -> f64| {
+            vec![Series {
+                name: format!("workers of {threads} threads"),
+                points: runs
+                    .iter()
+                    .map(|r| (r.threads as f64 / threads as f64, f(r)))
+                    .collect(),
+            }]
+        };
         LinePlot {
-            title: format!("Farm speed-up: one {width}x{height} frame, {} spp, over loopback", s.samples),
+            title: format!(
+                "Farm speed-up: one {width}x{height} frame, {} spp, over loopback",
+                s.samples
+            ),
             x_label: "workers".into(),
             y_label: "speed-up against 1 worker".into(),
             log_x: false,
             log_y: false,
             series: {
-                let mut v = workers_vs(|r| r.extra.iter().find(|e| e.0 == "speedup").and_then(|e| e.1.parse().ok()).unwrap_or(f64::NAN));
-                v.push(Series { name: "ideal".into(), points: counts.iter().map(|&n| (n as f64, n as f64)).collect() });
+                let mut v = workers_vs(|r| {
+                    r.extra
+                        .iter()
+                        .find(|e| e.0 == "speedup")
+                        .and_then(|e| e.1.parse().ok())
+                        .unwrap_or(f64::NAN)
+                });
+                v.push(Series {
+                    name: "ideal".into(),
+                    points: counts.iter().map(|&n| (n as f64, n as f64)).collect(),
+                });
                 v
             },
         }
         .write(&dir.join("speedup"))?;
         LinePlot {
-            title: format!("Farm wall time, submit to done ({width}x{height}, {} spp)", s.samples),
+            title: format!(
+                "Farm wall time, submit to done ({width}x{height}, {} spp)",
+                s.samples
+            ),
             x_label: "workers".into(),
             y_label: "seconds".into(),
             log_x: false,
@@ -662,7 +954,11 @@ impl Bench {
             .iter()
             .map(|&b| Series {
                 name: backend_name(b).to_string(),
-                points: runs.iter().filter(|r| r.backend == backend_name(b)).map(&f).collect(),
+                points: runs
+                    .iter()
+                    .filter(|r| r.backend == backend_name(b))
+                    .map(&f)
+                    .collect(),
             })
             .collect()
     }
@@ -683,10 +979,14 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
             bail!("unknown suite {s:?}; suites: {}", SUITES.join(", "));
         }
     }
-    std::fs::create_dir_all(&cfg.out).with_context(|| format!("cannot create {}", cfg.out.display()))?;
+    std::fs::create_dir_all(&cfg.out)
+        .with_context(|| format!("cannot create {}", cfg.out.display()))?;
     #[cfg(feature = "gpu")]
     let gpu = if cfg.backends.contains(&BackendKind::Gpu) {
-        Some(tracer_core::render::GpuRenderer::new(cfg.adapter.as_deref(), Default::default())?)
+        Some(tracer_core::render::GpuRenderer::new(
+            cfg.adapter.as_deref(),
+            Default::default(),
+        )?)
     } else {
         None
     };
@@ -699,7 +999,11 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
         cfg,
     };
     let mut all = vec![];
-    let suites: Vec<String> = if bench.cfg.suites.is_empty() { SUITES.iter().map(|s| s.to_string()).collect() } else { bench.cfg.suites.clone() };
+    let suites: Vec<String> = if bench.cfg.suites.is_empty() {
+        SUITES.iter().map(|s| s.to_string()).collect()
+    } else {
+        bench.cfg.suites.clone()
+    };
     for suite in &suites {
         eprintln!("bench: suite {suite}");
         let suite_start = Instant::now();
@@ -728,7 +1032,10 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
         let file = bench.cfg.out.join(format!("{suite}.csv"));
         std::fs::write(&file, csv).with_context(|| format!("cannot write {}", file.display()))?;
         // References made for the suite included: the cost of a first run.
-        eprintln!("bench: suite {suite} took {:.1} s", suite_start.elapsed().as_secs_f64());
+        eprintln!(
+            "bench: suite {suite} took {:.1} s",
+            suite_start.elapsed().as_secs_f64()
+        );
         all.extend(runs);
     }
     print_summary(&all);
@@ -738,12 +1045,30 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
 fn print_summary(runs: &[Run]) {
     println!(
         "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9} {:>9} {:>10} {:>9} {:>7}  notes",
-        "suite", "scene", "back", "size", "spp", "sampler", "dep", "prec", "time_s", "Mrays/s", "RMSE", "PSNR_dB", "FLIP"
+        "suite",
+        "scene",
+        "back",
+        "size",
+        "spp",
+        "sampler",
+        "dep",
+        "prec",
+        "time_s",
+        "Mrays/s",
+        "RMSE",
+        "PSNR_dB",
+        "FLIP"
     );
     for r in runs {
-        let e = r.error.map_or(["-".to_string(), "-".to_string(), "-".to_string()], |e| {
-            [format!("{:.3e}", e.rmse), format!("{:.2}", e.psnr_db), format!("{:.4}", e.flip_mean)]
-        });
+        let e = r
+            .error
+            .map_or(["-".to_string(), "-".to_string(), "-".to_string()], |e| {
+                [
+                    format!("{:.3e}", e.rmse),
+                    format!("{:.2}", e.psnr_db),
+                    format!("{:.4}", e.flip_mean),
+                ]
+            });
         let notes: Vec<String> = r.extra.iter().map(|(k, v)| format!("{k}={v}")).collect();
         println!(
             "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9.4} {:>9.1} {:>10} {:>9} {:>7}  {}",

@@ -4,9 +4,9 @@
 use std::path::Path;
 use std::sync::Once;
 
-use anyhow::{anyhow, Result};
-use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
+use anyhow::{Result, anyhow};
 use plotters::coord::Shift;
+use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
 use plotters::prelude::*;
 
 static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
@@ -54,7 +54,8 @@ impl LinePlot {
             return Ok(());
         }
         if let Some(dir) = stem.parent() {
-            std::fs::create_dir_all(dir).map_err(|e| anyhow!("cannot create {}: {e}", dir.display()))?;
+            std::fs::create_dir_all(dir)
+                .map_err(|e| anyhow!("cannot create {}: {e}", dir.display()))?;
         }
         let mut buf = vec![0u8; (SIZE.0 * SIZE.1 * 3) as usize];
         {
@@ -63,7 +64,9 @@ impl LinePlot {
             root.present().map_err(|e| anyhow!("plot: {e}"))?;
         }
         let png = stem.with_extension("png");
-        image::RgbImage::from_raw(SIZE.0, SIZE.1, buf).expect("buffer matches size").save(&png)?;
+        image::RgbImage::from_raw(SIZE.0, SIZE.1, buf)
+            .expect("buffer matches size")
+            .save(&png)?;
         let svg = stem.with_extension("svg");
         let root = SVGBackend::new(&svg, SIZE).into_drawing_area();
         self.draw(&root)?;
@@ -72,7 +75,11 @@ impl LinePlot {
     }
 
     fn bounds(&self) -> ((f64, f64), (f64, f64)) {
-        let pts = self.series.iter().flat_map(|s| s.points.iter()).filter(|p| p.0.is_finite() && p.1.is_finite());
+        let pts = self
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter())
+            .filter(|p| p.0.is_finite() && p.1.is_finite());
         let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
         for &(x, y) in pts {
             if (self.log_x && x <= 0.0) || (self.log_y && y <= 0.0) {
@@ -88,7 +95,10 @@ impl LinePlot {
                 (lo / 1.3, hi * 1.3)
             } else {
                 let d = (hi - lo).max(hi.abs() * 0.1).max(1e-9);
-                ((lo - 0.05 * d).min(if lo >= 0.0 { 0.0 } else { lo }), hi + 0.05 * d)
+                (
+                    (lo - 0.05 * d).min(if lo >= 0.0 { 0.0 } else { lo }),
+                    hi + 0.05 * d,
+                )
             }
         };
         (pad(x0, x1, self.log_x), pad(y0, y1, self.log_y))
@@ -132,13 +142,22 @@ impl LinePlot {
             .map_err(|e| err(&e))?;
         for (i, s) in self.series.iter().enumerate() {
             let colour = Palette99::pick(i).to_rgba();
-            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|p| p.0.is_finite() && p.1.is_finite()).collect();
+            let pts: Vec<(f64, f64)> = s
+                .points
+                .iter()
+                .copied()
+                .filter(|p| p.0.is_finite() && p.1.is_finite())
+                .collect();
             chart
                 .draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2)))
                 .map_err(|e| err(&e))?
                 .label(&s.name)
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2)));
-            chart.draw_series(pts.into_iter().map(|p| Circle::new(p, 4, colour.filled()))).map_err(|e| err(&e))?;
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                });
+            chart
+                .draw_series(pts.into_iter().map(|p| Circle::new(p, 4, colour.filled())))
+                .map_err(|e| err(&e))?;
         }
         chart
             .configure_series_labels()

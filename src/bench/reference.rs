@@ -31,8 +31,12 @@ pub struct ReferenceCache {
 
 impl ReferenceCache {
     pub fn new(dir: PathBuf, threads: Option<usize>) -> Result<Self> {
-        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create reference cache {}", dir.display()))?;
-        Ok(ReferenceCache { dir, renderer: CpuRenderer::new(threads)? })
+        std::fs::create_dir_all(&dir)
+            .with_context(|| format!("cannot create reference cache {}", dir.display()))?;
+        Ok(ReferenceCache {
+            dir,
+            renderer: CpuRenderer::new(threads)?,
+        })
     }
 
     /// The default cache: `$XDG_CACHE_HOME/tessera/references`, else `~/.cache/...`.
@@ -46,22 +50,48 @@ impl ReferenceCache {
 
     /// Linear RGB of the reference for `scene` (read from `path`) at
     /// `settings`, except that samples and sampler are the reference's own.
-    pub fn get(&self, path: &Path, scene: &SceneDesc, settings: &RenderSettings, samples: u32) -> Result<Vec<[f32; 3]>> {
-        self.get_exact(path, scene, &RenderSettings { samples, sampler: Sampler::Jittered, ..*settings })
+    pub fn get(
+        &self,
+        path: &Path,
+        scene: &SceneDesc,
+        settings: &RenderSettings,
+        samples: u32,
+    ) -> Result<Vec<[f32; 3]>> {
+        self.get_exact(
+            path,
+            scene,
+            &RenderSettings {
+                samples,
+                sampler: Sampler::Jittered,
+                ..*settings
+            },
+        )
     }
 
     /// Linear RGB of the f64 CPU render of `scene` at exactly `settings`
     /// (same samples, same sampler), cached like [`Self::get`]'s.
-    pub fn get_exact(&self, path: &Path, scene: &SceneDesc, settings: &RenderSettings) -> Result<Vec<[f32; 3]>> {
+    pub fn get_exact(
+        &self,
+        path: &Path,
+        scene: &SceneDesc,
+        settings: &RenderSettings,
+    ) -> Result<Vec<[f32; 3]>> {
         let settings = *settings;
         let samples = settings.samples;
-        let text = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let text =
+            std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
         let key = format!(
             "v{CACHE_VERSION} {}x{} s{} d{} {}",
-            settings.width, settings.height, settings.samples, settings.max_depth, settings.sampler.name()
+            settings.width,
+            settings.height,
+            settings.samples,
+            settings.max_depth,
+            settings.sampler.name()
         );
         let hash = fnv1a(key.as_bytes(), fnv1a(&text, 0xcbf2_9ce4_8422_2325));
-        let stem = path.file_stem().map_or("scene".into(), |s| s.to_string_lossy().into_owned());
+        let stem = path
+            .file_stem()
+            .map_or("scene".into(), |s| s.to_string_lossy().into_owned());
         let file = self.dir.join(format!("{stem}-{hash:016x}.exr"));
         if let Ok(img) = image::open(&file) {
             let img = img.to_rgb32f();
@@ -96,7 +126,10 @@ impl ReferenceCache {
             .save_with_format(&tmp, image::ImageFormat::OpenExr)
             .with_context(|| format!("cannot write {}", tmp.display()))?;
         std::fs::rename(&tmp, &file)?;
-        eprintln!("bench: reference made in {:.1} s", start.elapsed().as_secs_f64());
+        eprintln!(
+            "bench: reference made in {:.1} s",
+            start.elapsed().as_secs_f64()
+        );
         Ok(linear)
     }
 }

@@ -80,10 +80,20 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
         examples: args.examples,
         repeat: args.repeat,
         adapter: args.adapter,
-        workers: args.workers.map(|v| v.into_iter().map(|n| n as usize).collect()),
+        workers: args
+            .workers
+            .map(|v| v.into_iter().map(|n| n as usize).collect()),
         worker_threads: args.worker_threads as usize,
-        depth_reference: args.depth_reference.unwrap_or(if args.quick { 12 } else { bench::DEPTH_REFERENCE }),
+        depth_reference: args.depth_reference.unwrap_or(if args.quick {
+            12
+        } else {
+            bench::DEPTH_REFERENCE
+        }),
     })?;
-    eprintln!("bench: {} runs written under {}", runs.len(), args.out.display());
+    eprintln!(
+        "bench: {} runs written under {}",
+        runs.len(),
+        args.out.display()
+    );
     Ok(ExitCode::SUCCESS)
 }

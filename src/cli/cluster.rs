@@ -5,7 +5,7 @@ use std::io::{BufRead as _, BufReader};
 use std::path::PathBuf;
 use std::process::{Child, Command, ExitCode, Stdio};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 
 use super::worker::WorkerBackend;
@@ -54,7 +54,9 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
     let stdout = coordinator.stdout.take().context("coordinator stdout")?;
     let mut children = Children(vec![coordinator]);
     let mut line = String::new();
-    BufReader::new(stdout).read_line(&mut line).context("reading the coordinator's address")?;
+    BufReader::new(stdout)
+        .read_line(&mut line)
+        .context("reading the coordinator's address")?;
     let Some(addr) = line.trim().strip_prefix("listening on ") else {
         bail!("the coordinator did not start (see its messages above)");
     };
@@ -67,12 +69,25 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
             WorkerBackend::Gpu => "gpu",
         };
         let child = Command::new(&exe)
-            .args(["worker", "--coordinator", &url, "--backend", backend, "--threads", &threads.to_string(), "--name", &format!("local-{i}")])
+            .args([
+                "worker",
+                "--coordinator",
+                &url,
+                "--backend",
+                backend,
+                "--threads",
+                &threads.to_string(),
+                "--name",
+                &format!("local-{i}"),
+            ])
             .spawn()
             .with_context(|| format!("cannot start worker {i}"))?;
         children.0.push(child);
     }
-    eprintln!("cluster: coordinator at {url} with {} worker(s) of {threads} thread(s); Ctrl-C stops everything", args.workers);
+    eprintln!(
+        "cluster: coordinator at {url} with {} worker(s) of {threads} thread(s); Ctrl-C stops everything",
+        args.workers
+    );
     eprintln!("try:     TESSERA_COORDINATOR={url} tessera submit examples/resolution.toml --wait");
     // Ctrl-C on a terminal reaches every process of the group: the workers
     // drain and the coordinator stops by themselves. A signal sent to this
@@ -85,7 +100,8 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
             _ = wait_exit(&mut children.0[0]) => false,
         }
     });
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(if stopped { 5 } else { 0 });
+    let deadline =
+        std::time::Instant::now() + std::time::Duration::from_secs(if stopped { 5 } else { 0 });
     let mut ok = true;
     for c in children.0.iter_mut() {
         loop {
@@ -94,7 +110,9 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
                     ok &= s.success();
                     break;
                 }
-                Ok(None) if std::time::Instant::now() < deadline => std::thread::sleep(std::time::Duration::from_millis(50)),
+                Ok(None) if std::time::Instant::now() < deadline => {
+                    std::thread::sleep(std::time::Duration::from_millis(50))
+                }
                 _ => {
                     let _ = c.kill();
                     let _ = c.wait();
@@ -104,7 +122,11 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
         }
     }
     children.0.clear();
-    Ok(if ok || stopped { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+    Ok(if ok || stopped {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
 }
 
 async fn wait_exit(c: &mut Child) {

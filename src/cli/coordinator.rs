@@ -9,7 +9,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use tessera_coordinator::{Config, Farm};
 
-use super::farm_common::{init_logging, runtime, LogFormat};
+use super::farm_common::{LogFormat, init_logging, runtime};
 
 #[derive(Args, Debug)]
 pub struct CoordinatorArgs {
@@ -37,7 +37,10 @@ pub struct CoordinatorArgs {
 }
 
 fn secs(name: &str, v: f64) -> Result<Duration> {
-    Duration::try_from_secs_f64(v).ok().filter(|d| !d.is_zero()).with_context(|| format!("--{name} must be a positive number of seconds, got {v}"))
+    Duration::try_from_secs_f64(v)
+        .ok()
+        .filter(|d| !d.is_zero())
+        .with_context(|| format!("--{name} must be a positive number of seconds, got {v}"))
 }
 
 pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
@@ -48,9 +51,16 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
     config.progress_interval = secs("progress-interval", args.progress_interval)?;
     config.max_message_bytes = args.max_message_bytes;
     runtime()?.block_on(async move {
-        let listener = tokio::net::TcpListener::bind(&args.listen).await.with_context(|| format!("cannot listen on {}", args.listen))?;
+        let listener = tokio::net::TcpListener::bind(&args.listen)
+            .await
+            .with_context(|| format!("cannot listen on {}", args.listen))?;
         let addr = listener.local_addr()?;
-        let farm = Farm::open(config).with_context(|| format!("cannot open the coordinator state in {}", args.data.display()))?;
+        let farm = Farm::open(config).with_context(|| {
+            format!(
+                "cannot open the coordinator state in {}",
+                args.data.display()
+            )
+        })?;
         tracing::info!(%addr, data = %args.data.display(), "coordinator listening");
         // Scripts and tests read the bound address from stdout.
         println!("listening on {addr}");
@@ -65,7 +75,7 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
 pub async fn shutdown_signal() {
     #[cfg(unix)]
     {
-        use tokio::signal::unix::{signal, SignalKind};
+        use tokio::signal::unix::{SignalKind, signal};
         match signal(SignalKind::terminate()) {
             Ok(mut term) => {
                 tokio::select! {

@@ -3,10 +3,10 @@
 
 use std::time::Duration;
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{Context, Result, anyhow};
 use clap::{Args, ValueEnum};
-use tessera_proto::pb::job_service_client::JobServiceClient;
 use tessera_proto::VersionStamp;
+use tessera_proto::pb::job_service_client::JobServiceClient;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 
@@ -30,8 +30,11 @@ pub enum LogFormat {
 
 /// Logs to stderr; `RUST_LOG` filters (default `info`).
 pub fn init_logging(format: LogFormat) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
     // A second init (tests, nested use) keeps the first subscriber.
     let _ = match format {
         LogFormat::Text => builder.try_init(),
@@ -60,11 +63,16 @@ pub async fn connect(url: &str) -> Result<JobClient> {
 /// status code when it adds something.
 pub fn rpc(s: tonic::Status) -> anyhow::Error {
     match s.code() {
-        tonic::Code::InvalidArgument | tonic::Code::NotFound | tonic::Code::FailedPrecondition => anyhow!("{}", s.message()),
+        tonic::Code::InvalidArgument | tonic::Code::NotFound | tonic::Code::FailedPrecondition => {
+            anyhow!("{}", s.message())
+        }
         code => anyhow!("{} ({code:?})", s.message()),
     }
 }
 
 pub fn runtime() -> Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_multi_thread().enable_all().build().context("cannot start the async runtime")
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")
 }

@@ -7,12 +7,20 @@ use anyhow::Result;
 pub fn run() -> Result<ExitCode> {
     let adapters = tracer_core::render::gpu::list_adapters();
     if adapters.is_empty() {
-        eprintln!("no GPU adapters found (on Linux, install mesa-vulkan-drivers for lavapipe, or a GPU driver with Vulkan)");
+        eprintln!(
+            "no GPU adapters found (on Linux, install mesa-vulkan-drivers for lavapipe, or a GPU driver with Vulkan)"
+        );
         return Ok(ExitCode::FAILURE);
     }
-    println!("{:<5} {:<40} {:<14} {:<8} driver", "index", "name", "type", "backend");
+    println!(
+        "{:<5} {:<40} {:<14} {:<8} driver",
+        "index", "name", "type", "backend"
+    );
     for a in adapters {
-        println!("{:<5} {:<40} {:<14} {:<8} {} {}", a.index, a.name, a.device_type, a.backend, a.driver, a.driver_info);
+        println!(
+            "{:<5} {:<40} {:<14} {:<8} {} {}",
+            a.index, a.name, a.device_type, a.backend, a.driver, a.driver_info
+        );
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -4,14 +4,14 @@ use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use tessera_proto::pb;
 use tokio_stream::StreamExt as _;
 use tracer_core::scene::SceneError;
 
-use super::farm_common::{connect, rpc, runtime, CoordinatorUrl, JobClient};
+use super::farm_common::{CoordinatorUrl, JobClient, connect, rpc, runtime};
 use super::render::RenderOverrides;
 
 /// Exit codes of `tessera watch` and `tessera submit --wait`.
@@ -29,7 +29,11 @@ pub struct Frames {
 impl std::str::FromStr for Frames {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        let num = |t: &str| t.trim().parse::<u32>().map_err(|_| format!("{t:?} is not a frame number"));
+        let num = |t: &str| {
+            t.trim()
+                .parse::<u32>()
+                .map_err(|_| format!("{t:?} is not a frame number"))
+        };
         let (first, last) = match s.split_once("..") {
             Some((a, b)) => (num(a)?, num(b.strip_prefix('=').unwrap_or(b))?),
             None => (num(s)?, num(s)?),
@@ -73,7 +77,10 @@ pub struct SubmitArgs {
 }
 
 pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
-    let scene = std::fs::read(&args.scene).map_err(|source| SceneError::Io { path: args.scene.clone(), source })?;
+    let scene = std::fs::read(&args.scene).map_err(|source| SceneError::Io {
+        path: args.scene.clone(),
+        source,
+    })?;
     let o = &args.overrides;
     let frames = args.frames.unwrap_or(Frames { first: 0, last: 0 });
     let spec = pb::JobSpec {
@@ -89,7 +96,9 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
             height: o.height,
             samples: o.samples,
             max_depth: o.max_depth,
-            sampler: o.sampler.map_or(pb::Sampler::Unspecified, pb::Sampler::from) as i32,
+            sampler: o
+                .sampler
+                .map_or(pb::Sampler::Unspecified, pb::Sampler::from) as i32,
         }),
         first_frame: frames.first,
         last_frame: frames.last,
@@ -100,7 +109,12 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
     };
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator.url).await?;
-        let id = client.submit_job(pb::SubmitJobRequest { spec: Some(spec) }).await.map_err(rpc)?.into_inner().job_id;
+        let id = client
+            .submit_job(pb::SubmitJobRequest { spec: Some(spec) })
+            .await
+            .map_err(rpc)?
+            .into_inner()
+            .job_id;
         println!("{id}");
         if args.wait {
             return watch_job(&mut client, &id).await;
@@ -152,8 +166,16 @@ fn percent(j: &pb::JobStatus) -> f64 {
 pub fn jobs(args: ListArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator.url).await?;
-        let jobs = client.list_jobs(pb::ListJobsRequest {}).await.map_err(rpc)?.into_inner().jobs;
-        println!("{:<12} {:<10} {:>6} {:>4} {:>11} {:>9}  NAME", "ID", "STATE", "DONE", "PRI", "SIZE", "FRAMES");
+        let jobs = client
+            .list_jobs(pb::ListJobsRequest {})
+            .await
+            .map_err(rpc)?
+            .into_inner()
+            .jobs;
+        println!(
+            "{:<12} {:<10} {:>6} {:>4} {:>11} {:>9}  NAME",
+            "ID", "STATE", "DONE", "PRI", "SIZE", "FRAMES"
+        );
         for j in jobs {
             let s = j.settings.unwrap_or_default();
             println!(
@@ -174,15 +196,34 @@ pub fn jobs(args: ListArgs) -> Result<ExitCode> {
 pub fn status(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator.url).await?;
-        let j = client.get_job(pb::GetJobRequest { job_id: args.job }).await.map_err(rpc)?.into_inner();
+        let j = client
+            .get_job(pb::GetJobRequest { job_id: args.job })
+            .await
+            .map_err(rpc)?
+            .into_inner();
         let s = j.settings.unwrap_or_default();
         let rays = j.rays.unwrap_or_default();
         println!("job:       {} ({})", j.job_id, j.name);
         println!("state:     {}", state_name(j.state));
-        println!("progress:  {:.1}% ({} of {} units)", percent(&j), j.units_done, j.units_total);
-        println!("image:     {}x{}, {} samples, depth {}, frames {}..{}", s.width, s.height, s.samples, s.max_depth, j.first_frame, j.last_frame);
-        println!("units:     tile {} px, {} samples per unit", j.tile_size, j.samples_per_unit);
-        println!("rays:      {} ({:.2} Mrays/s)", rays.primary + rays.shadow + rays.reflection + rays.refraction, j.rays_per_second / 1e6);
+        println!(
+            "progress:  {:.1}% ({} of {} units)",
+            percent(&j),
+            j.units_done,
+            j.units_total
+        );
+        println!(
+            "image:     {}x{}, {} samples, depth {}, frames {}..{}",
+            s.width, s.height, s.samples, s.max_depth, j.first_frame, j.last_frame
+        );
+        println!(
+            "units:     tile {} px, {} samples per unit",
+            j.tile_size, j.samples_per_unit
+        );
+        println!(
+            "rays:      {} ({:.2} Mrays/s)",
+            rays.primary + rays.shadow + rays.reflection + rays.refraction,
+            j.rays_per_second / 1e6
+        );
         if j.eta_seconds >= 0.0 && j.state == pb::JobState::Running as i32 {
             println!("eta:       {:.0} s", j.eta_seconds);
         }
@@ -192,7 +233,14 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
         );
         println!("output:    {}", j.output_dir);
         for f in &j.frames {
-            let done = if f.output.is_empty() { format!("{:.0}%", 100.0 * f.units_done as f64 / f.units_total.max(1) as f64) } else { f.output.clone() };
+            let done = if f.output.is_empty() {
+                format!(
+                    "{:.0}%",
+                    100.0 * f.units_done as f64 / f.units_total.max(1) as f64
+                )
+            } else {
+                f.output.clone()
+            };
             println!("  frame {:>5}: {done}", f.frame);
         }
         if !j.error.is_empty() {
@@ -212,10 +260,19 @@ pub fn watch(args: JobArg) -> Result<ExitCode> {
 /// Shows progress until the job ends; the exit code is its outcome
 /// ([`EXIT_DONE`], [`EXIT_FAILED`], [`EXIT_CANCELLED`]).
 async fn watch_job(client: &mut JobClient, id: &str) -> Result<ExitCode> {
-    let mut stream = client.watch_job(pb::WatchJobRequest { job_id: id.to_string() }).await.map_err(rpc)?.into_inner();
+    let mut stream = client
+        .watch_job(pb::WatchJobRequest {
+            job_id: id.to_string(),
+        })
+        .await
+        .map_err(rpc)?
+        .into_inner();
     let bar = if std::io::stderr().is_terminal() {
         ProgressBar::new(1000).with_style(
-            ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent:>3}% {msg}").expect("valid template"),
+            ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {wide_bar} {percent:>3}% {msg}",
+            )
+            .expect("valid template"),
         )
     } else {
         ProgressBar::hidden()
@@ -224,15 +281,29 @@ async fn watch_job(client: &mut JobClient, id: &str) -> Result<ExitCode> {
     while let Some(ev) = stream.next().await {
         let j = ev.map_err(rpc)?;
         bar.set_position((percent(&j) * 10.0) as u64);
-        let eta = if j.eta_seconds >= 0.0 { format!("eta {:.0}s", j.eta_seconds) } else { String::new() };
-        bar.set_message(format!("{} {:.1} Mrays/s {eta}", state_name(j.state), j.rays_per_second / 1e6));
+        let eta = if j.eta_seconds >= 0.0 {
+            format!("eta {:.0}s", j.eta_seconds)
+        } else {
+            String::new()
+        };
+        bar.set_message(format!(
+            "{} {:.1} Mrays/s {eta}",
+            state_name(j.state),
+            j.rays_per_second / 1e6
+        ));
         last = Some(j);
     }
     bar.finish_and_clear();
-    let Some(j) = last else { bail!("the coordinator ended the watch of {id} without any event") };
+    let Some(j) = last else {
+        bail!("the coordinator ended the watch of {id} without any event")
+    };
     match pb::JobState::try_from(j.state).unwrap_or(pb::JobState::Unspecified) {
         pb::JobState::Done => {
-            eprintln!("job {id} done: {} frame(s) in {}", j.frames.len(), j.output_dir);
+            eprintln!(
+                "job {id} done: {} frame(s) in {}",
+                j.frames.len(),
+                j.output_dir
+            );
             Ok(ExitCode::from(EXIT_DONE))
         }
         pb::JobState::Failed => {
@@ -243,14 +314,21 @@ async fn watch_job(client: &mut JobClient, id: &str) -> Result<ExitCode> {
             eprintln!("job {id} cancelled");
             Ok(ExitCode::from(EXIT_CANCELLED))
         }
-        _ => bail!("the watch of {id} ended while the job is {}", state_name(j.state)),
+        _ => bail!(
+            "the watch of {id} ended while the job is {}",
+            state_name(j.state)
+        ),
     }
 }
 
 pub fn cancel(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator.url).await?;
-        let j = client.cancel_job(pb::CancelJobRequest { job_id: args.job }).await.map_err(rpc)?.into_inner();
+        let j = client
+            .cancel_job(pb::CancelJobRequest { job_id: args.job })
+            .await
+            .map_err(rpc)?
+            .into_inner();
         eprintln!("job {} is {}", j.job_id, state_name(j.state));
         Ok(ExitCode::SUCCESS)
     })
@@ -259,19 +337,38 @@ pub fn cancel(args: JobArg) -> Result<ExitCode> {
 pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator.url).await?;
-        std::fs::create_dir_all(&args.output).with_context(|| format!("cannot create {}", args.output.display()))?;
-        let mut stream = client.fetch_results(pb::FetchResultsRequest { job_id: args.job.clone() }).await.map_err(rpc)?.into_inner();
+        std::fs::create_dir_all(&args.output)
+            .with_context(|| format!("cannot create {}", args.output.display()))?;
+        let mut stream = client
+            .fetch_results(pb::FetchResultsRequest {
+                job_id: args.job.clone(),
+            })
+            .await
+            .map_err(rpc)?
+            .into_inner();
         let mut n = 0;
         while let Some(img) = stream.next().await {
             let img = img.map_err(rpc)?;
             // Only a plain file name from the coordinator: never a path elsewhere.
-            let name = Path::new(&img.file_name).file_name().filter(|n| n.to_str() == Some(img.file_name.as_str()));
-            let Some(name) = name else { bail!("the coordinator sent an unsafe file name {:?}", img.file_name) };
+            let name = Path::new(&img.file_name)
+                .file_name()
+                .filter(|n| n.to_str() == Some(img.file_name.as_str()));
+            let Some(name) = name else {
+                bail!(
+                    "the coordinator sent an unsafe file name {:?}",
+                    img.file_name
+                )
+            };
             let path = args.output.join(name);
-            std::fs::write(&path, &img.data).with_context(|| format!("cannot write {}", path.display()))?;
+            std::fs::write(&path, &img.data)
+                .with_context(|| format!("cannot write {}", path.display()))?;
             n += 1;
         }
-        eprintln!("fetched {n} frame(s) of {} into {}", args.job, args.output.display());
+        eprintln!(
+            "fetched {n} frame(s) of {} into {}",
+            args.job,
+            args.output.display()
+        );
         Ok(ExitCode::SUCCESS)
     })
 }
@@ -279,11 +376,23 @@ pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
 pub fn workers(args: ListArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator.url).await?;
-        let ws = client.list_workers(pb::ListWorkersRequest {}).await.map_err(rpc)?.into_inner().workers;
-        println!("{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12}", "ID", "NAME", "BACKEND", "THREADS", "LEASES", "UNITS", "MSAMPLES/S");
+        let ws = client
+            .list_workers(pb::ListWorkersRequest {})
+            .await
+            .map_err(rpc)?
+            .into_inner()
+            .workers;
+        println!(
+            "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12}",
+            "ID", "NAME", "BACKEND", "THREADS", "LEASES", "UNITS", "MSAMPLES/S"
+        );
         for w in ws {
             let c = w.capabilities.unwrap_or_default();
-            let backend = if c.backend == pb::Backend::Gpu as i32 { "gpu" } else { "cpu" };
+            let backend = if c.backend == pb::Backend::Gpu as i32 {
+                "gpu"
+            } else {
+                "cpu"
+            };
             println!(
                 "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2}",
                 w.worker_id,

@@ -4,9 +4,9 @@ mod bench;
 mod cluster;
 mod coordinator;
 mod farm_common;
-mod jobs;
 #[cfg(feature = "gpu")]
 mod gpus;
+mod jobs;
 mod render;
 mod worker;
 

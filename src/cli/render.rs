@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::{bail, Result};
+use anyhow::{Result, bail};
 use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -44,7 +44,8 @@ impl RenderOverrides {
             max_depth: self.max_depth.unwrap_or(scene.max_depth),
             sampler: self.sampler.unwrap_or(scene.sampler),
         };
-        s.validate().map_err(|e| anyhow::anyhow!("invalid render settings: {e}"))?;
+        s.validate()
+            .map_err(|e| anyhow::anyhow!("invalid render settings: {e}"))?;
         Ok(s)
     }
 }
@@ -100,10 +101,13 @@ pub struct RenderArgs {
     pub frame: u32,
 }
 
-pub use tessera_coordinator::image::{write_image, ImageFormat};
+pub use tessera_coordinator::image::{ImageFormat, write_image};
 
 pub fn run(args: RenderArgs) -> Result<ExitCode> {
-    let output = args.output.clone().unwrap_or_else(|| args.scene.with_extension("png"));
+    let output = args
+        .output
+        .clone()
+        .unwrap_or_else(|| args.scene.with_extension("png"));
     // Fail on a bad output name before spending time rendering.
     ImageFormat::of(&output)?;
     let scene = SceneDesc::load(&args.scene)?;
@@ -119,16 +123,23 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         #[cfg(feature = "gpu")]
         BackendArg::Gpu => {
             if precision != Precision::F32 {
-                bail!("--backend gpu renders in f32 only; use --precision f32 (f64 is the CPU reference)");
+                bail!(
+                    "--backend gpu renders in f32 only; use --precision f32 (f64 is the CPU reference)"
+                );
             }
-            Renderer::Gpu(Box::new(tracer_core::render::GpuRenderer::new(args.adapter.as_deref(), Default::default())?))
+            Renderer::Gpu(Box::new(tracer_core::render::GpuRenderer::new(
+                args.adapter.as_deref(),
+                Default::default(),
+            )?))
         }
     };
     let prepared = PreparedFrame::build(&scene, &settings, args.frame, precision)?;
     let total = settings.width as u64 * settings.height as u64 * settings.samples as u64;
     let bar = ProgressBar::new(total).with_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}")
-            .expect("valid template"),
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}",
+        )
+        .expect("valid template"),
     );
     let start = Instant::now();
     let rect = Rect::full(settings.width, settings.height);
@@ -159,7 +170,10 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     if film.nonfinite > 0 {
         // Sanitised to 0 before reaching the image; still a tracer bug worth reporting.
         tracing::warn!(samples = film.nonfinite, "non-finite samples were replaced");
-        eprintln!("warning: {} non-finite samples were replaced by 0", film.nonfinite);
+        eprintln!(
+            "warning: {} non-finite samples were replaced by 0",
+            film.nonfinite
+        );
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -7,7 +7,7 @@ use clap::{Args, ValueEnum};
 use tessera_worker::{Backend, Worker, WorkerConfig};
 
 use super::coordinator::shutdown_signal;
-use super::farm_common::{init_logging, runtime, CoordinatorUrl, LogFormat};
+use super::farm_common::{CoordinatorUrl, LogFormat, init_logging, runtime};
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum WorkerBackend {
@@ -44,7 +44,10 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
         anyhow::bail!("--adapter only applies to --backend gpu");
     }
     let name = args.name.clone().unwrap_or_else(|| {
-        let host = std::env::var("HOSTNAME").ok().or_else(|| std::fs::read_to_string("/etc/hostname").ok()).unwrap_or_default();
+        let host = std::env::var("HOSTNAME")
+            .ok()
+            .or_else(|| std::fs::read_to_string("/etc/hostname").ok())
+            .unwrap_or_default();
         format!("{}-{}", host.trim(), std::process::id())
     });
     let worker = Worker::new(WorkerConfig {

@@ -48,7 +48,10 @@ fn cpu_seconds() -> f64 {
 
 fn main() {
     let renderer = CpuRenderer::new(Some(1)).expect("thread pool");
-    println!("Mrays/s, 1 thread, best of 5 (default: BVH from {} spheres)\nspheres | loop                  | BVH", tracer_core::accel::SPHERE_BVH_MIN);
+    println!(
+        "Mrays/s, 1 thread, best of 5 (default: BVH from {} spheres)\nspheres | loop                  | BVH",
+        tracer_core::accel::SPHERE_BVH_MIN
+    );
     for n in [1, 2, 4, 6, 8, 10, 12, 16, 24, 32, 64, 128] {
         let desc = scene(n);
         let rate = |bvh: bool| {
@@ -59,7 +62,13 @@ fn main() {
                 .map(|_| {
                     let (t, c) = (Instant::now(), cpu_seconds());
                     let film = renderer
-                        .render(&frame, 0, Rect::full(desc.render.width, desc.render.height), SampleRange::all(1), &|_| {})
+                        .render(
+                            &frame,
+                            0,
+                            Rect::full(desc.render.width, desc.render.height),
+                            SampleRange::all(1),
+                            &|_| {},
+                        )
                         .expect("valid request");
                     let rays = film.rays.total() as f64 / 1e6;
                     (rays / t.elapsed().as_secs_f64(), rays / (cpu_seconds() - c))
@@ -67,6 +76,9 @@ fn main() {
                 .fold((0.0, 0.0), |a, b| (f64::max(a.0, b.0), f64::max(a.1, b.1)))
         };
         let (l, b) = (rate(false), rate(true));
-        println!("{n:7} | {:5.2} wall {:5.2} CPU | {:5.2} wall {:5.2} CPU", l.0, l.1, b.0, b.1);
+        println!(
+            "{n:7} | {:5.2} wall {:5.2} CPU | {:5.2} wall {:5.2} CPU",
+            l.0, l.1, b.0, b.1
+        );
     }
 }

@@ -8,7 +8,7 @@
 use std::time::Instant;
 
 use tracer_core::film::{Rect, SampleRange};
-use tracer_core::render::{CpuRenderer, PreparedFrame, Precision};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::SceneDesc;
 
 const REPEATS: usize = 5;
@@ -23,10 +23,15 @@ fn cpu_seconds() -> f64 {
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
-    let path = args.next().unwrap_or_else(|| concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/resolution.toml").to_string());
+    let path = args.next().unwrap_or_else(|| {
+        concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/resolution.toml").to_string()
+    });
     let mut threads: Vec<usize> = args.map(|a| a.parse()).collect::<Result<_, _>>()?;
     if threads.is_empty() {
-        threads = vec![1, std::thread::available_parallelism().map_or(1, |n| n.get())];
+        threads = vec![
+            1,
+            std::thread::available_parallelism().map_or(1, |n| n.get()),
+        ];
     }
     let desc = SceneDesc::load(std::path::Path::new(&path))?;
     let settings = desc.render;
@@ -60,7 +65,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             rays as f64 / cpu / 1e6
         );
         let c: tracer_core::film::RayCounts = counts;
-        println!("    rays: {} primary, {} shadow, {} reflection, {} refraction", c.primary, c.shadow, c.reflection, c.refraction);
+        println!(
+            "    rays: {} primary, {} shadow, {} reflection, {} refraction",
+            c.primary, c.shadow, c.reflection, c.refraction
+        );
     }
     Ok(())
 }

@@ -35,12 +35,25 @@ struct Args {
 }
 
 fn parse_args() -> Result<Args, String> {
-    let mut a = Args { adapter: None, reps: 7, quick: false, sweep: true, cpu: true, sizes: vec![(800, 600), (1920, 1080)] };
+    let mut a = Args {
+        adapter: None,
+        reps: 7,
+        quick: false,
+        sweep: true,
+        cpu: true,
+        sizes: vec![(800, 600), (1920, 1080)],
+    };
     let mut it = std::env::args().skip(1);
     while let Some(arg) = it.next() {
         match arg.as_str() {
             "--adapter" => a.adapter = Some(it.next().ok_or("--adapter needs a value")?),
-            "--reps" => a.reps = it.next().ok_or("--reps needs a value")?.parse().map_err(|e| format!("--reps: {e}"))?,
+            "--reps" => {
+                a.reps = it
+                    .next()
+                    .ok_or("--reps needs a value")?
+                    .parse()
+                    .map_err(|e| format!("--reps: {e}"))?
+            }
             "--quick" => a.quick = true,
             "--no-sweep" => a.sweep = false,
             "--no-cpu" => a.cpu = false,
@@ -49,8 +62,13 @@ fn parse_args() -> Result<Args, String> {
                 a.sizes = v
                     .split(',')
                     .map(|p| {
-                        let (w, h) = p.split_once('x').ok_or(format!("--sizes: {p:?} is not WxH"))?;
-                        Ok((w.parse().map_err(|e| format!("--sizes: {e}"))?, h.parse().map_err(|e| format!("--sizes: {e}"))?))
+                        let (w, h) = p
+                            .split_once('x')
+                            .ok_or(format!("--sizes: {p:?} is not WxH"))?;
+                        Ok((
+                            w.parse().map_err(|e| format!("--sizes: {e}"))?,
+                            h.parse().map_err(|e| format!("--sizes: {e}"))?,
+                        ))
                     })
                     .collect::<Result<_, String>>()?;
             }
@@ -71,7 +89,15 @@ fn ms(d: Duration) -> String {
 
 fn mean_abs_diff(a: &Film, b: &Film) -> f64 {
     let (x, y) = (a.resolve(), b.resolve());
-    x.iter().zip(&y).map(|(p, q)| (0..3).map(|c| (p[c] - q[c]).abs() as f64).fold(0.0, f64::max)).sum::<f64>() / x.len() as f64
+    x.iter()
+        .zip(&y)
+        .map(|(p, q)| {
+            (0..3)
+                .map(|c| (p[c] - q[c]).abs() as f64)
+                .fold(0.0, f64::max)
+        })
+        .sum::<f64>()
+        / x.len() as f64
 }
 
 fn main() {
@@ -85,13 +111,34 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
     let args = parse_args()?;
     let g = GpuRenderer::new(args.adapter.as_deref(), GpuOptions::default())?;
     let idx = g.adapter().index.to_string();
-    let wave = GpuRenderer::new(Some(&idx), GpuOptions { strategy: Strategy::Wavefront, ..GpuOptions::default() })?;
+    let wave = GpuRenderer::new(
+        Some(&idx),
+        GpuOptions {
+            strategy: Strategy::Wavefront,
+            ..GpuOptions::default()
+        },
+    )?;
     let cpu = CpuRenderer::new(None)?;
     println!("# GPU benchmark\n");
     println!("- adapter: {}", g.adapter());
-    println!("- GPU time from: {}", if g.has_timestamps() { "timestamp queries" } else { "host wall time around the trace submissions (no timestamp queries)" });
-    println!("- CPU renderer: {} threads; {} logical cores", cpu.threads(), std::thread::available_parallelism().map_or(0, |n| n.get()));
-    println!("- options: {:?}; median of {} renders after 3 warm-up renders, stack and wavefront interleaved\n", g.options(), args.reps);
+    println!(
+        "- GPU time from: {}",
+        if g.has_timestamps() {
+            "timestamp queries"
+        } else {
+            "host wall time around the trace submissions (no timestamp queries)"
+        }
+    );
+    println!(
+        "- CPU renderer: {} threads; {} logical cores",
+        cpu.threads(),
+        std::thread::available_parallelism().map_or(0, |n| n.get())
+    );
+    println!(
+        "- options: {:?}; median of {} renders after 3 warm-up renders, stack and wavefront interleaved\n",
+        g.options(),
+        args.reps
+    );
 
     let mut scenes = vec!["resolution.toml".to_string(), "depth.toml".to_string()];
     if !args.quick {
@@ -102,24 +149,41 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     let sizes = &args.sizes;
-    println!("| scene | size | spp | rays | wavefront GPU ms | stack GPU ms | trace wall ms | read-back ms | total ms (with read-back) | first render ms | M rays/s (stack GPU) | M rays/s (stack total) | CPU ms | CPU M rays/s | GPU total vs CPU | mean abs diff vs CPU f32 |");
+    println!(
+        "| scene | size | spp | rays | wavefront GPU ms | stack GPU ms | trace wall ms | read-back ms | total ms (with read-back) | first render ms | M rays/s (stack GPU) | M rays/s (stack total) | CPU ms | CPU M rays/s | GPU total vs CPU | mean abs diff vs CPU f32 |"
+    );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for name in &scenes {
         let desc = SceneDesc::load(examples().join(name))?;
         for &(w, h) in sizes.iter() {
-            let s = RenderSettings { width: w, height: h, samples: 4, ..desc.render };
+            let s = RenderSettings {
+                width: w,
+                height: h,
+                samples: 4,
+                ..desc.render
+            };
             let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
-            let mut runs = launch::run_interleaved(&[&g, &wave], &prepared, Rect::full(w, h), s.samples, args.reps)?;
+            let mut runs = launch::run_interleaved(
+                &[&g, &wave],
+                &prepared,
+                Rect::full(w, h),
+                s.samples,
+                args.reps,
+            )?;
             let wr = runs.pop().expect("two runs");
             let r = runs.pop().expect("two runs");
             if wr.film.rays != r.film.rays {
-                println!("<!-- {name}: wavefront traced {:?}, stack {:?} -->", wr.film.rays, r.film.rays);
+                println!(
+                    "<!-- {name}: wavefront traced {:?}, stack {:?} -->",
+                    wr.film.rays, r.film.rays
+                );
             }
             let rays = r.film.rays.total() as f64;
             // CPU: all scenes at 800x600, the resolution scene at both sizes.
             let cpu_cols = if args.cpu && (h == sizes[0].1 || name == "resolution.toml") {
                 let t = Instant::now();
-                let cf = cpu.render(&prepared, 0, Rect::full(w, h), SampleRange::all(4), &|_| {})?;
+                let cf =
+                    cpu.render(&prepared, 0, Rect::full(w, h), SampleRange::all(4), &|_| {})?;
                 let ct = t.elapsed();
                 format!(
                     "{} | {:.0} | {:.2}x | {:.1e}",
@@ -149,11 +213,28 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
     if args.sweep {
         let desc = SceneDesc::load(examples().join("resolution.toml"))?;
         let (w, h) = *sizes.last().ok_or("no --sizes")?;
-        let s = RenderSettings { width: w, height: h, samples: 4, ..desc.render };
+        let s = RenderSettings {
+            width: w,
+            height: h,
+            samples: 4,
+            ..desc.render
+        };
         let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
         let rect = Rect::full(w, h);
-        let baseline = launch::run_interleaved(&[&g], &prepared, rect, s.samples, 1)?.pop().expect("one timing").film;
-        let points = launch::sweep(&idx, &prepared, rect, s.samples, args.reps.min(5), &launch::sweep_shapes(args.quick), &baseline, |_| {});
+        let baseline = launch::run_interleaved(&[&g], &prepared, rect, s.samples, 1)?
+            .pop()
+            .expect("one timing")
+            .film;
+        let points = launch::sweep(
+            &idx,
+            &prepared,
+            rect,
+            s.samples,
+            args.reps.min(5),
+            &launch::sweep_shapes(args.quick),
+            &baseline,
+            |_| {},
+        );
         for (strategy, title) in [
             (Strategy::Stack, format!("Launch-shape sweep: resolution scene, {w}x{h}, 4 spp, GPU ms / trace wall ms (medians)")),
             (Strategy::Wavefront, "Wavefront sweep: same frame, GPU ms / trace wall ms (medians); dispatches are capped at 65535 workgroups".to_string()),

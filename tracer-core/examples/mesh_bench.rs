@@ -26,12 +26,12 @@ use glam::Vec3A;
 use rayon::prelude::*;
 use tracer_core::accel::triangle_bytes;
 use tracer_core::bvh::closest_hits_at;
-use tracer_core::simd::SimdLevel;
 use tracer_core::geometry::PrimId;
-use tracer_core::math::{offset_origin, Ray};
+use tracer_core::math::{Ray, offset_origin};
 use tracer_core::mesh::Mesh;
 use tracer_core::sampling::hash_u32;
 use tracer_core::scene::SceneDesc;
+use tracer_core::simd::SimdLevel;
 use tracer_core::world::World;
 
 const WIDTH: u32 = 1024;
@@ -60,7 +60,10 @@ fn best_of(f: &mut dyn FnMut()) -> (f64, f64) {
     for _ in 0..REPEATS {
         let (t, c) = (Instant::now(), cpu_seconds());
         f();
-        best = (best.0.min(t.elapsed().as_secs_f64()), best.1.min(cpu_seconds() - c));
+        best = (
+            best.0.min(t.elapsed().as_secs_f64()),
+            best.1.min(cpu_seconds() - c),
+        );
     }
     best
 }
@@ -75,7 +78,10 @@ fn main() {
             "--no-cpu" => cpu = false,
             // Smaller GPU renders (e.g. 192x108x1 on a software adapter).
             x if x.starts_with("--gpu-size=") => {
-                let v: Vec<u32> = x["--gpu-size=".len()..].split('x').filter_map(|n| n.parse().ok()).collect();
+                let v: Vec<u32> = x["--gpu-size=".len()..]
+                    .split('x')
+                    .filter_map(|n| n.parse().ok())
+                    .collect();
                 match v[..] {
                     [w, h, s] if w > 0 && h > 0 && s > 0 => GPU_SIZE.with(|g| g.set((w, h, s))),
                     _ => {
@@ -89,12 +95,17 @@ fn main() {
     }
     let models = if args.is_empty() {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/meshes");
-        vec![root.join("stanford-bunny.obj"), root.join("dragon_vrip.ply.gz")]
+        vec![
+            root.join("stanford-bunny.obj"),
+            root.join("dragon_vrip.ply.gz"),
+        ]
     } else {
         args
     };
     let threads = rayon::current_num_threads();
-    println!("mesh_bench: {WIDTH}x{HEIGHT} primary rays + as many incoherent rays, f32, best of {REPEATS}; {threads} threads available");
+    println!(
+        "mesh_bench: {WIDTH}x{HEIGHT} primary rays + as many incoherent rays, f32, best of {REPEATS}; {threads} threads available"
+    );
     for path in models {
         if !path.exists() {
             println!("\n{}: not found, skipped", path.display());
@@ -110,11 +121,20 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
     let t = Instant::now();
     let mesh = Mesh::load(path, false).map_err(|e| e.to_string())?;
     let load = t.elapsed();
-    let (lo, hi) = mesh.positions.iter().fold(([f32::MAX; 3], [f32::MIN; 3]), |(lo, hi), p| {
-        ([0, 1, 2].map(|k| lo[k].min(p[k])), [0, 1, 2].map(|k| hi[k].max(p[k])))
-    });
+    let (lo, hi) = mesh
+        .positions
+        .iter()
+        .fold(([f32::MAX; 3], [f32::MIN; 3]), |(lo, hi), p| {
+            (
+                [0, 1, 2].map(|k| lo[k].min(p[k])),
+                [0, 1, 2].map(|k| hi[k].max(p[k])),
+            )
+        });
     let c = [0, 1, 2].map(|k| (lo[k] + hi[k]) as f64 / 2.0);
-    let diag = (0..3).map(|k| ((hi[k] - lo[k]) as f64).powi(2)).sum::<f64>().sqrt();
+    let diag = (0..3)
+        .map(|k| ((hi[k] - lo[k]) as f64).powi(2))
+        .sum::<f64>()
+        .sqrt();
     // Camera in front (+z, where both models face), framing the model.
     let cam = [c[0], c[1] + 0.1 * diag, c[2] + 1.0 * diag];
     let scene_src = format!(
@@ -124,16 +144,28 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
     );
     let scene = SceneDesc::parse(&scene_src, "mesh_bench.toml").map_err(|e| e.to_string())?;
 
-    println!("\n{}: {} triangles, {} vertices (loaded in {:.0} ms)", path.display(), mesh.triangles.len(), mesh.positions.len(), load.as_secs_f64() * 1e3);
+    println!(
+        "\n{}: {} triangles, {} vertices (loaded in {:.0} ms)",
+        path.display(),
+        mesh.triangles.len(),
+        mesh.positions.len(),
+        load.as_secs_f64() * 1e3
+    );
     let mut world: World<f32> = World::build(&scene, &scene.render, 0);
     // Build time: the tree alone (boxes in, flattened nodes out), as `Bvh::build` times it.
     let build_with = |world: &mut World<f32>, n: usize| {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().expect("thread pool");
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .expect("thread pool");
         let mut best = (f64::MAX, f64::MAX);
         for _ in 0..REPEATS {
             let c = cpu_seconds();
             pool.install(|| world.set_accel(Some(true)));
-            let wall = world.accel.as_ref().map_or(0.0, |b| b.stats.build_time.as_secs_f64());
+            let wall = world
+                .accel
+                .as_ref()
+                .map_or(0.0, |b| b.stats.build_time.as_secs_f64());
             best = (best.0.min(wall), best.1.min(cpu_seconds() - c));
         }
         best
@@ -161,7 +193,10 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         .flat_map(|y| (0..WIDTH).map(move |x| (x, y)))
         .map(|(x, y)| world.camera.ray(x as f32 + 0.5, y as f32 + 0.5))
         .collect();
-    let hits: Vec<Option<(f32, PrimId)>> = primary.iter().map(|r| world.closest_hit(r, PrimId::NONE)).collect();
+    let hits: Vec<Option<(f32, PrimId)>> = primary
+        .iter()
+        .map(|r| world.closest_hit(r, PrimId::NONE))
+        .collect();
     // Incoherent rays: uniform on the hemisphere around the facing normal, from each hit.
     let secondary: Vec<(Ray<f32>, PrimId)> = primary
         .iter()
@@ -177,7 +212,12 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
             Some((Ray::new(offset_origin::<f32>(p, n), d), id))
         })
         .collect();
-    println!("  {} of {} primary rays hit; {} incoherent rays", secondary.len(), primary.len(), secondary.len());
+    println!(
+        "  {} of {} primary rays hit; {} incoherent rays",
+        secondary.len(),
+        primary.len(),
+        secondary.len()
+    );
     // The same primary rays in packets of 4x4 pixels (`World::closest_hits`),
     // checked against the single-ray answers: they must be the same bits.
     let pr = &primary;
@@ -185,7 +225,9 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         .flat_map(|by| (0..WIDTH.div_ceil(4)).map(move |bx| (bx, by)))
         .map(|(bx, by)| {
             (by * 4..(by * 4 + 4).min(HEIGHT))
-                .flat_map(|y| (bx * 4..(bx * 4 + 4).min(WIDTH)).map(move |x| pr[(y * WIDTH + x) as usize]))
+                .flat_map(|y| {
+                    (bx * 4..(bx * 4 + 4).min(WIDTH)).map(move |x| pr[(y * WIDTH + x) as usize])
+                })
                 .collect()
         })
         .collect();
@@ -198,7 +240,15 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         .iter()
         .map(|b| {
             let got = packet_hits(b);
-            b.iter().zip(got).filter(|(r, g)| g.map(|(t, id)| (t.to_bits(), id)) != world.closest_hit(r, PrimId::NONE).map(|(t, id)| (t.to_bits(), id))).count()
+            b.iter()
+                .zip(got)
+                .filter(|(r, g)| {
+                    g.map(|(t, id)| (t.to_bits(), id))
+                        != world
+                            .closest_hit(r, PrimId::NONE)
+                            .map(|(t, id)| (t.to_bits(), id))
+                })
+                .count()
         })
         .sum();
     // The tree walk alone with the AVX-512 node test (no planes in this scene).
@@ -206,7 +256,15 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
     let packet_hits_avx512 = |block: &[Ray<f32>]| {
         let n = block.len();
         let (mut best, mut found) = ([f32::INFINITY; 16], [PrimId::NONE; 16]);
-        closest_hits_at(SimdLevel::Avx512, &world, tree, block, &mut best[..n], &mut found[..n], PrimId::NONE);
+        closest_hits_at(
+            SimdLevel::Avx512,
+            &world,
+            tree,
+            block,
+            &mut best[..n],
+            &mut found[..n],
+            PrimId::NONE,
+        );
         found[..n].iter().filter(|&&id| id != PrimId::NONE).count()
     };
     let wide = SimdLevel::Avx512.is_available();
@@ -214,7 +272,11 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
     // Shadow rays from each block's hits to a point light above, left and in
     // front of the model: coherent (neighbouring points, one light), traced
     // one by one and as each block's packet (`World::occluded_many`).
-    let light = Vec3A::new((c[0] - 0.6 * diag) as f32, (c[1] + 0.8 * diag) as f32, (c[2] + 0.6 * diag) as f32);
+    let light = Vec3A::new(
+        (c[0] - 0.6 * diag) as f32,
+        (c[1] + 0.8 * diag) as f32,
+        (c[2] + 0.6 * diag) as f32,
+    );
     let shadow_blocks: Vec<(Vec<Ray<f32>>, Vec<f32>, Vec<PrimId>)> = blocks
         .iter()
         .map(|b| {
@@ -247,7 +309,9 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
             shadow_blocked += want as usize;
         }
     }
-    println!("  {shadow_count} shadow rays to a point light, {shadow_blocked} blocked; in packets: {shadow_differ} answers differ from single rays");
+    println!(
+        "  {shadow_count} shadow rays to a point light, {shadow_blocked} blocked; in packets: {shadow_differ} answers differ from single rays"
+    );
 
     if gpu {
         if let Err(e) = gpu_bench(path, cam, c) {
@@ -258,32 +322,96 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         return Ok(());
     }
     for n in [1, threads] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build().expect("thread pool");
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .expect("thread pool");
         let time = |f: &(dyn Fn() -> usize + Sync)| {
             best_of(&mut || {
                 std::hint::black_box(pool.install(f));
             })
         };
-        let tp = time(&|| primary.par_chunks(4096).map(|c| c.iter().filter(|r| world.closest_hit(r, PrimId::NONE).is_some()).count()).sum());
-        let tk = time(&|| blocks.par_chunks(256).map(|c| c.iter().map(|b| packet_hits(b).iter().filter(|h| h.is_some()).count()).sum::<usize>()).sum());
-        let tw = wide.then(|| time(&|| blocks.par_chunks(256).map(|c| c.iter().map(|b| packet_hits_avx512(b)).sum::<usize>()).sum()));
+        let tp = time(&|| {
+            primary
+                .par_chunks(4096)
+                .map(|c| {
+                    c.iter()
+                        .filter(|r| world.closest_hit(r, PrimId::NONE).is_some())
+                        .count()
+                })
+                .sum()
+        });
+        let tk = time(&|| {
+            blocks
+                .par_chunks(256)
+                .map(|c| {
+                    c.iter()
+                        .map(|b| packet_hits(b).iter().filter(|h| h.is_some()).count())
+                        .sum::<usize>()
+                })
+                .sum()
+        });
+        let tw = wide.then(|| {
+            time(&|| {
+                blocks
+                    .par_chunks(256)
+                    .map(|c| c.iter().map(|b| packet_hits_avx512(b)).sum::<usize>())
+                    .sum()
+            })
+        });
         let ti = time(&|| {
-            secondary.par_chunks(4096).map(|c| c.iter().filter(|(r, id)| world.closest_hit(r, *id).is_some()).count()).sum()
+            secondary
+                .par_chunks(4096)
+                .map(|c| {
+                    c.iter()
+                        .filter(|(r, id)| world.closest_hit(r, *id).is_some())
+                        .count()
+                })
+                .sum()
         });
         let ts = time(&|| {
             secondary
                 .par_chunks(4096)
-                .map(|c| c.iter().filter(|(r, id)| world.occluded(r, f32::INFINITY, *id)).count())
+                .map(|c| {
+                    c.iter()
+                        .filter(|(r, id)| world.occluded(r, f32::INFINITY, *id))
+                        .count()
+                })
                 .sum()
         });
         let tsh = time(&|| {
             shadow_blocks
                 .par_chunks(256)
-                .map(|c| c.iter().map(|(r, t, s)| r.iter().zip(t).zip(s).filter(|((r, t), s)| world.occluded(r, **t, **s)).count()).sum::<usize>())
+                .map(|c| {
+                    c.iter()
+                        .map(|(r, t, s)| {
+                            r.iter()
+                                .zip(t)
+                                .zip(s)
+                                .filter(|((r, t), s)| world.occluded(r, **t, **s))
+                                .count()
+                        })
+                        .sum::<usize>()
+                })
                 .sum()
         });
-        let tshp = time(&|| shadow_blocks.par_chunks(256).map(|c| c.iter().map(|b| occluded_packets(b).iter().filter(|&&x| x).count()).sum::<usize>()).sum());
-        let m = |rays: usize, (wall, cpu): (f64, f64)| format!("{:.2} ({:.2}/CPU-s)", rays as f64 / wall / 1e6, rays as f64 / cpu / 1e6);
+        let tshp = time(&|| {
+            shadow_blocks
+                .par_chunks(256)
+                .map(|c| {
+                    c.iter()
+                        .map(|b| occluded_packets(b).iter().filter(|&&x| x).count())
+                        .sum::<usize>()
+                })
+                .sum()
+        });
+        let m = |rays: usize, (wall, cpu): (f64, f64)| {
+            format!(
+                "{:.2} ({:.2}/CPU-s)",
+                rays as f64 / wall / 1e6,
+                rays as f64 / cpu / 1e6
+            )
+        };
         println!(
             "  {n} thread{}: Mrays/s wall (per CPU-second): primary {}, primary in 4x4 packets {} ({} node test; AVX-512: {}), shadow {}, shadow in packets {}, incoherent closest-hit {}, incoherent occlusion {}",
             if n == 1 { " " } else { "s" },
@@ -315,7 +443,11 @@ fn gpu_bench(path: &Path, cam: [f64; 3], look_at: [f64; 3]) -> Result<(), String
     use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 
     let g = GpuRenderer::new(None, GpuOptions::default()).map_err(|e| e.to_string())?;
-    println!("  GPU: {} (timestamps: {})", g.adapter(), g.has_timestamps());
+    println!(
+        "  GPU: {} (timestamps: {})",
+        g.adapter(),
+        g.has_timestamps()
+    );
     let scene = |(w, h, samples): (u32, u32, u32), material: &str, depth: u32| {
         let src = format!(
             "[render]\nwidth = {w}\nheight = {h}\nsamples = {samples}\nmax_depth = {depth}\n[camera]\nposition = {cam:?}\nlook_at = {look_at:?}\nfov_y = 40\n\
@@ -331,13 +463,20 @@ fn gpu_bench(path: &Path, cam: [f64; 3], look_at: [f64; 3]) -> Result<(), String
         );
         SceneDesc::parse(&src, "mesh_bench.toml").map_err(|e| e.to_string())
     };
-    for (label, material, depth) in [("diffuse, depth 0 (primary + shadow)", "grey", 0), ("mirror, depth 2 (+ reflection, their shadows)", "mirror", 2)] {
+    for (label, material, depth) in [
+        ("diffuse, depth 0 (primary + shadow)", "grey", 0),
+        ("mirror, depth 2 (+ reflection, their shadows)", "mirror", 2),
+    ] {
         let (w, h, spp) = GPU_SIZE.with(|g| g.get());
         let desc = scene((w, h, spp), material, depth)?;
         let t = Instant::now();
-        let frame = PreparedFrame::build(&desc, &desc.render, 0, Precision::F32).map_err(|e| e.to_string())?;
+        let frame = PreparedFrame::build(&desc, &desc.render, 0, Precision::F32)
+            .map_err(|e| e.to_string())?;
         let build = t.elapsed();
-        let render = || g.render(&frame, 0, Rect::full(w, h), SampleRange::all(spp), &|_| {}).map_err(|e| e.to_string());
+        let render = || {
+            g.render(&frame, 0, Rect::full(w, h), SampleRange::all(spp), &|_| {})
+                .map_err(|e| e.to_string())
+        };
         let t = Instant::now();
         let first = render()?;
         let warm = t.elapsed();
@@ -377,8 +516,11 @@ fn gpu_bench(path: &Path, cam: [f64; 3], look_at: [f64; 3]) -> Result<(), String
         // Correctness: the same scene, smaller, on the CPU (f32, all threads).
         let (cw, ch) = (w.min(480), h.min(270));
         let small = scene((cw, ch, 1), material, depth)?;
-        let frame = PreparedFrame::build(&small, &small.render, 0, Precision::F32).map_err(|e| e.to_string())?;
-        let gf = g.render(&frame, 0, Rect::full(cw, ch), SampleRange::all(1), &|_| {}).map_err(|e| e.to_string())?;
+        let frame = PreparedFrame::build(&small, &small.render, 0, Precision::F32)
+            .map_err(|e| e.to_string())?;
+        let gf = g
+            .render(&frame, 0, Rect::full(cw, ch), SampleRange::all(1), &|_| {})
+            .map_err(|e| e.to_string())?;
         let cf = CpuRenderer::new(None)
             .map_err(|e| e.to_string())?
             .render(&frame, 0, Rect::full(cw, ch), SampleRange::all(1), &|_| {})

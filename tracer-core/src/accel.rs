@@ -41,7 +41,9 @@ impl<R: Real> TriangleSet<R> {
         max_depth: u32,
         origin: [f64; 3],
     ) {
-        let Some(mesh) = desc.model.0.as_deref() else { return };
+        let Some(mesh) = desc.model.0.as_deref() else {
+            return;
+        };
         let xf = desc.transform();
         let origin = glam::DVec3::from_array(origin);
         let mats: Vec<u32> = if material == crate::scene::FILE_MATERIALS {
@@ -56,7 +58,11 @@ impl<R: Real> TriangleSet<R> {
             vec![material; mesh.materials.len()]
         };
         // Positions in f64, made camera-relative, and only then rounded.
-        let verts: Vec<R::V3> = mesh.positions.iter().map(|&p| R::V3::from_array((xf.point(p) - origin).to_array())).collect();
+        let verts: Vec<R::V3> = mesh
+            .positions
+            .iter()
+            .map(|&p| R::V3::from_array((xf.point(p) - origin).to_array()))
+            .collect();
         let nm = xf.normal_matrix();
         let normals: Vec<R::V3> = mesh
             .normals
@@ -64,7 +70,11 @@ impl<R: Real> TriangleSet<R> {
             .map(|&n| {
                 let n = nm * glam::DVec3::from_array(n.map(f64::from));
                 let l = n.length();
-                R::V3::from_array(if l > 0.0 && l.is_finite() { (n / l).to_array() } else { [0.0; 3] })
+                R::V3::from_array(if l > 0.0 && l.is_finite() {
+                    (n / l).to_array()
+                } else {
+                    [0.0; 3]
+                })
             })
             .collect();
         let flip = xf.mirrors();
@@ -86,10 +96,16 @@ impl<R: Real> TriangleSet<R> {
             } else {
                 let ns = t.map(|i| normals[i as usize]);
                 // Any unknown (zero) vertex normal: shade this triangle flat.
-                ns.iter().all(|n| n.length_squared() > R::ZERO).then_some(ns)
+                ns.iter()
+                    .all(|n| n.length_squared() > R::ZERO)
+                    .then_some(ns)
             };
             self.triangles.push(tri);
-            self.shading.push(TriangleShading { normal: cross * (R::ONE / len), vertex_normals, material: mats[m as usize] });
+            self.shading.push(TriangleShading {
+                normal: cross * (R::ONE / len),
+                vertex_normals,
+                material: mats[m as usize],
+            });
         }
     }
 }
@@ -98,7 +114,8 @@ impl<R: Real> TriangleSet<R> {
 /// one, and reorders the triangles to the tree's leaf order (so a leaf's
 /// triangles are neighbours in memory).
 pub(crate) fn build_accel<R: Real>(world: &mut World<R>, force: Option<bool>) {
-    let wanted = force.unwrap_or(!world.triangles.is_empty() || world.spheres.len() >= SPHERE_BVH_MIN);
+    let wanted =
+        force.unwrap_or(!world.triangles.is_empty() || world.spheres.len() >= SPHERE_BVH_MIN);
     if !wanted || (world.triangles.is_empty() && world.spheres.is_empty()) {
         world.accel = None;
         return;
@@ -123,7 +140,11 @@ pub(crate) fn build_accel<R: Real>(world: &mut World<R>, force: Option<bool>) {
     if n > 0 {
         let mut triangles = Vec::with_capacity(n);
         let mut shading = Vec::with_capacity(n);
-        for id in tree.prims.iter_mut().filter(|id| id.kind() == PrimId::TRIANGLE) {
+        for id in tree
+            .prims
+            .iter_mut()
+            .filter(|id| id.kind() == PrimId::TRIANGLE)
+        {
             triangles.push(world.triangles[id.index()]);
             shading.push(world.triangle_shading[id.index()]);
             *id = PrimId::new(PrimId::TRIANGLE, triangles.len() as u32 - 1);
@@ -136,7 +157,9 @@ pub(crate) fn build_accel<R: Real>(world: &mut World<R>, force: Option<bool>) {
     // made the bunny scene (a glass sphere in the tree) 9% slower.
     if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>() && world.spheres.is_empty() {
         // SAFETY: R is f32, so this is the same type.
-        let tris = unsafe { &*(world.triangles.as_slice() as *const [Triangle<R>] as *const [Triangle<f32>]) };
+        let tris = unsafe {
+            &*(world.triangles.as_slice() as *const [Triangle<R>] as *const [Triangle<f32>])
+        };
         tree.pack_triangles(tris);
     }
     world.accel = Some(tree);
@@ -152,7 +175,12 @@ impl<R: Real> World<R> {
 
     /// `closest_hit` of worlds with a tree: planes by loop, the rest by tree.
     #[inline]
-    pub(crate) fn closest_hit_accel(&self, tree: &Bvh, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+    pub(crate) fn closest_hit_accel(
+        &self,
+        tree: &Bvh,
+        ray: &Ray<R>,
+        skip: PrimId,
+    ) -> Option<(R, PrimId)> {
         let (best, id) = self.closest_plane(ray, skip);
         bvh::closest_hit(self, tree, ray, best, id, skip)
     }
@@ -202,13 +230,29 @@ impl<R: Real> World<R> {
             return;
         };
         // SAFETY: R is f32 here (the downcast succeeded), so these are the same types.
-        let (rays, t_max) = unsafe { (&*(rays as *const [Ray<R>] as *const [Ray<f32>]), &*(t_max as *const [R] as *const [f32])) };
+        let (rays, t_max) = unsafe {
+            (
+                &*(rays as *const [Ray<R>] as *const [Ray<f32>]),
+                &*(t_max as *const [R] as *const [f32]),
+            )
+        };
         let n = bvh::PACKET;
-        for ((rays, t_max), (skip, out)) in rays.chunks(n).zip(t_max.chunks(n)).zip(skip.chunks(n).zip(out.chunks_mut(n))) {
+        for ((rays, t_max), (skip, out)) in rays
+            .chunks(n)
+            .zip(t_max.chunks(n))
+            .zip(skip.chunks(n).zip(out.chunks_mut(n)))
+        {
             let blocked = bvh::occluded_hits(w, tree, rays, t_max, skip);
             for (j, o) in out.iter_mut().enumerate() {
                 *o = (blocked >> j) & 1 != 0
-                    || w.planes.iter().enumerate().any(|(i, p)| p.intersect(&rays[j], t_max[j], PrimId::new(PrimId::PLANE, i as u32) == skip[j]).is_some());
+                    || w.planes.iter().enumerate().any(|(i, p)| {
+                        p.intersect(
+                            &rays[j],
+                            t_max[j],
+                            PrimId::new(PrimId::PLANE, i as u32) == skip[j],
+                        )
+                        .is_some()
+                    });
             }
         }
     }
@@ -238,11 +282,10 @@ impl<R: Real> World<R> {
 
     #[inline]
     pub(crate) fn occluded_accel(&self, tree: &Bvh, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
-        self.planes
-            .iter()
-            .enumerate()
-            .any(|(i, p)| p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip).is_some())
-            || bvh::occluded(self, tree, ray, t_max, skip)
+        self.planes.iter().enumerate().any(|(i, p)| {
+            p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
+                .is_some()
+        }) || bvh::occluded(self, tree, ray, t_max, skip)
     }
 
     /// `closest_hit` without a tree when there are triangles: every
@@ -278,16 +321,13 @@ impl<R: Real> World<R> {
         let tr = TriangleRay::new(ray);
         self.triangles.iter().enumerate().any(|(i, t)| {
             PrimId::new(PrimId::TRIANGLE, i as u32) != skip && t.intersect(&tr, t_max).is_some()
-        }) || self
-            .spheres
-            .iter()
-            .enumerate()
-            .any(|(i, s)| s.intersect(ray, t_max, PrimId::new(PrimId::SPHERE, i as u32) == skip).is_some())
-            || self
-                .planes
-                .iter()
-                .enumerate()
-                .any(|(i, p)| p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip).is_some())
+        }) || self.spheres.iter().enumerate().any(|(i, s)| {
+            s.intersect(ray, t_max, PrimId::new(PrimId::SPHERE, i as u32) == skip)
+                .is_some()
+        }) || self.planes.iter().enumerate().any(|(i, p)| {
+            p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
+                .is_some()
+        })
     }
 
     /// Point snapped onto the triangle's plane, its outward geometric normal, and material.
@@ -321,5 +361,6 @@ impl<R: Real> World<R> {
 
 /// Bytes of a world's triangle data (intersection + shading arrays).
 pub fn triangle_bytes<R: Real>(world: &World<R>) -> usize {
-    world.triangles.len() * (std::mem::size_of::<Triangle<R>>() + std::mem::size_of::<TriangleShading<R>>())
+    world.triangles.len()
+        * (std::mem::size_of::<Triangle<R>>() + std::mem::size_of::<TriangleShading<R>>())
 }

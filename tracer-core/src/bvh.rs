@@ -34,10 +34,12 @@ use glam::Vec3A;
 
 use crate::geometry::PrimId;
 use crate::math::{Ray, Real, Vector3};
-use crate::triangle::{finish, Triangle, Triangle4, TriangleRay};
+use crate::triangle::{Triangle, Triangle4, TriangleRay, finish};
 use crate::world::World;
 
-pub use packet::{closest_hits, closest_hits_at, occluded_hits, occluded_hits_at, render_level, PACKET};
+pub use packet::{
+    PACKET, closest_hits, closest_hits_at, occluded_hits, occluded_hits_at, render_level,
+};
 
 /// Binary levels of the tree as built: no leaf of the binary tree is this deep.
 pub const MAX_DEPTH: usize = 64;
@@ -81,7 +83,11 @@ impl BvhNode4 {
     /// A node of four empty slots.
     pub const EMPTY: BvhNode4 = {
         let (i, ni) = (f32::INFINITY, f32::NEG_INFINITY);
-        BvhNode4 { b: [[i; 4], [ni; 4], [i; 4], [ni; 4], [i; 4], [ni; 4]], child: [0; 4], count: [0; 4] }
+        BvhNode4 {
+            b: [[i; 4], [ni; 4], [i; 4], [ni; 4], [i; 4], [ni; 4]],
+            child: [0; 4],
+            count: [0; 4],
+        }
     };
 
     /// Sets slot `k`'s box.
@@ -114,7 +120,10 @@ pub struct Aabb {
 }
 
 impl Aabb {
-    pub const EMPTY: Aabb = Aabb { min: Vec3A::splat(f32::INFINITY), max: Vec3A::splat(f32::NEG_INFINITY) };
+    pub const EMPTY: Aabb = Aabb {
+        min: Vec3A::splat(f32::INFINITY),
+        max: Vec3A::splat(f32::NEG_INFINITY),
+    };
 
     /// The `f32` box that contains the `f64` box [lo, hi].
     pub fn outward(lo: [f64; 3], hi: [f64; 3]) -> Aabb {
@@ -126,7 +135,10 @@ impl Aabb {
             let f = x as f32;
             if (f as f64) < x { f.next_up() } else { f }
         };
-        Aabb { min: Vec3A::from_array(lo.map(down)), max: Vec3A::from_array(hi.map(up)) }
+        Aabb {
+            min: Vec3A::from_array(lo.map(down)),
+            max: Vec3A::from_array(hi.map(up)),
+        }
     }
     #[inline]
     pub fn grow(&mut self, o: &Aabb) {
@@ -192,8 +204,16 @@ static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new
 
 /// Build-time tree before flattening.
 enum BuildNode {
-    Leaf { bounds: Aabb, start: usize, count: usize },
-    Inner { bounds: Aabb, children: Box<[BuildNode; 2]>, median: bool },
+    Leaf {
+        bounds: Aabb,
+        start: usize,
+        count: usize,
+    },
+    Inner {
+        bounds: Aabb,
+        children: Box<[BuildNode; 2]>,
+        median: bool,
+    },
 }
 
 impl BuildNode {
@@ -221,7 +241,16 @@ impl<'a> Prims<'a> {
     fn split_at(self, mid: usize) -> (Prims<'a>, Prims<'a>) {
         let (bl, br) = self.boxes.split_at_mut(mid);
         let (ol, or) = self.order.split_at_mut(mid);
-        (Prims { boxes: bl, order: ol }, Prims { boxes: br, order: or })
+        (
+            Prims {
+                boxes: bl,
+                order: ol,
+            },
+            Prims {
+                boxes: br,
+                order: or,
+            },
+        )
     }
 }
 
@@ -242,7 +271,11 @@ impl Bvh {
     pub fn build_with_depth(boxes: &[Aabb], ids: &[PrimId], depth: usize) -> Bvh {
         let stack = depth;
         assert_eq!(boxes.len(), ids.len());
-        assert!(stack >= 2 + ceil_log2(boxes.len()), "a depth of {stack} cannot hold a tree over {} primitives", boxes.len());
+        assert!(
+            stack >= 2 + ceil_log2(boxes.len()),
+            "a depth of {stack} cannot hold a tree over {} primitives",
+            boxes.len()
+        );
         let start = Instant::now();
         if boxes.is_empty() {
             return Bvh::default();
@@ -250,23 +283,41 @@ impl Bvh {
         let mut work: Vec<Aabb> = boxes.to_vec();
         let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
         let (bounds, cbounds) = bounds_of(&work);
-        let prims = Prims { boxes: &mut work, order: &mut order };
+        let prims = Prims {
+            boxes: &mut work,
+            order: &mut order,
+        };
         let root = build_node(stack, prims, 0, 0, bounds, cbounds);
 
         let mut flat = Flat {
             nodes: Vec::with_capacity(boxes.len() / 2 + 1),
             prims: Vec::with_capacity(boxes.len() * 3 / 2),
-            stats: BvhStats { primitives: boxes.len(), ..Default::default() },
+            stats: BvhStats {
+                primitives: boxes.len(),
+                ..Default::default()
+            },
             order: &order,
             ids,
         };
         flatten4(&root, 0, 0, &mut flat);
-        let Flat { nodes, prims, mut stats, .. } = flat;
+        let Flat {
+            nodes,
+            prims,
+            mut stats,
+            ..
+        } = flat;
         stats.nodes = nodes.len();
-        stats.bytes = nodes.len() * std::mem::size_of::<BvhNode4>() + prims.len() * std::mem::size_of::<PrimId>();
+        stats.bytes = nodes.len() * std::mem::size_of::<BvhNode4>()
+            + prims.len() * std::mem::size_of::<PrimId>();
         stats.build_time = start.elapsed();
         debug_assert!(stats.stack <= stack_for_depth(stack));
-        Bvh { nodes, prims, packets: Vec::new(), stats, id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed) }
+        Bvh {
+            nodes,
+            prims,
+            packets: Vec::new(),
+            stats,
+            id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
+        }
     }
 
     /// Fills [`Bvh::packets`] from `triangles` (the world's, in `f32`, which
@@ -275,7 +326,9 @@ impl Bvh {
     /// Only for trees over triangles alone; others keep none.
     pub fn pack_triangles(&mut self, triangles: &[Triangle<f32>]) {
         self.packets.clear();
-        if self.prims.iter().any(|p| *p != PrimId::NONE && (p.kind() != PrimId::TRIANGLE || p.index() >= triangles.len())) {
+        if self.prims.iter().any(|p| {
+            *p != PrimId::NONE && (p.kind() != PrimId::TRIANGLE || p.index() >= triangles.len())
+        }) {
             return;
         }
         self.packets = self
@@ -313,42 +366,95 @@ fn bounds_of(boxes: &[Aabb]) -> (Aabb, Aabb) {
 /// order), at depth `depth`, partitioning them in place. `bounds` and
 /// `cbounds` bound the primitives' boxes and centroids; `stack` is the
 /// traversal stack size (leaves at most `stack - 1` deep).
-fn build_node(stack: usize, prims: Prims, offset: usize, depth: usize, bounds: Aabb, cbounds: Aabb) -> BuildNode {
+fn build_node(
+    stack: usize,
+    prims: Prims,
+    offset: usize,
+    depth: usize,
+    bounds: Aabb,
+    cbounds: Aabb,
+) -> BuildNode {
     let n = prims.len();
     if n == 1 {
-        return BuildNode::Leaf { bounds, start: offset, count: 1 };
+        return BuildNode::Leaf {
+            bounds,
+            start: offset,
+            count: 1,
+        };
     }
     // Depth budget: median splits finish any subtree within ceil(log2 n)
     // more levels, so use them once the SAH could overrun the stack.
     let median = depth + ceil_log2(n) >= stack - 1;
-    let split = if median { None } else { sah_split(prims.boxes, &bounds, &cbounds) };
+    let split = if median {
+        None
+    } else {
+        sah_split(prims.boxes, &bounds, &cbounds)
+    };
     let mut prims = prims;
     let (mid, lb, rb) = match split {
-        Some(Split::Leaf) => return BuildNode::Leaf { bounds, start: offset, count: n },
-        Some(Split::Bin { axis, bin, lo, scale, top, left, right }) => {
+        Some(Split::Leaf) => {
+            return BuildNode::Leaf {
+                bounds,
+                start: offset,
+                count: n,
+            };
+        }
+        Some(Split::Bin {
+            axis,
+            bin,
+            lo,
+            scale,
+            top,
+            left,
+            right,
+        }) => {
             let (mid, lc, rc) = partition_bins(&mut prims, axis, bin, lo, scale, top);
             (mid, (left, lc), (right, rc))
         }
         None => {
             if !median && n <= MAX_LEAF {
-                return BuildNode::Leaf { bounds, start: offset, count: n };
+                return BuildNode::Leaf {
+                    bounds,
+                    start: offset,
+                    count: n,
+                };
             }
             let mid = median_split(&mut prims, &cbounds);
-            (mid, bounds_of(&prims.boxes[..mid]), bounds_of(&prims.boxes[mid..]))
+            (
+                mid,
+                bounds_of(&prims.boxes[..mid]),
+                bounds_of(&prims.boxes[mid..]),
+            )
         }
     };
     let (left, right) = prims.split_at(mid);
     let build_l = move || build_node(stack, left, offset, depth + 1, lb.0, lb.1);
     let build_r = move || build_node(stack, right, offset + mid, depth + 1, rb.0, rb.1);
-    let (l, r) = if n >= PARALLEL_MIN { rayon::join(build_l, build_r) } else { (build_l(), build_r()) };
-    BuildNode::Inner { bounds, children: Box::new([l, r]), median }
+    let (l, r) = if n >= PARALLEL_MIN {
+        rayon::join(build_l, build_r)
+    } else {
+        (build_l(), build_r())
+    };
+    BuildNode::Inner {
+        bounds,
+        children: Box::new([l, r]),
+        median,
+    }
 }
 
 enum Split {
     Leaf,
     /// Primitives whose centroid bins below `bin` on `axis` go left; the
     /// binning (`lo`, `scale`) and both sides' box bounds.
-    Bin { axis: usize, bin: usize, lo: Vec3A, scale: Vec3A, top: f32, left: Aabb, right: Aabb },
+    Bin {
+        axis: usize,
+        bin: usize,
+        lo: Vec3A,
+        scale: Vec3A,
+        top: f32,
+        left: Aabb,
+        right: Aabb,
+    },
 }
 
 /// Bins of a centroid on the three axes: `(c - lo) * scale` truncated and
@@ -362,7 +468,8 @@ fn bins_of(c: Vec3A, lo: Vec3A, scale: Vec3A, top: f32) -> [usize; 3] {
     {
         use std::arch::x86_64::{__m128, __m128i, _mm_cvttps_epi32};
         // SAFETY: SSE2 is part of x86_64; both types are 16 plain bytes.
-        let i: [i32; 4] = unsafe { std::mem::transmute::<__m128i, [i32; 4]>(_mm_cvttps_epi32(__m128::from(f))) };
+        let i: [i32; 4] =
+            unsafe { std::mem::transmute::<__m128i, [i32; 4]>(_mm_cvttps_epi32(__m128::from(f))) };
         [i[0] as usize, i[1] as usize, i[2] as usize]
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -392,9 +499,16 @@ fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
     // primitive lands in bin 0 there, so they offer no split.
     let scale = Vec3A::from_array([0, 1, 2].map(|a| {
         let s = nb as f32 * (1.0 - 1e-6) / extent[a];
-        if extent[a] > 0.0 && s.is_finite() { s } else { 0.0 }
+        if extent[a] > 0.0 && s.is_finite() {
+            s
+        } else {
+            0.0
+        }
     }));
-    let empty = Bin { bounds: Aabb::EMPTY, count: 0 };
+    let empty = Bin {
+        bounds: Aabb::EMPTY,
+        count: 0,
+    };
     let mut bins = [[empty; BINS]; 3];
     for b in boxes {
         let k = bins_of(b.centroid(), lo, scale, top);
@@ -450,20 +564,39 @@ fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
         }
         b
     };
-    Some(Split::Bin { axis, bin, lo, scale, top, left: side(0..bin), right: side(bin..nb) })
+    Some(Split::Bin {
+        axis,
+        bin,
+        lo,
+        scale,
+        top,
+        left: side(0..bin),
+        right: side(bin..nb),
+    })
 }
 
 /// Moves primitives of bins < `bin` to the front; returns how many and the
 /// centroid bounds of both sides (gathered here rather than per bin: one
 /// box grow per primitive instead of three). Bins are computed exactly as
 /// in [`sah_split`], so the counts match.
-fn partition_bins(prims: &mut Prims, axis: usize, bin: usize, lo: Vec3A, scale: Vec3A, top: f32) -> (usize, Aabb, Aabb) {
+fn partition_bins(
+    prims: &mut Prims,
+    axis: usize,
+    bin: usize,
+    lo: Vec3A,
+    scale: Vec3A,
+    top: f32,
+) -> (usize, Aabb, Aabb) {
     let (mut lc, mut rc) = (Aabb::EMPTY, Aabb::EMPTY);
     // Classifies a box, growing its side's centroid bounds.
     let mut left = |b: &Aabb| {
         let c = b.centroid();
         let l = bins_of(c, lo, scale, top)[axis] < bin;
-        if l { lc.grow_point(c) } else { rc.grow_point(c) }
+        if l {
+            lc.grow_point(c)
+        } else {
+            rc.grow_point(c)
+        }
         l
     };
     // Hoare's scheme: each primitive is classified once, each misplaced pair swapped once.
@@ -498,10 +631,23 @@ fn partition_bins(prims: &mut Prims, axis: usize, bin: usize, lo: Vec3A, scale: 
 fn median_split(prims: &mut Prims, cbounds: &Aabb) -> usize {
     let mid = prims.len() / 2;
     let ext = cbounds.max - cbounds.min;
-    let axis = if ext.x >= ext.y && ext.x >= ext.z { 0 } else if ext.y >= ext.z { 1 } else { 2 };
+    let axis = if ext.x >= ext.y && ext.x >= ext.z {
+        0
+    } else if ext.y >= ext.z {
+        1
+    } else {
+        2
+    };
     if ext[axis] > 0.0 {
-        let mut pairs: Vec<(Aabb, u32)> = prims.boxes.iter().copied().zip(prims.order.iter().copied()).collect();
-        pairs.select_nth_unstable_by(mid, |a, b| a.0.centroid()[axis].total_cmp(&b.0.centroid()[axis]));
+        let mut pairs: Vec<(Aabb, u32)> = prims
+            .boxes
+            .iter()
+            .copied()
+            .zip(prims.order.iter().copied())
+            .collect();
+        pairs.select_nth_unstable_by(mid, |a, b| {
+            a.0.centroid()[axis].total_cmp(&b.0.centroid()[axis])
+        });
         for (k, (b, o)) in pairs.into_iter().enumerate() {
             prims.boxes[k] = b;
             prims.order[k] = o;
@@ -530,11 +676,17 @@ fn flatten4(node: &BuildNode, depth: usize, need: usize, out: &mut Flat) -> u32 
             slots[0] = Some(node);
             n = 1;
         }
-        BuildNode::Inner { children, median, .. } => {
+        BuildNode::Inner {
+            children, median, ..
+        } => {
             stats.depth_limited |= *median;
             for c in children.iter() {
                 match c {
-                    BuildNode::Inner { children: grand, median, .. } => {
+                    BuildNode::Inner {
+                        children: grand,
+                        median,
+                        ..
+                    } => {
                         stats.depth_limited |= *median;
                         slots[n] = Some(&grand[0]);
                         slots[n + 1] = Some(&grand[1]);
@@ -562,7 +714,11 @@ fn flatten4(node: &BuildNode, depth: usize, need: usize, out: &mut Flat) -> u32 
                 stats.max_leaf_size = stats.max_leaf_size.max(*count);
                 let first = out.prims.len().next_multiple_of(4);
                 out.prims.resize(first, PrimId::NONE);
-                out.prims.extend(out.order[*start..*start + *count].iter().map(|&i| out.ids[i as usize]));
+                out.prims.extend(
+                    out.order[*start..*start + *count]
+                        .iter()
+                        .map(|&i| out.ids[i as usize]),
+                );
                 node.child[k] = first as u32;
                 node.count[k] = *count as u32;
             }
@@ -677,19 +833,29 @@ fn test4<R: Real>(node: &BvhNode4, r: &BoxRay<R>, limit: R) -> (u32, [R; 4]) {
             let t1y = _mm_mul_ps(_mm_sub_ps(row(r.far[1]), oy), iy);
             let t1z = _mm_mul_ps(_mm_sub_ps(row(r.far[2]), oz), iz);
             let t0 = _mm_max_ps(_mm_max_ps(t0x, t0y), _mm_max_ps(t0z, _mm_setzero_ps()));
-            let t1 = _mm_mul_ps(_mm_min_ps(_mm_min_ps(t1x, t1y), t1z), _mm_set1_ps(EXIT_WIDEN as f32));
+            let t1 = _mm_mul_ps(
+                _mm_min_ps(_mm_min_ps(t1x, t1y), t1z),
+                _mm_set1_ps(EXIT_WIDEN as f32),
+            );
             let hit = _mm_and_ps(_mm_cmple_ps(t0, t1), _mm_cmple_ps(t0, _mm_set1_ps(tm)));
             let mut t = [0f32; 4];
             _mm_storeu_ps(t.as_mut_ptr(), t0);
-            return (_mm_movemask_ps(hit) as u32, std::mem::transmute_copy::<[f32; 4], [R; 4]>(&t));
+            return (
+                _mm_movemask_ps(hit) as u32,
+                std::mem::transmute_copy::<[f32; 4], [R; 4]>(&t),
+            );
         }
     }
     let widen = R::from_f64(EXIT_WIDEN as f32 as f64);
     let mut mask = 0;
     let mut t = [R::ZERO; 4];
     for (k, tk) in t.iter_mut().enumerate() {
-        let d = |rows: &[usize; 3], a: usize| (R::from_f64(node.b[rows[a]][k] as f64) - r.origin[a]) * r.inv[a];
-        let t0 = d(&r.near, 0).max(d(&r.near, 1)).max(d(&r.near, 2).max(R::ZERO));
+        let d = |rows: &[usize; 3], a: usize| {
+            (R::from_f64(node.b[rows[a]][k] as f64) - r.origin[a]) * r.inv[a]
+        };
+        let t0 = d(&r.near, 0)
+            .max(d(&r.near, 1))
+            .max(d(&r.near, 2).max(R::ZERO));
         let t1 = d(&r.far, 0).min(d(&r.far, 1)).min(d(&r.far, 2)) * widen;
         if t0 <= t1 && t0 <= limit {
             mask |= 1 << k;
@@ -703,7 +869,14 @@ fn test4<R: Real>(node: &BvhNode4, r: &BoxRay<R>, limit: R) -> (u32, [R; 4]) {
 /// `t_max` (a farther one may be returned: callers compare); `skip` is the
 /// primitive the ray starts on.
 #[inline(always)]
-fn hit_prim<R: Real>(world: &World<R>, id: PrimId, ray: &Ray<R>, tri: &TriangleRay<R>, t_max: R, skip: PrimId) -> Option<R> {
+fn hit_prim<R: Real>(
+    world: &World<R>,
+    id: PrimId,
+    ray: &Ray<R>,
+    tri: &TriangleRay<R>,
+    t_max: R,
+    skip: PrimId,
+) -> Option<R> {
     if id.kind() == PrimId::TRIANGLE {
         // A ray leaving a triangle cannot hit that (flat) triangle again.
         if id == skip {
@@ -733,7 +906,10 @@ fn leaf<R: Real, const ANY: bool>(
     skip: PrimId,
 ) -> bool {
     #[cfg(target_arch = "x86_64")]
-    if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>() && first % 4 == 0 && (first + count).div_ceil(4) <= bvh.packets.len() {
+    if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>()
+        && first % 4 == 0
+        && (first + count).div_ceil(4) <= bvh.packets.len()
+    {
         // SAFETY: R is f32, so these are the same types.
         let (tr, tris, best) = unsafe {
             (
@@ -756,7 +932,11 @@ fn leaf<R: Real, const ANY: bool>(
                 if id == skip {
                     continue;
                 }
-                let t = if (e.exact >> j) & 1 != 0 { tris[id.index()].distance(tr, *best) } else { finish(e.t_scaled[j], e.det[j], *best) };
+                let t = if (e.exact >> j) & 1 != 0 {
+                    tris[id.index()].distance(tr, *best)
+                } else {
+                    finish(e.t_scaled[j], e.det[j], *best)
+                };
                 if let Some(t) = t {
                     if ANY {
                         if t < *best {
@@ -813,7 +993,14 @@ struct Entry<R> {
 /// `PrimId::NONE`) and the hits on the tree's primitives, by
 /// [`PrimId::nearer`]; `None` if there is none.
 #[inline]
-pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best: R, mut found: PrimId, skip: PrimId) -> Option<(R, PrimId)> {
+pub fn closest_hit<R: Real>(
+    world: &World<R>,
+    bvh: &Bvh,
+    ray: &Ray<R>,
+    mut best: R,
+    mut found: PrimId,
+    skip: PrimId,
+) -> Option<(R, PrimId)> {
     if bvh.nodes.is_empty() {
         return (found != PrimId::NONE).then_some((best, found));
     }
@@ -826,12 +1013,20 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
     let mut stack = [const { MaybeUninit::<Entry<R>>::uninit() }; STACK];
     let mut sp = 0usize;
     // The subtree being visited; the root is node 0.
-    let mut cur = Entry { child: 0, count: 0, t: R::ZERO };
+    let mut cur = Entry {
+        child: 0,
+        count: 0,
+        t: R::ZERO,
+    };
     loop {
         if cur.count == 0 {
             let n = &bvh.nodes[cur.child as usize];
             let (mask, t) = test4(n, &br, limit);
-            let slot = |k: usize| Entry { child: n.child[k], count: n.count[k], t: t[k] };
+            let slot = |k: usize| Entry {
+                child: n.child[k],
+                count: n.count[k],
+                t: t[k],
+            };
             if mask != 0 {
                 let a = mask.trailing_zeros() as usize;
                 let rest = mask & (mask - 1);
@@ -850,7 +1045,12 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
                     continue;
                 }
                 // Three or four: sorted far to near, all but the nearest pushed.
-                let mut e = [slot(a), slot(b), slot(rest.trailing_zeros() as usize), slot(0)];
+                let mut e = [
+                    slot(a),
+                    slot(b),
+                    slot(rest.trailing_zeros() as usize),
+                    slot(0),
+                ];
                 let mut len = 3;
                 let rest = rest & (rest - 1);
                 if rest != 0 {
@@ -867,7 +1067,16 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
             }
         } else {
             let tr = tr.get_or_insert_with(|| TriangleRay::new(ray));
-            leaf::<R, false>(world, bvh, ray, tr, (cur.child as usize, cur.count as usize), &mut best, &mut found, skip);
+            leaf::<R, false>(
+                world,
+                bvh,
+                ray,
+                tr,
+                (cur.child as usize, cur.count as usize),
+                &mut best,
+                &mut found,
+                skip,
+            );
             limit = best * widen;
         }
         // Pop the next subtree that may still hold something nearer.
@@ -889,7 +1098,13 @@ pub fn closest_hit<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, mut best:
 /// Whether any primitive of the tree lies on the ray before `t_max`. Leaves
 /// are tested as soon as their box is met (any hit ends the search).
 #[inline]
-pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
+pub fn occluded<R: Real>(
+    world: &World<R>,
+    bvh: &Bvh,
+    ray: &Ray<R>,
+    t_max: R,
+    skip: PrimId,
+) -> bool {
     if bvh.nodes.is_empty() {
         return false;
     }
@@ -910,7 +1125,16 @@ pub fn occluded<R: Real>(world: &World<R>, bvh: &Bvh, ray: &Ray<R>, t_max: R, sk
             if n.count[k] > 0 {
                 let (mut t, mut id) = (t_max, PrimId::NONE);
                 let tr = tr.get_or_insert_with(|| TriangleRay::new(ray));
-                if leaf::<R, true>(world, bvh, ray, tr, (n.child[k] as usize, n.count[k] as usize), &mut t, &mut id, skip) {
+                if leaf::<R, true>(
+                    world,
+                    bvh,
+                    ray,
+                    tr,
+                    (n.child[k] as usize, n.count[k] as usize),
+                    &mut t,
+                    &mut id,
+                    skip,
+                ) {
                     return true;
                 }
             } else if next.is_none() {
@@ -939,7 +1163,10 @@ mod tests {
 
     fn unit_box(c: [f32; 3], r: f32) -> Aabb {
         let c = Vec3A::from_array(c);
-        Aabb { min: c - Vec3A::splat(r), max: c + Vec3A::splat(r) }
+        Aabb {
+            min: c - Vec3A::splat(r),
+            max: c + Vec3A::splat(r),
+        }
     }
 
     /// Checks the layout invariants: every primitive in exactly one leaf,
@@ -947,7 +1174,14 @@ mod tests {
     /// as recorded and within `stack`.
     fn check(bvh: &Bvh, boxes: &[Aabb], stack: usize) {
         let mut seen = vec![0u32; boxes.len()];
-        let mut todo = vec![(0usize, 0usize, Aabb { min: Vec3A::splat(f32::NEG_INFINITY), max: Vec3A::splat(f32::INFINITY) })];
+        let mut todo = vec![(
+            0usize,
+            0usize,
+            Aabb {
+                min: Vec3A::splat(f32::NEG_INFINITY),
+                max: Vec3A::splat(f32::INFINITY),
+            },
+        )];
         let mut most = 0;
         while let Some((i, need, parent)) = todo.pop() {
             let n = bvh.nodes[i];
@@ -959,7 +1193,10 @@ mod tests {
             for k in 0..4 {
                 let nb = n.slot_box(k);
                 if n.is_empty(k) {
-                    assert!(nb.min.cmpgt(nb.max).all(), "empty slot {k} of node {i} has a box");
+                    assert!(
+                        nb.min.cmpgt(nb.max).all(),
+                        "empty slot {k} of node {i} has a box"
+                    );
                     continue;
                 }
                 assert!(nb.min.cmpge(parent.min).all() && nb.max.cmple(parent.max).all());
@@ -984,38 +1221,71 @@ mod tests {
         let boxes: Vec<Aabb> = (0..5000u32)
             .map(|i| {
                 let h = crate::sampling::hash_u32(i);
-                unit_box([(h & 1023) as f32, ((h >> 10) & 1023) as f32, ((h >> 20) & 1023) as f32], 0.5)
+                unit_box(
+                    [
+                        (h & 1023) as f32,
+                        ((h >> 10) & 1023) as f32,
+                        ((h >> 20) & 1023) as f32,
+                    ],
+                    0.5,
+                )
             })
             .collect();
-        let ids: Vec<PrimId> = (0..boxes.len() as u32).map(|i| PrimId::new(PrimId::SPHERE, i)).collect();
+        let ids: Vec<PrimId> = (0..boxes.len() as u32)
+            .map(|i| PrimId::new(PrimId::SPHERE, i))
+            .collect();
         let bvh = Bvh::build(&boxes, &ids);
         check(&bvh, &boxes, STACK);
-        assert!(bvh.stats.depth < 20 && !bvh.stats.depth_limited, "{:?}", bvh.stats);
+        assert!(
+            bvh.stats.depth < 20 && !bvh.stats.depth_limited,
+            "{:?}",
+            bvh.stats
+        );
     }
 
     #[test]
     fn identical_boxes_and_a_degenerate_chain_stay_within_the_stack() {
         // All in one spot: no split separates them; median splits by index.
         let same = vec![unit_box([1.0, 2.0, 3.0], 0.0); 10_000];
-        let ids: Vec<PrimId> = (0..same.len() as u32).map(|i| PrimId::new(PrimId::TRIANGLE, i)).collect();
+        let ids: Vec<PrimId> = (0..same.len() as u32)
+            .map(|i| PrimId::new(PrimId::TRIANGLE, i))
+            .collect();
         let bvh = Bvh::build(&same, &ids);
         check(&bvh, &same, STACK);
         assert!(bvh.stats.depth <= ceil_log2(10_000).div_ceil(2));
         // Boxes at x = 2^i: the SAH peels off a few of the farthest at each
         // level (the others share the first bin), a chain 34 deep. Built for
         // a stack of 12 entries, the depth budget must take over.
-        let chain: Vec<Aabb> = (0..120).map(|i| unit_box([2f32.powi(i), 0.0, 0.0], 1e-3)).collect();
-        let ids: Vec<PrimId> = (0..chain.len() as u32).map(|i| PrimId::new(PrimId::TRIANGLE, i)).collect();
+        let chain: Vec<Aabb> = (0..120)
+            .map(|i| unit_box([2f32.powi(i), 0.0, 0.0], 1e-3))
+            .collect();
+        let ids: Vec<PrimId> = (0..chain.len() as u32)
+            .map(|i| PrimId::new(PrimId::TRIANGLE, i))
+            .collect();
         let free = Bvh::build(&chain, &ids);
         check(&free, &chain, STACK);
-        assert!(free.stats.depth > 15 && !free.stats.depth_limited, "{:?}", free.stats);
+        assert!(
+            free.stats.depth > 15 && !free.stats.depth_limited,
+            "{:?}",
+            free.stats
+        );
         let bounded = Bvh::build_with_depth(&chain, &ids, 12);
         check(&bounded, &chain, stack_for_depth(12));
-        assert!(bounded.stats.depth_limited && bounded.stats.depth == 6, "{:?}", bounded.stats);
+        assert!(
+            bounded.stats.depth_limited && bounded.stats.depth == 6,
+            "{:?}",
+            bounded.stats
+        );
     }
 
     #[test]
     fn node_is_two_cache_lines_for_the_gpu() {
-        assert_eq!((std::mem::size_of::<BvhNode4>(), std::mem::align_of::<BvhNode4>()), (128, 64));
+        assert_eq!(
+            (
+                std::mem::size_of::<BvhNode4>(),
+                std::mem::align_of::<BvhNode4>()
+            ),
+            (128, 64)
+        );
     }
 }

@@ -25,16 +25,29 @@ pub struct Rect {
 
 impl Rect {
     pub fn new(x: u32, y: u32, width: u32, height: u32) -> Self {
-        Rect { x, y, width, height }
+        Rect {
+            x,
+            y,
+            width,
+            height,
+        }
     }
     pub fn full(width: u32, height: u32) -> Self {
-        Rect { x: 0, y: 0, width, height }
+        Rect {
+            x: 0,
+            y: 0,
+            width,
+            height,
+        }
     }
     pub fn area(&self) -> usize {
         self.width as usize * self.height as usize
     }
     pub fn contains(&self, o: &Rect) -> bool {
-        o.x >= self.x && o.y >= self.y && o.x + o.width <= self.x + self.width && o.y + o.height <= self.y + self.height
+        o.x >= self.x
+            && o.y >= self.y
+            && o.x + o.width <= self.x + self.width
+            && o.y + o.height <= self.y + self.height
     }
     /// Splits into tiles of at most `size` x `size`, row by row.
     pub fn tiles(&self, size: u32) -> Vec<Rect> {
@@ -67,7 +80,10 @@ impl SampleRange {
         SampleRange { start, end }
     }
     pub fn all(samples: u32) -> Self {
-        SampleRange { start: 0, end: samples }
+        SampleRange {
+            start: 0,
+            end: samples,
+        }
     }
     pub fn len(&self) -> u32 {
         self.end.saturating_sub(self.start)
@@ -116,7 +132,11 @@ pub enum FilmError {
     #[error("tile {tile:?} does not lie inside film {film:?}")]
     OutOfBounds { tile: Rect, film: Rect },
     #[error("tile {rect:?} has {got} pixels of data, expected {expected}")]
-    WrongSize { rect: Rect, expected: usize, got: usize },
+    WrongSize {
+        rect: Rect,
+        expected: usize,
+        got: usize,
+    },
     #[error("pixel sum overflow at ({x}, {y})")]
     Overflow { x: u32, y: u32 },
 }
@@ -143,7 +163,13 @@ pub fn to_fixed(v: f64, nonfinite: &mut u64) -> u64 {
 
 impl Film {
     pub fn new(rect: Rect) -> Self {
-        Film { rect, sums: vec![[0; 3]; rect.area()], counts: vec![0; rect.area()], rays: RayCounts::default(), nonfinite: 0 }
+        Film {
+            rect,
+            sums: vec![[0; 3]; rect.area()],
+            counts: vec![0; rect.area()],
+            rays: RayCounts::default(),
+            nonfinite: 0,
+        }
     }
 
     /// Adds one sample to pixel `i` (row-major index within the rect).
@@ -161,7 +187,11 @@ impl Film {
         let expected = self.rect.area();
         for got in [self.sums.len(), self.counts.len()] {
             if got != expected {
-                return Err(FilmError::WrongSize { rect: self.rect, expected, got });
+                return Err(FilmError::WrongSize {
+                    rect: self.rect,
+                    expected,
+                    got,
+                });
             }
         }
         Ok(())
@@ -171,11 +201,15 @@ impl Film {
     pub fn merge(&mut self, other: &Film) -> Result<(), FilmError> {
         other.validate()?;
         if !self.rect.contains(&other.rect) {
-            return Err(FilmError::OutOfBounds { tile: other.rect, film: self.rect });
+            return Err(FilmError::OutOfBounds {
+                tile: other.rect,
+                film: self.rect,
+            });
         }
         for row in 0..other.rect.height {
             let src = (row * other.rect.width) as usize;
-            let dst = ((other.rect.y - self.rect.y + row) * self.rect.width + (other.rect.x - self.rect.x)) as usize;
+            let dst = ((other.rect.y - self.rect.y + row) * self.rect.width
+                + (other.rect.x - self.rect.x)) as usize;
             for col in 0..other.rect.width as usize {
                 let (a, b) = (&mut self.sums[dst + col], &other.sums[src + col]);
                 for c in 0..3 {
@@ -202,7 +236,11 @@ impl Film {
                     [0.0; 3]
                 } else {
                     let k = 1.0 / (n as f64 * FIXED_ONE);
-                    [(s[0] as f64 * k) as f32, (s[1] as f64 * k) as f32, (s[2] as f64 * k) as f32]
+                    [
+                        (s[0] as f64 * k) as f32,
+                        (s[1] as f64 * k) as f32,
+                        (s[2] as f64 * k) as f32,
+                    ]
                 }
             })
             .collect()
@@ -212,12 +250,19 @@ impl Film {
 /// sRGB transfer function of a linear value in [0, 1].
 pub fn srgb_encode(v: f32) -> f32 {
     let v = v.clamp(0.0, 1.0);
-    if v <= 0.003_130_8 { 12.92 * v } else { 1.055 * v.powf(1.0 / 2.4) - 0.055 }
+    if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
 }
 
 /// 8-bit sRGB pixels of a resolved film: clamped to [0, 1], encoded, rounded.
 pub fn to_srgb8(linear: &[[f32; 3]]) -> Vec<u8> {
-    linear.iter().flat_map(|p| p.map(|c| (srgb_encode(c) * 255.0 + 0.5) as u8)).collect()
+    linear
+        .iter()
+        .flat_map(|p| p.map(|c| (srgb_encode(c) * 255.0 + 0.5) as u8))
+        .collect()
 }
 
 #[cfg(test)]
@@ -229,24 +274,44 @@ mod tests {
         let r = Rect::new(3, 5, 70, 33);
         let tiles = r.tiles(16);
         assert_eq!(tiles.iter().map(|t| t.area()).sum::<usize>(), r.area());
-        assert!(tiles.iter().all(|t| r.contains(t) && t.width <= 16 && t.height <= 16));
+        assert!(
+            tiles
+                .iter()
+                .all(|t| r.contains(t) && t.width <= 16 && t.height <= 16)
+        );
     }
 
     #[test]
     fn merge_rejects_bad_tiles() {
         let mut f = Film::new(Rect::full(8, 8));
         let mut t = Film::new(Rect::new(4, 4, 8, 2));
-        assert_eq!(f.merge(&t), Err(FilmError::OutOfBounds { tile: t.rect, film: f.rect }));
+        assert_eq!(
+            f.merge(&t),
+            Err(FilmError::OutOfBounds {
+                tile: t.rect,
+                film: f.rect
+            })
+        );
         t.rect = Rect::new(0, 0, 8, 2);
         t.counts.pop();
-        assert_eq!(f.merge(&t), Err(FilmError::WrongSize { rect: t.rect, expected: 16, got: 15 }));
+        assert_eq!(
+            f.merge(&t),
+            Err(FilmError::WrongSize {
+                rect: t.rect,
+                expected: 16,
+                got: 15
+            })
+        );
     }
 
     #[test]
     fn fixed_point_sanitises() {
         let mut bad = 0;
         assert_eq!(to_fixed(f64::NAN, &mut bad), 0);
-        assert_eq!(to_fixed(f64::INFINITY, &mut bad), (MAX_SAMPLE_VALUE * FIXED_ONE) as u64);
+        assert_eq!(
+            to_fixed(f64::INFINITY, &mut bad),
+            (MAX_SAMPLE_VALUE * FIXED_ONE) as u64
+        );
         assert_eq!(bad, 2);
         assert_eq!(to_fixed(1.0, &mut bad), 1 << 32);
         assert_eq!(to_fixed(-0.0, &mut bad), 0);

@@ -206,7 +206,11 @@ mod tests {
     #[test]
     fn packs_agree_with_the_scalar_test() {
         let spheres: Vec<Sphere<f32>> = (0..7)
-            .map(|i| Sphere { center: glam::Vec3A::new(i as f32 - 3.0, 0.3 * i as f32, 5.0 + i as f32), radius: 0.4 + 0.1 * i as f32, material: 0 })
+            .map(|i| Sphere {
+                center: glam::Vec3A::new(i as f32 - 3.0, 0.3 * i as f32, 5.0 + i as f32),
+                radius: 0.4 + 0.1 * i as f32,
+                material: 0,
+            })
             .collect();
         let packs = SpherePack::pack(&spheres);
         assert_eq!(packs.len(), 2);
@@ -216,7 +220,11 @@ mod tests {
             let dir = glam::Vec3A::new(a.sin() * 0.4, (a * 1.7).cos() * 0.3, 1.0).normalize();
             let ray = Ray::<f32>::new(glam::Vec3A::ZERO, dir);
             let o = [glam::Vec4::splat(0.0); 3];
-            let d = [glam::Vec4::splat(dir.x), glam::Vec4::splat(dir.y), glam::Vec4::splat(dir.z)];
+            let d = [
+                glam::Vec4::splat(dir.x),
+                glam::Vec4::splat(dir.y),
+                glam::Vec4::splat(dir.z),
+            ];
             for (i, s) in spheres.iter().enumerate() {
                 let want = s.intersect(&ray, 100.0, false);
                 let got = packs[i / 4].intersect(o, d, 100.0, usize::MAX).to_array()[i % 4];
@@ -238,18 +246,38 @@ mod tests {
 
     #[test]
     fn sphere_hits_near_root_then_far_root() {
-        let s = Sphere::<f64> { center: DVec3::new(0.0, 0.0, 5.0), radius: 1.0, material: 0 };
-        assert_eq!(s.intersect(&ray([0.0; 3], [0.0, 0.0, 1.0]), f64::INFINITY, false), Some(4.0));
-        assert_eq!(s.intersect(&ray([0.0, 0.0, 5.0], [0.0, 0.0, 1.0]), f64::INFINITY, false), Some(1.0));
-        assert_eq!(s.intersect(&ray([0.0, 0.0, 7.0], [0.0, 0.0, 1.0]), f64::INFINITY, false), None);
-        assert_eq!(s.intersect(&ray([0.0; 3], [0.0, 1.0, 0.0]), f64::INFINITY, false), None);
+        let s = Sphere::<f64> {
+            center: DVec3::new(0.0, 0.0, 5.0),
+            radius: 1.0,
+            material: 0,
+        };
+        assert_eq!(
+            s.intersect(&ray([0.0; 3], [0.0, 0.0, 1.0]), f64::INFINITY, false),
+            Some(4.0)
+        );
+        assert_eq!(
+            s.intersect(&ray([0.0, 0.0, 5.0], [0.0, 0.0, 1.0]), f64::INFINITY, false),
+            Some(1.0)
+        );
+        assert_eq!(
+            s.intersect(&ray([0.0, 0.0, 7.0], [0.0, 0.0, 1.0]), f64::INFINITY, false),
+            None
+        );
+        assert_eq!(
+            s.intersect(&ray([0.0; 3], [0.0, 1.0, 0.0]), f64::INFINITY, false),
+            None
+        );
     }
 
     #[test]
     fn tiny_sphere_far_away_is_hit_accurately_in_f32() {
         // Radius 1e-4 seen from 1e5 away: the textbook b^2 - c form cancels to
         // garbage here (c ~ 1e10 in f32 has ulp ~ 1000).
-        let s = Sphere::<f32> { center: glam::Vec3A::new(0.0, 0.0, 1.0e5), radius: 1.0e-4, material: 0 };
+        let s = Sphere::<f32> {
+            center: glam::Vec3A::new(0.0, 0.0, 1.0e5),
+            radius: 1.0e-4,
+            material: 0,
+        };
         let r = Ray::<f32>::new(glam::Vec3A::ZERO, glam::Vec3A::Z);
         let t = s.intersect(&r, f32::INFINITY, false).expect("hit");
         assert!((t as f64 - (1.0e5 - 1.0e-4)).abs() < 0.02, "t = {t}");
@@ -260,7 +288,11 @@ mod tests {
 
     #[test]
     fn ray_from_surface_hits_far_side_only_when_going_in() {
-        let s = Sphere::<f64> { center: DVec3::ZERO, radius: 2.0, material: 0 };
+        let s = Sphere::<f64> {
+            center: DVec3::ZERO,
+            radius: 2.0,
+            material: 0,
+        };
         let inward = ray([0.0, 0.0, -2.0], [0.0, 0.0, 1.0]);
         assert_eq!(s.intersect(&inward, f64::INFINITY, true), Some(4.0));
         let outward = ray([0.0, 0.0, -2.0], [0.0, 0.0, -1.0]);
@@ -269,10 +301,26 @@ mod tests {
 
     #[test]
     fn plane_grazing_and_parallel_rays_do_not_produce_nan_hits() {
-        let p = Plane::<f64> { normal: DVec3::Y, distance: 0.0, material: 0 };
-        assert_eq!(p.intersect(&ray([0.0, 1.0, 0.0], [1.0, 0.0, 0.0]), f64::INFINITY, false), None);
-        assert_eq!(p.intersect(&ray([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]), f64::INFINITY, false), None);
-        let t = p.intersect(&ray([0.0, 1.0, 0.0], [1.0, -1e-9, 0.0]), f64::INFINITY, false).unwrap();
+        let p = Plane::<f64> {
+            normal: DVec3::Y,
+            distance: 0.0,
+            material: 0,
+        };
+        assert_eq!(
+            p.intersect(&ray([0.0, 1.0, 0.0], [1.0, 0.0, 0.0]), f64::INFINITY, false),
+            None
+        );
+        assert_eq!(
+            p.intersect(&ray([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]), f64::INFINITY, false),
+            None
+        );
+        let t = p
+            .intersect(
+                &ray([0.0, 1.0, 0.0], [1.0, -1e-9, 0.0]),
+                f64::INFINITY,
+                false,
+            )
+            .unwrap();
         assert!(t.is_finite() && t > 1e8);
     }
 }

@@ -34,9 +34,9 @@
 //! assert_eq!(image[0], [0.0; 3]);       // the corner sees the black background
 //! ```
 
-pub mod film;
 pub mod accel;
 pub mod bvh;
+pub mod film;
 pub mod geometry;
 pub mod math;
 pub mod mesh;

@@ -110,7 +110,15 @@ pub trait Vector3<R: Real>:
 
 /// Four lanes of scalars (glam's `Vec4`, SSE2 on x86-64, and `DVec4`).
 pub trait Lanes4<R: Real>:
-    Copy + Send + Sync + Debug + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Div<Output = Self> + Neg<Output = Self>
+    Copy
+    + Send
+    + Sync
+    + Debug
+    + Add<Output = Self>
+    + Sub<Output = Self>
+    + Mul<Output = Self>
+    + Div<Output = Self>
+    + Neg<Output = Self>
 {
     type Mask: Copy + std::ops::BitAnd<Output = Self::Mask> + std::ops::BitOr<Output = Self::Mask>;
     fn splat(v: R) -> Self;
@@ -317,8 +325,24 @@ macro_rules! impl_real {
 }
 
 // f32: offsets of 2^-18 of the coordinate (32 ulps); f64: 2^-44 (512 ulps).
-impl_real!(f32, glam::Vec3A, glam::Vec4, 3.814_697_3e-6, 1.0e-30, 1.0e-4, 5.960_464_477_539_063e-8);
-impl_real!(f64, glam::DVec3, glam::DVec4, 5.684_341_886_080_802e-14, 1.0e-290, 1.0e-9, 0.0);
+impl_real!(
+    f32,
+    glam::Vec3A,
+    glam::Vec4,
+    3.814_697_3e-6,
+    1.0e-30,
+    1.0e-4,
+    5.960_464_477_539_063e-8
+);
+impl_real!(
+    f64,
+    glam::DVec3,
+    glam::DVec4,
+    5.684_341_886_080_802e-14,
+    1.0e-290,
+    1.0e-9,
+    0.0
+);
 
 /// Moves a point that lies on a surface off it, to the side `n` points to.
 ///

@@ -37,7 +37,9 @@ impl std::str::FromStr for Sampler {
         match s {
             "grid" => Ok(Sampler::Grid),
             "jittered" => Ok(Sampler::Jittered),
-            _ => Err(format!("unknown sampler {s:?}: expected \"grid\" or \"jittered\"")),
+            _ => Err(format!(
+                "unknown sampler {s:?}: expected \"grid\" or \"jittered\""
+            )),
         }
     }
 }
@@ -118,16 +120,36 @@ mod tests {
     #[test]
     fn grid_matches_thesis_layout() {
         // 2x2 grid: (0.25,0.25), (0.75,0.25), (0.25,0.75), (0.75,0.75)
-        let pts: Vec<_> = (0..4).map(|s| sample_offset(Sampler::Grid, 4, 7, s)).collect();
-        assert_eq!(pts, vec![(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]);
+        let pts: Vec<_> = (0..4)
+            .map(|s| sample_offset(Sampler::Grid, 4, 7, s))
+            .collect();
+        assert_eq!(
+            pts,
+            vec![(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]
+        );
         assert_eq!(sample_offset(Sampler::Grid, 1, 7, 0), (0.5, 0.5));
     }
 
     #[test]
     fn same_in_every_pixel_means_seed_ignored() {
-        for (sampler, count) in [(Sampler::Grid, 4), (Sampler::Grid, 9), (Sampler::Grid, 8), (Sampler::Jittered, 4), (Sampler::Jittered, 8)] {
-            let same = (0..count).all(|s| (0..50).all(|p| sample_offset(sampler, count, pixel_seed(p, 3 * p, 0), s) == sample_offset(sampler, count, 0, s)));
-            assert_eq!(same_in_every_pixel(sampler, count), same, "{sampler:?} {count}");
+        for (sampler, count) in [
+            (Sampler::Grid, 4),
+            (Sampler::Grid, 9),
+            (Sampler::Grid, 8),
+            (Sampler::Jittered, 4),
+            (Sampler::Jittered, 8),
+        ] {
+            let same = (0..count).all(|s| {
+                (0..50).all(|p| {
+                    sample_offset(sampler, count, pixel_seed(p, 3 * p, 0), s)
+                        == sample_offset(sampler, count, 0, s)
+                })
+            });
+            assert_eq!(
+                same_in_every_pixel(sampler, count),
+                same,
+                "{sampler:?} {count}"
+            );
         }
     }
 
@@ -136,9 +158,18 @@ mod tests {
         for s in 0..9 {
             let (u, v) = sample_offset(Sampler::Jittered, 9, pixel_seed(3, 4, 0), s);
             let (i, j) = (s % 3, s / 3);
-            assert!(u >= i as f32 / 3.0 && u < (i + 1) as f32 / 3.0, "{u} not in column {i}");
-            assert!(v >= j as f32 / 3.0 && v < (j + 1) as f32 / 3.0, "{v} not in row {j}");
-            assert_eq!((u, v), sample_offset(Sampler::Jittered, 9, pixel_seed(3, 4, 0), s));
+            assert!(
+                u >= i as f32 / 3.0 && u < (i + 1) as f32 / 3.0,
+                "{u} not in column {i}"
+            );
+            assert!(
+                v >= j as f32 / 3.0 && v < (j + 1) as f32 / 3.0,
+                "{v} not in row {j}"
+            );
+            assert_eq!(
+                (u, v),
+                sample_offset(Sampler::Jittered, 9, pixel_seed(3, 4, 0), s)
+            );
         }
         // A different frame moves the jitter.
         assert_ne!(
@@ -149,14 +180,20 @@ mod tests {
 
     #[test]
     fn non_square_counts_cover_the_pixel() {
-        let pts: Vec<_> = (0..8).map(|s| sample_offset(Sampler::Grid, 8, pixel_seed(1, 2, 0), s)).collect();
+        let pts: Vec<_> = (0..8)
+            .map(|s| sample_offset(Sampler::Grid, 8, pixel_seed(1, 2, 0), s))
+            .collect();
         for &(u, v) in &pts {
             assert!((0.0..1.0).contains(&u) && (0.0..1.0).contains(&v));
         }
         // R2 points are well spread: every quadrant gets at least one of eight.
         for q in 0..4 {
             let (qx, qy) = ((q % 2) as f32 * 0.5, (q / 2) as f32 * 0.5);
-            assert!(pts.iter().any(|&(u, v)| u >= qx && u < qx + 0.5 && v >= qy && v < qy + 0.5), "quadrant {q} empty: {pts:?}");
+            assert!(
+                pts.iter()
+                    .any(|&(u, v)| u >= qx && u < qx + 0.5 && v >= qy && v < qy + 0.5),
+                "quadrant {q} empty: {pts:?}"
+            );
         }
     }
 

@@ -21,7 +21,10 @@ pub enum SimdLevel {
 impl SimdLevel {
     /// Every level this CPU can run, baseline first.
     pub fn available() -> Vec<SimdLevel> {
-        [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512].into_iter().filter(|l| l.is_available()).collect()
+        [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512]
+            .into_iter()
+            .filter(|l| l.is_available())
+            .collect()
     }
 
     /// Whether this CPU can run the level (no allocation: for hot paths).
@@ -61,7 +64,9 @@ impl std::str::FromStr for SimdLevel {
             "baseline" => Ok(SimdLevel::Baseline),
             "avx2" => Ok(SimdLevel::Avx2),
             "avx512" => Ok(SimdLevel::Avx512),
-            _ => Err(format!("unknown SIMD level {s:?}: expected \"baseline\", \"avx2\" or \"avx512\"")),
+            _ => Err(format!(
+                "unknown SIMD level {s:?}: expected \"baseline\", \"avx2\" or \"avx512\""
+            )),
         }
     }
 }
@@ -73,10 +78,12 @@ pub fn level() -> SimdLevel {
     static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
     *LEVEL.get_or_init(|| {
         let best = SimdLevel::detect();
-        match std::env::var("TESSERA_CPU_SIMD").ok().and_then(|v| v.parse::<SimdLevel>().ok()) {
+        match std::env::var("TESSERA_CPU_SIMD")
+            .ok()
+            .and_then(|v| v.parse::<SimdLevel>().ok())
+        {
             Some(l) if l.is_available() => l,
             _ => best,
         }
     })
 }
-

@@ -87,7 +87,11 @@ impl<R: Real> Triangle<R> {
 
     pub fn vertices(&self) -> [R::V3; 3] {
         let [xs, ys, zs] = self.axes;
-        [R::V3::new(xs.x(), ys.x(), zs.x()), R::V3::new(xs.y(), ys.y(), zs.y()), R::V3::new(xs.z(), ys.z(), zs.z())]
+        [
+            R::V3::new(xs.x(), ys.x(), zs.x()),
+            R::V3::new(xs.y(), ys.y(), zs.y()),
+            R::V3::new(xs.z(), ys.z(), zs.z()),
+        ]
     }
 
     /// Distance to the hit in (0, t_max), or `None`. Degenerate triangles
@@ -159,7 +163,11 @@ impl<R: Real> Triangle<R> {
 #[inline(always)]
 pub fn finish<R: Real>(t_scaled: R, det: R, t_max: R) -> Option<R> {
     let bound = t_max * det * R::from_f64(1.0 + 1.0 / (1u64 << 20) as f64);
-    let may = if det > R::ZERO { t_scaled > R::ZERO && t_scaled <= bound } else { t_scaled < R::ZERO && t_scaled >= bound };
+    let may = if det > R::ZERO {
+        t_scaled > R::ZERO && t_scaled <= bound
+    } else {
+        t_scaled < R::ZERO && t_scaled >= bound
+    };
     if !may {
         return None;
     }
@@ -181,7 +189,10 @@ pub struct Triangle4 {
 
 impl Default for Triangle4 {
     fn default() -> Self {
-        Triangle4 { rows: [[0.0; 4]; 9], ids: [u32::MAX; 4] }
+        Triangle4 {
+            rows: [[0.0; 4]; 9],
+            ids: [u32::MAX; 4],
+        }
     }
 }
 
@@ -222,9 +233,23 @@ impl TriangleRay<f32> {
         // SAFETY: SSE is part of x86_64; `k` entries are < 3, so the rows
         // indexed are < 9; `Triangle4` is 16-byte aligned, so each row is.
         unsafe {
-            let row = |v: usize, a: usize| _mm_load_ps(p.rows.get_unchecked(3 * v + *self.k.get_unchecked(a)).as_ptr());
-            let (ox, oy, oz) = (_mm_set1_ps(self.o[0].x), _mm_set1_ps(self.o[1].x), _mm_set1_ps(self.o[2].x));
-            let (sx, sy, sz) = (_mm_set1_ps(self.s[0].x), _mm_set1_ps(self.s[1].x), _mm_set1_ps(self.s[2].x));
+            let row = |v: usize, a: usize| {
+                _mm_load_ps(
+                    p.rows
+                        .get_unchecked(3 * v + *self.k.get_unchecked(a))
+                        .as_ptr(),
+                )
+            };
+            let (ox, oy, oz) = (
+                _mm_set1_ps(self.o[0].x),
+                _mm_set1_ps(self.o[1].x),
+                _mm_set1_ps(self.o[2].x),
+            );
+            let (sx, sy, sz) = (
+                _mm_set1_ps(self.s[0].x),
+                _mm_set1_ps(self.s[1].x),
+                _mm_set1_ps(self.s[2].x),
+            );
             let dz = [0, 1, 2].map(|v| _mm_sub_ps(row(v, 2), oz));
             let x = [0, 1, 2].map(|v| _mm_sub_ps(_mm_sub_ps(row(v, 0), ox), _mm_mul_ps(dz[v], sx)));
             let y = [0, 1, 2].map(|v| _mm_sub_ps(_mm_sub_ps(row(v, 1), oy), _mm_mul_ps(dz[v], sy)));
@@ -245,7 +270,10 @@ impl TriangleRay<f32> {
                 };
             }
             let on_edge = any!(_mm_cmpeq_ps);
-            let nan = _mm_or_ps(_mm_or_ps(_mm_cmpunord_ps(u, v), _mm_cmpunord_ps(w, det)), _mm_cmpunord_ps(t_scaled, t_scaled));
+            let nan = _mm_or_ps(
+                _mm_or_ps(_mm_cmpunord_ps(u, v), _mm_cmpunord_ps(w, det)),
+                _mm_cmpunord_ps(t_scaled, t_scaled),
+            );
             let exact = _mm_or_ps(on_edge, nan);
             let mixed = _mm_and_ps(any!(_mm_cmplt_ps), any!(_mm_cmpgt_ps));
             let out = _mm_or_ps(_mm_or_ps(mixed, _mm_cmpeq_ps(det, zero)), exact);
@@ -282,7 +310,11 @@ impl<R: Real> TriangleShading<R> {
         let b0 = R::ONE - b1 - b2;
         let s = ns[0] * b0 + ns[1] * b1 + ns[2] * b2;
         let len = s.length();
-        if len > R::ZERO && len.is_finite() { s * (R::ONE / len) } else { self.normal }
+        if len > R::ZERO && len.is_finite() {
+            s * (R::ONE / len)
+        } else {
+            self.normal
+        }
     }
 }
 
@@ -292,7 +324,11 @@ mod tests {
     use glam::{DVec3, Vec3A};
 
     fn tri64(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> Triangle<f64> {
-        Triangle::new([DVec3::from_array(a), DVec3::from_array(b), DVec3::from_array(c)])
+        Triangle::new([
+            DVec3::from_array(a),
+            DVec3::from_array(b),
+            DVec3::from_array(c),
+        ])
     }
 
     #[test]
@@ -301,12 +337,22 @@ mod tests {
         let flipped = tri64([-1.0, -1.0, 5.0], [0.0, 1.0, 5.0], [1.0, -1.0, 5.0]);
         for tri in [t, flipped] {
             let r = Ray::<f64>::new(DVec3::ZERO, DVec3::Z);
-            assert_eq!(tri.intersect(&TriangleRay::new(&r), f64::INFINITY), Some(5.0));
-            assert_eq!(tri.intersect(&TriangleRay::new(&r), 5.0), None, "t_max is exclusive");
+            assert_eq!(
+                tri.intersect(&TriangleRay::new(&r), f64::INFINITY),
+                Some(5.0)
+            );
+            assert_eq!(
+                tri.intersect(&TriangleRay::new(&r), 5.0),
+                None,
+                "t_max is exclusive"
+            );
             let back = Ray::<f64>::new(DVec3::ZERO, -DVec3::Z);
             assert_eq!(tri.intersect(&TriangleRay::new(&back), f64::INFINITY), None);
             let beside = Ray::<f64>::new(DVec3::new(2.0, 0.0, 0.0), DVec3::Z);
-            assert_eq!(tri.intersect(&TriangleRay::new(&beside), f64::INFINITY), None);
+            assert_eq!(
+                tri.intersect(&TriangleRay::new(&beside), f64::INFINITY),
+                None
+            );
         }
     }
 
@@ -316,18 +362,32 @@ mod tests {
         let r = TriangleRay::new(&Ray::<f64>::new(DVec3::ZERO, dir));
         let p = dir * 5.0;
         // A point, a segment containing the hit point, and a triangle seen edge-on.
-        assert_eq!(tri64(p.to_array(), p.to_array(), p.to_array()).intersect(&r, f64::INFINITY), None);
+        assert_eq!(
+            tri64(p.to_array(), p.to_array(), p.to_array()).intersect(&r, f64::INFINITY),
+            None
+        );
         // A segment along the ray: rounding may leave it a sliver of area;
         // touching it anywhere along [4, 6] is right, NaN or elsewhere is not.
         let seg = tri64((p - dir).to_array(), p.to_array(), (p + dir).to_array());
-        assert!(seg.intersect(&r, f64::INFINITY).is_none_or(|t| (4.0 - 1e-9..=6.0 + 1e-9).contains(&t)));
+        assert!(
+            seg.intersect(&r, f64::INFINITY)
+                .is_none_or(|t| (4.0 - 1e-9..=6.0 + 1e-9).contains(&t))
+        );
         let side = DVec3::new(1.0, 0.0, 0.0).cross(dir).normalize();
-        let edge_on = tri64((p - side).to_array(), (p + side).to_array(), (p + dir).to_array());
+        let edge_on = tri64(
+            (p - side).to_array(),
+            (p + side).to_array(),
+            (p + dir).to_array(),
+        );
         let plane_n = edge_on.cross();
         assert!(plane_n.dot(dir).abs() < 1e-12);
         // The ray lies in this triangle's plane: a hit or a miss are both
         // fair (the paper's test may report one), but never a NaN.
-        assert!(edge_on.intersect(&r, f64::INFINITY).is_none_or(|t| t.is_finite() && t > 0.0));
+        assert!(
+            edge_on
+                .intersect(&r, f64::INFINITY)
+                .is_none_or(|t| t.is_finite() && t > 0.0)
+        );
         // Vertices a rounding error apart (a sliver with no area in f32).
         let q = Vec3A::new(0.5, 0.25, 4.0);
         let sliver = Triangle::<f32>::new([q, q + Vec3A::new(1e-30, 0.0, 0.0), q]);
@@ -351,7 +411,11 @@ mod tests {
                     let k = (i * 4 + j) * 16;
                     let v = |a: u32| match i % 4 {
                         0 => Vec3A::new(h(k + a), h(k + a + 1), h(k + a + 2) + 2.0),
-                        1 => Vec3A::new((h(k + a) * 8.0).round() / 4.0, (h(k + a + 1) * 8.0).round() / 4.0, 2.0),
+                        1 => Vec3A::new(
+                            (h(k + a) * 8.0).round() / 4.0,
+                            (h(k + a + 1) * 8.0).round() / 4.0,
+                            2.0,
+                        ),
                         2 => Vec3A::new(h(k), h(k + 1), 2.0) + Vec3A::splat(h(k + a) * 1e-6),
                         _ => Vec3A::new(h(k + a), h(k + a + 1), h(k + a + 2)) * 3e19,
                     };
@@ -362,14 +426,30 @@ mod tests {
                 p.set(j, t);
             }
             let o = Vec3A::new(h(i * 7 + 1) * 0.1, h(i * 7 + 2) * 0.1, h(i * 7 + 3) * 0.1);
-            let target = if i % 4 == 1 { Vec3A::new((h(i * 7 + 4) * 8.0).round() / 8.0, (h(i * 7 + 5) * 8.0).round() / 8.0, 2.0) } else { Vec3A::new(h(i * 7 + 4), h(i * 7 + 5), 2.0) };
+            let target = if i % 4 == 1 {
+                Vec3A::new(
+                    (h(i * 7 + 4) * 8.0).round() / 8.0,
+                    (h(i * 7 + 5) * 8.0).round() / 8.0,
+                    2.0,
+                )
+            } else {
+                Vec3A::new(h(i * 7 + 4), h(i * 7 + 5), 2.0)
+            };
             let r = TriangleRay::new(&Ray::<f32>::new(o, (target - o).normalize()));
-            let t_max = if i % 3 == 0 { f32::INFINITY } else { 2.0 + h(i * 7 + 6) };
+            let t_max = if i % 3 == 0 {
+                f32::INFINITY
+            } else {
+                2.0 + h(i * 7 + 6)
+            };
             let lanes = if i % 5 == 0 { 0b0111 } else { 0b1111 };
             let e = r.edges4(&p, lanes);
             assert_eq!(e.candidates & e.exact, 0);
             for (j, t) in tris.iter().enumerate() {
-                let want = if (lanes >> j) & 1 != 0 { t.intersect(&r, t_max) } else { None };
+                let want = if (lanes >> j) & 1 != 0 {
+                    t.intersect(&r, t_max)
+                } else {
+                    None
+                };
                 let got = if (e.exact >> j) & 1 != 0 {
                     n += 1;
                     t.intersect(&r, t_max)
@@ -378,7 +458,11 @@ mod tests {
                 } else {
                     None
                 };
-                assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits), "case {i} lane {j}");
+                assert_eq!(
+                    got.map(f32::to_bits),
+                    want.map(f32::to_bits),
+                    "case {i} lane {j}"
+                );
                 hits += want.is_some() as u32;
             }
         }
@@ -390,7 +474,12 @@ mod tests {
         // Two triangles sharing the diagonal of the unit square at z = 3,
         // rays through points on the diagonal (ends excluded: the square's
         // corners are on the mesh boundary): at least one must report a hit.
-        let q = [Vec3A::new(0.0, 0.0, 3.0), Vec3A::new(1.0, 0.0, 3.0), Vec3A::new(1.0, 1.0, 3.0), Vec3A::new(0.0, 1.0, 3.0)];
+        let q = [
+            Vec3A::new(0.0, 0.0, 3.0),
+            Vec3A::new(1.0, 0.0, 3.0),
+            Vec3A::new(1.0, 1.0, 3.0),
+            Vec3A::new(0.0, 1.0, 3.0),
+        ];
         let t1 = Triangle::<f32>::new([q[0], q[1], q[2]]);
         let t2 = Triangle::<f32>::new([q[0], q[2], q[3]]);
         let origin = Vec3A::new(0.123, 0.456, -0.7);
@@ -399,7 +488,8 @@ mod tests {
             let target = Vec3A::new(s, s, 3.0);
             let ray = Ray::<f32>::new(origin, (target - origin).normalize());
             let tr = TriangleRay::new(&ray);
-            let hits = t1.intersect(&tr, f32::INFINITY).is_some() as u32 + t2.intersect(&tr, f32::INFINITY).is_some() as u32;
+            let hits = t1.intersect(&tr, f32::INFINITY).is_some() as u32
+                + t2.intersect(&tr, f32::INFINITY).is_some() as u32;
             assert!(hits >= 1, "leak at s = {s}");
         }
     }

@@ -10,7 +10,7 @@ use crate::accel::TriangleSet;
 use crate::bvh::Bvh;
 use crate::geometry::{Plane, PrimId, Sphere, SpherePack};
 use crate::math::{Lanes4, Ray, Real, Vector3};
-use crate::scene::{MaterialDesc, ObjectDesc, RenderSettings, SceneDesc, Vec3, FILE_MATERIALS};
+use crate::scene::{FILE_MATERIALS, MaterialDesc, ObjectDesc, RenderSettings, SceneDesc, Vec3};
 use crate::triangle::{Triangle, TriangleShading};
 
 #[derive(Clone, Copy, Debug)]
@@ -36,7 +36,11 @@ impl<R: Real> Material<R> {
             reflectivity: R::from_f64(m.reflectivity.0),
             transparency: R::from_f64(m.transparency.0),
             ior: R::from_f64(m.ior.0),
-            specular_cos_min: R::from_f64(if m.shininess.0 > 0.0 { R::SPECULAR_FLOOR.powf(1.0 / m.shininess.0) } else { 0.0 }),
+            specular_cos_min: R::from_f64(if m.shininess.0 > 0.0 {
+                R::SPECULAR_FLOOR.powf(1.0 / m.shininess.0)
+            } else {
+                0.0
+            }),
         }
     }
 }
@@ -142,7 +146,11 @@ impl<R: Real> World<R> {
             inv_height: R::from_f64(1.0 / settings.height as f64),
         };
 
-        let mut materials: Vec<Material<R>> = desc.materials.iter().map(|(_, m)| Material::from_desc(m)).collect();
+        let mut materials: Vec<Material<R>> = desc
+            .materials
+            .iter()
+            .map(|(_, m)| Material::from_desc(m))
+            .collect();
 
         let mut spheres = Vec::new();
         let mut planes = Vec::new();
@@ -158,12 +166,25 @@ impl<R: Real> World<R> {
                     radius: R::from_f64(radius.0),
                     material: mat,
                 }),
-                ObjectDesc::Plane { normal, distance, .. } => {
+                ObjectDesc::Plane {
+                    normal, distance, ..
+                } => {
                     let n = normal.0;
                     let d = distance.0 - (n[0] * origin[0] + n[1] * origin[1] + n[2] * origin[2]);
-                    planes.push(Plane { normal: R::V3::from_array(n), distance: R::from_f64(d), material: mat })
+                    planes.push(Plane {
+                        normal: R::V3::from_array(n),
+                        distance: R::from_f64(d),
+                        material: mat,
+                    })
                 }
-                ObjectDesc::Mesh(m) => tris.add_mesh(m, mat, &mut materials, &mut features, settings.max_depth, origin),
+                ObjectDesc::Mesh(m) => tris.add_mesh(
+                    m,
+                    mat,
+                    &mut materials,
+                    &mut features,
+                    settings.max_depth,
+                    origin,
+                ),
             }
         }
         // Total internal reflection sends transparency into a reflected ray.
@@ -174,7 +195,11 @@ impl<R: Real> World<R> {
         let lights = desc
             .lights
             .iter()
-            .map(|l| PointLight { position: rel::<R>(&l.position, &origin), diffuse: v::<R>(&l.diffuse), specular: v::<R>(&l.specular) })
+            .map(|l| PointLight {
+                position: rel::<R>(&l.position, &origin),
+                diffuse: v::<R>(&l.diffuse),
+                specular: v::<R>(&l.specular),
+            })
             .collect();
 
         let mut world = World {
@@ -201,13 +226,25 @@ impl<R: Real> World<R> {
     /// Lane of the starting sphere within pack `pack`, or 4 (none).
     #[inline(always)]
     fn self_lane(skip: PrimId, pack: usize) -> usize {
-        if skip.kind() == PrimId::SPHERE && skip.index() / 4 == pack { skip.index() % 4 } else { 4 }
+        if skip.kind() == PrimId::SPHERE && skip.index() / 4 == pack {
+            skip.index() % 4
+        } else {
+            4
+        }
     }
 
     #[inline(always)]
     fn splat_ray(ray: &Ray<R>) -> ([R::V4; 3], [R::V4; 3]) {
-        let o = [R::V4::splat(ray.origin.x()), R::V4::splat(ray.origin.y()), R::V4::splat(ray.origin.z())];
-        let d = [R::V4::splat(ray.dir.x()), R::V4::splat(ray.dir.y()), R::V4::splat(ray.dir.z())];
+        let o = [
+            R::V4::splat(ray.origin.x()),
+            R::V4::splat(ray.origin.y()),
+            R::V4::splat(ray.origin.z()),
+        ];
+        let d = [
+            R::V4::splat(ray.dir.x()),
+            R::V4::splat(ray.dir.y()),
+            R::V4::splat(ray.dir.z()),
+        ];
         (o, d)
     }
 
@@ -261,10 +298,10 @@ impl<R: Real> World<R> {
                 return true;
             }
         }
-        self.planes
-            .iter()
-            .enumerate()
-            .any(|(i, p)| p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip).is_some())
+        self.planes.iter().enumerate().any(|(i, p)| {
+            p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
+                .is_some()
+        })
     }
 
     /// Surface point (snapped onto the primitive), outward normal and material of a hit.
@@ -290,7 +327,11 @@ fn sub64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 fn cross64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 fn normalize64(a: [f64; 3]) -> [f64; 3] {
     let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();

@@ -11,7 +11,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::*;
-use tracer_core::film::{to_srgb8, Film, Rect, SampleRange};
+use tracer_core::film::{Film, Rect, SampleRange, to_srgb8};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
@@ -31,17 +31,26 @@ fn example_scenes() -> Vec<PathBuf> {
         }
     }
     out.sort();
-    assert!(out.len() >= 19, "expected the thesis scenes and the showcase, found {out:?}");
+    assert!(
+        out.len() >= 19,
+        "expected the thesis scenes and the showcase, found {out:?}"
+    );
     out
 }
 
 fn small(desc: &SceneDesc) -> RenderSettings {
-    RenderSettings { width: W, height: H, ..desc.render }
+    RenderSettings {
+        width: W,
+        height: H,
+        ..desc.render
+    }
 }
 
 fn golden_name(path: &Path) -> String {
     let rel = path.strip_prefix(examples_dir()).unwrap();
-    rel.with_extension("png").to_string_lossy().replace(['/', '\\'], "-")
+    rel.with_extension("png")
+        .to_string_lossy()
+        .replace(['/', '\\'], "-")
 }
 
 #[test]
@@ -56,7 +65,10 @@ fn example_scenes_match_their_golden_images() {
         let file = golden_dir.join(golden_name(&path));
         if bless {
             std::fs::create_dir_all(&golden_dir).unwrap();
-            image::RgbImage::from_raw(W, H, got).unwrap().save(&file).unwrap();
+            image::RgbImage::from_raw(W, H, got)
+                .unwrap()
+                .save(&file)
+                .unwrap();
             continue;
         }
         let want = image::open(&file)
@@ -73,7 +85,10 @@ fn example_scenes_match_their_golden_images() {
             }
         }
         if over * 1000 > (W * H) as usize {
-            failures.push(format!("{}: {over} pixels differ by more than 2/255", path.display()));
+            failures.push(format!(
+                "{}: {over} pixels differ by more than 2/255",
+                path.display()
+            ));
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
@@ -91,8 +106,19 @@ fn f32_matches_the_f64_reference_on_every_example() {
         // see a different object. Stated tolerance: mean absolute difference
         // below 1/1000, and at most 1% of pixels off by more than 2/255.
         let d = diff(&a, &b, 2.0 / 255.0);
-        assert!(d.mean < 1e-3, "{}: mean f32/f64 difference {}", path.display(), d.mean);
-        assert!(d.over * 100 <= d.pixels, "{}: {} of {} pixels differ by > 2/255", path.display(), d.over, d.pixels);
+        assert!(
+            d.mean < 1e-3,
+            "{}: mean f32/f64 difference {}",
+            path.display(),
+            d.mean
+        );
+        assert!(
+            d.over * 100 <= d.pixels,
+            "{}: {} of {} pixels differ by > 2/255",
+            path.display(),
+            d.over,
+            d.pixels
+        );
     }
 }
 
@@ -100,18 +126,38 @@ fn f32_matches_the_f64_reference_on_every_example() {
 fn tiles_and_sample_ranges_add_up_to_the_whole_render_exactly() {
     let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
     for (sampler, samples) in [("grid", 9), ("jittered", 9), ("jittered", 5)] {
-        let settings = RenderSettings { width: 67, height: 41, samples, sampler: sampler.parse().unwrap(), ..desc.render };
+        let settings = RenderSettings {
+            width: 67,
+            height: 41,
+            samples,
+            sampler: sampler.parse().unwrap(),
+            ..desc.render
+        };
         for precision in [Precision::F32, Precision::F64] {
             let frame = PreparedFrame::build(&desc, &settings, 3, precision).unwrap();
             let whole = CpuRenderer::new(Some(2))
                 .unwrap()
-                .render(&frame, 3, Rect::full(67, 41), SampleRange::all(samples), &|_| {})
+                .render(
+                    &frame,
+                    3,
+                    Rect::full(67, 41),
+                    SampleRange::all(samples),
+                    &|_| {},
+                )
                 .unwrap();
             // Uneven tiles x uneven sample batches, merged in a scrambled order, on one thread.
             let one = CpuRenderer::new(Some(1)).unwrap();
             let mut parts = vec![];
-            for rect in [Rect::new(0, 0, 30, 41), Rect::new(30, 0, 37, 17), Rect::new(30, 17, 37, 24)] {
-                for range in [SampleRange::new(0, 2), SampleRange::new(2, 3), SampleRange::new(3, samples)] {
+            for rect in [
+                Rect::new(0, 0, 30, 41),
+                Rect::new(30, 0, 37, 17),
+                Rect::new(30, 17, 37, 24),
+            ] {
+                for range in [
+                    SampleRange::new(0, 2),
+                    SampleRange::new(2, 3),
+                    SampleRange::new(3, samples),
+                ] {
                     parts.push(one.render(&frame, 3, rect, range, &|_| {}).unwrap());
                 }
             }
@@ -119,7 +165,10 @@ fn tiles_and_sample_ranges_add_up_to_the_whole_render_exactly() {
             for i in [4, 0, 8, 2, 6, 1, 7, 3, 5] {
                 merged.merge(&parts[i]).unwrap();
             }
-            assert_eq!(merged.sums, whole.sums, "{sampler} {samples} {precision:?}: sums differ");
+            assert_eq!(
+                merged.sums, whole.sums,
+                "{sampler} {samples} {precision:?}: sums differ"
+            );
             assert_eq!(merged.counts, whole.counts);
             assert_eq!(merged.rays, whole.rays);
         }
@@ -129,11 +178,35 @@ fn tiles_and_sample_ranges_add_up_to_the_whole_render_exactly() {
 #[test]
 fn render_requests_outside_the_image_are_refused() {
     let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
-    let s = RenderSettings { width: 16, height: 16, samples: 4, ..desc.render };
+    let s = RenderSettings {
+        width: 16,
+        height: 16,
+        samples: 4,
+        ..desc.render
+    };
     let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
     let r = CpuRenderer::new(Some(1)).unwrap();
-    let e = r.render(&frame, 0, Rect::new(8, 8, 9, 1), SampleRange::all(4), &|_| {}).unwrap_err();
-    assert_eq!(e.to_string(), "rectangle Rect { x: 8, y: 8, width: 9, height: 1 } is empty or outside the 16x16 image");
-    let e = r.render(&frame, 0, Rect::full(16, 16), SampleRange::new(2, 5), &|_| {}).unwrap_err();
+    let e = r
+        .render(
+            &frame,
+            0,
+            Rect::new(8, 8, 9, 1),
+            SampleRange::all(4),
+            &|_| {},
+        )
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "rectangle Rect { x: 8, y: 8, width: 9, height: 1 } is empty or outside the 16x16 image"
+    );
+    let e = r
+        .render(
+            &frame,
+            0,
+            Rect::full(16, 16),
+            SampleRange::new(2, 5),
+            &|_| {},
+        )
+        .unwrap_err();
     assert_eq!(e.to_string(), "sample range 2..5 is empty or outside 0..4");
 }

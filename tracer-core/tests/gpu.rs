@@ -22,14 +22,14 @@ mod common;
 
 use std::sync::OnceLock;
 
+use common::meshgen::{icosphere, pathological_obj, tmpdir, write_obj};
 use common::*;
+use tracer_core::bvh::{Aabb, Bvh, BvhNode4, STACK};
 use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::geometry::PrimId;
 use tracer_core::render::gpu::{GpuError, GpuOptions, GpuRenderer, Strategy};
 use tracer_core::render::{Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
-use tracer_core::bvh::{Aabb, Bvh, BvhNode4, STACK};
-use tracer_core::geometry::PrimId;
-use common::meshgen::{icosphere, pathological_obj, tmpdir, write_obj};
 
 const W: u32 = 160;
 const H: u32 = 120;
@@ -38,14 +38,19 @@ const H: u32 = 120;
 /// (skip) when there is no adapter and this is not CI.
 fn gpu() -> Option<&'static GpuRenderer> {
     static GPU: OnceLock<Option<GpuRenderer>> = OnceLock::new();
-    let r = GPU.get_or_init(|| match GpuRenderer::new(std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(), GpuOptions::default()) {
-        Ok(r) => Some(r),
-        Err(e) => {
-            if std::env::var("CI").is_ok_and(|v| v == "true") {
-                panic!("CI=true but no GPU adapter could be opened: {e}");
+    let r = GPU.get_or_init(|| {
+        match GpuRenderer::new(
+            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+            GpuOptions::default(),
+        ) {
+            Ok(r) => Some(r),
+            Err(e) => {
+                if std::env::var("CI").is_ok_and(|v| v == "true") {
+                    panic!("CI=true but no GPU adapter could be opened: {e}");
+                }
+                eprintln!("SKIPPING GPU tests: {e}");
+                None
             }
-            eprintln!("SKIPPING GPU tests: {e}");
-            None
         }
     });
     if let Some(r) = r {
@@ -54,24 +59,52 @@ fn gpu() -> Option<&'static GpuRenderer> {
     r.as_ref()
 }
 
-fn gpu_render(g: &GpuRenderer, desc: &SceneDesc, settings: &RenderSettings, frame: u32, rect: Rect, samples: SampleRange) -> Film {
-    let prepared = PreparedFrame::build(desc, settings, frame, Precision::F32).expect("valid settings");
-    let film = g.render(&prepared, frame, rect, samples, &|_| {}).unwrap_or_else(|e| panic!("GPU render failed: {e}"));
-    assert_eq!(film.nonfinite, 0, "a NaN or infinite sample reached the GPU film");
+fn gpu_render(
+    g: &GpuRenderer,
+    desc: &SceneDesc,
+    settings: &RenderSettings,
+    frame: u32,
+    rect: Rect,
+    samples: SampleRange,
+) -> Film {
+    let prepared =
+        PreparedFrame::build(desc, settings, frame, Precision::F32).expect("valid settings");
+    let film = g
+        .render(&prepared, frame, rect, samples, &|_| {})
+        .unwrap_or_else(|e| panic!("GPU render failed: {e}"));
+    assert_eq!(
+        film.nonfinite, 0,
+        "a NaN or infinite sample reached the GPU film"
+    );
     film
 }
 
 fn gpu_whole(g: &GpuRenderer, desc: &SceneDesc, settings: &RenderSettings) -> Film {
-    gpu_render(g, desc, settings, 0, Rect::full(settings.width, settings.height), SampleRange::all(settings.samples))
+    gpu_render(
+        g,
+        desc,
+        settings,
+        0,
+        Rect::full(settings.width, settings.height),
+        SampleRange::all(settings.samples),
+    )
 }
 
 /// Asserts the stated tolerance (module docs) of a GPU image against the f64 reference.
 fn assert_close(what: &str, gpu_img: &[[f32; 3]], reference: &[[f32; 3]]) {
     assert_finite(gpu_img);
     let d = diff(gpu_img, reference, 2.0 / 255.0);
-    eprintln!("{what}: mean |gpu - f64| = {:.2e}, max {:.3}, {} of {} pixels over 2/255", d.mean, d.max, d.over, d.pixels);
+    eprintln!(
+        "{what}: mean |gpu - f64| = {:.2e}, max {:.3}, {} of {} pixels over 2/255",
+        d.mean, d.max, d.over, d.pixels
+    );
     assert!(d.mean < 1e-3, "{what}: mean GPU/f64 difference {}", d.mean);
-    assert!(d.over * 100 <= d.pixels, "{what}: {} of {} pixels differ by > 2/255", d.over, d.pixels);
+    assert!(
+        d.over * 100 <= d.pixels,
+        "{what}: {} of {} pixels differ by > 2/255",
+        d.over,
+        d.pixels
+    );
 }
 
 /// Ray counts agree with the CPU f32 path: primary exactly; secondary rays
@@ -83,16 +116,36 @@ fn assert_counts_close(what: &str, gpu: &Film, cpu: &Film) {
     let (g, c) = (gpu.rays, cpu.rays);
     assert_eq!(g.primary, c.primary, "{what}: primary rays");
     let close = |a: u64, b: u64, rel: f64| (a as f64 - b as f64).abs() <= rel * b as f64 + 16.0;
-    assert!(close(g.reflection, c.reflection, 0.01), "{what}: reflection rays GPU {} CPU {}", g.reflection, c.reflection);
-    assert!(close(g.refraction, c.refraction, 0.01), "{what}: refraction rays GPU {} CPU {}", g.refraction, c.refraction);
-    assert!(close(g.shadow, c.shadow, 0.05), "{what}: shadow rays GPU {} CPU {}", g.shadow, c.shadow);
+    assert!(
+        close(g.reflection, c.reflection, 0.01),
+        "{what}: reflection rays GPU {} CPU {}",
+        g.reflection,
+        c.reflection
+    );
+    assert!(
+        close(g.refraction, c.refraction, 0.01),
+        "{what}: refraction rays GPU {} CPU {}",
+        g.refraction,
+        c.refraction
+    );
+    assert!(
+        close(g.shadow, c.shadow, 0.05),
+        "{what}: shadow rays GPU {} CPU {}",
+        g.shadow,
+        c.shadow
+    );
 }
 
 fn check_example(rel: &str) {
     let Some(g) = gpu() else { return };
     let path = examples_dir().join(rel);
     let desc = SceneDesc::load(&path).unwrap();
-    let s = RenderSettings { width: W, height: H, samples: 4, ..desc.render };
+    let s = RenderSettings {
+        width: W,
+        height: H,
+        samples: 4,
+        ..desc.render
+    };
     let got = gpu_whole(g, &desc, &s);
     let reference = render_with(&desc, &s, Precision::F64);
     let cpu32 = render_with(&desc, &s, Precision::F32);
@@ -141,14 +194,22 @@ fn every_example_scene_has_a_gpu_test() {
         for e in std::fs::read_dir(&d).unwrap() {
             let p = e.unwrap().path();
             if p.extension().is_some_and(|x| x == "toml") {
-                found.push(p.strip_prefix(examples_dir()).unwrap().to_string_lossy().replace('\\', "/"));
+                found.push(
+                    p.strip_prefix(examples_dir())
+                        .unwrap()
+                        .to_string_lossy()
+                        .replace('\\', "/"),
+                );
             }
         }
     }
     found.sort();
     let src = include_str!("gpu.rs");
     for f in found.iter().filter(|f| !GPU_REFUSED.contains(&f.as_str())) {
-        assert!(src.contains(&format!("=> \"{f}\"")), "examples/{f} has no GPU test in tests/gpu.rs");
+        assert!(
+            src.contains(&format!("=> \"{f}\"")),
+            "examples/{f} has no GPU test in tests/gpu.rs"
+        );
     }
 }
 
@@ -156,7 +217,11 @@ fn every_example_scene_has_a_gpu_test() {
 
 /// Compares GPU and CPU f64 renders of `desc` at its own settings with the
 /// stated tolerance, and returns both images.
-fn hard_case(what: &str, desc: &SceneDesc, settings: &RenderSettings) -> Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)> {
+fn hard_case(
+    what: &str,
+    desc: &SceneDesc,
+    settings: &RenderSettings,
+) -> Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)> {
     let g = gpu()?;
     let got = gpu_whole(g, desc, settings).resolve();
     let reference = render_with(desc, settings, Precision::F64).resolve();
@@ -169,9 +234,16 @@ fn hard_case(what: &str, desc: &SceneDesc, settings: &RenderSettings) -> Option<
 /// leak is an error of a whole light (~0.5); `tol` per pixel, all pixels
 /// but silhouette flips (0.5%).
 fn one_object_case(what: &str, desc: &SceneDesc, tol: f32) {
-    let Some((got, reference)) = hard_case(what, desc, &desc.render) else { return };
+    let Some((got, reference)) = hard_case(what, desc, &desc.render) else {
+        return;
+    };
     let d = diff(&got, &reference, tol);
-    assert!(d.over * 200 <= d.pixels, "{what}: {} of {} pixels differ by > {tol}", d.over, d.pixels);
+    assert!(
+        d.over * 200 <= d.pixels,
+        "{what}: {} of {} pixels differ by > {tol}",
+        d.over,
+        d.pixels
+    );
 }
 
 #[test]
@@ -199,7 +271,10 @@ fn hard_tiny_sphere_far_from_the_origin() {
     // It is really there: most of the view is the lit sphere, not background.
     if let Some(g) = gpu() {
         let img = gpu_whole(g, &s, &s.render).resolve();
-        assert!(img.iter().filter(|p| p[2] != 0.3).count() > 300, "the 1e-4 sphere is missing on the GPU");
+        assert!(
+            img.iter().filter(|p| p[2] != 0.3).count() > 300,
+            "the 1e-4 sphere is missing on the GPU"
+        );
     }
 }
 
@@ -213,14 +288,22 @@ fn hard_huge_sphere_far_from_the_origin() {
 #[test]
 fn hard_huge_sphere_as_a_floor() {
     let s = scene(HUGE_SPHERE_FLOOR_SCENE);
-    let Some((img, _)) = hard_case("huge sphere floor", &s, &s.render) else { return };
+    let Some((img, _)) = hard_case("huge sphere floor", &s, &s.render) else {
+        return;
+    };
     let shadow = img[60 * 128 + 64];
-    assert!((shadow[0] - 0.1).abs() < 1e-5, "floor in the sphere's shadow = {shadow:?}, want ambient 0.1");
+    assert!(
+        (shadow[0] - 0.1).abs() < 1e-5,
+        "floor in the sphere's shadow = {shadow:?}, want ambient 0.1"
+    );
     let lit_min = 0.1 + 0.8 * 0.2;
     for y in 86..96 {
         for x in 0..128 {
             let v = img[y * 128 + x][0];
-            assert!(v as f64 > lit_min, "floor pixel ({x}, {y}) = {v}: shadow acne on the GPU");
+            assert!(
+                v as f64 > lit_min,
+                "floor pixel ({x}, {y}) = {v}: shadow acne on the GPU"
+            );
         }
     }
 }
@@ -228,11 +311,19 @@ fn hard_huge_sphere_as_a_floor() {
 #[test]
 fn hard_light_on_a_surface() {
     let s = scene(LIGHT_ON_SURFACE_SCENE);
-    let Some((img, _)) = hard_case("light on a surface", &s, &s.render) else { return };
+    let Some((img, _)) = hard_case("light on a surface", &s, &s.render) else {
+        return;
+    };
     let floor_px = img[95 * 128 + 2];
-    assert!((floor_px[0] - 0.1).abs() < 1e-6, "floor corner = {floor_px:?}, want ambient only");
+    assert!(
+        (floor_px[0] - 0.1).abs() < 1e-6,
+        "floor corner = {floor_px:?}, want ambient only"
+    );
     let lit = img.iter().filter(|p| p[0] > 0.3).count();
-    assert!(lit > 15, "the sphere beside the light on the floor is not lit ({lit} pixels)");
+    assert!(
+        lit > 15,
+        "the sphere beside the light on the floor is not lit ({lit} pixels)"
+    );
 }
 
 /// hard_cases.rs's glass plane, seen from below through a 2-degree view
@@ -263,23 +354,35 @@ fn hard_total_internal_reflection_at_and_past_the_critical_angle() {
         for x in 0..8usize {
             let p = img[y * 8 + x];
             let r = reference[y * 8 + x];
-            assert!(p.iter().all(|c| c.is_finite() && *c >= 0.0), "({x}, {y}) = {p:?}");
+            assert!(
+                p.iter().all(|c| c.is_finite() && *c >= 0.0),
+                "({x}, {y}) = {p:?}"
+            );
             if let Some(w) = want {
                 for c in 0..3 {
                     assert!((p[c] - w[c]).abs() < 1e-5, "row {y}: GPU {p:?}, want {w:?}");
-                    assert!((r[c] - w[c]).abs() < 1e-5, "row {y}: CPU f64 {r:?}, want {w:?}");
+                    assert!(
+                        (r[c] - w[c]).abs() < 1e-5,
+                        "row {y}: CPU f64 {r:?}, want {w:?}"
+                    );
                 }
             }
         }
     }
     // Refraction happened only above the critical line.
-    assert!(film.rays.refraction >= 30 * 8 && film.rays.refraction <= 34 * 8, "refraction rays {}", film.rays.refraction);
+    assert!(
+        film.rays.refraction >= 30 * 8 && film.rays.refraction <= 34 * 8,
+        "refraction rays {}",
+        film.rays.refraction
+    );
 }
 
 #[test]
 fn hard_nested_and_touching_glass_spheres() {
     let (s, settings) = nested_glass_scene();
-    let Some((img, reference)) = hard_case("nested glass", &s, &settings) else { return };
+    let Some((img, reference)) = hard_case("nested glass", &s, &settings) else {
+        return;
+    };
     let d = diff(&img, &reference, 1.0 / 255.0);
     assert!(d.max < 0.25, "largest GPU/f64 difference {}", d.max);
 }
@@ -291,11 +394,32 @@ fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
     let Some(g) = gpu() else { return };
     let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
     for (sampler, samples) in [("grid", 9), ("jittered", 9), ("jittered", 5)] {
-        let s = RenderSettings { width: 67, height: 41, samples, sampler: sampler.parse().unwrap(), ..desc.render };
-        let whole = gpu_render(g, &desc, &s, 3, Rect::full(67, 41), SampleRange::all(samples));
+        let s = RenderSettings {
+            width: 67,
+            height: 41,
+            samples,
+            sampler: sampler.parse().unwrap(),
+            ..desc.render
+        };
+        let whole = gpu_render(
+            g,
+            &desc,
+            &s,
+            3,
+            Rect::full(67, 41),
+            SampleRange::all(samples),
+        );
         let mut parts = vec![];
-        for rect in [Rect::new(0, 0, 30, 41), Rect::new(30, 0, 37, 17), Rect::new(30, 17, 37, 24)] {
-            for range in [SampleRange::new(0, 2), SampleRange::new(2, 3), SampleRange::new(3, samples)] {
+        for rect in [
+            Rect::new(0, 0, 30, 41),
+            Rect::new(30, 0, 37, 17),
+            Rect::new(30, 17, 37, 24),
+        ] {
+            for range in [
+                SampleRange::new(0, 2),
+                SampleRange::new(2, 3),
+                SampleRange::new(3, samples),
+            ] {
                 parts.push(gpu_render(g, &desc, &s, 3, rect, range));
             }
         }
@@ -303,7 +427,10 @@ fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
         for i in [4, 0, 8, 2, 6, 1, 7, 3, 5] {
             merged.merge(&parts[i]).unwrap();
         }
-        assert_eq!(merged.sums, whole.sums, "{sampler} {samples}: tiles x sample ranges differ from the whole");
+        assert_eq!(
+            merged.sums, whole.sums,
+            "{sampler} {samples}: tiles x sample ranges differ from the whole"
+        );
         assert_eq!(merged.counts, whole.counts);
         assert_eq!(merged.rays, whole.rays);
 
@@ -312,20 +439,60 @@ fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
         let f64_frame = PreparedFrame::build(&desc, &s, 3, Precision::F64).unwrap();
         let reference = tracer_core::render::CpuRenderer::new(None)
             .unwrap()
-            .render(&f64_frame, 3, Rect::full(67, 41), SampleRange::all(samples), &|_| {})
+            .render(
+                &f64_frame,
+                3,
+                Rect::full(67, 41),
+                SampleRange::all(samples),
+                &|_| {},
+            )
             .unwrap();
-        assert_close(&format!("{sampler} {samples} frame 3 vs CPU f64"), &whole.resolve(), &reference.resolve());
+        assert_close(
+            &format!("{sampler} {samples} frame 3 vs CPU f64"),
+            &whole.resolve(),
+            &reference.resolve(),
+        );
     }
 
     // Tiny dispatch and submission budgets: many dispatches over bands of
     // rows and single samples, many submissions; the same sums.
-    let s = RenderSettings { width: 67, height: 41, samples: 4, ..desc.render };
+    let s = RenderSettings {
+        width: 67,
+        height: 41,
+        samples: 4,
+        ..desc.render
+    };
     let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
-    let small = GpuRenderer::new(Some(&g.adapter().index.to_string()), GpuOptions { workgroup: (16, 4), dispatch_pixel_samples: 150, submit_pixel_samples: 1000, ..GpuOptions::default() }).unwrap();
-    let split = small.render(&prepared, 0, Rect::full(67, 41), SampleRange::all(4), &|_| {}).unwrap();
+    let small = GpuRenderer::new(
+        Some(&g.adapter().index.to_string()),
+        GpuOptions {
+            workgroup: (16, 4),
+            dispatch_pixel_samples: 150,
+            submit_pixel_samples: 1000,
+            ..GpuOptions::default()
+        },
+    )
+    .unwrap();
+    let split = small
+        .render(
+            &prepared,
+            0,
+            Rect::full(67, 41),
+            SampleRange::all(4),
+            &|_| {},
+        )
+        .unwrap();
     let stats = small.last_stats();
     assert!(stats.dispatches > 40 && stats.submissions > 10, "{stats:?}");
-    let whole = g.render(&prepared, 0, Rect::full(67, 41), SampleRange::all(4), &|_| {}).unwrap();
+    let whole = g
+        .render(
+            &prepared,
+            0,
+            Rect::full(67, 41),
+            SampleRange::all(4),
+            &|_| {},
+        )
+        .unwrap();
     assert_eq!(split.sums, whole.sums);
     assert_eq!(split.rays, whole.rays);
 }
@@ -334,12 +501,23 @@ fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
 fn gpu_progress_reports_every_pixel_sample() {
     let Some(g) = gpu() else { return };
     let desc = SceneDesc::load(examples_dir().join("depth.toml")).unwrap();
-    let s = RenderSettings { width: 50, height: 30, samples: 3, ..desc.render };
+    let s = RenderSettings {
+        width: 50,
+        height: 30,
+        samples: 3,
+        ..desc.render
+    };
     let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
     let done = std::sync::atomic::AtomicU64::new(0);
-    g.render(&prepared, 0, Rect::new(5, 5, 40, 20), SampleRange::new(1, 3), &|n| {
-        done.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
-    })
+    g.render(
+        &prepared,
+        0,
+        Rect::new(5, 5, 40, 20),
+        SampleRange::new(1, 3),
+        &|n| {
+            done.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+        },
+    )
     .unwrap();
     assert_eq!(done.into_inner(), 40 * 20 * 2);
 }
@@ -348,30 +526,90 @@ fn gpu_progress_reports_every_pixel_sample() {
 fn gpu_refuses_f64_and_requests_outside_the_image() {
     let Some(g) = gpu() else { return };
     let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
-    let s = RenderSettings { width: 16, height: 16, samples: 4, ..desc.render };
+    let s = RenderSettings {
+        width: 16,
+        height: 16,
+        samples: 4,
+        ..desc.render
+    };
     let f64_frame = PreparedFrame::build(&desc, &s, 0, Precision::F64).unwrap();
-    let e = g.render(&f64_frame, 0, Rect::full(16, 16), SampleRange::all(4), &|_| {}).unwrap_err();
+    let e = g
+        .render(
+            &f64_frame,
+            0,
+            Rect::full(16, 16),
+            SampleRange::all(4),
+            &|_| {},
+        )
+        .unwrap_err();
     assert!(matches!(e, GpuError::F64Unsupported), "{e}");
-    assert_eq!(e.to_string(), "the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)");
+    assert_eq!(
+        e.to_string(),
+        "the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)"
+    );
     let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
-    let e = g.render(&frame, 0, Rect::new(8, 8, 9, 1), SampleRange::all(4), &|_| {}).unwrap_err();
-    assert_eq!(e.to_string(), "rectangle Rect { x: 8, y: 8, width: 9, height: 1 } is empty or outside the 16x16 image");
-    let e = g.render(&frame, 0, Rect::full(16, 16), SampleRange::new(2, 5), &|_| {}).unwrap_err();
+    let e = g
+        .render(
+            &frame,
+            0,
+            Rect::new(8, 8, 9, 1),
+            SampleRange::all(4),
+            &|_| {},
+        )
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "rectangle Rect { x: 8, y: 8, width: 9, height: 1 } is empty or outside the 16x16 image"
+    );
+    let e = g
+        .render(
+            &frame,
+            0,
+            Rect::full(16, 16),
+            SampleRange::new(2, 5),
+            &|_| {},
+        )
+        .unwrap_err();
     assert_eq!(e.to_string(), "sample range 2..5 is empty or outside 0..4");
     // The renderer still works after refusing.
-    let ok = g.render(&frame, 0, Rect::full(16, 16), SampleRange::all(4), &|_| {}).unwrap();
+    let ok = g
+        .render(&frame, 0, Rect::full(16, 16), SampleRange::all(4), &|_| {})
+        .unwrap();
     assert!(ok.counts.iter().all(|&n| n == 4));
 }
 
 #[test]
 fn gpu_adapter_selection_errors_name_the_choices() {
     let Some(g) = gpu() else { return };
-    let e = GpuRenderer::new(Some("no-such-gpu-xyz"), GpuOptions::default()).err().expect("must fail");
+    let e = GpuRenderer::new(Some("no-such-gpu-xyz"), GpuOptions::default())
+        .err()
+        .expect("must fail");
     let msg = e.to_string();
-    assert!(msg.starts_with("no GPU adapter matches \"no-such-gpu-xyz\"; available: 0: "), "{msg}");
+    assert!(
+        msg.starts_with("no GPU adapter matches \"no-such-gpu-xyz\"; available: 0: "),
+        "{msg}"
+    );
     assert!(msg.contains(&g.adapter().name), "{msg}");
-    let e = GpuRenderer::new(None, GpuOptions { workgroup: (4096, 4096), ..GpuOptions::default() }).err().expect("must fail");
-    assert!(matches!(e, GpuError::Workgroup { x: 4096, y: 4096, .. }), "{e}");
+    let e = GpuRenderer::new(
+        None,
+        GpuOptions {
+            workgroup: (4096, 4096),
+            ..GpuOptions::default()
+        },
+    )
+    .err()
+    .expect("must fail");
+    assert!(
+        matches!(
+            e,
+            GpuError::Workgroup {
+                x: 4096,
+                y: 4096,
+                ..
+            }
+        ),
+        "{e}"
+    );
 }
 
 // ---- The wavefront strategy --------------------------------------------
@@ -384,15 +622,39 @@ fn gpu_adapter_selection_errors_name_the_choices() {
 #[test]
 fn wavefront_strategy_matches_the_stack_kernel_and_the_reference() {
     let Some(g) = gpu() else { return };
-    let wave = GpuRenderer::new(Some(&g.adapter().index.to_string()), GpuOptions { strategy: Strategy::Wavefront, ..GpuOptions::default() }).unwrap();
-    for rel in ["resolution.toml", "complexity/glass-9.toml", "complexity/chrome-6.toml", "depth.toml"] {
+    let wave = GpuRenderer::new(
+        Some(&g.adapter().index.to_string()),
+        GpuOptions {
+            strategy: Strategy::Wavefront,
+            ..GpuOptions::default()
+        },
+    )
+    .unwrap();
+    for rel in [
+        "resolution.toml",
+        "complexity/glass-9.toml",
+        "complexity/chrome-6.toml",
+        "depth.toml",
+    ] {
         let desc = SceneDesc::load(examples_dir().join(rel)).unwrap();
-        let s = RenderSettings { width: W, height: H, samples: 4, ..desc.render };
+        let s = RenderSettings {
+            width: W,
+            height: H,
+            samples: 4,
+            ..desc.render
+        };
         let a = gpu_whole(&wave, &desc, &s);
         let b = gpu_whole(g, &desc, &s);
-        assert_eq!(a.rays, b.rays, "{rel}: wavefront and stack kernels traced different rays");
+        assert_eq!(
+            a.rays, b.rays,
+            "{rel}: wavefront and stack kernels traced different rays"
+        );
         assert_eq!(a.counts, b.counts);
-        assert_close(&format!("{rel} wavefront"), &a.resolve(), &render_with(&desc, &s, Precision::F64).resolve());
+        assert_close(
+            &format!("{rel} wavefront"),
+            &a.resolve(),
+            &render_with(&desc, &s, Precision::F64).resolve(),
+        );
     }
 }
 
@@ -402,17 +664,33 @@ fn wavefront_strategy_matches_the_stack_kernel_and_the_reference() {
 fn wavefront_recovers_from_queue_overflow() {
     let Some(g) = gpu() else { return };
     // Queues of 512 tasks, first dispatches of 256 samples: glass trees outgrow them.
-    let opts = GpuOptions { strategy: Strategy::Wavefront, dispatch_pixel_samples: 256, ..GpuOptions::default() };
+    let opts = GpuOptions {
+        strategy: Strategy::Wavefront,
+        dispatch_pixel_samples: 256,
+        ..GpuOptions::default()
+    };
     let wave = GpuRenderer::new(Some(&g.adapter().index.to_string()), opts).unwrap();
     let desc = SceneDesc::load(examples_dir().join("complexity/glass-3.toml")).unwrap();
-    let s = RenderSettings { width: 40, height: 30, samples: 4, ..desc.render };
+    let s = RenderSettings {
+        width: 40,
+        height: 30,
+        samples: 4,
+        ..desc.render
+    };
     let a = gpu_whole(&wave, &desc, &s);
     let retries = wave.last_stats().overflow_retries;
-    assert!(retries > 0, "the queues never overflowed: the test does not test");
+    assert!(
+        retries > 0,
+        "the queues never overflowed: the test does not test"
+    );
     eprintln!("wavefront overflowed and retried {retries} times");
     let b = gpu_whole(g, &desc, &s);
     assert_eq!(a.rays, b.rays);
-    assert_close("glass-3 wavefront after overflow", &a.resolve(), &b.resolve());
+    assert_close(
+        "glass-3 wavefront after overflow",
+        &a.resolve(),
+        &b.resolve(),
+    );
 }
 
 // ---- Meshes and the BVH on the GPU (bvh.wgsl) against the CPU ------------
@@ -428,9 +706,19 @@ fn wavefront_recovers_from_queue_overflow() {
 fn check_tree_scene(what: &str, desc: &SceneDesc, s: &RenderSettings) -> Option<Film> {
     let g = gpu()?;
     let frame = PreparedFrame::build(desc, s, 0, Precision::F32).expect("valid settings");
-    let PreparedFrame::F32(w) = &frame else { unreachable!() };
-    let tree = w.accel.as_ref().unwrap_or_else(|| panic!("{what}: the scene got no BVH, so the test would not test it"));
-    eprintln!("{what}: {} triangles, {} spheres, tree depth {}", w.triangles.len(), w.spheres.len(), tree.stats.depth);
+    let PreparedFrame::F32(w) = &frame else {
+        unreachable!()
+    };
+    let tree = w
+        .accel
+        .as_ref()
+        .unwrap_or_else(|| panic!("{what}: the scene got no BVH, so the test would not test it"));
+    eprintln!(
+        "{what}: {} triangles, {} spheres, tree depth {}",
+        w.triangles.len(),
+        w.spheres.len(),
+        tree.stats.depth
+    );
     let got = gpu_whole(g, desc, s);
     let reference = render_with(desc, s, Precision::F64);
     let cpu32 = render_with(desc, s, Precision::F32);
@@ -451,9 +739,21 @@ fn gpu_generated_mesh_scene_matches_the_cpu() {
     let (v, f) = icosphere(3);
     write_obj(&dir.join("flat.obj"), &v, &f, false);
     // A unit cube, two triangles a face, counter-clockwise from outside.
-    let cube_v: Vec<[f64; 3]> = (0..8).map(|i| [(i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64]).collect();
-    let quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]];
-    let cube_f: Vec<[u32; 3]> = quads.iter().flat_map(|q: &[u32; 4]| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]).collect();
+    let cube_v: Vec<[f64; 3]> = (0..8)
+        .map(|i| [(i & 1) as f64, ((i >> 1) & 1) as f64, ((i >> 2) & 1) as f64])
+        .collect();
+    let quads = [
+        [0, 2, 3, 1],
+        [4, 5, 7, 6],
+        [0, 1, 5, 4],
+        [2, 6, 7, 3],
+        [0, 4, 6, 2],
+        [1, 3, 7, 5],
+    ];
+    let cube_f: Vec<[u32; 3]> = quads
+        .iter()
+        .flat_map(|q: &[u32; 4]| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
+        .collect();
     write_obj(&dir.join("cube.obj"), &cube_v, &cube_f, false);
     let src = r#"
 [render]
@@ -523,13 +823,33 @@ material = "floor"
 "#;
     let desc = SceneDesc::parse(src, dir.join("gen.toml")).unwrap();
     let s = desc.render;
-    let Some(film) = check_tree_scene("generated meshes", &desc, &s) else { return };
-    assert!(film.rays.refraction > 0 && film.rays.reflection > 0, "{:?}", film.rays);
+    let Some(film) = check_tree_scene("generated meshes", &desc, &s) else {
+        return;
+    };
+    assert!(
+        film.rays.refraction > 0 && film.rays.reflection > 0,
+        "{:?}",
+        film.rays
+    );
     // The wavefront kernel compiles the same bvh.wgsl: same rays, same image.
-    let g = GpuRenderer::new(std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(), GpuOptions { strategy: Strategy::Wavefront, ..GpuOptions::default() }).unwrap();
+    let g = GpuRenderer::new(
+        std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+        GpuOptions {
+            strategy: Strategy::Wavefront,
+            ..GpuOptions::default()
+        },
+    )
+    .unwrap();
     let wave = gpu_whole(&g, &desc, &s);
-    assert_eq!(wave.rays, film.rays, "wavefront and stack kernels traced different rays");
-    assert_close("generated meshes, wavefront", &wave.resolve(), &render_with(&desc, &s, Precision::F64).resolve());
+    assert_eq!(
+        wave.rays, film.rays,
+        "wavefront and stack kernels traced different rays"
+    );
+    assert_close(
+        "generated meshes, wavefront",
+        &wave.resolve(),
+        &render_with(&desc, &s, Precision::F64).resolve(),
+    );
 }
 
 /// The committed CC BY Box.gltf (file materials, node transforms).
@@ -610,7 +930,9 @@ material = "plastic"
     for i in 0..25 {
         let (x, z) = ((i % 5) as f64 * 1.2 - 2.4, (i / 5) as f64 * 1.2 - 2.4);
         let m = ["plastic", "mirror", "glass"][i % 3];
-        src += &format!("[[objects]]\ntype = \"sphere\"\ncenter = [{x}, 0.0, {z}]\nradius = 0.45\nmaterial = \"{m}\"\n");
+        src += &format!(
+            "[[objects]]\ntype = \"sphere\"\ncenter = [{x}, 0.0, {z}]\nradius = 0.45\nmaterial = \"{m}\"\n"
+        );
     }
     let desc = scene(&src);
     check_tree_scene("25 spheres", &desc, &desc.render);
@@ -658,17 +980,27 @@ material = "mirror"
 #[test]
 fn gpu_refuses_a_tree_deeper_than_its_stack() {
     let Some(g) = gpu() else { return };
-    let mut src = String::from("[render]\nwidth = 16\nheight = 16\nsamples = 1\n[camera]\nposition = [0, 0, -10]\nlook_at = [0, 0, 0]\n[materials.m]\ndiffuse = [1, 1, 1]\n[[lights]]\nposition = [0, 5, -5]\n");
+    let mut src = String::from(
+        "[render]\nwidth = 16\nheight = 16\nsamples = 1\n[camera]\nposition = [0, 0, -10]\nlook_at = [0, 0, 0]\n[materials.m]\ndiffuse = [1, 1, 1]\n[[lights]]\nposition = [0, 5, -5]\n",
+    );
     for i in 0..12 {
-        src += &format!("[[objects]]\ntype = \"sphere\"\ncenter = [{}, 0, 0]\nradius = 0.1\nmaterial = \"m\"\n", i as f64 * 0.3 - 1.8);
+        src += &format!(
+            "[[objects]]\ntype = \"sphere\"\ncenter = [{}, 0, 0]\nradius = 0.1\nmaterial = \"m\"\n",
+            i as f64 * 0.3 - 1.8
+        );
     }
     let desc = scene(&src);
     let s = desc.render;
     let mut frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
-    let PreparedFrame::F32(w) = &mut frame else { unreachable!() };
+    let PreparedFrame::F32(w) = &mut frame else {
+        unreachable!()
+    };
     // A chain of nodes: three leaves (a sphere each) and the next node.
     let levels = 40;
-    let everything = Aabb { min: glam::Vec3A::splat(-1e3), max: glam::Vec3A::splat(1e3) };
+    let everything = Aabb {
+        min: glam::Vec3A::splat(-1e3),
+        max: glam::Vec3A::splat(1e3),
+    };
     let nodes: Vec<BvhNode4> = (0..levels)
         .map(|i| {
             let mut n = BvhNode4::EMPTY;
@@ -685,28 +1017,53 @@ fn gpu_refuses_a_tree_deeper_than_its_stack() {
         })
         .collect();
     let prims: Vec<PrimId> = (0..12).map(|i| PrimId::new(PrimId::SPHERE, i)).collect();
-    w.accel = Some(Bvh { nodes, prims, packets: Vec::new(), stats: Default::default(), id: 0 });
-    let e = g.render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {}).unwrap_err();
+    w.accel = Some(Bvh {
+        nodes,
+        prims,
+        packets: Vec::new(),
+        stats: Default::default(),
+        id: 0,
+    });
+    let e = g
+        .render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {})
+        .unwrap_err();
     // Node i has 3 (i + 1) entries on the stack once it has pushed: 99 > 96 at depth 32.
-    assert!(matches!(e, GpuError::TreeTooDeep { depth: 32, stack: STACK }), "{e}");
+    assert!(
+        matches!(
+            e,
+            GpuError::TreeTooDeep {
+                depth: 32,
+                stack: STACK
+            }
+        ),
+        "{e}"
+    );
     assert_eq!(
         e.to_string(),
         "the scene's BVH has a node at depth 32 whose traversal needs more than the GPU traversal stack of 96 entries; render it with --backend cpu"
     );
     // A broken tree (a child index past the end) is refused too.
-    let PreparedFrame::F32(w) = &mut frame else { unreachable!() };
+    let PreparedFrame::F32(w) = &mut frame else {
+        unreachable!()
+    };
     let tree = w.accel.as_mut().unwrap();
     tree.nodes.truncate(3);
-    let e = g.render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {}).unwrap_err();
+    let e = g
+        .render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {})
+        .unwrap_err();
     assert!(matches!(e, GpuError::BadTree(_)), "{e}");
     // The same scene with the tree the builder makes renders.
     w_rebuild(&mut frame);
-    let film = g.render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {}).unwrap();
+    let film = g
+        .render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {})
+        .unwrap();
     assert_eq!(film.rays.primary, 256);
 }
 
 fn w_rebuild(frame: &mut PreparedFrame) {
-    let PreparedFrame::F32(w) = frame else { unreachable!() };
+    let PreparedFrame::F32(w) = frame else {
+        unreachable!()
+    };
     w.set_accel(Some(true));
 }
 
@@ -719,11 +1076,19 @@ fn w_rebuild(frame: &mut PreparedFrame) {
 fn gpu_bunny_matches_the_cpu() {
     let model = examples_dir().join("../../shared/meshes/stanford-bunny.obj");
     if !model.exists() {
-        eprintln!("NOTE: {} is absent: the CPU-vs-GPU bunny test checks nothing (see examples/stanford/bunny.toml)", model.display());
+        eprintln!(
+            "NOTE: {} is absent: the CPU-vs-GPU bunny test checks nothing (see examples/stanford/bunny.toml)",
+            model.display()
+        );
         return;
     }
     let desc = SceneDesc::load(examples_dir().join("stanford/bunny.toml")).unwrap();
-    let s = RenderSettings { width: 160, height: 120, samples: 1, ..desc.render };
+    let s = RenderSettings {
+        width: 160,
+        height: 120,
+        samples: 1,
+        ..desc.render
+    };
     check_tree_scene("bunny", &desc, &s);
 }
 
@@ -734,17 +1099,35 @@ fn gpu_bunny_matches_the_cpu() {
 fn gpu_mesh_tiles_of_one_prepared_frame_add_up_exactly() {
     let Some(g) = gpu() else { return };
     let desc = SceneDesc::load(examples_dir().join("cornell.toml")).unwrap();
-    let s = RenderSettings { width: 48, height: 40, samples: 2, ..desc.render };
+    let s = RenderSettings {
+        width: 48,
+        height: 40,
+        samples: 2,
+        ..desc.render
+    };
     let mut frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
-    let whole = g.render(&frame, 0, Rect::full(48, 40), SampleRange::all(2), &|_| {}).unwrap();
+    let whole = g
+        .render(&frame, 0, Rect::full(48, 40), SampleRange::all(2), &|_| {})
+        .unwrap();
     let mut merged = Film::new(Rect::full(48, 40));
-    for rect in [Rect::new(0, 0, 20, 40), Rect::new(20, 0, 28, 13), Rect::new(20, 13, 28, 27)] {
-        merged.merge(&g.render(&frame, 0, rect, SampleRange::all(2), &|_| {}).unwrap()).unwrap();
+    for rect in [
+        Rect::new(0, 0, 20, 40),
+        Rect::new(20, 0, 28, 13),
+        Rect::new(20, 13, 28, 27),
+    ] {
+        merged
+            .merge(
+                &g.render(&frame, 0, rect, SampleRange::all(2), &|_| {})
+                    .unwrap(),
+            )
+            .unwrap();
     }
     assert_eq!(merged.sums, whole.sums);
     assert_eq!(merged.rays, whole.rays);
     // Dropping the tree and rebuilding it gives a new id: same image.
     w_rebuild(&mut frame);
-    let again = g.render(&frame, 0, Rect::full(48, 40), SampleRange::all(2), &|_| {}).unwrap();
+    let again = g
+        .render(&frame, 0, Rect::full(48, 40), SampleRange::all(2), &|_| {})
+        .unwrap();
     assert_eq!(again.sums, whole.sums);
 }

@@ -30,8 +30,16 @@ enum Shape {
 fn analytic(desc: &SceneDesc, settings: &RenderSettings, px: u32, py: u32) -> Option<[f64; 3]> {
     assert_eq!(desc.objects.len(), 1);
     let shape = match &desc.objects[0] {
-        ObjectDesc::Sphere { center, radius, .. } => Shape::Sphere { c: DVec3::from_array(center.0), r: radius.0 },
-        ObjectDesc::Plane { normal, distance, .. } => Shape::Plane { n: DVec3::from_array(normal.0), d: distance.0 },
+        ObjectDesc::Sphere { center, radius, .. } => Shape::Sphere {
+            c: DVec3::from_array(center.0),
+            r: radius.0,
+        },
+        ObjectDesc::Plane {
+            normal, distance, ..
+        } => Shape::Plane {
+            n: DVec3::from_array(normal.0),
+            d: distance.0,
+        },
         ObjectDesc::Mesh(_) => panic!("the analytic reference covers spheres and planes only"),
     };
     let m = &desc.materials[desc.object_materials[0] as usize].1;
@@ -43,7 +51,8 @@ fn analytic(desc: &SceneDesc, settings: &RenderSettings, px: u32, py: u32) -> Op
     let t = (cam.fov_y.0.to_radians() / 2.0).tan();
     let (w, h) = (settings.width as f64, settings.height as f64);
     let (sx, sy) = (px as f64 + 0.5, py as f64 + 0.5);
-    let d = (f + r * ((2.0 * sx / w - 1.0) * t * w / h) + u * ((1.0 - 2.0 * sy / h) * t)).normalize();
+    let d =
+        (f + r * ((2.0 * sx / w - 1.0) * t * w / h) + u * ((1.0 - 2.0 * sy / h) * t)).normalize();
 
     let (p, n_out) = match shape {
         Shape::Sphere { c, r } => {
@@ -88,7 +97,9 @@ fn analytic(desc: &SceneDesc, settings: &RenderSettings, px: u32, py: u32) -> Op
         }
         let hv = (ld + v).normalize();
         col += DVec3::from_array(l.diffuse.0) * DVec3::from_array(m.diffuse.0) * n.dot(ld).max(0.0)
-            + DVec3::from_array(l.specular.0) * DVec3::from_array(m.specular.0) * n.dot(hv).max(0.0).powf(m.shininess.0);
+            + DVec3::from_array(l.specular.0)
+                * DVec3::from_array(m.specular.0)
+                * n.dot(hv).max(0.0).powf(m.shininess.0);
     }
     Some(col.to_array())
 }
@@ -104,9 +115,13 @@ fn check_against_analytic(desc: &SceneDesc, precision: Precision, tol: f64) -> u
     let mut worst = (0.0f64, 0, 0);
     for py in 0..settings.height {
         for px in 0..settings.width {
-            let Some(want) = analytic(desc, &settings, px, py) else { continue };
+            let Some(want) = analytic(desc, &settings, px, py) else {
+                continue;
+            };
             let got = img[(py * settings.width + px) as usize];
-            let err = (0..3).map(|c| (got[c] as f64 - want[c]).abs()).fold(0.0, f64::max);
+            let err = (0..3)
+                .map(|c| (got[c] as f64 - want[c]).abs())
+                .fold(0.0, f64::max);
             if err > worst.0 {
                 worst = (err, px, py);
             }
@@ -180,7 +195,10 @@ fn huge_sphere_as_a_floor_has_no_acne_and_casts_correct_shadows() {
         // The light is behind the small sphere, so its shadow falls towards
         // the camera, centred on (0, 0, -1.2), which projects to pixel (64, 60).
         let shadow = img[60 * 128 + 64];
-        assert!((shadow[0] - 0.1).abs() < 1e-5, "{p:?}: floor in the sphere's shadow = {shadow:?}, want ambient 0.1");
+        assert!(
+            (shadow[0] - 0.1).abs() < 1e-5,
+            "{p:?}: floor in the sphere's shadow = {shadow:?}, want ambient 0.1"
+        );
         // The floor nearer the camera (rows 86..96, z < -3.3) is outside the
         // shadow and lit at N.L > 0.25: every pixel must be, or it is acne
         // (an acne pixel is ambient only, 0.1).
@@ -188,7 +206,10 @@ fn huge_sphere_as_a_floor_has_no_acne_and_casts_correct_shadows() {
         for y in 86..96 {
             for x in 0..128 {
                 let v = img[y * 128 + x][0];
-                assert!(v as f64 > lit_min, "{p:?}: floor pixel ({x}, {y}) = {v}: shadow acne");
+                assert!(
+                    v as f64 > lit_min,
+                    "{p:?}: floor pixel ({x}, {y}) = {v}: shadow acne"
+                );
             }
         }
     }
@@ -204,21 +225,35 @@ fn light_on_a_surface_and_inside_a_sphere() {
     assert_finite(&f32img);
     let d = diff(&f32img, &f64img, 1e-3);
     // Silhouette samples may flip between hit and miss in the last bit: a few pixels.
-    assert!(d.over * 1000 <= d.pixels, "{} of {} pixels differ by > 1e-3 between f32 and f64", d.over, d.pixels);
+    assert!(
+        d.over * 1000 <= d.pixels,
+        "{} of {} pixels differ by > 1e-3 between f32 and f64",
+        d.over,
+        d.pixels
+    );
     assert!(d.mean < 1e-4, "mean f32/f64 difference {}", d.mean);
     // The second light sits at the centre of the small sphere: it lights nothing outside
     // it. The floor's N.L with the first light (on the floor) is 0. So the floor
     // receives only ambient: exactly 0.1 everywhere it is seen.
     let floor_px = f64img[95 * 128 + 2]; // bottom-left corner: floor
-    assert!((floor_px[0] - 0.1).abs() < 1e-6, "floor corner = {floor_px:?}");
+    assert!(
+        (floor_px[0] - 0.1).abs() < 1e-6,
+        "floor corner = {floor_px:?}"
+    );
     // The big sphere's side facing the first light is lit.
     let lit = f64img.iter().filter(|p| p[0] > 0.3).count();
-    assert!(lit > 15, "the sphere beside the light on the floor is not lit ({lit} pixels)");
+    assert!(
+        lit > 15,
+        "the sphere beside the light on the floor is not lit ({lit} pixels)"
+    );
 }
 
 fn trace_from_below(angle_from_normal_deg: f64) -> ([f64; 3], RayCounts) {
     let s = glass_plane_scene("[camera]\nposition = [0, -1, 0]\nlook_at = [0, 0, 1]");
-    let PreparedFrame::F64(world) = PreparedFrame::build(&s, &s.render, 0, Precision::F64).unwrap() else { unreachable!() };
+    let PreparedFrame::F64(world) = PreparedFrame::build(&s, &s.render, 0, Precision::F64).unwrap()
+    else {
+        unreachable!()
+    };
     let a = angle_from_normal_deg.to_radians();
     // World origin is the camera at (0, -1, 0): start the ray there, aimed up at the plane.
     let ray = Ray::<f64>::new(DVec3::ZERO, DVec3::new(0.0, a.cos(), a.sin()));
@@ -233,14 +268,20 @@ fn total_internal_reflection_at_and_past_the_critical_angle() {
     // Before the critical angle: 0.9 of red (refracted to the sky) + 0.1 of blue.
     let (c, rays) = trace_from_below(critical - 0.01);
     assert_eq!(rays.refraction, 1);
-    assert!((c[0] - 0.9).abs() < 1e-9 && (c[2] - 0.1).abs() < 1e-9, "below critical: {c:?}");
+    assert!(
+        (c[0] - 0.9).abs() < 1e-9 && (c[2] - 0.1).abs() < 1e-9,
+        "below critical: {c:?}"
+    );
     // Just past it: no refraction at all, the whole 0.9 + 0.1 reflects to the blue below.
     let (c, rays) = trace_from_below(critical + 0.01);
     assert_eq!(rays.refraction, 0);
     assert_eq!(c, [0.0, 0.0, 1.0], "past critical: {c:?}");
     // Exactly at it the refracted ray is tangent: finite, no NaN, whatever it sees.
     let (c, _) = trace_from_below(critical);
-    assert!(c.iter().all(|v| v.is_finite() && *v >= 0.0), "at critical: {c:?}");
+    assert!(
+        c.iter().all(|v| v.is_finite() && *v >= 0.0),
+        "at critical: {c:?}"
+    );
 }
 
 #[test]
@@ -253,20 +294,32 @@ fn nested_and_touching_glass_spheres() {
     // reference. Silhouettes seen through several refractions may flip a
     // sample: allow 1% of pixels over 1/255, none over 0.25.
     let d = diff(&a, &b, 1.0 / 255.0);
-    assert!(d.over * 100 <= d.pixels, "{} of {} pixels differ by > 1/255", d.over, d.pixels);
+    assert!(
+        d.over * 100 <= d.pixels,
+        "{} of {} pixels differ by > 1/255",
+        d.over,
+        d.pixels
+    );
     assert!(d.max < 0.25, "largest f32/f64 difference {}", d.max);
 }
 
 #[test]
 fn tangent_and_grazing_rays_on_a_sphere_do_not_produce_nan() {
     use tracer_core::geometry::Sphere;
-    let s = Sphere::<f32> { center: glam::Vec3A::new(0.0, 0.0, 10.0), radius: 1.0, material: 0 };
+    let s = Sphere::<f32> {
+        center: glam::Vec3A::new(0.0, 0.0, 10.0),
+        radius: 1.0,
+        material: 0,
+    };
     for i in 0..10_000 {
         // Rays whose distance from the centre sweeps 1 +- 1e-6 (tangent).
         let off = 1.0 - 1e-6 + 2e-6 * i as f32 / 10_000.0;
         let r = Ray::<f32>::new(glam::Vec3A::new(off, 0.0, 0.0), glam::Vec3A::Z);
         if let Some(t) = s.intersect(&r, f32::INFINITY, false) {
-            assert!(t.is_finite() && (t - 10.0).abs() < 0.01, "tangent ray {off}: t = {t}");
+            assert!(
+                t.is_finite() && (t - 10.0).abs() < 0.01,
+                "tangent ray {off}: t = {t}"
+            );
         }
     }
 }

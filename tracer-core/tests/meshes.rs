@@ -49,7 +49,13 @@ fn render(scene: &SceneDesc, precision: Precision) -> (Vec<[f32; 3]>, Film) {
     let r = &scene.render;
     let film = CpuRenderer::new(Some(2))
         .unwrap()
-        .render(&frame, 0, Rect::full(r.width, r.height), SampleRange::all(r.samples), &|_| {})
+        .render(
+            &frame,
+            0,
+            Rect::full(r.width, r.height),
+            SampleRange::all(r.samples),
+            &|_| {},
+        )
         .unwrap();
     (film.resolve(), film)
 }
@@ -67,7 +73,13 @@ fn ray_to<R: Real>(origin: [f64; 3], target: [f64; 3]) -> Ray<R> {
 /// Rays from inside and from outside a closed sphere mesh, aimed exactly at
 /// its vertices, at points on its edges, and in random directions: none may
 /// miss. Returns the number of misses.
-fn count_leaks<R: Real>(world: &World<R>, verts: &[[f64; 3]], faces: &[[u32; 3]], center: [f64; 3], scale: f64) -> usize {
+fn count_leaks<R: Real>(
+    world: &World<R>,
+    verts: &[[f64; 3]],
+    faces: &[[u32; 3]],
+    center: [f64; 3],
+    scale: f64,
+) -> usize {
     let cam = world.camera_position;
     // Mesh vertices in the world's (camera-relative) frame.
     let at = |p: [f64; 3]| [0, 1, 2].map(|k| p[k] * scale + center[k] - cam[k]);
@@ -84,21 +96,35 @@ fn count_leaks<R: Real>(world: &World<R>, verts: &[[f64; 3]], faces: &[[u32; 3]]
     let mut misses = 0;
     for (i, tgt) in targets.iter().enumerate() {
         // From inside: the centre, and a point off-centre.
-        for origin in [c, [c[0] + 0.1 * scale, c[1] - 0.2 * scale, c[2] + 0.05 * scale]] {
-            if world.closest_hit(&ray_to::<R>(origin, *tgt), PrimId::NONE).is_none() {
+        for origin in [
+            c,
+            [c[0] + 0.1 * scale, c[1] - 0.2 * scale, c[2] + 0.05 * scale],
+        ] {
+            if world
+                .closest_hit(&ray_to::<R>(origin, *tgt), PrimId::NONE)
+                .is_none()
+            {
                 misses += 1;
             }
         }
         // From outside, at 3 radii in a pseudo-random direction, through the target.
         let h = hash_u32(i as u32);
-        let d = DVec3::new((h & 255) as f64 - 127.5, ((h >> 8) & 255) as f64 - 127.5, ((h >> 16) & 255) as f64 - 127.5).normalize();
+        let d = DVec3::new(
+            (h & 255) as f64 - 127.5,
+            ((h >> 8) & 255) as f64 - 127.5,
+            ((h >> 16) & 255) as f64 - 127.5,
+        )
+        .normalize();
         let dir_out = (DVec3::from_array(*tgt) - DVec3::from_array(c)).normalize();
         // Keep the target well inside the silhouette seen from the origin
         // (at 3 radii the silhouette is at 70.5 degrees from the axis).
         let d = (d * 0.5 + dir_out * 2.0).normalize();
         debug_assert!(d.dot(dir_out) > 0.8);
         let origin = (DVec3::from_array(c) + d * 3.0 * scale).to_array();
-        if world.closest_hit(&ray_to::<R>(origin, *tgt), PrimId::NONE).is_none() {
+        if world
+            .closest_hit(&ray_to::<R>(origin, *tgt), PrimId::NONE)
+            .is_none()
+        {
             misses += 1;
         }
     }
@@ -112,7 +138,10 @@ fn count_leaks<R: Real>(world: &World<R>, verts: &[[f64; 3]], faces: &[[u32; 3]]
         if !(d.length() > R::ZERO) {
             continue;
         }
-        if world.closest_hit(&Ray::new(R::V3::from_array(c), d.normalize()), PrimId::NONE).is_none() {
+        if world
+            .closest_hit(&Ray::new(R::V3::from_array(c), d.normalize()), PrimId::NONE)
+            .is_none()
+        {
             misses += 1;
         }
     }
@@ -140,7 +169,11 @@ fn closed_sphere_mesh_never_leaks_through_edges_or_vertices() {
     // Same rays without the tree: the triangle test alone is watertight.
     let mut brute = w32.clone();
     brute.set_accel(Some(false));
-    assert_eq!(count_leaks(&brute, &v, &f, center, scale), 0, "f32 brute-force leaks");
+    assert_eq!(
+        count_leaks(&brute, &v, &f, center, scale),
+        0,
+        "f32 brute-force leaks"
+    );
 }
 
 #[test]
@@ -155,7 +188,14 @@ fn bvh_equals_brute_force_for_random_rays_in_f32_and_f64() {
         let c = [r(0), r(1), r(2)];
         let size = if i % 10 == 0 { 1.5 } else { 0.1 };
         for k in 0..3 {
-            writeln!(soup, "v {} {} {}", c[0] + r(3 + 3 * k) * size, c[1] + r(4 + 3 * k) * size, c[2] + r(5 + 3 * k) * size).unwrap();
+            writeln!(
+                soup,
+                "v {} {} {}",
+                c[0] + r(3 + 3 * k) * size,
+                c[1] + r(4 + 3 * k) * size,
+                c[2] + r(5 + 3 * k) * size
+            )
+            .unwrap();
         }
         writeln!(soup, "f {} {} {}", 3 * i + 1, 3 * i + 2, 3 * i + 3).unwrap();
     }
@@ -176,13 +216,20 @@ fn bvh_equals_brute_force_for_random_rays_in_f32_and_f64() {
         let tree = world_of::<R>(scene);
         assert!(tree.accel.is_some());
         let packed = !tree.accel.as_ref().unwrap().packets.is_empty();
-        assert_eq!(packed, tree.spheres.is_empty() && std::mem::size_of::<R>() == 4);
+        assert_eq!(
+            packed,
+            tree.spheres.is_empty() && std::mem::size_of::<R>() == 4
+        );
         let mut brute = tree.clone();
         brute.set_accel(Some(false));
         let mut hits = 0;
         for i in 0..30_000u32 {
             let u = |k: u32| R::from_f64(hash_u32(i * 8 + k) as f64 / u32::MAX as f64 - 0.5);
-            let o = R::V3::new(u(0) * R::from_f64(8.0), u(1) * R::from_f64(8.0), u(2) * R::from_f64(8.0) + R::from_f64(5.0));
+            let o = R::V3::new(
+                u(0) * R::from_f64(8.0),
+                u(1) * R::from_f64(8.0),
+                u(2) * R::from_f64(8.0) + R::from_f64(5.0),
+            );
             let d = R::V3::new(u(3), u(4), u(5));
             if !(d.length() > R::ZERO) {
                 continue;
@@ -197,7 +244,11 @@ fn bvh_equals_brute_force_for_random_rays_in_f32_and_f64() {
             if let Some((t, id)) = a {
                 // Shadow rays: occluded before the hit iff anything is nearer.
                 let short = t * R::from_f64(0.999);
-                assert_eq!(tree.occluded(&ray, short, PrimId::NONE), brute.occluded(&ray, short, PrimId::NONE), "ray {i}");
+                assert_eq!(
+                    tree.occluded(&ray, short, PrimId::NONE),
+                    brute.occluded(&ray, short, PrimId::NONE),
+                    "ray {i}"
+                );
                 assert!(tree.occluded(&ray, t * R::from_f64(1.001), PrimId::NONE));
                 // A ray starting on the hit primitive never hits it again.
                 assert_eq!(tree.closest_hit(&ray, id), brute.closest_hit(&ray, id));
@@ -230,7 +281,8 @@ fn smooth_mesh_sphere_renders_like_the_analytic_sphere() {
     let dir = tmpdir("smooth");
     let (v, f) = icosphere(5); // 20480 triangles
     write_obj(&dir.join("ball.obj"), &v, &f, true);
-    let rest = "[[objects]]\ntype = \"plane\"\nnormal = [0, 1, 0]\ndistance = -1\nmaterial = \"mirror\"\n";
+    let rest =
+        "[[objects]]\ntype = \"plane\"\nnormal = [0, 1, 0]\ndistance = -1\nmaterial = \"mirror\"\n";
     let mesh = SceneDesc::parse(
         &format!("{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"ball.obj\"\nmaterial = \"white\"\n{rest}"),
         dir.join("m.toml"),
@@ -248,7 +300,10 @@ fn smooth_mesh_sphere_renders_like_the_analytic_sphere() {
         let (mean, off) = compare(&a, &b, 0.05);
         // Tolerance: the inscribed polyhedron is up to 0.1% smaller, which
         // moves silhouette pixels; shading within 0.05 nearly everywhere.
-        assert!(mean < 0.004 && off < 0.03, "{precision:?}: mean {mean}, {off} of pixels off by > 0.05");
+        assert!(
+            mean < 0.004 && off < 0.03,
+            "{precision:?}: mean {mean}, {off} of pixels off by > 0.05"
+        );
     }
 }
 
@@ -263,7 +318,11 @@ fn mesh_floor_renders_like_the_plane_it_tessellates() {
     for j in 0..=n {
         for i in 0..=n {
             // 2000 units across: its far edge is within a pixel of the horizon.
-            v.push([-1000.0 + 2000.0 * i as f64 / n as f64, 0.0, -1000.0 + 2000.0 * j as f64 / n as f64]);
+            v.push([
+                -1000.0 + 2000.0 * i as f64 / n as f64,
+                0.0,
+                -1000.0 + 2000.0 * j as f64 / n as f64,
+            ]);
         }
     }
     for j in 0..n {
@@ -275,7 +334,8 @@ fn mesh_floor_renders_like_the_plane_it_tessellates() {
         }
     }
     write_obj(&dir.join("floor.obj"), &v, &f, false);
-    let ball = "[[objects]]\ntype = \"sphere\"\ncenter = [0, 0, 0]\nradius = 0.8\nmaterial = \"white\"\n";
+    let ball =
+        "[[objects]]\ntype = \"sphere\"\ncenter = [0, 0, 0]\nradius = 0.8\nmaterial = \"white\"\n";
     let mesh = SceneDesc::parse(
         &format!("{HEADER}\n{ball}[[objects]]\ntype = \"mesh\"\npath = \"floor.obj\"\ntranslate = [0, -0.8, 0]\nmaterial = \"mirror\"\n"),
         dir.join("m.toml"),
@@ -290,7 +350,10 @@ fn mesh_floor_renders_like_the_plane_it_tessellates() {
     let (b, _) = render(&plane, Precision::F32);
     assert_eq!(fa.nonfinite, 0);
     let (mean, off) = compare(&a, &b, 0.02);
-    assert!(mean < 0.002 && off < 0.01, "mean {mean}, {off} of pixels off");
+    assert!(
+        mean < 0.002 && off < 0.01,
+        "mean {mean}, {off} of pixels off"
+    );
 }
 
 #[test]
@@ -298,7 +361,9 @@ fn pathological_meshes_build_within_the_stack_and_render_without_nan() {
     let dir = tmpdir("patho");
     let s = pathological_obj();
     std::fs::write(dir.join("bad.obj"), s).unwrap();
-    let src = format!("{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"bad.obj\"\nmaterial = \"mirror\"\n");
+    let src = format!(
+        "{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"bad.obj\"\nmaterial = \"mirror\"\n"
+    );
     let scene = SceneDesc::parse(&src, dir.join("p.toml")).unwrap();
     for precision in [Precision::F32, Precision::F64] {
         let frame = PreparedFrame::build(&scene, &scene.render, 0, precision).unwrap();
@@ -330,16 +395,31 @@ fn transforms_place_vertices_as_documented() {
     let scene = SceneDesc::parse(&src, dir.join("t.toml")).unwrap();
     let w = world_of::<f64>(&scene);
     let cam = DVec3::from_array(w.camera_position);
-    let got: Vec<[f64; 3]> = w.triangles[0].vertices().iter().map(|p| (*p + cam).to_array()).collect();
+    let got: Vec<[f64; 3]> = w.triangles[0]
+        .vertices()
+        .iter()
+        .map(|p| (*p + cam).to_array())
+        .collect();
     // scale, then z 90 (x->y, y->-x), then y 90 (x->-z, z->x), then translate.
     let want = [[10.0, 22.0, 30.0], [10.0, 20.0, 33.0], [14.0, 20.0, 30.0]];
     for (g, w) in got.iter().zip(want) {
-        assert!((DVec3::from_array(*g) - DVec3::from_array(w)).length() < 1e-12, "{got:?}");
+        assert!(
+            (DVec3::from_array(*g) - DVec3::from_array(w)).length() < 1e-12,
+            "{got:?}"
+        );
     }
     // A mirroring scale keeps the geometric normal outward (winding flipped back).
-    let mirrored = SceneDesc::parse(&src.replace("scale = [2, 3, 4]", "scale = [-1, 1, 1]"), dir.join("t.toml")).unwrap();
+    let mirrored = SceneDesc::parse(
+        &src.replace("scale = [2, 3, 4]", "scale = [-1, 1, 1]"),
+        dir.join("t.toml"),
+    )
+    .unwrap();
     let wm = world_of::<f64>(&mirrored);
-    let plain = SceneDesc::parse(&src.replace("scale = [2, 3, 4]", "scale = 1"), dir.join("t.toml")).unwrap();
+    let plain = SceneDesc::parse(
+        &src.replace("scale = [2, 3, 4]", "scale = 1"),
+        dir.join("t.toml"),
+    )
+    .unwrap();
     let wp = world_of::<f64>(&plain);
     let c = |w: &World<f64>| {
         let v = w.triangles[0].vertices();
@@ -352,40 +432,78 @@ fn transforms_place_vertices_as_documented() {
 }
 
 fn scene_err(src: &str, dir: &Path) -> String {
-    SceneDesc::parse(src, dir.join("bad.toml")).unwrap_err().to_string()
+    SceneDesc::parse(src, dir.join("bad.toml"))
+        .unwrap_err()
+        .to_string()
 }
 
 #[test]
 fn bad_mesh_objects_are_rejected_with_file_line_and_problem() {
     let dir = tmpdir("errors");
     std::fs::write(dir.join("ok.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
-    std::fs::write(dir.join("broken.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n").unwrap();
+    std::fs::write(
+        dir.join("broken.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n",
+    )
+    .unwrap();
     std::fs::write(dir.join("broken.gltf"), "{ \"asset\": { \"version\": \"2.0\" }, \"buffers\": [ { \"byteLength\": 12, \"uri\": \"data:application/octet-stream;base64,AAAA\" } ] }").unwrap();
-    let obj = |extra: &str| format!("{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"ok.obj\"\nmaterial = \"white\"\n{extra}");
+    let obj = |extra: &str| {
+        format!(
+            "{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"ok.obj\"\nmaterial = \"white\"\n{extra}"
+        )
+    };
     let line = HEADER.lines().count() + 2; // the [[objects]] header line
     let e = scene_err(&obj("").replace("ok.obj", "missing.obj"), &dir);
-    assert!(e.starts_with(&format!("{}:{}:", dir.join("bad.toml").display(), line + 2)), "{e}");
-    assert!(e.contains("objects[0] (mesh).path: cannot load model: ") && e.contains("missing.obj: cannot read model file"), "{e}");
+    assert!(
+        e.starts_with(&format!("{}:{}:", dir.join("bad.toml").display(), line + 2)),
+        "{e}"
+    );
+    assert!(
+        e.contains("objects[0] (mesh).path: cannot load model: ")
+            && e.contains("missing.obj: cannot read model file"),
+        "{e}"
+    );
     let e = scene_err(&obj("").replace("ok.obj", "broken.obj"), &dir);
-    assert!(e.contains("objects[0] (mesh).path: cannot load model: ") && e.contains("broken.obj: invalid OBJ: face parse error"), "{e}");
+    assert!(
+        e.contains("objects[0] (mesh).path: cannot load model: ")
+            && e.contains("broken.obj: invalid OBJ: face parse error"),
+        "{e}"
+    );
     let e = scene_err(&obj("").replace("ok.obj", "broken.gltf"), &dir);
-    assert!(e.contains("broken.gltf: invalid glTF: buffer 0 has 3 bytes, the file declares 12"), "{e}");
+    assert!(
+        e.contains("broken.gltf: invalid glTF: buffer 0 has 3 bytes, the file declares 12"),
+        "{e}"
+    );
     let e = scene_err(&obj("scale = 0"), &dir);
-    assert!(e.contains("objects[0] (mesh).scale: must be finite and non-zero"), "{e}");
+    assert!(
+        e.contains("objects[0] (mesh).scale: must be finite and non-zero"),
+        "{e}"
+    );
     let e = scene_err(&obj("rotate = { axis = [0, 0, 0], degrees = 3 }"), &dir);
-    assert!(e.contains("objects[0] (mesh).rotate: axis must be a finite, non-zero vector"), "{e}");
+    assert!(
+        e.contains("objects[0] (mesh).rotate: axis must be a finite, non-zero vector"),
+        "{e}"
+    );
     let e = scene_err(&obj("rotate = { axis = [0, 1, 0], degree = 3 }"), &dir);
     assert!(e.contains("unknown field `degree`"), "{e}");
     let e = scene_err(&obj("colour = 1"), &dir);
     assert!(e.contains("unknown field `colour`"), "{e}");
-    let e = scene_err(&obj("").replace("material = \"white\"", "material = \"chalk\""), &dir);
-    assert!(e.contains("objects[0] (mesh).material: unknown material \"chalk\""), "{e}");
+    let e = scene_err(
+        &obj("").replace("material = \"white\"", "material = \"chalk\""),
+        &dir,
+    );
+    assert!(
+        e.contains("objects[0] (mesh).material: unknown material \"chalk\""),
+        "{e}"
+    );
     let e = scene_err(&obj("scale = [1, 2]"), &dir);
     assert!(e.contains("scale") || e.contains("three numbers"), "{e}");
 }
 
 fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/models").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../examples/models")
+        .join(name)
 }
 
 #[test]
@@ -404,9 +522,15 @@ fn committed_models_load_with_their_materials() {
     // baseColorFactor [0.8, 0, 0]; metallic and roughness default to 1: a rough red metal, no mirror.
     let mat = &b.materials[b.triangle_materials[0] as usize].1;
     let d = mat.diffuse.0;
-    assert!((d[0] - 0.8).abs() < 1e-6 && d[1] == 0.0 && d[2] == 0.0, "{mat:?}");
+    assert!(
+        (d[0] - 0.8).abs() < 1e-6 && d[1] == 0.0 && d[2] == 0.0,
+        "{mat:?}"
+    );
     assert_eq!(mat.reflectivity.0, 0.0);
-    assert!((mat.specular.0[0] - 0.8).abs() < 1e-6 && mat.specular.0[1] == 0.0, "{mat:?}");
+    assert!(
+        (mat.specular.0[0] - 0.8).abs() < 1e-6 && mat.specular.0[1] == 0.0,
+        "{mat:?}"
+    );
     // The node's matrix swaps y and z (y-up from z-up): the box stays the unit cube.
     for p in &b.positions {
         assert!(p.iter().all(|c| (c.abs() - 0.5).abs() < 1e-6), "{p:?}");
@@ -426,15 +550,28 @@ fn cornell_example_renders_its_coloured_walls() {
     // Camera looks down +z, so +x is to the left: the red wall (x = 552)
     // is on the left, the green one (x = 0) on the right, as in the original.
     let (left, right) = (px(3, 24), px(44, 24));
-    assert!(left[0] > 0.1 && left[0] > 4.0 * left[1] && left[0] > 4.0 * left[2], "left wall {left:?}");
-    assert!(right[1] > 0.1 && right[1] > 4.0 * right[0] && right[1] > 4.0 * right[2], "right wall {right:?}");
+    assert!(
+        left[0] > 0.1 && left[0] > 4.0 * left[1] && left[0] > 4.0 * left[2],
+        "left wall {left:?}"
+    );
+    assert!(
+        right[1] > 0.1 && right[1] > 4.0 * right[0] && right[1] > 4.0 * right[2],
+        "right wall {right:?}"
+    );
     // The light panel glows (Ka 20 x ambient 0.05), the back wall is lit grey-white.
     let back = px(24, 12);
-    assert!(back.iter().all(|&c| c > 0.2) && (back[0] - back[2]).abs() < 0.1, "back wall {back:?}");
+    assert!(
+        back.iter().all(|&c| c > 0.2) && (back[0] - back[2]).abs() < 0.1,
+        "back wall {back:?}"
+    );
     // The front face of the tall block faces away from the light: only ambient (Ka 0).
     // The tall block's front face: Ka 0, and the light grazes it (it lies
     // almost in the face's plane), so it stays nearly black.
-    assert!(px(24, 30).iter().all(|&c| c < 0.05), "block front {:?}", px(24, 30));
+    assert!(
+        px(24, 30).iter().all(|&c| c < 0.05),
+        "block front {:?}",
+        px(24, 30)
+    );
 }
 
 #[test]
@@ -442,7 +579,8 @@ fn sphere_scenes_render_identically_with_and_without_the_bvh() {
     // The complexity scenes (9 spheres and a floor) with a BVH forced on,
     // against the plain sphere loop: the very same film, bit for bit.
     for name in ["chrome-9", "glass-9", "emerald-9"] {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../examples/complexity/{name}.toml"));
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join(format!("../examples/complexity/{name}.toml"));
         let mut scene = SceneDesc::load(&path).unwrap();
         scene.render.width = 80;
         scene.render.height = 60;
@@ -466,7 +604,10 @@ fn sphere_scenes_render_identically_with_and_without_the_bvh() {
             let all = (Rect::full(80, 60), SampleRange::all(scene.render.samples));
             let a = r.render(&with, 0, all.0, all.1, &|_| {}).unwrap();
             let b = r.render(&without, 0, all.0, all.1, &|_| {}).unwrap();
-            assert!(a.sums == b.sums && a.counts == b.counts, "{name} {precision:?}: films differ");
+            assert!(
+                a.sums == b.sums && a.counts == b.counts,
+                "{name} {precision:?}: films differ"
+            );
             assert_eq!(a.rays.total(), b.rays.total());
         }
     }
@@ -476,15 +617,23 @@ fn sphere_scenes_render_identically_with_and_without_the_bvh() {
 /// diagonals alternating) at z = `z`, centred on the z axis.
 fn grid(n: u32, z: f64) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
     let h = n as f64 / 2.0;
-    let v = (0..=n).flat_map(|y| (0..=n).map(move |x| [x as f64 - h, y as f64 - h, z])).collect();
+    let v = (0..=n)
+        .flat_map(|y| (0..=n).map(move |x| [x as f64 - h, y as f64 - h, z]))
+        .collect();
     let at = |x: u32, y: u32| y * (n + 1) + x;
     let f = (0..n)
         .flat_map(|y| (0..n).map(move |x| (x, y)))
         .flat_map(|(x, y)| {
             if (x + y) % 2 == 0 {
-                [[at(x, y), at(x + 1, y), at(x + 1, y + 1)], [at(x, y), at(x + 1, y + 1), at(x, y + 1)]]
+                [
+                    [at(x, y), at(x + 1, y), at(x + 1, y + 1)],
+                    [at(x, y), at(x + 1, y + 1), at(x, y + 1)],
+                ]
             } else {
-                [[at(x, y), at(x + 1, y), at(x, y + 1)], [at(x + 1, y), at(x + 1, y + 1), at(x, y + 1)]]
+                [
+                    [at(x, y), at(x + 1, y), at(x, y + 1)],
+                    [at(x + 1, y), at(x + 1, y + 1), at(x, y + 1)],
+                ]
             }
         })
         .collect();
@@ -502,7 +651,7 @@ fn grid(n: u32, z: f64) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
 /// packets leaving a surface.
 #[test]
 fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
-    use tracer_core::bvh::{closest_hits_at, occluded_hits, occluded_hits_at, PACKET};
+    use tracer_core::bvh::{PACKET, closest_hits_at, occluded_hits, occluded_hits_at};
     use tracer_core::simd::SimdLevel;
     use tracer_core::triangle::TriangleRay;
 
@@ -515,7 +664,10 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
     let (mut v, mut f) = grid(8, 2.0);
     let (v2, f2) = grid(7, 2.0);
     let base = v.len() as u32;
-    v.extend(v2.iter().map(|p| [p[0] + 1.0 / 3.0, p[1] + 1.0 / 3.0, p[2]]));
+    v.extend(
+        v2.iter()
+            .map(|p| [p[0] + 1.0 / 3.0, p[1] + 1.0 / 3.0, p[2]]),
+    );
     f.extend(f2.iter().map(|t| t.map(|i| i + base)));
     write_obj(&dir.join("grid.obj"), &v, &f, false);
     let mut src = format!(
@@ -529,7 +681,10 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
     }
     let with_spheres = SceneDesc::parse(&src, dir.join("packets.toml")).unwrap();
 
-    for (label, scene) in [("meshes", &meshes_only), ("meshes and spheres", &with_spheres)] {
+    for (label, scene) in [
+        ("meshes", &meshes_only),
+        ("meshes and spheres", &with_spheres),
+    ] {
         let world: World<f32> = world_of(scene);
         let tree = world.accel.as_ref().expect("a tree");
         let h = |k: u32| hash_u32(k) as f64 / u32::MAX as f64 - 0.5;
@@ -537,48 +692,107 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
         let (mut blocked_seen, mut open_seen) = (0, 0);
         let mut levels_run = 0u32;
         for p in 0..600u32 {
-            let n = if p % 7 == 0 { 1 + p as usize % PACKET } else { PACKET };
+            let n = if p % 7 == 0 {
+                1 + p as usize % PACKET
+            } else {
+                PACKET
+            };
             let origin = [h(p * 8) * 0.5, h(p * 8 + 1) * 0.5, -4.0];
             // A 4x4 block of targets on the grid's plane, 1/8 apart: on grid
             // vertices (exact ties) for every third packet; around x = 0 or
             // y = 0 (mixed octants) for every fifth.
-            let (cx, cy) = if p % 5 == 0 { (0.0, 0.0) } else { ((h(p * 8 + 2) * 8.0).round() / 2.0, (h(p * 8 + 3) * 8.0).round() / 2.0) };
+            let (cx, cy) = if p % 5 == 0 {
+                (0.0, 0.0)
+            } else {
+                (
+                    (h(p * 8 + 2) * 8.0).round() / 2.0,
+                    (h(p * 8 + 3) * 8.0).round() / 2.0,
+                )
+            };
             let jitter = if p % 3 == 0 { 0.0 } else { 0.1 };
             let packet: Vec<Ray<f32>> = (0..n as u32)
                 .map(|j| {
                     if p % 11 == 1 {
                         // Parallel rays along the z axis (direction components
                         // exactly 0 or -0), from origins on the grid's lines.
-                        let d = glam::Vec3A::new(if p % 2 == 0 { 0.0 } else { -0.0 }, if p % 4 < 2 { 0.0 } else { -0.0 }, 1.0);
-                        return Ray::new(glam::Vec3A::new(cx as f32 + (j % 4) as f32 * 0.5, cy as f32 + (j / 4) as f32 * 0.5, -4.0), d);
+                        let d = glam::Vec3A::new(
+                            if p % 2 == 0 { 0.0 } else { -0.0 },
+                            if p % 4 < 2 { 0.0 } else { -0.0 },
+                            1.0,
+                        );
+                        return Ray::new(
+                            glam::Vec3A::new(
+                                cx as f32 + (j % 4) as f32 * 0.5,
+                                cy as f32 + (j / 4) as f32 * 0.5,
+                                -4.0,
+                            ),
+                            d,
+                        );
                     }
-                    let t = [cx + (j % 4) as f64 * 0.125 - 0.1875 + jitter * h(p * 64 + j), cy + (j / 4) as f64 * 0.125 - 0.1875 + jitter * h(p * 64 + j + 16), 2.0];
+                    let t = [
+                        cx + (j % 4) as f64 * 0.125 - 0.1875 + jitter * h(p * 64 + j),
+                        cy + (j / 4) as f64 * 0.125 - 0.1875 + jitter * h(p * 64 + j + 16),
+                        2.0,
+                    ];
                     let o = if p % 3 == 0 { [0.0, 0.0, -4.0] } else { origin };
                     ray_to::<f32>(o, t)
                 })
                 .collect();
-            let want: Vec<_> = packet.iter().map(|r| world.closest_hit(r, PrimId::NONE)).collect();
+            let want: Vec<_> = packet
+                .iter()
+                .map(|r| world.closest_hit(r, PrimId::NONE))
+                .collect();
             let mut got = vec![None; n];
             world.closest_hits(&packet, PrimId::NONE, &mut got);
             assert_eq!(got, want, "{label}: packet {p}");
             // The tree's walk itself, both node tests, with a prior hit to beat.
-            let tree_want: Vec<_> = packet.iter().map(|r| tracer_core::bvh::closest_hit(&world, tree, r, 5.0, PrimId(7), PrimId::NONE)).collect();
+            let tree_want: Vec<_> = packet
+                .iter()
+                .map(|r| {
+                    tracer_core::bvh::closest_hit(&world, tree, r, 5.0, PrimId(7), PrimId::NONE)
+                })
+                .collect();
             for level in [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512] {
                 let (mut best, mut found) = (vec![5.0f32; n], vec![PrimId(7); n]);
-                if !closest_hits_at(level, &world, tree, &packet, &mut best, &mut found, PrimId::NONE) {
+                if !closest_hits_at(
+                    level,
+                    &world,
+                    tree,
+                    &packet,
+                    &mut best,
+                    &mut found,
+                    PrimId::NONE,
+                ) {
                     assert!(!level.is_available());
                     continue;
                 }
                 levels_run |= 1 << level as u32;
-                let got: Vec<_> = best.iter().zip(&found).map(|(&t, &id)| Some((t, id))).collect();
-                let want: Vec<_> = tree_want.iter().map(|w| Some(w.unwrap_or((5.0, PrimId(7))))).collect();
+                let got: Vec<_> = best
+                    .iter()
+                    .zip(&found)
+                    .map(|(&t, &id)| Some((t, id)))
+                    .collect();
+                let want: Vec<_> = tree_want
+                    .iter()
+                    .map(|w| Some(w.unwrap_or((5.0, PrimId(7)))))
+                    .collect();
                 assert_eq!(got, want, "{label}: packet {p}, tree walk at {level:?}");
             }
             // Rays leaving the nearest hit of the first ray, in a narrow cone.
             if let Some((t, id)) = want[0] {
                 let from = packet[0].at(t);
                 let leaving: Vec<Ray<f32>> = (0..n as u32)
-                    .map(|j| Ray::new(from, glam::Vec3A::new(h(p * 32 + j) as f32 * 0.3, h(p * 32 + j + 16) as f32 * 0.3, -1.0).normalize()))
+                    .map(|j| {
+                        Ray::new(
+                            from,
+                            glam::Vec3A::new(
+                                h(p * 32 + j) as f32 * 0.3,
+                                h(p * 32 + j + 16) as f32 * 0.3,
+                                -1.0,
+                            )
+                            .normalize(),
+                        )
+                    })
                     .collect();
                 let want: Vec<_> = leaving.iter().map(|r| world.closest_hit(r, id)).collect();
                 let mut got = vec![None; n];
@@ -598,15 +812,34 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
                 }
             }
             if !shadow.is_empty() {
-                let want: Vec<bool> = shadow.iter().zip(&t_max).zip(&skips).map(|((r, &t), &id)| world.occluded(r, t, id)).collect();
+                let want: Vec<bool> = shadow
+                    .iter()
+                    .zip(&t_max)
+                    .zip(&skips)
+                    .map(|((r, &t), &id)| world.occluded(r, t, id))
+                    .collect();
                 let mut got = vec![false; shadow.len()];
                 world.occluded_many(&shadow, &t_max, &skips, &mut got);
                 assert_eq!(got, want, "{label}: packet {p}, shadow rays");
-                let tree_want = shadow.iter().zip(&t_max).zip(&skips).enumerate().fold(0u32, |m, (j, ((r, &t), &id))| m | (tracer_core::bvh::occluded(&world, tree, r, t, id) as u32) << j);
-                assert_eq!(occluded_hits(&world, tree, &shadow, &t_max, &skips), tree_want, "{label}: packet {p}, shadow rays, tree walk");
+                let tree_want = shadow.iter().zip(&t_max).zip(&skips).enumerate().fold(
+                    0u32,
+                    |m, (j, ((r, &t), &id))| {
+                        m | (tracer_core::bvh::occluded(&world, tree, r, t, id) as u32) << j
+                    },
+                );
+                assert_eq!(
+                    occluded_hits(&world, tree, &shadow, &t_max, &skips),
+                    tree_want,
+                    "{label}: packet {p}, shadow rays, tree walk"
+                );
                 for level in [SimdLevel::Baseline, SimdLevel::Avx2, SimdLevel::Avx512] {
-                    if let Some(got) = occluded_hits_at(level, &world, tree, &shadow, &t_max, &skips) {
-                        assert_eq!(got, tree_want, "{label}: packet {p}, shadow rays, tree walk at {level:?}");
+                    if let Some(got) =
+                        occluded_hits_at(level, &world, tree, &shadow, &t_max, &skips)
+                    {
+                        assert_eq!(
+                            got, tree_want,
+                            "{label}: packet {p}, shadow rays, tree walk at {level:?}"
+                        );
                     }
                 }
                 blocked_seen += want.iter().filter(|&&b| b).count();
@@ -615,7 +848,12 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
             // Rays where two triangles give the very same distance.
             for r in &packet {
                 let tr = TriangleRay::new(r);
-                let mut d: Vec<u32> = world.triangles.iter().filter_map(|t| t.intersect(&tr, f32::INFINITY)).map(f32::to_bits).collect();
+                let mut d: Vec<u32> = world
+                    .triangles
+                    .iter()
+                    .filter_map(|t| t.intersect(&tr, f32::INFINITY))
+                    .map(f32::to_bits)
+                    .collect();
                 d.sort_unstable();
                 ties += d.windows(2).any(|w| w[0] == w[1]) as u32;
             }
@@ -623,10 +861,18 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
         }
         assert!(rays_tested > 8000);
         // Every level this CPU has was checked (the baseline everywhere).
-        let have = SimdLevel::available().iter().fold(0u32, |m, &l| m | 1 << l as u32);
+        let have = SimdLevel::available()
+            .iter()
+            .fold(0u32, |m, &l| m | 1 << l as u32);
         assert_eq!(levels_run, have, "{label}");
-        assert!(blocked_seen > 200 && open_seen > 500, "{label}: shadow rays blocked {blocked_seen}, open {open_seen}");
-        assert!(ties > 1000, "{label}: only {ties} rays meet two triangles at the same distance; the tie rule is not exercised");
+        assert!(
+            blocked_seen > 200 && open_seen > 500,
+            "{label}: shadow rays blocked {blocked_seen}, open {open_seen}"
+        );
+        assert!(
+            ties > 1000,
+            "{label}: only {ties} rays meet two triangles at the same distance; the tie rule is not exercised"
+        );
     }
 }
 
@@ -653,16 +899,34 @@ fn camera_ray_packets_render_the_films_of_single_rays() {
     let scene = SceneDesc::parse(&src, dir.join("film.toml")).unwrap();
     let world: World<f32> = world_of(&scene);
     assert!(world.accel.is_some());
-    let (w, h, spp) = (scene.render.width, scene.render.height, scene.render.samples);
+    let (w, h, spp) = (
+        scene.render.width,
+        scene.render.height,
+        scene.render.samples,
+    );
     // Tiles of odd sizes, so packets are cut at tile edges.
-    for tile in [Rect { x: 0, y: 0, width: w, height: h }, Rect { x: 5, y: 3, width: 13, height: 7 }] {
+    for tile in [
+        Rect {
+            x: 0,
+            y: 0,
+            width: w,
+            height: h,
+        },
+        Rect {
+            x: 5,
+            y: 3,
+            width: 13,
+            height: 7,
+        },
+    ] {
         let got = render_tile_recursive(&world, 0, tile, SampleRange::all(spp));
         let mut want = Film::new(tile);
         let mut i = 0;
         for y in tile.y..tile.y + tile.height {
             for x in tile.x..tile.x + tile.width {
                 for sample in 0..spp {
-                    let (u, v) = sample_offset(world.settings.sampler, spp, pixel_seed(x, y, 0), sample);
+                    let (u, v) =
+                        sample_offset(world.settings.sampler, spp, pixel_seed(x, y, 0), sample);
                     let ray = world.camera.ray(x as f32 + u, y as f32 + v);
                     want.rays.primary += 1;
                     let c = trace(&world, &ray, 0, PrimId::NONE, &mut want.rays);

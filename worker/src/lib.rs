@@ -29,15 +29,15 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use tessera_proto::pb::worker_service_client::WorkerServiceClient;
-use tessera_proto::{film_codec, pb, VersionStamp};
+use tessera_proto::{VersionStamp, film_codec, pb};
 use tokio::sync::{mpsc, watch};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 use tracer_core::film::{Film, Rect, SampleRange};
-use tracer_core::render::cpu::TILE;
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 #[cfg(feature = "gpu")]
 use tracer_core::render::GpuRenderer;
+use tracer_core::render::cpu::TILE;
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
 /// Renderer tiles per thread in one band of rows: a band ends with a
@@ -85,7 +85,9 @@ pub struct WorkerConfig {
 
 #[derive(Debug, thiserror::Error)]
 pub enum WorkerError {
-    #[error("this tessera was built without the `gpu` feature; run workers with --backend cpu or rebuild with --features gpu")]
+    #[error(
+        "this tessera was built without the `gpu` feature; run workers with --backend cpu or rebuild with --features gpu"
+    )]
     GpuNotBuilt,
     #[error("invalid coordinator URL {url:?}: {message}")]
     Url { url: String, message: String },
@@ -118,12 +120,21 @@ fn capabilities(renderer: &Renderer) -> pb::Capabilities {
         None => (pb::Backend::Cpu, String::new()),
         Some(name) => (pb::Backend::Gpu, name.to_string()),
     };
-    pb::Capabilities { threads: renderer.threads() as u32, backend: backend as i32, gpu_name, version: env!("CARGO_PKG_VERSION").into() }
+    pb::Capabilities {
+        threads: renderer.threads() as u32,
+        backend: backend as i32,
+        gpu_name,
+        version: env!("CARGO_PKG_VERSION").into(),
+    }
 }
 
 /// Rows of `rect` rendered in one call (the lease is checked between calls).
 fn unit_band_rows(renderer: &Renderer, rect: Rect, samples: SampleRange) -> u32 {
-    if let Renderer::Cpu(r) = renderer { band_rows(rect, r.threads()) } else { gpu_band_rows(rect, samples) }
+    if let Renderer::Cpu(r) = renderer {
+        band_rows(rect, r.threads())
+    } else {
+        gpu_band_rows(rect, samples)
+    }
 }
 
 pub struct Worker {
@@ -153,13 +164,19 @@ struct Outgoing {
 
 impl Worker {
     pub fn new(config: WorkerConfig) -> Result<Self, WorkerError> {
-        Endpoint::from_shared(config.coordinator.clone())
-            .map_err(|e| WorkerError::Url { url: config.coordinator.clone(), message: e.to_string() })?;
+        Endpoint::from_shared(config.coordinator.clone()).map_err(|e| WorkerError::Url {
+            url: config.coordinator.clone(),
+            message: e.to_string(),
+        })?;
         let renderer = match config.backend {
-            Backend::Cpu => Renderer::Cpu(CpuRenderer::new(config.threads).map_err(|e| WorkerError::Renderer(e.to_string()))?),
+            Backend::Cpu => Renderer::Cpu(
+                CpuRenderer::new(config.threads)
+                    .map_err(|e| WorkerError::Renderer(e.to_string()))?,
+            ),
             #[cfg(feature = "gpu")]
             Backend::Gpu => Renderer::Gpu(Box::new(
-                GpuRenderer::new(config.adapter.as_deref(), Default::default()).map_err(|e| WorkerError::Renderer(e.to_string()))?,
+                GpuRenderer::new(config.adapter.as_deref(), Default::default())
+                    .map_err(|e| WorkerError::Renderer(e.to_string()))?,
             )),
             #[cfg(not(feature = "gpu"))]
             Backend::Gpu => return Err(WorkerError::GpuNotBuilt),
@@ -200,7 +217,13 @@ impl Worker {
             let caps = capabilities(&self.renderer);
             tracing::info!(worker = %session.worker_id, coordinator = %self.config.coordinator, threads = caps.threads, gpu = %caps.gpu_name, "registered");
             let lost = Arc::new(AtomicBool::new(false));
-            let beat = tokio::spawn(heartbeat(session.client.clone(), session.worker_id.clone(), session.heartbeat, self.held.clone(), lost.clone()));
+            let beat = tokio::spawn(heartbeat(
+                session.client.clone(),
+                session.worker_id.clone(),
+                session.heartbeat,
+                self.held.clone(),
+                lost.clone(),
+            ));
             let end = self.work(&session, &mut drain, &lost).await;
             beat.abort();
             // Whatever is still held belongs to a session that is over.
@@ -212,14 +235,22 @@ impl Worker {
                 Err(e) => tracing::warn!(error = %e, "lost the coordinator; reconnecting"),
             }
         }
-        tracing::info!(units_done = self.units_done.load(Ordering::Relaxed), "worker stopped");
+        tracing::info!(
+            units_done = self.units_done.load(Ordering::Relaxed),
+            "worker stopped"
+        );
         Ok(())
     }
 
     /// `Err(None)`: transient, retry. `Err(Some)`: fatal.
     async fn connect(&self) -> Result<Session, Option<WorkerError>> {
         let endpoint = Endpoint::from_shared(self.config.coordinator.clone())
-            .map_err(|e| Some(WorkerError::Url { url: self.config.coordinator.clone(), message: e.to_string() }))?
+            .map_err(|e| {
+                Some(WorkerError::Url {
+                    url: self.config.coordinator.clone(),
+                    message: e.to_string(),
+                })
+            })?
             .connect_timeout(Duration::from_secs(3))
             .tcp_nodelay(true);
         let channel = endpoint.connect().await.map_err(|_| None)?;
@@ -228,10 +259,15 @@ impl Worker {
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
         let caps = capabilities(&self.renderer);
         let resp = client
-            .register(pb::RegisterRequest { name: self.config.name.clone(), capabilities: Some(caps) })
+            .register(pb::RegisterRequest {
+                name: self.config.name.clone(),
+                capabilities: Some(caps),
+            })
             .await
             .map_err(|s| match s.code() {
-                tonic::Code::FailedPrecondition | tonic::Code::InvalidArgument => Some(WorkerError::Refused(s.message().to_string())),
+                tonic::Code::FailedPrecondition | tonic::Code::InvalidArgument => {
+                    Some(WorkerError::Refused(s.message().to_string()))
+                }
                 _ => None,
             })?
             .into_inner();
@@ -244,11 +280,24 @@ impl Worker {
 
     /// Runs the render loop and the sender until drained (`Ok`) or the
     /// session breaks (`Err`).
-    async fn work(&mut self, s: &Session, drain: &mut watch::Receiver<bool>, lost: &AtomicBool) -> Result<(), tonic::Status> {
+    async fn work(
+        &mut self,
+        s: &Session,
+        drain: &mut watch::Receiver<bool>,
+        lost: &AtomicBool,
+    ) -> Result<(), tonic::Status> {
         let (tx, rx) = mpsc::channel(SEND_QUEUE);
-        let mut sender = tokio::spawn(send_results(s.client.clone(), s.worker_id.clone(), rx, self.held.clone(), self.units_done.clone()));
+        let mut sender = tokio::spawn(send_results(
+            s.client.clone(),
+            s.worker_id.clone(),
+            rx,
+            self.held.clone(),
+            self.units_done.clone(),
+        ));
         let mut queue = VecDeque::new();
-        let end = self.render_loop(s, drain, lost, &tx, &mut queue, &mut sender).await;
+        let end = self
+            .render_loop(s, drain, lost, &tx, &mut queue, &mut sender)
+            .await;
         drop(tx);
         match end {
             Ok(()) => {
@@ -257,7 +306,9 @@ impl Worker {
                 return_leases(&mut s.client.clone(), &s.worker_id, &mut queue, &self.held).await;
                 match sender.await {
                     Ok(r) => r,
-                    Err(e) => Err(tonic::Status::internal(format!("result sender failed: {e}"))),
+                    Err(e) => Err(tonic::Status::internal(format!(
+                        "result sender failed: {e}"
+                    ))),
                 }
             }
             Err(e) => {
@@ -282,7 +333,9 @@ impl Worker {
                 return Ok(());
             }
             if lost.load(Ordering::Relaxed) {
-                return Err(tonic::Status::unavailable("the coordinator no longer knows this worker"));
+                return Err(tonic::Status::unavailable(
+                    "the coordinator no longer knows this worker",
+                ));
             }
             if sender.is_finished() {
                 return match sender.await {
@@ -292,7 +345,15 @@ impl Worker {
             }
             let Some(unit) = queue.pop_front() else {
                 // Idle: wait at the coordinator for work (long poll).
-                let retry_after = lease(&mut client, &s.worker_id, &self.held, queue, false, IDLE_LEASE_WAIT).await?;
+                let retry_after = lease(
+                    &mut client,
+                    &s.worker_id,
+                    &self.held,
+                    queue,
+                    false,
+                    IDLE_LEASE_WAIT,
+                )
+                .await?;
                 if queue.is_empty() {
                     tokio::select! {
                         _ = tokio::time::sleep(retry_after) => {}
@@ -301,12 +362,24 @@ impl Worker {
                 }
                 continue;
             };
-            let Some((cancel, samples_done)) = self.held.lock().expect("held lock").get(&unit.lease_id).map(|h| (h.cancel.clone(), h.samples_done.clone())) else {
+            let Some((cancel, samples_done)) = self
+                .held
+                .lock()
+                .expect("held lock")
+                .get(&unit.lease_id)
+                .map(|h| (h.cancel.clone(), h.samples_done.clone()))
+            else {
                 continue;
             };
             let rect: Rect = unit.rect.unwrap_or_default().into();
             let samples: SampleRange = unit.samples.unwrap_or_default().into();
-            let out = |end| Outgoing { lease_id: unit.lease_id.clone(), frame: unit.frame, rect, samples, end };
+            let out = |end| Outgoing {
+                lease_id: unit.lease_id.clone(),
+                frame: unit.frame,
+                rect,
+                samples,
+                end,
+            };
             if cancel.load(Ordering::Relaxed) {
                 // Gone while queued (expired, cancelled): nothing to send.
                 self.held.lock().expect("held lock").remove(&unit.lease_id);
@@ -314,17 +387,45 @@ impl Worker {
                 continue;
             }
             let end = match self.prepare(&mut client, &unit).await {
-                Err(e) if e.code() == tonic::Code::Unavailable || e.code() == tonic::Code::Unknown => return Err(e),
+                Err(e)
+                    if e.code() == tonic::Code::Unavailable || e.code() == tonic::Code::Unknown =>
+                {
+                    return Err(e);
+                }
                 Err(e) => UnitEnd::Failed(e.message().to_string()),
                 Ok(prepared) => {
                     let renderer = self.renderer.clone();
                     let frame = unit.frame;
-                    let render = tokio::task::spawn_blocking(move || render_unit(&renderer, &prepared, frame, rect, samples, &cancel, &samples_done));
-                    let render = async { render.await.unwrap_or_else(|e| UnitEnd::Failed(format!("render panicked: {e}"))) };
+                    let render = tokio::task::spawn_blocking(move || {
+                        render_unit(
+                            &renderer,
+                            &prepared,
+                            frame,
+                            rect,
+                            samples,
+                            &cancel,
+                            &samples_done,
+                        )
+                    });
+                    let render = async {
+                        render
+                            .await
+                            .unwrap_or_else(|e| UnitEnd::Failed(format!("render panicked: {e}")))
+                    };
                     // Lease the next unit while this one renders, unless draining.
                     if queue.len() < PREFETCH && !*drain.borrow() {
                         // No long poll here: the result must not wait for work to appear.
-                        let (end, leased) = tokio::join!(render, lease(&mut client, &s.worker_id, &self.held, queue, true, Duration::ZERO));
+                        let (end, leased) = tokio::join!(
+                            render,
+                            lease(
+                                &mut client,
+                                &s.worker_id,
+                                &self.held,
+                                queue,
+                                true,
+                                Duration::ZERO
+                            )
+                        );
                         if let Err(e) = leased {
                             let _ = tx.send(out(end)).await;
                             return Err(e);
@@ -346,8 +447,15 @@ impl Worker {
 
     /// The prepared frame of a unit's job, from cache or built from the
     /// (cached, content-addressed) scene.
-    async fn prepare(&mut self, client: &mut Client, unit: &pb::WorkUnit) -> Result<Arc<PreparedFrame>, tonic::Status> {
-        let job = unit.job.clone().ok_or_else(|| tonic::Status::invalid_argument("work unit without job context"))?;
+    async fn prepare(
+        &mut self,
+        client: &mut Client,
+        unit: &pb::WorkUnit,
+    ) -> Result<Arc<PreparedFrame>, tonic::Status> {
+        let job = unit
+            .job
+            .clone()
+            .ok_or_else(|| tonic::Status::invalid_argument("work unit without job context"))?;
         let key = (job.job_id.clone(), unit.frame);
         if let Some((_, p)) = self.prepared.iter().find(|(k, _)| *k == key) {
             return Ok(p.clone());
@@ -355,20 +463,35 @@ impl Worker {
         let scene = match self.scenes.get(&job.scene_sha256) {
             Some(s) => s.clone(),
             None => {
-                let content = client.get_asset(pb::GetAssetRequest { sha256: job.scene_sha256.clone() }).await?.into_inner().content;
-                let text = String::from_utf8(content).map_err(|e| tonic::Status::invalid_argument(format!("{}: scene is not UTF-8: {e}", job.scene_name)))?;
-                let scene = SceneDesc::parse(&text, &job.scene_name).map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
+                let content = client
+                    .get_asset(pb::GetAssetRequest {
+                        sha256: job.scene_sha256.clone(),
+                    })
+                    .await?
+                    .into_inner()
+                    .content;
+                let text = String::from_utf8(content).map_err(|e| {
+                    tonic::Status::invalid_argument(format!(
+                        "{}: scene is not UTF-8: {e}",
+                        job.scene_name
+                    ))
+                })?;
+                let scene = SceneDesc::parse(&text, &job.scene_name)
+                    .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
                 let scene = Arc::new(scene);
                 self.scenes.insert(job.scene_sha256.clone(), scene.clone());
                 scene
             }
         };
-        let settings = RenderSettings::try_from(job.settings.unwrap_or_default()).map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
-        let frame = unit.frame;
-        let prepared = tokio::task::spawn_blocking(move || PreparedFrame::build(&scene, &settings, frame, Precision::F32))
-            .await
-            .map_err(|e| tonic::Status::internal(e.to_string()))?
+        let settings = RenderSettings::try_from(job.settings.unwrap_or_default())
             .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
+        let frame = unit.frame;
+        let prepared = tokio::task::spawn_blocking(move || {
+            PreparedFrame::build(&scene, &settings, frame, Precision::F32)
+        })
+        .await
+        .map_err(|e| tonic::Status::internal(e.to_string()))?
+        .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
         let prepared = Arc::new(prepared);
         self.prepared.push_back((key, prepared.clone()));
         if self.prepared.len() > PREPARED_CACHE {
@@ -383,20 +506,45 @@ impl Worker {
 /// the coordinator had nothing.
 /// `ahead`: asked while a unit renders (the coordinator may say no at a
 /// job's very end, to leave the last units to idle workers).
-async fn lease(client: &mut Client, worker_id: &str, held: &HeldMap, queue: &mut VecDeque<pb::WorkUnit>, ahead: bool, wait: Duration) -> Result<Duration, tonic::Status> {
-    let req = pb::LeaseWorkRequest { worker_id: worker_id.to_string(), max_units: 1, wait_ms: wait.as_millis() as u32, ahead };
+async fn lease(
+    client: &mut Client,
+    worker_id: &str,
+    held: &HeldMap,
+    queue: &mut VecDeque<pb::WorkUnit>,
+    ahead: bool,
+    wait: Duration,
+) -> Result<Duration, tonic::Status> {
+    let req = pb::LeaseWorkRequest {
+        worker_id: worker_id.to_string(),
+        max_units: 1,
+        wait_ms: wait.as_millis() as u32,
+        ahead,
+    };
     let resp = client.lease_work(req).await?.into_inner();
     let mut h = held.lock().expect("held lock");
     for unit in resp.units {
-        h.insert(unit.lease_id.clone(), Held { cancel: Arc::default(), samples_done: Arc::default() });
+        h.insert(
+            unit.lease_id.clone(),
+            Held {
+                cancel: Arc::default(),
+                samples_done: Arc::default(),
+            },
+        );
         queue.push_back(unit);
     }
-    Ok(Duration::from_millis(resp.retry_after_ms.clamp(10, 5000) as u64))
+    Ok(Duration::from_millis(
+        resp.retry_after_ms.clamp(10, 5000) as u64
+    ))
 }
 
 /// Hands leased but unstarted units back on drain, so they are leased
 /// again at once instead of after their leases expire.
-async fn return_leases(client: &mut Client, worker_id: &str, queue: &mut VecDeque<pb::WorkUnit>, held: &HeldMap) {
+async fn return_leases(
+    client: &mut Client,
+    worker_id: &str,
+    queue: &mut VecDeque<pb::WorkUnit>,
+    held: &HeldMap,
+) {
     if queue.is_empty() {
         return;
     }
@@ -408,10 +556,18 @@ async fn return_leases(client: &mut Client, worker_id: &str, queue: &mut VecDequ
         }
     }
     let n = lease_ids.len();
-    match client.return_leases(pb::ReturnLeasesRequest { worker_id: worker_id.to_string(), lease_ids }).await {
+    match client
+        .return_leases(pb::ReturnLeasesRequest {
+            worker_id: worker_id.to_string(),
+            lease_ids,
+        })
+        .await
+    {
         Ok(_) => tracing::info!(leases = n, "handed unstarted leases back"),
         // They expire on the coordinator instead.
-        Err(e) => tracing::warn!(leases = n, error = %e, "cannot hand leases back; they will expire"),
+        Err(e) => {
+            tracing::warn!(leases = n, error = %e, "cannot hand leases back; they will expire")
+        }
     }
 }
 
@@ -419,7 +575,13 @@ async fn return_leases(client: &mut Client, worker_id: &str, queue: &mut VecDequ
 /// A submission the coordinator could not record (`Unavailable`: its
 /// database write failed, or the connection broke) is sent again with
 /// backoff; the leases stay held (heartbeated) meanwhile.
-async fn send_results(mut client: Client, worker_id: String, mut rx: mpsc::Receiver<Outgoing>, held: HeldMap, units_done: Arc<AtomicU64>) -> Result<(), tonic::Status> {
+async fn send_results(
+    mut client: Client,
+    worker_id: String,
+    mut rx: mpsc::Receiver<Outgoing>,
+    held: HeldMap,
+    units_done: Arc<AtomicU64>,
+) -> Result<(), tonic::Status> {
     while let Some(first) = rx.recv().await {
         let mut batch = vec![first];
         let mut bytes = 0;
@@ -466,16 +628,22 @@ async fn send_results(mut client: Client, worker_id: String, mut rx: mpsc::Recei
         }
         let outcomes = submit_with_retry(&mut client, reqs.clone()).await?;
         let mut h = held.lock().expect("held lock");
-        let sent = batch.iter().filter(|o| !matches!(o.end, UnitEnd::Abandoned));
+        let sent = batch
+            .iter()
+            .filter(|o| !matches!(o.end, UnitEnd::Abandoned));
         for ((o, req), resp) in sent.zip(&reqs).zip(outcomes) {
             h.remove(&req.lease_id);
-            match pb::ResultOutcome::try_from(resp.outcome).unwrap_or(pb::ResultOutcome::Unspecified) {
+            match pb::ResultOutcome::try_from(resp.outcome)
+                .unwrap_or(pb::ResultOutcome::Unspecified)
+            {
                 pb::ResultOutcome::Accepted => {
                     units_done.fetch_add(1, Ordering::Relaxed);
                     tracing::debug!(lease = %req.lease_id, frame = o.frame, rect = ?o.rect, batch = reqs.len(), "result accepted");
                 }
                 pb::ResultOutcome::FailureRecorded => {}
-                other => tracing::warn!(lease = %req.lease_id, outcome = ?other, reason = %resp.reason, "result not accepted"),
+                other => {
+                    tracing::warn!(lease = %req.lease_id, outcome = ?other, reason = %resp.reason, "result not accepted")
+                }
             }
         }
     }
@@ -484,20 +652,35 @@ async fn send_results(mut client: Client, worker_id: String, mut rx: mpsc::Recei
 
 /// One result as `SubmitResult`, several as one `SubmitResults`; retried
 /// while the coordinator answers `Unavailable`.
-async fn submit_with_retry(client: &mut Client, reqs: Vec<pb::SubmitResultRequest>) -> Result<Vec<pb::SubmitResultResponse>, tonic::Status> {
+async fn submit_with_retry(
+    client: &mut Client,
+    reqs: Vec<pb::SubmitResultRequest>,
+) -> Result<Vec<pb::SubmitResultResponse>, tonic::Status> {
     let mut backoff = Duration::from_millis(100);
     let mut tries = 0;
     loop {
         tries += 1;
         let sent = if reqs.len() == 1 {
-            client.submit_result(reqs[0].clone()).await.map(|r| vec![r.into_inner()])
+            client
+                .submit_result(reqs[0].clone())
+                .await
+                .map(|r| vec![r.into_inner()])
         } else {
-            client.submit_results(pb::SubmitResultsRequest { results: reqs.clone() }).await.map(|r| r.into_inner().outcomes)
+            client
+                .submit_results(pb::SubmitResultsRequest {
+                    results: reqs.clone(),
+                })
+                .await
+                .map(|r| r.into_inner().outcomes)
         };
         match sent {
             Ok(outcomes) if outcomes.len() == reqs.len() => return Ok(outcomes),
             Ok(outcomes) => {
-                return Err(tonic::Status::internal(format!("the coordinator answered {} outcomes for {} results", outcomes.len(), reqs.len())))
+                return Err(tonic::Status::internal(format!(
+                    "the coordinator answered {} outcomes for {} results",
+                    outcomes.len(),
+                    reqs.len()
+                )));
             }
             Err(e) if e.code() == tonic::Code::Unavailable && tries < SUBMIT_TRIES => {
                 tracing::warn!(results = reqs.len(), error = %e.message(), retry_in_ms = backoff.as_millis() as u64, "results not recorded; sending them again");
@@ -562,7 +745,13 @@ fn render_unit(
 }
 
 /// Sends heartbeats for held leases; cancels those the coordinator says are gone.
-async fn heartbeat(mut client: Client, worker_id: String, every: Duration, held: HeldMap, lost: Arc<AtomicBool>) {
+async fn heartbeat(
+    mut client: Client,
+    worker_id: String,
+    every: Duration,
+    held: HeldMap,
+    lost: Arc<AtomicBool>,
+) {
     let mut tick = tokio::time::interval(every);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
@@ -571,9 +760,18 @@ async fn heartbeat(mut client: Client, worker_id: String, every: Duration, held:
             .lock()
             .expect("held lock")
             .iter()
-            .map(|(id, h)| pb::LeaseProgress { lease_id: id.clone(), samples_done: h.samples_done.load(Ordering::Relaxed) })
+            .map(|(id, h)| pb::LeaseProgress {
+                lease_id: id.clone(),
+                samples_done: h.samples_done.load(Ordering::Relaxed),
+            })
             .collect();
-        match client.heartbeat(pb::HeartbeatRequest { worker_id: worker_id.clone(), leases }).await {
+        match client
+            .heartbeat(pb::HeartbeatRequest {
+                worker_id: worker_id.clone(),
+                leases,
+            })
+            .await
+        {
             Ok(resp) => {
                 let resp = resp.into_inner();
                 let held = held.lock().expect("held lock");

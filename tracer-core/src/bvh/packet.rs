@@ -19,7 +19,7 @@
 
 use std::mem::MaybeUninit;
 
-use super::{closest_hit, far_to_near, occluded, Bvh, CULL_WIDEN, EXIT_WIDEN, STACK};
+use super::{Bvh, CULL_WIDEN, EXIT_WIDEN, STACK, closest_hit, far_to_near, occluded};
 use crate::geometry::PrimId;
 use crate::math::Ray;
 use crate::simd::SimdLevel;
@@ -62,7 +62,14 @@ pub fn render_level() -> SimdLevel {
 /// (`PrimId::NONE` for camera rays). Nodes are tested at [`render_level`]:
 /// 4 rays per SSE instruction, or 8 per AVX2 one (elsewhere than x86-64,
 /// the rays go one by one).
-pub fn closest_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) {
+pub fn closest_hits(
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    best: &mut [f32],
+    found: &mut [PrimId],
+    skip: PrimId,
+) {
     let done = closest_hits_at(render_level(), world, bvh, rays, best, found, skip);
     debug_assert!(done);
 }
@@ -70,8 +77,19 @@ pub fn closest_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut
 /// [`closest_hits`] with the node test of `level` (baseline: SSE, 4 rays
 /// per instruction; AVX2: 8; AVX-512: 16): the same answers at every level.
 /// False (and nothing done) if this CPU lacks the level.
-pub fn closest_hits_at(level: SimdLevel, world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: PrimId) -> bool {
-    assert!(rays.len() <= PACKET && best.len() == rays.len() && found.len() == rays.len(), "a packet holds at most {PACKET} rays");
+pub fn closest_hits_at(
+    level: SimdLevel,
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    best: &mut [f32],
+    found: &mut [PrimId],
+    skip: PrimId,
+) -> bool {
+    assert!(
+        rays.len() <= PACKET && best.len() == rays.len() && found.len() == rays.len(),
+        "a packet holds at most {PACKET} rays"
+    );
     if !level.is_available() {
         return false;
     }
@@ -96,14 +114,31 @@ pub fn closest_hits_at(level: SimdLevel, world: &World<f32>, bvh: &Bvh, rays: &[
 /// [`occluded`] answers it (the same boxes and leaves are tested for each
 /// ray). For coherent shadow rays (from neighbouring points to one light).
 /// Nodes are tested at [`render_level`].
-pub fn occluded_hits(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], t_max: &[f32], skip: &[PrimId]) -> u32 {
-    occluded_hits_at(render_level(), world, bvh, rays, t_max, skip).expect("the render level is available")
+pub fn occluded_hits(
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    t_max: &[f32],
+    skip: &[PrimId],
+) -> u32 {
+    occluded_hits_at(render_level(), world, bvh, rays, t_max, skip)
+        .expect("the render level is available")
 }
 
 /// [`occluded_hits`] with the node test of `level`; `None` if this CPU lacks it.
-pub fn occluded_hits_at(level: SimdLevel, world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], t_max: &[f32], skip: &[PrimId]) -> Option<u32> {
+pub fn occluded_hits_at(
+    level: SimdLevel,
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    t_max: &[f32],
+    skip: &[PrimId],
+) -> Option<u32> {
     let n = rays.len();
-    assert!(n <= PACKET && t_max.len() == n && skip.len() == n, "a packet holds at most {PACKET} rays");
+    assert!(
+        n <= PACKET && t_max.len() == n && skip.len() == n,
+        "a packet holds at most {PACKET} rays"
+    );
     if !level.is_available() {
         return None;
     }
@@ -116,14 +151,32 @@ pub fn occluded_hits_at(level: SimdLevel, world: &World<f32>, bvh: &Bvh, rays: &
         best[..n].copy_from_slice(t_max);
         let mut skips = [PrimId::NONE; PACKET];
         skips[..n].copy_from_slice(skip);
-        return Some(walk_at::<true>(level, world, bvh, rays, &mut best[..n], &mut [PrimId::NONE; PACKET][..n], &skips));
+        return Some(walk_at::<true>(
+            level,
+            world,
+            bvh,
+            rays,
+            &mut best[..n],
+            &mut [PrimId::NONE; PACKET][..n],
+            &skips,
+        ));
     }
-    Some((0..n).fold(0, |m, j| m | (occluded(world, bvh, &rays[j], t_max[j], skip[j]) as u32) << j))
+    Some((0..n).fold(0, |m, j| {
+        m | (occluded(world, bvh, &rays[j], t_max[j], skip[j]) as u32) << j
+    }))
 }
 
 /// The walk at `level`, which this CPU has (checked by the callers).
 #[cfg(target_arch = "x86_64")]
-fn walk_at<const ANY: bool>(level: SimdLevel, world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+fn walk_at<const ANY: bool>(
+    level: SimdLevel,
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    best: &mut [f32],
+    found: &mut [PrimId],
+    skip: &[PrimId; PACKET],
+) -> u32 {
     match level {
         // SAFETY: the callers checked that the CPU has the level.
         SimdLevel::Avx512 => unsafe { walk_avx512::<ANY>(world, bvh, rays, best, found, skip) },
@@ -134,21 +187,42 @@ fn walk_at<const ANY: bool>(level: SimdLevel, world: &World<f32>, bvh: &Bvh, ray
 
 #[cfg(target_arch = "x86_64")]
 #[inline(never)]
-fn walk_sse<const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+fn walk_sse<const ANY: bool>(
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    best: &mut [f32],
+    found: &mut [PrimId],
+    skip: &[PrimId; PACKET],
+) -> u32 {
     walk::<4, ANY>(world, bvh, rays, best, found, skip)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline(never)]
-fn walk_avx512<const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+fn walk_avx512<const ANY: bool>(
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    best: &mut [f32],
+    found: &mut [PrimId],
+    skip: &[PrimId; PACKET],
+) -> u32 {
     walk::<16, ANY>(world, bvh, rays, best, found, skip)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline(never)]
-fn walk_avx2<const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+fn walk_avx2<const ANY: bool>(
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    best: &mut [f32],
+    found: &mut [PrimId],
+    skip: &[PrimId; PACKET],
+) -> u32 {
     walk::<8, ANY>(world, bvh, rays, best, found, skip)
 }
 
@@ -157,12 +231,28 @@ fn walk_avx2<const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], 
 #[target_feature(enable = "avx2")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn slot8(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[Lanes; 3], inv: &[Lanes; 3], limit: &Lanes, mask: u32) -> (u32, f32) {
+fn slot8(
+    b: &[[f32; 4]; 6],
+    k: usize,
+    near: [usize; 3],
+    far: [usize; 3],
+    o: &[Lanes; 3],
+    inv: &[Lanes; 3],
+    limit: &Lanes,
+    mask: u32,
+) -> (u32, f32) {
     use std::arch::x86_64::*;
     // SAFETY: `Lanes` is 64-byte aligned and 16 wide (h < 2); the row indices are < 6 and k < 4.
     unsafe {
         let s = |i: usize| _mm256_set1_ps(*b.get_unchecked(i).get_unchecked(k));
-        let (n0, n1, n2, f0, f1, f2) = (s(near[0]), s(near[1]), s(near[2]), s(far[0]), s(far[1]), s(far[2]));
+        let (n0, n1, n2, f0, f1, f2) = (
+            s(near[0]),
+            s(near[1]),
+            s(near[2]),
+            s(far[0]),
+            s(far[1]),
+            s(far[2]),
+        );
         let inf = _mm256_set1_ps(f32::INFINITY);
         let mut tmin = inf;
         let mut m = 0u32;
@@ -178,9 +268,18 @@ fn slot8(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[La
             let t1x = _mm256_mul_ps(_mm256_sub_ps(f0, l(&o[0])), l(&inv[0]));
             let t1y = _mm256_mul_ps(_mm256_sub_ps(f1, l(&o[1])), l(&inv[1]));
             let t1z = _mm256_mul_ps(_mm256_sub_ps(f2, l(&o[2])), l(&inv[2]));
-            let t0 = _mm256_max_ps(_mm256_max_ps(t0x, t0y), _mm256_max_ps(t0z, _mm256_setzero_ps()));
-            let t1 = _mm256_mul_ps(_mm256_min_ps(_mm256_min_ps(t1x, t1y), t1z), _mm256_set1_ps(EXIT_WIDEN as f32));
-            let hit = _mm256_and_ps(_mm256_cmp_ps::<_CMP_LE_OS>(t0, t1), _mm256_cmp_ps::<_CMP_LE_OS>(t0, l(limit)));
+            let t0 = _mm256_max_ps(
+                _mm256_max_ps(t0x, t0y),
+                _mm256_max_ps(t0z, _mm256_setzero_ps()),
+            );
+            let t1 = _mm256_mul_ps(
+                _mm256_min_ps(_mm256_min_ps(t1x, t1y), t1z),
+                _mm256_set1_ps(EXIT_WIDEN as f32),
+            );
+            let hit = _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_LE_OS>(t0, t1),
+                _mm256_cmp_ps::<_CMP_LE_OS>(t0, l(limit)),
+            );
             let bits = _mm256_movemask_ps(hit) as u32 & hm;
             if bits != 0 {
                 m |= bits << (8 * h);
@@ -190,7 +289,10 @@ fn slot8(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[La
         if m == 0 {
             return (0, f32::INFINITY);
         }
-        let q = _mm_min_ps(_mm256_castps256_ps128(tmin), _mm256_extractf128_ps::<1>(tmin));
+        let q = _mm_min_ps(
+            _mm256_castps256_ps128(tmin),
+            _mm256_extractf128_ps::<1>(tmin),
+        );
         let q = _mm_min_ps(q, _mm_movehl_ps(q, q));
         let q = _mm_min_ss(q, _mm_shuffle_ps::<0x55>(q, q));
         (m, _mm_cvtss_f32(q))
@@ -204,7 +306,16 @@ fn slot8(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[La
 #[target_feature(enable = "avx512f")]
 #[inline]
 #[allow(clippy::too_many_arguments)]
-fn slot16(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[Lanes; 3], inv: &[Lanes; 3], limit: &Lanes, mask: u32) -> (u32, f32) {
+fn slot16(
+    b: &[[f32; 4]; 6],
+    k: usize,
+    near: [usize; 3],
+    far: [usize; 3],
+    o: &[Lanes; 3],
+    inv: &[Lanes; 3],
+    limit: &Lanes,
+    mask: u32,
+) -> (u32, f32) {
     use std::arch::x86_64::*;
     // SAFETY: `Lanes` is 64-byte aligned and 16 wide; the row indices are < 6 and k < 4.
     unsafe {
@@ -218,8 +329,14 @@ fn slot16(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[L
         let t1x = _mm512_mul_ps(_mm512_sub_ps(s(far[0]), ox), ix);
         let t1y = _mm512_mul_ps(_mm512_sub_ps(s(far[1]), oy), iy);
         let t1z = _mm512_mul_ps(_mm512_sub_ps(s(far[2]), oz), iz);
-        let t0 = _mm512_max_ps(_mm512_max_ps(t0x, t0y), _mm512_max_ps(t0z, _mm512_setzero_ps()));
-        let t1 = _mm512_mul_ps(_mm512_min_ps(_mm512_min_ps(t1x, t1y), t1z), _mm512_set1_ps(EXIT_WIDEN as f32));
+        let t0 = _mm512_max_ps(
+            _mm512_max_ps(t0x, t0y),
+            _mm512_max_ps(t0z, _mm512_setzero_ps()),
+        );
+        let t1 = _mm512_mul_ps(
+            _mm512_min_ps(_mm512_min_ps(t1x, t1y), t1z),
+            _mm512_set1_ps(EXIT_WIDEN as f32),
+        );
         let m = _mm512_mask_cmp_ps_mask::<_CMP_LE_OS>(mask as __mmask16, t0, t1);
         let m = _mm512_mask_cmp_ps_mask::<_CMP_LE_OS>(m, t0, l(limit));
         if m == 0 {
@@ -235,7 +352,14 @@ fn slot16(b: &[[f32; 4]; 6], k: usize, near: [usize; 3], far: [usize; 3], o: &[L
 /// The packet walk. Closest hits (`ANY` false): `best`/`found` in and out,
 /// returns 0. Occlusion (`ANY`): `best` holds each ray's `t_max`, returns
 /// the mask of blocked rays; a ray leaves the walk once blocked.
-fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[Ray<f32>], best: &mut [f32], found: &mut [PrimId], skip: &[PrimId; PACKET]) -> u32 {
+fn walk<const W: usize, const ANY: bool>(
+    world: &World<f32>,
+    bvh: &Bvh,
+    rays: &[Ray<f32>],
+    best: &mut [f32],
+    found: &mut [PrimId],
+    skip: &[PrimId; PACKET],
+) -> u32 {
     // SAFETY: SSE is part of x86_64; `Lanes` and the node rows are 16-byte
     // aligned and `g < 4`, so the loads stay inside them; the row indices
     // `near`/`far` are < 6 by construction; stack entries below `sp` were
@@ -253,10 +377,16 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
         let transpose = |v: [__m128; 4]| {
             let (t0, t1) = (_mm_unpacklo_ps(v[0], v[1]), _mm_unpacklo_ps(v[2], v[3]));
             let (t2, t3) = (_mm_unpackhi_ps(v[0], v[1]), _mm_unpackhi_ps(v[2], v[3]));
-            [_mm_movelh_ps(t0, t1), _mm_movehl_ps(t1, t0), _mm_movelh_ps(t2, t3)]
+            [
+                _mm_movelh_ps(t0, t1),
+                _mm_movehl_ps(t1, t0),
+                _mm_movelh_ps(t2, t3),
+            ]
         };
-        let og = [0, 1, 2, 3].map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).origin))));
-        let dg = [0, 1, 2, 3].map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).dir))));
+        let og = [0, 1, 2, 3]
+            .map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).origin))));
+        let dg = [0, 1, 2, 3]
+            .map(|g| transpose([0, 1, 2, 3].map(|k| __m128::from(ray_at(4 * g + k).dir))));
         // The same by lanes in memory, for the AVX2 and AVX-512 node tests.
         let mut o = [Lanes([0.0; PACKET]); 3];
         if W > 4 {
@@ -281,7 +411,10 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
                 let dv = dg[g][a];
                 let i = _mm_div_ps(_mm_set1_ps(1.0), dv);
                 let finite = _mm_cmplt_ps(_mm_andnot_ps(sign, i), inf);
-                let i = _mm_or_ps(_mm_and_ps(finite, i), _mm_andnot_ps(finite, _mm_or_ps(big, _mm_and_ps(sign, dv))));
+                let i = _mm_or_ps(
+                    _mm_and_ps(finite, i),
+                    _mm_andnot_ps(finite, _mm_or_ps(big, _mm_and_ps(sign, dv))),
+                );
                 neg[g] |= (_mm_movemask_ps(_mm_cmplt_ps(i, zero)) as u32) << (4 * a);
                 if W > 4 {
                     _mm_store_ps(invl[a].0.as_mut_ptr().add(4 * g), i);
@@ -306,7 +439,9 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
             if octant(j) != (nx, ny, nz) {
                 if ANY {
                     blocked |= (occluded(world, bvh, ray, best[j], skip[j]) as u32) << j;
-                } else if let Some((t, id)) = closest_hit(world, bvh, ray, best[j], found[j], skip[j]) {
+                } else if let Some((t, id)) =
+                    closest_hit(world, bvh, ray, best[j], found[j], skip[j])
+                {
                     (best[j], found[j]) = (t, id);
                 }
                 continue;
@@ -320,7 +455,14 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
         let mut lim = Lanes(bt.0.map(cull));
         // In registers for the SSE node test; a leaf updates one lane of them.
         let mut limv = [0, 1, 2, 3].map(|g| group(&lim, g));
-        let lane_mask = [0, 1, 2, 3].map(|k| _mm_castsi128_ps(_mm_set_epi32(-((k == 3) as i32), -((k == 2) as i32), -((k == 1) as i32), -((k == 0) as i32))));
+        let lane_mask = [0, 1, 2, 3].map(|k| {
+            _mm_castsi128_ps(_mm_set_epi32(
+                -((k == 3) as i32),
+                -((k == 2) as i32),
+                -((k == 1) as i32),
+                -((k == 0) as i32),
+            ))
+        });
         let widen = _mm_set1_ps(EXIT_WIDEN as f32);
         // Rays still looking (occlusion: not blocked yet).
         let mut open = active;
@@ -330,7 +472,12 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
         let mut tr_ready = 0u32;
         let mut stack = [const { MaybeUninit::<Entry>::uninit() }; STACK];
         let mut sp = 0usize;
-        let mut cur = Entry { child: 0, count: 0, mask: active, t: 0.0 };
+        let mut cur = Entry {
+            child: 0,
+            count: 0,
+            mask: active,
+            t: 0.0,
+        };
         'walk: loop {
             if cur.count == 0 {
                 let n = &bvh.nodes[cur.child as usize];
@@ -341,9 +488,11 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
                     ($k:literal) => {
                         // An empty slot (child and count 0; node 0 is the root, never a child).
                         if W == 16 && (n.child[$k] != 0 || n.count[$k] != 0) {
-                            (cm[$k], ct[$k]) = slot16(&n.b, $k, near, far, &o, &invl, &lim, cur.mask);
+                            (cm[$k], ct[$k]) =
+                                slot16(&n.b, $k, near, far, &o, &invl, &lim, cur.mask);
                         } else if W == 8 && (n.child[$k] != 0 || n.count[$k] != 0) {
-                            (cm[$k], ct[$k]) = slot8(&n.b, $k, near, far, &o, &invl, &lim, cur.mask);
+                            (cm[$k], ct[$k]) =
+                                slot8(&n.b, $k, near, far, &o, &invl, &lim, cur.mask);
                         } else if n.child[$k] != 0 || n.count[$k] != 0 {
                             let s = |i: usize| _mm_shuffle_ps::<{ $k * 0x55 }>(rows[i], rows[i]);
                             let (n0, n1, n2) = (s(near[0]), s(near[1]), s(near[2]));
@@ -366,11 +515,15 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
                                 let t1z = _mm_mul_ps(_mm_sub_ps(f2, oz), iz);
                                 let t0 = _mm_max_ps(_mm_max_ps(t0x, t0y), _mm_max_ps(t0z, zero));
                                 let t1 = _mm_mul_ps(_mm_min_ps(_mm_min_ps(t1x, t1y), t1z), widen);
-                                let hit = _mm_and_ps(_mm_cmple_ps(t0, t1), _mm_cmple_ps(t0, limv[g]));
+                                let hit =
+                                    _mm_and_ps(_mm_cmple_ps(t0, t1), _mm_cmple_ps(t0, limv[g]));
                                 let hm = _mm_movemask_ps(hit) as u32 & gm;
                                 if hm != 0 {
                                     m |= hm << (4 * g);
-                                    tmin = _mm_min_ps(tmin, _mm_or_ps(_mm_and_ps(hit, t0), _mm_andnot_ps(hit, inf)));
+                                    tmin = _mm_min_ps(
+                                        tmin,
+                                        _mm_or_ps(_mm_and_ps(hit, t0), _mm_andnot_ps(hit, inf)),
+                                    );
                                 }
                             }
                             if m != 0 {
@@ -386,8 +539,16 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
                 slot!(1);
                 slot!(2);
                 slot!(3);
-                let entry = |k: usize| Entry { child: n.child[k], count: n.count[k], mask: cm[k], t: ct[k] };
-                let hits = (cm[0] != 0) as u32 | ((cm[1] != 0) as u32) << 1 | ((cm[2] != 0) as u32) << 2 | ((cm[3] != 0) as u32) << 3;
+                let entry = |k: usize| Entry {
+                    child: n.child[k],
+                    count: n.count[k],
+                    mask: cm[k],
+                    t: ct[k],
+                };
+                let hits = (cm[0] != 0) as u32
+                    | ((cm[1] != 0) as u32) << 1
+                    | ((cm[2] != 0) as u32) << 2
+                    | ((cm[3] != 0) as u32) << 3;
                 if hits != 0 {
                     // Nearest first (by the nearest entry of any ray), the rest pushed far to near.
                     let mut e = [entry(0); 4];
@@ -418,7 +579,16 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
                     let leaf_ref = (cur.child as usize, cur.count as usize);
                     if ANY {
                         let (mut t, mut id) = (bt.0[j], PrimId::NONE);
-                        if leaf::<f32, true>(world, bvh, &rays[j], tr[j].assume_init_ref(), leaf_ref, &mut t, &mut id, skip[j]) {
+                        if leaf::<f32, true>(
+                            world,
+                            bvh,
+                            &rays[j],
+                            tr[j].assume_init_ref(),
+                            leaf_ref,
+                            &mut t,
+                            &mut id,
+                            skip[j],
+                        ) {
                             open &= !(1 << j);
                             if open == 0 {
                                 break 'walk;
@@ -426,11 +596,23 @@ fn walk<const W: usize, const ANY: bool>(world: &World<f32>, bvh: &Bvh, rays: &[
                         }
                         continue;
                     }
-                    leaf::<f32, false>(world, bvh, &rays[j], tr[j].assume_init_ref(), leaf_ref, &mut bt.0[j], &mut fo[j], skip[j]);
+                    leaf::<f32, false>(
+                        world,
+                        bvh,
+                        &rays[j],
+                        tr[j].assume_init_ref(),
+                        leaf_ref,
+                        &mut bt.0[j],
+                        &mut fo[j],
+                        skip[j],
+                    );
                     let l = cull(bt.0[j]);
                     lim.0[j] = l;
                     let (g, k) = (j / 4, j % 4);
-                    limv[g] = _mm_or_ps(_mm_and_ps(lane_mask[k], _mm_set1_ps(l)), _mm_andnot_ps(lane_mask[k], limv[g]));
+                    limv[g] = _mm_or_ps(
+                        _mm_and_ps(lane_mask[k], _mm_set1_ps(l)),
+                        _mm_andnot_ps(lane_mask[k], limv[g]),
+                    );
                 }
             }
             // Pop the next subtree, keeping the rays that may still find something nearer in it.

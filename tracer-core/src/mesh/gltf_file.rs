@@ -9,7 +9,7 @@ use base64::Engine;
 use glam::{DMat3, DMat4, DVec3};
 use gltf::mesh::Mode;
 
-use super::{default_material, Mesh, MeshError};
+use super::{Mesh, MeshError, default_material};
 use crate::scene::{MaterialDesc, Num, Vec3};
 
 /// Deeper node hierarchies are rejected (they are surely cyclic or hostile).
@@ -24,21 +24,40 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
     let mut buffers = Vec::new();
     for b in doc.buffers() {
         let data = match b.source() {
-            gltf::buffer::Source::Bin => {
-                gltf.blob.clone().ok_or_else(|| err(format!("invalid glTF: buffer {} uses the missing GLB binary chunk", b.index())))?
-            }
+            gltf::buffer::Source::Bin => gltf.blob.clone().ok_or_else(|| {
+                err(format!(
+                    "invalid glTF: buffer {} uses the missing GLB binary chunk",
+                    b.index()
+                ))
+            })?,
             gltf::buffer::Source::Uri(uri) => {
                 if let Some(rest) = uri.strip_prefix("data:") {
-                    let (_, b64) = rest
-                        .split_once(";base64,")
-                        .ok_or_else(|| err(format!("invalid glTF: buffer {}: data URI is not base64", b.index())))?;
+                    let (_, b64) = rest.split_once(";base64,").ok_or_else(|| {
+                        err(format!(
+                            "invalid glTF: buffer {}: data URI is not base64",
+                            b.index()
+                        ))
+                    })?;
                     base64::engine::general_purpose::STANDARD
                         .decode(b64)
-                        .map_err(|e| err(format!("invalid glTF: buffer {}: bad base64: {e}", b.index())))?
+                        .map_err(|e| {
+                            err(format!(
+                                "invalid glTF: buffer {}: bad base64: {e}",
+                                b.index()
+                            ))
+                        })?
                 } else {
-                    let file = path.parent().unwrap_or(Path::new("")).join(percent_decode(uri));
-                    std::fs::read(&file)
-                        .map_err(|e| err(format!("cannot read buffer {} file {}: {e}", b.index(), file.display())))?
+                    let file = path
+                        .parent()
+                        .unwrap_or(Path::new(""))
+                        .join(percent_decode(uri));
+                    std::fs::read(&file).map_err(|e| {
+                        err(format!(
+                            "cannot read buffer {} file {}: {e}",
+                            b.index(),
+                            file.display()
+                        ))
+                    })?
                 }
             }
         };
@@ -54,7 +73,10 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
     }
 
     let mut mesh = Mesh {
-        materials: doc.materials().map(|m| (m.name().unwrap_or("unnamed").to_string(), map_material(&m))).collect(),
+        materials: doc
+            .materials()
+            .map(|m| (m.name().unwrap_or("unnamed").to_string(), map_material(&m)))
+            .collect(),
         ..Default::default()
     };
     let default_index = mesh.materials.len() as u32;
@@ -77,8 +99,12 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
         let normal_xf = DMat3::from_mat4(*xf).inverse().transpose();
         let flip = xf.determinant() < 0.0;
         for prim in gmesh.primitives() {
-            let at = |what: &str| format!("mesh {} primitive {}: {what}", gmesh.index(), prim.index());
-            if !matches!(prim.mode(), Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan) {
+            let at =
+                |what: &str| format!("mesh {} primitive {}: {what}", gmesh.index(), prim.index());
+            if !matches!(
+                prim.mode(),
+                Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+            ) {
                 continue; // points and lines have no surface
             }
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| d.as_slice()));
@@ -88,12 +114,20 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
                 .collect();
             let base = mesh.positions.len() as u32;
             let n = positions.len() as u32;
-            mesh.positions.extend(positions.iter().map(|p| xf.transform_point3(DVec3::from_array(p.map(f64::from))).as_vec3().to_array()));
+            mesh.positions.extend(positions.iter().map(|p| {
+                xf.transform_point3(DVec3::from_array(p.map(f64::from)))
+                    .as_vec3()
+                    .to_array()
+            }));
             match reader.read_normals() {
                 Some(ns) => {
                     any_normals = true;
                     let before = normals.len();
-                    normals.extend(ns.map(|v| (normal_xf * DVec3::from_array(v.map(f64::from))).as_vec3().to_array()));
+                    normals.extend(ns.map(|v| {
+                        (normal_xf * DVec3::from_array(v.map(f64::from)))
+                            .as_vec3()
+                            .to_array()
+                    }));
                     if normals.len() - before != positions.len() {
                         return Err(err(at("normal count differs from position count")));
                     }
@@ -108,12 +142,23 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
                 return Err(err(at(&format!("index {bad} out of range ({n} vertices)"))));
             }
             let tris: Vec<[u32; 3]> = match prim.mode() {
-                Mode::Triangles => indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
+                Mode::Triangles => indices
+                    .chunks_exact(3)
+                    .map(|t| [t[0], t[1], t[2]])
+                    .collect(),
                 // Strips alternate winding; fans share their first vertex.
                 Mode::TriangleStrip => (2..indices.len())
-                    .map(|i| if i % 2 == 0 { [indices[i - 2], indices[i - 1], indices[i]] } else { [indices[i - 1], indices[i - 2], indices[i]] })
+                    .map(|i| {
+                        if i % 2 == 0 {
+                            [indices[i - 2], indices[i - 1], indices[i]]
+                        } else {
+                            [indices[i - 1], indices[i - 2], indices[i]]
+                        }
+                    })
                     .collect(),
-                _ => (2..indices.len()).map(|i| [indices[0], indices[i - 1], indices[i]]).collect(),
+                _ => (2..indices.len())
+                    .map(|i| [indices[0], indices[i - 1], indices[i]])
+                    .collect(),
             };
             let material = match prim.material().index() {
                 Some(i) => i as u32,
@@ -124,7 +169,8 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
             };
             for t in tris {
                 let t = t.map(|i| base + i);
-                mesh.triangles.push(if flip { [t[0], t[2], t[1]] } else { t });
+                mesh.triangles
+                    .push(if flip { [t[0], t[2], t[1]] } else { t });
                 mesh.triangle_materials.push(material);
             }
         }
@@ -138,9 +184,17 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
     Ok(mesh)
 }
 
-fn collect<'a>(node: gltf::Node<'a>, parent: DMat4, depth: usize, out: &mut Vec<(gltf::Mesh<'a>, DMat4)>) -> Result<(), String> {
+fn collect<'a>(
+    node: gltf::Node<'a>,
+    parent: DMat4,
+    depth: usize,
+    out: &mut Vec<(gltf::Mesh<'a>, DMat4)>,
+) -> Result<(), String> {
     if depth > MAX_NODE_DEPTH {
-        return Err(format!("invalid glTF: node hierarchy deeper than {MAX_NODE_DEPTH} (a cycle?) at node {}", node.index()));
+        return Err(format!(
+            "invalid glTF: node hierarchy deeper than {MAX_NODE_DEPTH} (a cycle?) at node {}",
+            node.index()
+        ));
     }
     let m = node.transform().matrix();
     let xf = parent * DMat4::from_cols_array_2d(&m.map(|c| c.map(f64::from)));
@@ -175,7 +229,11 @@ fn map_material(m: &gltf::Material) -> MaterialDesc {
         specular: Vec3(base.map(|c| 0.04 + (c - 0.04) * metallic)),
         shininess: Num((2.0 / rough.max(0.05).powi(4) - 2.0).max(1.0)),
         reflectivity: Num(reflectivity),
-        transparency: Num(if blend { (1.0 - a).clamp(0.0, 1.0) } else { 0.0 }),
+        transparency: Num(if blend {
+            (1.0 - a).clamp(0.0, 1.0)
+        } else {
+            0.0
+        }),
         ior: Num(1.5), // KHR_materials_ior is not read
     }
 }
@@ -186,7 +244,11 @@ fn percent_decode(s: &str) -> String {
     let mut i = 0;
     while i < b.len() {
         let hex = (b[i] == b'%' && i + 2 < b.len())
-            .then(|| std::str::from_utf8(&b[i + 1..i + 3]).ok().and_then(|h| u8::from_str_radix(h, 16).ok()))
+            .then(|| {
+                std::str::from_utf8(&b[i + 1..i + 3])
+                    .ok()
+                    .and_then(|h| u8::from_str_radix(h, 16).ok())
+            })
             .flatten();
         if let Some(v) = hex {
             out.push(v);

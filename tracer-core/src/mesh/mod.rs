@@ -35,7 +35,10 @@ pub struct MeshError {
 
 impl MeshError {
     pub(crate) fn new(path: &Path, message: impl Into<String>) -> Self {
-        MeshError { path: path.to_owned(), message: message.into() }
+        MeshError {
+            path: path.to_owned(),
+            message: message.into(),
+        }
     }
 }
 
@@ -57,7 +60,10 @@ impl Mesh {
     /// `need_materials`: whether the file's materials will be used (when
     /// false, a missing MTL library is not an error).
     pub fn load(path: &Path, need_materials: bool) -> Result<Mesh, MeshError> {
-        let name = path.file_name().map(|n| n.to_string_lossy().to_lowercase()).unwrap_or_default();
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_lowercase())
+            .unwrap_or_default();
         // Give "not found" and "is a directory" before any format-specific message.
         match std::fs::metadata(path) {
             Err(e) => return Err(MeshError::new(path, format!("cannot read model file: {e}"))),
@@ -74,10 +80,18 @@ impl Mesh {
             } else if name.ends_with(".ply") || name.ends_with(".ply.gz") {
                 ply::load(path)
             } else {
-                Err(MeshError::new(path, "unknown model format: expected .obj, .gltf, .glb, .ply or .ply.gz"))
+                Err(MeshError::new(
+                    path,
+                    "unknown model format: expected .obj, .gltf, .glb, .ply or .ply.gz",
+                ))
             }
         })
-        .unwrap_or_else(|_| Err(MeshError::new(path, "the model loader failed on this file (malformed data)")));
+        .unwrap_or_else(|_| {
+            Err(MeshError::new(
+                path,
+                "the model loader failed on this file (malformed data)",
+            ))
+        });
         let mut mesh = result?;
         mesh.validate().map_err(|m| MeshError::new(path, m))?;
         Ok(mesh)
@@ -95,11 +109,24 @@ impl Mesh {
             return Err("internal: one material per triangle expected".into());
         }
         let nv = self.positions.len();
-        if let Some((i, p)) = self.positions.iter().enumerate().find(|(_, p)| !p.iter().all(|c| c.is_finite())) {
+        if let Some((i, p)) = self
+            .positions
+            .iter()
+            .enumerate()
+            .find(|(_, p)| !p.iter().all(|c| c.is_finite()))
+        {
             return Err(format!("vertex {i} is not finite: {p:?}"));
         }
-        if let Some((i, t)) = self.triangles.iter().enumerate().find(|(_, t)| t.iter().any(|&v| v as usize >= nv)) {
-            return Err(format!("triangle {i} refers to vertex {} but there are only {nv} vertices", t.iter().max().unwrap_or(&0)));
+        if let Some((i, t)) = self
+            .triangles
+            .iter()
+            .enumerate()
+            .find(|(_, t)| t.iter().any(|&v| v as usize >= nv))
+        {
+            return Err(format!(
+                "triangle {i} refers to vertex {} but there are only {nv} vertices",
+                t.iter().max().unwrap_or(&0)
+            ));
         }
         let nm = self.materials.len();
         if let Some(&m) = self.triangle_materials.iter().find(|&&m| m as usize >= nm) {
@@ -111,7 +138,11 @@ impl Mesh {
             }
             for n in &mut self.normals {
                 let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-                *n = if len > 0.0 && len.is_finite() { n.map(|c| c / len) } else { [0.0; 3] };
+                *n = if len > 0.0 && len.is_finite() {
+                    n.map(|c| c / len)
+                } else {
+                    [0.0; 3]
+                };
             }
         }
         for (name, m) in &self.materials {
@@ -122,12 +153,23 @@ impl Mesh {
 }
 
 fn check_material(m: &MaterialDesc) -> Result<(), String> {
-    for (f, c) in [("ambient", &m.ambient), ("diffuse", &m.diffuse), ("specular", &m.specular)] {
+    for (f, c) in [
+        ("ambient", &m.ambient),
+        ("diffuse", &m.diffuse),
+        ("specular", &m.specular),
+    ] {
         if !c.0.iter().all(|v| v.is_finite() && *v >= 0.0) {
-            return Err(format!("{f} must be three finite numbers >= 0, got {:?}", c.0));
+            return Err(format!(
+                "{f} must be three finite numbers >= 0, got {:?}",
+                c.0
+            ));
         }
     }
-    for (f, v) in [("shininess", m.shininess), ("reflectivity", m.reflectivity), ("transparency", m.transparency)] {
+    for (f, v) in [
+        ("shininess", m.shininess),
+        ("reflectivity", m.reflectivity),
+        ("transparency", m.transparency),
+    ] {
         if !(v.0.is_finite() && v.0 >= 0.0) {
             return Err(format!("{f} must be a finite number >= 0, got {}", v.0));
         }
@@ -169,33 +211,65 @@ mod tests {
         assert_eq!(m.normals, vec![[0.0, 0.0, 1.0]; 4]);
         let (name, mat) = &m.materials[m.triangle_materials[0] as usize];
         assert_eq!(name, "shiny");
-        assert_eq!(mat.ambient, Vec3([0.1f32 as f64, 0.2f32 as f64, 0.3f32 as f64]));
+        assert_eq!(
+            mat.ambient,
+            Vec3([0.1f32 as f64, 0.2f32 as f64, 0.3f32 as f64])
+        );
         assert_eq!(mat.diffuse.0[2], 0.7f32 as f64);
         assert_eq!(mat.shininess, Num(64.0));
         assert_eq!(mat.transparency, Num(0.75));
         assert_eq!(mat.ior, Num(1.5));
-        assert_eq!(mat.reflectivity, Num(0.9f32 as f64), "illum 3: mirror weight from Ks");
+        assert_eq!(
+            mat.reflectivity,
+            Num(0.9f32 as f64),
+            "illum 3: mirror weight from Ks"
+        );
     }
 
     #[test]
     fn broken_files_give_errors_naming_file_and_problem() {
         let d = tmpdir("bad");
-        let e = Mesh::load(&d.join("absent.obj"), true).unwrap_err().to_string();
-        assert!(e.contains("absent.obj: cannot read model file") && e.contains("No such file"), "{e}");
+        let e = Mesh::load(&d.join("absent.obj"), true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("absent.obj: cannot read model file") && e.contains("No such file"),
+            "{e}"
+        );
         let p = write(&d, "bad.obj", b"v 0 0 0\nv 1 0 zero\nf 1 2 3\n");
         let e = Mesh::load(&p, true).unwrap_err().to_string();
-        assert!(e.contains("bad.obj: invalid OBJ: position parse error"), "{e}");
+        assert!(
+            e.contains("bad.obj: invalid OBJ: position parse error"),
+            "{e}"
+        );
         let p = write(&d, "oob.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 7\n");
         let e = Mesh::load(&p, true).unwrap_err().to_string();
-        assert!(e.contains("oob.obj: invalid OBJ: face vertex index out of bounds"), "{e}");
-        let p = write(&d, "nomtl.obj", b"mtllib gone.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+        assert!(
+            e.contains("oob.obj: invalid OBJ: face vertex index out of bounds"),
+            "{e}"
+        );
+        let p = write(
+            &d,
+            "nomtl.obj",
+            b"mtllib gone.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+        );
         let e = Mesh::load(&p, true).unwrap_err().to_string();
-        assert!(e.contains("nomtl.obj: cannot load its material library") && e.contains("gone.mtl"), "{e}");
-        assert!(Mesh::load(&p, false).is_ok(), "with a material override the MTL is not needed");
+        assert!(
+            e.contains("nomtl.obj: cannot load its material library") && e.contains("gone.mtl"),
+            "{e}"
+        );
+        assert!(
+            Mesh::load(&p, false).is_ok(),
+            "with a material override the MTL is not needed"
+        );
         let p = write(&d, "empty.obj", b"# nothing\nv 0 0 0\n");
         let e = Mesh::load(&p, true).unwrap_err().to_string();
         assert!(e.contains("empty.obj: contains no triangles"), "{e}");
-        let p = write(&d, "bad.gltf", b"{ \"asset\": { \"version\": \"2.0\" }, \"meshes\": [ { \"primitives\": 3 } ] }");
+        let p = write(
+            &d,
+            "bad.gltf",
+            b"{ \"asset\": { \"version\": \"2.0\" }, \"meshes\": [ { \"primitives\": 3 } ] }",
+        );
         let e = Mesh::load(&p, true).unwrap_err().to_string();
         assert!(e.contains("bad.gltf: invalid glTF:"), "{e}");
         let p = write(&d, "trunc.glb", b"glTF\x02\x00\x00\x00\xff\x00\x00\x00");

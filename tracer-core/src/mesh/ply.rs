@@ -48,8 +48,15 @@ impl Scalar {
 
 #[derive(Debug)]
 enum Property {
-    Scalar { name: String, ty: Scalar },
-    List { name: String, count: Scalar, item: Scalar },
+    Scalar {
+        name: String,
+        ty: Scalar,
+    },
+    List {
+        name: String,
+        count: Scalar,
+        item: Scalar,
+    },
 }
 
 #[derive(Debug)]
@@ -71,9 +78,14 @@ const MAX_POLYGON: usize = 1 << 16;
 
 pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
     let err = |m: String| MeshError::new(path, m);
-    let file = std::fs::File::open(path).map_err(|e| err(format!("cannot read model file: {e}")))?;
+    let file =
+        std::fs::File::open(path).map_err(|e| err(format!("cannot read model file: {e}")))?;
     let gz = path.to_string_lossy().to_lowercase().ends_with(".gz");
-    let raw: Box<dyn Read> = if gz { Box::new(flate2::read::GzDecoder::new(file)) } else { Box::new(file) };
+    let raw: Box<dyn Read> = if gz {
+        Box::new(flate2::read::GzDecoder::new(file))
+    } else {
+        Box::new(file)
+    };
     let mut r = BufReader::with_capacity(1 << 16, raw);
     let (format, elements) = header(&mut r).map_err(|m| err(format!("invalid PLY header: {m}")))?;
     body(&mut r, format, &elements).map_err(|m| err(format!("invalid PLY: {m}")))
@@ -83,7 +95,11 @@ fn header(r: &mut impl BufRead) -> Result<(Format, Vec<Element>), String> {
     let mut line = String::new();
     let mut next = |line: &mut String| -> Result<(), String> {
         line.clear();
-        let n = r.by_ref().take(4096).read_line(line).map_err(|e| e.to_string())?;
+        let n = r
+            .by_ref()
+            .take(4096)
+            .read_line(line)
+            .map_err(|e| e.to_string())?;
         if n == 0 {
             return Err("file ends before end_header".into());
         }
@@ -116,14 +132,27 @@ fn header(r: &mut impl BufRead) -> Result<(Format, Vec<Element>), String> {
                 props: Vec::new(),
             }),
             ["property", "list", c, i, name] => {
-                let (Some(count), Some(item)) = (Scalar::parse(c), Scalar::parse(i)) else { return Err(bad("unknown type")) };
-                let el = elements.last_mut().ok_or_else(|| bad("property before any element"))?;
-                el.props.push(Property::List { name: name.to_string(), count, item });
+                let (Some(count), Some(item)) = (Scalar::parse(c), Scalar::parse(i)) else {
+                    return Err(bad("unknown type"));
+                };
+                let el = elements
+                    .last_mut()
+                    .ok_or_else(|| bad("property before any element"))?;
+                el.props.push(Property::List {
+                    name: name.to_string(),
+                    count,
+                    item,
+                });
             }
             ["property", t, name] => {
                 let ty = Scalar::parse(t).ok_or_else(|| bad("unknown type"))?;
-                let el = elements.last_mut().ok_or_else(|| bad("property before any element"))?;
-                el.props.push(Property::Scalar { name: name.to_string(), ty });
+                let el = elements
+                    .last_mut()
+                    .ok_or_else(|| bad("property before any element"))?;
+                el.props.push(Property::Scalar {
+                    name: name.to_string(),
+                    ty,
+                });
             }
             _ => return Err(bad("unrecognised line")),
         }
@@ -148,22 +177,33 @@ impl<R: BufRead> Values<'_, R> {
                 let start = rest.len() - rest.trim_start().len();
                 let rest = &rest[start..];
                 if !rest.is_empty() {
-                    let len = rest.find(|c: char| c.is_ascii_whitespace()).unwrap_or(rest.len());
+                    let len = rest
+                        .find(|c: char| c.is_ascii_whitespace())
+                        .unwrap_or(rest.len());
                     let tok = &rest[..len];
                     self.pos += start + len;
                     break tok;
                 }
                 self.line.clear();
                 self.pos = 0;
-                if self.r.read_line(&mut self.line).map_err(|e| e.to_string())? == 0 {
+                if self
+                    .r
+                    .read_line(&mut self.line)
+                    .map_err(|e| e.to_string())?
+                    == 0
+                {
                     return Err("unexpected end of file".into());
                 }
             };
-            return tok.parse::<f64>().map_err(|_| format!("not a number: {tok:?}"));
+            return tok
+                .parse::<f64>()
+                .map_err(|_| format!("not a number: {tok:?}"));
         }
         let mut b = [0u8; 8];
         let n = ty.size();
-        self.r.read_exact(&mut b[..n]).map_err(|_| "unexpected end of file".to_string())?;
+        self.r
+            .read_exact(&mut b[..n])
+            .map_err(|_| "unexpected end of file".to_string())?;
         if self.format == Format::Big {
             b[..n].reverse();
         }
@@ -182,16 +222,27 @@ impl<R: BufRead> Values<'_, R> {
 
 fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Mesh, String> {
     let mut mesh = Mesh::default();
-    let mut vals = Values { r, format, line: String::new(), pos: 0 };
+    let mut vals = Values {
+        r,
+        format,
+        line: String::new(),
+        pos: 0,
+    };
     let mut vertex_seen = false;
     for el in elements {
-        let scalar_index = |n: &str| el.props.iter().position(|p| matches!(p, Property::Scalar { name, .. } if name == n));
+        let scalar_index = |n: &str| {
+            el.props
+                .iter()
+                .position(|p| matches!(p, Property::Scalar { name, .. } if name == n))
+        };
         let mut row = vec![0.0f64; el.props.len()];
         let mut list: Vec<f64> = Vec::new();
         match el.name.as_str() {
             "vertex" => {
                 vertex_seen = true;
-                let (Some(x), Some(y), Some(z)) = (scalar_index("x"), scalar_index("y"), scalar_index("z")) else {
+                let (Some(x), Some(y), Some(z)) =
+                    (scalar_index("x"), scalar_index("y"), scalar_index("z"))
+                else {
                     return Err("element vertex lacks x, y or z".into());
                 };
                 let normal = match (scalar_index("nx"), scalar_index("ny"), scalar_index("nz")) {
@@ -201,10 +252,13 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
                 let cap = el.count.min(1 << 20);
                 mesh.positions.reserve(cap);
                 for i in 0..el.count {
-                    read_row(&mut vals, el, &mut row, &mut list).map_err(|e| format!("vertex {i}: {e}"))?;
-                    mesh.positions.push([row[x] as f32, row[y] as f32, row[z] as f32]);
+                    read_row(&mut vals, el, &mut row, &mut list)
+                        .map_err(|e| format!("vertex {i}: {e}"))?;
+                    mesh.positions
+                        .push([row[x] as f32, row[y] as f32, row[z] as f32]);
                     if let Some([a, b, c]) = normal {
-                        mesh.normals.push([row[a] as f32, row[b] as f32, row[c] as f32]);
+                        mesh.normals
+                            .push([row[a] as f32, row[b] as f32, row[c] as f32]);
                     }
                 }
             }
@@ -221,10 +275,13 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
                 let mut poly = Vec::new();
                 for i in 0..el.count {
                     poly.clear();
-                    read_face(&mut vals, el, li, &mut poly).map_err(|e| format!("face {i}: {e}"))?;
+                    read_face(&mut vals, el, li, &mut poly)
+                        .map_err(|e| format!("face {i}: {e}"))?;
                     let nv = mesh.positions.len() as u32;
                     if let Some(&bad) = poly.iter().find(|&&v| v >= nv) {
-                        return Err(format!("face {i}: vertex index {bad} out of range ({nv} vertices)"));
+                        return Err(format!(
+                            "face {i}: vertex index {bad} out of range ({nv} vertices)"
+                        ));
                     }
                     for k in 2..poly.len() {
                         mesh.triangles.push([poly[0], poly[k - 1], poly[k]]);
@@ -233,7 +290,8 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
             }
             _ => {
                 for i in 0..el.count {
-                    read_row(&mut vals, el, &mut row, &mut list).map_err(|e| format!("{} {i}: {e}", el.name))?;
+                    read_row(&mut vals, el, &mut row, &mut list)
+                        .map_err(|e| format!("{} {i}: {e}", el.name))?;
                 }
             }
         }
@@ -243,7 +301,12 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
 }
 
 /// Reads one element instance; scalars into `row`, lists skipped.
-fn read_row<R: BufRead>(v: &mut Values<R>, el: &Element, row: &mut [f64], scratch: &mut Vec<f64>) -> Result<(), String> {
+fn read_row<R: BufRead>(
+    v: &mut Values<R>,
+    el: &Element,
+    row: &mut [f64],
+    scratch: &mut Vec<f64>,
+) -> Result<(), String> {
     for (k, p) in el.props.iter().enumerate() {
         match p {
             Property::Scalar { ty, .. } => row[k] = v.next(*ty)?,
@@ -259,7 +322,12 @@ fn read_row<R: BufRead>(v: &mut Values<R>, el: &Element, row: &mut [f64], scratc
     Ok(())
 }
 
-fn read_face<R: BufRead>(v: &mut Values<R>, el: &Element, list: usize, poly: &mut Vec<u32>) -> Result<(), String> {
+fn read_face<R: BufRead>(
+    v: &mut Values<R>,
+    el: &Element,
+    list: usize,
+    poly: &mut Vec<u32>,
+) -> Result<(), String> {
     for (k, p) in el.props.iter().enumerate() {
         match p {
             Property::Scalar { ty, .. } => {
@@ -329,7 +397,8 @@ mod tests {
         assert_eq!(e, "face 0: vertex index 9 out of range (3 vertices)");
         let e = parse(format!("{head}0 0 0\n1 0 x\n").as_bytes()).unwrap_err();
         assert_eq!(e, "vertex 1: not a number: \"x\"");
-        let e = parse(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quad x\nend_header\n").unwrap_err();
+        let e = parse(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quad x\nend_header\n")
+            .unwrap_err();
         assert!(e.starts_with("line 4: unknown type"), "{e}");
         let e = parse(b"PLY\n").unwrap_err();
         assert!(e.contains("does not start with \"ply\""), "{e}");

@@ -43,7 +43,9 @@ impl std::str::FromStr for Precision {
         match s {
             "f32" => Ok(Precision::F32),
             "f64" => Ok(Precision::F64),
-            _ => Err(format!("unknown precision {s:?}: expected \"f32\" or \"f64\"")),
+            _ => Err(format!(
+                "unknown precision {s:?}: expected \"f32\" or \"f64\""
+            )),
         }
     }
 }
@@ -57,7 +59,12 @@ pub enum PreparedFrame {
 }
 
 impl PreparedFrame {
-    pub fn build(desc: &SceneDesc, settings: &RenderSettings, frame: u32, precision: Precision) -> Result<Self, RenderError> {
+    pub fn build(
+        desc: &SceneDesc,
+        settings: &RenderSettings,
+        frame: u32,
+        precision: Precision,
+    ) -> Result<Self, RenderError> {
         settings.validate().map_err(RenderError::Settings)?;
         Ok(match precision {
             Precision::F32 => PreparedFrame::F32(World::build(desc, settings, frame)),
@@ -76,10 +83,17 @@ impl PreparedFrame {
     pub fn check_request(&self, rect: Rect, samples: SampleRange) -> Result<(), RenderError> {
         let s = self.settings();
         if rect.area() == 0 || !Rect::full(s.width, s.height).contains(&rect) {
-            return Err(RenderError::RectOutside { rect, width: s.width, height: s.height });
+            return Err(RenderError::RectOutside {
+                rect,
+                width: s.width,
+                height: s.height,
+            });
         }
         if samples.is_empty() || samples.end > s.samples {
-            return Err(RenderError::SamplesOutside { samples, count: s.samples });
+            return Err(RenderError::SamplesOutside {
+                samples,
+                count: s.samples,
+            });
         }
         Ok(())
     }

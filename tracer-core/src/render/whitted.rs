@@ -16,18 +16,30 @@ use std::any::TypeId;
 
 use crate::film::RayCounts;
 use crate::geometry::PrimId;
-use crate::math::{offset_origin, Ray, Real, Vector3};
+use crate::math::{Ray, Real, Vector3, offset_origin};
 use crate::world::{PointLight, World};
 
 /// Colour seen along `ray`, which starts on primitive `skip` (or none) and
 /// is of generation `depth` (primary rays are 0).
-pub fn trace<R: Real>(world: &World<R>, ray: &Ray<R>, depth: u32, skip: PrimId, rays: &mut RayCounts) -> R::V3 {
+pub fn trace<R: Real>(
+    world: &World<R>,
+    ray: &Ray<R>,
+    depth: u32,
+    skip: PrimId,
+    rays: &mut RayCounts,
+) -> R::V3 {
     shade(world, ray, world.closest_hit(ray, skip), depth, rays)
 }
 
 /// Colour seen along `ray` of generation `depth`, given its closest hit
 /// (`World::closest_hit`, or the same answer from `World::closest_hits`).
-pub fn shade<R: Real>(world: &World<R>, ray: &Ray<R>, hit: Option<(R, PrimId)>, depth: u32, rays: &mut RayCounts) -> R::V3 {
+pub fn shade<R: Real>(
+    world: &World<R>,
+    ray: &Ray<R>,
+    hit: Option<(R, PrimId)>,
+    depth: u32,
+    rays: &mut RayCounts,
+) -> R::V3 {
     let Some(hit) = hit else {
         return world.background;
     };
@@ -83,7 +95,17 @@ impl<R: Real> Surface<R> {
         // Shading normal: differs from n only on smoothly shaded triangles.
         let ns = world.shading_normal(id, p, n, v);
         let cos_i = ns.dot(v);
-        Surface { id, p, n, ns, v, entering, cos_i, material, above: offset_origin::<R>(p, n) }
+        Surface {
+            id,
+            p,
+            n,
+            ns,
+            v,
+            entering,
+            cos_i,
+            material,
+            above: offset_origin::<R>(p, n),
+        }
     }
 
     /// The ambient term, where the colour starts.
@@ -106,21 +128,43 @@ impl<R: Real> Surface<R> {
         let ndotl = ns.dot(l).max(R::ZERO);
         let h = l + v;
         let h_len = h.length();
-        let ndoth = if h_len > R::ZERO { (ns.dot(h) / h_len).max(R::ZERO) } else { R::ZERO };
-        let spec = if ndoth > m.specular_cos_min { specular_pow(ndoth, m.shininess) } else { R::ZERO };
+        let ndoth = if h_len > R::ZERO {
+            (ns.dot(h) / h_len).max(R::ZERO)
+        } else {
+            R::ZERO
+        };
+        let spec = if ndoth > m.specular_cos_min {
+            specular_pow(ndoth, m.shininess)
+        } else {
+            R::ZERO
+        };
         let contrib = light.diffuse * m.diffuse * ndotl + light.specular * m.specular * spec;
         if contrib.max_element() <= R::ZERO {
             return None;
         }
         // Leave on the light's side of the surface.
-        let origin = if n.dot(l) >= R::ZERO { self.above } else { offset_origin::<R>(p, -n) };
-        Some(LightTerm { contrib, shadow: Ray::new(origin, l), t_max: dist * (R::ONE - R::SHADOW_SHORTEN) })
+        let origin = if n.dot(l) >= R::ZERO {
+            self.above
+        } else {
+            offset_origin::<R>(p, -n)
+        };
+        Some(LightTerm {
+            contrib,
+            shadow: Ray::new(origin, l),
+            t_max: dist * (R::ONE - R::SHADOW_SHORTEN),
+        })
     }
 
     /// Adds the refracted and reflected light (rays of generation
     /// `depth + 1`, traced recursively), if `depth` allows.
     #[inline]
-    pub fn add_secondary(&self, world: &World<R>, depth: u32, rays: &mut RayCounts, colour: &mut R::V3) {
+    pub fn add_secondary(
+        &self,
+        world: &World<R>,
+        depth: u32,
+        rays: &mut RayCounts,
+        colour: &mut R::V3,
+    ) {
         if depth >= world.settings.max_depth {
             return;
         }
@@ -228,7 +272,9 @@ mod tests {
     #[test]
     fn pow_f32_matches_f64_powf() {
         let mut worst = 0.0f64;
-        for e in [0.0f32, 0.5, 1.0, 2.0, 7.0, 8.0, 32.0, 76.8, 100.0, 128.0, 333.3, 1000.0, 4096.0, 1.0e5] {
+        for e in [
+            0.0f32, 0.5, 1.0, 2.0, 7.0, 8.0, 32.0, 76.8, 100.0, 128.0, 333.3, 1000.0, 4096.0, 1.0e5,
+        ] {
             let floor = (5.960_464_477_539_063e-8f64).powf(1.0 / e as f64) as f32;
             for k in 0..=20_000 {
                 let x = floor + (1.0 - floor) * (k as f32 / 20_000.0);
@@ -243,7 +289,10 @@ mod tests {
                 }
                 let rel = ((got - want) / want).abs();
                 worst = worst.max(rel);
-                assert!(rel < 5e-6, "{x}^{e} = {got}, want {want} (relative error {rel})");
+                assert!(
+                    rel < 5e-6,
+                    "{x}^{e} = {got}, want {want} (relative error {rel})"
+                );
             }
         }
         assert!(worst > 0.0, "the test should see some rounding");
@@ -251,7 +300,11 @@ mod tests {
         assert_eq!(pow_f32(1.0, 76.8), 1.0);
         assert_eq!(pow_f32(0.5, 0.0), 1.0);
         let tiny = f32::from_bits(1000);
-        assert!(((pow_f32(tiny, 0.01) as f64 - (tiny as f64).powf(0.01)) / (tiny as f64).powf(0.01)).abs() < 5e-6);
+        assert!(
+            ((pow_f32(tiny, 0.01) as f64 - (tiny as f64).powf(0.01)) / (tiny as f64).powf(0.01))
+                .abs()
+                < 5e-6
+        );
         eprintln!("worst relative error {worst:e}");
     }
 }

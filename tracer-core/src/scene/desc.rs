@@ -6,8 +6,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use serde::de::{self, Deserializer, SeqAccess, Visitor};
 use serde::Deserialize;
+use serde::de::{self, Deserializer, SeqAccess, Visitor};
 use toml::Spanned;
 
 use super::error::{Location, SceneError};
@@ -57,7 +57,10 @@ impl<'de> Deserialize<'de> for Vec3 {
             fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Vec3, A::Error> {
                 let mut out = [0.0; 3];
                 for (i, slot) in out.iter_mut().enumerate() {
-                    *slot = seq.next_element::<Num>()?.ok_or_else(|| de::Error::invalid_length(i, &self))?.0;
+                    *slot = seq
+                        .next_element::<Num>()?
+                        .ok_or_else(|| de::Error::invalid_length(i, &self))?
+                        .0;
                 }
                 if seq.next_element::<de::IgnoredAny>()?.is_some() {
                     return Err(de::Error::invalid_length(4, &self));
@@ -81,7 +84,11 @@ impl Vec3 {
     }
     fn cross(&self, o: &Vec3) -> Vec3 {
         let (a, b) = (self.0, o.0);
-        Vec3([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+        Vec3([
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ])
     }
     fn length(&self) -> f64 {
         self.dot(self).sqrt()
@@ -103,7 +110,13 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        RenderSettings { width: 800, height: 600, samples: 4, max_depth: 10, sampler: Sampler::Grid }
+        RenderSettings {
+            width: 800,
+            height: 600,
+            samples: 4,
+            max_depth: 10,
+            sampler: Sampler::Grid,
+        }
     }
 }
 
@@ -187,8 +200,14 @@ impl CameraDesc {
     /// The pose at `frame`: linear interpolation between the keyframes around
     /// it (keyframes are sorted by frame, checked at parse time).
     pub fn at(&self, frame: u32) -> CameraPose {
-        let still = CameraPose { position: self.position, look_at: self.look_at, fov_y: self.fov_y };
-        let (Some(first), Some(last)) = (self.keyframes.first(), self.keyframes.last()) else { return still };
+        let still = CameraPose {
+            position: self.position,
+            look_at: self.look_at,
+            fov_y: self.fov_y,
+        };
+        let (Some(first), Some(last)) = (self.keyframes.first(), self.keyframes.last()) else {
+            return still;
+        };
         if frame <= first.frame {
             return self.pose_of(first);
         }
@@ -196,11 +215,25 @@ impl CameraDesc {
             return self.pose_of(last);
         }
         let i = self.keyframes.partition_point(|k| k.frame <= frame);
-        let (a, b) = (self.pose_of(&self.keyframes[i - 1]), self.pose_of(&self.keyframes[i]));
-        let t = (frame - self.keyframes[i - 1].frame) as f64 / (self.keyframes[i].frame - self.keyframes[i - 1].frame) as f64;
+        let (a, b) = (
+            self.pose_of(&self.keyframes[i - 1]),
+            self.pose_of(&self.keyframes[i]),
+        );
+        let t = (frame - self.keyframes[i - 1].frame) as f64
+            / (self.keyframes[i].frame - self.keyframes[i - 1].frame) as f64;
         let lerp = |x: f64, y: f64| x + (y - x) * t;
-        let lerp3 = |x: Vec3, y: Vec3| Vec3([lerp(x.0[0], y.0[0]), lerp(x.0[1], y.0[1]), lerp(x.0[2], y.0[2])]);
-        CameraPose { position: lerp3(a.position, b.position), look_at: lerp3(a.look_at, b.look_at), fov_y: Num(lerp(a.fov_y.0, b.fov_y.0)) }
+        let lerp3 = |x: Vec3, y: Vec3| {
+            Vec3([
+                lerp(x.0[0], y.0[0]),
+                lerp(x.0[1], y.0[1]),
+                lerp(x.0[2], y.0[2]),
+            ])
+        };
+        CameraPose {
+            position: lerp3(a.position, b.position),
+            look_at: lerp3(a.look_at, b.look_at),
+            fov_y: Num(lerp(a.fov_y.0, b.fov_y.0)),
+        }
     }
 }
 
@@ -259,8 +292,16 @@ pub struct LightDesc {
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(tag = "type", rename_all = "lowercase", deny_unknown_fields)]
 pub enum ObjectDesc {
-    Sphere { center: Vec3, radius: Num, material: String },
-    Plane { normal: Vec3, distance: Num, material: String },
+    Sphere {
+        center: Vec3,
+        radius: Num,
+        material: String,
+    },
+    Plane {
+        normal: Vec3,
+        distance: Num,
+        material: String,
+    },
     /// A triangle mesh from a model file (see [`MeshDesc`]).
     Mesh(MeshDesc),
 }
@@ -269,7 +310,9 @@ impl ObjectDesc {
     /// The scene material named by the object; `None` for a mesh that uses its file's materials.
     pub fn material(&self) -> Option<&str> {
         match self {
-            ObjectDesc::Sphere { material, .. } | ObjectDesc::Plane { material, .. } => Some(material),
+            ObjectDesc::Sphere { material, .. } | ObjectDesc::Plane { material, .. } => {
+                Some(material)
+            }
             ObjectDesc::Mesh(m) => m.material.as_deref(),
         }
     }
@@ -321,7 +364,10 @@ impl SceneDesc {
     /// Reads and validates a scene file.
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SceneError> {
         let path = path.as_ref();
-        let src = std::fs::read_to_string(path).map_err(|source| SceneError::Io { path: path.to_owned(), source })?;
+        let src = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
         Self::parse(&src, path)
     }
 
@@ -333,23 +379,38 @@ impl SceneDesc {
             let mut message = e.message().trim_end().to_string();
             // Errors inside an array-of-tables element point at its header:
             // say which element, since the header line is the same for all.
-            if let Some(name) = src.get(start..).and_then(|r| r.strip_prefix("[[")).and_then(|r| r.split("]]").next()) {
+            if let Some(name) = src
+                .get(start..)
+                .and_then(|r| r.strip_prefix("[["))
+                .and_then(|r| r.split("]]").next())
+            {
                 let index = src[..start].matches(&format!("[[{name}]]")).count();
                 message = format!("{name}[{index}]: {message}");
             }
-            SceneError::Parse { path: path.clone(), location: Location::of_offset(src, start), message }
+            SceneError::Parse {
+                path: path.clone(),
+                location: Location::of_offset(src, start),
+                message,
+            }
         })?;
         // Points at the offending key's line when it is written inside the
         // span (`radius = -1`), else at the start of the span (its table).
         let invalid = |span: std::ops::Range<usize>, field: String, message: String| {
             let key = field.rsplit('.').next().unwrap_or("");
             let offset = key_offset(src, span.clone(), key).unwrap_or(span.start);
-            SceneError::Invalid { path: path.clone(), location: Location::of_offset(src, offset), field, message }
+            SceneError::Invalid {
+                path: path.clone(),
+                location: Location::of_offset(src, offset),
+                field,
+                message,
+            }
         };
         // Spans of the top-level tables, for errors about values in them.
         let table_span = |name: &str| -> std::ops::Range<usize> {
             let header = format!("[{name}]");
-            src.find(&header).map(|i| i..i + header.len()).unwrap_or(0..0)
+            src.find(&header)
+                .map(|i| i..i + header.len())
+                .unwrap_or(0..0)
         };
 
         let mut render = RenderSettings::default();
@@ -360,61 +421,101 @@ impl SceneDesc {
             render.max_depth = t.max_depth.unwrap_or(render.max_depth);
             render.sampler = t.sampler.unwrap_or(render.sampler);
         }
-        render.validate().map_err(|m| invalid(table_span("render"), "render".into(), m))?;
+        render
+            .validate()
+            .map_err(|m| invalid(table_span("render"), "render".into(), m))?;
 
         let cam = &file.camera;
-        let cam_err = |field: &str, m: String| invalid(table_span("camera"), format!("camera.{field}"), m);
+        let cam_err =
+            |field: &str, m: String| invalid(table_span("camera"), format!("camera.{field}"), m);
         if !cam.up.is_finite() {
             return Err(cam_err("up", format!("must be finite, got {:?}", cam.up.0)));
         }
-        let still = CameraPose { position: cam.position, look_at: cam.look_at, fov_y: cam.fov_y };
-        let poses = std::iter::once((String::new(), still))
-            .chain(cam.keyframes.iter().enumerate().map(|(i, k)| (format!("keyframes[{i}]."), cam.pose_of(k))));
+        let still = CameraPose {
+            position: cam.position,
+            look_at: cam.look_at,
+            fov_y: cam.fov_y,
+        };
+        let poses = std::iter::once((String::new(), still)).chain(
+            cam.keyframes
+                .iter()
+                .enumerate()
+                .map(|(i, k)| (format!("keyframes[{i}]."), cam.pose_of(k))),
+        );
         for (prefix, pose) in poses {
             for (name, v) in [("position", &pose.position), ("look_at", &pose.look_at)] {
                 if !v.is_finite() {
-                    return Err(cam_err(&format!("{prefix}{name}"), format!("must be finite, got {:?}", v.0)));
+                    return Err(cam_err(
+                        &format!("{prefix}{name}"),
+                        format!("must be finite, got {:?}", v.0),
+                    ));
                 }
             }
             let forward = pose.look_at.sub(&pose.position);
             if forward.length() == 0.0 {
-                return Err(cam_err(&format!("{prefix}look_at"), "must differ from the camera position".into()));
+                return Err(cam_err(
+                    &format!("{prefix}look_at"),
+                    "must differ from the camera position".into(),
+                ));
             }
             if cam.up.cross(&forward).length() <= 1e-12 * cam.up.length() * forward.length() {
-                return Err(cam_err(&format!("{prefix}up"), "must not be zero or parallel to the view direction (look_at - position)".into()));
+                return Err(cam_err(
+                    &format!("{prefix}up"),
+                    "must not be zero or parallel to the view direction (look_at - position)"
+                        .into(),
+                ));
             }
             if !(pose.fov_y.0 > 0.0 && pose.fov_y.0 < 180.0) {
-                return Err(cam_err(&format!("{prefix}fov_y"), format!("must be in (0, 180) degrees, got {}", pose.fov_y.0)));
+                return Err(cam_err(
+                    &format!("{prefix}fov_y"),
+                    format!("must be in (0, 180) degrees, got {}", pose.fov_y.0),
+                ));
             }
         }
         for (i, w) in cam.keyframes.windows(2).enumerate() {
             if w[1].frame <= w[0].frame {
                 return Err(cam_err(
                     &format!("keyframes[{}].frame", i + 1),
-                    format!("keyframes must be in increasing frame order, got frame {} after frame {}", w[1].frame, w[0].frame),
+                    format!(
+                        "keyframes must be in increasing frame order, got frame {} after frame {}",
+                        w[1].frame, w[0].frame
+                    ),
                 ));
             }
         }
 
         let world_span = table_span("world");
-        check_colour(&file.world.ambient).map_err(|m| invalid(world_span.clone(), "world.ambient".into(), m))?;
-        check_colour(&file.world.background).map_err(|m| invalid(world_span, "world.background".into(), m))?;
+        check_colour(&file.world.ambient)
+            .map_err(|m| invalid(world_span.clone(), "world.ambient".into(), m))?;
+        check_colour(&file.world.background)
+            .map_err(|m| invalid(world_span, "world.background".into(), m))?;
 
         let mut materials = Vec::with_capacity(file.materials.len());
         for (name, m) in &file.materials {
             let field = |f: &str| format!("materials.{name}.{f}");
             let err = |f: &str, msg: String| invalid(m.span(), field(f), msg);
             let mv = m.get_ref();
-            for (f, c) in [("ambient", &mv.ambient), ("diffuse", &mv.diffuse), ("specular", &mv.specular)] {
+            for (f, c) in [
+                ("ambient", &mv.ambient),
+                ("diffuse", &mv.diffuse),
+                ("specular", &mv.specular),
+            ] {
                 check_colour(c).map_err(|msg| err(f, msg))?;
             }
-            for (f, v) in [("shininess", mv.shininess), ("reflectivity", mv.reflectivity), ("transparency", mv.transparency)] {
+            for (f, v) in [
+                ("shininess", mv.shininess),
+                ("reflectivity", mv.reflectivity),
+                ("transparency", mv.transparency),
+            ] {
                 if !(v.0.is_finite() && v.0 >= 0.0) {
                     return Err(err(f, format!("must be a finite number >= 0, got {}", v.0)));
                 }
             }
             if !(mv.ior.0.is_finite() && mv.ior.0 > 0.0) {
-                return Err(err("ior", format!("must be a finite number > 0, got {}", mv.ior.0)));
+                return Err(err(
+                    "ior",
+                    format!("must be a finite number > 0, got {}", mv.ior.0),
+                ));
             }
             materials.push((name.clone(), mv.clone()));
         }
@@ -423,7 +524,11 @@ impl SceneDesc {
         for (i, l) in file.lights.iter().enumerate() {
             let lv = l.get_ref();
             if !lv.position.is_finite() {
-                return Err(invalid(l.span(), format!("lights[{i}].position"), format!("must be finite, got {:?}", lv.position.0)));
+                return Err(invalid(
+                    l.span(),
+                    format!("lights[{i}].position"),
+                    format!("must be finite, got {:?}", lv.position.0),
+                ));
             }
             for (f, c) in [("diffuse", &lv.diffuse), ("specular", &lv.specular)] {
                 check_colour(c).map_err(|m| invalid(l.span(), format!("lights[{i}].{f}"), m))?;
@@ -435,7 +540,9 @@ impl SceneDesc {
         let mut object_materials = Vec::with_capacity(file.objects.len());
         for (i, o) in file.objects.iter().enumerate() {
             let ov = o.get_ref();
-            let err = |f: &str, m: String| invalid(o.span(), format!("objects[{i}] ({}).{f}", ov.kind()), m);
+            let err = |f: &str, m: String| {
+                invalid(o.span(), format!("objects[{i}] ({}).{f}", ov.kind()), m)
+            };
             let mut ov = ov.clone();
             match &mut ov {
                 ObjectDesc::Sphere { center, radius, .. } => {
@@ -443,16 +550,27 @@ impl SceneDesc {
                         return Err(err("center", format!("must be finite, got {:?}", center.0)));
                     }
                     if !(radius.0.is_finite() && radius.0 > 0.0) {
-                        return Err(err("radius", format!("must be a finite number > 0, got {}", radius.0)));
+                        return Err(err(
+                            "radius",
+                            format!("must be a finite number > 0, got {}", radius.0),
+                        ));
                     }
                 }
-                ObjectDesc::Plane { normal, distance, .. } => {
+                ObjectDesc::Plane {
+                    normal, distance, ..
+                } => {
                     let len = normal.length();
                     if !normal.is_finite() || !(len > 0.0) {
-                        return Err(err("normal", format!("must be a finite, non-zero vector, got {:?}", normal.0)));
+                        return Err(err(
+                            "normal",
+                            format!("must be a finite, non-zero vector, got {:?}", normal.0),
+                        ));
                     }
                     if !distance.0.is_finite() {
-                        return Err(err("distance", format!("must be finite, got {}", distance.0)));
+                        return Err(err(
+                            "distance",
+                            format!("must be finite, got {}", distance.0),
+                        ));
                     }
                     // Normalise: { p : p.n = d } is the same plane as { p : p.(n/|n|) = d/|n| }.
                     normal.0 = normal.0.map(|v| v / len);
@@ -475,14 +593,30 @@ impl SceneDesc {
                 let known: Vec<_> = materials.iter().map(|(n, _)| n.as_str()).collect();
                 return Err(err(
                     "material",
-                    format!("unknown material {name:?}; defined materials: {}", if known.is_empty() { "none".to_string() } else { known.join(", ") }),
+                    format!(
+                        "unknown material {name:?}; defined materials: {}",
+                        if known.is_empty() {
+                            "none".to_string()
+                        } else {
+                            known.join(", ")
+                        }
+                    ),
                 ));
             };
             object_materials.push(index as u32);
             objects.push(ov);
         }
 
-        Ok(SceneDesc { path, render, camera: file.camera, world: file.world, materials, lights, objects, object_materials })
+        Ok(SceneDesc {
+            path,
+            render,
+            camera: file.camera,
+            world: file.world,
+            materials,
+            lights,
+            objects,
+            object_materials,
+        })
     }
 }
 
@@ -553,17 +687,33 @@ material = "red"
     #[test]
     fn errors_name_file_line_and_field() {
         let e = err(&MINIMAL.replace("radius = 1", "radius = -1"));
-        assert!(e.starts_with("bad.toml:12:1: objects[0] (sphere).radius: must be a finite number > 0, got -1"), "{e}");
+        assert!(
+            e.starts_with(
+                "bad.toml:12:1: objects[0] (sphere).radius: must be a finite number > 0, got -1"
+            ),
+            "{e}"
+        );
         let e = err(&MINIMAL.replace("material = \"red\"", "material = \"blue\""));
-        assert!(e.contains("objects[0] (sphere).material: unknown material \"blue\"; defined materials: red"), "{e}");
+        assert!(
+            e.contains(
+                "objects[0] (sphere).material: unknown material \"blue\"; defined materials: red"
+            ),
+            "{e}"
+        );
         let e = err(&MINIMAL.replace("radius = 1", "radius = 1\ncolour = 3"));
-        assert!(e.starts_with("bad.toml:") && e.contains("unknown field `colour`"), "{e}");
+        assert!(
+            e.starts_with("bad.toml:") && e.contains("unknown field `colour`"),
+            "{e}"
+        );
         let e = err(&MINIMAL.replace("radius = 1", "radius = \"big\""));
         assert!(e.contains("bad.toml:") && e.contains("a number"), "{e}");
         let e = err(&MINIMAL.replace("[camera]", "[camera"));
         assert!(e.starts_with("bad.toml:2:"), "{e}");
         let e = err(&MINIMAL.replace("radius = 1", "radius = nan"));
-        assert!(e.contains("radius: must be a finite number > 0, got NaN"), "{e}");
+        assert!(
+            e.contains("radius: must be a finite number > 0, got NaN"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -588,9 +738,15 @@ material = "red"
         assert_eq!(still.camera.at(7).position, still.camera.position);
         // Out-of-order keyframes and degenerate poses are refused by name.
         let e = err(&src.replace("frame = 5", "frame = 1"));
-        assert!(e.contains("camera.keyframes[1].frame: keyframes must be in increasing frame order"), "{e}");
+        assert!(
+            e.contains("camera.keyframes[1].frame: keyframes must be in increasing frame order"),
+            "{e}"
+        );
         let e = err(&src.replace("position = [4, 3, -2]", "position = [0, 1, 0]"));
-        assert!(e.contains("camera.keyframes[1].look_at: must differ from the camera position"), "{e}");
+        assert!(
+            e.contains("camera.keyframes[1].look_at: must differ from the camera position"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -600,8 +756,18 @@ material = "red"
             "type = \"plane\"\nnormal = [0, 2, 0]\ndistance = 4",
         );
         let s = SceneDesc::parse(&src, "p.toml").unwrap();
-        assert_eq!(s.objects[0], ObjectDesc::Plane { normal: Vec3([0.0, 1.0, 0.0]), distance: Num(2.0), material: "red".into() });
+        assert_eq!(
+            s.objects[0],
+            ObjectDesc::Plane {
+                normal: Vec3([0.0, 1.0, 0.0]),
+                distance: Num(2.0),
+                material: "red".into()
+            }
+        );
         let e = err(&src.replace("[0, 2, 0]", "[0, 0, 0]"));
-        assert!(e.contains("objects[0] (plane).normal: must be a finite, non-zero vector"), "{e}");
+        assert!(
+            e.contains("objects[0] (plane).normal: must be a finite, non-zero vector"),
+            "{e}"
+        );
     }
 }

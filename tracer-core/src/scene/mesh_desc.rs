@@ -3,8 +3,8 @@
 use std::sync::Arc;
 
 use glam::{DMat3, DVec3};
-use serde::de::{self, Deserializer, SeqAccess, Visitor};
 use serde::Deserialize;
+use serde::de::{self, Deserializer, SeqAccess, Visitor};
 
 use super::desc::{Num, Vec3};
 use crate::mesh::Mesh;
@@ -129,22 +129,37 @@ impl MeshDesc {
             return Err(("path", "must name a model file".into()));
         }
         if !self.translate.0.iter().all(|v| v.is_finite()) {
-            return Err(("translate", format!("must be finite, got {:?}", self.translate.0)));
+            return Err((
+                "translate",
+                format!("must be finite, got {:?}", self.translate.0),
+            ));
         }
         if !self.scale.0.iter().all(|v| v.is_finite() && *v != 0.0) {
-            return Err(("scale", format!("must be finite and non-zero, got {:?}", self.scale.0)));
+            return Err((
+                "scale",
+                format!("must be finite and non-zero, got {:?}", self.scale.0),
+            ));
         }
         if let Some(r) = &self.rotate {
             let a = r.axis.0;
             let len = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
             if !(len.is_finite() && len > 0.0) {
-                return Err(("rotate", format!("axis must be a finite, non-zero vector, got {a:?}")));
+                return Err((
+                    "rotate",
+                    format!("axis must be a finite, non-zero vector, got {a:?}"),
+                ));
             }
             if !r.degrees.0.is_finite() {
-                return Err(("rotate", format!("degrees must be finite, got {}", r.degrees.0)));
+                return Err((
+                    "rotate",
+                    format!("degrees must be finite, got {}", r.degrees.0),
+                ));
             }
         }
-        if let Some(e) = self.rotate_euler.filter(|e| !e.0.iter().all(|v| v.is_finite())) {
+        if let Some(e) = self
+            .rotate_euler
+            .filter(|e| !e.0.iter().all(|v| v.is_finite()))
+        {
             return Err(("rotate_euler", format!("must be finite, got {:?}", e.0)));
         }
         Ok(())
@@ -155,12 +170,18 @@ impl MeshDesc {
         let mut linear = DMat3::from_diagonal(DVec3::from_array(self.scale.0));
         if let Some(e) = &self.rotate_euler {
             let [x, y, z] = e.0.map(f64::to_radians);
-            linear = DMat3::from_rotation_z(z) * DMat3::from_rotation_y(y) * DMat3::from_rotation_x(x) * linear;
+            linear = DMat3::from_rotation_z(z)
+                * DMat3::from_rotation_y(y)
+                * DMat3::from_rotation_x(x)
+                * linear;
         }
         if let Some(r) = &self.rotate {
             let axis = DVec3::from_array(r.axis.0).normalize();
             linear = DMat3::from_axis_angle(axis, r.degrees.0.to_radians()) * linear;
         }
-        Affine { linear, translation: DVec3::from_array(self.translate.0) }
+        Affine {
+            linear,
+            translation: DVec3::from_array(self.translate.0),
+        }
     }
 }

@@ -5,8 +5,8 @@ mod error;
 mod mesh_desc;
 
 pub use desc::{
-    Affine, CameraDesc, CameraKeyframe, CameraPose, LightDesc, MaterialDesc, MeshDesc, MeshModel, Num, ObjectDesc, Rotation, Scale,
-    FILE_MATERIALS, RenderSettings, SceneDesc, Vec3, WorldDesc, MAX_DEPTH,
-    MAX_IMAGE_SIDE, MAX_SAMPLES,
+    Affine, CameraDesc, CameraKeyframe, CameraPose, FILE_MATERIALS, LightDesc, MAX_DEPTH,
+    MAX_IMAGE_SIDE, MAX_SAMPLES, MaterialDesc, MeshDesc, MeshModel, Num, ObjectDesc,
+    RenderSettings, Rotation, Scale, SceneDesc, Vec3, WorldDesc,
 };
 pub use error::{Location, SceneError};

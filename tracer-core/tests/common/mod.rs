@@ -20,9 +20,18 @@ pub fn render_with(desc: &SceneDesc, settings: &RenderSettings, precision: Preci
     let frame = PreparedFrame::build(desc, settings, 0, precision).expect("settings are valid");
     let film = CpuRenderer::new(None)
         .unwrap()
-        .render(&frame, 0, Rect::full(settings.width, settings.height), SampleRange::all(settings.samples), &|_| {})
+        .render(
+            &frame,
+            0,
+            Rect::full(settings.width, settings.height),
+            SampleRange::all(settings.samples),
+            &|_| {},
+        )
         .unwrap();
-    assert_eq!(film.nonfinite, 0, "a NaN or infinite sample reached the film");
+    assert_eq!(
+        film.nonfinite, 0,
+        "a NaN or infinite sample reached the film"
+    );
     film
 }
 
@@ -41,7 +50,12 @@ pub struct Diff {
 
 pub fn diff(a: &[[f32; 3]], b: &[[f32; 3]], threshold: f32) -> Diff {
     assert_eq!(a.len(), b.len());
-    let mut d = Diff { max: 0.0, mean: 0.0, over: 0, pixels: a.len() };
+    let mut d = Diff {
+        max: 0.0,
+        mean: 0.0,
+        over: 0,
+        pixels: a.len(),
+    };
     for (p, q) in a.iter().zip(b) {
         let m = (0..3).map(|c| (p[c] - q[c]).abs()).fold(0.0f32, f32::max);
         d.max = d.max.max(m);
@@ -56,7 +70,10 @@ pub fn diff(a: &[[f32; 3]], b: &[[f32; 3]], threshold: f32) -> Diff {
 
 pub fn assert_finite(img: &[[f32; 3]]) {
     for (i, p) in img.iter().enumerate() {
-        assert!(p.iter().all(|c| c.is_finite()), "pixel {i} is not finite: {p:?}");
+        assert!(
+            p.iter().all(|c| c.is_finite()),
+            "pixel {i} is not finite: {p:?}"
+        );
     }
 }
 
@@ -134,8 +151,15 @@ material = "m"
 /// A water sphere nested in a glass sphere and two touching glass spheres
 /// (`examples/hard/nested-glass.toml`), at the hard-case tests' small size.
 pub fn nested_glass_scene() -> (SceneDesc, RenderSettings) {
-    let desc = SceneDesc::load(examples_dir().join("hard/nested-glass.toml")).expect("example scene loads");
-    let settings = RenderSettings { width: 96, height: 72, samples: 4, max_depth: 12, ..desc.render };
+    let desc = SceneDesc::load(examples_dir().join("hard/nested-glass.toml"))
+        .expect("example scene loads");
+    let settings = RenderSettings {
+        width: 96,
+        height: 72,
+        samples: 4,
+        max_depth: 12,
+        ..desc.render
+    };
     (desc, settings)
 }
 

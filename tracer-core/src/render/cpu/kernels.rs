@@ -29,7 +29,14 @@ impl RaySoa {
     /// overwritten before they are read).
     pub fn grow(&mut self, n: usize) {
         if self.ox.len() < n {
-            for v in [&mut self.ox, &mut self.oy, &mut self.oz, &mut self.dx, &mut self.dy, &mut self.dz] {
+            for v in [
+                &mut self.ox,
+                &mut self.oy,
+                &mut self.oz,
+                &mut self.dx,
+                &mut self.dy,
+                &mut self.dz,
+            ] {
                 v.resize(n, 0.0);
             }
             self.skip.resize(n, PrimId::NONE.0);
@@ -48,8 +55,16 @@ pub struct Prims {
 impl Prims {
     pub fn new(world: &World<f32>) -> Self {
         Prims {
-            spheres: world.spheres.iter().map(|s| [s.center.x, s.center.y, s.center.z, s.radius * s.radius]).collect(),
-            planes: world.planes.iter().map(|p| [p.normal.x, p.normal.y, p.normal.z, p.distance]).collect(),
+            spheres: world
+                .spheres
+                .iter()
+                .map(|s| [s.center.x, s.center.y, s.center.z, s.radius * s.radius])
+                .collect(),
+            planes: world
+                .planes
+                .iter()
+                .map(|p| [p.normal.x, p.normal.y, p.normal.z, p.distance])
+                .collect(),
         }
     }
 }
@@ -64,7 +79,15 @@ fn lanes<const W: usize>(v: &[f32], at: usize) -> [f32; W] {
 /// `SpherePack::intersect` for one sphere and lane `l`: hit distance, or
 /// +inf where there is none in (0, t_max).
 #[inline(always)]
-fn sphere_t<const W: usize>(s: [f32; 4], id: u32, o: &[[f32; W]; 3], d: &[[f32; W]; 3], skip: &[u32; W], t_max: f32, l: usize) -> f32 {
+fn sphere_t<const W: usize>(
+    s: [f32; 4],
+    id: u32,
+    o: &[[f32; W]; 3],
+    d: &[[f32; W]; 3],
+    skip: &[u32; W],
+    t_max: f32,
+    l: usize,
+) -> f32 {
     let r2 = s[3];
     let fx = o[0][l] - s[0];
     let fy = o[1][l] - s[1];
@@ -90,7 +113,15 @@ fn sphere_t<const W: usize>(s: [f32; 4], id: u32, o: &[[f32; W]; 3], d: &[[f32; 
 
 /// `Plane::intersect` for lane `l`: +inf where there is no hit in (0, t_max).
 #[inline(always)]
-fn plane_t<const W: usize>(p: [f32; 4], id: u32, o: &[[f32; W]; 3], d: &[[f32; W]; 3], skip: &[u32; W], t_max: f32, l: usize) -> f32 {
+fn plane_t<const W: usize>(
+    p: [f32; 4],
+    id: u32,
+    o: &[[f32; W]; 3],
+    d: &[[f32; W]; 3],
+    skip: &[u32; W],
+    t_max: f32,
+    l: usize,
+) -> f32 {
     let denom = p[0] * d[0][l] + p[1] * d[1][l] + p[2] * d[2][l];
     let t = (p[3] - (p[0] * o[0][l] + p[1] * o[1][l] + p[2] * o[2][l])) / denom;
     let valid = (skip[l] != id) & (t > 0.0) & (t < t_max);
@@ -99,8 +130,16 @@ fn plane_t<const W: usize>(p: [f32; 4], id: u32, o: &[[f32; W]; 3], d: &[[f32; W
 
 #[inline(always)]
 fn load<const W: usize>(rays: &RaySoa, at: usize) -> ([[f32; W]; 3], [[f32; W]; 3], [u32; W]) {
-    let o = [lanes(&rays.ox, at), lanes(&rays.oy, at), lanes(&rays.oz, at)];
-    let d = [lanes(&rays.dx, at), lanes(&rays.dy, at), lanes(&rays.dz, at)];
+    let o = [
+        lanes(&rays.ox, at),
+        lanes(&rays.oy, at),
+        lanes(&rays.oz, at),
+    ];
+    let d = [
+        lanes(&rays.dx, at),
+        lanes(&rays.dy, at),
+        lanes(&rays.dz, at),
+    ];
     let mut skip = [0; W];
     skip.copy_from_slice(&rays.skip[at..at + W]);
     (o, d, skip)
@@ -110,7 +149,13 @@ fn load<const W: usize>(rays: &RaySoa, at: usize) -> ([[f32; W]; 3], [[f32; W]; 
 /// with `World::closest_hit`'s tie-breaking: spheres in order, then planes,
 /// an earlier primitive kept on equal distance.
 #[inline(always)]
-pub fn closest_hits<const W: usize>(prims: &Prims, rays: &RaySoa, n: usize, t_out: &mut Vec<f32>, id_out: &mut Vec<u32>) {
+pub fn closest_hits<const W: usize>(
+    prims: &Prims,
+    rays: &RaySoa,
+    n: usize,
+    t_out: &mut Vec<f32>,
+    id_out: &mut Vec<u32>,
+) {
     debug_assert_eq!(n % W, 0);
     if t_out.len() < n {
         t_out.resize(n, 0.0);
@@ -149,7 +194,15 @@ pub fn closest_hits<const W: usize>(prims: &Prims, rays: &RaySoa, n: usize, t_ou
 /// group stops as soon as all its rays are blocked.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub fn occluded<const W: usize>(prims: &Prims, o: [&[f32]; 3], d: [&[f32]; 3], skip: &[u32], t_max: &[f32], active: &[bool], out: &mut [bool]) {
+pub fn occluded<const W: usize>(
+    prims: &Prims,
+    o: [&[f32]; 3],
+    d: [&[f32]; 3],
+    skip: &[u32],
+    t_max: &[f32],
+    active: &[bool],
+    out: &mut [bool],
+) {
     let n = t_max.len();
     debug_assert_eq!(n % W, 0);
     for at in (0..n).step_by(W) {
@@ -160,7 +213,9 @@ pub fn occluded<const W: usize>(prims: &Prims, o: [&[f32]; 3], d: [&[f32]; 3], s
         let tm: [f32; W] = lanes(t_max, at);
         // Lane masks as u32 (0 or 1): their AND-reduction is a few vector
         // instructions, where one over bools is a chain of scalar tests.
-        let act: &[bool; W] = active[at..at + W].try_into().expect("lane group inside the padded queue");
+        let act: &[bool; W] = active[at..at + W]
+            .try_into()
+            .expect("lane group inside the padded queue");
         let mut blocked = [0u32; W];
         for l in 0..W {
             blocked[l] = !act[l] as u32;
@@ -190,7 +245,9 @@ pub fn occluded<const W: usize>(prims: &Prims, o: [&[f32]; 3], d: [&[f32]; 3], s
                 }
             }
         }
-        let out: &mut [bool; W] = (&mut out[at..at + W]).try_into().expect("lane group inside the padded queue");
+        let out: &mut [bool; W] = (&mut out[at..at + W])
+            .try_into()
+            .expect("lane group inside the padded queue");
         for l in 0..W {
             out[l] = blocked[l] != 0;
         }

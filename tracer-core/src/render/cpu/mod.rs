@@ -36,7 +36,9 @@ impl CpuRenderer {
         if let Some(n) = threads {
             b = b.num_threads(n.max(1));
         }
-        Ok(CpuRenderer { pool: b.build().map_err(|e| RenderError::Threads(e.to_string()))? })
+        Ok(CpuRenderer {
+            pool: b.build().map_err(|e| RenderError::Threads(e.to_string()))?,
+        })
     }
 
     pub fn threads(&self) -> usize {
@@ -82,7 +84,8 @@ impl CpuRenderer {
         });
         let mut out = Film::new(rect);
         for f in &films {
-            out.merge(f).expect("tiles lie inside their rect and sums cannot overflow");
+            out.merge(f)
+                .expect("tiles lie inside their rect and sums cannot overflow");
         }
         out
     }
@@ -90,7 +93,12 @@ impl CpuRenderer {
 
 /// Renders one tile on the calling thread: the stream renderer where it
 /// applies (at the best SIMD level of this CPU), else [`render_tile_recursive`].
-pub fn render_tile<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+pub fn render_tile<R: Real>(
+    world: &World<R>,
+    frame: u32,
+    tile: Rect,
+    samples: SampleRange,
+) -> Film {
     if let Some(w) = (world as &dyn std::any::Any).downcast_ref::<World<f32>>() {
         if stream::supports(w) {
             return stream::render_tile(w, frame, tile, samples, crate::simd::level());
@@ -108,7 +116,12 @@ pub fn render_tile<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: S
 /// at a time, each colour adds its terms in `shade`'s order, and the film's
 /// fixed-point sums do not depend on the order samples arrive in, so the
 /// film is that of `shade` ray by ray.
-pub fn render_tile_recursive<R: Real>(world: &World<R>, frame: u32, tile: Rect, samples: SampleRange) -> Film {
+pub fn render_tile_recursive<R: Real>(
+    world: &World<R>,
+    frame: u32,
+    tile: Rect,
+    samples: SampleRange,
+) -> Film {
     const BLOCK: u32 = 4;
     let mut film = Film::new(tile);
     let mut rays = RayCounts::default();
@@ -177,7 +190,8 @@ pub fn render_tile_recursive<R: Real>(world: &World<R>, frame: u32, tile: Rect, 
                         }
                     }
                 }
-                for ((s, c), &(i, ..)) in surfaces.iter().zip(colours.iter_mut()).zip(&pixels[..n]) {
+                for ((s, c), &(i, ..)) in surfaces.iter().zip(colours.iter_mut()).zip(&pixels[..n])
+                {
                     if let Some(s) = s {
                         s.add_secondary(world, 0, &mut rays, c);
                     }

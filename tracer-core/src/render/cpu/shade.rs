@@ -52,27 +52,56 @@ impl Tables {
         let materials = world.materials.len().max(1);
         let zero = Vec3A::ZERO;
         let mut t = Tables {
-            ambient: world.materials.iter().map(|m| world.ambient * m.ambient).chain(none.then_some(zero)).collect(),
-            mat: (world.materials.iter().map(|m| [m.shininess, m.specular_cos_min, m.reflectivity, m.transparency, m.ior]))
-                .chain(none.then_some([0.0; 5]))
+            ambient: world
+                .materials
+                .iter()
+                .map(|m| world.ambient * m.ambient)
+                .chain(none.then_some(zero))
                 .collect(),
+            mat: (world.materials.iter().map(|m| {
+                [
+                    m.shininess,
+                    m.specular_cos_min,
+                    m.reflectivity,
+                    m.transparency,
+                    m.ior,
+                ]
+            }))
+            .chain(none.then_some([0.0; 5]))
+            .collect(),
             light_mat: world
                 .lights
                 .iter()
                 .flat_map(|l| {
-                    (world.materials.iter().map(move |m| [l.diffuse * m.diffuse, l.specular * m.specular])).chain(none.then_some([zero; 2]))
+                    (world
+                        .materials
+                        .iter()
+                        .map(move |m| [l.diffuse * m.diffuse, l.specular * m.specular]))
+                    .chain(none.then_some([zero; 2]))
                 })
                 .collect(),
             lights: world.lights.iter().map(|l| l.position.into()).collect(),
-            prim_geom: (world.spheres.iter().map(|s| [s.center.x, s.center.y, s.center.z, s.radius]))
-                .chain(world.planes.iter().map(|p| [p.normal.x, p.normal.y, p.normal.z, p.distance]))
-                .chain([[0.0, 1.0, 0.0, 0.0]])
+            prim_geom: (world
+                .spheres
+                .iter()
+                .map(|s| [s.center.x, s.center.y, s.center.z, s.radius]))
+            .chain(
+                world
+                    .planes
+                    .iter()
+                    .map(|p| [p.normal.x, p.normal.y, p.normal.z, p.distance]),
+            )
+            .chain([[0.0, 1.0, 0.0, 0.0]])
+            .collect(),
+            prim_mat: (world.spheres.iter().map(|s| s.material))
+                .chain(world.planes.iter().map(|p| p.material))
+                .chain([0])
                 .collect(),
-            prim_mat: (world.spheres.iter().map(|s| s.material)).chain(world.planes.iter().map(|p| p.material)).chain([0]).collect(),
             spheres: world.spheres.len(),
             materials,
             ent: Vec::new(),
-            ent_key: (0..world.spheres.len() as u32).map(|k| PrimId::new(PrimId::SPHERE, k).0)
+            ent_key: (0..world.spheres.len() as u32)
+                .map(|k| PrimId::new(PrimId::SPHERE, k).0)
                 .chain((0..world.planes.len() as u32).map(|k| PrimId::new(PrimId::PLANE, k).0))
                 .chain([PrimId::NONE.0])
                 .collect(),
@@ -83,15 +112,25 @@ impl Tables {
         t.ent = (t.prim_geom.iter().zip(&t.prim_mat).enumerate())
             .map(|(e, (g, &m))| {
                 let c = t.mat[m as usize];
-                let a = if e == last { world.background } else { t.ambient[m as usize] };
-                [g[0], g[1], g[2], g[3], c[0], c[1], c[2], c[3], c[4], a.x, a.y, a.z]
+                let a = if e == last {
+                    world.background
+                } else {
+                    t.ambient[m as usize]
+                };
+                [
+                    g[0], g[1], g[2], g[3], c[0], c[1], c[2], c[3], c[4], a.x, a.y, a.z,
+                ]
             })
             .collect();
         // Small tables are selected from with a fixed number of rows (see
         // `select`): padded with rows no hit selects (the stream renderer
         // never sees a triangle).
         let rows = t.ent.len();
-        t.select_rows = if select { [8, 16].into_iter().find(|&r| rows <= r).unwrap_or(0) } else { 0 };
+        t.select_rows = if select {
+            [8, 16].into_iter().find(|&r| rows <= r).unwrap_or(0)
+        } else {
+            0
+        };
         let stride = rows.max(t.select_rows);
         t.ent.resize(stride, [0.0; 12]);
         t.ent_key.resize(stride, PrimId::new(PrimId::TRIANGLE, 0).0);
@@ -157,9 +196,10 @@ fn sized<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
 
 #[inline(always)]
 fn arr<const W: usize, T>(v: &[T], at: usize) -> &[T; W] {
-    v[at..at + W].try_into().expect("lane group inside the padded queue")
+    v[at..at + W]
+        .try_into()
+        .expect("lane group inside the padded queue")
 }
-
 
 /// Each lane's entry in the tables, for [`gather`]'s scalar path only.
 #[inline(always)]
@@ -177,7 +217,12 @@ fn entries<const W: usize>(tab: &Tables, ids: &[u32; W]) -> [usize; W] {
 /// for each lane `l` whose primitive is `ids[l]`, as lane arrays: by
 /// [`select`] for small tables (every thesis scene), else lane by lane.
 #[inline(always)]
-fn gather<const W: usize, const K: usize>(tab: &Tables, table: &[[f32; K]], ids: &[u32; W], ents: &[usize; W]) -> [[f32; W]; K] {
+fn gather<const W: usize, const K: usize>(
+    tab: &Tables,
+    table: &[[f32; K]],
+    ids: &[u32; W],
+    ents: &[usize; W],
+) -> [[f32; W]; K] {
     match tab.select_rows {
         8 => select::<W, K, 8>(table, &tab.ent_key, ids),
         16 => select::<W, K, 16>(table, &tab.ent_key, ids),
@@ -202,9 +247,17 @@ fn gather<const W: usize, const K: usize>(tab: &Tables, table: &[[f32; K]], ids:
 /// vectors, and an accumulation over a run-time number of rows goes
 /// through masked stores: both stall on store forwarding.
 #[inline(always)]
-fn select<const W: usize, const K: usize, const N: usize>(table: &[[f32; K]], keys: &[u32], ids: &[u32; W]) -> [[f32; W]; K] {
-    let table: &[[f32; K]; N] = table[..N].try_into().expect("tables padded to the selected rows");
-    let keys: &[u32; N] = keys[..N].try_into().expect("tables padded to the selected rows");
+fn select<const W: usize, const K: usize, const N: usize>(
+    table: &[[f32; K]],
+    keys: &[u32],
+    ids: &[u32; W],
+) -> [[f32; W]; K] {
+    let table: &[[f32; K]; N] = table[..N]
+        .try_into()
+        .expect("tables padded to the selected rows");
+    let keys: &[u32; N] = keys[..N]
+        .try_into()
+        .expect("tables padded to the selected rows");
     let mut masks = [[0u32; W]; N];
     for e in 0..N {
         for l in 0..W {
@@ -253,12 +306,24 @@ pub fn shade_lanes<const W: usize>(
     let n = t.len();
     let nl = tab.lights.len();
     sized(&mut s.transparency, n);
-    for v in s.local.iter_mut().chain(s.above.iter_mut()).chain(s.below.iter_mut()).chain(s.refract_dir.iter_mut()).chain(s.reflect_dir.iter_mut()) {
+    for v in s
+        .local
+        .iter_mut()
+        .chain(s.above.iter_mut())
+        .chain(s.below.iter_mut())
+        .chain(s.refract_dir.iter_mut())
+        .chain(s.reflect_dir.iter_mut())
+    {
         sized(v, n);
     }
     sized(&mut s.refract_on, n);
     sized(&mut s.reflect_w, n);
-    for v in [&mut s.light_t_max].into_iter().chain(s.light_origin.iter_mut()).chain(s.light_dir.iter_mut()).chain(s.light_contrib.iter_mut()) {
+    for v in [&mut s.light_t_max]
+        .into_iter()
+        .chain(s.light_origin.iter_mut())
+        .chain(s.light_dir.iter_mut())
+        .chain(s.light_contrib.iter_mut())
+    {
         sized(v, n * nl);
     }
     sized(&mut s.light_on, n * nl);
@@ -267,8 +332,16 @@ pub fn shade_lanes<const W: usize>(
     let shorten = 1.0 - <f32 as Real>::SHADOW_SHORTEN;
 
     for at in (0..n).step_by(W) {
-        let (ox, oy, oz) = (arr::<W, _>(o[0], at), arr::<W, _>(o[1], at), arr::<W, _>(o[2], at));
-        let (dx, dy, dz) = (arr::<W, _>(d[0], at), arr::<W, _>(d[1], at), arr::<W, _>(d[2], at));
+        let (ox, oy, oz) = (
+            arr::<W, _>(o[0], at),
+            arr::<W, _>(o[1], at),
+            arr::<W, _>(o[2], at),
+        );
+        let (dx, dy, dz) = (
+            arr::<W, _>(d[0], at),
+            arr::<W, _>(d[1], at),
+            arr::<W, _>(d[2], at),
+        );
         let tt = arr::<W, _>(t, at);
         // Primitive and material constants of each lane's hit.
         let ids = arr::<W, _>(id, at);
@@ -295,20 +368,32 @@ pub fn shade_lanes<const W: usize>(
         let mut cos_i = [0.0f32; W];
         for l in 0..W {
             // ray.at(t), then World::surface.
-            let hp = [ox[l] + dx[l] * tt[l], oy[l] + dy[l] * tt[l], oz[l] + dz[l] * tt[l]];
+            let hp = [
+                ox[l] + dx[l] * tt[l],
+                oy[l] + dy[l] * tt[l],
+                oz[l] + dz[l] * tt[l],
+            ];
             let c = [g[0][l], g[1][l], g[2][l]];
             // Sphere: normal (p - c) / |p - c|, point snapped to c + n r.
             let dd = [hp[0] - c[0], hp[1] - c[1], hp[2] - c[2]];
             let inv = 1.0 / dot(dd, dd).sqrt();
             let ns = [dd[0] * inv, dd[1] * inv, dd[2] * inv];
-            let ps = [c[0] + ns[0] * g[3][l], c[1] + ns[1] * g[3][l], c[2] + ns[2] * g[3][l]];
+            let ps = [
+                c[0] + ns[0] * g[3][l],
+                c[1] + ns[1] * g[3][l],
+                c[2] + ns[2] * g[3][l],
+            ];
             // Plane: normal as given, point projected onto it.
             let off = dot(c, hp) - g[3][l];
             let pp = [hp[0] - c[0] * off, hp[1] - c[1] * off, hp[2] - c[2] * off];
             let (pt, n_out) = if sphere[l] { (ps, ns) } else { (pp, c) };
             let vv = [-dx[l], -dy[l], -dz[l]];
             let ent = dot(n_out, vv) >= 0.0;
-            let nf = if ent { n_out } else { [-n_out[0], -n_out[1], -n_out[2]] };
+            let nf = if ent {
+                n_out
+            } else {
+                [-n_out[0], -n_out[1], -n_out[2]]
+            };
             for k in 0..3 {
                 p[k][l] = pt[k];
                 nn[k][l] = nf[k];
@@ -335,7 +420,12 @@ pub fn shade_lanes<const W: usize>(
         for (li, lp) in tab.lights.iter().enumerate() {
             let base = li * n + at;
             let entries = tab.ent.len();
-            let lc = gather::<W, 6>(tab, &tab.ent_light[li * entries..(li + 1) * entries], ids, &ents);
+            let lc = gather::<W, 6>(
+                tab,
+                &tab.ent_light[li * entries..(li + 1) * entries],
+                ids,
+                &ents,
+            );
             // Results in lane arrays, stored after the loop: indexing the
             // queues inside it would stop LLVM from vectorising it.
             let mut on = [false; W];
@@ -359,7 +449,11 @@ pub fn shade_lanes<const W: usize>(
                 ndotl[l] = max0(dot(ns, ld));
                 let h = [ld[0] + vv[0], ld[1] + vv[1], ld[2] + vv[2]];
                 let h_len = dot(h, h).sqrt();
-                ndoth[l] = if h_len > 0.0 { max0(dot(ns, h) / h_len) } else { 0.0 };
+                ndoth[l] = if h_len > 0.0 {
+                    max0(dot(ns, h) / h_len)
+                } else {
+                    0.0
+                };
                 want_spec[l] = (hit[l] & (ndoth[l] > mc[1][l])) as u32;
                 on[l] = hit[l] & (dist > 0.0);
                 // Leave on the light's side of the surface.
@@ -423,13 +517,25 @@ pub fn shade_lanes<const W: usize>(
             let tir = transparent & (k < 0.0);
             refract[l] = hit[l] & transparent & (k >= 0.0);
             let a = eta * ci - max0(k).sqrt();
-            let r = [-vv[0] * eta + ns[0] * a, -vv[1] * eta + ns[1] * a, -vv[2] * eta + ns[2] * a];
+            let r = [
+                -vv[0] * eta + ns[0] * a,
+                -vv[1] * eta + ns[1] * a,
+                -vv[2] * eta + ns[2] * a,
+            ];
             let inv = 1.0 / dot(r, r).sqrt();
-            let w = if tir { reflectivity + transparency } else { reflectivity };
+            let w = if tir {
+                reflectivity + transparency
+            } else {
+                reflectivity
+            };
             reflect_w[l] = if hit[l] { w } else { 0.0 };
             // R = 2(V.N)N - V
             let two_c = 2.0 * ci;
-            let rr = [ns[0] * two_c - vv[0], ns[1] * two_c - vv[1], ns[2] * two_c - vv[2]];
+            let rr = [
+                ns[0] * two_c - vv[0],
+                ns[1] * two_c - vv[1],
+                ns[2] * two_c - vv[2],
+            ];
             let inv2 = 1.0 / dot(rr, rr).sqrt();
             for c in 0..3 {
                 refract_dir[c][l] = r[c] * inv;

@@ -20,9 +20,8 @@
 //! SIMD levels cannot change a sample (tests/cpu_stream.rs checks all of
 //! this).
 
-
 use super::kernels::{self, Prims, RaySoa};
-use super::shade::{shade_lanes, Shaded, Tables};
+use super::shade::{Shaded, Tables, shade_lanes};
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 use crate::geometry::PrimId;
 use crate::sampling::{pixel_seed, same_in_every_pixel, sample_offset};
@@ -43,7 +42,13 @@ pub fn supports(world: &World<f32>) -> bool {
 /// Renders one tile with the stream renderer at SIMD level `level`, which
 /// must be available on this CPU ([`SimdLevel::is_available`]; others fall
 /// back to the baseline).
-pub fn render_tile(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange, level: SimdLevel) -> Film {
+pub fn render_tile(
+    world: &World<f32>,
+    frame: u32,
+    tile: Rect,
+    samples: SampleRange,
+    level: SimdLevel,
+) -> Film {
     debug_assert!(supports(world));
     #[cfg(target_arch = "x86_64")]
     {
@@ -136,7 +141,11 @@ impl Generation {
 #[inline(always)]
 fn primary_rays(cam: &Camera<f32>, sx: &[f32], sy: &[f32], g: &mut Generation) {
     let n = sx.len();
-    let (f, r, u) = (<[f32; 3]>::from(cam.forward), <[f32; 3]>::from(cam.right), <[f32; 3]>::from(cam.up));
+    let (f, r, u) = (
+        <[f32; 3]>::from(cam.forward),
+        <[f32; 3]>::from(cam.right),
+        <[f32; 3]>::from(cam.up),
+    );
     let rays = &mut g.rays;
     let (ox, oy, oz) = (&mut rays.ox[..n], &mut rays.oy[..n], &mut rays.oz[..n]);
     let (dx, dy, dz) = (&mut rays.dx[..n], &mut rays.dy[..n], &mut rays.dz[..n]);
@@ -155,7 +164,13 @@ fn primary_rays(cam: &Camera<f32>, sx: &[f32], sy: &[f32], g: &mut Generation) {
 }
 
 #[inline(always)]
-fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect, samples: SampleRange, select: bool) -> Film {
+fn render_tile_lanes<const W: usize>(
+    world: &World<f32>,
+    frame: u32,
+    tile: Rect,
+    samples: SampleRange,
+    select: bool,
+) -> Film {
     let mut film = Film::new(tile);
     let mut rays = RayCounts::default();
     let prims = Prims::new(world);
@@ -163,7 +178,17 @@ fn render_tile_lanes<const W: usize>(world: &World<f32>, frame: u32, tile: Rect,
     // Taken out and put back rather than borrowed in a closure: a closure
     // would not inherit the caller's `target_feature`s.
     let mut scratch = SCRATCH.take();
-    trace_tile::<W>(world, frame, tile, samples, &prims, &tab, &mut scratch, &mut film, &mut rays);
+    trace_tile::<W>(
+        world,
+        frame,
+        tile,
+        samples,
+        &prims,
+        &tab,
+        &mut scratch,
+        &mut film,
+        &mut rays,
+    );
     SCRATCH.set(scratch);
     film.rays = rays;
     film
@@ -210,7 +235,15 @@ fn trace_tile<const W: usize>(
     film: &mut Film,
     rays: &mut RayCounts,
 ) {
-    let Scratch { gens, sh, blocked, batch, raster_x, raster_y, offsets } = scratch;
+    let Scratch {
+        gens,
+        sh,
+        blocked,
+        batch,
+        raster_x,
+        raster_y,
+        offsets,
+    } = scratch;
     let s = &world.settings;
     let nl = world.lights.len();
     if gens.is_empty() {
@@ -223,7 +256,9 @@ fn trace_tile<const W: usize>(
     let shared = same_in_every_pixel(s.sampler, s.samples);
     offsets.clear();
     if shared {
-        offsets.extend((samples.start..samples.end).map(|k| sample_offset(s.sampler, s.samples, 0, k)));
+        offsets.extend(
+            (samples.start..samples.end).map(|k| sample_offset(s.sampler, s.samples, 0, k)),
+        );
     }
     let (x_end, y_end) = (tile.x + tile.width, tile.y + tile.height);
     let (mut pixel, mut x, mut y, mut k) = (0, tile.x, tile.y, samples.start);
@@ -234,7 +269,11 @@ fn trace_tile<const W: usize>(
     while y < y_end {
         let mut n = 0;
         while n < BATCH && y < y_end {
-            let (u, v) = if shared { offsets[(k - samples.start) as usize] } else { sample_offset(s.sampler, s.samples, seed, k) };
+            let (u, v) = if shared {
+                offsets[(k - samples.start) as usize]
+            } else {
+                sample_offset(s.sampler, s.samples, seed, k)
+            };
             // As `render_tile`: R::from_u32(x) + R::from_f64(u as f64).
             raster_x[n] = x as f32 + u;
             raster_y[n] = y as f32 + v;
@@ -272,7 +311,16 @@ fn trace_tile<const W: usize>(
             kernels::closest_hits::<W>(prims, &cur.rays, np, &mut cur.t, &mut cur.id);
             let o = [&cur.rays.ox[..np], &cur.rays.oy[..np], &cur.rays.oz[..np]];
             let d = [&cur.rays.dx[..np], &cur.rays.dy[..np], &cur.rays.dz[..np]];
-            shade_lanes::<W>(world, tab, o, d, &cur.t[..np], &cur.id[..np], depth as u32, sh);
+            shade_lanes::<W>(
+                world,
+                tab,
+                o,
+                d,
+                &cur.t[..np],
+                &cur.id[..np],
+                depth as u32,
+                sh,
+            );
             // The local colours become this generation's (the buffers swap:
             // shading overwrites them next time).
             for (cc, sc) in cur.colour.iter_mut().zip(&mut sh.local) {
@@ -284,13 +332,33 @@ fn trace_tile<const W: usize>(
             grow(blocked, np);
             for li in 0..nl {
                 let r = li * np..(li + 1) * np;
-                let o = [&sh.light_origin[0][r.clone()], &sh.light_origin[1][r.clone()], &sh.light_origin[2][r.clone()]];
-                let d = [&sh.light_dir[0][r.clone()], &sh.light_dir[1][r.clone()], &sh.light_dir[2][r.clone()]];
+                let o = [
+                    &sh.light_origin[0][r.clone()],
+                    &sh.light_origin[1][r.clone()],
+                    &sh.light_origin[2][r.clone()],
+                ];
+                let d = [
+                    &sh.light_dir[0][r.clone()],
+                    &sh.light_dir[1][r.clone()],
+                    &sh.light_dir[2][r.clone()],
+                ];
                 let on = &sh.light_on[r.clone()];
-                kernels::occluded::<W>(prims, o, d, &cur.id, &sh.light_t_max[r.clone()], on, blocked);
+                kernels::occluded::<W>(
+                    prims,
+                    o,
+                    d,
+                    &cur.id,
+                    &sh.light_t_max[r.clone()],
+                    on,
+                    blocked,
+                );
                 rays.shadow += on[..n].iter().map(|&b| b as u64).sum::<u64>();
                 let base = li * np;
-                let add = [&sh.light_contrib[0][base..base + n], &sh.light_contrib[1][base..base + n], &sh.light_contrib[2][base..base + n]];
+                let add = [
+                    &sh.light_contrib[0][base..base + n],
+                    &sh.light_contrib[1][base..base + n],
+                    &sh.light_contrib[2][base..base + n],
+                ];
                 let [cx, cy, cz] = &mut cur.colour;
                 let (cx, cy, cz) = (&mut cx[..n], &mut cy[..n], &mut cz[..n]);
                 let (on, bl) = (&on[..n], &blocked[..n]);
@@ -313,10 +381,25 @@ fn trace_tile<const W: usize>(
                 let cap = 2 * n;
                 let (nox, noy, noz) = (&mut r.ox[..cap], &mut r.oy[..cap], &mut r.oz[..cap]);
                 let (ndx, ndy, ndz) = (&mut r.dx[..cap], &mut r.dy[..cap], &mut r.dz[..cap]);
-                let (nskip, nparent, nweight) = (&mut r.skip[..cap], &mut next.parent[..cap], &mut next.weight[..cap]);
-                let (ids, refract_on, transparency, reflect_w) = (&cur.id[..n], &sh.refract_on[..n], &sh.transparency[..n], &sh.reflect_w[..n]);
-                let (below, rd) = (sh.below.each_ref().map(|v| &v[..n]), sh.refract_dir.each_ref().map(|v| &v[..n]));
-                let (above, fd) = (sh.above.each_ref().map(|v| &v[..n]), sh.reflect_dir.each_ref().map(|v| &v[..n]));
+                let (nskip, nparent, nweight) = (
+                    &mut r.skip[..cap],
+                    &mut next.parent[..cap],
+                    &mut next.weight[..cap],
+                );
+                let (ids, refract_on, transparency, reflect_w) = (
+                    &cur.id[..n],
+                    &sh.refract_on[..n],
+                    &sh.transparency[..n],
+                    &sh.reflect_w[..n],
+                );
+                let (below, rd) = (
+                    sh.below.each_ref().map(|v| &v[..n]),
+                    sh.refract_dir.each_ref().map(|v| &v[..n]),
+                );
+                let (above, fd) = (
+                    sh.above.each_ref().map(|v| &v[..n]),
+                    sh.reflect_dir.each_ref().map(|v| &v[..n]),
+                );
                 for i in 0..n {
                     if refract_on[i] {
                         (nox[k], noy[k], noz[k]) = (below[0][i], below[1][i], below[2][i]);
@@ -346,7 +429,11 @@ fn trace_tile<const W: usize>(
             let m = children.n;
             let (w, p) = (&children.weight[..m], &children.parent[..m]);
             let [px, py, pz] = &mut parents.colour;
-            let (px, py, pz) = (&mut px[..parents.n], &mut py[..parents.n], &mut pz[..parents.n]);
+            let (px, py, pz) = (
+                &mut px[..parents.n],
+                &mut py[..parents.n],
+                &mut pz[..parents.n],
+            );
             let [cx, cy, cz] = &children.colour;
             let (cx, cy, cz) = (&cx[..m], &cy[..m], &cz[..m]);
             // One pass over the children for all three components, over

@@ -189,7 +189,12 @@ impl TreeData {
         let stack = check_tree(&tree.nodes, &tree.prims, w.spheres.len(), w.triangles.len())?;
         let triangle = |t: &Triangle<f32>| {
             let [v0, v1, v2] = t.vertices().map(a3);
-            GpuTriangle { v0, v1, v2, ..Default::default() }
+            GpuTriangle {
+                v0,
+                v1,
+                v2,
+                ..Default::default()
+            }
         };
         let shading = |s: &TriangleShading<f32>| {
             let ns = s.vertex_normals.map(|n| n.map(a3)).unwrap_or([[0.0; 3]; 3]);
@@ -218,14 +223,22 @@ impl TreeData {
 /// leaves referring to existing spheres or triangles, and at most `STACK`
 /// entries on the traversal stack along any path (a node pushes all but one
 /// of its used slots). Returns the most entries any path needs.
-fn check_tree(nodes: &[BvhNode4], prims: &[PrimId], spheres: usize, triangles: usize) -> Result<u32, GpuError> {
+fn check_tree(
+    nodes: &[BvhNode4],
+    prims: &[PrimId],
+    spheres: usize,
+    triangles: usize,
+) -> Result<u32, GpuError> {
     let bad = |why: String| Err(GpuError::BadTree(why));
     if nodes.is_empty() {
         return bad("the tree has no nodes".into());
     }
     // The kernel's stack refers to a leaf as node << 2 | slot in 31 bits.
     if nodes.len() >= 1 << 29 {
-        return bad(format!("the tree has {} nodes, more than the kernel can refer to", nodes.len()));
+        return bad(format!(
+            "the tree has {} nodes, more than the kernel can refer to",
+            nodes.len()
+        ));
     }
     let mut stack = vec![(0usize, 0usize, 0usize)];
     let mut most = 0;
@@ -242,20 +255,30 @@ fn check_tree(nodes: &[BvhNode4], prims: &[PrimId], spheres: usize, triangles: u
         }
         let need = need + used - 1;
         if need > STACK {
-            return Err(GpuError::TreeTooDeep { depth, stack: STACK });
+            return Err(GpuError::TreeTooDeep {
+                depth,
+                stack: STACK,
+            });
         }
         most = most.max(need);
         for k in (0..4).filter(|&k| !n.is_empty(k)) {
             let first = n.child[k] as usize;
             if n.count[k] == 0 {
                 if first >= nodes.len() {
-                    return bad(format!("node {i} has a child at {first}, outside the {} nodes", nodes.len()));
+                    return bad(format!(
+                        "node {i} has a child at {first}, outside the {} nodes",
+                        nodes.len()
+                    ));
                 }
                 stack.push((first, depth + 1, need));
                 continue;
             }
             let Some(leaf) = prims.get(first..first + n.count[k] as usize) else {
-                return bad(format!("node {i} has a leaf of primitives {first}..{} of {}", first + n.count[k] as usize, prims.len()));
+                return bad(format!(
+                    "node {i} has a leaf of primitives {first}..{} of {}",
+                    first + n.count[k] as usize,
+                    prims.len()
+                ));
             };
             for p in leaf {
                 let ok = match p.kind() {
@@ -264,7 +287,9 @@ fn check_tree(nodes: &[BvhNode4], prims: &[PrimId], spheres: usize, triangles: u
                     _ => false,
                 };
                 if !ok {
-                    return bad(format!("node {i} has a leaf that refers to {p:?}, which is not a sphere or triangle of the scene"));
+                    return bad(format!(
+                        "node {i} has a leaf that refers to {p:?}, which is not a sphere or triangle of the scene"
+                    ));
                 }
             }
         }
@@ -303,7 +328,8 @@ pub struct SharedTree {
 
 impl PartialEq for SharedTree {
     fn eq(&self, other: &Self) -> bool {
-        std::sync::Arc::ptr_eq(&self.data, &other.data) || (self.id == other.id && self.data == other.data)
+        std::sync::Arc::ptr_eq(&self.data, &other.data)
+            || (self.id == other.id && self.data == other.data)
     }
 }
 
@@ -340,8 +366,18 @@ impl SceneData {
                 crate::sampling::Sampler::Jittered => 1,
             },
         };
-        let sphere = |s: &Sphere<f32>| GpuSphere { center: a3(s.center), radius: s.radius, material: s.material, _pad: [0; 3] };
-        let plane = |p: &Plane<f32>| GpuPlane { normal: a3(p.normal), distance: p.distance, material: p.material, _pad: [0; 3] };
+        let sphere = |s: &Sphere<f32>| GpuSphere {
+            center: a3(s.center),
+            radius: s.radius,
+            material: s.material,
+            _pad: [0; 3],
+        };
+        let plane = |p: &Plane<f32>| GpuPlane {
+            normal: a3(p.normal),
+            distance: p.distance,
+            material: p.material,
+            _pad: [0; 3],
+        };
         let material = |m: &Material<f32>| GpuMaterial {
             ambient: a3(m.ambient),
             shininess: m.shininess,
@@ -362,16 +398,27 @@ impl SceneData {
         let tree = match w.accel.as_ref().filter(|t| !t.nodes.is_empty()) {
             None => None,
             Some(t) => match packed {
-                Some(p) if t.id != 0 && p.id == t.id && p.data.n_triangles as usize == w.triangles.len() && p.data.prims.len() == t.prims.len() => {
+                Some(p)
+                    if t.id != 0
+                        && p.id == t.id
+                        && p.data.n_triangles as usize == w.triangles.len()
+                        && p.data.prims.len() == t.prims.len() =>
+                {
                     Some(p.clone())
                 }
-                _ => Some(SharedTree { id: t.id, data: std::sync::Arc::new(TreeData::from_tree(w, t)?) }),
+                _ => Some(SharedTree {
+                    id: t.id,
+                    data: std::sync::Arc::new(TreeData::from_tree(w, t)?),
+                }),
             },
         };
         if tree.is_none() && !w.triangles.is_empty() {
             // Worlds always get a tree with their triangles (accel.rs); the
             // kernel has no loop over triangles.
-            return Err(GpuError::BadTree(format!("the scene has {} triangles but no BVH over them", w.triangles.len())));
+            return Err(GpuError::BadTree(format!(
+                "the scene has {} triangles but no BVH over them",
+                w.triangles.len()
+            )));
         }
         Ok(SceneData {
             frame,
@@ -394,6 +441,10 @@ impl SceneData {
     /// both a refracted and a reflected child pushes, at most one entry per
     /// generation.
     pub fn stack_capacity(&self) -> u32 {
-        if self.has_refraction { self.max_depth.max(1) } else { 1 }
+        if self.has_refraction {
+            self.max_depth.max(1)
+        } else {
+            1
+        }
     }
 }

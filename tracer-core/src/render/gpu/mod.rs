@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 
 use wgpu::util::DeviceExt as _;
 
-use self::layout::{DispatchParams, SceneData, COUNTERS, SUM_WORDS};
+use self::layout::{COUNTERS, DispatchParams, SUM_WORDS, SceneData};
 use super::{PreparedFrame, RenderError};
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 
@@ -46,7 +46,9 @@ const SUBMISSION_TIMEOUT: Duration = Duration::from_secs(120);
 
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
-    #[error("no GPU adapter found (wgpu saw no Vulkan/Metal/DX12 device; on Linux install mesa-vulkan-drivers for lavapipe)")]
+    #[error(
+        "no GPU adapter found (wgpu saw no Vulkan/Metal/DX12 device; on Linux install mesa-vulkan-drivers for lavapipe)"
+    )]
     NoAdapter,
     #[error("no GPU adapter matches {wanted:?}; available: {available}")]
     AdapterNotFound { wanted: String, available: String },
@@ -54,15 +56,26 @@ pub enum GpuError {
     RequestDevice { adapter: String, message: String },
     #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
     F64Unsupported,
-    #[error("the scene's BVH has a node at depth {depth} whose traversal needs more than the GPU traversal stack of {stack} entries; render it with --backend cpu")]
+    #[error(
+        "the scene's BVH has a node at depth {depth} whose traversal needs more than the GPU traversal stack of {stack} entries; render it with --backend cpu"
+    )]
     TreeTooDeep { depth: usize, stack: usize },
     #[error("the scene's BVH cannot be traversed on the GPU: {0}")]
     BadTree(String),
     #[error(transparent)]
     Request(#[from] RenderError),
-    #[error("{what} needs {needed} bytes but the GPU allows at most {limit} ({limit_name}); render a smaller rectangle")]
-    TooLarge { what: &'static str, needed: u64, limit: u64, limit_name: &'static str },
-    #[error("invalid workgroup shape {x}x{y}: need 1..={max} invocations and each side within the adapter's limits")]
+    #[error(
+        "{what} needs {needed} bytes but the GPU allows at most {limit} ({limit_name}); render a smaller rectangle"
+    )]
+    TooLarge {
+        what: &'static str,
+        needed: u64,
+        limit: u64,
+        limit_name: &'static str,
+    },
+    #[error(
+        "invalid workgroup shape {x}x{y}: need 1..={max} invocations and each side within the adapter's limits"
+    )]
     Workgroup { x: u32, y: u32, max: u32 },
     #[error("GPU out of memory: {0}")]
     OutOfMemory(String),
@@ -70,7 +83,9 @@ pub enum GpuError {
     DeviceLost(String),
     #[error("GPU error: {0}")]
     Device(String),
-    #[error("GPU did not finish a submission within {0:?} (hung or far too much work per submission)")]
+    #[error(
+        "GPU did not finish a submission within {0:?} (hung or far too much work per submission)"
+    )]
     Timeout(Duration),
     #[error("cannot read GPU results back: {0}")]
     Readback(String),
@@ -89,7 +104,11 @@ pub struct AdapterSummary {
 
 impl std::fmt::Display for AdapterSummary {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}: {} ({}, {}, driver {} {})", self.index, self.name, self.device_type, self.backend, self.driver, self.driver_info)
+        write!(
+            f,
+            "{}: {} ({}, {}, driver {} {})",
+            self.index, self.name, self.device_type, self.backend, self.driver, self.driver_info
+        )
     }
 }
 
@@ -121,7 +140,11 @@ fn summary(index: usize, a: &wgpu::Adapter) -> AdapterSummary {
 /// Every adapter wgpu can use on this machine, in a stable order (the
 /// indices `--adapter N` takes).
 pub fn list_adapters() -> Vec<AdapterSummary> {
-    adapters(&instance()).iter().enumerate().map(|(i, a)| summary(i, a)).collect()
+    adapters(&instance())
+        .iter()
+        .enumerate()
+        .map(|(i, a)| summary(i, a))
+        .collect()
 }
 
 fn type_rank(t: wgpu::DeviceType) -> u32 {
@@ -163,7 +186,12 @@ pub struct GpuOptions {
 
 impl Default for GpuOptions {
     fn default() -> Self {
-        GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1 << 24, submit_pixel_samples: 1 << 24, strategy: Strategy::Stack }
+        GpuOptions {
+            workgroup: (8, 8),
+            dispatch_pixel_samples: 1 << 24,
+            submit_pixel_samples: 1 << 24,
+            strategy: Strategy::Stack,
+        }
     }
 }
 
@@ -273,17 +301,29 @@ impl GpuRenderer {
                     Ok(i) => all.get(i),
                     Err(_) => {
                         let w = wanted.to_lowercase();
-                        all.iter().find(|a| a.get_info().name.to_lowercase().contains(&w))
+                        all.iter()
+                            .find(|a| a.get_info().name.to_lowercase().contains(&w))
                     }
                 };
                 found.ok_or_else(|| GpuError::AdapterNotFound {
                     wanted: wanted.to_string(),
-                    available: all.iter().enumerate().map(|(i, a)| format!("{i}: {}", a.get_info().name)).collect::<Vec<_>>().join(", "),
+                    available: all
+                        .iter()
+                        .enumerate()
+                        .map(|(i, a)| format!("{i}: {}", a.get_info().name))
+                        .collect::<Vec<_>>()
+                        .join(", "),
                 })?
             }
-            None => all.iter().min_by_key(|a| type_rank(a.get_info().device_type)).expect("not empty"),
+            None => all
+                .iter()
+                .min_by_key(|a| type_rank(a.get_info().device_type))
+                .expect("not empty"),
         };
-        let index = all.iter().position(|a| std::ptr::eq(a, chosen)).unwrap_or(0);
+        let index = all
+            .iter()
+            .position(|a| std::ptr::eq(a, chosen))
+            .unwrap_or(0);
         let info = summary(index, chosen);
 
         let (x, y) = options.workgroup;
@@ -294,7 +334,11 @@ impl GpuRenderer {
             || x > alimits.max_compute_workgroup_size_x
             || y > alimits.max_compute_workgroup_size_y
         {
-            return Err(GpuError::Workgroup { x, y, max: alimits.max_compute_invocations_per_workgroup });
+            return Err(GpuError::Workgroup {
+                x,
+                y,
+                max: alimits.max_compute_invocations_per_workgroup,
+            });
         }
         // A software adapter (lavapipe) is ~1000x slower than a discrete GPU:
         // smaller submissions keep each one far from the wait timeout.
@@ -306,12 +350,19 @@ impl GpuRenderer {
         let timestamps = chosen.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let (device, queue) = pollster::block_on(chosen.request_device(&wgpu::DeviceDescriptor {
             label: Some("tessera"),
-            required_features: if timestamps { wgpu::Features::TIMESTAMP_QUERY } else { wgpu::Features::empty() },
+            required_features: if timestamps {
+                wgpu::Features::TIMESTAMP_QUERY
+            } else {
+                wgpu::Features::empty()
+            },
             // Everything the adapter allows: large films need large storage bindings.
             required_limits: alimits,
             ..Default::default()
         }))
-        .map_err(|e| GpuError::RequestDevice { adapter: info.name.clone(), message: e.to_string() })?;
+        .map_err(|e| GpuError::RequestDevice {
+            adapter: info.name.clone(),
+            message: e.to_string(),
+        })?;
 
         let fault = Arc::new(Mutex::new(Fault::default()));
         {
@@ -335,13 +386,21 @@ impl GpuRenderer {
         let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Storage { read_only }, has_dynamic_offset: false, min_binding_size: None },
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
             count: None,
         };
         let uniform = |binding, dynamic| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer { ty: wgpu::BufferBindingType::Uniform, has_dynamic_offset: dynamic, min_binding_size: None },
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Uniform,
+                has_dynamic_offset: dynamic,
+                min_binding_size: None,
+            },
             count: None,
         };
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -423,7 +482,10 @@ impl GpuRenderer {
     }
 
     fn check_fault(&self) -> Result<(), GpuError> {
-        let mut f = self.fault.lock().map_err(|_| GpuError::Device("fault record poisoned".into()))?;
+        let mut f = self
+            .fault
+            .lock()
+            .map_err(|_| GpuError::Device("fault record poisoned".into()))?;
         if let Some(msg) = &f.lost {
             return Err(GpuError::DeviceLost(msg.clone()));
         }
@@ -453,7 +515,11 @@ impl GpuRenderer {
         let start = Instant::now();
         // Tiles of one frame reuse the packed tree (packing a million
         // triangles costs more than tracing them).
-        let packed = self.scene.lock().ok().and_then(|s| s.as_ref().and_then(|s| s.data.tree.clone()));
+        let packed = self
+            .scene
+            .lock()
+            .ok()
+            .and_then(|s| s.as_ref().and_then(|s| s.data.tree.clone()));
         let data = SceneData::from_world(world, packed.as_ref())?;
 
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
@@ -468,7 +534,11 @@ impl GpuRenderer {
                     budget = (budget / 4).max(1);
                     retries += 1;
                 }
-                Ok(None) => break Err(GpuError::Device("wavefront queues overflow even for tiny dispatches".into())),
+                Ok(None) => {
+                    break Err(GpuError::Device(
+                        "wavefront queues overflow even for tiny dispatches".into(),
+                    ));
+                }
                 Ok(Some(film)) => {
                     if let Ok(mut s) = self.stats.lock() {
                         s.overflow_retries = retries;
@@ -503,17 +573,36 @@ impl GpuRenderer {
         budget: u64,
     ) -> Result<Option<Film>, GpuError> {
         let limits = self.device.limits();
-        let mut scene_guard = self.scene.lock().map_err(|_| GpuError::Device("scene cache poisoned".into()))?;
-        if scene_guard.as_ref().is_none_or(|s| s.data != data || s.options != self.options) {
+        let mut scene_guard = self
+            .scene
+            .lock()
+            .map_err(|_| GpuError::Device("scene cache poisoned".into()))?;
+        if scene_guard
+            .as_ref()
+            .is_none_or(|s| s.data != data || s.options != self.options)
+        {
             *scene_guard = Some(self.upload_scene(data, &limits)?);
         }
         let scene = scene_guard.as_ref().expect("just set");
 
         let pixels = rect.area();
         let sums_bytes = (pixels * SUM_WORDS * 4) as u64;
-        check_size("the film's per-pixel sums", sums_bytes, limits.max_storage_buffer_binding_size as u64, "max_storage_buffer_binding_size")?;
-        check_size("the film's per-pixel sums", sums_bytes, limits.max_buffer_size, "max_buffer_size")?;
-        let mut out_guard = self.outputs.lock().map_err(|_| GpuError::Device("output cache poisoned".into()))?;
+        check_size(
+            "the film's per-pixel sums",
+            sums_bytes,
+            limits.max_storage_buffer_binding_size as u64,
+            "max_storage_buffer_binding_size",
+        )?;
+        check_size(
+            "the film's per-pixel sums",
+            sums_bytes,
+            limits.max_buffer_size,
+            "max_buffer_size",
+        )?;
+        let mut out_guard = self
+            .outputs
+            .lock()
+            .map_err(|_| GpuError::Device("output cache poisoned".into()))?;
         if out_guard.as_ref().is_none_or(|o| o.pixels < pixels) {
             *out_guard = Some(self.create_outputs(pixels));
         }
@@ -555,10 +644,18 @@ impl GpuRenderer {
         let (wx, wy) = self.options.workgroup;
         let wave = match &scene.wave {
             Some(p) => {
-                let mut guard = self.wave.lock().map_err(|_| GpuError::Device("wavefront cache poisoned".into()))?;
+                let mut guard = self
+                    .wave
+                    .lock()
+                    .map_err(|_| GpuError::Device("wavefront cache poisoned".into()))?;
                 if guard.as_ref().is_none_or(|w| w.queue_cap < p.queue_cap) {
                     let bytes = p.queue_cap * layout::WAVE_TASK_BYTES;
-                    check_size("a wavefront task queue", bytes, limits.max_storage_buffer_binding_size as u64, "max_storage_buffer_binding_size")?;
+                    check_size(
+                        "a wavefront task queue",
+                        bytes,
+                        limits.max_storage_buffer_binding_size as u64,
+                        "max_storage_buffer_binding_size",
+                    )?;
                     *guard = Some(self.create_wave_buffers(p.queue_cap));
                 }
                 Some((p, guard))
@@ -571,11 +668,7 @@ impl GpuRenderer {
                 self.device.create_bind_group(&wgpu::BindGroupDescriptor {
                     label: Some("tessera wavefront queues"),
                     layout: &self.wave_layout,
-                    entries: &[
-                        entire(0, inq),
-                        entire(1, outq),
-                        entire(2, &w.state),
-                    ],
+                    entries: &[entire(0, inq), entire(1, outq), entire(2, &w.state)],
                 })
             };
             // Primary tasks go to A; generations then alternate A->B, B->A.
@@ -587,10 +680,22 @@ impl GpuRenderer {
             Some((p, _)) => budget.min(p.queue_cap / 2).max(1),
             None => budget,
         };
-        let groups = plan(rect, samples, frame, GpuOptions { dispatch_pixel_samples: budget, ..self.options });
+        let groups = plan(
+            rect,
+            samples,
+            frame,
+            GpuOptions {
+                dispatch_pixel_samples: budget,
+                ..self.options
+            },
+        );
         let query = self.timestamps.then(|| {
             let n = (groups.len() * 2) as u32;
-            let set = self.device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("tessera timestamps"), ty: wgpu::QueryType::Timestamp, count: n });
+            let set = self.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("tessera timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: n,
+            });
             let resolve = self.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("timestamps"),
                 size: n as u64 * 8,
@@ -606,7 +711,11 @@ impl GpuRenderer {
             (set, resolve, read, n)
         });
 
-        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera clear") });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera clear"),
+            });
         enc.clear_buffer(&out.sums, 0, Some(sums_bytes));
         enc.clear_buffer(&out.counters, 0, None);
         if let Some((_, w)) = &wave {
@@ -622,14 +731,20 @@ impl GpuRenderer {
                 params[at..at + size_of::<DispatchParams>()].copy_from_slice(bytemuck::bytes_of(d));
             }
             self.queue.write_buffer(&out.params, 0, &params);
-            let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera trace") });
+            let mut enc = self
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("tessera trace"),
+                });
             {
                 let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("tessera trace"),
-                    timestamp_writes: query.as_ref().map(|(set, ..)| wgpu::ComputePassTimestampWrites {
-                        query_set: set,
-                        beginning_of_pass_write_index: Some(2 * g as u32),
-                        end_of_pass_write_index: Some(2 * g as u32 + 1),
+                    timestamp_writes: query.as_ref().map(|(set, ..)| {
+                        wgpu::ComputePassTimestampWrites {
+                            query_set: set,
+                            beginning_of_pass_write_index: Some(2 * g as u32),
+                            end_of_pass_write_index: Some(2 * g as u32 + 1),
+                        }
                     }),
                 });
                 match (&wave, &wave_groups) {
@@ -637,7 +752,11 @@ impl GpuRenderer {
                         let w = w.as_ref().expect("set");
                         let threads = wx * wy;
                         for (i, d) in group.iter().enumerate() {
-                            pass.set_bind_group(0, &bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
+                            pass.set_bind_group(
+                                0,
+                                &bind_group,
+                                &[(i as u64 * PARAMS_STRIDE) as u32],
+                            );
                             pass.set_bind_group(1, to_a, &[]);
                             pass.set_bind_group(2, &w.args_group, &[]);
                             let n = d.rect_w * d.rows * (d.sample_end - d.sample_start);
@@ -658,9 +777,17 @@ impl GpuRenderer {
                     _ => {
                         pass.set_pipeline(&scene.pipeline);
                         for (i, d) in group.iter().enumerate() {
-                            pass.set_bind_group(0, &bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
+                            pass.set_bind_group(
+                                0,
+                                &bind_group,
+                                &[(i as u64 * PARAMS_STRIDE) as u32],
+                            );
                             // One invocation per pixel-sample.
-                            pass.dispatch_workgroups(d.rect_w.div_ceil(wx), d.rows.div_ceil(wy), d.sample_end - d.sample_start);
+                            pass.dispatch_workgroups(
+                                d.rect_w.div_ceil(wx),
+                                d.rows.div_ceil(wy),
+                                d.sample_end - d.sample_start,
+                            );
                             dispatches += 1;
                         }
                     }
@@ -668,12 +795,23 @@ impl GpuRenderer {
             }
             let index = self.queue.submit([enc.finish()]);
             self.wait(index)?;
-            progress(group.iter().map(|d| d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64).sum());
+            progress(
+                group
+                    .iter()
+                    .map(|d| {
+                        d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64
+                    })
+                    .sum(),
+            );
         }
         let trace_wall = trace_start.elapsed();
         let readback_start = Instant::now();
 
-        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("tessera read-back") });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera read-back"),
+            });
         enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
         enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
         if let Some((_, w)) = &wave {
@@ -688,7 +826,10 @@ impl GpuRenderer {
         self.wait(index)?;
 
         if let Some((_, w)) = &wave {
-            let state: Vec<u32> = self.read(&w.as_ref().expect("set").state_read, layout::WAVE_STATE_BYTES)?;
+            let state: Vec<u32> = self.read(
+                &w.as_ref().expect("set").state_read,
+                layout::WAVE_STATE_BYTES,
+            )?;
             if state[2] != 0 {
                 return Ok(None);
             }
@@ -708,7 +849,10 @@ impl GpuRenderer {
             Some((_, _, read, n)) => {
                 let ticks: Vec<u64> = self.read(read, *n as u64 * 8)?;
                 let period = self.queue.get_timestamp_period() as f64;
-                let ns: f64 = ticks.chunks_exact(2).map(|p| p[1].saturating_sub(p[0]) as f64 * period).sum();
+                let ns: f64 = ticks
+                    .chunks_exact(2)
+                    .map(|p| p[1].saturating_sub(p[0]) as f64 * period)
+                    .sum();
                 Some(Duration::from_nanos(ns as u64))
             }
             None => None,
@@ -725,15 +869,34 @@ impl GpuRenderer {
         film.nonfinite = counter(layout::COUNTER_NONFINITE);
         let readback = readback_start.elapsed();
         if let Ok(mut s) = self.stats.lock() {
-            *s = GpuStats { gpu_time, trace_wall, total_wall: start.elapsed(), dispatches, submissions: groups.len() as u32, overflow_retries: 0, readback };
+            *s = GpuStats {
+                gpu_time,
+                trace_wall,
+                total_wall: start.elapsed(),
+                dispatches,
+                submissions: groups.len() as u32,
+                overflow_retries: 0,
+                readback,
+            };
         }
         Ok(Some(film))
     }
 
     fn create_wave_buffers(&self, queue_cap: u64) -> WaveBuffers {
         use wgpu::BufferUsages as U;
-        let buf = |label, size, usage| self.device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false });
-        let args = buf("wavefront args", layout::WAVE_ARGS_BYTES, U::STORAGE | U::INDIRECT);
+        let buf = |label, size, usage| {
+            self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let args = buf(
+            "wavefront args",
+            layout::WAVE_ARGS_BYTES,
+            U::STORAGE | U::INDIRECT,
+        );
         let args_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tessera wavefront args"),
             layout: &self.wave_args_layout,
@@ -741,10 +904,26 @@ impl GpuRenderer {
         });
         WaveBuffers {
             queue_cap,
-            a: buf("wavefront queue a", queue_cap * layout::WAVE_TASK_BYTES, U::STORAGE),
-            b: buf("wavefront queue b", queue_cap * layout::WAVE_TASK_BYTES, U::STORAGE),
-            state: buf("wavefront state", layout::WAVE_STATE_BYTES, U::STORAGE | U::COPY_SRC | U::COPY_DST),
-            state_read: buf("wavefront state read", layout::WAVE_STATE_BYTES, U::MAP_READ | U::COPY_DST),
+            a: buf(
+                "wavefront queue a",
+                queue_cap * layout::WAVE_TASK_BYTES,
+                U::STORAGE,
+            ),
+            b: buf(
+                "wavefront queue b",
+                queue_cap * layout::WAVE_TASK_BYTES,
+                U::STORAGE,
+            ),
+            state: buf(
+                "wavefront state",
+                layout::WAVE_STATE_BYTES,
+                U::STORAGE | U::COPY_SRC | U::COPY_DST,
+            ),
+            state_read: buf(
+                "wavefront state read",
+                layout::WAVE_STATE_BYTES,
+                U::MAP_READ | U::COPY_DST,
+            ),
             args,
             args_group,
         }
@@ -752,21 +931,62 @@ impl GpuRenderer {
 
     fn upload_scene(&self, data: SceneData, limits: &wgpu::Limits) -> Result<SceneState, GpuError> {
         let make = |label, bytes: &[u8], usage| {
-            self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: bytes, usage })
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents: bytes,
+                    usage,
+                })
         };
         let st = wgpu::BufferUsages::STORAGE;
         for (what, bytes) in [
-            ("the scene's spheres", std::mem::size_of_val(data.spheres.as_slice())),
-            ("the scene's planes", std::mem::size_of_val(data.planes.as_slice())),
-            ("the scene's materials", std::mem::size_of_val(data.materials.as_slice())),
-            ("the scene's lights", std::mem::size_of_val(data.lights.as_slice())),
-            ("the scene's BVH nodes", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.data.nodes.as_slice()))),
-            ("the scene's triangles", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.data.triangles.as_slice()))),
-            ("the scene's triangle shading data", data.tree.as_ref().map_or(0, |t| std::mem::size_of_val(t.data.shading.as_slice()))),
+            (
+                "the scene's spheres",
+                std::mem::size_of_val(data.spheres.as_slice()),
+            ),
+            (
+                "the scene's planes",
+                std::mem::size_of_val(data.planes.as_slice()),
+            ),
+            (
+                "the scene's materials",
+                std::mem::size_of_val(data.materials.as_slice()),
+            ),
+            (
+                "the scene's lights",
+                std::mem::size_of_val(data.lights.as_slice()),
+            ),
+            (
+                "the scene's BVH nodes",
+                data.tree
+                    .as_ref()
+                    .map_or(0, |t| std::mem::size_of_val(t.data.nodes.as_slice())),
+            ),
+            (
+                "the scene's triangles",
+                data.tree
+                    .as_ref()
+                    .map_or(0, |t| std::mem::size_of_val(t.data.triangles.as_slice())),
+            ),
+            (
+                "the scene's triangle shading data",
+                data.tree
+                    .as_ref()
+                    .map_or(0, |t| std::mem::size_of_val(t.data.shading.as_slice())),
+            ),
         ] {
-            check_size(what, bytes as u64, limits.max_storage_buffer_binding_size as u64, "max_storage_buffer_binding_size")?;
+            check_size(
+                what,
+                bytes as u64,
+                limits.max_storage_buffer_binding_size as u64,
+                "max_storage_buffer_binding_size",
+            )?;
         }
-        let frame = make("frame", bytemuck::bytes_of(&data.frame), wgpu::BufferUsages::UNIFORM);
+        let frame = make(
+            "frame",
+            bytemuck::bytes_of(&data.frame),
+            wgpu::BufferUsages::UNIFORM,
+        );
         let spheres = make("spheres", bytemuck::cast_slice(&data.spheres), st);
         let planes = make("planes", bytemuck::cast_slice(&data.planes), st);
         let materials = make("materials", bytemuck::cast_slice(&data.materials), st);
@@ -776,25 +996,39 @@ impl GpuRenderer {
                 make("bvh nodes", bytemuck::cast_slice(&t.data.nodes), st),
                 make("bvh prims", bytemuck::cast_slice(&t.data.prims), st),
                 make("triangles", bytemuck::cast_slice(&t.data.triangles), st),
-                make("triangle shading", bytemuck::cast_slice(&t.data.shading), st),
+                make(
+                    "triangle shading",
+                    bytemuck::cast_slice(&t.data.shading),
+                    st,
+                ),
             ],
-            None => ["bvh nodes", "bvh prims", "triangles", "triangle shading"].map(|label| make(label, &[0u8; 64], st)),
+            None => ["bvh nodes", "bvh prims", "triangles", "triangle shading"]
+                .map(|label| make(label, &[0u8; 64], st)),
         };
 
         // Generated part: the stacks' capacities must be constant
         // expressions. Only scenes with a tree compile the BVH traversal.
-        let queries = if data.tree.is_some() { BVH_WGSL } else { ANALYTIC_WGSL };
+        let queries = if data.tree.is_some() {
+            BVH_WGSL
+        } else {
+            ANALYTIC_WGSL
+        };
         let source = format!(
             "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{queries}\n{WAVEFRONT_WGSL}",
             data.stack_capacity(),
             // One more entry than this tree can need (checked at packing to
             // be at most bvh::STACK; see bvh.wgsl), so shallow trees keep small stacks.
-            data.tree.as_ref().map_or(crate::bvh::STACK as u32, |t| t.data.stack) + 1
+            data.tree
+                .as_ref()
+                .map_or(crate::bvh::STACK as u32, |t| t.data.stack)
+                + 1
         );
-        let module = self.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("whitted.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(source.into()),
-        });
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("whitted.wgsl"),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
         let b = |v: bool| if v { 1.0 } else { 0.0 };
         let constants = [
             ("N_SPHERES", data.n_spheres as f64),
@@ -806,36 +1040,42 @@ impl GpuRenderer {
             ("WG_X", self.options.workgroup.0 as f64),
             ("WG_Y", self.options.workgroup.1 as f64),
         ];
-        let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("tessera whitted"),
-            layout: Some(&self.pipeline_layout),
-            module: &module,
-            entry_point: Some("render"),
-            compilation_options: wgpu::PipelineCompilationOptions {
-                constants: &constants,
-                // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
-                zero_initialize_workgroup_memory: true,
-            },
-            cache: None,
-        });
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("tessera whitted"),
+                layout: Some(&self.pipeline_layout),
+                module: &module,
+                entry_point: Some("render"),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
+                    zero_initialize_workgroup_memory: true,
+                },
+                cache: None,
+            });
         let wave = (self.options.strategy == Strategy::Wavefront).then(|| {
             // Twice the largest dispatch's primary tasks, within one indirect dispatch.
             let (wx, wy) = self.options.workgroup;
             let max_groups = limits.max_compute_workgroups_per_dimension as u64;
-            let queue_cap = (2 * self.options.dispatch_pixel_samples).min(max_groups * (wx * wy) as u64).min(
-                limits.max_storage_buffer_binding_size as u64 / layout::WAVE_TASK_BYTES,
-            );
+            let queue_cap = (2 * self.options.dispatch_pixel_samples)
+                .min(max_groups * (wx * wy) as u64)
+                .min(limits.max_storage_buffer_binding_size as u64 / layout::WAVE_TASK_BYTES);
             let mut wave_constants = constants.to_vec();
             wave_constants.push(("QUEUE_CAP", queue_cap as f64));
             let make = |entry: &str, layout: &wgpu::PipelineLayout| {
-                self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
-                    layout: Some(layout),
-                    module: &module,
-                    entry_point: Some(entry),
-                    compilation_options: wgpu::PipelineCompilationOptions { constants: &wave_constants, zero_initialize_workgroup_memory: true },
-                    cache: None,
-                })
+                self.device
+                    .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                        label: Some(entry),
+                        layout: Some(layout),
+                        module: &module,
+                        entry_point: Some(entry),
+                        compilation_options: wgpu::PipelineCompilationOptions {
+                            constants: &wave_constants,
+                            zero_initialize_workgroup_memory: true,
+                        },
+                        cache: None,
+                    })
             };
             WavePipelines {
                 primary: make("wave_primary", &self.wave_pipeline_layout),
@@ -844,11 +1084,29 @@ impl GpuRenderer {
                 queue_cap,
             }
         });
-        Ok(SceneState { data, options: self.options, pipeline, frame, spheres, planes, materials, lights, tree, wave })
+        Ok(SceneState {
+            data,
+            options: self.options,
+            pipeline,
+            frame,
+            spheres,
+            planes,
+            materials,
+            lights,
+            tree,
+            wave,
+        })
     }
 
     fn create_outputs(&self, pixels: usize) -> Outputs {
-        let buf = |label, size, usage| self.device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false });
+        let buf = |label, size, usage| {
+            self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
         let sums_bytes = (pixels * SUM_WORDS * 4) as u64;
         let counters_bytes = (COUNTERS * 8) as u64;
         use wgpu::BufferUsages as U;
@@ -856,16 +1114,27 @@ impl GpuRenderer {
             pixels,
             sums: buf("sums", sums_bytes, U::STORAGE | U::COPY_SRC | U::COPY_DST),
             sums_read: buf("sums read", sums_bytes, U::MAP_READ | U::COPY_DST),
-            counters: buf("counters", counters_bytes, U::STORAGE | U::COPY_SRC | U::COPY_DST),
+            counters: buf(
+                "counters",
+                counters_bytes,
+                U::STORAGE | U::COPY_SRC | U::COPY_DST,
+            ),
             counters_read: buf("counters read", counters_bytes, U::MAP_READ | U::COPY_DST),
-            params: buf("dispatch params", PARAMS_STRIDE * PARAMS_SLOTS as u64, U::UNIFORM | U::COPY_DST),
+            params: buf(
+                "dispatch params",
+                PARAMS_STRIDE * PARAMS_SLOTS as u64,
+                U::UNIFORM | U::COPY_DST,
+            ),
         }
     }
 
     /// Blocks until submission `index` is done, with a timeout, surfacing
     /// device loss and errors instead of hanging.
     fn wait(&self, index: wgpu::SubmissionIndex) -> Result<(), GpuError> {
-        let r = self.device.poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: Some(SUBMISSION_TIMEOUT) });
+        let r = self.device.poll(wgpu::PollType::Wait {
+            submission_index: Some(index),
+            timeout: Some(SUBMISSION_TIMEOUT),
+        });
         self.check_fault()?;
         match r {
             Ok(_) => Ok(()),
@@ -874,7 +1143,11 @@ impl GpuRenderer {
         }
     }
 
-    fn read<T: bytemuck::Pod>(&self, buffer: &wgpu::Buffer, bytes: u64) -> Result<Vec<T>, GpuError> {
+    fn read<T: bytemuck::Pod>(
+        &self,
+        buffer: &wgpu::Buffer,
+        bytes: u64,
+    ) -> Result<Vec<T>, GpuError> {
         self.read_with(buffer, bytes, |view| {
             let mut v = vec![<T as bytemuck::Zeroable>::zeroed(); view.len() / size_of::<T>()];
             bytemuck::cast_slice_mut::<T, u8>(&mut v).copy_from_slice(view);
@@ -883,12 +1156,20 @@ impl GpuRenderer {
     }
 
     /// Maps the first `bytes` of `buffer` and hands them to `f`.
-    fn read_with<R>(&self, buffer: &wgpu::Buffer, bytes: u64, f: impl FnOnce(&[u8]) -> R) -> Result<R, GpuError> {
+    fn read_with<R>(
+        &self,
+        buffer: &wgpu::Buffer,
+        bytes: u64,
+        f: impl FnOnce(&[u8]) -> R,
+    ) -> Result<R, GpuError> {
         let (tx, rx) = mpsc::channel();
         buffer.map_async(wgpu::MapMode::Read, 0..bytes, move |r| {
             let _ = tx.send(r);
         });
-        let r = self.device.poll(wgpu::PollType::Wait { submission_index: None, timeout: Some(SUBMISSION_TIMEOUT) });
+        let r = self.device.poll(wgpu::PollType::Wait {
+            submission_index: None,
+            timeout: Some(SUBMISSION_TIMEOUT),
+        });
         self.check_fault()?;
         if let Err(e) = r {
             return Err(GpuError::Readback(e.to_string()));
@@ -899,7 +1180,9 @@ impl GpuRenderer {
             Err(_) => return Err(GpuError::Readback("mapping never completed".into())),
         }
         let out = {
-            let view = buffer.get_mapped_range(0..bytes).map_err(|e| GpuError::Readback(e.to_string()))?;
+            let view = buffer
+                .get_mapped_range(0..bytes)
+                .map_err(|e| GpuError::Readback(e.to_string()))?;
             f(&view)
         };
         buffer.unmap();
@@ -908,11 +1191,28 @@ impl GpuRenderer {
 }
 
 fn entire(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry { binding, resource: buffer.as_entire_binding() }
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
 }
 
-fn check_size(what: &'static str, needed: u64, limit: u64, limit_name: &'static str) -> Result<(), GpuError> {
-    if needed > limit { Err(GpuError::TooLarge { what, needed, limit, limit_name }) } else { Ok(()) }
+fn check_size(
+    what: &'static str,
+    needed: u64,
+    limit: u64,
+    limit_name: &'static str,
+) -> Result<(), GpuError> {
+    if needed > limit {
+        Err(GpuError::TooLarge {
+            what,
+            needed,
+            limit,
+            limit_name,
+        })
+    } else {
+        Ok(())
+    }
 }
 
 fn classify(e: wgpu::Error) -> GpuError {
@@ -942,22 +1242,27 @@ fn plan(rect: Rect, samples: SampleRange, frame: u32, o: GpuOptions) -> Vec<Vec<
             let e = (s as u64 + chunk).min(samples.end as u64) as u32;
             let work = w * band as u64 * (e - s) as u64;
             let last = groups.last_mut().expect("never empty");
-            if !last.is_empty() && (in_group + work > o.submit_pixel_samples || last.len() == PARAMS_SLOTS) {
+            if !last.is_empty()
+                && (in_group + work > o.submit_pixel_samples || last.len() == PARAMS_SLOTS)
+            {
                 groups.push(Vec::new());
                 in_group = 0;
             }
-            groups.last_mut().expect("never empty").push(DispatchParams {
-                rect_x: rect.x,
-                rect_y: rect.y,
-                rect_w: rect.width,
-                rect_h: rect.height,
-                row0,
-                rows: band,
-                sample_start: s,
-                sample_end: e,
-                frame,
-                _pad: [0; 3],
-            });
+            groups
+                .last_mut()
+                .expect("never empty")
+                .push(DispatchParams {
+                    rect_x: rect.x,
+                    rect_y: rect.y,
+                    rect_w: rect.width,
+                    rect_h: rect.height,
+                    row0,
+                    rows: band,
+                    sample_start: s,
+                    sample_end: e,
+                    frame,
+                    _pad: [0; 3],
+                });
             in_group += work;
             s = e;
         }
@@ -972,15 +1277,26 @@ mod tests {
 
     #[test]
     fn plan_covers_every_pixel_sample_once_within_budgets() {
-        let o = GpuOptions { workgroup: (8, 8), dispatch_pixel_samples: 1000, submit_pixel_samples: 5000, strategy: Strategy::Stack };
+        let o = GpuOptions {
+            workgroup: (8, 8),
+            dispatch_pixel_samples: 1000,
+            submit_pixel_samples: 5000,
+            strategy: Strategy::Stack,
+        };
         let rect = Rect::new(3, 7, 37, 23);
         let samples = SampleRange::new(2, 11);
         let groups = plan(rect, samples, 0, o);
         let mut hits = vec![0u32; rect.area() * 16];
         for g in &groups {
             assert!(g.len() <= PARAMS_SLOTS);
-            let work: u64 = g.iter().map(|d| d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64).sum();
-            assert!(work <= o.submit_pixel_samples || g.len() == 1, "group of {work}");
+            let work: u64 = g
+                .iter()
+                .map(|d| d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64)
+                .sum();
+            assert!(
+                work <= o.submit_pixel_samples || g.len() == 1,
+                "group of {work}"
+            );
             for d in g {
                 for r in d.row0..d.row0 + d.rows {
                     for s in d.sample_start..d.sample_end {
