@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
 """Checks the deployment files without docker or kubectl: every YAML file
 parses; the compose services, Kubernetes objects and probes are the ones
-deploy/README.md describes; every `tessera` command line in them (compose,
-Kubernetes args, Dockerfile CMD, systemd ExecStart) names a subcommand and
-flags that `tessera SUBCOMMAND --help` lists; and, where systemd-analyze
-exists, the systemd units verify.
+deploy/README.md describes (the coordinator's probes: gRPC health, or, when
+it serves TLS, which the kubelet's gRPC probe cannot speak, TCP or exec);
+every `tessera` command line in them (compose, Kubernetes args, Dockerfile
+CMD, systemd ExecStart, continued lines joined) names a subcommand and flags
+that `tessera SUBCOMMAND --help` lists; and, where systemd-analyze exists,
+the systemd units verify.
 
 Usage: deploy/check.py PATH/TO/tessera   (exit 0: all good; 1: problems, listed)
 """
@@ -74,8 +76,12 @@ for d in k8s:
         where = f"k8s {d['kind']} {d['metadata']['name']} container {c['name']}"
         check_command(where, c.get("args", []))
         if "coordinator" in c.get("args", [])[:1]:
+            tls = "--tls-cert" in c["args"]
             for probe in ["livenessProbe", "readinessProbe"]:
-                if "grpc" not in c.get(probe, {}):
+                p = c.get(probe, {})
+                if tls and ("grpc" in p or not ("tcpSocket" in p or "exec" in p)):
+                    problem(where, f"{probe} is not a TCP or exec probe (the kubelet's gRPC probe has no TLS)")
+                elif not tls and "grpc" not in p:
                     problem(where, f"{probe} is not a gRPC health probe")
 kustomization = docs.get(DEPLOY / "k8s" / "kustomization.yaml", [{}])[0]
 for r in kustomization.get("resources", []):
@@ -102,7 +108,8 @@ if need and (not have or version(have.group(1)) < version(need.group(1))):
 
 units = sorted((DEPLOY / "systemd").glob("*.service"))
 for unit in units:
-    m = re.search(r"^ExecStart=(\S+) (.*)$", unit.read_text(), re.M)
+    # A backslash at a line's end continues it (as systemd reads it).
+    m = re.search(r"^ExecStart=(\S+) (.*)$", re.sub(r"\\\n[ \t]*", " ", unit.read_text()), re.M)
     if not m or not m.group(1).endswith("/tessera"):
         problem(unit.name, "ExecStart does not run tessera")
         continue

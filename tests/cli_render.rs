@@ -205,3 +205,99 @@ fn threads_flag_gives_the_same_image() {
     }
     assert_eq!(imgs[0], imgs[1], "thread count changed the image");
 }
+
+/// Model files made to hurt, each rendered by a real `tessera render` under
+/// a 4 GB address-space cap: each ends at once with exit 1 and a message
+/// naming the file and the problem, never an abort, a hang or panic text.
+#[test]
+fn hostile_model_files_end_in_a_clear_error_under_a_4_gb_cap() {
+    use base64::Engine as _;
+    let dir = tmpdir("hostile");
+    let tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\n";
+    let data_uri = |b: &[u8]| {
+        format!(
+            "data:application/octet-stream;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(b)
+        )
+    };
+    let gltf_view = |accessor: &str, uri: &str, view: &str| {
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":36,"uri":"{uri}"}}],
+            "bufferViews":[{view}],"accessors":[{accessor}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}]}}"#
+        )
+    };
+    let gltf = |accessor: &str, uri: &str, _len: usize| {
+        gltf_view(accessor, uri, r#"{"buffer":0,"byteLength":36}"#)
+    };
+    let vec3 = r#""componentType":5126,"type":"VEC3","min":[0,0,0],"max":[1,1,0]"#;
+    let fifo = dir.join("pipe.bin");
+    let made = Command::new("mkfifo").arg(&fifo).status().expect("mkfifo");
+    assert!(made.success());
+    // (file, content, expected exit code, text expected on stderr)
+    let cases: Vec<(&str, String, i32, &str)> = vec![
+        // A library that is no file: the default material, and a warning.
+        (
+            "zero.obj",
+            format!("mtllib /dev/zero\n{tri}usemtl m\nf 1 2 3\n"),
+            0,
+            "zero.obj.toml: objects[0] (mesh).path: zero.obj: cannot load its material library (mtllib /dev/zero)",
+        ),
+        (
+            "sparse.gltf",
+            gltf(&format!(r#"{{{vec3},"count":4294967295,"sparse":{{"count":4294967295,"indices":{{"bufferView":0,"componentType":5125}},"values":{{"bufferView":0}}}}}}"#), &data_uri(&[0; 36]), 36),
+            1,
+            "sparse.gltf: mesh 0 primitive 0: accessor 0: 4294967295 elements without data",
+        ),
+        (
+            "stride.gltf",
+            gltf_view(
+                &format!(r#"{{{vec3},"bufferView":0,"count":3}}"#),
+                &data_uri(&[0; 36]),
+                r#"{"buffer":0,"byteLength":36,"byteStride":4}"#,
+            ),
+            1,
+            "stride.gltf: mesh 0 primitive 0: accessor 0: byteStride 4 is smaller than its 12-byte elements",
+        ),
+        ("fifo.gltf", gltf(&format!(r#"{{{vec3},"bufferView":0,"count":3}}"#), "pipe.bin", 36), 1, "fifo.gltf: cannot read buffer 0: pipe.bin: is not a regular file"),
+        ("devzero.gltf", gltf(&format!(r#"{{{vec3},"bufferView":0,"count":3}}"#), "/dev/zero", 36), 1, "devzero.gltf: cannot read buffer 0: /dev/zero: is not a regular file"),
+        (
+            "huge.ply",
+            "ply\nformat binary_little_endian 1.0\nelement vertex 4000000000\nproperty float x\nproperty float y\nproperty float z\nend_header\n".into(),
+            1,
+            "huge.ply: invalid PLY: vertex 0:",
+        ),
+        ("hot.obj", format!("mtllib hot.mtl\n{tri}usemtl h\nf 1 2 3\n"), 1, "hot.obj: material \"h\": ambient must be three finite numbers >= 0 and at most 1e6"),
+    ];
+    std::fs::write(dir.join("hot.mtl"), "newmtl h\nKd 1e39 1 1\n").unwrap();
+    for (file, content, code, want) in cases {
+        std::fs::write(dir.join(file), content).unwrap();
+        let scene = dir.join(format!("{file}.toml"));
+        std::fs::write(
+            &scene,
+            format!(
+                "[render]\nwidth = 8\nheight = 8\nsamples = 1\n[camera]\nposition = [0, 0, 3]\nlook_at = [0, 0, 0]\n\
+                 [[lights]]\nposition = [0, 1, 2]\n[[objects]]\ntype = \"mesh\"\npath = \"{file}\"\n"
+            ),
+        )
+        .unwrap();
+        let start = std::time::Instant::now();
+        let (out, _, stderr) = run(Command::new("sh")
+            .arg("-c")
+            .arg("ulimit -v 4194304 && exec \"$0\" render \"$1\" -o \"$2\"")
+            .arg(env!("CARGO_BIN_EXE_tessera"))
+            .arg(&scene)
+            .arg(dir.join(format!("{file}.png"))));
+        let took = start.elapsed();
+        assert_eq!(out.status.code(), Some(code), "{file}: {stderr}");
+        assert!(
+            stderr.contains(want),
+            "{file}: expected {want:?} in {stderr}"
+        );
+        assert!(!stderr.contains("panicked"), "{file}: panic text: {stderr}");
+        assert!(
+            took < std::time::Duration::from_secs(10),
+            "{file}: {took:?}"
+        );
+    }
+}

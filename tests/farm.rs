@@ -9,7 +9,7 @@
 
 use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Command, Output, Stdio};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
@@ -18,46 +18,13 @@ use tessera_proto::pb::job_service_client::JobServiceClient;
 use tessera_proto::pb::worker_service_client::WorkerServiceClient;
 use tonic::transport::Channel;
 
-const TESSERA: &str = env!("CARGO_BIN_EXE_tessera");
+mod support;
+use support::*;
+
 static SERIAL: Mutex<()> = Mutex::new(());
 
 fn serial() -> std::sync::MutexGuard<'static, ()> {
     SERIAL.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-fn repo(p: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
-
-/// A child process killed when dropped.
-struct Proc {
-    child: Child,
-    log: PathBuf,
-}
-
-impl Proc {
-    fn log(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-    fn sigkill(&mut self) {
-        self.child.kill().expect("kill");
-        self.child.wait().expect("reap");
-    }
-    fn sigterm(&self) {
-        let ok = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status()
-            .expect("kill")
-            .success();
-        assert!(ok, "kill -TERM failed");
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 struct Coordinator {
@@ -100,13 +67,11 @@ fn start_coordinator(dir: &Path, listen: &str, extra: &[&str]) -> Coordinator {
     }
 }
 
-fn rand_suffix() -> u128 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos())
+fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
+    start_worker_with(dir, url, name, &[])
 }
 
-fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
+fn start_worker_with(dir: &Path, url: &str, name: &str, extra: &[&str]) -> Proc {
     let log = dir.join(format!("worker-{name}-{}.log", rand_suffix()));
     let child = Command::new(TESSERA)
         .args([
@@ -118,6 +83,7 @@ fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
             "--name",
             name,
         ])
+        .args(extra)
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(&log).expect("log file"))
@@ -132,40 +98,6 @@ fn tessera(args: &[&str], url: &str) -> Output {
         .env("TESSERA_COORDINATOR", url)
         .output()
         .expect("run tessera")
-}
-
-fn ok_stdout(o: &Output) -> String {
-    assert!(
-        o.status.success(),
-        "tessera failed: {}\n{}",
-        o.status,
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8(o.stdout.clone()).expect("utf-8")
-}
-
-fn pixels(path: &Path) -> Vec<u8> {
-    image::open(path)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-        .to_rgb8()
-        .into_raw()
-}
-
-/// `tessera render` of the same scene and settings, as the reference.
-fn reference(dir: &Path, scene: &Path, frame: u32, settings: &[&str]) -> Vec<u8> {
-    let out = dir.join(format!("reference_{frame}.png"));
-    let f = frame.to_string();
-    let mut args = vec![
-        "render",
-        scene.to_str().expect("path"),
-        "-o",
-        out.to_str().expect("path"),
-        "--frame",
-        &f,
-    ];
-    args.extend_from_slice(settings);
-    ok_stdout(&Command::new(TESSERA).args(&args).output().expect("render"));
-    pixels(&out)
 }
 
 /// Fetches the job's frames and checks each equals `tessera render`'s bit for bit.
@@ -189,13 +121,6 @@ fn assert_frames_match_render(
             "frame {f}: {diff} bytes differ from tessera render"
         );
     }
-}
-
-fn rt() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .expect("runtime")
 }
 
 async fn jobs_client(url: &str) -> JobServiceClient<Channel> {
@@ -225,17 +150,6 @@ fn list_workers(url: &str) -> Vec<pb::WorkerInfo> {
             .into_inner()
             .workers
     })
-}
-
-fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !f() {
-        assert!(
-            start.elapsed() < timeout,
-            "timed out after {timeout:?} waiting for {what}"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
 }
 
 fn submit(url: &str, scene: &Path, args: &[&str]) -> String {
@@ -863,7 +777,7 @@ fn bad_requests_get_clear_errors() {
 /// A client that is not Tessera's Rust code: Python grpcio with stubs
 /// generated from proto/ at test time.
 #[test]
-fn python_grpcio_client_submits_and_watches_a_job() {
+fn python_grpcio_client_submits_and_watches_a_job_over_tls_with_a_token() {
     let _g = serial();
     let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
     let has = |py: &str| {
@@ -882,8 +796,32 @@ fn python_grpcio_client_submits_and_watches_a_job() {
         );
     }
     let dir = tempfile::tempdir().expect("tempdir");
-    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--log-format", "json"]);
-    let _w = start_worker(dir.path(), &c.url(), "py");
+    let tls = dir.path().join("tls");
+    make_tls(&tls, &["127.0.0.1"]);
+    let f = |n: &str| tls.join(n).to_str().expect("path").to_string();
+    let c = start_coordinator(
+        dir.path(),
+        "127.0.0.1:0",
+        &[
+            "--log-format",
+            "json",
+            "--tls-cert",
+            &f("coordinator.pem"),
+            "--tls-key",
+            &f("coordinator.key"),
+            "--client-token-file",
+            &f("client.token"),
+            "--worker-token-file",
+            &f("worker.token"),
+        ],
+    );
+    let url = format!("https://{}", c.addr);
+    let _w = start_worker_with(
+        dir.path(),
+        &url,
+        "py",
+        &["--ca", &f("ca.pem"), "--token-file", &f("worker.token")],
+    );
     let stubs = dir.path().join("stubs");
     std::fs::create_dir_all(&stubs).expect("mkdir");
     let protoc = Command::new(&python)
@@ -907,6 +845,7 @@ fn python_grpcio_client_submits_and_watches_a_job() {
         .arg(repo("tests/python/generic_client.py"))
         .arg(&c.addr)
         .arg(repo("examples/resolution.toml"))
+        .args(["--ca", &f("ca.pem"), "--token", &f("client.token")])
         .env("PYTHONPATH", &stubs)
         .output()
         .expect("python client");
@@ -926,7 +865,20 @@ fn python_grpcio_client_submits_and_watches_a_job() {
         stdout.lines().any(|l| l == "final JOB_STATE_DONE 100.0"),
         "{stdout}"
     );
-    assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
+    let state = rt().block_on(async {
+        secure_jobs_client(
+            &url,
+            Some(&tls.join("ca.pem")),
+            Some(&tls.join("client.token")),
+        )
+        .await
+        .get_job(pb::GetJobRequest { job_id: job })
+        .await
+        .expect("get job")
+        .into_inner()
+        .state
+    });
+    assert_eq!(state, pb::JobState::Done as i32);
     // --log-format json: one JSON object per line.
     let log = c.proc.log();
     assert!(
@@ -1178,4 +1130,619 @@ fn deploy_files_parse_and_their_command_lines_use_real_flags() {
         stdout.contains("deploy check: 0 problem(s) in 4 YAML files, 2 systemd units"),
         "{stdout}"
     );
+}
+
+#[test]
+fn refusals_are_clear_escaping_paths_tokens_plaintext_and_oversized_uploads_and_the_coordinator_stays_healthy()
+ {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let tls = dir.path().join("tls");
+    make_tls(&tls, &["127.0.0.1"]);
+    let f = |n: &str| tls.join(n).to_str().expect("path").to_string();
+    let secure = [
+        "--tls-cert",
+        &f("coordinator.pem"),
+        "--tls-key",
+        &f("coordinator.key"),
+        "--client-token-file",
+        &f("client.token"),
+        "--worker-token-file",
+        &f("worker.token"),
+    ];
+    let mut args = secure.to_vec();
+    // The Cornell box's OBJ is 2293 bytes, its MTL 204.
+    args.extend(["--max-asset-bytes", "1000"]);
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &args);
+    let url = format!("https://{}", c.addr);
+    let run = |args: &[&str]| {
+        Command::new(TESSERA)
+            .args(args)
+            .env_remove("TESSERA_TOKEN")
+            .output()
+            .expect("tessera")
+    };
+    let refused = |args: &[&str], want: &str| {
+        let o = run(args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{args:?} should fail: {err}");
+        assert!(err.contains(want), "{args:?}: expected {want:?} in:\n{err}");
+    };
+    let ca = f("ca.pem");
+    let (ct, wt) = (f("client.token"), f("worker.token"));
+
+    // A scene whose model lies above its folder.
+    let scenes = dir.path().join("scenes");
+    std::fs::create_dir_all(scenes.join("inner")).expect("mkdir");
+    std::fs::copy(
+        repo("examples/models/cornell_box.obj"),
+        scenes.join("box.obj"),
+    )
+    .expect("copy");
+    let escaping = scenes.join("inner/escape.toml");
+    std::fs::write(
+        &escaping,
+        "[camera]\nposition = [0, 1, 4]\nlook_at = [0, 1, 0]\n[materials.m]\ndiffuse = [0.8, 0.8, 0.8]\n\
+         [[lights]]\nposition = [0, 1.8, 0]\n[[objects]]\ntype = \"mesh\"\npath = \"../box.obj\"\nmaterial = \"m\"\n",
+    )
+    .expect("write scene");
+    let esc = escaping.to_str().expect("path");
+    refused(
+        &[
+            "submit",
+            esc,
+            "--coordinator",
+            &url,
+            "--ca",
+            &ca,
+            "--token-file",
+            &ct,
+        ],
+        "objects[0].path: \"../box.obj\" is outside the scene's folder, so the farm would not get it; \
+         move it beside the scene, or pass --allow-outside",
+    );
+    // No token, the other kind of token, a wrong token.
+    refused(
+        &["jobs", "--coordinator", &url, "--ca", &ca],
+        "this coordinator needs a client token for this call; none was sent (give it with --token-file or TESSERA_TOKEN)",
+    );
+    refused(
+        &[
+            "jobs",
+            "--coordinator",
+            &url,
+            "--ca",
+            &ca,
+            "--token-file",
+            &wt,
+        ],
+        "a worker token was sent, but this call needs the client token",
+    );
+    let wrong = dir.path().join("wrong.token");
+    std::fs::write(&wrong, "not-the-token\n").expect("write");
+    refused(
+        &[
+            "jobs",
+            "--coordinator",
+            &url,
+            "--ca",
+            &ca,
+            "--token-file",
+            wrong.to_str().expect("path"),
+        ],
+        "the client token sent is not this coordinator's client token",
+    );
+    let register = |token: &str| {
+        rt().block_on(async {
+            let ch =
+                tessera_proto::transport::endpoint(&url, Some(&std::fs::read(&ca).expect("ca")))
+                    .expect("endpoint")
+                    .connect()
+                    .await
+                    .expect("connect");
+            let stamp = tessera_proto::VersionStamp::with_token(Some(token)).expect("stamp");
+            WorkerServiceClient::with_interceptor(ch, stamp)
+                .register(pb::RegisterRequest::default())
+                .await
+        })
+    };
+    let client_token = std::fs::read_to_string(&ct).expect("token");
+    let e = register(client_token.trim()).expect_err("a client token cannot register a worker");
+    assert_eq!(e.code(), tonic::Code::PermissionDenied, "{e:?}");
+    assert_eq!(
+        e.message(),
+        "a client token was sent, but this call needs the worker token"
+    );
+    let e = register("garbage").expect_err("a wrong worker token");
+    assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e:?}");
+    // Plain text against the TLS port.
+    refused(
+        &[
+            "jobs",
+            "--coordinator",
+            &format!("http://{}", c.addr),
+            "--token-file",
+            &ct,
+        ],
+        "if the coordinator serves TLS, use an https:// URL (and --ca for its certificate)",
+    );
+    // TLS without the farm's CA.
+    refused(
+        &["jobs", "--coordinator", &url, "--token-file", &ct],
+        "invalid peer certificate: UnknownIssuer",
+    );
+    // A model over the per-file limit.
+    refused(
+        &[
+            "submit",
+            repo("examples/cornell.toml").to_str().expect("path"),
+            "--coordinator",
+            &url,
+            "--ca",
+            &ca,
+            "--token-file",
+            &ct,
+        ],
+        "is 2293 bytes, over the coordinator's limit of 1000 bytes a file (--max-asset-bytes)",
+    );
+
+    // Still healthy: health answers without a token, jobs with the right one.
+    let health = health_of(&url, Some(Path::new(&ca)), "tessera.v1.JobService");
+    assert_eq!(
+        health,
+        tonic_health::pb::health_check_response::ServingStatus::Serving as i32
+    );
+    let o = run(&[
+        "jobs",
+        "--coordinator",
+        &url,
+        "--ca",
+        &ca,
+        "--token-file",
+        &ct,
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    // With --allow-outside the model travels inside the job, and renders as locally.
+    drop(c);
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &secure);
+    let url = format!("https://{}", c.addr);
+    let _w = start_worker_with(dir.path(), &url, "w", &["--ca", &ca, "--token-file", &wt]);
+    let o = run(&[
+        "submit",
+        esc,
+        "--allow-outside",
+        "--coordinator",
+        &url,
+        "--ca",
+        &ca,
+        "--token-file",
+        &ct,
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--samples",
+        "1",
+        "--wait",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let job = String::from_utf8_lossy(&o.stdout).trim().to_string();
+    let out = dir.path().join("fetched");
+    let o = run(&[
+        "fetch",
+        &job,
+        "-o",
+        out.to_str().expect("path"),
+        "--coordinator",
+        &url,
+        "--ca",
+        &ca,
+        "--token-file",
+        &ct,
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let want = reference(
+        dir.path(),
+        &escaping,
+        0,
+        &["--width", "64", "--height", "48", "--samples", "1"],
+    );
+    assert_eq!(pixels(&out.join("frame_0000.png")), want);
+}
+
+#[test]
+fn a_worker_refetches_a_corrupt_cached_file_and_a_second_job_uploads_nothing() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let cache = dir.path().join("cache");
+    let cache_arg = cache.to_str().expect("path").to_string();
+    let mut w = start_worker_with(dir.path(), &c.url(), "w", &["--cache", &cache_arg]);
+    let scene = repo("examples/cornell.toml");
+    let stats = || {
+        rt().block_on(async {
+            jobs_client(&c.url())
+                .await
+                .get_farm_stats(pb::GetFarmStatsRequest {})
+                .await
+                .expect("stats")
+                .into_inner()
+        })
+    };
+    let job = submit(&c.url(), &scene, SMALL);
+    wait_done(&c.url(), &job, Duration::from_secs(60));
+    let first = stats();
+    assert_eq!(
+        (first.asset_uploads, first.asset_bytes_uploaded),
+        (2, 2293 + 204),
+        "OBJ and MTL uploaded: {first:?}"
+    );
+    assert_eq!(
+        first.asset_fetches, 3,
+        "scene, OBJ and MTL fetched once: {first:?}"
+    );
+
+    // The worker stops; a byte of its cached OBJ flips; it starts again.
+    w.sigkill();
+    let obj = std::fs::read(repo("examples/models/cornell_box.obj")).expect("obj");
+    let obj_hash = tessera_proto::transport::sha256_hex(&obj);
+    let cached = cache.join(&obj_hash);
+    let mut bytes = std::fs::read(&cached).expect("the OBJ is in the cache");
+    bytes[100] ^= 0x01;
+    std::fs::write(&cached, &bytes).expect("corrupt");
+    let w = start_worker_with(dir.path(), &c.url(), "w", &["--cache", &cache_arg]);
+
+    let job2 = submit(
+        &c.url(),
+        &scene,
+        &["--width", "80", "--height", "60", "--samples", "4"],
+    );
+    wait_done(&c.url(), &job2, Duration::from_secs(60));
+    let second = stats();
+    assert_eq!(
+        (
+            second.asset_uploads,
+            second.asset_bytes_uploaded,
+            second.asset_uploads_skipped
+        ),
+        (2, 2293 + 204, 0),
+        "the second submit uploads nothing (the client asked first): {second:?}"
+    );
+    assert_eq!(
+        second.asset_fetches, 4,
+        "only the corrupt OBJ is fetched again: {second:?}"
+    );
+    assert!(
+        w.log()
+            .contains("cached file does not match its hash: fetching it again"),
+        "{}",
+        w.log()
+    );
+    assert_eq!(
+        std::fs::read(&cached).expect("cached again"),
+        obj,
+        "the cache holds the true bytes again"
+    );
+    assert_frames_match_render(
+        dir.path(),
+        &c.url(),
+        &job2,
+        &scene,
+        0..=0,
+        &["--width", "80", "--height", "60", "--samples", "4"],
+    );
+}
+
+/// Mounts a tmpfs of `bytes` at `dir` (root only); unmounted when dropped.
+struct Tmpfs(PathBuf);
+
+impl Tmpfs {
+    fn mount(dir: &Path, bytes: u64) -> Result<Tmpfs, String> {
+        std::fs::create_dir_all(dir).map_err(|e| e.to_string())?;
+        let out = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={bytes}"), "tmpfs"])
+            .arg(dir)
+            .output()
+            .map_err(|e| format!("cannot run mount: {e}"))?;
+        if !out.status.success() {
+            return Err(format!(
+                "mount -t tmpfs failed (needs root): {}",
+                String::from_utf8_lossy(&out.stderr).trim()
+            ));
+        }
+        Ok(Tmpfs(dir.to_owned()))
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg("-l").arg(&self.0).status();
+    }
+}
+
+#[test]
+fn a_full_disk_during_upload_is_a_clear_error_that_keeps_the_store_and_earlier_jobs() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The asset store on a 64 KiB disk of its own; the database beside it.
+    let Some(_disk) = needs(Tmpfs::mount(&dir.path().join("data/assets"), 64 << 10)) else {
+        return;
+    };
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let _w = start_worker(dir.path(), &c.url(), "w");
+    let scene = repo("examples/cornell.toml");
+    let job = submit(&c.url(), &scene, SMALL);
+    wait_done(&c.url(), &job, Duration::from_secs(60));
+
+    // A 200 KB model does not fit.
+    let big = dir.path().join("big");
+    std::fs::create_dir_all(&big).expect("mkdir");
+    let mut obj = String::from("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    while obj.len() < 200_000 {
+        obj.push_str("# padding to make a large model file ................................\n");
+    }
+    std::fs::write(big.join("big.obj"), &obj).expect("write");
+    std::fs::write(
+        big.join("big.toml"),
+        "[camera]\nposition = [0, 0.3, 3]\nlook_at = [0.3, 0.3, 0]\n[materials.m]\ndiffuse = [0.8, 0.8, 0.8]\n\
+         [[lights]]\nposition = [0, 1, 2]\n[[objects]]\ntype = \"mesh\"\npath = \"big.obj\"\nmaterial = \"m\"\n",
+    )
+    .expect("write");
+    let o = tessera(
+        &["submit", big.join("big.toml").to_str().expect("path")],
+        &c.url(),
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("uploading big.obj: cannot store asset")
+            && err.contains("No space left on device")
+            && err.contains("nothing was stored"),
+        "{err}"
+    );
+    let tmp = std::fs::read_dir(dir.path().join("data/assets/tmp"))
+        .expect("tmp")
+        .count();
+    assert_eq!(tmp, 0, "the partial upload was removed");
+
+    // The coordinator still answers, the earlier job is intact, and a job
+    // that fits is accepted and rendered.
+    assert_eq!(status(&c.url(), &job).state, pb::JobState::Done as i32);
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, SMALL);
+    let job2 = submit(
+        &c.url(),
+        &scene,
+        &["--width", "64", "--height", "48", "--samples", "1"],
+    );
+    wait_done(&c.url(), &job2, Duration::from_secs(60));
+}
+
+#[test]
+fn stored_files_are_kept_while_an_unfinished_job_needs_them_and_collected_after() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let keep = ["--asset-retention", "0"];
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &keep);
+    let mut w = start_worker(dir.path(), &c.url(), "w");
+    let done_scene = repo("examples/cornell.toml");
+    let job1 = submit(&c.url(), &done_scene, SMALL);
+    wait_done(&c.url(), &job1, Duration::from_secs(60));
+    w.sigkill();
+    // A second scene with a model of its own, queued with no worker to run it.
+    let other = dir.path().join("other");
+    std::fs::create_dir_all(other.join("models")).expect("mkdir");
+    let obj = std::fs::read_to_string(repo("examples/models/cornell_box.obj")).expect("obj");
+    std::fs::write(
+        other.join("models/cornell_box.obj"),
+        obj + "\n# another file\n",
+    )
+    .expect("write");
+    std::fs::copy(
+        repo("examples/models/cornell_box.mtl"),
+        other.join("models/cornell_box.mtl"),
+    )
+    .expect("copy");
+    std::fs::copy(&done_scene, other.join("cornell.toml")).expect("copy");
+    let job2 = submit(&c.url(), &other.join("cornell.toml"), SMALL);
+    let hash = |p: &Path| tessera_proto::transport::sha256_hex(&std::fs::read(p).expect("read"));
+    let (done_obj, queued_obj) = (
+        hash(&repo("examples/models/cornell_box.obj")),
+        hash(&other.join("models/cornell_box.obj")),
+    );
+    let missing = |url: &str| -> Vec<String> {
+        rt().block_on(async {
+            jobs_client(url)
+                .await
+                .find_missing_assets(pb::FindMissingAssetsRequest {
+                    assets: [&done_obj, &queued_obj]
+                        .iter()
+                        .map(|h| pb::AssetRef {
+                            sha256: h.to_string(),
+                            size: 0,
+                        })
+                        .collect(),
+                })
+                .await
+                .expect("find missing")
+                .into_inner()
+                .missing
+        })
+    };
+    assert!(missing(&c.url()).is_empty(), "both models are stored");
+    // The collector runs at start (and every minute): the finished job's
+    // model goes, the queued job's stays (the shared MTL too).
+    drop(c);
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &keep);
+    wait_for("the collector", Duration::from_secs(10), || {
+        missing(&c.url()) == vec![done_obj.clone()]
+    });
+    let stats = rt().block_on(async {
+        jobs_client(&c.url())
+            .await
+            .get_farm_stats(pb::GetFarmStatsRequest {})
+            .await
+            .expect("stats")
+            .into_inner()
+    });
+    // The two scenes' TOML and MTL are the same bytes, so only the OBJ was the finished job's alone.
+    assert_eq!(stats.assets_collected, 1, "{stats:?}");
+    let _w = start_worker(dir.path(), &c.url(), "w2");
+    wait_done(&c.url(), &job2, Duration::from_secs(60));
+    assert_frames_match_render(
+        dir.path(),
+        &c.url(),
+        &job2,
+        &other.join("cornell.toml"),
+        0..=0,
+        SMALL,
+    );
+}
+
+/// A service's health status, asked without a token (over TLS trusting
+/// `ca` for an https:// URL).
+fn health_of(url: &str, ca: Option<&Path>, service: &str) -> i32 {
+    rt().block_on(async {
+        let ca = ca.map(|p| std::fs::read(p).expect("ca"));
+        let ch = tessera_proto::transport::endpoint(url, ca.as_deref())
+            .expect("endpoint")
+            .connect()
+            .await
+            .expect("connect");
+        tonic_health::pb::health_client::HealthClient::new(ch)
+            .check(tonic_health::pb::HealthCheckRequest {
+                service: service.into(),
+            })
+            .await
+            .expect("health")
+            .into_inner()
+            .status
+    })
+}
+
+#[test]
+fn a_full_disk_is_an_outage_that_heals_by_itself_and_loses_nothing() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The whole --data on a disk of its own (redb grows its file in large
+    // steps, so not a tiny one).
+    let Some(_disk) = needs(Tmpfs::mount(&dir.path().join("data"), 512 << 20)) else {
+        return;
+    };
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let w = start_worker(dir.path(), &c.url(), "w");
+    let scene = repo("examples/resolution.toml");
+    let settings = ["--width", "96", "--height", "72", "--samples", "256"];
+    let mut args = settings.to_vec();
+    args.extend(["--samples-per-unit", "2", "--tile-size", "16"]);
+    let job = submit(&c.url(), &scene, &args);
+    wait_for("some units", Duration::from_secs(60), || {
+        status(&c.url(), &job).units_done > 20
+    });
+    // Fill the disk.
+    let filler = dir.path().join("data/filler");
+    {
+        use std::io::Write as _;
+        let mut f = std::fs::File::create(&filler).expect("filler");
+        let block = vec![0u8; 1 << 16];
+        while f.write_all(&block).is_ok() {}
+    }
+    wait_for(
+        "the coordinator to report NOT_SERVING",
+        Duration::from_secs(30),
+        || {
+            health_of(&c.url(), None, "tessera.v1.WorkerService")
+                == ServingStatus::NotServing as i32
+        },
+    );
+    let stalled = status(&c.url(), &job);
+    assert_eq!(stalled.state, pb::JobState::Running as i32);
+    let o = tessera(&["submit", scene.to_str().expect("path")], &c.url());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("the coordinator cannot write its database (")
+            && err.contains("No space left on device")
+            && err.contains("It recovers by itself once writes succeed again"),
+        "{err}"
+    );
+    // Space again: it heals without a restart, and the job ends as it would have.
+    std::fs::remove_file(&filler).expect("free space");
+    wait_for(
+        "the coordinator to report SERVING",
+        Duration::from_secs(30),
+        || health_of(&c.url(), None, "tessera.v1.WorkerService") == ServingStatus::Serving as i32,
+    );
+    let done = wait_done(&c.url(), &job, Duration::from_secs(120));
+    assert_eq!(done.units_done, done.units_total);
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+    let log = w.log();
+    let resends = log
+        .matches("results not recorded; sending them again")
+        .count();
+    assert!(
+        resends < 40,
+        "the worker backs off ({resends} resends):\n{log}"
+    );
+}
+
+#[test]
+fn delete_forgets_a_finished_job_for_good_and_refuses_an_unfinished_one() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let scene = repo("examples/resolution.toml");
+    let queued = submit(&c.url(), &scene, SMALL);
+    let o = tessera(&["delete", &queued], &c.url());
+    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(
+        String::from_utf8_lossy(&o.stderr).trim(),
+        format!("error: job {queued} is queued; cancel it first (tessera cancel {queued})")
+    );
+    let _w = start_worker(dir.path(), &c.url(), "w");
+    wait_done(&c.url(), &queued, Duration::from_secs(60));
+    let out = dir.path().join("data/outputs").join(&queued);
+    assert!(out.join("frame_0000.png").exists());
+    assert_eq!(
+        ok_stdout(&tessera(&["delete", &queued], &c.url())).trim(),
+        format!("deleted {queued}")
+    );
+    assert!(!out.exists(), "its images are gone");
+    let o = tessera(&["status", &queued], &c.url());
+    assert!(String::from_utf8_lossy(&o.stderr).contains(&format!("no job \"{queued}\"")));
+    drop(c);
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let o = tessera(&["jobs"], &c.url());
+    assert!(
+        !ok_stdout(&o).contains(&queued),
+        "deleted for good, also after a restart"
+    );
+}
+
+/// `tessera jobs | head -1` when head has already gone: the listing ends
+/// quietly with 141 (as `ls` killed by SIGPIPE), no panic text; and the
+/// client's own sockets are unaffected (the same command to a closed port
+/// still reports its error with exit 1).
+#[test]
+fn a_closed_output_pipe_ends_client_commands_quietly() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let scene = repo("examples/resolution.toml");
+    let job = submit(&c.url(), &scene, &["--width", "16", "--height", "16"]);
+    for args in [vec!["jobs"], vec!["status", job.as_str()], vec!["workers"]] {
+        let (reader, writer) = std::io::pipe().expect("pipe");
+        drop(reader); // every write to stdout now fails with EPIPE
+        let out = Command::new(TESSERA)
+            .args(&args)
+            .env("TESSERA_COORDINATOR", c.url())
+            .stdout(writer)
+            .stderr(Stdio::piped())
+            .output()
+            .expect("run tessera");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(141), "{args:?}: {err}");
+        assert!(err.is_empty(), "{args:?}: printed {err:?}");
+    }
 }

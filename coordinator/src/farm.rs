@@ -13,16 +13,21 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use sha2::{Digest, Sha256};
 use tokio::sync::watch;
+use tracer_core::assets::Bundle;
 use tracer_core::film::{FIXED_ONE, Film, MAX_SAMPLE_VALUE, RayCounts, Rect, SampleRange};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
+use crate::assets::{AssetLimits, AssetStore, AssetStoreError, sha256_hex};
 use crate::store::{Counters, JobRecord, JobStateRec, Op, Store, StoreError};
 use crate::units::{
-    DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE, Layout, Unit,
+    DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE, Layout,
+    RESULT_BYTES_PER_PIXEL, Unit, unit_count,
 };
+
+/// Most work units in one job.
+pub const MAX_UNITS: u64 = 10_000_000;
 
 /// Coordinator settings (see `tessera coordinator --help`).
 #[derive(Clone, Debug)]
@@ -41,6 +46,11 @@ pub struct Config {
     pub max_message_bytes: usize,
     /// Cadence of progress log lines.
     pub progress_interval: Duration,
+    /// Bounds on stored scene files.
+    pub asset_limits: AssetLimits,
+    /// Largest frame (width x height) a job may have: the coordinator
+    /// holds a frame's film (28 bytes a pixel) while it fills.
+    pub max_frame_pixels: u64,
 }
 
 impl Config {
@@ -56,6 +66,9 @@ impl Config {
             max_tiles_per_lease: 256,
             max_message_bytes: 64 << 20,
             progress_interval: Duration::from_secs(2),
+            asset_limits: AssetLimits::default(),
+            // 8K UHD (7680 x 4320 = 33.2 M) fits; the film is 1.1 GB.
+            max_frame_pixels: 40_000_000,
         }
     }
 }
@@ -69,6 +82,12 @@ pub enum FarmError {
     NotFound(String),
     #[error("{0}")]
     FailedPrecondition(String),
+    /// Over a configured limit (the message names it).
+    #[error("{0}")]
+    ResourceExhausted(String),
+    /// A storage failure that may pass (a full disk): nothing was recorded.
+    #[error("{0}")]
+    Unavailable(String),
     #[error("storage: {0}")]
     Store(#[from] StoreError),
     #[error("{0}")]
@@ -76,12 +95,15 @@ pub enum FarmError {
 }
 
 /// Everything a submit carries, already unpacked from the wire.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct Submission {
     pub name: String,
     pub scene_name: String,
     pub scene: Vec<u8>,
+    /// Files sent inline: (name, content).
     pub assets: Vec<(String, Vec<u8>)>,
+    /// Files already uploaded: name -> sha256.
+    pub files: BTreeMap<String, String>,
     /// Applied to the scene's `[render]` table.
     pub overrides: Overrides,
     pub first_frame: u32,
@@ -293,6 +315,11 @@ impl State {
 pub struct Farm {
     pub config: Config,
     store: Store,
+    /// The scene files, content-addressed, under `data_dir/assets`.
+    pub assets: AssetStore,
+    /// Results for leases this run never granted (from before a restart):
+    /// dropped, and counted here since no job can count them.
+    pub results_unknown_lease: std::sync::atomic::AtomicU64,
     state: Mutex<State>,
     /// Distinguishes this run's lease and worker ids from earlier runs'.
     boot: String,
@@ -305,13 +332,6 @@ fn now_ms() -> i64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_millis() as i64)
-}
-
-pub fn sha256_hex(b: &[u8]) -> String {
-    Sha256::digest(b)
-        .iter()
-        .map(|x| format!("{x:02x}"))
-        .collect()
 }
 
 fn sampler_name(s: Sampler) -> &'static str {
@@ -337,6 +357,45 @@ fn settings_of(rec: &JobRecord) -> Result<RenderSettings, String> {
     Ok(s)
 }
 
+/// A job's or worker's name as shown in terminals and logs: printable, no
+/// control characters (an escape sequence or newline in a name would
+/// rewrite `tessera jobs`' output), at most `max` characters.
+pub fn check_name(what: &str, name: &str, max: usize) -> Result<(), FarmError> {
+    if name.chars().count() > max || name.chars().any(char::is_control) {
+        return Err(FarmError::InvalidArgument(format!(
+            "{what} {:?} must be printable text of at most {max} characters, without control characters",
+            name.chars().take(60).collect::<String>()
+        )));
+    }
+    Ok(())
+}
+
+/// A job file's name: the path the scene writes, relative to its folder.
+/// It is only ever a key (files are stored by hash), but it must be one a
+/// loader can produce.
+fn check_file_name(name: &str) -> Result<(), FarmError> {
+    if name.is_empty() || name.len() > 4096 || name.contains('\0') {
+        return Err(FarmError::InvalidArgument(format!(
+            "file name {:?} must be a non-empty path of at most 4096 bytes",
+            name.chars().take(100).collect::<String>()
+        )));
+    }
+    Ok(())
+}
+
+pub(crate) fn asset_error(e: AssetStoreError) -> FarmError {
+    match e {
+        AssetStoreError::NotFound(m) => {
+            FarmError::NotFound(format!("asset {m} is not on the coordinator"))
+        }
+        e @ (AssetStoreError::TooLarge { .. } | AssetStoreError::StoreFull { .. }) => {
+            FarmError::ResourceExhausted(e.to_string())
+        }
+        e @ AssetStoreError::Io { .. } => FarmError::Unavailable(e.to_string()),
+        e => FarmError::InvalidArgument(e.to_string()),
+    }
+}
+
 pub fn frame_file_name(frame: u32) -> String {
     format!("frame_{frame:04}.png")
 }
@@ -348,11 +407,20 @@ impl Farm {
             FarmError::Internal(format!("cannot create {}: {e}", config.data_dir.display()))
         })?;
         let store = Store::open(&config.data_dir.join("tessera.redb"))?;
+        let assets = AssetStore::open(&config.data_dir.join("assets"), config.asset_limits)
+            .map_err(|e| {
+                FarmError::Internal(format!(
+                    "cannot open the asset store in {}: {e}",
+                    config.data_dir.join("assets").display()
+                ))
+            })?;
         let snap = store.load()?;
         let boot = format!("{:x}", now_ms() as u64 ^ (std::process::id() as u64) << 40);
         let farm = Arc::new(Farm {
             config,
             store,
+            assets,
+            results_unknown_lease: Default::default(),
             state: Mutex::new(State::default()),
             boot,
             work_ready: tokio::sync::Notify::new(),
@@ -363,23 +431,26 @@ impl Farm {
             let mut films = snap.unit_films;
             let mut written = snap.frames_written;
             for (rec, counters) in snap.jobs {
-                let settings = settings_of(&rec).map_err(|message| StoreError::Corrupt {
-                    what: format!("job {}", rec.id),
-                    message,
-                })?;
+                // A job this coordinator cannot hold (stored by an older
+                // release, or under larger limits) is left out, not allowed
+                // to stop every other job from resuming.
+                let settings = match settings_of(&rec).and_then(|s| farm.check_size(&rec, &s)) {
+                    Ok(s) => s,
+                    Err(message) => {
+                        tracing::error!(job = %rec.id, name = %rec.name, %message,
+                            "job not resumed: its settings exceed what this coordinator accepts");
+                        continue;
+                    }
+                };
                 let mut job = Job::new(rec, settings, counters);
                 if !job.state.is_terminal() {
                     // Derived state, not stored: probed again from the stored scene.
-                    let scene = farm
-                        .store
-                        .asset(&job.rec.scene_sha256)
-                        .ok()
-                        .flatten()
-                        .and_then(|b| String::from_utf8(b).ok());
-                    if let Some(desc) =
-                        scene.and_then(|t| SceneDesc::parse(&t, &job.rec.scene_name).ok())
-                    {
-                        job.tile_rays = crate::cost::probe(&desc, &job.settings, &job.layout);
+                    match farm.stored_scene(&job.rec) {
+                        Ok(desc) => {
+                            job.tile_rays = crate::cost::probe(&desc, &job.settings, &job.layout)
+                        }
+                        Err(e) => tracing::warn!(job = %job.rec.id, error = %e,
+                            "cannot read the job's scene back: leases are sized without its cost probe"),
                     }
                 }
                 for (frame, file) in written.remove(&job.rec.id).unwrap_or_default() {
@@ -426,6 +497,55 @@ impl Farm {
         Ok(farm)
     }
 
+    /// Whether the database takes writes (false during an outage such as
+    /// a full disk, until the writer's probe succeeds again).
+    pub fn storage_ok(&self) -> bool {
+        self.store.health.ok()
+    }
+
+    fn check_storage(&self) -> Result<(), FarmError> {
+        if self.storage_ok() {
+            return Ok(());
+        }
+        Err(FarmError::Unavailable(format!(
+            "the coordinator cannot write its database ({}); nothing was accepted. \
+             It recovers by itself once writes succeed again (free space under --data); send the request again then",
+            self.store.health.last_error()
+        )))
+    }
+
+    /// Most pixels of one result that fit the message limit (with room
+    /// for the request's other fields).
+    pub fn max_result_pixels(&self) -> u64 {
+        (self.config.max_message_bytes as u64).saturating_sub(64 << 10) / RESULT_BYTES_PER_PIXEL
+    }
+
+    /// A stored job's size against this coordinator's limits.
+    fn check_size(&self, rec: &JobRecord, s: &RenderSettings) -> Result<RenderSettings, String> {
+        let pixels = u64::from(s.width) * u64::from(s.height);
+        if pixels > self.config.max_frame_pixels {
+            return Err(format!(
+                "{pixels} pixels a frame, over --max-frame-pixels {}",
+                self.config.max_frame_pixels
+            ));
+        }
+        if rec.last_frame < rec.first_frame {
+            return Err("empty frame range".into());
+        }
+        let units = unit_count(
+            s.width,
+            s.height,
+            s.samples,
+            rec.last_frame - rec.first_frame + 1,
+            rec.tile_size,
+            rec.samples_per_unit,
+        );
+        if units == 0 || units > MAX_UNITS {
+            return Err(format!("{units} work units (the limit is {MAX_UNITS})"));
+        }
+        Ok(*s)
+    }
+
     fn new_id(&self, st: &mut State, prefix: &str) -> String {
         st.next_id += 1;
         format!("{prefix}{}-{}", self.boot, st.next_id)
@@ -439,8 +559,56 @@ impl Farm {
         let text = std::str::from_utf8(&s.scene).map_err(|e| {
             FarmError::InvalidArgument(format!("{}: scene is not UTF-8 text: {e}", s.scene_name))
         })?;
-        let scene = SceneDesc::parse(text, &s.scene_name)
-            .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
+        self.check_storage()?;
+        check_name("job name", &s.name, 200)?;
+        check_name("scene name", &s.scene_name, 4096)?;
+        // The job's files: inline ones stored now, uploaded ones named by
+        // hash. The scene is validated from these alone.
+        let limits = self.assets.limits;
+        let mut files = BTreeMap::new();
+        let mut job_bytes = s.scene.len() as u64;
+        for (name, content) in &s.assets {
+            check_file_name(name)?;
+            let sha256 = self.assets.put(content).map_err(asset_error)?;
+            job_bytes += content.len() as u64;
+            files.insert(name.clone(), sha256);
+        }
+        for (name, sha256) in &s.files {
+            check_file_name(name)?;
+            crate::assets::check_hash(sha256)
+                .map_err(|e| FarmError::InvalidArgument(format!("files[{name:?}]: {e}")))?;
+            let size = self.assets.size(sha256).ok_or_else(|| {
+                FarmError::FailedPrecondition(format!(
+                    "files[{name:?}]: asset {sha256} is not on the coordinator; upload it first (UploadAsset)"
+                ))
+            })?;
+            job_bytes += size;
+            files.insert(name.clone(), sha256.clone());
+        }
+        if job_bytes > limits.max_job_bytes {
+            return Err(FarmError::ResourceExhausted(format!(
+                "the job's files are {job_bytes} bytes, over the coordinator's limit of {} bytes a job (--max-job-bytes)",
+                limits.max_job_bytes
+            )));
+        }
+        let bundle = {
+            let farm = self.clone();
+            let files = files.clone();
+            tokio::task::spawn_blocking(move || farm.bundle(&files))
+                .await
+                .map_err(|e| FarmError::Internal(format!("reading the job's files: {e}")))??
+        };
+        let scene = {
+            let text = text.to_string();
+            let scene_name = s.scene_name.clone();
+            tokio::task::spawn_blocking(move || SceneDesc::parse_from(&text, &scene_name, &bundle))
+                .await
+                .map_err(|e| FarmError::Internal(format!("scene validation: {e}")))?
+                .map_err(|e| FarmError::InvalidArgument(e.to_string()))?
+        };
+        for w in &scene.warnings {
+            tracing::warn!(scene = %s.scene_name, "{w}");
+        }
         let settings = s.overrides.apply(&scene.render);
         settings
             .validate()
@@ -480,6 +648,43 @@ impl Farm {
         } else {
             s.max_attempts
         };
+        let pixels = u64::from(settings.width) * u64::from(settings.height);
+        if pixels > self.config.max_frame_pixels {
+            return Err(FarmError::InvalidArgument(format!(
+                "a {}x{} frame has {pixels} pixels, over the coordinator's limit of {} (--max-frame-pixels): \
+                 the coordinator holds a frame's sums while it fills, {:.1} GB for this one",
+                settings.width,
+                settings.height,
+                self.config.max_frame_pixels,
+                (pixels * RESULT_BYTES_PER_PIXEL) as f64 / 1e9
+            )));
+        }
+        // One tile's result must fit one message.
+        let tile_pixels =
+            u64::from(tile_size.min(settings.width)) * u64::from(tile_size.min(settings.height));
+        let max_pixels = self.max_result_pixels();
+        if tile_pixels > max_pixels {
+            let side = (max_pixels as f64).sqrt() as u64 / 8 * 8;
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size {tile_size} makes results of {} bytes, over the coordinator's message limit of {} bytes \
+                 (--max-message-bytes); use tiles of at most {side} px",
+                tile_pixels * RESULT_BYTES_PER_PIXEL,
+                self.config.max_message_bytes
+            )));
+        }
+        let units = unit_count(
+            settings.width,
+            settings.height,
+            settings.samples,
+            last - first + 1,
+            tile_size,
+            samples_per_unit,
+        );
+        if units == 0 || units > MAX_UNITS {
+            return Err(FarmError::InvalidArgument(format!(
+                "the job would have {units} work units (the limit is {MAX_UNITS}); use larger tiles or sample batches"
+            )));
+        }
         let layout = Layout::new(
             settings.width,
             settings.height,
@@ -489,12 +694,6 @@ impl Farm {
             tile_size,
             samples_per_unit,
         );
-        if layout.total() as u64 > 10_000_000 {
-            return Err(FarmError::InvalidArgument(format!(
-                "the job would have {} work units; use larger tiles or sample batches",
-                layout.total()
-            )));
-        }
         // Off the async threads: it traces a few rays of every tile.
         let tile_rays = {
             let layout = layout.clone();
@@ -502,28 +701,12 @@ impl Farm {
                 .await
                 .map_err(|e| FarmError::Internal(format!("cost probe: {e}")))?
         };
-        for (name, _) in &s.assets {
-            if name.is_empty() || name.starts_with('/') || name.split('/').any(|p| p == "..") {
-                return Err(FarmError::InvalidArgument(format!(
-                    "asset name {name:?} must be a relative path inside the scene's directory"
-                )));
-            }
+        let scene_sha256 = self.assets.put(&s.scene).map_err(asset_error)?;
+        for sha256 in files.values().chain([&scene_sha256]) {
+            self.assets.touch(sha256);
         }
-
-        let scene_sha256 = sha256_hex(&s.scene);
-        let mut ops = vec![Op::PutAsset {
-            sha256: scene_sha256.clone(),
-            content: s.scene.clone(),
-        }];
-        let mut assets = BTreeMap::new();
-        for (name, content) in &s.assets {
-            let h = sha256_hex(content);
-            assets.insert(name.clone(), h.clone());
-            ops.push(Op::PutAsset {
-                sha256: h,
-                content: content.clone(),
-            });
-        }
+        let assets = files;
+        let mut ops = Vec::new();
         let id = {
             let mut st = self.state.lock().expect("state lock");
             st.next_id += 1;
@@ -635,6 +818,39 @@ impl Farm {
         self.job(id)
     }
 
+    /// Forgets a finished (done, failed or cancelled) job: its record,
+    /// stored films and output images. Its files go with the next asset
+    /// collection once no other job needs them.
+    pub async fn delete(self: &Arc<Self>, id: &str) -> Result<(), FarmError> {
+        let dir = {
+            let st = self.state.lock().expect("state lock");
+            let job = st
+                .jobs
+                .get(id)
+                .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
+            if !job.state.is_terminal() {
+                return Err(FarmError::FailedPrecondition(format!(
+                    "job {id} is {}; cancel it first (tessera cancel {id})",
+                    match job.state {
+                        JobState::Queued => "queued",
+                        _ => "running",
+                    }
+                )));
+            }
+            PathBuf::from(&job.rec.output_dir)
+        };
+        self.store
+            .write(vec![Op::DeleteJob(id.to_string())])
+            .await?;
+        self.state.lock().expect("state lock").jobs.remove(id);
+        // Only a folder of this store's outputs, never a path a record could name elsewhere.
+        if dir.starts_with(self.config.data_dir.join("outputs")) {
+            let _ = tokio::fs::remove_dir_all(&dir).await;
+        }
+        tracing::info!(job = %id, "job deleted");
+        Ok(())
+    }
+
     /// Finished frames: (frame, file name, path).
     pub fn outputs(&self, id: &str) -> Result<Vec<(u32, String, PathBuf)>, FarmError> {
         let st = self.state.lock().expect("state lock");
@@ -676,10 +892,48 @@ impl Farm {
         v
     }
 
+    /// A stored file (from the asset store, or the database of an older
+    /// release, which kept files there).
     pub fn asset(&self, sha256: &str) -> Result<Vec<u8>, FarmError> {
-        self.store
-            .asset(sha256)?
-            .ok_or_else(|| FarmError::NotFound(format!("no asset with sha256 {sha256}")))
+        match self.assets.read(sha256) {
+            Ok(b) => Ok(b),
+            Err(AssetStoreError::NotFound(_)) => self
+                .store
+                .asset(sha256)?
+                .ok_or_else(|| FarmError::NotFound(format!("no asset with sha256 {sha256}"))),
+            Err(e) => Err(asset_error(e)),
+        }
+    }
+
+    /// A job's files (name -> hash) read into a bundle.
+    fn bundle(&self, files: &BTreeMap<String, String>) -> Result<Bundle, FarmError> {
+        let mut bundle = Bundle::new();
+        for (name, sha256) in files {
+            bundle.insert(name.clone(), self.asset(sha256)?);
+        }
+        Ok(bundle)
+    }
+
+    /// A stored job's scene, parsed from its stored files.
+    fn stored_scene(&self, rec: &JobRecord) -> Result<SceneDesc, FarmError> {
+        let text = String::from_utf8(self.asset(&rec.scene_sha256)?)
+            .map_err(|e| FarmError::Internal(format!("stored scene is not UTF-8: {e}")))?;
+        SceneDesc::parse_from(&text, &rec.scene_name, &self.bundle(&rec.assets)?)
+            .map_err(|e| FarmError::Internal(e.to_string()))
+    }
+
+    /// Removes stored files that no unfinished job names and none has
+    /// named for the retention time.
+    pub fn collect_assets(&self) -> u64 {
+        let keep: HashSet<String> = {
+            let st = self.state.lock().expect("state lock");
+            st.jobs
+                .values()
+                .filter(|j| !j.state.is_terminal())
+                .flat_map(|j| j.rec.assets.values().chain([&j.rec.scene_sha256]).cloned())
+                .collect()
+        };
+        self.assets.collect(&keep)
     }
 
     // ---- workers ----------------------------------------------------------
@@ -729,6 +983,11 @@ impl Farm {
             .get_mut(worker_id)
             .ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
+        // No new work while results cannot be recorded: workers wait
+        // instead of rendering units whose results would be refused.
+        if !self.store.health.ok() {
+            return Ok(Vec::new());
+        }
         let speed = worker.ray_speed;
         let workers = st.workers.len();
         let mut order: Vec<(&String, &Job)> = st
@@ -783,9 +1042,13 @@ impl Farm {
                     } else {
                         want
                     };
+                    // A lease's result must fit one message.
+                    let tile = u64::from(job.layout.tile_size).pow(2).max(1);
+                    let fit =
+                        (self.max_result_pixels() / tile).clamp(1, u64::from(u32::MAX)) as u32;
                     job.layout.join(
                         first,
-                        self.config.max_tiles_per_lease,
+                        self.config.max_tiles_per_lease.min(fit),
                         |u| job.pending.contains(&u),
                         rays,
                         budget,
@@ -1094,6 +1357,8 @@ impl Farm {
                     Some(job.clone()),
                 )
             } else {
+                self.results_unknown_lease
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                 (
                     Outcome::Late(format!(
                         "lease {} is unknown (expired before a coordinator restart, or never granted); result dropped",
@@ -1197,7 +1462,7 @@ impl Farm {
             job.mark_done(u);
         }
         job.samples_this_run += samples;
-        job.rays_this_run += film.rays.total();
+        job.rays_this_run = job.rays_this_run.saturating_add(film.rays.total());
         let rays = [
             film.rays.primary,
             film.rays.shadow,
@@ -1205,7 +1470,7 @@ impl Farm {
             film.rays.refraction,
         ];
         for (a, b) in job.counters.rays.iter_mut().zip(rays) {
-            *a += b;
+            *a = a.saturating_add(b);
         }
         if !job.state.is_terminal() {
             let (w, h) = (job.layout.width, job.layout.height);
@@ -1221,7 +1486,10 @@ impl Farm {
             w.units_done += t.units.len() as u64;
             if r.render_seconds > 0.0 {
                 // The estimates drop at once and rise slowly: a lease that
-                // runs long costs the job's end more than one that runs short.
+                // runs long costs the job's end more than one that runs
+                // short. Times under 0.1 ms are taken as 0.1 ms, so an
+                // absurd report (5e-324 s) gives a finite speed.
+                let seconds = r.render_seconds.max(1e-4);
                 let smooth = |old: f64, new: f64| {
                     if old == 0.0 || new < old {
                         new
@@ -1229,8 +1497,8 @@ impl Farm {
                         0.7 * old + 0.3 * new
                     }
                 };
-                w.speed = smooth(w.speed, samples as f64 / r.render_seconds);
-                w.ray_speed = smooth(w.ray_speed, film.rays.total() as f64 / r.render_seconds);
+                w.speed = smooth(w.speed, samples as f64 / seconds);
+                w.ray_speed = smooth(w.ray_speed, film.rays.total() as f64 / seconds);
             }
         }
         Ok(Outcome::Accepted)
@@ -1260,33 +1528,53 @@ impl Farm {
             let file = frame_file_name(frame);
             let path = dir.join(&file);
             let tmp = dir.join(format!(".{file}.tmp.png"));
-            let result = tokio::task::spawn_blocking(move || -> Result<(), String> {
-                std::fs::create_dir_all(&dir)
-                    .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
-                crate::image::write_image(&tmp, &film).map_err(|e| e.to_string())?;
-                std::fs::rename(&tmp, &path).map_err(|e| {
-                    format!("cannot rename {} to {}: {e}", tmp.display(), path.display())
+            // Every unit of the frame is stored: a failed write (a full
+            // disk) is retried until it succeeds, never a failed job.
+            let mut film = film;
+            let mut backoff = Duration::from_millis(200);
+            loop {
+                let (dir, tmp, path) = (dir.clone(), tmp.clone(), path.clone());
+                let result = tokio::task::spawn_blocking(move || {
+                    let r = (|| -> Result<(), String> {
+                        std::fs::create_dir_all(&dir)
+                            .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+                        crate::image::write_image(&tmp, &film).map_err(|e| e.to_string())?;
+                        std::fs::rename(&tmp, &path).map_err(|e| {
+                            format!("cannot rename {} to {}: {e}", tmp.display(), path.display())
+                        })
+                    })();
+                    if r.is_err() {
+                        let _ = std::fs::remove_file(&tmp);
+                    }
+                    (r, film)
                 })
-            })
-            .await;
-            let err = match result {
-                Ok(Ok(())) => None,
-                Ok(Err(e)) => Some(e),
-                Err(e) => Some(e.to_string()),
-            };
-            if let Some(e) = err {
-                tracing::error!(job = %job_id, frame, error = %e, "cannot write frame");
-                let rec = {
-                    let mut st = self.state.lock().expect("state lock");
-                    st.jobs.get_mut(&job_id).map(|job| {
-                        job.finish(JobState::Failed, format!("cannot write frame {frame}: {e}"));
-                        job.rec.clone()
-                    })
-                };
-                if let Some(rec) = rec {
-                    let _ = self.store.write(vec![Op::PutJob(rec)]).await;
+                .await;
+                match result {
+                    Ok((Ok(()), _)) => {
+                        if let Some(job) =
+                            self.state.lock().expect("state lock").jobs.get_mut(&job_id)
+                            && job.rec.error.starts_with("cannot write frame")
+                        {
+                            job.rec.error.clear();
+                        }
+                        break;
+                    }
+                    Ok((Err(e), f)) => {
+                        film = f;
+                        tracing::error!(job = %job_id, frame, error = %e, retry_in_ms = backoff.as_millis() as u64, "cannot write frame; retrying");
+                        if let Some(job) =
+                            self.state.lock().expect("state lock").jobs.get_mut(&job_id)
+                        {
+                            job.rec.error = format!("cannot write frame {frame} (retrying): {e}");
+                        }
+                        tokio::time::sleep(backoff).await;
+                        backoff = (backoff * 2).min(Duration::from_secs(10));
+                    }
+                    Err(e) => {
+                        tracing::error!(job = %job_id, frame, error = %e, "frame writer panicked");
+                        return;
+                    }
                 }
-                return;
             }
             // The image is on disk; until the record is too, the job cannot
             // be done. Retry (a full disk or a transient error may pass); a
@@ -1498,6 +1786,25 @@ fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
         return Err(format!(
             "result counts {} primary rays, the unit has {primary}",
             film.rays.primary
+        ));
+    }
+    // Far above any real ray tree (2^32 rays a sample), far below wrapping.
+    let most = primary.saturating_mul(1 << 32);
+    for (kind, count) in [
+        ("shadow", film.rays.shadow),
+        ("reflection", film.rays.reflection),
+        ("refraction", film.rays.refraction),
+    ] {
+        if count > most {
+            return Err(format!(
+                "result counts {count} {kind} rays, more than 2^32 a sample"
+            ));
+        }
+    }
+    if film.nonfinite > primary {
+        return Err(format!(
+            "result counts {} non-finite samples, the unit has {primary} samples",
+            film.nonfinite
         ));
     }
     if !(r.render_seconds.is_finite() && r.render_seconds >= 0.0) {
@@ -1746,6 +2053,52 @@ radius = 1
 material = "red"
 "#;
 
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn submits_too_large_to_hold_or_to_count_are_refused_with_the_limit_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+        let submit = |w: u32, h: u32, spp: u32, tile: u32, spu: u32| {
+            let farm = farm.clone();
+            async move {
+                farm.submit(Submission {
+                    scene_name: "t.toml".into(),
+                    scene: SCENE.as_bytes().to_vec(),
+                    overrides: Overrides {
+                        width: Some(w),
+                        height: Some(h),
+                        samples: Some(spp),
+                        max_depth: Some(1),
+                        ..Default::default()
+                    },
+                    tile_size: tile,
+                    samples_per_unit: spu,
+                    ..Default::default()
+                })
+                .await
+                .map(|_| ())
+                .unwrap_err()
+                .to_string()
+            }
+        };
+        let e = submit(32768, 32768, 1, 1024, 0).await;
+        assert!(
+            e.starts_with("a 32768x32768 frame has 1073741824 pixels, over the coordinator's limit of 40000000 (--max-frame-pixels)"),
+            "{e}"
+        );
+        // 256 x 256 tiles x 65536 batches: 2^32 units, 0 in u32.
+        let e = submit(2048, 2048, 65536, 8, 1).await;
+        assert_eq!(
+            e,
+            "the job would have 4294967296 work units (the limit is 10000000); use larger tiles or sample batches"
+        );
+        let e = submit(2048, 2048, 1, 2048, 0).await;
+        assert!(
+            e.starts_with("tile_size 2048 makes results of 117440512 bytes, over the coordinator's message limit of 67108864 bytes"),
+            "{e}"
+        );
+        assert!(farm.jobs().is_empty(), "nothing was accepted");
+    }
+
     /// A well-formed result for a lease, as a worker taking `seconds` would send.
     fn result(worker: &str, l: &LeaseView, seconds: f64) -> ResultData {
         let mut film = Film::new(l.rect);
@@ -1777,6 +2130,7 @@ material = "red"
                 scene_name: "t.toml".into(),
                 scene: SCENE.as_bytes().to_vec(),
                 assets: vec![],
+                files: Default::default(),
                 overrides: Overrides {
                     width: Some(width),
                     height: Some(height),
@@ -1924,6 +2278,55 @@ material = "red"
         );
     }
 
+    #[tokio::test]
+    async fn counters_from_workers_cannot_wrap_and_names_cannot_hold_control_characters() {
+        let (_dir, farm, _job) = farm_with_job(64, 64, 4).await;
+        let w = register(&farm, "w", 1);
+        let l = farm.lease(&w, 1, false).unwrap().remove(0);
+        let mut r = result(&w, &l, 0.01);
+        r.film.as_mut().unwrap().rays.shadow = u64::MAX;
+        let o = farm.submit_result(r).await.unwrap();
+        assert!(
+            matches!(&o, Outcome::Rejected(m) if m.contains("u64::MAX") || m.contains("more than 2^32 a sample")),
+            "{o:?}"
+        );
+        let l = farm.lease(&w, 1, false).unwrap().remove(0);
+        let mut r = result(&w, &l, 0.01);
+        r.film.as_mut().unwrap().nonfinite = u64::MAX;
+        let o = farm.submit_result(r).await.unwrap();
+        assert!(
+            matches!(&o, Outcome::Rejected(m) if m.contains("non-finite samples")),
+            "{o:?}"
+        );
+        // A result for a lease this run never granted (from before a restart).
+        let l = farm.lease(&w, 1, false).unwrap().remove(0);
+        let mut r = result(&w, &l, 0.01);
+        r.lease_id = "l-from-an-earlier-run".into();
+        assert!(matches!(
+            farm.submit_result(r).await.unwrap(),
+            Outcome::Late(_)
+        ));
+        assert_eq!(
+            farm.results_unknown_lease
+                .load(std::sync::atomic::Ordering::Relaxed),
+            1
+        );
+        let e = farm
+            .submit(Submission {
+                name: "evil\u{1b}[2J\nname".into(),
+                scene_name: "t.toml".into(),
+                scene: SCENE.as_bytes().to_vec(),
+                ..Default::default()
+            })
+            .await
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("job name \"evil\\u{1b}[2J\\nname\" must be printable text"),
+            "{e}"
+        );
+    }
+
     /// A worker's prefetched lease handed back on drain is queued again at
     /// once, with no failed attempt counted; leases it does not hold are ignored.
     #[tokio::test]
@@ -1991,6 +2394,7 @@ material = "red"
                 scene_name: "t.toml".into(),
                 scene: SCENE.as_bytes().to_vec(),
                 assets: vec![],
+                files: Default::default(),
                 overrides: Overrides {
                     width: Some(16),
                     height: Some(16),

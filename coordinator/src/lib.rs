@@ -7,6 +7,7 @@
 //! results), [`store`] (durable state), [`service`] (gRPC edge), [`server`]
 //! (serving, health, reflection, periodic tasks), [`image`] (PNG/EXR output).
 
+pub mod assets;
 pub mod cost;
 pub mod farm;
 pub mod image;

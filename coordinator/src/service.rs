@@ -12,6 +12,11 @@ use tessera_proto::pb::worker_service_server::WorkerService;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status};
 
+use std::sync::atomic::Ordering;
+
+use tessera_proto::transport::ASSET_CHUNK_BYTES;
+
+use crate::assets::{AssetStoreError, check_hash};
 use crate::farm::{Farm, FarmError, JobState, JobView, Outcome, Overrides, ResultData, Submission};
 use crate::store::Counters;
 
@@ -21,6 +26,8 @@ impl From<FarmError> for Status {
             FarmError::InvalidArgument(m) => Status::invalid_argument(m),
             FarmError::NotFound(m) => Status::not_found(m),
             FarmError::FailedPrecondition(m) => Status::failed_precondition(m),
+            FarmError::ResourceExhausted(m) => Status::resource_exhausted(m),
+            FarmError::Unavailable(m) => Status::unavailable(m),
             // Nothing was recorded; the same request may be sent again.
             FarmError::Store(e) => Status::unavailable(format!(
                 "storage: {e}; nothing was recorded, send the request again"
@@ -117,6 +124,7 @@ impl JobService for Api {
                 .into_iter()
                 .map(|a| (a.name, a.content))
                 .collect(),
+            files: spec.files.into_iter().collect(),
             overrides: Overrides {
                 width: o.width,
                 height: o.height,
@@ -256,6 +264,108 @@ impl JobService for Api {
             .collect();
         Ok(Response::new(pb::ListWorkersResponse { workers }))
     }
+
+    async fn delete_job(
+        &self,
+        req: Request<pb::DeleteJobRequest>,
+    ) -> Result<Response<pb::DeleteJobResponse>, Status> {
+        self.farm.delete(&req.into_inner().job_id).await?;
+        Ok(Response::new(pb::DeleteJobResponse {}))
+    }
+
+    async fn find_missing_assets(
+        &self,
+        req: Request<pb::FindMissingAssetsRequest>,
+    ) -> Result<Response<pb::FindMissingAssetsResponse>, Status> {
+        let assets = req.into_inner().assets;
+        if assets.len() > 100_000 {
+            return Err(Status::invalid_argument("at most 100000 assets a request"));
+        }
+        let mut missing = Vec::new();
+        for a in assets {
+            check_hash(&a.sha256).map_err(|e| Status::invalid_argument(e.to_string()))?;
+            if self.farm.assets.size(&a.sha256).is_none() {
+                missing.push(a.sha256);
+            }
+        }
+        Ok(Response::new(pb::FindMissingAssetsResponse { missing }))
+    }
+
+    async fn upload_asset(
+        &self,
+        req: Request<tonic::Streaming<pb::AssetChunk>>,
+    ) -> Result<Response<pb::UploadAssetResponse>, Status> {
+        let mut chunks = req.into_inner();
+        let first = chunks
+            .message()
+            .await?
+            .ok_or_else(|| Status::invalid_argument("UploadAsset: the stream sent no chunk"))?;
+        let sha256 = first.sha256.clone();
+        let store = &self.farm.assets;
+        let stats = &store.stats;
+        let Some(mut upload) = store.begin(&sha256, first.size).map_err(asset_status)? else {
+            stats.uploads_skipped.fetch_add(1, Ordering::Relaxed);
+            return Ok(Response::new(pb::UploadAssetResponse {
+                sha256,
+                bytes_stored: 0,
+                already_stored: true,
+            }));
+        };
+        let mut offset = 0u64;
+        let mut next = Some(first);
+        while let Some(chunk) = next {
+            if chunk.data.len() > ASSET_CHUNK_BYTES {
+                return Err(Status::invalid_argument(format!(
+                    "UploadAsset: a chunk of {} bytes is over the {ASSET_CHUNK_BYTES}-byte chunk limit",
+                    chunk.data.len()
+                )));
+            }
+            if chunk.offset != offset {
+                return Err(Status::invalid_argument(format!(
+                    "UploadAsset: a chunk at offset {} where {offset} was expected",
+                    chunk.offset
+                )));
+            }
+            upload.write(&chunk.data).map_err(asset_status)?;
+            offset += chunk.data.len() as u64;
+            next = chunks.message().await?;
+        }
+        let bytes_stored = tokio::task::block_in_place(|| upload.finish()).map_err(asset_status)?;
+        stats.uploads.fetch_add(1, Ordering::Relaxed);
+        stats
+            .bytes_uploaded
+            .fetch_add(bytes_stored, Ordering::Relaxed);
+        tracing::info!(sha256 = %sha256, bytes = bytes_stored, "asset stored");
+        Ok(Response::new(pb::UploadAssetResponse {
+            sha256,
+            bytes_stored,
+            already_stored: false,
+        }))
+    }
+
+    async fn get_farm_stats(
+        &self,
+        _req: Request<pb::GetFarmStatsRequest>,
+    ) -> Result<Response<pb::FarmStats>, Status> {
+        let a = &self.farm.assets;
+        let (files, bytes) = a.held();
+        let n = |c: &std::sync::atomic::AtomicU64| c.load(Ordering::Relaxed);
+        Ok(Response::new(pb::FarmStats {
+            assets_stored: files,
+            asset_bytes_stored: bytes,
+            asset_uploads: n(&a.stats.uploads),
+            asset_bytes_uploaded: n(&a.stats.bytes_uploaded),
+            asset_uploads_skipped: n(&a.stats.uploads_skipped),
+            asset_fetches: n(&a.stats.fetches),
+            asset_bytes_served: n(&a.stats.bytes_served),
+            assets_collected: n(&a.stats.collected),
+            results_unknown_lease: n(&self.farm.results_unknown_lease),
+        }))
+    }
+}
+
+fn asset_status(e: AssetStoreError) -> Status {
+    crate::farm::asset_error(e).into()
 }
 
 /// Longest long poll of `LeaseWork` (`wait_ms`).
@@ -279,6 +389,9 @@ impl WorkerService for Api {
         } else {
             r.name
         };
+        crate::farm::check_name("worker name", &name, 200)?;
+        crate::farm::check_name("GPU name", &caps.gpu_name, 200)?;
+        crate::farm::check_name("version", &caps.version, 200)?;
         let worker_id = self.farm.register(
             name,
             caps.threads,
@@ -397,9 +510,77 @@ impl WorkerService for Api {
         &self,
         req: Request<pb::GetAssetRequest>,
     ) -> Result<Response<pb::GetAssetResponse>, Status> {
-        Ok(Response::new(pb::GetAssetResponse {
-            content: self.farm.asset(&req.into_inner().sha256)?,
-        }))
+        let content = self.farm.asset(&req.into_inner().sha256)?;
+        let stats = &self.farm.assets.stats;
+        stats.fetches.fetch_add(1, Ordering::Relaxed);
+        stats
+            .bytes_served
+            .fetch_add(content.len() as u64, Ordering::Relaxed);
+        Ok(Response::new(pb::GetAssetResponse { content }))
+    }
+
+    type FetchAssetStream = BoxStream<pb::AssetChunk>;
+
+    async fn fetch_asset(
+        &self,
+        req: Request<pb::GetAssetRequest>,
+    ) -> Result<Response<Self::FetchAssetStream>, Status> {
+        let sha256 = req.into_inner().sha256;
+        // Files of older releases live in the database: sent from memory.
+        let (mut file, size) = match self.farm.assets.open_file(&sha256) {
+            Ok(f) => (Some(f.0), f.1),
+            Err(AssetStoreError::NotFound(_)) => (None, 0),
+            Err(e) => return Err(asset_status(e)),
+        };
+        let legacy = match file {
+            Some(_) => None,
+            None => Some(self.farm.asset(&sha256)?),
+        };
+        let size = legacy.as_ref().map_or(size, |b| b.len() as u64);
+        let farm = self.farm.clone();
+        let (tx, out) = tokio::sync::mpsc::channel(4);
+        tokio::task::spawn_blocking(move || {
+            use std::io::Read as _;
+            let stats = &farm.assets.stats;
+            stats.fetches.fetch_add(1, Ordering::Relaxed);
+            let mut offset = 0u64;
+            loop {
+                let mut data = vec![0u8; ASSET_CHUNK_BYTES.min((size - offset) as usize)];
+                if let Some(f) = file.as_mut() {
+                    if let Err(e) = f.read_exact(&mut data) {
+                        let _ = tx.blocking_send(Err(Status::internal(format!(
+                            "cannot read asset {sha256}: {e}"
+                        ))));
+                        return;
+                    }
+                } else if let Some(b) = &legacy {
+                    let (o, n) = (offset as usize, data.len());
+                    data.copy_from_slice(&b[o..o + n]);
+                }
+                let n = data.len() as u64;
+                let chunk = pb::AssetChunk {
+                    sha256: if offset == 0 {
+                        sha256.clone()
+                    } else {
+                        String::new()
+                    },
+                    size: if offset == 0 { size } else { 0 },
+                    offset,
+                    data,
+                };
+                if tx.blocking_send(Ok(chunk)).is_err() {
+                    return;
+                }
+                stats.bytes_served.fetch_add(n, Ordering::Relaxed);
+                offset += n;
+                if offset >= size {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(
+            tokio_stream::wrappers::ReceiverStream::new(out),
+        )))
     }
 }
 

@@ -10,7 +10,9 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::mpsc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, RwLock, mpsc};
+use std::time::Duration;
 
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
@@ -22,10 +24,13 @@ use tracer_core::film::{Film, RayCounts, Rect};
 const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");
 /// job id -> JSON [`Counters`]
 const COUNTERS: TableDefinition<&str, &[u8]> = TableDefinition::new("counters");
-/// sha256 hex -> file content
+/// sha256 hex -> file content: where releases before the asset store
+/// (`crate::assets`) kept job files; read only, for their jobs.
 const ASSETS: TableDefinition<&str, &[u8]> = TableDefinition::new("assets");
 /// (job id, unit index) -> encoded film of the finished unit
 const UNIT_FILMS: TableDefinition<(&str, u32), &[u8]> = TableDefinition::new("unit_films");
+/// Scratch space the writer's health probe writes and removes.
+const PROBE: TableDefinition<&str, &[u8]> = TableDefinition::new("probe");
 /// (job id, frame) -> output file name
 const FRAMES_WRITTEN: TableDefinition<(&str, u32), &str> = TableDefinition::new("frames_written");
 
@@ -37,6 +42,11 @@ pub enum StoreError {
     Corrupt { what: String, message: String },
     #[error("the database writer has stopped")]
     WriterGone,
+    /// A commit failed (a full disk, an I/O error): nothing of it was
+    /// recorded. The writer reopens the database and probes it until
+    /// writes succeed again.
+    #[error("cannot write the database: {0}")]
+    Commit(String),
 }
 
 macro_rules! db_err {
@@ -100,10 +110,6 @@ pub struct Counters {
 #[derive(Debug)]
 pub enum Op {
     PutJob(JobRecord),
-    PutAsset {
-        sha256: String,
-        content: Vec<u8>,
-    },
     /// Updates the result counters that are not tied to accepted units
     /// (rejected, late, duplicate); keeps the stored accepted count and rays.
     PutCounters {
@@ -118,6 +124,8 @@ pub enum Op {
         units: Vec<(u32, Vec<u8>)>,
         rays: [u64; 4],
     },
+    /// A job is deleted: its record, counters, unit films and written frames.
+    DeleteJob(String),
     /// A frame's image is written: remember it and drop its units' films.
     FrameWritten {
         job: String,
@@ -132,10 +140,41 @@ struct Request {
     reply: oneshot::Sender<Result<(), String>>,
 }
 
+/// The database as the writer last (re)opened it; None while it reopens.
+type Shared = Arc<RwLock<Option<Arc<Database>>>>;
+
+/// Whether commits succeed, and why not, for health checks and messages.
+#[derive(Debug, Default)]
+pub struct StorageHealth {
+    failing: AtomicBool,
+    last_error: Mutex<String>,
+}
+
+impl StorageHealth {
+    pub fn ok(&self) -> bool {
+        !self.failing.load(Ordering::Relaxed)
+    }
+    pub fn last_error(&self) -> String {
+        self.last_error.lock().expect("health lock").clone()
+    }
+    fn fail(&self, e: &str) {
+        *self.last_error.lock().expect("health lock") = e.to_string();
+        if !self.failing.swap(true, Ordering::Relaxed) {
+            tracing::error!(error = %e, "storage failing: refusing new work until writes succeed again");
+        }
+    }
+    fn recover(&self) {
+        if self.failing.swap(false, Ordering::Relaxed) {
+            tracing::info!("storage recovered: writes succeed again");
+        }
+    }
+}
+
 /// Handle to the database: reads directly, writes through the writer thread.
 pub struct Store {
-    db: std::sync::Arc<Database>,
+    db: Shared,
     tx: mpsc::Sender<Request>,
+    pub health: Arc<StorageHealth>,
     // Set only by tests (`fail_commits`); the writer thread reads its clone.
     #[cfg_attr(not(test), allow(dead_code))]
     faults: Faults,
@@ -158,6 +197,7 @@ pub struct Snapshot {
 impl Store {
     pub fn open(path: &Path) -> Result<Self, StoreError> {
         let db = Database::create(path)?;
+        let path = path.to_owned();
         {
             // Create the tables so that reads of a fresh database succeed.
             let w = db.begin_write()?;
@@ -168,19 +208,35 @@ impl Store {
             w.open_table(FRAMES_WRITTEN)?;
             w.commit()?;
         }
-        let db = std::sync::Arc::new(db);
+        let db: Shared = Arc::new(RwLock::new(Some(Arc::new(db))));
         let (tx, rx) = mpsc::channel::<Request>();
         let wdb = db.clone();
         let faults = Faults::default();
         let wfaults = faults.clone();
+        let health = Arc::new(StorageHealth::default());
+        let whealth = health.clone();
         std::thread::Builder::new()
             .name("tessera-db-writer".into())
-            .spawn(move || writer(&wdb, rx, &wfaults))
+            .spawn(move || writer(&wdb, &path, rx, &wfaults, &whealth))
             .map_err(|e| StoreError::Corrupt {
                 what: "writer thread".into(),
                 message: e.to_string(),
             })?;
-        Ok(Store { db, tx, faults })
+        Ok(Store {
+            db,
+            tx,
+            health,
+            faults,
+        })
+    }
+
+    /// The open database, for a read.
+    fn db(&self) -> Result<Arc<Database>, StoreError> {
+        self.db
+            .read()
+            .expect("db lock")
+            .clone()
+            .ok_or_else(|| StoreError::Commit("the database is being reopened".into()))
     }
 
     /// Makes the next `times` commits that include an op matching `when` fail.
@@ -197,20 +253,17 @@ impl Store {
             .map_err(|_| StoreError::WriterGone)?;
         rx.await
             .map_err(|_| StoreError::WriterGone)?
-            .map_err(|message| StoreError::Corrupt {
-                what: "commit".into(),
-                message,
-            })
+            .map_err(StoreError::Commit)
     }
 
     pub fn asset(&self, sha256: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        let r = self.db.begin_read()?;
+        let r = self.db()?.begin_read()?;
         let t = r.open_table(ASSETS)?;
         Ok(t.get(sha256)?.map(|v| v.value().to_vec()))
     }
 
     pub fn load(&self) -> Result<Snapshot, StoreError> {
-        let r = self.db.begin_read()?;
+        let r = self.db()?.begin_read()?;
         let mut snap = Snapshot::default();
         let jobs = r.open_table(JOBS)?;
         let counters = r.open_table(COUNTERS)?;
@@ -257,8 +310,32 @@ impl Store {
     }
 }
 
-fn writer(db: &Database, rx: mpsc::Receiver<Request>, faults: &Faults) {
-    while let Ok(first) = rx.recv() {
+/// How often a failing database is reopened and probed.
+const HEAL_INTERVAL: Duration = Duration::from_secs(1);
+
+fn writer(
+    db: &Shared,
+    path: &Path,
+    rx: mpsc::Receiver<Request>,
+    faults: &Faults,
+    health: &StorageHealth,
+) {
+    loop {
+        let first = if health.ok() {
+            match rx.recv() {
+                Ok(r) => r,
+                Err(_) => return,
+            }
+        } else {
+            match rx.recv_timeout(HEAL_INTERVAL) {
+                Ok(r) => r,
+                Err(mpsc::RecvTimeoutError::Timeout) => {
+                    heal(db, path, health);
+                    continue;
+                }
+                Err(mpsc::RecvTimeoutError::Disconnected) => return,
+            }
+        };
         let mut batch = vec![first];
         while batch.len() < 512 {
             match rx.try_recv() {
@@ -266,15 +343,79 @@ fn writer(db: &Database, rx: mpsc::Receiver<Request>, faults: &Faults) {
                 Err(_) => break,
             }
         }
+        if !health.ok() {
+            heal(db, path, health);
+        }
         let result = match injected_fault(faults, &batch) {
             Some(e) => Err(e),
-            None => commit(db, batch.iter().flat_map(|r| r.ops.iter())).map_err(|e| e.to_string()),
+            None => {
+                let current = db.read().expect("db lock").clone();
+                let r = match current {
+                    Some(d) => commit(&d, batch.iter().flat_map(|r| r.ops.iter()))
+                        .map_err(|e| e.to_string()),
+                    None => Err(health.last_error()),
+                };
+                match &r {
+                    Ok(()) => health.recover(),
+                    Err(e) => health.fail(e),
+                }
+                r
+            }
         };
         if let Err(e) = &result {
             tracing::error!(error = %e, "database commit failed");
         }
         for r in batch {
             let _ = r.reply.send(result.clone());
+        }
+    }
+}
+
+/// After a failed commit redb refuses every later one until the database
+/// is closed and opened again: reopen it (readers hold it only briefly)
+/// and probe with a real write; healthy again once that succeeds.
+fn heal(db: &Shared, path: &Path, health: &StorageHealth) {
+    let old = db.write().expect("db lock").take();
+    if let Some(old) = old {
+        // Wait out readers (each holds its clone for one read).
+        let start = std::time::Instant::now();
+        while Arc::strong_count(&old) > 1 && start.elapsed() < Duration::from_secs(5) {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        drop(old);
+    }
+    // The probe writes (and then removes) 4 MiB: room for real commits,
+    // not just for a header update in pages already free.
+    let probe = Database::create(path)
+        .map_err(|e| e.to_string())
+        .and_then(|d| {
+            let room = vec![0u8; 4 << 20];
+            for put in [true, false] {
+                let w = d.begin_write().map_err(|e| e.to_string())?;
+                {
+                    let mut t = w.open_table(PROBE).map_err(|e| e.to_string())?;
+                    if put {
+                        t.insert("room", room.as_slice())
+                            .map_err(|e| e.to_string())?;
+                    } else {
+                        t.remove("room").map_err(|e| e.to_string())?;
+                    }
+                }
+                w.commit().map_err(|e| e.to_string())?;
+            }
+            Ok(d)
+        });
+    match probe {
+        Ok(d) => {
+            *db.write().expect("db lock") = Some(Arc::new(d));
+            health.recover();
+        }
+        Err(e) => {
+            health.fail(&e);
+            // Keep a handle for readers if the file opens at all.
+            if let Ok(d) = Database::create(path) {
+                *db.write().expect("db lock") = Some(Arc::new(d));
+            }
         }
     }
 }
@@ -294,7 +435,6 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
     {
         let mut jobs = w.open_table(JOBS)?;
         let mut counters = w.open_table(COUNTERS)?;
-        let mut assets = w.open_table(ASSETS)?;
         let mut films = w.open_table(UNIT_FILMS)?;
         let mut frames = w.open_table(FRAMES_WRITTEN)?;
         // Counter changes of the whole batch, applied once per job at the end.
@@ -304,9 +444,6 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                 Op::PutJob(rec) => {
                     let json = serde_json::to_vec(rec).expect("records serialise");
                     jobs.insert(rec.id.as_str(), json.as_slice())?;
-                }
-                Op::PutAsset { sha256, content } => {
-                    assets.insert(sha256.as_str(), content.as_slice())?;
                 }
                 Op::PutCounters { job, counters: c } => {
                     updates.entry(job.as_str()).or_default().0 = Some(c);
@@ -320,6 +457,13 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                     for (a, b) in u.2.iter_mut().zip(rays) {
                         *a += b;
                     }
+                }
+                Op::DeleteJob(job) => {
+                    jobs.remove(job.as_str())?;
+                    counters.remove(job.as_str())?;
+                    let j = job.as_str();
+                    films.retain_in((j, 0)..=(j, u32::MAX), |_, _| false)?;
+                    frames.retain_in((j, 0)..=(j, u32::MAX), |_, _| false)?;
                 }
                 Op::FrameWritten {
                     job,
@@ -343,9 +487,9 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                 stored.results_late = c.results_late;
                 stored.results_duplicate = c.results_duplicate;
             }
-            stored.units_accepted += accepted;
+            stored.units_accepted = stored.units_accepted.saturating_add(accepted);
             for (a, b) in stored.rays.iter_mut().zip(rays) {
-                *a += b;
+                *a = a.saturating_add(b);
             }
             let json = serde_json::to_vec(&stored).expect("counters serialise");
             counters.insert(job, json.as_slice())?;

@@ -41,7 +41,28 @@ pub struct Unit {
     pub batch: u32,
 }
 
+/// Bytes of one pixel in a result on the wire (three u64 sums, one u32 count).
+pub const RESULT_BYTES_PER_PIXEL: u64 = 28;
+
+/// The number of units settings would make, in u64 (so no product wraps),
+/// computed before anything is allocated.
+pub fn unit_count(
+    width: u32,
+    height: u32,
+    samples: u32,
+    frames: u32,
+    tile_size: u32,
+    samples_per_unit: u32,
+) -> u64 {
+    let tile = u64::from(tile_size.max(1));
+    let tiles = u64::from(width).div_ceil(tile) * u64::from(height).div_ceil(tile);
+    let batches = u64::from(samples).div_ceil(u64::from(samples_per_unit.max(1)));
+    tiles * batches * u64::from(frames)
+}
+
 impl Layout {
+    /// Callers check [`unit_count`] against their limit first: the unit
+    /// numbers are u32.
     pub fn new(
         width: u32,
         height: u32,

@@ -5,6 +5,7 @@
 
 pub mod convert;
 pub mod film_codec;
+pub mod transport;
 
 /// Generated messages, clients and servers.
 pub mod pb {
@@ -38,9 +39,27 @@ pub fn check_protocol_version(meta: &tonic::metadata::MetadataMap) -> Result<(),
     }
 }
 
-/// A client interceptor that stamps every request with this build's protocol version.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct VersionStamp;
+/// A client interceptor that stamps every request with this build's
+/// protocol version and, when the farm uses tokens, the caller's token
+/// (`authorization: Bearer TOKEN`).
+#[derive(Clone, Debug, Default)]
+pub struct VersionStamp {
+    authorization: Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>,
+}
+
+impl VersionStamp {
+    /// Stamps `token` too (None: no token, for farms without tokens).
+    pub fn with_token(token: Option<&str>) -> Result<Self, transport::TransportError> {
+        let authorization = token
+            .map(|t| {
+                format!("Bearer {t}")
+                    .parse()
+                    .map_err(|_| transport::TransportError::BadToken)
+            })
+            .transpose()?;
+        Ok(VersionStamp { authorization })
+    }
+}
 
 impl tonic::service::Interceptor for VersionStamp {
     fn call(&mut self, mut req: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
@@ -48,6 +67,10 @@ impl tonic::service::Interceptor for VersionStamp {
             PROTOCOL_VERSION_KEY,
             tonic::metadata::MetadataValue::from(PROTOCOL_VERSION),
         );
+        if let Some(a) = &self.authorization {
+            req.metadata_mut()
+                .insert(transport::AUTHORIZATION, a.clone());
+        }
         Ok(req)
     }
 }

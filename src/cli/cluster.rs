@@ -45,7 +45,11 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
         bail!("--workers must be at least 1");
     }
     let exe = std::env::current_exe().context("cannot find the tessera executable")?;
+    // The cluster's own workers share a fresh worker token, so no other
+    // process on this machine can register and receive its jobs' scenes.
+    let worker_token = super::farm_common::new_token()?;
     let mut coordinator = Command::new(&exe)
+        .env(super::farm_common::WORKER_TOKEN_ENV, &worker_token)
         .args(["coordinator", "--listen", &args.listen, "--data"])
         .arg(&args.data)
         .stdout(Stdio::piped())
@@ -69,6 +73,7 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
             WorkerBackend::Gpu => "gpu",
         };
         let child = Command::new(&exe)
+            .env(super::farm_common::WORKER_TOKEN_ENV, &worker_token)
             .args([
                 "worker",
                 "--coordinator",

@@ -7,9 +7,11 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Args;
+use tessera_coordinator::assets::AssetLimits;
+use tessera_coordinator::server::Security;
 use tessera_coordinator::{Config, Farm};
 
-use super::farm_common::{LogFormat, init_logging, runtime};
+use super::farm_common::{LogFormat, WORKER_TOKEN_ENV, init_logging, read_token, runtime};
 
 #[derive(Args, Debug)]
 pub struct CoordinatorArgs {
@@ -34,7 +36,45 @@ pub struct CoordinatorArgs {
     /// Log format
     #[arg(long, value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
+    /// Serve TLS with this certificate chain (PEM; `tessera cert` makes one)
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// File holding the client token, needed to submit, list, watch, cancel
+    /// and fetch [default: the environment variable TESSERA_CLIENT_TOKEN; none: open]
+    #[arg(long, value_name = "FILE")]
+    pub client_token_file: Option<PathBuf>,
+    /// File holding the worker token, needed to register, lease, send
+    /// results and fetch assets [default: the environment variable
+    /// TESSERA_WORKER_TOKEN; none: open]
+    #[arg(long, value_name = "FILE")]
+    pub worker_token_file: Option<PathBuf>,
+    /// Listen on a non-loopback address without tokens (a trusted network only)
+    #[arg(long)]
+    pub insecure: bool,
+    /// Largest frame a job may have, in pixels (width x height): the
+    /// coordinator holds 28 bytes a pixel of a frame while it fills
+    #[arg(long, default_value_t = 40_000_000)]
+    pub max_frame_pixels: u64,
+    /// Largest scene file or model a client may upload, in bytes
+    #[arg(long, default_value_t = 2 << 30)]
+    pub max_asset_bytes: u64,
+    /// Largest sum of one job's files, in bytes
+    #[arg(long, default_value_t = 4 << 30)]
+    pub max_job_bytes: u64,
+    /// Largest sum of all stored files, in bytes
+    #[arg(long, default_value_t = 64 << 30)]
+    pub max_store_bytes: u64,
+    /// Seconds a stored file is kept once no unfinished job uses it (a
+    /// re-submit within that time uploads nothing)
+    #[arg(long, default_value_t = 86400.0)]
+    pub asset_retention: f64,
 }
+
+/// Environment variables of the coordinator's tokens.
+pub const COORDINATOR_CLIENT_TOKEN_ENV: &str = "TESSERA_CLIENT_TOKEN";
 
 fn secs(name: &str, v: f64) -> Result<Duration> {
     Duration::try_from_secs_f64(v)
@@ -50,22 +90,78 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
     config.heartbeat_interval = secs("heartbeat-interval", args.heartbeat_interval)?;
     config.progress_interval = secs("progress-interval", args.progress_interval)?;
     config.max_message_bytes = args.max_message_bytes;
+    config.max_frame_pixels = args.max_frame_pixels;
+    config.asset_limits = AssetLimits {
+        max_asset_bytes: args.max_asset_bytes,
+        max_job_bytes: args.max_job_bytes,
+        max_store_bytes: args.max_store_bytes,
+        retention: Duration::try_from_secs_f64(args.asset_retention).with_context(|| {
+            format!(
+                "--asset-retention must be a number of seconds >= 0, got {}",
+                args.asset_retention
+            )
+        })?,
+    };
+    let read = |p: &Option<PathBuf>, flag: &str| {
+        p.as_ref()
+            .map(|p| {
+                std::fs::read(p).with_context(|| format!("cannot read {flag} {}", p.display()))
+            })
+            .transpose()
+    };
+    let security = Security {
+        tls: match (
+            read(&args.tls_cert, "--tls-cert")?,
+            read(&args.tls_key, "--tls-key")?,
+        ) {
+            (Some(c), Some(k)) => Some((c, k)),
+            _ => None,
+        },
+        client_token: read_token(
+            args.client_token_file.as_deref(),
+            "--client-token-file",
+            COORDINATOR_CLIENT_TOKEN_ENV,
+        )?,
+        worker_token: read_token(
+            args.worker_token_file.as_deref(),
+            "--worker-token-file",
+            WORKER_TOKEN_ENV,
+        )?,
+    };
     runtime()?.block_on(async move {
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
             .with_context(|| format!("cannot listen on {}", args.listen))?;
         let addr = listener.local_addr()?;
+        let tokens = security.client_token.is_some() && security.worker_token.is_some();
+        if !addr.ip().is_loopback() {
+            if !tokens && !args.insecure {
+                anyhow::bail!(
+                    "refusing to listen on {addr} without tokens: anyone who reaches it could submit and cancel jobs, \
+                     read every scene and frame, and register as a worker. Give --client-token-file and \
+                     --worker-token-file (or TESSERA_CLIENT_TOKEN and TESSERA_WORKER_TOKEN), or pass --insecure \
+                     on a network you trust"
+                );
+            }
+            if tokens && security.tls.is_none() {
+                tracing::warn!(%addr, "tokens without TLS travel in clear text: give --tls-cert and --tls-key");
+            }
+        }
         let farm = Farm::open(config).with_context(|| {
             format!(
                 "cannot open the coordinator state in {}",
                 args.data.display()
             )
         })?;
-        tracing::info!(%addr, data = %args.data.display(), "coordinator listening");
+        tracing::info!(
+            %addr, data = %args.data.display(), tls = security.tls.is_some(),
+            client_token = security.client_token.is_some(), worker_token = security.worker_token.is_some(),
+            "coordinator listening"
+        );
         // Scripts and tests read the bound address from stdout.
         println!("listening on {addr}");
         std::io::stdout().flush().ok();
-        tessera_coordinator::server::serve(farm, listener, shutdown_signal()).await?;
+        tessera_coordinator::server::serve(farm, listener, security, shutdown_signal()).await?;
         tracing::info!("coordinator stopped");
         Ok(ExitCode::SUCCESS)
     })

@@ -1,22 +1,89 @@
 //! What the farm's subcommands share: the coordinator URL, logging set-up,
 //! the gRPC client and error mapping.
 
-use std::time::Duration;
+use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, anyhow};
+use anyhow::{Context, Result, anyhow, bail};
 use clap::{Args, ValueEnum};
 use tessera_proto::VersionStamp;
 use tessera_proto::pb::job_service_client::JobServiceClient;
+use tessera_proto::transport::endpoint;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Channel;
 
 pub const DEFAULT_COORDINATOR: &str = "http://127.0.0.1:7878";
 
 #[derive(Args, Debug, Clone)]
 pub struct CoordinatorUrl {
-    /// Coordinator to talk to
+    /// Coordinator to talk to (https://HOST:PORT for a coordinator serving TLS)
     #[arg(long = "coordinator", env = "TESSERA_COORDINATOR", default_value = DEFAULT_COORDINATOR)]
     pub url: String,
+    /// CA certificate (PEM) to trust for an https:// coordinator, e.g. the
+    /// ca.pem of `tessera cert` [default: the public web roots]
+    #[arg(long, env = "TESSERA_CA", value_name = "FILE")]
+    pub ca: Option<PathBuf>,
+    /// File holding the token to present: the client token for client
+    /// commands, the worker token for `tessera worker` [default: the
+    /// environment variable TESSERA_TOKEN, or TESSERA_WORKER_TOKEN for workers]
+    #[arg(long, value_name = "FILE")]
+    pub token_file: Option<PathBuf>,
+}
+
+pub use tessera_proto::transport::{CLIENT_TOKEN_ENV, WORKER_TOKEN_ENV};
+
+impl CoordinatorUrl {
+    /// The CA certificate's PEM, if one was given.
+    pub fn ca_pem(&self) -> Result<Option<Vec<u8>>> {
+        self.ca
+            .as_ref()
+            .map(|p| std::fs::read(p).with_context(|| format!("cannot read --ca {}", p.display())))
+            .transpose()
+    }
+
+    /// The token from --token-file, else from the environment variable `env`.
+    pub fn token(&self, env: &str) -> Result<Option<String>> {
+        read_token(self.token_file.as_deref(), "--token-file", env)
+    }
+}
+
+/// A token from `file` (its first line), else from the environment
+/// variable `env`; None when neither is set. `flag` names the file's flag
+/// in messages.
+pub fn read_token(file: Option<&Path>, flag: &str, env: &str) -> Result<Option<String>> {
+    let token = match file {
+        Some(p) => std::fs::read_to_string(p)
+            .with_context(|| format!("cannot read {flag} {}", p.display()))?
+            .lines()
+            .next()
+            .unwrap_or("")
+            .trim()
+            .to_string(),
+        None => match std::env::var(env) {
+            Ok(v) => v.trim().to_string(),
+            Err(_) => return Ok(None),
+        },
+    };
+    let source = || file.map_or(format!("${env}"), |p| p.display().to_string());
+    if token.is_empty() {
+        bail!("the token in {} is empty", source());
+    }
+    if !token.bytes().all(|b| b.is_ascii_graphic()) {
+        bail!(
+            "the token in {} has characters other than printable ASCII",
+            source()
+        );
+    }
+    Ok(Some(token))
+}
+
+/// A new random token (32 bytes of the OS's randomness, as hex).
+pub fn new_token() -> Result<String> {
+    use std::io::Read as _;
+    let mut b = [0u8; 32];
+    std::fs::File::open("/dev/urandom")
+        .and_then(|mut f| f.read_exact(&mut b))
+        .context("cannot read /dev/urandom for a token")?;
+    Ok(b.iter().map(|x| format!("{x:02x}")).collect())
 }
 
 #[derive(Copy, Clone, Debug, Default, PartialEq, Eq, ValueEnum)]
@@ -34,7 +101,9 @@ pub fn init_logging(format: LogFormat) {
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr);
+        .with_writer(std::io::stderr)
+        // Colour codes only on a terminal, never into log files.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()));
     // A second init (tests, nested use) keeps the first subscriber.
     let _ = match format {
         LogFormat::Text => builder.try_init(),
@@ -47,24 +116,73 @@ pub type JobClient = JobServiceClient<InterceptedService<Channel, VersionStamp>>
 /// Largest message a client accepts (fetched frames can be large).
 pub const CLIENT_MAX_MESSAGE_BYTES: usize = 1 << 30;
 
-pub async fn connect(url: &str) -> Result<JobClient> {
-    let channel = Endpoint::from_shared(url.to_string())
-        .with_context(|| format!("invalid coordinator URL {url:?}"))?
-        .connect_timeout(Duration::from_secs(5))
+/// Whether this process talks plain HTTP/2 (for the hint in [`rpc`]).
+static PLAINTEXT: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// A client of the job service, with TLS and the client token as given.
+pub async fn connect(c: &CoordinatorUrl) -> Result<JobClient> {
+    let url = &c.url;
+    PLAINTEXT.store(
+        url.starts_with("http://"),
+        std::sync::atomic::Ordering::Relaxed,
+    );
+    let stamp = VersionStamp::with_token(c.token(CLIENT_TOKEN_ENV)?.as_deref())?;
+    let channel = endpoint(url, c.ca_pem()?.as_deref())?
         .connect()
         .await
-        .with_context(|| format!("cannot reach the coordinator at {url}"))?;
-    Ok(JobServiceClient::with_interceptor(channel, VersionStamp)
+        .map_err(|e| unreachable(url, e))?;
+    Ok(JobServiceClient::with_interceptor(channel, stamp)
         .max_decoding_message_size(CLIENT_MAX_MESSAGE_BYTES)
         .max_encoding_message_size(CLIENT_MAX_MESSAGE_BYTES))
+}
+
+/// Why a coordinator could not be reached, with the likely cause when the
+/// error says TLS or HTTP/2 went wrong.
+pub fn unreachable(url: &str, e: tonic::transport::Error) -> anyhow::Error {
+    let detail = tessera_proto::transport::error_chain(&e);
+    let hint = if detail.contains("tcp connect error") {
+        "; is a coordinator running at that address (and reachable from here)?"
+    } else if url.starts_with("http://") {
+        "; if the coordinator serves TLS, use an https:// URL (and --ca for its certificate)"
+    } else {
+        "; check the URL's host name against the certificate's names and --ca"
+    };
+    anyhow!("cannot reach the coordinator at {url}: {detail}{hint}")
 }
 
 /// A failed call as a readable error: the coordinator's message, with the
 /// status code when it adds something.
 pub fn rpc(s: tonic::Status) -> anyhow::Error {
     match s.code() {
-        tonic::Code::InvalidArgument | tonic::Code::NotFound | tonic::Code::FailedPrecondition => {
+        tonic::Code::InvalidArgument
+        | tonic::Code::NotFound
+        | tonic::Code::FailedPrecondition
+        | tonic::Code::Unauthenticated
+        | tonic::Code::PermissionDenied
+        | tonic::Code::ResourceExhausted => {
             anyhow!("{}", s.message())
+        }
+        // What a plain-text client reads from a TLS port (which one
+        // depends on timing).
+        tonic::Code::Internal
+        | tonic::Code::Cancelled
+        | tonic::Code::Unknown
+        | tonic::Code::Unavailable
+            if PLAINTEXT.load(std::sync::atomic::Ordering::Relaxed)
+                && [
+                    "h2 protocol error",
+                    "operation was canceled",
+                    "connection",
+                    "transport error",
+                ]
+                .iter()
+                .any(|m| s.message().contains(m)) =>
+        {
+            anyhow!(
+                "{} ({:?}); if the coordinator serves TLS, use an https:// URL (and --ca for its certificate)",
+                s.message(),
+                s.code()
+            )
         }
         code => anyhow!("{} ({code:?})", s.message()),
     }

@@ -1,5 +1,6 @@
 //! `tessera gpus`: the adapters `--backend gpu --adapter NAME|INDEX` can pick.
 
+use super::outln;
 use std::process::ExitCode;
 
 use anyhow::Result;
@@ -12,14 +13,22 @@ pub fn run() -> Result<ExitCode> {
         );
         return Ok(ExitCode::FAILURE);
     }
-    println!(
+    outln!(
         "{:<5} {:<40} {:<14} {:<8} driver",
-        "index", "name", "type", "backend"
+        "index",
+        "name",
+        "type",
+        "backend"
     );
     for a in adapters {
-        println!(
+        outln!(
             "{:<5} {:<40} {:<14} {:<8} {} {}",
-            a.index, a.name, a.device_type, a.backend, a.driver, a.driver_info
+            a.index,
+            a.name,
+            a.device_type,
+            a.backend,
+            a.driver,
+            a.driver_info
         );
     }
     Ok(ExitCode::SUCCESS)

@@ -1,5 +1,6 @@
 //! The farm's client commands: submit, jobs, status, watch, cancel, fetch, workers.
 
+use super::outln;
 use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -9,7 +10,6 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use tessera_proto::pb;
 use tokio_stream::StreamExt as _;
-use tracer_core::scene::SceneError;
 
 use super::farm_common::{CoordinatorUrl, JobClient, connect, rpc, runtime};
 use super::render::RenderOverrides;
@@ -72,25 +72,27 @@ pub struct SubmitArgs {
     /// Wait for the job to finish (progress on stderr); the exit code is then the job's outcome
     #[arg(long)]
     pub wait: bool,
+    /// Send files the scene references from outside its folder (absolute
+    /// paths, or `..` above it) too; without it such a scene is refused
+    #[arg(long)]
+    pub allow_outside: bool,
     #[command(flatten)]
     pub coordinator: CoordinatorUrl,
 }
 
 pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
-    let scene = std::fs::read(&args.scene).map_err(|source| SceneError::Io {
-        path: args.scene.clone(),
-        source,
-    })?;
+    // Validated here first, through the loaders `tessera render` uses: a
+    // bad scene fails before anything is uploaded.
+    let bundle = super::bundle::gather(&args.scene, args.allow_outside)?;
     let o = &args.overrides;
     let frames = args.frames.unwrap_or(Frames { first: 0, last: 0 });
     let spec = pb::JobSpec {
         name: args.name.clone().unwrap_or_default(),
         // The path as typed, so errors read exactly as `tessera render`'s.
         scene_name: args.scene.display().to_string(),
-        scene,
-        // Scene files reference no other files yet; when they do (meshes),
-        // they are shipped here, content-addressed by the coordinator.
+        scene: bundle.scene,
         assets: Vec::new(),
+        files: Default::default(),
         overrides: Some(pb::RenderOverrides {
             width: o.width,
             height: o.height,
@@ -108,14 +110,19 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
         max_attempts: args.max_attempts.unwrap_or(0),
     };
     runtime()?.block_on(async move {
-        let mut client = connect(&args.coordinator.url).await?;
+        let mut client = connect(&args.coordinator).await?;
+        let mut spec = spec;
+        spec.files = super::bundle::upload(&mut client, &bundle.files)
+            .await?
+            .into_iter()
+            .collect();
         let id = client
             .submit_job(pb::SubmitJobRequest { spec: Some(spec) })
             .await
             .map_err(rpc)?
             .into_inner()
             .job_id;
-        println!("{id}");
+        outln!("{id}");
         if args.wait {
             return watch_job(&mut client, &id).await;
         }
@@ -148,6 +155,34 @@ pub struct FetchArgs {
     pub coordinator: CoordinatorUrl,
 }
 
+/// A name from the coordinator as it may be printed on a terminal: control
+/// characters (escape sequences, newlines) escaped.
+pub fn printable(s: &str) -> String {
+    s.chars()
+        .flat_map(|c| {
+            if c.is_control() {
+                c.escape_default().collect::<Vec<_>>()
+            } else {
+                vec![c]
+            }
+        })
+        .collect()
+}
+
+pub fn delete(args: JobArg) -> Result<ExitCode> {
+    runtime()?.block_on(async move {
+        let mut client = connect(&args.coordinator).await?;
+        client
+            .delete_job(pb::DeleteJobRequest {
+                job_id: args.job.clone(),
+            })
+            .await
+            .map_err(rpc)?;
+        outln!("deleted {}", args.job);
+        Ok(ExitCode::SUCCESS)
+    })
+}
+
 pub fn state_name(state: i32) -> &'static str {
     match pb::JobState::try_from(state).unwrap_or(pb::JobState::Unspecified) {
         pb::JobState::Queued => "queued",
@@ -165,20 +200,25 @@ fn percent(j: &pb::JobStatus) -> f64 {
 
 pub fn jobs(args: ListArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
-        let mut client = connect(&args.coordinator.url).await?;
+        let mut client = connect(&args.coordinator).await?;
         let jobs = client
             .list_jobs(pb::ListJobsRequest {})
             .await
             .map_err(rpc)?
             .into_inner()
             .jobs;
-        println!(
+        outln!(
             "{:<12} {:<10} {:>6} {:>4} {:>11} {:>9}  NAME",
-            "ID", "STATE", "DONE", "PRI", "SIZE", "FRAMES"
+            "ID",
+            "STATE",
+            "DONE",
+            "PRI",
+            "SIZE",
+            "FRAMES"
         );
         for j in jobs {
             let s = j.settings.unwrap_or_default();
-            println!(
+            outln!(
                 "{:<12} {:<10} {:>5.1}% {:>4} {:>11} {:>9}  {}",
                 j.job_id,
                 state_name(j.state),
@@ -186,7 +226,7 @@ pub fn jobs(args: ListArgs) -> Result<ExitCode> {
                 j.priority,
                 format!("{}x{}x{}", s.width, s.height, s.samples),
                 format!("{}..{}", j.first_frame, j.last_frame),
-                j.name
+                printable(&j.name)
             );
         }
         Ok(ExitCode::SUCCESS)
@@ -195,7 +235,7 @@ pub fn jobs(args: ListArgs) -> Result<ExitCode> {
 
 pub fn status(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
-        let mut client = connect(&args.coordinator.url).await?;
+        let mut client = connect(&args.coordinator).await?;
         let j = client
             .get_job(pb::GetJobRequest { job_id: args.job })
             .await
@@ -203,35 +243,44 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             .into_inner();
         let s = j.settings.unwrap_or_default();
         let rays = j.rays.unwrap_or_default();
-        println!("job:       {} ({})", j.job_id, j.name);
-        println!("state:     {}", state_name(j.state));
-        println!(
+        outln!("job:       {} ({})", j.job_id, printable(&j.name));
+        outln!("state:     {}", state_name(j.state));
+        outln!(
             "progress:  {:.1}% ({} of {} units)",
             percent(&j),
             j.units_done,
             j.units_total
         );
-        println!(
+        outln!(
             "image:     {}x{}, {} samples, depth {}, frames {}..{}",
-            s.width, s.height, s.samples, s.max_depth, j.first_frame, j.last_frame
+            s.width,
+            s.height,
+            s.samples,
+            s.max_depth,
+            j.first_frame,
+            j.last_frame
         );
-        println!(
+        outln!(
             "units:     tile {} px, {} samples per unit",
-            j.tile_size, j.samples_per_unit
+            j.tile_size,
+            j.samples_per_unit
         );
-        println!(
+        outln!(
             "rays:      {} ({:.2} Mrays/s)",
             rays.primary + rays.shadow + rays.reflection + rays.refraction,
             j.rays_per_second / 1e6
         );
         if j.eta_seconds >= 0.0 && j.state == pb::JobState::Running as i32 {
-            println!("eta:       {:.0} s", j.eta_seconds);
+            outln!("eta:       {:.0} s", j.eta_seconds);
         }
-        println!(
+        outln!(
             "results:   {} accepted, {} rejected, {} late, {} duplicate",
-            j.units_accepted, j.results_rejected, j.results_late, j.results_duplicate
+            j.units_accepted,
+            j.results_rejected,
+            j.results_late,
+            j.results_duplicate
         );
-        println!("output:    {}", j.output_dir);
+        outln!("output:    {}", j.output_dir);
         for f in &j.frames {
             let done = if f.output.is_empty() {
                 format!(
@@ -241,10 +290,10 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             } else {
                 f.output.clone()
             };
-            println!("  frame {:>5}: {done}", f.frame);
+            outln!("  frame {:>5}: {done}", f.frame);
         }
         if !j.error.is_empty() {
-            println!("error:     {}", j.error);
+            outln!("error:     {}", j.error);
         }
         Ok(ExitCode::SUCCESS)
     })
@@ -252,7 +301,7 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
 
 pub fn watch(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
-        let mut client = connect(&args.coordinator.url).await?;
+        let mut client = connect(&args.coordinator).await?;
         watch_job(&mut client, &args.job).await
     })
 }
@@ -323,7 +372,7 @@ async fn watch_job(client: &mut JobClient, id: &str) -> Result<ExitCode> {
 
 pub fn cancel(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
-        let mut client = connect(&args.coordinator.url).await?;
+        let mut client = connect(&args.coordinator).await?;
         let j = client
             .cancel_job(pb::CancelJobRequest { job_id: args.job })
             .await
@@ -336,7 +385,7 @@ pub fn cancel(args: JobArg) -> Result<ExitCode> {
 
 pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
-        let mut client = connect(&args.coordinator.url).await?;
+        let mut client = connect(&args.coordinator).await?;
         std::fs::create_dir_all(&args.output)
             .with_context(|| format!("cannot create {}", args.output.display()))?;
         let mut stream = client
@@ -375,16 +424,22 @@ pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
 
 pub fn workers(args: ListArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
-        let mut client = connect(&args.coordinator.url).await?;
+        let mut client = connect(&args.coordinator).await?;
         let ws = client
             .list_workers(pb::ListWorkersRequest {})
             .await
             .map_err(rpc)?
             .into_inner()
             .workers;
-        println!(
+        outln!(
             "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12}",
-            "ID", "NAME", "BACKEND", "THREADS", "LEASES", "UNITS", "MSAMPLES/S"
+            "ID",
+            "NAME",
+            "BACKEND",
+            "THREADS",
+            "LEASES",
+            "UNITS",
+            "MSAMPLES/S"
         );
         for w in ws {
             let c = w.capabilities.unwrap_or_default();
@@ -393,10 +448,10 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
             } else {
                 "cpu"
             };
-            println!(
+            outln!(
                 "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2}",
                 w.worker_id,
-                w.name,
+                printable(&w.name),
                 backend,
                 c.threads,
                 w.leases,

@@ -1,6 +1,8 @@
 //! Command-line interface: one subcommand per module.
 
 mod bench;
+mod bundle;
+mod cert;
 mod cluster;
 mod coordinator;
 mod farm_common;
@@ -45,15 +47,46 @@ pub enum Command {
     Watch(jobs::JobArg),
     /// Cancel a job; workers stop its work within a heartbeat.
     Cancel(jobs::JobArg),
+    /// Forget a finished job: its record, results and images on the coordinator.
+    Delete(jobs::JobArg),
     /// Download a job's finished frames.
     Fetch(jobs::FetchArgs),
     /// List the workers connected to the coordinator.
     Workers(jobs::ListArgs),
     /// Run a coordinator and N workers in this terminal.
     Cluster(cluster::ClusterArgs),
+    /// Make a CA and a coordinator certificate (and tokens) for a farm over TLS.
+    Cert(cert::CertArgs),
     /// List the GPU adapters `--backend gpu --adapter NAME|INDEX` can use.
     #[cfg(feature = "gpu")]
     Gpus,
+}
+
+/// `println!` for a command's output. A closed pipe (`tessera jobs | head -1`)
+/// ends the process quietly with status 141, as a process killed by
+/// SIGPIPE ends (`ls | head`), instead of println!'s panic. SIGPIPE itself
+/// stays ignored: the client's own sockets must see EPIPE as an error, not
+/// die of it.
+macro_rules! outln {
+    ($($arg:tt)*) => { $crate::cli::out_line(format_args!($($arg)*)) };
+}
+pub(crate) use outln;
+
+pub fn out_line(line: std::fmt::Arguments) {
+    use std::io::Write as _;
+    let mut out = std::io::stdout().lock();
+    let written = out
+        .write_fmt(line)
+        .and_then(|()| out.write_all(b"\n"))
+        .and_then(|()| out.flush());
+    match written {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => std::process::exit(141),
+        Err(e) => {
+            eprintln!("error: cannot write to standard output: {e}");
+            std::process::exit(1);
+        }
+    }
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
@@ -68,8 +101,10 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Watch(args) => jobs::watch(args),
         Command::Cancel(args) => jobs::cancel(args),
         Command::Fetch(args) => jobs::fetch(args),
+        Command::Delete(args) => jobs::delete(args),
         Command::Workers(args) => jobs::workers(args),
         Command::Cluster(args) => cluster::run(args),
+        Command::Cert(args) => cert::run(args),
         #[cfg(feature = "gpu")]
         Command::Gpus => gpus::run(),
     }

@@ -1,5 +1,6 @@
 //! `tessera render`: local mode, one process, no set-up.
 
+use super::outln;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
@@ -111,6 +112,9 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     // Fail on a bad output name before spending time rendering.
     ImageFormat::of(&output)?;
     let scene = SceneDesc::load(&args.scene)?;
+    for w in &scene.warnings {
+        eprintln!("warning: {w}");
+    }
     let settings = args.overrides.apply(&scene.render)?;
     let precision: Precision = args.precision.into();
 
@@ -150,7 +154,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     write_image(&output, &film)?;
 
     let r = film.rays;
-    println!(
+    outln!(
         "{}x{} {} spp depth {} {} {}  {:.3} s  {} rays (primary {}, shadow {}, reflection {}, refraction {})  {:.1} Mrays/s  -> {}",
         settings.width,
         settings.height,

@@ -1,5 +1,6 @@
 //! `tessera worker`: render work units for a coordinator.
 
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Result;
@@ -7,7 +8,7 @@ use clap::{Args, ValueEnum};
 use tessera_worker::{Backend, Worker, WorkerConfig};
 
 use super::coordinator::shutdown_signal;
-use super::farm_common::{CoordinatorUrl, LogFormat, init_logging, runtime};
+use super::farm_common::{CoordinatorUrl, LogFormat, WORKER_TOKEN_ENV, init_logging, runtime};
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum WorkerBackend {
@@ -36,6 +37,25 @@ pub struct WorkerArgs {
     /// Log format
     #[arg(long, value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
+    /// Where job files (scenes, models) are cached by hash, across jobs and
+    /// restarts [default: $XDG_CACHE_HOME/tessera/assets, or ~/.cache/tessera/assets]
+    #[arg(long, value_name = "DIR", env = "TESSERA_CACHE")]
+    pub cache: Option<PathBuf>,
+    /// Most bytes the cache keeps (least recently used files go first)
+    #[arg(long, value_name = "BYTES", default_value_t = 10 << 30)]
+    pub cache_size: u64,
+}
+
+/// The default cache folder: the XDG cache, else ./tessera-cache.
+fn default_cache() -> PathBuf {
+    let base = std::env::var_os("XDG_CACHE_HOME")
+        .map(PathBuf::from)
+        .filter(|p| p.is_absolute())
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")));
+    match base {
+        Some(b) => b.join("tessera").join("assets"),
+        None => PathBuf::from("tessera-cache"),
+    }
 }
 
 pub fn run(args: WorkerArgs) -> Result<ExitCode> {
@@ -55,6 +75,10 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
         name,
         threads: args.threads,
         adapter: args.adapter.clone(),
+        ca_pem: args.coordinator.ca_pem()?,
+        token: args.coordinator.token(WORKER_TOKEN_ENV)?,
+        cache_dir: args.cache.clone().unwrap_or_else(default_cache),
+        cache_bytes: args.cache_size,
         backend: match args.backend {
             WorkerBackend::Cpu => Backend::Cpu,
             WorkerBackend::Gpu => Backend::Gpu,

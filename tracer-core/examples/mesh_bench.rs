@@ -68,6 +68,9 @@ fn best_of(f: &mut dyn FnMut()) -> (f64, f64) {
     best
 }
 
+/// A packet of shadow rays: the rays, their limits and their start primitives.
+type ShadowBlock = (Vec<Ray<f32>>, Vec<f32>, Vec<PrimId>);
+
 fn main() {
     let mut gpu = false;
     let mut cpu = true;
@@ -277,7 +280,7 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         (c[1] + 0.8 * diag) as f32,
         (c[2] + 0.6 * diag) as f32,
     );
-    let shadow_blocks: Vec<(Vec<Ray<f32>>, Vec<f32>, Vec<PrimId>)> = blocks
+    let shadow_blocks: Vec<ShadowBlock> = blocks
         .iter()
         .map(|b| {
             let mut out = (Vec::new(), Vec::new(), Vec::new());
@@ -313,10 +316,8 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         "  {shadow_count} shadow rays to a point light, {shadow_blocked} blocked; in packets: {shadow_differ} answers differ from single rays"
     );
 
-    if gpu {
-        if let Err(e) = gpu_bench(path, cam, c) {
-            println!("  GPU: {e}");
-        }
+    if gpu && let Err(e) = gpu_bench(path, cam, c) {
+        println!("  GPU: {e}");
     }
     if !cpu {
         return Ok(());

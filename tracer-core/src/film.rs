@@ -103,8 +103,12 @@ pub struct RayCounts {
 }
 
 impl RayCounts {
+    /// Saturating: counts that arrived over the network must not wrap.
     pub fn total(&self) -> u64 {
-        self.primary + self.shadow + self.reflection + self.refraction
+        self.primary
+            .saturating_add(self.shadow)
+            .saturating_add(self.reflection)
+            .saturating_add(self.refraction)
     }
     pub fn add(&mut self, o: &RayCounts) {
         self.primary += o.primary;

@@ -230,11 +230,10 @@ fn many_primitives_give_the_recursive_renderers_bits() {
     // 14; ten spheres would take the BVH (recursive) path, so add planes.
     let mut src = std::fs::read_to_string(examples_dir().join("resolution.toml")).unwrap();
     let materials = ["plastic", "chrome", "glass", "emerald", "floor"];
-    for k in 0..4 {
+    for (k, material) in materials.iter().take(4).enumerate() {
         let x = k as f64 * 1.6 - 2.4;
         src += &format!(
-            "\n[[objects]]\ntype = \"sphere\"\ncenter = [{x}, 0.4, -3.0]\nradius = 0.4\nmaterial = \"{}\"\n",
-            materials[k]
+            "\n[[objects]]\ntype = \"sphere\"\ncenter = [{x}, 0.4, -3.0]\nradius = 0.4\nmaterial = \"{material}\"\n"
         );
     }
     // Walls around the scene, some behind others.

@@ -215,13 +215,12 @@ fn every_example_scene_has_a_gpu_test() {
 
 // ---- Hard cases: the scenes of hard_cases.rs, GPU against CPU f64 --------
 
+/// A resolved image, linear RGB.
+type Image = Vec<[f32; 3]>;
+
 /// Compares GPU and CPU f64 renders of `desc` at its own settings with the
 /// stated tolerance, and returns both images.
-fn hard_case(
-    what: &str,
-    desc: &SceneDesc,
-    settings: &RenderSettings,
-) -> Option<(Vec<[f32; 3]>, Vec<[f32; 3]>)> {
+fn hard_case(what: &str, desc: &SceneDesc, settings: &RenderSettings) -> Option<(Image, Image)> {
     let g = gpu()?;
     let got = gpu_whole(g, desc, settings).resolve();
     let reference = render_with(desc, settings, Precision::F64).resolve();

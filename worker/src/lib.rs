@@ -23,16 +23,21 @@
 //! yields the same fixed-point [`Film`] sums, so the coordinator merges
 //! results from both kinds of worker alike.
 
+pub mod cache;
+
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use cache::AssetCache;
 use tessera_proto::pb::worker_service_client::WorkerServiceClient;
+use tessera_proto::transport::endpoint;
 use tessera_proto::{VersionStamp, film_codec, pb};
 use tokio::sync::{mpsc, watch};
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Channel;
+use tracer_core::assets::Bundle;
 use tracer_core::film::{Film, Rect, SampleRange};
 #[cfg(feature = "gpu")]
 use tracer_core::render::GpuRenderer;
@@ -55,8 +60,11 @@ const SEND_QUEUE: usize = 4;
 /// Most results in one `SubmitResults`, and most bytes of film data in it.
 const MAX_BATCH: usize = 16;
 const MAX_BATCH_BYTES: usize = 16 << 20;
-/// Submissions of one batch before the session is given up.
-const SUBMIT_TRIES: u32 = 5;
+/// Submissions of one batch before the session is given up: with the
+/// backoff doubling to 5 s, about two minutes of a coordinator that cannot
+/// record results (a full disk) before the worker starts over.
+const SUBMIT_TRIES: u32 = 30;
+const SUBMIT_BACKOFF_MAX: Duration = Duration::from_secs(5);
 /// Prepared frames kept (a worker usually serves one or two frames at a time).
 const PREPARED_CACHE: usize = 4;
 /// Largest message the worker accepts or sends.
@@ -81,6 +89,13 @@ pub struct WorkerConfig {
     pub backend: Backend,
     /// GPU backend: adapter index or part of its name (as `tessera gpus` lists them); `None` picks the best.
     pub adapter: Option<String>,
+    /// CA certificate (PEM) to trust for an https:// coordinator.
+    pub ca_pem: Option<Vec<u8>>,
+    /// The farm's worker token, when it uses tokens.
+    pub token: Option<String>,
+    /// Where job files are cached, and the most bytes kept there.
+    pub cache_dir: std::path::PathBuf,
+    pub cache_bytes: u64,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -89,8 +104,10 @@ pub enum WorkerError {
         "this tessera was built without the `gpu` feature; run workers with --backend cpu or rebuild with --features gpu"
     )]
     GpuNotBuilt,
-    #[error("invalid coordinator URL {url:?}: {message}")]
-    Url { url: String, message: String },
+    #[error(transparent)]
+    Transport(#[from] tessera_proto::transport::TransportError),
+    #[error("cannot open the asset cache {dir}: {message}")]
+    Cache { dir: String, message: String },
     #[error("cannot start the renderer: {0}")]
     Renderer(String),
     #[error("the coordinator refused this worker: {0}")]
@@ -128,6 +145,26 @@ fn capabilities(renderer: &Renderer) -> pb::Capabilities {
     }
 }
 
+/// Why a unit's rectangle is refused: its result would not fit one
+/// message, or its film (28 bytes a pixel) not this machine's memory.
+fn too_large(rect: Rect) -> Option<String> {
+    let bytes = rect.area() as u64 * 28;
+    if bytes > MAX_MESSAGE_BYTES as u64 {
+        return Some(format!(
+            "a lease of {}x{} pixels makes a {bytes}-byte result, over this worker's {MAX_MESSAGE_BYTES}-byte message limit",
+            rect.width, rect.height
+        ));
+    }
+    let mut probe: Vec<u8> = Vec::new();
+    if probe.try_reserve_exact(2 * bytes as usize).is_err() {
+        return Some(format!(
+            "a lease of {}x{} pixels needs {bytes} bytes twice over, more than this worker can allocate",
+            rect.width, rect.height
+        ));
+    }
+    None
+}
+
 /// Rows of `rect` rendered in one call (the lease is checked between calls).
 fn unit_band_rows(renderer: &Renderer, rect: Rect, samples: SampleRange) -> u32 {
     if let Renderer::Cpu(r) = renderer {
@@ -141,7 +178,10 @@ pub struct Worker {
     config: WorkerConfig,
     renderer: Arc<Renderer>,
     held: HeldMap,
-    scenes: HashMap<String, Arc<SceneDesc>>,
+    /// Parsed scenes by (scene hash, files), most recent last.
+    scenes: VecDeque<(String, Arc<SceneDesc>)>,
+    cache: Arc<AssetCache>,
+    stamp: VersionStamp,
     prepared: VecDeque<((String, u32), Arc<PreparedFrame>)>,
     units_done: Arc<AtomicU64>,
 }
@@ -164,9 +204,13 @@ struct Outgoing {
 
 impl Worker {
     pub fn new(config: WorkerConfig) -> Result<Self, WorkerError> {
-        Endpoint::from_shared(config.coordinator.clone()).map_err(|e| WorkerError::Url {
-            url: config.coordinator.clone(),
-            message: e.to_string(),
+        endpoint(&config.coordinator, config.ca_pem.as_deref())?;
+        let stamp = VersionStamp::with_token(config.token.as_deref())?;
+        let cache = AssetCache::open(&config.cache_dir, config.cache_bytes).map_err(|e| {
+            WorkerError::Cache {
+                dir: config.cache_dir.display().to_string(),
+                message: e.to_string(),
+            }
         })?;
         let renderer = match config.backend {
             Backend::Cpu => Renderer::Cpu(
@@ -185,7 +229,9 @@ impl Worker {
             config,
             renderer: Arc::new(renderer),
             held: Arc::default(),
-            scenes: HashMap::new(),
+            scenes: VecDeque::new(),
+            cache: Arc::new(cache),
+            stamp,
             prepared: VecDeque::new(),
             units_done: Arc::default(),
         })
@@ -244,17 +290,14 @@ impl Worker {
 
     /// `Err(None)`: transient, retry. `Err(Some)`: fatal.
     async fn connect(&self) -> Result<Session, Option<WorkerError>> {
-        let endpoint = Endpoint::from_shared(self.config.coordinator.clone())
-            .map_err(|e| {
-                Some(WorkerError::Url {
-                    url: self.config.coordinator.clone(),
-                    message: e.to_string(),
-                })
-            })?
-            .connect_timeout(Duration::from_secs(3))
-            .tcp_nodelay(true);
-        let channel = endpoint.connect().await.map_err(|_| None)?;
-        let mut client = WorkerServiceClient::with_interceptor(channel, VersionStamp)
+        let endpoint = endpoint(&self.config.coordinator, self.config.ca_pem.as_deref())
+            .map_err(|e| Some(e.into()))?
+            .connect_timeout(Duration::from_secs(3));
+        let channel = endpoint.connect().await.map_err(|e| {
+            tracing::debug!(error = %tessera_proto::transport::error_chain(&e), "cannot connect");
+            None
+        })?;
+        let mut client = WorkerServiceClient::with_interceptor(channel, self.stamp.clone())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
         let caps = capabilities(&self.renderer);
@@ -265,7 +308,10 @@ impl Worker {
             })
             .await
             .map_err(|s| match s.code() {
-                tonic::Code::FailedPrecondition | tonic::Code::InvalidArgument => {
+                tonic::Code::FailedPrecondition
+                | tonic::Code::InvalidArgument
+                | tonic::Code::Unauthenticated
+                | tonic::Code::PermissionDenied => {
                     Some(WorkerError::Refused(s.message().to_string()))
                 }
                 _ => None,
@@ -386,6 +432,15 @@ impl Worker {
                 tracing::info!(lease = %unit.lease_id, "lease gone; abandoned its unit");
                 continue;
             }
+            // A lease this worker cannot hold or send back (a coordinator
+            // gone wrong): a failure the coordinator counts, not an abort.
+            if let Some(why) = too_large(rect) {
+                tracing::warn!(lease = %unit.lease_id, "{why}");
+                if tx.send(out(UnitEnd::Failed(why))).await.is_err() {
+                    return Err(tonic::Status::internal("the result sender stopped"));
+                }
+                continue;
+            }
             let end = match self.prepare(&mut client, &unit).await {
                 Err(e)
                     if e.code() == tonic::Code::Unavailable || e.code() == tonic::Code::Unknown =>
@@ -460,26 +515,39 @@ impl Worker {
         if let Some((_, p)) = self.prepared.iter().find(|(k, _)| *k == key) {
             return Ok(p.clone());
         }
-        let scene = match self.scenes.get(&job.scene_sha256) {
-            Some(s) => s.clone(),
+        // The scene and its files, by hash, from the cache or the
+        // coordinator; parsed from those bytes only (never from this disk).
+        let files: std::collections::BTreeMap<_, _> = job.assets.iter().collect();
+        let scene_key = std::iter::once(job.scene_sha256.as_str())
+            .chain(files.iter().flat_map(|(n, h)| [n.as_str(), h.as_str()]))
+            .collect::<Vec<_>>()
+            .join("\n");
+        let scene = match self.scenes.iter().find(|(k, _)| *k == scene_key) {
+            Some((_, s)) => s.clone(),
             None => {
-                let content = client
-                    .get_asset(pb::GetAssetRequest {
-                        sha256: job.scene_sha256.clone(),
-                    })
-                    .await?
-                    .into_inner()
-                    .content;
+                let content = self.fetch(client, &job.scene_sha256).await?;
                 let text = String::from_utf8(content).map_err(|e| {
                     tonic::Status::invalid_argument(format!(
                         "{}: scene is not UTF-8: {e}",
                         job.scene_name
                     ))
                 })?;
-                let scene = SceneDesc::parse(&text, &job.scene_name)
-                    .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
+                let mut bundle = Bundle::new();
+                for (name, sha256) in &job.assets {
+                    bundle.insert(name.clone(), self.fetch(client, sha256).await?);
+                }
+                let scene_name = job.scene_name.clone();
+                let scene = tokio::task::spawn_blocking(move || {
+                    SceneDesc::parse_from(&text, &scene_name, &bundle)
+                })
+                .await
+                .map_err(|e| tonic::Status::internal(e.to_string()))?
+                .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
                 let scene = Arc::new(scene);
-                self.scenes.insert(job.scene_sha256.clone(), scene.clone());
+                self.scenes.push_back((scene_key, scene.clone()));
+                if self.scenes.len() > PREPARED_CACHE {
+                    self.scenes.pop_front();
+                }
                 scene
             }
         };
@@ -498,6 +566,74 @@ impl Worker {
             self.prepared.pop_front();
         }
         Ok(prepared)
+    }
+}
+
+impl Worker {
+    /// A job file by hash: from the cache when its bytes still match,
+    /// else streamed from the coordinator, checked and cached.
+    async fn fetch(&self, client: &mut Client, sha256: &str) -> Result<Vec<u8>, tonic::Status> {
+        let cache = self.cache.clone();
+        let key = sha256.to_string();
+        if let Some(data) = tokio::task::spawn_blocking(move || cache.get(&key))
+            .await
+            .map_err(|e| tonic::Status::internal(e.to_string()))?
+        {
+            return Ok(data);
+        }
+        let start = Instant::now();
+        let mut stream = client
+            .fetch_asset(pb::GetAssetRequest {
+                sha256: sha256.to_string(),
+            })
+            .await?
+            .into_inner();
+        let mut data = Vec::new();
+        let mut size = None;
+        while let Some(chunk) = stream.message().await? {
+            let declared = *size.get_or_insert(chunk.size);
+            if chunk.offset != data.len() as u64
+                || data.len() as u64 + chunk.data.len() as u64 > declared
+            {
+                return Err(tonic::Status::data_loss(format!(
+                    "asset {sha256}: the coordinator sent a chunk out of order or past the declared {declared} bytes"
+                )));
+            }
+            if data.is_empty() {
+                // Bounded by what this machine can hold: an error, not an abort.
+                data.try_reserve_exact(declared as usize).map_err(|_| {
+                    tonic::Status::resource_exhausted(format!(
+                        "asset {sha256} of {declared} bytes does not fit in this worker's memory"
+                    ))
+                })?;
+            }
+            data.extend_from_slice(&chunk.data);
+        }
+        let got = cache::sha256_hex(&data);
+        if got != sha256 {
+            // Transient as far as the worker can tell: the unit is retried.
+            return Err(tonic::Status::data_loss(format!(
+                "asset {sha256}: the {} bytes received hash to {got}",
+                data.len()
+            )));
+        }
+        tracing::info!(
+            sha256,
+            bytes = data.len(),
+            seconds = start.elapsed().as_secs_f64(),
+            "asset fetched"
+        );
+        let cache = self.cache.clone();
+        let key = sha256.to_string();
+        let data = tokio::task::spawn_blocking(move || {
+            if let Err(e) = cache.put(&key, &data) {
+                tracing::warn!(sha256 = %key, error = %e, "cannot cache a job file (rendering from memory)");
+            }
+            data
+        })
+        .await
+        .map_err(|e| tonic::Status::internal(e.to_string()))?;
+        Ok(data)
     }
 }
 
@@ -685,7 +821,7 @@ async fn submit_with_retry(
             Err(e) if e.code() == tonic::Code::Unavailable && tries < SUBMIT_TRIES => {
                 tracing::warn!(results = reqs.len(), error = %e.message(), retry_in_ms = backoff.as_millis() as u64, "results not recorded; sending them again");
                 tokio::time::sleep(backoff).await;
-                backoff *= 2;
+                backoff = (backoff * 2).min(SUBMIT_BACKOFF_MAX);
             }
             Err(e) => return Err(e),
         }
@@ -793,6 +929,16 @@ async fn heartbeat(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn leases_too_large_to_send_back_are_refused_as_failures() {
+        assert_eq!(too_large(Rect::new(0, 0, 1024, 1024)), None);
+        let e = too_large(Rect::new(0, 0, 5000, 5000)).unwrap();
+        assert_eq!(
+            e,
+            "a lease of 5000x5000 pixels makes a 700000000-byte result, over this worker's 268435456-byte message limit"
+        );
+    }
 
     #[test]
     fn bands_hold_enough_tiles_for_the_threads_and_stay_inside_the_unit() {

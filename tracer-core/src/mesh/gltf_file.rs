@@ -10,15 +10,16 @@ use glam::{DMat3, DMat4, DVec3};
 use gltf::mesh::Mode;
 
 use super::{Mesh, MeshError, default_material};
+use crate::assets::{AssetSource, dir_of, join};
 use crate::scene::{MaterialDesc, Num, Vec3};
 
 /// Deeper node hierarchies are rejected (they are surely cyclic or hostile).
 const MAX_NODE_DEPTH: usize = 64;
 
-pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
+pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result<Mesh, MeshError> {
+    let path = Path::new(name);
     let err = |m: String| MeshError::new(path, m);
-    let bytes = std::fs::read(path).map_err(|e| err(format!("cannot read model file: {e}")))?;
-    let gltf = gltf::Gltf::from_slice(&bytes).map_err(|e| err(format!("invalid glTF: {e}")))?;
+    let gltf = gltf::Gltf::from_slice(bytes).map_err(|e| err(format!("invalid glTF: {e}")))?;
     let doc = &gltf.document;
 
     let mut buffers = Vec::new();
@@ -47,17 +48,12 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
                             ))
                         })?
                 } else {
-                    let file = path
-                        .parent()
-                        .unwrap_or(Path::new(""))
-                        .join(percent_decode(uri));
-                    std::fs::read(&file).map_err(|e| {
-                        err(format!(
-                            "cannot read buffer {} file {}: {e}",
-                            b.index(),
-                            file.display()
-                        ))
-                    })?
+                    // Through the scene's source, named beside the glTF file.
+                    let file = join(dir_of(name), &percent_decode(uri));
+                    source
+                        .read(&file)
+                        .map_err(|e| err(format!("cannot read buffer {}: {e}", b.index())))?
+                        .to_vec()
                 }
             }
         };
@@ -106,6 +102,14 @@ pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
                 Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
             ) {
                 continue; // points and lines have no surface
+            }
+            // The crate trusts counts, strides and offsets (it panics or
+            // allocates what a count asks): checked against the buffers first.
+            let attrs = prim
+                .attributes()
+                .filter(|(s, _)| matches!(s, gltf::Semantic::Positions | gltf::Semantic::Normals));
+            for acc in attrs.map(|(_, a)| a).chain(prim.indices()) {
+                check_accessor(&acc, &buffers).map_err(|m| err(at(&m)))?;
             }
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| d.as_slice()));
             let positions: Vec<[f32; 3]> = reader
@@ -236,6 +240,88 @@ fn map_material(m: &gltf::Material) -> MaterialDesc {
         }),
         ior: Num(1.5), // KHR_materials_ior is not read
     }
+}
+
+/// Whether an accessor's data lies inside its buffers as declared: views
+/// inside their buffers, strides at least one element, `count` elements
+/// inside the view; sparse parts likewise, and a sparse accessor without a
+/// view no longer than its buffers could describe.
+fn check_accessor(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Result<(), String> {
+    let name = format!("accessor {}", acc.index());
+    let count = acc.count() as u64;
+    let elem = acc.size() as u64;
+    let view_len = |v: &gltf::buffer::View| -> Result<u64, String> {
+        let buf = buffers
+            .get(v.buffer().index())
+            .ok_or_else(|| format!("{name}: buffer {} does not exist", v.buffer().index()))?;
+        let end = v.offset() as u64 + v.length() as u64;
+        if end > buf.len() as u64 {
+            return Err(format!(
+                "{name}: buffer view {} ends at byte {end}, past its buffer's {} bytes",
+                v.index(),
+                buf.len()
+            ));
+        }
+        Ok(v.length() as u64)
+    };
+    let total: u64 = buffers.iter().map(|b| b.len() as u64).sum();
+    match acc.view() {
+        Some(v) => {
+            let len = view_len(&v)?;
+            let stride = v.stride().map_or(elem, |s| s as u64);
+            if stride < elem {
+                return Err(format!(
+                    "{name}: byteStride {stride} is smaller than its {elem}-byte elements"
+                ));
+            }
+            let need = if count == 0 {
+                0
+            } else {
+                acc.offset() as u64 + (count - 1) * stride + elem
+            };
+            if need > len {
+                return Err(format!(
+                    "{name}: {count} elements need {need} bytes, its buffer view has {len}"
+                ));
+            }
+        }
+        // All zeros but for sparse values: bounded by what the file holds.
+        None if count > 16 * total + 65536 => {
+            return Err(format!(
+                "{name}: {count} elements without data in a file of {total} buffer bytes"
+            ));
+        }
+        None => {}
+    }
+    if let Some(sp) = acc.sparse() {
+        let n = sp.count() as u64;
+        if n > count {
+            return Err(format!("{name}: {n} sparse values for {count} elements"));
+        }
+        let index_size = match sp.indices().index_type() {
+            gltf::accessor::sparse::IndexType::U8 => 1,
+            gltf::accessor::sparse::IndexType::U16 => 2,
+            gltf::accessor::sparse::IndexType::U32 => 4,
+        };
+        for (what, v, offset, size) in [
+            (
+                "indices",
+                sp.indices().view(),
+                sp.indices().offset(),
+                index_size,
+            ),
+            ("values", sp.values().view(), sp.values().offset(), elem),
+        ] {
+            let len = view_len(&v)?;
+            let need = offset as u64 + n * size;
+            if need > len {
+                return Err(format!(
+                    "{name}: {n} sparse {what} need {need} bytes, their buffer view has {len}"
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 fn percent_decode(s: &str) -> String {

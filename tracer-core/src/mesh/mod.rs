@@ -9,7 +9,9 @@ mod ply;
 
 use std::path::{Path, PathBuf};
 
-use crate::scene::{MaterialDesc, Num, Vec3};
+use crate::assets::{AssetError, AssetSource, LocalFolder};
+
+use crate::scene::{MaterialDesc, Num, Vec3, check_colour, check_weight};
 
 /// A triangle mesh as read from a file.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -23,6 +25,9 @@ pub struct Mesh {
     pub triangle_materials: Vec<u32>,
     /// The file's materials mapped to the Blinn-Phong model (at least one).
     pub materials: Vec<(String, MaterialDesc)>,
+    /// What was read with a default instead of refused (a missing MTL
+    /// library, `Ni 0`): shown to the user, the file still renders.
+    pub warnings: Vec<String>,
 }
 
 /// Why a model file could not be loaded. Display names the file.
@@ -42,6 +47,44 @@ impl MeshError {
     }
 }
 
+thread_local! {
+    static IN_LOADER: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// `catch_unwind` whose panics print nothing: a third-party parser's panic
+/// on a malformed file becomes this module's error message, and its panic
+/// text ("thread panicked at ...") never reaches the user. Other threads'
+/// panics are reported as before.
+fn quiet_catch_unwind<T>(f: impl FnOnce() -> T) -> std::thread::Result<T> {
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !IN_LOADER.with(|c| c.get()) {
+                previous(info);
+            }
+        }));
+    });
+    let was = IN_LOADER.with(|c| c.replace(true));
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    IN_LOADER.with(|c| c.set(was));
+    result
+}
+
+/// An asset error as a loader's message (the file is named by `MeshError`).
+pub(crate) fn cannot_read(e: &AssetError) -> String {
+    match e {
+        AssetError::Io { message, .. } => format!("cannot read model file: {message}"),
+        AssetError::NotAFile { .. } => "is not a regular file".into(),
+        AssetError::Missing { .. } => {
+            "is not among the job's files (the client did not send it)".into()
+        }
+        AssetError::TooLarge { size, limit, .. } => {
+            format!("{size} bytes is over the limit of {limit} bytes a file")
+        }
+    }
+}
+
 /// Material of files (or parts) that define none: plain light grey.
 pub fn default_material() -> MaterialDesc {
     MaterialDesc {
@@ -56,29 +99,41 @@ pub fn default_material() -> MaterialDesc {
 }
 
 impl Mesh {
-    /// Loads a model by its extension: .obj, .gltf, .glb, .ply, .ply.gz.
-    /// `need_materials`: whether the file's materials will be used (when
-    /// false, a missing MTL library is not an error).
+    /// Loads a model file from this machine's disk (its MTL or buffers from
+    /// beside it): [`Mesh::load_from`] on the file's folder.
     pub fn load(path: &Path, need_materials: bool) -> Result<Mesh, MeshError> {
         let name = path
             .file_name()
-            .map(|n| n.to_string_lossy().to_lowercase())
+            .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default();
-        // Give "not found" and "is a directory" before any format-specific message.
-        match std::fs::metadata(path) {
-            Err(e) => return Err(MeshError::new(path, format!("cannot read model file: {e}"))),
-            Ok(m) if !m.is_file() => return Err(MeshError::new(path, "is not a file")),
-            Ok(_) => {}
-        }
+        Mesh::load_from(&LocalFolder::of_scene(path), &name, need_materials)
+    }
+
+    /// Loads the model `name` of `source` by its extension: .obj, .gltf,
+    /// .glb, .ply, .ply.gz. Files it refers to (an OBJ's MTL, a glTF's
+    /// buffers) are read through `source` too, named relative to it.
+    /// `need_materials`: whether the file's materials will be used (when
+    /// false, a missing MTL library is not an error).
+    pub fn load_from(
+        source: &dyn AssetSource,
+        name: &str,
+        need_materials: bool,
+    ) -> Result<Mesh, MeshError> {
+        let path = Path::new(name);
+        let lower = name.to_lowercase();
+        // "not found" and "not a file" come before any format-specific message.
+        let bytes = source
+            .read(name)
+            .map_err(|e| MeshError::new(path, cannot_read(&e)))?;
         // Third-party parsers on untrusted input: a panic in one must be an
         // error for this file, not the end of the process.
-        let result = std::panic::catch_unwind(|| {
-            if name.ends_with(".obj") {
-                obj::load(path, need_materials)
-            } else if name.ends_with(".gltf") || name.ends_with(".glb") {
-                gltf_file::load(path)
-            } else if name.ends_with(".ply") || name.ends_with(".ply.gz") {
-                ply::load(path)
+        let result = quiet_catch_unwind(|| {
+            if lower.ends_with(".obj") {
+                obj::load(source, name, &bytes, need_materials)
+            } else if lower.ends_with(".gltf") || lower.ends_with(".glb") {
+                gltf_file::load(source, name, &bytes)
+            } else if lower.ends_with(".ply") || lower.ends_with(".ply.gz") {
+                ply::load(name, &bytes)
             } else {
                 Err(MeshError::new(
                     path,
@@ -158,21 +213,14 @@ fn check_material(m: &MaterialDesc) -> Result<(), String> {
         ("diffuse", &m.diffuse),
         ("specular", &m.specular),
     ] {
-        if !c.0.iter().all(|v| v.is_finite() && *v >= 0.0) {
-            return Err(format!(
-                "{f} must be three finite numbers >= 0, got {:?}",
-                c.0
-            ));
-        }
+        check_colour(c).map_err(|e| format!("{f} {e}"))?;
     }
     for (f, v) in [
         ("shininess", m.shininess),
         ("reflectivity", m.reflectivity),
         ("transparency", m.transparency),
     ] {
-        if !(v.0.is_finite() && v.0 >= 0.0) {
-            return Err(format!("{f} must be a finite number >= 0, got {}", v.0));
-        }
+        check_weight(v.0).map_err(|e| format!("{f} {e}"))?;
     }
     if !(m.ior.0.is_finite() && m.ior.0 > 0.0) {
         return Err(format!("ior must be a finite number > 0, got {}", m.ior.0));
@@ -253,10 +301,14 @@ mod tests {
             "nomtl.obj",
             b"mtllib gone.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
         );
-        let e = Mesh::load(&p, true).unwrap_err().to_string();
+        let m = Mesh::load(&p, true).unwrap();
+        assert_eq!(m.materials, vec![("default".into(), default_material())]);
+        assert_eq!(m.warnings.len(), 1);
         assert!(
-            e.contains("nomtl.obj: cannot load its material library") && e.contains("gone.mtl"),
-            "{e}"
+            m.warnings[0].starts_with("cannot load its material library (mtllib gone.mtl)")
+                && m.warnings[0].contains("its faces use the default grey material"),
+            "{:?}",
+            m.warnings
         );
         assert!(
             Mesh::load(&p, false).is_ok(),
@@ -279,6 +331,152 @@ mod tests {
         let e = Mesh::load(&p, true).unwrap_err().to_string();
         assert!(e.contains("x.stl: unknown model format"), "{e}");
         let e = Mesh::load(&d, true).unwrap_err().to_string();
-        assert!(e.contains("is not a file"), "{e}");
+        assert!(e.contains("is not a regular file"), "{e}");
+    }
+
+    /// A glTF of one triangle whose position accessor is `accessor` (JSON),
+    /// over a 36-byte buffer of three vertices.
+    fn gltf_with(accessor: &str, view: &str) -> String {
+        use base64::Engine as _;
+        let mut b = Vec::new();
+        for v in [[0f32, 0., 0.], [1., 0., 0.], [0., 1., 0.]] {
+            for c in v {
+                b.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+        let uri = base64::engine::general_purpose::STANDARD.encode(&b);
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":36,"uri":"data:application/octet-stream;base64,{uri}"}}],
+            "bufferViews":[{view}],"accessors":[{accessor}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}]}}"#
+        )
+    }
+
+    #[test]
+    fn hostile_model_files_are_errors_at_once_not_aborts_or_hangs() {
+        let d = tmpdir("hostile");
+        let start = std::time::Instant::now();
+        let ok_view = r#"{"buffer":0,"byteLength":36}"#;
+        let good = gltf_with(
+            r#"{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}"#,
+            ok_view,
+        );
+        let p = write(&d, "good.gltf", good.as_bytes());
+        assert_eq!(Mesh::load(&p, true).unwrap().triangles.len(), 1);
+        // A sparse accessor of 2^32-1 elements and no data: 51 GB if believed.
+        let sparse = gltf_with(
+            r#"{"componentType":5126,"count":4294967295,"type":"VEC3","min":[0,0,0],"max":[1,1,0],"sparse":{"count":4294967295,
+               "indices":{"bufferView":0,"componentType":5125},"values":{"bufferView":0}}}"#,
+            ok_view,
+        );
+        let p = write(&d, "sparse.gltf", sparse.as_bytes());
+        let e = Mesh::load(&p, true).unwrap_err().to_string();
+        assert!(
+            e.contains(
+                "sparse.gltf: mesh 0 primitive 0: accessor 0: 4294967295 elements without data"
+            ),
+            "{e}"
+        );
+        // A stride smaller than the element: the crate would panic.
+        let stride = gltf_with(
+            r#"{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}"#,
+            r#"{"buffer":0,"byteLength":36,"byteStride":4}"#,
+        );
+        let p = write(&d, "stride.gltf", stride.as_bytes());
+        let e = Mesh::load(&p, true).unwrap_err().to_string();
+        assert!(
+            e.contains("accessor 0: byteStride 4 is smaller than its 12-byte elements"),
+            "{e}"
+        );
+        // More elements than the view holds.
+        let long = gltf_with(
+            r#"{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}"#,
+            ok_view,
+        );
+        let p = write(&d, "long.gltf", long.as_bytes());
+        let e = Mesh::load(&p, true).unwrap_err().to_string();
+        assert!(
+            e.contains("accessor 0: 4 elements need 48 bytes, its buffer view has 36"),
+            "{e}"
+        );
+        // A PLY element with no properties and a count near 2^63 is nothing to read.
+        let p = write(
+            &d,
+            "empty-element.ply",
+            b"ply\nformat ascii 1.0\nelement junk 9223372036854775807\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
+        );
+        assert_eq!(Mesh::load(&p, true).unwrap().triangles.len(), 1);
+        // ASCII rows with more values than the header declares (colours a
+        // writer added): the extra values end with their line.
+        let p = write(
+            &d,
+            "extra.ply",
+            b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 255 0 0\n1 0 0 0 255 0\n0 1 0 0 0 255\n3 0 1 2 7\n",
+        );
+        let m = Mesh::load(&p, true).unwrap();
+        assert_eq!(
+            m.positions,
+            vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+        );
+        assert_eq!(m.triangles, vec![[0, 1, 2]]);
+        // Faces before vertices: read, then checked against the vertices.
+        let p = write(
+            &d,
+            "faces-first.ply",
+            b"ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n3 0 1 2\n0 0 0\n1 0 0\n0 1 0\n",
+        );
+        assert_eq!(Mesh::load(&p, true).unwrap().triangles, vec![[0, 1, 2]]);
+        let p = write(
+            &d,
+            "faces-first-bad.ply",
+            b"ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n3 0 1 9\n0 0 0\n1 0 0\n0 1 0\n",
+        );
+        let e = Mesh::load(&p, true).unwrap_err().to_string();
+        assert!(
+            e.contains(
+                "faces-first-bad.ply: triangle 0 refers to vertex 9 but there are only 3 vertices"
+            ),
+            "{e}"
+        );
+        // `Kd 1` (one value, grey) is legal MTL; tobj alone panics on it.
+        write(&d, "grey.mtl", b"newmtl g\nKd 0.5\nKs 1\n");
+        let p = write(
+            &d,
+            "grey.obj",
+            b"mtllib grey.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl g\nf 1 2 3\n",
+        );
+        let m = Mesh::load(&p, true).unwrap();
+        assert_eq!(m.materials[0].1.diffuse, Vec3([0.5; 3]));
+        assert_eq!(m.materials[0].1.specular, Vec3([1.0; 3]));
+        // `Ni 0` is no index of refraction: 1, with a warning.
+        write(&d, "ni.mtl", b"newmtl n\nKd 1 1 1\nNi 0\n");
+        let p = write(
+            &d,
+            "ni.obj",
+            b"mtllib ni.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl n\nf 1 2 3\n",
+        );
+        let m = Mesh::load(&p, true).unwrap();
+        assert_eq!(m.materials[0].1.ior, Num(1.0));
+        assert_eq!(
+            m.warnings,
+            vec!["material \"n\": Ni 0 is no index of refraction; 1 is used".to_string()]
+        );
+        // Colours past what f32 holds.
+        write(&d, "hot.mtl", b"newmtl h\nKd 1e39 1 1\n");
+        let p = write(
+            &d,
+            "hot.obj",
+            b"mtllib hot.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl h\nf 1 2 3\n",
+        );
+        let e = Mesh::load(&p, true).unwrap_err().to_string();
+        assert!(
+            e.contains("material \"h\": ambient must be three finite numbers >= 0 and at most 1e6"),
+            "{e}"
+        );
+        assert!(
+            start.elapsed() < std::time::Duration::from_secs(5),
+            "{:?}",
+            start.elapsed()
+        );
     }
 }

@@ -1,43 +1,69 @@
 //! Wavefront OBJ with MTL materials, through `tobj`.
 
+use std::cell::RefCell;
 use std::path::Path;
 
 use super::{Mesh, MeshError, default_material};
+use crate::assets::{AssetSource, dir_of, join};
 use crate::scene::{MaterialDesc, Num, Vec3};
 
-pub(super) fn load(path: &Path, need_materials: bool) -> Result<Mesh, MeshError> {
+pub(super) fn load(
+    source: &dyn AssetSource,
+    name: &str,
+    bytes: &[u8],
+    need_materials: bool,
+) -> Result<Mesh, MeshError> {
+    let path = Path::new(name);
     let options = tobj::LoadOptions {
         triangulate: true,
         single_index: true,
         ignore_points: true,
         ignore_lines: true,
     };
-    let (models, materials) = tobj::load_obj(path, &options)
+    // MTL libraries come through the same source, named beside the OBJ.
+    let failed_libs = RefCell::new(Vec::<String>::new());
+    let (models, materials) =
+        tobj::load_obj_buf(&mut std::io::Cursor::new(bytes), &options, |lib: &Path| {
+            let lib_name = join(dir_of(name), &lib.to_string_lossy());
+            let result = source
+                .read(&lib_name)
+                .map_err(|_| tobj::LoadError::OpenFileFailed)
+                .and_then(|data| {
+                    let text = mtl_compatible(&data);
+                    tobj::load_mtl_buf(&mut std::io::Cursor::new(text.as_bytes()))
+                });
+            if result.is_err() {
+                failed_libs.borrow_mut().push(lib_name);
+            }
+            result
+        })
         .map_err(|e| MeshError::new(path, format!("invalid OBJ: {e}")))?;
+    // A missing or unreadable library is common in downloaded models:
+    // the default material stands in, and the user is told.
+    let mut warnings = Vec::new();
     let materials = match materials {
         Ok(m) => m,
         Err(_) if !need_materials => Vec::new(),
         Err(e) => {
-            // tobj does not say which library failed: name the file's mtllib lines.
-            let libs = std::fs::read_to_string(path)
-                .unwrap_or_default()
-                .lines()
-                .filter_map(|l| {
-                    l.trim()
-                        .strip_prefix("mtllib")
-                        .map(|r| r.trim().to_string())
-                })
-                .collect::<Vec<_>>()
-                .join(", ");
-            return Err(MeshError::new(
-                path,
-                format!(
-                    "cannot load its material library (mtllib {libs}): {e}; give the object a `material` to ignore it"
-                ),
+            let libs = failed_libs.into_inner().join(", ");
+            warnings.push(format!(
+                "cannot load its material library (mtllib {libs}): {e}; its faces use the default grey material \
+                 (give the object a `material` to choose one)"
             ));
+            Vec::new()
         }
     };
+    for m in &materials {
+        if m.optical_density.is_some_and(|n| n.is_nan() || n <= 0.0) {
+            warnings.push(format!(
+                "material {:?}: Ni {} is no index of refraction; 1 is used",
+                m.name,
+                m.optical_density.unwrap_or_default()
+            ));
+        }
+    }
     let mut mesh = Mesh {
+        warnings,
         materials: materials
             .iter()
             .map(|m| (m.name.clone(), map_material(m)))
@@ -79,6 +105,29 @@ pub(super) fn load(path: &Path, need_materials: bool) -> Result<Mesh, MeshError>
     Ok(mesh)
 }
 
+/// An MTL library as tobj can read it: colour statements with one value
+/// (`Kd 0.5`, which the format allows and means grey) are written with
+/// three, since tobj indexes three and panics on fewer.
+fn mtl_compatible(data: &[u8]) -> String {
+    let text = String::from_utf8_lossy(data);
+    let mut out = String::with_capacity(text.len() + 64);
+    for line in text.lines() {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            [k @ ("Ka" | "Kd" | "Ks" | "Ke" | "Tf"), v] if v.parse::<f32>().is_ok() => {
+                out.push_str(&format!("{k} {v} {v} {v}"));
+            }
+            [k @ ("Ka" | "Kd" | "Ks" | "Ke" | "Tf"), ..] if words.len() < 4 => {
+                // Nothing a colour can be made of: left out (defaults apply).
+                out.push_str(&format!("# {k} ignored"));
+            }
+            _ => out.push_str(line),
+        }
+        out.push('\n');
+    }
+    out
+}
+
 /// MTL -> Blinn-Phong: Ka ambient (Kd when absent), Kd diffuse, Ks specular,
 /// Ns shininess, d (or 1 - Tr) opacity, Ni ior; illum 3, 5 and 7 (the
 /// "reflection on" models) make Ks's largest component the mirror weight.
@@ -108,6 +157,9 @@ fn map_material(m: &tobj::Material) -> MaterialDesc {
             0.0
         }),
         transparency: Num((1.0 - opacity).clamp(0.0, 1.0)),
-        ior: Num(m.optical_density.map_or(1.0, f64::from)),
+        ior: Num(m
+            .optical_density
+            .filter(|&n| n > 0.0)
+            .map_or(1.0, f64::from)),
     }
 }

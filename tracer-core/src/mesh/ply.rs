@@ -76,12 +76,12 @@ enum Format {
 /// Upper bound on any single polygon's vertex count (anything larger is corrupt).
 const MAX_POLYGON: usize = 1 << 16;
 
-pub(super) fn load(path: &Path) -> Result<Mesh, MeshError> {
+pub(super) fn load(name: &str, bytes: &[u8]) -> Result<Mesh, MeshError> {
+    let path = Path::new(name);
     let err = |m: String| MeshError::new(path, m);
-    let file =
-        std::fs::File::open(path).map_err(|e| err(format!("cannot read model file: {e}")))?;
-    let gz = path.to_string_lossy().to_lowercase().ends_with(".gz");
-    let raw: Box<dyn Read> = if gz {
+    let file = bytes;
+    let gz = name.to_lowercase().ends_with(".gz");
+    let raw: Box<dyn Read + '_> = if gz {
         Box::new(flate2::read::GzDecoder::new(file))
     } else {
         Box::new(file)
@@ -170,6 +170,14 @@ struct Values<'a, R: BufRead> {
 }
 
 impl<R: BufRead> Values<'_, R> {
+    /// Ends an element instance: in ASCII each is one line, and values past
+    /// the declared properties (writers add colours, alpha, ...) are skipped.
+    fn end_row(&mut self) {
+        if self.format == Format::Ascii {
+            self.pos = self.line.len();
+        }
+    }
+
     fn next(&mut self, ty: Scalar) -> Result<f64, String> {
         if self.format == Format::Ascii {
             let tok = loop {
@@ -254,6 +262,7 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
                 for i in 0..el.count {
                     read_row(&mut vals, el, &mut row, &mut list)
                         .map_err(|e| format!("vertex {i}: {e}"))?;
+                    vals.end_row();
                     mesh.positions
                         .push([row[x] as f32, row[y] as f32, row[z] as f32]);
                     if let Some([a, b, c]) = normal {
@@ -263,9 +272,8 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
                 }
             }
             "face" => {
-                if !vertex_seen {
-                    return Err("element face comes before element vertex".into());
-                }
+                // Faces may come before the vertices (some writers put them
+                // first): their indices are then checked once all are read.
                 let li = el
                     .props
                     .iter()
@@ -277,8 +285,9 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
                     poly.clear();
                     read_face(&mut vals, el, li, &mut poly)
                         .map_err(|e| format!("face {i}: {e}"))?;
+                    vals.end_row();
                     let nv = mesh.positions.len() as u32;
-                    if let Some(&bad) = poly.iter().find(|&&v| v >= nv) {
+                    if let Some(&bad) = poly.iter().find(|&&v| vertex_seen && v >= nv) {
                         return Err(format!(
                             "face {i}: vertex index {bad} out of range ({nv} vertices)"
                         ));
@@ -288,10 +297,13 @@ fn body(r: &mut impl BufRead, format: Format, elements: &[Element]) -> Result<Me
                     }
                 }
             }
+            // No properties, no data: nothing to read, however large the count.
+            _ if el.props.is_empty() => {}
             _ => {
                 for i in 0..el.count {
                     read_row(&mut vals, el, &mut row, &mut list)
                         .map_err(|e| format!("{} {i}: {e}", el.name))?;
+                    vals.end_row();
                 }
             }
         }

@@ -6,6 +6,8 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use crate::assets::{AssetSource, LocalFolder, join};
+
 use serde::Deserialize;
 use serde::de::{self, Deserializer, SeqAccess, Visitor};
 use toml::Spanned;
@@ -358,10 +360,14 @@ pub struct SceneDesc {
     pub objects: Vec<ObjectDesc>,
     /// Index into `materials` for each object.
     pub object_materials: Vec<u32>,
+    /// What the scene's model files gave defaults for (each names the
+    /// object and the file); the scene renders, the user is told.
+    pub warnings: Vec<String>,
 }
 
 impl SceneDesc {
-    /// Reads and validates a scene file.
+    /// Reads and validates a scene file and the files it references from
+    /// this machine's disk (paths relative to the scene's folder).
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SceneError> {
         let path = path.as_ref();
         let src = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
@@ -371,8 +377,21 @@ impl SceneDesc {
         Self::parse(&src, path)
     }
 
-    /// Parses and validates scene text; `path` is used in messages.
+    /// Parses and validates scene text; `path` is used in messages and its
+    /// folder holds the files the scene references.
     pub fn parse(src: &str, path: impl AsRef<Path>) -> Result<Self, SceneError> {
+        let path = path.as_ref();
+        Self::parse_from(src, path, &LocalFolder::of_scene(path))
+    }
+
+    /// Parses and validates scene text, reading every file it references
+    /// from `files` (by name relative to the scene's folder, see
+    /// [`crate::assets`]); `path` is used in messages only.
+    pub fn parse_from(
+        src: &str,
+        path: impl AsRef<Path>,
+        files: &dyn AssetSource,
+    ) -> Result<Self, SceneError> {
         let path = path.as_ref().to_path_buf();
         let file: SceneFile = toml::from_str(src).map_err(|e| {
             let start = e.span().map_or(0, |s| s.start);
@@ -507,9 +526,7 @@ impl SceneDesc {
                 ("reflectivity", mv.reflectivity),
                 ("transparency", mv.transparency),
             ] {
-                if !(v.0.is_finite() && v.0 >= 0.0) {
-                    return Err(err(f, format!("must be a finite number >= 0, got {}", v.0)));
-                }
+                check_weight(v.0).map_err(|m| err(f, m))?;
             }
             if !(mv.ior.0.is_finite() && mv.ior.0 > 0.0) {
                 return Err(err(
@@ -538,6 +555,7 @@ impl SceneDesc {
 
         let mut objects = Vec::with_capacity(file.objects.len());
         let mut object_materials = Vec::with_capacity(file.objects.len());
+        let mut warnings = Vec::new();
         for (i, o) in file.objects.iter().enumerate() {
             let ov = o.get_ref();
             let err = |f: &str, m: String| {
@@ -578,9 +596,12 @@ impl SceneDesc {
                 }
                 ObjectDesc::Mesh(m) => {
                     m.validate().map_err(|(f, msg)| err(f, msg))?;
-                    let file = path.parent().unwrap_or(Path::new("")).join(&m.path);
-                    let mesh = Mesh::load(&file, m.material.is_none())
+                    let name = join("", &m.path);
+                    let mesh = Mesh::load_from(files, &name, m.material.is_none())
                         .map_err(|e| err("path", format!("cannot load model: {e}")))?;
+                    warnings.extend(mesh.warnings.iter().map(|w| {
+                        format!("{}: objects[{i}] (mesh).path: {name}: {w}", path.display())
+                    }));
                     m.model = MeshModel::new(mesh);
                 }
             }
@@ -608,6 +629,7 @@ impl SceneDesc {
         }
 
         Ok(SceneDesc {
+            warnings,
             path,
             render,
             camera: file.camera,
@@ -634,21 +656,39 @@ fn key_offset(src: &str, span: std::ops::Range<usize>, key: &str) -> Option<usiz
         if i > 0 && trimmed.starts_with('[') {
             break;
         }
-        if let Some(rest) = trimmed.strip_prefix(key) {
-            if rest.trim_start().starts_with('=') {
-                return Some(span.start + offset + (line.len() - trimmed.len()));
-            }
+        if let Some(rest) = trimmed.strip_prefix(key)
+            && rest.trim_start().starts_with('=')
+        {
+            return Some(span.start + offset + (line.len() - trimmed.len()));
         }
         offset += line.len();
     }
     None
 }
 
-fn check_colour(c: &Vec3) -> Result<(), String> {
-    if c.is_finite() && c.0.iter().all(|&v| v >= 0.0) {
+/// Largest colour component or material weight. Scenes render in f32
+/// (f32::MAX is 3.4e38): a product of a few values this size stays finite,
+/// where 1e39 would already be infinite when converted.
+pub const MAX_VALUE: f64 = 1e6;
+
+pub(crate) fn check_colour(c: &Vec3) -> Result<(), String> {
+    if c.is_finite() && c.0.iter().all(|&v| (0.0..=MAX_VALUE).contains(&v)) {
         Ok(())
     } else {
-        Err(format!("must be three finite numbers >= 0, got {:?}", c.0))
+        Err(format!(
+            "must be three finite numbers >= 0 and at most 1e6 (larger overflow f32), got {:?}",
+            c.0
+        ))
+    }
+}
+
+pub(crate) fn check_weight(v: f64) -> Result<(), String> {
+    if v.is_finite() && (0.0..=MAX_VALUE).contains(&v) {
+        Ok(())
+    } else {
+        Err(format!(
+            "must be a finite number >= 0 and at most 1e6 (larger overflow f32), got {v}"
+        ))
     }
 }
 
@@ -714,6 +754,21 @@ material = "red"
             e.contains("radius: must be a finite number > 0, got NaN"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn values_past_what_f32_holds_are_refused() {
+        let src = MINIMAL.replace("diffuse = [1, 0, 0]", "diffuse = [1e39, 0, 0]");
+        let e = err(&src);
+        assert!(
+            e.contains("materials.red.diffuse: must be three finite numbers >= 0 and at most 1e6 (larger overflow f32), got [1e39, 0.0, 0.0]"),
+            "{e}"
+        );
+        let src = MINIMAL.replace(
+            "diffuse = [1, 0, 0]",
+            "diffuse = [1, 0, 0]\nshininess = 1e300",
+        );
+        assert!(err(&src).contains("shininess: must be a finite number >= 0 and at most 1e6"));
     }
 
     #[test]

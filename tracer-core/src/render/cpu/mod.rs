@@ -99,10 +99,10 @@ pub fn render_tile<R: Real>(
     tile: Rect,
     samples: SampleRange,
 ) -> Film {
-    if let Some(w) = (world as &dyn std::any::Any).downcast_ref::<World<f32>>() {
-        if stream::supports(w) {
-            return stream::render_tile(w, frame, tile, samples, crate::simd::level());
-        }
+    if let Some(w) = (world as &dyn std::any::Any).downcast_ref::<World<f32>>()
+        && stream::supports(w)
+    {
+        return stream::render_tile(w, frame, tile, samples, crate::simd::level());
     }
     render_tile_recursive(world, frame, tile, samples)
 }

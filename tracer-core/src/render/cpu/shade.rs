@@ -487,8 +487,8 @@ pub fn shade_lanes<const W: usize>(
             }
             let r = base..base + W;
             s.light_on[r.clone()].copy_from_slice(&on);
-            for c in 0..3 {
-                s.light_origin[c][r.clone()].copy_from_slice(&origin[c]);
+            for (to, from) in s.light_origin.iter_mut().zip(&origin) {
+                to[r.clone()].copy_from_slice(from);
             }
             s.light_t_max[r.clone()].copy_from_slice(&t_max);
             for c in 0..3 {

@@ -375,10 +375,10 @@ impl GpuRenderer {
             // The default handler panics; record instead and fail the render.
             let f = fault.clone();
             device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
-                if let Ok(mut f) = f.lock() {
-                    if f.error.is_none() {
-                        f.error = Some(classify(e));
-                    }
+                if let Ok(mut f) = f.lock()
+                    && f.error.is_none()
+                {
+                    f.error = Some(classify(e));
                 }
             }));
         }
@@ -562,6 +562,7 @@ impl GpuRenderer {
         result
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn render_inner(
         &self,
         data: SceneData,
@@ -590,7 +591,7 @@ impl GpuRenderer {
         check_size(
             "the film's per-pixel sums",
             sums_bytes,
-            limits.max_storage_buffer_binding_size as u64,
+            limits.max_storage_buffer_binding_size,
             "max_storage_buffer_binding_size",
         )?;
         check_size(
@@ -653,7 +654,7 @@ impl GpuRenderer {
                     check_size(
                         "a wavefront task queue",
                         bytes,
-                        limits.max_storage_buffer_binding_size as u64,
+                        limits.max_storage_buffer_binding_size,
                         "max_storage_buffer_binding_size",
                     )?;
                     *guard = Some(self.create_wave_buffers(p.queue_cap));
@@ -978,7 +979,7 @@ impl GpuRenderer {
             check_size(
                 what,
                 bytes as u64,
-                limits.max_storage_buffer_binding_size as u64,
+                limits.max_storage_buffer_binding_size,
                 "max_storage_buffer_binding_size",
             )?;
         }
@@ -1060,7 +1061,7 @@ impl GpuRenderer {
             let max_groups = limits.max_compute_workgroups_per_dimension as u64;
             let queue_cap = (2 * self.options.dispatch_pixel_samples)
                 .min(max_groups * (wx * wy) as u64)
-                .min(limits.max_storage_buffer_binding_size as u64 / layout::WAVE_TASK_BYTES);
+                .min(limits.max_storage_buffer_binding_size / layout::WAVE_TASK_BYTES);
             let mut wave_constants = constants.to_vec();
             wave_constants.push(("QUEUE_CAP", queue_cap as f64));
             let make = |entry: &str, layout: &wgpu::PipelineLayout| {

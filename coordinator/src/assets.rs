@@ -1,0 +1,417 @@
+//! The coordinator's content-addressed file store: every scene TOML and
+//! every file a scene references, once, under `--data/assets/` as
+//! `ab/abcdef…` (the SHA-256 in hex), shared by all jobs.
+//!
+//! Invariants: a file under its hash holds exactly the bytes of that hash
+//! (an upload is written to `tmp/`, checked against the size and hash it
+//! declared, synced, then renamed into place, so a crash or a full disk
+//! leaves at most a stray temporary file, removed at the next start); a
+//! file stays while an unfinished job references it, and is collected
+//! once none has for `retention` (each submit that names it starts the
+//! clock again, so a re-submit of the same model uploads nothing).
+
+use std::collections::HashSet;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, SystemTime};
+
+use sha2::{Digest, Sha256};
+
+/// Configurable bounds on what clients may store.
+#[derive(Clone, Copy, Debug)]
+pub struct AssetLimits {
+    /// Largest single file.
+    pub max_asset_bytes: u64,
+    /// Largest sum of a job's files (scene included).
+    pub max_job_bytes: u64,
+    /// Largest sum of all stored files.
+    pub max_store_bytes: u64,
+    /// How long a file no unfinished job references is kept.
+    pub retention: Duration,
+}
+
+impl Default for AssetLimits {
+    fn default() -> Self {
+        AssetLimits {
+            max_asset_bytes: 2 << 30,
+            max_job_bytes: 4 << 30,
+            max_store_bytes: 64 << 30,
+            retention: Duration::from_secs(24 * 3600),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum AssetStoreError {
+    #[error("{0:?} is not a SHA-256 (64 lowercase hex digits)")]
+    BadHash(String),
+    #[error(
+        "asset {sha256} is {size} bytes, over the coordinator's limit of {limit} bytes a file (--max-asset-bytes)"
+    )]
+    TooLarge {
+        sha256: String,
+        size: u64,
+        limit: u64,
+    },
+    #[error(
+        "storing {size} more bytes would take the asset store over its limit of {limit} bytes (--max-store-bytes; {stored} bytes stored)"
+    )]
+    StoreFull { size: u64, stored: u64, limit: u64 },
+    #[error("the upload of {sha256} {message}")]
+    BadUpload { sha256: String, message: String },
+    #[error("asset {0} is not on the coordinator")]
+    NotFound(String),
+    #[error("cannot store asset {sha256}: {message}; nothing was stored")]
+    Io { sha256: String, message: String },
+}
+
+impl AssetStoreError {
+    /// A full or failing disk, as opposed to a bad request.
+    pub fn is_storage(&self) -> bool {
+        matches!(self, AssetStoreError::Io { .. })
+    }
+}
+
+/// Counters since start, for `GetFarmStats`.
+#[derive(Debug, Default)]
+pub struct AssetStats {
+    pub uploads: AtomicU64,
+    pub bytes_uploaded: AtomicU64,
+    pub uploads_skipped: AtomicU64,
+    pub fetches: AtomicU64,
+    pub bytes_served: AtomicU64,
+    pub collected: AtomicU64,
+}
+
+#[derive(Debug)]
+pub struct AssetStore {
+    dir: PathBuf,
+    pub limits: AssetLimits,
+    pub stats: AssetStats,
+    /// Bytes and files held (kept in step with the directory).
+    held: Mutex<(u64, u64)>,
+    next_tmp: AtomicU64,
+}
+
+pub use tessera_proto::transport::sha256_hex;
+use tessera_proto::transport::{hex, is_sha256_hex};
+
+pub fn check_hash(sha256: &str) -> Result<(), AssetStoreError> {
+    if is_sha256_hex(sha256) {
+        Ok(())
+    } else {
+        Err(AssetStoreError::BadHash(sha256.chars().take(80).collect()))
+    }
+}
+
+impl AssetStore {
+    /// Opens (or creates) the store in `dir`, removing unfinished uploads.
+    pub fn open(dir: &Path, limits: AssetLimits) -> std::io::Result<Self> {
+        let tmp = dir.join("tmp");
+        let _ = std::fs::remove_dir_all(&tmp);
+        std::fs::create_dir_all(&tmp)?;
+        let store = AssetStore {
+            dir: dir.to_owned(),
+            limits,
+            stats: AssetStats::default(),
+            held: Mutex::new((0, 0)),
+            next_tmp: AtomicU64::new(0),
+        };
+        let (mut bytes, mut files) = (0, 0);
+        for (_, meta) in store.entries() {
+            bytes += meta.len();
+            files += 1;
+        }
+        *store.held.lock().expect("asset lock") = (bytes, files);
+        Ok(store)
+    }
+
+    fn path(&self, sha256: &str) -> PathBuf {
+        self.dir.join(&sha256[..2]).join(sha256)
+    }
+
+    /// Every stored file: (hash, metadata).
+    fn entries(&self) -> Vec<(String, std::fs::Metadata)> {
+        let mut out = Vec::new();
+        let Ok(dirs) = std::fs::read_dir(&self.dir) else {
+            return out;
+        };
+        for d in dirs.flatten() {
+            if d.file_name().len() != 2 {
+                continue;
+            }
+            let Ok(files) = std::fs::read_dir(d.path()) else {
+                continue;
+            };
+            for f in files.flatten() {
+                let name = f.file_name().to_string_lossy().into_owned();
+                if let (Ok(()), Ok(meta)) = (check_hash(&name), f.metadata()) {
+                    out.push((name, meta));
+                }
+            }
+        }
+        out
+    }
+
+    /// (files, bytes) held.
+    pub fn held(&self) -> (u64, u64) {
+        let (bytes, files) = *self.held.lock().expect("asset lock");
+        (files, bytes)
+    }
+
+    /// The size of a stored file, or None.
+    pub fn size(&self, sha256: &str) -> Option<u64> {
+        check_hash(sha256).ok()?;
+        std::fs::metadata(self.path(sha256))
+            .ok()
+            .filter(|m| m.is_file())
+            .map(|m| m.len())
+    }
+
+    /// Restarts a file's retention clock (a job names it).
+    pub fn touch(&self, sha256: &str) {
+        if check_hash(sha256).is_ok()
+            && let Ok(f) = std::fs::File::options().write(true).open(self.path(sha256))
+        {
+            let _ = f.set_modified(SystemTime::now());
+        }
+    }
+
+    pub fn read(&self, sha256: &str) -> Result<Vec<u8>, AssetStoreError> {
+        check_hash(sha256)?;
+        std::fs::read(self.path(sha256)).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => AssetStoreError::NotFound(sha256.into()),
+            _ => AssetStoreError::Io {
+                sha256: sha256.into(),
+                message: e.to_string(),
+            },
+        })
+    }
+
+    /// Opens a stored file for streaming.
+    pub fn open_file(&self, sha256: &str) -> Result<(std::fs::File, u64), AssetStoreError> {
+        check_hash(sha256)?;
+        let f = std::fs::File::open(self.path(sha256))
+            .map_err(|_| AssetStoreError::NotFound(sha256.into()))?;
+        let len = f.metadata().map(|m| m.len()).unwrap_or(0);
+        Ok((f, len))
+    }
+
+    /// Starts receiving a file of `size` bytes that should hash to
+    /// `sha256`; None when it is already stored.
+    pub fn begin(&self, sha256: &str, size: u64) -> Result<Option<Upload<'_>>, AssetStoreError> {
+        check_hash(sha256)?;
+        if self.size(sha256).is_some() {
+            return Ok(None);
+        }
+        if size > self.limits.max_asset_bytes {
+            return Err(AssetStoreError::TooLarge {
+                sha256: sha256.into(),
+                size,
+                limit: self.limits.max_asset_bytes,
+            });
+        }
+        let (stored, _) = *self.held.lock().expect("asset lock");
+        if stored.saturating_add(size) > self.limits.max_store_bytes {
+            return Err(AssetStoreError::StoreFull {
+                size,
+                stored,
+                limit: self.limits.max_store_bytes,
+            });
+        }
+        let io = |e: std::io::Error| AssetStoreError::Io {
+            sha256: sha256.into(),
+            message: e.to_string(),
+        };
+        let n = self.next_tmp.fetch_add(1, Ordering::Relaxed);
+        let tmp = self.dir.join("tmp").join(format!("{sha256}.{n}"));
+        let file = std::fs::File::create(&tmp).map_err(io)?;
+        Ok(Some(Upload {
+            store: self,
+            sha256: sha256.into(),
+            size,
+            tmp,
+            file: Some(std::io::BufWriter::with_capacity(1 << 20, file)),
+            hasher: Sha256::new(),
+            written: 0,
+        }))
+    }
+
+    /// Stores a whole file at once (inline job files, the scene TOML).
+    pub fn put(&self, content: &[u8]) -> Result<String, AssetStoreError> {
+        let sha256 = sha256_hex(content);
+        if let Some(mut up) = self.begin(&sha256, content.len() as u64)? {
+            up.write(content)?;
+            up.finish()?;
+        }
+        Ok(sha256)
+    }
+
+    /// Removes the files that no unfinished job names (`keep`) and that no
+    /// job has named for `retention`. Returns how many went.
+    pub fn collect(&self, keep: &HashSet<String>) -> u64 {
+        let now = SystemTime::now();
+        let mut removed = 0;
+        for (sha256, meta) in self.entries() {
+            if keep.contains(&sha256) {
+                continue;
+            }
+            let age = meta
+                .modified()
+                .ok()
+                .and_then(|m| now.duration_since(m).ok())
+                .unwrap_or_default();
+            if age < self.limits.retention {
+                continue;
+            }
+            if std::fs::remove_file(self.path(&sha256)).is_ok() {
+                let mut held = self.held.lock().expect("asset lock");
+                held.0 = held.0.saturating_sub(meta.len());
+                held.1 = held.1.saturating_sub(1);
+                removed += 1;
+                tracing::info!(sha256 = %sha256, bytes = meta.len(), "asset collected");
+            }
+        }
+        self.stats.collected.fetch_add(removed, Ordering::Relaxed);
+        removed
+    }
+}
+
+/// A file being received; dropped unfinished, it leaves nothing behind.
+#[derive(Debug)]
+pub struct Upload<'a> {
+    store: &'a AssetStore,
+    sha256: String,
+    size: u64,
+    tmp: PathBuf,
+    file: Option<std::io::BufWriter<std::fs::File>>,
+    hasher: Sha256,
+    written: u64,
+}
+
+impl Upload<'_> {
+    fn io(&self, e: std::io::Error) -> AssetStoreError {
+        AssetStoreError::Io {
+            sha256: self.sha256.clone(),
+            message: e.to_string(),
+        }
+    }
+
+    pub fn write(&mut self, data: &[u8]) -> Result<(), AssetStoreError> {
+        if self.written + data.len() as u64 > self.size {
+            return Err(AssetStoreError::BadUpload {
+                sha256: self.sha256.clone(),
+                message: format!("sent more than the {} bytes it declared", self.size),
+            });
+        }
+        self.hasher.update(data);
+        let r = self.file.as_mut().expect("open upload").write_all(data);
+        r.map_err(|e| self.io(e))?;
+        self.written += data.len() as u64;
+        Ok(())
+    }
+
+    /// Checks size and hash, syncs and moves the file into place.
+    pub fn finish(mut self) -> Result<u64, AssetStoreError> {
+        if self.written != self.size {
+            return Err(AssetStoreError::BadUpload {
+                sha256: self.sha256.clone(),
+                message: format!(
+                    "ended after {} of the {} bytes it declared",
+                    self.written, self.size
+                ),
+            });
+        }
+        let got = hex(&std::mem::take(&mut self.hasher).finalize());
+        if got != self.sha256 {
+            return Err(AssetStoreError::BadUpload {
+                sha256: self.sha256.clone(),
+                message: format!("has bytes whose SHA-256 is {got}"),
+            });
+        }
+        let file = self.file.take().expect("open upload");
+        let file = file.into_inner().map_err(|e| self.io(e.into_error()))?;
+        file.sync_all().map_err(|e| self.io(e))?;
+        let dest = self.store.path(&self.sha256);
+        let dir = dest.parent().expect("hash folder");
+        std::fs::create_dir_all(dir).map_err(|e| self.io(e))?;
+        std::fs::rename(&self.tmp, &dest).map_err(|e| self.io(e))?;
+        if let Ok(d) = std::fs::File::open(dir) {
+            let _ = d.sync_all();
+        }
+        let mut held = self.store.held.lock().expect("asset lock");
+        held.0 += self.size;
+        held.1 += 1;
+        Ok(self.size)
+    }
+}
+
+impl Drop for Upload<'_> {
+    fn drop(&mut self) {
+        // Unfinished (or just renamed: then the remove finds nothing).
+        self.file.take();
+        let _ = std::fs::remove_file(&self.tmp);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uploads_are_checked_stored_once_and_collected_when_unreferenced() {
+        let dir = tempfile::tempdir().unwrap();
+        let limits = AssetLimits {
+            max_asset_bytes: 10,
+            max_store_bytes: 14,
+            retention: Duration::ZERO,
+            ..AssetLimits::default()
+        };
+        let store = AssetStore::open(dir.path(), limits).unwrap();
+        let a = store.put(b"hello").unwrap();
+        assert_eq!(a, sha256_hex(b"hello"));
+        assert_eq!(store.read(&a).unwrap(), b"hello");
+        assert!(store.begin(&a, 5).unwrap().is_none(), "held already");
+        assert_eq!(store.held(), (1, 5));
+
+        let b = sha256_hex(b"world");
+        let mut up = store.begin(&b, 5).unwrap().unwrap();
+        up.write(b"wor").unwrap();
+        let e = up.write(b"ldxx").unwrap_err().to_string();
+        assert!(e.contains("sent more than the 5 bytes"), "{e}");
+        drop(up);
+        let mut up = store.begin(&b, 5).unwrap().unwrap();
+        up.write(b"WORLD").unwrap();
+        let e = up.finish().unwrap_err().to_string();
+        assert!(e.contains("has bytes whose SHA-256 is"), "{e}");
+        assert!(store.size(&b).is_none(), "a bad upload stores nothing");
+        assert_eq!(
+            std::fs::read_dir(dir.path().join("tmp")).unwrap().count(),
+            0
+        );
+
+        let e = store.begin(&b, 11).unwrap_err().to_string();
+        assert!(
+            e.contains("over the coordinator's limit of 10 bytes a file (--max-asset-bytes)"),
+            "{e}"
+        );
+        let e = store.begin(&b, 10).unwrap_err().to_string();
+        assert!(
+            e.contains("its limit of 14 bytes (--max-store-bytes; 5 bytes stored)"),
+            "{e}"
+        );
+        let e = store.begin("ABC", 1).unwrap_err().to_string();
+        assert!(e.contains("is not a SHA-256"), "{e}");
+
+        let c = store.put(b"world").unwrap();
+        let keep: HashSet<String> = [c.clone()].into();
+        assert_eq!(store.collect(&keep), 1);
+        assert!(store.size(&a).is_none() && store.size(&c) == Some(5));
+        assert_eq!(store.held(), (1, 5));
+        drop(store);
+        let store = AssetStore::open(dir.path(), limits).unwrap();
+        assert_eq!(store.held(), (1, 5), "counted again at open");
+    }
+}

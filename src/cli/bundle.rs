@@ -1,0 +1,158 @@
+//! A scene and the files it references, gathered for the farm: read
+//! through the same loaders `tessera render` uses (so the bundle holds
+//! exactly the files a render opens), hashed, and uploaded to the
+//! coordinator, only those it lacks, as chunks of at most 1 MiB.
+
+use std::collections::BTreeMap;
+use std::io::IsTerminal as _;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Result, bail};
+use tessera_proto::pb;
+use tessera_proto::transport::{ASSET_CHUNK_BYTES, sha256_hex};
+use tracer_core::assets::{LocalFolder, Recorder, join, leaves_folder};
+use tracer_core::scene::{ObjectDesc, SceneDesc, SceneError};
+
+use super::farm_common::{JobClient, rpc};
+
+/// A scene file's text and its referenced files, by name.
+pub struct SceneBundle {
+    pub scene: Vec<u8>,
+    pub files: Vec<BundleFile>,
+}
+
+pub struct BundleFile {
+    pub name: String,
+    pub sha256: String,
+    pub content: Arc<[u8]>,
+}
+
+/// Reads and validates the scene at `path` with every file it references.
+/// A file outside the scene's folder is refused, naming the field, unless
+/// `allow_outside` (then it travels under the name the scene gives it).
+pub fn gather(path: &Path, allow_outside: bool) -> Result<SceneBundle> {
+    let scene = std::fs::read(path).map_err(|source| SceneError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    let text = std::str::from_utf8(&scene)
+        .map_err(|e| anyhow::anyhow!("{}: scene is not UTF-8 text: {e}", path.display()))?;
+    let folder = LocalFolder::of_scene(path);
+    let recorder = Recorder::new(&folder);
+    let desc = SceneDesc::parse_from(text, path, &recorder)?;
+    let files = recorder.into_files();
+    for w in &desc.warnings {
+        eprintln!("warning: {w}");
+    }
+    if !allow_outside {
+        for (name, _) in &files {
+            if !leaves_folder(name) {
+                continue;
+            }
+            let field = desc.objects.iter().enumerate().find_map(|(i, o)| match o {
+                ObjectDesc::Mesh(m) if join("", &m.path) == *name => {
+                    Some(format!("objects[{i}].path"))
+                }
+                _ => None,
+            });
+            bail!(
+                "{}: {}: {name:?} is outside the scene's folder, so the farm would not get it; \
+                 move it beside the scene, or pass --allow-outside to send a copy with the job",
+                path.display(),
+                field.unwrap_or_else(|| "a file the scene's models refer to".into())
+            );
+        }
+    }
+    Ok(SceneBundle {
+        scene,
+        files: files
+            .into_iter()
+            .map(|(name, content)| BundleFile {
+                sha256: sha256_hex(&content),
+                name,
+                content,
+            })
+            .collect(),
+    })
+}
+
+fn megabytes(b: u64) -> String {
+    format!("{:.1} MB", b as f64 / 1e6)
+}
+
+/// Uploads the files the coordinator lacks; returns name -> sha256 for the
+/// job spec. Says on stderr what it sent.
+pub async fn upload(
+    client: &mut JobClient,
+    files: &[BundleFile],
+) -> Result<BTreeMap<String, String>> {
+    let names: BTreeMap<String, String> = files
+        .iter()
+        .map(|f| (f.name.clone(), f.sha256.clone()))
+        .collect();
+    if files.is_empty() {
+        return Ok(names);
+    }
+    let missing = client
+        .find_missing_assets(pb::FindMissingAssetsRequest {
+            assets: files
+                .iter()
+                .map(|f| pb::AssetRef {
+                    sha256: f.sha256.clone(),
+                    size: f.content.len() as u64,
+                })
+                .collect(),
+        })
+        .await
+        .map_err(rpc)?
+        .into_inner()
+        .missing;
+    let start = Instant::now();
+    let mut sent = 0u64;
+    let mut uploaded = std::collections::HashSet::new();
+    for f in files {
+        if !missing.contains(&f.sha256) || !uploaded.insert(f.sha256.clone()) {
+            continue;
+        }
+        let size = f.content.len() as u64;
+        if std::io::stderr().is_terminal() {
+            eprintln!("uploading {} ({})", f.name, megabytes(size));
+        }
+        let content = f.content.clone();
+        let sha256 = f.sha256.clone();
+        let chunks = size.div_ceil(ASSET_CHUNK_BYTES as u64).max(1);
+        let stream = tokio_stream::iter((0..chunks).map(move |i| {
+            let a = (i as usize) * ASSET_CHUNK_BYTES;
+            let b = (a + ASSET_CHUNK_BYTES).min(content.len());
+            pb::AssetChunk {
+                sha256: if i == 0 {
+                    sha256.clone()
+                } else {
+                    String::new()
+                },
+                size: if i == 0 { size } else { 0 },
+                offset: a as u64,
+                data: content[a..b].to_vec(),
+            }
+        }));
+        let r = client
+            .upload_asset(stream)
+            .await
+            .map_err(|s| anyhow::anyhow!("uploading {}: {}", f.name, rpc(s)))?
+            .into_inner();
+        sent += r.bytes_stored;
+    }
+    let total: u64 = files.iter().map(|f| f.content.len() as u64).sum();
+    eprintln!(
+        "files: {} ({}); uploaded {} ({}) in {:.2} s, {} already on the coordinator",
+        files.len(),
+        megabytes(total),
+        uploaded.len(),
+        megabytes(sent),
+        start.elapsed().as_secs_f64(),
+        files.len() - uploaded.len()
+    );
+    Ok(names)
+}

@@ -1,0 +1,162 @@
+//! Helpers shared by the end-to-end test files (each `mod support;`s it).
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output};
+use std::time::{Duration, Instant};
+
+pub const TESSERA: &str = env!("CARGO_BIN_EXE_tessera");
+pub fn repo(p: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
+}
+
+/// A child process killed when dropped.
+pub struct Proc {
+    pub child: Child,
+    pub log: PathBuf,
+}
+
+impl Proc {
+    pub fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+    pub fn sigkill(&mut self) {
+        self.child.kill().expect("kill");
+        self.child.wait().expect("reap");
+    }
+    pub fn sigterm(&self) {
+        let ok = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .expect("kill")
+            .success();
+        assert!(ok, "kill -TERM failed");
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+pub fn rand_suffix() -> u128 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos())
+}
+
+pub fn ok_stdout(o: &Output) -> String {
+    assert!(
+        o.status.success(),
+        "tessera failed: {}\n{}",
+        o.status,
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8(o.stdout.clone()).expect("utf-8")
+}
+
+pub fn pixels(path: &Path) -> Vec<u8> {
+    image::open(path)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        .to_rgb8()
+        .into_raw()
+}
+
+/// `tessera render` of the same scene and settings, as the reference.
+pub fn reference(dir: &Path, scene: &Path, frame: u32, settings: &[&str]) -> Vec<u8> {
+    let out = dir.join(format!("reference_{frame}.png"));
+    let f = frame.to_string();
+    let mut args = vec![
+        "render",
+        scene.to_str().expect("path"),
+        "-o",
+        out.to_str().expect("path"),
+        "--frame",
+        &f,
+    ];
+    args.extend_from_slice(settings);
+    ok_stdout(&Command::new(TESSERA).args(&args).output().expect("render"));
+    pixels(&out)
+}
+
+pub fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime")
+}
+
+pub fn wait_for(what: &str, timeout: Duration, mut f: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !f() {
+        assert!(
+            start.elapsed() < timeout,
+            "timed out after {timeout:?} waiting for {what}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+pub type SecureJobClient = tessera_proto::pb::job_service_client::JobServiceClient<
+    tonic::service::interceptor::InterceptedService<
+        tonic::transport::Channel,
+        tessera_proto::VersionStamp,
+    >,
+>;
+
+/// A job-service client as `tessera` makes one: TLS trusting `ca` for an
+/// https:// URL, and the token in `token_file`.
+pub async fn secure_jobs_client(
+    url: &str,
+    ca: Option<&Path>,
+    token_file: Option<&Path>,
+) -> SecureJobClient {
+    let ca = ca.map(|p| std::fs::read(p).expect("read CA"));
+    let token = token_file.map(|p| {
+        std::fs::read_to_string(p)
+            .expect("read token")
+            .trim()
+            .to_string()
+    });
+    let channel = tessera_proto::transport::endpoint(url, ca.as_deref())
+        .expect("endpoint")
+        .connect()
+        .await
+        .unwrap_or_else(|e| panic!("connect {url}: {e:?}"));
+    let stamp = tessera_proto::VersionStamp::with_token(token.as_deref()).expect("token");
+    tessera_proto::pb::job_service_client::JobServiceClient::with_interceptor(channel, stamp)
+        .max_decoding_message_size(1 << 30)
+}
+
+/// `tessera cert --tokens` for a farm whose coordinator is reached as `names`:
+/// dir/ca.pem, coordinator.pem, coordinator.key, client.token, worker.token.
+pub fn make_tls(dir: &Path, names: &[&str]) {
+    let mut args = vec!["cert", "--tokens", "--out", dir.to_str().expect("path")];
+    for n in names {
+        args.extend(["--name", n]);
+    }
+    ok_stdout(
+        &Command::new(TESSERA)
+            .args(&args)
+            .output()
+            .expect("tessera cert"),
+    );
+}
+
+/// What a test needs of the machine (root, namespaces, a tmpfs): on CI,
+/// which runs as root, a missing piece fails the test with the reason;
+/// elsewhere the test is skipped with it (None).
+pub fn needs<T>(what: Result<T, String>) -> Option<T> {
+    match what {
+        Ok(t) => Some(t),
+        Err(why) if std::env::var("CI").is_ok_and(|v| v == "true") => {
+            panic!("this test needs it on CI, which runs as root: {why}")
+        }
+        Err(why) => {
+            eprintln!("skipped: {why}");
+            None
+        }
+    }
+}
