@@ -1746,3 +1746,62 @@ fn a_closed_output_pipe_ends_client_commands_quietly() {
         assert!(err.is_empty(), "{args:?}: printed {err:?}");
     }
 }
+
+/// A frame whose image cannot be written (here: its output folder replaced
+/// by a file) is retried with backoff, the job says why meanwhile and never
+/// fails, and once the way is clear the image is written as it would have
+/// been.
+#[test]
+fn a_frame_that_cannot_be_written_is_retried_and_its_job_never_fails() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let scene = repo("examples/resolution.toml");
+    let job = submit(&c.url(), &scene, SMALL);
+    let out = PathBuf::from(status(&c.url(), &job).output_dir);
+    std::fs::remove_dir_all(&out).expect("remove the output folder");
+    std::fs::write(&out, b"in the way").expect("a file in its place");
+    let _w = start_worker(dir.path(), &c.url(), "w");
+    wait_for("the write to fail", Duration::from_secs(60), || {
+        status(&c.url(), &job)
+            .error
+            .starts_with("cannot write frame 0 (retrying): ")
+    });
+    let stuck = status(&c.url(), &job);
+    assert_ne!(stuck.state, pb::JobState::Failed as i32, "{stuck:?}");
+    assert_eq!(stuck.units_done, stuck.units_total, "{stuck:?}");
+    std::fs::remove_file(&out).expect("clear the way");
+    let done = wait_done(&c.url(), &job, Duration::from_secs(60));
+    assert_eq!(done.error, "", "{done:?}");
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, SMALL);
+}
+
+/// `fetch` of a job with nothing to fetch fails and creates nothing: an
+/// unknown job, a cancelled one.
+#[test]
+fn fetch_of_an_unknown_or_cancelled_job_fails_and_creates_nothing() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let scene = repo("examples/resolution.toml");
+    let job = submit(&c.url(), &scene, SMALL);
+    let o = tessera(&["cancel", &job], &c.url());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.path().join("frames");
+    let out_s = out.to_str().expect("path");
+    for (id, want) in [
+        (
+            job.as_str(),
+            format!(
+                "job {job} is cancelled (cancelled by request): no frame is finished, nothing to fetch"
+            ),
+        ),
+        ("no-such-job", "no-such-job".to_string()),
+    ] {
+        let o = tessera(&["fetch", id, "-o", out_s], &c.url());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{id}: {err}");
+        assert!(err.contains(&want), "{id}: expected {want:?} in {err}");
+        assert!(!out.exists(), "{id}: fetch created {}", out.display());
+    }
+}

@@ -264,6 +264,8 @@ fn a_farm_of_separate_hosts_with_tls_and_tokens_renders_meshes_and_animations_bi
             "--cache",
             "cache",
         ]);
+        // Debug for "unit rendered": the partition below waits for one.
+        w.env("RUST_LOG", "info,tessera_worker=debug");
         workers.push(spawn_logged(w, &d, "worker"));
     }
     // The client has the scenes (with their models) and its token, nothing else.
@@ -395,7 +397,16 @@ fn a_farm_of_separate_hosts_with_tls_and_tokens_renders_meshes_and_animations_bi
         std::thread::sleep(Duration::from_millis(50));
     }
     lan.cut(2, true);
-    std::thread::sleep(Duration::from_secs(5));
+    // Down past its lease (2 s), and until it has finished a unit behind
+    // the cut: that result can only arrive late.
+    let rendered = || workers[0].log().matches("unit rendered").count();
+    let before = rendered();
+    let cut = Instant::now();
+    wait_for(
+        "worker2 to finish a unit while cut off",
+        Duration::from_secs(120),
+        || cut.elapsed() >= Duration::from_secs(5) && rendered() > before,
+    );
     let during = status(&anim_job);
     assert_ne!(
         during.state,

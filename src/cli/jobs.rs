@@ -386,6 +386,31 @@ pub fn cancel(args: JobArg) -> Result<ExitCode> {
 pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;
+        // Ask first: an unknown job, or one with no finished frame, leaves
+        // nothing behind (no empty output folder).
+        let j = client
+            .get_job(pb::GetJobRequest {
+                job_id: args.job.clone(),
+            })
+            .await
+            .map_err(rpc)?
+            .into_inner();
+        let written = j.frames.iter().filter(|f| !f.output.is_empty()).count();
+        let total = j.frames.len();
+        let ended_early =
+            j.state == pb::JobState::Cancelled as i32 || j.state == pb::JobState::Failed as i32;
+        if written == 0 {
+            bail!(
+                "job {} is {}{}: no frame is finished, nothing to fetch",
+                j.job_id,
+                state_name(j.state),
+                if j.error.is_empty() {
+                    String::new()
+                } else {
+                    format!(" ({})", j.error)
+                }
+            );
+        }
         std::fs::create_dir_all(&args.output)
             .with_context(|| format!("cannot create {}", args.output.display()))?;
         let mut stream = client
@@ -413,11 +438,21 @@ pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
                 .with_context(|| format!("cannot write {}", path.display()))?;
             n += 1;
         }
+        // Where the client can use it: absolute, on this machine.
+        let out = std::path::absolute(&args.output).unwrap_or(args.output.clone());
         eprintln!(
-            "fetched {n} frame(s) of {} into {}",
+            "fetched {n} of {total} frame(s) of {} into {}",
             args.job,
-            args.output.display()
+            out.display()
         );
+        if ended_early {
+            eprintln!(
+                "error: job {} is {}: the other frames will not be rendered",
+                j.job_id,
+                state_name(j.state)
+            );
+            return Ok(ExitCode::FAILURE);
+        }
         Ok(ExitCode::SUCCESS)
     })
 }

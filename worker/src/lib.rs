@@ -64,6 +64,9 @@ const MAX_BATCH_BYTES: usize = 16 << 20;
 /// backoff doubling to 5 s, about two minutes of a coordinator that cannot
 /// record results (a full disk) before the worker starts over.
 const SUBMIT_TRIES: u32 = 30;
+/// How long a session that ended with an error waits for its finished
+/// results to be delivered before reconnecting.
+const SENDER_GRACE: Duration = Duration::from_secs(5);
 const SUBMIT_BACKOFF_MAX: Duration = Duration::from_secs(5);
 /// Prepared frames kept (a worker usually serves one or two frames at a time).
 const PREPARED_CACHE: usize = 4;
@@ -358,7 +361,16 @@ impl Worker {
                 }
             }
             Err(e) => {
-                sender.abort();
+                // Finished films still go out: the coordinator accepts those
+                // whose leases still hold (a short outage loses no work) and
+                // counts the others as late. The sender retries while the
+                // coordinator is unreachable, for a while.
+                if tokio::time::timeout(SENDER_GRACE, &mut sender)
+                    .await
+                    .is_err()
+                {
+                    sender.abort();
+                }
                 Err(e)
             }
         }
