@@ -190,20 +190,24 @@ fn threads_flag_gives_the_same_image() {
     let scene = repo().join("examples/resolution.toml");
     let dir = tmpdir("threads");
     let mut imgs = vec![];
-    for t in ["1", "2"] {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // 0 means every core; the summary (as JSON) names the threads used.
+    for (t, used) in [("1", 1), ("2", 2), ("0", cores)] {
         let o = dir.join(format!("t{t}.png"));
-        let (out, _, stderr) = run(tessera().arg("render").arg(&scene).arg("-o").arg(&o).args([
-            "--width",
-            "64",
-            "--height",
-            "48",
-            "--threads",
-            t,
-        ]));
+        let (out, stdout, stderr) = run(tessera()
+            .arg("render")
+            .arg(&scene)
+            .arg("-o")
+            .arg(&o)
+            .args(["--width", "64", "--height", "48", "--threads", t, "--json"]));
         assert!(out.status.success(), "{stderr}");
+        let summary: serde_json::Value = serde_json::from_str(&stdout).expect("JSON summary");
+        assert_eq!(summary["renderer"], format!("cpu:{used}t"), "--threads {t}");
+        assert_eq!(summary["rays"]["primary"], 64 * 48 * 4, "--threads {t}");
         imgs.push(std::fs::read(&o).unwrap());
     }
     assert_eq!(imgs[0], imgs[1], "thread count changed the image");
+    assert_eq!(imgs[0], imgs[2], "thread count changed the image");
 }
 
 /// Model files made to hurt, each rendered by a real `tessera render` under

@@ -1805,3 +1805,68 @@ fn fetch_of_an_unknown_or_cancelled_job_fails_and_creates_nothing() {
         assert!(!out.exists(), "{id}: fetch created {}", out.display());
     }
 }
+
+/// What scripts read: `--json` from submit, jobs, status and workers, and
+/// `watch` off a terminal: plain progress lines, a word when no worker is
+/// connected, then the outcome as its exit code.
+#[test]
+fn json_output_and_plain_progress_lines_for_scripts() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let scene = repo("examples/resolution.toml");
+    let scene_s = scene.to_str().expect("path");
+    let json = |args: &[&str]| -> serde_json::Value {
+        let o = tessera(args, &c.url());
+        assert!(
+            o.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        serde_json::from_slice(&o.stdout)
+            .unwrap_or_else(|e| panic!("{args:?}: {e}: {}", String::from_utf8_lossy(&o.stdout)))
+    };
+    let mut args = vec!["submit", scene_s, "--json"];
+    args.extend(SMALL);
+    let job = json(&args)["job_id"].as_str().expect("job_id").to_string();
+
+    let err_path = dir.path().join("watch.err");
+    let mut watch = Command::new(TESSERA)
+        .args(["watch", &job])
+        .env("TESSERA_COORDINATOR", c.url())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&err_path).expect("stderr file"))
+        .spawn()
+        .expect("watch");
+    let err = || std::fs::read_to_string(&err_path).unwrap_or_default();
+    wait_for(
+        "watch to say no worker is connected",
+        Duration::from_secs(20),
+        || {
+            err().contains(&format!(
+                "job {job}: no workers are connected to the coordinator; the job waits for one"
+            )) && err().contains(&format!("job {job}: 0.0% queued (no workers)"))
+        },
+    );
+    let _w = start_worker(dir.path(), &c.url(), "w");
+    let code = wait_exit(&mut watch, Duration::from_secs(60));
+    assert_eq!(code, Some(0), "{}", err());
+    assert!(err().contains(&format!("job {job} done")), "{}", err());
+
+    let jobs = json(&["jobs", "--json"]);
+    let j = &jobs.as_array().expect("array")[0];
+    assert_eq!(j["job_id"], job.as_str());
+    assert_eq!(j["state"], "done");
+    assert_eq!(j["progress"], 1.0);
+    assert_eq!(j["width"], 96);
+    assert_eq!(j["frames"][0]["output"], "frame_0000.png");
+    assert_eq!(j["error"], serde_json::Value::Null);
+    assert_eq!(json(&["status", &job, "--json"]), *j);
+    let workers = json(&["workers", "--json"]);
+    let w = &workers.as_array().expect("array")[0];
+    assert_eq!(
+        (w["name"].as_str(), w["backend"].as_str()),
+        (Some("w"), Some("cpu"))
+    );
+    assert_eq!(w["threads"], 1);
+}

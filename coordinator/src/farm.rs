@@ -247,6 +247,8 @@ struct Job {
     samples_done: u64,
     /// Pixel-samples and rays finished in this coordinator's lifetime, and since when.
     started: Option<Instant>,
+    /// When it ended (done, failed, cancelled): its rate stops there.
+    stopped: Option<Instant>,
     samples_this_run: u64,
     rays_this_run: u64,
     watch: watch::Sender<u64>,
@@ -1897,6 +1899,7 @@ impl Job {
             units_done: 0,
             samples_done: 0,
             started: None,
+            stopped: None,
             samples_this_run: 0,
             rays_this_run: 0,
             watch: watch::channel(0).0,
@@ -1948,6 +1951,7 @@ impl Job {
         };
         self.rec.error = error;
         self.rec.finished_unix_ms = now_ms();
+        self.stopped = Some(Instant::now());
         self.pending.clear();
         for f in self.frames.values_mut() {
             f.film = None;
@@ -1993,7 +1997,11 @@ impl Job {
             * self.layout.height as u64
             * self.settings.samples as u64
             * self.layout.frames as u64;
-        let elapsed = self.started.map_or(0.0, |t| t.elapsed().as_secs_f64());
+        let elapsed = self.started.map_or(0.0, |t| {
+            self.stopped
+                .map_or_else(|| t.elapsed(), |s| s.saturating_duration_since(t))
+                .as_secs_f64()
+        });
         let (rps, eta) = if elapsed > 0.0 && self.samples_this_run > 0 {
             let rate = self.samples_this_run as f64 / elapsed;
             (

@@ -18,7 +18,7 @@ pub struct ClusterArgs {
     /// Where the workers trace
     #[arg(long, value_enum, default_value_t = WorkerBackend::Cpu)]
     pub backend: WorkerBackend,
-    /// CPU threads per worker [default: all cores / workers]
+    /// CPU threads per worker; 0 means the default [default: all cores / workers]
     #[arg(long)]
     pub threads: Option<usize>,
     /// Coordinator address
@@ -66,7 +66,10 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
     };
     let url = format!("http://{addr}");
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let threads = args.threads.unwrap_or((cores / args.workers).max(1));
+    let threads = args
+        .threads
+        .filter(|&n| n > 0)
+        .unwrap_or((cores / args.workers).max(1));
     for i in 0..args.workers {
         let backend = match args.backend {
             WorkerBackend::Cpu => "cpu",

@@ -5,8 +5,30 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 
-pub fn run() -> Result<ExitCode> {
+pub fn run(format: super::output::Format) -> Result<ExitCode> {
     let adapters = tracer_core::render::gpu::list_adapters();
+    if format.json {
+        super::output::print_json(
+            &adapters
+                .iter()
+                .map(|a| {
+                    serde_json::json!({
+                        "index": a.index,
+                        "name": a.name,
+                        "type": a.device_type.to_string(),
+                        "backend": a.backend.to_string(),
+                        "driver": a.driver,
+                        "driver_info": a.driver_info,
+                    })
+                })
+                .collect(),
+        );
+        return Ok(if adapters.is_empty() {
+            ExitCode::FAILURE
+        } else {
+            ExitCode::SUCCESS
+        });
+    }
     if adapters.is_empty() {
         eprintln!(
             "no GPU adapters found (on Linux, install mesa-vulkan-drivers for lavapipe, or a GPU driver with Vulkan)"

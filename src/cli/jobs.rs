@@ -1,17 +1,16 @@
 //! The farm's client commands: submit, jobs, status, watch, cancel, fetch, workers.
 
 use super::outln;
-use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use tessera_proto::pb;
 use tokio_stream::StreamExt as _;
 
 use super::farm_common::{CoordinatorUrl, JobClient, connect, rpc, runtime};
+use super::output::{Format, Progress, job_json, print_json, worker_json};
 use super::render::RenderOverrides;
 
 /// Exit codes of `tessera watch` and `tessera submit --wait`.
@@ -77,6 +76,8 @@ pub struct SubmitArgs {
     #[arg(long)]
     pub allow_outside: bool,
     #[command(flatten)]
+    pub format: Format,
+    #[command(flatten)]
     pub coordinator: CoordinatorUrl,
 }
 
@@ -122,9 +123,13 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
             .map_err(rpc)?
             .into_inner()
             .job_id;
-        outln!("{id}");
+        if args.format.json {
+            print_json(&serde_json::json!({ "job_id": id }));
+        } else {
+            outln!("{id}");
+        }
         if args.wait {
-            return watch_job(&mut client, &id).await;
+            return watch_job(&mut client, &id, args.format).await;
         }
         Ok(ExitCode::SUCCESS)
     })
@@ -135,11 +140,15 @@ pub struct JobArg {
     /// Job id (as printed by `tessera submit`)
     pub job: String,
     #[command(flatten)]
+    pub format: Format,
+    #[command(flatten)]
     pub coordinator: CoordinatorUrl,
 }
 
 #[derive(Args, Debug)]
 pub struct ListArgs {
+    #[command(flatten)]
+    pub format: Format,
     #[command(flatten)]
     pub coordinator: CoordinatorUrl,
 }
@@ -178,9 +187,24 @@ pub fn delete(args: JobArg) -> Result<ExitCode> {
             })
             .await
             .map_err(rpc)?;
-        outln!("deleted {}", args.job);
+        if args.format.json {
+            print_json(&serde_json::json!({ "job_id": args.job, "deleted": true }));
+        } else {
+            outln!("deleted {}", args.job);
+        }
         Ok(ExitCode::SUCCESS)
     })
+}
+
+/// Whether a job in this state is over.
+fn ended(state: i32) -> bool {
+    [
+        pb::JobState::Done,
+        pb::JobState::Failed,
+        pb::JobState::Cancelled,
+    ]
+    .iter()
+    .any(|&s| s as i32 == state)
 }
 
 pub fn state_name(state: i32) -> &'static str {
@@ -207,6 +231,10 @@ pub fn jobs(args: ListArgs) -> Result<ExitCode> {
             .map_err(rpc)?
             .into_inner()
             .jobs;
+        if args.format.json {
+            print_json(&jobs.iter().map(job_json).collect());
+            return Ok(ExitCode::SUCCESS);
+        }
         outln!(
             "{:<12} {:<10} {:>6} {:>4} {:>11} {:>9}  NAME",
             "ID",
@@ -241,6 +269,10 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             .await
             .map_err(rpc)?
             .into_inner();
+        if args.format.json {
+            print_json(&job_json(&j));
+            return Ok(ExitCode::SUCCESS);
+        }
         let s = j.settings.unwrap_or_default();
         let rays = j.rays.unwrap_or_default();
         outln!("job:       {} ({})", j.job_id, printable(&j.name));
@@ -302,13 +334,17 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
 pub fn watch(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;
-        watch_job(&mut client, &args.job).await
+        watch_job(&mut client, &args.job, args.format).await
     })
 }
 
+/// How often `watch` asks whether any worker is connected.
+const WORKER_CHECK_EVERY: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// Shows progress until the job ends; the exit code is its outcome
-/// ([`EXIT_DONE`], [`EXIT_FAILED`], [`EXIT_CANCELLED`]).
-async fn watch_job(client: &mut JobClient, id: &str) -> Result<ExitCode> {
+/// ([`EXIT_DONE`], [`EXIT_FAILED`], [`EXIT_CANCELLED`]). With `--json`,
+/// every event is a JSON line on stdout instead.
+async fn watch_job(client: &mut JobClient, id: &str, format: Format) -> Result<ExitCode> {
     let mut stream = client
         .watch_job(pb::WatchJobRequest {
             job_id: id.to_string(),
@@ -316,33 +352,52 @@ async fn watch_job(client: &mut JobClient, id: &str) -> Result<ExitCode> {
         .await
         .map_err(rpc)?
         .into_inner();
-    let bar = if std::io::stderr().is_terminal() {
-        ProgressBar::new(1000).with_style(
-            ProgressStyle::with_template(
-                "{spinner} [{elapsed_precise}] {wide_bar} {percent:>3}% {msg}",
-            )
-            .expect("valid template"),
-        )
-    } else {
-        ProgressBar::hidden()
-    };
-    let mut last = None;
-    while let Some(ev) = stream.next().await {
-        let j = ev.map_err(rpc)?;
-        bar.set_position((percent(&j) * 10.0) as u64);
-        let eta = if j.eta_seconds >= 0.0 {
-            format!("eta {:.0}s", j.eta_seconds)
-        } else {
-            String::new()
+    let progress = Progress::new(&format!("job {id}"), 1000, format.json);
+    let mut last: Option<pb::JobStatus> = None;
+    let mut workers_check = tokio::time::interval(WORKER_CHECK_EVERY);
+    let mut no_workers = false;
+    loop {
+        let ev = tokio::select! {
+            ev = stream.next() => ev,
+            _ = workers_check.tick() => {
+                // A job waits silently for workers that are not there:
+                // say so (once each time the farm empties).
+                let ended = last.as_ref().is_some_and(|j| ended(j.state));
+                if !ended && let Ok(ws) = client.list_workers(pb::ListWorkersRequest {}).await {
+                    let none = ws.into_inner().workers.is_empty();
+                    if none && !no_workers {
+                        progress.note(&format!(
+                            "job {id}: no workers are connected to the coordinator; the job waits for one (start `tessera worker --coordinator URL`)"
+                        ));
+                    }
+                    no_workers = none;
+                }
+                continue;
+            }
         };
-        bar.set_message(format!(
-            "{} {:.1} Mrays/s {eta}",
-            state_name(j.state),
-            j.rays_per_second / 1e6
-        ));
+        let Some(ev) = ev else { break };
+        let j = ev.map_err(rpc)?;
+        if format.json {
+            print_json(&job_json(&j));
+        } else {
+            let eta = if j.eta_seconds >= 0.0 && j.state == pb::JobState::Running as i32 {
+                format!(" eta {:.0} s", j.eta_seconds)
+            } else {
+                String::new()
+            };
+            let workers = if no_workers { " (no workers)" } else { "" };
+            progress.set(
+                (percent(&j) * 10.0) as u64,
+                &format!(
+                    "{}{workers} {:.1} Mrays/s{eta}",
+                    state_name(j.state),
+                    j.rays_per_second / 1e6
+                ),
+            );
+        }
         last = Some(j);
     }
-    bar.finish_and_clear();
+    progress.finish();
     let Some(j) = last else {
         bail!("the coordinator ended the watch of {id} without any event")
     };
@@ -378,7 +433,11 @@ pub fn cancel(args: JobArg) -> Result<ExitCode> {
             .await
             .map_err(rpc)?
             .into_inner();
-        eprintln!("job {} is {}", j.job_id, state_name(j.state));
+        if args.format.json {
+            print_json(&job_json(&j));
+        } else {
+            eprintln!("job {} is {}", j.job_id, state_name(j.state));
+        }
         Ok(ExitCode::SUCCESS)
     })
 }
@@ -466,6 +525,10 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
             .map_err(rpc)?
             .into_inner()
             .workers;
+        if args.format.json {
+            print_json(&ws.iter().map(worker_json).collect());
+            return Ok(ExitCode::SUCCESS);
+        }
         outln!(
             "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12}",
             "ID",
@@ -478,11 +541,7 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
         );
         for w in ws {
             let c = w.capabilities.unwrap_or_default();
-            let backend = if c.backend == pb::Backend::Gpu as i32 {
-                "gpu"
-            } else {
-                "cpu"
-            };
+            let backend = super::output::backend_name(c.backend);
             outln!(
                 "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2}",
                 w.worker_id,

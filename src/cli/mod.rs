@@ -9,6 +9,7 @@ mod farm_common;
 #[cfg(feature = "gpu")]
 mod gpus;
 mod jobs;
+mod output;
 mod render;
 mod worker;
 
@@ -59,7 +60,7 @@ pub enum Command {
     Cert(cert::CertArgs),
     /// List the GPU adapters `--backend gpu --adapter NAME|INDEX` can use.
     #[cfg(feature = "gpu")]
-    Gpus,
+    Gpus(output::Format),
 }
 
 /// `println!` for a command's output. A closed pipe (`tessera jobs | head -1`)
@@ -106,6 +107,6 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Cluster(args) => cluster::run(args),
         Command::Cert(args) => cert::run(args),
         #[cfg(feature = "gpu")]
-        Command::Gpus => gpus::run(),
+        Command::Gpus(format) => gpus::run(format),
     }
 }

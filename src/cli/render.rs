@@ -8,7 +8,6 @@ use std::time::Instant;
 use anyhow::{Result, bail};
 use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
-use indicatif::{ProgressBar, ProgressStyle};
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 use tracer_core::sampling::Sampler;
@@ -84,7 +83,7 @@ pub struct RenderArgs {
     pub output: Option<PathBuf>,
     #[command(flatten)]
     pub overrides: RenderOverrides,
-    /// CPU threads [default: all cores]
+    /// CPU threads; 0 means all cores [default: all cores]
     #[arg(long)]
     pub threads: Option<usize>,
     /// Arithmetic precision: f32 (fast) or f64 (reference)
@@ -100,6 +99,8 @@ pub struct RenderArgs {
     /// Frame number (seeds the jittered sampler)
     #[arg(long, default_value_t = 0)]
     pub frame: u32,
+    #[command(flatten)]
+    pub format: super::output::Format,
 }
 
 pub use tessera_coordinator::image::{ImageFormat, write_image};
@@ -139,38 +140,55 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     };
     let prepared = PreparedFrame::build(&scene, &settings, args.frame, precision)?;
     let total = settings.width as u64 * settings.height as u64 * settings.samples as u64;
-    let bar = ProgressBar::new(total).with_style(
-        ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {wide_bar} {percent:>3}% eta {eta}",
-        )
-        .expect("valid template"),
-    );
+    let progress = super::output::Progress::new("render", total, false);
     let start = Instant::now();
     let rect = Rect::full(settings.width, settings.height);
     let samples = SampleRange::all(settings.samples);
-    let film = renderer.render(&prepared, args.frame, rect, samples, &|n| bar.inc(n))?;
+    let film = renderer.render(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?;
     let secs = start.elapsed().as_secs_f64();
-    bar.finish_and_clear();
+    progress.finish();
     write_image(&output, &film)?;
 
     let r = film.rays;
-    outln!(
-        "{}x{} {} spp depth {} {} {}  {:.3} s  {} rays (primary {}, shadow {}, reflection {}, refraction {})  {:.1} Mrays/s  -> {}",
-        settings.width,
-        settings.height,
-        settings.samples,
-        settings.max_depth,
-        precision.name(),
-        renderer.describe(),
-        secs,
-        r.total(),
-        r.primary,
-        r.shadow,
-        r.reflection,
-        r.refraction,
-        r.total() as f64 / secs / 1e6,
-        output.display()
-    );
+    if args.format.json {
+        super::output::print_json(&serde_json::json!({
+            "width": settings.width,
+            "height": settings.height,
+            "samples": settings.samples,
+            "max_depth": settings.max_depth,
+            "frame": args.frame,
+            "precision": precision.name(),
+            "renderer": renderer.describe(),
+            "seconds": secs,
+            "rays": {
+                "primary": r.primary,
+                "shadow": r.shadow,
+                "reflection": r.reflection,
+                "refraction": r.refraction,
+            },
+            "rays_per_second": r.total() as f64 / secs,
+            "nonfinite_samples": film.nonfinite,
+            "output": output.display().to_string(),
+        }));
+    } else {
+        outln!(
+            "{}x{} {} spp depth {} {} {}  {:.3} s  {} rays (primary {}, shadow {}, reflection {}, refraction {})  {:.1} Mrays/s  -> {}",
+            settings.width,
+            settings.height,
+            settings.samples,
+            settings.max_depth,
+            precision.name(),
+            renderer.describe(),
+            secs,
+            r.total(),
+            r.primary,
+            r.shadow,
+            r.reflection,
+            r.refraction,
+            r.total() as f64 / secs / 1e6,
+            output.display()
+        );
+    }
     if film.nonfinite > 0 {
         // Sanitised to 0 before reaching the image; still a tracer bug worth reporting.
         tracing::warn!(samples = film.nonfinite, "non-finite samples were replaced");

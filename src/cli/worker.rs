@@ -25,7 +25,7 @@ pub struct WorkerArgs {
     /// Where to trace
     #[arg(long, value_enum, default_value_t = WorkerBackend::Cpu)]
     pub backend: WorkerBackend,
-    /// CPU threads [default: all cores]
+    /// CPU threads; 0 means all cores [default: all cores]
     #[arg(long)]
     pub threads: Option<usize>,
     /// GPU adapter for --backend gpu: index or part of the name as `tessera gpus` lists it [default: the best one]

@@ -160,3 +160,19 @@ pub fn needs<T>(what: Result<T, String>) -> Option<T> {
         }
     }
 }
+
+/// Waits for a child to exit (killing it after `timeout`); its exit code.
+pub fn wait_exit(child: &mut std::process::Child, timeout: Duration) -> Option<i32> {
+    let start = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().expect("try_wait") {
+            return status.code();
+        }
+        if start.elapsed() > timeout {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("process still running after {timeout:?}");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}

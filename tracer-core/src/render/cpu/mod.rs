@@ -33,8 +33,9 @@ impl CpuRenderer {
     /// `threads`: `None` uses every core.
     pub fn new(threads: Option<usize>) -> Result<Self, RenderError> {
         let mut b = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("tessera-cpu-{i}"));
-        if let Some(n) = threads {
-            b = b.num_threads(n.max(1));
+        // 0, like None, means every core (rayon's default).
+        if let Some(n) = threads.filter(|&n| n > 0) {
+            b = b.num_threads(n);
         }
         Ok(CpuRenderer {
             pool: b.build().map_err(|e| RenderError::Threads(e.to_string()))?,

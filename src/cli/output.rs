@@ -1,0 +1,210 @@
+//! How commands report: machine-readable JSON (`--json`, one convention for
+//! every command; field names are a contract, see docs/cli.md) and progress
+//! (a bar on a terminal, one plain line at a steady cadence elsewhere, so a
+//! log file or CI output shows a long render moving).
+
+use std::io::IsTerminal as _;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::{Value, json};
+use tessera_proto::pb;
+
+use super::outln;
+
+#[derive(Args, Debug, Clone, Copy, Default)]
+pub struct Format {
+    /// Print JSON instead of text (one document; `watch` and `submit --wait`
+    /// print one object a line per progress event). Field names are stable:
+    /// see docs/cli.md
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Prints one JSON document on a line of its own.
+pub fn print_json(v: &Value) {
+    outln!("{v}");
+}
+
+pub fn backend_name(backend: i32) -> &'static str {
+    match pb::Backend::try_from(backend).unwrap_or(pb::Backend::Unspecified) {
+        pb::Backend::Gpu => "gpu",
+        _ => "cpu",
+    }
+}
+
+/// A job as `tessera jobs --json`, `status --json` and `watch --json` print it.
+pub fn job_json(j: &pb::JobStatus) -> Value {
+    let s = j.settings.clone().unwrap_or_default();
+    let r = j.rays.unwrap_or_default();
+    json!({
+        "job_id": j.job_id,
+        "name": j.name,
+        "state": super::jobs::state_name(j.state),
+        "priority": j.priority,
+        "progress": j.samples_done as f64 / j.samples_total.max(1) as f64,
+        "width": s.width,
+        "height": s.height,
+        "samples": s.samples,
+        "max_depth": s.max_depth,
+        "first_frame": j.first_frame,
+        "last_frame": j.last_frame,
+        "tile_size": j.tile_size,
+        "samples_per_unit": j.samples_per_unit,
+        "units_total": j.units_total,
+        "units_done": j.units_done,
+        "samples_total": j.samples_total,
+        "samples_done": j.samples_done,
+        "rays": {
+            "primary": r.primary,
+            "shadow": r.shadow,
+            "reflection": r.reflection,
+            "refraction": r.refraction,
+        },
+        "rays_per_second": j.rays_per_second,
+        "eta_seconds": (j.eta_seconds >= 0.0).then_some(j.eta_seconds),
+        "results_accepted": j.units_accepted,
+        "results_rejected": j.results_rejected,
+        "results_late": j.results_late,
+        "results_duplicate": j.results_duplicate,
+        "submitted_unix_ms": j.submitted_unix_ms,
+        "finished_unix_ms": (j.finished_unix_ms > 0).then_some(j.finished_unix_ms),
+        "output_dir": j.output_dir,
+        "frames": j.frames.iter().map(|f| json!({
+            "frame": f.frame,
+            "units_total": f.units_total,
+            "units_done": f.units_done,
+            "output": (!f.output.is_empty()).then_some(&f.output),
+        })).collect::<Vec<_>>(),
+        "error": (!j.error.is_empty()).then_some(&j.error),
+    })
+}
+
+/// A worker as `tessera workers --json` prints it.
+pub fn worker_json(w: &pb::WorkerInfo) -> Value {
+    let c = w.capabilities.clone().unwrap_or_default();
+    json!({
+        "worker_id": w.worker_id,
+        "name": w.name,
+        "backend": backend_name(c.backend),
+        "gpu": (!c.gpu_name.is_empty()).then_some(&c.gpu_name),
+        "threads": c.threads,
+        "version": c.version,
+        "leases": w.leases,
+        "units_done": w.units_done,
+        "samples_per_second": w.samples_per_second,
+        "last_seen_unix_ms": w.last_seen_unix_ms,
+    })
+}
+
+/// Off a terminal, a progress line every this long (and at the end).
+const PLAIN_EVERY: Duration = Duration::from_secs(5);
+
+/// Progress of one long piece of work, safe to advance from many threads.
+pub struct Progress {
+    what: String,
+    bar: Option<ProgressBar>,
+    total: u64,
+    done: AtomicU64,
+    start: Instant,
+    /// When the last plain line was printed, and its message.
+    last: Mutex<(Instant, String)>,
+}
+
+impl Progress {
+    /// A bar on a terminal; plain lines (`WHAT: 42.0% ...`) otherwise.
+    /// `quiet`: nothing at all (JSON output, say).
+    pub fn new(what: &str, total: u64, quiet: bool) -> Progress {
+        let bar = (!quiet && std::io::stderr().is_terminal()).then(|| {
+            ProgressBar::new(total.max(1)).with_style(
+                ProgressStyle::with_template(
+                    "{spinner} [{elapsed_precise}] {wide_bar} {percent:>3}% {msg}",
+                )
+                .expect("valid template"),
+            )
+        });
+        let start = Instant::now();
+        Progress {
+            what: what.to_string(),
+            bar,
+            total: if quiet { 0 } else { total.max(1) },
+            done: AtomicU64::new(0),
+            start,
+            last: Mutex::new((start, String::new())),
+        }
+    }
+
+    /// `n` more units of work done; the ETA comes from the measured rate.
+    pub fn inc(&self, n: u64) {
+        let done = self.done.fetch_add(n, Ordering::Relaxed) + n;
+        if let Some(bar) = &self.bar {
+            bar.set_position(done);
+            bar.set_message(self.eta_text(done));
+        } else {
+            self.plain(done, None, false);
+        }
+    }
+
+    /// Absolute progress with a message of the caller's (watching a job:
+    /// the coordinator's rate and ETA).
+    pub fn set(&self, done: u64, message: &str) {
+        self.done.store(done, Ordering::Relaxed);
+        if let Some(bar) = &self.bar {
+            bar.set_position(done);
+            bar.set_message(message.to_string());
+        } else {
+            self.plain(done, Some(message), false);
+        }
+    }
+
+    /// A line of its own (above the bar on a terminal).
+    pub fn note(&self, line: &str) {
+        match &self.bar {
+            Some(bar) => bar.println(line),
+            None if self.total > 0 => eprintln!("{line}"),
+            None => {}
+        }
+    }
+
+    pub fn finish(&self) {
+        if let Some(bar) = &self.bar {
+            bar.finish_and_clear();
+        } else {
+            self.plain(self.done.load(Ordering::Relaxed), None, true);
+        }
+    }
+
+    fn eta_text(&self, done: u64) -> String {
+        let secs = self.start.elapsed().as_secs_f64();
+        // Too early for a rate worth extrapolating.
+        if done == 0 || secs < 1.0 {
+            return String::new();
+        }
+        let left = self.total.saturating_sub(done) as f64 / (done as f64 / secs);
+        format!("eta {left:.0} s")
+    }
+
+    fn plain(&self, done: u64, message: Option<&str>, last: bool) {
+        if self.total == 0 {
+            return;
+        }
+        let mut l = self.last.lock().expect("progress lock");
+        let message = message.map_or_else(|| self.eta_text(done), str::to_string);
+        // Every PLAIN_EVERY, and whenever the state in the message changes
+        // (a job going from queued to running says so at once).
+        let changed = message.split(' ').next() != l.1.split(' ').next();
+        if !(last || changed || l.0.elapsed() >= PLAIN_EVERY) {
+            return;
+        }
+        *l = (Instant::now(), message.clone());
+        let pct = 100.0 * done as f64 / self.total as f64;
+        eprintln!(
+            "{}: {pct:.1}% {message} ({:.0} s)",
+            self.what,
+            self.start.elapsed().as_secs_f64()
+        );
+    }
+}
