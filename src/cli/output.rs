@@ -38,7 +38,7 @@ pub fn backend_name(backend: i32) -> &'static str {
 
 /// A job as `tessera jobs --json`, `status --json` and `watch --json` print it.
 pub fn job_json(j: &pb::JobStatus) -> Value {
-    let s = j.settings.clone().unwrap_or_default();
+    let s = j.settings.unwrap_or_default();
     let r = j.rays.unwrap_or_default();
     json!({
         "job_id": j.job_id,
