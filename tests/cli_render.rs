@@ -113,12 +113,16 @@ fn malformed_scenes_are_rejected_with_file_line_and_reason() {
     expect_failure(
         &GOOD.replace("radius = 1", "radius = \"one\""),
         &[],
-        &["bad.toml:13:1: objects[0]: invalid type: string \"one\", expected a number"],
+        &[
+            "bad.toml:16:10: objects[0] (sphere).radius: invalid type: string \"one\", expected a number",
+        ],
     );
     expect_failure(
         &GOOD.replace("radius = 1", "radius = 1\nshiny = true"),
         &[],
-        &["bad.toml:", "unknown field `shiny`"],
+        &[
+            "bad.toml:17:1: objects[0] (sphere).shiny: unknown field (valid: `center`, `radius`, `material`)",
+        ],
     );
     expect_failure(
         &GOOD.replace(
@@ -158,7 +162,7 @@ fn malformed_scenes_are_rejected_with_file_line_and_reason() {
     expect_failure(
         &GOOD.replace("samples = 1", "samples = 0"),
         &[],
-        &["render: samples must be in 1..=65536, got 0"],
+        &["bad.toml:5:1: render.samples: must be in 1..=65536, got 0"],
     );
 }
 
@@ -303,5 +307,52 @@ fn hostile_model_files_end_in_a_clear_error_under_a_4_gb_cap() {
             took < std::time::Duration::from_secs(10),
             "{file}: {took:?}"
         );
+    }
+}
+
+/// A misspelt key in every table and array of tables of the format is
+/// reported at its own line, with its full path and a suggestion.
+#[test]
+fn a_typo_in_any_table_is_located_at_its_key_with_a_suggestion() {
+    let cases: [(&str, &str, &str); 7] = [
+        (
+            "width = 40",
+            "widht = 40",
+            "bad.toml:3:1: render.widht: unknown field; did you mean `width`?",
+        ),
+        (
+            "look_at = [0, 1, 0]",
+            "lookat = [0, 1, 0]",
+            "bad.toml:8:1: camera.lookat: unknown field; did you mean `look_at`?",
+        ),
+        (
+            "[materials.red]",
+            "[[camera.keyframes]]\nframe = 1\nfovy = 30\n[materials.red]",
+            "bad.toml:11:1: camera.keyframes[0].fovy: unknown field; did you mean `fov_y`?",
+        ),
+        (
+            "[materials.red]",
+            "[world]\nambeint = [0.1, 0.1, 0.1]\n[materials.red]",
+            "bad.toml:10:1: world.ambeint: unknown field; did you mean `ambient`?",
+        ),
+        (
+            "diffuse = [1, 0, 0]",
+            "difuse = [1, 0, 0]",
+            "bad.toml:10:1: materials.red.difuse: unknown field; did you mean `diffuse`?",
+        ),
+        (
+            "position = [0, 5, -5]",
+            "position = [0, 5, -5]\ncolour = [1, 1, 1]",
+            "bad.toml:13:1: lights[0].colour: unknown field (valid: `position`, `diffuse`, `specular`)",
+        ),
+        (
+            "distance = 0",
+            "distnce = 0",
+            "bad.toml:21:1: objects[1] (plane).distnce: unknown field; did you mean `distance`?",
+        ),
+    ];
+    for (from, to, want) in cases {
+        assert!(GOOD.contains(from), "{from}");
+        expect_failure(&GOOD.replacen(from, to, 1), &[], &[want]);
     }
 }

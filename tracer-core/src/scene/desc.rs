@@ -394,6 +394,13 @@ impl SceneDesc {
     ) -> Result<Self, SceneError> {
         let path = path.as_ref().to_path_buf();
         let file: SceneFile = toml::from_str(src).map_err(|e| {
+            if let Err((offset, message)) = locate_parse_error(src) {
+                return SceneError::Parse {
+                    path: path.clone(),
+                    location: Location::of_offset(src, offset),
+                    message,
+                };
+            }
             let start = e.span().map_or(0, |s| s.start);
             let mut message = e.message().trim_end().to_string();
             // Errors inside an array-of-tables element point at its header:
@@ -440,9 +447,11 @@ impl SceneDesc {
             render.max_depth = t.max_depth.unwrap_or(render.max_depth);
             render.sampler = t.sampler.unwrap_or(render.sampler);
         }
-        render
-            .validate()
-            .map_err(|m| invalid(table_span("render"), "render".into(), m))?;
+        render.validate().map_err(|m| {
+            // "samples must be ...": the field, then what is wrong with it.
+            let (key, what) = m.split_once(' ').unwrap_or(("", &m));
+            invalid(table_span("render"), format!("render.{key}"), what.into())
+        })?;
 
         let cam = &file.camera;
         let cam_err =
@@ -690,6 +699,161 @@ pub(crate) fn check_weight(v: f64) -> Result<(), String> {
             "must be a finite number >= 0 and at most 1e6 (larger overflow f32), got {v}"
         ))
     }
+}
+
+/// Where a deserialisation error really is. `toml::from_str` reports an
+/// error inside an array-of-tables element at the array's first header
+/// and names no element; here each table and element is deserialised on
+/// its own from the spanned document, so the error names its element's
+/// full path and points at the offending key or value (with a suggestion
+/// for a misspelt key). `Ok`: not an error of one table (syntax errors,
+/// unknown top-level keys), which toml's own message locates well.
+fn locate_parse_error(src: &str) -> Result<(), (usize, String)> {
+    use toml::de::{DeTable, DeValue};
+    type Value<'i> = toml::Spanned<DeValue<'i>>;
+    fn named<'i>(t: &DeTable<'i>, name: &str) -> Option<Value<'i>> {
+        t.iter()
+            .find(|(k, _)| k.get_ref().as_ref() == name)
+            .map(|(_, v)| v.clone())
+    }
+    fn check<'i, T: Deserialize<'i>>(v: &Value<'i>, path: &str) -> Result<(), (usize, String)> {
+        match T::deserialize(toml::de::ValueDeserializer::from(v.clone())) {
+            Ok(_) => Ok(()),
+            Err(e) => Err(explain::<T>(v, path, &e)),
+        }
+    }
+    let Ok(doc) = DeTable::parse(src) else {
+        return Ok(());
+    };
+    let root = doc.get_ref();
+    if let Some(v) = named(root, "render") {
+        check::<RenderTable>(&v, "render")?;
+    }
+    if let Some(cam) = named(root, "camera") {
+        if let DeValue::Table(t) = cam.get_ref()
+            && let Some(keys) = named(t, "keyframes")
+            && let DeValue::Array(a) = keys.get_ref()
+        {
+            for (i, k) in a.iter().enumerate() {
+                check::<CameraKeyframe>(k, &format!("camera.keyframes[{i}]"))?;
+            }
+        }
+        check::<CameraDesc>(&cam, "camera")?;
+    }
+    if let Some(v) = named(root, "world") {
+        check::<WorldDesc>(&v, "world")?;
+    }
+    if let Some(v) = named(root, "materials")
+        && let DeValue::Table(t) = v.get_ref()
+    {
+        for (k, m) in t.iter() {
+            check::<MaterialDesc>(m, &format!("materials.{}", k.get_ref()))?;
+        }
+    }
+    if let Some(v) = named(root, "lights")
+        && let DeValue::Array(a) = v.get_ref()
+    {
+        for (i, e) in a.iter().enumerate() {
+            check::<LightDesc>(e, &format!("lights[{i}]"))?;
+        }
+    }
+    if let Some(v) = named(root, "objects")
+        && let DeValue::Array(a) = v.get_ref()
+    {
+        for (i, e) in a.iter().enumerate() {
+            let mut path = format!("objects[{i}]");
+            if let DeValue::Table(t) = e.get_ref()
+                && let Some(ty) = named(t, "type")
+                && let DeValue::String(ty) = ty.get_ref()
+            {
+                path = format!("{path} ({ty})");
+            }
+            check::<ObjectDesc>(e, &path)?;
+        }
+    }
+    Ok(())
+}
+
+/// An error of the table `v` at `path`, at its key or value.
+fn explain<'i, T: Deserialize<'i>>(
+    v: &toml::Spanned<toml::de::DeValue<'i>>,
+    path: &str,
+    e: &toml::de::Error,
+) -> (usize, String) {
+    use toml::de::DeValue;
+    let message = e.message().trim_end();
+    let keys: Vec<(String, std::ops::Range<usize>, std::ops::Range<usize>)> = match v.get_ref() {
+        DeValue::Table(t) => t
+            .iter()
+            .map(|(k, val)| (k.get_ref().to_string(), k.span(), val.span()))
+            .collect(),
+        _ => Vec::new(),
+    };
+    if let Some(rest) = message.strip_prefix("unknown field `") {
+        let mut parts = rest.split('`');
+        let name = parts.next().unwrap_or_default();
+        // "..., expected one of `a`, `b`" or "expected `a`": every other piece.
+        let expected: Vec<&str> = parts.skip(1).step_by(2).collect();
+        let offset = keys
+            .iter()
+            .find(|(k, _, _)| k == name)
+            .map_or(v.span().start, |(_, ks, _)| ks.start);
+        let hint = expected
+            .iter()
+            .map(|c| (edit_distance(name, c), *c))
+            .filter(|&(d, c)| d <= 2.max(name.len() / 4) && d < c.len())
+            .min()
+            .map_or(String::new(), |(_, c)| format!("; did you mean `{c}`?"));
+        let valid = if expected.is_empty() {
+            String::new()
+        } else {
+            format!(
+                " (valid: {})",
+                expected
+                    .iter()
+                    .map(|c| format!("`{c}`"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        };
+        return (offset, format!("{path}.{name}: unknown field{hint}{valid}"));
+    }
+    // A wrong value (`radius = "one"`): toml places it at the table. The
+    // key at fault is the one whose absence changes the error.
+    if let DeValue::Table(t) = v.get_ref() {
+        for (k, val) in t.iter() {
+            let mut without = t.clone();
+            without.remove(k);
+            let again = T::deserialize(toml::de::ValueDeserializer::from(toml::Spanned::new(
+                v.span(),
+                DeValue::Table(without),
+            )));
+            if again.as_ref().err().map(|e| e.message().trim_end()) != Some(message) {
+                return (
+                    val.span().start,
+                    format!("{path}.{}: {message}", k.get_ref()),
+                );
+            }
+        }
+    }
+    let at = e.span().map_or(v.span().start, |s| s.start);
+    (at, format!("{path}: {message}"))
+}
+
+/// Levenshtein distance, for "did you mean".
+fn edit_distance(a: &str, b: &str) -> usize {
+    let b: Vec<char> = b.chars().collect();
+    let mut row: Vec<usize> = (0..=b.len()).collect();
+    for (i, ca) in a.chars().enumerate() {
+        let mut prev = row[0];
+        row[0] = i + 1;
+        for (j, &cb) in b.iter().enumerate() {
+            let cur = row[j + 1];
+            row[j + 1] = (prev + usize::from(ca != cb)).min(row[j] + 1).min(cur + 1);
+            prev = cur;
+        }
+    }
+    row[b.len()]
 }
 
 #[cfg(test)]
