@@ -37,9 +37,11 @@ pub trait AssetSource: Sync {
 /// (models written on Windows).
 pub fn join(dir: &str, rel: &str) -> String {
     let rel = rel.replace('\\', "/");
-    let absolute = rel.starts_with('/');
+    let base = if rel.starts_with('/') { "" } else { dir };
+    // Absolute when `rel` is, or when it is relative to an absolute folder
+    // (the MTL or buffers of a model named by absolute path).
+    let absolute = rel.starts_with('/') || base.starts_with('/');
     let mut parts: Vec<&str> = Vec::new();
-    let base = if absolute { "" } else { dir };
     for seg in base.split('/').chain(rel.split('/')) {
         match seg {
             "" | "." => {}
@@ -212,6 +214,8 @@ mod tests {
         assert_eq!(join("a", "../../b.ply"), "../b.ply");
         assert_eq!(join("a", "/abs/../m.obj"), "/m.obj");
         assert_eq!(join("", "/.."), "/");
+        assert_eq!(join("/models/car", "car.bin"), "/models/car/car.bin");
+        assert_eq!(join("/models/car", "../../../x.mtl"), "/x.mtl");
         assert!(leaves_folder("../b.ply") && leaves_folder("/m.obj") && leaves_folder(".."));
         assert!(!leaves_folder("models/x.obj") && !leaves_folder("..x.obj"));
         assert_eq!(dir_of("models/x.obj"), "models");

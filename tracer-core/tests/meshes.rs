@@ -940,3 +940,372 @@ fn camera_ray_packets_render_the_films_of_single_rays() {
         assert_eq!(got.rays, want.rays);
     }
 }
+
+// Issue 14: files peers load whose differences are choices, not defects.
+
+fn load_err(path: &Path) -> String {
+    tracer_core::mesh::Mesh::load(path, true)
+        .unwrap_err()
+        .to_string()
+}
+
+#[test]
+fn ply_headers_and_ascii_bodies_with_lone_cr_line_ends_load_like_lf() {
+    use tracer_core::mesh::Mesh;
+    let dir = tmpdir("ply-cr");
+    let head = "ply\nformat ascii 1.0\ncomment made on a Mac\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n";
+    let body = "0 0 0\n1 0 0\n1 1 0\n0 1 0 9 9\n4 0 1 2 3\n";
+    std::fs::write(dir.join("lf.ply"), format!("{head}{body}")).unwrap();
+    let lf = Mesh::load(&dir.join("lf.ply"), true).unwrap();
+    assert_eq!(lf.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+    for (name, head_end, body_end) in [
+        ("cr.ply", "\r", "\r"),
+        ("cr-head.ply", "\r", "\n"),
+        ("crlf.ply", "\r\n", "\r\n"),
+    ] {
+        let text = format!(
+            "{}{}",
+            head.replace('\n', head_end),
+            body.replace('\n', body_end)
+        );
+        std::fs::write(dir.join(name), text).unwrap();
+        assert_eq!(Mesh::load(&dir.join(name), true).unwrap(), lf, "{name}");
+    }
+    // Binary after a CR-only header: the body's first byte is 0x0A and
+    // belongs to the first vertex, not to the header's line end.
+    let first = f32::from_le_bytes([0x0A, 0x00, 0x80, 0x3F]);
+    let vertices = [[first, 0.0, 0.0], [1.0, 2.0, 0.0], [0.0, 1.0, 0.0]];
+    for (name, end) in [
+        ("bin-cr.ply", "\r"),
+        ("bin-crlf.ply", "\r\n"),
+        ("bin-lf.ply", "\n"),
+    ] {
+        let mut data = "ply\nformat binary_little_endian 1.0\ncomment caf\u{e9}\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar uint vertex_indices\nend_header\n"
+            .replace('\n', end)
+            .into_bytes();
+        for v in vertices {
+            for c in v {
+                data.extend(c.to_le_bytes());
+            }
+        }
+        data.push(3);
+        for i in [0u32, 1, 2] {
+            data.extend(i.to_le_bytes());
+        }
+        std::fs::write(dir.join(name), data).unwrap();
+        let m = Mesh::load(&dir.join(name), true).unwrap();
+        assert_eq!(m.positions, vertices, "{name}");
+        assert_eq!(m.triangles, vec![[0, 1, 2]], "{name}");
+    }
+    // Still refused: a header that never ends.
+    std::fs::write(
+        dir.join("open.ply"),
+        "ply\rformat ascii 1.0\relement vertex 0\r",
+    )
+    .unwrap();
+    assert!(
+        load_err(&dir.join("open.ply"))
+            .ends_with("open.ply: invalid PLY header: file ends before end_header"),
+        "{}",
+        load_err(&dir.join("open.ply"))
+    );
+}
+
+#[test]
+fn obj_polylines_and_points_are_never_faces() {
+    use tracer_core::mesh::Mesh;
+    let dir = tmpdir("obj-lines");
+    std::fs::write(
+        dir.join("m.mtl"),
+        "newmtl red\nKd 1 0 0\nnewmtl blue\nKd 0 0 1\n",
+    )
+    .unwrap();
+    // One quad (two triangles) in red; polylines of 2, 4 and 5 vertices and
+    // points between and after, one `l` in blue that must not become a face.
+    let obj = "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nvt 0 0\n\
+               usemtl red\nf 1 2 3 4\nl 1 2\n  l 1 2 3 4\nl 1/1 2/1 3/1 4/1 5/1\np 1 2 3\n\
+               usemtl blue\nl 2 3 4 5\np 5\nline 1 2 3\n";
+    std::fs::write(dir.join("lines.obj"), obj).unwrap();
+    let m = Mesh::load(&dir.join("lines.obj"), true).unwrap();
+    assert_eq!(m.triangles.len(), 2, "{:?}", m.triangles);
+    let used: Vec<&str> = m
+        .triangle_materials
+        .iter()
+        .map(|&i| m.materials[i as usize].0.as_str())
+        .collect();
+    assert_eq!(used, ["red", "red"]);
+    assert!(m.warnings.is_empty(), "{:?}", m.warnings);
+    // Only lines and points: nothing to render, said so.
+    std::fs::write(
+        dir.join("wire.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 3 1\np 1 2 3\n",
+    )
+    .unwrap();
+    assert!(
+        load_err(&dir.join("wire.obj")).ends_with("wire.obj: contains no triangles"),
+        "{}",
+        load_err(&dir.join("wire.obj"))
+    );
+    // Faces after the blanked lines still get their errors.
+    std::fs::write(
+        dir.join("bad.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2 3\nf 1 2 9\n",
+    )
+    .unwrap();
+    assert!(
+        load_err(&dir.join("bad.obj"))
+            .contains("bad.obj: invalid OBJ: face vertex index out of bounds"),
+        "{}",
+        load_err(&dir.join("bad.obj"))
+    );
+}
+
+/// A glTF of one triangle (positions, then a float per vertex for a custom
+/// attribute) with `.bin` beside it; `patch` edits the JSON.
+fn write_gltf(dir: &Path, name: &str, patch: impl FnOnce(&mut String)) -> PathBuf {
+    let mut bin = Vec::new();
+    for c in [0f32, 0., 0., 1., 0., 0., 0., 1., 0., 7., 8., 9.] {
+        bin.extend(c.to_le_bytes());
+    }
+    std::fs::write(dir.join("tri.bin"), &bin).unwrap();
+    let mut json = r#"{"asset":{"version":"2.0"},
+      "buffers":[{"byteLength":48,"uri":"tri.bin"}],
+      "bufferViews":[{"buffer":0,"byteLength":36},{"buffer":0,"byteOffset":36,"byteLength":12}],
+      "accessors":[{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]},
+                   {"bufferView":1,"componentType":5126,"count":3,"type":"SCALAR"}],
+      "materials":[{"name":"paint","pbrMetallicRoughness":{"baseColorFactor":[0.2,0.4,0.6,1],"metallicFactor":0}}],
+      "meshes":[{"primitives":[{"attributes":{"POSITION":0},"material":0}]}],
+      "nodes":[{"mesh":0}],"scenes":[{"nodes":[0]}],"scene":0}"#
+        .to_string();
+    patch(&mut json);
+    let p = dir.join(name);
+    std::fs::write(&p, json).unwrap();
+    p
+}
+
+#[test]
+fn gltf_extras_empty_textures_custom_attributes_and_missing_bounds_load() {
+    use tracer_core::mesh::Mesh;
+    let dir = tmpdir("gltf-lenient");
+    let plain = Mesh::load(&write_gltf(&dir, "plain.gltf", |_| {}), true).unwrap();
+    assert_eq!(plain.triangles, vec![[0, 1, 2]]);
+    assert_eq!(plain.materials[0].0, "paint");
+    type Patch = fn(&mut String);
+    let cases: [(&str, Patch); 5] = [
+        // `extras` may hold any JSON value, not only objects.
+        ("extras.gltf", |j| {
+            *j = j
+                .replace(
+                    r#""version":"2.0"}"#,
+                    r#""version":"2.0","extras":"exported by hand"}"#,
+                )
+                .replace(r#"{"mesh":0}"#, r#"{"mesh":0,"extras":[1,2]}"#)
+                .replace(r#""name":"paint""#, r#""name":"paint","extras":42"#);
+        }),
+        // A texture without an image (its material still has its colour).
+        ("empty-texture.gltf", |j| {
+            *j = j
+                .replace(
+                    r#""metallicFactor":0}"#,
+                    r#""metallicFactor":0,"baseColorTexture":{"index":0}}"#,
+                )
+                .replace(r#""meshes":"#, r#""textures":[{}],"meshes":"#);
+        }),
+        // An application-specific attribute (`_` prefix) is not read.
+        ("custom-attribute.gltf", |j| {
+            *j = j.replace(r#""POSITION":0}"#, r#""POSITION":0,"_TEMPERATURE":1}"#);
+        }),
+        // POSITION without min and max: the bounds come from the vertices.
+        ("no-bounds.gltf", |j| {
+            *j = j.replace(r#","min":[0,0,0],"max":[1,1,0]"#, "")
+        }),
+        ("bad-bounds.gltf", |j| {
+            *j = j.replace(r#""max":[1,1,0]"#, r#""max":[1]"#)
+        }),
+    ];
+    for (name, patch) in cases {
+        let m = Mesh::load(&write_gltf(&dir, name, patch), true)
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(m, plain, "{name}");
+    }
+    // Other validation errors stay errors, with the crate's wording.
+    let p = write_gltf(&dir, "bad-index.gltf", |j| {
+        *j = j.replace(r#""material":0"#, r#""material":3"#)
+    });
+    assert_eq!(
+        load_err(&p),
+        "bad-index.gltf: invalid glTF: invalid glTF: meshes[0].primitives[0].material: Index out of bounds;"
+    );
+    let p = write_gltf(&dir, "bad-semantic.gltf", |j| {
+        *j = j.replace(r#""POSITION":0}"#, r#""POSITION":0,"TEMPERATURE":1}"#)
+    });
+    assert!(
+        load_err(&p).contains("bad-semantic.gltf: invalid glTF:"),
+        "{}",
+        load_err(&p)
+    );
+}
+
+#[test]
+fn compressed_gltf_is_refused_naming_the_extension() {
+    let dir = tmpdir("gltf-compressed");
+    for (ext, what) in [
+        ("KHR_draco_mesh_compression", "Draco mesh compression"),
+        ("EXT_meshopt_compression", "meshoptimizer compression"),
+    ] {
+        let name = format!("{ext}.gltf");
+        let p = write_gltf(&dir, &name, |j| {
+            *j = j.replace(
+                r#""asset":"#,
+                &format!(r#""extensionsUsed":["{ext}"],"extensionsRequired":["KHR_materials_unlit","{ext}"],"asset":"#),
+            );
+        });
+        assert_eq!(
+            load_err(&p),
+            format!(
+                "{name}: requires the extension {ext} ({what}), which Tessera does not decode: export the model without it"
+            )
+        );
+        // Used but not required: the file carries uncompressed data too.
+        let p = write_gltf(&dir, &name, |j| {
+            *j = j.replace(
+                r#""asset":"#,
+                &format!(r#""extensionsUsed":["{ext}"],"asset":"#),
+            );
+        });
+        assert_eq!(
+            tracer_core::mesh::Mesh::load(&p, true)
+                .unwrap()
+                .triangles
+                .len(),
+            1
+        );
+    }
+}
+
+#[test]
+fn gltf_requiring_appearance_extensions_renders_with_a_warning() {
+    let dir = tmpdir("gltf-required");
+    let require = |ext: &'static str| {
+        move |j: &mut String| {
+            *j = j.replace(
+                r#""asset":"#,
+                &format!(r#""extensionsUsed":["{ext}"],"extensionsRequired":["{ext}"],"asset":"#),
+            );
+        }
+    };
+    let p = write_gltf(&dir, "webgl.gltf", require("KHR_technique_webgl"));
+    let m = tracer_core::mesh::Mesh::load(&p, true).unwrap();
+    assert_eq!(m.triangles.len(), 1);
+    assert_eq!(
+        m.warnings,
+        [
+            "requires the extension KHR_technique_webgl, which Tessera does not read (it changes materials, textures or lights, not geometry): rendered without it"
+        ]
+    );
+    let p = write_gltf(&dir, "unlit.gltf", require("KHR_materials_unlit"));
+    assert_eq!(
+        tracer_core::mesh::Mesh::load(&p, true)
+            .unwrap()
+            .warnings
+            .len(),
+        1
+    );
+    // Extensions that change geometry stay refused, by name.
+    let p = write_gltf(&dir, "quantized.gltf", require("KHR_mesh_quantization"));
+    assert_eq!(
+        load_err(&p),
+        "quantized.gltf: requires the extension KHR_mesh_quantization, which Tessera does not read"
+    );
+}
+
+#[test]
+fn obj_encodings_unnamed_usemtl_and_partial_vertex_colours_load() {
+    use tracer_core::mesh::Mesh;
+    let dir = tmpdir("obj-lenient");
+    let quad = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n";
+    std::fs::write(dir.join("plain.obj"), quad).unwrap();
+    let plain = Mesh::load(&dir.join("plain.obj"), true).unwrap();
+    assert_eq!(plain.triangles.len(), 2);
+    // UTF-16 in either byte order, and UTF-8 with a byte-order mark.
+    let be: Vec<u8> = [0xFE, 0xFF]
+        .into_iter()
+        .chain(quad.encode_utf16().flat_map(u16::to_be_bytes))
+        .collect();
+    let le: Vec<u8> = [0xFF, 0xFE]
+        .into_iter()
+        .chain(quad.encode_utf16().flat_map(u16::to_le_bytes))
+        .collect();
+    let bom: Vec<u8> = b"\xEF\xBB\xBF"
+        .iter()
+        .chain(quad.as_bytes())
+        .copied()
+        .collect();
+    for (name, data) in [("be.obj", be), ("le.obj", le), ("bom.obj", bom)] {
+        std::fs::write(dir.join(name), data).unwrap();
+        assert_eq!(Mesh::load(&dir.join(name), true).unwrap(), plain, "{name}");
+    }
+    // A Latin-1 material name (not UTF-8) in the OBJ and its MTL still matches.
+    std::fs::write(dir.join("latin.mtl"), b"newmtl Terraind\xe4k\nKd 0 1 0\n").unwrap();
+    let mut obj = b"mtllib latin.mtl\nusemtl Terraind\xe4k\n".to_vec();
+    obj.extend_from_slice(quad.as_bytes());
+    std::fs::write(dir.join("latin.obj"), obj).unwrap();
+    let m = Mesh::load(&dir.join("latin.obj"), true).unwrap();
+    assert_eq!(m.materials.len(), 1, "{:?}", m.materials);
+    assert_eq!(m.materials[0].0, "Terraind\u{fffd}k");
+    assert_eq!(m.materials[0].1.diffuse.0, [0.0, 1.0, 0.0]);
+    // `usemtl` with no name: the default material from there on.
+    std::fs::write(dir.join("m.mtl"), "newmtl red\nKd 1 0 0\n").unwrap();
+    std::fs::write(
+        dir.join("unnamed.obj"),
+        "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nusemtl red\nf 1 2 3\nusemtl \nf 1 2 3 4\n",
+    )
+    .unwrap();
+    let m = Mesh::load(&dir.join("unnamed.obj"), true).unwrap();
+    let used: Vec<&str> = m
+        .triangle_materials
+        .iter()
+        .map(|&i| m.materials[i as usize].0.as_str())
+        .collect();
+    assert_eq!(used, ["red", "default", "default"]);
+    // Colours on some vertices only: the positions load, the colours are not read.
+    std::fs::write(
+        dir.join("colours.obj"),
+        "v 0 0 0\nv 1 0 0 1 0 0\nv 1 1 0\nv 0 1 0 0.5 0.5 0.5\nf 1 2 3 4\n",
+    )
+    .unwrap();
+    assert_eq!(Mesh::load(&dir.join("colours.obj"), true).unwrap(), plain);
+    // A statement continued on the next lines with `\`.
+    std::fs::write(
+        dir.join("continued.obj"),
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 \\\r\n 0\nf 1 2 \\\n3 \\\n4\n",
+    )
+    .unwrap();
+    assert_eq!(Mesh::load(&dir.join("continued.obj"), true).unwrap(), plain);
+}
+
+#[test]
+fn meshes_named_by_absolute_path_find_their_side_files() {
+    let dir = tmpdir("absolute");
+    std::fs::create_dir_all(dir.join("models")).unwrap();
+    std::fs::write(dir.join("models/m.mtl"), "newmtl red\nKd 1 0 0\n").unwrap();
+    std::fs::write(
+        dir.join("models/q.obj"),
+        "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl red\nf 1 2 3\n",
+    )
+    .unwrap();
+    write_gltf(&dir.join("models"), "t.gltf", |_| {});
+    let scene_dir = tmpdir("absolute-scene");
+    for model in ["q.obj", "t.gltf"] {
+        let path = dir.join("models").join(model);
+        assert!(path.is_absolute());
+        let src = format!(
+            "{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = {:?}\n",
+            path.display().to_string()
+        );
+        let scene = SceneDesc::parse(&src, scene_dir.join("s.toml"))
+            .unwrap_or_else(|e| panic!("{model}: {e}"));
+        let world = world_of::<f32>(&scene);
+        assert_eq!(world.triangle_shading.len(), 1, "{model}");
+    }
+}

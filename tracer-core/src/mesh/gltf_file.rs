@@ -13,14 +13,82 @@ use super::{Mesh, MeshError, default_material};
 use crate::assets::{AssetSource, dir_of, join};
 use crate::scene::{MaterialDesc, Num, Vec3};
 
+/// Mesh compression extensions, refused by name when a file requires them
+/// (a file that only uses them carries uncompressed data as well).
+const COMPRESSION: [(&str, &str); 2] = [
+    ("KHR_draco_mesh_compression", "Draco mesh compression"),
+    ("EXT_meshopt_compression", "meshoptimizer compression"),
+];
+
+/// Extensions (by prefix) that change how a surface looks, never where it
+/// is: a file that requires them renders, with a warning, without them.
+const APPEARANCE: [&str; 7] = [
+    "KHR_materials_",
+    "KHR_texture_",
+    "EXT_texture_",
+    "KHR_technique_webgl",
+    "KHR_lights_",
+    "EXT_lights_",
+    "KHR_xmp",
+];
+
+/// The crate's validation less what Tessera has no use for or has checked
+/// itself (required extensions, above): a POSITION
+/// accessor's `min` and `max` (bounds are taken from the vertices), which
+/// the specification requires but writers leave out or get wrong.
+fn validate(doc: &gltf::Document) -> Result<(), gltf::Error> {
+    use gltf::json::validation::Validate;
+    let root = doc.as_json();
+    let mut errors = Vec::new();
+    root.validate(root, gltf::json::Path::new, &mut |path, error| {
+        let path = path();
+        let p = path.as_str();
+        let bounds = [".min", ".max"].map(|b| format!(".attributes[\"POSITION\"]{b}"));
+        if !(bounds.iter().any(|b| p.ends_with(b.as_str()))
+            || p.starts_with("extensionsRequired[")
+                && error == gltf::json::validation::Error::Unsupported)
+        {
+            errors.push((path, error));
+        }
+    });
+    if errors.is_empty() {
+        Ok(())
+    } else {
+        Err(gltf::Error::Validation(errors))
+    }
+}
+
 /// Deeper node hierarchies are rejected (they are surely cyclic or hostile).
 const MAX_NODE_DEPTH: usize = 64;
 
 pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result<Mesh, MeshError> {
     let path = Path::new(name);
     let err = |m: String| MeshError::new(path, m);
-    let gltf = gltf::Gltf::from_slice(bytes).map_err(|e| err(format!("invalid glTF: {e}")))?;
+    // Validated here rather than by `from_slice`: what Tessera does not read
+    // (POSITION's min/max) is no reason to refuse a file.
+    let gltf = gltf::Gltf::from_slice_without_validation(bytes)
+        .map_err(|e| err(format!("invalid glTF: {e}")))?;
     let doc = &gltf.document;
+    let mut warnings = Vec::new();
+    for ext in doc.extensions_required() {
+        if let Some((_, what)) = COMPRESSION.iter().find(|(c, _)| *c == ext) {
+            return Err(err(format!(
+                "requires the extension {ext} ({what}), which Tessera does not decode: \
+                 export the model without it"
+            )));
+        }
+        if APPEARANCE.iter().any(|a| ext.starts_with(a)) {
+            warnings.push(format!(
+                "requires the extension {ext}, which Tessera does not read \
+                 (it changes materials, textures or lights, not geometry): rendered without it"
+            ));
+        } else if !gltf::json::extensions::ENABLED_EXTENSIONS.contains(&ext) {
+            return Err(err(format!(
+                "requires the extension {ext}, which Tessera does not read"
+            )));
+        }
+    }
+    validate(doc).map_err(|e| err(format!("invalid glTF: {e}")))?;
 
     let mut buffers = Vec::new();
     for b in doc.buffers() {
@@ -69,6 +137,7 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
     }
 
     let mut mesh = Mesh {
+        warnings,
         materials: doc
             .materials()
             .map(|m| (m.name().unwrap_or("unnamed").to_string(), map_material(&m)))

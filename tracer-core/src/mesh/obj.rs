@@ -1,5 +1,6 @@
 //! Wavefront OBJ with MTL materials, through `tobj`.
 
+use std::borrow::Cow;
 use std::cell::RefCell;
 use std::path::Path;
 
@@ -22,8 +23,11 @@ pub(super) fn load(
     };
     // MTL libraries come through the same source, named beside the OBJ.
     let failed_libs = RefCell::new(Vec::<String>::new());
-    let (models, materials) =
-        tobj::load_obj_buf(&mut std::io::Cursor::new(bytes), &options, |lib: &Path| {
+    let bytes = tobj_compatible(bytes);
+    let (models, materials) = tobj::load_obj_buf(
+        &mut std::io::Cursor::new(&*bytes),
+        &options,
+        |lib: &Path| {
             let lib_name = join(dir_of(name), &lib.to_string_lossy());
             let result = source
                 .read(&lib_name)
@@ -36,8 +40,9 @@ pub(super) fn load(
                 failed_libs.borrow_mut().push(lib_name);
             }
             result
-        })
-        .map_err(|e| MeshError::new(path, format!("invalid OBJ: {e}")))?;
+        },
+    )
+    .map_err(|e| MeshError::new(path, format!("invalid OBJ: {e}")))?;
     // A missing or unreadable library is common in downloaded models:
     // the default material stands in, and the user is told.
     let mut warnings = Vec::new();
@@ -103,6 +108,120 @@ pub(super) fn load(
         mesh.materials.push(("default".into(), default_material()));
     }
     Ok(mesh)
+}
+
+/// A material name no MTL library defines: `usemtl` with no name (the
+/// default material, for assimp and trimesh) is written as this one, which
+/// tobj resolves to no material, since tobj refuses an empty name.
+const NO_MATERIAL: &str = "\u{1}no material";
+
+/// The OBJ as tobj can read it, each line kept where it was (so line
+/// numbers stay those of the file), where it differs from what other
+/// readers accept by choice rather than by a defect of the file:
+/// - text in UTF-16 (with its byte-order mark) or with a UTF-8 one is
+///   decoded; bytes that are not UTF-8 (Latin-1 names) become U+FFFD, as in
+///   the MTL library, so names still match;
+/// - `l` (polyline) records are blanked: tobj reads `l` as `f`, and a
+///   polyline of three or more vertices would render as a filled polygon
+///   (lines have no surface; `p` records tobj ignores itself);
+/// - a statement continued with `\` at the end of its lines is joined;
+/// - `usemtl` without a name selects the default material;
+/// - when only some vertices have colours (`v x y z r g b`), the colours
+///   are dropped (they are not rendered; tobj refuses the mix).
+///
+/// A file that needs none of this is passed on as it is.
+fn tobj_compatible(bytes: &[u8]) -> Cow<'_, [u8]> {
+    let utf16 = |rest: &[u8], be: bool| -> Cow<'static, str> {
+        let units = rest.chunks_exact(2).map(|c| {
+            let pair = [c[0], c[1]];
+            if be {
+                u16::from_be_bytes(pair)
+            } else {
+                u16::from_le_bytes(pair)
+            }
+        });
+        Cow::Owned(
+            char::decode_utf16(units)
+                .map(|c| c.unwrap_or(char::REPLACEMENT_CHARACTER))
+                .collect(),
+        )
+    };
+    let text = if let Some(rest) = bytes.strip_prefix(b"\xFE\xFF") {
+        utf16(rest, true)
+    } else if let Some(rest) = bytes.strip_prefix(b"\xFF\xFE") {
+        utf16(rest, false)
+    } else {
+        String::from_utf8_lossy(bytes.strip_prefix(b"\xEF\xBB\xBF").unwrap_or(bytes))
+    };
+    fn keyword(line: &str) -> &str {
+        line.split_whitespace().next().unwrap_or("")
+    }
+    let continued = |line: &str| line.trim_end().ends_with('\\');
+    let (mut polylines, mut unnamed, mut coloured, mut plain) = (false, false, false, false);
+    let mut joins = false;
+    for line in text.split('\n') {
+        joins |= continued(line);
+        match keyword(line) {
+            "l" => polylines = true,
+            "usemtl" => unnamed |= line.split_whitespace().nth(1).is_none(),
+            "v" => match line.split_whitespace().count() {
+                7 => coloured = true,
+                _ => plain = true,
+            },
+            _ => {}
+        }
+    }
+    let drop_colours = coloured && plain;
+    if !(polylines || unnamed || drop_colours || joins) {
+        return match text {
+            Cow::Borrowed(t) => Cow::Borrowed(t.as_bytes()),
+            Cow::Owned(t) => Cow::Owned(t.into_bytes()),
+        };
+    }
+    let mut out = String::with_capacity(text.len());
+    let mut lines = text.split('\n');
+    let mut joined;
+    let mut first = true;
+    while let Some(mut line) = lines.next() {
+        if !first {
+            out.push('\n');
+        }
+        first = false;
+        // A statement continued over lines (`\` at the end) is read on its
+        // first line; the lines it took stay, empty.
+        let mut taken = 0;
+        if continued(line) {
+            let strip = |l: &str| {
+                let t = l.trim_end();
+                t.strip_suffix('\\').unwrap_or(t).to_string()
+            };
+            joined = strip(line);
+            let mut more = true;
+            while more && let Some(next) = lines.next() {
+                taken += 1;
+                more = continued(next);
+                joined.push(' ');
+                joined.push_str(&if more { strip(next) } else { next.to_string() });
+            }
+            line = &joined;
+        }
+        match keyword(line) {
+            "l" => {}
+            "usemtl" if line.split_whitespace().nth(1).is_none() => {
+                out.push_str("usemtl ");
+                out.push_str(NO_MATERIAL);
+            }
+            "v" if drop_colours && line.split_whitespace().count() == 7 => {
+                let xyz: Vec<&str> = line.split_whitespace().take(4).collect();
+                out.push_str(&xyz.join(" "));
+            }
+            _ => out.push_str(line),
+        }
+        for _ in 0..taken {
+            out.push('\n');
+        }
+    }
+    Cow::Owned(out.into_bytes())
 }
 
 /// An MTL library as tobj can read it: colour statements with one value

@@ -91,21 +91,68 @@ pub(super) fn load(name: &str, bytes: &[u8]) -> Result<Mesh, MeshError> {
     body(&mut r, format, &elements).map_err(|m| err(format!("invalid PLY: {m}")))
 }
 
-fn header(r: &mut impl BufRead) -> Result<(Format, Vec<Element>), String> {
-    let mut line = String::new();
-    let mut next = |line: &mut String| -> Result<(), String> {
-        line.clear();
-        let n = r
-            .by_ref()
-            .take(4096)
-            .read_line(line)
-            .map_err(|e| e.to_string())?;
-        if n == 0 {
+/// How header lines end, as the first line ends: `\n` (and `\r\n`) or a
+/// lone `\r` (classic Mac OS writers). A binary body starts right after
+/// `end_header`'s terminator, so it must be known, not guessed per line.
+#[derive(Clone, Copy, PartialEq)]
+enum LineEnd {
+    Lf,
+    Cr,
+}
+
+/// Reads one header line (at most 4096 bytes) ending with `end`, whose
+/// terminator is kept; `None` for `end`: the first line, ending with `\n`,
+/// `\r\n` or `\r`, and which of the two it was is returned.
+fn header_line(
+    r: &mut impl BufRead,
+    line: &mut String,
+    end: Option<LineEnd>,
+) -> Result<LineEnd, String> {
+    line.clear();
+    let mut bytes = Vec::new();
+    let found = loop {
+        let buf = r.fill_buf().map_err(|e| e.to_string())?;
+        if buf.is_empty() {
             return Err("file ends before end_header".into());
         }
-        Ok(())
+        let stop = buf.iter().position(|&b| match end {
+            Some(LineEnd::Lf) => b == b'\n',
+            Some(LineEnd::Cr) => b == b'\r',
+            None => b == b'\n' || b == b'\r',
+        });
+        let take = stop.map_or(buf.len(), |i| i + 1);
+        let take = take.min(4096 - bytes.len());
+        bytes.extend_from_slice(&buf[..take]);
+        r.consume(take);
+        match stop {
+            Some(i) if i < take => break bytes[bytes.len() - 1],
+            _ if bytes.len() >= 4096 => break b'\n',
+            _ => {}
+        }
     };
-    next(&mut line)?;
+    let ending = match (end, found) {
+        (Some(e), _) => e,
+        (None, b'\r') => {
+            // `\r\n` is a `\n` ending with a `\r` that trimming removes.
+            if r.fill_buf().map_err(|e| e.to_string())?.first() == Some(&b'\n') {
+                bytes.push(b'\n');
+                r.consume(1);
+                LineEnd::Lf
+            } else {
+                LineEnd::Cr
+            }
+        }
+        (None, _) => LineEnd::Lf,
+    };
+    // Comments in other encodings (Latin-1 names) are no reason to refuse.
+    line.push_str(&String::from_utf8_lossy(&bytes));
+    Ok(ending)
+}
+
+fn header(r: &mut impl BufRead) -> Result<(Format, Vec<Element>), String> {
+    let mut line = String::new();
+    let ending = header_line(r, &mut line, None)?;
+    let mut next = |line: &mut String| header_line(r, line, Some(ending)).map(|_| ());
     if line.trim_end() != "ply" {
         return Err("the file does not start with \"ply\"".into());
     }
@@ -172,9 +219,12 @@ struct Values<'a, R: BufRead> {
 impl<R: BufRead> Values<'_, R> {
     /// Ends an element instance: in ASCII each is one line, and values past
     /// the declared properties (writers add colours, alpha, ...) are skipped.
+    /// Lines end with `\n`, `\r\n` or a lone `\r`: a body of `\r` lines is
+    /// read as one string and its rows end at each `\r`.
     fn end_row(&mut self) {
         if self.format == Format::Ascii {
-            self.pos = self.line.len();
+            let rest = &self.line[self.pos..];
+            self.pos += rest.find(['\n', '\r']).map_or(rest.len(), |i| i + 1);
         }
     }
 
