@@ -121,7 +121,7 @@ fn malformed_scenes_are_rejected_with_file_line_and_reason() {
         &GOOD.replace("radius = 1", "radius = 1\nshiny = true"),
         &[],
         &[
-            "bad.toml:17:1: objects[0] (sphere).shiny: unknown field (valid: `center`, `radius`, `material`)",
+            "bad.toml:17:1: objects[0] (sphere).shiny: unknown field `shiny` (valid: `center`, `radius`, `material`)",
         ],
     );
     expect_failure(
@@ -318,37 +318,37 @@ fn a_typo_in_any_table_is_located_at_its_key_with_a_suggestion() {
         (
             "width = 40",
             "widht = 40",
-            "bad.toml:3:1: render.widht: unknown field; did you mean `width`?",
+            "bad.toml:3:1: render.widht: unknown field `widht`; did you mean `width`?",
         ),
         (
             "look_at = [0, 1, 0]",
             "lookat = [0, 1, 0]",
-            "bad.toml:8:1: camera.lookat: unknown field; did you mean `look_at`?",
+            "bad.toml:8:1: camera.lookat: unknown field `lookat`; did you mean `look_at`?",
         ),
         (
             "[materials.red]",
             "[[camera.keyframes]]\nframe = 1\nfovy = 30\n[materials.red]",
-            "bad.toml:11:1: camera.keyframes[0].fovy: unknown field; did you mean `fov_y`?",
+            "bad.toml:11:1: camera.keyframes[0].fovy: unknown field `fovy`; did you mean `fov_y`?",
         ),
         (
             "[materials.red]",
             "[world]\nambeint = [0.1, 0.1, 0.1]\n[materials.red]",
-            "bad.toml:10:1: world.ambeint: unknown field; did you mean `ambient`?",
+            "bad.toml:10:1: world.ambeint: unknown field `ambeint`; did you mean `ambient`?",
         ),
         (
             "diffuse = [1, 0, 0]",
             "difuse = [1, 0, 0]",
-            "bad.toml:10:1: materials.red.difuse: unknown field; did you mean `diffuse`?",
+            "bad.toml:10:1: materials.red.difuse: unknown field `difuse`; did you mean `diffuse`?",
         ),
         (
             "position = [0, 5, -5]",
             "position = [0, 5, -5]\ncolour = [1, 1, 1]",
-            "bad.toml:13:1: lights[0].colour: unknown field (valid: `position`, `diffuse`, `specular`)",
+            "bad.toml:13:1: lights[0].colour: unknown field `colour` (valid: `position`, `diffuse`, `specular`)",
         ),
         (
             "distance = 0",
             "distnce = 0",
-            "bad.toml:21:1: objects[1] (plane).distnce: unknown field; did you mean `distance`?",
+            "bad.toml:21:1: objects[1] (plane).distnce: unknown field `distnce`; did you mean `distance`?",
         ),
     ];
     for (from, to, want) in cases {

@@ -816,7 +816,10 @@ fn explain<'i, T: Deserialize<'i>>(
                     .join(", ")
             )
         };
-        return (offset, format!("{path}.{name}: unknown field{hint}{valid}"));
+        return (
+            offset,
+            format!("{path}.{name}: unknown field `{name}`{hint}{valid}"),
+        );
     }
     // A wrong value (`radius = "one"`): toml places it at the table. The
     // key at fault is the one whose absence changes the error.
