@@ -1041,3 +1041,29 @@ fn fuzz_gltf_accessor_of_no_elements() {
         "s.gltf: mesh 0 primitive 0: accessor 0: sparse count 0 (at least 1 value)"
     );
 }
+
+#[test]
+fn fuzz_obj_face_texture_or_normal_index_far_out_of_range() {
+    // tobj 4.0.5 resolved `-7` with 3 texture coordinates (or a huge
+    // index) to near usize::MAX, then overflowed computing `vt * 2 + 1`.
+    let obj =
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/-7/1\n";
+    assert_eq!(
+        load_bundle(&[("t.obj", obj)], "t.obj").unwrap_err(),
+        "t.obj: invalid OBJ: line 8: face texture coordinate index -7 is out of range (3 defined before this line)"
+    );
+    let obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//6148914691236517206\n";
+    assert_eq!(
+        load_bundle(&[("n.obj", obj)], "n.obj").unwrap_err(),
+        "n.obj: invalid OBJ: line 5: face normal index 6148914691236517206 is out of range (1 defined in the file)"
+    );
+    // Relative and absolute indices in range, and 0 (none), still load.
+    let obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\nf -3/-1/-1 2/1/0 3/0/1\n";
+    assert_eq!(
+        load_bundle(&[("ok.obj", obj)], "ok.obj")
+            .unwrap()
+            .triangles
+            .len(),
+        1
+    );
+}
