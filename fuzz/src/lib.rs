@@ -61,7 +61,10 @@ static LAST_PANIC: Mutex<Option<String>> = Mutex::new(None);
 /// Installs a panic hook that records every panic and then runs the hooks
 /// before it (the loaders' quiet hook, then libFuzzer's abort). Mesh loading
 /// runs once first so that the loaders' hook exists and ours wraps it.
+/// Each target calls this first, for each input: it forgets the panics
+/// recorded before.
 pub fn init() {
+    reset();
     static ONCE: Once = Once::new();
     ONCE.call_once(|| {
         // An existing file: the hook is installed when a loader first runs.
@@ -76,15 +79,20 @@ pub fn init() {
     });
 }
 
+/// A panic recorded during the call that gave `error` can only have been
+/// caught (any other ends the process): a finding. The recorded panic, not
+/// the error text, decides: a scene or model may quote the words of
+/// [`CAUGHT_PANIC`] in its own error messages.
 fn caught_panic(error: &str) {
-    if error.contains(CAUGHT_PANIC) {
-        let panic = LAST_PANIC
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .take()
-            .unwrap_or_default();
+    let panic = LAST_PANIC.lock().unwrap_or_else(|e| e.into_inner()).take();
+    if let Some(panic) = panic {
         panic!("a loader panicked and the panic was caught: {error}\n  the panic: {panic}");
     }
+}
+
+/// Forgets any panic recorded before.
+fn reset() {
+    LAST_PANIC.lock().unwrap_or_else(|e| e.into_inner()).take();
 }
 
 /// A loaded mesh is fine and so is an error, unless it is a caught panic.
