@@ -28,6 +28,8 @@ pub enum FilmCodecError {
         width: u32,
         height: u32,
     },
+    #[error("a {width}x{height} rect is too large for a film ({SUM_BYTES} bytes a pixel)")]
+    TooLarge { width: u32, height: u32 },
 }
 
 pub fn pack_sums(film: &Film) -> Vec<u8> {
@@ -57,18 +59,28 @@ pub fn unpack(
     nonfinite: u64,
 ) -> Result<Film, FilmCodecError> {
     let area = rect.area();
-    if sums.len() != area * SUM_BYTES {
+    // A rect from the wire can ask for more bytes than a usize holds: an
+    // overflow (or, unchecked, a wrapped size a short field could match).
+    let (Some(sum_bytes), Some(count_bytes)) =
+        (area.checked_mul(SUM_BYTES), area.checked_mul(COUNT_BYTES))
+    else {
+        return Err(FilmCodecError::TooLarge {
+            width: rect.width,
+            height: rect.height,
+        });
+    };
+    if sums.len() != sum_bytes {
         return Err(FilmCodecError::SumsSize {
             got: sums.len(),
-            expected: area * SUM_BYTES,
+            expected: sum_bytes,
             width: rect.width,
             height: rect.height,
         });
     }
-    if counts.len() != area * COUNT_BYTES {
+    if counts.len() != count_bytes {
         return Err(FilmCodecError::CountsSize {
             got: counts.len(),
-            expected: area * COUNT_BYTES,
+            expected: count_bytes,
             width: rect.width,
             height: rect.height,
         });
@@ -117,5 +129,17 @@ mod tests {
             unpack(rect, &s, &c[..20], RayCounts::default(), 0),
             Err(FilmCodecError::CountsSize { .. })
         ));
+    }
+
+    /// Found by fuzz/fuzz_targets/film_codec.rs: the expected size of a
+    /// 2^32-1 square rect's sums overflowed (a panic in checked builds).
+    #[test]
+    fn rects_too_large_for_memory_are_errors_not_overflows() {
+        let rect = Rect::new(0, 0, u32::MAX, u32::MAX);
+        let e = unpack(rect, &[0; 24], &[0; 4], RayCounts::default(), 0).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "a 4294967295x4294967295 rect is too large for a film (24 bytes a pixel)"
+        );
     }
 }

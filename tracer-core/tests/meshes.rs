@@ -7,10 +7,12 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
+use tracer_core::assets::Bundle;
 use tracer_core::bvh::MAX_DEPTH;
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::geometry::PrimId;
 use tracer_core::math::{Ray, Real, Vector3};
+use tracer_core::mesh::Mesh;
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::sampling::hash_u32;
 use tracer_core::scene::SceneDesc;
@@ -1308,4 +1310,129 @@ fn meshes_named_by_absolute_path_find_their_side_files() {
         let world = world_of::<f32>(&scene);
         assert_eq!(world.triangle_shading.len(), 1, "{model}");
     }
+}
+
+// Inputs found by the fuzz targets (fuzz/, scripts/fuzz), minimised: each
+// must be a clear error naming the file, never a panic (caught or not), an
+// abort or a hang.
+
+/// Loads `name` through the real loaders from a bundle of `files`, as the
+/// coordinator and the fuzz targets do.
+fn load_bundle(files: &[(&str, &[u8])], name: &str) -> Result<Mesh, String> {
+    let mut bundle = Bundle::new();
+    for (n, data) in files {
+        bundle.insert(*n, *data);
+    }
+    Mesh::load_from(&bundle, name, true).map_err(|e| e.to_string())
+}
+
+#[test]
+fn fuzz_gltf_position_accessor_that_does_not_exist() {
+    // gltf-json 1.4.1's validation indexes `accessors` by the POSITION
+    // attribute before it reports the index out of range: it panicked.
+    let doc =
+        br#"{"asset":{"version":"2.0"},"meshes":[{"primitives":[{"attributes":{"POSITION":0}}]}]}"#;
+    assert_eq!(
+        load_bundle(&[("m.gltf", doc)], "m.gltf").unwrap_err(),
+        r#"m.gltf: invalid glTF: meshes[0].primitives[0].attributes["POSITION"]: accessor 0 does not exist (the file has 0 accessors)"#
+    );
+}
+
+#[test]
+fn fuzz_gltf_attribute_accessor_of_the_wrong_type() {
+    // gltf 1.4.1's reader asserts that NORMAL's accessor holds [f32; 3]
+    // (accessor/util.rs) and reaches unreachable!() on float indices.
+    let gltf = |normal: &str, indices: &str| {
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":36,"uri":"data:application/octet-stream;base64,{}"}}],
+            "bufferViews":[{{"buffer":0,"byteLength":36}}],
+            "accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}},
+                         {{"bufferView":0,"componentType":5123,"count":3,"type":"SCALAR"}},
+                         {{"bufferView":0,"componentType":5126,"count":3,"type":"SCALAR"}}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":{normal}}}{indices}}}]}}]}}"#,
+            "AAAAAAAAAAAAAAAAAACAPwAAAAAAAAAAAAAAAAAAgD8AAAAA"
+        )
+    };
+    assert_eq!(
+        load_bundle(&[("n.gltf", gltf("1", "").as_bytes())], "n.gltf").unwrap_err(),
+        "n.gltf: mesh 0 primitive 0: NORMAL accessor 1 holds SCALAR of unsigned short, expected VEC3 of float"
+    );
+    assert_eq!(
+        load_bundle(
+            &[("i.gltf", gltf("0", r#","indices":2"#).as_bytes())],
+            "i.gltf"
+        )
+        .unwrap_err(),
+        "i.gltf: mesh 0 primitive 0: indices accessor 2 holds SCALAR of float, expected SCALAR of unsigned byte, short or int"
+    );
+    let ok = load_bundle(
+        &[("ok.gltf", gltf("0", r#","indices":1"#).as_bytes())],
+        "ok.gltf",
+    );
+    assert_eq!(ok.unwrap().triangles.len(), 1);
+}
+
+#[test]
+fn fuzz_glb_header_length_shorter_than_the_header() {
+    // gltf 1.4.1 computed the GLB's content length as `length - 12`: an
+    // overflow (a panic with overflow checks, else a wrapped length).
+    let glb = b"glTF\x02\x00\x00\x00\x04\x00\x00\x00\x08\x00\x00\x00JSON{}      ";
+    assert_eq!(
+        load_bundle(&[("m.glb", glb)], "m.glb").unwrap_err(),
+        "m.glb: invalid glTF: the GLB header declares a length of 4 bytes, less than its own 12"
+    );
+}
+
+#[test]
+fn fuzz_gltf_accessor_of_no_elements() {
+    // gltf 1.4.1's reader computes `count - 1` for an accessor's (and a
+    // sparse part's) last element: an overflow for count 0.
+    let gltf = |accessor: &str| {
+        format!(
+            r#"{{"asset":{{"version":"2.0"}},"buffers":[{{"byteLength":36,"uri":"data:application/octet-stream;base64,AAAAAAAAAAAAAAAAAACAPwAAAAAAAAAAAAAAAAAAgD8AAAAA"}}],
+            "bufferViews":[{{"buffer":0,"byteLength":36}}],"accessors":[{accessor}],
+            "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}]}}"#
+        )
+    };
+    let empty = gltf(
+        r#"{"bufferView":0,"componentType":5126,"count":0,"type":"VEC3","min":[0,0,0],"max":[1,1,0]}"#,
+    );
+    assert_eq!(
+        load_bundle(&[("e.gltf", empty.as_bytes())], "e.gltf").unwrap_err(),
+        "e.gltf: mesh 0 primitive 0: accessor 0: count 0 (an accessor has at least 1 element)"
+    );
+    let sparse = gltf(
+        r#"{"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[1,1,0],
+            "sparse":{"count":0,"indices":{"bufferView":0,"componentType":5125},"values":{"bufferView":0}}}"#,
+    );
+    assert_eq!(
+        load_bundle(&[("s.gltf", sparse.as_bytes())], "s.gltf").unwrap_err(),
+        "s.gltf: mesh 0 primitive 0: accessor 0: sparse count 0 (at least 1 value)"
+    );
+}
+
+#[test]
+fn fuzz_obj_face_texture_or_normal_index_far_out_of_range() {
+    // tobj 4.0.5 resolved `-7` with 3 texture coordinates (or a huge
+    // index) to near usize::MAX, then overflowed computing `vt * 2 + 1`.
+    let obj =
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvn 0 0 1\nf 1/1/1 2/2/1 3/-7/1\n";
+    assert_eq!(
+        load_bundle(&[("t.obj", obj)], "t.obj").unwrap_err(),
+        "t.obj: invalid OBJ: line 8: face texture coordinate index -7 is out of range (3 defined before this line)"
+    );
+    let obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//6148914691236517206\n";
+    assert_eq!(
+        load_bundle(&[("n.obj", obj)], "n.obj").unwrap_err(),
+        "n.obj: invalid OBJ: line 5: face normal index 6148914691236517206 is out of range (1 defined in the file)"
+    );
+    // Relative and absolute indices in range, and 0 (none), still load.
+    let obj = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\nf -3/-1/-1 2/1/0 3/0/1\n";
+    assert_eq!(
+        load_bundle(&[("ok.obj", obj)], "ok.obj")
+            .unwrap()
+            .triangles
+            .len(),
+        1
+    );
 }

@@ -64,10 +64,26 @@ const MAX_NODE_DEPTH: usize = 64;
 pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result<Mesh, MeshError> {
     let path = Path::new(name);
     let err = |m: String| MeshError::new(path, m);
-    // Validated here rather than by `from_slice`: what Tessera does not read
-    // (POSITION's min/max) is no reason to refuse a file.
-    let gltf = gltf::Gltf::from_slice_without_validation(bytes)
-        .map_err(|e| err(format!("invalid glTF: {e}")))?;
+    let invalid = |e: gltf::Error| err(format!("invalid glTF: {e}"));
+    // gltf 1.4.1 subtracts the GLB header's 12 bytes from the length it
+    // declares without a check (an overflow).
+    if let Some(length) = bytes
+        .strip_prefix(b"glTF")
+        .and_then(|h| h.get(4..8))
+        .map(|l| u32::from_le_bytes([l[0], l[1], l[2], l[3]]))
+        && length < 12
+    {
+        return Err(err(format!(
+            "invalid glTF: the GLB header declares a length of {length} bytes, less than its own 12"
+        )));
+    }
+    // Parsed unchecked, then checked here for what the crate's own
+    // validation indexes without a bounds check, then validated by
+    // `validate` below rather than by `from_slice`: what Tessera does not
+    // read (POSITION's min/max) is no reason to refuse a file.
+    let gltf = gltf::Gltf::from_slice_without_validation(bytes).map_err(invalid)?;
+    check_before_validation(gltf.document.as_json())
+        .map_err(|m| err(format!("invalid glTF: {m}")))?;
     let doc = &gltf.document;
     let mut warnings = Vec::new();
     for ext in doc.extensions_required() {
@@ -174,10 +190,13 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
             }
             // The crate trusts counts, strides and offsets (it panics or
             // allocates what a count asks): checked against the buffers first.
-            let attrs = prim
-                .attributes()
-                .filter(|(s, _)| matches!(s, gltf::Semantic::Positions | gltf::Semantic::Normals));
-            for acc in attrs.map(|(_, a)| a).chain(prim.indices()) {
+            let attrs = prim.attributes().filter_map(|(s, a)| match s {
+                gltf::Semantic::Positions => Some(("POSITION", a)),
+                gltf::Semantic::Normals => Some(("NORMAL", a)),
+                _ => None,
+            });
+            for (what, acc) in attrs.chain(prim.indices().map(|a| ("indices", a))) {
+                check_accessor_type(what, &acc).map_err(|m| err(at(&m)))?;
                 check_accessor(&acc, &buffers).map_err(|m| err(at(&m)))?;
             }
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| d.as_slice()));
@@ -257,6 +276,28 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
     Ok(mesh)
 }
 
+/// What gltf-json's validation trusts: it looks up each primitive's
+/// POSITION accessor by index (for its min and max) before reporting an
+/// index out of range, and panics on one (gltf-json 1.4.1, mesh.rs).
+fn check_before_validation(root: &gltf::json::Root) -> Result<(), String> {
+    let accessors = root.accessors.len();
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, prim) in mesh.primitives.iter().enumerate() {
+            let position =
+                gltf::json::validation::Checked::Valid(gltf::json::mesh::Semantic::Positions);
+            if let Some(i) = prim.attributes.get(&position)
+                && i.value() >= accessors
+            {
+                return Err(format!(
+                    "meshes[{m}].primitives[{p}].attributes[\"POSITION\"]: accessor {} does not exist (the file has {accessors} accessors)",
+                    i.value()
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 fn collect<'a>(
     node: gltf::Node<'a>,
     parent: DMat4,
@@ -311,6 +352,59 @@ fn map_material(m: &gltf::Material) -> MaterialDesc {
     }
 }
 
+/// Whether an accessor holds what the crate's reader reads it as: VEC3 of
+/// float for POSITION and NORMAL, SCALAR of unsigned bytes, shorts or ints
+/// for indices. The reader asserts the first (a panic) and reaches
+/// `unreachable!()` on other index types.
+fn check_accessor_type(what: &str, acc: &gltf::Accessor) -> Result<(), String> {
+    use gltf::accessor::{DataType, Dimensions};
+    let (dims, ty) = (acc.dimensions(), acc.data_type());
+    let ok = match what {
+        "indices" => {
+            dims == Dimensions::Scalar && matches!(ty, DataType::U8 | DataType::U16 | DataType::U32)
+        }
+        _ => dims == Dimensions::Vec3 && ty == DataType::F32,
+    };
+    if ok {
+        return Ok(());
+    }
+    let expected = match what {
+        "indices" => "SCALAR of unsigned byte, short or int",
+        _ => "VEC3 of float",
+    };
+    Err(format!(
+        "{what} accessor {} holds {} of {}, expected {expected}",
+        acc.index(),
+        dims_name(dims),
+        type_name(ty)
+    ))
+}
+
+fn dims_name(d: gltf::accessor::Dimensions) -> &'static str {
+    use gltf::accessor::Dimensions::*;
+    match d {
+        Scalar => "SCALAR",
+        Vec2 => "VEC2",
+        Vec3 => "VEC3",
+        Vec4 => "VEC4",
+        Mat2 => "MAT2",
+        Mat3 => "MAT3",
+        Mat4 => "MAT4",
+    }
+}
+
+fn type_name(t: gltf::accessor::DataType) -> &'static str {
+    use gltf::accessor::DataType::*;
+    match t {
+        I8 => "signed byte",
+        U8 => "unsigned byte",
+        I16 => "short",
+        U16 => "unsigned short",
+        U32 => "unsigned int",
+        F32 => "float",
+    }
+}
+
 /// Whether an accessor's data lies inside its buffers as declared: views
 /// inside their buffers, strides at least one element, `count` elements
 /// inside the view; sparse parts likewise, and a sparse accessor without a
@@ -333,6 +427,16 @@ fn check_accessor(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Result<(), Strin
         }
         Ok(v.length() as u64)
     };
+    // The crate's reader computes `count - 1` (and `sparse count - 1`):
+    // an overflow for the 0 that the format does not allow.
+    if count == 0 {
+        return Err(format!(
+            "{name}: count 0 (an accessor has at least 1 element)"
+        ));
+    }
+    if acc.sparse().is_some_and(|sp| sp.count() == 0) {
+        return Err(format!("{name}: sparse count 0 (at least 1 value)"));
+    }
     let total: u64 = buffers.iter().map(|b| b.len() as u64).sum();
     match acc.view() {
         Some(v) => {
@@ -343,11 +447,7 @@ fn check_accessor(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Result<(), Strin
                     "{name}: byteStride {stride} is smaller than its {elem}-byte elements"
                 ));
             }
-            let need = if count == 0 {
-                0
-            } else {
-                acc.offset() as u64 + (count - 1) * stride + elem
-            };
+            let need = acc.offset() as u64 + (count - 1) * stride + elem;
             if need > len {
                 return Err(format!(
                     "{name}: {count} elements need {need} bytes, its buffer view has {len}"

@@ -24,6 +24,8 @@ pub(super) fn load(
     // MTL libraries come through the same source, named beside the OBJ.
     let failed_libs = RefCell::new(Vec::<String>::new());
     let bytes = tobj_compatible(bytes);
+    // On what tobj will read (decoded, polylines gone).
+    check_face_indices(&bytes).map_err(|m| MeshError::new(path, format!("invalid OBJ: {m}")))?;
     let (models, materials) = tobj::load_obj_buf(
         &mut std::io::Cursor::new(&*bytes),
         &options,
@@ -222,6 +224,73 @@ fn tobj_compatible(bytes: &[u8]) -> Cow<'_, [u8]> {
         }
     }
     Cow::Owned(out.into_bytes())
+}
+
+/// Refuses faces whose texture-coordinate or normal index lies outside the
+/// file's. tobj 4.0.5 resolves a relative index past the start (`-7` with
+/// 3 defined) or a huge one to an index near `usize::MAX` and then computes
+/// `vt * 2 + 1` or `vn * 3 + 2` unchecked: an overflow (a panic in checked
+/// builds). Indices are resolved as tobj does: relative to the elements
+/// defined before the line, absolute against all of the file's, 0 (or a
+/// relative one just past the start) as none, and none checked for a kind
+/// the file has none of. Lines tobj cannot read (not UTF-8) end the check:
+/// tobj stops there with an error.
+fn check_face_indices(bytes: &[u8]) -> Result<(), String> {
+    let lines = || {
+        bytes
+            .split(|&b| b == b'\n')
+            .map_while(|l| std::str::from_utf8(l).ok())
+    };
+    let kind = |word: Option<&str>| match word {
+        Some("v") => Some(0),
+        Some("vt") => Some(1),
+        Some("vn") => Some(2),
+        _ => None,
+    };
+    let mut total = [0i128; 3];
+    for line in lines() {
+        if let Some(k) = kind(line.split_whitespace().next()) {
+            total[k] += 1;
+        }
+    }
+    let mut before = [0i128; 3];
+    for (n, line) in lines().enumerate() {
+        let mut words = line.split_whitespace();
+        let first = words.next();
+        if let Some(k) = kind(first) {
+            before[k] += 1;
+        }
+        if first != Some("f") {
+            continue;
+        }
+        for word in words {
+            for (k, part) in word.split('/').enumerate().skip(1).take(2) {
+                // What tobj cannot parse it refuses itself.
+                let Ok(x) = part.parse::<isize>() else {
+                    continue;
+                };
+                let i = if x < 0 {
+                    before[k] + x as i128
+                } else {
+                    x as i128 - 1
+                };
+                if i == -1 || total[k] == 0 || (0..total[k]).contains(&i) {
+                    continue;
+                }
+                let what = ["vertex", "texture coordinate", "normal"][k];
+                let (count, place) = if x < 0 {
+                    (before[k], "before this line")
+                } else {
+                    (total[k], "in the file")
+                };
+                return Err(format!(
+                    "line {}: face {what} index {x} is out of range ({count} defined {place})",
+                    n + 1
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// An MTL library as tobj can read it: colour statements with one value
