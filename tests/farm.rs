@@ -1870,3 +1870,70 @@ fn json_output_and_plain_progress_lines_for_scripts() {
     );
     assert_eq!(w["threads"], 1);
 }
+
+/// The submits that used to abort the coordinator (and abort it again at
+/// every restart), wrap the unit count or hang a job are refused at submit
+/// with the limit named; the coordinator goes on taking ordinary work.
+#[test]
+fn oversized_submits_are_refused_with_the_limit_named_and_the_coordinator_lives() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let scene = repo("examples/resolution.toml");
+    let scene_s = scene.to_str().expect("path");
+    let cases: [(&[&str], &str); 3] = [
+        (
+            &[
+                "--width",
+                "32768",
+                "--height",
+                "32768",
+                "--samples",
+                "1",
+                "--tile-size",
+                "1024",
+                "--max-depth",
+                "1",
+            ],
+            "a 32768x32768 frame has 1073741824 pixels, over the coordinator's limit of 40000000 (--max-frame-pixels)",
+        ),
+        (
+            &[
+                "--width",
+                "2048",
+                "--height",
+                "2048",
+                "--samples",
+                "65536",
+                "--tile-size",
+                "8",
+                "--samples-per-unit",
+                "1",
+            ],
+            "the job would have 4294967296 work units (the limit is 10000000); use larger tiles or sample batches",
+        ),
+        (
+            &["--width", "2048", "--height", "2048", "--tile-size", "2048"],
+            "tile_size 2048 makes results of 117440512 bytes, over the coordinator's message limit of 67108864 bytes",
+        ),
+    ];
+    for (settings, want) in cases {
+        let mut args = vec!["submit", scene_s];
+        args.extend(settings);
+        let o = tessera(&args, &c.url());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{settings:?}: {err}");
+        assert!(
+            err.contains(want),
+            "{settings:?}: expected {want:?} in {err}"
+        );
+    }
+    let job = submit(&c.url(), &scene, SMALL);
+    assert_eq!(status(&c.url(), &job).state, pb::JobState::Queued as i32);
+    let mut c = c;
+    assert!(
+        c.proc.child.try_wait().expect("try_wait").is_none(),
+        "the coordinator exited:\n{}",
+        c.proc.log()
+    );
+}
