@@ -6,8 +6,9 @@
 #   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three)
 #
 # `bench` (every suite but depth and farm) fits one 10-minute device call;
-# `depth farm` (the depth suite against its depth-32 reference, ~2 min of
-# 16 cores, then the farm scaling run, ~3 min) fits another.
+# `depth` (the depth suite against its depth-32 reference, ~2 min of 16
+# cores) and `farm` (the farm suite with GPU and mixed runs, latency and
+# result throughput, ~4 min) fit another.
 set -uo pipefail
 PHASES=" ${*:-bench depth farm} "
 has() { [[ "$PHASES" == *" $1 "* ]]; }
@@ -40,17 +41,46 @@ timeout 400 "$T" bench depth --backend both --repeat 3 \
 echo "depth exit $?" >> "$OUT/depth-summary.txt"
 fi
 if has farm; then
-echo "== farm scaling: tessera bench farm (CSV and plots), then scripts/bench-farm.sh (64 spp, with diagnostics) and result throughput"
-timeout 150 "$T" bench farm --workers 1,2,4,8 --worker-threads 2 --out /tmp/bench > "$OUT/farm-suite.txt" 2>&1
+echo "== farm: tessera bench farm (CPU workers against the machine's ceiling, 1 GPU worker alone and beside 7 CPU workers)"
+timeout 300 "$T" bench farm --workers 1,2,4,8 --worker-threads 2 --gpu-workers 1 --mixed-cpu-workers 7 \
+  --out /tmp/bench --cache /tmp/bench-cache > "$OUT/farm-suite.txt" 2>&1
 echo "farm suite exit $?" >> "$OUT/farm-suite.txt"
-TESSERA_BIN=$T RESULT_LOAD_BIN=$PWD/.gpu/result_load OUT=/tmp/farm LOAD_SECONDS=5 \
-  timeout 330 scripts/bench-farm.sh 8 2 > "$OUT/farm.txt" 2>&1
-echo "farm exit $?" >> "$OUT/farm.txt"
-echo "== batched result throughput (64 results a message)" >> "$OUT/farm.txt"
+for r in /tmp/bench/farm/run-*.coordinator.log; do
+  run=${r%.coordinator.log}
+  echo "== timeline of ${run##*/}"
+  python3 scripts/farm-timeline.py "$run".worker-*.log 2>&1 | head -20
+done > "$OUT/farm-timeline.txt"
+echo "== latency: warm farm of 2 CPU workers (2 threads) + 1 GPU worker; 64x64 1 spp jobs, then 1080p 16 spp" > "$OUT/farm-latency.txt"
+"$T" coordinator --listen 127.0.0.1:7998 --data /tmp/lat-data > /dev/null 2>/tmp/lat-coord.log &
+C=$!; sleep 0.5
+W=()
+for i in 1 2; do "$T" worker --coordinator http://127.0.0.1:7998 --threads 2 --name cpu-$i --cache /tmp/lat-cache-$i 2>/tmp/lat-w$i.log & W+=($!); done
+"$T" worker --coordinator http://127.0.0.1:7998 --backend gpu --name gpu --cache /tmp/lat-cache-g 2>/tmp/lat-wg.log & W+=($!)
+sleep 3
+for i in 1 2 3 4 5 6; do
+  s=$EPOCHREALTIME
+  id=$("$T" submit examples/resolution.toml --coordinator http://127.0.0.1:7998 --width 64 --height 64 --samples 1 --wait 2>/dev/null)
+  e=$EPOCHREALTIME
+  awk -v s="$s" -v e="$e" -v i="$i" 'BEGIN { printf "64x64 1 spp job %d: submit to done %.1f ms\n", i, 1000 * (e - s) }' >> "$OUT/farm-latency.txt"
+done
+for i in 1 2 3; do
+  s=$EPOCHREALTIME
+  id=$("$T" submit examples/resolution.toml --coordinator http://127.0.0.1:7998 --width 1920 --height 1080 --samples 16 --wait 2>/dev/null)
+  e=$EPOCHREALTIME
+  "$T" status "$id" --coordinator http://127.0.0.1:7998 --json | python3 -c "
+import json, sys
+j = json.load(sys.stdin)
+print('1080p 16 spp job $i: submit to done %.1f ms, to first merged result %d ms, first lease to last result %d ms' % (1000 * ($e - $s), j['first_result_unix_ms'] - j['submitted_unix_ms'], j['last_result_unix_ms'] - j['first_lease_unix_ms']))" >> "$OUT/farm-latency.txt"
+done
+kill "${W[@]}" $C 2>/dev/null; wait 2>/dev/null
+echo "== batched result throughput (64 results a message)" > "$OUT/farm-throughput.txt"
 "$T" coordinator --listen 127.0.0.1:7999 --data /tmp/load-data > /dev/null 2>&1 &
 C=$!; sleep 1
-timeout 30 .gpu/result_load http://127.0.0.1:7999 examples/resolution.toml 64 5 64 >> "$OUT/farm.txt" 2>&1
+timeout 30 .gpu/result_load http://127.0.0.1:7999 examples/resolution.toml 64 5 64 >> "$OUT/farm-throughput.txt" 2>&1
+timeout 30 .gpu/result_load http://127.0.0.1:7999 examples/resolution.toml 64 5 >> "$OUT/farm-throughput.txt" 2>&1
 kill $C
+cp /tmp/bench/farm.csv "$OUT/" 2>/dev/null
+tar czf "$OUT/farm-logs.tar.gz" -C /tmp/bench/farm --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' . 2>/dev/null
 fi
 # CSVs and plots only: the per-run images are many and large.
 tar czf "$OUT/bench-$PHASE.tar.gz" -C /tmp/bench --exclude='*-*x*-s*.png' --exclude='frames-*' --exclude='data-*' .

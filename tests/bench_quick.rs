@@ -48,7 +48,8 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
     let dir = std::env::temp_dir().join(format!("tessera-bench-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
-        .args(["bench", "--quick", "--backend", "both", "--out"])
+        .args(["bench", "--quick", "--backend", "both"])
+        .args(["--gpu-workers", "1", "--mixed-cpu-workers", "1", "--out"])
         .arg(dir.join("out"))
         .arg("--cache")
         .arg(dir.join("cache"))
@@ -196,16 +197,37 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
         "{dispatches:?}"
     );
 
-    // Farm: a real coordinator and 1 then 2 worker processes; the fetched
-    // frame equals the local render bit for bit.
-    let farm = read_csv(&dir, "farm");
+    // Farm: a real coordinator and 1 then 2 CPU worker processes; the
+    // fetched frame equals the local render bit for bit. Then one GPU
+    // worker, whose frame equals the local GPU render bit for bit, and the
+    // GPU worker beside a CPU worker.
+    let rows = read_csv(&dir, "farm");
+    let shape = |r: &std::collections::HashMap<String, String>| {
+        (r["gpu_workers"].clone(), r["workers"].clone())
+    };
     assert_eq!(
-        farm.iter()
-            .map(|r| r["workers"].as_str())
-            .collect::<Vec<_>>(),
-        ["1", "2"]
+        rows.iter().map(shape).collect::<Vec<_>>(),
+        [("0", "1"), ("0", "2"), ("1", "0"), ("1", "1")]
+            .map(|(g, c)| (g.to_string(), c.to_string()))
     );
-    for r in &farm {
+    assert_eq!(
+        rows[2]["bit_identical"], "true",
+        "GPU farm against the local GPU render"
+    );
+    assert_eq!(
+        rows[3]["bit_identical"], "",
+        "a mixed farm has no single local render"
+    );
+    for r in &rows[2..] {
+        assert_eq!(r["backend"], "gpu");
+        assert!(
+            num(r, "wall_s") > 0.0 && num(r, "render_s") > 0.0 && num(r, "first_result_s") > 0.0
+        );
+        assert!(num(r, "throughput_vs_local") > 0.0);
+    }
+    let farm = &rows[..2];
+    for r in farm {
+        assert!(num(r, "ceiling_s") > 0.0 && num(r, "of_ceiling") > 0.0);
         assert_eq!(
             r["bit_identical"], "true",
             "farm with {} workers: image differs from the local render",

@@ -169,6 +169,10 @@ pub struct JobView {
     pub frames: Vec<(u32, u64, u64, Option<String>)>,
     pub rays_per_second: f64,
     pub eta_seconds: f64,
+    /// This run's first lease, first and last merged result (unix ms, 0 = not yet).
+    pub first_lease_unix_ms: i64,
+    pub first_result_unix_ms: i64,
+    pub last_result_unix_ms: i64,
 }
 
 #[derive(Clone, Debug)]
@@ -249,6 +253,9 @@ struct Job {
     started: Option<Instant>,
     /// When it ended (done, failed, cancelled): its rate stops there.
     stopped: Option<Instant>,
+    /// This run's first and last merged results.
+    first_result: Option<Instant>,
+    last_result: Option<Instant>,
     samples_this_run: u64,
     rays_this_run: u64,
     watch: watch::Sender<u64>,
@@ -264,6 +271,17 @@ struct Lease {
     deadline: Instant,
     /// Pixel-samples the worker reports done (heartbeats).
     progress: u64,
+    /// The cost probe's expected rays of the whole lease.
+    expected_rays: f64,
+}
+
+impl Lease {
+    /// Expected rays not yet rendered, by the worker's last progress report.
+    fn remaining_rays(&self) -> f64 {
+        let total = self.rect.area() as f64 * self.samples.len() as f64;
+        let left = 1.0 - (self.progress as f64 / total.max(1.0)).min(1.0);
+        self.expected_rays * left
+    }
 }
 
 struct Worker {
@@ -279,6 +297,10 @@ struct Worker {
     speed: f64,
     /// Smoothed rays per second, from its results (sizes its leases).
     ray_speed: f64,
+    /// Rays and render seconds of its last result: a worker whose leases
+    /// render in a fraction of the target gets larger ones at once.
+    last_rays: f64,
+    last_seconds: f64,
 }
 
 #[derive(Default)]
@@ -293,6 +315,15 @@ struct State {
     workers: HashMap<String, Worker>,
     next_id: u64,
 }
+
+/// The smallest lease, in seconds of the worker it goes to (unless the job
+/// has less work left): below this a fast worker's fixed costs per lease
+/// (a GPU call, read-back, a result message) outweigh its rendering.
+const MIN_LEASE_SECONDS: f64 = 0.01;
+
+/// How long an idle worker's lease request waits when work was held back
+/// for a faster worker, before it is judged again.
+const HELD_BACK_WAIT: Duration = Duration::from_millis(20);
 
 /// Remembered ended leases, to tell late and duplicate results from unknown ones.
 const REMEMBERED_LEASES: usize = 100_000;
@@ -328,6 +359,11 @@ pub struct Farm {
     /// Woken whenever units become pending (a job submitted, units queued
     /// again), for workers waiting in [`Farm::lease_or_wait`].
     work_ready: tokio::sync::Notify,
+}
+
+/// An instant of this process as unix milliseconds (0 for `None`).
+fn unix_ms_of(t: Option<Instant>) -> i64 {
+    t.map_or(0, |t| now_ms() - t.elapsed().as_millis() as i64)
 }
 
 fn now_ms() -> i64 {
@@ -964,6 +1000,8 @@ impl Farm {
                 units_done: 0,
                 speed: 0.0,
                 ray_speed: 0.0,
+                last_rays: 0.0,
+                last_seconds: 0.0,
             },
         );
         id
@@ -978,6 +1016,19 @@ impl Farm {
         max_units: u32,
         ahead: bool,
     ) -> Result<Vec<LeaseView>, FarmError> {
+        self.lease_or_hold(worker_id, max_units, ahead)
+            .map(|(leases, _)| leases)
+    }
+
+    /// As [`Farm::lease`]; also says whether work was held back because a
+    /// faster worker is expected to finish it sooner (the asker should ask
+    /// again soon rather than wait for new work).
+    fn lease_or_hold(
+        &self,
+        worker_id: &str,
+        max_units: u32,
+        ahead: bool,
+    ) -> Result<(Vec<LeaseView>, bool), FarmError> {
         let mut st = self.state.lock().expect("state lock");
         let st = &mut *st;
         let worker = st
@@ -988,10 +1039,46 @@ impl Farm {
         // No new work while results cannot be recorded: workers wait
         // instead of rendering units whose results would be refused.
         if !self.store.health.ok() {
-            return Ok(Vec::new());
+            return Ok((Vec::new(), false));
         }
         let speed = worker.ray_speed;
-        let workers = st.workers.len();
+        // A worker's speed is measured on small leases first, where fixed
+        // costs (a GPU call, a result message) weigh most: while its last
+        // lease took under a quarter of the target, the next may be eight
+        // times as large, so a GPU reaches frame-sized leases within a few.
+        let ramp = if worker.last_seconds > 0.0
+            && worker.last_seconds < 0.25 * self.config.target_unit_seconds
+        {
+            8.0 * worker.last_rays
+        } else {
+            0.0
+        };
+        // Seconds of work each measured worker holds (leases it renders or
+        // has queued), at its speed: when it could start something new.
+        let mut busy_of: HashMap<&str, f64> = HashMap::new();
+        for l in st.leases.values() {
+            *busy_of.entry(l.worker.as_str()).or_default() += l.remaining_rays();
+        }
+        // Workers silent for two heartbeats may be gone: no work waits for them.
+        let live = 2 * self.config.heartbeat_interval;
+        let others: Vec<(f64, f64)> = st
+            .workers
+            .iter()
+            .filter(|(id, w)| {
+                id.as_str() != worker_id && w.ray_speed > 0.0 && w.last_seen.elapsed() < live
+            })
+            .map(|(id, w)| {
+                let held = busy_of.get(id.as_str()).copied().unwrap_or(0.0);
+                (w.ray_speed, held / w.ray_speed)
+            })
+            .collect();
+        let held_rays = busy_of.get(worker_id).copied().unwrap_or(0.0);
+        // The farm's speed: the sum of the measured speeds (a worker not
+        // yet measured adds nothing until its first result).
+        let farm_speed: f64 = st.workers.values().map(|w| w.ray_speed).sum();
+        let mut held_back = false;
+        // Seconds of work this worker holds already, at its speed.
+        let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
         let mut order: Vec<(&String, &Job)> = st
             .jobs
             .iter()
@@ -1001,49 +1088,63 @@ impl Farm {
         let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
         let mut out = Vec::new();
         for job_id in order {
+            // Rays of the job's leases still being rendered, by anyone.
+            let in_flight: f64 = st
+                .leases
+                .values()
+                .filter(|l| l.job == job_id)
+                .map(|l| l.remaining_rays())
+                .sum();
             while out.len() < max_units.max(1) as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
-                // At a job's very end a worker that is still busy (it asks
-                // ahead, to have its next unit ready) gets no more units
-                // while fewer are pending than there are workers: the next
-                // idle worker takes them instead of waiting behind it.
-                if (ahead || !out.is_empty()) && job.pending.len() < workers {
-                    break;
-                }
                 let Some(&first) = job.pending.iter().next() else {
                     break;
                 };
-                // A lease is sized in expected rays: the worker's rays per
-                // second times the target time. Near the end of a job, big
-                // leases would leave the other workers idle while one
-                // finishes: a lease takes at most a quarter of a worker's
-                // share of the rays pending (a worker holds two: the one it
-                // renders and the next).
                 let rays = |u: u32| {
                     let unit = job.layout.unit(u);
                     job.tile_rays[unit.tile as usize]
                         * job.layout.batches[unit.batch as usize].len() as f64
                 };
-                let units = if speed > 0.0 {
-                    let want = speed * self.config.target_unit_seconds;
-                    let shares = (4 * workers).max(1) as f64;
-                    // Summed only until the cap cannot bind: this runs for
-                    // every lease, under the lock, and a long animation has
-                    // millions of pending units.
-                    let mut pending_rays = 0.0;
-                    let mut capped = true;
+                let units = if speed > 0.0 && farm_speed > 0.0 {
+                    let want = (speed * self.config.target_unit_seconds).max(ramp);
+                    // When the farm, every worker at its measured speed,
+                    // would finish the job (pending and in-flight work).
+                    // Summed only until no rule below can bind: this runs
+                    // for every lease, under the lock, and a long
+                    // animation has millions of pending units.
+                    let enough = farm_speed * (2.0 * (want / speed + busy) + rays(first) / speed);
+                    let mut remaining = in_flight;
+                    let mut bounded = true;
                     for &u in &job.pending {
-                        pending_rays += rays(u);
-                        if pending_rays >= want * shares {
-                            capped = false;
+                        remaining += rays(u);
+                        if remaining >= enough {
+                            bounded = false;
                             break;
                         }
                     }
-                    let budget = if capped {
-                        want.min(pending_rays / shares)
+                    let farm_end = if bounded {
+                        remaining / farm_speed
                     } else {
-                        want
+                        f64::INFINITY
                     };
+                    // Leases go by expected finish time: near a job's end
+                    // (when the farm would finish before this worker could
+                    // finish the next unit) a unit goes to this worker only
+                    // if no other would finish it sooner, after the work it
+                    // holds. Otherwise it waits for that worker.
+                    let finish = busy + rays(first) / speed;
+                    if finish > farm_end
+                        && others.iter().any(|&(v, b)| b + rays(first) / v < finish)
+                    {
+                        held_back = true;
+                        break;
+                    }
+                    // A lease ends by half the farm's remaining time, so that
+                    // the last leases are small and finish together; never
+                    // below MIN_LEASE_SECONDS of work, which keeps a fast
+                    // worker's fixed costs per lease small.
+                    let until_end = (0.5 * farm_end - busy).max(MIN_LEASE_SECONDS);
+                    let budget = want.min(speed * until_end);
                     // A lease's result must fit one message.
                     let tile = u64::from(job.layout.tile_size).pow(2).max(1);
                     let fit =
@@ -1056,8 +1157,18 @@ impl Farm {
                         budget,
                     )
                 } else {
+                    // Not measured yet: one tile, whose result measures it.
+                    // Once measured workers exist, an unmeasured one asking
+                    // ahead waits (its first tile may be slow).
+                    if (ahead || !out.is_empty()) && job.pending.len() < st.workers.len() {
+                        break;
+                    }
                     vec![first]
                 };
+                let expected_rays: f64 = units.iter().map(|&u| rays(u)).sum();
+                if speed > 0.0 {
+                    busy += expected_rays / speed;
+                }
                 for u in &units {
                     job.pending.remove(u);
                 }
@@ -1099,6 +1210,7 @@ impl Farm {
                         samples,
                         deadline: Instant::now() + self.config.lease_timeout,
                         progress: 0,
+                        expected_rays,
                     },
                 );
                 st.workers
@@ -1112,7 +1224,7 @@ impl Farm {
                 break;
             }
         }
-        Ok(out)
+        Ok((out, held_back))
     }
 
     /// As [`Farm::lease`], but when nothing is pending waits up to `wait`
@@ -1130,7 +1242,14 @@ impl Farm {
         let notified = self.work_ready.notified();
         tokio::pin!(notified);
         notified.as_mut().enable();
-        let leases = self.lease(worker_id, max_units, ahead)?;
+        let (leases, held_back) = self.lease_or_hold(worker_id, max_units, ahead)?;
+        // Work held back for a faster worker: the caller asks again soon
+        // (the faster one may not take it after all), not after new work.
+        let wait = if held_back {
+            wait.min(HELD_BACK_WAIT)
+        } else {
+            wait
+        };
         if !leases.is_empty()
             || wait.is_zero()
             || tokio::time::timeout(wait, notified).await.is_err()
@@ -1270,7 +1389,10 @@ impl Farm {
                     } else {
                         (RayCounts::default(), 0)
                     };
-                    (u, encode_film_part(film, tile, rays, nonfinite))
+                    (
+                        u,
+                        crate::store::encode_film_part(film, tile, rays, nonfinite),
+                    )
                 })
                 .collect();
             let rays = [
@@ -1464,6 +1586,9 @@ impl Farm {
             job.mark_done(u);
         }
         job.samples_this_run += samples;
+        let now = Instant::now();
+        job.first_result.get_or_insert(now);
+        job.last_result = Some(now);
         job.rays_this_run = job.rays_this_run.saturating_add(film.rays.total());
         let rays = [
             film.rays.primary,
@@ -1492,8 +1617,12 @@ impl Farm {
                 // short. Times under 0.1 ms are taken as 0.1 ms, so an
                 // absurd report (5e-324 s) gives a finite speed.
                 let seconds = r.render_seconds.max(1e-4);
+                // A rise measured on a unit twice as large as the last is
+                // taken at once: small units understate a fast worker's
+                // speed (fixed costs per unit), larger ones measure it.
+                let larger = film.rays.total() as f64 >= 2.0 * w.last_rays;
                 let smooth = |old: f64, new: f64| {
-                    if old == 0.0 || new < old {
+                    if old == 0.0 || new < old || larger {
                         new
                     } else {
                         0.7 * old + 0.3 * new
@@ -1501,6 +1630,8 @@ impl Farm {
                 };
                 w.speed = smooth(w.speed, samples as f64 / seconds);
                 w.ray_speed = smooth(w.ray_speed, film.rays.total() as f64 / seconds);
+                w.last_rays = film.rays.total() as f64;
+                w.last_seconds = seconds;
             }
         }
         Ok(Outcome::Accepted)
@@ -1818,31 +1949,6 @@ fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
     Ok(())
 }
 
-/// The part of `film` inside `rect` (which lies inside it), encoded for
-/// the store (see [`crate::store::encode_film`]) without an intermediate film.
-fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
-    let mut out = crate::store::film_header(rect, rays, nonfinite, rect.area());
-    let w = rect.width as usize;
-    let row_start = |row: u32| {
-        ((rect.y - film.rect.y + row) * film.rect.width + (rect.x - film.rect.x)) as usize
-    };
-    for row in 0..rect.height {
-        let src = row_start(row);
-        for s in &film.sums[src..src + w] {
-            for c in s {
-                out.extend_from_slice(&c.to_le_bytes());
-            }
-        }
-    }
-    for row in 0..rect.height {
-        let src = row_start(row);
-        for c in &film.counts[src..src + w] {
-            out.extend_from_slice(&c.to_le_bytes());
-        }
-    }
-    out
-}
-
 impl Job {
     fn new(rec: JobRecord, settings: RenderSettings, counters: Counters) -> Self {
         let layout = Layout::new(
@@ -1900,6 +2006,8 @@ impl Job {
             samples_done: 0,
             started: None,
             stopped: None,
+            first_result: None,
+            last_result: None,
             samples_this_run: 0,
             rays_this_run: 0,
             watch: watch::channel(0).0,
@@ -2027,6 +2135,9 @@ impl Job {
                 .collect(),
             rays_per_second: rps,
             eta_seconds: if self.state.is_terminal() { 0.0 } else { eta },
+            first_lease_unix_ms: unix_ms_of(self.started),
+            first_result_unix_ms: unix_ms_of(self.first_result),
+            last_result_unix_ms: unix_ms_of(self.last_result),
         }
     }
 }
@@ -2467,41 +2578,6 @@ material = "red"
         ));
     }
 
-    #[test]
-    fn a_film_part_encodes_as_the_cropped_film() {
-        let mut film = Film::new(Rect::new(8, 4, 5, 3));
-        for (i, (s, c)) in film.sums.iter_mut().zip(film.counts.iter_mut()).enumerate() {
-            *s = [i as u64, (i as u64) << 40, u64::MAX - i as u64];
-            *c = 7 + i as u32;
-        }
-        film.rays = RayCounts {
-            primary: 1,
-            shadow: 2,
-            reflection: 3,
-            refraction: 4,
-        };
-        assert_eq!(
-            encode_film_part(&film, film.rect, film.rays, 9),
-            crate::store::encode_film(&Film {
-                nonfinite: 9,
-                ..film.clone()
-            })
-        );
-        let part = Rect::new(9, 5, 3, 2);
-        let mut cropped = Film::new(part);
-        for row in 0..2 {
-            for col in 0..3 {
-                let src = ((row + 1) * 5 + col + 1) as usize;
-                cropped.sums[(row * 3 + col) as usize] = film.sums[src];
-                cropped.counts[(row * 3 + col) as usize] = film.counts[src];
-            }
-        }
-        let got =
-            crate::store::decode_film(&encode_film_part(&film, part, RayCounts::default(), 0))
-                .unwrap();
-        assert_eq!(got, cropped);
-    }
-
     /// One SubmitResults carrying an accepted result, a duplicate, a result
     /// for another worker's lease and a malformed one: each judged on its own.
     #[tokio::test]
@@ -2588,37 +2664,38 @@ material = "red"
 
     #[tokio::test]
     async fn a_very_fast_worker_gets_whole_rows_of_tiles() {
-        // 16 x 16 tiles of 16 px; one worker as fast as a GPU.
+        // 16 x 16 tiles of 16 px; one worker at 1024 rays (a tile) a millisecond.
         let (_dir, farm, job) = farm_with_job(256, 256, 4).await;
         let gpu = register(&farm, "gpu", 0);
         let l1 = farm.lease(&gpu, 1, false).unwrap().remove(0);
         assert_eq!(
-            farm.submit_result(result(&gpu, &l1, 1e-6)).await.unwrap(),
+            farm.submit_result(result(&gpu, &l1, 1e-3)).await.unwrap(),
             Outcome::Accepted
         );
-        // The speed asks for hundreds of tiles; the cap is 255 / 4 = 63 of
-        // the pending: the rest of the first row, then (once a lease
-        // starts a row) whole rows only.
+        // The speed asks for hundreds of tiles; a lease ends by half the
+        // farm's remaining time (the worker alone: half the pending): the
+        // rest of the first row, then (once a lease starts a row) whole
+        // rows only.
         let l2 = farm.lease(&gpu, 1, false).unwrap().remove(0);
         assert_eq!(
             (l2.rect.x, l2.rect.y, l2.rect.width, l2.rect.height),
             (16, 0, 240, 16)
         );
         assert_eq!(
-            farm.submit_result(result(&gpu, &l2, 1e-6)).await.unwrap(),
+            farm.submit_result(result(&gpu, &l2, 15e-3)).await.unwrap(),
             Outcome::Accepted
         );
         let l3 = farm.lease(&gpu, 1, false).unwrap().remove(0);
-        // 240 pending / 4 = 60 tiles: three whole rows.
+        // 240 pending / 2 = 120 tiles: seven whole rows (the same speed).
         assert_eq!(
             (l3.rect.x, l3.rect.y, l3.rect.width, l3.rect.height),
-            (0, 16, 256, 48)
+            (0, 16, 256, 112)
         );
         assert_eq!(
             farm.submit_result(result(&gpu, &l3, 1e-6)).await.unwrap(),
             Outcome::Accepted
         );
-        assert_eq!(farm.job(&job).unwrap().units_done, 1 + 15 + 48);
+        assert_eq!(farm.job(&job).unwrap().units_done, 1 + 15 + 112);
     }
 
     /// Leases are sized in expected rays: where tiles cost 8x the rays
@@ -2694,8 +2771,8 @@ material = "red"
 
     #[tokio::test]
     async fn faster_workers_get_larger_units_and_results_count_once() {
-        // 256 units: enough pending that the end-of-job cap (a quarter of
-        // each worker's share) does not limit the fast worker's lease.
+        // 256 units: enough pending that the end of the job does not
+        // limit the fast worker's lease.
         let (_dir, farm, job) = farm_with_job(512, 128, 4).await;
         let fast = register(&farm, "fast", 8);
         let slow = register(&farm, "slow", 1);
@@ -2705,9 +2782,9 @@ material = "red"
             farm.lease(&slow, 1, false).unwrap().remove(0),
         );
         assert_eq!((f1.rect.width, s1.rect.width), (16, 16));
-        // A 16x16x4 unit in 1 ms vs in 1 s.
+        // A 16x16x4 unit in 10 ms vs in 1 s.
         assert_eq!(
-            farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap(),
+            farm.submit_result(result(&fast, &f1, 0.01)).await.unwrap(),
             Outcome::Accepted
         );
         assert_eq!(
@@ -2718,11 +2795,11 @@ material = "red"
             farm.lease(&fast, 1, false).unwrap().remove(0),
             farm.lease(&slow, 1, false).unwrap().remove(0),
         );
-        // Joined tiles along the row, up to its end (30 tiles: the
-        // end-of-job cap, 254 pending / (4 x 2 workers), is 31).
+        // Joined tiles along the row: the target of 0.25 s at 100 tiles a
+        // second (the farm would need 2.5 s for the 254 pending).
         assert_eq!(
             (f2.rect.width, f2.rect.height),
-            (16 * 30, 16),
+            (16 * 25, 16),
             "the fast worker gets a row of joined tiles"
         );
         assert_eq!(s2.rect.width, 16, "the slow worker keeps single tiles");
@@ -2747,7 +2824,50 @@ material = "red"
                 v.counters.units_accepted,
                 v.counters.results_duplicate
             ),
-            (32, 32, 1)
+            (27, 27, 1)
         );
+    }
+
+    /// Leases go by expected finish time: at a job's end a worker 1000x
+    /// slower than another gets nothing (the fast one will finish the rest
+    /// before the slow one could finish a tile), while equal workers share
+    /// the last tiles.
+    #[tokio::test]
+    async fn near_the_end_a_slow_worker_is_held_back_for_a_faster_one() {
+        // One row of 4 tiles.
+        let (_dir, farm, _job) = farm_with_job(64, 16, 4).await;
+        let fast = register(&farm, "fast", 8);
+        let slow = register(&farm, "slow", 1);
+        let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
+        let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap();
+        farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap();
+        let (leases, held_back) = farm.lease_or_hold(&slow, 1, false).unwrap();
+        assert!(leases.is_empty() && held_back, "{leases:?}");
+        // Held back, an idle worker asks again soon, not after a long poll.
+        let start = Instant::now();
+        let leases = farm
+            .lease_or_wait(&slow, 1, false, Duration::from_secs(5))
+            .await
+            .unwrap();
+        assert!(leases.is_empty() && start.elapsed() < Duration::from_secs(1));
+        let f2 = farm.lease(&fast, 1, false).unwrap().remove(0);
+        assert_eq!(
+            f2.rect,
+            Rect::new(32, 0, 32, 16),
+            "the fast worker takes the rest"
+        );
+
+        // Equal workers, 10 ms a tile: each gets one of the last two.
+        let (_dir, farm, _job) = farm_with_job(64, 16, 4).await;
+        let (a, b) = (register(&farm, "a", 2), register(&farm, "b", 2));
+        let a1 = farm.lease(&a, 1, false).unwrap().remove(0);
+        let b1 = farm.lease(&b, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&a, &a1, 0.01)).await.unwrap();
+        farm.submit_result(result(&b, &b1, 0.01)).await.unwrap();
+        let a2 = farm.lease(&a, 1, false).unwrap();
+        let b2 = farm.lease(&b, 1, false).unwrap();
+        assert_eq!((a2.len(), b2.len()), (1, 1));
+        assert_eq!((a2[0].rect.width, b2[0].rect.width), (16, 16));
     }
 }

@@ -88,6 +88,9 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
         output_dir: r.output_dir.clone(),
         tile_size: r.tile_size,
         samples_per_unit: r.samples_per_unit,
+        first_lease_unix_ms: v.first_lease_unix_ms,
+        first_result_unix_ms: v.first_result_unix_ms,
+        last_result_unix_ms: v.last_result_unix_ms,
     }
 }
 
@@ -588,14 +591,26 @@ impl WorkerService for Api {
 fn result_data(r: pb::SubmitResultRequest) -> ResultData {
     let rect = r.rect.unwrap_or_default().into();
     let samples = r.samples.unwrap_or_default().into();
-    let film = film_codec::unpack(
-        rect,
-        &r.sums,
-        &r.counts,
-        r.rays.unwrap_or_default().into(),
-        r.nonfinite,
-    )
-    .map_err(|e| e.to_string());
+    let encoding = match r.sum_bytes {
+        0 => Ok(film_codec::Encoding::ORIGINAL),
+        n @ 1..=8 => Ok(film_codec::Encoding {
+            sum_bytes: n as u8,
+            uniform_count: r.uniform_count,
+        }),
+        n => Err(film_codec::FilmCodecError::SumBytes(n)),
+    };
+    let film = encoding
+        .and_then(|encoding| {
+            film_codec::unpack_with(
+                rect,
+                encoding,
+                &r.sums,
+                &r.counts,
+                r.rays.unwrap_or_default().into(),
+                r.nonfinite,
+            )
+        })
+        .map_err(|e| e.to_string());
     ResultData {
         worker_id: r.worker_id,
         lease_id: r.lease_id,

@@ -509,18 +509,26 @@ fn read_counters(t: &redb::Table<&str, &[u8]>, job: &str) -> Result<Counters, St
     }
 }
 
-/// Header (rect, ray counts, non-finite count) followed by the wire encoding.
+/// Marks a stored film in the compact layout: its first four bytes. In the
+/// original layout they are the film's x, far below this (images are at
+/// most `MAX_IMAGE_SIDE` = 32768 wide), so films stored by earlier versions
+/// still decode.
+const COMPACT_MAGIC: [u8; 4] = *b"TFC2";
+/// Bytes before the pixels: the magic, the rect, ray counts and the
+/// non-finite count, then the encoding (sum bytes, uniform flag, count).
+const COMPACT_HEADER: usize = 4 + 16 + 40 + 1 + 1 + 4;
+
+/// A film for the store, in the compact layout of [`film_codec::pack`].
 pub fn encode_film(f: &Film) -> Vec<u8> {
-    let mut out = film_header(f.rect, f.rays, f.nonfinite, f.sums.len());
-    out.extend_from_slice(&film_codec::pack_sums(f));
-    out.extend_from_slice(&film_codec::pack_counts(f));
-    out
+    encode_film_part(f, f.rect, f.rays, f.nonfinite)
 }
 
-/// The 56-byte header of [`encode_film`], in a buffer with room for `pixels` pixels.
-pub fn film_header(rect: Rect, rays: RayCounts, nonfinite: u64, pixels: usize) -> Vec<u8> {
-    let mut out =
-        Vec::with_capacity(56 + pixels * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES));
+/// The part of `film` inside `rect` (which lies inside it), with these ray
+/// counts, for the store: no intermediate film.
+pub fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
+    let p = film_codec::pack_part(film, rect);
+    let mut out = Vec::with_capacity(COMPACT_HEADER + p.sums.len() + p.counts.len());
+    out.extend_from_slice(&COMPACT_MAGIC);
     for v in [rect.x, rect.y, rect.width, rect.height] {
         out.extend_from_slice(&v.to_le_bytes());
     }
@@ -533,18 +541,28 @@ pub fn film_header(rect: Rect, rays: RayCounts, nonfinite: u64, pixels: usize) -
     ] {
         out.extend_from_slice(&v.to_le_bytes());
     }
+    out.push(p.sum_bytes);
+    out.push(u8::from(p.uniform_count.is_some()));
+    out.extend_from_slice(&p.uniform_count.unwrap_or(0).to_le_bytes());
+    out.extend_from_slice(&p.sums);
+    out.extend_from_slice(&p.counts);
     out
 }
 
+/// A stored film, in the compact layout or in the original one (56-byte
+/// header, then 28 bytes a pixel) that earlier versions stored.
 pub fn decode_film(b: &[u8]) -> Result<Film, String> {
-    if b.len() < 56 {
+    let compact = b.starts_with(&COMPACT_MAGIC);
+    let header = if compact { COMPACT_HEADER } else { 56 };
+    if b.len() < header {
         return Err(format!(
-            "{} bytes is shorter than the 56-byte header",
+            "{} bytes is shorter than the {header}-byte header",
             b.len()
         ));
     }
-    let u32_at = |i: usize| u32::from_le_bytes(b[i..i + 4].try_into().expect("4 bytes"));
-    let u64_at = |i: usize| u64::from_le_bytes(b[i..i + 8].try_into().expect("8 bytes"));
+    let at = if compact { 4 } else { 0 };
+    let u32_at = |i: usize| u32::from_le_bytes(b[at + i..at + i + 4].try_into().expect("4 bytes"));
+    let u64_at = |i: usize| u64::from_le_bytes(b[at + i..at + i + 8].try_into().expect("8 bytes"));
     let rect = Rect::new(u32_at(0), u32_at(4), u32_at(8), u32_at(12));
     let rays = RayCounts {
         primary: u64_at(16),
@@ -553,14 +571,98 @@ pub fn decode_film(b: &[u8]) -> Result<Film, String> {
         refraction: u64_at(40),
     };
     let nonfinite = u64_at(48);
-    let split = 56 + rect.area() * film_codec::SUM_BYTES;
-    if b.len() < split {
-        return Err(format!(
-            "{} bytes is too short for a {}x{} film",
-            b.len(),
-            rect.width,
-            rect.height
-        ));
+    let encoding = if compact {
+        film_codec::Encoding {
+            sum_bytes: b[at + 56],
+            uniform_count: (b[at + 57] != 0).then(|| u32_at(58)),
+        }
+    } else {
+        film_codec::Encoding::ORIGINAL
+    };
+    let sums_len = encoding
+        .sums_len(rect.area())
+        .filter(|&n| n <= b.len() - header)
+        .ok_or_else(|| {
+            format!(
+                "{} bytes is too short for a {}x{} film",
+                b.len(),
+                rect.width,
+                rect.height
+            )
+        })?;
+    let split = header + sums_len;
+    film_codec::unpack_with(
+        rect,
+        encoding,
+        &b[header..split],
+        &b[split..],
+        rays,
+        nonfinite,
+    )
+    .map_err(|e| e.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn film() -> Film {
+        let mut film = Film::new(Rect::new(8, 4, 5, 3));
+        for (i, (s, c)) in film.sums.iter_mut().zip(film.counts.iter_mut()).enumerate() {
+            *s = [i as u64, (i as u64) << 40, u64::MAX - i as u64];
+            *c = 7 + i as u32;
+        }
+        film.rays = RayCounts {
+            primary: 1,
+            shadow: 2,
+            reflection: 3,
+            refraction: 4,
+        };
+        film.nonfinite = 9;
+        film
     }
-    film_codec::unpack(rect, &b[56..split], &b[split..], rays, nonfinite).map_err(|e| e.to_string())
+
+    #[test]
+    fn a_film_part_encodes_as_the_cropped_film() {
+        let film = film();
+        assert_eq!(decode_film(&encode_film(&film)), Ok(film.clone()));
+        let part = Rect::new(9, 5, 3, 2);
+        let mut cropped = Film::new(part);
+        for row in 0..2 {
+            for col in 0..3 {
+                let src = ((row + 1) * 5 + col + 1) as usize;
+                cropped.sums[(row * 3 + col) as usize] = film.sums[src];
+                cropped.counts[(row * 3 + col) as usize] = film.counts[src];
+            }
+        }
+        let got = decode_film(&encode_film_part(&film, part, RayCounts::default(), 0)).unwrap();
+        assert_eq!(got, cropped);
+    }
+
+    /// Films stored by earlier versions (56-byte header, 28 bytes a pixel)
+    /// still decode; damaged ones are errors, never panics.
+    #[test]
+    fn films_in_the_original_layout_still_decode() {
+        let film = film();
+        let mut old = Vec::new();
+        for v in [8u32, 4, 5, 3] {
+            old.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [1u64, 2, 3, 4, 9] {
+            old.extend_from_slice(&v.to_le_bytes());
+        }
+        old.extend_from_slice(&film_codec::pack_sums(&film));
+        old.extend_from_slice(&film_codec::pack_counts(&film));
+        assert_eq!(decode_film(&old), Ok(film.clone()));
+        let new = encode_film(&film);
+        for cut in [0, 10, 60, 66, new.len() - 1] {
+            assert!(decode_film(&new[..cut]).is_err(), "cut at {cut}");
+        }
+        let mut bad = new.clone();
+        bad[60] = 9;
+        assert_eq!(
+            decode_film(&bad),
+            Err("sum_bytes must be 1 to 8, got 9".into())
+        );
+    }
 }

@@ -1,5 +1,13 @@
-//! Films on the wire: fixed-point sums as packed little-endian `u64`
-//! (R, G, B per pixel) and sample counts as packed little-endian `u32`.
+//! Films on the wire and in the coordinator's store: the one film codec.
+//!
+//! Sums are fixed-point (exact) and stay exact in every encoding. The
+//! original layout is R, G, B sums as little-endian `u64` per pixel and a
+//! little-endian `u32` sample count per pixel (28 bytes a pixel). The
+//! compact layout ([`Encoding`]) keeps only the low bytes every sum of the
+//! film needs (a 64-sample film of radiance below 2^8 needs 5 of 8), and
+//! one count for a film whose pixels all have the same number of samples,
+//! as every result of a sample range does: 15 bytes a pixel instead of 28
+//! for a 1080p frame at 64 samples.
 
 use tracer_core::film::{Film, RayCounts, Rect};
 
@@ -30,39 +38,137 @@ pub enum FilmCodecError {
     },
     #[error("a {width}x{height} rect is too large for a film ({SUM_BYTES} bytes a pixel)")]
     TooLarge { width: u32, height: u32 },
+    #[error("sum_bytes must be 1 to 8, got {0}")]
+    SumBytes(u32),
 }
 
-pub fn pack_sums(film: &Film) -> Vec<u8> {
-    let mut out = Vec::with_capacity(film.sums.len() * SUM_BYTES);
-    for s in &film.sums {
-        for c in s {
-            out.extend_from_slice(&c.to_le_bytes());
+/// How a film's pixels are laid out in bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct Encoding {
+    /// Little-endian bytes of each R, G, B sum, 1 to 8 (8: the original layout).
+    pub sum_bytes: u8,
+    /// `Some(n)`: every pixel has `n` samples and there is no counts field.
+    pub uniform_count: Option<u32>,
+}
+
+impl Encoding {
+    /// The original layout: 8-byte sums, a 4-byte count per pixel.
+    pub const ORIGINAL: Encoding = Encoding {
+        sum_bytes: 8,
+        uniform_count: None,
+    };
+
+    /// Bytes of the sums field for `pixels` pixels (`None` on overflow).
+    pub fn sums_len(self, pixels: usize) -> Option<usize> {
+        pixels.checked_mul(3 * self.sum_bytes as usize)
+    }
+
+    /// Bytes of the counts field for `pixels` pixels (`None` on overflow).
+    pub fn counts_len(self, pixels: usize) -> Option<usize> {
+        match self.uniform_count {
+            Some(_) => Some(0),
+            None => pixels.checked_mul(COUNT_BYTES),
         }
     }
-    out
 }
 
-pub fn pack_counts(film: &Film) -> Vec<u8> {
-    let mut out = Vec::with_capacity(film.counts.len() * COUNT_BYTES);
-    for c in &film.counts {
-        out.extend_from_slice(&c.to_le_bytes());
+/// A film's pixels in the compact layout: its encoding and the two fields.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Packed {
+    pub sum_bytes: u8,
+    pub uniform_count: Option<u32>,
+    pub sums: Vec<u8>,
+    pub counts: Vec<u8>,
+}
+
+impl Packed {
+    pub fn encoding(&self) -> Encoding {
+        Encoding {
+            sum_bytes: self.sum_bytes,
+            uniform_count: self.uniform_count,
+        }
     }
-    out
 }
 
-/// Rebuilds a film from packed fields, checking their sizes against `rect`.
-pub fn unpack(
+/// Rows of `rect` (inside `film.rect`) as ranges of `film`'s pixel indices.
+fn rows(film: &Film, rect: Rect) -> impl Iterator<Item = std::ops::Range<usize>> + '_ {
+    let w = rect.width as usize;
+    (0..rect.height).map(move |row| {
+        let start =
+            ((rect.y - film.rect.y + row) * film.rect.width + (rect.x - film.rect.x)) as usize;
+        start..start + w
+    })
+}
+
+/// The part of `film` inside `rect` (which must lie inside it) in the
+/// compact layout, with no intermediate film.
+pub fn pack_part(film: &Film, rect: Rect) -> Packed {
+    assert!(
+        film.rect.contains(&rect),
+        "{rect:?} outside {:?}",
+        film.rect
+    );
+    let mut max = 0u64;
+    let mut count = None;
+    let mut uniform = true;
+    for r in rows(film, rect) {
+        for s in &film.sums[r.clone()] {
+            max |= s[0] | s[1] | s[2];
+        }
+        for &c in &film.counts[r] {
+            uniform &= *count.get_or_insert(c) == c;
+        }
+    }
+    let sum_bytes = ((64 - max.leading_zeros()).div_ceil(8)).max(1) as u8;
+    let n = sum_bytes as usize;
+    let mut sums = vec![0u8; rect.area() * 3 * n];
+    let mut at = 0;
+    for r in rows(film, rect) {
+        for s in &film.sums[r] {
+            for v in s {
+                sums[at..at + n].copy_from_slice(&v.to_le_bytes()[..n]);
+                at += n;
+            }
+        }
+    }
+    let uniform_count = if uniform { count.or(Some(0)) } else { None };
+    let mut counts = Vec::new();
+    if uniform_count.is_none() {
+        counts.reserve(rect.area() * COUNT_BYTES);
+        for r in rows(film, rect) {
+            for c in &film.counts[r] {
+                counts.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+    Packed {
+        sum_bytes,
+        uniform_count,
+        sums,
+        counts,
+    }
+}
+
+/// A whole film in the compact layout.
+pub fn pack(film: &Film) -> Packed {
+    pack_part(film, film.rect)
+}
+
+/// Rebuilds a film from fields in `encoding`, checking their sizes against `rect`.
+pub fn unpack_with(
     rect: Rect,
+    encoding: Encoding,
     sums: &[u8],
     counts: &[u8],
     rays: RayCounts,
     nonfinite: u64,
 ) -> Result<Film, FilmCodecError> {
+    let n = encoding.sum_bytes as usize;
+    if !(1..=8).contains(&n) {
+        return Err(FilmCodecError::SumBytes(encoding.sum_bytes.into()));
+    }
     let area = rect.area();
-    // A rect from the wire can ask for more bytes than a usize holds: an
-    // overflow (or, unchecked, a wrapped size a short field could match).
-    let (Some(sum_bytes), Some(count_bytes)) =
-        (area.checked_mul(SUM_BYTES), area.checked_mul(COUNT_BYTES))
+    let (Some(sum_bytes), Some(count_bytes)) = (encoding.sums_len(area), encoding.counts_len(area))
     else {
         return Err(FilmCodecError::TooLarge {
             width: rect.width,
@@ -85,15 +191,22 @@ pub fn unpack(
             height: rect.height,
         });
     }
-    let u64_at = |b: &[u8]| u64::from_le_bytes(b.try_into().expect("chunk of 8"));
+    let value = |b: &[u8]| {
+        let mut le = [0u8; 8];
+        le[..n].copy_from_slice(b);
+        u64::from_le_bytes(le)
+    };
     let sums = sums
-        .chunks_exact(SUM_BYTES)
-        .map(|p| [u64_at(&p[0..8]), u64_at(&p[8..16]), u64_at(&p[16..24])])
+        .chunks_exact(3 * n)
+        .map(|p| [value(&p[..n]), value(&p[n..2 * n]), value(&p[2 * n..])])
         .collect();
-    let counts = counts
-        .chunks_exact(COUNT_BYTES)
-        .map(|c| u32::from_le_bytes(c.try_into().expect("chunk of 4")))
-        .collect();
+    let counts = match encoding.uniform_count {
+        Some(c) => vec![c; area],
+        None => counts
+            .chunks_exact(COUNT_BYTES)
+            .map(|c| u32::from_le_bytes(c.try_into().expect("chunk of 4")))
+            .collect(),
+    };
     Ok(Film {
         rect,
         sums,
@@ -101,6 +214,35 @@ pub fn unpack(
         rays,
         nonfinite,
     })
+}
+
+pub fn pack_sums(film: &Film) -> Vec<u8> {
+    let mut out = Vec::with_capacity(film.sums.len() * SUM_BYTES);
+    for s in &film.sums {
+        for c in s {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    out
+}
+
+pub fn pack_counts(film: &Film) -> Vec<u8> {
+    let mut out = Vec::with_capacity(film.counts.len() * COUNT_BYTES);
+    for c in &film.counts {
+        out.extend_from_slice(&c.to_le_bytes());
+    }
+    out
+}
+
+/// Rebuilds a film from fields in the original layout, checking their sizes against `rect`.
+pub fn unpack(
+    rect: Rect,
+    sums: &[u8],
+    counts: &[u8],
+    rays: RayCounts,
+    nonfinite: u64,
+) -> Result<Film, FilmCodecError> {
+    unpack_with(rect, Encoding::ORIGINAL, sums, counts, rays, nonfinite)
 }
 
 #[cfg(test)]
@@ -129,6 +271,64 @@ mod tests {
             unpack(rect, &s, &c[..20], RayCounts::default(), 0),
             Err(FilmCodecError::CountsSize { .. })
         ));
+    }
+
+    #[test]
+    fn the_compact_layout_is_exact_and_small() {
+        let rect = Rect::new(10, 20, 5, 4);
+        let mut f = Film::new(rect);
+        for (i, s) in f.sums.iter_mut().enumerate() {
+            *s = [i as u64, (i as u64) << 30, 3 << 36];
+        }
+        f.counts.fill(64);
+        f.rays.shadow = 5;
+        let p = pack(&f);
+        // 3 << 36 needs 38 bits: 5 bytes a sum; one count for all pixels.
+        assert_eq!((p.sum_bytes, p.uniform_count), (5, Some(64)));
+        assert_eq!((p.sums.len(), p.counts.len()), (20 * 15, 0));
+        assert_eq!(
+            unpack_with(rect, p.encoding(), &p.sums, &p.counts, f.rays, 0),
+            Ok(f.clone())
+        );
+        // Counts that differ are kept per pixel; a crop packs only its pixels.
+        f.counts[3] = 1;
+        let part = Rect::new(11, 21, 3, 2);
+        let p = pack_part(&f, part);
+        assert_eq!(p.uniform_count, Some(64));
+        let q = pack(&f);
+        assert_eq!((q.uniform_count, q.counts.len()), (None, 80));
+        assert_eq!(
+            unpack_with(rect, q.encoding(), &q.sums, &q.counts, f.rays, 0),
+            Ok(f.clone())
+        );
+        let crop = unpack_with(
+            part,
+            p.encoding(),
+            &p.sums,
+            &p.counts,
+            RayCounts::default(),
+            0,
+        )
+        .unwrap();
+        assert_eq!(crop.sums[0], f.sums[6]);
+        assert_eq!(crop.sums[5], f.sums[13]);
+        // An empty film's sums take one byte each.
+        let z = pack(&Film::new(rect));
+        assert_eq!((z.sum_bytes, z.uniform_count), (1, Some(0)));
+        assert_eq!(
+            unpack_with(
+                rect,
+                Encoding {
+                    sum_bytes: 9,
+                    uniform_count: None
+                },
+                &[],
+                &[],
+                RayCounts::default(),
+                0
+            ),
+            Err(FilmCodecError::SumBytes(9))
+        );
     }
 
     /// Found by fuzz/fuzz_targets/film_codec.rs: the expected size of a

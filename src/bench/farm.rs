@@ -84,6 +84,38 @@ fn log_file(path: &Path) -> Result<std::fs::File> {
         .with_context(|| format!("cannot open {}", path.display()))
 }
 
+/// The workers of a bench farm.
+#[derive(Clone, Debug, Default)]
+pub struct FarmSpec {
+    pub cpu_workers: usize,
+    /// CPU threads of each CPU worker.
+    pub threads: usize,
+    pub gpu_workers: usize,
+    /// GPU adapter of the GPU workers.
+    pub adapter: Option<String>,
+}
+
+/// A finished bench job: its id, the wall time from submission to the job's
+/// end as `tessera submit --wait` saw it, and the coordinator's timeline.
+#[derive(Clone, Debug)]
+pub struct JobResult {
+    pub job: String,
+    pub seconds: f64,
+    /// Submission to the first merged result.
+    pub first_result_s: Option<f64>,
+    /// First lease to last merged result: the farm's rendering time.
+    pub render_s: Option<f64>,
+    pub rays: u64,
+}
+
+impl JobResult {
+    /// Rays per second from the first lease to the last result.
+    pub fn rays_per_second(&self) -> f64 {
+        self.render_s
+            .map_or(0.0, |t| self.rays as f64 / t.max(1e-9))
+    }
+}
+
 /// A coordinator and its workers; dropping it stops them all.
 pub struct Farm {
     exe: PathBuf,
@@ -95,15 +127,9 @@ pub struct Farm {
 
 impl Farm {
     /// Starts a coordinator on a free loopback port with its state in
-    /// `data`, and `workers` workers of `threads` threads; returns once
-    /// every worker is registered. Logs go to `logs`.STEM.log.
-    pub fn start(
-        exe: &Path,
-        data: &Path,
-        logs: &Path,
-        workers: usize,
-        threads: usize,
-    ) -> Result<Farm> {
+    /// `data`, and the workers of `spec`; returns once every worker is
+    /// registered. Logs go to `logs`.STEM.log.
+    pub fn start(exe: &Path, data: &Path, logs: &Path, spec: &FarmSpec) -> Result<Farm> {
         let coord_log = logs.with_extension("coordinator.log");
         let mut child = farm_command(exe)
             .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
@@ -145,18 +171,27 @@ impl Farm {
             workers: vec![],
             coordinator,
         };
+        let workers = spec.cpu_workers + spec.gpu_workers;
         for i in 1..=workers {
             let log = logs.with_extension(format!("worker-{i}.log"));
-            let child = farm_command(exe)
-                .args([
-                    "worker",
-                    "--coordinator",
-                    &farm.url,
-                    "--threads",
-                    &threads.to_string(),
-                    "--name",
-                    &format!("bench-{i}"),
-                ])
+            let mut cmd = farm_command(exe);
+            cmd.args(["worker", "--coordinator", &farm.url]);
+            if i <= spec.gpu_workers {
+                cmd.args(["--backend", "gpu", "--name", &format!("bench-gpu-{i}")]);
+                if let Some(a) = &spec.adapter {
+                    cmd.args(["--adapter", a]);
+                }
+            } else {
+                cmd.args(["--threads", &spec.threads.to_string()])
+                    .args(["--name", &format!("bench-{i}")]);
+            }
+            // A cache of its own per worker and run: nothing left from another run.
+            cmd.arg("--cache")
+                .arg(logs.with_extension(format!("cache-{i}")));
+            // Each unit's render time in the log, for scripts/farm-timeline.py.
+            cmd.args(["--log-format", "json"])
+                .env("RUST_LOG", "info,tessera_worker=debug");
+            let child = cmd
                 .stdin(Stdio::null())
                 .stdout(Stdio::null())
                 .stderr(log_file(&log)?)
@@ -207,6 +242,28 @@ impl Farm {
         }
     }
 
+    /// Renders a small job first, as a farm that has been running has: its
+    /// workers' speeds are measured and the scene is in their caches, so
+    /// the timed job sees a warm farm. A quarter of the frame's width and
+    /// height, at most 16 samples.
+    pub fn warm_up(
+        &mut self,
+        scene: &Path,
+        settings: &RenderSettings,
+        tile_size: u32,
+        log: &Path,
+    ) -> Result<()> {
+        let small = RenderSettings {
+            width: (settings.width / 4).max(1),
+            height: (settings.height / 4).max(1),
+            samples: settings.samples.min(16),
+            ..*settings
+        };
+        self.submit_and_wait(scene, &small, tile_size, log)
+            .map(|_| ())
+            .context("the warm-up job failed")
+    }
+
     /// Submits `scene` with `settings` as overrides and waits for the job
     /// (`tessera submit --wait`); returns the job id and the wall time from
     /// submission to the job's end. Fails, rather than hangs, if the
@@ -217,7 +274,7 @@ impl Farm {
         settings: &RenderSettings,
         tile_size: u32,
         log: &Path,
-    ) -> Result<(String, f64)> {
+    ) -> Result<JobResult> {
         let scene_arg = scene.to_string_lossy();
         let (w, h, s, d) = (
             settings.width.to_string(),
@@ -291,11 +348,46 @@ impl Farm {
             .map(str::trim)
             .filter(|l| !l.is_empty())
             .context("tessera submit printed no job id")?;
-        Ok((id.to_string(), secs))
+        let status = self
+            .cli(&["status", id, "--json"])
+            .output()
+            .context("cannot run tessera status")?;
+        if !status.status.success() {
+            bail!(
+                "tessera status failed ({}): {}",
+                status.status,
+                String::from_utf8_lossy(&status.stderr)
+            );
+        }
+        let j: serde_json::Value = serde_json::from_slice(&status.stdout)
+            .context("tessera status --json printed no JSON")?;
+        let ms = |k: &str| j[k].as_i64();
+        let between = |a: Option<i64>, b: Option<i64>| match (a, b) {
+            (Some(a), Some(b)) => Some((b - a).max(0) as f64 / 1000.0),
+            _ => None,
+        };
+        let rays = ["primary", "shadow", "reflection", "refraction"]
+            .iter()
+            .map(|k| j["rays"][k].as_u64().unwrap_or(0))
+            .sum();
+        Ok(JobResult {
+            job: id.to_string(),
+            seconds: secs,
+            first_result_s: between(ms("submitted_unix_ms"), ms("first_result_unix_ms")),
+            render_s: between(ms("first_lease_unix_ms"), ms("last_result_unix_ms")),
+            rays,
+        })
     }
 
-    /// Fetches the job's frame 0 into `dir`; returns its 8-bit sRGB pixels.
-    pub fn fetch_frame0(&self, job: &str, dir: &Path) -> Result<(u32, u32, Vec<u8>)> {
+    /// Fetches the job's frame 0 into `dir`; returns how many of its 8-bit
+    /// sRGB bytes differ from `expected` (all of them if the size differs).
+    pub fn frame0_differs(
+        &self,
+        job: &str,
+        dir: &Path,
+        size: (u32, u32),
+        expected: &[u8],
+    ) -> Result<usize> {
         let out = self
             .cli(&["fetch", job, "-o", &dir.to_string_lossy()])
             .output()
@@ -311,6 +403,14 @@ impl Farm {
         let img = image::open(&file)
             .with_context(|| format!("cannot read the fetched frame {}", file.display()))?
             .to_rgb8();
-        Ok((img.width(), img.height(), img.into_raw()))
+        if img.dimensions() != size {
+            return Ok(img.as_raw().len().max(expected.len()));
+        }
+        Ok(img
+            .as_raw()
+            .iter()
+            .zip(expected)
+            .filter(|(a, b)| a != b)
+            .count())
     }
 }

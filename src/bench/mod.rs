@@ -69,6 +69,10 @@ pub struct Config {
     pub workers: Option<Vec<usize>>,
     /// CPU threads of each farm worker.
     pub worker_threads: usize,
+    /// GPU workers of the farm suite's GPU and mixed runs (0: none).
+    pub gpu_workers: usize,
+    /// CPU workers beside the GPU workers in the farm suite's mixed run.
+    pub mixed_cpu_workers: usize,
     /// max_depth of the depth suite's f64 reference.
     pub depth_reference: u32,
 }
@@ -785,7 +789,12 @@ impl Bench {
     }
 
     /// `farm`: one frame by 1..N worker processes over loopback gRPC,
-    /// against the local render of the same settings.
+    /// against the local render of the same settings and against the
+    /// machine's own ceiling (N concurrent local renders of 1/N of the
+    /// samples each, measured in the same run); then, with
+    /// `--gpu-workers`, GPU workers alone and beside CPU workers. Each farm
+    /// renders a small warm-up job before the timed one
+    /// ([`farm::Farm::warm_up`]), as a farm in service would have.
     fn suite_farm(&self) -> Result<Vec<Run>> {
         let exe = std::env::current_exe()
             .context("cannot find this executable to start the farm's processes")?;
@@ -838,36 +847,41 @@ impl Bench {
         let mut runs: Vec<Run> = vec![];
         let mut base: Option<(usize, f64)> = None;
         for &n in &counts {
+            // The machine's ceiling for n workers: n concurrent renders of
+            // 1/n of the samples each, in this process (no farm).
+            let ceiling = machine_ceiling(&frame, &s, n, threads)?;
             let data = dir.join(format!("data-{n}"));
             let _ = std::fs::remove_dir_all(&data);
-            let (job_secs, identical, diff_bytes) = {
+            let (result, diff_bytes) = {
                 let logs = dir.join(format!("run-{n}"));
-                let mut farm = farm::Farm::start(&exe, &data, &logs, n, threads)?;
-                let (job, secs) =
+                let spec = farm::FarmSpec {
+                    cpu_workers: n,
+                    threads,
+                    ..Default::default()
+                };
+                let mut farm = farm::Farm::start(&exe, &data, &logs, &spec)?;
+                farm.warm_up(&path, &s, tile, &logs.with_extension("warm-up.log"))?;
+                let result =
                     farm.submit_and_wait(&path, &s, tile, &logs.with_extension("submit.log"))?;
                 let fetched = dir.join(format!("frames-{n}"));
-                let (w, h, pixels) = farm.fetch_frame0(&job, &fetched)?;
-                let same_size = (w, h) == (width, height);
-                let diff = if same_size {
-                    pixels
-                        .iter()
-                        .zip(&local_srgb)
-                        .filter(|(a, b)| a != b)
-                        .count()
-                } else {
-                    pixels.len().max(local_srgb.len())
-                };
-                (secs, same_size && diff == 0, diff)
+                let diff =
+                    farm.frame0_differs(&result.job, &fetched, (width, height), &local_srgb)?;
+                (result, diff)
                 // The farm's processes are stopped here (drop), on success and on error alike.
             };
             let _ = std::fs::remove_dir_all(&data);
+            let identical = diff_bytes == 0;
+            let job_secs = result.seconds;
             let (n0, t0) = *base.get_or_insert((n, job_secs));
             // Against the smallest count, scaled by its size (1 worker when it was run).
             let speedup = t0 * n0 as f64 / job_secs;
             let efficiency = speedup / n as f64;
             eprintln!(
-                "  farm       {n:>2} workers x {threads} threads  {job_secs:>8.3} s  speed-up {speedup:>5.2}  efficiency {:>5.1}%  {}",
+                "  farm       {n:>2} workers x {threads} threads  {job_secs:>8.3} s  speed-up {speedup:>5.2}  efficiency {:>5.1}%  ceiling {ceiling:.3} s: {:>5.1}% of it  vs local {:.3}x  first result {}  {}",
                 efficiency * 100.0,
+                100.0 * ceiling / job_secs,
+                job_secs / local_secs,
+                fmt_secs(result.first_result_s),
                 if identical {
                     "image identical to the local render".to_string()
                 } else {
@@ -888,25 +902,37 @@ impl Bench {
                 rays: film.rays,
                 error: identical.then_some(local_error),
                 image: format!("farm/frames-{n}/frame_0000.png"),
-                extra: vec![
-                    ("workers", n.to_string()),
-                    ("worker_threads", threads.to_string()),
-                    ("tile_size", tile.to_string()),
-                    ("local_wall_s", format!("{local_secs:.6}")),
-                    ("speedup", format!("{speedup:.4}")),
-                    ("efficiency", format!("{efficiency:.4}")),
-                    ("bit_identical", identical.to_string()),
-                ],
+                extra: farm_columns(FarmColumns {
+                    workers: n,
+                    gpu_workers: 0,
+                    threads,
+                    tile,
+                    local_secs,
+                    ceiling_secs: Some(ceiling),
+                    speedup: Some(speedup),
+                    efficiency: Some(efficiency),
+                    identical: Some(identical),
+                    result: &result,
+                    local_rays_per_s: film.rays.total() as f64 / local_secs,
+                }),
             });
         }
+        let cpu_runs = runs.len();
         let workers_vs = |f: fn(&Run) -> f64| {
             vec![Series {
                 name: format!("workers of {threads} threads"),
-                points: runs
+                points: runs[..cpu_runs]
                     .iter()
                     .map(|r| (r.threads as f64 / threads as f64, f(r)))
                     .collect(),
             }]
+        };
+        let extra_f64 = |r: &Run, key: &str| {
+            r.extra
+                .iter()
+                .find(|e| e.0 == key)
+                .and_then(|e| e.1.parse().ok())
+                .unwrap_or(f64::NAN)
         };
         LinePlot {
             title: format!(
@@ -926,6 +952,16 @@ impl Bench {
                         .unwrap_or(f64::NAN)
                 });
                 v.push(Series {
+                    name: "machine ceiling (against the local render)".into(),
+                    points: runs[..cpu_runs]
+                        .iter()
+                        .map(|r| {
+                            let n = r.threads as f64 / threads as f64;
+                            (n, local_secs / extra_f64(r, "ceiling_s"))
+                        })
+                        .collect(),
+                });
+                v.push(Series {
                     name: "ideal".into(),
                     points: counts.iter().map(|&n| (n as f64, n as f64)).collect(),
                 });
@@ -942,9 +978,187 @@ impl Bench {
             y_label: "seconds".into(),
             log_x: false,
             log_y: false,
-            series: workers_vs(|r| r.seconds),
+            series: {
+                let mut v = workers_vs(|r| r.seconds);
+                v.push(Series {
+                    name: "machine ceiling".into(),
+                    points: runs[..cpu_runs]
+                        .iter()
+                        .map(|r| (r.threads as f64 / threads as f64, extra_f64(r, "ceiling_s")))
+                        .collect(),
+                });
+                v
+            },
         }
         .write(&dir.join("time"))?;
+        #[cfg(feature = "gpu")]
+        if self.cfg.gpu_workers > 0 {
+            runs.extend(self.farm_gpu(&exe, &path, &desc, &dir)?);
+        }
+        Ok(runs)
+    }
+
+    /// The farm's GPU cases (each on a warm farm, as the CPU ones): GPU
+    /// workers alone, then beside CPU workers,
+    /// against a local GPU render of the same frame (in this process, warm,
+    /// and as a whole `tessera render --backend gpu` process).
+    #[cfg(feature = "gpu")]
+    fn farm_gpu(
+        &self,
+        exe: &std::path::Path,
+        path: &std::path::Path,
+        desc: &SceneDesc,
+        dir: &std::path::Path,
+    ) -> Result<Vec<Run>> {
+        let g = self.cfg.gpu_workers;
+        let threads = self.cfg.worker_threads.max(1);
+        let (width, height) = if self.cfg.quick {
+            (64, 48)
+        } else {
+            (1920, 1080)
+        };
+        let s = RenderSettings {
+            width,
+            height,
+            samples: if self.cfg.quick { 4 } else { 64 },
+            max_depth: 10,
+            sampler: Sampler::Grid,
+        };
+        let tile = if self.cfg.quick { 16 } else { 64 };
+        let owned;
+        let gpu = match &self.gpu {
+            Some(g) => g,
+            None => {
+                owned = tracer_core::render::GpuRenderer::new(
+                    self.cfg.adapter.as_deref(),
+                    Default::default(),
+                )?;
+                &owned
+            }
+        };
+        let frame = PreparedFrame::build(desc, &s, 0, Precision::F32)?;
+        let full = Rect::full(width, height);
+        // Warm-up (pipelines, buffers), then the timed call.
+        gpu.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
+        let start = Instant::now();
+        let film = gpu.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
+        let local_secs = start.elapsed().as_secs_f64();
+        let local_rays_per_s = film.rays.total() as f64 / local_secs;
+        let local_srgb = tracer_core::film::to_srgb8(&film.resolve());
+        // A whole local process: start-up, scene, pipelines, render, PNG.
+        let out_png = dir.join("local-gpu.png");
+        let mut cmd = std::process::Command::new(exe);
+        cmd.arg("render")
+            .arg(path)
+            .args(["--backend", "gpu", "--width", &width.to_string()])
+            .args([
+                "--height",
+                &height.to_string(),
+                "--samples",
+                &s.samples.to_string(),
+            ])
+            .args([
+                "--max-depth",
+                &s.max_depth.to_string(),
+                "--sampler",
+                s.sampler.name(),
+            ])
+            .arg("-o")
+            .arg(&out_png)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null());
+        if let Some(a) = &self.cfg.adapter {
+            cmd.args(["--adapter", a]);
+        }
+        let start = Instant::now();
+        let status = cmd
+            .status()
+            .context("cannot run tessera render --backend gpu")?;
+        let process_secs = start.elapsed().as_secs_f64();
+        if !status.success() {
+            bail!("tessera render --backend gpu failed ({status})");
+        }
+        eprintln!(
+            "  farm       local GPU render: {local_secs:.3} s in this process ({:.1} Mrays/s), {process_secs:.3} s as a whole process",
+            local_rays_per_s / 1e6
+        );
+        let mixed_cpu = self.cfg.mixed_cpu_workers;
+        let mut runs = vec![];
+        let mut gpu_alone = None;
+        for cpu_workers in [0, mixed_cpu] {
+            if cpu_workers == 0 && gpu_alone.is_some() {
+                continue;
+            }
+            let name = format!("gpu{g}-cpu{cpu_workers}");
+            let data = dir.join(format!("data-{name}"));
+            let _ = std::fs::remove_dir_all(&data);
+            let logs = dir.join(format!("run-{name}"));
+            let spec = farm::FarmSpec {
+                cpu_workers,
+                threads,
+                gpu_workers: g,
+                adapter: self.cfg.adapter.clone(),
+            };
+            let (result, diff_bytes) = {
+                let mut farm = farm::Farm::start(exe, &data, &logs, &spec)?;
+                farm.warm_up(path, &s, tile, &logs.with_extension("warm-up.log"))?;
+                let result =
+                    farm.submit_and_wait(path, &s, tile, &logs.with_extension("submit.log"))?;
+                let fetched = dir.join(format!("frames-{name}"));
+                let diff =
+                    farm.frame0_differs(&result.job, &fetched, (width, height), &local_srgb)?;
+                (result, diff)
+            };
+            let _ = std::fs::remove_dir_all(&data);
+            let secs = result.seconds;
+            let throughput = result.rays_per_second() / local_rays_per_s;
+            let identical = diff_bytes == 0;
+            let alone = *gpu_alone.get_or_insert(secs);
+            eprintln!(
+                "  farm       {g} GPU + {cpu_workers} CPU workers  {secs:>8.3} s  ({:.2}x the local process, {:.2}x the GPU workers alone)  GPU farm throughput {:.1}% of local  first result {}  {}",
+                secs / process_secs,
+                secs / alone,
+                100.0 * throughput,
+                fmt_secs(result.first_result_s),
+                if cpu_workers > 0 {
+                    "mixed: CPU and GPU samples".to_string()
+                } else if identical {
+                    "image identical to the local GPU render".to_string()
+                } else {
+                    format!("IMAGE DIFFERS from the local GPU render ({diff_bytes} bytes)")
+                }
+            );
+            runs.push(Run {
+                suite: "farm",
+                scene: "resolution".into(),
+                backend: "gpu",
+                device: gpu.adapter().name.clone(),
+                threads: cpu_workers * threads,
+                settings: s,
+                precision: Precision::F32,
+                seconds: secs,
+                gpu_seconds: None,
+                rays: film.rays,
+                error: None,
+                image: format!("farm/frames-{name}/frame_0000.png"),
+                extra: farm_columns(FarmColumns {
+                    workers: cpu_workers,
+                    gpu_workers: g,
+                    threads,
+                    tile,
+                    local_secs: process_secs,
+                    ceiling_secs: None,
+                    speedup: Some(alone / secs),
+                    efficiency: None,
+                    identical: (cpu_workers == 0).then_some(identical),
+                    result: &result,
+                    local_rays_per_s,
+                }),
+            });
+            if mixed_cpu == 0 {
+                break;
+            }
+        }
         Ok(runs)
     }
 
@@ -970,6 +1184,88 @@ fn backend_name(b: BackendKind) -> &'static str {
         #[cfg(feature = "gpu")]
         BackendKind::Gpu => "gpu",
     }
+}
+
+/// `n` concurrent CPU renders of `threads` threads, each of 1/n of the
+/// frame's samples: the best time a farm of n such workers could reach on
+/// this machine (shared cores, memory bandwidth, turbo), with no farm.
+fn machine_ceiling(
+    frame: &PreparedFrame,
+    s: &RenderSettings,
+    n: usize,
+    threads: usize,
+) -> Result<f64> {
+    let renderers = (0..n)
+        .map(|_| CpuRenderer::new(Some(threads)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let full = Rect::full(s.width, s.height);
+    let total = s.samples as usize;
+    let start = Instant::now();
+    std::thread::scope(|scope| -> Result<()> {
+        let handles: Vec<_> = renderers
+            .iter()
+            .enumerate()
+            .filter_map(|(k, r)| {
+                let range = SampleRange::new((k * total / n) as u32, ((k + 1) * total / n) as u32);
+                (!range.is_empty())
+                    .then(|| scope.spawn(move || r.render(frame, 0, full, range, &|_| {})))
+            })
+            .collect();
+        for h in handles {
+            h.join()
+                .map_err(|_| anyhow::anyhow!("a ceiling render panicked"))??;
+        }
+        Ok(())
+    })?;
+    Ok(start.elapsed().as_secs_f64())
+}
+
+fn fmt_secs(s: Option<f64>) -> String {
+    s.map_or_else(|| "-".into(), |s| format!("{s:.3} s"))
+}
+
+/// The farm suite's columns, the same set for every run.
+struct FarmColumns<'a> {
+    workers: usize,
+    gpu_workers: usize,
+    threads: usize,
+    tile: u32,
+    local_secs: f64,
+    ceiling_secs: Option<f64>,
+    speedup: Option<f64>,
+    efficiency: Option<f64>,
+    identical: Option<bool>,
+    result: &'a farm::JobResult,
+    local_rays_per_s: f64,
+}
+
+fn farm_columns(c: FarmColumns) -> Vec<(&'static str, String)> {
+    let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.4}"));
+    vec![
+        ("workers", c.workers.to_string()),
+        ("gpu_workers", c.gpu_workers.to_string()),
+        ("worker_threads", c.threads.to_string()),
+        ("tile_size", c.tile.to_string()),
+        ("local_wall_s", format!("{:.6}", c.local_secs)),
+        ("ceiling_s", f(c.ceiling_secs)),
+        (
+            "of_ceiling",
+            f(c.ceiling_secs.map(|t| t / c.result.seconds)),
+        ),
+        ("speedup", f(c.speedup)),
+        ("efficiency", f(c.efficiency)),
+        (
+            "bit_identical",
+            c.identical.map_or(String::new(), |b| b.to_string()),
+        ),
+        ("first_result_s", f(c.result.first_result_s)),
+        ("render_s", f(c.result.render_s)),
+        (
+            "throughput_vs_local",
+            f((c.result.render_s.is_some())
+                .then(|| c.result.rays_per_second() / c.local_rays_per_s)),
+        ),
+    ]
 }
 
 /// Runs the configured suites; returns every run.

@@ -55,6 +55,16 @@ pub struct BenchArgs {
     /// Farm suite: CPU threads of each worker (and of the local render it is compared with)
     #[arg(long, value_name = "N", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..))]
     pub worker_threads: u32,
+    /// Farm suite: also run N GPU workers (`tessera worker --backend gpu`,
+    /// on --adapter) on a 64-spp frame: alone, against a local GPU render
+    /// in this process and as a whole process, then beside
+    /// --mixed-cpu-workers CPU workers
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub gpu_workers: u32,
+    /// Farm suite: CPU workers (of --worker-threads each) beside the GPU
+    /// workers in the mixed run; 0 skips it
+    #[arg(long, value_name = "N", default_value_t = 7)]
+    pub mixed_cpu_workers: u32,
     /// Depth suite: max_depth of the f64 reference each depth is compared
     /// with [default: 32; with --quick 12]. 24 is within RMSE 4e-6 of 32 on
     /// the emerald scene at 1/13 of the rays (docs/benchmarks.md)
@@ -84,6 +94,8 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
             .workers
             .map(|v| v.into_iter().map(|n| n as usize).collect()),
         worker_threads: args.worker_threads as usize,
+        gpu_workers: args.gpu_workers as usize,
+        mixed_cpu_workers: args.mixed_cpu_workers as usize,
         depth_reference: args.depth_reference.unwrap_or(if args.quick {
             12
         } else {

@@ -72,6 +72,9 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
         "results_duplicate": j.results_duplicate,
         "submitted_unix_ms": j.submitted_unix_ms,
         "finished_unix_ms": (j.finished_unix_ms > 0).then_some(j.finished_unix_ms),
+        "first_lease_unix_ms": (j.first_lease_unix_ms > 0).then_some(j.first_lease_unix_ms),
+        "first_result_unix_ms": (j.first_result_unix_ms > 0).then_some(j.first_result_unix_ms),
+        "last_result_unix_ms": (j.last_result_unix_ms > 0).then_some(j.last_result_unix_ms),
         "output_dir": j.output_dir,
         "frames": j.frames.iter().map(|f| json!({
             "frame": f.frame,

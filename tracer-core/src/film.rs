@@ -230,24 +230,49 @@ impl Film {
         Ok(())
     }
 
-    /// Mean of each pixel's samples, linear RGB, row-major (black where no sample landed).
+    /// Mean of each pixel's samples, linear RGB, row-major (black where no
+    /// sample landed). In parallel: a frame's end waits for it.
     pub fn resolve(&self) -> Vec<[f32; 3]> {
+        use rayon::prelude::*;
         self.sums
-            .iter()
+            .par_iter()
             .zip(&self.counts)
-            .map(|(s, &n)| {
-                if n == 0 {
-                    [0.0; 3]
-                } else {
-                    let k = 1.0 / (n as f64 * FIXED_ONE);
-                    [
-                        (s[0] as f64 * k) as f32,
-                        (s[1] as f64 * k) as f32,
-                        (s[2] as f64 * k) as f32,
-                    ]
-                }
-            })
+            .with_min_len(4096)
+            .map(|(s, &n)| resolve_pixel(s, n))
             .collect()
+    }
+
+    /// The resolved film as 8-bit sRGB, in one parallel pass: equal to
+    /// `to_srgb8(&self.resolve())`.
+    pub fn srgb8(&self) -> Vec<u8> {
+        use rayon::prelude::*;
+        let mut out = vec![0u8; self.sums.len() * 3];
+        out.par_chunks_mut(3)
+            .zip(&self.sums)
+            .zip(&self.counts)
+            .with_min_len(4096)
+            .for_each(|((o, s), &n)| {
+                let p = resolve_pixel(s, n);
+                for c in 0..3 {
+                    o[c] = srgb8(p[c]);
+                }
+            });
+        out
+    }
+}
+
+/// The mean of one pixel's samples (black without samples).
+#[inline]
+fn resolve_pixel(s: &[u64; 3], n: u32) -> [f32; 3] {
+    if n == 0 {
+        [0.0; 3]
+    } else {
+        let k = 1.0 / (n as f64 * FIXED_ONE);
+        [
+            (s[0] as f64 * k) as f32,
+            (s[1] as f64 * k) as f32,
+            (s[2] as f64 * k) as f32,
+        ]
     }
 }
 
@@ -261,12 +286,80 @@ pub fn srgb_encode(v: f32) -> f32 {
     }
 }
 
+/// One linear value as 8-bit sRGB: clamped to [0, 1], encoded, rounded.
+/// The definition; [`srgb8`] is the same function through a table.
+pub fn srgb8_exact(c: f32) -> u8 {
+    (srgb_encode(c) * 255.0 + 0.5) as u8
+}
+
+/// Buckets of the sRGB table: the bit pattern of a value in (0, 1) shifted
+/// right by this. Each bucket holds at most one of the 255 steps of the
+/// 8-bit code (checked when the table is built), so a lookup is one load
+/// and one comparison instead of a `powf`.
+const SRGB_BUCKET_SHIFT: u32 = 16;
+
+struct SrgbTable {
+    /// The code at each bucket's first value.
+    base: Vec<u8>,
+    /// The first value of the bucket whose code is `base + 1` (infinity
+    /// when the code is the same across the bucket).
+    step: Vec<f32>,
+}
+
+fn srgb_table() -> &'static SrgbTable {
+    static TABLE: std::sync::OnceLock<SrgbTable> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        let buckets = (1.0f32.to_bits() >> SRGB_BUCKET_SHIFT) as usize;
+        let mut base = Vec::with_capacity(buckets);
+        let mut step = Vec::with_capacity(buckets);
+        for b in 0..buckets as u32 {
+            let lo = b << SRGB_BUCKET_SHIFT;
+            let hi = ((b + 1) << SRGB_BUCKET_SHIFT) - 1;
+            let code = srgb8_exact(f32::from_bits(lo));
+            let last = srgb8_exact(f32::from_bits(hi));
+            assert!(
+                last == code || last == code + 1,
+                "sRGB table bucket {b} spans more than one step"
+            );
+            base.push(code);
+            if last == code {
+                step.push(f32::INFINITY);
+            } else {
+                // The first bit pattern of the bucket with the higher code
+                // (the encoding is monotonic in the value).
+                let (mut a, mut z) = (lo, hi);
+                while a < z {
+                    let m = a + (z - a) / 2;
+                    if srgb8_exact(f32::from_bits(m)) > code {
+                        z = m;
+                    } else {
+                        a = m + 1;
+                    }
+                }
+                step.push(f32::from_bits(a));
+            }
+        }
+        SrgbTable { base, step }
+    })
+}
+
+/// [`srgb8_exact`] through a table, bit for bit: the image writers' sRGB.
+#[inline]
+pub fn srgb8(c: f32) -> u8 {
+    if !(c > 0.0) {
+        return 0; // negative, zero and NaN, as the clamp makes them
+    }
+    if c >= 1.0 {
+        return 255;
+    }
+    let t = srgb_table();
+    let b = (c.to_bits() >> SRGB_BUCKET_SHIFT) as usize;
+    t.base[b] + u8::from(c >= t.step[b])
+}
+
 /// 8-bit sRGB pixels of a resolved film: clamped to [0, 1], encoded, rounded.
 pub fn to_srgb8(linear: &[[f32; 3]]) -> Vec<u8> {
-    linear
-        .iter()
-        .flat_map(|p| p.map(|c| (srgb_encode(c) * 255.0 + 0.5) as u8))
-        .collect()
+    linear.iter().flat_map(|p| p.map(srgb8)).collect()
 }
 
 #[cfg(test)]
@@ -326,5 +419,51 @@ mod tests {
     fn srgb_endpoints() {
         assert_eq!(to_srgb8(&[[0.0, 1.0, 2.0]]), vec![0, 255, 255]);
         assert_eq!(to_srgb8(&[[0.5, 0.22, f32::NAN]]), vec![188, 129, 0]);
+    }
+
+    /// The table gives the defining function's code for every value: all
+    /// bit patterns near each of the 255 steps, and a stride through the rest.
+    #[test]
+    fn the_srgb_table_matches_the_definition_bit_for_bit() {
+        let t = srgb_table();
+        let mut checked = 0u64;
+        let mut check = |c: f32| {
+            assert_eq!(srgb8(c), srgb8_exact(c), "value {c:e} ({:#x})", c.to_bits());
+            checked += 1;
+        };
+        for &step in t.step.iter().filter(|s| s.is_finite()) {
+            let b = step.to_bits();
+            for d in b.saturating_sub(64)..=b + 64 {
+                check(f32::from_bits(d));
+            }
+        }
+        for bits in (0..=1.0f32.to_bits() + 1000).step_by(997) {
+            check(f32::from_bits(bits));
+        }
+        for c in [
+            -1.0,
+            -0.0,
+            0.0,
+            1.0,
+            2.0,
+            f32::INFINITY,
+            f32::NAN,
+            f32::MIN_POSITIVE,
+        ] {
+            check(c);
+        }
+        assert_eq!(t.step.iter().filter(|s| s.is_finite()).count(), 255);
+        assert!(checked > 1_000_000);
+    }
+
+    #[test]
+    fn the_parallel_srgb_pass_equals_resolve_then_encode() {
+        let mut f = Film::new(Rect::full(300, 200));
+        for (i, (s, n)) in f.sums.iter_mut().zip(f.counts.iter_mut()).enumerate() {
+            *n = (i % 5) as u32;
+            let v = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 29;
+            *s = [v, v / 3, v.wrapping_mul(7) >> 2];
+        }
+        assert_eq!(f.srgb8(), to_srgb8(&f.resolve()));
     }
 }

@@ -73,9 +73,10 @@ const PREPARED_CACHE: usize = 4;
 /// Largest message the worker accepts or sends.
 const MAX_MESSAGE_BYTES: usize = 256 << 20;
 /// Pixel-samples in one GPU render call of a unit: the lease is checked
-/// between calls, and one call of this size takes milliseconds on a
-/// discrete GPU (the unit's film is read back once per call).
-const GPU_BAND_PIXEL_SAMPLES: u64 = 1 << 24;
+/// between calls, and one call of this size takes tens of milliseconds on
+/// a discrete GPU (the unit's film is read back once per call, so fewer,
+/// larger calls spend less on fixed costs).
+const GPU_BAND_PIXEL_SAMPLES: u64 = 1 << 26;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Backend {
@@ -762,8 +763,11 @@ async fn send_results(
                     req.failure = msg.clone();
                 }
                 UnitEnd::Film(film, secs) => {
-                    req.sums = film_codec::pack_sums(film);
-                    req.counts = film_codec::pack_counts(film);
+                    let packed = film_codec::pack(film);
+                    req.sum_bytes = packed.sum_bytes.into();
+                    req.uniform_count = packed.uniform_count;
+                    req.sums = packed.sums;
+                    req.counts = packed.counts;
                     req.rays = Some(film.rays.into());
                     req.nonfinite = film.nonfinite;
                     req.render_seconds = *secs;
@@ -880,6 +884,10 @@ fn render_unit(
         match renderer.render(prepared, frame, band, samples, &|n| {
             samples_done.fetch_add(n, Ordering::Relaxed);
         }) {
+            // The whole unit in one call: no copy into the unit's film.
+            Ok(part) if band == rect => {
+                film = part;
+            }
             Ok(part) => {
                 if let Err(e) = film.merge(&part) {
                     return UnitEnd::Failed(e.to_string());
