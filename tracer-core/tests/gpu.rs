@@ -413,6 +413,31 @@ SPHERES
     }
 }
 
+/// Every distributed field at its default, written out, changes nothing on
+/// the GPU either: no distributed kernel, the same film bit for bit.
+#[test]
+fn explicit_distributed_defaults_render_bit_identically_on_the_gpu() {
+    let Some(g) = gpu() else { return };
+    let path = examples_dir().join("resolution.toml");
+    let src = std::fs::read_to_string(&path).unwrap();
+    let with = src
+        .replace(
+            "fov_y = 60.0\n",
+            "fov_y = 60.0\naperture = 0.0\nshutter = [0.5, 0.5]\n",
+        )
+        .replace("ior = 1.0\n", "ior = 1.0\ngloss = 0\ntranslucency = 0.0\n")
+        .replace("[[lights]]\n", "[[lights]]\ntype = \"point\"\n");
+    assert_ne!(with, src);
+    let plain = SceneDesc::parse(&src, &path).unwrap();
+    let with = SceneDesc::parse(&with, &path).unwrap();
+    let s = RenderSettings {
+        width: 64,
+        height: 48,
+        ..plain.render
+    };
+    assert_eq!(gpu_whole(g, &plain, &s).sums, gpu_whole(g, &with, &s).sums);
+}
+
 /// Moving meshes are CPU-only for now: the GPU says so instead of
 /// rendering them wrong.
 #[test]
