@@ -887,6 +887,86 @@ translate = {translate}
     common::assert_finite(&blurred);
 }
 
+/// Hard cases of the cones and motion together: a moving glass sphere
+/// (refraction, total internal reflection into a gloss cone near 90
+/// degrees, a translucency cone) with a sphere light inside it, nested and
+/// touching glass. Finite in f32 and f64, and f32 tracks f64.
+#[test]
+fn moving_glass_with_cones_and_tir_stays_finite() {
+    let src = r#"
+[render]
+width = 48
+height = 36
+samples = 4
+max_depth = 6
+[camera]
+position = [0, 1, -5]
+look_at = [0, 0.8, 0]
+shutter = [0, 1]
+aperture = 0.05
+[world]
+ambient = [0.1, 0.1, 0.1]
+background = [0.3, 0.4, 0.6]
+[materials.glass]
+diffuse = [0.02, 0.02, 0.02]
+specular = [0.9, 0.9, 0.9]
+shininess = 80
+reflectivity = 0.1
+transparency = 0.9
+ior = 2.4
+gloss = 89.9
+translucency = 30
+[materials.floor]
+diffuse = [0.7, 0.7, 0.7]
+reflectivity = 0.2
+gloss = 45
+[[lights]]
+type = "sphere"
+center = [0, 0.8, 0]
+radius = 0.3
+samples = 4
+[[lights]]
+type = "quad"
+corner = [-1, 3, -1]
+edge_u = [2, 0, 0]
+edge_v = [0, 0, 2]
+samples = 2
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+[[objects]]
+type = "sphere"
+center = [0, 0.8, 0]
+radius = 0.8
+material = "glass"
+[[objects.keyframes]]
+frame = 0
+center = [-0.5, 0.8, 0]
+[[objects.keyframes]]
+frame = 1
+center = [0.5, 0.8, 0]
+[[objects]]
+type = "sphere"
+center = [0, 0.8, 0]
+radius = 0.4
+material = "glass"
+[[objects]]
+type = "sphere"
+center = [1.6, 0.8, 0]
+radius = 0.8
+material = "glass"
+"#;
+    let desc = scene(src);
+    let a = render(&desc, Precision::F32).resolve();
+    let b = render(&desc, Precision::F64).resolve();
+    common::assert_finite(&a);
+    common::assert_finite(&b);
+    let d = common::diff(&a, &b, 2.0 / 255.0);
+    assert!(d.mean < 5e-3, "mean f32/f64 difference {}", d.mean);
+}
+
 // ---------------------------------------------------------------- determinism
 
 /// The distributed example renders the same sums whatever the tiles and

@@ -357,6 +357,18 @@ SPHERES
             ],
         ),
         (
+            "moving glass sphere with cones",
+            &[
+                ("LIGHTS", point),
+                ("CAMERA", "shutter = [0, 1]"),
+                ("TRANSLUCENCY", "translucency = 20\ngloss = 30"),
+                (
+                    "MOVING",
+                    "[[objects]]\ntype = \"sphere\"\ncenter = [-1.5, 0.5, -1]\nradius = 0.5\nmaterial = \"glass\"\n[[objects.keyframes]]\nframe = 0\ncenter = [-2, 0.5, -2]\n[[objects.keyframes]]\nframe = 1\ncenter = [-1, 0.6, -1]",
+                ),
+            ],
+        ),
+        (
             "moving camera",
             &[
                 ("LIGHTS", point),
