@@ -127,6 +127,21 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
             "{plot}.svg"
         );
     }
+    // Distributed effects (issue 16): time and error against samples, CPU and GPU.
+    let rows = read_csv(&dir, "distributed");
+    assert!(rows.len() >= 8, "distributed.csv has {} rows", rows.len());
+    assert!(rows.iter().any(|r| r["backend"] == "gpu"), "no GPU run");
+    for r in &rows {
+        assert!(num(r, "rmse") > 0.0 && num(r, "rmse") < 1.0);
+        assert!(num(r, "wall_s") > 0.0);
+    }
+    for scene in ["distributed", "resolution-quad"] {
+        assert!(rows.iter().any(|r| r["scene"] == scene), "no {scene} rows");
+    }
+    for plot in ["error_vs_samples", "time_vs_samples", "error_vs_time"] {
+        let png = image::open(dir.join(format!("out/distributed/{plot}.png"))).unwrap();
+        assert_eq!((png.width(), png.height()), (900, 600));
+    }
     // The headline plot (issue 6's "done when"): CPU and GPU curves for the
     // resolution scene, each point's error measured (every samples.csv row
     // has its RMSE, checked above).

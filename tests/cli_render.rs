@@ -121,7 +121,7 @@ fn malformed_scenes_are_rejected_with_file_line_and_reason() {
         &GOOD.replace("radius = 1", "radius = 1\nshiny = true"),
         &[],
         &[
-            "bad.toml:17:1: objects[0] (sphere).shiny: unknown field `shiny` (valid: `center`, `radius`, `material`)",
+            "bad.toml:17:1: objects[0] (sphere).shiny: unknown field `shiny` (valid: `center`, `radius`, `material`, `keyframes`)",
         ],
     );
     expect_failure(
@@ -343,7 +343,7 @@ fn a_typo_in_any_table_is_located_at_its_key_with_a_suggestion() {
         (
             "position = [0, 5, -5]",
             "position = [0, 5, -5]\ncolour = [1, 1, 1]",
-            "bad.toml:13:1: lights[0].colour: unknown field `colour` (valid: `position`, `diffuse`, `specular`)",
+            "bad.toml:13:1: lights[0].colour: unknown field `colour` (valid: `type`, `position`, `corner`, `edge_u`, `edge_v`, `center`, `radius`, `samples`, `diffuse`, `specular`)",
         ),
         (
             "distance = 0",

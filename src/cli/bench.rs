@@ -21,7 +21,8 @@ pub enum BenchBackend {
 #[derive(Args, Debug)]
 pub struct BenchArgs {
     /// Suites to run [default: all]: resolution, samples, complexity, depth,
-    /// precision, launch (GPU launch-shape sweep; skipped without a GPU
+    /// precision, distributed (issue 16's effects: time and error against
+    /// samples), launch (GPU launch-shape sweep; skipped without a GPU
     /// backend), farm (1..N local worker processes on one frame)
     pub suites: Vec<String>,
     /// Where to trace

@@ -37,6 +37,7 @@
 pub mod accel;
 pub mod assets;
 pub mod bvh;
+pub mod distributed;
 pub mod film;
 pub mod geometry;
 pub mod math;

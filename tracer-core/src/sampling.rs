@@ -70,6 +70,82 @@ pub fn uniform(seed: u32, sample: u32, dim: u32) -> f32 {
     (h >> 8) as f32 * (1.0 / 16_777_216.0)
 }
 
+/// Random-number dimensions of distributed ray tracing (see
+/// `docs/scene-format.md`, "Random numbers"). 0 and 1 place the sample in
+/// its pixel; the camera takes [`DIM_LENS`] (two) and [`DIM_TIME`]; every
+/// node of a sample's ray tree has a key ([`ROOT_KEY`] for the camera ray's
+/// hit, [`child_key`] below it) and draws its own numbers from
+/// [`node_dim`]`(key, slot)`.
+pub const DIM_LENS: u32 = 2;
+pub const DIM_TIME: u32 = 4;
+/// Key of the camera ray's hit.
+pub const ROOT_KEY: u32 = 1;
+/// Slots of a node: the glossy reflection's two numbers, the translucent
+/// refraction's two, then two per light sample (lights in file order, each
+/// light's samples in order).
+pub const SLOT_GLOSS: u32 = 0;
+pub const SLOT_TRANSLUCENCY: u32 = 2;
+pub const SLOT_LIGHTS: u32 = 4;
+/// Child of a node: `which` 0 for the refracted ray, 1 for the reflected one.
+#[inline(always)]
+pub fn child_key(key: u32, which: u32) -> u32 {
+    hash_u32(key.wrapping_mul(2).wrapping_add(which) ^ 0x2c1b_3c6d)
+}
+/// Dimension of `slot` at the node with key `key`.
+#[inline(always)]
+pub fn node_dim(key: u32, slot: u32) -> u32 {
+    hash_u32(key ^ 0x297a_2d39).wrapping_add(slot)
+}
+
+/// Sample `i` of `n` stratified over the unit square, from two uniform
+/// numbers: the cell (i mod m, i div m) of an m x m grid when n = m^2,
+/// else the i-th of n strips in the first coordinate.
+#[inline]
+pub fn stratified(i: u32, n: u32, u1: f32, u2: f32) -> (f64, f64) {
+    let (u1, u2) = (u1 as f64, u2 as f64);
+    match exact_sqrt(n) {
+        Some(m) => (
+            ((i % m) as f64 + u1) / m as f64,
+            ((i / m) as f64 + u2) / m as f64,
+        ),
+        None => ((i as f64 + u1) / n as f64, u2),
+    }
+}
+
+/// (sin, cos) of 2 pi x from + - * / only (no libm), so every machine gets
+/// the same bits; absolute error below 1e-15.
+pub fn sin_cos_turns(x: f64) -> (f64, f64) {
+    // Reduce to [0, 1) turns, then to an eighth of a turn.
+    let x = x - x.floor();
+    let x8 = x * 8.0;
+    let oct = (x8.floor() as i32).clamp(0, 7);
+    let r = (x8 - oct as f64) * 0.125; // [0, 1/8) turns
+    // angle in [0, pi/4): Taylor series to order 17 and 18.
+    let a = r * std::f64::consts::TAU;
+    let a2 = a * a;
+    let (mut s, mut c) = (0.0f64, 0.0f64);
+    for k in (0..9).rev() {
+        // s = sum (-1)^k a^(2k+1)/(2k+1)!, c = sum (-1)^k a^(2k)/(2k)!
+        let sk = (2 * k + 2) as f64 * (2 * k + 3) as f64;
+        let ck = (2 * k + 1) as f64 * (2 * k + 2) as f64;
+        s = 1.0 - a2 / sk * s;
+        c = 1.0 - a2 / ck * c;
+    }
+    let s = s * a;
+    // Octant symmetries: angle = oct * pi/4 + a.
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    match oct {
+        0 => (s, c),
+        1 => (h * (s + c), h * (c - s)),
+        2 => (c, -s),
+        3 => (h * (c - s), -h * (s + c)),
+        4 => (-s, -c),
+        5 => (-h * (s + c), h * (s - c)),
+        6 => (-c, s),
+        _ => (h * (s - c), h * (s + c)),
+    }
+}
+
 /// Integer square root if `n` is a perfect square.
 pub fn exact_sqrt(n: u32) -> Option<u32> {
     let r = (n as f64).sqrt().round() as u32;
@@ -194,6 +270,29 @@ mod tests {
                     .any(|&(u, v)| u >= qx && u < qx + 0.5 && v >= qy && v < qy + 0.5),
                 "quadrant {q} empty: {pts:?}"
             );
+        }
+    }
+
+    #[test]
+    fn sin_cos_turns_matches_libm() {
+        for k in 0..=100_000 {
+            let x = k as f64 / 100_000.0 * 3.0 - 1.0;
+            let (s, c) = sin_cos_turns(x);
+            let a = x * std::f64::consts::TAU;
+            assert!((s - a.sin()).abs() < 1e-14, "sin {x}: {s} vs {}", a.sin());
+            assert!((c - a.cos()).abs() < 1e-14, "cos {x}: {c} vs {}", a.cos());
+        }
+    }
+
+    #[test]
+    fn stratified_points_stay_in_their_cells() {
+        for n in [1, 2, 4, 5, 9] {
+            for i in 0..n {
+                let (u, v) = stratified(i, n, 0.999, 0.0);
+                assert!((0.0..1.0).contains(&u) && (0.0..1.0).contains(&v));
+                let (u0, _) = stratified(i, n, 0.0, 0.0);
+                assert!(u0 <= u);
+            }
         }
     }
 

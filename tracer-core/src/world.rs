@@ -8,6 +8,7 @@
 
 use crate::accel::TriangleSet;
 use crate::bvh::Bvh;
+use crate::distributed::{self, Distributed, Lens, MovingMesh, MovingSphere, Timing};
 use crate::geometry::{Plane, PrimId, Sphere, SpherePack};
 use crate::math::{Lanes4, Ray, Real, Vector3};
 use crate::scene::{FILE_MATERIALS, MaterialDesc, ObjectDesc, RenderSettings, SceneDesc, Vec3};
@@ -24,6 +25,10 @@ pub struct Material<R: Real> {
     pub ior: R,
     /// N.H below which max(N.H,0)^shininess < `Real::SPECULAR_FLOOR`.
     pub specular_cos_min: R,
+    /// Cosines of the gloss and translucency half-angles (1: a perfect
+    /// mirror and a perfect refraction).
+    pub gloss_cos: R,
+    pub translucency_cos: R,
 }
 
 impl<R: Real> Material<R> {
@@ -41,7 +46,18 @@ impl<R: Real> Material<R> {
             } else {
                 0.0
             }),
+            gloss_cos: R::from_f64(cos_deg(m.gloss.0)),
+            translucency_cos: R::from_f64(cos_deg(m.translucency.0)),
         }
+    }
+}
+
+/// cos of an angle in degrees, exactly 1 at 0 and the same bits on every machine.
+fn cos_deg(deg: f64) -> f64 {
+    if deg == 0.0 {
+        1.0
+    } else {
+        crate::sampling::sin_cos_turns(deg / 360.0).1
     }
 }
 
@@ -116,6 +132,9 @@ pub struct World<R: Real> {
     pub features: Features,
     /// World-space position of the camera, which is this world's origin.
     pub camera_position: [f64; 3],
+    /// Distributed ray tracing (area lights, cones, lens, motion), only
+    /// for scenes that use it: they render through its own path.
+    pub dist: Option<Box<Distributed<R>>>,
 }
 
 fn v<R: Real>(a: &Vec3) -> R::V3 {
@@ -130,7 +149,9 @@ impl<R: Real> World<R> {
     /// Builds the render-ready state of `desc` for `settings` (validated by
     /// the caller) and `frame`.
     pub fn build(desc: &SceneDesc, settings: &RenderSettings, frame: u32) -> Self {
-        let cam = desc.camera.at(frame);
+        // The shutter's opening; [0, 0] (the default) is the frame itself.
+        let time = Timing::of(desc, frame);
+        let cam = desc.camera.at_time(time.open);
         let origin = cam.position.0;
         // Camera basis in f64, then rounded.
         let f = normalize64(sub64(cam.look_at.0, origin));
@@ -153,6 +174,8 @@ impl<R: Real> World<R> {
             .collect();
 
         let mut spheres = Vec::new();
+        let mut moving_spheres = Vec::new();
+        let mut moving_meshes = Vec::new();
         let mut planes = Vec::new();
         let mut tris = TriangleSet::default();
         let mut features = Features::default();
@@ -161,11 +184,34 @@ impl<R: Real> World<R> {
                 features.note(&materials[mat as usize], settings.max_depth);
             }
             match o {
-                ObjectDesc::Sphere { center, radius, .. } => spheres.push(Sphere {
-                    center: rel::<R>(center, &origin),
-                    radius: R::from_f64(radius.0),
-                    material: mat,
-                }),
+                ObjectDesc::Sphere {
+                    center,
+                    radius,
+                    keyframes,
+                    ..
+                } => {
+                    let c = ObjectDesc::sphere_center_at(center, keyframes, time.open);
+                    let sphere = Sphere {
+                        center: rel::<R>(&c, &origin),
+                        radius: R::from_f64(radius.0),
+                        material: mat,
+                    };
+                    let c1 = ObjectDesc::sphere_center_at(center, keyframes, time.close);
+                    if c1 == c {
+                        spheres.push(sphere);
+                    } else {
+                        let delta = distributed::sub64(c1.0, c.0);
+                        let lo = distributed::sub64(c.0, origin).map(|x| x - radius.0);
+                        let hi = distributed::sub64(c.0, origin).map(|x| x + radius.0);
+                        let (lo, hi) = distributed::swept_box::<R>(lo, hi, delta);
+                        moving_spheres.push(MovingSphere {
+                            sphere,
+                            delta: R::V3::from_array(delta),
+                            lo,
+                            hi,
+                        });
+                    }
+                }
                 ObjectDesc::Plane {
                     normal, distance, ..
                 } => {
@@ -177,7 +223,7 @@ impl<R: Real> World<R> {
                         material: mat,
                     })
                 }
-                ObjectDesc::Mesh(m) => tris.add_mesh(
+                ObjectDesc::Mesh(m) if m.keyframes.is_empty() => tris.add_mesh(
                     m,
                     mat,
                     &mut materials,
@@ -185,6 +231,36 @@ impl<R: Real> World<R> {
                     settings.max_depth,
                     origin,
                 ),
+                ObjectDesc::Mesh(m) => {
+                    let mut placed = m.clone();
+                    placed.translate = m.translate_at(time.open);
+                    let t1 = m.translate_at(time.close);
+                    if t1 == placed.translate {
+                        tris.add_mesh(
+                            &placed,
+                            mat,
+                            &mut materials,
+                            &mut features,
+                            settings.max_depth,
+                            origin,
+                        );
+                    } else {
+                        // Its own world (materials as the main one's so
+                        // far, the file's appended): a tree of its own.
+                        let mut own = TriangleSet::default();
+                        let mut own_materials = materials.clone();
+                        own.add_mesh(
+                            &placed,
+                            mat,
+                            &mut own_materials,
+                            &mut features,
+                            settings.max_depth,
+                            origin,
+                        );
+                        let delta = distributed::sub64(t1.0, placed.translate.0);
+                        moving_meshes.push((own, own_materials, delta));
+                    }
+                }
             }
         }
         // Total internal reflection sends transparency into a reflected ray.
@@ -195,6 +271,7 @@ impl<R: Real> World<R> {
         let lights = desc
             .lights
             .iter()
+            .filter(|l| !l.shape.is_area())
             .map(|l| PointLight {
                 position: rel::<R>(&l.position, &origin),
                 diffuse: v::<R>(&l.diffuse),
@@ -218,9 +295,111 @@ impl<R: Real> World<R> {
             settings: *settings,
             features,
             camera_position: origin,
+            dist: None,
         };
         crate::accel::build_accel(&mut world, None);
+
+        // Distributed ray tracing, only where the scene asks for it.
+        let area_lights = desc.lights.iter().any(|l| l.shape.is_area());
+        let cones = world
+            .materials
+            .iter()
+            .chain(moving_meshes.iter().flat_map(|(_, m, _)| m.iter()))
+            .any(|m| m.gloss_cos < R::ONE || m.translucency_cos < R::ONE);
+        let lens = (desc.camera.aperture.0 > 0.0).then(|| Lens {
+            aperture: R::from_f64(desc.camera.aperture.0),
+            focus_distance: desc.camera.focus_distance.map(|f| R::from_f64(f.0)),
+        });
+        let camera_motion =
+            distributed::camera_motion::<R>(desc, &cam, &desc.camera.at_time(time.close), aspect);
+        if area_lights
+            || cones
+            || lens.is_some()
+            || camera_motion.is_some()
+            || !moving_spheres.is_empty()
+            || !moving_meshes.is_empty()
+        {
+            let blur =
+                camera_motion.is_some() || !moving_spheres.is_empty() || !moving_meshes.is_empty();
+            let moving_meshes = moving_meshes
+                .into_iter()
+                .map(|(set, mats, delta)| {
+                    let mut own = World {
+                        sphere_packs: Vec::new(),
+                        spheres: Vec::new(),
+                        planes: Vec::new(),
+                        triangles: set.triangles,
+                        triangle_shading: set.shading,
+                        accel: None,
+                        degenerate_triangles: set.degenerate,
+                        materials: mats,
+                        lights: Vec::new(),
+                        dist: None,
+                        ..world.clone_settings()
+                    };
+                    crate::accel::build_accel(&mut own, None);
+                    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+                    for t in &own.triangles {
+                        for v in t.vertices() {
+                            let v = v.to_array();
+                            for k in 0..3 {
+                                lo[k] = lo[k].min(v[k]);
+                                hi[k] = hi[k].max(v[k]);
+                            }
+                        }
+                    }
+                    let (lo, hi) = distributed::swept_box::<R>(lo, hi, delta);
+                    MovingMesh {
+                        world: own,
+                        delta: R::V3::from_array(delta),
+                        lo,
+                        hi,
+                    }
+                })
+                .collect();
+            world.dist = Some(Box::new(Distributed {
+                lights: distributed::lights::<R>(desc, &origin),
+                area_lights,
+                cones,
+                lens,
+                camera_motion,
+                moving_spheres,
+                moving_meshes,
+                blur,
+                unit_right: R::V3::from_array(r),
+                unit_up: R::V3::from_array(u),
+                look_distance: R::from_f64(
+                    sub64(cam.look_at.0, origin)
+                        .iter()
+                        .map(|x| x * x)
+                        .sum::<f64>()
+                        .sqrt(),
+                ),
+            }));
+        }
         world
+    }
+
+    /// A world with this one's settings, camera and colours and nothing in it.
+    fn clone_settings(&self) -> Self {
+        World {
+            spheres: Vec::new(),
+            sphere_packs: Vec::new(),
+            planes: Vec::new(),
+            triangles: Vec::new(),
+            triangle_shading: Vec::new(),
+            accel: None,
+            degenerate_triangles: 0,
+            materials: Vec::new(),
+            lights: Vec::new(),
+            ambient: self.ambient,
+            background: self.background,
+            camera: self.camera,
+            settings: self.settings,
+            features: self.features,
+            camera_position: self.camera_position,
+            dist: None,
+        }
     }
 
     /// Lane of the starting sphere within pack `pack`, or 4 (none).

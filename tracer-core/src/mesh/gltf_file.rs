@@ -349,6 +349,8 @@ fn map_material(m: &gltf::Material) -> MaterialDesc {
             0.0
         }),
         ior: Num(1.5), // KHR_materials_ior is not read
+        gloss: Num(0.0),
+        translucency: Num(0.0),
     }
 }
 

@@ -95,6 +95,8 @@ pub fn default_material() -> MaterialDesc {
         reflectivity: Num(0.0),
         transparency: Num(0.0),
         ior: Num(1.0),
+        gloss: Num(0.0),
+        translucency: Num(0.0),
     }
 }
 

@@ -349,5 +349,7 @@ fn map_material(m: &tobj::Material) -> MaterialDesc {
             .optical_density
             .filter(|&n| n > 0.0)
             .map_or(1.0, f64::from)),
+        gloss: Num(0.0),
+        translucency: Num(0.0),
     }
 }

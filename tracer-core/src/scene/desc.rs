@@ -170,6 +170,17 @@ pub struct CameraDesc {
     /// them (and held before the first and after the last). Empty: a still camera.
     #[serde(default)]
     pub keyframes: Vec<CameraKeyframe>,
+    /// Depth of field: lens radius in world units; 0 is the pinhole camera.
+    #[serde(default)]
+    pub aperture: Num,
+    /// Distance to the plane in focus along the view direction; `None`:
+    /// |look_at - position| of the pose.
+    #[serde(default)]
+    pub focus_distance: Option<Num>,
+    /// Motion blur: the open and close times of the shutter, fractions of a
+    /// frame (`None`: [0, 0], no blur).
+    #[serde(default)]
+    pub shutter: Option<(Num, Num)>,
 }
 
 /// One `[[camera.keyframes]]` entry; fields left out take the `[camera]` table's values.
@@ -190,6 +201,44 @@ pub struct CameraPose {
     pub fov_y: Num,
 }
 
+/// Where time `t` falls among keyframes at `frames` (increasing): held at
+/// keyframe `i`, or between `i` and `i + 1` with weight `w` on the second.
+pub(crate) enum Segment {
+    Hold(usize),
+    Between(usize, f64),
+}
+
+pub(crate) fn segment(frames: &[u32], t: f64) -> Option<Segment> {
+    let (first, last) = (*frames.first()?, *frames.last()?);
+    if t <= first as f64 {
+        return Some(Segment::Hold(0));
+    }
+    if t >= last as f64 {
+        return Some(Segment::Hold(frames.len() - 1));
+    }
+    let i = frames.partition_point(|&k| k as f64 <= t);
+    // For an integer t this is exactly (frame - k0) as f64 / (k1 - k0) as f64.
+    let w = (t - frames[i - 1] as f64) / (frames[i] - frames[i - 1]) as f64;
+    Some(Segment::Between(i - 1, w))
+}
+
+fn lerp3(x: Vec3, y: Vec3, w: f64) -> Vec3 {
+    let lerp = |a: f64, b: f64| a + (b - a) * w;
+    Vec3([
+        lerp(x.0[0], y.0[0]),
+        lerp(x.0[1], y.0[1]),
+        lerp(x.0[2], y.0[2]),
+    ])
+}
+
+/// Keyframed point at time `t` (today's camera rule): `None` without keyframes.
+pub(crate) fn keyframed(frames: &[u32], values: &[Vec3], t: f64) -> Option<Vec3> {
+    Some(match segment(frames, t)? {
+        Segment::Hold(i) => values[i],
+        Segment::Between(i, w) => lerp3(values[i], values[i + 1], w),
+    })
+}
+
 impl CameraDesc {
     fn pose_of(&self, k: &CameraKeyframe) -> CameraPose {
         CameraPose {
@@ -202,40 +251,36 @@ impl CameraDesc {
     /// The pose at `frame`: linear interpolation between the keyframes around
     /// it (keyframes are sorted by frame, checked at parse time).
     pub fn at(&self, frame: u32) -> CameraPose {
-        let still = CameraPose {
-            position: self.position,
-            look_at: self.look_at,
-            fov_y: self.fov_y,
-        };
-        let (Some(first), Some(last)) = (self.keyframes.first(), self.keyframes.last()) else {
-            return still;
-        };
-        if frame <= first.frame {
-            return self.pose_of(first);
+        self.at_time(frame as f64)
+    }
+
+    /// The pose at a real-valued time (in frames): the same rule as [`Self::at`].
+    pub fn at_time(&self, t: f64) -> CameraPose {
+        let frames: Vec<u32> = self.keyframes.iter().map(|k| k.frame).collect();
+        match segment(&frames, t) {
+            None => CameraPose {
+                position: self.position,
+                look_at: self.look_at,
+                fov_y: self.fov_y,
+            },
+            Some(Segment::Hold(i)) => self.pose_of(&self.keyframes[i]),
+            Some(Segment::Between(i, w)) => {
+                let (a, b) = (
+                    self.pose_of(&self.keyframes[i]),
+                    self.pose_of(&self.keyframes[i + 1]),
+                );
+                CameraPose {
+                    position: lerp3(a.position, b.position, w),
+                    look_at: lerp3(a.look_at, b.look_at, w),
+                    fov_y: Num(a.fov_y.0 + (b.fov_y.0 - a.fov_y.0) * w),
+                }
+            }
         }
-        if frame >= last.frame {
-            return self.pose_of(last);
-        }
-        let i = self.keyframes.partition_point(|k| k.frame <= frame);
-        let (a, b) = (
-            self.pose_of(&self.keyframes[i - 1]),
-            self.pose_of(&self.keyframes[i]),
-        );
-        let t = (frame - self.keyframes[i - 1].frame) as f64
-            / (self.keyframes[i].frame - self.keyframes[i - 1].frame) as f64;
-        let lerp = |x: f64, y: f64| x + (y - x) * t;
-        let lerp3 = |x: Vec3, y: Vec3| {
-            Vec3([
-                lerp(x.0[0], y.0[0]),
-                lerp(x.0[1], y.0[1]),
-                lerp(x.0[2], y.0[2]),
-            ])
-        };
-        CameraPose {
-            position: lerp3(a.position, b.position),
-            look_at: lerp3(a.look_at, b.look_at),
-            fov_y: Num(lerp(a.fov_y.0, b.fov_y.0)),
-        }
+    }
+
+    /// The shutter interval `[open, close]` in fractions of a frame.
+    pub fn shutter(&self) -> (f64, f64) {
+        self.shutter.map_or((0.0, 0.0), |(a, b)| (a.0, b.0))
     }
 }
 
@@ -272,6 +317,13 @@ pub struct MaterialDesc {
     pub transparency: Num,
     #[serde(default = "one")]
     pub ior: Num,
+    /// Glossy reflection: half-angle in degrees of the cone the reflected
+    /// ray is drawn from, in [0, 90); 0 is the perfect mirror.
+    #[serde(default)]
+    pub gloss: Num,
+    /// Translucency: the same for the refracted ray.
+    #[serde(default)]
+    pub translucency: Num,
 }
 
 fn one() -> Num {
@@ -281,14 +333,84 @@ fn white() -> Vec3 {
     Vec3([1.0; 3])
 }
 
+/// A validated light.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LightDesc {
+    pub shape: LightShape,
+    /// A point light's position; an area light's centre.
+    pub position: Vec3,
+    pub diffuse: Vec3,
+    pub specular: Vec3,
+    /// Shadow rays per hit (stratified over the light); 1 for point lights.
+    pub samples: u32,
+}
+
+/// Where a light's points lie.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LightShape {
+    /// At `position`.
+    Point,
+    /// The parallelogram corner + a edge_u + b edge_v, a and b in [0, 1].
+    Quad {
+        corner: Vec3,
+        edge_u: Vec3,
+        edge_v: Vec3,
+    },
+    /// The sphere's surface.
+    Sphere { center: Vec3, radius: f64 },
+}
+
+impl LightShape {
+    pub fn is_area(&self) -> bool {
+        !matches!(self, LightShape::Point)
+    }
+}
+
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
+#[serde(rename_all = "lowercase")]
+enum LightType {
+    #[default]
+    Point,
+    Quad,
+    Sphere,
+}
+
+/// A `[[lights]]` entry as written.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LightFile {
+    #[serde(rename = "type", default)]
+    kind: LightType,
+    position: Option<Vec3>,
+    corner: Option<Vec3>,
+    edge_u: Option<Vec3>,
+    edge_v: Option<Vec3>,
+    center: Option<Vec3>,
+    radius: Option<Num>,
+    samples: Option<u32>,
+    #[serde(default = "white")]
+    diffuse: Vec3,
+    #[serde(default = "white")]
+    specular: Vec3,
+}
+
+/// Largest `samples` of one light.
+pub const MAX_LIGHT_SAMPLES: u32 = 4096;
+
+/// A sphere's `[[objects.keyframes]]` entry.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
-pub struct LightDesc {
-    pub position: Vec3,
-    #[serde(default = "white")]
-    pub diffuse: Vec3,
-    #[serde(default = "white")]
-    pub specular: Vec3,
+pub struct SphereKeyframe {
+    pub frame: u32,
+    pub center: Vec3,
+}
+
+/// A mesh's `[[objects.keyframes]]` entry: its `translate` at a frame.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MeshKeyframe {
+    pub frame: u32,
+    pub translate: Vec3,
 }
 
 #[derive(Clone, Debug, Deserialize, PartialEq)]
@@ -298,6 +420,10 @@ pub enum ObjectDesc {
         center: Vec3,
         radius: Num,
         material: String,
+        /// Motion: centres at given frames, interpolated like the camera's
+        /// keyframes. Empty: the sphere stays at `center`.
+        #[serde(default)]
+        keyframes: Vec<SphereKeyframe>,
     },
     Plane {
         normal: Vec3,
@@ -318,6 +444,13 @@ impl ObjectDesc {
             ObjectDesc::Mesh(m) => m.material.as_deref(),
         }
     }
+    /// A sphere's centre at time `t` (in frames).
+    pub fn sphere_center_at(center: &Vec3, keyframes: &[SphereKeyframe], t: f64) -> Vec3 {
+        let frames: Vec<u32> = keyframes.iter().map(|k| k.frame).collect();
+        let values: Vec<Vec3> = keyframes.iter().map(|k| k.center).collect();
+        keyframed(&frames, &values, t).unwrap_or(*center)
+    }
+
     pub fn kind(&self) -> &'static str {
         match self {
             ObjectDesc::Sphere { .. } => "sphere",
@@ -341,7 +474,7 @@ struct SceneFile {
     #[serde(default)]
     materials: BTreeMap<String, Spanned<MaterialDesc>>,
     #[serde(default)]
-    lights: Vec<Spanned<LightDesc>>,
+    lights: Vec<Spanned<LightFile>>,
     #[serde(default)]
     objects: Vec<Spanned<ObjectDesc>>,
 }
@@ -512,6 +645,35 @@ impl SceneDesc {
             }
         }
 
+        if !(cam.aperture.0.is_finite() && (0.0..=MAX_VALUE).contains(&cam.aperture.0)) {
+            return Err(cam_err(
+                "aperture",
+                format!(
+                    "must be a finite number >= 0 and at most 1e6, got {}",
+                    cam.aperture.0
+                ),
+            ));
+        }
+        if let Some(f) = cam.focus_distance
+            && !(f.0.is_finite() && f.0 > 0.0 && f.0 <= MAX_VALUE * MAX_VALUE)
+        {
+            return Err(cam_err(
+                "focus_distance",
+                format!("must be a finite number > 0, got {}", f.0),
+            ));
+        }
+        if let Some((open, close)) = cam.shutter
+            && !(open.0 >= 0.0 && open.0 <= close.0 && close.0 <= 1.0)
+        {
+            return Err(cam_err(
+                "shutter",
+                format!(
+                    "must be [open, close] with 0 <= open <= close <= 1, got [{}, {}]",
+                    open.0, close.0
+                ),
+            ));
+        }
+
         let world_span = table_span("world");
         check_colour(&file.world.ambient)
             .map_err(|m| invalid(world_span.clone(), "world.ambient".into(), m))?;
@@ -537,6 +699,14 @@ impl SceneDesc {
             ] {
                 check_weight(v.0).map_err(|m| err(f, m))?;
             }
+            for (f, v) in [("gloss", mv.gloss), ("translucency", mv.translucency)] {
+                if !(v.0 >= 0.0 && v.0 < 90.0) {
+                    return Err(err(
+                        f,
+                        format!("must be a half-angle in degrees in [0, 90), got {}", v.0),
+                    ));
+                }
+            }
             if !(mv.ior.0.is_finite() && mv.ior.0 > 0.0) {
                 return Err(err(
                     "ior",
@@ -549,17 +719,105 @@ impl SceneDesc {
         let mut lights = Vec::with_capacity(file.lights.len());
         for (i, l) in file.lights.iter().enumerate() {
             let lv = l.get_ref();
-            if !lv.position.is_finite() {
-                return Err(invalid(
-                    l.span(),
-                    format!("lights[{i}].position"),
-                    format!("must be finite, got {:?}", lv.position.0),
+            let err = |f: &str, m: String| invalid(l.span(), format!("lights[{i}].{f}"), m);
+            let kind = match lv.kind {
+                LightType::Point => "point",
+                LightType::Quad => "quad",
+                LightType::Sphere => "sphere",
+            };
+            let point = |f: &str, v: Option<Vec3>| -> Result<Vec3, SceneError> {
+                let v = v.ok_or_else(|| err(f, format!("missing (a {kind} light needs it)")))?;
+                if v.is_finite() && v.0.iter().all(|x| x.abs() <= 1e15) {
+                    Ok(v)
+                } else {
+                    Err(err(f, format!("must be finite, got {:?}", v.0)))
+                }
+            };
+            // Fields of the other light types are mistakes, said as such.
+            let allowed: &[&str] = match lv.kind {
+                LightType::Point => &["position"],
+                LightType::Quad => &["corner", "edge_u", "edge_v", "samples"],
+                LightType::Sphere => &["center", "radius", "samples"],
+            };
+            for (f, present) in [
+                ("position", lv.position.is_some()),
+                ("corner", lv.corner.is_some()),
+                ("edge_u", lv.edge_u.is_some()),
+                ("edge_v", lv.edge_v.is_some()),
+                ("center", lv.center.is_some()),
+                ("radius", lv.radius.is_some()),
+                ("samples", lv.samples.is_some()),
+            ] {
+                if present && !allowed.contains(&f) {
+                    return Err(err(
+                        f,
+                        format!(
+                            "not a field of a {kind} light (type = \"{kind}\" takes {})",
+                            allowed.join(", ")
+                        ),
+                    ));
+                }
+            }
+            let (shape, position) = match lv.kind {
+                LightType::Point => (LightShape::Point, point("position", lv.position)?),
+                LightType::Quad => {
+                    let corner = point("corner", lv.corner)?;
+                    let edge_u = point("edge_u", lv.edge_u)?;
+                    let edge_v = point("edge_v", lv.edge_v)?;
+                    let area = edge_u.cross(&edge_v).length();
+                    if !(area > 1e-12 * edge_u.length() * edge_v.length()) || area == 0.0 {
+                        return Err(err(
+                            "edge_v",
+                            format!(
+                                "edge_u {:?} and edge_v {:?} must span a parallelogram (non-zero, not parallel)",
+                                edge_u.0, edge_v.0
+                            ),
+                        ));
+                    }
+                    let centre = Vec3(std::array::from_fn(|k| {
+                        corner.0[k] + 0.5 * edge_u.0[k] + 0.5 * edge_v.0[k]
+                    }));
+                    (
+                        LightShape::Quad {
+                            corner,
+                            edge_u,
+                            edge_v,
+                        },
+                        centre,
+                    )
+                }
+                LightType::Sphere => {
+                    let center = point("center", lv.center)?;
+                    let radius = lv
+                        .radius
+                        .ok_or_else(|| err("radius", "missing (a sphere light needs it)".into()))?
+                        .0;
+                    if !(radius.is_finite() && radius > 0.0 && radius <= 1e15) {
+                        return Err(err(
+                            "radius",
+                            format!("must be a finite number > 0, got {radius}"),
+                        ));
+                    }
+                    (LightShape::Sphere { center, radius }, center)
+                }
+            };
+            let samples = lv.samples.unwrap_or(1);
+            if !(1..=MAX_LIGHT_SAMPLES).contains(&samples) {
+                return Err(err(
+                    "samples",
+                    format!("must be in 1..={MAX_LIGHT_SAMPLES}, got {samples}"),
                 ));
             }
             for (f, c) in [("diffuse", &lv.diffuse), ("specular", &lv.specular)] {
-                check_colour(c).map_err(|m| invalid(l.span(), format!("lights[{i}].{f}"), m))?;
+                check_colour(c).map_err(|m| err(f, m))?;
             }
-            lights.push(lv.clone());
+            lights.push(LightDesc {
+                shape,
+                position,
+                diffuse: lv.diffuse,
+                specular: lv.specular,
+                samples,
+            });
         }
 
         let mut objects = Vec::with_capacity(file.objects.len());
@@ -572,9 +830,32 @@ impl SceneDesc {
             };
             let mut ov = ov.clone();
             match &mut ov {
-                ObjectDesc::Sphere { center, radius, .. } => {
+                ObjectDesc::Sphere {
+                    center,
+                    radius,
+                    keyframes,
+                    ..
+                } => {
                     if !center.is_finite() {
                         return Err(err("center", format!("must be finite, got {:?}", center.0)));
+                    }
+                    for (k, key) in keyframes.iter().enumerate() {
+                        if !key.center.is_finite() {
+                            return Err(err(
+                                &format!("keyframes[{k}].center"),
+                                format!("must be finite, got {:?}", key.center.0),
+                            ));
+                        }
+                        if k > 0 && key.frame <= keyframes[k - 1].frame {
+                            return Err(err(
+                                &format!("keyframes[{k}].frame"),
+                                format!(
+                                    "keyframes must be in increasing frame order, got frame {} after frame {}",
+                                    key.frame,
+                                    keyframes[k - 1].frame
+                                ),
+                            ));
+                        }
                     }
                     if !(radius.0.is_finite() && radius.0 > 0.0) {
                         return Err(err(
@@ -754,7 +1035,7 @@ fn locate_parse_error(src: &str) -> Result<(), (usize, String)> {
         && let DeValue::Array(a) = v.get_ref()
     {
         for (i, e) in a.iter().enumerate() {
-            check::<LightDesc>(e, &format!("lights[{i}]"))?;
+            check::<LightFile>(e, &format!("lights[{i}]"))?;
         }
     }
     if let Some(v) = named(root, "objects")
@@ -991,5 +1272,112 @@ material = "red"
             e.contains("objects[0] (plane).normal: must be a finite, non-zero vector"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn distributed_fields_are_validated_by_name() {
+        let quad = "[[lights]]\ntype = \"quad\"\ncorner = [0, 4, 0]\nedge_u = [1, 0, 0]\nedge_v = [0, 0, 1]\nsamples = 4\n";
+        let s = SceneDesc::parse(&format!("{MINIMAL}{quad}"), "q.toml").unwrap();
+        assert_eq!(s.lights[0].samples, 4);
+        assert_eq!(s.lights[0].position, Vec3([0.5, 4.0, 0.5]));
+        let e = err(&format!(
+            "{MINIMAL}{}",
+            quad.replace("[0, 0, 1]", "[2, 0, 0]")
+        ));
+        assert!(
+            e.contains("lights[0].edge_v: edge_u [1.0, 0.0, 0.0] and edge_v [2.0, 0.0, 0.0] must span a parallelogram"),
+            "{e}"
+        );
+        let e = err(&format!(
+            "{MINIMAL}{}",
+            quad.replace("samples = 4", "samples = 0")
+        ));
+        assert!(
+            e.contains("lights[0].samples: must be in 1..=4096, got 0"),
+            "{e}"
+        );
+        let e = err(&format!(
+            "{MINIMAL}{}",
+            quad.replace("corner = [0, 4, 0]\n", "")
+        ));
+        assert!(
+            e.contains("lights[0].corner: missing (a quad light needs it)"),
+            "{e}"
+        );
+        let e = err(&format!(
+            "{MINIMAL}[[lights]]\nposition = [0, 1, 0]\nsamples = 2\n"
+        ));
+        assert!(
+            e.contains("lights[0].samples: not a field of a point light"),
+            "{e}"
+        );
+        let e = err(&format!(
+            "{MINIMAL}[[lights]]\ntype = \"sphere\"\ncenter = [0, 1, 0]\nradius = 0\n"
+        ));
+        assert!(
+            e.contains("lights[0].radius: must be a finite number > 0, got 0"),
+            "{e}"
+        );
+        let e = err(&format!("{MINIMAL}[[lights]]\ntype = \"disc\"\n"));
+        assert!(e.contains("lights[0]") && e.contains("disc"), "{e}");
+        let e = err(&MINIMAL.replace("diffuse = [1, 0, 0]", "diffuse = [1, 0, 0]\ngloss = 90"));
+        assert!(
+            e.contains("materials.red.gloss: must be a half-angle in degrees in [0, 90), got 90"),
+            "{e}"
+        );
+        let e = err(&MINIMAL.replace("diffuse = [1, 0, 0]", "translucency = -1"));
+        assert!(
+            e.contains("materials.red.translucency: must be a half-angle"),
+            "{e}"
+        );
+        let cam = |line: &str| {
+            err(&MINIMAL.replace(
+                "look_at = [0.0, 1.0, 0.0]",
+                &format!("look_at = [0.0, 1.0, 0.0]\n{line}"),
+            ))
+        };
+        let e = cam("shutter = [0.5, 0.25]");
+        assert!(
+            e.contains("camera.shutter: must be [open, close] with 0 <= open <= close <= 1, got [0.5, 0.25]"),
+            "{e}"
+        );
+        assert!(cam("shutter = [0, 1.5]").contains("camera.shutter"));
+        assert!(cam("aperture = -1").contains("camera.aperture: must be a finite number >= 0"));
+        assert!(
+            cam("focus_distance = 0")
+                .contains("camera.focus_distance: must be a finite number > 0")
+        );
+        let e = err(&format!(
+            "{MINIMAL}[[objects.keyframes]]\nframe = 3\ncenter = [0, 0, 0]\n[[objects.keyframes]]\nframe = 2\ncenter = [0, 1, 0]\n"
+        ));
+        assert!(
+            e.contains("objects[0] (sphere).keyframes[1].frame: keyframes must be in increasing frame order"),
+            "{e}"
+        );
+        // Sphere keyframes interpolate like the camera's, at real times.
+        let s = SceneDesc::parse(
+            &format!("{MINIMAL}[[objects.keyframes]]\nframe = 2\ncenter = [0, 0, 0]\n[[objects.keyframes]]\nframe = 4\ncenter = [4, 0, 0]\n"),
+            "k.toml",
+        )
+        .unwrap();
+        let ObjectDesc::Sphere {
+            center, keyframes, ..
+        } = &s.objects[0]
+        else {
+            panic!()
+        };
+        assert_eq!(
+            ObjectDesc::sphere_center_at(center, keyframes, 3.5),
+            Vec3([3.0, 0.0, 0.0])
+        );
+        assert_eq!(
+            ObjectDesc::sphere_center_at(center, keyframes, 1.0),
+            Vec3([0.0, 0.0, 0.0])
+        );
+        assert_eq!(
+            ObjectDesc::sphere_center_at(center, keyframes, 9.0),
+            Vec3([4.0, 0.0, 0.0])
+        );
+        assert_eq!(ObjectDesc::sphere_center_at(center, &[], 9.0), *center);
     }
 }

@@ -6,7 +6,7 @@ use glam::{DMat3, DVec3};
 use serde::Deserialize;
 use serde::de::{self, Deserializer, SeqAccess, Visitor};
 
-use super::desc::{Num, Vec3};
+use super::desc::{MeshKeyframe, Num, Vec3, keyframed};
 use crate::mesh::Mesh;
 
 /// A triangle mesh from a model file, placed by scale, then `rotate_euler`
@@ -28,6 +28,10 @@ pub struct MeshDesc {
     /// Overrides every material of the file.
     #[serde(default)]
     pub material: Option<String>,
+    /// Motion: `translate` at given frames, interpolated like the camera's
+    /// keyframes. Empty: the mesh stays at `translate`.
+    #[serde(default)]
+    pub keyframes: Vec<MeshKeyframe>,
     /// The loaded model (filled by `SceneDesc::parse`, not part of the format).
     #[serde(skip)]
     pub model: MeshModel,
@@ -134,6 +138,27 @@ impl MeshDesc {
                 format!("must be finite, got {:?}", self.translate.0),
             ));
         }
+        for (i, k) in self.keyframes.iter().enumerate() {
+            if !k.translate.0.iter().all(|v| v.is_finite()) {
+                return Err((
+                    "keyframes",
+                    format!(
+                        "keyframes[{i}].translate must be finite, got {:?}",
+                        k.translate.0
+                    ),
+                ));
+            }
+            if i > 0 && k.frame <= self.keyframes[i - 1].frame {
+                return Err((
+                    "keyframes",
+                    format!(
+                        "keyframes must be in increasing frame order, got frame {} after frame {}",
+                        k.frame,
+                        self.keyframes[i - 1].frame
+                    ),
+                ));
+            }
+        }
         if !self.scale.0.iter().all(|v| v.is_finite() && *v != 0.0) {
             return Err((
                 "scale",
@@ -163,6 +188,13 @@ impl MeshDesc {
             return Err(("rotate_euler", format!("must be finite, got {:?}", e.0)));
         }
         Ok(())
+    }
+
+    /// The translation at time `t` (in frames).
+    pub fn translate_at(&self, t: f64) -> Vec3 {
+        let frames: Vec<u32> = self.keyframes.iter().map(|k| k.frame).collect();
+        let values: Vec<Vec3> = self.keyframes.iter().map(|k| k.translate).collect();
+        keyframed(&frames, &values, t).unwrap_or(self.translate)
     }
 
     /// Model space -> world space.

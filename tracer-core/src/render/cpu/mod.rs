@@ -5,6 +5,7 @@
 //! packets of 4x4 pixels ([`World::closest_hits`], [`World::occluded_many`])
 //! and the rays they spawn one at a time.
 
+pub mod distributed;
 pub mod kernels;
 pub mod shade;
 pub mod stream;
@@ -100,6 +101,9 @@ pub fn render_tile<R: Real>(
     tile: Rect,
     samples: SampleRange,
 ) -> Film {
+    if let Some(dist) = &world.dist {
+        return distributed::render_tile(world, dist, frame, tile, samples);
+    }
     if let Some(w) = (world as &dyn std::any::Any).downcast_ref::<World<f32>>()
         && stream::supports(w)
     {

@@ -86,7 +86,9 @@ pub struct GpuMaterial {
     pub ior: f32,
     /// N.H below which the specular term is skipped (`Material::specular_cos_min`).
     pub specular_cos_min: f32,
-    pub _pad: [f32; 2],
+    /// Cosines of the gloss and translucency half-angles (1: none).
+    pub gloss_cos: f32,
+    pub translucency_cos: f32,
 }
 
 /// WGSL: `struct Light`.
@@ -315,6 +317,81 @@ pub struct SceneData {
     pub has_refraction: bool,
     /// The world's BVH over spheres and triangles, when it has one.
     pub tree: Option<SharedTree>,
+    /// Distributed effects (`World::dist`), packed as distributed.wgsl reads them.
+    pub dist: Option<DistData>,
+}
+
+/// `World::dist` for distributed.wgsl: its `dist` array of vec4 (keep in
+/// sync with the layout described there) and the pipeline constants.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DistData {
+    pub words: Vec<[f32; 4]>,
+    pub n_lights: u32,
+    pub n_moving: u32,
+    pub has_lens: bool,
+    pub has_blur: bool,
+    pub has_camera_motion: bool,
+}
+
+impl DistData {
+    pub fn from_dist(d: &crate::distributed::Distributed<f32>) -> Result<Self, GpuError> {
+        use crate::distributed::LightGeom;
+        if !d.moving_meshes.is_empty() {
+            return Err(GpuError::DistributedUnsupported);
+        }
+        let v4 = |v: glam::Vec3A, w: f32| [v.x, v.y, v.z, w];
+        let u = |x: u32| f32::from_bits(x);
+        let zero = glam::Vec3A::ZERO;
+        let (focus, cam) = (
+            d.lens
+                .as_ref()
+                .and_then(|l| l.focus_distance)
+                .unwrap_or(0.0),
+            d.camera_motion.as_ref(),
+        );
+        let mut words = vec![
+            v4(d.unit_right, d.lens.as_ref().map_or(0.0, |l| l.aperture)),
+            v4(d.unit_up, focus),
+            v4(cam.map_or(zero, |c| c.delta_position), d.look_distance),
+            v4(
+                cam.map_or(zero, |c| c.look_at),
+                cam.map_or(0.0, |c| c.fov_y as f32),
+            ),
+            v4(
+                cam.map_or(zero, |c| c.delta_look_at),
+                cam.map_or(0.0, |c| c.delta_fov_y as f32),
+            ),
+            v4(cam.map_or(zero, |c| c.up), cam.map_or(1.0, |c| c.aspect)),
+        ];
+        for l in &d.lights {
+            let (kind, a, b, c, radius) = match l.geom {
+                LightGeom::Point(p) => (0, p, zero, zero, 0.0),
+                LightGeom::Quad {
+                    corner,
+                    edge_u,
+                    edge_v,
+                } => (1, corner, edge_u, edge_v, 0.0),
+                LightGeom::Sphere { center, radius } => (2, center, zero, zero, radius),
+            };
+            words.push(v4(a, u(kind)));
+            words.push(v4(b, radius));
+            words.push(v4(c, u(l.samples)));
+            words.push(v4(l.diffuse, u(l.first_sample)));
+            words.push(v4(l.specular, 0.0));
+        }
+        for m in &d.moving_spheres {
+            words.push(v4(m.sphere.center, m.sphere.radius));
+            words.push(v4(m.delta, u(m.sphere.material)));
+        }
+        Ok(DistData {
+            words,
+            n_lights: d.lights.len() as u32,
+            n_moving: d.moving_spheres.len() as u32,
+            has_lens: d.lens.is_some(),
+            has_blur: d.blur,
+            has_camera_motion: d.camera_motion.is_some(),
+        })
+    }
 }
 
 /// Packed tree data, shared between renders of the same world: equal when
@@ -387,7 +464,8 @@ impl SceneData {
             transparency: m.transparency,
             ior: m.ior,
             specular_cos_min: m.specular_cos_min,
-            _pad: [0.0; 2],
+            gloss_cos: m.gloss_cos,
+            translucency_cos: m.translucency_cos,
         };
         let light = |l: &PointLight<f32>| GpuLight {
             position: a3(l.position),
@@ -433,6 +511,7 @@ impl SceneData {
             has_reflection: w.features.reflection,
             has_refraction: w.features.refraction,
             tree,
+            dist: w.dist.as_deref().map(DistData::from_dist).transpose()?,
         })
     }
 

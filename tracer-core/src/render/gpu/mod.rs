@@ -33,6 +33,7 @@ const WHITTED_WGSL: &str = include_str!("whitted.wgsl");
 const WAVEFRONT_WGSL: &str = include_str!("wavefront.wgsl");
 /// Scene queries for worlds without a tree: loops over spheres and planes.
 const ANALYTIC_WGSL: &str = include_str!("analytic.wgsl");
+const DISTRIBUTED_WGSL: &str = include_str!("distributed.wgsl");
 /// Scene queries for worlds with a BVH (meshes, many spheres).
 const BVH_WGSL: &str = include_str!("bvh.wgsl");
 
@@ -56,6 +57,10 @@ pub enum GpuError {
     RequestDevice { adapter: String, message: String },
     #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
     F64Unsupported,
+    #[error(
+        "the GPU backend does not yet render moving meshes (mesh keyframes over the shutter); render this scene with --backend cpu"
+    )]
+    DistributedUnsupported,
     #[error(
         "the scene's BVH has a node at depth {depth} whose traversal needs more than the GPU traversal stack of {stack} entries; render it with --backend cpu"
     )]
@@ -227,6 +232,8 @@ struct SceneState {
     /// BVH nodes, leaf references, triangles, triangle shading (one-element
     /// placeholders for scenes without a tree, whose kernel never reads them).
     tree: [wgpu::Buffer; 4],
+    /// `DistData::words` (a placeholder for scenes without distributed effects).
+    dist: wgpu::Buffer,
     wave: Option<WavePipelines>,
 }
 
@@ -419,6 +426,8 @@ impl GpuRenderer {
                 storage(9, true),
                 storage(10, true),
                 storage(11, true),
+                // Distributed effects (distributed.wgsl; a placeholder elsewhere).
+                storage(12, true),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -639,6 +648,7 @@ impl GpuRenderer {
                 entire(9, &scene.tree[1]),
                 entire(10, &scene.tree[2]),
                 entire(11, &scene.tree[3]),
+                entire(12, &scene.dist),
             ],
         });
 
@@ -1007,6 +1017,10 @@ impl GpuRenderer {
                 .map(|label| make(label, &[0u8; 64], st)),
         };
 
+        let dist = match &data.dist {
+            Some(d) => make("distributed", bytemuck::cast_slice(&d.words), st),
+            None => make("distributed", &[0u8; 64], st),
+        };
         // Generated part: the stacks' capacities must be constant
         // expressions. Only scenes with a tree compile the BVH traversal.
         let queries = if data.tree.is_some() {
@@ -1014,8 +1028,14 @@ impl GpuRenderer {
         } else {
             ANALYTIC_WGSL
         };
+        // Only scenes with distributed effects compile their kernel.
+        let distributed = if data.dist.is_some() {
+            DISTRIBUTED_WGSL
+        } else {
+            ""
+        };
         let source = format!(
-            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{queries}\n{WAVEFRONT_WGSL}",
+            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{queries}\n{WAVEFRONT_WGSL}\n{distributed}",
             data.stack_capacity(),
             // One more entry than this tree can need (checked at packing to
             // be at most bvh::STACK; see bvh.wgsl), so shallow trees keep small stacks.
@@ -1041,50 +1061,66 @@ impl GpuRenderer {
             ("WG_X", self.options.workgroup.0 as f64),
             ("WG_Y", self.options.workgroup.1 as f64),
         ];
+        let mut all_constants = constants.to_vec();
+        if let Some(d) = &data.dist {
+            all_constants.extend([
+                ("N_DLIGHTS", d.n_lights as f64),
+                ("N_MOVING", d.n_moving as f64),
+                ("HAS_LENS", b(d.has_lens)),
+                ("HAS_BLUR", b(d.has_blur)),
+                ("HAS_CAM_MOTION", b(d.has_camera_motion)),
+            ]);
+        }
         let pipeline = self
             .device
             .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("tessera whitted"),
                 layout: Some(&self.pipeline_layout),
                 module: &module,
-                entry_point: Some("render"),
+                entry_point: Some(if data.dist.is_some() {
+                    "render_dist"
+                } else {
+                    "render"
+                }),
                 compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &constants,
+                    constants: &all_constants,
                     // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
                     zero_initialize_workgroup_memory: true,
                 },
                 cache: None,
             });
-        let wave = (self.options.strategy == Strategy::Wavefront).then(|| {
-            // Twice the largest dispatch's primary tasks, within one indirect dispatch.
-            let (wx, wy) = self.options.workgroup;
-            let max_groups = limits.max_compute_workgroups_per_dimension as u64;
-            let queue_cap = (2 * self.options.dispatch_pixel_samples)
-                .min(max_groups * (wx * wy) as u64)
-                .min(limits.max_storage_buffer_binding_size / layout::WAVE_TASK_BYTES);
-            let mut wave_constants = constants.to_vec();
-            wave_constants.push(("QUEUE_CAP", queue_cap as f64));
-            let make = |entry: &str, layout: &wgpu::PipelineLayout| {
-                self.device
-                    .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                        label: Some(entry),
-                        layout: Some(layout),
-                        module: &module,
-                        entry_point: Some(entry),
-                        compilation_options: wgpu::PipelineCompilationOptions {
-                            constants: &wave_constants,
-                            zero_initialize_workgroup_memory: true,
-                        },
-                        cache: None,
-                    })
-            };
-            WavePipelines {
-                primary: make("wave_primary", &self.wave_pipeline_layout),
-                swap: make("wave_swap", &self.wave_swap_layout),
-                shade: make("wave_shade", &self.wave_pipeline_layout),
-                queue_cap,
-            }
-        });
+        // Distributed effects run on the stack kernel only.
+        let wave =
+            (self.options.strategy == Strategy::Wavefront && data.dist.is_none()).then(|| {
+                // Twice the largest dispatch's primary tasks, within one indirect dispatch.
+                let (wx, wy) = self.options.workgroup;
+                let max_groups = limits.max_compute_workgroups_per_dimension as u64;
+                let queue_cap = (2 * self.options.dispatch_pixel_samples)
+                    .min(max_groups * (wx * wy) as u64)
+                    .min(limits.max_storage_buffer_binding_size / layout::WAVE_TASK_BYTES);
+                let mut wave_constants = constants.to_vec();
+                wave_constants.push(("QUEUE_CAP", queue_cap as f64));
+                let make = |entry: &str, layout: &wgpu::PipelineLayout| {
+                    self.device
+                        .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                            label: Some(entry),
+                            layout: Some(layout),
+                            module: &module,
+                            entry_point: Some(entry),
+                            compilation_options: wgpu::PipelineCompilationOptions {
+                                constants: &wave_constants,
+                                zero_initialize_workgroup_memory: true,
+                            },
+                            cache: None,
+                        })
+                };
+                WavePipelines {
+                    primary: make("wave_primary", &self.wave_pipeline_layout),
+                    swap: make("wave_swap", &self.wave_swap_layout),
+                    shade: make("wave_shade", &self.wave_pipeline_layout),
+                    queue_cap,
+                }
+            });
         Ok(SceneState {
             data,
             options: self.options,
@@ -1095,6 +1131,7 @@ impl GpuRenderer {
             materials,
             lights,
             tree,
+            dist,
             wave,
         })
     }

@@ -59,6 +59,8 @@ struct Material {
     transparency: f32,
     ior: f32,
     specular_cos_min: f32,
+    gloss_cos: f32,
+    translucency_cos: f32,
 }
 
 struct Light {
