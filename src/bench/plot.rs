@@ -160,13 +160,21 @@ pub fn labels_fit(ticks: &[f64], lo: f64, hi: f64, log: bool, len: f64, horizont
     })
 }
 
-/// The densest ticks over lo..hi whose labels leave room between each
-/// other on an axis of `len` pixels (at most [`MAX_TICKS`]); the two ends
-/// when no set fits.
+/// The first candidate over lo..hi (the densest of its kind first) whose
+/// labels leave room between each other on an axis of `len` pixels, with
+/// at most [`MAX_TICKS`] and at least three labels if any set has them
+/// (a log axis of less than a decade gets plain steps); the two ends when
+/// no set fits.
 pub fn choose_ticks(lo: f64, hi: f64, log: bool, len: f64, horizontal: bool) -> Vec<f64> {
-    tick_candidates(lo, hi, log)
+    let fitting: Vec<Vec<f64>> = tick_candidates(lo, hi, log)
         .into_iter()
-        .find(|t| t.len() <= MAX_TICKS && labels_fit(t, lo, hi, log, len, horizontal))
+        .filter(|t| t.len() <= MAX_TICKS && labels_fit(t, lo, hi, log, len, horizontal))
+        .collect();
+    fitting
+        .iter()
+        .find(|t| t.len() >= 3)
+        .or(fitting.first())
+        .cloned()
         .unwrap_or_else(|| vec![lo, hi])
 }
 
@@ -371,7 +379,7 @@ mod tests {
     /// three labels and plain numbers where they fit.
     #[test]
     fn labels_never_overlap_on_any_axis() {
-        let axes: [(f64, f64, bool); 12] = [
+        let axes: [(f64, f64, bool); 13] = [
             // samples/error_vs_time, 2 cores (where x labels overlapped) and the H200
             (0.05 / 1.3, 1.9 * 1.3, true),
             (0.004 / 1.3, 0.45 * 1.3, true),
@@ -379,8 +387,9 @@ mod tests {
             // seven decades, and more
             (1e-4, 1e3, true),
             (1e-9, 1e9, true),
-            // under one decade
+            // under one decade: launch/glass-9_gpu_time's y axis (ms)
             (0.31, 0.47, true),
+            (380.0, 1100.0, true),
             // linear: megapixels, workers, depth, wide integers, negatives
             (0.0, 2.2, false),
             (0.6, 8.4, false),
