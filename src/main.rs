@@ -10,6 +10,10 @@ use clap::Parser;
 
 fn main() -> ExitCode {
     let args = cli::Cli::parse();
+    #[cfg(feature = "gpu")]
+    if args.command.may_use_gpu() {
+        cli::quiet_display_probe();
+    }
     match cli::run(args) {
         Ok(code) => code,
         Err(e) => {

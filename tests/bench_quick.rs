@@ -300,3 +300,102 @@ fn bad_worker_counts_are_rejected_naming_the_flag() {
     assert_eq!(out.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("--workers"), "{stderr}");
 }
+
+/// `--json`: stdout is one JSON array, a run object per CSV row with the
+/// same values under the names docs/cli.md lists; the table is not printed.
+#[test]
+fn json_summary_has_a_run_object_per_csv_row() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
+        .args([
+            "bench",
+            "resolution",
+            "--quick",
+            "--backend",
+            "cpu",
+            "--json",
+        ])
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .arg("--cache")
+        .arg(dir.path().join("cache"))
+        .arg("--examples")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("examples"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let runs: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stdout)));
+    let runs = runs.as_array().expect("an array");
+    let rows = read_csv(dir.path(), "resolution");
+    assert_eq!(runs.len(), rows.len());
+    assert_eq!(runs.len(), 2, "the quick resolution suite has two sizes");
+    let keys = [
+        "suite",
+        "scene",
+        "backend",
+        "device",
+        "threads",
+        "width",
+        "height",
+        "samples",
+        "sampler",
+        "max_depth",
+        "precision",
+        "seconds",
+        "gpu_seconds",
+        "rays",
+        "rays_per_second",
+        "pixels_per_second",
+        "error",
+        "image",
+        "extra",
+    ];
+    for (run, row) in runs.iter().zip(&rows) {
+        let mut got: Vec<&str> = run
+            .as_object()
+            .expect("object")
+            .keys()
+            .map(String::as_str)
+            .collect();
+        got.sort_unstable();
+        let mut want = keys.to_vec();
+        want.sort_unstable();
+        assert_eq!(got, want);
+        for (json, csv) in [
+            ("suite", "suite"),
+            ("scene", "scene"),
+            ("backend", "backend"),
+            ("sampler", "sampler"),
+            ("precision", "precision"),
+            ("image", "image"),
+        ] {
+            assert_eq!(run[json].as_str(), Some(row[csv].as_str()), "{json}");
+        }
+        for (json, csv) in [
+            ("width", "width"),
+            ("height", "height"),
+            ("samples", "samples"),
+            ("max_depth", "max_depth"),
+            ("threads", "threads"),
+        ] {
+            assert_eq!(run[json].as_u64(), row[csv].parse().ok(), "{json}");
+        }
+        for (kind, csv) in [
+            ("primary", "rays_primary"),
+            ("shadow", "rays_shadow"),
+            ("reflection", "rays_reflection"),
+            ("refraction", "rays_refraction"),
+        ] {
+            assert_eq!(run["rays"][kind].as_u64(), row[csv].parse().ok(), "{kind}");
+        }
+        // The CSV rounds seconds to 6 places and errors to 7 significant digits.
+        let secs = run["seconds"].as_f64().unwrap();
+        assert!((secs - num(row, "wall_s")).abs() <= 5e-7, "{secs}");
+        let rmse = run["error"]["rmse"].as_f64().unwrap();
+        assert!((rmse - num(row, "rmse")).abs() <= 1e-6 * rmse, "{rmse}");
+        assert_eq!(run["gpu_seconds"], serde_json::Value::Null);
+        assert_eq!(run["extra"], serde_json::json!({}));
+    }
+}

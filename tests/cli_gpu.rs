@@ -139,3 +139,18 @@ fn gpu_flags_are_checked() {
     }
     assert!(!o.exists(), "a refused render wrote an image");
 }
+
+/// Without XDG_RUNTIME_DIR (a headless server, CI, a container), listing
+/// GPUs prints nothing on stderr: no "error: XDG_RUNTIME_DIR is invalid or
+/// not set in the environment." from libwayland, which Mesa's Vulkan
+/// device-select layer asks for the display's GPU.
+#[test]
+fn gpus_without_xdg_runtime_dir_prints_no_display_noise() {
+    let Some(_) = adapter() else { return };
+    for args in [&["gpus"][..], &["gpus", "--json"]] {
+        let (out, stdout, stderr) = run(tessera().args(args).env_remove("XDG_RUNTIME_DIR"));
+        assert!(out.status.success(), "{args:?}: {stderr}");
+        assert!(!stdout.is_empty(), "{args:?}");
+        assert_eq!(stderr, "", "{args:?}");
+    }
+}

@@ -20,6 +20,7 @@ use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
 use crate::assets::{AssetLimits, AssetStore, AssetStoreError, sha256_hex};
+use crate::rate::{JOB_WINDOW, Meter, WorkerSpeed};
 use crate::store::{Counters, JobRecord, JobStateRec, Op, Store, StoreError};
 use crate::units::{
     DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE, Layout,
@@ -186,6 +187,7 @@ pub struct WorkerView {
     pub leases: u32,
     pub units_done: u64,
     pub samples_per_second: f64,
+    pub rays_per_second: f64,
     pub last_seen_unix_ms: i64,
 }
 
@@ -238,8 +240,13 @@ struct Job {
     settings: RenderSettings,
     layout: Layout,
     /// Expected rays of one pixel-sample pass over each tile (`cost::probe`):
-    /// leases are sized in rays.
+    /// leases are sized in rays. Set through [`Job::set_tile_rays`].
     tile_rays: Vec<f64>,
+    /// Expected rays of the units not done yet: the work the ETA divides.
+    work_left: f64,
+    /// Expected rays done over time in this coordinator's run: the rate
+    /// the ETA divides by.
+    meter: Meter,
     state: JobState,
     done: Vec<bool>,
     pending: BTreeSet<u32>,
@@ -293,8 +300,8 @@ struct Worker {
     last_seen: Instant,
     leases: HashSet<String>,
     units_done: u64,
-    /// Smoothed pixel-samples per second, from its results (shown to users).
-    speed: f64,
+    /// Samples and rays per busy second over its recent results (shown to users).
+    speed: WorkerSpeed,
     /// Smoothed rays per second, from its results (sizes its leases).
     ray_speed: f64,
     /// Rays and render seconds of its last result: a worker whose leases
@@ -314,6 +321,10 @@ struct State {
     ended_order: VecDeque<String>,
     workers: HashMap<String, Worker>,
     next_id: u64,
+    /// Since when jobs have waited with no worker connected, and whether
+    /// that was logged (once per such stretch, not every tick).
+    unserved_since: Option<Instant>,
+    unserved_warned: bool,
 }
 
 /// The smallest lease, in seconds of the worker it goes to (unless the job
@@ -485,7 +496,7 @@ impl Farm {
                     // Derived state, not stored: probed again from the stored scene.
                     match farm.stored_scene(&job.rec) {
                         Ok(desc) => {
-                            job.tile_rays = crate::cost::probe(&desc, &job.settings, &job.layout)
+                            job.set_tile_rays(crate::cost::probe(&desc, &job.settings, &job.layout))
                         }
                         Err(e) => tracing::warn!(job = %job.rec.id, error = %e,
                             "cannot read the job's scene back: leases are sized without its cost probe"),
@@ -802,7 +813,7 @@ impl Farm {
             "job accepted"
         );
         let mut job = Job::new(rec, settings, Counters::default());
-        job.tile_rays = tile_rays;
+        job.set_tile_rays(tile_rays);
         self.state
             .lock()
             .expect("state lock")
@@ -922,7 +933,8 @@ impl Farm {
                 version: w.version.clone(),
                 leases: w.leases.len() as u32,
                 units_done: w.units_done,
-                samples_per_second: w.speed,
+                samples_per_second: w.speed.samples_per_second(),
+                rays_per_second: w.speed.rays_per_second(),
                 last_seen_unix_ms: now_ms() - now.duration_since(w.last_seen).as_millis() as i64,
             })
             .collect();
@@ -998,7 +1010,7 @@ impl Farm {
                 last_seen: Instant::now(),
                 leases: HashSet::new(),
                 units_done: 0,
-                speed: 0.0,
+                speed: WorkerSpeed::default(),
                 ray_speed: 0.0,
                 last_rays: 0.0,
                 last_seconds: 0.0,
@@ -1100,11 +1112,7 @@ impl Farm {
                 let Some(&first) = job.pending.iter().next() else {
                     break;
                 };
-                let rays = |u: u32| {
-                    let unit = job.layout.unit(u);
-                    job.tile_rays[unit.tile as usize]
-                        * job.layout.batches[unit.batch as usize].len() as f64
-                };
+                let rays = |u: u32| job.unit_work(u);
                 let units = if speed > 0.0 && farm_speed > 0.0 {
                     let want = (speed * self.config.target_unit_seconds).max(ramp);
                     // When the farm, every worker at its measured speed,
@@ -1185,6 +1193,7 @@ impl Farm {
                 if job.started.is_none() {
                     job.started = Some(Instant::now());
                 }
+                job.meter.start(Instant::now());
                 let view = LeaseView {
                     lease_id: String::new(),
                     job_id: job_id.clone(),
@@ -1581,10 +1590,12 @@ impl Farm {
         let film = r.film.expect("validated");
         job.counters.units_accepted += t.units.len() as u64;
         let mut samples = 0;
+        let work_before = job.work_left;
         for &(u, _) in &t.units {
             samples += job.layout.unit_samples(job.layout.unit(u));
             job.mark_done(u);
         }
+        job.meter.add(Instant::now(), work_before - job.work_left);
         job.samples_this_run += samples;
         let now = Instant::now();
         job.first_result.get_or_insert(now);
@@ -1612,24 +1623,24 @@ impl Farm {
         if let Some(w) = st.workers.get_mut(&r.worker_id) {
             w.units_done += t.units.len() as u64;
             if r.render_seconds > 0.0 {
-                // The estimates drop at once and rise slowly: a lease that
-                // runs long costs the job's end more than one that runs
-                // short. Times under 0.1 ms are taken as 0.1 ms, so an
-                // absurd report (5e-324 s) gives a finite speed.
+                // Times under 0.1 ms are taken as 0.1 ms, so an absurd
+                // report (5e-324 s) gives a finite speed.
                 let seconds = r.render_seconds.max(1e-4);
-                // A rise measured on a unit twice as large as the last is
-                // taken at once: small units understate a fast worker's
-                // speed (fixed costs per unit), larger ones measure it.
+                w.speed
+                    .add(Instant::now(), samples, film.rays.total(), seconds);
+                // For lease sizing the estimate drops at once and rises
+                // slowly (a lease that runs long costs the job's end more
+                // than one that runs short), except that a rise measured on
+                // a unit twice as large as the last is taken at once: small
+                // units understate a fast worker's speed (fixed costs per
+                // unit), larger ones measure it.
+                let new = film.rays.total() as f64 / seconds;
                 let larger = film.rays.total() as f64 >= 2.0 * w.last_rays;
-                let smooth = |old: f64, new: f64| {
-                    if old == 0.0 || new < old || larger {
-                        new
-                    } else {
-                        0.7 * old + 0.3 * new
-                    }
+                w.ray_speed = if w.ray_speed == 0.0 || new < w.ray_speed || larger {
+                    new
+                } else {
+                    0.7 * w.ray_speed + 0.3 * new
                 };
-                w.speed = smooth(w.speed, samples as f64 / seconds);
-                w.ray_speed = smooth(w.ray_speed, film.rays.total() as f64 / seconds);
                 w.last_rays = film.rays.total() as f64;
                 w.last_seconds = seconds;
             }
@@ -1836,6 +1847,35 @@ impl Farm {
         }
     }
 
+    /// Warns, once, when jobs wait and no worker has been connected for a
+    /// lease timeout (the time after which a silent worker counts as gone,
+    /// so a restarted coordinator gives its workers that long to come
+    /// back). Called periodically.
+    pub fn check_workers(&self) {
+        let mut st = self.state.lock().expect("state lock");
+        let waiting = st
+            .jobs
+            .values()
+            .filter(|j| !j.state.is_terminal() && !j.pending.is_empty())
+            .count();
+        if waiting == 0 || !st.workers.is_empty() {
+            if st.unserved_warned && !st.workers.is_empty() {
+                tracing::info!(workers = st.workers.len(), "workers connected again");
+            }
+            st.unserved_since = None;
+            st.unserved_warned = false;
+            return;
+        }
+        let since = *st.unserved_since.get_or_insert_with(Instant::now);
+        if !st.unserved_warned && since.elapsed() >= self.config.lease_timeout {
+            st.unserved_warned = true;
+            tracing::warn!(
+                jobs = waiting,
+                "no worker is connected: {waiting} job(s) wait for one (start `tessera worker --coordinator URL`)"
+            );
+        }
+    }
+
     /// Logs progress of running jobs. Called at the progress cadence.
     pub fn log_progress(&self) {
         let st = self.state.lock().expect("state lock");
@@ -1854,7 +1894,7 @@ impl Farm {
                 percent = format!("{pct:.1}"),
                 frames = %frames.join(" "),
                 rays_per_s = format!("{:.3e}", v.rays_per_second),
-                eta_s = format!("{:.1}", v.eta_seconds),
+                eta_s = if v.eta_seconds >= 0.0 { format!("{:.1}", v.eta_seconds) } else { "unknown".into() },
                 leases = st.leases.values().filter(|l| l.job == job.rec.id).count(),
                 in_flight_samples = st.leases.values().filter(|l| l.job == job.rec.id).map(|l| l.progress).sum::<u64>(),
                 "progress"
@@ -1987,11 +2027,13 @@ impl Job {
             .collect();
         // Until probed: one ray a pixel-sample.
         let tile_rays = layout.tiles.iter().map(|t| t.area() as f64).collect();
-        Job {
+        let mut job = Job {
             rec,
             settings,
             layout,
             tile_rays,
+            work_left: 0.0,
+            meter: Meter::new(JOB_WINDOW),
             state: if state == JobState::Running {
                 JobState::Queued
             } else {
@@ -2011,7 +2053,28 @@ impl Job {
             samples_this_run: 0,
             rays_this_run: 0,
             watch: watch::channel(0).0,
-        }
+        };
+        job.work_left = job.sum_work_left();
+        job
+    }
+
+    /// Expected rays of unit `u` (its tile's, times its samples).
+    fn unit_work(&self, u: UnitIndex) -> f64 {
+        let unit = self.layout.unit(u);
+        self.tile_rays[unit.tile as usize] * self.layout.batches[unit.batch as usize].len() as f64
+    }
+
+    fn sum_work_left(&self) -> f64 {
+        (0..self.layout.total())
+            .filter(|&u| !self.done[u as usize])
+            .map(|u| self.unit_work(u))
+            .sum()
+    }
+
+    /// The cost probe's expected rays per tile (replacing the uniform guess).
+    fn set_tile_rays(&mut self, tile_rays: Vec<f64>) {
+        self.tile_rays = tile_rays;
+        self.work_left = self.sum_work_left();
     }
 
     fn notify(&self) {
@@ -2025,6 +2088,7 @@ impl Job {
         self.done[u as usize] = true;
         self.pending.remove(&u);
         self.units_done += 1;
+        self.work_left = (self.work_left - self.unit_work(u)).max(0.0);
         let unit: Unit = self.layout.unit(u);
         self.samples_done += self.layout.unit_samples(unit);
         if let Some(f) = self.frames.get_mut(&unit.frame) {
@@ -2110,15 +2174,12 @@ impl Job {
                 .map_or_else(|| t.elapsed(), |s| s.saturating_duration_since(t))
                 .as_secs_f64()
         });
-        let (rps, eta) = if elapsed > 0.0 && self.samples_this_run > 0 {
-            let rate = self.samples_this_run as f64 / elapsed;
-            (
-                self.rays_this_run as f64 / elapsed,
-                (samples_total - self.samples_done) as f64 / rate,
-            )
+        let rps = if elapsed > 0.0 {
+            self.rays_this_run as f64 / elapsed
         } else {
-            (0.0, if self.state.is_terminal() { 0.0 } else { -1.0 })
+            0.0
         };
+        let eta = crate::rate::eta(self.work_left, self.meter.rate(Instant::now())).unwrap_or(-1.0);
         JobView {
             record: self.rec.clone(),
             state: self.state,
@@ -2385,16 +2446,18 @@ material = "red"
             15 * 16,
             "the next lease is sized on the slow result"
         );
-        // Fast again (15 tiles in 1 ms): the estimate rises by 30% of the step.
+        // Fast again: 15 tiles in 1 ms.
         assert_eq!(
             farm.submit_result(result(&w, &l3, 0.001)).await.unwrap(),
             Outcome::Accepted
         );
-        let speed = farm.workers()[0].samples_per_second;
-        assert!(
-            (speed - (0.7 * 64512.0 + 0.3 * 15360.0 / 0.001)).abs() < 1e-6,
-            "{speed}"
-        );
+        // What users see is samples over busy time of the recent results:
+        // (1024 + 64512 + 15360) in 1.002 s.
+        let v = &farm.workers()[0];
+        let want = (1024.0 + 64512.0 + 15360.0) / 1.002;
+        assert!((v.samples_per_second - want).abs() < 1e-6, "{v:?}");
+        // result() reports one ray a pixel-sample.
+        assert!((v.rays_per_second - want).abs() < 1e-6, "{v:?}");
     }
 
     #[tokio::test]
@@ -2710,9 +2773,11 @@ material = "red"
             .jobs
             .get_mut(&job)
             .unwrap()
-            .tile_rays = (0..64)
-            .map(|t| if t < 32 { 256.0 } else { 2048.0 })
-            .collect();
+            .set_tile_rays(
+                (0..64)
+                    .map(|t| if t < 32 { 256.0 } else { 2048.0 })
+                    .collect(),
+            );
         let w = register(&farm, "w", 2);
         // 65536 rays/s: 16384 rays in the 0.25 s target, 16 cheap tiles of 1024.
         let l1 = farm.lease(&w, 1, false).unwrap().remove(0);

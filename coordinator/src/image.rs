@@ -16,11 +16,11 @@ pub enum ImageFormat {
 pub enum ImageError {
     #[error("{}: unsupported output extension {ext}; use .png (8-bit sRGB) or .exr (linear float)", path.display())]
     Extension { path: PathBuf, ext: String },
-    #[error("cannot write {}: {source}", path.display())]
+    /// The cause is in the message, not a `source()`, so a chain prints it once.
+    #[error("cannot write {}: {error}", path.display())]
     Write {
         path: PathBuf,
-        #[source]
-        source: image::ImageError,
+        error: image::ImageError,
     },
 }
 
@@ -79,8 +79,8 @@ pub fn write_image(path: &Path, film: &Film) -> Result<(), ImageError> {
                 .save_with_format(path, image::ImageFormat::OpenExr)
         }
     }
-    .map_err(|source| ImageError::Write {
+    .map_err(|error| ImageError::Write {
         path: path.to_owned(),
-        source,
+        error,
     })
 }

@@ -137,6 +137,7 @@ pub async fn serve(
             loop {
                 tick.tick().await;
                 farm.expire();
+                farm.check_workers();
                 // Health follows the database: NOT_SERVING while writes fail.
                 let ok = farm.storage_ok();
                 if ok != serving {

@@ -262,6 +262,7 @@ impl JobService for Api {
                 leases: w.leases,
                 units_done: w.units_done,
                 samples_per_second: w.samples_per_second,
+                rays_per_second: w.rays_per_second,
                 last_seen_unix_ms: w.last_seen_unix_ms,
             })
             .collect();

@@ -72,11 +72,21 @@ pub fn endpoint(url: &str, ca_pem: Option<&[u8]>) -> Result<Endpoint, TransportE
         url: url.to_string(),
         message,
     };
-    let mut endpoint = Endpoint::from_shared(url.to_string()).map_err(|e| bad(e.to_string()))?;
+    // tonic's error says only "invalid URI"; its source says what is wrong.
+    let mut endpoint = Endpoint::from_shared(url.to_string()).map_err(|e| bad(error_chain(&e)))?;
     let tls = match endpoint.uri().scheme_str() {
         Some("https") => true,
         Some("http") => false,
-        other => return Err(bad(format!("scheme must be http or https, got {other:?}"))),
+        None => {
+            return Err(bad(format!(
+                "no scheme; write http://{url} (https:// for a coordinator serving TLS)"
+            )));
+        }
+        Some(other) => {
+            return Err(bad(format!(
+                "the scheme must be http or https, not {other:?}"
+            )));
+        }
     };
     if tls {
         let host = endpoint.uri().host().unwrap_or_default().to_string();

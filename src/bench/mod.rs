@@ -9,6 +9,8 @@ mod plot;
 mod reference;
 
 use std::fmt::Write as _;
+
+use crate::cli::outln;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -1428,12 +1430,48 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
         );
         all.extend(runs);
     }
-    print_summary(&all);
     Ok(all)
 }
 
-fn print_summary(runs: &[Run]) {
-    println!(
+/// A run as `tessera bench --json` prints it: the CSV's columns under the
+/// names `tessera render --json` uses for the same things (docs/cli.md).
+pub fn run_json(r: &Run) -> serde_json::Value {
+    serde_json::json!({
+        "suite": r.suite,
+        "scene": r.scene,
+        "backend": r.backend,
+        "device": r.device,
+        "threads": r.threads,
+        "width": r.settings.width,
+        "height": r.settings.height,
+        "samples": r.settings.samples,
+        "sampler": r.settings.sampler.name(),
+        "max_depth": r.settings.max_depth,
+        "precision": r.precision.name(),
+        "seconds": r.seconds,
+        "gpu_seconds": r.gpu_seconds,
+        "rays": {
+            "primary": r.rays.primary,
+            "shadow": r.rays.shadow,
+            "reflection": r.rays.reflection,
+            "refraction": r.rays.refraction,
+        },
+        "rays_per_second": r.rays.total() as f64 / r.seconds,
+        "pixels_per_second": r.pixels_per_s(),
+        "error": r.error.map(|e| serde_json::json!({
+            "rmse": e.rmse,
+            "psnr_db": e.psnr_db,
+            "rel_mse": e.rel_mse,
+            "flip_mean": e.flip_mean,
+        })),
+        "image": r.image,
+        "extra": r.extra.iter().map(|(k, v)| (k.to_string(), serde_json::Value::from(v.as_str()))).collect::<serde_json::Map<_, _>>(),
+    })
+}
+
+/// The summary table on stdout.
+pub fn print_summary(runs: &[Run]) {
+    outln!(
         "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9} {:>9} {:>10} {:>9} {:>7}  notes",
         "suite",
         "scene",
@@ -1460,7 +1498,7 @@ fn print_summary(runs: &[Run]) {
                 ]
             });
         let notes: Vec<String> = r.extra.iter().map(|(k, v)| format!("{k}={v}")).collect();
-        println!(
+        outln!(
             "{:<10} {:<14} {:<4} {:>9} {:>4} {:<8} {:>3} {:<4} {:>9.4} {:>9.1} {:>10} {:>9} {:>7}  {}",
             r.suite,
             r.scene,

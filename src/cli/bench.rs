@@ -34,8 +34,9 @@ pub struct BenchArgs {
     /// Tiny images and few settings: a smoke test that finishes in seconds
     #[arg(long)]
     pub quick: bool,
-    /// CPU threads [default: all cores]
-    #[arg(long)]
+    /// CPU threads of the CPU backend and the f64 references, 0..=4096; 0
+    /// means all cores [default: all cores]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::render::threads_parser())]
     pub threads: Option<usize>,
     /// Cache of converged f64 reference images [default: $XDG_CACHE_HOME/tessera/references]
     #[arg(long)]
@@ -43,8 +44,8 @@ pub struct BenchArgs {
     /// Directory of the example scenes
     #[arg(long, default_value = "examples")]
     pub examples: PathBuf,
-    /// Timed repetitions of each run; the fastest is reported
-    #[arg(long, default_value_t = 1)]
+    /// Timed repetitions of each run, at least 1; the fastest is reported
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
     pub repeat: u32,
     /// GPU adapter (name substring or index from `tessera gpus`) for the GPU backend
     #[arg(long, value_name = "NAME|INDEX")]
@@ -71,6 +72,8 @@ pub struct BenchArgs {
     /// the emerald scene at 1/13 of the rays (docs/benchmarks.md)
     #[arg(long, value_name = "D", value_parser = clap::value_parser!(u32).range(1..=64))]
     pub depth_reference: Option<u32>,
+    #[command(flatten)]
+    pub format: super::output::Format,
 }
 
 pub fn run(args: BenchArgs) -> Result<ExitCode> {
@@ -108,5 +111,10 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
         runs.len(),
         args.out.display()
     );
+    if args.format.json {
+        super::output::print_json(&runs.iter().map(bench::run_json).collect());
+    } else {
+        bench::print_summary(&runs);
+    }
     Ok(ExitCode::SUCCESS)
 }

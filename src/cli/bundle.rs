@@ -33,9 +33,9 @@ pub struct BundleFile {
 /// A file outside the scene's folder is refused, naming the field, unless
 /// `allow_outside` (then it travels under the name the scene gives it).
 pub fn gather(path: &Path, allow_outside: bool) -> Result<SceneBundle> {
-    let scene = std::fs::read(path).map_err(|source| SceneError::Io {
+    let scene = std::fs::read(path).map_err(|error| SceneError::Io {
         path: path.to_owned(),
-        source,
+        error,
     })?;
     let text = std::str::from_utf8(&scene)
         .map_err(|e| anyhow::anyhow!("{}: scene is not UTF-8 text: {e}", path.display()))?;

@@ -12,14 +12,14 @@ use super::worker::WorkerBackend;
 
 #[derive(Args, Debug)]
 pub struct ClusterArgs {
-    /// Number of local worker processes
-    #[arg(long, default_value_t = 2)]
+    /// Number of local worker processes, at least 1
+    #[arg(long, allow_negative_numbers = true, default_value_t = 2, value_parser = clap::builder::RangedI64ValueParser::<usize>::new().range(1..))]
     pub workers: usize,
     /// Where the workers trace
     #[arg(long, value_enum, default_value_t = WorkerBackend::Cpu)]
     pub backend: WorkerBackend,
-    /// CPU threads per worker; 0 means the default [default: all cores / workers]
-    #[arg(long)]
+    /// CPU threads per worker, 0..=4096; 0 means the default [default: all cores / workers]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::render::threads_parser())]
     pub threads: Option<usize>,
     /// Coordinator address
     #[arg(long, default_value = "127.0.0.1:7878")]

@@ -48,29 +48,39 @@ impl std::str::FromStr for Frames {
 pub struct SubmitArgs {
     /// Scene file (TOML; see docs/scene-format.md)
     pub scene: PathBuf,
-    /// Frames to render, inclusive: `1..5` renders frames 1 to 5 [default: frame 0]
+    /// Frames to render, inclusive: `1..5` renders frames 1 to 5 (each
+    /// with its camera keyframe pose, docs/scene-format.md), `3` frame 3 alone [default: frame 0]
     #[arg(long)]
     pub frames: Option<Frames>,
     #[command(flatten)]
     pub overrides: RenderOverrides,
-    /// Higher priorities are rendered first
+    /// Higher priorities are rendered first (any i32; jobs of equal
+    /// priority in the order submitted)
     #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
     pub priority: i32,
     /// Job name [default: the scene's file stem]
     #[arg(long)]
     pub name: Option<String>,
-    /// Tile side in pixels [default: the coordinator's, 64]
-    #[arg(long)]
+    /// Tile side in pixels, 8..=4096: the smallest piece of a frame a
+    /// worker leases (fast workers take several at once) [default: the coordinator's, 64]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(8..=4096))]
     pub tile_size: Option<u32>,
-    /// Samples per pixel in one work unit [default: the coordinator's, 64]
-    #[arg(long)]
+    /// Samples per pixel in one work unit, 1..=65536 (more than the job's
+    /// samples means all of them) [default: the coordinator's, 64]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=65536))]
     pub samples_per_unit: Option<u32>,
-    /// Failed attempts of one unit before the job fails [default: the coordinator's, 3]
-    #[arg(long)]
+    /// Failed attempts of one unit before the job fails, at least 1 [default: the coordinator's, 3]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_attempts: Option<u32>,
-    /// Wait for the job to finish (progress on stderr); the exit code is then the job's outcome
+    /// Wait for the job to finish (progress on stderr); the exit code is then
+    /// the job's outcome (0 done, 3 failed, 4 cancelled). At the end it
+    /// prints the `tessera fetch` command that downloads the frames here
     #[arg(long)]
     pub wait: bool,
+    /// Wait as --wait does, then download the finished frames into DIR
+    /// (as `tessera fetch JOB -o DIR`)
+    #[arg(long, value_name = "DIR")]
+    pub fetch: Option<PathBuf>,
     /// Send files the scene references from outside its folder (absolute
     /// paths, or `..` above it) too; without it such a scene is refused
     #[arg(long)]
@@ -128,8 +138,14 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
         } else {
             outln!("{id}");
         }
-        if args.wait {
-            return watch_job(&mut client, &id, args.format).await;
+        if args.wait || args.fetch.is_some() {
+            let code = watch_job(&mut client, &id, args.format, &args.coordinator).await?;
+            if let Some(dir) = &args.fetch
+                && code == ExitCode::from(EXIT_DONE)
+            {
+                return fetch_frames(&mut client, &id, dir).await;
+            }
+            return Ok(code);
         }
         Ok(ExitCode::SUCCESS)
     })
@@ -273,10 +289,26 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             print_json(&job_json(&j));
             return Ok(ExitCode::SUCCESS);
         }
+        // A job that waits for workers that are not there says so.
+        let no_workers = !ended(j.state)
+            && client
+                .list_workers(pb::ListWorkersRequest {})
+                .await
+                .map_err(rpc)?
+                .into_inner()
+                .workers
+                .is_empty();
         let s = j.settings.unwrap_or_default();
         let rays = j.rays.unwrap_or_default();
         outln!("job:       {} ({})", j.job_id, printable(&j.name));
-        outln!("state:     {}", state_name(j.state));
+        if no_workers {
+            outln!(
+                "state:     {} (no workers connected: the job waits for one; start `tessera worker --coordinator URL`)",
+                state_name(j.state)
+            );
+        } else {
+            outln!("state:     {}", state_name(j.state));
+        }
         outln!(
             "progress:  {:.1}% ({} of {} units)",
             percent(&j),
@@ -302,8 +334,12 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             rays.primary + rays.shadow + rays.reflection + rays.refraction,
             j.rays_per_second / 1e6
         );
-        if j.eta_seconds >= 0.0 && j.state == pb::JobState::Running as i32 {
-            outln!("eta:       {:.0} s", j.eta_seconds);
+        if !ended(j.state) {
+            if j.eta_seconds >= 0.0 {
+                outln!("eta:       {:.0} s", j.eta_seconds);
+            } else {
+                outln!("eta:       unknown (no recent progress to measure)");
+            }
         }
         outln!(
             "results:   {} accepted, {} rejected, {} late, {} duplicate",
@@ -312,7 +348,11 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             j.results_late,
             j.results_duplicate
         );
-        outln!("output:    {}", j.output_dir);
+        outln!(
+            "output:    {} on the coordinator's host; download with: {}",
+            j.output_dir,
+            fetch_command(&j.job_id, &args.coordinator)
+        );
         for f in &j.frames {
             let done = if f.output.is_empty() {
                 format!(
@@ -334,7 +374,7 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
 pub fn watch(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;
-        watch_job(&mut client, &args.job, args.format).await
+        watch_job(&mut client, &args.job, args.format, &args.coordinator).await
     })
 }
 
@@ -344,7 +384,12 @@ const WORKER_CHECK_EVERY: std::time::Duration = std::time::Duration::from_secs(5
 /// Shows progress until the job ends; the exit code is its outcome
 /// ([`EXIT_DONE`], [`EXIT_FAILED`], [`EXIT_CANCELLED`]). With `--json`,
 /// every event is a JSON line on stdout instead.
-async fn watch_job(client: &mut JobClient, id: &str, format: Format) -> Result<ExitCode> {
+async fn watch_job(
+    client: &mut JobClient,
+    id: &str,
+    format: Format,
+    coordinator: &CoordinatorUrl,
+) -> Result<ExitCode> {
     let mut stream = client
         .watch_job(pb::WatchJobRequest {
             job_id: id.to_string(),
@@ -403,10 +448,12 @@ async fn watch_job(client: &mut JobClient, id: &str, format: Format) -> Result<E
     };
     match pb::JobState::try_from(j.state).unwrap_or(pb::JobState::Unspecified) {
         pb::JobState::Done => {
+            // The output folder is on the coordinator's host (and relative
+            // to its directory): what to run here is the fetch.
             eprintln!(
-                "job {id} done: {} frame(s) in {}",
+                "job {id} done: {} frame(s); download them with: {}",
                 j.frames.len(),
-                j.output_dir
+                fetch_command(id, coordinator)
             );
             Ok(ExitCode::from(EXIT_DONE))
         }
@@ -442,78 +489,112 @@ pub fn cancel(args: JobArg) -> Result<ExitCode> {
     })
 }
 
+/// The command that downloads job `id`'s frames into a folder named after
+/// it, with the coordinator flags this command was given (quoted for a
+/// POSIX shell where needed).
+pub fn fetch_command(id: &str, c: &CoordinatorUrl) -> String {
+    let mut cmd = format!("tessera fetch {} -o {}", shell_word(id), shell_word(id));
+    if c.url != super::farm_common::DEFAULT_COORDINATOR {
+        cmd += &format!(" --coordinator {}", shell_word(&c.url));
+    }
+    if let Some(ca) = &c.ca {
+        cmd += &format!(" --ca {}", shell_word(&ca.display().to_string()));
+    }
+    if let Some(t) = &c.token_file {
+        cmd += &format!(" --token-file {}", shell_word(&t.display().to_string()));
+    }
+    cmd
+}
+
+/// `s` as one word of a POSIX shell command line.
+fn shell_word(s: &str) -> String {
+    let plain = !s.is_empty()
+        && s.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_./:=@%+,".contains(c));
+    if plain {
+        s.to_string()
+    } else {
+        format!("'{}'", s.replace('\'', r"'\''"))
+    }
+}
+
 pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;
-        // Ask first: an unknown job, or one with no finished frame, leaves
-        // nothing behind (no empty output folder).
-        let j = client
-            .get_job(pb::GetJobRequest {
-                job_id: args.job.clone(),
-            })
-            .await
-            .map_err(rpc)?
-            .into_inner();
-        let written = j.frames.iter().filter(|f| !f.output.is_empty()).count();
-        let total = j.frames.len();
-        let ended_early =
-            j.state == pb::JobState::Cancelled as i32 || j.state == pb::JobState::Failed as i32;
-        if written == 0 {
-            bail!(
-                "job {} is {}{}: no frame is finished, nothing to fetch",
-                j.job_id,
-                state_name(j.state),
-                if j.error.is_empty() {
-                    String::new()
-                } else {
-                    format!(" ({})", j.error)
-                }
-            );
-        }
-        std::fs::create_dir_all(&args.output)
-            .with_context(|| format!("cannot create {}", args.output.display()))?;
-        let mut stream = client
-            .fetch_results(pb::FetchResultsRequest {
-                job_id: args.job.clone(),
-            })
-            .await
-            .map_err(rpc)?
-            .into_inner();
-        let mut n = 0;
-        while let Some(img) = stream.next().await {
-            let img = img.map_err(rpc)?;
-            // Only a plain file name from the coordinator: never a path elsewhere.
-            let name = Path::new(&img.file_name)
-                .file_name()
-                .filter(|n| n.to_str() == Some(img.file_name.as_str()));
-            let Some(name) = name else {
-                bail!(
-                    "the coordinator sent an unsafe file name {:?}",
-                    img.file_name
-                )
-            };
-            let path = args.output.join(name);
-            std::fs::write(&path, &img.data)
-                .with_context(|| format!("cannot write {}", path.display()))?;
-            n += 1;
-        }
-        // Where the client can use it: absolute, on this machine.
-        let out = std::path::absolute(&args.output).unwrap_or(args.output.clone());
-        eprintln!(
-            "fetched {n} of {total} frame(s) of {} into {}",
-            args.job,
-            out.display()
-        );
-        if ended_early {
-            eprintln!(
-                "error: job {} is {}: the other frames will not be rendered",
-                j.job_id,
-                state_name(j.state)
-            );
-            return Ok(ExitCode::FAILURE);
-        }
-        Ok(ExitCode::SUCCESS)
+        fetch_frames(&mut client, &args.job, &args.output).await
     })
+}
+
+/// Downloads job `id`'s finished frames into `dir`; fails (creating
+/// nothing) when none is finished, and exits 1 after fetching what there
+/// is of a cancelled or failed job.
+async fn fetch_frames(client: &mut JobClient, id: &str, dir: &Path) -> Result<ExitCode> {
+    // Ask first: an unknown job, or one with no finished frame, leaves
+    // nothing behind (no empty output folder).
+    let j = client
+        .get_job(pb::GetJobRequest {
+            job_id: id.to_string(),
+        })
+        .await
+        .map_err(rpc)?
+        .into_inner();
+    let written = j.frames.iter().filter(|f| !f.output.is_empty()).count();
+    let total = j.frames.len();
+    let ended_early =
+        j.state == pb::JobState::Cancelled as i32 || j.state == pb::JobState::Failed as i32;
+    if written == 0 {
+        bail!(
+            "job {} is {}{}: no frame is finished, nothing to fetch",
+            j.job_id,
+            state_name(j.state),
+            if j.error.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", j.error)
+            }
+        );
+    }
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let mut stream = client
+        .fetch_results(pb::FetchResultsRequest {
+            job_id: id.to_string(),
+        })
+        .await
+        .map_err(rpc)?
+        .into_inner();
+    let mut n = 0;
+    while let Some(img) = stream.next().await {
+        let img = img.map_err(rpc)?;
+        // Only a plain file name from the coordinator: never a path elsewhere.
+        let name = Path::new(&img.file_name)
+            .file_name()
+            .filter(|n| n.to_str() == Some(img.file_name.as_str()));
+        let Some(name) = name else {
+            bail!(
+                "the coordinator sent an unsafe file name {:?}",
+                img.file_name
+            )
+        };
+        let path = dir.join(name);
+        std::fs::write(&path, &img.data)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        n += 1;
+    }
+    // Where the client can use it: absolute, on this machine.
+    let out = std::path::absolute(dir).unwrap_or(dir.to_path_buf());
+    eprintln!(
+        "fetched {n} of {total} frame(s) of {id} into {}",
+        out.display()
+    );
+    if ended_early {
+        eprintln!(
+            "error: job {} is {}: the other frames will not be rendered",
+            j.job_id,
+            state_name(j.state)
+        );
+        return Ok(ExitCode::FAILURE);
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 pub fn workers(args: ListArgs) -> Result<ExitCode> {
@@ -530,27 +611,29 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
             return Ok(ExitCode::SUCCESS);
         }
         outln!(
-            "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12}",
+            "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12} {:>9}",
             "ID",
             "NAME",
             "BACKEND",
             "THREADS",
             "LEASES",
             "UNITS",
-            "MSAMPLES/S"
+            "MSAMPLES/S",
+            "MRAYS/S"
         );
         for w in ws {
             let c = w.capabilities.unwrap_or_default();
             let backend = super::output::backend_name(c.backend);
             outln!(
-                "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2}",
+                "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2} {:>9.2}",
                 w.worker_id,
                 printable(&w.name),
                 backend,
                 c.threads,
                 w.leases,
                 w.units_done,
-                w.samples_per_second / 1e6
+                w.samples_per_second / 1e6,
+                w.rays_per_second / 1e6
             );
         }
         Ok(ExitCode::SUCCESS)

@@ -63,6 +63,24 @@ pub enum Command {
     Gpus(output::Format),
 }
 
+#[cfg(feature = "gpu")]
+pub use gpus::quiet_display_probe;
+
+impl Command {
+    /// Whether this command may open a GPU (and so load the Vulkan driver).
+    #[cfg(feature = "gpu")]
+    pub fn may_use_gpu(&self) -> bool {
+        match self {
+            Command::Render(a) => a.backend == render::BackendArg::Gpu,
+            Command::Bench(a) => a.backend != bench::BenchBackend::Cpu,
+            Command::Worker(a) => a.backend == worker::WorkerBackend::Gpu,
+            Command::Cluster(a) => a.backend == worker::WorkerBackend::Gpu,
+            Command::Gpus(_) => true,
+            _ => false,
+        }
+    }
+}
+
 /// `println!` for a command's output. A closed pipe (`tessera jobs | head -1`)
 /// ends the process quietly with status 141, as a process killed by
 /// SIGPIPE ends (`ls | head`), instead of println!'s panic. SIGPIPE itself

@@ -99,6 +99,7 @@ pub fn worker_json(w: &pb::WorkerInfo) -> Value {
         "leases": w.leases,
         "units_done": w.units_done,
         "samples_per_second": w.samples_per_second,
+        "rays_per_second": w.rays_per_second,
         "last_seen_unix_ms": w.last_seen_unix_ms,
     })
 }

@@ -9,27 +9,41 @@ use anyhow::{Result, bail};
 use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
 use tracer_core::film::{Rect, SampleRange};
+use tracer_core::render::cpu::MAX_THREADS;
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 use tracer_core::sampling::Sampler;
-use tracer_core::scene::{RenderSettings, SceneDesc};
+use tracer_core::scene::{MAX_DEPTH, MAX_IMAGE_SIDE, MAX_SAMPLES, RenderSettings, SceneDesc};
+
+/// `--threads`: 0 (all cores) up to the renderer's limit, so help and
+/// errors state the real range.
+pub fn threads_parser() -> clap::builder::RangedI64ValueParser<usize> {
+    clap::builder::RangedI64ValueParser::<usize>::new().range(0..=MAX_THREADS as i64)
+}
 
 /// Settings that override the scene file's `[render]` table. Shared by
 /// every command that renders (render, submit, bench).
 #[derive(Args, Debug, Clone, Default)]
 pub struct RenderOverrides {
-    /// Image width in pixels [default: the scene's, else 800]
-    #[arg(long)]
+    /// Image width in pixels, 1..=32768; overrides the scene's [render]
+    /// width [default: the scene's, else 800]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_IMAGE_SIDE)))]
     pub width: Option<u32>,
-    /// Image height in pixels [default: the scene's, else 600]
-    #[arg(long)]
+    /// Image height in pixels, 1..=32768; overrides the scene's [render]
+    /// height [default: the scene's, else 600]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_IMAGE_SIDE)))]
     pub height: Option<u32>,
-    /// Samples per pixel; a square number gives an n x n grid [default: the scene's, else 4]
-    #[arg(long)]
+    /// Samples per pixel, 1..=65536: a square number n*n places them on an
+    /// n x n grid (each moved at random within its cell with --sampler
+    /// jittered), any other number on low-discrepancy points [default: the scene's, else 4]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_SAMPLES)))]
     pub samples: Option<u32>,
-    /// Generations of secondary (reflected/refracted) rays; 0 = none [default: the scene's, else 10]
-    #[arg(long)]
+    /// Generations of secondary (reflected/refracted) rays, 0..=64; 0 =
+    /// primary and shadow rays only [default: the scene's, else 10]
+    #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(0..=i64::from(MAX_DEPTH)))]
     pub max_depth: Option<u32>,
-    /// Sample placement inside a pixel: grid (regular n x n) or jittered (stratified random)
+    /// Sample placement inside a pixel for square sample counts: grid (cell
+    /// centres) or jittered (random within each cell, seeded by pixel,
+    /// sample and frame) [default: the scene's, else grid]
     #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["grid", "jittered"]).map(|s| s.parse::<Sampler>().unwrap()))]
     pub sampler: Option<Sampler>,
 }
@@ -83,8 +97,8 @@ pub struct RenderArgs {
     pub output: Option<PathBuf>,
     #[command(flatten)]
     pub overrides: RenderOverrides,
-    /// CPU threads; 0 means all cores [default: all cores]
-    #[arg(long)]
+    /// CPU threads for --backend cpu, 0..=4096; 0 means all cores [default: all cores]
+    #[arg(long, allow_negative_numbers = true, value_parser = threads_parser())]
     pub threads: Option<usize>,
     /// Arithmetic precision: f32 (fast) or f64 (reference)
     #[arg(long, value_enum, default_value_t = PrecisionArg::F32)]
@@ -96,7 +110,9 @@ pub struct RenderArgs {
     #[cfg(feature = "gpu")]
     #[arg(long, value_name = "NAME|INDEX")]
     pub adapter: Option<String>,
-    /// Frame number (seeds the jittered sampler)
+    /// Frame number: picks the camera's pose from the scene's
+    /// [[camera.keyframes]] (interpolated between them) and seeds the
+    /// jittered sampler
     #[arg(long, default_value_t = 0)]
     pub frame: u32,
     #[command(flatten)]

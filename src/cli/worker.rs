@@ -25,8 +25,8 @@ pub struct WorkerArgs {
     /// Where to trace
     #[arg(long, value_enum, default_value_t = WorkerBackend::Cpu)]
     pub backend: WorkerBackend,
-    /// CPU threads; 0 means all cores [default: all cores]
-    #[arg(long)]
+    /// CPU threads for --backend cpu, 0..=4096; 0 means all cores [default: all cores]
+    #[arg(long, allow_negative_numbers = true, value_parser = super::render::threads_parser())]
     pub threads: Option<usize>,
     /// GPU adapter for --backend gpu: index or part of the name as `tessera gpus` lists it [default: the best one]
     #[arg(long)]

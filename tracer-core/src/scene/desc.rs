@@ -503,9 +503,9 @@ impl SceneDesc {
     /// this machine's disk (paths relative to the scene's folder).
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SceneError> {
         let path = path.as_ref();
-        let src = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+        let src = std::fs::read_to_string(path).map_err(|error| SceneError::Io {
             path: path.to_owned(),
-            source,
+            error,
         })?;
         Self::parse(&src, path)
     }

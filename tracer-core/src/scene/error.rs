@@ -5,11 +5,12 @@ use std::path::PathBuf;
 /// validation errors also name the line, column and field.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    #[error("{path}: cannot read scene: {source}", path = .path.display())]
+    /// The cause is part of the message and deliberately not a
+    /// `source()`: printed as a chain (`{:#}`) it would appear twice.
+    #[error("{path}: cannot read scene: {error}", path = .path.display())]
     Io {
         path: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// TOML syntax errors, wrong types, unknown or missing fields.
     #[error("{path}:{location}: {message}", path = .path.display())]

@@ -24,6 +24,10 @@ use crate::world::World;
 /// balance load on a few cores, large enough that scheduling is negligible.
 pub const TILE: u32 = 16;
 
+/// Most threads a renderer takes: beyond any machine's cores, so a larger
+/// number is a typo (it would only fail later, spawning threads).
+pub const MAX_THREADS: usize = 4096;
+
 pub struct CpuRenderer {
     pool: rayon::ThreadPool,
 }
@@ -36,6 +40,11 @@ impl CpuRenderer {
         let mut b = rayon::ThreadPoolBuilder::new().thread_name(|i| format!("tessera-cpu-{i}"));
         // 0, like None, means every core (rayon's default).
         if let Some(n) = threads.filter(|&n| n > 0) {
+            if n > MAX_THREADS {
+                return Err(RenderError::Threads(format!(
+                    "{n} threads asked for; at most {MAX_THREADS}"
+                )));
+            }
             b = b.num_threads(n);
         }
         Ok(CpuRenderer {
