@@ -1385,6 +1385,8 @@ impl Farm {
         }
         // Each unit's film is stored on its own (a lease may join several
         // tiles); encoded outside the lock, straight from the result.
+        let encode_start = Instant::now();
+        let pixels: usize = taken.iter().map(|(r, _)| r.rect.area()).sum();
         for (r, t) in &taken {
             let film = r.film.as_ref().expect("validated");
             let units = t
@@ -1416,11 +1418,13 @@ impl Farm {
                 rays,
             });
         }
+        let commit_start = Instant::now();
         let write = if ops.is_empty() {
             Ok(())
         } else {
             self.store.write(ops).await
         };
+        let merge_start = Instant::now();
         let mut to_write = Vec::new();
         {
             let mut st = self.state.lock().expect("state lock");
@@ -1456,6 +1460,14 @@ impl Farm {
                 *outcome = Some(self.finish_result(st, r, t, &mut to_write)?);
             }
         }
+        tracing::debug!(
+            results = outcomes.len(),
+            pixels,
+            encode_ms = (commit_start - encode_start).as_secs_f64() * 1e3,
+            commit_ms = (merge_start - commit_start).as_secs_f64() * 1e3,
+            merge_ms = merge_start.elapsed().as_secs_f64() * 1e3,
+            "results committed"
+        );
         for (job, frame) in to_write {
             self.clone().spawn_frame_write(job, frame);
         }

@@ -188,9 +188,19 @@ impl JobService for Api {
                 if tx.send(Ok(job_status(&v))).await.is_err() || terminal {
                     return;
                 }
-                // At most 5 events a second; at least one a second (rates, ETA).
-                tokio::time::sleep(Duration::from_millis(200)).await;
-                let _ = tokio::time::timeout(Duration::from_millis(800), rx.changed()).await;
+                // At most 5 events a second, at least one a second (rates,
+                // ETA); the job's end at once (a short job's client should
+                // not wait out the throttle).
+                let sent = tokio::time::Instant::now();
+                let _ = tokio::time::timeout(Duration::from_secs(1), rx.changed()).await;
+                let calm = sent + Duration::from_millis(200);
+                while tokio::time::Instant::now() < calm
+                    && !farm.job(&id).is_ok_and(|v| v.state.is_terminal())
+                {
+                    if let Ok(Err(_)) = tokio::time::timeout_at(calm, rx.changed()).await {
+                        break; // the job is gone: the next look says so
+                    }
+                }
             }
         });
         Ok(Response::new(Box::pin(

@@ -57,6 +57,8 @@ const PREFETCH: usize = 1;
 const IDLE_LEASE_WAIT: Duration = Duration::from_millis(1000);
 /// Finished results waiting for the sender before the render loop waits.
 const SEND_QUEUE: usize = 4;
+/// Result submissions under way at once.
+const SEND_IN_FLIGHT: usize = 3;
 /// Most results in one `SubmitResults`, and most bytes of film data in it.
 const MAX_BATCH: usize = 16;
 const MAX_BATCH_BYTES: usize = 16 << 20;
@@ -720,82 +722,114 @@ async fn return_leases(
     }
 }
 
-/// Packs finished units and submits them, batching whatever is ready.
+/// Packs finished units and submits them, batching whatever is ready, with
+/// up to [`SEND_IN_FLIGHT`] submissions at once: the coordinator records
+/// queued results in one commit, so a fast worker's results do not wait
+/// for each other's round trips (and its renderer for the queue).
 /// A submission the coordinator could not record (`Unavailable`: its
 /// database write failed, or the connection broke) is sent again with
 /// backoff; the leases stay held (heartbeated) meanwhile.
 async fn send_results(
-    mut client: Client,
+    client: Client,
     worker_id: String,
     mut rx: mpsc::Receiver<Outgoing>,
     held: HeldMap,
     units_done: Arc<AtomicU64>,
 ) -> Result<(), tonic::Status> {
-    while let Some(first) = rx.recv().await {
-        let mut batch = vec![first];
-        let mut bytes = 0;
-        while batch.len() < MAX_BATCH && bytes < MAX_BATCH_BYTES {
-            match rx.try_recv() {
-                Ok(o) => {
-                    bytes += o.rect.area() * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES);
-                    batch.push(o);
-                }
-                Err(_) => break,
+    let mut sending = tokio::task::JoinSet::new();
+    let mut open = true;
+    while open || !sending.is_empty() {
+        tokio::select! {
+            Some(done) = sending.join_next(), if !sending.is_empty() => {
+                done.map_err(|e| tonic::Status::internal(format!("result submission failed: {e}")))??;
             }
-        }
-        let mut reqs = Vec::with_capacity(batch.len());
-        for o in &batch {
-            let mut req = pb::SubmitResultRequest {
-                worker_id: worker_id.clone(),
-                lease_id: o.lease_id.clone(),
-                rect: Some(o.rect.into()),
-                samples: Some(o.samples.into()),
-                ..Default::default()
-            };
-            match &o.end {
-                UnitEnd::Abandoned => {
-                    tracing::info!(lease = %o.lease_id, "lease gone; abandoned its unit");
-                    held.lock().expect("held lock").remove(&o.lease_id);
+            next = rx.recv(), if open && sending.len() < SEND_IN_FLIGHT => {
+                let Some(first) = next else {
+                    open = false;
                     continue;
+                };
+                let mut batch = vec![first];
+                let mut bytes = 0;
+                while batch.len() < MAX_BATCH && bytes < MAX_BATCH_BYTES {
+                    match rx.try_recv() {
+                        Ok(o) => {
+                            bytes += o.rect.area() * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES);
+                            batch.push(o);
+                        }
+                        Err(_) => break,
+                    }
                 }
-                UnitEnd::Failed(msg) => {
-                    tracing::warn!(lease = %o.lease_id, error = %msg, "unit failed");
-                    req.failure = msg.clone();
-                }
-                UnitEnd::Film(film, secs) => {
-                    let packed = film_codec::pack(film);
-                    req.sum_bytes = packed.sum_bytes.into();
-                    req.uniform_count = packed.uniform_count;
-                    req.sums = packed.sums;
-                    req.counts = packed.counts;
-                    req.rays = Some(film.rays.into());
-                    req.nonfinite = film.nonfinite;
-                    req.render_seconds = *secs;
-                }
+                sending.spawn(send_batch(
+                    client.clone(),
+                    worker_id.clone(),
+                    batch,
+                    held.clone(),
+                    units_done.clone(),
+                ));
             }
-            reqs.push(req);
         }
-        if reqs.is_empty() {
-            continue;
+    }
+    Ok(())
+}
+
+/// Packs and submits one batch of finished units, then settles their leases.
+async fn send_batch(
+    mut client: Client,
+    worker_id: String,
+    batch: Vec<Outgoing>,
+    held: HeldMap,
+    units_done: Arc<AtomicU64>,
+) -> Result<(), tonic::Status> {
+    let mut reqs = Vec::with_capacity(batch.len());
+    for o in &batch {
+        let mut req = pb::SubmitResultRequest {
+            worker_id: worker_id.clone(),
+            lease_id: o.lease_id.clone(),
+            rect: Some(o.rect.into()),
+            samples: Some(o.samples.into()),
+            ..Default::default()
+        };
+        match &o.end {
+            UnitEnd::Abandoned => {
+                tracing::info!(lease = %o.lease_id, "lease gone; abandoned its unit");
+                held.lock().expect("held lock").remove(&o.lease_id);
+                continue;
+            }
+            UnitEnd::Failed(msg) => {
+                tracing::warn!(lease = %o.lease_id, error = %msg, "unit failed");
+                req.failure = msg.clone();
+            }
+            UnitEnd::Film(film, secs) => {
+                let packed = film_codec::pack(film);
+                req.sum_bytes = packed.sum_bytes.into();
+                req.uniform_count = packed.uniform_count;
+                req.sums = packed.sums;
+                req.counts = packed.counts;
+                req.rays = Some(film.rays.into());
+                req.nonfinite = film.nonfinite;
+                req.render_seconds = *secs;
+            }
         }
-        let outcomes = submit_with_retry(&mut client, reqs.clone()).await?;
-        let mut h = held.lock().expect("held lock");
-        let sent = batch
-            .iter()
-            .filter(|o| !matches!(o.end, UnitEnd::Abandoned));
-        for ((o, req), resp) in sent.zip(&reqs).zip(outcomes) {
-            h.remove(&req.lease_id);
-            match pb::ResultOutcome::try_from(resp.outcome)
-                .unwrap_or(pb::ResultOutcome::Unspecified)
-            {
-                pb::ResultOutcome::Accepted => {
-                    units_done.fetch_add(1, Ordering::Relaxed);
-                    tracing::debug!(lease = %req.lease_id, frame = o.frame, rect = ?o.rect, batch = reqs.len(), "result accepted");
-                }
-                pb::ResultOutcome::FailureRecorded => {}
-                other => {
-                    tracing::warn!(lease = %req.lease_id, outcome = ?other, reason = %resp.reason, "result not accepted")
-                }
+        reqs.push(req);
+    }
+    if reqs.is_empty() {
+        return Ok(());
+    }
+    let outcomes = submit_with_retry(&mut client, reqs.clone()).await?;
+    let mut h = held.lock().expect("held lock");
+    let sent = batch
+        .iter()
+        .filter(|o| !matches!(o.end, UnitEnd::Abandoned));
+    for ((o, req), resp) in sent.zip(&reqs).zip(outcomes) {
+        h.remove(&req.lease_id);
+        match pb::ResultOutcome::try_from(resp.outcome).unwrap_or(pb::ResultOutcome::Unspecified) {
+            pb::ResultOutcome::Accepted => {
+                units_done.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(lease = %req.lease_id, frame = o.frame, rect = ?o.rect, batch = reqs.len(), "result accepted");
+            }
+            pb::ResultOutcome::FailureRecorded => {}
+            other => {
+                tracing::warn!(lease = %req.lease_id, outcome = ?other, reason = %resp.reason, "result not accepted")
             }
         }
     }
