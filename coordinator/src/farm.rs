@@ -831,6 +831,13 @@ impl Farm {
             .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
     }
 
+    /// Whether the job is done, failed or cancelled (or gone): a cheap
+    /// look, without building its view.
+    pub fn job_ended(&self, id: &str) -> bool {
+        let st = self.state.lock().expect("state lock");
+        st.jobs.get(id).is_none_or(|j| j.state.is_terminal())
+    }
+
     pub fn jobs(&self) -> Vec<JobView> {
         let st = self.state.lock().expect("state lock");
         let mut v: Vec<_> = st.jobs.values().map(Job::view).collect();

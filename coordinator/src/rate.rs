@@ -59,6 +59,9 @@ pub struct Meter {
     total: f64,
 }
 
+/// Closest spacing of a meter's points, in seconds.
+const POINT_SPACING: f64 = 0.01;
+
 impl Meter {
     pub fn new(window: Duration) -> Self {
         Meter {
@@ -92,7 +95,15 @@ impl Meter {
             self.points.push_back((t, self.total));
         }
         self.total += work;
-        self.points.push_back((t, self.total));
+        // Points at most every POINT_SPACING seconds (the last one moves
+        // forward instead): a farm accepting tens of thousands of results
+        // a second keeps a few thousand points, not millions.
+        let n = self.points.len();
+        if n >= 2 && t - self.points[n - 2].0 < POINT_SPACING {
+            self.points[n - 1] = (t, self.total);
+        } else {
+            self.points.push_back((t, self.total));
+        }
         // Keep one point at or before the window's start (the reference)
         // and everything after it.
         let start = t - self.window;
@@ -265,6 +276,14 @@ mod tests {
         assert!(m.points.len() <= 102, "{}", m.points.len());
         let r = m.rate(origin + Duration::from_millis(99_900)).unwrap();
         assert!((r - 10.0).abs() < 1e-9, "{r}");
+        // 100 000 results in one second: points every 10 ms, same rate.
+        let mut m = Meter::new(Duration::from_secs(10));
+        for k in 0..100_000u64 {
+            m.add(origin + Duration::from_micros(10 * k), 1.0);
+        }
+        assert!(m.points.len() <= 102, "{}", m.points.len());
+        let r = m.rate(origin + Duration::from_secs(1)).unwrap();
+        assert!((r - 100_000.0).abs() < 1_000.0, "{r}");
     }
 
     /// Two identical workers on a frame whose tiles differ 20x in cost

@@ -194,9 +194,7 @@ impl JobService for Api {
                 let sent = tokio::time::Instant::now();
                 let _ = tokio::time::timeout(Duration::from_secs(1), rx.changed()).await;
                 let calm = sent + Duration::from_millis(200);
-                while tokio::time::Instant::now() < calm
-                    && !farm.job(&id).is_ok_and(|v| v.state.is_terminal())
-                {
+                while tokio::time::Instant::now() < calm && !farm.job_ended(&id) {
                     if let Ok(Err(_)) = tokio::time::timeout_at(calm, rx.changed()).await {
                         break; // the job is gone: the next look says so
                     }
