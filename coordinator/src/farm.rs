@@ -260,9 +260,11 @@ struct Job {
     started: Option<Instant>,
     /// When it ended (done, failed, cancelled): its rate stops there.
     stopped: Option<Instant>,
-    /// This run's first and last merged results.
-    first_result: Option<Instant>,
-    last_result: Option<Instant>,
+    /// This run's first lease and first and last merged results, unix ms
+    /// (0: not yet), taken when they happen so every view says the same.
+    first_lease_unix_ms: i64,
+    first_result_unix_ms: i64,
+    last_result_unix_ms: i64,
     samples_this_run: u64,
     rays_this_run: u64,
     watch: watch::Sender<u64>,
@@ -370,11 +372,6 @@ pub struct Farm {
     /// Woken whenever units become pending (a job submitted, units queued
     /// again), for workers waiting in [`Farm::lease_or_wait`].
     work_ready: tokio::sync::Notify,
-}
-
-/// An instant of this process as unix milliseconds (0 for `None`).
-fn unix_ms_of(t: Option<Instant>) -> i64 {
-    t.map_or(0, |t| now_ms() - t.elapsed().as_millis() as i64)
 }
 
 fn now_ms() -> i64 {
@@ -1200,6 +1197,9 @@ impl Farm {
                 if job.started.is_none() {
                     job.started = Some(Instant::now());
                 }
+                if job.first_lease_unix_ms == 0 {
+                    job.first_lease_unix_ms = now_ms();
+                }
                 job.meter.start(Instant::now());
                 let view = LeaseView {
                     lease_id: String::new(),
@@ -1616,9 +1616,11 @@ impl Farm {
         }
         job.meter.add(Instant::now(), work_before - job.work_left);
         job.samples_this_run += samples;
-        let now = Instant::now();
-        job.first_result.get_or_insert(now);
-        job.last_result = Some(now);
+        let now = now_ms();
+        if job.first_result_unix_ms == 0 {
+            job.first_result_unix_ms = now;
+        }
+        job.last_result_unix_ms = now;
         job.rays_this_run = job.rays_this_run.saturating_add(film.rays.total());
         let rays = [
             film.rays.primary,
@@ -2067,8 +2069,9 @@ impl Job {
             samples_done: 0,
             started: None,
             stopped: None,
-            first_result: None,
-            last_result: None,
+            first_lease_unix_ms: 0,
+            first_result_unix_ms: 0,
+            last_result_unix_ms: 0,
             samples_this_run: 0,
             rays_this_run: 0,
             watch: watch::channel(0).0,
@@ -2215,9 +2218,9 @@ impl Job {
                 .collect(),
             rays_per_second: rps,
             eta_seconds: if self.state.is_terminal() { 0.0 } else { eta },
-            first_lease_unix_ms: unix_ms_of(self.started),
-            first_result_unix_ms: unix_ms_of(self.first_result),
-            last_result_unix_ms: unix_ms_of(self.last_result),
+            first_lease_unix_ms: self.first_lease_unix_ms,
+            first_result_unix_ms: self.first_result_unix_ms,
+            last_result_unix_ms: self.last_result_unix_ms,
         }
     }
 }

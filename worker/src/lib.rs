@@ -367,10 +367,13 @@ impl Worker {
                 // Finished films still go out: the coordinator accepts those
                 // whose leases still hold (a short outage loses no work) and
                 // counts the others as late. The sender retries while the
-                // coordinator is unreachable, for a while.
-                if tokio::time::timeout(SENDER_GRACE, &mut sender)
-                    .await
-                    .is_err()
+                // coordinator is unreachable, for a while. A sender that
+                // has ended was already joined by the render loop (its
+                // error is `e`): a join handle may not be polled again.
+                if !sender.is_finished()
+                    && tokio::time::timeout(SENDER_GRACE, &mut sender)
+                        .await
+                        .is_err()
                 {
                     sender.abort();
                 }
