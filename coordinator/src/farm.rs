@@ -1071,9 +1071,20 @@ impl Farm {
         };
         // Seconds of work each measured worker holds (leases it renders or
         // has queued), at its speed: when it could start something new.
+        // One pass over the leases: rays still held by each worker, and
+        // still in flight in each job.
         let mut busy_of: HashMap<&str, f64> = HashMap::new();
+        // (Job ids owned: leases are added to below while this is read.)
+        let mut in_flight_of: HashMap<String, f64> = HashMap::new();
         for l in st.leases.values() {
-            *busy_of.entry(l.worker.as_str()).or_default() += l.remaining_rays();
+            let left = l.remaining_rays();
+            *busy_of.entry(l.worker.as_str()).or_default() += left;
+            match in_flight_of.get_mut(&l.job) {
+                Some(v) => *v += left,
+                None => {
+                    in_flight_of.insert(l.job.clone(), left);
+                }
+            }
         }
         // Workers silent for two heartbeats may be gone: no work waits for them.
         let live = 2 * self.config.heartbeat_interval;
@@ -1105,12 +1116,7 @@ impl Farm {
         let mut out = Vec::new();
         for job_id in order {
             // Rays of the job's leases still being rendered, by anyone.
-            let in_flight: f64 = st
-                .leases
-                .values()
-                .filter(|l| l.job == job_id)
-                .map(|l| l.remaining_rays())
-                .sum();
+            let in_flight = in_flight_of.get(&job_id).copied().unwrap_or(0.0);
             while out.len() < max_units.max(1) as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
                 let Some(&first) = job.pending.iter().next() else {

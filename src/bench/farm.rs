@@ -414,3 +414,38 @@ impl Farm {
             .count())
     }
 }
+
+/// One timed farm run of the bench: where and what.
+pub struct RunSpec<'a> {
+    pub exe: &'a Path,
+    /// The suite's folder: `data-NAME` (removed after), `run-NAME.*.log`,
+    /// `frames-NAME/`.
+    pub dir: &'a Path,
+    pub name: &'a str,
+    pub scene: &'a Path,
+    pub settings: &'a RenderSettings,
+    pub tile: u32,
+}
+
+/// Starts the farm of `spec`, renders the warm-up job, then the timed job,
+/// and fetches its frame; returns the job and how many 8-bit bytes of the
+/// frame differ from `expected`. The farm's processes are stopped on
+/// success and on error alike (drop); its data folder is removed after a
+/// success (kept to look at after a failure).
+pub fn timed_run(run: &RunSpec, spec: &FarmSpec, expected: &[u8]) -> Result<(JobResult, usize)> {
+    let data = run.dir.join(format!("data-{}", run.name));
+    let _ = std::fs::remove_dir_all(&data);
+    let logs = run.dir.join(format!("run-{}", run.name));
+    let s = run.settings;
+    let outcome = (|| {
+        let mut farm = Farm::start(run.exe, &data, &logs, spec)?;
+        farm.warm_up(run.scene, s, run.tile, &logs.with_extension("warm-up.log"))?;
+        let result =
+            farm.submit_and_wait(run.scene, s, run.tile, &logs.with_extension("submit.log"))?;
+        let fetched = run.dir.join(format!("frames-{}", run.name));
+        let diff = farm.frame0_differs(&result.job, &fetched, (s.width, s.height), expected)?;
+        Ok::<_, anyhow::Error>((result, diff))
+    })()?;
+    let _ = std::fs::remove_dir_all(&data);
+    Ok(outcome)
+}

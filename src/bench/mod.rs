@@ -945,26 +945,20 @@ impl Bench {
             // The machine's ceiling for n workers: n concurrent renders of
             // 1/n of the samples each, in this process (no farm).
             let ceiling = machine_ceiling(&frame, &s, n, threads)?;
-            let data = dir.join(format!("data-{n}"));
-            let _ = std::fs::remove_dir_all(&data);
-            let (result, diff_bytes) = {
-                let logs = dir.join(format!("run-{n}"));
-                let spec = farm::FarmSpec {
-                    cpu_workers: n,
-                    threads,
-                    ..Default::default()
-                };
-                let mut farm = farm::Farm::start(&exe, &data, &logs, &spec)?;
-                farm.warm_up(&path, &s, tile, &logs.with_extension("warm-up.log"))?;
-                let result =
-                    farm.submit_and_wait(&path, &s, tile, &logs.with_extension("submit.log"))?;
-                let fetched = dir.join(format!("frames-{n}"));
-                let diff =
-                    farm.frame0_differs(&result.job, &fetched, (width, height), &local_srgb)?;
-                (result, diff)
-                // The farm's processes are stopped here (drop), on success and on error alike.
+            let spec = farm::FarmSpec {
+                cpu_workers: n,
+                threads,
+                ..Default::default()
             };
-            let _ = std::fs::remove_dir_all(&data);
+            let run = farm::RunSpec {
+                exe: &exe,
+                dir: &dir,
+                name: &n.to_string(),
+                scene: &path,
+                settings: &s,
+                tile,
+            };
+            let (result, diff_bytes) = farm::timed_run(&run, &spec, &local_srgb)?;
             let identical = diff_bytes == 0;
             let job_secs = result.seconds;
             let (n0, t0) = *base.get_or_insert((n, job_secs));
@@ -1185,26 +1179,21 @@ impl Bench {
                 continue;
             }
             let name = format!("gpu{g}-cpu{cpu_workers}");
-            let data = dir.join(format!("data-{name}"));
-            let _ = std::fs::remove_dir_all(&data);
-            let logs = dir.join(format!("run-{name}"));
             let spec = farm::FarmSpec {
                 cpu_workers,
                 threads,
                 gpu_workers: g,
                 adapter: self.cfg.adapter.clone(),
             };
-            let (result, diff_bytes) = {
-                let mut farm = farm::Farm::start(exe, &data, &logs, &spec)?;
-                farm.warm_up(path, &s, tile, &logs.with_extension("warm-up.log"))?;
-                let result =
-                    farm.submit_and_wait(path, &s, tile, &logs.with_extension("submit.log"))?;
-                let fetched = dir.join(format!("frames-{name}"));
-                let diff =
-                    farm.frame0_differs(&result.job, &fetched, (width, height), &local_srgb)?;
-                (result, diff)
+            let run = farm::RunSpec {
+                exe,
+                dir,
+                name: &name,
+                scene: path,
+                settings: &s,
+                tile,
             };
-            let _ = std::fs::remove_dir_all(&data);
+            let (result, diff_bytes) = farm::timed_run(&run, &spec, &local_srgb)?;
             let secs = result.seconds;
             let throughput = result.rays_per_second() / local_rays_per_s;
             let identical = diff_bytes == 0;
