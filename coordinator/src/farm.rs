@@ -215,6 +215,9 @@ pub struct ResultData {
     pub samples: SampleRange,
     /// `Err` holds why the packed data did not decode.
     pub film: Result<Film, String>,
+    /// The film's fields as they came over the wire (they decoded to
+    /// `film`): stored as they are, not encoded again.
+    pub packed: Option<tessera_proto::film_codec::Packed>,
     pub render_seconds: f64,
     pub failure: Option<String>,
 }
@@ -229,10 +232,36 @@ pub enum Outcome {
 }
 
 struct FrameAcc {
-    film: Option<Film>,
+    /// The frame's sums so far, under a lock of its own: a result is merged
+    /// outside the state lock (a whole-frame result takes milliseconds).
+    film: FrameFilm,
+    /// Results whose units are marked done but whose films are not merged
+    /// yet: the frame is complete only once none is left.
+    merging: u32,
     units_done: u64,
     written: Option<String>,
     writing: bool,
+}
+
+type FrameFilm = Arc<Mutex<Option<Film>>>;
+
+/// A committed result's film, to merge into its frame outside the state lock.
+struct Merge {
+    job: String,
+    frame: u32,
+    into: FrameFilm,
+    film: Film,
+    frame_rect: Rect,
+}
+
+impl Merge {
+    fn run(&self) -> Result<(), tracer_core::film::FilmError> {
+        self.into
+            .lock()
+            .expect("frame film lock")
+            .get_or_insert_with(|| Film::new(self.frame_rect))
+            .merge(&self.film)
+    }
 }
 
 struct Job {
@@ -508,19 +537,32 @@ impl Farm {
                     }
                 }
                 for (u, film) in films.remove(&job.rec.id).unwrap_or_default() {
-                    if u >= job.layout.total() || job.done[u as usize] {
+                    let job_id = job.rec.id.clone();
+                    let corrupt = |message: String| StoreError::Corrupt {
+                        what: format!("film of unit {u} of {job_id}"),
+                        message,
+                    };
+                    let units = job.layout.units_in(u, film.rect).ok_or_else(|| {
+                        corrupt(format!(
+                            "its rect {:?} is not whole tiles from the unit's own",
+                            film.rect
+                        ))
+                    })?;
+                    // A frame written since holds these units already.
+                    if units.iter().all(|&u| job.done[u as usize]) {
                         continue;
                     }
-                    job.mark_done(u);
+                    for &u in &units {
+                        job.mark_done(u);
+                    }
                     let frame = job.layout.unit(u).frame;
-                    let w = job.layout.width;
-                    let h = job.layout.height;
+                    let full = Rect::full(job.layout.width, job.layout.height);
                     let acc = job.frames.get_mut(&frame).expect("frame of a unit");
-                    let target = acc.film.get_or_insert_with(|| Film::new(Rect::full(w, h)));
-                    target.merge(&film).map_err(|e| StoreError::Corrupt {
-                        what: format!("film of unit {u}"),
-                        message: e.to_string(),
-                    })?;
+                    let mut target = acc.film.lock().expect("frame film lock");
+                    target
+                        .get_or_insert_with(|| Film::new(full))
+                        .merge(&film)
+                        .map_err(|e| corrupt(e.to_string()))?;
                 }
                 if job.state == JobState::Running && job.units_done == 0 {
                     job.state = JobState::Queued;
@@ -1374,10 +1416,12 @@ impl Farm {
         let mut outcomes: Vec<Option<Outcome>> = Vec::with_capacity(rs.len());
         let mut taken: Vec<(ResultData, Taken)> = Vec::new();
         let mut ops: Vec<Op> = Vec::new();
+        // Every pixel of a result is checked before the state lock is taken.
+        let checks: Vec<Result<(), String>> = rs.iter().map(check_film).collect();
         {
             let mut st = self.state.lock().expect("state lock");
-            for r in rs {
-                match self.take(&mut st, &r) {
+            for (r, check) in rs.into_iter().zip(checks) {
+                match self.take(&mut st, &r, check) {
                     Ok(t) => {
                         outcomes.push(None);
                         taken.push((r, t));
@@ -1396,29 +1440,16 @@ impl Farm {
                 }
             }
         }
-        // Each unit's film is stored on its own (a lease may join several
-        // tiles); encoded outside the lock, straight from the result.
+        // A result's film is stored as one record for all its units, in
+        // the bytes it came in (outside the lock).
         let encode_start = Instant::now();
         let pixels: usize = taken.iter().map(|(r, _)| r.rect.area()).sum();
-        for (r, t) in &taken {
+        for (r, t) in &mut taken {
             let film = r.film.as_ref().expect("validated");
-            let units = t
-                .units
-                .iter()
-                .enumerate()
-                .map(|(i, &(u, tile))| {
-                    // The first unit carries the result's ray counts.
-                    let (rays, nonfinite) = if i == 0 {
-                        (film.rays, film.nonfinite)
-                    } else {
-                        (RayCounts::default(), 0)
-                    };
-                    (
-                        u,
-                        crate::store::encode_film_part(film, tile, rays, nonfinite),
-                    )
-                })
-                .collect();
+            let bytes = match r.packed.take() {
+                Some(p) => crate::store::encode_packed(film.rect, film.rays, film.nonfinite, &p),
+                None => crate::store::encode_film(film),
+            };
             let rays = [
                 film.rays.primary,
                 film.rays.shadow,
@@ -1427,7 +1458,9 @@ impl Farm {
             ];
             ops.push(Op::AcceptUnits {
                 job: t.job.clone(),
-                units,
+                first_unit: t.units[0],
+                film: bytes,
+                units: t.units.len() as u64,
                 rays,
             });
         }
@@ -1439,6 +1472,7 @@ impl Farm {
         };
         let merge_start = Instant::now();
         let mut to_write = Vec::new();
+        let mut merges = Vec::new();
         {
             let mut st = self.state.lock().expect("state lock");
             let st = &mut *st;
@@ -1470,7 +1504,41 @@ impl Farm {
             let mut taken = taken.into_iter();
             for outcome in outcomes.iter_mut().filter(|o| o.is_none()) {
                 let (r, t) = taken.next().expect("one taken result per open outcome");
-                *outcome = Some(self.finish_result(st, r, t, &mut to_write)?);
+                *outcome = Some(self.finish_result(st, r, t, &mut to_write, &mut merges)?);
+            }
+        }
+        // Films merge into their frames outside the state lock, in parallel
+        // (rayon) and off the async threads; each frame is complete only
+        // once its last merge is in.
+        let merged = if merges.is_empty() {
+            Vec::new()
+        } else {
+            tokio::task::spawn_blocking(move || {
+                merges
+                    .into_iter()
+                    .map(|m| (m.run(), m.job, m.frame))
+                    .collect::<Vec<_>>()
+            })
+            .await
+            .map_err(|e| FarmError::Internal(format!("merge task failed: {e}")))?
+        };
+        let mut merge_error = None;
+        if !merged.is_empty() {
+            let mut st = self.state.lock().expect("state lock");
+            for (result, job_id, frame) in merged {
+                if let Err(e) = result {
+                    tracing::error!(job = %job_id, frame, error = %e, "cannot merge a result into its frame");
+                    merge_error = Some(FarmError::Internal(e.to_string()));
+                }
+                let Some(job) = st.jobs.get_mut(&job_id) else {
+                    continue;
+                };
+                if let Some(acc) = job.frames.get_mut(&frame) {
+                    acc.merging -= 1;
+                }
+                if !job.state.is_terminal() {
+                    to_write.extend(job.complete_frames());
+                }
             }
         }
         tracing::debug!(
@@ -1484,6 +1552,9 @@ impl Farm {
         for (job, frame) in to_write {
             self.clone().spawn_frame_write(job, frame);
         }
+        if let Some(e) = merge_error {
+            return Err(e);
+        }
         Ok(outcomes
             .into_iter()
             .map(|o| o.expect("every result judged"))
@@ -1493,7 +1564,12 @@ impl Farm {
     /// Takes a result's lease for commit, or says why not (counting late,
     /// duplicate and rejected results, and recording failures).
     #[allow(clippy::result_large_err)] // internal, short-lived: the refusal is consumed by the caller at once
-    fn take(&self, st: &mut State, r: &ResultData) -> Result<Taken, Refused> {
+    fn take(
+        &self,
+        st: &mut State,
+        r: &ResultData,
+        film_check: Result<(), String>,
+    ) -> Result<Taken, Refused> {
         if let Some(w) = st.workers.get_mut(&r.worker_id) {
             w.last_seen = Instant::now();
         }
@@ -1568,7 +1644,7 @@ impl Farm {
             }
             return Err((Outcome::FailureRecorded, rec, None));
         }
-        if let Err(reason) = validate_result(&lease, r) {
+        if let Err(reason) = validate_result(&lease, r, film_check) {
             let worker_name = st
                 .workers
                 .get(&r.worker_id)
@@ -1586,11 +1662,7 @@ impl Farm {
             }
             return Err((Outcome::Rejected(reason), rec, snapshot));
         }
-        let units = lease
-            .units
-            .iter()
-            .map(|&u| (u, job.layout.tiles[job.layout.unit(u).tile as usize]))
-            .collect();
+        let units = lease.units.clone();
         st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
         Ok(Taken {
             job: lease.job.clone(),
@@ -1608,6 +1680,7 @@ impl Farm {
         r: ResultData,
         t: Taken,
         to_write: &mut Vec<(String, u32)>,
+        merges: &mut Vec<Merge>,
     ) -> Result<Outcome, FarmError> {
         let Some(job) = st.jobs.get_mut(&t.job) else {
             return Ok(Outcome::Late("the job no longer exists".into()));
@@ -1616,7 +1689,7 @@ impl Farm {
         job.counters.units_accepted += t.units.len() as u64;
         let mut samples = 0;
         let work_before = job.work_left;
-        for &(u, _) in &t.units {
+        for &u in &t.units {
             samples += job.layout.unit_samples(job.layout.unit(u));
             job.mark_done(u);
         }
@@ -1637,13 +1710,18 @@ impl Farm {
         for (a, b) in job.counters.rays.iter_mut().zip(rays) {
             *a = a.saturating_add(b);
         }
+        let result_rays = film.rays.total();
         if !job.state.is_terminal() {
-            let (w, h) = (job.layout.width, job.layout.height);
+            let frame_rect = Rect::full(job.layout.width, job.layout.height);
             let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
-            acc.film
-                .get_or_insert_with(|| Film::new(Rect::full(w, h)))
-                .merge(&film)
-                .map_err(|e| FarmError::Internal(e.to_string()))?;
+            acc.merging += 1;
+            merges.push(Merge {
+                job: t.job.clone(),
+                frame: t.frame,
+                into: acc.film.clone(),
+                film,
+                frame_rect,
+            });
             to_write.extend(job.complete_frames());
         }
         job.notify();
@@ -1653,22 +1731,21 @@ impl Farm {
                 // Times under 0.1 ms are taken as 0.1 ms, so an absurd
                 // report (5e-324 s) gives a finite speed.
                 let seconds = r.render_seconds.max(1e-4);
-                w.speed
-                    .add(Instant::now(), samples, film.rays.total(), seconds);
+                w.speed.add(Instant::now(), samples, result_rays, seconds);
                 // For lease sizing the estimate drops at once and rises
                 // slowly (a lease that runs long costs the job's end more
                 // than one that runs short), except that a rise measured on
                 // a unit twice as large as the last is taken at once: small
                 // units understate a fast worker's speed (fixed costs per
                 // unit), larger ones measure it.
-                let new = film.rays.total() as f64 / seconds;
-                let larger = film.rays.total() as f64 >= 2.0 * w.last_rays;
+                let new = result_rays as f64 / seconds;
+                let larger = result_rays as f64 >= 2.0 * w.last_rays;
                 w.ray_speed = if w.ray_speed == 0.0 || new < w.ray_speed || larger {
                     new
                 } else {
                     0.7 * w.ray_speed + 0.3 * new
                 };
-                w.last_rays = film.rays.total() as f64;
+                w.last_rays = result_rays as f64;
                 w.last_seconds = seconds;
             }
         }
@@ -1690,6 +1767,8 @@ impl Farm {
                 };
                 (
                     acc.film
+                        .lock()
+                        .expect("frame film lock")
                         .take()
                         .unwrap_or_else(|| Film::new(Rect::full(w, h))),
                     PathBuf::from(&job.rec.output_dir),
@@ -1933,8 +2012,8 @@ impl Farm {
 /// A result's lease, taken for commit.
 struct Taken {
     job: String,
-    /// The lease's units and their tiles.
-    units: Vec<(u32, Rect)>,
+    /// The lease's units.
+    units: Vec<u32>,
     frame: u32,
     /// The lease, to give back to its holder if the commit fails.
     lease_id: String,
@@ -1949,9 +2028,52 @@ fn unknown_worker(id: &str) -> FarmError {
     ))
 }
 
+/// Checks every pixel of a result against the rect and samples it claims:
+/// exactly that many samples each, sums in range (before the state lock:
+/// [`validate_result`] then checks the claims against the lease).
+fn check_film(r: &ResultData) -> Result<(), String> {
+    let Ok(film) = &r.film else {
+        return Ok(()); // Judged by validate_result.
+    };
+    let n = r.samples.len();
+    let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
+    // One pass without branches; the offending pixel is looked for only
+    // when there is one.
+    let bad = film
+        .counts
+        .iter()
+        .zip(&film.sums)
+        .fold(false, |bad, (&c, s)| {
+            bad | (c != n) | (s[0] > max_sum) | (s[1] > max_sum) | (s[2] > max_sum)
+        });
+    if !bad {
+        return Ok(());
+    }
+    let width = film.rect.width.max(1);
+    for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
+        let (x, y) = (
+            film.rect.x + i as u32 % width,
+            film.rect.y + i as u32 / width,
+        );
+        if c != n {
+            return Err(format!("pixel ({x}, {y}) has {c} samples, expected {n}"));
+        }
+        if s.iter().any(|&v| v > max_sum) {
+            return Err(format!(
+                "pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Checks a result against its lease: same rect and samples, well-formed
-/// data, every pixel with exactly the unit's sample count, sums in range.
-fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
+/// data, and the outcome of [`check_film`] on its pixels.
+fn validate_result(
+    lease: &Lease,
+    r: &ResultData,
+    film_check: Result<(), String>,
+) -> Result<(), String> {
     if r.rect != lease.rect {
         return Err(format!(
             "result rect {:?} does not match the leased rect {:?}",
@@ -1965,22 +2087,15 @@ fn validate_result(lease: &Lease, r: &ResultData) -> Result<(), String> {
         ));
     }
     let film = r.film.as_ref().map_err(Clone::clone)?;
-    let n = lease.samples.len();
-    let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
-    for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
-        let (x, y) = (
-            lease.rect.x + i as u32 % lease.rect.width,
-            lease.rect.y + i as u32 / lease.rect.width,
-        );
-        if c != n {
-            return Err(format!("pixel ({x}, {y}) has {c} samples, expected {n}"));
-        }
-        if s.iter().any(|&v| v > max_sum) {
-            return Err(format!(
-                "pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"
-            ));
-        }
+    // The film's own rect is the result's (it decoded to that size).
+    if film.rect != lease.rect {
+        return Err(format!(
+            "result film rect {:?} does not match the leased rect {:?}",
+            film.rect, lease.rect
+        ));
     }
+    film_check?;
+    let n = lease.samples.len();
     let primary = lease.rect.area() as u64 * n as u64;
     if film.rays.primary != primary {
         return Err(format!(
@@ -2044,7 +2159,8 @@ impl Job {
                 (
                     f,
                     FrameAcc {
-                        film: None,
+                        film: FrameFilm::default(),
+                        merging: 0,
                         units_done: 0,
                         written: None,
                         writing: false,
@@ -2132,7 +2248,7 @@ impl Job {
         let per = self.layout.units_per_frame() as u64;
         let mut out = Vec::new();
         for (&f, acc) in self.frames.iter_mut() {
-            if acc.units_done == per && acc.written.is_none() && !acc.writing {
+            if acc.units_done == per && acc.merging == 0 && acc.written.is_none() && !acc.writing {
                 acc.writing = true;
                 tracing::info!(job = %self.rec.id, frame = f, "frame complete");
                 out.push((self.rec.id.clone(), f));
@@ -2153,8 +2269,10 @@ impl Job {
         self.rec.finished_unix_ms = now_ms();
         self.stopped = Some(Instant::now());
         self.pending.clear();
+        // A new lock: merges still in flight finish into the old film,
+        // which goes with them.
         for f in self.frames.values_mut() {
-            f.film = None;
+            f.film = FrameFilm::default();
         }
         self.notify();
     }
@@ -2318,6 +2436,7 @@ material = "red"
             rect: l.rect,
             samples: l.samples,
             film: Ok(film),
+            packed: None,
             render_seconds: seconds,
             failure: None,
         }

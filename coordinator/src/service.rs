@@ -608,6 +608,7 @@ fn result_data(r: pb::SubmitResultRequest) -> ResultData {
         }),
         n => Err(film_codec::FilmCodecError::SumBytes(n)),
     };
+    let decoded_as = encoding.as_ref().ok().copied();
     let film = encoding
         .and_then(|encoding| {
             film_codec::unpack_with(
@@ -620,12 +621,23 @@ fn result_data(r: pb::SubmitResultRequest) -> ResultData {
             )
         })
         .map_err(|e| e.to_string());
+    // The fields decoded: they are the film in the store's layout too.
+    let packed = match (&film, decoded_as) {
+        (Ok(_), Some(e)) => Some(film_codec::Packed {
+            sum_bytes: e.sum_bytes,
+            uniform_count: e.uniform_count,
+            sums: r.sums,
+            counts: r.counts,
+        }),
+        _ => None,
+    };
     ResultData {
         worker_id: r.worker_id,
         lease_id: r.lease_id,
         rect,
         samples,
         film,
+        packed,
         render_seconds: r.render_seconds,
         failure: (!r.failure.is_empty()).then_some(r.failure),
     }

@@ -1,10 +1,12 @@
 //! Durable state in redb: job specs, assets (content-addressed), finished
 //! units' films, written frames and per-job counters.
 //!
-//! Invariant: a unit is finished iff its film is in `UNIT_FILMS` or its whole
-//! frame is in `FRAMES_WRITTEN`; a finished unit's film, its "done" mark and
-//! the job's accepted-result counter are written in one transaction, so a
-//! crash can never lose a finished unit nor count it twice. Writes go through
+//! Invariant: a unit is finished iff a film in `UNIT_FILMS` covers it or its
+//! whole frame is in `FRAMES_WRITTEN`. A result's film is stored as it came
+//! (one record for all the units its lease joined, keyed by the first; the
+//! units are the layout's tiles inside its rect); the film, its units'
+//! "done" mark and the job's accepted-result counter are written in one
+//! transaction, so a crash can never lose a finished unit nor count it twice. Writes go through
 //! one thread that commits whatever is queued in a single transaction (group
 //! commit): one fsync serves many results.
 
@@ -116,12 +118,15 @@ pub enum Op {
         job: String,
         counters: Counters,
     },
-    /// Finished units of a result, (unit index, film), and the job's accepted
-    /// count and rays incremented with them.
-    /// Films come encoded ([`encode_film`]) so that the writer thread only copies bytes.
+    /// A result: its film, keyed by the first of the `units` units it
+    /// covers, and the job's accepted count and rays incremented with them.
+    /// The film comes encoded ([`encode_packed`]) so that the writer thread
+    /// only copies bytes.
     AcceptUnits {
         job: String,
-        units: Vec<(u32, Vec<u8>)>,
+        first_unit: u32,
+        film: Vec<u8>,
+        units: u64,
         rays: [u64; 4],
     },
     /// A job is deleted: its record, counters, unit films and written frames.
@@ -188,7 +193,8 @@ type Faults = std::sync::Arc<std::sync::Mutex<Option<(fn(&Op) -> bool, u32)>>>;
 #[derive(Debug, Default)]
 pub struct Snapshot {
     pub jobs: Vec<(JobRecord, Counters)>,
-    /// job -> finished unit index -> film
+    /// job -> (first unit covered, film): a film covers the units whose
+    /// tiles lie in its rect
     pub unit_films: BTreeMap<String, Vec<(u32, Film)>>,
     /// job -> (frame, file)
     pub frames_written: BTreeMap<String, Vec<(u32, String)>>,
@@ -448,12 +454,16 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                 Op::PutCounters { job, counters: c } => {
                     updates.entry(job.as_str()).or_default().0 = Some(c);
                 }
-                Op::AcceptUnits { job, units, rays } => {
-                    for (unit, film) in units {
-                        films.insert((job.as_str(), *unit), film.as_slice())?;
-                    }
+                Op::AcceptUnits {
+                    job,
+                    first_unit,
+                    film,
+                    units,
+                    rays,
+                } => {
+                    films.insert((job.as_str(), *first_unit), film.as_slice())?;
                     let u = updates.entry(job.as_str()).or_default();
-                    u.1 += units.len() as u64;
+                    u.1 += units;
                     for (a, b) in u.2.iter_mut().zip(rays) {
                         *a += b;
                     }
@@ -472,9 +482,9 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                     units,
                 } => {
                     frames.insert((job.as_str(), *frame), file.as_str())?;
-                    for u in units.clone() {
-                        films.remove((job.as_str(), u))?;
-                    }
+                    // Every film of the frame is keyed by one of its units.
+                    let j = job.as_str();
+                    films.retain_in((j, units.start)..(j, units.end), |_, _| false)?;
                 }
             }
         }
@@ -526,7 +536,18 @@ pub fn encode_film(f: &Film) -> Vec<u8> {
 /// The part of `film` inside `rect` (which lies inside it), with these ray
 /// counts, for the store: no intermediate film.
 pub fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
-    let p = film_codec::pack_part(film, rect);
+    encode_packed(rect, rays, nonfinite, &film_codec::pack_part(film, rect))
+}
+
+/// A film already in the compact layout (a result's fields as they came
+/// over the wire, checked by decoding them) for the store: a header and
+/// two copies, no re-encoding.
+pub fn encode_packed(
+    rect: Rect,
+    rays: RayCounts,
+    nonfinite: u64,
+    p: &film_codec::Packed,
+) -> Vec<u8> {
     let mut out = Vec::with_capacity(COMPACT_HEADER + p.sums.len() + p.counts.len());
     out.extend_from_slice(&COMPACT_MAGIC);
     for v in [rect.x, rect.y, rect.width, rect.height] {

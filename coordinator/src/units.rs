@@ -119,6 +119,44 @@ impl Layout {
         start..start + self.units_per_frame()
     }
 
+    /// The units a stored result covers: those of `first`'s frame and
+    /// sample batch whose tiles lie in `rect`, which must be exactly a
+    /// rectangle of whole tiles starting at `first`'s (`None` otherwise:
+    /// a damaged record).
+    pub fn units_in(&self, first: u32, rect: Rect) -> Option<Vec<u32>> {
+        if first >= self.total() || rect.width == 0 || rect.height == 0 {
+            return None;
+        }
+        let ts = self.tile_size.max(1);
+        let u0 = self.unit(first);
+        let t0 = self.tiles[u0.tile as usize];
+        let (right, bottom) = (
+            rect.x.checked_add(rect.width)?,
+            rect.y.checked_add(rect.height)?,
+        );
+        let on_grid = |v: u32, limit: u32| v == limit || v.is_multiple_of(ts);
+        if (t0.x, t0.y) != (rect.x, rect.y)
+            || right > self.width
+            || bottom > self.height
+            || !on_grid(right, self.width)
+            || !on_grid(bottom, self.height)
+        {
+            return None;
+        }
+        let base = first - u0.tile;
+        let (cols, rows) = (
+            rect.x / ts..right.div_ceil(ts),
+            rect.y / ts..bottom.div_ceil(ts),
+        );
+        Some(
+            rows.flat_map(|ty| {
+                cols.clone()
+                    .map(move |tx| base + ty * self.tiles_per_row + tx)
+            })
+            .collect(),
+        )
+    }
+
     /// Pixel-samples of a unit.
     pub fn unit_samples(&self, u: Unit) -> u64 {
         self.tiles[u.tile as usize].area() as u64 * self.batches[u.batch as usize].len() as u64
@@ -191,6 +229,37 @@ impl Layout {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_stored_result_covers_the_units_its_lease_joined() {
+        // 100x70 in 32-pixel tiles: 4 a row (the last 4 wide), 3 rows (the
+        // last 6 high); 10 samples in batches of 4: 3 batches; frames 3-5.
+        let l = Layout::new(100, 70, 10, 3, 5, 32, 4);
+        let join = |first: u32, max: u32| l.join(first, max, |_| true, |_| 1.0, f64::INFINITY);
+        let rect_of = |units: &[u32]| {
+            let (a, b) = (
+                l.tiles[l.unit(units[0]).tile as usize],
+                l.tiles[l.unit(*units.last().unwrap()).tile as usize],
+            );
+            Rect::new(a.x, a.y, b.x + b.width - a.x, b.y + b.height - a.y)
+        };
+        // A run inside a row, whole rows, the frame's last tile, another frame and batch.
+        let second_frame_batch_2 = l.index(Unit {
+            frame: 4,
+            batch: 2,
+            tile: 5,
+        });
+        for (first, max) in [(1, 2), (0, 12), (4, 8), (11, 1), (second_frame_batch_2, 3)] {
+            let units = join(first, max);
+            assert_eq!(l.units_in(first, rect_of(&units)), Some(units));
+        }
+        // Not a rectangle of whole tiles from the first unit's: damaged.
+        assert_eq!(l.units_in(0, Rect::new(0, 0, 33, 32)), None);
+        assert_eq!(l.units_in(1, Rect::new(0, 0, 64, 32)), None);
+        assert_eq!(l.units_in(0, Rect::new(0, 0, 100, 71)), None);
+        assert_eq!(l.units_in(l.total(), Rect::new(0, 0, 32, 32)), None);
+        assert_eq!(l.units_in(0, Rect::new(0, 0, 0, 32)), None);
+    }
 
     #[test]
     fn indices_round_trip_and_cover_every_sample_once() {

@@ -201,8 +201,12 @@ impl Film {
         Ok(())
     }
 
-    /// Adds another film whose rect lies inside this one's.
+    /// Adds another film whose rect lies inside this one's. Either all of
+    /// it is added or, on an overflow, none of it (the sums are unchanged).
+    /// Large films merge in parallel, row by row: the coordinator merges
+    /// whole-frame results from GPU workers.
     pub fn merge(&mut self, other: &Film) -> Result<(), FilmError> {
+        use rayon::prelude::*;
         other.validate()?;
         if !self.rect.contains(&other.rect) {
             return Err(FilmError::OutOfBounds {
@@ -210,20 +214,79 @@ impl Film {
                 film: self.rect,
             });
         }
-        for row in 0..other.rect.height {
-            let src = (row * other.rect.width) as usize;
-            let dst = ((other.rect.y - self.rect.y + row) * self.rect.width
-                + (other.rect.x - self.rect.x)) as usize;
-            for col in 0..other.rect.width as usize {
-                let (a, b) = (&mut self.sums[dst + col], &other.sums[src + col]);
-                for c in 0..3 {
-                    a[c] = a[c].checked_add(b[c]).ok_or(FilmError::Overflow {
-                        x: other.rect.x + col as u32,
-                        y: other.rect.y + row,
-                    })?;
+        let (w, ow) = (self.rect.width as usize, other.rect.width as usize);
+        if ow == 0 || other.rect.height == 0 {
+            self.rays.add(&other.rays);
+            self.nonfinite += other.nonfinite;
+            return Ok(());
+        }
+        let first = (other.rect.y - self.rect.y) as usize * w;
+        let x0 = (other.rect.x - self.rect.x) as usize;
+        let rows = other.rect.height as usize;
+        let span = first..first + rows * w;
+        // Wrapping adds that remember whether any wrapped: no branch per
+        // pixel, so the loop vectorises; an overflow is undone below.
+        let add_row = |(s, c): (&mut [[u64; 3]], &mut [u32]), (os, oc): (&[[u64; 3]], &[u32])| {
+            let mut wrapped = false;
+            for (a, b) in s[x0..x0 + ow].iter_mut().zip(os) {
+                for ch in 0..3 {
+                    let (v, o) = a[ch].overflowing_add(b[ch]);
+                    a[ch] = v;
+                    wrapped |= o;
                 }
-                self.counts[dst + col] += other.counts[src + col];
             }
+            for (a, &b) in c[x0..x0 + ow].iter_mut().zip(oc) {
+                let (v, o) = a.overflowing_add(b);
+                *a = v;
+                wrapped |= o;
+            }
+            wrapped
+        };
+        let src = other.sums.chunks(ow).zip(other.counts.chunks(ow));
+        const PARALLEL_PIXELS: usize = 1 << 16;
+        let wrapped = if other.sums.len() >= PARALLEL_PIXELS {
+            let src: Vec<_> = src.collect();
+            let dst: Vec<_> = self.sums[span.clone()]
+                .chunks_mut(w)
+                .zip(self.counts[span.clone()].chunks_mut(w))
+                .collect();
+            dst.into_par_iter()
+                .zip(src)
+                .map(|(d, s)| add_row(d, s))
+                .reduce(|| false, |a, b| a | b)
+        } else {
+            self.sums[span.clone()]
+                .chunks_mut(w)
+                .zip(self.counts[span.clone()].chunks_mut(w))
+                .zip(src)
+                .fold(false, |acc, (d, s)| add_row(d, s) | acc)
+        };
+        if wrapped {
+            // Undo (wrapping subtraction is the exact inverse) and name the
+            // first pixel that overflowed.
+            let mut at = None;
+            for (row, ((s, c), (os, oc))) in self.sums[span.clone()]
+                .chunks_mut(w)
+                .zip(self.counts[span].chunks_mut(w))
+                .zip(other.sums.chunks(ow).zip(other.counts.chunks(ow)))
+                .enumerate()
+            {
+                for col in 0..ow {
+                    let (a, b) = (&mut s[x0 + col], &os[col]);
+                    let mut o = false;
+                    for ch in 0..3 {
+                        a[ch] = a[ch].wrapping_sub(b[ch]);
+                        o |= a[ch].checked_add(b[ch]).is_none();
+                    }
+                    c[x0 + col] = c[x0 + col].wrapping_sub(oc[col]);
+                    o |= c[x0 + col].checked_add(oc[col]).is_none();
+                    if o && at.is_none() {
+                        at = Some((other.rect.x + col as u32, other.rect.y + row as u32));
+                    }
+                }
+            }
+            let (x, y) = at.expect("a wrapped add has a pixel that overflows");
+            return Err(FilmError::Overflow { x, y });
         }
         self.rays.add(&other.rays);
         self.nonfinite += other.nonfinite;
@@ -399,6 +462,50 @@ mod tests {
                 got: 15
             })
         );
+    }
+
+    #[test]
+    fn merge_adds_every_pixel_or_none_on_overflow() {
+        // Small (serial) and large (parallel) merges, off the film's origin.
+        for (w, h) in [(5, 3), (300, 260)] {
+            let mut f = Film::new(Rect::new(10, 20, w + 7, h + 4));
+            let mut t = Film::new(Rect::new(13, 22, w, h));
+            for (i, (s, c)) in t.sums.iter_mut().zip(&mut t.counts).enumerate() {
+                *s = [i as u64, 2 * i as u64 + 1, 7];
+                *c = 1 + (i % 3) as u32;
+            }
+            f.merge(&t).unwrap();
+            f.merge(&t).unwrap();
+            for y in 0..f.rect.height {
+                for x in 0..f.rect.width {
+                    let i = (y * f.rect.width + x) as usize;
+                    let (tx, ty) = (f.rect.x + x, f.rect.y + y);
+                    let inside = (13..13 + w).contains(&tx) && (22..22 + h).contains(&ty);
+                    let want = if inside {
+                        let j = ((ty - 22) * w + (tx - 13)) as usize;
+                        (
+                            [2 * j as u64, 2 * (2 * j as u64 + 1), 14],
+                            2 * (1 + (j % 3) as u32),
+                        )
+                    } else {
+                        ([0; 3], 0)
+                    };
+                    assert_eq!((f.sums[i], f.counts[i]), want, "pixel ({tx}, {ty})");
+                }
+            }
+            let before = f.clone();
+            let mut big = Film::new(t.rect);
+            let last = big.sums.len() - 1;
+            big.sums[last][1] = u64::MAX;
+            assert_eq!(
+                f.merge(&big),
+                Err(FilmError::Overflow {
+                    x: 13 + w - 1,
+                    y: 22 + h - 1
+                })
+            );
+            assert_eq!(f, before, "an overflowing merge leaves the film as it was");
+        }
     }
 
     #[test]

@@ -12,7 +12,8 @@
 //!   the coordinator could not record;
 //! - a heartbeat task extends every held lease (rendering, queued or being
 //!   sent) and learns which are gone (expired, cancelled): a rendering unit
-//!   stops at the next band of rows, a queued one is skipped, nothing is sent.
+//!   stops (the CPU renderer before its next 16x16 tile, the GPU at the next
+//!   band of rows), a queued one is skipped, nothing is sent.
 //!
 //! Draining (SIGTERM) finishes the unit being rendered, hands the prefetched
 //! leases back (`ReturnLeases`) so no one waits for them to expire, sends
@@ -41,15 +42,9 @@ use tracer_core::assets::Bundle;
 use tracer_core::film::{Film, Rect, SampleRange};
 #[cfg(feature = "gpu")]
 use tracer_core::render::GpuRenderer;
-use tracer_core::render::cpu::TILE;
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
-/// Renderer tiles per thread in one band of rows: a band ends with a
-/// barrier (the lease is checked between bands), where threads that drew
-/// the last tiles keep the others waiting; with 32 tiles each that wait is
-/// a few percent at most.
-const BAND_TILES_PER_THREAD: u32 = 32;
 /// Leases held ahead of the one being rendered.
 const PREFETCH: usize = 1;
 /// How long an idle worker's lease request waits at the coordinator for
@@ -169,15 +164,6 @@ fn too_large(rect: Rect) -> Option<String> {
         ));
     }
     None
-}
-
-/// Rows of `rect` rendered in one call (the lease is checked between calls).
-fn unit_band_rows(renderer: &Renderer, rect: Rect, samples: SampleRange) -> u32 {
-    if let Renderer::Cpu(r) = renderer {
-        band_rows(rect, r.threads())
-    } else {
-        gpu_band_rows(rect, samples)
-    }
 }
 
 pub struct Worker {
@@ -881,25 +867,14 @@ async fn submit_with_retry(
     }
 }
 
-/// Rows per band: at least one renderer tile high, and with several threads
-/// enough renderer tiles that they share each band evenly. One thread has
-/// no one to wait for: its bands stay one tile high (fast cancel).
-fn band_rows(rect: Rect, threads: usize) -> u32 {
-    if threads <= 1 {
-        return TILE.min(rect.height.max(1));
-    }
-    let tiles_per_row = rect.width.div_ceil(TILE).max(1);
-    let rows_of_tiles = (BAND_TILES_PER_THREAD * threads.max(1) as u32).div_ceil(tiles_per_row);
-    (rows_of_tiles * TILE).max(TILE).min(rect.height.max(1))
-}
-
 /// GPU bands: whole rows, about [`GPU_BAND_PIXEL_SAMPLES`] each.
 fn gpu_band_rows(rect: Rect, samples: SampleRange) -> u32 {
     let per_row = rect.width.max(1) as u64 * samples.len().max(1) as u64;
     (GPU_BAND_PIXEL_SAMPLES / per_row).clamp(1, rect.height.max(1) as u64) as u32
 }
 
-/// Renders a unit band by band, stopping early when `cancel` is set.
+/// Renders a unit, stopping early when `cancel` is set: on the CPU in one
+/// pass, on the GPU band by band (one dispatch each).
 fn render_unit(
     renderer: &Renderer,
     prepared: &PreparedFrame,
@@ -910,17 +885,28 @@ fn render_unit(
     samples_done: &AtomicU64,
 ) -> UnitEnd {
     let start = Instant::now();
+    let progress = |n| {
+        samples_done.fetch_add(n, Ordering::Relaxed);
+    };
+    // The CPU renderer takes the whole unit in one parallel pass and
+    // checks `cancel` before each of its tiles: bands would each end in a
+    // barrier where one thread waits for another's last tile.
+    if let Renderer::Cpu(r) = renderer {
+        return match r.render_until(prepared, frame, rect, samples, &progress, cancel) {
+            Ok(Some(film)) => UnitEnd::Film(film, start.elapsed().as_secs_f64()),
+            Ok(None) => UnitEnd::Abandoned,
+            Err(e) => UnitEnd::Failed(e.to_string()),
+        };
+    }
     let mut film = Film::new(rect);
-    let rows = unit_band_rows(renderer, rect, samples);
+    let rows = gpu_band_rows(rect, samples);
     let mut y = rect.y;
     while y < rect.y + rect.height {
         if cancel.load(Ordering::Relaxed) {
             return UnitEnd::Abandoned;
         }
         let band = Rect::new(rect.x, y, rect.width, rows.min(rect.y + rect.height - y));
-        match renderer.render(prepared, frame, band, samples, &|n| {
-            samples_done.fetch_add(n, Ordering::Relaxed);
-        }) {
+        match renderer.render(prepared, frame, band, samples, &progress) {
             // The whole unit in one call: no copy into the unit's film.
             Ok(part) if band == rect => {
                 film = part;
@@ -998,17 +984,36 @@ mod tests {
     }
 
     #[test]
-    fn bands_hold_enough_tiles_for_the_threads_and_stay_inside_the_unit() {
-        // One thread: bands one renderer tile high.
-        assert_eq!(band_rows(Rect::new(0, 0, 384, 64), 1), 16);
-        // One 64x64 tile, 2 threads: 64 renderer tiles wanted, 16 in the tile.
-        assert_eq!(band_rows(Rect::new(0, 0, 64, 64), 2), 64);
-        // Six joined tiles (384 wide, 24 renderer tiles per row of tiles).
-        assert_eq!(band_rows(Rect::new(0, 0, 384, 64), 2), 48);
-        assert_eq!(band_rows(Rect::new(0, 0, 384, 64), 8), 64);
-        // Wide units keep bands a few renderer tiles high (cancel latency).
-        assert_eq!(band_rows(Rect::new(0, 0, 4096, 4096), 16), 32);
-        // A unit lower than a renderer tile is one band.
-        assert_eq!(band_rows(Rect::new(0, 0, 10, 5), 4), 5);
+    fn a_cpu_unit_renders_in_one_pass_and_stops_when_cancelled() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/resolution.toml");
+        let desc = SceneDesc::load(path).unwrap();
+        let mut settings = desc.render;
+        (settings.width, settings.height) = (96, 64);
+        let prepared = PreparedFrame::build(&desc, &settings, 0, Precision::F32).unwrap();
+        let renderer = Renderer::Cpu(CpuRenderer::new(Some(2)).unwrap());
+        // A unit off the origin, not a whole number of renderer tiles.
+        let rect = Rect::new(8, 4, 70, 50);
+        let samples = SampleRange { start: 1, end: 3 };
+        let want = renderer
+            .render(&prepared, 0, rect, samples, &|_| {})
+            .unwrap();
+        let done = AtomicU64::new(0);
+        let never = AtomicBool::new(false);
+        match render_unit(&renderer, &prepared, 0, rect, samples, &never, &done) {
+            UnitEnd::Film(film, _) => assert_eq!(film, want),
+            _ => panic!("the unit did not render"),
+        }
+        assert_eq!(done.load(Ordering::Relaxed), rect.area() as u64 * 2);
+        let cancelled = AtomicBool::new(true);
+        let done = AtomicU64::new(0);
+        assert!(matches!(
+            render_unit(&renderer, &prepared, 0, rect, samples, &cancelled, &done),
+            UnitEnd::Abandoned
+        ));
+        assert_eq!(
+            done.load(Ordering::Relaxed),
+            0,
+            "no tile rendered after the cancel"
+        );
     }
 }

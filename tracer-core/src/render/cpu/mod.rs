@@ -10,6 +10,8 @@ pub mod kernels;
 pub mod shade;
 pub mod stream;
 
+use std::sync::atomic::{AtomicBool, Ordering};
+
 use rayon::prelude::*;
 
 use super::whitted::Surface;
@@ -67,10 +69,28 @@ impl CpuRenderer {
         samples: SampleRange,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<Film, RenderError> {
+        let never = AtomicBool::new(false);
+        Ok(self
+            .render_until(prepared, frame, rect, samples, progress, &never)?
+            .expect("never cancelled"))
+    }
+
+    /// As [`Self::render`], but stops once `cancel` is set: tiles not yet
+    /// started are skipped and `None` comes back. One parallel pass over
+    /// the whole rect (one barrier at its end), cancelled within a tile.
+    pub fn render_until(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+        cancel: &AtomicBool,
+    ) -> Result<Option<Film>, RenderError> {
         prepared.check_request(rect, samples)?;
         Ok(match prepared {
-            PreparedFrame::F32(w) => self.render_world(w, frame, rect, samples, progress),
-            PreparedFrame::F64(w) => self.render_world(w, frame, rect, samples, progress),
+            PreparedFrame::F32(w) => self.render_world(w, frame, rect, samples, progress, cancel),
+            PreparedFrame::F64(w) => self.render_world(w, frame, rect, samples, progress, cancel),
         })
     }
 
@@ -81,24 +101,32 @@ impl CpuRenderer {
         rect: Rect,
         samples: SampleRange,
         progress: &(dyn Fn(u64) + Sync),
-    ) -> Film {
+        cancel: &AtomicBool,
+    ) -> Option<Film> {
         let tiles = rect.tiles(TILE);
-        let films: Vec<Film> = self.pool.install(|| {
+        let films: Vec<Option<Film>> = self.pool.install(|| {
             tiles
                 .par_iter()
                 .map(|&tile| {
+                    if cancel.load(Ordering::Relaxed) {
+                        return None;
+                    }
                     let film = render_tile(world, frame, tile, samples);
                     progress(tile.area() as u64 * samples.len() as u64);
-                    film
+                    Some(film)
                 })
                 .collect()
         });
+        if cancel.load(Ordering::Relaxed) {
+            return None;
+        }
+        let films: Vec<Film> = films.into_iter().collect::<Option<_>>()?;
         let mut out = Film::new(rect);
         for f in &films {
             out.merge(f)
                 .expect("tiles lie inside their rect and sums cannot overflow");
         }
-        out
+        Some(out)
     }
 }
 
