@@ -681,3 +681,146 @@ impl SceneData {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::SceneDesc;
+
+    /// OBJ text of an n x n grid of unit quads at z = 0, two triangles each
+    /// (enough for a tree of several nodes), with `head` first.
+    fn grid(n: u32, head: &str) -> String {
+        let mut s = head.to_string();
+        for y in 0..=n {
+            for x in 0..=n {
+                s += &format!("v {x} {y} 0\n");
+            }
+        }
+        let at = |x: u32, y: u32| y * (n + 1) + x + 1;
+        for y in 0..n {
+            for x in 0..n {
+                let (a, b, c, d) = (at(x, y), at(x + 1, y), at(x + 1, y + 1), at(x, y + 1));
+                s += &format!("f {a} {b} {c}\nf {a} {c} {d}\n");
+            }
+        }
+        s
+    }
+
+    /// Moving meshes' trees are packed after the static one, which stays as
+    /// it was: walked from its root, each reaches exactly its own mesh's
+    /// triangles, each once (rebased node, leaf and triangle indices), and
+    /// its file's materials, which differ from those of a static mesh
+    /// listed after it, are mapped to their own places.
+    #[test]
+    fn moving_mesh_trees_are_packed_after_the_static_one() {
+        let dir = std::env::temp_dir().join(format!("tessera-pack-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("plain.obj"), grid(6, "")).unwrap();
+        std::fs::write(dir.join("red.mtl"), "newmtl red\nKd 1 0 0\n").unwrap();
+        std::fs::write(dir.join("blue.mtl"), "newmtl blue\nKd 0 0 1\n").unwrap();
+        std::fs::write(dir.join("red.obj"), grid(5, "mtllib red.mtl\nusemtl red\n")).unwrap();
+        std::fs::write(
+            dir.join("blue.obj"),
+            grid(4, "mtllib blue.mtl\nusemtl blue\n"),
+        )
+        .unwrap();
+        let src = r#"
+[camera]
+position = [0, 0, -10]
+look_at = [0, 0, 0]
+shutter = [0, 1]
+[materials.grey]
+diffuse = [0.5, 0.5, 0.5]
+[[objects]]
+type = "mesh"
+path = "plain.obj"
+material = "grey"
+[[objects]]
+type = "mesh"
+path = "red.obj"
+[[objects.keyframes]]
+frame = 0
+translate = [-3, 0, 0]
+[[objects.keyframes]]
+frame = 1
+translate = [3, 0, 0]
+[[objects]]
+type = "mesh"
+path = "plain.obj"
+material = "grey"
+[[objects.keyframes]]
+frame = 0
+translate = [0, -3, 0]
+[[objects.keyframes]]
+frame = 1
+translate = [0, 3, 1]
+[[objects]]
+type = "mesh"
+path = "blue.obj"
+translate = [0, 0, 2]
+"#;
+        let desc = SceneDesc::parse(src, dir.join("s.toml")).unwrap();
+        let w = World::<f32>::build(&desc, &desc.render, 0);
+        let data = SceneData::from_world(&w, None).unwrap();
+        let tree = data.tree.as_ref().unwrap().data.clone();
+        let meshes = &w.dist.as_ref().unwrap().moving_meshes;
+        assert!(data.static_tree);
+        assert_eq!(tree.places.len(), 3);
+        let own = w.accel.as_ref().unwrap();
+        assert_eq!(tree.places[0], TreePlace::default());
+        assert_eq!(&tree.nodes[..own.nodes.len()], &own.nodes[..]);
+        let dist = data.dist.as_ref().unwrap();
+        assert_eq!(dist.n_moving_meshes, 2);
+        for (k, m) in meshes.iter().enumerate() {
+            let place = tree.places[k + 1];
+            let first = place.first_triangle as usize;
+            let end = first + m.world.triangles.len();
+            assert_eq!(
+                tree.places
+                    .get(k + 2)
+                    .map_or(tree.n_triangles as usize, |p| p.first_triangle as usize),
+                end
+            );
+            // The mesh's words in `dist`: after 6 camera words, 5 a light
+            // and 2 a moving sphere, 3 a mesh.
+            let at = 6 + 5 * dist.n_lights as usize + 2 * dist.n_moving as usize + 3 * k;
+            let words = &dist.words[at..at + 3];
+            assert_eq!(words[0][3].to_bits(), place.root);
+            assert_eq!(words[1][3].to_bits(), place.first_triangle);
+            assert_eq!(words[2][..3], a3(m.delta));
+            // Walk from the root: every triangle of the mesh, once.
+            let mut seen = vec![0; m.world.triangles.len()];
+            let mut todo = vec![place.root as usize];
+            while let Some(i) = todo.pop() {
+                let n = &tree.nodes[i];
+                for s in (0..4).filter(|&s| !n.is_empty(s)) {
+                    if n.count[s] == 0 {
+                        todo.push(n.child[s] as usize);
+                        continue;
+                    }
+                    let leaf = n.child[s] as usize..(n.child[s] + n.count[s]) as usize;
+                    for &p in &tree.prims[leaf] {
+                        let id = PrimId(p);
+                        assert_eq!(id.kind(), PrimId::TRIANGLE);
+                        assert!((first..end).contains(&id.index()), "mesh {k}: {id:?}");
+                        seen[id.index() - first] += 1;
+                    }
+                }
+            }
+            assert!(seen.iter().all(|&c| c == 1), "mesh {k}: {seen:?}");
+            for (j, t) in m.world.triangles.iter().enumerate() {
+                let g = tree.triangles[first + j];
+                assert_eq!([g.v0, g.v1, g.v2], t.vertices().map(a3));
+                let mat = &m.world.materials[m.world.triangle_shading[j].material as usize];
+                let gm = data.materials[tree.shading[first + j].material as usize];
+                assert_eq!(gm.diffuse, a3(mat.diffuse), "mesh {k}, triangle {j}");
+            }
+        }
+        // The red file material has a place of its own: the world's
+        // material at that index is the static blue mesh's.
+        let red = tree.shading[tree.places[1].first_triangle as usize].material as usize;
+        assert_eq!(data.materials[red].diffuse, [1.0, 0.0, 0.0]);
+        assert!(red >= w.materials.len());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
