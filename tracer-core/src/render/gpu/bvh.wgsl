@@ -1,13 +1,17 @@
-// Scene queries for worlds with a BVH (accel.rs, bvh.rs): planes by loop,
-// spheres and triangles through the tree. Mirrors `bvh::closest_hit` and
-// `bvh::occluded` (same 4-wide node layout, same slab test with planes
-// chosen by the direction's sign, same near-first order and culling),
-// `Triangle::intersect` (the watertight test) and the triangle parts of
-// world.rs / accel.rs (`triangle_surface`, `shading_normal`).
+// Tree traversal on the GPU (bvh.rs, triangle.rs): the 4-wide node layout,
+// the same slab test with planes chosen by the direction's sign, the same
+// near-first order and culling, `Triangle::intersect` (the watertight test)
+// and the triangle parts of world.rs / accel.rs (`triangle_surface`,
+// `shading_normal`). Compiled in for worlds with a tree (then accel.wgsl
+// holds the scene queries) and for moving meshes (distributed.wgsl,
+// moving_meshes.wgsl): each tree lies in the same arrays, the static one
+// from node 0, every moving mesh's after it, its node, leaf and triangle
+// indices rebased by the host (layout.rs TreeData::pack), so a traversal
+// takes the index of its root and a triangle's index is unique across trees.
 //
-// The traversal stack has BVH_STACK entries: one more than the most the
-// tree can need on any path (a node pushes all its met slots but the one
-// it continues with), as measured by the host at upload (layout.rs
+// The traversal stack has BVH_STACK entries: one more than the most any of
+// the trees can need on any path (a node pushes all its met slots but the
+// one it continues with), as measured by the host at upload (layout.rs
 // check_tree, which refuses trees needing more than bvh::STACK).
 
 // ---- Layouts: keep in sync with layout.rs (GpuBvhNode, GpuTriangle, GpuTriangleShading)
@@ -181,8 +185,9 @@ fn hit_prim(id: u32, o: vec3<f32>, d: vec3<f32>, tr: TriRay, t_max: f32, skip: u
     return hit_sphere(spheres[index], o, d, t_max, id == skip);
 }
 
-// bvh.rs closest_hit: nearest hit of the tree's primitives nearer than h.t.
-fn tree_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
+// bvh.rs closest_hit: nearest hit of the primitives of the tree rooted at
+// node `root` nearer than h.t.
+fn tree_closest(root: u32, o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
     var best = h.t;
     var found = NONE;
     let inv = reciprocal(d);
@@ -191,7 +196,7 @@ fn tree_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
     var stack_t: array<f32, BVH_STACK>;
     var sp = 0u;
     // The subtree being visited: a node index, or a LEAF_REF; first the root.
-    var cur = 0u;
+    var cur = root;
     loop {
         if ((cur & LEAF_REF) == 0u) {
             let n = nodes[cur];
@@ -261,14 +266,14 @@ fn tree_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
     return Hit(best, found);
 }
 
-// bvh.rs occluded: any primitive of the tree before t_max; leaves are
-// tested as soon as their box is met.
-fn tree_occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
+// bvh.rs occluded: any primitive of the tree rooted at node `root` before
+// t_max; leaves are tested as soon as their box is met.
+fn tree_occluded(root: u32, o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
     let inv = reciprocal(d);
     let tr = tri_ray(o, d);
     var stack_node: array<u32, BVH_STACK>;
     var sp = 0u;
-    var node = 0u;
+    var node = root;
     loop {
         let n = nodes[node];
         let t = box_entry4(n, o, inv, t_max);
@@ -303,35 +308,19 @@ fn tree_occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
     return false;
 }
 
-// accel.rs closest_hit_accel: planes by loop, then the tree.
-fn closest_hit(o: vec3<f32>, d: vec3<f32>, skip: u32) -> Hit {
-    return tree_closest(o, d, skip, planes_closest(o, d, skip, Hit(BIG, NONE)));
-}
-
-fn occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
-    return planes_occlude(o, d, t_max, skip) || tree_occluded(o, d, t_max, skip);
-}
-
-// world.rs surface; for triangles (accel.rs triangle_surface) the point
-// snapped onto the triangle's plane and its outward geometric normal.
-fn surface(id: u32, p: vec3<f32>) -> Surface {
-    if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
-        return analytic_surface(id, p);
-    }
-    let index = id & ((1u << KIND_SHIFT) - 1u);
+// accel.rs triangle_surface: the point snapped onto the plane of triangle
+// `index` and its outward geometric normal.
+fn triangle_surface(index: u32, p: vec3<f32>) -> Surface {
     let s = shading[index];
     let v0 = triangles[index].v0;
     return Surface(p - s.normal * dot(s.normal, p - v0), s.normal, s.material);
 }
 
-// accel.rs shading_normal: on smooth triangles the interpolated vertex
-// normal, turned to the side of n (the geometric normal facing the viewer),
-// and n itself wherever that would face away from the viewer v.
-fn shading_normal(id: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
-    if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
-        return n;
-    }
-    let index = id & ((1u << KIND_SHIFT) - 1u);
+// accel.rs shading_normal for triangle `index`: on smooth triangles the
+// interpolated vertex normal, turned to the side of n (the geometric normal
+// facing the viewer), and n itself wherever that would face away from the
+// viewer v.
+fn triangle_shading_normal(index: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
     let s = shading[index];
     if (s.smooth_shaded == 0u) {
         return n;

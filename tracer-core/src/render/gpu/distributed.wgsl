@@ -4,13 +4,17 @@
 // (sampling.rs: dimensions 2, 3 for the lens, 4 for the time, node keys
 // and slots for the rest). Compiled in (after whitted.wgsl and the scene
 // queries) only for worlds with `World::dist`; entry point `render_dist`.
+// Moving meshes' queries come from moving_meshes.wgsl (after bvh.wgsl),
+// compiled in only for worlds that have them, else from
+// no_moving_meshes.wgsl, where they do nothing.
 // Keep in sync with layout.rs `DistData` (the packing of `dist`).
 
 // dist[0]: unit right, aperture; [1]: unit up, focus distance (<= 0: the
 // pose's look distance); [2]: camera displacement over the shutter, look
 // distance; [3]: look_at (opening), fov_y (degrees); [4]: look_at change,
 // fov_y change; [5]: up (unit), aspect. Then 5 entries per light (see
-// `light_point`) and 2 per moving sphere.
+// `light_point`), 2 per moving sphere and 3 per moving mesh (see
+// moving_meshes.wgsl).
 @group(0) @binding(12) var<storage, read> dist: array<vec4<f32>>;
 
 override N_DLIGHTS: u32 = 0u;
@@ -62,7 +66,7 @@ fn d_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, tau: f32) -> Hit {
             h = Hit(t, pid);
         }
     }
-    return h;
+    return moving_meshes_closest(o, d, skip, tau, h);
 }
 
 fn d_occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32, tau: f32) -> bool {
@@ -75,7 +79,44 @@ fn d_occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32, tau: f32) -> bo
             return true;
         }
     }
-    return false;
+    return moving_meshes_occluded(o, d, t_max, skip, tau);
+}
+
+// A hit as distributed.rs `Surf` has it: the point snapped onto the
+// primitive, the geometric normal n and the shading normal ns facing the
+// viewer.
+struct DSurface {
+    p: vec3<f32>,
+    n: vec3<f32>,
+    ns: vec3<f32>,
+    material: u32,
+    entering: bool,
+}
+
+// distributed.rs surface: of the static world, a moving sphere at the
+// sample's time, or a moving mesh (moving_meshes.wgsl).
+fn d_surface(id: u32, q: vec3<f32>, v: vec3<f32>, tau: f32) -> DSurface {
+    let mesh = moving_mesh_of(id);
+    if (mesh != NONE) {
+        return moving_mesh_surface(mesh, id, q, v, tau);
+    }
+    var sf: Surface;
+    let moving = (id >> KIND_SHIFT) == KIND_MOVING;
+    if (moving) {
+        let ms = moving_sphere(id & ((1u << KIND_SHIFT) - 1u), tau);
+        let dd = q - ms.center;
+        let nn = dd * (1.0 / length(dd));
+        sf = Surface(ms.center + nn * ms.radius, nn, ms.material);
+    } else {
+        sf = surface(id, q);
+    }
+    let entering = dot(sf.n, v) >= 0.0;
+    let n = select(-sf.n, sf.n, entering);
+    var ns = n;
+    if (!moving) {
+        ns = shading_normal(id, sf.p, n, v);
+    }
+    return DSurface(sf.p, n, ns, sf.material, entering);
 }
 
 // A point of light `li` for (u, v) in [0, 1)^2, uniform by area.
@@ -181,7 +222,7 @@ struct DTask {
     key: u32,
 }
 
-// trace() with the node keys, moving spheres, sampled lights and cones.
+// trace() with the node keys, moving objects, sampled lights and cones.
 fn trace_dist(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32) -> vec3<f32> {
     var stack: array<DTask, STACK_CAP>;
     var top = 0u;
@@ -194,26 +235,13 @@ fn trace_dist(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32) ->
         if (hit.id == NONE) {
             colour += frame.background * task.weight;
         } else {
-            let q = task.origin + task.dir * hit.t;
-            var sf: Surface;
-            let moving = (hit.id >> KIND_SHIFT) == KIND_MOVING;
-            if (moving) {
-                let ms = moving_sphere(hit.id & ((1u << KIND_SHIFT) - 1u), tau);
-                let dd = q - ms.center;
-                let nn = dd * (1.0 / length(dd));
-                sf = Surface(ms.center + nn * ms.radius, nn, ms.material);
-            } else {
-                sf = surface(hit.id, q);
-            }
-            let p = sf.p;
-            let m = materials[sf.material];
             let v = -task.dir;
-            let entering = dot(sf.n, v) >= 0.0;
-            let n = select(-sf.n, sf.n, entering);
-            var ns = n;
-            if (!moving) {
-                ns = shading_normal(hit.id, p, n, v);
-            }
+            let sf = d_surface(hit.id, task.origin + task.dir * hit.t, v, tau);
+            let p = sf.p;
+            let n = sf.n;
+            let ns = sf.ns;
+            let entering = sf.entering;
+            let m = materials[sf.material];
             let cos_i = dot(ns, v);
             let above = offset_origin(p, n);
             colour += d_shade_local(p, n, ns, v, m, above, hit.id, task.key, seed, s, tau) * task.weight;

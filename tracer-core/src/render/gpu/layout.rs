@@ -1,7 +1,8 @@
 //! Host mirrors of every structure the WGSL kernel reads or writes.
 //!
 //! Keep in sync with the struct declarations at the top of `whitted.wgsl`
-//! (and, for meshes and the BVH, `bvh.wgsl`):
+//! (and, for meshes and the BVH, `bvh.wgsl`; for distributed effects the
+//! `dist` words of `distributed.wgsl` and `moving_meshes.wgsl`):
 //! same field order, same sizes, WGSL alignment rules (a `vec3<f32>` is
 //! 16-byte aligned, so each one is followed by a scalar that fills its
 //! fourth lane). The `const` asserts below pin the sizes WGSL expects.
@@ -10,7 +11,7 @@ use bytemuck::{Pod, Zeroable};
 
 use crate::bvh::{Bvh, BvhNode4, STACK};
 use crate::geometry::{Plane, PrimId, Sphere};
-use crate::triangle::{Triangle, TriangleShading};
+use crate::triangle::TriangleShading;
 use crate::world::{Material, PointLight, World};
 
 use super::GpuError;
@@ -165,59 +166,132 @@ const _: () = assert!(size_of::<GpuTriangle>() == 48);
 const _: () = assert!(size_of::<GpuTriangleShading>() == 64);
 const _: () = assert!(size_of::<GpuBvhNode>() == 128);
 
-/// A world's tree and what its leaves refer to, for scenes that have one
-/// (meshes, or many spheres): the pipeline then compiles `bvh.wgsl`.
+/// The trees of a world and what their leaves refer to, for scenes that
+/// have one: the static world's (meshes, or many spheres: the pipeline then
+/// compiles `bvh.wgsl` and `accel.wgsl`) and each moving mesh's
+/// (`distributed::MovingMesh`: then `bvh.wgsl` and `moving_meshes.wgsl`),
+/// one after another in the same arrays.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TreeData {
-    /// The flattened 4-wide nodes exactly as the CPU traverses them.
+    /// The flattened 4-wide nodes exactly as the CPU traverses them, child
+    /// and leaf indices rebased by the trees packed before.
     pub nodes: Vec<GpuBvhNode>,
-    /// Leaf references: packed `PrimId`s (kind << 28 | index).
+    /// Leaf references: packed `PrimId`s (kind << 28 | index), triangle
+    /// indices rebased like the nodes, so each names one triangle of one tree.
     pub prims: Vec<u32>,
-    /// Never empty (one unused element when the tree holds only spheres).
+    /// Never empty (one unused element when the trees hold only spheres).
     pub triangles: Vec<GpuTriangle>,
     pub shading: Vec<GpuTriangleShading>,
     pub n_triangles: u32,
-    /// Traversal stack entries the tree needs, as measured at upload.
+    /// Traversal stack entries the deepest tree needs, as measured at upload.
     pub stack: u32,
+    /// Where each tree starts, in the order packed.
+    pub places: Vec<TreePlace>,
+}
+
+/// Where one tree lies in [`TreeData`]'s arrays.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TreePlace {
+    /// Its root node.
+    pub root: u32,
+    /// Its first triangle; its triangles run to the next tree's first.
+    pub first_triangle: u32,
+}
+
+/// A tree to pack: its world (triangles and their shading), and for a
+/// moving mesh, whose world has its own materials, the index in the GPU's
+/// materials of each of them.
+pub struct TreePart<'a> {
+    pub world: &'a World<f32>,
+    pub tree: &'a Bvh,
+    pub materials: Option<&'a [u32]>,
 }
 
 impl TreeData {
-    /// Packs `tree` after checking that the GPU can traverse it: every index
-    /// in range and no path from the root that pushes more than `STACK`
-    /// entries, since the kernel's traversal stack has `STACK` entries. The
-    /// builder guarantees both; this refuses a tree from anywhere else
-    /// rather than render a wrong image.
-    pub fn from_tree(w: &World<f32>, tree: &Bvh) -> Result<Self, GpuError> {
-        let stack = check_tree(&tree.nodes, &tree.prims, w.spheres.len(), w.triangles.len())?;
-        let triangle = |t: &Triangle<f32>| {
-            let [v0, v1, v2] = t.vertices().map(a3);
-            GpuTriangle {
-                v0,
-                v1,
-                v2,
-                ..Default::default()
-            }
+    /// Packs the trees one after another after checking that the GPU can
+    /// traverse each: every index in range and no path from the root that
+    /// pushes more than `STACK` entries, since the kernel's traversal stack
+    /// has `STACK` entries. The builder guarantees both; this refuses a tree
+    /// from anywhere else rather than render a wrong image. The first tree
+    /// is packed as is (its root is node 0).
+    pub fn pack(parts: &[TreePart]) -> Result<Self, GpuError> {
+        let mut data = TreeData {
+            nodes: Vec::new(),
+            prims: Vec::new(),
+            triangles: Vec::new(),
+            shading: Vec::new(),
+            n_triangles: 0,
+            stack: 0,
+            places: Vec::new(),
         };
-        let shading = |s: &TriangleShading<f32>| {
-            let ns = s.vertex_normals.map(|n| n.map(a3)).unwrap_or([[0.0; 3]; 3]);
-            GpuTriangleShading {
-                normal: a3(s.normal),
-                material: s.material,
-                n0: ns[0],
-                smooth_shaded: s.vertex_normals.is_some() as u32,
-                n1: ns[1],
-                n2: ns[2],
-                ..Default::default()
-            }
-        };
-        Ok(TreeData {
-            nodes: tree.nodes.clone(),
-            prims: non_empty(tree.prims.iter().map(|p| p.0).collect()),
-            triangles: non_empty(w.triangles.iter().map(triangle).collect()),
-            shading: non_empty(w.triangle_shading.iter().map(shading).collect()),
-            n_triangles: w.triangles.len() as u32,
-            stack,
-        })
+        for part in parts {
+            let (w, tree) = (part.world, part.tree);
+            let stack = check_tree(&tree.nodes, &tree.prims, w.spheres.len(), w.triangles.len())?;
+            data.stack = data.stack.max(stack);
+            let (node0, prim0, tri0) = (
+                data.nodes.len() as u32,
+                data.prims.len() as u32,
+                data.triangles.len() as u32,
+            );
+            data.places.push(TreePlace {
+                root: node0,
+                first_triangle: tri0,
+            });
+            data.nodes.extend(tree.nodes.iter().map(|n| {
+                let mut n = *n;
+                for k in 0..4 {
+                    if !n.is_empty(k) {
+                        n.child[k] += if n.count[k] == 0 { node0 } else { prim0 };
+                    }
+                }
+                n
+            }));
+            data.prims.extend(tree.prims.iter().map(|p| {
+                if *p != PrimId::NONE && p.kind() == PrimId::TRIANGLE {
+                    p.0 + tri0
+                } else {
+                    p.0
+                }
+            }));
+            data.triangles.extend(w.triangles.iter().map(|t| {
+                let [v0, v1, v2] = t.vertices().map(a3);
+                GpuTriangle {
+                    v0,
+                    v1,
+                    v2,
+                    ..Default::default()
+                }
+            }));
+            data.shading
+                .extend(w.triangle_shading.iter().map(|s: &TriangleShading<f32>| {
+                    let ns = s.vertex_normals.map(|n| n.map(a3)).unwrap_or([[0.0; 3]; 3]);
+                    GpuTriangleShading {
+                        normal: a3(s.normal),
+                        material: part
+                            .materials
+                            .map_or(s.material, |m| m[s.material as usize]),
+                        n0: ns[0],
+                        smooth_shaded: s.vertex_normals.is_some() as u32,
+                        n1: ns[1],
+                        n2: ns[2],
+                        ..Default::default()
+                    }
+                }));
+        }
+        // The kernel's stack refers to a leaf as node << 2 | slot in 31 bits,
+        // and a PrimId holds a triangle's index in 28.
+        if data.nodes.len() >= 1 << 29 || data.triangles.len() >= 1 << 28 {
+            return Err(GpuError::BadTree(format!(
+                "the trees have {} nodes and {} triangles in all, more than the kernel can refer to",
+                data.nodes.len(),
+                data.triangles.len()
+            )));
+        }
+        data.n_triangles = data.triangles.len() as u32;
+        data.triangles = non_empty(data.triangles);
+        data.shading = non_empty(data.shading);
+        data.prims = non_empty(data.prims);
+        Ok(data)
     }
 }
 
@@ -315,30 +389,39 @@ pub struct SceneData {
     pub max_depth: u32,
     pub has_reflection: bool,
     pub has_refraction: bool,
-    /// The world's BVH over spheres and triangles, when it has one.
+    /// The world's BVH over spheres and triangles (when it has one, first,
+    /// with root 0), then the moving meshes' trees.
     pub tree: Option<SharedTree>,
+    /// Whether `tree` starts with the world's own (the scene queries then
+    /// traverse it: `accel.wgsl`, else `analytic.wgsl`).
+    pub static_tree: bool,
     /// Distributed effects (`World::dist`), packed as distributed.wgsl reads them.
     pub dist: Option<DistData>,
 }
 
 /// `World::dist` for distributed.wgsl: its `dist` array of vec4 (keep in
-/// sync with the layout described there) and the pipeline constants.
+/// sync with the layout described there and in moving_meshes.wgsl) and the
+/// pipeline constants.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DistData {
     pub words: Vec<[f32; 4]>,
     pub n_lights: u32,
     pub n_moving: u32,
+    /// Moving meshes with triangles (one with none can never be hit).
+    pub n_moving_meshes: u32,
     pub has_lens: bool,
     pub has_blur: bool,
     pub has_camera_motion: bool,
 }
 
 impl DistData {
-    pub fn from_dist(d: &crate::distributed::Distributed<f32>) -> Result<Self, GpuError> {
+    /// Packs `d`; `meshes` are the moving meshes the kernel traces, each as
+    /// its index in `d.moving_meshes` and the place of its packed tree.
+    pub fn from_dist(
+        d: &crate::distributed::Distributed<f32>,
+        meshes: &[(usize, TreePlace)],
+    ) -> Self {
         use crate::distributed::LightGeom;
-        if !d.moving_meshes.is_empty() {
-            return Err(GpuError::DistributedUnsupported);
-        }
         let v4 = |v: glam::Vec3A, w: f32| [v.x, v.y, v.z, w];
         let u = |x: u32| f32::from_bits(x);
         let zero = glam::Vec3A::ZERO;
@@ -383,14 +466,21 @@ impl DistData {
             words.push(v4(m.sphere.center, m.sphere.radius));
             words.push(v4(m.delta, u(m.sphere.material)));
         }
-        Ok(DistData {
+        for &(i, place) in meshes {
+            let m = &d.moving_meshes[i];
+            words.push(v4(m.lo, u(place.root)));
+            words.push(v4(m.hi, u(place.first_triangle)));
+            words.push(v4(m.delta, 0.0));
+        }
+        DistData {
             words,
             n_lights: d.lights.len() as u32,
             n_moving: d.moving_spheres.len() as u32,
+            n_moving_meshes: meshes.len() as u32,
             has_lens: d.lens.is_some(),
             has_blur: d.blur,
             has_camera_motion: d.camera_motion.is_some(),
-        })
+        }
     }
 }
 
@@ -398,15 +488,16 @@ impl DistData {
 /// it is the same allocation (no O(n) comparison) or has equal contents.
 #[derive(Clone, Debug)]
 pub struct SharedTree {
-    /// `Bvh::id` of the tree it was packed from (0: unknown, never reused).
-    pub id: u64,
+    /// `Bvh::id` of each tree it was packed from, in order (0: unknown,
+    /// never reused).
+    pub ids: Vec<u64>,
     pub data: std::sync::Arc<TreeData>,
 }
 
 impl PartialEq for SharedTree {
     fn eq(&self, other: &Self) -> bool {
         std::sync::Arc::ptr_eq(&self.data, &other.data)
-            || (self.id == other.id && self.data == other.data)
+            || (self.ids == other.ids && self.data == other.data)
     }
 }
 
@@ -423,7 +514,7 @@ fn non_empty<T: Default>(mut v: Vec<T>) -> Vec<T> {
 
 impl SceneData {
     /// Packs `w`. `packed` is a tree packed earlier, reused (not repacked)
-    /// when it was packed from this world's tree (same non-zero `Bvh::id`
+    /// when it was packed from this world's trees (same non-zero `Bvh::id`s
     /// and primitive counts).
     pub fn from_world(w: &World<f32>, packed: Option<&SharedTree>) -> Result<Self, GpuError> {
         let s = &w.settings;
@@ -473,24 +564,86 @@ impl SceneData {
             specular: a3(l.specular),
             ..Default::default()
         };
-        let tree = match w.accel.as_ref().filter(|t| !t.nodes.is_empty()) {
-            None => None,
-            Some(t) => match packed {
+        let mut materials: Vec<GpuMaterial> = w.materials.iter().map(material).collect();
+        // The trees: the world's own, then each moving mesh's, whose
+        // materials are the world's so far and then its file's (world.rs):
+        // those that differ from the world's get places of their own.
+        let static_tree = w.accel.as_ref().filter(|t| !t.nodes.is_empty());
+        let mut moving = Vec::new();
+        for (i, m) in w
+            .dist
+            .iter()
+            .flat_map(|d| d.moving_meshes.iter().enumerate())
+        {
+            let Some(t) = m.world.accel.as_ref().filter(|t| !t.nodes.is_empty()) else {
+                if m.world.triangles.is_empty() {
+                    continue; // nothing to hit
+                }
+                return Err(GpuError::BadTree(format!(
+                    "a moving mesh has {} triangles but no BVH over them",
+                    m.world.triangles.len()
+                )));
+            };
+            let map: Vec<u32> = m
+                .world
+                .materials
+                .iter()
+                .enumerate()
+                .map(|(j, own)| {
+                    let g = material(own);
+                    if j < w.materials.len() && materials[j] == g {
+                        j as u32
+                    } else {
+                        materials.push(g);
+                        materials.len() as u32 - 1
+                    }
+                })
+                .collect();
+            moving.push((i, &m.world, t, map));
+        }
+        let parts: Vec<TreePart> = static_tree
+            .map(|t| TreePart {
+                world: w,
+                tree: t,
+                materials: None,
+            })
+            .into_iter()
+            .chain(moving.iter().map(|(_, world, tree, map)| TreePart {
+                world,
+                tree,
+                materials: Some(map),
+            }))
+            .collect();
+        let ids: Vec<u64> = parts.iter().map(|p| p.tree.id).collect();
+        let tree = if parts.is_empty() {
+            None
+        } else {
+            match packed {
                 Some(p)
-                    if t.id != 0
-                        && p.id == t.id
-                        && p.data.n_triangles as usize == w.triangles.len()
-                        && p.data.prims.len() == t.prims.len() =>
+                    if ids.iter().all(|&id| id != 0)
+                        && p.ids == ids
+                        && p.data.n_triangles as usize
+                            == parts.iter().map(|p| p.world.triangles.len()).sum::<usize>()
+                        && p.data.prims.len()
+                            == parts.iter().map(|p| p.tree.prims.len()).sum::<usize>() =>
                 {
                     Some(p.clone())
                 }
                 _ => Some(SharedTree {
-                    id: t.id,
-                    data: std::sync::Arc::new(TreeData::from_tree(w, t)?),
+                    ids,
+                    data: std::sync::Arc::new(TreeData::pack(&parts)?),
                 }),
-            },
+            }
         };
-        if tree.is_none() && !w.triangles.is_empty() {
+        let meshes: Vec<(usize, TreePlace)> = match &tree {
+            Some(t) => moving
+                .iter()
+                .zip(&t.data.places[static_tree.is_some() as usize..])
+                .map(|((i, ..), place)| (*i, *place))
+                .collect(),
+            None => Vec::new(),
+        };
+        if static_tree.is_none() && !w.triangles.is_empty() {
             // Worlds always get a tree with their triangles (accel.rs); the
             // kernel has no loop over triangles.
             return Err(GpuError::BadTree(format!(
@@ -502,7 +655,7 @@ impl SceneData {
             frame,
             spheres: non_empty(w.spheres.iter().map(sphere).collect()),
             planes: non_empty(w.planes.iter().map(plane).collect()),
-            materials: non_empty(w.materials.iter().map(material).collect()),
+            materials: non_empty(materials),
             lights: non_empty(w.lights.iter().map(light).collect()),
             n_spheres: w.spheres.len() as u32,
             n_planes: w.planes.len() as u32,
@@ -511,7 +664,8 @@ impl SceneData {
             has_reflection: w.features.reflection,
             has_refraction: w.features.refraction,
             tree,
-            dist: w.dist.as_deref().map(DistData::from_dist).transpose()?,
+            static_tree: static_tree.is_some(),
+            dist: w.dist.as_deref().map(|d| DistData::from_dist(d, &meshes)),
         })
     }
 
@@ -525,5 +679,148 @@ impl SceneData {
         } else {
             1
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::SceneDesc;
+
+    /// OBJ text of an n x n grid of unit quads at z = 0, two triangles each
+    /// (enough for a tree of several nodes), with `head` first.
+    fn grid(n: u32, head: &str) -> String {
+        let mut s = head.to_string();
+        for y in 0..=n {
+            for x in 0..=n {
+                s += &format!("v {x} {y} 0\n");
+            }
+        }
+        let at = |x: u32, y: u32| y * (n + 1) + x + 1;
+        for y in 0..n {
+            for x in 0..n {
+                let (a, b, c, d) = (at(x, y), at(x + 1, y), at(x + 1, y + 1), at(x, y + 1));
+                s += &format!("f {a} {b} {c}\nf {a} {c} {d}\n");
+            }
+        }
+        s
+    }
+
+    /// Moving meshes' trees are packed after the static one, which stays as
+    /// it was: walked from its root, each reaches exactly its own mesh's
+    /// triangles, each once (rebased node, leaf and triangle indices), and
+    /// its file's materials, which differ from those of a static mesh
+    /// listed after it, are mapped to their own places.
+    #[test]
+    fn moving_mesh_trees_are_packed_after_the_static_one() {
+        let dir = std::env::temp_dir().join(format!("tessera-pack-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("plain.obj"), grid(6, "")).unwrap();
+        std::fs::write(dir.join("red.mtl"), "newmtl red\nKd 1 0 0\n").unwrap();
+        std::fs::write(dir.join("blue.mtl"), "newmtl blue\nKd 0 0 1\n").unwrap();
+        std::fs::write(dir.join("red.obj"), grid(5, "mtllib red.mtl\nusemtl red\n")).unwrap();
+        std::fs::write(
+            dir.join("blue.obj"),
+            grid(4, "mtllib blue.mtl\nusemtl blue\n"),
+        )
+        .unwrap();
+        let src = r#"
+[camera]
+position = [0, 0, -10]
+look_at = [0, 0, 0]
+shutter = [0, 1]
+[materials.grey]
+diffuse = [0.5, 0.5, 0.5]
+[[objects]]
+type = "mesh"
+path = "plain.obj"
+material = "grey"
+[[objects]]
+type = "mesh"
+path = "red.obj"
+[[objects.keyframes]]
+frame = 0
+translate = [-3, 0, 0]
+[[objects.keyframes]]
+frame = 1
+translate = [3, 0, 0]
+[[objects]]
+type = "mesh"
+path = "plain.obj"
+material = "grey"
+[[objects.keyframes]]
+frame = 0
+translate = [0, -3, 0]
+[[objects.keyframes]]
+frame = 1
+translate = [0, 3, 1]
+[[objects]]
+type = "mesh"
+path = "blue.obj"
+translate = [0, 0, 2]
+"#;
+        let desc = SceneDesc::parse(src, dir.join("s.toml")).unwrap();
+        let w = World::<f32>::build(&desc, &desc.render, 0);
+        let data = SceneData::from_world(&w, None).unwrap();
+        let tree = data.tree.as_ref().unwrap().data.clone();
+        let meshes = &w.dist.as_ref().unwrap().moving_meshes;
+        assert!(data.static_tree);
+        assert_eq!(tree.places.len(), 3);
+        let own = w.accel.as_ref().unwrap();
+        assert_eq!(tree.places[0], TreePlace::default());
+        assert_eq!(&tree.nodes[..own.nodes.len()], &own.nodes[..]);
+        let dist = data.dist.as_ref().unwrap();
+        assert_eq!(dist.n_moving_meshes, 2);
+        for (k, m) in meshes.iter().enumerate() {
+            let place = tree.places[k + 1];
+            let first = place.first_triangle as usize;
+            let end = first + m.world.triangles.len();
+            assert_eq!(
+                tree.places
+                    .get(k + 2)
+                    .map_or(tree.n_triangles as usize, |p| p.first_triangle as usize),
+                end
+            );
+            // The mesh's words in `dist`: after 6 camera words, 5 a light
+            // and 2 a moving sphere, 3 a mesh.
+            let at = 6 + 5 * dist.n_lights as usize + 2 * dist.n_moving as usize + 3 * k;
+            let words = &dist.words[at..at + 3];
+            assert_eq!(words[0][3].to_bits(), place.root);
+            assert_eq!(words[1][3].to_bits(), place.first_triangle);
+            assert_eq!(words[2][..3], a3(m.delta));
+            // Walk from the root: every triangle of the mesh, once.
+            let mut seen = vec![0; m.world.triangles.len()];
+            let mut todo = vec![place.root as usize];
+            while let Some(i) = todo.pop() {
+                let n = &tree.nodes[i];
+                for s in (0..4).filter(|&s| !n.is_empty(s)) {
+                    if n.count[s] == 0 {
+                        todo.push(n.child[s] as usize);
+                        continue;
+                    }
+                    let leaf = n.child[s] as usize..(n.child[s] + n.count[s]) as usize;
+                    for &p in &tree.prims[leaf] {
+                        let id = PrimId(p);
+                        assert_eq!(id.kind(), PrimId::TRIANGLE);
+                        assert!((first..end).contains(&id.index()), "mesh {k}: {id:?}");
+                        seen[id.index() - first] += 1;
+                    }
+                }
+            }
+            assert!(seen.iter().all(|&c| c == 1), "mesh {k}: {seen:?}");
+            for (j, t) in m.world.triangles.iter().enumerate() {
+                let g = tree.triangles[first + j];
+                assert_eq!([g.v0, g.v1, g.v2], t.vertices().map(a3));
+                let mat = &m.world.materials[m.world.triangle_shading[j].material as usize];
+                let gm = data.materials[tree.shading[first + j].material as usize];
+                assert_eq!(gm.diffuse, a3(mat.diffuse), "mesh {k}, triangle {j}");
+            }
+        }
+        // The red file material has a place of its own: the world's
+        // material at that index is the static blue mesh's.
+        let red = tree.shading[tree.places[1].first_triangle as usize].material as usize;
+        assert_eq!(data.materials[red].diffuse, [1.0, 0.0, 0.0]);
+        assert!(red >= w.materials.len());
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

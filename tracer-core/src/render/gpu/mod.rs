@@ -34,8 +34,14 @@ const WAVEFRONT_WGSL: &str = include_str!("wavefront.wgsl");
 /// Scene queries for worlds without a tree: loops over spheres and planes.
 const ANALYTIC_WGSL: &str = include_str!("analytic.wgsl");
 const DISTRIBUTED_WGSL: &str = include_str!("distributed.wgsl");
-/// Scene queries for worlds with a BVH (meshes, many spheres).
+/// Moving meshes' queries for distributed.wgsl (needs BVH_WGSL) ...
+const MOVING_MESHES_WGSL: &str = include_str!("moving_meshes.wgsl");
+/// ... and their stand-ins for worlds without moving meshes.
+const NO_MOVING_MESHES_WGSL: &str = include_str!("no_moving_meshes.wgsl");
+/// Tree traversal, for worlds with a BVH (meshes, many spheres) or moving meshes.
 const BVH_WGSL: &str = include_str!("bvh.wgsl");
+/// Scene queries for worlds with a BVH, through BVH_WGSL.
+const ACCEL_WGSL: &str = include_str!("accel.wgsl");
 
 /// Dynamic uniform offsets must be multiples of this (256 is the largest
 /// alignment any adapter asks for).
@@ -57,10 +63,6 @@ pub enum GpuError {
     RequestDevice { adapter: String, message: String },
     #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
     F64Unsupported,
-    #[error(
-        "the GPU backend does not yet render moving meshes (mesh keyframes over the shutter); render this scene with --backend cpu"
-    )]
-    DistributedUnsupported,
     #[error(
         "the scene's BVH has a node at depth {depth} whose traversal needs more than the GPU traversal stack of {stack} entries; render it with --backend cpu"
     )]
@@ -1022,22 +1024,25 @@ impl GpuRenderer {
             None => make("distributed", &[0u8; 64], st),
         };
         // Generated part: the stacks' capacities must be constant
-        // expressions. Only scenes with a tree compile the BVH traversal.
-        let queries = if data.tree.is_some() {
-            BVH_WGSL
-        } else {
-            ANALYTIC_WGSL
+        // expressions. Only scenes with a tree (their own or a moving
+        // mesh's) compile the BVH traversal.
+        let (traversal, queries) = match (&data.tree, data.static_tree) {
+            (Some(_), true) => (BVH_WGSL, ACCEL_WGSL),
+            (Some(_), false) => (BVH_WGSL, ANALYTIC_WGSL),
+            (None, _) => ("", ANALYTIC_WGSL),
         };
-        // Only scenes with distributed effects compile their kernel.
-        let distributed = if data.dist.is_some() {
-            DISTRIBUTED_WGSL
-        } else {
-            ""
+        // Only scenes with distributed effects compile their kernel, and
+        // only those with moving meshes its moving-mesh queries.
+        let n_moving_meshes = data.dist.as_ref().map_or(0, |d| d.n_moving_meshes);
+        let (distributed, moving_meshes) = match &data.dist {
+            Some(_) if n_moving_meshes > 0 => (DISTRIBUTED_WGSL, MOVING_MESHES_WGSL),
+            Some(_) => (DISTRIBUTED_WGSL, NO_MOVING_MESHES_WGSL),
+            None => ("", ""),
         };
         let source = format!(
-            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{queries}\n{WAVEFRONT_WGSL}\n{distributed}",
+            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{traversal}\n{queries}\n{WAVEFRONT_WGSL}\n{distributed}\n{moving_meshes}",
             data.stack_capacity(),
-            // One more entry than this tree can need (checked at packing to
+            // One more entry than these trees can need (checked at packing to
             // be at most bvh::STACK; see bvh.wgsl), so shallow trees keep small stacks.
             data.tree
                 .as_ref()
@@ -1070,6 +1075,9 @@ impl GpuRenderer {
                 ("HAS_BLUR", b(d.has_blur)),
                 ("HAS_CAM_MOTION", b(d.has_camera_motion)),
             ]);
+            if n_moving_meshes > 0 {
+                all_constants.push(("N_MOVING_MESHES", n_moving_meshes as f64));
+            }
         }
         let pipeline = self
             .device

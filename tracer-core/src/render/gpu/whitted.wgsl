@@ -9,8 +9,9 @@
 // shortening, skipped shadow rays, TIR rule).
 //
 // Prepended by the host: `const STACK_CAP: u32 = N;` (see SceneData::stack_capacity),
-// `const BVH_STACK: u32 = N;` (the tree's stack need, at most bvh::STACK), then sampling.wgsl; appended:
-// analytic.wgsl or bvh.wgsl (the scene queries), then wavefront.wgsl.
+// `const BVH_STACK: u32 = N;` (the trees' stack need, at most bvh::STACK), then sampling.wgsl; appended:
+// the scene queries (analytic.wgsl, or bvh.wgsl and accel.wgsl), then wavefront.wgsl, and for
+// distributed effects distributed.wgsl with moving_meshes.wgsl (after bvh.wgsl) or no_moving_meshes.wgsl.
 
 // ---- Layouts: keep in sync with layout.rs -------------------------------
 struct Frame {
@@ -174,8 +175,8 @@ struct Hit {
 
 // The scene queries `closest_hit`, `occluded`, `surface` and
 // `shading_normal` come from analytic.wgsl (no tree: the loops below over
-// every sphere and plane) or bvh.wgsl (a tree over spheres and triangles,
-// planes by loop), whichever the host compiles in.
+// every sphere and plane) or accel.wgsl (a tree over spheres and triangles
+// traversed by bvh.wgsl, planes by loop), whichever the host compiles in.
 
 // world.rs closest_hit, sphere part: strictly nearer than h.t wins.
 fn spheres_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
