@@ -251,6 +251,7 @@ fn the_monitor_in_chromium_shows_jobs_progress_the_live_preview_a_dead_worker_an
             "workers.png",
             "workers-gone.png",
             "jobs-phone.png",
+            "job-dark.png",
         ] {
             std::fs::copy(out.join(f), to.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
         }

@@ -154,7 +154,7 @@ def main():
     def shot(page, name):
         page.shot(os.path.join(a.out, name))
 
-    p = Page(a.chromium, a.chromedriver, 1280, 900)
+    p = Page(a.chromium, a.chromedriver, 1280, 1000)
     try:
         # -- sign-in: nothing of the farm before the token ------------------
         p.go(a.http + "/")
@@ -197,7 +197,12 @@ def main():
             if px and state == "running" and not px[5]:
                 images.setdefault(hashlib.sha256(px[2]).hexdigest(), px[3])
             rising = len(progress) >= 3 and progress == sorted(progress)
-            if not mid_shot and 0.2 <= v <= 0.7 and px and p.css("#overlay .tile"):
+            # For the docs: a moment with tiles leased and tiles not started
+            # (the first sample batch), else any moment mid-job.
+            if not mid_shot and px and (
+                (v >= 0.05 and p.css("#overlay .tile.pending") and p.css("#overlay .tile.leased"))
+                or (0.3 <= v <= 0.7 and p.css("#overlay .tile"))
+            ):
                 shot(p, "job-preview.png")
                 mid_shot = True
             if not killed and len(images) >= 2 and rising and v < 0.9:
@@ -290,6 +295,19 @@ def main():
             fail(f"the jobs page is {overflow} px wider than a phone's screen")
         shot(p, "jobs-phone.png")
         step("phone width: no horizontal scrolling")
+        # -- dark system theme -------------------------------------------------
+        p.d.set_window_size(1280, 1000)
+        light = p.js("return getComputedStyle(document.body).backgroundColor")
+        p.d.execute_cdp_cmd("Emulation.setEmulatedMedia", {
+            "features": [{"name": "prefers-color-scheme", "value": "dark"}]})
+        p.go(f"{a.http}/#/jobs/{job}")
+        wait("the job page", 10, lambda: p.attr("#job-state", "data-state") == "done")
+        wait("the preview", 10, lambda: p.attr("#preview", "data-written") == "1")
+        dark = p.js("return getComputedStyle(document.body).backgroundColor")
+        if dark == light:
+            fail(f"the page ignores a dark system theme (background {dark})")
+        shot(p, "job-dark.png")
+        step(f"dark theme: background {light} -> {dark}")
         logs = [e for e in p.d.get_log("browser") if e.get("level") == "SEVERE"]
         # The refusals this script asked for (401) and a frame asked for while
         # being written (503) are expected; anything else is a fault of the page.

@@ -24,7 +24,9 @@ pub enum TileState {
     Done,
     /// A worker holds a lease on some of it.
     Leased,
-    /// Waiting for a worker (possibly with some batches done).
+    /// Some sample batches merged, the others waiting for a worker.
+    Partial,
+    /// Nothing merged yet, waiting for a worker.
     Pending,
 }
 
@@ -121,6 +123,8 @@ impl Farm {
                     TileState::Done
                 } else if leased[tile as usize] {
                     TileState::Leased
+                } else if batches_done > 0 {
+                    TileState::Partial
                 } else {
                     TileState::Pending
                 };

@@ -113,6 +113,7 @@ pub async fn frame(
         tiles: tile_runs(&tiles),
         tiles_done: count(TileState::Done),
         tiles_leased: count(TileState::Leased),
+        tiles_partial: count(TileState::Partial),
         tiles_pending: count(TileState::Pending),
     }))
 }

@@ -181,7 +181,7 @@ pub struct JobDetailJson {
 pub struct TileRunJson {
     #[serde(flatten)]
     pub rect: RectJson,
-    /// "done", "leased" or "pending".
+    /// "done", "leased", "partial" or "pending".
     pub state: &'static str,
     /// Tiles in the run.
     pub tiles: u32,
@@ -191,6 +191,7 @@ fn tile_state_name(s: TileState) -> &'static str {
     match s {
         TileState::Done => "done",
         TileState::Leased => "leased",
+        TileState::Partial => "partial",
         TileState::Pending => "pending",
     }
 }
@@ -230,9 +231,10 @@ pub struct FrameDetailJson {
     pub height: u32,
     /// The frame's tiles as runs along each tile row, in row order.
     pub tiles: Vec<TileRunJson>,
-    /// Tiles done, leased and pending.
+    /// Tiles done, leased, partial and pending.
     pub tiles_done: u32,
     pub tiles_leased: u32,
+    pub tiles_partial: u32,
     pub tiles_pending: u32,
 }
 

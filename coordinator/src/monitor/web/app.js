@@ -332,7 +332,7 @@ function buildJob(job) {
           <img id="preview" alt="preview of the frame" data-version="0">
           <div class="overlay" id="overlay"></div>
         </div>
-        <div class="legend"><span><i class="leased"></i>leased</span><span><i class="pending"></i>waiting</span></div>
+        <div class="legend"><span><i class="leased"></i>leased</span><span><i class="partial"></i>some samples in</span><span><i class="pending"></i>waiting</span></div>
         <div class="controls" id="frame-actions" hidden>
           <button id="full-size">View full size</button>
           <button id="download">Download PNG</button>
