@@ -1,8 +1,10 @@
 //! The JSON API (docs/monitor.md): what the page reads and does, open to
 //! scripts too.
 
-use std::sync::Arc;
+use std::collections::HashMap;
 use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
 use axum::extract::{Path, State};
@@ -85,12 +87,47 @@ pub async fn priority(
     Ok(json_response(&JobJson::from(&v)))
 }
 
+/// How long a frame's tiles are answered from the last look (as its
+/// preview is): every viewer of a frame shares one look a second.
+const FRAME_INTERVAL: Duration = Duration::from_secs(1);
+/// Frames remembered (the least recently made go first).
+const FRAMES_KEPT: usize = 256;
+
+/// The last answer for each (job, frame).
+#[derive(Default)]
+pub struct FrameCache(Mutex<HashMap<(String, u32), (Instant, Bytes)>>);
+
 /// `GET /api/jobs/{id}/frames/{frame}`: the frame's tiles, for the
 /// preview's overlay.
 pub async fn frame(
     State(m): State<Arc<Monitor>>,
     Path((id, frame)): Path<(String, u32)>,
 ) -> Result<Response, ApiError> {
+    let key = (id.clone(), frame);
+    if let Some((made, body)) = m.frames.0.lock().expect("frame cache").get(&key)
+        && made.elapsed() < FRAME_INTERVAL
+    {
+        return Ok(json_bytes(body.clone()));
+    }
+    let body = Bytes::from(frame_json(&m, id, frame)?);
+    let mut cache = m.frames.0.lock().expect("frame cache");
+    if cache.len() >= FRAMES_KEPT
+        && let Some(oldest) = cache
+            .iter()
+            .min_by_key(|(_, (made, _))| *made)
+            .map(|(k, _)| k.clone())
+    {
+        cache.remove(&oldest);
+    }
+    cache.insert(key, (Instant::now(), body.clone()));
+    Ok(json_bytes(body))
+}
+
+fn json_bytes(body: Bytes) -> Response {
+    ([(header::CONTENT_TYPE, "application/json")], body).into_response()
+}
+
+fn frame_json(m: &Monitor, id: String, frame: u32) -> Result<Vec<u8>, ApiError> {
     let tiles = m.farm.frame_tiles(&id, frame)?;
     let count = |s: TileState| tiles.iter().filter(|t| t.state == s).count() as u32;
     let v = m.farm.job(&id)?;
@@ -100,7 +137,7 @@ pub async fn frame(
             format!("job {id} has no frame {frame}"),
         )
     })?;
-    Ok(json_response(&FrameDetailJson {
+    serde_json::to_vec(&FrameDetailJson {
         job: id,
         frame: FrameJson {
             frame,
@@ -115,7 +152,13 @@ pub async fn frame(
         tiles_leased: count(TileState::Leased),
         tiles_partial: count(TileState::Partial),
         tiles_pending: count(TileState::Pending),
-    }))
+    })
+    .map_err(|e| {
+        ApiError::new(
+            axum::http::StatusCode::INTERNAL_SERVER_ERROR,
+            format!("cannot encode the answer: {e}"),
+        )
+    })
 }
 
 /// The workers page's rows: the farm's workers and those gone.

@@ -238,12 +238,15 @@ pub struct FrameDetailJson {
     pub tiles_pending: u32,
 }
 
+/// What a worker holds of one frame: its leases there, summed (a fast
+/// worker may hold dozens of small leases; the page needs where, not each).
 #[derive(Clone, Debug, Serialize, PartialEq)]
-pub struct LeaseJson {
+pub struct HeldJson {
     pub job: String,
     pub frame: u32,
-    pub rect: RectJson,
-    pub samples: [u32; 2],
+    pub leases: u32,
+    /// Pixels of the leased rectangles.
+    pub pixels: u64,
 }
 
 #[derive(Clone, Debug, Serialize, PartialEq)]
@@ -260,7 +263,9 @@ pub struct WorkerJson {
     /// three intervals) or "gone" (left the farm: no heartbeat for a
     /// lease timeout).
     pub state: &'static str,
-    pub leases: Vec<LeaseJson>,
+    /// Leases held now, and where (by job and frame).
+    pub leases: u32,
+    pub holding: Vec<HeldJson>,
     pub samples_per_second: f64,
     pub rays_per_second: f64,
     pub last_seen_unix_ms: i64,
@@ -271,7 +276,7 @@ pub struct WorkerJson {
 }
 
 impl WorkerJson {
-    pub fn new(w: &WorkerView, state: &'static str, leases: Vec<LeaseJson>) -> Self {
+    pub fn new(w: &WorkerView, state: &'static str, holding: Vec<HeldJson>) -> Self {
         WorkerJson {
             id: w.id.clone(),
             name: w.name.clone(),
@@ -280,7 +285,8 @@ impl WorkerJson {
             threads: w.threads,
             version: w.version.clone(),
             state,
-            leases,
+            leases: holding.iter().map(|h| h.leases).sum(),
+            holding,
             samples_per_second: w.samples_per_second,
             rays_per_second: w.rays_per_second,
             last_seen_unix_ms: w.last_seen_unix_ms,

@@ -95,6 +95,7 @@ pub struct Monitor {
     events: events::Hub,
     roster: roster::Roster,
     previews: preview::Previews,
+    frames: api::FrameCache,
 }
 
 /// Serves the monitor of `farm` on `listener` until `shutdown` resolves.
@@ -111,6 +112,7 @@ pub async fn serve(
         events: events::Hub::new(),
         roster: roster::Roster::default(),
         previews: preview::Previews::default(),
+        frames: api::FrameCache::default(),
     });
     let ticker = tokio::spawn(events::run(monitor.clone()));
     let result = axum::serve(listener, router(monitor))

@@ -88,13 +88,19 @@ fn internal(what: &str, e: impl std::fmt::Display) -> ApiError {
     ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, format!("{what}: {e}"))
 }
 
-/// 8-bit RGB as PNG, fast deflate (as the frame writer does).
+/// 8-bit RGB as PNG, fast deflate and the one `Sub` filter: the frame
+/// writer's adaptive filtering tries five filters a row, several times the
+/// work for a preview that lives a second.
 fn encode_png(rgb: &[u8], width: u32, height: u32) -> Result<Vec<u8>, image::ImageError> {
     use image::ImageEncoder as _;
     use image::codecs::png::{CompressionType, FilterType, PngEncoder};
     let mut out = Vec::new();
-    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Adaptive)
-        .write_image(rgb, width, height, image::ExtendedColorType::Rgb8)?;
+    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Sub).write_image(
+        rgb,
+        width,
+        height,
+        image::ExtendedColorType::Rgb8,
+    )?;
     Ok(out)
 }
 

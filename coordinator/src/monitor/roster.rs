@@ -2,17 +2,20 @@
 //! stops sending heartbeats; the monitor remembers it a while longer and
 //! shows it gone, so a worker that died is seen to have died.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::Mutex;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
-use super::json::{LeaseJson, WorkerJson};
+use super::json::{HeldJson, WorkerJson};
 use crate::farm::{LeaseSummary, WorkerView};
 
 /// How long a gone worker stays on the page.
 const GONE_KEPT: Duration = Duration::from_secs(3600);
 /// At most this many gone workers are remembered (the oldest go first).
 const GONE_MAX: usize = 200;
+
+/// One worker's leases by (job, frame): (leases, pixels).
+type Holding<'a> = BTreeMap<(&'a str, u32), (u32, u64)>;
 
 #[derive(Default)]
 pub struct Roster {
@@ -43,19 +46,32 @@ impl Roster {
                 // Marked present below if it still is.
                 *gone = Some(now);
                 w.state = "gone";
-                w.leases.clear();
+                w.leases = 0;
+                w.holding.clear();
                 w.gone_unix_ms = Some(now);
             }
         }
+        // worker -> (job, frame) -> (leases, pixels), in one pass.
+        let mut by_worker: HashMap<&str, Holding> = HashMap::new();
+        for l in leases {
+            let e = by_worker
+                .entry(l.worker_id.as_str())
+                .or_default()
+                .entry((l.job_id.as_str(), l.frame))
+                .or_default();
+            e.0 += 1;
+            e.1 += l.rect.area() as u64;
+        }
         for w in workers {
-            let held: Vec<LeaseJson> = leases
-                .iter()
-                .filter(|l| l.worker_id == w.id)
-                .map(|l| LeaseJson {
-                    job: l.job_id.clone(),
-                    frame: l.frame,
-                    rect: l.rect.into(),
-                    samples: [l.samples.start, l.samples.end],
+            let held: Vec<HeldJson> = by_worker
+                .get(w.id.as_str())
+                .into_iter()
+                .flatten()
+                .map(|(&(job, frame), &(leases, pixels))| HeldJson {
+                    job: job.to_string(),
+                    frame,
+                    leases,
+                    pixels,
                 })
                 .collect();
             let state = if now - w.last_seen_unix_ms > silent_after {

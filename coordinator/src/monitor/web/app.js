@@ -258,8 +258,8 @@ function renderWorkers() {
       <td data-label="Backend">${esc(w.backend)}</td>
       <td data-label="Adapter">${esc(w.adapter || "–")}</td>
       <td data-label="Threads" class="num">${w.threads}</td>
-      <td data-label="Leases" class="leases-cell">${w.leases.length}<div class="leases">${w.leases.slice(0, 4).map((l) =>
-        `${esc(l.job)} f${l.frame} ${l.rect.width}×${l.rect.height}+${l.rect.x}+${l.rect.y}`).join("<br>")}${w.leases.length > 4 ? "<br>…" : ""}</div></td>
+      <td data-label="Leases" class="leases-cell">${w.leases}<div class="leases">${w.holding.slice(0, 4).map((h) =>
+        `${esc(h.job)} frame ${h.frame}: ${h.leases === 1 ? "" : h.leases + " leases, "}${h.pixels} px`).join("<br>")}${w.holding.length > 4 ? "<br>…" : ""}</div></td>
       <td data-label="Speed" class="num">${fmtRate(w.samples_per_second)} samples/s<div class="leases">${fmtRate(w.rays_per_second)} rays/s</div></td>
       <td data-label="Last heartbeat">${w.state === "gone" ? "left " + fmtAgo(w.gone_unix_ms) : fmtAgo(w.last_seen_unix_ms)}</td>
       <td data-label="Units done" class="num">${w.units_done}</td>
