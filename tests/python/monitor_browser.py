@@ -269,6 +269,15 @@ def main():
         shot(p, "jobs.png")
         p.go(f"{a.http}/#/jobs/{job2}")
         wait("the job page", 10, lambda: p.css("#cancel"))
+        # The priority control changes the farm's priority.
+        p.css("#priority")[0].clear()
+        p.css("#priority")[0].send_keys("7")
+        p.click("#set-priority")
+        wait("priority 7 in the farm", 10, lambda: p.ajs(
+            "const done = arguments[arguments.length - 1];"
+            "fetch('/api/jobs/' + arguments[0], {headers: {Authorization: 'Bearer ' + sessionStorage.getItem('tessera-client-token')}})"
+            ".then(r => r.json()).then(j => done(j.priority), () => done(null));", job2) == 7)
+        step("priority set to 7 from the page")
         p.click("#cancel")
         wait("the cancel button to ask for confirmation", 5, lambda: "armed" in (p.attr("#cancel", "class") or ""))
         p.click("#cancel")
