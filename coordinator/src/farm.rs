@@ -22,13 +22,14 @@ use tracer_core::scene::{RenderSettings, SceneDesc};
 use crate::assets::{AssetLimits, AssetStore, AssetStoreError, sha256_hex};
 use crate::rate::{JOB_WINDOW, Meter, WorkerSpeed};
 use crate::store::{Counters, JobRecord, JobStateRec, Op, Store, StoreError};
-mod inspect;
-pub use inspect::{FramePreview, FrameTile, LeaseSummary, TileState, UnitFailure, preview_step};
-
 use crate::units::{
     DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE, Layout,
     RESULT_BYTES_PER_PIXEL, Unit, unit_count,
 };
+
+// What the web monitor reads of the farm (and its priority change).
+mod inspect;
+pub use inspect::{FramePreview, FrameTile, LeaseSummary, TileState, UnitFailure, preview_step};
 
 /// Most work units in one job.
 pub const MAX_UNITS: u64 = 10_000_000;

@@ -303,3 +303,44 @@ pub struct SnapshotJson {
     pub jobs: Vec<JobJson>,
     pub workers: Vec<WorkerJson>,
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tile(x: u32, y: u32, state: TileState) -> FrameTile {
+        FrameTile {
+            rect: Rect::new(x, y, 16, 16),
+            state,
+            batches_done: 0,
+            batches: 1,
+        }
+    }
+
+    #[test]
+    fn tiles_join_into_runs_along_a_row_only() {
+        use TileState::*;
+        let tiles = [
+            tile(0, 0, Done),
+            tile(16, 0, Done),
+            tile(32, 0, Leased),
+            tile(0, 16, Leased),
+            tile(16, 16, Pending),
+            tile(32, 16, Pending),
+        ];
+        let runs: Vec<(u32, u32, u32, &str, u32)> = tile_runs(&tiles)
+            .iter()
+            .map(|r| (r.rect.x, r.rect.y, r.rect.width, r.state, r.tiles))
+            .collect();
+        // The leased tile ending row 0 does not join the one starting row 1.
+        assert_eq!(
+            runs,
+            [
+                (0, 0, 32, "done", 2),
+                (32, 0, 16, "leased", 1),
+                (0, 16, 16, "leased", 1),
+                (16, 16, 32, "pending", 2),
+            ]
+        );
+    }
+}

@@ -106,3 +106,58 @@ impl Roster {
         v
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tracer_core::film::{Rect, SampleRange};
+
+    fn worker(id: &str, last_seen_unix_ms: i64) -> WorkerView {
+        WorkerView {
+            id: id.into(),
+            name: format!("name-{id}"),
+            threads: 1,
+            backend: "cpu".into(),
+            gpu_name: String::new(),
+            version: "0".into(),
+            leases: 0,
+            units_done: 3,
+            units_failed: 0,
+            samples_per_second: 0.0,
+            rays_per_second: 0.0,
+            last_seen_unix_ms,
+        }
+    }
+
+    #[test]
+    fn a_worker_the_farm_dropped_is_kept_as_gone_and_leases_are_summed_by_frame() {
+        let r = Roster::default();
+        let hb = Duration::from_secs(1);
+        let now = now_ms();
+        let lease = |frame, x| LeaseSummary {
+            worker_id: "a".into(),
+            job_id: "j".into(),
+            frame,
+            rect: Rect::new(x, 0, 8, 8),
+            samples: SampleRange::new(0, 4),
+            progress: 0,
+        };
+        let leases = [lease(1, 0), lease(1, 8), lease(2, 0)];
+        let v = r.update(&[worker("a", now), worker("b", now - 10_000)], &leases, hb);
+        let states: Vec<_> = v.iter().map(|w| (w.id.as_str(), w.state)).collect();
+        assert_eq!(states, [("a", "rendering"), ("b", "silent")]);
+        assert_eq!(v[0].leases, 3);
+        let held: Vec<_> = v[0]
+            .holding
+            .iter()
+            .map(|h| (h.frame, h.leases, h.pixels))
+            .collect();
+        assert_eq!(held, [(1, 2, 128), (2, 1, 64)]);
+
+        let v = r.update(&[worker("a", now)], &[], hb);
+        let states: Vec<_> = v.iter().map(|w| (w.id.as_str(), w.state)).collect();
+        assert_eq!(states, [("a", "idle"), ("b", "gone")]);
+        assert!(v[1].gone_unix_ms.is_some());
+        assert_eq!(v[1].units_done, 3, "a gone worker keeps its last figures");
+    }
+}
