@@ -9,8 +9,14 @@
 //! them in one SubmitResults; BATCH = 1 uses LeaseWork + SubmitResult per
 //! unit, as the worker does.
 //!
+//! With VIEWERS > 0 and the coordinator's monitor URL (`--http`), that many
+//! web-monitor viewers watch the job meanwhile, each doing what the page
+//! does and more: the event stream held open, and every second the job's
+//! JSON, the live frame's tiles and its preview, and a thumbnail every
+//! three seconds (docs/monitor.md, "What a viewer costs").
+//!
 //!     cargo run --release -p tessera-coordinator --example result_load -- \
-//!         http://127.0.0.1:7878 examples/resolution.toml [CLIENTS] [SECONDS] [BATCH]
+//!         http://127.0.0.1:7878 examples/resolution.toml [CLIENTS] [SECONDS] [BATCH] [VIEWERS MONITOR_URL]
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -34,6 +40,11 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let clients: usize = args.get(3).map_or(Ok(64), |s| s.parse())?;
     let seconds: f64 = args.get(4).map_or(Ok(5.0), |s| s.parse())?;
     let batch: u32 = args.get(5).map_or(Ok(1), |s| s.parse())?;
+    let viewers: usize = args.get(6).map_or(Ok(0), |s| s.parse())?;
+    let monitor = args.get(7).cloned();
+    if viewers > 0 && monitor.is_none() {
+        return Err("VIEWERS needs the monitor's URL (http://HOST:PORT) after it".into());
+    }
 
     let mut jobs = JobServiceClient::connect(url.clone()).await?;
     let spec = pb::JobSpec {
@@ -131,6 +142,24 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
             Ok::<_, tonic::Status>(())
         }));
     }
+    let viewed = Arc::new(AtomicU64::new(0));
+    let mut watchers = Vec::new();
+    if let Some(m) = &monitor {
+        let host = m
+            .strip_prefix("http://")
+            .ok_or("the monitor URL starts with http://")?
+            .trim_end_matches('/')
+            .to_string();
+        for _ in 0..viewers {
+            watchers.push(tokio::spawn(viewer::events(host.clone(), deadline)));
+            watchers.push(tokio::spawn(viewer::pages(
+                host.clone(),
+                job_id.clone(),
+                deadline,
+                viewed.clone(),
+            )));
+        }
+    }
     let start = Instant::now();
     for t in tasks {
         if let Err(e) = t.await? {
@@ -139,11 +168,99 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let secs = start.elapsed().as_secs_f64();
     let n = accepted.load(Ordering::Relaxed);
+    for w in watchers {
+        w.abort();
+    }
     jobs.cancel_job(pb::CancelJobRequest { job_id }).await?;
     println!(
         "clients {clients}  batch {batch}  results accepted {n} in {secs:.2} s  = {:.0} results/s  ({:.0} bytes per result on the wire)",
         n as f64 / secs,
         bytes.load(Ordering::Relaxed) as f64 / n.max(1) as f64
     );
+    if viewers > 0 {
+        println!(
+            "  with {viewers} monitor viewers: {} monitor requests answered",
+            viewed.load(Ordering::Relaxed)
+        );
+    }
     Ok(())
+}
+
+/// A web-monitor viewer over plain HTTP/1.1 on a TCP socket (no client
+/// library: the example needs none for GETs).
+mod viewer {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicU64, Ordering};
+    use std::time::{Duration, Instant};
+
+    use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
+    use tokio::net::TcpStream;
+
+    /// One GET; the body (empty on any failure: a viewer keeps going).
+    async fn get(host: &str, path: &str) -> Vec<u8> {
+        let Ok(mut s) = TcpStream::connect(host).await else {
+            return Vec::new();
+        };
+        let req = format!("GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n");
+        if s.write_all(req.as_bytes()).await.is_err() {
+            return Vec::new();
+        }
+        let mut buf = Vec::new();
+        let _ = s.read_to_end(&mut buf).await;
+        match buf.windows(4).position(|w| w == b"\r\n\r\n") {
+            Some(i) if buf.starts_with(b"HTTP/1.1 200") => buf.split_off(i + 4),
+            _ => Vec::new(),
+        }
+    }
+
+    /// Holds the event stream open, reading every event, until `deadline`.
+    pub async fn events(host: String, deadline: Instant) {
+        let Ok(mut s) = TcpStream::connect(&host).await else {
+            return;
+        };
+        let req = format!(
+            "GET /api/events HTTP/1.1\r\nHost: {host}\r\nAccept: text/event-stream\r\n\r\n"
+        );
+        if s.write_all(req.as_bytes()).await.is_err() {
+            return;
+        }
+        let mut buf = vec![0u8; 64 << 10];
+        while Instant::now() < deadline {
+            match tokio::time::timeout_at(deadline.into(), s.read(&mut buf)).await {
+                Ok(Ok(n)) if n > 0 => {}
+                _ => return,
+            }
+        }
+    }
+
+    /// What the job page asks for: the job, the live frame's tiles and
+    /// preview every second, a thumbnail every third second.
+    pub async fn pages(host: String, job: String, deadline: Instant, served: Arc<AtomicU64>) {
+        let mut tick = tokio::time::interval(Duration::from_secs(1));
+        let mut n = 0u64;
+        while Instant::now() < deadline {
+            tick.tick().await;
+            let body = get(&host, &format!("/api/jobs/{job}")).await;
+            let Ok(v) = serde_json::from_slice::<serde_json::Value>(&body) else {
+                continue;
+            };
+            let frames = v["frames"].as_array().cloned().unwrap_or_default();
+            let live = frames
+                .iter()
+                .find(|f| f["written"] == false && f["units_done"].as_u64() > Some(0))
+                .or_else(|| frames.first())
+                .and_then(|f| f["frame"].as_u64())
+                .unwrap_or(1);
+            let base = format!("/api/jobs/{job}/frames/{live}");
+            get(&host, &base).await;
+            get(&host, &format!("{base}/preview.png")).await;
+            let mut asked = 3;
+            if n.is_multiple_of(3) {
+                get(&host, &format!("{base}/preview.png?max=160")).await;
+                asked += 1;
+            }
+            n += 1;
+            served.fetch_add(asked, Ordering::Relaxed);
+        }
+    }
 }

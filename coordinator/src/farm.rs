@@ -27,6 +27,10 @@ use crate::units::{
     RESULT_BYTES_PER_PIXEL, Unit, unit_count,
 };
 
+// What the web monitor reads of the farm (and its priority change).
+mod inspect;
+pub use inspect::{FramePreview, FrameTile, LeaseSummary, TileState, UnitFailure, preview_step};
+
 /// Most work units in one job.
 pub const MAX_UNITS: u64 = 10_000_000;
 
@@ -186,6 +190,8 @@ pub struct WorkerView {
     pub version: String,
     pub leases: u32,
     pub units_done: u64,
+    /// Units it reported failed, sent malformed or let expire.
+    pub units_failed: u64,
     pub samples_per_second: f64,
     pub rays_per_second: f64,
     pub last_seen_unix_ms: i64,
@@ -331,6 +337,7 @@ struct Worker {
     last_seen: Instant,
     leases: HashSet<String>,
     units_done: u64,
+    units_failed: u64,
     /// Samples and rays per busy second over its recent results (shown to users).
     speed: WorkerSpeed,
     /// Smoothed rays per second, from its results (sizes its leases).
@@ -979,6 +986,7 @@ impl Farm {
                 version: w.version.clone(),
                 leases: w.leases.len() as u32,
                 units_done: w.units_done,
+                units_failed: w.units_failed,
                 samples_per_second: w.speed.samples_per_second(),
                 rays_per_second: w.speed.rays_per_second(),
                 last_seen_unix_ms: now_ms() - now.duration_since(w.last_seen).as_millis() as i64,
@@ -1056,6 +1064,7 @@ impl Farm {
                 last_seen: Instant::now(),
                 leases: HashSet::new(),
                 units_done: 0,
+                units_failed: 0,
                 speed: WorkerSpeed::default(),
                 ray_speed: 0.0,
                 last_rays: 0.0,
@@ -1632,10 +1641,13 @@ impl Farm {
             return Err((Outcome::Late("the job no longer exists".into()), None, None));
         };
         if let Some(msg) = &r.failure {
-            let worker_name = st
-                .workers
-                .get(&r.worker_id)
-                .map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
+            let worker_name = st.workers.get_mut(&r.worker_id).map_or_else(
+                || r.worker_id.clone(),
+                |w| {
+                    w.units_failed += lease.units.len() as u64;
+                    w.name.clone()
+                },
+            );
             tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
             let rec = job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"));
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
@@ -1645,10 +1657,13 @@ impl Farm {
             return Err((Outcome::FailureRecorded, rec, None));
         }
         if let Err(reason) = validate_result(&lease, r, film_check) {
-            let worker_name = st
-                .workers
-                .get(&r.worker_id)
-                .map_or_else(|| r.worker_id.clone(), |w| w.name.clone());
+            let worker_name = st.workers.get_mut(&r.worker_id).map_or_else(
+                || r.worker_id.clone(),
+                |w| {
+                    w.units_failed += lease.units.len() as u64;
+                    w.name.clone()
+                },
+            );
             job.counters.results_rejected += 1;
             let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
             tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
@@ -1931,6 +1946,7 @@ impl Farm {
             let l = st.leases.remove(&id).expect("listed");
             let name = st.workers.get_mut(&l.worker).map(|w| {
                 w.leases.remove(&id);
+                w.units_failed += l.units.len() as u64;
                 w.name.clone()
             });
             tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");

@@ -4,13 +4,14 @@
 //! restart resumes where it stopped.
 //!
 //! Map: [`units`] (how a job is cut), [`farm`] (scheduling state, leases,
-//! results), [`rate`] (measured rates and ETAs), [`store`] (durable state), [`service`] (gRPC edge), [`server`]
+//! results), [`rate`] (measured rates and ETAs), [`store`] (durable state), [`service`] (gRPC edge), [`monitor`] (the web monitor), [`server`]
 //! (serving, health, reflection, periodic tasks), [`image`] (PNG/EXR output).
 
 pub mod assets;
 pub mod cost;
 pub mod farm;
 pub mod image;
+pub mod monitor;
 pub mod rate;
 pub mod server;
 pub mod service;

@@ -27,6 +27,9 @@ pub struct ClusterArgs {
     /// Coordinator state directory
     #[arg(long, default_value = "tessera-data")]
     pub data: PathBuf,
+    /// Serve the web monitor on this address too (e.g. 127.0.0.1:7880)
+    #[arg(long, value_name = "ADDR")]
+    pub http: Option<String>,
 }
 
 struct Children(Vec<Child>);
@@ -52,19 +55,31 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
         .env(super::farm_common::WORKER_TOKEN_ENV, &worker_token)
         .args(["coordinator", "--listen", &args.listen, "--data"])
         .arg(&args.data)
+        .args(args.http.iter().flat_map(|a| ["--http", a.as_str()]))
         .stdout(Stdio::piped())
         .spawn()
         .context("cannot start the coordinator")?;
     let stdout = coordinator.stdout.take().context("coordinator stdout")?;
     let mut children = Children(vec![coordinator]);
+    let mut stdout = BufReader::new(stdout);
     let mut line = String::new();
-    BufReader::new(stdout)
+    stdout
         .read_line(&mut line)
         .context("reading the coordinator's address")?;
     let Some(addr) = line.trim().strip_prefix("listening on ") else {
         bail!("the coordinator did not start (see its messages above)");
     };
     let url = format!("http://{addr}");
+    let mut monitor = String::new();
+    if args.http.is_some() {
+        stdout
+            .read_line(&mut monitor)
+            .context("reading the monitor's address")?;
+    }
+    let monitor = monitor
+        .trim()
+        .strip_prefix("monitor on ")
+        .map(str::to_string);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let threads = args
         .threads
@@ -97,6 +112,9 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
         args.workers
     );
     eprintln!("try:     TESSERA_COORDINATOR={url} tessera submit examples/resolution.toml --wait");
+    if let Some(m) = &monitor {
+        eprintln!("monitor: {m}/");
+    }
     // Ctrl-C on a terminal reaches every process of the group: the workers
     // drain and the coordinator stops by themselves. A signal sent to this
     // process alone gives them a few seconds, then they are killed (the

@@ -18,6 +18,11 @@ pub struct CoordinatorArgs {
     /// Address to listen on (port 0 picks a free port; the address is printed on stdout)
     #[arg(long, default_value = "127.0.0.1:7878")]
     pub listen: String,
+    /// Serve the web monitor on this address (e.g. 127.0.0.1:7880; off when
+    /// not given; port 0 picks a free port, printed on stdout). It takes the
+    /// client token, as the job service does (docs/monitor.md)
+    #[arg(long, value_name = "ADDR")]
+    pub http: Option<String>,
     /// Directory for the database and the finished frames
     #[arg(long, default_value = "tessera-data")]
     pub data: PathBuf,
@@ -147,6 +152,23 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
                 tracing::warn!(%addr, "tokens without TLS travel in clear text: give --tls-cert and --tls-key");
             }
         }
+        let http = match &args.http {
+            Some(a) => {
+                let l = tokio::net::TcpListener::bind(a)
+                    .await
+                    .with_context(|| format!("cannot listen on {a} (--http)"))?;
+                let http_addr = l.local_addr()?;
+                if !http_addr.ip().is_loopback() && security.client_token.is_none() && !args.insecure {
+                    anyhow::bail!(
+                        "refusing to serve the monitor on {http_addr} without a client token: anyone who reaches it \
+                         could see every job and frame and cancel jobs. Give --client-token-file (or \
+                         TESSERA_CLIENT_TOKEN), or pass --insecure on a network you trust"
+                    );
+                }
+                Some(l)
+            }
+            None => None,
+        };
         let farm = Farm::open(config).with_context(|| {
             format!(
                 "cannot open the coordinator state in {}",
@@ -160,6 +182,20 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
         );
         // Scripts and tests read the bound address from stdout.
         println!("listening on {addr}");
+        if let Some(l) = http {
+            let http_addr = l.local_addr()?;
+            tracing::info!(addr = %http_addr, "web monitor listening");
+            // Only with --http: scripts reading just the first line are unaffected.
+            println!("monitor on http://{http_addr}");
+            let (farm, token) = (farm.clone(), security.client_token.clone());
+            tokio::spawn(async move {
+                if let Err(e) =
+                    tessera_coordinator::monitor::serve(farm, l, token, shutdown_signal()).await
+                {
+                    tracing::error!(error = %e, "the web monitor stopped");
+                }
+            });
+        }
         std::io::stdout().flush().ok();
         tessera_coordinator::server::serve(farm, listener, security, shutdown_signal()).await?;
         tracing::info!("coordinator stopped");

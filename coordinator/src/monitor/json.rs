@@ -1,0 +1,346 @@
+//! The JSON API's shapes (docs/monitor.md lists every field). Built from
+//! the farm's views at this edge; nothing else in the coordinator knows
+//! them.
+
+use serde::Serialize;
+use tracer_core::film::Rect;
+
+use crate::farm::{FrameTile, JobState, JobView, TileState, UnitFailure, WorkerView};
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct RectJson {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl From<Rect> for RectJson {
+    fn from(r: Rect) -> Self {
+        RectJson {
+            x: r.x,
+            y: r.y,
+            width: r.width,
+            height: r.height,
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct FrameJson {
+    pub frame: u32,
+    pub units_total: u64,
+    pub units_done: u64,
+    /// The frame's image is written (viewable full size and downloadable).
+    pub written: bool,
+}
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct SettingsJson {
+    pub scene: String,
+    pub width: u32,
+    pub height: u32,
+    pub samples: u32,
+    pub max_depth: u32,
+    pub sampler: String,
+    pub first_frame: u32,
+    pub last_frame: u32,
+    pub tile_size: u32,
+    pub samples_per_unit: u32,
+    pub max_attempts: u32,
+}
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct JobJson {
+    pub id: String,
+    pub name: String,
+    /// "queued", "running", "done", "failed" or "cancelled".
+    pub state: &'static str,
+    pub priority: i32,
+    /// Share of the job's pixel-samples merged, 0 to 1.
+    pub progress: f64,
+    pub units_total: u64,
+    pub units_done: u64,
+    pub samples_total: u64,
+    pub samples_done: u64,
+    pub rays_per_second: f64,
+    /// Seconds left; null while unknown (no rate measured yet).
+    pub eta_seconds: Option<f64>,
+    pub submitted_unix_ms: i64,
+    /// null until the job ends.
+    pub finished_unix_ms: Option<i64>,
+    pub first_result_unix_ms: Option<i64>,
+    pub error: String,
+    pub results_rejected: u64,
+    pub results_late: u64,
+    pub results_duplicate: u64,
+    pub settings: SettingsJson,
+    pub frames: Vec<FrameJson>,
+}
+
+pub fn state_name(s: JobState) -> &'static str {
+    match s {
+        JobState::Queued => "queued",
+        JobState::Running => "running",
+        JobState::Done => "done",
+        JobState::Failed => "failed",
+        JobState::Cancelled => "cancelled",
+    }
+}
+
+fn nonzero(ms: i64) -> Option<i64> {
+    (ms != 0).then_some(ms)
+}
+
+impl From<&JobView> for JobJson {
+    fn from(v: &JobView) -> Self {
+        let r = &v.record;
+        JobJson {
+            id: r.id.clone(),
+            name: r.name.clone(),
+            state: state_name(v.state),
+            priority: r.priority,
+            progress: if v.samples_total == 0 {
+                0.0
+            } else {
+                v.samples_done as f64 / v.samples_total as f64
+            },
+            units_total: v.units_total,
+            units_done: v.units_done,
+            samples_total: v.samples_total,
+            samples_done: v.samples_done,
+            rays_per_second: v.rays_per_second,
+            eta_seconds: (v.eta_seconds >= 0.0 && v.eta_seconds.is_finite())
+                .then_some(v.eta_seconds),
+            submitted_unix_ms: r.submitted_unix_ms,
+            finished_unix_ms: nonzero(r.finished_unix_ms),
+            first_result_unix_ms: nonzero(v.first_result_unix_ms),
+            error: r.error.clone(),
+            results_rejected: v.counters.results_rejected,
+            results_late: v.counters.results_late,
+            results_duplicate: v.counters.results_duplicate,
+            settings: SettingsJson {
+                scene: r.scene_name.clone(),
+                width: v.settings.width,
+                height: v.settings.height,
+                samples: v.settings.samples,
+                max_depth: v.settings.max_depth,
+                sampler: r.sampler.clone(),
+                first_frame: r.first_frame,
+                last_frame: r.last_frame,
+                tile_size: r.tile_size,
+                samples_per_unit: r.samples_per_unit,
+                max_attempts: r.max_attempts,
+            },
+            frames: v
+                .frames
+                .iter()
+                .map(|(frame, total, done, out)| FrameJson {
+                    frame: *frame,
+                    units_total: *total,
+                    units_done: *done,
+                    written: out.is_some(),
+                })
+                .collect(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct FailureJson {
+    pub unit: u32,
+    pub frame: u32,
+    pub rect: RectJson,
+    pub samples: [u32; 2],
+    /// One per failed attempt, naming the worker.
+    pub messages: Vec<String>,
+}
+
+impl From<UnitFailure> for FailureJson {
+    fn from(f: UnitFailure) -> Self {
+        FailureJson {
+            unit: f.unit,
+            frame: f.frame,
+            rect: f.rect.into(),
+            samples: [f.samples.start, f.samples.end],
+            messages: f.messages,
+        }
+    }
+}
+
+/// `GET /api/jobs/{id}`: the job and its failures.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct JobDetailJson {
+    #[serde(flatten)]
+    pub job: JobJson,
+    pub failures: Vec<FailureJson>,
+}
+
+/// A run of neighbouring tiles of one tile row in the same state.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct TileRunJson {
+    #[serde(flatten)]
+    pub rect: RectJson,
+    /// "done", "leased", "partial" or "pending".
+    pub state: &'static str,
+    /// Tiles in the run.
+    pub tiles: u32,
+}
+
+fn tile_state_name(s: TileState) -> &'static str {
+    match s {
+        TileState::Done => "done",
+        TileState::Leased => "leased",
+        TileState::Partial => "partial",
+        TileState::Pending => "pending",
+    }
+}
+
+/// Joins tiles (in row order) into runs: a frame of 8 px tiles has tens
+/// of thousands of tiles but a few hundred runs.
+pub fn tile_runs(tiles: &[FrameTile]) -> Vec<TileRunJson> {
+    let mut runs: Vec<TileRunJson> = Vec::new();
+    for t in tiles {
+        let state = tile_state_name(t.state);
+        if let Some(r) = runs.last_mut()
+            && r.state == state
+            && r.rect.y == t.rect.y
+            && r.rect.height == t.rect.height
+            && r.rect.x + r.rect.width == t.rect.x
+        {
+            r.rect.width += t.rect.width;
+            r.tiles += 1;
+            continue;
+        }
+        runs.push(TileRunJson {
+            rect: t.rect.into(),
+            state,
+            tiles: 1,
+        });
+    }
+    runs
+}
+
+/// `GET /api/jobs/{id}/frames/{frame}`.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct FrameDetailJson {
+    pub job: String,
+    #[serde(flatten)]
+    pub frame: FrameJson,
+    pub width: u32,
+    pub height: u32,
+    /// The frame's tiles as runs along each tile row, in row order.
+    pub tiles: Vec<TileRunJson>,
+    /// Tiles done, leased, partial and pending.
+    pub tiles_done: u32,
+    pub tiles_leased: u32,
+    pub tiles_partial: u32,
+    pub tiles_pending: u32,
+}
+
+/// What a worker holds of one frame: its leases there, summed (a fast
+/// worker may hold dozens of small leases; the page needs where, not each).
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct HeldJson {
+    pub job: String,
+    pub frame: u32,
+    pub leases: u32,
+    /// Pixels of the leased rectangles.
+    pub pixels: u64,
+}
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct WorkerJson {
+    pub id: String,
+    pub name: String,
+    /// "cpu" or "gpu".
+    pub backend: String,
+    /// The GPU adapter's name ("" for a CPU worker).
+    pub adapter: String,
+    pub threads: u32,
+    pub version: String,
+    /// "rendering" (holds leases), "idle", "silent" (no heartbeat for
+    /// three intervals) or "gone" (left the farm: no heartbeat for a
+    /// lease timeout).
+    pub state: &'static str,
+    /// Leases held now, and where (by job and frame).
+    pub leases: u32,
+    pub holding: Vec<HeldJson>,
+    pub samples_per_second: f64,
+    pub rays_per_second: f64,
+    pub last_seen_unix_ms: i64,
+    pub units_done: u64,
+    pub units_failed: u64,
+    /// When the monitor saw it gone; null while in the farm.
+    pub gone_unix_ms: Option<i64>,
+}
+
+impl WorkerJson {
+    pub fn new(w: &WorkerView, state: &'static str, holding: Vec<HeldJson>) -> Self {
+        WorkerJson {
+            id: w.id.clone(),
+            name: w.name.clone(),
+            backend: w.backend.clone(),
+            adapter: w.gpu_name.clone(),
+            threads: w.threads,
+            version: w.version.clone(),
+            state,
+            leases: holding.iter().map(|h| h.leases).sum(),
+            holding,
+            samples_per_second: w.samples_per_second,
+            rays_per_second: w.rays_per_second,
+            last_seen_unix_ms: w.last_seen_unix_ms,
+            units_done: w.units_done,
+            units_failed: w.units_failed,
+            gone_unix_ms: None,
+        }
+    }
+}
+
+/// What the event stream sends: everything the jobs and workers pages show.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct SnapshotJson {
+    pub jobs: Vec<JobJson>,
+    pub workers: Vec<WorkerJson>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tile(x: u32, y: u32, state: TileState) -> FrameTile {
+        FrameTile {
+            rect: Rect::new(x, y, 16, 16),
+            state,
+            batches_done: 0,
+            batches: 1,
+        }
+    }
+
+    #[test]
+    fn tiles_join_into_runs_along_a_row_only() {
+        use TileState::*;
+        let tiles = [
+            tile(0, 0, Done),
+            tile(16, 0, Done),
+            tile(32, 0, Leased),
+            tile(0, 16, Leased),
+            tile(16, 16, Pending),
+            tile(32, 16, Pending),
+        ];
+        let runs: Vec<(u32, u32, u32, &str, u32)> = tile_runs(&tiles)
+            .iter()
+            .map(|r| (r.rect.x, r.rect.y, r.rect.width, r.state, r.tiles))
+            .collect();
+        // The leased tile ending row 0 does not join the one starting row 1.
+        assert_eq!(
+            runs,
+            [
+                (0, 0, 32, "done", 2),
+                (32, 0, 16, "leased", 1),
+                (0, 16, 16, "leased", 1),
+                (16, 16, 32, "pending", 2),
+            ]
+        );
+    }
+}

@@ -1,0 +1,332 @@
+"""Drives the coordinator's web monitor in headless Chromium (Selenium with
+Debian's chromium and chromium-driver), for tests/monitor.rs.
+
+The Rust test starts the coordinator and the workers; this script submits
+jobs with the `tessera` binary and checks everything else through the page
+a person would use: sign-in, the jobs list, a job's progress and live
+preview, the workers page, cancel. It prints one line per step and exits
+non-zero (with the reason) on the first failure.
+
+Written for the test (argument names are the Rust side's), but it can be run
+by hand against any coordinator started with --http.
+"""
+
+import argparse
+import base64
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from selenium import webdriver
+from selenium.webdriver.chrome.options import Options
+from selenium.webdriver.chrome.service import Service
+from selenium.webdriver.common.by import By
+
+
+def step(msg):
+    print(f"[monitor] {msg}", flush=True)
+
+
+def fail(msg):
+    print(f"[monitor] FAILED: {msg}", flush=True)
+    sys.exit(1)
+
+
+def wait(what, timeout, f, poll=0.1):
+    end = time.time() + timeout
+    while True:
+        v = f()
+        if v:
+            return v
+        if time.time() > end:
+            fail(f"timed out after {timeout} s waiting for {what}")
+        time.sleep(poll)
+
+
+class Page:
+    def __init__(self, chromium, driver, width, height):
+        o = Options()
+        o.binary_location = chromium
+        for a in (
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-dev-shm-usage",
+            "--disable-gpu",
+            # Pixels read back from a canvas are the image's, unconverted.
+            "--force-color-profile=srgb",
+            "--hide-scrollbars",
+            f"--window-size={width},{height}",
+        ):
+            o.add_argument(a)
+        self.d = webdriver.Chrome(service=Service(executable_path=driver), options=o)
+        self.d.set_script_timeout(30)
+
+    def go(self, url):
+        self.d.get(url)
+
+    def js(self, script, *args):
+        return self.d.execute_script(script, *args)
+
+    def ajs(self, script, *args):
+        return self.d.execute_async_script(script, *args)
+
+    def css(self, sel):
+        return self.d.find_elements(By.CSS_SELECTOR, sel)
+
+    def attr(self, sel, name):
+        return self.js(
+            "const e = document.querySelector(arguments[0]); return e ? e.getAttribute(arguments[1]) : null;",
+            sel,
+            name,
+        )
+
+    def text(self, sel):
+        return self.js(
+            "const e = document.querySelector(arguments[0]); return e ? e.textContent : null;", sel
+        )
+
+    def click(self, sel):
+        wait(f"{sel} to be clickable", 10, lambda: self.js(
+            "const e = document.querySelector(arguments[0]); return !!e && !e.disabled;", sel))
+        self.css(sel)[0].click()
+
+    def preview_pixels(self):
+        """The preview image as the page shows it: (width, height, RGBA bytes)."""
+        r = self.js(
+            """
+            const img = document.querySelector('#preview');
+            if (!img || !img.complete || !img.naturalWidth) return null;
+            const c = document.createElement('canvas');
+            c.width = img.naturalWidth; c.height = img.naturalHeight;
+            const g = c.getContext('2d');
+            g.drawImage(img, 0, 0);
+            const d = g.getImageData(0, 0, c.width, c.height).data;
+            let s = '';
+            for (let i = 0; i < d.length; i += 8192) s += String.fromCharCode.apply(null, d.subarray(i, i + 8192));
+            return [c.width, c.height, btoa(s), img.dataset.version, img.dataset.unitsDone, img.dataset.written];
+            """
+        )
+        if not r:
+            return None
+        w, h, data, version, units, written = r
+        return w, h, base64.b64decode(data), int(version or 0), units, written == "1"
+
+    def shot(self, path):
+        if path:
+            self.d.save_screenshot(path)
+            step(f"screenshot {path}")
+
+    def quit(self):
+        self.d.quit()
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--http", required=True, help="the monitor's URL")
+    ap.add_argument("--grpc", required=True, help="the coordinator's gRPC URL (for tessera submit)")
+    ap.add_argument("--token", required=True)
+    ap.add_argument("--tessera", required=True, help="the tessera binary")
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--settings", required=True, help="JSON list of submit arguments for the first job")
+    ap.add_argument("--second-settings", required=True, help="JSON list for the job cancelled from the page")
+    ap.add_argument("--victim-pid", type=int, required=True, help="a worker to SIGKILL mid-job")
+    ap.add_argument("--victim-name", required=True)
+    ap.add_argument("--out", required=True, help="folder for results and screenshots")
+    ap.add_argument("--chromium", default=os.environ.get("CHROMIUM", "/usr/bin/chromium"))
+    ap.add_argument("--chromedriver", default=os.environ.get("CHROMEDRIVER", "/usr/bin/chromedriver"))
+    a = ap.parse_args()
+
+    env = dict(os.environ, TESSERA_COORDINATOR=a.grpc, TESSERA_TOKEN=a.token)
+
+    def submit(args, name):
+        r = subprocess.run(
+            [a.tessera, "submit", a.scene, "--name", name] + args,
+            env=env, capture_output=True, text=True, timeout=120,
+        )
+        if r.returncode != 0:
+            fail(f"tessera submit: {r.stderr}")
+        return r.stdout.strip()
+
+    def shot(page, name):
+        page.shot(os.path.join(a.out, name))
+
+    p = Page(a.chromium, a.chromedriver, 1280, 1000)
+    try:
+        # -- sign-in: nothing of the farm before the token ------------------
+        p.go(a.http + "/")
+        wait("the sign-in form", 15, lambda: p.css("#token"))
+        if p.css("#jobs") or p.js("return !document.querySelector('#nav').hidden"):
+            fail("jobs or navigation visible before the token was given")
+        r = p.ajs(
+            "const done = arguments[arguments.length - 1];"
+            "fetch('/api/jobs').then(r => done(r.status));"
+        )
+        if r != 401:
+            fail(f"/api/jobs without the token answered {r}, not 401")
+        p.css("#token")[0].send_keys("not-the-token")
+        p.click("#login-form button")
+        wait("the wrong token refused", 10, lambda: "not this coordinator" in (p.text("#login-error") or ""))
+        p.css("#token")[0].clear()
+        p.css("#token")[0].send_keys(a.token)
+        p.click("#login-form button")
+        wait("the jobs page", 15, lambda: p.css("#no-jobs") or p.css("#jobs"))
+        wait("live updates", 10, lambda: "on" in (p.attr("#live", "class") or ""))
+        step("signed in; jobs page live")
+
+        # -- a job appears, progresses, and its preview fills in ------------
+        job = submit(json.loads(a.settings), "monitor-first")
+        step(f"submitted {job}")
+        wait("the job in the list", 15, lambda: p.css(f'tr[data-job="{job}"]'))
+        step("the job is listed")
+        p.go(f"{a.http}/#/jobs/{job}")
+        wait("the job page", 10, lambda: p.css("#job-state"))
+        progress, images = [], {}
+        mid_shot = False
+        killed = False
+        end = time.time() + 240
+        while True:
+            state = p.attr("#job-state", "data-state")
+            v = float(p.attr("#job-progress", "data-value") or 0)
+            if not progress or v != progress[-1]:
+                progress.append(v)
+            px = p.preview_pixels()
+            if px and state == "running" and not px[5]:
+                images.setdefault(hashlib.sha256(px[2]).hexdigest(), px[3])
+            rising = len(progress) >= 3 and progress == sorted(progress)
+            # For the docs: a moment with tiles leased and tiles not started
+            # (the first sample batch), else any moment mid-job.
+            if not mid_shot and px and (
+                (v >= 0.05 and p.css("#overlay .tile.pending") and p.css("#overlay .tile.leased"))
+                or (0.3 <= v <= 0.7 and p.css("#overlay .tile"))
+            ):
+                shot(p, "job-preview.png")
+                mid_shot = True
+            if not killed and len(images) >= 2 and rising and v < 0.9:
+                # Mid-job: one worker dies without a word.
+                p.go(f"{a.http}/#/workers")
+                wait("the workers page", 10, lambda: p.css(f'tr[data-worker-name="{a.victim_name}"]'))
+                shot(p, "workers.png")
+                os.kill(a.victim_pid, signal.SIGKILL)
+                step(f"killed worker {a.victim_name} (pid {a.victim_pid}) at {v:.0%}")
+                killed = True
+                wait(f"{a.victim_name} shown gone", 30, lambda: p.attr(
+                    f'tr[data-worker-name="{a.victim_name}"]', "data-state") == "gone")
+                step(f"the workers page shows {a.victim_name} gone")
+                shot(p, "workers-gone.png")
+                p.go(f"{a.http}/#/jobs/{job}")
+                wait("the job page", 10, lambda: p.css("#job-state"))
+            if state in ("failed", "cancelled"):
+                fail(f"the job ended {state}: {p.text('#job-error')}")
+            if state == "done":
+                break
+            if time.time() > end:
+                fail(f"the job did not finish: progress {progress}")
+            time.sleep(0.15)
+        step(f"progress seen: {['%.3f' % x for x in progress]}")
+        if not killed:
+            fail(f"the job ended before the checks could run mid-job (progress {progress}, {len(images)} preview images); make it longer")
+        if len(progress) < 3 or progress != sorted(progress) or progress[-1] != 1.0:
+            fail(f"progress did not rise to 1: {progress}")
+        if len(images) < 2:
+            fail(f"the preview did not change while the job ran ({len(images)} distinct images)")
+        step(f"{len(images)} distinct preview images while the job ran")
+        if not mid_shot:
+            fail("no mid-render moment for the preview screenshot")
+
+        # The finished frame, as the page shows it.
+        px = wait("the preview of the written frame", 20,
+                  lambda: (lambda x: x if x and x[5] else None)(p.preview_pixels()))
+        w, h, rgba = px[0], px[1], px[2]
+        with open(os.path.join(a.out, "preview.rgba"), "wb") as f:
+            f.write(rgba)
+        with open(os.path.join(a.out, "preview.json"), "w") as f:
+            json.dump({"job": job, "width": w, "height": h}, f)
+        step(f"final preview {w}x{h} saved")
+        # Full size and download work (a blob of PNG bytes).
+        p.click("#full-size")
+        wait("the full-size viewer", 10, lambda: p.js(
+            "const v = document.querySelector('#viewer'); const i = document.querySelector('#viewer-img');"
+            "return !v.hidden && i.complete && i.naturalWidth > 0;"))
+        nat = p.js("const i = document.querySelector('#viewer-img'); return [i.naturalWidth, i.naturalHeight];")
+        if nat != [w, h]:
+            fail(f"full-size view is {nat}, the preview {w}x{h}")
+        p.click("#viewer-close")
+        step("full-size view opens")
+
+        # -- cancel from the page stops a second job -------------------------
+        job2 = submit(json.loads(a.second_settings), "monitor-cancelled")
+        step(f"submitted {job2}")
+        p.go(f"{a.http}/#/jobs/{job2}")
+        wait("the second job running with results", 120, lambda: p.attr("#job-state", "data-state") == "running"
+             and float(p.attr("#job-progress", "data-value") or 0) > 0)
+        # The jobs page with one job done and one running.
+        p.go(f"{a.http}/#/jobs")
+        wait("the jobs table", 10, lambda: p.css(f'tr[data-job="{job2}"]'))
+        shot(p, "jobs.png")
+        p.go(f"{a.http}/#/jobs/{job2}")
+        wait("the job page", 10, lambda: p.css("#cancel"))
+        # The priority control changes the farm's priority.
+        p.css("#priority")[0].clear()
+        p.css("#priority")[0].send_keys("7")
+        p.click("#set-priority")
+        wait("priority 7 in the farm", 10, lambda: p.ajs(
+            "const done = arguments[arguments.length - 1];"
+            "fetch('/api/jobs/' + arguments[0], {headers: {Authorization: 'Bearer ' + sessionStorage.getItem('tessera-client-token')}})"
+            ".then(r => r.json()).then(j => done(j.priority), () => done(null));", job2) == 7)
+        step("priority set to 7 from the page")
+        p.click("#cancel")
+        wait("the cancel button to ask for confirmation", 5, lambda: "armed" in (p.attr("#cancel", "class") or ""))
+        p.click("#cancel")
+        wait("the job cancelled", 15, lambda: p.attr("#job-state", "data-state") == "cancelled")
+        stopped_at = float(p.attr("#job-progress", "data-value") or 0)
+        if stopped_at >= 1.0:
+            fail("the second job finished before it could be cancelled; make it longer")
+        time.sleep(2.0)
+        after = float(p.attr("#job-progress", "data-value") or 0)
+        if after != stopped_at:
+            fail(f"progress moved after the cancel: {stopped_at} -> {after}")
+        if not p.js("return document.querySelector('#cancel').disabled"):
+            fail("the cancel button is still enabled on a cancelled job")
+        with open(os.path.join(a.out, "cancelled.json"), "w") as f:
+            json.dump({"job": job2, "progress": stopped_at}, f)
+        step(f"cancelled {job2} from the page at {stopped_at:.0%}; it stays there")
+
+        # -- a phone-width look at the jobs page ------------------------------
+        p.d.set_window_size(390, 844)
+        p.go(f"{a.http}/#/jobs")
+        wait("the jobs cards", 10, lambda: p.css(f'tr[data-job="{job}"]'))
+        overflow = p.js("return document.documentElement.scrollWidth - window.innerWidth")
+        if overflow > 1:
+            fail(f"the jobs page is {overflow} px wider than a phone's screen")
+        shot(p, "jobs-phone.png")
+        step("phone width: no horizontal scrolling")
+        # -- dark system theme -------------------------------------------------
+        p.d.set_window_size(1280, 1000)
+        light = p.js("return getComputedStyle(document.body).backgroundColor")
+        p.d.execute_cdp_cmd("Emulation.setEmulatedMedia", {
+            "features": [{"name": "prefers-color-scheme", "value": "dark"}]})
+        p.go(f"{a.http}/#/jobs/{job}")
+        wait("the job page", 10, lambda: p.attr("#job-state", "data-state") == "done")
+        wait("the preview", 10, lambda: p.attr("#preview", "data-written") == "1")
+        dark = p.js("return getComputedStyle(document.body).backgroundColor")
+        if dark == light:
+            fail(f"the page ignores a dark system theme (background {dark})")
+        shot(p, "job-dark.png")
+        step(f"dark theme: background {light} -> {dark}")
+        logs = [e for e in p.d.get_log("browser") if e.get("level") == "SEVERE"]
+        # The refusals this script asked for (401) and a frame asked for while
+        # being written (503) are expected; anything else is a fault of the page.
+        bad = [e for e in logs if not any(c in e.get("message", "") for c in (" 401 ", " 503 "))]
+        if bad:
+            fail(f"errors in the browser console: {bad}")
+        step("OK")
+    finally:
+        p.quit()
+
+
+if __name__ == "__main__":
+    main()
