@@ -74,11 +74,15 @@ print('1080p 16 spp job $i: submit to done %.1f ms, to first merged result %d ms
 done
 kill "${W[@]}" $C 2>/dev/null; wait 2>/dev/null
 echo "== batched result throughput (64 results a message)" > "$OUT/farm-throughput.txt"
-"$T" coordinator --listen 127.0.0.1:7999 --data /tmp/load-data > /dev/null 2>&1 &
-C=$!; sleep 1
-timeout 30 .gpu/result_load http://127.0.0.1:7999 examples/resolution.toml 64 5 64 >> "$OUT/farm-throughput.txt" 2>&1
-timeout 30 .gpu/result_load http://127.0.0.1:7999 examples/resolution.toml 64 5 >> "$OUT/farm-throughput.txt" 2>&1
-kill $C
+# A fresh coordinator for each run: one run's 64 load clients stay
+# registered after it (until they time out).
+for batch in 64 1; do
+  rm -rf /tmp/load-data
+  "$T" coordinator --listen 127.0.0.1:7999 --data /tmp/load-data > /dev/null 2>&1 &
+  C=$!; sleep 1
+  timeout 30 .gpu/result_load http://127.0.0.1:7999 examples/resolution.toml 64 5 $batch >> "$OUT/farm-throughput.txt" 2>&1
+  kill $C; wait $C 2>/dev/null
+done
 cp /tmp/bench/farm.csv "$OUT/" 2>/dev/null
 tar czf "$OUT/farm-logs.tar.gz" -C /tmp/bench/farm --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' . 2>/dev/null
 fi
