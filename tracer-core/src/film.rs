@@ -129,6 +129,12 @@ pub struct Film {
     /// Samples whose value was NaN or infinite and was replaced by 0 (or clamped).
     /// Always 0 for a correct tracer; tests assert it.
     pub nonfinite: u64,
+    /// Adaptive renders only: per pixel, the sum of each sample's squared
+    /// fixed-point value (exact: a sample is below 2^48 units, its square
+    /// below 2^96, and 2^16 of them below 2^112), from which
+    /// [`crate::adaptive`] estimates the error of the mean. `None` for
+    /// uniform renders, which stay as they were on the wire and on disk.
+    pub squares: Option<Vec<[u128; 3]>>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -143,6 +149,10 @@ pub enum FilmError {
     },
     #[error("pixel sum overflow at ({x}, {y})")]
     Overflow { x: u32, y: u32 },
+    #[error(
+        "film {rect:?} {what} sums of squares (an adaptive film merges only with adaptive films)"
+    )]
+    SquaresMismatch { rect: Rect, what: &'static str },
 }
 
 /// Converts one sample's radiance to fixed point, sanitising non-finite values.
@@ -173,6 +183,15 @@ impl Film {
             counts: vec![0; rect.area()],
             rays: RayCounts::default(),
             nonfinite: 0,
+            squares: None,
+        }
+    }
+
+    /// An empty film that also keeps sums of squares (adaptive renders).
+    pub fn with_squares(rect: Rect) -> Self {
+        Film {
+            squares: Some(vec![[0; 3]; rect.area()]),
+            ..Film::new(rect)
         }
     }
 
@@ -189,7 +208,8 @@ impl Film {
     /// Checks that data from elsewhere (a worker, a file) is self-consistent.
     pub fn validate(&self) -> Result<(), FilmError> {
         let expected = self.rect.area();
-        for got in [self.sums.len(), self.counts.len()] {
+        let squares = self.squares.as_ref().map_or(expected, Vec::len);
+        for got in [self.sums.len(), self.counts.len(), squares] {
             if got != expected {
                 return Err(FilmError::WrongSize {
                     rect: self.rect,
@@ -210,6 +230,21 @@ impl Film {
                 film: self.rect,
             });
         }
+        match (&self.squares, &other.squares) {
+            (Some(_), Some(_)) | (None, None) => {}
+            (Some(_), None) => {
+                return Err(FilmError::SquaresMismatch {
+                    rect: other.rect,
+                    what: "lacks",
+                });
+            }
+            (None, Some(_)) => {
+                return Err(FilmError::SquaresMismatch {
+                    rect: other.rect,
+                    what: "has",
+                });
+            }
+        }
         for row in 0..other.rect.height {
             let src = (row * other.rect.width) as usize;
             let dst = ((other.rect.y - self.rect.y + row) * self.rect.width
@@ -223,6 +258,15 @@ impl Film {
                     })?;
                 }
                 self.counts[dst + col] += other.counts[src + col];
+                if let (Some(a), Some(b)) = (&mut self.squares, &other.squares) {
+                    let (a, b) = (&mut a[dst + col], &b[src + col]);
+                    for c in 0..3 {
+                        a[c] = a[c].checked_add(b[c]).ok_or(FilmError::Overflow {
+                            x: other.rect.x + col as u32,
+                            y: other.rect.y + row,
+                        })?;
+                    }
+                }
             }
         }
         self.rays.add(&other.rays);

@@ -1,0 +1,79 @@
+//! A round of adaptive sampling on the CPU: each active block is rendered
+//! one sample index at a time by the ordinary tile renderer
+//! ([`crate::render::cpu::render_tile`], so the stream, recursive and
+//! distributed paths all apply unchanged), and each single-sample film's
+//! fixed-point values are added to the block's sums and, squared, to its
+//! sums of squares. Sums, counts and rays are those of a uniform render of
+//! the same samples, bit for bit.
+
+use rayon::prelude::*;
+
+use super::BlockMask;
+use crate::film::{Film, SampleRange};
+use crate::math::Real;
+use crate::render::cpu::render_tile;
+use crate::render::{CpuRenderer, PreparedFrame, RenderError};
+use crate::world::World;
+
+/// Renders the blocks of `mask` over `samples` (see [`super::render_round`]).
+pub fn render_round(
+    renderer: &CpuRenderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    mask: &BlockMask,
+    samples: SampleRange,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Film, RenderError> {
+    prepared.check_request(mask.rect, samples)?;
+    Ok(match prepared {
+        PreparedFrame::F32(w) => round_world(renderer, w, frame, mask, samples, progress),
+        PreparedFrame::F64(w) => round_world(renderer, w, frame, mask, samples, progress),
+    })
+}
+
+fn round_world<R: Real>(
+    renderer: &CpuRenderer,
+    world: &World<R>,
+    frame: u32,
+    mask: &BlockMask,
+    samples: SampleRange,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Film {
+    let blocks: Vec<_> = mask.active_rects().collect();
+    let films: Vec<Film> = renderer.pool().install(|| {
+        blocks
+            .par_iter()
+            .map(|&b| {
+                let mut acc = Film::with_squares(b);
+                for k in samples.start..samples.end {
+                    add_single(
+                        &mut acc,
+                        &render_tile(world, frame, b, SampleRange::new(k, k + 1)),
+                    );
+                }
+                progress(b.area() as u64 * samples.len() as u64);
+                acc
+            })
+            .collect()
+    });
+    let mut out = Film::with_squares(mask.rect);
+    for f in &films {
+        out.merge(f)
+            .expect("blocks lie inside their rect and sums cannot overflow");
+    }
+    out
+}
+
+/// Adds a film of one sample per pixel (same rect) to `acc`, squares included.
+fn add_single(acc: &mut Film, one: &Film) {
+    let squares = acc.squares.as_mut().expect("adaptive film");
+    for (i, s) in one.sums.iter().enumerate() {
+        for c in 0..3 {
+            acc.sums[i][c] += s[c];
+            squares[i][c] += s[c] as u128 * s[c] as u128;
+        }
+        acc.counts[i] += one.counts[i];
+    }
+    acc.rays.add(&one.rays);
+    acc.nonfinite += one.nonfinite;
+}
