@@ -1,5 +1,5 @@
-//! A round of adaptive sampling on the CPU: each active block is rendered
-//! one sample index at a time by the ordinary tile renderer
+//! A round of adaptive sampling on the CPU: the active blocks, in runs of
+//! up to four along a row, are rendered one sample index at a time by the ordinary tile renderer
 //! ([`crate::render::cpu::render_tile`], so the stream, recursive and
 //! distributed paths all apply unchanged), and each single-sample film's
 //! fixed-point values are added to the block's sums and, squared, to its
@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use super::BlockMask;
-use crate::film::{Film, SampleRange};
+use crate::film::{Film, Rect, SampleRange};
 use crate::math::Real;
 use crate::render::cpu::render_tile;
 use crate::render::{CpuRenderer, PreparedFrame, RenderError};
@@ -39,7 +39,7 @@ fn round_world<R: Real>(
     samples: SampleRange,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Film {
-    let blocks: Vec<_> = mask.active_rects().collect();
+    let blocks = runs(mask);
     let films: Vec<Film> = renderer.pool().install(|| {
         blocks
             .par_iter()
@@ -60,6 +60,30 @@ fn round_world<R: Real>(
     for f in &films {
         out.merge(f)
             .expect("blocks lie inside their rect and sums cannot overflow");
+    }
+    out
+}
+
+/// Most blocks rendered together: 4 blocks of 8x8 are 256 pixels, one
+/// batch of the stream renderer (a lone block would be a quarter batch).
+const RUN_BLOCKS: usize = 4;
+
+/// The active blocks of `mask` joined into runs of up to [`RUN_BLOCKS`]
+/// neighbours along a row of blocks: the rects each call renders.
+fn runs(mask: &BlockMask) -> Vec<Rect> {
+    let mut out: Vec<Rect> = Vec::new();
+    let mut len = 0;
+    for b in mask.active_rects() {
+        match out.last_mut() {
+            Some(r) if len < RUN_BLOCKS && r.y == b.y && r.x + r.width == b.x => {
+                r.width += b.width;
+                len += 1;
+            }
+            _ => {
+                out.push(b);
+                len = 1;
+            }
+        }
     }
     out
 }
