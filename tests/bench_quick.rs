@@ -154,7 +154,10 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
                 "adaptive.csv: no cpu {mode} rows for {scene}"
             );
         }
-        assert!(rows.iter().any(|r| r["scene"] == scene && r["backend"] == "gpu"));
+        assert!(
+            rows.iter()
+                .any(|r| r["scene"] == scene && r["backend"] == "gpu")
+        );
     }
     for r in &rows {
         assert!(num(r, "rmse") > 0.0 && num(r, "rmse") < 1.0);

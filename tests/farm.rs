@@ -563,6 +563,57 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 
+/// An adaptive job survives a coordinator restart: the rounds still to do
+/// and the tiles already finished are derived again from the stored
+/// films, nothing is rendered twice, and the frames are still
+/// `tessera render --target-error`'s bit for bit.
+#[test]
+fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
+    let addr = c.addr.clone();
+    let url = c.url();
+    let _w: Vec<Proc> = (0..2)
+        .map(|i| start_worker(dir.path(), &url, &format!("w{i}")))
+        .collect();
+    let scene = repo("examples/animation.toml");
+    let settings = [
+        "--width",
+        "192",
+        "--height",
+        "144",
+        "--target-error",
+        "0.01",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "64",
+    ];
+    let mut args = settings.to_vec();
+    args.extend(["--frames", "1..3", "--tile-size", "16"]);
+    let job = submit(&url, &scene, &args);
+    let total = 3 * 108 * 5; // frames x tiles x rounds (4, 8, 16, 32, 64)
+    let mut before = 0;
+    wait_for("some rounds", Duration::from_secs(60), || {
+        before = status(&url, &job).units_done;
+        before >= total / 4
+    });
+    c.proc.sigkill();
+    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
+    let restored = status(&url, &job);
+    assert!(restored.units_done >= before && restored.units_done < total);
+    let s = wait_done(&url, &job, Duration::from_secs(180));
+    assert_eq!(
+        (s.units_done, s.units_total, s.results_duplicate),
+        (total, total, 0)
+    );
+    // Units of rounds no block needed are done without a result.
+    assert!(s.units_accepted < total, "{}", s.units_accepted);
+    assert!(c.proc.log().contains("job restored"));
+    assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
+}
+
 /// Speaks the worker protocol with bad data: a real gRPC client, not a mock.
 #[test]
 fn malformed_results_are_rejected_and_late_results_dropped() {
