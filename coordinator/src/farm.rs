@@ -14,6 +14,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use tokio::sync::watch;
+use tracer_core::adaptive::BlockMask;
 use tracer_core::assets::Bundle;
 use tracer_core::film::{FIXED_ONE, Film, MAX_SAMPLE_VALUE, RayCounts, Rect, SampleRange};
 use tracer_core::sampling::Sampler;
@@ -30,6 +31,8 @@ use crate::units::{
 // What the web monitor reads of the farm (and its priority change).
 mod inspect;
 pub use inspect::{FramePreview, FrameTile, LeaseSummary, TileState, UnitFailure, preview_step};
+mod adaptive;
+pub use adaptive::AdaptiveProgress;
 
 /// Most work units in one job.
 pub const MAX_UNITS: u64 = 10_000_000;
@@ -117,6 +120,8 @@ pub struct Submission {
     pub tile_size: u32,
     pub samples_per_unit: u32,
     pub max_attempts: u32,
+    /// Adaptive sampling's keys given with the job (over the scene's).
+    pub adaptive: tracer_core::adaptive::AdaptiveSpec,
 }
 
 /// Overrides of a scene's `[render]` table (as `tessera render`'s flags).
@@ -178,6 +183,8 @@ pub struct JobView {
     pub first_lease_unix_ms: i64,
     pub first_result_unix_ms: i64,
     pub last_result_unix_ms: i64,
+    /// Adaptive jobs: converged share, estimated error, samples expected.
+    pub adaptive: AdaptiveProgress,
 }
 
 #[derive(Clone, Debug)]
@@ -210,6 +217,8 @@ pub struct LeaseView {
     pub rect: Rect,
     pub samples: SampleRange,
     pub deadline_unix_ms: i64,
+    /// Adaptive jobs: the blocks of `rect` this round samples.
+    pub active: Option<BlockMask>,
 }
 
 /// A worker's result, unpacked from the wire (sizes already checked against `rect`).
@@ -303,6 +312,8 @@ struct Job {
     samples_this_run: u64,
     rays_this_run: u64,
     watch: watch::Sender<u64>,
+    /// Adaptive jobs only (`farm/adaptive.rs`).
+    adaptive: Option<adaptive::AdaptiveJob>,
 }
 
 struct Lease {
@@ -317,6 +328,8 @@ struct Lease {
     progress: u64,
     /// The cost probe's expected rays of the whole lease.
     expected_rays: f64,
+    /// Adaptive jobs: the blocks of `rect` this round samples.
+    active: Option<BlockMask>,
 }
 
 impl Lease {
@@ -420,6 +433,7 @@ fn sampler_name(s: Sampler) -> &'static str {
     match s {
         Sampler::Grid => "grid",
         Sampler::Jittered => "jittered",
+        Sampler::Progressive => "progressive",
     }
 }
 
@@ -563,13 +577,17 @@ impl Farm {
                         job.mark_done(u);
                     }
                     let frame = job.layout.unit(u).frame;
-                    let full = Rect::full(job.layout.width, job.layout.height);
+                    let (w, h) = (job.layout.width, job.layout.height);
+                    let adaptive = job.adaptive.is_some();
                     let acc = job.frames.get_mut(&frame).expect("frame of a unit");
                     let mut target = acc.film.lock().expect("frame film lock");
                     target
-                        .get_or_insert_with(|| Film::new(full))
+                        .get_or_insert_with(|| new_frame_film(w, h, adaptive))
                         .merge(&film)
                         .map_err(|e| corrupt(e.to_string()))?;
+                }
+                if !job.state.is_terminal() {
+                    job.adaptive_restore();
                 }
                 if job.state == JobState::Running && job.units_done == 0 {
                     job.state = JobState::Queued;
@@ -708,6 +726,27 @@ impl Farm {
         settings
             .validate()
             .map_err(|e| FarmError::InvalidArgument(format!("invalid render settings: {e}")))?;
+        let adaptive = scene
+            .adaptive
+            .resolve(&s.adaptive)
+            .map_err(FarmError::InvalidArgument)?;
+        let settings = match &adaptive {
+            None => settings,
+            Some(a) => {
+                if s.overrides.samples.is_some() {
+                    return Err(FarmError::InvalidArgument(
+                        "samples does not apply to adaptive sampling (target_error): give min_samples and max_samples".into(),
+                    ));
+                }
+                if let Some(o) = s.overrides.sampler.filter(|&o| o != Sampler::Progressive) {
+                    return Err(FarmError::InvalidArgument(format!(
+                        "sampler {} does not apply to adaptive sampling (target_error), which places samples progressively",
+                        o.name()
+                    )));
+                }
+                a.render_settings(settings)
+            }
+        };
         let (first, last) = if s.first_frame == 0 && s.last_frame == 0 {
             (0, 0)
         } else {
@@ -733,11 +772,19 @@ impl Farm {
                 "tile_size must be in 8..=4096, got {tile_size}"
             )));
         }
+        let block = tracer_core::adaptive::BLOCK;
+        if adaptive.is_some() && !tile_size.is_multiple_of(block) {
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size must be a multiple of {block} for adaptive sampling (target_error), which decides per {block}x{block} block; got {tile_size}"
+            )));
+        }
         let samples_per_unit = if s.samples_per_unit == 0 {
             DEFAULT_SAMPLES_PER_UNIT
         } else {
             s.samples_per_unit
         };
+        // An adaptive job's sample batches are its rounds.
+        let batches = adaptive.map(|a| a.rounds());
         let max_attempts = if s.max_attempts == 0 {
             DEFAULT_MAX_ATTEMPTS
         } else {
@@ -767,20 +814,32 @@ impl Farm {
                 self.config.max_message_bytes
             )));
         }
-        let units = unit_count(
-            settings.width,
-            settings.height,
-            settings.samples,
-            last - first + 1,
-            tile_size,
-            samples_per_unit,
-        );
+        let units = match &batches {
+            None => unit_count(
+                settings.width,
+                settings.height,
+                settings.samples,
+                last - first + 1,
+                tile_size,
+                samples_per_unit,
+            ),
+            Some(b) => {
+                unit_count(
+                    settings.width,
+                    settings.height,
+                    1,
+                    last - first + 1,
+                    tile_size,
+                    1,
+                ) * b.len() as u64
+            }
+        };
         if units == 0 || units > MAX_UNITS {
             return Err(FarmError::InvalidArgument(format!(
                 "the job would have {units} work units (the limit is {MAX_UNITS}); use larger tiles or sample batches"
             )));
         }
-        let layout = Layout::new(
+        let mut layout = Layout::new(
             settings.width,
             settings.height,
             settings.samples,
@@ -789,6 +848,9 @@ impl Farm {
             tile_size,
             samples_per_unit,
         );
+        if let Some(b) = batches {
+            layout.batches = b;
+        }
         // Off the async threads: it traces a few rays of every tile.
         let tile_rays = {
             let layout = layout.clone();
@@ -845,6 +907,9 @@ impl Farm {
             submitted_unix_ms: now_ms(),
             finished_unix_ms: 0,
             output_dir: output_dir.to_string_lossy().into_owned(),
+            target_error: adaptive.map_or(0.0, |a| a.target_error),
+            min_samples: adaptive.map_or(0, |a| a.min_samples),
+            max_samples: adaptive.map_or(0, |a| a.max_samples),
         };
         ops.push(Op::PutJob(rec.clone()));
         ops.push(Op::PutCounters {
@@ -856,6 +921,7 @@ impl Farm {
             job = %id, name = %rec.name, scene = %rec.scene_name,
             width = settings.width, height = settings.height, samples = settings.samples,
             frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
+            target_error = rec.target_error, min_samples = rec.min_samples, max_samples = rec.max_samples,
             "job accepted"
         );
         let mut job = Job::new(rec, settings, Counters::default());
@@ -1247,6 +1313,7 @@ impl Farm {
                     [job.layout.unit(*units.last().expect("non-empty")).tile as usize];
                 let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
                 let samples = job.layout.batches[u0.batch as usize];
+                let active = job.adaptive_mask(u0.frame, rect, u0.batch);
                 if job.state == JobState::Queued {
                     job.state = JobState::Running;
                     job.notify();
@@ -1269,6 +1336,7 @@ impl Farm {
                     rect,
                     samples,
                     deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+                    active: active.clone(),
                 };
                 st.next_id += 1;
                 let lease_id = format!("l{}-{}", self.boot, st.next_id);
@@ -1284,6 +1352,7 @@ impl Farm {
                         deadline: Instant::now() + self.config.lease_timeout,
                         progress: 0,
                         expected_rays,
+                        active,
                     },
                 );
                 st.workers
@@ -1456,7 +1525,9 @@ impl Farm {
         for (r, t) in &mut taken {
             let film = r.film.as_ref().expect("validated");
             let bytes = match r.packed.take() {
-                Some(p) => crate::store::encode_packed(film.rect, film.rays, film.nonfinite, &p),
+                Some(p) => {
+                    crate::store::encode_packed(film.rect, film.rays, film.nonfinite, &p, None)
+                }
                 None => crate::store::encode_film(film),
             };
             let rays = [
@@ -1705,8 +1776,14 @@ impl Farm {
         let mut samples = 0;
         let work_before = job.work_left;
         for &u in &t.units {
-            samples += job.layout.unit_samples(job.layout.unit(u));
+            let unit = job.layout.unit(u);
+            let nominal = job.layout.unit_samples(unit);
+            let tile = job.layout.tiles[unit.tile as usize];
             job.mark_done(u);
+            // An adaptive round samples only its active blocks.
+            let traced = job.adaptive_samples(&film, tile).unwrap_or(nominal);
+            job.samples_done = job.samples_done + traced - nominal;
+            samples += traced;
         }
         job.meter.add(Instant::now(), work_before - job.work_left);
         job.samples_this_run += samples;
@@ -1727,16 +1804,35 @@ impl Farm {
         }
         let result_rays = film.rays.total();
         if !job.state.is_terminal() {
-            let frame_rect = Rect::full(job.layout.width, job.layout.height);
+            let (w, h) = (job.layout.width, job.layout.height);
             let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
-            acc.merging += 1;
-            merges.push(Merge {
-                job: t.job.clone(),
-                frame: t.frame,
-                into: acc.film.clone(),
-                film,
-                frame_rect,
-            });
+            if job.adaptive.is_some() {
+                // Adaptive jobs merge now, under the state lock: a tile's
+                // next round is decided from its merged film (tiles are
+                // small, so this holds the lock briefly).
+                acc.film
+                    .lock()
+                    .expect("frame film lock")
+                    .get_or_insert_with(|| new_frame_film(w, h, true))
+                    .merge(&film)
+                    .map_err(|e| FarmError::Internal(e.to_string()))?;
+                let mut queued = false;
+                for &u in &t.units {
+                    queued |= job.adaptive_advance(t.frame, job.layout.unit(u).tile);
+                }
+                if queued {
+                    self.work_ready.notify_waiters();
+                }
+            } else {
+                acc.merging += 1;
+                merges.push(Merge {
+                    job: t.job.clone(),
+                    frame: t.frame,
+                    into: acc.film.clone(),
+                    film,
+                    frame_rect: Rect::full(w, h),
+                });
+            }
             to_write.extend(job.complete_frames());
         }
         job.notify();
@@ -1777,6 +1873,7 @@ impl Farm {
                 };
                 let units = job.layout.frame_units(frame);
                 let (w, h) = (job.layout.width, job.layout.height);
+                let adaptive = job.adaptive.is_some();
                 let Some(acc) = job.frames.get_mut(&frame) else {
                     return;
                 };
@@ -1785,7 +1882,7 @@ impl Farm {
                         .lock()
                         .expect("frame film lock")
                         .take()
-                        .unwrap_or_else(|| Film::new(Rect::full(w, h))),
+                        .unwrap_or_else(|| new_frame_film(w, h, adaptive)),
                     PathBuf::from(&job.rec.output_dir),
                     units,
                 )
@@ -2011,6 +2108,17 @@ impl Farm {
                 .take(8)
                 .map(|f| format!("{}:{:.0}%", f.0, 100.0 * f.2 as f64 / f.1.max(1) as f64))
                 .collect();
+            if let Some(a) = v.adaptive.settings {
+                tracing::info!(
+                    job = %job.rec.id,
+                    target_error = a.target_error,
+                    converged = format!("{:.1}%", 100.0 * v.adaptive.converged_share),
+                    estimated_error = format!("{:.3e}", v.adaptive.estimated_error),
+                    samples_done = v.samples_done,
+                    samples_expected = v.adaptive.samples_expected,
+                    "adaptive progress"
+                );
+            }
             tracing::info!(
                 job = %job.rec.id,
                 percent = format!("{pct:.1}"),
@@ -2051,6 +2159,11 @@ fn check_film(r: &ResultData) -> Result<(), String> {
     let Ok(film) = &r.film else {
         return Ok(()); // Judged by validate_result.
     };
+    if film.squares.is_some() {
+        // Adaptive: which pixels have samples depends on the lease's
+        // active blocks, so validate_result checks them under the lock.
+        return Ok(());
+    }
     let n = r.samples.len();
     let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
     // One pass without branches; the offending pixel is looked for only
@@ -2110,9 +2223,31 @@ fn validate_result(
             film.rect, lease.rect
         ));
     }
-    film_check?;
-    let n = lease.samples.len();
-    let primary = lease.rect.area() as u64 * n as u64;
+    adaptive::check_result(lease, film)?;
+    if lease.active.is_some() {
+        // An adaptive round: its pixels are checked here, against the
+        // lease's active blocks (check_film passes films with squares).
+        for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
+            let (x, y) = (
+                lease.rect.x + i as u32 % lease.rect.width,
+                lease.rect.y + i as u32 / lease.rect.width,
+            );
+            // All of the round's samples in active blocks, none elsewhere.
+            let n = adaptive::expected_count(lease, x, y);
+            let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
+            if c != n {
+                return Err(format!("pixel ({x}, {y}) has {c} samples, expected {n}"));
+            }
+            if s.iter().any(|&v| v > max_sum) {
+                return Err(format!(
+                    "pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"
+                ));
+            }
+        }
+    } else {
+        film_check?;
+    }
+    let primary = adaptive::sampled_pixels(lease) * lease.samples.len() as u64;
     if film.rays.primary != primary {
         return Err(format!(
             "result counts {} primary rays, the unit has {primary}",
@@ -2149,7 +2284,7 @@ fn validate_result(
 
 impl Job {
     fn new(rec: JobRecord, settings: RenderSettings, counters: Counters) -> Self {
-        let layout = Layout::new(
+        let mut layout = Layout::new(
             settings.width,
             settings.height,
             settings.samples,
@@ -2158,6 +2293,10 @@ impl Job {
             rec.tile_size,
             rec.samples_per_unit,
         );
+        let adaptive = adaptive::settings_of(&rec);
+        if let Some(a) = &adaptive {
+            layout.batches = a.rounds();
+        }
         let total = layout.total();
         let state = match rec.state {
             JobStateRec::Active => JobState::Running,
@@ -2213,7 +2352,9 @@ impl Job {
             samples_this_run: 0,
             rays_this_run: 0,
             watch: watch::channel(0).0,
+            adaptive: adaptive.map(adaptive::AdaptiveJob::new),
         };
+        job.adaptive_start();
         job.work_left = job.sum_work_left();
         job
     }
@@ -2341,7 +2482,20 @@ impl Job {
         } else {
             0.0
         };
-        let eta = crate::rate::eta(self.work_left, self.meter.rate(Instant::now())).unwrap_or(-1.0);
+        let mut eta =
+            crate::rate::eta(self.work_left, self.meter.rate(Instant::now())).unwrap_or(-1.0);
+        let adaptive = self.adaptive_progress();
+        let mut samples_total = samples_total;
+        if adaptive.settings.is_some() {
+            // The samples still expected over this run's sample rate.
+            samples_total = adaptive.samples_expected.max(self.samples_done);
+            eta = if self.samples_this_run > 0 && elapsed > 0.0 {
+                (samples_total - self.samples_done) as f64
+                    / (self.samples_this_run as f64 / elapsed)
+            } else {
+                -1.0
+            };
+        }
         JobView {
             record: self.rec.clone(),
             state: self.state,
@@ -2361,7 +2515,17 @@ impl Job {
             first_lease_unix_ms: self.first_lease_unix_ms,
             first_result_unix_ms: self.first_result_unix_ms,
             last_result_unix_ms: self.last_result_unix_ms,
+            adaptive,
         }
+    }
+}
+
+/// A frame's film while it fills: adaptive jobs keep sums of squares.
+fn new_frame_film(width: u32, height: u32, adaptive: bool) -> Film {
+    if adaptive {
+        Film::with_squares(Rect::full(width, height))
+    } else {
+        Film::new(Rect::full(width, height))
     }
 }
 
@@ -2486,6 +2650,7 @@ material = "red"
                 tile_size: 16,
                 samples_per_unit: 0,
                 max_attempts: 0,
+                adaptive: Default::default(),
             })
             .await
             .unwrap();
@@ -2752,6 +2917,7 @@ material = "red"
                 tile_size: 16,
                 samples_per_unit: 0,
                 max_attempts: 0,
+                adaptive: Default::default(),
             })
             .await
             .unwrap();
