@@ -330,6 +330,16 @@ struct Lease {
     expected_rays: f64,
     /// Adaptive jobs: the blocks of `rect` this round samples.
     active: Option<BlockMask>,
+    /// The other lease of the same units, when one backs up the other
+    /// (a faster idle worker duplicating a slow worker's lease at a job's
+    /// end): the first result wins and the other lease is withdrawn.
+    partner: Option<String>,
+    /// Whether this lease is the backup (its work is counted in flight once,
+    /// under the original).
+    backup: bool,
+    /// Whether a backup of this lease was ever granted: one is the most (a
+    /// worker whose backups fail must not take them again and again).
+    backed_up: bool,
 }
 
 impl Lease {
@@ -385,12 +395,46 @@ const MIN_LEASE_SECONDS: f64 = 0.01;
 
 /// How long an idle worker's lease request waits when work was held back
 /// for a faster worker, before it is judged again.
+/// A backup lease is granted only when its worker would finish it in less
+/// than this share of the time the holder needs for the work it holds...
+const BACKUP_GAIN: f64 = 0.5;
+/// ...counting this much for the lease's fixed costs (a round trip, a
+/// result message).
+const BACKUP_OVERHEAD_SECONDS: f64 = 0.01;
 const HELD_BACK_WAIT: Duration = Duration::from_millis(20);
 
 /// Remembered ended leases, to tell late and duplicate results from unknown ones.
 const REMEMBERED_LEASES: usize = 100_000;
 
 impl State {
+    /// After a lease's result was taken: its partner's work is not needed
+    /// any more, so that lease is withdrawn (its holder stops at its next
+    /// heartbeat; a result it still sends is dropped as late).
+    fn withdraw_partner(&mut self, l: &Lease) {
+        let Some(id) = &l.partner else {
+            return;
+        };
+        if let Some(p) = self.leases.remove(id) {
+            if let Some(w) = self.workers.get_mut(&p.worker) {
+                w.leases.remove(id);
+            }
+            self.end_lease(id.clone(), p.job, false);
+        }
+    }
+
+    /// After a lease ended without a result (failed, rejected, expired or
+    /// handed back): whether its partner still holds the units, which then
+    /// stay with it instead of being queued again or failed.
+    fn partner_keeps(&mut self, l: &Lease) -> bool {
+        match l.partner.as_ref().and_then(|id| self.leases.get_mut(id)) {
+            Some(p) => {
+                p.partner = None;
+                true
+            }
+            None => false,
+        }
+    }
+
     fn end_lease(&mut self, id: String, job: String, consumed: bool) {
         if consumed {
             self.consumed.insert(id.clone(), job);
@@ -1192,14 +1236,22 @@ impl Farm {
         // still in flight in each job.
         let mut busy_of: HashMap<&str, f64> = HashMap::new();
         // (Job ids owned: leases are added to below while this is read.)
-        let mut in_flight_of: HashMap<String, f64> = HashMap::new();
+        // Per job: rays still to trace in its leases, and the leases'
+        // whole expected rays.
+        let mut in_flight_of: HashMap<String, (f64, f64)> = HashMap::new();
         for l in st.leases.values() {
             let left = l.remaining_rays();
             *busy_of.entry(l.worker.as_str()).or_default() += left;
+            if l.backup {
+                continue; // its units are in flight under the original
+            }
             match in_flight_of.get_mut(&l.job) {
-                Some(v) => *v += left,
+                Some(v) => {
+                    v.0 += left;
+                    v.1 += l.expected_rays;
+                }
                 None => {
-                    in_flight_of.insert(l.job.clone(), left);
+                    in_flight_of.insert(l.job.clone(), (left, l.expected_rays));
                 }
             }
         }
@@ -1217,9 +1269,10 @@ impl Farm {
             })
             .collect();
         let held_rays = busy_of.get(worker_id).copied().unwrap_or(0.0);
-        // The farm's speed: the sum of the measured speeds (a worker not
-        // yet measured adds nothing until its first result).
-        let farm_speed: f64 = st.workers.values().map(|w| w.ray_speed).sum();
+        // The farm's speed: the sum of the measured speeds of the live
+        // workers (a worker not yet measured adds nothing until its first
+        // result; one gone silent adds nothing either).
+        let farm_speed: f64 = speed + others.iter().map(|&(v, _)| v).sum::<f64>();
         let mut held_back = false;
         // Seconds of work this worker holds already, at its speed.
         let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
@@ -1233,7 +1286,7 @@ impl Farm {
         let mut out = Vec::new();
         for job_id in order {
             // Rays of the job's leases still being rendered, by anyone.
-            let in_flight = in_flight_of.get(&job_id).copied().unwrap_or(0.0);
+            let (in_flight, leased) = in_flight_of.get(&job_id).copied().unwrap_or((0.0, 0.0));
             while out.len() < max_units.max(1) as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
                 let Some(&first) = job.pending.iter().next() else {
@@ -1244,20 +1297,26 @@ impl Farm {
                     let want = (speed * self.config.target_unit_seconds).max(ramp);
                     // When the farm, every worker at its measured speed,
                     // would finish the job (pending and in-flight work).
-                    // Summed only until no rule below can bind: this runs
-                    // for every lease, under the lock, and a long
-                    // animation has millions of pending units.
+                    // Beyond `enough` no rule below can bind. This runs for
+                    // every lease, under the lock, and a long animation has
+                    // millions of pending units: no pass over them.
                     let enough = farm_speed * (2.0 * (want / speed + busy) + rays(first) / speed);
-                    let mut remaining = in_flight;
-                    let mut bounded = true;
-                    for &u in &job.pending {
-                        remaining += rays(u);
-                        if remaining >= enough {
-                            bounded = false;
-                            break;
+                    let remaining = if job.adaptive.is_none() {
+                        // A uniform job's units not done are pending or
+                        // leased: its pending work without a pass over them.
+                        in_flight + (job.work_left - leased).max(0.0)
+                    } else {
+                        // Later rounds are not pending yet: only the pending.
+                        let mut r = in_flight;
+                        for &u in &job.pending {
+                            r += rays(u);
+                            if r >= enough {
+                                break;
+                            }
                         }
-                    }
-                    let farm_end = if bounded {
+                        r
+                    };
+                    let farm_end = if remaining < enough {
                         remaining / farm_speed
                     } else {
                         f64::INFINITY
@@ -1353,6 +1412,9 @@ impl Farm {
                         progress: 0,
                         expected_rays,
                         active,
+                        partner: None,
+                        backup: false,
+                        backed_up: false,
                     },
                 );
                 st.workers
@@ -1366,7 +1428,95 @@ impl Farm {
                 break;
             }
         }
+        if out.is_empty() && !held_back && speed > 0.0 {
+            out.extend(self.backup_lease(st, worker_id, speed, busy));
+        }
         Ok((out, held_back))
+    }
+
+    /// Nothing is pending: a lease of another worker that this one would
+    /// finish in well under the time that worker needs for the work it
+    /// holds (a GPU beside CPU workers at a job's end, or a worker slowed
+    /// down), duplicated as a backup. The units are deterministic, so
+    /// whichever result comes first is the image; the other lease is then
+    /// withdrawn. A mixed farm is so never slower than its fastest worker.
+    fn backup_lease(
+        &self,
+        st: &mut State,
+        worker_id: &str,
+        speed: f64,
+        busy: f64,
+    ) -> Option<LeaseView> {
+        // Seconds of held work of each worker, at its measured speed.
+        let mut held: HashMap<&str, f64> = HashMap::new();
+        for l in st.leases.values() {
+            *held.entry(l.worker.as_str()).or_default() += l.remaining_rays();
+        }
+        let mut best: Option<(f64, String)> = None;
+        for (id, l) in &st.leases {
+            if l.worker == worker_id
+                || l.backup
+                || l.backed_up
+                || st.jobs.get(&l.job).is_none_or(|j| j.state.is_terminal())
+            {
+                continue;
+            }
+            // A holder not yet measured may be of any speed.
+            let holder = st.workers.get(&l.worker).map_or(0.0, |w| w.ray_speed);
+            let theirs = if holder > 0.0 {
+                held.get(l.worker.as_str()).copied().unwrap_or(0.0) / holder
+            } else {
+                f64::INFINITY
+            };
+            let mine = busy + l.expected_rays / speed + BACKUP_OVERHEAD_SECONDS;
+            if mine < BACKUP_GAIN * theirs && best.as_ref().is_none_or(|(g, _)| theirs - mine > *g)
+            {
+                best = Some((theirs - mine, id.clone()));
+            }
+        }
+        let (_, original) = best?;
+        let o = st.leases.get_mut(&original).expect("listed");
+        st.next_id += 1;
+        let lease_id = format!("l{}-{}", self.boot, st.next_id);
+        o.partner = Some(lease_id.clone());
+        o.backed_up = true;
+        let lease = Lease {
+            worker: worker_id.to_string(),
+            job: o.job.clone(),
+            units: o.units.clone(),
+            frame: o.frame,
+            rect: o.rect,
+            samples: o.samples,
+            deadline: Instant::now() + self.config.lease_timeout,
+            progress: 0,
+            expected_rays: o.expected_rays,
+            active: o.active.clone(),
+            partner: Some(original.clone()),
+            backup: true,
+            backed_up: false,
+        };
+        let job = st.jobs.get(&lease.job).expect("checked");
+        tracing::debug!(lease = %lease_id, backs_up = %original, job = %lease.job, rect = ?lease.rect, "backup lease");
+        let view = LeaseView {
+            lease_id: lease_id.clone(),
+            job_id: lease.job.clone(),
+            scene_name: job.rec.scene_name.clone(),
+            scene_sha256: job.rec.scene_sha256.clone(),
+            assets: job.rec.assets.clone(),
+            settings: job.settings,
+            frame: lease.frame,
+            rect: lease.rect,
+            samples: lease.samples,
+            deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+            active: lease.active.clone(),
+        };
+        st.leases.insert(lease_id.clone(), lease);
+        st.workers
+            .get_mut(worker_id)
+            .expect("worker checked")
+            .leases
+            .insert(lease_id);
+        Some(view)
     }
 
     /// As [`Farm::lease`], but when nothing is pending waits up to `wait`
@@ -1447,10 +1597,14 @@ impl Farm {
             if let Some(w) = st.workers.get_mut(worker_id) {
                 w.leases.remove(id);
             }
-            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
-                job.pending.extend(l.units.iter().copied());
+            if st.partner_keeps(&l) {
+                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, "lease returned; its backup goes on");
+            } else {
+                if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                    job.pending.extend(l.units.iter().copied());
+                }
+                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.frame, rect = ?l.rect, "lease returned; unit queued again");
             }
-            tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.frame, rect = ?l.rect, "lease returned; unit queued again");
             st.end_lease(id.clone(), l.job, false);
             returned += 1;
         }
@@ -1720,7 +1874,12 @@ impl Farm {
                 },
             );
             tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
-            let rec = job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"));
+            let rec = if st.partner_keeps(&lease) {
+                None
+            } else {
+                let job = st.jobs.get_mut(&lease.job).expect("checked");
+                job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"))
+            };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
             if let Some(rec) = &rec {
                 self.withdraw_leases(st, &rec.id);
@@ -1738,10 +1897,15 @@ impl Farm {
             job.counters.results_rejected += 1;
             let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
             tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
-            let rec = job.fail_units(
-                &lease.units,
-                format!("worker {worker_name} sent a malformed result: {reason}"),
-            );
+            let rec = if st.partner_keeps(&lease) {
+                None
+            } else {
+                let job = st.jobs.get_mut(&lease.job).expect("checked");
+                job.fail_units(
+                    &lease.units,
+                    format!("worker {worker_name} sent a malformed result: {reason}"),
+                )
+            };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
             if let Some(rec) = &rec {
                 self.withdraw_leases(st, &rec.id);
@@ -1749,6 +1913,7 @@ impl Farm {
             return Err((Outcome::Rejected(reason), rec, snapshot));
         }
         let units = lease.units.clone();
+        st.withdraw_partner(&lease);
         st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
         Ok(Taken {
             job: lease.job.clone(),
@@ -2046,8 +2211,10 @@ impl Farm {
                 w.units_failed += l.units.len() as u64;
                 w.name.clone()
             });
-            tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
-            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+            if st.partner_keeps(&l) {
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), "lease expired; its backup goes on");
+            } else if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
                 job.pending.extend(l.units.iter().copied());
                 self.work_ready.notify_waiters();
             }
@@ -3263,5 +3430,115 @@ material = "red"
         let b2 = farm.lease(&b, 1, false).unwrap();
         assert_eq!((a2.len(), b2.len()), (1, 1));
         assert_eq!((a2[0].rect.width, b2[0].rect.width), (16, 16));
+    }
+
+    /// At a job's end an idle fast worker backs up a slow worker's lease:
+    /// the first result counts, the other lease is withdrawn (its holder
+    /// hears so at its heartbeat) and its late result is dropped.
+    #[tokio::test]
+    async fn an_idle_fast_worker_backs_up_a_slow_workers_lease_and_the_first_result_wins() {
+        // One row of 8 tiles.
+        let (_dir, farm, job) = farm_with_job(128, 16, 4).await;
+        let slow = register(&farm, "slow", 1);
+        let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap();
+        // Alone on the farm, the slow worker takes a lease of several tiles.
+        let s2 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        let fast = register(&farm, "fast", 8);
+        let mut backup = None;
+        for _ in 0..8 {
+            let Some(l) = farm.lease(&fast, 1, false).unwrap().pop() else {
+                break;
+            };
+            if l.rect == s2.rect {
+                backup = Some(l);
+                break;
+            }
+            let r = farm.submit_result(result(&fast, &l, 0.001)).await.unwrap();
+            assert_eq!(r, Outcome::Accepted);
+        }
+        let backup = backup.expect("the fast worker backs up the slow worker's lease");
+        assert_ne!(backup.lease_id, s2.lease_id);
+        assert_eq!(backup.samples, s2.samples);
+        // A lease is backed up once, and the slow worker backs up nothing.
+        assert!(farm.lease(&fast, 1, false).unwrap().is_empty());
+        assert!(farm.lease(&slow, 1, false).unwrap().is_empty());
+
+        let r = farm
+            .submit_result(result(&fast, &backup, 0.001))
+            .await
+            .unwrap();
+        assert_eq!(r, Outcome::Accepted);
+        let gone = farm.heartbeat(&slow, &[(s2.lease_id.clone(), 10)]).unwrap();
+        assert_eq!(
+            gone,
+            vec![s2.lease_id.clone()],
+            "the slow worker is told to stop"
+        );
+        let late = farm.submit_result(result(&slow, &s2, 1.0)).await.unwrap();
+        assert!(matches!(late, Outcome::Late(_)), "{late:?}");
+        let v = wait_done(&farm, &job).await;
+        assert_eq!((v.units_done, v.units_total), (8, 8));
+        assert_eq!(v.counters.units_accepted, 8, "each unit counted once");
+    }
+
+    /// A backup that fails leaves the units with the original lease: they
+    /// are neither queued again nor counted as a failed attempt.
+    #[tokio::test]
+    async fn a_failed_backup_leaves_the_units_with_the_original_lease() {
+        let (_dir, farm, job) = farm_with_job(64, 16, 4).await;
+        let slow = register(&farm, "slow", 1);
+        let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap();
+        let s2 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        let fast = register(&farm, "fast", 8);
+        let mut backup = None;
+        for _ in 0..8 {
+            let Some(l) = farm.lease(&fast, 1, false).unwrap().pop() else {
+                break;
+            };
+            if l.rect == s2.rect {
+                backup = Some(l);
+                break;
+            }
+            farm.submit_result(result(&fast, &l, 0.001)).await.unwrap();
+        }
+        let backup = backup.expect("a backup lease");
+        let mut failed = result(&fast, &backup, 0.001);
+        failed.failure = Some("device lost".into());
+        farm.submit_result(failed).await.unwrap();
+        assert!(
+            farm.lease(&fast, 1, false).unwrap().is_empty(),
+            "nothing queued again, and the original is not backed up twice"
+        );
+        let r = farm.submit_result(result(&slow, &s2, 1.0)).await.unwrap();
+        assert_eq!(r, Outcome::Accepted);
+        let v = wait_done(&farm, &job).await;
+        assert_eq!(v.units_done, v.units_total);
+    }
+
+    /// The farm's speed, which sizes leases near a job's end, counts only
+    /// live workers: one gone silent neither shrinks the others' leases
+    /// nor (as 64 load clients of an earlier run did) slows every lease.
+    #[tokio::test]
+    async fn a_silent_worker_does_not_count_towards_the_farms_speed() {
+        let mut widths = vec![];
+        for silent in [false, true] {
+            let (_dir, farm, _job) = farm_with_job(256, 16, 4).await;
+            let (a, b) = (register(&farm, "a", 2), register(&farm, "b", 2));
+            let a1 = farm.lease(&a, 1, false).unwrap().remove(0);
+            let b1 = farm.lease(&b, 1, false).unwrap().remove(0);
+            farm.submit_result(result(&a, &a1, 0.01)).await.unwrap();
+            farm.submit_result(result(&b, &b1, 0.01)).await.unwrap();
+            if silent {
+                let mut st = farm.state.lock().unwrap();
+                st.workers.get_mut(&b).unwrap().last_seen -= Duration::from_secs(60);
+            }
+            widths.push(farm.lease(&a, 1, false).unwrap().remove(0).rect.width);
+        }
+        assert!(
+            widths[1] > widths[0],
+            "alone, a worker's lease is larger than beside a live twin: {widths:?}"
+        );
     }
 }
