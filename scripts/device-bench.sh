@@ -3,7 +3,12 @@
 # prebuilt binaries in .gpu/ (tessera, result_load, libvulkan.so.1), no cargo.
 # Writes everything under $OUT (or bench-out/device).
 #
-#   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three)
+#   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive
+#
+# `adaptive` (issue 17; not in the default) runs `tessera bench adaptive`
+# on the scenes in $ADAPTIVE_SCENES (default distributed; one scene a
+# device call: 400x300 with a 4096-spp f64 reference), CPU uniform and
+# adaptive, GPU uniform only (adaptive GPU rounds are not implemented).
 #
 # `bench` (every suite but depth and farm) fits one 10-minute device call;
 # `depth` (the depth suite against its depth-32 reference, ~2 min of 16
@@ -39,6 +44,15 @@ echo "== tessera bench depth --backend both (depth-32 f64 reference)"
 timeout 400 "$T" bench depth --backend both --repeat 3 \
   --out /tmp/bench --cache /tmp/bench-cache > "$OUT/depth-summary.txt" 2> "$OUT/depth-log.txt"
 echo "depth exit $?" >> "$OUT/depth-summary.txt"
+fi
+if has adaptive; then
+echo "== tessera bench adaptive --backend both (${ADAPTIVE_SCENES:-distributed})"
+timeout 560 "$T" bench adaptive --backend both --adaptive-scenes "${ADAPTIVE_SCENES:-distributed}" \
+  --adaptive-size 400x300 --adaptive-reference 4096 \
+  --out /tmp/bench --cache /tmp/bench-cache > "$OUT/adaptive-summary.txt" 2> "$OUT/adaptive-log.txt"
+echo "adaptive exit $?" >> "$OUT/adaptive-summary.txt"
+mkdir -p "$OUT/adaptive"
+cp /tmp/bench/adaptive.csv /tmp/bench/adaptive/error_vs_time.* /tmp/bench/adaptive/headline.txt "$OUT/adaptive/" 2>/dev/null
 fi
 if has farm; then
 echo "== farm: tessera bench farm (CPU workers against the machine's ceiling, 1 GPU worker alone and beside 7 CPU workers)"

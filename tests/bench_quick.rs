@@ -142,6 +142,31 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
         let png = image::open(dir.join(format!("out/distributed/{plot}.png"))).unwrap();
         assert_eq!((png.width(), png.height()), (900, 600));
     }
+    // Adaptive sampling (issue 17): uniform and adaptive CPU runs of both
+    // scenes, each with its error; the GPU's uniform runs; the plot and
+    // the headline of each scene and backend.
+    let rows = read_csv(&dir, "adaptive");
+    for scene in ["resolution", "distributed"] {
+        for mode in ["uniform", "adaptive"] {
+            assert!(
+                rows.iter()
+                    .any(|r| r["scene"] == scene && r["mode"] == mode && r["backend"] == "cpu"),
+                "adaptive.csv: no cpu {mode} rows for {scene}"
+            );
+        }
+        assert!(
+            rows.iter()
+                .any(|r| r["scene"] == scene && r["backend"] == "gpu")
+        );
+    }
+    for r in &rows {
+        assert!(num(r, "rmse") > 0.0 && num(r, "rmse") < 1.0);
+        assert!(num(r, "mean_spp") >= 4.0);
+    }
+    let png = image::open(dir.join("out/adaptive/error_vs_time.png")).unwrap();
+    assert_eq!((png.width(), png.height()), (900, 600));
+    let headline = std::fs::read_to_string(dir.join("out/adaptive/headline.txt")).unwrap();
+    assert_eq!(headline.lines().count(), 4, "{headline}");
     // The headline plot (issue 6's "done when"): CPU and GPU curves for the
     // resolution scene, each point's error measured (every samples.csv row
     // has its RMSE, checked above).

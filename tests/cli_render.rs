@@ -396,3 +396,98 @@ fn a_typo_in_any_table_is_located_at_its_key_with_a_suggestion() {
         expect_failure(&GOOD.replacen(from, to, 1), &[], &[want]);
     }
 }
+
+/// `--target-error`: the EXR gains `samples` and `error` channels (each
+/// pixel's count on the round schedule, never above --max-samples; a
+/// finite error estimate), `--sample-map` writes a PNG of the image's
+/// size, and every inconsistent combination of flags is refused by name.
+#[test]
+fn adaptive_renders_write_sample_and_error_channels_and_a_sample_map() {
+    let dir = tmpdir("adaptive");
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, GOOD).unwrap();
+    let (out, stdout, stderr) = run(tessera().arg("render").arg(&scene).args([
+        "--target-error",
+        "0.01",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "16",
+        "-o",
+        dir.join("a.exr").to_str().unwrap(),
+        "--sample-map",
+        dir.join("map.png").to_str().unwrap(),
+    ]));
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stdout.contains("adaptive: target error 0.01 (4..16 spp)"),
+        "{stdout}"
+    );
+    assert!(stderr.contains("round 0 (samples 0..4)"), "{stderr}");
+    let img = exr::prelude::read_first_flat_layer_from_file(dir.join("a.exr")).unwrap();
+    let channel = |name: &str| -> Vec<f32> {
+        let c = img
+            .layer_data
+            .channel_data
+            .list
+            .iter()
+            .find(|c| c.name.to_string() == name)
+            .unwrap_or_else(|| panic!("no {name} channel"));
+        match &c.sample_data {
+            exr::prelude::FlatSamples::F32(v) => v.clone(),
+            other => panic!("{name}: {other:?}"),
+        }
+    };
+    let samples = channel("samples");
+    assert_eq!(samples.len(), 40 * 30);
+    assert!(
+        samples.iter().all(|&n| [4.0, 8.0, 16.0].contains(&n)),
+        "{samples:?}"
+    );
+    assert!(samples.contains(&4.0) && samples.contains(&16.0));
+    assert!(channel("error").iter().all(|e| e.is_finite() && *e >= 0.0));
+    assert_eq!(channel("R").len(), 40 * 30);
+    let map = image::open(dir.join("map.png")).unwrap();
+    assert_eq!((map.width(), map.height()), (40, 30));
+
+    for (args, want) in [
+        (
+            &["--target-error", "0"][..],
+            "target_error must be a finite number above 0, got 0",
+        ),
+        (
+            &["--target-error", "-1"][..],
+            "target_error must be a finite number above 0, got -1",
+        ),
+        (
+            &[
+                "--target-error",
+                "0.01",
+                "--min-samples",
+                "64",
+                "--max-samples",
+                "32",
+            ][..],
+            "min_samples (64) must not exceed max_samples (32)",
+        ),
+        (
+            &["--target-error", "0.01", "--min-samples", "1"][..],
+            "min_samples must be at least 2",
+        ),
+        (
+            &["--target-error", "0.01", "--samples", "8"][..],
+            "--samples does not apply to adaptive sampling",
+        ),
+        (
+            &["--target-error", "0.01", "--sampler", "grid"][..],
+            "--sampler grid does not apply to adaptive sampling",
+        ),
+        (&["--min-samples", "8"][..], "give --target-error"),
+        (
+            &["--sample-map", "m.png"][..],
+            "--sample-map applies to adaptive renders",
+        ),
+    ] {
+        expect_failure(GOOD, args, &[want]);
+    }
+}

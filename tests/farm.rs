@@ -280,6 +280,86 @@ fn cpu_workers_render_the_distributed_effects_scene_bit_identical_to_tessera_ren
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
 }
 
+/// Adaptive sampling across the farm (issue 17): 1 and 3 CPU workers, tiles
+/// of 16 and 24 pixels, the same image as `tessera render --target-error`
+/// bit for bit and the same number of samples; the job's status carries
+/// the converged share and the estimated error; tiles off the 8-pixel block
+/// grid are refused.
+#[test]
+fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_render() {
+    let _g = serial();
+    let scene = repo("examples/distributed.toml");
+    let settings = [
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--target-error",
+        "0.02",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "32",
+    ];
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The local render's sample count, to compare with the farm's.
+    let mut local = vec!["render", scene.to_str().expect("path"), "--json", "-o"];
+    let out = dir.path().join("local.png");
+    local.push(out.to_str().expect("path"));
+    local.extend_from_slice(&settings);
+    let json: serde_json::Value = serde_json::from_str(&ok_stdout(
+        &Command::new(TESSERA).args(&local).output().expect("render"),
+    ))
+    .expect("json");
+    let local_samples = json["adaptive"]["pixel_samples"]
+        .as_u64()
+        .expect("pixel_samples");
+    assert!(
+        local_samples > 96 * 72 * 4 && local_samples < 96 * 72 * 32,
+        "{json}"
+    );
+    for (workers, tile) in [(1, "16"), (3, "24")] {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+        let _w: Vec<Proc> = (0..workers)
+            .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
+            .collect();
+        let mut args = settings.to_vec();
+        args.extend(["--tile-size", tile]);
+        let job = submit(&c.url(), &scene, &args);
+        let s = wait_done(&c.url(), &job, Duration::from_secs(300));
+        assert_eq!(s.state, pb::JobState::Done as i32);
+        assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+        assert_eq!(
+            s.samples_done, local_samples,
+            "{workers} workers, tiles of {tile}"
+        );
+        assert_eq!(s.samples_total, local_samples);
+        let a = s.adaptive.expect("adaptive status");
+        assert_eq!(
+            (a.target_error, a.min_samples, a.max_samples),
+            (0.02, 4, 32)
+        );
+        assert!(a.converged_share > 0.0 && a.converged_share <= 1.0, "{a:?}");
+        assert!(a.estimated_error > 0.0 && a.estimated_error < 0.02, "{a:?}");
+        if workers == 3 {
+            let refused = tessera(
+                &["submit", scene.to_str().expect("path"), "--tile-size", "20"]
+                    .into_iter()
+                    .chain(settings)
+                    .collect::<Vec<_>>(),
+                &c.url(),
+            );
+            assert!(!refused.status.success());
+            let err = String::from_utf8_lossy(&refused.stderr);
+            assert!(
+                err.contains("tile_size must be a multiple of 8 for adaptive sampling"),
+                "{err}"
+            );
+        }
+    }
+}
+
 /// True when `tessera gpus` finds an adapter; with CI=true a missing one
 /// fails the test instead (CI installs lavapipe).
 fn gpu_adapter() -> bool {
@@ -480,6 +560,57 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
             w.log()
         );
     }
+    assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
+}
+
+/// An adaptive job survives a coordinator restart: the rounds still to do
+/// and the tiles already finished are derived again from the stored
+/// films, nothing is rendered twice, and the frames are still
+/// `tessera render --target-error`'s bit for bit.
+#[test]
+fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
+    let addr = c.addr.clone();
+    let url = c.url();
+    let _w: Vec<Proc> = (0..2)
+        .map(|i| start_worker(dir.path(), &url, &format!("w{i}")))
+        .collect();
+    let scene = repo("examples/animation.toml");
+    let settings = [
+        "--width",
+        "192",
+        "--height",
+        "144",
+        "--target-error",
+        "0.01",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "64",
+    ];
+    let mut args = settings.to_vec();
+    args.extend(["--frames", "1..3", "--tile-size", "16"]);
+    let job = submit(&url, &scene, &args);
+    let total = 3 * 108 * 5; // frames x tiles x rounds (4, 8, 16, 32, 64)
+    let mut before = 0;
+    wait_for("some rounds", Duration::from_secs(60), || {
+        before = status(&url, &job).units_done;
+        before >= total / 4
+    });
+    c.proc.sigkill();
+    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
+    let restored = status(&url, &job);
+    assert!(restored.units_done >= before && restored.units_done < total);
+    let s = wait_done(&url, &job, Duration::from_secs(180));
+    assert_eq!(
+        (s.units_done, s.units_total, s.results_duplicate),
+        (total, total, 0)
+    );
+    // Units of rounds no block needed are done without a result.
+    assert!(s.units_accepted < total, "{}", s.units_accepted);
+    assert!(c.proc.log().contains("job restored"));
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 

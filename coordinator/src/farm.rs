@@ -14,6 +14,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use tokio::sync::watch;
+use tracer_core::adaptive::BlockMask;
 use tracer_core::assets::Bundle;
 use tracer_core::film::{FIXED_ONE, Film, MAX_SAMPLE_VALUE, RayCounts, Rect, SampleRange};
 use tracer_core::sampling::Sampler;
@@ -30,6 +31,8 @@ use crate::units::{
 // What the web monitor reads of the farm (and its priority change).
 mod inspect;
 pub use inspect::{FramePreview, FrameTile, LeaseSummary, TileState, UnitFailure, preview_step};
+mod adaptive;
+pub use adaptive::AdaptiveProgress;
 
 /// Most work units in one job.
 pub const MAX_UNITS: u64 = 10_000_000;
@@ -117,6 +120,8 @@ pub struct Submission {
     pub tile_size: u32,
     pub samples_per_unit: u32,
     pub max_attempts: u32,
+    /// Adaptive sampling's keys given with the job (over the scene's).
+    pub adaptive: tracer_core::adaptive::AdaptiveSpec,
 }
 
 /// Overrides of a scene's `[render]` table (as `tessera render`'s flags).
@@ -178,6 +183,8 @@ pub struct JobView {
     pub first_lease_unix_ms: i64,
     pub first_result_unix_ms: i64,
     pub last_result_unix_ms: i64,
+    /// Adaptive jobs: converged share, estimated error, samples expected.
+    pub adaptive: AdaptiveProgress,
 }
 
 #[derive(Clone, Debug)]
@@ -210,6 +217,8 @@ pub struct LeaseView {
     pub rect: Rect,
     pub samples: SampleRange,
     pub deadline_unix_ms: i64,
+    /// Adaptive jobs: the blocks of `rect` this round samples.
+    pub active: Option<BlockMask>,
 }
 
 /// A worker's result, unpacked from the wire (sizes already checked against `rect`).
@@ -303,6 +312,8 @@ struct Job {
     samples_this_run: u64,
     rays_this_run: u64,
     watch: watch::Sender<u64>,
+    /// Adaptive jobs only (`farm/adaptive.rs`).
+    adaptive: Option<adaptive::AdaptiveJob>,
 }
 
 struct Lease {
@@ -317,6 +328,18 @@ struct Lease {
     progress: u64,
     /// The cost probe's expected rays of the whole lease.
     expected_rays: f64,
+    /// Adaptive jobs: the blocks of `rect` this round samples.
+    active: Option<BlockMask>,
+    /// The other lease of the same units, when one backs up the other
+    /// (a faster idle worker duplicating a slow worker's lease at a job's
+    /// end): the first result wins and the other lease is withdrawn.
+    partner: Option<String>,
+    /// Whether this lease is the backup (its work is counted in flight once,
+    /// under the original).
+    backup: bool,
+    /// Whether a backup of this lease was ever granted: one is the most (a
+    /// worker whose backups fail must not take them again and again).
+    backed_up: bool,
 }
 
 impl Lease {
@@ -372,12 +395,46 @@ const MIN_LEASE_SECONDS: f64 = 0.01;
 
 /// How long an idle worker's lease request waits when work was held back
 /// for a faster worker, before it is judged again.
+/// A backup lease is granted only when its worker would finish it in less
+/// than this share of the time the holder needs for the work it holds...
+const BACKUP_GAIN: f64 = 0.5;
+/// ...counting this much for the lease's fixed costs (a round trip, a
+/// result message).
+const BACKUP_OVERHEAD_SECONDS: f64 = 0.01;
 const HELD_BACK_WAIT: Duration = Duration::from_millis(20);
 
 /// Remembered ended leases, to tell late and duplicate results from unknown ones.
 const REMEMBERED_LEASES: usize = 100_000;
 
 impl State {
+    /// After a lease's result was taken: its partner's work is not needed
+    /// any more, so that lease is withdrawn (its holder stops at its next
+    /// heartbeat; a result it still sends is dropped as late).
+    fn withdraw_partner(&mut self, l: &Lease) {
+        let Some(id) = &l.partner else {
+            return;
+        };
+        if let Some(p) = self.leases.remove(id) {
+            if let Some(w) = self.workers.get_mut(&p.worker) {
+                w.leases.remove(id);
+            }
+            self.end_lease(id.clone(), p.job, false);
+        }
+    }
+
+    /// After a lease ended without a result (failed, rejected, expired or
+    /// handed back): whether its partner still holds the units, which then
+    /// stay with it instead of being queued again or failed.
+    fn partner_keeps(&mut self, l: &Lease) -> bool {
+        match l.partner.as_ref().and_then(|id| self.leases.get_mut(id)) {
+            Some(p) => {
+                p.partner = None;
+                true
+            }
+            None => false,
+        }
+    }
+
     fn end_lease(&mut self, id: String, job: String, consumed: bool) {
         if consumed {
             self.consumed.insert(id.clone(), job);
@@ -420,6 +477,7 @@ fn sampler_name(s: Sampler) -> &'static str {
     match s {
         Sampler::Grid => "grid",
         Sampler::Jittered => "jittered",
+        Sampler::Progressive => "progressive",
     }
 }
 
@@ -563,13 +621,17 @@ impl Farm {
                         job.mark_done(u);
                     }
                     let frame = job.layout.unit(u).frame;
-                    let full = Rect::full(job.layout.width, job.layout.height);
+                    let (w, h) = (job.layout.width, job.layout.height);
+                    let adaptive = job.adaptive.is_some();
                     let acc = job.frames.get_mut(&frame).expect("frame of a unit");
                     let mut target = acc.film.lock().expect("frame film lock");
                     target
-                        .get_or_insert_with(|| Film::new(full))
+                        .get_or_insert_with(|| new_frame_film(w, h, adaptive))
                         .merge(&film)
                         .map_err(|e| corrupt(e.to_string()))?;
+                }
+                if !job.state.is_terminal() {
+                    job.adaptive_restore();
                 }
                 if job.state == JobState::Running && job.units_done == 0 {
                     job.state = JobState::Queued;
@@ -708,6 +770,27 @@ impl Farm {
         settings
             .validate()
             .map_err(|e| FarmError::InvalidArgument(format!("invalid render settings: {e}")))?;
+        let adaptive = scene
+            .adaptive
+            .resolve(&s.adaptive)
+            .map_err(FarmError::InvalidArgument)?;
+        let settings = match &adaptive {
+            None => settings,
+            Some(a) => {
+                if s.overrides.samples.is_some() {
+                    return Err(FarmError::InvalidArgument(
+                        "samples does not apply to adaptive sampling (target_error): give min_samples and max_samples".into(),
+                    ));
+                }
+                if let Some(o) = s.overrides.sampler.filter(|&o| o != Sampler::Progressive) {
+                    return Err(FarmError::InvalidArgument(format!(
+                        "sampler {} does not apply to adaptive sampling (target_error), which places samples progressively",
+                        o.name()
+                    )));
+                }
+                a.render_settings(settings)
+            }
+        };
         let (first, last) = if s.first_frame == 0 && s.last_frame == 0 {
             (0, 0)
         } else {
@@ -733,11 +816,19 @@ impl Farm {
                 "tile_size must be in 8..=4096, got {tile_size}"
             )));
         }
+        let block = tracer_core::adaptive::BLOCK;
+        if adaptive.is_some() && !tile_size.is_multiple_of(block) {
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size must be a multiple of {block} for adaptive sampling (target_error), which decides per {block}x{block} block; got {tile_size}"
+            )));
+        }
         let samples_per_unit = if s.samples_per_unit == 0 {
             DEFAULT_SAMPLES_PER_UNIT
         } else {
             s.samples_per_unit
         };
+        // An adaptive job's sample batches are its rounds.
+        let batches = adaptive.map(|a| a.rounds());
         let max_attempts = if s.max_attempts == 0 {
             DEFAULT_MAX_ATTEMPTS
         } else {
@@ -767,20 +858,32 @@ impl Farm {
                 self.config.max_message_bytes
             )));
         }
-        let units = unit_count(
-            settings.width,
-            settings.height,
-            settings.samples,
-            last - first + 1,
-            tile_size,
-            samples_per_unit,
-        );
+        let units = match &batches {
+            None => unit_count(
+                settings.width,
+                settings.height,
+                settings.samples,
+                last - first + 1,
+                tile_size,
+                samples_per_unit,
+            ),
+            Some(b) => {
+                unit_count(
+                    settings.width,
+                    settings.height,
+                    1,
+                    last - first + 1,
+                    tile_size,
+                    1,
+                ) * b.len() as u64
+            }
+        };
         if units == 0 || units > MAX_UNITS {
             return Err(FarmError::InvalidArgument(format!(
                 "the job would have {units} work units (the limit is {MAX_UNITS}); use larger tiles or sample batches"
             )));
         }
-        let layout = Layout::new(
+        let mut layout = Layout::new(
             settings.width,
             settings.height,
             settings.samples,
@@ -789,6 +892,9 @@ impl Farm {
             tile_size,
             samples_per_unit,
         );
+        if let Some(b) = batches {
+            layout.batches = b;
+        }
         // Off the async threads: it traces a few rays of every tile.
         let tile_rays = {
             let layout = layout.clone();
@@ -845,6 +951,9 @@ impl Farm {
             submitted_unix_ms: now_ms(),
             finished_unix_ms: 0,
             output_dir: output_dir.to_string_lossy().into_owned(),
+            target_error: adaptive.map_or(0.0, |a| a.target_error),
+            min_samples: adaptive.map_or(0, |a| a.min_samples),
+            max_samples: adaptive.map_or(0, |a| a.max_samples),
         };
         ops.push(Op::PutJob(rec.clone()));
         ops.push(Op::PutCounters {
@@ -856,6 +965,7 @@ impl Farm {
             job = %id, name = %rec.name, scene = %rec.scene_name,
             width = settings.width, height = settings.height, samples = settings.samples,
             frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
+            target_error = rec.target_error, min_samples = rec.min_samples, max_samples = rec.max_samples,
             "job accepted"
         );
         let mut job = Job::new(rec, settings, Counters::default());
@@ -1126,14 +1236,22 @@ impl Farm {
         // still in flight in each job.
         let mut busy_of: HashMap<&str, f64> = HashMap::new();
         // (Job ids owned: leases are added to below while this is read.)
-        let mut in_flight_of: HashMap<String, f64> = HashMap::new();
+        // Per job: rays still to trace in its leases, and the leases'
+        // whole expected rays.
+        let mut in_flight_of: HashMap<String, (f64, f64)> = HashMap::new();
         for l in st.leases.values() {
             let left = l.remaining_rays();
             *busy_of.entry(l.worker.as_str()).or_default() += left;
+            if l.backup {
+                continue; // its units are in flight under the original
+            }
             match in_flight_of.get_mut(&l.job) {
-                Some(v) => *v += left,
+                Some(v) => {
+                    v.0 += left;
+                    v.1 += l.expected_rays;
+                }
                 None => {
-                    in_flight_of.insert(l.job.clone(), left);
+                    in_flight_of.insert(l.job.clone(), (left, l.expected_rays));
                 }
             }
         }
@@ -1151,9 +1269,10 @@ impl Farm {
             })
             .collect();
         let held_rays = busy_of.get(worker_id).copied().unwrap_or(0.0);
-        // The farm's speed: the sum of the measured speeds (a worker not
-        // yet measured adds nothing until its first result).
-        let farm_speed: f64 = st.workers.values().map(|w| w.ray_speed).sum();
+        // The farm's speed: the sum of the measured speeds of the live
+        // workers (a worker not yet measured adds nothing until its first
+        // result; one gone silent adds nothing either).
+        let farm_speed: f64 = speed + others.iter().map(|&(v, _)| v).sum::<f64>();
         let mut held_back = false;
         // Seconds of work this worker holds already, at its speed.
         let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
@@ -1167,7 +1286,7 @@ impl Farm {
         let mut out = Vec::new();
         for job_id in order {
             // Rays of the job's leases still being rendered, by anyone.
-            let in_flight = in_flight_of.get(&job_id).copied().unwrap_or(0.0);
+            let (in_flight, leased) = in_flight_of.get(&job_id).copied().unwrap_or((0.0, 0.0));
             while out.len() < max_units.max(1) as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
                 let Some(&first) = job.pending.iter().next() else {
@@ -1178,20 +1297,26 @@ impl Farm {
                     let want = (speed * self.config.target_unit_seconds).max(ramp);
                     // When the farm, every worker at its measured speed,
                     // would finish the job (pending and in-flight work).
-                    // Summed only until no rule below can bind: this runs
-                    // for every lease, under the lock, and a long
-                    // animation has millions of pending units.
+                    // Beyond `enough` no rule below can bind. This runs for
+                    // every lease, under the lock, and a long animation has
+                    // millions of pending units: no pass over them.
                     let enough = farm_speed * (2.0 * (want / speed + busy) + rays(first) / speed);
-                    let mut remaining = in_flight;
-                    let mut bounded = true;
-                    for &u in &job.pending {
-                        remaining += rays(u);
-                        if remaining >= enough {
-                            bounded = false;
-                            break;
+                    let remaining = if job.adaptive.is_none() {
+                        // A uniform job's units not done are pending or
+                        // leased: its pending work without a pass over them.
+                        in_flight + (job.work_left - leased).max(0.0)
+                    } else {
+                        // Later rounds are not pending yet: only the pending.
+                        let mut r = in_flight;
+                        for &u in &job.pending {
+                            r += rays(u);
+                            if r >= enough {
+                                break;
+                            }
                         }
-                    }
-                    let farm_end = if bounded {
+                        r
+                    };
+                    let farm_end = if remaining < enough {
                         remaining / farm_speed
                     } else {
                         f64::INFINITY
@@ -1247,6 +1372,7 @@ impl Farm {
                     [job.layout.unit(*units.last().expect("non-empty")).tile as usize];
                 let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
                 let samples = job.layout.batches[u0.batch as usize];
+                let active = job.adaptive_mask(u0.frame, rect, u0.batch);
                 if job.state == JobState::Queued {
                     job.state = JobState::Running;
                     job.notify();
@@ -1269,6 +1395,7 @@ impl Farm {
                     rect,
                     samples,
                     deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+                    active: active.clone(),
                 };
                 st.next_id += 1;
                 let lease_id = format!("l{}-{}", self.boot, st.next_id);
@@ -1284,6 +1411,10 @@ impl Farm {
                         deadline: Instant::now() + self.config.lease_timeout,
                         progress: 0,
                         expected_rays,
+                        active,
+                        partner: None,
+                        backup: false,
+                        backed_up: false,
                     },
                 );
                 st.workers
@@ -1297,7 +1428,95 @@ impl Farm {
                 break;
             }
         }
+        if out.is_empty() && !held_back && speed > 0.0 {
+            out.extend(self.backup_lease(st, worker_id, speed, busy));
+        }
         Ok((out, held_back))
+    }
+
+    /// Nothing is pending: a lease of another worker that this one would
+    /// finish in well under the time that worker needs for the work it
+    /// holds (a GPU beside CPU workers at a job's end, or a worker slowed
+    /// down), duplicated as a backup. The units are deterministic, so
+    /// whichever result comes first is the image; the other lease is then
+    /// withdrawn. A mixed farm is so never slower than its fastest worker.
+    fn backup_lease(
+        &self,
+        st: &mut State,
+        worker_id: &str,
+        speed: f64,
+        busy: f64,
+    ) -> Option<LeaseView> {
+        // Seconds of held work of each worker, at its measured speed.
+        let mut held: HashMap<&str, f64> = HashMap::new();
+        for l in st.leases.values() {
+            *held.entry(l.worker.as_str()).or_default() += l.remaining_rays();
+        }
+        let mut best: Option<(f64, String)> = None;
+        for (id, l) in &st.leases {
+            if l.worker == worker_id
+                || l.backup
+                || l.backed_up
+                || st.jobs.get(&l.job).is_none_or(|j| j.state.is_terminal())
+            {
+                continue;
+            }
+            // A holder not yet measured may be of any speed.
+            let holder = st.workers.get(&l.worker).map_or(0.0, |w| w.ray_speed);
+            let theirs = if holder > 0.0 {
+                held.get(l.worker.as_str()).copied().unwrap_or(0.0) / holder
+            } else {
+                f64::INFINITY
+            };
+            let mine = busy + l.expected_rays / speed + BACKUP_OVERHEAD_SECONDS;
+            if mine < BACKUP_GAIN * theirs && best.as_ref().is_none_or(|(g, _)| theirs - mine > *g)
+            {
+                best = Some((theirs - mine, id.clone()));
+            }
+        }
+        let (_, original) = best?;
+        let o = st.leases.get_mut(&original).expect("listed");
+        st.next_id += 1;
+        let lease_id = format!("l{}-{}", self.boot, st.next_id);
+        o.partner = Some(lease_id.clone());
+        o.backed_up = true;
+        let lease = Lease {
+            worker: worker_id.to_string(),
+            job: o.job.clone(),
+            units: o.units.clone(),
+            frame: o.frame,
+            rect: o.rect,
+            samples: o.samples,
+            deadline: Instant::now() + self.config.lease_timeout,
+            progress: 0,
+            expected_rays: o.expected_rays,
+            active: o.active.clone(),
+            partner: Some(original.clone()),
+            backup: true,
+            backed_up: false,
+        };
+        let job = st.jobs.get(&lease.job).expect("checked");
+        tracing::debug!(lease = %lease_id, backs_up = %original, job = %lease.job, rect = ?lease.rect, "backup lease");
+        let view = LeaseView {
+            lease_id: lease_id.clone(),
+            job_id: lease.job.clone(),
+            scene_name: job.rec.scene_name.clone(),
+            scene_sha256: job.rec.scene_sha256.clone(),
+            assets: job.rec.assets.clone(),
+            settings: job.settings,
+            frame: lease.frame,
+            rect: lease.rect,
+            samples: lease.samples,
+            deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+            active: lease.active.clone(),
+        };
+        st.leases.insert(lease_id.clone(), lease);
+        st.workers
+            .get_mut(worker_id)
+            .expect("worker checked")
+            .leases
+            .insert(lease_id);
+        Some(view)
     }
 
     /// As [`Farm::lease`], but when nothing is pending waits up to `wait`
@@ -1378,10 +1597,14 @@ impl Farm {
             if let Some(w) = st.workers.get_mut(worker_id) {
                 w.leases.remove(id);
             }
-            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
-                job.pending.extend(l.units.iter().copied());
+            if st.partner_keeps(&l) {
+                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, "lease returned; its backup goes on");
+            } else {
+                if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                    job.pending.extend(l.units.iter().copied());
+                }
+                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.frame, rect = ?l.rect, "lease returned; unit queued again");
             }
-            tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.frame, rect = ?l.rect, "lease returned; unit queued again");
             st.end_lease(id.clone(), l.job, false);
             returned += 1;
         }
@@ -1456,7 +1679,9 @@ impl Farm {
         for (r, t) in &mut taken {
             let film = r.film.as_ref().expect("validated");
             let bytes = match r.packed.take() {
-                Some(p) => crate::store::encode_packed(film.rect, film.rays, film.nonfinite, &p),
+                Some(p) => {
+                    crate::store::encode_packed(film.rect, film.rays, film.nonfinite, &p, None)
+                }
                 None => crate::store::encode_film(film),
             };
             let rays = [
@@ -1649,7 +1874,12 @@ impl Farm {
                 },
             );
             tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
-            let rec = job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"));
+            let rec = if st.partner_keeps(&lease) {
+                None
+            } else {
+                let job = st.jobs.get_mut(&lease.job).expect("checked");
+                job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"))
+            };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
             if let Some(rec) = &rec {
                 self.withdraw_leases(st, &rec.id);
@@ -1667,10 +1897,15 @@ impl Farm {
             job.counters.results_rejected += 1;
             let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
             tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
-            let rec = job.fail_units(
-                &lease.units,
-                format!("worker {worker_name} sent a malformed result: {reason}"),
-            );
+            let rec = if st.partner_keeps(&lease) {
+                None
+            } else {
+                let job = st.jobs.get_mut(&lease.job).expect("checked");
+                job.fail_units(
+                    &lease.units,
+                    format!("worker {worker_name} sent a malformed result: {reason}"),
+                )
+            };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
             if let Some(rec) = &rec {
                 self.withdraw_leases(st, &rec.id);
@@ -1678,6 +1913,7 @@ impl Farm {
             return Err((Outcome::Rejected(reason), rec, snapshot));
         }
         let units = lease.units.clone();
+        st.withdraw_partner(&lease);
         st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
         Ok(Taken {
             job: lease.job.clone(),
@@ -1705,8 +1941,14 @@ impl Farm {
         let mut samples = 0;
         let work_before = job.work_left;
         for &u in &t.units {
-            samples += job.layout.unit_samples(job.layout.unit(u));
+            let unit = job.layout.unit(u);
+            let nominal = job.layout.unit_samples(unit);
+            let tile = job.layout.tiles[unit.tile as usize];
             job.mark_done(u);
+            // An adaptive round samples only its active blocks.
+            let traced = job.adaptive_samples(&film, tile).unwrap_or(nominal);
+            job.samples_done = job.samples_done + traced - nominal;
+            samples += traced;
         }
         job.meter.add(Instant::now(), work_before - job.work_left);
         job.samples_this_run += samples;
@@ -1727,16 +1969,35 @@ impl Farm {
         }
         let result_rays = film.rays.total();
         if !job.state.is_terminal() {
-            let frame_rect = Rect::full(job.layout.width, job.layout.height);
+            let (w, h) = (job.layout.width, job.layout.height);
             let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
-            acc.merging += 1;
-            merges.push(Merge {
-                job: t.job.clone(),
-                frame: t.frame,
-                into: acc.film.clone(),
-                film,
-                frame_rect,
-            });
+            if job.adaptive.is_some() {
+                // Adaptive jobs merge now, under the state lock: a tile's
+                // next round is decided from its merged film (tiles are
+                // small, so this holds the lock briefly).
+                acc.film
+                    .lock()
+                    .expect("frame film lock")
+                    .get_or_insert_with(|| new_frame_film(w, h, true))
+                    .merge(&film)
+                    .map_err(|e| FarmError::Internal(e.to_string()))?;
+                let mut queued = false;
+                for &u in &t.units {
+                    queued |= job.adaptive_advance(t.frame, job.layout.unit(u).tile);
+                }
+                if queued {
+                    self.work_ready.notify_waiters();
+                }
+            } else {
+                acc.merging += 1;
+                merges.push(Merge {
+                    job: t.job.clone(),
+                    frame: t.frame,
+                    into: acc.film.clone(),
+                    film,
+                    frame_rect: Rect::full(w, h),
+                });
+            }
             to_write.extend(job.complete_frames());
         }
         job.notify();
@@ -1777,6 +2038,7 @@ impl Farm {
                 };
                 let units = job.layout.frame_units(frame);
                 let (w, h) = (job.layout.width, job.layout.height);
+                let adaptive = job.adaptive.is_some();
                 let Some(acc) = job.frames.get_mut(&frame) else {
                     return;
                 };
@@ -1785,7 +2047,7 @@ impl Farm {
                         .lock()
                         .expect("frame film lock")
                         .take()
-                        .unwrap_or_else(|| Film::new(Rect::full(w, h))),
+                        .unwrap_or_else(|| new_frame_film(w, h, adaptive)),
                     PathBuf::from(&job.rec.output_dir),
                     units,
                 )
@@ -1949,8 +2211,10 @@ impl Farm {
                 w.units_failed += l.units.len() as u64;
                 w.name.clone()
             });
-            tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
-            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+            if st.partner_keeps(&l) {
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), "lease expired; its backup goes on");
+            } else if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
                 job.pending.extend(l.units.iter().copied());
                 self.work_ready.notify_waiters();
             }
@@ -2011,6 +2275,17 @@ impl Farm {
                 .take(8)
                 .map(|f| format!("{}:{:.0}%", f.0, 100.0 * f.2 as f64 / f.1.max(1) as f64))
                 .collect();
+            if let Some(a) = v.adaptive.settings {
+                tracing::info!(
+                    job = %job.rec.id,
+                    target_error = a.target_error,
+                    converged = format!("{:.1}%", 100.0 * v.adaptive.converged_share),
+                    estimated_error = format!("{:.3e}", v.adaptive.estimated_error),
+                    samples_done = v.samples_done,
+                    samples_expected = v.adaptive.samples_expected,
+                    "adaptive progress"
+                );
+            }
             tracing::info!(
                 job = %job.rec.id,
                 percent = format!("{pct:.1}"),
@@ -2051,6 +2326,11 @@ fn check_film(r: &ResultData) -> Result<(), String> {
     let Ok(film) = &r.film else {
         return Ok(()); // Judged by validate_result.
     };
+    if film.squares.is_some() {
+        // Adaptive: which pixels have samples depends on the lease's
+        // active blocks, so validate_result checks them under the lock.
+        return Ok(());
+    }
     let n = r.samples.len();
     let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
     // One pass without branches; the offending pixel is looked for only
@@ -2110,9 +2390,31 @@ fn validate_result(
             film.rect, lease.rect
         ));
     }
-    film_check?;
-    let n = lease.samples.len();
-    let primary = lease.rect.area() as u64 * n as u64;
+    adaptive::check_result(lease, film)?;
+    if lease.active.is_some() {
+        // An adaptive round: its pixels are checked here, against the
+        // lease's active blocks (check_film passes films with squares).
+        for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
+            let (x, y) = (
+                lease.rect.x + i as u32 % lease.rect.width,
+                lease.rect.y + i as u32 / lease.rect.width,
+            );
+            // All of the round's samples in active blocks, none elsewhere.
+            let n = adaptive::expected_count(lease, x, y);
+            let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
+            if c != n {
+                return Err(format!("pixel ({x}, {y}) has {c} samples, expected {n}"));
+            }
+            if s.iter().any(|&v| v > max_sum) {
+                return Err(format!(
+                    "pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"
+                ));
+            }
+        }
+    } else {
+        film_check?;
+    }
+    let primary = adaptive::sampled_pixels(lease) * lease.samples.len() as u64;
     if film.rays.primary != primary {
         return Err(format!(
             "result counts {} primary rays, the unit has {primary}",
@@ -2149,7 +2451,7 @@ fn validate_result(
 
 impl Job {
     fn new(rec: JobRecord, settings: RenderSettings, counters: Counters) -> Self {
-        let layout = Layout::new(
+        let mut layout = Layout::new(
             settings.width,
             settings.height,
             settings.samples,
@@ -2158,6 +2460,10 @@ impl Job {
             rec.tile_size,
             rec.samples_per_unit,
         );
+        let adaptive = adaptive::settings_of(&rec);
+        if let Some(a) = &adaptive {
+            layout.batches = a.rounds();
+        }
         let total = layout.total();
         let state = match rec.state {
             JobStateRec::Active => JobState::Running,
@@ -2213,7 +2519,9 @@ impl Job {
             samples_this_run: 0,
             rays_this_run: 0,
             watch: watch::channel(0).0,
+            adaptive: adaptive.map(adaptive::AdaptiveJob::new),
         };
+        job.adaptive_start();
         job.work_left = job.sum_work_left();
         job
     }
@@ -2341,7 +2649,20 @@ impl Job {
         } else {
             0.0
         };
-        let eta = crate::rate::eta(self.work_left, self.meter.rate(Instant::now())).unwrap_or(-1.0);
+        let mut eta =
+            crate::rate::eta(self.work_left, self.meter.rate(Instant::now())).unwrap_or(-1.0);
+        let adaptive = self.adaptive_progress();
+        let mut samples_total = samples_total;
+        if adaptive.settings.is_some() {
+            // The samples still expected over this run's sample rate.
+            samples_total = adaptive.samples_expected.max(self.samples_done);
+            eta = if self.samples_this_run > 0 && elapsed > 0.0 {
+                (samples_total - self.samples_done) as f64
+                    / (self.samples_this_run as f64 / elapsed)
+            } else {
+                -1.0
+            };
+        }
         JobView {
             record: self.rec.clone(),
             state: self.state,
@@ -2361,7 +2682,17 @@ impl Job {
             first_lease_unix_ms: self.first_lease_unix_ms,
             first_result_unix_ms: self.first_result_unix_ms,
             last_result_unix_ms: self.last_result_unix_ms,
+            adaptive,
         }
+    }
+}
+
+/// A frame's film while it fills: adaptive jobs keep sums of squares.
+fn new_frame_film(width: u32, height: u32, adaptive: bool) -> Film {
+    if adaptive {
+        Film::with_squares(Rect::full(width, height))
+    } else {
+        Film::new(Rect::full(width, height))
     }
 }
 
@@ -2486,6 +2817,7 @@ material = "red"
                 tile_size: 16,
                 samples_per_unit: 0,
                 max_attempts: 0,
+                adaptive: Default::default(),
             })
             .await
             .unwrap();
@@ -2752,6 +3084,7 @@ material = "red"
                 tile_size: 16,
                 samples_per_unit: 0,
                 max_attempts: 0,
+                adaptive: Default::default(),
             })
             .await
             .unwrap();
@@ -3097,5 +3430,115 @@ material = "red"
         let b2 = farm.lease(&b, 1, false).unwrap();
         assert_eq!((a2.len(), b2.len()), (1, 1));
         assert_eq!((a2[0].rect.width, b2[0].rect.width), (16, 16));
+    }
+
+    /// At a job's end an idle fast worker backs up a slow worker's lease:
+    /// the first result counts, the other lease is withdrawn (its holder
+    /// hears so at its heartbeat) and its late result is dropped.
+    #[tokio::test]
+    async fn an_idle_fast_worker_backs_up_a_slow_workers_lease_and_the_first_result_wins() {
+        // One row of 8 tiles.
+        let (_dir, farm, job) = farm_with_job(128, 16, 4).await;
+        let slow = register(&farm, "slow", 1);
+        let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap();
+        // Alone on the farm, the slow worker takes a lease of several tiles.
+        let s2 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        let fast = register(&farm, "fast", 8);
+        let mut backup = None;
+        for _ in 0..8 {
+            let Some(l) = farm.lease(&fast, 1, false).unwrap().pop() else {
+                break;
+            };
+            if l.rect == s2.rect {
+                backup = Some(l);
+                break;
+            }
+            let r = farm.submit_result(result(&fast, &l, 0.001)).await.unwrap();
+            assert_eq!(r, Outcome::Accepted);
+        }
+        let backup = backup.expect("the fast worker backs up the slow worker's lease");
+        assert_ne!(backup.lease_id, s2.lease_id);
+        assert_eq!(backup.samples, s2.samples);
+        // A lease is backed up once, and the slow worker backs up nothing.
+        assert!(farm.lease(&fast, 1, false).unwrap().is_empty());
+        assert!(farm.lease(&slow, 1, false).unwrap().is_empty());
+
+        let r = farm
+            .submit_result(result(&fast, &backup, 0.001))
+            .await
+            .unwrap();
+        assert_eq!(r, Outcome::Accepted);
+        let gone = farm.heartbeat(&slow, &[(s2.lease_id.clone(), 10)]).unwrap();
+        assert_eq!(
+            gone,
+            vec![s2.lease_id.clone()],
+            "the slow worker is told to stop"
+        );
+        let late = farm.submit_result(result(&slow, &s2, 1.0)).await.unwrap();
+        assert!(matches!(late, Outcome::Late(_)), "{late:?}");
+        let v = wait_done(&farm, &job).await;
+        assert_eq!((v.units_done, v.units_total), (8, 8));
+        assert_eq!(v.counters.units_accepted, 8, "each unit counted once");
+    }
+
+    /// A backup that fails leaves the units with the original lease: they
+    /// are neither queued again nor counted as a failed attempt.
+    #[tokio::test]
+    async fn a_failed_backup_leaves_the_units_with_the_original_lease() {
+        let (_dir, farm, job) = farm_with_job(64, 16, 4).await;
+        let slow = register(&farm, "slow", 1);
+        let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap();
+        let s2 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        let fast = register(&farm, "fast", 8);
+        let mut backup = None;
+        for _ in 0..8 {
+            let Some(l) = farm.lease(&fast, 1, false).unwrap().pop() else {
+                break;
+            };
+            if l.rect == s2.rect {
+                backup = Some(l);
+                break;
+            }
+            farm.submit_result(result(&fast, &l, 0.001)).await.unwrap();
+        }
+        let backup = backup.expect("a backup lease");
+        let mut failed = result(&fast, &backup, 0.001);
+        failed.failure = Some("device lost".into());
+        farm.submit_result(failed).await.unwrap();
+        assert!(
+            farm.lease(&fast, 1, false).unwrap().is_empty(),
+            "nothing queued again, and the original is not backed up twice"
+        );
+        let r = farm.submit_result(result(&slow, &s2, 1.0)).await.unwrap();
+        assert_eq!(r, Outcome::Accepted);
+        let v = wait_done(&farm, &job).await;
+        assert_eq!(v.units_done, v.units_total);
+    }
+
+    /// The farm's speed, which sizes leases near a job's end, counts only
+    /// live workers: one gone silent neither shrinks the others' leases
+    /// nor (as 64 load clients of an earlier run did) slows every lease.
+    #[tokio::test]
+    async fn a_silent_worker_does_not_count_towards_the_farms_speed() {
+        let mut widths = vec![];
+        for silent in [false, true] {
+            let (_dir, farm, _job) = farm_with_job(256, 16, 4).await;
+            let (a, b) = (register(&farm, "a", 2), register(&farm, "b", 2));
+            let a1 = farm.lease(&a, 1, false).unwrap().remove(0);
+            let b1 = farm.lease(&b, 1, false).unwrap().remove(0);
+            farm.submit_result(result(&a, &a1, 0.01)).await.unwrap();
+            farm.submit_result(result(&b, &b1, 0.01)).await.unwrap();
+            if silent {
+                let mut st = farm.state.lock().unwrap();
+                st.workers.get_mut(&b).unwrap().last_seen -= Duration::from_secs(60);
+            }
+            widths.push(farm.lease(&a, 1, false).unwrap().remove(0).rect.width);
+        }
+        assert!(
+            widths[1] > widths[0],
+            "alone, a worker's lease is larger than beside a live twin: {widths:?}"
+        );
     }
 }

@@ -22,6 +22,11 @@ pub enum ImageError {
         path: PathBuf,
         error: image::ImageError,
     },
+    #[error("cannot write {}: {error}", path.display())]
+    WriteExr {
+        path: PathBuf,
+        error: exr::error::Error,
+    },
 }
 
 impl ImageFormat {
@@ -42,10 +47,17 @@ impl ImageFormat {
     }
 }
 
-/// Writes a resolved film as PNG (8-bit sRGB) or EXR (linear float), by extension.
+/// Writes a resolved film as PNG (8-bit sRGB) or EXR (linear float), by
+/// extension. The EXR of an adaptive film ([`Film::squares`]) has two more
+/// channels: `samples` (per pixel) and `error` (the estimated standard
+/// error of the pixel's mean, the largest of its three channels').
 pub fn write_image(path: &Path, film: &Film) -> Result<(), ImageError> {
     let (w, h) = (film.rect.width, film.rect.height);
-    match ImageFormat::of(path)? {
+    let format = ImageFormat::of(path)?;
+    if format == ImageFormat::Exr && film.squares.is_some() {
+        return write_adaptive_exr(path, film);
+    }
+    match format {
         ImageFormat::Png => {
             use image::ImageEncoder as _;
             use image::codecs::png::{CompressionType, FilterType, PngEncoder};
@@ -83,4 +95,88 @@ pub fn write_image(path: &Path, film: &Film) -> Result<(), ImageError> {
         path: path.to_owned(),
         error,
     })
+}
+
+/// An adaptive film as EXR: R, G, B, `samples` and `error`, all f32.
+fn write_adaptive_exr(path: &Path, film: &Film) -> Result<(), ImageError> {
+    use exr::prelude::*;
+    let linear = film.resolve();
+    let w = film.rect.width as usize;
+    let error: Vec<f32> = (0..film.sums.len())
+        .map(|i| tracer_core::adaptive::pixel_error(film, i) as f32)
+        .collect();
+    let channels = SpecificChannels::build()
+        .with_channel("R")
+        .with_channel("G")
+        .with_channel("B")
+        .with_channel("samples")
+        .with_channel("error")
+        .with_pixel_fn(|p: Vec2<usize>| {
+            let i = p.y() * w + p.x();
+            let [r, g, b] = linear[i];
+            (r, g, b, film.counts[i] as f32, error[i])
+        });
+    Image::from_channels((w, film.rect.height as usize), channels)
+        .write()
+        .to_file(path)
+        .map_err(|error| ImageError::WriteExr {
+            path: path.to_owned(),
+            error,
+        })
+}
+
+/// A heat map of samples per pixel as PNG: log2 of the count from `min`
+/// (dark blue) to `max` (yellow) through magenta and orange; black where a
+/// pixel has no samples.
+pub fn write_sample_map(path: &Path, film: &Film, min: u32, max: u32) -> Result<(), ImageError> {
+    let (lo, hi) = ((min.max(1) as f32).log2(), (max.max(1) as f32).log2());
+    let bytes: Vec<u8> = film
+        .counts
+        .iter()
+        .flat_map(|&n| {
+            if n == 0 {
+                return [0, 0, 0];
+            }
+            let t = if hi > lo {
+                (((n as f32).log2() - lo) / (hi - lo)).clamp(0.0, 1.0)
+            } else {
+                1.0
+            };
+            heat(t)
+        })
+        .collect();
+    image::RgbImage::from_raw(film.rect.width, film.rect.height, bytes)
+        .expect("buffer matches size")
+        .save_with_format(path, image::ImageFormat::Png)
+        .map_err(|error| ImageError::Write {
+            path: path.to_owned(),
+            error,
+        })
+}
+
+/// A perceptually ordered ramp (after matplotlib's plasma): t in [0, 1].
+fn heat(t: f32) -> [u8; 3] {
+    const STOPS: [[f32; 3]; 5] = [
+        [13.0, 8.0, 135.0],
+        [126.0, 3.0, 168.0],
+        [204.0, 71.0, 120.0],
+        [248.0, 149.0, 64.0],
+        [240.0, 249.0, 33.0],
+    ];
+    let x = t * (STOPS.len() - 1) as f32;
+    let i = (x.floor() as usize).min(STOPS.len() - 2);
+    let f = x - i as f32;
+    std::array::from_fn(|c| (STOPS[i][c] + (STOPS[i + 1][c] - STOPS[i][c]) * f + 0.5) as u8)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_heat_ramp_runs_from_blue_to_yellow() {
+        assert_eq!(heat(0.0), [13, 8, 135]);
+        assert_eq!(heat(1.0), [240, 249, 33]);
+        assert_eq!(heat(0.5), [204, 71, 120]);
+    }
 }

@@ -91,6 +91,13 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
         first_lease_unix_ms: v.first_lease_unix_ms,
         first_result_unix_ms: v.first_result_unix_ms,
         last_result_unix_ms: v.last_result_unix_ms,
+        adaptive: v.adaptive.settings.map(|a| pb::AdaptiveStatus {
+            target_error: a.target_error,
+            min_samples: a.min_samples,
+            max_samples: a.max_samples,
+            converged_share: v.adaptive.converged_share,
+            estimated_error: v.adaptive.estimated_error,
+        }),
     }
 }
 
@@ -141,6 +148,11 @@ impl JobService for Api {
             tile_size: spec.tile_size,
             samples_per_unit: spec.samples_per_unit,
             max_attempts: spec.max_attempts,
+            adaptive: tracer_core::adaptive::AdaptiveSpec {
+                target_error: o.target_error,
+                min_samples: o.min_samples,
+                max_samples: o.max_samples,
+            },
         };
         let job_id = self.farm.submit(s).await?;
         Ok(Response::new(pb::SubmitJobResponse { job_id }))
@@ -451,6 +463,8 @@ impl WorkerService for Api {
                 rect: Some(l.rect.into()),
                 samples: Some(l.samples.into()),
                 deadline_unix_ms: l.deadline_unix_ms,
+                adaptive: l.active.is_some(),
+                active_blocks: l.active.map(|m| m.to_bytes()).unwrap_or_default(),
             })
             .collect();
         Ok(Response::new(pb::LeaseWorkResponse {
@@ -620,10 +634,19 @@ fn result_data(r: pb::SubmitResultRequest) -> ResultData {
                 r.nonfinite,
             )
         })
+        .and_then(|mut film| {
+            if r.square_bytes != 0 {
+                let n = u8::try_from(r.square_bytes)
+                    .map_err(|_| film_codec::FilmCodecError::SquareBytes(r.square_bytes))?;
+                film_codec::unpack_squares(&mut film, n, &r.squares)?;
+            }
+            Ok(film)
+        })
         .map_err(|e| e.to_string());
-    // The fields decoded: they are the film in the store's layout too.
+    // The fields decoded: they are the film in the store's layout too
+    // (adaptive films, with squares, are encoded again with them).
     let packed = match (&film, decoded_as) {
-        (Ok(_), Some(e)) => Some(film_codec::Packed {
+        (Ok(f), Some(e)) if f.squares.is_none() => Some(film_codec::Packed {
             sum_bytes: e.sum_bytes,
             uniform_count: e.uniform_count,
             sums: r.sums,

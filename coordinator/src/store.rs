@@ -88,6 +88,14 @@ pub struct JobRecord {
     pub submitted_unix_ms: i64,
     pub finished_unix_ms: i64,
     pub output_dir: String,
+    /// Adaptive sampling (issue 17): the error target (0: a uniform job)
+    /// and the sample bounds; `samples` is then `max_samples`.
+    #[serde(default)]
+    pub target_error: f64,
+    #[serde(default)]
+    pub min_samples: u32,
+    #[serde(default)]
+    pub max_samples: u32,
 }
 
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
@@ -524,6 +532,9 @@ fn read_counters(t: &redb::Table<&str, &[u8]>, job: &str) -> Result<Counters, St
 /// most `MAX_IMAGE_SIDE` = 32768 wide), so films stored by earlier versions
 /// still decode.
 const COMPACT_MAGIC: [u8; 4] = *b"TFC2";
+/// The compact layout of an adaptive film: one more header byte, the
+/// squares' width, and the sums of squares after the counts.
+const ADAPTIVE_MAGIC: [u8; 4] = *b"TFA1";
 /// Bytes before the pixels: the magic, the rect, ray counts and the
 /// non-finite count, then the encoding (sum bytes, uniform flag, count).
 const COMPACT_HEADER: usize = 4 + 16 + 40 + 1 + 1 + 4;
@@ -536,20 +547,36 @@ pub fn encode_film(f: &Film) -> Vec<u8> {
 /// The part of `film` inside `rect` (which lies inside it), with these ray
 /// counts, for the store: no intermediate film.
 pub fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
-    encode_packed(rect, rays, nonfinite, &film_codec::pack_part(film, rect))
+    let squares = film_codec::pack_squares_part(film, rect);
+    encode_packed(
+        rect,
+        rays,
+        nonfinite,
+        &film_codec::pack_part(film, rect),
+        squares.as_ref().map(|(n, b)| (*n, b.as_slice())),
+    )
 }
 
 /// A film already in the compact layout (a result's fields as they came
 /// over the wire, checked by decoding them) for the store: a header and
-/// two copies, no re-encoding.
+/// two copies, no re-encoding. `squares` (width, bytes) for adaptive films.
 pub fn encode_packed(
     rect: Rect,
     rays: RayCounts,
     nonfinite: u64,
     p: &film_codec::Packed,
+    squares: Option<(u8, &[u8])>,
 ) -> Vec<u8> {
-    let mut out = Vec::with_capacity(COMPACT_HEADER + p.sums.len() + p.counts.len());
-    out.extend_from_slice(&COMPACT_MAGIC);
+    let mut out = Vec::with_capacity(
+        COMPACT_HEADER + 1 + p.sums.len() + p.counts.len() + squares.map_or(0, |s| s.1.len()),
+    );
+    // Adaptive films (sums of squares) are the compact layout with one
+    // more header byte (the squares' width) and the squares at the end.
+    out.extend_from_slice(if squares.is_some() {
+        &ADAPTIVE_MAGIC
+    } else {
+        &COMPACT_MAGIC
+    });
     for v in [rect.x, rect.y, rect.width, rect.height] {
         out.extend_from_slice(&v.to_le_bytes());
     }
@@ -565,16 +592,27 @@ pub fn encode_packed(
     out.push(p.sum_bytes);
     out.push(u8::from(p.uniform_count.is_some()));
     out.extend_from_slice(&p.uniform_count.unwrap_or(0).to_le_bytes());
+    if let Some((n, _)) = squares {
+        out.push(n);
+    }
     out.extend_from_slice(&p.sums);
     out.extend_from_slice(&p.counts);
+    if let Some((_, bytes)) = squares {
+        out.extend_from_slice(bytes);
+    }
     out
 }
 
 /// A stored film, in the compact layout or in the original one (56-byte
 /// header, then 28 bytes a pixel) that earlier versions stored.
 pub fn decode_film(b: &[u8]) -> Result<Film, String> {
-    let compact = b.starts_with(&COMPACT_MAGIC);
-    let header = if compact { COMPACT_HEADER } else { 56 };
+    let adaptive = b.starts_with(&ADAPTIVE_MAGIC);
+    let compact = adaptive || b.starts_with(&COMPACT_MAGIC);
+    let header = match (compact, adaptive) {
+        (_, true) => COMPACT_HEADER + 1,
+        (true, false) => COMPACT_HEADER,
+        (false, _) => 56,
+    };
     if b.len() < header {
         return Err(format!(
             "{} bytes is shorter than the {header}-byte header",
@@ -612,15 +650,34 @@ pub fn decode_film(b: &[u8]) -> Result<Film, String> {
             )
         })?;
     let split = header + sums_len;
-    film_codec::unpack_with(
+    if !adaptive {
+        return film_codec::unpack_with(
+            rect,
+            encoding,
+            &b[header..split],
+            &b[split..],
+            rays,
+            nonfinite,
+        )
+        .map_err(|e| e.to_string());
+    }
+    let counts_end = encoding
+        .counts_len(rect.area())
+        .map(|n| split + n)
+        .filter(|&end| end <= b.len())
+        .ok_or_else(|| format!("{} bytes is too short for the counts", b.len()))?;
+    let mut film = film_codec::unpack_with(
         rect,
         encoding,
         &b[header..split],
-        &b[split..],
+        &b[split..counts_end],
         rays,
         nonfinite,
     )
-    .map_err(|e| e.to_string())
+    .map_err(|e| e.to_string())?;
+    film_codec::unpack_squares(&mut film, b[COMPACT_HEADER], &b[counts_end..])
+        .map_err(|e| e.to_string())?;
+    Ok(film)
 }
 
 #[cfg(test)]
@@ -641,6 +698,18 @@ mod tests {
         };
         film.nonfinite = 9;
         film
+    }
+
+    #[test]
+    fn adaptive_films_keep_their_squares_in_the_store() {
+        let mut f = film();
+        f.squares = Some((0..15u128).map(|i| [i << 90, i, 0]).collect());
+        let b = encode_film(&f);
+        assert!(b.starts_with(&ADAPTIVE_MAGIC));
+        assert_eq!(decode_film(&b), Ok(f.clone()));
+        // A uniform film's bytes do not change.
+        assert!(encode_film(&film()).starts_with(&COMPACT_MAGIC));
+        assert!(decode_film(&b[..b.len() - 1]).is_err());
     }
 
     #[test]

@@ -77,6 +77,7 @@ impl From<Sampler> for pb::Sampler {
         match s {
             Sampler::Grid => pb::Sampler::Grid,
             Sampler::Jittered => pb::Sampler::Jittered,
+            Sampler::Progressive => pb::Sampler::Progressive,
         }
     }
 }
@@ -86,6 +87,7 @@ pub fn sampler_from_pb(v: i32) -> Option<Sampler> {
     match pb::Sampler::try_from(v).unwrap_or(pb::Sampler::Unspecified) {
         pb::Sampler::Grid => Some(Sampler::Grid),
         pb::Sampler::Jittered => Some(Sampler::Jittered),
+        pb::Sampler::Progressive => Some(Sampler::Progressive),
         pb::Sampler::Unspecified => None,
     }
 }
@@ -107,7 +109,7 @@ impl TryFrom<pb::RenderSettings> for RenderSettings {
     fn try_from(s: pb::RenderSettings) -> Result<Self, ConvertError> {
         let sampler = sampler_from_pb(s.sampler).ok_or(ConvertError::Invalid {
             field: "settings.sampler",
-            message: "must be GRID or JITTERED".into(),
+            message: "must be GRID, JITTERED or PROGRESSIVE".into(),
         })?;
         let out = RenderSettings {
             width: s.width,

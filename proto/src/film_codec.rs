@@ -40,6 +40,18 @@ pub enum FilmCodecError {
     TooLarge { width: u32, height: u32 },
     #[error("sum_bytes must be 1 to 8, got {0}")]
     SumBytes(u32),
+    #[error("square_bytes must be 1 to 16, got {0}")]
+    SquareBytes(u32),
+    #[error(
+        "squares field has {got} bytes, expected {expected} (3 x {square_bytes} per pixel of a {width}x{height} rect)"
+    )]
+    SquaresSize {
+        got: usize,
+        expected: usize,
+        square_bytes: u8,
+        width: u32,
+        height: u32,
+    },
 }
 
 /// How a film's pixels are laid out in bytes.
@@ -213,7 +225,74 @@ pub fn unpack_with(
         counts,
         rays,
         nonfinite,
+        squares: None,
     })
+}
+
+/// The sums of squares of an adaptive film's part inside `rect`, each as
+/// its low `square_bytes` little-endian bytes (the fewest that hold the
+/// largest, 1 to 16): `None` for a film without squares. Uniform films
+/// never carry this section, so their bytes are as before.
+pub fn pack_squares_part(film: &Film, rect: Rect) -> Option<(u8, Vec<u8>)> {
+    let squares = film.squares.as_ref()?;
+    let mut max = 0u128;
+    for r in rows(film, rect) {
+        for s in &squares[r] {
+            max |= s[0] | s[1] | s[2];
+        }
+    }
+    let n = ((128 - max.leading_zeros()).div_ceil(8)).max(1) as usize;
+    let mut out = Vec::with_capacity(rect.area() * 3 * n);
+    for r in rows(film, rect) {
+        for s in &squares[r] {
+            for v in s {
+                out.extend_from_slice(&v.to_le_bytes()[..n]);
+            }
+        }
+    }
+    Some((n as u8, out))
+}
+
+/// Attaches sums of squares packed by [`pack_squares_part`] to a film
+/// decoded from the same part, checking their size.
+pub fn unpack_squares(
+    film: &mut Film,
+    square_bytes: u8,
+    bytes: &[u8],
+) -> Result<(), FilmCodecError> {
+    let n = square_bytes as usize;
+    if !(1..=16).contains(&n) {
+        return Err(FilmCodecError::SquareBytes(square_bytes.into()));
+    }
+    let expected = film
+        .rect
+        .area()
+        .checked_mul(3 * n)
+        .ok_or(FilmCodecError::TooLarge {
+            width: film.rect.width,
+            height: film.rect.height,
+        })?;
+    if bytes.len() != expected {
+        return Err(FilmCodecError::SquaresSize {
+            got: bytes.len(),
+            expected,
+            square_bytes,
+            width: film.rect.width,
+            height: film.rect.height,
+        });
+    }
+    let value = |b: &[u8]| {
+        let mut le = [0u8; 16];
+        le[..n].copy_from_slice(b);
+        u128::from_le_bytes(le)
+    };
+    film.squares = Some(
+        bytes
+            .chunks_exact(3 * n)
+            .map(|p| [value(&p[..n]), value(&p[n..2 * n]), value(&p[2 * n..])])
+            .collect(),
+    );
+    Ok(())
 }
 
 pub fn pack_sums(film: &Film) -> Vec<u8> {
@@ -328,6 +407,43 @@ mod tests {
                 0
             ),
             Err(FilmCodecError::SumBytes(9))
+        );
+    }
+
+    #[test]
+    fn squares_round_trip_exactly_and_only_for_adaptive_films() {
+        let rect = Rect::new(8, 0, 3, 2);
+        assert_eq!(pack_squares_part(&Film::new(rect), rect), None);
+        let mut f = Film::with_squares(rect);
+        f.sums[1] = [5, 6, 7];
+        f.counts[1] = 2;
+        f.squares.as_mut().unwrap()[1] = [1 << 100, 3, 0];
+        f.squares.as_mut().unwrap()[4] = [u128::MAX >> 20, 0, 9];
+        let part = Rect::new(9, 0, 2, 2);
+        let (n, bytes) = pack_squares_part(&f, rect).unwrap();
+        assert_eq!(n, 14);
+        let p = pack(&f);
+        let mut g = unpack_with(rect, p.encoding(), &p.sums, &p.counts, f.rays, 0).unwrap();
+        unpack_squares(&mut g, n, &bytes).unwrap();
+        assert_eq!(g, f);
+        // A part: its own pixels only; the smallest width that holds them.
+        let (n, bytes) = pack_squares_part(&f, part).unwrap();
+        let mut h = Film::new(part);
+        unpack_squares(&mut h, n, &bytes).unwrap();
+        assert_eq!(h.squares.unwrap()[0], [1 << 100, 3, 0]);
+        assert_eq!(
+            unpack_squares(&mut g, n, &bytes[1..]),
+            Err(FilmCodecError::SquaresSize {
+                got: bytes.len() - 1,
+                expected: 6 * 3 * n as usize,
+                square_bytes: n,
+                width: 3,
+                height: 2
+            })
+        );
+        assert_eq!(
+            unpack_squares(&mut g, 17, &[]),
+            Err(FilmCodecError::SquareBytes(17))
         );
     }
 

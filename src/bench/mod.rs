@@ -1,6 +1,7 @@
 //! `tessera bench`: the thesis's experiments redone, reporting speed *and*
 //! error against a converged f64 reference, as CSV, images and plots.
 
+mod adaptive;
 mod farm;
 #[cfg(feature = "gpu")]
 mod launch;
@@ -39,6 +40,7 @@ pub const SUITES: &[&str] = &[
     "distributed",
     "launch",
     "farm",
+    "adaptive",
 ];
 
 /// The depth suite's default reference depth (issue 6 asks for 32). On the
@@ -78,6 +80,11 @@ pub struct Config {
     pub mixed_cpu_workers: usize,
     /// max_depth of the depth suite's f64 reference.
     pub depth_reference: u32,
+    /// Adaptive suite: image size and the reference's samples.
+    pub adaptive_size: (u32, u32),
+    pub adaptive_reference: u32,
+    /// Adaptive suite: which of its scenes (resolution, distributed).
+    pub adaptive_scenes: Vec<String>,
 }
 
 /// One measured render.
@@ -1399,6 +1406,7 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
                 None => continue,
             },
             "farm" => bench.suite_farm()?,
+            "adaptive" => bench.suite_adaptive()?,
             _ => unreachable!("checked above"),
         };
         let mut csv = String::from(CSV_HEADER);

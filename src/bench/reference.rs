@@ -24,6 +24,12 @@ fn fnv1a(bytes: &[u8], mut h: u64) -> u64 {
     h
 }
 
+/// The FNV-1a hash of a scene file's bytes (part of reference cache keys).
+pub fn scene_hash(path: &Path) -> Result<u64> {
+    let text = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    Ok(fnv1a(&text, 0xcbf2_9ce4_8422_2325))
+}
+
 pub struct ReferenceCache {
     dir: PathBuf,
     renderer: CpuRenderer,

@@ -23,7 +23,9 @@ pub struct BenchArgs {
     /// Suites to run [default: all]: resolution, samples, complexity, depth,
     /// precision, distributed (issue 16's effects: time and error against
     /// samples), launch (GPU launch-shape sweep; skipped without a GPU
-    /// backend), farm (1..N local worker processes on one frame)
+    /// backend), farm (1..N local worker processes on one frame), adaptive
+    /// (uniform against adaptive sampling: RMSE against time, and the time
+    /// adaptive takes to reach uniform 1024 spp's RMSE)
     pub suites: Vec<String>,
     /// Where to trace
     #[arg(long, value_enum, default_value_t = BenchBackend::Cpu)]
@@ -72,8 +74,33 @@ pub struct BenchArgs {
     /// the emerald scene at 1/13 of the rays (docs/benchmarks.md)
     #[arg(long, value_name = "D", value_parser = clap::value_parser!(u32).range(1..=64))]
     pub depth_reference: Option<u32>,
+    /// Adaptive suite: image size, WIDTHxHEIGHT [default: 320x240; with --quick 64x48]
+    #[arg(long, value_name = "WxH", value_parser = parse_size, default_value = "320x240")]
+    pub adaptive_size: (u32, u32),
+    /// Adaptive suite: samples of its f64 reference (independent of the
+    /// tested samples) [default: 4096; with --quick 256]
+    #[arg(long, value_name = "N", default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..=32768))]
+    pub adaptive_reference: u32,
+    /// Adaptive suite: its scenes, resolution (the thesis's) and/or
+    /// distributed (issue 16's effects)
+    #[arg(long, value_name = "SCENE,...", value_delimiter = ',', default_value = "resolution,distributed", value_parser = ["resolution", "distributed"])]
+    pub adaptive_scenes: Vec<String>,
     #[command(flatten)]
     pub format: super::output::Format,
+}
+
+/// `WIDTHxHEIGHT`, each 1..=32768.
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once('x')
+        .ok_or_else(|| format!("{s:?} is not WIDTHxHEIGHT (e.g. 320x240)"))?;
+    let side = |v: &str| {
+        v.parse::<u32>()
+            .ok()
+            .filter(|n| (1..=32768).contains(n))
+            .ok_or_else(|| format!("{v:?} in {s:?} is not a side of 1..=32768 pixels"))
+    };
+    Ok((side(w)?, side(h)?))
 }
 
 pub fn run(args: BenchArgs) -> Result<ExitCode> {
@@ -105,6 +132,9 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
         } else {
             bench::DEPTH_REFERENCE
         }),
+        adaptive_size: args.adaptive_size,
+        adaptive_reference: args.adaptive_reference,
+        adaptive_scenes: args.adaptive_scenes,
     })?;
     eprintln!(
         "bench: {} runs written under {}",

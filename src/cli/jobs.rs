@@ -54,6 +54,8 @@ pub struct SubmitArgs {
     pub frames: Option<Frames>,
     #[command(flatten)]
     pub overrides: RenderOverrides,
+    #[command(flatten)]
+    pub adaptive: super::render::AdaptiveArgs,
     /// Higher priorities are rendered first (any i32; jobs of equal
     /// priority in the order submitted)
     #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
@@ -112,6 +114,9 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
             sampler: o
                 .sampler
                 .map_or(pb::Sampler::Unspecified, pb::Sampler::from) as i32,
+            target_error: args.adaptive.target_error,
+            min_samples: args.adaptive.min_samples,
+            max_samples: args.adaptive.max_samples,
         }),
         first_frame: frames.first,
         last_frame: frames.last,
@@ -334,6 +339,18 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             rays.primary + rays.shadow + rays.reflection + rays.refraction,
             j.rays_per_second / 1e6
         );
+        if let Some(a) = &j.adaptive {
+            outln!(
+                "adaptive:  target error {} ({}..{} spp): {:.1}% of blocks converged, estimated RMS error {:.2e}, {} of {} expected pixel-samples",
+                a.target_error,
+                a.min_samples,
+                a.max_samples,
+                100.0 * a.converged_share,
+                a.estimated_error,
+                j.samples_done,
+                j.samples_total
+            );
+        }
         if !ended(j.state) {
             if j.eta_seconds >= 0.0 {
                 outln!("eta:       {:.0} s", j.eta_seconds);
@@ -431,10 +448,17 @@ async fn watch_job(
                 String::new()
             };
             let workers = if no_workers { " (no workers)" } else { "" };
+            let adaptive = j.adaptive.as_ref().map_or(String::new(), |a| {
+                format!(
+                    " converged {:.1}% est. error {:.2e}",
+                    100.0 * a.converged_share,
+                    a.estimated_error
+                )
+            });
             progress.set(
                 (percent(&j) * 10.0) as u64,
                 &format!(
-                    "{}{workers} {:.1} Mrays/s{eta}",
+                    "{}{workers} {:.1} Mrays/s{adaptive}{eta}",
                     state_name(j.state),
                     j.rays_per_second / 1e6
                 ),

@@ -83,6 +83,13 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
             "output": (!f.output.is_empty()).then_some(&f.output),
         })).collect::<Vec<_>>(),
         "error": (!j.error.is_empty()).then_some(&j.error),
+        "adaptive": j.adaptive.as_ref().map(|a| json!({
+            "target_error": a.target_error,
+            "min_samples": a.min_samples,
+            "max_samples": a.max_samples,
+            "converged_share": a.converged_share,
+            "estimated_error": a.estimated_error,
+        })),
     })
 }
 

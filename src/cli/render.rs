@@ -8,6 +8,7 @@ use std::time::Instant;
 use anyhow::{Result, bail};
 use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
+use tracer_core::adaptive::{self, AdaptiveSettings, AdaptiveSpec};
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::cpu::MAX_THREADS;
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
@@ -43,9 +44,63 @@ pub struct RenderOverrides {
     pub max_depth: Option<u32>,
     /// Sample placement inside a pixel for square sample counts: grid (cell
     /// centres) or jittered (random within each cell, seeded by pixel,
-    /// sample and frame) [default: the scene's, else grid]
-    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["grid", "jittered"]).map(|s| s.parse::<Sampler>().unwrap()))]
+    /// sample and frame); progressive: low-discrepancy points for every
+    /// count, sample k the same whatever the count (what --target-error
+    /// uses) [default: the scene's, else grid]
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["grid", "jittered", "progressive"]).map(|s| s.parse::<Sampler>().unwrap()))]
     pub sampler: Option<Sampler>,
+}
+
+/// Adaptive sampling (docs/adaptive-sampling.md): samples per block of
+/// 8x8 pixels until the error estimate meets a target.
+#[derive(Args, Debug, Clone, Default)]
+pub struct AdaptiveArgs {
+    /// Adaptive sampling: stop sampling an 8x8 block once the estimated
+    /// standard error of every pixel's mean, in every linear RGB channel,
+    /// is at most E (e.g. 0.005); overrides the scene's [render] target_error
+    #[arg(long, value_name = "E", allow_negative_numbers = true)]
+    pub target_error: Option<f64>,
+    /// Samples every pixel gets in the first round, at least 2 [default:
+    /// the scene's [render] min_samples, else 16]
+    #[arg(long, value_name = "N")]
+    pub min_samples: Option<u32>,
+    /// Most samples a pixel gets; each round doubles an unconverged
+    /// block's samples up to this [default: the scene's [render]
+    /// max_samples, else 1024]
+    #[arg(long, value_name = "N")]
+    pub max_samples: Option<u32>,
+}
+
+impl AdaptiveArgs {
+    /// The adaptive settings of a render (`None`: uniform) and the render
+    /// settings it traces with, checked against the other overrides.
+    pub fn apply(
+        &self,
+        scene: &SceneDesc,
+        overrides: &RenderOverrides,
+        settings: RenderSettings,
+    ) -> Result<(RenderSettings, Option<AdaptiveSettings>)> {
+        let given = AdaptiveSpec {
+            target_error: self.target_error,
+            min_samples: self.min_samples,
+            max_samples: self.max_samples,
+        };
+        let Some(a) = scene.adaptive.resolve(&given).map_err(anyhow::Error::msg)? else {
+            return Ok((settings, None));
+        };
+        if overrides.samples.is_some() {
+            bail!(
+                "--samples does not apply to adaptive sampling (--target-error): use --min-samples and --max-samples"
+            );
+        }
+        if let Some(s) = overrides.sampler.filter(|&s| s != Sampler::Progressive) {
+            bail!(
+                "--sampler {} does not apply to adaptive sampling (--target-error), which places samples progressively (sample k the same whatever the count)",
+                s.name()
+            );
+        }
+        Ok((a.render_settings(settings), Some(a)))
+    }
 }
 
 impl RenderOverrides {
@@ -97,6 +152,12 @@ pub struct RenderArgs {
     pub output: Option<PathBuf>,
     #[command(flatten)]
     pub overrides: RenderOverrides,
+    #[command(flatten)]
+    pub adaptive: AdaptiveArgs,
+    /// Adaptive renders: also write a heat map of samples per pixel (PNG,
+    /// dark blue at --min-samples to yellow at --max-samples, log scale)
+    #[arg(long, value_name = "FILE.png")]
+    pub sample_map: Option<PathBuf>,
     /// CPU threads for --backend cpu, 0..=4096; 0 means all cores [default: all cores]
     #[arg(long, allow_negative_numbers = true, value_parser = threads_parser())]
     pub threads: Option<usize>,
@@ -121,6 +182,22 @@ pub struct RenderArgs {
 
 pub use tessera_coordinator::image::{ImageFormat, write_image};
 
+/// One line per adaptive round, for the log above the progress bar.
+fn round_line(r: &adaptive::RoundReport) -> String {
+    let s = &r.summary;
+    format!(
+        "round {} (samples {}..{}): {} blocks active, {:.1} s; {:.1}% converged, estimated RMS error {:.2e}, {:.0}% of expected samples done",
+        r.round,
+        r.samples.start,
+        r.samples.end,
+        r.active_blocks,
+        r.seconds,
+        100.0 * s.converged_share(),
+        s.rms_error,
+        100.0 * s.samples_done as f64 / s.samples_expected.max(1) as f64
+    )
+}
+
 pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let output = args
         .output
@@ -133,6 +210,15 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         eprintln!("warning: {w}");
     }
     let settings = args.overrides.apply(&scene.render)?;
+    let (settings, adaptive) = args.adaptive.apply(&scene, &args.overrides, settings)?;
+    if let Some(map) = &args.sample_map {
+        if adaptive.is_none() {
+            bail!("--sample-map applies to adaptive renders: give --target-error too");
+        }
+        if ImageFormat::of(map)? != ImageFormat::Png {
+            bail!("--sample-map {}: the sample map is a PNG", map.display());
+        }
+    }
     let precision: Precision = args.precision.into();
 
     #[cfg(feature = "gpu")]
@@ -160,10 +246,28 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let start = Instant::now();
     let rect = Rect::full(settings.width, settings.height);
     let samples = SampleRange::all(settings.samples);
-    let film = renderer.render(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?;
+    let mut last_round = None;
+    let film = match &adaptive {
+        None => renderer.render(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?,
+        Some(a) => adaptive::render(
+            &renderer,
+            &prepared,
+            args.frame,
+            a,
+            &|n| progress.inc(n),
+            &mut |r| {
+                progress.note(&round_line(r));
+                last_round = Some(*r);
+            },
+        )?,
+    };
     let secs = start.elapsed().as_secs_f64();
     progress.finish();
     write_image(&output, &film)?;
+    if let (Some(map), Some(a)) = (&args.sample_map, &adaptive) {
+        tessera_coordinator::image::write_sample_map(map, &film, a.min_samples, a.max_samples)?;
+    }
+    let pixel_samples: u64 = film.counts.iter().map(|&n| n as u64).sum();
 
     let r = film.rays;
     if args.format.json {
@@ -185,8 +289,35 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
             "rays_per_second": r.total() as f64 / secs,
             "nonfinite_samples": film.nonfinite,
             "output": output.display().to_string(),
+            "adaptive": adaptive.map(|a| {
+                let s = last_round.map(|r| r.summary).unwrap_or_default();
+                serde_json::json!({
+                    "target_error": a.target_error,
+                    "min_samples": a.min_samples,
+                    "max_samples": a.max_samples,
+                    "rounds": last_round.map_or(0, |r| r.round + 1),
+                    "pixel_samples": pixel_samples,
+                    "mean_samples": pixel_samples as f64 / rect.area() as f64,
+                    "converged_share": s.converged_share(),
+                    "capped_blocks": s.capped_blocks,
+                    "estimated_rms_error": s.rms_error,
+                    "sample_map": args.sample_map.as_ref().map(|p| p.display().to_string()),
+                })
+            }),
         }));
     } else {
+        if let Some(a) = &adaptive {
+            let s = last_round.map(|r| r.summary).unwrap_or_default();
+            outln!(
+                "adaptive: target error {} ({}..{} spp): mean {:.1} spp, {:.1}% of blocks converged, estimated RMS error {:.2e}",
+                a.target_error,
+                a.min_samples,
+                a.max_samples,
+                pixel_samples as f64 / rect.area() as f64,
+                100.0 * s.converged_share(),
+                s.rms_error
+            );
+        }
         outln!(
             "{}x{} {} spp depth {} {} {}  {:.3} s  {} rays (primary {}, shadow {}, reflection {}, refraction {})  {:.1} Mrays/s  -> {}",
             settings.width,

@@ -129,6 +129,12 @@ pub struct Film {
     /// Samples whose value was NaN or infinite and was replaced by 0 (or clamped).
     /// Always 0 for a correct tracer; tests assert it.
     pub nonfinite: u64,
+    /// Adaptive renders only: per pixel, the sum of each sample's squared
+    /// fixed-point value (exact: a sample is below 2^48 units, its square
+    /// below 2^96, and 2^16 of them below 2^112), from which
+    /// [`crate::adaptive`] estimates the error of the mean. `None` for
+    /// uniform renders, which stay as they were on the wire and on disk.
+    pub squares: Option<Vec<[u128; 3]>>,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -143,6 +149,10 @@ pub enum FilmError {
     },
     #[error("pixel sum overflow at ({x}, {y})")]
     Overflow { x: u32, y: u32 },
+    #[error(
+        "film {rect:?} {what} sums of squares (an adaptive film merges only with adaptive films)"
+    )]
+    SquaresMismatch { rect: Rect, what: &'static str },
 }
 
 /// Converts one sample's radiance to fixed point, sanitising non-finite values.
@@ -173,6 +183,15 @@ impl Film {
             counts: vec![0; rect.area()],
             rays: RayCounts::default(),
             nonfinite: 0,
+            squares: None,
+        }
+    }
+
+    /// An empty film that also keeps sums of squares (adaptive renders).
+    pub fn with_squares(rect: Rect) -> Self {
+        Film {
+            squares: Some(vec![[0; 3]; rect.area()]),
+            ..Film::new(rect)
         }
     }
 
@@ -189,7 +208,8 @@ impl Film {
     /// Checks that data from elsewhere (a worker, a file) is self-consistent.
     pub fn validate(&self) -> Result<(), FilmError> {
         let expected = self.rect.area();
-        for got in [self.sums.len(), self.counts.len()] {
+        let squares = self.squares.as_ref().map_or(expected, Vec::len);
+        for got in [self.sums.len(), self.counts.len(), squares] {
             if got != expected {
                 return Err(FilmError::WrongSize {
                     rect: self.rect,
@@ -213,6 +233,40 @@ impl Film {
                 tile: other.rect,
                 film: self.rect,
             });
+        }
+        match (&self.squares, &other.squares) {
+            (Some(_), Some(_)) | (None, None) => {}
+            (Some(_), None) => {
+                return Err(FilmError::SquaresMismatch {
+                    rect: other.rect,
+                    what: "lacks",
+                });
+            }
+            (None, Some(_)) => {
+                return Err(FilmError::SquaresMismatch {
+                    rect: other.rect,
+                    what: "has",
+                });
+            }
+        }
+        // Sums of squares (adaptive films only) are checked before anything
+        // is added, so an overflow there leaves the film unchanged too.
+        if let (Some(a), Some(b)) = (&self.squares, &other.squares) {
+            let w = self.rect.width as usize;
+            for row in 0..other.rect.height as usize {
+                let src = row * other.rect.width as usize;
+                let dst = (other.rect.y - self.rect.y) as usize * w
+                    + row * w
+                    + (other.rect.x - self.rect.x) as usize;
+                for col in 0..other.rect.width as usize {
+                    if (0..3).any(|c| a[dst + col][c].checked_add(b[src + col][c]).is_none()) {
+                        return Err(FilmError::Overflow {
+                            x: other.rect.x + col as u32,
+                            y: other.rect.y + row as u32,
+                        });
+                    }
+                }
+            }
         }
         let (w, ow) = (self.rect.width as usize, other.rect.width as usize);
         if ow == 0 || other.rect.height == 0 {
@@ -287,6 +341,15 @@ impl Film {
             }
             let (x, y) = at.expect("a wrapped add has a pixel that overflows");
             return Err(FilmError::Overflow { x, y });
+        }
+        if let (Some(a), Some(b)) = (&mut self.squares, &other.squares) {
+            for (d, s) in a[span].chunks_mut(w).zip(b.chunks(ow)) {
+                for (a, b) in d[x0..x0 + ow].iter_mut().zip(s) {
+                    for ch in 0..3 {
+                        a[ch] += b[ch]; // checked above
+                    }
+                }
+            }
         }
         self.rays.add(&other.rays);
         self.nonfinite += other.nonfinite;

@@ -35,6 +35,7 @@
 //! ```
 
 pub mod accel;
+pub mod adaptive;
 pub mod assets;
 pub mod bvh;
 pub mod distributed;

@@ -20,6 +20,11 @@ pub enum Sampler {
     /// Stratified jitter: one uniformly random point in each cell of the
     /// n x n grid for square counts; a per-pixel rotated R2 sequence otherwise.
     Jittered,
+    /// Low-discrepancy points (a per-pixel rotated R2 sequence) for every
+    /// count: sample k of a pixel does not depend on the sample count, so
+    /// the first k samples of a render are a well-spread set of their own.
+    /// Adaptive sampling (`crate::adaptive`) places samples this way.
+    Progressive,
 }
 
 impl Sampler {
@@ -27,6 +32,7 @@ impl Sampler {
         match self {
             Sampler::Grid => "grid",
             Sampler::Jittered => "jittered",
+            Sampler::Progressive => "progressive",
         }
     }
 }
@@ -37,8 +43,9 @@ impl std::str::FromStr for Sampler {
         match s {
             "grid" => Ok(Sampler::Grid),
             "jittered" => Ok(Sampler::Jittered),
+            "progressive" => Ok(Sampler::Progressive),
             _ => Err(format!(
-                "unknown sampler {s:?}: expected \"grid\" or \"jittered\""
+                "unknown sampler {s:?}: expected \"grid\", \"jittered\" or \"progressive\""
             )),
         }
     }
@@ -166,12 +173,18 @@ pub fn same_in_every_pixel(sampler: Sampler, count: u32) -> bool {
 /// Offset of sample `sample` (of `count`) inside its pixel, each coordinate in [0, 1).
 #[inline]
 pub fn sample_offset(sampler: Sampler, count: u32, seed: u32, sample: u32) -> (f32, f32) {
-    match exact_sqrt(count) {
+    let grid = match sampler {
+        Sampler::Progressive => None,
+        Sampler::Grid | Sampler::Jittered => exact_sqrt(count),
+    };
+    match grid {
         Some(n) => {
             let (i, j) = (sample % n, sample / n);
             let (jx, jy) = match sampler {
                 Sampler::Grid => (0.5, 0.5),
-                Sampler::Jittered => (uniform(seed, sample, 0), uniform(seed, sample, 1)),
+                Sampler::Jittered | Sampler::Progressive => {
+                    (uniform(seed, sample, 0), uniform(seed, sample, 1))
+                }
             };
             ((i as f32 + jx) / n as f32, (j as f32 + jy) / n as f32)
         }
@@ -271,6 +284,25 @@ mod tests {
                 "quadrant {q} empty: {pts:?}"
             );
         }
+    }
+
+    #[test]
+    fn progressive_samples_do_not_depend_on_the_count() {
+        let seed = pixel_seed(5, 9, 2);
+        for count in [1, 2, 4, 16, 64, 1000, 1024] {
+            for k in 0..count.min(64) {
+                assert_eq!(
+                    sample_offset(Sampler::Progressive, count, seed, k),
+                    sample_offset(Sampler::Progressive, 65_536, seed, k),
+                    "count {count} sample {k}"
+                );
+            }
+        }
+        // The non-square fallback of the other samplers is the same sequence.
+        assert_eq!(
+            sample_offset(Sampler::Progressive, 16, seed, 3),
+            sample_offset(Sampler::Grid, 8, seed, 3)
+        );
     }
 
     #[test]

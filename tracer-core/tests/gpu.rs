@@ -972,7 +972,12 @@ fn hard_nested_and_touching_glass_spheres() {
 fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
     let Some(g) = gpu() else { return };
     let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();
-    for (sampler, samples) in [("grid", 9), ("jittered", 9), ("jittered", 5)] {
+    for (sampler, samples) in [
+        ("grid", 9),
+        ("jittered", 9),
+        ("jittered", 5),
+        ("progressive", 9),
+    ] {
         let s = RenderSettings {
             width: 67,
             height: 41,

@@ -38,6 +38,7 @@ use tessera_proto::{VersionStamp, film_codec, pb};
 use tokio::sync::{mpsc, watch};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
+use tracer_core::adaptive::BlockMask;
 use tracer_core::assets::Bundle;
 use tracer_core::film::{Film, Rect, SampleRange};
 #[cfg(feature = "gpu")]
@@ -455,8 +456,12 @@ impl Worker {
                 Ok(prepared) => {
                     let renderer = self.renderer.clone();
                     let frame = unit.frame;
-                    let render = tokio::task::spawn_blocking(move || {
-                        render_unit(
+                    // Adaptive jobs: the round's active blocks.
+                    let active = unit
+                        .adaptive
+                        .then(|| BlockMask::from_bytes(rect, &unit.active_blocks));
+                    let render = tokio::task::spawn_blocking(move || match active {
+                        None => render_unit(
                             &renderer,
                             &prepared,
                             frame,
@@ -464,7 +469,17 @@ impl Worker {
                             samples,
                             &cancel,
                             &samples_done,
-                        )
+                        ),
+                        Some(Err(e)) => UnitEnd::Failed(e.to_string()),
+                        Some(Ok(mask)) => render_round_unit(
+                            &renderer,
+                            &prepared,
+                            frame,
+                            &mask,
+                            samples,
+                            &cancel,
+                            &samples_done,
+                        ),
                     });
                     let render = async {
                         render
@@ -794,6 +809,10 @@ async fn send_batch(
                 req.uniform_count = packed.uniform_count;
                 req.sums = packed.sums;
                 req.counts = packed.counts;
+                if let Some((n, squares)) = film_codec::pack_squares_part(film, film.rect) {
+                    req.square_bytes = n.into();
+                    req.squares = squares;
+                }
                 req.rays = Some(film.rays.into());
                 req.nonfinite = film.nonfinite;
                 req.render_seconds = *secs;
@@ -921,6 +940,30 @@ fn render_unit(
         y += band.height;
     }
     UnitEnd::Film(film, start.elapsed().as_secs_f64())
+}
+
+/// Renders a round of an adaptive unit: its active blocks, in one call
+/// (`tracer_core::adaptive::render_round`), unless the lease is gone before
+/// it starts (a round is short, so it is not cancelled midway).
+fn render_round_unit(
+    renderer: &Renderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    mask: &BlockMask,
+    samples: SampleRange,
+    cancel: &AtomicBool,
+    samples_done: &AtomicU64,
+) -> UnitEnd {
+    if cancel.load(Ordering::Relaxed) {
+        return UnitEnd::Abandoned;
+    }
+    let start = Instant::now();
+    match tracer_core::adaptive::render_round(renderer, prepared, frame, mask, samples, &|n| {
+        samples_done.fetch_add(n, Ordering::Relaxed);
+    }) {
+        Ok(film) => UnitEnd::Film(film, start.elapsed().as_secs_f64()),
+        Err(e) => UnitEnd::Failed(e.to_string()),
+    }
 }
 
 /// Sends heartbeats for held leases; cancels those the coordinator says are gone.

@@ -127,6 +127,8 @@ pub enum RendererError {
     #[cfg(feature = "gpu")]
     #[error(transparent)]
     Gpu(#[from] GpuError),
+    #[error("{0}")]
+    Unsupported(&'static str),
 }
 
 impl Renderer {

@@ -154,6 +154,9 @@ struct RenderTable {
     samples: Option<u32>,
     max_depth: Option<u32>,
     sampler: Option<Sampler>,
+    target_error: Option<Num>,
+    min_samples: Option<u32>,
+    max_samples: Option<u32>,
 }
 
 #[derive(Clone, Debug, Deserialize, PartialEq)]
@@ -496,6 +499,10 @@ pub struct SceneDesc {
     /// What the scene's model files gave defaults for (each names the
     /// object and the file); the scene renders, the user is told.
     pub warnings: Vec<String>,
+    /// `[render]`'s adaptive-sampling keys (`target_error`, `min_samples`,
+    /// `max_samples`), each checked on its own; the command line may add
+    /// to them (see [`crate::adaptive::AdaptiveSpec::resolve`]).
+    pub adaptive: crate::adaptive::AdaptiveSpec,
 }
 
 impl SceneDesc {
@@ -573,6 +580,17 @@ impl SceneDesc {
         };
 
         let mut render = RenderSettings::default();
+        let mut adaptive = crate::adaptive::AdaptiveSpec::default();
+        if let Some(t) = &file.render {
+            adaptive = crate::adaptive::AdaptiveSpec {
+                target_error: t.target_error.map(|n| n.0),
+                min_samples: t.min_samples,
+                max_samples: t.max_samples,
+            };
+            adaptive
+                .check()
+                .map_err(|(key, m)| invalid(table_span("render"), format!("render.{key}"), m))?;
+        }
         if let Some(t) = file.render {
             render.width = t.width.unwrap_or(render.width);
             render.height = t.height.unwrap_or(render.height);
@@ -928,6 +946,7 @@ impl SceneDesc {
             lights,
             objects,
             object_materials,
+            adaptive,
         })
     }
 }

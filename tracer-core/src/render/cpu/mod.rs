@@ -58,6 +58,12 @@ impl CpuRenderer {
         self.pool.current_num_threads()
     }
 
+    /// The renderer's threads, for other drivers of [`render_tile`]
+    /// (adaptive rounds).
+    pub(crate) fn pool(&self) -> &rayon::ThreadPool {
+        &self.pool
+    }
+
     /// Renders `rect` of `frame` over sample indices `samples`. `progress` is
     /// called from the worker threads with the number of pixel-samples each
     /// finished tile covered.

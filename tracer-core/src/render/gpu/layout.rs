@@ -518,7 +518,12 @@ impl SceneData {
     /// and primitive counts).
     pub fn from_world(w: &World<f32>, packed: Option<&SharedTree>) -> Result<Self, GpuError> {
         let s = &w.settings;
-        let grid_n = crate::sampling::exact_sqrt(s.samples).unwrap_or(0);
+        // 0: the low-discrepancy points (non-square counts, and the
+        // progressive sampler whatever the count), as `sample_offset`.
+        let grid_n = match s.sampler {
+            crate::sampling::Sampler::Progressive => 0,
+            _ => crate::sampling::exact_sqrt(s.samples).unwrap_or(0),
+        };
         let frame = FrameUniform {
             forward: a3(w.camera.forward),
             inv_width: w.camera.inv_width,
@@ -532,6 +537,7 @@ impl SceneData {
             sampler: match s.sampler {
                 crate::sampling::Sampler::Grid => 0,
                 crate::sampling::Sampler::Jittered => 1,
+                crate::sampling::Sampler::Progressive => 2,
             },
         };
         let sphere = |s: &Sphere<f32>| GpuSphere {

@@ -26,7 +26,8 @@ fn uniform01(seed: u32, sample: u32, dim: u32) -> f32 {
 const R2_A1: u32 = 3242174889u;
 const R2_A2: u32 = 2447445413u;
 
-// sampler: 0 grid, 1 jittered; grid_n: sqrt of the sample count, 0 if not square.
+// sampler: 0 grid, 1 jittered, 2 progressive; grid_n: sqrt of the sample
+// count, 0 if not square or progressive (the host decides).
 fn sample_offset(sampler: u32, grid_n: u32, seed: u32, sample: u32) -> vec2<f32> {
     if (grid_n != 0u) {
         let i = sample % grid_n;
