@@ -330,16 +330,16 @@ struct Lease {
     expected_rays: f64,
     /// Adaptive jobs: the blocks of `rect` this round samples.
     active: Option<BlockMask>,
-    /// The other lease of the same units, when one backs up the other
-    /// (a faster idle worker duplicating a slow worker's lease at a job's
-    /// end): the first result wins and the other lease is withdrawn.
-    partner: Option<String>,
-    /// Whether this lease is the backup (its work is counted in flight once,
+    /// The other leases of the same units, when backups duplicate a lease
+    /// (faster idle workers taking a slower worker's lease at a job's end):
+    /// the first result wins and the others are withdrawn.
+    partners: Vec<String>,
+    /// Whether this lease is a backup (its work is counted in flight once,
     /// under the original).
     backup: bool,
-    /// Whether a backup of this lease was ever granted: one is the most (a
+    /// Backups of this lease granted so far: at most [`MAX_BACKUPS`] (a
     /// worker whose backups fail must not take them again and again).
-    backed_up: bool,
+    backups: u32,
 }
 
 impl Lease {
@@ -398,6 +398,9 @@ const MIN_LEASE_SECONDS: f64 = 0.01;
 /// A backup lease is granted only when its worker would finish it in less
 /// than this share of the time the holder needs for the work it holds...
 const BACKUP_GAIN: f64 = 0.5;
+/// Backups of one lease at most: a slow idle worker may take one before a
+/// fast one asks, which must still be able to take another.
+const MAX_BACKUPS: u32 = 2;
 /// ...counting this much for the lease's fixed costs (a round trip, a
 /// result message).
 const BACKUP_OVERHEAD_SECONDS: f64 = 0.01;
@@ -410,29 +413,29 @@ impl State {
     /// After a lease's result was taken: its partner's work is not needed
     /// any more, so that lease is withdrawn (its holder stops at its next
     /// heartbeat; a result it still sends is dropped as late).
-    fn withdraw_partner(&mut self, l: &Lease) {
-        let Some(id) = &l.partner else {
-            return;
-        };
-        if let Some(p) = self.leases.remove(id) {
-            if let Some(w) = self.workers.get_mut(&p.worker) {
-                w.leases.remove(id);
+    fn withdraw_partners(&mut self, l: &Lease) {
+        for id in &l.partners {
+            if let Some(p) = self.leases.remove(id) {
+                if let Some(w) = self.workers.get_mut(&p.worker) {
+                    w.leases.remove(id);
+                }
+                self.end_lease(id.clone(), p.job, false);
             }
-            self.end_lease(id.clone(), p.job, false);
         }
     }
 
     /// After a lease ended without a result (failed, rejected, expired or
     /// handed back): whether its partner still holds the units, which then
     /// stay with it instead of being queued again or failed.
-    fn partner_keeps(&mut self, l: &Lease) -> bool {
-        match l.partner.as_ref().and_then(|id| self.leases.get_mut(id)) {
-            Some(p) => {
-                p.partner = None;
-                true
+    fn partner_keeps(&mut self, id: &str, l: &Lease) -> bool {
+        let mut kept = false;
+        for p in &l.partners {
+            if let Some(p) = self.leases.get_mut(p) {
+                p.partners.retain(|q| q != id);
+                kept = true;
             }
-            None => false,
         }
+        kept
     }
 
     fn end_lease(&mut self, id: String, job: String, consumed: bool) {
@@ -1412,9 +1415,9 @@ impl Farm {
                         progress: 0,
                         expected_rays,
                         active,
-                        partner: None,
+                        partners: Vec::new(),
                         backup: false,
-                        backed_up: false,
+                        backups: 0,
                     },
                 );
                 st.workers
@@ -1452,22 +1455,34 @@ impl Farm {
         for l in st.leases.values() {
             *held.entry(l.worker.as_str()).or_default() += l.remaining_rays();
         }
+        // When a worker would be through the work it holds (a holder not
+        // yet measured may be of any speed).
+        let through = |worker: &str| {
+            let speed = st.workers.get(worker).map_or(0.0, |w| w.ray_speed);
+            if speed > 0.0 {
+                held.get(worker).copied().unwrap_or(0.0) / speed
+            } else {
+                f64::INFINITY
+            }
+        };
         let mut best: Option<(f64, String)> = None;
         for (id, l) in &st.leases {
-            if l.worker == worker_id
-                || l.backup
-                || l.backed_up
+            if l.backup
+                || l.backups >= MAX_BACKUPS
                 || st.jobs.get(&l.job).is_none_or(|j| j.state.is_terminal())
             {
                 continue;
             }
-            // A holder not yet measured may be of any speed.
-            let holder = st.workers.get(&l.worker).map_or(0.0, |w| w.ray_speed);
-            let theirs = if holder > 0.0 {
-                held.get(l.worker.as_str()).copied().unwrap_or(0.0) / holder
-            } else {
-                f64::INFINITY
-            };
+            // The soonest any copy of the lease is expected to be done.
+            let mut theirs = through(&l.worker);
+            let mut mine_already = l.worker == worker_id;
+            for p in l.partners.iter().filter_map(|p| st.leases.get(p)) {
+                theirs = theirs.min(through(&p.worker));
+                mine_already |= p.worker == worker_id;
+            }
+            if mine_already {
+                continue;
+            }
             let mine = busy + l.expected_rays / speed + BACKUP_OVERHEAD_SECONDS;
             if mine < BACKUP_GAIN * theirs && best.as_ref().is_none_or(|(g, _)| theirs - mine > *g)
             {
@@ -1475,11 +1490,19 @@ impl Farm {
             }
         }
         let (_, original) = best?;
-        let o = st.leases.get_mut(&original).expect("listed");
         st.next_id += 1;
         let lease_id = format!("l{}-{}", self.boot, st.next_id);
-        o.partner = Some(lease_id.clone());
-        o.backed_up = true;
+        let o = st.leases.get_mut(&original).expect("listed");
+        o.backups += 1;
+        let mut partners = o.partners.clone();
+        o.partners.push(lease_id.clone());
+        for p in &partners {
+            if let Some(p) = st.leases.get_mut(p) {
+                p.partners.push(lease_id.clone());
+            }
+        }
+        partners.push(original.clone());
+        let o = &st.leases[&original];
         let lease = Lease {
             worker: worker_id.to_string(),
             job: o.job.clone(),
@@ -1491,9 +1514,9 @@ impl Farm {
             progress: 0,
             expected_rays: o.expected_rays,
             active: o.active.clone(),
-            partner: Some(original.clone()),
+            partners,
             backup: true,
-            backed_up: false,
+            backups: 0,
         };
         let job = st.jobs.get(&lease.job).expect("checked");
         tracing::debug!(lease = %lease_id, backs_up = %original, job = %lease.job, rect = ?lease.rect, "backup lease");
@@ -1597,7 +1620,7 @@ impl Farm {
             if let Some(w) = st.workers.get_mut(worker_id) {
                 w.leases.remove(id);
             }
-            if st.partner_keeps(&l) {
+            if st.partner_keeps(id, &l) {
                 tracing::info!(lease = %id, job = %l.job, worker = %worker_id, "lease returned; its backup goes on");
             } else {
                 if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
@@ -1874,7 +1897,7 @@ impl Farm {
                 },
             );
             tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
-            let rec = if st.partner_keeps(&lease) {
+            let rec = if st.partner_keeps(&r.lease_id, &lease) {
                 None
             } else {
                 let job = st.jobs.get_mut(&lease.job).expect("checked");
@@ -1897,7 +1920,7 @@ impl Farm {
             job.counters.results_rejected += 1;
             let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
             tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
-            let rec = if st.partner_keeps(&lease) {
+            let rec = if st.partner_keeps(&r.lease_id, &lease) {
                 None
             } else {
                 let job = st.jobs.get_mut(&lease.job).expect("checked");
@@ -1913,7 +1936,7 @@ impl Farm {
             return Err((Outcome::Rejected(reason), rec, snapshot));
         }
         let units = lease.units.clone();
-        st.withdraw_partner(&lease);
+        st.withdraw_partners(&lease);
         st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
         Ok(Taken {
             job: lease.job.clone(),
@@ -2211,7 +2234,7 @@ impl Farm {
                 w.units_failed += l.units.len() as u64;
                 w.name.clone()
             });
-            if st.partner_keeps(&l) {
+            if st.partner_keeps(&id, &l) {
                 tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), "lease expired; its backup goes on");
             } else if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
                 tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
@@ -3507,9 +3530,15 @@ material = "red"
         let mut failed = result(&fast, &backup, 0.001);
         failed.failure = Some("device lost".into());
         farm.submit_result(failed).await.unwrap();
+        // Nothing queued again; one more backup is tried, then no more.
+        let again = farm.lease(&fast, 1, false).unwrap().remove(0);
+        assert_eq!(again.rect, s2.rect);
+        let mut failed = result(&fast, &again, 0.001);
+        failed.failure = Some("device lost".into());
+        farm.submit_result(failed).await.unwrap();
         assert!(
             farm.lease(&fast, 1, false).unwrap().is_empty(),
-            "nothing queued again, and the original is not backed up twice"
+            "a lease is backed up at most twice"
         );
         let r = farm.submit_result(result(&slow, &s2, 1.0)).await.unwrap();
         assert_eq!(r, Outcome::Accepted);
@@ -3540,5 +3569,39 @@ material = "red"
             widths[1] > widths[0],
             "alone, a worker's lease is larger than beside a live twin: {widths:?}"
         );
+    }
+
+    /// A lease already backed up by a worker only somewhat faster is backed
+    /// up again by a much faster one; its result withdraws both others.
+    #[tokio::test]
+    async fn a_much_faster_worker_backs_up_a_lease_already_backed_up() {
+        let (_dir, farm, job) = farm_with_job(64, 16, 4).await;
+        let slow = register(&farm, "slow", 1);
+        let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&slow, &s1, 1.0)).await.unwrap();
+        let s2 = farm.lease(&slow, 1, false).unwrap().remove(0);
+        let mid = register(&farm, "mid", 4);
+        let fast = register(&farm, "fast", 8);
+        // Each measured on a tile of its own: the last two.
+        let m1 = farm.lease(&mid, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&mid, &m1, 0.1)).await.unwrap();
+        let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
+        farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap();
+        // Out of pending work, the mid worker asks first and backs up the
+        // slow worker's lease; the fast one then backs it up as well.
+        let mb = farm.lease(&mid, 1, false).unwrap().remove(0);
+        assert_eq!(mb.rect, s2.rect);
+        let fb = farm.lease(&fast, 1, false).unwrap().remove(0);
+        assert_eq!(fb.rect, s2.rect, "the fast worker backs it up too");
+        assert_eq!(
+            farm.submit_result(result(&fast, &fb, 0.001)).await.unwrap(),
+            Outcome::Accepted
+        );
+        for (w, l) in [(&slow, &s2), (&mid, &mb)] {
+            let gone = farm.heartbeat(w, &[(l.lease_id.clone(), 1)]).unwrap();
+            assert_eq!(gone, vec![l.lease_id.clone()]);
+        }
+        let v = wait_done(&farm, &job).await;
+        assert_eq!(v.counters.units_accepted, v.units_total);
     }
 }

@@ -9,6 +9,7 @@
 //! as every result of a sample range does: 15 bytes a pixel instead of 28
 //! for a 1080p frame at 64 samples.
 
+use rayon::prelude::*;
 use tracer_core::film::{Film, RayCounts, Rect};
 
 /// Bytes per pixel of the `sums` field.
@@ -53,6 +54,10 @@ pub enum FilmCodecError {
         height: u32,
     },
 }
+
+/// Films of at least this many pixels pack and unpack in parallel: a GPU
+/// worker's result of a whole 1080p frame is tens of megabytes.
+const PARALLEL_PIXELS: usize = 1 << 18;
 
 /// How a film's pixels are laid out in bytes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -120,27 +125,48 @@ pub fn pack_part(film: &Film, rect: Rect) -> Packed {
         "{rect:?} outside {:?}",
         film.rect
     );
-    let mut max = 0u64;
-    let mut count = None;
-    let mut uniform = true;
-    for r in rows(film, rect) {
-        for s in &film.sums[r.clone()] {
-            max |= s[0] | s[1] | s[2];
-        }
-        for &c in &film.counts[r] {
-            uniform &= *count.get_or_insert(c) == c;
-        }
-    }
+    let parallel = rect.area() >= PARALLEL_PIXELS;
+    let count = rows(film, rect)
+        .next()
+        .filter(|_| rect.area() > 0)
+        .map(|r| film.counts[r.start]);
+    // The largest sum's bits, and whether every count is the first's.
+    let scan = |r: std::ops::Range<usize>| {
+        let max = film.sums[r.clone()]
+            .iter()
+            .fold(0u64, |m, s| m | s[0] | s[1] | s[2]);
+        let uniform = film.counts[r].iter().all(|&c| Some(c) == count);
+        (max, uniform)
+    };
+    let (max, uniform) = if parallel {
+        let rows: Vec<_> = rows(film, rect).collect();
+        rows.into_par_iter()
+            .map(scan)
+            .reduce(|| (0, true), |a, b| (a.0 | b.0, a.1 && b.1))
+    } else {
+        rows(film, rect)
+            .map(scan)
+            .fold((0, true), |a, b| (a.0 | b.0, a.1 && b.1))
+    };
     let sum_bytes = ((64 - max.leading_zeros()).div_ceil(8)).max(1) as u8;
     let n = sum_bytes as usize;
+    let row_bytes = rect.width as usize * 3 * n;
     let mut sums = vec![0u8; rect.area() * 3 * n];
-    let mut at = 0;
-    for r in rows(film, rect) {
-        for s in &film.sums[r] {
-            for v in s {
-                sums[at..at + n].copy_from_slice(&v.to_le_bytes()[..n]);
-                at += n;
+    let write_row = |(out, r): (&mut [u8], std::ops::Range<usize>)| {
+        for (o, s) in out.chunks_exact_mut(3 * n).zip(&film.sums[r]) {
+            for (c, v) in s.iter().enumerate() {
+                o[c * n..(c + 1) * n].copy_from_slice(&v.to_le_bytes()[..n]);
             }
+        }
+    };
+    if row_bytes > 0 {
+        if parallel {
+            let rows: Vec<_> = rows(film, rect).collect();
+            sums.par_chunks_mut(row_bytes).zip(rows).for_each(write_row);
+        } else {
+            sums.chunks_mut(row_bytes)
+                .zip(rows(film, rect))
+                .for_each(write_row);
         }
     }
     let uniform_count = if uniform { count.or(Some(0)) } else { None };
@@ -208,10 +234,12 @@ pub fn unpack_with(
         le[..n].copy_from_slice(b);
         u64::from_le_bytes(le)
     };
-    let sums = sums
-        .chunks_exact(3 * n)
-        .map(|p| [value(&p[..n]), value(&p[n..2 * n]), value(&p[2 * n..])])
-        .collect();
+    let pixel = |p: &[u8]| [value(&p[..n]), value(&p[n..2 * n]), value(&p[2 * n..])];
+    let sums = if area >= PARALLEL_PIXELS {
+        sums.par_chunks_exact(3 * n).map(pixel).collect()
+    } else {
+        sums.chunks_exact(3 * n).map(pixel).collect()
+    };
     let counts = match encoding.uniform_count {
         Some(c) => vec![c; area],
         None => counts
@@ -327,6 +355,43 @@ pub fn unpack(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Films large enough to pack and unpack in parallel give the bytes a
+    /// plain loop gives, for a part and for the whole, and round-trip.
+    #[test]
+    fn large_films_pack_in_parallel_to_the_same_bytes() {
+        let rect = Rect::new(0, 0, 700, 400);
+        let mut f = Film::new(rect);
+        for (i, (s, c)) in f.sums.iter_mut().zip(&mut f.counts).enumerate() {
+            let i = i as u64;
+            *s = [i * 977 % 100_003, (i * 31) << 8, i ^ 0x5a5a];
+            *c = 64;
+        }
+        for part in [rect, Rect::new(5, 3, 690, 390)] {
+            assert!(part.area() >= PARALLEL_PIXELS);
+            let p = pack_part(&f, part);
+            assert_eq!((p.sum_bytes, p.uniform_count), (4, Some(64)));
+            let (mut expected, mut cropped) = (vec![], vec![]);
+            for y in part.y..part.y + part.height {
+                for x in part.x..part.x + part.width {
+                    let s = f.sums[(y * rect.width + x) as usize];
+                    cropped.push(s);
+                    for v in s {
+                        expected.extend_from_slice(&v.to_le_bytes()[..4]);
+                    }
+                }
+            }
+            assert!(p.sums == expected, "sums bytes differ");
+            let back = unpack_with(part, p.encoding(), &p.sums, &p.counts, f.rays, 0).unwrap();
+            assert!(back.sums == cropped && back.counts.iter().all(|&c| c == 64));
+        }
+        // One pixel with another count: the counts field is sent.
+        f.counts[123_456] = 63;
+        let p = pack(&f);
+        assert_eq!(p.uniform_count, None);
+        let back = unpack_with(rect, p.encoding(), &p.sums, &p.counts, f.rays, 0).unwrap();
+        assert!(back.counts == f.counts && back.sums == f.sums);
+    }
 
     #[test]
     fn round_trip_and_size_checks() {

@@ -784,100 +784,109 @@ async fn send_batch(
     held: HeldMap,
     units_done: Arc<AtomicU64>,
 ) -> Result<(), tonic::Status> {
-    let mut reqs = Vec::with_capacity(batch.len());
-    for o in &batch {
-        let mut req = pb::SubmitResultRequest {
-            worker_id: worker_id.clone(),
-            lease_id: o.lease_id.clone(),
-            rect: Some(o.rect.into()),
-            samples: Some(o.samples.into()),
-            ..Default::default()
-        };
+    let mut sent = Vec::with_capacity(batch.len());
+    for o in batch {
         match &o.end {
             UnitEnd::Abandoned => {
                 tracing::info!(lease = %o.lease_id, "lease gone; abandoned its unit");
                 held.lock().expect("held lock").remove(&o.lease_id);
-                continue;
             }
             UnitEnd::Failed(msg) => {
                 tracing::warn!(lease = %o.lease_id, error = %msg, "unit failed");
-                req.failure = msg.clone();
+                sent.push(o);
             }
-            UnitEnd::Film(film, secs) => {
-                let packed = film_codec::pack(film);
-                req.sum_bytes = packed.sum_bytes.into();
-                req.uniform_count = packed.uniform_count;
-                req.sums = packed.sums;
-                req.counts = packed.counts;
-                if let Some((n, squares)) = film_codec::pack_squares_part(film, film.rect) {
-                    req.square_bytes = n.into();
-                    req.squares = squares;
-                }
-                req.rays = Some(film.rays.into());
-                req.nonfinite = film.nonfinite;
-                req.render_seconds = *secs;
-            }
+            UnitEnd::Film(..) => sent.push(o),
         }
-        reqs.push(req);
     }
-    if reqs.is_empty() {
+    if sent.is_empty() {
         return Ok(());
     }
-    let outcomes = submit_with_retry(&mut client, reqs.clone()).await?;
+    // Packed for each attempt, not cloned: a GPU unit's sums are tens of
+    // megabytes, and a retry is rare.
+    let outcomes = submit_with_retry(&mut client, sent.len(), || {
+        sent.iter().map(|o| result_request(&worker_id, o)).collect()
+    })
+    .await?;
     let mut h = held.lock().expect("held lock");
-    let sent = batch
-        .iter()
-        .filter(|o| !matches!(o.end, UnitEnd::Abandoned));
-    for ((o, req), resp) in sent.zip(&reqs).zip(outcomes) {
-        h.remove(&req.lease_id);
+    for (o, resp) in sent.iter().zip(outcomes) {
+        h.remove(&o.lease_id);
         match pb::ResultOutcome::try_from(resp.outcome).unwrap_or(pb::ResultOutcome::Unspecified) {
             pb::ResultOutcome::Accepted => {
                 units_done.fetch_add(1, Ordering::Relaxed);
-                tracing::debug!(lease = %req.lease_id, frame = o.frame, rect = ?o.rect, batch = reqs.len(), "result accepted");
+                tracing::debug!(lease = %o.lease_id, frame = o.frame, rect = ?o.rect, batch = sent.len(), "result accepted");
             }
             pb::ResultOutcome::FailureRecorded => {}
             other => {
-                tracing::warn!(lease = %req.lease_id, outcome = ?other, reason = %resp.reason, "result not accepted")
+                tracing::warn!(lease = %o.lease_id, outcome = ?other, reason = %resp.reason, "result not accepted")
             }
         }
     }
     Ok(())
 }
 
+/// A finished unit (a film or a failure) as a result request.
+fn result_request(worker_id: &str, o: &Outgoing) -> pb::SubmitResultRequest {
+    let mut req = pb::SubmitResultRequest {
+        worker_id: worker_id.to_string(),
+        lease_id: o.lease_id.clone(),
+        rect: Some(o.rect.into()),
+        samples: Some(o.samples.into()),
+        ..Default::default()
+    };
+    match &o.end {
+        UnitEnd::Abandoned => {}
+        UnitEnd::Failed(msg) => req.failure = msg.clone(),
+        UnitEnd::Film(film, secs) => {
+            let packed = film_codec::pack(film);
+            req.sum_bytes = packed.sum_bytes.into();
+            req.uniform_count = packed.uniform_count;
+            req.sums = packed.sums;
+            req.counts = packed.counts;
+            if let Some((n, squares)) = film_codec::pack_squares_part(film, film.rect) {
+                req.square_bytes = n.into();
+                req.squares = squares;
+            }
+            req.rays = Some(film.rays.into());
+            req.nonfinite = film.nonfinite;
+            req.render_seconds = *secs;
+        }
+    }
+    req
+}
+
 /// One result as `SubmitResult`, several as one `SubmitResults`; retried
 /// while the coordinator answers `Unavailable`.
 async fn submit_with_retry(
     client: &mut Client,
-    reqs: Vec<pb::SubmitResultRequest>,
+    count: usize,
+    requests: impl Fn() -> Vec<pb::SubmitResultRequest>,
 ) -> Result<Vec<pb::SubmitResultResponse>, tonic::Status> {
     let mut backoff = Duration::from_millis(100);
     let mut tries = 0;
     loop {
         tries += 1;
-        let sent = if reqs.len() == 1 {
+        let mut reqs = requests();
+        let sent = if count == 1 {
             client
-                .submit_result(reqs[0].clone())
+                .submit_result(reqs.pop().expect("one request"))
                 .await
                 .map(|r| vec![r.into_inner()])
         } else {
             client
-                .submit_results(pb::SubmitResultsRequest {
-                    results: reqs.clone(),
-                })
+                .submit_results(pb::SubmitResultsRequest { results: reqs })
                 .await
                 .map(|r| r.into_inner().outcomes)
         };
         match sent {
-            Ok(outcomes) if outcomes.len() == reqs.len() => return Ok(outcomes),
+            Ok(outcomes) if outcomes.len() == count => return Ok(outcomes),
             Ok(outcomes) => {
                 return Err(tonic::Status::internal(format!(
-                    "the coordinator answered {} outcomes for {} results",
+                    "the coordinator answered {} outcomes for {count} results",
                     outcomes.len(),
-                    reqs.len()
                 )));
             }
             Err(e) if e.code() == tonic::Code::Unavailable && tries < SUBMIT_TRIES => {
-                tracing::warn!(results = reqs.len(), error = %e.message(), retry_in_ms = backoff.as_millis() as u64, "results not recorded; sending them again");
+                tracing::warn!(results = count, error = %e.message(), retry_in_ms = backoff.as_millis() as u64, "results not recorded; sending them again");
                 tokio::time::sleep(backoff).await;
                 backoff = (backoff * 2).min(SUBMIT_BACKOFF_MAX);
             }
