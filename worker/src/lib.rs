@@ -903,6 +903,8 @@ fn gpu_band_rows(rect: Rect, samples: SampleRange) -> u32 {
 
 /// Renders a unit, stopping early when `cancel` is set: on the CPU in one
 /// pass, on the GPU band by band (one dispatch each).
+// Without the `gpu` feature the CPU is the only renderer.
+#[cfg_attr(not(feature = "gpu"), allow(irrefutable_let_patterns))]
 fn render_unit(
     renderer: &Renderer,
     prepared: &PreparedFrame,
