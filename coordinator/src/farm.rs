@@ -369,6 +369,24 @@ struct Worker {
     /// render in a fraction of the target gets larger ones at once.
     last_rays: f64,
     last_seconds: f64,
+    /// Its best rays per second of late, and when it was measured: the
+    /// speed the *other* workers' leases are sized against (see
+    /// [`Worker::farm_speed`]).
+    peak_speed: f64,
+    peak_at: Instant,
+}
+
+impl Worker {
+    /// The speed this worker adds to the farm's when others' leases are
+    /// sized and held back: its best recent speed, relaxing to its
+    /// smoothed speed over about [`PEAK_MEMORY_SECONDS`]. A GPU's small
+    /// units (a job's tail, a warm-up) are mostly fixed cost, so its
+    /// smoothed speed under-rates it, and CPU workers beside it would take
+    /// leases that run past the point where it could have done their work.
+    fn farm_speed(&self) -> f64 {
+        let k = (-self.peak_at.elapsed().as_secs_f64() / PEAK_MEMORY_SECONDS).exp();
+        self.ray_speed + (self.peak_speed - self.ray_speed).max(0.0) * k
+    }
 }
 
 #[derive(Default)]
@@ -401,6 +419,8 @@ const BACKUP_GAIN: f64 = 0.5;
 /// Backups of one lease at most: a slow idle worker may take one before a
 /// fast one asks, which must still be able to take another.
 const MAX_BACKUPS: u32 = 2;
+/// How long a worker's best speed of late counts for the farm's speed.
+const PEAK_MEMORY_SECONDS: f64 = 60.0;
 /// ...counting this much for the lease's fixed costs (a round trip, a
 /// result message).
 const BACKUP_OVERHEAD_SECONDS: f64 = 0.01;
@@ -1182,6 +1202,8 @@ impl Farm {
                 ray_speed: 0.0,
                 last_rays: 0.0,
                 last_seconds: 0.0,
+                peak_speed: 0.0,
+                peak_at: Instant::now(),
             },
         );
         id
@@ -1268,7 +1290,8 @@ impl Farm {
             })
             .map(|(id, w)| {
                 let held = busy_of.get(id.as_str()).copied().unwrap_or(0.0);
-                (w.ray_speed, held / w.ray_speed)
+                let v = w.farm_speed();
+                (v, held / v)
             })
             .collect();
         let held_rays = busy_of.get(worker_id).copied().unwrap_or(0.0);
@@ -2046,6 +2069,10 @@ impl Farm {
                 };
                 w.last_rays = result_rays as f64;
                 w.last_seconds = seconds;
+                if new >= w.farm_speed() {
+                    w.peak_speed = new;
+                    w.peak_at = Instant::now();
+                }
             }
         }
         Ok(Outcome::Accepted)
@@ -3603,5 +3630,45 @@ material = "red"
         }
         let v = wait_done(&farm, &job).await;
         assert_eq!(v.counters.units_accepted, v.units_total);
+    }
+
+    /// The farm's speed, against which a slow worker's lease is sized,
+    /// counts a fast worker's best recent speed: small units after a large
+    /// one (a job's tail, mostly fixed cost on a GPU) lower the fast
+    /// worker's own estimate, not what the slow worker may take.
+    #[tokio::test]
+    async fn a_fast_workers_best_speed_sizes_a_slow_workers_lease() {
+        let mut slow_widths = vec![];
+        for fast_big_unit in [false, true] {
+            let (_dir, farm, _job) = farm_with_job(1024, 256, 4).await;
+            let fast = register(&farm, "fast", 8);
+            let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
+            farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap();
+            let f2 = farm.lease(&fast, 1, false).unwrap().remove(0);
+            assert!(f2.rect.width > 16, "{f2:?}");
+            // The larger unit: either at the first one's speed, or (all
+            // fixed cost) in the first one's time.
+            let tiles = f64::from(f2.rect.width / 16);
+            let seconds = if fast_big_unit { 0.001 } else { 0.001 * tiles };
+            farm.submit_result(result(&fast, &f2, seconds))
+                .await
+                .unwrap();
+            // A small unit, mostly fixed cost: the same low speed in both.
+            let f3 = farm.lease(&fast, 1, false).unwrap().remove(0);
+            let f3_tiles = f64::from(f3.rect.width / 16);
+            farm.submit_result(result(&fast, &f3, 0.001 * f3_tiles * 4.0))
+                .await
+                .unwrap();
+            let slow = register(&farm, "slow", 1);
+            let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+            farm.submit_result(result(&slow, &s1, 0.05)).await.unwrap();
+            let (l, _) = farm.lease_or_hold(&slow, 1, false).unwrap();
+            slow_widths.push(l.first().map_or(0, |l| l.rect.width));
+        }
+        // Beside a worker that was 63x faster a moment ago the slow one is
+        // held back (the fast one, at its best, finishes the rest sooner);
+        // sized on the fast worker's last speed alone it would take work.
+        assert!(slow_widths[0] > 0, "{slow_widths:?}");
+        assert_eq!(slow_widths[1], 0, "{slow_widths:?}");
     }
 }
