@@ -3,12 +3,18 @@
 # prebuilt binaries in .gpu/ (tessera, result_load, libvulkan.so.1), no cargo.
 # Writes everything under $OUT (or bench-out/device).
 #
-#   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive
+#   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, local-gpu
 #
 # `adaptive` (issue 17; not in the default) runs `tessera bench adaptive`
 # on the scenes in $ADAPTIVE_SCENES (default distributed; one scene a
 # device call: 400x300 with a 4096-spp f64 reference), CPU uniform and
 # adaptive, GPU uniform only (adaptive GPU rounds are not implemented).
+#
+# `local-gpu` (issue 15; ~2 min): a fresh process's small GPU render with
+# the pipeline cache off, empty and warm, against the CPU and against a
+# process that only opens the GPU (`tessera gpus`); then `tessera bench
+# launch` (1080p 4 spp: sums read back against the image resolved on the
+# GPU, and the launch sweep).
 #
 # `bench` (every suite but depth and farm) fits one 10-minute device call;
 # `depth` (the depth suite against its depth-32 reference, ~2 min of 16
@@ -53,6 +59,31 @@ timeout 560 "$T" bench adaptive --backend both --adaptive-scenes "${ADAPTIVE_SCE
 echo "adaptive exit $?" >> "$OUT/adaptive-summary.txt"
 mkdir -p "$OUT/adaptive"
 cp /tmp/bench/adaptive.csv /tmp/bench/adaptive/error_vs_time.* /tmp/bench/adaptive/headline.txt "$OUT/adaptive/" 2>/dev/null
+fi
+if has local-gpu; then
+ms() { local t0 t1; t0=$(date +%s%N); "$@" > /dev/null 2>&1; local rc=$?; t1=$(date +%s%N); echo "$(( (t1 - t0) / 1000000 )) ms (rc $rc)"; }
+{
+  echo "== machine"; nproc; nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
+  small=(examples/resolution.toml --width 160 --height 120 --samples 4)
+  for i in 1 2 3; do echo "cpu render 160x120 4 spp, whole process: $(ms "$T" render "${small[@]}" -o /tmp/s-cpu.png)"; done
+  for i in 1 2 3; do echo "tessera gpus (open Vulkan, list adapters), whole process: $(ms "$T" gpus)"; done
+  for i in 1 2 3; do echo "gpu render, pipeline cache off, whole process: $(TESSERA_PIPELINE_CACHE=off ms "$T" render "${small[@]}" --backend gpu -o /tmp/s-gpu-off.png)"; done
+  rm -rf /tmp/pcache
+  for i in 1 2 3; do echo "gpu render, pipeline cache (run $i; empty before run 1), whole process: $(TESSERA_PIPELINE_CACHE=/tmp/pcache ms "$T" render "${small[@]}" --backend gpu -o /tmp/s-gpu-cache.png)"; done
+  ls -l /tmp/pcache
+  cmp /tmp/s-gpu-off.png /tmp/s-gpu-cache.png && echo "cached and uncached images identical"
+  echo "== the render call's own time (first call of a process: pipelines built), cache off, warm, and a 16x16 frame"
+  TESSERA_PIPELINE_CACHE=off "$T" render "${small[@]}" --backend gpu -o /tmp/s-gpu-off.png --json
+  TESSERA_PIPELINE_CACHE=/tmp/pcache "$T" render "${small[@]}" --backend gpu -o /tmp/s-gpu-cache.png --json
+  TESSERA_PIPELINE_CACHE=/tmp/pcache "$T" render examples/resolution.toml --width 16 --height 16 --samples 1 --backend gpu -o /tmp/s-gpu-16.png --json
+  "$T" render "${small[@]}" -o /tmp/s-cpu.png --json
+  echo "== 1080p 64 spp, tessera render --backend gpu (image resolved on the GPU)"
+  for i in 1 2; do TESSERA_PIPELINE_CACHE=/tmp/pcache "$T" render examples/resolution.toml --backend gpu --width 1920 --height 1080 --samples 64 -o /tmp/hd.png; done
+} > "$OUT/local-gpu.txt" 2>&1
+echo "== tessera bench launch (1080p 4 spp)"
+timeout 300 "$T" bench launch --backend gpu --repeat 3 --out /tmp/bench --cache /tmp/bench-cache \
+  > "$OUT/launch-summary.txt" 2> "$OUT/launch-log.txt"
+echo "launch exit $?" >> "$OUT/launch-summary.txt"
 fi
 if has farm; then
 echo "== farm: tessera bench farm (CPU workers against the machine's ceiling, 1 GPU worker alone and beside 7 CPU workers)"

@@ -99,6 +99,54 @@ pub fn run_interleaved(
         .collect())
 }
 
+/// A local render's two ways to an 8-bit image, interleaved call by call
+/// after [`WARMUP`] calls each (medians of `reps`): reading back the sums
+/// and resolving on the host (a farm result's path), and resolving on the
+/// GPU and reading back only the image (`tessera render --backend gpu` to
+/// PNG). Also whether the two images are the same bytes.
+pub struct ReadoutTiming {
+    pub sums_then_host: Duration,
+    pub resolved_on_gpu: Duration,
+    pub identical: bool,
+}
+
+pub fn readout_timing(
+    g: &GpuRenderer,
+    prepared: &PreparedFrame,
+    rect: Rect,
+    samples: u32,
+    reps: usize,
+) -> Result<ReadoutTiming, GpuError> {
+    let samples = SampleRange::all(samples);
+    let via_sums = || {
+        g.render(prepared, 0, rect, samples, &|_| {})
+            .map(|f| f.srgb8())
+    };
+    let on_gpu = || {
+        g.render_srgb8(prepared, 0, rect, samples, &|_| {})
+            .map(|i| i.rgb)
+    };
+    let mut identical = true;
+    for _ in 0..WARMUP {
+        identical &= via_sums()? == on_gpu()?;
+    }
+    let (mut a, mut b) = (vec![], vec![]);
+    for _ in 0..reps.max(1) {
+        let t = Instant::now();
+        let x = via_sums()?;
+        a.push(t.elapsed());
+        let t = Instant::now();
+        let y = on_gpu()?;
+        b.push(t.elapsed());
+        identical &= x == y;
+    }
+    Ok(ReadoutTiming {
+        sums_then_host: median(a),
+        resolved_on_gpu: median(b),
+        identical,
+    })
+}
+
 /// One point of the sweep.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct LaunchShape {

@@ -778,6 +778,18 @@ impl Bench {
                 .pop()
                 .expect("one timing")
                 .film;
+            let r = launch::readout_timing(gpu, &frame, rect, s.samples, reps.max(5))?;
+            eprintln!(
+                "  launch     {name:<14} {width}x{height} {} spp whole call: sums read back, resolved on the host {:>8.3} ms; resolved on the GPU, image read back {:>8.3} ms ({:.1}x){}",
+                s.samples,
+                r.sums_then_host.as_secs_f64() * 1e3,
+                r.resolved_on_gpu.as_secs_f64() * 1e3,
+                r.sums_then_host.as_secs_f64() / r.resolved_on_gpu.as_secs_f64(),
+                if r.identical { "" } else { "  IMAGES DIFFER" }
+            );
+            if !r.identical {
+                bail!("{name}: the GPU's resolve differs from the host's");
+            }
             let points = launch::sweep(
                 &adapter,
                 &frame,

@@ -247,6 +247,25 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let rect = Rect::full(settings.width, settings.height);
     let samples = SampleRange::all(settings.samples);
     let mut last_round = None;
+    // A GPU render to PNG resolves on the GPU and reads back only the image.
+    #[cfg(feature = "gpu")]
+    if let (Renderer::Gpu(gpu), None, ImageFormat::Png) =
+        (&renderer, &adaptive, ImageFormat::of(&output)?)
+    {
+        let image = gpu.render_srgb8(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?;
+        let secs = start.elapsed().as_secs_f64();
+        progress.finish();
+        tessera_coordinator::image::write_png(&output, rect.width, rect.height, &image.rgb)?;
+        let summary = Summary {
+            secs,
+            rays: image.rays,
+            nonfinite: image.nonfinite,
+            pixel_samples: rect.area() as u64 * samples.len() as u64,
+        };
+        return report(
+            &args, &settings, precision, &renderer, &output, summary, None, None,
+        );
+    }
     let film = match &adaptive {
         None => renderer.render(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?,
         Some(a) => adaptive::render(
@@ -267,9 +286,51 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     if let (Some(map), Some(a)) = (&args.sample_map, &adaptive) {
         tessera_coordinator::image::write_sample_map(map, &film, a.min_samples, a.max_samples)?;
     }
-    let pixel_samples: u64 = film.counts.iter().map(|&n| n as u64).sum();
+    let summary = Summary {
+        secs,
+        rays: film.rays,
+        nonfinite: film.nonfinite,
+        pixel_samples: film.counts.iter().map(|&n| n as u64).sum(),
+    };
+    report(
+        &args,
+        &settings,
+        precision,
+        &renderer,
+        &output,
+        summary,
+        adaptive.as_ref(),
+        last_round,
+    )
+}
 
-    let r = film.rays;
+/// What a finished render reports, whichever way its image came back.
+struct Summary {
+    secs: f64,
+    rays: tracer_core::film::RayCounts,
+    nonfinite: u64,
+    pixel_samples: u64,
+}
+
+/// Prints a finished render's summary (text or `--json`) and warnings.
+#[allow(clippy::too_many_arguments)]
+fn report(
+    args: &RenderArgs,
+    settings: &RenderSettings,
+    precision: Precision,
+    renderer: &Renderer,
+    output: &std::path::Path,
+    summary: Summary,
+    adaptive: Option<&AdaptiveSettings>,
+    last_round: Option<adaptive::RoundReport>,
+) -> Result<ExitCode> {
+    let Summary {
+        secs,
+        rays: r,
+        nonfinite,
+        pixel_samples,
+    } = summary;
+    let rect = Rect::full(settings.width, settings.height);
     if args.format.json {
         super::output::print_json(&serde_json::json!({
             "width": settings.width,
@@ -287,7 +348,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
                 "refraction": r.refraction,
             },
             "rays_per_second": r.total() as f64 / secs,
-            "nonfinite_samples": film.nonfinite,
+            "nonfinite_samples": nonfinite,
             "output": output.display().to_string(),
             "adaptive": adaptive.map(|a| {
                 let s = last_round.map(|r| r.summary).unwrap_or_default();
@@ -336,13 +397,10 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
             output.display()
         );
     }
-    if film.nonfinite > 0 {
+    if nonfinite > 0 {
         // Sanitised to 0 before reaching the image; still a tracer bug worth reporting.
-        tracing::warn!(samples = film.nonfinite, "non-finite samples were replaced");
-        eprintln!(
-            "warning: {} non-finite samples were replaced by 0",
-            film.nonfinite
-        );
+        tracing::warn!(samples = nonfinite, "non-finite samples were replaced");
+        eprintln!("warning: {nonfinite} non-finite samples were replaced by 0");
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -402,6 +402,34 @@ fn resolve_pixel(s: &[u64; 3], n: u32) -> [f32; 3] {
     }
 }
 
+/// For a pixel of `n` samples, the smallest sum (one channel's, in units of
+/// 1/[`FIXED_ONE`]) whose 8-bit sRGB code is k + 1, k < 255: a sum's code is
+/// how many of these it reaches (the resolve and the encoding are both
+/// monotonic). Lets a GPU resolve to exactly [`Film::srgb8`]'s bytes with
+/// integer comparisons only.
+pub fn srgb8_thresholds(n: u32) -> [u64; 255] {
+    assert!(n > 0, "a pixel without samples is black");
+    let code = |s: u64| srgb8(resolve_pixel(&[s, 0, 0], n)[0]);
+    let mut out = [u64::MAX; 255];
+    for (k, t) in out.iter_mut().enumerate() {
+        let want = k as u8 + 1;
+        if code(u64::MAX) < want {
+            break; // unreachable at this n; u64::MAX is never reached either
+        }
+        let (mut lo, mut hi) = (0u64, u64::MAX);
+        while lo < hi {
+            let mid = lo + (hi - lo) / 2;
+            if code(mid) >= want {
+                hi = mid;
+            } else {
+                lo = mid + 1;
+            }
+        }
+        *t = lo;
+    }
+    out
+}
+
 /// sRGB transfer function of a linear value in [0, 1].
 pub fn srgb_encode(v: f32) -> f32 {
     let v = v.clamp(0.0, 1.0);
@@ -583,6 +611,27 @@ mod tests {
         assert_eq!(to_fixed(1.0, &mut bad), 1 << 32);
         assert_eq!(to_fixed(-0.0, &mut bad), 0);
         assert_eq!(bad, 2);
+    }
+
+    /// Counting the thresholds a sum reaches gives `Film::srgb8`'s code:
+    /// at each threshold and one below it, for sample counts whose
+    /// reciprocals round differently.
+    #[test]
+    fn srgb8_thresholds_give_the_resolves_codes() {
+        for n in [1, 3, 7, 64, 1000, 65_537] {
+            let t = srgb8_thresholds(n);
+            assert!(t.windows(2).all(|w| w[0] <= w[1]), "n={n}");
+            let code = |s: u64| srgb8(resolve_pixel(&[s, 0, 0], n)[0]);
+            let counted = |s: u64| t.iter().filter(|&&x| s >= x).count() as u8;
+            for &x in &t {
+                for s in [x.saturating_sub(1), x, x.saturating_add(1)] {
+                    assert_eq!(counted(s), code(s), "n={n} sum={s}");
+                }
+            }
+            for s in [0, 1, u64::MAX, n as u64 * (1 << 32)] {
+                assert_eq!(counted(s), code(s), "n={n} sum={s}");
+            }
+        }
     }
 
     #[test]

@@ -1106,6 +1106,155 @@ fn gpu_progress_reports_every_pixel_sample() {
     assert_eq!(done.into_inner(), 40 * 20 * 2);
 }
 
+/// The GPU's own resolve (`render_srgb8`, what `tessera render --backend
+/// gpu` writes to PNG) gives exactly the host's 8-bit sRGB of the film the
+/// same call returns: several scenes (mirrors, glass, meshes), sample
+/// counts whose reciprocals round differently, and rectangles whose pixel
+/// counts are not multiples of the 4 pixels one invocation packs.
+#[test]
+fn gpu_resolve_to_srgb8_equals_the_hosts_bit_for_bit() {
+    let Some(g) = gpu() else { return };
+    let mut codes = std::collections::BTreeSet::new();
+    for (scene, rect, samples) in [
+        (
+            "depth.toml",
+            Rect::new(0, 0, 61, 37),
+            SampleRange::new(0, 3),
+        ),
+        (
+            "resolution.toml",
+            Rect::new(3, 5, 57, 41),
+            SampleRange::new(2, 9),
+        ),
+        (
+            "resolution.toml",
+            Rect::new(0, 0, 64, 48),
+            SampleRange::new(0, 1),
+        ),
+        (
+            "cornell.toml",
+            Rect::new(1, 2, 33, 29),
+            SampleRange::new(0, 5),
+        ),
+        (
+            "distributed.toml",
+            Rect::new(0, 0, 64, 48),
+            SampleRange::new(0, 2),
+        ),
+    ] {
+        let desc = SceneDesc::load(examples_dir().join(scene)).unwrap();
+        let s = RenderSettings {
+            width: 64,
+            height: 48,
+            samples: 9,
+            ..desc.render
+        };
+        let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+        let film = g.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
+        let image = g
+            .render_srgb8(&prepared, 0, rect, samples, &|_| {})
+            .unwrap();
+        let what = format!("{scene} {rect:?} {samples:?}");
+        assert_eq!(image.rect, rect, "{what}");
+        assert_eq!(image.rays, film.rays, "{what}");
+        assert_eq!(image.nonfinite, film.nonfinite, "{what}");
+        let host = film.srgb8();
+        assert_eq!(image.rgb.len(), host.len(), "{what}");
+        if let Some(i) = (0..host.len()).find(|&i| image.rgb[i] != host[i]) {
+            panic!(
+                "{what}: byte {i} (pixel {}, channel {}): GPU {} host {}",
+                i / 3,
+                i % 3,
+                image.rgb[i],
+                host[i]
+            );
+        }
+        codes.extend(host);
+    }
+    // Not a black or saturated picture: the search ran through the table.
+    assert!(codes.len() > 100, "only {} distinct codes", codes.len());
+}
+
+/// Compiled pipelines are saved on disk (Vulkan, lavapipe included) and a
+/// second renderer starts from them; its films are the same bit for bit. A
+/// damaged file (a crash mid-write, another program) is ignored, never
+/// loaded, and written anew.
+#[test]
+fn compiled_pipelines_are_cached_on_disk_and_damaged_caches_ignored() {
+    let Some(g) = gpu() else { return };
+    let adapter = g.adapter().index.to_string();
+    let dir = tmpdir("pipeline-cache");
+    let _ = std::fs::remove_dir_all(&dir);
+    let desc = SceneDesc::load(examples_dir().join("depth.toml")).unwrap();
+    let s = RenderSettings {
+        width: 40,
+        height: 30,
+        samples: 2,
+        ..desc.render
+    };
+    let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+    let render = |label: &str| {
+        let r = GpuRenderer::with_pipeline_cache(Some(&adapter), GpuOptions::default(), Some(&dir))
+            .unwrap_or_else(|e| panic!("{label}: {e}"));
+        let film = r
+            .render(
+                &prepared,
+                0,
+                Rect::full(40, 30),
+                SampleRange::all(2),
+                &|_| {},
+            )
+            .unwrap_or_else(|e| panic!("{label}: {e}"));
+        let path = r
+            .pipeline_cache_file()
+            .unwrap_or_else(|| panic!("{label}: {} has no pipeline cache", r.adapter()))
+            .to_owned();
+        (film, path)
+    };
+    // The file: a tag, the data's length, a checksum, the data.
+    let check_file = |path: &std::path::Path| {
+        let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        assert_eq!(&bytes[..8], b"TSPCv001");
+        let len = u64::from_le_bytes(bytes[8..16].try_into().unwrap());
+        assert!(len > 0, "an empty cache was saved");
+        assert_eq!(bytes.len() as u64, 24 + len);
+        bytes
+    };
+    let (first, path) = render("first");
+    assert!(path.starts_with(&dir), "{}", path.display());
+    let saved = check_file(&path);
+    let (second, _) = render("second");
+    assert_eq!(second.sums, first.sums);
+    // Nothing new compiled: the file is left as it was.
+    assert_eq!(check_file(&path), saved);
+    for damage in ["cut", "flipped"] {
+        let mut bad = saved.clone();
+        match damage {
+            "cut" => bad.truncate(saved.len() / 2),
+            _ => *bad.last_mut().unwrap() ^= 1,
+        }
+        std::fs::write(&path, &bad).unwrap();
+        let (again, _) = render(damage);
+        assert_eq!(again.sums, first.sums, "{damage}");
+        check_file(&path);
+    }
+    // Off: no file, same film.
+    let _ = std::fs::remove_dir_all(&dir);
+    let r = GpuRenderer::with_pipeline_cache(Some(&adapter), GpuOptions::default(), None).unwrap();
+    assert!(r.pipeline_cache_file().is_none());
+    let film = r
+        .render(
+            &prepared,
+            0,
+            Rect::full(40, 30),
+            SampleRange::all(2),
+            &|_| {},
+        )
+        .unwrap();
+    assert_eq!(film.sums, first.sums);
+    assert!(!dir.exists());
+}
+
 #[test]
 fn gpu_refuses_f64_and_requests_outside_the_image() {
     let Some(g) = gpu() else { return };

@@ -16,7 +16,10 @@
 //! `whitted.wgsl` mirrors `render/whitted.rs`; `sampling.wgsl` mirrors
 //! `sampling.rs`; `layout.rs` mirrors the WGSL structs.
 
+mod disk_cache;
 pub mod layout;
+
+pub use disk_cache::default_dir as default_pipeline_cache_dir;
 
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
@@ -38,6 +41,8 @@ const DISTRIBUTED_WGSL: &str = include_str!("distributed.wgsl");
 const MOVING_MESHES_WGSL: &str = include_str!("moving_meshes.wgsl");
 /// ... and their stand-ins for worlds without moving meshes.
 const NO_MOVING_MESHES_WGSL: &str = include_str!("no_moving_meshes.wgsl");
+/// Sums to 8-bit sRGB on the GPU, for renders that read back only the image.
+const RESOLVE_WGSL: &str = include_str!("resolve.wgsl");
 /// Tree traversal, for worlds with a BVH (meshes, many spheres) or moving meshes.
 const BVH_WGSL: &str = include_str!("bvh.wgsl");
 /// Scene queries for worlds with a BVH, through BVH_WGSL.
@@ -268,6 +273,50 @@ struct Outputs {
     params: wgpu::Buffer,
 }
 
+/// A render resolved to 8-bit sRGB on the GPU ([`GpuRenderer::render_srgb8`]).
+pub struct Srgb8Image {
+    pub rect: Rect,
+    /// RGB bytes, row-major: exactly `Film::srgb8` of the film that
+    /// [`GpuRenderer::render`] returns for the same call.
+    pub rgb: Vec<u8>,
+    pub rays: RayCounts,
+    pub nonfinite: u64,
+}
+
+/// What a render reads back.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Readout {
+    /// The fixed-point sums: a [`Film`] that merges exactly (farm results).
+    Sums,
+    /// Only the image, resolved on the GPU.
+    Srgb8,
+}
+
+enum Rendered {
+    Film(Film),
+    Srgb8(Srgb8Image),
+}
+
+/// The resolve pipeline and its buffers, made on first use (farm workers
+/// never resolve).
+struct Resolver {
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    params: wgpu::Buffer,
+    thresholds: wgpu::Buffer,
+    /// The sample count whose thresholds `thresholds` holds.
+    samples: Option<u32>,
+    pixels: usize,
+    image: wgpu::Buffer,
+    image_read: wgpu::Buffer,
+}
+
+/// Bytes of a resolved image of `pixels`: 3 words per 4 pixels, rounded to
+/// whole 8-byte words so that it maps (`wgpu::MAP_ALIGNMENT`).
+fn image_bytes(pixels: usize) -> u64 {
+    pixels.div_ceil(8) as u64 * 24
+}
+
 /// Errors reported by wgpu outside any call's return value.
 #[derive(Default)]
 struct Fault {
@@ -291,6 +340,9 @@ pub struct GpuRenderer {
     scene: Mutex<Option<SceneState>>,
     outputs: Mutex<Option<Outputs>>,
     wave: Mutex<Option<WaveBuffers>>,
+    resolver: Mutex<Option<Resolver>>,
+    /// Compiled pipelines on disk, where the device has a pipeline cache.
+    disk_cache: Option<disk_cache::DiskCache>,
     stats: Mutex<GpuStats>,
 }
 
@@ -299,6 +351,16 @@ impl GpuRenderer {
     /// or a case-insensitive part of its name), else the best one (discrete
     /// over integrated over software).
     pub fn new(adapter: Option<&str>, options: GpuOptions) -> Result<Self, GpuError> {
+        Self::with_pipeline_cache(adapter, options, disk_cache::default_dir().as_deref())
+    }
+
+    /// [`GpuRenderer::new`] with compiled pipelines cached in `cache_dir`
+    /// (`None`: not cached) instead of [`default_pipeline_cache_dir`].
+    pub fn with_pipeline_cache(
+        adapter: Option<&str>,
+        options: GpuOptions,
+        cache_dir: Option<&std::path::Path>,
+    ) -> Result<Self, GpuError> {
         let instance = instance();
         let all = adapters(&instance);
         if all.is_empty() {
@@ -357,13 +419,15 @@ impl GpuRenderer {
             options.submit_pixel_samples = options.submit_pixel_samples.min(1 << 21);
         }
         let timestamps = chosen.features().contains(wgpu::Features::TIMESTAMP_QUERY);
-        let (device, queue) = pollster::block_on(chosen.request_device(&wgpu::DeviceDescriptor {
-            label: Some("tessera"),
-            required_features: if timestamps {
-                wgpu::Features::TIMESTAMP_QUERY
+        let wanted = wgpu::Features::TIMESTAMP_QUERY
+            | if cache_dir.is_some() {
+                wgpu::Features::PIPELINE_CACHE
             } else {
                 wgpu::Features::empty()
-            },
+            };
+        let (device, queue) = pollster::block_on(chosen.request_device(&wgpu::DeviceDescriptor {
+            label: Some("tessera"),
+            required_features: chosen.features() & wanted,
             // Everything the adapter allows: large films need large storage bindings.
             required_limits: alimits,
             ..Default::default()
@@ -455,6 +519,8 @@ impl GpuRenderer {
             bind_group_layouts: &[Some(&layout), Some(&wave_layout), Some(&wave_args_layout)],
             immediate_size: 0,
         });
+        let disk_cache =
+            cache_dir.and_then(|d| disk_cache::DiskCache::open(&device, &chosen.get_info(), d));
         Ok(GpuRenderer {
             info,
             device,
@@ -471,8 +537,19 @@ impl GpuRenderer {
             scene: Mutex::new(None),
             outputs: Mutex::new(None),
             wave: Mutex::new(None),
+            resolver: Mutex::new(None),
+            disk_cache,
             stats: Mutex::new(GpuStats::default()),
         })
+    }
+
+    fn pipeline_cache(&self) -> Option<&wgpu::PipelineCache> {
+        self.disk_cache.as_ref().map(|c| c.cache())
+    }
+
+    /// The file compiled pipelines are cached in, if they are.
+    pub fn pipeline_cache_file(&self) -> Option<&std::path::Path> {
+        self.disk_cache.as_ref().map(|c| c.path())
     }
 
     pub fn adapter(&self) -> &AdapterSummary {
@@ -517,6 +594,38 @@ impl GpuRenderer {
         samples: SampleRange,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<Film, GpuError> {
+        match self.render_readout(prepared, frame, rect, samples, progress, Readout::Sums)? {
+            Rendered::Film(f) => Ok(f),
+            Rendered::Srgb8(_) => unreachable!("asked for sums"),
+        }
+    }
+
+    /// Renders like [`GpuRenderer::render`], then resolves and sRGB-encodes
+    /// on the GPU and reads back only the 8-bit image: a local render to PNG
+    /// moves 3 bytes a pixel over the bus instead of 24.
+    pub fn render_srgb8(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<Srgb8Image, GpuError> {
+        match self.render_readout(prepared, frame, rect, samples, progress, Readout::Srgb8)? {
+            Rendered::Srgb8(i) => Ok(i),
+            Rendered::Film(_) => unreachable!("asked for the image"),
+        }
+    }
+
+    fn render_readout(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+        readout: Readout,
+    ) -> Result<Rendered, GpuError> {
         prepared.check_request(rect, samples)?;
         let world = match prepared {
             PreparedFrame::F32(w) => w,
@@ -540,7 +649,16 @@ impl GpuRenderer {
         let mut budget = self.options.dispatch_pixel_samples;
         let mut retries = 0;
         let result = loop {
-            match self.render_inner(data.clone(), frame, rect, samples, progress, start, budget) {
+            match self.render_inner(
+                data.clone(),
+                frame,
+                rect,
+                samples,
+                progress,
+                start,
+                budget,
+                readout,
+            ) {
                 Ok(None) if budget > 1 => {
                     budget = (budget / 4).max(1);
                     retries += 1;
@@ -583,7 +701,8 @@ impl GpuRenderer {
         progress: &(dyn Fn(u64) + Sync),
         start: Instant,
         budget: u64,
-    ) -> Result<Option<Film>, GpuError> {
+        readout: Readout,
+    ) -> Result<Option<Rendered>, GpuError> {
         let limits = self.device.limits();
         let mut scene_guard = self
             .scene
@@ -825,7 +944,15 @@ impl GpuRenderer {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("tessera read-back"),
             });
-        enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
+        let resolver = match readout {
+            Readout::Sums => {
+                enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
+                None
+            }
+            Readout::Srgb8 => {
+                Some(self.encode_resolve(&mut enc, &out.sums, sums_bytes, pixels, samples)?)
+            }
+        };
         enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
         if let Some((_, w)) = &wave {
             let w = w.as_ref().expect("set");
@@ -848,16 +975,45 @@ impl GpuRenderer {
             }
         }
         let counters: Vec<u32> = self.read(&out.counters_read, (COUNTERS * 8) as u64)?;
-        let mut film = Film::new(rect);
-        // Straight from the mapped buffer into the film: no intermediate copy.
-        self.read_with(&out.sums_read, sums_bytes, |bytes| {
-            let words: &[u32] = bytemuck::cast_slice(bytes);
-            for (px, w) in film.sums.iter_mut().zip(words.chunks_exact(SUM_WORDS)) {
-                for c in 0..3 {
-                    px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
-                }
+        let counter = |k: usize| counters[2 * k] as u64 | (counters[2 * k + 1] as u64) << 32;
+        let rays = RayCounts {
+            primary: counter(layout::COUNTER_PRIMARY),
+            shadow: counter(layout::COUNTER_SHADOW),
+            reflection: counter(layout::COUNTER_REFLECTION),
+            refraction: counter(layout::COUNTER_REFRACTION),
+        };
+        let nonfinite = counter(layout::COUNTER_NONFINITE);
+        let rendered = match &resolver {
+            Some(r) => {
+                let r = r.as_ref().expect("made by encode_resolve");
+                let rgb = self.read_with(&r.image_read, image_bytes(pixels), |bytes| {
+                    bytes[..pixels * 3].to_vec()
+                })?;
+                Rendered::Srgb8(Srgb8Image {
+                    rect,
+                    rgb,
+                    rays,
+                    nonfinite,
+                })
             }
-        })?;
+            None => {
+                let mut film = Film::new(rect);
+                // Straight from the mapped buffer into the film: no intermediate copy.
+                self.read_with(&out.sums_read, sums_bytes, |bytes| {
+                    let words: &[u32] = bytemuck::cast_slice(bytes);
+                    for (px, w) in film.sums.iter_mut().zip(words.chunks_exact(SUM_WORDS)) {
+                        for c in 0..3 {
+                            px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
+                        }
+                    }
+                })?;
+                film.counts.fill(samples.len());
+                film.rays = rays;
+                film.nonfinite = nonfinite;
+                Rendered::Film(film)
+            }
+        };
+        drop(resolver);
         let gpu_time = match &query {
             Some((_, _, read, n)) => {
                 let ticks: Vec<u64> = self.read(read, *n as u64 * 8)?;
@@ -870,16 +1026,6 @@ impl GpuRenderer {
             }
             None => None,
         };
-
-        film.counts.fill(samples.len());
-        let counter = |k: usize| counters[2 * k] as u64 | (counters[2 * k + 1] as u64) << 32;
-        film.rays = RayCounts {
-            primary: counter(layout::COUNTER_PRIMARY),
-            shadow: counter(layout::COUNTER_SHADOW),
-            reflection: counter(layout::COUNTER_REFLECTION),
-            refraction: counter(layout::COUNTER_REFRACTION),
-        };
-        film.nonfinite = counter(layout::COUNTER_NONFINITE);
         let readback = readback_start.elapsed();
         if let Ok(mut s) = self.stats.lock() {
             *s = GpuStats {
@@ -892,7 +1038,165 @@ impl GpuRenderer {
                 readback,
             };
         }
-        Ok(Some(film))
+        Ok(Some(rendered))
+    }
+
+    /// Records the resolve of `sums` (a film of `pixels`, each of
+    /// `samples.len()` samples) to 8-bit sRGB and the image's copy to its
+    /// read-back buffer; returns the locked resolver holding that buffer.
+    fn encode_resolve(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        sums: &wgpu::Buffer,
+        sums_bytes: u64,
+        pixels: usize,
+        samples: SampleRange,
+    ) -> Result<std::sync::MutexGuard<'_, Option<Resolver>>, GpuError> {
+        let mut guard = self
+            .resolver
+            .lock()
+            .map_err(|_| GpuError::Device("resolver cache poisoned".into()))?;
+        if guard.as_ref().is_none_or(|r| r.pixels < pixels) {
+            let old = guard.take();
+            *guard = Some(self.create_resolver(pixels, old));
+        }
+        let r = guard.as_mut().expect("just set");
+        let n = samples.len();
+        if r.samples != Some(n) {
+            let t: Vec<[u32; 2]> = crate::film::srgb8_thresholds(n)
+                .iter()
+                .map(|&s| [s as u32, (s >> 32) as u32])
+                .collect();
+            self.queue
+                .write_buffer(&r.thresholds, 0, bytemuck::cast_slice(&t));
+            r.samples = Some(n);
+        }
+        self.queue.write_buffer(
+            &r.params,
+            0,
+            bytemuck::cast_slice(&[pixels as u32, 0, 0, 0]),
+        );
+        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tessera resolve"),
+            layout: &r.layout,
+            entries: &[
+                entire(0, &r.params),
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: sums,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(sums_bytes),
+                    }),
+                },
+                entire(2, &r.thresholds),
+                entire(3, &r.image),
+            ],
+        });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("tessera resolve"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&r.pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            // One invocation per 4 pixels, 64 a workgroup; rows of workgroups
+            // past the per-dimension limit (an 8K film).
+            let groups = pixels.div_ceil(4 * 64) as u32;
+            let x = groups.min(self.device.limits().max_compute_workgroups_per_dimension);
+            pass.dispatch_workgroups(x, groups.div_ceil(x), 1);
+        }
+        enc.copy_buffer_to_buffer(&r.image, 0, &r.image_read, 0, Some(image_bytes(pixels)));
+        Ok(guard)
+    }
+
+    /// The resolve pipeline (kept from `old`) with image buffers for `pixels`.
+    fn create_resolver(&self, pixels: usize, old: Option<Resolver>) -> Resolver {
+        use wgpu::BufferUsages as U;
+        let buf = |label, size, usage| {
+            self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let image = buf(
+            "resolved image",
+            image_bytes(pixels),
+            U::STORAGE | U::COPY_SRC,
+        );
+        let image_read = buf(
+            "resolved image read",
+            image_bytes(pixels),
+            U::MAP_READ | U::COPY_DST,
+        );
+        if let Some(old) = old {
+            return Resolver {
+                pixels,
+                image,
+                image_read,
+                ..old
+            };
+        }
+        let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        use wgpu::BufferBindingType as B;
+        let layout = self
+            .device
+            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some("tessera resolve"),
+                entries: &[
+                    entry(0, B::Uniform),
+                    entry(1, B::Storage { read_only: true }),
+                    entry(2, B::Storage { read_only: true }),
+                    entry(3, B::Storage { read_only: false }),
+                ],
+            });
+        let pipeline_layout = self
+            .device
+            .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("tessera resolve"),
+                bind_group_layouts: &[Some(&layout)],
+                immediate_size: 0,
+            });
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("resolve.wgsl"),
+                source: wgpu::ShaderSource::Wgsl(RESOLVE_WGSL.into()),
+            });
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("tessera resolve"),
+                layout: Some(&pipeline_layout),
+                module: &module,
+                entry_point: Some("resolve_srgb8"),
+                compilation_options: Default::default(),
+                cache: self.pipeline_cache(),
+            });
+        if let Some(c) = &self.disk_cache {
+            c.save();
+        }
+        Resolver {
+            pipeline,
+            layout,
+            params: buf("resolve params", 16, U::UNIFORM | U::COPY_DST),
+            thresholds: buf("sRGB thresholds", 255 * 8, U::STORAGE | U::COPY_DST),
+            samples: None,
+            pixels,
+            image,
+            image_read,
+        }
     }
 
     fn create_wave_buffers(&self, queue_cap: u64) -> WaveBuffers {
@@ -1095,7 +1399,7 @@ impl GpuRenderer {
                     // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
                     zero_initialize_workgroup_memory: true,
                 },
-                cache: None,
+                cache: self.pipeline_cache(),
             });
         // Distributed effects run on the stack kernel only.
         let wave =
@@ -1119,7 +1423,7 @@ impl GpuRenderer {
                                 constants: &wave_constants,
                                 zero_initialize_workgroup_memory: true,
                             },
-                            cache: None,
+                            cache: self.pipeline_cache(),
                         })
                 };
                 WavePipelines {
@@ -1129,6 +1433,9 @@ impl GpuRenderer {
                     queue_cap,
                 }
             });
+        if let Some(c) = &self.disk_cache {
+            c.save();
+        }
         Ok(SceneState {
             data,
             options: self.options,

@@ -1,0 +1,70 @@
+// Resolves a film's fixed-point sums to 8-bit sRGB on the GPU, so that a
+// local render reads back 3 bytes a pixel instead of 24.
+//
+// Bit for bit the host's `Film::srgb8`: WGSL has no f64 to redo the host's
+// `sum / (n * 2^32)` rounding, but the code of a sum only depends on which
+// of 255 thresholds it reaches, and the host computes those (the smallest
+// sum giving each code at this sample count) with its own arithmetic. Here
+// a sum is only compared with them: a binary search over u64 pairs.
+
+struct ResolveParams {
+    // Pixels of the film.
+    pixels: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: ResolveParams;
+// (low, high) u32 words of each channel's u64 sum, 6 words a pixel.
+@group(0) @binding(1) var<storage, read> sums: array<u32>;
+// thresholds[k]: the smallest sum (low, high) whose code is k + 1, k < 255.
+@group(0) @binding(2) var<storage, read> thresholds: array<vec2<u32>, 255>;
+// RGB bytes, row-major, packed four to a word (little-endian): 4 pixels
+// make 3 words, so the read-back is the image as the PNG encoder wants it.
+@group(0) @binding(3) var<storage, read_write> image: array<u32>;
+
+fn reaches(lo: u32, hi: u32, t: vec2<u32>) -> bool {
+    return hi > t.y || (hi == t.y && lo >= t.x);
+}
+
+// The number of thresholds the sum reaches: its 8-bit sRGB code.
+fn code(word: u32) -> u32 {
+    let lo = sums[word];
+    let hi = sums[word + 1u];
+    var c = 0u;
+    for (var step = 128u; step > 0u; step = step >> 1u) {
+        // c + step - 1 <= 254: the steps add up to 255.
+        if reaches(lo, hi, thresholds[c + step - 1u]) {
+            c += step;
+        }
+    }
+    return c;
+}
+
+@compute @workgroup_size(64)
+fn resolve_srgb8(
+    @builtin(global_invocation_id) id: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+) {
+    // Rows of workgroups past the per-dimension limit continue the film.
+    let k = id.x + id.y * groups.x * 64u;
+    let first = k * 4u;
+    if first >= params.pixels {
+        return;
+    }
+    var words = array<u32, 3>(0u, 0u, 0u);
+    for (var p = 0u; p < 4u; p++) {
+        let pixel = first + p;
+        if pixel >= params.pixels {
+            break;
+        }
+        for (var c = 0u; c < 3u; c++) {
+            let byte = 3u * p + c;
+            words[byte / 4u] |= code(6u * pixel + 2u * c) << (8u * (byte % 4u));
+        }
+    }
+    for (var w = 0u; w < 3u; w++) {
+        image[3u * k + w] = words[w];
+    }
+}
