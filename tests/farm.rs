@@ -181,8 +181,12 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
     let _g = serial();
     let dir = tempfile::tempdir().expect("tempdir");
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
-    let _w: Vec<Proc> = (0..3)
-        .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
+    // One worker niced (`--nice`): its render threads run at that niceness.
+    let w: Vec<Proc> = (0..3)
+        .map(|i| {
+            let nice: &[&str] = if i == 2 { &["--nice", "7"] } else { &[] };
+            start_worker_with(dir.path(), &c.url(), &format!("w{i}"), nice)
+        })
         .collect();
 
     let scene = repo("examples/resolution.toml");
@@ -206,6 +210,21 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
         (80, 80, 80, 0)
     );
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+    // Field 19 of /proc/PID/task/TID/stat is the thread's niceness: every
+    // thread of the niced worker (runtime and render threads alike).
+    for (i, p) in w.iter().enumerate() {
+        let tasks = format!("/proc/{}/task", p.child.id());
+        let mut seen = 0;
+        for t in std::fs::read_dir(&tasks).unwrap() {
+            let stat = std::fs::read_to_string(t.unwrap().path().join("stat")).unwrap();
+            // The command name (field 2) is in parentheses and may hold spaces.
+            let after = &stat[stat.rfind(')').unwrap() + 2..];
+            let nice: i32 = after.split(' ').nth(16).unwrap().parse().unwrap();
+            assert_eq!(nice, if i == 2 { 7 } else { 0 }, "worker {i}: {stat}");
+            seen += 1;
+        }
+        assert!(seen > 1, "worker {i} has {seen} threads");
+    }
 
     let anim = repo("examples/animation.toml");
     let mut args = SMALL.to_vec();

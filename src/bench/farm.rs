@@ -16,6 +16,8 @@ use tracer_core::scene::RenderSettings;
 const START_TIMEOUT: Duration = Duration::from_secs(60);
 /// How long one job may take before the suite gives up.
 const JOB_TIMEOUT: Duration = Duration::from_secs(3600);
+/// The niceness of CPU workers that share the host with GPU workers.
+const CPU_WORKER_NICE_BESIDE_GPU: i32 = 10;
 
 /// A child process that is killed and reaped when dropped, so that no exit
 /// path of the benchmark (error, panic, Ctrl-C unwinding) leaves a
@@ -184,6 +186,11 @@ impl Farm {
             } else {
                 cmd.args(["--threads", &spec.threads.to_string()])
                     .args(["--name", &format!("bench-{i}")]);
+                if spec.gpu_workers > 0 {
+                    // Beside a GPU worker on one host, as the docs advise:
+                    // its feeding and the coordinator's intake come first.
+                    cmd.args(["--nice", &CPU_WORKER_NICE_BESIDE_GPU.to_string()]);
+                }
             }
             // A cache of its own per worker and run: nothing left from another run.
             cmd.arg("--cache")

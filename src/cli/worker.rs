@@ -44,6 +44,13 @@ pub struct WorkerArgs {
     /// Most bytes the cache keeps (least recently used files go first)
     #[arg(long, value_name = "BYTES", default_value_t = 10 << 30)]
     pub cache_size: u64,
+    /// Scheduling niceness of the worker process, 0..=19 (Unix `nice`): a
+    /// CPU worker beside a GPU worker or the coordinator on one host,
+    /// niced, leaves them the cores they need to feed the GPU and take in
+    /// results
+    #[arg(long, value_name = "N", default_value_t = 0,
+          value_parser = clap::value_parser!(i32).range(0..=19))]
+    pub nice: i32,
 }
 
 /// The default cache folder: the XDG cache, else ./tessera-cache.
@@ -60,6 +67,14 @@ fn default_cache() -> PathBuf {
 
 pub fn run(args: WorkerArgs) -> Result<ExitCode> {
     init_logging(args.log_format);
+    if args.nice > 0 {
+        // Linux's nice is per thread, inherited by threads created later:
+        // this runs before the runtime and the render threads exist.
+        // SAFETY: setpriority only reads its integer arguments.
+        if unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, args.nice) } != 0 {
+            anyhow::bail!("--nice {}: {}", args.nice, std::io::Error::last_os_error());
+        }
+    }
     if args.backend != WorkerBackend::Gpu && args.adapter.is_some() {
         anyhow::bail!("--adapter only applies to --backend gpu");
     }
