@@ -95,6 +95,13 @@ for r in /tmp/bench/farm/run-*.coordinator.log; do
   echo "== timeline of ${run##*/}"
   python3 scripts/farm-timeline.py "$run".worker-*.log 2>&1 | head -20
 done > "$OUT/farm-timeline.txt"
+if [ -n "${FARM_DEBUG:-}" ]; then
+  # The GPU worker alone again, with the coordinator's debug log (decode,
+  # encode, commit and merge times per result batch).
+  RUST_LOG=info,tessera_coordinator=debug timeout 120 "$T" bench farm --workers 1 --worker-threads 2 --gpu-workers 1 --mixed-cpu-workers 0 \
+    --out /tmp/bench-dbg --cache /tmp/bench-cache > "$OUT/farm-debug.txt" 2>&1
+  tar czf "$OUT/farm-debug-logs.tar.gz" -C /tmp/bench-dbg/farm --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' . 2>/dev/null
+fi
 echo "== latency: warm farm of 2 CPU workers (2 threads) + 1 GPU worker; 64x64 1 spp jobs, then 1080p 16 spp" > "$OUT/farm-latency.txt"
 "$T" coordinator --listen 127.0.0.1:7998 --data /tmp/lat-data > /dev/null 2>/tmp/lat-coord.log &
 C=$!; sleep 0.5

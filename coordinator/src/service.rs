@@ -488,12 +488,19 @@ impl WorkerService for Api {
         &self,
         req: Request<pb::SubmitResultsRequest>,
     ) -> Result<Response<pb::SubmitResultsResponse>, Status> {
-        let results = req
+        let decode_start = std::time::Instant::now();
+        let results: Vec<ResultData> = req
             .into_inner()
             .results
             .into_iter()
             .map(result_data)
             .collect();
+        tracing::debug!(
+            results = results.len(),
+            pixels = results.iter().map(|r| r.rect.area()).sum::<usize>(),
+            decode_ms = decode_start.elapsed().as_secs_f64() * 1e3,
+            "results decoded"
+        );
         let outcomes = self.farm.submit_results(results).await?;
         Ok(Response::new(pb::SubmitResultsResponse {
             outcomes: outcomes.into_iter().map(outcome_pb).collect(),

@@ -803,6 +803,7 @@ async fn send_batch(
     }
     // Packed for each attempt, not cloned: a GPU unit's sums are tens of
     // megabytes, and a retry is rare.
+    let send_start = Instant::now();
     let outcomes = submit_with_retry(&mut client, sent.len(), || {
         sent.iter().map(|o| result_request(&worker_id, o)).collect()
     })
@@ -813,7 +814,15 @@ async fn send_batch(
         match pb::ResultOutcome::try_from(resp.outcome).unwrap_or(pb::ResultOutcome::Unspecified) {
             pb::ResultOutcome::Accepted => {
                 units_done.fetch_add(1, Ordering::Relaxed);
-                tracing::debug!(lease = %o.lease_id, frame = o.frame, rect = ?o.rect, batch = sent.len(), "result accepted");
+                tracing::debug!(
+                    lease = %o.lease_id,
+                    frame = o.frame,
+                    rect = ?o.rect,
+                    batch = sent.len(),
+                    // Packing, transfer and the coordinator's intake.
+                    send_ms = send_start.elapsed().as_secs_f64() * 1e3,
+                    "result accepted"
+                );
             }
             pb::ResultOutcome::FailureRecorded => {}
             other => {
