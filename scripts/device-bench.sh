@@ -3,7 +3,8 @@
 # prebuilt binaries in .gpu/ (tessera, result_load, libvulkan.so.1), no cargo.
 # Writes everything under $OUT (or bench-out/device).
 #
-#   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, local-gpu
+#   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, local-gpu,
+#                                          gpu-tests, against-old
 #
 # `adaptive` (issue 17; not in the default) runs `tessera bench adaptive`
 # on the scenes in $ADAPTIVE_SCENES (default distributed; one scene a
@@ -15,6 +16,16 @@
 # process that only opens the GPU (`tessera gpus`); then `tessera bench
 # launch` (1080p 4 spp: sums read back against the image resolved on the
 # GPU, and the launch sweep).
+#
+# `gpu-tests` runs tracer-core's GPU test binary (.gpu/gpu-tests, built by
+# `cargo test -p tracer-core --test gpu --no-run`) on the NVIDIA GPU: every
+# GPU path (moving meshes, distributed effects, the GPU resolve) against the
+# CPU reference on real hardware, not only lavapipe.
+#
+# `against-old` (issue 16) times the thesis scenes with .gpu/tessera and an
+# earlier build, .gpu/tessera-old, interleaved run by run (5 each), CPU and
+# GPU, from the summary line's in-process seconds: a scene without the new
+# effects must keep its speed. EXR output, so both builds read back the sums.
 #
 # `bench` (every suite but depth and farm) fits one 10-minute device call;
 # `depth` (the depth suite against its depth-32 reference, ~2 min of 16
@@ -84,6 +95,32 @@ echo "== tessera bench launch (1080p 4 spp)"
 timeout 300 "$T" bench launch --backend gpu --repeat 3 --out /tmp/bench --cache /tmp/bench-cache \
   > "$OUT/launch-summary.txt" 2> "$OUT/launch-log.txt"
 echo "launch exit $?" >> "$OUT/launch-summary.txt"
+fi
+if has gpu-tests; then
+  # The test binary finds examples/ through the path it was built at.
+  [ -e /work/main ] || { mkdir -p /work && ln -s "$PWD" /work/main; }
+  CI=true TESSERA_TEST_ADAPTER=NVIDIA timeout 300 .gpu/gpu-tests --test-threads 4 > "$OUT/gpu-tests.txt" 2>&1
+  echo "gpu tests exit $?" >> "$OUT/gpu-tests.txt"
+fi
+if has against-old; then
+secs() { "$@" 2>/dev/null | grep -o '  [0-9.]* s  ' | head -1 | tr -d ' s'; }
+{
+  echo "== old: $(.gpu/tessera-old --version 2>&1 | head -1); new: $("$T" --version 2>&1 | head -1)"
+  for spec in "resolution.toml cpu 800 600 4" "complexity/glass-9.toml cpu 800 600 4" "depth.toml cpu 800 600 4" \
+              "resolution.toml gpu 1920 1080 64" "complexity/glass-9.toml gpu 1920 1080 16" "depth.toml gpu 1920 1080 16"; do
+    set -- $spec
+    old=(); new=()
+    for i in 1 2 3 4 5 6; do
+      o=$(secs .gpu/tessera-old render "examples/$1" --backend "$2" --width "$3" --height "$4" --samples "$5" -o /tmp/old.exr)
+      n=$(secs "$T" render "examples/$1" --backend "$2" --width "$3" --height "$4" --samples "$5" -o /tmp/new.exr)
+      # The first pair warms caches (files, the driver's shader cache).
+      [ "$i" = 1 ] || { old+=("$o"); new+=("$n"); }
+    done
+    echo "$1 $2 ${3}x$4 $5 spp: old ${old[*]} s; new ${new[*]} s"
+    printf '%s\n' "${old[@]}" | sort -n | sed -n 3p | xargs -I{} echo "  median old {} s"
+    printf '%s\n' "${new[@]}" | sort -n | sed -n 3p | xargs -I{} echo "  median new {} s"
+  done
+} > "$OUT/against-old.txt" 2>&1
 fi
 if has farm; then
 echo "== farm: tessera bench farm (CPU workers against the machine's ceiling, 1 GPU worker alone and beside 7 CPU workers)"

@@ -1735,12 +1735,18 @@ impl Farm {
         let pixels: usize = taken.iter().map(|(r, _)| r.rect.area()).sum();
         for (r, t) in &mut taken {
             let film = r.film.as_ref().expect("validated");
-            let bytes = match r.packed.take() {
-                Some(p) => {
-                    crate::store::encode_packed(film.rect, film.rays, film.nonfinite, &p, None)
-                }
-                None => crate::store::encode_film(film),
+            let packed = r.packed.take();
+            let squares = match packed {
+                Some(_) => None,
+                None => tessera_proto::film_codec::pack_squares_part(film, film.rect),
             };
+            let bytes = crate::store::EncodedFilm::new(
+                film.rect,
+                film.rays,
+                film.nonfinite,
+                packed.unwrap_or_else(|| tessera_proto::film_codec::pack(film)),
+                squares,
+            );
             let rays = [
                 film.rays.primary,
                 film.rays.shadow,

@@ -128,12 +128,12 @@ pub enum Op {
     },
     /// A result: its film, keyed by the first of the `units` units it
     /// covers, and the job's accepted count and rays incremented with them.
-    /// The film comes encoded ([`encode_packed`]) so that the writer thread
-    /// only copies bytes.
+    /// The film comes encoded ([`EncodedFilm`]) so that the writer thread
+    /// only copies bytes, once, into the database.
     AcceptUnits {
         job: String,
         first_unit: u32,
-        film: Vec<u8>,
+        film: EncodedFilm,
         units: u64,
         rays: [u64; 4],
     },
@@ -469,7 +469,9 @@ fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), St
                     units,
                     rays,
                 } => {
-                    films.insert((job.as_str(), *first_unit), film.as_slice())?;
+                    let mut value =
+                        films.insert_reserve((job.as_str(), *first_unit), film.len())?;
+                    film.write_to(value.as_mut());
                     let u = updates.entry(job.as_str()).or_default();
                     u.1 += units;
                     for (a, b) in u.2.iter_mut().zip(rays) {
@@ -547,60 +549,103 @@ pub fn encode_film(f: &Film) -> Vec<u8> {
 /// The part of `film` inside `rect` (which lies inside it), with these ray
 /// counts, for the store: no intermediate film.
 pub fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
-    let squares = film_codec::pack_squares_part(film, rect);
-    encode_packed(
+    EncodedFilm::new(
         rect,
         rays,
         nonfinite,
-        &film_codec::pack_part(film, rect),
-        squares.as_ref().map(|(n, b)| (*n, b.as_slice())),
+        film_codec::pack_part(film, rect),
+        film_codec::pack_squares_part(film, rect),
     )
+    .to_vec()
 }
 
-/// A film already in the compact layout (a result's fields as they came
-/// over the wire, checked by decoding them) for the store: a header and
-/// two copies, no re-encoding. `squares` (width, bytes) for adaptive films.
-pub fn encode_packed(
-    rect: Rect,
-    rays: RayCounts,
-    nonfinite: u64,
-    p: &film_codec::Packed,
-    squares: Option<(u8, &[u8])>,
-) -> Vec<u8> {
-    let mut out = Vec::with_capacity(
-        COMPACT_HEADER + 1 + p.sums.len() + p.counts.len() + squares.map_or(0, |s| s.1.len()),
-    );
-    // Adaptive films (sums of squares) are the compact layout with one
-    // more header byte (the squares' width) and the squares at the end.
-    out.extend_from_slice(if squares.is_some() {
-        &ADAPTIVE_MAGIC
-    } else {
-        &COMPACT_MAGIC
-    });
-    for v in [rect.x, rect.y, rect.width, rect.height] {
-        out.extend_from_slice(&v.to_le_bytes());
+/// A film in the store's compact layout, kept as its parts: the store's
+/// writer copies them straight into the database's page (a GPU result is
+/// tens of megabytes, and one more copy of it cost ~10 ms).
+#[derive(Debug)]
+pub struct EncodedFilm {
+    header: Vec<u8>,
+    packed: film_codec::Packed,
+    squares: Vec<u8>,
+}
+
+impl EncodedFilm {
+    /// A film already in the compact layout (a result's fields as they came
+    /// over the wire, checked by decoding them): a header, no re-encoding.
+    /// `squares` (width, bytes) for adaptive films.
+    pub fn new(
+        rect: Rect,
+        rays: RayCounts,
+        nonfinite: u64,
+        packed: film_codec::Packed,
+        squares: Option<(u8, Vec<u8>)>,
+    ) -> EncodedFilm {
+        let mut header = Vec::with_capacity(COMPACT_HEADER + 1);
+        // Adaptive films (sums of squares) are the compact layout with one
+        // more header byte (the squares' width) and the squares at the end.
+        header.extend_from_slice(if squares.is_some() {
+            &ADAPTIVE_MAGIC
+        } else {
+            &COMPACT_MAGIC
+        });
+        for v in [rect.x, rect.y, rect.width, rect.height] {
+            header.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [
+            rays.primary,
+            rays.shadow,
+            rays.reflection,
+            rays.refraction,
+            nonfinite,
+        ] {
+            header.extend_from_slice(&v.to_le_bytes());
+        }
+        header.push(packed.sum_bytes);
+        header.push(u8::from(packed.uniform_count.is_some()));
+        header.extend_from_slice(&packed.uniform_count.unwrap_or(0).to_le_bytes());
+        let squares = match squares {
+            Some((n, bytes)) => {
+                header.push(n);
+                bytes
+            }
+            None => Vec::new(),
+        };
+        EncodedFilm {
+            header,
+            packed,
+            squares,
+        }
     }
-    for v in [
-        rays.primary,
-        rays.shadow,
-        rays.reflection,
-        rays.refraction,
-        nonfinite,
-    ] {
-        out.extend_from_slice(&v.to_le_bytes());
+
+    /// Bytes of the encoded film.
+    pub fn len(&self) -> usize {
+        self.header.len() + self.packed.sums.len() + self.packed.counts.len() + self.squares.len()
     }
-    out.push(p.sum_bytes);
-    out.push(u8::from(p.uniform_count.is_some()));
-    out.extend_from_slice(&p.uniform_count.unwrap_or(0).to_le_bytes());
-    if let Some((n, _)) = squares {
-        out.push(n);
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
     }
-    out.extend_from_slice(&p.sums);
-    out.extend_from_slice(&p.counts);
-    if let Some((_, bytes)) = squares {
-        out.extend_from_slice(bytes);
+
+    /// Writes the encoded film into `out`, which is [`EncodedFilm::len`] long.
+    pub fn write_to(&self, out: &mut [u8]) {
+        let mut at = 0;
+        for part in [
+            &self.header,
+            &self.packed.sums,
+            &self.packed.counts,
+            &self.squares,
+        ] {
+            out[at..at + part.len()].copy_from_slice(part);
+            at += part.len();
+        }
+        debug_assert_eq!(at, out.len());
     }
-    out
+
+    pub fn to_vec(&self) -> Vec<u8> {
+        let mut out = vec![0u8; self.len()];
+        self.write_to(&mut out);
+        out
+    }
 }
 
 /// A stored film, in the compact layout or in the original one (56-byte

@@ -152,12 +152,15 @@ pub fn pack_part(film: &Film, rect: Rect) -> Packed {
     let n = sum_bytes as usize;
     let row_bytes = rect.width as usize * 3 * n;
     let mut sums = vec![0u8; rect.area() * 3 * n];
-    let write_row = |(out, r): (&mut [u8], std::ops::Range<usize>)| {
-        for (o, s) in out.chunks_exact_mut(3 * n).zip(&film.sums[r]) {
-            for (c, v) in s.iter().enumerate() {
-                o[c * n..(c + 1) * n].copy_from_slice(&v.to_le_bytes()[..n]);
-            }
-        }
+    let write_row = |(out, r): (&mut [u8], std::ops::Range<usize>)| match n {
+        1 => pack_row::<1>(out, &film.sums[r]),
+        2 => pack_row::<2>(out, &film.sums[r]),
+        3 => pack_row::<3>(out, &film.sums[r]),
+        4 => pack_row::<4>(out, &film.sums[r]),
+        5 => pack_row::<5>(out, &film.sums[r]),
+        6 => pack_row::<6>(out, &film.sums[r]),
+        7 => pack_row::<7>(out, &film.sums[r]),
+        _ => pack_row::<8>(out, &film.sums[r]),
     };
     if row_bytes > 0 {
         if parallel {
@@ -187,9 +190,35 @@ pub fn pack_part(film: &Film, rect: Rect) -> Packed {
     }
 }
 
+/// A row of sums as their low `N` bytes each (see [`unpack_sums`]).
+fn pack_row<const N: usize>(out: &mut [u8], sums: &[[u64; 3]]) {
+    for (o, s) in out.chunks_exact_mut(3 * N).zip(sums) {
+        for (c, v) in s.iter().enumerate() {
+            o[c * N..(c + 1) * N].copy_from_slice(&v.to_le_bytes()[..N]);
+        }
+    }
+}
+
 /// A whole film in the compact layout.
 pub fn pack(film: &Film) -> Packed {
     pack_part(film, film.rect)
+}
+
+/// Sums of `N` bytes each, three a pixel, as `u64`s. The width is a
+/// constant so that each value is a fixed-size load, not a `memcpy` of a
+/// variable length (a GPU result is millions of them).
+fn unpack_sums<const N: usize>(sums: &[u8]) -> Vec<[u64; 3]> {
+    let value = |b: &[u8]| {
+        let mut le = [0u8; 8];
+        le[..N].copy_from_slice(&b[..N]);
+        u64::from_le_bytes(le)
+    };
+    let pixel = |p: &[u8]| [value(p), value(&p[N..]), value(&p[2 * N..])];
+    if sums.len() / (3 * N) >= PARALLEL_PIXELS {
+        sums.par_chunks_exact(3 * N).map(pixel).collect()
+    } else {
+        sums.chunks_exact(3 * N).map(pixel).collect()
+    }
 }
 
 /// Rebuilds a film from fields in `encoding`, checking their sizes against `rect`.
@@ -229,16 +258,15 @@ pub fn unpack_with(
             height: rect.height,
         });
     }
-    let value = |b: &[u8]| {
-        let mut le = [0u8; 8];
-        le[..n].copy_from_slice(b);
-        u64::from_le_bytes(le)
-    };
-    let pixel = |p: &[u8]| [value(&p[..n]), value(&p[n..2 * n]), value(&p[2 * n..])];
-    let sums = if area >= PARALLEL_PIXELS {
-        sums.par_chunks_exact(3 * n).map(pixel).collect()
-    } else {
-        sums.chunks_exact(3 * n).map(pixel).collect()
+    let sums = match n {
+        1 => unpack_sums::<1>(sums),
+        2 => unpack_sums::<2>(sums),
+        3 => unpack_sums::<3>(sums),
+        4 => unpack_sums::<4>(sums),
+        5 => unpack_sums::<5>(sums),
+        6 => unpack_sums::<6>(sums),
+        7 => unpack_sums::<7>(sums),
+        _ => unpack_sums::<8>(sums),
     };
     let counts = match encoding.uniform_count {
         Some(c) => vec![c; area],
@@ -415,6 +443,37 @@ mod tests {
             unpack(rect, &s, &c[..20], RayCounts::default(), 0),
             Err(FilmCodecError::CountsSize { .. })
         ));
+    }
+
+    #[test]
+    fn every_sum_width_round_trips_at_its_limits() {
+        // Each width from 1 to 8 bytes (a code path each), serial and
+        // parallel, with the largest value of that width in every channel.
+        for n in 1..=8u32 {
+            let max = if n == 8 {
+                u64::MAX
+            } else {
+                (1u64 << (8 * n)) - 1
+            };
+            for (w, h) in [(7, 3), (1024, 300)] {
+                let rect = Rect::new(0, 0, w, h);
+                let mut f = Film::new(rect);
+                for (i, s) in f.sums.iter_mut().enumerate() {
+                    let i = i as u64;
+                    *s = [
+                        max,
+                        max - (i % 251),
+                        i.wrapping_mul(0x9e37_79b9_7f4a_7c15) & max,
+                    ];
+                }
+                f.counts.fill(3);
+                let p = pack(&f);
+                assert_eq!(u32::from(p.sum_bytes), n, "{w}x{h}");
+                assert_eq!(p.sums.len(), rect.area() * 3 * n as usize);
+                let g = unpack_with(rect, p.encoding(), &p.sums, &p.counts, f.rays, 0).unwrap();
+                assert!(g == f, "width {n}, {w}x{h}");
+            }
+        }
     }
 
     #[test]
