@@ -1,15 +1,17 @@
 //! End-to-end test of the web monitor (`tessera coordinator --http`): the
 //! real coordinator and workers as processes, and the page in headless
-//! Chromium driven by Selenium (`tests/python/monitor_browser.py`), which
+//! Chromium and in headless Firefox, each driven by Selenium
+//! (`tests/python/monitor_browser.py`), which
 //! signs in with the client token, watches a job appear, progress and fill
 //! in, kills a worker mid-job and sees it gone, and cancels a second job
 //! from the page. This side then checks what the browser showed against
 //! the farm: the last preview the page drew equals, pixel for pixel, the
 //! frame `tessera fetch` returns, and the cancelled job is cancelled.
 //!
-//! Chromium, chromedriver and Selenium come from `scripts/test` (Debian's
-//! `chromium` and `chromium-driver`, pip's `selenium`); without them this
-//! test fails, saying what is missing. `TESSERA_MONITOR_SHOTS=DIR` copies
+//! Chromium, chromedriver, Firefox, geckodriver and Selenium come from
+//! `scripts/test` (Debian's `chromium`, `chromium-driver` and `firefox-esr`,
+//! `cargo install geckodriver`, pip's `selenium`); without them these tests
+//! fail, saying what is missing. `TESSERA_MONITOR_SHOTS=DIR` copies
 //! the screenshots it takes there (docs/monitor/ holds the committed ones).
 
 use std::io::{BufRead as _, BufReader};
@@ -88,21 +90,68 @@ fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
     Proc { child, log }
 }
 
-/// What the browser test needs, or a panic naming what is missing (the
-/// test never skips: a monitor untested is not done).
-fn browser_tools() -> (String, String, String) {
+#[derive(Clone, Copy)]
+enum Browser {
+    Chromium,
+    Firefox,
+}
+
+/// A program on `PATH`, else in cargo's bin folder (`cargo install`).
+fn find_program(name: &str) -> Option<PathBuf> {
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    let cargo_bin = std::env::var_os("CARGO_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cargo")))
+        .map(|d| d.join("bin"));
+    std::env::split_paths(&path)
+        .chain(cargo_bin)
+        .map(|d| d.join(name))
+        .find(|p| p.is_file())
+}
+
+/// What the browser test needs (python, the browser, its WebDriver), or a
+/// panic naming what is missing (the test never skips: a monitor untested
+/// is not done).
+fn browser_tools(browser: Browser) -> (String, String, String) {
     let python = std::env::var("PYTHON").unwrap_or_else(|_| "python3".into());
-    let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
-    let driver = std::env::var("CHROMEDRIVER").unwrap_or_else(|_| "/usr/bin/chromedriver".into());
     let mut missing = Vec::new();
-    if !Path::new(&chromium).exists() {
-        missing.push(format!("Chromium ({chromium}; Debian package `chromium`)"));
-    }
-    if !Path::new(&driver).exists() {
-        missing.push(format!(
-            "chromedriver ({driver}; Debian package `chromium-driver`)"
-        ));
-    }
+    let (binary, driver) = match browser {
+        Browser::Chromium => {
+            let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
+            let driver =
+                std::env::var("CHROMEDRIVER").unwrap_or_else(|_| "/usr/bin/chromedriver".into());
+            if !Path::new(&chromium).exists() {
+                missing.push(format!("Chromium ({chromium}; Debian package `chromium`)"));
+            }
+            if !Path::new(&driver).exists() {
+                missing.push(format!(
+                    "chromedriver ({driver}; Debian package `chromium-driver`)"
+                ));
+            }
+            (chromium, driver)
+        }
+        Browser::Firefox => {
+            let firefox =
+                std::env::var("FIREFOX").unwrap_or_else(|_| "/usr/bin/firefox-esr".into());
+            if !Path::new(&firefox).exists() {
+                missing.push(format!("Firefox ({firefox}; Debian package `firefox-esr`)"));
+            }
+            let driver = std::env::var("GECKODRIVER")
+                .ok()
+                .map(PathBuf::from)
+                .or_else(|| find_program("geckodriver"));
+            if driver.is_none() {
+                missing.push(
+                    "geckodriver (on PATH or in ~/.cargo/bin: `cargo install geckodriver --locked`)"
+                        .to_string(),
+                );
+            }
+            (
+                firefox,
+                driver.map_or(String::new(), |d| d.display().to_string()),
+            )
+        }
+    };
     let selenium = Command::new(&python)
         .args(["-c", "import selenium"])
         .status()
@@ -117,40 +166,64 @@ fn browser_tools() -> (String, String, String) {
         "the monitor's browser test needs: {} (scripts/test installs them when run as root)",
         missing.join(", ")
     );
-    (python, chromium, driver)
+    (python, binary, driver)
+}
+
+/// One browser at a time: two farms and two browsers at once on a 2-core
+/// machine would slow the renders the test watches past its waits.
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 #[test]
 fn the_monitor_in_chromium_shows_jobs_progress_the_live_preview_a_dead_worker_and_cancels() {
-    let (python, chromium, driver) = browser_tools();
+    monitor_test(Browser::Chromium);
+}
+
+#[test]
+fn the_monitor_in_firefox_shows_jobs_progress_the_live_preview_a_dead_worker_and_cancels() {
+    monitor_test(Browser::Firefox);
+}
+
+fn monitor_test(browser: Browser) {
+    let _g = serial();
+    let (python, binary, driver) = browser_tools(browser);
+    let name = match browser {
+        Browser::Chromium => "chromium",
+        Browser::Firefox => "firefox",
+    };
     let dir = tempfile::tempdir().expect("tempdir");
     let c = start_coordinator(dir.path());
     let _keep = start_worker(dir.path(), &c.grpc, "steady");
     let victim = start_worker(dir.path(), &c.grpc, "victim");
     let scene = repo("examples/resolution.toml");
-    // Many small units (16 px tiles, 8 samples each): the preview fills
-    // in over dozens of results, slowly enough to watch.
-    // About 7 M pixel-samples: 10-20 s on two 1-thread workers here.
+    // Many small units (16 px tiles, 32 samples each): the preview fills
+    // in over dozens of results, slowly enough to watch (the page makes a
+    // preview a second, and the checks mid-job need two of them). About
+    // 30 M pixel-samples: ~8 s on two idle 1-thread workers on the 2-core
+    // VM (7 M, the earlier size, ended before the checks once the CPU
+    // workers rendered a unit in one pass), longer under load.
     let first = [
         "--width",
         "320",
         "--height",
         "240",
         "--samples",
-        "96",
+        "384",
         "--tile-size",
         "16",
         "--samples-per-unit",
-        "16",
+        "32",
     ];
-    // Five times as long: cancelled long before its end.
+    // Longer still: cancelled long before its end.
     let second = [
         "--width",
         "320",
         "--height",
         "240",
         "--samples",
-        "512",
+        "2048",
         "--tile-size",
         "16",
         "--samples-per-unit",
@@ -180,12 +253,12 @@ fn the_monitor_in_chromium_shows_jobs_progress_the_live_preview_a_dead_worker_an
         ])
         .arg("--out")
         .arg(&out)
-        .args(["--chromium", &chromium, "--chromedriver", &driver])
+        .args(["--browser", name, "--binary", &binary, "--driver", &driver])
         .status()
         .expect("run the browser test");
     assert!(
         status.success(),
-        "the browser test failed ({status}); coordinator log:\n{}",
+        "the browser test failed in {name} ({status}); coordinator log:\n{}",
         c.proc.log()
     );
 
@@ -242,7 +315,8 @@ fn the_monitor_in_chromium_shows_jobs_progress_the_live_preview_a_dead_worker_an
     // The coordinator saw the worker go.
     assert!(c.proc.log().contains("worker left"), "{}", c.proc.log());
 
-    if let Ok(to) = std::env::var("TESSERA_MONITOR_SHOTS") {
+    // The committed screenshots are Chromium's.
+    if let (Ok(to), Browser::Chromium) = (std::env::var("TESSERA_MONITOR_SHOTS"), browser) {
         let to = PathBuf::from(to);
         std::fs::create_dir_all(&to).expect("shots dir");
         for f in [

@@ -1,5 +1,7 @@
-"""Drives the coordinator's web monitor in headless Chromium (Selenium with
-Debian's chromium and chromium-driver), for tests/monitor.rs.
+"""Drives the coordinator's web monitor in a headless browser, for
+tests/monitor.rs: Chromium (Selenium with Debian's chromium and
+chromium-driver) or Firefox (Debian's firefox-esr and geckodriver, which
+`scripts/test` builds from crates.io).
 
 The Rust test starts the coordinator and the workers; this script submits
 jobs with the `tessera` binary and checks everything else through the page
@@ -22,9 +24,11 @@ import sys
 import time
 
 from selenium import webdriver
-from selenium.webdriver.chrome.options import Options
-from selenium.webdriver.chrome.service import Service
+from selenium.webdriver.chrome.options import Options as ChromeOptions
+from selenium.webdriver.chrome.service import Service as ChromeService
 from selenium.webdriver.common.by import By
+from selenium.webdriver.firefox.options import Options as FirefoxOptions
+from selenium.webdriver.firefox.service import Service as FirefoxService
 
 
 def step(msg):
@@ -48,21 +52,37 @@ def wait(what, timeout, f, poll=0.1):
 
 
 class Page:
-    def __init__(self, chromium, driver, width, height):
-        o = Options()
-        o.binary_location = chromium
-        for a in (
-            "--headless=new",
-            "--no-sandbox",
-            "--disable-dev-shm-usage",
-            "--disable-gpu",
+    def __init__(self, browser, binary, driver, width, height, dark=False):
+        """`dark`: the system theme the page sees (Firefox takes it at start)."""
+        self.browser = browser
+        if browser == "chromium":
+            o = ChromeOptions()
+            o.binary_location = binary
+            for a in (
+                "--headless=new",
+                "--no-sandbox",
+                "--disable-dev-shm-usage",
+                "--disable-gpu",
+                # Pixels read back from a canvas are the image's, unconverted.
+                "--force-color-profile=srgb",
+                "--hide-scrollbars",
+                f"--window-size={width},{height}",
+            ):
+                o.add_argument(a)
+            self.d = webdriver.Chrome(service=ChromeService(executable_path=driver), options=o)
+            if dark:
+                self.d.execute_cdp_cmd("Emulation.setEmulatedMedia", {
+                    "features": [{"name": "prefers-color-scheme", "value": "dark"}]})
+        else:
+            o = FirefoxOptions()
+            o.binary_location = binary
+            o.add_argument("-headless")
+            # 0: dark, 1: light, whatever the (headless) system says.
+            o.set_preference("layout.css.prefers-color-scheme.content-override", 0 if dark else 1)
             # Pixels read back from a canvas are the image's, unconverted.
-            "--force-color-profile=srgb",
-            "--hide-scrollbars",
-            f"--window-size={width},{height}",
-        ):
-            o.add_argument(a)
-        self.d = webdriver.Chrome(service=Service(executable_path=driver), options=o)
+            o.set_preference("gfx.color_management.mode", 0)
+            self.d = webdriver.Firefox(service=FirefoxService(executable_path=driver), options=o)
+            self.d.set_window_size(width, height)
         self.d.set_script_timeout(30)
 
     def go(self, url):
@@ -136,9 +156,16 @@ def main():
     ap.add_argument("--victim-pid", type=int, required=True, help="a worker to SIGKILL mid-job")
     ap.add_argument("--victim-name", required=True)
     ap.add_argument("--out", required=True, help="folder for results and screenshots")
-    ap.add_argument("--chromium", default=os.environ.get("CHROMIUM", "/usr/bin/chromium"))
-    ap.add_argument("--chromedriver", default=os.environ.get("CHROMEDRIVER", "/usr/bin/chromedriver"))
+    ap.add_argument("--browser", choices=["chromium", "firefox"], default="chromium")
+    ap.add_argument("--binary", help="the browser [default: /usr/bin/chromium or /usr/bin/firefox-esr]")
+    ap.add_argument("--driver", help="chromedriver or geckodriver [default: /usr/bin/chromedriver or geckodriver on PATH]")
     a = ap.parse_args()
+    if a.browser == "chromium":
+        a.binary = a.binary or os.environ.get("CHROMIUM", "/usr/bin/chromium")
+        a.driver = a.driver or os.environ.get("CHROMEDRIVER", "/usr/bin/chromedriver")
+    else:
+        a.binary = a.binary or os.environ.get("FIREFOX", "/usr/bin/firefox-esr")
+        a.driver = a.driver or os.environ.get("GECKODRIVER", "geckodriver")
 
     env = dict(os.environ, TESSERA_COORDINATOR=a.grpc, TESSERA_TOKEN=a.token)
 
@@ -154,7 +181,8 @@ def main():
     def shot(page, name):
         page.shot(os.path.join(a.out, name))
 
-    p = Page(a.chromium, a.chromedriver, 1280, 1000)
+    p = Page(a.browser, a.binary, a.driver, 1280, 1000)
+    step(f"browser: {a.browser} {p.d.capabilities.get('browserVersion', '?')}")
     try:
         # -- sign-in: nothing of the farm before the token ------------------
         p.go(a.http + "/")
@@ -307,8 +335,29 @@ def main():
         # -- dark system theme -------------------------------------------------
         p.d.set_window_size(1280, 1000)
         light = p.js("return getComputedStyle(document.body).backgroundColor")
-        p.d.execute_cdp_cmd("Emulation.setEmulatedMedia", {
-            "features": [{"name": "prefers-color-scheme", "value": "dark"}]})
+        if a.browser == "chromium":
+            logs = [e for e in p.d.get_log("browser") if e.get("level") == "SEVERE"]
+            # The refusals this script asked for (401) and a frame asked for while
+            # being written (503) are expected; anything else is a fault of the page.
+            bad = [e for e in logs if not any(c in e.get("message", "") for c in (" 401 ", " 503 "))]
+            if bad:
+                fail(f"errors in the browser console: {bad}")
+        # Firefox gives WebDriver no console log: the page's own error
+        # handler (window.onerror, unhandled rejections) is checked instead.
+        errors = p.js("return window.__monitorErrors || []")
+        if errors:
+            fail(f"errors in the page: {errors}")
+    finally:
+        p.quit()
+
+    # -- dark system theme, in a browser started with it --------------------
+    p = Page(a.browser, a.binary, a.driver, 1280, 1000, dark=True)
+    try:
+        p.go(a.http + "/")
+        wait("the sign-in form", 10, lambda: p.css("#token"))
+        p.css("#token")[0].send_keys(a.token)
+        p.click("#login-form button")
+        wait("the jobs page", 15, lambda: p.css("#jobs"))
         p.go(f"{a.http}/#/jobs/{job}")
         wait("the job page", 10, lambda: p.attr("#job-state", "data-state") == "done")
         wait("the preview", 10, lambda: p.attr("#preview", "data-written") == "1")
@@ -317,12 +366,9 @@ def main():
             fail(f"the page ignores a dark system theme (background {dark})")
         shot(p, "job-dark.png")
         step(f"dark theme: background {light} -> {dark}")
-        logs = [e for e in p.d.get_log("browser") if e.get("level") == "SEVERE"]
-        # The refusals this script asked for (401) and a frame asked for while
-        # being written (503) are expected; anything else is a fault of the page.
-        bad = [e for e in logs if not any(c in e.get("message", "") for c in (" 401 ", " 503 "))]
-        if bad:
-            fail(f"errors in the browser console: {bad}")
+        errors = p.js("return window.__monitorErrors || []")
+        if errors:
+            fail(f"errors in the page: {errors}")
         step("OK")
     finally:
         p.quit()

@@ -5,6 +5,12 @@
 // token lives in this tab's sessionStorage only.
 "use strict";
 
+// Uncaught errors of the page, kept where a test (or a person in the
+// console) can read them: not every browser gives WebDriver its console.
+window.__monitorErrors = [];
+window.addEventListener("error", (e) => window.__monitorErrors.push(String(e.message)));
+window.addEventListener("unhandledrejection", (e) => window.__monitorErrors.push(String(e.reason)));
+
 const TOKEN_KEY = "tessera-client-token";
 // Least time between two previews (or thumbnails) asked for one frame; the
 // server makes at most one a second per frame whatever the viewers.
@@ -350,12 +356,13 @@ function buildJob(job) {
 
   $("#set-priority").addEventListener("click", async () => {
     const v = Number($("#priority").value);
-    if (!Number.isInteger(v)) { $("#job-error").textContent = "The priority is a whole number."; return; }
+    if (!Number.isInteger(v)) { jobError("The priority is a whole number."); return; }
     try {
       await postJson(`/api/jobs/${encodeURIComponent(job.id)}/priority`, { priority: v });
-      $("#job-error").textContent = "";
-      $("#priority").dataset.dirty = "";
-    } catch (e) { $("#job-error").textContent = e.message; }
+      jobError("");
+      const field = $("#priority");
+      if (field) field.dataset.dirty = "";
+    } catch (e) { jobError(e.message); }
   });
   $("#priority").addEventListener("input", () => { $("#priority").dataset.dirty = "1"; });
   // Two clicks to cancel (no dialog: works the same on a phone).
@@ -372,8 +379,8 @@ function buildJob(job) {
     b.textContent = "Cancel job";
     try {
       await postJson(`/api/jobs/${encodeURIComponent(job.id)}/cancel`);
-      $("#job-error").textContent = "";
-    } catch (e) { $("#job-error").textContent = e.message; }
+      jobError("");
+    } catch (e) { jobError(e.message); }
   });
   $("#full-size").addEventListener("click", () => openViewer(job.id, S.job.frame));
   $("#download").addEventListener("click", () => download(job.id, S.job.frame));
@@ -390,7 +397,7 @@ function updateJob(job) {
   $("#set-priority").disabled = ended;
   $("#priority").disabled = ended;
   if (!$("#priority").dataset.dirty && document.activeElement !== $("#priority")) $("#priority").value = job.priority;
-  $("#job-error").textContent = job.error || "";
+  jobError(job.error || "");
   const p = $("#job-progress");
   p.dataset.value = job.progress;
   p.innerHTML = `${bar(job.progress)}<span class="pct" id="job-pct">${pct(job.progress)}</span>
@@ -419,6 +426,13 @@ function updateJob(job) {
   refreshFailures(job);
 }
 
+// The job page's error line; a no-op once the page has moved on (an answer
+// can arrive after the user left the job's page).
+function jobError(msg) {
+  const el = $("#job-error");
+  if (el) el.textContent = msg;
+}
+
 async function refreshPreview(job, f) {
   const p = S.job.preview;
   const key = `${job.id}/${f.frame}/${f.units_done}/${f.written}`;
@@ -441,6 +455,8 @@ async function refreshPreview(job, f) {
     if (!S.job || S.job.preview !== p) { URL.revokeObjectURL(url); return; }
     const img = $("#preview");
     await new Promise((ok) => { img.onload = ok; img.onerror = ok; img.src = url; });
+    // The page may have moved on while the image loaded.
+    if (!S.job || S.job.preview !== p) { URL.revokeObjectURL(url); return; }
     if (p.url) URL.revokeObjectURL(p.url);
     p.url = url;
     // What the image holds, which may be a moment older than the snapshot
@@ -457,7 +473,8 @@ async function refreshPreview(job, f) {
     img.classList.toggle("smooth", img.naturalWidth >= job.settings.width);
     drawTiles(detail, job);
   } catch (e) {
-    if (e.status !== 503) $("#job-error").textContent = "preview: " + e.message;
+    // A 503 is a frame being written.
+    if (e.status !== 503) jobError("preview: " + e.message);
   } finally {
     p.busy = false;
   }
