@@ -169,13 +169,6 @@ fn browser_tools(browser: Browser) -> (String, String, String) {
     (python, binary, driver)
 }
 
-/// One browser at a time: two farms and two browsers at once on a 2-core
-/// machine would slow the renders the test watches past its waits.
-fn serial() -> std::sync::MutexGuard<'static, ()> {
-    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    LOCK.lock().unwrap_or_else(|e| e.into_inner())
-}
-
 #[test]
 fn the_monitor_in_chromium_shows_jobs_progress_the_live_preview_a_dead_worker_and_cancels() {
     monitor_test(Browser::Chromium);
@@ -187,6 +180,8 @@ fn the_monitor_in_firefox_shows_jobs_progress_the_live_preview_a_dead_worker_and
 }
 
 fn monitor_test(browser: Browser) {
+    // One browser at a time: two farms and two browsers at once on a
+    // 2-core machine would slow the renders the test watches past its waits.
     let _g = serial();
     let (python, binary, driver) = browser_tools(browser);
     let name = match browser {

@@ -1244,6 +1244,11 @@ impl Farm {
             return Ok((Vec::new(), false));
         }
         let speed = worker.ray_speed;
+        // This worker at its best (never below `speed`), as the others are
+        // rated when it is held back for them: rated on one scale, the
+        // worker that would finish first is never held back, so not all
+        // of them are.
+        let best = worker.farm_speed();
         // A worker's speed is measured on small leases first, where fixed
         // costs (a GPU call, a result message) weigh most: while its last
         // lease took under a quarter of the target, the next may be eight
@@ -1299,14 +1304,6 @@ impl Farm {
         // workers (a worker not yet measured adds nothing until its first
         // result; one gone silent adds nothing either).
         let farm_speed: f64 = speed + others.iter().map(|&(v, _)| v).sum::<f64>();
-        // This worker at its best, as the others are rated when it is
-        // held back for them: rated on one scale, the worker that would
-        // finish first is never held back, so not all of them are.
-        let best = st
-            .workers
-            .get(worker_id)
-            .map_or(speed, Worker::farm_speed)
-            .max(speed);
         let mut held_back = false;
         // Seconds of work this worker holds already, at its speed.
         let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
@@ -1735,18 +1732,12 @@ impl Farm {
         let pixels: usize = taken.iter().map(|(r, _)| r.rect.area()).sum();
         for (r, t) in &mut taken {
             let film = r.film.as_ref().expect("validated");
-            let packed = r.packed.take();
-            let squares = match packed {
-                Some(_) => None,
-                None => tessera_proto::film_codec::pack_squares_part(film, film.rect),
+            let bytes = match r.packed.take() {
+                Some(p) => {
+                    crate::store::EncodedFilm::new(film.rect, film.rays, film.nonfinite, p, None)
+                }
+                None => crate::store::EncodedFilm::of_film(film),
             };
-            let bytes = crate::store::EncodedFilm::new(
-                film.rect,
-                film.rays,
-                film.nonfinite,
-                packed.unwrap_or_else(|| tessera_proto::film_codec::pack(film)),
-                squares,
-            );
             let rays = [
                 film.rays.primary,
                 film.rays.shadow,

@@ -543,20 +543,13 @@ const COMPACT_HEADER: usize = 4 + 16 + 40 + 1 + 1 + 4;
 
 /// A film for the store, in the compact layout of [`film_codec::pack`].
 pub fn encode_film(f: &Film) -> Vec<u8> {
-    encode_film_part(f, f.rect, f.rays, f.nonfinite)
+    EncodedFilm::of_film(f).to_vec()
 }
 
 /// The part of `film` inside `rect` (which lies inside it), with these ray
 /// counts, for the store: no intermediate film.
 pub fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
-    EncodedFilm::new(
-        rect,
-        rays,
-        nonfinite,
-        film_codec::pack_part(film, rect),
-        film_codec::pack_squares_part(film, rect),
-    )
-    .to_vec()
+    EncodedFilm::of_part(film, rect, rays, nonfinite).to_vec()
 }
 
 /// A film in the store's compact layout, kept as its parts: the store's
@@ -615,6 +608,23 @@ impl EncodedFilm {
             packed,
             squares,
         }
+    }
+
+    /// The part of `film` inside `rect` (which lies inside it), packed,
+    /// with these ray counts: no intermediate film.
+    pub fn of_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> EncodedFilm {
+        EncodedFilm::new(
+            rect,
+            rays,
+            nonfinite,
+            film_codec::pack_part(film, rect),
+            film_codec::pack_squares_part(film, rect),
+        )
+    }
+
+    /// A whole film, packed (with its sums of squares if it has them).
+    pub fn of_film(f: &Film) -> EncodedFilm {
+        EncodedFilm::of_part(f, f.rect, f.rays, f.nonfinite)
     }
 
     /// Bytes of the encoded film.

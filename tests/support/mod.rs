@@ -6,6 +6,14 @@ use std::process::{Child, Command, Output};
 use std::time::{Duration, Instant};
 
 pub const TESSERA: &str = env!("CARGO_BIN_EXE_tessera");
+
+/// Holds the tests of one file that must not run at once (farms that
+/// watch their own timing, shared ports); a panicked holder does not
+/// poison it for the rest.
+pub fn serial() -> std::sync::MutexGuard<'static, ()> {
+    static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    SERIAL.lock().unwrap_or_else(|e| e.into_inner())
+}
 pub fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
 }

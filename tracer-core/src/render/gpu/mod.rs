@@ -543,6 +543,16 @@ impl GpuRenderer {
         })
     }
 
+    /// An unmapped buffer (every output, queue and read-back buffer).
+    fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage,
+            mapped_at_creation: false,
+        })
+    }
+
     fn pipeline_cache(&self) -> Option<&wgpu::PipelineCache> {
         self.disk_cache.as_ref().map(|c| c.cache())
     }
@@ -828,18 +838,16 @@ impl GpuRenderer {
                 ty: wgpu::QueryType::Timestamp,
                 count: n,
             });
-            let resolve = self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("timestamps"),
-                size: n as u64 * 8,
-                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            });
-            let read = self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("timestamps read"),
-                size: n as u64 * 8,
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
+            let resolve = self.buffer(
+                "timestamps",
+                n as u64 * 8,
+                wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            );
+            let read = self.buffer(
+                "timestamps read",
+                n as u64 * 8,
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            );
             (set, resolve, read, n)
         });
 
@@ -1113,20 +1121,12 @@ impl GpuRenderer {
     /// The resolve pipeline (kept from `old`) with image buffers for `pixels`.
     fn create_resolver(&self, pixels: usize, old: Option<Resolver>) -> Resolver {
         use wgpu::BufferUsages as U;
-        let buf = |label, size, usage| {
-            self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        let image = buf(
+        let image = self.buffer(
             "resolved image",
             image_bytes(pixels),
             U::STORAGE | U::COPY_SRC,
         );
-        let image_read = buf(
+        let image_read = self.buffer(
             "resolved image read",
             image_bytes(pixels),
             U::MAP_READ | U::COPY_DST,
@@ -1190,8 +1190,8 @@ impl GpuRenderer {
         Resolver {
             pipeline,
             layout,
-            params: buf("resolve params", 16, U::UNIFORM | U::COPY_DST),
-            thresholds: buf("sRGB thresholds", 255 * 8, U::STORAGE | U::COPY_DST),
+            params: self.buffer("resolve params", 16, U::UNIFORM | U::COPY_DST),
+            thresholds: self.buffer("sRGB thresholds", 255 * 8, U::STORAGE | U::COPY_DST),
             samples: None,
             pixels,
             image,
@@ -1201,15 +1201,7 @@ impl GpuRenderer {
 
     fn create_wave_buffers(&self, queue_cap: u64) -> WaveBuffers {
         use wgpu::BufferUsages as U;
-        let buf = |label, size, usage| {
-            self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
-        let args = buf(
+        let args = self.buffer(
             "wavefront args",
             layout::WAVE_ARGS_BYTES,
             U::STORAGE | U::INDIRECT,
@@ -1221,22 +1213,22 @@ impl GpuRenderer {
         });
         WaveBuffers {
             queue_cap,
-            a: buf(
+            a: self.buffer(
                 "wavefront queue a",
                 queue_cap * layout::WAVE_TASK_BYTES,
                 U::STORAGE,
             ),
-            b: buf(
+            b: self.buffer(
                 "wavefront queue b",
                 queue_cap * layout::WAVE_TASK_BYTES,
                 U::STORAGE,
             ),
-            state: buf(
+            state: self.buffer(
                 "wavefront state",
                 layout::WAVE_STATE_BYTES,
                 U::STORAGE | U::COPY_SRC | U::COPY_DST,
             ),
-            state_read: buf(
+            state_read: self.buffer(
                 "wavefront state read",
                 layout::WAVE_STATE_BYTES,
                 U::MAP_READ | U::COPY_DST,
@@ -1452,28 +1444,20 @@ impl GpuRenderer {
     }
 
     fn create_outputs(&self, pixels: usize) -> Outputs {
-        let buf = |label, size, usage| {
-            self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size,
-                usage,
-                mapped_at_creation: false,
-            })
-        };
         let sums_bytes = (pixels * SUM_WORDS * 4) as u64;
         let counters_bytes = (COUNTERS * 8) as u64;
         use wgpu::BufferUsages as U;
         Outputs {
             pixels,
-            sums: buf("sums", sums_bytes, U::STORAGE | U::COPY_SRC | U::COPY_DST),
-            sums_read: buf("sums read", sums_bytes, U::MAP_READ | U::COPY_DST),
-            counters: buf(
+            sums: self.buffer("sums", sums_bytes, U::STORAGE | U::COPY_SRC | U::COPY_DST),
+            sums_read: self.buffer("sums read", sums_bytes, U::MAP_READ | U::COPY_DST),
+            counters: self.buffer(
                 "counters",
                 counters_bytes,
                 U::STORAGE | U::COPY_SRC | U::COPY_DST,
             ),
-            counters_read: buf("counters read", counters_bytes, U::MAP_READ | U::COPY_DST),
-            params: buf(
+            counters_read: self.buffer("counters read", counters_bytes, U::MAP_READ | U::COPY_DST),
+            params: self.buffer(
                 "dispatch params",
                 PARAMS_STRIDE * PARAMS_SLOTS as u64,
                 U::UNIFORM | U::COPY_DST,
