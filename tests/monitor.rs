@@ -2,11 +2,15 @@
 //! real coordinator and workers as processes, and the page in headless
 //! Chromium and in headless Firefox, each driven by Selenium
 //! (`tests/python/monitor_browser.py`), which
-//! signs in with the client token, watches a job appear, progress and fill
-//! in, kills a worker mid-job and sees it gone, and cancels a second job
-//! from the page. This side then checks what the browser showed against
-//! the farm: the last preview the page drew equals, pixel for pixel, the
-//! frame `tessera fetch` returns, and the cancelled job is cancelled.
+//! signs in with the client token, reads a failed job's worker message,
+//! watches a job appear, list its settings, progress and fill in, reads
+//! the workers' rows, kills a worker mid-job and sees it gone, downloads
+//! the frame, cancels a second job from the page and picks a frame of an
+//! animation by its thumbnail. This side then checks what the browser
+//! showed against the farm: the last preview the page drew and each
+//! thumbnail equal, pixel for pixel, the frames `tessera fetch` returns,
+//! the downloaded PNG is the fetched file, and the cancelled job is
+//! cancelled.
 //!
 //! Chromium, chromedriver, Firefox, geckodriver and Selenium come from
 //! `scripts/test` (Debian's `chromium`, `chromium-driver` and `firefox-esr`,
@@ -88,6 +92,71 @@ fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
         .spawn()
         .expect("start worker");
     Proc { child, log }
+}
+
+/// Submits a one-unit job allowed one attempt, leases its unit as a worker
+/// named `flaky` over the worker API and reports `message` as its failure:
+/// the job fails, carrying the message. Returns the job's id.
+fn fail_a_job(c: &Coordinator, message: &str) -> String {
+    use tessera_proto::pb;
+    use tessera_proto::pb::worker_service_client::WorkerServiceClient;
+    let o = Command::new(TESSERA)
+        .arg("submit")
+        .arg(repo("examples/resolution.toml"))
+        .args([
+            "--name",
+            "monitor-failed",
+            "--width",
+            "32",
+            "--height",
+            "24",
+        ])
+        .args(["--samples", "1", "--tile-size", "32", "--max-attempts", "1"])
+        .env("TESSERA_COORDINATOR", &c.grpc)
+        .env("TESSERA_TOKEN", TOKEN)
+        .output()
+        .expect("tessera submit");
+    let job = ok_stdout(&o).trim().to_string();
+    rt().block_on(async {
+        let mut w = WorkerServiceClient::connect(c.grpc.clone())
+            .await
+            .expect("connect");
+        let id = w
+            .register(pb::RegisterRequest {
+                name: "flaky".into(),
+                capabilities: None,
+            })
+            .await
+            .expect("register")
+            .into_inner()
+            .worker_id;
+        let unit = w
+            .lease_work(pb::LeaseWorkRequest {
+                worker_id: id.clone(),
+                max_units: 1,
+                wait_ms: 5000,
+                ahead: false,
+            })
+            .await
+            .expect("lease")
+            .into_inner()
+            .units
+            .into_iter()
+            .next()
+            .expect("the job's unit");
+        let r = w
+            .submit_result(pb::SubmitResultRequest {
+                worker_id: id,
+                lease_id: unit.lease_id,
+                failure: message.into(),
+                ..Default::default()
+            })
+            .await
+            .expect("submit the failure")
+            .into_inner();
+        assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+    });
+    job
 }
 
 #[derive(Clone, Copy)]
@@ -190,6 +259,10 @@ fn monitor_test(browser: Browser) {
     };
     let dir = tempfile::tempdir().expect("tempdir");
     let c = start_coordinator(dir.path());
+    // Before any real worker: a one-unit job that a worker fails, so the
+    // page has a failure with the worker's message to show.
+    let failed_message = "device lost (injected by the test)";
+    let failed_job = fail_a_job(&c, failed_message);
     let _keep = start_worker(dir.path(), &c.grpc, "steady");
     let victim = start_worker(dir.path(), &c.grpc, "victim");
     let scene = repo("examples/resolution.toml");
@@ -224,6 +297,17 @@ fn monitor_test(browser: Browser) {
         "--samples-per-unit",
         "8",
     ];
+    // Three frames small enough that a thumbnail is the whole frame.
+    let anim = [
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--samples",
+        "4",
+        "--frames",
+        "1..3",
+    ];
     let out = dir.path().join("browser");
     std::fs::create_dir_all(&out).expect("out dir");
     let json = |a: &[&str]| serde_json::to_string(a).expect("json");
@@ -240,6 +324,15 @@ fn monitor_test(browser: Browser) {
             "--second-settings",
             &json(&second),
         ])
+        .args([
+            "--failed-job",
+            &failed_job,
+            "--failed-message",
+            failed_message,
+        ])
+        .arg("--anim-scene")
+        .arg(repo("examples/animation.toml"))
+        .args(["--anim-settings", &json(&anim)])
         .args([
             "--victim-pid",
             &victim.child.id().to_string(),
@@ -293,6 +386,47 @@ fn monitor_test(browser: Browser) {
         differ, 0,
         "{differ} bytes of the page's preview differ from the fetched frame"
     );
+
+    // The downloaded PNG is the fetched frame's file, byte for byte.
+    let download: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("download.json")).expect("download.json"))
+            .expect("download.json");
+    assert_eq!(download["job"].as_str(), Some(job));
+    let saved = std::fs::read(download["path"].as_str().expect("path")).expect("downloaded file");
+    assert!(
+        saved == std::fs::read(fetched.join("frame_0000.png")).expect("fetched file"),
+        "the downloaded PNG differs from the one `tessera fetch` wrote"
+    );
+
+    // Each thumbnail is its frame (a frame this small is shown whole).
+    let thumbs: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("thumbs.json")).expect("thumbs.json"))
+            .expect("thumbs.json");
+    let anim_job = thumbs["job"].as_str().expect("job");
+    let anim_dir = dir.path().join("fetched-animation");
+    let o = Command::new(TESSERA)
+        .args(["fetch", anim_job, "-o"])
+        .arg(&anim_dir)
+        .env("TESSERA_COORDINATOR", &c.grpc)
+        .env("TESSERA_TOKEN", TOKEN)
+        .output()
+        .expect("tessera fetch");
+    ok_stdout(&o);
+    for frame in 1..=3 {
+        let png = image::open(anim_dir.join(format!("frame_{frame:04}.png")))
+            .expect("fetched frame")
+            .to_rgba8();
+        assert_eq!(
+            thumbs["frames"][frame.to_string()],
+            serde_json::json!([png.width(), png.height()]),
+            "frame {frame}'s thumbnail size"
+        );
+        let shown = std::fs::read(out.join(format!("thumb_{frame}.rgba"))).expect("thumbnail");
+        assert!(
+            shown == png.as_raw().as_slice(),
+            "frame {frame}'s thumbnail differs from the fetched frame"
+        );
+    }
 
     // The job cancelled from the page is cancelled in the farm.
     let cancelled: serde_json::Value =

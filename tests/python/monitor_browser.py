@@ -5,8 +5,9 @@ chromium-driver) or Firefox (Debian's firefox-esr and geckodriver, which
 
 The Rust test starts the coordinator and the workers; this script submits
 jobs with the `tessera` binary and checks everything else through the page
-a person would use: sign-in, the jobs list, a job's progress and live
-preview, the workers page, cancel. It prints one line per step and exits
+a person would use: sign-in, a failed job's workers' messages, the jobs
+list, a job's settings, progress and live preview, full size and download,
+the workers page, cancel, an animation's frame thumbnails. It prints one line per step and exits
 non-zero (with the reason) on the first failure.
 
 Written for the test (argument names are the Rust side's), but it can be run
@@ -52,8 +53,9 @@ def wait(what, timeout, f, poll=0.1):
 
 
 class Page:
-    def __init__(self, browser, binary, driver, width, height, dark=False):
-        """`dark`: the system theme the page sees (Firefox takes it at start)."""
+    def __init__(self, browser, binary, driver, width, height, dark=False, downloads=None):
+        """`dark`: the system theme the page sees (Firefox takes it at start);
+        `downloads`: the folder the browser saves downloads to, unasked."""
         self.browser = browser
         if browser == "chromium":
             o = ChromeOptions()
@@ -69,7 +71,15 @@ class Page:
                 f"--window-size={width},{height}",
             ):
                 o.add_argument(a)
+            if downloads:
+                o.add_experimental_option("prefs", {
+                    "download.default_directory": downloads,
+                    "download.prompt_for_download": False,
+                })
             self.d = webdriver.Chrome(service=ChromeService(executable_path=driver), options=o)
+            if downloads:
+                self.d.execute_cdp_cmd("Page.setDownloadBehavior",
+                                       {"behavior": "allow", "downloadPath": downloads})
             if dark:
                 self.d.execute_cdp_cmd("Emulation.setEmulatedMedia", {
                     "features": [{"name": "prefers-color-scheme", "value": "dark"}]})
@@ -81,6 +91,13 @@ class Page:
             o.set_preference("layout.css.prefers-color-scheme.content-override", 0 if dark else 1)
             # Pixels read back from a canvas are the image's, unconverted.
             o.set_preference("gfx.color_management.mode", 0)
+            if downloads:
+                o.set_preference("browser.download.folderList", 2)
+                o.set_preference("browser.download.dir", downloads)
+                o.set_preference("browser.download.useDownloadDir", True)
+                o.set_preference("browser.download.always_ask_before_handling_new_types", False)
+                o.set_preference("browser.helperApps.neverAsk.saveToDisk", "image/png")
+                o.set_preference("browser.download.manager.showWhenStarting", False)
             self.d = webdriver.Firefox(service=FirefoxService(executable_path=driver), options=o)
             self.d.set_window_size(width, height)
         self.d.set_script_timeout(30)
@@ -113,6 +130,30 @@ class Page:
         wait(f"{sel} to be clickable", 10, lambda: self.js(
             "const e = document.querySelector(arguments[0]); return !!e && !e.disabled;", sel))
         self.css(sel)[0].click()
+
+    def image_pixels(self, sel):
+        """An image as the page shows it: (width, height, RGBA bytes), or None
+        while it is not loaded."""
+        r = self.js(
+            """
+            const img = document.querySelector(arguments[0]);
+            if (!img || !img.complete || !img.naturalWidth) return null;
+            const c = document.createElement('canvas');
+            c.width = img.naturalWidth; c.height = img.naturalHeight;
+            const g = c.getContext('2d');
+            g.drawImage(img, 0, 0);
+            const d = g.getImageData(0, 0, c.width, c.height).data;
+            let s = '';
+            for (let i = 0; i < d.length; i += 8192) s += String.fromCharCode.apply(null, d.subarray(i, i + 8192));
+            return [c.width, c.height, btoa(s)];
+            """, sel)
+        return (r[0], r[1], base64.b64decode(r[2])) if r else None
+
+    def settings(self):
+        """The job page's settings list, label -> value."""
+        return self.js(
+            "const o = {}; document.querySelectorAll('#settings dt').forEach("
+            "dt => { o[dt.textContent] = dt.nextElementSibling.textContent; }); return o;")
 
     def preview_pixels(self):
         """The preview image as the page shows it: (width, height, RGBA bytes)."""
@@ -153,6 +194,10 @@ def main():
     ap.add_argument("--scene", required=True)
     ap.add_argument("--settings", required=True, help="JSON list of submit arguments for the first job")
     ap.add_argument("--second-settings", required=True, help="JSON list for the job cancelled from the page")
+    ap.add_argument("--failed-job", required=True, help="a job failed by a worker's message, before the page opens")
+    ap.add_argument("--failed-message", required=True, help="the worker's message that failed it")
+    ap.add_argument("--anim-scene", required=True, help="an animated scene, for the frame thumbnails")
+    ap.add_argument("--anim-settings", required=True, help="JSON list of submit arguments for it (--frames A..B)")
     ap.add_argument("--victim-pid", type=int, required=True, help="a worker to SIGKILL mid-job")
     ap.add_argument("--victim-name", required=True)
     ap.add_argument("--out", required=True, help="folder for results and screenshots")
@@ -169,9 +214,9 @@ def main():
 
     env = dict(os.environ, TESSERA_COORDINATOR=a.grpc, TESSERA_TOKEN=a.token)
 
-    def submit(args, name):
+    def submit(args, name, scene=None):
         r = subprocess.run(
-            [a.tessera, "submit", a.scene, "--name", name] + args,
+            [a.tessera, "submit", scene or a.scene, "--name", name] + args,
             env=env, capture_output=True, text=True, timeout=120,
         )
         if r.returncode != 0:
@@ -181,7 +226,9 @@ def main():
     def shot(page, name):
         page.shot(os.path.join(a.out, name))
 
-    p = Page(a.browser, a.binary, a.driver, 1280, 1000)
+    downloads = os.path.join(a.out, "downloads")
+    os.makedirs(downloads, exist_ok=True)
+    p = Page(a.browser, a.binary, a.driver, 1280, 1000, downloads=downloads)
     step(f"browser: {a.browser} {p.d.capabilities.get('browserVersion', '?')}")
     try:
         # -- sign-in: nothing of the farm before the token ------------------
@@ -205,6 +252,22 @@ def main():
         wait("live updates", 10, lambda: "on" in (p.attr("#live", "class") or ""))
         step("signed in; jobs page live")
 
+        # -- a job a worker failed: its error and the worker's message -------
+        p.go(f"{a.http}/#/jobs/{a.failed_job}")
+        wait("the failed job's page", 10, lambda: p.attr("#job-state", "data-state") == "failed")
+        wait("the job's error", 10, lambda: a.failed_message in (p.text("#job-error") or ""))
+        wait("the failures list", 10, lambda: p.css("#failures ul.failures code"))
+        failures = p.js("return [...document.querySelectorAll('#failures ul.failures > li')]"
+                        ".map(li => [li.firstChild.textContent.trim(), [...li.querySelectorAll('code')].map(c => c.textContent)])")
+        if len(failures) != 1 or not failures[0][0].startswith("Unit 0: frame 0") \
+                or failures[0][1] != [f"worker flaky: {a.failed_message}"]:
+            fail(f"the failures list shows {failures}, not unit 0 with worker flaky's message")
+        if not p.js("return document.querySelector('#cancel').disabled"):
+            fail("the cancel button is enabled on a failed job")
+        step(f"the failed job shows the worker's message: {failures[0][1][0]!r}")
+        p.go(f"{a.http}/#/jobs")
+        wait("the jobs list", 10, lambda: p.css(f'tr[data-job="{a.failed_job}"]'))
+
         # -- a job appears, progresses, and its preview fills in ------------
         job = submit(json.loads(a.settings), "monitor-first")
         step(f"submitted {job}")
@@ -212,6 +275,21 @@ def main():
         step("the job is listed")
         p.go(f"{a.http}/#/jobs/{job}")
         wait("the job page", 10, lambda: p.css("#job-state"))
+        # The settings list says what was submitted.
+        given = dict(zip(json.loads(a.settings)[::2], json.loads(a.settings)[1::2]))
+        want = {
+            "Scene": a.scene,  # as submitted
+            "Size": f"{given['--width']} × {given['--height']}",
+            "Samples": given["--samples"],
+            "Tile size": given["--tile-size"],
+            "Samples a unit": given["--samples-per-unit"],
+            "Frames": "0",
+        }
+        shown = wait("the settings list", 10, lambda: p.settings())
+        wrong = {k: (v, shown.get(k)) for k, v in want.items() if shown.get(k) != v}
+        if wrong:
+            fail(f"settings shown differ from those submitted (wanted, shown): {wrong}; all shown: {shown}")
+        step(f"settings listed: {shown}")
         progress, images = [], {}
         mid_shot = False
         killed = False
@@ -237,6 +315,23 @@ def main():
                 # Mid-job: one worker dies without a word.
                 p.go(f"{a.http}/#/workers")
                 wait("the workers page", 10, lambda: p.css(f'tr[data-worker-name="{a.victim_name}"]'))
+                # Each worker's row: what it is, and what it did (the flaky
+                # worker failed the first job's unit and left).
+                rows = p.js(
+                    "const o = {}; document.querySelectorAll('#workers tbody tr').forEach(tr => {"
+                    " const r = {state: tr.dataset.state}; tr.querySelectorAll('td').forEach(td => {"
+                    " r[td.dataset.label] = td.firstChild ? td.firstChild.textContent.trim() : ''; });"
+                    " o[tr.dataset.workerName] = r; }); return o;")
+                for name in ("steady", a.victim_name):
+                    r = rows.get(name, {})
+                    if (r.get("Backend"), r.get("Threads"), r.get("Units failed")) != ("cpu", "1", "0") \
+                            or int(r.get("Units done") or 0) < 1 or "samples/s" not in r.get("Speed", "") \
+                            or r.get("Speed", "").startswith("0 ") or r.get("state") == "gone":
+                        fail(f"worker {name}'s row: {r}")
+                flaky = rows.get("flaky", {})
+                if (flaky.get("Units done"), flaky.get("Units failed"), flaky.get("state")) != ("0", "1", "gone"):
+                    fail(f"the flaky worker's row: {flaky}")
+                step(f"workers listed: {rows}")
                 shot(p, "workers.png")
                 os.kill(a.victim_pid, signal.SIGKILL)
                 step(f"killed worker {a.victim_name} (pid {a.victim_pid}) at {v:.0%}")
@@ -284,6 +379,23 @@ def main():
             fail(f"full-size view is {nat}, the preview {w}x{h}")
         p.click("#viewer-close")
         step("full-size view opens")
+        # Download PNG saves the written frame under a name that says what it is.
+        name = f"{job}_frame_0000.png"
+        p.click("#download")
+        saved = os.path.join(downloads, name)
+        wait(f"{name} downloaded", 20, lambda: os.path.exists(saved)
+             and not any(f.endswith((".crdownload", ".part")) for f in os.listdir(downloads))
+             and os.path.getsize(saved) > 0)
+        with open(os.path.join(a.out, "download.json"), "w") as f:
+            json.dump({"job": job, "path": saved}, f)
+        disposition = p.ajs(
+            "const done = arguments[arguments.length - 1];"
+            "fetch(arguments[0], {headers: {Authorization: 'Bearer ' + sessionStorage.getItem('tessera-client-token')}})"
+            ".then(r => done(r.headers.get('content-disposition')), () => done(null));",
+            f"/api/jobs/{job}/frames/0/image.png?download=1")
+        if disposition != f'attachment; filename="{name}"':
+            fail(f"?download=1 answers Content-Disposition {disposition!r}")
+        step(f"downloaded {name} ({os.path.getsize(saved)} bytes)")
 
         # -- cancel from the page stops a second job -------------------------
         job2 = submit(json.loads(a.second_settings), "monitor-cancelled")
@@ -322,6 +434,39 @@ def main():
         with open(os.path.join(a.out, "cancelled.json"), "w") as f:
             json.dump({"job": job2, "progress": stopped_at}, f)
         step(f"cancelled {job2} from the page at {stopped_at:.0%}; it stays there")
+
+        # -- an animation: one thumbnail per frame, a click shows that frame --
+        anim_args = json.loads(a.anim_settings)
+        first, last = (int(x) for x in anim_args[anim_args.index("--frames") + 1].split(".."))
+        frames = list(range(first, last + 1))
+        job3 = submit(anim_args, "monitor-animation", a.anim_scene)
+        step(f"submitted {job3} (frames {first}..{last})")
+        p.go(f"{a.http}/#/jobs/{job3}")
+        wait("the animation done", 120, lambda: p.attr("#job-state", "data-state") == "done")
+        thumbs = {}
+        for fr in frames:
+            sel = f'#frames [data-frame="{fr}"] img[data-written="1"]'
+            thumbs[fr] = wait(f"frame {fr}'s thumbnail", 20, lambda: p.image_pixels(sel))
+            cap = p.text(f'#frames [data-frame="{fr}"] .cap')
+            if cap != f"{fr} · done":
+                fail(f"frame {fr}'s caption is {cap!r}")
+        if len({hashlib.sha256(t[2]).hexdigest() for t in thumbs.values()}) != len(frames):
+            fail("thumbnails of different frames of the animation are the same image")
+        meta = {}
+        for fr, (w, h, rgba) in thumbs.items():
+            with open(os.path.join(a.out, f"thumb_{fr}.rgba"), "wb") as f:
+                f.write(rgba)
+            meta[fr] = [w, h]
+        with open(os.path.join(a.out, "thumbs.json"), "w") as f:
+            json.dump({"job": job3, "frames": meta}, f)
+        # Clicking a thumbnail shows that frame in the preview.
+        pick = frames[0]
+        p.css(f'#frames [data-frame="{pick}"]')[0].click()
+        wait(f"frame {pick} in the preview", 10, lambda: p.text("#preview-frame") == str(pick)
+             and p.attr("#preview", "data-frame") == str(pick) and p.attr("#preview", "data-written") == "1")
+        if p.image_pixels("#preview")[2] != thumbs[pick][2]:
+            fail(f"the preview of frame {pick} after a click differs from its thumbnail")
+        step(f"{len(frames)} thumbnails, one per frame; a click shows frame {pick}")
 
         # -- a phone-width look at the jobs page ------------------------------
         p.d.set_window_size(390, 844)

@@ -521,6 +521,9 @@ function refreshFrames(job) {
         const img = $("img", el);
         if (img.src) URL.revokeObjectURL(img.src);
         img.src = url;
+        // What it shows, for scripts and tests (as the preview's dataset).
+        img.dataset.unitsDone = f.units_done;
+        img.dataset.written = f.written ? "1" : "";
         t.key = key;
       })
       .catch(() => {})
