@@ -8,8 +8,9 @@
 #
 # `adaptive` (issue 17; not in the default) runs `tessera bench adaptive`
 # on the scenes in $ADAPTIVE_SCENES (default distributed; one scene a
-# device call: 400x300 with a 4096-spp f64 reference), CPU uniform and
-# adaptive, GPU uniform only (adaptive GPU rounds are not implemented).
+# device call: $ADAPTIVE_SIZE, default 400x300, with an f64 reference of
+# $ADAPTIVE_REFERENCE spp, default 4096), uniform and adaptive on
+# $ADAPTIVE_BACKEND (default both).
 #
 # `local-gpu` (issue 15; ~2 min): a fresh process's small GPU render with
 # the pipeline cache off, empty and warm, against the CPU and against a
@@ -63,9 +64,10 @@ timeout 400 "$T" bench depth --backend both --repeat 3 \
 echo "depth exit $?" >> "$OUT/depth-summary.txt"
 fi
 if has adaptive; then
-echo "== tessera bench adaptive --backend both (${ADAPTIVE_SCENES:-distributed})"
-timeout 560 "$T" bench adaptive --backend both --adaptive-scenes "${ADAPTIVE_SCENES:-distributed}" \
-  --adaptive-size 400x300 --adaptive-reference 4096 \
+echo "== tessera bench adaptive --backend ${ADAPTIVE_BACKEND:-both} (${ADAPTIVE_SCENES:-distributed})"
+timeout "${ADAPTIVE_TIMEOUT:-560}" "$T" bench adaptive --backend "${ADAPTIVE_BACKEND:-both}" \
+  --adaptive-scenes "${ADAPTIVE_SCENES:-distributed}" \
+  --adaptive-size "${ADAPTIVE_SIZE:-400x300}" --adaptive-reference "${ADAPTIVE_REFERENCE:-4096}" \
   --out /tmp/bench --cache /tmp/bench-cache > "$OUT/adaptive-summary.txt" 2> "$OUT/adaptive-log.txt"
 echo "adaptive exit $?" >> "$OUT/adaptive-summary.txt"
 mkdir -p "$OUT/adaptive"

@@ -447,6 +447,38 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
     gpu_settings.extend(["--backend", "gpu", "--adapter", "0"]);
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &gpu_settings);
 
+    // Adaptive rounds on the GPU worker (issue 17): the distributed-effects
+    // scene in 16-pixel tiles, the image `tessera render --backend gpu
+    // --target-error` makes, bit for bit; some blocks stop before max.
+    let dist = repo("examples/distributed.toml");
+    let adaptive = [
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--target-error",
+        "0.02",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "32",
+    ];
+    let mut args = adaptive.to_vec();
+    args.extend(["--tile-size", "16", "--wait"]);
+    let job = submit(&c.url(), &dist, &args);
+    let s = status(&c.url(), &job);
+    assert_eq!(
+        (s.state, s.results_rejected),
+        (pb::JobState::Done as i32, 0),
+        "{}",
+        gpu.log()
+    );
+    let a = s.adaptive.expect("an adaptive job's status");
+    assert!(a.converged_share > 0.0 && a.converged_share < 1.0, "{a:?}");
+    let mut gpu_adaptive = adaptive.to_vec();
+    gpu_adaptive.extend(["--backend", "gpu", "--adapter", "0"]);
+    assert_frames_match_render(dir.path(), &c.url(), &job, &dist, 0..=0, &gpu_adaptive);
+
     // With a CPU worker beside it, units go to both, and the image is the
     // CPU render within the GPU's f32 rounding.
     let _cpu = start_worker(dir.path(), &c.url(), "cpu");

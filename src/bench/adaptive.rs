@@ -36,8 +36,6 @@ pub struct Headline {
     pub uniform_seconds: f64,
     /// `None`: no adaptive run reached the uniform RMSE.
     pub adaptive_seconds: Option<f64>,
-    /// Why there are no adaptive runs (the backend has no adaptive rounds).
-    pub skipped: Option<&'static str>,
 }
 
 impl Headline {
@@ -99,18 +97,7 @@ impl Bench {
                     runs.push(r);
                 }
                 let mut curve = vec![];
-                // Adaptive rounds run on the CPU only so far (issue 17's
-                // GPU round is not implemented): the GPU gets its uniform
-                // series, for the plot.
-                let skipped = (b != BackendKind::Cpu)
-                    .then_some("adaptive rounds are not implemented on the GPU backend yet");
-                if let Some(why) = skipped {
-                    eprintln!(
-                        "  adaptive   {name:<12} {}: {why}; uniform runs only",
-                        backend_name(b)
-                    );
-                }
-                for &e in targets.iter().filter(|_| skipped.is_none()) {
+                for &e in targets {
                     let a = AdaptiveSettings {
                         target_error: e,
                         min_samples: min,
@@ -137,7 +124,6 @@ impl Bench {
                     uniform_rmse: rmse,
                     uniform_seconds: seconds,
                     adaptive_seconds: time_to_reach(&curve, rmse),
-                    skipped,
                 });
             }
         }
@@ -176,15 +162,6 @@ impl Bench {
         let mut text = String::new();
         for h in &headlines {
             let line = match (h.adaptive_seconds, h.speedup()) {
-                _ if h.skipped.is_some() => format!(
-                    "{} {}: uniform {} spp RMSE {:.3e} in {:.3} s; {}",
-                    h.scene,
-                    h.backend,
-                    h.uniform_spp,
-                    h.uniform_rmse,
-                    h.uniform_seconds,
-                    h.skipped.unwrap_or_default()
-                ),
                 (Some(a), Some(x)) => format!(
                     "{} {}: uniform {} spp RMSE {:.3e} in {:.3} s; adaptive reaches it in {:.3} s: {:.2}x",
                     h.scene, h.backend, h.uniform_spp, h.uniform_rmse, h.uniform_seconds, a, x

@@ -1864,3 +1864,163 @@ fn gpu_mesh_tiles_of_one_prepared_frame_add_up_exactly() {
         .unwrap();
     assert_eq!(again.sums, whole.sums);
 }
+
+// ---- Adaptive rounds on the GPU (issue 17) ------------------------------
+
+/// A second renderer on the shared adapter, as the [`Renderer`] that
+/// `adaptive::render` takes (the shared one is borrowed, not owned).
+fn gpu_renderer() -> Option<&'static tracer_core::render::Renderer> {
+    static R: OnceLock<Option<tracer_core::render::Renderer>> = OnceLock::new();
+    let g = gpu()?;
+    R.get_or_init(|| {
+        let r = GpuRenderer::new(Some(&g.adapter().index.to_string()), GpuOptions::default())
+            .expect("the adapter the shared renderer opened");
+        Some(tracer_core::render::Renderer::Gpu(Box::new(r)))
+    })
+    .as_ref()
+}
+
+/// A round traces only the active blocks of its mask, in one grid over
+/// them: the whitted kernel and the distributed-effects kernel, a rect
+/// whose last column and row of blocks the image's edge cuts, a mask of
+/// scattered blocks. Every active pixel holds exactly the uniform render's
+/// sums over the round's samples and the exact sum of its samples' squared
+/// fixed-point values (each sample rendered alone for the check); inactive
+/// pixels hold nothing; progress counts active pixel-samples. With every
+/// block active the round is the uniform render, ray counts included.
+#[test]
+fn gpu_adaptive_rounds_trace_only_active_blocks_with_exact_squares() {
+    use tracer_core::adaptive::BlockMask;
+    let Some(g) = gpu() else { return };
+    for name in ["resolution.toml", "distributed.toml"] {
+        let desc = SceneDesc::load(examples_dir().join(name)).unwrap();
+        let s = RenderSettings {
+            width: 44,
+            height: 28,
+            samples: 8,
+            sampler: tracer_core::sampling::Sampler::Progressive,
+            ..desc.render
+        };
+        let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+        let rect = Rect::new(8, 8, 36, 20); // 5 x 3 blocks, the last cut to 4 px
+        let samples = SampleRange::new(3, 7);
+        let mut mask = BlockMask::none(rect);
+        for (i, a) in mask.active.iter_mut().enumerate() {
+            *a = i % 3 != 1;
+        }
+        let done = std::sync::atomic::AtomicU64::new(0);
+        let film = g
+            .render_round(&prepared, 0, &mask, samples, &|n| {
+                done.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+            })
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(
+            done.into_inner(),
+            mask.active_pixels() * 4,
+            "{name}: progress"
+        );
+        let uniform = g.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
+        let singles: Vec<Film> = (samples.start..samples.end)
+            .map(|k| {
+                g.render(&prepared, 0, rect, SampleRange::new(k, k + 1), &|_| {})
+                    .unwrap()
+            })
+            .collect();
+        let squares = film.squares.as_ref().expect("an adaptive film");
+        let mut active = 0;
+        let mut varying = 0;
+        for y in rect.y..rect.y + rect.height {
+            for x in rect.x..rect.x + rect.width {
+                let i = ((y - rect.y) * rect.width + (x - rect.x)) as usize;
+                if mask.covers(x, y) {
+                    active += 1;
+                    assert_eq!(film.counts[i], 4, "{name} ({x}, {y})");
+                    assert_eq!(film.sums[i], uniform.sums[i], "{name} ({x}, {y}) sums");
+                    let want: [u128; 3] = std::array::from_fn(|c| {
+                        singles
+                            .iter()
+                            .map(|f| f.sums[i][c] as u128 * f.sums[i][c] as u128)
+                            .sum()
+                    });
+                    assert_eq!(squares[i], want, "{name} ({x}, {y}) squares");
+                    varying += usize::from(singles.iter().any(|f| f.sums[i] != singles[0].sums[i]));
+                } else {
+                    assert_eq!(
+                        (film.counts[i], film.sums[i], squares[i]),
+                        (0, [0; 3], [0; 3]),
+                        "{name} ({x}, {y}) is not active"
+                    );
+                }
+            }
+        }
+        assert_eq!(active as u64, mask.active_pixels());
+        // The squares were put to the test: pixels whose samples differ.
+        assert!(
+            varying > active / 4,
+            "{name}: {varying} of {active} pixels vary"
+        );
+
+        let all = g
+            .render_round(&prepared, 0, &BlockMask::all(rect), samples, &|_| {})
+            .unwrap();
+        assert_eq!(all.sums, uniform.sums, "{name}: all blocks active");
+        assert_eq!(all.counts, uniform.counts);
+        assert_eq!(all.rays, uniform.rays, "{name}: ray counts");
+        assert_eq!(all.nonfinite, 0);
+    }
+}
+
+/// `tessera render --backend gpu --target-error`: every pixel of a GPU
+/// adaptive render is the GPU's uniform render of its own sample count,
+/// counts differ across the image (and stay on the doubling schedule,
+/// never above max), and with a target no pixel meets, every pixel reaches
+/// max and the image is the uniform render at max, ray counts included.
+#[test]
+fn gpu_adaptive_renders_are_uniform_renders_of_each_pixels_count() {
+    use tracer_core::adaptive::{self, AdaptiveSettings};
+    let Some(g) = gpu() else { return };
+    let r = gpu_renderer().expect("the adapter opened once already");
+    let distributed = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();
+    // A floor lit by one light sample: no pixel's samples all agree (the
+    // sky's do, so the distributed scene's sky stops at min even at 1e-9).
+    let noisy = scene(NOISY);
+    for (desc, target, all_at_max) in [(&distributed, 0.02, false), (&noisy, 1e-9, true)] {
+        let a = AdaptiveSettings {
+            target_error: target,
+            min_samples: 4,
+            max_samples: 32,
+        };
+        let base = RenderSettings {
+            width: desc.render.width.min(48),
+            height: desc.render.height.min(36),
+            ..desc.render
+        };
+        let s = a.render_settings(base);
+        let prepared = PreparedFrame::build(desc, &s, 0, Precision::F32).unwrap();
+        let film = adaptive::render(r, &prepared, 0, &a, &|_| {}, &mut |_| {})
+            .unwrap_or_else(|e| panic!("GPU adaptive render: {e}"));
+        assert_eq!(film.nonfinite, 0);
+        let mut seen = std::collections::BTreeSet::new();
+        for n in a.rounds().iter().map(|r| r.end) {
+            let u = gpu_render(g, desc, &s, 0, film.rect, SampleRange::all(n));
+            for i in 0..film.sums.len() {
+                if film.counts[i] == n {
+                    seen.insert(n);
+                    assert_eq!(film.sums[i], u.sums[i], "target {target}: pixel {i} at {n}");
+                }
+            }
+            if all_at_max && n == 32 {
+                assert_eq!(film.rays, u.rays, "all at max: ray counts");
+            }
+        }
+        assert!(
+            film.counts.iter().all(|n| seen.contains(n)),
+            "target {target}: every count on the schedule, none above max: {seen:?}"
+        );
+        if all_at_max {
+            assert_eq!(seen.into_iter().collect::<Vec<_>>(), [32]);
+        } else {
+            assert!(seen.len() >= 2, "target {target}: counts {seen:?}");
+        }
+    }
+}

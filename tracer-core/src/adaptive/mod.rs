@@ -451,9 +451,7 @@ pub fn render_round(
             r, prepared, frame, mask, samples, progress,
         )?),
         #[cfg(feature = "gpu")]
-        Renderer::Gpu(_) => Err(RendererError::Unsupported(
-            "adaptive sampling on the GPU backend is not implemented yet",
-        )),
+        Renderer::Gpu(r) => Ok(r.render_round(prepared, frame, mask, samples, progress)?),
     }
 }
 

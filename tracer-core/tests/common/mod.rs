@@ -286,3 +286,34 @@ material = "sky"
 "#
     ))
 }
+
+/// Only the floor, seen from above, under the quad light: no pixel's
+/// samples all agree, so a tiny target sends every block to max.
+pub const NOISY: &str = r#"
+[render]
+width = 24
+height = 16
+max_depth = 0
+[camera]
+position = [0, 4, -1]
+look_at = [0, 0, 0]
+fov_y = 40
+[world]
+ambient = [0.05, 0.05, 0.05]
+[materials.floor]
+diffuse = [0.8, 0.8, 0.8]
+specular = [0, 0, 0]
+[[lights]]
+type = "quad"
+corner = [-1.5, 3, -1.5]
+edge_u = [3, 0, 0]
+edge_v = [0, 0, 3]
+samples = 1
+diffuse = [1, 1, 1]
+specular = [1, 1, 1]
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+"#;

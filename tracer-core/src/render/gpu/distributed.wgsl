@@ -310,9 +310,13 @@ fn render_dist(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_inv
     let col = gid.x;
     let row = params.row0 + gid.y;
     let s = params.sample_start + gid.z;
+    var p = vec4<u32>(0u);
     if (col < params.rect_w && gid.y < params.rows && row < params.rect_h && s < params.sample_end) {
-        let px = params.rect_x + col;
-        let py = params.rect_y + row;
+        p = grid_pixel(col, row);
+    }
+    if (p.w != 0u) {
+        let px = p.x;
+        let py = p.y;
         let seed = pixel_seed(px, py, params.frame);
         let off = sample_offset(frame.sampler, frame.grid_n, seed, s);
         let sx = f32(px) + off.x;
@@ -367,11 +371,7 @@ fn render_dist(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_inv
             o = l;
         }
         tally[C_PRIMARY] += 1u;
-        let c = trace_dist(o, dir, seed, s, tau);
-        let base = (row * params.rect_w + col) * 6u;
-        add_fixed(base, c.x);
-        add_fixed(base + 2u, c.y);
-        add_fixed(base + 4u, c.z);
+        add_sample(p.z, trace_dist(o, dir, seed, s, tau));
     }
     flush_tally(lid);
 }

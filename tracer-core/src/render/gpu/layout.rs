@@ -51,7 +51,12 @@ pub struct DispatchParams {
     pub sample_start: u32,
     pub sample_end: u32,
     pub frame: u32,
-    pub _pad: [u32; 3],
+    /// The film's size. Equal to `rect_w` x `rect_h` in a uniform render;
+    /// in an adaptive round the grid (`rect_w` x `rect_h`) is 8 columns by
+    /// 8 rows per active block instead (whitted.wgsl `grid_pixel`).
+    pub film_w: u32,
+    pub film_h: u32,
+    pub _pad: u32,
 }
 
 /// WGSL: `struct Sphere`.
@@ -140,6 +145,10 @@ pub type GpuBvhNode = BvhNode4;
 /// Per-pixel output: fixed-point sums as (low, high) u32 words per channel,
 /// i.e. the `u64` sums of [`crate::film::Film`]. WGSL: `sums: array<u32>`, 6 words a pixel.
 pub const SUM_WORDS: usize = 6;
+/// Per-pixel output of an adaptive round: the [`SUM_WORDS`] sums, then per
+/// channel the sum of squares as four u32 words, least significant first
+/// (the `u128` of [`crate::film::Film::squares`]). WGSL: `sum_stride()`.
+pub const ADAPTIVE_SUM_WORDS: usize = 18;
 
 /// Global counters, each a (low, high) u32 pair. WGSL: `counters: array<atomic<u32>, 10>`.
 pub const COUNTERS: usize = 5;

@@ -13,6 +13,11 @@
 //! and reads back sums and ray counters into a [`Film`] whose `u64` sums
 //! merge exactly with CPU films.
 //!
+//! An adaptive round ([`GpuRenderer::render_round`]) traces a grid over
+//! the active blocks only (their positions in a storage buffer) with the
+//! same kernel compiled with `ADAPTIVE`, which also sums each pixel's
+//! squared fixed-point samples (four carried u32 words a channel).
+//!
 //! `whitted.wgsl` mirrors `render/whitted.rs`; `sampling.wgsl` mirrors
 //! `sampling.rs`; `layout.rs` mirrors the WGSL structs.
 
@@ -27,8 +32,9 @@ use std::time::{Duration, Instant};
 
 use wgpu::util::DeviceExt as _;
 
-use self::layout::{COUNTERS, DispatchParams, SUM_WORDS, SceneData};
+use self::layout::{ADAPTIVE_SUM_WORDS, COUNTERS, DispatchParams, SUM_WORDS, SceneData};
 use super::{PreparedFrame, RenderError};
+use crate::adaptive::{BLOCK, BlockMask};
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 
 const SAMPLING_WGSL: &str = include_str!("sampling.wgsl");
@@ -231,6 +237,11 @@ struct SceneState {
     data: SceneData,
     options: GpuOptions,
     pipeline: wgpu::ComputePipeline,
+    /// The module and constants `pipeline` was made from, and the same
+    /// kernel for adaptive rounds (`ADAPTIVE`), made on first use.
+    module: wgpu::ShaderModule,
+    constants: Vec<(&'static str, f64)>,
+    adaptive: Option<wgpu::ComputePipeline>,
     frame: wgpu::Buffer,
     spheres: wgpu::Buffer,
     planes: wgpu::Buffer,
@@ -265,7 +276,8 @@ struct WaveBuffers {
 
 /// Output buffers, grown on demand and reused.
 struct Outputs {
-    pixels: usize,
+    /// Capacity of `sums` in u32 words.
+    sum_words: usize,
     sums: wgpu::Buffer,
     sums_read: wgpu::Buffer,
     counters: wgpu::Buffer,
@@ -283,13 +295,16 @@ pub struct Srgb8Image {
     pub nonfinite: u64,
 }
 
-/// What a render reads back.
+/// What a render traces and reads back.
 #[derive(Clone, Copy, PartialEq, Eq)]
-enum Readout {
+enum Readout<'a> {
     /// The fixed-point sums: a [`Film`] that merges exactly (farm results).
     Sums,
     /// Only the image, resolved on the GPU.
     Srgb8,
+    /// An adaptive round: only the blocks of the mask, each pixel's sums
+    /// and sums of squares (a [`Film::with_squares`]).
+    Adaptive(&'a BlockMask),
 }
 
 enum Rendered {
@@ -494,6 +509,8 @@ impl GpuRenderer {
                 storage(11, true),
                 // Distributed effects (distributed.wgsl; a placeholder elsewhere).
                 storage(12, true),
+                // An adaptive round's active blocks (a placeholder elsewhere).
+                storage(13, true),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -627,6 +644,37 @@ impl GpuRenderer {
         }
     }
 
+    /// One round of adaptive sampling (see [`crate::adaptive`]): the blocks
+    /// of `mask` over `samples`, in one grid over the active blocks only,
+    /// into a film of `mask.rect` with sums of squares; pixels of inactive
+    /// blocks keep zero samples. Sums and ray counts equal those of
+    /// [`GpuRenderer::render`] over the same pixels and samples; each pixel's
+    /// squares are the sums of its samples' squared fixed-point values.
+    pub fn render_round(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        mask: &BlockMask,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<Film, GpuError> {
+        if mask.active_count() == 0 {
+            prepared.check_request(mask.rect, samples)?;
+            return Ok(Film::with_squares(mask.rect));
+        }
+        match self.render_readout(
+            prepared,
+            frame,
+            mask.rect,
+            samples,
+            progress,
+            Readout::Adaptive(mask),
+        )? {
+            Rendered::Film(f) => Ok(f),
+            Rendered::Srgb8(_) => unreachable!("asked for sums"),
+        }
+    }
+
     fn render_readout(
         &self,
         prepared: &PreparedFrame,
@@ -634,7 +682,7 @@ impl GpuRenderer {
         rect: Rect,
         samples: SampleRange,
         progress: &(dyn Fn(u64) + Sync),
-        readout: Readout,
+        readout: Readout<'_>,
     ) -> Result<Rendered, GpuError> {
         prepared.check_request(rect, samples)?;
         let world = match prepared {
@@ -711,7 +759,7 @@ impl GpuRenderer {
         progress: &(dyn Fn(u64) + Sync),
         start: Instant,
         budget: u64,
-        readout: Readout,
+        readout: Readout<'_>,
     ) -> Result<Option<Rendered>, GpuError> {
         let limits = self.device.limits();
         let mut scene_guard = self
@@ -724,10 +772,25 @@ impl GpuRenderer {
         {
             *scene_guard = Some(self.upload_scene(data, &limits)?);
         }
+        let mask = match readout {
+            Readout::Adaptive(m) => Some(m),
+            _ => None,
+        };
+        if mask.is_some() {
+            let scene = scene_guard.as_mut().expect("just set");
+            if scene.adaptive.is_none() {
+                scene.adaptive = Some(self.adaptive_pipeline(scene));
+            }
+        }
         let scene = scene_guard.as_ref().expect("just set");
 
         let pixels = rect.area();
-        let sums_bytes = (pixels * SUM_WORDS * 4) as u64;
+        let stride = if mask.is_some() {
+            ADAPTIVE_SUM_WORDS
+        } else {
+            SUM_WORDS
+        };
+        let sums_bytes = (pixels * stride * 4) as u64;
         check_size(
             "the film's per-pixel sums",
             sums_bytes,
@@ -744,10 +807,57 @@ impl GpuRenderer {
             .outputs
             .lock()
             .map_err(|_| GpuError::Device("output cache poisoned".into()))?;
-        if out_guard.as_ref().is_none_or(|o| o.pixels < pixels) {
-            *out_guard = Some(self.create_outputs(pixels));
+        if out_guard
+            .as_ref()
+            .is_none_or(|o| o.sum_words < pixels * stride)
+        {
+            *out_guard = Some(self.create_outputs(pixels * stride));
         }
         let out = out_guard.as_ref().expect("just set");
+        // An adaptive round's grid: 8 columns, 8 rows per active block
+        // (whitted.wgsl grid_pixel), its blocks listed as column | row << 16.
+        let blocks: Vec<u32> = mask.map_or_else(Vec::new, |m| {
+            let cols = m.cols() as usize;
+            m.active
+                .iter()
+                .enumerate()
+                .filter(|(_, a)| **a)
+                .map(|(i, _)| (i % cols) as u32 | ((i / cols) as u32) << 16)
+                .collect()
+        });
+        let blocks_buffer = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("active blocks"),
+                contents: if blocks.is_empty() {
+                    &[0u8; 16]
+                } else {
+                    bytemuck::cast_slice(&blocks)
+                },
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+        let grid = match mask {
+            Some(_) => Rect::new(rect.x, rect.y, BLOCK, BLOCK * blocks.len() as u32),
+            None => rect,
+        };
+        // Pixels of the film a band of the grid's rows holds (blocks cut by
+        // the film's edge hold fewer than their 64 grid cells).
+        let band_pixels = |row0: u32, rows: u32| -> u64 {
+            match mask {
+                None => rect.width as u64 * rows as u64,
+                Some(_) => (row0..row0 + rows)
+                    .map(|r| {
+                        let b = blocks[(r / BLOCK) as usize];
+                        let (fx, fy) = ((b & 0xffff) * BLOCK, (b >> 16) * BLOCK + r % BLOCK);
+                        if fy < rect.height {
+                            (rect.width - fx).min(BLOCK) as u64
+                        } else {
+                            0
+                        }
+                    })
+                    .sum(),
+            }
+        };
 
         let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tessera render"),
@@ -780,11 +890,13 @@ impl GpuRenderer {
                 entire(10, &scene.tree[2]),
                 entire(11, &scene.tree[3]),
                 entire(12, &scene.dist),
+                entire(13, &blocks_buffer),
             ],
         });
 
         let (wx, wy) = self.options.workgroup;
-        let wave = match &scene.wave {
+        // Adaptive rounds run on the stack kernel (as distributed effects do).
+        let wave = match scene.wave.as_ref().filter(|_| mask.is_none()) {
             Some(p) => {
                 let mut guard = self
                     .wave
@@ -823,7 +935,8 @@ impl GpuRenderer {
             None => budget,
         };
         let groups = plan(
-            rect,
+            grid,
+            (rect.width, rect.height),
             samples,
             frame,
             GpuOptions {
@@ -915,7 +1028,10 @@ impl GpuRenderer {
                         }
                     }
                     _ => {
-                        pass.set_pipeline(&scene.pipeline);
+                        pass.set_pipeline(match mask {
+                            Some(_) => scene.adaptive.as_ref().expect("made above"),
+                            None => &scene.pipeline,
+                        });
                         for (i, d) in group.iter().enumerate() {
                             pass.set_bind_group(
                                 0,
@@ -938,9 +1054,7 @@ impl GpuRenderer {
             progress(
                 group
                     .iter()
-                    .map(|d| {
-                        d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64
-                    })
+                    .map(|d| band_pixels(d.row0, d.rows) * (d.sample_end - d.sample_start) as u64)
                     .sum(),
             );
         }
@@ -953,7 +1067,7 @@ impl GpuRenderer {
                 label: Some("tessera read-back"),
             });
         let resolver = match readout {
-            Readout::Sums => {
+            Readout::Sums | Readout::Adaptive(_) => {
                 enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
                 None
             }
@@ -1005,17 +1119,38 @@ impl GpuRenderer {
                 })
             }
             None => {
-                let mut film = Film::new(rect);
+                let mut film = match mask {
+                    Some(_) => Film::with_squares(rect),
+                    None => Film::new(rect),
+                };
                 // Straight from the mapped buffer into the film: no intermediate copy.
                 self.read_with(&out.sums_read, sums_bytes, |bytes| {
                     let words: &[u32] = bytemuck::cast_slice(bytes);
-                    for (px, w) in film.sums.iter_mut().zip(words.chunks_exact(SUM_WORDS)) {
+                    for (px, w) in film.sums.iter_mut().zip(words.chunks_exact(stride)) {
                         for c in 0..3 {
                             px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
                         }
                     }
+                    if let Some(squares) = film.squares.as_mut() {
+                        for (px, w) in squares.iter_mut().zip(words.chunks_exact(stride)) {
+                            for c in 0..3 {
+                                let q = &w[SUM_WORDS + 4 * c..SUM_WORDS + 4 * c + 4];
+                                px[c] = q.iter().rev().fold(0u128, |acc, &x| acc << 32 | x as u128);
+                            }
+                        }
+                    }
                 })?;
-                film.counts.fill(samples.len());
+                match mask {
+                    Some(m) => {
+                        for b in m.active_rects() {
+                            for y in b.y..b.y + b.height {
+                                let row = ((y - rect.y) * rect.width + (b.x - rect.x)) as usize;
+                                film.counts[row..row + b.width as usize].fill(samples.len());
+                            }
+                        }
+                    }
+                    None => film.counts.fill(samples.len()),
+                }
                 film.rays = rays;
                 film.nonfinite = nonfinite;
                 Rendered::Film(film)
@@ -1432,6 +1567,9 @@ impl GpuRenderer {
             data,
             options: self.options,
             pipeline,
+            module,
+            constants: all_constants,
+            adaptive: None,
             frame,
             spheres,
             planes,
@@ -1443,12 +1581,39 @@ impl GpuRenderer {
         })
     }
 
-    fn create_outputs(&self, pixels: usize) -> Outputs {
-        let sums_bytes = (pixels * SUM_WORDS * 4) as u64;
+    /// The scene's kernel for adaptive rounds: its pipeline with `ADAPTIVE`.
+    fn adaptive_pipeline(&self, scene: &SceneState) -> wgpu::ComputePipeline {
+        let mut constants = scene.constants.clone();
+        constants.push(("ADAPTIVE", 1.0));
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("tessera adaptive"),
+                layout: Some(&self.pipeline_layout),
+                module: &scene.module,
+                entry_point: Some(if scene.data.dist.is_some() {
+                    "render_dist"
+                } else {
+                    "render"
+                }),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    zero_initialize_workgroup_memory: true,
+                },
+                cache: self.pipeline_cache(),
+            });
+        if let Some(c) = &self.disk_cache {
+            c.save();
+        }
+        pipeline
+    }
+
+    fn create_outputs(&self, sum_words: usize) -> Outputs {
+        let sums_bytes = (sum_words * 4) as u64;
         let counters_bytes = (COUNTERS * 8) as u64;
         use wgpu::BufferUsages as U;
         Outputs {
-            pixels,
+            sum_words,
             sums: self.buffer("sums", sums_bytes, U::STORAGE | U::COPY_SRC | U::COPY_DST),
             sums_read: self.buffer("sums read", sums_bytes, U::MAP_READ | U::COPY_DST),
             counters: self.buffer(
@@ -1562,7 +1727,15 @@ fn classify(e: wgpu::Error) -> GpuError {
 /// Splits a render into dispatches (bands of rows x ranges of samples, each
 /// at most `dispatch_pixel_samples`), grouped into submissions of at most
 /// `submit_pixel_samples` and [`PARAMS_SLOTS`] dispatches.
-fn plan(rect: Rect, samples: SampleRange, frame: u32, o: GpuOptions) -> Vec<Vec<DispatchParams>> {
+/// `rect` is the grid (the film, or an adaptive round's blocks) and
+/// `film` the film's size.
+fn plan(
+    rect: Rect,
+    film: (u32, u32),
+    samples: SampleRange,
+    frame: u32,
+    o: GpuOptions,
+) -> Vec<Vec<DispatchParams>> {
     let w = rect.width as u64;
     let len = samples.len() as u64;
     let budget = o.dispatch_pixel_samples.max(1);
@@ -1598,7 +1771,9 @@ fn plan(rect: Rect, samples: SampleRange, frame: u32, o: GpuOptions) -> Vec<Vec<
                     sample_start: s,
                     sample_end: e,
                     frame,
-                    _pad: [0; 3],
+                    film_w: film.0,
+                    film_h: film.1,
+                    _pad: 0,
                 });
             in_group += work;
             s = e;
@@ -1622,7 +1797,7 @@ mod tests {
         };
         let rect = Rect::new(3, 7, 37, 23);
         let samples = SampleRange::new(2, 11);
-        let groups = plan(rect, samples, 0, o);
+        let groups = plan(rect, (rect.width, rect.height), samples, 0, o);
         let mut hits = vec![0u32; rect.area() * 16];
         for g in &groups {
             assert!(g.len() <= PARAMS_SLOTS);
@@ -1653,7 +1828,7 @@ mod tests {
             }
         }
         // A row wider than the budget still gets one sample per dispatch.
-        let wide = plan(Rect::full(4000, 2), SampleRange::all(3), 0, o);
+        let wide = plan(Rect::full(4000, 2), (4000, 2), SampleRange::all(3), 0, o);
         assert_eq!(wide.iter().map(|g| g.len()).sum::<usize>(), 6);
     }
 }

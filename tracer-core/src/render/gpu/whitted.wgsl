@@ -37,6 +37,10 @@ struct Dispatch {
     sample_start: u32,
     sample_end: u32,
     frame: u32,
+    // The film's size; in an adaptive round the dispatch grid is 8 wide and
+    // 8 rows per active block, not the film (see grid_pixel).
+    film_w: u32,
+    film_h: u32,
 }
 
 struct Sphere {
@@ -87,6 +91,9 @@ override HAS_REFLECTION: bool = true;
 override HAS_REFRACTION: bool = true;
 override WG_X: u32 = 8u;
 override WG_Y: u32 = 8u;
+// An adaptive round (adaptive/mod.rs): the grid covers the active blocks
+// only, and each pixel also sums the squares of its samples.
+override ADAPTIVE: bool = false;
 
 @group(0) @binding(0) var<uniform> frame: Frame;
 @group(0) @binding(1) var<uniform> params: Dispatch;
@@ -96,6 +103,9 @@ override WG_Y: u32 = 8u;
 @group(0) @binding(5) var<storage, read> lights: array<Light>;
 @group(0) @binding(6) var<storage, read_write> sums: array<atomic<u32>>;
 @group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 10>;
+// An adaptive round's active blocks, each (column | row << 16) in blocks
+// of 8x8 pixels from the film's corner (a placeholder otherwise).
+@group(0) @binding(13) var<storage, read> active_blocks: array<u32>;
 
 var<workgroup> wg_counts: array<atomic<u32>, 5>;
 var<private> tally: array<u32, 5>;
@@ -395,7 +405,10 @@ fn to_fixed(v: f32) -> vec2<u32> {
 
 // Adds v in fixed point to the (low, high) pair at sums[word], carrying.
 fn add_fixed(word: u32, v: f32) {
-    let f = to_fixed(v);
+    add_fixed_pair(word, to_fixed(v));
+}
+
+fn add_fixed_pair(word: u32, f: vec2<u32>) {
     if (f.x != 0u) {
         let old = atomicAdd(&sums[word], f.x);
         if (old + f.x < old) {
@@ -405,6 +418,89 @@ fn add_fixed(word: u32, v: f32) {
     if (f.y != 0u) {
         atomicAdd(&sums[word + 1u], f.y);
     }
+}
+
+// Words a pixel's sums take: 6 (three 64-bit sums), or 18 in an adaptive
+// round (then three 128-bit sums of squares). layout.rs SUM_WORDS, ADAPTIVE_SUM_WORDS.
+fn sum_stride() -> u32 {
+    return select(6u, 18u, ADAPTIVE);
+}
+
+// a * b as (low, high) words, from 16-bit halves (WGSL has no wide multiply).
+fn mul_wide(a: u32, b: u32) -> vec2<u32> {
+    let a0 = a & 0xffffu;
+    let a1 = a >> 16u;
+    let b0 = b & 0xffffu;
+    let b1 = b >> 16u;
+    let p00 = a0 * b0;
+    let p01 = a0 * b1;
+    let p10 = a1 * b0;
+    let mid = (p00 >> 16u) + (p01 & 0xffffu) + (p10 & 0xffffu);
+    return vec2<u32>((p00 & 0xffffu) | (mid << 16u), a1 * b1 + (p01 >> 16u) + (p10 >> 16u) + (mid >> 16u));
+}
+
+// Adds v at word k of the 128-bit sum at sums[base..base + 4], carrying upward.
+fn add_carrying(base: u32, k: u32, v: u32) {
+    var i = k;
+    var x = v;
+    loop {
+        if (x == 0u || i >= 4u) {
+            break;
+        }
+        let old = atomicAdd(&sums[base + i], x);
+        if (old + x >= old) {
+            break;
+        }
+        x = 1u;
+        i += 1u;
+    }
+}
+
+// Adds the square of a fixed-point sample f = hi * 2^32 + lo to the 128-bit
+// sum at sums[base]: exactly the CPU's `s as u128 * s as u128`. hi is at
+// most 65504 (to_fixed's clamp), so the square fits 96 bits:
+// lo^2 + 2 hi lo 2^32 + hi^2 2^64, with 2 hi lo below 2^49.
+fn add_square(base: u32, f: vec2<u32>) {
+    let l = mul_wide(f.x, f.x);
+    let m = mul_wide(f.y, f.x);
+    let d0 = m.x << 1u;
+    let d1 = (m.y << 1u) | (m.x >> 31u);
+    let w1 = l.y + d0;
+    let carry = select(0u, 1u, w1 < l.y);
+    // hi^2 + d1 + carry < 65504^2 + 2^17 + 1 < 2^32: no carry out.
+    let w2 = f.y * f.y + d1 + carry;
+    add_carrying(base, 0u, l.x);
+    add_carrying(base, 1u, w1);
+    add_carrying(base, 2u, w2);
+}
+
+// Adds one sample's colour to the pixel whose sums start at sums[word]
+// (and its squares, in an adaptive round).
+fn add_sample(word: u32, c: vec3<f32>) {
+    for (var ch = 0u; ch < 3u; ch++) {
+        let f = to_fixed(c[ch]);
+        add_fixed_pair(word + 2u * ch, f);
+        if (ADAPTIVE) {
+            add_square(word + 6u + 4u * ch, f);
+        }
+    }
+}
+
+// The pixel that column `col`, row `row` of the dispatch grid traces:
+// (x, y, its first sums word, 1), or w = 0 for none (an adaptive round's
+// block cut by the film's edge). Uniform renders: the grid is the film.
+// Adaptive rounds: 8 columns, and rows 8b..8b+8 are active block b's.
+fn grid_pixel(col: u32, row: u32) -> vec4<u32> {
+    if (!ADAPTIVE) {
+        return vec4<u32>(params.rect_x + col, params.rect_y + row, (row * params.rect_w + col) * 6u, 1u);
+    }
+    let b = active_blocks[row / 8u];
+    let fx = (b & 0xffffu) * 8u + col;
+    let fy = (b >> 16u) * 8u + row % 8u;
+    if (fx >= params.film_w || fy >= params.film_h) {
+        return vec4<u32>(0u);
+    }
+    return vec4<u32>(params.rect_x + fx, params.rect_y + fy, (fy * params.film_w + fx) * sum_stride(), 1u);
 }
 
 // Ray counts: per workgroup first, then one (carrying) global add per
@@ -432,9 +528,13 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
     let col = gid.x;
     let row = params.row0 + gid.y;
     let s = params.sample_start + gid.z;
+    var p = vec4<u32>(0u);
     if (col < params.rect_w && gid.y < params.rows && row < params.rect_h && s < params.sample_end) {
-        let px = params.rect_x + col;
-        let py = params.rect_y + row;
+        p = grid_pixel(col, row);
+    }
+    if (p.w != 0u) {
+        let px = p.x;
+        let py = p.y;
         let off = sample_offset(frame.sampler, frame.grid_n, pixel_seed(px, py, params.frame), s);
         let sx = f32(px) + off.x;
         let sy = f32(py) + off.y;
@@ -443,11 +543,7 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
         let b = 1.0 - 2.0 * sy * frame.inv_height;
         let d = normalize(frame.forward + frame.right * a + frame.up * b);
         tally[C_PRIMARY] += 1u;
-        let c = trace(vec3<f32>(0.0), d);
-        let base = (row * params.rect_w + col) * 6u;
-        add_fixed(base, c.x);
-        add_fixed(base + 2u, c.y);
-        add_fixed(base + 4u, c.z);
+        add_sample(p.z, trace(vec3<f32>(0.0), d));
     }
     flush_tally(lid);
 }
