@@ -1,0 +1,240 @@
+//! One job's own bookkeeping (`impl Job`): its units done and pending, the
+//! work left, failed attempts, its end, and the view clients get. Called
+//! with the state lock held.
+
+use std::collections::{BTreeSet, HashMap};
+use std::time::Instant;
+
+use tokio::sync::watch;
+use tracer_core::scene::RenderSettings;
+
+use crate::rate::{JOB_WINDOW, Meter};
+use crate::store::{Counters, JobRecord, JobStateRec};
+use crate::units::{Layout, Unit};
+
+use super::frames::{FrameAcc, FrameFilm};
+use super::{Job, JobState, JobView, UnitIndex, adaptive, now_ms};
+
+impl Job {
+    pub(super) fn new(rec: JobRecord, settings: RenderSettings, counters: Counters) -> Self {
+        let mut layout = Layout::new(
+            settings.width,
+            settings.height,
+            settings.samples,
+            rec.first_frame,
+            rec.last_frame,
+            rec.tile_size,
+            rec.samples_per_unit,
+        );
+        let adaptive = adaptive::settings_of(&rec);
+        if let Some(a) = &adaptive {
+            layout.batches = a.rounds();
+        }
+        let total = layout.total();
+        let state = match rec.state {
+            JobStateRec::Active => JobState::Running,
+            JobStateRec::Done => JobState::Done,
+            JobStateRec::Failed => JobState::Failed,
+            JobStateRec::Cancelled => JobState::Cancelled,
+        };
+        let pending = if state.is_terminal() {
+            BTreeSet::new()
+        } else {
+            (0..total).collect()
+        };
+        let frames = (rec.first_frame..=rec.last_frame)
+            .map(|f| {
+                (
+                    f,
+                    FrameAcc {
+                        film: FrameFilm::default(),
+                        merging: 0,
+                        units_done: 0,
+                        written: None,
+                        writing: false,
+                    },
+                )
+            })
+            .collect();
+        // Until probed: one ray a pixel-sample.
+        let tile_rays = layout.tiles.iter().map(|t| t.area() as f64).collect();
+        let mut job = Job {
+            rec,
+            settings,
+            layout,
+            tile_rays,
+            work_left: 0.0,
+            meter: Meter::new(JOB_WINDOW),
+            state: if state == JobState::Running {
+                JobState::Queued
+            } else {
+                state
+            },
+            done: vec![false; total as usize],
+            pending,
+            failures: HashMap::new(),
+            frames,
+            counters,
+            units_done: 0,
+            samples_done: 0,
+            started: None,
+            stopped: None,
+            first_lease_unix_ms: 0,
+            first_result_unix_ms: 0,
+            last_result_unix_ms: 0,
+            samples_this_run: 0,
+            rays_this_run: 0,
+            watch: watch::channel(0).0,
+            adaptive: adaptive.map(adaptive::AdaptiveJob::new),
+        };
+        job.adaptive_start();
+        job.work_left = job.sum_work_left();
+        job
+    }
+
+    /// Expected rays of unit `u` (its tile's, times its samples).
+    pub(super) fn unit_work(&self, u: UnitIndex) -> f64 {
+        let unit = self.layout.unit(u);
+        self.tile_rays[unit.tile as usize] * self.layout.batches[unit.batch as usize].len() as f64
+    }
+
+    fn sum_work_left(&self) -> f64 {
+        (0..self.layout.total())
+            .filter(|&u| !self.done[u as usize])
+            .map(|u| self.unit_work(u))
+            .sum()
+    }
+
+    /// The cost probe's expected rays per tile (replacing the uniform guess).
+    pub(super) fn set_tile_rays(&mut self, tile_rays: Vec<f64>) {
+        self.tile_rays = tile_rays;
+        self.work_left = self.sum_work_left();
+    }
+
+    pub(super) fn notify(&self) {
+        self.watch.send_modify(|v| *v += 1);
+    }
+
+    pub(super) fn mark_done(&mut self, u: UnitIndex) {
+        if self.done[u as usize] {
+            return;
+        }
+        self.done[u as usize] = true;
+        self.pending.remove(&u);
+        self.units_done += 1;
+        self.work_left = (self.work_left - self.unit_work(u)).max(0.0);
+        let unit: Unit = self.layout.unit(u);
+        self.samples_done += self.layout.unit_samples(unit);
+        if let Some(f) = self.frames.get_mut(&unit.frame) {
+            f.units_done += 1;
+        }
+        if self.state == JobState::Queued {
+            self.state = JobState::Running;
+        }
+    }
+
+    pub(super) fn finish(&mut self, state: JobState, error: String) {
+        self.state = state;
+        self.rec.state = match state {
+            JobState::Done => JobStateRec::Done,
+            JobState::Failed => JobStateRec::Failed,
+            JobState::Cancelled => JobStateRec::Cancelled,
+            _ => JobStateRec::Active,
+        };
+        self.rec.error = error;
+        self.rec.finished_unix_ms = now_ms();
+        self.stopped = Some(Instant::now());
+        self.pending.clear();
+        // A new lock: merges still in flight finish into the old film,
+        // which goes with them.
+        for f in self.frames.values_mut() {
+            f.film = FrameFilm::default();
+        }
+        self.notify();
+    }
+
+    /// Records a failed attempt of `units`; fails the job (returning its
+    /// record to persist) when a unit has failed `max_attempts` times.
+    pub(super) fn fail_units(&mut self, units: &[u32], message: String) -> Option<JobRecord> {
+        if self.state.is_terminal() {
+            return None;
+        }
+        let mut exhausted = None;
+        for &u in units {
+            let f = self.failures.entry(u).or_default();
+            f.push(message.clone());
+            if f.len() as u32 >= self.rec.max_attempts && exhausted.is_none() {
+                exhausted = Some((u, f.clone()));
+            }
+            self.pending.insert(u);
+        }
+        self.notify();
+        let (u, messages) = exhausted?;
+        let unit = self.layout.unit(u);
+        let error = format!(
+            "work unit {u} (frame {}, tile {:?}, samples {}..{}) failed {} times: {}",
+            unit.frame,
+            self.layout.tiles[unit.tile as usize],
+            self.layout.batches[unit.batch as usize].start,
+            self.layout.batches[unit.batch as usize].end,
+            messages.len(),
+            messages.join("; ")
+        );
+        tracing::error!(job = %self.rec.id, %error, "job failed");
+        self.finish(JobState::Failed, error);
+        Some(self.rec.clone())
+    }
+
+    pub(super) fn view(&self) -> JobView {
+        let per = self.layout.units_per_frame() as u64;
+        let samples_total = self.layout.width as u64
+            * self.layout.height as u64
+            * self.settings.samples as u64
+            * self.layout.frames as u64;
+        let elapsed = self.started.map_or(0.0, |t| {
+            self.stopped
+                .map_or_else(|| t.elapsed(), |s| s.saturating_duration_since(t))
+                .as_secs_f64()
+        });
+        let rps = if elapsed > 0.0 {
+            self.rays_this_run as f64 / elapsed
+        } else {
+            0.0
+        };
+        let mut eta =
+            crate::rate::eta(self.work_left, self.meter.rate(Instant::now())).unwrap_or(-1.0);
+        let adaptive = self.adaptive_progress();
+        let mut samples_total = samples_total;
+        if adaptive.settings.is_some() {
+            // The samples still expected over this run's sample rate.
+            samples_total = adaptive.samples_expected.max(self.samples_done);
+            eta = if self.samples_this_run > 0 && elapsed > 0.0 {
+                (samples_total - self.samples_done) as f64
+                    / (self.samples_this_run as f64 / elapsed)
+            } else {
+                -1.0
+            };
+        }
+        JobView {
+            record: self.rec.clone(),
+            state: self.state,
+            settings: self.settings,
+            counters: self.counters.clone(),
+            units_total: self.layout.total() as u64,
+            units_done: self.units_done,
+            samples_total,
+            samples_done: self.samples_done,
+            frames: self
+                .frames
+                .iter()
+                .map(|(&f, a)| (f, per, a.units_done, a.written.clone()))
+                .collect(),
+            rays_per_second: rps,
+            eta_seconds: if self.state.is_terminal() { 0.0 } else { eta },
+            first_lease_unix_ms: self.first_lease_unix_ms,
+            first_result_unix_ms: self.first_result_unix_ms,
+            last_result_unix_ms: self.last_result_unix_ms,
+            adaptive,
+        }
+    }
+}

@@ -1,0 +1,525 @@
+//! Clients' requests: submit (a scene checked, its files stored, its cost
+//! probed), cancel, delete, the job and worker views, watch, outputs,
+//! progress logs, and the jobs' stored files.
+
+use std::collections::{BTreeMap, HashSet};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use tokio::sync::watch;
+use tracer_core::assets::Bundle;
+use tracer_core::sampling::Sampler;
+use tracer_core::scene::SceneDesc;
+
+use crate::assets::{AssetStoreError, sha256_hex};
+use crate::store::{Counters, JobRecord, JobStateRec, Op};
+use crate::units::{
+    DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE, Layout,
+    RESULT_BYTES_PER_PIXEL, unit_count,
+};
+
+use super::{
+    Farm, FarmError, Job, JobState, JobView, MAX_UNITS, Submission, WorkerView, asset_error,
+    check_name, now_ms,
+};
+
+impl Farm {
+    /// Validates and queues a job. Bad scenes are refused with the message
+    /// `tessera render` prints for them.
+    pub async fn submit(self: &Arc<Self>, s: Submission) -> Result<String, FarmError> {
+        let text = std::str::from_utf8(&s.scene).map_err(|e| {
+            FarmError::InvalidArgument(format!("{}: scene is not UTF-8 text: {e}", s.scene_name))
+        })?;
+        self.check_storage()?;
+        check_name("job name", &s.name, 200)?;
+        check_name("scene name", &s.scene_name, 4096)?;
+        // The job's files: inline ones stored now, uploaded ones named by
+        // hash. The scene is validated from these alone.
+        let limits = self.assets.limits;
+        let mut files = BTreeMap::new();
+        let mut job_bytes = s.scene.len() as u64;
+        for (name, content) in &s.assets {
+            check_file_name(name)?;
+            let sha256 = self.assets.put(content).map_err(asset_error)?;
+            job_bytes += content.len() as u64;
+            files.insert(name.clone(), sha256);
+        }
+        for (name, sha256) in &s.files {
+            check_file_name(name)?;
+            crate::assets::check_hash(sha256)
+                .map_err(|e| FarmError::InvalidArgument(format!("files[{name:?}]: {e}")))?;
+            let size = self.assets.size(sha256).ok_or_else(|| {
+                FarmError::FailedPrecondition(format!(
+                    "files[{name:?}]: asset {sha256} is not on the coordinator; upload it first (UploadAsset)"
+                ))
+            })?;
+            job_bytes += size;
+            files.insert(name.clone(), sha256.clone());
+        }
+        if job_bytes > limits.max_job_bytes {
+            return Err(FarmError::ResourceExhausted(format!(
+                "the job's files are {job_bytes} bytes, over the coordinator's limit of {} bytes a job (--max-job-bytes)",
+                limits.max_job_bytes
+            )));
+        }
+        let bundle = {
+            let farm = self.clone();
+            let files = files.clone();
+            tokio::task::spawn_blocking(move || farm.bundle(&files))
+                .await
+                .map_err(|e| FarmError::Internal(format!("reading the job's files: {e}")))??
+        };
+        let scene = {
+            let text = text.to_string();
+            let scene_name = s.scene_name.clone();
+            tokio::task::spawn_blocking(move || SceneDesc::parse_from(&text, &scene_name, &bundle))
+                .await
+                .map_err(|e| FarmError::Internal(format!("scene validation: {e}")))?
+                .map_err(|e| FarmError::InvalidArgument(e.to_string()))?
+        };
+        for w in &scene.warnings {
+            tracing::warn!(scene = %s.scene_name, "{w}");
+        }
+        let settings = s.overrides.apply(&scene.render);
+        settings
+            .validate()
+            .map_err(|e| FarmError::InvalidArgument(format!("invalid render settings: {e}")))?;
+        let adaptive = scene
+            .adaptive
+            .resolve(&s.adaptive)
+            .map_err(FarmError::InvalidArgument)?;
+        let settings = match &adaptive {
+            None => settings,
+            Some(a) => {
+                if s.overrides.samples.is_some() {
+                    return Err(FarmError::InvalidArgument(
+                        "samples does not apply to adaptive sampling (target_error): give min_samples and max_samples".into(),
+                    ));
+                }
+                if let Some(o) = s.overrides.sampler.filter(|&o| o != Sampler::Progressive) {
+                    return Err(FarmError::InvalidArgument(format!(
+                        "sampler {} does not apply to adaptive sampling (target_error), which places samples progressively",
+                        o.name()
+                    )));
+                }
+                a.render_settings(settings)
+            }
+        };
+        let (first, last) = if s.first_frame == 0 && s.last_frame == 0 {
+            (0, 0)
+        } else {
+            (s.first_frame, s.last_frame)
+        };
+        if first > last {
+            return Err(FarmError::InvalidArgument(format!(
+                "frame range {first}..{last} is empty (first frame after last)"
+            )));
+        }
+        if last - first >= 100_000 {
+            return Err(FarmError::InvalidArgument(format!(
+                "frame range {first}..{last} has more than 100000 frames"
+            )));
+        }
+        let tile_size = if s.tile_size == 0 {
+            DEFAULT_TILE_SIZE
+        } else {
+            s.tile_size
+        };
+        if !(8..=4096).contains(&tile_size) {
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size must be in 8..=4096, got {tile_size}"
+            )));
+        }
+        let block = tracer_core::adaptive::BLOCK;
+        if adaptive.is_some() && !tile_size.is_multiple_of(block) {
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size must be a multiple of {block} for adaptive sampling (target_error), which decides per {block}x{block} block; got {tile_size}"
+            )));
+        }
+        let samples_per_unit = if s.samples_per_unit == 0 {
+            DEFAULT_SAMPLES_PER_UNIT
+        } else {
+            s.samples_per_unit
+        };
+        // An adaptive job's sample batches are its rounds.
+        let batches = adaptive.map(|a| a.rounds());
+        let max_attempts = if s.max_attempts == 0 {
+            DEFAULT_MAX_ATTEMPTS
+        } else {
+            s.max_attempts
+        };
+        let pixels = u64::from(settings.width) * u64::from(settings.height);
+        if pixels > self.config.max_frame_pixels {
+            return Err(FarmError::InvalidArgument(format!(
+                "a {}x{} frame has {pixels} pixels, over the coordinator's limit of {} (--max-frame-pixels): \
+                 the coordinator holds a frame's sums while it fills, {:.1} GB for this one",
+                settings.width,
+                settings.height,
+                self.config.max_frame_pixels,
+                (pixels * RESULT_BYTES_PER_PIXEL) as f64 / 1e9
+            )));
+        }
+        // One tile's result must fit one message.
+        let tile_pixels =
+            u64::from(tile_size.min(settings.width)) * u64::from(tile_size.min(settings.height));
+        let max_pixels = self.max_result_pixels();
+        if tile_pixels > max_pixels {
+            let side = (max_pixels as f64).sqrt() as u64 / 8 * 8;
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size {tile_size} makes results of {} bytes, over the coordinator's message limit of {} bytes \
+                 (--max-message-bytes); use tiles of at most {side} px",
+                tile_pixels * RESULT_BYTES_PER_PIXEL,
+                self.config.max_message_bytes
+            )));
+        }
+        let units = match &batches {
+            None => unit_count(
+                settings.width,
+                settings.height,
+                settings.samples,
+                last - first + 1,
+                tile_size,
+                samples_per_unit,
+            ),
+            Some(b) => {
+                unit_count(
+                    settings.width,
+                    settings.height,
+                    1,
+                    last - first + 1,
+                    tile_size,
+                    1,
+                ) * b.len() as u64
+            }
+        };
+        if units == 0 || units > MAX_UNITS {
+            return Err(FarmError::InvalidArgument(format!(
+                "the job would have {units} work units (the limit is {MAX_UNITS}); use larger tiles or sample batches"
+            )));
+        }
+        let mut layout = Layout::new(
+            settings.width,
+            settings.height,
+            settings.samples,
+            first,
+            last,
+            tile_size,
+            samples_per_unit,
+        );
+        if let Some(b) = batches {
+            layout.batches = b;
+        }
+        // Off the async threads: it traces a few rays of every tile.
+        let tile_rays = {
+            let layout = layout.clone();
+            tokio::task::spawn_blocking(move || crate::cost::probe(&scene, &settings, &layout))
+                .await
+                .map_err(|e| FarmError::Internal(format!("cost probe: {e}")))?
+        };
+        let scene_sha256 = self.assets.put(&s.scene).map_err(asset_error)?;
+        for sha256 in files.values().chain([&scene_sha256]) {
+            self.assets.touch(sha256);
+        }
+        let assets = files;
+        let mut ops = Vec::new();
+        let id = {
+            let mut st = self.state.lock().expect("state lock");
+            st.next_id += 1;
+            format!(
+                "j{}",
+                &sha256_hex(
+                    format!("{scene_sha256}{}{}{}", self.boot, st.next_id, now_ms()).as_bytes()
+                )[..10]
+            )
+        };
+        let name = if s.name.is_empty() {
+            std::path::Path::new(&s.scene_name)
+                .file_stem()
+                .map_or("job".into(), |n| n.to_string_lossy().into_owned())
+        } else {
+            s.name.clone()
+        };
+        let output_dir = self.config.data_dir.join("outputs").join(&id);
+        std::fs::create_dir_all(&output_dir).map_err(|e| {
+            FarmError::Internal(format!("cannot create {}: {e}", output_dir.display()))
+        })?;
+        let rec = JobRecord {
+            id: id.clone(),
+            name,
+            scene_name: s.scene_name.clone(),
+            scene_sha256,
+            assets,
+            width: settings.width,
+            height: settings.height,
+            samples: settings.samples,
+            max_depth: settings.max_depth,
+            sampler: sampler_name(settings.sampler).into(),
+            first_frame: first,
+            last_frame: last,
+            priority: s.priority,
+            tile_size,
+            samples_per_unit,
+            max_attempts,
+            state: JobStateRec::Active,
+            error: String::new(),
+            submitted_unix_ms: now_ms(),
+            finished_unix_ms: 0,
+            output_dir: output_dir.to_string_lossy().into_owned(),
+            target_error: adaptive.map_or(0.0, |a| a.target_error),
+            min_samples: adaptive.map_or(0, |a| a.min_samples),
+            max_samples: adaptive.map_or(0, |a| a.max_samples),
+        };
+        ops.push(Op::PutJob(rec.clone()));
+        ops.push(Op::PutCounters {
+            job: id.clone(),
+            counters: Counters::default(),
+        });
+        self.store.write(ops).await?;
+        tracing::info!(
+            job = %id, name = %rec.name, scene = %rec.scene_name,
+            width = settings.width, height = settings.height, samples = settings.samples,
+            frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
+            target_error = rec.target_error, min_samples = rec.min_samples, max_samples = rec.max_samples,
+            "job accepted"
+        );
+        let mut job = Job::new(rec, settings, Counters::default());
+        job.set_tile_rays(tile_rays);
+        self.state
+            .lock()
+            .expect("state lock")
+            .jobs
+            .insert(id.clone(), job);
+        self.work_ready.notify_waiters();
+        Ok(id)
+    }
+
+    pub fn job(&self, id: &str) -> Result<JobView, FarmError> {
+        let st = self.state.lock().expect("state lock");
+        st.jobs
+            .get(id)
+            .map(Job::view)
+            .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
+    }
+
+    /// Whether the job is done, failed or cancelled (or gone): a cheap
+    /// look, without building its view.
+    pub fn job_ended(&self, id: &str) -> bool {
+        let st = self.state.lock().expect("state lock");
+        st.jobs.get(id).is_none_or(|j| j.state.is_terminal())
+    }
+
+    pub fn jobs(&self) -> Vec<JobView> {
+        let st = self.state.lock().expect("state lock");
+        let mut v: Vec<_> = st.jobs.values().map(Job::view).collect();
+        v.sort_by_key(|j| (j.record.submitted_unix_ms, j.record.id.clone()));
+        v
+    }
+
+    /// A receiver that changes whenever the job does.
+    pub fn watch(&self, id: &str) -> Result<watch::Receiver<u64>, FarmError> {
+        let st = self.state.lock().expect("state lock");
+        st.jobs
+            .get(id)
+            .map(|j| j.watch.subscribe())
+            .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
+    }
+
+    pub async fn cancel(self: &Arc<Self>, id: &str) -> Result<JobView, FarmError> {
+        let rec = {
+            let mut st = self.state.lock().expect("state lock");
+            let job = st
+                .jobs
+                .get_mut(id)
+                .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
+            if job.state.is_terminal() {
+                return Ok(job.view());
+            }
+            job.finish(JobState::Cancelled, "cancelled by request".into());
+            let rec = job.rec.clone();
+            self.withdraw_leases(&mut st, id);
+            rec
+        };
+        tracing::info!(job = %id, "job cancelled");
+        self.store.write(vec![Op::PutJob(rec)]).await?;
+        self.job(id)
+    }
+
+    /// Forgets a finished (done, failed or cancelled) job: its record,
+    /// stored films and output images. Its files go with the next asset
+    /// collection once no other job needs them.
+    pub async fn delete(self: &Arc<Self>, id: &str) -> Result<(), FarmError> {
+        let dir = {
+            let st = self.state.lock().expect("state lock");
+            let job = st
+                .jobs
+                .get(id)
+                .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
+            if !job.state.is_terminal() {
+                return Err(FarmError::FailedPrecondition(format!(
+                    "job {id} is {}; cancel it first (tessera cancel {id})",
+                    match job.state {
+                        JobState::Queued => "queued",
+                        _ => "running",
+                    }
+                )));
+            }
+            PathBuf::from(&job.rec.output_dir)
+        };
+        self.store
+            .write(vec![Op::DeleteJob(id.to_string())])
+            .await?;
+        self.state.lock().expect("state lock").jobs.remove(id);
+        // Only a folder of this store's outputs, never a path a record could name elsewhere.
+        if dir.starts_with(self.config.data_dir.join("outputs")) {
+            let _ = tokio::fs::remove_dir_all(&dir).await;
+        }
+        tracing::info!(job = %id, "job deleted");
+        Ok(())
+    }
+
+    /// Finished frames: (frame, file name, path).
+    pub fn outputs(&self, id: &str) -> Result<Vec<(u32, String, PathBuf)>, FarmError> {
+        let st = self.state.lock().expect("state lock");
+        let job = st
+            .jobs
+            .get(id)
+            .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))?;
+        Ok(job
+            .frames
+            .iter()
+            .filter_map(|(&f, acc)| {
+                acc.written
+                    .as_ref()
+                    .map(|n| (f, n.clone(), PathBuf::from(&job.rec.output_dir).join(n)))
+            })
+            .collect())
+    }
+
+    pub fn workers(&self) -> Vec<WorkerView> {
+        let st = self.state.lock().expect("state lock");
+        let now = Instant::now();
+        let mut v: Vec<_> = st
+            .workers
+            .iter()
+            .map(|(id, w)| WorkerView {
+                id: id.clone(),
+                name: w.name.clone(),
+                threads: w.threads,
+                backend: w.backend.clone(),
+                gpu_name: w.gpu_name.clone(),
+                version: w.version.clone(),
+                leases: w.leases.len() as u32,
+                units_done: w.units_done,
+                units_failed: w.units_failed,
+                samples_per_second: w.speed.samples_per_second(),
+                rays_per_second: w.speed.rays_per_second(),
+                last_seen_unix_ms: now_ms() - now.duration_since(w.last_seen).as_millis() as i64,
+            })
+            .collect();
+        v.sort_by(|a, b| a.name.cmp(&b.name).then(a.id.cmp(&b.id)));
+        v
+    }
+
+    /// A stored file (from the asset store, or the database of an older
+    /// release, which kept files there).
+    pub fn asset(&self, sha256: &str) -> Result<Vec<u8>, FarmError> {
+        match self.assets.read(sha256) {
+            Ok(b) => Ok(b),
+            Err(AssetStoreError::NotFound(_)) => self
+                .store
+                .asset(sha256)?
+                .ok_or_else(|| FarmError::NotFound(format!("no asset with sha256 {sha256}"))),
+            Err(e) => Err(asset_error(e)),
+        }
+    }
+
+    /// A job's files (name -> hash) read into a bundle.
+    fn bundle(&self, files: &BTreeMap<String, String>) -> Result<Bundle, FarmError> {
+        let mut bundle = Bundle::new();
+        for (name, sha256) in files {
+            bundle.insert(name.clone(), self.asset(sha256)?);
+        }
+        Ok(bundle)
+    }
+
+    /// A stored job's scene, parsed from its stored files.
+    pub(super) fn stored_scene(&self, rec: &JobRecord) -> Result<SceneDesc, FarmError> {
+        let text = String::from_utf8(self.asset(&rec.scene_sha256)?)
+            .map_err(|e| FarmError::Internal(format!("stored scene is not UTF-8: {e}")))?;
+        SceneDesc::parse_from(&text, &rec.scene_name, &self.bundle(&rec.assets)?)
+            .map_err(|e| FarmError::Internal(e.to_string()))
+    }
+
+    /// Removes stored files that no unfinished job names and none has
+    /// named for the retention time.
+    pub fn collect_assets(&self) -> u64 {
+        let keep: HashSet<String> = {
+            let st = self.state.lock().expect("state lock");
+            st.jobs
+                .values()
+                .filter(|j| !j.state.is_terminal())
+                .flat_map(|j| j.rec.assets.values().chain([&j.rec.scene_sha256]).cloned())
+                .collect()
+        };
+        self.assets.collect(&keep)
+    }
+
+    /// Logs progress of running jobs. Called at the progress cadence.
+    pub fn log_progress(&self) {
+        let st = self.state.lock().expect("state lock");
+        for job in st.jobs.values().filter(|j| j.state == JobState::Running) {
+            let v = job.view();
+            let pct = 100.0 * v.samples_done as f64 / v.samples_total.max(1) as f64;
+            let frames: Vec<String> = v
+                .frames
+                .iter()
+                .filter(|f| f.3.is_none())
+                .take(8)
+                .map(|f| format!("{}:{:.0}%", f.0, 100.0 * f.2 as f64 / f.1.max(1) as f64))
+                .collect();
+            if let Some(a) = v.adaptive.settings {
+                tracing::info!(
+                    job = %job.rec.id,
+                    target_error = a.target_error,
+                    converged = format!("{:.1}%", 100.0 * v.adaptive.converged_share),
+                    estimated_error = format!("{:.3e}", v.adaptive.estimated_error),
+                    samples_done = v.samples_done,
+                    samples_expected = v.adaptive.samples_expected,
+                    "adaptive progress"
+                );
+            }
+            tracing::info!(
+                job = %job.rec.id,
+                percent = format!("{pct:.1}"),
+                frames = %frames.join(" "),
+                rays_per_s = format!("{:.3e}", v.rays_per_second),
+                eta_s = if v.eta_seconds >= 0.0 { format!("{:.1}", v.eta_seconds) } else { "unknown".into() },
+                leases = st.leases.values().filter(|l| l.job == job.rec.id).count(),
+                in_flight_samples = st.leases.values().filter(|l| l.job == job.rec.id).map(|l| l.progress).sum::<u64>(),
+                "progress"
+            );
+        }
+    }
+}
+
+fn sampler_name(s: Sampler) -> &'static str {
+    match s {
+        Sampler::Grid => "grid",
+        Sampler::Jittered => "jittered",
+        Sampler::Progressive => "progressive",
+    }
+}
+
+/// A job file's name: the path the scene writes, relative to its folder.
+/// It is only ever a key (files are stored by hash), but it must be one a
+/// loader can produce.
+fn check_file_name(name: &str) -> Result<(), FarmError> {
+    if name.is_empty() || name.len() > 4096 || name.contains('\0') {
+        return Err(FarmError::InvalidArgument(format!(
+            "file name {:?} must be a non-empty path of at most 4096 bytes",
+            name.chars().take(100).collect::<String>()
+        )));
+    }
+    Ok(())
+}

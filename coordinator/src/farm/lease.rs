@@ -1,0 +1,677 @@
+//! The leasing policy and the workers' side: register, leases sized in
+//! expected rays by each worker's speed and held back near a job's end for
+//! a faster worker, backup leases, the long-poll wait, heartbeats, leases
+//! handed back, withdrawn or expired, and silent workers.
+
+use std::collections::{HashMap, HashSet};
+use std::time::{Duration, Instant};
+
+use tracer_core::film::Rect;
+
+use crate::rate::WorkerSpeed;
+
+use super::{Farm, FarmError, Job, JobState, Lease, LeaseView, State, Worker, now_ms};
+
+/// The smallest lease, in seconds of the worker it goes to (unless the job
+/// has less work left): below this a fast worker's fixed costs per lease
+/// (a GPU call, read-back, a result message) outweigh its rendering.
+const MIN_LEASE_SECONDS: f64 = 0.01;
+
+/// How long an idle worker's lease request waits when work was held back
+/// for a faster worker, before it is judged again.
+/// A backup lease is granted only when its worker would finish it in less
+/// than this share of the time the holder needs for the work it holds...
+const BACKUP_GAIN: f64 = 0.5;
+/// Backups of one lease at most: a slow idle worker may take one before a
+/// fast one asks, which must still be able to take another.
+const MAX_BACKUPS: u32 = 2;
+/// How long a worker's best speed of late counts for the farm's speed.
+const PEAK_MEMORY_SECONDS: f64 = 60.0;
+/// ...counting this much for the lease's fixed costs (a round trip, a
+/// result message).
+const BACKUP_OVERHEAD_SECONDS: f64 = 0.01;
+const HELD_BACK_WAIT: Duration = Duration::from_millis(20);
+
+impl Lease {
+    /// Expected rays not yet rendered, by the worker's last progress report.
+    fn remaining_rays(&self) -> f64 {
+        let total = self.rect.area() as f64 * self.samples.len() as f64;
+        let left = 1.0 - (self.progress as f64 / total.max(1.0)).min(1.0);
+        self.expected_rays * left
+    }
+}
+
+impl Worker {
+    /// The speed this worker adds to the farm's when others' leases are
+    /// sized and held back: its best recent speed, relaxing to its
+    /// smoothed speed over about [`PEAK_MEMORY_SECONDS`]. A GPU's small
+    /// units (a job's tail, a warm-up) are mostly fixed cost, so its
+    /// smoothed speed under-rates it, and CPU workers beside it would take
+    /// leases that run past the point where it could have done their work.
+    pub(super) fn farm_speed(&self) -> f64 {
+        let k = (-self.peak_at.elapsed().as_secs_f64() / PEAK_MEMORY_SECONDS).exp();
+        self.ray_speed + (self.peak_speed - self.ray_speed).max(0.0) * k
+    }
+}
+
+/// The work a lease gets, in expected rays: `want` (the worker's target
+/// seconds of work at its `speed` in rays a second, or its ramp), except
+/// near a job's end. A lease ends by half the farm's remaining time
+/// (`farm_end` seconds; infinite while the farm is far from the end),
+/// after the `busy` seconds of work the worker holds, so that the last
+/// leases are small and finish together; never below MIN_LEASE_SECONDS of
+/// work, which keeps a fast worker's fixed costs per lease small.
+fn lease_budget(want: f64, speed: f64, busy: f64, farm_end: f64) -> f64 {
+    let until_end = (0.5 * farm_end - busy).max(MIN_LEASE_SECONDS);
+    want.min(speed * until_end)
+}
+
+impl Farm {
+    pub fn register(
+        &self,
+        name: String,
+        threads: u32,
+        backend: String,
+        gpu_name: String,
+        version: String,
+    ) -> String {
+        let mut st = self.state.lock().expect("state lock");
+        let id = self.new_id(&mut st, "w");
+        tracing::info!(worker = %id, name = %name, threads, backend = %backend, "worker joined");
+        st.workers.insert(
+            id.clone(),
+            Worker {
+                name,
+                threads,
+                backend,
+                gpu_name,
+                version,
+                last_seen: Instant::now(),
+                leases: HashSet::new(),
+                units_done: 0,
+                units_failed: 0,
+                speed: WorkerSpeed::default(),
+                ray_speed: 0.0,
+                last_rays: 0.0,
+                last_seconds: 0.0,
+                peak_speed: 0.0,
+                peak_at: Instant::now(),
+            },
+        );
+        id
+    }
+
+    /// Leases up to `max_units` units to a worker, highest priority first,
+    /// joining neighbouring tiles into one lease for fast workers. `ahead`:
+    /// the worker is still rendering and asks for its next unit early.
+    pub fn lease(
+        &self,
+        worker_id: &str,
+        max_units: u32,
+        ahead: bool,
+    ) -> Result<Vec<LeaseView>, FarmError> {
+        self.lease_or_hold(worker_id, max_units, ahead)
+            .map(|(leases, _)| leases)
+    }
+
+    /// As [`Farm::lease`]; also says whether work was held back because a
+    /// faster worker is expected to finish it sooner (the asker should ask
+    /// again soon rather than wait for new work).
+    pub(super) fn lease_or_hold(
+        &self,
+        worker_id: &str,
+        max_units: u32,
+        ahead: bool,
+    ) -> Result<(Vec<LeaseView>, bool), FarmError> {
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let worker = st
+            .workers
+            .get_mut(worker_id)
+            .ok_or_else(|| unknown_worker(worker_id))?;
+        worker.last_seen = Instant::now();
+        // No new work while results cannot be recorded: workers wait
+        // instead of rendering units whose results would be refused.
+        if !self.store.health.ok() {
+            return Ok((Vec::new(), false));
+        }
+        let speed = worker.ray_speed;
+        // This worker at its best (never below `speed`), as the others are
+        // rated when it is held back for them: rated on one scale, the
+        // worker that would finish first is never held back, so not all
+        // of them are.
+        let best = worker.farm_speed();
+        // A worker's speed is measured on small leases first, where fixed
+        // costs (a GPU call, a result message) weigh most: while its last
+        // lease took under a quarter of the target, the next may be eight
+        // times as large, so a GPU reaches frame-sized leases within a few.
+        let ramp = if worker.last_seconds > 0.0
+            && worker.last_seconds < 0.25 * self.config.target_unit_seconds
+        {
+            8.0 * worker.last_rays
+        } else {
+            0.0
+        };
+        // Seconds of work each measured worker holds (leases it renders or
+        // has queued), at its speed: when it could start something new.
+        // One pass over the leases: rays still held by each worker, and
+        // still in flight in each job.
+        let mut busy_of: HashMap<&str, f64> = HashMap::new();
+        // (Job ids owned: leases are added to below while this is read.)
+        // Per job: rays still to trace in its leases, and the leases'
+        // whole expected rays.
+        let mut in_flight_of: HashMap<String, (f64, f64)> = HashMap::new();
+        for l in st.leases.values() {
+            let left = l.remaining_rays();
+            *busy_of.entry(l.worker.as_str()).or_default() += left;
+            if l.backup {
+                continue; // its units are in flight under the original
+            }
+            match in_flight_of.get_mut(&l.job) {
+                Some(v) => {
+                    v.0 += left;
+                    v.1 += l.expected_rays;
+                }
+                None => {
+                    in_flight_of.insert(l.job.clone(), (left, l.expected_rays));
+                }
+            }
+        }
+        // Workers silent for two heartbeats may be gone: no work waits for them.
+        let live = 2 * self.config.heartbeat_interval;
+        let others: Vec<(f64, f64)> = st
+            .workers
+            .iter()
+            .filter(|(id, w)| {
+                id.as_str() != worker_id && w.ray_speed > 0.0 && w.last_seen.elapsed() < live
+            })
+            .map(|(id, w)| {
+                let held = busy_of.get(id.as_str()).copied().unwrap_or(0.0);
+                let v = w.farm_speed();
+                (v, held / v)
+            })
+            .collect();
+        let held_rays = busy_of.get(worker_id).copied().unwrap_or(0.0);
+        // The farm's speed: the sum of the measured speeds of the live
+        // workers (a worker not yet measured adds nothing until its first
+        // result; one gone silent adds nothing either).
+        let farm_speed: f64 = speed + others.iter().map(|&(v, _)| v).sum::<f64>();
+        let mut held_back = false;
+        // Seconds of work this worker holds already, at its speed.
+        let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
+        let mut order: Vec<(&String, &Job)> = st
+            .jobs
+            .iter()
+            .filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty())
+            .collect();
+        order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
+        let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
+        let mut out = Vec::new();
+        for job_id in order {
+            // Rays of the job's leases still being rendered, by anyone.
+            let (in_flight, leased) = in_flight_of.get(&job_id).copied().unwrap_or((0.0, 0.0));
+            while out.len() < max_units.max(1) as usize {
+                let job = st.jobs.get_mut(&job_id).expect("listed job");
+                let Some(&first) = job.pending.iter().next() else {
+                    break;
+                };
+                let rays = |u: u32| job.unit_work(u);
+                let units = if speed > 0.0 && farm_speed > 0.0 {
+                    let want = (speed * self.config.target_unit_seconds).max(ramp);
+                    // When the farm, every worker at its measured speed,
+                    // would finish the job (pending and in-flight work).
+                    // Beyond `enough` no rule below can bind. This runs for
+                    // every lease, under the lock, and a long animation has
+                    // millions of pending units: no pass over them.
+                    let enough = farm_speed * (2.0 * (want / speed + busy) + rays(first) / speed);
+                    let remaining = if job.adaptive.is_none() {
+                        // A uniform job's units not done are pending or
+                        // leased: its pending work without a pass over them.
+                        in_flight + (job.work_left - leased).max(0.0)
+                    } else {
+                        // Later rounds are not pending yet: only the pending.
+                        let mut r = in_flight;
+                        for &u in &job.pending {
+                            r += rays(u);
+                            if r >= enough {
+                                break;
+                            }
+                        }
+                        r
+                    };
+                    let farm_end = if remaining < enough {
+                        remaining / farm_speed
+                    } else {
+                        f64::INFINITY
+                    };
+                    // Leases go by expected finish time: near a job's end
+                    // (when the farm would finish before this worker could
+                    // finish the next unit) a unit goes to this worker only
+                    // if no other would finish it sooner, after the work it
+                    // holds. Otherwise it waits for that worker.
+                    let finish = busy + rays(first) / speed;
+                    let finish_at_best = (busy * speed + rays(first)) / best;
+                    if finish > farm_end
+                        && others
+                            .iter()
+                            .any(|&(v, b)| b + rays(first) / v < finish_at_best)
+                    {
+                        held_back = true;
+                        break;
+                    }
+                    let budget = lease_budget(want, speed, busy, farm_end);
+                    // A lease's result must fit one message.
+                    let tile = u64::from(job.layout.tile_size).pow(2).max(1);
+                    let fit =
+                        (self.max_result_pixels() / tile).clamp(1, u64::from(u32::MAX)) as u32;
+                    job.layout.join(
+                        first,
+                        self.config.max_tiles_per_lease.min(fit),
+                        |u| job.pending.contains(&u),
+                        rays,
+                        budget,
+                    )
+                } else {
+                    // Not measured yet: one tile, whose result measures it.
+                    // Once measured workers exist, an unmeasured one asking
+                    // ahead waits (its first tile may be slow).
+                    if (ahead || !out.is_empty()) && job.pending.len() < st.workers.len() {
+                        break;
+                    }
+                    vec![first]
+                };
+                let expected_rays: f64 = units.iter().map(|&u| rays(u)).sum();
+                if speed > 0.0 {
+                    busy += expected_rays / speed;
+                }
+                for u in &units {
+                    job.pending.remove(u);
+                }
+                let u0 = job.layout.unit(first);
+                let t0 = job.layout.tiles[u0.tile as usize];
+                let t1 = job.layout.tiles
+                    [job.layout.unit(*units.last().expect("non-empty")).tile as usize];
+                let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
+                let samples = job.layout.batches[u0.batch as usize];
+                let active = job.adaptive_mask(u0.frame, rect, u0.batch);
+                if job.state == JobState::Queued {
+                    job.state = JobState::Running;
+                    job.notify();
+                }
+                if job.started.is_none() {
+                    job.started = Some(Instant::now());
+                }
+                if job.first_lease_unix_ms == 0 {
+                    job.first_lease_unix_ms = now_ms();
+                }
+                job.meter.start(Instant::now());
+                let view = LeaseView {
+                    lease_id: String::new(),
+                    job_id: job_id.clone(),
+                    scene_name: job.rec.scene_name.clone(),
+                    scene_sha256: job.rec.scene_sha256.clone(),
+                    assets: job.rec.assets.clone(),
+                    settings: job.settings,
+                    frame: u0.frame,
+                    rect,
+                    samples,
+                    deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+                    active: active.clone(),
+                };
+                st.next_id += 1;
+                let lease_id = format!("l{}-{}", self.boot, st.next_id);
+                st.leases.insert(
+                    lease_id.clone(),
+                    Lease {
+                        worker: worker_id.to_string(),
+                        job: job_id.clone(),
+                        units,
+                        frame: u0.frame,
+                        rect,
+                        samples,
+                        deadline: Instant::now() + self.config.lease_timeout,
+                        progress: 0,
+                        expected_rays,
+                        active,
+                        partners: Vec::new(),
+                        backup: false,
+                        backups: 0,
+                    },
+                );
+                st.workers
+                    .get_mut(worker_id)
+                    .expect("worker checked")
+                    .leases
+                    .insert(lease_id.clone());
+                out.push(LeaseView { lease_id, ..view });
+            }
+            if out.len() >= max_units.max(1) as usize {
+                break;
+            }
+        }
+        if out.is_empty() && !held_back && speed > 0.0 {
+            out.extend(self.backup_lease(st, worker_id, speed, busy));
+        }
+        Ok((out, held_back))
+    }
+
+    /// Nothing is pending: a lease of another worker that this one would
+    /// finish in well under the time that worker needs for the work it
+    /// holds (a GPU beside CPU workers at a job's end, or a worker slowed
+    /// down), duplicated as a backup. The units are deterministic, so
+    /// whichever result comes first is the image; the other lease is then
+    /// withdrawn. A mixed farm is so never slower than its fastest worker.
+    fn backup_lease(
+        &self,
+        st: &mut State,
+        worker_id: &str,
+        speed: f64,
+        busy: f64,
+    ) -> Option<LeaseView> {
+        // Seconds of held work of each worker, at its measured speed.
+        let mut held: HashMap<&str, f64> = HashMap::new();
+        for l in st.leases.values() {
+            *held.entry(l.worker.as_str()).or_default() += l.remaining_rays();
+        }
+        // When a worker would be through the work it holds (a holder not
+        // yet measured may be of any speed).
+        let through = |worker: &str| {
+            let speed = st.workers.get(worker).map_or(0.0, |w| w.ray_speed);
+            if speed > 0.0 {
+                held.get(worker).copied().unwrap_or(0.0) / speed
+            } else {
+                f64::INFINITY
+            }
+        };
+        let mut best: Option<(f64, String)> = None;
+        for (id, l) in &st.leases {
+            if l.backup
+                || l.backups >= MAX_BACKUPS
+                || st.jobs.get(&l.job).is_none_or(|j| j.state.is_terminal())
+            {
+                continue;
+            }
+            // The soonest any copy of the lease is expected to be done.
+            let mut theirs = through(&l.worker);
+            let mut mine_already = l.worker == worker_id;
+            for p in l.partners.iter().filter_map(|p| st.leases.get(p)) {
+                theirs = theirs.min(through(&p.worker));
+                mine_already |= p.worker == worker_id;
+            }
+            if mine_already {
+                continue;
+            }
+            let mine = busy + l.expected_rays / speed + BACKUP_OVERHEAD_SECONDS;
+            if mine < BACKUP_GAIN * theirs && best.as_ref().is_none_or(|(g, _)| theirs - mine > *g)
+            {
+                best = Some((theirs - mine, id.clone()));
+            }
+        }
+        let (_, original) = best?;
+        st.next_id += 1;
+        let lease_id = format!("l{}-{}", self.boot, st.next_id);
+        let o = st.leases.get_mut(&original).expect("listed");
+        o.backups += 1;
+        let mut partners = o.partners.clone();
+        o.partners.push(lease_id.clone());
+        for p in &partners {
+            if let Some(p) = st.leases.get_mut(p) {
+                p.partners.push(lease_id.clone());
+            }
+        }
+        partners.push(original.clone());
+        let o = &st.leases[&original];
+        let lease = Lease {
+            worker: worker_id.to_string(),
+            job: o.job.clone(),
+            units: o.units.clone(),
+            frame: o.frame,
+            rect: o.rect,
+            samples: o.samples,
+            deadline: Instant::now() + self.config.lease_timeout,
+            progress: 0,
+            expected_rays: o.expected_rays,
+            active: o.active.clone(),
+            partners,
+            backup: true,
+            backups: 0,
+        };
+        let job = st.jobs.get(&lease.job).expect("checked");
+        tracing::debug!(lease = %lease_id, backs_up = %original, job = %lease.job, rect = ?lease.rect, "backup lease");
+        let view = LeaseView {
+            lease_id: lease_id.clone(),
+            job_id: lease.job.clone(),
+            scene_name: job.rec.scene_name.clone(),
+            scene_sha256: job.rec.scene_sha256.clone(),
+            assets: job.rec.assets.clone(),
+            settings: job.settings,
+            frame: lease.frame,
+            rect: lease.rect,
+            samples: lease.samples,
+            deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+            active: lease.active.clone(),
+        };
+        st.leases.insert(lease_id.clone(), lease);
+        st.workers
+            .get_mut(worker_id)
+            .expect("worker checked")
+            .leases
+            .insert(lease_id);
+        Some(view)
+    }
+
+    /// As [`Farm::lease`], but when nothing is pending waits up to `wait`
+    /// for work to appear (long poll): an idle worker starts on a new job at
+    /// once instead of after its retry interval.
+    pub async fn lease_or_wait(
+        &self,
+        worker_id: &str,
+        max_units: u32,
+        ahead: bool,
+        wait: Duration,
+    ) -> Result<Vec<LeaseView>, FarmError> {
+        // Registered before looking, so a wake-up between the look and the
+        // wait is not missed.
+        let notified = self.work_ready.notified();
+        tokio::pin!(notified);
+        notified.as_mut().enable();
+        let (leases, held_back) = self.lease_or_hold(worker_id, max_units, ahead)?;
+        // Work held back for a faster worker: the caller asks again soon
+        // (the faster one may not take it after all), not after new work.
+        let wait = if held_back {
+            wait.min(HELD_BACK_WAIT)
+        } else {
+            wait
+        };
+        if !leases.is_empty()
+            || wait.is_zero()
+            || tokio::time::timeout(wait, notified).await.is_err()
+        {
+            return Ok(leases);
+        }
+        self.lease(worker_id, max_units, ahead)
+    }
+
+    /// Extends the worker's leases; returns those it no longer holds.
+    pub fn heartbeat(
+        &self,
+        worker_id: &str,
+        leases: &[(String, u64)],
+    ) -> Result<Vec<String>, FarmError> {
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let worker = st
+            .workers
+            .get_mut(worker_id)
+            .ok_or_else(|| unknown_worker(worker_id))?;
+        worker.last_seen = Instant::now();
+        let deadline = Instant::now() + self.config.lease_timeout;
+        let mut gone = Vec::new();
+        for (id, samples_done) in leases {
+            match st.leases.get_mut(id) {
+                Some(l) if l.worker == worker_id => {
+                    l.deadline = deadline;
+                    l.progress = *samples_done;
+                }
+                _ => gone.push(id.clone()),
+            }
+        }
+        Ok(gone)
+    }
+
+    /// Queues again the units of leases a worker hands back unstarted
+    /// (drain); no failed attempt is counted. Returns how many it held.
+    pub fn return_leases(&self, worker_id: &str, lease_ids: &[String]) -> Result<u32, FarmError> {
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let worker = st
+            .workers
+            .get_mut(worker_id)
+            .ok_or_else(|| unknown_worker(worker_id))?;
+        worker.last_seen = Instant::now();
+        let mut returned = 0;
+        for id in lease_ids {
+            if st.leases.get(id).is_none_or(|l| l.worker != worker_id) {
+                continue;
+            }
+            let l = st.leases.remove(id).expect("checked");
+            if let Some(w) = st.workers.get_mut(worker_id) {
+                w.leases.remove(id);
+            }
+            if st.partner_keeps(id, &l) {
+                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, "lease returned; its backup goes on");
+            } else {
+                if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                    job.pending.extend(l.units.iter().copied());
+                }
+                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.frame, rect = ?l.rect, "lease returned; unit queued again");
+            }
+            st.end_lease(id.clone(), l.job, false);
+            returned += 1;
+        }
+        if returned > 0 {
+            self.work_ready.notify_waiters();
+        }
+        Ok(returned)
+    }
+
+    /// Ends every lease of a job (cancelled or failed): heartbeats name them gone.
+    pub(super) fn withdraw_leases(&self, st: &mut State, job_id: &str) {
+        let ids: Vec<String> = st
+            .leases
+            .iter()
+            .filter(|(_, l)| l.job == job_id)
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in ids {
+            if let Some(l) = st.leases.remove(&id) {
+                if let Some(w) = st.workers.get_mut(&l.worker) {
+                    w.leases.remove(&id);
+                }
+                st.end_lease(id, l.job, false);
+            }
+        }
+    }
+
+    /// Expires leases and workers past their deadlines. Called periodically.
+    pub fn expire(&self) {
+        let now = Instant::now();
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let expired: Vec<String> = st
+            .leases
+            .iter()
+            .filter(|(_, l)| l.deadline <= now)
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in expired {
+            let l = st.leases.remove(&id).expect("listed");
+            let name = st.workers.get_mut(&l.worker).map(|w| {
+                w.leases.remove(&id);
+                w.units_failed += l.units.len() as u64;
+                w.name.clone()
+            });
+            if st.partner_keeps(&id, &l) {
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), "lease expired; its backup goes on");
+            } else if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
+                job.pending.extend(l.units.iter().copied());
+                self.work_ready.notify_waiters();
+            }
+            st.end_lease(id, l.job, false);
+        }
+        let silent: Vec<String> = st
+            .workers
+            .iter()
+            .filter(|(_, w)| now.duration_since(w.last_seen) > self.config.lease_timeout)
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in silent {
+            if let Some(w) = st.workers.remove(&id) {
+                tracing::info!(worker = %id, name = %w.name, units_done = w.units_done, "worker left (no heartbeat)");
+            }
+        }
+    }
+
+    /// Warns, once, when jobs wait and no worker has been connected for a
+    /// lease timeout (the time after which a silent worker counts as gone,
+    /// so a restarted coordinator gives its workers that long to come
+    /// back). Called periodically.
+    pub fn check_workers(&self) {
+        let mut st = self.state.lock().expect("state lock");
+        let waiting = st
+            .jobs
+            .values()
+            .filter(|j| !j.state.is_terminal() && !j.pending.is_empty())
+            .count();
+        if waiting == 0 || !st.workers.is_empty() {
+            if st.unserved_warned && !st.workers.is_empty() {
+                tracing::info!(workers = st.workers.len(), "workers connected again");
+            }
+            st.unserved_since = None;
+            st.unserved_warned = false;
+            return;
+        }
+        let since = *st.unserved_since.get_or_insert_with(Instant::now);
+        if !st.unserved_warned && since.elapsed() >= self.config.lease_timeout {
+            st.unserved_warned = true;
+            tracing::warn!(
+                jobs = waiting,
+                "no worker is connected: {waiting} job(s) wait for one (start `tessera worker --coordinator URL`)"
+            );
+        }
+    }
+}
+
+fn unknown_worker(id: &str) -> FarmError {
+    FarmError::NotFound(format!(
+        "unknown worker {id:?}: register again (the coordinator restarted or timed the worker out)"
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn far_from_a_jobs_end_a_lease_is_the_work_the_worker_wants() {
+        // 4000 rays a second; 1000 rays wanted (0.25 s).
+        assert_eq!(lease_budget(1000.0, 4000.0, 0.0, f64::INFINITY), 1000.0);
+        assert_eq!(lease_budget(1000.0, 4000.0, 5.0, f64::INFINITY), 1000.0);
+        // The end far enough off: half of it, after the held work, is more.
+        assert_eq!(lease_budget(1000.0, 4000.0, 0.25, 2.0), 1000.0);
+    }
+
+    #[test]
+    fn near_a_jobs_end_a_lease_ends_by_half_the_farms_time_but_not_below_the_minimum() {
+        // The farm ends in 1 s; the worker holds 0.25 s of work: its lease
+        // ends by 0.5 s, so 0.25 s of work at 4000 rays a second.
+        assert_eq!(lease_budget(2000.0, 4000.0, 0.25, 1.0), 1000.0);
+        // Holding more than half the farm's time: the smallest lease.
+        let least = 4000.0 * MIN_LEASE_SECONDS;
+        assert_eq!(lease_budget(2000.0, 4000.0, 0.75, 1.0), least);
+        assert_eq!(lease_budget(2000.0, 4000.0, 0.0, 0.0), least);
+        // ... but never more than the worker wants.
+        assert_eq!(lease_budget(10.0, 4000.0, 0.75, 1.0), 10.0);
+    }
+}

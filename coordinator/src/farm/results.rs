@@ -1,0 +1,577 @@
+//! Result intake: each result's pixels checked before the state lock, its
+//! lease taken for commit (or the result refused as late, duplicate or
+//! malformed), the accepted ones committed together, then their units
+//! marked done, counted, and their films merged.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use tracer_core::film::{FIXED_ONE, MAX_SAMPLE_VALUE, Rect};
+
+use crate::store::{Counters, JobRecord, Op};
+
+use super::frames::{Merge, new_frame_film};
+use super::{Farm, FarmError, Lease, Outcome, ResultData, State, adaptive, now_ms};
+
+impl Farm {
+    /// Takes a worker's result: accepted only from the lease's holder, only
+    /// once, and only if it is exactly the leased unit's data.
+    pub async fn submit_result(self: &Arc<Self>, r: ResultData) -> Result<Outcome, FarmError> {
+        let mut outcomes = self.submit_results(vec![r]).await?;
+        outcomes
+            .pop()
+            .ok_or_else(|| FarmError::Internal("no outcome for a result".into()))
+    }
+
+    /// Takes several results at once: each is judged as by
+    /// [`Farm::submit_result`]; the accepted ones share one commit and one
+    /// pass under the state lock. Outcomes are in the order of `rs`.
+    ///
+    /// The work runs in its own task because it must not be cancelled
+    /// half-way: once a result's units are taken from their lease they are
+    /// neither pending nor leased until the commit marks them done (or
+    /// queues them again). A gRPC handler's future is dropped when its
+    /// client goes away (a worker killed while its result is in flight), and
+    /// a drop at the commit's await would strand those units: the job would
+    /// never finish.
+    pub async fn submit_results(
+        self: &Arc<Self>,
+        rs: Vec<ResultData>,
+    ) -> Result<Vec<Outcome>, FarmError> {
+        let farm = self.clone();
+        tokio::spawn(async move { farm.take_results(rs).await })
+            .await
+            .map_err(|e| FarmError::Internal(format!("result task failed: {e}")))?
+    }
+
+    async fn take_results(self: Arc<Self>, rs: Vec<ResultData>) -> Result<Vec<Outcome>, FarmError> {
+        let mut outcomes: Vec<Option<Outcome>> = Vec::with_capacity(rs.len());
+        let mut taken: Vec<(ResultData, Taken)> = Vec::new();
+        let mut ops: Vec<Op> = Vec::new();
+        // Every pixel of a result is checked before the state lock is taken.
+        let checks: Vec<Result<(), String>> = rs.iter().map(check_film).collect();
+        {
+            let mut st = self.state.lock().expect("state lock");
+            for (r, check) in rs.into_iter().zip(checks) {
+                match self.take(&mut st, &r, check) {
+                    Ok(t) => {
+                        outcomes.push(None);
+                        taken.push((r, t));
+                    }
+                    Err((outcome, rec, counters)) => {
+                        // A failed or malformed result queued its units again.
+                        if matches!(outcome, Outcome::Rejected(_) | Outcome::FailureRecorded) {
+                            self.work_ready.notify_waiters();
+                        }
+                        outcomes.push(Some(outcome));
+                        ops.extend(rec.map(Op::PutJob));
+                        ops.extend(
+                            counters.map(|(job, counters)| Op::PutCounters { job, counters }),
+                        );
+                    }
+                }
+            }
+        }
+        // A result's film is stored as one record for all its units, in
+        // the bytes it came in (outside the lock).
+        let encode_start = Instant::now();
+        let pixels: usize = taken.iter().map(|(r, _)| r.rect.area()).sum();
+        for (r, t) in &mut taken {
+            let film = r.film.as_ref().expect("validated");
+            let bytes = match r.packed.take() {
+                Some(p) => {
+                    crate::store::EncodedFilm::new(film.rect, film.rays, film.nonfinite, p, None)
+                }
+                None => crate::store::EncodedFilm::of_film(film),
+            };
+            let rays = [
+                film.rays.primary,
+                film.rays.shadow,
+                film.rays.reflection,
+                film.rays.refraction,
+            ];
+            ops.push(Op::AcceptUnits {
+                job: t.job.clone(),
+                first_unit: t.units[0],
+                film: bytes,
+                units: t.units.len() as u64,
+                rays,
+            });
+        }
+        let commit_start = Instant::now();
+        let write = if ops.is_empty() {
+            Ok(())
+        } else {
+            self.store.write(ops).await
+        };
+        let merge_start = Instant::now();
+        let mut to_write = Vec::new();
+        let mut merges = Vec::new();
+        {
+            let mut st = self.state.lock().expect("state lock");
+            let st = &mut *st;
+            if let Err(e) = write {
+                // Nothing of these results is recorded. Each lease goes back
+                // to its holder, as if the result had never come: the worker
+                // sends it again (or the lease expires and the unit is
+                // queued), and the resend is not mistaken for a duplicate.
+                let deadline = Instant::now() + self.config.lease_timeout;
+                for (_, t) in taken {
+                    st.consumed.remove(&t.lease_id);
+                    if st.jobs.get(&t.job).is_some_and(|j| !j.state.is_terminal()) {
+                        if let Some(w) = st.workers.get_mut(&t.lease.worker) {
+                            w.leases.insert(t.lease_id.clone());
+                        }
+                        st.leases.insert(
+                            t.lease_id,
+                            Lease {
+                                deadline,
+                                ..t.lease
+                            },
+                        );
+                    } else {
+                        st.gone.insert(t.lease_id, t.job);
+                    }
+                }
+                return Err(e.into());
+            }
+            let mut taken = taken.into_iter();
+            for outcome in outcomes.iter_mut().filter(|o| o.is_none()) {
+                let (r, t) = taken.next().expect("one taken result per open outcome");
+                *outcome = Some(self.finish_result(st, r, t, &mut to_write, &mut merges)?);
+            }
+        }
+        // Films merge into their frames outside the state lock, in parallel
+        // (rayon) and off the async threads; each frame is complete only
+        // once its last merge is in.
+        let merged = if merges.is_empty() {
+            Vec::new()
+        } else {
+            tokio::task::spawn_blocking(move || {
+                merges
+                    .into_iter()
+                    .map(|m| (m.run(), m.job, m.frame))
+                    .collect::<Vec<_>>()
+            })
+            .await
+            .map_err(|e| FarmError::Internal(format!("merge task failed: {e}")))?
+        };
+        let mut merge_error = None;
+        if !merged.is_empty() {
+            let mut st = self.state.lock().expect("state lock");
+            for (result, job_id, frame) in merged {
+                if let Err(e) = result {
+                    tracing::error!(job = %job_id, frame, error = %e, "cannot merge a result into its frame");
+                    merge_error = Some(FarmError::Internal(e.to_string()));
+                }
+                let Some(job) = st.jobs.get_mut(&job_id) else {
+                    continue;
+                };
+                if let Some(acc) = job.frames.get_mut(&frame) {
+                    acc.merging -= 1;
+                }
+                if !job.state.is_terminal() {
+                    to_write.extend(job.complete_frames());
+                }
+            }
+        }
+        tracing::debug!(
+            results = outcomes.len(),
+            pixels,
+            encode_ms = (commit_start - encode_start).as_secs_f64() * 1e3,
+            commit_ms = (merge_start - commit_start).as_secs_f64() * 1e3,
+            merge_ms = merge_start.elapsed().as_secs_f64() * 1e3,
+            "results committed"
+        );
+        for (job, frame) in to_write {
+            self.clone().spawn_frame_write(job, frame);
+        }
+        if let Some(e) = merge_error {
+            return Err(e);
+        }
+        Ok(outcomes
+            .into_iter()
+            .map(|o| o.expect("every result judged"))
+            .collect())
+    }
+
+    /// Takes a result's lease for commit, or says why not (counting late,
+    /// duplicate and rejected results, and recording failures).
+    #[allow(clippy::result_large_err)] // internal, short-lived: the refusal is consumed by the caller at once
+    fn take(
+        &self,
+        st: &mut State,
+        r: &ResultData,
+        film_check: Result<(), String>,
+    ) -> Result<Taken, Refused> {
+        if let Some(w) = st.workers.get_mut(&r.worker_id) {
+            w.last_seen = Instant::now();
+        }
+        let Some(lease) = st.leases.get(&r.lease_id) else {
+            let (outcome, job) = if let Some(job) = st.consumed.get(&r.lease_id) {
+                (
+                    Outcome::Duplicate(format!(
+                        "lease {} was already completed; result dropped",
+                        r.lease_id
+                    )),
+                    Some(job.clone()),
+                )
+            } else if let Some(job) = st.gone.get(&r.lease_id) {
+                (
+                    Outcome::Late(format!(
+                        "lease {} expired or was withdrawn; result dropped",
+                        r.lease_id
+                    )),
+                    Some(job.clone()),
+                )
+            } else {
+                self.results_unknown_lease
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                (
+                    Outcome::Late(format!(
+                        "lease {} is unknown (expired before a coordinator restart, or never granted); result dropped",
+                        r.lease_id
+                    )),
+                    None,
+                )
+            };
+            let mut snapshot = None;
+            if let Some(job) = job.and_then(|j| st.jobs.get_mut(&j)) {
+                match outcome {
+                    Outcome::Duplicate(_) => job.counters.results_duplicate += 1,
+                    _ => job.counters.results_late += 1,
+                }
+                snapshot = Some((job.rec.id.clone(), job.counters.clone()));
+            }
+            tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, outcome = ?outcome, "result dropped");
+            return Err((outcome, None, snapshot));
+        };
+        if lease.worker != r.worker_id {
+            let reason = format!(
+                "lease {} is held by another worker; result dropped",
+                r.lease_id
+            );
+            let snapshot = st.jobs.get_mut(&lease.job).map(|job| {
+                job.counters.results_rejected += 1;
+                (job.rec.id.clone(), job.counters.clone())
+            });
+            tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, "{reason}");
+            return Err((Outcome::Rejected(reason), None, snapshot));
+        }
+        let lease = st.leases.remove(&r.lease_id).expect("present");
+        if let Some(w) = st.workers.get_mut(&r.worker_id) {
+            w.leases.remove(&r.lease_id);
+        }
+        let Some(job) = st.jobs.get_mut(&lease.job) else {
+            return Err((Outcome::Late("the job no longer exists".into()), None, None));
+        };
+        if let Some(msg) = &r.failure {
+            let worker_name = st.workers.get_mut(&r.worker_id).map_or_else(
+                || r.worker_id.clone(),
+                |w| {
+                    w.units_failed += lease.units.len() as u64;
+                    w.name.clone()
+                },
+            );
+            tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
+            let rec = if st.partner_keeps(&r.lease_id, &lease) {
+                None
+            } else {
+                let job = st.jobs.get_mut(&lease.job).expect("checked");
+                job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"))
+            };
+            st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
+            if let Some(rec) = &rec {
+                self.withdraw_leases(st, &rec.id);
+            }
+            return Err((Outcome::FailureRecorded, rec, None));
+        }
+        if let Err(reason) = validate_result(&lease, r, film_check) {
+            let worker_name = st.workers.get_mut(&r.worker_id).map_or_else(
+                || r.worker_id.clone(),
+                |w| {
+                    w.units_failed += lease.units.len() as u64;
+                    w.name.clone()
+                },
+            );
+            job.counters.results_rejected += 1;
+            let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
+            tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
+            let rec = if st.partner_keeps(&r.lease_id, &lease) {
+                None
+            } else {
+                let job = st.jobs.get_mut(&lease.job).expect("checked");
+                job.fail_units(
+                    &lease.units,
+                    format!("worker {worker_name} sent a malformed result: {reason}"),
+                )
+            };
+            st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
+            if let Some(rec) = &rec {
+                self.withdraw_leases(st, &rec.id);
+            }
+            return Err((Outcome::Rejected(reason), rec, snapshot));
+        }
+        let units = lease.units.clone();
+        st.withdraw_partners(&lease);
+        st.end_lease(r.lease_id.clone(), lease.job.clone(), true);
+        Ok(Taken {
+            job: lease.job.clone(),
+            units,
+            frame: lease.frame,
+            lease_id: r.lease_id.clone(),
+            lease,
+        })
+    }
+
+    /// Marks a committed result's units done and merges its film into its frame.
+    fn finish_result(
+        &self,
+        st: &mut State,
+        r: ResultData,
+        t: Taken,
+        to_write: &mut Vec<(String, u32)>,
+        merges: &mut Vec<Merge>,
+    ) -> Result<Outcome, FarmError> {
+        let Some(job) = st.jobs.get_mut(&t.job) else {
+            return Ok(Outcome::Late("the job no longer exists".into()));
+        };
+        let film = r.film.expect("validated");
+        job.counters.units_accepted += t.units.len() as u64;
+        let mut samples = 0;
+        let work_before = job.work_left;
+        for &u in &t.units {
+            let unit = job.layout.unit(u);
+            let nominal = job.layout.unit_samples(unit);
+            let tile = job.layout.tiles[unit.tile as usize];
+            job.mark_done(u);
+            // An adaptive round samples only its active blocks.
+            let traced = job.adaptive_samples(&film, tile).unwrap_or(nominal);
+            job.samples_done = job.samples_done + traced - nominal;
+            samples += traced;
+        }
+        job.meter.add(Instant::now(), work_before - job.work_left);
+        job.samples_this_run += samples;
+        let now = now_ms();
+        if job.first_result_unix_ms == 0 {
+            job.first_result_unix_ms = now;
+        }
+        job.last_result_unix_ms = now;
+        job.rays_this_run = job.rays_this_run.saturating_add(film.rays.total());
+        let rays = [
+            film.rays.primary,
+            film.rays.shadow,
+            film.rays.reflection,
+            film.rays.refraction,
+        ];
+        for (a, b) in job.counters.rays.iter_mut().zip(rays) {
+            *a = a.saturating_add(b);
+        }
+        let result_rays = film.rays.total();
+        if !job.state.is_terminal() {
+            let (w, h) = (job.layout.width, job.layout.height);
+            let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
+            if job.adaptive.is_some() {
+                // Adaptive jobs merge now, under the state lock: a tile's
+                // next round is decided from its merged film (tiles are
+                // small, so this holds the lock briefly).
+                acc.film
+                    .lock()
+                    .expect("frame film lock")
+                    .get_or_insert_with(|| new_frame_film(w, h, true))
+                    .merge(&film)
+                    .map_err(|e| FarmError::Internal(e.to_string()))?;
+                let mut queued = false;
+                for &u in &t.units {
+                    queued |= job.adaptive_advance(t.frame, job.layout.unit(u).tile);
+                }
+                if queued {
+                    self.work_ready.notify_waiters();
+                }
+            } else {
+                acc.merging += 1;
+                merges.push(Merge {
+                    job: t.job.clone(),
+                    frame: t.frame,
+                    into: acc.film.clone(),
+                    film,
+                    frame_rect: Rect::full(w, h),
+                });
+            }
+            to_write.extend(job.complete_frames());
+        }
+        job.notify();
+        if let Some(w) = st.workers.get_mut(&r.worker_id) {
+            w.units_done += t.units.len() as u64;
+            if r.render_seconds > 0.0 {
+                // Times under 0.1 ms are taken as 0.1 ms, so an absurd
+                // report (5e-324 s) gives a finite speed.
+                let seconds = r.render_seconds.max(1e-4);
+                w.speed.add(Instant::now(), samples, result_rays, seconds);
+                // For lease sizing the estimate drops at once and rises
+                // slowly (a lease that runs long costs the job's end more
+                // than one that runs short), except that a rise measured on
+                // a unit twice as large as the last is taken at once: small
+                // units understate a fast worker's speed (fixed costs per
+                // unit), larger ones measure it.
+                let new = result_rays as f64 / seconds;
+                let larger = result_rays as f64 >= 2.0 * w.last_rays;
+                w.ray_speed = if w.ray_speed == 0.0 || new < w.ray_speed || larger {
+                    new
+                } else {
+                    0.7 * w.ray_speed + 0.3 * new
+                };
+                w.last_rays = result_rays as f64;
+                w.last_seconds = seconds;
+                if new >= w.farm_speed() {
+                    w.peak_speed = new;
+                    w.peak_at = Instant::now();
+                }
+            }
+        }
+        Ok(Outcome::Accepted)
+    }
+}
+
+/// A result's lease, taken for commit.
+struct Taken {
+    job: String,
+    /// The lease's units.
+    units: Vec<u32>,
+    frame: u32,
+    /// The lease, to give back to its holder if the commit fails.
+    lease_id: String,
+    lease: Lease,
+}
+/// A result not taken: its outcome, and a job record and counters to persist.
+type Refused = (Outcome, Option<JobRecord>, Option<(String, Counters)>);
+
+/// Checks every pixel of a result against the rect and samples it claims:
+/// exactly that many samples each, sums in range (before the state lock:
+/// [`validate_result`] then checks the claims against the lease).
+fn check_film(r: &ResultData) -> Result<(), String> {
+    let Ok(film) = &r.film else {
+        return Ok(()); // Judged by validate_result.
+    };
+    if film.squares.is_some() {
+        // Adaptive: which pixels have samples depends on the lease's
+        // active blocks, so validate_result checks them under the lock.
+        return Ok(());
+    }
+    let n = r.samples.len();
+    let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
+    // One pass without branches; the offending pixel is looked for only
+    // when there is one.
+    let bad = film
+        .counts
+        .iter()
+        .zip(&film.sums)
+        .fold(false, |bad, (&c, s)| {
+            bad | (c != n) | (s[0] > max_sum) | (s[1] > max_sum) | (s[2] > max_sum)
+        });
+    if !bad {
+        return Ok(());
+    }
+    let width = film.rect.width.max(1);
+    for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
+        let (x, y) = (
+            film.rect.x + i as u32 % width,
+            film.rect.y + i as u32 / width,
+        );
+        if c != n {
+            return Err(format!("pixel ({x}, {y}) has {c} samples, expected {n}"));
+        }
+        if s.iter().any(|&v| v > max_sum) {
+            return Err(format!(
+                "pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Checks a result against its lease: same rect and samples, well-formed
+/// data, and the outcome of [`check_film`] on its pixels.
+fn validate_result(
+    lease: &Lease,
+    r: &ResultData,
+    film_check: Result<(), String>,
+) -> Result<(), String> {
+    if r.rect != lease.rect {
+        return Err(format!(
+            "result rect {:?} does not match the leased rect {:?}",
+            r.rect, lease.rect
+        ));
+    }
+    if r.samples != lease.samples {
+        return Err(format!(
+            "result samples {}..{} do not match the leased samples {}..{}",
+            r.samples.start, r.samples.end, lease.samples.start, lease.samples.end
+        ));
+    }
+    let film = r.film.as_ref().map_err(Clone::clone)?;
+    // The film's own rect is the result's (it decoded to that size).
+    if film.rect != lease.rect {
+        return Err(format!(
+            "result film rect {:?} does not match the leased rect {:?}",
+            film.rect, lease.rect
+        ));
+    }
+    adaptive::check_result(lease, film)?;
+    if lease.active.is_some() {
+        // An adaptive round: its pixels are checked here, against the
+        // lease's active blocks (check_film passes films with squares).
+        for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
+            let (x, y) = (
+                lease.rect.x + i as u32 % lease.rect.width,
+                lease.rect.y + i as u32 / lease.rect.width,
+            );
+            // All of the round's samples in active blocks, none elsewhere.
+            let n = adaptive::expected_count(lease, x, y);
+            let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
+            if c != n {
+                return Err(format!("pixel ({x}, {y}) has {c} samples, expected {n}"));
+            }
+            if s.iter().any(|&v| v > max_sum) {
+                return Err(format!(
+                    "pixel ({x}, {y}) has a sum beyond the largest radiance of {n} samples"
+                ));
+            }
+        }
+    } else {
+        film_check?;
+    }
+    let primary = adaptive::sampled_pixels(lease) * lease.samples.len() as u64;
+    if film.rays.primary != primary {
+        return Err(format!(
+            "result counts {} primary rays, the unit has {primary}",
+            film.rays.primary
+        ));
+    }
+    // Far above any real ray tree (2^32 rays a sample), far below wrapping.
+    let most = primary.saturating_mul(1 << 32);
+    for (kind, count) in [
+        ("shadow", film.rays.shadow),
+        ("reflection", film.rays.reflection),
+        ("refraction", film.rays.refraction),
+    ] {
+        if count > most {
+            return Err(format!(
+                "result counts {count} {kind} rays, more than 2^32 a sample"
+            ));
+        }
+    }
+    if film.nonfinite > primary {
+        return Err(format!(
+            "result counts {} non-finite samples, the unit has {primary} samples",
+            film.nonfinite
+        ));
+    }
+    if !(r.render_seconds.is_finite() && r.render_seconds >= 0.0) {
+        return Err(format!(
+            "render_seconds must be finite and >= 0, got {}",
+            r.render_seconds
+        ));
+    }
+    Ok(())
+}
