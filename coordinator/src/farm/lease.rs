@@ -19,18 +19,18 @@ const MIN_LEASE_SECONDS: f64 = 0.01;
 
 /// How long an idle worker's lease request waits when work was held back
 /// for a faster worker, before it is judged again.
+const HELD_BACK_WAIT: Duration = Duration::from_millis(20);
 /// A backup lease is granted only when its worker would finish it in less
 /// than this share of the time the holder needs for the work it holds...
 const BACKUP_GAIN: f64 = 0.5;
+/// ...counting this much for the lease's fixed costs (a round trip, a
+/// result message).
+const BACKUP_OVERHEAD_SECONDS: f64 = 0.01;
 /// Backups of one lease at most: a slow idle worker may take one before a
 /// fast one asks, which must still be able to take another.
 const MAX_BACKUPS: u32 = 2;
 /// How long a worker's best speed of late counts for the farm's speed.
 const PEAK_MEMORY_SECONDS: f64 = 60.0;
-/// ...counting this much for the lease's fixed costs (a round trip, a
-/// result message).
-const BACKUP_OVERHEAD_SECONDS: f64 = 0.01;
-const HELD_BACK_WAIT: Duration = Duration::from_millis(20);
 
 impl Lease {
     /// Expected rays not yet rendered, by the worker's last progress report.
