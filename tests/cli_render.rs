@@ -460,6 +460,14 @@ fn adaptive_renders_write_sample_and_error_channels_and_a_sample_map() {
             "target_error must be a finite number above 0, got -1",
         ),
         (
+            &["--relative-error", "0"][..],
+            "relative_error must be a finite number above 0, got 0",
+        ),
+        (
+            &["--relative-error", "NaN", "--target-error", "0.01"][..],
+            "relative_error must be a finite number above 0, got NaN",
+        ),
+        (
             &[
                 "--target-error",
                 "0.01",

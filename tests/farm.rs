@@ -375,6 +375,44 @@ fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_rend
                 err.contains("tile_size must be a multiple of 8 for adaptive sampling"),
                 "{err}"
             );
+            // A relative target (--relative-error): the farm's image and
+            // sample count are the local render's too.
+            let relative = [
+                "--width",
+                "96",
+                "--height",
+                "72",
+                "--relative-error",
+                "0.05",
+                "--min-samples",
+                "4",
+                "--max-samples",
+                "32",
+            ];
+            let mut local = vec!["render", scene.to_str().expect("path"), "--json", "-o"];
+            let out = dir.path().join("local-relative.png");
+            local.push(out.to_str().expect("path"));
+            local.extend_from_slice(&relative);
+            let json: serde_json::Value = serde_json::from_str(&ok_stdout(
+                &Command::new(TESSERA).args(&local).output().expect("render"),
+            ))
+            .expect("json");
+            assert_eq!(json["adaptive"]["relative_error"], 0.05, "{json}");
+            assert_eq!(json["adaptive"]["target_error"], 0.0, "{json}");
+            let mut args = relative.to_vec();
+            args.extend(["--tile-size", tile]);
+            let job = submit(&c.url(), &scene, &args);
+            let s = wait_done(&c.url(), &job, Duration::from_secs(300));
+            assert_eq!(s.state, pb::JobState::Done as i32);
+            assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &relative);
+            assert_eq!(
+                Some(s.samples_done),
+                json["adaptive"]["pixel_samples"].as_u64()
+            );
+            let a = s.adaptive.expect("adaptive status");
+            assert_eq!((a.target_error, a.relative_error), (0.0, 0.05));
+            // Not the absolute job's allocation: the targets differ.
+            assert_ne!(s.samples_done, local_samples);
         }
     }
 }

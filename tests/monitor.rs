@@ -297,14 +297,21 @@ fn monitor_test(browser: Browser) {
         "--samples-per-unit",
         "8",
     ];
-    // Three frames small enough that a thumbnail is the whole frame.
+    // Three frames small enough that a thumbnail is the whole frame,
+    // sampled adaptively (the page lists its targets).
     let anim = [
         "--width",
         "96",
         "--height",
         "72",
-        "--samples",
+        "--target-error",
+        "0.05",
+        "--relative-error",
+        "0.1",
+        "--min-samples",
         "4",
+        "--max-samples",
+        "16",
         "--frames",
         "1..3",
     ];

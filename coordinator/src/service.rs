@@ -93,6 +93,7 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
         last_result_unix_ms: v.last_result_unix_ms,
         adaptive: v.adaptive.settings.map(|a| pb::AdaptiveStatus {
             target_error: a.target_error,
+            relative_error: a.relative_error,
             min_samples: a.min_samples,
             max_samples: a.max_samples,
             converged_share: v.adaptive.converged_share,
@@ -150,6 +151,7 @@ impl JobService for Api {
             max_attempts: spec.max_attempts,
             adaptive: tracer_core::adaptive::AdaptiveSpec {
                 target_error: o.target_error,
+                relative_error: o.relative_error,
                 min_samples: o.min_samples,
                 max_samples: o.max_samples,
             },

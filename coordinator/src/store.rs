@@ -88,14 +88,17 @@ pub struct JobRecord {
     pub submitted_unix_ms: i64,
     pub finished_unix_ms: i64,
     pub output_dir: String,
-    /// Adaptive sampling (issue 17): the error target (0: a uniform job)
-    /// and the sample bounds; `samples` is then `max_samples`.
+    /// Adaptive sampling (issue 17): the error targets, absolute and
+    /// relative (both 0: a uniform job), and the sample bounds; `samples`
+    /// is then `max_samples`.
     #[serde(default)]
     pub target_error: f64,
     #[serde(default)]
     pub min_samples: u32,
     #[serde(default)]
     pub max_samples: u32,
+    #[serde(default)]
+    pub relative_error: f64,
 }
 
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]

@@ -100,6 +100,7 @@ impl Bench {
                 for &e in targets {
                     let a = AdaptiveSettings {
                         target_error: e,
+                        relative_error: 0.0,
                         min_samples: min,
                         max_samples: 4 * top,
                     };

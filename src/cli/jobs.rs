@@ -115,6 +115,7 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
                 .sampler
                 .map_or(pb::Sampler::Unspecified, pb::Sampler::from) as i32,
             target_error: args.adaptive.target_error,
+            relative_error: args.adaptive.relative_error,
             min_samples: args.adaptive.min_samples,
             max_samples: args.adaptive.max_samples,
         }),
@@ -341,8 +342,14 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
         );
         if let Some(a) = &j.adaptive {
             outln!(
-                "adaptive:  target error {} ({}..{} spp): {:.1}% of blocks converged, estimated RMS error {:.2e}, {} of {} expected pixel-samples",
-                a.target_error,
+                "adaptive:  {} ({}..{} spp): {:.1}% of blocks converged, estimated RMS error {:.2e}, {} of {} expected pixel-samples",
+                tracer_core::adaptive::AdaptiveSettings {
+                    target_error: a.target_error,
+                    relative_error: a.relative_error,
+                    min_samples: a.min_samples,
+                    max_samples: a.max_samples,
+                }
+                .describe_target(),
                 a.min_samples,
                 a.max_samples,
                 100.0 * a.converged_share,

@@ -85,6 +85,7 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
         "error": (!j.error.is_empty()).then_some(&j.error),
         "adaptive": j.adaptive.as_ref().map(|a| json!({
             "target_error": a.target_error,
+            "relative_error": a.relative_error,
             "min_samples": a.min_samples,
             "max_samples": a.max_samples,
             "converged_share": a.converged_share,

@@ -60,6 +60,14 @@ pub struct AdaptiveArgs {
     /// is at most E (e.g. 0.005); overrides the scene's [render] target_error
     #[arg(long, value_name = "E", allow_negative_numbers = true)]
     pub target_error: Option<f64>,
+    /// Adaptive sampling with a relative target: a pixel is done once its
+    /// standard error is at most R times the mean of its brightest channel
+    /// (e.g. 0.02 for 2%), the same visible noise whatever the exposure.
+    /// With --target-error too, a pixel's limit is the larger of the two
+    /// (so dark noisy pixels stop at the absolute floor rather than at
+    /// --max-samples); overrides the scene's [render] relative_error
+    #[arg(long, value_name = "R", allow_negative_numbers = true)]
+    pub relative_error: Option<f64>,
     /// Samples every pixel gets in the first round, at least 2 [default:
     /// the scene's [render] min_samples, else 16]
     #[arg(long, value_name = "N")]
@@ -82,6 +90,7 @@ impl AdaptiveArgs {
     ) -> Result<(RenderSettings, Option<AdaptiveSettings>)> {
         let given = AdaptiveSpec {
             target_error: self.target_error,
+            relative_error: self.relative_error,
             min_samples: self.min_samples,
             max_samples: self.max_samples,
         };
@@ -90,12 +99,12 @@ impl AdaptiveArgs {
         };
         if overrides.samples.is_some() {
             bail!(
-                "--samples does not apply to adaptive sampling (--target-error): use --min-samples and --max-samples"
+                "--samples does not apply to adaptive sampling (--target-error, --relative-error): use --min-samples and --max-samples"
             );
         }
         if let Some(s) = overrides.sampler.filter(|&s| s != Sampler::Progressive) {
             bail!(
-                "--sampler {} does not apply to adaptive sampling (--target-error), which places samples progressively (sample k the same whatever the count)",
+                "--sampler {} does not apply to adaptive sampling (--target-error, --relative-error), which places samples progressively (sample k the same whatever the count)",
                 s.name()
             );
         }
@@ -354,6 +363,7 @@ fn report(
                 let s = last_round.map(|r| r.summary).unwrap_or_default();
                 serde_json::json!({
                     "target_error": a.target_error,
+                    "relative_error": a.relative_error,
                     "min_samples": a.min_samples,
                     "max_samples": a.max_samples,
                     "rounds": last_round.map_or(0, |r| r.round + 1),
@@ -370,8 +380,8 @@ fn report(
         if let Some(a) = &adaptive {
             let s = last_round.map(|r| r.summary).unwrap_or_default();
             outln!(
-                "adaptive: target error {} ({}..{} spp): mean {:.1} spp, {:.1}% of blocks converged, estimated RMS error {:.2e}",
-                a.target_error,
+                "adaptive: {} ({}..{} spp): mean {:.1} spp, {:.1}% of blocks converged, estimated RMS error {:.2e}",
+                a.describe_target(),
                 a.min_samples,
                 a.max_samples,
                 pixel_samples as f64 / rect.area() as f64,

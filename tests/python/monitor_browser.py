@@ -443,6 +443,23 @@ def main():
         step(f"submitted {job3} (frames {first}..{last})")
         p.go(f"{a.http}/#/jobs/{job3}")
         wait("the animation done", 120, lambda: p.attr("#job-state", "data-state") == "done")
+        # An adaptive job's settings: its sample bounds and targets, and
+        # how much of it converged.
+        given = dict(zip(anim_args[::2], anim_args[1::2]))
+        if "--target-error" in given:
+            want = {
+                "Samples": f"{given['--min-samples']}–{given['--max-samples']} (adaptive)",
+                "Target error": given["--target-error"],
+                "Relative error": given["--relative-error"],
+            }
+            shown = wait("the settings list", 10, lambda: p.settings())
+            wrong = {k: (v, shown.get(k)) for k, v in want.items() if shown.get(k) != v}
+            if wrong:
+                fail(f"adaptive settings shown differ (wanted, shown): {wrong}; all shown: {shown}")
+            converged = p.text("#job-converged") or ""
+            if not converged.endswith("%"):
+                fail(f"no converged share for an adaptive job: {converged!r}")
+            step(f"adaptive job's settings listed, {converged} of blocks converged")
         thumbs = {}
         for fr in frames:
             sel = f'#frames [data-frame="{fr}"] img[data-written="1"]'

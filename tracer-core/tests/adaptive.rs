@@ -86,6 +86,7 @@ material = "ball"
 fn settings(target: f64, min: u32, max: u32) -> AdaptiveSettings {
     AdaptiveSettings {
         target_error: target,
+        relative_error: 0.0,
         min_samples: min,
         max_samples: max,
     }
@@ -249,7 +250,7 @@ fn tiled_render(desc: &SceneDesc, a: &AdaptiveSettings, tile: u32) -> Film {
     for t in Rect::full(s.width, s.height).tiles(tile) {
         let mut film = Film::with_squares(t);
         for round in a.rounds() {
-            let mask = next_active(&film, t, round, a.target_error);
+            let mask = next_active(&film, t, round, a.target());
             if mask.active_count() == 0 {
                 break;
             }
@@ -336,6 +337,21 @@ fn adaptive_keys_in_the_scene_file_are_checked() {
             "render.max_samples",
             "at most 65536",
         ),
+        (
+            "relative_error = 0",
+            "render.relative_error",
+            "must be a finite number above 0, got 0",
+        ),
+        (
+            "relative_error = -0.5",
+            "render.relative_error",
+            "must be a finite number above 0, got -0.5",
+        ),
+        (
+            "target_error = 0\nrelative_error = -1",
+            "render.relative_error",
+            "got -1",
+        ),
     ] {
         let e = SceneDesc::parse(&with(keys), "t.toml")
             .unwrap_err()
@@ -344,13 +360,91 @@ fn adaptive_keys_in_the_scene_file_are_checked() {
     }
     // The command line over the file; bounds without a target are refused.
     let cli = adaptive::AdaptiveSpec {
-        target_error: None,
         min_samples: Some(4),
-        max_samples: None,
+        ..Default::default()
     };
     assert!(scene(EDGE).adaptive.resolve(&cli).is_err());
     let a = d.adaptive.resolve(&cli).unwrap().unwrap();
     assert_eq!(a, settings(0.02, 4, 64));
+    // A relative target alone makes a render adaptive; with an absolute
+    // one, both are kept (and target_error = 0 is then allowed: no floor).
+    let r = scene(&with("relative_error = 0.05\nmax_samples = 64"));
+    let a = r.adaptive.resolve(&Default::default()).unwrap().unwrap();
+    assert_eq!(
+        (
+            a.target_error,
+            a.relative_error,
+            a.min_samples,
+            a.max_samples
+        ),
+        (0.0, 0.05, 16, 64)
+    );
+    assert_eq!(a.describe_target(), "relative error 0.05");
+    let both = adaptive::AdaptiveSpec {
+        target_error: Some(0.001),
+        ..Default::default()
+    };
+    let a = r.adaptive.resolve(&both).unwrap().unwrap();
+    assert_eq!((a.target_error, a.relative_error), (0.001, 0.05));
+    assert_eq!(
+        a.describe_target(),
+        "target error 0.001, relative error 0.05"
+    );
+    scene(&with("target_error = 0\nrelative_error = 0.1"));
+    let bad = adaptive::AdaptiveSpec {
+        relative_error: Some(0.0),
+        ..Default::default()
+    };
+    assert_eq!(
+        d.adaptive.resolve(&bad).unwrap_err(),
+        "relative_error must be a finite number above 0, got 0"
+    );
+}
+
+/// The relative rule on pixels of known statistics: a pixel's limit is
+/// max(absolute, relative * its brightest channel mean). Two pixels with
+/// the same noise (samples 0 and 0.2 in every channel, alternating) but
+/// different brightness (a constant 10 added to the bright one's red):
+/// a relative target stops the bright one and not the dim one, an
+/// absolute one treats them alike, and an absolute floor stops the dim
+/// one too.
+#[test]
+fn a_relative_target_scales_with_the_pixels_brightness() {
+    use tracer_core::film::FIXED_ONE;
+    let n = 16u32;
+    let fixed = |v: f64| (v * FIXED_ONE) as u64;
+    // Eight samples of a, eight of b, per channel.
+    let pixel = |a: [f64; 3], b: [f64; 3]| -> ([u64; 3], [u128; 3]) {
+        let sums = std::array::from_fn(|c| 8 * fixed(a[c]) + 8 * fixed(b[c]));
+        let squares = std::array::from_fn(|c| {
+            8 * (fixed(a[c]) as u128).pow(2) + 8 * (fixed(b[c]) as u128).pow(2)
+        });
+        (sums, squares)
+    };
+    let dim = pixel([0.0; 3], [0.2; 3]);
+    let bright = pixel([10.0, 0.0, 0.0], [10.2, 0.2, 0.2]);
+    // Standard error of the mean: 0.1 * sqrt(16/15) / 4 = 0.0258 in every channel.
+    let se = (variance_of_mean(n, &dim.0, &dim.1)[0]).sqrt();
+    assert!((se - 0.025820).abs() < 1e-5, "{se}");
+    let rect = Rect::new(0, 0, 2, 1);
+    let mut film = Film::with_squares(rect);
+    film.counts = vec![n; 2];
+    film.sums = vec![dim.0, bright.0];
+    film.squares = Some(vec![dim.1, bright.1]);
+    let converged = |absolute: f64, relative: f64| -> [bool; 2] {
+        let t = adaptive::Target { absolute, relative };
+        std::array::from_fn(|i| adaptive::block_converged(&film, Rect::new(i as u32, 0, 1, 1), t))
+    };
+    // Relative 1%: the bright pixel's limit is 0.101, the dim one's 0.001.
+    assert_eq!(converged(0.0, 0.01), [false, true]);
+    // Absolute 0.02 or 0.03: both alike.
+    assert_eq!(converged(0.02, 0.0), [false, false]);
+    assert_eq!(converged(0.03, 0.0), [true, true]);
+    // Relative 1% with an absolute floor of 0.03: both.
+    assert_eq!(converged(0.03, 0.01), [true, true]);
+    // A relative target never stops a pixel whose error exceeds it: 0.1%.
+    assert_eq!(converged(0.0, 0.001), [false, false]);
+    assert!((adaptive::brightest_mean(n, &bright.0) - 10.1).abs() < 1e-6);
 }
 
 #[test]

@@ -1987,6 +1987,7 @@ fn gpu_adaptive_renders_are_uniform_renders_of_each_pixels_count() {
     for (desc, target, all_at_max) in [(&distributed, 0.02, false), (&noisy, 1e-9, true)] {
         let a = AdaptiveSettings {
             target_error: target,
+            relative_error: 0.0,
             min_samples: 4,
             max_samples: 32,
         };

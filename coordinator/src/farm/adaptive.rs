@@ -30,10 +30,12 @@ pub(super) struct AdaptiveJob {
     tiles: HashMap<(u32, u32), Summary>,
 }
 
-/// The job's adaptive settings, if it is adaptive (`target_error` > 0).
+/// The job's adaptive settings, if it is adaptive (a target error,
+/// absolute or relative, above 0).
 pub(super) fn settings_of(rec: &JobRecord) -> Option<AdaptiveSettings> {
-    (rec.target_error > 0.0).then_some(AdaptiveSettings {
+    (rec.target_error > 0.0 || rec.relative_error > 0.0).then_some(AdaptiveSettings {
         target_error: rec.target_error,
+        relative_error: rec.relative_error,
         min_samples: rec.min_samples,
         max_samples: rec.max_samples,
     })
@@ -101,7 +103,7 @@ impl Job {
                 .insert((frame, tile), summary);
             return false;
         };
-        let mask = next_active(film, rect, self.layout.batches[next], settings.target_error);
+        let mask = next_active(film, rect, self.layout.batches[next], settings.target());
         drop(guard);
         self.adaptive
             .as_mut()
@@ -149,7 +151,7 @@ impl Job {
             .as_ref()
             .map(|f| f.lock().expect("frame film lock"));
         Some(match guard.as_ref().and_then(|g| g.as_ref()) {
-            Some(film) => next_active(film, rect, round, a.settings.target_error),
+            Some(film) => next_active(film, rect, round, a.settings.target()),
             None => BlockMask::all(rect),
         })
     }

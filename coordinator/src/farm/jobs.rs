@@ -94,12 +94,12 @@ impl Farm {
             Some(a) => {
                 if s.overrides.samples.is_some() {
                     return Err(FarmError::InvalidArgument(
-                        "samples does not apply to adaptive sampling (target_error): give min_samples and max_samples".into(),
+                        "samples does not apply to adaptive sampling (target_error, relative_error): give min_samples and max_samples".into(),
                     ));
                 }
                 if let Some(o) = s.overrides.sampler.filter(|&o| o != Sampler::Progressive) {
                     return Err(FarmError::InvalidArgument(format!(
-                        "sampler {} does not apply to adaptive sampling (target_error), which places samples progressively",
+                        "sampler {} does not apply to adaptive sampling (target_error, relative_error), which places samples progressively",
                         o.name()
                     )));
                 }
@@ -134,7 +134,7 @@ impl Farm {
         let block = tracer_core::adaptive::BLOCK;
         if adaptive.is_some() && !tile_size.is_multiple_of(block) {
             return Err(FarmError::InvalidArgument(format!(
-                "tile_size must be a multiple of {block} for adaptive sampling (target_error), which decides per {block}x{block} block; got {tile_size}"
+                "tile_size must be a multiple of {block} for adaptive sampling (target_error, relative_error), which decides per {block}x{block} block; got {tile_size}"
             )));
         }
         let samples_per_unit = if s.samples_per_unit == 0 {
@@ -269,6 +269,7 @@ impl Farm {
             target_error: adaptive.map_or(0.0, |a| a.target_error),
             min_samples: adaptive.map_or(0, |a| a.min_samples),
             max_samples: adaptive.map_or(0, |a| a.max_samples),
+            relative_error: adaptive.map_or(0.0, |a| a.relative_error),
         };
         ops.push(Op::PutJob(rec.clone()));
         ops.push(Op::PutCounters {
@@ -280,7 +281,8 @@ impl Farm {
             job = %id, name = %rec.name, scene = %rec.scene_name,
             width = settings.width, height = settings.height, samples = settings.samples,
             frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
-            target_error = rec.target_error, min_samples = rec.min_samples, max_samples = rec.max_samples,
+            target_error = rec.target_error, relative_error = rec.relative_error,
+            min_samples = rec.min_samples, max_samples = rec.max_samples,
             "job accepted"
         );
         let mut job = Job::new(rec, settings, Counters::default());
@@ -482,6 +484,7 @@ impl Farm {
                 tracing::info!(
                     job = %job.rec.id,
                     target_error = a.target_error,
+                    relative_error = a.relative_error,
                     converged = format!("{:.1}%", 100.0 * v.adaptive.converged_share),
                     estimated_error = format!("{:.3e}", v.adaptive.estimated_error),
                     samples_done = v.samples_done,

@@ -50,6 +50,17 @@ pub struct SettingsJson {
     pub max_attempts: u32,
 }
 
+/// An adaptive job's targets and where it stands (`null` for uniform jobs).
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct AdaptiveJson {
+    pub target_error: f64,
+    pub relative_error: f64,
+    pub min_samples: u32,
+    pub max_samples: u32,
+    pub converged_share: f64,
+    pub estimated_error: f64,
+}
+
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct JobJson {
     pub id: String,
@@ -75,6 +86,7 @@ pub struct JobJson {
     pub results_late: u64,
     pub results_duplicate: u64,
     pub settings: SettingsJson,
+    pub adaptive: Option<AdaptiveJson>,
     pub frames: Vec<FrameJson>,
 }
 
@@ -132,6 +144,14 @@ impl From<&JobView> for JobJson {
                 samples_per_unit: r.samples_per_unit,
                 max_attempts: r.max_attempts,
             },
+            adaptive: v.adaptive.settings.map(|a| AdaptiveJson {
+                target_error: a.target_error,
+                relative_error: a.relative_error,
+                min_samples: a.min_samples,
+                max_samples: a.max_samples,
+                converged_share: v.adaptive.converged_share,
+                estimated_error: v.adaptive.estimated_error,
+            }),
             frames: v
                 .frames
                 .iter()

@@ -7,6 +7,9 @@
 //! each round doubles an active block's samples. After a round a block
 //! stays active only while some pixel of it has a standard error of its
 //! mean above the target in some linear RGB channel ([`block_converged`]).
+//! The target is absolute (`target_error`, in linear radiance), relative
+//! (`relative_error`, a share of the pixel's brightest channel mean), or
+//! both: a pixel's limit is the larger of the two ([`Target`]).
 //!
 //! Determinism: a decision uses only the samples of earlier rounds, held
 //! as exact fixed-point sums and sums of squares ([`Film::squares`]); the
@@ -40,16 +43,43 @@ pub const DEFAULT_MAX_SAMPLES: u32 = 1024;
 /// The error target and the sample bounds of an adaptive render.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AdaptiveSettings {
-    /// Largest standard error of a pixel's mean, per linear RGB channel.
+    /// Largest standard error of a pixel's mean, per linear RGB channel
+    /// (0: no absolute target).
     pub target_error: f64,
+    /// Largest standard error as a share of the mean of the pixel's
+    /// brightest channel, e.g. 0.02 (0: no relative target).
+    pub relative_error: f64,
     pub min_samples: u32,
     pub max_samples: u32,
+}
+
+/// When a pixel is converged: its standard error in every channel is at
+/// most `max(absolute, relative * m)`, `m` the largest of its three
+/// channel means. An absolute target alone is exposure-dependent (the
+/// same noise is invisible on a bright wall and plain in a shadow); a
+/// relative one alone would sample dark noisy pixels to the maximum, so
+/// the absolute target, when given, is its floor.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Target {
+    pub absolute: f64,
+    pub relative: f64,
+}
+
+impl Target {
+    /// The largest variance of the mean allowed for a pixel whose
+    /// brightest channel mean is `mean`.
+    pub fn limit_sq(&self, mean: f64) -> f64 {
+        let l = self.absolute.max(self.relative * mean);
+        l * l
+    }
 }
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum AdaptiveError {
     #[error("target_error must be a finite number above 0, got {0}")]
     TargetError(f64),
+    #[error("relative_error must be a finite number above 0, got {0}")]
+    RelativeError(f64),
     #[error(
         "min_samples must be at least 2 (the error estimate needs two samples of a pixel), got {0}"
     )]
@@ -72,8 +102,13 @@ pub enum AdaptiveError {
 
 impl AdaptiveSettings {
     pub fn validate(&self) -> Result<(), AdaptiveError> {
-        if !(self.target_error > 0.0) || !self.target_error.is_finite() {
+        // Each target is off (0) or a finite number above 0, and one is on.
+        let ok = |v: f64| v >= 0.0 && v.is_finite();
+        if !ok(self.target_error) || (self.target_error == 0.0 && self.relative_error == 0.0) {
             return Err(AdaptiveError::TargetError(self.target_error));
+        }
+        if !ok(self.relative_error) {
+            return Err(AdaptiveError::RelativeError(self.relative_error));
         }
         if self.min_samples < 2 {
             return Err(AdaptiveError::MinTooSmall(self.min_samples));
@@ -88,6 +123,25 @@ impl AdaptiveSettings {
             });
         }
         Ok(())
+    }
+
+    /// The target in words: "target error E", "relative error R", or both.
+    pub fn describe_target(&self) -> String {
+        let abs = (self.target_error > 0.0).then(|| format!("target error {}", self.target_error));
+        let rel =
+            (self.relative_error > 0.0).then(|| format!("relative error {}", self.relative_error));
+        [abs, rel]
+            .into_iter()
+            .flatten()
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    pub fn target(&self) -> Target {
+        Target {
+            absolute: self.target_error,
+            relative: self.relative_error,
+        }
     }
 
     /// The sample range of each round: `0..min`, then doubling up to `max`.
@@ -118,6 +172,7 @@ impl AdaptiveSettings {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct AdaptiveSpec {
     pub target_error: Option<f64>,
+    pub relative_error: Option<f64>,
     pub min_samples: Option<u32>,
     pub max_samples: Option<u32>,
 }
@@ -126,14 +181,20 @@ impl AdaptiveSpec {
     /// Checks each given value on its own terms (and min against max when
     /// both are given); `Err` names the key and what is wrong with it.
     pub fn check(&self) -> Result<(), (&'static str, String)> {
+        if let Some(r) = self.relative_error.filter(|r| !(*r > 0.0 && r.is_finite())) {
+            let m = AdaptiveError::RelativeError(r).to_string();
+            return Err(("relative_error", m["relative_error ".len()..].to_string()));
+        }
         let full = AdaptiveSettings {
             target_error: self.target_error.unwrap_or(1.0),
+            relative_error: self.relative_error.unwrap_or(0.0),
             min_samples: self.min_samples.unwrap_or(2),
             max_samples: self.max_samples.unwrap_or(MAX_SAMPLES),
         };
         full.validate().map_err(|e| {
             let key = match e {
                 AdaptiveError::TargetError(_) => "target_error",
+                AdaptiveError::RelativeError(_) => "relative_error",
                 AdaptiveError::MinTooSmall(_) | AdaptiveError::MinAboveMax { .. } => "min_samples",
                 _ => "max_samples",
             };
@@ -144,25 +205,32 @@ impl AdaptiveSpec {
     }
 
     /// `over` (the command line) over `self` (the scene file), defaults
-    /// for what neither gives. `None` without a target error (a uniform
-    /// render); then giving sample bounds on the command line is an error.
+    /// for what neither gives. `None` without a target error, absolute or
+    /// relative (a uniform render); then giving sample bounds on the
+    /// command line is an error.
     pub fn resolve(&self, over: &AdaptiveSpec) -> Result<Option<AdaptiveSettings>, String> {
-        let Some(target_error) = over.target_error.or(self.target_error) else {
+        let target_error = over.target_error.or(self.target_error);
+        let relative_error = over.relative_error.or(self.relative_error);
+        if let Some(r) = relative_error.filter(|r| !(*r > 0.0 && r.is_finite())) {
+            return Err(AdaptiveError::RelativeError(r).to_string());
+        }
+        if target_error.is_none() && relative_error.is_none() {
             if over.min_samples.is_some() || over.max_samples.is_some() {
                 return Err(
                     "--min-samples and --max-samples apply to adaptive sampling: \
-                            give --target-error (or [render] target_error) too"
+                            give --target-error or --relative-error (or [render] target_error or relative_error) too"
                         .into(),
                 );
             }
             return Ok(None);
-        };
+        }
         let min_samples = over
             .min_samples
             .or(self.min_samples)
             .unwrap_or(DEFAULT_MIN_SAMPLES);
         let a = AdaptiveSettings {
-            target_error,
+            target_error: target_error.unwrap_or(0.0),
+            relative_error: relative_error.unwrap_or(0.0),
             min_samples,
             max_samples: over
                 .max_samples
@@ -315,17 +383,34 @@ pub fn pixel_error(film: &Film, i: usize) -> f64 {
     v[0].max(v[1]).max(v[2]).sqrt()
 }
 
+/// The largest of a pixel's three channel means (linear radiance), from
+/// its exact sums: the scale of [`Target::relative`].
+pub fn brightest_mean(n: u32, sums: &[u64; 3]) -> f64 {
+    if n == 0 {
+        return 0.0;
+    }
+    sums.iter().copied().max().unwrap_or(0) as f64 / (n as f64 * FIXED_ONE)
+}
+
+/// A pixel's largest variance of the mean over its limit (at most 1:
+/// converged); 0 for a pixel whose samples all agree, even at a zero limit.
+fn error_ratio(n: u32, sums: &[u64; 3], squares: &[u128; 3], target: Target) -> f64 {
+    let v = variance_of_mean(n, sums, squares);
+    let worst = v[0].max(v[1]).max(v[2]);
+    if worst == 0.0 {
+        return 0.0;
+    }
+    worst / target.limit_sq(brightest_mean(n, sums))
+}
+
 /// Whether every pixel of `block` (inside `film.rect`) has a standard error
-/// of at most `target` in every channel.
-pub fn block_converged(film: &Film, block: Rect, target: f64) -> bool {
+/// within `target` in every channel.
+pub fn block_converged(film: &Film, block: Rect, target: Target) -> bool {
     let squares = film.squares.as_ref().expect("adaptive film");
-    let limit = target * target;
     (block.y..block.y + block.height).all(|y| {
         (block.x..block.x + block.width).all(|x| {
             let i = ((y - film.rect.y) * film.rect.width + (x - film.rect.x)) as usize;
-            variance_of_mean(film.counts[i], &film.sums[i], &squares[i])
-                .iter()
-                .all(|&v| v <= limit)
+            error_ratio(film.counts[i], &film.sums[i], &squares[i], target) <= 1.0
         })
     })
 }
@@ -336,7 +421,7 @@ pub fn block_converged(film: &Film, block: Rect, target: f64) -> bool {
 /// samples) and is not converged. Round 0 samples every block. A pure
 /// function of the blocks' own pixels, so the coordinator computes it per
 /// tile and `tessera render` for the whole image, with the same answer.
-pub fn next_active(film: &Film, rect: Rect, round: SampleRange, target: f64) -> BlockMask {
+pub fn next_active(film: &Film, rect: Rect, round: SampleRange, target: Target) -> BlockMask {
     let mut mask = BlockMask::none(rect);
     let cols = mask.cols();
     for (i, a) in mask.active.iter_mut().enumerate() {
@@ -396,6 +481,7 @@ pub fn summarize(film: &Film, rect: Rect, a: &AdaptiveSettings) -> Summary {
             out.samples_expected += a.min_samples as u64 * area;
             continue;
         }
+        // The largest variance over its limit, over the block's pixels.
         let mut worst = 0.0f64;
         for y in b.y..b.y + b.height {
             for x in b.x..b.x + b.width {
@@ -405,11 +491,15 @@ pub fn summarize(film: &Film, rect: Rect, a: &AdaptiveSettings) -> Summary {
                 let v = v.map(|v| if v.is_finite() { v } else { 0.0 });
                 sq_err += v[0] + v[1] + v[2];
                 pixels += 1;
-                worst = worst.max(v[0]).max(v[1]).max(v[2]);
+                worst = worst.max(error_ratio(
+                    film.counts[j],
+                    &film.sums[j],
+                    &squares[j],
+                    a.target(),
+                ));
             }
         }
-        let limit = a.target_error * a.target_error;
-        let expected = if worst <= limit {
+        let expected = if worst <= 1.0 {
             out.converged_blocks += 1;
             n
         } else if n >= a.max_samples {
@@ -418,7 +508,7 @@ pub fn summarize(film: &Film, rect: Rect, a: &AdaptiveSettings) -> Summary {
         } else {
             // Samples at which the worst pixel's error would reach the
             // target, on the doubling schedule, at most max_samples.
-            let need = n as f64 * worst / limit;
+            let need = n as f64 * worst;
             let mut m = n;
             while (m as f64) < need && m < a.max_samples {
                 m = m.saturating_mul(2).min(a.max_samples);
@@ -482,7 +572,7 @@ pub fn render(
     let rect = Rect::full(s.width, s.height);
     let mut film = Film::with_squares(rect);
     for (round, samples) in a.rounds().into_iter().enumerate() {
-        let mask = next_active(&film, rect, samples, a.target_error);
+        let mask = next_active(&film, rect, samples, a.target());
         if mask.active_count() == 0 {
             break;
         }
@@ -508,6 +598,7 @@ mod tests {
     fn settings(min: u32, max: u32) -> AdaptiveSettings {
         AdaptiveSettings {
             target_error: 0.01,
+            relative_error: 0.0,
             min_samples: min,
             max_samples: max,
         }

@@ -155,6 +155,7 @@ struct RenderTable {
     max_depth: Option<u32>,
     sampler: Option<Sampler>,
     target_error: Option<Num>,
+    relative_error: Option<Num>,
     min_samples: Option<u32>,
     max_samples: Option<u32>,
 }
@@ -499,8 +500,8 @@ pub struct SceneDesc {
     /// What the scene's model files gave defaults for (each names the
     /// object and the file); the scene renders, the user is told.
     pub warnings: Vec<String>,
-    /// `[render]`'s adaptive-sampling keys (`target_error`, `min_samples`,
-    /// `max_samples`), each checked on its own; the command line may add
+    /// `[render]`'s adaptive-sampling keys (`target_error`,
+    /// `relative_error`, `min_samples`, `max_samples`), each checked on its own; the command line may add
     /// to them (see [`crate::adaptive::AdaptiveSpec::resolve`]).
     pub adaptive: crate::adaptive::AdaptiveSpec,
 }
@@ -584,6 +585,7 @@ impl SceneDesc {
         if let Some(t) = &file.render {
             adaptive = crate::adaptive::AdaptiveSpec {
                 target_error: t.target_error.map(|n| n.0),
+                relative_error: t.relative_error.map(|n| n.0),
                 min_samples: t.min_samples,
                 max_samples: t.max_samples,
             };

@@ -407,10 +407,18 @@ function updateJob(job) {
     <span>ETA <b>${ended ? "–" : fmtDuration(job.eta_seconds)}</b></span>
     <span>Submitted <b>${fmtTime(job.submitted_unix_ms)}</b></span>
     <span>Finished <b>${fmtTime(job.finished_unix_ms)}</b></span>
-    <span>Results late/duplicate/rejected <b>${job.results_late}/${job.results_duplicate}/${job.results_rejected}</b></span>`;
+    <span>Results late/duplicate/rejected <b>${job.results_late}/${job.results_duplicate}/${job.results_rejected}</b></span>
+    ${job.adaptive ? `<span>Blocks converged <b id="job-converged">${pct(job.adaptive.converged_share)}</b></span>
+    <span>Estimated error <b>${job.adaptive.estimated_error.toExponential(2)}</b></span>` : ""}`;
   const s = job.settings;
+  const a = job.adaptive;
+  // An adaptive job's samples are its bounds and its target decides.
+  const samples = a ? [["Samples", `${a.min_samples}–${a.max_samples} (adaptive)`],
+    ...(a.target_error > 0 ? [["Target error", a.target_error]] : []),
+    ...(a.relative_error > 0 ? [["Relative error", a.relative_error]] : [])]
+    : [["Samples", s.samples]];
   $("#settings").innerHTML = [
-    ["Scene", s.scene], ["Size", `${s.width} × ${s.height}`], ["Samples", s.samples],
+    ["Scene", s.scene], ["Size", `${s.width} × ${s.height}`], ...samples,
     ["Max depth", s.max_depth], ["Sampler", s.sampler],
     ["Frames", s.first_frame === s.last_frame ? s.first_frame : `${s.first_frame}–${s.last_frame}`],
     ["Tile size", s.tile_size], ["Samples a unit", s.samples_per_unit], ["Attempts a unit", s.max_attempts],
