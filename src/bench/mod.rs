@@ -3,8 +3,6 @@
 
 mod adaptive;
 mod farm;
-#[cfg(feature = "gpu")]
-mod launch;
 mod metrics;
 mod plot;
 mod reference;
@@ -749,7 +747,7 @@ impl Bench {
 
     #[cfg(feature = "gpu")]
     fn launch_sweep(&self, gpu: &tracer_core::render::GpuRenderer) -> Result<Vec<Run>> {
-        use tracer_core::render::gpu::Strategy;
+        use tracer_core::render::gpu::{Strategy, launch};
         let adapter = gpu.adapter().index.to_string();
         let (width, height) = self.size((1920, 1080));
         let reps = if self.cfg.quick {

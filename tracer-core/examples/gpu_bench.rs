@@ -15,15 +15,9 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use tracer_core::film::{Film, Rect, SampleRange};
-use tracer_core::render::gpu::{GpuOptions, GpuRenderer, Strategy};
+use tracer_core::render::gpu::{GpuOptions, GpuRenderer, Strategy, launch};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
-
-// The timing and the sweep are the ones `tessera bench launch` runs (one
-// implementation; this example cannot depend on the `tessera` binary crate).
-#[path = "../../src/bench/launch.rs"]
-#[allow(dead_code)]
-mod launch;
 
 struct Args {
     adapter: Option<String>,

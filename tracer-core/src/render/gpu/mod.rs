@@ -22,6 +22,7 @@
 //! `sampling.rs`; `layout.rs` mirrors the WGSL structs.
 
 mod disk_cache;
+pub mod launch;
 pub mod layout;
 
 pub use disk_cache::default_dir as default_pipeline_cache_dir;

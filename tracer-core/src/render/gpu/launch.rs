@@ -2,15 +2,15 @@
 //! for the stack and the wavefront kernel, timed the same way everywhere.
 //!
 //! One implementation for two users: `tessera bench launch` (CSV and plot)
-//! and `tracer-core/examples/gpu_bench.rs` (markdown tables). The example
-//! cannot depend on the `tessera` binary crate, so it compiles this file by
-//! path; hence this module uses nothing but `std` and `tracer_core`.
+//! and `tracer-core/examples/gpu_bench.rs` (markdown tables); it lives here
+//! because both reach tracer-core (the example cannot depend on the
+//! `tessera` binary crate).
 
 use std::time::{Duration, Instant};
 
-use tracer_core::film::{Film, RayCounts, Rect, SampleRange};
-use tracer_core::render::PreparedFrame;
-use tracer_core::render::gpu::{GpuError, GpuOptions, GpuRenderer, Strategy};
+use super::{GpuError, GpuOptions, GpuRenderer, Strategy};
+use crate::film::{Film, RayCounts, Rect, SampleRange};
+use crate::render::PreparedFrame;
 
 /// Renders before the timed ones: the first builds the pipeline and uploads
 /// the scene, the others let clocks ramp up.
