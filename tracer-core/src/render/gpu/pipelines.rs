@@ -1,0 +1,266 @@
+//! The compute pipelines: the WGSL assembled for a scene (only the
+//! files its features need), specialised by overridable constants, and
+//! the scene's buffers uploaded with it; the adaptive variant on first use.
+
+use wgpu::util::DeviceExt as _;
+
+use super::layout::{self, SceneData};
+use super::{GpuError, GpuRenderer, SceneState, Strategy, WavePipelines, check_size};
+
+const SAMPLING_WGSL: &str = include_str!("sampling.wgsl");
+const WHITTED_WGSL: &str = include_str!("whitted.wgsl");
+const WAVEFRONT_WGSL: &str = include_str!("wavefront.wgsl");
+/// Scene queries for worlds without a tree: loops over spheres and planes.
+const ANALYTIC_WGSL: &str = include_str!("analytic.wgsl");
+const DISTRIBUTED_WGSL: &str = include_str!("distributed.wgsl");
+/// Moving meshes' queries for distributed.wgsl (needs BVH_WGSL) ...
+const MOVING_MESHES_WGSL: &str = include_str!("moving_meshes.wgsl");
+/// ... and their stand-ins for worlds without moving meshes.
+const NO_MOVING_MESHES_WGSL: &str = include_str!("no_moving_meshes.wgsl");
+/// Sums to 8-bit sRGB on the GPU, for renders that read back only the image.
+pub(super) const RESOLVE_WGSL: &str = include_str!("resolve.wgsl");
+/// Tree traversal, for worlds with a BVH (meshes, many spheres) or moving meshes.
+const BVH_WGSL: &str = include_str!("bvh.wgsl");
+/// Scene queries for worlds with a BVH, through BVH_WGSL.
+const ACCEL_WGSL: &str = include_str!("accel.wgsl");
+
+impl GpuRenderer {
+    pub(super) fn upload_scene(
+        &self,
+        data: SceneData,
+        limits: &wgpu::Limits,
+    ) -> Result<SceneState, GpuError> {
+        let make = |label, bytes: &[u8], usage| {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents: bytes,
+                    usage,
+                })
+        };
+        let st = wgpu::BufferUsages::STORAGE;
+        for (what, bytes) in [
+            (
+                "the scene's spheres",
+                std::mem::size_of_val(data.spheres.as_slice()),
+            ),
+            (
+                "the scene's planes",
+                std::mem::size_of_val(data.planes.as_slice()),
+            ),
+            (
+                "the scene's materials",
+                std::mem::size_of_val(data.materials.as_slice()),
+            ),
+            (
+                "the scene's lights",
+                std::mem::size_of_val(data.lights.as_slice()),
+            ),
+            (
+                "the scene's BVH nodes",
+                data.tree
+                    .as_ref()
+                    .map_or(0, |t| std::mem::size_of_val(t.data.nodes.as_slice())),
+            ),
+            (
+                "the scene's triangles",
+                data.tree
+                    .as_ref()
+                    .map_or(0, |t| std::mem::size_of_val(t.data.triangles.as_slice())),
+            ),
+            (
+                "the scene's triangle shading data",
+                data.tree
+                    .as_ref()
+                    .map_or(0, |t| std::mem::size_of_val(t.data.shading.as_slice())),
+            ),
+        ] {
+            check_size(
+                what,
+                bytes as u64,
+                limits.max_storage_buffer_binding_size,
+                "max_storage_buffer_binding_size",
+            )?;
+        }
+        let frame = make(
+            "frame",
+            bytemuck::bytes_of(&data.frame),
+            wgpu::BufferUsages::UNIFORM,
+        );
+        let spheres = make("spheres", bytemuck::cast_slice(&data.spheres), st);
+        let planes = make("planes", bytemuck::cast_slice(&data.planes), st);
+        let materials = make("materials", bytemuck::cast_slice(&data.materials), st);
+        let lights = make("lights", bytemuck::cast_slice(&data.lights), st);
+        let tree = match &data.tree {
+            Some(t) => [
+                make("bvh nodes", bytemuck::cast_slice(&t.data.nodes), st),
+                make("bvh prims", bytemuck::cast_slice(&t.data.prims), st),
+                make("triangles", bytemuck::cast_slice(&t.data.triangles), st),
+                make(
+                    "triangle shading",
+                    bytemuck::cast_slice(&t.data.shading),
+                    st,
+                ),
+            ],
+            None => ["bvh nodes", "bvh prims", "triangles", "triangle shading"]
+                .map(|label| make(label, &[0u8; 64], st)),
+        };
+
+        let dist = match &data.dist {
+            Some(d) => make("distributed", bytemuck::cast_slice(&d.words), st),
+            None => make("distributed", &[0u8; 64], st),
+        };
+        // Generated part: the stacks' capacities must be constant
+        // expressions. Only scenes with a tree (their own or a moving
+        // mesh's) compile the BVH traversal.
+        let (traversal, queries) = match (&data.tree, data.static_tree) {
+            (Some(_), true) => (BVH_WGSL, ACCEL_WGSL),
+            (Some(_), false) => (BVH_WGSL, ANALYTIC_WGSL),
+            (None, _) => ("", ANALYTIC_WGSL),
+        };
+        // Only scenes with distributed effects compile their kernel, and
+        // only those with moving meshes its moving-mesh queries.
+        let n_moving_meshes = data.dist.as_ref().map_or(0, |d| d.n_moving_meshes);
+        let (distributed, moving_meshes) = match &data.dist {
+            Some(_) if n_moving_meshes > 0 => (DISTRIBUTED_WGSL, MOVING_MESHES_WGSL),
+            Some(_) => (DISTRIBUTED_WGSL, NO_MOVING_MESHES_WGSL),
+            None => ("", ""),
+        };
+        let source = format!(
+            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{traversal}\n{queries}\n{WAVEFRONT_WGSL}\n{distributed}\n{moving_meshes}",
+            data.stack_capacity(),
+            // One more entry than these trees can need (checked at packing to
+            // be at most bvh::STACK; see bvh.wgsl), so shallow trees keep small stacks.
+            data.tree
+                .as_ref()
+                .map_or(crate::bvh::STACK as u32, |t| t.data.stack)
+                + 1
+        );
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("whitted.wgsl"),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+        let b = |v: bool| if v { 1.0 } else { 0.0 };
+        let constants = [
+            ("N_SPHERES", data.n_spheres as f64),
+            ("N_PLANES", data.n_planes as f64),
+            ("N_LIGHTS", data.n_lights as f64),
+            ("MAX_DEPTH", data.max_depth as f64),
+            ("HAS_REFLECTION", b(data.has_reflection)),
+            ("HAS_REFRACTION", b(data.has_refraction)),
+            ("WG_X", self.options.workgroup.0 as f64),
+            ("WG_Y", self.options.workgroup.1 as f64),
+        ];
+        let mut all_constants = constants.to_vec();
+        if let Some(d) = &data.dist {
+            all_constants.extend([
+                ("N_DLIGHTS", d.n_lights as f64),
+                ("N_MOVING", d.n_moving as f64),
+                ("HAS_LENS", b(d.has_lens)),
+                ("HAS_BLUR", b(d.has_blur)),
+                ("HAS_CAM_MOTION", b(d.has_camera_motion)),
+            ]);
+            if n_moving_meshes > 0 {
+                all_constants.push(("N_MOVING_MESHES", n_moving_meshes as f64));
+            }
+        }
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("tessera whitted"),
+                layout: Some(&self.pipeline_layout),
+                module: &module,
+                entry_point: Some(if data.dist.is_some() {
+                    "render_dist"
+                } else {
+                    "render"
+                }),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &all_constants,
+                    // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
+                    zero_initialize_workgroup_memory: true,
+                },
+                cache: self.pipeline_cache(),
+            });
+        // Distributed effects run on the stack kernel only.
+        let wave =
+            (self.options.strategy == Strategy::Wavefront && data.dist.is_none()).then(|| {
+                // Twice the largest dispatch's primary tasks, within one indirect dispatch.
+                let (wx, wy) = self.options.workgroup;
+                let max_groups = limits.max_compute_workgroups_per_dimension as u64;
+                let queue_cap = (2 * self.options.dispatch_pixel_samples)
+                    .min(max_groups * (wx * wy) as u64)
+                    .min(limits.max_storage_buffer_binding_size / layout::WAVE_TASK_BYTES);
+                let mut wave_constants = constants.to_vec();
+                wave_constants.push(("QUEUE_CAP", queue_cap as f64));
+                let make = |entry: &str, layout: &wgpu::PipelineLayout| {
+                    self.device
+                        .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                            label: Some(entry),
+                            layout: Some(layout),
+                            module: &module,
+                            entry_point: Some(entry),
+                            compilation_options: wgpu::PipelineCompilationOptions {
+                                constants: &wave_constants,
+                                zero_initialize_workgroup_memory: true,
+                            },
+                            cache: self.pipeline_cache(),
+                        })
+                };
+                WavePipelines {
+                    primary: make("wave_primary", &self.wave_pipeline_layout),
+                    swap: make("wave_swap", &self.wave_swap_layout),
+                    shade: make("wave_shade", &self.wave_pipeline_layout),
+                    queue_cap,
+                }
+            });
+        if let Some(c) = &self.disk_cache {
+            c.save();
+        }
+        Ok(SceneState {
+            data,
+            options: self.options,
+            pipeline,
+            module,
+            constants: all_constants,
+            adaptive: None,
+            frame,
+            spheres,
+            planes,
+            materials,
+            lights,
+            tree,
+            dist,
+            wave,
+        })
+    }
+
+    /// The scene's kernel for adaptive rounds: its pipeline with `ADAPTIVE`.
+    pub(super) fn adaptive_pipeline(&self, scene: &SceneState) -> wgpu::ComputePipeline {
+        let mut constants = scene.constants.clone();
+        constants.push(("ADAPTIVE", 1.0));
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("tessera adaptive"),
+                layout: Some(&self.pipeline_layout),
+                module: &scene.module,
+                entry_point: Some(if scene.data.dist.is_some() {
+                    "render_dist"
+                } else {
+                    "render"
+                }),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    zero_initialize_workgroup_memory: true,
+                },
+                cache: self.pipeline_cache(),
+            });
+        if let Some(c) = &self.disk_cache {
+            c.save();
+        }
+        pipeline
+    }
+}

@@ -1,0 +1,515 @@
+//! One render on the GPU: clear, the planned dispatches in bounded
+//! submissions (the stack kernel, or the wavefront's generations), and the
+//! read-back of sums and counters into a film (or the resolved image).
+
+use std::time::{Duration, Instant};
+
+use wgpu::util::DeviceExt as _;
+
+use super::layout::{self, ADAPTIVE_SUM_WORDS, COUNTERS, DispatchParams, SUM_WORDS, SceneData};
+use super::plan::plan;
+use super::readback::image_bytes;
+use super::{
+    GpuError, GpuOptions, GpuRenderer, GpuStats, Outputs, PARAMS_SLOTS, PARAMS_STRIDE, Readout,
+    Rendered, Srgb8Image, WaveBuffers, check_size, entire,
+};
+use crate::adaptive::BLOCK;
+use crate::film::{Film, RayCounts, Rect, SampleRange};
+
+impl GpuRenderer {
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn render_inner(
+        &self,
+        data: SceneData,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+        start: Instant,
+        budget: u64,
+        readout: Readout<'_>,
+    ) -> Result<Option<Rendered>, GpuError> {
+        let limits = self.device.limits();
+        let mut scene_guard = self
+            .scene
+            .lock()
+            .map_err(|_| GpuError::Device("scene cache poisoned".into()))?;
+        if scene_guard
+            .as_ref()
+            .is_none_or(|s| s.data != data || s.options != self.options)
+        {
+            *scene_guard = Some(self.upload_scene(data, &limits)?);
+        }
+        let mask = match readout {
+            Readout::Adaptive(m) => Some(m),
+            _ => None,
+        };
+        if mask.is_some() {
+            let scene = scene_guard.as_mut().expect("just set");
+            if scene.adaptive.is_none() {
+                scene.adaptive = Some(self.adaptive_pipeline(scene));
+            }
+        }
+        let scene = scene_guard.as_ref().expect("just set");
+
+        let pixels = rect.area();
+        let stride = if mask.is_some() {
+            ADAPTIVE_SUM_WORDS
+        } else {
+            SUM_WORDS
+        };
+        let sums_bytes = (pixels * stride * 4) as u64;
+        check_size(
+            "the film's per-pixel sums",
+            sums_bytes,
+            limits.max_storage_buffer_binding_size,
+            "max_storage_buffer_binding_size",
+        )?;
+        check_size(
+            "the film's per-pixel sums",
+            sums_bytes,
+            limits.max_buffer_size,
+            "max_buffer_size",
+        )?;
+        let mut out_guard = self
+            .outputs
+            .lock()
+            .map_err(|_| GpuError::Device("output cache poisoned".into()))?;
+        if out_guard
+            .as_ref()
+            .is_none_or(|o| o.sum_words < pixels * stride)
+        {
+            *out_guard = Some(self.create_outputs(pixels * stride));
+        }
+        let out = out_guard.as_ref().expect("just set");
+        // An adaptive round's grid: 8 columns, 8 rows per active block
+        // (whitted.wgsl grid_pixel), its blocks listed as column | row << 16.
+        let blocks: Vec<u32> = mask.map_or_else(Vec::new, |m| {
+            let cols = m.cols() as usize;
+            m.active
+                .iter()
+                .enumerate()
+                .filter(|(_, a)| **a)
+                .map(|(i, _)| (i % cols) as u32 | ((i / cols) as u32) << 16)
+                .collect()
+        });
+        let blocks_buffer = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("active blocks"),
+                contents: if blocks.is_empty() {
+                    &[0u8; 16]
+                } else {
+                    bytemuck::cast_slice(&blocks)
+                },
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+        let grid = match mask {
+            Some(_) => Rect::new(rect.x, rect.y, BLOCK, BLOCK * blocks.len() as u32),
+            None => rect,
+        };
+        // Pixels of the film a band of the grid's rows holds (blocks cut by
+        // the film's edge hold fewer than their 64 grid cells).
+        let band_pixels = |row0: u32, rows: u32| -> u64 {
+            match mask {
+                None => rect.width as u64 * rows as u64,
+                Some(_) => (row0..row0 + rows)
+                    .map(|r| {
+                        let b = blocks[(r / BLOCK) as usize];
+                        let (fx, fy) = ((b & 0xffff) * BLOCK, (b >> 16) * BLOCK + r % BLOCK);
+                        if fy < rect.height {
+                            (rect.width - fx).min(BLOCK) as u64
+                        } else {
+                            0
+                        }
+                    })
+                    .sum(),
+            }
+        };
+
+        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tessera render"),
+            layout: &self.layout,
+            entries: &[
+                entire(0, &scene.frame),
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &out.params,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(size_of::<DispatchParams>() as u64),
+                    }),
+                },
+                entire(2, &scene.spheres),
+                entire(3, &scene.planes),
+                entire(4, &scene.materials),
+                entire(5, &scene.lights),
+                wgpu::BindGroupEntry {
+                    binding: 6,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &out.sums,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(sums_bytes),
+                    }),
+                },
+                entire(7, &out.counters),
+                entire(8, &scene.tree[0]),
+                entire(9, &scene.tree[1]),
+                entire(10, &scene.tree[2]),
+                entire(11, &scene.tree[3]),
+                entire(12, &scene.dist),
+                entire(13, &blocks_buffer),
+            ],
+        });
+
+        let (wx, wy) = self.options.workgroup;
+        // Adaptive rounds run on the stack kernel (as distributed effects do).
+        let wave = match scene.wave.as_ref().filter(|_| mask.is_none()) {
+            Some(p) => {
+                let mut guard = self
+                    .wave
+                    .lock()
+                    .map_err(|_| GpuError::Device("wavefront cache poisoned".into()))?;
+                if guard.as_ref().is_none_or(|w| w.queue_cap < p.queue_cap) {
+                    let bytes = p.queue_cap * layout::WAVE_TASK_BYTES;
+                    check_size(
+                        "a wavefront task queue",
+                        bytes,
+                        limits.max_storage_buffer_binding_size,
+                        "max_storage_buffer_binding_size",
+                    )?;
+                    *guard = Some(self.create_wave_buffers(p.queue_cap));
+                }
+                Some((p, guard))
+            }
+            None => None,
+        };
+        let wave_groups = wave.as_ref().map(|(_, w)| {
+            let w = w.as_ref().expect("just set");
+            let group = |inq: &wgpu::Buffer, outq: &wgpu::Buffer| {
+                self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("tessera wavefront queues"),
+                    layout: &self.wave_layout,
+                    entries: &[entire(0, inq), entire(1, outq), entire(2, &w.state)],
+                })
+            };
+            // Primary tasks go to A; generations then alternate A->B, B->A.
+            (group(&w.b, &w.a), group(&w.a, &w.b))
+        });
+        // Each wavefront dispatch's primary tasks must fit a queue, and a
+        // queue's tasks one indirect dispatch.
+        let budget = match &wave {
+            Some((p, _)) => budget.min(p.queue_cap / 2).max(1),
+            None => budget,
+        };
+        let groups = plan(
+            grid,
+            (rect.width, rect.height),
+            samples,
+            frame,
+            GpuOptions {
+                dispatch_pixel_samples: budget,
+                ..self.options
+            },
+        );
+        let query = self.timestamps.then(|| {
+            let n = (groups.len() * 2) as u32;
+            let set = self.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("tessera timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: n,
+            });
+            let resolve = self.buffer(
+                "timestamps",
+                n as u64 * 8,
+                wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            );
+            let read = self.buffer(
+                "timestamps read",
+                n as u64 * 8,
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            );
+            (set, resolve, read, n)
+        });
+
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera clear"),
+            });
+        enc.clear_buffer(&out.sums, 0, Some(sums_bytes));
+        enc.clear_buffer(&out.counters, 0, None);
+        if let Some((_, w)) = &wave {
+            enc.clear_buffer(&w.as_ref().expect("set").state, 0, None);
+        }
+        let mut dispatches = 0u32;
+        let trace_start = Instant::now();
+        self.queue.submit([enc.finish()]);
+        for (g, group) in groups.iter().enumerate() {
+            let mut params = vec![0u8; group.len() * PARAMS_STRIDE as usize];
+            for (i, d) in group.iter().enumerate() {
+                let at = i * PARAMS_STRIDE as usize;
+                params[at..at + size_of::<DispatchParams>()].copy_from_slice(bytemuck::bytes_of(d));
+            }
+            self.queue.write_buffer(&out.params, 0, &params);
+            let mut enc = self
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("tessera trace"),
+                });
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("tessera trace"),
+                    timestamp_writes: query.as_ref().map(|(set, ..)| {
+                        wgpu::ComputePassTimestampWrites {
+                            query_set: set,
+                            beginning_of_pass_write_index: Some(2 * g as u32),
+                            end_of_pass_write_index: Some(2 * g as u32 + 1),
+                        }
+                    }),
+                });
+                match (&wave, &wave_groups) {
+                    (Some((p, w)), Some((to_a, a_to_b))) => {
+                        let w = w.as_ref().expect("set");
+                        let threads = wx * wy;
+                        for (i, d) in group.iter().enumerate() {
+                            pass.set_bind_group(
+                                0,
+                                &bind_group,
+                                &[(i as u64 * PARAMS_STRIDE) as u32],
+                            );
+                            pass.set_bind_group(1, to_a, &[]);
+                            pass.set_bind_group(2, &w.args_group, &[]);
+                            let n = d.rect_w * d.rows * (d.sample_end - d.sample_start);
+                            pass.set_pipeline(&p.primary);
+                            pass.dispatch_workgroups(n.div_ceil(threads), 1, 1);
+                            // Generation g reads the queue generation g-1 wrote.
+                            for g in 0..=scene.data.max_depth {
+                                pass.set_pipeline(&p.swap);
+                                pass.dispatch_workgroups(1, 1, 1);
+                                pass.set_bind_group(1, if g % 2 == 0 { a_to_b } else { to_a }, &[]);
+                                pass.set_pipeline(&p.shade);
+                                pass.dispatch_workgroups_indirect(&w.args, 0);
+                                dispatches += 2;
+                            }
+                            dispatches += 1;
+                        }
+                    }
+                    _ => {
+                        pass.set_pipeline(match mask {
+                            Some(_) => scene.adaptive.as_ref().expect("made above"),
+                            None => &scene.pipeline,
+                        });
+                        for (i, d) in group.iter().enumerate() {
+                            pass.set_bind_group(
+                                0,
+                                &bind_group,
+                                &[(i as u64 * PARAMS_STRIDE) as u32],
+                            );
+                            // One invocation per pixel-sample.
+                            pass.dispatch_workgroups(
+                                d.rect_w.div_ceil(wx),
+                                d.rows.div_ceil(wy),
+                                d.sample_end - d.sample_start,
+                            );
+                            dispatches += 1;
+                        }
+                    }
+                }
+            }
+            let index = self.queue.submit([enc.finish()]);
+            self.wait(index)?;
+            progress(
+                group
+                    .iter()
+                    .map(|d| band_pixels(d.row0, d.rows) * (d.sample_end - d.sample_start) as u64)
+                    .sum(),
+            );
+        }
+        let trace_wall = trace_start.elapsed();
+        let readback_start = Instant::now();
+
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera read-back"),
+            });
+        let resolver = match readout {
+            Readout::Sums | Readout::Adaptive(_) => {
+                enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
+                None
+            }
+            Readout::Srgb8 => {
+                Some(self.encode_resolve(&mut enc, &out.sums, sums_bytes, pixels, samples)?)
+            }
+        };
+        enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
+        if let Some((_, w)) = &wave {
+            let w = w.as_ref().expect("set");
+            enc.copy_buffer_to_buffer(&w.state, 0, &w.state_read, 0, None);
+        }
+        if let Some((set, resolve, read, n)) = &query {
+            enc.resolve_query_set(set, 0..*n, resolve, 0);
+            enc.copy_buffer_to_buffer(resolve, 0, read, 0, None);
+        }
+        let index = self.queue.submit([enc.finish()]);
+        self.wait(index)?;
+
+        if let Some((_, w)) = &wave {
+            let state: Vec<u32> = self.read(
+                &w.as_ref().expect("set").state_read,
+                layout::WAVE_STATE_BYTES,
+            )?;
+            if state[2] != 0 {
+                return Ok(None);
+            }
+        }
+        let counters: Vec<u32> = self.read(&out.counters_read, (COUNTERS * 8) as u64)?;
+        let counter = |k: usize| counters[2 * k] as u64 | (counters[2 * k + 1] as u64) << 32;
+        let rays = RayCounts {
+            primary: counter(layout::COUNTER_PRIMARY),
+            shadow: counter(layout::COUNTER_SHADOW),
+            reflection: counter(layout::COUNTER_REFLECTION),
+            refraction: counter(layout::COUNTER_REFRACTION),
+        };
+        let nonfinite = counter(layout::COUNTER_NONFINITE);
+        let rendered = match &resolver {
+            Some(r) => {
+                let r = r.as_ref().expect("made by encode_resolve");
+                let rgb = self.read_with(&r.image_read, image_bytes(pixels), |bytes| {
+                    bytes[..pixels * 3].to_vec()
+                })?;
+                Rendered::Srgb8(Srgb8Image {
+                    rect,
+                    rgb,
+                    rays,
+                    nonfinite,
+                })
+            }
+            None => {
+                let mut film = match mask {
+                    Some(_) => Film::with_squares(rect),
+                    None => Film::new(rect),
+                };
+                // Straight from the mapped buffer into the film: no intermediate copy.
+                self.read_with(&out.sums_read, sums_bytes, |bytes| {
+                    let words: &[u32] = bytemuck::cast_slice(bytes);
+                    for (px, w) in film.sums.iter_mut().zip(words.chunks_exact(stride)) {
+                        for c in 0..3 {
+                            px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
+                        }
+                    }
+                    if let Some(squares) = film.squares.as_mut() {
+                        for (px, w) in squares.iter_mut().zip(words.chunks_exact(stride)) {
+                            for c in 0..3 {
+                                let q = &w[SUM_WORDS + 4 * c..SUM_WORDS + 4 * c + 4];
+                                px[c] = q.iter().rev().fold(0u128, |acc, &x| acc << 32 | x as u128);
+                            }
+                        }
+                    }
+                })?;
+                match mask {
+                    Some(m) => {
+                        for b in m.active_rects() {
+                            for y in b.y..b.y + b.height {
+                                let row = ((y - rect.y) * rect.width + (b.x - rect.x)) as usize;
+                                film.counts[row..row + b.width as usize].fill(samples.len());
+                            }
+                        }
+                    }
+                    None => film.counts.fill(samples.len()),
+                }
+                film.rays = rays;
+                film.nonfinite = nonfinite;
+                Rendered::Film(film)
+            }
+        };
+        drop(resolver);
+        let gpu_time = match &query {
+            Some((_, _, read, n)) => {
+                let ticks: Vec<u64> = self.read(read, *n as u64 * 8)?;
+                let period = self.queue.get_timestamp_period() as f64;
+                let ns: f64 = ticks
+                    .chunks_exact(2)
+                    .map(|p| p[1].saturating_sub(p[0]) as f64 * period)
+                    .sum();
+                Some(Duration::from_nanos(ns as u64))
+            }
+            None => None,
+        };
+        let readback = readback_start.elapsed();
+        if let Ok(mut s) = self.stats.lock() {
+            *s = GpuStats {
+                gpu_time,
+                trace_wall,
+                total_wall: start.elapsed(),
+                dispatches,
+                submissions: groups.len() as u32,
+                overflow_retries: 0,
+                readback,
+            };
+        }
+        Ok(Some(rendered))
+    }
+
+    pub(super) fn create_outputs(&self, sum_words: usize) -> Outputs {
+        let sums_bytes = (sum_words * 4) as u64;
+        let counters_bytes = (COUNTERS * 8) as u64;
+        use wgpu::BufferUsages as U;
+        Outputs {
+            sum_words,
+            sums: self.buffer("sums", sums_bytes, U::STORAGE | U::COPY_SRC | U::COPY_DST),
+            sums_read: self.buffer("sums read", sums_bytes, U::MAP_READ | U::COPY_DST),
+            counters: self.buffer(
+                "counters",
+                counters_bytes,
+                U::STORAGE | U::COPY_SRC | U::COPY_DST,
+            ),
+            counters_read: self.buffer("counters read", counters_bytes, U::MAP_READ | U::COPY_DST),
+            params: self.buffer(
+                "dispatch params",
+                PARAMS_STRIDE * PARAMS_SLOTS as u64,
+                U::UNIFORM | U::COPY_DST,
+            ),
+        }
+    }
+
+    pub(super) fn create_wave_buffers(&self, queue_cap: u64) -> WaveBuffers {
+        use wgpu::BufferUsages as U;
+        let args = self.buffer(
+            "wavefront args",
+            layout::WAVE_ARGS_BYTES,
+            U::STORAGE | U::INDIRECT,
+        );
+        let args_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tessera wavefront args"),
+            layout: &self.wave_args_layout,
+            entries: &[entire(0, &args)],
+        });
+        WaveBuffers {
+            queue_cap,
+            a: self.buffer(
+                "wavefront queue a",
+                queue_cap * layout::WAVE_TASK_BYTES,
+                U::STORAGE,
+            ),
+            b: self.buffer(
+                "wavefront queue b",
+                queue_cap * layout::WAVE_TASK_BYTES,
+                U::STORAGE,
+            ),
+            state: self.buffer(
+                "wavefront state",
+                layout::WAVE_STATE_BYTES,
+                U::STORAGE | U::COPY_SRC | U::COPY_DST,
+            ),
+            state_read: self.buffer(
+                "wavefront state read",
+                layout::WAVE_STATE_BYTES,
+                U::MAP_READ | U::COPY_DST,
+            ),
+            args,
+            args_group,
+        }
+    }
+}
