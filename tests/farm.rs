@@ -304,6 +304,21 @@ fn cpu_workers_render_the_distributed_effects_scene_bit_identical_to_tessera_ren
 /// bit for bit and the same number of samples; the job's status carries
 /// the converged share and the estimated error; tiles off the 8-pixel block
 /// grid are refused.
+/// `tessera render SCENE --json` with `settings`, into a file in `dir`:
+/// its summary.
+fn render_json(dir: &Path, scene: &Path, settings: &[&str]) -> serde_json::Value {
+    let out = dir.join(format!("local-{}.png", rand_suffix()));
+    let o = Command::new(TESSERA)
+        .arg("render")
+        .arg(scene)
+        .args(["--json", "-o"])
+        .arg(&out)
+        .args(settings)
+        .output()
+        .expect("render");
+    serde_json::from_str(&ok_stdout(&o)).expect("json")
+}
+
 #[test]
 fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_render() {
     let _g = serial();
@@ -322,14 +337,7 @@ fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_rend
     ];
     let dir = tempfile::tempdir().expect("tempdir");
     // The local render's sample count, to compare with the farm's.
-    let mut local = vec!["render", scene.to_str().expect("path"), "--json", "-o"];
-    let out = dir.path().join("local.png");
-    local.push(out.to_str().expect("path"));
-    local.extend_from_slice(&settings);
-    let json: serde_json::Value = serde_json::from_str(&ok_stdout(
-        &Command::new(TESSERA).args(&local).output().expect("render"),
-    ))
-    .expect("json");
+    let json = render_json(dir.path(), &scene, &settings);
     let local_samples = json["adaptive"]["pixel_samples"]
         .as_u64()
         .expect("pixel_samples");
@@ -389,14 +397,7 @@ fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_rend
                 "--max-samples",
                 "32",
             ];
-            let mut local = vec!["render", scene.to_str().expect("path"), "--json", "-o"];
-            let out = dir.path().join("local-relative.png");
-            local.push(out.to_str().expect("path"));
-            local.extend_from_slice(&relative);
-            let json: serde_json::Value = serde_json::from_str(&ok_stdout(
-                &Command::new(TESSERA).args(&local).output().expect("render"),
-            ))
-            .expect("json");
+            let json = render_json(dir.path(), &scene, &relative);
             assert_eq!(json["adaptive"]["relative_error"], 0.05, "{json}");
             assert_eq!(json["adaptive"]["target_error"], 0.0, "{json}");
             let mut args = relative.to_vec();

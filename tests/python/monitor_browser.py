@@ -131,9 +131,10 @@ class Page:
             "const e = document.querySelector(arguments[0]); return !!e && !e.disabled;", sel))
         self.css(sel)[0].click()
 
-    def image_pixels(self, sel):
-        """An image as the page shows it: (width, height, RGBA bytes), or None
-        while it is not loaded."""
+    def image_dataset_pixels(self, sel):
+        """An image as the page shows it and what its dataset says, read in
+        one go (the page may swap the image between two reads):
+        (width, height, RGBA bytes, dataset dict), or None while not loaded."""
         r = self.js(
             """
             const img = document.querySelector(arguments[0]);
@@ -145,9 +146,15 @@ class Page:
             const d = g.getImageData(0, 0, c.width, c.height).data;
             let s = '';
             for (let i = 0; i < d.length; i += 8192) s += String.fromCharCode.apply(null, d.subarray(i, i + 8192));
-            return [c.width, c.height, btoa(s)];
+            return [c.width, c.height, btoa(s), Object.assign({}, img.dataset)];
             """, sel)
-        return (r[0], r[1], base64.b64decode(r[2])) if r else None
+        return (r[0], r[1], base64.b64decode(r[2]), r[3]) if r else None
+
+    def image_pixels(self, sel):
+        """An image as the page shows it: (width, height, RGBA bytes), or None
+        while it is not loaded."""
+        r = self.image_dataset_pixels(sel)
+        return r[:3] if r else None
 
     def settings(self):
         """The job page's settings list, label -> value."""
@@ -156,25 +163,13 @@ class Page:
             "dt => { o[dt.textContent] = dt.nextElementSibling.textContent; }); return o;")
 
     def preview_pixels(self):
-        """The preview image as the page shows it: (width, height, RGBA bytes)."""
-        r = self.js(
-            """
-            const img = document.querySelector('#preview');
-            if (!img || !img.complete || !img.naturalWidth) return null;
-            const c = document.createElement('canvas');
-            c.width = img.naturalWidth; c.height = img.naturalHeight;
-            const g = c.getContext('2d');
-            g.drawImage(img, 0, 0);
-            const d = g.getImageData(0, 0, c.width, c.height).data;
-            let s = '';
-            for (let i = 0; i < d.length; i += 8192) s += String.fromCharCode.apply(null, d.subarray(i, i + 8192));
-            return [c.width, c.height, btoa(s), img.dataset.version, img.dataset.unitsDone, img.dataset.written];
-            """
-        )
+        """The preview as the page shows it: (width, height, RGBA bytes,
+        version, units done, written)."""
+        r = self.image_dataset_pixels("#preview")
         if not r:
             return None
-        w, h, data, version, units, written = r
-        return w, h, base64.b64decode(data), int(version or 0), units, written == "1"
+        w, h, data, ds = r
+        return w, h, data, int(ds.get("version") or 0), ds.get("unitsDone"), ds.get("written") == "1"
 
     def shot(self, path):
         if path:
