@@ -13,7 +13,9 @@
 //! - a heartbeat task extends every held lease (rendering, queued or being
 //!   sent) and learns which are gone (expired, cancelled): a rendering unit
 //!   stops (the CPU renderer before its next 16x16 tile, the GPU at the next
-//!   band of rows), a queued one is skipped, nothing is sent.
+//!   band of rows), a queued one is skipped, nothing is sent. Unanswered
+//!   for the coordinator's lease timeout (a partition), it takes every
+//!   lease as expired the same way and the worker registers again.
 //!
 //! Draining (SIGTERM) finishes the unit being rendered, hands the prefetched
 //! leases back (`ReturnLeases`) so no one waits for them to expire, sends
@@ -131,6 +133,9 @@ struct Session {
     client: Client,
     worker_id: String,
     heartbeat: Duration,
+    /// How long the coordinator keeps a lease without a heartbeat (`None`:
+    /// it did not say).
+    lease_timeout: Option<Duration>,
 }
 
 /// What this worker tells the coordinator it is.
@@ -260,6 +265,7 @@ impl Worker {
                 session.client.clone(),
                 session.worker_id.clone(),
                 session.heartbeat,
+                session.lease_timeout,
                 self.held.clone(),
                 lost.clone(),
             ));
@@ -314,6 +320,8 @@ impl Worker {
             client,
             worker_id: resp.worker_id,
             heartbeat: Duration::from_millis(resp.heartbeat_interval_ms.clamp(50, 60_000) as u64),
+            lease_timeout: (resp.lease_timeout_ms > 0)
+                .then(|| Duration::from_millis(resp.lease_timeout_ms.max(100) as u64)),
         })
     }
 
@@ -986,16 +994,23 @@ fn render_round_unit(
     }
 }
 
-/// Sends heartbeats for held leases; cancels those the coordinator says are gone.
+/// Sends heartbeats for held leases; cancels those the coordinator says are
+/// gone. When no heartbeat has been answered for `lease_timeout`, every
+/// lease has expired at the coordinator and gone to another worker: their
+/// work stops, and the session ends (`lost`) to register again once the
+/// coordinator answers. The time is this machine's, from the last answer,
+/// so clocks that differ between machines do not matter.
 async fn heartbeat(
     mut client: Client,
     worker_id: String,
     every: Duration,
+    lease_timeout: Option<Duration>,
     held: HeldMap,
     lost: Arc<AtomicBool>,
 ) {
     let mut tick = tokio::time::interval(every);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut answered = Instant::now();
     loop {
         tick.tick().await;
         let leases: Vec<pb::LeaseProgress> = held
@@ -1007,14 +1022,17 @@ async fn heartbeat(
                 samples_done: h.samples_done.load(Ordering::Relaxed),
             })
             .collect();
-        match client
-            .heartbeat(pb::HeartbeatRequest {
-                worker_id: worker_id.clone(),
-                leases,
-            })
-            .await
-        {
-            Ok(resp) => {
+        let call = client.heartbeat(pb::HeartbeatRequest {
+            worker_id: worker_id.clone(),
+            leases,
+        });
+        // Across a partition a call gets no answer at all (no reset): bound
+        // the wait so that the outage is noticed.
+        match tokio::time::timeout(every.max(Duration::from_secs(1)), call).await {
+            Err(_) => tracing::debug!("heartbeat got no answer"),
+            Ok(Err(e)) => tracing::debug!(error = %e, "heartbeat failed"),
+            Ok(Ok(resp)) => {
+                answered = Instant::now();
                 let resp = resp.into_inner();
                 let held = held.lock().expect("held lock");
                 for id in &resp.gone_leases {
@@ -1027,7 +1045,21 @@ async fn heartbeat(
                     lost.store(true, Ordering::Relaxed);
                 }
             }
-            Err(e) => tracing::debug!(error = %e, "heartbeat failed"),
+        }
+        if let Some(timeout) = lease_timeout
+            && answered.elapsed() >= timeout
+        {
+            let held = held.lock().expect("held lock");
+            tracing::warn!(
+                silent_s = format!("{:.1}", answered.elapsed().as_secs_f64()),
+                leases = held.len(),
+                "no heartbeat answered for longer than the lease timeout: the leases have expired; stopping their work and registering again"
+            );
+            for h in held.values() {
+                h.cancel.store(true, Ordering::Relaxed);
+            }
+            lost.store(true, Ordering::Relaxed);
+            return;
         }
     }
 }
