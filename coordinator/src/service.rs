@@ -4,13 +4,14 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
-use tessera_proto::convert::sampler_from_pb;
+use tessera_proto::convert::{backend_from_pb, sampler_from_pb};
 use tessera_proto::film_codec;
 use tessera_proto::pb;
 use tessera_proto::pb::job_service_server::JobService;
 use tessera_proto::pb::worker_service_server::WorkerService;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status};
+use tracer_core::render::Backend;
 
 use std::sync::atomic::Ordering;
 
@@ -274,10 +275,7 @@ impl JobService for Api {
                 name: w.name,
                 capabilities: Some(pb::Capabilities {
                     threads: w.threads,
-                    backend: match w.backend.as_str() {
-                        "gpu" => pb::Backend::Gpu,
-                        _ => pb::Backend::Cpu,
-                    } as i32,
+                    backend: pb::Backend::from(w.backend) as i32,
                     gpu_name: w.gpu_name,
                     version: w.version,
                 }),
@@ -405,11 +403,9 @@ impl WorkerService for Api {
     ) -> Result<Response<pb::RegisterResponse>, Status> {
         let r = req.into_inner();
         let caps = r.capabilities.unwrap_or_default();
-        let backend = match pb::Backend::try_from(caps.backend).unwrap_or(pb::Backend::Unspecified)
-        {
-            pb::Backend::Gpu => "gpu",
-            _ => "cpu",
-        };
+        // UNSPECIFIED (a worker that does not say, or a value this build does
+        // not know) counts as a CPU worker.
+        let backend = backend_from_pb(caps.backend).unwrap_or(Backend::Cpu);
         let name = if r.name.is_empty() {
             "worker".to_string()
         } else {
@@ -418,13 +414,9 @@ impl WorkerService for Api {
         crate::farm::check_name("worker name", &name, 200)?;
         crate::farm::check_name("GPU name", &caps.gpu_name, 200)?;
         crate::farm::check_name("version", &caps.version, 200)?;
-        let worker_id = self.farm.register(
-            name,
-            caps.threads,
-            backend.into(),
-            caps.gpu_name,
-            caps.version,
-        );
+        let worker_id =
+            self.farm
+                .register(name, caps.threads, backend, caps.gpu_name, caps.version);
         Ok(Response::new(pb::RegisterResponse {
             worker_id,
             heartbeat_interval_ms: self.farm.config.heartbeat_interval.as_millis() as u32,

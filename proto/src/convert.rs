@@ -1,6 +1,7 @@
 //! Conversions between protobuf messages and tracer-core types.
 
 use tracer_core::film::{RayCounts, Rect, SampleRange};
+use tracer_core::render::Backend;
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::RenderSettings;
 
@@ -92,6 +93,24 @@ pub fn sampler_from_pb(v: i32) -> Option<Sampler> {
     }
 }
 
+impl From<Backend> for pb::Backend {
+    fn from(b: Backend) -> Self {
+        match b {
+            Backend::Cpu => pb::Backend::Cpu,
+            Backend::Gpu => pb::Backend::Gpu,
+        }
+    }
+}
+
+/// `None` for UNSPECIFIED (and unknown values, which prost maps to it).
+pub fn backend_from_pb(v: i32) -> Option<Backend> {
+    match pb::Backend::try_from(v).unwrap_or(pb::Backend::Unspecified) {
+        pb::Backend::Cpu => Some(Backend::Cpu),
+        pb::Backend::Gpu => Some(Backend::Gpu),
+        pb::Backend::Unspecified => None,
+    }
+}
+
 impl From<RenderSettings> for pb::RenderSettings {
     fn from(s: RenderSettings) -> Self {
         pb::RenderSettings {
@@ -152,5 +171,14 @@ mod tests {
         let mut bad = pb::RenderSettings::from(s);
         bad.sampler = 0;
         assert!(RenderSettings::try_from(bad).is_err());
+    }
+
+    #[test]
+    fn backend_round_trip() {
+        for b in [Backend::Cpu, Backend::Gpu] {
+            assert_eq!(backend_from_pb(pb::Backend::from(b) as i32), Some(b));
+        }
+        assert_eq!(backend_from_pb(pb::Backend::Unspecified as i32), None);
+        assert_eq!(backend_from_pb(99), None);
     }
 }

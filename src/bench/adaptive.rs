@@ -17,11 +17,11 @@ use std::time::Instant;
 use anyhow::Result;
 use tracer_core::adaptive::{self, AdaptiveSettings};
 use tracer_core::film::{Film, Rect, SampleRange};
-use tracer_core::render::{Precision, PreparedFrame, Renderer};
+use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer};
 use tracer_core::scene::{MAX_SAMPLES, RenderSettings, SceneDesc};
 
 use super::plot::{LinePlot, Series};
-use super::{BackendKind, Bench, Run, backend_name, compare};
+use super::{Bench, Run, compare};
 
 /// First sample index of the reference (see the module doc).
 const REFERENCE_OFFSET: u32 = 1 << 15;
@@ -30,7 +30,7 @@ const REFERENCE_OFFSET: u32 = 1 << 15;
 #[derive(Clone, Debug)]
 pub struct Headline {
     pub scene: String,
-    pub backend: &'static str,
+    pub backend: Backend,
     pub uniform_spp: u32,
     pub uniform_rmse: f64,
     pub uniform_seconds: f64,
@@ -120,7 +120,7 @@ impl Bench {
                 let (rmse, seconds) = uniform_top.expect("the top count is among the counts");
                 headlines.push(Headline {
                     scene: name.to_string(),
-                    backend: backend_name(b),
+                    backend: b,
                     uniform_spp: top,
                     uniform_rmse: rmse,
                     uniform_seconds: seconds,
@@ -135,14 +135,12 @@ impl Bench {
                 for mode in ["uniform", "adaptive"] {
                     let points: Vec<(f64, f64)> = runs
                         .iter()
-                        .filter(|r| {
-                            r.scene == name && r.backend == backend_name(b) && r.extra[0].1 == mode
-                        })
+                        .filter(|r| r.scene == name && r.backend == b && r.extra[0].1 == mode)
                         .map(|r| (r.seconds, r.error.map_or(f64::NAN, |e| e.rmse)))
                         .collect();
                     if !points.is_empty() {
                         series.push(Series {
-                            name: format!("{name} {} {mode}", backend_name(b)),
+                            name: format!("{name} {} {mode}", b.name()),
                             points,
                         });
                     }
@@ -184,17 +182,12 @@ impl Bench {
     /// A renderer of backend `b` as [`adaptive::render`] takes it (a
     /// [`Renderer`] owns its backend, so it is made here, with the suite's
     /// threads and adapter).
-    fn renderer(&self, b: BackendKind) -> Result<Renderer> {
-        Ok(match b {
-            BackendKind::Cpu => {
-                Renderer::Cpu(tracer_core::render::CpuRenderer::new(self.cfg.threads)?)
-            }
-            #[cfg(feature = "gpu")]
-            BackendKind::Gpu => Renderer::Gpu(Box::new(tracer_core::render::GpuRenderer::new(
-                self.cfg.adapter.as_deref(),
-                Default::default(),
-            )?)),
-        })
+    fn renderer(&self, b: Backend) -> Result<Renderer> {
+        Ok(Renderer::open(
+            b,
+            self.cfg.threads,
+            self.cfg.adapter.as_deref(),
+        )?)
     }
 
     /// The f64 reference at samples `2^15 .. 2^15 + samples` of the
@@ -254,7 +247,7 @@ impl Bench {
     fn adaptive_run(
         &self,
         renderer: &Renderer,
-        b: BackendKind,
+        b: Backend,
         name: &str,
         desc: &SceneDesc,
         base: &RenderSettings,
@@ -270,7 +263,7 @@ impl Bench {
                 Some(a) => adaptive::render(renderer, &frame, 0, a, &|_| {}, &mut |_| {})?,
             })
         };
-        if b != BackendKind::Cpu {
+        if b != Backend::Cpu {
             once()?; // the GPU compiles its pipelines on first use
         }
         let mut best: Option<(Film, f64)> = None;
@@ -289,7 +282,7 @@ impl Bench {
         let mean_spp = pixel_samples as f64 / rect.area() as f64;
         let mode = if a.is_some() { "adaptive" } else { "uniform" };
         let tag = a.map_or(format!("s{n}"), |a| format!("e{}", a.target_error));
-        let image = format!("adaptive/{name}-{mode}-{tag}-{}.png", backend_name(b));
+        let image = format!("adaptive/{name}-{mode}-{tag}-{}.png", b.name());
         let path = self.cfg.out.join(&image);
         std::fs::create_dir_all(path.parent().expect("has a parent"))?;
         image::RgbImage::from_raw(
@@ -300,10 +293,10 @@ impl Bench {
         .expect("buffer matches size")
         .save(&path)?;
         if let Some(a) = &a {
-            let map = self.cfg.out.join(format!(
-                "adaptive/{name}-samples-{tag}-{}.png",
-                backend_name(b)
-            ));
+            let map = self
+                .cfg
+                .out
+                .join(format!("adaptive/{name}-samples-{tag}-{}.png", b.name()));
             tessera_coordinator::image::write_sample_map(
                 &map,
                 &film,
@@ -314,11 +307,10 @@ impl Bench {
         let run = Run {
             suite: "adaptive",
             scene: name.to_string(),
-            backend: backend_name(b),
+            backend: b,
             device: match b {
-                BackendKind::Cpu => self.cpu_name.clone(),
-                #[cfg(feature = "gpu")]
-                BackendKind::Gpu => renderer.adapter_name().unwrap_or_default().to_string(),
+                Backend::Cpu => self.cpu_name.clone(),
+                Backend::Gpu => renderer.adapter_name().unwrap_or_default().to_string(),
             },
             threads: renderer.threads(),
             settings: RenderSettings {

@@ -179,7 +179,12 @@ impl Farm {
             let mut cmd = farm_command(exe);
             cmd.args(["worker", "--coordinator", &farm.url]);
             if i <= spec.gpu_workers {
-                cmd.args(["--backend", "gpu", "--name", &format!("bench-gpu-{i}")]);
+                cmd.args([
+                    "--backend",
+                    tracer_core::render::Backend::Gpu.name(),
+                    "--name",
+                    &format!("bench-gpu-{i}"),
+                ]);
                 if let Some(a) = &spec.adapter {
                     cmd.args(["--adapter", a]);
                 }

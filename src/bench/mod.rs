@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use tracer_core::film::{Film, RayCounts, Rect, SampleRange};
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::render::{Backend, CpuRenderer, Precision, PreparedFrame};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
@@ -48,17 +48,9 @@ pub const SUITES: &[&str] = &[
 /// is a faithful stand-in where 32 is too slow (2 cores).
 pub const DEPTH_REFERENCE: u32 = 32;
 
-/// Where a run was traced.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BackendKind {
-    Cpu,
-    #[cfg(feature = "gpu")]
-    Gpu,
-}
-
 pub struct Config {
     pub suites: Vec<String>,
-    pub backends: Vec<BackendKind>,
+    pub backends: Vec<Backend>,
     pub out: PathBuf,
     pub quick: bool,
     pub threads: Option<usize>,
@@ -90,7 +82,7 @@ pub struct Config {
 pub struct Run {
     pub suite: &'static str,
     pub scene: String,
-    pub backend: &'static str,
+    pub backend: Backend,
     pub device: String,
     pub threads: usize,
     pub settings: RenderSettings,
@@ -188,7 +180,7 @@ impl Bench {
     /// `repeat`). Returns the film, the wall time, and the GPU time alone.
     fn render(
         &self,
-        backend: BackendKind,
+        backend: Backend,
         desc: &SceneDesc,
         settings: &RenderSettings,
         precision: Precision,
@@ -200,9 +192,9 @@ impl Bench {
         );
         let once = || -> Result<(Film, Option<f64>)> {
             Ok(match backend {
-                BackendKind::Cpu => (self.cpu.render(&frame, 0, rect, samples, &|_| {})?, None),
+                Backend::Cpu => (self.cpu.render(&frame, 0, rect, samples, &|_| {})?, None),
                 #[cfg(feature = "gpu")]
-                BackendKind::Gpu => {
+                Backend::Gpu => {
                     let gpu = self
                         .gpu
                         .as_ref()
@@ -210,11 +202,12 @@ impl Bench {
                     let film = gpu.render(&frame, 0, rect, samples, &|_| {})?;
                     (film, gpu.last_stats().gpu_time.map(|d| d.as_secs_f64()))
                 }
+                #[cfg(not(feature = "gpu"))]
+                Backend::Gpu => return Err(tracer_core::render::RendererError::GpuNotBuilt.into()),
             })
         };
         // The GPU compiles its pipeline for each new scene on first use: leave that out.
-        #[cfg(feature = "gpu")]
-        if backend == BackendKind::Gpu {
+        if backend == Backend::Gpu {
             once()?;
         }
         let mut best: Option<(Film, f64, Option<f64>)> = None;
@@ -235,7 +228,7 @@ impl Bench {
         &self,
         suite: &'static str,
         name: &str,
-        backend: BackendKind,
+        backend: Backend,
         desc: &SceneDesc,
         settings: &RenderSettings,
         precision: Precision,
@@ -252,7 +245,7 @@ impl Bench {
             settings.sampler.name(),
             settings.max_depth,
             precision.name(),
-            backend_name(backend)
+            backend.name()
         );
         let path = self.cfg.out.join(&image);
         std::fs::create_dir_all(path.parent().expect("has a parent"))?;
@@ -267,16 +260,18 @@ impl Bench {
         let run = Run {
             suite,
             scene: name.to_string(),
-            backend: backend_name(backend),
+            backend,
             device: match backend {
-                BackendKind::Cpu => self.cpu_name.clone(),
+                Backend::Cpu => self.cpu_name.clone(),
                 #[cfg(feature = "gpu")]
-                BackendKind::Gpu => self
+                Backend::Gpu => self
                     .gpu
                     .as_ref()
                     .map_or(String::new(), |g| g.adapter().name.clone()),
+                #[cfg(not(feature = "gpu"))]
+                Backend::Gpu => String::new(),
             },
-            threads: if backend == BackendKind::Cpu {
+            threads: if backend == Backend::Cpu {
                 self.cpu.threads()
             } else {
                 0
@@ -421,13 +416,13 @@ impl Bench {
             for sampler in [Sampler::Grid, Sampler::Jittered] {
                 let pts = runs
                     .iter()
-                    .filter(|r| r.backend == backend_name(b) && r.settings.sampler == sampler)
+                    .filter(|r| r.backend == b && r.settings.sampler == sampler)
                     .map(|r| (r.seconds, r.error.map_or(f64::NAN, |e| e.rmse)))
                     .collect();
                 series.push(Series {
                     name: format!(
                         "{} {} (1..{} spp)",
-                        backend_name(b),
+                        b.name(),
                         sampler.name(),
                         counts.last().unwrap()
                     ),
@@ -480,7 +475,7 @@ impl Bench {
             for material in ["plastic", "chrome", "glass", "emerald"] {
                 let pts = runs
                     .iter()
-                    .filter(|r| r.backend == backend_name(b) && r.scene.starts_with(material))
+                    .filter(|r| r.backend == b && r.scene.starts_with(material))
                     .map(|r| {
                         (
                             r.scene
@@ -493,7 +488,7 @@ impl Bench {
                     })
                     .collect();
                 series.push(Series {
-                    name: format!("{} {material}", backend_name(b)),
+                    name: format!("{} {material}", b.name()),
                     points: pts,
                 });
             }
@@ -538,7 +533,7 @@ impl Bench {
                 ..base
             };
             for &b in &self.cfg.backends {
-                let precisions: &[Precision] = if b == BackendKind::Cpu {
+                let precisions: &[Precision] = if b == Backend::Cpu {
                     &[Precision::F32, Precision::F64]
                 } else {
                     &[Precision::F32]
@@ -554,12 +549,12 @@ impl Bench {
                 for p in [Precision::F32, Precision::F64] {
                     let points: Vec<(f64, f64)> = runs
                         .iter()
-                        .filter(|r| r.backend == backend_name(b) && r.precision == p)
+                        .filter(|r| r.backend == b && r.precision == p)
                         .map(f)
                         .collect();
                     if !points.is_empty() {
                         series.push(Series {
-                            name: format!("{} {}", backend_name(b), p.name()),
+                            name: format!("{} {}", b.name(), p.name()),
                             points,
                         });
                     }
@@ -642,12 +637,12 @@ impl Bench {
                 for &b in &self.cfg.backends {
                     let points: Vec<(f64, f64)> = runs
                         .iter()
-                        .filter(|r| r.scene == name && r.backend == backend_name(b))
+                        .filter(|r| r.scene == name && r.backend == b)
                         .map(f)
                         .collect();
                     if !points.is_empty() {
                         out.push(Series {
-                            name: format!("{name} {}", backend_name(b)),
+                            name: format!("{name} {}", b.name()),
                             points,
                         });
                     }
@@ -703,10 +698,10 @@ impl Bench {
                 ..desc.render
             };
             // Error of each precision against the f64 CPU render of the same settings.
-            let (f64_film, _, _) = self.render(BackendKind::Cpu, &desc, &s, Precision::F64)?;
+            let (f64_film, _, _) = self.render(Backend::Cpu, &desc, &s, Precision::F64)?;
             let reference = f64_film.resolve();
             for &b in &self.cfg.backends {
-                let precisions: &[Precision] = if b == BackendKind::Cpu {
+                let precisions: &[Precision] = if b == Backend::Cpu {
                     &[Precision::F32, Precision::F64]
                 } else {
                     &[Precision::F32]
@@ -735,7 +730,7 @@ impl Bench {
         if let Some(gpu) = self
             .gpu
             .as_ref()
-            .filter(|_| self.cfg.backends.contains(&BackendKind::Gpu))
+            .filter(|_| self.cfg.backends.contains(&Backend::Gpu))
         {
             return self.launch_sweep(gpu).map(Some);
         }
@@ -826,7 +821,7 @@ impl Bench {
                 runs.push(Run {
                     suite: "launch",
                     scene: name.to_string(),
-                    backend: "gpu",
+                    backend: Backend::Gpu,
                     device: gpu.adapter().name.clone(),
                     threads: 0,
                     settings: s,
@@ -997,7 +992,7 @@ impl Bench {
             runs.push(Run {
                 suite: "farm",
                 scene: "resolution".into(),
-                backend: "cpu",
+                backend: Backend::Cpu,
                 device: self.cpu_name.clone(),
                 threads: n * threads,
                 settings: s,
@@ -1156,7 +1151,12 @@ impl Bench {
         let mut cmd = std::process::Command::new(exe);
         cmd.arg("render")
             .arg(path)
-            .args(["--backend", "gpu", "--width", &width.to_string()])
+            .args([
+                "--backend",
+                Backend::Gpu.name(),
+                "--width",
+                &width.to_string(),
+            ])
             .args([
                 "--height",
                 &height.to_string(),
@@ -1232,7 +1232,7 @@ impl Bench {
             runs.push(Run {
                 suite: "farm",
                 scene: "resolution".into(),
-                backend: "gpu",
+                backend: Backend::Gpu,
                 device: gpu.adapter().name.clone(),
                 threads: cpu_workers * threads,
                 settings: s,
@@ -1268,22 +1268,10 @@ impl Bench {
             .backends
             .iter()
             .map(|&b| Series {
-                name: backend_name(b).to_string(),
-                points: runs
-                    .iter()
-                    .filter(|r| r.backend == backend_name(b))
-                    .map(&f)
-                    .collect(),
+                name: b.name().to_string(),
+                points: runs.iter().filter(|r| r.backend == b).map(&f).collect(),
             })
             .collect()
-    }
-}
-
-fn backend_name(b: BackendKind) -> &'static str {
-    match b {
-        BackendKind::Cpu => "cpu",
-        #[cfg(feature = "gpu")]
-        BackendKind::Gpu => "gpu",
     }
 }
 
@@ -1379,7 +1367,7 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
     std::fs::create_dir_all(&cfg.out)
         .with_context(|| format!("cannot create {}", cfg.out.display()))?;
     #[cfg(feature = "gpu")]
-    let gpu = if cfg.backends.contains(&BackendKind::Gpu) {
+    let gpu = if cfg.backends.contains(&Backend::Gpu) {
         Some(tracer_core::render::GpuRenderer::new(
             cfg.adapter.as_deref(),
             Default::default(),
@@ -1387,6 +1375,10 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
     } else {
         None
     };
+    #[cfg(not(feature = "gpu"))]
+    if cfg.backends.contains(&Backend::Gpu) {
+        return Err(tracer_core::render::RendererError::GpuNotBuilt.into());
+    }
     let bench = Bench {
         #[cfg(feature = "gpu")]
         gpu,
@@ -1446,7 +1438,7 @@ pub fn run_json(r: &Run) -> serde_json::Value {
     serde_json::json!({
         "suite": r.suite,
         "scene": r.scene,
-        "backend": r.backend,
+        "backend": r.backend.name(),
         "device": r.device,
         "threads": r.threads,
         "width": r.settings.width,

@@ -6,8 +6,12 @@ use std::process::ExitCode;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 
-use crate::bench::{self, BackendKind, Config};
+use crate::bench::{self, Config};
+use tracer_core::render::Backend;
 
+/// `--backend` of `tessera bench`: one backend or both (a choice of which
+/// to run, so not [`Backend`] itself). A build without the `gpu` feature
+/// offers only `cpu`.
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum BenchBackend {
     Cpu,
@@ -105,11 +109,11 @@ fn parse_size(s: &str) -> Result<(u32, u32), String> {
 
 pub fn run(args: BenchArgs) -> Result<ExitCode> {
     let backends = match args.backend {
-        BenchBackend::Cpu => vec![BackendKind::Cpu],
+        BenchBackend::Cpu => vec![Backend::Cpu],
         #[cfg(feature = "gpu")]
-        BenchBackend::Gpu => vec![BackendKind::Gpu],
+        BenchBackend::Gpu => vec![Backend::Gpu],
         #[cfg(feature = "gpu")]
-        BenchBackend::Both => vec![BackendKind::Cpu, BackendKind::Gpu],
+        BenchBackend::Both => vec![Backend::Cpu, Backend::Gpu],
     };
     let runs = bench::run(Config {
         suites: args.suites,

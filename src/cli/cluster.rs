@@ -8,7 +8,7 @@ use std::process::{Child, Command, ExitCode, Stdio};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 
-use super::worker::WorkerBackend;
+use tracer_core::render::Backend;
 
 #[derive(Args, Debug)]
 pub struct ClusterArgs {
@@ -16,8 +16,8 @@ pub struct ClusterArgs {
     #[arg(long, allow_negative_numbers = true, default_value_t = 2, value_parser = clap::builder::RangedI64ValueParser::<usize>::new().range(1..))]
     pub workers: usize,
     /// Where the workers trace
-    #[arg(long, value_enum, default_value_t = WorkerBackend::Cpu)]
-    pub backend: WorkerBackend,
+    #[arg(long, value_parser = super::worker::backend_parser(), default_value_t = Backend::Cpu)]
+    pub backend: Backend,
     /// CPU threads per worker, 0..=4096; 0 means the default [default: all cores / workers]
     #[arg(long, allow_negative_numbers = true, value_parser = super::render::threads_parser())]
     pub threads: Option<usize>,
@@ -86,10 +86,6 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
         .filter(|&n| n > 0)
         .unwrap_or((cores / args.workers).max(1));
     for i in 0..args.workers {
-        let backend = match args.backend {
-            WorkerBackend::Cpu => "cpu",
-            WorkerBackend::Gpu => "gpu",
-        };
         let child = Command::new(&exe)
             .env(super::farm_common::WORKER_TOKEN_ENV, &worker_token)
             .args([
@@ -97,7 +93,7 @@ pub fn run(args: ClusterArgs) -> Result<ExitCode> {
                 "--coordinator",
                 &url,
                 "--backend",
-                backend,
+                args.backend.name(),
                 "--threads",
                 &threads.to_string(),
                 "--name",

@@ -70,11 +70,12 @@ impl Command {
     /// Whether this command may open a GPU (and so load the Vulkan driver).
     #[cfg(feature = "gpu")]
     pub fn may_use_gpu(&self) -> bool {
+        use tracer_core::render::Backend;
         match self {
-            Command::Render(a) => a.backend == render::BackendArg::Gpu,
+            Command::Render(a) => a.backend == Backend::Gpu,
             Command::Bench(a) => a.backend != bench::BenchBackend::Cpu,
-            Command::Worker(a) => a.backend == worker::WorkerBackend::Gpu,
-            Command::Cluster(a) => a.backend == worker::WorkerBackend::Gpu,
+            Command::Worker(a) => a.backend == Backend::Gpu,
+            Command::Cluster(a) => a.backend == Backend::Gpu,
             Command::Gpus(_) => true,
             _ => false,
         }

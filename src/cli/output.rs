@@ -29,11 +29,12 @@ pub fn print_json(v: &Value) {
     outln!("{v}");
 }
 
+/// A worker's backend (`Capabilities.backend`) as `tessera workers` prints
+/// it; UNSPECIFIED reads as `cpu`, as the coordinator registers it.
 pub fn backend_name(backend: i32) -> &'static str {
-    match pb::Backend::try_from(backend).unwrap_or(pb::Backend::Unspecified) {
-        pb::Backend::Gpu => "gpu",
-        _ => "cpu",
-    }
+    tessera_proto::convert::backend_from_pb(backend)
+        .unwrap_or(tracer_core::render::Backend::Cpu)
+        .name()
 }
 
 /// A job as `tessera jobs --json`, `status --json` and `watch --json` print it.

@@ -11,7 +11,7 @@ use clap::{Args, ValueEnum};
 use tracer_core::adaptive::{self, AdaptiveSettings, AdaptiveSpec};
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::cpu::MAX_THREADS;
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
+use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{MAX_DEPTH, MAX_IMAGE_SIDE, MAX_SAMPLES, RenderSettings, SceneDesc};
 
@@ -143,13 +143,18 @@ impl From<PrecisionArg> for Precision {
     }
 }
 
-#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
-pub enum BackendArg {
-    /// CPU threads (rayon)
-    Cpu,
-    /// GPU compute shaders (wgpu: Vulkan/Metal/DX12); f32 only
-    #[cfg(feature = "gpu")]
-    Gpu,
+/// `--backend` of `tessera render`, each value with its help. A build
+/// without the `gpu` feature offers only `cpu`: clap refuses `gpu` there
+/// and lists the one value it accepts.
+fn backend_parser() -> impl clap::builder::TypedValueParser<Value = Backend> {
+    use clap::builder::{PossibleValue, PossibleValuesParser};
+    PossibleValuesParser::new([
+        PossibleValue::new(Backend::Cpu.name()).help("CPU threads (rayon)"),
+        #[cfg(feature = "gpu")]
+        PossibleValue::new(Backend::Gpu.name())
+            .help("GPU compute shaders (wgpu: Vulkan/Metal/DX12); f32 only"),
+    ])
+    .map(|s| s.parse::<Backend>().expect("one of the possible values"))
 }
 
 #[derive(Args, Debug)]
@@ -174,8 +179,8 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value_t = PrecisionArg::F32)]
     pub precision: PrecisionArg,
     /// Where to trace
-    #[arg(long, value_enum, default_value_t = BackendArg::Cpu)]
-    pub backend: BackendArg,
+    #[arg(long, value_parser = backend_parser(), default_value_t = Backend::Cpu)]
+    pub backend: Backend,
     /// GPU adapter for --backend gpu: index or part of the name as `tessera gpus` lists it [default: the best one]
     #[cfg(feature = "gpu")]
     #[arg(long, value_name = "NAME|INDEX")]
@@ -231,24 +236,17 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let precision: Precision = args.precision.into();
 
     #[cfg(feature = "gpu")]
-    if args.backend != BackendArg::Gpu && args.adapter.is_some() {
+    if args.backend != Backend::Gpu && args.adapter.is_some() {
         bail!("--adapter only applies to --backend gpu");
     }
-    let renderer = match args.backend {
-        BackendArg::Cpu => Renderer::Cpu(CpuRenderer::new(args.threads)?),
-        #[cfg(feature = "gpu")]
-        BackendArg::Gpu => {
-            if precision != Precision::F32 {
-                bail!(
-                    "--backend gpu renders in f32 only; use --precision f32 (f64 is the CPU reference)"
-                );
-            }
-            Renderer::Gpu(Box::new(tracer_core::render::GpuRenderer::new(
-                args.adapter.as_deref(),
-                Default::default(),
-            )?))
-        }
-    };
+    if args.backend == Backend::Gpu && precision != Precision::F32 {
+        bail!("--backend gpu renders in f32 only; use --precision f32 (f64 is the CPU reference)");
+    }
+    #[cfg(feature = "gpu")]
+    let adapter = args.adapter.as_deref();
+    #[cfg(not(feature = "gpu"))]
+    let adapter = None;
+    let renderer = Renderer::open(args.backend, args.threads, adapter)?;
     let prepared = PreparedFrame::build(&scene, &settings, args.frame, precision)?;
     let total = settings.width as u64 * settings.height as u64 * settings.samples as u64;
     let progress = super::output::Progress::new("render", total, false);

@@ -4,18 +4,24 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Result;
-use clap::{Args, ValueEnum};
-use tessera_worker::{Backend, Worker, WorkerConfig};
+use clap::Args;
+use tessera_worker::{Worker, WorkerConfig};
+use tracer_core::render::Backend;
 
 use super::coordinator::shutdown_signal;
 use super::farm_common::{CoordinatorUrl, LogFormat, WORKER_TOKEN_ENV, init_logging, runtime};
 
-#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
-pub enum WorkerBackend {
-    /// CPU threads
-    Cpu,
-    /// One GPU through wgpu compute shaders (Vulkan/Metal/DX12; f32)
-    Gpu,
+/// `--backend` of `tessera worker` and `tessera cluster`, each value with
+/// its help. Both values in every build: a worker built without the `gpu`
+/// feature refuses `gpu` when it opens its renderer.
+pub fn backend_parser() -> impl clap::builder::TypedValueParser<Value = Backend> {
+    use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser as _};
+    PossibleValuesParser::new([
+        PossibleValue::new(Backend::Cpu.name()).help("CPU threads"),
+        PossibleValue::new(Backend::Gpu.name())
+            .help("One GPU through wgpu compute shaders (Vulkan/Metal/DX12; f32)"),
+    ])
+    .map(|s| s.parse::<Backend>().expect("one of the possible values"))
 }
 
 #[derive(Args, Debug, Clone)]
@@ -23,8 +29,8 @@ pub struct WorkerArgs {
     #[command(flatten)]
     pub coordinator: CoordinatorUrl,
     /// Where to trace
-    #[arg(long, value_enum, default_value_t = WorkerBackend::Cpu)]
-    pub backend: WorkerBackend,
+    #[arg(long, value_parser = backend_parser(), default_value_t = Backend::Cpu)]
+    pub backend: Backend,
     /// CPU threads for --backend cpu, 0..=4096; 0 means all cores [default: all cores]
     #[arg(long, allow_negative_numbers = true, value_parser = super::render::threads_parser())]
     pub threads: Option<usize>,
@@ -75,7 +81,7 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
             anyhow::bail!("--nice {}: {}", args.nice, std::io::Error::last_os_error());
         }
     }
-    if args.backend != WorkerBackend::Gpu && args.adapter.is_some() {
+    if args.backend != Backend::Gpu && args.adapter.is_some() {
         anyhow::bail!("--adapter only applies to --backend gpu");
     }
     let name = args.name.clone().unwrap_or_else(|| {
@@ -94,10 +100,7 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
         token: args.coordinator.token(WORKER_TOKEN_ENV)?,
         cache_dir: args.cache.clone().unwrap_or_else(default_cache),
         cache_bytes: args.cache_size,
-        backend: match args.backend {
-            WorkerBackend::Cpu => Backend::Cpu,
-            WorkerBackend::Gpu => Backend::Gpu,
-        },
+        backend: args.backend,
     })?;
     runtime()?.block_on(async move {
         let (drain_tx, drain) = tokio::sync::watch::channel(false);

@@ -21,7 +21,7 @@
 //! leases back (`ReturnLeases`) so no one waits for them to expire, sends
 //! the last results and exits.
 //!
-//! A worker renders on CPU threads or, with `Backend::Gpu` (feature `gpu`),
+//! A worker renders on CPU threads or, with [`Backend::Gpu`] (feature `gpu`),
 //! on one GPU adapter through tracer-core's wgpu renderer. Either way a unit
 //! yields the same fixed-point [`Film`] sums, so the coordinator merges
 //! results from both kinds of worker alike.
@@ -43,9 +43,7 @@ use tonic::transport::Channel;
 use tracer_core::adaptive::BlockMask;
 use tracer_core::assets::Bundle;
 use tracer_core::film::{Film, Rect, SampleRange};
-#[cfg(feature = "gpu")]
-use tracer_core::render::GpuRenderer;
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
+use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer, RendererError};
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
 /// Leases held ahead of the one being rendered.
@@ -77,12 +75,6 @@ const MAX_MESSAGE_BYTES: usize = 256 << 20;
 /// a discrete GPU (the unit's film is read back once per call, so fewer,
 /// larger calls spend less on fixed costs).
 const GPU_BAND_PIXEL_SAMPLES: u64 = 1 << 26;
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Backend {
-    Cpu,
-    Gpu,
-}
 
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
@@ -140,14 +132,10 @@ struct Session {
 
 /// What this worker tells the coordinator it is.
 fn capabilities(renderer: &Renderer) -> pb::Capabilities {
-    let (backend, gpu_name) = match renderer.adapter_name() {
-        None => (pb::Backend::Cpu, String::new()),
-        Some(name) => (pb::Backend::Gpu, name.to_string()),
-    };
     pb::Capabilities {
         threads: renderer.threads() as u32,
-        backend: backend as i32,
-        gpu_name,
+        backend: pb::Backend::from(renderer.backend()) as i32,
+        gpu_name: renderer.adapter_name().unwrap_or_default().to_string(),
         version: env!("CARGO_PKG_VERSION").into(),
     }
 }
@@ -210,19 +198,11 @@ impl Worker {
                 message: e.to_string(),
             }
         })?;
-        let renderer = match config.backend {
-            Backend::Cpu => Renderer::Cpu(
-                CpuRenderer::new(config.threads)
-                    .map_err(|e| WorkerError::Renderer(e.to_string()))?,
-            ),
-            #[cfg(feature = "gpu")]
-            Backend::Gpu => Renderer::Gpu(Box::new(
-                GpuRenderer::new(config.adapter.as_deref(), Default::default())
-                    .map_err(|e| WorkerError::Renderer(e.to_string()))?,
-            )),
-            #[cfg(not(feature = "gpu"))]
-            Backend::Gpu => return Err(WorkerError::GpuNotBuilt),
-        };
+        let renderer = Renderer::open(config.backend, config.threads, config.adapter.as_deref())
+            .map_err(|e| match e {
+                RendererError::GpuNotBuilt => WorkerError::GpuNotBuilt,
+                e => WorkerError::Renderer(e.to_string()),
+            })?;
         Ok(Worker {
             config,
             renderer: Arc::new(renderer),
@@ -1067,6 +1047,7 @@ async fn heartbeat(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tracer_core::render::CpuRenderer;
 
     #[test]
     fn leases_too_large_to_send_back_are_refused_as_failures() {

@@ -408,7 +408,7 @@ impl Farm {
                 id: id.clone(),
                 name: w.name.clone(),
                 threads: w.threads,
-                backend: w.backend.clone(),
+                backend: w.backend,
                 gpu_name: w.gpu_name.clone(),
                 version: w.version.clone(),
                 leases: w.leases.len() as u32,

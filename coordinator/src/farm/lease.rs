@@ -7,6 +7,7 @@ use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
 use tracer_core::film::Rect;
+use tracer_core::render::Backend;
 
 use crate::rate::WorkerSpeed;
 
@@ -71,7 +72,7 @@ impl Farm {
         &self,
         name: String,
         threads: u32,
-        backend: String,
+        backend: Backend,
         gpu_name: String,
         version: String,
     ) -> String {

@@ -44,6 +44,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::sync::watch;
 use tracer_core::adaptive::BlockMask;
 use tracer_core::film::{Film, RayCounts, Rect, SampleRange};
+use tracer_core::render::Backend;
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::RenderSettings;
 
@@ -223,7 +224,7 @@ pub struct WorkerView {
     pub id: String,
     pub name: String,
     pub threads: u32,
-    pub backend: String,
+    pub backend: Backend,
     pub gpu_name: String,
     pub version: String,
     pub leases: u32,
@@ -343,7 +344,7 @@ struct Lease {
 struct Worker {
     name: String,
     threads: u32,
-    backend: String,
+    backend: Backend,
     gpu_name: String,
     version: String,
     last_seen: Instant,

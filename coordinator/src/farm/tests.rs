@@ -117,7 +117,7 @@ fn register(farm: &Farm, name: &str, threads: u32) -> String {
     farm.register(
         name.into(),
         threads,
-        "cpu".into(),
+        tracer_core::render::Backend::Cpu,
         String::new(),
         String::new(),
     )

@@ -274,7 +274,7 @@ pub struct WorkerJson {
     pub id: String,
     pub name: String,
     /// "cpu" or "gpu".
-    pub backend: String,
+    pub backend: &'static str,
     /// The GPU adapter's name ("" for a CPU worker).
     pub adapter: String,
     pub threads: u32,
@@ -300,7 +300,7 @@ impl WorkerJson {
         WorkerJson {
             id: w.id.clone(),
             name: w.name.clone(),
-            backend: w.backend.clone(),
+            backend: w.backend.name(),
             adapter: w.gpu_name.clone(),
             threads: w.threads,
             version: w.version.clone(),

@@ -117,7 +117,7 @@ mod tests {
             id: id.into(),
             name: format!("name-{id}"),
             threads: 1,
-            backend: "cpu".into(),
+            backend: tracer_core::render::Backend::Cpu,
             gpu_name: String::new(),
             version: "0".into(),
             leases: 0,

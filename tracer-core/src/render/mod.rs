@@ -50,6 +50,49 @@ impl std::str::FromStr for Precision {
     }
 }
 
+/// Where a render is traced: the one backend type of the CLI, the workers
+/// and the benchmarks; tessera-proto converts it to and from the wire's
+/// `Backend`. Both variants exist in every build: opening a GPU
+/// [`Renderer`] in a build without the `gpu` feature is an error
+/// ([`RendererError::GpuNotBuilt`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Backend {
+    /// CPU threads ([`CpuRenderer`]).
+    Cpu,
+    /// GPU compute shaders (`GpuRenderer`, feature `gpu`).
+    Gpu,
+}
+
+impl Backend {
+    /// `cpu` or `gpu`: the name on the command line, in output and in files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Cpu => "cpu",
+            Backend::Gpu => "gpu",
+        }
+    }
+}
+
+impl std::fmt::Display for Backend {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // `pad`, so widths in format strings (`{:<4}`) apply.
+        f.pad(self.name())
+    }
+}
+
+impl std::str::FromStr for Backend {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "cpu" => Ok(Backend::Cpu),
+            "gpu" => Ok(Backend::Gpu),
+            _ => Err(format!(
+                "unknown backend {s:?}: expected \"cpu\" or \"gpu\""
+            )),
+        }
+    }
+}
+
 /// Render-ready state of one frame of a scene at one precision. Build once
 /// per frame, render many tiles from it.
 #[derive(Clone, Debug)]
@@ -129,9 +172,41 @@ pub enum RendererError {
     Gpu(#[from] GpuError),
     #[error("{0}")]
     Unsupported(&'static str),
+    #[error("this tessera was built without the GPU backend (cargo feature `gpu`)")]
+    GpuNotBuilt,
 }
 
 impl Renderer {
+    /// Opens a renderer of `backend`: the CPU one with `threads` (`None`:
+    /// all cores), the GPU one on `adapter` (index or part of its name;
+    /// `None`: the best) with default options. A GPU in a build without
+    /// the `gpu` feature is [`RendererError::GpuNotBuilt`].
+    pub fn open(
+        backend: Backend,
+        threads: Option<usize>,
+        adapter: Option<&str>,
+    ) -> Result<Self, RendererError> {
+        Ok(match backend {
+            Backend::Cpu => Renderer::Cpu(CpuRenderer::new(threads)?),
+            #[cfg(feature = "gpu")]
+            Backend::Gpu => Renderer::Gpu(Box::new(GpuRenderer::new(adapter, Default::default())?)),
+            #[cfg(not(feature = "gpu"))]
+            Backend::Gpu => {
+                let _ = adapter;
+                return Err(RendererError::GpuNotBuilt);
+            }
+        })
+    }
+
+    /// The backend this renderer traces on.
+    pub fn backend(&self) -> Backend {
+        match self {
+            Renderer::Cpu(_) => Backend::Cpu,
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(_) => Backend::Gpu,
+        }
+    }
+
     /// Renders `rect` of `frame` over `samples`, as [`CpuRenderer::render`].
     pub fn render(
         &self,
@@ -169,8 +244,39 @@ impl Renderer {
     /// `cpu:Nt` or `gpu:ADAPTER`, for summaries and logs.
     pub fn describe(&self) -> String {
         match self.adapter_name() {
-            None => format!("cpu:{}t", self.threads()),
-            Some(name) => format!("gpu:{name}"),
+            None => format!("{}:{}t", self.backend(), self.threads()),
+            Some(name) => format!("{}:{name}", self.backend()),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backend_names_parse_back_and_others_are_refused() {
+        for b in [Backend::Cpu, Backend::Gpu] {
+            assert_eq!(b.name().parse::<Backend>(), Ok(b));
+            assert_eq!(b.to_string(), b.name());
+        }
+        assert_eq!(
+            "GPU".parse::<Backend>(),
+            Err("unknown backend \"GPU\": expected \"cpu\" or \"gpu\"".to_string())
+        );
+    }
+
+    #[test]
+    fn a_cpu_renderer_opens_as_the_cpu_backend() {
+        let r = Renderer::open(Backend::Cpu, Some(1), None).unwrap();
+        assert_eq!((r.backend(), r.threads()), (Backend::Cpu, 1));
+    }
+
+    #[cfg(not(feature = "gpu"))]
+    #[test]
+    fn a_gpu_renderer_without_the_gpu_feature_is_a_clear_error() {
+        let e = Renderer::open(Backend::Gpu, None, None).err().unwrap();
+        assert!(matches!(e, RendererError::GpuNotBuilt));
+        assert!(e.to_string().contains("cargo feature `gpu`"), "{e}");
     }
 }
