@@ -170,8 +170,6 @@ pub enum RendererError {
     #[cfg(feature = "gpu")]
     #[error(transparent)]
     Gpu(#[from] GpuError),
-    #[error("{0}")]
-    Unsupported(&'static str),
     #[error("this tessera was built without the GPU backend (cargo feature `gpu`)")]
     GpuNotBuilt,
 }
