@@ -181,27 +181,27 @@ impl AdaptiveSpec {
     /// Checks each given value on its own terms (and min against max when
     /// both are given); `Err` names the key and what is wrong with it.
     pub fn check(&self) -> Result<(), (&'static str, String)> {
-        if let Some(r) = self.relative_error.filter(|r| !(*r > 0.0 && r.is_finite())) {
-            let m = AdaptiveError::RelativeError(r).to_string();
-            return Err(("relative_error", m["relative_error ".len()..].to_string()));
-        }
         let full = AdaptiveSettings {
             target_error: self.target_error.unwrap_or(1.0),
             relative_error: self.relative_error.unwrap_or(0.0),
             min_samples: self.min_samples.unwrap_or(2),
             max_samples: self.max_samples.unwrap_or(MAX_SAMPLES),
         };
-        full.validate().map_err(|e| {
-            let key = match e {
-                AdaptiveError::TargetError(_) => "target_error",
-                AdaptiveError::RelativeError(_) => "relative_error",
-                AdaptiveError::MinTooSmall(_) | AdaptiveError::MinAboveMax { .. } => "min_samples",
-                _ => "max_samples",
-            };
-            let m = e.to_string();
-            let what = m.split_once(' ').map_or(m.clone(), |(_, w)| w.to_string());
-            (key, what)
-        })
+        check_given_relative(self.relative_error)
+            .and_then(|()| full.validate())
+            .map_err(|e| {
+                let key = match e {
+                    AdaptiveError::TargetError(_) => "target_error",
+                    AdaptiveError::RelativeError(_) => "relative_error",
+                    AdaptiveError::MinTooSmall(_) | AdaptiveError::MinAboveMax { .. } => {
+                        "min_samples"
+                    }
+                    _ => "max_samples",
+                };
+                let m = e.to_string();
+                let what = m.split_once(' ').map_or(m.clone(), |(_, w)| w.to_string());
+                (key, what)
+            })
     }
 
     /// `over` (the command line) over `self` (the scene file), defaults
@@ -211,9 +211,7 @@ impl AdaptiveSpec {
     pub fn resolve(&self, over: &AdaptiveSpec) -> Result<Option<AdaptiveSettings>, String> {
         let target_error = over.target_error.or(self.target_error);
         let relative_error = over.relative_error.or(self.relative_error);
-        if let Some(r) = relative_error.filter(|r| !(*r > 0.0 && r.is_finite())) {
-            return Err(AdaptiveError::RelativeError(r).to_string());
-        }
+        check_given_relative(relative_error).map_err(|e| e.to_string())?;
         if target_error.is_none() && relative_error.is_none() {
             if over.min_samples.is_some() || over.max_samples.is_some() {
                 return Err(
@@ -239,6 +237,15 @@ impl AdaptiveSpec {
         };
         a.validate().map_err(|e| e.to_string())?;
         Ok(Some(a))
+    }
+}
+
+/// A relative target, when given, must be on: in the settings 0 means
+/// "none", but nobody asks for none by giving 0.
+fn check_given_relative(r: Option<f64>) -> Result<(), AdaptiveError> {
+    match r {
+        Some(r) if !(r > 0.0 && r.is_finite()) => Err(AdaptiveError::RelativeError(r)),
+        _ => Ok(()),
     }
 }
 
