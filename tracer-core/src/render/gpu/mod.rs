@@ -284,6 +284,9 @@ pub struct GpuRenderer {
     /// Compiled pipelines on disk, where the device has a pipeline cache.
     disk_cache: Option<disk_cache::DiskCache>,
     stats: Mutex<GpuStats>,
+    /// Bound at binding 13 (an adaptive round's active blocks) by every
+    /// render that is not one: made once, not per render.
+    no_blocks: wgpu::Buffer,
 }
 
 impl GpuRenderer {
@@ -461,6 +464,12 @@ impl GpuRenderer {
             bind_group_layouts: &[Some(&layout), Some(&wave_layout), Some(&wave_args_layout)],
             immediate_size: 0,
         });
+        let no_blocks = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("no active blocks"),
+            size: 16,
+            usage: wgpu::BufferUsages::STORAGE,
+            mapped_at_creation: false,
+        });
         let disk_cache =
             cache_dir.and_then(|d| disk_cache::DiskCache::open(&device, &chosen.get_info(), d));
         Ok(GpuRenderer {
@@ -482,6 +491,7 @@ impl GpuRenderer {
             resolver: Mutex::new(None),
             disk_cache,
             stats: Mutex::new(GpuStats::default()),
+            no_blocks,
         })
     }
 

@@ -93,17 +93,14 @@ impl GpuRenderer {
                 .map(|(i, _)| (i % cols) as u32 | ((i / cols) as u32) << 16)
                 .collect()
         });
-        let blocks_buffer = self
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("active blocks"),
-                contents: if blocks.is_empty() {
-                    &[0u8; 16]
-                } else {
-                    bytemuck::cast_slice(&blocks)
-                },
-                usage: wgpu::BufferUsages::STORAGE,
-            });
+        let blocks_buffer = mask.map(|_| {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("active blocks"),
+                    contents: bytemuck::cast_slice(&blocks),
+                    usage: wgpu::BufferUsages::STORAGE,
+                })
+        });
         let grid = match mask {
             Some(_) => Rect::new(rect.x, rect.y, BLOCK, BLOCK * blocks.len() as u32),
             None => rect,
@@ -158,7 +155,7 @@ impl GpuRenderer {
                 entire(10, &scene.tree[2]),
                 entire(11, &scene.tree[3]),
                 entire(12, &scene.dist),
-                entire(13, &blocks_buffer),
+                entire(13, blocks_buffer.as_ref().unwrap_or(&self.no_blocks)),
             ],
         });
 
