@@ -569,9 +569,11 @@ fn a_worker_killed_mid_job_loses_nothing() {
     let mut victim = start_worker(dir.path(), &c.url(), "victim");
     let _other = start_worker(dir.path(), &c.url(), "survivor");
     let scene = repo("examples/resolution.toml");
-    let settings = ["--width", "192", "--height", "144", "--samples", "16"];
+    // 128 spp: at 16 spp two workers once finished all 108 units between
+    // the poll below and the kill (CI, 2026-12-03), so it was not mid-job.
+    let settings = ["--width", "192", "--height", "144", "--samples", "128"];
     let mut args = settings.to_vec();
-    args.extend(["--tile-size", "16"]);
+    args.extend(["--tile-size", "16", "--samples-per-unit", "128"]); // 108 units
     let job = submit(&c.url(), &scene, &args);
     wait_for("some units done", Duration::from_secs(60), || {
         status(&c.url(), &job).units_done >= 4
