@@ -608,7 +608,7 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
         .map(|i| start_worker(dir.path(), &url, &format!("w{i}")))
         .collect();
     let scene = repo("examples/animation.toml");
-    let settings = ["--width", "192", "--height", "144", "--samples", "16"];
+    let settings = ["--width", "192", "--height", "144", "--samples", "64"];
     let mut args = settings.to_vec();
     args.extend(["--frames", "1..3", "--tile-size", "16"]);
     let job = submit(&url, &scene, &args);
@@ -618,6 +618,10 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
         before = status(&url, &job).units_done;
         before >= total / 3
     });
+    // Results are durable within 250 ms of their commit (the store's
+    // RESULTS_DURABLE_WITHIN): every unit reported before this pause
+    // survives the kill.
+    std::thread::sleep(Duration::from_millis(400));
     c.proc.sigkill();
     // Restart on the same address: the workers reconnect on their own.
     let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
@@ -691,6 +695,7 @@ fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
         before = status(&url, &job).units_done;
         before >= total / 4
     });
+    std::thread::sleep(Duration::from_millis(400));
     c.proc.sigkill();
     let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
     let restored = status(&url, &job);

@@ -6,17 +6,23 @@
 //! (one record for all the units its lease joined, keyed by the first; the
 //! units are the layout's tiles inside its rect); the film, its units'
 //! "done" mark and the job's accepted-result counter are written in one
-//! transaction, so a crash can never lose a finished unit nor count it twice. Writes go through
-//! one thread that commits whatever is queued in a single transaction (group
-//! commit): one fsync serves many results.
+//! transaction, so a crash can never count a finished unit twice nor keep
+//! half of one. Writes go through one thread that commits whatever is
+//! queued in a single transaction (group commit). A commit of results
+//! alone is made durable within [`RESULTS_DURABLE_WITHIN`], not at once: a
+//! GPU worker's tens of megabytes a frame would otherwise wait on an fsync
+//! each, which bounded the farm's intake below the GPU's speed. A crash
+//! then loses at most that window of results, never a job, a frame record
+//! or a state change (those commit durably, taking any results before them
+//! along); the lost units are simply pending again after the restart.
 
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, RwLock, mpsc};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
+use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
 use tessera_proto::film_codec;
 use tokio::sync::oneshot;
@@ -151,6 +157,15 @@ pub enum Op {
     },
 }
 
+impl Op {
+    /// A result taken in or counted: may wait [`RESULTS_DURABLE_WITHIN`]
+    /// for durability (a crash before then only makes its units pending
+    /// again). Every other op is durable when its commit returns.
+    pub fn is_result(&self) -> bool {
+        matches!(self, Op::AcceptUnits { .. } | Op::PutCounters { .. })
+    }
+}
+
 struct Request {
     ops: Vec<Op>,
     reply: oneshot::Sender<Result<(), String>>,
@@ -262,7 +277,9 @@ impl Store {
         *self.faults.lock().expect("faults lock") = Some((when, times));
     }
 
-    /// Applies `ops` atomically (with whatever else is queued); returns once durable.
+    /// Applies `ops` atomically (with whatever else is queued); returns once
+    /// committed: durable at once, or within [`RESULTS_DURABLE_WITHIN`] if
+    /// `ops` only accept results and count ([`Op::is_result`]).
     pub async fn write(&self, ops: Vec<Op>) -> Result<(), StoreError> {
         let (reply, rx) = oneshot::channel();
         self.tx
@@ -330,6 +347,10 @@ impl Store {
 /// How often a failing database is reopened and probed.
 const HEAL_INTERVAL: Duration = Duration::from_secs(1);
 
+/// The longest a committed result waits for the fsync that makes it
+/// durable: what a crash can cost in re-rendered units.
+pub const RESULTS_DURABLE_WITHIN: Duration = Duration::from_millis(250);
+
 fn writer(
     db: &Shared,
     path: &Path,
@@ -337,8 +358,23 @@ fn writer(
     faults: &Faults,
     health: &StorageHealth,
 ) {
+    // When the oldest commit not yet durable was made.
+    let mut unsynced: Option<Instant> = None;
     loop {
-        let first = if health.ok() {
+        let first = if let (true, Some(since)) = (health.ok(), unsynced) {
+            match rx.recv_timeout(RESULTS_DURABLE_WITHIN.saturating_sub(since.elapsed())) {
+                Ok(r) => r,
+                Err(mpsc::RecvTimeoutError::Timeout) => {
+                    sync(db, health);
+                    unsynced = None;
+                    continue;
+                }
+                Err(mpsc::RecvTimeoutError::Disconnected) => {
+                    sync(db, health);
+                    return;
+                }
+            }
+        } else if health.ok() {
             match rx.recv() {
                 Ok(r) => r,
                 Err(_) => return,
@@ -362,13 +398,22 @@ fn writer(
         }
         if !health.ok() {
             heal(db, path, health);
+            // Reopening dropped whatever was not durable yet.
+            unsynced = None;
         }
+        let durable = unsynced.is_some_and(|t| t.elapsed() >= RESULTS_DURABLE_WITHIN)
+            || !batch.iter().flat_map(|r| r.ops.iter()).all(Op::is_result);
         let result = match injected_fault(faults, &batch) {
             Some(e) => Err(e),
             None => {
                 let current = db.read().expect("db lock").clone();
+                let durability = if durable {
+                    Durability::Immediate
+                } else {
+                    Durability::None
+                };
                 let r = match current {
-                    Some(d) => commit(&d, batch.iter().flat_map(|r| r.ops.iter()))
+                    Some(d) => commit(&d, batch.iter().flat_map(|r| r.ops.iter()), durability)
                         .map_err(|e| e.to_string()),
                     None => Err(health.last_error()),
                 };
@@ -379,6 +424,13 @@ fn writer(
                 r
             }
         };
+        if result.is_ok() {
+            if durable {
+                unsynced = None;
+            } else {
+                unsynced.get_or_insert_with(Instant::now);
+            }
+        }
         if let Err(e) = &result {
             tracing::error!(error = %e, "database commit failed");
         }
@@ -447,8 +499,27 @@ fn injected_fault(faults: &Faults, batch: &[Request]) -> Option<String> {
     Some("injected commit failure".into())
 }
 
-fn commit<'a>(db: &Database, ops: impl Iterator<Item = &'a Op>) -> Result<(), StoreError> {
-    let w = db.begin_write()?;
+/// Makes every commit so far durable (an empty durable commit).
+fn sync(db: &Shared, health: &StorageHealth) {
+    let current = db.read().expect("db lock").clone();
+    let r = match current {
+        Some(d) => commit(&d, std::iter::empty(), Durability::Immediate).map_err(|e| e.to_string()),
+        None => Err(health.last_error()),
+    };
+    if let Err(e) = r {
+        tracing::error!(error = %e, "cannot make committed results durable");
+        health.fail(&e);
+    }
+}
+
+fn commit<'a>(
+    db: &Database,
+    ops: impl Iterator<Item = &'a Op>,
+    durability: Durability,
+) -> Result<(), StoreError> {
+    let mut w = db.begin_write()?;
+    w.set_durability(durability)
+        .map_err(|e| StoreError::Commit(e.to_string()))?;
     {
         let mut jobs = w.open_table(JOBS)?;
         let mut counters = w.open_table(COUNTERS)?;
