@@ -24,7 +24,6 @@ use std::time::Instant;
 
 use glam::Vec3A;
 use rayon::prelude::*;
-use tracer_core::accel::triangle_bytes;
 use tracer_core::bvh::closest_hits_at;
 use tracer_core::geometry::PrimId;
 use tracer_core::math::{Ray, offset_origin};
@@ -187,7 +186,7 @@ fn bench(path: &Path, threads: usize, cpu: bool, gpu: bool) -> Result<(), String
         stats.stack,
         stats.max_leaf_size,
         stats.bytes as f64 / (1 << 20) as f64,
-        triangle_bytes(&world) as f64 / (1 << 20) as f64,
+        world.triangle_bytes() as f64 / (1 << 20) as f64,
         world.degenerate_triangles
     );
 

@@ -177,7 +177,7 @@ pub fn finish<R: Real>(t_scaled: R, det: R, t_max: R) -> Option<R> {
 
 /// Four triangles in the form the 4-wide (SSE) pass of the test wants:
 /// `rows[3 * i + a]` holds vertex i's coordinate on axis a, triangle j in
-/// lane j (`f32` only; the BVH keeps these in leaf order, see `bvh.rs`),
+/// lane j (`f32` only; the BVH keeps these in leaf order, see `bvh/build.rs`),
 /// and what each lane is to the caller (the BVH: its packed `PrimId`, so a
 /// hit needs no second lookup; `u32::MAX` for an unused lane).
 #[repr(C, align(16))]

@@ -19,11 +19,11 @@
 
 use std::mem::MaybeUninit;
 
-use super::{Bvh, CULL_WIDEN, EXIT_WIDEN, STACK, closest_hit, far_to_near, occluded};
+use super::traverse::{CULL_WIDEN, EXIT_WIDEN, far_to_near};
+use super::{Bvh, Primitives, STACK, closest_hit, occluded};
 use crate::geometry::PrimId;
 use crate::math::Ray;
 use crate::simd::SimdLevel;
-use crate::world::World;
 
 /// Rays in a packet at most: 4 SSE groups of 4, 2 AVX2 groups of 8, one AVX-512 vector.
 pub const PACKET: usize = 16;
@@ -62,24 +62,24 @@ pub fn render_level() -> SimdLevel {
 /// (`PrimId::NONE` for camera rays). Nodes are tested at [`render_level`]:
 /// 4 rays per SSE instruction, or 8 per AVX2 one (elsewhere than x86-64,
 /// the rays go one by one).
-pub fn closest_hits(
-    world: &World<f32>,
+pub fn closest_hits<P: Primitives<f32>>(
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     best: &mut [f32],
     found: &mut [PrimId],
     skip: PrimId,
 ) {
-    let done = closest_hits_at(render_level(), world, bvh, rays, best, found, skip);
+    let done = closest_hits_at(render_level(), view, bvh, rays, best, found, skip);
     debug_assert!(done);
 }
 
 /// [`closest_hits`] with the node test of `level` (baseline: SSE, 4 rays
 /// per instruction; AVX2: 8; AVX-512: 16): the same answers at every level.
 /// False (and nothing done) if this CPU lacks the level.
-pub fn closest_hits_at(
+pub fn closest_hits_at<P: Primitives<f32>>(
     level: SimdLevel,
-    world: &World<f32>,
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     best: &mut [f32],
@@ -98,11 +98,11 @@ pub fn closest_hits_at(
     }
     #[cfg(target_arch = "x86_64")]
     if rays.len() > 1 {
-        walk_at::<false>(level, world, bvh, rays, best, found, &[skip; PACKET]);
+        walk_at::<P, false>(level, view, bvh, rays, best, found, &[skip; PACKET]);
         return true;
     }
     for (j, ray) in rays.iter().enumerate() {
-        if let Some((t, id)) = closest_hit(world, bvh, ray, best[j], found[j], skip) {
+        if let Some((t, id)) = closest_hit(view, bvh, ray, best[j], found[j], skip) {
             (best[j], found[j]) = (t, id);
         }
     }
@@ -114,21 +114,21 @@ pub fn closest_hits_at(
 /// [`occluded`] answers it (the same boxes and leaves are tested for each
 /// ray). For coherent shadow rays (from neighbouring points to one light).
 /// Nodes are tested at [`render_level`].
-pub fn occluded_hits(
-    world: &World<f32>,
+pub fn occluded_hits<P: Primitives<f32>>(
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     t_max: &[f32],
     skip: &[PrimId],
 ) -> u32 {
-    occluded_hits_at(render_level(), world, bvh, rays, t_max, skip)
+    occluded_hits_at(render_level(), view, bvh, rays, t_max, skip)
         .expect("the render level is available")
 }
 
 /// [`occluded_hits`] with the node test of `level`; `None` if this CPU lacks it.
-pub fn occluded_hits_at(
+pub fn occluded_hits_at<P: Primitives<f32>>(
     level: SimdLevel,
-    world: &World<f32>,
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     t_max: &[f32],
@@ -151,9 +151,9 @@ pub fn occluded_hits_at(
         best[..n].copy_from_slice(t_max);
         let mut skips = [PrimId::NONE; PACKET];
         skips[..n].copy_from_slice(skip);
-        return Some(walk_at::<true>(
+        return Some(walk_at::<P, true>(
             level,
-            world,
+            view,
             bvh,
             rays,
             &mut best[..n],
@@ -162,15 +162,15 @@ pub fn occluded_hits_at(
         ));
     }
     Some((0..n).fold(0, |m, j| {
-        m | (occluded(world, bvh, &rays[j], t_max[j], skip[j]) as u32) << j
+        m | (occluded(view, bvh, &rays[j], t_max[j], skip[j]) as u32) << j
     }))
 }
 
 /// The walk at `level`, which this CPU has (checked by the callers).
 #[cfg(target_arch = "x86_64")]
-fn walk_at<const ANY: bool>(
+fn walk_at<P: Primitives<f32>, const ANY: bool>(
     level: SimdLevel,
-    world: &World<f32>,
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     best: &mut [f32],
@@ -179,51 +179,51 @@ fn walk_at<const ANY: bool>(
 ) -> u32 {
     match level {
         // SAFETY: the callers checked that the CPU has the level.
-        SimdLevel::Avx512 => unsafe { walk_avx512::<ANY>(world, bvh, rays, best, found, skip) },
-        SimdLevel::Avx2 => unsafe { walk_avx2::<ANY>(world, bvh, rays, best, found, skip) },
-        SimdLevel::Baseline => walk_sse::<ANY>(world, bvh, rays, best, found, skip),
+        SimdLevel::Avx512 => unsafe { walk_avx512::<P, ANY>(view, bvh, rays, best, found, skip) },
+        SimdLevel::Avx2 => unsafe { walk_avx2::<P, ANY>(view, bvh, rays, best, found, skip) },
+        SimdLevel::Baseline => walk_sse::<P, ANY>(view, bvh, rays, best, found, skip),
     }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[inline(never)]
-fn walk_sse<const ANY: bool>(
-    world: &World<f32>,
+fn walk_sse<P: Primitives<f32>, const ANY: bool>(
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     best: &mut [f32],
     found: &mut [PrimId],
     skip: &[PrimId; PACKET],
 ) -> u32 {
-    walk::<4, ANY>(world, bvh, rays, best, found, skip)
+    walk::<P, 4, ANY>(view, bvh, rays, best, found, skip)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline(never)]
-fn walk_avx512<const ANY: bool>(
-    world: &World<f32>,
+fn walk_avx512<P: Primitives<f32>, const ANY: bool>(
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     best: &mut [f32],
     found: &mut [PrimId],
     skip: &[PrimId; PACKET],
 ) -> u32 {
-    walk::<16, ANY>(world, bvh, rays, best, found, skip)
+    walk::<P, 16, ANY>(view, bvh, rays, best, found, skip)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline(never)]
-fn walk_avx2<const ANY: bool>(
-    world: &World<f32>,
+fn walk_avx2<P: Primitives<f32>, const ANY: bool>(
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     best: &mut [f32],
     found: &mut [PrimId],
     skip: &[PrimId; PACKET],
 ) -> u32 {
-    walk::<8, ANY>(world, bvh, rays, best, found, skip)
+    walk::<P, 8, ANY>(view, bvh, rays, best, found, skip)
 }
 
 /// A node's slot `k` against the 16 rays, 8 per AVX instruction; as [`slot16`].
@@ -352,8 +352,8 @@ fn slot16(
 /// The packet walk. Closest hits (`ANY` false): `best`/`found` in and out,
 /// returns 0. Occlusion (`ANY`): `best` holds each ray's `t_max`, returns
 /// the mask of blocked rays; a ray leaves the walk once blocked.
-fn walk<const W: usize, const ANY: bool>(
-    world: &World<f32>,
+fn walk<P: Primitives<f32>, const W: usize, const ANY: bool>(
+    view: &P,
     bvh: &Bvh,
     rays: &[Ray<f32>],
     best: &mut [f32],
@@ -367,7 +367,7 @@ fn walk<const W: usize, const ANY: bool>(
     unsafe {
         use std::arch::x86_64::*;
 
-        use super::leaf;
+        use super::traverse::leaf;
         use crate::triangle::TriangleRay;
 
         // Origins and directions by lanes, four rays transposed at a time
@@ -438,9 +438,9 @@ fn walk<const W: usize, const ANY: bool>(
         for (j, ray) in rays.iter().enumerate() {
             if octant(j) != (nx, ny, nz) {
                 if ANY {
-                    blocked |= (occluded(world, bvh, ray, best[j], skip[j]) as u32) << j;
+                    blocked |= (occluded(view, bvh, ray, best[j], skip[j]) as u32) << j;
                 } else if let Some((t, id)) =
-                    closest_hit(world, bvh, ray, best[j], found[j], skip[j])
+                    closest_hit(view, bvh, ray, best[j], found[j], skip[j])
                 {
                     (best[j], found[j]) = (t, id);
                 }
@@ -579,8 +579,8 @@ fn walk<const W: usize, const ANY: bool>(
                     let leaf_ref = (cur.child as usize, cur.count as usize);
                     if ANY {
                         let (mut t, mut id) = (bt.0[j], PrimId::NONE);
-                        if leaf::<f32, true>(
-                            world,
+                        if leaf::<f32, P, true>(
+                            view,
                             bvh,
                             &rays[j],
                             tr[j].assume_init_ref(),
@@ -596,8 +596,8 @@ fn walk<const W: usize, const ANY: bool>(
                         }
                         continue;
                     }
-                    leaf::<f32, false>(
-                        world,
+                    leaf::<f32, P, false>(
+                        view,
                         bvh,
                         &rays[j],
                         tr[j].assume_init_ref(),

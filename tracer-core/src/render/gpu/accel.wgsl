@@ -1,8 +1,8 @@
-// Scene queries for worlds with a BVH (accel.rs): planes by loop, spheres
+// Scene queries for worlds with a BVH (world/query.rs): planes by loop, spheres
 // and triangles through the tree, whose root is node 0. Compiled after
 // bvh.wgsl (the traversal) instead of analytic.wgsl.
 
-// accel.rs closest_hit_accel: planes by loop, then the tree.
+// world/query.rs closest_hit_accel: planes by loop, then the tree.
 fn closest_hit(o: vec3<f32>, d: vec3<f32>, skip: u32) -> Hit {
     return tree_closest(0u, o, d, skip, planes_closest(o, d, skip, Hit(BIG, NONE)));
 }
@@ -11,7 +11,7 @@ fn occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
     return planes_occlude(o, d, t_max, skip) || tree_occluded(0u, o, d, t_max, skip);
 }
 
-// world.rs surface; for triangles (accel.rs triangle_surface) the point
+// world/query.rs surface; for triangles (triangle_surface there) the point
 // snapped onto the triangle's plane and its outward geometric normal.
 fn surface(id: u32, p: vec3<f32>) -> Surface {
     if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
@@ -20,7 +20,7 @@ fn surface(id: u32, p: vec3<f32>) -> Surface {
     return triangle_surface(id & ((1u << KIND_SHIFT) - 1u), p);
 }
 
-// accel.rs shading_normal: spheres shade with their geometric normal.
+// world/query.rs shading_normal: spheres shade with their geometric normal.
 fn shading_normal(id: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
     if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
         return n;

@@ -1,7 +1,7 @@
-// Tree traversal on the GPU (bvh.rs, triangle.rs): the 4-wide node layout,
+// Tree traversal on the GPU (bvh/, triangle.rs): the 4-wide node layout,
 // the same slab test with planes chosen by the direction's sign, the same
 // near-first order and culling, `Triangle::intersect` (the watertight test)
-// and the triangle parts of world.rs / accel.rs (`triangle_surface`,
+// and the triangle parts of world/query.rs (`triangle_surface`,
 // `shading_normal`). Compiled in for worlds with a tree (then accel.wgsl
 // holds the scene queries) and for moving meshes (distributed.wgsl,
 // moving_meshes.wgsl): each tree lies in the same arrays, the static one
@@ -16,7 +16,7 @@
 
 // ---- Layouts: keep in sync with layout.rs (GpuBvhNode, GpuTriangle, GpuTriangleShading)
 struct BvhNode4 {
-    // Rows of the four slots' boxes (bvh.rs BvhNode4::b).
+    // Rows of the four slots' boxes (bvh/node.rs BvhNode4::b).
     min_x: vec4<f32>,
     max_x: vec4<f32>,
     min_y: vec4<f32>,
@@ -49,9 +49,9 @@ struct TriangleShading {
 @group(0) @binding(10) var<storage, read> triangles: array<Triangle>;
 @group(0) @binding(11) var<storage, read> shading: array<TriangleShading>;
 
-// f32::MAX, standing in for 1/0 in the reciprocal direction (bvh.rs BoxRay).
+// f32::MAX, standing in for 1/0 in the reciprocal direction (bvh/traverse.rs BoxRay).
 const INV_BIG: f32 = 3.4028235e38;
-// Exit distances are widened by this (bvh.rs: Ize 2013) so rounding never
+// Exit distances are widened by this (bvh/traverse.rs: Ize 2013) so rounding never
 // culls a box the ray grazes.
 const EXIT_WIDEN: f32 = 1.0000004;
 
@@ -64,7 +64,7 @@ fn reciprocal(d: vec3<f32>) -> vec3<f32> {
 
 // Entry distances into the node's four boxes where the ray meets them
 // within [0, t_max], else MISS. The near plane on each axis is the min one
-// where the direction is positive (bvh.rs BoxRay).
+// where the direction is positive (bvh/traverse.rs BoxRay).
 fn box_entry4(n: BvhNode4, o: vec3<f32>, inv: vec3<f32>, t_max: f32) -> vec4<f32> {
     let pos = inv >= vec3<f32>(0.0);
     let t0x = (select(n.max_x, n.min_x, pos.x) - o.x) * inv.x;
@@ -172,7 +172,7 @@ fn hit_triangle(tri: Triangle, r: TriRay, t_max: f32) -> f32 {
     return select(MISS, t, t > 0.0 && t < t_max);
 }
 
-// bvh.rs hit_prim: a leaf's primitive against the ray.
+// world/query.rs Primitives::intersect: a leaf's primitive against the ray.
 fn hit_prim(id: u32, o: vec3<f32>, d: vec3<f32>, tr: TriRay, t_max: f32, skip: u32) -> f32 {
     let index = id & ((1u << KIND_SHIFT) - 1u);
     if ((id >> KIND_SHIFT) == KIND_TRIANGLE) {
@@ -185,7 +185,7 @@ fn hit_prim(id: u32, o: vec3<f32>, d: vec3<f32>, tr: TriRay, t_max: f32, skip: u
     return hit_sphere(spheres[index], o, d, t_max, id == skip);
 }
 
-// bvh.rs closest_hit: nearest hit of the primitives of the tree rooted at
+// bvh/traverse.rs closest_hit: nearest hit of the primitives of the tree rooted at
 // node `root` nearer than h.t.
 fn tree_closest(root: u32, o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
     var best = h.t;
@@ -266,7 +266,7 @@ fn tree_closest(root: u32, o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit
     return Hit(best, found);
 }
 
-// bvh.rs occluded: any primitive of the tree rooted at node `root` before
+// bvh/traverse.rs occluded: any primitive of the tree rooted at node `root` before
 // t_max; leaves are tested as soon as their box is met.
 fn tree_occluded(root: u32, o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
     let inv = reciprocal(d);
@@ -308,7 +308,7 @@ fn tree_occluded(root: u32, o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -
     return false;
 }
 
-// accel.rs triangle_surface: the point snapped onto the plane of triangle
+// world/query.rs triangle_surface: the point snapped onto the plane of triangle
 // `index` and its outward geometric normal.
 fn triangle_surface(index: u32, p: vec3<f32>) -> Surface {
     let s = shading[index];
@@ -316,7 +316,7 @@ fn triangle_surface(index: u32, p: vec3<f32>) -> Surface {
     return Surface(p - s.normal * dot(s.normal, p - v0), s.normal, s.material);
 }
 
-// accel.rs shading_normal for triangle `index`: on smooth triangles the
+// world/query.rs shading_normal for triangle `index`: on smooth triangles the
 // interpolated vertex normal, turned to the side of n (the geometric normal
 // facing the viewer), and n itself wherever that would face away from the
 // viewer v.

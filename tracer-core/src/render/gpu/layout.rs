@@ -581,7 +581,7 @@ impl SceneData {
         };
         let mut materials: Vec<GpuMaterial> = w.materials.iter().map(material).collect();
         // The trees: the world's own, then each moving mesh's, whose
-        // materials are the world's so far and then its file's (world.rs):
+        // materials are the world's so far and then its file's (world/mod.rs):
         // those that differ from the world's get places of their own.
         let static_tree = w.accel.as_ref().filter(|t| !t.nodes.is_empty());
         let mut moving = Vec::new();

@@ -188,7 +188,7 @@ struct Hit {
 // every sphere and plane) or accel.wgsl (a tree over spheres and triangles
 // traversed by bvh.wgsl, planes by loop), whichever the host compiles in.
 
-// world.rs closest_hit, sphere part: strictly nearer than h.t wins.
+// world/query.rs closest_hit, sphere part: strictly nearer than h.t wins.
 fn spheres_closest(o: vec3<f32>, d: vec3<f32>, skip: u32, h: Hit) -> Hit {
     var best = h;
     for (var i = 0u; i < N_SPHERES; i++) {
@@ -239,7 +239,7 @@ struct Surface {
     material: u32,
 }
 
-// world.rs surface for spheres and planes: the point snapped onto the
+// world/query.rs surface for spheres and planes: the point snapped onto the
 // primitive, outward normal.
 fn analytic_surface(id: u32, p: vec3<f32>) -> Surface {
     let index = id & ((1u << KIND_SHIFT) - 1u);
@@ -538,7 +538,7 @@ fn render(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
         let off = sample_offset(frame.sampler, frame.grid_n, pixel_seed(px, py, params.frame), s);
         let sx = f32(px) + off.x;
         let sy = f32(py) + off.y;
-        // world.rs Camera::ray
+        // world/mod.rs Camera::ray
         let a = 2.0 * sx * frame.inv_width - 1.0;
         let b = 1.0 - 2.0 * sy * frame.inv_height;
         let d = normalize(frame.forward + frame.right * a + frame.up * b);

@@ -5,14 +5,23 @@
 //! offset from the camera. Points near the camera, where precision matters
 //! most, then have small coordinates, so a 1e-4 sphere placed 1e5 from the
 //! world origin is still resolved in `f32`.
+//!
+//! Here the types and the build; `triangles.rs` places mesh objects into
+//! a world's triangles; `query.rs` answers rays (nearest hit, occlusion,
+//! surface), through the tree that `accel.rs` builds when the scene has
+//! one. The world sits above `accel` and `bvh`: it owns the tree and the
+//! primitives, and neither of them knows the `World`.
 
-use crate::accel::TriangleSet;
+mod query;
+mod triangles;
+
 use crate::bvh::Bvh;
 use crate::distributed::{self, Distributed, Lens, MovingMesh, MovingSphere, Timing};
-use crate::geometry::{Plane, PrimId, Sphere, SpherePack};
-use crate::math::{Lanes4, Ray, Real, Vector3};
+use crate::geometry::{Plane, Sphere, SpherePack};
+use crate::math::{Ray, Real, Vector3};
 use crate::scene::{FILE_MATERIALS, MaterialDesc, ObjectDesc, RenderSettings, SceneDesc, Vec3};
 use crate::triangle::{Triangle, TriangleShading};
+use triangles::TriangleSet;
 
 #[derive(Clone, Copy, Debug)]
 pub struct Material<R: Real> {
@@ -297,7 +306,7 @@ impl<R: Real> World<R> {
             camera_position: origin,
             dist: None,
         };
-        crate::accel::build_accel(&mut world, None);
+        world.set_accel(None);
 
         // Distributed ray tracing, only where the scene asks for it.
         let area_lights = desc.lights.iter().any(|l| l.shape.is_area());
@@ -337,7 +346,7 @@ impl<R: Real> World<R> {
                         dist: None,
                         ..world.clone_settings()
                     };
-                    crate::accel::build_accel(&mut own, None);
+                    own.set_accel(None);
                     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
                     for t in &own.triangles {
                         for v in t.vertices() {
@@ -380,6 +389,24 @@ impl<R: Real> World<R> {
         world
     }
 
+    /// Rebuilds (`Some(true)`), drops (`Some(false)`) or re-decides (`None`)
+    /// the acceleration structure. Without one, every query tests every
+    /// primitive: the brute-force reference the tree is checked against.
+    pub fn set_accel(&mut self, force: Option<bool>) {
+        self.accel = crate::accel::build(
+            &self.spheres,
+            &mut self.triangles,
+            &mut self.triangle_shading,
+            force,
+        );
+    }
+
+    /// Bytes of the triangle data (intersection + shading arrays).
+    pub fn triangle_bytes(&self) -> usize {
+        self.triangles.len()
+            * (std::mem::size_of::<Triangle<R>>() + std::mem::size_of::<TriangleShading<R>>())
+    }
+
     /// A world with this one's settings, camera and colours and nothing in it.
     fn clone_settings(&self) -> Self {
         World {
@@ -399,105 +426,6 @@ impl<R: Real> World<R> {
             features: self.features,
             camera_position: self.camera_position,
             dist: None,
-        }
-    }
-
-    /// Lane of the starting sphere within pack `pack`, or 4 (none).
-    #[inline(always)]
-    fn self_lane(skip: PrimId, pack: usize) -> usize {
-        if skip.kind() == PrimId::SPHERE && skip.index() / 4 == pack {
-            skip.index() % 4
-        } else {
-            4
-        }
-    }
-
-    #[inline(always)]
-    fn splat_ray(ray: &Ray<R>) -> ([R::V4; 3], [R::V4; 3]) {
-        let o = [
-            R::V4::splat(ray.origin.x()),
-            R::V4::splat(ray.origin.y()),
-            R::V4::splat(ray.origin.z()),
-        ];
-        let d = [
-            R::V4::splat(ray.dir.x()),
-            R::V4::splat(ray.dir.y()),
-            R::V4::splat(ray.dir.z()),
-        ];
-        (o, d)
-    }
-
-    /// Nearest hit in (0, inf); `skip` is the primitive the ray starts on.
-    #[inline(always)]
-    pub fn closest_hit(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
-        if let Some(tree) = &self.accel {
-            return self.closest_hit_accel(tree, ray, skip);
-        }
-        if !self.triangles.is_empty() {
-            return self.closest_hit_brute(ray, skip);
-        }
-        let mut best = R::INFINITY;
-        let mut id = PrimId::NONE;
-        let (o, d) = Self::splat_ray(ray);
-        for (pi, pack) in self.sphere_packs.iter().enumerate() {
-            let t = pack.intersect(o, d, best, Self::self_lane(skip, pi));
-            // Every finite lane is closer than `best`; take the nearest.
-            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
-                for (j, tj) in t.to_array().into_iter().enumerate() {
-                    if tj < best {
-                        best = tj;
-                        id = PrimId::new(PrimId::SPHERE, (pi * 4 + j) as u32);
-                    }
-                }
-            }
-        }
-        for (i, p) in self.planes.iter().enumerate() {
-            let pid = PrimId::new(PrimId::PLANE, i as u32);
-            if let Some(t) = p.intersect(ray, best, pid == skip) {
-                best = t;
-                id = pid;
-            }
-        }
-        (id != PrimId::NONE).then_some((best, id))
-    }
-
-    /// Whether anything lies on the ray before `t_max`.
-    #[inline(always)]
-    pub fn occluded(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
-        if let Some(tree) = &self.accel {
-            return self.occluded_accel(tree, ray, t_max, skip);
-        }
-        if !self.triangles.is_empty() {
-            return self.occluded_brute(ray, t_max, skip);
-        }
-        let (o, d) = Self::splat_ray(ray);
-        for (pi, pack) in self.sphere_packs.iter().enumerate() {
-            let t = pack.intersect(o, d, t_max, Self::self_lane(skip, pi));
-            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
-                return true;
-            }
-        }
-        self.planes.iter().enumerate().any(|(i, p)| {
-            p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
-                .is_some()
-        })
-    }
-
-    /// Surface point (snapped onto the primitive), outward normal and material of a hit.
-    #[inline(always)]
-    pub fn surface(&self, id: PrimId, p: R::V3) -> (R::V3, R::V3, u32) {
-        match id.kind() {
-            PrimId::SPHERE => {
-                let s = &self.spheres[id.index()];
-                let (p, n) = s.surface(p);
-                (p, n, s.material)
-            }
-            PrimId::TRIANGLE => self.triangle_surface(id.index(), p),
-            _ => {
-                let pl = &self.planes[id.index()];
-                let (p, n) = pl.surface(p);
-                (p, n, pl.material)
-            }
         }
     }
 }

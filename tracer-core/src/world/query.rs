@@ -1,0 +1,322 @@
+//! The world's hit queries: nearest hit, occlusion and surface of one ray,
+//! of packets of rays, through the tree where the world has one, by brute
+//! force over every primitive where it has triangles but no tree (the
+//! reference the tree is checked against), else by the 4-wide sphere loop.
+//! Also the world as the tree's [`bvh::Primitives`] view, which is how the
+//! tree reaches the spheres and triangles its ids name.
+
+use crate::bvh::{self, Bvh};
+use crate::geometry::PrimId;
+use crate::math::{Lanes4, Ray, Real, Vector3};
+use crate::triangle::{Triangle, TriangleRay};
+
+use super::World;
+
+impl<R: Real> World<R> {
+    /// Lane of the starting sphere within pack `pack`, or 4 (none).
+    #[inline(always)]
+    fn self_lane(skip: PrimId, pack: usize) -> usize {
+        if skip.kind() == PrimId::SPHERE && skip.index() / 4 == pack {
+            skip.index() % 4
+        } else {
+            4
+        }
+    }
+
+    #[inline(always)]
+    fn splat_ray(ray: &Ray<R>) -> ([R::V4; 3], [R::V4; 3]) {
+        let o = [
+            R::V4::splat(ray.origin.x()),
+            R::V4::splat(ray.origin.y()),
+            R::V4::splat(ray.origin.z()),
+        ];
+        let d = [
+            R::V4::splat(ray.dir.x()),
+            R::V4::splat(ray.dir.y()),
+            R::V4::splat(ray.dir.z()),
+        ];
+        (o, d)
+    }
+
+    /// Nearest hit in (0, inf); `skip` is the primitive the ray starts on.
+    #[inline(always)]
+    pub fn closest_hit(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+        if let Some(tree) = &self.accel {
+            return self.closest_hit_accel(tree, ray, skip);
+        }
+        if !self.triangles.is_empty() {
+            return self.closest_hit_brute(ray, skip);
+        }
+        let mut best = R::INFINITY;
+        let mut id = PrimId::NONE;
+        let (o, d) = Self::splat_ray(ray);
+        for (pi, pack) in self.sphere_packs.iter().enumerate() {
+            let t = pack.intersect(o, d, best, Self::self_lane(skip, pi));
+            // Every finite lane is closer than `best`; take the nearest.
+            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
+                for (j, tj) in t.to_array().into_iter().enumerate() {
+                    if tj < best {
+                        best = tj;
+                        id = PrimId::new(PrimId::SPHERE, (pi * 4 + j) as u32);
+                    }
+                }
+            }
+        }
+        for (i, p) in self.planes.iter().enumerate() {
+            let pid = PrimId::new(PrimId::PLANE, i as u32);
+            if let Some(t) = p.intersect(ray, best, pid == skip) {
+                best = t;
+                id = pid;
+            }
+        }
+        (id != PrimId::NONE).then_some((best, id))
+    }
+
+    /// Whether anything lies on the ray before `t_max`.
+    #[inline(always)]
+    pub fn occluded(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
+        if let Some(tree) = &self.accel {
+            return self.occluded_accel(tree, ray, t_max, skip);
+        }
+        if !self.triangles.is_empty() {
+            return self.occluded_brute(ray, t_max, skip);
+        }
+        let (o, d) = Self::splat_ray(ray);
+        for (pi, pack) in self.sphere_packs.iter().enumerate() {
+            let t = pack.intersect(o, d, t_max, Self::self_lane(skip, pi));
+            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
+                return true;
+            }
+        }
+        self.planes.iter().enumerate().any(|(i, p)| {
+            p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
+                .is_some()
+        })
+    }
+
+    /// Surface point (snapped onto the primitive), outward normal and material of a hit.
+    #[inline(always)]
+    pub fn surface(&self, id: PrimId, p: R::V3) -> (R::V3, R::V3, u32) {
+        match id.kind() {
+            PrimId::SPHERE => {
+                let s = &self.spheres[id.index()];
+                let (p, n) = s.surface(p);
+                (p, n, s.material)
+            }
+            PrimId::TRIANGLE => self.triangle_surface(id.index(), p),
+            _ => {
+                let pl = &self.planes[id.index()];
+                let (p, n) = pl.surface(p);
+                (p, n, pl.material)
+            }
+        }
+    }
+
+    /// `closest_hit` of worlds with a tree: planes by loop, the rest by tree.
+    #[inline]
+    fn closest_hit_accel(&self, tree: &Bvh, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+        let (best, id) = self.closest_plane(ray, skip);
+        bvh::closest_hit(self, tree, ray, best, id, skip)
+    }
+
+    /// `out[j] = self.closest_hit(&rays[j], skip)` for every ray, the same
+    /// answers; in `f32` with a tree, packets of [`bvh::PACKET`] rays go
+    /// through the tree together ([`bvh::closest_hits`]), which pays for
+    /// coherent rays (neighbouring camera rays).
+    pub fn closest_hits(&self, rays: &[Ray<R>], skip: PrimId, out: &mut [Option<(R, PrimId)>]) {
+        assert_eq!(rays.len(), out.len());
+        let Some((w, tree)) = self.f32_tree() else {
+            for (o, r) in out.iter_mut().zip(rays) {
+                *o = self.closest_hit(r, skip);
+            }
+            return;
+        };
+        // SAFETY: R is f32 here (the downcast succeeded), so these are the same types.
+        let (rays, out) = unsafe {
+            (
+                &*(rays as *const [Ray<R>] as *const [Ray<f32>]),
+                &mut *(out as *mut [Option<(R, PrimId)>] as *mut [Option<(f32, PrimId)>]),
+            )
+        };
+        for (rays, out) in rays.chunks(bvh::PACKET).zip(out.chunks_mut(bvh::PACKET)) {
+            let mut best = [f32::INFINITY; bvh::PACKET];
+            let mut found = [PrimId::NONE; bvh::PACKET];
+            for (j, r) in rays.iter().enumerate() {
+                (best[j], found[j]) = w.closest_plane(r, skip);
+            }
+            let n = rays.len();
+            bvh::closest_hits(w, tree, rays, &mut best[..n], &mut found[..n], skip);
+            for j in 0..n {
+                out[j] = (found[j] != PrimId::NONE).then_some((best[j], found[j]));
+            }
+        }
+    }
+
+    /// `out[j] = self.occluded(&rays[j], t_max[j], skip[j])` for every ray,
+    /// the same answers; in `f32` with a tree, packets of [`bvh::PACKET`]
+    /// rays go through the tree together ([`bvh::occluded_hits`]).
+    pub fn occluded_many(&self, rays: &[Ray<R>], t_max: &[R], skip: &[PrimId], out: &mut [bool]) {
+        assert!(rays.len() == t_max.len() && rays.len() == skip.len() && rays.len() == out.len());
+        let Some((w, tree)) = self.f32_tree() else {
+            for j in 0..rays.len() {
+                out[j] = self.occluded(&rays[j], t_max[j], skip[j]);
+            }
+            return;
+        };
+        // SAFETY: R is f32 here (the downcast succeeded), so these are the same types.
+        let (rays, t_max) = unsafe {
+            (
+                &*(rays as *const [Ray<R>] as *const [Ray<f32>]),
+                &*(t_max as *const [R] as *const [f32]),
+            )
+        };
+        let n = bvh::PACKET;
+        for ((rays, t_max), (skip, out)) in rays
+            .chunks(n)
+            .zip(t_max.chunks(n))
+            .zip(skip.chunks(n).zip(out.chunks_mut(n)))
+        {
+            let blocked = bvh::occluded_hits(w, tree, rays, t_max, skip);
+            for (j, o) in out.iter_mut().enumerate() {
+                *o = (blocked >> j) & 1 != 0
+                    || w.planes.iter().enumerate().any(|(i, p)| {
+                        p.intersect(
+                            &rays[j],
+                            t_max[j],
+                            PrimId::new(PrimId::PLANE, i as u32) == skip[j],
+                        )
+                        .is_some()
+                    });
+            }
+        }
+    }
+
+    /// This world as `f32` with its tree, if it is one: what the packet walks take.
+    fn f32_tree(&self) -> Option<(&World<f32>, &Bvh)> {
+        let w = (self as &dyn std::any::Any).downcast_ref::<World<f32>>()?;
+        Some((w, w.accel.as_ref()?))
+    }
+
+    /// Nearest plane hit, as (distance, id), or (infinity, `PrimId::NONE`).
+    #[inline(always)]
+    fn closest_plane(&self, ray: &Ray<R>, skip: PrimId) -> (R, PrimId) {
+        let mut best = R::INFINITY;
+        let mut id = PrimId::NONE;
+        for (i, p) in self.planes.iter().enumerate() {
+            let pid = PrimId::new(PrimId::PLANE, i as u32);
+            if let Some(t) = p.intersect(ray, R::INFINITY, pid == skip)
+                && pid.nearer(t, best, id)
+            {
+                best = t;
+                id = pid;
+            }
+        }
+        (best, id)
+    }
+
+    #[inline]
+    fn occluded_accel(&self, tree: &Bvh, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
+        self.planes.iter().enumerate().any(|(i, p)| {
+            p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
+                .is_some()
+        }) || bvh::occluded(self, tree, ray, t_max, skip)
+    }
+
+    /// `closest_hit` without a tree when there are triangles: every
+    /// primitive, with the tree's order on ties ([`PrimId::nearer`]).
+    fn closest_hit_brute(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+        let (mut best, mut id) = self.closest_plane(ray, skip);
+        let tr = TriangleRay::new(ray);
+        for (i, t) in self.triangles.iter().enumerate() {
+            let pid = PrimId::new(PrimId::TRIANGLE, i as u32);
+            if pid == skip {
+                continue;
+            }
+            if let Some(d) = t.distance(&tr, best)
+                && pid.nearer(d, best, id)
+            {
+                best = d;
+                id = pid;
+            }
+        }
+        for (i, s) in self.spheres.iter().enumerate() {
+            let pid = PrimId::new(PrimId::SPHERE, i as u32);
+            if let Some(t) = s.intersect(ray, R::INFINITY, pid == skip)
+                && pid.nearer(t, best, id)
+            {
+                best = t;
+                id = pid;
+            }
+        }
+        (id != PrimId::NONE).then_some((best, id))
+    }
+
+    fn occluded_brute(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
+        let tr = TriangleRay::new(ray);
+        self.triangles.iter().enumerate().any(|(i, t)| {
+            PrimId::new(PrimId::TRIANGLE, i as u32) != skip && t.intersect(&tr, t_max).is_some()
+        }) || self.spheres.iter().enumerate().any(|(i, s)| {
+            s.intersect(ray, t_max, PrimId::new(PrimId::SPHERE, i as u32) == skip)
+                .is_some()
+        }) || self.planes.iter().enumerate().any(|(i, p)| {
+            p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
+                .is_some()
+        })
+    }
+
+    /// Point snapped onto the triangle's plane, its outward geometric normal, and material.
+    #[inline]
+    fn triangle_surface(&self, index: usize, p: R::V3) -> (R::V3, R::V3, u32) {
+        let s = &self.triangle_shading[index];
+        let v0 = self.triangles[index].vertices()[0];
+        let p = p - s.normal * s.normal.dot(p - v0);
+        (p, s.normal, s.material)
+    }
+
+    /// Normal to shade with at `p` on primitive `id`: for smooth triangles the
+    /// interpolated vertex normal, turned to the side of `n` (the geometric
+    /// normal facing the viewer); `n` itself elsewhere, and wherever the
+    /// interpolated normal would face away from the viewer `v` (silhouettes),
+    /// so that no reflected ray is sent into the surface.
+    #[inline(always)]
+    pub fn shading_normal(&self, id: PrimId, p: R::V3, n: R::V3, v: R::V3) -> R::V3 {
+        if id.kind() != PrimId::TRIANGLE {
+            return n;
+        }
+        let s = &self.triangle_shading[id.index()];
+        if s.vertex_normals.is_none() {
+            return n;
+        }
+        let ns = s.normal_at(&self.triangles[id.index()], p);
+        let ns = if ns.dot(n) < R::ZERO { -ns } else { ns };
+        if ns.dot(v) > R::ZERO { ns } else { n }
+    }
+}
+
+/// The tree holds this world's spheres and triangles (`accel::build`).
+impl<R: Real> bvh::Primitives<R> for World<R> {
+    #[inline(always)]
+    fn intersect(
+        &self,
+        id: PrimId,
+        ray: &Ray<R>,
+        tri: &TriangleRay<R>,
+        t_max: R,
+        skip: PrimId,
+    ) -> Option<R> {
+        if id.kind() == PrimId::TRIANGLE {
+            // A ray leaving a triangle cannot hit that (flat) triangle again.
+            if id == skip {
+                return None;
+            }
+            self.triangles[id.index()].distance(tri, t_max)
+        } else {
+            self.spheres[id.index()].intersect(ray, R::INFINITY, id == skip)
+        }
+    }
+
+    #[inline(always)]
+    fn triangles(&self) -> &[Triangle<R>] {
+        &self.triangles
+    }
+}
