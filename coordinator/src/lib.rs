@@ -5,12 +5,12 @@
 //!
 //! Map: [`units`] (how a job is cut), [`farm`] (scheduling state, leases,
 //! results), [`rate`] (measured rates and ETAs), [`store`] (durable state), [`service`] (gRPC edge), [`monitor`] (the web monitor), [`server`]
-//! (serving, health, reflection, periodic tasks), [`image`] (PNG/EXR output).
+//! (serving, health, reflection, periodic tasks). Images are written by
+//! [`tracer_core::film::image`].
 
 pub mod assets;
 pub mod cost;
 pub mod farm;
-pub mod image;
 pub mod monitor;
 pub mod rate;
 pub mod server;

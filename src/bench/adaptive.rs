@@ -16,6 +16,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use tracer_core::adaptive::{self, AdaptiveSettings};
+use tracer_core::film::image::{write_exr, write_png, write_sample_map};
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer};
 use tracer_core::scene::{MAX_SAMPLES, RenderSettings, SceneDesc};
@@ -228,12 +229,9 @@ impl Bench {
             &|_| {},
         )?;
         let linear = film.resolve();
-        let data: Vec<f32> = linear.iter().flatten().copied().collect();
         std::fs::create_dir_all(&self.cfg.cache)?;
         let tmp = file.with_extension("exr.tmp");
-        image::Rgb32FImage::from_raw(base.width, base.height, data)
-            .expect("buffer matches size")
-            .save_with_format(&tmp, image::ImageFormat::OpenExr)?;
+        write_exr(&tmp, base.width, base.height, &linear)?;
         std::fs::rename(&tmp, &file)?;
         eprintln!(
             "bench: reference made in {:.1} s",
@@ -285,24 +283,18 @@ impl Bench {
         let image = format!("adaptive/{name}-{mode}-{tag}-{}.png", b.name());
         let path = self.cfg.out.join(&image);
         std::fs::create_dir_all(path.parent().expect("has a parent"))?;
-        image::RgbImage::from_raw(
+        write_png(
+            &path,
             base.width,
             base.height,
-            tracer_core::film::to_srgb8(&linear),
-        )
-        .expect("buffer matches size")
-        .save(&path)?;
+            &tracer_core::film::to_srgb8(&linear),
+        )?;
         if let Some(a) = &a {
             let map = self
                 .cfg
                 .out
                 .join(format!("adaptive/{name}-samples-{tag}-{}.png", b.name()));
-            tessera_coordinator::image::write_sample_map(
-                &map,
-                &film,
-                a.min_samples,
-                a.max_samples,
-            )?;
+            write_sample_map(&map, &film, a.min_samples, a.max_samples)?;
         }
         let run = Run {
             suite: "adaptive",

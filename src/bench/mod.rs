@@ -249,14 +249,13 @@ impl Bench {
         );
         let path = self.cfg.out.join(&image);
         std::fs::create_dir_all(path.parent().expect("has a parent"))?;
-        image::RgbImage::from_raw(
+        // The error names the file.
+        tracer_core::film::image::write_png(
+            &path,
             settings.width,
             settings.height,
-            tracer_core::film::to_srgb8(&linear),
-        )
-        .expect("buffer matches size")
-        .save(&path)
-        .with_context(|| format!("cannot write {}", path.display()))?;
+            &tracer_core::film::to_srgb8(&linear),
+        )?;
         let run = Run {
             suite,
             scene: name.to_string(),

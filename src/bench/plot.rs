@@ -263,9 +263,7 @@ impl LinePlot {
             root.present().map_err(|e| anyhow!("plot: {e}"))?;
         }
         let png = stem.with_extension("png");
-        image::RgbImage::from_raw(SIZE.0, SIZE.1, buf)
-            .expect("buffer matches size")
-            .save(&png)?;
+        tracer_core::film::image::write_png(&png, SIZE.0, SIZE.1, &buf)?;
         let svg = stem.with_extension("svg");
         let root = SVGBackend::new(&svg, SIZE).into_drawing_area();
         self.draw(&root)?;

@@ -124,13 +124,10 @@ impl ReferenceCache {
             &|_| {},
         )?;
         let linear = film.resolve();
-        let data: Vec<f32> = linear.iter().flatten().copied().collect();
-        // Write to a temporary name first: an interrupted run leaves no bad cache entry.
+        // Write to a temporary name first: an interrupted run leaves no bad
+        // cache entry. The error names the file.
         let tmp = file.with_extension("exr.tmp");
-        image::Rgb32FImage::from_raw(settings.width, settings.height, data)
-            .expect("buffer matches size")
-            .save_with_format(&tmp, image::ImageFormat::OpenExr)
-            .with_context(|| format!("cannot write {}", tmp.display()))?;
+        tracer_core::film::image::write_exr(&tmp, settings.width, settings.height, &linear)?;
         std::fs::rename(&tmp, &file)?;
         eprintln!(
             "bench: reference made in {:.1} s",

@@ -194,7 +194,7 @@ pub struct RenderArgs {
     pub format: super::output::Format,
 }
 
-pub use tessera_coordinator::image::{ImageFormat, write_image};
+pub use tracer_core::film::image::{ImageFormat, write_image};
 
 /// One line per adaptive round, for the log above the progress bar.
 fn round_line(r: &adaptive::RoundReport) -> String {
@@ -262,7 +262,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         let image = gpu.render_srgb8(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?;
         let secs = start.elapsed().as_secs_f64();
         progress.finish();
-        tessera_coordinator::image::write_png(&output, rect.width, rect.height, &image.rgb)?;
+        tracer_core::film::image::write_png(&output, rect.width, rect.height, &image.rgb)?;
         let summary = Summary {
             secs,
             rays: image.rays,
@@ -291,7 +291,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     progress.finish();
     write_image(&output, &film)?;
     if let (Some(map), Some(a)) = (&args.sample_map, &adaptive) {
-        tessera_coordinator::image::write_sample_map(map, &film, a.min_samples, a.max_samples)?;
+        tracer_core::film::image::write_sample_map(map, &film, a.min_samples, a.max_samples)?;
     }
     let summary = Summary {
         secs,

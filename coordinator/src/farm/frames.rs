@@ -84,7 +84,8 @@ impl Farm {
                     let r = (|| -> Result<(), String> {
                         std::fs::create_dir_all(&dir)
                             .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
-                        crate::image::write_image(&tmp, &film).map_err(|e| e.to_string())?;
+                        tracer_core::film::image::write_image(&tmp, &film)
+                            .map_err(|e| e.to_string())?;
                         std::fs::rename(&tmp, &path).map_err(|e| {
                             format!("cannot rename {} to {}: {e}", tmp.display(), path.display())
                         })

@@ -18,6 +18,7 @@ use axum::body::Bytes;
 use axum::extract::{Path, RawQuery, State};
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use tracer_core::film::image;
 
 use super::{ApiError, Monitor};
 use crate::farm::{FramePreview, preview_step};
@@ -88,32 +89,20 @@ fn internal(what: &str, e: impl std::fmt::Display) -> ApiError {
     ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, format!("{what}: {e}"))
 }
 
-/// 8-bit RGB as PNG, fast deflate and the one `Sub` filter: the frame
+/// 8-bit RGB as a preview PNG: the `Sub` filter only, since the frame
 /// writer's adaptive filtering tries five filters a row, several times the
 /// work for a preview that lives a second.
 fn encode_png(rgb: &[u8], width: u32, height: u32) -> Result<Vec<u8>, image::ImageError> {
-    use image::ImageEncoder as _;
-    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-    let mut out = Vec::new();
-    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Sub).write_image(
-        rgb,
-        width,
-        height,
-        image::ExtendedColorType::Rgb8,
-    )?;
-    Ok(out)
+    image::encode_png(width, height, rgb, image::PngFilter::Sub)
 }
 
 /// A written frame subsampled exactly as [`crate::farm::Farm::frame_preview`]
 /// subsamples the sums, so a preview does not jump when its frame is written.
 fn subsample_written(path: &std::path::Path, side: u32) -> Result<Vec<u8>, String> {
-    let img = image::open(path)
-        .map_err(|e| format!("{}: {e}", path.display()))?
-        .to_rgb8();
-    let (w, h) = img.dimensions();
+    let (w, h, img) = image::read_rgb8(path).map_err(|e| e.to_string())?;
     let step = preview_step(w, h, side);
     if step == 1 {
-        return encode_png(img.as_raw(), w, h).map_err(|e| e.to_string());
+        return encode_png(&img, w, h).map_err(|e| e.to_string());
     }
     let (ow, oh) = (w.div_ceil(step), h.div_ceil(step));
     let off = step / 2;
@@ -122,7 +111,8 @@ fn subsample_written(path: &std::path::Path, side: u32) -> Result<Vec<u8>, Strin
         let y = (oy * step + off).min(h - 1);
         for ox in 0..ow {
             let x = (ox * step + off).min(w - 1);
-            rgb.extend_from_slice(&img.get_pixel(x, y).0);
+            let i = (y * w + x) as usize * 3;
+            rgb.extend_from_slice(&img[i..i + 3]);
         }
     }
     encode_png(&rgb, ow, oh).map_err(|e| e.to_string())

@@ -376,7 +376,7 @@ fn trace(origin: vec3<f32>, dir: vec3<f32>) -> vec3<f32> {
     return colour;
 }
 
-// One sample's radiance in 32.32 fixed point as (low, high): film.rs to_fixed.
+// One sample's radiance in 32.32 fixed point as (low, high): film/mod.rs to_fixed.
 fn to_fixed(v: f32) -> vec2<u32> {
     let bits = bitcast<u32>(v);
     if ((bits & 0x7f800000u) == 0x7f800000u) {

@@ -8,6 +8,9 @@
 
 use crate::math::Real;
 
+#[cfg(feature = "image-io")]
+pub mod image;
+
 /// Fixed-point scale of film sums: 2^32 units per unit of radiance.
 pub const FIXED_ONE: f64 = 4_294_967_296.0;
 /// Largest radiance one sample may carry; with [`crate::scene::MAX_SAMPLES`]
