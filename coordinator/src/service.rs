@@ -471,10 +471,15 @@ impl WorkerService for Api {
         &self,
         req: Request<pb::SubmitResultRequest>,
     ) -> Result<Response<pb::SubmitResultResponse>, Status> {
-        let outcome = self
-            .farm
-            .submit_result(result_data(req.into_inner()))
-            .await?;
+        let decode_start = std::time::Instant::now();
+        let result = result_data(req.into_inner());
+        tracing::debug!(
+            results = 1,
+            pixels = result.rect.area(),
+            decode_ms = decode_start.elapsed().as_secs_f64() * 1e3,
+            "results decoded"
+        );
+        let outcome = self.farm.submit_result(result).await?;
         Ok(Response::new(outcome_pb(outcome)))
     }
 

@@ -792,10 +792,15 @@ async fn send_batch(
     // Packed for each attempt, not cloned: a GPU unit's sums are tens of
     // megabytes, and a retry is rare.
     let send_start = Instant::now();
+    let pack_seconds = std::sync::Mutex::new(0.0);
     let outcomes = submit_with_retry(&mut client, sent.len(), || {
-        sent.iter().map(|o| result_request(&worker_id, o)).collect()
+        let start = Instant::now();
+        let reqs = sent.iter().map(|o| result_request(&worker_id, o)).collect();
+        *pack_seconds.lock().expect("pack time lock") = start.elapsed().as_secs_f64();
+        reqs
     })
     .await?;
+    let pack_ms = *pack_seconds.lock().expect("pack time lock") * 1e3;
     let mut h = held.lock().expect("held lock");
     for (o, resp) in sent.iter().zip(outcomes) {
         h.remove(&o.lease_id);
@@ -807,7 +812,9 @@ async fn send_batch(
                     frame = o.frame,
                     rect = ?o.rect,
                     batch = sent.len(),
-                    // Packing, transfer and the coordinator's intake.
+                    // Packing (the last attempt's), then transfer and
+                    // the coordinator's intake.
+                    pack_ms,
                     send_ms = send_start.elapsed().as_secs_f64() * 1e3,
                     "result accepted"
                 );

@@ -49,7 +49,9 @@ impl Farm {
         let mut taken: Vec<(ResultData, Taken)> = Vec::new();
         let mut ops: Vec<Op> = Vec::new();
         // Every pixel of a result is checked before the state lock is taken.
+        let check_start = Instant::now();
         let checks: Vec<Result<(), String>> = rs.iter().map(check_film).collect();
+        let lock_start = Instant::now();
         {
             let mut st = self.state.lock().expect("state lock");
             for (r, check) in rs.into_iter().zip(checks) {
@@ -178,6 +180,8 @@ impl Farm {
         tracing::debug!(
             results = outcomes.len(),
             pixels,
+            check_ms = (lock_start - check_start).as_secs_f64() * 1e3,
+            take_ms = (encode_start - lock_start).as_secs_f64() * 1e3,
             encode_ms = (commit_start - encode_start).as_secs_f64() * 1e3,
             commit_ms = (merge_start - commit_start).as_secs_f64() * 1e3,
             merge_ms = merge_start.elapsed().as_secs_f64() * 1e3,
