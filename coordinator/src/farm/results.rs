@@ -453,6 +453,10 @@ type Refused = (Outcome, Option<JobRecord>, Option<(String, Counters)>);
 /// Checks every pixel of a result against the rect and samples it claims:
 /// exactly that many samples each, sums in range (before the state lock:
 /// [`validate_result`] then checks the claims against the lease).
+/// Pixels a task checks: large enough that a CPU worker's small result is
+/// one task.
+const CHECK_CHUNK: usize = 1 << 16;
+
 fn check_film(r: &ResultData) -> Result<(), String> {
     let Ok(film) = &r.film else {
         return Ok(()); // Judged by validate_result.
@@ -464,14 +468,18 @@ fn check_film(r: &ResultData) -> Result<(), String> {
     }
     let n = r.samples.len();
     let max_sum = (MAX_SAMPLE_VALUE * FIXED_ONE) as u64 * n as u64;
-    // One pass without branches; the offending pixel is looked for only
-    // when there is one.
+    // One pass without branches, in parallel chunks (a GPU worker's result
+    // is a million pixels); the offending pixel is looked for only when
+    // there is one.
+    use rayon::prelude::*;
     let bad = film
         .counts
-        .iter()
-        .zip(&film.sums)
-        .fold(false, |bad, (&c, s)| {
-            bad | (c != n) | (s[0] > max_sum) | (s[1] > max_sum) | (s[2] > max_sum)
+        .par_chunks(CHECK_CHUNK)
+        .zip(film.sums.par_chunks(CHECK_CHUNK))
+        .any(|(counts, sums)| {
+            counts.iter().zip(sums).fold(false, |bad, (&c, s)| {
+                bad | (c != n) | (s[0] > max_sum) | (s[1] > max_sum) | (s[2] > max_sum)
+            })
         });
     if !bad {
         return Ok(());
