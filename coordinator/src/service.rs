@@ -444,21 +444,22 @@ impl WorkerService for Api {
         };
         let units = leases
             .into_iter()
-            .map(|l| pb::WorkUnit {
-                lease_id: l.lease_id,
-                job: Some(pb::JobContext {
-                    job_id: l.job_id,
-                    scene_name: l.scene_name,
-                    scene_sha256: l.scene_sha256,
-                    assets: l.assets.into_iter().collect(),
-                    settings: Some(l.settings.into()),
-                }),
-                frame: l.frame,
-                rect: Some(l.rect.into()),
-                samples: Some(l.samples.into()),
-                deadline_unix_ms: l.deadline_unix_ms,
-                adaptive: l.active.is_some(),
-                active_blocks: l.active.map(|m| m.to_bytes()).unwrap_or_default(),
+            .map(|l| {
+                let mut unit = pb::WorkUnit {
+                    lease_id: l.lease_id,
+                    job: Some(pb::JobContext {
+                        job_id: l.job_id,
+                        scene_name: l.scene_name,
+                        scene_sha256: l.scene_sha256,
+                        assets: l.assets.into_iter().collect(),
+                        settings: Some(l.settings.into()),
+                    }),
+                    adaptive: l.active.is_some(),
+                    active_blocks: l.active.map(|m| m.to_bytes()).unwrap_or_default(),
+                    ..Default::default()
+                };
+                unit.set_region(l.region);
+                unit
             })
             .collect();
         Ok(Response::new(pb::LeaseWorkResponse {

@@ -5,7 +5,7 @@
 //! `index = (frame_index * batches + batch) * tiles + tile`. Numbering is a
 //! pure function of the job's settings, so it survives restarts.
 
-use tracer_core::film::{Rect, SampleRange};
+use tracer_core::film::{Rect, SampleRange, WorkRegion};
 
 /// Default side of a square tile, in pixels. Leases join tiles to suit each
 /// worker's speed, so the tile is the grain only at a job's end. 64x64
@@ -157,9 +157,18 @@ impl Layout {
         )
     }
 
+    /// The frame, pixels and samples a unit covers.
+    pub fn region(&self, u: Unit) -> WorkRegion {
+        WorkRegion::new(
+            u.frame,
+            self.tiles[u.tile as usize],
+            self.batches[u.batch as usize],
+        )
+    }
+
     /// Pixel-samples of a unit.
     pub fn unit_samples(&self, u: Unit) -> u64 {
-        self.tiles[u.tile as usize].area() as u64 * self.batches[u.batch as usize].len() as u64
+        self.region(u).pixel_samples()
     }
 
     /// Whether unit `b` directly follows `a` in the same tile row, frame and batch

@@ -1,6 +1,6 @@
 //! Conversions between protobuf messages and tracer-core types.
 
-use tracer_core::film::{RayCounts, Rect, SampleRange};
+use tracer_core::film::{RayCounts, Rect, SampleRange, WorkRegion};
 use tracer_core::render::Backend;
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::RenderSettings;
@@ -48,6 +48,26 @@ impl From<SampleRange> for pb::SampleRange {
 impl From<pb::SampleRange> for SampleRange {
     fn from(s: pb::SampleRange) -> Self {
         SampleRange::new(s.start, s.end)
+    }
+}
+
+/// A work unit's region travels as three loose fields (`frame`, `rect`,
+/// `samples`); these are the one place that reads and writes them.
+impl pb::WorkUnit {
+    /// The frame, pixels and samples the unit covers. A missing rect or
+    /// sample range reads as empty (no pixels, no samples).
+    pub fn region(&self) -> WorkRegion {
+        WorkRegion {
+            frame: self.frame,
+            rect: self.rect.unwrap_or_default().into(),
+            samples: self.samples.unwrap_or_default().into(),
+        }
+    }
+
+    pub fn set_region(&mut self, r: WorkRegion) {
+        self.frame = r.frame;
+        self.rect = Some(r.rect.into());
+        self.samples = Some(r.samples.into());
     }
 }
 
@@ -171,6 +191,18 @@ mod tests {
         let mut bad = pb::RenderSettings::from(s);
         bad.sampler = 0;
         assert!(RenderSettings::try_from(bad).is_err());
+    }
+
+    #[test]
+    fn a_work_units_region_round_trips_and_missing_fields_read_as_empty() {
+        let r = WorkRegion::new(7, Rect::new(64, 128, 32, 16), SampleRange::new(8, 24));
+        let mut unit = pb::WorkUnit::default();
+        unit.set_region(r);
+        assert_eq!(unit.frame, 7);
+        assert_eq!(unit.region(), r);
+        let empty = pb::WorkUnit::default().region();
+        assert_eq!(empty.rect.area(), 0);
+        assert!(empty.samples.is_empty());
     }
 
     #[test]

@@ -27,6 +27,7 @@
 //! results from both kinds of worker alike.
 
 pub mod cache;
+mod unit;
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -42,9 +43,10 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use tracer_core::adaptive::BlockMask;
 use tracer_core::assets::Bundle;
-use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::film::{Film, Rect, SampleRange, WorkRegion};
 use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer, RendererError};
-use tracer_core::scene::{RenderSettings, SceneDesc};
+use tracer_core::scene::SceneDesc;
+use unit::{JobInfo, LeasedUnit};
 
 /// Leases held ahead of the one being rendered.
 const PREFETCH: usize = 1;
@@ -182,9 +184,7 @@ enum UnitEnd {
 /// A finished unit on its way to the coordinator.
 struct Outgoing {
     lease_id: String,
-    frame: u32,
-    rect: Rect,
-    samples: SampleRange,
+    region: WorkRegion,
     end: UnitEnd,
 }
 
@@ -363,7 +363,7 @@ impl Worker {
         drain: &mut watch::Receiver<bool>,
         lost: &AtomicBool,
         tx: &mpsc::Sender<Outgoing>,
-        queue: &mut VecDeque<pb::WorkUnit>,
+        queue: &mut VecDeque<LeasedUnit>,
         sender: &mut tokio::task::JoinHandle<Result<(), tonic::Status>>,
     ) -> Result<(), tonic::Status> {
         let mut client = s.client.clone();
@@ -410,31 +410,36 @@ impl Worker {
             else {
                 continue;
             };
-            let rect: Rect = unit.rect.unwrap_or_default().into();
-            let samples: SampleRange = unit.samples.unwrap_or_default().into();
+            let LeasedUnit {
+                lease_id,
+                region,
+                work,
+            } = unit;
             let out = |end| Outgoing {
-                lease_id: unit.lease_id.clone(),
-                frame: unit.frame,
-                rect,
-                samples,
+                lease_id: lease_id.clone(),
+                region,
                 end,
             };
             if cancel.load(Ordering::Relaxed) {
                 // Gone while queued (expired, cancelled): nothing to send.
-                self.held.lock().expect("held lock").remove(&unit.lease_id);
-                tracing::info!(lease = %unit.lease_id, "lease gone; abandoned its unit");
+                self.held.lock().expect("held lock").remove(&lease_id);
+                tracing::info!(lease = %lease_id, "lease gone; abandoned its unit");
                 continue;
             }
             // A lease this worker cannot hold or send back (a coordinator
-            // gone wrong): a failure the coordinator counts, not an abort.
-            if let Some(why) = too_large(rect) {
-                tracing::warn!(lease = %unit.lease_id, "{why}");
-                if tx.send(out(UnitEnd::Failed(why))).await.is_err() {
-                    return Err(tonic::Status::internal("the result sender stopped"));
+            // gone wrong), or one that came malformed: a failure the
+            // coordinator counts, not an abort.
+            let work = match too_large(region.rect).map_or(work, Err) {
+                Ok(work) => work,
+                Err(why) => {
+                    tracing::warn!(lease = %lease_id, "{why}");
+                    if tx.send(out(UnitEnd::Failed(why))).await.is_err() {
+                        return Err(tonic::Status::internal("the result sender stopped"));
+                    }
+                    continue;
                 }
-                continue;
-            }
-            let end = match self.prepare(&mut client, &unit).await {
+            };
+            let end = match self.prepare(&mut client, &work.job, region.frame).await {
                 Err(e)
                     if e.code() == tonic::Code::Unavailable || e.code() == tonic::Code::Unknown =>
                 {
@@ -443,28 +448,15 @@ impl Worker {
                 Err(e) => UnitEnd::Failed(e.message().to_string()),
                 Ok(prepared) => {
                     let renderer = self.renderer.clone();
-                    let frame = unit.frame;
                     // Adaptive jobs: the round's active blocks.
-                    let active = unit
-                        .adaptive
-                        .then(|| BlockMask::from_bytes(rect, &unit.active_blocks));
-                    let render = tokio::task::spawn_blocking(move || match active {
-                        None => render_unit(
+                    let render = tokio::task::spawn_blocking(move || match work.active {
+                        None => render_unit(&renderer, &prepared, region, &cancel, &samples_done),
+                        Some(mask) => render_round_unit(
                             &renderer,
                             &prepared,
-                            frame,
-                            rect,
-                            samples,
-                            &cancel,
-                            &samples_done,
-                        ),
-                        Some(Err(e)) => UnitEnd::Failed(e.to_string()),
-                        Some(Ok(mask)) => render_round_unit(
-                            &renderer,
-                            &prepared,
-                            frame,
+                            region.frame,
                             &mask,
-                            samples,
+                            region.samples,
                             &cancel,
                             &samples_done,
                         ),
@@ -499,7 +491,7 @@ impl Worker {
                 }
             };
             if let UnitEnd::Film(_, seconds) = &end {
-                tracing::debug!(lease = %unit.lease_id, frame = unit.frame, ?rect, seconds, "unit rendered");
+                tracing::debug!(lease = %lease_id, frame = region.frame, rect = ?region.rect, seconds, "unit rendered");
             }
             if tx.send(out(end)).await.is_err() {
                 return Err(tonic::Status::internal("the result sender stopped"));
@@ -507,26 +499,22 @@ impl Worker {
         }
     }
 
-    /// The prepared frame of a unit's job, from cache or built from the
-    /// (cached, content-addressed) scene.
+    /// The prepared frame `frame` of a unit's job, from cache or built
+    /// from the (cached, content-addressed) scene.
     async fn prepare(
         &mut self,
         client: &mut Client,
-        unit: &pb::WorkUnit,
+        job: &JobInfo,
+        frame: u32,
     ) -> Result<Arc<PreparedFrame>, tonic::Status> {
-        let job = unit
-            .job
-            .clone()
-            .ok_or_else(|| tonic::Status::invalid_argument("work unit without job context"))?;
-        let key = (job.job_id.clone(), unit.frame);
+        let key = (job.job_id.clone(), frame);
         if let Some((_, p)) = self.prepared.iter().find(|(k, _)| *k == key) {
             return Ok(p.clone());
         }
         // The scene and its files, by hash, from the cache or the
         // coordinator; parsed from those bytes only (never from this disk).
-        let files: std::collections::BTreeMap<_, _> = job.assets.iter().collect();
         let scene_key = std::iter::once(job.scene_sha256.as_str())
-            .chain(files.iter().flat_map(|(n, h)| [n.as_str(), h.as_str()]))
+            .chain(job.files.iter().flat_map(|(n, h)| [n.as_str(), h.as_str()]))
             .collect::<Vec<_>>()
             .join("\n");
         let scene = match self.scenes.iter().find(|(k, _)| *k == scene_key) {
@@ -540,7 +528,7 @@ impl Worker {
                     ))
                 })?;
                 let mut bundle = Bundle::new();
-                for (name, sha256) in &job.assets {
+                for (name, sha256) in &job.files {
                     bundle.insert(name.clone(), self.fetch(client, sha256).await?);
                 }
                 let scene_name = job.scene_name.clone();
@@ -558,9 +546,7 @@ impl Worker {
                 scene
             }
         };
-        let settings = RenderSettings::try_from(job.settings.unwrap_or_default())
-            .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
-        let frame = unit.frame;
+        let settings = job.settings;
         let prepared = tokio::task::spawn_blocking(move || {
             PreparedFrame::build(&scene, &settings, frame, Precision::F32)
         })
@@ -645,15 +631,16 @@ impl Worker {
 }
 
 /// Leases more work into `queue`, registering each lease with the heartbeat
-/// before anything else can happen to it. Returns how long to wait when
-/// the coordinator had nothing.
+/// before anything else can happen to it, each unit converted from the
+/// wire's `WorkUnit`. Returns how long to wait when the coordinator had
+/// nothing.
 /// `ahead`: asked while a unit renders (the coordinator may say no at a
 /// job's very end, to leave the last units to idle workers).
 async fn lease(
     client: &mut Client,
     worker_id: &str,
     held: &HeldMap,
-    queue: &mut VecDeque<pb::WorkUnit>,
+    queue: &mut VecDeque<LeasedUnit>,
     ahead: bool,
     wait: Duration,
 ) -> Result<Duration, tonic::Status> {
@@ -673,7 +660,7 @@ async fn lease(
                 samples_done: Arc::default(),
             },
         );
-        queue.push_back(unit);
+        queue.push_back(LeasedUnit::from(unit));
     }
     Ok(Duration::from_millis(
         resp.retry_after_ms.clamp(10, 5000) as u64
@@ -685,7 +672,7 @@ async fn lease(
 async fn return_leases(
     client: &mut Client,
     worker_id: &str,
-    queue: &mut VecDeque<pb::WorkUnit>,
+    queue: &mut VecDeque<LeasedUnit>,
     held: &HeldMap,
 ) {
     if queue.is_empty() {
@@ -745,7 +732,7 @@ async fn send_results(
                 while batch.len() < MAX_BATCH && bytes < MAX_BATCH_BYTES {
                     match rx.try_recv() {
                         Ok(o) => {
-                            bytes += o.rect.area() * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES);
+                            bytes += o.region.rect.area() * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES);
                             batch.push(o);
                         }
                         Err(_) => break,
@@ -809,8 +796,8 @@ async fn send_batch(
                 units_done.fetch_add(1, Ordering::Relaxed);
                 tracing::debug!(
                     lease = %o.lease_id,
-                    frame = o.frame,
-                    rect = ?o.rect,
+                    frame = o.region.frame,
+                    rect = ?o.region.rect,
                     batch = sent.len(),
                     // Packing (the last attempt's), then transfer and
                     // the coordinator's intake.
@@ -833,8 +820,8 @@ fn result_request(worker_id: &str, o: &Outgoing) -> pb::SubmitResultRequest {
     let mut req = pb::SubmitResultRequest {
         worker_id: worker_id.to_string(),
         lease_id: o.lease_id.clone(),
-        rect: Some(o.rect.into()),
-        samples: Some(o.samples.into()),
+        rect: Some(o.region.rect.into()),
+        samples: Some(o.region.samples.into()),
         ..Default::default()
     };
     match &o.end {
@@ -912,12 +899,15 @@ fn gpu_band_rows(rect: Rect, samples: SampleRange) -> u32 {
 fn render_unit(
     renderer: &Renderer,
     prepared: &PreparedFrame,
-    frame: u32,
-    rect: Rect,
-    samples: SampleRange,
+    region: WorkRegion,
     cancel: &AtomicBool,
     samples_done: &AtomicU64,
 ) -> UnitEnd {
+    let WorkRegion {
+        frame,
+        rect,
+        samples,
+    } = region;
     let start = Instant::now();
     let progress = |n| {
         samples_done.fetch_add(n, Ordering::Relaxed);
@@ -1082,7 +1072,8 @@ mod tests {
             .unwrap();
         let done = AtomicU64::new(0);
         let never = AtomicBool::new(false);
-        match render_unit(&renderer, &prepared, 0, rect, samples, &never, &done) {
+        let region = WorkRegion::new(0, rect, samples);
+        match render_unit(&renderer, &prepared, region, &never, &done) {
             UnitEnd::Film(film, _) => assert_eq!(film, want),
             _ => panic!("the unit did not render"),
         }
@@ -1090,7 +1081,7 @@ mod tests {
         let cancelled = AtomicBool::new(true);
         let done = AtomicU64::new(0);
         assert!(matches!(
-            render_unit(&renderer, &prepared, 0, rect, samples, &cancelled, &done),
+            render_unit(&renderer, &prepared, region, &cancelled, &done),
             UnitEnd::Abandoned
         ));
         assert_eq!(

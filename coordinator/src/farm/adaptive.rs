@@ -226,11 +226,11 @@ pub(super) fn check_result(lease: &Lease, film: &Film) -> Result<(), String> {
         };
     };
     let one = (MAX_SAMPLE_VALUE * FIXED_ONE) as u128;
-    let most = one * one * lease.samples.len() as u128;
+    let most = one * one * lease.region.samples.len() as u128;
     for (i, s) in squares.iter().enumerate() {
         let (x, y) = (
-            lease.rect.x + i as u32 % lease.rect.width,
-            lease.rect.y + i as u32 / lease.rect.width,
+            lease.region.rect.x + i as u32 % lease.region.rect.width,
+            lease.region.rect.y + i as u32 / lease.region.rect.width,
         );
         let limit = if mask.covers(x, y) { most } else { 0 };
         if s.iter().any(|&v| v > limit) {
@@ -247,7 +247,7 @@ pub(super) fn check_result(lease: &Lease, film: &Film) -> Result<(), String> {
 pub(super) fn expected_count(lease: &Lease, x: u32, y: u32) -> u32 {
     match &lease.active {
         Some(m) if !m.covers(x, y) => 0,
-        _ => lease.samples.len(),
+        _ => lease.region.samples.len(),
     }
 }
 
@@ -256,5 +256,5 @@ pub(super) fn sampled_pixels(lease: &Lease) -> u64 {
     lease
         .active
         .as_ref()
-        .map_or(lease.rect.area() as u64, BlockMask::active_pixels)
+        .map_or(lease.region.rect.area() as u64, BlockMask::active_pixels)
 }

@@ -11,7 +11,7 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::film::{Film, Rect, WorkRegion};
 
 use super::{Farm, FarmError, JobView};
 use crate::store::Op;
@@ -42,9 +42,8 @@ pub struct FrameTile {
 #[derive(Clone, Debug)]
 pub struct UnitFailure {
     pub unit: u32,
-    pub frame: u32,
-    pub rect: Rect,
-    pub samples: SampleRange,
+    /// The unit's frame, tile and sample batch.
+    pub region: WorkRegion,
     pub messages: Vec<String>,
 }
 
@@ -52,9 +51,7 @@ pub struct UnitFailure {
 pub struct LeaseSummary {
     pub worker_id: String,
     pub job_id: String,
-    pub frame: u32,
-    pub rect: Rect,
-    pub samples: SampleRange,
+    pub region: WorkRegion,
     /// Pixel-samples the worker reported done.
     pub progress: u64,
 }
@@ -102,7 +99,7 @@ impl Farm {
         for l in st
             .leases
             .values()
-            .filter(|l| l.job == job_id && l.frame == frame)
+            .filter(|l| l.job == job_id && l.region.frame == frame)
         {
             for &u in &l.units {
                 leased[layout.unit(u).tile as usize] = true;
@@ -214,9 +211,7 @@ impl Farm {
                 let u = job.layout.unit(unit);
                 UnitFailure {
                     unit,
-                    frame: u.frame,
-                    rect: job.layout.tiles[u.tile as usize],
-                    samples: job.layout.batches[u.batch as usize],
+                    region: job.layout.region(u),
                     messages: messages.clone(),
                 }
             })
@@ -233,9 +228,7 @@ impl Farm {
             .map(|l| LeaseSummary {
                 worker_id: l.worker.clone(),
                 job_id: l.job.clone(),
-                frame: l.frame,
-                rect: l.rect,
-                samples: l.samples,
+                region: l.region,
                 progress: l.progress,
             })
             .collect()

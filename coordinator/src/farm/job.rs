@@ -170,13 +170,13 @@ impl Job {
         }
         self.notify();
         let (u, messages) = exhausted?;
-        let unit = self.layout.unit(u);
+        let r = self.layout.region(self.layout.unit(u));
         let error = format!(
             "work unit {u} (frame {}, tile {:?}, samples {}..{}) failed {} times: {}",
-            unit.frame,
-            self.layout.tiles[unit.tile as usize],
-            self.layout.batches[unit.batch as usize].start,
-            self.layout.batches[unit.batch as usize].end,
+            r.frame,
+            r.rect,
+            r.samples.start,
+            r.samples.end,
             messages.len(),
             messages.join("; ")
         );

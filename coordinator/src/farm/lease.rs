@@ -6,7 +6,7 @@
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
-use tracer_core::film::Rect;
+use tracer_core::film::{Rect, WorkRegion};
 use tracer_core::render::Backend;
 
 use crate::rate::WorkerSpeed;
@@ -36,7 +36,7 @@ const PEAK_MEMORY_SECONDS: f64 = 60.0;
 impl Lease {
     /// Expected rays not yet rendered, by the worker's last progress report.
     fn remaining_rays(&self) -> f64 {
-        let total = self.rect.area() as f64 * self.samples.len() as f64;
+        let total = self.region.pixel_samples() as f64;
         let left = 1.0 - (self.progress as f64 / total.max(1.0)).min(1.0);
         self.expected_rays * left
     }
@@ -293,7 +293,7 @@ impl Farm {
                 let t1 = job.layout.tiles
                     [job.layout.unit(*units.last().expect("non-empty")).tile as usize];
                 let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
-                let samples = job.layout.batches[u0.batch as usize];
+                let region = WorkRegion::new(u0.frame, rect, job.layout.batches[u0.batch as usize]);
                 let active = job.adaptive_mask(u0.frame, rect, u0.batch);
                 if job.state == JobState::Queued {
                     job.state = JobState::Running;
@@ -313,10 +313,7 @@ impl Farm {
                     scene_sha256: job.rec.scene_sha256.clone(),
                     assets: job.rec.assets.clone(),
                     settings: job.settings,
-                    frame: u0.frame,
-                    rect,
-                    samples,
-                    deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+                    region,
                     active: active.clone(),
                 };
                 st.next_id += 1;
@@ -327,9 +324,7 @@ impl Farm {
                         worker: worker_id.to_string(),
                         job: job_id.clone(),
                         units,
-                        frame: u0.frame,
-                        rect,
-                        samples,
+                        region,
                         deadline: Instant::now() + self.config.lease_timeout,
                         progress: 0,
                         expected_rays,
@@ -426,9 +421,7 @@ impl Farm {
             worker: worker_id.to_string(),
             job: o.job.clone(),
             units: o.units.clone(),
-            frame: o.frame,
-            rect: o.rect,
-            samples: o.samples,
+            region: o.region,
             deadline: Instant::now() + self.config.lease_timeout,
             progress: 0,
             expected_rays: o.expected_rays,
@@ -438,7 +431,7 @@ impl Farm {
             backups: 0,
         };
         let job = st.jobs.get(&lease.job).expect("checked");
-        tracing::debug!(lease = %lease_id, backs_up = %original, job = %lease.job, rect = ?lease.rect, "backup lease");
+        tracing::debug!(lease = %lease_id, backs_up = %original, job = %lease.job, rect = ?lease.region.rect, "backup lease");
         let view = LeaseView {
             lease_id: lease_id.clone(),
             job_id: lease.job.clone(),
@@ -446,10 +439,7 @@ impl Farm {
             scene_sha256: job.rec.scene_sha256.clone(),
             assets: job.rec.assets.clone(),
             settings: job.settings,
-            frame: lease.frame,
-            rect: lease.rect,
-            samples: lease.samples,
-            deadline_unix_ms: now_ms() + self.config.lease_timeout.as_millis() as i64,
+            region: lease.region,
             active: lease.active.clone(),
         };
         st.leases.insert(lease_id.clone(), lease);
@@ -545,7 +535,7 @@ impl Farm {
                 if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
                     job.pending.extend(l.units.iter().copied());
                 }
-                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.frame, rect = ?l.rect, "lease returned; unit queued again");
+                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.region.frame, rect = ?l.region.rect, "lease returned; unit queued again");
             }
             st.end_lease(id.clone(), l.job, false);
             returned += 1;
@@ -595,7 +585,7 @@ impl Farm {
             if st.partner_keeps(&id, &l) {
                 tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), "lease expired; its backup goes on");
             } else if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
-                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.frame, rect = ?l.rect, "lease expired; unit queued again");
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.region.frame, rect = ?l.region.rect, "lease expired; unit queued again");
                 job.pending.extend(l.units.iter().copied());
                 self.work_ready.notify_waiters();
             }

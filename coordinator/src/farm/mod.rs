@@ -43,7 +43,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use tokio::sync::watch;
 use tracer_core::adaptive::BlockMask;
-use tracer_core::film::{Film, RayCounts, Rect, SampleRange};
+use tracer_core::film::{Film, RayCounts, Rect, SampleRange, WorkRegion};
 use tracer_core::render::Backend;
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::RenderSettings;
@@ -245,11 +245,8 @@ pub struct LeaseView {
     pub scene_sha256: String,
     pub assets: BTreeMap<String, String>,
     pub settings: RenderSettings,
-    pub frame: u32,
-    pub rect: Rect,
-    pub samples: SampleRange,
-    pub deadline_unix_ms: i64,
-    /// Adaptive jobs: the blocks of `rect` this round samples.
+    pub region: WorkRegion,
+    /// Adaptive jobs: the blocks of `region.rect` this round samples.
     pub active: Option<BlockMask>,
 }
 
@@ -319,15 +316,13 @@ struct Lease {
     worker: String,
     job: String,
     units: Vec<u32>,
-    frame: u32,
-    rect: Rect,
-    samples: SampleRange,
+    region: WorkRegion,
     deadline: Instant,
     /// Pixel-samples the worker reports done (heartbeats).
     progress: u64,
     /// The cost probe's expected rays of the whole lease.
     expected_rays: f64,
-    /// Adaptive jobs: the blocks of `rect` this round samples.
+    /// Adaptive jobs: the blocks of `region.rect` this round samples.
     active: Option<BlockMask>,
     /// The other leases of the same units, when backups duplicate a lease
     /// (faster idle workers taking a slower worker's lease at a job's end):

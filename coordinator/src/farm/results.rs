@@ -277,7 +277,7 @@ impl Farm {
                     w.name.clone()
                 },
             );
-            tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.frame, rect = ?lease.rect, error = %msg, "unit failed on worker");
+            tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.region.frame, rect = ?lease.region.rect, error = %msg, "unit failed on worker");
             let rec = if st.partner_keeps(&r.lease_id, &lease) {
                 None
             } else {
@@ -322,7 +322,7 @@ impl Farm {
         Ok(Taken {
             job: lease.job.clone(),
             units,
-            frame: lease.frame,
+            frame: lease.region.frame,
             lease_id: r.lease_id.clone(),
             lease,
         })
@@ -509,24 +509,24 @@ fn validate_result(
     r: &ResultData,
     film_check: Result<(), String>,
 ) -> Result<(), String> {
-    if r.rect != lease.rect {
+    if r.rect != lease.region.rect {
         return Err(format!(
             "result rect {:?} does not match the leased rect {:?}",
-            r.rect, lease.rect
+            r.rect, lease.region.rect
         ));
     }
-    if r.samples != lease.samples {
+    if r.samples != lease.region.samples {
         return Err(format!(
             "result samples {}..{} do not match the leased samples {}..{}",
-            r.samples.start, r.samples.end, lease.samples.start, lease.samples.end
+            r.samples.start, r.samples.end, lease.region.samples.start, lease.region.samples.end
         ));
     }
     let film = r.film.as_ref().map_err(Clone::clone)?;
     // The film's own rect is the result's (it decoded to that size).
-    if film.rect != lease.rect {
+    if film.rect != lease.region.rect {
         return Err(format!(
             "result film rect {:?} does not match the leased rect {:?}",
-            film.rect, lease.rect
+            film.rect, lease.region.rect
         ));
     }
     adaptive::check_result(lease, film)?;
@@ -535,8 +535,8 @@ fn validate_result(
         // lease's active blocks (check_film passes films with squares).
         for (i, (&c, s)) in film.counts.iter().zip(&film.sums).enumerate() {
             let (x, y) = (
-                lease.rect.x + i as u32 % lease.rect.width,
-                lease.rect.y + i as u32 / lease.rect.width,
+                lease.region.rect.x + i as u32 % lease.region.rect.width,
+                lease.region.rect.y + i as u32 / lease.region.rect.width,
             );
             // All of the round's samples in active blocks, none elsewhere.
             let n = adaptive::expected_count(lease, x, y);
@@ -553,7 +553,7 @@ fn validate_result(
     } else {
         film_check?;
     }
-    let primary = adaptive::sampled_pixels(lease) * lease.samples.len() as u64;
+    let primary = adaptive::sampled_pixels(lease) * lease.region.samples.len() as u64;
     if film.rays.primary != primary {
         return Err(format!(
             "result counts {} primary rays, the unit has {primary}",

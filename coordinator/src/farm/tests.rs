@@ -63,14 +63,16 @@ async fn submits_too_large_to_hold_or_to_count_are_refused_with_the_limit_named(
 
 /// A well-formed result for a lease, as a worker taking `seconds` would send.
 fn result(worker: &str, l: &LeaseView, seconds: f64) -> ResultData {
-    let mut film = Film::new(l.rect);
-    film.counts.iter_mut().for_each(|c| *c = l.samples.len());
-    film.rays.primary = l.rect.area() as u64 * l.samples.len() as u64;
+    let mut film = Film::new(l.region.rect);
+    film.counts
+        .iter_mut()
+        .for_each(|c| *c = l.region.samples.len());
+    film.rays.primary = l.region.rect.area() as u64 * l.region.samples.len() as u64;
     ResultData {
         worker_id: worker.into(),
         lease_id: l.lease_id.clone(),
-        rect: l.rect,
-        samples: l.samples,
+        rect: l.region.rect,
+        samples: l.region.samples,
         film: Ok(film),
         packed: None,
         render_seconds: seconds,
@@ -210,7 +212,7 @@ async fn a_slow_result_shrinks_the_next_lease_at_once() {
     let (_dir, farm, _job) = farm_with_job(1024, 64, 4).await;
     let w = register(&farm, "w", 2);
     let l1 = farm.lease(&w, 1, false).unwrap().remove(0);
-    assert_eq!(l1.rect.width, 16, "unknown speed: one tile");
+    assert_eq!(l1.region.rect.width, 16, "unknown speed: one tile");
     // 16x16x4 in 1 ms: 1 M pixel-samples/s, 244 tiles in 0.25 s; the
     // end-of-job cap (255 pending / 4) and the row's end leave 63.
     assert_eq!(
@@ -218,7 +220,7 @@ async fn a_slow_result_shrinks_the_next_lease_at_once() {
         Outcome::Accepted
     );
     let l2 = farm.lease(&w, 1, false).unwrap().remove(0);
-    assert_eq!(l2.rect.width, 63 * 16);
+    assert_eq!(l2.region.rect.width, 63 * 16);
     // Those 63 tiles took 1 s: 64512 pixel-samples/s, 15 tiles in 0.25 s.
     assert_eq!(
         farm.submit_result(result(&w, &l2, 1.0)).await.unwrap(),
@@ -226,7 +228,7 @@ async fn a_slow_result_shrinks_the_next_lease_at_once() {
     );
     let l3 = farm.lease(&w, 1, false).unwrap().remove(0);
     assert_eq!(
-        l3.rect.width,
+        l3.region.rect.width,
         15 * 16,
         "the next lease is sized on the slow result"
     );
@@ -310,7 +312,7 @@ async fn returned_leases_are_leased_again_at_once() {
     assert_eq!(farm.return_leases(&a, &ids).unwrap(), 1);
     let lb = farm.lease(&b, 1, false).unwrap();
     assert_eq!(lb.len(), 1);
-    assert_eq!(lb[0].rect, la[1].rect);
+    assert_eq!(lb[0].region.rect, la[1].region.rect);
     assert!(
         matches!(
             farm.submit_result(result(&a, &la[1], 0.01)).await.unwrap(),
@@ -487,7 +489,7 @@ async fn batched_results_are_judged_one_by_one_and_commit_together() {
     );
     let again = farm.lease(&a, 4, false).unwrap();
     assert_eq!(again.len(), 1);
-    assert_eq!(again[0].rect, la[2].rect);
+    assert_eq!(again[0].region.rect, la[2].region.rect);
     assert_eq!(
         farm.submit_results(vec![result(&a, &again[0], 0.01)])
             .await
@@ -526,7 +528,12 @@ async fn a_very_fast_worker_gets_whole_rows_of_tiles() {
     // rows only.
     let l2 = farm.lease(&gpu, 1, false).unwrap().remove(0);
     assert_eq!(
-        (l2.rect.x, l2.rect.y, l2.rect.width, l2.rect.height),
+        (
+            l2.region.rect.x,
+            l2.region.rect.y,
+            l2.region.rect.width,
+            l2.region.rect.height
+        ),
         (16, 0, 240, 16)
     );
     assert_eq!(
@@ -536,7 +543,12 @@ async fn a_very_fast_worker_gets_whole_rows_of_tiles() {
     let l3 = farm.lease(&gpu, 1, false).unwrap().remove(0);
     // 240 pending / 2 = 120 tiles: seven whole rows (the same speed).
     assert_eq!(
-        (l3.rect.x, l3.rect.y, l3.rect.width, l3.rect.height),
+        (
+            l3.region.rect.x,
+            l3.region.rect.y,
+            l3.region.rect.width,
+            l3.region.rect.height
+        ),
         (0, 16, 256, 112)
     );
     assert_eq!(
@@ -573,7 +585,7 @@ async fn leases_are_sized_in_expected_rays_not_pixels() {
         Outcome::Accepted
     );
     let l2 = farm.lease(&w, 1, false).unwrap().remove(0);
-    assert_eq!((l2.rect.x, l2.rect.width), (16, 16 * 16));
+    assert_eq!((l2.region.rect.x, l2.region.rect.width), (16, 16 * 16));
     // result() reports one ray a pixel-sample, as the cheap tiles cost.
     assert_eq!(
         farm.submit_result(result(&w, &l2, 0.25)).await.unwrap(),
@@ -581,7 +593,7 @@ async fn leases_are_sized_in_expected_rays_not_pixels() {
     );
     // The rest of the cheap half (15 tiles); the next tile would not fit.
     let l3 = farm.lease(&w, 1, false).unwrap().remove(0);
-    assert_eq!((l3.rect.x, l3.rect.width), (17 * 16, 15 * 16));
+    assert_eq!((l3.region.rect.x, l3.region.rect.width), (17 * 16, 15 * 16));
     assert_eq!(
         farm.submit_result(result(&w, &l3, 15.0 * 1024.0 / 65536.0))
             .await
@@ -590,7 +602,7 @@ async fn leases_are_sized_in_expected_rays_not_pixels() {
     );
     // Costly tiles: 8192 rays each, two fit.
     let l4 = farm.lease(&w, 1, false).unwrap().remove(0);
-    assert_eq!((l4.rect.x, l4.rect.width), (32 * 16, 2 * 16));
+    assert_eq!((l4.region.rect.x, l4.region.rect.width), (32 * 16, 2 * 16));
 }
 
 #[tokio::test]
@@ -631,7 +643,7 @@ async fn faster_workers_get_larger_units_and_results_count_once() {
         farm.lease(&fast, 1, false).unwrap().remove(0),
         farm.lease(&slow, 1, false).unwrap().remove(0),
     );
-    assert_eq!((f1.rect.width, s1.rect.width), (16, 16));
+    assert_eq!((f1.region.rect.width, s1.region.rect.width), (16, 16));
     // A 16x16x4 unit in 10 ms vs in 1 s.
     assert_eq!(
         farm.submit_result(result(&fast, &f1, 0.01)).await.unwrap(),
@@ -648,11 +660,14 @@ async fn faster_workers_get_larger_units_and_results_count_once() {
     // Joined tiles along the row: the target of 0.25 s at 100 tiles a
     // second (the farm would need 2.5 s for the 254 pending).
     assert_eq!(
-        (f2.rect.width, f2.rect.height),
+        (f2.region.rect.width, f2.region.rect.height),
         (16 * 25, 16),
         "the fast worker gets a row of joined tiles"
     );
-    assert_eq!(s2.rect.width, 16, "the slow worker keeps single tiles");
+    assert_eq!(
+        s2.region.rect.width, 16,
+        "the slow worker keeps single tiles"
+    );
     // A result counts once; the same lease again is a duplicate, dropped.
     assert_eq!(
         farm.submit_result(result(&fast, &f2, 0.01)).await.unwrap(),
@@ -703,7 +718,7 @@ async fn near_the_end_a_slow_worker_is_held_back_for_a_faster_one() {
     assert!(leases.is_empty() && start.elapsed() < Duration::from_secs(1));
     let f2 = farm.lease(&fast, 1, false).unwrap().remove(0);
     assert_eq!(
-        f2.rect,
+        f2.region.rect,
         Rect::new(32, 0, 32, 16),
         "the fast worker takes the rest"
     );
@@ -718,7 +733,7 @@ async fn near_the_end_a_slow_worker_is_held_back_for_a_faster_one() {
     let a2 = farm.lease(&a, 1, false).unwrap();
     let b2 = farm.lease(&b, 1, false).unwrap();
     assert_eq!((a2.len(), b2.len()), (1, 1));
-    assert_eq!((a2[0].rect.width, b2[0].rect.width), (16, 16));
+    assert_eq!((a2[0].region.rect.width, b2[0].region.rect.width), (16, 16));
 }
 
 /// At a job's end an idle fast worker backs up a slow worker's lease:
@@ -739,7 +754,7 @@ async fn an_idle_fast_worker_backs_up_a_slow_workers_lease_and_the_first_result_
         let Some(l) = farm.lease(&fast, 1, false).unwrap().pop() else {
             break;
         };
-        if l.rect == s2.rect {
+        if l.region.rect == s2.region.rect {
             backup = Some(l);
             break;
         }
@@ -748,7 +763,7 @@ async fn an_idle_fast_worker_backs_up_a_slow_workers_lease_and_the_first_result_
     }
     let backup = backup.expect("the fast worker backs up the slow worker's lease");
     assert_ne!(backup.lease_id, s2.lease_id);
-    assert_eq!(backup.samples, s2.samples);
+    assert_eq!(backup.region.samples, s2.region.samples);
     // A lease is backed up once, and the slow worker backs up nothing.
     assert!(farm.lease(&fast, 1, false).unwrap().is_empty());
     assert!(farm.lease(&slow, 1, false).unwrap().is_empty());
@@ -786,7 +801,7 @@ async fn a_failed_backup_leaves_the_units_with_the_original_lease() {
         let Some(l) = farm.lease(&fast, 1, false).unwrap().pop() else {
             break;
         };
-        if l.rect == s2.rect {
+        if l.region.rect == s2.region.rect {
             backup = Some(l);
             break;
         }
@@ -798,7 +813,7 @@ async fn a_failed_backup_leaves_the_units_with_the_original_lease() {
     farm.submit_result(failed).await.unwrap();
     // Nothing queued again; one more backup is tried, then no more.
     let again = farm.lease(&fast, 1, false).unwrap().remove(0);
-    assert_eq!(again.rect, s2.rect);
+    assert_eq!(again.region.rect, s2.region.rect);
     let mut failed = result(&fast, &again, 0.001);
     failed.failure = Some("device lost".into());
     farm.submit_result(failed).await.unwrap();
@@ -829,7 +844,14 @@ async fn a_silent_worker_does_not_count_towards_the_farms_speed() {
             let mut st = farm.state.lock().unwrap();
             st.workers.get_mut(&b).unwrap().last_seen -= Duration::from_secs(60);
         }
-        widths.push(farm.lease(&a, 1, false).unwrap().remove(0).rect.width);
+        widths.push(
+            farm.lease(&a, 1, false)
+                .unwrap()
+                .remove(0)
+                .region
+                .rect
+                .width,
+        );
     }
     assert!(
         widths[1] > widths[0],
@@ -856,9 +878,12 @@ async fn a_much_faster_worker_backs_up_a_lease_already_backed_up() {
     // Out of pending work, the mid worker asks first and backs up the
     // slow worker's lease; the fast one then backs it up as well.
     let mb = farm.lease(&mid, 1, false).unwrap().remove(0);
-    assert_eq!(mb.rect, s2.rect);
+    assert_eq!(mb.region.rect, s2.region.rect);
     let fb = farm.lease(&fast, 1, false).unwrap().remove(0);
-    assert_eq!(fb.rect, s2.rect, "the fast worker backs it up too");
+    assert_eq!(
+        fb.region.rect, s2.region.rect,
+        "the fast worker backs it up too"
+    );
     assert_eq!(
         farm.submit_result(result(&fast, &fb, 0.001)).await.unwrap(),
         Outcome::Accepted
@@ -884,17 +909,17 @@ async fn a_fast_workers_best_speed_sizes_a_slow_workers_lease() {
         let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
         farm.submit_result(result(&fast, &f1, 0.001)).await.unwrap();
         let f2 = farm.lease(&fast, 1, false).unwrap().remove(0);
-        assert!(f2.rect.width > 16, "{f2:?}");
+        assert!(f2.region.rect.width > 16, "{f2:?}");
         // The larger unit: either at the first one's speed, or (all
         // fixed cost) in the first one's time.
-        let tiles = f64::from(f2.rect.width / 16);
+        let tiles = f64::from(f2.region.rect.width / 16);
         let seconds = if fast_big_unit { 0.001 } else { 0.001 * tiles };
         farm.submit_result(result(&fast, &f2, seconds))
             .await
             .unwrap();
         // A small unit, mostly fixed cost: the same low speed in both.
         let f3 = farm.lease(&fast, 1, false).unwrap().remove(0);
-        let f3_tiles = f64::from(f3.rect.width / 16);
+        let f3_tiles = f64::from(f3.region.rect.width / 16);
         farm.submit_result(result(&fast, &f3, 0.001 * f3_tiles * 4.0))
             .await
             .unwrap();
@@ -902,7 +927,7 @@ async fn a_fast_workers_best_speed_sizes_a_slow_workers_lease() {
         let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
         farm.submit_result(result(&slow, &s1, 0.05)).await.unwrap();
         let (l, _) = farm.lease_or_hold(&slow, 1, false).unwrap();
-        slow_widths.push(l.first().map_or(0, |l| l.rect.width));
+        slow_widths.push(l.first().map_or(0, |l| l.region.rect.width));
     }
     // Beside a worker that was 63x faster a moment ago the slow one is
     // held back (the fast one, at its best, finishes the rest sooner);
@@ -932,7 +957,7 @@ async fn workers_rated_at_their_best_never_all_hold_back() {
             let (leases, _) = farm.lease_or_hold(w, 1, false).unwrap();
             for l in leases {
                 // The first result of each is 10x faster than the rest.
-                let tiles = f64::from(l.rect.width / 16 * (l.rect.height / 16));
+                let tiles = f64::from(l.region.rect.width / 16 * (l.region.rect.height / 16));
                 let per_tile = if results[i] == 0 { 0.0001 } else { 0.001 };
                 results[i] += 1;
                 let o = farm.submit_result(result(w, &l, tiles * per_tile)).await;

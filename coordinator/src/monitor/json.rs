@@ -180,9 +180,9 @@ impl From<UnitFailure> for FailureJson {
     fn from(f: UnitFailure) -> Self {
         FailureJson {
             unit: f.unit,
-            frame: f.frame,
-            rect: f.rect.into(),
-            samples: [f.samples.start, f.samples.end],
+            frame: f.region.frame,
+            rect: f.region.rect.into(),
+            samples: [f.region.samples.start, f.region.samples.end],
             messages: f.messages,
         }
     }

@@ -57,10 +57,10 @@ impl Roster {
             let e = by_worker
                 .entry(l.worker_id.as_str())
                 .or_default()
-                .entry((l.job_id.as_str(), l.frame))
+                .entry((l.job_id.as_str(), l.region.frame))
                 .or_default();
             e.0 += 1;
-            e.1 += l.rect.area() as u64;
+            e.1 += l.region.rect.area() as u64;
         }
         for w in workers {
             let held: Vec<HeldJson> = by_worker
@@ -110,7 +110,7 @@ impl Roster {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tracer_core::film::{Rect, SampleRange};
+    use tracer_core::film::{Rect, SampleRange, WorkRegion};
 
     fn worker(id: &str, last_seen_unix_ms: i64) -> WorkerView {
         WorkerView {
@@ -137,9 +137,7 @@ mod tests {
         let lease = |frame, x| LeaseSummary {
             worker_id: "a".into(),
             job_id: "j".into(),
-            frame,
-            rect: Rect::new(x, 0, 8, 8),
-            samples: SampleRange::new(0, 4),
+            region: WorkRegion::new(frame, Rect::new(x, 0, 8, 8), SampleRange::new(0, 4)),
             progress: 0,
         };
         let leases = [lease(1, 0), lease(1, 8), lease(2, 0)];

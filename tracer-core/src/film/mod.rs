@@ -96,6 +96,30 @@ impl SampleRange {
     }
 }
 
+/// The pixels and samples of one frame that a piece of work covers: the
+/// sample indices `samples` of each pixel of `rect` in frame `frame`. A
+/// farm's lease, a worker's unit and a unit's failure each cover one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct WorkRegion {
+    pub frame: u32,
+    pub rect: Rect,
+    pub samples: SampleRange,
+}
+
+impl WorkRegion {
+    pub fn new(frame: u32, rect: Rect, samples: SampleRange) -> Self {
+        WorkRegion {
+            frame,
+            rect,
+            samples,
+        }
+    }
+    /// Pixel-samples it covers.
+    pub fn pixel_samples(&self) -> u64 {
+        self.rect.area() as u64 * u64::from(self.samples.len())
+    }
+}
+
 /// Rays traced, by kind.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct RayCounts {
