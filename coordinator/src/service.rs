@@ -4,7 +4,8 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
-use tessera_proto::convert::{backend_from_pb, sampler_from_pb};
+use tessera_proto::JobSpec;
+use tessera_proto::convert::backend_from_pb;
 use tessera_proto::film_codec;
 use tessera_proto::pb;
 use tessera_proto::pb::job_service_server::JobService;
@@ -18,7 +19,7 @@ use std::sync::atomic::Ordering;
 use tessera_proto::transport::ASSET_CHUNK_BYTES;
 
 use crate::assets::{AssetStoreError, check_hash};
-use crate::farm::{Farm, FarmError, JobState, JobView, Outcome, Overrides, ResultData, Submission};
+use crate::farm::{Farm, FarmError, JobState, JobView, Outcome, ResultData, Submission};
 use crate::store::Counters;
 
 impl From<FarmError> for Status {
@@ -121,15 +122,10 @@ impl JobService for Api {
             .into_inner()
             .spec
             .ok_or_else(|| Status::invalid_argument("missing field `spec`"))?;
-        let o = spec.overrides.unwrap_or_default();
-        let scene_name = if spec.scene_name.is_empty() {
-            "scene.toml".to_string()
-        } else {
-            spec.scene_name
-        };
+        // API boundary: the message becomes the one JobSpec here; the farm
+        // checks what it asks for against its scene.
         let s = Submission {
-            name: spec.name,
-            scene_name,
+            spec: JobSpec::from(&spec),
             scene: spec.scene,
             assets: spec
                 .assets
@@ -137,25 +133,6 @@ impl JobService for Api {
                 .map(|a| (a.name, a.content))
                 .collect(),
             files: spec.files.into_iter().collect(),
-            overrides: Overrides {
-                width: o.width,
-                height: o.height,
-                samples: o.samples,
-                max_depth: o.max_depth,
-                sampler: sampler_from_pb(o.sampler),
-            },
-            first_frame: spec.first_frame,
-            last_frame: spec.last_frame,
-            priority: spec.priority,
-            tile_size: spec.tile_size,
-            samples_per_unit: spec.samples_per_unit,
-            max_attempts: spec.max_attempts,
-            adaptive: tracer_core::adaptive::AdaptiveSpec {
-                target_error: o.target_error,
-                relative_error: o.relative_error,
-                min_samples: o.min_samples,
-                max_samples: o.max_samples,
-            },
         };
         let job_id = self.farm.submit(s).await?;
         Ok(Response::new(pb::SubmitJobResponse { job_id }))

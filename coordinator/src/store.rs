@@ -26,7 +26,9 @@ use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinitio
 use serde::{Deserialize, Serialize};
 use tessera_proto::film_codec;
 use tokio::sync::oneshot;
+use tracer_core::adaptive::AdaptiveSettings;
 use tracer_core::film::{Film, RayCounts, Rect};
+use tracer_core::scene::RenderSettings;
 
 /// job id -> JSON [`JobRecord`]
 const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");
@@ -69,6 +71,16 @@ db_err!(
 );
 
 /// A job as accepted: everything needed to render it again after a restart.
+/// `Farm::submit` makes it, in one place, from the job's
+/// [`tessera_proto::JobSpec`] resolved against its scene and the
+/// coordinator's defaults: the overrides become the settings it renders
+/// with, each `None` the default it took.
+///
+/// Stored as JSON; records written by earlier releases must keep loading,
+/// so field names stay as they were: the settings are flattened into
+/// `width`, `height`, `samples`, `max_depth` and `sampler` (its name,
+/// "grid", "jittered" or "progressive"), and the adaptive fields, which
+/// records before adaptive sampling lack, default to a uniform job.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct JobRecord {
     pub id: String,
@@ -77,12 +89,10 @@ pub struct JobRecord {
     pub scene_sha256: String,
     /// Referenced files: name -> sha256.
     pub assets: BTreeMap<String, String>,
-    pub width: u32,
-    pub height: u32,
-    pub samples: u32,
-    pub max_depth: u32,
-    /// "grid" or "jittered"
-    pub sampler: String,
+    /// The settings every frame renders with (an adaptive job's `samples`
+    /// is its `max_samples`). Checked where read back (`Farm::open`).
+    #[serde(flatten)]
+    pub settings: RenderSettings,
     pub first_frame: u32,
     pub last_frame: u32,
     pub priority: i32,
@@ -94,9 +104,21 @@ pub struct JobRecord {
     pub submitted_unix_ms: i64,
     pub finished_unix_ms: i64,
     pub output_dir: String,
-    /// Adaptive sampling (issue 17): the error targets, absolute and
-    /// relative (both 0: a uniform job), and the sample bounds; `samples`
-    /// is then `max_samples`.
+    #[serde(flatten)]
+    pub adaptive: AdaptiveRec,
+}
+
+impl JobRecord {
+    /// The job's adaptive settings, if it is adaptive.
+    pub fn adaptive(&self) -> Option<AdaptiveSettings> {
+        self.adaptive.settings()
+    }
+}
+
+/// Adaptive sampling (issue 17) as a record keeps it: the error targets,
+/// absolute and relative (both 0: a uniform job), and the sample bounds.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct AdaptiveRec {
     #[serde(default)]
     pub target_error: f64,
     #[serde(default)]
@@ -105,6 +127,29 @@ pub struct JobRecord {
     pub max_samples: u32,
     #[serde(default)]
     pub relative_error: f64,
+}
+
+impl AdaptiveRec {
+    /// The settings, if adaptive (a target, absolute or relative, above 0).
+    pub fn settings(&self) -> Option<AdaptiveSettings> {
+        (self.target_error > 0.0 || self.relative_error > 0.0).then_some(AdaptiveSettings {
+            target_error: self.target_error,
+            relative_error: self.relative_error,
+            min_samples: self.min_samples,
+            max_samples: self.max_samples,
+        })
+    }
+}
+
+impl From<Option<AdaptiveSettings>> for AdaptiveRec {
+    fn from(a: Option<AdaptiveSettings>) -> Self {
+        a.map_or_else(AdaptiveRec::default, |a| AdaptiveRec {
+            target_error: a.target_error,
+            min_samples: a.min_samples,
+            max_samples: a.max_samples,
+            relative_error: a.relative_error,
+        })
+    }
 }
 
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
@@ -812,6 +857,71 @@ pub fn decode_film(b: &[u8]) -> Result<Film, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tracer_core::sampling::Sampler;
+
+    /// A job record as releases before `JobSpec` wrote it (with the
+    /// adaptive fields of issue 17), field for field.
+    const RECORD: &str = r#"{"id":"j0123456789","name":"glass","scene_name":"examples/glass.toml",
+        "scene_sha256":"ab","assets":{"m.obj":"cd"},"width":320,"height":240,"samples":1024,
+        "max_depth":6,"sampler":"progressive","first_frame":1,"last_frame":3,"priority":-2,
+        "tile_size":64,"samples_per_unit":64,"max_attempts":3,"state":"Active","error":"",
+        "submitted_unix_ms":1700000000000,"finished_unix_ms":0,"output_dir":"/data/outputs/j0123456789",
+        "target_error":0.01,"min_samples":16,"max_samples":1024,"relative_error":0.0}"#;
+
+    #[test]
+    fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
+        let rec: JobRecord = serde_json::from_str(RECORD).unwrap();
+        assert_eq!(
+            rec.settings,
+            RenderSettings {
+                width: 320,
+                height: 240,
+                samples: 1024,
+                max_depth: 6,
+                sampler: Sampler::Progressive,
+            }
+        );
+        assert_eq!((rec.first_frame, rec.last_frame, rec.priority), (1, 3, -2));
+        assert_eq!(rec.state, JobStateRec::Active);
+        assert_eq!(
+            rec.adaptive(),
+            Some(AdaptiveSettings {
+                target_error: 0.01,
+                relative_error: 0.0,
+                min_samples: 16,
+                max_samples: 1024,
+            })
+        );
+        // Written back, it is the same JSON object: same names, the
+        // sampler still a string.
+        let old: serde_json::Value = serde_json::from_str(RECORD).unwrap();
+        assert_eq!(serde_json::to_value(&rec).unwrap(), old);
+
+        // Before adaptive sampling: no adaptive fields, a "grid" or
+        // "jittered" sampler; a uniform job.
+        let mut before: serde_json::Map<String, serde_json::Value> =
+            serde_json::from_str(RECORD).unwrap();
+        for k in [
+            "target_error",
+            "min_samples",
+            "max_samples",
+            "relative_error",
+        ] {
+            before.remove(k);
+        }
+        before.insert("sampler".into(), "jittered".into());
+        let rec: JobRecord = serde_json::from_value(before.into()).unwrap();
+        assert_eq!(rec.settings.sampler, Sampler::Jittered);
+        assert_eq!(rec.adaptive(), None);
+        for s in ["grid", "jittered", "progressive"] {
+            let v = serde_json::to_value(RenderSettings {
+                sampler: s.parse().unwrap(),
+                ..rec.settings
+            })
+            .unwrap();
+            assert_eq!(v["sampler"], s);
+        }
+    }
 
     fn film() -> Film {
         let mut film = Film::new(Rect::new(8, 4, 5, 3));

@@ -1,10 +1,13 @@
-//! Conversions between protobuf messages and tracer-core types.
+//! Conversions between protobuf messages and Rust types (tracer-core's
+//! and [`JobSpec`]): the one place each wire message meets its Rust shape.
 
+use tracer_core::adaptive::AdaptiveSpec;
 use tracer_core::film::{RayCounts, Rect, SampleRange, WorkRegion};
 use tracer_core::render::Backend;
 use tracer_core::sampling::Sampler;
-use tracer_core::scene::RenderSettings;
+use tracer_core::scene::{RenderOverrides, RenderSettings};
 
+use crate::job::JobSpec;
 use crate::pb;
 
 /// A message from the wire that does not make a valid value.
@@ -165,9 +168,144 @@ impl TryFrom<pb::RenderSettings> for RenderSettings {
     }
 }
 
+/// The render settings of a `RenderOverrides` message (its adaptive keys
+/// are [`AdaptiveSpec`]'s). Unchecked: the coordinator validates them with
+/// the scene they apply to ([`RenderOverrides::resolve`]).
+impl From<&pb::RenderOverrides> for RenderOverrides {
+    fn from(o: &pb::RenderOverrides) -> Self {
+        RenderOverrides {
+            width: o.width,
+            height: o.height,
+            samples: o.samples,
+            max_depth: o.max_depth,
+            sampler: sampler_from_pb(o.sampler),
+        }
+    }
+}
+
+/// The adaptive keys of a `RenderOverrides` message.
+impl From<&pb::RenderOverrides> for AdaptiveSpec {
+    fn from(o: &pb::RenderOverrides) -> Self {
+        AdaptiveSpec {
+            target_error: o.target_error,
+            relative_error: o.relative_error,
+            min_samples: o.min_samples,
+            max_samples: o.max_samples,
+        }
+    }
+}
+
+/// Overrides and the adaptive keys given with them, as one message.
+impl From<(RenderOverrides, AdaptiveSpec)> for pb::RenderOverrides {
+    fn from((o, a): (RenderOverrides, AdaptiveSpec)) -> Self {
+        pb::RenderOverrides {
+            width: o.width,
+            height: o.height,
+            samples: o.samples,
+            max_depth: o.max_depth,
+            sampler: o
+                .sampler
+                .map_or(pb::Sampler::Unspecified, pb::Sampler::from) as i32,
+            target_error: a.target_error,
+            relative_error: a.relative_error,
+            min_samples: a.min_samples,
+            max_samples: a.max_samples,
+        }
+    }
+}
+
+/// The job's message without its files: the scene's text and its other
+/// files (`scene`, `assets`, `files`) are the sender's to add.
+impl From<JobSpec> for pb::JobSpec {
+    fn from(j: JobSpec) -> Self {
+        pb::JobSpec {
+            name: j.name,
+            scene_name: j.scene_name,
+            scene: Vec::new(),
+            assets: Vec::new(),
+            overrides: Some((j.overrides, j.adaptive).into()),
+            first_frame: j.first_frame,
+            last_frame: j.last_frame,
+            priority: j.priority,
+            tile_size: j.tile_size.unwrap_or(0),
+            samples_per_unit: j.samples_per_unit.unwrap_or(0),
+            max_attempts: j.max_attempts.unwrap_or(0),
+            files: Default::default(),
+        }
+    }
+}
+
+/// What a job message asks for, its files aside. The wire's defaults
+/// become Rust's: 0 is `None`, an empty scene name `scene.toml`.
+impl From<&pb::JobSpec> for JobSpec {
+    fn from(j: &pb::JobSpec) -> Self {
+        let o = j.overrides.unwrap_or_default();
+        let given = |v: u32| (v != 0).then_some(v);
+        JobSpec {
+            name: j.name.clone(),
+            scene_name: if j.scene_name.is_empty() {
+                "scene.toml".into()
+            } else {
+                j.scene_name.clone()
+            },
+            overrides: (&o).into(),
+            adaptive: (&o).into(),
+            first_frame: j.first_frame,
+            last_frame: j.last_frame,
+            priority: j.priority,
+            tile_size: given(j.tile_size),
+            samples_per_unit: given(j.samples_per_unit),
+            max_attempts: given(j.max_attempts),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn job_specs_round_trip() {
+        let spec = JobSpec {
+            name: "j".into(),
+            scene_name: "s.toml".into(),
+            overrides: RenderOverrides {
+                width: Some(64),
+                height: None,
+                samples: Some(9),
+                max_depth: Some(0),
+                sampler: Some(Sampler::Progressive),
+            },
+            adaptive: AdaptiveSpec {
+                target_error: Some(0.01),
+                relative_error: None,
+                min_samples: Some(4),
+                max_samples: None,
+            },
+            first_frame: 2,
+            last_frame: 5,
+            priority: -3,
+            tile_size: Some(32),
+            samples_per_unit: None,
+            max_attempts: Some(1),
+        };
+        let wire = pb::JobSpec::from(spec.clone());
+        assert_eq!(wire.samples_per_unit, 0);
+        assert_eq!(JobSpec::from(&wire), spec);
+        // The wire's defaults: nothing given is all `None`.
+        let empty = JobSpec::from(&pb::JobSpec::default());
+        assert_eq!(empty.scene_name, "scene.toml");
+        assert_eq!(empty.overrides, RenderOverrides::default());
+        assert_eq!(empty.adaptive, AdaptiveSpec::default());
+        assert_eq!(
+            (empty.tile_size, empty.samples_per_unit, empty.max_attempts),
+            (None, None, None)
+        );
+        // An unknown sampler keeps the scene's, as UNSPECIFIED does.
+        let mut odd = pb::JobSpec::from(spec);
+        odd.overrides.as_mut().unwrap().sampler = 99;
+        assert_eq!(JobSpec::from(&odd).overrides.sampler, None);
+    }
 
     #[test]
     fn settings_round_trip_and_validate() {

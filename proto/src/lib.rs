@@ -1,10 +1,13 @@
 //! Tessera's gRPC API (protobuf package `tessera.v1`, sources in
-//! `proto/tessera/v1/`), and the conversions between its messages and
-//! tracer-core's types. Prost types stop here: the coordinator and worker
-//! convert at their edges, and tracer-core never sees them.
+//! `proto/tessera/v1/`), the Rust shape of a job request both its ends
+//! share ([`JobSpec`]), and the conversions between its messages and those
+//! types. Prost types stop here: the coordinator, the worker and the
+//! client commands convert at their edges, and tracer-core never sees them.
 
 pub mod convert;
 pub mod film_codec;
+pub mod job;
+pub use job::JobSpec;
 pub mod transport;
 
 /// Generated messages, clients and servers.

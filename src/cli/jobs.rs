@@ -6,12 +6,12 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use tessera_proto::pb;
+use tessera_proto::{JobSpec, pb};
 use tokio_stream::StreamExt as _;
 
 use super::farm_common::{CoordinatorUrl, JobClient, connect, rpc, runtime};
 use super::output::{Format, Progress, job_json, print_json, worker_json};
-use super::render::RenderOverrides;
+use super::render::{AdaptiveArgs, OverrideArgs};
 
 /// Exit codes of `tessera watch` and `tessera submit --wait`.
 pub const EXIT_DONE: u8 = 0;
@@ -53,9 +53,9 @@ pub struct SubmitArgs {
     #[arg(long)]
     pub frames: Option<Frames>,
     #[command(flatten)]
-    pub overrides: RenderOverrides,
+    pub overrides: OverrideArgs,
     #[command(flatten)]
-    pub adaptive: super::render::AdaptiveArgs,
+    pub adaptive: AdaptiveArgs,
     /// Higher priorities are rendered first (any i32; jobs of equal
     /// priority in the order submitted)
     #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
@@ -97,34 +97,25 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
     // Validated here first, through the loaders `tessera render` uses: a
     // bad scene fails before anything is uploaded.
     let bundle = super::bundle::gather(&args.scene, args.allow_outside)?;
-    let o = &args.overrides;
     let frames = args.frames.unwrap_or(Frames { first: 0, last: 0 });
-    let spec = pb::JobSpec {
+    // What the job asks for, in its one shape; the coordinator checks it
+    // against the scene. Its files go beside it in the message.
+    let job = JobSpec {
         name: args.name.clone().unwrap_or_default(),
         // The path as typed, so errors read exactly as `tessera render`'s.
         scene_name: args.scene.display().to_string(),
-        scene: bundle.scene,
-        assets: Vec::new(),
-        files: Default::default(),
-        overrides: Some(pb::RenderOverrides {
-            width: o.width,
-            height: o.height,
-            samples: o.samples,
-            max_depth: o.max_depth,
-            sampler: o
-                .sampler
-                .map_or(pb::Sampler::Unspecified, pb::Sampler::from) as i32,
-            target_error: args.adaptive.target_error,
-            relative_error: args.adaptive.relative_error,
-            min_samples: args.adaptive.min_samples,
-            max_samples: args.adaptive.max_samples,
-        }),
+        overrides: (&args.overrides).into(),
+        adaptive: (&args.adaptive).into(),
         first_frame: frames.first,
         last_frame: frames.last,
         priority: args.priority,
-        tile_size: args.tile_size.unwrap_or(0),
-        samples_per_unit: args.samples_per_unit.unwrap_or(0),
-        max_attempts: args.max_attempts.unwrap_or(0),
+        tile_size: args.tile_size,
+        samples_per_unit: args.samples_per_unit,
+        max_attempts: args.max_attempts,
+    };
+    let spec = pb::JobSpec {
+        scene: bundle.scene,
+        ..job.into()
     };
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;

@@ -13,7 +13,10 @@ use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::cpu::MAX_THREADS;
 use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer};
 use tracer_core::sampling::Sampler;
-use tracer_core::scene::{MAX_DEPTH, MAX_IMAGE_SIDE, MAX_SAMPLES, RenderSettings, SceneDesc};
+use tracer_core::scene::{
+    MAX_DEPTH, MAX_IMAGE_SIDE, MAX_SAMPLES, RenderOverrides, RenderSettings, SceneDesc,
+    SettingsError,
+};
 
 /// `--threads`: 0 (all cores) up to the renderer's limit, so help and
 /// errors state the real range.
@@ -21,10 +24,11 @@ pub fn threads_parser() -> clap::builder::RangedI64ValueParser<usize> {
     clap::builder::RangedI64ValueParser::<usize>::new().range(0..=MAX_THREADS as i64)
 }
 
-/// Settings that override the scene file's `[render]` table. Shared by
-/// every command that renders (render, submit, bench).
+/// Settings that override the scene file's `[render]` table, as flags:
+/// the command line's edge of [`RenderOverrides`] (clap's attributes are
+/// its own). Shared by every command that renders (render, submit).
 #[derive(Args, Debug, Clone, Default)]
-pub struct RenderOverrides {
+pub struct OverrideArgs {
     /// Image width in pixels, 1..=32768; overrides the scene's [render]
     /// width [default: the scene's, else 800]
     #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_IMAGE_SIDE)))]
@@ -51,8 +55,21 @@ pub struct RenderOverrides {
     pub sampler: Option<Sampler>,
 }
 
+impl From<&OverrideArgs> for RenderOverrides {
+    fn from(a: &OverrideArgs) -> Self {
+        RenderOverrides {
+            width: a.width,
+            height: a.height,
+            samples: a.samples,
+            max_depth: a.max_depth,
+            sampler: a.sampler,
+        }
+    }
+}
+
 /// Adaptive sampling (docs/adaptive-sampling.md): samples per block of
-/// 8x8 pixels until the error estimate meets a target.
+/// 8x8 pixels until the error estimate meets a target. The flags of
+/// [`AdaptiveSpec`].
 #[derive(Args, Debug, Clone, Default)]
 pub struct AdaptiveArgs {
     /// Adaptive sampling: stop sampling an 8x8 block once the estimated
@@ -79,53 +96,37 @@ pub struct AdaptiveArgs {
     pub max_samples: Option<u32>,
 }
 
-impl AdaptiveArgs {
-    /// The adaptive settings of a render (`None`: uniform) and the render
-    /// settings it traces with, checked against the other overrides.
-    pub fn apply(
-        &self,
-        scene: &SceneDesc,
-        overrides: &RenderOverrides,
-        settings: RenderSettings,
-    ) -> Result<(RenderSettings, Option<AdaptiveSettings>)> {
-        let given = AdaptiveSpec {
-            target_error: self.target_error,
-            relative_error: self.relative_error,
-            min_samples: self.min_samples,
-            max_samples: self.max_samples,
-        };
-        let Some(a) = scene.adaptive.resolve(&given).map_err(anyhow::Error::msg)? else {
-            return Ok((settings, None));
-        };
-        if overrides.samples.is_some() {
-            bail!(
-                "--samples does not apply to adaptive sampling (--target-error, --relative-error): use --min-samples and --max-samples"
-            );
+impl From<&AdaptiveArgs> for AdaptiveSpec {
+    fn from(a: &AdaptiveArgs) -> Self {
+        AdaptiveSpec {
+            target_error: a.target_error,
+            relative_error: a.relative_error,
+            min_samples: a.min_samples,
+            max_samples: a.max_samples,
         }
-        if let Some(s) = overrides.sampler.filter(|&s| s != Sampler::Progressive) {
-            bail!(
-                "--sampler {} does not apply to adaptive sampling (--target-error, --relative-error), which places samples progressively (sample k the same whatever the count)",
-                s.name()
-            );
-        }
-        Ok((a.render_settings(settings), Some(a)))
     }
 }
 
-impl RenderOverrides {
-    /// The scene's settings with these overrides applied, validated.
-    pub fn apply(&self, scene: &RenderSettings) -> Result<RenderSettings> {
-        let s = RenderSettings {
-            width: self.width.unwrap_or(scene.width),
-            height: self.height.unwrap_or(scene.height),
-            samples: self.samples.unwrap_or(scene.samples),
-            max_depth: self.max_depth.unwrap_or(scene.max_depth),
-            sampler: self.sampler.unwrap_or(scene.sampler),
-        };
-        s.validate()
-            .map_err(|e| anyhow::anyhow!("invalid render settings: {e}"))?;
-        Ok(s)
-    }
+/// The settings a local render traces with (and its adaptive settings),
+/// resolved and checked once by [`RenderOverrides::resolve`]; the errors
+/// of the adaptive checks name the flags.
+fn resolve(
+    scene: &SceneDesc,
+    overrides: &OverrideArgs,
+    adaptive: &AdaptiveArgs,
+) -> Result<(RenderSettings, Option<AdaptiveSettings>)> {
+    RenderOverrides::from(overrides)
+        .resolve(scene, &adaptive.into())
+        .map_err(|e| match e {
+            SettingsError::SamplesWithAdaptive => anyhow::anyhow!(
+                "--samples does not apply to adaptive sampling (--target-error, --relative-error): use --min-samples and --max-samples"
+            ),
+            SettingsError::SamplerWithAdaptive(s) => anyhow::anyhow!(
+                "--sampler {} does not apply to adaptive sampling (--target-error, --relative-error), which places samples progressively (sample k the same whatever the count)",
+                s.name()
+            ),
+            e => e.into(),
+        })
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
@@ -165,7 +166,7 @@ pub struct RenderArgs {
     #[arg(short, long)]
     pub output: Option<PathBuf>,
     #[command(flatten)]
-    pub overrides: RenderOverrides,
+    pub overrides: OverrideArgs,
     #[command(flatten)]
     pub adaptive: AdaptiveArgs,
     /// Adaptive renders: also write a heat map of samples per pixel (PNG,
@@ -223,8 +224,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     for w in &scene.warnings {
         eprintln!("warning: {w}");
     }
-    let settings = args.overrides.apply(&scene.render)?;
-    let (settings, adaptive) = args.adaptive.apply(&scene, &args.overrides, settings)?;
+    let (settings, adaptive) = resolve(&scene, &args.overrides, &args.adaptive)?;
     if let Some(map) = &args.sample_map {
         if adaptive.is_none() {
             bail!("--sample-map applies to adaptive renders: give --target-error too");

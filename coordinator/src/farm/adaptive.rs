@@ -20,7 +20,6 @@ use tracer_core::adaptive::{AdaptiveSettings, BlockMask, Summary, next_active, s
 use tracer_core::film::{FIXED_ONE, Film, MAX_SAMPLE_VALUE, Rect};
 
 use super::{Job, Lease};
-use crate::store::JobRecord;
 use crate::units::Unit;
 
 /// An adaptive job's settings and where its tiles stand.
@@ -28,17 +27,6 @@ pub(super) struct AdaptiveJob {
     pub settings: AdaptiveSettings,
     /// Summary of each tile that has merged a round, by (frame, tile).
     tiles: HashMap<(u32, u32), Summary>,
-}
-
-/// The job's adaptive settings, if it is adaptive (a target error,
-/// absolute or relative, above 0).
-pub(super) fn settings_of(rec: &JobRecord) -> Option<AdaptiveSettings> {
-    (rec.target_error > 0.0 || rec.relative_error > 0.0).then_some(AdaptiveSettings {
-        target_error: rec.target_error,
-        relative_error: rec.relative_error,
-        min_samples: rec.min_samples,
-        max_samples: rec.max_samples,
-    })
 }
 
 /// The whole job's standing, for progress logs and `watch`.

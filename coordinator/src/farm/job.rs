@@ -6,7 +6,6 @@ use std::collections::{BTreeSet, HashMap};
 use std::time::Instant;
 
 use tokio::sync::watch;
-use tracer_core::scene::RenderSettings;
 
 use crate::rate::{JOB_WINDOW, Meter};
 use crate::store::{Counters, JobRecord, JobStateRec};
@@ -16,7 +15,8 @@ use super::frames::{FrameAcc, FrameFilm};
 use super::{Job, JobState, JobView, UnitIndex, adaptive, now_ms};
 
 impl Job {
-    pub(super) fn new(rec: JobRecord, settings: RenderSettings, counters: Counters) -> Self {
+    pub(super) fn new(rec: JobRecord, counters: Counters) -> Self {
+        let settings = rec.settings;
         let mut layout = Layout::new(
             settings.width,
             settings.height,
@@ -26,7 +26,7 @@ impl Job {
             rec.tile_size,
             rec.samples_per_unit,
         );
-        let adaptive = adaptive::settings_of(&rec);
+        let adaptive = rec.adaptive();
         if let Some(a) = &adaptive {
             layout.batches = a.rounds();
         }
@@ -60,7 +60,6 @@ impl Job {
         let tile_rays = layout.tiles.iter().map(|t| t.area() as f64).collect();
         let mut job = Job {
             rec,
-            settings,
             layout,
             tile_rays,
             work_left: 0.0,
@@ -189,7 +188,7 @@ impl Job {
         let per = self.layout.units_per_frame() as u64;
         let samples_total = self.layout.width as u64
             * self.layout.height as u64
-            * self.settings.samples as u64
+            * self.rec.settings.samples as u64
             * self.layout.frames as u64;
         let elapsed = self.started.map_or(0.0, |t| {
             self.stopped
@@ -218,7 +217,7 @@ impl Job {
         JobView {
             record: self.rec.clone(),
             state: self.state,
-            settings: self.settings,
+            settings: self.rec.settings,
             counters: self.counters.clone(),
             units_total: self.layout.total() as u64,
             units_done: self.units_done,

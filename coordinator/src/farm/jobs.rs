@@ -9,7 +9,6 @@ use std::time::Instant;
 
 use tokio::sync::watch;
 use tracer_core::assets::Bundle;
-use tracer_core::sampling::Sampler;
 use tracer_core::scene::SceneDesc;
 
 use crate::assets::{AssetStoreError, sha256_hex};
@@ -28,12 +27,13 @@ impl Farm {
     /// Validates and queues a job. Bad scenes are refused with the message
     /// `tessera render` prints for them.
     pub async fn submit(self: &Arc<Self>, s: Submission) -> Result<String, FarmError> {
+        let spec = &s.spec;
         let text = std::str::from_utf8(&s.scene).map_err(|e| {
-            FarmError::InvalidArgument(format!("{}: scene is not UTF-8 text: {e}", s.scene_name))
+            FarmError::InvalidArgument(format!("{}: scene is not UTF-8 text: {e}", spec.scene_name))
         })?;
         self.check_storage()?;
-        check_name("job name", &s.name, 200)?;
-        check_name("scene name", &s.scene_name, 4096)?;
+        check_name("job name", &spec.name, 200)?;
+        check_name("scene name", &spec.scene_name, 4096)?;
         // The job's files: inline ones stored now, uploaded ones named by
         // hash. The scene is validated from these alone.
         let limits = self.assets.limits;
@@ -72,45 +72,21 @@ impl Farm {
         };
         let scene = {
             let text = text.to_string();
-            let scene_name = s.scene_name.clone();
+            let scene_name = spec.scene_name.clone();
             tokio::task::spawn_blocking(move || SceneDesc::parse_from(&text, &scene_name, &bundle))
                 .await
                 .map_err(|e| FarmError::Internal(format!("scene validation: {e}")))?
                 .map_err(|e| FarmError::InvalidArgument(e.to_string()))?
         };
         for w in &scene.warnings {
-            tracing::warn!(scene = %s.scene_name, "{w}");
+            tracing::warn!(scene = %spec.scene_name, "{w}");
         }
-        let settings = s.overrides.apply(&scene.render);
-        settings
-            .validate()
-            .map_err(|e| FarmError::InvalidArgument(format!("invalid render settings: {e}")))?;
-        let adaptive = scene
-            .adaptive
-            .resolve(&s.adaptive)
-            .map_err(FarmError::InvalidArgument)?;
-        let settings = match &adaptive {
-            None => settings,
-            Some(a) => {
-                if s.overrides.samples.is_some() {
-                    return Err(FarmError::InvalidArgument(
-                        "samples does not apply to adaptive sampling (target_error, relative_error): give min_samples and max_samples".into(),
-                    ));
-                }
-                if let Some(o) = s.overrides.sampler.filter(|&o| o != Sampler::Progressive) {
-                    return Err(FarmError::InvalidArgument(format!(
-                        "sampler {} does not apply to adaptive sampling (target_error, relative_error), which places samples progressively",
-                        o.name()
-                    )));
-                }
-                a.render_settings(settings)
-            }
-        };
-        let (first, last) = if s.first_frame == 0 && s.last_frame == 0 {
-            (0, 0)
-        } else {
-            (s.first_frame, s.last_frame)
-        };
+        // The job's settings, parsed from the request: checked here, once.
+        let (settings, adaptive) = spec
+            .overrides
+            .resolve(&scene, &spec.adaptive)
+            .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
+        let (first, last) = (spec.first_frame, spec.last_frame);
         if first > last {
             return Err(FarmError::InvalidArgument(format!(
                 "frame range {first}..{last} is empty (first frame after last)"
@@ -121,11 +97,7 @@ impl Farm {
                 "frame range {first}..{last} has more than 100000 frames"
             )));
         }
-        let tile_size = if s.tile_size == 0 {
-            DEFAULT_TILE_SIZE
-        } else {
-            s.tile_size
-        };
+        let tile_size = spec.tile_size.unwrap_or(DEFAULT_TILE_SIZE);
         if !(8..=4096).contains(&tile_size) {
             return Err(FarmError::InvalidArgument(format!(
                 "tile_size must be in 8..=4096, got {tile_size}"
@@ -137,18 +109,10 @@ impl Farm {
                 "tile_size must be a multiple of {block} for adaptive sampling (target_error, relative_error), which decides per {block}x{block} block; got {tile_size}"
             )));
         }
-        let samples_per_unit = if s.samples_per_unit == 0 {
-            DEFAULT_SAMPLES_PER_UNIT
-        } else {
-            s.samples_per_unit
-        };
+        let samples_per_unit = spec.samples_per_unit.unwrap_or(DEFAULT_SAMPLES_PER_UNIT);
         // An adaptive job's sample batches are its rounds.
         let batches = adaptive.map(|a| a.rounds());
-        let max_attempts = if s.max_attempts == 0 {
-            DEFAULT_MAX_ATTEMPTS
-        } else {
-            s.max_attempts
-        };
+        let max_attempts = spec.max_attempts.unwrap_or(DEFAULT_MAX_ATTEMPTS);
         let pixels = u64::from(settings.width) * u64::from(settings.height);
         if pixels > self.config.max_frame_pixels {
             return Err(FarmError::InvalidArgument(format!(
@@ -233,31 +197,28 @@ impl Farm {
                 )[..10]
             )
         };
-        let name = if s.name.is_empty() {
-            std::path::Path::new(&s.scene_name)
+        let name = if spec.name.is_empty() {
+            std::path::Path::new(&spec.scene_name)
                 .file_stem()
                 .map_or("job".into(), |n| n.to_string_lossy().into_owned())
         } else {
-            s.name.clone()
+            spec.name.clone()
         };
         let output_dir = self.config.data_dir.join("outputs").join(&id);
         std::fs::create_dir_all(&output_dir).map_err(|e| {
             FarmError::Internal(format!("cannot create {}: {e}", output_dir.display()))
         })?;
+        // The spec, resolved: what the job renders, kept across restarts.
         let rec = JobRecord {
             id: id.clone(),
             name,
-            scene_name: s.scene_name.clone(),
+            scene_name: spec.scene_name.clone(),
             scene_sha256,
             assets,
-            width: settings.width,
-            height: settings.height,
-            samples: settings.samples,
-            max_depth: settings.max_depth,
-            sampler: sampler_name(settings.sampler).into(),
+            settings,
             first_frame: first,
             last_frame: last,
-            priority: s.priority,
+            priority: spec.priority,
             tile_size,
             samples_per_unit,
             max_attempts,
@@ -266,10 +227,7 @@ impl Farm {
             submitted_unix_ms: now_ms(),
             finished_unix_ms: 0,
             output_dir: output_dir.to_string_lossy().into_owned(),
-            target_error: adaptive.map_or(0.0, |a| a.target_error),
-            min_samples: adaptive.map_or(0, |a| a.min_samples),
-            max_samples: adaptive.map_or(0, |a| a.max_samples),
-            relative_error: adaptive.map_or(0.0, |a| a.relative_error),
+            adaptive: adaptive.into(),
         };
         ops.push(Op::PutJob(rec.clone()));
         ops.push(Op::PutCounters {
@@ -281,11 +239,11 @@ impl Farm {
             job = %id, name = %rec.name, scene = %rec.scene_name,
             width = settings.width, height = settings.height, samples = settings.samples,
             frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
-            target_error = rec.target_error, relative_error = rec.relative_error,
-            min_samples = rec.min_samples, max_samples = rec.max_samples,
+            target_error = rec.adaptive.target_error, relative_error = rec.adaptive.relative_error,
+            min_samples = rec.adaptive.min_samples, max_samples = rec.adaptive.max_samples,
             "job accepted"
         );
-        let mut job = Job::new(rec, settings, Counters::default());
+        let mut job = Job::new(rec, Counters::default());
         job.set_tile_rays(tile_rays);
         self.state
             .lock()
@@ -503,14 +461,6 @@ impl Farm {
                 "progress"
             );
         }
-    }
-}
-
-fn sampler_name(s: Sampler) -> &'static str {
-    match s {
-        Sampler::Grid => "grid",
-        Sampler::Jittered => "jittered",
-        Sampler::Progressive => "progressive",
     }
 }
 

@@ -312,7 +312,7 @@ impl Farm {
                     scene_name: job.rec.scene_name.clone(),
                     scene_sha256: job.rec.scene_sha256.clone(),
                     assets: job.rec.assets.clone(),
-                    settings: job.settings,
+                    settings: job.rec.settings,
                     region,
                     active: active.clone(),
                 };
@@ -438,7 +438,7 @@ impl Farm {
             scene_name: job.rec.scene_name.clone(),
             scene_sha256: job.rec.scene_sha256.clone(),
             assets: job.rec.assets.clone(),
-            settings: job.settings,
+            settings: job.rec.settings,
             region: lease.region,
             active: lease.active.clone(),
         };

@@ -41,11 +41,11 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+use tessera_proto::JobSpec;
 use tokio::sync::watch;
 use tracer_core::adaptive::BlockMask;
 use tracer_core::film::{Film, RayCounts, Rect, SampleRange, WorkRegion};
 use tracer_core::render::Backend;
-use tracer_core::sampling::Sampler;
 use tracer_core::scene::RenderSettings;
 
 use crate::assets::{AssetLimits, AssetStore, AssetStoreError};
@@ -134,48 +134,17 @@ pub enum FarmError {
     Internal(String),
 }
 
-/// Everything a submit carries, already unpacked from the wire.
+/// Everything a submit carries, already unpacked from the wire: what the
+/// job asks for and the scene's files.
 #[derive(Clone, Debug, Default)]
 pub struct Submission {
-    pub name: String,
-    pub scene_name: String,
+    pub spec: JobSpec,
+    /// The scene file's text.
     pub scene: Vec<u8>,
     /// Files sent inline: (name, content).
     pub assets: Vec<(String, Vec<u8>)>,
     /// Files already uploaded: name -> sha256.
     pub files: BTreeMap<String, String>,
-    /// Applied to the scene's `[render]` table.
-    pub overrides: Overrides,
-    pub first_frame: u32,
-    pub last_frame: u32,
-    pub priority: i32,
-    pub tile_size: u32,
-    pub samples_per_unit: u32,
-    pub max_attempts: u32,
-    /// Adaptive sampling's keys given with the job (over the scene's).
-    pub adaptive: tracer_core::adaptive::AdaptiveSpec,
-}
-
-/// Overrides of a scene's `[render]` table (as `tessera render`'s flags).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Overrides {
-    pub width: Option<u32>,
-    pub height: Option<u32>,
-    pub samples: Option<u32>,
-    pub max_depth: Option<u32>,
-    pub sampler: Option<Sampler>,
-}
-
-impl Overrides {
-    pub fn apply(&self, s: &RenderSettings) -> RenderSettings {
-        RenderSettings {
-            width: self.width.unwrap_or(s.width),
-            height: self.height.unwrap_or(s.height),
-            samples: self.samples.unwrap_or(s.samples),
-            max_depth: self.max_depth.unwrap_or(s.max_depth),
-            sampler: self.sampler.unwrap_or(s.sampler),
-        }
-    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -276,8 +245,8 @@ pub enum Outcome {
 }
 
 struct Job {
+    /// The job as stored, its settings among it.
     rec: JobRecord,
-    settings: RenderSettings,
     layout: Layout,
     /// Expected rays of one pixel-sample pass over each tile (`cost::probe`):
     /// leases are sized in rays. Set through [`Job::set_tile_rays`].
@@ -448,22 +417,6 @@ fn now_ms() -> i64 {
         .map_or(0, |d| d.as_millis() as i64)
 }
 
-fn settings_of(rec: &JobRecord) -> Result<RenderSettings, String> {
-    let sampler = rec
-        .sampler
-        .parse::<Sampler>()
-        .map_err(|e| format!("{e:?}"))?;
-    let s = RenderSettings {
-        width: rec.width,
-        height: rec.height,
-        samples: rec.samples,
-        max_depth: rec.max_depth,
-        sampler,
-    };
-    s.validate()?;
-    Ok(s)
-}
-
 /// A job's or worker's name as shown in terminals and logs: printable, no
 /// control characters (an escape sequence or newline in a name would
 /// rewrite `tessera jobs`' output), at most `max` characters.
@@ -528,21 +481,21 @@ impl Farm {
                 // A job this coordinator cannot hold (stored by an older
                 // release, or under larger limits) is left out, not allowed
                 // to stop every other job from resuming.
-                let settings = match settings_of(&rec).and_then(|s| farm.check_size(&rec, &s)) {
-                    Ok(s) => s,
-                    Err(message) => {
-                        tracing::error!(job = %rec.id, name = %rec.name, %message,
-                            "job not resumed: its settings exceed what this coordinator accepts");
-                        continue;
-                    }
-                };
-                let mut job = Job::new(rec, settings, counters);
+                // Stored settings are parsed here, so checked here.
+                if let Err(message) = rec.settings.validate().and_then(|()| farm.check_size(&rec)) {
+                    tracing::error!(job = %rec.id, name = %rec.name, %message,
+                        "job not resumed: its settings exceed what this coordinator accepts");
+                    continue;
+                }
+                let mut job = Job::new(rec, counters);
                 if !job.state.is_terminal() {
                     // Derived state, not stored: probed again from the stored scene.
                     match farm.stored_scene(&job.rec) {
-                        Ok(desc) => {
-                            job.set_tile_rays(crate::cost::probe(&desc, &job.settings, &job.layout))
-                        }
+                        Ok(desc) => job.set_tile_rays(crate::cost::probe(
+                            &desc,
+                            &job.rec.settings,
+                            &job.layout,
+                        )),
                         Err(e) => tracing::warn!(job = %job.rec.id, error = %e,
                             "cannot read the job's scene back: leases are sized without its cost probe"),
                     }
@@ -632,7 +585,8 @@ impl Farm {
     }
 
     /// A stored job's size against this coordinator's limits.
-    fn check_size(&self, rec: &JobRecord, s: &RenderSettings) -> Result<RenderSettings, String> {
+    fn check_size(&self, rec: &JobRecord) -> Result<(), String> {
+        let s = &rec.settings;
         let pixels = u64::from(s.width) * u64::from(s.height);
         if pixels > self.config.max_frame_pixels {
             return Err(format!(
@@ -654,7 +608,7 @@ impl Farm {
         if units == 0 || units > MAX_UNITS {
             return Err(format!("{units} work units (the limit is {MAX_UNITS})"));
         }
-        Ok(*s)
+        Ok(())
     }
 
     fn new_id(&self, st: &mut State, prefix: &str) -> String {

@@ -1,6 +1,7 @@
 use super::*;
 use crate::store::Op;
 use std::future::Future as _;
+use tracer_core::scene::RenderOverrides;
 
 const SCENE: &str = r#"
 [camera]
@@ -23,17 +24,20 @@ async fn submits_too_large_to_hold_or_to_count_are_refused_with_the_limit_named(
         let farm = farm.clone();
         async move {
             farm.submit(Submission {
-                scene_name: "t.toml".into(),
-                scene: SCENE.as_bytes().to_vec(),
-                overrides: Overrides {
-                    width: Some(w),
-                    height: Some(h),
-                    samples: Some(spp),
-                    max_depth: Some(1),
+                spec: JobSpec {
+                    scene_name: "t.toml".into(),
+                    overrides: RenderOverrides {
+                        width: Some(w),
+                        height: Some(h),
+                        samples: Some(spp),
+                        max_depth: Some(1),
+                        ..Default::default()
+                    },
+                    tile_size: Some(tile),
+                    samples_per_unit: (spu != 0).then_some(spu),
                     ..Default::default()
                 },
-                tile_size: tile,
-                samples_per_unit: spu,
+                scene: SCENE.as_bytes().to_vec(),
                 ..Default::default()
             })
             .await
@@ -91,24 +95,20 @@ async fn farm_with_job(
     let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
     let job = farm
         .submit(Submission {
-            name: "t".into(),
-            scene_name: "t.toml".into(),
-            scene: SCENE.as_bytes().to_vec(),
-            assets: vec![],
-            files: Default::default(),
-            overrides: Overrides {
-                width: Some(width),
-                height: Some(height),
-                samples: Some(samples),
+            spec: JobSpec {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                overrides: RenderOverrides {
+                    width: Some(width),
+                    height: Some(height),
+                    samples: Some(samples),
+                    ..Default::default()
+                },
+                tile_size: Some(16),
                 ..Default::default()
             },
-            first_frame: 0,
-            last_frame: 0,
-            priority: 0,
-            tile_size: 16,
-            samples_per_unit: 0,
-            max_attempts: 0,
-            adaptive: Default::default(),
+            scene: SCENE.as_bytes().to_vec(),
+            ..Default::default()
         })
         .await
         .unwrap();
@@ -281,8 +281,11 @@ async fn counters_from_workers_cannot_wrap_and_names_cannot_hold_control_charact
     );
     let e = farm
         .submit(Submission {
-            name: "evil\u{1b}[2J\nname".into(),
-            scene_name: "t.toml".into(),
+            spec: JobSpec {
+                name: "evil\u{1b}[2J\nname".into(),
+                scene_name: "t.toml".into(),
+                ..Default::default()
+            },
             scene: SCENE.as_bytes().to_vec(),
             ..Default::default()
         })
@@ -358,24 +361,20 @@ async fn a_waiting_lease_request_gets_work_submitted_meanwhile() {
     let start = Instant::now();
     let job = farm
         .submit(Submission {
-            name: "t".into(),
-            scene_name: "t.toml".into(),
-            scene: SCENE.as_bytes().to_vec(),
-            assets: vec![],
-            files: Default::default(),
-            overrides: Overrides {
-                width: Some(16),
-                height: Some(16),
-                samples: Some(1),
+            spec: JobSpec {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                overrides: RenderOverrides {
+                    width: Some(16),
+                    height: Some(16),
+                    samples: Some(1),
+                    ..Default::default()
+                },
+                tile_size: Some(16),
                 ..Default::default()
             },
-            first_frame: 0,
-            last_frame: 0,
-            priority: 0,
-            tile_size: 16,
-            samples_per_unit: 0,
-            max_attempts: 0,
-            adaptive: Default::default(),
+            scene: SCENE.as_bytes().to_vec(),
+            ..Default::default()
         })
         .await
         .unwrap();

@@ -137,7 +137,7 @@ impl From<&JobView> for JobJson {
                 height: v.settings.height,
                 samples: v.settings.samples,
                 max_depth: v.settings.max_depth,
-                sampler: r.sampler.clone(),
+                sampler: v.settings.sampler.name().into(),
                 first_frame: r.first_frame,
                 last_frame: r.last_frame,
                 tile_size: r.tile_size,

@@ -102,13 +102,20 @@ pub enum PreparedFrame {
 }
 
 impl PreparedFrame {
+    /// `settings` are valid ([`RenderSettings::validate`]): they were
+    /// checked where they were parsed (the scene file, the overrides'
+    /// `apply`, the wire's conversion), not again here.
     pub fn build(
         desc: &SceneDesc,
         settings: &RenderSettings,
         frame: u32,
         precision: Precision,
     ) -> Result<Self, RenderError> {
-        settings.validate().map_err(RenderError::Settings)?;
+        debug_assert_eq!(
+            settings.validate(),
+            Ok(()),
+            "settings are validated where parsed"
+        );
         Ok(match precision {
             Precision::F32 => PreparedFrame::F32(World::build(desc, settings, frame)),
             Precision::F64 => PreparedFrame::F64(World::build(desc, settings, frame)),
@@ -144,8 +151,6 @@ impl PreparedFrame {
 
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
-    #[error("invalid render settings: {0}")]
-    Settings(String),
     #[error("rectangle {rect:?} is empty or outside the {width}x{height} image")]
     RectOutside { rect: Rect, width: u32, height: u32 },
     #[error("sample range {}..{} is empty or outside 0..{count}", .samples.start, .samples.end)]

@@ -98,8 +98,10 @@ impl Vec3 {
 }
 
 /// Image and sampling settings. The file's `[render]` table gives defaults;
-/// the command line overrides them.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+/// the command line or a job overrides them ([`super::RenderOverrides`]).
+/// Serialized (the coordinator's job records) under these field names, the
+/// sampler by its name.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, Deserialize)]
 pub struct RenderSettings {
     pub width: u32,
     pub height: u32,
@@ -594,11 +596,15 @@ impl SceneDesc {
                 .map_err(|(key, m)| invalid(table_span("render"), format!("render.{key}"), m))?;
         }
         if let Some(t) = file.render {
-            render.width = t.width.unwrap_or(render.width);
-            render.height = t.height.unwrap_or(render.height);
-            render.samples = t.samples.unwrap_or(render.samples);
-            render.max_depth = t.max_depth.unwrap_or(render.max_depth);
-            render.sampler = t.sampler.unwrap_or(render.sampler);
+            // The file's table overrides the defaults as flags override the file.
+            render = super::RenderOverrides {
+                width: t.width,
+                height: t.height,
+                samples: t.samples,
+                max_depth: t.max_depth,
+                sampler: t.sampler,
+            }
+            .over(&render);
         }
         render.validate().map_err(|m| {
             // "samples must be ...": the field, then what is wrong with it.

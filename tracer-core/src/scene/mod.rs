@@ -3,6 +3,7 @@
 mod desc;
 mod error;
 mod mesh_desc;
+mod overrides;
 
 pub use desc::MAX_VALUE;
 pub use desc::{
@@ -13,3 +14,4 @@ pub use desc::{
 };
 pub(crate) use desc::{check_colour, check_weight};
 pub use error::{Location, SceneError};
+pub use overrides::{RenderOverrides, SettingsError};
