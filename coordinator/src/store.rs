@@ -349,11 +349,16 @@ impl Store {
         for entry in jobs.iter()? {
             let (k, v) = entry?;
             let id = k.value().to_string();
-            let rec: JobRecord =
-                serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt {
-                    what: format!("job {id}"),
-                    message: e.to_string(),
-                })?;
+            // A record this release cannot read (written by a newer one,
+            // say with a sampler it does not know) is left out with an
+            // error, not allowed to stop every other job from resuming.
+            let rec: JobRecord = match serde_json::from_slice(v.value()) {
+                Ok(rec) => rec,
+                Err(e) => {
+                    tracing::error!(job = %id, error = %e, "job not resumed: its stored record cannot be read");
+                    continue;
+                }
+            };
             let c = match counters.get(id.as_str())? {
                 Some(v) => serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt {
                     what: format!("counters of {id}"),
@@ -921,6 +926,31 @@ mod tests {
             .unwrap();
             assert_eq!(v["sampler"], s);
         }
+    }
+
+    /// A record this release cannot read (a sampler from a newer release)
+    /// is left out; the other jobs still load.
+    #[test]
+    fn an_unreadable_job_record_does_not_stop_the_others_loading() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(&dir.path().join("t.redb")).unwrap();
+        let good: JobRecord = serde_json::from_str(RECORD).unwrap();
+        let mut newer: serde_json::Value = serde_json::from_str(RECORD).unwrap();
+        newer["id"] = "jnewer".into();
+        newer["sampler"] = "blue-noise".into();
+        let db = store.db().unwrap();
+        let w = db.begin_write().unwrap();
+        {
+            let mut t = w.open_table(JOBS).unwrap();
+            let newer = serde_json::to_vec(&newer).unwrap();
+            t.insert("jnewer", newer.as_slice()).unwrap();
+            let good = serde_json::to_vec(&good).unwrap();
+            t.insert("j0123456789", good.as_slice()).unwrap();
+        }
+        w.commit().unwrap();
+        let snap = store.load().unwrap();
+        let ids: Vec<&str> = snap.jobs.iter().map(|(r, _)| r.id.as_str()).collect();
+        assert_eq!(ids, ["j0123456789"]);
     }
 
     fn film() -> Film {
