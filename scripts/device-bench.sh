@@ -126,7 +126,7 @@ secs() { "$@" 2>/dev/null | grep -o '  [0-9.]* s  ' | head -1 | tr -d ' s'; }
 fi
 if has farm; then
 echo "== farm: tessera bench farm (CPU workers against the machine's ceiling, 1 GPU worker alone and beside 7 CPU workers)"
-timeout 300 "$T" bench farm --workers 1,2,4,8 --worker-threads 2 --gpu-workers 1 --mixed-cpu-workers 7 \
+timeout 400 "$T" bench farm --workers 1,2,4,8 --worker-threads 2 --gpu-workers 1 --mixed-cpu-workers 7 --repeat 5 \
   --out /tmp/bench --cache /tmp/bench-cache > "$OUT/farm-suite.txt" 2>&1
 echo "farm suite exit $?" >> "$OUT/farm-suite.txt"
 for r in /tmp/bench/farm/run-*.coordinator.log; do

@@ -423,3 +423,44 @@ fn json_summary_has_a_run_object_per_csv_row() {
         assert_eq!(run["extra"], serde_json::json!({}));
     }
 }
+
+/// `bench farm --repeat N` with one worker: N local renders and 1-worker
+/// farm jobs timed in pairs on one warm farm, the last job's frame
+/// byte-identical to the local render (the speed is not judged here).
+#[test]
+fn farm_bench_times_one_worker_against_the_local_render_in_pairs() {
+    let dir = std::env::temp_dir().join(format!("tessera-bench-pairs-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
+        .args([
+            "bench",
+            "farm",
+            "--quick",
+            "--workers",
+            "1",
+            "--repeat",
+            "3",
+        ])
+        .arg("--out")
+        .arg(dir.join("out"))
+        .arg("--cache")
+        .arg(dir.join("cache"))
+        .arg("--examples")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("examples"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "bench failed:\n{stderr}");
+    let line = stderr
+        .lines()
+        .find(|l| l.contains("1 worker against the local render"))
+        .unwrap_or_else(|| panic!("no pairs line:\n{stderr}"));
+    assert!(line.contains("3 interleaved pairs"), "{line}");
+    assert_eq!(line.matches('/').count(), 3, "{line}");
+    assert!(line.contains("ratio median"), "{line}");
+    assert!(
+        line.ends_with("image identical to the local render"),
+        "{line}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

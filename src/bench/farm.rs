@@ -439,6 +439,48 @@ pub struct RunSpec<'a> {
     pub tile: u32,
 }
 
+/// One warm farm of `spec`, the same job submitted `pairs` times, each
+/// right after `local` timed the local render of it: each ratio is taken
+/// seconds apart, so the machine's drift between runs (a local render
+/// took 4.3-5.7 s across calls on the H200 box) cancels. Returns (local
+/// seconds, farm seconds) per pair and how many 8-bit bytes of the last
+/// job's frame differ from `expected`.
+pub fn interleaved_runs(
+    run: &RunSpec,
+    spec: &FarmSpec,
+    pairs: usize,
+    expected: &[u8],
+    mut local: impl FnMut() -> Result<f64>,
+) -> Result<(Vec<(f64, f64)>, usize)> {
+    let data = run.dir.join(format!("data-{}", run.name));
+    let _ = std::fs::remove_dir_all(&data);
+    let logs = run.dir.join(format!("run-{}", run.name));
+    let s = run.settings;
+    let outcome = (|| {
+        let mut farm = Farm::start(run.exe, &data, &logs, spec)?;
+        farm.warm_up(run.scene, s, run.tile, &logs.with_extension("warm-up.log"))?;
+        let mut times = Vec::with_capacity(pairs);
+        let mut last = None;
+        for i in 0..pairs {
+            let local_secs = local()?;
+            let result = farm.submit_and_wait(
+                run.scene,
+                s,
+                run.tile,
+                &logs.with_extension(format!("submit-{i}.log")),
+            )?;
+            times.push((local_secs, result.seconds));
+            last = Some(result.job);
+        }
+        let fetched = run.dir.join(format!("frames-{}", run.name));
+        let job = last.context("no pair was run")?;
+        let diff = farm.frame0_differs(&job, &fetched, (s.width, s.height), expected)?;
+        Ok::<_, anyhow::Error>((times, diff))
+    })()?;
+    let _ = std::fs::remove_dir_all(&data);
+    Ok(outcome)
+}
+
 /// Starts the farm of `spec`, renders the warm-up job, then the timed job,
 /// and fetches its frame; returns the job and how many 8-bit bytes of the
 /// frame differ from `expected`. The farm's processes are stopped on

@@ -1017,6 +1017,50 @@ impl Bench {
                 }),
             });
         }
+        // With --repeat N: one worker against the local render, N pairs
+        // timed side by side on one warm farm (the 5% target can only be
+        // judged that way on a noisy machine).
+        if self.cfg.repeat > 1 && counts.contains(&1) {
+            let spec = farm::FarmSpec {
+                cpu_workers: 1,
+                threads,
+                ..Default::default()
+            };
+            let run = farm::RunSpec {
+                exe: &exe,
+                dir: &dir,
+                name: "1-pairs",
+                scene: &path,
+                settings: &s,
+                tile,
+            };
+            let full = Rect::full(width, height);
+            let (pairs, diff_bytes) =
+                farm::interleaved_runs(&run, &spec, self.cfg.repeat as usize, &local_srgb, || {
+                    let start = Instant::now();
+                    local.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
+                    Ok(start.elapsed().as_secs_f64())
+                })?;
+            let mut ratios: Vec<f64> = pairs.iter().map(|(l, f)| f / l).collect();
+            let listed: Vec<String> = pairs
+                .iter()
+                .map(|(l, f)| format!("{f:.3}/{l:.3}"))
+                .collect();
+            ratios.sort_by(f64::total_cmp);
+            eprintln!(
+                "  farm        1 worker against the local render, {} interleaved pairs (farm/local s): {}; ratio median {:.3}x (range {:.3}-{:.3}x)  {}",
+                pairs.len(),
+                listed.join(" "),
+                ratios[ratios.len() / 2],
+                ratios[0],
+                ratios[ratios.len() - 1],
+                if diff_bytes == 0 {
+                    "image identical to the local render".to_string()
+                } else {
+                    format!("IMAGE DIFFERS from the local render ({diff_bytes} bytes)")
+                }
+            );
+        }
         let cpu_runs = runs.len();
         let workers_vs = |f: fn(&Run) -> f64| {
             vec![Series {

@@ -50,7 +50,10 @@ pub struct BenchArgs {
     /// Directory of the example scenes
     #[arg(long, default_value = "examples")]
     pub examples: PathBuf,
-    /// Timed repetitions of each run, at least 1; the fastest is reported
+    /// Timed repetitions of each run, at least 1; the fastest is reported.
+    /// The farm suite instead adds, with 1 in --workers, that many pairs of
+    /// a local render and a 1-worker farm job timed side by side on one
+    /// warm farm, and reports the median ratio
     #[arg(long, allow_negative_numbers = true, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
     pub repeat: u32,
     /// GPU adapter (name substring or index from `tessera gpus`) for the GPU backend
