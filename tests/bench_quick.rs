@@ -43,20 +43,37 @@ fn split_csv(line: &str) -> Vec<String> {
     out
 }
 
-#[test]
-fn quick_bench_writes_parseable_csv_images_and_plots() {
-    let dir = std::env::temp_dir().join(format!("tessera-bench-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
-        .args(["bench", "--quick", "--backend", "both"])
-        .args(["--gpu-workers", "1", "--mixed-cpu-workers", "1", "--out"])
+/// `tessera bench ARGS` with its outputs and cache under `dir`.
+fn bench(dir: &Path, args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_tessera"))
+        .arg("bench")
+        .args(args)
+        .arg("--out")
         .arg(dir.join("out"))
         .arg("--cache")
         .arg(dir.join("cache"))
         .arg("--examples")
         .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("examples"))
         .output()
-        .unwrap();
+        .unwrap()
+}
+
+#[test]
+fn quick_bench_writes_parseable_csv_images_and_plots() {
+    let dir = std::env::temp_dir().join(format!("tessera-bench-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = bench(
+        &dir,
+        &[
+            "--quick",
+            "--backend",
+            "both",
+            "--gpu-workers",
+            "1",
+            "--mixed-cpu-workers",
+            "1",
+        ],
+    );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         out.status.success(),
@@ -431,24 +448,10 @@ fn json_summary_has_a_run_object_per_csv_row() {
 fn farm_bench_times_one_worker_against_the_local_render_in_pairs() {
     let dir = std::env::temp_dir().join(format!("tessera-bench-pairs-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
-        .args([
-            "bench",
-            "farm",
-            "--quick",
-            "--workers",
-            "1",
-            "--repeat",
-            "3",
-        ])
-        .arg("--out")
-        .arg(dir.join("out"))
-        .arg("--cache")
-        .arg(dir.join("cache"))
-        .arg("--examples")
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("examples"))
-        .output()
-        .unwrap();
+    let out = bench(
+        &dir,
+        &["farm", "--quick", "--workers", "1", "--repeat", "3"],
+    );
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "bench failed:\n{stderr}");
     let line = stderr

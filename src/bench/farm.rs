@@ -452,54 +452,71 @@ pub fn interleaved_runs(
     expected: &[u8],
     mut local: impl FnMut() -> Result<f64>,
 ) -> Result<(Vec<(f64, f64)>, usize)> {
-    let data = run.dir.join(format!("data-{}", run.name));
-    let _ = std::fs::remove_dir_all(&data);
-    let logs = run.dir.join(format!("run-{}", run.name));
-    let s = run.settings;
-    let outcome = (|| {
-        let mut farm = Farm::start(run.exe, &data, &logs, spec)?;
-        farm.warm_up(run.scene, s, run.tile, &logs.with_extension("warm-up.log"))?;
+    with_warm_farm(run, spec, |farm, logs| {
         let mut times = Vec::with_capacity(pairs);
         let mut last = None;
         for i in 0..pairs {
             let local_secs = local()?;
             let result = farm.submit_and_wait(
                 run.scene,
-                s,
+                run.settings,
                 run.tile,
                 &logs.with_extension(format!("submit-{i}.log")),
             )?;
             times.push((local_secs, result.seconds));
             last = Some(result.job);
         }
-        let fetched = run.dir.join(format!("frames-{}", run.name));
         let job = last.context("no pair was run")?;
-        let diff = farm.frame0_differs(&job, &fetched, (s.width, s.height), expected)?;
-        Ok::<_, anyhow::Error>((times, diff))
-    })()?;
-    let _ = std::fs::remove_dir_all(&data);
-    Ok(outcome)
+        Ok((times, frame_diff(run, farm, &job, expected)?))
+    })
 }
 
 /// Starts the farm of `spec`, renders the warm-up job, then the timed job,
 /// and fetches its frame; returns the job and how many 8-bit bytes of the
-/// frame differ from `expected`. The farm's processes are stopped on
-/// success and on error alike (drop); its data folder is removed after a
-/// success (kept to look at after a failure).
+/// frame differ from `expected`.
 pub fn timed_run(run: &RunSpec, spec: &FarmSpec, expected: &[u8]) -> Result<(JobResult, usize)> {
+    with_warm_farm(run, spec, |farm, logs| {
+        let result = farm.submit_and_wait(
+            run.scene,
+            run.settings,
+            run.tile,
+            &logs.with_extension("submit.log"),
+        )?;
+        let diff = frame_diff(run, farm, &result.job, expected)?;
+        Ok((result, diff))
+    })
+}
+
+/// Starts the farm of `spec` and renders the warm-up job (as a farm in
+/// service would have), then runs `f` on it with the logs' base path. The
+/// farm's processes are stopped on success and on error alike (drop); its
+/// data folder is removed after a success (kept to look at after a
+/// failure).
+fn with_warm_farm<T>(
+    run: &RunSpec,
+    spec: &FarmSpec,
+    f: impl FnOnce(&mut Farm, &Path) -> Result<T>,
+) -> Result<T> {
     let data = run.dir.join(format!("data-{}", run.name));
     let _ = std::fs::remove_dir_all(&data);
     let logs = run.dir.join(format!("run-{}", run.name));
-    let s = run.settings;
-    let outcome = (|| {
+    let outcome = {
         let mut farm = Farm::start(run.exe, &data, &logs, spec)?;
-        farm.warm_up(run.scene, s, run.tile, &logs.with_extension("warm-up.log"))?;
-        let result =
-            farm.submit_and_wait(run.scene, s, run.tile, &logs.with_extension("submit.log"))?;
-        let fetched = run.dir.join(format!("frames-{}", run.name));
-        let diff = farm.frame0_differs(&result.job, &fetched, (s.width, s.height), expected)?;
-        Ok::<_, anyhow::Error>((result, diff))
-    })()?;
+        farm.warm_up(
+            run.scene,
+            run.settings,
+            run.tile,
+            &logs.with_extension("warm-up.log"),
+        )?;
+        f(&mut farm, &logs)?
+    };
     let _ = std::fs::remove_dir_all(&data);
     Ok(outcome)
+}
+
+/// How many 8-bit bytes of `job`'s first frame, fetched, differ from `expected`.
+fn frame_diff(run: &RunSpec, farm: &Farm, job: &str, expected: &[u8]) -> Result<usize> {
+    let fetched = run.dir.join(format!("frames-{}", run.name));
+    let s = run.settings;
+    farm.frame0_differs(job, &fetched, (s.width, s.height), expected)
 }
