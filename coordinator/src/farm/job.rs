@@ -6,6 +6,8 @@ use std::collections::{BTreeSet, HashMap};
 use std::time::Instant;
 
 use tokio::sync::watch;
+use tracer_core::adaptive::AdaptiveSettings;
+use tracer_core::scene::RenderSettings;
 
 use crate::rate::{JOB_WINDOW, Meter};
 use crate::store::{Counters, JobRecord, JobStateRec};
@@ -14,22 +16,52 @@ use crate::units::{Layout, Unit};
 use super::frames::{FrameAcc, FrameFilm};
 use super::{Job, JobState, JobView, UnitIndex, adaptive, now_ms};
 
+/// How a job is cut into units: its settings, frames, tiles and sample
+/// batches (an adaptive job's batches are its rounds).
+pub(super) fn job_layout(
+    s: RenderSettings,
+    frames: (u32, u32),
+    tile_size: u32,
+    samples_per_unit: u32,
+    adaptive: Option<&AdaptiveSettings>,
+) -> Layout {
+    let mut layout = Layout::new(
+        s.width,
+        s.height,
+        s.samples,
+        frames.0,
+        frames.1,
+        tile_size,
+        samples_per_unit,
+    );
+    if let Some(a) = adaptive {
+        layout.batches = a.rounds();
+    }
+    layout
+}
+
+/// A stored job's layout.
+fn layout_of(rec: &JobRecord) -> Layout {
+    job_layout(
+        rec.settings,
+        (rec.first_frame, rec.last_frame),
+        rec.tile_size,
+        rec.samples_per_unit,
+        rec.adaptive().as_ref(),
+    )
+}
+
 impl Job {
+    /// A stored job, its layout derived from its record.
     pub(super) fn new(rec: JobRecord, counters: Counters) -> Self {
-        let settings = rec.settings;
-        let mut layout = Layout::new(
-            settings.width,
-            settings.height,
-            settings.samples,
-            rec.first_frame,
-            rec.last_frame,
-            rec.tile_size,
-            rec.samples_per_unit,
-        );
+        let layout = layout_of(&rec);
+        Self::with_layout(rec, counters, layout)
+    }
+
+    /// A job whose layout ([`job_layout`] of its record) is already built:
+    /// a submit builds it once, for its cost probe and the job.
+    pub(super) fn with_layout(rec: JobRecord, counters: Counters, layout: Layout) -> Self {
         let adaptive = rec.adaptive();
-        if let Some(a) = &adaptive {
-            layout.batches = a.rounds();
-        }
         let total = layout.total();
         let state = match rec.state {
             JobStateRec::Active => JobState::Running,

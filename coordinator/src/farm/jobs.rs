@@ -14,8 +14,8 @@ use tracer_core::scene::SceneDesc;
 use crate::assets::{AssetStoreError, sha256_hex};
 use crate::store::{Counters, JobRecord, JobStateRec, Op};
 use crate::units::{
-    DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE, Layout,
-    RESULT_BYTES_PER_PIXEL, unit_count,
+    DEFAULT_MAX_ATTEMPTS, DEFAULT_SAMPLES_PER_UNIT, DEFAULT_TILE_SIZE, RESULT_BYTES_PER_PIXEL,
+    unit_count,
 };
 
 use super::{
@@ -162,18 +162,13 @@ impl Farm {
                 "the job would have {units} work units (the limit is {MAX_UNITS}); use larger tiles or sample batches"
             )));
         }
-        let mut layout = Layout::new(
-            settings.width,
-            settings.height,
-            settings.samples,
-            first,
-            last,
+        let layout = super::job::job_layout(
+            settings,
+            (first, last),
             tile_size,
             samples_per_unit,
+            adaptive.as_ref(),
         );
-        if let Some(b) = batches {
-            layout.batches = b;
-        }
         // Off the async threads: it traces a few rays of every tile.
         let tile_rays = {
             let layout = layout.clone();
@@ -243,7 +238,7 @@ impl Farm {
             min_samples = rec.adaptive.min_samples, max_samples = rec.adaptive.max_samples,
             "job accepted"
         );
-        let mut job = Job::new(rec, Counters::default());
+        let mut job = Job::with_layout(rec, Counters::default(), layout);
         job.set_tile_rays(tile_rays);
         self.state
             .lock()
