@@ -449,14 +449,9 @@ impl WorkerService for Api {
         &self,
         req: Request<pb::SubmitResultRequest>,
     ) -> Result<Response<pb::SubmitResultResponse>, Status> {
-        let decode_start = std::time::Instant::now();
-        let result = result_data(req.into_inner());
-        tracing::debug!(
-            results = 1,
-            pixels = result.rect.area(),
-            decode_ms = decode_start.elapsed().as_secs_f64() * 1e3,
-            "results decoded"
-        );
+        let result = decode_results(vec![req.into_inner()])
+            .pop()
+            .expect("one request, one result");
         let outcome = self.farm.submit_result(result).await?;
         Ok(Response::new(outcome_pb(outcome)))
     }
@@ -465,19 +460,7 @@ impl WorkerService for Api {
         &self,
         req: Request<pb::SubmitResultsRequest>,
     ) -> Result<Response<pb::SubmitResultsResponse>, Status> {
-        let decode_start = std::time::Instant::now();
-        let results: Vec<ResultData> = req
-            .into_inner()
-            .results
-            .into_iter()
-            .map(result_data)
-            .collect();
-        tracing::debug!(
-            results = results.len(),
-            pixels = results.iter().map(|r| r.rect.area()).sum::<usize>(),
-            decode_ms = decode_start.elapsed().as_secs_f64() * 1e3,
-            "results decoded"
-        );
+        let results = decode_results(req.into_inner().results);
         let outcomes = self.farm.submit_results(results).await?;
         Ok(Response::new(pb::SubmitResultsResponse {
             outcomes: outcomes.into_iter().map(outcome_pb).collect(),
@@ -595,6 +578,20 @@ impl WorkerService for Api {
 }
 
 /// A result from the wire; the packed film is decoded (and its size checked) here.
+/// Decodes result requests, logging the batch's size and decode time (the
+/// first stage of the intake in the debug log).
+fn decode_results(reqs: Vec<pb::SubmitResultRequest>) -> Vec<ResultData> {
+    let start = std::time::Instant::now();
+    let results: Vec<ResultData> = reqs.into_iter().map(result_data).collect();
+    tracing::debug!(
+        results = results.len(),
+        pixels = results.iter().map(|r| r.rect.area()).sum::<usize>(),
+        decode_ms = start.elapsed().as_secs_f64() * 1e3,
+        "results decoded"
+    );
+    results
+}
+
 fn result_data(r: pb::SubmitResultRequest) -> ResultData {
     let rect = r.rect.unwrap_or_default().into();
     let samples = r.samples.unwrap_or_default().into();
