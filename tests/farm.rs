@@ -659,6 +659,62 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 
+/// A coordinator stopped on purpose (SIGTERM) makes its last results
+/// durable before it exits (they otherwise wait up to 250 ms for their
+/// fsync): every unit reported done, even just before the stop, is still
+/// done after the restart, and none is accepted twice.
+#[test]
+fn a_coordinator_stopped_with_sigterm_keeps_every_result_it_reported() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
+    let addr = c.addr.clone();
+    let url = c.url();
+    let _w: Vec<Proc> = (0..2)
+        .map(|i| start_worker(dir.path(), &url, &format!("w{i}")))
+        .collect();
+    let scene = repo("examples/animation.toml");
+    let settings = ["--width", "192", "--height", "144", "--samples", "64"];
+    let mut args = settings.to_vec();
+    args.extend(["--frames", "1..3", "--tile-size", "16"]);
+    let job = submit(&url, &scene, &args);
+    let total = 3 * 108;
+    let mut before = 0;
+    wait_for("a third of the units", Duration::from_secs(60), || {
+        before = status(&url, &job).units_done;
+        before >= total / 3
+    });
+    // No pause: results of the last 250 ms are not durable yet.
+    c.proc.sigterm();
+    let start = Instant::now();
+    let code = loop {
+        if let Some(s) = c.proc.child.try_wait().expect("wait") {
+            break s;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(30),
+            "coordinator did not exit after SIGTERM"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(code.success(), "a stopped coordinator exits 0, got {code}");
+    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
+    let restored = status(&url, &job);
+    assert!(
+        restored.units_done >= before,
+        "restored {} finished units, {} were reported before the stop",
+        restored.units_done,
+        before
+    );
+    assert_eq!(restored.units_accepted, restored.units_done);
+    let s = wait_done(&url, &job, Duration::from_secs(120));
+    assert_eq!(
+        (s.units_accepted, s.units_total, s.results_duplicate),
+        (total, total, 0)
+    );
+    drop(c);
+}
+
 /// An adaptive job survives a coordinator restart: the rounds still to do
 /// and the tiles already finished are derived again from the stored
 /// films, nothing is rendered twice, and the frames are still

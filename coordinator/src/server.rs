@@ -208,5 +208,10 @@ pub async fn serve(
         .await
         .map_err(|e| FarmError::Internal(format!("gRPC server: {e}")));
     ticker.abort();
+    // Results wait up to RESULTS_DURABLE_WITHIN for their fsync: a
+    // coordinator stopped on purpose keeps them.
+    if let Err(e) = farm.sync_store().await {
+        tracing::error!(error = %e, "cannot make the last results durable");
+    }
     result
 }

@@ -213,6 +213,8 @@ impl Op {
 
 struct Request {
     ops: Vec<Op>,
+    /// Commit durably whatever `ops` are ([`Store::sync`]).
+    durable: bool,
     reply: oneshot::Sender<Result<(), String>>,
 }
 
@@ -328,7 +330,28 @@ impl Store {
     pub async fn write(&self, ops: Vec<Op>) -> Result<(), StoreError> {
         let (reply, rx) = oneshot::channel();
         self.tx
-            .send(Request { ops, reply })
+            .send(Request {
+                ops,
+                durable: false,
+                reply,
+            })
+            .map_err(|_| StoreError::WriterGone)?;
+        rx.await
+            .map_err(|_| StoreError::WriterGone)?
+            .map_err(StoreError::Commit)
+    }
+
+    /// Makes every commit so far durable: the results of the last
+    /// [`RESULTS_DURABLE_WITHIN`] too (a coordinator stopping on purpose
+    /// keeps them).
+    pub async fn sync(&self) -> Result<(), StoreError> {
+        let (reply, rx) = oneshot::channel();
+        self.tx
+            .send(Request {
+                ops: Vec::new(),
+                durable: true,
+                reply,
+            })
             .map_err(|_| StoreError::WriterGone)?;
         rx.await
             .map_err(|_| StoreError::WriterGone)?
@@ -452,6 +475,7 @@ fn writer(
             unsynced = None;
         }
         let durable = unsynced.is_some_and(|t| t.elapsed() >= RESULTS_DURABLE_WITHIN)
+            || batch.iter().any(|r| r.durable)
             || !batch.iter().flat_map(|r| r.ops.iter()).all(Op::is_result);
         let result = match injected_fault(faults, &batch) {
             Some(e) => Err(e),

@@ -567,6 +567,12 @@ impl Farm {
         self.store.health.ok()
     }
 
+    /// Makes every result taken in so far durable (they otherwise wait up
+    /// to `store::RESULTS_DURABLE_WITHIN`): for a coordinator that stops.
+    pub async fn sync_store(&self) -> Result<(), StoreError> {
+        self.store.sync().await
+    }
+
     fn check_storage(&self) -> Result<(), FarmError> {
         if self.storage_ok() {
             return Ok(());
