@@ -185,7 +185,12 @@ pub async fn serve(
         expected: token(&security.worker_token),
         other: token(&security.client_token),
     };
-    let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
+    // TCP_NODELAY on every accepted connection: the builder's
+    // `tcp_nodelay` only reaches listeners tonic binds itself. Without it
+    // a small frame (a response, an HTTP/2 window update) waits for the
+    // ACK of the last one, which the peer delays by 40 ms: a result of
+    // megabytes took 50 ms instead of 10 in one transfer of three.
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     let mut builder = tonic::transport::Server::builder();
     if let Some((cert, key)) = &security.tls {
         builder = builder
@@ -193,7 +198,6 @@ pub async fn serve(
             .map_err(|e| FarmError::Internal(format!("TLS: {e}")))?;
     }
     let result = builder
-        .tcp_nodelay(true)
         // HTTP/2's default 64 KiB windows hold a result to 64 KiB per round
         // trip: 1.3 MB/s at 50 ms. Results and asset chunks are megabytes.
         .initial_stream_window_size(Some(H2_STREAM_WINDOW))

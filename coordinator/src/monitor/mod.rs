@@ -115,6 +115,13 @@ pub async fn serve(
         frames: api::FrameCache::default(),
     });
     let ticker = tokio::spawn(events::run(monitor.clone()));
+    // As the gRPC server: no 40 ms wait for the ACK of the last small write.
+    use axum::serve::ListenerExt as _;
+    let listener = listener.tap_io(|tcp| {
+        if let Err(e) = tcp.set_nodelay(true) {
+            tracing::debug!(error = %e, "cannot set TCP_NODELAY");
+        }
+    });
     let result = axum::serve(listener, router(monitor))
         .with_graceful_shutdown(shutdown)
         .await;
