@@ -17,6 +17,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         println!("cargo:rerun-if-changed={f}");
     }
     tonic_prost_build::configure()
+        // A result's films as `Bytes`: decoded as slices of the receive
+        // buffer, not copied into vectors (a GPU result is tens of megabytes).
+        .bytes(".tessera.v1.SubmitResultRequest.sums")
+        .bytes(".tessera.v1.SubmitResultRequest.counts")
+        .bytes(".tessera.v1.SubmitResultRequest.squares")
         .file_descriptor_set_path(out.join("tessera_descriptor.bin"))
         .compile_protos(&files, &["."])?;
     Ok(())

@@ -821,8 +821,8 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
                 lease_id: u.lease_id.clone(),
                 rect: Some(r),
                 samples: Some(s),
-                sums: vec![0; sums * 24],
-                counts: count.to_le_bytes().repeat(n),
+                sums: vec![0; sums * 24].into(),
+                counts: count.to_le_bytes().repeat(n).into(),
                 rays: Some(pb::RayCounts {
                     primary: n as u64 * (s.end - s.start) as u64,
                     ..Default::default()

@@ -112,8 +112,8 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                             lease_id: u.lease_id,
                             rect: Some(r),
                             samples: Some(s),
-                            sums: vec![0; n * 24],
-                            counts: (s.end - s.start).to_le_bytes().repeat(n),
+                            sums: vec![0; n * 24].into(),
+                            counts: (s.end - s.start).to_le_bytes().repeat(n).into(),
                             rays: Some(pb::RayCounts {
                                 primary: n as u64 * (s.end - s.start) as u64,
                                 ..Default::default()

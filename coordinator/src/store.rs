@@ -788,7 +788,7 @@ impl EncodedFilm {
     pub fn write_to(&self, out: &mut [u8]) {
         let mut at = 0;
         for part in [
-            &self.header,
+            &self.header[..],
             &self.packed.sums,
             &self.packed.counts,
             &self.squares,

@@ -9,6 +9,7 @@
 //! as every result of a sample range does: 15 bytes a pixel instead of 28
 //! for a 1080p frame at 64 samples.
 
+pub use prost::bytes::Bytes;
 use rayon::prelude::*;
 use tracer_core::film::{Film, RayCounts, Rect};
 
@@ -56,8 +57,8 @@ pub enum FilmCodecError {
 }
 
 /// Films of at least this many pixels pack and unpack in parallel: a GPU
-/// worker's result of a whole 1080p frame is tens of megabytes.
-const PARALLEL_PIXELS: usize = 1 << 18;
+/// worker's results are up to 2^18 pixels each, several megabytes.
+const PARALLEL_PIXELS: usize = 1 << 16;
 
 /// How a film's pixels are laid out in bytes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -90,12 +91,16 @@ impl Encoding {
 }
 
 /// A film's pixels in the compact layout: its encoding and the two fields.
+/// The fields are [`Bytes`], as in the wire's message: a result's bytes go
+/// from the worker's packing to the socket, and from the coordinator's
+/// receive buffer to its store, without a copy (a GPU result is tens of
+/// megabytes).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Packed {
     pub sum_bytes: u8,
     pub uniform_count: Option<u32>,
-    pub sums: Vec<u8>,
-    pub counts: Vec<u8>,
+    pub sums: Bytes,
+    pub counts: Bytes,
 }
 
 impl Packed {
@@ -185,8 +190,8 @@ pub fn pack_part(film: &Film, rect: Rect) -> Packed {
     Packed {
         sum_bytes,
         uniform_count,
-        sums,
-        counts,
+        sums: sums.into(),
+        counts: counts.into(),
     }
 }
 
