@@ -46,7 +46,7 @@ use tracer_core::assets::Bundle;
 use tracer_core::film::{Film, Rect, SampleRange, WorkRegion};
 use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer, RendererError};
 use tracer_core::scene::SceneDesc;
-use unit::{JobInfo, LeasedUnit};
+use unit::{JobInfo, LeasedUnit, UnitFilm};
 
 /// Leases held ahead of the one being rendered.
 const PREFETCH: usize = 1;
@@ -57,9 +57,12 @@ const IDLE_LEASE_WAIT: Duration = Duration::from_millis(1000);
 const SEND_QUEUE: usize = 4;
 /// Result submissions under way at once.
 const SEND_IN_FLIGHT: usize = 3;
-/// Most results in one `SubmitResults`, and most bytes of film data in it.
+/// Most results in one `SubmitResults`, and most bytes of film data in it:
+/// batches gather small results (a CPU worker's) into one round trip and
+/// one commit; results of megabytes (a GPU worker's) go one a message, so
+/// that those in flight travel and are decoded side by side.
 const MAX_BATCH: usize = 16;
-const MAX_BATCH_BYTES: usize = 16 << 20;
+const MAX_BATCH_BYTES: usize = 4 << 20;
 /// Submissions of one batch before the session is given up: with the
 /// backoff doubling to 5 s, about two minutes of a coordinator that cannot
 /// record results (a full disk) before the worker starts over.
@@ -174,9 +177,10 @@ pub struct Worker {
     units_done: Arc<AtomicU64>,
 }
 
-/// How rendering a unit ended.
+/// How rendering a unit ended: its film and render seconds, a failure, or
+/// nothing (the lease went away).
 enum UnitEnd {
-    Film(Film, f64),
+    Film(UnitFilm, f64),
     Failed(String),
     Abandoned,
 }
@@ -727,12 +731,14 @@ async fn send_results(
                     open = false;
                     continue;
                 };
+                // Film bytes in the original layout: an upper bound.
+                let bytes_of = |o: &Outgoing| o.region.rect.area() * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES);
+                let mut bytes = bytes_of(&first);
                 let mut batch = vec![first];
-                let mut bytes = 0;
                 while batch.len() < MAX_BATCH && bytes < MAX_BATCH_BYTES {
                     match rx.try_recv() {
                         Ok(o) => {
-                            bytes += o.region.rect.area() * (film_codec::SUM_BYTES + film_codec::COUNT_BYTES);
+                            bytes += bytes_of(&o);
                             batch.push(o);
                         }
                         Err(_) => break,
@@ -776,18 +782,11 @@ async fn send_batch(
     if sent.is_empty() {
         return Ok(());
     }
-    // Packed for each attempt, not cloned: a GPU unit's sums are tens of
-    // megabytes, and a retry is rare.
     let send_start = Instant::now();
-    let pack_seconds = std::sync::Mutex::new(0.0);
     let outcomes = submit_with_retry(&mut client, sent.len(), || {
-        let start = Instant::now();
-        let reqs = sent.iter().map(|o| result_request(&worker_id, o)).collect();
-        *pack_seconds.lock().expect("pack time lock") = start.elapsed().as_secs_f64();
-        reqs
+        sent.iter().map(|o| result_request(&worker_id, o)).collect()
     })
     .await?;
-    let pack_ms = *pack_seconds.lock().expect("pack time lock") * 1e3;
     let mut h = held.lock().expect("held lock");
     for (o, resp) in sent.iter().zip(outcomes) {
         h.remove(&o.lease_id);
@@ -799,9 +798,7 @@ async fn send_batch(
                     frame = o.region.frame,
                     rect = ?o.region.rect,
                     batch = sent.len(),
-                    // Packing (the last attempt's), then transfer and
-                    // the coordinator's intake.
-                    pack_ms,
+                    // Transfer and the coordinator's intake.
                     send_ms = send_start.elapsed().as_secs_f64() * 1e3,
                     "result accepted"
                 );
@@ -828,17 +825,7 @@ fn result_request(worker_id: &str, o: &Outgoing) -> pb::SubmitResultRequest {
         UnitEnd::Abandoned => {}
         UnitEnd::Failed(msg) => req.failure = msg.clone(),
         UnitEnd::Film(film, secs) => {
-            let packed = film_codec::pack(film);
-            req.sum_bytes = packed.sum_bytes.into();
-            req.uniform_count = packed.uniform_count;
-            req.sums = packed.sums;
-            req.counts = packed.counts;
-            if let Some((n, squares)) = film_codec::pack_squares_part(film, film.rect) {
-                req.square_bytes = n.into();
-                req.squares = squares;
-            }
-            req.rays = Some(film.rays.into());
-            req.nonfinite = film.nonfinite;
+            film.fill(&mut req);
             req.render_seconds = *secs;
         }
     }
@@ -917,13 +904,26 @@ fn render_unit(
     // barrier where one thread waits for another's last tile.
     if let Renderer::Cpu(r) = renderer {
         return match r.render_until(prepared, frame, rect, samples, &progress, cancel) {
-            Ok(Some(film)) => UnitEnd::Film(film, start.elapsed().as_secs_f64()),
+            Ok(Some(film)) => rendered(&film, start),
             Ok(None) => UnitEnd::Abandoned,
             Err(e) => UnitEnd::Failed(e.to_string()),
         };
     }
-    let mut film = Film::new(rect);
     let rows = gpu_band_rows(rect, samples);
+    // A unit of one band: packed on the GPU, only its bytes read back.
+    #[cfg(feature = "gpu")]
+    if let Renderer::Gpu(gpu) = renderer
+        && rows >= rect.height
+    {
+        if cancel.load(Ordering::Relaxed) {
+            return UnitEnd::Abandoned;
+        }
+        return match gpu.render_packed(prepared, frame, rect, samples, &progress) {
+            Ok(p) => UnitEnd::Film(UnitFilm::of_gpu(p), start.elapsed().as_secs_f64()),
+            Err(e) => UnitEnd::Failed(e.to_string()),
+        };
+    }
+    let mut film = Film::new(rect);
     let mut y = rect.y;
     while y < rect.y + rect.height {
         if cancel.load(Ordering::Relaxed) {
@@ -944,7 +944,20 @@ fn render_unit(
         }
         y += band.height;
     }
-    UnitEnd::Film(film, start.elapsed().as_secs_f64())
+    rendered(&film, start)
+}
+
+/// A rendered film, packed for the wire, with its render seconds (packing
+/// not counted: the coordinator's speed model reads rendering alone).
+fn rendered(film: &Film, start: Instant) -> UnitEnd {
+    let seconds = start.elapsed().as_secs_f64();
+    let pack_start = Instant::now();
+    let film = UnitFilm::of_film(film);
+    tracing::debug!(
+        pack_ms = pack_start.elapsed().as_secs_f64() * 1e3,
+        "unit packed"
+    );
+    UnitEnd::Film(film, seconds)
 }
 
 /// Renders a round of an adaptive unit: its active blocks, in one call
@@ -966,7 +979,7 @@ fn render_round_unit(
     match tracer_core::adaptive::render_round(renderer, prepared, frame, mask, samples, &|n| {
         samples_done.fetch_add(n, Ordering::Relaxed);
     }) {
-        Ok(film) => UnitEnd::Film(film, start.elapsed().as_secs_f64()),
+        Ok(film) => rendered(&film, start),
         Err(e) => UnitEnd::Failed(e.to_string()),
     }
 }
@@ -1056,6 +1069,66 @@ mod tests {
         );
     }
 
+    /// A GPU unit is packed on the GPU ([`UnitFilm::of_gpu`]) into exactly
+    /// the bytes the host packs from the same render's film: every sum
+    /// width the sample counts give (4 to 6 bytes here), rects off the
+    /// origin whose pixel count is not a multiple of the kernel's 4.
+    #[cfg(feature = "gpu")]
+    #[test]
+    fn a_gpu_unit_is_packed_on_the_gpu_as_the_host_packs_its_film() {
+        use tracer_core::render::{GpuOptions, GpuRenderer};
+        let gpu = match GpuRenderer::new(
+            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+            GpuOptions::default(),
+        ) {
+            Ok(g) => g,
+            Err(e) if std::env::var("CI").is_ok_and(|v| v == "true") => {
+                panic!("CI=true but no GPU adapter could be opened: {e}")
+            }
+            Err(e) => {
+                eprintln!("SKIPPING the GPU packing test: {e}");
+                return;
+            }
+        };
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/resolution.toml");
+        let desc = SceneDesc::load(path).unwrap();
+        let mut settings = desc.render;
+        (settings.width, settings.height, settings.samples) = (97, 61, 4000);
+        let prepared = PreparedFrame::build(&desc, &settings, 0, Precision::F32).unwrap();
+        let renderer = Renderer::Gpu(Box::new(gpu));
+        let Renderer::Gpu(gpu) = &renderer else {
+            unreachable!()
+        };
+        let mut widths = std::collections::BTreeSet::new();
+        for (rect, samples) in [
+            (Rect::new(0, 0, 97, 61), SampleRange { start: 0, end: 1 }),
+            (Rect::new(3, 5, 31, 7), SampleRange { start: 2, end: 9 }),
+            (Rect::new(10, 1, 13, 13), SampleRange { start: 0, end: 300 }),
+            (
+                Rect::new(40, 20, 9, 9),
+                SampleRange {
+                    start: 0,
+                    end: 4000,
+                },
+            ),
+        ] {
+            let region = WorkRegion::new(0, rect, samples);
+            let film = gpu.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
+            let want = UnitFilm::of_film(&film);
+            let done = AtomicU64::new(0);
+            match render_unit(&renderer, &prepared, region, &AtomicBool::new(false), &done) {
+                UnitEnd::Film(got, _) => assert_eq!(got, want, "{rect:?} {samples:?}"),
+                _ => panic!("the unit did not render"),
+            }
+            assert_eq!(
+                done.load(Ordering::Relaxed),
+                rect.area() as u64 * samples.len() as u64
+            );
+            widths.insert(want.packed.sum_bytes);
+        }
+        assert!(widths.len() >= 3, "sum widths covered: {widths:?}");
+    }
+
     #[test]
     fn a_cpu_unit_renders_in_one_pass_and_stops_when_cancelled() {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/resolution.toml");
@@ -1074,7 +1147,7 @@ mod tests {
         let never = AtomicBool::new(false);
         let region = WorkRegion::new(0, rect, samples);
         match render_unit(&renderer, &prepared, region, &never, &done) {
-            UnitEnd::Film(film, _) => assert_eq!(film, want),
+            UnitEnd::Film(film, _) => assert_eq!(film, UnitFilm::of_film(&want)),
             _ => panic!("the unit did not render"),
         }
         assert_eq!(done.load(Ordering::Relaxed), rect.area() as u64 * 2);

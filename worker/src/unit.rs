@@ -5,9 +5,9 @@
 
 use std::collections::BTreeMap;
 
-use tessera_proto::pb;
+use tessera_proto::{film_codec, pb};
 use tracer_core::adaptive::BlockMask;
-use tracer_core::film::WorkRegion;
+use tracer_core::film::{Film, RayCounts, WorkRegion};
 use tracer_core::scene::RenderSettings;
 
 /// A unit this worker holds a lease on.
@@ -20,6 +20,60 @@ pub(crate) struct LeasedUnit {
     /// malformed): sent back as the unit's failure, which the coordinator
     /// counts like any other.
     pub work: Result<UnitWork, String>,
+}
+
+/// A rendered unit as it goes on the wire: packed once, where it was
+/// rendered, so that each send attempt clones it for free (its fields are
+/// shared buffers; a GPU unit is megabytes).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub(crate) struct UnitFilm {
+    pub packed: film_codec::Packed,
+    /// Adaptive units: the sums of squares' width and bytes.
+    pub squares: Option<(u8, film_codec::Bytes)>,
+    pub rays: RayCounts,
+    pub nonfinite: u64,
+}
+
+impl UnitFilm {
+    pub fn of_film(film: &Film) -> Self {
+        UnitFilm {
+            packed: film_codec::pack(film),
+            squares: film_codec::pack_squares_part(film, film.rect).map(|(n, b)| (n, b.into())),
+            rays: film.rays,
+            nonfinite: film.nonfinite,
+        }
+    }
+
+    /// A GPU unit packed on the GPU: the same bytes as
+    /// [`UnitFilm::of_film`] of its film.
+    #[cfg(feature = "gpu")]
+    pub fn of_gpu(p: tracer_core::render::gpu::PackedSums) -> Self {
+        UnitFilm {
+            packed: film_codec::Packed {
+                sum_bytes: p.sum_bytes,
+                uniform_count: Some(p.samples),
+                sums: p.sums.into(),
+                counts: film_codec::Bytes::new(),
+            },
+            squares: None,
+            rays: p.rays,
+            nonfinite: p.nonfinite,
+        }
+    }
+
+    /// The unit's fields of a result message.
+    pub fn fill(&self, req: &mut pb::SubmitResultRequest) {
+        req.sum_bytes = self.packed.sum_bytes.into();
+        req.uniform_count = self.packed.uniform_count;
+        req.sums = self.packed.sums.clone();
+        req.counts = self.packed.counts.clone();
+        if let Some((n, squares)) = &self.squares {
+            req.square_bytes = (*n).into();
+            req.squares = squares.clone();
+        }
+        req.rays = Some(self.rays.into());
+        req.nonfinite = self.nonfinite;
+    }
 }
 
 /// What rendering a unit needs besides its region.

@@ -18,6 +18,13 @@ use super::{Farm, FarmError, Job, JobState, Lease, LeaseView, State, Worker, now
 /// (a GPU call, read-back, a result message) outweigh its rendering.
 const MIN_LEASE_SECONDS: f64 = 0.01;
 
+/// The most pixels a lease covers. A result's way into the frame (transfer,
+/// checks, commit, merge) costs about twice its rendering on a GPU (~75
+/// against ~35 ns a pixel at 64 samples on the H200 box); a worker keeps
+/// rendering while its results travel only if each is a few megabytes, not
+/// half a frame (a 1080p frame's half is ~15 MB).
+pub(super) const MAX_LEASE_PIXELS: u64 = 1 << 18;
+
 /// How long an idle worker's lease request waits when work was held back
 /// for a faster worker, before it is judged again.
 const HELD_BACK_WAIT: Duration = Duration::from_millis(20);
@@ -261,10 +268,11 @@ impl Farm {
                         break;
                     }
                     let budget = lease_budget(want, speed, busy, farm_end);
-                    // A lease's result must fit one message.
+                    // A lease's result must fit one message, and be small
+                    // enough to travel while the next is rendered.
                     let tile = u64::from(job.layout.tile_size).pow(2).max(1);
-                    let fit =
-                        (self.max_result_pixels() / tile).clamp(1, u64::from(u32::MAX)) as u32;
+                    let fit = (self.max_result_pixels().min(MAX_LEASE_PIXELS) / tile)
+                        .clamp(1, u64::from(u32::MAX)) as u32;
                     job.layout.join(
                         first,
                         self.config.max_tiles_per_lease.min(fit),

@@ -970,3 +970,46 @@ async fn workers_rated_at_their_best_never_all_hold_back() {
         v.units_done, v.units_total
     );
 }
+
+/// However fast a worker, a lease covers at most MAX_LEASE_PIXELS: a GPU
+/// worker gets a 1080p frame in several leases, so that its results travel
+/// while it renders the next, not half the frame in one.
+#[tokio::test]
+async fn a_fast_workers_leases_stop_growing_at_the_pixel_cap() {
+    use super::lease::MAX_LEASE_PIXELS;
+    let dir = tempfile::tempdir().unwrap();
+    let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+    farm.submit(Submission {
+        spec: JobSpec {
+            name: "t".into(),
+            scene_name: "t.toml".into(),
+            overrides: RenderOverrides {
+                width: Some(1920),
+                height: Some(1080),
+                samples: Some(64),
+                ..Default::default()
+            },
+            tile_size: Some(64),
+            ..Default::default()
+        },
+        scene: SCENE.as_bytes().to_vec(),
+        ..Default::default()
+    })
+    .await
+    .unwrap();
+    let w = register(&farm, "gpu", 1);
+    let mut areas = vec![];
+    while let Some(l) = farm.lease(&w, 1, false).unwrap().pop() {
+        areas.push(l.region.rect.area() as u64);
+        // A million pixel-samples a millisecond: a frame in well under the target.
+        let seconds = l.region.pixel_samples() as f64 * 1e-9;
+        assert_eq!(
+            farm.submit_result(result(&w, &l, seconds)).await.unwrap(),
+            Outcome::Accepted
+        );
+    }
+    assert_eq!(areas.iter().sum::<u64>(), 1920 * 1080);
+    assert!(areas.iter().all(|&a| a <= MAX_LEASE_PIXELS), "{areas:?}");
+    // The cap is what bound them: the leases grew up to it.
+    assert!(areas.iter().any(|&a| a > MAX_LEASE_PIXELS / 2), "{areas:?}");
+}

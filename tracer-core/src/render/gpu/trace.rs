@@ -10,8 +10,8 @@ use super::layout::{self, ADAPTIVE_SUM_WORDS, COUNTERS, DispatchParams, SUM_WORD
 use super::plan::plan;
 use super::readback::image_bytes;
 use super::{
-    GpuError, GpuOptions, GpuRenderer, GpuStats, Outputs, PARAMS_SLOTS, PARAMS_STRIDE, Readout,
-    Rendered, Srgb8Image, WaveBuffers, check_size, entire,
+    GpuError, GpuOptions, GpuRenderer, GpuStats, Outputs, PARAMS_SLOTS, PARAMS_STRIDE, PackedSums,
+    Readout, Rendered, Srgb8Image, WaveBuffers, check_size, entire,
 };
 use crate::adaptive::BLOCK;
 use crate::film::{Film, RayCounts, Rect, SampleRange};
@@ -331,14 +331,19 @@ impl GpuRenderer {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("tessera read-back"),
             });
-        let resolver = match readout {
+        let (resolver, packer) = match readout {
             Readout::Sums | Readout::Adaptive(_) => {
                 enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
-                None
+                (None, None)
             }
-            Readout::Srgb8 => {
-                Some(self.encode_resolve(&mut enc, &out.sums, sums_bytes, pixels, samples)?)
-            }
+            Readout::Srgb8 => (
+                Some(self.encode_resolve(&mut enc, &out.sums, sums_bytes, pixels, samples)?),
+                None,
+            ),
+            Readout::Packed => (
+                None,
+                Some(self.encode_pack(&mut enc, &out.sums, sums_bytes, pixels)?),
+            ),
         };
         enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
         if let Some((_, w)) = &wave {
@@ -370,8 +375,20 @@ impl GpuRenderer {
             refraction: counter(layout::COUNTER_REFRACTION),
         };
         let nonfinite = counter(layout::COUNTER_NONFINITE);
-        let rendered = match &resolver {
-            Some(r) => {
+        let rendered = match (&resolver, &packer) {
+            (_, Some(p)) => {
+                let (sum_bytes, sums) =
+                    self.read_packed(p.as_ref().expect("made by encode_pack"), pixels)?;
+                Rendered::Packed(PackedSums {
+                    rect,
+                    samples: samples.len(),
+                    sum_bytes,
+                    sums,
+                    rays,
+                    nonfinite,
+                })
+            }
+            (Some(r), _) => {
                 let r = r.as_ref().expect("made by encode_resolve");
                 let rgb = self.read_with(&r.image_read, image_bytes(pixels), |bytes| {
                     bytes[..pixels * 3].to_vec()
@@ -383,7 +400,7 @@ impl GpuRenderer {
                     nonfinite,
                 })
             }
-            None => {
+            (None, None) => {
                 let mut film = match mask {
                     Some(_) => Film::with_squares(rect),
                     None => Film::new(rect),
@@ -422,6 +439,7 @@ impl GpuRenderer {
             }
         };
         drop(resolver);
+        drop(packer);
         let gpu_time = match &query {
             Some((_, _, read, n)) => {
                 let ticks: Vec<u64> = self.read(read, *n as u64 * 8)?;
