@@ -78,6 +78,7 @@ impl Farm {
             // disk) is retried until it succeeds, never a failed job.
             let mut film = film;
             let mut backoff = Duration::from_millis(200);
+            let start = std::time::Instant::now();
             loop {
                 let (dir, tmp, path) = (dir.clone(), tmp.clone(), path.clone());
                 let result = tokio::task::spawn_blocking(move || {
@@ -123,6 +124,7 @@ impl Farm {
                     }
                 }
             }
+            let image_ms = start.elapsed().as_secs_f64() * 1e3;
             // The image is on disk; until the record is too, the job cannot
             // be done. Retry (a full disk or a transient error may pass); a
             // restart would also recover it, as the units' films stay stored
@@ -152,7 +154,16 @@ impl Farm {
                     return;
                 }
             }
-            tracing::info!(job = %job_id, frame, file = %file, "frame written");
+            // The image (resolve, sRGB, encode, write) and its durable
+            // record, each timed: the end of a job's critical path.
+            tracing::info!(
+                job = %job_id,
+                frame,
+                file = %file,
+                image_ms,
+                record_ms = start.elapsed().as_secs_f64() * 1e3 - image_ms,
+                "frame written"
+            );
             {
                 let mut st = self.state.lock().expect("state lock");
                 if let Some(job) = st.jobs.get_mut(&job_id) {
