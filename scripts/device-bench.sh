@@ -4,7 +4,13 @@
 # Writes everything under $OUT (or bench-out/device).
 #
 #   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, local-gpu,
-#                                          gpu-tests, against-old
+#                                          gpu-tests, against-old, cpu-worker, farm-gpu
+#
+# `cpu-worker` (issue 15, ~2 min): the 1-worker pairs of `bench farm
+# --repeat 5` between whole `tessera render --threads 2` processes, to tell
+# the farm's cost from a process's. `farm-gpu` (~1 min): the GPU worker
+# alone and beside 7 CPU workers with the coordinator's and workers' debug
+# logs and their timelines.
 #
 # `adaptive` (issue 17; not in the default) runs `tessera bench adaptive`
 # on the scenes in $ADAPTIVE_SCENES (default distributed; one scene a
@@ -123,6 +129,40 @@ secs() { "$@" 2>/dev/null | grep -o '  [0-9.]* s  ' | head -1 | tr -d ' s'; }
     printf '%s\n' "${new[@]}" | sort -n | sed -n 3p | xargs -I{} echo "  median new {} s"
   done
 } > "$OUT/against-old.txt" 2>&1
+fi
+if has cpu-worker; then
+# Issue 15's 1-worker target: the local render in the bench's own process
+# against the same render as a whole `tessera render` process (its
+# in-process seconds) and against a 1-worker farm, interleaved; and where
+# the machine's CPUs lie (SMT siblings), which the placement of two
+# threads depends on.
+{
+  echo "== topology"; nproc; lscpu -e 2>/dev/null | head -20
+  for i in 1 2 3 4 5; do
+    echo "tessera render --threads 2, 1080p 16 spp, run $i: $("$T" render examples/resolution.toml --width 1920 --height 1080 --samples 16 --threads 2 -o /tmp/cw.png 2>&1 | grep -o '  [0-9.]* s  ' | head -1 | tr -d ' ') in process"
+  done
+} > "$OUT/cpu-worker.txt" 2>&1
+timeout 300 "$T" bench farm --workers 1 --worker-threads 2 --repeat 5 \
+  --out /tmp/bench-cw --cache /tmp/bench-cache >> "$OUT/cpu-worker.txt" 2>&1
+for i in 1 2 3; do
+  echo "tessera render --threads 2, 1080p 16 spp, after the farm, run $i: $("$T" render examples/resolution.toml --width 1920 --height 1080 --samples 16 --threads 2 -o /tmp/cw.png 2>&1 | grep -o '  [0-9.]* s  ' | head -1 | tr -d ' ') in process" >> "$OUT/cpu-worker.txt"
+done
+fi
+if has farm-gpu; then
+# Issue 15's GPU worker alone and beside 7 CPU workers, with the
+# coordinator's and workers' debug logs (each result's intake by stage).
+RUST_LOG=info,tessera_coordinator=debug,tessera_worker=debug timeout 200 "$T" bench farm --workers 1 --worker-threads 2 \
+  --gpu-workers 1 --mixed-cpu-workers 7 --out /tmp/bench-g --cache /tmp/bench-cache > "$OUT/farm-gpu.txt" 2>&1
+echo "farm-gpu exit $?" >> "$OUT/farm-gpu.txt"
+for r in /tmp/bench-g/farm/run-gpu*.coordinator.log; do
+  run=${r%.coordinator.log}
+  echo "== timeline of ${run##*/}"
+  python3 scripts/farm-timeline.py "$run".worker-*.log 2>&1 | head -20
+done >> "$OUT/farm-gpu.txt"
+if [ -x .gpu/xfer ]; then
+  for w in 8388608 33554432; do echo "== xfer, stream window $w, server without nodelay"; WIN=$w .gpu/xfer | tail -8; echo "== xfer, stream window $w, server with nodelay"; NODELAY=1 WIN=$w .gpu/xfer | tail -8; done >> "$OUT/farm-gpu.txt" 2>&1
+fi
+tar czf "$OUT/farm-gpu-logs.tar.gz" -C /tmp/bench-g/farm --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' . 2>/dev/null
 fi
 if has farm; then
 echo "== farm: tessera bench farm (CPU workers against the machine's ceiling, 1 GPU worker alone and beside 7 CPU workers)"

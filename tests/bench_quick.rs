@@ -459,17 +459,20 @@ fn farm_bench_times_one_worker_against_the_local_render_in_pairs() {
         .find(|l| l.contains("1 worker against the local render"))
         .unwrap_or_else(|| panic!("no pairs line:\n{stderr}"));
     assert!(line.contains("3 interleaved pairs"), "{line}");
-    // "(farm/local s): F/L F/L F/L; ratio median ..."
+    // "(farm submit to done/first lease to last result/local/local in N
+    // units s): F/R/L/U F/R/L/U F/R/L/U; ratio median ..."
     let pairs = line
-        .split_once("(farm/local s): ")
+        .split_once(" units s): ")
         .and_then(|(_, rest)| rest.split_once(';'))
         .map(|(pairs, _)| pairs.split_whitespace().collect::<Vec<_>>())
         .unwrap_or_default();
     assert_eq!(pairs.len(), 3, "{line}");
     for p in pairs {
-        let (farm, local) = p.split_once('/').unwrap_or_else(|| panic!("{line}"));
-        assert!(farm.parse::<f64>().is_ok_and(|f| f > 0.0), "{line}");
-        assert!(local.parse::<f64>().is_ok_and(|l| l > 0.0), "{line}");
+        let times: Vec<f64> = p.split('/').filter_map(|t| t.parse().ok()).collect();
+        assert_eq!(times.len(), 4, "{line}");
+        assert!(times.iter().all(|&t| t > 0.0), "{line}");
+        // The farm's rendering lies inside its submit-to-done time.
+        assert!(times[1] <= times[0], "{line}");
     }
     assert!(line.contains("ratio median"), "{line}");
     assert!(

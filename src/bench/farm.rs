@@ -451,7 +451,7 @@ pub fn interleaved_runs(
     pairs: usize,
     expected: &[u8],
     mut local: impl FnMut() -> Result<f64>,
-) -> Result<(Vec<(f64, f64)>, usize)> {
+) -> Result<(Vec<(f64, JobResult)>, usize)> {
     with_warm_farm(run, spec, |farm, logs| {
         let mut times = Vec::with_capacity(pairs);
         let mut last = None;
@@ -463,8 +463,8 @@ pub fn interleaved_runs(
                 run.tile,
                 &logs.with_extension(format!("submit-{i}.log")),
             )?;
-            times.push((local_secs, result.seconds));
-            last = Some(result.job);
+            last = Some(result.job.clone());
+            times.push((local_secs, result));
         }
         let job = last.context("no pair was run")?;
         Ok((times, frame_diff(run, farm, &job, expected)?))

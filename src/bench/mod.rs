@@ -1035,21 +1035,48 @@ impl Bench {
                 tile,
             };
             let full = Rect::full(width, height);
+            // The local render once more, cut into units of a 1-worker
+            // farm's size (rows of 7 tiles, ~113 ms each at 1080p 16 spp on
+            // the H200 box), one call each: what the farm's units cost
+            // without a farm around them.
+            let units: Vec<Rect> = (0..height)
+                .step_by(tile as usize)
+                .flat_map(|y| {
+                    (0..width).step_by(7 * tile as usize).map(move |x| {
+                        Rect::new(x, y, (7 * tile).min(width - x), tile.min(height - y))
+                    })
+                })
+                .collect();
+            let mut by_units = vec![];
             let (pairs, diff_bytes) =
                 farm::interleaved_runs(&run, &spec, self.cfg.repeat as usize, &local_srgb, || {
                     let start = Instant::now();
                     local.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
-                    Ok(start.elapsed().as_secs_f64())
+                    let whole = start.elapsed().as_secs_f64();
+                    let start = Instant::now();
+                    for &u in &units {
+                        local.render(&frame, 0, u, SampleRange::all(s.samples), &|_| {})?;
+                    }
+                    by_units.push(start.elapsed().as_secs_f64());
+                    Ok(whole)
                 })?;
-            let mut ratios: Vec<f64> = pairs.iter().map(|(l, f)| f / l).collect();
+            let mut ratios: Vec<f64> = pairs.iter().map(|(l, f)| f.seconds / l).collect();
             let listed: Vec<String> = pairs
                 .iter()
-                .map(|(l, f)| format!("{f:.3}/{l:.3}"))
+                .zip(&by_units)
+                .map(|((l, f), u)| {
+                    format!(
+                        "{:.3}/{}/{l:.3}/{u:.3}",
+                        f.seconds,
+                        f.render_s.map_or("-".into(), |r| format!("{r:.3}"))
+                    )
+                })
                 .collect();
             ratios.sort_by(f64::total_cmp);
             eprintln!(
-                "  farm        1 worker against the local render, {} interleaved pairs (farm/local s): {}; ratio median {:.3}x (range {:.3}-{:.3}x)  {}",
+                "  farm        1 worker against the local render, {} interleaved pairs (farm submit to done/first lease to last result/local/local in {} units s): {}; ratio median {:.3}x (range {:.3}-{:.3}x)  {}",
                 pairs.len(),
+                units.len(),
                 listed.join(" "),
                 ratios[ratios.len() / 2],
                 ratios[0],
