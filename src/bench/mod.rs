@@ -967,6 +967,7 @@ impl Bench {
                 name: &n.to_string(),
                 scene: &path,
                 settings: &s,
+                frames: (0, 0),
                 tile,
             };
             let (result, diff_bytes) = farm::timed_run(&run, &spec, &local_srgb)?;
@@ -1032,6 +1033,7 @@ impl Bench {
                 name: "1-pairs",
                 scene: &path,
                 settings: &s,
+                frames: (0, 0),
                 tile,
             };
             let full = Rect::full(width, height);
@@ -1244,6 +1246,7 @@ impl Bench {
                 threads,
                 gpu_workers: g,
                 adapter: self.cfg.adapter.clone(),
+                gpu_adapters: vec![],
             };
             let run = farm::RunSpec {
                 exe,
@@ -1251,6 +1254,7 @@ impl Bench {
                 name: &name,
                 scene: path,
                 settings: &s,
+                frames: (0, 0),
                 tile,
             };
             let (result, diff_bytes) = farm::timed_run(&run, &spec, &local_srgb)?;
