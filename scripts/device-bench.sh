@@ -4,7 +4,7 @@
 # Writes everything under $OUT (or bench-out/device).
 #
 #   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, local-gpu,
-#                                          gpu-tests, against-old, cpu-worker, farm-gpu
+#                                          gpu-tests, against-old, cpu-worker, farm-gpu, multi-gpu
 #
 # `cpu-worker` (issue 15, ~2 min): the 1-worker pairs of `bench farm
 # --repeat 5` between whole `tessera render --threads 2` processes, to tell
@@ -33,6 +33,21 @@
 # earlier build, .gpu/tessera-old, interleaved run by run (5 each), CPU and
 # GPU, from the summary line's in-process seconds: a scene without the new
 # effects must keep its speed. EXR output, so both builds read back the sums.
+#
+# `multi-gpu` (issue 21; not in the default; for a machine of several GPUs)
+# runs `tessera bench multi-gpu` with one GPU worker per adapter `tessera
+# gpus` lists (or per entry of $MULTI_GPU_ADAPTERS, e.g. 0,1,2,3; on a
+# one-GPU box MULTI_GPU_ADAPTERS=0,0 runs two workers sharing the GPU), for
+# 1..N of them, on a 1920x1080 256-spp frame and a 24-frame 1080p 64-spp
+# animation, against N concurrent local GPU renders of 1/N of the work;
+# then the same GPU workers beside CPU workers of 2 threads filling the
+# other cores: (nproc - N - 1) / 2 of them beside N GPU workers (a core
+# feeds each GPU worker, one is the coordinator's). Then the CPU workers
+# alone, `tessera bench farm --workers 1,2,4,8,16 --worker-threads 2` (the
+# counts whose threads fit in nproc). Writes multi-gpu-*.txt, multi-gpu.csv,
+# cpu-farm.csv and the plots (in the tarball) under $OUT; ~5 min with 2
+# GPU workers and 16 cores ($MULTI_GPU_TIMEOUT, $CPU_FARM_TIMEOUT cap each
+# part). $MULTI_GPU_ARGS goes to both bench commands (--quick: a dry run).
 #
 # `bench` (every suite but depth and farm) fits one 10-minute device call;
 # `depth` (the depth suite against its depth-32 reference, ~2 min of 16
@@ -216,6 +231,28 @@ for batch in 64 1; do
 done
 cp /tmp/bench/farm.csv "$OUT/" 2>/dev/null
 tar czf "$OUT/farm-logs.tar.gz" -C /tmp/bench/farm --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' . 2>/dev/null
+fi
+if has multi-gpu; then
+cores=$(nproc)
+adapters=${MULTI_GPU_ADAPTERS:-$("$T" gpus --json | python3 -c 'import json, sys; print(",".join(str(a["index"]) for a in json.load(sys.stdin)))')}
+cpu_counts=$(for n in 1 2 4 8 16; do [ $((2 * n)) -le "$cores" ] && printf '%s,' "$n"; done)
+cpu_counts=${cpu_counts%,}
+{
+  echo "== machine"; nproc; grep -m1 'model name' /proc/cpuinfo; nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
+  echo "== tessera gpus"; "$T" gpus
+  echo "== GPU workers on adapters $adapters; mixed runs: (${cores} - N - 1) / 2 CPU workers of 2 threads beside N GPU workers; CPU farm: workers $cpu_counts of 2 threads"
+} > "$OUT/multi-gpu-machine.txt" 2>&1
+echo "== multi-gpu: tessera bench multi-gpu --gpu-adapters $adapters --mixed-cores $cores"
+timeout "${MULTI_GPU_TIMEOUT:-420}" "$T" bench multi-gpu --gpu-adapters "$adapters" --worker-threads 2 --mixed-cores "$cores" ${MULTI_GPU_ARGS:-} \
+  --out /tmp/bench --cache /tmp/bench-cache > "$OUT/multi-gpu-suite.txt" 2>&1
+echo "multi-gpu suite exit $?" >> "$OUT/multi-gpu-suite.txt"
+echo "== multi-gpu: tessera bench farm --workers $cpu_counts --worker-threads 2 (CPU workers alone)"
+timeout "${CPU_FARM_TIMEOUT:-240}" "$T" bench farm --workers "$cpu_counts" --worker-threads 2 ${MULTI_GPU_ARGS:-} \
+  --out /tmp/bench/cpu-farm --cache /tmp/bench-cache > "$OUT/multi-gpu-cpu-farm.txt" 2>&1
+echo "cpu farm exit $?" >> "$OUT/multi-gpu-cpu-farm.txt"
+cp /tmp/bench/multi-gpu.csv "$OUT/" 2>/dev/null
+cp /tmp/bench/cpu-farm/farm.csv "$OUT/cpu-farm.csv" 2>/dev/null
+tar czf "$OUT/multi-gpu-logs.tar.gz" -C /tmp/bench/multi-gpu --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' --exclude='*.png' --exclude='*.svg' . 2>/dev/null
 fi
 # CSVs and plots only: the per-run images are many and large.
 tar czf "$OUT/bench-$PHASE.tar.gz" -C /tmp/bench --exclude='*-*x*-s*.png' --exclude='frames-*' --exclude='data-*' .

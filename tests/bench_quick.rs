@@ -481,3 +481,99 @@ fn farm_bench_times_one_worker_against_the_local_render_in_pairs() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `bench multi-gpu --quick --gpu-adapters 0,0`: one and two GPU workers
+/// (two sharing the one adapter: lavapipe in CI) on a frame and a 3-frame
+/// animation, each against the ceiling measured in the same run, then one
+/// GPU worker beside a CPU worker. Needs an adapter: without one the bench
+/// fails, and so does this test. Speed is not judged here.
+#[test]
+fn multi_gpu_bench_runs_gpu_workers_against_the_ceiling_with_identical_frames() {
+    let dir = std::env::temp_dir().join(format!("tessera-bench-mgpu-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    // 3 cores, workers of 1 thread: beside 1 GPU worker (3 - 1 - 1) = 1
+    // CPU worker, beside 2 none.
+    let out = bench(
+        &dir,
+        &[
+            "multi-gpu",
+            "--quick",
+            "--gpu-adapters",
+            "0,0",
+            "--worker-threads",
+            "1",
+            "--mixed-cores",
+            "3",
+        ],
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "bench failed:\n{stderr}");
+    let rows = read_csv(&dir, "multi-gpu");
+    let finite = |r: &std::collections::HashMap<String, String>, col: &str| {
+        let v = num(r, col);
+        assert!(v.is_finite() && v > 0.0, "{col} = {v} in {r:?}");
+        v
+    };
+    for (workload, frames) in [("frame", "1"), ("animation", "3")] {
+        let of = |mixed: bool| -> Vec<_> {
+            rows.iter()
+                .filter(|r| r["workload"] == workload && (r["cpu_workers"] != "0") == mixed)
+                .collect()
+        };
+        let gpu_only = of(false);
+        assert_eq!(
+            gpu_only
+                .iter()
+                .map(|r| r["gpu_workers"].as_str())
+                .collect::<Vec<_>>(),
+            ["1", "2"],
+            "{workload}: GPU-only rows"
+        );
+        for r in &gpu_only {
+            assert_eq!(r["suite"], "multi-gpu");
+            assert_eq!(r["backend"], "gpu");
+            assert_eq!(r["frames"], frames);
+            for col in ["wall_s", "ceiling_s", "of_ceiling", "speedup", "efficiency"] {
+                finite(r, col);
+            }
+            assert_eq!(
+                r["bit_identical"], "true",
+                "{workload}, {} GPU workers: frames differ from the local GPU render",
+                r["gpu_workers"]
+            );
+            assert!(image::open(dir.join("out").join(&r["image"])).is_ok());
+        }
+        assert_eq!(gpu_only[0]["adapters"], "0");
+        assert_eq!(gpu_only[1]["adapters"], "0;0");
+        assert_eq!(num(gpu_only[0], "speedup"), 1.0);
+        // One GPU's ceiling is the local render itself.
+        assert_eq!(gpu_only[0]["ceiling_s"], gpu_only[0]["local_wall_s"]);
+        let mixed = of(true);
+        assert_eq!(
+            mixed
+                .iter()
+                .map(|r| (r["gpu_workers"].as_str(), r["cpu_workers"].as_str()))
+                .collect::<Vec<_>>(),
+            [("1", "1")],
+            "{workload}: mixed rows"
+        );
+        finite(mixed[0], "vs_gpu_alone");
+        assert_eq!(
+            mixed[0]["bit_identical"], "",
+            "a mixed farm has no local render"
+        );
+        let plot = dir.join(format!("out/multi-gpu/{workload}_speedup"));
+        let png = image::open(plot.with_extension("png")).unwrap();
+        assert_eq!((png.width(), png.height()), (900, 600));
+        let svg = std::fs::read_to_string(plot.with_extension("svg")).unwrap();
+        assert!(
+            svg.contains("machine ceiling") && svg.contains("ideal"),
+            "{workload} plot"
+        );
+    }
+    assert!(
+        stderr.contains("no mixed run beside 2 GPU worker(s)"),
+        "{stderr}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

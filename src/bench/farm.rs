@@ -93,8 +93,22 @@ pub struct FarmSpec {
     /// CPU threads of each CPU worker.
     pub threads: usize,
     pub gpu_workers: usize,
-    /// GPU adapter of the GPU workers.
+    /// GPU adapter of the GPU workers that have none in `gpu_adapters`.
     pub adapter: Option<String>,
+    /// GPU adapter (index or name, as `--adapter` takes) of each GPU
+    /// worker in turn: one worker per GPU. An index may repeat (workers
+    /// sharing a GPU); workers past its end take `adapter`.
+    pub gpu_adapters: Vec<String>,
+}
+
+impl FarmSpec {
+    /// The adapter of GPU worker `i` (from 0), if one is named.
+    fn gpu_adapter(&self, i: usize) -> Option<&str> {
+        self.gpu_adapters
+            .get(i)
+            .or(self.adapter.as_ref())
+            .map(String::as_str)
+    }
 }
 
 /// A finished bench job: its id, the wall time from submission to the job's
@@ -185,7 +199,7 @@ impl Farm {
                     "--name",
                     &format!("bench-gpu-{i}"),
                 ]);
-                if let Some(a) = &spec.adapter {
+                if let Some(a) = spec.gpu_adapter(i - 1) {
                     cmd.args(["--adapter", a]);
                 }
             } else {
@@ -271,19 +285,21 @@ impl Farm {
             samples: settings.samples.min(16),
             ..*settings
         };
-        self.submit_and_wait(scene, &small, tile_size, log)
+        self.submit_and_wait(scene, &small, (0, 0), tile_size, log)
             .map(|_| ())
             .context("the warm-up job failed")
     }
 
-    /// Submits `scene` with `settings` as overrides and waits for the job
-    /// (`tessera submit --wait`); returns the job id and the wall time from
-    /// submission to the job's end. Fails, rather than hangs, if the
-    /// coordinator or a worker dies or the job outlasts `JOB_TIMEOUT`.
+    /// Submits `scene`'s `frames` (first, last, inclusive) with `settings`
+    /// as overrides and waits for the job (`tessera submit --wait`);
+    /// returns the job id and the wall time from submission to the job's
+    /// end. Fails, rather than hangs, if the coordinator or a worker dies
+    /// or the job outlasts `JOB_TIMEOUT`.
     pub fn submit_and_wait(
         &mut self,
         scene: &Path,
         settings: &RenderSettings,
+        frames: (u32, u32),
         tile_size: u32,
         log: &Path,
     ) -> Result<JobResult> {
@@ -295,9 +311,12 @@ impl Farm {
             settings.max_depth.to_string(),
         );
         let tile = tile_size.to_string();
+        let frames = format!("{}..{}", frames.0, frames.1);
         let args = [
             "submit",
             &scene_arg,
+            "--frames",
+            &frames,
             "--width",
             &w,
             "--height",
@@ -391,15 +410,17 @@ impl Farm {
         })
     }
 
-    /// Fetches the job's frame 0 into `dir`; returns how many of its 8-bit
-    /// sRGB bytes differ from `expected` (all of them if the size differs).
-    pub fn frame0_differs(
+    /// Fetches the job's frames into `dir`; returns, for each frame from
+    /// `first` on, how many of its 8-bit sRGB bytes differ from the image
+    /// in `expected` (all of them if the size differs).
+    pub fn frames_differ(
         &self,
         job: &str,
         dir: &Path,
+        first: u32,
         size: (u32, u32),
-        expected: &[u8],
-    ) -> Result<usize> {
+        expected: &[&[u8]],
+    ) -> Result<Vec<usize>> {
         let out = self
             .cli(&["fetch", job, "-o", &dir.to_string_lossy()])
             .output()
@@ -411,19 +432,23 @@ impl Farm {
                 String::from_utf8_lossy(&out.stderr)
             );
         }
-        let file = dir.join("frame_0000.png");
-        let img = image::open(&file)
-            .with_context(|| format!("cannot read the fetched frame {}", file.display()))?
-            .to_rgb8();
-        if img.dimensions() != size {
-            return Ok(img.as_raw().len().max(expected.len()));
+        let mut diffs = Vec::with_capacity(expected.len());
+        for (frame, expected) in (first..).zip(expected) {
+            let file = dir.join(format!("frame_{frame:04}.png"));
+            let img = image::open(&file)
+                .with_context(|| format!("cannot read the fetched frame {}", file.display()))?
+                .to_rgb8();
+            diffs.push(if img.dimensions() != size {
+                img.as_raw().len().max(expected.len())
+            } else {
+                img.as_raw()
+                    .iter()
+                    .zip(*expected)
+                    .filter(|(a, b)| a != b)
+                    .count()
+            });
         }
-        Ok(img
-            .as_raw()
-            .iter()
-            .zip(expected)
-            .filter(|(a, b)| a != b)
-            .count())
+        Ok(diffs)
     }
 }
 
@@ -436,6 +461,8 @@ pub struct RunSpec<'a> {
     pub name: &'a str,
     pub scene: &'a Path,
     pub settings: &'a RenderSettings,
+    /// First and last frame, inclusive: (0, 0) is the still frame.
+    pub frames: (u32, u32),
     pub tile: u32,
 }
 
@@ -460,6 +487,7 @@ pub fn interleaved_runs(
             let result = farm.submit_and_wait(
                 run.scene,
                 run.settings,
+                run.frames,
                 run.tile,
                 &logs.with_extension(format!("submit-{i}.log")),
             )?;
@@ -467,23 +495,36 @@ pub fn interleaved_runs(
             times.push((local_secs, result));
         }
         let job = last.context("no pair was run")?;
-        Ok((times, frame_diff(run, farm, &job, expected)?))
+        Ok((times, frames_diff(run, farm, &job, &[expected])?[0]))
     })
 }
 
 /// Starts the farm of `spec`, renders the warm-up job, then the timed job,
-/// and fetches its frame; returns the job and how many 8-bit bytes of the
-/// frame differ from `expected`.
+/// and fetches its frame; returns the job and how many 8-bit bytes of its
+/// first frame differ from `expected`.
 pub fn timed_run(run: &RunSpec, spec: &FarmSpec, expected: &[u8]) -> Result<(JobResult, usize)> {
+    let (result, diffs) = timed_frames_run(run, spec, &[expected])?;
+    Ok((result, diffs[0]))
+}
+
+/// [`timed_run`] for a job of several frames: `expected` has an image per
+/// frame of `run.frames`, and each frame's count of differing bytes is
+/// returned.
+pub fn timed_frames_run(
+    run: &RunSpec,
+    spec: &FarmSpec,
+    expected: &[&[u8]],
+) -> Result<(JobResult, Vec<usize>)> {
     with_warm_farm(run, spec, |farm, logs| {
         let result = farm.submit_and_wait(
             run.scene,
             run.settings,
+            run.frames,
             run.tile,
             &logs.with_extension("submit.log"),
         )?;
-        let diff = frame_diff(run, farm, &result.job, expected)?;
-        Ok((result, diff))
+        let diffs = frames_diff(run, farm, &result.job, expected)?;
+        Ok((result, diffs))
     })
 }
 
@@ -514,9 +555,11 @@ fn with_warm_farm<T>(
     Ok(outcome)
 }
 
-/// How many 8-bit bytes of `job`'s first frame, fetched, differ from `expected`.
-fn frame_diff(run: &RunSpec, farm: &Farm, job: &str, expected: &[u8]) -> Result<usize> {
+/// How many 8-bit bytes of each of `job`'s frames, fetched, differ from
+/// its image in `expected` (the first frames of the job, as many as there
+/// are images).
+fn frames_diff(run: &RunSpec, farm: &Farm, job: &str, expected: &[&[u8]]) -> Result<Vec<usize>> {
     let fetched = run.dir.join(format!("frames-{}", run.name));
     let s = run.settings;
-    farm.frame0_differs(job, &fetched, (s.width, s.height), expected)
+    farm.frames_differ(job, &fetched, run.frames.0, (s.width, s.height), expected)
 }

@@ -24,12 +24,15 @@ pub enum BenchBackend {
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
-    /// Suites to run [default: all]: resolution, samples, complexity, depth,
-    /// precision, distributed (issue 16's effects: time and error against
-    /// samples), launch (GPU launch-shape sweep; skipped without a GPU
-    /// backend), farm (1..N local worker processes on one frame), adaptive
-    /// (uniform against adaptive sampling: RMSE against time, and the time
-    /// adaptive takes to reach uniform 1024 spp's RMSE)
+    /// Suites to run [default: all but multi-gpu]: resolution, samples,
+    /// complexity, depth, precision, distributed (issue 16's effects: time
+    /// and error against samples), launch (GPU launch-shape sweep; skipped
+    /// without a GPU backend), farm (1..N local worker processes on one
+    /// frame), adaptive (uniform against adaptive sampling: RMSE against
+    /// time, and the time adaptive takes to reach uniform 1024 spp's RMSE);
+    /// and, run only when named, multi-gpu (1..N GPU workers, one per
+    /// --gpu-adapters entry, alone and beside CPU workers, against N
+    /// concurrent local GPU renders)
     pub suites: Vec<String>,
     /// Where to trace
     #[arg(long, value_enum, default_value_t = BenchBackend::Cpu)]
@@ -92,6 +95,20 @@ pub struct BenchArgs {
     /// distributed (issue 16's effects)
     #[arg(long, value_name = "SCENE,...", value_delimiter = ',', default_value = "resolution,distributed", value_parser = ["resolution", "distributed"])]
     pub adaptive_scenes: Vec<String>,
+    /// Multi-gpu suite: GPU adapters, one GPU worker on each (index or
+    /// name from `tessera gpus`); an index may repeat: 0,0 runs two workers
+    /// sharing one GPU [default: every adapter `tessera gpus` lists]
+    #[arg(long, value_name = "A,A,...", value_delimiter = ',')]
+    pub gpu_adapters: Vec<String>,
+    /// Multi-gpu suite: GPU worker counts to run, each N on the first N
+    /// --gpu-adapters [default: 1 to all of them]
+    #[arg(long, value_name = "N,N,...", value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..))]
+    pub gpu_counts: Option<Vec<u32>>,
+    /// Multi-gpu suite: cores its mixed runs fill: beside N GPU workers,
+    /// (C - N - 1) / --worker-threads CPU workers (a core feeds each GPU
+    /// worker, one is the coordinator's); 0 skips the mixed runs [default: all cores]
+    #[arg(long, value_name = "C")]
+    pub mixed_cores: Option<u32>,
     #[command(flatten)]
     pub format: super::output::Format,
 }
@@ -142,6 +159,11 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
         adaptive_size: args.adaptive_size,
         adaptive_reference: args.adaptive_reference,
         adaptive_scenes: args.adaptive_scenes,
+        gpu_adapters: args.gpu_adapters,
+        gpu_counts: args
+            .gpu_counts
+            .map(|v| v.into_iter().map(|n| n as usize).collect()),
+        mixed_cores: args.mixed_cores.map(|n| n as usize),
     })?;
     eprintln!(
         "bench: {} runs written under {}",

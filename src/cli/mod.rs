@@ -73,7 +73,11 @@ impl Command {
         use tracer_core::render::Backend;
         match self {
             Command::Render(a) => a.backend == Backend::Gpu,
-            Command::Bench(a) => a.backend != bench::BenchBackend::Cpu,
+            Command::Bench(a) => {
+                a.backend != bench::BenchBackend::Cpu
+                    || a.gpu_workers > 0
+                    || a.suites.iter().any(|s| s == "multi-gpu")
+            }
             Command::Worker(a) => a.backend == Backend::Gpu,
             Command::Cluster(a) => a.backend == Backend::Gpu,
             Command::Gpus(_) => true,
