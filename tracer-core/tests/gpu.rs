@@ -2025,3 +2025,58 @@ fn gpu_adaptive_renders_are_uniform_renders_of_each_pixels_count() {
         }
     }
 }
+
+// ---- An animation's frames keep the scene's kernel ----------------------
+
+/// Frames of an animation differ in the camera, not the kernel: one
+/// renderer compiles it once for them all, and each frame is still its own
+/// (the new camera reaches the GPU), bit for bit what a renderer that saw
+/// only that frame makes.
+#[test]
+fn an_animations_frames_reuse_the_kernel_and_render_their_own_camera() {
+    let Some(_) = gpu() else { return };
+    let desc = SceneDesc::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/animation.toml"
+    ))
+    .unwrap();
+    let s = RenderSettings {
+        width: 48,
+        height: 32,
+        samples: 2,
+        ..desc.render
+    };
+    let open = || {
+        GpuRenderer::new(
+            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+            GpuOptions::default(),
+        )
+        .unwrap()
+    };
+    let full = Rect::full(s.width, s.height);
+    let all = SampleRange::all(s.samples);
+    let g = open();
+    let first = gpu_render(&g, &desc, &s, 1, full, all);
+    let third = gpu_render(&g, &desc, &s, 3, full, all);
+    let first_again = gpu_render(&g, &desc, &s, 1, full, all);
+    assert_eq!(
+        g.pipelines_built(),
+        1,
+        "frames of one scene compiled their kernel again"
+    );
+    assert_ne!(
+        first.sums, third.sums,
+        "frame 3 rendered with frame 1's camera"
+    );
+    assert_eq!(first, first_again);
+    let fresh = open();
+    assert_eq!(gpu_render(&fresh, &desc, &s, 3, full, all), third);
+    // Another scene needs another kernel.
+    let other = SceneDesc::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../examples/depth.toml"
+    ))
+    .unwrap();
+    gpu_render(&g, &other, &s, 0, full, all);
+    assert_eq!(g.pipelines_built(), 2);
+}

@@ -173,6 +173,9 @@ struct SceneState {
     /// The module and constants `pipeline` was made from, and the same
     /// kernel for adaptive rounds (`ADAPTIVE`), made on first use.
     module: wgpu::ShaderModule,
+    /// The WGSL `module` was made from: with `constants`, what decides
+    /// whether the next scene can keep the pipelines.
+    source: String,
     constants: Vec<(&'static str, f64)>,
     adaptive: Option<wgpu::ComputePipeline>,
     frame: wgpu::Buffer,
@@ -287,6 +290,8 @@ pub struct GpuRenderer {
     wave: Mutex<Option<WaveBuffers>>,
     resolver: Mutex<Option<Resolver>>,
     packer: Mutex<Option<pack::Packer>>,
+    /// Scene kernels compiled so far ([`GpuRenderer::pipelines_built`]).
+    pipelines_built: std::sync::atomic::AtomicU64,
     /// Compiled pipelines on disk, where the device has a pipeline cache.
     disk_cache: Option<disk_cache::DiskCache>,
     stats: Mutex<GpuStats>,
@@ -496,6 +501,7 @@ impl GpuRenderer {
             wave: Mutex::new(None),
             resolver: Mutex::new(None),
             packer: Mutex::new(None),
+            pipelines_built: Default::default(),
             disk_cache,
             stats: Mutex::new(GpuStats::default()),
             no_blocks,
@@ -503,6 +509,13 @@ impl GpuRenderer {
     }
 
     /// An unmapped buffer (every output, queue and read-back buffer).
+    /// How many scene kernels this renderer has compiled: one per kind of
+    /// scene, not per frame of an animation.
+    pub fn pipelines_built(&self) -> u64 {
+        self.pipelines_built
+            .load(std::sync::atomic::Ordering::Relaxed)
+    }
+
     fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),

@@ -25,10 +25,17 @@ const BVH_WGSL: &str = include_str!("bvh.wgsl");
 const ACCEL_WGSL: &str = include_str!("accel.wgsl");
 
 impl GpuRenderer {
+    /// The scene's buffers and its specialised pipelines. The pipelines of
+    /// `old` (the scene rendered before) are kept when they would be made
+    /// from the same source and constants: an animation's frames differ in
+    /// the camera and the objects' places, not in the kernel, and compiling
+    /// it again cost a frame more than tracing it. The tree's buffers are
+    /// kept too when the tree is the same.
     pub(super) fn upload_scene(
         &self,
         data: SceneData,
         limits: &wgpu::Limits,
+        old: Option<SceneState>,
     ) -> Result<SceneState, GpuError> {
         let make = |label, bytes: &[u8], usage| {
             self.device
@@ -91,21 +98,6 @@ impl GpuRenderer {
         let planes = make("planes", bytemuck::cast_slice(&data.planes), st);
         let materials = make("materials", bytemuck::cast_slice(&data.materials), st);
         let lights = make("lights", bytemuck::cast_slice(&data.lights), st);
-        let tree = match &data.tree {
-            Some(t) => [
-                make("bvh nodes", bytemuck::cast_slice(&t.data.nodes), st),
-                make("bvh prims", bytemuck::cast_slice(&t.data.prims), st),
-                make("triangles", bytemuck::cast_slice(&t.data.triangles), st),
-                make(
-                    "triangle shading",
-                    bytemuck::cast_slice(&t.data.shading),
-                    st,
-                ),
-            ],
-            None => ["bvh nodes", "bvh prims", "triangles", "triangle shading"]
-                .map(|label| make(label, &[0u8; 64], st)),
-        };
-
         let dist = match &data.dist {
             Some(d) => make("distributed", bytemuck::cast_slice(&d.words), st),
             None => make("distributed", &[0u8; 64], st),
@@ -136,12 +128,6 @@ impl GpuRenderer {
                 .map_or(crate::bvh::STACK as u32, |t| t.data.stack)
                 + 1
         );
-        let module = self
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("whitted.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
-            });
         let b = |v: bool| if v { 1.0 } else { 0.0 };
         let constants = [
             ("N_SPHERES", data.n_spheres as f64),
@@ -166,66 +152,110 @@ impl GpuRenderer {
                 all_constants.push(("N_MOVING_MESHES", n_moving_meshes as f64));
             }
         }
-        let pipeline = self
-            .device
-            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("tessera whitted"),
-                layout: Some(&self.pipeline_layout),
-                module: &module,
-                entry_point: Some(if data.dist.is_some() {
-                    "render_dist"
-                } else {
-                    "render"
-                }),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &all_constants,
-                    // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
-                    zero_initialize_workgroup_memory: true,
-                },
-                cache: self.pipeline_cache(),
-            });
-        // Distributed effects run on the stack kernel only.
-        let wave =
-            (self.options.strategy == Strategy::Wavefront && data.dist.is_none()).then(|| {
-                // Twice the largest dispatch's primary tasks, within one indirect dispatch.
-                let (wx, wy) = self.options.workgroup;
-                let max_groups = limits.max_compute_workgroups_per_dimension as u64;
-                let queue_cap = (2 * self.options.dispatch_pixel_samples)
-                    .min(max_groups * (wx * wy) as u64)
-                    .min(limits.max_storage_buffer_binding_size / layout::WAVE_TASK_BYTES);
-                let mut wave_constants = constants.to_vec();
-                wave_constants.push(("QUEUE_CAP", queue_cap as f64));
-                let make = |entry: &str, layout: &wgpu::PipelineLayout| {
+        let old = old.filter(|o| o.options == self.options);
+        let same_kernel = old
+            .as_ref()
+            .is_some_and(|o| o.source == source && o.constants == all_constants);
+        let same_tree = old.as_ref().is_some_and(|o| o.data.tree == data.tree);
+        let (kept_kernel, kept_tree) = match old {
+            Some(o) => (
+                same_kernel.then_some((o.module, o.pipeline, o.adaptive, o.wave)),
+                same_tree.then_some(o.tree),
+            ),
+            None => (None, None),
+        };
+        let tree = match kept_tree {
+            Some(t) => t,
+            None => match &data.tree {
+                Some(t) => [
+                    make("bvh nodes", bytemuck::cast_slice(&t.data.nodes), st),
+                    make("bvh prims", bytemuck::cast_slice(&t.data.prims), st),
+                    make("triangles", bytemuck::cast_slice(&t.data.triangles), st),
+                    make(
+                        "triangle shading",
+                        bytemuck::cast_slice(&t.data.shading),
+                        st,
+                    ),
+                ],
+                None => ["bvh nodes", "bvh prims", "triangles", "triangle shading"]
+                    .map(|label| make(label, &[0u8; 64], st)),
+            },
+        };
+        let (module, pipeline, adaptive, wave) = match kept_kernel {
+            Some(k) => k,
+            None => {
+                let module = self
+                    .device
+                    .create_shader_module(wgpu::ShaderModuleDescriptor {
+                        label: Some("whitted.wgsl"),
+                        source: wgpu::ShaderSource::Wgsl(source.as_str().into()),
+                    });
+                let pipeline =
                     self.device
                         .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                            label: Some(entry),
-                            layout: Some(layout),
+                            label: Some("tessera whitted"),
+                            layout: Some(&self.pipeline_layout),
                             module: &module,
-                            entry_point: Some(entry),
+                            entry_point: Some(if data.dist.is_some() {
+                                "render_dist"
+                            } else {
+                                "render"
+                            }),
                             compilation_options: wgpu::PipelineCompilationOptions {
-                                constants: &wave_constants,
+                                constants: &all_constants,
+                                // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
                                 zero_initialize_workgroup_memory: true,
                             },
                             cache: self.pipeline_cache(),
-                        })
-                };
-                WavePipelines {
-                    primary: make("wave_primary", &self.wave_pipeline_layout),
-                    swap: make("wave_swap", &self.wave_swap_layout),
-                    shade: make("wave_shade", &self.wave_pipeline_layout),
-                    queue_cap,
+                        });
+                // Distributed effects run on the stack kernel only.
+                let wave = (self.options.strategy == Strategy::Wavefront && data.dist.is_none())
+                    .then(|| {
+                        // Twice the largest dispatch's primary tasks, within one indirect dispatch.
+                        let (wx, wy) = self.options.workgroup;
+                        let max_groups = limits.max_compute_workgroups_per_dimension as u64;
+                        let queue_cap = (2 * self.options.dispatch_pixel_samples)
+                            .min(max_groups * (wx * wy) as u64)
+                            .min(limits.max_storage_buffer_binding_size / layout::WAVE_TASK_BYTES);
+                        let mut wave_constants = constants.to_vec();
+                        wave_constants.push(("QUEUE_CAP", queue_cap as f64));
+                        let make = |entry: &str, layout: &wgpu::PipelineLayout| {
+                            self.device
+                                .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                                    label: Some(entry),
+                                    layout: Some(layout),
+                                    module: &module,
+                                    entry_point: Some(entry),
+                                    compilation_options: wgpu::PipelineCompilationOptions {
+                                        constants: &wave_constants,
+                                        zero_initialize_workgroup_memory: true,
+                                    },
+                                    cache: self.pipeline_cache(),
+                                })
+                        };
+                        WavePipelines {
+                            primary: make("wave_primary", &self.wave_pipeline_layout),
+                            swap: make("wave_swap", &self.wave_swap_layout),
+                            shade: make("wave_shade", &self.wave_pipeline_layout),
+                            queue_cap,
+                        }
+                    });
+                self.pipelines_built
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if let Some(c) = &self.disk_cache {
+                    c.save();
                 }
-            });
-        if let Some(c) = &self.disk_cache {
-            c.save();
-        }
+                (module, pipeline, None, wave)
+            }
+        };
         Ok(SceneState {
             data,
             options: self.options,
             pipeline,
             module,
+            source,
             constants: all_constants,
-            adaptive: None,
+            adaptive,
             frame,
             spheres,
             planes,

@@ -38,7 +38,8 @@ impl GpuRenderer {
             .as_ref()
             .is_none_or(|s| s.data != data || s.options != self.options)
         {
-            *scene_guard = Some(self.upload_scene(data, &limits)?);
+            let old = scene_guard.take();
+            *scene_guard = Some(self.upload_scene(data, &limits, old)?);
         }
         let mask = match readout {
             Readout::Adaptive(m) => Some(m),
