@@ -43,6 +43,9 @@ fn round_world<R: Real>(
     let films: Vec<Film> = renderer.pool().install(|| {
         blocks
             .par_iter()
+            // One run a piece, as the renderer's tiles (render/cpu): no
+            // thread waits on another's last few runs.
+            .with_max_len(1)
             .map(|&b| {
                 let mut acc = Film::with_squares(b);
                 for k in samples.start..samples.end {
