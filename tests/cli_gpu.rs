@@ -104,6 +104,99 @@ fn render_backend_gpu_matches_the_cpu_image() {
     );
 }
 
+/// `tessera render --backend gpu -o x.exr` resolves on the GPU and reads
+/// back only the f32 image: its file is the same bytes as the EXR of the
+/// sums path (the GPU's film resolved on the host, as the farm does), and
+/// its floats are those of the host's resolve bit for bit. Odd sizes, and
+/// a sample count whose reciprocal is not a power of 2.
+#[cfg(feature = "gpu")]
+#[test]
+fn render_backend_gpu_to_exr_equals_the_sums_path() {
+    use tracer_core::film::{Rect, SampleRange};
+    use tracer_core::render::gpu::{GpuOptions, GpuRenderer};
+    use tracer_core::render::{Precision, PreparedFrame};
+    use tracer_core::scene::{RenderSettings, SceneDesc};
+    if adapter().is_none() {
+        return;
+    }
+    let dir = tmpdir("exr");
+    let gpu = GpuRenderer::new(Some("0"), GpuOptions::default()).unwrap();
+    for (scene, width, height, samples) in
+        [("resolution.toml", 61, 37, 3), ("cornell.toml", 33, 29, 7)]
+    {
+        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("examples")
+            .join(scene);
+        let exr = dir.join("gpu.exr");
+        let (out, stdout, stderr) = run(tessera()
+            .arg("render")
+            .arg(&path)
+            .arg("-o")
+            .arg(&exr)
+            .args(["--backend", "gpu", "--adapter", "0"])
+            .args([
+                "--width",
+                &width.to_string(),
+                "--height",
+                &height.to_string(),
+            ])
+            .args(["--samples", &samples.to_string()]));
+        assert!(out.status.success(), "{scene}: {stderr}");
+        assert!(
+            stdout.starts_with(&format!("{width}x{height} {samples} spp")),
+            "{scene}: {stdout}"
+        );
+
+        let desc = SceneDesc::load(&path).unwrap();
+        let settings = RenderSettings {
+            width,
+            height,
+            samples,
+            ..desc.render
+        };
+        let prepared = PreparedFrame::build(&desc, &settings, 0, Precision::F32).unwrap();
+        let film = gpu
+            .render(
+                &prepared,
+                0,
+                Rect::full(width, height),
+                SampleRange::all(samples),
+                &|_| {},
+            )
+            .unwrap();
+        let linear = film.resolve();
+        let sums_exr = dir.join("sums.exr");
+        tracer_core::film::image::write_exr(&sums_exr, width, height, &linear).unwrap();
+        assert!(
+            std::fs::read(&exr).unwrap() == std::fs::read(&sums_exr).unwrap(),
+            "{scene}: the EXR differs from the sums path's"
+        );
+
+        let img = exr::prelude::read_first_flat_layer_from_file(&exr).unwrap();
+        for (c, name) in ["R", "G", "B"].into_iter().enumerate() {
+            let values = img
+                .layer_data
+                .channel_data
+                .list
+                .iter()
+                .find(|ch| ch.name.to_string() == name)
+                .map(|ch| match &ch.sample_data {
+                    exr::prelude::FlatSamples::F32(v) => v.clone(),
+                    other => panic!("{scene} {name}: {other:?}"),
+                })
+                .unwrap_or_else(|| panic!("{scene}: no {name} channel"));
+            let host: Vec<f32> = linear.iter().map(|p| p[c]).collect();
+            assert!(
+                values
+                    .iter()
+                    .map(|v| v.to_bits())
+                    .eq(host.iter().map(|v| v.to_bits())),
+                "{scene} {name}: the EXR's floats are not the host's resolve"
+            );
+        }
+    }
+}
+
 #[test]
 fn gpu_flags_are_checked() {
     if adapter().is_none() {

@@ -784,13 +784,22 @@ impl Bench {
                 .expect("one timing")
                 .film;
             let r = launch::readout_timing(gpu, &frame, rect, s.samples, reps.max(5))?;
+            let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
+            let differ = if r.identical { "" } else { "  IMAGES DIFFER" };
             eprintln!(
-                "  launch     {name:<14} {width}x{height} {} spp whole call: sums read back, resolved on the host {:>8.3} ms; resolved on the GPU, image read back {:>8.3} ms ({:.1}x){}",
+                "  launch     {name:<14} {width}x{height} {} spp whole call: sums read back {:>8.3} ms; 8-bit (PNG): sums resolved on the host {:>8.3} ms, resolved on the GPU {:>8.3} ms ({:.1}x){differ}",
                 s.samples,
-                r.sums_then_host.as_secs_f64() * 1e3,
-                r.resolved_on_gpu.as_secs_f64() * 1e3,
-                r.sums_then_host.as_secs_f64() / r.resolved_on_gpu.as_secs_f64(),
-                if r.identical { "" } else { "  IMAGES DIFFER" }
+                ms(r.sums),
+                ms(r.sums_then_host),
+                ms(r.resolved_on_gpu),
+                ms(r.sums_then_host) / ms(r.resolved_on_gpu),
+            );
+            eprintln!(
+                "  launch     {name:<14} {width}x{height} {} spp whole call: f32 (EXR): sums resolved on the host {:>8.3} ms, resolved on the GPU {:>8.3} ms ({:.1}x){differ}",
+                s.samples,
+                ms(r.sums_then_host_linear),
+                ms(r.linear_on_gpu),
+                ms(r.sums_then_host_linear) / ms(r.linear_on_gpu),
             );
             if !r.identical {
                 bail!("{name}: the GPU's resolve differs from the host's");

@@ -254,19 +254,34 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let rect = Rect::full(settings.width, settings.height);
     let samples = SampleRange::all(settings.samples);
     let mut last_round = None;
-    // A GPU render to PNG resolves on the GPU and reads back only the image.
+    // A uniform GPU render resolves on the GPU and reads back only the
+    // image: 8-bit for PNG, f32 for EXR (an adaptive render's EXR also has
+    // per-pixel samples and errors, from the sums).
     #[cfg(feature = "gpu")]
-    if let (Renderer::Gpu(gpu), None, ImageFormat::Png) =
-        (&renderer, &adaptive, ImageFormat::of(&output)?)
-    {
-        let image = gpu.render_srgb8(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?;
-        let secs = start.elapsed().as_secs_f64();
-        progress.finish();
-        tracer_core::film::image::write_png(&output, rect.width, rect.height, &image.rgb)?;
+    if let (Renderer::Gpu(gpu), None) = (&renderer, &adaptive) {
+        use tracer_core::film::image::{write_exr, write_png};
+        let inc = |n| progress.inc(n);
+        // The time is the render's, the file's writing left out (as below).
+        let (secs, rays, nonfinite) = match ImageFormat::of(&output)? {
+            ImageFormat::Png => {
+                let image = gpu.render_srgb8(&prepared, args.frame, rect, samples, &inc)?;
+                let secs = start.elapsed().as_secs_f64();
+                progress.finish();
+                write_png(&output, rect.width, rect.height, &image.rgb)?;
+                (secs, image.rays, image.nonfinite)
+            }
+            ImageFormat::Exr => {
+                let image = gpu.render_linear(&prepared, args.frame, rect, samples, &inc)?;
+                let secs = start.elapsed().as_secs_f64();
+                progress.finish();
+                write_exr(&output, rect.width, rect.height, &image.rgb)?;
+                (secs, image.rays, image.nonfinite)
+            }
+        };
         let summary = Summary {
             secs,
-            rays: image.rays,
-            nonfinite: image.nonfinite,
+            rays,
+            nonfinite,
             pixel_samples: rect.area() as u64 * samples.len() as u64,
         };
         return report(

@@ -1175,6 +1175,219 @@ fn gpu_resolve_to_srgb8_equals_the_hosts_bit_for_bit() {
     assert!(codes.len() > 100, "only {} distinct codes", codes.len());
 }
 
+/// Sums of 53 bits whose exact product with the scale of n = 12345677 is
+/// just above a tie of the f64 rounding, only by its lowest 32 bits, and
+/// rounds to an f64 that lies half-way between two f32s: dropping those
+/// bits from the rounding would tie to even instead and change the f32.
+/// Found offline by solving m * (the scale's significand) for that bit
+/// pattern modulo 2^82, over all 2^31 choices of the low bits.
+const DOUBLE_ROUNDING_N: u32 = 12_345_677;
+const DOUBLE_ROUNDING: [u64; 13] = [
+    5329334637491152,
+    5329335427614480,
+    5329336217737808,
+    5329337007861136,
+    5329337797984464,
+    5329338588107792,
+    5329339378231120,
+    5329340168354448,
+    5329340958477776,
+    5329341748601104,
+    5329342538724432,
+    5329343328847760,
+    5329344118971088,
+];
+
+/// Sums of 53 bits whose product with the scale of [`DOUBLE_ROUNDING_N`]
+/// carries into its top word at the last addition of resolve_linear.wgsl's
+/// `mul_f64` (1 in ~2^31 products), found offline the same way.
+const TOP_WORD_CARRY: [u64; 4] = [
+    4556773973295646,
+    4569719353901154,
+    4660337018142726,
+    4738009301778790,
+];
+
+/// The host's resolve of `sums`, every pixel of `n` samples (`Film::resolve`).
+fn host_resolve(sums: &[[u64; 3]], n: u32) -> Vec<[f32; 3]> {
+    let mut film = Film::new(Rect::new(0, 0, sums.len() as u32, 1));
+    film.sums = sums.to_vec();
+    film.counts.fill(n);
+    film.resolve()
+}
+
+/// Sums that test every step of the GPU's f64 arithmetic: every bit length
+/// 0..=64 (each power of 2, its neighbours, all ones), sums around 2^53 and
+/// 2^54 (where the u64 to f64 conversion starts to round, ties included)
+/// and near 2^64, random sums of every magnitude, and for sample count `n`
+/// sums whose mean lies at or next to a point half-way between two f32s
+/// (the double rounding's ties), and [`DOUBLE_ROUNDING`] and
+/// [`TOP_WORD_CARRY`].
+fn crafted_sums(n: u32) -> Vec<u64> {
+    let mut state = 0x9e37_79b9_7f4a_7c15u64 ^ n as u64;
+    let mut rnd = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let mut out = vec![];
+    for bits in 0..=64u32 {
+        let p = if bits == 0 { 0 } else { 1u64 << (bits - 1) };
+        for d in 0..4 {
+            out.extend([p.wrapping_add(d), p.wrapping_sub(d)]);
+        }
+        out.push(p | p.saturating_sub(1));
+    }
+    for d in 0..64 {
+        out.extend([
+            (1 << 53) + d,
+            (1 << 53) - d,
+            (1 << 54) + 2 * d,
+            (1 << 54) + 2 * d + 1,
+            u64::MAX - d,
+        ]);
+    }
+    for _ in 0..4000 {
+        let s = rnd();
+        out.push(s >> (rnd() % 64));
+    }
+    if n == DOUBLE_ROUNDING_N {
+        // The same significands above 2^53 too, where the sum is rounded.
+        let rare = DOUBLE_ROUNDING.iter().chain(&TOP_WORD_CARRY);
+        out.extend(rare.flat_map(|&m| [m, m << 11]));
+    }
+    // Means below 2^top keep n * 2^32 * mean below 2^64.
+    let top = 32 - (32 - n.leading_zeros()) as i32;
+    for _ in 0..2000 {
+        // (2m + 1) * 2^(e - 24): half-way between two f32s of [2^e, 2^(e+1)).
+        let m = (rnd() as u32 >> 8) | 1 << 23;
+        let e = top - 1 - (rnd() % 24) as i32;
+        let mean = (2.0 * m as f64 + 1.0) * 2f64.powi(e - 24);
+        let s = (mean * n as f64 * 4_294_967_296.0) as u64;
+        out.extend([0, 1, 2].map(|d| s.wrapping_add(d)));
+        out.extend([1, 2].map(|d| s.wrapping_sub(d)));
+    }
+    out
+}
+
+/// The linear resolve kernel (resolve_linear.wgsl) against the host's
+/// resolve, bit for bit, on crafted sums (`crafted_sums`) and sample counts
+/// whose scales round differently (1, 3, 7, 64, 1000, 2^31 + 1, 2^32 - 1,
+/// ...) and none (black).
+#[test]
+fn gpu_linear_resolve_kernel_equals_the_hosts_bit_for_bit() {
+    let Some(g) = gpu() else { return };
+    let mut ties = 0;
+    for n in [
+        1,
+        2,
+        3,
+        7,
+        9,
+        64,
+        1000,
+        65_537,
+        DOUBLE_ROUNDING_N,
+        (1 << 31) + 1,
+        u32::MAX,
+        0,
+    ] {
+        let sums: Vec<[u64; 3]> = crafted_sums(n)
+            .chunks(3)
+            .map(|c| std::array::from_fn(|i| c.get(i).copied().unwrap_or(0)))
+            .collect();
+        let gpu = g.resolve_linear_sums(&sums, n).unwrap();
+        let host = host_resolve(&sums, n);
+        assert_eq!(gpu.len(), host.len(), "n = {n}");
+        for (i, (a, b)) in gpu.iter().zip(&host).enumerate() {
+            for c in 0..3 {
+                assert_eq!(
+                    a[c].to_bits(),
+                    b[c].to_bits(),
+                    "n = {n}, sum {}: GPU {:e} host {:e}",
+                    sums[i][c],
+                    a[c],
+                    b[c]
+                );
+            }
+        }
+        // The f64 products exactly half-way between two f32s: the ties.
+        if n > 0 {
+            let k = tracer_core::film::resolve_scale(n);
+            ties += sums
+                .iter()
+                .flatten()
+                .filter(|&&s| (s as f64 * k).to_bits() & 0x1fff_ffff == 1 << 28)
+                .count();
+        }
+    }
+    assert!(ties >= 1000, "only {ties} ties were checked");
+}
+
+/// `render_linear` (what `tessera render --backend gpu` writes to EXR)
+/// gives exactly the host's resolve of the film `render` returns for the
+/// same call: several scenes, sample counts, and rectangles of odd sizes.
+#[test]
+fn gpu_resolve_to_linear_equals_the_hosts_bit_for_bit() {
+    let Some(g) = gpu() else { return };
+    for (scene, rect, samples) in [
+        (
+            "depth.toml",
+            Rect::new(0, 0, 61, 37),
+            SampleRange::new(0, 3),
+        ),
+        (
+            "resolution.toml",
+            Rect::new(3, 5, 57, 41),
+            SampleRange::new(2, 9),
+        ),
+        (
+            "cornell.toml",
+            Rect::new(1, 2, 33, 29),
+            SampleRange::new(0, 7),
+        ),
+        (
+            "distributed.toml",
+            Rect::new(0, 0, 64, 48),
+            SampleRange::new(0, 1),
+        ),
+    ] {
+        let desc = SceneDesc::load(examples_dir().join(scene)).unwrap();
+        let s = RenderSettings {
+            width: 64,
+            height: 48,
+            samples: 9,
+            ..desc.render
+        };
+        let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+        let film = g.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
+        let image = g
+            .render_linear(&prepared, 0, rect, samples, &|_| {})
+            .unwrap();
+        let what = format!("{scene} {rect:?} {samples:?}");
+        assert_eq!(image.rect, rect, "{what}");
+        assert_eq!(image.rays, film.rays, "{what}");
+        assert_eq!(image.nonfinite, film.nonfinite, "{what}");
+        let host = film.resolve();
+        assert_eq!(image.rgb.len(), host.len(), "{what}");
+        let bits =
+            |v: &[[f32; 3]]| -> Vec<u32> { v.iter().flatten().map(|x| x.to_bits()).collect() };
+        let (a, b) = (bits(&image.rgb), bits(&host));
+        if let Some(i) = (0..b.len()).find(|&i| a[i] != b[i]) {
+            panic!(
+                "{what}: pixel {}, channel {}: GPU {:e} host {:e}",
+                i / 3,
+                i % 3,
+                f32::from_bits(a[i]),
+                f32::from_bits(b[i])
+            );
+        }
+        let lit = host.iter().filter(|p| p.iter().any(|&c| c > 0.0)).count();
+        assert!(lit * 2 > host.len(), "{what}: a mostly black picture");
+    }
+}
+
 /// Compiled pipelines are saved on disk (Vulkan, lavapipe included) and a
 /// second renderer starts from them; its films are the same bit for bit. A
 /// damaged file (a crash mid-write, another program) is ignored, never

@@ -414,13 +414,21 @@ impl Film {
     }
 }
 
+/// What a pixel's sums of `n` > 0 samples are multiplied by to resolve it:
+/// the one definition, which the GPU's resolve to f32 is given rather than
+/// computing its own (it has no f64).
+#[inline]
+pub fn resolve_scale(n: u32) -> f64 {
+    1.0 / (n as f64 * FIXED_ONE)
+}
+
 /// The mean of one pixel's samples (black without samples).
 #[inline]
 fn resolve_pixel(s: &[u64; 3], n: u32) -> [f32; 3] {
     if n == 0 {
         [0.0; 3]
     } else {
-        let k = 1.0 / (n as f64 * FIXED_ONE);
+        let k = resolve_scale(n);
         [
             (s[0] as f64 * k) as f32,
             (s[1] as f64 * k) as f32,

@@ -99,14 +99,19 @@ pub fn run_interleaved(
         .collect())
 }
 
-/// A local render's two ways to an 8-bit image, interleaved call by call
-/// after [`WARMUP`] calls each (medians of `reps`): reading back the sums
-/// and resolving on the host (a farm result's path), and resolving on the
-/// GPU and reading back only the image (`tessera render --backend gpu` to
-/// PNG). Also whether the two images are the same bytes.
+/// A local render's ways to its image, interleaved call by call after
+/// [`WARMUP`] calls each (medians of `reps`): reading back the sums and
+/// resolving on the host (a farm result's path), or resolving on the GPU
+/// and reading back only the image (`tessera render --backend gpu`), to
+/// 8 bits (PNG) and to f32 (EXR). Also whether each pair gives the same
+/// image, bit for bit.
 pub struct ReadoutTiming {
+    /// The sums alone, read back into a film: what either host resolve starts from.
+    pub sums: Duration,
     pub sums_then_host: Duration,
     pub resolved_on_gpu: Duration,
+    pub sums_then_host_linear: Duration,
+    pub linear_on_gpu: Duration,
     pub identical: bool,
 }
 
@@ -118,31 +123,50 @@ pub fn readout_timing(
     reps: usize,
 ) -> Result<ReadoutTiming, GpuError> {
     let samples = SampleRange::all(samples);
-    let via_sums = || {
-        g.render(prepared, 0, rect, samples, &|_| {})
-            .map(|f| f.srgb8())
-    };
-    let on_gpu = || {
+    let sums = || g.render(prepared, 0, rect, samples, &|_| {});
+    let bits = |v: &[[f32; 3]]| -> Vec<u32> { v.iter().flatten().map(|x| x.to_bits()).collect() };
+    let srgb8_on_gpu = || {
         g.render_srgb8(prepared, 0, rect, samples, &|_| {})
+            .map(|i| i.rgb)
+    };
+    let linear_on_gpu = || {
+        g.render_linear(prepared, 0, rect, samples, &|_| {})
             .map(|i| i.rgb)
     };
     let mut identical = true;
     for _ in 0..WARMUP {
-        identical &= via_sums()? == on_gpu()?;
+        let film = sums()?;
+        identical &= film.srgb8() == srgb8_on_gpu()?;
+        identical &= bits(&film.resolve()) == bits(&linear_on_gpu()?);
     }
-    let (mut a, mut b) = (vec![], vec![]);
+    // Each call timed alone; the images compared after.
+    let mut times: [Vec<Duration>; 5] = Default::default();
     for _ in 0..reps.max(1) {
         let t = Instant::now();
-        let x = via_sums()?;
-        a.push(t.elapsed());
+        sums()?;
+        times[0].push(t.elapsed());
         let t = Instant::now();
-        let y = on_gpu()?;
-        b.push(t.elapsed());
+        let x = sums()?.srgb8();
+        times[1].push(t.elapsed());
+        let t = Instant::now();
+        let y = srgb8_on_gpu()?;
+        times[2].push(t.elapsed());
         identical &= x == y;
+        let t = Instant::now();
+        let x = sums()?.resolve();
+        times[3].push(t.elapsed());
+        let t = Instant::now();
+        let y = linear_on_gpu()?;
+        times[4].push(t.elapsed());
+        identical &= bits(&x) == bits(&y);
     }
+    let [a, b, c, d, e] = times.map(median);
     Ok(ReadoutTiming {
-        sums_then_host: median(a),
-        resolved_on_gpu: median(b),
+        sums: a,
+        sums_then_host: b,
+        resolved_on_gpu: c,
+        sums_then_host_linear: d,
+        linear_on_gpu: e,
         identical,
     })
 }

@@ -2,7 +2,8 @@
 //!
 //! Keep in sync with the struct declarations at the top of `whitted.wgsl`
 //! (and, for meshes and the BVH, `bvh.wgsl`; for distributed effects the
-//! `dist` words of `distributed.wgsl` and `moving_meshes.wgsl`):
+//! `dist` words of `distributed.wgsl` and `moving_meshes.wgsl`; for the
+//! resolve, `resolve.wgsl`):
 //! same field order, same sizes, WGSL alignment rules (a `vec3<f32>` is
 //! 16-byte aligned, so each one is followed by a scalar that fills its
 //! fourth lane). The `const` asserts below pin the sizes WGSL expects.
@@ -150,6 +151,36 @@ pub const SUM_WORDS: usize = 6;
 /// (the `u128` of [`crate::film::Film::squares`]). WGSL: `sum_stride()`.
 pub const ADAPTIVE_SUM_WORDS: usize = 18;
 
+/// Parameters of the GPU resolve of a film's sums. WGSL (resolve.wgsl):
+/// `struct ResolveParams`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq, Eq)]
+pub struct ResolveParams {
+    pub pixels: u32,
+    pub _pad: u32,
+    /// `resolve_linear` only: the bits of the host's f64 scale for the
+    /// film's sample count ([`crate::film::resolve_scale`]), low word
+    /// first; 0 for no samples (every pixel black, as on the host).
+    pub scale: [u32; 2],
+}
+
+impl ResolveParams {
+    /// A film of `pixels`, each of `n` samples (the GPU's films count the
+    /// same samples in every pixel).
+    pub fn new(pixels: usize, n: u32) -> Self {
+        let bits = if n == 0 {
+            0
+        } else {
+            crate::film::resolve_scale(n).to_bits()
+        };
+        ResolveParams {
+            pixels: pixels as u32,
+            _pad: 0,
+            scale: [bits as u32, (bits >> 32) as u32],
+        }
+    }
+}
+
 /// Global counters, each a (low, high) u32 pair. WGSL: `counters: array<atomic<u32>, 10>`.
 pub const COUNTERS: usize = 5;
 pub const COUNTER_PRIMARY: usize = 0;
@@ -174,6 +205,7 @@ const _: () = assert!(size_of::<GpuLight>() == 48);
 const _: () = assert!(size_of::<GpuTriangle>() == 48);
 const _: () = assert!(size_of::<GpuTriangleShading>() == 64);
 const _: () = assert!(size_of::<GpuBvhNode>() == 128);
+const _: () = assert!(size_of::<ResolveParams>() == 16);
 
 /// The trees of a world and what their leaves refer to, for scenes that
 /// have one: the static world's (meshes, or many spheres: the pipeline then

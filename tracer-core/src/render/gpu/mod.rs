@@ -27,8 +27,9 @@
 //! `plan.rs` splits a render into bounded dispatches and submissions;
 //! `trace.rs` runs one render (the dispatches, then the read-back into a
 //! film or image); `readback.rs` waits, maps buffers and resolves on the
-//! GPU; `disk_cache.rs` keeps compiled pipelines on disk; `launch.rs` is
-//! the launch-shape sweep the benches share.
+//! GPU (to 8-bit sRGB for PNG, to f32 for EXR); `disk_cache.rs` keeps
+//! compiled pipelines on disk; `launch.rs` is the launch-shape sweep the
+//! benches share.
 
 mod adapter;
 mod disk_cache;
@@ -231,13 +232,32 @@ pub struct Srgb8Image {
     pub nonfinite: u64,
 }
 
+/// A render resolved to linear f32 RGB on the GPU ([`GpuRenderer::render_linear`]).
+pub struct LinearImage {
+    pub rect: Rect,
+    /// Row-major: exactly `Film::resolve` of the film that
+    /// [`GpuRenderer::render`] returns for the same call, bit for bit.
+    pub rgb: Vec<[f32; 3]>,
+    pub rays: RayCounts,
+    pub nonfinite: u64,
+}
+
+/// What the GPU resolves a film's sums to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Resolve {
+    /// 8-bit sRGB, 3 bytes a pixel (resolve.wgsl `resolve_srgb8`): PNG.
+    Srgb8,
+    /// Linear f32 RGB, 12 bytes a pixel (resolve_linear.wgsl): EXR.
+    Linear,
+}
+
 /// What a render traces and reads back.
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum Readout<'a> {
     /// The fixed-point sums: a [`Film`] that merges exactly (farm results).
     Sums,
     /// Only the image, resolved on the GPU.
-    Srgb8,
+    Image(Resolve),
     /// The sums packed on the GPU in the farm's compact layout.
     Packed,
     /// An adaptive round: only the blocks of the mask, each pixel's sums
@@ -248,19 +268,25 @@ enum Readout<'a> {
 enum Rendered {
     Film(Film),
     Srgb8(Srgb8Image),
+    Linear(LinearImage),
     Packed(PackedSums),
 }
 
-/// The resolve pipeline and its buffers, made on first use (farm workers
-/// never resolve).
+/// The resolve pipelines and their buffers, made on first use (farm
+/// workers never resolve).
 struct Resolver {
-    pipeline: wgpu::ComputePipeline,
+    /// resolve.wgsl and resolve_linear.wgsl: both kernels, one binding layout.
+    module: wgpu::ShaderModule,
+    pipeline_layout: wgpu::PipelineLayout,
     layout: wgpu::BindGroupLayout,
+    srgb8: Option<wgpu::ComputePipeline>,
+    linear: Option<wgpu::ComputePipeline>,
     params: wgpu::Buffer,
     thresholds: wgpu::Buffer,
     /// The sample count whose thresholds `thresholds` holds.
     samples: Option<u32>,
-    pixels: usize,
+    /// Capacity of `image` and `image_read`.
+    image_bytes: u64,
     image: wgpu::Buffer,
     image_read: wgpu::Buffer,
 }
@@ -593,9 +619,29 @@ impl GpuRenderer {
         samples: SampleRange,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<Srgb8Image, GpuError> {
-        match self.render_readout(prepared, frame, rect, samples, progress, Readout::Srgb8)? {
+        let readout = Readout::Image(Resolve::Srgb8);
+        match self.render_readout(prepared, frame, rect, samples, progress, readout)? {
             Rendered::Srgb8(i) => Ok(i),
-            _ => unreachable!("asked for the image"),
+            _ => unreachable!("asked for the 8-bit image"),
+        }
+    }
+
+    /// Renders like [`GpuRenderer::render`], then resolves on the GPU and
+    /// reads back only the linear f32 image, bit for bit `Film::resolve` of
+    /// the sums: a local render to EXR moves 12 bytes a pixel over the bus
+    /// instead of 24, and resolves nothing on the host.
+    pub fn render_linear(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rect: Rect,
+        samples: SampleRange,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<LinearImage, GpuError> {
+        let readout = Readout::Image(Resolve::Linear);
+        match self.render_readout(prepared, frame, rect, samples, progress, readout)? {
+            Rendered::Linear(i) => Ok(i),
+            _ => unreachable!("asked for the linear image"),
         }
     }
 

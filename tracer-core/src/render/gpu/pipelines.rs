@@ -17,8 +17,12 @@ const DISTRIBUTED_WGSL: &str = include_str!("distributed.wgsl");
 const MOVING_MESHES_WGSL: &str = include_str!("moving_meshes.wgsl");
 /// ... and their stand-ins for worlds without moving meshes.
 const NO_MOVING_MESHES_WGSL: &str = include_str!("no_moving_meshes.wgsl");
-/// Sums to 8-bit sRGB on the GPU, for renders that read back only the image.
-pub(super) const RESOLVE_WGSL: &str = include_str!("resolve.wgsl");
+/// Sums to 8-bit sRGB (PNG) or linear f32 (EXR) on the GPU, for renders
+/// that read back only the image: one module, both kernels.
+pub(super) const RESOLVE_WGSL: [&str; 2] = [
+    include_str!("resolve.wgsl"),
+    include_str!("resolve_linear.wgsl"),
+];
 /// Tree traversal, for worlds with a BVH (meshes, many spheres) or moving meshes.
 const BVH_WGSL: &str = include_str!("bvh.wgsl");
 /// Scene queries for worlds with a BVH, through BVH_WGSL.

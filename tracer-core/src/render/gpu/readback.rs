@@ -1,35 +1,67 @@
 //! Reading results back: waiting for a submission with a timeout, mapping
-//! buffers, and the GPU resolve of sums to 8-bit sRGB.
+//! buffers, and the GPU resolve of sums to 8-bit sRGB or linear f32.
 
 use std::sync::mpsc;
 
+use wgpu::util::DeviceExt as _;
+
+use super::layout::ResolveParams;
 use super::pipelines::RESOLVE_WGSL;
-use super::{GpuError, GpuRenderer, Resolver, SUBMISSION_TIMEOUT, entire};
-use crate::film::SampleRange;
+use super::{GpuError, GpuRenderer, Resolve, Resolver, SUBMISSION_TIMEOUT, entire};
+
+impl Resolve {
+    fn entry_point(self) -> &'static str {
+        match self {
+            Resolve::Srgb8 => "resolve_srgb8",
+            Resolve::Linear => "resolve_linear",
+        }
+    }
+
+    /// Bytes of a resolved image of `pixels`, rounded to whole 8-byte words
+    /// so that it maps (`wgpu::MAP_ALIGNMENT`).
+    pub(super) fn image_bytes(self, pixels: usize) -> u64 {
+        let bytes = match self {
+            // 3 words per 4 pixels.
+            Resolve::Srgb8 => pixels.div_ceil(4) * 12,
+            Resolve::Linear => pixels * 12,
+        };
+        (bytes as u64).next_multiple_of(8)
+    }
+
+    /// Invocations of its kernel per workgroup x pixels per invocation.
+    fn pixels_per_group(self) -> usize {
+        match self {
+            Resolve::Srgb8 => 64 * 4,
+            Resolve::Linear => 64,
+        }
+    }
+}
 
 impl GpuRenderer {
-    /// Records the resolve of `sums` (a film of `pixels`, each of
-    /// `samples.len()` samples) to 8-bit sRGB and the image's copy to its
-    /// read-back buffer; returns the locked resolver holding that buffer.
+    /// Records the resolve of `sums` (a film of `pixels`, each of `n`
+    /// samples: the GPU's films count the same samples in every pixel) to
+    /// `to` and the image's copy to its read-back buffer; returns the
+    /// locked resolver holding that buffer.
     pub(super) fn encode_resolve(
         &self,
         enc: &mut wgpu::CommandEncoder,
         sums: &wgpu::Buffer,
         sums_bytes: u64,
         pixels: usize,
-        samples: SampleRange,
+        to: Resolve,
+        n: u32,
     ) -> Result<std::sync::MutexGuard<'_, Option<Resolver>>, GpuError> {
         let mut guard = self
             .resolver
             .lock()
             .map_err(|_| GpuError::Device("resolver cache poisoned".into()))?;
-        if guard.as_ref().is_none_or(|r| r.pixels < pixels) {
+        let bytes = to.image_bytes(pixels);
+        if guard.as_ref().is_none_or(|r| r.image_bytes < bytes) {
             let old = guard.take();
-            *guard = Some(self.create_resolver(pixels, old));
+            *guard = Some(self.create_resolver(bytes, old));
         }
         let r = guard.as_mut().expect("just set");
-        let n = samples.len();
-        if r.samples != Some(n) {
+        if to == Resolve::Srgb8 && r.samples != Some(n) {
             let t: Vec<[u32; 2]> = crate::film::srgb8_thresholds(n)
                 .iter()
                 .map(|&s| [s as u32, (s >> 32) as u32])
@@ -38,10 +70,18 @@ impl GpuRenderer {
                 .write_buffer(&r.thresholds, 0, bytemuck::cast_slice(&t));
             r.samples = Some(n);
         }
+        let pipeline = match to {
+            Resolve::Srgb8 => &mut r.srgb8,
+            Resolve::Linear => &mut r.linear,
+        };
+        if pipeline.is_none() {
+            *pipeline = Some(self.resolve_pipeline(&r.module, &r.pipeline_layout, to));
+        }
+        let pipeline = pipeline.as_ref().expect("just set");
         self.queue.write_buffer(
             &r.params,
             0,
-            bytemuck::cast_slice(&[pixels as u32, 0, 0, 0]),
+            bytemuck::bytes_of(&ResolveParams::new(pixels, n)),
         );
         let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tessera resolve"),
@@ -65,34 +105,76 @@ impl GpuRenderer {
                 label: Some("tessera resolve"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(&r.pipeline);
+            pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &group, &[]);
-            // One invocation per 4 pixels, 64 a workgroup; rows of workgroups
-            // past the per-dimension limit (an 8K film).
-            let groups = pixels.div_ceil(4 * 64) as u32;
+            // Rows of workgroups past the per-dimension limit (an 8K film).
+            let groups = pixels.div_ceil(to.pixels_per_group()) as u32;
             let x = groups.min(self.device.limits().max_compute_workgroups_per_dimension);
             pass.dispatch_workgroups(x, groups.div_ceil(x), 1);
         }
-        enc.copy_buffer_to_buffer(&r.image, 0, &r.image_read, 0, Some(image_bytes(pixels)));
+        enc.copy_buffer_to_buffer(&r.image, 0, &r.image_read, 0, Some(bytes));
         Ok(guard)
     }
 
-    /// The resolve pipeline (kept from `old`) with image buffers for `pixels`.
-    pub(super) fn create_resolver(&self, pixels: usize, old: Option<Resolver>) -> Resolver {
+    /// Test hook: resolves `sums` (each pixel of `n` samples) to linear f32
+    /// on the GPU, as [`GpuRenderer::render_linear`] does after tracing, so
+    /// that the kernel can be checked against the host on crafted sums.
+    #[doc(hidden)]
+    pub fn resolve_linear_sums(
+        &self,
+        sums: &[[u64; 3]],
+        n: u32,
+    ) -> Result<Vec<[f32; 3]>, GpuError> {
+        if sums.is_empty() {
+            return Ok(Vec::new());
+        }
+        self.check_fault()?;
+        let words: Vec<u32> = sums
+            .iter()
+            .flatten()
+            .flat_map(|&s| [s as u32, (s >> 32) as u32])
+            .collect();
+        let buffer = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("sums to resolve"),
+                contents: bytemuck::cast_slice(&words),
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera resolve test"),
+            });
+        let pixels = sums.len();
+        let guard = self.encode_resolve(
+            &mut enc,
+            &buffer,
+            (words.len() * 4) as u64,
+            pixels,
+            Resolve::Linear,
+            n,
+        )?;
+        self.wait(self.queue.submit([enc.finish()]))?;
+        let r = guard.as_ref().expect("made by encode_resolve");
+        self.read_with(&r.image_read, Resolve::Linear.image_bytes(pixels), |b| {
+            linear_pixels(b, pixels)
+        })
+    }
+
+    /// The resolve pipelines' layout and module (kept from `old`, their
+    /// pipelines too) with image buffers of `image_bytes`.
+    pub(super) fn create_resolver(&self, image_bytes: u64, old: Option<Resolver>) -> Resolver {
         use wgpu::BufferUsages as U;
-        let image = self.buffer(
-            "resolved image",
-            image_bytes(pixels),
-            U::STORAGE | U::COPY_SRC,
-        );
+        let image = self.buffer("resolved image", image_bytes, U::STORAGE | U::COPY_SRC);
         let image_read = self.buffer(
             "resolved image read",
-            image_bytes(pixels),
+            image_bytes,
             U::MAP_READ | U::COPY_DST,
         );
         if let Some(old) = old {
             return Resolver {
-                pixels,
+                image_bytes,
                 image,
                 image_read,
                 ..old
@@ -131,31 +213,47 @@ impl GpuRenderer {
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some("resolve.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(RESOLVE_WGSL.into()),
+                source: wgpu::ShaderSource::Wgsl(RESOLVE_WGSL.concat().into()),
             });
+        Resolver {
+            module,
+            pipeline_layout,
+            layout,
+            srgb8: None,
+            linear: None,
+            params: self.buffer(
+                "resolve params",
+                size_of::<ResolveParams>() as u64,
+                U::UNIFORM | U::COPY_DST,
+            ),
+            thresholds: self.buffer("sRGB thresholds", 255 * 8, U::STORAGE | U::COPY_DST),
+            samples: None,
+            image_bytes,
+            image,
+            image_read,
+        }
+    }
+
+    fn resolve_pipeline(
+        &self,
+        module: &wgpu::ShaderModule,
+        layout: &wgpu::PipelineLayout,
+        to: Resolve,
+    ) -> wgpu::ComputePipeline {
         let pipeline = self
             .device
             .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("tessera resolve"),
-                layout: Some(&pipeline_layout),
-                module: &module,
-                entry_point: Some("resolve_srgb8"),
+                label: Some(to.entry_point()),
+                layout: Some(layout),
+                module,
+                entry_point: Some(to.entry_point()),
                 compilation_options: Default::default(),
                 cache: self.pipeline_cache(),
             });
         if let Some(c) = &self.disk_cache {
             c.save();
         }
-        Resolver {
-            pipeline,
-            layout,
-            params: self.buffer("resolve params", 16, U::UNIFORM | U::COPY_DST),
-            thresholds: self.buffer("sRGB thresholds", 255 * 8, U::STORAGE | U::COPY_DST),
-            samples: None,
-            pixels,
-            image,
-            image_read,
-        }
+        pipeline
     }
 
     /// Blocks until submission `index` is done, with a timeout, surfacing
@@ -220,8 +318,9 @@ impl GpuRenderer {
     }
 }
 
-/// Bytes of a resolved image of `pixels`: 3 words per 4 pixels, rounded to
-/// whole 8-byte words so that it maps (`wgpu::MAP_ALIGNMENT`).
-pub(super) fn image_bytes(pixels: usize) -> u64 {
-    pixels.div_ceil(8) as u64 * 24
+/// The first `pixels` of a read-back linear image (f32 RGB, 12 bytes each).
+pub(super) fn linear_pixels(bytes: &[u8], pixels: usize) -> Vec<[f32; 3]> {
+    let mut v = vec![[0.0f32; 3]; pixels];
+    bytemuck::cast_slice_mut::<[f32; 3], u8>(&mut v).copy_from_slice(&bytes[..pixels * 12]);
+    v
 }

@@ -8,10 +8,10 @@ use wgpu::util::DeviceExt as _;
 
 use super::layout::{self, ADAPTIVE_SUM_WORDS, COUNTERS, DispatchParams, SUM_WORDS, SceneData};
 use super::plan::plan;
-use super::readback::image_bytes;
+use super::readback::linear_pixels;
 use super::{
-    GpuError, GpuOptions, GpuRenderer, GpuStats, Outputs, PARAMS_SLOTS, PARAMS_STRIDE, PackedSums,
-    Readout, Rendered, Srgb8Image, WaveBuffers, check_size, entire,
+    GpuError, GpuOptions, GpuRenderer, GpuStats, LinearImage, Outputs, PARAMS_SLOTS, PARAMS_STRIDE,
+    PackedSums, Readout, Rendered, Resolve, Srgb8Image, WaveBuffers, check_size, entire,
 };
 use crate::adaptive::BLOCK;
 use crate::film::{Film, RayCounts, Rect, SampleRange};
@@ -337,8 +337,18 @@ impl GpuRenderer {
                 enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
                 (None, None)
             }
-            Readout::Srgb8 => (
-                Some(self.encode_resolve(&mut enc, &out.sums, sums_bytes, pixels, samples)?),
+            Readout::Image(to) => (
+                Some((
+                    to,
+                    self.encode_resolve(
+                        &mut enc,
+                        &out.sums,
+                        sums_bytes,
+                        pixels,
+                        to,
+                        samples.len(),
+                    )?,
+                )),
                 None,
             ),
             Readout::Packed => (
@@ -389,17 +399,23 @@ impl GpuRenderer {
                     nonfinite,
                 })
             }
-            (Some(r), _) => {
+            (Some((to, r)), _) => {
                 let r = r.as_ref().expect("made by encode_resolve");
-                let rgb = self.read_with(&r.image_read, image_bytes(pixels), |bytes| {
-                    bytes[..pixels * 3].to_vec()
-                })?;
-                Rendered::Srgb8(Srgb8Image {
-                    rect,
-                    rgb,
-                    rays,
-                    nonfinite,
-                })
+                let bytes = to.image_bytes(pixels);
+                match to {
+                    Resolve::Srgb8 => Rendered::Srgb8(Srgb8Image {
+                        rect,
+                        rgb: self.read_with(&r.image_read, bytes, |b| b[..pixels * 3].to_vec())?,
+                        rays,
+                        nonfinite,
+                    }),
+                    Resolve::Linear => Rendered::Linear(LinearImage {
+                        rect,
+                        rgb: self.read_with(&r.image_read, bytes, |b| linear_pixels(b, pixels))?,
+                        rays,
+                        nonfinite,
+                    }),
+                }
             }
             (None, None) => {
                 let mut film = match mask {
