@@ -542,6 +542,55 @@ impl GpuRenderer {
             .load(std::sync::atomic::Ordering::Relaxed)
     }
 
+    /// A post-processing kernel's bind group layout (one buffer a binding,
+    /// in order, of these kinds), its pipeline layout and its module: the
+    /// GPU resolve and the GPU packing share this shape.
+    fn compute_kernel(
+        &self,
+        label: &str,
+        bindings: &[wgpu::BufferBindingType],
+        wgsl: String,
+    ) -> (
+        wgpu::BindGroupLayout,
+        wgpu::PipelineLayout,
+        wgpu::ShaderModule,
+    ) {
+        let entries: Vec<_> = bindings
+            .iter()
+            .enumerate()
+            .map(|(binding, &ty)| wgpu::BindGroupLayoutEntry {
+                binding: binding as u32,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty,
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            })
+            .collect();
+        let layout = self
+            .device
+            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some(label),
+                entries: &entries,
+            });
+        let pipeline_layout = self
+            .device
+            .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some(label),
+                bind_group_layouts: &[Some(&layout)],
+                immediate_size: 0,
+            });
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(label),
+                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+            });
+        (layout, pipeline_layout, module)
+    }
+
     fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),

@@ -153,41 +153,17 @@ impl GpuRenderer {
                 ..old
             };
         }
-        let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty,
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
         use wgpu::BufferBindingType as B;
-        let layout = self
-            .device
-            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some("tessera pack"),
-                entries: &[
-                    entry(0, B::Uniform),
-                    entry(1, B::Storage { read_only: true }),
-                    entry(2, B::Storage { read_only: false }),
-                    entry(3, B::Storage { read_only: false }),
-                ],
-            });
-        let pipeline_layout = self
-            .device
-            .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                label: Some("tessera pack"),
-                bind_group_layouts: &[Some(&layout)],
-                immediate_size: 0,
-            });
-        let module = self
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("pack.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(PACK_WGSL.into()),
-            });
+        let (layout, pipeline_layout, module) = self.compute_kernel(
+            "tessera pack",
+            &[
+                B::Uniform,
+                B::Storage { read_only: true },
+                B::Storage { read_only: false },
+                B::Storage { read_only: false },
+            ],
+            PACK_WGSL.to_string(),
+        );
         let pipeline = |entry: &str| {
             self.device
                 .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {

@@ -180,41 +180,17 @@ impl GpuRenderer {
                 ..old
             };
         }
-        let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty,
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
         use wgpu::BufferBindingType as B;
-        let layout = self
-            .device
-            .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some("tessera resolve"),
-                entries: &[
-                    entry(0, B::Uniform),
-                    entry(1, B::Storage { read_only: true }),
-                    entry(2, B::Storage { read_only: true }),
-                    entry(3, B::Storage { read_only: false }),
-                ],
-            });
-        let pipeline_layout = self
-            .device
-            .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                label: Some("tessera resolve"),
-                bind_group_layouts: &[Some(&layout)],
-                immediate_size: 0,
-            });
-        let module = self
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("resolve.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(RESOLVE_WGSL.concat().into()),
-            });
+        let (layout, pipeline_layout, module) = self.compute_kernel(
+            "tessera resolve",
+            &[
+                B::Uniform,
+                B::Storage { read_only: true },
+                B::Storage { read_only: true },
+                B::Storage { read_only: false },
+            ],
+            RESOLVE_WGSL.concat(),
+        );
         Resolver {
             module,
             pipeline_layout,
