@@ -591,6 +591,14 @@ impl GpuRenderer {
         (layout, pipeline_layout, module)
     }
 
+    /// Dispatches `groups` workgroups of a post-processing kernel, in rows
+    /// of at most the per-dimension limit (an 8K film has more); the
+    /// kernels index them as `id.x + id.y * num_workgroups.x * 64`.
+    fn dispatch_groups(&self, pass: &mut wgpu::ComputePass<'_>, groups: u32) {
+        let x = groups.min(self.device.limits().max_compute_workgroups_per_dimension);
+        pass.dispatch_workgroups(x, groups.div_ceil(x), 1);
+    }
+
     fn buffer(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
         self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),

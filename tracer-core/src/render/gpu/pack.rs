@@ -86,13 +86,6 @@ impl GpuRenderer {
             ],
         });
         enc.clear_buffer(&p.width, 0, None);
-        let limit = self.device.limits().max_compute_workgroups_per_dimension;
-        // Rows of workgroups past the per-dimension limit (an 8K film).
-        let dispatch = |pass: &mut wgpu::ComputePass<'_>, invocations: usize| {
-            let groups = invocations.div_ceil(64) as u32;
-            let x = groups.min(limit);
-            pass.dispatch_workgroups(x, groups.div_ceil(x), 1);
-        };
         // Two passes: every sum's width is known before any is packed.
         for (pipeline, invocations) in [(&p.measure, pixels), (&p.pack, pixels.div_ceil(4))] {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -101,7 +94,8 @@ impl GpuRenderer {
             });
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &group, &[]);
-            dispatch(&mut pass, invocations);
+            // 64 invocations a workgroup.
+            self.dispatch_groups(&mut pass, invocations.div_ceil(64) as u32);
         }
         enc.copy_buffer_to_buffer(&p.width, 0, &p.width_read, 0, Some(8));
         // The widest case: the width is only known on the GPU. Only the

@@ -107,10 +107,7 @@ impl GpuRenderer {
             });
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &group, &[]);
-            // Rows of workgroups past the per-dimension limit (an 8K film).
-            let groups = pixels.div_ceil(to.pixels_per_group()) as u32;
-            let x = groups.min(self.device.limits().max_compute_workgroups_per_dimension);
-            pass.dispatch_workgroups(x, groups.div_ceil(x), 1);
+            self.dispatch_groups(&mut pass, pixels.div_ceil(to.pixels_per_group()) as u32);
         }
         enc.copy_buffer_to_buffer(&r.image, 0, &r.image_read, 0, Some(bytes));
         Ok(guard)
