@@ -9,6 +9,8 @@ use super::{GpuError, GpuRenderer, SceneState, Strategy, WavePipelines, check_si
 
 const SAMPLING_WGSL: &str = include_str!("sampling.wgsl");
 const WHITTED_WGSL: &str = include_str!("whitted.wgsl");
+/// `mul_wide` and kin, for the kernel's sums and the linear resolve.
+const WIDE_INT_WGSL: &str = include_str!("wide_int.wgsl");
 const WAVEFRONT_WGSL: &str = include_str!("wavefront.wgsl");
 /// Scene queries for worlds without a tree: loops over spheres and planes.
 const ANALYTIC_WGSL: &str = include_str!("analytic.wgsl");
@@ -19,8 +21,9 @@ const MOVING_MESHES_WGSL: &str = include_str!("moving_meshes.wgsl");
 const NO_MOVING_MESHES_WGSL: &str = include_str!("no_moving_meshes.wgsl");
 /// Sums to 8-bit sRGB (PNG) or linear f32 (EXR) on the GPU, for renders
 /// that read back only the image: one module, both kernels.
-pub(super) const RESOLVE_WGSL: [&str; 2] = [
+pub(super) const RESOLVE_WGSL: [&str; 3] = [
     include_str!("resolve.wgsl"),
+    WIDE_INT_WGSL,
     include_str!("resolve_linear.wgsl"),
 ];
 /// Tree traversal, for worlds with a BVH (meshes, many spheres) or moving meshes.
@@ -123,7 +126,7 @@ impl GpuRenderer {
             None => ("", ""),
         };
         let source = format!(
-            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WHITTED_WGSL}\n{traversal}\n{queries}\n{WAVEFRONT_WGSL}\n{distributed}\n{moving_meshes}",
+            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WIDE_INT_WGSL}\n{WHITTED_WGSL}\n{traversal}\n{queries}\n{WAVEFRONT_WGSL}\n{distributed}\n{moving_meshes}",
             data.stack_capacity(),
             // One more entry than these trees can need (checked at packing to
             // be at most bvh::STACK; see bvh.wgsl), so shallow trees keep small stacks.

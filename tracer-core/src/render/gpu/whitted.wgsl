@@ -426,19 +426,6 @@ fn sum_stride() -> u32 {
     return select(6u, 18u, ADAPTIVE);
 }
 
-// a * b as (low, high) words, from 16-bit halves (WGSL has no wide multiply).
-fn mul_wide(a: u32, b: u32) -> vec2<u32> {
-    let a0 = a & 0xffffu;
-    let a1 = a >> 16u;
-    let b0 = b & 0xffffu;
-    let b1 = b >> 16u;
-    let p00 = a0 * b0;
-    let p01 = a0 * b1;
-    let p10 = a1 * b0;
-    let mid = (p00 >> 16u) + (p01 & 0xffffu) + (p10 & 0xffffu);
-    return vec2<u32>((p00 & 0xffffu) | (mid << 16u), a1 * b1 + (p01 >> 16u) + (p10 >> 16u) + (mid >> 16u));
-}
-
 // Adds v at word k of the 128-bit sum at sums[base..base + 4], carrying upward.
 fn add_carrying(base: u32, k: u32, v: u32) {
     var i = k;
