@@ -443,14 +443,28 @@ fn json_summary_has_a_run_object_per_csv_row() {
 
 /// `bench farm --repeat N` with one worker: N local renders and 1-worker
 /// farm jobs timed in pairs on one warm farm, the last job's frame
-/// byte-identical to the local render (the speed is not judged here).
+/// byte-identical to the local render; and the GPU worker alone and beside
+/// a CPU worker, N jobs on a warm farm each (lavapipe in CI: without an
+/// adapter the bench fails, and so does this test). The speed is not
+/// judged here.
 #[test]
 fn farm_bench_times_one_worker_against_the_local_render_in_pairs() {
     let dir = std::env::temp_dir().join(format!("tessera-bench-pairs-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let out = bench(
         &dir,
-        &["farm", "--quick", "--workers", "1", "--repeat", "3"],
+        &[
+            "farm",
+            "--quick",
+            "--workers",
+            "1",
+            "--repeat",
+            "3",
+            "--gpu-workers",
+            "1",
+            "--mixed-cpu-workers",
+            "1",
+        ],
     );
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "bench failed:\n{stderr}");
@@ -479,6 +493,39 @@ fn farm_bench_times_one_worker_against_the_local_render_in_pairs() {
         line.ends_with("image identical to the local render"),
         "{line}"
     );
+    // "1 GPU + C CPU workers, 3 jobs on one warm farm (submit to done/first
+    // lease to last result/local GPU render s): F/R/L F/R/L F/R/L; median
+    // M s, Xx the GPU workers alone[  image identical ...]"
+    for cpu in [0, 1] {
+        let head = format!("1 GPU + {cpu} CPU workers, 3 jobs on one warm farm");
+        let line = stderr
+            .lines()
+            .find(|l| l.contains(&head))
+            .unwrap_or_else(|| panic!("no line {head:?}:\n{stderr}"));
+        let jobs = line
+            .split_once(" render s): ")
+            .and_then(|(_, rest)| rest.split_once(';'))
+            .map(|(jobs, _)| jobs.split_whitespace().collect::<Vec<_>>())
+            .unwrap_or_default();
+        assert_eq!(jobs.len(), 3, "{line}");
+        for j in jobs {
+            let times: Vec<f64> = j.split('/').filter_map(|t| t.parse().ok()).collect();
+            assert_eq!(times.len(), 3, "{line}");
+            assert!(times.iter().all(|&t| t > 0.0), "{line}");
+            assert!(times[1] <= times[0], "{line}");
+        }
+        assert!(
+            line.contains("x the GPU workers alone, GPU farm throughput median "),
+            "{line}"
+        );
+        if cpu == 0 {
+            assert!(
+                line.contains("1.00x the GPU workers alone")
+                    && line.ends_with("of local  image identical to the local GPU render"),
+                "{line}"
+            );
+        }
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
 

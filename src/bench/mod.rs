@@ -1356,6 +1356,84 @@ impl Bench {
                 break;
             }
         }
+        // With --repeat N: each farm renders the job N times, each right
+        // after the local GPU render of it, so that one run's noise does
+        // not decide whether the mixed farm kept up with the GPU alone.
+        if self.cfg.repeat > 1 {
+            let mut medians = vec![];
+            for cpu_workers in [0, mixed_cpu] {
+                if cpu_workers == 0 && !medians.is_empty() {
+                    continue;
+                }
+                let name = format!("gpu{g}-cpu{cpu_workers}-repeat");
+                let spec = farm::FarmSpec {
+                    cpu_workers,
+                    threads,
+                    gpu_workers: g,
+                    adapter: self.cfg.adapter.clone(),
+                    gpu_adapters: vec![],
+                };
+                let run = farm::RunSpec {
+                    exe,
+                    dir,
+                    name: &name,
+                    scene: path,
+                    settings: &s,
+                    frames: (0, 0),
+                    tile,
+                };
+                let (jobs, diff_bytes) = farm::interleaved_runs(
+                    &run,
+                    &spec,
+                    self.cfg.repeat as usize,
+                    &local_srgb,
+                    || {
+                        let start = Instant::now();
+                        gpu.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
+                        Ok(start.elapsed().as_secs_f64())
+                    },
+                )?;
+                let mut secs: Vec<f64> = jobs.iter().map(|(_, j)| j.seconds).collect();
+                let listed: Vec<String> = jobs
+                    .iter()
+                    .map(|(l, j)| {
+                        format!(
+                            "{:.3}/{}/{l:.3}",
+                            j.seconds,
+                            j.render_s.map_or("-".into(), |r| format!("{r:.3}"))
+                        )
+                    })
+                    .collect();
+                secs.sort_by(f64::total_cmp);
+                let median = secs[secs.len() / 2];
+                medians.push(median);
+                // The GPU workers' throughput against the local render
+                // timed just before each job (rays over first lease to last
+                // result, against rays over the local call).
+                let mut throughput: Vec<f64> = jobs
+                    .iter()
+                    .map(|(l, j)| j.rays_per_second() * l / film.rays.total() as f64)
+                    .collect();
+                throughput.sort_by(f64::total_cmp);
+                eprintln!(
+                    "  farm       {g} GPU + {cpu_workers} CPU workers, {} jobs on one warm farm (submit to done/first lease to last result/local GPU render s): {}; median {median:.3} s, {:.2}x the GPU workers alone, GPU farm throughput median {:.1}% of local{}",
+                    jobs.len(),
+                    listed.join(" "),
+                    median / medians[0],
+                    100.0 * throughput[throughput.len() / 2],
+                    if cpu_workers > 0 {
+                        String::new()
+                    } else if diff_bytes == 0 {
+                        "  image identical to the local GPU render".to_string()
+                    } else {
+                        format!("  IMAGE DIFFERS from the local GPU render ({diff_bytes} bytes)")
+                    }
+                );
+                if mixed_cpu == 0 {
+                    break;
+                }
+            }
+        }
         Ok(runs)
     }
 
