@@ -804,6 +804,7 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
                         max_units: 1,
                         wait_ms: 0,
                         ahead: false,
+                        ..Default::default()
                     })
                     .await
                     .expect("lease")
@@ -935,6 +936,7 @@ fn a_unit_failing_repeatedly_fails_the_job_with_the_workers_messages() {
                     max_units: 1,
                     wait_ms: 0,
                     ahead: false,
+                    ..Default::default()
                 })
                 .await
                 .expect("lease")

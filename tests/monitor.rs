@@ -136,6 +136,7 @@ fn fail_a_job(c: &Coordinator, message: &str) -> String {
                 max_units: 1,
                 wait_ms: 5000,
                 ahead: false,
+                ..Default::default()
             })
             .await
             .expect("lease")

@@ -94,6 +94,7 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
                         max_units: batch,
                         wait_ms: 0,
                         ahead: false,
+                        ..Default::default()
                     })
                     .await?
                     .into_inner()

@@ -371,6 +371,8 @@ impl Worker {
         sender: &mut tokio::task::JoinHandle<Result<(), tonic::Status>>,
     ) -> Result<(), tonic::Status> {
         let mut client = s.client.clone();
+        // Units rendered since the last lease request, reported with the next.
+        let mut rendered = Vec::new();
         loop {
             if *drain.borrow() {
                 return Ok(());
@@ -395,6 +397,7 @@ impl Worker {
                     queue,
                     false,
                     IDLE_LEASE_WAIT,
+                    &mut rendered,
                 )
                 .await?;
                 if queue.is_empty() {
@@ -481,7 +484,8 @@ impl Worker {
                                 &self.held,
                                 queue,
                                 true,
-                                Duration::ZERO
+                                Duration::ZERO,
+                                &mut rendered,
                             )
                         );
                         if let Err(e) = leased {
@@ -494,8 +498,13 @@ impl Worker {
                     }
                 }
             };
-            if let UnitEnd::Film(_, seconds) = &end {
+            if let UnitEnd::Film(film, seconds) = &end {
                 tracing::debug!(lease = %lease_id, frame = region.frame, rect = ?region.rect, seconds, "unit rendered");
+                rendered.push(pb::RenderedUnit {
+                    lease_id: lease_id.clone(),
+                    rays: film.rays.total(),
+                    render_seconds: *seconds,
+                });
             }
             if tx.send(out(end)).await.is_err() {
                 return Err(tonic::Status::internal("the result sender stopped"));
@@ -640,6 +649,8 @@ impl Worker {
 /// nothing.
 /// `ahead`: asked while a unit renders (the coordinator may say no at a
 /// job's very end, to leave the last units to idle workers).
+/// `rendered`: units finished since the last request, reported (and
+/// taken) with it.
 async fn lease(
     client: &mut Client,
     worker_id: &str,
@@ -647,12 +658,14 @@ async fn lease(
     queue: &mut VecDeque<LeasedUnit>,
     ahead: bool,
     wait: Duration,
+    rendered: &mut Vec<pb::RenderedUnit>,
 ) -> Result<Duration, tonic::Status> {
     let req = pb::LeaseWorkRequest {
         worker_id: worker_id.to_string(),
         max_units: 1,
         wait_ms: wait.as_millis() as u32,
         ahead,
+        rendered: std::mem::take(rendered),
     };
     let resp = client.lease_work(req).await?.into_inner();
     let mut h = held.lock().expect("held lock");

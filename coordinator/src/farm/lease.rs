@@ -39,6 +39,14 @@ const BACKUP_OVERHEAD_SECONDS: f64 = 0.01;
 const MAX_BACKUPS: u32 = 2;
 /// How long a worker's best speed of late counts for the farm's speed.
 const PEAK_MEMORY_SECONDS: f64 = 60.0;
+/// A unit that took this long measures its worker's speed: a GPU's fixed
+/// cost per unit (a call, a read-back) is ~0.4 ms on the H200 box, so a
+/// 64x64 tile there (0.4 ms in all) rates it several times too slow.
+const MEASURING_UNIT_SECONDS: f64 = 0.002;
+/// A worker whose best speed is over this many times the asker's, but
+/// measured only on small units, may be faster still: the asker takes one
+/// unit at a time until it is measured.
+const MUCH_FASTER: f64 = 2.0;
 
 impl Lease {
     /// Expected rays not yet rendered, by the worker's last progress report.
@@ -59,6 +67,49 @@ impl Worker {
     pub(super) fn farm_speed(&self) -> f64 {
         let k = (-self.peak_at.elapsed().as_secs_f64() / PEAK_MEMORY_SECONDS).exp();
         self.ray_speed + (self.peak_speed - self.ray_speed).max(0.0) * k
+    }
+
+    /// Rates the worker from a unit it rendered: `rays` traced in
+    /// `seconds`. For lease sizing the estimate drops at once and rises
+    /// slowly (a lease that runs long costs the job's end more than one
+    /// that runs short), except that a rise measured on a unit twice as
+    /// large as the last is taken at once: small units understate a fast
+    /// worker's speed (fixed costs per unit), larger ones measure it.
+    pub(super) fn rate_unit(&mut self, rays: f64, seconds: f64) {
+        // Times under 0.1 ms are taken as 0.1 ms, so an absurd report
+        // (5e-324 s) gives a finite speed.
+        let seconds = seconds.max(1e-4);
+        let new = rays / seconds;
+        let larger = rays >= 2.0 * self.last_rays;
+        self.ray_speed = if self.ray_speed == 0.0 || new < self.ray_speed || larger {
+            new
+        } else {
+            0.7 * self.ray_speed + 0.3 * new
+        };
+        self.last_rays = rays;
+        self.last_seconds = seconds;
+        if new >= self.farm_speed() {
+            self.peak_speed = new;
+            self.peak_at = Instant::now();
+        }
+    }
+
+    /// Whether its last result measured its speed (see
+    /// [`MEASURING_UNIT_SECONDS`]), not mostly its fixed cost per unit.
+    fn speed_measured(&self) -> bool {
+        self.last_seconds >= MEASURING_UNIT_SECONDS
+    }
+
+    /// Whether this worker, beside one whose best speed is `best`, may be
+    /// much faster than its rating says: not measured yet while it renders
+    /// (`holds_work`), or much faster already on units too small to
+    /// measure it.
+    fn may_be_much_faster(&self, best: f64, holds_work: bool) -> bool {
+        if self.ray_speed == 0.0 {
+            holds_work
+        } else {
+            !self.speed_measured() && self.farm_speed() > MUCH_FASTER * best
+        }
     }
 }
 
@@ -107,6 +158,34 @@ impl Farm {
             },
         );
         id
+    }
+
+    /// Rates a worker from units it reports rendered with its lease
+    /// request (lease id, rays, render seconds), before their results are
+    /// taken in: a GPU worker's results took 20-60 ms to be taken in on a
+    /// busy coordinator, while CPU workers' leases were sized against its
+    /// rating of the job before. Units of leases it does not hold, and
+    /// units rated already, are ignored; the result of a rated unit does
+    /// not rate it again.
+    pub fn rate_rendered(&self, worker_id: &str, units: &[(String, u64, f64)]) {
+        let mut st = self.state.lock().expect("state lock");
+        let st = &mut *st;
+        let Some(w) = st.workers.get_mut(worker_id) else {
+            return;
+        };
+        for (lease_id, rays, seconds) in units {
+            let Some(l) = st.leases.get_mut(lease_id) else {
+                continue;
+            };
+            if l.worker != worker_id || l.rated || !(*seconds > 0.0) {
+                continue;
+            }
+            l.rated = true;
+            // Rendered: none of its work is left for the worker, which is
+            // free for more (and is no longer busy to the others' leases).
+            l.progress = l.region.pixel_samples();
+            w.rate_unit(*rays as f64, *seconds);
+        }
     }
 
     /// Leases up to `max_units` units to a worker, highest priority first,
@@ -199,6 +278,18 @@ impl Farm {
                 (v, held / v)
             })
             .collect();
+        // Leases sized against a worker that may be much faster than its
+        // rating would run past the point where it could have done their
+        // work. The first leases of a job beside a GPU measured only on a
+        // warm-up's small tiles (rated ~8x low) made a mixed farm 1.3-1.6x
+        // slower than the GPU alone: while such a worker exists, this one
+        // takes one unit at a time (the other measures itself within its
+        // first lease or two).
+        let one_at_a_time = st.workers.iter().any(|(id, w)| {
+            id.as_str() != worker_id
+                && w.last_seen.elapsed() < live
+                && w.may_be_much_faster(best, busy_of.contains_key(id.as_str()))
+        });
         let held_rays = busy_of.get(worker_id).copied().unwrap_or(0.0);
         // The farm's speed: the sum of the measured speeds of the live
         // workers (a worker not yet measured adds nothing until its first
@@ -214,11 +305,12 @@ impl Farm {
             .collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
         let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
+        let max_units = if one_at_a_time { 1 } else { max_units.max(1) };
         let mut out = Vec::new();
         for job_id in order {
             // Rays of the job's leases still being rendered, by anyone.
             let (in_flight, leased) = in_flight_of.get(&job_id).copied().unwrap_or((0.0, 0.0));
-            while out.len() < max_units.max(1) as usize {
+            while out.len() < max_units as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
                 let Some(&first) = job.pending.iter().next() else {
                     break;
@@ -273,13 +365,13 @@ impl Farm {
                     let tile = u64::from(job.layout.tile_size).pow(2).max(1);
                     let fit = (self.max_result_pixels().min(MAX_LEASE_PIXELS) / tile)
                         .clamp(1, u64::from(u32::MAX)) as u32;
-                    job.layout.join(
-                        first,
-                        self.config.max_tiles_per_lease.min(fit),
-                        |u| job.pending.contains(&u),
-                        rays,
-                        budget,
-                    )
+                    let max_tiles = if one_at_a_time {
+                        1
+                    } else {
+                        self.config.max_tiles_per_lease.min(fit)
+                    };
+                    job.layout
+                        .join(first, max_tiles, |u| job.pending.contains(&u), rays, budget)
                 } else {
                     // Not measured yet: one tile, whose result measures it.
                     // Once measured workers exist, an unmeasured one asking
@@ -340,6 +432,7 @@ impl Farm {
                         partners: Vec::new(),
                         backup: false,
                         backups: 0,
+                        rated: false,
                     },
                 );
                 st.workers
@@ -349,12 +442,13 @@ impl Farm {
                     .insert(lease_id.clone());
                 out.push(LeaseView { lease_id, ..view });
             }
-            if out.len() >= max_units.max(1) as usize {
+            if out.len() >= max_units as usize {
                 break;
             }
         }
         if out.is_empty() && !held_back && speed > 0.0 {
-            out.extend(self.backup_lease(st, worker_id, speed, busy));
+            // At its best: a GPU's last units (a job's tail) rate it low.
+            out.extend(self.backup_lease(st, worker_id, best, busy));
         }
         Ok((out, held_back))
     }
@@ -437,6 +531,7 @@ impl Farm {
             partners,
             backup: true,
             backups: 0,
+            rated: false,
         };
         let job = st.jobs.get(&lease.job).expect("checked");
         tracing::debug!(lease = %lease_id, backs_up = %original, job = %lease.job, rect = ?lease.region.rect, "backup lease");
@@ -510,7 +605,7 @@ impl Farm {
             match st.leases.get_mut(id) {
                 Some(l) if l.worker == worker_id => {
                     l.deadline = deadline;
-                    l.progress = *samples_done;
+                    l.progress = l.progress.max(*samples_done);
                 }
                 _ => gone.push(id.clone()),
             }

@@ -303,6 +303,9 @@ struct Lease {
     /// Backups of this lease granted so far: at most [`lease::MAX_BACKUPS`] (a
     /// worker whose backups fail must not take them again and again).
     backups: u32,
+    /// Whether the worker's speed was rated from this lease's unit already
+    /// (reported rendered with a lease request, before its result came).
+    rated: bool,
 }
 
 struct Worker {

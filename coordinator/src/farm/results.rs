@@ -48,9 +48,15 @@ impl Farm {
         let mut outcomes: Vec<Option<Outcome>> = Vec::with_capacity(rs.len());
         let mut taken: Vec<(ResultData, Taken)> = Vec::new();
         let mut ops: Vec<Op> = Vec::new();
-        // Every pixel of a result is checked before the state lock is taken.
+        // Every pixel of a result is checked before the state lock is
+        // taken, off the async threads (see `decode_results` in service.rs).
         let check_start = Instant::now();
-        let checks: Vec<Result<(), String>> = rs.iter().map(check_film).collect();
+        let (rs, checks) = tokio::task::spawn_blocking(move || {
+            let checks: Vec<Result<(), String>> = rs.iter().map(check_film).collect();
+            (rs, checks)
+        })
+        .await
+        .map_err(|e| FarmError::Internal(format!("result check failed: {e}")))?;
         let lock_start = Instant::now();
         {
             let mut st = self.state.lock().expect("state lock");
@@ -412,24 +418,8 @@ impl Farm {
                 // report (5e-324 s) gives a finite speed.
                 let seconds = r.render_seconds.max(1e-4);
                 w.speed.add(Instant::now(), samples, result_rays, seconds);
-                // For lease sizing the estimate drops at once and rises
-                // slowly (a lease that runs long costs the job's end more
-                // than one that runs short), except that a rise measured on
-                // a unit twice as large as the last is taken at once: small
-                // units understate a fast worker's speed (fixed costs per
-                // unit), larger ones measure it.
-                let new = result_rays as f64 / seconds;
-                let larger = result_rays as f64 >= 2.0 * w.last_rays;
-                w.ray_speed = if w.ray_speed == 0.0 || new < w.ray_speed || larger {
-                    new
-                } else {
-                    0.7 * w.ray_speed + 0.3 * new
-                };
-                w.last_rays = result_rays as f64;
-                w.last_seconds = seconds;
-                if new >= w.farm_speed() {
-                    w.peak_speed = new;
-                    w.peak_at = Instant::now();
+                if !t.lease.rated {
+                    w.rate_unit(result_rays as f64, seconds);
                 }
             }
         }

@@ -935,6 +935,96 @@ async fn a_fast_workers_best_speed_sizes_a_slow_workers_lease() {
     assert_eq!(slow_widths[1], 0, "{slow_widths:?}");
 }
 
+/// A worker rated only on units too small to measure it (a GPU after a
+/// warm-up's tiles: mostly fixed cost) may be much faster than rated, so a
+/// slow worker beside it takes one tile at a time until it is measured;
+/// then the slow worker's leases are sized as before. Sized against the
+/// low rating, the slow worker's first leases of a 1080p job outlasted the
+/// GPU's whole frame (a mixed farm 1.3-1.6x slower than the GPU alone).
+#[tokio::test]
+async fn beside_a_much_faster_worker_not_yet_measured_a_slow_one_takes_a_tile_at_a_time() {
+    let (_dir, farm, _job) = farm_with_job(1024, 256, 4).await;
+    let (fast, slow) = (register(&farm, "gpu", 1), register(&farm, "cpu", 2));
+    let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
+    let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+    // 0.4 ms for a tile: fixed cost, too short to measure the fast one.
+    farm.submit_result(result(&fast, &f1, 0.0004))
+        .await
+        .unwrap();
+    farm.submit_result(result(&slow, &s1, 0.05)).await.unwrap();
+    let s2 = farm.lease(&slow, 4, false).unwrap();
+    assert_eq!(s2.len(), 1, "one lease at a time: {s2:?}");
+    assert_eq!(s2[0].region.rect.area(), 16 * 16, "of one tile: {s2:?}");
+    farm.submit_result(result(&slow, &s2[0], 0.05))
+        .await
+        .unwrap();
+    // The fast worker's next lease is larger, and long enough to measure it.
+    let f2 = farm.lease(&fast, 1, false).unwrap().remove(0);
+    let tiles = (f2.region.rect.area() / (16 * 16)) as f64;
+    assert!(tiles >= 8.0, "{f2:?}");
+    farm.submit_result(result(&fast, &f2, 0.0005 * tiles))
+        .await
+        .unwrap();
+    let s3 = farm.lease(&slow, 1, false).unwrap().remove(0);
+    assert!(
+        s3.region.rect.area() > 16 * 16,
+        "measured, the fast worker no longer bounds the slow one to a tile: {s3:?}"
+    );
+
+    // A worker not measured at all while it renders may be of any speed.
+    let (_dir, farm, _job) = farm_with_job(1024, 256, 4).await;
+    let (a, b) = (register(&farm, "a", 2), register(&farm, "b", 2));
+    let a1 = farm.lease(&a, 1, false).unwrap().remove(0);
+    let _b1 = farm.lease(&b, 1, false).unwrap().remove(0);
+    farm.submit_result(result(&a, &a1, 0.05)).await.unwrap();
+    let a2 = farm.lease(&a, 1, false).unwrap().remove(0);
+    assert_eq!(a2.region.rect.area(), 16 * 16, "{a2:?}");
+}
+
+/// A unit reported rendered with a lease request rates its worker at
+/// once, before its result is taken in (a GPU's results took 20-60 ms on a
+/// busy coordinator), and its result does not rate it again; a report of
+/// a lease the reporter does not hold is ignored.
+#[tokio::test]
+async fn a_unit_reported_rendered_rates_its_worker_before_its_result_comes() {
+    let (_dir, farm, _job) = farm_with_job(1024, 256, 4).await;
+    let (fast, slow) = (register(&farm, "gpu", 1), register(&farm, "cpu", 2));
+    let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
+    let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+    farm.submit_result(result(&fast, &f1, 0.0004))
+        .await
+        .unwrap();
+    farm.submit_result(result(&slow, &s1, 0.05)).await.unwrap();
+    let f2 = farm.lease(&fast, 1, false).unwrap().remove(0);
+    let tiles = (f2.region.rect.area() / (16 * 16)) as f64;
+    let rays = |l: &LeaseView| l.region.rect.area() as u64 * l.region.samples.len() as u64;
+    let speed_of = |w: &str| {
+        let st = farm.state.lock().unwrap();
+        (st.workers[w].ray_speed, st.workers[w].last_seconds)
+    };
+    // The slow worker reporting the fast one's lease changes nothing.
+    let before = (speed_of(&fast), speed_of(&slow));
+    farm.rate_rendered(&slow, &[(f2.lease_id.clone(), rays(&f2), 1.0)]);
+    assert_eq!((speed_of(&fast), speed_of(&slow)), before);
+    let s2 = farm.lease(&slow, 1, false).unwrap().remove(0);
+    assert_eq!(s2.region.rect.area(), 16 * 16, "{s2:?}");
+    farm.submit_result(result(&slow, &s2, 0.05)).await.unwrap();
+    // Reported rendered, long enough to measure it: the slow worker's
+    // next lease is sized against the fast one's speed at once.
+    farm.rate_rendered(&fast, &[(f2.lease_id.clone(), rays(&f2), 0.0005 * tiles)]);
+    assert_eq!(speed_of(&fast).1, 0.0005 * tiles);
+    // Its work is done as far as leasing goes: the fast worker is not busy.
+    assert_eq!(
+        farm.state.lock().unwrap().leases[&f2.lease_id].progress,
+        f2.region.pixel_samples()
+    );
+    let s3 = farm.lease(&slow, 1, false).unwrap().remove(0);
+    assert!(s3.region.rect.area() > 16 * 16, "{s3:?}");
+    // The result (its render time said otherwise) does not rate it again.
+    farm.submit_result(result(&fast, &f2, 0.5)).await.unwrap();
+    assert_eq!(speed_of(&fast).1, 0.0005 * tiles);
+}
+
 /// Near a job's end a worker is held back for another that would
 /// finish the unit sooner. Every worker measured at its best speed
 /// (first units fast, later ones slower) must not hold all of them
