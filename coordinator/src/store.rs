@@ -11,7 +11,9 @@
 //! queued in a single transaction (group commit). A commit of results
 //! alone is made durable within [`RESULTS_DURABLE_WITHIN`], not at once: a
 //! GPU worker's tens of megabytes a frame would otherwise wait on an fsync
-//! each, which bounded the farm's intake below the GPU's speed. A crash
+//! each, which bounded the farm's intake below the GPU's speed. The sync is
+//! done as soon as the intake pauses ([`IDLE_SYNC`]), so that it runs in
+//! gaps, a few results at a time, not in the frame's durable record. A crash
 //! then loses at most that window of results, never a job, a frame record
 //! or a state change (those commit durably, taking any results before them
 //! along); the lost units are simply pending again after the restart.
@@ -423,6 +425,12 @@ const HEAL_INTERVAL: Duration = Duration::from_secs(1);
 /// The longest a committed result waits for the fsync that makes it
 /// durable: what a crash can cost in re-rendered units.
 pub const RESULTS_DURABLE_WITHIN: Duration = Duration::from_millis(250);
+/// Results not yet durable are made so as soon as the intake pauses this
+/// long: the fsync (and redb's write of the buffered pages before it) then
+/// runs in a gap, a few results at a time, instead of every 250 ms in the
+/// middle of a frame's results, or all at once in the frame's record at
+/// its end (which took 28-48 ms for a 1080p frame's 30-50 MB).
+const IDLE_SYNC: Duration = Duration::from_millis(5);
 
 fn writer(
     db: &Shared,
@@ -435,7 +443,8 @@ fn writer(
     let mut unsynced: Option<Instant> = None;
     loop {
         let first = if let (true, Some(since)) = (health.ok(), unsynced) {
-            match rx.recv_timeout(RESULTS_DURABLE_WITHIN.saturating_sub(since.elapsed())) {
+            let wait = IDLE_SYNC.min(RESULTS_DURABLE_WITHIN.saturating_sub(since.elapsed()));
+            match rx.recv_timeout(wait) {
                 Ok(r) => r,
                 Err(mpsc::RecvTimeoutError::Timeout) => {
                     sync(db, health);
@@ -486,11 +495,19 @@ fn writer(
                 } else {
                     Durability::None
                 };
+                let start = Instant::now();
                 let r = match current {
                     Some(d) => commit(&d, batch.iter().flat_map(|r| r.ops.iter()), durability)
                         .map_err(|e| e.to_string()),
                     None => Err(health.last_error()),
                 };
+                if durable {
+                    tracing::debug!(
+                        requests = batch.len(),
+                        commit_ms = start.elapsed().as_secs_f64() * 1e3,
+                        "durable commit"
+                    );
+                }
                 match &r {
                     Ok(()) => health.recover(),
                     Err(e) => health.fail(e),
@@ -575,11 +592,16 @@ fn injected_fault(faults: &Faults, batch: &[Request]) -> Option<String> {
 
 /// Makes every commit so far durable (an empty durable commit).
 fn sync(db: &Shared, health: &StorageHealth) {
+    let start = Instant::now();
     let current = db.read().expect("db lock").clone();
     let r = match current {
         Some(d) => commit(&d, std::iter::empty(), Durability::Immediate).map_err(|e| e.to_string()),
         None => Err(health.last_error()),
     };
+    tracing::debug!(
+        sync_ms = start.elapsed().as_secs_f64() * 1e3,
+        "results made durable"
+    );
     if let Err(e) = r {
         tracing::error!(error = %e, "cannot make committed results durable");
         health.fail(&e);
