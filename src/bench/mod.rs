@@ -1283,30 +1283,34 @@ impl Bench {
             local_rays_per_s / 1e6
         );
         let mixed_cpu = self.cfg.mixed_cpu_workers;
+        // The GPU workers alone, then beside the CPU workers.
+        let cpu_counts = if mixed_cpu == 0 {
+            vec![0]
+        } else {
+            vec![0, mixed_cpu]
+        };
+        let spec_of = |cpu_workers| farm::FarmSpec {
+            cpu_workers,
+            threads,
+            gpu_workers: g,
+            adapter: self.cfg.adapter.clone(),
+            gpu_adapters: vec![],
+        };
+        let run = farm::RunSpec {
+            exe,
+            dir,
+            name: "",
+            scene: path,
+            settings: &s,
+            frames: (0, 0),
+            tile,
+        };
         let mut runs = vec![];
         let mut gpu_alone = None;
-        for cpu_workers in [0, mixed_cpu] {
-            if cpu_workers == 0 && gpu_alone.is_some() {
-                continue;
-            }
+        for &cpu_workers in &cpu_counts {
             let name = format!("gpu{g}-cpu{cpu_workers}");
-            let spec = farm::FarmSpec {
-                cpu_workers,
-                threads,
-                gpu_workers: g,
-                adapter: self.cfg.adapter.clone(),
-                gpu_adapters: vec![],
-            };
-            let run = farm::RunSpec {
-                exe,
-                dir,
-                name: &name,
-                scene: path,
-                settings: &s,
-                frames: (0, 0),
-                tile,
-            };
-            let (result, diff_bytes) = farm::timed_run(&run, &spec, &local_srgb)?;
+            let named = farm::RunSpec { name: &name, ..run };
+            let (result, diff_bytes) = farm::timed_run(&named, &spec_of(cpu_workers), &local_srgb)?;
             let secs = result.seconds;
             let throughput = result.rays_per_second() / local_rays_per_s;
             let identical = diff_bytes == 0;
@@ -1352,36 +1356,15 @@ impl Bench {
                     local_rays_per_s,
                 }),
             });
-            if mixed_cpu == 0 {
-                break;
-            }
         }
         // With --repeat N: each farm renders the job N times, each right
         // after the local GPU render of it, so that one run's noise does
         // not decide whether the mixed farm kept up with the GPU alone.
         if self.cfg.repeat > 1 {
             let mut medians = vec![];
-            for cpu_workers in [0, mixed_cpu] {
-                if cpu_workers == 0 && !medians.is_empty() {
-                    continue;
-                }
+            for &cpu_workers in &cpu_counts {
                 let name = format!("gpu{g}-cpu{cpu_workers}-repeat");
-                let spec = farm::FarmSpec {
-                    cpu_workers,
-                    threads,
-                    gpu_workers: g,
-                    adapter: self.cfg.adapter.clone(),
-                    gpu_adapters: vec![],
-                };
-                let run = farm::RunSpec {
-                    exe,
-                    dir,
-                    name: &name,
-                    scene: path,
-                    settings: &s,
-                    frames: (0, 0),
-                    tile,
-                };
+                let (run, spec) = (farm::RunSpec { name: &name, ..run }, spec_of(cpu_workers));
                 let (jobs, diff_bytes) = farm::interleaved_runs(
                     &run,
                     &spec,
@@ -1429,9 +1412,6 @@ impl Bench {
                         format!("  IMAGE DIFFERS from the local GPU render ({diff_bytes} bytes)")
                     }
                 );
-                if mixed_cpu == 0 {
-                    break;
-                }
             }
         }
         Ok(runs)

@@ -935,6 +935,20 @@ async fn a_fast_workers_best_speed_sizes_a_slow_workers_lease() {
     assert_eq!(slow_widths[1], 0, "{slow_widths:?}");
 }
 
+/// A fast worker ("gpu") and a slow one ("cpu") on a fresh job, each rated
+/// on one tile: the fast one in 0.4 ms (its fixed cost, too short to
+/// measure it), the slow one in 50 ms. Returns (fast, slow).
+async fn gpu_rated_on_a_tile_beside_a_cpu(farm: &Arc<Farm>) -> (String, String) {
+    let (fast, slow) = (register(farm, "gpu", 1), register(farm, "cpu", 2));
+    let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
+    let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
+    farm.submit_result(result(&fast, &f1, 0.0004))
+        .await
+        .unwrap();
+    farm.submit_result(result(&slow, &s1, 0.05)).await.unwrap();
+    (fast, slow)
+}
+
 /// A worker rated only on units too small to measure it (a GPU after a
 /// warm-up's tiles: mostly fixed cost) may be much faster than rated, so a
 /// slow worker beside it takes one tile at a time until it is measured;
@@ -944,14 +958,7 @@ async fn a_fast_workers_best_speed_sizes_a_slow_workers_lease() {
 #[tokio::test]
 async fn beside_a_much_faster_worker_not_yet_measured_a_slow_one_takes_a_tile_at_a_time() {
     let (_dir, farm, _job) = farm_with_job(1024, 256, 4).await;
-    let (fast, slow) = (register(&farm, "gpu", 1), register(&farm, "cpu", 2));
-    let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
-    let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
-    // 0.4 ms for a tile: fixed cost, too short to measure the fast one.
-    farm.submit_result(result(&fast, &f1, 0.0004))
-        .await
-        .unwrap();
-    farm.submit_result(result(&slow, &s1, 0.05)).await.unwrap();
+    let (fast, slow) = gpu_rated_on_a_tile_beside_a_cpu(&farm).await;
     let s2 = farm.lease(&slow, 4, false).unwrap();
     assert_eq!(s2.len(), 1, "one lease at a time: {s2:?}");
     assert_eq!(s2[0].region.rect.area(), 16 * 16, "of one tile: {s2:?}");
@@ -988,13 +995,7 @@ async fn beside_a_much_faster_worker_not_yet_measured_a_slow_one_takes_a_tile_at
 #[tokio::test]
 async fn a_unit_reported_rendered_rates_its_worker_before_its_result_comes() {
     let (_dir, farm, _job) = farm_with_job(1024, 256, 4).await;
-    let (fast, slow) = (register(&farm, "gpu", 1), register(&farm, "cpu", 2));
-    let f1 = farm.lease(&fast, 1, false).unwrap().remove(0);
-    let s1 = farm.lease(&slow, 1, false).unwrap().remove(0);
-    farm.submit_result(result(&fast, &f1, 0.0004))
-        .await
-        .unwrap();
-    farm.submit_result(result(&slow, &s1, 0.05)).await.unwrap();
+    let (fast, slow) = gpu_rated_on_a_tile_beside_a_cpu(&farm).await;
     let f2 = farm.lease(&fast, 1, false).unwrap().remove(0);
     let tiles = (f2.region.rect.area() / (16 * 16)) as f64;
     let rays = |l: &LeaseView| l.region.rect.area() as u64 * l.region.samples.len() as u64;
