@@ -255,6 +255,7 @@ impl JobService for Api {
                     backend: pb::Backend::from(w.backend) as i32,
                     gpu_name: w.gpu_name,
                     version: w.version,
+                    host_id: w.host_id,
                 }),
                 leases: w.leases,
                 units_done: w.units_done,
@@ -393,9 +394,15 @@ impl WorkerService for Api {
         crate::farm::check_name("worker name", &name, 200)?;
         crate::farm::check_name("GPU name", &caps.gpu_name, 200)?;
         crate::farm::check_name("version", &caps.version, 200)?;
-        let worker_id =
-            self.farm
-                .register(name, caps.threads, backend, caps.gpu_name, caps.version);
+        crate::farm::check_name("host id", &caps.host_id, 200)?;
+        let worker_id = self.farm.register(
+            name,
+            caps.threads,
+            backend,
+            caps.gpu_name,
+            caps.version,
+            caps.host_id,
+        );
         Ok(Response::new(pb::RegisterResponse {
             worker_id,
             heartbeat_interval_ms: self.farm.config.heartbeat_interval.as_millis() as u32,

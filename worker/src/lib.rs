@@ -142,7 +142,23 @@ fn capabilities(renderer: &Renderer) -> pb::Capabilities {
         backend: pb::Backend::from(renderer.backend()) as i32,
         gpu_name: renderer.adapter_name().unwrap_or_default().to_string(),
         version: env!("CARGO_PKG_VERSION").into(),
+        host_id: host_id(),
     }
+}
+
+/// This machine, for the coordinator to tell workers that share one:
+/// systemd's machine id, else the host name, else unknown (empty).
+fn host_id() -> String {
+    [
+        "/etc/machine-id",
+        "/var/lib/dbus/machine-id",
+        "/etc/hostname",
+    ]
+    .iter()
+    .filter_map(|p| std::fs::read_to_string(p).ok())
+    .map(|s| s.trim().chars().take(200).collect::<String>())
+    .find(|s| !s.is_empty() && s.chars().all(|c| c.is_ascii_graphic()))
+    .unwrap_or_default()
 }
 
 /// Why a unit's rectangle is refused: its result would not fit one

@@ -363,6 +363,7 @@ impl Farm {
                 threads: w.threads,
                 backend: w.backend,
                 gpu_name: w.gpu_name.clone(),
+                host_id: w.host_id.clone(),
                 version: w.version.clone(),
                 leases: w.leases.len() as u32,
                 units_done: w.units_done,

@@ -43,6 +43,12 @@ const PEAK_MEMORY_SECONDS: f64 = 60.0;
 /// cost per unit (a call, a read-back) is ~0.4 ms on the H200 box, so a
 /// 64x64 tile there (0.4 ms in all) rates it several times too slow.
 const MEASURING_UNIT_SECONDS: f64 = 0.002;
+/// A GPU worker this many times as fast as a CPU worker on its machine
+/// keeps that machine's cores: the CPU worker gets no work while it is
+/// live. On the H200 box (16 vCPUs) the GPU worker alone beside 14 busy
+/// render threads took 1.73x its time on an idle box, while seven CPU
+/// workers there render 2-3% of a frame at its speed.
+const SHARED_HOST_FASTER: f64 = 10.0;
 /// A worker whose best speed is over this many times the asker's, but
 /// measured only on small units, may be faster still: the asker takes one
 /// unit at a time until it is measured.
@@ -133,6 +139,7 @@ impl Farm {
         backend: Backend,
         gpu_name: String,
         version: String,
+        host_id: String,
     ) -> String {
         let mut st = self.state.lock().expect("state lock");
         let id = self.new_id(&mut st, "w");
@@ -145,6 +152,7 @@ impl Farm {
                 backend,
                 gpu_name,
                 version,
+                host_id,
                 last_seen: Instant::now(),
                 leases: HashSet::new(),
                 units_done: 0,
@@ -228,6 +236,7 @@ impl Farm {
         // worker that would finish first is never held back, so not all
         // of them are.
         let best = worker.farm_speed();
+        let (backend, host) = (worker.backend, worker.host_id.clone());
         // A worker's speed is measured on small leases first, where fixed
         // costs (a GPU call, a result message) weigh most: while its last
         // lease took under a quarter of the target, the next may be eight
@@ -266,6 +275,22 @@ impl Farm {
         }
         // Workers silent for two heartbeats may be gone: no work waits for them.
         let live = 2 * self.config.heartbeat_interval;
+        // (Once measured: rated against nothing, any GPU would look ten
+        // times as fast.)
+        if backend == Backend::Cpu
+            && !host.is_empty()
+            && best > 0.0
+            && st.workers.iter().any(|(id, w)| {
+                id.as_str() != worker_id
+                    && w.backend == Backend::Gpu
+                    && w.host_id == host
+                    && w.last_seen.elapsed() < live
+                    && w.ray_speed > 0.0
+                    && w.farm_speed() >= SHARED_HOST_FASTER * best
+            })
+        {
+            return Ok((Vec::new(), false));
+        }
         let others: Vec<(f64, f64)> = st
             .workers
             .iter()

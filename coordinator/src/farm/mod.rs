@@ -196,6 +196,8 @@ pub struct WorkerView {
     pub backend: Backend,
     pub gpu_name: String,
     pub version: String,
+    /// The machine it runs on, as it says (empty: unknown).
+    pub host_id: String,
     pub leases: u32,
     pub units_done: u64,
     /// Units it reported failed, sent malformed or let expire.
@@ -314,6 +316,8 @@ struct Worker {
     backend: Backend,
     gpu_name: String,
     version: String,
+    /// The machine it runs on, as it says (empty: unknown).
+    host_id: String,
     last_seen: Instant,
     leases: HashSet<String>,
     units_done: u64,

@@ -116,12 +116,17 @@ async fn farm_with_job(
 }
 
 fn register(farm: &Farm, name: &str, threads: u32) -> String {
+    register_on(farm, name, threads, Backend::Cpu, "")
+}
+
+fn register_on(farm: &Farm, name: &str, threads: u32, backend: Backend, host: &str) -> String {
     farm.register(
         name.into(),
         threads,
-        tracer_core::render::Backend::Cpu,
+        backend,
         String::new(),
         String::new(),
+        host.into(),
     )
 }
 
@@ -1024,6 +1029,36 @@ async fn a_unit_reported_rendered_rates_its_worker_before_its_result_comes() {
     // The result (its render time said otherwise) does not rate it again.
     farm.submit_result(result(&fast, &f2, 0.5)).await.unwrap();
     assert_eq!(speed_of(&fast).1, 0.0005 * tiles);
+}
+
+/// A CPU worker on the machine of a GPU worker ten times as fast gets no
+/// work while that one is live (its threads would slow the GPU worker's
+/// side of the host by more than they add); a CPU worker elsewhere, or
+/// beside a GPU worker gone silent, does.
+#[tokio::test]
+async fn a_cpu_worker_leaves_its_machine_to_a_much_faster_gpu_worker_there() {
+    let (_dir, farm, _job) = farm_with_job(1024, 256, 4).await;
+    let gpu = register_on(&farm, "gpu", 1, Backend::Gpu, "box-a");
+    let here = register_on(&farm, "cpu-a", 2, Backend::Cpu, "box-a");
+    let there = register_on(&farm, "cpu-b", 2, Backend::Cpu, "box-b");
+    let g1 = farm.lease(&gpu, 1, false).unwrap().remove(0);
+    // Before the GPU worker is measured, both CPU workers take a tile.
+    let h1 = farm.lease(&here, 1, false).unwrap().remove(0);
+    let t1 = farm.lease(&there, 1, false).unwrap().remove(0);
+    farm.submit_result(result(&gpu, &g1, 0.001)).await.unwrap();
+    farm.submit_result(result(&here, &h1, 0.05)).await.unwrap();
+    farm.submit_result(result(&there, &t1, 0.05)).await.unwrap();
+    assert_eq!(farm.lease_or_hold(&here, 1, false).unwrap().0.len(), 0);
+    assert_eq!(farm.lease(&there, 1, false).unwrap().len(), 1);
+    // Gone silent, the GPU worker keeps nothing.
+    farm.state
+        .lock()
+        .unwrap()
+        .workers
+        .get_mut(&gpu)
+        .unwrap()
+        .last_seen -= Duration::from_secs(60);
+    assert_eq!(farm.lease(&here, 1, false).unwrap().len(), 1);
 }
 
 /// Near a job's end a worker is held back for another that would

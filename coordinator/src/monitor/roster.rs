@@ -120,6 +120,7 @@ mod tests {
             backend: tracer_core::render::Backend::Cpu,
             gpu_name: String::new(),
             version: "0".into(),
+            host_id: String::new(),
             leases: 0,
             units_done: 3,
             units_failed: 0,
