@@ -119,6 +119,29 @@ impl Worker {
     }
 }
 
+impl State {
+    /// Whether the CPU worker `worker_id`, at its best speed `best`, gets
+    /// no work because a GPU worker [`SHARED_HOST_FASTER`] times as fast,
+    /// live (seen within `live`), runs on its machine. Only once measured:
+    /// rated against nothing, any GPU would look ten times as fast.
+    fn cedes_machine_to_a_gpu(&self, worker_id: &str, best: f64, live: Duration) -> bool {
+        let Some(me) = self.workers.get(worker_id) else {
+            return false;
+        };
+        me.backend == Backend::Cpu
+            && !me.host_id.is_empty()
+            && best > 0.0
+            && self.workers.iter().any(|(id, w)| {
+                id.as_str() != worker_id
+                    && w.backend == Backend::Gpu
+                    && w.host_id == me.host_id
+                    && w.last_seen.elapsed() < live
+                    && w.ray_speed > 0.0
+                    && w.farm_speed() >= SHARED_HOST_FASTER * best
+            })
+    }
+}
+
 /// The work a lease gets, in expected rays: `want` (the worker's target
 /// seconds of work at its `speed` in rays a second, or its ramp), except
 /// near a job's end. A lease ends by half the farm's remaining time
@@ -236,7 +259,6 @@ impl Farm {
         // worker that would finish first is never held back, so not all
         // of them are.
         let best = worker.farm_speed();
-        let (backend, host) = (worker.backend, worker.host_id.clone());
         // A worker's speed is measured on small leases first, where fixed
         // costs (a GPU call, a result message) weigh most: while its last
         // lease took under a quarter of the target, the next may be eight
@@ -248,6 +270,11 @@ impl Farm {
         } else {
             0.0
         };
+        // Workers silent for two heartbeats may be gone: no work waits for them.
+        let live = 2 * self.config.heartbeat_interval;
+        if st.cedes_machine_to_a_gpu(worker_id, best, live) {
+            return Ok((Vec::new(), false));
+        }
         // Seconds of work each measured worker holds (leases it renders or
         // has queued), at its speed: when it could start something new.
         // One pass over the leases: rays still held by each worker, and
@@ -272,24 +299,6 @@ impl Farm {
                     in_flight_of.insert(l.job.clone(), (left, l.expected_rays));
                 }
             }
-        }
-        // Workers silent for two heartbeats may be gone: no work waits for them.
-        let live = 2 * self.config.heartbeat_interval;
-        // (Once measured: rated against nothing, any GPU would look ten
-        // times as fast.)
-        if backend == Backend::Cpu
-            && !host.is_empty()
-            && best > 0.0
-            && st.workers.iter().any(|(id, w)| {
-                id.as_str() != worker_id
-                    && w.backend == Backend::Gpu
-                    && w.host_id == host
-                    && w.last_seen.elapsed() < live
-                    && w.ray_speed > 0.0
-                    && w.farm_speed() >= SHARED_HOST_FASTER * best
-            })
-        {
-            return Ok((Vec::new(), false));
         }
         let others: Vec<(f64, f64)> = st
             .workers
