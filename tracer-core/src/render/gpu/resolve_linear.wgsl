@@ -33,6 +33,24 @@ struct Sig {
     e: i32,
 }
 
+// The kept 53 bits m (a power of 2: e) rounded to nearest, ties to even,
+// by the dropped bits (the first, and whether any below it is set); a
+// carry out of 53 bits moves to the next binade.
+fn round_sig(m_in: vec2<u32>, e_in: i32, round_bit: bool, sticky: bool) -> Sig {
+    var m = m_in;
+    var e = e_in;
+    if round_up((m.x & 1u) != 0u, round_bit, sticky) {
+        let c = add_carry(m.x, 1u);
+        m = vec2<u32>(c.x, m.y + c.y);
+        if m.y == (1u << 21u) {
+            // Rounded up to 2^53.
+            m = vec2<u32>(0u, 1u << 20u);
+            e += 1;
+        }
+    }
+    return Sig(m, e);
+}
+
 // The u64 sum (lo, hi) != 0 as an f64: exact below 2^53, else rounded.
 fn u64_to_f64(lo: u32, hi: u32) -> Sig {
     var bits: u32;
@@ -56,20 +74,10 @@ fn u64_to_f64(lo: u32, hi: u32) -> Sig {
     }
     // Drop s = bits - 53 bits (1..11, all in the low word).
     let s = bits - 53u;
-    var m = vec2<u32>((lo >> s) | (hi << (32u - s)), hi >> s);
+    let m = vec2<u32>((lo >> s) | (hi << (32u - s)), hi >> s);
     let round_bit = ((lo >> (s - 1u)) & 1u) != 0u;
     let sticky = (lo & ((1u << (s - 1u)) - 1u)) != 0u;
-    var e = i32(s);
-    if round_up((m.x & 1u) != 0u, round_bit, sticky) {
-        let c = add_carry(m.x, 1u);
-        m = vec2<u32>(c.x, m.y + c.y);
-        if m.y == (1u << 21u) {
-            // Rounded up to 2^53: the next binade.
-            m = vec2<u32>(0u, 1u << 20u);
-            e += 1;
-        }
-    }
-    return Sig(m, e);
+    return round_sig(m, i32(s), round_bit, sticky);
 }
 
 // The f64 product a * b of two normalised significands, rounded to 53 bits.
@@ -92,19 +100,10 @@ fn mul_f64(a: Sig, b: Sig) -> Sig {
     // i.e. shift word 1 onwards by r = 20 + top.
     let top = (w3 >> 9u) & 1u;
     let r = 20u + top;
-    var m = vec2<u32>((w1 >> r) | (w2 << (32u - r)), (w2 >> r) | (w3 << (32u - r)));
+    let m = vec2<u32>((w1 >> r) | (w2 << (32u - r)), (w2 >> r) | (w3 << (32u - r)));
     let round_bit = ((w1 >> (r - 1u)) & 1u) != 0u;
     let sticky = w0 != 0u || (w1 & ((1u << (r - 1u)) - 1u)) != 0u;
-    var e = a.e + b.e + 52 + i32(top);
-    if round_up((m.x & 1u) != 0u, round_bit, sticky) {
-        let c = add_carry(m.x, 1u);
-        m = vec2<u32>(c.x, m.y + c.y);
-        if m.y == (1u << 21u) {
-            m = vec2<u32>(0u, 1u << 20u);
-            e += 1;
-        }
-    }
-    return Sig(m, e);
+    return round_sig(m, a.e + b.e + 52 + i32(top), round_bit, sticky);
 }
 
 // The f32 bits of an f64 in the f32 normal range, rounded to 24 bits.
