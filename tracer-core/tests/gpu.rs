@@ -1106,6 +1106,19 @@ fn gpu_progress_reports_every_pixel_sample() {
     assert_eq!(done.into_inner(), 40 * 20 * 2);
 }
 
+/// An example scene's frame as the GPU resolve tests render parts of it:
+/// 64x48, 9 samples, f32.
+fn resolve_test_frame(scene: &str) -> PreparedFrame {
+    let desc = SceneDesc::load(examples_dir().join(scene)).unwrap();
+    let s = RenderSettings {
+        width: 64,
+        height: 48,
+        samples: 9,
+        ..desc.render
+    };
+    PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap()
+}
+
 /// The GPU's own resolve (`render_srgb8`, what `tessera render --backend
 /// gpu` writes to PNG) gives exactly the host's 8-bit sRGB of the film the
 /// same call returns: several scenes (mirrors, glass, meshes), sample
@@ -1142,14 +1155,7 @@ fn gpu_resolve_to_srgb8_equals_the_hosts_bit_for_bit() {
             SampleRange::new(0, 2),
         ),
     ] {
-        let desc = SceneDesc::load(examples_dir().join(scene)).unwrap();
-        let s = RenderSettings {
-            width: 64,
-            height: 48,
-            samples: 9,
-            ..desc.render
-        };
-        let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+        let prepared = resolve_test_frame(scene);
         let film = g.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
         let image = g
             .render_srgb8(&prepared, 0, rect, samples, &|_| {})
@@ -1353,14 +1359,7 @@ fn gpu_resolve_to_linear_equals_the_hosts_bit_for_bit() {
             SampleRange::new(0, 1),
         ),
     ] {
-        let desc = SceneDesc::load(examples_dir().join(scene)).unwrap();
-        let s = RenderSettings {
-            width: 64,
-            height: 48,
-            samples: 9,
-            ..desc.render
-        };
-        let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+        let prepared = resolve_test_frame(scene);
         let film = g.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
         let image = g
             .render_linear(&prepared, 0, rect, samples, &|_| {})
