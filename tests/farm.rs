@@ -2197,6 +2197,14 @@ fn json_output_and_plain_progress_lines_for_scripts() {
         (Some("w"), Some("cpu"))
     );
     assert_eq!(w["threads"], 1);
+    // The machine the worker runs on, as it reads it (the coordinator uses
+    // it to tell workers that share a machine).
+    // systemd's machine id where there is one, else the host name.
+    let host = w["host_id"].as_str().expect("host_id");
+    match std::fs::read_to_string("/etc/machine-id") {
+        Ok(id) if !id.trim().is_empty() => assert_eq!(host, id.trim()),
+        _ => assert!(!host.is_empty()),
+    }
 }
 
 /// The submits that used to abort the coordinator (and abort it again at

@@ -633,9 +633,10 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
             return Ok(ExitCode::SUCCESS);
         }
         outln!(
-            "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12} {:>9}",
+            "{:<20} {:<20} {:<12} {:<7} {:>7} {:>6} {:>8} {:>12} {:>9}",
             "ID",
             "NAME",
+            "HOST",
             "BACKEND",
             "THREADS",
             "LEASES",
@@ -646,10 +647,13 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
         for w in ws {
             let c = w.capabilities.unwrap_or_default();
             let backend = super::output::backend_name(c.backend);
+            // Machine ids are 32 hex digits; 12 tell a farm's hosts apart.
+            let host: String = printable(&c.host_id).chars().take(12).collect();
             outln!(
-                "{:<20} {:<20} {:<7} {:>7} {:>6} {:>8} {:>12.2} {:>9.2}",
+                "{:<20} {:<20} {:<12} {:<7} {:>7} {:>6} {:>8} {:>12.2} {:>9.2}",
                 w.worker_id,
                 printable(&w.name),
+                if host.is_empty() { "-" } else { &host },
                 backend,
                 c.threads,
                 w.leases,

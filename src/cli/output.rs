@@ -104,6 +104,7 @@ pub fn worker_json(w: &pb::WorkerInfo) -> Value {
         "backend": backend_name(c.backend),
         "gpu": (!c.gpu_name.is_empty()).then_some(&c.gpu_name),
         "threads": c.threads,
+        "host_id": (!c.host_id.is_empty()).then_some(&c.host_id),
         "version": c.version,
         "leases": w.leases,
         "units_done": w.units_done,
