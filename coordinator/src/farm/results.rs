@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use tracer_core::film::{FIXED_ONE, MAX_SAMPLE_VALUE, Rect};
 
-use crate::store::{Counters, JobRecord, Op};
+use crate::store::{Counters, EncodedFilm, JobRecord, Op, StoredFilm};
 
 use super::frames::{Merge, new_frame_film};
 use super::{Farm, FarmError, Lease, Outcome, ResultData, State, adaptive, now_ms};
@@ -81,36 +81,74 @@ impl Farm {
             }
         }
         // A result's film is stored as one record for all its units, in
-        // the bytes it came in (outside the lock).
+        // the bytes it came in (outside the lock); a large one is written
+        // to its own file first, on the blocking pool.
         let encode_start = Instant::now();
         let pixels: usize = taken.iter().map(|(r, _)| r.rect.area()).sum();
-        for (r, t) in &mut taken {
-            let film = r.film.as_ref().expect("validated");
-            let bytes = match r.packed.take() {
-                Some(p) => {
-                    crate::store::EncodedFilm::new(film.rect, film.rays, film.nonfinite, p, None)
+        let films: Vec<(String, u32, EncodedFilm)> = taken
+            .iter_mut()
+            .map(|(r, t)| {
+                let film = r.film.as_ref().expect("validated");
+                let bytes = match r.packed.take() {
+                    Some(p) => EncodedFilm::new(film.rect, film.rays, film.nonfinite, p, None),
+                    None => EncodedFilm::of_film(film),
+                };
+                (t.job.clone(), t.units[0], bytes)
+            })
+            .collect();
+        let store_films = move |farm: &Farm, films: Vec<(String, u32, EncodedFilm)>| {
+            let mut stored = Vec::with_capacity(films.len());
+            for (job, first_unit, film) in films {
+                match farm.store.store_film(&job, first_unit, film) {
+                    Ok(f) => stored.push(f),
+                    Err(e) => {
+                        farm.store
+                            .discard_films(stored.iter().filter_map(StoredFilm::file_reference));
+                        return Err(e);
+                    }
                 }
-                None => crate::store::EncodedFilm::of_film(film),
-            };
-            let rays = [
-                film.rays.primary,
-                film.rays.shadow,
-                film.rays.reflection,
-                film.rays.refraction,
-            ];
-            ops.push(Op::AcceptUnits {
-                job: t.job.clone(),
-                first_unit: t.units[0],
-                film: bytes,
-                units: t.units.len() as u64,
-                rays,
-            });
-        }
-        let commit_start = Instant::now();
-        let write = if ops.is_empty() {
-            Ok(())
+            }
+            Ok(stored)
+        };
+        // Small films only: nothing to write before the commit.
+        let stored = if films.iter().any(|(_, _, f)| self.store.keeps_in_file(f)) {
+            let farm = self.clone();
+            tokio::task::spawn_blocking(move || store_films(&farm, films))
+                .await
+                .map_err(|e| FarmError::Internal(format!("film write failed: {e}")))?
         } else {
-            self.store.write(ops).await
+            store_films(&self, films)
+        };
+        let commit_start = Instant::now();
+        let write = match stored {
+            Err(e) => Err(e),
+            Ok(stored) => {
+                // The films in files, removed again if the commit fails.
+                let files: Vec<Vec<u8>> = stored
+                    .iter()
+                    .filter_map(StoredFilm::file_reference)
+                    .map(<[u8]>::to_vec)
+                    .collect();
+                for ((r, t), film) in taken.iter().zip(stored) {
+                    let rays = r.film.as_ref().expect("validated").rays;
+                    ops.push(Op::AcceptUnits {
+                        job: t.job.clone(),
+                        first_unit: t.units[0],
+                        film,
+                        units: t.units.len() as u64,
+                        rays: [rays.primary, rays.shadow, rays.reflection, rays.refraction],
+                    });
+                }
+                let w = if ops.is_empty() {
+                    Ok(())
+                } else {
+                    self.store.write(ops).await
+                };
+                if w.is_err() {
+                    self.store.discard_films(files.iter().map(Vec::as_slice));
+                }
+                w
+            }
         };
         let merge_start = Instant::now();
         let mut to_write = Vec::new();

@@ -190,6 +190,37 @@ async fn a_result_whose_commit_fails_is_accepted_when_sent_again() {
     );
 }
 
+/// Results whose films go to files of their own (a GPU worker's, a
+/// megabyte or more: here every film) are recorded like any other; the
+/// files go once their frame is written. A result whose commit fails
+/// leaves no file behind.
+#[tokio::test]
+async fn films_kept_in_files_are_removed_with_their_frame() {
+    let (dir, farm, job) = farm_with_job(32, 16, 1).await;
+    farm.store.set_min_file_film(1);
+    let films_dir = dir.path().join("tessera.films");
+    let files = || std::fs::read_dir(&films_dir).unwrap().count();
+    let w = register(&farm, "w", 1);
+    let a = farm.lease(&w, 1, false).unwrap().remove(0);
+    farm.store
+        .fail_commits(|op| matches!(op, Op::AcceptUnits { .. }), 1);
+    assert!(farm.submit_result(result(&w, &a, 0.01)).await.is_err());
+    assert_eq!(files(), 0, "the failed commit's file is removed");
+    assert_eq!(
+        farm.submit_result(result(&w, &a, 0.01)).await.unwrap(),
+        Outcome::Accepted
+    );
+    assert_eq!(files(), 1);
+    let b = farm.lease(&w, 1, false).unwrap().remove(0);
+    assert_eq!(
+        farm.submit_result(result(&w, &b, 0.01)).await.unwrap(),
+        Outcome::Accepted
+    );
+    let v = wait_done(&farm, &job).await;
+    assert_eq!(v.frames, vec![(0, 2, 2, Some(frame_file_name(0)))]);
+    assert_eq!(files(), 0, "gone with the frame's record");
+}
+
 /// The image of a finished frame is written but recording that fails:
 /// the record is retried and the job finishes. (Before the fix the job
 /// stayed short of Done until a restart.)

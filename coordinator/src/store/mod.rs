@@ -1,5 +1,7 @@
 //! Durable state in redb: job specs, assets (content-addressed), finished
-//! units' films, written frames and per-job counters.
+//! units' films, written frames and per-job counters. Films of a megabyte
+//! or more are kept in files of their own, the database holding a
+//! reference ([`film_files`]).
 //!
 //! Invariant: a unit is finished iff a film in `UNIT_FILMS` covers it or its
 //! whole frame is in `FRAMES_WRITTEN`. A result's film is stored as it came
@@ -18,7 +20,9 @@
 //! or a state change (those commit durably, taking any results before them
 //! along); the lost units are simply pending again after the restart.
 
-use std::collections::BTreeMap;
+mod film_files;
+
+use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, RwLock, mpsc};
@@ -39,7 +43,8 @@ const COUNTERS: TableDefinition<&str, &[u8]> = TableDefinition::new("counters");
 /// sha256 hex -> file content: where releases before the asset store
 /// (`crate::assets`) kept job files; read only, for their jobs.
 const ASSETS: TableDefinition<&str, &[u8]> = TableDefinition::new("assets");
-/// (job id, unit index) -> encoded film of the finished unit
+/// (job id, unit index) -> encoded film of the finished unit, or a
+/// reference to the file that holds it ([`film_files`])
 const UNIT_FILMS: TableDefinition<(&str, u32), &[u8]> = TableDefinition::new("unit_films");
 /// Scratch space the writer's health probe writes and removes.
 const PROBE: TableDefinition<&str, &[u8]> = TableDefinition::new("probe");
@@ -185,11 +190,11 @@ pub enum Op {
     /// A result: its film, keyed by the first of the `units` units it
     /// covers, and the job's accepted count and rays incremented with them.
     /// The film comes encoded ([`EncodedFilm`]) so that the writer thread
-    /// only copies bytes, once, into the database.
+    /// only copies bytes, once, into the database, or already in its file.
     AcceptUnits {
         job: String,
         first_unit: u32,
-        film: EncodedFilm,
+        film: StoredFilm,
         units: u64,
         rays: [u64; 4],
     },
@@ -210,6 +215,36 @@ impl Op {
     /// again). Every other op is durable when its commit returns.
     pub fn is_result(&self) -> bool {
         matches!(self, Op::AcceptUnits { .. } | Op::PutCounters { .. })
+    }
+
+    /// Bytes of the films this op stores in the database.
+    fn film_bytes(&self) -> usize {
+        match self {
+            Op::AcceptUnits {
+                film: StoredFilm::Inline(film),
+                ..
+            } => film.len(),
+            _ => 0,
+        }
+    }
+}
+
+/// A result's film as [`Op::AcceptUnits`] stores it.
+#[derive(Debug)]
+pub enum StoredFilm {
+    /// In the database record itself.
+    Inline(EncodedFilm),
+    /// Already in a file of its own, synced; the record is this reference.
+    File(Vec<u8>),
+}
+
+impl StoredFilm {
+    /// The reference of a film in a file.
+    pub fn file_reference(&self) -> Option<&[u8]> {
+        match self {
+            StoredFilm::File(r) => Some(r),
+            StoredFilm::Inline(_) => None,
+        }
     }
 }
 
@@ -253,6 +288,7 @@ impl StorageHealth {
 /// Handle to the database: reads directly, writes through the writer thread.
 pub struct Store {
     db: Shared,
+    films: Arc<film_files::FilmFiles>,
     tx: mpsc::Sender<Request>,
     pub health: Arc<StorageHealth>,
     // Set only by tests (`fail_commits`); the writer thread reads its clone.
@@ -276,6 +312,8 @@ pub struct Snapshot {
 }
 
 impl Store {
+    /// The database at `path`, its large films in the directory beside
+    /// it (`path` with the extension `films`).
     pub fn open(path: &Path) -> Result<Self, StoreError> {
         let db = Database::create(path)?;
         let path = path.to_owned();
@@ -289,6 +327,25 @@ impl Store {
             w.open_table(FRAMES_WRITTEN)?;
             w.commit()?;
         }
+        let films_dir = path.with_extension("films");
+        let films = film_files::FilmFiles::open(&films_dir).map_err(|e| StoreError::Corrupt {
+            what: format!("film directory {}", films_dir.display()),
+            message: e.to_string(),
+        })?;
+        {
+            // Files of results whose commit failed or was lost in a crash.
+            let r = db.begin_read()?;
+            let mut keep = HashSet::new();
+            for entry in r.open_table(UNIT_FILMS)?.iter()? {
+                let (_, v) = entry?;
+                keep.extend(film_files::FilmFiles::name_of(v.value()).map(str::to_owned));
+            }
+            let removed = films.sweep(&keep);
+            if removed > 0 {
+                tracing::info!(files = removed, dir = %films_dir.display(), "removed film files of results never recorded");
+            }
+        }
+        let films = Arc::new(films);
         let db: Shared = Arc::new(RwLock::new(Some(Arc::new(db))));
         let (tx, rx) = mpsc::channel::<Request>();
         let wdb = db.clone();
@@ -296,19 +353,75 @@ impl Store {
         let wfaults = faults.clone();
         let health = Arc::new(StorageHealth::default());
         let whealth = health.clone();
+        let wfilms = films.clone();
         std::thread::Builder::new()
             .name("tessera-db-writer".into())
-            .spawn(move || writer(&wdb, &path, rx, &wfaults, &whealth))
+            .spawn(move || writer(&wdb, &path, rx, &wfaults, &whealth, &wfilms))
             .map_err(|e| StoreError::Corrupt {
                 what: "writer thread".into(),
                 message: e.to_string(),
             })?;
         Ok(Store {
             db,
+            films,
             tx,
             health,
             faults,
         })
+    }
+
+    /// Whether `film` is kept in a file of its own ([`Store::store_film`]
+    /// writes it there).
+    pub fn keeps_in_file(&self, film: &EncodedFilm) -> bool {
+        self.films.wants(film)
+    }
+
+    /// `film` as [`Op::AcceptUnits`] stores it: a large one is written to
+    /// its file now (blocking: call it off the async threads), and a
+    /// failure to write it is a storage outage like a failed commit.
+    pub fn store_film(
+        &self,
+        job: &str,
+        first_unit: u32,
+        film: EncodedFilm,
+    ) -> Result<StoredFilm, StoreError> {
+        if !self.films.wants(&film) {
+            return Ok(StoredFilm::Inline(film));
+        }
+        if !self.health.ok() {
+            return Err(StoreError::Commit(self.health.last_error()));
+        }
+        self.films
+            .write(job, first_unit, &film)
+            .map(StoredFilm::File)
+            .map_err(|e| {
+                self.health.fail(&e);
+                // Wake the writer, which heals a failing store (it may be
+                // waiting for a request that a failing store never gets).
+                let (reply, _) = oneshot::channel();
+                let _ = self.tx.send(Request {
+                    ops: Vec::new(),
+                    durable: false,
+                    reply,
+                });
+                StoreError::Commit(e)
+            })
+    }
+
+    /// Removes the files of films whose commit failed (their references,
+    /// [`StoredFilm::file_reference`]).
+    pub fn discard_films<'a>(&self, references: impl IntoIterator<Item = &'a [u8]>) {
+        self.films.remove(
+            references
+                .into_iter()
+                .filter_map(film_files::FilmFiles::name_of),
+        );
+    }
+
+    /// Films of `len` bytes or more go to files (tests of the file path).
+    #[cfg(test)]
+    pub(crate) fn set_min_file_film(&self, len: usize) {
+        self.films.set_min_len(len);
     }
 
     /// The open database, for a read.
@@ -397,10 +510,16 @@ impl Store {
         for entry in films.iter()? {
             let (k, v) = entry?;
             let (job, unit) = k.value();
-            let film = decode_film(v.value()).map_err(|message| StoreError::Corrupt {
+            let corrupt = |message| StoreError::Corrupt {
                 what: format!("film of unit {unit} of {job}"),
                 message,
-            })?;
+            };
+            let film = if film_files::FilmFiles::is_reference(v.value()) {
+                decode_film(&self.films.read(v.value()).map_err(corrupt)?)
+            } else {
+                decode_film(v.value())
+            }
+            .map_err(corrupt)?;
             snap.unit_films
                 .entry(job.to_string())
                 .or_default()
@@ -438,6 +557,7 @@ fn writer(
     rx: mpsc::Receiver<Request>,
     faults: &Faults,
     health: &StorageHealth,
+    films: &film_files::FilmFiles,
 ) {
     // When the oldest commit not yet durable was made.
     let mut unsynced: Option<Instant> = None;
@@ -447,12 +567,12 @@ fn writer(
             match rx.recv_timeout(wait) {
                 Ok(r) => r,
                 Err(mpsc::RecvTimeoutError::Timeout) => {
-                    sync(db, health);
+                    sync(db, health, films);
                     unsynced = None;
                     continue;
                 }
                 Err(mpsc::RecvTimeoutError::Disconnected) => {
-                    sync(db, health);
+                    sync(db, health, films);
                     return;
                 }
             }
@@ -497,17 +617,28 @@ fn writer(
                 };
                 let start = Instant::now();
                 let r = match current {
-                    Some(d) => commit(&d, batch.iter().flat_map(|r| r.ops.iter()), durability)
-                        .map_err(|e| e.to_string()),
+                    Some(d) => commit(
+                        &d,
+                        batch.iter().flat_map(|r| r.ops.iter()),
+                        durability,
+                        films,
+                    )
+                    .map_err(|e| e.to_string()),
                     None => Err(health.last_error()),
                 };
-                if durable {
-                    tracing::debug!(
-                        requests = batch.len(),
-                        commit_ms = start.elapsed().as_secs_f64() * 1e3,
-                        "durable commit"
-                    );
-                }
+                // Every commit, for the writer's busy time (one thread: the
+                // bound on how fast results can be taken in).
+                tracing::debug!(
+                    requests = batch.len(),
+                    film_bytes = batch
+                        .iter()
+                        .flat_map(|r| r.ops.iter())
+                        .map(Op::film_bytes)
+                        .sum::<usize>(),
+                    durable,
+                    commit_ms = start.elapsed().as_secs_f64() * 1e3,
+                    "commit"
+                );
                 match &r {
                     Ok(()) => health.recover(),
                     Err(e) => health.fail(e),
@@ -591,11 +722,13 @@ fn injected_fault(faults: &Faults, batch: &[Request]) -> Option<String> {
 }
 
 /// Makes every commit so far durable (an empty durable commit).
-fn sync(db: &Shared, health: &StorageHealth) {
+fn sync(db: &Shared, health: &StorageHealth, films: &film_files::FilmFiles) {
     let start = Instant::now();
     let current = db.read().expect("db lock").clone();
     let r = match current {
-        Some(d) => commit(&d, std::iter::empty(), Durability::Immediate).map_err(|e| e.to_string()),
+        Some(d) => {
+            commit(&d, std::iter::empty(), Durability::Immediate, films).map_err(|e| e.to_string())
+        }
         None => Err(health.last_error()),
     };
     tracing::debug!(
@@ -608,11 +741,20 @@ fn sync(db: &Shared, health: &StorageHealth) {
     }
 }
 
+/// Commits `ops` in one transaction; then removes the film files whose
+/// references it dropped.
 fn commit<'a>(
     db: &Database,
     ops: impl Iterator<Item = &'a Op>,
     durability: Durability,
+    film_files: &film_files::FilmFiles,
 ) -> Result<(), StoreError> {
+    // Files of the films this commit drops.
+    let mut dropped: Vec<String> = Vec::new();
+    let mut drop_film = |v: &[u8]| {
+        dropped.extend(film_files::FilmFiles::name_of(v).map(str::to_owned));
+        false
+    };
     let mut w = db.begin_write()?;
     w.set_durability(durability)
         .map_err(|e| StoreError::Commit(e.to_string()))?;
@@ -639,9 +781,16 @@ fn commit<'a>(
                     units,
                     rays,
                 } => {
-                    let mut value =
-                        films.insert_reserve((job.as_str(), *first_unit), film.len())?;
-                    film.write_to(value.as_mut());
+                    match film {
+                        StoredFilm::Inline(film) => {
+                            let mut value =
+                                films.insert_reserve((job.as_str(), *first_unit), film.len())?;
+                            film.write_to(value.as_mut());
+                        }
+                        StoredFilm::File(reference) => {
+                            films.insert((job.as_str(), *first_unit), reference.as_slice())?;
+                        }
+                    }
                     let u = updates.entry(job.as_str()).or_default();
                     u.1 += units;
                     for (a, b) in u.2.iter_mut().zip(rays) {
@@ -652,7 +801,7 @@ fn commit<'a>(
                     jobs.remove(job.as_str())?;
                     counters.remove(job.as_str())?;
                     let j = job.as_str();
-                    films.retain_in((j, 0)..=(j, u32::MAX), |_, _| false)?;
+                    films.retain_in((j, 0)..=(j, u32::MAX), |_, v| drop_film(v))?;
                     frames.retain_in((j, 0)..=(j, u32::MAX), |_, _| false)?;
                 }
                 Op::FrameWritten {
@@ -664,7 +813,7 @@ fn commit<'a>(
                     frames.insert((job.as_str(), *frame), file.as_str())?;
                     // Every film of the frame is keyed by one of its units.
                     let j = job.as_str();
-                    films.retain_in((j, units.start)..(j, units.end), |_, _| false)?;
+                    films.retain_in((j, units.start)..(j, units.end), |_, v| drop_film(v))?;
                 }
             }
         }
@@ -686,6 +835,8 @@ fn commit<'a>(
         }
     }
     w.commit()?;
+    // Only ops that commit durably drop films (they are not results).
+    film_files.remove(dropped.iter().map(String::as_str));
     Ok(())
 }
 
@@ -806,15 +957,20 @@ impl EncodedFilm {
         self.len() == 0
     }
 
-    /// Writes the encoded film into `out`, which is [`EncodedFilm::len`] long.
-    pub fn write_to(&self, out: &mut [u8]) {
-        let mut at = 0;
-        for part in [
-            &self.header[..],
+    /// The encoded film's bytes, in four parts.
+    pub fn parts(&self) -> [&[u8]; 4] {
+        [
+            &self.header,
             &self.packed.sums,
             &self.packed.counts,
             &self.squares,
-        ] {
+        ]
+    }
+
+    /// Writes the encoded film into `out`, which is [`EncodedFilm::len`] long.
+    pub fn write_to(&self, out: &mut [u8]) {
+        let mut at = 0;
+        for part in self.parts() {
             out[at..at + part.len()].copy_from_slice(part);
             at += part.len();
         }
@@ -1025,6 +1181,132 @@ mod tests {
         // A uniform film's bytes do not change.
         assert!(encode_film(&film()).starts_with(&COMPACT_MAGIC));
         assert!(decode_film(&b[..b.len() - 1]).is_err());
+    }
+
+    fn block_on<F: std::future::Future>(f: F) -> F::Output {
+        tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap()
+            .block_on(f)
+    }
+
+    /// The store at `path` once its previous handle's writer let go of it.
+    fn reopen(path: &Path) -> Store {
+        let start = Instant::now();
+        loop {
+            match Store::open(path) {
+                Ok(s) => return s,
+                Err(e) if start.elapsed() < Duration::from_secs(5) => {
+                    let _ = e;
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+                Err(e) => panic!("{e}"),
+            }
+        }
+    }
+
+    fn film_files_in(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        names.sort();
+        names
+    }
+
+    fn accept(job: &str, first_unit: u32, film: StoredFilm) -> Op {
+        Op::AcceptUnits {
+            job: job.into(),
+            first_unit,
+            film,
+            units: 1,
+            rays: [1, 2, 3, 4],
+        }
+    }
+
+    /// A large film lives in a file of its own: it loads after a restart,
+    /// its file goes with its frame's record, and a file no record names
+    /// (a result whose commit was lost) is removed at open.
+    #[test]
+    fn a_large_film_is_kept_in_a_file_until_its_frame_is_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.redb");
+        let films_dir = dir.path().join("t.films");
+        let store = Store::open(&path).unwrap();
+        store.set_min_file_film(1);
+        let stored = store
+            .store_film("j1", 0, EncodedFilm::of_film(&film()))
+            .unwrap();
+        assert!(matches!(stored, StoredFilm::File(_)), "{stored:?}");
+        let small = Store::open(&dir.path().join("u.redb")).unwrap();
+        assert!(
+            matches!(
+                small.store_film("j1", 0, EncodedFilm::of_film(&film())),
+                Ok(StoredFilm::Inline(_))
+            ),
+            "below a megabyte a film stays in the database"
+        );
+        block_on(store.write(vec![accept("j1", 0, stored)])).unwrap();
+        block_on(store.sync()).unwrap();
+        let [kept] = &film_files_in(&films_dir)[..] else {
+            panic!("{:?}", film_files_in(&films_dir));
+        };
+        let kept = kept.clone();
+        std::fs::write(films_dir.join("j1-1-00.film"), b"never recorded").unwrap();
+        drop(store);
+
+        let store = reopen(&path);
+        assert_eq!(film_files_in(&films_dir), [kept]);
+        let snap = store.load().unwrap();
+        assert_eq!(snap.unit_films["j1"], [(0, film())]);
+        block_on(store.write(vec![Op::FrameWritten {
+            job: "j1".into(),
+            frame: 0,
+            file: "frame_0000.png".into(),
+            units: 0..1,
+        }]))
+        .unwrap();
+        assert_eq!(film_files_in(&films_dir), Vec::<String>::new());
+        assert!(store.load().unwrap().unit_films.is_empty());
+    }
+
+    /// A film that cannot be written (here its directory is a file) is a
+    /// storage outage like a failed commit: refused with the path named,
+    /// nothing left behind, and over once writes succeed again.
+    #[test]
+    fn a_film_that_cannot_be_written_is_an_outage_that_heals() {
+        let dir = tempfile::tempdir().unwrap();
+        let films_dir = dir.path().join("t.films");
+        let store = Store::open(&dir.path().join("t.redb")).unwrap();
+        store.set_min_file_film(1);
+        std::fs::remove_dir(&films_dir).unwrap();
+        std::fs::write(&films_dir, b"in the way").unwrap();
+        let e = store
+            .store_film("j1", 0, EncodedFilm::of_film(&film()))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with(&format!(
+                "cannot write the database: cannot write the film {}/j1-0-",
+                films_dir.display()
+            )),
+            "{e}"
+        );
+        assert!(!store.health.ok());
+        std::fs::remove_file(&films_dir).unwrap();
+        std::fs::create_dir(&films_dir).unwrap();
+        let start = Instant::now();
+        while !store.health.ok() {
+            assert!(start.elapsed() < Duration::from_secs(10), "never healed");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let stored = store
+            .store_film("j1", 0, EncodedFilm::of_film(&film()))
+            .unwrap();
+        block_on(store.write(vec![accept("j1", 0, stored)])).unwrap();
+        assert_eq!(store.load().unwrap().unit_films["j1"], [(0, film())]);
+        assert_eq!(film_files_in(&films_dir).len(), 1);
     }
 
     #[test]
