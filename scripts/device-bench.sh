@@ -10,7 +10,8 @@
 # --repeat 5` between whole `tessera render --threads 2` processes, to tell
 # the farm's cost from a process's. `farm-gpu` (~1 min): the GPU worker
 # alone and beside 7 CPU workers with the coordinator's and workers' debug
-# logs and their timelines.
+# logs, their timelines and the store writer's busy time per job
+# (scripts/writer-busy.py).
 #
 # `adaptive` (issue 17; not in the default) runs `tessera bench adaptive`
 # on the scenes in $ADAPTIVE_SCENES (default distributed; one scene a
@@ -174,6 +175,7 @@ for r in /tmp/bench-g/farm/run-gpu*.coordinator.log; do
   echo "== timeline of ${run##*/}"
   python3 scripts/farm-timeline.py "$run".worker-*.log 2>&1 | head -20
 done >> "$OUT/farm-gpu.txt"
+for r in /tmp/bench-g/farm/run-gpu*.coordinator.log; do python3 scripts/writer-busy.py "$r"; done >> "$OUT/farm-gpu.txt" 2>&1
 if [ -x .gpu/xfer ]; then
   for w in 8388608 33554432; do echo "== xfer, stream window $w, server without nodelay"; WIN=$w .gpu/xfer | tail -8; echo "== xfer, stream window $w, server with nodelay"; NODELAY=1 WIN=$w .gpu/xfer | tail -8; done >> "$OUT/farm-gpu.txt" 2>&1
 fi
