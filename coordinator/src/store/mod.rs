@@ -443,28 +443,22 @@ impl Store {
     /// committed: durable at once, or within [`RESULTS_DURABLE_WITHIN`] if
     /// `ops` only accept results and count ([`Op::is_result`]).
     pub async fn write(&self, ops: Vec<Op>) -> Result<(), StoreError> {
-        let (reply, rx) = oneshot::channel();
-        self.tx
-            .send(Request {
-                ops,
-                durable: false,
-                reply,
-            })
-            .map_err(|_| StoreError::WriterGone)?;
-        rx.await
-            .map_err(|_| StoreError::WriterGone)?
-            .map_err(StoreError::Commit)
+        self.request(ops, false).await
     }
 
     /// Makes every commit so far durable: the results of the last
     /// [`RESULTS_DURABLE_WITHIN`] too (a coordinator stopping on purpose
     /// keeps them).
     pub async fn sync(&self) -> Result<(), StoreError> {
+        self.request(Vec::new(), true).await
+    }
+
+    async fn request(&self, ops: Vec<Op>, durable: bool) -> Result<(), StoreError> {
         let (reply, rx) = oneshot::channel();
         self.tx
             .send(Request {
-                ops: Vec::new(),
-                durable: true,
+                ops,
+                durable,
                 reply,
             })
             .map_err(|_| StoreError::WriterGone)?;
