@@ -96,7 +96,7 @@ impl Farm {
                 (t.job.clone(), t.units[0], bytes)
             })
             .collect();
-        let store_films = move |farm: &Farm, films: Vec<(String, u32, EncodedFilm)>| {
+        let store_films = |farm: &Farm, films: Vec<(String, u32, EncodedFilm)>| {
             let mut stored = Vec::with_capacity(films.len());
             for (job, first_unit, film) in films {
                 match farm.store.store_film(&job, first_unit, film) {
