@@ -659,6 +659,55 @@ fn a_coordinator_killed_mid_job_resumes_without_rendering_finished_units_again()
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 
+/// Results of a megabyte or more (a GPU worker's, here a CPU worker's in
+/// 512x256 tiles) are kept in files beside the database: they survive a
+/// coordinator killed mid-frame as the database's do, none is rendered
+/// twice, and their files are gone once the frame is written.
+#[test]
+fn a_coordinator_killed_mid_frame_keeps_the_results_it_stored_in_files() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
+    let addr = c.addr.clone();
+    let url = c.url();
+    let _w = start_worker(dir.path(), &url, "w");
+    let scene = repo("examples/resolution.toml");
+    let settings = ["--width", "512", "--height", "256", "--samples", "64"];
+    let mut args = settings.to_vec();
+    args.extend(["--samples-per-unit", "1", "--tile-size", "512"]);
+    let job = submit(&url, &scene, &args);
+    let films = dir.path().join("data/tessera.films");
+    let film_files = || std::fs::read_dir(&films).map_or(0, |d| d.count());
+    let mut before = 0;
+    wait_for("some units", Duration::from_secs(60), || {
+        before = status(&url, &job).units_done;
+        before >= 6
+    });
+    std::thread::sleep(Duration::from_millis(400));
+    c.proc.sigkill();
+    // (A lease may join several sample batches of the tile: a file each.)
+    assert!(film_files() > 0, "the results are in files");
+    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
+    let restored = status(&url, &job);
+    assert!(
+        restored.units_done >= before && restored.units_done < 64,
+        "restored {} finished units of 64, {before} were reported before the kill",
+        restored.units_done
+    );
+    let s = wait_done(&url, &job, Duration::from_secs(120));
+    assert_eq!(
+        (s.units_accepted, s.units_total, s.results_duplicate),
+        (64, 64, 0)
+    );
+    wait_for(
+        "the frame's record to take its films' files",
+        Duration::from_secs(10),
+        || film_files() == 0,
+    );
+    assert_frames_match_render(dir.path(), &url, &job, &scene, 0..=0, &settings);
+    drop(c);
+}
+
 /// A coordinator stopped on purpose (SIGTERM) makes its last results
 /// durable before it exits (they otherwise wait up to 250 ms for their
 /// fsync): every unit reported done, even just before the stop, is still

@@ -551,7 +551,7 @@ fn writer(
     rx: mpsc::Receiver<Request>,
     faults: &Faults,
     health: &StorageHealth,
-    films: &film_files::FilmFiles,
+    films: &Arc<film_files::FilmFiles>,
 ) {
     // When the oldest commit not yet durable was made.
     let mut unsynced: Option<Instant> = None;
@@ -716,7 +716,7 @@ fn injected_fault(faults: &Faults, batch: &[Request]) -> Option<String> {
 }
 
 /// Makes every commit so far durable (an empty durable commit).
-fn sync(db: &Shared, health: &StorageHealth, films: &film_files::FilmFiles) {
+fn sync(db: &Shared, health: &StorageHealth, films: &Arc<film_files::FilmFiles>) {
     let start = Instant::now();
     let current = db.read().expect("db lock").clone();
     let r = match current {
@@ -741,7 +741,7 @@ fn commit<'a>(
     db: &Database,
     ops: impl Iterator<Item = &'a Op>,
     durability: Durability,
-    film_files: &film_files::FilmFiles,
+    film_files: &Arc<film_files::FilmFiles>,
 ) -> Result<(), StoreError> {
     // Files of the films this commit drops.
     let mut dropped: Vec<String> = Vec::new();
@@ -830,7 +830,19 @@ fn commit<'a>(
     }
     w.commit()?;
     // Only ops that commit durably drop films (they are not results).
-    film_files.remove(dropped.iter().map(String::as_str));
+    if !dropped.is_empty() {
+        // Unlinking a frame's tens of megabytes takes milliseconds, which
+        // would hold up the next commits: a thread of its own does it.
+        let files = film_files.clone();
+        let remove = move || files.remove(dropped.iter().map(String::as_str));
+        if let Err(e) = std::thread::Builder::new()
+            .name("tessera-film-remover".into())
+            .spawn(remove.clone())
+        {
+            tracing::warn!(error = %e, "no thread to remove film files: removing them here");
+            remove();
+        }
+    }
     Ok(())
 }
 
@@ -1261,8 +1273,13 @@ mod tests {
             units: 0..1,
         }]))
         .unwrap();
-        assert_eq!(film_files_in(&films_dir), Vec::<String>::new());
         assert!(store.load().unwrap().unit_films.is_empty());
+        // (Removed on a thread of its own, after the commit.)
+        let start = Instant::now();
+        while !film_files_in(&films_dir).is_empty() {
+            assert!(start.elapsed() < Duration::from_secs(5), "file not removed");
+            std::thread::sleep(Duration::from_millis(5));
+        }
     }
 
     /// A film that cannot be written (here its directory is a file) is a
