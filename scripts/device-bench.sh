@@ -182,6 +182,9 @@ fi
 tar czf "$OUT/farm-gpu-logs.tar.gz" -C /tmp/bench-g/farm --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' . 2>/dev/null
 fi
 if has farm; then
+# The box: calls start fresh boxes that differ (a 2-thread render of the
+# same frame took 2.9-6.4 s), so farm figures compare within one call.
+{ nproc; grep -m1 'model name' /proc/cpuinfo; uptime; nvidia-smi --query-gpu=name,driver_version --format=csv,noheader; } > "$OUT/farm-machine.txt" 2>&1
 echo "== farm: tessera bench farm (CPU workers against the machine's ceiling, 1 GPU worker alone and beside 7 CPU workers)"
 timeout 400 "$T" bench farm --workers 1,2,4,8 --worker-threads 2 --gpu-workers 1 --mixed-cpu-workers 7 --repeat 5 \
   --out /tmp/bench --cache /tmp/bench-cache > "$OUT/farm-suite.txt" 2>&1
