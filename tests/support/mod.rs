@@ -33,12 +33,16 @@ impl Proc {
         self.child.wait().expect("reap");
     }
     pub fn sigterm(&self) {
+        self.signal("TERM");
+    }
+    /// Sends the signal `name` (TERM, STOP, CONT, ...).
+    pub fn signal(&self, name: &str) {
         let ok = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
+            .args([&format!("-{name}"), &self.child.id().to_string()])
             .status()
             .expect("kill")
             .success();
-        assert!(ok, "kill -TERM failed");
+        assert!(ok, "kill -{name} failed");
     }
 }
 

@@ -96,6 +96,20 @@ impl FilmFiles {
         Ok(reference)
     }
 
+    /// Whether films can be written now: 4 MiB written, synced and
+    /// removed (the store's health probe; the database's probe writes as
+    /// much).
+    pub fn probe(&self) -> Result<(), String> {
+        let path = self.dir.join("probe.tmp");
+        let written = (|| {
+            let mut f = File::create(&path)?;
+            f.write_all(&vec![0u8; 4 << 20])?;
+            f.sync_data()
+        })();
+        let _ = std::fs::remove_file(&path);
+        written.map_err(|e| format!("cannot write films to {}: {e}", self.dir.display()))
+    }
+
     /// The file name a stored record refers to; None for a film stored
     /// in the record itself.
     pub fn name_of(record: &[u8]) -> Option<&str> {

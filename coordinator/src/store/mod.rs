@@ -579,7 +579,7 @@ fn writer(
             match rx.recv_timeout(HEAL_INTERVAL) {
                 Ok(r) => r,
                 Err(mpsc::RecvTimeoutError::Timeout) => {
-                    heal(db, path, health);
+                    heal(db, path, health, films);
                     continue;
                 }
                 Err(mpsc::RecvTimeoutError::Disconnected) => return,
@@ -593,52 +593,56 @@ fn writer(
             }
         }
         if !health.ok() {
-            heal(db, path, health);
+            heal(db, path, health, films);
             // Reopening dropped whatever was not durable yet.
             unsynced = None;
         }
         let durable = unsynced.is_some_and(|t| t.elapsed() >= RESULTS_DURABLE_WITHIN)
             || batch.iter().any(|r| r.durable)
             || !batch.iter().flat_map(|r| r.ops.iter()).all(Op::is_result);
-        let result = match injected_fault(faults, &batch) {
-            Some(e) => Err(e),
-            None => {
-                let current = db.read().expect("db lock").clone();
-                let durability = if durable {
-                    Durability::Immediate
-                } else {
-                    Durability::None
-                };
-                let start = Instant::now();
-                let r = match current {
-                    Some(d) => commit(
-                        &d,
-                        batch.iter().flat_map(|r| r.ops.iter()),
-                        durability,
-                        films,
-                    )
-                    .map_err(|e| e.to_string()),
-                    None => Err(health.last_error()),
-                };
-                // Every commit, for the writer's busy time (one thread: the
-                // bound on how fast results can be taken in).
-                tracing::debug!(
-                    requests = batch.len(),
-                    film_bytes = batch
-                        .iter()
-                        .flat_map(|r| r.ops.iter())
-                        .map(Op::film_bytes)
-                        .sum::<usize>(),
-                    durable,
-                    commit_ms = start.elapsed().as_secs_f64() * 1e3,
-                    "commit"
-                );
-                match &r {
-                    Ok(()) => health.recover(),
-                    Err(e) => health.fail(e),
-                }
-                r
+        // Still failing after the probe: nothing commits. (A commit that
+        // fits in the database's own free pages would otherwise report a
+        // full disk healthy, while films and growth still fail.)
+        let result = if !health.ok() {
+            Err(health.last_error())
+        } else if let Some(e) = injected_fault(faults, &batch) {
+            Err(e)
+        } else {
+            let current = db.read().expect("db lock").clone();
+            let durability = if durable {
+                Durability::Immediate
+            } else {
+                Durability::None
+            };
+            let start = Instant::now();
+            let r = match current {
+                Some(d) => commit(
+                    &d,
+                    batch.iter().flat_map(|r| r.ops.iter()),
+                    durability,
+                    films,
+                )
+                .map_err(|e| e.to_string()),
+                None => Err(health.last_error()),
+            };
+            // Every commit, for the writer's busy time (one thread: the
+            // bound on how fast results can be taken in).
+            tracing::debug!(
+                requests = batch.len(),
+                film_bytes = batch
+                    .iter()
+                    .flat_map(|r| r.ops.iter())
+                    .map(Op::film_bytes)
+                    .sum::<usize>(),
+                durable,
+                commit_ms = start.elapsed().as_secs_f64() * 1e3,
+                "commit"
+            );
+            match &r {
+                Ok(()) => health.recover(),
+                Err(e) => health.fail(e),
             }
+            r
         };
         if result.is_ok() {
             if durable {
@@ -658,8 +662,9 @@ fn writer(
 
 /// After a failed commit redb refuses every later one until the database
 /// is closed and opened again: reopen it (readers hold it only briefly)
-/// and probe with a real write; healthy again once that succeeds.
-fn heal(db: &Shared, path: &Path, health: &StorageHealth) {
+/// and probe with a real write, and one in the films' directory; healthy
+/// again once both succeed.
+fn heal(db: &Shared, path: &Path, health: &StorageHealth, films: &film_files::FilmFiles) {
     let old = db.write().expect("db lock").take();
     if let Some(old) = old {
         // Wait out readers (each holds its clone for one read).
@@ -693,7 +698,12 @@ fn heal(db: &Shared, path: &Path, health: &StorageHealth) {
     match probe {
         Ok(d) => {
             *db.write().expect("db lock") = Some(Arc::new(d));
-            health.recover();
+            // The films' directory too: redb may have room in its own file
+            // on a disk with none left.
+            match films.probe() {
+                Ok(()) => health.recover(),
+                Err(e) => health.fail(&e),
+            }
         }
         Err(e) => {
             health.fail(&e);
