@@ -96,28 +96,14 @@ impl Farm {
                 (t.job.clone(), t.units[0], bytes)
             })
             .collect();
-        let store_films = |farm: &Farm, films: Vec<(String, u32, EncodedFilm)>| {
-            let mut stored = Vec::with_capacity(films.len());
-            for (job, first_unit, film) in films {
-                match farm.store.store_film(&job, first_unit, film) {
-                    Ok(f) => stored.push(f),
-                    Err(e) => {
-                        farm.store
-                            .discard_films(stored.iter().filter_map(StoredFilm::file_reference));
-                        return Err(e);
-                    }
-                }
-            }
-            Ok(stored)
-        };
         // Small films only: nothing to write before the commit.
         let stored = if films.iter().any(|(_, _, f)| self.store.keeps_in_file(f)) {
             let farm = self.clone();
-            tokio::task::spawn_blocking(move || store_films(&farm, films))
+            tokio::task::spawn_blocking(move || farm.store.store_films(films))
                 .await
                 .map_err(|e| FarmError::Internal(format!("film write failed: {e}")))?
         } else {
-            store_films(&self, films)
+            self.store.store_films(films)
         };
         let commit_start = Instant::now();
         let write = match stored {

@@ -376,10 +376,30 @@ impl Store {
         self.films.wants(film)
     }
 
-    /// `film` as [`Op::AcceptUnits`] stores it: a large one is written to
-    /// its file now (blocking: call it off the async threads), and a
-    /// failure to write it is a storage outage like a failed commit.
-    pub fn store_film(
+    /// Films as [`Op::AcceptUnits`] stores them, in order: large ones
+    /// written to their files now (blocking: call it off the async threads
+    /// when [`Store::keeps_in_file`] says any is). A film that cannot be
+    /// written is a storage outage like a failed commit, and the files
+    /// written before it are removed.
+    pub fn store_films(
+        &self,
+        films: Vec<(String, u32, EncodedFilm)>,
+    ) -> Result<Vec<StoredFilm>, StoreError> {
+        let mut stored = Vec::with_capacity(films.len());
+        for (job, first_unit, film) in films {
+            match self.store_film(&job, first_unit, film) {
+                Ok(f) => stored.push(f),
+                Err(e) => {
+                    self.discard_films(stored.iter().filter_map(StoredFilm::file_reference));
+                    return Err(e);
+                }
+            }
+        }
+        Ok(stored)
+    }
+
+    /// One film of [`Store::store_films`].
+    fn store_film(
         &self,
         job: &str,
         first_unit: u32,
