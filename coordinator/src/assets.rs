@@ -30,6 +30,11 @@ pub struct AssetLimits {
     pub max_store_bytes: u64,
     /// How long a file no unfinished job references is kept.
     pub retention: Duration,
+    /// Longest wait for an upload's next chunk.
+    pub upload_idle_timeout: Duration,
+    /// Most uploads at once, in all and on one connection.
+    pub max_uploads: u32,
+    pub max_uploads_per_connection: u32,
 }
 
 impl Default for AssetLimits {
@@ -39,6 +44,9 @@ impl Default for AssetLimits {
             max_job_bytes: 4 << 30,
             max_store_bytes: 64 << 30,
             retention: Duration::from_secs(24 * 3600),
+            upload_idle_timeout: Duration::from_secs(30),
+            max_uploads: 64,
+            max_uploads_per_connection: 4,
         }
     }
 }
@@ -56,9 +64,22 @@ pub enum AssetStoreError {
         limit: u64,
     },
     #[error(
-        "storing {size} more bytes would take the asset store over its limit of {limit} bytes (--max-store-bytes; {stored} bytes stored)"
+        "storing {size} more bytes would take the asset store over its limit of {limit} bytes (--max-store-bytes; {stored} bytes stored, {reserved} being uploaded)"
     )]
-    StoreFull { size: u64, stored: u64, limit: u64 },
+    StoreFull {
+        size: u64,
+        stored: u64,
+        reserved: u64,
+        limit: u64,
+    },
+    #[error(
+        "the coordinator is receiving {busy} uploads already{scope}, its limit ({flag}); send this one when one of them ends"
+    )]
+    Busy {
+        busy: u32,
+        scope: &'static str,
+        flag: &'static str,
+    },
     #[error("the upload of {sha256} {message}")]
     BadUpload { sha256: String, message: String },
     #[error("asset {0} is not on the coordinator")]
@@ -92,6 +113,13 @@ pub struct AssetStore {
     pub stats: AssetStats,
     /// Bytes and files held (kept in step with the directory).
     held: Mutex<(u64, u64)>,
+    /// Bytes of uploads in flight: counted against the store's limit from
+    /// their start, so concurrent uploads cannot pass it together.
+    reserved: Mutex<u64>,
+    /// Uploads in flight.
+    uploading: std::sync::atomic::AtomicU32,
+    /// Uploads ended since start (memory may be returned after them).
+    pub uploads_ended: AtomicU64,
     next_tmp: AtomicU64,
 }
 
@@ -117,6 +145,9 @@ impl AssetStore {
             limits,
             stats: AssetStats::default(),
             held: Mutex::new((0, 0)),
+            reserved: Mutex::new(0),
+            uploading: std::sync::atomic::AtomicU32::new(0),
+            uploads_ended: AtomicU64::new(0),
             next_tmp: AtomicU64::new(0),
         };
         let (mut bytes, mut files) = (0, 0);
@@ -213,14 +244,21 @@ impl AssetStore {
                 limit: self.limits.max_asset_bytes,
             });
         }
-        let (stored, _) = *self.held.lock().expect("asset lock");
-        if stored.saturating_add(size) > self.limits.max_store_bytes {
-            return Err(AssetStoreError::StoreFull {
-                size,
-                stored,
-                limit: self.limits.max_store_bytes,
-            });
+        {
+            // Lock order: reserved, then held (finish takes them one at a time).
+            let mut reserved = self.reserved.lock().expect("asset lock");
+            let (stored, _) = *self.held.lock().expect("asset lock");
+            if stored.saturating_add(*reserved).saturating_add(size) > self.limits.max_store_bytes {
+                return Err(AssetStoreError::StoreFull {
+                    size,
+                    stored,
+                    reserved: *reserved,
+                    limit: self.limits.max_store_bytes,
+                });
+            }
+            *reserved += size;
         }
+        let reservation = Reservation { store: self, size };
         let io = |e: std::io::Error| AssetStoreError::Io {
             sha256: sha256.into(),
             message: e.to_string(),
@@ -233,10 +271,53 @@ impl AssetStore {
             sha256: sha256.into(),
             size,
             tmp,
-            file: Some(std::io::BufWriter::with_capacity(1 << 20, file)),
+            // Small: a stalled upload holds this much (chunks of 1 MiB
+            // are written straight through).
+            file: Some(std::io::BufWriter::with_capacity(UPLOAD_BUFFER, file)),
             hasher: Sha256::new(),
             written: 0,
+            reservation: Some(reservation),
         }))
+    }
+
+    /// A place among the uploads in flight (in all, and on the
+    /// connection whose count is `on_connection`), held until dropped.
+    pub fn upload_slot<'a>(
+        &'a self,
+        on_connection: Option<&'a std::sync::atomic::AtomicU32>,
+    ) -> Result<UploadSlot<'a>, AssetStoreError> {
+        let take = |n: &'a std::sync::atomic::AtomicU32, limit: u32, scope, flag| {
+            n.fetch_update(Ordering::AcqRel, Ordering::Acquire, |b| {
+                (b < limit).then_some(b + 1)
+            })
+            .map(|_| n)
+            .map_err(|busy| AssetStoreError::Busy { busy, scope, flag })
+        };
+        let all = take(
+            &self.uploading,
+            self.limits.max_uploads,
+            "",
+            "--max-uploads",
+        )?;
+        let conn = match on_connection {
+            Some(c) => match take(
+                c,
+                self.limits.max_uploads_per_connection,
+                " on this connection",
+                "--max-uploads-per-connection",
+            ) {
+                Ok(c) => Some(c),
+                Err(e) => {
+                    all.fetch_sub(1, Ordering::AcqRel);
+                    return Err(e);
+                }
+            },
+            None => None,
+        };
+        Ok(UploadSlot {
+            store: self,
+            counts: [Some(all), conn],
+        })
     }
 
     /// Stores a whole file at once (inline job files, the scene TOML).
@@ -279,6 +360,39 @@ impl AssetStore {
     }
 }
 
+/// Buffer of an upload's file.
+const UPLOAD_BUFFER: usize = 64 << 10;
+
+/// Bytes counted against the store's limit while an upload runs.
+#[derive(Debug)]
+struct Reservation<'a> {
+    store: &'a AssetStore,
+    size: u64,
+}
+
+impl Drop for Reservation<'_> {
+    fn drop(&mut self) {
+        let mut r = self.store.reserved.lock().expect("asset lock");
+        *r = r.saturating_sub(self.size);
+    }
+}
+
+/// An upload's place among those in flight.
+#[derive(Debug)]
+pub struct UploadSlot<'a> {
+    store: &'a AssetStore,
+    counts: [Option<&'a std::sync::atomic::AtomicU32>; 2],
+}
+
+impl Drop for UploadSlot<'_> {
+    fn drop(&mut self) {
+        for c in self.counts.iter().flatten() {
+            c.fetch_sub(1, Ordering::AcqRel);
+        }
+        self.store.uploads_ended.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
 /// A file being received; dropped unfinished, it leaves nothing behind.
 #[derive(Debug)]
 pub struct Upload<'a> {
@@ -289,6 +403,7 @@ pub struct Upload<'a> {
     file: Option<std::io::BufWriter<std::fs::File>>,
     hasher: Sha256,
     written: u64,
+    reservation: Option<Reservation<'a>>,
 }
 
 impl Upload<'_> {
@@ -341,9 +456,13 @@ impl Upload<'_> {
         if let Ok(d) = std::fs::File::open(dir) {
             let _ = d.sync_all();
         }
-        let mut held = self.store.held.lock().expect("asset lock");
-        held.0 += self.size;
-        held.1 += 1;
+        // Held before the reservation goes: the two never both miss it.
+        {
+            let mut held = self.store.held.lock().expect("asset lock");
+            held.0 += self.size;
+            held.1 += 1;
+        }
+        self.reservation.take();
         Ok(self.size)
     }
 }
@@ -399,9 +518,22 @@ mod tests {
         );
         let e = store.begin(&b, 10).unwrap_err().to_string();
         assert!(
-            e.contains("its limit of 14 bytes (--max-store-bytes; 5 bytes stored)"),
+            e.contains(
+                "its limit of 14 bytes (--max-store-bytes; 5 bytes stored, 0 being uploaded)"
+            ),
             "{e}"
         );
+        // Uploads in flight count: two of 4 bytes do not fit in 14 - 5.
+        let x = sha256_hex(b"xxxx");
+        let up = store.begin(&x, 4).unwrap().unwrap();
+        let e = store
+            .begin(&sha256_hex(b"yyyyyy"), 6)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("5 bytes stored, 4 being uploaded)"), "{e}");
+        drop(up);
+        let up = store.begin(&sha256_hex(b"yyyyyy"), 6).unwrap().unwrap();
+        drop(up);
         let e = store.begin("ABC", 1).unwrap_err().to_string();
         assert!(e.contains("is not a SHA-256"), "{e}");
 

@@ -4,12 +4,13 @@
 //! restart resumes where it stopped.
 //!
 //! Map: [`units`] (how a job is cut), [`farm`] (scheduling state, leases,
-//! results), [`rate`] (measured rates and ETAs), [`store`] (durable state), [`service`] (gRPC edge), [`monitor`] (the web monitor), [`server`]
+//! results), [`rate`] (measured rates and ETAs), [`store`] (durable state), [`service`] (gRPC edge), [`monitor`] (the web monitor), [`edge`] (connection limits of both ports), [`server`]
 //! (serving, health, reflection, periodic tasks). Images are written by
 //! [`tracer_core::film::image`].
 
 pub mod assets;
 pub mod cost;
+pub mod edge;
 pub mod farm;
 pub mod monitor;
 pub mod rate;

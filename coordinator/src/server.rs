@@ -12,6 +12,7 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Identity, ServerTlsConfig};
 use tonic::{Request, Status};
 
+use crate::edge::{Edge, EdgeLimits, TrackLayer};
 use crate::farm::{Farm, FarmError};
 use crate::service::Api;
 
@@ -27,7 +28,16 @@ const H2_MAX_FRAME: u32 = 1 << 20;
 /// How often files no job needs are looked for.
 const COLLECT_INTERVAL: Duration = Duration::from_secs(60);
 
-/// How the coordinator meets the network: TLS and the two tokens.
+/// HTTP/2 keepalive: a ping after this long without a frame from the
+/// peer, and the connection closed if the ping is not answered in
+/// [`H2_KEEPALIVE_TIMEOUT`] (a peer gone without a FIN).
+const H2_KEEPALIVE_INTERVAL: Duration = Duration::from_secs(30);
+const H2_KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(10);
+/// Largest header block of one request (hyper's default is 16 MiB).
+const H2_MAX_HEADER_LIST: u32 = 64 << 10;
+
+/// How the coordinator meets the network: TLS, the two tokens, and the
+/// connection limits of its port.
 #[derive(Clone, Debug, Default)]
 pub struct Security {
     /// PEM certificate chain and private key: serve TLS.
@@ -36,6 +46,8 @@ pub struct Security {
     pub client_token: Option<String>,
     /// Needed by the worker service (register, lease, results, heartbeat, assets).
     pub worker_token: Option<String>,
+    /// Connection limits of the gRPC port.
+    pub edge: EdgeLimits,
 }
 
 /// Which token a service wants.
@@ -100,6 +112,18 @@ impl tonic::service::Interceptor for Gate {
     }
 }
 
+/// Least time between two returns of freed memory.
+const TRIM_INTERVAL: Duration = Duration::from_secs(1);
+
+/// Hands the allocator's free pages back to the system.
+fn return_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only releases free memory of the allocator.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
 /// Serves `farm` on `listener` until `shutdown` resolves.
 pub async fn serve(
     farm: Arc<Farm>,
@@ -137,14 +161,16 @@ pub async fn serve(
             let mut serving = true;
             let mut tick = tokio::time::interval(Duration::from_millis(100));
             let mut last_progress = tokio::time::Instant::now();
+            let (mut trimmed_at, mut last_trim) = (0, tokio::time::Instant::now());
             // At start too: files of jobs that ended before a restart.
             let mut last_collect = tokio::time::Instant::now() - COLLECT_INTERVAL;
             loop {
                 tick.tick().await;
                 farm.expire();
                 farm.check_workers();
-                // Health follows the database: NOT_SERVING while writes fail.
-                let ok = farm.storage_ok();
+                // Health follows the database and the frame writes:
+                // NOT_SERVING while either fails.
+                let ok = farm.storage_ok() && farm.frames_ok();
                 if ok != serving {
                     serving = ok;
                     if ok {
@@ -166,6 +192,17 @@ pub async fn serve(
                     let farm = farm.clone();
                     tokio::task::spawn_blocking(move || farm.collect_assets());
                 }
+                // Memory a burst of uploads freed goes back to the system
+                // (glibc keeps freed blocks in its arenas otherwise).
+                let ended = farm
+                    .assets
+                    .uploads_ended
+                    .load(std::sync::atomic::Ordering::Relaxed);
+                if ended != trimmed_at && last_trim.elapsed() >= TRIM_INTERVAL {
+                    trimmed_at = ended;
+                    last_trim = tokio::time::Instant::now();
+                    tokio::task::spawn_blocking(return_freed_memory);
+                }
                 if last_progress.elapsed() >= farm.config.progress_interval {
                     last_progress = tokio::time::Instant::now();
                     farm.log_progress();
@@ -185,12 +222,20 @@ pub async fn serve(
         expected: token(&security.worker_token),
         other: token(&security.client_token),
     };
-    // TCP_NODELAY on every accepted connection: the builder's
-    // `tcp_nodelay` only reaches listeners tonic binds itself. Without it
-    // a small frame (a response, an HTTP/2 window update) waits for the
-    // ACK of the last one, which the peer delays by 40 ms: a result of
-    // megabytes took 50 ms instead of 10 in one transfer of three.
-    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+    // Our own accept loop (crate::edge): connection caps and timeouts that
+    // hold without a token, and TCP_NODELAY on every accepted connection
+    // (without it a small frame, a response or an HTTP/2 window update,
+    // waits for the ACK of the last one, which the peer delays by 40 ms: a
+    // result of megabytes took 50 ms instead of 10 in one transfer of three).
+    let edge = Edge::new("grpc", security.edge);
+    tracing::info!(
+        max_connections = security.edge.max_connections,
+        max_per_peer = security.edge.max_per_peer,
+        handshake_timeout_s = security.edge.handshake_timeout.as_secs_f64(),
+        idle_timeout_s = security.edge.idle_timeout.as_secs_f64(),
+        "gRPC connection limits"
+    );
+    let incoming = tokio_stream::wrappers::ReceiverStream::new(edge.incoming(listener));
     let mut builder = tonic::transport::Server::builder();
     if let Some((cert, key)) = &security.tls {
         builder = builder
@@ -203,6 +248,10 @@ pub async fn serve(
         .initial_stream_window_size(Some(H2_STREAM_WINDOW))
         .initial_connection_window_size(Some(H2_CONNECTION_WINDOW))
         .max_frame_size(Some(H2_MAX_FRAME))
+        .http2_keepalive_interval(Some(H2_KEEPALIVE_INTERVAL))
+        .http2_keepalive_timeout(Some(H2_KEEPALIVE_TIMEOUT))
+        .http2_max_header_list_size(Some(H2_MAX_HEADER_LIST))
+        .layer(TrackLayer)
         .add_service(health_service)
         .add_service(reflection)
         .add_service(reflection_alpha)

@@ -297,13 +297,30 @@ impl JobService for Api {
         &self,
         req: Request<tonic::Streaming<pb::AssetChunk>>,
     ) -> Result<Response<pb::UploadAssetResponse>, Status> {
+        let store = &self.farm.assets;
+        // Bounded in number (in all and per connection) and in time: a
+        // stalled upload holds a slot, a temporary file and a small buffer
+        // for at most the idle timeout.
+        let conn = crate::edge::EdgeInfo::of(req.extensions()).cloned();
+        let _slot = store
+            .upload_slot(conn.as_ref().map(|c| &c.uploads))
+            .map_err(asset_status)?;
+        let idle = store.limits.upload_idle_timeout;
         let mut chunks = req.into_inner();
-        let first = chunks
-            .message()
+        let mut next_chunk = async || {
+            tokio::time::timeout(idle, chunks.message())
+                .await
+                .map_err(|_| {
+                    Status::deadline_exceeded(format!(
+                        "UploadAsset: no chunk for {} s (--upload-idle-timeout); the upload was dropped",
+                        idle.as_secs_f64()
+                    ))
+                })?
+        };
+        let first = next_chunk()
             .await?
             .ok_or_else(|| Status::invalid_argument("UploadAsset: the stream sent no chunk"))?;
         let sha256 = first.sha256.clone();
-        let store = &self.farm.assets;
         let stats = &store.stats;
         let Some(mut upload) = store.begin(&sha256, first.size).map_err(asset_status)? else {
             stats.uploads_skipped.fetch_add(1, Ordering::Relaxed);
@@ -330,7 +347,7 @@ impl JobService for Api {
             }
             upload.write(&chunk.data).map_err(asset_status)?;
             offset += chunk.data.len() as u64;
-            next = chunks.message().await?;
+            next = next_chunk().await?;
         }
         let bytes_stored = tokio::task::block_in_place(|| upload.finish()).map_err(asset_status)?;
         stats.uploads.fetch_add(1, Ordering::Relaxed);

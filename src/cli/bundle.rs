@@ -12,7 +12,7 @@ use std::time::Instant;
 use anyhow::{Result, bail};
 use tessera_proto::pb;
 use tessera_proto::transport::{ASSET_CHUNK_BYTES, sha256_hex};
-use tracer_core::assets::{LocalFolder, Recorder, join, leaves_folder};
+use tracer_core::assets::{AssetError, AssetSource, LocalFolder, Recorder, join, leaves_folder};
 use tracer_core::scene::{ObjectDesc, SceneDesc, SceneError};
 
 use super::farm_common::{JobClient, rpc};
@@ -39,31 +39,57 @@ pub fn gather(path: &Path, allow_outside: bool) -> Result<SceneBundle> {
     })?;
     let text = std::str::from_utf8(&scene)
         .map_err(|e| anyhow::anyhow!("{}: scene is not UTF-8 text: {e}", path.display()))?;
-    let folder = LocalFolder::of_scene(path);
+    let folder = Confined {
+        inner: LocalFolder::of_scene(path),
+        allow_outside,
+        refused: std::sync::Mutex::new(None),
+    };
     let recorder = Recorder::new(&folder);
-    let desc = SceneDesc::parse_from(text, path, &recorder)?;
+    let parsed = SceneDesc::parse_from(text, path, &recorder);
+    // A file outside the folder is refused before it is opened (an
+    // absolute path such as /etc/passwd is never read), whatever the
+    // loader then made of the refusal.
+    let refused = folder
+        .refused
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .take();
+    if let (Some(name), Err(e)) = (&refused, &parsed) {
+        let field = match e {
+            // `objects[0] (mesh).path`, said as the other refusals say it.
+            SceneError::Invalid { field, .. } if field.starts_with("objects[") => {
+                field.split(']').next().unwrap_or_default().to_string() + "].path"
+            }
+            _ => "a file the scene's models refer to".into(),
+        };
+        bail!(
+            "{}: {field}: {name:?} is outside the scene's folder, so the farm would not get it; \
+             move it beside the scene, or pass --allow-outside to send a copy with the job",
+            path.display()
+        );
+    }
+    let desc = parsed?;
     let files = recorder.into_files();
     for w in &desc.warnings {
         eprintln!("warning: {w}");
     }
-    if !allow_outside {
-        for (name, _) in &files {
-            if !leaves_folder(name) {
-                continue;
-            }
-            let field = desc.objects.iter().enumerate().find_map(|(i, o)| match o {
-                ObjectDesc::Mesh(m) if join("", &m.path) == *name => {
-                    Some(format!("objects[{i}].path"))
-                }
-                _ => None,
-            });
-            bail!(
-                "{}: {}: {name:?} is outside the scene's folder, so the farm would not get it; \
-                 move it beside the scene, or pass --allow-outside to send a copy with the job",
-                path.display(),
-                field.unwrap_or_else(|| "a file the scene's models refer to".into())
-            );
-        }
+    let outside = refused.or_else(|| {
+        files
+            .iter()
+            .map(|(name, _)| name.clone())
+            .find(|n| !allow_outside && leaves_folder(n))
+    });
+    if let Some(name) = outside {
+        let field = desc.objects.iter().enumerate().find_map(|(i, o)| match o {
+            ObjectDesc::Mesh(m) if join("", &m.path) == name => Some(format!("objects[{i}].path")),
+            _ => None,
+        });
+        bail!(
+            "{}: {}: {name:?} is outside the scene's folder, so the farm would not get it; \
+             move it beside the scene, or pass --allow-outside to send a copy with the job",
+            path.display(),
+            field.unwrap_or_else(|| "a file the scene's models refer to".into())
+        );
     }
     Ok(SceneBundle {
         scene,
@@ -76,6 +102,30 @@ pub fn gather(path: &Path, allow_outside: bool) -> Result<SceneBundle> {
             })
             .collect(),
     })
+}
+
+/// The scene's folder, refusing (and remembering) the first name outside
+/// it unless `allow_outside`: such a file is not opened at all.
+struct Confined {
+    inner: LocalFolder,
+    allow_outside: bool,
+    refused: std::sync::Mutex<Option<String>>,
+}
+
+impl AssetSource for Confined {
+    fn read(&self, name: &str) -> Result<Arc<[u8]>, AssetError> {
+        if !self.allow_outside && leaves_folder(name) {
+            self.refused
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .get_or_insert_with(|| name.to_string());
+            return Err(AssetError::Io {
+                name: name.to_string(),
+                message: "outside the scene's folder (not read; --allow-outside sends it)".into(),
+            });
+        }
+        self.inner.read(name)
+    }
 }
 
 fn megabytes(b: u64) -> String {

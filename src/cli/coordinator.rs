@@ -8,6 +8,8 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use clap::Args;
 use tessera_coordinator::assets::AssetLimits;
+use tessera_coordinator::edge::{EdgeLimits, raise_descriptor_limit};
+use tessera_coordinator::monitor::MonitorConfig;
 use tessera_coordinator::server::Security;
 use tessera_coordinator::{Config, Farm};
 
@@ -76,6 +78,36 @@ pub struct CoordinatorArgs {
     /// re-submit within that time uploads nothing)
     #[arg(long, default_value_t = 86400.0)]
     pub asset_retention: f64,
+    /// Also answer the monitor under this name (a `Host` header, NAME or
+    /// NAME:PORT; repeatable). The listen address, localhost, 127.0.0.1 and
+    /// [::1] are always answered; other names are refused (DNS rebinding)
+    #[arg(long, value_name = "NAME")]
+    pub http_allow_host: Vec<String>,
+    /// Most open connections a port (gRPC, monitor) [default: from the
+    /// open-files limit: (limit - 256) / ports, at most 16384]; over it the
+    /// connection idle the longest is closed
+    #[arg(long, value_name = "N")]
+    pub max_connections: Option<usize>,
+    /// Most open connections from one IP address a port [default: a quarter
+    /// of --max-connections, at least 32]
+    #[arg(long, value_name = "N")]
+    pub max_connections_per_peer: Option<usize>,
+    /// Seconds a new connection has to send its first request (TLS
+    /// handshake and HTTP/2 preface included)
+    #[arg(long, default_value_t = 10.0)]
+    pub handshake_timeout: f64,
+    /// Seconds a connection may stay without a request in flight
+    #[arg(long, default_value_t = 300.0)]
+    pub idle_timeout: f64,
+    /// Seconds an asset upload may go without sending a chunk
+    #[arg(long, default_value_t = 30.0)]
+    pub upload_idle_timeout: f64,
+    /// Most asset uploads at once
+    #[arg(long, default_value_t = 64)]
+    pub max_uploads: u32,
+    /// Most asset uploads at once on one connection
+    #[arg(long, default_value_t = 4)]
+    pub max_uploads_per_connection: u32,
 }
 
 /// Environment variables of the coordinator's tokens.
@@ -106,7 +138,37 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
                 args.asset_retention
             )
         })?,
+        upload_idle_timeout: secs("upload-idle-timeout", args.upload_idle_timeout)?,
+        max_uploads: args.max_uploads.max(1),
+        max_uploads_per_connection: args.max_uploads_per_connection.max(1),
     };
+    // Idle sockets must never take the descriptors the store needs, and a
+    // low soft limit (1024 is common) should not cap a farm the hard limit
+    // allows.
+    let nofile = match raise_descriptor_limit() {
+        Ok(n) => {
+            tracing::info!(
+                open_files = n,
+                "open-files limit (RLIMIT_NOFILE, soft raised to hard)"
+            );
+            n
+        }
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot read or raise the open-files limit; assuming 1024");
+            1024
+        }
+    };
+    let ports = if args.http.is_some() { 2 } else { 1 };
+    let mut edge = EdgeLimits::for_descriptors(nofile, ports);
+    if let Some(n) = args.max_connections {
+        edge.max_connections = n.max(1);
+        edge.max_per_peer = (n / 4).max(32).min(n.max(1));
+    }
+    if let Some(n) = args.max_connections_per_peer {
+        edge.max_per_peer = n.max(1);
+    }
+    edge.handshake_timeout = secs("handshake-timeout", args.handshake_timeout)?;
+    edge.idle_timeout = secs("idle-timeout", args.idle_timeout)?;
     let read = |p: &Option<PathBuf>, flag: &str| {
         p.as_ref()
             .map(|p| {
@@ -132,7 +194,12 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
             "--worker-token-file",
             WORKER_TOKEN_ENV,
         )?,
+        edge,
     };
+    check_tokens(
+        security.client_token.as_deref(),
+        security.worker_token.as_deref(),
+    )?;
     runtime()?.block_on(async move {
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
@@ -187,10 +254,15 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
             tracing::info!(addr = %http_addr, "web monitor listening");
             // Only with --http: scripts reading just the first line are unaffected.
             println!("monitor on http://{http_addr}");
-            let (farm, token) = (farm.clone(), security.client_token.clone());
+            let monitor = MonitorConfig {
+                client_token: security.client_token.clone(),
+                allow_hosts: args.http_allow_host.clone(),
+                edge,
+            };
+            let farm = farm.clone();
             tokio::spawn(async move {
                 if let Err(e) =
-                    tessera_coordinator::monitor::serve(farm, l, token, shutdown_signal()).await
+                    tessera_coordinator::monitor::serve(farm, l, monitor, shutdown_signal()).await
                 {
                     tracing::error!(error = %e, "the web monitor stopped");
                 }
@@ -201,6 +273,63 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
         tracing::info!("coordinator stopped");
         Ok(ExitCode::SUCCESS)
     })
+}
+
+/// Least entropy of a token, in bits.
+const MIN_TOKEN_BITS: f64 = 128.0;
+
+/// Refuses guessable tokens and one token for both kinds. A token's
+/// entropy is estimated as its length times the bits a character of the
+/// smallest alphabet it is written in carries: 4 for hex, 6 for base64
+/// (and base64url), log2(94) = 6.55 for any printable ASCII; so at least
+/// 32 hex, 22 base64 or 20 other characters, of which at least 8 differ.
+/// `tessera cert --tokens` writes 64 hex digits (256 bits).
+fn check_tokens(client: Option<&str>, worker: Option<&str>) -> Result<()> {
+    for (t, kind, flag) in [
+        (
+            client,
+            "client",
+            "--client-token-file or TESSERA_CLIENT_TOKEN",
+        ),
+        (
+            worker,
+            "worker",
+            "--worker-token-file or TESSERA_WORKER_TOKEN",
+        ),
+    ] {
+        let Some(t) = t else { continue };
+        let per_char: f64 = if t.bytes().all(|b| b.is_ascii_hexdigit()) {
+            4.0
+        } else if t
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"+/=-_".contains(&b))
+        {
+            6.0
+        } else {
+            94f64.log2()
+        };
+        let bits = t.len() as f64 * per_char;
+        let distinct = t.bytes().collect::<std::collections::HashSet<u8>>().len();
+        if bits < MIN_TOKEN_BITS || distinct < 8 {
+            anyhow::bail!(
+                "the {kind} token ({flag}) is too easy to guess: {} characters ({:.0} bits; {distinct} different \
+                 characters) where at least {MIN_TOKEN_BITS:.0} bits are needed (32 hex digits, 22 base64 \
+                 characters, or 20 of any printable ASCII, with at least 8 different). `tessera cert --tokens` \
+                 writes random 256-bit tokens",
+                t.len(),
+                bits.floor()
+            );
+        }
+    }
+    if let (Some(c), Some(w)) = (client, worker)
+        && c == w
+    {
+        anyhow::bail!(
+            "the client token and the worker token are the same: a worker could then submit, cancel and read \
+             every job. Give each its own (`tessera cert --tokens` writes two)"
+        );
+    }
+    Ok(())
 }
 
 /// Resolves on SIGINT or SIGTERM.

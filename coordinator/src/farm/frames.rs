@@ -79,6 +79,12 @@ impl Farm {
             let mut film = film;
             let mut backoff = Duration::from_millis(200);
             let start = std::time::Instant::now();
+            // Counted in `frames_failing` (health) from its first failure
+            // to its success or end.
+            let failing = FailingFrame {
+                farm: &self,
+                counted: std::cell::Cell::new(false),
+            };
             loop {
                 let (dir, tmp, path) = (dir.clone(), tmp.clone(), path.clone());
                 let result = tokio::task::spawn_blocking(move || {
@@ -109,6 +115,7 @@ impl Farm {
                     }
                     Ok((Err(e), f)) => {
                         film = f;
+                        failing.set();
                         tracing::error!(job = %job_id, frame, error = %e, retry_in_ms = backoff.as_millis() as u64, "cannot write frame; retrying");
                         if let Some(job) =
                             self.state.lock().expect("state lock").jobs.get_mut(&job_id)
@@ -124,6 +131,7 @@ impl Farm {
                     }
                 }
             }
+            drop(failing);
             let image_ms = start.elapsed().as_secs_f64() * 1e3;
             // The image is on disk; until the record is too, the job cannot
             // be done. Retry (a full disk or a transient error may pass); a
@@ -229,5 +237,31 @@ pub(super) fn new_frame_film(width: u32, height: u32, adaptive: bool) -> Film {
         Film::with_squares(Rect::full(width, height))
     } else {
         Film::new(Rect::full(width, height))
+    }
+}
+
+/// A frame whose write failed, counted until it is written or dropped.
+struct FailingFrame<'a> {
+    farm: &'a Farm,
+    counted: std::cell::Cell<bool>,
+}
+
+impl FailingFrame<'_> {
+    fn set(&self) {
+        if !self.counted.replace(true) {
+            self.farm
+                .frames_failing
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+}
+
+impl Drop for FailingFrame<'_> {
+    fn drop(&mut self) {
+        if self.counted.get() {
+            self.farm
+                .frames_failing
+                .fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+        }
     }
 }

@@ -410,6 +410,8 @@ pub struct Farm {
     /// Results for leases this run never granted (from before a restart):
     /// dropped, and counted here since no job can count them.
     pub results_unknown_lease: std::sync::atomic::AtomicU64,
+    /// Frames whose image cannot be written at the moment (retrying).
+    pub(crate) frames_failing: std::sync::atomic::AtomicU32,
     state: Mutex<State>,
     /// Distinguishes this run's lease and worker ids from earlier runs'.
     boot: String,
@@ -442,9 +444,9 @@ pub(crate) fn asset_error(e: AssetStoreError) -> FarmError {
         AssetStoreError::NotFound(m) => {
             FarmError::NotFound(format!("asset {m} is not on the coordinator"))
         }
-        e @ (AssetStoreError::TooLarge { .. } | AssetStoreError::StoreFull { .. }) => {
-            FarmError::ResourceExhausted(e.to_string())
-        }
+        e @ (AssetStoreError::TooLarge { .. }
+        | AssetStoreError::StoreFull { .. }
+        | AssetStoreError::Busy { .. }) => FarmError::ResourceExhausted(e.to_string()),
         e @ AssetStoreError::Io { .. } => FarmError::Unavailable(e.to_string()),
         e => FarmError::InvalidArgument(e.to_string()),
     }
@@ -475,6 +477,7 @@ impl Farm {
             store,
             assets,
             results_unknown_lease: Default::default(),
+            frames_failing: Default::default(),
             state: Mutex::new(State::default()),
             boot,
             work_ready: tokio::sync::Notify::new(),
@@ -572,6 +575,14 @@ impl Farm {
     /// a full disk, until the writer's probe succeeds again).
     pub fn storage_ok(&self) -> bool {
         self.store.health.ok()
+    }
+
+    /// Whether finished frames can be written (false while one is being
+    /// retried after a failed write).
+    pub fn frames_ok(&self) -> bool {
+        self.frames_failing
+            .load(std::sync::atomic::Ordering::Relaxed)
+            == 0
     }
 
     /// Makes every result taken in so far durable (they otherwise wait up

@@ -3,7 +3,8 @@
 //! (docs/monitor.md), served over HTTP/1 by axum on the coordinator's own
 //! runtime.
 //!
-//! Map: [`auth`] (the client token, as the gRPC job service takes it),
+//! Map: [`origin`] (Host and Origin checks: DNS rebinding and cross-site
+//! requests), [`auth`] (the client token, as the gRPC job service takes it),
 //! [`api`] (JSON: jobs, frames, workers, cancel, priority), [`events`]
 //! (server-sent events: one snapshot shared by every viewer), [`roster`]
 //! (workers seen, and which of them left), [`preview`] (partial and
@@ -19,6 +20,7 @@ mod api;
 mod auth;
 mod events;
 mod json;
+mod origin;
 mod preview;
 mod roster;
 mod web;
@@ -32,6 +34,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use tokio::net::TcpListener;
 
+use crate::edge::{Edge, EdgeInfo, EdgeLimits, EdgeListener, TrackLayer};
 use crate::farm::{Farm, FarmError};
 
 /// Why an API request was refused: a status and a message for a person.
@@ -92,39 +95,53 @@ pub struct Monitor {
     farm: Arc<Farm>,
     /// The client token; `None`: the monitor is open, as the job service is.
     token: Option<Arc<str>>,
+    /// Which Host headers are answered.
+    hosts: origin::Hosts,
     events: events::Hub,
     roster: roster::Roster,
     previews: preview::Previews,
     frames: api::FrameCache,
 }
 
+/// How the monitor is served.
+#[derive(Clone, Debug, Default)]
+pub struct MonitorConfig {
+    /// The job service's: the same token opens both.
+    pub client_token: Option<String>,
+    /// Names answered besides the listen address and localhost
+    /// (`--http-allow-host`).
+    pub allow_hosts: Vec<String>,
+    /// Connection limits of the monitor's port.
+    pub edge: EdgeLimits,
+}
+
 /// Serves the monitor of `farm` on `listener` until `shutdown` resolves.
-/// `client_token` is the job service's: the same token opens both.
 pub async fn serve(
     farm: Arc<Farm>,
     listener: TcpListener,
-    client_token: Option<String>,
+    config: MonitorConfig,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), MonitorError> {
+    let local = listener.local_addr()?;
     let monitor = Arc::new(Monitor {
         farm,
-        token: client_token.map(Arc::from),
+        token: config.client_token.map(Arc::from),
+        hosts: origin::Hosts::new(local, &config.allow_hosts),
         events: events::Hub::new(),
         roster: roster::Roster::default(),
         previews: preview::Previews::default(),
         frames: api::FrameCache::default(),
     });
     let ticker = tokio::spawn(events::run(monitor.clone()));
-    // As the gRPC server: no 40 ms wait for the ACK of the last small write.
-    use axum::serve::ListenerExt as _;
-    let listener = listener.tap_io(|tcp| {
-        if let Err(e) = tcp.set_nodelay(true) {
-            tracing::debug!(error = %e, "cannot set TCP_NODELAY");
-        }
-    });
-    let result = axum::serve(listener, router(monitor))
-        .with_graceful_shutdown(shutdown)
-        .await;
+    // The gRPC port's accept loop and limits (crate::edge).
+    let listener = EdgeListener::new(Edge::new("monitor", config.edge), listener)?;
+    let app = router(monitor).layer(TrackLayer);
+    let result = axum::serve(
+        listener,
+        app.into_make_service_with_connect_info::<EdgeInfo>(),
+    )
+    .with_graceful_shutdown(shutdown)
+    .await;
     ticker.abort();
     Ok(result?)
 }
@@ -162,5 +179,11 @@ fn router(monitor: Arc<Monitor>) -> Router {
         .route("/api/info", get(api::info))
         .merge(api)
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such page") })
+        // Before everything, the token included: a rebound or cross-site
+        // request is refused whether or not a token is needed.
+        .layer(axum::middleware::from_fn_with_state(
+            monitor.clone(),
+            origin::guard,
+        ))
         .with_state(monitor)
 }
