@@ -327,13 +327,7 @@ async fn upload(
     chunks: usize,
     go: Option<std::sync::Arc<tokio::sync::Barrier>>,
 ) -> Result<pb::UploadAssetResponse, tonic::Status> {
-    let ch = tessera_proto::transport::endpoint(url, None)
-        .expect("endpoint")
-        .connect()
-        .await
-        .expect("connect");
-    let stamp = tessera_proto::VersionStamp::with_token(None).expect("stamp");
-    let mut c = pb::job_service_client::JobServiceClient::with_interceptor(ch, stamp);
+    let mut c = secure_jobs_client(url, None, None).await;
     let sha256 = sha256_hex(&content);
     let size = content.len() as u64;
     let (tx, rx) = tokio::sync::mpsc::channel(2);
@@ -524,13 +518,8 @@ fn concurrent_uploads_never_pass_the_store_limit() {
         );
     }
     let stats = rt().block_on(async {
-        let ch = tessera_proto::transport::endpoint(&url, None)
-            .expect("endpoint")
-            .connect()
+        secure_jobs_client(&url, None, None)
             .await
-            .expect("connect");
-        let stamp = tessera_proto::VersionStamp::with_token(None).expect("stamp");
-        pb::job_service_client::JobServiceClient::with_interceptor(ch, stamp)
             .get_farm_stats(pb::GetFarmStatsRequest {})
             .await
             .expect("stats")

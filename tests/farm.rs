@@ -2182,9 +2182,20 @@ fn a_frame_that_cannot_be_written_is_retried_and_its_job_never_fails() {
     let stuck = status(&c.url(), &job);
     assert_ne!(stuck.state, pb::JobState::Failed as i32, "{stuck:?}");
     assert_eq!(stuck.units_done, stuck.units_total, "{stuck:?}");
+    // Health says so while the frame cannot be written, and recovers.
+    let (serving, not_serving) = (
+        tonic_health::pb::health_check_response::ServingStatus::Serving as i32,
+        tonic_health::pb::health_check_response::ServingStatus::NotServing as i32,
+    );
+    wait_for("health NOT_SERVING", Duration::from_secs(5), || {
+        health_of(&c.url(), None, "") == not_serving
+    });
     std::fs::remove_file(&out).expect("clear the way");
     let done = wait_done(&c.url(), &job, Duration::from_secs(60));
     assert_eq!(done.error, "", "{done:?}");
+    wait_for("health SERVING again", Duration::from_secs(5), || {
+        health_of(&c.url(), None, "") == serving
+    });
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, SMALL);
 }
 

@@ -433,19 +433,32 @@ fn park(conn: &Conn, cx: &Context<'_>, writer: bool) -> bool {
     !conn.live()
 }
 
+impl EdgeStream {
+    /// One read or write of the socket, failing once the connection is
+    /// closed, and parking the waker where [`Conn::kill`] finds it.
+    fn guarded<T>(
+        &mut self,
+        cx: &mut Context<'_>,
+        writer: bool,
+        op: impl FnOnce(Pin<&mut TcpStream>, &mut Context<'_>) -> Poll<io::Result<T>>,
+    ) -> Poll<io::Result<T>> {
+        if !self.conn.live() {
+            return Poll::Ready(Err(Self::closed()));
+        }
+        match op(Pin::new(&mut self.tcp), cx) {
+            Poll::Pending if park(&self.conn, cx, writer) => Poll::Ready(Err(Self::closed())),
+            r => r,
+        }
+    }
+}
+
 impl AsyncRead for EdgeStream {
     fn poll_read(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,
         buf: &mut ReadBuf<'_>,
     ) -> Poll<io::Result<()>> {
-        if !self.conn.live() {
-            return Poll::Ready(Err(Self::closed()));
-        }
-        match Pin::new(&mut self.tcp).poll_read(cx, buf) {
-            Poll::Pending if park(&self.conn, cx, false) => Poll::Ready(Err(Self::closed())),
-            r => r,
-        }
+        self.guarded(cx, false, |tcp, cx| tcp.poll_read(cx, buf))
     }
 }
 
@@ -455,13 +468,7 @@ impl AsyncWrite for EdgeStream {
         cx: &mut Context<'_>,
         buf: &[u8],
     ) -> Poll<io::Result<usize>> {
-        if !self.conn.live() {
-            return Poll::Ready(Err(Self::closed()));
-        }
-        match Pin::new(&mut self.tcp).poll_write(cx, buf) {
-            Poll::Pending if park(&self.conn, cx, true) => Poll::Ready(Err(Self::closed())),
-            r => r,
-        }
+        self.guarded(cx, true, |tcp, cx| tcp.poll_write(cx, buf))
     }
 
     fn poll_write_vectored(
@@ -469,13 +476,7 @@ impl AsyncWrite for EdgeStream {
         cx: &mut Context<'_>,
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
-        if !self.conn.live() {
-            return Poll::Ready(Err(Self::closed()));
-        }
-        match Pin::new(&mut self.tcp).poll_write_vectored(cx, bufs) {
-            Poll::Pending if park(&self.conn, cx, true) => Poll::Ready(Err(Self::closed())),
-            r => r,
-        }
+        self.guarded(cx, true, |tcp, cx| tcp.poll_write_vectored(cx, bufs))
     }
 
     fn is_write_vectored(&self) -> bool {
