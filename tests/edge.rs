@@ -118,7 +118,6 @@ fn register(url: &str) -> Result<String, String> {
                 threads: 1,
                 ..Default::default()
             }),
-            ..Default::default()
         })
         .await
         .map(|r| r.into_inner().worker_id)

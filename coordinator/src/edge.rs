@@ -372,6 +372,8 @@ fn out_of_descriptors(e: &io::Error) -> bool {
 
 /// Raises the soft RLIMIT_NOFILE to the hard limit; returns the soft
 /// limit in force afterwards.
+// rlim_t is u64 on Linux, not everywhere.
+#[allow(clippy::unnecessary_cast)]
 pub fn raise_descriptor_limit() -> io::Result<u64> {
     let mut lim = libc::rlimit {
         rlim_cur: 0,
