@@ -24,9 +24,6 @@ const H2_CONNECTION_WINDOW: u32 = 32 << 20;
 /// 1 Gbit/s.
 const H2_MAX_FRAME: u32 = 1 << 20;
 
-/// How often files no job needs are looked for.
-const COLLECT_INTERVAL: Duration = Duration::from_secs(60);
-
 /// How the coordinator meets the network: TLS and the two tokens.
 #[derive(Clone, Debug, Default)]
 pub struct Security {
@@ -138,7 +135,8 @@ pub async fn serve(
             let mut tick = tokio::time::interval(Duration::from_millis(100));
             let mut last_progress = tokio::time::Instant::now();
             // At start too: files of jobs that ended before a restart.
-            let mut last_collect = tokio::time::Instant::now() - COLLECT_INTERVAL;
+            let collect_interval = farm.config.collect_interval;
+            let mut last_collect = tokio::time::Instant::now() - collect_interval;
             loop {
                 tick.tick().await;
                 farm.expire();
@@ -161,7 +159,7 @@ pub async fn serve(
                             .await;
                     }
                 }
-                if last_collect.elapsed() >= COLLECT_INTERVAL {
+                if last_collect.elapsed() >= collect_interval {
                     last_collect = tokio::time::Instant::now();
                     let farm = farm.clone();
                     tokio::task::spawn_blocking(move || farm.collect_assets());
