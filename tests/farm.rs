@@ -819,6 +819,28 @@ fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 
+/// A result for unit `u` from session `id`, as a worker would send it:
+/// `sums` pixels of zero sums, every pixel claiming `count` samples.
+fn raw_result(id: &str, u: &pb::WorkUnit, sums: usize, count: u32) -> pb::SubmitResultRequest {
+    let r = u.rect.expect("rect");
+    let n = (r.width * r.height) as usize;
+    let s = u.samples.expect("samples");
+    pb::SubmitResultRequest {
+        worker_id: id.to_string(),
+        lease_id: u.lease_id.clone(),
+        rect: Some(r),
+        samples: Some(s),
+        sums: vec![0; sums * 24].into(),
+        counts: count.to_le_bytes().repeat(n).into(),
+        rays: Some(pb::RayCounts {
+            primary: n as u64 * (s.end - s.start) as u64,
+            ..Default::default()
+        }),
+        render_seconds: 0.01,
+        ..Default::default()
+    }
+}
+
 /// Speaks the worker protocol with bad data: a real gRPC client, not a mock.
 #[test]
 fn malformed_results_are_rejected_and_late_results_dropped() {
@@ -865,25 +887,7 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
                 units.into_iter().next().expect("a unit")
             }
         };
-        let result = |u: &pb::WorkUnit, sums: usize, count: u32| {
-            let r = u.rect.expect("rect");
-            let n = (r.width * r.height) as usize;
-            let s = u.samples.expect("samples");
-            pb::SubmitResultRequest {
-                worker_id: id.clone(),
-                lease_id: u.lease_id.clone(),
-                rect: Some(r),
-                samples: Some(s),
-                sums: vec![0; sums * 24].into(),
-                counts: count.to_le_bytes().repeat(n).into(),
-                rays: Some(pb::RayCounts {
-                    primary: n as u64 * (s.end - s.start) as u64,
-                    ..Default::default()
-                }),
-                render_seconds: 0.01,
-                ..Default::default()
-            }
-        };
+        let result = |u: &pb::WorkUnit, sums: usize, count: u32| raw_result(&id, u, sums, count);
         // Wrong size.
         let u = lease(&mut w).await;
         let n = (u.rect.unwrap().width * u.rect.unwrap().height) as usize;
@@ -1085,22 +1089,7 @@ fn worker_sessions_bind_leases_and_a_worker_sending_malformed_results_is_quarant
         };
         let result = |id: &str, u: &pb::WorkUnit, count: u32| {
             let r = u.rect.expect("rect");
-            let n = (r.width * r.height) as usize;
-            let s = u.samples.expect("samples");
-            pb::SubmitResultRequest {
-                worker_id: id.to_string(),
-                lease_id: u.lease_id.clone(),
-                rect: Some(r),
-                samples: Some(s),
-                sums: vec![0; n * 24].into(),
-                counts: count.to_le_bytes().repeat(n).into(),
-                rays: Some(pb::RayCounts {
-                    primary: n as u64 * u64::from(s.end - s.start),
-                    ..Default::default()
-                }),
-                render_seconds: 0.01,
-                ..Default::default()
-            }
+            raw_result(id, u, (r.width * r.height) as usize, count)
         };
         let u = lease(&victim, &mut w).await.units.remove(0);
         assert!(random(&u.lease_id), "{}", u.lease_id);
