@@ -126,7 +126,10 @@ fn status(url: &str, job: &str) -> pb::JobStatus {
     rt().block_on(async {
         jobs_client(url)
             .await
-            .get_job(pb::GetJobRequest { job_id: job.into() })
+            .get_job(pb::GetJobRequest {
+                job_id: job.into(),
+                ..Default::default()
+            })
             .await
             .expect("get job")
             .into_inner()
@@ -816,6 +819,28 @@ fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 
+/// A result for unit `u` from session `id`, as a worker would send it:
+/// `sums` pixels of zero sums, every pixel claiming `count` samples.
+fn raw_result(id: &str, u: &pb::WorkUnit, sums: usize, count: u32) -> pb::SubmitResultRequest {
+    let r = u.rect.expect("rect");
+    let n = (r.width * r.height) as usize;
+    let s = u.samples.expect("samples");
+    pb::SubmitResultRequest {
+        worker_id: id.to_string(),
+        lease_id: u.lease_id.clone(),
+        rect: Some(r),
+        samples: Some(s),
+        sums: vec![0; sums * 24].into(),
+        counts: count.to_le_bytes().repeat(n).into(),
+        rays: Some(pb::RayCounts {
+            primary: n as u64 * (s.end - s.start) as u64,
+            ..Default::default()
+        }),
+        render_seconds: 0.01,
+        ..Default::default()
+    }
+}
+
 /// Speaks the worker protocol with bad data: a real gRPC client, not a mock.
 #[test]
 fn malformed_results_are_rejected_and_late_results_dropped() {
@@ -862,25 +887,7 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
                 units.into_iter().next().expect("a unit")
             }
         };
-        let result = |u: &pb::WorkUnit, sums: usize, count: u32| {
-            let r = u.rect.expect("rect");
-            let n = (r.width * r.height) as usize;
-            let s = u.samples.expect("samples");
-            pb::SubmitResultRequest {
-                worker_id: id.clone(),
-                lease_id: u.lease_id.clone(),
-                rect: Some(r),
-                samples: Some(s),
-                sums: vec![0; sums * 24].into(),
-                counts: count.to_le_bytes().repeat(n).into(),
-                rays: Some(pb::RayCounts {
-                    primary: n as u64 * (s.end - s.start) as u64,
-                    ..Default::default()
-                }),
-                render_seconds: 0.01,
-                ..Default::default()
-            }
-        };
+        let result = |u: &pb::WorkUnit, sums: usize, count: u32| raw_result(&id, u, sums, count);
         // Wrong size.
         let u = lease(&mut w).await;
         let n = (u.rect.unwrap().width * u.rect.unwrap().height) as usize;
@@ -1019,6 +1026,177 @@ fn a_unit_failing_repeatedly_fails_the_job_with_the_workers_messages() {
         Some(3),
         "watch exits 3 for a failed job"
     );
+}
+
+/// Issue 37, item 6: a worker's session (the id Register returns) is 128
+/// random bits, shown nowhere; a result from another session for a lease
+/// is refused with PERMISSION_DENIED and the lease stays its holder's; a
+/// worker sending malformed results is quarantined (refused leases) and
+/// does not fail a job that allows a single attempt; a real worker
+/// finishes it. Before the fix ids were `w<boot>-N`, the forged result was
+/// a per-result REJECTED, and the first malformed result failed this job.
+#[test]
+fn worker_sessions_bind_leases_and_a_worker_sending_malformed_results_is_quarantined() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &["--quarantine-after", "3"]);
+    let scene = repo("examples/resolution.toml");
+    let job = submit(
+        &c.url(),
+        &scene,
+        &[SMALL, &["--tile-size", "32", "--max-attempts", "1"]].concat(),
+    );
+    let url = c.url();
+    rt().block_on(async {
+        let mut w = WorkerServiceClient::connect(url.clone())
+            .await
+            .expect("connect");
+        let register = |name: &str| {
+            let mut w = w.clone();
+            let name = name.to_string();
+            async move {
+                w.register(pb::RegisterRequest {
+                    name,
+                    capabilities: None,
+                })
+                .await
+                .expect("register")
+                .into_inner()
+                .worker_id
+            }
+        };
+        let (victim, thief) = (register("victim").await, register("thief").await);
+        let random = |id: &str| id.len() == 33 && id[1..].bytes().all(|b| b.is_ascii_hexdigit());
+        assert!(random(&victim) && random(&thief), "{victim} {thief}");
+        let listed: Vec<String> = list_workers_async(&url).await;
+        assert!(
+            !listed.contains(&victim) && !listed.contains(&thief) && listed.len() == 2,
+            "ListWorkers shows public ids, not sessions: {listed:?}"
+        );
+        let lease = |id: &str, w: &mut WorkerServiceClient<Channel>| {
+            let mut w = w.clone();
+            let id = id.to_string();
+            async move {
+                w.lease_work(pb::LeaseWorkRequest {
+                    worker_id: id,
+                    max_units: 1,
+                    ..Default::default()
+                })
+                .await
+                .expect("lease")
+                .into_inner()
+            }
+        };
+        let result = |id: &str, u: &pb::WorkUnit, count: u32| {
+            let r = u.rect.expect("rect");
+            raw_result(id, u, (r.width * r.height) as usize, count)
+        };
+        let u = lease(&victim, &mut w).await.units.remove(0);
+        assert!(random(&u.lease_id), "{}", u.lease_id);
+        // Well-formed, for the victim's lease, from the thief's session.
+        let e = w
+            .submit_result(result(&thief, &u, 4))
+            .await
+            .expect_err("a result for another session's lease");
+        assert_eq!(e.code(), tonic::Code::PermissionDenied, "{e:?}");
+        assert!(
+            e.message().contains(&format!(
+                "lease {} was granted to another worker session",
+                u.lease_id
+            )),
+            "{}",
+            e.message()
+        );
+        // Still the victim's: its heartbeat names nothing gone.
+        let beat = w
+            .heartbeat(pb::HeartbeatRequest {
+                worker_id: victim.clone(),
+                leases: vec![pb::LeaseProgress {
+                    lease_id: u.lease_id.clone(),
+                    samples_done: 0,
+                }],
+            })
+            .await
+            .expect("heartbeat")
+            .into_inner();
+        assert!(beat.gone_leases.is_empty() && !beat.reregister, "{beat:?}");
+        // The thief now sends malformed results for its own leases: three
+        // in a row and it is quarantined.
+        for _ in 0..3 {
+            let u = lease(&thief, &mut w).await.units.remove(0);
+            let r = w
+                .submit_result(result(&thief, &u, 5))
+                .await
+                .expect("submit")
+                .into_inner();
+            assert_eq!(
+                r.outcome,
+                pb::ResultOutcome::Rejected as i32,
+                "{}",
+                r.reason
+            );
+        }
+        let refused = lease(&thief, &mut w).await;
+        assert!(
+            refused.units.is_empty(),
+            "a quarantined worker gets no lease"
+        );
+        assert!(
+            refused.refused.contains("quarantined for another 60 s")
+                && refused
+                    .refused
+                    .contains("failed validation 3 times in a row"),
+            "{}",
+            refused.refused
+        );
+        assert!(
+            refused.retry_after_ms > 55_000,
+            "{}",
+            refused.retry_after_ms
+        );
+        let shown = jobs_client(&url)
+            .await
+            .list_workers(pb::ListWorkersRequest {})
+            .await
+            .expect("workers")
+            .into_inner()
+            .workers;
+        let thief_row = shown.iter().find(|w| w.name == "thief").expect("thief");
+        assert!(thief_row.quarantined_until_unix_ms > 0, "{thief_row:?}");
+        // The victim gives its lease back; real workers finish the job.
+        w.return_leases(pb::ReturnLeasesRequest {
+            worker_id: victim.clone(),
+            lease_ids: vec![u.lease_id.clone()],
+        })
+        .await
+        .expect("return");
+    });
+    // Three malformed results with one attempt allowed: not failed.
+    let s = status(&url, &job);
+    assert_eq!(s.state, pb::JobState::Running as i32, "{}", s.error);
+    let log = c.proc.log();
+    assert!(
+        log.contains("result for another worker's lease refused")
+            && log.contains("worker quarantined: its results failed validation 3 times in a row"),
+        "{log}"
+    );
+    let _w = start_worker(dir.path(), &url, "good");
+    let s = wait_done(&url, &job, Duration::from_secs(60));
+    assert_eq!((s.results_rejected, s.units_accepted), (3, s.units_total));
+    assert_frames_match_render(dir.path(), &url, &job, &scene, 0..=0, SMALL);
+}
+
+async fn list_workers_async(url: &str) -> Vec<String> {
+    jobs_client(url)
+        .await
+        .list_workers(pb::ListWorkersRequest {})
+        .await
+        .expect("workers")
+        .into_inner()
+        .workers
+        .into_iter()
+        .map(|w| w.worker_id)
+        .collect()
 }
 
 #[test]
@@ -1249,7 +1427,10 @@ fn python_grpcio_client_submits_and_watches_a_job_over_tls_with_a_token() {
             Some(&tls.join("client.token")),
         )
         .await
-        .get_job(pb::GetJobRequest { job_id: job })
+        .get_job(pb::GetJobRequest {
+            job_id: job,
+            ..Default::default()
+        })
         .await
         .expect("get job")
         .into_inner()
@@ -1976,6 +2157,109 @@ fn stored_files_are_kept_while_an_unfinished_job_needs_them_and_collected_after(
     );
 }
 
+/// Uploads `data` as one chunk (the files here are small).
+async fn upload(c: &mut JobServiceClient<Channel>, data: &[u8]) -> String {
+    let sha256 = tessera_proto::transport::sha256_hex(data);
+    let chunk = pb::AssetChunk {
+        sha256: sha256.clone(),
+        size: data.len() as u64,
+        offset: 0,
+        data: data.to_vec(),
+    };
+    c.upload_asset(tokio_stream::iter([chunk]))
+        .await
+        .expect("upload");
+    sha256
+}
+
+/// Issue 37, item 7: the collector (every 0.1 s here, retention 1 s) runs
+/// between FindMissingAssets and SubmitJob, long after the upload, and
+/// loses nothing: FindMissingAssets holds what it reports held. Before
+/// the fix the model went 1 s after its upload and the loop below saw it
+/// missing.
+#[test]
+fn a_collection_between_find_missing_and_submit_loses_nothing() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let fast = ["--asset-retention", "1", "--asset-collect-interval", "0.1"];
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &fast);
+    let scene = repo("examples/cornell.toml");
+    let read = |p: &str| std::fs::read(repo(p)).expect("read");
+    let (obj, mtl) = (
+        read("examples/models/cornell_box.obj"),
+        read("examples/models/cornell_box.mtl"),
+    );
+    let url = c.url();
+    let job = rt().block_on(async {
+        let mut jc = jobs_client(&url).await;
+        let files = [
+            ("models/cornell_box.obj", upload(&mut jc, &obj).await),
+            ("models/cornell_box.mtl", upload(&mut jc, &mtl).await),
+        ];
+        // A file nobody asks about: the collector does run.
+        upload(&mut jc, b"nobody names this file").await;
+        let refs: Vec<pb::AssetRef> = files
+            .iter()
+            .map(|(_, h)| pb::AssetRef {
+                sha256: h.clone(),
+                size: 0,
+            })
+            .collect();
+        // Past the retention, asked again and again: each answer holds them.
+        let until = Instant::now() + Duration::from_millis(2500);
+        while Instant::now() < until {
+            let missing = jc
+                .find_missing_assets(pb::FindMissingAssetsRequest {
+                    assets: refs.clone(),
+                })
+                .await
+                .expect("find missing")
+                .into_inner()
+                .missing;
+            assert!(
+                missing.is_empty(),
+                "collected after FindMissing held them: {missing:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(400)).await;
+        }
+        // Six collections between the last answer and the submit.
+        tokio::time::sleep(Duration::from_millis(600)).await;
+        jc.submit_job(pb::SubmitJobRequest {
+            spec: Some(pb::JobSpec {
+                scene_name: "cornell.toml".into(),
+                scene: std::fs::read(&scene).expect("scene"),
+                overrides: Some(pb::RenderOverrides {
+                    width: Some(96),
+                    height: Some(72),
+                    samples: Some(4),
+                    ..Default::default()
+                }),
+                files: files
+                    .iter()
+                    .map(|(n, h)| (n.to_string(), h.clone()))
+                    .collect(),
+                ..Default::default()
+            }),
+        })
+        .await
+        .expect("submit after a collection")
+        .into_inner()
+        .job_id
+    });
+    let stats = rt().block_on(async {
+        jobs_client(&url)
+            .await
+            .get_farm_stats(pb::GetFarmStatsRequest {})
+            .await
+            .expect("stats")
+            .into_inner()
+    });
+    assert_eq!(stats.assets_collected, 1, "{stats:?}");
+    let _w = start_worker(dir.path(), &url, "w");
+    wait_done(&url, &job, Duration::from_secs(60));
+    assert_frames_match_render(dir.path(), &url, &job, &scene, 0..=0, SMALL);
+}
+
 /// A service's health status, asked without a token (over TLS trusting
 /// `ca` for an https:// URL).
 fn health_of(url: &str, ca: Option<&Path>, service: &str) -> i32 {
@@ -2300,6 +2584,137 @@ fn json_output_and_plain_progress_lines_for_scripts() {
         Ok(id) if !id.trim().is_empty() => assert_eq!(host, id.trim()),
         _ => assert!(!host.is_empty()),
     }
+}
+
+/// Bytes (protobuf-encoded) that `n` watchers of `job` receive in `secs`,
+/// and the events each got.
+async fn watch_bytes(url: &str, job: &str, n: usize, secs: f64, deltas: bool) -> (u64, Vec<u32>) {
+    use prost::Message as _;
+    use tokio_stream::StreamExt as _;
+    let mut tasks = Vec::new();
+    for _ in 0..n {
+        let (url, job) = (url.to_string(), job.to_string());
+        tasks.push(tokio::spawn(async move {
+            let mut c = jobs_client(&url).await;
+            let mut stream = c
+                .watch_job(pb::WatchJobRequest {
+                    job_id: job,
+                    deltas,
+                })
+                .await
+                .expect("watch")
+                .into_inner();
+            let end = tokio::time::Instant::now() + Duration::from_secs_f64(secs);
+            let (mut bytes, mut events) = (0u64, 0u32);
+            while let Ok(Some(ev)) = tokio::time::timeout_at(end, stream.next()).await {
+                bytes += ev.expect("event").encoded_len() as u64;
+                events += 1;
+            }
+            (bytes, events)
+        }));
+    }
+    let mut total = 0;
+    let mut events = Vec::new();
+    for t in tasks {
+        let (b, e) = t.await.expect("watcher");
+        total += b;
+        events.push(e);
+    }
+    (total, events)
+}
+
+/// Issue 37, item 5: 50 watchers of a queued 100k-frame job with no
+/// worker receive under 1 MB in 20 s together (counted as the messages'
+/// encoded sizes): the first event without frames, then keepalives. A
+/// full status comes in pages. Before the fix every watcher got the whole
+/// job (783 KB) about once a second: 823 MB in 20 s. Measure a build of
+/// another release by pointing TESSERA_WATCH_COORDINATOR at its binary.
+#[test]
+fn fifty_watchers_of_an_unchanged_100k_frame_job_receive_under_a_megabyte_in_20_s() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let bin = std::env::var("TESSERA_WATCH_COORDINATOR").unwrap_or(TESSERA.to_string());
+    let mut child = Command::new(&bin)
+        .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
+        .arg(dir.path().join("data"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start coordinator");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().expect("stdout"))
+        .read_line(&mut line)
+        .expect("address");
+    let c = Coordinator {
+        proc: Proc {
+            child,
+            log: dir.path().join("unused.log"),
+        },
+        addr: line
+            .trim()
+            .strip_prefix("listening on ")
+            .expect("address")
+            .to_string(),
+    };
+    let url = c.url();
+    rt().block_on(async {
+        let mut jc = jobs_client(&url).await;
+        let job = jc
+            .submit_job(pb::SubmitJobRequest {
+                spec: Some(pb::JobSpec {
+                    scene_name: "resolution.toml".into(),
+                    scene: std::fs::read(repo("examples/resolution.toml")).expect("scene"),
+                    overrides: Some(pb::RenderOverrides {
+                        width: Some(8),
+                        height: Some(8),
+                        samples: Some(1),
+                        ..Default::default()
+                    }),
+                    first_frame: 0,
+                    last_frame: 99_999,
+                    ..Default::default()
+                }),
+            })
+            .await
+            .expect("submit")
+            .into_inner()
+            .job_id;
+        let (bytes, events) = watch_bytes(&url, &job, 50, 20.0, true).await;
+        eprintln!("50 watchers (deltas) of a queued 100k-frame job: {bytes} bytes in 20 s, events {events:?}");
+        assert!(bytes < 1_000_000, "{bytes} bytes");
+        // The first event and one keepalive (at 15 s) each.
+        assert!(events.iter().all(|&e| e == 2), "{events:?}");
+        // A full status comes in pages of at most 10000 frames.
+        let mut token = String::new();
+        let (mut pages, mut frames, mut largest) = (0, 0, 0);
+        loop {
+            let page = jc
+                .get_job(pb::GetJobRequest {
+                    job_id: job.clone(),
+                    frame_limit: 10_000,
+                    frame_page_token: token,
+                })
+                .await
+                .expect("page")
+                .into_inner();
+            use prost::Message as _;
+            largest = largest.max(page.encoded_len());
+            pages += 1;
+            frames += page.frames.len();
+            token = page.next_frame_page_token;
+            if token.is_empty() {
+                break;
+            }
+        }
+        eprintln!("GetJob in pages of 10000 frames: {pages} pages, the largest {largest} bytes");
+        assert_eq!((pages, frames), (10, 100_000));
+        assert!(largest < 100_000, "{largest}");
+        // Clients of earlier releases (no deltas) still get every frame,
+        // but once: an unchanged job is not sent again.
+        let (bytes, events) = watch_bytes(&url, &job, 5, 3.0, false).await;
+        eprintln!("5 watchers (no deltas) for 3 s: {bytes} bytes, events {events:?}");
+        assert!(events.iter().all(|&e| e == 1), "{events:?}");
+    });
 }
 
 /// The submits that used to abort the coordinator (and abort it again at

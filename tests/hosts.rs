@@ -319,9 +319,12 @@ fn a_farm_of_separate_hosts_with_tls_and_tokens_renders_meshes_and_animations_bi
         Some(&tls.join("client.token")),
     ));
     let mut status = |job: &str| -> pb::JobStatus {
-        rt.block_on(client.get_job(pb::GetJobRequest { job_id: job.into() }))
-            .expect("get job")
-            .into_inner()
+        rt.block_on(client.get_job(pb::GetJobRequest {
+            job_id: job.into(),
+            ..Default::default()
+        }))
+        .expect("get job")
+        .into_inner()
     };
     let wait_done = |status: &mut dyn FnMut(&str) -> pb::JobStatus, job: &str| {
         let start = Instant::now();

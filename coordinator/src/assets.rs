@@ -7,8 +7,17 @@
 //! declared, synced, then renamed into place, so a crash or a full disk
 //! leaves at most a stray temporary file, removed at the next start); a
 //! file stays while an unfinished job references it, and is collected
-//! once none has for `retention` (each submit that names it starts the
-//! clock again, so a re-submit of the same model uploads nothing).
+//! once none has for `retention` (each submit that names it, each
+//! `FindMissingAssets` that finds it and each upload of it start the clock
+//! again, so a re-submit of the same model uploads nothing).
+//!
+//! Collection cannot race a submit: a file's clock is restarted
+//! ([`AssetStore::hold`]) and a file is removed ([`AssetStore::collect`],
+//! which reads its clock again first) under one lock, the `gate`. So a file
+//! that `FindMissingAssets` reported held stays for `retention` after that
+//! answer, and one a submit has named stays while its job is unfinished
+//! (the submit holds it before the job's record names it, and the
+//! collector keeps what unfinished jobs name).
 
 use std::collections::HashSet;
 use std::io::Write as _;
@@ -121,6 +130,10 @@ pub struct AssetStore {
     /// Uploads ended since start (memory may be returned after them).
     pub uploads_ended: AtomicU64,
     next_tmp: AtomicU64,
+    /// Taken to restart a file's clock and to remove a file, so that the
+    /// collector's second look at a file's clock and its removal are one
+    /// step no `hold` can fall between.
+    gate: Mutex<()>,
 }
 
 pub use tessera_proto::transport::sha256_hex;
@@ -149,6 +162,7 @@ impl AssetStore {
             uploading: std::sync::atomic::AtomicU32::new(0),
             uploads_ended: AtomicU64::new(0),
             next_tmp: AtomicU64::new(0),
+            gate: Mutex::new(()),
         };
         let (mut bytes, mut files) = (0, 0);
         for (_, meta) in store.entries() {
@@ -201,13 +215,22 @@ impl AssetStore {
             .map(|m| m.len())
     }
 
-    /// Restarts a file's retention clock (a job names it).
-    pub fn touch(&self, sha256: &str) {
-        if check_hash(sha256).is_ok()
-            && let Ok(f) = std::fs::File::options().write(true).open(self.path(sha256))
-        {
-            let _ = f.set_modified(SystemTime::now());
+    /// The size of a stored file, its retention clock restarted (a
+    /// client learned that it is held, or a job names it): it is not
+    /// collected for `retention` from now. None when it is not held.
+    pub fn hold(&self, sha256: &str) -> Option<u64> {
+        check_hash(sha256).ok()?;
+        let _gate = self.gate.lock().expect("asset gate");
+        let f = std::fs::File::options()
+            .write(true)
+            .open(self.path(sha256))
+            .ok()?;
+        let meta = f.metadata().ok().filter(|m| m.is_file())?;
+        if let Err(e) = f.set_modified(SystemTime::now()) {
+            // Still held; it may go after `retention` from its last use.
+            tracing::warn!(sha256 = %sha256, error = %e, "cannot restart a stored file's retention clock");
         }
+        Some(meta.len())
     }
 
     pub fn read(&self, sha256: &str) -> Result<Vec<u8>, AssetStoreError> {
@@ -234,7 +257,7 @@ impl AssetStore {
     /// `sha256`; None when it is already stored.
     pub fn begin(&self, sha256: &str, size: u64) -> Result<Option<Upload<'_>>, AssetStoreError> {
         check_hash(sha256)?;
-        if self.size(sha256).is_some() {
+        if self.hold(sha256).is_some() {
             return Ok(None);
         }
         if size > self.limits.max_asset_bytes {
@@ -330,24 +353,39 @@ impl AssetStore {
         Ok(sha256)
     }
 
-    /// Removes the files that no unfinished job names (`keep`) and that no
-    /// job has named for `retention`. Returns how many went.
+    /// Removes the files that no unfinished job names (`keep`) and that
+    /// nothing has held ([`AssetStore::hold`]) for `retention`. Returns
+    /// how many went. Each file's clock is read again under the gate just
+    /// before it goes: the listing is old by then, and a submit or
+    /// `FindMissingAssets` may have held the file since.
     pub fn collect(&self, keep: &HashSet<String>) -> u64 {
-        let now = SystemTime::now();
-        let mut removed = 0;
-        for (sha256, meta) in self.entries() {
-            if keep.contains(&sha256) {
-                continue;
-            }
+        self.collect_listed(keep, || {})
+    }
+
+    /// [`AssetStore::collect`], calling `after_listing` between the listing
+    /// and the removals (tests put a racing `hold` there).
+    fn collect_listed(&self, keep: &HashSet<String>, after_listing: impl FnOnce()) -> u64 {
+        let old = |meta: &std::fs::Metadata| {
             let age = meta
                 .modified()
                 .ok()
-                .and_then(|m| now.duration_since(m).ok())
+                .and_then(|m| SystemTime::now().duration_since(m).ok())
                 .unwrap_or_default();
-            if age < self.limits.retention {
+            age >= self.limits.retention
+        };
+        let listed = self.entries();
+        after_listing();
+        let mut removed = 0;
+        for (sha256, meta) in listed {
+            if keep.contains(&sha256) || !old(&meta) {
                 continue;
             }
-            if std::fs::remove_file(self.path(&sha256)).is_ok() {
+            let _gate = self.gate.lock().expect("asset gate");
+            let path = self.path(&sha256);
+            if !std::fs::metadata(&path).is_ok_and(|m| old(&m)) {
+                continue;
+            }
+            if std::fs::remove_file(&path).is_ok() {
                 let mut held = self.held.lock().expect("asset lock");
                 held.0 = held.0.saturating_sub(meta.len());
                 held.1 = held.1.saturating_sub(1);
@@ -545,5 +583,59 @@ mod tests {
         drop(store);
         let store = AssetStore::open(dir.path(), limits).unwrap();
         assert_eq!(store.held(), (1, 5), "counted again at open");
+    }
+
+    /// Sets a stored file's clock `ago` into the past.
+    fn age(store: &AssetStore, sha256: &str, ago: Duration) {
+        std::fs::File::options()
+            .write(true)
+            .open(store.path(sha256))
+            .unwrap()
+            .set_modified(SystemTime::now() - ago)
+            .unwrap();
+    }
+
+    #[test]
+    fn a_file_held_after_the_collectors_listing_is_not_collected() {
+        let dir = tempfile::tempdir().unwrap();
+        let limits = AssetLimits {
+            retention: Duration::from_secs(3600),
+            ..AssetLimits::default()
+        };
+        let store = AssetStore::open(dir.path(), limits).unwrap();
+        let (held, named, idle) = (
+            store.put(b"found by FindMissing").unwrap(),
+            store.put(b"named by a submit").unwrap(),
+            store.put(b"nobody's").unwrap(),
+        );
+        for h in [&held, &named, &idle] {
+            age(&store, h, Duration::from_secs(7200));
+        }
+        // The collector lists all three as past retention; then, before it
+        // removes anything, FindMissingAssets finds one (held) and a submit
+        // names another (its hold comes before the job's record exists, so
+        // `keep` does not have it).
+        let removed = store.collect_listed(&HashSet::new(), || {
+            assert_eq!(store.hold(&held), Some(20));
+            assert_eq!(store.hold(&named), Some(17));
+        });
+        assert_eq!(removed, 1);
+        assert_eq!(store.size(&held), Some(20), "held by FindMissing: kept");
+        assert_eq!(store.size(&named), Some(17), "named by a submit: kept");
+        assert_eq!(
+            store.size(&idle),
+            None,
+            "unheld for the retention: collected"
+        );
+        assert_eq!(store.held(), (2, 37));
+        // An upload of a held file restarts its clock too.
+        age(&store, &held, Duration::from_secs(7200));
+        assert!(store.begin(&held, 20).unwrap().is_none());
+        assert_eq!(store.collect(&HashSet::new()), 0);
+        // Once the retention passes with nobody holding them, they go.
+        age(&store, &held, Duration::from_secs(7200));
+        age(&store, &named, Duration::from_secs(7200));
+        assert_eq!(store.collect(&[named.clone()].into()), 1);
+        assert_eq!((store.size(&held), store.size(&named)), (None, Some(17)));
     }
 }

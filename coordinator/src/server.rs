@@ -25,9 +25,6 @@ const H2_CONNECTION_WINDOW: u32 = 32 << 20;
 /// 1 Gbit/s.
 const H2_MAX_FRAME: u32 = 1 << 20;
 
-/// How often files no job needs are looked for.
-const COLLECT_INTERVAL: Duration = Duration::from_secs(60);
-
 /// HTTP/2 keepalive: a ping after this long without a frame from the
 /// peer, and the connection closed if the ping is not answered in
 /// [`H2_KEEPALIVE_TIMEOUT`] (a peer gone without a FIN).
@@ -163,7 +160,8 @@ pub async fn serve(
             let mut last_progress = tokio::time::Instant::now();
             let (mut trimmed_at, mut last_trim) = (0, tokio::time::Instant::now());
             // At start too: files of jobs that ended before a restart.
-            let mut last_collect = tokio::time::Instant::now() - COLLECT_INTERVAL;
+            let collect_interval = farm.config.collect_interval;
+            let mut last_collect = tokio::time::Instant::now() - collect_interval;
             loop {
                 tick.tick().await;
                 farm.expire();
@@ -187,7 +185,7 @@ pub async fn serve(
                             .await;
                     }
                 }
-                if last_collect.elapsed() >= COLLECT_INTERVAL {
+                if last_collect.elapsed() >= collect_interval {
                     last_collect = tokio::time::Instant::now();
                     let farm = farm.clone();
                     tokio::task::spawn_blocking(move || farm.collect_assets());

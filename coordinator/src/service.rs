@@ -28,6 +28,7 @@ impl From<FarmError> for Status {
             FarmError::InvalidArgument(m) => Status::invalid_argument(m),
             FarmError::NotFound(m) => Status::not_found(m),
             FarmError::FailedPrecondition(m) => Status::failed_precondition(m),
+            FarmError::PermissionDenied(m) => Status::permission_denied(m),
             FarmError::ResourceExhausted(m) => Status::resource_exhausted(m),
             FarmError::Unavailable(m) => Status::unavailable(m),
             // Nothing was recorded; the same request may be sent again.
@@ -101,6 +102,10 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
             converged_share: v.adaptive.converged_share,
             estimated_error: v.adaptive.estimated_error,
         }),
+        // Set by the callers that page or send deltas.
+        next_frame_page_token: String::new(),
+        delta: false,
+        keepalive: false,
     }
 }
 
@@ -142,9 +147,25 @@ impl JobService for Api {
         &self,
         req: Request<pb::GetJobRequest>,
     ) -> Result<Response<pb::JobStatus>, Status> {
-        Ok(Response::new(job_status(
-            &self.farm.job(&req.into_inner().job_id)?,
-        )))
+        let r = req.into_inner();
+        if r.frame_limit == 0 {
+            return Ok(Response::new(job_status(&self.farm.job(&r.job_id)?)));
+        }
+        let from = if r.frame_page_token.is_empty() {
+            0
+        } else {
+            r.frame_page_token.parse::<u32>().map_err(|_| {
+                Status::invalid_argument(format!(
+                    "frame_page_token {:?} is not one this coordinator gave (a JobStatus.next_frame_page_token)",
+                    r.frame_page_token.chars().take(40).collect::<String>()
+                ))
+            })?
+        };
+        let limit = r.frame_limit.min(MAX_FRAME_PAGE) as usize;
+        let (view, next) = self.farm.job_page(&r.job_id, from, limit)?;
+        let mut status = job_status(&view);
+        status.next_frame_page_token = next.map(|f| f.to_string()).unwrap_or_default();
+        Ok(Response::new(status))
     }
 
     async fn list_jobs(
@@ -162,37 +183,10 @@ impl JobService for Api {
         &self,
         req: Request<pb::WatchJobRequest>,
     ) -> Result<Response<Self::WatchJobStream>, Status> {
-        let id = req.into_inner().job_id;
-        let mut rx = self.farm.watch(&id)?;
-        let farm = self.farm.clone();
+        let r = req.into_inner();
+        let rx = self.farm.watch(&r.job_id)?;
         let (tx, out) = tokio::sync::mpsc::channel(4);
-        tokio::spawn(async move {
-            loop {
-                rx.borrow_and_update();
-                let v = match farm.job(&id) {
-                    Ok(v) => v,
-                    Err(e) => {
-                        let _ = tx.send(Err(e.into())).await;
-                        return;
-                    }
-                };
-                let terminal = v.state.is_terminal();
-                if tx.send(Ok(job_status(&v))).await.is_err() || terminal {
-                    return;
-                }
-                // At most 5 events a second, at least one a second (rates,
-                // ETA); the job's end at once (a short job's client should
-                // not wait out the throttle).
-                let sent = tokio::time::Instant::now();
-                let _ = tokio::time::timeout(Duration::from_secs(1), rx.changed()).await;
-                let calm = sent + Duration::from_millis(200);
-                while tokio::time::Instant::now() < calm && !farm.job_ended(&id) {
-                    if let Ok(Err(_)) = tokio::time::timeout_at(calm, rx.changed()).await {
-                        break; // the job is gone: the next look says so
-                    }
-                }
-            }
-        });
+        tokio::spawn(watch(self.farm.clone(), r.job_id, r.deltas, rx, tx));
         Ok(Response::new(Box::pin(
             tokio_stream::wrappers::ReceiverStream::new(out),
         )))
@@ -262,6 +256,7 @@ impl JobService for Api {
                 samples_per_second: w.samples_per_second,
                 rays_per_second: w.rays_per_second,
                 last_seen_unix_ms: w.last_seen_unix_ms,
+                quarantined_until_unix_ms: w.quarantined_until_unix_ms,
             })
             .collect();
         Ok(Response::new(pb::ListWorkersResponse { workers }))
@@ -286,7 +281,9 @@ impl JobService for Api {
         let mut missing = Vec::new();
         for a in assets {
             check_hash(&a.sha256).map_err(|e| Status::invalid_argument(e.to_string()))?;
-            if self.farm.assets.size(&a.sha256).is_none() {
+            // A file reported held is held: its retention clock restarts, so
+            // the collector keeps it for the SubmitJob that names it.
+            if self.farm.assets.hold(&a.sha256).is_none() {
                 missing.push(a.sha256);
             }
         }
@@ -387,6 +384,97 @@ fn asset_status(e: AssetStoreError) -> Status {
     crate::farm::asset_error(e).into()
 }
 
+/// Most frames of one page of `GetJob`.
+const MAX_FRAME_PAGE: u32 = 10_000;
+/// A watch of a quiet job (`deltas`) sends a keepalive this often.
+const WATCH_KEEPALIVE: Duration = Duration::from_secs(15);
+
+/// Sends a watched job's events until it ends or the client leaves: an
+/// event whenever the job changed (at most five a second; its rates and
+/// ETA looked at once a second), none while it does not. With `deltas`
+/// an event holds only the frames that changed since the last (none in
+/// the first) and a quiet job gets a keepalive every
+/// [`WATCH_KEEPALIVE`]; without it (clients of earlier releases) every
+/// event holds every frame. Each event used to be the whole job, once a
+/// second even when nothing changed: 50 watchers of a queued 100k-frame
+/// job received 783 KB each a second.
+async fn watch(
+    farm: Arc<Farm>,
+    id: String,
+    deltas: bool,
+    mut rx: tokio::sync::watch::Receiver<u64>,
+    tx: tokio::sync::mpsc::Sender<Result<pb::JobStatus, Status>>,
+) {
+    // The frames changed since this mark are sent next; u64::MAX: none
+    // (the first delta event carries no frame).
+    let mut since = u64::MAX;
+    // What the last event said, its frames left out.
+    let mut last: Option<pb::JobStatus> = None;
+    let mut quiet_since = tokio::time::Instant::now();
+    loop {
+        rx.borrow_and_update();
+        let (view, mark) = match farm.job_delta(&id, since) {
+            Ok(v) => v,
+            Err(e) => {
+                let _ = tx.send(Err(e.into())).await;
+                return;
+            }
+        };
+        let terminal = view.state.is_terminal();
+        let mut status = job_status(&view);
+        let frames = std::mem::take(&mut status.frames);
+        let changed = !frames.is_empty() || last.as_ref() != Some(&status);
+        if changed {
+            last = Some(status.clone());
+            since = mark;
+            quiet_since = tokio::time::Instant::now();
+            let event = if deltas {
+                pb::JobStatus {
+                    frames,
+                    delta: true,
+                    ..status
+                }
+            } else {
+                match farm.job(&id) {
+                    Ok(v) => job_status(&v),
+                    Err(e) => {
+                        let _ = tx.send(Err(e.into())).await;
+                        return;
+                    }
+                }
+            };
+            if tx.send(Ok(event)).await.is_err() || terminal {
+                return;
+            }
+        } else if deltas && quiet_since.elapsed() >= WATCH_KEEPALIVE {
+            quiet_since = tokio::time::Instant::now();
+            let keepalive = pb::JobStatus {
+                job_id: id.clone(),
+                keepalive: true,
+                ..Default::default()
+            };
+            if tx.send(Ok(keepalive)).await.is_err() {
+                return;
+            }
+        }
+        // At most 5 events a second, a look at least once a second (rates,
+        // ETA); the job's end at once (a short job's client should not
+        // wait out the throttle).
+        let looked = tokio::time::Instant::now();
+        tokio::select! {
+            _ = tokio::time::timeout(Duration::from_secs(1), rx.changed()) => {}
+            // The client left: stop now, not at the next change.
+            _ = tx.closed() => return,
+        }
+        let calm = looked + Duration::from_millis(200);
+        while tokio::time::Instant::now() < calm && !farm.job_ended(&id) {
+            if let Ok(Err(_)) = tokio::time::timeout_at(calm, rx.changed()).await {
+                break; // the job is gone: the next look says so
+            }
+        }
+    }
+}
+
 /// Longest long poll of `LeaseWork` (`wait_ms`).
 const MAX_LEASE_WAIT_MS: u32 = 5_000;
 /// Most `rendered` reports of one `LeaseWork` request that are read.
@@ -443,6 +531,19 @@ impl WorkerService for Api {
         if !rendered.is_empty() {
             self.farm.rate_rendered(&r.worker_id, &rendered);
         }
+        if let Some(left) = self.farm.quarantined_for(&r.worker_id) {
+            // Not an error: a worker retries after retry_after_ms, with
+            // its session (re-registering would not lift it either way).
+            return Ok(Response::new(pb::LeaseWorkResponse {
+                units: Vec::new(),
+                retry_after_ms: left.as_millis().min(u128::from(u32::MAX)) as u32,
+                refused: format!(
+                    "this worker is quarantined for another {:.0} s: its results failed validation {} times in a row (see the coordinator's log)",
+                    left.as_secs_f64().ceil(),
+                    self.farm.config.quarantine_after
+                ),
+            }));
+        }
         let leases = self
             .farm
             .lease_or_wait(&r.worker_id, r.max_units.clamp(1, 64), r.ahead, wait)
@@ -478,6 +579,7 @@ impl WorkerService for Api {
         Ok(Response::new(pb::LeaseWorkResponse {
             units,
             retry_after_ms,
+            refused: String::new(),
         }))
     }
 

@@ -42,6 +42,13 @@ pub fn sha256_hex(data: &[u8]) -> String {
     hex(&sha2::Sha256::digest(data))
 }
 
+/// The name under which a worker is shown (ListWorkers, the monitor,
+/// logs): a hash of its session (`RegisterResponse.worker_id`), so that
+/// what anyone may see never lets them speak as the worker.
+pub fn public_worker_id(session: &str) -> String {
+    format!("w{}", &sha256_hex(session.as_bytes())[..16])
+}
+
 /// Whether `s` is a SHA-256 as files are named: 64 lowercase hex digits.
 pub fn is_sha256_hex(s: &str) -> bool {
     s.len() == 64

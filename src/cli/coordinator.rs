@@ -108,6 +108,16 @@ pub struct CoordinatorArgs {
     /// Most asset uploads at once on one connection
     #[arg(long, default_value_t = 4)]
     pub max_uploads_per_connection: u32,
+    /// Seconds between looks for files to collect (tests make it short)
+    #[arg(long, default_value_t = 60.0, hide = true)]
+    pub asset_collect_interval: f64,
+    /// Malformed results in a row after which a worker is quarantined:
+    /// its leases go to others and it gets none for --quarantine-seconds
+    #[arg(long, default_value_t = 5)]
+    pub quarantine_after: u32,
+    /// Seconds a quarantined worker gets no lease
+    #[arg(long, default_value_t = 60.0)]
+    pub quarantine_seconds: f64,
 }
 
 /// Environment variables of the coordinator's tokens.
@@ -127,6 +137,13 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
     config.heartbeat_interval = secs("heartbeat-interval", args.heartbeat_interval)?;
     config.progress_interval = secs("progress-interval", args.progress_interval)?;
     config.max_message_bytes = args.max_message_bytes;
+    config.collect_interval = secs("asset-collect-interval", args.asset_collect_interval)?;
+    config.quarantine_for = secs("quarantine-seconds", args.quarantine_seconds)?;
+    anyhow::ensure!(
+        args.quarantine_after >= 1,
+        "--quarantine-after must be at least 1, got 0"
+    );
+    config.quarantine_after = args.quarantine_after;
     config.max_frame_pixels = args.max_frame_pixels;
     config.asset_limits = AssetLimits {
         max_asset_bytes: args.max_asset_bytes,

@@ -277,11 +277,7 @@ pub fn jobs(args: ListArgs) -> Result<ExitCode> {
 pub fn status(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;
-        let j = client
-            .get_job(pb::GetJobRequest { job_id: args.job })
-            .await
-            .map_err(rpc)?
-            .into_inner();
+        let j = get_job(&mut client, &args.job).await?;
         if args.format.json {
             print_json(&job_json(&j));
             return Ok(ExitCode::SUCCESS);
@@ -386,11 +382,104 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
     })
 }
 
+/// Frames a page of `GetJob` asks for.
+const FRAME_PAGE: u32 = 10_000;
+
+/// The job with every frame, asked for in pages: one status of a long
+/// animation is no larger than a page (a coordinator of an earlier
+/// release answers the first request with every frame).
+async fn get_job(client: &mut JobClient, id: &str) -> Result<pb::JobStatus> {
+    let mut job: Option<pb::JobStatus> = None;
+    let mut token = String::new();
+    loop {
+        let mut page = client
+            .get_job(pb::GetJobRequest {
+                job_id: id.to_string(),
+                frame_limit: FRAME_PAGE,
+                frame_page_token: token,
+            })
+            .await
+            .map_err(rpc)?
+            .into_inner();
+        token = std::mem::take(&mut page.next_frame_page_token);
+        match &mut job {
+            None => job = Some(page),
+            Some(j) => merge_frames(&mut j.frames, page.frames),
+        }
+        if token.is_empty() {
+            return Ok(job.expect("a page"));
+        }
+    }
+}
+
+/// Merges frames (a page, a watch's changes) into `frames`, kept in frame
+/// order. A frame's units only grow and its output stays once set, so
+/// whichever of two reports is newer wins.
+fn merge_frames(frames: &mut Vec<pb::FrameStatus>, changed: Vec<pb::FrameStatus>) {
+    for f in changed {
+        match frames.binary_search_by_key(&f.frame, |g| g.frame) {
+            Ok(i) => {
+                let g = &mut frames[i];
+                g.units_done = g.units_done.max(f.units_done);
+                g.units_total = f.units_total;
+                if !f.output.is_empty() {
+                    g.output = f.output;
+                }
+            }
+            Err(i) => frames.insert(i, f),
+        }
+    }
+}
+
+/// A watched job as the events so far tell it: a delta's fields over the
+/// last, its frames merged in; an event of a coordinator of an earlier
+/// release (no deltas) replaces it. Keepalives change nothing (None).
+fn apply_event(cur: &mut Option<pb::JobStatus>, mut ev: pb::JobStatus) -> Option<bool> {
+    if ev.keepalive {
+        return None;
+    }
+    let first = cur.is_none();
+    if ev.delta
+        && let Some(c) = cur.as_mut()
+    {
+        let mut frames = std::mem::take(&mut c.frames);
+        merge_frames(&mut frames, std::mem::take(&mut ev.frames));
+        ev.frames = frames;
+    }
+    *cur = Some(ev);
+    Some(first)
+}
+
 pub fn watch(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;
         watch_job(&mut client, &args.job, args.format, &args.coordinator).await
     })
+}
+
+/// The progress line of a watched job.
+fn show_progress(progress: &Progress, j: &pb::JobStatus, no_workers: bool) {
+    let eta = if j.eta_seconds >= 0.0 && j.state == pb::JobState::Running as i32 {
+        format!(" eta {:.0} s", j.eta_seconds)
+    } else {
+        String::new()
+    };
+    let workers = if no_workers { " (no workers)" } else { "" };
+    let adaptive = j.adaptive.as_ref().map_or(String::new(), |a| {
+        format!(
+            " converged {:.1}% est. error {:.2e}",
+            100.0 * a.converged_share,
+            a.estimated_error
+        )
+    });
+    progress.set(
+        (percent(j) * 10.0) as u64,
+        &format!(
+            "{}{workers} {:.1} Mrays/s{adaptive}{eta}",
+            state_name(j.state),
+            j.rays_per_second / 1e6
+        ),
+    );
 }
 
 /// How often `watch` asks whether any worker is connected.
@@ -408,6 +497,9 @@ async fn watch_job(
     let mut stream = client
         .watch_job(pb::WatchJobRequest {
             job_id: id.to_string(),
+            // Changes, not the whole job each time (a long animation's
+            // frames are most of it).
+            deltas: true,
         })
         .await
         .map_err(rpc)?
@@ -432,37 +524,31 @@ async fn watch_job(
                     }
                     no_workers = none;
                 }
+                // No events while the job does not change: the plain
+                // progress line (and its "(no workers)") still comes.
+                if !format.json && let Some(j) = &last {
+                    show_progress(&progress, j, no_workers);
+                }
                 continue;
             }
         };
         let Some(ev) = ev else { break };
-        let j = ev.map_err(rpc)?;
-        if format.json {
-            print_json(&job_json(&j));
-        } else {
-            let eta = if j.eta_seconds >= 0.0 && j.state == pb::JobState::Running as i32 {
-                format!(" eta {:.0} s", j.eta_seconds)
-            } else {
-                String::new()
-            };
-            let workers = if no_workers { " (no workers)" } else { "" };
-            let adaptive = j.adaptive.as_ref().map_or(String::new(), |a| {
-                format!(
-                    " converged {:.1}% est. error {:.2e}",
-                    100.0 * a.converged_share,
-                    a.estimated_error
-                )
-            });
-            progress.set(
-                (percent(&j) * 10.0) as u64,
-                &format!(
-                    "{}{workers} {:.1} Mrays/s{adaptive}{eta}",
-                    state_name(j.state),
-                    j.rays_per_second / 1e6
-                ),
-            );
+        let Some(first) = apply_event(&mut last, ev.map_err(rpc)?) else {
+            continue; // a keepalive
+        };
+        if format.json && first && last.as_ref().is_some_and(|j| j.delta) {
+            // Deltas start without frames: `--json` prints whole jobs.
+            let all = get_job(client, id).await?;
+            if let Some(j) = last.as_mut() {
+                merge_frames(&mut j.frames, all.frames);
+            }
         }
-        last = Some(j);
+        let j = last.as_ref().expect("an event applied");
+        if format.json {
+            print_json(&job_json(j));
+        } else {
+            show_progress(&progress, j, no_workers);
+        }
     }
     progress.finish();
     let Some(j) = last else {
@@ -474,7 +560,7 @@ async fn watch_job(
             // to its directory): what to run here is the fetch.
             eprintln!(
                 "job {id} done: {} frame(s); download them with: {}",
-                j.frames.len(),
+                j.last_frame - j.first_frame + 1,
                 fetch_command(id, coordinator)
             );
             Ok(ExitCode::from(EXIT_DONE))
@@ -553,13 +639,7 @@ pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
 async fn fetch_frames(client: &mut JobClient, id: &str, dir: &Path) -> Result<ExitCode> {
     // Ask first: an unknown job, or one with no finished frame, leaves
     // nothing behind (no empty output folder).
-    let j = client
-        .get_job(pb::GetJobRequest {
-            job_id: id.to_string(),
-        })
-        .await
-        .map_err(rpc)?
-        .into_inner();
+    let j = get_job(client, id).await?;
     let written = j.frames.iter().filter(|f| !f.output.is_empty()).count();
     let total = j.frames.len();
     let ended_early =
@@ -652,7 +732,11 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
             outln!(
                 "{:<20} {:<20} {:<12} {:<7} {:>7} {:>6} {:>8} {:>12.2} {:>9.2}",
                 w.worker_id,
-                printable(&w.name),
+                if w.quarantined_until_unix_ms > 0 {
+                    format!("{} (quarantined)", printable(&w.name))
+                } else {
+                    printable(&w.name)
+                },
                 if host.is_empty() { "-" } else { &host },
                 backend,
                 c.threads,

@@ -111,6 +111,7 @@ pub fn worker_json(w: &pb::WorkerInfo) -> Value {
         "samples_per_second": w.samples_per_second,
         "rays_per_second": w.rays_per_second,
         "last_seen_unix_ms": w.last_seen_unix_ms,
+        "quarantined_until_unix_ms": (w.quarantined_until_unix_ms > 0).then_some(w.quarantined_until_unix_ms),
     })
 }
 

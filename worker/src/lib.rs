@@ -259,7 +259,9 @@ impl Worker {
                 }
             };
             let caps = capabilities(&self.renderer);
-            tracing::info!(worker = %session.worker_id, coordinator = %self.config.coordinator, threads = caps.threads, gpu = %caps.gpu_name, "registered");
+            // The public id: the session itself speaks for the leases.
+            let public_id = tessera_proto::transport::public_worker_id(&session.worker_id);
+            tracing::info!(worker = %public_id, coordinator = %self.config.coordinator, threads = caps.threads, gpu = %caps.gpu_name, "registered");
             let lost = Arc::new(AtomicBool::new(false));
             let beat = tokio::spawn(heartbeat(
                 session.client.clone(),
@@ -684,6 +686,9 @@ async fn lease(
         rendered: std::mem::take(rendered),
     };
     let resp = client.lease_work(req).await?.into_inner();
+    if !resp.refused.is_empty() {
+        tracing::warn!(reason = %resp.refused, "the coordinator grants no lease");
+    }
     let mut h = held.lock().expect("held lock");
     for unit in resp.units {
         h.insert(

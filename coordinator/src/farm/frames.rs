@@ -23,6 +23,10 @@ pub(super) struct FrameAcc {
     pub(super) units_done: u64,
     pub(super) written: Option<String>,
     pub(super) writing: bool,
+    /// The job's `frame_seq` when this frame last changed (a unit done,
+    /// its image written): a watch sends only frames changed since it
+    /// last looked, never all of a long animation's frames again.
+    pub(super) changed: u64,
 }
 
 pub(super) type FrameFilm = Arc<Mutex<Option<Film>>>;
@@ -179,6 +183,7 @@ impl Farm {
                         acc.written = Some(file);
                         acc.writing = false;
                     }
+                    job.frame_changed(frame);
                     job.notify();
                 }
             }

@@ -207,12 +207,12 @@ impl Farm {
         let mut v: Vec<UnitFailure> = job
             .failures
             .iter()
-            .map(|(&unit, messages)| {
+            .map(|(&unit, failures)| {
                 let u = job.layout.unit(unit);
                 UnitFailure {
                     unit,
                     region: job.layout.region(u),
-                    messages: messages.clone(),
+                    messages: failures.iter().map(|f| f.message.clone()).collect(),
                 }
             })
             .collect();
@@ -226,7 +226,7 @@ impl Farm {
         st.leases
             .values()
             .map(|l| LeaseSummary {
-                worker_id: l.worker.clone(),
+                worker_id: super::public_worker_id(&l.worker),
                 job_id: l.job.clone(),
                 region: l.region,
                 progress: l.progress,

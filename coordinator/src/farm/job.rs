@@ -14,7 +14,19 @@ use crate::store::{Counters, JobRecord, JobStateRec};
 use crate::units::{Layout, Unit};
 
 use super::frames::{FrameAcc, FrameFilm};
-use super::{Job, JobState, JobView, UnitIndex, adaptive, now_ms};
+use super::{Failure, Job, JobState, JobView, UnitIndex, adaptive, now_ms};
+
+/// The failed attempts of a unit that count against its job: all of them
+/// once two workers or more failed it, else its worker's own failure
+/// reports (not its malformed results).
+fn attempts(failures: &[Failure]) -> u32 {
+    let first = failures.first().map(|f| f.worker.as_str());
+    if failures.iter().any(|f| Some(f.worker.as_str()) != first) {
+        failures.len() as u32
+    } else {
+        failures.iter().filter(|f| !f.malformed).count() as u32
+    }
+}
 
 /// How a job is cut into units: its settings, frames, tiles and sample
 /// batches (an adaptive job's batches are its rounds).
@@ -84,6 +96,7 @@ impl Job {
                         units_done: 0,
                         written: None,
                         writing: false,
+                        changed: 0,
                     },
                 )
             })
@@ -105,6 +118,7 @@ impl Job {
             pending,
             failures: HashMap::new(),
             frames,
+            frame_seq: 0,
             counters,
             units_done: 0,
             samples_done: 0,
@@ -159,6 +173,7 @@ impl Job {
         if let Some(f) = self.frames.get_mut(&unit.frame) {
             f.units_done += 1;
         }
+        self.frame_changed(unit.frame);
         if self.state == JobState::Queued {
             self.state = JobState::Running;
         }
@@ -184,18 +199,32 @@ impl Job {
         self.notify();
     }
 
-    /// Records a failed attempt of `units`; fails the job (returning its
-    /// record to persist) when a unit has failed `max_attempts` times.
-    pub(super) fn fail_units(&mut self, units: &[u32], message: String) -> Option<JobRecord> {
+    /// Records a failed attempt of `units` by worker session `worker`;
+    /// fails the job (returning its record to persist) when a unit has
+    /// failed `max_attempts` times. A `malformed` result (data that failed
+    /// validation) counts only once a second worker has failed the unit
+    /// too: one broken or hostile worker cannot fail a job (it is
+    /// quarantined instead), while a unit that fails everywhere still does.
+    pub(super) fn fail_units(
+        &mut self,
+        units: &[u32],
+        worker: &str,
+        message: String,
+        malformed: bool,
+    ) -> Option<JobRecord> {
         if self.state.is_terminal() {
             return None;
         }
         let mut exhausted = None;
         for &u in units {
             let f = self.failures.entry(u).or_default();
-            f.push(message.clone());
-            if f.len() as u32 >= self.rec.max_attempts && exhausted.is_none() {
-                exhausted = Some((u, f.clone()));
+            f.push(Failure {
+                worker: worker.to_string(),
+                message: message.clone(),
+                malformed,
+            });
+            if attempts(f) >= self.rec.max_attempts && exhausted.is_none() {
+                exhausted = Some((u, f.iter().map(|f| f.message.clone()).collect::<Vec<_>>()));
             }
             self.pending.insert(u);
         }
@@ -216,7 +245,37 @@ impl Job {
         Some(self.rec.clone())
     }
 
+    /// Records that `frame` changed (see `FrameAcc::changed`).
+    pub(super) fn frame_changed(&mut self, frame: u32) {
+        self.frame_seq += 1;
+        if let Some(f) = self.frames.get_mut(&frame) {
+            f.changed = self.frame_seq;
+        }
+    }
+
+    /// The view with every frame.
     pub(super) fn view(&self) -> JobView {
+        self.view_with(self.frames.iter())
+    }
+
+    /// The view with at most `limit` frames from frame `from` on, and the
+    /// first frame after them (None: they are the last).
+    pub(super) fn view_page(&self, from: u32, limit: usize) -> (JobView, Option<u32>) {
+        let mut frames = self.frames.range(from..);
+        let page: Vec<_> = frames.by_ref().take(limit).collect();
+        let next = frames.next().map(|(&f, _)| f);
+        (self.view_with(page.into_iter()), next)
+    }
+
+    /// The view with only the frames changed after `since` (a
+    /// `frame_seq` an earlier call returned; `u64::MAX`: none), and the
+    /// `frame_seq` now.
+    pub(super) fn view_since(&self, since: u64) -> (JobView, u64) {
+        let changed = self.frames.iter().filter(|(_, f)| f.changed > since);
+        (self.view_with(changed), self.frame_seq)
+    }
+
+    fn view_with<'a>(&'a self, frames: impl Iterator<Item = (&'a u32, &'a FrameAcc)>) -> JobView {
         let per = self.layout.units_per_frame() as u64;
         let samples_total = self.layout.width as u64
             * self.layout.height as u64
@@ -255,9 +314,7 @@ impl Job {
             units_done: self.units_done,
             samples_total,
             samples_done: self.samples_done,
-            frames: self
-                .frames
-                .iter()
+            frames: frames
                 .map(|(&f, a)| (f, per, a.units_done, a.written.clone()))
                 .collect(),
             rays_per_second: rps,

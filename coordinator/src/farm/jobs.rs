@@ -49,7 +49,9 @@ impl Farm {
             check_file_name(name)?;
             crate::assets::check_hash(sha256)
                 .map_err(|e| FarmError::InvalidArgument(format!("files[{name:?}]: {e}")))?;
-            let size = self.assets.size(sha256).ok_or_else(|| {
+            // Held (its retention clock restarted) before anything else:
+            // the collector leaves it for the retention time from now.
+            let size = self.assets.hold(sha256).ok_or_else(|| {
                 FarmError::FailedPrecondition(format!(
                     "files[{name:?}]: asset {sha256} is not on the coordinator; upload it first (UploadAsset)"
                 ))
@@ -177,8 +179,16 @@ impl Farm {
                 .map_err(|e| FarmError::Internal(format!("cost probe: {e}")))?
         };
         let scene_sha256 = self.assets.put(&s.scene).map_err(asset_error)?;
-        for sha256 in files.values().chain([&scene_sha256]) {
-            self.assets.touch(sha256);
+        // Held again, now that the job is about to name them: a retention
+        // shorter than this submit took must not leave a job whose files
+        // are gone.
+        for (name, sha256) in files.iter().chain([(&spec.scene_name, &scene_sha256)]) {
+            if self.assets.hold(sha256).is_none() {
+                return Err(FarmError::FailedPrecondition(format!(
+                    "files[{name:?}]: asset {sha256} was collected while the job was submitted \
+                     (--asset-retention is shorter than the submit took); upload it again"
+                )));
+            }
         }
         let assets = files;
         let mut ops = Vec::new();
@@ -254,6 +264,32 @@ impl Farm {
         st.jobs
             .get(id)
             .map(Job::view)
+            .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
+    }
+
+    /// A job's view with at most `limit` of its frames, from frame `from`
+    /// on, and the frame the next page starts at (None: no more).
+    pub fn job_page(
+        &self,
+        id: &str,
+        from: u32,
+        limit: usize,
+    ) -> Result<(JobView, Option<u32>), FarmError> {
+        let st = self.state.lock().expect("state lock");
+        st.jobs
+            .get(id)
+            .map(|j| j.view_page(from, limit))
+            .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
+    }
+
+    /// A job's view with only the frames that changed after `since` (what
+    /// an earlier call returned; `u64::MAX` for none), and the mark to
+    /// pass next time. What a watch sends costs the changes, not the job.
+    pub fn job_delta(&self, id: &str, since: u64) -> Result<(JobView, u64), FarmError> {
+        let st = self.state.lock().expect("state lock");
+        st.jobs
+            .get(id)
+            .map(|j| j.view_since(since))
             .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
     }
 
@@ -358,7 +394,7 @@ impl Farm {
             .workers
             .iter()
             .map(|(id, w)| WorkerView {
-                id: id.clone(),
+                id: super::public_worker_id(id),
                 name: w.name.clone(),
                 threads: w.threads,
                 backend: w.backend,
@@ -371,6 +407,10 @@ impl Farm {
                 samples_per_second: w.speed.samples_per_second(),
                 rays_per_second: w.speed.rays_per_second(),
                 last_seen_unix_ms: now_ms() - now.duration_since(w.last_seen).as_millis() as i64,
+                quarantined_until_unix_ms: w
+                    .quarantined_until
+                    .filter(|&t| t > now)
+                    .map_or(0, |t| now_ms() + t.duration_since(now).as_millis() as i64),
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name).then(a.id.cmp(&b.id)));

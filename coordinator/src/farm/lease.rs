@@ -11,7 +11,10 @@ use tracer_core::render::Backend;
 
 use crate::rate::WorkerSpeed;
 
-use super::{Farm, FarmError, Job, JobState, Lease, LeaseView, State, Worker, now_ms};
+use super::{
+    Farm, FarmError, Job, JobState, Lease, LeaseView, State, Worker, now_ms, public_worker_id,
+    random_id,
+};
 
 /// The smallest lease, in seconds of the worker it goes to (unless the job
 /// has less work left): below this a fast worker's fixed costs per lease
@@ -164,9 +167,10 @@ impl Farm {
         version: String,
         host_id: String,
     ) -> String {
+        // The session: 128 random bits that only this worker learns.
+        let id = random_id("w");
         let mut st = self.state.lock().expect("state lock");
-        let id = self.new_id(&mut st, "w");
-        tracing::info!(worker = %id, name = %name, threads, backend = %backend, "worker joined");
+        tracing::info!(worker = %public_worker_id(&id), name = %name, threads, backend = %backend, "worker joined");
         st.workers.insert(
             id.clone(),
             Worker {
@@ -186,9 +190,52 @@ impl Farm {
                 last_seconds: 0.0,
                 peak_speed: 0.0,
                 peak_at: Instant::now(),
+                malformed_in_a_row: 0,
+                quarantined_until: None,
             },
         );
         id
+    }
+
+    /// How much longer worker session `worker_id` is quarantined (None:
+    /// it is not, or not known).
+    pub fn quarantined_for(&self, worker_id: &str) -> Option<Duration> {
+        let st = self.state.lock().expect("state lock");
+        let until = st.workers.get(worker_id)?.quarantined_until?;
+        let left = until.saturating_duration_since(Instant::now());
+        (!left.is_zero()).then_some(left)
+    }
+
+    /// Quarantines a worker whose results failed validation
+    /// `quarantine_after` times in a row: every lease it holds goes back
+    /// to the queue (no failed attempt counted: its work was never
+    /// checked) and it gets no lease for `quarantine_for`. A broken or
+    /// hostile worker so costs the farm a few leases, not a job.
+    pub(super) fn quarantine(&self, st: &mut State, worker_id: &str) {
+        let Some(w) = st.workers.get_mut(worker_id) else {
+            return;
+        };
+        let strikes = w.malformed_in_a_row;
+        w.malformed_in_a_row = 0;
+        w.quarantined_until = Some(Instant::now() + self.config.quarantine_for);
+        let leases: Vec<String> = w.leases.drain().collect();
+        tracing::warn!(
+            worker = %public_worker_id(worker_id), name = %w.name, malformed_in_a_row = strikes,
+            seconds = self.config.quarantine_for.as_secs_f64(), leases_revoked = leases.len(),
+            "worker quarantined: its results failed validation {strikes} times in a row; its leases go to other workers and it gets none until the quarantine ends"
+        );
+        for id in leases {
+            let Some(l) = st.leases.remove(&id) else {
+                continue;
+            };
+            if !st.partner_keeps(&id, &l)
+                && let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal())
+            {
+                job.pending.extend(l.units.iter().copied());
+            }
+            st.end_lease(id, l.job, false);
+        }
+        self.work_ready.notify_waiters();
     }
 
     /// Rates a worker from units it reports rendered with its lease
@@ -248,6 +295,14 @@ impl Farm {
             .get_mut(worker_id)
             .ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
+        match worker.quarantined_until {
+            Some(until) if until > Instant::now() => return Ok((Vec::new(), false)),
+            Some(_) => {
+                worker.quarantined_until = None;
+                tracing::info!(worker = %public_worker_id(worker_id), name = %worker.name, "worker's quarantine ended");
+            }
+            None => {}
+        }
         // No new work while results cannot be recorded: workers wait
         // instead of rendering units whose results would be refused.
         if !self.store.health.ok() {
@@ -450,8 +505,7 @@ impl Farm {
                     region,
                     active: active.clone(),
                 };
-                st.next_id += 1;
-                let lease_id = format!("l{}-{}", self.boot, st.next_id);
+                let lease_id = random_id("l");
                 st.leases.insert(
                     lease_id.clone(),
                     Lease {
@@ -540,8 +594,7 @@ impl Farm {
             }
         }
         let (_, original) = best?;
-        st.next_id += 1;
-        let lease_id = format!("l{}-{}", self.boot, st.next_id);
+        let lease_id = random_id("l");
         let o = st.leases.get_mut(&original).expect("listed");
         o.backups += 1;
         let mut partners = o.partners.clone();
@@ -659,20 +712,28 @@ impl Farm {
         worker.last_seen = Instant::now();
         let mut returned = 0;
         for id in lease_ids {
-            if st.leases.get(id).is_none_or(|l| l.worker != worker_id) {
-                continue;
+            match st.leases.get(id) {
+                None => continue,
+                Some(l) if l.worker != worker_id => {
+                    // Never a worker's own mistake: lease ids are unique to
+                    // the session they went to.
+                    tracing::warn!(worker = %public_worker_id(worker_id), lease = %id, holder = %public_worker_id(&l.worker),
+                        "a worker tried to return another worker's lease; ignored");
+                    continue;
+                }
+                Some(_) => {}
             }
             let l = st.leases.remove(id).expect("checked");
             if let Some(w) = st.workers.get_mut(worker_id) {
                 w.leases.remove(id);
             }
             if st.partner_keeps(id, &l) {
-                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, "lease returned; its backup goes on");
+                tracing::info!(lease = %id, job = %l.job, worker = %public_worker_id(worker_id), "lease returned; its backup goes on");
             } else {
                 if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
                     job.pending.extend(l.units.iter().copied());
                 }
-                tracing::info!(lease = %id, job = %l.job, worker = %worker_id, frame = l.region.frame, rect = ?l.region.rect, "lease returned; unit queued again");
+                tracing::info!(lease = %id, job = %l.job, worker = %public_worker_id(worker_id), frame = l.region.frame, rect = ?l.region.rect, "lease returned; unit queued again");
             }
             st.end_lease(id.clone(), l.job, false);
             returned += 1;
@@ -720,9 +781,9 @@ impl Farm {
                 w.name.clone()
             });
             if st.partner_keeps(&id, &l) {
-                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), "lease expired; its backup goes on");
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| public_worker_id(&l.worker)), "lease expired; its backup goes on");
             } else if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
-                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| l.worker.clone()), frame = l.region.frame, rect = ?l.region.rect, "lease expired; unit queued again");
+                tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| public_worker_id(&l.worker)), frame = l.region.frame, rect = ?l.region.rect, "lease expired; unit queued again");
                 job.pending.extend(l.units.iter().copied());
                 self.work_ready.notify_waiters();
             }
@@ -736,7 +797,7 @@ impl Farm {
             .collect();
         for id in silent {
             if let Some(w) = st.workers.remove(&id) {
-                tracing::info!(worker = %id, name = %w.name, units_done = w.units_done, "worker left (no heartbeat)");
+                tracing::info!(worker = %public_worker_id(&id), name = %w.name, units_done = w.units_done, "worker left (no heartbeat)");
             }
         }
     }
@@ -772,8 +833,10 @@ impl Farm {
 }
 
 fn unknown_worker(id: &str) -> FarmError {
+    // Named by its public id: the message may be logged.
     FarmError::NotFound(format!(
-        "unknown worker {id:?}: register again (the coordinator restarted or timed the worker out)"
+        "unknown worker {}: register again (the coordinator restarted or timed the worker out)",
+        public_worker_id(id)
     ))
 }
 

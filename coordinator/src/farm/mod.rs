@@ -91,6 +91,12 @@ pub struct Config {
     /// Largest frame (width x height) a job may have: the coordinator
     /// holds a frame's film (28 bytes a pixel) while it fills.
     pub max_frame_pixels: u64,
+    /// How often stored files no job needs are looked for.
+    pub collect_interval: Duration,
+    /// Malformed results in a row after which a worker is quarantined.
+    pub quarantine_after: u32,
+    /// How long a quarantined worker gets no lease.
+    pub quarantine_for: Duration,
 }
 
 impl Config {
@@ -109,6 +115,11 @@ impl Config {
             asset_limits: AssetLimits::default(),
             // 8K UHD (7680 x 4320 = 33.2 M) fits; the film is 1.1 GB.
             max_frame_pixels: 40_000_000,
+            collect_interval: Duration::from_secs(60),
+            // An honest worker sends none: five in a row is a broken or
+            // hostile one, caught before it costs a job much.
+            quarantine_after: 5,
+            quarantine_for: Duration::from_secs(60),
         }
     }
 }
@@ -122,6 +133,9 @@ pub enum FarmError {
     NotFound(String),
     #[error("{0}")]
     FailedPrecondition(String),
+    /// A worker session asked for what another session holds (a lease).
+    #[error("{0}")]
+    PermissionDenied(String),
     /// Over a configured limit (the message names it).
     #[error("{0}")]
     ResourceExhausted(String),
@@ -190,6 +204,8 @@ pub struct JobView {
 
 #[derive(Clone, Debug)]
 pub struct WorkerView {
+    /// Its public id ([`public_worker_id`] of its session): never the
+    /// session itself, which is what lets a worker speak for its leases.
     pub id: String,
     pub name: String,
     pub threads: u32,
@@ -205,6 +221,8 @@ pub struct WorkerView {
     pub samples_per_second: f64,
     pub rays_per_second: f64,
     pub last_seen_unix_ms: i64,
+    /// Until when it is quarantined (unix ms; 0: it is not).
+    pub quarantined_until_unix_ms: i64,
 }
 
 /// A leased piece of work as handed to a worker.
@@ -261,9 +279,11 @@ struct Job {
     state: JobState,
     done: Vec<bool>,
     pending: BTreeSet<u32>,
-    /// Failure messages per unit.
-    failures: HashMap<u32, Vec<String>>,
+    /// Failed attempts per unit.
+    failures: HashMap<u32, Vec<Failure>>,
     frames: BTreeMap<u32, FrameAcc>,
+    /// Counts frame changes; see `FrameAcc::changed`.
+    frame_seq: u64,
     counters: Counters,
     units_done: u64,
     samples_done: u64,
@@ -283,7 +303,21 @@ struct Job {
     adaptive: Option<adaptive::AdaptiveJob>,
 }
 
+/// One failed attempt of a unit.
+#[derive(Clone, Debug)]
+struct Failure {
+    /// The session that failed it.
+    worker: String,
+    message: String,
+    /// A result that failed validation (the worker's data, not its word
+    /// that the unit fails): counted against the job's attempts only once
+    /// a second worker has failed the unit too.
+    malformed: bool,
+}
+
 struct Lease {
+    /// The session it was granted to: only that session's results and
+    /// returns are taken for it.
     worker: String,
     job: String,
     units: Vec<u32>,
@@ -335,6 +369,10 @@ struct Worker {
     /// [`Worker::farm_speed`]).
     peak_speed: f64,
     peak_at: Instant,
+    /// Results of its in a row that failed validation.
+    malformed_in_a_row: u32,
+    /// Quarantined until then: no lease (see `Farm::quarantine`).
+    quarantined_until: Option<Instant>,
 }
 
 #[derive(Default)]
@@ -346,6 +384,7 @@ struct State {
     /// Leases whose result was accepted: lease -> job.
     consumed: HashMap<String, String>,
     ended_order: VecDeque<String>,
+    /// By session (the id `Register` returned, which the worker sends).
     workers: HashMap<String, Worker>,
     next_id: u64,
     /// Since when jobs have waited with no worker connected, and whether
@@ -413,7 +452,7 @@ pub struct Farm {
     /// Frames whose image cannot be written at the moment (retrying).
     pub(crate) frames_failing: std::sync::atomic::AtomicU32,
     state: Mutex<State>,
-    /// Distinguishes this run's lease and worker ids from earlier runs'.
+    /// Distinguishes this run's job ids from earlier runs'.
     boot: String,
     /// Woken whenever units become pending (a job submitted, units queued
     /// again), for workers waiting in [`Farm::lease_or_wait`].
@@ -438,6 +477,20 @@ pub fn check_name(what: &str, name: &str, max: usize) -> Result<(), FarmError> {
     }
     Ok(())
 }
+
+/// A random id: `prefix` and 128 bits from the operating system's
+/// generator, in hex. A worker's session and a lease grant something to
+/// whoever names them, so they must not be guessable (they were a counter:
+/// any holder of the worker token could send results for another's lease).
+fn random_id(prefix: &str) -> String {
+    let mut bytes = [0u8; 16];
+    // The same generator TLS (ring) draws its keys from: without it the
+    // coordinator could not serve TLS either.
+    getrandom::getrandom(&mut bytes).expect("the operating system's random number generator");
+    format!("{prefix}{}", tessera_proto::transport::hex(&bytes))
+}
+
+pub use tessera_proto::transport::public_worker_id;
 
 pub(crate) fn asset_error(e: AssetStoreError) -> FarmError {
     match e {
@@ -633,11 +686,6 @@ impl Farm {
             return Err(format!("{units} work units (the limit is {MAX_UNITS})"));
         }
         Ok(())
-    }
-
-    fn new_id(&self, st: &mut State, prefix: &str) -> String {
-        st.next_id += 1;
-        format!("{prefix}{}-{}", self.boot, st.next_id)
     }
 }
 

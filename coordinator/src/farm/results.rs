@@ -11,7 +11,9 @@ use tracer_core::film::{FIXED_ONE, MAX_SAMPLE_VALUE, Rect};
 use crate::store::{Counters, EncodedFilm, JobRecord, Op, StoredFilm};
 
 use super::frames::{Merge, new_frame_film};
-use super::{Farm, FarmError, Lease, Outcome, ResultData, State, adaptive, now_ms};
+use super::{
+    Farm, FarmError, Lease, Outcome, ResultData, State, adaptive, now_ms, public_worker_id,
+};
 
 impl Farm {
     /// Takes a worker's result: accepted only from the lease's holder, only
@@ -60,6 +62,24 @@ impl Farm {
         let lock_start = Instant::now();
         {
             let mut st = self.state.lock().expect("state lock");
+            // A lease is its session's: a request naming another session's
+            // lease is refused whole, before any of it is taken (no honest
+            // worker sends one; lease ids are unique to their session).
+            if let Some((r, l)) = rs.iter().find_map(|r| {
+                st.leases
+                    .get(&r.lease_id)
+                    .filter(|l| l.worker != r.worker_id)
+                    .map(|l| (r, l))
+            }) {
+                tracing::warn!(worker = %public_worker_id(&r.worker_id), lease = %r.lease_id,
+                    holder = %public_worker_id(&l.worker), job = %l.job,
+                    "result for another worker's lease refused");
+                return Err(FarmError::PermissionDenied(format!(
+                    "lease {} was granted to another worker session: a result is taken only from the session \
+                     that leased the unit (the worker_id its Register returned); nothing of this request was taken",
+                    r.lease_id
+                )));
+            }
             for (r, check) in rs.into_iter().zip(checks) {
                 match self.take(&mut st, &r, check) {
                     Ok(t) => {
@@ -277,20 +297,16 @@ impl Farm {
                 }
                 snapshot = Some((job.rec.id.clone(), job.counters.clone()));
             }
-            tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, outcome = ?outcome, "result dropped");
+            tracing::warn!(worker = %public_worker_id(&r.worker_id), lease = %r.lease_id, outcome = ?outcome, "result dropped");
             return Err((outcome, None, snapshot));
         };
         if lease.worker != r.worker_id {
-            let reason = format!(
-                "lease {} is held by another worker; result dropped",
-                r.lease_id
-            );
-            let snapshot = st.jobs.get_mut(&lease.job).map(|job| {
-                job.counters.results_rejected += 1;
-                (job.rec.id.clone(), job.counters.clone())
-            });
-            tracing::warn!(worker = %r.worker_id, lease = %r.lease_id, "{reason}");
-            return Err((Outcome::Rejected(reason), None, snapshot));
+            // Refused for the whole request by `take_results` already.
+            return Err((
+                Outcome::Rejected(format!("lease {} is another worker's", r.lease_id)),
+                None,
+                None,
+            ));
         }
         let lease = st.leases.remove(&r.lease_id).expect("present");
         if let Some(w) = st.workers.get_mut(&r.worker_id) {
@@ -301,7 +317,7 @@ impl Farm {
         };
         if let Some(msg) = &r.failure {
             let worker_name = st.workers.get_mut(&r.worker_id).map_or_else(
-                || r.worker_id.clone(),
+                || public_worker_id(&r.worker_id),
                 |w| {
                     w.units_failed += lease.units.len() as u64;
                     w.name.clone()
@@ -312,7 +328,12 @@ impl Farm {
                 None
             } else {
                 let job = st.jobs.get_mut(&lease.job).expect("checked");
-                job.fail_units(&lease.units, format!("worker {worker_name}: {msg}"))
+                job.fail_units(
+                    &lease.units,
+                    &r.worker_id,
+                    format!("worker {worker_name}: {msg}"),
+                    false,
+                )
             };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
             if let Some(rec) = &rec {
@@ -321,28 +342,36 @@ impl Farm {
             return Err((Outcome::FailureRecorded, rec, None));
         }
         if let Err(reason) = validate_result(&lease, r, film_check) {
+            let mut strikes = 0;
             let worker_name = st.workers.get_mut(&r.worker_id).map_or_else(
-                || r.worker_id.clone(),
+                || public_worker_id(&r.worker_id),
                 |w| {
                     w.units_failed += lease.units.len() as u64;
+                    w.malformed_in_a_row += 1;
+                    strikes = w.malformed_in_a_row;
                     w.name.clone()
                 },
             );
             job.counters.results_rejected += 1;
             let snapshot = Some((job.rec.id.clone(), job.counters.clone()));
-            tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, %reason, "result rejected");
+            tracing::warn!(job = %lease.job, worker = %worker_name, lease = %r.lease_id, malformed_in_a_row = strikes, %reason, "result rejected");
             let rec = if st.partner_keeps(&r.lease_id, &lease) {
                 None
             } else {
                 let job = st.jobs.get_mut(&lease.job).expect("checked");
                 job.fail_units(
                     &lease.units,
+                    &r.worker_id,
                     format!("worker {worker_name} sent a malformed result: {reason}"),
+                    true,
                 )
             };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
             if let Some(rec) = &rec {
                 self.withdraw_leases(st, &rec.id);
+            }
+            if strikes >= self.config.quarantine_after {
+                self.quarantine(st, &r.worker_id);
             }
             return Err((Outcome::Rejected(reason), rec, snapshot));
         }
@@ -436,6 +465,7 @@ impl Farm {
         }
         job.notify();
         if let Some(w) = st.workers.get_mut(&r.worker_id) {
+            w.malformed_in_a_row = 0;
             w.units_done += t.units.len() as u64;
             if r.render_seconds > 0.0 {
                 // Times under 0.1 ms are taken as 0.1 ms, so an absurd

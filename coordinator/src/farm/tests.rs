@@ -468,8 +468,9 @@ async fn a_result_whose_sender_goes_away_mid_commit_still_finishes_its_unit() {
     ));
 }
 
-/// One SubmitResults carrying an accepted result, a duplicate, a result
-/// for another worker's lease and a malformed one: each judged on its own.
+/// One SubmitResults carrying accepted results, a duplicate and a
+/// malformed one: each judged on its own. One that also names another
+/// worker's lease is refused whole, nothing of it taken.
 #[tokio::test]
 async fn batched_results_are_judged_one_by_one_and_commit_together() {
     let (_dir, farm, job) = farm_with_job(64, 16, 2).await;
@@ -484,12 +485,20 @@ async fn batched_results_are_judged_one_by_one_and_commit_together() {
     );
     let mut bad = result(&a, &la[2], 0.01);
     bad.film.as_mut().unwrap().counts[5] = 1;
+    let e = farm
+        .submit_results(vec![result(&a, &la[0], 0.01), result(&a, &lb[0], 0.01)])
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(&e, FarmError::PermissionDenied(m) if m.contains(&format!("lease {} was granted to another worker session", lb[0].lease_id))),
+        "{e:?}"
+    );
+    assert_eq!(farm.job(&job).unwrap().units_done, 0, "nothing taken");
     let outcomes = farm
         .submit_results(vec![
             result(&a, &la[0], 0.01),
             result(&a, &la[1], 0.01),
             result(&a, &la[0], 0.01),
-            result(&a, &lb[0], 0.01),
             bad,
         ])
         .await
@@ -501,14 +510,9 @@ async fn batched_results_are_judged_one_by_one_and_commit_together() {
         outcomes[2]
     );
     assert!(
-        matches!(outcomes[3], Outcome::Rejected(_)),
+        matches!(&outcomes[3], Outcome::Rejected(m) if m.contains("has 1 samples, expected 2")),
         "{:?}",
         outcomes[3]
-    );
-    assert!(
-        matches!(&outcomes[4], Outcome::Rejected(m) if m.contains("has 1 samples, expected 2")),
-        "{:?}",
-        outcomes[4]
     );
     let v = farm.job(&job).unwrap();
     assert_eq!(
@@ -518,7 +522,7 @@ async fn batched_results_are_judged_one_by_one_and_commit_together() {
             v.counters.results_duplicate,
             v.counters.results_rejected
         ),
-        (2, 2, 1, 2)
+        (2, 2, 1, 1)
     );
     // The malformed unit is queued again; b and then a finish the job.
     assert_eq!(
@@ -548,7 +552,7 @@ async fn batched_results_are_judged_one_by_one_and_commit_together() {
             v.counters.units_accepted,
             v.counters.results_rejected
         ),
-        (4, 4, 2)
+        (4, 4, 1)
     );
 }
 
@@ -719,8 +723,8 @@ async fn faster_workers_get_larger_units_and_results_count_once() {
     ));
     // Another worker cannot complete a lease it does not hold.
     assert!(matches!(
-        farm.submit_result(result(&fast, &s2, 0.01)).await.unwrap(),
-        Outcome::Rejected(_)
+        farm.submit_result(result(&fast, &s2, 0.01)).await,
+        Err(FarmError::PermissionDenied(_))
     ));
     let v = farm.job(&job).unwrap();
     assert_eq!(
@@ -1174,4 +1178,85 @@ async fn a_fast_workers_leases_stop_growing_at_the_pixel_cap() {
     assert!(areas.iter().all(|&a| a <= MAX_LEASE_PIXELS), "{areas:?}");
     // The cap is what bound them: the leases grew up to it.
     assert!(areas.iter().any(|&a| a > MAX_LEASE_PIXELS / 2), "{areas:?}");
+}
+
+/// Issue 37, item 6: ids are 128 random bits; a worker whose results fail
+/// validation `quarantine_after` times in a row is quarantined (its other
+/// leases revoked, no new lease), and its malformed results alone never
+/// fail the job; a second worker's failure of the same unit counts them.
+#[tokio::test]
+async fn a_worker_sending_malformed_results_is_quarantined_and_cannot_fail_the_job_alone() {
+    let (_dir, farm, job) = farm_with_job(64, 16, 1).await;
+    assert_eq!(farm.config.quarantine_after, 5);
+    let bad = register(&farm, "bad", 1);
+    let good = register(&farm, "good", 1);
+    let hex = |s: &str| s.len() == 33 && s[1..].bytes().all(|b| b.is_ascii_hexdigit());
+    assert!(bad.starts_with('w') && hex(&bad), "{bad}");
+    assert!(
+        farm.workers().iter().all(|w| w.id != bad && w.id != good),
+        "views show public ids, never a session"
+    );
+    let malformed = |l: &LeaseView| {
+        let mut r = result(&bad, l, 0.01);
+        r.film.as_mut().unwrap().counts[0] = 7;
+        r
+    };
+    let mut first = None;
+    for strike in 1..=4 {
+        let l = farm.lease(&bad, 1, false).unwrap().remove(0);
+        assert!(
+            l.lease_id.starts_with('l') && hex(&l.lease_id),
+            "{}",
+            l.lease_id
+        );
+        first.get_or_insert(l.region);
+        let o = farm.submit_result(malformed(&l)).await.unwrap();
+        assert!(
+            matches!(&o, Outcome::Rejected(m) if m.contains("has 7 samples")),
+            "{o:?}"
+        );
+        // Four malformed results of one unit, 3 attempts allowed: one
+        // worker's word, so the job goes on.
+        assert_eq!(
+            farm.job(&job).unwrap().state,
+            JobState::Running,
+            "strike {strike}"
+        );
+    }
+    let held = farm.lease(&bad, 2, false).unwrap();
+    assert_eq!(held.len(), 2);
+    let o = farm.submit_result(malformed(&held[0])).await.unwrap();
+    assert!(matches!(o, Outcome::Rejected(_)), "{o:?}");
+    // Quarantined: its other lease revoked, no new one.
+    assert_eq!(
+        farm.heartbeat(&bad, &[(held[1].lease_id.clone(), 0)])
+            .unwrap(),
+        [held[1].lease_id.clone()]
+    );
+    assert!(farm.lease(&bad, 1, false).unwrap().is_empty());
+    assert!(
+        farm.quarantined_for(&bad)
+            .is_some_and(|d| d > Duration::from_secs(50))
+    );
+    let views = farm.workers();
+    let view = |name: &str| views.iter().find(|w| w.name == name).unwrap();
+    assert!(view("bad").quarantined_until_unix_ms > now_ms());
+    assert_eq!(view("good").quarantined_until_unix_ms, 0);
+    assert_eq!(farm.job(&job).unwrap().state, JobState::Running);
+    // A second worker fails the same unit: now every failure counts.
+    let l = farm.lease(&good, 1, false).unwrap().remove(0);
+    assert_eq!(Some(l.region), first, "the unit the bad worker failed");
+    let mut r = result(&good, &l, 0.01);
+    r.film.as_mut().unwrap().counts[0] = 9;
+    farm.submit_result(r).await.unwrap();
+    let v = farm.job(&job).unwrap();
+    assert_eq!(v.state, JobState::Failed);
+    assert!(
+        v.record.error.contains("failed 6 times")
+            && v.record
+                .error
+                .contains("worker good sent a malformed result"),
+        "{}",
+        v.record.error
+    );
 }

@@ -293,6 +293,9 @@ pub struct WorkerJson {
     pub units_failed: u64,
     /// When the monitor saw it gone; null while in the farm.
     pub gone_unix_ms: Option<i64>,
+    /// Until when it is quarantined (its results failed validation again
+    /// and again: it gets no lease); null when it is not.
+    pub quarantined_until_unix_ms: Option<i64>,
 }
 
 impl WorkerJson {
@@ -313,6 +316,8 @@ impl WorkerJson {
             units_done: w.units_done,
             units_failed: w.units_failed,
             gone_unix_ms: None,
+            quarantined_until_unix_ms: (w.quarantined_until_unix_ms > 0)
+                .then_some(w.quarantined_until_unix_ms),
         }
     }
 }

@@ -63,6 +63,7 @@ impl From<FarmError> for ApiError {
             FarmError::InvalidArgument(_) => StatusCode::BAD_REQUEST,
             FarmError::NotFound(_) => StatusCode::NOT_FOUND,
             FarmError::FailedPrecondition(_) => StatusCode::CONFLICT,
+            FarmError::PermissionDenied(_) => StatusCode::FORBIDDEN,
             FarmError::ResourceExhausted(_) => StatusCode::TOO_MANY_REQUESTS,
             FarmError::Unavailable(_) | FarmError::Store(_) => StatusCode::SERVICE_UNAVAILABLE,
             FarmError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,

@@ -114,6 +114,7 @@ mod tests {
 
     fn worker(id: &str, last_seen_unix_ms: i64) -> WorkerView {
         WorkerView {
+            quarantined_until_unix_ms: 0,
             id: id.into(),
             name: format!("name-{id}"),
             threads: 1,

@@ -181,6 +181,7 @@ async function runEvents() {
           else if (line.startsWith("data:")) data.push(line.slice(5).replace(/^ /, ""));
         }
         if (event === "farm" && data.length) onSnapshot(JSON.parse(data.join("\n")));
+        else if (event === "delta" && data.length && S.snap) onDelta(JSON.parse(data.join("\n")));
       }
     }
   } catch (e) {
@@ -194,6 +195,28 @@ async function runEvents() {
 
 function onSnapshot(snap) {
   S.snap = snap;
+  render();
+}
+
+// A change since the last event: the jobs that changed, each with only its
+// changed frames (a frame's units only grow), the jobs gone, and the
+// workers when any changed.
+function onDelta(d) {
+  const jobs = new Map(S.snap.jobs.map((j) => [j.id, j]));
+  for (const j of d.jobs) {
+    const old = jobs.get(j.id);
+    if (old) {
+      const frames = new Map(old.frames.map((f) => [f.frame, f]));
+      for (const f of j.frames) frames.set(f.frame, f);
+      j.frames = [...frames.values()].sort((a, b) => a.frame - b.frame);
+    }
+    jobs.set(j.id, j);
+  }
+  for (const id of d.removed) jobs.delete(id);
+  S.snap = {
+    jobs: [...jobs.values()].sort((a, b) => a.submitted_unix_ms - b.submitted_unix_ms || (a.id < b.id ? -1 : a.id > b.id ? 1 : 0)),
+    workers: d.workers || S.snap.workers,
+  };
   render();
 }
 
@@ -260,7 +283,8 @@ function renderWorkers() {
   const rows = ws.map((w) => `
     <tr data-worker="${esc(w.id)}" data-worker-name="${esc(w.name)}" data-state="${w.state}" class="${w.state === "gone" ? "gone" : ""}">
       <td data-label="Name">${esc(w.name)}<div class="muted">${esc(w.id)} · ${esc(w.version || "")}</div></td>
-      <td data-label="State" class="state state-${w.state}">${w.state}</td>
+      <td data-label="State" class="state state-${w.state}">${w.state}${w.quarantined_until_unix_ms && w.quarantined_until_unix_ms > Date.now() ?
+        ` <span class="badge quarantined" title="Its results failed validation again and again: no lease until ${esc(new Date(w.quarantined_until_unix_ms).toLocaleTimeString())}">quarantined</span>` : ""}</td>
       <td data-label="Backend">${esc(w.backend)}</td>
       <td data-label="Adapter">${esc(w.adapter || "–")}</td>
       <td data-label="Threads" class="num">${w.threads}</td>
