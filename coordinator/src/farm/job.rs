@@ -82,6 +82,7 @@ impl Job {
                         film: FrameFilm::default(),
                         merging: 0,
                         units_done: 0,
+                        samples_done: 0,
                         written: None,
                         writing: false,
                     },
@@ -155,9 +156,11 @@ impl Job {
         self.units_done += 1;
         self.work_left = (self.work_left - self.unit_work(u)).max(0.0);
         let unit: Unit = self.layout.unit(u);
-        self.samples_done += self.layout.unit_samples(unit);
+        let samples = self.layout.unit_samples(unit);
+        self.samples_done += samples;
         if let Some(f) = self.frames.get_mut(&unit.frame) {
             f.units_done += 1;
+            f.samples_done += samples;
         }
         if self.state == JobState::Queued {
             self.state = JobState::Running;
@@ -216,6 +219,55 @@ impl Job {
         Some(self.rec.clone())
     }
 
+    /// Corrects the pixel-samples counted for a finished unit of `frame`
+    /// from `nominal` (what [`Job::mark_done`] counted) to `traced` (an
+    /// adaptive round traces only its active blocks; a skipped one none).
+    pub(super) fn correct_samples(&mut self, frame: u32, nominal: u64, traced: u64) {
+        self.samples_done = self.samples_done + traced - nominal;
+        if let Some(f) = self.frames.get_mut(&frame) {
+            f.samples_done = f.samples_done + traced - nominal;
+        }
+    }
+
+    /// The job's progress and each frame's, 0 to 1: the one definition
+    /// that `status`, `watch`, `jobs` and the web monitor show (through
+    /// [`JobView::progress`] and [`JobView::frames_progress`]).
+    /// Sample-weighted: pixel-samples merged over pixel-samples the job
+    /// will trace (for an adaptive job, those expected so far), so a small
+    /// edge tile or a short last sample batch counts for what it is. A
+    /// finished job or a written frame is 1.
+    fn progress(&self, samples_total: u64) -> (f64, Vec<f64>) {
+        let share = |done: u64, total: u64| {
+            if total == 0 {
+                0.0
+            } else {
+                (done as f64 / total as f64).min(1.0)
+            }
+        };
+        let job = if self.state == JobState::Done {
+            1.0
+        } else {
+            share(self.samples_done, samples_total)
+        };
+        let per_frame =
+            self.layout.width as u64 * self.layout.height as u64 * self.rec.settings.samples as u64;
+        let frames = self
+            .frames
+            .iter()
+            .map(|(&n, f)| {
+                if f.written.is_some() {
+                    return 1.0;
+                }
+                let total = match &self.adaptive {
+                    Some(_) => self.adaptive_frame_expected(n).max(f.samples_done),
+                    None => per_frame,
+                };
+                share(f.samples_done, total)
+            })
+            .collect();
+        (job, frames)
+    }
+
     pub(super) fn view(&self) -> JobView {
         let per = self.layout.units_per_frame() as u64;
         let samples_total = self.layout.width as u64
@@ -246,7 +298,10 @@ impl Job {
                 -1.0
             };
         }
+        let (progress, frames_progress) = self.progress(samples_total);
         JobView {
+            progress,
+            frames_progress,
             record: self.rec.clone(),
             state: self.state,
             settings: self.rec.settings,

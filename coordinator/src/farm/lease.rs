@@ -449,6 +449,7 @@ impl Farm {
                     settings: job.rec.settings,
                     region,
                     active: active.clone(),
+                    units: units.len() as u32,
                 };
                 st.next_id += 1;
                 let lease_id = format!("l{}-{}", self.boot, st.next_id);
@@ -578,6 +579,7 @@ impl Farm {
             settings: job.rec.settings,
             region: lease.region,
             active: lease.active.clone(),
+            units: lease.units.len() as u32,
         };
         st.leases.insert(lease_id.clone(), lease);
         st.workers
