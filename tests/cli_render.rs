@@ -354,7 +354,7 @@ fn hostile_model_files_end_in_a_clear_error_under_a_4_gb_cap() {
 /// reported at its own line, with its full path and a suggestion.
 #[test]
 fn a_typo_in_any_table_is_located_at_its_key_with_a_suggestion() {
-    let cases: [(&str, &str, &str); 7] = [
+    let cases: [(&str, &str, &str); 8] = [
         (
             "width = 40",
             "widht = 40",
@@ -384,6 +384,12 @@ fn a_typo_in_any_table_is_located_at_its_key_with_a_suggestion() {
             "position = [0, 5, -5]",
             "position = [0, 5, -5]\ncolour = [1, 1, 1]",
             "bad.toml:13:1: lights[0].colour: unknown field `colour` (valid: `type`, `position`, `corner`, `edge_u`, `edge_v`, `center`, `radius`, `samples`, `diffuse`, `specular`)",
+        ),
+        (
+            // Equally close to `sampler`: the plural of what was typed wins.
+            "width = 40",
+            "width = 40\nsample = 4",
+            "bad.toml:4:1: render.sample: unknown field `sample`; did you mean `samples`?",
         ),
         (
             "distance = 0",

@@ -206,17 +206,28 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
         (80, 80, 80, 0)
     );
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
-    // Field 19 of /proc/PID/task/TID/stat is the thread's niceness: every
-    // thread of the niced worker (runtime and render threads alike).
+    // Every thread of each worker (runtime and render threads alike) runs
+    // at the suite's own niceness, plus 7 for the `--nice 7` worker
+    // (capped at 19, as nice(1) does): the suite may itself run niced.
+    let base = niceness(&format!("/proc/{}/stat", std::process::id()));
     for (i, p) in w.iter().enumerate() {
+        let want = if i == 2 { (base + 7).min(19) } else { base };
         let tasks = format!("/proc/{}/task", p.child.id());
         let mut seen = 0;
         for t in std::fs::read_dir(&tasks).unwrap() {
-            let stat = std::fs::read_to_string(t.unwrap().path().join("stat")).unwrap();
-            // The command name (field 2) is in parentheses and may hold spaces.
-            let after = &stat[stat.rfind(')').unwrap() + 2..];
-            let nice: i32 = after.split(' ').nth(16).unwrap().parse().unwrap();
-            assert_eq!(nice, if i == 2 { 7 } else { 0 }, "worker {i}: {stat}");
+            let stat = t.unwrap().path().join("stat");
+            let nice = niceness(stat.to_str().unwrap());
+            assert_eq!(
+                nice,
+                want,
+                "worker {i}'s thread {} runs at niceness {nice}, expected {want}: the test runs at {base}{}",
+                stat.display(),
+                if i == 2 {
+                    ", and --nice 7 adds 7 (capped at 19)"
+                } else {
+                    " and the worker has no --nice"
+                }
+            );
             seen += 1;
         }
         assert!(seen > 1, "worker {i} has {seen} threads");
@@ -253,6 +264,26 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
     let workers = list_workers(&c.url());
     assert_eq!(workers.len(), 3);
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
+    // A worker's own count, logged as it stops, is the one `tessera
+    // workers` shows (units, not leases: a fast worker's lease spans several).
+    for (i, p) in w.iter().enumerate() {
+        p.sigterm();
+        let name = format!("w{i}");
+        let want = workers
+            .iter()
+            .find(|x| x.name == name)
+            .expect("listed")
+            .units_done;
+        wait_for("the worker's last line", Duration::from_secs(30), || {
+            p.log().contains("worker stopped")
+        });
+        assert!(
+            p.log()
+                .contains(&format!("worker stopped units_done={want}\n")),
+            "worker {name}: `tessera workers` says {want} units; its log:\n{}",
+            p.log()
+        );
+    }
     // Identical workers (one thread each, the same frames at the same
     // time) report speeds of one size: per second of rendering over their
     // recent results, not the last unit's (which put them 14x apart).
@@ -2511,6 +2542,13 @@ fn fetch_of_an_unknown_or_cancelled_job_fails_and_creates_nothing() {
         assert!(err.contains(&want), "{id}: expected {want:?} in {err}");
         assert!(!out.exists(), "{id}: fetch created {}", out.display());
     }
+    // `status` does not suggest a fetch that would fail.
+    let text = ok_stdout(&tessera(&["status", &job], &c.url()));
+    assert!(
+        text.contains("output:    none: the job ended (cancelled) before any frame was finished; nothing to fetch\n"),
+        "{text}"
+    );
+    assert!(!text.contains("tessera fetch"), "{text}");
 }
 
 /// What scripts read: `--json` from submit, jobs, status and workers, and
@@ -2862,11 +2900,58 @@ fn no_workers_is_said_once_and_a_finished_job_says_how_to_fetch_it() {
     args.push(out.to_str().expect("path"));
     args.extend(SMALL);
     let o = tessera(&args, &url);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
     assert_eq!(
         pixels(&out.join("frame_0000.png")),
         reference(dir.path(), &scene, 0, SMALL)
     );
+    // It fetches, so it names no fetch command to run.
+    let id = String::from_utf8_lossy(&o.stdout).trim().to_string();
+    assert!(!err.contains("download them with"), "{err}");
+    assert!(
+        err.contains(&format!(
+            "job {id} done: 1 frame(s); fetching them into {}",
+            out.display()
+        )),
+        "{err}"
+    );
+    // A second fetch into the same folder replaces nothing unless --force.
+    let frame = out.join("frame_0000.png");
+    std::fs::write(&frame, b"mine").expect("overwrite");
+    let o = tessera(&["fetch", &id, "-o", out.to_str().unwrap()], &url);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(
+        err,
+        format!(
+            "error: {} already exists; fetch refuses to overwrite frame files: pass --force to replace them, or fetch into another folder\n",
+            frame.display()
+        )
+    );
+    assert_eq!(std::fs::read(&frame).unwrap(), b"mine");
+    let o = tessera(
+        &[
+            "fetch",
+            &id,
+            "-o",
+            out.to_str().unwrap(),
+            "--force",
+            "--json",
+        ],
+        &url,
+    );
+    let json: serde_json::Value = serde_json::from_str(&ok_stdout(&o)).expect("fetch --json");
+    assert_eq!(json["files"], serde_json::json!(["frame_0000.png"]));
+    assert_eq!(
+        (
+            json["job_id"].as_str(),
+            json["state"].as_str(),
+            json["frames_total"].as_u64()
+        ),
+        (Some(id.as_str()), Some("done"), Some(1))
+    );
+    assert_eq!(pixels(&frame), reference(dir.path(), &scene, 0, SMALL));
 }
 
 /// A coordinator URL that cannot be one is refused before any connection,
@@ -2898,4 +2983,524 @@ fn a_bad_coordinator_url_is_one_clear_error() {
             assert!(o.stdout.is_empty());
         }
     }
+}
+
+/// `GET path` on an HTTP/1.1 server at `addr`: the status line and body.
+fn http_get(addr: &str, path: &str) -> (String, String) {
+    use std::io::{Read as _, Write as _};
+    let mut s = std::net::TcpStream::connect(addr).expect("connect to the monitor");
+    write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .expect("request");
+    let mut raw = Vec::new();
+    s.read_to_end(&mut raw).expect("response");
+    let raw = String::from_utf8_lossy(&raw).into_owned();
+    let (head, body) = raw.split_once("\r\n\r\n").expect("headers");
+    let status = head.lines().next().unwrap_or_default().to_string();
+    let body = if head
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        // Chunks: a hex size line, the data, CRLF; a size of 0 ends.
+        let (mut out, mut rest) = (String::new(), body);
+        while let Some((size, after)) = rest.split_once("\r\n") {
+            let n = usize::from_str_radix(size.trim(), 16).expect("chunk size");
+            if n == 0 {
+                break;
+            }
+            out.push_str(&after[..n]);
+            rest = &after[n + 2..];
+        }
+        out
+    } else {
+        body.to_string()
+    };
+    (status, body)
+}
+
+/// A coordinator with `--http 127.0.0.1:0`: its gRPC and monitor addresses.
+fn start_coordinator_with_monitor(dir: &Path, extra: &[&str]) -> (Proc, String, String) {
+    let log = dir.join(format!("coordinator-{}.log", rand_suffix()));
+    let mut child = Command::new(TESSERA)
+        .args([
+            "coordinator",
+            "--listen",
+            "127.0.0.1:0",
+            "--http",
+            "127.0.0.1:0",
+            "--data",
+        ])
+        .arg(dir.join("data"))
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("start coordinator");
+    let mut out = BufReader::new(child.stdout.take().expect("stdout"));
+    let (mut a, mut m) = (String::new(), String::new());
+    out.read_line(&mut a).expect("address");
+    out.read_line(&mut m).expect("monitor address");
+    let grpc = a
+        .trim()
+        .strip_prefix("listening on ")
+        .expect("grpc")
+        .to_string();
+    let http = m
+        .trim()
+        .strip_prefix("monitor on http://")
+        .unwrap_or_else(|| panic!("no monitor line: {m:?}"))
+        .to_string();
+    (Proc { child, log }, grpc, http)
+}
+
+/// `status --json`, `watch --json` and the monitor's `/api/jobs` give one
+/// progress figure for one job state (a job cancelled midway, so that
+/// state stays): sample-weighted, which here differs from the share of
+/// units (the edge tiles are smaller), and each frame's agrees with it.
+#[test]
+fn status_watch_and_the_monitor_show_one_progress_figure() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (_c, grpc, http) = start_coordinator_with_monitor(dir.path(), &[]);
+    let url = format!("http://{grpc}");
+    let scene = repo("examples/resolution.toml");
+    // 100x70 in 32 px tiles: 4x3 tiles, the last column 4 px wide and the
+    // last row 6 px tall, so units differ 40x in pixels; 2 sample batches.
+    let job = submit(
+        &url,
+        &scene,
+        &[
+            "--width",
+            "100",
+            "--height",
+            "70",
+            "--samples",
+            "64",
+            "--tile-size",
+            "32",
+            "--samples-per-unit",
+            "32",
+        ],
+    );
+    let _w = start_worker(dir.path(), &url, "w");
+    wait_for(
+        "some but not all units done",
+        Duration::from_secs(60),
+        || {
+            let s = status(&url, &job);
+            s.units_done >= 5 && s.units_done < s.units_total - 4
+        },
+    );
+    let o = tessera(&["cancel", &job], &url);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // Merges in flight at the cancel have settled once two reads agree.
+    let read = |args: &[&str]| -> serde_json::Value {
+        let o = tessera(args, &url);
+        let out = String::from_utf8_lossy(&o.stdout);
+        let last = out.lines().last().unwrap_or_default().to_string();
+        serde_json::from_str(&last).unwrap_or_else(|e| panic!("{args:?}: {e}: {out}"))
+    };
+    let mut before = read(&["status", &job, "--json"]);
+    wait_for(
+        "the job's figures to settle",
+        Duration::from_secs(10),
+        || {
+            let now = read(&["status", &job, "--json"]);
+            std::mem::replace(&mut before, now.clone()) == now
+        },
+    );
+    let status_json = read(&["status", &job, "--json"]);
+    let watch_json = read(&["watch", &job, "--json"]);
+    let (code, body) = http_get(&http, "/api/jobs");
+    assert!(code.contains(" 200 "), "{code}: {body}");
+    let api: serde_json::Value = serde_json::from_str(&body).expect("api json");
+    let api_job = api
+        .as_array()
+        .expect("array")
+        .iter()
+        .find(|j| j["id"] == job.as_str())
+        .expect("the job in /api/jobs");
+    let p = status_json["progress"].as_f64().expect("progress");
+    let samples = status_json["samples_done"].as_f64().unwrap()
+        / status_json["samples_total"].as_f64().unwrap();
+    let units =
+        status_json["units_done"].as_f64().unwrap() / status_json["units_total"].as_f64().unwrap();
+    assert_eq!(status_json["state"], "cancelled");
+    assert!(p > 0.0 && p < 1.0, "{status_json}");
+    assert_eq!(
+        p, samples,
+        "progress is the share of pixel-samples: {status_json}"
+    );
+    assert_ne!(
+        p, units,
+        "the test needs units of different sizes: {status_json}"
+    );
+    assert_eq!(
+        watch_json["progress"].as_f64(),
+        Some(p),
+        "watch --json: {watch_json}"
+    );
+    assert_eq!(
+        api_job["progress"].as_f64(),
+        Some(p),
+        "/api/jobs: {api_job}"
+    );
+    // One frame: its figure is the job's, in every view.
+    assert_eq!(status_json["frames"][0]["progress"].as_f64(), Some(p));
+    assert_eq!(api_job["frames"][0]["progress"].as_f64(), Some(p));
+    // The text shows the same figure.
+    let text = ok_stdout(&tessera(&["status", &job], &url));
+    let pct = format!("progress:  {:.1}% of the pixel-samples", 100.0 * p);
+    assert!(text.contains(&pct), "expected {pct:?} in {text}");
+    assert!(
+        text.contains(&format!("frame     0: {:.0}%", 100.0 * p)),
+        "{text}"
+    );
+}
+
+/// Ctrl-C stops only the watch: it says the job keeps running and how to
+/// watch or cancel it, ends its line, exits 130, and the job goes on.
+#[test]
+fn ctrl_c_during_watch_says_the_job_keeps_running() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let url = c.url();
+    let job = submit(&url, &repo("examples/resolution.toml"), SMALL);
+    let err_path = dir.path().join("watch.err");
+    let watch = Command::new(TESSERA)
+        .args(["watch", &job, "--coordinator", &url])
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&err_path).expect("stderr file"))
+        .spawn()
+        .expect("watch");
+    let mut watch = Proc {
+        child: watch,
+        log: err_path.clone(),
+    };
+    // Its first progress line: the watch is under way, its handler set.
+    wait_for("watch's first line", Duration::from_secs(20), || {
+        watch.log().contains(&format!("job {job}: 0.0% queued"))
+    });
+    watch.signal("INT");
+    let code = wait_exit(&mut watch.child, Duration::from_secs(10));
+    let err = watch.log();
+    assert_eq!(code, Some(130), "{err}");
+    let want = format!(
+        "stopped watching; job {job} keeps running on the coordinator. Watch it again with: tessera watch {job} --coordinator {url}; cancel it with: tessera cancel {job} --coordinator {url}\n"
+    );
+    assert!(
+        err.ends_with(&want),
+        "expected the last line {want:?} in:\n{err}"
+    );
+    assert_eq!(status(&url, &job).state, pb::JobState::Queued as i32);
+}
+
+/// Stopping `tessera cluster` (SIGINT, as Ctrl-C or a service manager
+/// sends) stops its workers first, then the coordinator: no warnings from
+/// workers that lost their coordinator, and exit 0.
+#[test]
+fn stopping_a_cluster_stops_its_workers_before_its_coordinator_quietly() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let log = dir.path().join("cluster.log");
+    let child = Command::new(TESSERA)
+        .args([
+            "cluster",
+            "--workers",
+            "2",
+            "--threads",
+            "1",
+            "--listen",
+            "127.0.0.1:0",
+            "--data",
+        ])
+        .arg(dir.path().join("data"))
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).expect("log"))
+        .spawn()
+        .expect("cluster");
+    let mut cluster = Proc { child, log };
+    let mut url = String::new();
+    wait_for("the cluster's address", Duration::from_secs(30), || {
+        let l = cluster.log();
+        let Some(rest) = l.split("cluster: coordinator at ").nth(1) else {
+            return false;
+        };
+        url = rest.split(' ').next().unwrap_or_default().to_string();
+        true
+    });
+    // Work in flight when it stops: a job longer than the test waits.
+    let job = submit(
+        &url,
+        &repo("examples/resolution.toml"),
+        &[
+            "--width",
+            "640",
+            "--height",
+            "480",
+            "--samples",
+            "64",
+            "--tile-size",
+            "32",
+            "--samples-per-unit",
+            "4",
+        ],
+    );
+    wait_for("both workers rendering", Duration::from_secs(60), || {
+        list_workers(&url)
+            .iter()
+            .filter(|w| w.units_done > 0)
+            .count()
+            == 2
+    });
+    assert_eq!(status(&url, &job).state, pb::JobState::Running as i32);
+    cluster.signal("INT");
+    let code = wait_exit(&mut cluster.child, Duration::from_secs(40));
+    let log = cluster.log();
+    assert_eq!(code, Some(0), "{log}");
+    assert!(
+        log.contains(
+            "cluster: stopping the workers (each finishes its unit), then the coordinator"
+        ),
+        "{log}"
+    );
+    let warnings: Vec<&str> = log
+        .lines()
+        .filter(|l| l.contains("WARN") || l.contains("ERROR"))
+        .collect();
+    assert!(
+        warnings.is_empty(),
+        "warnings while stopping:\n{}\n\nthe whole log:\n{log}",
+        warnings.join("\n")
+    );
+    // The workers were gone before the coordinator: its log says they left.
+    let stopped = log
+        .find("coordinator stopped")
+        .expect("the coordinator stopped");
+    assert_eq!(log.matches("worker stopped").count(), 2, "{log}");
+    assert!(log.rfind("worker stopped").unwrap() < stopped, "{log}");
+}
+
+/// Messages that say what went wrong where the cause is clear: a client
+/// pointed at the monitor's port, https:// to a plaintext coordinator, a
+/// name that does not resolve, a token file given as --ca, a frame range
+/// written 1-5, a cluster of 0 workers, a second coordinator on one
+/// --data, a refusal naming the token that is missing, and the warning
+/// for a plain-HTTP monitor that takes a token.
+#[test]
+fn connection_and_argument_mistakes_get_messages_that_name_them() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let token = dir.path().join("client.token");
+    std::fs::write(&token, "0123456789abcdef\n").expect("token");
+    let token_s = token.to_str().expect("path");
+    let (_c, grpc, http) = start_coordinator_with_monitor(dir.path(), &[]);
+    let run = |args: &[&str]| {
+        let o = Command::new(TESSERA).args(args).output().expect("tessera");
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    let (code, err) = run(&["jobs", "--coordinator", &format!("http://{http}")]);
+    assert_eq!(code, Some(1), "{err}");
+    assert_eq!(
+        err,
+        "error: this looks like the web monitor's HTTP port (it answered with HTTP and JSON, not gRPC); point --coordinator at the coordinator's gRPC address, the one it listens on with --listen (port 7878 by default), not its --http address\n"
+    );
+    let (code, err) = run(&["jobs", "--coordinator", &format!("https://{grpc}")]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains(&format!(
+            "the coordinator answered without TLS: use http://{grpc}"
+        )),
+        "{err}"
+    );
+    let (code, err) = run(&["jobs", "--coordinator", "http://no-such-host.invalid:7878"]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("the host name \"no-such-host.invalid\" did not resolve"),
+        "{err}"
+    );
+    assert!(!err.contains("https"), "{err}");
+    let (code, err) = run(&[
+        "jobs",
+        "--coordinator",
+        &format!("https://{grpc}"),
+        "--ca",
+        token_s,
+    ]);
+    assert_eq!(code, Some(1), "{err}");
+    assert_eq!(
+        err,
+        format!(
+            "error: --ca {token_s} is not a PEM certificate (it has no -----BEGIN CERTIFICATE----- line); give the CA's certificate, e.g. the ca.pem of `tessera cert`\n"
+        )
+    );
+    let scene = repo("examples/animation.toml");
+    let (code, err) = run(&["submit", scene.to_str().unwrap(), "--frames", "1-5"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(
+        err.contains("\"1-5\" is not a frame number; write a range as 1..5"),
+        "{err}"
+    );
+    let (code, err) = run(&["cluster", "--workers", "0"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(
+        err.contains(
+            "invalid value '0' for '--workers <WORKERS>': a cluster needs at least 1 worker"
+        ),
+        "{err}"
+    );
+    // A second coordinator on the first one's --data: said once, with the folder.
+    let data = dir.path().join("data");
+    let (code, err) = run(&[
+        "coordinator",
+        "--listen",
+        "127.0.0.1:0",
+        "--data",
+        data.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(1), "{err}");
+    let want = format!(
+        "error: the data folder {} is in use by another coordinator (its database is locked): stop that one, or give this one a folder of its own with --data DIR\n",
+        data.display()
+    );
+    assert!(
+        err.ends_with(&want),
+        "expected {want:?} at the end of {err}"
+    );
+    assert_eq!(err.matches("in use").count(), 1, "{err}");
+    // Only the client token: the refusal names the worker token.
+    let other = dir.path().join("other");
+    let (code, err) = run(&[
+        "coordinator",
+        "--listen",
+        "0.0.0.0:0",
+        "--data",
+        other.to_str().unwrap(),
+        "--client-token-file",
+        token_s,
+    ]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("refusing to listen on 0.0.0.0:"), "{err}");
+    assert!(err.contains(" without a worker token: "), "{err}");
+    // A token over a plain-HTTP monitor reachable from elsewhere: a warning at start.
+    let (mut c2, _, _) = {
+        let d = dir.path().join("warned");
+        std::fs::create_dir_all(&d).unwrap();
+        let log = d.join("c.log");
+        let mut child = Command::new(TESSERA)
+            .args([
+                "coordinator",
+                "--listen",
+                "127.0.0.1:0",
+                "--http",
+                "0.0.0.0:0",
+                "--data",
+            ])
+            .arg(d.join("data"))
+            .args(["--client-token-file", token_s])
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(&log).expect("log"))
+            .spawn()
+            .expect("coordinator");
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .unwrap();
+        (Proc { child, log }, line, ())
+    };
+    wait_for("the monitor's warning", Duration::from_secs(10), || {
+        c2.log().contains(
+            "the web monitor is plain HTTP: a browser sends the client token in clear text",
+        )
+    });
+    c2.sigkill();
+}
+
+/// `tessera cert` keeps the CA key (mode 0600); `--ca-key` signs a
+/// certificate for another name with that CA, which the first ca.pem
+/// trusts: a client connects with it.
+#[test]
+fn cert_keeps_the_ca_key_and_signs_a_new_name_with_it() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let first = dir.path().join("tls");
+    let o = Command::new(TESSERA)
+        .args([
+            "cert",
+            "--out",
+            first.to_str().unwrap(),
+            "--name",
+            "coord.example",
+        ])
+        .output()
+        .expect("cert");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt as _;
+        let mode = std::fs::metadata(first.join("ca.key"))
+            .expect("ca.key")
+            .permissions()
+            .mode();
+        assert_eq!(mode & 0o777, 0o600, "ca.key mode {mode:o}");
+    }
+    let second = dir.path().join("tls2");
+    let o = Command::new(TESSERA)
+        .args([
+            "cert",
+            "--out",
+            second.to_str().unwrap(),
+            "--name",
+            "127.0.0.1",
+            "--ca-key",
+        ])
+        .arg(first.join("ca.key"))
+        .output()
+        .expect("cert --ca-key");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(
+        std::fs::read(first.join("ca.pem")).unwrap(),
+        std::fs::read(second.join("ca.pem")).unwrap(),
+        "the same CA certificate"
+    );
+    let c = start_coordinator(
+        dir.path(),
+        "127.0.0.1:0",
+        &[
+            "--tls-cert",
+            second.join("coordinator.pem").to_str().unwrap(),
+            "--tls-key",
+            second.join("coordinator.key").to_str().unwrap(),
+        ],
+    );
+    let o = Command::new(TESSERA)
+        .args([
+            "jobs",
+            "--coordinator",
+            &format!("https://{}", c.addr),
+            "--ca",
+        ])
+        .arg(first.join("ca.pem"))
+        .output()
+        .expect("jobs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// The niceness of a process or thread: field 19 of its /proc `stat` file.
+fn niceness(stat_path: &str) -> i32 {
+    let stat = std::fs::read_to_string(stat_path).unwrap_or_else(|e| panic!("{stat_path}: {e}"));
+    // The command name (field 2) is in parentheses and may hold spaces.
+    let after = &stat[stat.rfind(')').expect("stat's command name") + 2..];
+    after
+        .split(' ')
+        .nth(16)
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{stat_path}: no niceness in {stat:?}"))
 }

@@ -68,14 +68,17 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
         units_done: v.units_done,
         samples_total: v.samples_total,
         samples_done: v.samples_done,
+        progress: v.progress,
         frames: v
             .frames
             .iter()
-            .map(|(f, total, done, out)| pb::FrameStatus {
+            .zip(&v.frames_progress)
+            .map(|((f, total, done, out), progress)| pb::FrameStatus {
                 frame: *f,
                 units_total: *total,
                 units_done: *done,
                 output: out.clone().unwrap_or_default(),
+                progress: *progress,
             })
             .collect(),
         error: r.error.clone(),
@@ -570,6 +573,7 @@ impl WorkerService for Api {
                     }),
                     adaptive: l.active.is_some(),
                     active_blocks: l.active.map(|m| m.to_bytes()).unwrap_or_default(),
+                    units: l.units,
                     ..Default::default()
                 };
                 unit.set_region(l.region);

@@ -29,7 +29,18 @@ pub struct CertArgs {
     /// Replace files that exist
     #[arg(long)]
     pub force: bool,
+    /// Sign with this existing CA key (the ca.key an earlier `tessera
+    /// cert` wrote; its ca.pem beside it) instead of making a new CA: a
+    /// coordinator certificate for more host names that every host's
+    /// ca.pem already trusts
+    #[arg(long, value_name = "FILE")]
+    pub ca_key: Option<PathBuf>,
 }
+
+/// The CA's distinguished name: a CA made again from its key (`--ca-key`)
+/// must name itself as the first one did, or its certificates would name
+/// an issuer that no ca.pem is.
+const CA_NAME: &str = "Tessera farm CA";
 
 fn write_private(path: &Path, data: &[u8], private: bool) -> Result<()> {
     let mut o = std::fs::OpenOptions::new();
@@ -57,7 +68,39 @@ pub fn run(args: CertArgs) -> Result<ExitCode> {
     }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let mut files = vec!["ca.pem", "coordinator.pem", "coordinator.key"];
+    // The CA: a new one, or the existing one of --ca-key (its certificate
+    // read from beside it, and written out unchanged where that is
+    // another folder).
+    let existing = match &args.ca_key {
+        Some(key) => {
+            let pem = std::fs::read_to_string(key)
+                .with_context(|| format!("cannot read --ca-key {}", key.display()))?;
+            let ca_key = KeyPair::from_pem(&pem).with_context(|| {
+                format!(
+                    "--ca-key {} is not a PEM private key (the ca.key of `tessera cert`)",
+                    key.display()
+                )
+            })?;
+            let ca_pem_path = key.with_file_name("ca.pem");
+            let ca_pem = std::fs::read(&ca_pem_path).with_context(|| {
+                format!(
+                    "cannot read {}, the CA certificate that goes with --ca-key {}",
+                    ca_pem_path.display(),
+                    key.display()
+                )
+            })?;
+            let same_folder = std::fs::canonicalize(key.parent().unwrap_or(Path::new(".")))
+                .ok()
+                .zip(std::fs::canonicalize(&args.out).ok())
+                .is_some_and(|(a, b)| a == b);
+            Some((ca_key, ca_pem, same_folder))
+        }
+        None => None,
+    };
+    let mut files = match &existing {
+        Some((_, _, true)) => vec!["coordinator.pem", "coordinator.key"],
+        _ => vec!["ca.pem", "ca.key", "coordinator.pem", "coordinator.key"],
+    };
     if args.tokens {
         files.extend(["client.token", "worker.token"]);
     }
@@ -72,11 +115,17 @@ pub fn run(args: CertArgs) -> Result<ExitCode> {
 
     let mut ca = CertificateParams::new(Vec::<String>::new())?;
     ca.is_ca = IsCa::Ca(BasicConstraints::Constrained(0));
-    ca.distinguished_name
-        .push(DnType::CommonName, "Tessera farm CA");
+    ca.distinguished_name.push(DnType::CommonName, CA_NAME);
     ca.key_usages = vec![KeyUsagePurpose::KeyCertSign, KeyUsagePurpose::CrlSign];
-    let ca_key = KeyPair::generate()?;
-    let ca_cert = ca.self_signed(&ca_key)?;
+    let (ca_key, ca_pem, ca_new) = match existing {
+        Some((key, pem, same_folder)) => (key, pem, !same_folder),
+        None => {
+            let key = KeyPair::generate()?;
+            let pem = ca.self_signed(&key)?.pem().into_bytes();
+            (key, pem, true)
+        }
+    };
+    let ca_key_pem = ca_key.serialize_pem();
     let issuer = Issuer::new(ca, ca_key);
 
     let mut leaf = CertificateParams::new(names.clone())
@@ -89,7 +138,12 @@ pub fn run(args: CertArgs) -> Result<ExitCode> {
     let leaf_cert = leaf.signed_by(&leaf_key, &issuer)?;
 
     let out = &args.out;
-    write_private(&out.join("ca.pem"), ca_cert.pem().as_bytes(), false)?;
+    if ca_new {
+        write_private(&out.join("ca.pem"), &ca_pem, false)?;
+        // Kept (owner-only) so that `--ca-key` can later sign a
+        // certificate for more names with the CA every host trusts.
+        write_private(&out.join("ca.key"), ca_key_pem.as_bytes(), true)?;
+    }
     write_private(
         &out.join("coordinator.pem"),
         leaf_cert.pem().as_bytes(),

@@ -225,8 +225,13 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
         let tokens = security.client_token.is_some() && security.worker_token.is_some();
         if !addr.ip().is_loopback() {
             if !tokens && !args.insecure {
+                let missing = match (&security.client_token, &security.worker_token) {
+                    (Some(_), None) => "a worker token",
+                    (None, Some(_)) => "a client token",
+                    _ => "tokens",
+                };
                 anyhow::bail!(
-                    "refusing to listen on {addr} without tokens: anyone who reaches it could submit and cancel jobs, \
+                    "refusing to listen on {addr} without {missing}: anyone who reaches it could submit and cancel jobs, \
                      read every scene and frame, and register as a worker. Give --client-token-file and \
                      --worker-token-file (or TESSERA_CLIENT_TOKEN and TESSERA_WORKER_TOKEN), or pass --insecure \
                      on a network you trust"
@@ -249,16 +254,37 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
                          TESSERA_CLIENT_TOKEN), or pass --insecure on a network you trust"
                     );
                 }
+                // The monitor is plain HTTP: a browser sends the client
+                // token with every request, readable on the way.
+                if !http_addr.ip().is_loopback() && security.client_token.is_some() {
+                    tracing::warn!(
+                        addr = %http_addr,
+                        "the web monitor is plain HTTP: a browser sends the client token in clear text; \
+                         serve it on 127.0.0.1 and reach it through an SSH tunnel or a TLS proxy"
+                    );
+                }
                 Some(l)
             }
             None => None,
         };
-        let farm = Farm::open(config).with_context(|| {
-            format!(
-                "cannot open the coordinator state in {}",
+        let farm = match Farm::open(config) {
+            Ok(farm) => farm,
+            Err(tessera_coordinator::FarmError::Store(
+                tessera_coordinator::store::StoreError::InUse(_),
+            )) => anyhow::bail!(
+                "the data folder {} is in use by another coordinator (its database is locked): \
+                 stop that one, or give this one a folder of its own with --data DIR",
                 args.data.display()
-            )
-        })?;
+            ),
+            Err(e) => {
+                return Err(e).with_context(|| {
+                    format!(
+                        "cannot open the coordinator state in {}",
+                        args.data.display()
+                    )
+                });
+            }
+        };
         tracing::info!(
             %addr, data = %args.data.display(), tls = security.tls.is_some(),
             client_token = security.client_token.is_some(), worker_token = security.worker_token.is_some(),

@@ -31,13 +31,27 @@ pub struct CoordinatorUrl {
 
 pub use tessera_proto::transport::{CLIENT_TOKEN_ENV, WORKER_TOKEN_ENV};
 
+/// The line that opens a certificate in a PEM file.
+const CERT_PEM_LINE: &str = "-----BEGIN CERTIFICATE-----";
+
 impl CoordinatorUrl {
     /// The CA certificate's PEM, if one was given.
     pub fn ca_pem(&self) -> Result<Option<Vec<u8>>> {
-        self.ca
-            .as_ref()
-            .map(|p| std::fs::read(p).with_context(|| format!("cannot read --ca {}", p.display())))
-            .transpose()
+        let Some(p) = &self.ca else { return Ok(None) };
+        let pem = std::fs::read(p).with_context(|| format!("cannot read --ca {}", p.display()))?;
+        // Without this, a token or key file given by mistake reads as an
+        // empty trust store, and the handshake fails later as UnknownIssuer.
+        if !pem
+            .windows(CERT_PEM_LINE.len())
+            .any(|w| w == CERT_PEM_LINE.as_bytes())
+        {
+            bail!(
+                "--ca {} is not a PEM certificate (it has no {CERT_PEM_LINE} line); \
+                 give the CA's certificate, e.g. the ca.pem of `tessera cert`",
+                p.display()
+            );
+        }
+        Ok(Some(pem))
     }
 
     /// The token from --token-file, else from the environment variable `env`.
@@ -137,22 +151,57 @@ pub async fn connect(c: &CoordinatorUrl) -> Result<JobClient> {
 }
 
 /// Why a coordinator could not be reached, with the likely cause when the
-/// error says TLS or HTTP/2 went wrong.
+/// error says which: a name that did not resolve, nothing listening, TLS
+/// spoken to a plaintext server, or plaintext to a TLS one.
 pub fn unreachable(url: &str, e: tonic::transport::Error) -> anyhow::Error {
     let detail = tessera_proto::transport::error_chain(&e);
-    let hint = if detail.contains("tcp connect error") {
-        "; is a coordinator running at that address (and reachable from here)?"
+    let hint = if detail.contains("dns error") || detail.contains("failed to lookup address") {
+        let host = url
+            .split_once("://")
+            .map_or(url, |(_, rest)| rest)
+            .split(['/', '?'])
+            .next()
+            .unwrap_or_default();
+        let host = host.rsplit_once(':').map_or(host, |(h, _)| h);
+        format!(
+            "; the host name {host:?} did not resolve (check its spelling, or use an IP address)"
+        )
+    } else if detail.contains("tcp connect error") {
+        "; is a coordinator running at that address (and reachable from here)?".to_string()
     } else if url.starts_with("http://") {
         "; if the coordinator serves TLS, use an https:// URL (and --ca for its certificate)"
+            .to_string()
+    } else if detail.contains("InvalidContentType") || detail.contains("corrupt message") {
+        // rustls reads a plaintext HTTP/2 server's first frame as a
+        // malformed TLS record.
+        format!(
+            "; the coordinator answered without TLS: use {} (or give it --tls-cert and --tls-key)",
+            url.replacen("https://", "http://", 1)
+        )
     } else {
-        "; check the URL's host name against the certificate's names and --ca"
+        "; check the URL's host name against the certificate's names and --ca".to_string()
     };
     anyhow!("cannot reach the coordinator at {url}: {detail}{hint}")
+}
+
+/// The hint for a gRPC call answered by the web monitor (`--http`): its
+/// JSON 404 reads to a gRPC client as a message with compression flag
+/// 123, the `{` that opens the JSON.
+const MONITOR_PORT_HINT: &str = "this looks like the web monitor's HTTP port (it answered \
+    with HTTP and JSON, not gRPC); point --coordinator at the coordinator's gRPC address, \
+    the one it listens on with --listen (port 7878 by default), not its --http address";
+
+fn answered_by_monitor(s: &tonic::Status) -> bool {
+    let m = s.message();
+    m.contains("invalid compression flag: 123") || (m.contains("404") && m.contains("Not Found"))
 }
 
 /// A failed call as a readable error: the coordinator's message, with the
 /// status code when it adds something.
 pub fn rpc(s: tonic::Status) -> anyhow::Error {
+    if answered_by_monitor(&s) {
+        return anyhow!("{MONITOR_PORT_HINT}");
+    }
     match s.code() {
         tonic::Code::InvalidArgument
         | tonic::Code::NotFound

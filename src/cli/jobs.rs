@@ -17,6 +17,8 @@ use super::render::{AdaptiveArgs, OverrideArgs};
 pub const EXIT_DONE: u8 = 0;
 pub const EXIT_FAILED: u8 = 3;
 pub const EXIT_CANCELLED: u8 = 4;
+/// `watch` (or `submit --wait`) stopped by Ctrl-C: the job goes on.
+pub const EXIT_INTERRUPTED: u8 = 130;
 
 /// An inclusive frame range, written `A..B` (or `A..=B`, or one frame `N`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -29,9 +31,24 @@ impl std::str::FromStr for Frames {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
         let num = |t: &str| {
-            t.trim()
-                .parse::<u32>()
-                .map_err(|_| format!("{t:?} is not a frame number"))
+            t.trim().parse::<u32>().map_err(|_| {
+                // `1-5` (or `1:5`, `1..=5` typed `1...5`) means a range:
+                // say how to write one.
+                match t.split_once(['-', ':']) {
+                    Some((a, b))
+                        if a.trim().parse::<u32>().is_ok() && b.trim().parse::<u32>().is_ok() =>
+                    {
+                        format!(
+                            "{t:?} is not a frame number; write a range as {}..{}",
+                            a.trim(),
+                            b.trim()
+                        )
+                    }
+                    _ => format!(
+                        "{t:?} is not a frame number (write one frame as N, a range as A..B)"
+                    ),
+                }
+            })
         };
         let (first, last) = match s.split_once("..") {
             Some((a, b)) => (num(a)?, num(b.strip_prefix('=').unwrap_or(b))?),
@@ -80,9 +97,13 @@ pub struct SubmitArgs {
     #[arg(long)]
     pub wait: bool,
     /// Wait as --wait does, then download the finished frames into DIR
-    /// (as `tessera fetch JOB -o DIR`)
+    /// (as `tessera fetch JOB -o DIR`; frame files already there are
+    /// refused unless --force)
     #[arg(long, value_name = "DIR")]
     pub fetch: Option<PathBuf>,
+    /// With --fetch: overwrite frame files that already exist in DIR
+    #[arg(long, requires = "fetch")]
+    pub force: bool,
     /// Send files the scene references from outside its folder (absolute
     /// paths, or `..` above it) too; without it such a scene is refused
     #[arg(long)]
@@ -136,11 +157,18 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
             outln!("{id}");
         }
         if args.wait || args.fetch.is_some() {
-            let code = watch_job(&mut client, &id, args.format, &args.coordinator).await?;
+            let code = watch_job(
+                &mut client,
+                &id,
+                args.format,
+                &args.coordinator,
+                args.fetch.as_deref(),
+            )
+            .await?;
             if let Some(dir) = &args.fetch
                 && code == ExitCode::from(EXIT_DONE)
             {
-                return fetch_frames(&mut client, &id, dir).await;
+                return fetch_frames(&mut client, &id, dir, args.force, args.format).await;
             }
             return Ok(code);
         }
@@ -173,6 +201,12 @@ pub struct FetchArgs {
     /// Directory to write the frames into
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Overwrite frame files that already exist in the directory (without
+    /// it, fetch refuses before writing anything)
+    #[arg(long)]
+    pub force: bool,
+    #[command(flatten)]
+    pub format: Format,
     #[command(flatten)]
     pub coordinator: CoordinatorUrl,
 }
@@ -231,8 +265,10 @@ pub fn state_name(state: i32) -> &'static str {
     }
 }
 
+/// The job's progress as the coordinator defines it for every view
+/// (sample-weighted), in percent.
 fn percent(j: &pb::JobStatus) -> f64 {
-    100.0 * j.samples_done as f64 / j.samples_total.max(1) as f64
+    100.0 * j.progress
 }
 
 pub fn jobs(args: ListArgs) -> Result<ExitCode> {
@@ -303,7 +339,7 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             outln!("state:     {}", state_name(j.state));
         }
         outln!(
-            "progress:  {:.1}% ({} of {} units)",
+            "progress:  {:.1}% of the pixel-samples ({} of {} units)",
             percent(&j),
             j.units_done,
             j.units_total
@@ -359,17 +395,28 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             j.results_late,
             j.results_duplicate
         );
-        outln!(
-            "output:    {} on the coordinator's host; download with: {}",
-            j.output_dir,
-            fetch_command(&j.job_id, &args.coordinator)
-        );
+        // Only a job with a finished frame has anything to fetch.
+        let written = j.frames.iter().filter(|f| !f.output.is_empty()).count();
+        if written > 0 {
+            outln!(
+                "output:    {} on the coordinator's host; download with: {}",
+                j.output_dir,
+                fetch_command(&j.job_id, &args.coordinator)
+            );
+        } else if ended(j.state) {
+            outln!(
+                "output:    none: the job ended ({}) before any frame was finished; nothing to fetch",
+                state_name(j.state)
+            );
+        } else {
+            outln!(
+                "output:    {} on the coordinator's host (nothing to fetch until a frame is finished)",
+                j.output_dir
+            );
+        }
         for f in &j.frames {
             let done = if f.output.is_empty() {
-                format!(
-                    "{:.0}%",
-                    100.0 * f.units_done as f64 / f.units_total.max(1) as f64
-                )
+                format!("{:.0}%", 100.0 * f.progress)
             } else {
                 f.output.clone()
             };
@@ -453,7 +500,7 @@ fn apply_event(cur: &mut Option<pb::JobStatus>, mut ev: pb::JobStatus) -> Option
 pub fn watch(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;
-        watch_job(&mut client, &args.job, args.format, &args.coordinator).await
+        watch_job(&mut client, &args.job, args.format, &args.coordinator, None).await
     })
 }
 
@@ -486,14 +533,21 @@ fn show_progress(progress: &Progress, j: &pb::JobStatus, no_workers: bool) {
 const WORKER_CHECK_EVERY: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Shows progress until the job ends; the exit code is its outcome
-/// ([`EXIT_DONE`], [`EXIT_FAILED`], [`EXIT_CANCELLED`]). With `--json`,
-/// every event is a JSON line on stdout instead.
+/// ([`EXIT_DONE`], [`EXIT_FAILED`], [`EXIT_CANCELLED`]), or
+/// [`EXIT_INTERRUPTED`] on Ctrl-C (the job goes on). With `--json`, every
+/// event is a JSON line on stdout instead. `fetch_to`: the frames will be
+/// fetched into that folder next (so no fetch command is suggested).
 async fn watch_job(
     client: &mut JobClient,
     id: &str,
     format: Format,
     coordinator: &CoordinatorUrl,
+    fetch_to: Option<&Path>,
 ) -> Result<ExitCode> {
+    // In place before the first event is shown: a Ctrl-C from then on is
+    // this watch's to handle.
+    let interrupt = interrupt_signal()?;
+    tokio::pin!(interrupt);
     let mut stream = client
         .watch_job(pb::WatchJobRequest {
             job_id: id.to_string(),
@@ -511,6 +565,16 @@ async fn watch_job(
     loop {
         let ev = tokio::select! {
             ev = stream.next() => ev,
+            _ = &mut interrupt => {
+                // Only this watch stops: say so, and how to go on.
+                progress.abandon();
+                eprintln!(
+                    "stopped watching; job {id} keeps running on the coordinator. Watch it again with: {}; cancel it with: {}",
+                    client_command("watch", &shell_word(id), coordinator),
+                    client_command("cancel", &shell_word(id), coordinator)
+                );
+                return Ok(ExitCode::from(EXIT_INTERRUPTED));
+            }
             _ = workers_check.tick() => {
                 // A job waits silently for workers that are not there:
                 // say so (once each time the farm empties).
@@ -558,11 +622,18 @@ async fn watch_job(
         pb::JobState::Done => {
             // The output folder is on the coordinator's host (and relative
             // to its directory): what to run here is the fetch.
-            eprintln!(
-                "job {id} done: {} frame(s); download them with: {}",
-                j.last_frame - j.first_frame + 1,
-                fetch_command(id, coordinator)
-            );
+            match fetch_to {
+                Some(dir) => eprintln!(
+                    "job {id} done: {} frame(s); fetching them into {}",
+                    j.last_frame - j.first_frame + 1,
+                    dir.display()
+                ),
+                None => eprintln!(
+                    "job {id} done: {} frame(s); download them with: {}",
+                    j.last_frame - j.first_frame + 1,
+                    fetch_command(id, coordinator)
+                ),
+            }
             Ok(ExitCode::from(EXIT_DONE))
         }
         pb::JobState::Failed => {
@@ -578,6 +649,22 @@ async fn watch_job(
             state_name(j.state)
         ),
     }
+}
+
+/// Resolves on Ctrl-C (SIGINT); the handler is installed when this returns.
+fn interrupt_signal() -> Result<impl std::future::Future<Output = ()>> {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        let mut s = signal(SignalKind::interrupt()).context("cannot handle Ctrl-C")?;
+        Ok(async move {
+            s.recv().await;
+        })
+    }
+    #[cfg(not(unix))]
+    Ok(async {
+        let _ = tokio::signal::ctrl_c().await;
+    })
 }
 
 pub fn cancel(args: JobArg) -> Result<ExitCode> {
@@ -601,7 +688,17 @@ pub fn cancel(args: JobArg) -> Result<ExitCode> {
 /// it, with the coordinator flags this command was given (quoted for a
 /// POSIX shell where needed).
 pub fn fetch_command(id: &str, c: &CoordinatorUrl) -> String {
-    let mut cmd = format!("tessera fetch {} -o {}", shell_word(id), shell_word(id));
+    client_command(
+        "fetch",
+        &format!("{} -o {}", shell_word(id), shell_word(id)),
+        c,
+    )
+}
+
+/// `tessera VERB WORDS` (WORDS already quoted) with the coordinator flags
+/// this command was given (quoted for a POSIX shell where needed).
+pub fn client_command(verb: &str, words: &str, c: &CoordinatorUrl) -> String {
+    let mut cmd = format!("tessera {verb} {words}");
     if c.url != super::farm_common::DEFAULT_COORDINATOR {
         cmd += &format!(" --coordinator {}", shell_word(&c.url));
     }
@@ -629,14 +726,28 @@ fn shell_word(s: &str) -> String {
 pub fn fetch(args: FetchArgs) -> Result<ExitCode> {
     runtime()?.block_on(async move {
         let mut client = connect(&args.coordinator).await?;
-        fetch_frames(&mut client, &args.job, &args.output).await
+        fetch_frames(
+            &mut client,
+            &args.job,
+            &args.output,
+            args.force,
+            args.format,
+        )
+        .await
     })
 }
 
 /// Downloads job `id`'s finished frames into `dir`; fails (creating
-/// nothing) when none is finished, and exits 1 after fetching what there
-/// is of a cancelled or failed job.
-async fn fetch_frames(client: &mut JobClient, id: &str, dir: &Path) -> Result<ExitCode> {
+/// nothing) when none is finished, or when a frame file is already there
+/// and not `force`; exits 1 after fetching what there is of a cancelled
+/// or failed job. `--json`: one object naming the files written.
+async fn fetch_frames(
+    client: &mut JobClient,
+    id: &str,
+    dir: &Path,
+    force: bool,
+    format: Format,
+) -> Result<ExitCode> {
     // Ask first: an unknown job, or one with no finished frame, leaves
     // nothing behind (no empty output folder).
     let j = get_job(client, id).await?;
@@ -656,6 +767,22 @@ async fn fetch_frames(client: &mut JobClient, id: &str, dir: &Path) -> Result<Ex
             }
         );
     }
+    // Refused before anything is written: a second fetch into the same
+    // folder (or frames of another job of the same names) would otherwise
+    // replace files silently.
+    if !force
+        && let Some(f) = j
+            .frames
+            .iter()
+            .filter(|f| !f.output.is_empty())
+            .map(|f| dir.join(&f.output))
+            .find(|p| p.exists())
+    {
+        bail!(
+            "{} already exists; fetch refuses to overwrite frame files: pass --force to replace them, or fetch into another folder",
+            f.display()
+        );
+    }
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let mut stream = client
         .fetch_results(pb::FetchResultsRequest {
@@ -664,7 +791,7 @@ async fn fetch_frames(client: &mut JobClient, id: &str, dir: &Path) -> Result<Ex
         .await
         .map_err(rpc)?
         .into_inner();
-    let mut n = 0;
+    let mut files = Vec::new();
     while let Some(img) = stream.next().await {
         let img = img.map_err(rpc)?;
         // Only a plain file name from the coordinator: never a path elsewhere.
@@ -680,12 +807,22 @@ async fn fetch_frames(client: &mut JobClient, id: &str, dir: &Path) -> Result<Ex
         let path = dir.join(name);
         std::fs::write(&path, &img.data)
             .with_context(|| format!("cannot write {}", path.display()))?;
-        n += 1;
+        files.push(img.file_name);
     }
     // Where the client can use it: absolute, on this machine.
     let out = std::path::absolute(dir).unwrap_or(dir.to_path_buf());
+    if format.json {
+        print_json(&serde_json::json!({
+            "job_id": id,
+            "state": state_name(j.state),
+            "dir": out,
+            "files": files,
+            "frames_total": total,
+        }));
+    }
     eprintln!(
-        "fetched {n} of {total} frame(s) of {id} into {}",
+        "fetched {} of {total} frame(s) of {id} into {}",
+        files.len(),
         out.display()
     );
     if ended_early {

@@ -44,7 +44,8 @@ pub enum Command {
     Jobs(jobs::ListArgs),
     /// Show one job in detail.
     Status(jobs::JobArg),
-    /// Follow a job until it ends; exit code 0 done, 3 failed, 4 cancelled.
+    /// Follow a job until it ends; exit code 0 done, 3 failed, 4 cancelled,
+    /// 130 on Ctrl-C (which stops only the watch: the job goes on).
     Watch(jobs::JobArg),
     /// Cancel a job; workers stop its work within a heartbeat.
     Cancel(jobs::JobArg),

@@ -46,7 +46,8 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
         "name": j.name,
         "state": super::jobs::state_name(j.state),
         "priority": j.priority,
-        "progress": j.samples_done as f64 / j.samples_total.max(1) as f64,
+        // The coordinator's one figure (sample-weighted, docs/cli.md).
+        "progress": j.progress,
         "width": s.width,
         "height": s.height,
         "samples": s.samples,
@@ -81,6 +82,7 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
             "frame": f.frame,
             "units_total": f.units_total,
             "units_done": f.units_done,
+            "progress": f.progress,
             "output": (!f.output.is_empty()).then_some(&f.output),
         })).collect::<Vec<_>>(),
         "error": (!j.error.is_empty()).then_some(&j.error),
@@ -125,8 +127,9 @@ pub struct Progress {
     total: u64,
     done: AtomicU64,
     start: Instant,
-    /// When the last plain line was printed, and its message.
-    last: Mutex<(Instant, String)>,
+    /// When the last plain line was printed, its message and the progress
+    /// it showed.
+    last: Mutex<(Instant, String, u64)>,
 }
 
 impl Progress {
@@ -148,7 +151,7 @@ impl Progress {
             total: if quiet { 0 } else { total.max(1) },
             done: AtomicU64::new(0),
             start,
-            last: Mutex::new((start, String::new())),
+            last: Mutex::new((start, String::new(), u64::MAX)),
         }
     }
 
@@ -192,6 +195,14 @@ impl Progress {
         }
     }
 
+    /// Stops where it is (Ctrl-C): the bar stays as it was, ended by a
+    /// newline, so what follows starts on a line of its own.
+    pub fn abandon(&self) {
+        if let Some(bar) = &self.bar {
+            bar.abandon();
+        }
+    }
+
     fn eta_text(&self, done: u64) -> String {
         let secs = self.start.elapsed().as_secs_f64();
         // Too early for a rate worth extrapolating.
@@ -207,6 +218,11 @@ impl Progress {
             return;
         }
         let mut l = self.last.lock().expect("progress lock");
+        // The end, already shown by the last line (a watched job's `done`
+        // or `cancelled`): nothing more to say.
+        if last && l.2 == done && !l.1.is_empty() {
+            return;
+        }
         let message = message.map_or_else(|| self.eta_text(done), str::to_string);
         // Every PLAIN_EVERY, and whenever the state in the message changes
         // (a job going from queued to running says so at once).
@@ -214,7 +230,7 @@ impl Progress {
         if !(last || changed || l.0.elapsed() >= PLAIN_EVERY) {
             return;
         }
-        *l = (Instant::now(), message.clone());
+        *l = (Instant::now(), message.clone(), done);
         let pct = 100.0 * done as f64 / self.total as f64;
         eprintln!(
             "{}: {pct:.1}% {message} ({:.0} s)",

@@ -50,10 +50,11 @@ pub struct WorkerArgs {
     /// Most bytes the cache keeps (least recently used files go first)
     #[arg(long, value_name = "BYTES", default_value_t = 10 << 30)]
     pub cache_size: u64,
-    /// Scheduling niceness of the worker process, 0..=19 (Unix `nice`): a
-    /// CPU worker beside a GPU worker or the coordinator on one host,
-    /// niced, leaves them the cores they need to feed the GPU and take in
-    /// results
+    /// Niceness to add to the worker's own, 0..=19, as `nice -n N` does
+    /// (the sum is capped at 19; a worker started under `nice -n 10` with
+    /// `--nice 7` runs at 17): a CPU worker beside a GPU worker or the
+    /// coordinator on one host, niced, leaves them the cores they need to
+    /// feed the GPU and take in results
     #[arg(long, value_name = "N", default_value_t = 0,
           value_parser = clap::value_parser!(i32).range(0..=19))]
     pub nice: i32,
@@ -76,10 +77,12 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
     if args.nice > 0 {
         // Linux's nice is per thread, inherited by threads created later:
         // this runs before the runtime and the render threads exist.
-        // SAFETY: setpriority only reads its integer arguments.
-        if unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, args.nice) } != 0 {
-            anyhow::bail!("--nice {}: {}", args.nice, std::io::Error::last_os_error());
-        }
+        // Relative, as nice(1): an absolute setpriority would fail (or,
+        // as root, raise the priority) when started under `nice -n 10`.
+        // nice(3) fails only for a negative increment (EPERM), and -1 is
+        // a valid niceness, so its result is not an error to check.
+        // SAFETY: nice only reads its integer argument.
+        unsafe { libc::nice(args.nice) };
     }
     if args.backend != Backend::Gpu && args.adapter.is_some() {
         anyhow::bail!("--adapter only applies to --backend gpu");

@@ -206,6 +206,8 @@ struct Outgoing {
     lease_id: String,
     region: WorkRegion,
     end: UnitEnd,
+    /// The job's work units the lease covers.
+    units: u64,
 }
 
 impl Worker {
@@ -439,11 +441,13 @@ impl Worker {
                 lease_id,
                 region,
                 work,
+                units,
             } = unit;
             let out = |end| Outgoing {
                 lease_id: lease_id.clone(),
                 region,
                 end,
+                units,
             };
             if cancel.load(Ordering::Relaxed) {
                 // Gone while queued (expired, cancelled): nothing to send.
@@ -826,7 +830,9 @@ async fn send_batch(
         h.remove(&o.lease_id);
         match pb::ResultOutcome::try_from(resp.outcome).unwrap_or(pb::ResultOutcome::Unspecified) {
             pb::ResultOutcome::Accepted => {
-                units_done.fetch_add(1, Ordering::Relaxed);
+                // The job's units, as the coordinator counts them for
+                // `tessera workers`: a lease may span several.
+                units_done.fetch_add(o.units, Ordering::Relaxed);
                 tracing::debug!(
                     lease = %o.lease_id,
                     frame = o.region.frame,

@@ -20,6 +20,8 @@ pub(crate) struct LeasedUnit {
     /// malformed): sent back as the unit's failure, which the coordinator
     /// counts like any other.
     pub work: Result<UnitWork, String>,
+    /// The job's work units the lease covers (counted as done on acceptance).
+    pub units: u64,
 }
 
 /// A rendered unit as it goes on the wire: packed once, where it was
@@ -116,6 +118,7 @@ impl From<pb::WorkUnit> for LeasedUnit {
             lease_id: u.lease_id,
             region,
             work,
+            units: u.units.max(1) as u64,
         }
     }
 }

@@ -104,7 +104,8 @@ impl Job {
         for &u in &units[next..] {
             self.mark_done(u);
             // No samples were traced for a skipped round.
-            self.samples_done -= self.layout.unit_samples(self.layout.unit(u));
+            let unit = self.layout.unit(u);
+            self.correct_samples(unit.frame, self.layout.unit_samples(unit), 0);
         }
         false
     }
@@ -159,6 +160,23 @@ impl Job {
         Some(n)
     }
 
+    /// Pixel-samples expected of `frame`'s tile `t` (an unstarted tile
+    /// counts `min_samples` a pixel).
+    fn tile_expected(a: &AdaptiveJob, frame: u32, t: usize, rect: &Rect) -> u64 {
+        match a.tiles.get(&(frame, t as u32)) {
+            Some(s) => s.samples_expected,
+            None => a.settings.min_samples as u64 * rect.area() as u64,
+        }
+    }
+
+    /// Pixel-samples expected of `frame` in all (0 for a uniform job).
+    pub(super) fn adaptive_frame_expected(&self, frame: u32) -> u64 {
+        let Some(a) = &self.adaptive else { return 0 };
+        (self.layout.tiles.iter().enumerate())
+            .map(|(t, rect)| Self::tile_expected(a, frame, t, rect))
+            .sum()
+    }
+
     /// The job's adaptive standing (default for uniform jobs).
     pub(super) fn adaptive_progress(&self) -> AdaptiveProgress {
         let Some(a) = &self.adaptive else {
@@ -170,20 +188,19 @@ impl Job {
         };
         let (mut blocks, mut converged, mut sq, mut pixels) = (0u64, 0u64, 0.0f64, 0u64);
         for f in self.frames.keys() {
+            out.samples_expected += self.adaptive_frame_expected(*f);
             for (t, rect) in self.layout.tiles.iter().enumerate() {
                 match a.tiles.get(&(*f, t as u32)) {
                     Some(s) => {
                         blocks += s.blocks;
                         converged += s.converged_blocks;
                         out.samples_done += s.samples_done;
-                        out.samples_expected += s.samples_expected;
                         sq += s.rms_error * s.rms_error * rect.area() as f64;
                         pixels += rect.area() as u64;
                     }
                     None => {
                         let b = BlockMask::all(*rect).active.len() as u64;
                         blocks += b;
-                        out.samples_expected += a.settings.min_samples as u64 * rect.area() as u64;
                     }
                 }
             }

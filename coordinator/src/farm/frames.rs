@@ -21,6 +21,9 @@ pub(super) struct FrameAcc {
     /// yet: the frame is complete only once none is left.
     pub(super) merging: u32,
     pub(super) units_done: u64,
+    /// Pixel-samples of the frame's finished units (as traced, for an
+    /// adaptive job): what its progress counts.
+    pub(super) samples_done: u64,
     pub(super) written: Option<String>,
     pub(super) writing: bool,
     /// The job's `frame_seq` when this frame last changed (a unit done,

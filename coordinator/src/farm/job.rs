@@ -94,6 +94,7 @@ impl Job {
                         film: FrameFilm::default(),
                         merging: 0,
                         units_done: 0,
+                        samples_done: 0,
                         written: None,
                         writing: false,
                         changed: 0,
@@ -169,9 +170,11 @@ impl Job {
         self.units_done += 1;
         self.work_left = (self.work_left - self.unit_work(u)).max(0.0);
         let unit: Unit = self.layout.unit(u);
-        self.samples_done += self.layout.unit_samples(unit);
+        let samples = self.layout.unit_samples(unit);
+        self.samples_done += samples;
         if let Some(f) = self.frames.get_mut(&unit.frame) {
             f.units_done += 1;
+            f.samples_done += samples;
         }
         self.frame_changed(unit.frame);
         if self.state == JobState::Queued {
@@ -254,6 +257,45 @@ impl Job {
     }
 
     /// The view with every frame.
+    /// Corrects the pixel-samples counted for a finished unit of `frame`
+    /// from `nominal` (what [`Job::mark_done`] counted) to `traced` (an
+    /// adaptive round traces only its active blocks; a skipped one none).
+    pub(super) fn correct_samples(&mut self, frame: u32, nominal: u64, traced: u64) {
+        self.samples_done = self.samples_done + traced - nominal;
+        if let Some(f) = self.frames.get_mut(&frame) {
+            f.samples_done = f.samples_done + traced - nominal;
+        }
+    }
+
+    /// The job's progress and each frame's, 0 to 1: the one definition
+    /// that `status`, `watch`, `jobs` and the web monitor show (through
+    /// [`JobView::progress`] and [`JobView::frames_progress`]).
+    /// Sample-weighted: pixel-samples merged over pixel-samples the job
+    /// will trace (for an adaptive job, those expected so far), so a small
+    /// edge tile or a short last sample batch counts for what it is. A
+    /// finished job or a written frame is 1.
+    fn progress(&self, samples_total: u64) -> f64 {
+        if self.state == JobState::Done {
+            1.0
+        } else {
+            share(self.samples_done, samples_total)
+        }
+    }
+
+    /// Frame `n`'s progress, as [`Job::progress`] defines it.
+    fn frame_progress(&self, n: u32, f: &FrameAcc) -> f64 {
+        if f.written.is_some() {
+            return 1.0;
+        }
+        let total = match &self.adaptive {
+            Some(_) => self.adaptive_frame_expected(n).max(f.samples_done),
+            None => {
+                self.layout.width as u64 * self.layout.height as u64 * self.rec.settings.samples as u64
+            }
+        };
+        share(f.samples_done, total)
+    }
+
     pub(super) fn view(&self) -> JobView {
         self.view_with(self.frames.iter())
     }
@@ -305,7 +347,12 @@ impl Job {
                 -1.0
             };
         }
+        let progress = self.progress(samples_total);
+        let frames: Vec<_> = frames.collect();
+        let frames_progress = frames.iter().map(|&(&n, f)| self.frame_progress(n, f)).collect();
         JobView {
+            progress,
+            frames_progress,
             record: self.rec.clone(),
             state: self.state,
             settings: self.rec.settings,
@@ -315,6 +362,7 @@ impl Job {
             samples_total,
             samples_done: self.samples_done,
             frames: frames
+                .into_iter()
                 .map(|(&f, a)| (f, per, a.units_done, a.written.clone()))
                 .collect(),
             rays_per_second: rps,
@@ -324,5 +372,14 @@ impl Job {
             last_result_unix_ms: self.last_result_unix_ms,
             adaptive,
         }
+    }
+}
+
+/// `done` over `total`, at most 1 (0 for an empty total).
+fn share(done: u64, total: u64) -> f64 {
+    if total == 0 {
+        0.0
+    } else {
+        (done as f64 / total as f64).min(1.0)
     }
 }

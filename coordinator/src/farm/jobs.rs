@@ -466,13 +466,14 @@ impl Farm {
         let st = self.state.lock().expect("state lock");
         for job in st.jobs.values().filter(|j| j.state == JobState::Running) {
             let v = job.view();
-            let pct = 100.0 * v.samples_done as f64 / v.samples_total.max(1) as f64;
+            let pct = 100.0 * v.progress;
             let frames: Vec<String> = v
                 .frames
                 .iter()
-                .filter(|f| f.3.is_none())
+                .zip(&v.frames_progress)
+                .filter(|(f, _)| f.3.is_none())
                 .take(8)
-                .map(|f| format!("{}:{:.0}%", f.0, 100.0 * f.2 as f64 / f.1.max(1) as f64))
+                .map(|(f, p)| format!("{}:{:.0}%", f.0, 100.0 * p))
                 .collect();
             if let Some(a) = v.adaptive.settings {
                 tracing::info!(

@@ -504,6 +504,7 @@ impl Farm {
                     settings: job.rec.settings,
                     region,
                     active: active.clone(),
+                    units: units.len() as u32,
                 };
                 let lease_id = random_id("l");
                 st.leases.insert(
@@ -631,6 +632,7 @@ impl Farm {
             settings: job.rec.settings,
             region: lease.region,
             active: lease.active.clone(),
+            units: lease.units.len() as u32,
         };
         st.leases.insert(lease_id.clone(), lease);
         st.workers

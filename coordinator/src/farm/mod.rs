@@ -182,6 +182,11 @@ impl JobState {
 /// A snapshot of a job for clients.
 #[derive(Clone, Debug)]
 pub struct JobView {
+    /// The job's progress, 0 to 1, as every client shows it (one
+    /// definition: sample-weighted, see `Job::progress`).
+    pub progress: f64,
+    /// Each frame's progress, 0 to 1, in the order of `frames`.
+    pub frames_progress: Vec<f64>,
     pub record: JobRecord,
     pub state: JobState,
     pub settings: RenderSettings,
@@ -237,6 +242,9 @@ pub struct LeaseView {
     pub region: WorkRegion,
     /// Adaptive jobs: the blocks of `region.rect` this round samples.
     pub active: Option<BlockMask>,
+    /// How many of the job's work units the lease covers (a fast worker
+    /// leases several tiles at once): what `tessera workers` counts.
+    pub units: u32,
 }
 
 /// A worker's result, unpacked from the wire (sizes already checked against `rect`).

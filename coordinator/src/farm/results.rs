@@ -410,7 +410,7 @@ impl Farm {
             job.mark_done(u);
             // An adaptive round samples only its active blocks.
             let traced = job.adaptive_samples(&film, tile).unwrap_or(nominal);
-            job.samples_done = job.samples_done + traced - nominal;
+            job.correct_samples(unit.frame, nominal, traced);
             samples += traced;
         }
         job.meter.add(Instant::now(), work_before - job.work_left);

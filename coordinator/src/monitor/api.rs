@@ -131,18 +131,20 @@ fn frame_json(m: &Monitor, id: String, frame: u32) -> Result<Vec<u8>, ApiError> 
     let tiles = m.farm.frame_tiles(&id, frame)?;
     let count = |s: TileState| tiles.iter().filter(|t| t.state == s).count() as u32;
     let v = m.farm.job(&id)?;
-    let f = v.frames.iter().find(|f| f.0 == frame).ok_or_else(|| {
+    let i = v.frames.iter().position(|f| f.0 == frame).ok_or_else(|| {
         ApiError::new(
             axum::http::StatusCode::NOT_FOUND,
             format!("job {id} has no frame {frame}"),
         )
     })?;
+    let f = &v.frames[i];
     serde_json::to_vec(&FrameDetailJson {
         job: id,
         frame: FrameJson {
             frame,
             units_total: f.1,
             units_done: f.2,
+            progress: v.frames_progress[i],
             written: f.3.is_some(),
         },
         width: v.settings.width,

@@ -31,6 +31,8 @@ pub struct FrameJson {
     pub frame: u32,
     pub units_total: u64,
     pub units_done: u64,
+    /// Share of the frame done, 0 to 1 (sample-weighted, as the job's).
+    pub progress: f64,
     /// The frame's image is written (viewable full size and downloadable).
     pub written: bool,
 }
@@ -68,7 +70,8 @@ pub struct JobJson {
     /// "queued", "running", "done", "failed" or "cancelled".
     pub state: &'static str,
     pub priority: i32,
-    /// Share of the job's pixel-samples merged, 0 to 1.
+    /// Share of the job done, 0 to 1: its pixel-samples merged over those
+    /// it will trace, the figure `tessera status` and `watch` show.
     pub progress: f64,
     pub units_total: u64,
     pub units_done: u64,
@@ -112,11 +115,7 @@ impl From<&JobView> for JobJson {
             name: r.name.clone(),
             state: state_name(v.state),
             priority: r.priority,
-            progress: if v.samples_total == 0 {
-                0.0
-            } else {
-                v.samples_done as f64 / v.samples_total as f64
-            },
+            progress: v.progress,
             units_total: v.units_total,
             units_done: v.units_done,
             samples_total: v.samples_total,
@@ -155,10 +154,12 @@ impl From<&JobView> for JobJson {
             frames: v
                 .frames
                 .iter()
-                .map(|(frame, total, done, out)| FrameJson {
+                .zip(&v.frames_progress)
+                .map(|((frame, total, done, out), progress)| FrameJson {
                     frame: *frame,
                     units_total: *total,
                     units_done: *done,
+                    progress: *progress,
                     written: out.is_some(),
                 })
                 .collect(),

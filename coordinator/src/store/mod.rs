@@ -64,6 +64,10 @@ pub enum StoreError {
     /// writes succeed again.
     #[error("cannot write the database: {0}")]
     Commit(String),
+    /// Another process (a second coordinator on the same `--data`) holds
+    /// the database's lock.
+    #[error("the database {} is in use by another process", .0.display())]
+    InUse(std::path::PathBuf),
 }
 
 macro_rules! db_err {
@@ -315,7 +319,10 @@ impl Store {
     /// The database at `path`, its large films in the directory beside
     /// it (`path` with the extension `films`).
     pub fn open(path: &Path) -> Result<Self, StoreError> {
-        let db = Database::create(path)?;
+        let db = Database::create(path).map_err(|e| match e {
+            redb::DatabaseError::DatabaseAlreadyOpen => StoreError::InUse(path.to_owned()),
+            e => e.into(),
+        })?;
         let path = path.to_owned();
         {
             // Create the tables so that reads of a fresh database succeed.

@@ -1106,12 +1106,20 @@ fn explain<'i, T: Deserialize<'i>>(
             .iter()
             .find(|(k, _, _)| k == name)
             .map_or(v.span().start, |(_, ks, _)| ks.start);
+        // Of equally close names, the plural of the one typed first:
+        // `sample` is `samples` (a count), not `sampler`.
         let hint = expected
             .iter()
-            .map(|c| (edit_distance(name, c), *c))
-            .filter(|&(d, c)| d <= 2.max(name.len() / 4) && d < c.len())
+            .map(|c| {
+                (
+                    edit_distance(name, c),
+                    c.strip_suffix('s') != Some(name),
+                    *c,
+                )
+            })
+            .filter(|&(d, _, c)| d <= 2.max(name.len() / 4) && d < c.len())
             .min()
-            .map_or(String::new(), |(_, c)| format!("; did you mean `{c}`?"));
+            .map_or(String::new(), |(_, _, c)| format!("; did you mean `{c}`?"));
         let valid = if expected.is_empty() {
             String::new()
         } else {

@@ -540,7 +540,7 @@ function refreshFrames(job) {
       box.appendChild(el);
     }
     el.classList.toggle("selected", f.frame === st.frame);
-    $(".cap", el).textContent = `${f.frame} · ${f.written ? "done" : pct(f.units_done / Math.max(1, f.units_total))}`;
+    $(".cap", el).textContent = `${f.frame} · ${f.written ? "done" : pct(f.progress)}`;
     const t = st.thumbs.get(f.frame) || { key: "", at: 0, busy: false };
     st.thumbs.set(f.frame, t);
     const key = `${f.units_done}/${f.written}`;
