@@ -8,7 +8,7 @@
 pub mod cpu;
 #[cfg(feature = "gpu")]
 pub mod gpu;
-pub mod whitted;
+pub mod step;
 
 use crate::film::{Film, Rect, SampleRange};
 use crate::scene::{RenderSettings, SceneDesc};
