@@ -5,6 +5,7 @@
 //! ([`crate::sampling`]), so a sample traced anywhere has the same value
 //! (bit for bit on the CPU; within a stated tolerance on the GPU).
 
+pub mod adaptive;
 pub mod cpu;
 #[cfg(feature = "gpu")]
 pub mod gpu;

@@ -5,6 +5,7 @@
 //! packets of 4x4 pixels ([`World::closest_hits`], [`World::occluded_many`])
 //! and the rays they spawn one at a time.
 
+pub mod adaptive;
 pub mod distributed;
 pub mod kernels;
 pub mod shade;
