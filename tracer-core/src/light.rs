@@ -7,16 +7,20 @@ use crate::math::{Real, Vector3};
 
 /// What the shading step asks of a light.
 pub trait Emitter<R: Real> {
-    fn diffuse(&self) -> R::V3;
-    fn specular(&self) -> R::V3;
+    /// The diffuse and the specular colour.
+    fn colours(&self) -> [R::V3; 2];
     /// Where a point light is; `None` for an area light, whose term is the
     /// mean over [`Self::samples`] points ([`Self::point`]).
     fn position(&self) -> Option<R::V3>;
     /// How many points of an area light a hit samples.
-    fn samples(&self) -> u32;
+    fn samples(&self) -> u32 {
+        1
+    }
     /// The sum of the samples of the lights before this one: its first
     /// slot among a ray-tree node's random numbers.
-    fn first_sample(&self) -> u32;
+    fn first_sample(&self) -> u32 {
+        0
+    }
     /// The point of the light for the stratified numbers (u, v) in [0, 1)^2.
     fn point(&self, u: f64, v: f64) -> R::V3;
 }
@@ -31,24 +35,12 @@ pub struct PointLight<R: Real> {
 
 impl<R: Real> Emitter<R> for PointLight<R> {
     #[inline(always)]
-    fn diffuse(&self) -> R::V3 {
-        self.diffuse
-    }
-    #[inline(always)]
-    fn specular(&self) -> R::V3 {
-        self.specular
+    fn colours(&self) -> [R::V3; 2] {
+        [self.diffuse, self.specular]
     }
     #[inline(always)]
     fn position(&self) -> Option<R::V3> {
         Some(self.position)
-    }
-    #[inline(always)]
-    fn samples(&self) -> u32 {
-        1
-    }
-    #[inline(always)]
-    fn first_sample(&self) -> u32 {
-        0
     }
     #[inline(always)]
     fn point(&self, _u: f64, _v: f64) -> R::V3 {
@@ -109,12 +101,8 @@ impl<R: Real> Light<R> {
 
 impl<R: Real> Emitter<R> for Light<R> {
     #[inline(always)]
-    fn diffuse(&self) -> R::V3 {
-        self.diffuse
-    }
-    #[inline(always)]
-    fn specular(&self) -> R::V3 {
-        self.specular
+    fn colours(&self) -> [R::V3; 2] {
+        [self.diffuse, self.specular]
     }
     #[inline(always)]
     fn position(&self) -> Option<R::V3> {

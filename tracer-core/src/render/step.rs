@@ -265,9 +265,8 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
             return None;
         }
         let l = to_light * (R::ONE / dist);
-        let contrib = self
-            .m
-            .blinn_phong(self.ns, self.v, l, light.diffuse(), light.specular());
+        let [diffuse, specular] = light.colours();
+        let contrib = self.m.blinn_phong(self.ns, self.v, l, diffuse, specular);
         // Not `<= 0`: an all-NaN term adds nothing either, as in the lanes.
         if !(contrib.max_element() > R::ZERO) {
             return None;
@@ -308,21 +307,12 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
         if m.transparency > R::ZERO {
             match m.refract(self.v, self.ns, self.cos_i, self.entering) {
                 None => reflect_w += m.transparency, // total internal reflection
-                Some(mut dir) => {
-                    let mut below = true;
-                    if E::CONES && m.translucency_cos < R::ONE {
-                        dir = cone(
-                            dir,
-                            m.translucency_cos,
-                            fx.u(key, SLOT_TRANSLUCENCY),
-                            fx.u(key, SLOT_TRANSLUCENCY + 1),
-                        );
-                        below = dir.dot(n) < R::ZERO;
-                    }
-                    if below {
+                Some(dir) => {
+                    let cos = m.translucency_cos;
+                    if let Some(dir) = in_cone(fx, key, SLOT_TRANSLUCENCY, dir, cos, n, false) {
                         rays.refraction += 1;
                         let refr = Ray::new(offset_origin::<R>(p, -n), dir);
-                        *colour += trace(
+                        let c = trace(
                             world,
                             fx,
                             &refr,
@@ -330,24 +320,15 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
                             E::child(key, 0),
                             self.prim,
                             rays,
-                        ) * m.transparency;
+                        );
+                        *colour += c * m.transparency;
                     }
                 }
             }
         }
         if reflect_w > R::ZERO {
-            let mut dir = reflect::<R>(self.v, self.ns, self.cos_i);
-            let mut above = true;
-            if E::CONES && m.gloss_cos < R::ONE {
-                dir = cone(
-                    dir,
-                    m.gloss_cos,
-                    fx.u(key, SLOT_GLOSS),
-                    fx.u(key, SLOT_GLOSS + 1),
-                );
-                above = dir.dot(n) > R::ZERO;
-            }
-            if above {
+            let dir = reflect::<R>(self.v, self.ns, self.cos_i);
+            if let Some(dir) = in_cone(fx, key, SLOT_GLOSS, dir, m.gloss_cos, n, true) {
                 rays.reflection += 1;
                 let refl = Ray::new(self.above, dir);
                 *colour += trace(
@@ -362,4 +343,32 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
             }
         }
     }
+}
+
+/// `dir`, or, where the effects have cones and the material's is wider
+/// than a point (`cos_max` < 1), a direction drawn from the cone around it
+/// with the numbers at `slot` of node `key`; `None` when the drawn one
+/// leaves on the wrong side of the surface (below it for a reflection,
+/// `above`; above it for a refraction): that ray contributes black.
+#[inline]
+fn in_cone<R: Real, E: Effects<R>>(
+    fx: &E,
+    key: E::Key,
+    slot: u32,
+    dir: R::V3,
+    cos_max: R,
+    n: R::V3,
+    above: bool,
+) -> Option<R::V3> {
+    if !(E::CONES && cos_max < R::ONE) {
+        return Some(dir);
+    }
+    let d = cone(dir, cos_max, fx.u(key, slot), fx.u(key, slot + 1));
+    let side = d.dot(n);
+    let ok = if above {
+        side > R::ZERO
+    } else {
+        side < R::ZERO
+    };
+    ok.then_some(d)
 }
