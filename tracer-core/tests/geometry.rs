@@ -239,6 +239,23 @@ fn kernel_answer(w: &World<f32>, c: &Case, id: PrimId) -> Option<f64> {
         .filter(|&t| t < c.t_max)
 }
 
+/// The world's answers in f64 (within `tol64`) and f32, and the SIMD lanes'.
+fn check_worlds(
+    c: &Case,
+    (w64, r64): (&World<f64>, Ray<f64>),
+    (w32, r32): (&World<f32>, Ray<f32>),
+    id: PrimId,
+    tol64: f64,
+) {
+    let [one, packet] = world_answers(w64, c, r64, id);
+    check("f64 world", c, one, tol64);
+    check("f64 world packet", c, packet, tol64);
+    let [one, packet] = world_answers(w32, c, r32, id);
+    check("f32 world", c, one, c.tol32);
+    check("f32 world packet", c, packet, c.tol32);
+    check("f32 SIMD lanes", c, kernel_answer(w32, c, id), c.tol32);
+}
+
 #[test]
 fn spheres_answer_the_table_in_every_implementation() {
     let id = PrimId::new(PrimId::SPHERE, 0);
@@ -281,19 +298,7 @@ fn spheres_answer_the_table_in_every_implementation() {
                 (t < f32::INFINITY).then_some(t as f64),
                 c.tol32,
             );
-            for (what, got) in ["f64 world", "f64 world packet"]
-                .iter()
-                .zip(world_answers(&w64, c, r64, id))
-            {
-                check(what, c, got, 1e-9);
-            }
-            for (what, got) in ["f32 world", "f32 world packet"]
-                .iter()
-                .zip(world_answers(&w32, c, r32, id))
-            {
-                check(what, c, got, c.tol32);
-            }
-            check("f32 SIMD lanes", c, kernel_answer(&w32, c, id), c.tol32);
+            check_worlds(c, (&w64, r64), (&w32, r32), id, 1e-9);
         }
     }
 }
@@ -329,19 +334,7 @@ fn planes_answer_the_table_in_every_implementation() {
             .intersect(&r32, c.t_max as f32, c.from_surface)
             .map(f64::from);
         check("f32 scalar", c, got, c.tol32);
-        for (what, got) in ["f64 world", "f64 world packet"]
-            .iter()
-            .zip(world_answers(&w64, c, r64, id))
-        {
-            check(what, c, got, 1e-9 * c.tol32 / 1e-5);
-        }
-        for (what, got) in ["f32 world", "f32 world packet"]
-            .iter()
-            .zip(world_answers(&w32, c, r32, id))
-        {
-            check(what, c, got, c.tol32);
-        }
-        check("f32 SIMD lanes", c, kernel_answer(&w32, c, id), c.tol32);
+        check_worlds(c, (&w64, r64), (&w32, r32), id, 1e-9 * c.tol32 / 1e-5);
     }
 }
 
