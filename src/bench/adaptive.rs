@@ -15,9 +15,10 @@
 use std::time::Instant;
 
 use anyhow::Result;
-use tracer_core::adaptive::{self, AdaptiveSettings};
+use tracer_core::adaptive::AdaptiveSettings;
 use tracer_core::film::image::{write_exr, write_png, write_sample_map};
 use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::render::adaptive;
 use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer};
 use tracer_core::scene::{MAX_SAMPLES, RenderSettings, SceneDesc};
 

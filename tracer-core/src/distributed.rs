@@ -17,56 +17,7 @@ use crate::math::{Ray, Real, Vector3};
 use crate::scene::{CameraPose, LightShape, SceneDesc};
 use crate::world::World;
 
-/// A light as the distributed renderer samples it. Positions are
-/// camera-relative.
-#[derive(Clone, Copy, Debug)]
-pub enum LightGeom<R: Real> {
-    Point(R::V3),
-    Quad {
-        corner: R::V3,
-        edge_u: R::V3,
-        edge_v: R::V3,
-    },
-    Sphere {
-        center: R::V3,
-        radius: R,
-    },
-}
-
-#[derive(Clone, Copy, Debug)]
-pub struct Light<R: Real> {
-    pub geom: LightGeom<R>,
-    pub diffuse: R::V3,
-    pub specular: R::V3,
-    pub samples: u32,
-    /// Sum of the samples of the lights before this one (its first slot).
-    pub first_sample: u32,
-}
-
-impl<R: Real> Light<R> {
-    /// The point of the light for the stratified numbers (u, v) in [0, 1)^2:
-    /// uniform by area over the light.
-    #[inline]
-    pub fn point(&self, u: f64, v: f64) -> R::V3 {
-        match self.geom {
-            LightGeom::Point(p) => p,
-            LightGeom::Quad {
-                corner,
-                edge_u,
-                edge_v,
-            } => corner + edge_u * R::from_f64(u) + edge_v * R::from_f64(v),
-            LightGeom::Sphere { center, radius } => {
-                // Archimedes: z uniform in [-1, 1] and the azimuth uniform
-                // give points uniform by area.
-                let z = 1.0 - 2.0 * u;
-                let rho = (1.0 - z * z).max(0.0).sqrt();
-                let (s, c) = crate::sampling::sin_cos_turns(v);
-                let d = R::V3::from_array([rho * c, rho * s, z]);
-                center + d * radius
-            }
-        }
-    }
-}
+pub use crate::light::{Light, LightGeom};
 
 /// Depth of field: the thin lens.
 #[derive(Clone, Copy, Debug)]

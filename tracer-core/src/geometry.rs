@@ -201,7 +201,6 @@ impl<R: Real> Plane<R> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use glam::DVec3;
 
     #[test]
     fn packs_agree_with_the_scalar_test() {
@@ -240,87 +239,6 @@ mod tests {
         assert!(hits > 300, "the rays should hit something: {hits}");
     }
 
-    fn ray(o: [f64; 3], d: [f64; 3]) -> Ray<f64> {
-        Ray::new(DVec3::from_array(o), DVec3::from_array(d).normalize())
-    }
-
-    #[test]
-    fn sphere_hits_near_root_then_far_root() {
-        let s = Sphere::<f64> {
-            center: DVec3::new(0.0, 0.0, 5.0),
-            radius: 1.0,
-            material: 0,
-        };
-        assert_eq!(
-            s.intersect(&ray([0.0; 3], [0.0, 0.0, 1.0]), f64::INFINITY, false),
-            Some(4.0)
-        );
-        assert_eq!(
-            s.intersect(&ray([0.0, 0.0, 5.0], [0.0, 0.0, 1.0]), f64::INFINITY, false),
-            Some(1.0)
-        );
-        assert_eq!(
-            s.intersect(&ray([0.0, 0.0, 7.0], [0.0, 0.0, 1.0]), f64::INFINITY, false),
-            None
-        );
-        assert_eq!(
-            s.intersect(&ray([0.0; 3], [0.0, 1.0, 0.0]), f64::INFINITY, false),
-            None
-        );
-    }
-
-    #[test]
-    fn tiny_sphere_far_away_is_hit_accurately_in_f32() {
-        // Radius 1e-4 seen from 1e5 away: the textbook b^2 - c form cancels to
-        // garbage here (c ~ 1e10 in f32 has ulp ~ 1000).
-        let s = Sphere::<f32> {
-            center: glam::Vec3A::new(0.0, 0.0, 1.0e5),
-            radius: 1.0e-4,
-            material: 0,
-        };
-        let r = Ray::<f32>::new(glam::Vec3A::ZERO, glam::Vec3A::Z);
-        let t = s.intersect(&r, f32::INFINITY, false).expect("hit");
-        assert!((t as f64 - (1.0e5 - 1.0e-4)).abs() < 0.02, "t = {t}");
-        // Just beside it (by 2 radii, an angle of 2e-9 rad) misses.
-        let off = Ray::<f32>::new(glam::Vec3A::new(2.0e-4, 0.0, 0.0), glam::Vec3A::Z);
-        assert_eq!(s.intersect(&off, f32::INFINITY, false), None);
-    }
-
-    #[test]
-    fn ray_from_surface_hits_far_side_only_when_going_in() {
-        let s = Sphere::<f64> {
-            center: DVec3::ZERO,
-            radius: 2.0,
-            material: 0,
-        };
-        let inward = ray([0.0, 0.0, -2.0], [0.0, 0.0, 1.0]);
-        assert_eq!(s.intersect(&inward, f64::INFINITY, true), Some(4.0));
-        let outward = ray([0.0, 0.0, -2.0], [0.0, 0.0, -1.0]);
-        assert_eq!(s.intersect(&outward, f64::INFINITY, true), None);
-    }
-
-    #[test]
-    fn plane_grazing_and_parallel_rays_do_not_produce_nan_hits() {
-        let p = Plane::<f64> {
-            normal: DVec3::Y,
-            distance: 0.0,
-            material: 0,
-        };
-        assert_eq!(
-            p.intersect(&ray([0.0, 1.0, 0.0], [1.0, 0.0, 0.0]), f64::INFINITY, false),
-            None
-        );
-        assert_eq!(
-            p.intersect(&ray([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]), f64::INFINITY, false),
-            None
-        );
-        let t = p
-            .intersect(
-                &ray([0.0, 1.0, 0.0], [1.0, -1e-9, 0.0]),
-                f64::INFINITY,
-                false,
-            )
-            .unwrap();
-        assert!(t.is_finite() && t > 1e8);
-    }
+    // The scalar sphere and plane tests against a table of cases, with the
+    // packs, the SIMD lanes and the world: tests/geometry.rs.
 }

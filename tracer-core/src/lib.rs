@@ -41,6 +41,8 @@ pub mod bvh;
 pub mod distributed;
 pub mod film;
 pub mod geometry;
+pub mod light;
+pub mod material;
 pub mod math;
 pub mod mesh;
 pub mod render;

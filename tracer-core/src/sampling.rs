@@ -8,6 +8,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::math::{Real, Vector3};
+
 /// How sample positions are placed inside a pixel.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -200,6 +202,22 @@ pub fn sample_offset(sampler: Sampler, count: u32, seed: u32, sample: u32) -> (f
             )
         }
     }
+}
+
+/// A direction uniformly distributed by solid angle in the cone of
+/// cosine `cos_max` around the unit `axis`, from two uniform numbers.
+pub fn cone<R: Real>(axis: R::V3, cos_max: R, u1: f32, u2: f32) -> R::V3 {
+    let cos_t = R::ONE - R::from_f64(u1 as f64) * (R::ONE - cos_max);
+    let sin_t = (R::ONE - cos_t * cos_t).max(R::ZERO).sqrt();
+    let (sp, cp) = sin_cos_turns(u2 as f64);
+    // Orthonormal basis around the axis (Duff et al. 2017), branch-free.
+    let [x, y, z] = axis.to_array().map(R::from_f64);
+    let sign = R::ONE.copysign(z);
+    let a = -R::ONE / (sign + z);
+    let b = x * y * a;
+    let t1 = R::V3::new(R::ONE + sign * x * x * a, sign * b, -sign * x);
+    let t2 = R::V3::new(b, sign + y * y * a, -y);
+    (t1 * (sin_t * R::from_f64(cp)) + t2 * (sin_t * R::from_f64(sp)) + axis * cos_t).normalize()
 }
 
 #[cfg(test)]

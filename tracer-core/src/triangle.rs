@@ -331,30 +331,7 @@ mod tests {
         ])
     }
 
-    #[test]
-    fn hits_inside_misses_outside_either_winding() {
-        let t = tri64([-1.0, -1.0, 5.0], [1.0, -1.0, 5.0], [0.0, 1.0, 5.0]);
-        let flipped = tri64([-1.0, -1.0, 5.0], [0.0, 1.0, 5.0], [1.0, -1.0, 5.0]);
-        for tri in [t, flipped] {
-            let r = Ray::<f64>::new(DVec3::ZERO, DVec3::Z);
-            assert_eq!(
-                tri.intersect(&TriangleRay::new(&r), f64::INFINITY),
-                Some(5.0)
-            );
-            assert_eq!(
-                tri.intersect(&TriangleRay::new(&r), 5.0),
-                None,
-                "t_max is exclusive"
-            );
-            let back = Ray::<f64>::new(DVec3::ZERO, -DVec3::Z);
-            assert_eq!(tri.intersect(&TriangleRay::new(&back), f64::INFINITY), None);
-            let beside = Ray::<f64>::new(DVec3::new(2.0, 0.0, 0.0), DVec3::Z);
-            assert_eq!(
-                tri.intersect(&TriangleRay::new(&beside), f64::INFINITY),
-                None
-            );
-        }
-    }
+    // Hits and misses of either winding, scalar and 4-wide: tests/geometry.rs.
 
     #[test]
     fn degenerate_triangles_never_hit_and_never_nan() {

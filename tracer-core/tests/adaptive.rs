@@ -101,7 +101,7 @@ fn cpu(threads: usize) -> Renderer {
 }
 
 fn adaptive_render(desc: &SceneDesc, a: &AdaptiveSettings, threads: usize) -> Film {
-    let film = adaptive::render(
+    let film = tracer_core::render::adaptive::render(
         &cpu(threads),
         &prepared(desc, a, 0),
         0,
@@ -254,7 +254,8 @@ fn tiled_render(desc: &SceneDesc, a: &AdaptiveSettings, tile: u32) -> Film {
             if mask.active_count() == 0 {
                 break;
             }
-            let f = adaptive::render_round(&r, &p, 0, &mask, round, &|_| {}).unwrap();
+            let f = tracer_core::render::adaptive::render_round(&r, &p, 0, &mask, round, &|_| {})
+                .unwrap();
             film.merge(&f).unwrap();
         }
         frame_film.merge(&film).unwrap();
@@ -458,7 +459,15 @@ fn rounds_only_accept_block_aligned_rects() {
     // A round over a mask renders exactly its active blocks.
     let mut mask = BlockMask::none(Rect::new(8, 8, 16, 16));
     mask.active[3] = true;
-    let f = adaptive::render_round(&cpu(1), &p, 0, &mask, SampleRange::new(0, 4), &|_| {}).unwrap();
+    let f = tracer_core::render::adaptive::render_round(
+        &cpu(1),
+        &p,
+        0,
+        &mask,
+        SampleRange::new(0, 4),
+        &|_| {},
+    )
+    .unwrap();
     for y in 8..24 {
         for x in 8..24 {
             let want = if x >= 16 && y >= 16 { 4 } else { 0 };

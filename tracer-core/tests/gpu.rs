@@ -2189,7 +2189,8 @@ fn gpu_adaptive_rounds_trace_only_active_blocks_with_exact_squares() {
 /// max and the image is the uniform render at max, ray counts included.
 #[test]
 fn gpu_adaptive_renders_are_uniform_renders_of_each_pixels_count() {
-    use tracer_core::adaptive::{self, AdaptiveSettings};
+    use tracer_core::adaptive::AdaptiveSettings;
+    use tracer_core::render::adaptive;
     let Some(g) = gpu() else { return };
     let r = gpu_renderer().expect("the adapter opened once already");
     let distributed = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();

@@ -13,7 +13,7 @@ use glam::DVec3;
 use tracer_core::film::RayCounts;
 use tracer_core::geometry::PrimId;
 use tracer_core::math::Ray;
-use tracer_core::render::whitted::trace;
+use tracer_core::render::step::{Static, trace};
 use tracer_core::render::{Precision, PreparedFrame};
 use tracer_core::scene::{ObjectDesc, RenderSettings, SceneDesc};
 
@@ -258,7 +258,7 @@ fn trace_from_below(angle_from_normal_deg: f64) -> ([f64; 3], RayCounts) {
     // World origin is the camera at (0, -1, 0): start the ray there, aimed up at the plane.
     let ray = Ray::<f64>::new(DVec3::ZERO, DVec3::new(0.0, a.cos(), a.sin()));
     let mut rays = RayCounts::default();
-    let c = trace(&world, &ray, 0, PrimId::NONE, &mut rays);
+    let c = trace(&world, &Static, &ray, 0, (), PrimId::NONE, &mut rays);
     (c.to_array(), rays)
 }
 

@@ -885,7 +885,7 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
 #[test]
 fn camera_ray_packets_render_the_films_of_single_rays() {
     use tracer_core::render::cpu::render_tile_recursive;
-    use tracer_core::render::whitted::trace;
+    use tracer_core::render::step::{Static, trace};
     use tracer_core::sampling::{pixel_seed, sample_offset};
 
     let dir = tmpdir("packet-film");
@@ -931,7 +931,7 @@ fn camera_ray_packets_render_the_films_of_single_rays() {
                         sample_offset(world.settings.sampler, spp, pixel_seed(x, y, 0), sample);
                     let ray = world.camera.ray(x as f32 + u, y as f32 + v);
                     want.rays.primary += 1;
-                    let c = trace(&world, &ray, 0, PrimId::NONE, &mut want.rays);
+                    let c = trace(&world, &Static, &ray, 0, (), PrimId::NONE, &mut want.rays);
                     want.add_sample::<f32>(i, [c.x, c.y, c.z]);
                 }
                 i += 1;

@@ -1001,7 +1001,7 @@ fn rendered(film: &Film, start: Instant) -> UnitEnd {
 }
 
 /// Renders a round of an adaptive unit: its active blocks, in one call
-/// (`tracer_core::adaptive::render_round`), unless the lease is gone before
+/// (`tracer_core::render::adaptive::render_round`), unless the lease is gone before
 /// it starts (a round is short, so it is not cancelled midway).
 fn render_round_unit(
     renderer: &Renderer,
@@ -1016,9 +1016,16 @@ fn render_round_unit(
         return UnitEnd::Abandoned;
     }
     let start = Instant::now();
-    match tracer_core::adaptive::render_round(renderer, prepared, frame, mask, samples, &|n| {
-        samples_done.fetch_add(n, Ordering::Relaxed);
-    }) {
+    match tracer_core::render::adaptive::render_round(
+        renderer,
+        prepared,
+        frame,
+        mask,
+        samples,
+        &|n| {
+            samples_done.fetch_add(n, Ordering::Relaxed);
+        },
+    ) {
         Ok(film) => rendered(&film, start),
         Err(e) => UnitEnd::Failed(e.to_string()),
     }

@@ -20,74 +20,29 @@
 //! machine rendered which round, and a render in which every block reaches
 //! `max_samples` equals the uniform render at `max_samples`.
 //!
+//! Here the blocks, masks and statistics, which the scene, the renderers,
+//! the farm's coordinator and the CLI share; the settings are the scene's
+//! (`scene::adaptive`, re-exported here), and the rounds are a renderer's
+//! (`render::adaptive`). Nothing here imports a renderer.
+//!
 //! Blocks are aligned to the image (block (i, j) covers pixels 8i..8i+8,
 //! 8j..8j+8, cut at the image's right and bottom edges). A rect rendered
 //! adaptively must start on the block grid ([`check_rect`]).
 
-pub mod cpu;
-
 use crate::film::{FIXED_ONE, Film, Rect, SampleRange};
-use crate::render::{PreparedFrame, Renderer, RendererError};
-use crate::sampling::Sampler;
-use crate::scene::{MAX_SAMPLES, RenderSettings};
+
+pub use crate::scene::adaptive::{
+    AdaptiveError, AdaptiveSettings, AdaptiveSpec, DEFAULT_MAX_SAMPLES, DEFAULT_MIN_SAMPLES, Target,
+};
 
 /// Side of the square blocks a decision is made for. Per pixel would stop
 /// single pixels whose few samples happened to agree (a penumbra pixel whose
 /// first 16 light samples all hit); a block's 64 pixels rarely all do, and
 /// the image stays free of isolated noisy pixels.
 pub const BLOCK: u32 = 8;
-/// Defaults of `--min-samples` and `--max-samples`.
-pub const DEFAULT_MIN_SAMPLES: u32 = 16;
-pub const DEFAULT_MAX_SAMPLES: u32 = 1024;
-
-/// The error target and the sample bounds of an adaptive render.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct AdaptiveSettings {
-    /// Largest standard error of a pixel's mean, per linear RGB channel
-    /// (0: no absolute target).
-    pub target_error: f64,
-    /// Largest standard error as a share of the mean of the pixel's
-    /// brightest channel, e.g. 0.02 (0: no relative target).
-    pub relative_error: f64,
-    pub min_samples: u32,
-    pub max_samples: u32,
-}
-
-/// When a pixel is converged: its standard error in every channel is at
-/// most `max(absolute, relative * m)`, `m` the largest of its three
-/// channel means. An absolute target alone is exposure-dependent (the
-/// same noise is invisible on a bright wall and plain in a shadow); a
-/// relative one alone would sample dark noisy pixels to the maximum, so
-/// the absolute target, when given, is its floor.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Target {
-    pub absolute: f64,
-    pub relative: f64,
-}
-
-impl Target {
-    /// The largest variance of the mean allowed for a pixel whose
-    /// brightest channel mean is `mean`.
-    pub fn limit_sq(&self, mean: f64) -> f64 {
-        let l = self.absolute.max(self.relative * mean);
-        l * l
-    }
-}
-
+/// Why a rect or a mask does not fit the block grid.
 #[derive(Debug, thiserror::Error, PartialEq)]
-pub enum AdaptiveError {
-    #[error("target_error must be a finite number above 0, got {0}")]
-    TargetError(f64),
-    #[error("relative_error must be a finite number above 0, got {0}")]
-    RelativeError(f64),
-    #[error(
-        "min_samples must be at least 2 (the error estimate needs two samples of a pixel), got {0}"
-    )]
-    MinTooSmall(u32),
-    #[error("max_samples must be at most {MAX_SAMPLES}, got {0}")]
-    MaxTooLarge(u32),
-    #[error("min_samples ({min}) must not exceed max_samples ({max})")]
-    MinAboveMax { min: u32, max: u32 },
+pub enum BlockError {
     #[error(
         "rect {rect:?} is not on the {BLOCK}x{BLOCK} block grid of the {width}x{height} image: adaptive rects start at multiples of {BLOCK} and end at one or at the image's edge"
     )]
@@ -100,165 +55,16 @@ pub enum AdaptiveError {
     },
 }
 
-impl AdaptiveSettings {
-    pub fn validate(&self) -> Result<(), AdaptiveError> {
-        // Each target is off (0) or a finite number above 0, and one is on.
-        let ok = |v: f64| v >= 0.0 && v.is_finite();
-        if !ok(self.target_error) || (self.target_error == 0.0 && self.relative_error == 0.0) {
-            return Err(AdaptiveError::TargetError(self.target_error));
-        }
-        if !ok(self.relative_error) {
-            return Err(AdaptiveError::RelativeError(self.relative_error));
-        }
-        if self.min_samples < 2 {
-            return Err(AdaptiveError::MinTooSmall(self.min_samples));
-        }
-        if self.max_samples > MAX_SAMPLES {
-            return Err(AdaptiveError::MaxTooLarge(self.max_samples));
-        }
-        if self.min_samples > self.max_samples {
-            return Err(AdaptiveError::MinAboveMax {
-                min: self.min_samples,
-                max: self.max_samples,
-            });
-        }
-        Ok(())
-    }
-
-    /// The target in words: "target error E", "relative error R", or both.
-    pub fn describe_target(&self) -> String {
-        let abs = (self.target_error > 0.0).then(|| format!("target error {}", self.target_error));
-        let rel =
-            (self.relative_error > 0.0).then(|| format!("relative error {}", self.relative_error));
-        [abs, rel]
-            .into_iter()
-            .flatten()
-            .collect::<Vec<_>>()
-            .join(", ")
-    }
-
-    pub fn target(&self) -> Target {
-        Target {
-            absolute: self.target_error,
-            relative: self.relative_error,
-        }
-    }
-
-    /// The sample range of each round: `0..min`, then doubling up to `max`.
-    pub fn rounds(&self) -> Vec<SampleRange> {
-        let mut out = vec![SampleRange::new(0, self.min_samples)];
-        let mut end = self.min_samples;
-        while end < self.max_samples {
-            let next = end.saturating_mul(2).min(self.max_samples);
-            out.push(SampleRange::new(end, next));
-            end = next;
-        }
-        out
-    }
-
-    /// The settings an adaptive render traces with: `samples` is the most a
-    /// pixel can get, and samples are placed progressively (sample k is the
-    /// same whatever the count).
-    pub fn render_settings(&self, base: RenderSettings) -> RenderSettings {
-        RenderSettings {
-            samples: self.max_samples,
-            sampler: Sampler::Progressive,
-            ..base
-        }
-    }
-}
-
-/// The adaptive keys as given (scene file or command line), before defaults.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct AdaptiveSpec {
-    pub target_error: Option<f64>,
-    pub relative_error: Option<f64>,
-    pub min_samples: Option<u32>,
-    pub max_samples: Option<u32>,
-}
-
-impl AdaptiveSpec {
-    /// Checks each given value on its own terms (and min against max when
-    /// both are given); `Err` names the key and what is wrong with it.
-    pub fn check(&self) -> Result<(), (&'static str, String)> {
-        let full = AdaptiveSettings {
-            target_error: self.target_error.unwrap_or(1.0),
-            relative_error: self.relative_error.unwrap_or(0.0),
-            min_samples: self.min_samples.unwrap_or(2),
-            max_samples: self.max_samples.unwrap_or(MAX_SAMPLES),
-        };
-        check_given_relative(self.relative_error)
-            .and_then(|()| full.validate())
-            .map_err(|e| {
-                let key = match e {
-                    AdaptiveError::TargetError(_) => "target_error",
-                    AdaptiveError::RelativeError(_) => "relative_error",
-                    AdaptiveError::MinTooSmall(_) | AdaptiveError::MinAboveMax { .. } => {
-                        "min_samples"
-                    }
-                    _ => "max_samples",
-                };
-                let m = e.to_string();
-                let what = m.split_once(' ').map_or(m.clone(), |(_, w)| w.to_string());
-                (key, what)
-            })
-    }
-
-    /// `over` (the command line) over `self` (the scene file), defaults
-    /// for what neither gives. `None` without a target error, absolute or
-    /// relative (a uniform render); then giving sample bounds on the
-    /// command line is an error.
-    pub fn resolve(&self, over: &AdaptiveSpec) -> Result<Option<AdaptiveSettings>, String> {
-        let target_error = over.target_error.or(self.target_error);
-        let relative_error = over.relative_error.or(self.relative_error);
-        check_given_relative(relative_error).map_err(|e| e.to_string())?;
-        if target_error.is_none() && relative_error.is_none() {
-            if over.min_samples.is_some() || over.max_samples.is_some() {
-                return Err(
-                    "--min-samples and --max-samples apply to adaptive sampling: \
-                            give --target-error or --relative-error (or [render] target_error or relative_error) too"
-                        .into(),
-                );
-            }
-            return Ok(None);
-        }
-        let min_samples = over
-            .min_samples
-            .or(self.min_samples)
-            .unwrap_or(DEFAULT_MIN_SAMPLES);
-        let a = AdaptiveSettings {
-            target_error: target_error.unwrap_or(0.0),
-            relative_error: relative_error.unwrap_or(0.0),
-            min_samples,
-            max_samples: over
-                .max_samples
-                .or(self.max_samples)
-                .unwrap_or(DEFAULT_MAX_SAMPLES.max(min_samples)),
-        };
-        a.validate().map_err(|e| e.to_string())?;
-        Ok(Some(a))
-    }
-}
-
-/// A relative target, when given, must be on: in the settings 0 means
-/// "none", but nobody asks for none by giving 0.
-fn check_given_relative(r: Option<f64>) -> Result<(), AdaptiveError> {
-    match r {
-        Some(r) if !(r > 0.0 && r.is_finite()) => Err(AdaptiveError::RelativeError(r)),
-        _ => Ok(()),
-    }
-}
-
 /// Checks that `rect` starts on the block grid and ends on it or at the
 /// image's edge, so its blocks are the image's blocks.
-pub fn check_rect(rect: Rect, width: u32, height: u32) -> Result<(), AdaptiveError> {
+pub fn check_rect(rect: Rect, width: u32, height: u32) -> Result<(), BlockError> {
     let edge_ok = |start: u32, len: u32, side: u32| {
         start.is_multiple_of(BLOCK) && ((start + len).is_multiple_of(BLOCK) || start + len == side)
     };
     if edge_ok(rect.x, rect.width, width) && edge_ok(rect.y, rect.height, height) {
         Ok(())
     } else {
-        Err(AdaptiveError::Unaligned {
+        Err(BlockError::Unaligned {
             rect,
             width,
             height,
@@ -332,10 +138,10 @@ impl BlockMask {
         out
     }
 
-    pub fn from_bytes(rect: Rect, bytes: &[u8]) -> Result<Self, AdaptiveError> {
+    pub fn from_bytes(rect: Rect, bytes: &[u8]) -> Result<Self, BlockError> {
         let n = blocks_of(rect);
         if bytes.len() != n.div_ceil(8) {
-            return Err(AdaptiveError::MaskSize {
+            return Err(BlockError::MaskSize {
                 rect,
                 expected: n.div_ceil(8),
                 got: bytes.len(),
@@ -363,31 +169,11 @@ fn block_rect(rect: Rect, cols: u32, i: usize) -> Rect {
     )
 }
 
-/// Estimated variance of the mean of one pixel, per channel, in radiance
-/// squared: the sample variance over `n`. Computed from the exact integers
-/// (`n * sum_sq - sum^2`, never negative by Cauchy-Schwarz, in u128), so
-/// every machine gets the same value. Infinite below two samples.
-pub fn variance_of_mean(n: u32, sums: &[u64; 3], squares: &[u128; 3]) -> [f64; 3] {
-    if n < 2 {
-        return [f64::INFINITY; 3];
-    }
-    let nf = n as f64;
-    let scale = 1.0 / (nf * nf * (nf - 1.0) * FIXED_ONE * FIXED_ONE);
-    std::array::from_fn(|c| {
-        let s = sums[c] as u128;
-        // Saturating: counts and squares from outside must not wrap.
-        let num = (n as u128)
-            .checked_mul(squares[c])
-            .map_or(u128::MAX, |v| v.saturating_sub(s * s));
-        num as f64 * scale
-    })
-}
+pub use crate::film::variance_of_mean;
 
 /// The largest of a pixel's three standard errors (what the target bounds).
 pub fn pixel_error(film: &Film, i: usize) -> f64 {
-    let squares = film.squares.as_ref().expect("adaptive film");
-    let v = variance_of_mean(film.counts[i], &film.sums[i], &squares[i]);
-    v[0].max(v[1]).max(v[2]).sqrt()
+    film.pixel_error(i)
 }
 
 /// The largest of a pixel's three channel means (linear radiance), from
@@ -532,121 +318,9 @@ pub fn summarize(film: &Film, rect: Rect, a: &AdaptiveSettings) -> Summary {
     out
 }
 
-/// Renders one round: the blocks of `mask` over the sample indices
-/// `samples`, into a film of `mask.rect` with sums of squares (pixels of
-/// inactive blocks stay at zero samples). `progress` gets pixel-samples.
-pub fn render_round(
-    renderer: &Renderer,
-    prepared: &PreparedFrame,
-    frame: u32,
-    mask: &BlockMask,
-    samples: SampleRange,
-    progress: &(dyn Fn(u64) + Sync),
-) -> Result<Film, RendererError> {
-    match renderer {
-        Renderer::Cpu(r) => Ok(cpu::render_round(
-            r, prepared, frame, mask, samples, progress,
-        )?),
-        #[cfg(feature = "gpu")]
-        Renderer::Gpu(r) => Ok(r.render_round(prepared, frame, mask, samples, progress)?),
-    }
-}
-
-/// A round's report to [`render`]'s caller.
-#[derive(Clone, Copy, Debug)]
-pub struct RoundReport {
-    pub round: usize,
-    pub samples: SampleRange,
-    pub active_blocks: usize,
-    pub seconds: f64,
-    /// The whole image after this round.
-    pub summary: Summary,
-}
-
-/// Renders a whole frame adaptively, round after round: what `tessera
-/// render --target-error` does. `prepared` must have been built with
-/// [`AdaptiveSettings::render_settings`]. `on_round` is told after each
-/// round; `progress` gets pixel-samples as they finish.
-pub fn render(
-    renderer: &Renderer,
-    prepared: &PreparedFrame,
-    frame: u32,
-    a: &AdaptiveSettings,
-    progress: &(dyn Fn(u64) + Sync),
-    on_round: &mut dyn FnMut(&RoundReport),
-) -> Result<Film, RendererError> {
-    let s = prepared.settings();
-    let rect = Rect::full(s.width, s.height);
-    let mut film = Film::with_squares(rect);
-    for (round, samples) in a.rounds().into_iter().enumerate() {
-        let mask = next_active(&film, rect, samples, a.target());
-        if mask.active_count() == 0 {
-            break;
-        }
-        let start = std::time::Instant::now();
-        let f = render_round(renderer, prepared, frame, &mask, samples, progress)?;
-        film.merge(&f)
-            .expect("a round's film lies inside the frame and sums cannot overflow");
-        on_round(&RoundReport {
-            round,
-            samples,
-            active_blocks: mask.active_count(),
-            seconds: start.elapsed().as_secs_f64(),
-            summary: summarize(&film, rect, a),
-        });
-    }
-    Ok(film)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn settings(min: u32, max: u32) -> AdaptiveSettings {
-        AdaptiveSettings {
-            target_error: 0.01,
-            relative_error: 0.0,
-            min_samples: min,
-            max_samples: max,
-        }
-    }
-
-    #[test]
-    fn rounds_double_up_to_max() {
-        let r = |min, max| {
-            settings(min, max)
-                .rounds()
-                .iter()
-                .map(|r| (r.start, r.end))
-                .collect::<Vec<_>>()
-        };
-        assert_eq!(r(16, 128), vec![(0, 16), (16, 32), (32, 64), (64, 128)]);
-        assert_eq!(r(4, 4), vec![(0, 4)]);
-        assert_eq!(r(3, 20), vec![(0, 3), (3, 6), (6, 12), (12, 20)]);
-    }
-
-    #[test]
-    fn bad_settings_are_named() {
-        let mut s = settings(16, 1024);
-        s.target_error = 0.0;
-        assert_eq!(s.validate(), Err(AdaptiveError::TargetError(0.0)));
-        s.target_error = f64::NAN;
-        assert!(matches!(s.validate(), Err(AdaptiveError::TargetError(_))));
-        assert_eq!(
-            settings(1, 4).validate(),
-            Err(AdaptiveError::MinTooSmall(1))
-        );
-        assert_eq!(
-            settings(64, 32).validate(),
-            Err(AdaptiveError::MinAboveMax { min: 64, max: 32 })
-        );
-        assert_eq!(
-            settings(2, 70_000).validate(),
-            Err(AdaptiveError::MaxTooLarge(70_000))
-        );
-        let e = settings(64, 32).validate().unwrap_err().to_string();
-        assert_eq!(e, "min_samples (64) must not exceed max_samples (32)");
-    }
 
     #[test]
     fn masks_round_trip_and_cut_blocks_at_the_edge() {
@@ -663,7 +337,7 @@ mod tests {
         assert!(m.covers(31, 15) && !m.covers(16, 8));
         assert!(matches!(
             BlockMask::from_bytes(rect, &[0, 0]),
-            Err(AdaptiveError::MaskSize { .. })
+            Err(BlockError::MaskSize { .. })
         ));
         assert!(check_rect(rect, 36, 17).is_ok());
         assert!(check_rect(rect, 40, 17).is_err());

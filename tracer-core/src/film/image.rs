@@ -159,7 +159,7 @@ fn write_adaptive_exr(path: &Path, film: &Film) -> Result<(), ImageError> {
     let linear = film.resolve();
     let w = film.rect.width as usize;
     let error: Vec<f32> = (0..film.sums.len())
-        .map(|i| crate::adaptive::pixel_error(film, i) as f32)
+        .map(|i| film.pixel_error(i) as f32)
         .collect();
     let channels = SpecificChannels::build()
         .with_channel("R")

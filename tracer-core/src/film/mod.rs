@@ -551,6 +551,37 @@ pub fn to_srgb8(linear: &[[f32; 3]]) -> Vec<u8> {
     linear.iter().flat_map(|p| p.map(srgb8)).collect()
 }
 
+/// Estimated variance of the mean of one pixel (adaptive sampling,
+/// [`crate::adaptive`]), per channel, in radiance
+/// squared: the sample variance over `n`. Computed from the exact integers
+/// (`n * sum_sq - sum^2`, never negative by Cauchy-Schwarz, in u128), so
+/// every machine gets the same value. Infinite below two samples.
+pub fn variance_of_mean(n: u32, sums: &[u64; 3], squares: &[u128; 3]) -> [f64; 3] {
+    if n < 2 {
+        return [f64::INFINITY; 3];
+    }
+    let nf = n as f64;
+    let scale = 1.0 / (nf * nf * (nf - 1.0) * FIXED_ONE * FIXED_ONE);
+    std::array::from_fn(|c| {
+        let s = sums[c] as u128;
+        // Saturating: counts and squares from outside must not wrap.
+        let num = (n as u128)
+            .checked_mul(squares[c])
+            .map_or(u128::MAX, |v| v.saturating_sub(s * s));
+        num as f64 * scale
+    })
+}
+
+impl Film {
+    /// The largest of pixel `i`'s three standard errors of the mean (what
+    /// an adaptive render's target bounds); an adaptive film only.
+    pub fn pixel_error(&self, i: usize) -> f64 {
+        let squares = self.squares.as_ref().expect("adaptive film");
+        let v = variance_of_mean(self.counts[i], &self.sums[i], &squares[i]);
+        v[0].max(v[1]).max(v[2]).sqrt()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

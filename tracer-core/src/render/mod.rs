@@ -5,10 +5,11 @@
 //! ([`crate::sampling`]), so a sample traced anywhere has the same value
 //! (bit for bit on the CPU; within a stated tolerance on the GPU).
 
+pub mod adaptive;
 pub mod cpu;
 #[cfg(feature = "gpu")]
 pub mod gpu;
-pub mod whitted;
+pub mod step;
 
 use crate::film::{Film, Rect, SampleRange};
 use crate::scene::{RenderSettings, SceneDesc};

@@ -504,8 +504,8 @@ pub struct SceneDesc {
     pub warnings: Vec<String>,
     /// `[render]`'s adaptive-sampling keys (`target_error`,
     /// `relative_error`, `min_samples`, `max_samples`), each checked on its own; the command line may add
-    /// to them (see [`crate::adaptive::AdaptiveSpec::resolve`]).
-    pub adaptive: crate::adaptive::AdaptiveSpec,
+    /// to them (see [`super::adaptive::AdaptiveSpec::resolve`]).
+    pub adaptive: super::adaptive::AdaptiveSpec,
 }
 
 impl SceneDesc {
@@ -583,9 +583,9 @@ impl SceneDesc {
         };
 
         let mut render = RenderSettings::default();
-        let mut adaptive = crate::adaptive::AdaptiveSpec::default();
+        let mut adaptive = super::adaptive::AdaptiveSpec::default();
         if let Some(t) = &file.render {
-            adaptive = crate::adaptive::AdaptiveSpec {
+            adaptive = super::adaptive::AdaptiveSpec {
                 target_error: t.target_error.map(|n| n.0),
                 relative_error: t.relative_error.map(|n| n.0),
                 min_samples: t.min_samples,

@@ -1,5 +1,6 @@
 //! Scene files: parse, validate, describe. See `docs/scene-format.md`.
 
+pub mod adaptive;
 mod desc;
 mod error;
 mod mesh_desc;

@@ -12,7 +12,7 @@
 //! (and [`RenderOverrides::resolve`], which adds adaptive sampling): the
 //! settings they give are then valid wherever they travel.
 
-use crate::adaptive::{AdaptiveSettings, AdaptiveSpec};
+use super::adaptive::{AdaptiveSettings, AdaptiveSpec};
 use crate::sampling::Sampler;
 
 use super::{RenderSettings, SceneDesc};

@@ -19,63 +19,12 @@ use crate::bvh::Bvh;
 use crate::distributed::{self, Distributed, Lens, MovingMesh, MovingSphere, Timing};
 use crate::geometry::{Plane, Sphere, SpherePack};
 use crate::math::{Ray, Real, Vector3};
-use crate::scene::{FILE_MATERIALS, MaterialDesc, ObjectDesc, RenderSettings, SceneDesc, Vec3};
+use crate::scene::{FILE_MATERIALS, ObjectDesc, RenderSettings, SceneDesc, Vec3};
 use crate::triangle::{Triangle, TriangleShading};
 use triangles::TriangleSet;
 
-#[derive(Clone, Copy, Debug)]
-pub struct Material<R: Real> {
-    pub ambient: R::V3,
-    pub diffuse: R::V3,
-    pub specular: R::V3,
-    pub shininess: R,
-    pub reflectivity: R,
-    pub transparency: R,
-    pub ior: R,
-    /// N.H below which max(N.H,0)^shininess < `Real::SPECULAR_FLOOR`.
-    pub specular_cos_min: R,
-    /// Cosines of the gloss and translucency half-angles (1: a perfect
-    /// mirror and a perfect refraction).
-    pub gloss_cos: R,
-    pub translucency_cos: R,
-}
-
-impl<R: Real> Material<R> {
-    pub fn from_desc(m: &MaterialDesc) -> Self {
-        Material {
-            ambient: v::<R>(&m.ambient),
-            diffuse: v::<R>(&m.diffuse),
-            specular: v::<R>(&m.specular),
-            shininess: R::from_f64(m.shininess.0),
-            reflectivity: R::from_f64(m.reflectivity.0),
-            transparency: R::from_f64(m.transparency.0),
-            ior: R::from_f64(m.ior.0),
-            specular_cos_min: R::from_f64(if m.shininess.0 > 0.0 {
-                R::SPECULAR_FLOOR.powf(1.0 / m.shininess.0)
-            } else {
-                0.0
-            }),
-            gloss_cos: R::from_f64(cos_deg(m.gloss.0)),
-            translucency_cos: R::from_f64(cos_deg(m.translucency.0)),
-        }
-    }
-}
-
-/// cos of an angle in degrees, exactly 1 at 0 and the same bits on every machine.
-fn cos_deg(deg: f64) -> f64 {
-    if deg == 0.0 {
-        1.0
-    } else {
-        crate::sampling::sin_cos_turns(deg / 360.0).1
-    }
-}
-
-#[derive(Clone, Copy, Debug)]
-pub struct PointLight<R: Real> {
-    pub position: R::V3,
-    pub diffuse: R::V3,
-    pub specular: R::V3,
-}
+pub use crate::light::PointLight;
+pub use crate::material::Material;
 
 /// Pinhole camera at the (camera-relative) origin.
 #[derive(Clone, Copy, Debug)]

@@ -1,9 +1,10 @@
-//! The CPU renderer of distributed ray tracing: scenes whose `World::dist`
+//! The CPU driver of distributed ray tracing: scenes whose `World::dist`
 //! is set (area lights, gloss or translucency cones, a lens, motion over
-//! the shutter) trace here, one sample at a time, with `whitted.rs`'s
-//! arithmetic for everything the scene format did not change. Scenes
-//! without these effects never come here, so their renders stay what they
-//! were, bit for bit, and as fast.
+//! the shutter) trace here, one sample at a time, through the one shading
+//! step (`render::step`) with the effects [`Sampled`]: the camera ray (lens
+//! and time) is drawn here, hits among moving objects are found here, and
+//! the step does the rest. Scenes without these effects never come here,
+//! so their renders stay what they were, bit for bit, and as fast.
 //!
 //! Random numbers: a sample draws its pixel position (dimensions 0, 1), its
 //! lens point (`DIM_LENS`, two) and its time (`DIM_TIME`) once; each node
@@ -13,16 +14,19 @@
 //! of that hit from `node_dim(key, slot)`. All are `sampling::uniform` of
 //! (pixel seed, sample index, dimension): the same wherever it is traced.
 
-use crate::distributed::{Distributed, Light, LightGeom, ray_meets_box};
+use crate::distributed::{Distributed, ray_meets_box};
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 use crate::geometry::PrimId;
-use crate::math::{Ray, Real, Vector3, offset_origin};
-use crate::render::whitted::specular_pow;
+use crate::light::Light;
+use crate::math::{Ray, Real, Vector3};
+use crate::render::step::{self, Effects, Surface};
 use crate::sampling::{
-    DIM_LENS, DIM_TIME, ROOT_KEY, SLOT_GLOSS, SLOT_LIGHTS, SLOT_TRANSLUCENCY, child_key, node_dim,
-    pixel_seed, sample_offset, sin_cos_turns, stratified, uniform,
+    DIM_LENS, DIM_TIME, ROOT_KEY, child_key, node_dim, pixel_seed, sample_offset, sin_cos_turns,
+    uniform,
 };
-use crate::world::{Material, World};
+use crate::world::World;
+
+pub use crate::sampling::cone;
 
 /// Where a hit primitive lives: the static world, a moving sphere, or a
 /// moving mesh's own world.
@@ -45,19 +49,98 @@ const NO_PRIM: Prim = Prim {
     id: PrimId::NONE,
 };
 
-/// What stays fixed along one sample's ray tree.
+/// Distributed ray tracing's effects for one sample: what stays fixed
+/// along its ray tree (the pixel's seed, the sample's index and time), and
+/// the moving objects and lights it is traced among.
 #[derive(Clone, Copy)]
-struct Sample<R: Real> {
-    seed: u32,
-    index: u32,
+pub struct Sampled<'a, R: Real> {
+    pub dist: &'a Distributed<R>,
+    pub seed: u32,
+    pub index: u32,
     /// Fraction of the shutter, in [0, 1).
-    tau: R,
+    pub tau: R,
 }
 
-impl<R: Real> Sample<R> {
+impl<R: Real> Sampled<'_, R> {
     #[inline]
-    fn u(&self, dim: u32) -> f32 {
+    fn uniform(&self, dim: u32) -> f32 {
         uniform(self.seed, self.index, dim)
+    }
+}
+
+impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
+    type Prim = Prim;
+    type Key = u32;
+    type Light = Light<R>;
+    const CONES: bool = true;
+
+    #[inline(always)]
+    fn lights<'a>(&'a self, _world: &'a World<R>) -> &'a [Light<R>] {
+        &self.dist.lights
+    }
+    #[inline]
+    fn closest(&self, world: &World<R>, ray: &Ray<R>, skip: Prim) -> Option<(R, Prim)> {
+        closest(world, self.dist, ray, skip, self.tau)
+    }
+    #[inline]
+    fn occluded(&self, world: &World<R>, ray: &Ray<R>, t_max: R, skip: Prim) -> bool {
+        occluded(world, self.dist, ray, t_max, skip, self.tau)
+    }
+    #[inline]
+    fn surface<'a>(
+        &'a self,
+        world: &'a World<R>,
+        ray: &Ray<R>,
+        (t, prim): (R, Prim),
+    ) -> Surface<'a, R, Prim> {
+        match prim.src {
+            Src::Static => {
+                let (p, n_out, mat) = world.surface(prim.id, ray.at(t));
+                Surface::new(
+                    prim,
+                    p,
+                    n_out,
+                    ray,
+                    &world.materials[mat as usize],
+                    |n, v| world.shading_normal(prim.id, p, n, v),
+                )
+            }
+            Src::Sphere(i) => {
+                let s = self.dist.moving_spheres[i].at(self.tau);
+                let (p, n_out) = s.surface(ray.at(t));
+                Surface::new(
+                    prim,
+                    p,
+                    n_out,
+                    ray,
+                    &world.materials[s.material as usize],
+                    |n, _| n,
+                )
+            }
+            Src::Mesh(k) => {
+                // The mesh's own world is at the shutter's opening: the hit
+                // moves back into it, the point out again.
+                let mesh = &self.dist.moving_meshes[k];
+                let off = mesh.delta * self.tau;
+                let (p, n_out, mat) = mesh.world.surface(prim.id, ray.at(t) - off);
+                Surface::new(
+                    prim,
+                    p + off,
+                    n_out,
+                    ray,
+                    &mesh.world.materials[mat as usize],
+                    |n, v| mesh.world.shading_normal(prim.id, p, n, v),
+                )
+            }
+        }
+    }
+    #[inline]
+    fn u(&self, key: u32, slot: u32) -> f32 {
+        self.uniform(node_dim(key, slot))
+    }
+    #[inline(always)]
+    fn child(key: u32, which: u32) -> u32 {
+        child_key(key, which)
     }
 }
 
@@ -99,7 +182,8 @@ pub fn sample_colour<R: Real>(
     let (u, v) = sample_offset(s.sampler, s.samples, seed, index);
     let sx = R::from_u32(x) + R::from_f64(u as f64);
     let sy = R::from_u32(y) + R::from_f64(v as f64);
-    let sample = Sample {
+    let sample = Sampled {
+        dist,
         seed,
         index,
         tau: if dist.blur {
@@ -110,8 +194,7 @@ pub fn sample_colour<R: Real>(
     };
     let ray = camera_ray(world, dist, sx, sy, &sample);
     rays.primary += 1;
-    let hit = closest(world, dist, &ray, NO_PRIM, sample.tau);
-    shade(world, dist, &ray, hit, 0, ROOT_KEY, &sample, rays)
+    step::trace(world, &sample, &ray, 0, ROOT_KEY, NO_PRIM, rays)
 }
 
 /// The camera ray through raster point (sx, sy) at the sample's time,
@@ -121,7 +204,7 @@ fn camera_ray<R: Real>(
     dist: &Distributed<R>,
     sx: R,
     sy: R,
-    sample: &Sample<R>,
+    sample: &Sampled<R>,
 ) -> Ray<R> {
     let cam = dist.camera_at(world, sample.tau);
     let d = cam.camera.ray(sx, sy).dir;
@@ -132,8 +215,8 @@ fn camera_ray<R: Real>(
     // L = position + aperture sqrt(x1) (cos(2 pi x2) r + sin(2 pi x2) u).
     let focus = lens.focus_distance.unwrap_or(cam.look_distance);
     let p = cam.origin + d * (focus / d.dot(cam.camera.forward));
-    let x1 = sample.u(DIM_LENS) as f64;
-    let x2 = sample.u(DIM_LENS + 1) as f64;
+    let x1 = sample.uniform(DIM_LENS) as f64;
+    let x2 = sample.uniform(DIM_LENS + 1) as f64;
     let (sn, cs) = sin_cos_turns(x2);
     let l = cam.origin
         + (cam.unit_right * R::from_f64(cs) + cam.unit_up * R::from_f64(sn))
@@ -249,258 +332,4 @@ pub fn occluded<R: Real>(
                 skip_in(Src::Mesh(k)),
             )
     })
-}
-
-/// A hit, as `whitted::Surface` has it.
-struct Surf<'a, R: Real> {
-    prim: Prim,
-    p: R::V3,
-    n: R::V3,
-    ns: R::V3,
-    v: R::V3,
-    entering: bool,
-    cos_i: R,
-    m: &'a Material<R>,
-    above: R::V3,
-}
-
-fn surface<'a, R: Real>(
-    world: &'a World<R>,
-    dist: &'a Distributed<R>,
-    ray: &Ray<R>,
-    (t, prim): (R, Prim),
-    tau: R,
-) -> Surf<'a, R> {
-    let v = -ray.dir;
-    let facing = |n_out: R::V3| {
-        let entering = n_out.dot(v) >= R::ZERO;
-        (entering, if entering { n_out } else { -n_out })
-    };
-    let (p, n, ns, entering, m) = match prim.src {
-        Src::Static => {
-            let (p, n_out, mat) = world.surface(prim.id, ray.at(t));
-            let (entering, n) = facing(n_out);
-            let ns = world.shading_normal(prim.id, p, n, v);
-            (p, n, ns, entering, &world.materials[mat as usize])
-        }
-        Src::Sphere(i) => {
-            let s = dist.moving_spheres[i].at(tau);
-            let (p, n_out) = s.surface(ray.at(t));
-            let (entering, n) = facing(n_out);
-            (p, n, n, entering, &world.materials[s.material as usize])
-        }
-        Src::Mesh(k) => {
-            let mesh = &dist.moving_meshes[k];
-            let off = mesh.delta * tau;
-            let (p, n_out, mat) = mesh.world.surface(prim.id, ray.at(t) - off);
-            let (entering, n) = facing(n_out);
-            let ns = mesh.world.shading_normal(prim.id, p, n, v);
-            (
-                p + off,
-                n,
-                ns,
-                entering,
-                &mesh.world.materials[mat as usize],
-            )
-        }
-    };
-    Surf {
-        prim,
-        p,
-        n,
-        ns,
-        v,
-        entering,
-        cos_i: ns.dot(v),
-        m,
-        above: offset_origin::<R>(p, n),
-    }
-}
-
-/// Today's point-light term with the light at `pos`, and its shadow ray
-/// (`whitted::Surface::light`'s arithmetic); `None` when it adds nothing.
-#[inline]
-fn light_term<R: Real>(s: &Surf<R>, pos: R::V3, light: &Light<R>) -> Option<(R::V3, Ray<R>, R)> {
-    let (p, n, ns, v, m) = (s.p, s.n, s.ns, s.v, s.m);
-    let to_light = pos - p;
-    let dist = to_light.length();
-    if !(dist > R::ZERO) {
-        return None;
-    }
-    let l = to_light * (R::ONE / dist);
-    let ndotl = ns.dot(l).max(R::ZERO);
-    let h = l + v;
-    let h_len = h.length();
-    let ndoth = if h_len > R::ZERO {
-        (ns.dot(h) / h_len).max(R::ZERO)
-    } else {
-        R::ZERO
-    };
-    let spec = if ndoth > m.specular_cos_min {
-        specular_pow(ndoth, m.shininess)
-    } else {
-        R::ZERO
-    };
-    let contrib = light.diffuse * m.diffuse * ndotl + light.specular * m.specular * spec;
-    if !(contrib.max_element() > R::ZERO) {
-        return None;
-    }
-    let origin = if n.dot(l) >= R::ZERO {
-        s.above
-    } else {
-        offset_origin::<R>(p, -n)
-    };
-    Some((
-        contrib,
-        Ray::new(origin, l),
-        dist * (R::ONE - R::SHADOW_SHORTEN),
-    ))
-}
-
-/// A direction uniformly distributed by solid angle in the cone of
-/// cosine `cos_max` around the unit `axis`, from two uniform numbers.
-pub fn cone<R: Real>(axis: R::V3, cos_max: R, u1: f32, u2: f32) -> R::V3 {
-    let cos_t = R::ONE - R::from_f64(u1 as f64) * (R::ONE - cos_max);
-    let sin_t = (R::ONE - cos_t * cos_t).max(R::ZERO).sqrt();
-    let (sp, cp) = sin_cos_turns(u2 as f64);
-    // Orthonormal basis around the axis (Duff et al. 2017), branch-free.
-    let [x, y, z] = axis.to_array().map(R::from_f64);
-    let sign = R::ONE.copysign(z);
-    let a = -R::ONE / (sign + z);
-    let b = x * y * a;
-    let t1 = R::V3::new(R::ONE + sign * x * x * a, sign * b, -sign * x);
-    let t2 = R::V3::new(b, sign + y * y * a, -y);
-    (t1 * (sin_t * R::from_f64(cp)) + t2 * (sin_t * R::from_f64(sp)) + axis * cos_t).normalize()
-}
-
-#[allow(clippy::too_many_arguments)]
-fn trace<R: Real>(
-    world: &World<R>,
-    dist: &Distributed<R>,
-    ray: &Ray<R>,
-    depth: u32,
-    key: u32,
-    skip: Prim,
-    sample: &Sample<R>,
-    rays: &mut RayCounts,
-) -> R::V3 {
-    let hit = closest(world, dist, ray, skip, sample.tau);
-    shade(world, dist, ray, hit, depth, key, sample, rays)
-}
-
-/// `whitted::shade` with area lights sampled and the secondary rays drawn
-/// from their cones.
-#[allow(clippy::too_many_arguments)]
-fn shade<R: Real>(
-    world: &World<R>,
-    dist: &Distributed<R>,
-    ray: &Ray<R>,
-    hit: Option<(R, Prim)>,
-    depth: u32,
-    key: u32,
-    sample: &Sample<R>,
-    rays: &mut RayCounts,
-) -> R::V3 {
-    let Some(hit) = hit else {
-        return world.background;
-    };
-    let tau = sample.tau;
-    let s = surface(world, dist, ray, hit, tau);
-    let m = s.m;
-    let mut colour = world.ambient * m.ambient;
-    for light in &dist.lights {
-        if let LightGeom::Point(pos) = light.geom {
-            if let Some((contrib, shadow, t_max)) = light_term(&s, pos, light) {
-                rays.shadow += 1;
-                if !occluded(world, dist, &shadow, t_max, s.prim, tau) {
-                    colour += contrib;
-                }
-            }
-            continue;
-        }
-        // The mean over `samples` stratified points of the light.
-        let n = light.samples;
-        let mut sum = R::V3::zero();
-        for i in 0..n {
-            let slot = SLOT_LIGHTS + 2 * (light.first_sample + i);
-            let u1 = sample.u(node_dim(key, slot));
-            let u2 = sample.u(node_dim(key, slot + 1));
-            let (u, v) = stratified(i, n, u1, u2);
-            if let Some((contrib, shadow, t_max)) = light_term(&s, light.point(u, v), light) {
-                rays.shadow += 1;
-                if !occluded(world, dist, &shadow, t_max, s.prim, tau) {
-                    sum += contrib;
-                }
-            }
-        }
-        colour += sum * (R::ONE / R::from_u32(n));
-    }
-    if depth >= world.settings.max_depth {
-        return colour;
-    }
-    let (p, n, ns, v, cos_i) = (s.p, s.n, s.ns, s.v, s.cos_i);
-    let mut reflect_w = m.reflectivity;
-    if m.transparency > R::ZERO {
-        let eta = if s.entering { R::ONE / m.ior } else { m.ior };
-        let k = R::ONE - eta * eta * (R::ONE - cos_i * cos_i);
-        if k < R::ZERO {
-            reflect_w += m.transparency; // total internal reflection
-        } else {
-            let mut dir = (-v * eta + ns * (eta * cos_i - k.sqrt())).normalize();
-            let mut below = true;
-            if m.translucency_cos < R::ONE {
-                dir = cone(
-                    dir,
-                    m.translucency_cos,
-                    sample.u(node_dim(key, SLOT_TRANSLUCENCY)),
-                    sample.u(node_dim(key, SLOT_TRANSLUCENCY + 1)),
-                );
-                // A refraction above the surface contributes black.
-                below = dir.dot(n) < R::ZERO;
-            }
-            if below {
-                rays.refraction += 1;
-                let refr = Ray::new(offset_origin::<R>(p, -n), dir);
-                colour += trace(
-                    world,
-                    dist,
-                    &refr,
-                    depth + 1,
-                    child_key(key, 0),
-                    s.prim,
-                    sample,
-                    rays,
-                ) * m.transparency;
-            }
-        }
-    }
-    if reflect_w > R::ZERO {
-        let mut dir = (ns * (R::TWO * cos_i) - v).normalize();
-        let mut above = true;
-        if m.gloss_cos < R::ONE {
-            dir = cone(
-                dir,
-                m.gloss_cos,
-                sample.u(node_dim(key, SLOT_GLOSS)),
-                sample.u(node_dim(key, SLOT_GLOSS + 1)),
-            );
-            // A reflection below the surface contributes black.
-            above = dir.dot(n) > R::ZERO;
-        }
-        if above {
-            rays.reflection += 1;
-            let refl = Ray::new(s.above, dir);
-            colour += trace(
-                world,
-                dist,
-                &refl,
-                depth + 1,
-                child_key(key, 1),
-                s.prim,
-                sample,
-                rays,
-            ) * reflect_w;
-        }
-    }
-    colour
 }

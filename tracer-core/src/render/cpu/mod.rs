@@ -1,10 +1,11 @@
 //! The CPU renderer: rayon over small tiles. Scenes of spheres and planes
 //! in f32 take the stream renderer ([`stream`]), vectorised over rays; the
 //! rest (meshes, BVH scenes, the f64 reference) trace with the recursive
-//! Whitted shading (`whitted::shade`), camera rays and their shadow rays in
+//! driver over the one shading step (`step::shade`), camera rays and their shadow rays in
 //! packets of 4x4 pixels ([`World::closest_hits`], [`World::occluded_many`])
 //! and the rays they spawn one at a time.
 
+pub mod adaptive;
 pub mod distributed;
 pub mod kernels;
 pub mod shade;
@@ -14,7 +15,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use rayon::prelude::*;
 
-use super::whitted::Surface;
+use super::step::{Static, Surface};
 use super::{PreparedFrame, RenderError};
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 use crate::geometry::PrimId;
@@ -162,7 +163,7 @@ pub fn render_tile<R: Real>(
 }
 
 /// Renders one tile on the calling thread with the recursive reference
-/// shading (`whitted::shade`, step by step). Camera rays go in packets: for
+/// shading (`step::shade` with [`Static`] effects, step by step). Camera rays go in packets: for
 /// each 4x4-pixel block of the tile and each sample index, the block's rays
 /// are traced together ([`World::closest_hits`]: in a tree, neighbouring
 /// camera rays visit the same nodes), then each light's shadow rays from
@@ -182,7 +183,8 @@ pub fn render_tile_recursive<R: Real>(
     let s = &world.settings;
     let mut packet: Vec<Ray<R>> = Vec::with_capacity((BLOCK * BLOCK) as usize);
     let mut hits = [None; (BLOCK * BLOCK) as usize];
-    let mut surfaces: Vec<Option<Surface<R>>> = Vec::with_capacity((BLOCK * BLOCK) as usize);
+    let mut surfaces: Vec<Option<Surface<R, PrimId>>> =
+        Vec::with_capacity((BLOCK * BLOCK) as usize);
     let mut colours: Vec<R::V3> = Vec::with_capacity((BLOCK * BLOCK) as usize);
     // Each light's shadow rays of a block: pixel in the block and what it adds unblocked.
     let mut shadows: Vec<(usize, R::V3)> = Vec::with_capacity((BLOCK * BLOCK) as usize);
@@ -228,11 +230,11 @@ pub fn render_tile_recursive<R: Real>(
                     shadow_skip.clear();
                     for (k, s) in surfaces.iter().enumerate() {
                         let Some(s) = s else { continue };
-                        if let Some(l) = s.light(world, light) {
+                        if let Some(l) = s.light_term(light.position, light) {
                             rays.shadow += 1;
                             shadow_rays.push(l.shadow);
                             shadow_t.push(l.t_max);
-                            shadow_skip.push(s.id);
+                            shadow_skip.push(s.prim);
                             shadows.push((k, l.contrib));
                         }
                     }
@@ -247,7 +249,7 @@ pub fn render_tile_recursive<R: Real>(
                 for ((s, c), &(i, ..)) in surfaces.iter().zip(colours.iter_mut()).zip(&pixels[..n])
                 {
                     if let Some(s) = s {
-                        s.add_secondary(world, 0, &mut rays, c);
+                        s.add_secondary(world, &Static, 0, (), &mut rays, c);
                     }
                     film.add_sample::<R>(i, [c.x(), c.y(), c.z()]);
                 }

@@ -1,5 +1,7 @@
-//! Lane-wise Whitted shading for the stream renderer: the arithmetic of
-//! `whitted::trace`'s local shading (same IEEE operations in the same
+//! Lane-wise Whitted shading for the stream renderer: the one SIMD twin of
+//! the shading step (`render::step`): [`shade_lanes`] is `step::shade`'s
+//! local part (`Surface::at`, `Surface::light_term`, the directions of
+//! `Surface::add_secondary`) with the arithmetic (same IEEE operations in the same
 //! order, so the same bits), over `W` hits at a time in structure-of-arrays
 //! form. Spawning rays, which appends to queues, is left to a scalar pass
 //! ([`super::stream`]) that reads the flags computed here.
@@ -7,8 +9,8 @@
 use glam::Vec3A;
 
 use crate::geometry::PrimId;
+use crate::material::pow_f32;
 use crate::math::Real;
-use crate::render::whitted::pow_f32;
 use crate::world::World;
 
 /// Per-material and per-(light, material) constants, built once per tile.

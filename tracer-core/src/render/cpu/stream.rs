@@ -5,7 +5,7 @@
 //! a batch of primary rays is traced generation by generation: closest hits
 //! for the whole generation ([`kernels::closest_hits`], `W` rays per lane
 //! group against each primitive), then all hits are shaded `W` at a time
-//! ([`shade_lanes`], the arithmetic of the recursive `whitted::trace`),
+//! ([`shade_lanes`], the arithmetic of the recursive `step::trace`),
 //! their shadow rays tested light by light ([`kernels::occluded`]), and a
 //! scalar pass queues, hit by hit, the refracted and reflected rays: the
 //! next generation, each with its parent and weight. When no generation is

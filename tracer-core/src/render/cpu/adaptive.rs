@@ -1,6 +1,6 @@
 //! A round of adaptive sampling on the CPU: the active blocks, in runs of
 //! up to four along a row, are rendered one sample index at a time by the ordinary tile renderer
-//! ([`crate::render::cpu::render_tile`], so the stream, recursive and
+//! ([`super::render_tile`], so the stream, recursive and
 //! distributed paths all apply unchanged), and each single-sample film's
 //! fixed-point values are added to the block's sums and, squared, to its
 //! sums of squares. Sums, counts and rays are those of a uniform render of
@@ -8,14 +8,14 @@
 
 use rayon::prelude::*;
 
-use super::BlockMask;
+use super::render_tile;
+use crate::adaptive::BlockMask;
 use crate::film::{Film, Rect, SampleRange};
 use crate::math::Real;
-use crate::render::cpu::render_tile;
 use crate::render::{CpuRenderer, PreparedFrame, RenderError};
 use crate::world::World;
 
-/// Renders the blocks of `mask` over `samples` (see [`super::render_round`]).
+/// Renders the blocks of `mask` over `samples` (see [`crate::render::adaptive::render_round`]).
 pub fn render_round(
     renderer: &CpuRenderer,
     prepared: &PreparedFrame,

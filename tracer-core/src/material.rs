@@ -1,0 +1,227 @@
+//! Materials: the thesis's Blinn-Phong surface with mirror reflection and
+//! Snell refraction, and distributed ray tracing's gloss and translucency
+//! cones. [`Material`] is render-ready (one precision, cosines precomputed);
+//! the shading step (`render::step`) asks it for a light's term
+//! ([`Material::blinn_phong`]) and the directions of its secondary rays
+//! ([`Material::refract`], [`reflect`]). The lane-wise twin
+//! (`render::cpu::shade`) and the WGSL kernels do the same arithmetic.
+
+use std::any::TypeId;
+
+use crate::math::{Real, Vector3};
+use crate::scene::MaterialDesc;
+
+#[derive(Clone, Copy, Debug)]
+pub struct Material<R: Real> {
+    pub ambient: R::V3,
+    pub diffuse: R::V3,
+    pub specular: R::V3,
+    pub shininess: R,
+    pub reflectivity: R,
+    pub transparency: R,
+    pub ior: R,
+    /// N.H below which max(N.H,0)^shininess < `Real::SPECULAR_FLOOR`.
+    pub specular_cos_min: R,
+    /// Cosines of the gloss and translucency half-angles (1: a perfect
+    /// mirror and a perfect refraction).
+    pub gloss_cos: R,
+    pub translucency_cos: R,
+}
+
+impl<R: Real> Material<R> {
+    pub fn from_desc(m: &MaterialDesc) -> Self {
+        Material {
+            ambient: R::V3::from_array(m.ambient.0),
+            diffuse: R::V3::from_array(m.diffuse.0),
+            specular: R::V3::from_array(m.specular.0),
+            shininess: R::from_f64(m.shininess.0),
+            reflectivity: R::from_f64(m.reflectivity.0),
+            transparency: R::from_f64(m.transparency.0),
+            ior: R::from_f64(m.ior.0),
+            specular_cos_min: R::from_f64(if m.shininess.0 > 0.0 {
+                R::SPECULAR_FLOOR.powf(1.0 / m.shininess.0)
+            } else {
+                0.0
+            }),
+            gloss_cos: R::from_f64(cos_deg(m.gloss.0)),
+            translucency_cos: R::from_f64(cos_deg(m.translucency.0)),
+        }
+    }
+
+    /// What a light of colours `diffuse` and `specular` in the unit
+    /// direction `l` adds, seen from `v` with shading normal `ns`:
+    /// max(N.L,0) l.diffuse m.diffuse + max(N.H,0)^shininess l.specular m.specular.
+    #[inline]
+    pub fn blinn_phong(
+        &self,
+        ns: R::V3,
+        v: R::V3,
+        l: R::V3,
+        diffuse: R::V3,
+        specular: R::V3,
+    ) -> R::V3 {
+        let ndotl = ns.dot(l).max(R::ZERO);
+        let h = l + v;
+        let h_len = h.length();
+        let ndoth = if h_len > R::ZERO {
+            (ns.dot(h) / h_len).max(R::ZERO)
+        } else {
+            R::ZERO
+        };
+        let spec = if ndoth > self.specular_cos_min {
+            specular_pow(ndoth, self.shininess)
+        } else {
+            R::ZERO
+        };
+        diffuse * self.diffuse * ndotl + specular * self.specular * spec
+    }
+
+    /// The refracted direction of a ray arriving along `-v` at shading
+    /// normal `ns` (on the viewer's side, `cos_i` = ns.v), or `None` at
+    /// total internal reflection. Snell: eta = n1/n2; entering from
+    /// outside goes 1 -> ior.
+    #[inline]
+    pub fn refract(&self, v: R::V3, ns: R::V3, cos_i: R, entering: bool) -> Option<R::V3> {
+        let eta = if entering {
+            R::ONE / self.ior
+        } else {
+            self.ior
+        };
+        let k = R::ONE - eta * eta * (R::ONE - cos_i * cos_i);
+        if k < R::ZERO {
+            None
+        } else {
+            Some((-v * eta + ns * (eta * cos_i - k.sqrt())).normalize())
+        }
+    }
+}
+
+/// The mirror direction R = 2(V.N)N - V, for `cos_i` = ns.v.
+#[inline]
+pub fn reflect<R: Real>(v: R::V3, ns: R::V3, cos_i: R) -> R::V3 {
+    (ns * (R::TWO * cos_i) - v).normalize()
+}
+
+/// cos of an angle in degrees, exactly 1 at 0 and the same bits on every machine.
+fn cos_deg(deg: f64) -> f64 {
+    if deg == 0.0 {
+        1.0
+    } else {
+        crate::sampling::sin_cos_turns(deg / 360.0).1
+    }
+}
+
+/// max(N.H,0)^shininess for `x` in (0, 1]. In f32 this avoids libm's
+/// `powf` (a tenth of the render time, not vectorisable, and its result
+/// may differ between libm builds and CPU-specific variants): exp2(e log2 x)
+/// from IEEE + - * / and bit manipulation only, branch-free, so the stream
+/// renderer's lanes compute it too and every machine and SIMD path gets the
+/// same bits. Relative error below 5e-6 where shading uses it (tested):
+/// no more than the rounding of x itself causes, since x^e multiplies a
+/// relative error of x by e (76.8 * 2^-24 = 4.6e-6).
+/// The f64 reference keeps the exact `powf`.
+#[inline(always)]
+pub fn specular_pow<R: Real>(x: R, e: R) -> R {
+    if TypeId::of::<R>() == TypeId::of::<f32>() {
+        R::from_f64(pow_f32(x.to_f64() as f32, e.to_f64() as f32) as f64)
+    } else {
+        x.powf(e)
+    }
+}
+
+/// x^e for x > 0 and e >= 0 (shading asks only for results above 2^-24,
+/// where |e log2 x| <= 24 and the error stays below 5e-6).
+#[inline(always)]
+pub fn pow_f32(x: f32, e: f32) -> f32 {
+    exp2_f32(e * log2_f32(x))
+}
+
+/// log2 of a positive finite `x`.
+#[inline(always)]
+fn log2_f32(x: f32) -> f32 {
+    // Subnormals: scale into the normal range first.
+    let sub = x < f32::MIN_POSITIVE;
+    let x = if sub { x * 16_777_216.0 } else { x };
+    let bits = x.to_bits();
+    let exp = ((bits >> 23) & 0xff) as i32 - if sub { 127 + 24 } else { 127 };
+    let m = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000); // [1, 2)
+    // Mantissa in [sqrt(1/2), sqrt(2)) so that s below is small.
+    let big = m > std::f32::consts::SQRT_2;
+    let m = if big { m * 0.5 } else { m };
+    let exp = exp + big as i32;
+    // ln m = 2 atanh(s), s = (m-1)/(m+1), |s| < 0.172: the series to s^9
+    // leaves a relative error below 1e-8.
+    let s = (m - 1.0) / (m + 1.0);
+    let s2 = s * s;
+    let series = 1.0 + s2 * (1.0 / 3.0 + s2 * (1.0 / 5.0 + s2 * (1.0 / 7.0 + s2 * (1.0 / 9.0))));
+    exp as f32 + (2.0 * s * series) * std::f32::consts::LOG2_E
+}
+
+/// 2^y for y < 128, flushing results below 2^-126 to 0.
+#[inline(always)]
+fn exp2_f32(y: f32) -> f32 {
+    let tiny = !(y >= -126.0);
+    let y = if tiny { 0.0 } else { y };
+    // floor(y), exact, in float arithmetic only (so it vectorises): adding
+    // and subtracting 1.5 * 2^23 rounds |y| < 2^22 to the nearest integer.
+    const ROUND: f32 = 12_582_912.0;
+    let nf = (y + ROUND) - ROUND;
+    let nf = if nf > y { nf - 1.0 } else { nf };
+    let f = (y - nf) * std::f32::consts::LN_2; // [0, ln 2)
+    // e^f by Taylor to f^9 / 9!: relative error below 1e-8 on [0, ln 2).
+    let mut p = 1.0 / 362_880.0;
+    for k in [40_320.0f32, 5040.0, 720.0, 120.0, 24.0, 6.0, 2.0, 1.0, 1.0] {
+        p = p * f + 1.0 / k;
+    }
+    // 2^nf from its biased exponent nf + 127 (in 1..=254), which the same
+    // rounding trick leaves in the low mantissa bits.
+    let biased = ((nf + 127.0) + ROUND).to_bits() & 0xff;
+    let r = p * f32::from_bits(biased << 23);
+    if tiny { 0.0 } else { r }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The f32 specular power against f64 `powf` over the whole range shading
+    /// uses (x above the specular floor, integer and fractional shininess).
+    #[test]
+    fn pow_f32_matches_f64_powf() {
+        let mut worst = 0.0f64;
+        for e in [
+            0.0f32, 0.5, 1.0, 2.0, 7.0, 8.0, 32.0, 76.8, 100.0, 128.0, 333.3, 1000.0, 4096.0, 1.0e5,
+        ] {
+            let floor = (5.960_464_477_539_063e-8f64).powf(1.0 / e as f64) as f32;
+            for k in 0..=20_000 {
+                let x = floor + (1.0 - floor) * (k as f32 / 20_000.0);
+                if !(x > 0.0) {
+                    continue;
+                }
+                let want = (x as f64).powf(e as f64);
+                let got = pow_f32(x, e) as f64;
+                if want < 1e-30 {
+                    assert!(got < 1e-29, "{x}^{e} = {got}, want {want}");
+                    continue;
+                }
+                let rel = ((got - want) / want).abs();
+                worst = worst.max(rel);
+                assert!(
+                    rel < 5e-6,
+                    "{x}^{e} = {got}, want {want} (relative error {rel})"
+                );
+            }
+        }
+        assert!(worst > 0.0, "the test should see some rounding");
+        // Subnormal bases and the edges.
+        assert_eq!(pow_f32(1.0, 76.8), 1.0);
+        assert_eq!(pow_f32(0.5, 0.0), 1.0);
+        let tiny = f32::from_bits(1000);
+        assert!(
+            ((pow_f32(tiny, 0.01) as f64 - (tiny as f64).powf(0.01)) / (tiny as f64).powf(0.01))
+                .abs()
+                < 5e-6
+        );
+        eprintln!("worst relative error {worst:e}");
+    }
+}

@@ -1,0 +1,374 @@
+//! The one shading step: a hit's surface, each light's term, and the
+//! secondary rays, exactly as the scene-format contract states the thesis's
+//! Whitted model:
+//!
+//! colour = ambient * m.ambient
+//!        + sum over unblocked lights (max(N.L,0) l.diffuse m.diffuse + max(N.H,0)^shininess l.specular m.specular)
+//!        + reflectivity * reflected + transparency * refracted
+//!
+//! with total internal reflection sending the transparency weight to the
+//! reflected ray, and `max_depth` bounding the generations of secondary rays.
+//! Generic over precision (`f32` the fast path, `f64` the reference) and
+//! over the [`Effects`] a scene uses: [`Static`] (the thesis's scenes: point
+//! lights, mirrors, no random numbers) or distributed ray tracing's
+//! (`cpu::distributed::Sampled`: area lights, gloss and translucency cones,
+//! moving objects, a ray-tree node's random keys). Each is monomorphised, so
+//! the static step has no branch or argument of the distributed one.
+//!
+//! Drivers over the step: the recursive one (`cpu::render_tile_recursive`,
+//! camera rays and their shadow rays in packets, then [`Surface::add_secondary`]),
+//! the distributed one (`cpu::distributed`), and adaptive rounds
+//! (`render::adaptive`, over either). The stream renderer's lanes
+//! (`cpu::shade::shade_lanes`) are this step's one SIMD twin: the same
+//! arithmetic over many hits; tests check that they agree bit for bit. The
+//! light term is [`crate::material::Material::blinn_phong`]; lights are
+//! [`crate::light::Emitter`]s.
+
+use crate::film::RayCounts;
+use crate::geometry::PrimId;
+use crate::light::Emitter;
+use crate::material::{Material, reflect};
+use crate::math::{Ray, Real, Vector3, offset_origin};
+use crate::sampling::{SLOT_GLOSS, SLOT_LIGHTS, SLOT_TRANSLUCENCY, cone, stratified};
+use crate::world::{PointLight, World};
+
+/// What a scene's effects change in the step: where rays hit, which
+/// lights there are, and the random numbers of area lights and cones.
+pub trait Effects<R: Real> {
+    /// What names a hit primitive (and the primitive a ray starts on).
+    type Prim: Copy;
+    /// A ray-tree node's random key (`()` where nothing is drawn).
+    type Key: Copy;
+    type Light: Emitter<R>;
+    /// Whether materials may have gloss or translucency cones.
+    const CONES: bool;
+    fn lights<'a>(&'a self, world: &'a World<R>) -> &'a [Self::Light];
+    /// Nearest hit of a ray starting on `skip`.
+    fn closest(&self, world: &World<R>, ray: &Ray<R>, skip: Self::Prim) -> Option<(R, Self::Prim)>;
+    /// Whether anything lies on the ray before `t_max`.
+    fn occluded(&self, world: &World<R>, ray: &Ray<R>, t_max: R, skip: Self::Prim) -> bool;
+    fn surface<'a>(
+        &'a self,
+        world: &'a World<R>,
+        ray: &Ray<R>,
+        hit: (R, Self::Prim),
+    ) -> Surface<'a, R, Self::Prim>;
+    /// Uniform number `slot` of the node `key` (area-light points, cones).
+    fn u(&self, key: Self::Key, slot: u32) -> f32;
+    /// The key of child `which` (0 refracted, 1 reflected) of node `key`.
+    fn child(key: Self::Key, which: u32) -> Self::Key;
+}
+
+/// The thesis's scenes: the static world, point lights, perfect mirrors
+/// and refraction, nothing drawn at random.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Static;
+
+impl<R: Real> Effects<R> for Static {
+    type Prim = PrimId;
+    type Key = ();
+    type Light = PointLight<R>;
+    const CONES: bool = false;
+
+    #[inline(always)]
+    fn lights<'a>(&'a self, world: &'a World<R>) -> &'a [PointLight<R>] {
+        &world.lights
+    }
+    #[inline(always)]
+    fn closest(&self, world: &World<R>, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+        world.closest_hit(ray, skip)
+    }
+    #[inline(always)]
+    fn occluded(&self, world: &World<R>, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
+        world.occluded(ray, t_max, skip)
+    }
+    #[inline(always)]
+    fn surface<'a>(
+        &'a self,
+        world: &'a World<R>,
+        ray: &Ray<R>,
+        hit: (R, PrimId),
+    ) -> Surface<'a, R, PrimId> {
+        Surface::at(world, ray, hit)
+    }
+    fn u(&self, _key: (), _slot: u32) -> f32 {
+        unreachable!(
+            "a static scene draws nothing: its lights are points, its materials have no cones"
+        )
+    }
+    #[inline(always)]
+    fn child(_key: (), _which: u32) {}
+}
+
+/// Colour seen along `ray`, which starts on primitive `skip` and is of
+/// generation `depth` (primary rays are 0) at ray-tree node `key`.
+pub fn trace<R: Real, E: Effects<R>>(
+    world: &World<R>,
+    fx: &E,
+    ray: &Ray<R>,
+    depth: u32,
+    key: E::Key,
+    skip: E::Prim,
+    rays: &mut RayCounts,
+) -> R::V3 {
+    let hit = fx.closest(world, ray, skip);
+    shade(world, fx, ray, hit, depth, key, rays)
+}
+
+/// Colour seen along `ray` of generation `depth`, given its closest hit
+/// (`Effects::closest`, or the same answer from `World::closest_hits`).
+pub fn shade<R: Real, E: Effects<R>>(
+    world: &World<R>,
+    fx: &E,
+    ray: &Ray<R>,
+    hit: Option<(R, E::Prim)>,
+    depth: u32,
+    key: E::Key,
+    rays: &mut RayCounts,
+) -> R::V3 {
+    let Some(hit) = hit else {
+        return world.background;
+    };
+    let s = fx.surface(world, ray, hit);
+    let mut colour = s.ambient(world);
+    add_lights(world, fx, &s, key, rays, &mut colour);
+    s.add_secondary(world, fx, depth, key, rays, &mut colour);
+    colour
+}
+
+/// Adds each light's term at `s` in the lights' order, unless its shadow
+/// ray is blocked: a point light's once, an area light's as the mean over
+/// its stratified points.
+#[inline]
+pub fn add_lights<R: Real, E: Effects<R>>(
+    world: &World<R>,
+    fx: &E,
+    s: &Surface<'_, R, E::Prim>,
+    key: E::Key,
+    rays: &mut RayCounts,
+    colour: &mut R::V3,
+) {
+    for light in fx.lights(world) {
+        if let Some(pos) = light.position() {
+            if let Some(l) = s.light_term(pos, light) {
+                rays.shadow += 1;
+                if !fx.occluded(world, &l.shadow, l.t_max, s.prim) {
+                    *colour += l.contrib;
+                }
+            }
+            continue;
+        }
+        let n = light.samples();
+        let mut sum = R::V3::zero();
+        for i in 0..n {
+            let slot = SLOT_LIGHTS + 2 * (light.first_sample() + i);
+            let (u, v) = stratified(i, n, fx.u(key, slot), fx.u(key, slot + 1));
+            if let Some(l) = s.light_term(light.point(u, v), light) {
+                rays.shadow += 1;
+                if !fx.occluded(world, &l.shadow, l.t_max, s.prim) {
+                    sum += l.contrib;
+                }
+            }
+        }
+        *colour += sum * (R::ONE / R::from_u32(n));
+    }
+}
+
+/// What shading needs of a hit: the point, the normals facing the viewer,
+/// the material. The steps of [`shade`] are its methods, so that a driver
+/// can trace the shadow rays of many hits together (the recursive CPU
+/// driver does, for camera rays) and still add every term in `shade`'s order.
+pub struct Surface<'a, R: Real, P> {
+    pub prim: P,
+    pub p: R::V3,
+    /// Geometric normal on the viewer's side, and the shading normal.
+    pub n: R::V3,
+    pub ns: R::V3,
+    pub v: R::V3,
+    pub entering: bool,
+    pub cos_i: R,
+    pub m: &'a Material<R>,
+    /// Origin for rays leaving on the viewer's side.
+    pub above: R::V3,
+}
+
+/// A light's term at a surface: what it adds unless `shadow` (which starts
+/// on the surface) meets something before `t_max`.
+pub struct LightTerm<R: Real> {
+    pub contrib: R::V3,
+    pub shadow: Ray<R>,
+    pub t_max: R,
+}
+
+impl<'a, R: Real> Surface<'a, R, PrimId> {
+    /// The surface of a hit in the static world.
+    #[inline]
+    pub fn at(world: &'a World<R>, ray: &Ray<R>, (t, id): (R, PrimId)) -> Self {
+        let (p, n_out, material) = world.surface(id, ray.at(t));
+        Surface::new(
+            id,
+            p,
+            n_out,
+            ray,
+            &world.materials[material as usize],
+            |n, v| world.shading_normal(id, p, n, v),
+        )
+    }
+}
+
+impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
+    /// The surface at `p` with outward normal `n_out`, seen along `ray`;
+    /// `shading` gives the shading normal from the facing normal and the
+    /// direction to the viewer.
+    #[inline]
+    pub fn new(
+        prim: P,
+        p: R::V3,
+        n_out: R::V3,
+        ray: &Ray<R>,
+        m: &'a Material<R>,
+        shading: impl FnOnce(R::V3, R::V3) -> R::V3,
+    ) -> Self {
+        let v = -ray.dir;
+        // Entering: arriving against the outward normal.
+        let entering = n_out.dot(v) >= R::ZERO;
+        let n = if entering { n_out } else { -n_out };
+        // Shading normal: differs from n only on smoothly shaded triangles.
+        let ns = shading(n, v);
+        Surface {
+            prim,
+            p,
+            n,
+            ns,
+            v,
+            entering,
+            cos_i: ns.dot(v),
+            m,
+            above: offset_origin::<R>(p, n),
+        }
+    }
+
+    /// The ambient term, where the colour starts.
+    #[inline]
+    pub fn ambient(&self, world: &World<R>) -> R::V3 {
+        world.ambient * self.m.ambient
+    }
+
+    /// The term of `light` with its point at `pos`, or `None` when it can
+    /// add nothing (then it needs no shadow ray).
+    #[inline]
+    pub fn light_term(&self, pos: R::V3, light: &impl Emitter<R>) -> Option<LightTerm<R>> {
+        let (p, n) = (self.p, self.n);
+        let to_light = pos - p;
+        let dist = to_light.length();
+        if !(dist > R::ZERO) {
+            return None;
+        }
+        let l = to_light * (R::ONE / dist);
+        let [diffuse, specular] = light.colours();
+        let contrib = self.m.blinn_phong(self.ns, self.v, l, diffuse, specular);
+        // Not `<= 0`: an all-NaN term adds nothing either, as in the lanes.
+        if !(contrib.max_element() > R::ZERO) {
+            return None;
+        }
+        // Leave on the light's side of the surface.
+        let origin = if n.dot(l) >= R::ZERO {
+            self.above
+        } else {
+            offset_origin::<R>(p, -n)
+        };
+        Some(LightTerm {
+            contrib,
+            shadow: Ray::new(origin, l),
+            t_max: dist * (R::ONE - R::SHADOW_SHORTEN),
+        })
+    }
+
+    /// Adds the refracted and reflected light (rays of generation
+    /// `depth + 1`, traced recursively), if `depth` allows. With cones, each
+    /// direction is drawn from its cone, and one that leaves on the wrong
+    /// side of the surface contributes black.
+    #[inline]
+    pub fn add_secondary<E: Effects<R, Prim = P>>(
+        &self,
+        world: &World<R>,
+        fx: &E,
+        depth: u32,
+        key: E::Key,
+        rays: &mut RayCounts,
+        colour: &mut R::V3,
+    ) {
+        if depth >= world.settings.max_depth {
+            return;
+        }
+        let m = self.m;
+        let (p, n) = (self.p, self.n);
+        let mut reflect_w = m.reflectivity;
+        if m.transparency > R::ZERO {
+            match m.refract(self.v, self.ns, self.cos_i, self.entering) {
+                None => reflect_w += m.transparency, // total internal reflection
+                Some(dir) => {
+                    let cos = m.translucency_cos;
+                    if let Some(dir) = in_cone(fx, key, SLOT_TRANSLUCENCY, dir, cos, n, false) {
+                        rays.refraction += 1;
+                        let refr = Ray::new(offset_origin::<R>(p, -n), dir);
+                        let c = trace(
+                            world,
+                            fx,
+                            &refr,
+                            depth + 1,
+                            E::child(key, 0),
+                            self.prim,
+                            rays,
+                        );
+                        *colour += c * m.transparency;
+                    }
+                }
+            }
+        }
+        if reflect_w > R::ZERO {
+            let dir = reflect::<R>(self.v, self.ns, self.cos_i);
+            if let Some(dir) = in_cone(fx, key, SLOT_GLOSS, dir, m.gloss_cos, n, true) {
+                rays.reflection += 1;
+                let refl = Ray::new(self.above, dir);
+                *colour += trace(
+                    world,
+                    fx,
+                    &refl,
+                    depth + 1,
+                    E::child(key, 1),
+                    self.prim,
+                    rays,
+                ) * reflect_w;
+            }
+        }
+    }
+}
+
+/// `dir`, or, where the effects have cones and the material's is wider
+/// than a point (`cos_max` < 1), a direction drawn from the cone around it
+/// with the numbers at `slot` of node `key`; `None` when the drawn one
+/// leaves on the wrong side of the surface (below it for a reflection,
+/// `above`; above it for a refraction): that ray contributes black.
+#[inline]
+fn in_cone<R: Real, E: Effects<R>>(
+    fx: &E,
+    key: E::Key,
+    slot: u32,
+    dir: R::V3,
+    cos_max: R,
+    n: R::V3,
+    above: bool,
+) -> Option<R::V3> {
+    if !(E::CONES && cos_max < R::ONE) {
+        return Some(dir);
+    }
+    let d = cone(dir, cos_max, fx.u(key, slot), fx.u(key, slot + 1));
+    let side = d.dot(n);
+    let ok = if above {
+        side > R::ZERO
+    } else {
+        side < R::ZERO
+    };
+    ok.then_some(d)
+}
