@@ -40,6 +40,7 @@ mod pipelines;
 mod plan;
 mod readback;
 mod trace;
+mod wgsl;
 
 pub use adapter::{AdapterSummary, list_adapters};
 pub use disk_cache::default_dir as default_pipeline_cache_dir;

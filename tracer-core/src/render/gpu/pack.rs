@@ -5,9 +5,6 @@
 use super::{GpuError, GpuRenderer, entire};
 use crate::film::{RayCounts, Rect};
 
-/// The packing kernels (pack.wgsl).
-const PACK_WGSL: &str = include_str!("pack.wgsl");
-
 /// A render's sums in the compact layout: each R, G, B sum of each pixel
 /// (row-major over `rect`) as its low `sum_bytes` bytes, little-endian,
 /// where `sum_bytes` is the fewest bytes every sum needs (at least 1).
@@ -156,7 +153,7 @@ impl GpuRenderer {
                 B::Storage { read_only: false },
                 B::Storage { read_only: false },
             ],
-            PACK_WGSL.to_string(),
+            super::wgsl::pack_source(super::wgsl::FILES),
         );
         let pipeline = |entry: &str| {
             self.device

@@ -6,7 +6,6 @@ use std::sync::mpsc;
 use wgpu::util::DeviceExt as _;
 
 use super::layout::ResolveParams;
-use super::pipelines::RESOLVE_WGSL;
 use super::{GpuError, GpuRenderer, Resolve, Resolver, SUBMISSION_TIMEOUT, entire};
 
 impl Resolve {
@@ -186,7 +185,7 @@ impl GpuRenderer {
                 B::Storage { read_only: true },
                 B::Storage { read_only: false },
             ],
-            RESOLVE_WGSL.concat(),
+            super::wgsl::resolve_source(super::wgsl::FILES),
         );
         Resolver {
             module,
