@@ -1,7 +1,7 @@
 //! The build-time WGSL check (build.rs): the same function build.rs runs,
 //! on the modules as the backend assembles them, then on copies with one
-//! file broken, which must be refused with naga's report naming the module
-//! and the offending line. (By hand: append `fn broken() { let x = ; }` to any .wgsl file
+//! file broken, which must be refused with naga's report naming the file,
+//! line and module. (By hand: append `fn broken() { let x = ; }` to any .wgsl file
 //! in src/render/gpu and `cargo build -p tracer-core` fails with that report.)
 
 #[path = "../build/validate.rs"]
@@ -11,7 +11,7 @@ mod validate;
 mod wgsl;
 
 /// Every module with `name`'s text replaced by `text`.
-fn modules_with(name: &str, text: &str) -> Vec<(String, String)> {
+fn modules_with(name: &str, text: &str) -> Vec<wgsl::Module> {
     let files: Vec<(&str, &str)> = wgsl::FILES
         .iter()
         .map(|&(n, t)| (n, if n == name { text } else { t }))
@@ -27,7 +27,7 @@ fn every_assembled_module_validates() {
         modules.len(),
         8,
         "{:?}",
-        modules.iter().map(|m| &m.0).collect::<Vec<_>>()
+        modules.iter().map(|m| &m.name).collect::<Vec<_>>()
     );
     validate::validate_all(&modules).unwrap();
 }
@@ -37,6 +37,12 @@ fn a_syntax_error_in_a_wgsl_file_is_refused() {
     let broken = format!("{}\nfn broken() {{\n    let x = ;\n}}\n", wgsl::FILES[0].1);
     let report = validate::validate_all(&modules_with(wgsl::FILES[0].0, &broken)).unwrap_err();
     assert!(report.contains("let x = ;"), "{report}");
+    // Named by file and line, though the module is several files.
+    let line = wgsl::FILES[0].1.lines().count() + 3;
+    assert!(
+        report.contains(&format!("{}:{line}: ", wgsl::FILES[0].0)),
+        "{report}"
+    );
 }
 
 #[test]
@@ -49,6 +55,13 @@ fn a_type_error_in_a_wgsl_file_is_refused() {
     let broken = format!("{original}\nfn mistyped() -> u32 {{\n    return 1.5;\n}}\n");
     let report = validate::validate_all(&modules_with("sampling.wgsl", &broken)).unwrap_err();
     // sampling.wgsl is in every scene kernel: all six are refused.
-    assert_eq!(report.matches("scene kernel").count(), 6, "{report}");
+    assert_eq!(
+        report
+            .matches("invalid WGSL in module scene kernel")
+            .count(),
+        6,
+        "{report}"
+    );
     assert!(report.contains("return 1.5;"), "{report}");
+    assert!(report.contains("sampling.wgsl:"), "{report}");
 }

@@ -1,6 +1,8 @@
+//! import whitted.wgsl
+//! import bvh.wgsl
 // Scene queries for worlds with a BVH (world/query.rs): planes by loop, spheres
-// and triangles through the tree, whose root is node 0. Compiled after
-// bvh.wgsl (the traversal) instead of analytic.wgsl.
+// and triangles through the tree, whose root is node 0. The host's
+// choice for such worlds instead of analytic.wgsl.
 
 // world/query.rs closest_hit_accel: planes by loop, then the tree.
 fn closest_hit(o: vec3<f32>, d: vec3<f32>, skip: u32) -> Hit {

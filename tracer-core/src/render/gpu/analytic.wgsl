@@ -1,3 +1,4 @@
+//! import whitted.wgsl
 // Scene queries for worlds without a tree (world/query.rs: the loops over every
 // sphere, then every plane). Compiled instead of bvh.wgsl, so scenes of a
 // few spheres carry no traversal code.

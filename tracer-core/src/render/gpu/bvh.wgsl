@@ -1,3 +1,4 @@
+//! import whitted.wgsl
 // Tree traversal on the GPU (bvh/, triangle.rs): the 4-wide node layout,
 // the same slab test with planes chosen by the direction's sign, the same
 // near-first order and culling, `Triangle::intersect` (the watertight test)

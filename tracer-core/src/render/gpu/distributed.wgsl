@@ -1,9 +1,10 @@
+//! import whitted.wgsl
+//! uses moving_meshes_closest moving_meshes_occluded moving_mesh_of moving_mesh_surface: moving_meshes.wgsl or no_moving_meshes.wgsl
 // Distributed ray tracing on the GPU (issue 16): area lights, gloss and
 // translucency cones, the thin lens, motion over the shutter. The port of
 // `render/cpu/distributed.rs`, step by step, with the same random numbers
 // (sampling.rs: dimensions 2, 3 for the lens, 4 for the time, node keys
-// and slots for the rest). Compiled in (after whitted.wgsl and the scene
-// queries) only for worlds with `World::dist`; entry point `render_dist`.
+// and slots for the rest). Compiled in only for worlds with `World::dist`; entry point `render_dist`.
 // Moving meshes' queries come from moving_meshes.wgsl (after bvh.wgsl),
 // compiled in only for worlds that have them, else from
 // no_moving_meshes.wgsl, where they do nothing.

@@ -1,3 +1,5 @@
+//! import distributed.wgsl
+//! import bvh.wgsl
 // Moving meshes on the GPU (distributed.rs `MovingMesh`; the mesh parts of
 // render/cpu/distributed.rs `closest`, `occluded` and `surface`). Each mesh
 // keeps its own tree, built at the shutter's opening, which lies in
@@ -5,8 +7,8 @@
 // moved by tau * delta, so the ray enters its tree translated by the
 // opposite. The host rebases every tree's triangle indices (layout.rs
 // TreeData::pack), so a triangle's id names one triangle of one mesh: it
-// is the hit's id and the skip id of rays leaving it, as is. Compiled after
-// bvh.wgsl, and only for worlds with moving meshes.
+// is the hit's id and the skip id of rays leaving it, as is. Compiled in
+// only for worlds with moving meshes.
 //
 // Keep in sync with layout.rs `DistData`: after the moving spheres, 3
 // entries per mesh: (lo, root) (hi, first triangle) (delta, -), where

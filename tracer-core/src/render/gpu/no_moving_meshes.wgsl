@@ -1,3 +1,4 @@
+//! import distributed.wgsl
 // The moving-mesh queries of distributed.wgsl for worlds without moving
 // meshes: nothing to hit, so they add no work to the kernel. Compiled
 // instead of moving_meshes.wgsl (which needs bvh.wgsl's traversal).

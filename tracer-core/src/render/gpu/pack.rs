@@ -153,7 +153,7 @@ impl GpuRenderer {
                 B::Storage { read_only: false },
                 B::Storage { read_only: false },
             ],
-            super::wgsl::pack_source(super::wgsl::FILES),
+            super::wgsl::pack_module(super::wgsl::FILES).text,
         );
         let pipeline = |entry: &str| {
             self.device

@@ -185,7 +185,7 @@ impl GpuRenderer {
                 B::Storage { read_only: true },
                 B::Storage { read_only: false },
             ],
-            super::wgsl::resolve_source(super::wgsl::FILES),
+            super::wgsl::resolve_module(super::wgsl::FILES).text,
         );
         Resolver {
             module,

@@ -1,6 +1,6 @@
 // Resolves a film's fixed-point sums to 8-bit sRGB on the GPU, so that a
 // local render reads back 3 bytes a pixel instead of 24. Its bindings are
-// also those of resolve_linear.wgsl, compiled after this file.
+// also those of resolve_linear.wgsl, which imports this file.
 //
 // Bit for bit the host's `Film::srgb8`: WGSL has no f64 to redo the host's
 // `sum / (n * 2^32)` rounding, but the code of a sum only depends on which

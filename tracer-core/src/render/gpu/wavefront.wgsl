@@ -1,3 +1,4 @@
+//! import whitted.wgsl
 // The thesis's weighted ray tasks as a wavefront: instead of one thread
 // walking a sample's whole ray tree, each generation of rays is a queue of
 // tasks (pixel, weight, ray, depth, skip); one dispatch shades a whole

@@ -3,6 +3,13 @@
 //! tracer-core's build.rs (through `#[path]`), which parses and validates
 //! every module assembled here with naga, so a syntax or type error in any
 //! .wgsl file fails `cargo build`. Plain Rust: no wgpu, no naga.
+//!
+//! Imports are explicit: a file's leading `//! import NAME.wgsl` lines
+//! name the files it uses. A module is its roots with everything they
+//! import, each file once, after the files it imports. A few files are
+//! alternatives the host picks per scene (the world's queries: analytic.wgsl
+//! or accel.wgsl; the moving meshes' queries); the files that call them say
+//! so in a `//! uses` line, and the host names the chosen one as a root.
 
 /// Every .wgsl file, by name.
 pub const FILES: &[(&str, &str)] = &[
@@ -28,12 +35,82 @@ pub const FILES: &[(&str, &str)] = &[
 /// build-time check) a copy with one file broken.
 pub type Files<'a> = [(&'a str, &'a str)];
 
-/// The text of the file `name` in `files` ("" for none).
-fn file<'a>(files: &Files<'a>, name: &str) -> &'a str {
-    files
-        .iter()
-        .find(|(n, _)| *n == name)
-        .map_or("", |(_, text)| text)
+/// An assembled module: its text and where each file starts in it.
+#[derive(Clone, Debug)]
+pub struct Module {
+    pub name: String,
+    pub text: String,
+    /// (byte offset, file) in order of the text.
+    pub parts: Vec<(usize, String)>,
+}
+
+impl Module {
+    /// The file and 1-based line in it of byte `offset` of the text.
+    pub fn locate(&self, offset: usize) -> (&str, usize) {
+        let (start, file) = self
+            .parts
+            .iter()
+            .rev()
+            .find(|(start, _)| *start <= offset)
+            .map_or((0, "(generated)"), |(s, f)| (*s, f.as_str()));
+        let line = self.text[start..offset.min(self.text.len())]
+            .matches('\n')
+            .count()
+            + 1;
+        (file, line)
+    }
+}
+
+/// The files a file's leading `//! import NAME` lines name.
+pub fn imports(text: &str) -> impl Iterator<Item = &str> {
+    text.lines()
+        .take_while(|l| l.starts_with("//"))
+        .filter_map(|l| l.strip_prefix("//! import "))
+        .map(str::trim)
+}
+
+/// `roots` and every file they import, each once, each after its imports,
+/// after `prelude` (generated constants). Panics on an import of a file
+/// that does not exist or an import cycle: build.rs assembles every module
+/// the backend can, so such a mistake fails the build.
+pub fn assemble(files: &Files<'_>, name: &str, prelude: &str, roots: &[&str]) -> Module {
+    fn visit(files: &Files<'_>, file: &str, open: &mut Vec<String>, m: &mut Module) {
+        if m.parts.iter().any(|(_, f)| f == file) {
+            return;
+        }
+        assert!(
+            !open.iter().any(|f| f == file),
+            "WGSL import cycle: {} -> {file}",
+            open.join(" -> ")
+        );
+        let text = files
+            .iter()
+            .find(|(n, _)| *n == file)
+            .unwrap_or_else(|| {
+                panic!(
+                    "WGSL: {} imports {file}, which does not exist",
+                    open.last().map_or("the host", |s| s.as_str())
+                )
+            })
+            .1;
+        open.push(file.to_string());
+        for dep in imports(text) {
+            visit(files, dep, open, m);
+        }
+        open.pop();
+        m.parts.push((m.text.len(), file.to_string()));
+        m.text.push_str(text);
+        m.text.push('\n');
+    }
+    let mut m = Module {
+        name: name.to_string(),
+        text: prelude.to_string(),
+        parts: Vec::new(),
+    };
+    for root in roots {
+        visit(files, root, &mut Vec::new(), &mut m);
+    }
+    m
 }
 
 /// How the scene kernel's world is queried.
@@ -98,64 +175,47 @@ impl Kernel {
     /// own or a moving mesh's) compile the BVH traversal, and only those
     /// with distributed effects their kernel.
     pub fn source(&self) -> String {
-        self.source_in(FILES)
+        self.module(FILES).text
     }
 
-    /// [`Kernel::source`] from `files`.
-    pub fn source_in(&self, files: &Files<'_>) -> String {
-        let (traversal, queries) = match self.tree {
-            Tree::Static => ("bvh.wgsl", "accel.wgsl"),
-            Tree::MovingOnly => ("bvh.wgsl", "analytic.wgsl"),
-            Tree::None => ("", "analytic.wgsl"),
-        };
-        let (distributed, moving_meshes) = match self.dist {
-            Dist::MovingMeshes => ("distributed.wgsl", "moving_meshes.wgsl"),
-            Dist::Still => ("distributed.wgsl", "no_moving_meshes.wgsl"),
-            Dist::None => ("", ""),
-        };
-        format!(
-            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{}\n{}\n{}\n{}\n{}\n{}\n{}\n{}",
-            self.stack_cap,
-            self.bvh_stack,
-            file(files, "sampling.wgsl"),
-            file(files, "wide_int.wgsl"),
-            file(files, "whitted.wgsl"),
-            file(files, traversal),
-            file(files, queries),
-            file(files, "wavefront.wgsl"),
-            file(files, distributed),
-            file(files, moving_meshes),
+    /// The kernel assembled from `files`.
+    pub fn module(&self, files: &Files<'_>) -> Module {
+        let mut roots = vec![match self.tree {
+            Tree::Static => "accel.wgsl",
+            Tree::None | Tree::MovingOnly => "analytic.wgsl",
+        }];
+        roots.push("wavefront.wgsl");
+        match self.dist {
+            Dist::MovingMeshes => roots.push("moving_meshes.wgsl"),
+            Dist::Still => roots.push("no_moving_meshes.wgsl"),
+            Dist::None => {}
+        }
+        assemble(
+            files,
+            &format!("scene kernel {:?}/{:?}", self.tree, self.dist),
+            &format!(
+                "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n",
+                self.stack_cap, self.bvh_stack
+            ),
+            &roots,
         )
     }
 }
 
 /// Sums to 8-bit sRGB (PNG) or linear f32 (EXR) on the GPU: one module, both kernels.
-pub fn resolve_source(files: &Files<'_>) -> String {
-    [
-        file(files, "resolve.wgsl"),
-        file(files, "wide_int.wgsl"),
-        file(files, "resolve_linear.wgsl"),
-    ]
-    .concat()
+pub fn resolve_module(files: &Files<'_>) -> Module {
+    assemble(files, "resolve", "", &["resolve_linear.wgsl"])
 }
 
 /// The farm's packing kernels.
-pub fn pack_source(files: &Files<'_>) -> String {
-    file(files, "pack.wgsl").to_string()
+pub fn pack_module(files: &Files<'_>) -> Module {
+    assemble(files, "pack", "", &["pack.wgsl"])
 }
 
-/// Every module the backend compiles, named: what build.rs validates.
-pub fn all_modules(files: &Files<'_>) -> Vec<(String, String)> {
-    let mut all: Vec<(String, String)> = Kernel::variants()
-        .into_iter()
-        .map(|k| {
-            (
-                format!("scene kernel {:?}/{:?}", k.tree, k.dist),
-                k.source_in(files),
-            )
-        })
-        .collect();
-    all.push(("resolve".into(), resolve_source(files)));
-    all.push(("pack".into(), pack_source(files)));
+/// Every module the backend compiles: what build.rs validates.
+pub fn all_modules(files: &Files<'_>) -> Vec<Module> {
+    let mut all: Vec<Module> = Kernel::variants().iter().map(|k| k.module(files)).collect();
+    all.push(resolve_module(files));
+    all.push(pack_module(files));
     all
 }

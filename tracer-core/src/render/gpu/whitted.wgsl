@@ -1,3 +1,6 @@
+//! import sampling.wgsl
+//! import wide_int.wgsl
+//! uses closest_hit occluded surface shading_normal: analytic.wgsl or accel.wgsl
 // The thesis's Whitted model on the GPU: one invocation per pixel-sample;
 // the sample's ray tree is walked with a bounded per-thread task stack
 // (WGSL has no recursion), and its radiance, converted to 32.32 fixed point
@@ -9,9 +12,7 @@
 // shortening, skipped shadow rays, TIR rule).
 //
 // Prepended by the host: `const STACK_CAP: u32 = N;` (see SceneData::stack_capacity),
-// `const BVH_STACK: u32 = N;` (the trees' stack need, at most bvh::STACK), then sampling.wgsl; appended:
-// the scene queries (analytic.wgsl, or bvh.wgsl and accel.wgsl), then wavefront.wgsl, and for
-// distributed effects distributed.wgsl with moving_meshes.wgsl (after bvh.wgsl) or no_moving_meshes.wgsl.
+// `const BVH_STACK: u32 = N;` (the trees' stack need, at most bvh::STACK).
 
 // ---- Layouts: keep in sync with layout.rs -------------------------------
 struct Frame {
