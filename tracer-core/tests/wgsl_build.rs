@@ -65,3 +65,25 @@ fn a_type_error_in_a_wgsl_file_is_refused() {
     assert!(report.contains("return 1.5;"), "{report}");
     assert!(report.contains("sampling.wgsl:"), "{report}");
 }
+
+#[test]
+fn bindings_are_declared_from_the_one_table() {
+    let kernel = wgsl::Kernel::variants()[0].module(wgsl::FILES);
+    // Declared by the table only: no .wgsl file writes a binding.
+    for (name, text) in wgsl::FILES {
+        assert!(!text.contains("@binding("), "{name} declares a binding");
+    }
+    assert!(
+        kernel
+            .text
+            .contains("@group(0) @binding(13) var<storage, read> active_blocks: array<u32>;"),
+        "{}",
+        kernel.text
+    );
+    assert_eq!(wgsl::SCENE.binding("active_blocks"), 13);
+    assert!(
+        kernel.text.contains(
+            "@group(2) @binding(0) var<storage, read_write> wave_args_out: array<u32, 3>;"
+        )
+    );
+}

@@ -45,10 +45,7 @@ struct TriangleShading {
     n2: vec3<f32>,
 }
 
-@group(0) @binding(8) var<storage, read> nodes: array<BvhNode4>;
-@group(0) @binding(9) var<storage, read> prims: array<u32>;
-@group(0) @binding(10) var<storage, read> triangles: array<Triangle>;
-@group(0) @binding(11) var<storage, read> shading: array<TriangleShading>;
+// Bindings 8-11 (nodes, prims, triangles, shading): wgsl.rs SCENE.
 
 // f32::MAX, standing in for 1/0 in the reciprocal direction (bvh/traverse.rs BoxRay).
 const INV_BIG: f32 = 3.4028235e38;

@@ -15,8 +15,7 @@
 // distance; [3]: look_at (opening), fov_y (degrees); [4]: look_at change,
 // fov_y change; [5]: up (unit), aspect. Then 5 entries per light (see
 // `light_point`), 2 per moving sphere and 3 per moving mesh (see
-// moving_meshes.wgsl).
-@group(0) @binding(12) var<storage, read> dist: array<vec4<f32>>;
+// moving_meshes.wgsl). The binding (`dist`, 12): wgsl.rs SCENE.
 
 override N_DLIGHTS: u32 = 0u;
 override N_MOVING: u32 = 0u;

@@ -28,13 +28,9 @@ struct WaveState {
 
 override QUEUE_CAP: u32 = 1u;
 
-@group(1) @binding(0) var<storage, read> queue_in: array<WaveTask>;
-@group(1) @binding(1) var<storage, read_write> queue_out: array<WaveTask>;
-@group(1) @binding(2) var<storage, read_write> wave: WaveState;
-// Indirect dispatch arguments of the next shade pass: a group of its own,
-// which only wave_swap's layout has, because a buffer may not be both
-// written by and the indirect argument of one dispatch.
-@group(2) @binding(0) var<storage, read_write> wave_args_out: array<u32, 3>;
+// Groups 1 (queue_in, queue_out, wave) and 2 (wave_args_out): wgsl.rs
+// WAVE_QUEUES and WAVE_ARGS.
+
 
 fn wave_args(n: u32) -> vec3<u32> {
     return vec3<u32>((n + WG_X * WG_Y - 1u) / (WG_X * WG_Y), 1u, 1u);

@@ -10,6 +10,11 @@
 //! alternatives the host picks per scene (the world's queries: analytic.wgsl
 //! or accel.wgsl; the moving meshes' queries); the files that call them say
 //! so in a `//! uses` line, and the host names the chosen one as a root.
+//!
+//! Each bind group layout is declared once, below ([`SCENE`] and kin):
+//! the host's layout entries and binding numbers and the WGSL `var`
+//! declarations (generated after the file that uses each binding) come
+//! from that one table, so they cannot disagree.
 
 /// Every .wgsl file, by name.
 pub const FILES: &[(&str, &str)] = &[
@@ -38,6 +43,7 @@ pub type Files<'a> = [(&'a str, &'a str)];
 /// An assembled module: its text and where each file starts in it.
 #[derive(Clone, Debug)]
 pub struct Module {
+    #[allow(dead_code)] // build.rs's reports
     pub name: String,
     pub text: String,
     /// (byte offset, file) in order of the text.
@@ -46,6 +52,7 @@ pub struct Module {
 
 impl Module {
     /// The file and 1-based line in it of byte `offset` of the text.
+    #[allow(dead_code)] // build.rs's reports
     pub fn locate(&self, offset: usize) -> (&str, usize) {
         let (start, file) = self
             .parts
@@ -73,8 +80,21 @@ pub fn imports(text: &str) -> impl Iterator<Item = &str> {
 /// after `prelude` (generated constants). Panics on an import of a file
 /// that does not exist or an import cycle: build.rs assembles every module
 /// the backend can, so such a mistake fails the build.
-pub fn assemble(files: &Files<'_>, name: &str, prelude: &str, roots: &[&str]) -> Module {
-    fn visit(files: &Files<'_>, file: &str, open: &mut Vec<String>, m: &mut Module) {
+/// Each file's bindings in `layouts` are declared right after it.
+pub fn assemble(
+    files: &Files<'_>,
+    layouts: &[Layout],
+    name: &str,
+    prelude: &str,
+    roots: &[&str],
+) -> Module {
+    fn visit(
+        files: &Files<'_>,
+        layouts: &[Layout],
+        file: &str,
+        open: &mut Vec<String>,
+        m: &mut Module,
+    ) {
         if m.parts.iter().any(|(_, f)| f == file) {
             return;
         }
@@ -95,12 +115,16 @@ pub fn assemble(files: &Files<'_>, name: &str, prelude: &str, roots: &[&str]) ->
             .1;
         open.push(file.to_string());
         for dep in imports(text) {
-            visit(files, dep, open, m);
+            visit(files, layouts, dep, open, m);
         }
         open.pop();
         m.parts.push((m.text.len(), file.to_string()));
         m.text.push_str(text);
         m.text.push('\n');
+        // The file's bindings, generated from their one declaration.
+        for layout in layouts {
+            m.text.push_str(&layout.declarations(file));
+        }
     }
     let mut m = Module {
         name: name.to_string(),
@@ -108,7 +132,7 @@ pub fn assemble(files: &Files<'_>, name: &str, prelude: &str, roots: &[&str]) ->
         parts: Vec::new(),
     };
     for root in roots {
-        visit(files, root, &mut Vec::new(), &mut m);
+        visit(files, layouts, root, &mut Vec::new(), &mut m);
     }
     m
 }
@@ -148,6 +172,7 @@ pub struct Kernel {
 impl Kernel {
     /// Every variant the host can assemble (with small stacks): what
     /// build.rs validates.
+    #[allow(dead_code)] // build.rs
     pub fn variants() -> Vec<Kernel> {
         let mut all = Vec::new();
         for tree in [Tree::None, Tree::Static, Tree::MovingOnly] {
@@ -192,6 +217,7 @@ impl Kernel {
         }
         assemble(
             files,
+            &[SCENE, WAVE_QUEUES, WAVE_ARGS],
             &format!("scene kernel {:?}/{:?}", self.tree, self.dist),
             &format!(
                 "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n",
@@ -204,18 +230,176 @@ impl Kernel {
 
 /// Sums to 8-bit sRGB (PNG) or linear f32 (EXR) on the GPU: one module, both kernels.
 pub fn resolve_module(files: &Files<'_>) -> Module {
-    assemble(files, "resolve", "", &["resolve_linear.wgsl"])
+    assemble(files, &[RESOLVE], "resolve", "", &["resolve_linear.wgsl"])
 }
 
 /// The farm's packing kernels.
 pub fn pack_module(files: &Files<'_>) -> Module {
-    assemble(files, "pack", "", &["pack.wgsl"])
+    assemble(files, &[PACK], "pack", "", &["pack.wgsl"])
 }
 
 /// Every module the backend compiles: what build.rs validates.
+#[allow(dead_code)] // build.rs
 pub fn all_modules(files: &Files<'_>) -> Vec<Module> {
     let mut all: Vec<Module> = Kernel::variants().iter().map(|k| k.module(files)).collect();
     all.push(resolve_module(files));
     all.push(pack_module(files));
     all
 }
+
+/// How a binding's buffer is bound.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Access {
+    Uniform,
+    /// A uniform buffer bound at a dynamic offset (a dispatch's parameters).
+    UniformDynamic,
+    Read,
+    ReadWrite,
+}
+
+/// One buffer binding: its WGSL name and type, how it is bound, and the
+/// file that uses it (its declaration is generated into every module that
+/// includes that file).
+#[derive(Clone, Copy, Debug)]
+pub struct Binding {
+    pub name: &'static str,
+    pub ty: &'static str,
+    pub access: Access,
+    pub file: &'static str,
+}
+
+/// A bind group's layout, declared once: binding i is `bindings[i]`. The
+/// host's bind group layout entries (render::gpu `layout_entries`), its
+/// bind groups' binding numbers ([`Layout::binding`]) and the WGSL
+/// `@group(g) @binding(i) var` declarations all come from it.
+#[derive(Clone, Copy, Debug)]
+pub struct Layout {
+    pub group: u32,
+    pub bindings: &'static [Binding],
+}
+
+impl Layout {
+    /// The binding number of `name`. Panics on a name the layout lacks: a
+    /// mistake in the host's code, which every GPU test would hit.
+    pub fn binding(&self, name: &str) -> u32 {
+        self.bindings
+            .iter()
+            .position(|b| b.name == name)
+            .unwrap_or_else(|| panic!("no binding {name} in group {}", self.group)) as u32
+    }
+
+    /// The WGSL declarations of the bindings `file` uses.
+    fn declarations(&self, file: &str) -> String {
+        let mut out = String::new();
+        for (i, b) in self.bindings.iter().enumerate() {
+            if b.file == file {
+                let space = match b.access {
+                    Access::Uniform | Access::UniformDynamic => "uniform",
+                    Access::Read => "storage, read",
+                    Access::ReadWrite => "storage, read_write",
+                };
+                out.push_str(&format!(
+                    "@group({}) @binding({i}) var<{space}> {}: {};\n",
+                    self.group, b.name, b.ty
+                ));
+            }
+        }
+        out
+    }
+}
+
+const fn bind(name: &'static str, ty: &'static str, access: Access, file: &'static str) -> Binding {
+    Binding {
+        name,
+        ty,
+        access,
+        file,
+    }
+}
+
+use Access::{Read, ReadWrite, Uniform, UniformDynamic};
+
+/// The scene kernel's group 0.
+pub const SCENE: Layout = Layout {
+    group: 0,
+    bindings: &[
+        bind("frame", "Frame", Uniform, "whitted.wgsl"),
+        bind("params", "Dispatch", UniformDynamic, "whitted.wgsl"),
+        bind("spheres", "array<Sphere>", Read, "whitted.wgsl"),
+        bind("planes", "array<Plane>", Read, "whitted.wgsl"),
+        bind("materials", "array<Material>", Read, "whitted.wgsl"),
+        bind("lights", "array<Light>", Read, "whitted.wgsl"),
+        bind("sums", "array<atomic<u32>>", ReadWrite, "whitted.wgsl"),
+        bind(
+            "counters",
+            "array<atomic<u32>, 10>",
+            ReadWrite,
+            "whitted.wgsl",
+        ),
+        // The BVH: nodes, leaf references, triangles, triangle shading.
+        bind("nodes", "array<BvhNode4>", Read, "bvh.wgsl"),
+        bind("prims", "array<u32>", Read, "bvh.wgsl"),
+        bind("triangles", "array<Triangle>", Read, "bvh.wgsl"),
+        bind("shading", "array<TriangleShading>", Read, "bvh.wgsl"),
+        // Distributed effects (layout.rs DistData; a placeholder without).
+        bind("dist", "array<vec4<f32>>", Read, "distributed.wgsl"),
+        // An adaptive round's active blocks, each (column | row << 16) in
+        // blocks of 8x8 pixels from the film's corner (a placeholder otherwise).
+        bind("active_blocks", "array<u32>", Read, "whitted.wgsl"),
+    ],
+};
+
+/// The wavefront's task queues (group 1 of its passes).
+pub const WAVE_QUEUES: Layout = Layout {
+    group: 1,
+    bindings: &[
+        bind("queue_in", "array<WaveTask>", Read, "wavefront.wgsl"),
+        bind("queue_out", "array<WaveTask>", ReadWrite, "wavefront.wgsl"),
+        bind("wave", "WaveState", ReadWrite, "wavefront.wgsl"),
+    ],
+};
+
+/// Indirect dispatch arguments of the next wavefront shade pass: a group
+/// of its own, which only wave_swap's layout has, because a buffer may not
+/// be both written by and the indirect argument of one dispatch.
+pub const WAVE_ARGS: Layout = Layout {
+    group: 2,
+    bindings: &[bind(
+        "wave_args_out",
+        "array<u32, 3>",
+        ReadWrite,
+        "wavefront.wgsl",
+    )],
+};
+
+/// The GPU resolve (resolve.wgsl and resolve_linear.wgsl).
+pub const RESOLVE: Layout = Layout {
+    group: 0,
+    bindings: &[
+        bind("params", "ResolveParams", Uniform, "resolve.wgsl"),
+        // (low, high) u32 words of each channel's u64 sum, 6 words a pixel.
+        bind("sums", "array<u32>", Read, "resolve.wgsl"),
+        // resolve_srgb8 only. thresholds[k]: the smallest sum (low, high)
+        // whose code is k + 1, k < 255.
+        bind("thresholds", "array<vec2<u32>, 255>", Read, "resolve.wgsl"),
+        // resolve_srgb8: RGB bytes, row-major, packed four to a word
+        // (little-endian): 4 pixels make 3 words, so the read-back is the
+        // image as the PNG encoder wants it. resolve_linear: the f32 bits of
+        // R, G and B, 3 words a pixel.
+        bind("image", "array<u32>", ReadWrite, "resolve.wgsl"),
+    ],
+};
+
+/// The farm's packing (pack.wgsl).
+pub const PACK: Layout = Layout {
+    group: 0,
+    bindings: &[
+        bind("params", "PackParams", Uniform, "pack.wgsl"),
+        // (low, high) u32 words of each channel's u64 sum, 6 words a pixel.
+        bind("sums", "array<u32>", Read, "pack.wgsl"),
+        // The film's width in bytes: the maximum over its sums (cleared to 0 first).
+        bind("width", "atomic<u32>", ReadWrite, "pack.wgsl"),
+        // The packed bytes, four to a word (little-endian); 4 pixels make 3 * width words.
+        bind("packed", "array<u32>", ReadWrite, "pack.wgsl"),
+    ],
+};

@@ -96,17 +96,7 @@ override WG_Y: u32 = 8u;
 // only, and each pixel also sums the squares of its samples.
 override ADAPTIVE: bool = false;
 
-@group(0) @binding(0) var<uniform> frame: Frame;
-@group(0) @binding(1) var<uniform> params: Dispatch;
-@group(0) @binding(2) var<storage, read> spheres: array<Sphere>;
-@group(0) @binding(3) var<storage, read> planes: array<Plane>;
-@group(0) @binding(4) var<storage, read> materials: array<Material>;
-@group(0) @binding(5) var<storage, read> lights: array<Light>;
-@group(0) @binding(6) var<storage, read_write> sums: array<atomic<u32>>;
-@group(0) @binding(7) var<storage, read_write> counters: array<atomic<u32>, 10>;
-// An adaptive round's active blocks, each (column | row << 16) in blocks
-// of 8x8 pixels from the film's corner (a placeholder otherwise).
-@group(0) @binding(13) var<storage, read> active_blocks: array<u32>;
+// Group 0's bindings (frame, params, spheres, ..., active_blocks): wgsl.rs SCENE.
 
 var<workgroup> wg_counts: array<atomic<u32>, 5>;
 var<private> tally: array<u32, 5>;
