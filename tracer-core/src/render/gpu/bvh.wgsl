@@ -1,4 +1,4 @@
-//! import whitted.wgsl
+//! import geometry.wgsl
 // Tree traversal on the GPU (bvh/, triangle.rs): the 4-wide node layout,
 // the same slab test with planes chosen by the direction's sign, the same
 // near-first order and culling, `Triangle::intersect` (the watertight test)
@@ -308,10 +308,10 @@ fn tree_occluded(root: u32, o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -
 
 // world/query.rs triangle_surface: the point snapped onto the plane of triangle
 // `index` and its outward geometric normal.
-fn triangle_surface(index: u32, p: vec3<f32>) -> Surface {
+fn triangle_surface(index: u32, p: vec3<f32>) -> SurfacePoint {
     let s = shading[index];
     let v0 = triangles[index].v0;
-    return Surface(p - s.normal * dot(s.normal, p - v0), s.normal, s.material);
+    return SurfacePoint(p - s.normal * dot(s.normal, p - v0), s.normal, s.material);
 }
 
 // world/query.rs shading_normal for triangle `index`: on smooth triangles the

@@ -78,12 +78,12 @@ fn moving_mesh_of(id: u32) -> u32 {
 
 // distributed.rs surface of a hit at q on moving mesh k: the mesh's own
 // surface at q moved back to the opening, then moved forward again.
-fn moving_mesh_surface(k: u32, id: u32, q: vec3<f32>, v: vec3<f32>, tau: f32) -> DSurface {
+fn moving_mesh_surface(k: u32, id: u32, q: vec3<f32>, v: vec3<f32>, tau: f32) -> Facing {
     let off = dist[moving_mesh_base(k) + 2u].xyz * tau;
     let index = id & ((1u << KIND_SHIFT) - 1u);
     let sf = triangle_surface(index, q - off);
     let entering = dot(sf.n, v) >= 0.0;
     let n = select(-sf.n, sf.n, entering);
     let ns = triangle_shading_normal(index, sf.p, n, v);
-    return DSurface(sf.p + off, n, ns, sf.material, entering);
+    return Facing(sf.p + off, n, ns, sf.material, entering);
 }

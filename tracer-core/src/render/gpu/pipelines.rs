@@ -5,7 +5,7 @@
 use wgpu::util::DeviceExt as _;
 
 use super::layout::{self, SceneData};
-use super::wgsl::{Dist, Kernel, Tree};
+use super::wgsl::{Kernel, Tree};
 use super::{GpuError, GpuRenderer, SceneState, Strategy, WavePipelines, check_size};
 
 impl GpuRenderer {
@@ -93,11 +93,7 @@ impl GpuRenderer {
                 (Some(_), false) => Tree::MovingOnly,
                 (None, _) => Tree::None,
             },
-            dist: match &data.dist {
-                Some(_) if n_moving_meshes > 0 => Dist::MovingMeshes,
-                Some(_) => Dist::Still,
-                None => Dist::None,
-            },
+            moving_meshes: n_moving_meshes > 0,
             stack_cap: data.stack_capacity(),
             // One more entry than these trees can need (checked at packing to
             // be at most bvh::STACK; see bvh.wgsl), so shallow trees keep small stacks.
@@ -122,6 +118,7 @@ impl GpuRenderer {
         let mut all_constants = constants.to_vec();
         if let Some(d) = &data.dist {
             all_constants.extend([
+                ("DISTRIBUTED", 1.0),
                 ("N_DLIGHTS", d.n_lights as f64),
                 ("N_MOVING", d.n_moving as f64),
                 ("HAS_LENS", b(d.has_lens)),
@@ -176,11 +173,7 @@ impl GpuRenderer {
                             label: Some("tessera whitted"),
                             layout: Some(&self.pipeline_layout),
                             module: &module,
-                            entry_point: Some(if data.dist.is_some() {
-                                "render_dist"
-                            } else {
-                                "render"
-                            }),
+                            entry_point: Some("render"),
                             compilation_options: wgpu::PipelineCompilationOptions {
                                 constants: &all_constants,
                                 // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
@@ -257,11 +250,7 @@ impl GpuRenderer {
                 label: Some("tessera adaptive"),
                 layout: Some(&self.pipeline_layout),
                 module: &scene.module,
-                entry_point: Some(if scene.data.dist.is_some() {
-                    "render_dist"
-                } else {
-                    "render"
-                }),
+                entry_point: Some("render"),
                 compilation_options: wgpu::PipelineCompilationOptions {
                     constants: &constants,
                     zero_initialize_workgroup_memory: true,

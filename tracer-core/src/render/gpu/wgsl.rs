@@ -22,6 +22,7 @@ pub const FILES: &[(&str, &str)] = &[
     ("analytic.wgsl", include_str!("analytic.wgsl")),
     ("bvh.wgsl", include_str!("bvh.wgsl")),
     ("distributed.wgsl", include_str!("distributed.wgsl")),
+    ("geometry.wgsl", include_str!("geometry.wgsl")),
     ("moving_meshes.wgsl", include_str!("moving_meshes.wgsl")),
     (
         "no_moving_meshes.wgsl",
@@ -31,6 +32,9 @@ pub const FILES: &[(&str, &str)] = &[
     ("resolve.wgsl", include_str!("resolve.wgsl")),
     ("resolve_linear.wgsl", include_str!("resolve_linear.wgsl")),
     ("sampling.wgsl", include_str!("sampling.wgsl")),
+    ("scene.wgsl", include_str!("scene.wgsl")),
+    ("shade.wgsl", include_str!("shade.wgsl")),
+    ("sums.wgsl", include_str!("sums.wgsl")),
     ("wavefront.wgsl", include_str!("wavefront.wgsl")),
     ("whitted.wgsl", include_str!("whitted.wgsl")),
     ("wide_int.wgsl", include_str!("wide_int.wgsl")),
@@ -148,21 +152,15 @@ pub enum Tree {
     MovingOnly,
 }
 
-/// The scene kernel's distributed effects.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Dist {
-    None,
-    /// Distributed effects without moving meshes.
-    Still,
-    /// With moving meshes (needs a tree: `Tree::Static` or `Tree::MovingOnly`).
-    MovingMeshes,
-}
-
 /// One variant of the scene kernel, as the host picks it for a scene.
+/// Distributed effects are pipeline overrides (distributed.wgsl), not
+/// files: every scene's kernel has them, off by default.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Kernel {
     pub tree: Tree,
-    pub dist: Dist,
+    /// Moving meshes' queries (moving_meshes.wgsl; needs a tree:
+    /// `Tree::Static` or `Tree::MovingOnly`), else their stand-ins.
+    pub moving_meshes: bool,
     /// Entries of the per-thread task stack (layout.rs `stack_capacity`).
     pub stack_cap: u32,
     /// Entries of the BVH traversal stack (at most bvh::STACK + 1).
@@ -174,56 +172,59 @@ impl Kernel {
     /// build.rs validates.
     #[allow(dead_code)] // build.rs
     pub fn variants() -> Vec<Kernel> {
-        let mut all = Vec::new();
-        for tree in [Tree::None, Tree::Static, Tree::MovingOnly] {
-            for dist in [Dist::None, Dist::Still, Dist::MovingMeshes] {
-                let possible = match (tree, dist) {
-                    (Tree::None, Dist::MovingMeshes) => false,
-                    (Tree::MovingOnly, d) => d == Dist::MovingMeshes,
-                    _ => true,
-                };
-                if possible {
-                    all.push(Kernel {
-                        tree,
-                        dist,
-                        stack_cap: 2,
-                        bvh_stack: 25,
-                    });
-                }
-            }
-        }
-        all
+        [
+            (Tree::None, false),
+            (Tree::Static, false),
+            (Tree::Static, true),
+            (Tree::MovingOnly, true),
+        ]
+        .into_iter()
+        .map(|(tree, moving_meshes)| Kernel {
+            tree,
+            moving_meshes,
+            stack_cap: 2,
+            bvh_stack: 25,
+        })
+        .collect()
     }
 
     /// The kernel's WGSL. Its stacks' capacities must be constant
     /// expressions, so they lead the text; only scenes with a tree (their
-    /// own or a moving mesh's) compile the BVH traversal, and only those
-    /// with distributed effects their kernel.
+    /// own or a moving mesh's) compile the BVH traversal.
     pub fn source(&self) -> String {
         self.module(FILES).text
     }
 
-    /// The kernel assembled from `files`.
+    /// The kernel assembled from `files`: the world's queries, the stack
+    /// and wavefront drivers (with the shading step they share), the
+    /// moving meshes' queries.
     pub fn module(&self, files: &Files<'_>) -> Module {
-        let mut roots = vec![match self.tree {
+        let queries = match self.tree {
             Tree::Static => "accel.wgsl",
             Tree::None | Tree::MovingOnly => "analytic.wgsl",
-        }];
-        roots.push("wavefront.wgsl");
-        match self.dist {
-            Dist::MovingMeshes => roots.push("moving_meshes.wgsl"),
-            Dist::Still => roots.push("no_moving_meshes.wgsl"),
-            Dist::None => {}
-        }
+        };
+        let moving = if self.moving_meshes {
+            "moving_meshes.wgsl"
+        } else {
+            "no_moving_meshes.wgsl"
+        };
         assemble(
             files,
             &[SCENE, WAVE_QUEUES, WAVE_ARGS],
-            &format!("scene kernel {:?}/{:?}", self.tree, self.dist),
+            &format!(
+                "scene kernel {:?}{}",
+                self.tree,
+                if self.moving_meshes {
+                    "+moving meshes"
+                } else {
+                    ""
+                }
+            ),
             &format!(
                 "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n",
                 self.stack_cap, self.bvh_stack
             ),
-            &roots,
+            &[queries, "whitted.wgsl", "wavefront.wgsl", moving],
         )
     }
 }
@@ -323,18 +324,18 @@ use Access::{Read, ReadWrite, Uniform, UniformDynamic};
 pub const SCENE: Layout = Layout {
     group: 0,
     bindings: &[
-        bind("frame", "Frame", Uniform, "whitted.wgsl"),
-        bind("params", "Dispatch", UniformDynamic, "whitted.wgsl"),
-        bind("spheres", "array<Sphere>", Read, "whitted.wgsl"),
-        bind("planes", "array<Plane>", Read, "whitted.wgsl"),
-        bind("materials", "array<Material>", Read, "whitted.wgsl"),
-        bind("lights", "array<Light>", Read, "whitted.wgsl"),
-        bind("sums", "array<atomic<u32>>", ReadWrite, "whitted.wgsl"),
+        bind("frame", "Frame", Uniform, "scene.wgsl"),
+        bind("params", "Dispatch", UniformDynamic, "scene.wgsl"),
+        bind("spheres", "array<Sphere>", Read, "scene.wgsl"),
+        bind("planes", "array<Plane>", Read, "scene.wgsl"),
+        bind("materials", "array<Material>", Read, "scene.wgsl"),
+        bind("lights", "array<Light>", Read, "scene.wgsl"),
+        bind("sums", "array<atomic<u32>>", ReadWrite, "scene.wgsl"),
         bind(
             "counters",
             "array<atomic<u32>, 10>",
             ReadWrite,
-            "whitted.wgsl",
+            "scene.wgsl",
         ),
         // The BVH: nodes, leaf references, triangles, triangle shading.
         bind("nodes", "array<BvhNode4>", Read, "bvh.wgsl"),
@@ -345,7 +346,7 @@ pub const SCENE: Layout = Layout {
         bind("dist", "array<vec4<f32>>", Read, "distributed.wgsl"),
         // An adaptive round's active blocks, each (column | row << 16) in
         // blocks of 8x8 pixels from the film's corner (a placeholder otherwise).
-        bind("active_blocks", "array<u32>", Read, "whitted.wgsl"),
+        bind("active_blocks", "array<u32>", Read, "scene.wgsl"),
     ],
 };
 
