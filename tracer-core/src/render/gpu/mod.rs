@@ -18,7 +18,11 @@
 //! same kernel compiled with `ADAPTIVE`, which also sums each pixel's
 //! squared fixed-point samples (four carried u32 words a channel).
 //!
-//! `whitted.wgsl` mirrors `render/whitted.rs`; `sampling.wgsl` mirrors
+//! WGSL: `wgsl.rs` assembles each module from the .wgsl files' explicit
+//! `//! import` lines and declares every bind group layout once (build.rs
+//! validates every module with naga). `shade.wgsl` is the one shading
+//! step (`render/whitted.rs`, `render/cpu/distributed.rs`), driven by
+//! `whitted.wgsl` (stack) and `wavefront.wgsl`; `sampling.wgsl` mirrors
 //! `sampling.rs`; `layout.rs` mirrors the WGSL structs.
 //!
 //! Files: this one has the renderer's types, the device it opens and the

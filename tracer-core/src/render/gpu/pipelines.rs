@@ -164,7 +164,7 @@ impl GpuRenderer {
                 let module = self
                     .device
                     .create_shader_module(wgpu::ShaderModuleDescriptor {
-                        label: Some("whitted.wgsl"),
+                        label: Some("tessera scene kernel"),
                         source: wgpu::ShaderSource::Wgsl(source.as_str().into()),
                     });
                 let pipeline =

@@ -85,7 +85,7 @@ impl GpuRenderer {
         }
         let out = out_guard.as_ref().expect("just set");
         // An adaptive round's grid: 8 columns, 8 rows per active block
-        // (whitted.wgsl grid_pixel), its blocks listed as column | row << 16.
+        // (sums.wgsl grid_pixel), its blocks listed as column | row << 16.
         let blocks: Vec<u32> = mask.map_or_else(Vec::new, |m| {
             let cols = m.cols() as usize;
             m.active
