@@ -64,7 +64,10 @@ fn a_type_error_in_a_wgsl_file_is_refused() {
     );
     assert!(report.contains("return 1.5;"), "{report}");
     let line = original.lines().count() + 3;
-    assert!(report.contains(&format!("sampling.wgsl:{line}: ")), "{report}");
+    assert!(
+        report.contains(&format!("sampling.wgsl:{line}: ")),
+        "{report}"
+    );
 }
 
 #[test]
