@@ -1,6 +1,8 @@
+//! import geometry.wgsl
+//! import bvh.wgsl
 // Scene queries for worlds with a BVH (world/query.rs): planes by loop, spheres
-// and triangles through the tree, whose root is node 0. Compiled after
-// bvh.wgsl (the traversal) instead of analytic.wgsl.
+// and triangles through the tree, whose root is node 0. The host's
+// choice for such worlds instead of analytic.wgsl.
 
 // world/query.rs closest_hit_accel: planes by loop, then the tree.
 fn closest_hit(o: vec3<f32>, d: vec3<f32>, skip: u32) -> Hit {
@@ -13,7 +15,7 @@ fn occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
 
 // world/query.rs surface; for triangles (triangle_surface there) the point
 // snapped onto the triangle's plane and its outward geometric normal.
-fn surface(id: u32, p: vec3<f32>) -> Surface {
+fn surface(id: u32, p: vec3<f32>) -> SurfacePoint {
     if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
         return analytic_surface(id, p);
     }

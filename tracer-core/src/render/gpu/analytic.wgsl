@@ -1,3 +1,4 @@
+//! import geometry.wgsl
 // Scene queries for worlds without a tree (world/query.rs: the loops over every
 // sphere, then every plane). Compiled instead of bvh.wgsl, so scenes of a
 // few spheres carry no traversal code.
@@ -10,7 +11,7 @@ fn occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
     return spheres_occlude(o, d, t_max, skip) || planes_occlude(o, d, t_max, skip);
 }
 
-fn surface(id: u32, p: vec3<f32>) -> Surface {
+fn surface(id: u32, p: vec3<f32>) -> SurfacePoint {
     return analytic_surface(id, p);
 }
 

@@ -1,3 +1,4 @@
+//! import geometry.wgsl
 // Tree traversal on the GPU (bvh/, triangle.rs): the 4-wide node layout,
 // the same slab test with planes chosen by the direction's sign, the same
 // near-first order and culling, `Triangle::intersect` (the watertight test)
@@ -44,10 +45,7 @@ struct TriangleShading {
     n2: vec3<f32>,
 }
 
-@group(0) @binding(8) var<storage, read> nodes: array<BvhNode4>;
-@group(0) @binding(9) var<storage, read> prims: array<u32>;
-@group(0) @binding(10) var<storage, read> triangles: array<Triangle>;
-@group(0) @binding(11) var<storage, read> shading: array<TriangleShading>;
+// Bindings 8-11 (nodes, prims, triangles, shading): wgsl.rs SCENE.
 
 // f32::MAX, standing in for 1/0 in the reciprocal direction (bvh/traverse.rs BoxRay).
 const INV_BIG: f32 = 3.4028235e38;
@@ -310,10 +308,10 @@ fn tree_occluded(root: u32, o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -
 
 // world/query.rs triangle_surface: the point snapped onto the plane of triangle
 // `index` and its outward geometric normal.
-fn triangle_surface(index: u32, p: vec3<f32>) -> Surface {
+fn triangle_surface(index: u32, p: vec3<f32>) -> SurfacePoint {
     let s = shading[index];
     let v0 = triangles[index].v0;
-    return Surface(p - s.normal * dot(s.normal, p - v0), s.normal, s.material);
+    return SurfacePoint(p - s.normal * dot(s.normal, p - v0), s.normal, s.material);
 }
 
 // world/query.rs shading_normal for triangle `index`: on smooth triangles the

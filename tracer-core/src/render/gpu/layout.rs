@@ -1,6 +1,6 @@
 //! Host mirrors of every structure the WGSL kernel reads or writes.
 //!
-//! Keep in sync with the struct declarations at the top of `whitted.wgsl`
+//! Keep in sync with the struct declarations of `scene.wgsl`
 //! (and, for meshes and the BVH, `bvh.wgsl`; for distributed effects the
 //! `dist` words of `distributed.wgsl` and `moving_meshes.wgsl`; for the
 //! resolve, `resolve.wgsl`):
@@ -54,7 +54,7 @@ pub struct DispatchParams {
     pub frame: u32,
     /// The film's size. Equal to `rect_w` x `rect_h` in a uniform render;
     /// in an adaptive round the grid (`rect_w` x `rect_h`) is 8 columns by
-    /// 8 rows per active block instead (whitted.wgsl `grid_pixel`).
+    /// 8 rows per active block instead (sums.wgsl `grid_pixel`).
     pub film_w: u32,
     pub film_h: u32,
     pub _pad: u32,

@@ -18,7 +18,11 @@
 //! same kernel compiled with `ADAPTIVE`, which also sums each pixel's
 //! squared fixed-point samples (four carried u32 words a channel).
 //!
-//! `whitted.wgsl` mirrors `render/whitted.rs`; `sampling.wgsl` mirrors
+//! WGSL: `wgsl.rs` assembles each module from the .wgsl files' explicit
+//! `//! import` lines and declares every bind group layout once (build.rs
+//! validates every module with naga). `shade.wgsl` is the one shading
+//! step (`render/whitted.rs`, `render/cpu/distributed.rs`), driven by
+//! `whitted.wgsl` (stack) and `wavefront.wgsl`; `sampling.wgsl` mirrors
 //! `sampling.rs`; `layout.rs` mirrors the WGSL structs.
 //!
 //! Files: this one has the renderer's types, the device it opens and the
@@ -40,6 +44,7 @@ mod pipelines;
 mod plan;
 mod readback;
 mod trace;
+mod wgsl;
 
 pub use adapter::{AdapterSummary, list_adapters};
 pub use disk_cache::default_dir as default_pipeline_cache_dir;
@@ -436,47 +441,9 @@ impl GpuRenderer {
             }));
         }
 
-        let storage = |binding, read_only| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Storage { read_only },
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
-        let uniform = |binding, dynamic| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: wgpu::BufferBindingType::Uniform,
-                has_dynamic_offset: dynamic,
-                min_binding_size: None,
-            },
-            count: None,
-        };
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tessera scene"),
-            entries: &[
-                uniform(0, false),
-                uniform(1, true),
-                storage(2, true),
-                storage(3, true),
-                storage(4, true),
-                storage(5, true),
-                storage(6, false),
-                storage(7, false),
-                // The BVH: nodes, leaf references, triangles, triangle shading.
-                storage(8, true),
-                storage(9, true),
-                storage(10, true),
-                storage(11, true),
-                // Distributed effects (distributed.wgsl; a placeholder elsewhere).
-                storage(12, true),
-                // An adaptive round's active blocks (a placeholder elsewhere).
-                storage(13, true),
-            ],
+            entries: &layout_entries(&wgsl::SCENE),
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("tessera"),
@@ -485,11 +452,11 @@ impl GpuRenderer {
         });
         let wave_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tessera wavefront queues"),
-            entries: &[storage(0, true), storage(1, false), storage(2, false)],
+            entries: &layout_entries(&wgsl::WAVE_QUEUES),
         });
         let wave_args_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("tessera wavefront args"),
-            entries: &[storage(0, false)],
+            entries: &layout_entries(&wgsl::WAVE_ARGS),
         });
         let wave_pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("tessera wavefront"),
@@ -542,33 +509,20 @@ impl GpuRenderer {
             .load(std::sync::atomic::Ordering::Relaxed)
     }
 
-    /// A post-processing kernel's bind group layout (one buffer a binding,
-    /// in order, of these kinds), its pipeline layout and its module: the
-    /// GPU resolve and the GPU packing share this shape.
+    /// A post-processing kernel's bind group layout (`bindings`), its
+    /// pipeline layout and its module: the GPU resolve and the GPU packing
+    /// share this shape.
     fn compute_kernel(
         &self,
         label: &str,
-        bindings: &[wgpu::BufferBindingType],
-        wgsl: String,
+        bindings: &wgsl::Layout,
+        module: wgsl::Module,
     ) -> (
         wgpu::BindGroupLayout,
         wgpu::PipelineLayout,
         wgpu::ShaderModule,
     ) {
-        let entries: Vec<_> = bindings
-            .iter()
-            .enumerate()
-            .map(|(binding, &ty)| wgpu::BindGroupLayoutEntry {
-                binding: binding as u32,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Buffer {
-                    ty,
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
-                },
-                count: None,
-            })
-            .collect();
+        let entries = layout_entries(bindings);
         let layout = self
             .device
             .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -586,7 +540,7 @@ impl GpuRenderer {
             .device
             .create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some(label),
-                source: wgpu::ShaderSource::Wgsl(wgsl.into()),
+                source: wgpu::ShaderSource::Wgsl(module.text.into()),
             });
         (layout, pipeline_layout, module)
     }
@@ -824,6 +778,33 @@ impl GpuRenderer {
         }
         result
     }
+}
+
+/// The bind group layout entries of `layout` (declared once, in wgsl.rs).
+fn layout_entries(layout: &wgsl::Layout) -> Vec<wgpu::BindGroupLayoutEntry> {
+    use wgpu::BufferBindingType as B;
+    use wgsl::Access;
+    (0u32..)
+        .zip(layout.bindings)
+        .map(|(binding, b)| {
+            let (ty, has_dynamic_offset) = match b.access {
+                Access::Uniform => (B::Uniform, false),
+                Access::UniformDynamic => (B::Uniform, true),
+                Access::Read => (B::Storage { read_only: true }, false),
+                Access::ReadWrite => (B::Storage { read_only: false }, false),
+            };
+            wgpu::BindGroupLayoutEntry {
+                binding,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty,
+                    has_dynamic_offset,
+                    min_binding_size: None,
+                },
+                count: None,
+            }
+        })
+        .collect()
 }
 
 fn entire(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {

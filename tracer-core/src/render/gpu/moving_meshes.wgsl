@@ -1,3 +1,5 @@
+//! import distributed.wgsl
+//! import bvh.wgsl
 // Moving meshes on the GPU (distributed.rs `MovingMesh`; the mesh parts of
 // render/cpu/distributed.rs `closest`, `occluded` and `surface`). Each mesh
 // keeps its own tree, built at the shutter's opening, which lies in
@@ -5,8 +7,8 @@
 // moved by tau * delta, so the ray enters its tree translated by the
 // opposite. The host rebases every tree's triangle indices (layout.rs
 // TreeData::pack), so a triangle's id names one triangle of one mesh: it
-// is the hit's id and the skip id of rays leaving it, as is. Compiled after
-// bvh.wgsl, and only for worlds with moving meshes.
+// is the hit's id and the skip id of rays leaving it, as is. Compiled in
+// only for worlds with moving meshes.
 //
 // Keep in sync with layout.rs `DistData`: after the moving spheres, 3
 // entries per mesh: (lo, root) (hi, first triangle) (delta, -), where
@@ -76,12 +78,12 @@ fn moving_mesh_of(id: u32) -> u32 {
 
 // distributed.rs surface of a hit at q on moving mesh k: the mesh's own
 // surface at q moved back to the opening, then moved forward again.
-fn moving_mesh_surface(k: u32, id: u32, q: vec3<f32>, v: vec3<f32>, tau: f32) -> DSurface {
+fn moving_mesh_surface(k: u32, id: u32, q: vec3<f32>, v: vec3<f32>, tau: f32) -> Facing {
     let off = dist[moving_mesh_base(k) + 2u].xyz * tau;
     let index = id & ((1u << KIND_SHIFT) - 1u);
     let sf = triangle_surface(index, q - off);
     let entering = dot(sf.n, v) >= 0.0;
     let n = select(-sf.n, sf.n, entering);
     let ns = triangle_shading_normal(index, sf.p, n, v);
-    return DSurface(sf.p + off, n, ns, sf.material, entering);
+    return Facing(sf.p + off, n, ns, sf.material, entering);
 }

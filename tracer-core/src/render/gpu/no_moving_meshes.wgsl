@@ -1,3 +1,4 @@
+//! import distributed.wgsl
 // The moving-mesh queries of distributed.wgsl for worlds without moving
 // meshes: nothing to hit, so they add no work to the kernel. Compiled
 // instead of moving_meshes.wgsl (which needs bvh.wgsl's traversal).
@@ -15,6 +16,6 @@ fn moving_mesh_of(id: u32) -> u32 {
 }
 
 // Never called: moving_mesh_of finds no mesh.
-fn moving_mesh_surface(k: u32, id: u32, q: vec3<f32>, v: vec3<f32>, tau: f32) -> DSurface {
-    return DSurface(q, v, v, 0u, true);
+fn moving_mesh_surface(k: u32, id: u32, q: vec3<f32>, v: vec3<f32>, tau: f32) -> Facing {
+    return Facing(q, v, v, 0u, true);
 }

@@ -2,11 +2,8 @@
 //! (`tessera_proto::film_codec`): a GPU worker reads back only those bytes
 //! and sends them as they are.
 
-use super::{GpuError, GpuRenderer, entire};
+use super::{GpuError, GpuRenderer, entire, wgsl};
 use crate::film::{RayCounts, Rect};
-
-/// The packing kernels (pack.wgsl).
-const PACK_WGSL: &str = include_str!("pack.wgsl");
 
 /// A render's sums in the compact layout: each R, G, B sum of each pixel
 /// (row-major over `rect`) as its low `sum_bytes` bytes, little-endian,
@@ -68,21 +65,22 @@ impl GpuRenderer {
             0,
             bytemuck::cast_slice(&[pixels as u32, 0, 0, 0]),
         );
+        let b = |name| wgsl::PACK.binding(name);
         let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tessera pack"),
             layout: &p.layout,
             entries: &[
-                entire(0, &p.params),
+                entire(b("params"), &p.params),
                 wgpu::BindGroupEntry {
-                    binding: 1,
+                    binding: b("sums"),
                     resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                         buffer: sums,
                         offset: 0,
                         size: wgpu::BufferSize::new(sums_bytes),
                     }),
                 },
-                entire(2, &p.width),
-                entire(3, &p.packed),
+                entire(b("width"), &p.width),
+                entire(b("packed"), &p.packed),
             ],
         });
         enc.clear_buffer(&p.width, 0, None);
@@ -147,17 +145,8 @@ impl GpuRenderer {
                 ..old
             };
         }
-        use wgpu::BufferBindingType as B;
-        let (layout, pipeline_layout, module) = self.compute_kernel(
-            "tessera pack",
-            &[
-                B::Uniform,
-                B::Storage { read_only: true },
-                B::Storage { read_only: false },
-                B::Storage { read_only: false },
-            ],
-            PACK_WGSL.to_string(),
-        );
+        let (layout, pipeline_layout, module) =
+            self.compute_kernel("tessera pack", &wgsl::PACK, wgsl::pack_module(wgsl::FILES));
         let pipeline = |entry: &str| {
             self.device
                 .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {

@@ -13,13 +13,7 @@ struct PackParams {
     _pad2: u32,
 }
 
-@group(0) @binding(0) var<uniform> params: PackParams;
-// (low, high) u32 words of each channel's u64 sum, 6 words a pixel.
-@group(0) @binding(1) var<storage, read> sums: array<u32>;
-// The film's width in bytes: the maximum over its sums (cleared to 0 first).
-@group(0) @binding(2) var<storage, read_write> width: atomic<u32>;
-// The packed bytes, four to a word (little-endian); 4 pixels make 3 * width words.
-@group(0) @binding(3) var<storage, read_write> packed: array<u32>;
+// Bindings: wgsl.rs PACK.
 
 var<workgroup> group_width: atomic<u32>;
 

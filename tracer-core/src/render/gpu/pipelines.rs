@@ -5,31 +5,8 @@
 use wgpu::util::DeviceExt as _;
 
 use super::layout::{self, SceneData};
+use super::wgsl::{Kernel, Tree};
 use super::{GpuError, GpuRenderer, SceneState, Strategy, WavePipelines, check_size};
-
-const SAMPLING_WGSL: &str = include_str!("sampling.wgsl");
-const WHITTED_WGSL: &str = include_str!("whitted.wgsl");
-/// `mul_wide` and kin, for the kernel's sums and the linear resolve.
-const WIDE_INT_WGSL: &str = include_str!("wide_int.wgsl");
-const WAVEFRONT_WGSL: &str = include_str!("wavefront.wgsl");
-/// Scene queries for worlds without a tree: loops over spheres and planes.
-const ANALYTIC_WGSL: &str = include_str!("analytic.wgsl");
-const DISTRIBUTED_WGSL: &str = include_str!("distributed.wgsl");
-/// Moving meshes' queries for distributed.wgsl (needs BVH_WGSL) ...
-const MOVING_MESHES_WGSL: &str = include_str!("moving_meshes.wgsl");
-/// ... and their stand-ins for worlds without moving meshes.
-const NO_MOVING_MESHES_WGSL: &str = include_str!("no_moving_meshes.wgsl");
-/// Sums to 8-bit sRGB (PNG) or linear f32 (EXR) on the GPU, for renders
-/// that read back only the image: one module, both kernels.
-pub(super) const RESOLVE_WGSL: [&str; 3] = [
-    include_str!("resolve.wgsl"),
-    WIDE_INT_WGSL,
-    include_str!("resolve_linear.wgsl"),
-];
-/// Tree traversal, for worlds with a BVH (meshes, many spheres) or moving meshes.
-const BVH_WGSL: &str = include_str!("bvh.wgsl");
-/// Scene queries for worlds with a BVH, through BVH_WGSL.
-const ACCEL_WGSL: &str = include_str!("accel.wgsl");
 
 impl GpuRenderer {
     /// The scene's buffers and its specialised pipelines. The pipelines of
@@ -109,32 +86,24 @@ impl GpuRenderer {
             Some(d) => make("distributed", bytemuck::cast_slice(&d.words), st),
             None => make("distributed", &[0u8; 64], st),
         };
-        // Generated part: the stacks' capacities must be constant
-        // expressions. Only scenes with a tree (their own or a moving
-        // mesh's) compile the BVH traversal.
-        let (traversal, queries) = match (&data.tree, data.static_tree) {
-            (Some(_), true) => (BVH_WGSL, ACCEL_WGSL),
-            (Some(_), false) => (BVH_WGSL, ANALYTIC_WGSL),
-            (None, _) => ("", ANALYTIC_WGSL),
-        };
-        // Only scenes with distributed effects compile their kernel, and
-        // only those with moving meshes its moving-mesh queries.
         let n_moving_meshes = data.dist.as_ref().map_or(0, |d| d.n_moving_meshes);
-        let (distributed, moving_meshes) = match &data.dist {
-            Some(_) if n_moving_meshes > 0 => (DISTRIBUTED_WGSL, MOVING_MESHES_WGSL),
-            Some(_) => (DISTRIBUTED_WGSL, NO_MOVING_MESHES_WGSL),
-            None => ("", ""),
-        };
-        let source = format!(
-            "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n{SAMPLING_WGSL}\n{WIDE_INT_WGSL}\n{WHITTED_WGSL}\n{traversal}\n{queries}\n{WAVEFRONT_WGSL}\n{distributed}\n{moving_meshes}",
-            data.stack_capacity(),
+        let kernel = Kernel {
+            tree: match (&data.tree, data.static_tree) {
+                (Some(_), true) => Tree::Static,
+                (Some(_), false) => Tree::MovingOnly,
+                (None, _) => Tree::None,
+            },
+            moving_meshes: n_moving_meshes > 0,
+            stack_cap: data.stack_capacity(),
             // One more entry than these trees can need (checked at packing to
             // be at most bvh::STACK; see bvh.wgsl), so shallow trees keep small stacks.
-            data.tree
+            bvh_stack: data
+                .tree
                 .as_ref()
                 .map_or(crate::bvh::STACK as u32, |t| t.data.stack)
-                + 1
-        );
+                + 1,
+        };
+        let source = kernel.source();
         let b = |v: bool| if v { 1.0 } else { 0.0 };
         let constants = [
             ("N_SPHERES", data.n_spheres as f64),
@@ -149,6 +118,7 @@ impl GpuRenderer {
         let mut all_constants = constants.to_vec();
         if let Some(d) = &data.dist {
             all_constants.extend([
+                ("DISTRIBUTED", 1.0),
                 ("N_DLIGHTS", d.n_lights as f64),
                 ("N_MOVING", d.n_moving as f64),
                 ("HAS_LENS", b(d.has_lens)),
@@ -194,7 +164,7 @@ impl GpuRenderer {
                 let module = self
                     .device
                     .create_shader_module(wgpu::ShaderModuleDescriptor {
-                        label: Some("whitted.wgsl"),
+                        label: Some("tessera scene kernel"),
                         source: wgpu::ShaderSource::Wgsl(source.as_str().into()),
                     });
                 let pipeline =
@@ -203,11 +173,7 @@ impl GpuRenderer {
                             label: Some("tessera whitted"),
                             layout: Some(&self.pipeline_layout),
                             module: &module,
-                            entry_point: Some(if data.dist.is_some() {
-                                "render_dist"
-                            } else {
-                                "render"
-                            }),
+                            entry_point: Some("render"),
                             compilation_options: wgpu::PipelineCompilationOptions {
                                 constants: &all_constants,
                                 // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
@@ -284,11 +250,7 @@ impl GpuRenderer {
                 label: Some("tessera adaptive"),
                 layout: Some(&self.pipeline_layout),
                 module: &scene.module,
-                entry_point: Some(if scene.data.dist.is_some() {
-                    "render_dist"
-                } else {
-                    "render"
-                }),
+                entry_point: Some("render"),
                 compilation_options: wgpu::PipelineCompilationOptions {
                     constants: &constants,
                     zero_initialize_workgroup_memory: true,

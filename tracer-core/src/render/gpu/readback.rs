@@ -6,8 +6,7 @@ use std::sync::mpsc;
 use wgpu::util::DeviceExt as _;
 
 use super::layout::ResolveParams;
-use super::pipelines::RESOLVE_WGSL;
-use super::{GpuError, GpuRenderer, Resolve, Resolver, SUBMISSION_TIMEOUT, entire};
+use super::{GpuError, GpuRenderer, Resolve, Resolver, SUBMISSION_TIMEOUT, entire, wgsl};
 
 impl Resolve {
     fn entry_point(self) -> &'static str {
@@ -83,21 +82,22 @@ impl GpuRenderer {
             0,
             bytemuck::bytes_of(&ResolveParams::new(pixels, n)),
         );
+        let b = |name| wgsl::RESOLVE.binding(name);
         let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tessera resolve"),
             layout: &r.layout,
             entries: &[
-                entire(0, &r.params),
+                entire(b("params"), &r.params),
                 wgpu::BindGroupEntry {
-                    binding: 1,
+                    binding: b("sums"),
                     resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                         buffer: sums,
                         offset: 0,
                         size: wgpu::BufferSize::new(sums_bytes),
                     }),
                 },
-                entire(2, &r.thresholds),
-                entire(3, &r.image),
+                entire(b("thresholds"), &r.thresholds),
+                entire(b("image"), &r.image),
             ],
         });
         {
@@ -177,16 +177,10 @@ impl GpuRenderer {
                 ..old
             };
         }
-        use wgpu::BufferBindingType as B;
         let (layout, pipeline_layout, module) = self.compute_kernel(
             "tessera resolve",
-            &[
-                B::Uniform,
-                B::Storage { read_only: true },
-                B::Storage { read_only: true },
-                B::Storage { read_only: false },
-            ],
-            RESOLVE_WGSL.concat(),
+            &wgsl::RESOLVE,
+            wgsl::resolve_module(wgsl::FILES),
         );
         Resolver {
             module,

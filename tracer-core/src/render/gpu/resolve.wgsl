@@ -1,6 +1,6 @@
 // Resolves a film's fixed-point sums to 8-bit sRGB on the GPU, so that a
 // local render reads back 3 bytes a pixel instead of 24. Its bindings are
-// also those of resolve_linear.wgsl, compiled after this file.
+// also those of resolve_linear.wgsl, which imports this file.
 //
 // Bit for bit the host's `Film::srgb8`: WGSL has no f64 to redo the host's
 // `sum / (n * 2^32)` rounding, but the code of a sum only depends on which
@@ -19,17 +19,7 @@ struct ResolveParams {
     scale_hi: u32,
 }
 
-@group(0) @binding(0) var<uniform> params: ResolveParams;
-// (low, high) u32 words of each channel's u64 sum, 6 words a pixel.
-@group(0) @binding(1) var<storage, read> sums: array<u32>;
-// resolve_srgb8 only. thresholds[k]: the smallest sum (low, high) whose
-// code is k + 1, k < 255.
-@group(0) @binding(2) var<storage, read> thresholds: array<vec2<u32>, 255>;
-// resolve_srgb8: RGB bytes, row-major, packed four to a word
-// (little-endian): 4 pixels make 3 words, so the read-back is the image as
-// the PNG encoder wants it. resolve_linear: the f32 bits of R, G and B, 3
-// words a pixel.
-@group(0) @binding(3) var<storage, read_write> image: array<u32>;
+// Bindings: wgsl.rs RESOLVE.
 
 fn reaches(lo: u32, hi: u32, t: vec2<u32>) -> bool {
     return hi > t.y || (hi == t.y && lo >= t.x);

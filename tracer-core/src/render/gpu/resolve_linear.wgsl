@@ -1,6 +1,8 @@
+//! import resolve.wgsl
+//! import wide_int.wgsl
 // Resolves a film's fixed-point sums to linear f32 RGB on the GPU, so that
 // a local render to EXR reads back 12 bytes a pixel instead of 24.
-// Compiled after resolve.wgsl, whose bindings it uses.
+// Uses resolve.wgsl's bindings.
 //
 // Bit for bit the host's `resolve_pixel` (film/mod.rs):
 //     (s as f64 * scale) as f32,  scale = 1 / (n * 2^32) as f64,

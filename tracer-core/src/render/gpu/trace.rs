@@ -9,6 +9,7 @@ use wgpu::util::DeviceExt as _;
 use super::layout::{self, ADAPTIVE_SUM_WORDS, COUNTERS, DispatchParams, SUM_WORDS, SceneData};
 use super::plan::plan;
 use super::readback::linear_pixels;
+use super::wgsl;
 use super::{
     GpuError, GpuOptions, GpuRenderer, GpuStats, LinearImage, Outputs, PARAMS_SLOTS, PARAMS_STRIDE,
     PackedSums, Readout, Rendered, Resolve, Srgb8Image, WaveBuffers, check_size, entire,
@@ -84,7 +85,7 @@ impl GpuRenderer {
         }
         let out = out_guard.as_ref().expect("just set");
         // An adaptive round's grid: 8 columns, 8 rows per active block
-        // (whitted.wgsl grid_pixel), its blocks listed as column | row << 16.
+        // (sums.wgsl grid_pixel), its blocks listed as column | row << 16.
         let blocks: Vec<u32> = mask.map_or_else(Vec::new, |m| {
             let cols = m.cols() as usize;
             m.active
@@ -125,38 +126,42 @@ impl GpuRenderer {
             }
         };
 
+        let b = |name| wgsl::SCENE.binding(name);
         let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tessera render"),
             layout: &self.layout,
             entries: &[
-                entire(0, &scene.frame),
+                entire(b("frame"), &scene.frame),
                 wgpu::BindGroupEntry {
-                    binding: 1,
+                    binding: b("params"),
                     resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                         buffer: &out.params,
                         offset: 0,
                         size: wgpu::BufferSize::new(size_of::<DispatchParams>() as u64),
                     }),
                 },
-                entire(2, &scene.spheres),
-                entire(3, &scene.planes),
-                entire(4, &scene.materials),
-                entire(5, &scene.lights),
+                entire(b("spheres"), &scene.spheres),
+                entire(b("planes"), &scene.planes),
+                entire(b("materials"), &scene.materials),
+                entire(b("lights"), &scene.lights),
                 wgpu::BindGroupEntry {
-                    binding: 6,
+                    binding: b("sums"),
                     resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                         buffer: &out.sums,
                         offset: 0,
                         size: wgpu::BufferSize::new(sums_bytes),
                     }),
                 },
-                entire(7, &out.counters),
-                entire(8, &scene.tree[0]),
-                entire(9, &scene.tree[1]),
-                entire(10, &scene.tree[2]),
-                entire(11, &scene.tree[3]),
-                entire(12, &scene.dist),
-                entire(13, blocks_buffer.as_ref().unwrap_or(&self.no_blocks)),
+                entire(b("counters"), &out.counters),
+                entire(b("nodes"), &scene.tree[0]),
+                entire(b("prims"), &scene.tree[1]),
+                entire(b("triangles"), &scene.tree[2]),
+                entire(b("shading"), &scene.tree[3]),
+                entire(b("dist"), &scene.dist),
+                entire(
+                    b("active_blocks"),
+                    blocks_buffer.as_ref().unwrap_or(&self.no_blocks),
+                ),
             ],
         });
 
@@ -184,11 +189,16 @@ impl GpuRenderer {
         };
         let wave_groups = wave.as_ref().map(|(_, w)| {
             let w = w.as_ref().expect("just set");
+            let q = |name| wgsl::WAVE_QUEUES.binding(name);
             let group = |inq: &wgpu::Buffer, outq: &wgpu::Buffer| {
                 self.device.create_bind_group(&wgpu::BindGroupDescriptor {
                     label: Some("tessera wavefront queues"),
                     layout: &self.wave_layout,
-                    entries: &[entire(0, inq), entire(1, outq), entire(2, &w.state)],
+                    entries: &[
+                        entire(q("queue_in"), inq),
+                        entire(q("queue_out"), outq),
+                        entire(q("wave"), &w.state),
+                    ],
                 })
             };
             // Primary tasks go to A; generations then alternate A->B, B->A.
@@ -516,7 +526,7 @@ impl GpuRenderer {
         let args_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tessera wavefront args"),
             layout: &self.wave_args_layout,
-            entries: &[entire(0, &args)],
+            entries: &[entire(wgsl::WAVE_ARGS.binding("wave_args_out"), &args)],
         });
         WaveBuffers {
             queue_cap,

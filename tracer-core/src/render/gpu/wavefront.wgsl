@@ -1,9 +1,12 @@
+//! import shade.wgsl
+//! import sums.wgsl
 // The thesis's weighted ray tasks as a wavefront: instead of one thread
 // walking a sample's whole ray tree, each generation of rays is a queue of
 // tasks (pixel, weight, ray, depth, skip); one dispatch shades a whole
 // generation, adds weight * local colour to the task's pixel (atomically, in
-// 32.32 fixed point) and appends the children to the next queue. Compiled
-// after whitted.wgsl, whose structs, bindings and geometry it shares.
+// 32.32 fixed point) and appends the children to the next queue. The
+// step is shade.wgsl's, as the stack driver's. For scenes without
+// distributed effects (rays carry no node key or time).
 
 // Keep in sync with layout.rs WaveTask (48 bytes).
 struct WaveTask {
@@ -27,13 +30,8 @@ struct WaveState {
 
 override QUEUE_CAP: u32 = 1u;
 
-@group(1) @binding(0) var<storage, read> queue_in: array<WaveTask>;
-@group(1) @binding(1) var<storage, read_write> queue_out: array<WaveTask>;
-@group(1) @binding(2) var<storage, read_write> wave: WaveState;
-// Indirect dispatch arguments of the next shade pass: a group of its own,
-// which only wave_swap's layout has, because a buffer may not be both
-// written by and the indirect argument of one dispatch.
-@group(2) @binding(0) var<storage, read_write> wave_args_out: array<u32, 3>;
+// Groups 1 (queue_in, queue_out, wave) and 2 (wave_args_out): wgsl.rs
+// WAVE_QUEUES and WAVE_ARGS.
 
 fn wave_args(n: u32) -> vec3<u32> {
     return vec3<u32>((n + WG_X * WG_Y - 1u) / (WG_X * WG_Y), 1u, 1u);
@@ -53,12 +51,8 @@ fn wave_primary(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_in
         let row = params.row0 + k / params.rect_w;
         let px = params.rect_x + col;
         let py = params.rect_y + row;
-        let off = sample_offset(frame.sampler, frame.grid_n, pixel_seed(px, py, params.frame), s);
-        let sx = f32(px) + off.x;
-        let sy = f32(py) + off.y;
-        let a = 2.0 * sx * frame.inv_width - 1.0;
-        let bb = 1.0 - 2.0 * sy * frame.inv_height;
-        let d = normalize(frame.forward + frame.right * a + frame.up * bb);
+        let ray = camera_ray(px, py, pixel_seed(px, py, params.frame), s);
+        let d = ray.dir;
         queue_out[i] = WaveTask(vec3<f32>(0.0), 1.0, d, 0u, NONE, row * params.rect_w + col);
         tally[C_PRIMARY] += 1u;
     }
@@ -98,41 +92,15 @@ fn wave_shade(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invo
     let i = gid.x;
     if (i < atomicLoad(&wave.count_in)) {
         let task = queue_in[i];
-        var colour: vec3<f32>;
-        let hit = closest_hit(task.origin, task.dir, task.skip);
-        if (hit.id == NONE) {
-            colour = frame.background * task.weight;
-        } else {
-            let sf = surface(hit.id, task.origin + task.dir * hit.t);
-            let p = sf.p;
-            let m = materials[sf.material];
-            let v = -task.dir;
-            let cos_out = dot(sf.n, v);
-            let entering = cos_out >= 0.0;
-            let n = select(-sf.n, sf.n, entering);
-            let ns = shading_normal(hit.id, p, n, v);
-            let cos_i = dot(ns, v);
-            let above = offset_origin(p, n);
-            colour = shade_local(p, n, ns, v, m, above, hit.id) * task.weight;
-            if (task.depth < MAX_DEPTH) {
-                var reflect_w = m.reflectivity;
-                if (HAS_REFRACTION && m.transparency > 0.0) {
-                    let eta = select(m.ior, 1.0 / m.ior, entering);
-                    let k = 1.0 - eta * eta * (1.0 - cos_i * cos_i);
-                    if (k < 0.0) {
-                        reflect_w += m.transparency;
-                    } else {
-                        let rdir = normalize(-v * eta + ns * (eta * cos_i - sqrt(k)));
-                        tally[C_REFRACTION] += 1u;
-                        push(WaveTask(offset_origin(p, -n), task.weight * m.transparency, rdir, task.depth + 1u, hit.id, task.pixel));
-                    }
-                }
-                if (HAS_REFLECTION && reflect_w > 0.0) {
-                    let rdir = normalize(ns * (2.0 * cos_i) - v);
-                    tally[C_REFLECTION] += 1u;
-                    push(WaveTask(above, task.weight * reflect_w, rdir, task.depth + 1u, hit.id, task.pixel));
-                }
-            }
+        let r = shade(Ray(task.origin, task.weight, task.dir, task.depth, task.skip, ROOT_KEY), 0u, 0u, 0.0);
+        let colour = r.colour * task.weight;
+        if (r.has_refracted) {
+            let c = r.refracted;
+            push(WaveTask(c.origin, c.weight, c.dir, c.depth, c.skip, task.pixel));
+        }
+        if (r.has_reflected) {
+            let c = r.reflected;
+            push(WaveTask(c.origin, c.weight, c.dir, c.depth, c.skip, task.pixel));
         }
         let base = task.pixel * 6u;
         add_fixed(base, colour.x);

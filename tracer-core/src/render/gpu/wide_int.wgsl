@@ -1,6 +1,6 @@
 // Wide integer arithmetic on u32 words (WGSL has no 64-bit integer), for
 // the kernel's fixed-point sums (whitted.wgsl) and the linear resolve
-// (resolve_linear.wgsl); concatenated into both modules.
+// (resolve_linear.wgsl); imported by both.
 
 // a * b as (low, high) words, from 16-bit halves.
 fn mul_wide(a: u32, b: u32) -> vec2<u32> {
