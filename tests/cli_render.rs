@@ -505,3 +505,190 @@ fn adaptive_renders_write_sample_and_error_channels_and_a_sample_map() {
         expect_failure(GOOD, args, &[want]);
     }
 }
+
+/// `../shared/scenes` beside the repository (or `TESSERA_SHARED`): its
+/// absence fails the test, never skips it.
+fn shared(path: &str) -> PathBuf {
+    let root = std::env::var_os("TESSERA_SHARED")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join("../shared"));
+    let p = root.join(path);
+    assert!(
+        p.exists(),
+        "{} is missing: the shared assets (../shared beside the repository, or TESSERA_SHARED) are needed",
+        p.display()
+    );
+    p
+}
+
+/// Every glTF asset of ../shared/scenes, and the Sibenik OBJ, render with
+/// no TOML: the picture has the size the rules give and is not black.
+#[test]
+fn model_files_render_as_scenes_without_toml() {
+    let dir = tmpdir("models");
+    for (asset, size) in [
+        ("gltf/DamagedHelmet/glTF/DamagedHelmet.gltf", (64, 48)),
+        (
+            "gltf/AlphaBlendModeTest/glTF/AlphaBlendModeTest.gltf",
+            (64, 48),
+        ),
+        (
+            "gltf/TextureTransformTest/glTF/TextureTransformTest.gltf",
+            (64, 48),
+        ),
+        (
+            "gltf/TextureSettingsTest/glTF/TextureSettingsTest.gltf",
+            (64, 48),
+        ),
+        (
+            "gltf/EmissiveStrengthTest/glTF/EmissiveStrengthTest.gltf",
+            (64, 48),
+        ),
+        ("gltf/SpecularTest/glTF/SpecularTest.gltf", (64, 48)),
+        // Its camera's aspectRatio is 1: the height follows --width.
+        ("gltf/Cameras/glTF/Cameras.gltf", (64, 64)),
+        ("obj/Sibenik_Cathedral/sibenik.obj.gz", (64, 48)),
+    ] {
+        let model = shared(&format!("scenes/{asset}"));
+        let out = dir.join("out.png");
+        let mut cmd = tessera();
+        cmd.arg("render").arg(&model).arg("-o").arg(&out);
+        cmd.args(["--width", "64", "--samples", "1", "--threads", "2"]);
+        if size.1 != size.0 {
+            cmd.args(["--height", "48"]);
+        }
+        let (o, _, stderr) = run(&mut cmd);
+        assert!(o.status.success(), "{asset}: {stderr}");
+        let img = image::open(&out).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), size, "{asset}");
+        let lit = img.pixels().filter(|p| p.0.iter().any(|&c| c > 40)).count();
+        assert!(lit > 64 * 48 / 20, "{asset}: only {lit} pixels lit");
+    }
+}
+
+/// Cameras.gltf's perspective camera (node at (0.5, 0.5, 3), yfov 0.7)
+/// looks at the unit square tilted 45 degrees about x: the pixels the
+/// documented projection puts well inside the square are lit, those well
+/// outside are background. Its orthographic camera is refused.
+#[test]
+fn a_gltf_camera_shows_its_quad_where_the_projection_puts_it() {
+    let dir = tmpdir("cameras");
+    let model = shared("scenes/gltf/Cameras/glTF/Cameras.gltf");
+    let out = dir.join("c.png");
+    let (o, _, stderr) = run(tessera()
+        .arg("render")
+        .arg(&model)
+        .arg("-o")
+        .arg(&out)
+        .args(["--width", "64", "--samples", "1"]));
+    assert!(o.status.success(), "{stderr}");
+    let img = image::open(&out).unwrap().to_rgb8();
+    assert_eq!(img.dimensions(), (64, 64));
+    // The square's corners, rotated by the node's quaternion (-0.383, 0,
+    // 0, 0.92375) about x, projected: x' = x / (depth t) and so on with
+    // t = tan(0.35), the camera at (0.5, 0.5, 3) looking down -Z.
+    let (s, c) = (
+        2.0 * -0.383f64 * 0.92375,
+        0.92375f64 * 0.92375 - 0.383 * 0.383,
+    );
+    let t = 0.35f64.tan();
+    let corner = |x: f64, y: f64| {
+        let (py, pz) = (y * c, y * s);
+        let d = [x - 0.5, py - 0.5, pz - 3.0];
+        let depth = -d[2];
+        (
+            (d[0] / (depth * t) + 1.0) / 2.0 * 64.0,
+            (1.0 - d[1] / (depth * t)) / 2.0 * 64.0,
+        )
+    };
+    let poly = [
+        corner(0.0, 0.0),
+        corner(1.0, 0.0),
+        corner(1.0, 1.0),
+        corner(0.0, 1.0),
+    ];
+    // Signed distance (pixels) of a point inside the convex polygon: > 0 inside.
+    let inside = |x: f64, y: f64| {
+        (0..4)
+            .map(|i| {
+                let (a, b) = (poly[i], poly[(i + 1) % 4]);
+                let (ex, ey) = (b.0 - a.0, b.1 - a.1);
+                ((x - a.0) * ey - (y - a.1) * ex) / (ex * ex + ey * ey).sqrt()
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    let sign = if inside(32.0, 40.0) > 0.0 { 1.0 } else { -1.0 };
+    let (mut lit_in, mut dark_out) = (0, 0);
+    for y in 0..64u32 {
+        for x in 0..64u32 {
+            let d = sign * inside(x as f64 + 0.5, y as f64 + 0.5);
+            let v = img.get_pixel(x, y).0;
+            if d > 1.5 {
+                assert!(v[0] > 20, "({x}, {y}) inside the square is dark: {v:?}");
+                lit_in += 1;
+            } else if d < -1.5 {
+                assert_eq!(v, [0, 0, 0], "({x}, {y}) outside the square is lit");
+                dark_out += 1;
+            }
+        }
+    }
+    assert!(lit_in > 300 && dark_out > 2000, "{lit_in} {dark_out}");
+    // The orthographic camera, by index; a camera that is not there.
+    let (o, _, stderr) = run(tessera()
+        .arg("render")
+        .arg(&model)
+        .args(["--camera", "1", "-o"])
+        .arg(&out));
+    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(
+        stderr,
+        format!(
+            "error: {}: --camera 1: camera 1 (orthographic) is orthographic, which Tessera's camera model (a pinhole, docs/scene-format.md) cannot render: pick a perspective camera (its cameras: 0 (perspective), 1 (orthographic)) or \"auto\"\n",
+            model.display()
+        )
+    );
+    let (o, _, stderr) = run(tessera()
+        .arg("render")
+        .arg(&model)
+        .args(["--camera", "Main", "-o"])
+        .arg(&out));
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        stderr.ends_with("--camera Main: no camera named \"Main\" in the file's default scene (its cameras: 0 (perspective), 1 (orthographic))\n"),
+        "{stderr}"
+    );
+}
+
+/// What used to be read as TOML: a .glb renders; a PLY is refused with
+/// the TOML to write; `--camera` on a TOML scene is refused.
+#[test]
+fn glb_renders_ply_is_refused_and_camera_needs_a_model() {
+    let dir = tmpdir("glb");
+    let out = dir.join("b.png");
+    let (o, _, stderr) = run(tessera()
+        .arg("render")
+        .arg(repo().join("fuzz/seeds/gltf/Box.glb"))
+        .arg("-o")
+        .arg(&out)
+        .args(["--width", "32", "--height", "24", "--samples", "1"]));
+    assert!(o.status.success(), "{stderr}");
+    let ply = dir.join("m.ply");
+    std::fs::write(&ply, "ply\n").unwrap();
+    let (o, _, stderr) = run(tessera().arg("render").arg(&ply));
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        stderr.starts_with(&format!(
+            "error: {}: a PLY file is a mesh without camera, lights or materials, so it is not a scene by itself: wrap it in a TOML scene",
+            ply.display()
+        )) && stderr.contains("[[objects]]\ntype = \"mesh\"\npath = \"m.ply\"\ncamera = \"auto\""),
+        "{stderr}"
+    );
+    let scene = dir.join("s.toml");
+    std::fs::write(&scene, GOOD).unwrap();
+    let (o, _, stderr) = run(tessera().arg("render").arg(&scene).args(["--camera", "0"]));
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        stderr.contains("--camera picks a camera of a model file given as the scene"),
+        "{stderr}"
+    );
+}

@@ -333,6 +333,40 @@ fn cpu_workers_render_the_distributed_effects_scene_bit_identical_to_tessera_ren
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
 }
 
+/// Model files submitted directly (issue 34): the job carries the scene
+/// `tessera render` makes of the file (its camera, lights and size rules)
+/// with the model and its buffers, and the farm's frames equal `tessera
+/// render`'s bit for bit: DamagedHelmet (automatic camera, default
+/// lighting) and Cameras.gltf through `--camera 0` (its aspect ratio sets
+/// the height).
+#[test]
+fn gltf_files_submitted_directly_render_bit_identical_to_tessera_render() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let _w: Vec<Proc> = (0..2)
+        .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
+        .collect();
+    for (asset, settings) in [
+        (
+            "scenes/gltf/DamagedHelmet/glTF/DamagedHelmet.gltf",
+            &["--width", "64", "--height", "48", "--samples", "4"][..],
+        ),
+        (
+            "scenes/gltf/Cameras/glTF/Cameras.gltf",
+            &["--width", "48", "--samples", "4", "--camera", "0"][..],
+        ),
+    ] {
+        let scene = shared(asset);
+        let mut args = settings.to_vec();
+        args.extend(["--tile-size", "16"]);
+        let job = submit(&c.url(), &scene, &args);
+        let s = wait_done(&c.url(), &job, Duration::from_secs(300));
+        assert_eq!(s.state, pb::JobState::Done as i32, "{asset}");
+        assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, settings);
+    }
+}
+
 /// Adaptive sampling across the farm (issue 17): 1 and 3 CPU workers, tiles
 /// of 16 and 24 pixels, the same image as `tessera render --target-error`
 /// bit for bit and the same number of samples; the job's status carries

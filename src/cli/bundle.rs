@@ -13,7 +13,7 @@ use anyhow::{Result, bail};
 use tessera_proto::pb;
 use tessera_proto::transport::{ASSET_CHUNK_BYTES, sha256_hex};
 use tracer_core::assets::{AssetError, AssetSource, LocalFolder, Recorder, join, leaves_folder};
-use tracer_core::scene::{ObjectDesc, SceneDesc, SceneError};
+use tracer_core::scene::{ModelSceneOptions, ObjectDesc, SceneDesc, SceneError, SceneInput};
 
 use super::farm_common::{JobClient, rpc};
 
@@ -30,13 +30,24 @@ pub struct BundleFile {
 }
 
 /// Reads and validates the scene at `path` with every file it references.
-/// A file outside the scene's folder is refused, naming the field, unless
-/// `allow_outside` (then it travels under the name the scene gives it).
-pub fn gather(path: &Path, allow_outside: bool) -> Result<SceneBundle> {
-    let scene = std::fs::read(path).map_err(|error| SceneError::Io {
-        path: path.to_owned(),
-        error,
-    })?;
+/// A model file given as the scene travels as the TOML scene `tessera
+/// render` makes of it (`options`: `--camera` and the size flags), with the
+/// model and its files. A file outside the scene's folder is refused,
+/// naming the field, unless `allow_outside` (then it travels under the
+/// name the scene gives it).
+pub fn gather(
+    path: &Path,
+    options: &ModelSceneOptions,
+    allow_outside: bool,
+) -> Result<SceneBundle> {
+    let scene = if SceneInput::of(path)? == SceneInput::Model || options.camera.is_some() {
+        SceneDesc::input_text(path, options)?.into_bytes()
+    } else {
+        std::fs::read(path).map_err(|error| SceneError::Io {
+            path: path.to_owned(),
+            error,
+        })?
+    };
     let text = std::str::from_utf8(&scene)
         .map_err(|e| anyhow::anyhow!("{}: scene is not UTF-8 text: {e}", path.display()))?;
     let folder = Confined {
@@ -45,7 +56,7 @@ pub fn gather(path: &Path, allow_outside: bool) -> Result<SceneBundle> {
         refused: std::sync::Mutex::new(None),
     };
     let recorder = Recorder::new(&folder);
-    let parsed = SceneDesc::parse_from(text, path, &recorder);
+    let parsed = SceneDesc::parse_input(text, path, &recorder, options);
     // A file outside the folder is refused before it is opened (an
     // absolute path such as /etc/passwd is never read), whatever the
     // loader then made of the refusal.

@@ -11,7 +11,7 @@ use tokio_stream::StreamExt as _;
 
 use super::farm_common::{CoordinatorUrl, JobClient, connect, rpc, runtime};
 use super::output::{Format, Progress, job_json, print_json, worker_json};
-use super::render::{AdaptiveArgs, OverrideArgs};
+use super::render::{AdaptiveArgs, ModelArgs, OverrideArgs};
 
 /// Exit codes of `tessera watch` and `tessera submit --wait`.
 pub const EXIT_DONE: u8 = 0;
@@ -63,8 +63,12 @@ impl std::str::FromStr for Frames {
 
 #[derive(Args, Debug)]
 pub struct SubmitArgs {
-    /// Scene file (TOML; see docs/scene-format.md)
+    /// Scene file (TOML; see docs/scene-format.md), or a model file
+    /// rendered as a scene: .gltf, .glb, .obj, .obj.gz (sent with the
+    /// scene `tessera render` makes of it, so the farm renders the same)
     pub scene: PathBuf,
+    #[command(flatten)]
+    pub model: ModelArgs,
     /// Frames to render, inclusive: `1..5` renders frames 1 to 5 (each
     /// with its camera keyframe pose, docs/scene-format.md), `3` frame 3 alone [default: frame 0]
     #[arg(long)]
@@ -117,7 +121,11 @@ pub struct SubmitArgs {
 pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
     // Validated here first, through the loaders `tessera render` uses: a
     // bad scene fails before anything is uploaded.
-    let bundle = super::bundle::gather(&args.scene, args.allow_outside)?;
+    let bundle = super::bundle::gather(
+        &args.scene,
+        &args.model.options(&args.overrides),
+        args.allow_outside,
+    )?;
     let frames = args.frames.unwrap_or(Frames { first: 0, last: 0 });
     // What the job asks for, in its one shape; the coordinator checks it
     // against the scene. Its files go beside it in the message.

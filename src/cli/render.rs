@@ -15,8 +15,8 @@ use tracer_core::render::cpu::MAX_THREADS;
 use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{
-    MAX_DEPTH, MAX_IMAGE_SIDE, MAX_SAMPLES, RenderOverrides, RenderSettings, SceneDesc,
-    SettingsError,
+    MAX_DEPTH, MAX_IMAGE_SIDE, MAX_SAMPLES, ModelSceneOptions, RenderOverrides, RenderSettings,
+    SceneDesc, SettingsError,
 };
 
 /// `--threads`: 0 (all cores) up to the renderer's limit, so help and
@@ -159,10 +159,36 @@ fn backend_parser() -> impl clap::builder::TypedValueParser<Value = Backend> {
     .map(|s| s.parse::<Backend>().expect("one of the possible values"))
 }
 
+/// `--camera` of a model file given as the scene, shared by render and submit.
+#[derive(Args, Debug, Clone, Default)]
+pub struct ModelArgs {
+    /// For a model file given as the scene: the glTF camera to render
+    /// through, by index in the file's cameras or by name; "auto" frames
+    /// the model (docs/scene-format.md, "Model files as scenes") [default:
+    /// the default scene's first camera, else auto]
+    #[arg(long, value_name = "NAME|INDEX")]
+    pub camera: Option<String>,
+}
+
+impl ModelArgs {
+    /// The options of a model scene, with the size flags (they decide the
+    /// image's size before a camera's aspect ratio does).
+    pub fn options(&self, overrides: &OverrideArgs) -> ModelSceneOptions {
+        ModelSceneOptions {
+            camera: self.camera.clone(),
+            width: overrides.width,
+            height: overrides.height,
+        }
+    }
+}
+
 #[derive(Args, Debug)]
 pub struct RenderArgs {
-    /// Scene file (TOML; see docs/scene-format.md)
+    /// Scene file (TOML; see docs/scene-format.md), or a model file
+    /// rendered as a scene: .gltf, .glb, .obj, .obj.gz
     pub scene: PathBuf,
+    #[command(flatten)]
+    pub model: ModelArgs,
     /// Output image: .png (8-bit sRGB) or .exr (linear float) [default: SCENE with .png]
     #[arg(short, long)]
     pub output: Option<PathBuf>,
@@ -221,7 +247,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         .unwrap_or_else(|| args.scene.with_extension("png"));
     // Fail on a bad output name before spending time rendering.
     ImageFormat::of(&output)?;
-    let scene = SceneDesc::load(&args.scene)?;
+    let scene = SceneDesc::load_input(&args.scene, &args.model.options(&args.overrides))?;
     for w in &scene.warnings {
         eprintln!("warning: {w}");
     }

@@ -18,6 +18,21 @@ pub fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
 }
 
+/// `../shared/<p>` beside the repository (or under `TESSERA_SHARED`): its
+/// absence fails the test, never skips it.
+pub fn shared(p: &str) -> PathBuf {
+    let root = std::env::var_os("TESSERA_SHARED")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo("../shared"));
+    let path = root.join(p);
+    assert!(
+        path.exists(),
+        "{} is missing: the shared assets (../shared beside the repository, or TESSERA_SHARED) are needed",
+        path.display()
+    );
+    path
+}
+
 /// A child process killed when dropped.
 pub struct Proc {
     pub child: Child,

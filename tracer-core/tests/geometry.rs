@@ -47,8 +47,11 @@ const fn case(name: &'static str, origin: [f64; 3], dir: [f64; 3], want: Option<
     }
 }
 
+/// A sphere (radius, centre) and the cases asked of it.
+type SphereCases = ((f64, [f64; 3]), Vec<Case>);
+
 /// Sphere of radius `r` at `c` and its cases.
-fn sphere_cases() -> Vec<((f64, [f64; 3]), Vec<Case>)> {
+fn sphere_cases() -> Vec<SphereCases> {
     vec![
         (
             (1.0, [0.0, 0.0, 5.0]),

@@ -1,7 +1,8 @@
 //! glTF 2.0 (.gltf with embedded or external buffers, .glb), through `gltf`.
 //! Buffers are resolved here (data: URIs and files next to the model) so
 //! the crate's image-decoding `import` feature is not needed: textures are
-//! not used.
+//! not used. Besides the triangles, the default scene's cameras and
+//! `KHR_lights_punctual` lights are read (for model files as scenes).
 
 use std::path::Path;
 
@@ -9,7 +10,9 @@ use base64::Engine;
 use glam::{DMat3, DMat4, DVec3};
 use gltf::mesh::Mode;
 
-use super::{Mesh, MeshError, default_material};
+use super::{
+    Mesh, MeshError, ModelCamera, ModelLight, ModelLightKind, Projection, default_material,
+};
 use crate::assets::{AssetSource, dir_of, join};
 use crate::scene::{MaterialDesc, Num, Vec3};
 
@@ -19,6 +22,10 @@ const COMPRESSION: [(&str, &str); 2] = [
     ("KHR_draco_mesh_compression", "Draco mesh compression"),
     ("EXT_meshopt_compression", "meshoptimizer compression"),
 ];
+
+/// Required extensions that Tessera reads: quantized attributes are
+/// dequantized, lights become scene lights (docs/scene-format.md).
+const READ: [&str; 2] = ["KHR_mesh_quantization", "KHR_lights_punctual"];
 
 /// Extensions (by prefix) that change how a surface looks, never where it
 /// is: a file that requires them renders, with a warning, without them.
@@ -77,11 +84,26 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
             "invalid glTF: the GLB header declares a length of {length} bytes, less than its own 12"
         )));
     }
+    // glTF 1.0 is a different format (objects where 2.0 has arrays): the
+    // crate's error would be about a JSON type or a GLB version, so it is
+    // named here.
+    let gltf1 = |version: String| {
+        err(format!(
+            "is glTF 1.0 ({version}), which Tessera does not read: it reads glTF 2.0; \
+             convert the file (for example with gltf-pipeline, or by importing it into \
+             Blender and exporting glTF 2.0)"
+        ))
+    };
     // Parsed unchecked, then checked here for what the crate's own
     // validation indexes without a bounds check, then validated by
     // `validate` below rather than by `from_slice`: what Tessera does not
     // read (POSITION's min/max) is no reason to refuse a file.
-    let gltf = gltf::Gltf::from_slice_without_validation(bytes).map_err(invalid)?;
+    let gltf = gltf::Gltf::from_slice_without_validation(bytes)
+        .map_err(|e| gltf1_version(bytes).map_or_else(|| invalid(e), gltf1))?;
+    let version = &gltf.document.as_json().asset.version;
+    if version.starts_with('1') {
+        return Err(gltf1(format!("asset.version \"{version}\"")));
+    }
     check_before_validation(gltf.document.as_json())
         .map_err(|m| err(format!("invalid glTF: {m}")))?;
     let doc = &gltf.document;
@@ -92,6 +114,9 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                 "requires the extension {ext} ({what}), which Tessera does not decode: \
                  export the model without it"
             )));
+        }
+        if READ.contains(&ext) {
+            continue;
         }
         if APPEARANCE.iter().any(|a| ext.starts_with(a)) {
             warnings.push(format!(
@@ -104,7 +129,25 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
             )));
         }
     }
-    validate(doc).map_err(|e| err(format!("invalid glTF: {e}")))?;
+    validate(doc).map_err(|e| {
+        // A file that uses compression without requiring it should carry
+        // uncompressed data too; one that does not fails validation on its
+        // accessors without data, which is said as what it is.
+        match doc
+            .extensions_used()
+            .find_map(|u| COMPRESSION.iter().find(|(c, _)| *c == u))
+        {
+            Some((ext, what)) => {
+                let e = e.to_string();
+                let e = e.trim_start_matches("invalid glTF: ").trim_end_matches(';');
+                err(format!(
+                    "uses the extension {ext} ({what}), which Tessera does not decode, \
+                     and has no uncompressed data in its place ({e}): export the model without it"
+                ))
+            }
+            None => err(format!("invalid glTF: {e}")),
+        }
+    })?;
 
     let mut buffers = Vec::new();
     for b in doc.buffers() {
@@ -166,15 +209,20 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
     let mut normals: Vec<[f32; 3]> = Vec::new();
 
     // Instances: the default (or first) scene's node tree; without scenes, each mesh once.
-    let mut instances: Vec<(gltf::Mesh, DMat4)> = Vec::new();
+    let mut placed = Placed::default();
     match doc.default_scene().or_else(|| doc.scenes().next()) {
         Some(scene) => {
             for node in scene.nodes() {
-                collect(node, DMat4::IDENTITY, 0, &mut instances).map_err(&err)?;
+                collect(node, DMat4::IDENTITY, 0, &mut placed).map_err(&err)?;
             }
         }
-        None => instances.extend(doc.meshes().map(|m| (m, DMat4::IDENTITY))),
+        None => placed
+            .meshes
+            .extend(doc.meshes().map(|m| (m, DMat4::IDENTITY))),
     }
+    mesh.cameras = placed.cameras;
+    mesh.lights = placed.lights;
+    let instances = placed.meshes;
 
     for (gmesh, xf) in &instances {
         let normal_xf = DMat3::from_mat4(*xf).inverse().transpose();
@@ -200,10 +248,10 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                 check_accessor(&acc, &buffers).map_err(|m| err(at(&m)))?;
             }
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| d.as_slice()));
-            let positions: Vec<[f32; 3]> = reader
-                .read_positions()
-                .ok_or_else(|| err(at("positions are missing or lie outside their buffer")))?
-                .collect();
+            let positions: Vec<[f32; 3]> = prim
+                .get(&gltf::Semantic::Positions)
+                .and_then(|a| read_vec3(&a, &buffers))
+                .ok_or_else(|| err(at("positions are missing or lie outside their buffer")))?;
             let base = mesh.positions.len() as u32;
             let n = positions.len() as u32;
             mesh.positions.extend(positions.iter().map(|p| {
@@ -211,11 +259,18 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                     .as_vec3()
                     .to_array()
             }));
-            match reader.read_normals() {
+            let read_normals = match prim.get(&gltf::Semantic::Normals) {
+                Some(a) => Some(
+                    read_vec3(&a, &buffers)
+                        .ok_or_else(|| err(at("normals lie outside their buffer")))?,
+                ),
+                None => None,
+            };
+            match read_normals {
                 Some(ns) => {
                     any_normals = true;
                     let before = normals.len();
-                    normals.extend(ns.map(|v| {
+                    normals.extend(ns.into_iter().map(|v| {
                         (normal_xf * DVec3::from_array(v.map(f64::from)))
                             .as_vec3()
                             .to_array()
@@ -298,11 +353,19 @@ fn check_before_validation(root: &gltf::json::Root) -> Result<(), String> {
     Ok(())
 }
 
+/// What the default scene's nodes place, in the order of a depth-first walk.
+#[derive(Default)]
+struct Placed<'a> {
+    meshes: Vec<(gltf::Mesh<'a>, DMat4)>,
+    cameras: Vec<ModelCamera>,
+    lights: Vec<ModelLight>,
+}
+
 fn collect<'a>(
     node: gltf::Node<'a>,
     parent: DMat4,
     depth: usize,
-    out: &mut Vec<(gltf::Mesh<'a>, DMat4)>,
+    out: &mut Placed<'a>,
 ) -> Result<(), String> {
     if depth > MAX_NODE_DEPTH {
         return Err(format!(
@@ -313,12 +376,145 @@ fn collect<'a>(
     let m = node.transform().matrix();
     let xf = parent * DMat4::from_cols_array_2d(&m.map(|c| c.map(f64::from)));
     if let Some(mesh) = node.mesh() {
-        out.push((mesh, xf));
+        out.meshes.push((mesh, xf));
+    }
+    // Cameras and lights look down their node's -Z axis, +Y up.
+    let position = xf.transform_point3(DVec3::ZERO).to_array();
+    let forward = xf.transform_vector3(DVec3::NEG_Z).normalize_or_zero();
+    let bad = |what: &str| {
+        format!(
+            "invalid glTF: node {} places its {what} with a transform that is not invertible or not finite",
+            node.index()
+        )
+    };
+    if let Some(camera) = node.camera() {
+        if forward == DVec3::ZERO || !forward.is_finite() || !position.iter().all(|c| c.is_finite())
+        {
+            return Err(bad("camera"));
+        }
+        let projection = match camera.projection() {
+            gltf::camera::Projection::Perspective(p) => Projection::Perspective {
+                yfov: p.yfov() as f64,
+                aspect_ratio: p.aspect_ratio().map(f64::from),
+            },
+            gltf::camera::Projection::Orthographic(o) => Projection::Orthographic {
+                xmag: o.xmag() as f64,
+                ymag: o.ymag() as f64,
+            },
+        };
+        out.cameras.push(ModelCamera {
+            index: camera.index(),
+            name: camera.name().or(node.name()).map(str::to_string),
+            projection,
+            position,
+            forward: forward.to_array(),
+            up: xf.transform_vector3(DVec3::Y).to_array(),
+        });
+    }
+    if let Some(light) = node.light() {
+        use gltf::khr_lights_punctual::Kind;
+        if forward == DVec3::ZERO || !forward.is_finite() || !position.iter().all(|c| c.is_finite())
+        {
+            return Err(bad("light"));
+        }
+        let kind = match light.kind() {
+            Kind::Point => ModelLightKind::Point,
+            Kind::Directional => ModelLightKind::Directional,
+            Kind::Spot {
+                inner_cone_angle,
+                outer_cone_angle,
+            } => ModelLightKind::Spot {
+                inner: inner_cone_angle as f64,
+                outer: outer_cone_angle as f64,
+            },
+        };
+        let color = light.color().map(f64::from);
+        let intensity = light.intensity() as f64;
+        let name = light.name().or(node.name()).map(str::to_string);
+        if !(color.iter().all(|c| c.is_finite() && *c >= 0.0)
+            && intensity.is_finite()
+            && intensity >= 0.0)
+        {
+            return Err(format!(
+                "invalid glTF: light {} ({:?}): color {color:?} and intensity {intensity} must be finite and >= 0",
+                light.index(),
+                name.as_deref().unwrap_or("unnamed")
+            ));
+        }
+        out.lights.push(ModelLight {
+            index: light.index(),
+            name,
+            kind,
+            color,
+            intensity,
+            position,
+            direction: forward.to_array(),
+        });
     }
     for child in node.children() {
         collect(child, xf, depth + 1, out)?;
     }
     Ok(())
+}
+
+/// The version of a glTF 1.0 file (binary glTF 1.0, or JSON whose
+/// `asset.version` starts with "1"), `None` for anything else.
+fn gltf1_version(bytes: &[u8]) -> Option<String> {
+    if let Some(v) = bytes.strip_prefix(b"glTF").and_then(|h| h.get(..4)) {
+        let v = u32::from_le_bytes([v[0], v[1], v[2], v[3]]);
+        return (v == 1).then(|| "binary glTF, GLB version 1".to_string());
+    }
+    #[derive(serde::Deserialize)]
+    struct Asset {
+        version: Option<gltf::json::Value>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Head {
+        asset: Option<Asset>,
+    }
+    let head: Head = gltf::json::deserialize::from_slice(bytes).ok()?;
+    let version = head.asset?.version?;
+    let text = match &version {
+        gltf::json::Value::String(s) => s.clone(),
+        gltf::json::Value::Number(n) => n.to_string(),
+        _ => return None,
+    };
+    text.starts_with('1')
+        .then(|| format!("asset.version {version}"))
+}
+
+/// A VEC3 accessor's elements as f32: floats as they are, integers
+/// dequantized as `KHR_mesh_quantization` says (normalized: c / 127,
+/// c / 255, c / 32767 or c / 65535, signed ones at least -1; otherwise
+/// the integer's value). Sparse accessors included. `None` when the data
+/// lies outside its buffers (checked before by [`check_accessor`]).
+fn read_vec3(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 3]>> {
+    use gltf::accessor::{DataType, Item, Iter};
+    fn read<'s, T: Item + Copy>(
+        acc: &gltf::Accessor<'s>,
+        buffers: &'s [Vec<u8>],
+        f: impl Fn(T) -> f32,
+    ) -> Option<Vec<[f32; 3]>> {
+        let get = |b: gltf::Buffer| buffers.get(b.index()).map(|d| d.as_slice());
+        Some(
+            Iter::<[T; 3]>::new(acc.clone(), get)?
+                .map(|v| v.map(&f))
+                .collect(),
+        )
+    }
+    let norm = acc.normalized();
+    match acc.data_type() {
+        DataType::F32 => read::<f32>(acc, buffers, |c| c),
+        DataType::I8 if norm => read::<i8>(acc, buffers, |c| (c as f32 / 127.0).max(-1.0)),
+        DataType::U8 if norm => read::<u8>(acc, buffers, |c| c as f32 / 255.0),
+        DataType::I16 if norm => read::<i16>(acc, buffers, |c| (c as f32 / 32767.0).max(-1.0)),
+        DataType::U16 if norm => read::<u16>(acc, buffers, |c| c as f32 / 65535.0),
+        DataType::I8 => read::<i8>(acc, buffers, f32::from),
+        DataType::U8 => read::<u8>(acc, buffers, f32::from),
+        DataType::I16 => read::<i16>(acc, buffers, f32::from),
+        DataType::U16 => read::<u16>(acc, buffers, f32::from),
+        DataType::U32 => None,
+    }
 }
 
 /// glTF metallic-roughness -> Blinn-Phong. A mirror in Whitted's model is
@@ -354,10 +550,12 @@ fn map_material(m: &gltf::Material) -> MaterialDesc {
     }
 }
 
-/// Whether an accessor holds what the crate's reader reads it as: VEC3 of
-/// float for POSITION and NORMAL, SCALAR of unsigned bytes, shorts or ints
-/// for indices. The reader asserts the first (a panic) and reaches
-/// `unreachable!()` on other index types.
+/// Whether an accessor holds what glTF 2.0 allows there (the crate's
+/// reader asserts its types, a panic, and reaches `unreachable!()` on
+/// other index types): POSITION VEC3 of float, or with
+/// `KHR_mesh_quantization` of (unsigned) byte or short, normalized or not;
+/// NORMAL VEC3 of float or of normalized byte or short; indices SCALAR of
+/// unsigned byte, short or int.
 fn check_accessor_type(what: &str, acc: &gltf::Accessor) -> Result<(), String> {
     use gltf::accessor::{DataType, Dimensions};
     let (dims, ty) = (acc.dimensions(), acc.data_type());
@@ -365,19 +563,28 @@ fn check_accessor_type(what: &str, acc: &gltf::Accessor) -> Result<(), String> {
         "indices" => {
             dims == Dimensions::Scalar && matches!(ty, DataType::U8 | DataType::U16 | DataType::U32)
         }
-        _ => dims == Dimensions::Vec3 && ty == DataType::F32,
+        "POSITION" => dims == Dimensions::Vec3 && ty != DataType::U32,
+        _ => {
+            dims == Dimensions::Vec3
+                && (ty == DataType::F32
+                    || acc.normalized() && matches!(ty, DataType::I8 | DataType::I16))
+        }
     };
     if ok {
         return Ok(());
     }
     let expected = match what {
         "indices" => "SCALAR of unsigned byte, short or int",
-        _ => "VEC3 of float",
+        "POSITION" => {
+            "VEC3 of float, or (KHR_mesh_quantization) of byte, unsigned byte, short or unsigned short"
+        }
+        _ => "VEC3 of float, or (KHR_mesh_quantization) of normalized byte or short",
     };
     Err(format!(
-        "{what} accessor {} holds {} of {}, expected {expected}",
+        "{what} accessor {} holds {} of {}{}, expected {expected}",
         acc.index(),
         dims_name(dims),
+        if acc.normalized() { "normalized " } else { "" },
         type_name(ty)
     ))
 }
@@ -484,7 +691,17 @@ fn check_accessor(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Result<(), Strin
             ("values", sp.values().view(), sp.values().offset(), elem),
         ] {
             let len = view_len(&v)?;
-            let need = offset as u64 + n * size;
+            // The crate steps through sparse data by the view's stride
+            // (the format says these views have none) and panics reading
+            // an element from a step shorter than it.
+            let stride = v.stride().map_or(size, |s| s as u64);
+            if stride < size {
+                return Err(format!(
+                    "{name}: sparse {what}: buffer view {} has byteStride {stride}, smaller than its {size}-byte elements (sparse data is tightly packed: no byteStride)",
+                    v.index()
+                ));
+            }
+            let need = offset as u64 + (n - 1) * stride + size;
             if need > len {
                 return Err(format!(
                     "{name}: {n} sparse {what} need {need} bytes, their buffer view has {len}"

@@ -28,6 +28,78 @@ pub struct Mesh {
     /// What was read with a default instead of refused (a missing MTL
     /// library, `Ni 0`): shown to the user, the file still renders.
     pub warnings: Vec<String>,
+    /// glTF cameras as placed by the default scene's nodes, in the order
+    /// of a depth-first walk of its node tree (the first is the file's
+    /// default camera). Empty for other formats.
+    pub cameras: Vec<ModelCamera>,
+    /// glTF `KHR_lights_punctual` lights as placed by the default scene's
+    /// nodes, in the same order. Empty for other formats.
+    pub lights: Vec<ModelLight>,
+}
+
+/// A camera of a model file, in the file's model space (node transforms
+/// applied, the scene's placement not yet).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelCamera {
+    /// Index in the file's `cameras` array.
+    pub index: usize,
+    /// The camera's name, else its node's name.
+    pub name: Option<String>,
+    pub projection: Projection,
+    pub position: [f64; 3],
+    /// Unit view direction (the node's -Z axis).
+    pub forward: [f64; 3],
+    /// The node's +Y axis (not necessarily unit or orthogonal to `forward`).
+    pub up: [f64; 3],
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Projection {
+    /// `yfov` in radians; `aspect_ratio` width / height when the file gives one.
+    Perspective {
+        yfov: f64,
+        aspect_ratio: Option<f64>,
+    },
+    Orthographic {
+        xmag: f64,
+        ymag: f64,
+    },
+}
+
+/// A `KHR_lights_punctual` light, in model space, in the file's units:
+/// `intensity` in candela (point, spot) or lux (directional).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelLight {
+    /// Index in the file's `KHR_lights_punctual.lights` array.
+    pub index: usize,
+    pub name: Option<String>,
+    pub kind: ModelLightKind,
+    pub color: [f64; 3],
+    pub intensity: f64,
+    pub position: [f64; 3],
+    /// Unit direction the light shines in (the node's -Z axis).
+    pub direction: [f64; 3],
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ModelLightKind {
+    Point,
+    /// Cone half-angles in radians.
+    Spot {
+        inner: f64,
+        outer: f64,
+    },
+    Directional,
+}
+
+impl ModelLightKind {
+    pub fn name(&self) -> &'static str {
+        match self {
+            ModelLightKind::Point => "point",
+            ModelLightKind::Spot { .. } => "spot",
+            ModelLightKind::Directional => "directional",
+        }
+    }
 }
 
 /// Why a model file could not be loaded. Display names the file.
@@ -85,6 +157,28 @@ pub(crate) fn cannot_read(e: &AssetError) -> String {
     }
 }
 
+/// Largest unpacked `.obj.gz`: OBJ text is read whole (about 70 bytes a
+/// triangle, so some 15 M triangles), and a small gzip bomb must not
+/// exhaust memory.
+const MAX_GUNZIPPED: u64 = 1 << 30;
+
+/// The whole of a gzip stream (several members, as `gzip` concatenates
+/// them, read as one).
+fn gunzip(bytes: &[u8]) -> Result<Vec<u8>, String> {
+    use std::io::Read as _;
+    let mut out = Vec::new();
+    flate2::read::MultiGzDecoder::new(bytes)
+        .take(MAX_GUNZIPPED + 1)
+        .read_to_end(&mut out)
+        .map_err(|e| format!("invalid gzip data: {e}"))?;
+    if out.len() as u64 > MAX_GUNZIPPED {
+        return Err(format!(
+            "unpacks to more than {MAX_GUNZIPPED} bytes, the limit for a gzipped OBJ"
+        ));
+    }
+    Ok(out)
+}
+
 /// Material of files (or parts) that define none: plain light grey.
 pub fn default_material() -> MaterialDesc {
     MaterialDesc {
@@ -111,8 +205,8 @@ impl Mesh {
         Mesh::load_from(&LocalFolder::of_scene(path), &name, need_materials)
     }
 
-    /// Loads the model `name` of `source` by its extension: .obj, .gltf,
-    /// .glb, .ply, .ply.gz. Files it refers to (an OBJ's MTL, a glTF's
+    /// Loads the model `name` of `source` by its extension: .obj, .obj.gz,
+    /// .gltf, .glb, .ply, .ply.gz. Files it refers to (an OBJ's MTL, a glTF's
     /// buffers) are read through `source` too, named relative to it.
     /// `need_materials`: whether the file's materials will be used (when
     /// false, a missing MTL library is not an error).
@@ -132,6 +226,11 @@ impl Mesh {
         let result = quiet_catch_unwind(|| {
             if lower.ends_with(".obj") {
                 obj::load(source, name, &bytes, need_materials)
+            } else if lower.ends_with(".obj.gz") {
+                // As `.ply.gz`: the whole file gunzipped; its MTL library
+                // is looked for beside it, as for a plain OBJ.
+                let plain = gunzip(&bytes).map_err(|m| MeshError::new(path, m))?;
+                obj::load(source, name, &plain, need_materials)
             } else if lower.ends_with(".gltf") || lower.ends_with(".glb") {
                 gltf_file::load(source, name, &bytes)
             } else if lower.ends_with(".ply") || lower.ends_with(".ply.gz") {
@@ -139,7 +238,7 @@ impl Mesh {
             } else {
                 Err(MeshError::new(
                     path,
-                    "unknown model format: expected .obj, .gltf, .glb, .ply or .ply.gz",
+                    "unknown model format: expected .obj, .obj.gz, .gltf, .glb, .ply or .ply.gz",
                 ))
             }
         })
@@ -289,7 +388,9 @@ mod tests {
         let p = write(&d, "bad.obj", b"v 0 0 0\nv 1 0 zero\nf 1 2 3\n");
         let e = Mesh::load(&p, true).unwrap_err().to_string();
         assert!(
-            e.contains("bad.obj: invalid OBJ: position parse error"),
+            e.contains(
+                "bad.obj: invalid OBJ: line 2: position parse error: \"zero\" is not a number"
+            ),
             "{e}"
         );
         let p = write(&d, "oob.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 7\n");

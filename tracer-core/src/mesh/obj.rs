@@ -44,7 +44,13 @@ pub(super) fn load(
             result
         },
     )
-    .map_err(|e| MeshError::new(path, format!("invalid OBJ: {e}")))?;
+    .map_err(|e| {
+        let message = match locate_parse_error(&bytes, &e) {
+            Some((line, problem)) => format!("invalid OBJ: line {line}: {e}: {problem}"),
+            None => format!("invalid OBJ: {e}"),
+        };
+        MeshError::new(path, message)
+    })?;
     // A missing or unreadable library is common in downloaded models:
     // the default material stands in, and the user is told.
     let mut warnings = Vec::new();
@@ -263,6 +269,10 @@ fn check_face_indices(bytes: &[u8]) -> Result<(), String> {
         if first != Some("f") {
             continue;
         }
+        // tobj makes an empty polygon of it, and panics triangulating it.
+        if words.clone().next().is_none() {
+            return Err(format!("line {}: face without vertices", n + 1));
+        }
         for word in words {
             for (k, part) in word.split('/').enumerate().skip(1).take(2) {
                 // What tobj cannot parse it refuses itself.
@@ -291,6 +301,61 @@ fn check_face_indices(bytes: &[u8]) -> Result<(), String> {
         }
     }
     Ok(())
+}
+
+/// Where tobj's parse error `e` is: tobj names no line, so the lines are
+/// read again with tobj's rules for the record kind the error is about,
+/// and the first that breaks them is named, with the word it cannot read
+/// (line 12, `"3.1+e2" is not a number`). `None` for errors that are not
+/// about one line.
+fn locate_parse_error(bytes: &[u8], e: &tobj::LoadError) -> Option<(usize, String)> {
+    use tobj::LoadError as E;
+    let number = |w: &str| w.parse::<f32>().is_ok();
+    // The first word of `words` that is not a number, or the count missing.
+    let numbers = |words: &[&str], n: usize| -> Option<String> {
+        match words.iter().take(n).find(|w| !number(w)) {
+            Some(w) => Some(format!("{w:?} is not a number")),
+            None if words.len() < n => Some(format!("{n} numbers expected, found {}", words.len())),
+            None => None,
+        }
+    };
+    let index = |w: &str| {
+        w.split('/').count() <= 3
+            && w.split('/')
+                .all(|p| p.is_empty() || p.parse::<isize>().is_ok())
+    };
+    for (n, line) in bytes.split(|&b| b == b'\n').enumerate() {
+        let line = String::from_utf8_lossy(line);
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let Some((&key, rest)) = words.split_first() else {
+            continue;
+        };
+        let problem = match (e, key) {
+            (E::PositionParseError, "v") => numbers(rest, 3).or_else(|| match rest.len() {
+                4 if !number(rest[3]) => Some(format!("{:?} is not a number", rest[3])),
+                _ => None,
+            }),
+            (E::ColorParseError, "v") => matches!(rest.len(), 5 | 8..).then(|| {
+                format!(
+                    "{} values (3 numbers, then 1 weight or 3 colour components)",
+                    rest.len()
+                )
+            }),
+            (E::ScalingByZeroError, "v") => (rest.len() == 4 && rest[3].parse::<f32>() == Ok(0.0))
+                .then(|| "weight w = 0".to_string()),
+            (E::TexcoordParseError, "vt") => numbers(rest, 2),
+            (E::NormalParseError, "vn") => numbers(rest, 3),
+            (E::FaceParseError, "f") => rest
+                .iter()
+                .find(|w| !index(w))
+                .map(|w| format!("{w:?} is not a vertex reference (v, v/vt, v//vn or v/vt/vn)")),
+            _ => None,
+        };
+        if let Some(p) = problem {
+            return Some((n + 1, p));
+        }
+    }
+    None
 }
 
 /// An MTL library as tobj can read it: colour statements with one value

@@ -17,6 +17,7 @@ use crate::mesh::Mesh;
 use crate::sampling::Sampler;
 
 pub use super::mesh_desc::{Affine, MeshDesc, MeshModel, Rotation, Scale};
+use super::model_scene::{self, ModelSceneOptions, SceneInput};
 
 /// A number that TOML may write as an integer or a float (`1` or `1.0`).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -474,7 +475,8 @@ pub const FILE_MATERIALS: u32 = u32::MAX;
 #[serde(deny_unknown_fields)]
 struct SceneFile {
     render: Option<RenderTable>,
-    camera: CameraDesc,
+    /// May be left out when a mesh object gives the camera (`camera = ...`).
+    camera: Option<CameraDesc>,
     #[serde(default)]
     world: WorldDesc,
     #[serde(default)]
@@ -525,6 +527,60 @@ impl SceneDesc {
     pub fn parse(src: &str, path: impl AsRef<Path>) -> Result<Self, SceneError> {
         let path = path.as_ref();
         Self::parse_from(src, path, &LocalFolder::of_scene(path))
+    }
+
+    /// The scene text of a path given as the scene (`tessera render PATH`,
+    /// `tessera submit PATH`): a TOML file's text, or for a model file
+    /// (.gltf, .glb, .obj, .obj.gz) the TOML of "Model files as scenes"
+    /// (docs/scene-format.md). A PLY is refused with the TOML to write,
+    /// and `--camera` (`options.camera`) applies to model files only.
+    pub fn input_text(path: &Path, options: &ModelSceneOptions) -> Result<String, SceneError> {
+        match SceneInput::of(path)? {
+            SceneInput::Model => Ok(model_scene::model_scene_text(path, options)),
+            SceneInput::Toml if options.camera.is_some() => Err(SceneError::Input {
+                path: path.to_owned(),
+                message: "--camera picks a camera of a model file given as the scene (.gltf, .glb); \
+                          a TOML scene has its [camera], or takes a model's with `camera = ...` on its mesh object"
+                    .into(),
+            }),
+            SceneInput::Toml => std::fs::read_to_string(path).map_err(|error| SceneError::Io {
+                path: path.to_owned(),
+                error,
+            }),
+        }
+    }
+
+    /// Parses what [`Self::input_text`] gave for `path`, from `files`; a
+    /// model file's errors and warnings are said in its own and the
+    /// flags' terms, not the generated TOML's.
+    pub fn parse_input(
+        text: &str,
+        path: &Path,
+        files: &dyn AssetSource,
+        options: &ModelSceneOptions,
+    ) -> Result<Self, SceneError> {
+        if SceneInput::of(path)? == SceneInput::Toml {
+            return Self::parse_from(text, path, files);
+        }
+        let mut scene = Self::parse_from(text, path, files)
+            .map_err(|e| model_scene::model_scene_error(e, path, options))?;
+        let prefix = format!("{}: objects[0] (mesh).path: ", path.display());
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+        for w in &mut scene.warnings {
+            if let (Some(rest), Some(name)) = (w.strip_prefix(&prefix), &name)
+                && let Some(rest) = rest.strip_prefix(&format!("{name}: "))
+            {
+                *w = format!("{}: {rest}", path.display());
+            }
+        }
+        Ok(scene)
+    }
+
+    /// [`Self::input_text`] and [`Self::parse_input`] from this machine's
+    /// disk: what `tessera render PATH` renders.
+    pub fn load_input(path: &Path, options: &ModelSceneOptions) -> Result<Self, SceneError> {
+        let text = Self::input_text(path, options)?;
+        Self::parse_input(&text, path, &LocalFolder::of_scene(path), options)
     }
 
     /// Parses and validates scene text, reading every file it references
@@ -595,6 +651,11 @@ impl SceneDesc {
                 .check()
                 .map_err(|(key, m)| invalid(table_span("render"), format!("render.{key}"), m))?;
         }
+        // What `[render]` gives of the size: a model camera's aspect ratio decides the rest.
+        let given_size = file
+            .render
+            .as_ref()
+            .map_or((None, None), |t| (t.width, t.height));
         if let Some(t) = file.render {
             // The file's table overrides the defaults as flags override the file.
             render = super::RenderOverrides {
@@ -612,92 +673,10 @@ impl SceneDesc {
             invalid(table_span("render"), format!("render.{key}"), what.into())
         })?;
 
-        let cam = &file.camera;
         let cam_err =
             |field: &str, m: String| invalid(table_span("camera"), format!("camera.{field}"), m);
-        if !cam.up.is_finite() {
-            return Err(cam_err("up", format!("must be finite, got {:?}", cam.up.0)));
-        }
-        let still = CameraPose {
-            position: cam.position,
-            look_at: cam.look_at,
-            fov_y: cam.fov_y,
-        };
-        let poses = std::iter::once((String::new(), still)).chain(
-            cam.keyframes
-                .iter()
-                .enumerate()
-                .map(|(i, k)| (format!("keyframes[{i}]."), cam.pose_of(k))),
-        );
-        for (prefix, pose) in poses {
-            for (name, v) in [("position", &pose.position), ("look_at", &pose.look_at)] {
-                if !v.is_finite() {
-                    return Err(cam_err(
-                        &format!("{prefix}{name}"),
-                        format!("must be finite, got {:?}", v.0),
-                    ));
-                }
-            }
-            let forward = pose.look_at.sub(&pose.position);
-            if forward.length() == 0.0 {
-                return Err(cam_err(
-                    &format!("{prefix}look_at"),
-                    "must differ from the camera position".into(),
-                ));
-            }
-            if cam.up.cross(&forward).length() <= 1e-12 * cam.up.length() * forward.length() {
-                return Err(cam_err(
-                    &format!("{prefix}up"),
-                    "must not be zero or parallel to the view direction (look_at - position)"
-                        .into(),
-                ));
-            }
-            if !(pose.fov_y.0 > 0.0 && pose.fov_y.0 < 180.0) {
-                return Err(cam_err(
-                    &format!("{prefix}fov_y"),
-                    format!("must be in (0, 180) degrees, got {}", pose.fov_y.0),
-                ));
-            }
-        }
-        for (i, w) in cam.keyframes.windows(2).enumerate() {
-            if w[1].frame <= w[0].frame {
-                return Err(cam_err(
-                    &format!("keyframes[{}].frame", i + 1),
-                    format!(
-                        "keyframes must be in increasing frame order, got frame {} after frame {}",
-                        w[1].frame, w[0].frame
-                    ),
-                ));
-            }
-        }
-
-        if !(cam.aperture.0.is_finite() && (0.0..=MAX_VALUE).contains(&cam.aperture.0)) {
-            return Err(cam_err(
-                "aperture",
-                format!(
-                    "must be a finite number >= 0 and at most 1e6, got {}",
-                    cam.aperture.0
-                ),
-            ));
-        }
-        if let Some(f) = cam.focus_distance
-            && !(f.0.is_finite() && f.0 > 0.0 && f.0 <= MAX_VALUE * MAX_VALUE)
-        {
-            return Err(cam_err(
-                "focus_distance",
-                format!("must be a finite number > 0, got {}", f.0),
-            ));
-        }
-        if let Some((open, close)) = cam.shutter
-            && !(open.0 >= 0.0 && open.0 <= close.0 && close.0 <= 1.0)
-        {
-            return Err(cam_err(
-                "shutter",
-                format!(
-                    "must be [open, close] with 0 <= open <= close <= 1, got [{}, {}]",
-                    open.0, close.0
-                ),
-            ));
+        if let Some(cam) = &file.camera {
+            check_camera(cam).map_err(|(f, m)| cam_err(&f, m))?;
         }
 
         let world_span = table_span("world");
@@ -846,6 +825,10 @@ impl SceneDesc {
             });
         }
 
+        // The camera and lights mesh objects give (`camera`, `lights`).
+        let mut picked: Option<(usize, model_scene::PickedCamera, std::ops::Range<usize>)> = None;
+        let mut model_lights = Vec::new();
+        let mut uses_model_lights = false;
         let mut objects = Vec::with_capacity(file.objects.len());
         let mut object_materials = Vec::with_capacity(file.objects.len());
         let mut warnings = Vec::new();
@@ -915,7 +898,40 @@ impl SceneDesc {
                     let name = join("", &m.path);
                     let mesh = Mesh::load_from(files, &name, m.material.is_none())
                         .map_err(|e| err("path", format!("cannot load model: {e}")))?;
-                    warnings.extend(mesh.warnings.iter().map(|w| {
+                    let mut notes = mesh.warnings.clone();
+                    let xf = m.transform();
+                    if let Some(pick) = &m.camera {
+                        if file.camera.is_some() {
+                            return Err(err(
+                                "camera",
+                                "the scene's [camera] table gives the camera already: remove one of the two".into(),
+                            ));
+                        }
+                        if let Some((j, _, _)) = &picked {
+                            return Err(err(
+                                "camera",
+                                format!(
+                                    "objects[{j}] gives the scene's camera already: only one object may"
+                                ),
+                            ));
+                        }
+                        let camera = model_scene::pick_camera(
+                            &mesh,
+                            &xf,
+                            pick,
+                            render.width,
+                            render.height,
+                            &mut notes,
+                        )
+                        .map_err(|m| err("camera", m))?;
+                        picked = Some((i, camera, o.span()));
+                    }
+                    uses_model_lights |= m.lights.any();
+                    model_lights.extend(
+                        model_scene::file_lights(&mesh, &xf, &m.lights, &mut notes)
+                            .map_err(|m| err("lights", m))?,
+                    );
+                    warnings.extend(notes.iter().map(|w| {
                         format!("{}: objects[{i}] (mesh).path: {name}: {w}", path.display())
                     }));
                     m.model = MeshModel::new(mesh);
@@ -944,12 +960,48 @@ impl SceneDesc {
             objects.push(ov);
         }
 
+        let camera = match (file.camera, picked) {
+            (Some(camera), _) => camera,
+            (None, Some((i, p, span))) => {
+                let field = format!("objects[{i}] (mesh).camera");
+                check_camera(&p.camera).map_err(|(f, m)| {
+                    invalid(span.clone(), field.clone(), format!("the camera's {f} {m}"))
+                })?;
+                if let Some(a) = p.aspect_ratio {
+                    (render.width, render.height) =
+                        model_scene::size_for_aspect(a, given_size.0, given_size.1);
+                    render.validate().map_err(|m| {
+                        invalid(
+                            span.clone(),
+                            field.clone(),
+                            format!("with the camera's aspectRatio {a}: {m}"),
+                        )
+                    })?;
+                }
+                p.camera
+            }
+            (None, None) => {
+                return Err(SceneError::Parse {
+                    path,
+                    location: Location { line: 1, column: 1 },
+                    message: "missing table [camera] (or `camera = ...` on a mesh object: one of its glTF cameras, or \"auto\")".into(),
+                });
+            }
+        };
+        // Lights from models come after the file's own, in object order.
+        lights.extend(model_lights);
+        let mut world = file.world;
+        if uses_model_lights && lights.is_empty() && world.ambient.0 == [0.0; 3] {
+            lights.push(model_scene::headlight(&camera));
+            world.ambient = Vec3([model_scene::DEFAULT_AMBIENT; 3]);
+        }
+
         Ok(SceneDesc {
             warnings,
             path,
             render,
-            camera: file.camera,
-            world: file.world,
+            camera,
+            world,
             materials,
             lights,
             objects,
@@ -957,6 +1009,96 @@ impl SceneDesc {
             adaptive,
         })
     }
+}
+
+/// The checks of a camera (`[camera]`, or one a mesh object gives):
+/// `Err((field, message))`.
+fn check_camera(cam: &CameraDesc) -> Result<(), (String, String)> {
+    let ce = |field: &str, m: String| (field.to_string(), m);
+    if !cam.up.is_finite() {
+        return Err(ce("up", format!("must be finite, got {:?}", cam.up.0)));
+    }
+    let still = CameraPose {
+        position: cam.position,
+        look_at: cam.look_at,
+        fov_y: cam.fov_y,
+    };
+    let poses = std::iter::once((String::new(), still)).chain(
+        cam.keyframes
+            .iter()
+            .enumerate()
+            .map(|(i, k)| (format!("keyframes[{i}]."), cam.pose_of(k))),
+    );
+    for (prefix, pose) in poses {
+        for (name, v) in [("position", &pose.position), ("look_at", &pose.look_at)] {
+            if !v.is_finite() {
+                return Err(ce(
+                    &format!("{prefix}{name}"),
+                    format!("must be finite, got {:?}", v.0),
+                ));
+            }
+        }
+        let forward = pose.look_at.sub(&pose.position);
+        if forward.length() == 0.0 {
+            return Err(ce(
+                &format!("{prefix}look_at"),
+                "must differ from the camera position".into(),
+            ));
+        }
+        if cam.up.cross(&forward).length() <= 1e-12 * cam.up.length() * forward.length() {
+            return Err(ce(
+                &format!("{prefix}up"),
+                "must not be zero or parallel to the view direction (look_at - position)".into(),
+            ));
+        }
+        if !(pose.fov_y.0 > 0.0 && pose.fov_y.0 < 180.0) {
+            return Err(ce(
+                &format!("{prefix}fov_y"),
+                format!("must be in (0, 180) degrees, got {}", pose.fov_y.0),
+            ));
+        }
+    }
+    for (i, w) in cam.keyframes.windows(2).enumerate() {
+        if w[1].frame <= w[0].frame {
+            return Err(ce(
+                &format!("keyframes[{}].frame", i + 1),
+                format!(
+                    "keyframes must be in increasing frame order, got frame {} after frame {}",
+                    w[1].frame, w[0].frame
+                ),
+            ));
+        }
+    }
+
+    if !(cam.aperture.0.is_finite() && (0.0..=MAX_VALUE).contains(&cam.aperture.0)) {
+        return Err(ce(
+            "aperture",
+            format!(
+                "must be a finite number >= 0 and at most 1e6, got {}",
+                cam.aperture.0
+            ),
+        ));
+    }
+    if let Some(f) = cam.focus_distance
+        && !(f.0.is_finite() && f.0 > 0.0 && f.0 <= MAX_VALUE * MAX_VALUE)
+    {
+        return Err(ce(
+            "focus_distance",
+            format!("must be a finite number > 0, got {}", f.0),
+        ));
+    }
+    if let Some((open, close)) = cam.shutter
+        && !(open.0 >= 0.0 && open.0 <= close.0 && close.0 <= 1.0)
+    {
+        return Err(ce(
+            "shutter",
+            format!(
+                "must be [open, close] with 0 <= open <= close <= 1, got [{}, {}]",
+                open.0, close.0
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Byte offset of a line `key = ...` in the table that starts at `span`

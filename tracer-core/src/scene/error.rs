@@ -19,6 +19,11 @@ pub enum SceneError {
         location: Location,
         message: String,
     },
+    /// A file given as the scene that is not one (a PLY), or a model file
+    /// as a scene that cannot be rendered; the message says why and what
+    /// to do.
+    #[error("{path}: {message}", path = .path.display())]
+    Input { path: PathBuf, message: String },
     /// Well-formed TOML whose values make no scene (negative radius, unknown material, ...).
     #[error("{path}:{location}: {field}: {message}", path = .path.display())]
     Invalid {

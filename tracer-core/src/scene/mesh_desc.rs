@@ -7,6 +7,7 @@ use serde::Deserialize;
 use serde::de::{self, Deserializer, SeqAccess, Visitor};
 
 use super::desc::{MeshKeyframe, Num, Vec3, keyframed};
+use super::model_scene::{CameraPick, LightsPick};
 use crate::mesh::Mesh;
 
 /// A triangle mesh from a model file, placed by scale, then `rotate_euler`
@@ -32,6 +33,13 @@ pub struct MeshDesc {
     /// keyframes. Empty: the mesh stays at `translate`.
     #[serde(default)]
     pub keyframes: Vec<MeshKeyframe>,
+    /// The scene's camera from this model: one of its glTF cameras, or
+    /// the automatic camera framing it (then the scene has no `[camera]`).
+    #[serde(default)]
+    pub camera: Option<CameraPick>,
+    /// The model's glTF lights the scene gets (default none).
+    #[serde(default)]
+    pub lights: LightsPick,
     /// The loaded model (filled by `SceneDesc::parse`, not part of the format).
     #[serde(skip)]
     pub model: MeshModel,

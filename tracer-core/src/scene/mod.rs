@@ -4,6 +4,7 @@ pub mod adaptive;
 mod desc;
 mod error;
 mod mesh_desc;
+mod model_scene;
 mod overrides;
 
 pub use desc::MAX_VALUE;
@@ -15,4 +16,8 @@ pub use desc::{
 };
 pub(crate) use desc::{check_colour, check_weight};
 pub use error::{Location, SceneError};
+pub use model_scene::{
+    AUTO_FOV_Y, CameraPick, DEFAULT_AMBIENT, DIRECTIONAL_DISTANCE, HEADLIGHT, LightsPick,
+    ModelSceneOptions, SceneInput, model_scene_text,
+};
 pub use overrides::{RenderOverrides, SettingsError};
