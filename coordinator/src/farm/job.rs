@@ -290,7 +290,9 @@ impl Job {
         let total = match &self.adaptive {
             Some(_) => self.adaptive_frame_expected(n).max(f.samples_done),
             None => {
-                self.layout.width as u64 * self.layout.height as u64 * self.rec.settings.samples as u64
+                self.layout.width as u64
+                    * self.layout.height as u64
+                    * self.rec.settings.samples as u64
             }
         };
         share(f.samples_done, total)
@@ -349,7 +351,10 @@ impl Job {
         }
         let progress = self.progress(samples_total);
         let frames: Vec<_> = frames.collect();
-        let frames_progress = frames.iter().map(|&(&n, f)| self.frame_progress(n, f)).collect();
+        let frames_progress = frames
+            .iter()
+            .map(|&(&n, f)| self.frame_progress(n, f))
+            .collect();
         JobView {
             progress,
             frames_progress,

@@ -132,6 +132,6 @@ fn analytic_surface(id: u32, p: vec3<f32>) -> SurfacePoint {
     return SurfacePoint(p - pl.normal * off, pl.normal, pl.material);
 }
 
-// Ambient plus every unblocked light at surface point p (render/whitted.rs):
+// Ambient plus every unblocked light at surface point p (render/step.rs):
 // n (the geometric normal) faces the viewer v, ns is the shading normal
 // (n except on smooth triangles), `above` is p offset to the viewer's side,

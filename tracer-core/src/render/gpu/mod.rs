@@ -21,7 +21,7 @@
 //! WGSL: `wgsl.rs` assembles each module from the .wgsl files' explicit
 //! `//! import` lines and declares every bind group layout once (build.rs
 //! validates every module with naga). `shade.wgsl` is the one shading
-//! step (`render/whitted.rs`, `render/cpu/distributed.rs`), driven by
+//! step (`render/step.rs`, `render/cpu/distributed.rs`), driven by
 //! `whitted.wgsl` (stack) and `wavefront.wgsl`; `sampling.wgsl` mirrors
 //! `sampling.rs`; `layout.rs` mirrors the WGSL structs.
 //!

@@ -2,7 +2,7 @@
 //! import geometry.wgsl
 //! import distributed.wgsl
 // The shading step, once for every driver: what one ray sees and the rays
-// it spawns (render/whitted.rs `Surface`, `Surface::light` and
+// it spawns (render/step.rs `Surface`, `Surface::light` and
 // `add_secondary`; with distributed effects render/cpu/distributed.rs
 // `light_term` and `shade`). The stack driver (whitted.wgsl `trace`) and
 // the wavefront (wavefront.wgsl `wave_shade`) call `shade` and differ only
@@ -22,7 +22,7 @@ struct Ray {
     key: u32,
 }
 
-// What shading needs of a hit (whitted.rs Surface): the point, the normals
+// What shading needs of a hit (step.rs Surface): the point, the normals
 // facing the viewer v, the material, the origin for rays leaving on the
 // viewer's side.
 struct Surface {
@@ -37,17 +37,19 @@ struct Surface {
     above: vec3<f32>,
 }
 
-// whitted.rs Surface::at: the hit of ray r, at the sample's time tau.
+// step.rs Surface::at: the hit of ray r, at the sample's time tau.
 fn surface_at(r: Ray, hit: Hit, tau: f32) -> Surface {
     let v = -r.dir;
     let f = facing_at(hit.id, r.origin + r.dir * hit.t, v, tau);
     return Surface(hit.id, f.p, f.n, f.ns, v, f.entering, dot(f.ns, v), f.material, offset_origin(f.p, f.n));
 }
 
-// The term of a light at `pos` (whitted.rs Surface::light, distributed.rs
-// light_term), its shadow ray included: zero when blocked or when it can
-// add nothing (then no shadow ray). A term that is NaN is kept (and its
-// shadow ray traced) when `nan_kept`, as whitted.rs does; distributed.rs drops it.
+// The term of a light at `pos` (step.rs `light_term`), its shadow ray
+// included: zero when blocked or when it can add nothing (then no shadow
+// ray). A term that is NaN is kept (and its shadow ray traced) when
+// `nan_kept`, as the static Whitted step once did; the CPU's one step now
+// drops it for every effect. Only an all-NaN term, which a validated
+// scene cannot produce, tells the two apart.
 fn light_term(sf: Surface, m: Material, pos: vec3<f32>, diffuse: vec3<f32>, specular: vec3<f32>, tau: f32, nan_kept: bool) -> vec3<f32> {
     let p = sf.p;
     let n = sf.n;
@@ -136,7 +138,7 @@ struct Shaded {
 }
 
 // One ray of sample s of the pixel with `seed` at shutter fraction tau:
-// background, or the local colour and the secondary rays (whitted.rs
+// background, or the local colour and the secondary rays (step.rs
 // add_secondary; with cones, distributed.rs shade).
 fn shade(r: Ray, seed: u32, s: u32, tau: f32) -> Shaded {
     var out: Shaded;

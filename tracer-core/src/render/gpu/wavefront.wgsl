@@ -86,7 +86,7 @@ fn push(t: WaveTask) {
     }
 }
 
-// One generation: every task of queue_in, shaded as render/whitted.rs does.
+// One generation: every task of queue_in, shaded as render/step.rs does.
 @compute @workgroup_size(WG_X * WG_Y, 1, 1)
 fn wave_shade(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let i = gid.x;

@@ -5,10 +5,10 @@
 // per-thread task stack (WGSL has no recursion), each ray shaded by
 // shade.wgsl's step, and its radiance added to its pixel's sums
 // (sums.wgsl). A pixel's colour is the sum over the tree of weight * local
-// colour, the same quantity the CPU's recursion in `render/whitted.rs`
+// colour, the same quantity the CPU's recursion in `render/step.rs`
 // (with distributed effects, `render/cpu/distributed.rs`) computes.
 
-// Colour of one camera ray: render/whitted.rs `trace`, unrolled.
+// Colour of one camera ray: render/step.rs `trace`, unrolled.
 fn trace(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32) -> vec3<f32> {
     var stack: array<Ray, STACK_CAP>;
     var top = 0u;
