@@ -643,7 +643,7 @@ fn a_gltf_camera_shows_its_quad_where_the_projection_puts_it() {
     assert_eq!(
         stderr,
         format!(
-            "error: {}: --camera 1: camera 1 (orthographic) is orthographic, which Tessera's camera model (a pinhole, docs/scene-format.md) cannot render: pick a perspective camera (its cameras: 0 (perspective), 1 (orthographic)) or \"auto\"\n",
+            "error: {}: --camera 1: camera 1 is orthographic, which Tessera's camera model (a pinhole, docs/scene-format.md) cannot render: pick a perspective camera (its cameras: 0 (perspective), 1 (orthographic)) or \"auto\"\n",
             model.display()
         )
     );

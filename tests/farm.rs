@@ -3330,7 +3330,7 @@ fn connection_and_argument_mistakes_get_messages_that_name_them() {
     let _g = serial();
     let dir = tempfile::tempdir().expect("tempdir");
     let token = dir.path().join("client.token");
-    std::fs::write(&token, "0123456789abcdef\n").expect("token");
+    std::fs::write(&token, "0123456789abcdef0123456789abcdef\n").expect("token");
     let token_s = token.to_str().expect("path");
     let (_c, grpc, http) = start_coordinator_with_monitor(dir.path(), &[]);
     let run = |args: &[&str]| {

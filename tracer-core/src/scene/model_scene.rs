@@ -168,14 +168,20 @@ pub(crate) fn auto_camera(bounds: (DVec3, DVec3), width: u32, height: u32) -> Ca
     camera_desc(c + DVec3::Z * distance, c, DVec3::Y, AUTO_FOV_Y)
 }
 
+/// A camera as the messages name it: its index, its name if any, its kind.
 fn describe(c: &ModelCamera) -> String {
     let kind = match c.projection {
         Projection::Perspective { .. } => "perspective",
         Projection::Orthographic { .. } => "orthographic",
     };
+    format!("{} ({kind})", name_of(c))
+}
+
+/// Its index and its name if any, without its kind.
+fn name_of(c: &ModelCamera) -> String {
     match &c.name {
-        Some(n) => format!("{} {n:?} ({kind})", c.index),
-        None => format!("{} ({kind})", c.index),
+        Some(n) => format!("{} {n:?}", c.index),
+        None => c.index.to_string(),
     }
 }
 
@@ -260,7 +266,7 @@ pub(crate) fn pick_camera(
         Projection::Orthographic { .. } => {
             return Err(format!(
                 "camera {} is orthographic, which Tessera's camera model (a pinhole, docs/scene-format.md) cannot render: pick a perspective camera ({}) or \"auto\"",
-                describe(camera),
+                name_of(camera),
                 list_cameras(mesh)
             ));
         }
