@@ -1,0 +1,217 @@
+//! The store's film container: a film in the compact layout of
+//! [`film_codec::pack`] behind a header, or in the original layout of
+//! earlier releases (read only).
+
+use tessera_proto::film_codec;
+use tracer_core::film::{Film, RayCounts, Rect};
+
+/// Marks a stored film in the compact layout: its first four bytes. In the
+/// original layout they are the film's x, far below this (images are at
+/// most `MAX_IMAGE_SIDE` = 32768 wide), so films stored by earlier versions
+/// still decode.
+pub(super) const COMPACT_MAGIC: [u8; 4] = *b"TFC2";
+/// The compact layout of an adaptive film: one more header byte, the
+/// squares' width, and the sums of squares after the counts.
+pub(super) const ADAPTIVE_MAGIC: [u8; 4] = *b"TFA1";
+/// Bytes before the pixels: the magic, the rect, ray counts and the
+/// non-finite count, then the encoding (sum bytes, uniform flag, count).
+const COMPACT_HEADER: usize = 4 + 16 + 40 + 1 + 1 + 4;
+
+/// A film for the store, in the compact layout of [`film_codec::pack`].
+pub fn encode_film(f: &Film) -> Vec<u8> {
+    EncodedFilm::of_film(f).to_vec()
+}
+
+/// The part of `film` inside `rect` (which lies inside it), with these ray
+/// counts, for the store: no intermediate film.
+pub fn encode_film_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> Vec<u8> {
+    EncodedFilm::of_part(film, rect, rays, nonfinite).to_vec()
+}
+
+/// A film in the store's compact layout, kept as its parts: the store's
+/// writer copies them straight into the database's page (a GPU result is
+/// tens of megabytes, and one more copy of it cost ~10 ms).
+#[derive(Debug)]
+pub struct EncodedFilm {
+    header: Vec<u8>,
+    packed: film_codec::Packed,
+    squares: Vec<u8>,
+}
+
+impl EncodedFilm {
+    /// A film already in the compact layout (a result's fields as they came
+    /// over the wire, checked by decoding them): a header, no re-encoding.
+    /// `squares` (width, bytes) for adaptive films.
+    pub fn new(
+        rect: Rect,
+        rays: RayCounts,
+        nonfinite: u64,
+        packed: film_codec::Packed,
+        squares: Option<(u8, Vec<u8>)>,
+    ) -> EncodedFilm {
+        let mut header = Vec::with_capacity(COMPACT_HEADER + 1);
+        // Adaptive films (sums of squares) are the compact layout with one
+        // more header byte (the squares' width) and the squares at the end.
+        header.extend_from_slice(if squares.is_some() {
+            &ADAPTIVE_MAGIC
+        } else {
+            &COMPACT_MAGIC
+        });
+        for v in [rect.x, rect.y, rect.width, rect.height] {
+            header.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [
+            rays.primary,
+            rays.shadow,
+            rays.reflection,
+            rays.refraction,
+            nonfinite,
+        ] {
+            header.extend_from_slice(&v.to_le_bytes());
+        }
+        header.push(packed.sum_bytes);
+        header.push(u8::from(packed.uniform_count.is_some()));
+        header.extend_from_slice(&packed.uniform_count.unwrap_or(0).to_le_bytes());
+        let squares = match squares {
+            Some((n, bytes)) => {
+                header.push(n);
+                bytes
+            }
+            None => Vec::new(),
+        };
+        EncodedFilm {
+            header,
+            packed,
+            squares,
+        }
+    }
+
+    /// The part of `film` inside `rect` (which lies inside it), packed,
+    /// with these ray counts: no intermediate film.
+    pub fn of_part(film: &Film, rect: Rect, rays: RayCounts, nonfinite: u64) -> EncodedFilm {
+        EncodedFilm::new(
+            rect,
+            rays,
+            nonfinite,
+            film_codec::pack_part(film, rect),
+            film_codec::pack_squares_part(film, rect),
+        )
+    }
+
+    /// A whole film, packed (with its sums of squares if it has them).
+    pub fn of_film(f: &Film) -> EncodedFilm {
+        EncodedFilm::of_part(f, f.rect, f.rays, f.nonfinite)
+    }
+
+    /// Bytes of the encoded film.
+    pub fn len(&self) -> usize {
+        self.header.len() + self.packed.sums.len() + self.packed.counts.len() + self.squares.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The encoded film's bytes, in four parts.
+    pub fn parts(&self) -> [&[u8]; 4] {
+        [
+            &self.header,
+            &self.packed.sums,
+            &self.packed.counts,
+            &self.squares,
+        ]
+    }
+
+    /// Writes the encoded film into `out`, which is [`EncodedFilm::len`] long.
+    pub fn write_to(&self, out: &mut [u8]) {
+        let mut at = 0;
+        for part in self.parts() {
+            out[at..at + part.len()].copy_from_slice(part);
+            at += part.len();
+        }
+        debug_assert_eq!(at, out.len());
+    }
+
+    pub fn to_vec(&self) -> Vec<u8> {
+        let mut out = vec![0u8; self.len()];
+        self.write_to(&mut out);
+        out
+    }
+}
+
+/// A stored film, in the compact layout or in the original one (56-byte
+/// header, then 28 bytes a pixel) that earlier versions stored.
+pub fn decode_film(b: &[u8]) -> Result<Film, String> {
+    let adaptive = b.starts_with(&ADAPTIVE_MAGIC);
+    let compact = adaptive || b.starts_with(&COMPACT_MAGIC);
+    let header = match (compact, adaptive) {
+        (_, true) => COMPACT_HEADER + 1,
+        (true, false) => COMPACT_HEADER,
+        (false, _) => 56,
+    };
+    if b.len() < header {
+        return Err(format!(
+            "{} bytes is shorter than the {header}-byte header",
+            b.len()
+        ));
+    }
+    let at = if compact { 4 } else { 0 };
+    let u32_at = |i: usize| u32::from_le_bytes(b[at + i..at + i + 4].try_into().expect("4 bytes"));
+    let u64_at = |i: usize| u64::from_le_bytes(b[at + i..at + i + 8].try_into().expect("8 bytes"));
+    let rect = Rect::new(u32_at(0), u32_at(4), u32_at(8), u32_at(12));
+    let rays = RayCounts {
+        primary: u64_at(16),
+        shadow: u64_at(24),
+        reflection: u64_at(32),
+        refraction: u64_at(40),
+    };
+    let nonfinite = u64_at(48);
+    let encoding = if compact {
+        film_codec::Encoding {
+            sum_bytes: b[at + 56],
+            uniform_count: (b[at + 57] != 0).then(|| u32_at(58)),
+        }
+    } else {
+        film_codec::Encoding::ORIGINAL
+    };
+    let sums_len = encoding
+        .sums_len(rect.area())
+        .filter(|&n| n <= b.len() - header)
+        .ok_or_else(|| {
+            format!(
+                "{} bytes is too short for a {}x{} film",
+                b.len(),
+                rect.width,
+                rect.height
+            )
+        })?;
+    let split = header + sums_len;
+    if !adaptive {
+        return film_codec::unpack_with(
+            rect,
+            encoding,
+            &b[header..split],
+            &b[split..],
+            rays,
+            nonfinite,
+        )
+        .map_err(|e| e.to_string());
+    }
+    let counts_end = encoding
+        .counts_len(rect.area())
+        .map(|n| split + n)
+        .filter(|&end| end <= b.len())
+        .ok_or_else(|| format!("{} bytes is too short for the counts", b.len()))?;
+    let mut film = film_codec::unpack_with(
+        rect,
+        encoding,
+        &b[header..split],
+        &b[split..counts_end],
+        rays,
+        nonfinite,
+    )
+    .map_err(|e| e.to_string())?;
+    film_codec::unpack_squares(&mut film, b[COMPACT_HEADER], &b[counts_end..])
+        .map_err(|e| e.to_string())?;
+    Ok(film)
+}

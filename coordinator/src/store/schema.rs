@@ -1,0 +1,140 @@
+//! The store's schema: its tables and the serde records kept in them.
+
+use std::collections::BTreeMap;
+
+use redb::{ReadableTable, TableDefinition};
+use serde::{Deserialize, Serialize};
+use tracer_core::adaptive::AdaptiveSettings;
+use tracer_core::scene::RenderSettings;
+
+use super::StoreError;
+
+/// job id -> JSON [`JobRecord`]
+pub(super) const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");
+/// job id -> JSON [`Counters`]
+pub(super) const COUNTERS: TableDefinition<&str, &[u8]> = TableDefinition::new("counters");
+/// sha256 hex -> file content: where releases before the asset store
+/// (`crate::assets`) kept job files; read only, for their jobs.
+pub(super) const ASSETS: TableDefinition<&str, &[u8]> = TableDefinition::new("assets");
+/// (job id, unit index) -> encoded film of the finished unit, or a
+/// reference to the file that holds it ([`film_files`])
+pub(super) const UNIT_FILMS: TableDefinition<(&str, u32), &[u8]> =
+    TableDefinition::new("unit_films");
+/// Scratch space the writer's health probe writes and removes.
+pub(super) const PROBE: TableDefinition<&str, &[u8]> = TableDefinition::new("probe");
+/// (job id, frame) -> output file name
+pub(super) const FRAMES_WRITTEN: TableDefinition<(&str, u32), &str> =
+    TableDefinition::new("frames_written");
+
+/// A job as accepted: everything needed to render it again after a restart.
+/// `Farm::submit` makes it, in one place, from the job's
+/// [`tessera_proto::JobSpec`] resolved against its scene and the
+/// coordinator's defaults: the overrides become the settings it renders
+/// with, each `None` the default it took.
+///
+/// Stored as JSON; records written by earlier releases must keep loading,
+/// so field names stay as they were: the settings are flattened into
+/// `width`, `height`, `samples`, `max_depth` and `sampler` (its name,
+/// "grid", "jittered" or "progressive"), and the adaptive fields, which
+/// records before adaptive sampling lack, default to a uniform job.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct JobRecord {
+    pub id: String,
+    pub name: String,
+    pub scene_name: String,
+    pub scene_sha256: String,
+    /// Referenced files: name -> sha256.
+    pub assets: BTreeMap<String, String>,
+    /// The settings every frame renders with (an adaptive job's `samples`
+    /// is its `max_samples`). Checked where read back (`Farm::open`).
+    #[serde(flatten)]
+    pub settings: RenderSettings,
+    pub first_frame: u32,
+    pub last_frame: u32,
+    pub priority: i32,
+    pub tile_size: u32,
+    pub samples_per_unit: u32,
+    pub max_attempts: u32,
+    pub state: JobStateRec,
+    pub error: String,
+    pub submitted_unix_ms: i64,
+    pub finished_unix_ms: i64,
+    pub output_dir: String,
+    #[serde(flatten)]
+    pub adaptive: AdaptiveRec,
+}
+
+impl JobRecord {
+    /// The job's adaptive settings, if it is adaptive.
+    pub fn adaptive(&self) -> Option<AdaptiveSettings> {
+        self.adaptive.settings()
+    }
+}
+
+/// Adaptive sampling (issue 17) as a record keeps it: the error targets,
+/// absolute and relative (both 0: a uniform job), and the sample bounds.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct AdaptiveRec {
+    #[serde(default)]
+    pub target_error: f64,
+    #[serde(default)]
+    pub min_samples: u32,
+    #[serde(default)]
+    pub max_samples: u32,
+    #[serde(default)]
+    pub relative_error: f64,
+}
+
+impl AdaptiveRec {
+    /// The settings, if adaptive (a target, absolute or relative, above 0).
+    pub fn settings(&self) -> Option<AdaptiveSettings> {
+        (self.target_error > 0.0 || self.relative_error > 0.0).then_some(AdaptiveSettings {
+            target_error: self.target_error,
+            relative_error: self.relative_error,
+            min_samples: self.min_samples,
+            max_samples: self.max_samples,
+        })
+    }
+}
+
+impl From<Option<AdaptiveSettings>> for AdaptiveRec {
+    fn from(a: Option<AdaptiveSettings>) -> Self {
+        a.map_or_else(AdaptiveRec::default, |a| AdaptiveRec {
+            target_error: a.target_error,
+            min_samples: a.min_samples,
+            max_samples: a.max_samples,
+            relative_error: a.relative_error,
+        })
+    }
+}
+
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+pub enum JobStateRec {
+    Active,
+    Done,
+    Failed,
+    Cancelled,
+}
+
+/// Per-job counters. `units_accepted` is written with each result.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq, Eq)]
+pub struct Counters {
+    pub units_accepted: u64,
+    pub results_rejected: u64,
+    pub results_late: u64,
+    pub results_duplicate: u64,
+    pub rays: [u64; 4],
+}
+
+pub(super) fn read_counters(
+    t: &redb::Table<&str, &[u8]>,
+    job: &str,
+) -> Result<Counters, StoreError> {
+    match t.get(job)? {
+        Some(v) => serde_json::from_slice(v.value()).map_err(|e| StoreError::Corrupt {
+            what: format!("counters of {job}"),
+            message: e.to_string(),
+        }),
+        None => Ok(Counters::default()),
+    }
+}
