@@ -7,8 +7,8 @@ use tracer_core::adaptive::AdaptiveSettings;
 use tracer_core::film::{RayCounts, Rect};
 use tracer_core::scene::RenderSettings;
 
-use super::film::{ADAPTIVE_MAGIC, COMPACT_MAGIC};
 use super::*;
+use tessera_proto::film_codec::{ADAPTIVE_MAGIC, COMPACT_MAGIC};
 use tracer_core::sampling::Sampler;
 
 /// A job record as releases before `JobSpec` wrote it (with the

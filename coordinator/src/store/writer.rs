@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use redb::{Database, Durability};
 use tokio::sync::oneshot;
 
-use super::film::EncodedFilm;
+use super::EncodedFilm;
 use super::film_files;
 use super::schema::{
     COUNTERS, Counters, FRAMES_WRITTEN, JOBS, JobRecord, PROBE, UNIT_FILMS, read_counters,
