@@ -292,7 +292,7 @@ impl Store {
             // A record this release cannot read (written by a newer one,
             // say with a sampler it does not know) is left out with an
             // error, not allowed to stop every other job from resuming.
-            let rec: JobRecord = match serde_json::from_slice(v.value()) {
+            let rec = match JobRecord::from_json(v.value()) {
                 Ok(rec) => rec,
                 Err(e) => {
                     tracing::error!(job = %id, error = %e, "job not resumed: its stored record cannot be read");

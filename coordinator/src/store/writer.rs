@@ -371,7 +371,7 @@ pub(super) fn commit<'a>(
         for op in ops {
             match op {
                 Op::PutJob(rec) => {
-                    let json = serde_json::to_vec(rec).expect("records serialise");
+                    let json = rec.to_json();
                     jobs.insert(rec.id.as_str(), json.as_slice())?;
                 }
                 Op::PutCounters { job, counters: c } => {
