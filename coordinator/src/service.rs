@@ -746,33 +746,19 @@ async fn decode_results(reqs: Vec<pb::SubmitResultRequest>) -> Result<Vec<Result
 fn result_data(r: pb::SubmitResultRequest) -> ResultData {
     let rect = r.rect.unwrap_or_default().into();
     let samples = r.samples.unwrap_or_default().into();
-    let encoding = match r.sum_bytes {
-        0 => Ok(film_codec::Encoding::ORIGINAL),
-        n @ 1..=8 => Ok(film_codec::Encoding {
-            sum_bytes: n as u8,
-            uniform_count: r.uniform_count,
-        }),
-        n => Err(film_codec::FilmCodecError::SumBytes(n)),
-    };
+    let encoding = film_codec::Encoding::from_wire(r.sum_bytes, r.uniform_count);
     let decoded_as = encoding.as_ref().ok().copied();
     let film = encoding
         .and_then(|encoding| {
-            film_codec::unpack_with(
+            film_codec::unpack_film(
                 rect,
                 encoding,
                 &r.sums,
                 &r.counts,
+                (r.square_bytes != 0).then_some((r.square_bytes, &r.squares[..])),
                 r.rays.unwrap_or_default().into(),
                 r.nonfinite,
             )
-        })
-        .and_then(|mut film| {
-            if r.square_bytes != 0 {
-                let n = u8::try_from(r.square_bytes)
-                    .map_err(|_| film_codec::FilmCodecError::SquareBytes(r.square_bytes))?;
-                film_codec::unpack_squares(&mut film, n, &r.squares)?;
-            }
-            Ok(film)
         })
         .map_err(|e| e.to_string());
     // The fields decoded: they are the film in the store's layout too

@@ -13,6 +13,11 @@ pub use prost::bytes::Bytes;
 use rayon::prelude::*;
 use tracer_core::film::{Film, RayCounts, Rect};
 
+mod container;
+pub use container::{
+    ADAPTIVE_MAGIC, COMPACT_MAGIC, EncodedFilm, decode_film, encode_film, encode_film_part,
+};
+
 /// Bytes per pixel of the `sums` field.
 pub const SUM_BYTES: usize = 24;
 /// Bytes per pixel of the `counts` field.
@@ -75,6 +80,22 @@ impl Encoding {
         sum_bytes: 8,
         uniform_count: None,
     };
+
+    /// The encoding a result's `sum_bytes` and `uniform_count` fields name
+    /// (`sum_bytes` 0: the original layout, of releases before the compact one).
+    pub fn from_wire(
+        sum_bytes: u32,
+        uniform_count: Option<u32>,
+    ) -> Result<Encoding, FilmCodecError> {
+        match sum_bytes {
+            0 => Ok(Encoding::ORIGINAL),
+            n @ 1..=8 => Ok(Encoding {
+                sum_bytes: n as u8,
+                uniform_count,
+            }),
+            n => Err(FilmCodecError::SumBytes(n)),
+        }
+    }
 
     /// Bytes of the sums field for `pixels` pixels (`None` on overflow).
     pub fn sums_len(self, pixels: usize) -> Option<usize> {
@@ -383,6 +404,29 @@ pub fn unpack(
     nonfinite: u64,
 ) -> Result<Film, FilmCodecError> {
     unpack_with(rect, Encoding::ORIGINAL, sums, counts, rays, nonfinite)
+}
+
+/// Rebuilds a film from its packed fields, wherever they came from (a
+/// result on the wire, a film in the store's container): sums and counts
+/// in `encoding`, and an adaptive film's sums of squares (`square_bytes`
+/// wide, as the wire's `square_bytes` field holds it), sizes checked
+/// against `rect`.
+pub fn unpack_film(
+    rect: Rect,
+    encoding: Encoding,
+    sums: &[u8],
+    counts: &[u8],
+    squares: Option<(u32, &[u8])>,
+    rays: RayCounts,
+    nonfinite: u64,
+) -> Result<Film, FilmCodecError> {
+    let mut film = unpack_with(rect, encoding, sums, counts, rays, nonfinite)?;
+    if let Some((square_bytes, bytes)) = squares {
+        let n =
+            u8::try_from(square_bytes).map_err(|_| FilmCodecError::SquareBytes(square_bytes))?;
+        unpack_squares(&mut film, n, bytes)?;
+    }
+    Ok(film)
 }
 
 #[cfg(test)]

@@ -20,7 +20,6 @@
 //! or a state change (those commit durably, taking any results before them
 //! along); the lost units are simply pending again after the restart.
 
-mod film;
 mod film_files;
 mod schema;
 #[cfg(test)]
@@ -35,9 +34,9 @@ use redb::{Database, ReadableDatabase, ReadableTable};
 use tokio::sync::oneshot;
 use tracer_core::film::Film;
 
-pub use film::{EncodedFilm, decode_film, encode_film, encode_film_part};
 use schema::{ASSETS, COUNTERS, FRAMES_WRITTEN, JOBS, UNIT_FILMS};
 pub use schema::{AdaptiveRec, Counters, JobRecord, JobStateRec};
+pub use tessera_proto::film_codec::{EncodedFilm, decode_film, encode_film, encode_film_part};
 pub use writer::{Op, RESULTS_DURABLE_WITHIN, StorageHealth, StoredFilm};
 use writer::{Request, Shared};
 
@@ -293,7 +292,7 @@ impl Store {
             // A record this release cannot read (written by a newer one,
             // say with a sampler it does not know) is left out with an
             // error, not allowed to stop every other job from resuming.
-            let rec: JobRecord = match serde_json::from_slice(v.value()) {
+            let rec = match JobRecord::from_json(v.value()) {
                 Ok(rec) => rec,
                 Err(e) => {
                     tracing::error!(job = %id, error = %e, "job not resumed: its stored record cannot be read");

@@ -5,6 +5,7 @@ use std::collections::BTreeMap;
 use redb::{ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
 use tracer_core::adaptive::AdaptiveSettings;
+use tracer_core::sampling::Sampler;
 use tracer_core::scene::RenderSettings;
 
 use super::StoreError;
@@ -32,12 +33,10 @@ pub(super) const FRAMES_WRITTEN: TableDefinition<(&str, u32), &str> =
 /// coordinator's defaults: the overrides become the settings it renders
 /// with, each `None` the default it took.
 ///
-/// Stored as JSON; records written by earlier releases must keep loading,
-/// so field names stay as they were: the settings are flattened into
-/// `width`, `height`, `samples`, `max_depth` and `sampler` (its name,
-/// "grid", "jittered" or "progressive"), and the adaptive fields, which
-/// records before adaptive sampling lack, default to a uniform job.
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+/// Stored as JSON through the store's own record type (`JobRecordJson`,
+/// converted by [`JobRecord::to_json`] and [`JobRecord::from_json`]), so
+/// that no renderer type is the store's schema.
+#[derive(Clone, Debug, PartialEq)]
 pub struct JobRecord {
     pub id: String,
     pub name: String,
@@ -47,7 +46,6 @@ pub struct JobRecord {
     pub assets: BTreeMap<String, String>,
     /// The settings every frame renders with (an adaptive job's `samples`
     /// is its `max_samples`). Checked where read back (`Farm::open`).
-    #[serde(flatten)]
     pub settings: RenderSettings,
     pub first_frame: u32,
     pub last_frame: u32,
@@ -60,11 +58,21 @@ pub struct JobRecord {
     pub submitted_unix_ms: i64,
     pub finished_unix_ms: i64,
     pub output_dir: String,
-    #[serde(flatten)]
     pub adaptive: AdaptiveRec,
 }
 
 impl JobRecord {
+    /// The record as the store writes it.
+    pub fn to_json(&self) -> Vec<u8> {
+        serde_json::to_vec(&JobRecordJson::from(self)).expect("records serialise")
+    }
+
+    /// A stored record, of this release or an earlier one.
+    pub fn from_json(bytes: &[u8]) -> Result<JobRecord, String> {
+        let json: JobRecordJson = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
+        JobRecord::try_from(json)
+    }
+
     /// The job's adaptive settings, if it is adaptive.
     pub fn adaptive(&self) -> Option<AdaptiveSettings> {
         self.adaptive.settings()
@@ -136,5 +144,163 @@ pub(super) fn read_counters(
             message: e.to_string(),
         }),
         None => Ok(Counters::default()),
+    }
+}
+
+/// The job record version this release writes and the newest it reads.
+/// Version 1, every record so far, is written without a `version` key:
+/// its JSON is the object earlier releases wrote and read. A later
+/// version names itself, and this release refuses it by name.
+pub(super) const JOB_RECORD_VERSION: u32 = 1;
+
+/// A job record as JSON: the store's own serde type, never a renderer
+/// type. Records written by earlier releases must keep loading, so field
+/// names stay as they were: the settings are flattened into `width`,
+/// `height`, `samples`, `max_depth` and `sampler` (its name, "grid",
+/// "jittered" or "progressive"), and the adaptive fields, which records
+/// before adaptive sampling lack, default to a uniform job.
+#[derive(Serialize, Deserialize)]
+pub(super) struct JobRecordJson {
+    #[serde(
+        default = "record_version_1",
+        skip_serializing_if = "is_record_version_1"
+    )]
+    pub version: u32,
+    pub id: String,
+    pub name: String,
+    pub scene_name: String,
+    pub scene_sha256: String,
+    pub assets: BTreeMap<String, String>,
+    #[serde(flatten)]
+    pub settings: SettingsRec,
+    pub first_frame: u32,
+    pub last_frame: u32,
+    pub priority: i32,
+    pub tile_size: u32,
+    pub samples_per_unit: u32,
+    pub max_attempts: u32,
+    pub state: JobStateRec,
+    pub error: String,
+    pub submitted_unix_ms: i64,
+    pub finished_unix_ms: i64,
+    pub output_dir: String,
+    #[serde(flatten)]
+    pub adaptive: AdaptiveRec,
+}
+
+fn record_version_1() -> u32 {
+    1
+}
+
+fn is_record_version_1(v: &u32) -> bool {
+    *v == 1
+}
+
+/// Render settings as a record keeps them.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+pub(super) struct SettingsRec {
+    pub width: u32,
+    pub height: u32,
+    pub samples: u32,
+    pub max_depth: u32,
+    pub sampler: SamplerRec,
+}
+
+/// A sampler as a record names it.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub(super) enum SamplerRec {
+    Grid,
+    Jittered,
+    Progressive,
+}
+
+impl From<RenderSettings> for SettingsRec {
+    fn from(s: RenderSettings) -> Self {
+        SettingsRec {
+            width: s.width,
+            height: s.height,
+            samples: s.samples,
+            max_depth: s.max_depth,
+            sampler: match s.sampler {
+                Sampler::Grid => SamplerRec::Grid,
+                Sampler::Jittered => SamplerRec::Jittered,
+                Sampler::Progressive => SamplerRec::Progressive,
+            },
+        }
+    }
+}
+
+impl From<SettingsRec> for RenderSettings {
+    fn from(s: SettingsRec) -> Self {
+        RenderSettings {
+            width: s.width,
+            height: s.height,
+            samples: s.samples,
+            max_depth: s.max_depth,
+            sampler: match s.sampler {
+                SamplerRec::Grid => Sampler::Grid,
+                SamplerRec::Jittered => Sampler::Jittered,
+                SamplerRec::Progressive => Sampler::Progressive,
+            },
+        }
+    }
+}
+
+impl From<&JobRecord> for JobRecordJson {
+    fn from(r: &JobRecord) -> Self {
+        JobRecordJson {
+            version: JOB_RECORD_VERSION,
+            id: r.id.clone(),
+            name: r.name.clone(),
+            scene_name: r.scene_name.clone(),
+            scene_sha256: r.scene_sha256.clone(),
+            assets: r.assets.clone(),
+            settings: r.settings.into(),
+            first_frame: r.first_frame,
+            last_frame: r.last_frame,
+            priority: r.priority,
+            tile_size: r.tile_size,
+            samples_per_unit: r.samples_per_unit,
+            max_attempts: r.max_attempts,
+            state: r.state,
+            error: r.error.clone(),
+            submitted_unix_ms: r.submitted_unix_ms,
+            finished_unix_ms: r.finished_unix_ms,
+            output_dir: r.output_dir.clone(),
+            adaptive: r.adaptive,
+        }
+    }
+}
+
+impl TryFrom<JobRecordJson> for JobRecord {
+    type Error = String;
+    fn try_from(r: JobRecordJson) -> Result<Self, String> {
+        if r.version > JOB_RECORD_VERSION {
+            return Err(format!(
+                "job record version {} is newer than the {JOB_RECORD_VERSION} this release reads",
+                r.version
+            ));
+        }
+        Ok(JobRecord {
+            id: r.id,
+            name: r.name,
+            scene_name: r.scene_name,
+            scene_sha256: r.scene_sha256,
+            assets: r.assets,
+            settings: r.settings.into(),
+            first_frame: r.first_frame,
+            last_frame: r.last_frame,
+            priority: r.priority,
+            tile_size: r.tile_size,
+            samples_per_unit: r.samples_per_unit,
+            max_attempts: r.max_attempts,
+            state: r.state,
+            error: r.error,
+            submitted_unix_ms: r.submitted_unix_ms,
+            finished_unix_ms: r.finished_unix_ms,
+            output_dir: r.output_dir,
+            adaptive: r.adaptive,
+        })
     }
 }

@@ -7,8 +7,9 @@ use tracer_core::adaptive::AdaptiveSettings;
 use tracer_core::film::{RayCounts, Rect};
 use tracer_core::scene::RenderSettings;
 
-use super::film::{ADAPTIVE_MAGIC, COMPACT_MAGIC};
+use super::schema::SettingsRec;
 use super::*;
+use tessera_proto::film_codec::{ADAPTIVE_MAGIC, COMPACT_MAGIC};
 use tracer_core::sampling::Sampler;
 
 /// A job record as releases before `JobSpec` wrote it (with the
@@ -22,7 +23,7 @@ const RECORD: &str = r#"{"id":"j0123456789","name":"glass","scene_name":"example
 
 #[test]
 fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
-    let rec: JobRecord = serde_json::from_str(RECORD).unwrap();
+    let rec = JobRecord::from_json(RECORD.as_bytes()).unwrap();
     assert_eq!(
         rec.settings,
         RenderSettings {
@@ -47,7 +48,10 @@ fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
     // Written back, it is the same JSON object: same names, the
     // sampler still a string.
     let old: serde_json::Value = serde_json::from_str(RECORD).unwrap();
-    assert_eq!(serde_json::to_value(&rec).unwrap(), old);
+    assert_eq!(
+        serde_json::from_slice::<serde_json::Value>(&rec.to_json()).unwrap(),
+        old
+    );
 
     // Before adaptive sampling: no adaptive fields, a "grid" or
     // "jittered" sampler; a uniform job.
@@ -62,17 +66,41 @@ fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
         before.remove(k);
     }
     before.insert("sampler".into(), "jittered".into());
-    let rec: JobRecord = serde_json::from_value(before.into()).unwrap();
+    let rec = JobRecord::from_json(&serde_json::to_vec(&before).unwrap()).unwrap();
     assert_eq!(rec.settings.sampler, Sampler::Jittered);
     assert_eq!(rec.adaptive(), None);
     for s in ["grid", "jittered", "progressive"] {
-        let v = serde_json::to_value(RenderSettings {
+        let v = serde_json::to_value(SettingsRec::from(RenderSettings {
             sampler: s.parse().unwrap(),
             ..rec.settings
-        })
+        }))
         .unwrap();
         assert_eq!(v["sampler"], s);
     }
+}
+
+/// Records are versioned: version 1 (every record so far) is written
+/// without the key and read with or without it; a newer version is
+/// refused by name, not misread.
+#[test]
+fn job_records_carry_their_version_and_a_newer_one_is_refused() {
+    let rec = JobRecord::from_json(RECORD.as_bytes()).unwrap();
+    assert!(
+        !String::from_utf8(rec.to_json())
+            .unwrap()
+            .contains("version")
+    );
+    let mut v1: serde_json::Value = serde_json::from_str(RECORD).unwrap();
+    v1["version"] = 1.into();
+    assert_eq!(
+        JobRecord::from_json(&serde_json::to_vec(&v1).unwrap()),
+        Ok(rec)
+    );
+    v1["version"] = 2.into();
+    assert_eq!(
+        JobRecord::from_json(&serde_json::to_vec(&v1).unwrap()),
+        Err("job record version 2 is newer than the 1 this release reads".into())
+    );
 }
 
 /// A record this release cannot read (a sampler from a newer release)
@@ -81,7 +109,7 @@ fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
 fn an_unreadable_job_record_does_not_stop_the_others_loading() {
     let dir = tempfile::tempdir().unwrap();
     let store = Store::open(&dir.path().join("t.redb")).unwrap();
-    let good: JobRecord = serde_json::from_str(RECORD).unwrap();
+    let good = JobRecord::from_json(RECORD.as_bytes()).unwrap();
     let mut newer: serde_json::Value = serde_json::from_str(RECORD).unwrap();
     newer["id"] = "jnewer".into();
     newer["sampler"] = "blue-noise".into();
@@ -91,7 +119,7 @@ fn an_unreadable_job_record_does_not_stop_the_others_loading() {
         let mut t = w.open_table(JOBS).unwrap();
         let newer = serde_json::to_vec(&newer).unwrap();
         t.insert("jnewer", newer.as_slice()).unwrap();
-        let good = serde_json::to_vec(&good).unwrap();
+        let good = good.to_json();
         t.insert("j0123456789", good.as_slice()).unwrap();
     }
     w.commit().unwrap();

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use redb::{Database, Durability};
 use tokio::sync::oneshot;
 
-use super::film::EncodedFilm;
+use super::EncodedFilm;
 use super::film_files;
 use super::schema::{
     COUNTERS, Counters, FRAMES_WRITTEN, JOBS, JobRecord, PROBE, UNIT_FILMS, read_counters,
@@ -371,7 +371,7 @@ pub(super) fn commit<'a>(
         for op in ops {
             match op {
                 Op::PutJob(rec) => {
-                    let json = serde_json::to_vec(rec).expect("records serialise");
+                    let json = rec.to_json();
                     jobs.insert(rec.id.as_str(), json.as_slice())?;
                 }
                 Op::PutCounters { job, counters: c } => {

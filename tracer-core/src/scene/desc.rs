@@ -100,8 +100,8 @@ impl Vec3 {
 
 /// Image and sampling settings. The file's `[render]` table gives defaults;
 /// the command line or a job overrides them ([`super::RenderOverrides`]).
-/// Serialized (the coordinator's job records) under these field names, the
-/// sampler by its name.
+/// Serializable under these field names, the sampler by its name; the
+/// coordinator's job records are the store's own type (`SettingsRec`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, Deserialize)]
 pub struct RenderSettings {
     pub width: u32,

@@ -1,18 +1,22 @@
-//! The store's film container: a film in the compact layout of
-//! [`film_codec::pack`] behind a header, or in the original layout of
-//! earlier releases (read only).
+//! The film container: a film's packed fields ([`super::Packed`], the
+//! fields a result carries on the wire) behind a header of what the wire
+//! carries beside them (rect, rays, the encoding), as the coordinator's
+//! store keeps it; or, read only, the original layout earlier releases
+//! stored. Its pixels are decoded by the same [`super::unpack_film`] as
+//! the wire's.
 
-use tessera_proto::film_codec;
 use tracer_core::film::{Film, RayCounts, Rect};
+
+use crate::film_codec;
 
 /// Marks a stored film in the compact layout: its first four bytes. In the
 /// original layout they are the film's x, far below this (images are at
 /// most `MAX_IMAGE_SIDE` = 32768 wide), so films stored by earlier versions
 /// still decode.
-pub(super) const COMPACT_MAGIC: [u8; 4] = *b"TFC2";
+pub const COMPACT_MAGIC: [u8; 4] = *b"TFC2";
 /// The compact layout of an adaptive film: one more header byte, the
 /// squares' width, and the sums of squares after the counts.
-pub(super) const ADAPTIVE_MAGIC: [u8; 4] = *b"TFA1";
+pub const ADAPTIVE_MAGIC: [u8; 4] = *b"TFA1";
 /// Bytes before the pixels: the magic, the rect, ray counts and the
 /// non-finite count, then the encoding (sum bytes, uniform flag, count).
 const COMPACT_HEADER: usize = 4 + 16 + 40 + 1 + 1 + 4;
@@ -186,32 +190,87 @@ pub fn decode_film(b: &[u8]) -> Result<Film, String> {
             )
         })?;
     let split = header + sums_len;
-    if !adaptive {
-        return film_codec::unpack_with(
-            rect,
-            encoding,
-            &b[header..split],
-            &b[split..],
-            rays,
-            nonfinite,
-        )
-        .map_err(|e| e.to_string());
-    }
-    let counts_end = encoding
-        .counts_len(rect.area())
-        .map(|n| split + n)
-        .filter(|&end| end <= b.len())
-        .ok_or_else(|| format!("{} bytes is too short for the counts", b.len()))?;
-    let mut film = film_codec::unpack_with(
+    // An adaptive film's squares follow its counts; other films end there.
+    let (counts_end, squares) = if adaptive {
+        let end = encoding
+            .counts_len(rect.area())
+            .map(|n| split + n)
+            .filter(|&end| end <= b.len())
+            .ok_or_else(|| format!("{} bytes is too short for the counts", b.len()))?;
+        (end, Some((u32::from(b[COMPACT_HEADER]), &b[end..])))
+    } else {
+        (b.len(), None)
+    };
+    film_codec::unpack_film(
         rect,
         encoding,
         &b[header..split],
         &b[split..counts_end],
+        squares,
         rays,
         nonfinite,
     )
-    .map_err(|e| e.to_string())?;
-    film_codec::unpack_squares(&mut film, b[COMPACT_HEADER], &b[counts_end..])
-        .map_err(|e| e.to_string())?;
-    Ok(film)
+    .map_err(|e| e.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One codec: a film's fields as a result carries them on the wire and
+    /// the same fields in the store's container decode to the same film,
+    /// uniform and adaptive; a wrong square width is refused the same way.
+    #[test]
+    fn the_wire_fields_and_the_stored_container_decode_alike() {
+        let rect = Rect::new(3, 2, 5, 3);
+        let mut f = Film::new(rect);
+        for (i, (s, c)) in f.sums.iter_mut().zip(&mut f.counts).enumerate() {
+            *s = [i as u64 * 1000, 7, i as u64];
+            *c = 16;
+        }
+        f.rays = RayCounts {
+            primary: 1,
+            shadow: 2,
+            reflection: 3,
+            refraction: 4,
+        };
+        f.nonfinite = 5;
+        let mut adaptive = f.clone();
+        adaptive.squares = Some((0..15u128).map(|i| [i << 70, i, 1]).collect());
+        for film in [f, adaptive] {
+            let packed = film_codec::pack(&film);
+            let squares = film_codec::pack_squares_part(&film, rect);
+            // What the coordinator reads from a result's fields.
+            let wire = film_codec::unpack_film(
+                rect,
+                film_codec::Encoding::from_wire(packed.sum_bytes.into(), packed.uniform_count)
+                    .unwrap(),
+                &packed.sums,
+                &packed.counts,
+                squares.as_ref().map(|(n, b)| (u32::from(*n), &b[..])),
+                film.rays,
+                film.nonfinite,
+            )
+            .unwrap();
+            let stored = EncodedFilm::new(rect, film.rays, film.nonfinite, packed, squares);
+            assert_eq!(wire, film);
+            assert_eq!(decode_film(&stored.to_vec()), Ok(film));
+        }
+        assert_eq!(
+            film_codec::unpack_film(
+                rect,
+                film_codec::Encoding::ORIGINAL,
+                &[0; 15 * 24],
+                &[0; 15 * 4],
+                Some((300, &[][..])),
+                RayCounts::default(),
+                0
+            ),
+            Err(film_codec::FilmCodecError::SquareBytes(300))
+        );
+        assert_eq!(
+            film_codec::Encoding::from_wire(9, None),
+            Err(film_codec::FilmCodecError::SumBytes(9))
+        );
+    }
 }
