@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Markdown tables for docs/benchmarks.md from `tessera bench` CSVs.
+"""Markdown tables for docs/bench/history.md (the generated thesis tables) from `tessera bench` CSVs.
 
     scripts/bench-tables.py SMALL_DIR BIG_DIR
 

@@ -224,10 +224,38 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
                 !rows.is_empty(),
                 "launch.csv: no {strategy} rows for {scene}"
             );
+            // Every launch shape traces the same rays: one primary ray per
+            // pixel-sample, the kinds adding up to the total, and (fixed-point
+            // sums, same image) the stack kernel's counts equal for every shape.
+            let total = num(rows[0], "rays_total");
             for r in rows {
                 assert_eq!(r["backend"], "gpu");
+                assert_eq!(
+                    num(r, "rays_primary"),
+                    num(r, "width") * num(r, "height") * num(r, "samples"),
+                    "launch {scene} {strategy}: one primary ray per pixel-sample"
+                );
+                assert_eq!(
+                    num(r, "rays_total"),
+                    [
+                        "rays_primary",
+                        "rays_shadow",
+                        "rays_reflection",
+                        "rays_refraction"
+                    ]
+                    .iter()
+                    .map(|c| num(r, c))
+                    .sum::<f64>()
+                );
+                if strategy == "stack" {
+                    assert_eq!(num(r, "rays_total"), total, "launch {scene}: shapes differ");
+                }
+                // The rate is the rays over the wall time (printed to 3 decimals).
+                let rate = num(r, "rays_total") / num(r, "wall_s") / 1e6;
                 assert!(
-                    num(r, "gpu_s") > 0.0 && num(r, "wall_s") > 0.0 && num(r, "rays_total") > 0.0
+                    (num(r, "mrays_per_s") - rate).abs() <= 1e-3 + rate * 1e-5,
+                    "launch {scene} {strategy}: {} Mrays/s, rays over wall time {rate}",
+                    r["mrays_per_s"]
                 );
                 assert!(num(r, "dispatches") >= 1.0);
                 let diff = num(r, "max_abs_diff_vs_default");
@@ -274,22 +302,55 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
         rows[3]["bit_identical"], "",
         "a mixed farm has no single local render"
     );
+    // Figures printed to 4 decimals: equal within that rounding (relative
+    // 1e-3 covers it for times of 0.1 s and more; the quick runs are longer).
+    let near = |got: f64, want: f64, what: &str| {
+        assert!(
+            (got - want).abs() <= 1e-3 * want.abs().max(0.1),
+            "{what} = {got}, want {want}"
+        );
+    };
     for r in &rows[2..] {
         assert_eq!(r["backend"], "gpu");
+        // Submission, first result, rendering: all within the job's wall time.
+        let wall = num(r, "wall_s");
         assert!(
-            num(r, "wall_s") > 0.0 && num(r, "render_s") > 0.0 && num(r, "first_result_s") > 0.0
+            num(r, "first_result_s") <= wall && num(r, "render_s") <= wall,
+            "{r:?}"
         );
-        assert!(num(r, "throughput_vs_local") > 0.0);
     }
+    // The GPU farm traced the local render's rays (same image), so its
+    // throughput against the local render is the ratio of their times.
+    let r = &rows[2];
+    near(
+        num(r, "throughput_vs_local"),
+        num(r, "local_wall_s") / num(r, "render_s"),
+        "GPU farm throughput_vs_local",
+    );
     let farm = &rows[..2];
     for r in farm {
-        assert!(num(r, "ceiling_s") > 0.0 && num(r, "of_ceiling") > 0.0);
+        // Of the ceiling: the ceiling's time over the job's; the speed-up
+        // against one worker's job, per worker for the efficiency.
+        near(
+            num(r, "of_ceiling"),
+            num(r, "ceiling_s") / num(r, "wall_s"),
+            "of_ceiling",
+        );
+        near(
+            num(r, "speedup"),
+            num(&farm[0], "wall_s") / num(r, "wall_s"),
+            "speedup",
+        );
+        near(
+            num(r, "efficiency"),
+            num(r, "speedup") / num(r, "workers"),
+            "efficiency",
+        );
         assert_eq!(
             r["bit_identical"], "true",
             "farm with {} workers: image differs from the local render",
             r["workers"]
         );
-        assert!(num(r, "wall_s") > 0.0 && num(r, "speedup") > 0.0 && num(r, "efficiency") > 0.0);
         assert!((0.0..1.0).contains(&num(r, "rmse")));
         assert!(image::open(dir.join("out").join(&r["image"])).is_ok());
     }

@@ -1,9 +1,11 @@
 //! `tessera gpus` and `tessera render --backend gpu` as a user runs them.
-//! Needs a wgpu adapter (lavapipe in CI); with CI=true a missing adapter
-//! fails the tests, elsewhere they skip with a message.
+//! Needs a wgpu adapter (lavapipe): the prerequisite `gpu`, whose absence
+//! fails the tests (tests/support/prereq.rs).
 
 use std::path::PathBuf;
 use std::process::{Command, Output};
+
+mod support;
 
 fn tessera() -> Command {
     Command::new(env!("CARGO_BIN_EXE_tessera"))
@@ -18,16 +20,9 @@ fn run(cmd: &mut Command) -> (Output, String, String) {
     )
 }
 
-/// The first adapter line of `tessera gpus`, or None (skip) outside CI.
+/// The first adapter line of `tessera gpus` (a missing adapter fails the test).
 fn adapter() -> Option<String> {
-    let (out, stdout, stderr) = run(tessera().arg("gpus"));
-    if !out.status.success() {
-        if std::env::var("CI").is_ok_and(|v| v == "true") {
-            panic!("CI=true but `tessera gpus` found no adapter: {stderr}");
-        }
-        eprintln!("SKIPPING GPU CLI tests: {stderr}");
-        return None;
-    }
+    let stdout = support::gpus()?;
     let mut lines = stdout.lines();
     assert!(
         lines.next().is_some_and(|h| h.starts_with("index name")

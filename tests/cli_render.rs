@@ -3,6 +3,9 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+mod support;
+use support::shared;
+
 fn tessera() -> Command {
     Command::new(env!("CARGO_BIN_EXE_tessera"))
 }
@@ -504,21 +507,6 @@ fn adaptive_renders_write_sample_and_error_channels_and_a_sample_map() {
     ] {
         expect_failure(GOOD, args, &[want]);
     }
-}
-
-/// `../shared/scenes` beside the repository (or `TESSERA_SHARED`): its
-/// absence fails the test, never skips it.
-fn shared(path: &str) -> PathBuf {
-    let root = std::env::var_os("TESSERA_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo().join("../shared"));
-    let p = root.join(path);
-    assert!(
-        p.exists(),
-        "{} is missing: the shared assets (../shared beside the repository, or TESSERA_SHARED) are needed",
-        p.display()
-    );
-    p
 }
 
 /// Every glTF asset of ../shared/scenes, and the Sibenik OBJ, render with

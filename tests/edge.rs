@@ -3,10 +3,10 @@
 //! concurrent uploads, weak tokens. Real processes on 127.0.0.1; every
 //! loop is bounded in count and time.
 
-use std::io::{BufRead as _, BufReader, Read as _, Write as _};
+use std::io::{Read as _, Write as _};
 use std::net::TcpStream;
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use tessera_proto::pb;
@@ -24,7 +24,6 @@ struct Coordinator {
 /// A coordinator started through `sh -c '...; exec tessera coordinator'`
 /// (`prefix` may set a ulimit), with the monitor when `http`.
 fn start(dir: &Path, prefix: &str, http: bool, extra: &[&str]) -> Coordinator {
-    let log = dir.join(format!("coordinator-{}.log", rand_suffix()));
     let mut cmd = format!(
         "{prefix} exec '{TESSERA}' coordinator --listen 127.0.0.1:0 --data '{}'",
         dir.join("data").display()
@@ -35,29 +34,10 @@ fn start(dir: &Path, prefix: &str, http: bool, extra: &[&str]) -> Coordinator {
     for a in extra {
         cmd += &format!(" '{a}'");
     }
-    let mut child = Command::new("sh")
-        .args(["-c", &cmd])
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("start coordinator");
-    let mut out = BufReader::new(child.stdout.take().expect("stdout"));
-    let mut line = |prefix: &str| {
-        let mut l = String::new();
-        out.read_line(&mut l).expect("read stdout");
-        l.trim()
-            .strip_prefix(prefix)
-            .unwrap_or_else(|| panic!("coordinator did not start: {l:?}"))
-            .to_string()
-    };
-    let grpc = line("listening on ");
-    let http = http.then(|| line("monitor on http://"));
-    Coordinator {
-        proc: Proc { child, log },
-        grpc,
-        http,
-    }
+    let mut sh = Command::new("sh");
+    sh.args(["-c", &cmd]);
+    let Spawned { proc, grpc, http } = spawn_coordinator(sh, dir, http);
+    Coordinator { proc, grpc, http }
 }
 
 /// Lets this test process hold thousands of sockets.

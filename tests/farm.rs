@@ -32,32 +32,12 @@ impl Coordinator {
 }
 
 fn start_coordinator(dir: &Path, listen: &str, extra: &[&str]) -> Coordinator {
-    let log = dir.join(format!(
-        "coordinator-{}.log",
-        Instant::now().elapsed().as_nanos() ^ rand_suffix()
-    ));
-    let mut child = Command::new(TESSERA)
-        .args(["coordinator", "--listen", listen, "--data"])
+    let mut cmd = Command::new(TESSERA);
+    cmd.args(["coordinator", "--listen", listen, "--data"])
         .arg(dir.join("data"))
-        .args(extra)
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("start coordinator");
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().expect("stdout"))
-        .read_line(&mut line)
-        .expect("read address");
-    let addr = line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| panic!("coordinator did not start: {line:?}"))
-        .to_string();
-    Coordinator {
-        proc: Proc { child, log },
-        addr,
-    }
+        .args(extra);
+    let Spawned { proc, grpc, .. } = spawn_coordinator(cmd, dir, false);
+    Coordinator { proc, addr: grpc }
 }
 
 fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
@@ -264,6 +244,12 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
     let workers = list_workers(&c.url());
     assert_eq!(workers.len(), 3);
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
+    // ... and between them they did each unit once.
+    assert_eq!(
+        workers.iter().map(|w| w.units_done).sum::<u64>(),
+        s.units_accepted,
+        "{workers:?}"
+    );
     // A worker's own count, logged as it stops, is the one `tessera
     // workers` shows (units, not leases: a fast worker's lease spans several).
     for (i, p) in w.iter().enumerate() {
@@ -331,6 +317,12 @@ fn cpu_workers_render_the_distributed_effects_scene_bit_identical_to_tessera_ren
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
     let workers = list_workers(&c.url());
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
+    // ... and between them they did each unit once.
+    assert_eq!(
+        workers.iter().map(|w| w.units_done).sum::<u64>(),
+        s.units_accepted,
+        "{workers:?}"
+    );
 }
 
 /// Model files submitted directly (issue 34): the job carries the scene
@@ -486,29 +478,10 @@ fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_rend
     }
 }
 
-/// True when `tessera gpus` finds an adapter; with CI=true a missing one
-/// fails the test instead (CI installs lavapipe).
-fn gpu_adapter() -> bool {
-    let o = Command::new(TESSERA)
-        .arg("gpus")
-        .output()
-        .expect("tessera gpus");
-    if o.status.success() {
-        return true;
-    }
-    let why = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        !std::env::var("CI").is_ok_and(|v| v == "true"),
-        "CI=true but `tessera gpus` found no adapter: {why}"
-    );
-    eprintln!("SKIPPING the GPU worker test: {why}");
-    false
-}
-
 #[test]
 fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_beside_cpu_workers() {
     let _g = serial();
-    if !gpu_adapter() {
+    if gpus().is_none() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
@@ -906,6 +879,37 @@ fn raw_result(id: &str, u: &pb::WorkUnit, sums: usize, count: u32) -> pb::Submit
     }
 }
 
+/// A worker session speaking the protocol by hand (a real gRPC client, not
+/// a mock): its client and its session id.
+async fn raw_worker(url: &str, name: &str) -> (WorkerServiceClient<Channel>, String) {
+    let mut w = WorkerServiceClient::connect(url.to_string())
+        .await
+        .expect("connect");
+    let id = w
+        .register(pb::RegisterRequest {
+            name: name.into(),
+            capabilities: None,
+        })
+        .await
+        .expect("register")
+        .into_inner()
+        .worker_id;
+    (w, id)
+}
+
+/// One lease request of at most one unit, as session `id`.
+async fn raw_lease(w: &WorkerServiceClient<Channel>, id: &str) -> pb::LeaseWorkResponse {
+    w.clone()
+        .lease_work(pb::LeaseWorkRequest {
+            worker_id: id.to_string(),
+            max_units: 1,
+            ..Default::default()
+        })
+        .await
+        .expect("lease")
+        .into_inner()
+}
+
 /// Speaks the worker protocol with bad data: a real gRPC client, not a mock.
 #[test]
 fn malformed_results_are_rejected_and_late_results_dropped() {
@@ -921,34 +925,12 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
     );
     let url = c.url();
     rt().block_on(async {
-        let mut w = WorkerServiceClient::connect(url.clone())
-            .await
-            .expect("connect");
-        let id = w
-            .register(pb::RegisterRequest {
-                name: "bad".into(),
-                capabilities: None,
-            })
-            .await
-            .expect("register")
-            .into_inner()
-            .worker_id;
+        let (mut w, id) = raw_worker(&url, "bad").await;
         let lease = |w: &mut WorkerServiceClient<Channel>| {
-            let mut w = w.clone();
+            let w = w.clone();
             let id = id.clone();
             async move {
-                let units = w
-                    .lease_work(pb::LeaseWorkRequest {
-                        worker_id: id,
-                        max_units: 1,
-                        wait_ms: 0,
-                        ahead: false,
-                        ..Default::default()
-                    })
-                    .await
-                    .expect("lease")
-                    .into_inner()
-                    .units;
+                let units = raw_lease(&w, &id).await.units;
                 units.into_iter().next().expect("a unit")
             }
         };
@@ -1038,31 +1020,9 @@ fn a_unit_failing_repeatedly_fails_the_job_with_the_workers_messages() {
     );
     let url = c.url();
     rt().block_on(async {
-        let mut w = WorkerServiceClient::connect(url.clone())
-            .await
-            .expect("connect");
         for (name, msg) in [("flaky-a", "out of memory"), ("flaky-b", "device lost")] {
-            let id = w
-                .register(pb::RegisterRequest {
-                    name: name.into(),
-                    capabilities: None,
-                })
-                .await
-                .expect("register")
-                .into_inner()
-                .worker_id;
-            let u = w
-                .lease_work(pb::LeaseWorkRequest {
-                    worker_id: id.clone(),
-                    max_units: 1,
-                    wait_ms: 0,
-                    ahead: false,
-                    ..Default::default()
-                })
-                .await
-                .expect("lease")
-                .into_inner()
-                .units;
+            let (mut w, id) = raw_worker(&url, name).await;
+            let u = raw_lease(&w, &id).await.units;
             let u = u.into_iter().next().expect("a unit");
             let r = w
                 .submit_result(pb::SubmitResultRequest {
@@ -1113,24 +1073,8 @@ fn worker_sessions_bind_leases_and_a_worker_sending_malformed_results_is_quarant
     );
     let url = c.url();
     rt().block_on(async {
-        let mut w = WorkerServiceClient::connect(url.clone())
-            .await
-            .expect("connect");
-        let register = |name: &str| {
-            let mut w = w.clone();
-            let name = name.to_string();
-            async move {
-                w.register(pb::RegisterRequest {
-                    name,
-                    capabilities: None,
-                })
-                .await
-                .expect("register")
-                .into_inner()
-                .worker_id
-            }
-        };
-        let (victim, thief) = (register("victim").await, register("thief").await);
+        let (mut w, victim) = raw_worker(&url, "victim").await;
+        let (_, thief) = raw_worker(&url, "thief").await;
         let random = |id: &str| id.len() == 33 && id[1..].bytes().all(|b| b.is_ascii_hexdigit());
         assert!(random(&victim) && random(&thief), "{victim} {thief}");
         let listed: Vec<String> = list_workers_async(&url).await;
@@ -1138,25 +1082,11 @@ fn worker_sessions_bind_leases_and_a_worker_sending_malformed_results_is_quarant
             !listed.contains(&victim) && !listed.contains(&thief) && listed.len() == 2,
             "ListWorkers shows public ids, not sessions: {listed:?}"
         );
-        let lease = |id: &str, w: &mut WorkerServiceClient<Channel>| {
-            let mut w = w.clone();
-            let id = id.to_string();
-            async move {
-                w.lease_work(pb::LeaseWorkRequest {
-                    worker_id: id,
-                    max_units: 1,
-                    ..Default::default()
-                })
-                .await
-                .expect("lease")
-                .into_inner()
-            }
-        };
         let result = |id: &str, u: &pb::WorkUnit, count: u32| {
             let r = u.rect.expect("rect");
             raw_result(id, u, (r.width * r.height) as usize, count)
         };
-        let u = lease(&victim, &mut w).await.units.remove(0);
+        let u = raw_lease(&w, &victim).await.units.remove(0);
         assert!(random(&u.lease_id), "{}", u.lease_id);
         // Well-formed, for the victim's lease, from the thief's session.
         let e = w
@@ -1188,7 +1118,7 @@ fn worker_sessions_bind_leases_and_a_worker_sending_malformed_results_is_quarant
         // The thief now sends malformed results for its own leases: three
         // in a row and it is quarantined.
         for _ in 0..3 {
-            let u = lease(&thief, &mut w).await.units.remove(0);
+            let u = raw_lease(&w, &thief).await.units.remove(0);
             let r = w
                 .submit_result(result(&thief, &u, 5))
                 .await
@@ -1201,7 +1131,7 @@ fn worker_sessions_bind_leases_and_a_worker_sending_malformed_results_is_quarant
                 r.reason
             );
         }
-        let refused = lease(&thief, &mut w).await;
+        let refused = raw_lease(&w, &thief).await;
         assert!(
             refused.units.is_empty(),
             "a quarantined worker gets no lease"
@@ -2089,7 +2019,10 @@ fn a_full_disk_during_upload_is_a_clear_error_that_keeps_the_store_and_earlier_j
     let _g = serial();
     let dir = tempfile::tempdir().expect("tempdir");
     // The asset store on a 64 KiB disk of its own; the database beside it.
-    let Some(_disk) = needs(Tmpfs::mount(&dir.path().join("data/assets"), 64 << 10)) else {
+    let Some(_disk) = require(
+        "tmpfs",
+        Tmpfs::mount(&dir.path().join("data/assets"), 64 << 10),
+    ) else {
         return;
     };
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
@@ -2379,7 +2312,7 @@ fn full_disk_outage(settings: &[&str], args: &[&str], units: u64) {
     let _g = serial();
     let dir = tempfile::tempdir().expect("tempdir");
     // (redb grows its file in large steps, so not a tiny disk.)
-    let Some(_disk) = needs(Tmpfs::mount(&dir.path().join("data"), 512 << 20)) else {
+    let Some(_disk) = require("tmpfs", Tmpfs::mount(&dir.path().join("data"), 512 << 20)) else {
         return;
     };
     let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
@@ -2706,30 +2639,12 @@ fn fifty_watchers_of_an_unchanged_100k_frame_job_receive_under_a_megabyte_in_20_
     let _g = serial();
     let dir = tempfile::tempdir().expect("tempdir");
     let bin = std::env::var("TESSERA_WATCH_COORDINATOR").unwrap_or(TESSERA.to_string());
-    let mut child = Command::new(&bin)
-        .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
-        .arg(dir.path().join("data"))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start coordinator");
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().expect("stdout"))
-        .read_line(&mut line)
-        .expect("address");
-    let c = Coordinator {
-        proc: Proc {
-            child,
-            log: dir.path().join("unused.log"),
-        },
-        addr: line
-            .trim()
-            .strip_prefix("listening on ")
-            .expect("address")
-            .to_string(),
-    };
+    let cmd = coordinator_command(&bin, dir.path(), true);
+    let Spawned { proc, grpc, http } = spawn_coordinator(cmd, dir.path(), true);
+    let http = http.expect("monitor");
+    let c = Coordinator { proc, addr: grpc };
     let url = c.url();
-    rt().block_on(async {
+    let job = rt().block_on(async {
         let mut jc = jobs_client(&url).await;
         let job = jc
             .submit_job(pb::SubmitJobRequest {
@@ -2786,7 +2701,80 @@ fn fifty_watchers_of_an_unchanged_100k_frame_job_receive_under_a_megabyte_in_20_
         let (bytes, events) = watch_bytes(&url, &job, 5, 3.0, false).await;
         eprintln!("5 watchers (no deltas) for 3 s: {bytes} bytes, events {events:?}");
         assert!(events.iter().all(|&e| e == 1), "{events:?}");
+        job
     });
+    monitor_pages_frames(&http, &job);
+}
+
+/// The monitor pages a 100k-frame job's frames as GetJob does: `/api/jobs`
+/// and the events' first `farm` snapshot hold the first 1000 (they were
+/// 6.3 MB before), `/api/jobs/{id}?frames_from=` the rest.
+fn monitor_pages_frames(http: &str, job: &str) {
+    let (status, body) = http_get(http, "/api/jobs");
+    assert!(status.contains("200"), "{status}: {body}");
+    eprintln!("/api/jobs of a 100k-frame job: {} bytes", body.len());
+    assert!(body.len() < 120_000, "{} bytes", body.len());
+    let jobs: serde_json::Value = serde_json::from_str(&body).expect("JSON");
+    let j = &jobs[0];
+    assert_eq!(j["id"], job);
+    assert_eq!(j["frames"].as_array().expect("frames").len(), 1000);
+    assert_eq!(
+        (
+            j["frames"][999]["frame"].as_u64(),
+            j["frames_total"].as_u64()
+        ),
+        (Some(999), Some(100_000))
+    );
+    assert_eq!(j["frames_next"].as_u64(), Some(1000));
+    // The last page, and a page size asked for.
+    let (_, body) = http_get(http, &format!("/api/jobs/{job}?frames_from=99500"));
+    let last: serde_json::Value = serde_json::from_str(&body).expect("JSON");
+    assert_eq!(last["frames"].as_array().expect("frames").len(), 500);
+    assert_eq!(last["frames"][0]["frame"].as_u64(), Some(99_500));
+    assert_eq!(last["frames_next"], serde_json::Value::Null);
+    let (_, body) = http_get(http, &format!("/api/jobs/{job}?frames_from=7&frames_max=3"));
+    let some: serde_json::Value = serde_json::from_str(&body).expect("JSON");
+    let frames: Vec<u64> = some["frames"]
+        .as_array()
+        .expect("frames")
+        .iter()
+        .map(|f| f["frame"].as_u64().expect("frame"))
+        .collect();
+    assert_eq!(
+        (frames, some["frames_next"].as_u64()),
+        (vec![7, 8, 9], Some(10))
+    );
+    let (status, body) = http_get(http, &format!("/api/jobs/{job}?frames_max=10001"));
+    assert!(status.contains("400"), "{status}");
+    assert!(
+        body.contains("frames_max must be a whole number in 1..=10000, got \"10001\""),
+        "{body}"
+    );
+    // The events' first snapshot: read up to the end of the `farm` event.
+    use std::io::{Read as _, Write as _};
+    let mut s = std::net::TcpStream::connect(http).expect("connect to the monitor");
+    write!(
+        s,
+        "GET /api/events HTTP/1.1\r\nHost: {http}\r\nAccept: text/event-stream\r\n\r\n"
+    )
+    .expect("request");
+    s.set_read_timeout(Some(Duration::from_secs(20)))
+        .expect("timeout");
+    let (mut raw, mut buf) = (Vec::new(), [0u8; 65536]);
+    let end = loop {
+        let n = s.read(&mut buf).expect("the farm event within 20 s");
+        assert!(n > 0, "the stream ended: {}", String::from_utf8_lossy(&raw));
+        raw.extend_from_slice(&buf[..n]);
+        let text = String::from_utf8_lossy(&raw);
+        if let Some(at) = text.find("event: farm")
+            && let Some(len) = text[at..].find("\n\n")
+        {
+            break at + len;
+        }
+        assert!(raw.len() < 10_000_000, "no end of the farm event in 10 MB");
+    };
+    eprintln!("the first farm event of a 100k-frame job: {end} bytes");
+    assert!(end < 120_000, "{end} bytes");
 }
 
 /// The submits that used to abort the coordinator (and abort it again at
@@ -3056,37 +3044,10 @@ fn http_get(addr: &str, path: &str) -> (String, String) {
 
 /// A coordinator with `--http 127.0.0.1:0`: its gRPC and monitor addresses.
 fn start_coordinator_with_monitor(dir: &Path, extra: &[&str]) -> (Proc, String, String) {
-    let log = dir.join(format!("coordinator-{}.log", rand_suffix()));
-    let mut child = Command::new(TESSERA)
-        .args([
-            "coordinator",
-            "--listen",
-            "127.0.0.1:0",
-            "--http",
-            "127.0.0.1:0",
-            "--data",
-        ])
-        .arg(dir.join("data"))
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("start coordinator");
-    let mut out = BufReader::new(child.stdout.take().expect("stdout"));
-    let (mut a, mut m) = (String::new(), String::new());
-    out.read_line(&mut a).expect("address");
-    out.read_line(&mut m).expect("monitor address");
-    let grpc = a
-        .trim()
-        .strip_prefix("listening on ")
-        .expect("grpc")
-        .to_string();
-    let http = m
-        .trim()
-        .strip_prefix("monitor on http://")
-        .unwrap_or_else(|| panic!("no monitor line: {m:?}"))
-        .to_string();
-    (Proc { child, log }, grpc, http)
+    let mut cmd = coordinator_command(TESSERA, dir, true);
+    cmd.args(extra);
+    let Spawned { proc, grpc, http } = spawn_coordinator(cmd, dir, true);
+    (proc, grpc, http.expect("monitor"))
 }
 
 /// `status --json`, `watch --json` and the monitor's `/api/jobs` give one
@@ -3230,6 +3191,41 @@ fn ctrl_c_during_watch_says_the_job_keeps_running() {
         "expected the last line {want:?} in:\n{err}"
     );
     assert_eq!(status(&url, &job).state, pb::JobState::Queued as i32);
+}
+
+/// Ctrl-C while `watch` is still connecting (a coordinator that takes the
+/// connection and never answers) says the same: exit 130, the job goes on.
+/// Before, the default SIGINT action killed it without a word.
+#[test]
+fn ctrl_c_while_watch_is_connecting_says_the_job_keeps_running() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The kernel completes the TCP handshake from the backlog; nothing
+    // reads or answers.
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let url = format!("http://{}", silent.local_addr().expect("addr"));
+    let err_path = dir.path().join("watch.err");
+    let child = Command::new(TESSERA)
+        .args(["watch", "j-0", "--coordinator", &url])
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&err_path).expect("stderr file"))
+        .spawn()
+        .expect("watch");
+    let mut watch = Proc {
+        child,
+        log: err_path,
+    };
+    // Well inside the 5 s connect timeout, well after the handler is set.
+    std::thread::sleep(Duration::from_millis(1500));
+    watch.signal("INT");
+    let code = wait_exit(&mut watch.child, Duration::from_secs(10));
+    let err = watch.log();
+    assert_eq!(code, Some(130), "{err}");
+    assert_eq!(
+        err,
+        format!(
+            "stopped watching; job j-0 keeps running on the coordinator. Watch it again with: tessera watch j-0 --coordinator {url}; cancel it with: tessera cancel j-0 --coordinator {url}\n"
+        )
+    );
 }
 
 /// Stopping `tessera cluster` (SIGINT, as Ctrl-C or a service manager

@@ -4,8 +4,8 @@
 //! directory holding only what that host would have. TLS and tokens are on.
 //! Taking a worker's link down is a real partition.
 //!
-//! Needs root and iproute2 (CI runs as root): on CI a missing piece fails
-//! the test with the reason, elsewhere it is skipped with the reason.
+//! Needs root and iproute2 (CI runs as root): the prerequisite `netns`,
+//! optional outside CI (tests/optional.txt, tests/support/prereq.rs).
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -191,7 +191,7 @@ fn spawn_logged(mut c: Command, dir: &Path, name: &str) -> Proc {
 #[test]
 fn a_farm_of_separate_hosts_with_tls_and_tokens_renders_meshes_and_animations_bit_identical_and_survives_a_partition()
  {
-    if needs(netns_unavailable().map_or(Ok(()), Err)).is_none() {
+    if require("netns", netns_unavailable().map_or(Ok(()), Err)).is_none() {
         return;
     }
     let tmp = tempfile::tempdir().expect("tempdir");

@@ -18,7 +18,6 @@
 //! fail, saying what is missing. `TESSERA_MONITOR_SHOTS=DIR` copies
 //! the screenshots it takes there (docs/monitor/ holds the committed ones).
 
-use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
@@ -36,41 +35,16 @@ struct Coordinator {
 fn start_coordinator(dir: &Path) -> Coordinator {
     let token = dir.join("client.token");
     std::fs::write(&token, TOKEN).expect("token file");
-    let log = dir.join("coordinator.log");
-    let mut child = Command::new(TESSERA)
-        .args([
-            "coordinator",
-            "--listen",
-            "127.0.0.1:0",
-            "--http",
-            "127.0.0.1:0",
-        ])
-        .arg("--data")
-        .arg(dir.join("data"))
-        .arg("--client-token-file")
+    let mut cmd = coordinator_command(TESSERA, dir, true);
+    cmd.arg("--client-token-file")
         .arg(&token)
         // A killed worker is gone 2 s after its last heartbeat.
-        .args(["--lease-timeout", "2", "--heartbeat-interval", "0.4"])
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("start coordinator");
-    let mut out = BufReader::new(child.stdout.take().expect("stdout"));
-    let mut line = |prefix: &str| {
-        let mut l = String::new();
-        out.read_line(&mut l).expect("read address");
-        l.trim()
-            .strip_prefix(prefix)
-            .unwrap_or_else(|| panic!("coordinator did not start: {l:?}"))
-            .to_string()
-    };
-    let grpc = format!("http://{}", line("listening on "));
-    let http = line("monitor on ");
+        .args(["--lease-timeout", "2", "--heartbeat-interval", "0.4"]);
+    let Spawned { proc, grpc, http } = spawn_coordinator(cmd, dir, true);
     Coordinator {
-        proc: Proc { child, log },
-        grpc,
-        http,
+        proc,
+        grpc: format!("http://{grpc}"),
+        http: format!("http://{}", http.expect("monitor")),
     }
 }
 
@@ -266,7 +240,6 @@ fn monitor_test(browser: Browser) {
     let failed_job = fail_a_job(&c, failed_message);
     let _keep = start_worker(dir.path(), &c.grpc, "steady");
     let victim = start_worker(dir.path(), &c.grpc, "victim");
-    let scene = repo("examples/resolution.toml");
     // Many small units (16 px tiles, 32 samples each): the preview fills
     // in over dozens of results, slowly enough to watch (the page makes a
     // preview a second, and the checks mid-job need two of them). About
@@ -319,13 +292,16 @@ fn monitor_test(browser: Browser) {
     let out = dir.path().join("browser");
     std::fs::create_dir_all(&out).expect("out dir");
     let json = |a: &[&str]| serde_json::to_string(a).expect("json");
+    // Scenes named from the repository's root, as a user in a checkout
+    // types them: the page (and the committed screenshots) show
+    // "examples/resolution.toml", not a path of the machine the test ran on.
     let status = Command::new(&python)
+        .current_dir(repo(""))
         .arg(repo("tests/python/monitor_browser.py"))
         .args(["--http", &c.http, "--grpc", &c.grpc, "--token", TOKEN])
         .arg("--tessera")
         .arg(TESSERA)
-        .arg("--scene")
-        .arg(&scene)
+        .args(["--scene", "examples/resolution.toml"])
         .args([
             "--settings",
             &json(&first),
@@ -338,8 +314,7 @@ fn monitor_test(browser: Browser) {
             "--failed-message",
             failed_message,
         ])
-        .arg("--anim-scene")
-        .arg(repo("examples/animation.toml"))
+        .args(["--anim-scene", "examples/animation.toml"])
         .args(["--anim-settings", &json(&anim)])
         .args([
             "--victim-pid",

@@ -165,12 +165,16 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
             outln!("{id}");
         }
         if args.wait || args.fetch.is_some() {
+            // In place before the first event is shown: a Ctrl-C from then
+            // on is this watch's to handle.
+            let interrupt = interrupt_signal()?;
             let code = watch_job(
                 &mut client,
                 &id,
                 args.format,
                 &args.coordinator,
                 args.fetch.as_deref(),
+                interrupt,
             )
             .await?;
             if let Some(dir) = &args.fetch
@@ -507,9 +511,36 @@ fn apply_event(cur: &mut Option<pb::JobStatus>, mut ev: pb::JobStatus) -> Option
 
 pub fn watch(args: JobArg) -> Result<ExitCode> {
     runtime()?.block_on(async move {
-        let mut client = connect(&args.coordinator).await?;
-        watch_job(&mut client, &args.job, args.format, &args.coordinator, None).await
+        // From the start: a Ctrl-C while still connecting stops only the
+        // watch too, and says so.
+        let mut interrupt = interrupt_signal()?;
+        let mut client = tokio::select! {
+            c = connect(&args.coordinator) => c?,
+            _ = &mut interrupt => {
+                return Ok(stopped_watching(&args.job, &args.coordinator));
+            }
+        };
+        watch_job(
+            &mut client,
+            &args.job,
+            args.format,
+            &args.coordinator,
+            None,
+            interrupt,
+        )
+        .await
     })
+}
+
+/// Ctrl-C stopped a watch: says that the job goes on, and how to watch or
+/// cancel it; [`EXIT_INTERRUPTED`].
+fn stopped_watching(id: &str, coordinator: &CoordinatorUrl) -> ExitCode {
+    eprintln!(
+        "stopped watching; job {id} keeps running on the coordinator. Watch it again with: {}; cancel it with: {}",
+        client_command("watch", &shell_word(id), coordinator),
+        client_command("cancel", &shell_word(id), coordinator)
+    );
+    ExitCode::from(EXIT_INTERRUPTED)
 }
 
 /// The progress line of a watched job.
@@ -551,21 +582,18 @@ async fn watch_job(
     format: Format,
     coordinator: &CoordinatorUrl,
     fetch_to: Option<&Path>,
+    mut interrupt: Interrupt,
 ) -> Result<ExitCode> {
-    // In place before the first event is shown: a Ctrl-C from then on is
-    // this watch's to handle.
-    let interrupt = interrupt_signal()?;
-    tokio::pin!(interrupt);
-    let mut stream = client
-        .watch_job(pb::WatchJobRequest {
-            job_id: id.to_string(),
-            // Changes, not the whole job each time (a long animation's
-            // frames are most of it).
-            deltas: true,
-        })
-        .await
-        .map_err(rpc)?
-        .into_inner();
+    let request = client.watch_job(pb::WatchJobRequest {
+        job_id: id.to_string(),
+        // Changes, not the whole job each time (a long animation's
+        // frames are most of it).
+        deltas: true,
+    });
+    let mut stream = tokio::select! {
+        s = request => s.map_err(rpc)?.into_inner(),
+        _ = &mut interrupt => return Ok(stopped_watching(id, coordinator)),
+    };
     let progress = Progress::new(&format!("job {id}"), 1000, format.json);
     let mut last: Option<pb::JobStatus> = None;
     let mut workers_check = tokio::time::interval(WORKER_CHECK_EVERY);
@@ -576,12 +604,7 @@ async fn watch_job(
             _ = &mut interrupt => {
                 // Only this watch stops: say so, and how to go on.
                 progress.abandon();
-                eprintln!(
-                    "stopped watching; job {id} keeps running on the coordinator. Watch it again with: {}; cancel it with: {}",
-                    client_command("watch", &shell_word(id), coordinator),
-                    client_command("cancel", &shell_word(id), coordinator)
-                );
-                return Ok(ExitCode::from(EXIT_INTERRUPTED));
+                return Ok(stopped_watching(id, coordinator));
             }
             _ = workers_check.tick() => {
                 // A job waits silently for workers that are not there:
@@ -659,20 +682,23 @@ async fn watch_job(
     }
 }
 
+/// A Ctrl-C to wait for (see [`interrupt_signal`]).
+type Interrupt = std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>;
+
 /// Resolves on Ctrl-C (SIGINT); the handler is installed when this returns.
-fn interrupt_signal() -> Result<impl std::future::Future<Output = ()>> {
+fn interrupt_signal() -> Result<Interrupt> {
     #[cfg(unix)]
     {
         use tokio::signal::unix::{SignalKind, signal};
         let mut s = signal(SignalKind::interrupt()).context("cannot handle Ctrl-C")?;
-        Ok(async move {
+        Ok(Box::pin(async move {
             s.recv().await;
-        })
+        }))
     }
     #[cfg(not(unix))]
-    Ok(async {
+    Ok(Box::pin(async {
         let _ = tokio::signal::ctrl_c().await;
-    })
+    }))
 }
 
 pub fn cancel(args: JobArg) -> Result<ExitCode> {

@@ -1,9 +1,14 @@
 //! Helpers shared by the end-to-end test files (each `mod support;`s it).
 #![allow(dead_code)]
 
+use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output};
+use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
+
+pub mod prereq;
+#[allow(unused_imports)]
+pub use prereq::{require, shared};
 
 pub const TESSERA: &str = env!("CARGO_BIN_EXE_tessera");
 
@@ -16,21 +21,6 @@ pub fn serial() -> std::sync::MutexGuard<'static, ()> {
 }
 pub fn repo(p: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(p)
-}
-
-/// `../shared/<p>` beside the repository (or under `TESSERA_SHARED`): its
-/// absence fails the test, never skips it.
-pub fn shared(p: &str) -> PathBuf {
-    let root = std::env::var_os("TESSERA_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo("../shared"));
-    let path = root.join(p);
-    assert!(
-        path.exists(),
-        "{} is missing: the shared assets (../shared beside the repository, or TESSERA_SHARED) are needed",
-        path.display()
-    );
-    path
 }
 
 /// A child process killed when dropped.
@@ -172,19 +162,72 @@ pub fn make_tls(dir: &Path, names: &[&str]) {
     );
 }
 
-/// What a test needs of the machine (root, namespaces, a tmpfs): on CI,
-/// which runs as root, a missing piece fails the test with the reason;
-/// elsewhere the test is skipped with it (None).
-pub fn needs<T>(what: Result<T, String>) -> Option<T> {
-    match what {
-        Ok(t) => Some(t),
-        Err(why) if std::env::var("CI").is_ok_and(|v| v == "true") => {
-            panic!("this test needs it on CI, which runs as root: {why}")
-        }
-        Err(why) => {
-            eprintln!("skipped: {why}");
-            None
-        }
+/// `tessera gpus`'s table, when it finds an adapter (the prerequisite
+/// `gpu`: its absence fails the test, see [`prereq`]).
+pub fn gpus() -> Option<String> {
+    let o = Command::new(TESSERA)
+        .arg("gpus")
+        .output()
+        .expect("tessera gpus");
+    require(
+        "gpu",
+        if o.status.success() {
+            Ok(String::from_utf8_lossy(&o.stdout).into_owned())
+        } else {
+            Err(format!(
+                "`tessera gpus` found no adapter: {}",
+                String::from_utf8_lossy(&o.stderr).trim()
+            ))
+        },
+    )
+}
+
+/// A coordinator a test started: its process, its gRPC address and its
+/// monitor's (`host:port`, no scheme), when it has one.
+pub struct Spawned {
+    pub proc: Proc,
+    pub grpc: String,
+    pub http: Option<String>,
+}
+
+/// `BIN coordinator` on free loopback ports, with its monitor when `http`,
+/// its data under `dir` (for [`spawn_coordinator`]; more flags may follow).
+pub fn coordinator_command(bin: &str, dir: &Path, http: bool) -> Command {
+    let mut cmd = Command::new(bin);
+    cmd.args(["coordinator", "--listen", "127.0.0.1:0"]);
+    if http {
+        cmd.args(["--http", "127.0.0.1:0"]);
+    }
+    cmd.arg("--data").arg(dir.join("data"));
+    cmd
+}
+
+/// Runs `cmd`, a `tessera coordinator` (perhaps under `sh -c`, which then
+/// must `exec` it) listening on port 0, with its log in `dir`, and reads
+/// the addresses it prints: the gRPC one, then the monitor's when `http`.
+pub fn spawn_coordinator(mut cmd: Command, dir: &Path, http: bool) -> Spawned {
+    let log = dir.join(format!("coordinator-{}.log", rand_suffix()));
+    let mut child = cmd
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("start coordinator");
+    let mut out = BufReader::new(child.stdout.take().expect("stdout"));
+    let mut line = |prefix: &str| {
+        let mut l = String::new();
+        out.read_line(&mut l).expect("read stdout");
+        l.trim()
+            .strip_prefix(prefix)
+            .unwrap_or_else(|| panic!("coordinator did not start: {l:?} (log {})", log.display()))
+            .to_string()
+    };
+    let grpc = line("listening on ");
+    let http = http.then(|| line("monitor on http://"));
+    Spawned {
+        proc: Proc { child, log },
+        grpc,
+        http,
     }
 }
 

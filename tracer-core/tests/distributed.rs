@@ -834,12 +834,7 @@ center = [1, 0, 0]
 #[test]
 fn moving_mesh_blurs_between_its_positions() {
     let dir = common::meshgen::tmpdir("dist-mesh");
-    // A unit square facing the camera, two triangles.
-    std::fs::write(
-        dir.join("quad.obj"),
-        "v -1.5 -1.5 0\nv 1.5 -1.5 0\nv 1.5 1.5 0\nv -1.5 1.5 0\nf 1 2 3\nf 1 3 4\n",
-    )
-    .unwrap();
+    common::meshgen::write_quad_obj(&dir);
     let src = |shutter: &str, keys: bool, translate: &str| {
         format!(
             r#"
@@ -866,9 +861,9 @@ translate = {translate}
 {}
 "#,
             if keys {
-                "[[objects.keyframes]]\nframe = 0\ntranslate = [-1, 0, 0]\n[[objects.keyframes]]\nframe = 1\ntranslate = [1, 0, 0]\n"
+                common::meshgen::keyframes_along_x(-1.0, 1.0)
             } else {
-                ""
+                String::new()
             }
         )
     };

@@ -186,27 +186,9 @@ fn render_requests_outside_the_image_are_refused() {
     };
     let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
     let r = CpuRenderer::new(Some(1)).unwrap();
-    let e = r
-        .render(
-            &frame,
-            0,
-            Rect::new(8, 8, 9, 1),
-            SampleRange::all(4),
-            &|_| {},
-        )
-        .unwrap_err();
-    assert_eq!(
-        e.to_string(),
-        "rectangle Rect { x: 8, y: 8, width: 9, height: 1 } is empty or outside the 16x16 image"
-    );
-    let e = r
-        .render(
-            &frame,
-            0,
-            Rect::full(16, 16),
-            SampleRange::new(2, 5),
-            &|_| {},
-        )
-        .unwrap_err();
-    assert_eq!(e.to_string(), "sample range 2..5 is empty or outside 0..4");
+    assert_bad_regions_refused(|rect, samples| {
+        r.render(&frame, 0, rect, samples, &|_| {})
+            .unwrap_err()
+            .to_string()
+    });
 }

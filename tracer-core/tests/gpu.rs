@@ -2,9 +2,9 @@
 //! numerical hard cases of hard_cases.rs (same scenes), exact additivity of
 //! tiles, sample ranges and dispatch splits, and the error paths.
 //!
-//! Needs a wgpu adapter (lavapipe in CI: `apt-get install mesa-vulkan-drivers
-//! libvulkan1`). With `CI=true` and no adapter every test fails; elsewhere
-//! they skip with a message.
+//! Needs a wgpu adapter (lavapipe: `apt-get install mesa-vulkan-drivers
+//! libvulkan1`): the prerequisite `gpu`, whose absence fails every test
+//! (tests/support/prereq.rs).
 //!
 //! Tolerance against the f64 reference, for every image comparison here
 //! unless a test states otherwise: the one `examples.rs` states for the
@@ -22,7 +22,9 @@ mod common;
 
 use std::sync::OnceLock;
 
-use common::meshgen::{icosphere, pathological_obj, tmpdir, write_obj};
+use common::meshgen::{
+    icosphere, keyframes_along_x, pathological_obj, tmpdir, write_obj, write_quad_obj,
+};
 use common::*;
 use tracer_core::bvh::{Aabb, Bvh, BvhNode4, STACK};
 use tracer_core::film::{Film, Rect, SampleRange};
@@ -34,29 +36,23 @@ use tracer_core::scene::{RenderSettings, SceneDesc};
 const W: u32 = 160;
 const H: u32 = 120;
 
-/// The shared renderer (one device for the whole test binary), or `None`
-/// (skip) when there is no adapter and this is not CI.
+/// The shared renderer (one device for the whole test binary). A missing
+/// adapter fails the test (`None` only if tests/optional.txt made `gpu`
+/// optional).
 fn gpu() -> Option<&'static GpuRenderer> {
-    static GPU: OnceLock<Option<GpuRenderer>> = OnceLock::new();
+    static GPU: OnceLock<Result<GpuRenderer, String>> = OnceLock::new();
     let r = GPU.get_or_init(|| {
-        match GpuRenderer::new(
+        let r = GpuRenderer::new(
             std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
             GpuOptions::default(),
-        ) {
-            Ok(r) => Some(r),
-            Err(e) => {
-                if std::env::var("CI").is_ok_and(|v| v == "true") {
-                    panic!("CI=true but no GPU adapter could be opened: {e}");
-                }
-                eprintln!("SKIPPING GPU tests: {e}");
-                None
-            }
+        )
+        .map_err(|e| format!("no GPU adapter could be opened: {e}"));
+        if let Ok(r) = &r {
+            eprintln!("GPU tests use adapter {}", r.adapter());
         }
+        r
     });
-    if let Some(r) = r {
-        eprintln!("GPU tests use adapter {}", r.adapter());
-    }
-    r.as_ref()
+    prereq::require("gpu", r.as_ref())
 }
 
 fn gpu_render(
@@ -671,11 +667,7 @@ translate = [-0.5, 0.3, 1.2]
 #[test]
 fn hard_mesh_moving_across_the_frame() {
     let dir = tmpdir("gpu-mesh-across");
-    std::fs::write(
-        dir.join("quad.obj"),
-        "v -1.5 -1.5 0\nv 1.5 -1.5 0\nv 1.5 1.5 0\nv -1.5 1.5 0\nf 1 2 3\nf 1 3 4\n",
-    )
-    .unwrap();
+    write_quad_obj(&dir);
     let src = |shutter: &str, keys: bool, light: &str| {
         format!(
             r#"
@@ -714,9 +706,9 @@ translate = [-9, 0, 0]
 {}
 "#,
             if keys {
-                "[[objects.keyframes]]\nframe = 0\ntranslate = [-9, 0, 0]\n[[objects.keyframes]]\nframe = 1\ntranslate = [9, 0, 0]\n"
+                keyframes_along_x(-9.0, 9.0)
             } else {
-                ""
+                String::new()
             }
         )
     };
@@ -1493,29 +1485,11 @@ fn gpu_refuses_f64_and_requests_outside_the_image() {
         "the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)"
     );
     let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
-    let e = g
-        .render(
-            &frame,
-            0,
-            Rect::new(8, 8, 9, 1),
-            SampleRange::all(4),
-            &|_| {},
-        )
-        .unwrap_err();
-    assert_eq!(
-        e.to_string(),
-        "rectangle Rect { x: 8, y: 8, width: 9, height: 1 } is empty or outside the 16x16 image"
-    );
-    let e = g
-        .render(
-            &frame,
-            0,
-            Rect::full(16, 16),
-            SampleRange::new(2, 5),
-            &|_| {},
-        )
-        .unwrap_err();
-    assert_eq!(e.to_string(), "sample range 2..5 is empty or outside 0..4");
+    assert_bad_regions_refused(|rect, samples| {
+        g.render(&frame, 0, rect, samples, &|_| {})
+            .unwrap_err()
+            .to_string()
+    });
     // The renderer still works after refusing.
     let ok = g
         .render(&frame, 0, Rect::full(16, 16), SampleRange::all(4), &|_| {})
@@ -2015,26 +1989,30 @@ fn w_rebuild(frame: &mut PreparedFrame) {
 /// The Stanford bunny (69k triangles) from ../shared/meshes, in the
 /// examples/stanford/bunny.toml scene (glass sphere, reflective floor):
 /// GPU BVH render vs the CPU f64 reference within the stated tolerance.
-/// The model may not be committed (non-commercial terms): without it this
-/// test prints a note and checks nothing.
+/// The model is not committed (non-commercial terms): it is one of the
+/// shared assets, whose absence fails the test.
 #[test]
 fn gpu_bunny_matches_the_cpu() {
-    let model = examples_dir().join("../../shared/meshes/stanford-bunny.obj");
-    if !model.exists() {
-        eprintln!(
-            "NOTE: {} is absent: the CPU-vs-GPU bunny test checks nothing (see examples/stanford/bunny.toml)",
-            model.display()
-        );
-        return;
-    }
-    let desc = SceneDesc::load(examples_dir().join("stanford/bunny.toml")).unwrap();
+    let model = prereq::shared("meshes/stanford-bunny.obj");
+    // The scene names the model beside the checkout; the shared assets may
+    // be elsewhere (TESSERA_SHARED).
+    let path = examples_dir().join("stanford/bunny.toml");
+    let src = std::fs::read_to_string(&path).unwrap();
+    let named = "../../../shared/meshes/stanford-bunny.obj";
+    assert!(
+        src.contains(named),
+        "{} no longer names {named}",
+        path.display()
+    );
+    let src = src.replace(named, model.to_str().expect("utf-8 path"));
+    let desc = SceneDesc::parse(&src, &path).unwrap();
     let s = RenderSettings {
         width: 160,
         height: 120,
         samples: 1,
         ..desc.render
     };
-    check_tree_scene("bunny", &desc, &s);
+    check_tree_scene("bunny", &desc, &s).expect("the GPU is there");
 }
 
 /// A worker renders many tiles of one prepared frame: the packed tree is

@@ -20,6 +20,7 @@ use tracer_core::world::World;
 
 mod common;
 use common::meshgen::{icosphere, pathological_obj, tmpdir, write_obj};
+use common::prereq::shared;
 
 const HEADER: &str = r#"
 [render]
@@ -1623,21 +1624,6 @@ fn fuzz_gltf_sparse_views_with_a_stride_shorter_than_their_elements() {
             .len(),
         1
     );
-}
-
-/// `../shared/scenes` beside the repository (or `TESSERA_SHARED`): its
-/// absence fails the test, never skips it.
-fn shared(path: &str) -> PathBuf {
-    let root = std::env::var_os("TESSERA_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared"));
-    let p = root.join(path);
-    assert!(
-        p.exists(),
-        "{} is missing: the shared assets (../shared beside the repository, or TESSERA_SHARED) are needed",
-        p.display()
-    );
-    p
 }
 
 #[test]

@@ -217,3 +217,8 @@ impl Worker {
         Ok(())
     }
 }
+
+// The one rule on missing prerequisites, shared with the test crates.
+#[cfg(all(test, feature = "gpu"))]
+#[path = "../../tests/support/prereq.rs"]
+mod prereq;

@@ -343,18 +343,14 @@ mod tests {
     #[test]
     fn a_gpu_unit_is_packed_on_the_gpu_as_the_host_packs_its_film() {
         use tracer_core::render::{GpuOptions, GpuRenderer};
-        let gpu = match GpuRenderer::new(
-            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
-            GpuOptions::default(),
-        ) {
-            Ok(g) => g,
-            Err(e) if std::env::var("CI").is_ok_and(|v| v == "true") => {
-                panic!("CI=true but no GPU adapter could be opened: {e}")
-            }
-            Err(e) => {
-                eprintln!("SKIPPING the GPU packing test: {e}");
-                return;
-            }
+        let Some(gpu) = crate::prereq::require(
+            "gpu",
+            GpuRenderer::new(
+                std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+                GpuOptions::default(),
+            ),
+        ) else {
+            return;
         };
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../examples/resolution.toml");
         let desc = SceneDesc::load(path).unwrap();

@@ -7,14 +7,16 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
-use axum::extract::{Path, State};
+use axum::extract::{Path, RawQuery, State};
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
 use super::json::{
-    FailureJson, FrameDetailJson, FrameJson, JobDetailJson, JobJson, WorkerJson, tile_runs,
+    FRAMES_PAGE, FRAMES_PAGE_MAX, FailureJson, FrameDetailJson, FrameJson, JobDetailJson, JobJson,
+    WorkerJson, tile_runs,
 };
+use super::preview::param;
 use super::{ApiError, Monitor};
 use crate::farm::TileState;
 
@@ -39,16 +41,55 @@ pub async fn info(State(m): State<Arc<Monitor>>) -> Response {
     }))
 }
 
-pub async fn jobs(State(m): State<Arc<Monitor>>) -> Response {
-    let jobs: Vec<JobJson> = m.farm.jobs().iter().map(JobJson::from).collect();
-    json_response(&jobs)
+/// `?frames_from=F&frames_max=N`: which page of a job's frames to show
+/// (from frame F, default the first; N frames at most, default
+/// [`FRAMES_PAGE`]).
+fn frame_page(query: &Option<String>) -> Result<(u32, usize), ApiError> {
+    let from = match param(query, "frames_from") {
+        None => 0,
+        Some(v) => v.parse().map_err(|_| {
+            ApiError::bad_request(format!("frames_from must be a frame number, got {v:?}"))
+        })?,
+    };
+    let max = match param(query, "frames_max") {
+        None => FRAMES_PAGE,
+        Some(v) => v
+            .parse()
+            .ok()
+            .filter(|n| (1..=FRAMES_PAGE_MAX).contains(n))
+            .ok_or_else(|| {
+                ApiError::bad_request(format!(
+                    "frames_max must be a whole number in 1..={FRAMES_PAGE_MAX}, got {v:?}"
+                ))
+            })?,
+    };
+    Ok((from, max))
 }
 
+/// `GET /api/jobs[?frames_max=N]`: every job with its first page of frames.
+pub async fn jobs(
+    State(m): State<Arc<Monitor>>,
+    RawQuery(query): RawQuery,
+) -> Result<Response, ApiError> {
+    let (_, max) = frame_page(&query)?;
+    let jobs: Vec<JobJson> = m
+        .farm
+        .jobs()
+        .iter()
+        .map(|v| JobJson::from(v).paged(0, max))
+        .collect();
+    Ok(json_response(&jobs))
+}
+
+/// `GET /api/jobs/{id}[?frames_from=F&frames_max=N]`: the job with the
+/// page of its frames from frame F, and its failures.
 pub async fn job(
     State(m): State<Arc<Monitor>>,
     Path(id): Path<String>,
+    RawQuery(query): RawQuery,
 ) -> Result<Response, ApiError> {
-    let job = JobJson::from(&m.farm.job(&id)?);
+    let (from, max) = frame_page(&query)?;
+    let job = JobJson::from(&m.farm.job(&id)?).paged(from, max);
     let failures = m
         .farm
         .job_failures(&id)?

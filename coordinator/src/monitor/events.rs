@@ -1,5 +1,6 @@
 //! Live updates: server-sent events on `GET /api/events`. A viewer gets
-//! an event `farm` (a [`SnapshotJson`]: every job and worker) when it
+//! an event `farm` (a [`SnapshotJson`]: every job, with its first page of
+//! frames, and every worker) when it
 //! connects, then an event `delta` (a [`DeltaJson`]: the jobs that
 //! changed, each with only its frames that changed, the jobs gone, and the
 //! workers when they changed) for each change; a viewer that fell behind
@@ -26,7 +27,7 @@ use tokio_stream::{Stream, StreamExt as _};
 
 use super::Monitor;
 use super::api::worker_rows;
-use super::json::{JobJson, SnapshotJson, WorkerJson};
+use super::json::{FRAMES_PAGE, JobJson, SnapshotJson, WorkerJson};
 
 /// How often the snapshot is rebuilt while someone watches.
 const TICK: Duration = Duration::from_millis(500);
@@ -111,7 +112,8 @@ fn delta(prev: &Previous, jobs: &[JobJson], workers: &[WorkerJson]) -> Option<St
                     ..j.clone()
                 });
             }
-            None => changed.push(j.clone()),
+            // A new job: its first page of frames, as in the snapshot.
+            None => changed.push(j.paged(0, FRAMES_PAGE)),
         }
     }
     let now: std::collections::HashSet<&str> = jobs.iter().map(|j| j.id.as_str()).collect();
@@ -160,8 +162,17 @@ pub async fn run(m: Arc<Monitor>) {
             continue;
         }
         let seq = m.events.tx.borrow().seq;
-        let snap = SnapshotJson { jobs, workers };
-        let full: Arc<str> = Arc::from(serde_json::to_string(&snap).unwrap_or_default());
+        // Each job with its first page of frames (the rest come as they
+        // change, or from /api/jobs/{id}?frames_from=).
+        let paged = SnapshotJson {
+            jobs: jobs.iter().map(|j| j.paged(0, FRAMES_PAGE)).collect(),
+            workers,
+        };
+        let full: Arc<str> = Arc::from(serde_json::to_string(&paged).unwrap_or_default());
+        let snap = SnapshotJson {
+            jobs,
+            workers: paged.workers,
+        };
         m.events.tx.send_replace(Arc::new(Built {
             seq: seq + 1,
             full,

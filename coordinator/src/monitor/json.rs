@@ -90,7 +90,41 @@ pub struct JobJson {
     pub results_duplicate: u64,
     pub settings: SettingsJson,
     pub adaptive: Option<AdaptiveJson>,
+    /// One page of the job's frames (see [`JobJson::paged`]).
     pub frames: Vec<FrameJson>,
+    /// How many frames the job has.
+    pub frames_total: u32,
+    /// The first frame of the next page (`?frames_from=` of
+    /// `/api/jobs/{id}`); null when `frames` runs to the job's last frame.
+    pub frames_next: Option<u32>,
+}
+
+/// Most frames a job shows in `/api/jobs` and the events' `farm`
+/// snapshot, and by default in `/api/jobs/{id}`: a job's JSON no longer
+/// grows with its frame count (a 100k-frame job was 6.3 MB), as GetJob's
+/// frame pages.
+pub const FRAMES_PAGE: usize = 1000;
+/// The largest page `?frames_max=` may ask for.
+pub const FRAMES_PAGE_MAX: usize = 10_000;
+
+impl JobJson {
+    /// The job with only its frames numbered `from` on, at most `max` of
+    /// them, and where the next page starts.
+    pub fn paged(&self, from: u32, max: usize) -> JobJson {
+        let start = self.frames.partition_point(|f| f.frame < from);
+        let end = start.saturating_add(max).min(self.frames.len());
+        // Every field but the frames copied (they are what is paged).
+        JobJson {
+            frames: self.frames[start..end].to_vec(),
+            frames_next: self.frames.get(end).map(|f| f.frame),
+            id: self.id.clone(),
+            name: self.name.clone(),
+            error: self.error.clone(),
+            settings: self.settings.clone(),
+            adaptive: self.adaptive.clone(),
+            ..*self
+        }
+    }
 }
 
 pub fn state_name(s: JobState) -> &'static str {
@@ -163,6 +197,8 @@ impl From<&JobView> for JobJson {
                     written: out.is_some(),
                 })
                 .collect(),
+            frames_total: v.frames.len() as u32,
+            frames_next: None,
         }
     }
 }

@@ -58,7 +58,7 @@ pub struct Previews {
 }
 
 /// The value of `key` in a query string (no escapes: the API's values are numbers).
-fn param<'a>(query: &'a Option<String>, key: &str) -> Option<&'a str> {
+pub(super) fn param<'a>(query: &'a Option<String>, key: &str) -> Option<&'a str> {
     query
         .as_deref()?
         .split('&')

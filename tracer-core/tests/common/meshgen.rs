@@ -157,3 +157,21 @@ pub fn pathological_obj() -> String {
     }
     s
 }
+
+/// Writes `quad.obj` into `dir`: a 3x3 square in the z = 0 plane facing
+/// the camera, two triangles (the moving-mesh scenes' object).
+pub fn write_quad_obj(dir: &Path) {
+    std::fs::write(
+        dir.join("quad.obj"),
+        "v -1.5 -1.5 0\nv 1.5 -1.5 0\nv 1.5 1.5 0\nv -1.5 1.5 0\nf 1 2 3\nf 1 3 4\n",
+    )
+    .unwrap();
+}
+
+/// The keyframes (TOML) of an object moving along x from `from` at frame
+/// 0 to `to` at frame 1.
+pub fn keyframes_along_x(from: f64, to: f64) -> String {
+    format!(
+        "[[objects.keyframes]]\nframe = 0\ntranslate = [{from}, 0, 0]\n[[objects.keyframes]]\nframe = 1\ntranslate = [{to}, 0, 0]\n"
+    )
+}

@@ -2,6 +2,8 @@
 #![allow(dead_code)]
 
 pub mod meshgen;
+#[path = "../../../tests/support/prereq.rs"]
+pub mod prereq;
 
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
@@ -317,3 +319,17 @@ normal = [0, 1, 0]
 distance = 0
 material = "floor"
 "#;
+
+/// A renderer of a 16x16, 4-sample frame (`render(rect, samples)` gives
+/// its error's message) refuses a rectangle outside the image and a sample
+/// range outside the frame's, naming them: the CPU's and the GPU's alike.
+pub fn assert_bad_regions_refused(render: impl Fn(Rect, SampleRange) -> String) {
+    assert_eq!(
+        render(Rect::new(8, 8, 9, 1), SampleRange::all(4)),
+        "rectangle Rect { x: 8, y: 8, width: 9, height: 1 } is empty or outside the 16x16 image"
+    );
+    assert_eq!(
+        render(Rect::full(16, 16), SampleRange::new(2, 5)),
+        "sample range 2..5 is empty or outside 0..4"
+    );
+}

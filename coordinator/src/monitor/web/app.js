@@ -570,7 +570,8 @@ async function refreshFailures(job) {
   if (st.failuresKey === key || st.failuresBusy) return;
   st.failuresBusy = true;
   try {
-    const d = await getJson(`/api/jobs/${encodeURIComponent(job.id)}`);
+    // The failures only: one frame of the job is enough.
+    const d = await getJson(`/api/jobs/${encodeURIComponent(job.id)}?frames_max=1`);
     st.failuresKey = key;
     $("#failures").innerHTML = d.failures.length ? `<ul class="failures">${d.failures.map((f) =>
       `<li>Unit ${f.unit}: frame ${f.frame}, tile ${f.rect.width}×${f.rect.height}+${f.rect.x}+${f.rect.y}, samples ${f.samples[0]}–${f.samples[1]}
