@@ -36,7 +36,7 @@ const SCENES: [(&str, &str); 3] = [
 
 /// First sample index of the oracle's statistics (independent of the
 /// tested samples and of the reference's).
-const ORACLE_OFFSET: u32 = 1 << 16;
+const ORACLE_OFFSET: u32 = 1 << 14;
 
 /// First sample index of the reference (see the module doc).
 const REFERENCE_OFFSET: u32 = 1 << 15;
