@@ -16,6 +16,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 use tracer_core::adaptive::AdaptiveSettings;
+use tracer_core::adaptive::optimal::{self, Costs, RmseSettings};
 use tracer_core::film::image::{write_exr, write_png, write_sample_map};
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::adaptive;
@@ -24,6 +25,18 @@ use tracer_core::scene::{MAX_SAMPLES, RenderSettings, SceneDesc};
 
 use super::plot::{LinePlot, Series};
 use super::{Bench, Run, compare};
+
+/// The suite's scenes: `--adaptive-scenes` names and files.
+const SCENES: [(&str, &str); 3] = [
+    ("resolution", "resolution.toml"),
+    ("distributed", "distributed.toml"),
+    // Soft shadows of one quad light: the 2-core VM's case of issue 36.
+    ("quad", "resolution-quad.toml"),
+];
+
+/// First sample index of the oracle's statistics (independent of the
+/// tested samples and of the reference's).
+const ORACLE_OFFSET: u32 = 1 << 14;
 
 /// First sample index of the reference (see the module doc).
 const REFERENCE_OFFSET: u32 = 1 << 15;
@@ -38,13 +51,42 @@ pub struct Headline {
     pub uniform_seconds: f64,
     /// `None`: no adaptive run reached the uniform RMSE.
     pub adaptive_seconds: Option<f64>,
+    /// The error-optimal mode's and the oracle's times to reach it.
+    pub rmse_seconds: Option<f64>,
+    pub oracle_seconds: Option<f64>,
+    /// The same in rays traced (load-independent: the share of the work).
+    pub uniform_rays: f64,
+    pub adaptive_rays: Option<f64>,
+    pub rmse_rays: Option<f64>,
+    pub oracle_rays: Option<f64>,
 }
 
-impl Headline {
-    pub fn speedup(&self) -> Option<f64> {
-        self.adaptive_seconds.map(|a| self.uniform_seconds / a)
+/// How one run of the suite samples.
+#[derive(Clone, Debug)]
+enum Mode {
+    Uniform(u32),
+    /// Today's per-pixel contract (`--target-error`).
+    PerPixel(AdaptiveSettings),
+    /// The error-optimal mode (`render_rmse`).
+    Rmse(RmseSettings),
+    /// Samples per block from the true variance and cost (the oracle), for
+    /// the target RMSE it was allocated for.
+    Oracle(Vec<u32>, f64),
+}
+
+impl Mode {
+    fn name(&self) -> &'static str {
+        match self {
+            Mode::Uniform(_) => "uniform",
+            Mode::PerPixel(_) => "adaptive",
+            Mode::Rmse(_) => "rmse",
+            Mode::Oracle(..) => "oracle",
+        }
     }
 }
+
+/// Modes of the error-against-cost curves.
+const MODES: [&str; 4] = ["uniform", "adaptive", "rmse", "oracle"];
 
 impl Bench {
     pub(super) fn suite_adaptive(&self) -> Result<Vec<Run>> {
@@ -71,10 +113,7 @@ impl Bench {
         };
         let mut runs = vec![];
         let mut headlines = vec![];
-        for (name, file) in [
-            ("resolution", "resolution.toml"),
-            ("distributed", "distributed.toml"),
-        ] {
+        for (name, file) in SCENES {
             if !self.cfg.adaptive_scenes.iter().any(|s| s == name) {
                 continue;
             }
@@ -87,18 +126,25 @@ impl Bench {
                 ..desc.render
             };
             let reference = self.offset_reference(name, &desc, &base, ref_samples)?;
+            let truth = self.oracle_stats(&desc, &base, (ref_samples / 16).clamp(64, 256))?;
             for &b in &self.cfg.backends {
                 let renderer = self.renderer(b)?;
-                let mut uniform_top = None;
-                for &n in &uniform_counts {
+                let run = |mode: Mode, runs: &mut Vec<Run>| -> Result<(f64, f64, f64)> {
                     let r =
-                        self.adaptive_run(&renderer, b, name, &desc, &base, None, n, &reference)?;
-                    if n == top {
-                        uniform_top = Some((r.error.map_or(f64::NAN, |e| e.rmse), r.seconds));
-                    }
+                        self.adaptive_run(&renderer, b, name, &desc, &base, &mode, &reference)?;
+                    let p = (
+                        r.seconds,
+                        r.rays.total() as f64,
+                        r.error.map_or(f64::NAN, |e| e.rmse),
+                    );
                     runs.push(r);
+                    Ok(p)
+                };
+                let mut uniform = vec![];
+                for &n in &uniform_counts {
+                    uniform.push((n, run(Mode::Uniform(n), &mut runs)?));
                 }
-                let mut curve = vec![];
+                let mut curves: [Vec<(f64, f64, f64)>; 3] = Default::default();
                 for &e in targets {
                     let a = AdaptiveSettings {
                         target_error: e,
@@ -106,35 +152,55 @@ impl Bench {
                         min_samples: min,
                         max_samples: 4 * top,
                     };
-                    let r = self.adaptive_run(
-                        &renderer,
-                        b,
-                        name,
-                        &desc,
-                        &base,
-                        Some(a),
-                        0,
-                        &reference,
-                    )?;
-                    curve.push((r.seconds, r.error.map_or(f64::NAN, |e| e.rmse)));
-                    runs.push(r);
+                    curves[0].push(run(Mode::PerPixel(a), &mut runs)?);
                 }
-                let (rmse, seconds) = uniform_top.expect("the top count is among the counts");
+                // The error-optimal mode and the oracle aim at the uniform
+                // renders' errors (and a little past the last).
+                let (_, top_point) = *uniform.last().expect("the top count is among the counts");
+                let rmse_targets: Vec<f64> = uniform
+                    .iter()
+                    .filter(|(n, _)| *n >= min)
+                    .map(|(_, p)| p.2)
+                    .chain([0.8 * top_point.2])
+                    .collect();
+                for &t in &rmse_targets {
+                    let o = RmseSettings {
+                        target_rmse: t,
+                        relative_rmse: 0.0,
+                        min_samples: min,
+                        max_samples: 4 * top,
+                    };
+                    curves[1].push(run(Mode::Rmse(o), &mut runs)?);
+                    let lo = vec![2; truth.len()];
+                    let counts = optimal::allocate(&truth, &lo, t * t, 4 * top);
+                    curves[2].push(run(Mode::Oracle(counts, t), &mut runs)?);
+                }
+                let by_time =
+                    |c: &[(f64, f64, f64)]| c.iter().map(|p| (p.0, p.2)).collect::<Vec<_>>();
+                let by_rays =
+                    |c: &[(f64, f64, f64)]| c.iter().map(|p| (p.1, p.2)).collect::<Vec<_>>();
+                let rmse = top_point.2;
                 headlines.push(Headline {
                     scene: name.to_string(),
                     backend: b,
                     uniform_spp: top,
                     uniform_rmse: rmse,
-                    uniform_seconds: seconds,
-                    adaptive_seconds: time_to_reach(&curve, rmse),
+                    uniform_seconds: top_point.0,
+                    adaptive_seconds: time_to_reach(&by_time(&curves[0]), rmse),
+                    rmse_seconds: time_to_reach(&by_time(&curves[1]), rmse),
+                    oracle_seconds: time_to_reach(&by_time(&curves[2]), rmse),
+                    uniform_rays: top_point.1,
+                    adaptive_rays: time_to_reach(&by_rays(&curves[0]), rmse),
+                    rmse_rays: time_to_reach(&by_rays(&curves[1]), rmse),
+                    oracle_rays: time_to_reach(&by_rays(&curves[2]), rmse),
                 });
             }
         }
         let dir = self.cfg.out.join("adaptive");
         let mut series = vec![];
-        for name in ["resolution", "distributed"] {
+        for (name, _) in SCENES {
             for &b in &self.cfg.backends {
-                for mode in ["uniform", "adaptive"] {
+                for mode in MODES {
                     let points: Vec<(f64, f64)> = runs
                         .iter()
                         .filter(|r| r.scene == name && r.backend == b && r.extra[0].1 == mode)
@@ -162,16 +228,7 @@ impl Bench {
         .write(&dir.join("error_vs_time"))?;
         let mut text = String::new();
         for h in &headlines {
-            let line = match (h.adaptive_seconds, h.speedup()) {
-                (Some(a), Some(x)) => format!(
-                    "{} {}: uniform {} spp RMSE {:.3e} in {:.3} s; adaptive reaches it in {:.3} s: {:.2}x",
-                    h.scene, h.backend, h.uniform_spp, h.uniform_rmse, h.uniform_seconds, a, x
-                ),
-                _ => format!(
-                    "{} {}: uniform {} spp RMSE {:.3e} in {:.3} s; no adaptive run reached it (lower the smallest target)",
-                    h.scene, h.backend, h.uniform_spp, h.uniform_rmse, h.uniform_seconds
-                ),
-            };
+            let line = headline_line(h);
             eprintln!("  adaptive headline: {line}");
             text.push_str(&line);
             text.push('\n');
@@ -241,7 +298,34 @@ impl Bench {
         Ok(linear)
     }
 
-    /// One timed render (best of `repeat`): uniform at `n` spp, or adaptive.
+    /// The true statistics of each block, for the oracle: variance from
+    /// `samples` samples per pixel (from [`ORACLE_OFFSET`]), cost in rays
+    /// per pixel-sample measured on the CPU.
+    fn oracle_stats(
+        &self,
+        desc: &SceneDesc,
+        base: &RenderSettings,
+        samples: u32,
+    ) -> Result<Vec<optimal::BlockStats>> {
+        let frame = PreparedFrame::build(desc, base, 0, Precision::F32)?;
+        let rect = Rect::full(base.width, base.height);
+        let mut film = Film::with_squares(rect);
+        let mut costs = Costs::new(rect);
+        let blocks = costs.rays.len();
+        adaptive::render_blocks(
+            &self.renderer(Backend::Cpu)?,
+            &frame,
+            0,
+            &vec![ORACLE_OFFSET; blocks],
+            &vec![ORACLE_OFFSET + samples; blocks],
+            &mut film,
+            &mut costs,
+            &|_| {},
+        )?;
+        Ok(optimal::block_stats(&film, rect, Some(&costs)))
+    }
+
+    /// One timed render (best of `repeat`) in `mode`.
     #[allow(clippy::too_many_arguments)]
     fn adaptive_run(
         &self,
@@ -250,16 +334,36 @@ impl Bench {
         name: &str,
         desc: &SceneDesc,
         base: &RenderSettings,
-        a: Option<AdaptiveSettings>,
-        n: u32,
+        mode: &Mode,
         reference: &[[f32; 3]],
     ) -> Result<Run> {
         let frame = PreparedFrame::build(desc, base, 0, Precision::F32)?;
         let rect = Rect::full(base.width, base.height);
         let once = || -> Result<Film> {
-            Ok(match &a {
-                None => renderer.render(&frame, 0, rect, SampleRange::all(n), &|_| {})?,
-                Some(a) => adaptive::render(renderer, &frame, 0, a, &|_| {}, &mut |_| {})?,
+            Ok(match mode {
+                Mode::Uniform(n) => {
+                    renderer.render(&frame, 0, rect, SampleRange::all(*n), &|_| {})?
+                }
+                Mode::PerPixel(a) => {
+                    adaptive::render(renderer, &frame, 0, a, &|_| {}, &mut |_| {})?
+                }
+                Mode::Rmse(o) => {
+                    adaptive::render_rmse(renderer, &frame, 0, o, &|_| {}, &mut |_| {})?
+                }
+                Mode::Oracle(counts, _) => {
+                    let mut film = Film::with_squares(rect);
+                    adaptive::render_blocks(
+                        renderer,
+                        &frame,
+                        0,
+                        &vec![0; counts.len()],
+                        counts,
+                        &mut film,
+                        &mut Costs::new(rect),
+                        &|_| {},
+                    )?;
+                    film
+                }
             })
         };
         if b != Backend::Cpu {
@@ -279,9 +383,30 @@ impl Bench {
         let error = compare(&linear, reference, base.width, base.height);
         let pixel_samples: u64 = film.counts.iter().map(|&c| c as u64).sum();
         let mean_spp = pixel_samples as f64 / rect.area() as f64;
-        let mode = if a.is_some() { "adaptive" } else { "uniform" };
-        let tag = a.map_or(format!("s{n}"), |a| format!("e{}", a.target_error));
-        let image = format!("adaptive/{name}-{mode}-{tag}-{}.png", b.name());
+        let mode_name = mode.name();
+        // The target column: the per-pixel target, or the RMSE aimed at.
+        let (target, bounds, tag) = match mode {
+            Mode::Uniform(n) => (String::new(), None, format!("s{n}")),
+            Mode::PerPixel(a) => (
+                a.target_error.to_string(),
+                Some((a.min_samples, a.max_samples)),
+                format!("e{}", a.target_error),
+            ),
+            Mode::Rmse(o) => (
+                o.target_rmse.to_string(),
+                Some((o.min_samples, o.max_samples)),
+                format!("r{:.3e}", o.target_rmse),
+            ),
+            Mode::Oracle(counts, t) => (
+                t.to_string(),
+                Some((
+                    counts.iter().copied().min().unwrap_or(0),
+                    counts.iter().copied().max().unwrap_or(0),
+                )),
+                format!("r{t:.3e}"),
+            ),
+        };
+        let image = format!("adaptive/{name}-{mode_name}-{tag}-{}.png", b.name());
         let path = self.cfg.out.join(&image);
         std::fs::create_dir_all(path.parent().expect("has a parent"))?;
         write_png(
@@ -290,12 +415,12 @@ impl Bench {
             base.height,
             &tracer_core::film::to_srgb8(&linear),
         )?;
-        if let Some(a) = &a {
-            let map = self
-                .cfg
-                .out
-                .join(format!("adaptive/{name}-samples-{tag}-{}.png", b.name()));
-            write_sample_map(&map, &film, a.min_samples, a.max_samples)?;
+        if let Some((lo, hi)) = bounds {
+            let map = self.cfg.out.join(format!(
+                "adaptive/{name}-{mode_name}-samples-{tag}-{}.png",
+                b.name()
+            ));
+            write_sample_map(&map, &film, lo, hi)?;
         }
         let run = Run {
             suite: "adaptive",
@@ -307,7 +432,10 @@ impl Bench {
             },
             threads: renderer.threads(),
             settings: RenderSettings {
-                samples: a.map_or(n, |a| a.max_samples),
+                samples: match mode {
+                    Mode::Uniform(n) => *n,
+                    _ => bounds.map_or(0, |b| b.1),
+                },
                 ..*base
             },
             precision: Precision::F32,
@@ -317,28 +445,64 @@ impl Bench {
             error: Some(error),
             image,
             extra: vec![
-                ("mode", mode.to_string()),
-                (
-                    "target_error",
-                    a.map_or(String::new(), |a| a.target_error.to_string()),
-                ),
+                ("mode", mode_name.to_string()),
+                ("target_error", target),
                 (
                     "min_samples",
-                    a.map_or(String::new(), |a| a.min_samples.to_string()),
+                    bounds.map_or(String::new(), |b| b.0.to_string()),
                 ),
                 (
                     "max_samples",
-                    a.map_or(String::new(), |a| a.max_samples.to_string()),
+                    bounds.map_or(String::new(), |b| b.1.to_string()),
                 ),
                 ("mean_spp", format!("{mean_spp:.2}")),
             ],
         };
         eprintln!(
-            "  adaptive   {name:<12} {:<4} {mode:<8} {tag:<10} {:>8.3} s  mean {:>7.1} spp  RMSE {:.3e}  PSNR {:.1} dB",
-            run.backend, seconds, mean_spp, error.rmse, error.psnr_db
+            "  adaptive   {name:<12} {:<4} {mode_name:<8} {tag:<10} {:>8.3} s  mean {:>7.1} spp  rays {:.3e}  RMSE {:.3e}  PSNR {:.1} dB",
+            run.backend,
+            seconds,
+            mean_spp,
+            run.rays.total() as f64,
+            error.rmse,
+            error.psnr_db
         );
         Ok(run)
     }
+}
+
+/// One scene's headline in words: each mode's time (and rays) to reach the
+/// uniform render's RMSE, as a speedup over uniform, and the share of the
+/// oracle's speedup the error-optimal mode reaches.
+fn headline_line(h: &Headline) -> String {
+    let x = |t: Option<f64>, u: f64| {
+        t.map_or("not reached".to_string(), |t| {
+            format!("{t:.3} ({:.2}x)", u / t)
+        })
+    };
+    let xr = |t: Option<f64>| {
+        t.map_or("not reached".to_string(), |t| {
+            format!("{:.2}x", h.uniform_rays / t)
+        })
+    };
+    let share = match (h.rmse_seconds, h.oracle_seconds) {
+        (Some(r), Some(o)) => format!("{:.0}%", 100.0 * o / r),
+        _ => "n/a".into(),
+    };
+    format!(
+        "{} {}: uniform {} spp RMSE {:.3e} in {:.3} s; to reach it, s (speedup): adaptive {}, rmse {}, oracle {}; rmse has {share} of the oracle's speed; speedup in rays: adaptive {}, rmse {}, oracle {}",
+        h.scene,
+        h.backend,
+        h.uniform_spp,
+        h.uniform_rmse,
+        h.uniform_seconds,
+        x(h.adaptive_seconds, h.uniform_seconds),
+        x(h.rmse_seconds, h.uniform_seconds),
+        x(h.oracle_seconds, h.uniform_seconds),
+        xr(h.adaptive_rays),
+        xr(h.rmse_rays),
+        xr(h.oracle_rays),
+    )
 }
 
 /// The time at which a curve of (seconds, rmse) points first reaches

@@ -92,8 +92,8 @@ pub struct BenchArgs {
     #[arg(long, value_name = "N", default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..=32768))]
     pub adaptive_reference: u32,
     /// Adaptive suite: its scenes, resolution (the thesis's) and/or
-    /// distributed (issue 16's effects)
-    #[arg(long, value_name = "SCENE,...", value_delimiter = ',', default_value = "resolution,distributed", value_parser = ["resolution", "distributed"])]
+    /// distributed (issue 16's effects) and/or quad (resolution-quad.toml: soft shadows)
+    #[arg(long, value_name = "SCENE,...", value_delimiter = ',', default_value = "resolution,distributed", value_parser = ["resolution", "distributed", "quad"])]
     pub adaptive_scenes: Vec<String>,
     /// Multi-gpu suite: GPU adapters, one GPU worker on each (index or
     /// name from `tessera gpus`); an index may repeat: 0,0 runs two workers

@@ -475,3 +475,63 @@ fn rounds_only_accept_block_aligned_rects() {
         }
     }
 }
+
+/// The error-optimal mode (issue 36) on the penumbra scene: it stops at
+/// its target, its estimate of the image's RMSE is within the stated
+/// factor of the true RMSE against a converged reference, it gives the
+/// penumbra more samples than the flat floor, and threads do not change it.
+#[test]
+fn the_rmse_mode_stops_at_its_target_and_its_estimate_is_honest() {
+    use tracer_core::adaptive::optimal::RmseSettings;
+    let desc = scene(PENUMBRA);
+    let o = RmseSettings {
+        target_rmse: 0.004,
+        relative_rmse: 0.0,
+        min_samples: 16,
+        max_samples: 1024,
+    };
+    let render = |threads: usize| {
+        let p = PreparedFrame::build(&desc, &o.render_settings(desc.render), 0, Precision::F32)
+            .unwrap();
+        let mut last = None;
+        let film = tracer_core::render::adaptive::render_rmse(
+            &cpu(threads),
+            &p,
+            0,
+            &o,
+            &|_| {},
+            &mut |r| last = Some(*r),
+        )
+        .unwrap();
+        (film, last.expect("one round at least"))
+    };
+    let (film, last) = render(2);
+    assert_eq!(film.nonfinite, 0);
+    assert!(last.round >= 2, "{last:?}");
+    assert!(last.estimated_rmse <= o.target_rmse, "{last:?}");
+    assert!(last.estimated_rmse >= 0.7 * o.target_rmse, "{last:?}");
+    let reference = uniform(&desc, &settings(0.01, 16, 1024), 8192, 1).resolve();
+    let image = film.resolve();
+    let truth: f64 = image
+        .iter()
+        .zip(&reference)
+        .map(|(a, b)| {
+            (0..3)
+                .map(|c| (a[c] as f64 - b[c] as f64).powi(2))
+                .sum::<f64>()
+        })
+        .sum::<f64>()
+        / (3 * image.len()) as f64;
+    let ratio = truth.sqrt() / last.estimated_rmse;
+    eprintln!("{last:?}, true/estimated RMSE {ratio:.3}");
+    assert!((0.8..=1.25).contains(&ratio), "ratio {ratio}");
+    // Samples go where the noise is: the counts differ at least 4x.
+    let (lo, hi) = (
+        film.counts.iter().min().unwrap(),
+        film.counts.iter().max().unwrap(),
+    );
+    assert!(*hi >= 4 * *lo, "{lo}..{hi}");
+    let (again, _) = render(1);
+    assert_eq!(again.sums, film.sums);
+    assert_eq!(again.counts, film.counts);
+}

@@ -31,6 +31,8 @@
 
 use crate::film::{FIXED_ONE, Film, Rect, SampleRange};
 
+pub mod optimal;
+
 pub use crate::scene::adaptive::{
     AdaptiveError, AdaptiveSettings, AdaptiveSpec, DEFAULT_MAX_SAMPLES, DEFAULT_MIN_SAMPLES, Target,
 };

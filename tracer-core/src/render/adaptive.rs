@@ -5,6 +5,9 @@
 //! kernel). The blocks, masks and the rule that picks them are
 //! [`crate::adaptive`]'s.
 
+use crate::adaptive::optimal::{
+    Costs, RmseSettings, allocate, block_stats, estimated_mse, image_mean,
+};
 use crate::adaptive::{AdaptiveSettings, BlockMask, Summary, next_active, summarize};
 use crate::film::{Film, Rect, SampleRange};
 use crate::render::{PreparedFrame, Renderer, RendererError};
@@ -71,6 +74,138 @@ pub fn render(
             seconds: start.elapsed().as_secs_f64(),
             summary: summarize(&film, rect, a),
         });
+    }
+    Ok(film)
+}
+
+/// [`render_round`], also returning the runs of blocks rendered with the
+/// rays each traced (the CPU's; none from the GPU, whose blocks then all
+/// cost the same).
+pub fn render_round_costed(
+    renderer: &Renderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    mask: &BlockMask,
+    samples: SampleRange,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<(Film, Vec<(Rect, u64)>), RendererError> {
+    match renderer {
+        Renderer::Cpu(r) => Ok(super::cpu::adaptive::render_round_costed(
+            r, prepared, frame, mask, samples, progress,
+        )?),
+        #[cfg(feature = "gpu")]
+        Renderer::Gpu(r) => Ok((
+            r.render_round(prepared, frame, mask, samples, progress)?,
+            vec![],
+        )),
+    }
+}
+
+/// Takes each block `i` of the frame from `from[i]` to `to[i]` samples
+/// (one renderer call per distinct pair), adding to `film` and booking
+/// the costs in `costs`.
+#[allow(clippy::too_many_arguments)]
+pub fn render_blocks(
+    renderer: &Renderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    from: &[u32],
+    to: &[u32],
+    film: &mut Film,
+    costs: &mut Costs,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<(), RendererError> {
+    let rect = film.rect;
+    let mut groups: std::collections::BTreeMap<(u32, u32), BlockMask> = Default::default();
+    for (i, (&a, &b)) in from.iter().zip(to).enumerate() {
+        if b > a {
+            groups
+                .entry((a, b))
+                .or_insert_with(|| BlockMask::none(rect))
+                .active[i] = true;
+        }
+    }
+    for ((a, b), mask) in groups {
+        let (f, runs) = render_round_costed(
+            renderer,
+            prepared,
+            frame,
+            &mask,
+            SampleRange::new(a, b),
+            progress,
+        )?;
+        film.merge(&f)
+            .expect("a round's film lies inside the frame and sums cannot overflow");
+        for (run, rays) in runs {
+            costs.book(rect, run, rays, b - a);
+        }
+    }
+    Ok(())
+}
+
+/// A round's report of the error-optimal mode.
+#[derive(Clone, Copy, Debug)]
+pub struct RmseRound {
+    pub round: usize,
+    pub active_blocks: usize,
+    pub seconds: f64,
+    /// Pixel-samples so far.
+    pub pixel_samples: u64,
+    /// The image's estimated RMSE after this round, and the target.
+    pub estimated_rmse: f64,
+    pub target_rmse: f64,
+}
+
+/// Renders a whole frame in the error-optimal mode (see
+/// [`crate::adaptive::optimal`]): `min_samples` everywhere, then rounds
+/// that move each block towards its share of the cheapest allocation
+/// meeting the target (re-estimated after each round), until the
+/// estimated image RMSE is at most the target or no block may grow.
+/// `prepared` must have been built with [`RmseSettings::render_settings`].
+pub fn render_rmse(
+    renderer: &Renderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    o: &RmseSettings,
+    progress: &(dyn Fn(u64) + Sync),
+    on_round: &mut dyn FnMut(&RmseRound),
+) -> Result<Film, RendererError> {
+    let s = prepared.settings();
+    let rect = Rect::full(s.width, s.height);
+    let mut film = Film::with_squares(rect);
+    let mut costs = Costs::new(rect);
+    let blocks = costs.rays.len();
+    let mut n = vec![0u32; blocks];
+    let mut next = vec![o.min_samples; blocks];
+    for round in 0.. {
+        let active_blocks = n.iter().zip(&next).filter(|(a, b)| b > a).count();
+        if active_blocks == 0 {
+            break;
+        }
+        let start = std::time::Instant::now();
+        render_blocks(
+            renderer, prepared, frame, &n, &next, &mut film, &mut costs, progress,
+        )?;
+        n.clone_from(&next);
+        let measured = costs.rays.iter().any(|&r| r > 0.0);
+        let stats = block_stats(&film, rect, measured.then_some(&costs));
+        let mse = estimated_mse(&stats);
+        let target = o.target_mse(image_mean(&film));
+        on_round(&RmseRound {
+            round,
+            active_blocks,
+            seconds: start.elapsed().as_secs_f64(),
+            pixel_samples: film.counts.iter().map(|&c| c as u64).sum(),
+            estimated_rmse: mse.sqrt(),
+            target_rmse: target.sqrt(),
+        });
+        if mse <= target {
+            break;
+        }
+        // Aim a little below the target: a round that lands just above it
+        // would cost a whole further round for a few samples.
+        let want = allocate(&stats, &n, 0.9 * target, o.max_samples);
+        next = n.iter().zip(&want).map(|(&n, &w)| o.step(n, w)).collect();
     }
     Ok(film)
 }

@@ -24,6 +24,20 @@ pub fn render_round(
     samples: SampleRange,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Film, RenderError> {
+    Ok(render_round_costed(renderer, prepared, frame, mask, samples, progress)?.0)
+}
+
+/// [`render_round`], also returning each run of blocks it rendered with
+/// the rays it traced: the cost the error-optimal mode allocates by
+/// (rays, not seconds, so the allocation is the same on every machine).
+pub fn render_round_costed(
+    renderer: &CpuRenderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    mask: &BlockMask,
+    samples: SampleRange,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<(Film, Vec<(Rect, u64)>), RenderError> {
     prepared.check_request(mask.rect, samples)?;
     Ok(match prepared {
         PreparedFrame::F32(w) => round_world(renderer, w, frame, mask, samples, progress),
@@ -38,7 +52,7 @@ fn round_world<R: Real>(
     mask: &BlockMask,
     samples: SampleRange,
     progress: &(dyn Fn(u64) + Sync),
-) -> Film {
+) -> (Film, Vec<(Rect, u64)>) {
     let blocks = runs(mask);
     let films: Vec<Film> = renderer.pool().install(|| {
         blocks
@@ -64,7 +78,8 @@ fn round_world<R: Real>(
         out.merge(f)
             .expect("blocks lie inside their rect and sums cannot overflow");
     }
-    out
+    let costs = films.iter().map(|f| (f.rect, f.rays.total())).collect();
+    (out, costs)
 }
 
 /// Most blocks rendered together: 4 blocks of 8x8 are 256 pixels, one
