@@ -57,6 +57,8 @@ pub const DEPTH_REFERENCE: u32 = 32;
 pub struct Config {
     pub suites: Vec<String>,
     pub backends: Vec<Backend>,
+    /// The integrator of the suites' renders (and their references).
+    pub integrator: tracer_core::scene::Integrator,
     pub out: PathBuf,
     pub quick: bool,
     pub threads: Option<usize>,
@@ -351,6 +353,7 @@ impl Bench {
                 samples: 4,
                 max_depth: 10,
                 sampler: Sampler::Grid,
+                integrator: self.cfg.integrator,
             };
             let reference = self.refs.get(&path, &desc, &s, self.reference_samples())?;
             for &b in &self.cfg.backends {
@@ -397,6 +400,7 @@ impl Bench {
             samples: 1,
             max_depth: 10,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         // The samples suite is the headline error curve: a finer reference than the others.
         let reference =
@@ -467,6 +471,7 @@ impl Bench {
                     samples: 4,
                     max_depth: 10,
                     sampler: Sampler::Grid,
+                    integrator: self.cfg.integrator,
                 };
                 let reference = self.refs.get(&path, &desc, &s, self.reference_samples())?;
                 for &b in &self.cfg.backends {
@@ -536,6 +541,7 @@ impl Bench {
             samples: 4,
             max_depth: self.cfg.depth_reference,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         let reference = self.refs.get_exact(&path, &desc, &base)?;
         let mut runs = vec![];
@@ -775,6 +781,7 @@ impl Bench {
                 samples: 4,
                 max_depth: 10,
                 sampler: Sampler::Grid,
+                integrator: self.cfg.integrator,
             };
             let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
             let rect = Rect::full(width, height);
@@ -938,6 +945,7 @@ impl Bench {
             samples: if self.cfg.quick { 4 } else { 16 },
             max_depth: 10,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         // Small tiles in the quick run, so that two workers both get work.
         let tile = if self.cfg.quick { 16 } else { 64 };
@@ -1218,6 +1226,7 @@ impl Bench {
             samples: if self.cfg.quick { 4 } else { 64 },
             max_depth: 10,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         let tile = if self.cfg.quick { 16 } else { 64 };
         let owned;

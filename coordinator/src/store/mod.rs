@@ -1129,6 +1129,7 @@ mod tests {
                 samples: 1024,
                 max_depth: 6,
                 sampler: Sampler::Progressive,
+                integrator: Default::default(),
             }
         );
         assert_eq!((rec.first_frame, rec.last_frame, rec.priority), (1, 3, -2));
