@@ -191,7 +191,7 @@ impl Case {
         for (i, (shape, mat)) in self.objects.iter().enumerate() {
             let bsdf = match *mat {
                 Mat::Lambert(c) => format!("{{'type': 'diffuse', 'reflectance': {}}}", py_rgb(c)),
-                Mat::Metal(r) if r == 0.0 => "{'type': 'conductor', 'material': 'none'}".into(),
+                Mat::Metal(0.0) => "{'type': 'conductor', 'material': 'none'}".into(),
                 Mat::Metal(r) => format!(
                     "{{'type': 'roughconductor', 'material': 'none', 'distribution': 'ggx', 'alpha': {}}}",
                     r * r
