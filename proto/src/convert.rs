@@ -358,6 +358,37 @@ mod tests {
     }
 
     #[test]
+    fn the_integrator_travels_and_older_senders_mean_whitted() {
+        let path = RenderSettings {
+            integrator: Integrator::Path,
+            ..RenderSettings::default()
+        };
+        let wire = pb::RenderSettings::from(path);
+        assert_eq!(wire.integrator, pb::Integrator::Path as i32);
+        assert_eq!(RenderSettings::try_from(wire.clone()), Ok(path));
+        // A sender that predates field 140 leaves it 0 (UNSPECIFIED).
+        let old = pb::RenderSettings {
+            integrator: 0,
+            ..wire
+        };
+        assert_eq!(
+            RenderSettings::try_from(old).map(|s| s.integrator),
+            Ok(Integrator::Whitted)
+        );
+        // Overrides: UNSPECIFIED keeps the scene's, PATH overrides it.
+        let o = RenderOverrides {
+            integrator: Some(Integrator::Path),
+            ..RenderOverrides::default()
+        };
+        let wire = pb::RenderOverrides::from((o, AdaptiveSpec::default()));
+        assert_eq!(RenderOverrides::from(&wire), o);
+        assert_eq!(
+            RenderOverrides::from(&pb::RenderOverrides::default()).integrator,
+            None
+        );
+    }
+
+    #[test]
     fn a_work_units_region_round_trips_and_missing_fields_read_as_empty() {
         let r = WorkRegion::new(7, Rect::new(64, 128, 32, 16), SampleRange::new(8, 24));
         let mut unit = pb::WorkUnit::default();
