@@ -5,7 +5,7 @@ use tracer_core::adaptive::AdaptiveSpec;
 use tracer_core::film::{RayCounts, Rect, SampleRange, WorkRegion};
 use tracer_core::render::Backend;
 use tracer_core::sampling::Sampler;
-use tracer_core::scene::{RenderOverrides, RenderSettings};
+use tracer_core::scene::{Integrator, RenderOverrides, RenderSettings};
 
 use crate::job::JobSpec;
 use crate::pb;
@@ -142,7 +142,24 @@ impl From<RenderSettings> for pb::RenderSettings {
             samples: s.samples,
             max_depth: s.max_depth,
             sampler: pb::Sampler::from(s.sampler) as i32,
+            integrator: integrator_to_pb(s.integrator) as i32,
         }
+    }
+}
+
+fn integrator_to_pb(i: Integrator) -> pb::Integrator {
+    match i {
+        Integrator::Whitted => pb::Integrator::Whitted,
+        Integrator::Path => pb::Integrator::Path,
+    }
+}
+
+/// The integrator of a wire value; `None` for UNSPECIFIED or unknown.
+pub fn integrator_from_pb(v: i32) -> Option<Integrator> {
+    match pb::Integrator::try_from(v).unwrap_or(pb::Integrator::Unspecified) {
+        pb::Integrator::Whitted => Some(Integrator::Whitted),
+        pb::Integrator::Path => Some(Integrator::Path),
+        pb::Integrator::Unspecified => None,
     }
 }
 
@@ -159,6 +176,8 @@ impl TryFrom<pb::RenderSettings> for RenderSettings {
             samples: s.samples,
             max_depth: s.max_depth,
             sampler,
+            // Senders older than the path tracer leave it UNSPECIFIED: Whitted.
+            integrator: integrator_from_pb(s.integrator).unwrap_or_default(),
         };
         out.validate().map_err(|message| ConvertError::Invalid {
             field: "settings",
@@ -179,6 +198,7 @@ impl From<&pb::RenderOverrides> for RenderOverrides {
             samples: o.samples,
             max_depth: o.max_depth,
             sampler: sampler_from_pb(o.sampler),
+            integrator: integrator_from_pb(o.integrator),
         }
     }
 }
@@ -206,6 +226,10 @@ impl From<(RenderOverrides, AdaptiveSpec)> for pb::RenderOverrides {
             sampler: o
                 .sampler
                 .map_or(pb::Sampler::Unspecified, pb::Sampler::from) as i32,
+            integrator: o
+                .integrator
+                .map_or(pb::Integrator::Unspecified, integrator_to_pb)
+                as i32,
             target_error: a.target_error,
             relative_error: a.relative_error,
             min_samples: a.min_samples,
@@ -275,6 +299,7 @@ mod tests {
                 samples: Some(9),
                 max_depth: Some(0),
                 sampler: Some(Sampler::Progressive),
+                integrator: None,
             },
             adaptive: AdaptiveSpec {
                 target_error: Some(0.01),
@@ -315,6 +340,7 @@ mod tests {
             samples: 9,
             max_depth: 3,
             sampler: Sampler::Jittered,
+            integrator: Default::default(),
         };
         assert_eq!(RenderSettings::try_from(pb::RenderSettings::from(s)), Ok(s));
         let mut bad = pb::RenderSettings::from(s);
@@ -329,6 +355,37 @@ mod tests {
         let mut bad = pb::RenderSettings::from(s);
         bad.sampler = 0;
         assert!(RenderSettings::try_from(bad).is_err());
+    }
+
+    #[test]
+    fn the_integrator_travels_and_older_senders_mean_whitted() {
+        let path = RenderSettings {
+            integrator: Integrator::Path,
+            ..RenderSettings::default()
+        };
+        let wire = pb::RenderSettings::from(path);
+        assert_eq!(wire.integrator, pb::Integrator::Path as i32);
+        assert_eq!(RenderSettings::try_from(wire.clone()), Ok(path));
+        // A sender that predates field 140 leaves it 0 (UNSPECIFIED).
+        let old = pb::RenderSettings {
+            integrator: 0,
+            ..wire
+        };
+        assert_eq!(
+            RenderSettings::try_from(old).map(|s| s.integrator),
+            Ok(Integrator::Whitted)
+        );
+        // Overrides: UNSPECIFIED keeps the scene's, PATH overrides it.
+        let o = RenderOverrides {
+            integrator: Some(Integrator::Path),
+            ..RenderOverrides::default()
+        };
+        let wire = pb::RenderOverrides::from((o, AdaptiveSpec::default()));
+        assert_eq!(RenderOverrides::from(&wire), o);
+        assert_eq!(
+            RenderOverrides::from(&pb::RenderOverrides::default()).integrator,
+            None
+        );
     }
 
     #[test]

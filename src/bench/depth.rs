@@ -29,6 +29,7 @@ impl Bench {
             samples: 4,
             max_depth: self.cfg.depth_reference,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         let reference = self.refs.get_exact(&path, &desc, &base)?;
         let mut runs = vec![];

@@ -39,6 +39,7 @@ impl Bench {
             samples: if self.cfg.quick { 4 } else { 16 },
             max_depth: 10,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         // Small tiles in the quick run, so that two workers both get work.
         let tile = if self.cfg.quick { 16 } else { 64 };
@@ -319,6 +320,7 @@ impl Bench {
             samples: if self.cfg.quick { 4 } else { 64 },
             max_depth: 10,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         let tile = if self.cfg.quick { 16 } else { 64 };
         let owned;

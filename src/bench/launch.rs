@@ -56,6 +56,7 @@ impl Bench {
                 samples: 4,
                 max_depth: 10,
                 sampler: Sampler::Grid,
+                integrator: self.cfg.integrator,
             };
             let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
             let rect = Rect::full(width, height);

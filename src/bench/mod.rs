@@ -68,6 +68,8 @@ pub const DEPTH_REFERENCE: u32 = 32;
 pub struct Config {
     pub suites: Vec<String>,
     pub backends: Vec<Backend>,
+    /// The integrator of the suites' renders (and their references).
+    pub integrator: tracer_core::scene::Integrator,
     pub out: PathBuf,
     pub quick: bool,
     pub threads: Option<usize>,

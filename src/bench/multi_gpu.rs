@@ -195,6 +195,7 @@ impl Bench {
             samples,
             max_depth: 10,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         let (scene, desc) = self.scene("resolution.toml")?;
         let frame = Workload {

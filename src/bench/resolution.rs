@@ -31,6 +31,7 @@ impl Bench {
                 samples: 4,
                 max_depth: 10,
                 sampler: Sampler::Grid,
+                integrator: self.cfg.integrator,
             };
             let reference = self.refs.get(&path, &desc, &s, self.reference_samples())?;
             for &b in &self.cfg.backends {

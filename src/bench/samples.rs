@@ -23,6 +23,7 @@ impl Bench {
             samples: 1,
             max_depth: 10,
             sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
         };
         // The samples suite is the headline error curve: a finer reference than the others.
         let reference =

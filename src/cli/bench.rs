@@ -4,6 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Result;
+use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
 
 use crate::bench::{self, Config};
@@ -37,6 +38,11 @@ pub struct BenchArgs {
     /// Where to trace
     #[arg(long, value_enum, default_value_t = BenchBackend::Cpu)]
     pub backend: BenchBackend,
+    /// How light is integrated in the resolution, samples, complexity,
+    /// depth, precision, distributed and multi-gpu suites: whitted or path
+    /// (the CPU backend only, for now; docs/path-tracing.md)
+    #[arg(long, default_value = "whitted", value_parser = clap::builder::PossibleValuesParser::new(["whitted", "path"]).map(|s| s.parse::<tracer_core::scene::Integrator>().unwrap()))]
+    pub integrator: tracer_core::scene::Integrator,
     /// Output directory: one CSV per suite, the images, and plots (PNG and SVG)
     #[arg(long, default_value = "bench-out")]
     pub out: PathBuf,
@@ -138,6 +144,7 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
     let runs = bench::run(Config {
         suites: args.suites,
         backends,
+        integrator: args.integrator,
         out: args.out.clone(),
         quick: args.quick,
         threads: args.threads,

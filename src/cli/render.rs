@@ -15,8 +15,8 @@ use tracer_core::render::cpu::MAX_THREADS;
 use tracer_core::render::{Backend, Precision, PreparedFrame, Renderer};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{
-    MAX_DEPTH, MAX_IMAGE_SIDE, MAX_SAMPLES, ModelSceneOptions, RenderOverrides, RenderSettings,
-    SceneDesc, SettingsError,
+    Integrator, MAX_DEPTH, MAX_IMAGE_SIDE, MAX_SAMPLES, ModelSceneOptions, RenderOverrides,
+    RenderSettings, SceneDesc, SettingsError,
 };
 
 /// `--threads`: 0 (all cores) up to the renderer's limit, so help and
@@ -54,6 +54,12 @@ pub struct OverrideArgs {
     /// uses) [default: the scene's, else grid]
     #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["grid", "jittered", "progressive"]).map(|s| s.parse::<Sampler>().unwrap()))]
     pub sampler: Option<Sampler>,
+    /// How light is integrated: whitted (the thesis's model with
+    /// distributed ray tracing) or path (unidirectional path tracing; with
+    /// it --max-depth counts path segments after the camera ray's,
+    /// docs/path-tracing.md) [default: the scene's, else whitted]
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["whitted", "path"]).map(|s| s.parse::<Integrator>().unwrap()))]
+    pub integrator: Option<Integrator>,
 }
 
 impl From<&OverrideArgs> for RenderOverrides {
@@ -64,6 +70,7 @@ impl From<&OverrideArgs> for RenderOverrides {
             samples: a.samples,
             max_depth: a.max_depth,
             sampler: a.sampler,
+            integrator: a.integrator,
         }
     }
 }
@@ -397,6 +404,9 @@ fn report(
                 "refraction": r.refraction,
             },
             "rays_per_second": r.total() as f64 / secs,
+            "integrator": settings.integrator.name(),
+            // One path per camera ray (the path integrator's figure).
+            "paths_per_second": r.primary as f64 / secs,
             "nonfinite_samples": nonfinite,
             "output": output.display().to_string(),
             "adaptive": adaptive.map(|a| {
@@ -446,6 +456,14 @@ fn report(
             r.total() as f64 / secs / 1e6,
             output.display()
         );
+        if settings.integrator == Integrator::Path {
+            // One path per camera ray.
+            outln!(
+                "path: {:.3} Mpaths/s, {:.2} rays per path",
+                r.primary as f64 / secs / 1e6,
+                r.total() as f64 / r.primary.max(1) as f64
+            );
+        }
     }
     if nonfinite > 0 {
         // Sanitised to 0 before reaching the image; still a tracer bug worth reporting.

@@ -127,6 +127,54 @@ pub struct Distributed<R: Real> {
     pub unit_right: R::V3,
     pub unit_up: R::V3,
     pub look_distance: R,
+    /// The path integrator's state, when the render integrates paths.
+    pub path: Option<PathScene<R>>,
+}
+
+/// What the path integrator needs beyond the lights: the environment and
+/// the power-proportional light selection.
+#[derive(Clone, Debug)]
+pub struct PathScene<R: Real> {
+    pub environment: R::V3,
+    /// Running sums of the lights' selection probabilities (the last is 1);
+    /// empty when no light emits.
+    pub light_cdf: Vec<f64>,
+    /// Each light's selection probability.
+    pub light_prob: Vec<R>,
+}
+
+impl<R: Real> PathScene<R> {
+    pub fn new(lights: &[Light<R>], environment: R::V3) -> Self {
+        let power: Vec<f64> = lights.iter().map(|l| l.power()).collect();
+        let total: f64 = power.iter().sum();
+        if !(total > 0.0) {
+            return PathScene {
+                environment,
+                light_cdf: Vec::new(),
+                light_prob: vec![R::ZERO; lights.len()],
+            };
+        }
+        let mut acc = 0.0;
+        let light_cdf = power
+            .iter()
+            .map(|p| {
+                acc += p / total;
+                acc
+            })
+            .collect();
+        PathScene {
+            environment,
+            light_cdf,
+            light_prob: power.iter().map(|p| R::from_f64(p / total)).collect(),
+        }
+    }
+
+    /// The light for uniform `u`: the first whose running sum exceeds it.
+    pub fn pick(&self, u: f32) -> usize {
+        let u = u as f64;
+        let i = self.light_cdf.partition_point(|&c| c <= u);
+        i.min(self.light_cdf.len() - 1)
+    }
 }
 
 impl<R: Real> Distributed<R> {

@@ -37,6 +37,7 @@
 pub mod accel;
 pub mod adaptive;
 pub mod assets;
+pub mod bsdf;
 pub mod bvh;
 pub mod distributed;
 pub mod film;

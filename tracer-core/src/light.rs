@@ -124,3 +124,166 @@ impl<R: Real> Emitter<R> for Light<R> {
         Light::point(self, u, v)
     }
 }
+
+/// A light's point sampled for the path integrator's next-event estimation.
+#[derive(Clone, Copy, Debug)]
+pub struct LightSample<R: Real> {
+    /// Unit direction from the shaded point to the light.
+    pub wi: R::V3,
+    pub dist: R,
+    /// Radiance arriving (a point light: intensity / dist^2).
+    pub li: R::V3,
+    /// Solid-angle density of this light's sampling at `wi` (0: a point light, a delta).
+    pub pdf: R,
+}
+
+/// The path integrator's lights (docs/path-tracing.md): a point light's
+/// `diffuse` colour is its intensity (W/sr, falling off as 1/d^2), an area
+/// light's its radiance, emitted from both sides of a quad and outwards
+/// from a sphere. `specular` and `samples` are Whitted's only.
+impl<R: Real> Light<R> {
+    /// Emitted power over pi (the constant is the same for every kind,
+    /// so selection by it is selection by power), by luminance.
+    pub fn power(&self) -> f64 {
+        let c = self.diffuse.to_array();
+        let lum = (c[0] + c[1] + c[2]) / 3.0;
+        match self.geom {
+            LightGeom::Point(_) => 4.0 * lum,
+            LightGeom::Quad { edge_u, edge_v, .. } => {
+                2.0 * edge_u.cross(edge_v).length().to_f64() * std::f64::consts::PI * lum
+            }
+            LightGeom::Sphere { radius, .. } => {
+                let r = radius.to_f64();
+                4.0 * r * r * std::f64::consts::PI * lum
+            }
+        }
+    }
+
+    /// A point of the light seen from `p` for uniform numbers (u, v):
+    /// uniform by area on a quad, uniform in the cone a sphere subtends.
+    pub fn sample_li(&self, p: R::V3, u: f64, v: f64) -> Option<LightSample<R>> {
+        match self.geom {
+            LightGeom::Point(pos) => {
+                let d = pos - p;
+                let dist = d.length();
+                (dist > R::ZERO).then(|| LightSample {
+                    wi: d * (R::ONE / dist),
+                    dist,
+                    li: self.diffuse * (R::ONE / (dist * dist)),
+                    pdf: R::ZERO,
+                })
+            }
+            LightGeom::Quad {
+                corner,
+                edge_u,
+                edge_v,
+            } => {
+                let x = corner + edge_u * R::from_f64(u) + edge_v * R::from_f64(v);
+                let d = x - p;
+                let dist = d.length();
+                let n = edge_u.cross(edge_v);
+                let area = n.length();
+                if !(dist > R::ZERO && area > R::ZERO) {
+                    return None;
+                }
+                let wi = d * (R::ONE / dist);
+                let cos_l = n.dot(wi).abs() / area;
+                (cos_l > R::ZERO).then(|| LightSample {
+                    wi,
+                    dist,
+                    li: self.diffuse,
+                    pdf: dist * dist / (area * cos_l),
+                })
+            }
+            LightGeom::Sphere { center, radius } => {
+                let d = center - p;
+                let dc = d.length();
+                if !(dc > radius) {
+                    // Inside the sphere: it is no light source to sample.
+                    return None;
+                }
+                let axis = d * (R::ONE / dc);
+                let sin2 = radius * radius / (dc * dc);
+                let cos_max = (R::ONE - sin2).max(R::ZERO).sqrt();
+                let wi = crate::sampling::cone(axis, cos_max, u as f32, v as f32);
+                let t = sphere_hit(p, wi, center, radius).unwrap_or(dc);
+                Some(LightSample {
+                    wi,
+                    dist: t,
+                    li: self.diffuse,
+                    pdf: R::ONE / (R::from_f64(2.0 * std::f64::consts::PI) * (R::ONE - cos_max)),
+                })
+            }
+        }
+    }
+
+    /// Where a ray from `o` along unit `d` meets the light before `t_max`
+    /// (never a point light): its distance and the solid-angle density
+    /// [`Self::sample_li`] has of that direction from `o`.
+    pub fn hit(&self, o: R::V3, d: R::V3, t_max: R) -> Option<(R, R)> {
+        match self.geom {
+            LightGeom::Point(_) => None,
+            LightGeom::Quad {
+                corner,
+                edge_u,
+                edge_v,
+            } => {
+                let n = edge_u.cross(edge_v);
+                let denom = n.dot(d);
+                if denom == R::ZERO {
+                    return None;
+                }
+                let t = n.dot(corner - o) / denom;
+                if !(t > R::ZERO && t < t_max) {
+                    return None;
+                }
+                let q = o + d * t - corner;
+                // Coordinates along the edges (the dual basis).
+                let nn = n.dot(n);
+                let a = q.cross(edge_v).dot(n) / nn;
+                let b = edge_u.cross(q).dot(n) / nn;
+                if !(a >= R::ZERO && a <= R::ONE && b >= R::ZERO && b <= R::ONE) {
+                    return None;
+                }
+                let area = nn.sqrt();
+                let cos_l = denom.abs() / area;
+                Some((t, t * t / (area * cos_l)))
+            }
+            LightGeom::Sphere { center, radius } => {
+                let t = sphere_hit(o, d, center, radius)?;
+                if !(t < t_max) {
+                    return None;
+                }
+                let dc = (center - o).length();
+                if !(dc > radius) {
+                    return Some((t, R::ZERO));
+                }
+                let cos_max = (R::ONE - radius * radius / (dc * dc)).max(R::ZERO).sqrt();
+                Some((
+                    t,
+                    R::ONE / (R::from_f64(2.0 * std::f64::consts::PI) * (R::ONE - cos_max)),
+                ))
+            }
+        }
+    }
+}
+
+/// Nearest positive distance along unit `d` from `o` to the sphere.
+fn sphere_hit<R: Real>(o: R::V3, d: R::V3, c: R::V3, r: R) -> Option<R> {
+    let oc = o - c;
+    let b = oc.dot(d);
+    let disc = b * b - (oc.dot(oc) - r * r);
+    if disc < R::ZERO {
+        return None;
+    }
+    let s = disc.sqrt();
+    let t0 = -b - s;
+    let t1 = -b + s;
+    if t0 > R::ZERO {
+        Some(t0)
+    } else if t1 > R::ZERO {
+        Some(t1)
+    } else {
+        None
+    }
+}

@@ -95,6 +95,12 @@ pub const ROOT_KEY: u32 = 1;
 pub const SLOT_GLOSS: u32 = 0;
 pub const SLOT_TRANSLUCENCY: u32 = 2;
 pub const SLOT_LIGHTS: u32 = 4;
+/// Slots of a path vertex (the path integrator's; a vertex's key is its
+/// predecessor's `child_key(key, 1)`): the light chosen, the two numbers
+/// of its point, the BSDF lobe, the two of its direction, Russian roulette.
+pub const SLOT_PATH_LIGHT: u32 = 0;
+pub const SLOT_PATH_LOBE: u32 = 3;
+pub const SLOT_PATH_RR: u32 = 6;
 /// Child of a node: `which` 0 for the refracted ray, 1 for the reflected one.
 #[inline(always)]
 pub fn child_key(key: u32, which: u32) -> u32 {

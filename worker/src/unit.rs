@@ -151,6 +151,7 @@ mod tests {
             samples: 4,
             max_depth: 3,
             sampler: Sampler::Grid,
+            integrator: Default::default(),
         }
     }
 

@@ -32,6 +32,7 @@ fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
             samples: 1024,
             max_depth: 6,
             sampler: Sampler::Progressive,
+            integrator: Default::default(),
         }
     );
     assert_eq!((rec.first_frame, rec.last_frame, rec.priority), (1, 3, -2));

@@ -24,12 +24,17 @@
 //! light term is [`crate::material::Material::blinn_phong`]; lights are
 //! [`crate::light::Emitter`]s.
 
+use crate::bsdf::Bsdf;
+use crate::bsdf::Frame;
 use crate::film::RayCounts;
 use crate::geometry::PrimId;
 use crate::light::Emitter;
 use crate::material::{Material, reflect};
 use crate::math::{Ray, Real, Vector3, offset_origin};
-use crate::sampling::{SLOT_GLOSS, SLOT_LIGHTS, SLOT_TRANSLUCENCY, cone, stratified};
+use crate::sampling::{
+    SLOT_GLOSS, SLOT_LIGHTS, SLOT_PATH_LIGHT, SLOT_PATH_LOBE, SLOT_PATH_RR, SLOT_TRANSLUCENCY,
+    cone, stratified,
+};
 use crate::world::{PointLight, World};
 
 /// What a scene's effects change in the step: where rays hit, which
@@ -136,6 +141,153 @@ pub fn shade<R: Real, E: Effects<R>>(
     colour
 }
 
+/// Path segments after which Russian roulette may end a path (Mitsuba's
+/// default too: short paths are never cut).
+pub const RR_DEPTH: u32 = 5;
+
+/// The power heuristic's weight of a strategy of density `a` against one of `b`.
+#[inline]
+fn power_heuristic<R: Real>(a: R, b: R) -> R {
+    let (a2, b2) = (a * a, b * b);
+    if a2 + b2 > R::ZERO {
+        a2 / (a2 + b2)
+    } else {
+        R::ZERO
+    }
+}
+
+/// Radiance along the camera ray `ray` (starting on `skip`) by
+/// unidirectional path tracing (docs/path-tracing.md): at each vertex,
+/// emission (once the path meets an emitting surface or light, weighted by
+/// MIS against light sampling), next-event estimation of one light chosen
+/// by power, then a BSDF sample to continue; the environment where the path
+/// leaves the scene. A path has at most `max_depth` segments, the camera
+/// ray being the first (Mitsuba's `max_depth`): 1 sees emitters, 2 adds
+/// direct light. Vertex k draws its numbers at key `ROOT_KEY` followed
+/// by k `child(key, 1)` steps, slots `SLOT_PATH_*`.
+pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
+    world: &World<R>,
+    fx: &E,
+    scene: &crate::distributed::PathScene<R>,
+    ray: &Ray<R>,
+    key: E::Key,
+    skip: E::Prim,
+    rays: &mut RayCounts,
+) -> R::V3 {
+    let max = world.settings.max_depth;
+    let lights = fx.lights(world);
+    let mut radiance = R::V3::zero();
+    let mut throughput = R::V3::splat(R::ONE);
+    let (mut ray, mut key, mut skip) = (*ray, key, skip);
+    let mut segments = 1u32;
+    // Density of the BSDF sample that made this segment; None for the
+    // camera ray and delta lobes (nothing else could have found it).
+    let mut bsdf_pdf: Option<R> = None;
+    if max == 0 {
+        return radiance;
+    }
+    loop {
+        let hit = fx.closest(world, &ray, skip);
+        let mut t_near = hit.map_or(R::INFINITY, |h| h.0);
+        let mut light_hit = None;
+        for (i, l) in lights.iter().enumerate() {
+            if let Some((t, pdf)) = l.hit(ray.origin, ray.dir, t_near) {
+                t_near = t;
+                light_hit = Some((i, pdf));
+            }
+        }
+        if let Some((i, pdf)) = light_hit {
+            let w = bsdf_pdf.map_or(R::ONE, |b| power_heuristic(b, scene.light_prob[i] * pdf));
+            radiance += throughput * lights[i].diffuse * w;
+            break;
+        }
+        let Some(hit) = hit else {
+            radiance += throughput * scene.environment;
+            break;
+        };
+        let s = fx.surface(world, &ray, hit);
+        let b = s.bsdf;
+        if s.entering {
+            radiance += throughput * b.emission;
+        }
+        if segments >= max {
+            break;
+        }
+        let frame = Frame::<R>::new(s.ns);
+        let wo = frame.to_local(s.v);
+        // n on the far side over n on the viewer's.
+        let eta = if s.entering { b.ior } else { R::ONE / b.ior };
+        if !scene.light_cdf.is_empty() && b.has_smooth_lobe() {
+            let i = scene.pick(fx.u(key, SLOT_PATH_LIGHT));
+            let (u, v) = (
+                fx.u(key, SLOT_PATH_LIGHT + 1),
+                fx.u(key, SLOT_PATH_LIGHT + 2),
+            );
+            if let Some(ls) = lights[i].sample_li(s.p, u as f64, v as f64)
+                && ls.wi.dot(s.n) > R::ZERO
+            {
+                let (f, pdf_b) = b.eval(wo, frame.to_local(ls.wi), eta);
+                if f.max_element() > R::ZERO {
+                    rays.shadow += 1;
+                    let shadow = Ray::new(s.above, ls.wi);
+                    let t_max = ls.dist * (R::ONE - R::SHADOW_SHORTEN);
+                    let blocked = fx.occluded(world, &shadow, t_max, s.prim)
+                        || lights.iter().enumerate().any(|(j, l)| {
+                            j != i && l.hit(shadow.origin, shadow.dir, t_max).is_some()
+                        });
+                    if !blocked {
+                        let p_light = scene.light_prob[i];
+                        let c = if ls.pdf > R::ZERO {
+                            let pl = p_light * ls.pdf;
+                            f * ls.li * (power_heuristic(pl, pdf_b) / pl)
+                        } else {
+                            f * ls.li * (R::ONE / p_light)
+                        };
+                        radiance += throughput * c;
+                    }
+                }
+            }
+        }
+        let u = [
+            fx.u(key, SLOT_PATH_LOBE),
+            fx.u(key, SLOT_PATH_LOBE + 1),
+            fx.u(key, SLOT_PATH_LOBE + 2),
+        ];
+        let Some(bs) = b.sample(wo, eta, u) else {
+            break;
+        };
+        let wi: R::V3 = frame.to_world(bs.wi);
+        // A direction on the wrong side of the geometric surface (shading
+        // normals) carries nothing.
+        let reflected = bs.wi.z() > R::ZERO;
+        let side = wi.dot(s.n);
+        if (reflected && !(side > R::ZERO)) || (!reflected && !(side < R::ZERO)) {
+            break;
+        }
+        throughput = throughput * bs.weight;
+        bsdf_pdf = (!bs.delta).then_some(bs.pdf);
+        segments += 1;
+        if segments > RR_DEPTH {
+            let q = throughput.max_element().min(R::from_f64(0.95));
+            if !(R::from_f64(fx.u(key, SLOT_PATH_RR) as f64) < q) {
+                break;
+            }
+            throughput = throughput * (R::ONE / q);
+        }
+        let origin = if reflected {
+            rays.reflection += 1;
+            s.above
+        } else {
+            rays.refraction += 1;
+            offset_origin::<R>(s.p, -s.n)
+        };
+        ray = Ray::new(origin, wi);
+        skip = s.prim;
+        key = E::child(key, 1);
+    }
+    radiance
+}
+
 /// Adds each light's term at `s` in the lights' order, unless its shadow
 /// ray is blocked: a point light's once, an area light's as the mean over
 /// its stratified points.
@@ -188,6 +340,8 @@ pub struct Surface<'a, R: Real, P> {
     pub entering: bool,
     pub cos_i: R,
     pub m: &'a Material<R>,
+    /// The path integrator's BSDF of the same material.
+    pub bsdf: &'a Bsdf<R>,
     /// Origin for rays leaving on the viewer's side.
     pub above: R::V3,
 }
@@ -211,6 +365,7 @@ impl<'a, R: Real> Surface<'a, R, PrimId> {
             n_out,
             ray,
             &world.materials[material as usize],
+            &world.bsdfs[material as usize],
             |n, v| world.shading_normal(id, p, n, v),
         )
     }
@@ -227,6 +382,7 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
         n_out: R::V3,
         ray: &Ray<R>,
         m: &'a Material<R>,
+        bsdf: &'a Bsdf<R>,
         shading: impl FnOnce(R::V3, R::V3) -> R::V3,
     ) -> Self {
         let v = -ray.dir;
@@ -244,6 +400,7 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
             entering,
             cos_i: ns.dot(v),
             m,
+            bsdf,
             above: offset_origin::<R>(p, n),
         }
     }

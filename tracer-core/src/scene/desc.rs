@@ -111,6 +111,42 @@ pub struct RenderSettings {
     /// Generations of secondary rays; 0 = none.
     pub max_depth: u32,
     pub sampler: Sampler,
+    /// Whitted (the thesis's model, the default) or path tracing. Absent
+    /// in job records older than the path tracer: those are Whitted.
+    #[serde(default)]
+    pub integrator: Integrator,
+}
+
+/// How light is integrated: the thesis's Whitted model with distributed
+/// ray tracing's effects, or unidirectional path tracing (docs/path-tracing.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Integrator {
+    #[default]
+    Whitted,
+    Path,
+}
+
+impl Integrator {
+    pub fn name(self) -> &'static str {
+        match self {
+            Integrator::Whitted => "whitted",
+            Integrator::Path => "path",
+        }
+    }
+}
+
+impl std::str::FromStr for Integrator {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "whitted" => Ok(Integrator::Whitted),
+            "path" => Ok(Integrator::Path),
+            _ => Err(format!(
+                "unknown integrator {s:?}: expected \"whitted\" or \"path\""
+            )),
+        }
+    }
 }
 
 impl Default for RenderSettings {
@@ -121,6 +157,7 @@ impl Default for RenderSettings {
             samples: 4,
             max_depth: 10,
             sampler: Sampler::Grid,
+            integrator: Integrator::Whitted,
         }
     }
 }
@@ -157,6 +194,7 @@ struct RenderTable {
     samples: Option<u32>,
     max_depth: Option<u32>,
     sampler: Option<Sampler>,
+    integrator: Option<Integrator>,
     target_error: Option<Num>,
     relative_error: Option<Num>,
     min_samples: Option<u32>,
@@ -305,6 +343,38 @@ pub struct WorldDesc {
     pub ambient: Vec3,
     #[serde(default)]
     pub background: Vec3,
+    /// Radiance from every direction no surface or light is met in, for
+    /// the path integrator (black when left out; Whitted uses `background`).
+    #[serde(default)]
+    pub environment: Vec3,
+}
+
+/// `[bsdf.NAME]`: the path integrator's BSDF of material NAME given
+/// directly (glTF metallic-roughness parameters, `crate::bsdf::Bsdf`),
+/// instead of the mapping of its Blinn-Phong keys. Defaults are glTF's.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct BsdfDesc {
+    #[serde(default = "white")]
+    pub base_colour: Vec3,
+    #[serde(default = "one")]
+    pub metallic: Num,
+    #[serde(default = "one")]
+    pub roughness: Num,
+    #[serde(default = "default_ior")]
+    pub ior: Num,
+    #[serde(default)]
+    pub transmission: Num,
+    #[serde(default = "one")]
+    pub specular: Num,
+    #[serde(default = "white")]
+    pub specular_colour: Vec3,
+    #[serde(default)]
+    pub emission: Vec3,
+}
+
+fn default_ior() -> Num {
+    Num(1.5)
 }
 
 #[derive(Clone, Debug, Deserialize, PartialEq)]
@@ -482,6 +552,8 @@ struct SceneFile {
     #[serde(default)]
     materials: BTreeMap<String, Spanned<MaterialDesc>>,
     #[serde(default)]
+    bsdf: BTreeMap<String, Spanned<BsdfDesc>>,
+    #[serde(default)]
     lights: Vec<Spanned<LightFile>>,
     #[serde(default)]
     objects: Vec<Spanned<ObjectDesc>>,
@@ -501,6 +573,8 @@ pub struct SceneDesc {
     pub objects: Vec<ObjectDesc>,
     /// Index into `materials` for each object.
     pub object_materials: Vec<u32>,
+    /// `[bsdf.NAME]` of each of `materials` (by index) that has one.
+    pub bsdfs: Vec<Option<BsdfDesc>>,
     /// What the scene's model files gave defaults for (each names the
     /// object and the file); the scene renders, the user is told.
     pub warnings: Vec<String>,
@@ -664,6 +738,7 @@ impl SceneDesc {
                 samples: t.samples,
                 max_depth: t.max_depth,
                 sampler: t.sampler,
+                integrator: t.integrator,
             }
             .over(&render);
         }
@@ -683,7 +758,9 @@ impl SceneDesc {
         check_colour(&file.world.ambient)
             .map_err(|m| invalid(world_span.clone(), "world.ambient".into(), m))?;
         check_colour(&file.world.background)
-            .map_err(|m| invalid(world_span, "world.background".into(), m))?;
+            .map_err(|m| invalid(world_span.clone(), "world.background".into(), m))?;
+        check_colour(&file.world.environment)
+            .map_err(|m| invalid(world_span, "world.environment".into(), m))?;
 
         let mut materials = Vec::with_capacity(file.materials.len());
         for (name, m) in &file.materials {
@@ -719,6 +796,51 @@ impl SceneDesc {
                 ));
             }
             materials.push((name.clone(), mv.clone()));
+        }
+        let mut bsdfs = vec![None; materials.len()];
+        for (name, b) in &file.bsdf {
+            let err = |f: &str, msg: String| invalid(b.span(), format!("bsdf.{name}.{f}"), msg);
+            let Some(i) = materials.iter().position(|(n, _)| n == name) else {
+                return Err(invalid(
+                    b.span(),
+                    format!("bsdf.{name}"),
+                    format!("names no material: [materials.{name}] is missing"),
+                ));
+            };
+            let bv = b.get_ref();
+            for (f, c) in [
+                ("base_colour", &bv.base_colour),
+                ("specular_colour", &bv.specular_colour),
+                ("emission", &bv.emission),
+            ] {
+                check_colour(c).map_err(|m| err(f, m))?;
+            }
+            for (f, v) in [
+                ("metallic", bv.metallic),
+                ("roughness", bv.roughness),
+                ("transmission", bv.transmission),
+                ("specular", bv.specular),
+            ] {
+                if !(0.0..=1.0).contains(&v.0) {
+                    return Err(err(f, format!("must be in [0, 1], got {}", v.0)));
+                }
+            }
+            if bv.base_colour.0.iter().any(|&c| c > 1.0) {
+                return Err(err(
+                    "base_colour",
+                    format!(
+                        "must be in [0, 1] (a reflectance), got {:?}",
+                        bv.base_colour.0
+                    ),
+                ));
+            }
+            if !(bv.ior.0.is_finite() && bv.ior.0 >= 1.0 && bv.ior.0 <= 10.0) {
+                return Err(err(
+                    "ior",
+                    format!("must be a finite number in [1, 10], got {}", bv.ior.0),
+                ));
+            }
+            bsdfs[i] = Some(bv.clone());
         }
 
         let mut lights = Vec::with_capacity(file.lights.len());
@@ -1006,6 +1128,7 @@ impl SceneDesc {
             lights,
             objects,
             object_materials,
+            bsdfs,
             adaptive,
         })
     }

@@ -26,6 +26,7 @@ pub struct RenderOverrides {
     pub samples: Option<u32>,
     pub max_depth: Option<u32>,
     pub sampler: Option<Sampler>,
+    pub integrator: Option<super::Integrator>,
 }
 
 /// Why overrides do not make settings a render can use. The messages name
@@ -64,6 +65,7 @@ impl RenderOverrides {
             samples: self.samples.unwrap_or(scene.samples),
             max_depth: self.max_depth.unwrap_or(scene.max_depth),
             sampler: self.sampler.unwrap_or(scene.sampler),
+            integrator: self.integrator.unwrap_or(scene.integrator),
         }
     }
 

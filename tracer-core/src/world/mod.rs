@@ -15,11 +15,12 @@
 mod query;
 mod triangles;
 
+use crate::bsdf::Bsdf;
 use crate::bvh::Bvh;
-use crate::distributed::{self, Distributed, Lens, MovingMesh, MovingSphere, Timing};
+use crate::distributed::{self, Distributed, Lens, MovingMesh, MovingSphere, PathScene, Timing};
 use crate::geometry::{Plane, Sphere, SpherePack};
 use crate::math::{Ray, Real, Vector3};
-use crate::scene::{FILE_MATERIALS, ObjectDesc, RenderSettings, SceneDesc, Vec3};
+use crate::scene::{FILE_MATERIALS, Integrator, ObjectDesc, RenderSettings, SceneDesc, Vec3};
 use crate::triangle::{Triangle, TriangleShading};
 use triangles::TriangleSet;
 
@@ -82,6 +83,9 @@ pub struct World<R: Real> {
     /// Mesh triangles dropped at build because they have no area.
     pub degenerate_triangles: usize,
     pub materials: Vec<Material<R>>,
+    /// The path integrator's BSDF of each material (`[bsdf.NAME]`, else
+    /// mapped from the Blinn-Phong material: `Bsdf::from_material`).
+    pub bsdfs: Vec<Bsdf<R>>,
     pub lights: Vec<PointLight<R>>,
     pub ambient: R::V3,
     pub background: R::V3,
@@ -245,6 +249,7 @@ impl<R: Real> World<R> {
             triangle_shading: tris.shading,
             accel: None,
             degenerate_triangles: tris.degenerate,
+            bsdfs: bsdfs_of(desc, &materials),
             materials,
             lights,
             ambient: v::<R>(&desc.world.ambient),
@@ -270,7 +275,9 @@ impl<R: Real> World<R> {
         });
         let camera_motion =
             distributed::camera_motion::<R>(desc, &cam, &desc.camera.at_time(time.close), aspect);
-        if area_lights
+        let path = settings.integrator == Integrator::Path;
+        if path
+            || area_lights
             || cones
             || lens.is_some()
             || camera_motion.is_some()
@@ -290,6 +297,7 @@ impl<R: Real> World<R> {
                         triangle_shading: set.shading,
                         accel: None,
                         degenerate_triangles: set.degenerate,
+                        bsdfs: bsdfs_of(desc, &mats),
                         materials: mats,
                         lights: Vec::new(),
                         dist: None,
@@ -315,8 +323,10 @@ impl<R: Real> World<R> {
                     }
                 })
                 .collect();
+            let lights = distributed::lights::<R>(desc, &origin);
             world.dist = Some(Box::new(Distributed {
-                lights: distributed::lights::<R>(desc, &origin),
+                path: path.then(|| PathScene::new(&lights, v::<R>(&desc.world.environment))),
+                lights,
                 area_lights,
                 cones,
                 lens,
@@ -367,6 +377,7 @@ impl<R: Real> World<R> {
             accel: None,
             degenerate_triangles: 0,
             materials: Vec::new(),
+            bsdfs: Vec::new(),
             lights: Vec::new(),
             ambient: self.ambient,
             background: self.background,
@@ -377,6 +388,19 @@ impl<R: Real> World<R> {
             dist: None,
         }
     }
+}
+
+/// Each material's BSDF: the file's materials come first (in
+/// `desc.materials`' order, with their `[bsdf.NAME]`), model files' after.
+fn bsdfs_of<R: Real>(desc: &SceneDesc, materials: &[Material<R>]) -> Vec<Bsdf<R>> {
+    materials
+        .iter()
+        .enumerate()
+        .map(|(i, m)| match desc.bsdfs.get(i) {
+            Some(Some(b)) => Bsdf::from_desc(b),
+            _ => Bsdf::from_material(m),
+        })
+        .collect()
 }
 
 fn sub64(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {

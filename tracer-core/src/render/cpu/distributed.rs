@@ -102,6 +102,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     n_out,
                     ray,
                     &world.materials[mat as usize],
+                    &world.bsdfs[mat as usize],
                     |n, v| world.shading_normal(prim.id, p, n, v),
                 )
             }
@@ -114,6 +115,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     n_out,
                     ray,
                     &world.materials[s.material as usize],
+                    &world.bsdfs[s.material as usize],
                     |n, _| n,
                 )
             }
@@ -129,6 +131,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     n_out,
                     ray,
                     &mesh.world.materials[mat as usize],
+                    &mesh.world.bsdfs[mat as usize],
                     |n, v| mesh.world.shading_normal(prim.id, p, n, v),
                 )
             }
@@ -194,6 +197,9 @@ pub fn sample_colour<R: Real>(
     };
     let ray = camera_ray(world, dist, sx, sy, &sample);
     rays.primary += 1;
+    if let Some(path) = &dist.path {
+        return step::path(world, &sample, path, &ray, ROOT_KEY, NO_PRIM, rays);
+    }
     step::trace(world, &sample, &ray, 0, ROOT_KEY, NO_PRIM, rays)
 }
 

@@ -80,6 +80,10 @@ pub enum GpuError {
     #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
     F64Unsupported,
     #[error(
+        "the GPU backend has no path integrator yet; render --integrator path with --backend cpu"
+    )]
+    PathUnsupported,
+    #[error(
         "the scene's BVH has a node at depth {depth} whose traversal needs more than the GPU traversal stack of {stack} entries; render it with --backend cpu"
     )]
     TreeTooDeep { depth: usize, stack: usize },
@@ -719,6 +723,9 @@ impl GpuRenderer {
             PreparedFrame::F32(w) => w,
             PreparedFrame::F64(_) => return Err(GpuError::F64Unsupported),
         };
+        if world.settings.integrator == crate::scene::Integrator::Path {
+            return Err(GpuError::PathUnsupported);
+        }
         self.check_fault()?;
         let start = Instant::now();
         // Tiles of one frame reuse the packed tree (packing a million

@@ -1,0 +1,176 @@
+//! The path integrator's contracts beside its images (those are checked
+//! against Mitsuba 3 in path_mitsuba.rs): any split of a frame into
+//! rectangles and sample ranges merges into the whole render bit for bit
+//! (what lets farm frames equal `tessera render`'s), the lens and the
+//! shutter work under it, and the scene keys it adds are checked.
+
+mod common;
+
+use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::scene::{Integrator, SceneDesc};
+
+/// Lambert, mirror, glass and an emitter; a quad, a sphere and a point light; a sky.
+const SCENE: &str = r#"
+[render]
+width = 24
+height = 20
+samples = 5
+max_depth = 8
+sampler = "jittered"
+integrator = "path"
+
+[camera]
+position = [0, 2, -6]
+look_at = [0, 0.8, 0]
+fov_y = 45
+
+[world]
+environment = [0.2, 0.25, 0.3]
+
+[materials.floor]
+diffuse = [0.6, 0.6, 0.6]
+[materials.chrome]
+diffuse = [0.1, 0.1, 0.1]
+reflectivity = 0.8
+[materials.glass]
+transparency = 0.9
+ior = 1.5
+[materials.lamp]
+[bsdf.lamp]
+base_colour = [0, 0, 0]
+emission = [4, 3, 2]
+[bsdf.chrome]
+metallic = 1
+roughness = 0.3
+
+[[lights]]
+type = "quad"
+corner = [-1, 4, -1]
+edge_u = [2, 0, 0]
+edge_v = [0, 0, 2]
+diffuse = [3, 3, 3]
+[[lights]]
+type = "sphere"
+center = [3, 2, 1]
+radius = 0.3
+diffuse = [5, 5, 5]
+[[lights]]
+position = [-3, 3, -2]
+diffuse = [4, 4, 4]
+
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+[[objects]]
+type = "sphere"
+center = [-1, 1, 0]
+radius = 1
+material = "chrome"
+[[objects]]
+type = "sphere"
+center = [1.2, 0.6, -0.5]
+radius = 0.6
+material = "glass"
+[[objects]]
+type = "sphere"
+center = [0.5, 0.3, -2]
+radius = 0.3
+material = "lamp"
+"#;
+
+fn render(desc: &SceneDesc, rect: Rect, samples: SampleRange) -> Film {
+    let frame = PreparedFrame::build(desc, &desc.render, 0, Precision::F32).unwrap();
+    CpuRenderer::new(Some(2))
+        .unwrap()
+        .render(&frame, 0, rect, samples, &|_| {})
+        .unwrap()
+}
+
+#[test]
+fn any_split_of_a_path_traced_frame_merges_bit_for_bit() {
+    let desc = common::scene(SCENE);
+    assert_eq!(desc.render.integrator, Integrator::Path);
+    let (w, h, n) = (desc.render.width, desc.render.height, desc.render.samples);
+    let whole = render(&desc, Rect::full(w, h), SampleRange::all(n));
+    assert_eq!(whole.nonfinite, 0);
+    assert!(whole.rays.reflection > 0 && whole.rays.refraction > 0 && whole.rays.shadow > 0);
+    // Odd rectangles and sample ranges, merged.
+    let mut merged = Film::new(Rect::full(w, h));
+    for (rect, samples) in [
+        (Rect::new(0, 0, 7, h), SampleRange::new(0, 2)),
+        (Rect::new(0, 0, 7, h), SampleRange::new(2, n)),
+        (Rect::new(7, 0, w - 7, 9), SampleRange::all(n)),
+        (Rect::new(7, 9, w - 7, h - 9), SampleRange::new(0, 3)),
+        (Rect::new(7, 9, w - 7, h - 9), SampleRange::new(3, n)),
+    ] {
+        merged.merge(&render(&desc, rect, samples)).unwrap();
+    }
+    assert_eq!(merged.sums, whole.sums);
+    assert_eq!(merged.counts, whole.counts);
+    // Light sampling, emitters and the sky all reach the image.
+    let img = whole.resolve();
+    let mean: f32 = img.iter().map(|p| p[0] + p[1] + p[2]).sum::<f32>() / img.len() as f32;
+    assert!(mean > 0.3, "mean {mean}");
+}
+
+#[test]
+fn whitted_stays_the_default_and_path_changes_the_image() {
+    let whitted = common::scene(&SCENE.replace("integrator = \"path\"\n", ""));
+    assert_eq!(whitted.render.integrator, Integrator::Whitted);
+    let path = common::scene(SCENE);
+    let full = |d: &SceneDesc| render(d, Rect::full(24, 20), SampleRange::all(5)).sums;
+    assert_ne!(full(&whitted), full(&path));
+}
+
+#[test]
+fn depth_of_field_and_motion_blur_work_with_path() {
+    let desc = common::scene(&SCENE.replace(
+        "fov_y = 45\n",
+        "fov_y = 45\naperture = 0.2\nfocus_distance = 6\nshutter = [0, 0.5]\n\
+         keyframes = [{ frame = 0, position = [0, 2, -6] }, { frame = 1, position = [0.5, 2, -6] }]\n",
+    ));
+    let pinhole = common::scene(SCENE);
+    let lens = render(&desc, Rect::full(24, 20), SampleRange::all(5));
+    assert_eq!(lens.nonfinite, 0);
+    let still = render(&pinhole, Rect::full(24, 20), SampleRange::all(5));
+    assert_ne!(lens.sums, still.sums);
+    // Blurred and defocused, the image keeps its brightness (same light,
+    // same materials): the means agree within the noise of 480 pixels.
+    let mean = |f: &Film| {
+        let img = f.resolve();
+        img.iter().map(|p| (p[0] + p[1] + p[2]) as f64).sum::<f64>() / img.len() as f64
+    };
+    let (a, b) = (mean(&lens), mean(&still));
+    assert!((a - b).abs() < 0.15 * b, "lens {a} against pinhole {b}");
+}
+
+#[test]
+fn bsdf_tables_and_the_integrator_are_checked() {
+    let err = |src: &str| SceneDesc::parse(src, "t.toml").unwrap_err().to_string();
+    let base = "[camera]\nposition = [0, 0, -5]\nlook_at = [0, 0, 0]\n[materials.m]\n";
+    assert_eq!(
+        err(&format!("{base}[bsdf.n]\nmetallic = 0\n")),
+        "t.toml:5:1: bsdf.n: names no material: [materials.n] is missing"
+    );
+    let e = err(&format!("{base}[bsdf.m]\nroughness = 2\n"));
+    assert!(
+        e.ends_with("bsdf.m.roughness: must be in [0, 1], got 2"),
+        "{e}"
+    );
+    let e = err(&format!("{base}[bsdf.m]\nior = 0.5\n"));
+    assert!(
+        e.ends_with("bsdf.m.ior: must be a finite number in [1, 10], got 0.5"),
+        "{e}"
+    );
+    let e = err(&format!("{base}[bsdf.m]\nbase_colour = [2, 0, 0]\n"));
+    assert!(e.contains("bsdf.m.base_colour: must be in [0, 1]"), "{e}");
+    let e = err(&format!("[render]\nintegrator = \"bidir\"\n{base}"));
+    assert!(
+        e.contains("render.integrator") || e.contains("integrator"),
+        "{e}"
+    );
+    assert!(e.contains("whitted") && e.contains("path"), "{e}");
+}
