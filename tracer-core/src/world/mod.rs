@@ -22,6 +22,7 @@ use crate::math::{Ray, Real, Vector3};
 use crate::scene::{FILE_MATERIALS, ObjectDesc, RenderSettings, SceneDesc, Vec3};
 use crate::triangle::{Triangle, TriangleShading};
 use triangles::TriangleSet;
+pub use triangles::VertexAttrs;
 
 pub use crate::light::PointLight;
 pub use crate::material::Material;
@@ -82,6 +83,11 @@ pub struct World<R: Real> {
     /// Mesh triangles dropped at build because they have no area.
     pub degenerate_triangles: usize,
     pub materials: Vec<Material<R>>,
+    /// Textures and glTF parameters of model files' materials
+    /// (`Material::pbr` indexes this) ...
+    pub pbr: Vec<std::sync::Arc<crate::material::Pbr>>,
+    /// ... and the texture coordinates and colours of their triangles.
+    pub attrs: VertexAttrs,
     pub lights: Vec<PointLight<R>>,
     pub ambient: R::V3,
     pub background: R::V3,
@@ -246,6 +252,8 @@ impl<R: Real> World<R> {
             accel: None,
             degenerate_triangles: tris.degenerate,
             materials,
+            pbr: tris.pbr,
+            attrs: tris.attrs,
             lights,
             ambient: v::<R>(&desc.world.ambient),
             background: v::<R>(&desc.world.background),
@@ -291,6 +299,8 @@ impl<R: Real> World<R> {
                         accel: None,
                         degenerate_triangles: set.degenerate,
                         materials: mats,
+                        pbr: set.pbr,
+                        attrs: set.attrs,
                         lights: Vec::new(),
                         dist: None,
                         ..world.clone_settings()
@@ -367,6 +377,8 @@ impl<R: Real> World<R> {
             accel: None,
             degenerate_triangles: 0,
             materials: Vec::new(),
+            pbr: Vec::new(),
+            attrs: VertexAttrs::default(),
             lights: Vec::new(),
             ambient: self.ambient,
             background: self.background,

@@ -101,7 +101,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     p,
                     n_out,
                     ray,
-                    &world.materials[mat as usize],
+                    step::material_at(world, prim.id, p, mat),
                     |n, v| world.shading_normal(prim.id, p, n, v),
                 )
             }
@@ -113,7 +113,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     p,
                     n_out,
                     ray,
-                    &world.materials[s.material as usize],
+                    world.materials[s.material as usize],
                     |n, _| n,
                 )
             }
@@ -128,7 +128,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     p + off,
                     n_out,
                     ray,
-                    &mesh.world.materials[mat as usize],
+                    step::material_at(&mesh.world, prim.id, p, mat),
                     |n, v| mesh.world.shading_normal(prim.id, p, n, v),
                 )
             }
