@@ -50,5 +50,6 @@ pub mod render;
 pub mod sampling;
 pub mod scene;
 pub mod simd;
+pub mod texture;
 pub mod triangle;
 pub mod world;

@@ -10,6 +10,10 @@ use std::any::TypeId;
 
 use crate::math::{Real, Vector3};
 use crate::scene::MaterialDesc;
+use crate::texture::TextureRef;
+
+/// Index of no [`Pbr`] (`Material::pbr` of a TOML material).
+pub const NO_PBR: u32 = u32::MAX;
 
 #[derive(Clone, Copy, Debug)]
 pub struct Material<R: Real> {
@@ -26,6 +30,212 @@ pub struct Material<R: Real> {
     /// mirror and a perfect refraction).
     pub gloss_cos: R,
     pub translucency_cos: R,
+    /// Radiance the surface emits (glTF emissiveFactor x emissiveStrength,
+    /// OBJ `Ke`): added where the colour starts, in every integrator.
+    pub emission: R::V3,
+    /// Index of the material's textures and glTF parameters in
+    /// `World::pbr`, or [`NO_PBR`].
+    pub pbr: u32,
+}
+
+/// `alphaMode` of a glTF material.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum AlphaMode {
+    #[default]
+    Opaque,
+    /// Cut out where alpha < `alpha_cutoff`, for every ray.
+    Mask,
+    /// Blended: Whitted renders it as transparency 1 - alpha (no refraction
+    /// of the ray's direction when ior is 1).
+    Blend,
+}
+
+/// A model file's material as authored, with glTF 2.0's names (OBJ/MTL
+/// maps onto the same): the factors, the textures (each an image with its
+/// sampler, UV set and transform) and the extensions read. The Whitted
+/// mapping of the factors is made when the file is read (the
+/// [`MaterialDesc`] beside it, docs/meshes.md "Materials and textures");
+/// the textures are looked up at each hit by the shading step
+/// (`render::step`). A path tracer's BSDF reads these same parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Pbr {
+    /// baseColorFactor (linear RGBA).
+    pub base_color: [f64; 4],
+    pub base_color_texture: Option<TextureRef>,
+    pub metallic: f64,
+    pub roughness: f64,
+    /// Blue: metallic, green: roughness (multiplying the factors).
+    pub metallic_roughness_texture: Option<TextureRef>,
+    /// emissiveFactor x KHR_materials_emissive_strength.
+    pub emissive: [f64; 3],
+    pub emissive_texture: Option<TextureRef>,
+    pub normal_texture: Option<TextureRef>,
+    pub normal_scale: f64,
+    pub occlusion_texture: Option<TextureRef>,
+    pub occlusion_strength: f64,
+    pub alpha_mode: AlphaMode,
+    pub alpha_cutoff: f64,
+    pub double_sided: bool,
+    /// KHR_materials_ior (1.5 by default).
+    pub ior: f64,
+    /// KHR_materials_transmission.
+    pub transmission: f64,
+    /// KHR_materials_specular.
+    pub specular_factor: f64,
+    pub specular_color: [f64; 3],
+    /// Whether COLOR_0 multiplies the base colour (the primitive has it).
+    pub vertex_colors: bool,
+    /// An MTL material: its textures multiply the Blinn-Phong colours
+    /// read from the MTL (map_Kd: Kd and Ka; map_Ke: Ke) rather than
+    /// going through [`Pbr::whitted`].
+    pub mtl: bool,
+    /// MTL `map_d`: its first channel times its alpha multiplies alpha.
+    pub alpha_texture: Option<TextureRef>,
+}
+
+impl Default for Pbr {
+    fn default() -> Self {
+        Pbr {
+            base_color: [1.0; 4],
+            base_color_texture: None,
+            metallic: 1.0,
+            roughness: 1.0,
+            metallic_roughness_texture: None,
+            emissive: [0.0; 3],
+            emissive_texture: None,
+            normal_texture: None,
+            normal_scale: 1.0,
+            occlusion_texture: None,
+            occlusion_strength: 1.0,
+            alpha_mode: AlphaMode::Opaque,
+            alpha_cutoff: 0.5,
+            double_sided: false,
+            ior: 1.5,
+            transmission: 0.0,
+            specular_factor: 1.0,
+            specular_color: [1.0; 3],
+            vertex_colors: false,
+            mtl: false,
+            alpha_texture: None,
+        }
+    }
+}
+
+impl Pbr {
+    /// The Whitted material of base colour `base` (linear RGBA), `metallic`
+    /// and `roughness` (the factors, or at a hit the factors times the
+    /// textures): a mirror in Whitted's model is perfectly sharp, so only
+    /// smooth metals reflect: reflectivity = metallic * (1 - roughness)^2;
+    /// the base colour is the diffuse colour (and ambient) for the rest,
+    /// times 1 - transmission (1 - metallic), and tints the specular
+    /// colour by metallic (the dielectric's is 0.04 specularFactor
+    /// specularColor); roughness maps to a Phong exponent 2/r^4 - 2 (the
+    /// Beckmann match); transmission (1 - metallic) and, for BLEND,
+    /// 1 - alpha, whichever is larger, is the transparency, refracted with
+    /// the material's ior.
+    pub fn whitted(&self, base: [f64; 4], metallic: f64, roughness: f64) -> MaterialDesc {
+        use crate::scene::{Num, Vec3};
+        let [r, g, b, a] = base;
+        let metallic = metallic.clamp(0.0, 1.0);
+        let rough = roughness.clamp(0.0, 1.0);
+        let reflectivity = metallic * (1.0 - rough) * (1.0 - rough);
+        let transmission = self.transmission.clamp(0.0, 1.0) * (1.0 - metallic);
+        let base = [r, g, b];
+        let diffuse = base.map(|c| c * (1.0 - reflectivity) * (1.0 - transmission));
+        let blend = if self.alpha_mode == AlphaMode::Blend {
+            (1.0 - a).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let f0 = self.specular_color.map(|c| 0.04 * self.specular_factor * c);
+        MaterialDesc {
+            ambient: Vec3(diffuse),
+            diffuse: Vec3(diffuse),
+            specular: Vec3(std::array::from_fn(|i| {
+                f0[i] + (base[i] - f0[i]) * metallic
+            })),
+            shininess: Num((2.0 / rough.max(0.05).powi(4) - 2.0).max(1.0)),
+            reflectivity: Num(reflectivity),
+            transparency: Num(blend.max(transmission)),
+            ior: Num(self.ior),
+            gloss: Num(0.0),
+            translucency: Num(0.0),
+        }
+    }
+
+    /// The material at a point with texture coordinates `uv` (sets 0 and
+    /// 1) and vertex colour `color`: the factors times the textures
+    /// through [`Pbr::whitted`], the ambient term darkened by the
+    /// occlusion texture (glTF's occlusion darkens indirect light, which
+    /// the ambient term stands for), the emission times the emissive
+    /// texture. `m` is the material of the factors alone.
+    pub fn at<R: Real>(&self, m: &Material<R>, uv: [[f32; 2]; 2], color: [f32; 4]) -> Material<R> {
+        let base = self.base_color_at(uv, color);
+        let emission = match &self.emissive_texture {
+            Some(t) => {
+                let e = t.sample(uv[t.uv_set as usize]);
+                R::V3::from_array(std::array::from_fn(|i| self.emissive[i] * e[i] as f64))
+            }
+            None => m.emission,
+        };
+        if self.mtl {
+            let tint = R::V3::from_array([0, 1, 2].map(|i| base[i] as f64));
+            return Material {
+                ambient: m.ambient * tint,
+                diffuse: m.diffuse * tint,
+                emission,
+                ..*m
+            };
+        }
+        let (mut metallic, mut roughness) = (self.metallic, self.roughness);
+        if let Some(t) = &self.metallic_roughness_texture {
+            let s = t.sample(uv[t.uv_set as usize]);
+            roughness *= s[1] as f64;
+            metallic *= s[2] as f64;
+        }
+        let mut desc = self.whitted(base.map(f64::from), metallic, roughness);
+        if let Some(t) = &self.occlusion_texture {
+            let o = t.sample(uv[t.uv_set as usize])[0] as f64;
+            let k = 1.0 + self.occlusion_strength * (o - 1.0);
+            desc.ambient.0 = desc.ambient.0.map(|c| c * k);
+        }
+        let mut out = Material::from_desc(&desc);
+        out.pbr = m.pbr;
+        out.emission = emission;
+        out
+    }
+
+    /// Base colour (linear RGBA) at a point: factor x texture x vertex colour.
+    pub fn base_color_at(&self, uv: [[f32; 2]; 2], color: [f32; 4]) -> [f32; 4] {
+        let t = match &self.base_color_texture {
+            Some(t) => t.sample(uv[t.uv_set as usize]),
+            None => [1.0; 4],
+        };
+        let mut c: [f32; 4] = std::array::from_fn(|i| self.base_color[i] as f32 * t[i] * color[i]);
+        if let Some(a) = &self.alpha_texture {
+            let s = a.sample(uv[a.uv_set as usize]);
+            c[3] *= s[0] * s[3];
+        }
+        c
+    }
+
+    /// Whether a point is cut away (alphaMode MASK, alpha below the cutoff):
+    /// every ray passes through it.
+    pub fn cut_away(&self, uv: [[f32; 2]; 2], color: [f32; 4]) -> bool {
+        self.alpha_mode == AlphaMode::Mask
+            && (self.base_color_at(uv, color)[3] as f64) < self.alpha_cutoff
+    }
+
+    /// Whether anything of it varies over the surface (a texture or vertex
+    /// colours): then hits on it need their texture coordinates.
+    pub fn varies(&self) -> bool {
+        self.vertex_colors
+            || self.base_color_texture.is_some()
+            || self.alpha_texture.is_some()
+            || self.emissive_texture.is_some()
+            || self.metallic_roughness_texture.is_some()
+            || self.occlusion_texture.is_some()
+    }
 }
 
 impl<R: Real> Material<R> {
@@ -45,6 +255,8 @@ impl<R: Real> Material<R> {
             }),
             gloss_cos: R::from_f64(cos_deg(m.gloss.0)),
             translucency_cos: R::from_f64(cos_deg(m.translucency.0)),
+            emission: R::V3::zero(),
+            pbr: NO_PBR,
         }
     }
 

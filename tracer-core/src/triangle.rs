@@ -28,7 +28,13 @@ pub struct TriangleShading<R: Real> {
     /// Unit vertex normals for smooth shading, or `None` for flat shading.
     pub vertex_normals: Option<[R::V3; 3]>,
     pub material: u32,
+    /// Index of its vertices' texture coordinates and colours in the
+    /// world's `VertexAttrs`, or [`NO_ATTRS`] (a material without textures).
+    pub attrs: u32,
 }
+
+/// `TriangleShading::attrs` of a triangle whose material has no textures.
+pub const NO_ATTRS: u32 = u32::MAX;
 
 /// Per-ray precomputation of the watertight test: the axes in the ray's
 /// order (kx, ky, kz), and the origin and shear along them, each splatted
@@ -290,6 +296,24 @@ impl TriangleRay<f32> {
     }
 }
 
+impl<R: Real> Triangle<R> {
+    /// Barycentric weights of `p` (a point on the triangle) for its three
+    /// vertices, clamped so points rounded just outside stay sane.
+    #[inline(always)]
+    pub fn barycentric(&self, p: R::V3) -> [R; 3] {
+        let v = self.vertices();
+        let e1 = v[1] - v[0];
+        let e2 = v[2] - v[0];
+        let d = p - v[0];
+        let n = e1.cross(e2);
+        let nn = n.length_squared();
+        // p = v0 + b1 e1 + b2 e2.
+        let b1 = (d.cross(e2).dot(n) / nn).max(R::ZERO).min(R::ONE);
+        let b2 = (e1.cross(d).dot(n) / nn).max(R::ZERO).min(R::ONE - b1);
+        [R::ONE - b1 - b2, b1, b2]
+    }
+}
+
 impl<R: Real> TriangleShading<R> {
     /// Shading normal at `p` (a point on `tri`): the vertex normals
     /// interpolated by barycentric weights, or the geometric normal.
@@ -298,16 +322,7 @@ impl<R: Real> TriangleShading<R> {
         let Some(ns) = self.vertex_normals else {
             return self.normal;
         };
-        let v = tri.vertices();
-        let e1 = v[1] - v[0];
-        let e2 = v[2] - v[0];
-        let d = p - v[0];
-        let n = e1.cross(e2);
-        let nn = n.length_squared();
-        // p = v0 + b1 e1 + b2 e2; clamped so points rounded just outside stay sane.
-        let b1 = (d.cross(e2).dot(n) / nn).max(R::ZERO).min(R::ONE);
-        let b2 = (e1.cross(d).dot(n) / nn).max(R::ZERO).min(R::ONE - b1);
-        let b0 = R::ONE - b1 - b2;
+        let [b0, b1, b2] = tri.barycentric(p);
         let s = ns[0] * b0 + ns[1] * b1 + ns[2] * b2;
         let len = s.length();
         if len > R::ZERO && len.is_finite() {

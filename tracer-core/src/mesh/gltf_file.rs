@@ -10,11 +10,14 @@ use base64::Engine;
 use glam::{DMat3, DMat4, DVec3};
 use gltf::mesh::Mode;
 
+use std::sync::Arc;
+
 use super::{
     Mesh, MeshError, ModelCamera, ModelLight, ModelLightKind, Projection, default_material,
 };
 use crate::assets::{AssetSource, dir_of, join};
-use crate::scene::{MaterialDesc, Num, Vec3};
+use crate::material::{AlphaMode, Pbr};
+use crate::texture::{IDENTITY_UV, Image, TextureRef, Wrap, uv_transform};
 
 /// Mesh compression extensions, refused by name when a file requires them
 /// (a file that only uses them carries uncompressed data as well).
@@ -195,14 +198,36 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
         buffers.push(data);
     }
 
+    let mut images = Images {
+        source,
+        name,
+        buffers: &buffers,
+        decoded: vec![None; doc.images().len()],
+        warnings: Vec::new(),
+    };
+    let pbr: Vec<Pbr> = doc
+        .materials()
+        .map(|m| read_material(&m, &mut images))
+        .collect();
+    warnings.append(&mut images.warnings);
     let mut mesh = Mesh {
         warnings,
         materials: doc
             .materials()
-            .map(|m| (m.name().unwrap_or("unnamed").to_string(), map_material(&m)))
+            .zip(&pbr)
+            .map(|(m, p)| {
+                (
+                    m.name().unwrap_or("unnamed").to_string(),
+                    p.whitted(p.base_color, p.metallic, p.roughness),
+                )
+            })
             .collect(),
+        pbr: pbr.into_iter().map(|p| Some(Arc::new(p))).collect(),
         ..Default::default()
     };
+    let mut uvs: [Vec<[f32; 2]>; 2] = Default::default();
+    let mut colors: Vec<[f32; 4]> = Vec::new();
+    let (mut any_uv, mut any_color) = ([false; 2], false);
     let default_index = mesh.materials.len() as u32;
     let mut need_default = false;
     let mut any_normals = false;
@@ -241,6 +266,9 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
             let attrs = prim.attributes().filter_map(|(s, a)| match s {
                 gltf::Semantic::Positions => Some(("POSITION", a)),
                 gltf::Semantic::Normals => Some(("NORMAL", a)),
+                gltf::Semantic::TexCoords(0) => Some(("TEXCOORD_0", a)),
+                gltf::Semantic::TexCoords(1) => Some(("TEXCOORD_1", a)),
+                gltf::Semantic::Colors(0) => Some(("COLOR_0", a)),
                 _ => None,
             });
             for (what, acc) in attrs.chain(prim.indices().map(|a| ("indices", a))) {
@@ -280,6 +308,36 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                     }
                 }
                 None => normals.extend(std::iter::repeat_n([0.0; 3], positions.len())),
+            }
+            for (k, uv) in uvs.iter_mut().enumerate() {
+                match reader.read_tex_coords(k as u32) {
+                    Some(t) => {
+                        any_uv[k] = true;
+                        let before = uv.len();
+                        uv.extend(t.into_f32());
+                        if uv.len() - before != positions.len() {
+                            return Err(err(at(&format!(
+                                "TEXCOORD_{k} count differs from position count"
+                            ))));
+                        }
+                    }
+                    None => uv.extend(std::iter::repeat_n([0.0; 2], positions.len())),
+                }
+            }
+            match reader.read_colors(0) {
+                Some(c) => {
+                    any_color = true;
+                    let before = colors.len();
+                    colors.extend(c.into_rgba_f32());
+                    if colors.len() - before != positions.len() {
+                        return Err(err(at("COLOR_0 count differs from position count")));
+                    }
+                    if let Some(Some(p)) = prim.material().index().and_then(|i| mesh.pbr.get_mut(i))
+                    {
+                        Arc::make_mut(p).vertex_colors = true;
+                    }
+                }
+                None => colors.extend(std::iter::repeat_n([1.0; 4], positions.len())),
             }
             let indices: Vec<u32> = match reader.read_indices() {
                 Some(i) => i.into_u32().collect(),
@@ -324,6 +382,14 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
     }
     if any_normals {
         mesh.normals = normals;
+    }
+    for k in 0..2 {
+        if any_uv[k] {
+            mesh.uvs[k] = std::mem::take(&mut uvs[k]);
+        }
+    }
+    if any_color {
+        mesh.colors = colors;
     }
     if need_default {
         mesh.materials.push(("default".into(), default_material()));
@@ -517,36 +583,181 @@ fn read_vec3(acc: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 3]>>
     }
 }
 
-/// glTF metallic-roughness -> Blinn-Phong. A mirror in Whitted's model is
-/// perfectly sharp, so only smooth metals reflect: reflectivity =
-/// metallic * (1 - roughness)^2; the base colour (glTF defaults: metallic 1,
-/// roughness 1) is the diffuse colour (and ambient) for the rest, and tints
-/// the specular colour by metallic (0.04 for dielectrics); roughness maps to
-/// a Phong exponent 2/r^4 - 2 (the Beckmann match); alpha-blended materials
-/// are transparent by 1 - alpha, with ior 1.5.
-fn map_material(m: &gltf::Material) -> MaterialDesc {
+/// A glTF material as authored (`Pbr`): factors, extensions and the
+/// textures, each decoded once (a texture that cannot be read is a
+/// warning naming its file; the material renders without it). Its
+/// Whitted mapping is `Pbr::whitted` (docs/meshes.md).
+fn read_material(m: &gltf::Material, images: &mut Images) -> Pbr {
     let pbr = m.pbr_metallic_roughness();
-    let [r, g, b, a] = pbr.base_color_factor().map(f64::from);
-    let metallic = (pbr.metallic_factor() as f64).clamp(0.0, 1.0);
-    let rough = (pbr.roughness_factor() as f64).clamp(0.0, 1.0);
-    let reflectivity = metallic * (1.0 - rough) * (1.0 - rough);
-    let base = [r, g, b];
-    let diffuse = base.map(|c| c * (1.0 - reflectivity));
-    let blend = matches!(m.alpha_mode(), gltf::material::AlphaMode::Blend);
-    MaterialDesc {
-        ambient: Vec3(diffuse),
-        diffuse: Vec3(diffuse),
-        specular: Vec3(base.map(|c| 0.04 + (c - 0.04) * metallic)),
-        shininess: Num((2.0 / rough.max(0.05).powi(4) - 2.0).max(1.0)),
-        reflectivity: Num(reflectivity),
-        transparency: Num(if blend {
-            (1.0 - a).clamp(0.0, 1.0)
-        } else {
-            0.0
+    let what = |slot: &str| {
+        format!(
+            "material {} ({:?}) {slot}",
+            m.index().map_or("default".to_string(), |i| i.to_string()),
+            m.name().unwrap_or("unnamed")
+        )
+    };
+    let info = |i: Option<gltf::texture::Info>, srgb: bool, slot: &str, images: &mut Images| {
+        let i = i?;
+        let (transform, set) = match i.texture_transform() {
+            Some(t) => (
+                uv_transform(t.offset(), t.rotation(), t.scale()),
+                t.tex_coord().unwrap_or(i.tex_coord()),
+            ),
+            None => (IDENTITY_UV, i.tex_coord()),
+        };
+        images.texture(&i.texture(), srgb, set, transform, &what(slot))
+    };
+    let specular = m.specular();
+    Pbr {
+        base_color: pbr.base_color_factor().map(f64::from),
+        base_color_texture: info(pbr.base_color_texture(), true, "baseColorTexture", images),
+        metallic: pbr.metallic_factor() as f64,
+        roughness: pbr.roughness_factor() as f64,
+        metallic_roughness_texture: info(
+            pbr.metallic_roughness_texture(),
+            false,
+            "metallicRoughnessTexture",
+            images,
+        ),
+        emissive: m
+            .emissive_factor()
+            .map(|e| e as f64 * m.emissive_strength().unwrap_or(1.0) as f64),
+        emissive_texture: info(m.emissive_texture(), true, "emissiveTexture", images),
+        normal_texture: m.normal_texture().and_then(|n| {
+            images.texture(
+                &n.texture(),
+                false,
+                n.tex_coord(),
+                IDENTITY_UV,
+                &what("normalTexture"),
+            )
         }),
-        ior: Num(1.5), // KHR_materials_ior is not read
-        gloss: Num(0.0),
-        translucency: Num(0.0),
+        normal_scale: m.normal_texture().map_or(1.0, |n| n.scale() as f64),
+        occlusion_texture: m.occlusion_texture().and_then(|o| {
+            images.texture(
+                &o.texture(),
+                false,
+                o.tex_coord(),
+                IDENTITY_UV,
+                &what("occlusionTexture"),
+            )
+        }),
+        occlusion_strength: m.occlusion_texture().map_or(1.0, |o| o.strength() as f64),
+        alpha_mode: match m.alpha_mode() {
+            gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
+            gltf::material::AlphaMode::Mask => AlphaMode::Mask,
+            gltf::material::AlphaMode::Blend => AlphaMode::Blend,
+        },
+        alpha_cutoff: m.alpha_cutoff().unwrap_or(0.5) as f64,
+        double_sided: m.double_sided(),
+        ior: m.ior().map_or(1.5, f64::from),
+        transmission: m
+            .transmission()
+            .map_or(0.0, |t| t.transmission_factor() as f64),
+        specular_factor: specular
+            .as_ref()
+            .map_or(1.0, |s| s.specular_factor() as f64),
+        specular_color: specular
+            .as_ref()
+            .map_or([1.0; 3], |s| s.specular_color_factor().map(f64::from)),
+        ..Pbr::default()
+    }
+}
+
+/// A glTF file's images, decoded when a material first uses them.
+struct Images<'a> {
+    source: &'a dyn AssetSource,
+    name: &'a str,
+    buffers: &'a [Vec<u8>],
+    /// Per image: not tried yet, or what decoding gave.
+    decoded: Vec<Option<Option<Arc<Image>>>>,
+    warnings: Vec<String>,
+}
+
+impl Images<'_> {
+    /// The texture `t` as a material's `slot` uses it, or `None` (with a
+    /// warning) when its image cannot be read.
+    fn texture(
+        &mut self,
+        t: &gltf::Texture,
+        srgb: bool,
+        uv_set: u32,
+        transform: [[f32; 3]; 2],
+        slot: &str,
+    ) -> Option<TextureRef> {
+        // A texture without a source (`allow_empty_texture`) has nothing to sample.
+        let img = t.source()?;
+        let i = img.index();
+        if self.decoded[i].is_none() {
+            let (file, got) = self.decode(&img);
+            let got = got.map(Arc::new).map_err(|why| {
+                self.warnings.push(format!(
+                    "texture {file} {why}: {slot} and other uses of it render without it (its factor alone)"
+                ))
+            });
+            self.decoded[i] = Some(got.ok());
+        }
+        let image = self.decoded[i].clone().flatten()?;
+        if uv_set > 1 {
+            self.warnings.push(format!(
+                "{slot} uses TEXCOORD_{uv_set}; Tessera reads TEXCOORD_0 and _1: rendered without it"
+            ));
+            return None;
+        }
+        let sampler = t.sampler();
+        let wrap = |w: gltf::texture::WrappingMode| match w {
+            gltf::texture::WrappingMode::ClampToEdge => Wrap::ClampToEdge,
+            gltf::texture::WrappingMode::MirroredRepeat => Wrap::MirroredRepeat,
+            gltf::texture::WrappingMode::Repeat => Wrap::Repeat,
+        };
+        Some(TextureRef {
+            image,
+            wrap: [wrap(sampler.wrap_s()), wrap(sampler.wrap_t())],
+            nearest: sampler.mag_filter() == Some(gltf::texture::MagFilter::Nearest),
+            srgb,
+            uv_set,
+            transform,
+        })
+    }
+
+    /// The image's file (for messages) and its decoded texels.
+    fn decode(&self, img: &gltf::Image) -> (String, Result<Image, String>) {
+        match img.source() {
+            gltf::image::Source::Uri { uri, .. } => {
+                if let Some(rest) = uri.strip_prefix("data:") {
+                    let file = format!("image {} (a data URI)", img.index());
+                    let bytes = rest
+                        .split_once(";base64,")
+                        .ok_or_else(|| "is a data URI that is not base64".to_string())
+                        .and_then(|(_, b64)| {
+                            base64::engine::general_purpose::STANDARD
+                                .decode(b64)
+                                .map_err(|e| format!("has bad base64: {e}"))
+                        });
+                    let got = bytes.and_then(|b| Image::decode(&file, &b));
+                    return (file, got);
+                }
+                let file = join(dir_of(self.name), &percent_decode(uri));
+                let got = self
+                    .source
+                    .read(&file)
+                    .map_err(|e| format!("cannot be read ({e})"))
+                    .and_then(|b| Image::decode(&file, &b));
+                (file, got)
+            }
+            gltf::image::Source::View { view, .. } => {
+                let file = format!("image {} (buffer view {})", img.index(), view.index());
+                let bytes = self
+                    .buffers
+                    .get(view.buffer().index())
+                    .and_then(|b| b.get(view.offset()..view.offset().checked_add(view.length())?));
+                let got = match bytes {
+                    Some(b) => Image::decode(&file, b),
+                    None => Err("lies outside its buffer".into()),
+                };
+                (file, got)
+            }
+        }
     }
 }
 
@@ -564,6 +775,14 @@ fn check_accessor_type(what: &str, acc: &gltf::Accessor) -> Result<(), String> {
             dims == Dimensions::Scalar && matches!(ty, DataType::U8 | DataType::U16 | DataType::U32)
         }
         "POSITION" => dims == Dimensions::Vec3 && ty != DataType::U32,
+        // What the crate's readers take (others are `unreachable!()` there).
+        "TEXCOORD_0" | "TEXCOORD_1" => {
+            dims == Dimensions::Vec2 && matches!(ty, DataType::F32 | DataType::U8 | DataType::U16)
+        }
+        "COLOR_0" => {
+            matches!(dims, Dimensions::Vec3 | Dimensions::Vec4)
+                && matches!(ty, DataType::F32 | DataType::U8 | DataType::U16)
+        }
         _ => {
             dims == Dimensions::Vec3
                 && (ty == DataType::F32
@@ -578,6 +797,10 @@ fn check_accessor_type(what: &str, acc: &gltf::Accessor) -> Result<(), String> {
         "POSITION" => {
             "VEC3 of float, or (KHR_mesh_quantization) of byte, unsigned byte, short or unsigned short"
         }
+        "TEXCOORD_0" | "TEXCOORD_1" => {
+            "VEC2 of float, or of normalized unsigned byte or unsigned short"
+        }
+        "COLOR_0" => "VEC3 or VEC4 of float, or of normalized unsigned byte or unsigned short",
         _ => "VEC3 of float, or (KHR_mesh_quantization) of normalized byte or short",
     };
     Err(format!(

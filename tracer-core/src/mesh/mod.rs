@@ -8,6 +8,9 @@ mod obj;
 mod ply;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use crate::material::Pbr;
 
 use crate::assets::{AssetError, AssetSource, LocalFolder};
 
@@ -25,6 +28,14 @@ pub struct Mesh {
     pub triangle_materials: Vec<u32>,
     /// The file's materials mapped to the Blinn-Phong model (at least one).
     pub materials: Vec<(String, MaterialDesc)>,
+    /// Per material (same index; shorter or empty: none), its textures
+    /// and glTF parameters as authored, looked up at each hit.
+    pub pbr: Vec<Option<Arc<Pbr>>>,
+    /// Per vertex texture coordinates (TEXCOORD_0 and _1), in glTF's
+    /// texture space (v down), or empty when no vertex has them.
+    pub uvs: [Vec<[f32; 2]>; 2],
+    /// Per vertex linear RGBA colour (COLOR_0), or empty.
+    pub colors: Vec<[f32; 4]>,
     /// What was read with a default instead of refused (a missing MTL
     /// library, `Ni 0`): shown to the user, the file still renders.
     pub warnings: Vec<String>,
@@ -282,6 +293,20 @@ impl Mesh {
             return Err(format!(
                 "triangle {i} refers to vertex {} but there are only {nv} vertices",
                 t.iter().max().unwrap_or(&0)
+            ));
+        }
+        for (k, uv) in self.uvs.iter().enumerate() {
+            if !uv.is_empty() && uv.len() != nv {
+                return Err(format!(
+                    "{} TEXCOORD_{k} values for {nv} vertices",
+                    uv.len()
+                ));
+            }
+        }
+        if !self.colors.is_empty() && self.colors.len() != nv {
+            return Err(format!(
+                "{} COLOR_0 values for {nv} vertices",
+                self.colors.len()
             ));
         }
         let nm = self.materials.len();

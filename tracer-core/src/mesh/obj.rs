@@ -4,9 +4,13 @@ use std::borrow::Cow;
 use std::cell::RefCell;
 use std::path::Path;
 
+use std::sync::Arc;
+
 use super::{Mesh, MeshError, default_material};
 use crate::assets::{AssetSource, dir_of, join};
+use crate::material::{AlphaMode, Pbr};
 use crate::scene::{MaterialDesc, Num, Vec3};
+use crate::texture::{IDENTITY_UV, Image, TextureRef, Wrap};
 
 pub(super) fn load(
     source: &dyn AssetSource,
@@ -75,12 +79,25 @@ pub(super) fn load(
             ));
         }
     }
+    let mut images = MtlImages {
+        source,
+        name,
+        decoded: std::collections::HashMap::new(),
+        warnings: Vec::new(),
+    };
+    let pbr: Vec<Option<Arc<Pbr>>> = materials
+        .iter()
+        .map(|m| mtl_maps(m, &mut images).map(Arc::new))
+        .collect();
+    warnings.append(&mut images.warnings);
+    let any_uv = pbr.iter().flatten().any(|p| p.varies());
     let mut mesh = Mesh {
         warnings,
         materials: materials
             .iter()
             .map(|m| (m.name.clone(), map_material(m)))
             .collect(),
+        pbr,
         ..Default::default()
     };
     let default_index = mesh.materials.len() as u32;
@@ -98,6 +115,14 @@ pub(super) fn load(
                     .extend(m.normals.chunks_exact(3).map(|c| [c[0], c[1], c[2]]));
             } else {
                 mesh.normals.extend(std::iter::repeat_n([0.0; 3], count));
+            }
+        }
+        if any_uv {
+            // OBJ's v runs up, texture space's down.
+            if m.texcoords.len() / 2 == count {
+                mesh.uvs[0].extend(m.texcoords.chunks_exact(2).map(|c| [c[0], 1.0 - c[1]]));
+            } else {
+                mesh.uvs[0].extend(std::iter::repeat_n([0.0; 2], count));
             }
         }
         let material = match m.material_id {
@@ -417,4 +442,170 @@ fn map_material(m: &tobj::Material) -> MaterialDesc {
         gloss: Num(0.0),
         translucency: Num(0.0),
     }
+}
+
+/// An MTL material's maps and emission, or `None` when it has neither:
+/// `map_Kd` (multiplying Kd and Ka), `Ke` and `map_Ke` (emission),
+/// `map_d` (a cut-out where its value is below 0.5), each with the `-s`
+/// and `-o` options (scale and offset of the texture coordinates) and
+/// `-clamp on`. `bump`/`map_Bump`/`norm` are not read yet (the shading
+/// step does not perturb normals).
+fn mtl_maps(m: &tobj::Material, images: &mut MtlImages) -> Option<Pbr> {
+    let what = |slot: &str| format!("material {:?} {slot}", m.name);
+    let param = |k: &str| m.unknown_param.get(k).map(String::as_str);
+    let mut tex = |spec: Option<&str>, srgb: bool, slot: &str| {
+        spec.and_then(|s| images.texture(s, srgb, &what(slot)))
+    };
+    let base = tex(m.diffuse_texture.as_deref(), true, "map_Kd");
+    let emissive_texture = tex(param("map_Ke"), true, "map_Ke");
+    let alpha = tex(m.dissolve_texture.as_deref(), false, "map_d");
+    let emissive = m
+        .emissive
+        .map_or([0.0; 3], |e| e.map(|c| f64::from(c).max(0.0)));
+    let emissive = if emissive_texture.is_some() && m.emissive.is_none() {
+        [1.0; 3]
+    } else {
+        emissive
+    };
+    if base.is_none() && emissive_texture.is_none() && alpha.is_none() && emissive == [0.0; 3] {
+        return None;
+    }
+    Some(Pbr {
+        mtl: true,
+        alpha_mode: if alpha.is_some() {
+            AlphaMode::Mask
+        } else {
+            AlphaMode::Opaque
+        },
+        base_color_texture: base,
+        alpha_texture: alpha,
+        emissive,
+        emissive_texture,
+        ..Pbr::default()
+    })
+}
+
+/// An MTL's images, each decoded once, by file name.
+struct MtlImages<'a> {
+    source: &'a dyn AssetSource,
+    name: &'a str,
+    decoded: std::collections::HashMap<String, Option<Arc<Image>>>,
+    warnings: Vec<String>,
+}
+
+impl MtlImages<'_> {
+    /// The map statement's arguments `spec` (options, then the file) as a
+    /// texture, or `None` with a warning naming the file.
+    fn texture(&mut self, spec: &str, srgb: bool, slot: &str) -> Option<TextureRef> {
+        let (file, transform, clamp) = match map_options(spec) {
+            Ok(o) => o,
+            Err(e) => {
+                self.warnings
+                    .push(format!("{slot} {spec:?}: {e}; rendered without it"));
+                return None;
+            }
+        };
+        let path = join(dir_of(self.name), &file.replace('\\', "/"));
+        let image = match self.decoded.get(&path) {
+            Some(i) => i.clone(),
+            None => {
+                let got = self
+                    .source
+                    .read(&path)
+                    .map_err(|e| format!("cannot be read ({e})"))
+                    .and_then(|b| Image::decode(&path, &b));
+                let got = match got {
+                    Ok(i) => Some(Arc::new(i)),
+                    Err(why) => {
+                        self.warnings.push(format!(
+                            "texture {path} {why}: {slot} and other uses of it render without it"
+                        ));
+                        None
+                    }
+                };
+                self.decoded.insert(path, got.clone());
+                got
+            }
+        }?;
+        let wrap = if clamp {
+            Wrap::ClampToEdge
+        } else {
+            Wrap::Repeat
+        };
+        Some(TextureRef {
+            image,
+            wrap: [wrap; 2],
+            nearest: false,
+            srgb,
+            uv_set: 0,
+            transform,
+        })
+    }
+}
+
+/// A map statement's file name, its `-o`/`-s` transform of the texture
+/// coordinates and whether `-clamp on` is given. The transform acts on
+/// OBJ's coordinates (v up): u' = s_u u + o_u, v' = s_v v + o_v, written
+/// in texture space (v down, v = 1 - v_obj).
+fn map_options(spec: &str) -> Result<(String, [[f32; 3]; 2], bool), String> {
+    let words: Vec<&str> = spec.split_whitespace().collect();
+    let (mut s, mut o, mut clamp) = ([1.0f32; 3], [0.0f32; 3], false);
+    let mut i = 0;
+    // Options and how many values each takes (at most).
+    let takes = |opt: &str| match opt {
+        "-s" | "-o" | "-t" => 3,
+        "-mm" => 2,
+        "-bm" | "-boost" | "-texres" | "-blendu" | "-blendv" | "-cc" | "-clamp" | "-imfchan"
+        | "-type" => 1,
+        _ => 0,
+    };
+    while i < words.len() && words[i].starts_with('-') && takes(words[i]) > 0 {
+        let opt = words[i];
+        let mut vals = Vec::new();
+        i += 1;
+        while vals.len() < takes(opt) && i + 1 < words.len() {
+            match words[i].parse::<f32>() {
+                Ok(v) if v.is_finite() => {
+                    vals.push(v);
+                    i += 1;
+                }
+                _ => break,
+            }
+            if !matches!(opt, "-s" | "-o" | "-t" | "-mm") {
+                break;
+            }
+        }
+        match opt {
+            "-s" | "-o" => {
+                if vals.is_empty() {
+                    return Err(format!("{opt} needs numbers"));
+                }
+                let dst = if opt == "-s" { &mut s } else { &mut o };
+                for (k, v) in vals.iter().enumerate() {
+                    dst[k] = *v;
+                }
+                if opt == "-s" && vals.len() == 1 {
+                    s[1] = vals[0];
+                }
+            }
+            "-clamp" => {
+                clamp = words.get(i).is_some_and(|w| *w == "on");
+                i += 1;
+            }
+            "-imfchan" | "-type" => i += 1,
+            _ => {}
+        }
+    }
+    let file = words[i.min(words.len())..].join(" ");
+    if file.is_empty() {
+        return Err("names no file".into());
+    }
+    // In texture space (v_t = 1 - v): u' = s_u u + o_u;
+    // v_t' = 1 - (s_v (1 - v_t) + o_v) = s_v v_t + (1 - s_v - o_v).
+    let transform = if s == [1.0; 3] && o == [0.0; 3] {
+        IDENTITY_UV
+    } else {
+        [[s[0], 0.0, o[0]], [0.0, s[1], 1.0 - s[1] - o[1]]]
+    };
+    Ok((file, transform, clamp))
 }

@@ -29,7 +29,7 @@ use crate::bsdf::Frame;
 use crate::film::RayCounts;
 use crate::geometry::PrimId;
 use crate::light::Emitter;
-use crate::material::{Material, reflect};
+use crate::material::{Material, NO_PBR, reflect};
 use crate::math::{Ray, Real, Vector3, offset_origin};
 use crate::sampling::{
     SLOT_GLOSS, SLOT_LIGHTS, SLOT_PATH_LIGHT, SLOT_PATH_LOBE, SLOT_PATH_RR, SLOT_TRANSLUCENCY,
@@ -339,11 +339,13 @@ pub struct Surface<'a, R: Real, P> {
     pub v: R::V3,
     pub entering: bool,
     pub cos_i: R,
-    pub m: &'a Material<R>,
+    /// The material at this point (textures looked up: [`material_at`]).
+    pub m: Material<R>,
     /// The path integrator's BSDF of the same material.
     pub bsdf: &'a Bsdf<R>,
     /// Origin for rays leaving on the viewer's side.
     pub above: R::V3,
+    _world: std::marker::PhantomData<&'a World<R>>,
 }
 
 /// A light's term at a surface: what it adds unless `shadow` (which starts
@@ -364,11 +366,29 @@ impl<'a, R: Real> Surface<'a, R, PrimId> {
             p,
             n_out,
             ray,
-            &world.materials[material as usize],
+            material_at(world, id, p, material),
             &world.bsdfs[material as usize],
             |n, v| world.shading_normal(id, p, n, v),
         )
     }
+}
+
+/// The material of primitive `id` (of material index `material`) at the
+/// point `p`: the material itself, or, where a model file's textures or
+/// vertex colours vary over it, the glTF parameters times the textures
+/// there mapped to Whitted's model (`Pbr::at`; docs/meshes.md).
+#[inline]
+pub fn material_at<R: Real>(world: &World<R>, id: PrimId, p: R::V3, material: u32) -> Material<R> {
+    let m = &world.materials[material as usize];
+    if m.pbr == NO_PBR || id.kind() != PrimId::TRIANGLE {
+        return *m;
+    }
+    let pbr = &world.pbr[m.pbr as usize];
+    if !pbr.varies() {
+        return *m;
+    }
+    let (uv, colour) = world.attrs_at(id.index(), p);
+    pbr.at(m, uv, colour)
 }
 
 impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
@@ -381,7 +401,7 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
         p: R::V3,
         n_out: R::V3,
         ray: &Ray<R>,
-        m: &'a Material<R>,
+        m: Material<R>,
         bsdf: &'a Bsdf<R>,
         shading: impl FnOnce(R::V3, R::V3) -> R::V3,
     ) -> Self {
@@ -402,13 +422,20 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
             m,
             bsdf,
             above: offset_origin::<R>(p, n),
+            _world: std::marker::PhantomData,
         }
     }
 
-    /// The ambient term, where the colour starts.
+    /// The ambient term and the emission, where the colour starts (the
+    /// emission only where there is one: adding a zero could turn a -0).
     #[inline]
     pub fn ambient(&self, world: &World<R>) -> R::V3 {
-        world.ambient * self.m.ambient
+        let a = world.ambient * self.m.ambient;
+        if self.m.pbr == NO_PBR {
+            a
+        } else {
+            a + self.m.emission
+        }
     }
 
     /// The term of `light` with its point at `pos`, or `None` when it can
@@ -458,7 +485,7 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
         if depth >= world.settings.max_depth {
             return;
         }
-        let m = self.m;
+        let m = &self.m;
         let (p, n) = (self.p, self.n);
         let mut reflect_w = m.reflectivity;
         if m.transparency > R::ZERO {

@@ -23,6 +23,7 @@ use crate::math::{Ray, Real, Vector3};
 use crate::scene::{FILE_MATERIALS, Integrator, ObjectDesc, RenderSettings, SceneDesc, Vec3};
 use crate::triangle::{Triangle, TriangleShading};
 use triangles::TriangleSet;
+pub use triangles::VertexAttrs;
 
 pub use crate::light::PointLight;
 pub use crate::material::Material;
@@ -86,6 +87,11 @@ pub struct World<R: Real> {
     /// The path integrator's BSDF of each material (`[bsdf.NAME]`, else
     /// mapped from the Blinn-Phong material: `Bsdf::from_material`).
     pub bsdfs: Vec<Bsdf<R>>,
+    /// Textures and glTF parameters of model files' materials
+    /// (`Material::pbr` indexes this) ...
+    pub pbr: Vec<std::sync::Arc<crate::material::Pbr>>,
+    /// ... and the texture coordinates and colours of their triangles.
+    pub attrs: VertexAttrs,
     pub lights: Vec<PointLight<R>>,
     pub ambient: R::V3,
     pub background: R::V3,
@@ -251,6 +257,8 @@ impl<R: Real> World<R> {
             degenerate_triangles: tris.degenerate,
             bsdfs: bsdfs_of(desc, &materials),
             materials,
+            pbr: tris.pbr,
+            attrs: tris.attrs,
             lights,
             ambient: v::<R>(&desc.world.ambient),
             background: v::<R>(&desc.world.background),
@@ -299,6 +307,8 @@ impl<R: Real> World<R> {
                         degenerate_triangles: set.degenerate,
                         bsdfs: bsdfs_of(desc, &mats),
                         materials: mats,
+                        pbr: set.pbr,
+                        attrs: set.attrs,
                         lights: Vec::new(),
                         dist: None,
                         ..world.clone_settings()
@@ -378,6 +388,8 @@ impl<R: Real> World<R> {
             degenerate_triangles: 0,
             materials: Vec::new(),
             bsdfs: Vec::new(),
+            pbr: Vec::new(),
+            attrs: VertexAttrs::default(),
             lights: Vec::new(),
             ambient: self.ambient,
             background: self.background,

@@ -12,6 +12,9 @@ use crate::triangle::{Triangle, TriangleRay};
 
 use super::World;
 
+/// Most cut-out surfaces a ray passes through before one counts as hit.
+const MAX_CUTOUT_LAYERS: usize = 64;
+
 impl<R: Real> World<R> {
     /// Lane of the starting sphere within pack `pack`, or 4 (none).
     #[inline(always)]
@@ -39,8 +42,82 @@ impl<R: Real> World<R> {
     }
 
     /// Nearest hit in (0, inf); `skip` is the primitive the ray starts on.
+    /// Cut-outs (alphaMode MASK where alpha is below the cutoff) are passed
+    /// through.
     #[inline(always)]
     pub fn closest_hit(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
+        let hit = self.closest_solid_or_cut(ray, skip);
+        if !self.attrs.cutouts {
+            return hit;
+        }
+        self.through_cutouts(ray, hit)
+    }
+
+    /// The first hit beyond the cut-outs, starting from `hit`: each cut-out
+    /// hit is left by a ray from it along the same direction (at most
+    /// [`MAX_CUTOUT_LAYERS`] of them; past that the surface counts as hit).
+    #[cold]
+    fn through_cutouts(&self, ray: &Ray<R>, mut hit: Option<(R, PrimId)>) -> Option<(R, PrimId)> {
+        let mut t0 = R::ZERO;
+        for _ in 0..MAX_CUTOUT_LAYERS {
+            let (t, id) = hit?;
+            let p = ray.at(t0 + t);
+            if !self.cut_away(id, p) {
+                return Some((t0 + t, id));
+            }
+            t0 += t;
+            hit = self.closest_solid_or_cut(&Ray::new(p, ray.dir), id);
+        }
+        hit.map(|(t, id)| (t0 + t, id))
+    }
+
+    /// Whether the point `p` of primitive `id` is cut away (a MASK
+    /// material's alpha there is below its cutoff).
+    pub fn cut_away(&self, id: PrimId, p: R::V3) -> bool {
+        if id.kind() != PrimId::TRIANGLE {
+            return false;
+        }
+        let m = &self.materials[self.triangle_shading[id.index()].material as usize];
+        if m.pbr == crate::material::NO_PBR {
+            return false;
+        }
+        let pbr = &self.pbr[m.pbr as usize];
+        if pbr.alpha_mode != crate::material::AlphaMode::Mask {
+            return false;
+        }
+        let (uv, colour) = self.attrs_at(id.index(), p);
+        pbr.cut_away(uv, colour)
+    }
+
+    /// Texture coordinates (sets 0 and 1) and vertex colour at `p` on
+    /// triangle `index`, interpolated by barycentric weights; zeros and
+    /// white for a triangle without them.
+    pub fn attrs_at(&self, index: usize, p: R::V3) -> ([[f32; 2]; 2], [f32; 4]) {
+        let a = self.triangle_shading[index].attrs;
+        if a == crate::triangle::NO_ATTRS {
+            return ([[0.0; 2]; 2], [1.0; 4]);
+        }
+        let vs = self.attrs.tri[a as usize];
+        let b = self.triangles[index]
+            .barycentric(p)
+            .map(|w| w.to_f64() as f32);
+        let mix2 = |v: &[[f32; 2]]| -> [f32; 2] {
+            std::array::from_fn(|k| {
+                v[vs[0] as usize][k] * b[0]
+                    + v[vs[1] as usize][k] * b[1]
+                    + v[vs[2] as usize][k] * b[2]
+            })
+        };
+        let c = &self.attrs.color;
+        let colour = std::array::from_fn(|k| {
+            c[vs[0] as usize][k] * b[0] + c[vs[1] as usize][k] * b[1] + c[vs[2] as usize][k] * b[2]
+        });
+        ([mix2(&self.attrs.uv[0]), mix2(&self.attrs.uv[1])], colour)
+    }
+
+    /// Nearest hit, cut-outs included.
+    #[inline(always)]
+    fn closest_solid_or_cut(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
         if let Some(tree) = &self.accel {
             return self.closest_hit_accel(tree, ray, skip);
         }
@@ -72,9 +149,20 @@ impl<R: Real> World<R> {
         (id != PrimId::NONE).then_some((best, id))
     }
 
-    /// Whether anything lies on the ray before `t_max`.
+    /// Whether anything but cut-outs lies on the ray before `t_max`.
     #[inline(always)]
     pub fn occluded(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
+        if self.attrs.cutouts {
+            return self
+                .through_cutouts(ray, self.closest_solid_or_cut(ray, skip))
+                .is_some_and(|(t, _)| t < t_max);
+        }
+        self.occluded_solid_or_cut(ray, t_max, skip)
+    }
+
+    /// Whether anything lies on the ray before `t_max`, cut-outs included.
+    #[inline(always)]
+    fn occluded_solid_or_cut(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
         if let Some(tree) = &self.accel {
             return self.occluded_accel(tree, ray, t_max, skip);
         }
@@ -125,7 +213,7 @@ impl<R: Real> World<R> {
     /// coherent rays (neighbouring camera rays).
     pub fn closest_hits(&self, rays: &[Ray<R>], skip: PrimId, out: &mut [Option<(R, PrimId)>]) {
         assert_eq!(rays.len(), out.len());
-        let Some((w, tree)) = self.f32_tree() else {
+        let Some((w, tree)) = self.f32_tree().filter(|_| !self.attrs.cutouts) else {
             for (o, r) in out.iter_mut().zip(rays) {
                 *o = self.closest_hit(r, skip);
             }
@@ -157,7 +245,7 @@ impl<R: Real> World<R> {
     /// rays go through the tree together ([`bvh::occluded_hits`]).
     pub fn occluded_many(&self, rays: &[Ray<R>], t_max: &[R], skip: &[PrimId], out: &mut [bool]) {
         assert!(rays.len() == t_max.len() && rays.len() == skip.len() && rays.len() == out.len());
-        let Some((w, tree)) = self.f32_tree() else {
+        let Some((w, tree)) = self.f32_tree().filter(|_| !self.attrs.cutouts) else {
             for j in 0..rays.len() {
                 out[j] = self.occluded(&rays[j], t_max[j], skip[j]);
             }

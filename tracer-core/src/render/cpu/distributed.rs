@@ -101,7 +101,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     p,
                     n_out,
                     ray,
-                    &world.materials[mat as usize],
+                    step::material_at(world, prim.id, p, mat),
                     &world.bsdfs[mat as usize],
                     |n, v| world.shading_normal(prim.id, p, n, v),
                 )
@@ -114,7 +114,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     p,
                     n_out,
                     ray,
-                    &world.materials[s.material as usize],
+                    world.materials[s.material as usize],
                     &world.bsdfs[s.material as usize],
                     |n, _| n,
                 )
@@ -130,7 +130,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     p + off,
                     n_out,
                     ray,
-                    &mesh.world.materials[mat as usize],
+                    step::material_at(&mesh.world, prim.id, p, mat),
                     &mesh.world.bsdfs[mat as usize],
                     |n, v| mesh.world.shading_normal(prim.id, p, n, v),
                 )

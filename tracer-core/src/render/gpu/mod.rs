@@ -84,6 +84,10 @@ pub enum GpuError {
     )]
     PathUnsupported,
     #[error(
+        "the scene's model materials use {0}, which the GPU backend does not render yet; render it with --backend cpu"
+    )]
+    Materials(String),
+    #[error(
         "the scene's BVH has a node at depth {depth} whose traversal needs more than the GPU traversal stack of {stack} entries; render it with --backend cpu"
     )]
     TreeTooDeep { depth: usize, stack: usize },
@@ -726,6 +730,9 @@ impl GpuRenderer {
         if world.settings.integrator == crate::scene::Integrator::Path {
             return Err(GpuError::PathUnsupported);
         }
+        if let Some(what) = cpu_only_materials(world) {
+            return Err(GpuError::Materials(what));
+        }
         self.check_fault()?;
         let start = Instant::now();
         // Tiles of one frame reuse the packed tree (packing a million
@@ -844,4 +851,32 @@ fn classify(e: wgpu::Error) -> GpuError {
         wgpu::Error::OutOfMemory { .. } => GpuError::OutOfMemory(e.to_string()),
         other => GpuError::Device(other.to_string()),
     }
+}
+
+/// What of a world's model-file materials the WGSL step does not have yet
+/// (textures, vertex colours, emission, cut-outs), named for the error;
+/// `None` when it renders as on the CPU.
+fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
+    let mut what = Vec::new();
+    use crate::material::Pbr;
+    let any = |f: &dyn Fn(&Pbr) -> bool| world.pbr.iter().any(|p| f(p));
+    if any(&|p| {
+        Pbr {
+            vertex_colors: false,
+            ..p.clone()
+        }
+        .varies()
+    }) {
+        what.push("textures");
+    }
+    if any(&|p| p.vertex_colors) {
+        what.push("vertex colours");
+    }
+    if any(&|p| p.emissive.iter().any(|&e| e > 0.0)) {
+        what.push("emission");
+    }
+    if world.attrs.cutouts {
+        what.push("alpha cut-outs");
+    }
+    (!what.is_empty()).then(|| what.join(", "))
 }

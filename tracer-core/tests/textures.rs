@@ -1,0 +1,269 @@
+//! Model files' materials as authored (issue 34): textures sampled by the
+//! documented filter, emission seen directly, alpha cut-outs for camera
+//! and shadow rays. Each render is checked against an independent
+//! computation of what docs/meshes.md ("Materials and textures") states:
+//! the camera's projection, the bilinear filter and the sRGB curve,
+//! written out again here in f64.
+
+use std::path::Path;
+
+use base64::Engine as _;
+use tracer_core::film::{Rect, SampleRange};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::scene::SceneDesc;
+
+mod common;
+use common::meshgen::tmpdir;
+
+fn render(scene: &SceneDesc) -> Vec<[f32; 3]> {
+    let frame = PreparedFrame::build(scene, &scene.render, 0, Precision::F32).unwrap();
+    let r = &scene.render;
+    CpuRenderer::new(Some(2))
+        .unwrap()
+        .render(
+            &frame,
+            0,
+            Rect::full(r.width, r.height),
+            SampleRange::all(r.samples),
+            &|_| {},
+        )
+        .unwrap()
+        .resolve()
+}
+
+/// A glTF file of the quad [-h, h]^2 at z = `z` facing +Z, with texture
+/// coordinates (0, 0) at its top-left corner (-h, h) and (1, 1) at its
+/// bottom-right one, material `material` (JSON) and the PNG `png` as
+/// image 0 (texture 0, sampler `sampler`).
+fn textured_quad(dir: &Path, h: f32, z: f32, material: &str, sampler: &str) -> String {
+    let mut bin = Vec::new();
+    for c in [-h, -h, z, h, -h, z, h, h, z, -h, h, z] {
+        bin.extend(c.to_le_bytes());
+    }
+    for _ in 0..4 {
+        for c in [0f32, 0., 1.] {
+            bin.extend(c.to_le_bytes());
+        }
+    }
+    for c in [0f32, 1., 1., 1., 1., 0., 0., 0.] {
+        bin.extend(c.to_le_bytes());
+    }
+    for i in [0u16, 1, 2, 0, 2, 3] {
+        bin.extend(i.to_le_bytes());
+    }
+    let uri = base64::engine::general_purpose::STANDARD.encode(&bin);
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
+        "nodes":[{{"mesh":0}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2}},"indices":3,"material":0}}]}}],
+        "materials":[{material}],
+        "textures":[{{"source":0,"sampler":0}}],
+        "samplers":[{sampler}],
+        "images":[{{"uri":"tex.png"}}],
+        "extensionsUsed":["KHR_materials_specular"],
+        "buffers":[{{"byteLength":{len},"uri":"data:application/octet-stream;base64,{uri}"}}],
+        "bufferViews":[{{"buffer":0,"byteLength":48}},{{"buffer":0,"byteOffset":48,"byteLength":48}},
+                       {{"buffer":0,"byteOffset":96,"byteLength":32}},{{"buffer":0,"byteOffset":128,"byteLength":12}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[-1,-1,0],"max":[1,1,0]}},
+                     {{"bufferView":1,"componentType":5126,"count":4,"type":"VEC3"}},
+                     {{"bufferView":2,"componentType":5126,"count":4,"type":"VEC2"}},
+                     {{"bufferView":3,"componentType":5123,"count":6,"type":"SCALAR"}}]}}"#,
+        len = bin.len(),
+    );
+    std::fs::write(dir.join("quad.gltf"), json).unwrap();
+    "quad.gltf".into()
+}
+
+fn write_png(dir: &Path, w: u32, h: u32, texels: &[[u8; 4]]) {
+    let img = image::RgbaImage::from_fn(w, h, |x, y| image::Rgba(texels[(y * w + x) as usize]));
+    img.save(dir.join("tex.png")).unwrap();
+}
+
+/// The sRGB curve (IEC 61966-2-1), in f64.
+fn srgb(c: u8) -> f64 {
+    let c = c as f64 / 255.0;
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// Bilinear lookup with clamp-to-edge of an sRGB texture at (u, v), in f64.
+fn bilinear_srgb(w: u32, h: u32, texels: &[[u8; 4]], u: f64, v: f64) -> [f64; 3] {
+    let x = u * w as f64 - 0.5;
+    let y = v * h as f64 - 0.5;
+    let (x0, y0) = (x.floor(), y.floor());
+    let (tx, ty) = (x - x0, y - y0);
+    let at = |xi: f64, yi: f64, k: usize| {
+        let xi = xi.clamp(0.0, w as f64 - 1.0) as u32;
+        let yi = yi.clamp(0.0, h as f64 - 1.0) as u32;
+        srgb(texels[(yi * w + xi) as usize][k])
+    };
+    std::array::from_fn(|k| {
+        let top = at(x0, y0, k) * (1.0 - tx) + at(x0 + 1.0, y0, k) * tx;
+        let bottom = at(x0, y0 + 1.0, k) * (1.0 - tx) + at(x0 + 1.0, y0 + 1.0, k) * tx;
+        top * (1.0 - ty) + bottom * ty
+    })
+}
+
+/// An emissive-textured quad filling the view: every pixel is the
+/// texture (decoded from sRGB, bilinearly filtered) at the point its ray
+/// meets the quad, computed here from the camera's projection; nothing
+/// else adds (black base colour, no specular layer, no light, no ambient).
+#[test]
+fn an_emissive_textured_quad_filling_the_view_is_the_texture_resampled_through_the_camera() {
+    let dir = tmpdir("tex-emissive");
+    let (tw, th) = (4u32, 3u32);
+    let texels: Vec<[u8; 4]> = (0..tw * th)
+        .map(|i| {
+            [
+                (i * 21 + 3) as u8,
+                (250 - i * 19) as u8,
+                ((i * 97) % 251) as u8,
+                255,
+            ]
+        })
+        .collect();
+    write_png(&dir, tw, th, &texels);
+    let model = textured_quad(
+        &dir,
+        1.0,
+        0.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"metallicFactor":0},
+            "emissiveFactor":[1,1,1],"emissiveTexture":{"index":0},
+            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
+        r#"{"wrapS":33071,"wrapT":33071}"#,
+    );
+    // tan(fov_y / 2) = 0.45 from 2 away: the view is [-0.9, 0.9]^2 at z = 0.
+    let t = 0.45f64;
+    let fov = 2.0 * t.atan().to_degrees();
+    let (w, h) = (31u32, 31u32);
+    let src = format!(
+        "[render]\nwidth = {w}\nheight = {h}\nsamples = 1\n\
+         [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = {fov}\n\
+         [[lights]]\nposition = [0, 0, 5]\ndiffuse = [0, 0, 0]\nspecular = [0, 0, 0]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let img = render(&scene);
+    let mut worst = 0.0f64;
+    for y in 0..h {
+        for x in 0..w {
+            // The one sample of a pixel goes through its centre.
+            let a = 2.0 * (x as f64 + 0.5) / w as f64 - 1.0;
+            let b = 1.0 - 2.0 * (y as f64 + 0.5) / h as f64;
+            let (px, py) = (2.0 * a * t, 2.0 * b * t);
+            let (u, v) = ((px + 1.0) / 2.0, (1.0 - py) / 2.0);
+            let want = bilinear_srgb(tw, th, &texels, u, v);
+            let got = img[(y * w + x) as usize];
+            for k in 0..3 {
+                worst = worst.max((got[k] as f64 - want[k]).abs());
+            }
+        }
+    }
+    // f32 arithmetic on values at most 1, through the camera's rounding.
+    assert!(worst < 2e-5, "largest difference {worst}");
+}
+
+/// alphaMode MASK: camera rays see the background through the texels
+/// whose alpha is below the cutoff and the quad elsewhere; shadow rays
+/// towards a light pass through exactly those texels, so the plane
+/// behind is lit where the shadow ray, traced here, crosses the quad at
+/// a cut texel or misses it, and holds only the ambient term elsewhere.
+#[test]
+fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_rays() {
+    let dir = tmpdir("tex-cutout");
+    // 4x4 texels, alpha 0 or 255 in a pattern; NEAREST, so each texel is a square.
+    let alpha = [1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0, 1, 1, 0];
+    let texels: Vec<[u8; 4]> = alpha.iter().map(|&a| [255, 255, 255, a * 255]).collect();
+    write_png(&dir, 4, 4, &texels);
+    // The quad [-0.5, 0.5]^2 at z = 1, emissive red, over the white plane z = 0.
+    let model = textured_quad(
+        &dir,
+        0.5,
+        1.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"baseColorTexture":{"index":0},"metallicFactor":0},
+            "emissiveFactor":[1,0,0],"alphaMode":"MASK",
+            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
+        r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
+    );
+    let light = [1.5f64, 0.0, 3.0];
+    let (w, h) = (64u32, 64u32);
+    let t = 0.5f64; // view [-2, 2]^2 at z = 0 from 4 away
+    let src = format!(
+        "[render]\nwidth = {w}\nheight = {h}\nsamples = 1\n\
+         [camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = {fov}\n\
+         [world]\nambient = [0.25, 0.25, 0.25]\nbackground = [0, 0, 1]\n\
+         [materials.white]\nambient = [1, 1, 1]\ndiffuse = [1, 1, 1]\n\
+         [[lights]]\nposition = [{lx}, {ly}, {lz}]\ndiffuse = [0.5, 0.5, 0.5]\nspecular = [0, 0, 0]\n\
+         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n",
+        fov = 2.0 * t.atan().to_degrees(),
+        lx = light[0],
+        ly = light[1],
+        lz = light[2],
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let img = render(&scene);
+    // Whether the quad is solid at (x, y) (z = 1): `None` within 0.05
+    // texels of a texel's edge, where rounding may decide either way.
+    let texel = |x: f64, y: f64| -> Option<bool> {
+        let (u, v) = ((x + 0.5) * 4.0, (0.5 - y) * 4.0);
+        let outside = (-u).max(u - 4.0).max(-v).max(v - 4.0);
+        if outside > 0.0 {
+            return (outside > 0.05).then_some(false);
+        }
+        let edge = (u - u.round()).abs().min((v - v.round()).abs());
+        (edge > 0.05).then_some(alpha[(v as usize) * 4 + u as usize] == 1)
+    };
+    let (mut seen_cut, mut seen_solid, mut lit, mut shadowed) = (0, 0, 0, 0);
+    for y in 0..h {
+        for x in 0..w {
+            let a = 2.0 * (x as f64 + 0.5) / w as f64 - 1.0;
+            let b = 1.0 - 2.0 * (y as f64 + 0.5) / h as f64;
+            let got = img[(y * w + x) as usize];
+            // The camera ray meets z = 1 at 3/4 of the way to z = 0.
+            let (qx, qy) = (4.0 * a * t * 0.75, 4.0 * b * t * 0.75);
+            let Some(solid) = texel(qx, qy) else {
+                continue;
+            };
+            if solid {
+                seen_solid += 1;
+                assert_eq!(got, [1.0, 0.0, 0.0], "pixel ({x}, {y}) sees the quad");
+                continue;
+            }
+            // Through a cut texel (or beside the quad) to the plane.
+            let p = [4.0 * a * t, 4.0 * b * t, 0.0];
+            if qx.abs() < 0.5 && qy.abs() < 0.5 {
+                seen_cut += 1;
+            }
+            // Its shadow ray meets z = 1 at s = 1 / light_z of the way.
+            let s = 1.0 / light[2];
+            let (sx, sy) = (p[0] + (light[0] - p[0]) * s, p[1] + (light[1] - p[1]) * s);
+            let Some(blocked) = texel(sx, sy) else {
+                continue;
+            };
+            let d = [light[0] - p[0], light[1] - p[1], light[2] - p[2]];
+            let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let want = if blocked {
+                shadowed += 1;
+                0.25
+            } else {
+                lit += 1;
+                0.25 + 0.5 * d[2] / len
+            };
+            for k in 0..3 {
+                assert!(
+                    (got[k] as f64 - want).abs() < 1e-5,
+                    "pixel ({x}, {y}): {got:?}, want {want} ({})",
+                    if blocked { "shadowed" } else { "lit" }
+                );
+            }
+        }
+    }
+    assert!(
+        seen_cut > 100 && seen_solid > 100 && lit > 200 && shadowed > 50,
+        "cut {seen_cut}, solid {seen_solid}, lit {lit}, shadowed {shadowed}"
+    );
+}
