@@ -21,28 +21,37 @@ use crate::triangle::{Triangle, TriangleShading};
 /// from 10 on (20 vs 23; 9 vs 21 at 64). Re-measure when either gets faster.
 pub const SPHERE_BVH_MIN: usize = 10;
 
-/// The tree over `spheres` and `triangles` when the scene needs one
-/// (`force`: always, never, or `None` for triangles or at least
+/// The tree over `spheres`, `instances` (the boxes of a world's instanced
+/// meshes as placed: `PrimId::INSTANCE` i for box i, the top level of
+/// its two-level tree) and `triangles` when the scene needs one
+/// (`force`: always, never, or `None` for triangles, instances or at least
 /// [`SPHERE_BVH_MIN`] spheres), else `None`. Reorders `triangles` and
 /// their `shading` to the tree's leaf order (so a leaf's triangles are
 /// neighbours in memory), which the tree's ids then follow.
 pub(crate) fn build<R: Real>(
     spheres: &[Sphere<R>],
+    instances: &[Aabb],
     triangles: &mut Vec<Triangle<R>>,
     shading: &mut Vec<TriangleShading<R>>,
     force: Option<bool>,
 ) -> Option<Bvh> {
-    let wanted = force.unwrap_or(!triangles.is_empty() || spheres.len() >= SPHERE_BVH_MIN);
-    if !wanted || (triangles.is_empty() && spheres.is_empty()) {
+    let wanted = force.unwrap_or(
+        !triangles.is_empty() || !instances.is_empty() || spheres.len() >= SPHERE_BVH_MIN,
+    );
+    if !wanted || (triangles.is_empty() && spheres.is_empty() && instances.is_empty()) {
         return None;
     }
-    let mut boxes = Vec::with_capacity(spheres.len() + triangles.len());
+    let mut boxes = Vec::with_capacity(spheres.len() + instances.len() + triangles.len());
     let mut ids = Vec::with_capacity(boxes.capacity());
     for (i, s) in spheres.iter().enumerate() {
         let c = s.center.to_array();
         let r = s.radius.to_f64();
         boxes.push(Aabb::outward(c.map(|x| x - r), c.map(|x| x + r)));
         ids.push(PrimId::new(PrimId::SPHERE, i as u32));
+    }
+    for (i, b) in instances.iter().enumerate() {
+        boxes.push(*b);
+        ids.push(PrimId::new(PrimId::INSTANCE, i as u32));
     }
     for (i, t) in triangles.iter().enumerate() {
         let v = t.vertices();
@@ -51,27 +60,31 @@ pub(crate) fn build<R: Real>(
         boxes.push(Aabb::outward(lo, hi));
         ids.push(PrimId::new(PrimId::TRIANGLE, i as u32));
     }
-    let mut tree = Bvh::build(&boxes, &ids);
+    // The boxes are partitioned in place, and the ids dropped before the
+    // reordering: peak memory.
+    let mut tree = Bvh::build_owned(boxes, &ids);
+    drop(ids);
     let n = triangles.len();
     if n > 0 {
-        let mut ordered = Vec::with_capacity(n);
-        let mut ordered_shading = Vec::with_capacity(n);
+        // src[j]: the triangle that goes to place j, in leaf order.
+        let mut src = Vec::with_capacity(n);
         for id in tree
             .prims
             .iter_mut()
             .filter(|id| id.kind() == PrimId::TRIANGLE)
         {
-            ordered.push(triangles[id.index()]);
-            ordered_shading.push(shading[id.index()]);
-            *id = PrimId::new(PrimId::TRIANGLE, ordered.len() as u32 - 1);
+            src.push(id.index() as u32);
+            *id = PrimId::new(PrimId::TRIANGLE, src.len() as u32 - 1);
         }
-        *triangles = ordered;
-        *shading = ordered_shading;
+        reorder(triangles, shading, src);
     }
     // The 4-wide triangle test (f32 only) wants the leaves' triangles packed.
     // Not with spheres: packing them too (NaN lanes sent to the sphere test)
     // made the bunny scene (a glass sphere in the tree) 9% slower.
-    if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>() && spheres.is_empty() {
+    if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>()
+        && spheres.is_empty()
+        && instances.is_empty()
+    {
         // SAFETY: R is f32, so this is the same type.
         let tris =
             unsafe { &*(triangles.as_slice() as *const [Triangle<R>] as *const [Triangle<f32>]) };
@@ -80,10 +93,52 @@ pub(crate) fn build<R: Real>(
     Some(tree)
 }
 
+/// Puts `src[j]`'s triangle (and shading) at place j, in place (cycle by
+/// cycle), without a second copy of the arrays; triangles that no place
+/// takes (none, when every triangle is in the tree) are dropped.
+fn reorder<T: Copy, S: Copy>(triangles: &mut Vec<T>, shading: &mut Vec<S>, mut src: Vec<u32>) {
+    if src.len() != triangles.len() {
+        *triangles = src.iter().map(|&i| triangles[i as usize]).collect();
+        *shading = src.iter().map(|&i| shading[i as usize]).collect();
+        return;
+    }
+    for i in 0..src.len() {
+        if src[i] as usize == i {
+            continue;
+        }
+        let (t, s) = (triangles[i], shading[i]);
+        let mut j = i;
+        loop {
+            let k = src[j] as usize;
+            src[j] = j as u32;
+            if k == i {
+                triangles[j] = t;
+                shading[j] = s;
+                break;
+            }
+            triangles[j] = triangles[k];
+            shading[j] = shading[k];
+            j = k;
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     /// The layering in the module docs, checked on the sources: neither the
     /// tree nor this module names the world.
+    /// The in-place reordering equals gathering into new arrays.
+    #[test]
+    fn reorder_in_place_is_a_gather() {
+        let n = 1000u32;
+        let src: Vec<u32> = (0..n).map(|j| (j * 7919 + 13) % n).collect();
+        let (mut t, mut s): (Vec<u32>, Vec<u64>) =
+            ((0..n).collect(), (0..n as u64).map(|x| x * 3).collect());
+        super::reorder(&mut t, &mut s, src.clone());
+        assert_eq!(t, src);
+        assert_eq!(s, src.iter().map(|&x| x as u64 * 3).collect::<Vec<_>>());
+    }
+
     #[test]
     fn bvh_and_accel_do_not_depend_on_world() {
         let src = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");

@@ -17,6 +17,12 @@ impl PrimId {
     pub const PLANE: u32 = 1;
     /// Index into `World::triangles` (see `triangle.rs`).
     pub const TRIANGLE: u32 = 2;
+    /// In a world's tree only: index into `World::instances.list` (the top
+    /// level of the two-level tree, `world/instances.rs`); never a hit's id.
+    pub const INSTANCE: u32 = 3;
+    /// A hit on an instanced triangle: the instance's first id plus the
+    /// triangle's index in its mesh (`world/instances.rs`).
+    pub const INSTANCE_TRIANGLE: u32 = 4;
 
     #[inline(always)]
     pub fn new(kind: u32, index: u32) -> Self {

@@ -99,31 +99,42 @@ impl Bvh {
     /// levels deep (`depth` at least 2 + ceil(log2(n)) for n primitives), so
     /// that traversal needs at most [`stack_for_depth`]`(depth)` entries.
     pub fn build_with_depth(boxes: &[Aabb], ids: &[PrimId], depth: usize) -> Bvh {
+        Self::build_inner(boxes.to_vec(), ids, depth)
+    }
+
+    /// As [`Bvh::build`], partitioning `boxes` itself rather than a copy
+    /// (a big scene's peak memory holds one array of boxes, not two).
+    pub fn build_owned(boxes: Vec<Aabb>, ids: &[PrimId]) -> Bvh {
+        Self::build_inner(boxes, ids, MAX_DEPTH)
+    }
+
+    fn build_inner(mut work: Vec<Aabb>, ids: &[PrimId], depth: usize) -> Bvh {
         let stack = depth;
-        assert_eq!(boxes.len(), ids.len());
+        let n = work.len();
+        assert_eq!(n, ids.len());
         assert!(
-            stack >= 2 + ceil_log2(boxes.len()),
+            stack >= 2 + ceil_log2(n),
             "a depth of {stack} cannot hold a tree over {} primitives",
-            boxes.len()
+            n
         );
         let start = Instant::now();
-        if boxes.is_empty() {
+        if n == 0 {
             return Bvh::default();
         }
-        let mut work: Vec<Aabb> = boxes.to_vec();
-        let mut order: Vec<u32> = (0..boxes.len() as u32).collect();
+        let mut order: Vec<u32> = (0..n as u32).collect();
         let (bounds, cbounds) = bounds_of(&work);
         let prims = Prims {
             boxes: &mut work,
             order: &mut order,
         };
         let root = build_node(stack, prims, 0, 0, bounds, cbounds);
+        drop(work);
 
         let mut flat = Flat {
-            nodes: Vec::with_capacity(boxes.len() / 2 + 1),
-            prims: Vec::with_capacity(boxes.len() * 3 / 2),
+            nodes: Vec::with_capacity(n / 2 + 1),
+            prims: Vec::with_capacity(n * 3 / 2),
             stats: BvhStats {
-                primitives: boxes.len(),
+                primitives: n,
                 ..Default::default()
             },
             order: &order,

@@ -28,7 +28,11 @@ const COMPRESSION: [(&str, &str); 2] = [
 
 /// Required extensions that Tessera reads: quantized attributes are
 /// dequantized, lights become scene lights (docs/scene-format.md).
-const READ: [&str; 2] = ["KHR_mesh_quantization", "KHR_lights_punctual"];
+const READ: [&str; 3] = [
+    "KHR_mesh_quantization",
+    "KHR_lights_punctual",
+    "EXT_mesh_gpu_instancing",
+];
 
 /// Extensions (by prefix) that change how a surface looks, never where it
 /// is: a file that requires them renders, with a warning, without them.
@@ -230,11 +234,12 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
     let (mut any_uv, mut any_color) = ([false; 2], false);
     let default_index = mesh.materials.len() as u32;
     let mut need_default = false;
-    let mut any_normals = false;
-    let mut normals: Vec<[f32; 3]> = Vec::new();
 
     // Instances: the default (or first) scene's node tree; without scenes, each mesh once.
-    let mut placed = Placed::default();
+    let mut placed = Placed {
+        gpu_instances: gpu_instancing(bytes, doc, &buffers).map_err(&err)?,
+        ..Default::default()
+    };
     match doc.default_scene().or_else(|| doc.scenes().next()) {
         Some(scene) => {
             for node in scene.nodes() {
@@ -249,7 +254,35 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
     mesh.lights = placed.lights;
     let instances = placed.meshes;
 
+    // A mesh placed by several nodes (or copies of EXT_mesh_gpu_instancing)
+    // is read once, in its own space, as an instanced part that the world
+    // traces through a two-level tree; a mesh placed once is transformed
+    // into the model's triangles.
+    let mut uses = std::collections::HashMap::<usize, usize>::new();
+    for (gmesh, _) in &instances {
+        *uses.entry(gmesh.index()).or_default() += 1;
+    }
+    let mut part_of = std::collections::HashMap::<usize, usize>::new();
+    let mut parts: Vec<(Geometry, Vec<[f64; 16]>)> = Vec::new();
+    let mut main = Geometry::default();
     for (gmesh, xf) in &instances {
+        let (geo, xf) = if uses[&gmesh.index()] > 1 {
+            match part_of.get(&gmesh.index()) {
+                Some(&k) => {
+                    let part: &mut (Geometry, Vec<[f64; 16]>) = &mut parts[k];
+                    part.1.push(xf.to_cols_array());
+                    continue;
+                }
+                None => {
+                    part_of.insert(gmesh.index(), parts.len());
+                    parts.push((Geometry::default(), vec![xf.to_cols_array()]));
+                    let last = parts.len() - 1;
+                    (&mut parts[last].0, &DMat4::IDENTITY)
+                }
+            }
+        } else {
+            (&mut main, xf)
+        };
         let normal_xf = DMat3::from_mat4(*xf).inverse().transpose();
         let flip = xf.determinant() < 0.0;
         for prim in gmesh.primitives() {
@@ -280,9 +313,9 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                 .get(&gltf::Semantic::Positions)
                 .and_then(|a| read_vec3(&a, &buffers))
                 .ok_or_else(|| err(at("positions are missing or lie outside their buffer")))?;
-            let base = mesh.positions.len() as u32;
+            let base = geo.mesh.positions.len() as u32;
             let n = positions.len() as u32;
-            mesh.positions.extend(positions.iter().map(|p| {
+            geo.mesh.positions.extend(positions.iter().map(|p| {
                 xf.transform_point3(DVec3::from_array(p.map(f64::from)))
                     .as_vec3()
                     .to_array()
@@ -296,18 +329,20 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
             };
             match read_normals {
                 Some(ns) => {
-                    any_normals = true;
-                    let before = normals.len();
-                    normals.extend(ns.into_iter().map(|v| {
+                    geo.any_normals = true;
+                    let before = geo.normals.len();
+                    geo.normals.extend(ns.into_iter().map(|v| {
                         (normal_xf * DVec3::from_array(v.map(f64::from)))
                             .as_vec3()
                             .to_array()
                     }));
-                    if normals.len() - before != positions.len() {
+                    if geo.normals.len() - before != positions.len() {
                         return Err(err(at("normal count differs from position count")));
                     }
                 }
-                None => normals.extend(std::iter::repeat_n([0.0; 3], positions.len())),
+                None => geo
+                    .normals
+                    .extend(std::iter::repeat_n([0.0; 3], positions.len())),
             }
             for (k, uv) in uvs.iter_mut().enumerate() {
                 match reader.read_tex_coords(k as u32) {
@@ -374,14 +409,21 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
             };
             for t in tris {
                 let t = t.map(|i| base + i);
-                mesh.triangles
+                geo.mesh
+                    .triangles
                     .push(if flip { [t[0], t[2], t[1]] } else { t });
-                mesh.triangle_materials.push(material);
+                geo.mesh.triangle_materials.push(material);
             }
         }
     }
-    if any_normals {
-        mesh.normals = normals;
+    main.finish_into(&mut mesh);
+    for (geo, transforms) in parts {
+        let mut part = Mesh::default();
+        geo.finish_into(&mut part);
+        mesh.instanced.push(super::InstancedPart {
+            mesh: part,
+            transforms,
+        });
     }
     for k in 0..2 {
         if any_uv[k] {
@@ -419,10 +461,33 @@ fn check_before_validation(root: &gltf::json::Root) -> Result<(), String> {
     Ok(())
 }
 
+/// Geometry being read: the model's own, or an instanced part's.
+#[derive(Default)]
+struct Geometry {
+    mesh: Mesh,
+    normals: Vec<[f32; 3]>,
+    any_normals: bool,
+}
+
+impl Geometry {
+    /// Moves the geometry read into `out` (normals only when some
+    /// primitive had them).
+    fn finish_into(self, out: &mut Mesh) {
+        out.positions = self.mesh.positions;
+        out.triangles = self.mesh.triangles;
+        out.triangle_materials = self.mesh.triangle_materials;
+        if self.any_normals {
+            out.normals = self.normals;
+        }
+    }
+}
+
 /// What the default scene's nodes place, in the order of a depth-first walk.
 #[derive(Default)]
 struct Placed<'a> {
     meshes: Vec<(gltf::Mesh<'a>, DMat4)>,
+    /// `EXT_mesh_gpu_instancing`: a node's instance transforms, by node index.
+    gpu_instances: std::collections::HashMap<usize, Vec<DMat4>>,
     cameras: Vec<ModelCamera>,
     lights: Vec<ModelLight>,
 }
@@ -442,7 +507,13 @@ fn collect<'a>(
     let m = node.transform().matrix();
     let xf = parent * DMat4::from_cols_array_2d(&m.map(|c| c.map(f64::from)));
     if let Some(mesh) = node.mesh() {
-        out.meshes.push((mesh, xf));
+        match out.gpu_instances.get(&node.index()) {
+            // Each instance is placed in the node's space.
+            Some(list) => out
+                .meshes
+                .extend(list.iter().map(|t| (mesh.clone(), xf * *t))),
+            None => out.meshes.push((mesh, xf)),
+        }
     }
     // Cameras and lights look down their node's -Z axis, +Y up.
     let position = xf.transform_point3(DVec3::ZERO).to_array();
@@ -521,6 +592,133 @@ fn collect<'a>(
         collect(child, xf, depth + 1, out)?;
     }
     Ok(())
+}
+
+/// `EXT_mesh_gpu_instancing` of every node that has it: its instances'
+/// transforms (translation, rotation, scale, each optional), by node index.
+/// Read from the JSON itself: the `gltf` crate does not know the extension.
+fn gpu_instancing(
+    bytes: &[u8],
+    doc: &gltf::Document,
+    buffers: &[Vec<u8>],
+) -> Result<std::collections::HashMap<usize, Vec<DMat4>>, String> {
+    use std::collections::HashMap;
+    const EXT: &str = "EXT_mesh_gpu_instancing";
+    let mut out = HashMap::new();
+    if !doc.extensions_used().any(|e| e == EXT) {
+        return Ok(out);
+    }
+    #[derive(serde::Deserialize)]
+    struct Ext {
+        #[serde(default)]
+        attributes: HashMap<String, usize>,
+    }
+    #[derive(serde::Deserialize, Default)]
+    struct Exts {
+        #[serde(rename = "EXT_mesh_gpu_instancing")]
+        ext: Option<Ext>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Node {
+        #[serde(default)]
+        extensions: Option<Exts>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Root {
+        #[serde(default)]
+        nodes: Vec<Node>,
+    }
+    // A GLB's JSON is its first chunk, after the 12-byte header and the
+    // chunk's 8-byte header.
+    let json = match bytes.strip_prefix(b"glTF") {
+        Some(_) => {
+            let len = bytes
+                .get(12..16)
+                .map(|l| u32::from_le_bytes([l[0], l[1], l[2], l[3]]) as usize)
+                .unwrap_or(0);
+            bytes.get(20..20 + len).unwrap_or(&[])
+        }
+        None => bytes,
+    };
+    let root: Root = gltf::json::deserialize::from_slice(json)
+        .map_err(|e| format!("invalid glTF: {EXT}: {e}"))?;
+    for (n, node) in root.nodes.iter().enumerate() {
+        let Some(ext) = node.extensions.as_ref().and_then(|e| e.ext.as_ref()) else {
+            continue;
+        };
+        let at = |m: String| format!("node {n}: {EXT}: {m}");
+        let mut count = None;
+        let mut read = |name: &str, dims: usize| -> Result<Option<Vec<f32>>, String> {
+            let Some(&i) = ext.attributes.get(name) else {
+                return Ok(None);
+            };
+            let acc = doc
+                .accessors()
+                .nth(i)
+                .ok_or_else(|| at(format!("{name} accessor {i} does not exist")))?;
+            let ok_dims = match dims {
+                3 => acc.dimensions() == gltf::accessor::Dimensions::Vec3,
+                _ => acc.dimensions() == gltf::accessor::Dimensions::Vec4,
+            };
+            if !ok_dims || acc.data_type() != gltf::accessor::DataType::F32 {
+                return Err(at(format!(
+                    "{name} accessor {i} must hold VEC{dims} of float"
+                )));
+            }
+            check_accessor(&acc, buffers).map_err(|m| at(format!("{name}: {m}")))?;
+            if *count.get_or_insert(acc.count()) != acc.count() {
+                return Err(at(format!(
+                    "{name} has {} elements, another attribute {}",
+                    acc.count(),
+                    count.unwrap_or(0)
+                )));
+            }
+            let get = |b: gltf::Buffer| buffers.get(b.index()).map(|d| d.as_slice());
+            let values: Option<Vec<f32>> = if dims == 3 {
+                gltf::accessor::Iter::<[f32; 3]>::new(acc.clone(), get)
+                    .map(|it| it.flatten().collect())
+            } else {
+                gltf::accessor::Iter::<[f32; 4]>::new(acc.clone(), get)
+                    .map(|it| it.flatten().collect())
+            };
+            let values = values.ok_or_else(|| at(format!("{name} lies outside its buffer")))?;
+            if values.iter().any(|v| !v.is_finite()) {
+                return Err(at(format!("{name} holds a value that is not finite")));
+            }
+            Ok(Some(values))
+        };
+        let t = read("TRANSLATION", 3)?;
+        let r = read("ROTATION", 4)?;
+        let s = read("SCALE", 3)?;
+        let n_inst =
+            count.ok_or_else(|| at("has none of TRANSLATION, ROTATION and SCALE".to_string()))?;
+        let list = (0..n_inst)
+            .map(|k| {
+                let v3 = |a: &Option<Vec<f32>>, d: f64| {
+                    a.as_ref().map_or(DVec3::splat(d), |a| {
+                        DVec3::new(a[3 * k] as f64, a[3 * k + 1] as f64, a[3 * k + 2] as f64)
+                    })
+                };
+                let q = r.as_ref().map_or(glam::DQuat::IDENTITY, |a| {
+                    glam::DQuat::from_xyzw(
+                        a[4 * k] as f64,
+                        a[4 * k + 1] as f64,
+                        a[4 * k + 2] as f64,
+                        a[4 * k + 3] as f64,
+                    )
+                    .normalize()
+                });
+                DMat4::from_scale_rotation_translation(v3(&s, 1.0), q, v3(&t, 0.0))
+            })
+            .collect::<Vec<_>>();
+        if let Some(k) = list.iter().position(|m| !m.is_finite()) {
+            return Err(at(format!(
+                "instance {k}'s transform is not finite (a zero ROTATION quaternion?)"
+            )));
+        }
+        out.insert(n, list);
+    }
+    Ok(out)
 }
 
 /// The version of a glTF 1.0 file (binary glTF 1.0, or JSON whose

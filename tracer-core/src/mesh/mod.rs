@@ -46,6 +46,34 @@ pub struct Mesh {
     /// glTF `KHR_lights_punctual` lights as placed by the default scene's
     /// nodes, in the same order. Empty for other formats.
     pub lights: Vec<ModelLight>,
+    /// Geometry placed more than once (a glTF mesh used by several nodes,
+    /// or by `EXT_mesh_gpu_instancing`), stored once: the world traces it
+    /// through a two-level tree instead of copying it. Empty for other formats.
+    pub instanced: Vec<InstancedPart>,
+}
+
+/// Geometry of a model stored once and placed many times.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct InstancedPart {
+    /// The geometry in its own space: positions, normals, triangles and
+    /// `triangle_materials` (indices into the owning [`Mesh`]'s
+    /// `materials`; this mesh's own `materials` stay empty).
+    pub mesh: Mesh,
+    /// Where each copy goes in the model's space: column-major 4x4
+    /// affine matrices (glam's `DMat4`), each invertible.
+    pub transforms: Vec<[f64; 16]>,
+}
+
+impl Mesh {
+    /// Triangles as placed: the plain ones and every instanced copy.
+    pub fn placed_triangles(&self) -> usize {
+        self.triangles.len()
+            + self
+                .instanced
+                .iter()
+                .map(|p| p.mesh.triangles.len() * p.transforms.len())
+                .sum::<usize>()
+    }
 }
 
 /// A camera of a model file, in the file's model space (node transforms
@@ -266,12 +294,27 @@ impl Mesh {
 
     /// Checks indices and values; zero or non-finite normals become "unknown".
     fn validate(&mut self) -> Result<(), String> {
-        if self.triangles.is_empty() {
+        if self.triangles.is_empty() && self.instanced.is_empty() {
             return Err("contains no triangles".into());
         }
         if self.materials.is_empty() {
             self.materials.push(("default".into(), default_material()));
         }
+        let nm = self.materials.len();
+        self.validate_geometry(nm)?;
+        for (i, part) in self.instanced.iter_mut().enumerate() {
+            part.mesh
+                .validate_geometry(nm)
+                .map_err(|e| format!("instanced part {i}: {e}"))?;
+        }
+        for (name, m) in &self.materials {
+            check_material(m).map_err(|e| format!("material {name:?}: {e}"))?;
+        }
+        Ok(())
+    }
+
+    /// Checks indices and values of the geometry against `nm` materials.
+    fn validate_geometry(&mut self, nm: usize) -> Result<(), String> {
         if self.triangle_materials.len() != self.triangles.len() {
             return Err("internal: one material per triangle expected".into());
         }
@@ -309,7 +352,6 @@ impl Mesh {
                 self.colors.len()
             ));
         }
-        let nm = self.materials.len();
         if let Some(&m) = self.triangle_materials.iter().find(|&&m| m as usize >= nm) {
             return Err(format!("material index {m} out of range (there are {nm})"));
         }
@@ -325,9 +367,6 @@ impl Mesh {
                     [0.0; 3]
                 };
             }
-        }
-        for (name, m) in &self.materials {
-            check_material(m).map_err(|e| format!("material {name:?}: {e}"))?;
         }
         Ok(())
     }

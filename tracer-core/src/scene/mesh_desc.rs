@@ -40,9 +40,41 @@ pub struct MeshDesc {
     /// The model's glTF lights the scene gets (default none).
     #[serde(default)]
     pub lights: LightsPick,
+    /// Copies of the model, each placed by its own keys after the
+    /// object's placement; the model is stored once (instancing). Empty:
+    /// one copy, at the object's placement.
+    #[serde(default)]
+    pub instances: Vec<MeshInstance>,
     /// The loaded model (filled by `SceneDesc::parse`, not part of the format).
     #[serde(skip)]
     pub model: MeshModel,
+}
+
+/// One copy of a mesh object's model: scale, then `rotate_euler`, then
+/// `rotate`, then `translate`, as the object's own keys.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MeshInstance {
+    #[serde(default)]
+    pub translate: Vec3,
+    #[serde(default)]
+    pub rotate: Option<Rotation>,
+    #[serde(default)]
+    pub rotate_euler: Option<Vec3>,
+    #[serde(default)]
+    pub scale: Scale,
+}
+
+impl MeshInstance {
+    /// Model space (as the object places it) -> world space.
+    pub fn transform(&self) -> Affine {
+        placement(
+            &self.scale,
+            &self.rotate_euler,
+            &self.rotate,
+            &self.translate,
+        )
+    }
 }
 
 #[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
@@ -167,33 +199,22 @@ impl MeshDesc {
                 ));
             }
         }
-        if !self.scale.0.iter().all(|v| v.is_finite() && *v != 0.0) {
+        check_placement(&self.scale, &self.rotate, &self.rotate_euler)?;
+        for (i, inst) in self.instances.iter().enumerate() {
+            let at = |(f, m): (&str, String)| ("instances", format!("instances[{i}].{f} {m}"));
+            if !inst.translate.0.iter().all(|v| v.is_finite()) {
+                return Err(at((
+                    "translate",
+                    format!("must be finite, got {:?}", inst.translate.0),
+                )));
+            }
+            check_placement(&inst.scale, &inst.rotate, &inst.rotate_euler).map_err(at)?;
+        }
+        if !self.instances.is_empty() && !self.keyframes.is_empty() {
             return Err((
-                "scale",
-                format!("must be finite and non-zero, got {:?}", self.scale.0),
+                "instances",
+                "cannot be combined with keyframes (a moving mesh is one copy)".into(),
             ));
-        }
-        if let Some(r) = &self.rotate {
-            let a = r.axis.0;
-            let len = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
-            if !(len.is_finite() && len > 0.0) {
-                return Err((
-                    "rotate",
-                    format!("axis must be a finite, non-zero vector, got {a:?}"),
-                ));
-            }
-            if !r.degrees.0.is_finite() {
-                return Err((
-                    "rotate",
-                    format!("degrees must be finite, got {}", r.degrees.0),
-                ));
-            }
-        }
-        if let Some(e) = self
-            .rotate_euler
-            .filter(|e| !e.0.iter().all(|v| v.is_finite()))
-        {
-            return Err(("rotate_euler", format!("must be finite, got {:?}", e.0)));
         }
         Ok(())
     }
@@ -207,21 +228,71 @@ impl MeshDesc {
 
     /// Model space -> world space.
     pub fn transform(&self) -> Affine {
-        let mut linear = DMat3::from_diagonal(DVec3::from_array(self.scale.0));
-        if let Some(e) = &self.rotate_euler {
-            let [x, y, z] = e.0.map(f64::to_radians);
-            linear = DMat3::from_rotation_z(z)
-                * DMat3::from_rotation_y(y)
-                * DMat3::from_rotation_x(x)
-                * linear;
+        placement(
+            &self.scale,
+            &self.rotate_euler,
+            &self.rotate,
+            &self.translate,
+        )
+    }
+}
+
+/// Checks scale and rotations of a placement; `Err((field, message))`.
+fn check_placement(
+    scale: &Scale,
+    rotate: &Option<Rotation>,
+    rotate_euler: &Option<Vec3>,
+) -> Result<(), (&'static str, String)> {
+    if !scale.0.iter().all(|v| v.is_finite() && *v != 0.0) {
+        return Err((
+            "scale",
+            format!("must be finite and non-zero, got {:?}", scale.0),
+        ));
+    }
+    if let Some(r) = rotate {
+        let a = r.axis.0;
+        let len = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+        if !(len.is_finite() && len > 0.0) {
+            return Err((
+                "rotate",
+                format!("axis must be a finite, non-zero vector, got {a:?}"),
+            ));
         }
-        if let Some(r) = &self.rotate {
-            let axis = DVec3::from_array(r.axis.0).normalize();
-            linear = DMat3::from_axis_angle(axis, r.degrees.0.to_radians()) * linear;
+        if !r.degrees.0.is_finite() {
+            return Err((
+                "rotate",
+                format!("degrees must be finite, got {}", r.degrees.0),
+            ));
         }
-        Affine {
-            linear,
-            translation: DVec3::from_array(self.translate.0),
-        }
+    }
+    if let Some(e) = rotate_euler.filter(|e| !e.0.iter().all(|v| v.is_finite())) {
+        return Err(("rotate_euler", format!("must be finite, got {:?}", e.0)));
+    }
+    Ok(())
+}
+
+/// Scale, then `rotate_euler` (about x, then y, then z), then `rotate`,
+/// then `translate`.
+fn placement(
+    scale: &Scale,
+    rotate_euler: &Option<Vec3>,
+    rotate: &Option<Rotation>,
+    translate: &Vec3,
+) -> Affine {
+    let mut linear = DMat3::from_diagonal(DVec3::from_array(scale.0));
+    if let Some(e) = rotate_euler {
+        let [x, y, z] = e.0.map(f64::to_radians);
+        linear = DMat3::from_rotation_z(z)
+            * DMat3::from_rotation_y(y)
+            * DMat3::from_rotation_x(x)
+            * linear;
+    }
+    if let Some(r) = rotate {
+        let axis = DVec3::from_array(r.axis.0).normalize();
+        linear = DMat3::from_axis_angle(axis, r.degrees.0.to_radians()) * linear;
+    }
+    Affine {
+        linear,
+        translation: DVec3::from_array(translate.0),
     }
 }

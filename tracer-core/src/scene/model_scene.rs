@@ -119,7 +119,18 @@ pub const HEADLIGHT: f64 = 0.8;
 /// The box of the model's vertices as the object places them (`None` for
 /// a model without vertices).
 pub(crate) fn placed_bounds(mesh: &Mesh, xf: &Affine) -> Option<(DVec3, DVec3)> {
-    let mut it = mesh.positions.iter().map(|p| xf.point(*p));
+    // Instanced copies too, vertex by vertex, so a model frames the same
+    // whether its copies are instanced or copied.
+    let copies = mesh.instanced.iter().flat_map(|part| {
+        part.transforms.iter().flat_map(move |t| {
+            let t = glam::DMat4::from_cols_array(t);
+            part.mesh.positions.iter().map(move |p| {
+                let q = t.transform_point3(DVec3::from_array(p.map(f64::from)));
+                xf.linear * q + xf.translation
+            })
+        })
+    });
+    let mut it = mesh.positions.iter().map(|p| xf.point(*p)).chain(copies);
     let first = it.next()?;
     Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
 }

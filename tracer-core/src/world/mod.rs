@@ -12,6 +12,7 @@
 //! one. The world sits above `accel` and `bvh`: it owns the tree and the
 //! primitives, and neither of them knows the `World`.
 
+mod instances;
 mod query;
 mod triangles;
 
@@ -24,6 +25,8 @@ use crate::scene::{FILE_MATERIALS, Integrator, ObjectDesc, RenderSettings, Scene
 use crate::triangle::{Triangle, TriangleShading};
 use triangles::TriangleSet;
 pub use triangles::VertexAttrs;
+
+pub use instances::{Affine3, Instance, InstancedMesh, Instances};
 
 pub use crate::light::PointLight;
 pub use crate::material::Material;
@@ -81,6 +84,8 @@ pub struct World<R: Real> {
     /// Bounding volume hierarchy over spheres and triangles, when the scene
     /// has meshes or many spheres (see `accel.rs`); planes stay outside it.
     pub accel: Option<Bvh>,
+    /// Meshes placed many times, stored once (the tree's `PrimId::INSTANCE`s).
+    pub instances: Instances<R>,
     /// Mesh triangles dropped at build because they have no area.
     pub degenerate_triangles: usize,
     pub materials: Vec<Material<R>>,
@@ -103,6 +108,9 @@ pub struct World<R: Real> {
     /// Distributed ray tracing (area lights, cones, lens, motion), only
     /// for scenes that use it: they render through its own path.
     pub dist: Option<Box<Distributed<R>>>,
+    /// This world with its instances copied into its triangles, made once
+    /// on first use ([`World::one_level`]).
+    one_level: std::sync::OnceLock<Box<World<R>>>,
 }
 
 fn v<R: Real>(a: &Vec3) -> R::V3 {
@@ -145,7 +153,10 @@ impl<R: Real> World<R> {
         let mut moving_spheres = Vec::new();
         let mut moving_meshes = Vec::new();
         let mut planes = Vec::new();
-        let mut tris = TriangleSet::default();
+        let mut tris = TriangleSet {
+            instancing: true,
+            ..Default::default()
+        };
         let mut features = Features::default();
         for (o, &mat) in desc.objects.iter().zip(&desc.object_materials) {
             if mat != FILE_MATERIALS {
@@ -254,7 +265,8 @@ impl<R: Real> World<R> {
             triangles: tris.triangles,
             triangle_shading: tris.shading,
             accel: None,
-            degenerate_triangles: tris.degenerate,
+            degenerate_triangles: tris.degenerate + tris.instances.dropped,
+            instances: tris.instances,
             bsdfs: bsdfs_of(desc, &materials),
             materials,
             pbr: tris.pbr,
@@ -267,6 +279,7 @@ impl<R: Real> World<R> {
             features,
             camera_position: origin,
             dist: None,
+            one_level: Default::default(),
         };
         world.set_accel(None);
 
@@ -304,6 +317,7 @@ impl<R: Real> World<R> {
                         triangles: set.triangles,
                         triangle_shading: set.shading,
                         accel: None,
+                        instances: set.instances,
                         degenerate_triangles: set.degenerate,
                         bsdfs: bsdfs_of(desc, &mats),
                         materials: mats,
@@ -364,6 +378,7 @@ impl<R: Real> World<R> {
     pub fn set_accel(&mut self, force: Option<bool>) {
         self.accel = crate::accel::build(
             &self.spheres,
+            &self.instances.boxes(),
             &mut self.triangles,
             &mut self.triangle_shading,
             force,
@@ -385,6 +400,7 @@ impl<R: Real> World<R> {
             triangles: Vec::new(),
             triangle_shading: Vec::new(),
             accel: None,
+            instances: Instances::default(),
             degenerate_triangles: 0,
             materials: Vec::new(),
             bsdfs: Vec::new(),
@@ -398,7 +414,34 @@ impl<R: Real> World<R> {
             features: self.features,
             camera_position: self.camera_position,
             dist: None,
+            one_level: Default::default(),
         }
+    }
+
+    /// This world, or where it has instances, a copy with every placed
+    /// triangle in its triangles and one tree over them: for renderers
+    /// that trace one level only (the GPU). Made once, on first use.
+    pub fn one_level(&self) -> &World<R> {
+        if self.instances.list.is_empty() {
+            return self;
+        }
+        self.one_level.get_or_init(|| {
+            let (tris, shading) = self.instances.flattened();
+            let mut w = World {
+                spheres: self.spheres.clone(),
+                sphere_packs: self.sphere_packs.clone(),
+                planes: self.planes.clone(),
+                triangles: [self.triangles.as_slice(), &tris].concat(),
+                triangle_shading: [self.triangle_shading.as_slice(), &shading].concat(),
+                materials: self.materials.clone(),
+                lights: self.lights.clone(),
+                degenerate_triangles: self.degenerate_triangles,
+                dist: self.dist.clone(),
+                ..self.clone_settings()
+            };
+            w.set_accel(None);
+            Box::new(w)
+        })
     }
 }
 

@@ -121,7 +121,7 @@ impl<R: Real> World<R> {
         if let Some(tree) = &self.accel {
             return self.closest_hit_accel(tree, ray, skip);
         }
-        if !self.triangles.is_empty() {
+        if !self.triangles.is_empty() || !self.instances.list.is_empty() {
             return self.closest_hit_brute(ray, skip);
         }
         let mut best = R::INFINITY;
@@ -166,7 +166,7 @@ impl<R: Real> World<R> {
         if let Some(tree) = &self.accel {
             return self.occluded_accel(tree, ray, t_max, skip);
         }
-        if !self.triangles.is_empty() {
+        if !self.triangles.is_empty() || !self.instances.list.is_empty() {
             return self.occluded_brute(ray, t_max, skip);
         }
         let (o, d) = Self::splat_ray(ray);
@@ -192,6 +192,7 @@ impl<R: Real> World<R> {
                 (p, n, s.material)
             }
             PrimId::TRIANGLE => self.triangle_surface(id.index(), p),
+            PrimId::INSTANCE_TRIANGLE => self.instances.surface(id.index(), p),
             _ => {
                 let pl = &self.planes[id.index()];
                 let (p, n) = pl.surface(p);
@@ -204,7 +205,21 @@ impl<R: Real> World<R> {
     #[inline]
     fn closest_hit_accel(&self, tree: &Bvh, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
         let (best, id) = self.closest_plane(ray, skip);
-        bvh::closest_hit(self, tree, ray, best, id, skip)
+        let hit = bvh::closest_hit(self, tree, ray, best, id, skip);
+        self.resolve(ray, hit, skip)
+    }
+
+    /// A hit as the tree gives it, with an instance's id (the top level
+    /// knows only which instance) made the id of the triangle hit: the
+    /// instance's nearest hit, found again the same way.
+    #[inline(always)]
+    fn resolve(&self, ray: &Ray<R>, hit: Option<(R, PrimId)>, skip: PrimId) -> Option<(R, PrimId)> {
+        match hit {
+            Some((_, id)) if id.kind() == PrimId::INSTANCE => {
+                self.instances.closest(id.index(), ray, R::INFINITY, skip)
+            }
+            hit => hit,
+        }
     }
 
     /// `out[j] = self.closest_hit(&rays[j], skip)` for every ray, the same
@@ -235,7 +250,8 @@ impl<R: Real> World<R> {
             let n = rays.len();
             bvh::closest_hits(w, tree, rays, &mut best[..n], &mut found[..n], skip);
             for j in 0..n {
-                out[j] = (found[j] != PrimId::NONE).then_some((best[j], found[j]));
+                let hit = (found[j] != PrimId::NONE).then_some((best[j], found[j]));
+                out[j] = w.resolve(&rays[j], hit, skip);
             }
         }
     }
@@ -314,6 +330,14 @@ impl<R: Real> World<R> {
     /// primitive, with the tree's order on ties ([`PrimId::nearer`]).
     fn closest_hit_brute(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
         let (mut best, mut id) = self.closest_plane(ray, skip);
+        for i in 0..self.instances.list.len() {
+            if let Some((t, pid)) = self.instances.closest(i, ray, best, skip)
+                && pid.nearer(t, best, id)
+            {
+                best = t;
+                id = pid;
+            }
+        }
         let tr = TriangleRay::new(ray);
         for (i, t) in self.triangles.iter().enumerate() {
             let pid = PrimId::new(PrimId::TRIANGLE, i as u32);
@@ -343,13 +367,16 @@ impl<R: Real> World<R> {
         let tr = TriangleRay::new(ray);
         self.triangles.iter().enumerate().any(|(i, t)| {
             PrimId::new(PrimId::TRIANGLE, i as u32) != skip && t.intersect(&tr, t_max).is_some()
-        }) || self.spheres.iter().enumerate().any(|(i, s)| {
-            s.intersect(ray, t_max, PrimId::new(PrimId::SPHERE, i as u32) == skip)
-                .is_some()
-        }) || self.planes.iter().enumerate().any(|(i, p)| {
-            p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
-                .is_some()
-        })
+        }) || (0..self.instances.list.len())
+            .any(|i| self.instances.closest(i, ray, t_max, skip).is_some())
+            || self.spheres.iter().enumerate().any(|(i, s)| {
+                s.intersect(ray, t_max, PrimId::new(PrimId::SPHERE, i as u32) == skip)
+                    .is_some()
+            })
+            || self.planes.iter().enumerate().any(|(i, p)| {
+                p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
+                    .is_some()
+            })
     }
 
     /// Point snapped onto the triangle's plane, its outward geometric normal, and material.
@@ -368,20 +395,26 @@ impl<R: Real> World<R> {
     /// so that no reflected ray is sent into the surface.
     #[inline(always)]
     pub fn shading_normal(&self, id: PrimId, p: R::V3, n: R::V3, v: R::V3) -> R::V3 {
-        if id.kind() != PrimId::TRIANGLE {
-            return n;
-        }
-        let s = &self.triangle_shading[id.index()];
-        if s.vertex_normals.is_none() {
-            return n;
-        }
-        let ns = s.normal_at(&self.triangles[id.index()], p);
+        let ns = match id.kind() {
+            PrimId::TRIANGLE => {
+                let s = &self.triangle_shading[id.index()];
+                if s.vertex_normals.is_none() {
+                    return n;
+                }
+                s.normal_at(&self.triangles[id.index()], p)
+            }
+            PrimId::INSTANCE_TRIANGLE => match self.instances.vertex_normal(id.index(), p) {
+                Some(ns) => ns,
+                None => return n,
+            },
+            _ => return n,
+        };
         let ns = if ns.dot(n) < R::ZERO { -ns } else { ns };
         if ns.dot(v) > R::ZERO { ns } else { n }
     }
 }
 
-/// The tree holds this world's spheres and triangles (`accel::build`).
+/// The tree holds this world's spheres, instances and triangles (`accel::build`).
 impl<R: Real> bvh::Primitives<R> for World<R> {
     #[inline(always)]
     fn intersect(
@@ -398,6 +431,10 @@ impl<R: Real> bvh::Primitives<R> for World<R> {
                 return None;
             }
             self.triangles[id.index()].distance(tri, t_max)
+        } else if id.kind() == PrimId::INSTANCE {
+            self.instances
+                .closest(id.index(), ray, t_max, skip)
+                .map(|(t, _)| t)
         } else {
             self.spheres[id.index()].intersect(ray, R::INFINITY, id == skip)
         }

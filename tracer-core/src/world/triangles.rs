@@ -9,6 +9,8 @@ use crate::math::{Real, Vector3};
 use crate::scene::MeshDesc;
 use crate::triangle::{NO_ATTRS, Triangle, TriangleShading};
 
+use super::instances::Instances;
+
 use super::{Features, Material};
 
 /// What textured triangles need beyond their shading: per vertex, the
@@ -37,6 +39,10 @@ pub(crate) struct TriangleSet<R: Real> {
     pub pbr: Vec<Arc<Pbr>>,
     /// ... and the vertex attributes of the triangles that use them.
     pub attrs: VertexAttrs,
+    /// Whether a model's instanced parts are stored once and placed
+    /// (`instances`), or copied into `triangles` (a moving mesh's world).
+    pub instancing: bool,
+    pub instances: Instances<R>,
 }
 
 impl<R: Real> TriangleSet<R> {
@@ -75,13 +81,121 @@ impl<R: Real> TriangleSet<R> {
         } else {
             vec![material; mesh.materials.len()]
         };
-        // Positions in f64, made camera-relative, and only then rounded.
+        // Triangles of materials whose look varies over them keep their
+        // vertices' texture coordinates and colours.
+        let varies: Vec<bool> = mats
+            .iter()
+            .map(|&m| {
+                let p = materials[m as usize].pbr;
+                p != NO_PBR && self.pbr[p as usize].varies()
+            })
+            .collect();
+        let to_world = |a: crate::scene::Affine| {
+            glam::DMat4::from_mat3_translation(a.linear, a.translation - origin)
+        };
+        // The object's copies: its `instances` after its own placement, or
+        // itself once. A model placed once keeps its triangles in world
+        // space, rounded from f64 (as before instancing existed).
+        let copies: Vec<glam::DMat4> = if desc.instances.is_empty() {
+            // Positions in f64, made camera-relative, and only then rounded.
+            self.add_geometry(
+                mesh,
+                |p| xf.point(p) - origin,
+                xf.normal_matrix(),
+                xf.mirrors(),
+                &mats,
+                &varies,
+            );
+            vec![to_world(xf)]
+        } else {
+            let copies: Vec<_> = desc
+                .instances
+                .iter()
+                .map(|i| {
+                    let outer = i.transform();
+                    to_world(crate::scene::Affine {
+                        linear: outer.linear * xf.linear,
+                        translation: outer.linear * xf.translation + outer.translation,
+                    })
+                })
+                .collect();
+            self.add_placed(mesh, &copies, &mats, &varies);
+            copies
+        };
+        for part in &mesh.instanced {
+            let list: Vec<glam::DMat4> = copies
+                .iter()
+                .flat_map(|c| {
+                    part.transforms
+                        .iter()
+                        .map(move |t| *c * glam::DMat4::from_cols_array(t))
+                })
+                .collect();
+            self.add_placed(&part.mesh, &list, &mats, &varies);
+        }
+    }
+
+    /// Adds `mesh` placed by each of `list` (object space to the
+    /// camera-relative world): stored once and instanced, or copied when
+    /// this set does not instance (or the ids run out).
+    /// Textured meshes are copied: an instance's triangles keep no vertex
+    /// attributes of their own yet.
+    fn add_placed(
+        &mut self,
+        mesh: &crate::mesh::Mesh,
+        list: &[glam::DMat4],
+        mats: &[u32],
+        varies: &[bool],
+    ) {
+        let mut id = None;
+        if self.instancing && !varies.iter().any(|&v| v) {
+            // The mesh once, in its own space, with its own tree.
+            let mut own = TriangleSet::default();
+            own.add_geometry(
+                mesh,
+                |p| glam::DVec3::from_array(p.map(f64::from)),
+                glam::DMat3::IDENTITY,
+                false,
+                mats,
+                varies,
+            );
+            self.degenerate += own.degenerate * list.len();
+            id = Some(self.instances.add_mesh(own.triangles, own.shading));
+        }
+        for &m in list {
+            if let Some(id) = id
+                && self.instances.place(id, m)
+            {
+                continue;
+            }
+            let linear = glam::DMat3::from_mat4(m);
+            self.add_geometry(
+                mesh,
+                |p| m.transform_point3(glam::DVec3::from_array(p.map(f64::from))),
+                linear.inverse().transpose(),
+                linear.determinant() < 0.0,
+                mats,
+                varies,
+            );
+        }
+    }
+
+    /// Adds `mesh`'s triangles, each vertex placed by `place` (in `f64`,
+    /// then rounded), normals by `normal_matrix`; `flip`: the map mirrors.
+    fn add_geometry(
+        &mut self,
+        mesh: &crate::mesh::Mesh,
+        place: impl Fn([f32; 3]) -> glam::DVec3,
+        nm: glam::DMat3,
+        flip: bool,
+        mats: &[u32],
+        varies: &[bool],
+    ) {
         let verts: Vec<R::V3> = mesh
             .positions
             .iter()
-            .map(|&p| R::V3::from_array((xf.point(p) - origin).to_array()))
+            .map(|&p| R::V3::from_array(place(p).to_array()))
             .collect();
-        let nm = xf.normal_matrix();
         let normals: Vec<R::V3> = mesh
             .normals
             .iter()
@@ -93,15 +207,6 @@ impl<R: Real> TriangleSet<R> {
                 } else {
                     [0.0; 3]
                 })
-            })
-            .collect();
-        // Triangles of materials whose look varies over them keep their
-        // vertices' texture coordinates and colours.
-        let varies: Vec<bool> = mats
-            .iter()
-            .map(|&m| {
-                let p = materials[m as usize].pbr;
-                p != NO_PBR && self.pbr[p as usize].varies()
             })
             .collect();
         let first_vertex = self.attrs.uv[0].len() as u32;
@@ -121,7 +226,6 @@ impl<R: Real> TriangleSet<R> {
                 self.attrs.color.extend(std::iter::repeat_n([1.0; 4], nv));
             }
         }
-        let flip = xf.mirrors();
         self.triangles.reserve(mesh.triangles.len());
         self.shading.reserve(mesh.triangles.len());
         for (t, &m) in mesh.triangles.iter().zip(&mesh.triangle_materials) {

@@ -724,7 +724,8 @@ impl GpuRenderer {
     ) -> Result<Rendered, GpuError> {
         prepared.check_request(rect, samples)?;
         let world = match prepared {
-            PreparedFrame::F32(w) => w,
+            // The kernels trace one level: instances copied (made once a world).
+            PreparedFrame::F32(w) => w.one_level(),
             PreparedFrame::F64(_) => return Err(GpuError::F64Unsupported),
         };
         if world.settings.integrator == crate::scene::Integrator::Path {
