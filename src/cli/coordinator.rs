@@ -58,6 +58,11 @@ pub struct CoordinatorArgs {
     /// TESSERA_WORKER_TOKEN; none: open]
     #[arg(long, value_name = "FILE")]
     pub worker_token_file: Option<PathBuf>,
+    /// File holding a token that opens only the monitor's /metrics (for a
+    /// Prometheus server; the client token opens it too) [default: the
+    /// environment variable TESSERA_METRICS_TOKEN]
+    #[arg(long, value_name = "FILE", requires = "http")]
+    pub metrics_token_file: Option<PathBuf>,
     /// Listen on a non-loopback address without tokens (a trusted network only)
     #[arg(long)]
     pub insecure: bool,
@@ -122,6 +127,8 @@ pub struct CoordinatorArgs {
 
 /// Environment variables of the coordinator's tokens.
 pub const COORDINATOR_CLIENT_TOKEN_ENV: &str = "TESSERA_CLIENT_TOKEN";
+/// Environment variable of the scrape-only `/metrics` token.
+pub const METRICS_TOKEN_ENV: &str = "TESSERA_METRICS_TOKEN";
 
 fn secs(name: &str, v: f64) -> Result<Duration> {
     Duration::try_from_secs_f64(v)
@@ -217,6 +224,11 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
         security.client_token.as_deref(),
         security.worker_token.as_deref(),
     )?;
+    let metrics_token = read_token(
+        args.metrics_token_file.as_deref(),
+        "--metrics-token-file",
+        METRICS_TOKEN_ENV,
+    )?;
     runtime()?.block_on(async move {
         let listener = tokio::net::TcpListener::bind(&args.listen)
             .await
@@ -299,6 +311,7 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
             println!("monitor on http://{http_addr}");
             let monitor = MonitorConfig {
                 client_token: security.client_token.clone(),
+                metrics_token: metrics_token.clone(),
                 allow_hosts: args.http_allow_host.clone(),
                 edge,
             };

@@ -655,6 +655,13 @@ impl Farm {
     ) -> Result<Vec<LeaseView>, FarmError> {
         // Registered before looking, so a wake-up between the look and the
         // wait is not missed.
+        let start = Instant::now();
+        let granted = |leases: Vec<LeaseView>| {
+            if !leases.is_empty() {
+                self.metrics.lease_granted(start.elapsed().as_secs_f64());
+            }
+            leases
+        };
         let notified = self.work_ready.notified();
         tokio::pin!(notified);
         notified.as_mut().enable();
@@ -670,9 +677,9 @@ impl Farm {
             || wait.is_zero()
             || tokio::time::timeout(wait, notified).await.is_err()
         {
-            return Ok(leases);
+            return Ok(granted(leases));
         }
-        self.lease(worker_id, max_units, ahead)
+        self.lease(worker_id, max_units, ahead).map(granted)
     }
 
     /// Extends the worker's leases; returns those it no longer holds.

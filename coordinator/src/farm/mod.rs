@@ -465,6 +465,8 @@ pub struct Farm {
     /// Woken whenever units become pending (a job submitted, units queued
     /// again), for workers waiting in [`Farm::lease_or_wait`].
     work_ready: tokio::sync::Notify,
+    /// Prometheus counters and histograms (`crate::metrics`).
+    pub metrics: crate::metrics::Metrics,
 }
 
 fn now_ms() -> i64 {
@@ -542,6 +544,7 @@ impl Farm {
             state: Mutex::new(State::default()),
             boot,
             work_ready: tokio::sync::Notify::new(),
+            metrics: crate::metrics::Metrics::new(),
         });
         let mut to_write = Vec::new();
         {
@@ -650,6 +653,14 @@ impl Farm {
     /// to `store::RESULTS_DURABLE_WITHIN`): for a coordinator that stops.
     pub async fn sync_store(&self) -> Result<(), StoreError> {
         self.store.sync().await
+    }
+
+    /// Writes `ops` durably, timed for `tessera_store_commit_seconds`.
+    async fn commit(&self, ops: Vec<crate::store::Op>) -> Result<(), StoreError> {
+        let start = Instant::now();
+        let r = self.store.write(ops).await;
+        self.metrics.store_commit(start.elapsed().as_secs_f64());
+        r
     }
 
     fn check_storage(&self) -> Result<(), FarmError> {

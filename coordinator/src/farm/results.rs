@@ -41,9 +41,13 @@ impl Farm {
         rs: Vec<ResultData>,
     ) -> Result<Vec<Outcome>, FarmError> {
         let farm = self.clone();
-        tokio::spawn(async move { farm.take_results(rs).await })
+        let outcomes = tokio::spawn(async move { farm.take_results(rs).await })
             .await
-            .map_err(|e| FarmError::Internal(format!("result task failed: {e}")))?
+            .map_err(|e| FarmError::Internal(format!("result task failed: {e}")))??;
+        for o in &outcomes {
+            self.metrics.result(o);
+        }
+        Ok(outcomes)
     }
 
     async fn take_results(self: Arc<Self>, rs: Vec<ResultData>) -> Result<Vec<Outcome>, FarmError> {
@@ -148,7 +152,7 @@ impl Farm {
                 let w = if ops.is_empty() {
                     Ok(())
                 } else {
-                    self.store.write(ops).await
+                    self.commit(ops).await
                 };
                 if w.is_err() {
                     self.store.discard_films(files.iter().map(Vec::as_slice));
@@ -415,6 +419,7 @@ impl Farm {
         }
         job.meter.add(Instant::now(), work_before - job.work_left);
         job.samples_this_run += samples;
+        self.metrics.samples(samples);
         let now = now_ms();
         if job.first_result_unix_ms == 0 {
             job.first_result_unix_ms = now;
