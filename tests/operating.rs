@@ -5,6 +5,9 @@
 //!   Python client (`tests/python/metrics_scrape.py`, `prometheus_client`
 //!   from PyPI, installed by `scripts/test`), checked before, during and
 //!   after a job, and behind the client token or the scrape-only token.
+//! - The per-job blocklist: a worker that reports `--blocklist-after`
+//!   units of a job failed gets none of its units until forgiven, and
+//!   `tessera status` says so.
 
 use std::io::{BufRead as _, BufReader};
 use std::path::Path;
@@ -12,6 +15,8 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use serde_json::Value;
+use tessera_proto::pb;
+use tessera_proto::pb::worker_service_client::WorkerServiceClient;
 
 mod support;
 use support::*;
@@ -40,7 +45,7 @@ fn start_coordinator(dir: &Path, extra: &[&str]) -> Coordinator {
         .arg(&client)
         .arg("--metrics-token-file")
         .arg(&metrics)
-        .args(["--lease-timeout", "2", "--heartbeat-interval", "0.4"])
+        .args(["--lease-timeout", "10", "--heartbeat-interval", "0.4"])
         .args(extra)
         .env("RUST_LOG", "info")
         .stdout(Stdio::piped())
@@ -308,4 +313,213 @@ fn metrics_are_prometheus_text_behind_the_tokens_and_move_as_a_job_runs() {
         0.0
     );
     drop(c.proc);
+}
+
+/// Worker-API calls as one session (a worker whose units fail at will).
+struct Session {
+    client: WorkerServiceClient<tonic::transport::Channel>,
+    id: String,
+}
+
+impl Session {
+    async fn register(url: &str, name: &str) -> Session {
+        let mut client = WorkerServiceClient::connect(url.to_string())
+            .await
+            .expect("connect");
+        let id = client
+            .register(pb::RegisterRequest {
+                name: name.into(),
+                capabilities: None,
+            })
+            .await
+            .expect("register")
+            .into_inner()
+            .worker_id;
+        Session { client, id }
+    }
+
+    /// One lease of one unit, without waiting: its lease id, if any.
+    async fn lease(&mut self) -> Option<String> {
+        self.client
+            .lease_work(pb::LeaseWorkRequest {
+                worker_id: self.id.clone(),
+                max_units: 1,
+                wait_ms: 0,
+                ahead: false,
+                ..Default::default()
+            })
+            .await
+            .expect("lease")
+            .into_inner()
+            .units
+            .into_iter()
+            .next()
+            .map(|u| u.lease_id)
+    }
+
+    async fn fail(&mut self, lease_id: String, message: &str) {
+        let r = self
+            .client
+            .submit_result(pb::SubmitResultRequest {
+                worker_id: self.id.clone(),
+                lease_id,
+                failure: message.into(),
+                ..Default::default()
+            })
+            .await
+            .expect("submit the failure")
+            .into_inner();
+        assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+    }
+}
+
+#[test]
+fn a_worker_failing_units_of_a_job_is_blocklisted_from_it_until_forgiven() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(
+        dir.path(),
+        &["--blocklist-after", "2", "--blocklist-seconds", "4"],
+    );
+    let scene = repo("examples/resolution.toml");
+    let job = ok_stdout(&client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--samples",
+            "1",
+            "--tile-size",
+            "16",
+            "--max-attempts",
+            "5",
+        ],
+    ))
+    .trim()
+    .to_string();
+    let rt = rt();
+    let mut broken = rt.block_on(Session::register(&c.grpc, "broken"));
+    let mut good = rt.block_on(Session::register(&c.grpc, "good"));
+    let blocked_at = rt.block_on(async {
+        for _ in 0..2 {
+            let l = broken.lease().await.expect("a unit for the broken worker");
+            broken.fail(l, "GPU lost: device removed").await;
+        }
+        std::time::Instant::now()
+    });
+    // Kept from the job: no lease although 12 units wait, while another
+    // worker gets one at once.
+    assert_eq!(
+        rt.block_on(broken.lease()),
+        None,
+        "a blocklisted worker got a lease"
+    );
+    assert!(
+        rt.block_on(good.lease()).is_some(),
+        "the good worker got no lease"
+    );
+    let st = job_status(&c, &job);
+    // Not failed: its units go to other workers.
+    assert_eq!(st["state"], "running", "{st}");
+    let listed = st["blocklisted"].as_array().expect("blocklisted");
+    assert_eq!(listed.len(), 1, "{st}");
+    assert_eq!(listed[0]["name"], "broken");
+    assert_eq!(listed[0]["failures"], 2);
+    let text = ok_stdout(&client(&c, &["status", &job]));
+    assert!(
+        text.contains("blocklist: worker broken (")
+            && text.contains("failed 2 unit(s); kept from this job for"),
+        "{text}"
+    );
+    let m = scrape(&c, Some(METRICS_TOKEN)).expect("scrape");
+    assert_eq!(
+        sample(&m, "tessera_results_total", &[("outcome", "failed")]),
+        2.0
+    );
+    // Still kept a moment before the forgive time...
+    while blocked_at.elapsed() < Duration::from_secs(3) {
+        assert_eq!(
+            rt.block_on(broken.lease()),
+            None,
+            "leased before being forgiven"
+        );
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    // ... and forgiven after it.
+    wait_for(
+        "the broken worker to be forgiven",
+        Duration::from_secs(5),
+        || rt.block_on(broken.lease()).is_some(),
+    );
+    assert!(
+        blocked_at.elapsed() >= Duration::from_secs(4),
+        "forgiven after {:?}, before --blocklist-seconds 4",
+        blocked_at.elapsed()
+    );
+    let st = job_status(&c, &job);
+    assert_eq!(st["blocklisted"], serde_json::json!([]), "{st}");
+}
+
+/// Issue 37's gap: one bad worker cannot fail a job. Its failure reports
+/// of a unit do not count against the job's attempts until a second
+/// worker fails the same unit; then they all do.
+#[test]
+fn one_worker_alone_cannot_fail_a_job_a_second_failing_the_unit_does() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    // No blocklist: the bad worker keeps leasing the one unit.
+    let c = start_coordinator(dir.path(), &["--blocklist-after", "0"]);
+    let scene = repo("examples/resolution.toml");
+    let job = ok_stdout(&client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--samples",
+            "1",
+            "--tile-size",
+            "32",
+            "--max-attempts",
+            "2",
+        ],
+    ))
+    .trim()
+    .to_string();
+    let rt = rt();
+    let mut bad = rt.block_on(Session::register(&c.grpc, "bad"));
+    rt.block_on(async {
+        for _ in 0..3 {
+            let l = bad.lease().await.expect("the job's one unit, again");
+            bad.fail(l, "out of memory").await;
+        }
+    });
+    let st = job_status(&c, &job);
+    assert_eq!(
+        st["state"], "running",
+        "three failures by one worker, max-attempts 2: {st}"
+    );
+    let mut other = rt.block_on(Session::register(&c.grpc, "other"));
+    rt.block_on(async {
+        let l = other.lease().await.expect("the unit for a second worker");
+        other.fail(l, "out of memory").await;
+    });
+    let st = job_status(&c, &job);
+    assert_eq!(st["state"], "failed", "{st}");
+    let error = st["error"].as_str().expect("error");
+    assert!(
+        error.starts_with("work unit 0 (frame 0,")
+            && error.ends_with(
+                "failed 4 times: worker bad: out of memory; worker bad: out of memory; \
+                 worker bad: out of memory; worker other: out of memory"
+            ),
+        "{error}"
+    );
 }

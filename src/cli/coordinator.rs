@@ -123,6 +123,13 @@ pub struct CoordinatorArgs {
     /// Seconds a quarantined worker gets no lease
     #[arg(long, default_value_t = 60.0)]
     pub quarantine_seconds: f64,
+    /// Units of one job a worker may report failed before it is kept
+    /// from that job (its blocklist, shown by `tessera status`); 0: never
+    #[arg(long, default_value_t = 3)]
+    pub blocklist_after: u32,
+    /// Seconds a blocklisted worker is kept from the job (then forgiven)
+    #[arg(long, default_value_t = 1800.0)]
+    pub blocklist_seconds: f64,
 }
 
 /// Environment variables of the coordinator's tokens.
@@ -151,6 +158,8 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
         "--quarantine-after must be at least 1, got 0"
     );
     config.quarantine_after = args.quarantine_after;
+    config.blocklist_after = args.blocklist_after;
+    config.blocklist_for = secs("blocklist-seconds", args.blocklist_seconds)?;
     config.max_frame_pixels = args.max_frame_pixels;
     config.asset_limits = AssetLimits {
         max_asset_bytes: args.max_asset_bytes,

@@ -328,6 +328,15 @@ impl Farm {
                 },
             );
             tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.region.frame, rect = ?lease.region.rect, error = %msg, "unit failed on worker");
+            if let Some(job) = st.jobs.get_mut(&lease.job) {
+                job.count_failure(
+                    &r.worker_id,
+                    &worker_name,
+                    lease.units.len() as u32,
+                    self.config.blocklist_after,
+                    self.config.blocklist_for,
+                );
+            }
             let rec = if st.partner_keeps(&r.lease_id, &lease) {
                 None
             } else {
@@ -336,7 +345,6 @@ impl Farm {
                     &lease.units,
                     &r.worker_id,
                     format!("worker {worker_name}: {msg}"),
-                    false,
                 )
             };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
@@ -367,7 +375,6 @@ impl Farm {
                     &lease.units,
                     &r.worker_id,
                     format!("worker {worker_name} sent a malformed result: {reason}"),
-                    true,
                 )
             };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);

@@ -91,6 +91,17 @@ pub struct JobJson {
     pub settings: SettingsJson,
     pub adaptive: Option<AdaptiveJson>,
     pub frames: Vec<FrameJson>,
+    /// Workers kept from this job for now (docs/operations.md).
+    pub blocklisted: Vec<BlockedJson>,
+}
+
+/// A worker on a job's blocklist.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct BlockedJson {
+    pub worker_id: String,
+    pub name: String,
+    pub failures: u32,
+    pub until_unix_ms: i64,
 }
 
 pub fn state_name(s: JobState) -> &'static str {
@@ -143,6 +154,16 @@ impl From<&JobView> for JobJson {
                 samples_per_unit: r.samples_per_unit,
                 max_attempts: r.max_attempts,
             },
+            blocklisted: v
+                .blocklisted
+                .iter()
+                .map(|b| BlockedJson {
+                    worker_id: b.id.clone(),
+                    name: b.name.clone(),
+                    failures: b.failures,
+                    until_unix_ms: b.until_unix_ms,
+                })
+                .collect(),
             adaptive: v.adaptive.settings.map(|a| AdaptiveJson {
                 target_error: a.target_error,
                 relative_error: a.relative_error,
