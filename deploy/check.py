@@ -133,6 +133,39 @@ if analyze:
 else:
     print("systemd-analyze not found: systemd units only checked for their command lines")
 
+# The dashboard and the autoscaler read only the metric names that
+# docs/operations.md lists as the contract (coordinator/src/metrics.rs).
+CONTRACT = {"tessera_jobs", "tessera_units", "tessera_workers", "tessera_results_total",
+            "tessera_lease_seconds", "tessera_samples_total", "tessera_store_healthy",
+            "tessera_store_commit_seconds", "tessera_asset_bytes"}
+
+
+def check_metrics(where, expr):
+    for name in re.findall(r"\btessera_[a-z_]+", expr):
+        base = re.sub(r"_(bucket|count|sum)$", "", name)
+        if name not in CONTRACT and base not in CONTRACT:
+            problem(where, f"{name} is not a metric the coordinator serves")
+
+
+dashboards = sorted((DEPLOY / "grafana").glob("*.json"))
+for path in dashboards:
+    try:
+        dash = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        problem(path.name, f"invalid JSON: {e}")
+        continue
+    for panel in dash.get("panels", []):
+        for t in panel.get("targets", []):
+            check_metrics(f"{path.name} panel {panel.get('title')!r}", t.get("expr", ""))
+if not dashboards:
+    problem("grafana", "no dashboard")
+keda = [d for p, ds in docs.items() if p.parent.name == "keda" for d in ds]
+if not any(d.get("kind") == "ScaledObject" for d in keda):
+    problem("keda", "no ScaledObject")
+for d in keda:
+    for t in d.get("spec", {}).get("triggers", []):
+        check_metrics(f"keda {d['metadata']['name']}", t.get("metadata", {}).get("query", ""))
+
 for p in problems:
     print(p)
 print(f"deploy check: {len(problems)} problem(s) in {len(docs)} YAML files, {len(units)} systemd units, the Dockerfile")

@@ -69,8 +69,9 @@ fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
 }
 
 /// Submits a one-unit job allowed one attempt, leases its unit as a worker
-/// named `flaky` over the worker API and reports `message` as its failure:
-/// the job fails, carrying the message. Returns the job's id.
+/// named `flaky` over the worker API and reports `message` as its failure,
+/// then as a second worker, `flaky-too` (one worker alone cannot fail a
+/// job): the job fails, carrying the message. Returns the job's id.
 fn fail_a_job(c: &Coordinator, message: &str) -> String {
     use tessera_proto::pb;
     use tessera_proto::pb::worker_service_client::WorkerServiceClient;
@@ -95,41 +96,43 @@ fn fail_a_job(c: &Coordinator, message: &str) -> String {
         let mut w = WorkerServiceClient::connect(c.grpc.clone())
             .await
             .expect("connect");
-        let id = w
-            .register(pb::RegisterRequest {
-                name: "flaky".into(),
-                capabilities: None,
-            })
-            .await
-            .expect("register")
-            .into_inner()
-            .worker_id;
-        let unit = w
-            .lease_work(pb::LeaseWorkRequest {
-                worker_id: id.clone(),
-                max_units: 1,
-                wait_ms: 5000,
-                ahead: false,
-                ..Default::default()
-            })
-            .await
-            .expect("lease")
-            .into_inner()
-            .units
-            .into_iter()
-            .next()
-            .expect("the job's unit");
-        let r = w
-            .submit_result(pb::SubmitResultRequest {
-                worker_id: id,
-                lease_id: unit.lease_id,
-                failure: message.into(),
-                ..Default::default()
-            })
-            .await
-            .expect("submit the failure")
-            .into_inner();
-        assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+        for name in ["flaky", "flaky-too"] {
+            let id = w
+                .register(pb::RegisterRequest {
+                    name: name.into(),
+                    capabilities: None,
+                })
+                .await
+                .expect("register")
+                .into_inner()
+                .worker_id;
+            let unit = w
+                .lease_work(pb::LeaseWorkRequest {
+                    worker_id: id.clone(),
+                    max_units: 1,
+                    wait_ms: 5000,
+                    ahead: false,
+                    ..Default::default()
+                })
+                .await
+                .expect("lease")
+                .into_inner()
+                .units
+                .into_iter()
+                .next()
+                .expect("the job's unit");
+            let r = w
+                .submit_result(pb::SubmitResultRequest {
+                    worker_id: id,
+                    lease_id: unit.lease_id,
+                    failure: message.into(),
+                    ..Default::default()
+                })
+                .await
+                .expect("submit the failure")
+                .into_inner();
+            assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+        }
     });
     job
 }

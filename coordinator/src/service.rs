@@ -105,6 +105,16 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
             converged_share: v.adaptive.converged_share,
             estimated_error: v.adaptive.estimated_error,
         }),
+        blocklisted: v
+            .blocklisted
+            .iter()
+            .map(|b| pb::BlockedWorker {
+                worker_id: b.id.clone(),
+                name: b.name.clone(),
+                failures: b.failures,
+                until_unix_ms: b.until_unix_ms,
+            })
+            .collect(),
         // Set by the callers that page or send deltas.
         next_frame_page_token: String::new(),
         delta: false,

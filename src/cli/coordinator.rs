@@ -58,6 +58,11 @@ pub struct CoordinatorArgs {
     /// TESSERA_WORKER_TOKEN; none: open]
     #[arg(long, value_name = "FILE")]
     pub worker_token_file: Option<PathBuf>,
+    /// File holding a token that opens only the monitor's /metrics (for a
+    /// Prometheus server; the client token opens it too) [default: the
+    /// environment variable TESSERA_METRICS_TOKEN]
+    #[arg(long, value_name = "FILE", requires = "http")]
+    pub metrics_token_file: Option<PathBuf>,
     /// Listen on a non-loopback address without tokens (a trusted network only)
     #[arg(long)]
     pub insecure: bool,
@@ -118,10 +123,19 @@ pub struct CoordinatorArgs {
     /// Seconds a quarantined worker gets no lease
     #[arg(long, default_value_t = 60.0)]
     pub quarantine_seconds: f64,
+    /// Units of one job a worker may report failed before it is kept
+    /// from that job (its blocklist, shown by `tessera status`); 0: never
+    #[arg(long, default_value_t = 3)]
+    pub blocklist_after: u32,
+    /// Seconds a blocklisted worker is kept from the job (then forgiven)
+    #[arg(long, default_value_t = 1800.0)]
+    pub blocklist_seconds: f64,
 }
 
 /// Environment variables of the coordinator's tokens.
 pub const COORDINATOR_CLIENT_TOKEN_ENV: &str = "TESSERA_CLIENT_TOKEN";
+/// Environment variable of the scrape-only `/metrics` token.
+pub const METRICS_TOKEN_ENV: &str = "TESSERA_METRICS_TOKEN";
 
 fn secs(name: &str, v: f64) -> Result<Duration> {
     Duration::try_from_secs_f64(v)
@@ -144,6 +158,8 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
         "--quarantine-after must be at least 1, got 0"
     );
     config.quarantine_after = args.quarantine_after;
+    config.blocklist_after = args.blocklist_after;
+    config.blocklist_for = secs("blocklist-seconds", args.blocklist_seconds)?;
     config.max_frame_pixels = args.max_frame_pixels;
     config.asset_limits = AssetLimits {
         max_asset_bytes: args.max_asset_bytes,
@@ -216,6 +232,11 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
     check_tokens(
         security.client_token.as_deref(),
         security.worker_token.as_deref(),
+    )?;
+    let metrics_token = read_token(
+        args.metrics_token_file.as_deref(),
+        "--metrics-token-file",
+        METRICS_TOKEN_ENV,
     )?;
     runtime()?.block_on(async move {
         let listener = tokio::net::TcpListener::bind(&args.listen)
@@ -299,6 +320,7 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
             println!("monitor on http://{http_addr}");
             let monitor = MonitorConfig {
                 client_token: security.client_token.clone(),
+                metrics_token: metrics_token.clone(),
                 allow_hosts: args.http_allow_host.clone(),
                 edge,
             };

@@ -370,6 +370,17 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             j.tile_size,
             j.samples_per_unit
         );
+        for b in &j.blocklisted {
+            let left = (b.until_unix_ms - now_unix_ms()).max(0) / 1000;
+            outln!(
+                "blocklist: worker {} ({}) failed {} unit(s); kept from this job for {}m{:02}s more",
+                b.name,
+                b.worker_id,
+                b.failures,
+                left / 60,
+                left % 60
+            );
+        }
         outln!(
             "rays:      {} ({:.2} Mrays/s)",
             rays.primary + rays.shadow + rays.reflection + rays.refraction,
@@ -919,4 +930,11 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
         }
         Ok(ExitCode::SUCCESS)
     })
+}
+
+/// This machine's clock, unix ms (for times the coordinator sends).
+fn now_unix_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
 }

@@ -94,6 +94,12 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
             "converged_share": a.converged_share,
             "estimated_error": a.estimated_error,
         })),
+        "blocklisted": j.blocklisted.iter().map(|b| json!({
+            "worker_id": b.worker_id,
+            "name": b.name,
+            "failures": b.failures,
+            "until_unix_ms": b.until_unix_ms,
+        })).collect::<Vec<_>>(),
     })
 }
 

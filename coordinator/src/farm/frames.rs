@@ -152,7 +152,7 @@ impl Farm {
                     file: file.clone(),
                     units: units.clone(),
                 };
-                match self.store.write(vec![op]).await {
+                match self.commit(vec![op]).await {
                     Ok(()) => break,
                     Err(e @ StoreError::WriterGone) => {
                         tracing::error!(job = %job_id, frame, error = %e, "cannot record written frame");

@@ -260,7 +260,66 @@ impl Farm {
             job.rec.clone()
         };
         tracing::info!(job = %job_id, priority, "job priority changed");
-        self.store.write(vec![Op::PutJob(rec)]).await?;
+        self.commit(vec![Op::PutJob(rec)]).await?;
         self.job(job_id)
+    }
+}
+
+impl Farm {
+    /// The text of a `/metrics` scrape: the farm's gauges read now, under
+    /// one short section of the state lock (counts only), with its
+    /// counters and histograms.
+    pub fn metrics_text(&self) -> String {
+        use super::JobState;
+        use crate::metrics::Gauges;
+        use std::time::Instant;
+        let mut g = Gauges {
+            store_healthy: self.storage_ok(),
+            asset_bytes: self.assets.held().1,
+            ..Gauges::default()
+        };
+        {
+            let st = self.state.lock().expect("state lock");
+            for job in st.jobs.values() {
+                let i = match job.state {
+                    JobState::Queued => 0,
+                    JobState::Running => 1,
+                    JobState::Done => 2,
+                    JobState::Failed => 3,
+                    JobState::Cancelled => 4,
+                };
+                g.jobs[i] += 1;
+                if !job.state.is_terminal() {
+                    g.units[0] += job.pending.len() as i64;
+                }
+            }
+            // A backup lease covers units its original holds already.
+            g.units[1] = st
+                .leases
+                .values()
+                .filter(|l| !l.backup)
+                .map(|l| l.units.len() as i64)
+                .sum();
+            let now = Instant::now();
+            g.workers = st
+                .workers
+                .values()
+                .map(|w| {
+                    let backend = match w.backend {
+                        tracer_core::render::Backend::Cpu => "cpu",
+                        tracer_core::render::Backend::Gpu => "gpu",
+                    };
+                    let state = if w.quarantined_until.is_some_and(|t| t > now) {
+                        "quarantined"
+                    } else if w.leases.is_empty() {
+                        "idle"
+                    } else {
+                        "busy"
+                    };
+                    (backend, state)
+                })
+                .collect();
+        }
+        self.metrics.encode(&g)
     }
 }

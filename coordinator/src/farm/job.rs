@@ -16,15 +16,17 @@ use crate::units::{Layout, Unit};
 use super::frames::{FrameAcc, FrameFilm};
 use super::{Failure, Job, JobState, JobView, UnitIndex, adaptive, now_ms};
 
-/// The failed attempts of a unit that count against its job: all of them
-/// once two workers or more failed it, else its worker's own failure
-/// reports (not its malformed results).
+/// The failed attempts of a unit that count against its job: none while
+/// one worker alone has failed it, all of them once a second worker has
+/// failed it too. One bad worker cannot fail a job, by its reports or by
+/// malformed results: the job's blocklist and the quarantine keep it away
+/// instead, while a unit that fails everywhere still fails the job.
 fn attempts(failures: &[Failure]) -> u32 {
     let first = failures.first().map(|f| f.worker.as_str());
     if failures.iter().any(|f| Some(f.worker.as_str()) != first) {
         failures.len() as u32
     } else {
-        failures.iter().filter(|f| !f.malformed).count() as u32
+        0
     }
 }
 
@@ -118,6 +120,7 @@ impl Job {
             done: vec![false; total as usize],
             pending,
             failures: HashMap::new(),
+            worker_failures: HashMap::new(),
             frames,
             frame_seq: 0,
             counters,
@@ -202,18 +205,15 @@ impl Job {
         self.notify();
     }
 
-    /// Records a failed attempt of `units` by worker session `worker`;
-    /// fails the job (returning its record to persist) when a unit has
-    /// failed `max_attempts` times. A `malformed` result (data that failed
-    /// validation) counts only once a second worker has failed the unit
-    /// too: one broken or hostile worker cannot fail a job (it is
-    /// quarantined instead), while a unit that fails everywhere still does.
+    /// Records a failed attempt of `units` by worker session `worker`
+    /// (its failure report or a malformed result); fails the job
+    /// (returning its record to persist) when a unit's attempts that
+    /// count (see [`attempts`]) reach `max_attempts`.
     pub(super) fn fail_units(
         &mut self,
         units: &[u32],
         worker: &str,
         message: String,
-        malformed: bool,
     ) -> Option<JobRecord> {
         if self.state.is_terminal() {
             return None;
@@ -224,7 +224,6 @@ impl Job {
             f.push(Failure {
                 worker: worker.to_string(),
                 message: message.clone(),
-                malformed,
             });
             if attempts(f) >= self.rec.max_attempts && exhausted.is_none() {
                 exhausted = Some((u, f.iter().map(|f| f.message.clone()).collect::<Vec<_>>()));
@@ -376,7 +375,74 @@ impl Job {
             first_result_unix_ms: self.first_result_unix_ms,
             last_result_unix_ms: self.last_result_unix_ms,
             adaptive,
+            blocklisted: self.blocklisted(),
         }
+    }
+
+    /// Counts a failure report of `units` by worker session `worker`;
+    /// at `after` reports it is kept from this job for `for_`. One
+    /// worker that fails every unit (a broken driver, a full disk) then
+    /// stops taking them, and the others render them.
+    pub(super) fn count_failure(
+        &mut self,
+        worker: &str,
+        name: &str,
+        units: u32,
+        after: u32,
+        for_: std::time::Duration,
+    ) {
+        if after == 0 || self.state.is_terminal() {
+            return;
+        }
+        let f = self.worker_failures.entry(worker.to_string()).or_default();
+        f.name = name.to_string();
+        f.count = f.count.saturating_add(units);
+        if f.count >= after && f.blocked_until.is_none_or(|t| t <= Instant::now()) {
+            f.blocked_until = Some(Instant::now() + for_);
+            tracing::warn!(job = %self.rec.id, worker = %super::public_worker_id(worker), %name,
+                failures = f.count, seconds = for_.as_secs_f64(),
+                "worker blocklisted for the job: it gets none of its units until forgiven");
+            self.notify();
+        }
+    }
+
+    /// Whether worker session `worker` is kept from this job now; a
+    /// forgiven worker starts counting again from zero.
+    pub(super) fn blocks(&mut self, worker: &str) -> bool {
+        let Some(f) = self.worker_failures.get_mut(worker) else {
+            return false;
+        };
+        match f.blocked_until {
+            Some(t) if t > Instant::now() => true,
+            Some(_) => {
+                tracing::info!(job = %self.rec.id, worker = %super::public_worker_id(worker),
+                    name = %f.name, "worker forgiven: it may lease the job's units again");
+                f.blocked_until = None;
+                f.count = 0;
+                false
+            }
+            None => false,
+        }
+    }
+
+    /// The workers kept from this job now.
+    fn blocklisted(&self) -> Vec<super::BlockedWorker> {
+        let now = Instant::now();
+        let mut v: Vec<_> = self
+            .worker_failures
+            .iter()
+            .filter_map(|(id, f)| {
+                let t = f.blocked_until.filter(|&t| t > now)?;
+                Some(super::BlockedWorker {
+                    id: super::public_worker_id(id),
+                    name: f.name.clone(),
+                    failures: f.count,
+                    until_unix_ms: now_ms() + t.duration_since(now).as_millis() as i64,
+                })
+            })
+            .collect();
+        v.sort_by(|a, b| a.name.cmp(&b.name).then(a.id.cmp(&b.id)));
+        v
     }
 }
 

@@ -239,7 +239,7 @@ impl Farm {
             job: id.clone(),
             counters: Counters::default(),
         });
-        self.store.write(ops).await?;
+        self.commit(ops).await?;
         tracing::info!(
             job = %id, name = %rec.name, scene = %rec.scene_name,
             width = settings.width, height = settings.height, samples = settings.samples,
@@ -332,7 +332,7 @@ impl Farm {
             rec
         };
         tracing::info!(job = %id, "job cancelled");
-        self.store.write(vec![Op::PutJob(rec)]).await?;
+        self.commit(vec![Op::PutJob(rec)]).await?;
         self.job(id)
     }
 

@@ -389,8 +389,9 @@ impl Farm {
         let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
         let mut order: Vec<(&String, &Job)> = st
             .jobs
-            .iter()
+            .iter_mut()
             .filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty())
+            .filter_map(|(id, j)| (!j.blocks(worker_id)).then_some((id, &*j)))
             .collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
         let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
@@ -574,7 +575,13 @@ impl Farm {
         for (id, l) in &st.leases {
             if l.backup
                 || l.backups >= MAX_BACKUPS
-                || st.jobs.get(&l.job).is_none_or(|j| j.state.is_terminal())
+                || st.jobs.get(&l.job).is_none_or(|j| {
+                    j.state.is_terminal()
+                        || j.worker_failures
+                            .get(worker_id)
+                            .and_then(|f| f.blocked_until)
+                            .is_some_and(|t| t > Instant::now())
+                })
             {
                 continue;
             }
@@ -655,6 +662,13 @@ impl Farm {
     ) -> Result<Vec<LeaseView>, FarmError> {
         // Registered before looking, so a wake-up between the look and the
         // wait is not missed.
+        let start = Instant::now();
+        let granted = |leases: Vec<LeaseView>| {
+            if !leases.is_empty() {
+                self.metrics.lease_granted(start.elapsed().as_secs_f64());
+            }
+            leases
+        };
         let notified = self.work_ready.notified();
         tokio::pin!(notified);
         notified.as_mut().enable();
@@ -670,9 +684,9 @@ impl Farm {
             || wait.is_zero()
             || tokio::time::timeout(wait, notified).await.is_err()
         {
-            return Ok(leases);
+            return Ok(granted(leases));
         }
-        self.lease(worker_id, max_units, ahead)
+        self.lease(worker_id, max_units, ahead).map(granted)
     }
 
     /// Extends the worker's leases; returns those it no longer holds.

@@ -58,6 +58,7 @@ mod inspect;
 pub use inspect::{FramePreview, FrameTile, LeaseSummary, TileState, UnitFailure, preview_step};
 mod adaptive;
 pub use adaptive::AdaptiveProgress;
+
 mod frames;
 mod job;
 mod jobs;
@@ -97,6 +98,11 @@ pub struct Config {
     pub quarantine_after: u32,
     /// How long a quarantined worker gets no lease.
     pub quarantine_for: Duration,
+    /// Units of one job a worker reports failed before it is kept from
+    /// that job (its blocklist); 0: never.
+    pub blocklist_after: u32,
+    /// How long a blocklisted worker is kept from the job.
+    pub blocklist_for: Duration,
 }
 
 impl Config {
@@ -120,6 +126,10 @@ impl Config {
             // hostile one, caught before it costs a job much.
             quarantine_after: 5,
             quarantine_for: Duration::from_secs(60),
+            // Afanasy's defaults: 3 errors, then the host is kept from the
+            // job until forgiven.
+            blocklist_after: 3,
+            blocklist_for: Duration::from_secs(30 * 60),
         }
     }
 }
@@ -205,6 +215,20 @@ pub struct JobView {
     pub last_result_unix_ms: i64,
     /// Adaptive jobs: converged share, estimated error, samples expected.
     pub adaptive: AdaptiveProgress,
+    /// Workers kept from this job for now (its blocklist).
+    pub blocklisted: Vec<BlockedWorker>,
+}
+
+/// A worker on a job's blocklist.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BlockedWorker {
+    /// Its public id ([`public_worker_id`]).
+    pub id: String,
+    pub name: String,
+    /// Units of the job it reported failed.
+    pub failures: u32,
+    /// When it is forgiven (unix ms).
+    pub until_unix_ms: i64,
 }
 
 #[derive(Clone, Debug)]
@@ -309,6 +333,19 @@ struct Job {
     watch: watch::Sender<u64>,
     /// Adaptive jobs only (`farm/adaptive.rs`).
     adaptive: Option<adaptive::AdaptiveJob>,
+    /// Failure reports per worker session, and the blocklist they lead
+    /// to (see `Job::count_failure`).
+    worker_failures: HashMap<String, WorkerFailures>,
+}
+
+/// One worker's failures of one job's units.
+#[derive(Clone, Debug, Default)]
+struct WorkerFailures {
+    name: String,
+    /// Failure reports since it was last forgiven.
+    count: u32,
+    /// Kept from the job until then.
+    blocked_until: Option<Instant>,
 }
 
 /// One failed attempt of a unit.
@@ -317,10 +354,6 @@ struct Failure {
     /// The session that failed it.
     worker: String,
     message: String,
-    /// A result that failed validation (the worker's data, not its word
-    /// that the unit fails): counted against the job's attempts only once
-    /// a second worker has failed the unit too.
-    malformed: bool,
 }
 
 struct Lease {
@@ -465,6 +498,8 @@ pub struct Farm {
     /// Woken whenever units become pending (a job submitted, units queued
     /// again), for workers waiting in [`Farm::lease_or_wait`].
     work_ready: tokio::sync::Notify,
+    /// Prometheus counters and histograms (`crate::metrics`).
+    pub metrics: crate::metrics::Metrics,
 }
 
 fn now_ms() -> i64 {
@@ -542,6 +577,7 @@ impl Farm {
             state: Mutex::new(State::default()),
             boot,
             work_ready: tokio::sync::Notify::new(),
+            metrics: crate::metrics::Metrics::new(),
         });
         let mut to_write = Vec::new();
         {
@@ -650,6 +686,14 @@ impl Farm {
     /// to `store::RESULTS_DURABLE_WITHIN`): for a coordinator that stops.
     pub async fn sync_store(&self) -> Result<(), StoreError> {
         self.store.sync().await
+    }
+
+    /// Writes `ops` durably, timed for `tessera_store_commit_seconds`.
+    async fn commit(&self, ops: Vec<crate::store::Op>) -> Result<(), StoreError> {
+        let start = Instant::now();
+        let r = self.store.write(ops).await;
+        self.metrics.store_commit(start.elapsed().as_secs_f64());
+        r
     }
 
     fn check_storage(&self) -> Result<(), FarmError> {

@@ -41,9 +41,13 @@ impl Farm {
         rs: Vec<ResultData>,
     ) -> Result<Vec<Outcome>, FarmError> {
         let farm = self.clone();
-        tokio::spawn(async move { farm.take_results(rs).await })
+        let outcomes = tokio::spawn(async move { farm.take_results(rs).await })
             .await
-            .map_err(|e| FarmError::Internal(format!("result task failed: {e}")))?
+            .map_err(|e| FarmError::Internal(format!("result task failed: {e}")))??;
+        for o in &outcomes {
+            self.metrics.result(o);
+        }
+        Ok(outcomes)
     }
 
     async fn take_results(self: Arc<Self>, rs: Vec<ResultData>) -> Result<Vec<Outcome>, FarmError> {
@@ -148,7 +152,7 @@ impl Farm {
                 let w = if ops.is_empty() {
                     Ok(())
                 } else {
-                    self.store.write(ops).await
+                    self.commit(ops).await
                 };
                 if w.is_err() {
                     self.store.discard_films(files.iter().map(Vec::as_slice));
@@ -324,6 +328,15 @@ impl Farm {
                 },
             );
             tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.region.frame, rect = ?lease.region.rect, error = %msg, "unit failed on worker");
+            if let Some(job) = st.jobs.get_mut(&lease.job) {
+                job.count_failure(
+                    &r.worker_id,
+                    &worker_name,
+                    lease.units.len() as u32,
+                    self.config.blocklist_after,
+                    self.config.blocklist_for,
+                );
+            }
             let rec = if st.partner_keeps(&r.lease_id, &lease) {
                 None
             } else {
@@ -332,7 +345,6 @@ impl Farm {
                     &lease.units,
                     &r.worker_id,
                     format!("worker {worker_name}: {msg}"),
-                    false,
                 )
             };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
@@ -363,7 +375,6 @@ impl Farm {
                     &lease.units,
                     &r.worker_id,
                     format!("worker {worker_name} sent a malformed result: {reason}"),
-                    true,
                 )
             };
             st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
@@ -415,6 +426,7 @@ impl Farm {
         }
         job.meter.add(Instant::now(), work_before - job.work_left);
         job.samples_this_run += samples;
+        self.metrics.samples(samples);
         let now = now_ms();
         if job.first_result_unix_ms == 0 {
             job.first_result_unix_ms = now;

@@ -97,6 +97,8 @@ pub struct JobJson {
     /// The first frame of the next page (`?frames_from=` of
     /// `/api/jobs/{id}`); null when `frames` runs to the job's last frame.
     pub frames_next: Option<u32>,
+    /// Workers kept from this job for now (docs/operations.md).
+    pub blocklisted: Vec<BlockedJson>,
 }
 
 /// Most frames a job shows in `/api/jobs` and the events' `farm`
@@ -122,9 +124,18 @@ impl JobJson {
             error: self.error.clone(),
             settings: self.settings.clone(),
             adaptive: self.adaptive.clone(),
+            blocklisted: self.blocklisted.clone(),
             ..*self
         }
     }
+
+/// A worker on a job's blocklist.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct BlockedJson {
+    pub worker_id: String,
+    pub name: String,
+    pub failures: u32,
+    pub until_unix_ms: i64,
 }
 
 pub fn state_name(s: JobState) -> &'static str {
@@ -177,6 +188,16 @@ impl From<&JobView> for JobJson {
                 samples_per_unit: r.samples_per_unit,
                 max_attempts: r.max_attempts,
             },
+            blocklisted: v
+                .blocklisted
+                .iter()
+                .map(|b| BlockedJson {
+                    worker_id: b.id.clone(),
+                    name: b.name.clone(),
+                    failures: b.failures,
+                    until_unix_ms: b.until_unix_ms,
+                })
+                .collect(),
             adaptive: v.adaptive.settings.map(|a| AdaptiveJson {
                 target_error: a.target_error,
                 relative_error: a.relative_error,

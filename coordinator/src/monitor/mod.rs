@@ -96,6 +96,8 @@ pub struct Monitor {
     farm: Arc<Farm>,
     /// The client token; `None`: the monitor is open, as the job service is.
     token: Option<Arc<str>>,
+    /// A token that opens `/metrics` only (`--metrics-token-file`).
+    metrics_token: Option<Arc<str>>,
     /// Which Host headers are answered.
     hosts: origin::Hosts,
     events: events::Hub,
@@ -109,6 +111,9 @@ pub struct Monitor {
 pub struct MonitorConfig {
     /// The job service's: the same token opens both.
     pub client_token: Option<String>,
+    /// Opens `/metrics` and nothing else: for a Prometheus server, which
+    /// then cannot read jobs or frames. The client token opens it too.
+    pub metrics_token: Option<String>,
     /// Names answered besides the listen address and localhost
     /// (`--http-allow-host`).
     pub allow_hosts: Vec<String>,
@@ -127,6 +132,7 @@ pub async fn serve(
     let monitor = Arc::new(Monitor {
         farm,
         token: config.client_token.map(Arc::from),
+        metrics_token: config.metrics_token.map(Arc::from),
         hosts: origin::Hosts::new(local, &config.allow_hosts),
         events: events::Hub::new(),
         roster: roster::Roster::default(),
@@ -145,6 +151,18 @@ pub async fn serve(
     .await;
     ticker.abort();
     Ok(result?)
+}
+
+/// `GET /metrics`: the farm's Prometheus metrics (crate::metrics).
+async fn metrics(axum::extract::State(m): axum::extract::State<Arc<Monitor>>) -> Response {
+    (
+        [(
+            axum::http::header::CONTENT_TYPE,
+            crate::metrics::CONTENT_TYPE,
+        )],
+        m.farm.metrics_text(),
+    )
+        .into_response()
 }
 
 fn router(monitor: Arc<Monitor>) -> Router {
@@ -179,6 +197,13 @@ fn router(monitor: Arc<Monitor>) -> Router {
         .route("/favicon.svg", get(web::icon))
         .route("/api/info", get(api::info))
         .merge(api)
+        .route(
+            "/metrics",
+            get(metrics).route_layer(axum::middleware::from_fn_with_state(
+                monitor.clone(),
+                auth::require_metrics_token,
+            )),
+        )
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such page") })
         // Before everything, the token included: a rebound or cross-site
         // request is refused whether or not a token is needed.

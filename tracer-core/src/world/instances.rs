@@ -255,6 +255,7 @@ impl<R: Real> Instances<R> {
                         if mirrored { [ns[0], ns[2], ns[1]] } else { ns }
                     }),
                     material: s.material,
+                    attrs: s.attrs,
                 });
             }
         }

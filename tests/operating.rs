@@ -1,0 +1,525 @@
+//! End-to-end tests of operating the farm (issue 38): the real `tessera`
+//! binary as coordinator, workers and client over real sockets.
+//!
+//! - `/metrics`: scraped over HTTP and parsed by the Prometheus project's
+//!   Python client (`tests/python/metrics_scrape.py`, `prometheus_client`
+//!   from PyPI, installed by `scripts/test`), checked before, during and
+//!   after a job, and behind the client token or the scrape-only token.
+//! - The per-job blocklist: a worker that reports `--blocklist-after`
+//!   units of a job failed gets none of its units until forgiven, and
+//!   `tessera status` says so.
+
+use std::io::{BufRead as _, BufReader};
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use serde_json::Value;
+use tessera_proto::pb;
+use tessera_proto::pb::worker_service_client::WorkerServiceClient;
+
+mod support;
+use support::*;
+
+const CLIENT_TOKEN: &str = "0123456789abcdef0123456789abcdef";
+const METRICS_TOKEN: &str = "fedcba9876543210fedcba9876543210";
+
+struct Coordinator {
+    proc: Proc,
+    grpc: String,
+    http: String,
+}
+
+fn start_coordinator(dir: &Path, extra: &[&str]) -> Coordinator {
+    let client = dir.join("client.token");
+    std::fs::write(&client, CLIENT_TOKEN).expect("token file");
+    let metrics = dir.join("metrics.token");
+    std::fs::write(&metrics, METRICS_TOKEN).expect("token file");
+    let log = dir.join(format!("coordinator-{}.log", rand_suffix()));
+    let mut child = Command::new(TESSERA)
+        .args(["coordinator", "--listen", "127.0.0.1:0"])
+        .args(["--http", "127.0.0.1:0"])
+        .arg("--data")
+        .arg(dir.join("data"))
+        .arg("--client-token-file")
+        .arg(&client)
+        .arg("--metrics-token-file")
+        .arg(&metrics)
+        .args(["--lease-timeout", "10", "--heartbeat-interval", "0.4"])
+        .args(extra)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("start coordinator");
+    let mut out = BufReader::new(child.stdout.take().expect("stdout"));
+    let mut line = |prefix: &str| {
+        let mut l = String::new();
+        out.read_line(&mut l).expect("read address");
+        l.trim()
+            .strip_prefix(prefix)
+            .unwrap_or_else(|| panic!("coordinator did not start: {l:?}"))
+            .to_string()
+    };
+    let grpc = format!("http://{}", line("listening on "));
+    let http = line("monitor on ");
+    Coordinator {
+        proc: Proc { child, log },
+        grpc,
+        http,
+    }
+}
+
+fn start_worker(dir: &Path, url: &str, name: &str, extra: &[&str]) -> Proc {
+    let log = dir.join(format!("worker-{name}-{}.log", rand_suffix()));
+    let child = Command::new(TESSERA)
+        .args(["worker", "--coordinator", url, "--threads", "1"])
+        .args(["--name", name])
+        .args(extra)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("start worker");
+    Proc { child, log }
+}
+
+/// `tessera ARGS` as a client of `c`, with the client token.
+fn client(c: &Coordinator, args: &[&str]) -> std::process::Output {
+    Command::new(TESSERA)
+        .args(args)
+        .env("TESSERA_COORDINATOR", &c.grpc)
+        .env("TESSERA_TOKEN", CLIENT_TOKEN)
+        .output()
+        .expect("run tessera")
+}
+
+fn job_status(c: &Coordinator, job: &str) -> Value {
+    let out = ok_stdout(&client(c, &["status", job, "--json"]));
+    serde_json::from_str(&out).unwrap_or_else(|e| panic!("status --json: {e}: {out}"))
+}
+
+/// A scrape of `c`'s `/metrics` with `token`, parsed by prometheus_client:
+/// Ok(the parsed samples and types) or Err((HTTP status, body)).
+fn scrape(c: &Coordinator, token: Option<&str>) -> Result<Value, (u64, String)> {
+    let mut cmd = Command::new("python3");
+    cmd.arg(repo("tests/python/metrics_scrape.py"))
+        .arg(format!("{}/metrics", c.http));
+    cmd.args(token);
+    let o = cmd
+        .output()
+        .expect("python3 (tests/python/metrics_scrape.py)");
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    match o.status.code() {
+        Some(0) => Ok(serde_json::from_str(&out).expect("scrape JSON")),
+        Some(3) => {
+            let v: Value = serde_json::from_str(&out).expect("refusal JSON");
+            Err((
+                v["status"].as_u64().expect("status"),
+                v["body"].as_str().unwrap_or("").to_string(),
+            ))
+        }
+        _ => panic!(
+            "metrics_scrape.py failed ({:?}): {}{}",
+            o.status,
+            out,
+            String::from_utf8_lossy(&o.stderr)
+        ),
+    }
+}
+
+/// The value of the sample `name` with exactly `labels`.
+fn sample(m: &Value, name: &str, labels: &[(&str, &str)]) -> f64 {
+    let want: serde_json::Map<String, Value> = labels
+        .iter()
+        .map(|(k, v)| (k.to_string(), Value::from(*v)))
+        .collect();
+    let hits: Vec<f64> = m["samples"]
+        .as_array()
+        .expect("samples")
+        .iter()
+        .filter(|s| s["name"] == name && s["labels"].as_object() == Some(&want))
+        .map(|s| s["value"].as_f64().expect("value"))
+        .collect();
+    assert_eq!(
+        hits.len(),
+        1,
+        "one sample {name}{labels:?} in the scrape, found {hits:?}"
+    );
+    hits[0]
+}
+
+#[test]
+fn metrics_are_prometheus_text_behind_the_tokens_and_move_as_a_job_runs() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), &[]);
+
+    // The gate: nothing without a token, the scrape-only token opens
+    // /metrics and not the API, the client token opens both.
+    let (status, body) = scrape(&c, None).expect_err("a scrape without a token is refused");
+    assert_eq!(status, 401, "{body}");
+    assert!(body.contains("Authorization: Bearer"), "{body}");
+    let (status, body) = scrape(&c, Some("not-the-token")).expect_err("a wrong token is refused");
+    assert_eq!(status, 401);
+    assert!(
+        body.contains("neither this coordinator's client token nor its metrics token"),
+        "{body}"
+    );
+    let api = Command::new("python3")
+        .args([
+            "-c",
+            "import sys, urllib.request, urllib.error\n\
+             r = urllib.request.Request(sys.argv[1], headers={'Authorization': 'Bearer ' + sys.argv[2]})\n\
+             try:\n    print(urllib.request.urlopen(r).status)\n\
+             except urllib.error.HTTPError as e:\n    print(e.code)",
+        ])
+        .arg(format!("{}/api/jobs", c.http))
+        .arg(METRICS_TOKEN)
+        .output()
+        .expect("python3");
+    assert_eq!(
+        String::from_utf8_lossy(&api.stdout).trim(),
+        "401",
+        "the metrics token must not open the job API"
+    );
+
+    let idle = scrape(&c, Some(METRICS_TOKEN)).expect("scrape with the metrics token");
+    assert!(
+        idle["content_type"]
+            .as_str()
+            .unwrap()
+            .starts_with("application/openmetrics-text"),
+        "{}",
+        idle["content_type"]
+    );
+    for (name, kind) in [
+        ("tessera_jobs", "gauge"),
+        ("tessera_units", "gauge"),
+        ("tessera_workers", "gauge"),
+        ("tessera_results", "counter"),
+        ("tessera_lease_seconds", "histogram"),
+        ("tessera_samples", "counter"),
+        ("tessera_store_healthy", "gauge"),
+        ("tessera_store_commit_seconds", "histogram"),
+        ("tessera_asset_bytes", "gauge"),
+    ] {
+        assert_eq!(
+            idle["types"][name], kind,
+            "family {name}: {}",
+            idle["types"]
+        );
+    }
+    for state in ["queued", "running", "done", "failed", "cancelled"] {
+        assert_eq!(sample(&idle, "tessera_jobs", &[("state", state)]), 0.0);
+    }
+    assert_eq!(sample(&idle, "tessera_store_healthy", &[]), 1.0);
+    assert_eq!(sample(&idle, "tessera_samples_total", &[]), 0.0);
+    assert_eq!(
+        sample(&idle, "tessera_results_total", &[("outcome", "accepted")]),
+        0.0
+    );
+    assert_eq!(sample(&idle, "tessera_lease_seconds_count", &[]), 0.0);
+
+    // A job with no worker yet: queued, every unit waiting.
+    let scene = repo("examples/resolution.toml");
+    let o = client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--samples",
+            "4",
+            "--tile-size",
+            "16",
+            "--samples-per-unit",
+            "2",
+        ],
+    );
+    let job = ok_stdout(&o).trim().to_string();
+    let st = job_status(&c, &job);
+    let units_total = st["units_total"].as_f64().unwrap();
+    assert!(units_total >= 24.0, "{st}");
+    let queued = scrape(&c, Some(CLIENT_TOKEN)).expect("scrape with the client token");
+    assert_eq!(sample(&queued, "tessera_jobs", &[("state", "queued")]), 1.0);
+    assert_eq!(
+        sample(&queued, "tessera_units", &[("state", "waiting")]),
+        units_total
+    );
+    assert_eq!(
+        sample(&queued, "tessera_units", &[("state", "leased")]),
+        0.0
+    );
+    assert!(
+        sample(&queued, "tessera_asset_bytes", &[]) > 0.0,
+        "the scene is stored"
+    );
+    assert!(sample(&queued, "tessera_store_commit_seconds_count", &[]) >= 1.0);
+
+    // A worker runs it to the end.
+    let _w = start_worker(dir.path(), &c.grpc, "metered", &[]);
+    wait_for("the job to finish", Duration::from_secs(120), || {
+        job_status(&c, &job)["state"] == "done"
+    });
+    let done = scrape(&c, Some(METRICS_TOKEN)).expect("scrape");
+    assert_eq!(sample(&done, "tessera_jobs", &[("state", "done")]), 1.0);
+    assert_eq!(sample(&done, "tessera_jobs", &[("state", "queued")]), 0.0);
+    assert_eq!(sample(&done, "tessera_units", &[("state", "waiting")]), 0.0);
+    assert_eq!(sample(&done, "tessera_units", &[("state", "leased")]), 0.0);
+    // Every pixel-sample of the job, counted once.
+    assert_eq!(
+        sample(&done, "tessera_samples_total", &[]),
+        64.0 * 48.0 * 4.0
+    );
+    // A result may carry several units (a fast worker leases a run of
+    // tiles): between one and one per unit.
+    let accepted = sample(&done, "tessera_results_total", &[("outcome", "accepted")]);
+    assert!(
+        (1.0..=units_total).contains(&accepted),
+        "{accepted} results accepted for {units_total} units"
+    );
+    assert_eq!(
+        sample(&done, "tessera_results_total", &[("outcome", "rejected")]),
+        0.0
+    );
+    let leases = sample(&done, "tessera_lease_seconds_count", &[]);
+    assert!(leases >= 1.0, "leases granted: {leases}");
+    assert_eq!(
+        sample(&done, "tessera_lease_seconds_bucket", &[("le", "+Inf")]),
+        leases
+    );
+    assert_eq!(
+        sample(
+            &done,
+            "tessera_workers",
+            &[("backend", "cpu"), ("state", "idle")]
+        ) + sample(
+            &done,
+            "tessera_workers",
+            &[("backend", "cpu"), ("state", "busy")]
+        ),
+        1.0
+    );
+    assert_eq!(
+        sample(
+            &done,
+            "tessera_workers",
+            &[("backend", "gpu"), ("state", "idle")]
+        ),
+        0.0
+    );
+    drop(c.proc);
+}
+
+/// Worker-API calls as one session (a worker whose units fail at will).
+struct Session {
+    client: WorkerServiceClient<tonic::transport::Channel>,
+    id: String,
+}
+
+impl Session {
+    async fn register(url: &str, name: &str) -> Session {
+        let mut client = WorkerServiceClient::connect(url.to_string())
+            .await
+            .expect("connect");
+        let id = client
+            .register(pb::RegisterRequest {
+                name: name.into(),
+                capabilities: None,
+            })
+            .await
+            .expect("register")
+            .into_inner()
+            .worker_id;
+        Session { client, id }
+    }
+
+    /// One lease of one unit, without waiting: its lease id, if any.
+    async fn lease(&mut self) -> Option<String> {
+        self.client
+            .lease_work(pb::LeaseWorkRequest {
+                worker_id: self.id.clone(),
+                max_units: 1,
+                wait_ms: 0,
+                ahead: false,
+                ..Default::default()
+            })
+            .await
+            .expect("lease")
+            .into_inner()
+            .units
+            .into_iter()
+            .next()
+            .map(|u| u.lease_id)
+    }
+
+    async fn fail(&mut self, lease_id: String, message: &str) {
+        let r = self
+            .client
+            .submit_result(pb::SubmitResultRequest {
+                worker_id: self.id.clone(),
+                lease_id,
+                failure: message.into(),
+                ..Default::default()
+            })
+            .await
+            .expect("submit the failure")
+            .into_inner();
+        assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+    }
+}
+
+#[test]
+fn a_worker_failing_units_of_a_job_is_blocklisted_from_it_until_forgiven() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(
+        dir.path(),
+        &["--blocklist-after", "2", "--blocklist-seconds", "4"],
+    );
+    let scene = repo("examples/resolution.toml");
+    let job = ok_stdout(&client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--samples",
+            "1",
+            "--tile-size",
+            "16",
+            "--max-attempts",
+            "5",
+        ],
+    ))
+    .trim()
+    .to_string();
+    let rt = rt();
+    let mut broken = rt.block_on(Session::register(&c.grpc, "broken"));
+    let mut good = rt.block_on(Session::register(&c.grpc, "good"));
+    let blocked_at = rt.block_on(async {
+        for _ in 0..2 {
+            let l = broken.lease().await.expect("a unit for the broken worker");
+            broken.fail(l, "GPU lost: device removed").await;
+        }
+        std::time::Instant::now()
+    });
+    // Kept from the job: no lease although 12 units wait, while another
+    // worker gets one at once.
+    assert_eq!(
+        rt.block_on(broken.lease()),
+        None,
+        "a blocklisted worker got a lease"
+    );
+    assert!(
+        rt.block_on(good.lease()).is_some(),
+        "the good worker got no lease"
+    );
+    let st = job_status(&c, &job);
+    // Not failed: its units go to other workers.
+    assert_eq!(st["state"], "running", "{st}");
+    let listed = st["blocklisted"].as_array().expect("blocklisted");
+    assert_eq!(listed.len(), 1, "{st}");
+    assert_eq!(listed[0]["name"], "broken");
+    assert_eq!(listed[0]["failures"], 2);
+    let text = ok_stdout(&client(&c, &["status", &job]));
+    assert!(
+        text.contains("blocklist: worker broken (")
+            && text.contains("failed 2 unit(s); kept from this job for"),
+        "{text}"
+    );
+    let m = scrape(&c, Some(METRICS_TOKEN)).expect("scrape");
+    assert_eq!(
+        sample(&m, "tessera_results_total", &[("outcome", "failed")]),
+        2.0
+    );
+    // Still kept a moment before the forgive time...
+    while blocked_at.elapsed() < Duration::from_secs(3) {
+        assert_eq!(
+            rt.block_on(broken.lease()),
+            None,
+            "leased before being forgiven"
+        );
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    // ... and forgiven after it.
+    wait_for(
+        "the broken worker to be forgiven",
+        Duration::from_secs(5),
+        || rt.block_on(broken.lease()).is_some(),
+    );
+    assert!(
+        blocked_at.elapsed() >= Duration::from_secs(4),
+        "forgiven after {:?}, before --blocklist-seconds 4",
+        blocked_at.elapsed()
+    );
+    let st = job_status(&c, &job);
+    assert_eq!(st["blocklisted"], serde_json::json!([]), "{st}");
+}
+
+/// Issue 37's gap: one bad worker cannot fail a job. Its failure reports
+/// of a unit do not count against the job's attempts until a second
+/// worker fails the same unit; then they all do.
+#[test]
+fn one_worker_alone_cannot_fail_a_job_a_second_failing_the_unit_does() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    // No blocklist: the bad worker keeps leasing the one unit.
+    let c = start_coordinator(dir.path(), &["--blocklist-after", "0"]);
+    let scene = repo("examples/resolution.toml");
+    let job = ok_stdout(&client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--samples",
+            "1",
+            "--tile-size",
+            "32",
+            "--max-attempts",
+            "2",
+        ],
+    ))
+    .trim()
+    .to_string();
+    let rt = rt();
+    let mut bad = rt.block_on(Session::register(&c.grpc, "bad"));
+    rt.block_on(async {
+        for _ in 0..3 {
+            let l = bad.lease().await.expect("the job's one unit, again");
+            bad.fail(l, "out of memory").await;
+        }
+    });
+    let st = job_status(&c, &job);
+    assert_eq!(
+        st["state"], "running",
+        "three failures by one worker, max-attempts 2: {st}"
+    );
+    let mut other = rt.block_on(Session::register(&c.grpc, "other"));
+    rt.block_on(async {
+        let l = other.lease().await.expect("the unit for a second worker");
+        other.fail(l, "out of memory").await;
+    });
+    let st = job_status(&c, &job);
+    assert_eq!(st["state"], "failed", "{st}");
+    let error = st["error"].as_str().expect("error");
+    assert!(
+        error.starts_with("work unit 0 (frame 0,")
+            && error.ends_with(
+                "failed 4 times: worker bad: out of memory; worker bad: out of memory; \
+                 worker bad: out of memory; worker other: out of memory"
+            ),
+        "{error}"
+    );
+}
