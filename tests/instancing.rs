@@ -15,6 +15,8 @@ fn tmpdir(name: &str) -> PathBuf {
 
 /// Runs `tessera` with `args`; its stderr and its peak resident set in
 /// bytes (`wait4`'s `ru_maxrss` of this child alone).
+// Reaped by wait4 below, which std's `wait` cannot replace: it gives no rusage.
+#[allow(clippy::zombie_processes)]
 fn tessera(args: &[&str]) -> (bool, String, u64) {
     let child = Command::new(env!("CARGO_BIN_EXE_tessera"))
         .args(args)

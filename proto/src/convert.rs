@@ -365,7 +365,7 @@ mod tests {
         };
         let wire = pb::RenderSettings::from(path);
         assert_eq!(wire.integrator, pb::Integrator::Path as i32);
-        assert_eq!(RenderSettings::try_from(wire.clone()), Ok(path));
+        assert_eq!(RenderSettings::try_from(wire), Ok(path));
         // A sender that predates field 140 leaves it 0 (UNSPECIFIED).
         let old = pb::RenderSettings {
             integrator: 0,

@@ -163,8 +163,8 @@ impl Pbr {
         }
     }
 
-    /// The material at a point with texture coordinates `uv` (sets 0 and
-    /// 1) and vertex colour `color`: the factors times the textures
+    /// The material at a point with texture coordinates `uv` (both sets)
+    /// and vertex colour `color`: the factors times the textures
     /// through [`Pbr::whitted`], the ambient term darkened by the
     /// occlusion texture (glTF's occlusion darkens indirect light, which
     /// the ambient term stands for), the emission times the emissive

@@ -128,6 +128,7 @@ impl JobJson {
             ..*self
         }
     }
+}
 
 /// A worker on a job's blocklist.
 #[derive(Clone, Debug, Serialize, PartialEq)]

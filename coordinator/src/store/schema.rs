@@ -6,7 +6,7 @@ use redb::{ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
 use tracer_core::adaptive::AdaptiveSettings;
 use tracer_core::sampling::Sampler;
-use tracer_core::scene::RenderSettings;
+use tracer_core::scene::{Integrator, RenderSettings};
 
 use super::StoreError;
 
@@ -204,6 +204,25 @@ pub(super) struct SettingsRec {
     pub samples: u32,
     pub max_depth: u32,
     pub sampler: SamplerRec,
+    /// Absent (Whitted) in records older than the path integrator, and
+    /// left out for Whitted so such records keep their shape.
+    #[serde(default, skip_serializing_if = "IntegratorRec::is_whitted")]
+    pub integrator: IntegratorRec,
+}
+
+/// An integrator as a record names it.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub(super) enum IntegratorRec {
+    #[default]
+    Whitted,
+    Path,
+}
+
+impl IntegratorRec {
+    fn is_whitted(&self) -> bool {
+        *self == IntegratorRec::Whitted
+    }
 }
 
 /// A sampler as a record names it.
@@ -227,6 +246,10 @@ impl From<RenderSettings> for SettingsRec {
                 Sampler::Jittered => SamplerRec::Jittered,
                 Sampler::Progressive => SamplerRec::Progressive,
             },
+            integrator: match s.integrator {
+                Integrator::Whitted => IntegratorRec::Whitted,
+                Integrator::Path => IntegratorRec::Path,
+            },
         }
     }
 }
@@ -242,6 +265,10 @@ impl From<SettingsRec> for RenderSettings {
                 SamplerRec::Grid => Sampler::Grid,
                 SamplerRec::Jittered => Sampler::Jittered,
                 SamplerRec::Progressive => Sampler::Progressive,
+            },
+            integrator: match s.integrator {
+                IntegratorRec::Whitted => Integrator::Whitted,
+                IntegratorRec::Path => Integrator::Path,
             },
         }
     }
