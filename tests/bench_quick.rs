@@ -302,11 +302,11 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
         rows[3]["bit_identical"], "",
         "a mixed farm has no single local render"
     );
-    // Figures printed to 4 decimals: equal within that rounding (relative
-    // 1e-3 covers it for times of 0.1 s and more; the quick runs are longer).
+    // Ratios printed to 4 decimals from times the CSV rounds too (a ratio
+    // of 0.2 recomputed from them was 0.6% off): equal within 1%.
     let near = |got: f64, want: f64, what: &str| {
         assert!(
-            (got - want).abs() <= 1e-3 * want.abs().max(0.1),
+            (got - want).abs() <= 1e-2 * want.abs().max(0.1),
             "{what} = {got}, want {want}"
         );
     };
@@ -320,12 +320,16 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
         );
     }
     // The GPU farm traced the local render's rays (same image), so its
-    // throughput against the local render is the ratio of their times.
+    // throughput against the local render is the ratio of their times. The
+    // local time it divides by is the render call's, in the bench's own
+    // process; `local_wall_s` is the whole local process's (start-up,
+    // pipelines, PNG), at least as long: so the ratio is bounded by it.
     let r = &rows[2];
-    near(
-        num(r, "throughput_vs_local"),
-        num(r, "local_wall_s") / num(r, "render_s"),
-        "GPU farm throughput_vs_local",
+    let throughput = num(r, "throughput_vs_local");
+    let bound = num(r, "local_wall_s") / num(r, "render_s");
+    assert!(
+        throughput > 0.0 && throughput <= bound * (1.0 + 1e-3),
+        "GPU farm throughput_vs_local = {throughput}, want in (0, {bound}]"
     );
     let farm = &rows[..2];
     for r in farm {

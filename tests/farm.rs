@@ -244,10 +244,10 @@ fn three_workers_render_the_resolution_scene_and_an_animation_bit_identical_to_t
     let workers = list_workers(&c.url());
     assert_eq!(workers.len(), 3);
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
-    // ... and between them they did each unit once.
+    // ... and between them they did each unit of both jobs once.
     assert_eq!(
         workers.iter().map(|w| w.units_done).sum::<u64>(),
-        s.units_accepted,
+        80 + s.units_accepted,
         "{workers:?}"
     );
     // A worker's own count, logged as it stops, is the one `tessera
@@ -317,10 +317,10 @@ fn cpu_workers_render_the_distributed_effects_scene_bit_identical_to_tessera_ren
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
     let workers = list_workers(&c.url());
     assert!(workers.iter().all(|w| w.units_done > 0), "{workers:?}");
-    // ... and between them they did each unit once.
+    // ... and between them they did each unit of both jobs once.
     assert_eq!(
         workers.iter().map(|w| w.units_done).sum::<u64>(),
-        s.units_accepted,
+        80 + s.units_accepted,
         "{workers:?}"
     );
 }
@@ -1680,7 +1680,7 @@ fn deploy_files_parse_and_their_command_lines_use_real_flags() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert!(
-        stdout.contains("deploy check: 0 problem(s) in 4 YAML files, 2 systemd units"),
+        stdout.contains("deploy check: 0 problem(s) in 5 YAML files, 2 systemd units"),
         "{stdout}"
     );
 }
@@ -2746,8 +2746,9 @@ fn monitor_pages_frames(http: &str, job: &str) {
     );
     let (status, body) = http_get(http, &format!("/api/jobs/{job}?frames_max=10001"));
     assert!(status.contains("400"), "{status}");
-    assert!(
-        body.contains("frames_max must be a whole number in 1..=10000, got \"10001\""),
+    let refusal: serde_json::Value = serde_json::from_str(&body).expect("JSON");
+    assert_eq!(
+        refusal["error"], "frames_max must be a whole number in 1..=10000, got \"10001\"",
         "{body}"
     );
     // The events' first snapshot: read up to the end of the `farm` event.

@@ -229,9 +229,6 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
         pbr: pbr.into_iter().map(|p| Some(Arc::new(p))).collect(),
         ..Default::default()
     };
-    let mut uvs: [Vec<[f32; 2]>; 2] = Default::default();
-    let mut colors: Vec<[f32; 4]> = Vec::new();
-    let (mut any_uv, mut any_color) = ([false; 2], false);
     let default_index = mesh.materials.len() as u32;
     let mut need_default = false;
 
@@ -344,10 +341,10 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                     .normals
                     .extend(std::iter::repeat_n([0.0; 3], positions.len())),
             }
-            for (k, uv) in uvs.iter_mut().enumerate() {
+            for (k, uv) in geo.uvs.iter_mut().enumerate() {
                 match reader.read_tex_coords(k as u32) {
                     Some(t) => {
-                        any_uv[k] = true;
+                        geo.any_uv[k] = true;
                         let before = uv.len();
                         uv.extend(t.into_f32());
                         if uv.len() - before != positions.len() {
@@ -361,10 +358,10 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
             }
             match reader.read_colors(0) {
                 Some(c) => {
-                    any_color = true;
-                    let before = colors.len();
-                    colors.extend(c.into_rgba_f32());
-                    if colors.len() - before != positions.len() {
+                    geo.any_color = true;
+                    let before = geo.colors.len();
+                    geo.colors.extend(c.into_rgba_f32());
+                    if geo.colors.len() - before != positions.len() {
                         return Err(err(at("COLOR_0 count differs from position count")));
                     }
                     if let Some(Some(p)) = prim.material().index().and_then(|i| mesh.pbr.get_mut(i))
@@ -372,7 +369,9 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                         Arc::make_mut(p).vertex_colors = true;
                     }
                 }
-                None => colors.extend(std::iter::repeat_n([1.0; 4], positions.len())),
+                None => geo
+                    .colors
+                    .extend(std::iter::repeat_n([1.0; 4], positions.len())),
             }
             let indices: Vec<u32> = match reader.read_indices() {
                 Some(i) => i.into_u32().collect(),
@@ -425,14 +424,6 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
             transforms,
         });
     }
-    for k in 0..2 {
-        if any_uv[k] {
-            mesh.uvs[k] = std::mem::take(&mut uvs[k]);
-        }
-    }
-    if any_color {
-        mesh.colors = colors;
-    }
     if need_default {
         mesh.materials.push(("default".into(), default_material()));
     }
@@ -467,17 +458,32 @@ struct Geometry {
     mesh: Mesh,
     normals: Vec<[f32; 3]>,
     any_normals: bool,
+    /// Texture coordinates and colours of this target's vertices (each
+    /// target, the placed-once triangles or an instanced part, has its own
+    /// vertex list).
+    uvs: [Vec<[f32; 2]>; 2],
+    colors: Vec<[f32; 4]>,
+    any_uv: [bool; 2],
+    any_color: bool,
 }
 
 impl Geometry {
     /// Moves the geometry read into `out` (normals only when some
     /// primitive had them).
-    fn finish_into(self, out: &mut Mesh) {
+    fn finish_into(mut self, out: &mut Mesh) {
         out.positions = self.mesh.positions;
         out.triangles = self.mesh.triangles;
         out.triangle_materials = self.mesh.triangle_materials;
         if self.any_normals {
             out.normals = self.normals;
+        }
+        for k in 0..2 {
+            if self.any_uv[k] {
+                out.uvs[k] = std::mem::take(&mut self.uvs[k]);
+            }
+        }
+        if self.any_color {
+            out.colors = self.colors;
         }
     }
 }
