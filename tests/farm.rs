@@ -40,31 +40,6 @@ fn start_coordinator(dir: &Path, listen: &str, extra: &[&str]) -> Coordinator {
     Coordinator { proc, addr: grpc }
 }
 
-fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
-    start_worker_with(dir, url, name, &[])
-}
-
-fn start_worker_with(dir: &Path, url: &str, name: &str, extra: &[&str]) -> Proc {
-    let log = dir.join(format!("worker-{name}-{}.log", rand_suffix()));
-    let child = Command::new(TESSERA)
-        .args([
-            "worker",
-            "--coordinator",
-            url,
-            "--threads",
-            "1",
-            "--name",
-            name,
-        ])
-        .args(extra)
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("start worker");
-    Proc { child, log }
-}
-
 fn tessera(args: &[&str], url: &str) -> Output {
     Command::new(TESSERA)
         .args(args)
@@ -877,37 +852,6 @@ fn raw_result(id: &str, u: &pb::WorkUnit, sums: usize, count: u32) -> pb::Submit
         render_seconds: 0.01,
         ..Default::default()
     }
-}
-
-/// A worker session speaking the protocol by hand (a real gRPC client, not
-/// a mock): its client and its session id.
-async fn raw_worker(url: &str, name: &str) -> (WorkerServiceClient<Channel>, String) {
-    let mut w = WorkerServiceClient::connect(url.to_string())
-        .await
-        .expect("connect");
-    let id = w
-        .register(pb::RegisterRequest {
-            name: name.into(),
-            capabilities: None,
-        })
-        .await
-        .expect("register")
-        .into_inner()
-        .worker_id;
-    (w, id)
-}
-
-/// One lease request of at most one unit, as session `id`.
-async fn raw_lease(w: &WorkerServiceClient<Channel>, id: &str) -> pb::LeaseWorkResponse {
-    w.clone()
-        .lease_work(pb::LeaseWorkRequest {
-            worker_id: id.to_string(),
-            max_units: 1,
-            ..Default::default()
-        })
-        .await
-        .expect("lease")
-        .into_inner()
 }
 
 /// Speaks the worker protocol with bad data: a real gRPC client, not a mock.

@@ -19,7 +19,7 @@
 //! the screenshots it takes there (docs/monitor/ holds the committed ones).
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 
 mod support;
 use support::*;
@@ -48,33 +48,12 @@ fn start_coordinator(dir: &Path) -> Coordinator {
     }
 }
 
-fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
-    let log = dir.join(format!("worker-{name}.log"));
-    let child = Command::new(TESSERA)
-        .args([
-            "worker",
-            "--coordinator",
-            url,
-            "--threads",
-            "1",
-            "--name",
-            name,
-        ])
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("start worker");
-    Proc { child, log }
-}
-
 /// Submits a one-unit job allowed one attempt, leases its unit as a worker
 /// named `flaky` over the worker API and reports `message` as its failure,
 /// then as a second worker, `flaky-too` (one worker alone cannot fail a
 /// job): the job fails, carrying the message. Returns the job's id.
 fn fail_a_job(c: &Coordinator, message: &str) -> String {
     use tessera_proto::pb;
-    use tessera_proto::pb::worker_service_client::WorkerServiceClient;
     let o = Command::new(TESSERA)
         .arg("submit")
         .arg(repo("examples/resolution.toml"))
@@ -93,19 +72,8 @@ fn fail_a_job(c: &Coordinator, message: &str) -> String {
         .expect("tessera submit");
     let job = ok_stdout(&o).trim().to_string();
     rt().block_on(async {
-        let mut w = WorkerServiceClient::connect(c.grpc.clone())
-            .await
-            .expect("connect");
         for name in ["flaky", "flaky-too"] {
-            let id = w
-                .register(pb::RegisterRequest {
-                    name: name.into(),
-                    capabilities: None,
-                })
-                .await
-                .expect("register")
-                .into_inner()
-                .worker_id;
+            let (mut w, id) = raw_worker(&c.grpc, name).await;
             let unit = w
                 .lease_work(pb::LeaseWorkRequest {
                     worker_id: id.clone(),
@@ -121,17 +89,7 @@ fn fail_a_job(c: &Coordinator, message: &str) -> String {
                 .into_iter()
                 .next()
                 .expect("the job's unit");
-            let r = w
-                .submit_result(pb::SubmitResultRequest {
-                    worker_id: id,
-                    lease_id: unit.lease_id,
-                    failure: message.into(),
-                    ..Default::default()
-                })
-                .await
-                .expect("submit the failure")
-                .into_inner();
-            assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+            raw_fail(&w, &id, unit.lease_id, message).await;
         }
     });
     job

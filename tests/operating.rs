@@ -9,13 +9,11 @@
 //!   units of a job failed gets none of its units until forgiven, and
 //!   `tessera status` says so.
 
-use std::io::{BufRead as _, BufReader};
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 use serde_json::Value;
-use tessera_proto::pb;
 use tessera_proto::pb::worker_service_client::WorkerServiceClient;
 
 mod support;
@@ -35,53 +33,19 @@ fn start_coordinator(dir: &Path, extra: &[&str]) -> Coordinator {
     std::fs::write(&client, CLIENT_TOKEN).expect("token file");
     let metrics = dir.join("metrics.token");
     std::fs::write(&metrics, METRICS_TOKEN).expect("token file");
-    let log = dir.join(format!("coordinator-{}.log", rand_suffix()));
-    let mut child = Command::new(TESSERA)
-        .args(["coordinator", "--listen", "127.0.0.1:0"])
-        .args(["--http", "127.0.0.1:0"])
-        .arg("--data")
-        .arg(dir.join("data"))
-        .arg("--client-token-file")
+    let mut cmd = coordinator_command(TESSERA, dir, true);
+    cmd.arg("--client-token-file")
         .arg(&client)
         .arg("--metrics-token-file")
         .arg(&metrics)
         .args(["--lease-timeout", "10", "--heartbeat-interval", "0.4"])
-        .args(extra)
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("start coordinator");
-    let mut out = BufReader::new(child.stdout.take().expect("stdout"));
-    let mut line = |prefix: &str| {
-        let mut l = String::new();
-        out.read_line(&mut l).expect("read address");
-        l.trim()
-            .strip_prefix(prefix)
-            .unwrap_or_else(|| panic!("coordinator did not start: {l:?}"))
-            .to_string()
-    };
-    let grpc = format!("http://{}", line("listening on "));
-    let http = line("monitor on ");
+        .args(extra);
+    let Spawned { proc, grpc, http } = spawn_coordinator(cmd, dir, true);
     Coordinator {
-        proc: Proc { child, log },
-        grpc,
-        http,
+        proc,
+        grpc: format!("http://{grpc}"),
+        http: format!("http://{}", http.expect("monitor")),
     }
-}
-
-fn start_worker(dir: &Path, url: &str, name: &str, extra: &[&str]) -> Proc {
-    let log = dir.join(format!("worker-{name}-{}.log", rand_suffix()));
-    let child = Command::new(TESSERA)
-        .args(["worker", "--coordinator", url, "--threads", "1"])
-        .args(["--name", name])
-        .args(extra)
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("start worker");
-    Proc { child, log }
 }
 
 /// `tessera ARGS` as a client of `c`, with the client token.
@@ -261,7 +225,7 @@ fn metrics_are_prometheus_text_behind_the_tokens_and_move_as_a_job_runs() {
     assert!(sample(&queued, "tessera_store_commit_seconds_count", &[]) >= 1.0);
 
     // A worker runs it to the end.
-    let _w = start_worker(dir.path(), &c.grpc, "metered", &[]);
+    let _w = start_worker(dir.path(), &c.grpc, "metered");
     wait_for("the job to finish", Duration::from_secs(120), || {
         job_status(&c, &job)["state"] == "done"
     });
@@ -323,34 +287,14 @@ struct Session {
 
 impl Session {
     async fn register(url: &str, name: &str) -> Session {
-        let mut client = WorkerServiceClient::connect(url.to_string())
-            .await
-            .expect("connect");
-        let id = client
-            .register(pb::RegisterRequest {
-                name: name.into(),
-                capabilities: None,
-            })
-            .await
-            .expect("register")
-            .into_inner()
-            .worker_id;
+        let (client, id) = raw_worker(url, name).await;
         Session { client, id }
     }
 
     /// One lease of one unit, without waiting: its lease id, if any.
     async fn lease(&mut self) -> Option<String> {
-        self.client
-            .lease_work(pb::LeaseWorkRequest {
-                worker_id: self.id.clone(),
-                max_units: 1,
-                wait_ms: 0,
-                ahead: false,
-                ..Default::default()
-            })
+        raw_lease(&self.client, &self.id)
             .await
-            .expect("lease")
-            .into_inner()
             .units
             .into_iter()
             .next()
@@ -358,18 +302,7 @@ impl Session {
     }
 
     async fn fail(&mut self, lease_id: String, message: &str) {
-        let r = self
-            .client
-            .submit_result(pb::SubmitResultRequest {
-                worker_id: self.id.clone(),
-                lease_id,
-                failure: message.into(),
-                ..Default::default()
-            })
-            .await
-            .expect("submit the failure")
-            .into_inner();
-        assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+        raw_fail(&self.client, &self.id, lease_id, message).await
     }
 }
 

@@ -7,6 +7,7 @@ use std::time::Instant;
 use anyhow::Result;
 use tracer_core::film::{Film, RayCounts, Rect, SampleRange};
 use tracer_core::render::{Backend, CpuRenderer, Precision, PreparedFrame};
+use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
 use super::plot::Series;
@@ -65,6 +66,25 @@ pub(super) struct Bench {
 }
 
 impl Bench {
+    /// Settings of the suites that fix their own: the grid sampler and the
+    /// bench's `--integrator`.
+    pub(super) fn grid_settings(
+        &self,
+        width: u32,
+        height: u32,
+        samples: u32,
+        max_depth: u32,
+    ) -> RenderSettings {
+        RenderSettings {
+            width,
+            height,
+            samples,
+            max_depth,
+            sampler: Sampler::Grid,
+            integrator: self.cfg.integrator,
+        }
+    }
+
     pub(super) fn scene(&self, rel: &str) -> Result<(PathBuf, SceneDesc)> {
         let path = self.cfg.examples.join(rel);
         let desc = SceneDesc::load(&path)?;

@@ -2,8 +2,6 @@
 
 use anyhow::Result;
 use tracer_core::render::Precision;
-use tracer_core::sampling::Sampler;
-use tracer_core::scene::RenderSettings;
 
 use super::plot::{LinePlot, Series};
 use super::{Bench, Run};
@@ -16,14 +14,7 @@ impl Bench {
             for n in [1, 3, 6, 9] {
                 let name = format!("{material}-{n}");
                 let (path, desc) = self.scene(&format!("complexity/{name}.toml"))?;
-                let s = RenderSettings {
-                    width,
-                    height,
-                    samples: 4,
-                    max_depth: 10,
-                    sampler: Sampler::Grid,
-                    integrator: self.cfg.integrator,
-                };
+                let s = self.grid_settings(width, height, 4, 10);
                 let reference = self.refs.get(&path, &desc, &s, self.reference_samples())?;
                 for &b in &self.cfg.backends {
                     runs.push(self.measure(

@@ -3,7 +3,6 @@
 
 use anyhow::Result;
 use tracer_core::render::{Backend, Precision};
-use tracer_core::sampling::Sampler;
 use tracer_core::scene::RenderSettings;
 
 use super::plot::{LinePlot, Series};
@@ -23,14 +22,7 @@ impl Bench {
         // what the missing generations cost. The CPU also runs f64 at each
         // depth: its curve is truncation alone, while the f32 curves level
         // off at the f32 rounding error (docs/benchmarks.md has the figures).
-        let base = RenderSettings {
-            width,
-            height,
-            samples: 4,
-            max_depth: self.cfg.depth_reference,
-            sampler: Sampler::Grid,
-            integrator: self.cfg.integrator,
-        };
+        let base = self.grid_settings(width, height, 4, self.cfg.depth_reference);
         let reference = self.refs.get_exact(&path, &desc, &base)?;
         let mut runs = vec![];
         for &d in depths {

@@ -8,7 +8,6 @@ use anyhow::{Context, Result};
 // The GPU cases only.
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::{Backend, CpuRenderer, Precision, PreparedFrame};
-use tracer_core::sampling::Sampler;
 use tracer_core::scene::RenderSettings;
 #[cfg(feature = "gpu")]
 use {anyhow::bail, tracer_core::scene::SceneDesc};
@@ -33,14 +32,7 @@ impl Bench {
         } else {
             (1920, 1080)
         };
-        let s = RenderSettings {
-            width,
-            height,
-            samples: if self.cfg.quick { 4 } else { 16 },
-            max_depth: 10,
-            sampler: Sampler::Grid,
-            integrator: self.cfg.integrator,
-        };
+        let s = self.grid_settings(width, height, if self.cfg.quick { 4 } else { 16 }, 10);
         // Small tiles in the quick run, so that two workers both get work.
         let tile = if self.cfg.quick { 16 } else { 64 };
         let counts = self.cfg.workers.clone().unwrap_or_else(|| {
@@ -314,14 +306,7 @@ impl Bench {
         } else {
             (1920, 1080)
         };
-        let s = RenderSettings {
-            width,
-            height,
-            samples: if self.cfg.quick { 4 } else { 64 },
-            max_depth: 10,
-            sampler: Sampler::Grid,
-            integrator: self.cfg.integrator,
-        };
+        let s = self.grid_settings(width, height, if self.cfg.quick { 4 } else { 64 }, 10);
         let tile = if self.cfg.quick { 16 } else { 64 };
         let owned;
         let gpu = match &self.gpu {

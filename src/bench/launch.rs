@@ -10,8 +10,6 @@ use {
     anyhow::bail,
     tracer_core::film::Rect,
     tracer_core::render::{Backend, Precision, PreparedFrame},
-    tracer_core::sampling::Sampler,
-    tracer_core::scene::RenderSettings,
 };
 
 impl Bench {
@@ -50,14 +48,7 @@ impl Bench {
             ("glass-9", "complexity/glass-9.toml"),
         ] {
             let (_, desc) = self.scene(file)?;
-            let s = RenderSettings {
-                width,
-                height,
-                samples: 4,
-                max_depth: 10,
-                sampler: Sampler::Grid,
-                integrator: self.cfg.integrator,
-            };
+            let s = self.grid_settings(width, height, 4, 10);
             let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32)?;
             let rect = Rect::full(width, height);
             // Every shape must give the default options' image.

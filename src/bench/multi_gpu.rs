@@ -27,7 +27,6 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use tracer_core::film::{RayCounts, Rect, SampleRange};
 use tracer_core::render::{Backend, GpuRenderer, Precision, PreparedFrame};
-use tracer_core::sampling::Sampler;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
 use super::plot::{LinePlot, Series};
@@ -189,14 +188,7 @@ impl Bench {
         let (width, height) = if quick { (64, 48) } else { (1920, 1080) };
         // Small tiles in the quick run, so that two workers both get work.
         let tile = if quick { 16 } else { 64 };
-        let settings = |samples| RenderSettings {
-            width,
-            height,
-            samples,
-            max_depth: 10,
-            sampler: Sampler::Grid,
-            integrator: self.cfg.integrator,
-        };
+        let settings = |samples| self.grid_settings(width, height, samples, 10);
         let (scene, desc) = self.scene("resolution.toml")?;
         let frame = Workload {
             name: "frame",

@@ -17,14 +17,7 @@ impl Bench {
         } else {
             &[1, 4, 9, 16, 25, 36]
         };
-        let base = RenderSettings {
-            width,
-            height,
-            samples: 1,
-            max_depth: 10,
-            sampler: Sampler::Grid,
-            integrator: self.cfg.integrator,
-        };
+        let base = self.grid_settings(width, height, 1, 10);
         // The samples suite is the headline error curve: a finer reference than the others.
         let reference =
             self.refs

@@ -10,6 +10,10 @@ pub mod prereq;
 #[allow(unused_imports)]
 pub use prereq::{require, shared};
 
+use tessera_proto::pb;
+use tessera_proto::pb::worker_service_client::WorkerServiceClient;
+use tonic::transport::Channel;
+
 pub const TESSERA: &str = env!("CARGO_BIN_EXE_tessera");
 
 /// Holds the tests of one file that must not run at once (farms that
@@ -229,6 +233,75 @@ pub fn spawn_coordinator(mut cmd: Command, dir: &Path, http: bool) -> Spawned {
         grpc,
         http,
     }
+}
+
+/// `tessera worker` of one render thread named `name`, on `url`, with its
+/// log in `dir`.
+pub fn start_worker(dir: &Path, url: &str, name: &str) -> Proc {
+    start_worker_with(dir, url, name, &[])
+}
+
+/// [`start_worker`] with more flags.
+pub fn start_worker_with(dir: &Path, url: &str, name: &str, extra: &[&str]) -> Proc {
+    let log = dir.join(format!("worker-{name}-{}.log", rand_suffix()));
+    let child = Command::new(TESSERA)
+        .args(["worker", "--coordinator", url, "--threads", "1"])
+        .args(["--name", name])
+        .args(extra)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("start worker");
+    Proc { child, log }
+}
+
+/// A worker session speaking the protocol by hand (a real gRPC client, not
+/// a mock): its client and its session id.
+pub async fn raw_worker(url: &str, name: &str) -> (WorkerServiceClient<Channel>, String) {
+    let mut w = WorkerServiceClient::connect(url.to_string())
+        .await
+        .expect("connect");
+    let id = w
+        .register(pb::RegisterRequest {
+            name: name.into(),
+            capabilities: None,
+        })
+        .await
+        .expect("register")
+        .into_inner()
+        .worker_id;
+    (w, id)
+}
+
+/// One lease request of at most one unit, as session `id`.
+pub async fn raw_lease(w: &WorkerServiceClient<Channel>, id: &str) -> pb::LeaseWorkResponse {
+    w.clone()
+        .lease_work(pb::LeaseWorkRequest {
+            worker_id: id.to_string(),
+            max_units: 1,
+            ..Default::default()
+        })
+        .await
+        .expect("lease")
+        .into_inner()
+}
+
+/// Reports lease `lease_id` of session `id` failed with `message`, which
+/// the coordinator must record as a failure.
+pub async fn raw_fail(w: &WorkerServiceClient<Channel>, id: &str, lease_id: String, message: &str) {
+    let r = w
+        .clone()
+        .submit_result(pb::SubmitResultRequest {
+            worker_id: id.to_string(),
+            lease_id,
+            failure: message.into(),
+            ..Default::default()
+        })
+        .await
+        .expect("submit the failure")
+        .into_inner();
+    assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
 }
 
 /// Waits for a child to exit (killing it after `timeout`); its exit code.

@@ -9,27 +9,14 @@ use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
 
 use base64::Engine as _;
-use tracer_core::film::{Rect, SampleRange};
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::render::Precision;
 use tracer_core::scene::{LightShape, ModelSceneOptions, SceneDesc, Vec3};
 
 mod common;
 use common::meshgen::tmpdir;
 
 fn render(scene: &SceneDesc) -> Vec<[f32; 3]> {
-    let frame = PreparedFrame::build(scene, &scene.render, 0, Precision::F32).unwrap();
-    let r = &scene.render;
-    CpuRenderer::new(Some(2))
-        .unwrap()
-        .render(
-            &frame,
-            0,
-            Rect::full(r.width, r.height),
-            SampleRange::all(r.samples),
-            &|_| {},
-        )
-        .unwrap()
-        .resolve()
+    common::render_with(scene, &scene.render, Precision::F32).resolve()
 }
 
 /// A glTF file: the white (metallic 0, roughness 1) quad [-1, 1]^2 at

@@ -8,27 +8,14 @@
 use std::path::Path;
 
 use base64::Engine as _;
-use tracer_core::film::{Rect, SampleRange};
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::render::Precision;
 use tracer_core::scene::SceneDesc;
 
 mod common;
 use common::meshgen::tmpdir;
 
 fn render(scene: &SceneDesc) -> Vec<[f32; 3]> {
-    let frame = PreparedFrame::build(scene, &scene.render, 0, Precision::F32).unwrap();
-    let r = &scene.render;
-    CpuRenderer::new(Some(2))
-        .unwrap()
-        .render(
-            &frame,
-            0,
-            Rect::full(r.width, r.height),
-            SampleRange::all(r.samples),
-            &|_| {},
-        )
-        .unwrap()
-        .resolve()
+    common::render_with(scene, &scene.render, Precision::F32).resolve()
 }
 
 /// A glTF file of the quad [-h, h]^2 at z = `z` facing +Z, with texture

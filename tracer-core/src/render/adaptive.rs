@@ -23,13 +23,7 @@ pub fn render_round(
     samples: SampleRange,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Film, RendererError> {
-    match renderer {
-        Renderer::Cpu(r) => Ok(super::cpu::adaptive::render_round(
-            r, prepared, frame, mask, samples, progress,
-        )?),
-        #[cfg(feature = "gpu")]
-        Renderer::Gpu(r) => Ok(r.render_round(prepared, frame, mask, samples, progress)?),
-    }
+    render_round_costed(renderer, prepared, frame, mask, samples, progress).map(|(film, _)| film)
 }
 
 /// A round's report to [`render`]'s caller.

@@ -15,21 +15,11 @@ use crate::math::Real;
 use crate::render::{CpuRenderer, PreparedFrame, RenderError};
 use crate::world::World;
 
-/// Renders the blocks of `mask` over `samples` (see [`crate::render::adaptive::render_round`]).
-pub fn render_round(
-    renderer: &CpuRenderer,
-    prepared: &PreparedFrame,
-    frame: u32,
-    mask: &BlockMask,
-    samples: SampleRange,
-    progress: &(dyn Fn(u64) + Sync),
-) -> Result<Film, RenderError> {
-    Ok(render_round_costed(renderer, prepared, frame, mask, samples, progress)?.0)
-}
-
-/// [`render_round`], also returning each run of blocks it rendered with
-/// the rays it traced: the cost the error-optimal mode allocates by
-/// (rays, not seconds, so the allocation is the same on every machine).
+/// Renders the blocks of `mask` over `samples` (see
+/// [`crate::render::adaptive::render_round`]), also returning each run of
+/// blocks it rendered with the rays it traced: the cost the error-optimal
+/// mode allocates by (rays, not seconds, so the allocation is the same on
+/// every machine).
 pub fn render_round_costed(
     renderer: &CpuRenderer,
     prepared: &PreparedFrame,
