@@ -261,6 +261,14 @@ fn the_monitor_refuses_cross_site_writes_and_foreign_hosts() {
     );
     assert_eq!(s, 403, "{b}");
     assert!(b.contains("needs Content-Type: application/json"), "{b}");
+    // JSON that does not say where it comes from, without a token.
+    let (s, b) = post(
+        &priority,
+        "Content-Type: application/json\r\n",
+        "{\"priority\": 9}",
+    );
+    assert_eq!(s, 403, "{b}");
+    assert!(b.contains(&format!("needs Origin: http://{m}")), "{b}");
     // A rebound name, even for reading.
     let (s, b) = http(
         &m,

@@ -12,9 +12,10 @@
 //!   request whose `Origin` is another origin is refused, and one that
 //!   changes something needs `Content-Type: application/json` (which a
 //!   page elsewhere cannot send without a CORS preflight, which is never
-//!   granted) and, when the browser says where it comes from, a same-origin
-//!   `Origin` or `Sec-Fetch-Site: same-origin`. A client that is no browser
-//!   sends neither header, and no page can make it send anything.
+//!   granted) and either a same-origin `Origin` or `Sec-Fetch-Site:
+//!   same-origin` (what a browser sends for the monitor's own page) or an
+//!   `Authorization` token (which no page elsewhere can make a browser
+//!   add). A program without a token sends `Origin` itself.
 
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
@@ -112,6 +113,17 @@ impl Hosts {
                 "a {method} needs Content-Type: application/json (so that a page elsewhere cannot send it)"
             ));
         }
+        // Belt and braces behind the content type: the request says it is
+        // the page's own (a browser always sends Origin on a POST), or it
+        // carries a token, which no page elsewhere can make a browser add.
+        let says_where = origin.is_some()
+            || headers.contains_key(header::HeaderName::from_static("sec-fetch-site"));
+        if !says_where && !headers.contains_key(header::AUTHORIZATION) {
+            return Err(format!(
+                "a {method} needs Origin: http://{host} (or Sec-Fetch-Site: same-origin), as the monitor's page sends, \
+                 or a token in Authorization; a program without a token adds the header: curl -H 'Origin: http://{host}'"
+            ));
+        }
         Ok(())
     }
 }
@@ -190,9 +202,22 @@ mod tests {
         assert_eq!(
             ok(
                 "POST",
-                &[h, ("content-type", "application/json; charset=utf-8")]
+                &[
+                    h,
+                    ("content-type", "application/json; charset=utf-8"),
+                    ("origin", "http://127.0.0.1:7880")
+                ]
             ),
             Ok(())
+        );
+        assert_eq!(
+            ok("POST", &[h, json, ("authorization", "Bearer t")]),
+            Ok(())
+        );
+        let e = ok("POST", &[h, json]).unwrap_err();
+        assert!(
+            e.contains("needs Origin: http://127.0.0.1:7880") && e.contains("curl -H"),
+            "{e}"
         );
         assert_eq!(
             ok("POST", &[h, json, ("sec-fetch-site", "same-origin")]),
