@@ -1018,8 +1018,13 @@ impl SceneDesc {
                 ObjectDesc::Mesh(m) => {
                     m.validate().map_err(|(f, msg)| err(f, msg))?;
                     let name = join("", &m.path);
-                    let mesh = Mesh::load_from(files, &name, m.material.is_none())
-                        .map_err(|e| err("path", format!("cannot load model: {e}")))?;
+                    let mesh =
+                        Mesh::load_from(files, &name, m.material.is_none()).map_err(|e| {
+                            let from = m.source.as_deref().map_or(String::new(), |s| {
+                                format!(" (the scene says the model comes from: {s})")
+                            });
+                            err("path", format!("cannot load model: {e}{from}"))
+                        })?;
                     let mut notes = mesh.warnings.clone();
                     let xf = m.transform();
                     if let Some(pick) = &m.camera {

@@ -17,6 +17,11 @@ use crate::mesh::Mesh;
 pub struct MeshDesc {
     /// OBJ (+MTL), glTF 2.0 (.gltf/.glb) or PLY (.ply/.ply.gz), relative to the scene file.
     pub path: String,
+    /// Where the model comes from, for a file not kept beside the scene
+    /// (a licence forbids it, or it is large): said when the file cannot
+    /// be loaded, so that a reader knows where to get it.
+    #[serde(default)]
+    pub source: Option<String>,
     #[serde(default)]
     pub translate: Vec3,
     #[serde(default)]
