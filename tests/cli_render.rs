@@ -107,6 +107,21 @@ fn expect_failure(scene_src: &str, args: &[&str], want: &[&str]) {
 }
 
 #[test]
+fn an_example_whose_model_is_elsewhere_says_where_to_get_it() {
+    // bunny.toml read from a folder with no ../shared beside it, as a
+    // newcomer's checkout without the shared models.
+    let src = std::fs::read_to_string(repo().join("examples/stanford/bunny.toml")).unwrap();
+    expect_failure(
+        &src,
+        &[],
+        &[
+            "objects[0] (mesh).path: cannot load model: ../../../shared/meshes/stanford-bunny.obj: cannot read model file",
+            "(the scene says the model comes from: github.com/alecjacobson/common-3d-test-models data/stanford-bunny.obj",
+        ],
+    );
+}
+
+#[test]
 fn malformed_scenes_are_rejected_with_file_line_and_reason() {
     expect_failure(
         &GOOD.replace("[camera]", "[camera"),
@@ -504,9 +519,67 @@ fn adaptive_renders_write_sample_and_error_channels_and_a_sample_map() {
             &["--sample-map", "m.png"][..],
             "--sample-map applies to adaptive renders",
         ),
+        (
+            &["--adaptive-mode", "image"][..],
+            "--adaptive-mode image needs a target",
+        ),
     ] {
         expect_failure(GOOD, args, &[want]);
     }
+}
+
+/// `--adaptive-mode image` stops at the image's estimated RMSE and says
+/// so: the JSON's estimate is within its target, the mean count inside
+/// the flags' range and not uniform (the cheapest allocation differs by
+/// block), and the picture is the scene's.
+#[test]
+fn the_image_rmse_mode_stops_at_its_target_and_reports_it() {
+    let dir = tmpdir("adaptive-image");
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, GOOD).unwrap();
+    let exr = dir.join("i.exr");
+    let (out, stdout, stderr) = run(tessera().arg("render").arg(&scene).args([
+        "--target-error",
+        "0.004",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "256",
+        "--adaptive-mode",
+        "image",
+        "--json",
+        "-o",
+        exr.to_str().unwrap(),
+    ]));
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("estimated image RMSE"), "{stderr}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).expect("json");
+    let a = &v["adaptive"];
+    assert_eq!(a["mode"], "image", "{stdout}");
+    let (est, target) = (
+        a["estimated_rms_error"].as_f64().unwrap(),
+        a["target_rms_error"].as_f64().unwrap(),
+    );
+    assert_eq!(target, 0.004, "{stdout}");
+    assert!(est > 0.0 && est <= target, "{stdout}");
+    let mean = a["mean_samples"].as_f64().unwrap();
+    assert!((4.0..256.0).contains(&mean), "{stdout}");
+    let img = exr::prelude::read_first_flat_layer_from_file(&exr).unwrap();
+    let samples = img
+        .layer_data
+        .channel_data
+        .list
+        .iter()
+        .find(|c| c.name.to_string() == "samples")
+        .map(|c| match &c.sample_data {
+            exr::prelude::FlatSamples::F32(v) => v.clone(),
+            other => panic!("samples: {other:?}"),
+        })
+        .expect("a samples channel");
+    let (lo, hi) = samples
+        .iter()
+        .fold((f32::MAX, 0f32), |(l, h), &n| (l.min(n), h.max(n)));
+    assert!(lo >= 4.0 && hi <= 256.0 && lo < hi, "{lo}..{hi}");
 }
 
 /// Every glTF asset of ../shared/scenes, and the Sibenik OBJ, render with

@@ -137,6 +137,16 @@ fn resolve(
         })
 }
 
+/// What an adaptive render's target bounds (`--adaptive-mode`).
+#[derive(Copy, Clone, Debug, Default, PartialEq, Eq, ValueEnum)]
+pub enum AdaptiveMode {
+    /// Every pixel's standard error (the meaning of --target-error).
+    #[default]
+    Pixel,
+    /// The whole image's estimated RMSE, reached the cheapest way.
+    Image,
+}
+
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum PrecisionArg {
     F32,
@@ -207,6 +217,14 @@ pub struct RenderArgs {
     /// dark blue at --min-samples to yellow at --max-samples, log scale)
     #[arg(long, value_name = "FILE.png")]
     pub sample_map: Option<PathBuf>,
+    /// Adaptive renders: what the target bounds. `pixel`: every pixel's
+    /// standard error. `image`: the image's estimated RMSE (--target-error
+    /// as an RMSE, --relative-error as a share of the image's mean), with
+    /// each 8x8 block's samples in proportion to its noise over the square
+    /// root of its cost in rays, the cheapest way to that error (local
+    /// renders; docs/adaptive-sampling.md)
+    #[arg(long, value_enum, default_value_t = AdaptiveMode::Pixel)]
+    pub adaptive_mode: AdaptiveMode,
     /// CPU threads for --backend cpu, 0..=4096; 0 means all cores [default: all cores]
     #[arg(long, allow_negative_numbers = true, value_parser = threads_parser())]
     pub threads: Option<usize>,
@@ -259,6 +277,11 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         eprintln!("warning: {w}");
     }
     let (settings, adaptive) = resolve(&scene, &args.overrides, &args.adaptive)?;
+    if args.adaptive_mode == AdaptiveMode::Image && adaptive.is_none() {
+        bail!(
+            "--adaptive-mode image needs a target: give --target-error (an RMSE) or --relative-error"
+        );
+    }
     if let Some(map) = &args.sample_map {
         if adaptive.is_none() {
             bail!("--sample-map applies to adaptive renders: give --target-error too");
@@ -288,6 +311,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let rect = Rect::full(settings.width, settings.height);
     let samples = SampleRange::all(settings.samples);
     let mut last_round = None;
+    let mut image_round = None;
     // A uniform GPU render resolves on the GPU and reads back only the
     // image: 8-bit for PNG, f32 for EXR (an adaptive render's EXR also has
     // per-pixel samples and errors, from the sums).
@@ -317,6 +341,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
             rays,
             nonfinite,
             pixel_samples: rect.area() as u64 * samples.len() as u64,
+            image_round: None,
         };
         return report(
             &args, &settings, precision, &renderer, &output, summary, None, None,
@@ -324,6 +349,25 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     }
     let film = match &adaptive {
         None => renderer.render(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?,
+        Some(a) if args.adaptive_mode == AdaptiveMode::Image => adaptive::render_rmse(
+            &renderer,
+            &prepared,
+            args.frame,
+            &tracer_core::adaptive::optimal::RmseSettings {
+                target_rmse: a.target_error,
+                relative_rmse: a.relative_error,
+                min_samples: a.min_samples,
+                max_samples: a.max_samples,
+            },
+            &|n| progress.inc(n),
+            &mut |r| {
+                progress.note(&format!(
+                    "round {}: {} blocks active, {:.1} s; estimated image RMSE {:.2e} (target {:.2e})",
+                    r.round, r.active_blocks, r.seconds, r.estimated_rmse, r.target_rmse
+                ));
+                image_round = Some(*r);
+            },
+        )?,
         Some(a) => adaptive::render(
             &renderer,
             &prepared,
@@ -347,6 +391,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         rays: film.rays,
         nonfinite: film.nonfinite,
         pixel_samples: film.counts.iter().map(|&n| n as u64).sum(),
+        image_round,
     };
     report(
         &args,
@@ -366,6 +411,8 @@ struct Summary {
     rays: tracer_core::film::RayCounts,
     nonfinite: u64,
     pixel_samples: u64,
+    /// The last round of an `--adaptive-mode image` render.
+    image_round: Option<adaptive::RmseRound>,
 }
 
 /// Prints a finished render's summary (text or `--json`) and warnings.
@@ -385,6 +432,7 @@ fn report(
         rays: r,
         nonfinite,
         pixel_samples,
+        image_round,
     } = summary;
     let rect = Rect::full(settings.width, settings.height);
     if args.format.json {
@@ -410,8 +458,24 @@ fn report(
             "nonfinite_samples": nonfinite,
             "output": output.display().to_string(),
             "adaptive": adaptive.map(|a| {
+                if let Some(r) = image_round {
+                    return serde_json::json!({
+                        "mode": "image",
+                        "target_error": a.target_error,
+                        "relative_error": a.relative_error,
+                        "min_samples": a.min_samples,
+                        "max_samples": a.max_samples,
+                        "rounds": r.round + 1,
+                        "pixel_samples": pixel_samples,
+                        "mean_samples": pixel_samples as f64 / rect.area() as f64,
+                        "estimated_rms_error": r.estimated_rmse,
+                        "target_rms_error": r.target_rmse,
+                        "sample_map": args.sample_map.as_ref().map(|p| p.display().to_string()),
+                    });
+                }
                 let s = last_round.map(|r| r.summary).unwrap_or_default();
                 serde_json::json!({
+                    "mode": "pixel",
                     "target_error": a.target_error,
                     "relative_error": a.relative_error,
                     "min_samples": a.min_samples,
@@ -427,7 +491,17 @@ fn report(
             }),
         }));
     } else {
-        if let Some(a) = &adaptive {
+        if let (Some(a), Some(r)) = (&adaptive, image_round) {
+            outln!(
+                "adaptive: image RMSE at most {:.2e} ({}..{} spp): mean {:.1} spp, estimated image RMSE {:.2e} after {} rounds",
+                r.target_rmse,
+                a.min_samples,
+                a.max_samples,
+                pixel_samples as f64 / rect.area() as f64,
+                r.estimated_rmse,
+                r.round + 1
+            );
+        } else if let Some(a) = &adaptive {
             let s = last_round.map(|r| r.summary).unwrap_or_default();
             outln!(
                 "adaptive: {} ({}..{} spp): mean {:.1} spp, {:.1}% of blocks converged, estimated RMS error {:.2e}",

@@ -490,6 +490,9 @@ pub struct MeshKeyframe {
     pub translate: Vec3,
 }
 
+// A scene has few objects, described once: a mesh's larger description
+// is not worth a box in every match.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(tag = "type", rename_all = "lowercase", deny_unknown_fields)]
 pub enum ObjectDesc {
