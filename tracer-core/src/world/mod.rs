@@ -348,9 +348,16 @@ impl<R: Real> World<R> {
                     }
                 })
                 .collect();
-            let lights = distributed::lights::<R>(desc, &origin);
+            let mut lights = distributed::lights::<R>(desc, &origin);
+            let mut environment = v::<R>(&desc.world.environment);
+            if path && desc.world.default_lighting {
+                // A model file's default lighting: the sky, not the
+                // headlight (the last light, the only one there is).
+                lights.clear();
+                environment = R::V3::splat(R::from_f64(crate::scene::DEFAULT_SKY));
+            }
             world.dist = Some(Box::new(Distributed {
-                path: path.then(|| PathScene::new(&lights, v::<R>(&desc.world.environment))),
+                path: path.then(|| PathScene::new(&lights, environment)),
                 lights,
                 area_lights,
                 cones,
