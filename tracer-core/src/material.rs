@@ -8,6 +8,7 @@
 
 use std::any::TypeId;
 
+use crate::bsdf::Bsdf;
 use crate::math::{Real, Vector3};
 use crate::scene::MaterialDesc;
 use crate::texture::TextureRef;
@@ -164,12 +165,19 @@ impl Pbr {
     }
 
     /// The material at a point with texture coordinates `uv` (both sets)
-    /// and vertex colour `color`: the factors times the textures
+    /// and vertex colour `color`, for both integrators, the textures
+    /// sampled once: Whitted's [`Material`], the factors times the textures
     /// through [`Pbr::whitted`], the ambient term darkened by the
     /// occlusion texture (glTF's occlusion darkens indirect light, which
     /// the ambient term stands for), the emission times the emissive
-    /// texture. `m` is the material of the factors alone.
-    pub fn at<R: Real>(&self, m: &Material<R>, uv: [[f32; 2]; 2], color: [f32; 4]) -> Material<R> {
+    /// texture; and the path integrator's [`Bsdf`] ([`Pbr::bsdf`]). `m` is
+    /// the material of the factors alone.
+    pub fn at<R: Real>(
+        &self,
+        m: &Material<R>,
+        uv: [[f32; 2]; 2],
+        color: [f32; 4],
+    ) -> (Material<R>, Bsdf<R>) {
         let base = self.base_color_at(uv, color);
         let emission = match &self.emissive_texture {
             Some(t) => {
@@ -180,12 +188,13 @@ impl Pbr {
         };
         if self.mtl {
             let tint = R::V3::from_array([0, 1, 2].map(|i| base[i] as f64));
-            return Material {
+            let out = Material {
                 ambient: m.ambient * tint,
                 diffuse: m.diffuse * tint,
                 emission,
                 ..*m
             };
+            return (out, Self::mtl_bsdf(&out));
         }
         let (mut metallic, mut roughness) = (self.metallic, self.roughness);
         if let Some(t) = &self.metallic_roughness_texture {
@@ -193,7 +202,8 @@ impl Pbr {
             roughness *= s[1] as f64;
             metallic *= s[2] as f64;
         }
-        let mut desc = self.whitted(base.map(f64::from), metallic, roughness);
+        let base = base.map(f64::from);
+        let mut desc = self.whitted(base, metallic, roughness);
         if let Some(t) = &self.occlusion_texture {
             let o = t.sample(uv[t.uv_set as usize])[0] as f64;
             let k = 1.0 + self.occlusion_strength * (o - 1.0);
@@ -202,7 +212,59 @@ impl Pbr {
         let mut out = Material::from_desc(&desc);
         out.pbr = m.pbr;
         out.emission = emission;
-        out
+        (out, self.bsdf(base, metallic, roughness, emission))
+    }
+
+    /// The path integrator's BSDF of base colour `base` (linear RGBA),
+    /// `metallic`, `roughness` and emitted radiance `emission` (the
+    /// factors, or at a hit the factors times the textures): glTF's
+    /// parameters as they are, with `KHR_materials_specular`, `_ior` and
+    /// `_transmission` (docs/path-tracing.md). BLEND's 1 - alpha, where
+    /// larger, is the transmission, as in [`Pbr::whitted`]; the occlusion
+    /// texture has no part (indirect light is computed). An MTL material
+    /// is Blinn-Phong, mapped by [`Bsdf::from_material`].
+    pub fn bsdf<R: Real>(
+        &self,
+        base: [f64; 4],
+        metallic: f64,
+        roughness: f64,
+        emission: R::V3,
+    ) -> Bsdf<R> {
+        let [r, g, b, a] = base;
+        let blend = if self.alpha_mode == AlphaMode::Blend {
+            (1.0 - a).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        Bsdf {
+            base_colour: R::V3::from_array([r, g, b].map(|c| c.clamp(0.0, 1.0))),
+            metallic: R::from_f64(metallic.clamp(0.0, 1.0)),
+            roughness: R::from_f64(roughness.clamp(0.0, 1.0)),
+            ior: R::from_f64(self.ior),
+            transmission: R::from_f64(self.transmission.clamp(0.0, 1.0).max(blend)),
+            specular: R::from_f64(self.specular_factor.clamp(0.0, 1.0)),
+            specular_colour: R::V3::from_array(self.specular_color.map(|c| c.max(0.0))),
+            emission,
+            mirror: R::ZERO,
+        }
+    }
+
+    /// The BSDF of the whole material `m` (of this `Pbr`), its factors
+    /// alone: what hits where nothing varies over the surface get.
+    pub fn bsdf_of<R: Real>(&self, m: &Material<R>) -> Bsdf<R> {
+        if self.mtl {
+            Self::mtl_bsdf(m)
+        } else {
+            self.bsdf(self.base_color, self.metallic, self.roughness, m.emission)
+        }
+    }
+
+    /// An MTL material's BSDF: Blinn-Phong's mapping, with its emission.
+    fn mtl_bsdf<R: Real>(m: &Material<R>) -> Bsdf<R> {
+        Bsdf {
+            emission: m.emission,
+            ..Bsdf::from_material(m)
+        }
     }
 
     /// Base colour (linear RGBA) at a point: factor x texture x vertex colour.

@@ -37,6 +37,10 @@ enum Mat {
     Metal(f64),
     /// Smooth glass (transmission 1) of this ior.
     Glass(f64),
+    /// A model file's Lambert material (glTF metallic 0, specularFactor 0)
+    /// whose base colour is the case's texture (Mitsuba: a `bitmap`);
+    /// only on a [`Shape::Quad`].
+    Textured,
 }
 
 #[derive(Clone, Copy)]
@@ -50,6 +54,15 @@ enum Shape {
     Plane {
         n: V,
         d: f64,
+    },
+    /// The parallelogram with texture coordinates (0, 0) at `corner`, u
+    /// growing along `eu` and v along `ev` (to (1, 1)), facing `eu x ev`:
+    /// for Tessera a glTF file, for Mitsuba a `rectangle`, whose uv is
+    /// ((x + 1) / 2, (y + 1) / 2) of its local square.
+    Quad {
+        corner: V,
+        eu: V,
+        ev: V,
     },
 }
 
@@ -82,6 +95,8 @@ struct Case {
     lights: Vec<Light>,
     /// Relative bias the definitions allow (see each case).
     bias: f64,
+    /// The PNG of [`Mat::Textured`]: width, height, sRGB RGBA texels.
+    texture: Option<(u32, u32, Vec<[u8; 4]>)>,
 }
 
 fn rgb(v: V) -> String {
@@ -106,7 +121,28 @@ fn norm(a: V) -> V {
 }
 
 impl Case {
-    fn toml(&self) -> String {
+    /// The case's files (the texture, the glTF quads) in a fresh directory.
+    fn files(&self) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!(
+            "tessera-mitsuba-{}-{}",
+            self.name,
+            std::process::id()
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        if let Some((w, h, texels)) = &self.texture {
+            let img =
+                image::RgbaImage::from_fn(*w, *h, |x, y| image::Rgba(texels[(y * w + x) as usize]));
+            img.save(dir.join("tex.png")).unwrap();
+        }
+        for (i, (shape, _)) in self.objects.iter().enumerate() {
+            if let Shape::Quad { corner, eu, ev } = *shape {
+                write_gltf_quad(&dir.join(format!("o{i}.gltf")), corner, eu, ev);
+            }
+        }
+        dir
+    }
+
+    fn toml(&self, dir: &std::path::Path) -> String {
         let mut s = String::new();
         writeln!(
             s,
@@ -124,6 +160,15 @@ impl Case {
         )
         .unwrap();
         for (i, (shape, mat)) in self.objects.iter().enumerate() {
+            if let Shape::Quad { .. } = shape {
+                assert!(
+                    matches!(mat, Mat::Textured),
+                    "a quad is a textured glTF file"
+                );
+                let path = dir.join(format!("o{i}.gltf"));
+                writeln!(s, "[[objects]]\ntype = \"mesh\"\npath = {path:?}\n").unwrap();
+                continue;
+            }
             writeln!(s, "[materials.m{i}]\ndiffuse = [0.5, 0.5, 0.5]\n").unwrap();
             let b = match *mat {
                 Mat::Lambert(c) => format!("base_colour = {}\nmetallic = 0\nspecular = 0", rgb(c)),
@@ -131,6 +176,7 @@ impl Case {
                 Mat::Glass(ior) => {
                     format!("metallic = 0\nroughness = 0\ntransmission = 1\nior = {ior}")
                 }
+                Mat::Textured => panic!("a textured material is a glTF quad's"),
             };
             writeln!(s, "[bsdf.m{i}]\n{b}\n").unwrap();
             match *shape {
@@ -144,6 +190,7 @@ impl Case {
                     "[[objects]]\ntype = \"plane\"\nnormal = {}\ndistance = {d}\nmaterial = \"m{i}\"\n",
                     rgb(n)
                 ),
+                Shape::Quad { .. } => unreachable!(),
             }
             .unwrap();
         }
@@ -169,7 +216,7 @@ impl Case {
         s
     }
 
-    fn mitsuba(&self) -> String {
+    fn mitsuba(&self, dir: &std::path::Path) -> String {
         let mut s = String::new();
         writeln!(
             s,
@@ -199,6 +246,11 @@ impl Case {
                 Mat::Glass(ior) => {
                     format!("{{'type': 'dielectric', 'int_ior': {ior}, 'ext_ior': 1.0}}")
                 }
+                Mat::Textured => format!(
+                    "{{'type': 'diffuse', 'reflectance': {{'type': 'bitmap', 'filename': {:?}, \
+                     'filter_type': 'bilinear', 'wrap_mode': 'repeat'}}}}",
+                    dir.join("tex.png").to_str().unwrap()
+                ),
             };
             let shape = match *shape {
                 Shape::Sphere { c, r } => {
@@ -219,6 +271,10 @@ impl Case {
                         rgb(up)
                     )
                 }
+                Shape::Quad { corner, eu, ev } => format!(
+                    "'type': 'rectangle', 'to_world': T([{}, [0, 0, 0, 1]])",
+                    parallelogram(corner, eu, ev)
+                ),
             };
             writeln!(s, "'o{i}': {{{shape}, 'bsdf': {bsdf}}},").unwrap();
         }
@@ -231,19 +287,12 @@ impl Case {
                     py_rgb(intensity)
                 ),
                 Light::Quad { corner, eu, ev, l } => {
-                    // The unit square [-1, 1]^2 onto the parallelogram,
-                    // its +z (the emitting side) along edge_u x edge_v.
-                    let n = norm(cross(eu, ev));
-                    let c: Vec<f64> = (0..3).map(|k| corner[k] + 0.5 * (eu[k] + ev[k])).collect();
-                    let rows: Vec<String> = (0..3)
-                        .map(|k| format!("[{}, {}, {}, {}]", 0.5 * eu[k], 0.5 * ev[k], n[k], c[k]))
-                        .collect();
                     writeln!(
                         s,
                         "'l{i}': {{'type': 'rectangle', 'to_world': T([{}, [0, 0, 0, 1]]), \
                          'bsdf': {{'type': 'diffuse', 'reflectance': {}}}, \
                          'emitter': {{'type': 'area', 'radiance': {}}}}},",
-                        rows.join(", "),
+                        parallelogram(corner, eu, ev),
                         py_rgb([0.0; 3]),
                         py_rgb(l)
                     )
@@ -256,8 +305,10 @@ impl Case {
     }
 
     fn tessera(&self) -> Vec<[f32; 3]> {
-        let desc = SceneDesc::parse(&self.toml(), "mitsuba-case.toml")
-            .unwrap_or_else(|e| panic!("{}: {e}\n{}", self.name, self.toml()));
+        let dir = self.files();
+        let toml = self.toml(&dir);
+        let desc = SceneDesc::parse(&toml, dir.join("mitsuba-case.toml"))
+            .unwrap_or_else(|e| panic!("{}: {e}\n{toml}", self.name));
         let s = desc.render;
         let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
         let film = CpuRenderer::new(None)
@@ -276,12 +327,7 @@ impl Case {
 
     /// Mitsuba's renders with seeds 1 and 2.
     fn mitsuba_renders(&self) -> [Vec<[f32; 3]>; 2] {
-        let dir = std::env::temp_dir().join(format!(
-            "tessera-mitsuba-{}-{}",
-            self.name,
-            std::process::id()
-        ));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = self.files();
         let script = format!(
             "import struct, sys\n\
              import mitsuba as mi\n\
@@ -291,7 +337,7 @@ impl Case {
              for seed in (1, 2):\n\
              \x20   a = mi.render(scene, seed=seed).array\n\
              \x20   open(sys.argv[1] + '/m%d.f32' % seed, 'wb').write(struct.pack('<%df' % len(a), *a))\n",
-            self.mitsuba()
+            self.mitsuba(&dir)
         );
         let out = Command::new("python3")
             .arg("-c")
@@ -363,6 +409,71 @@ impl Case {
     }
 }
 
+/// The rows of the affine map taking Mitsuba's square [-1, 1]^2 (and its
+/// +z) onto the parallelogram at `corner` with edges `eu`, `ev` (its
+/// normal along eu x ev).
+fn parallelogram(corner: V, eu: V, ev: V) -> String {
+    let n = norm(cross(eu, ev));
+    let c: Vec<f64> = (0..3).map(|k| corner[k] + 0.5 * (eu[k] + ev[k])).collect();
+    let rows: Vec<String> = (0..3)
+        .map(|k| format!("[{}, {}, {}, {}]", 0.5 * eu[k], 0.5 * ev[k], n[k], c[k]))
+        .collect();
+    rows.join(", ")
+}
+
+/// A glTF file of one parallelogram ([`Shape::Quad`]) whose material is
+/// white Lambert (metallic 0, specularFactor 0) times image `tex.png`
+/// (the default sampler: repeat, bilinear).
+fn write_gltf_quad(path: &std::path::Path, corner: V, eu: V, ev: V) {
+    let n = norm(cross(eu, ev));
+    let p = |a: f64, b: f64| -> V { std::array::from_fn(|k| corner[k] + a * eu[k] + b * ev[k]) };
+    let mut bin = Vec::new();
+    for q in [p(0.0, 0.0), p(1.0, 0.0), p(1.0, 1.0), p(0.0, 1.0)] {
+        bin.extend(q.iter().flat_map(|&c| (c as f32).to_le_bytes()));
+    }
+    for _ in 0..4 {
+        bin.extend(n.iter().flat_map(|&c| (c as f32).to_le_bytes()));
+    }
+    for c in [0f32, 0., 1., 0., 1., 1., 0., 1.] {
+        bin.extend(c.to_le_bytes());
+    }
+    for i in [0u16, 1, 2, 0, 2, 3] {
+        bin.extend(i.to_le_bytes());
+    }
+    let bin_path = path.with_extension("bin");
+    std::fs::write(&bin_path, &bin).unwrap();
+    let (lo, hi): (Vec<f64>, Vec<f64>) = (0..3)
+        .map(|k| {
+            let c =
+                [p(0.0, 0.0), p(1.0, 0.0), p(1.0, 1.0), p(0.0, 1.0)].map(|q| q[k] as f32 as f64);
+            (
+                c.iter().cloned().fold(f64::INFINITY, f64::min),
+                c.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+            )
+        })
+        .unzip();
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
+        "nodes":[{{"mesh":0}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2}},"indices":3,"material":0}}]}}],
+        "materials":[{{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}},"metallicFactor":0}},
+                      "extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
+        "textures":[{{"source":0}}],
+        "images":[{{"uri":"tex.png"}}],
+        "extensionsUsed":["KHR_materials_specular"],
+        "buffers":[{{"byteLength":{len},"uri":{uri:?}}}],
+        "bufferViews":[{{"buffer":0,"byteLength":48}},{{"buffer":0,"byteOffset":48,"byteLength":48}},
+                       {{"buffer":0,"byteOffset":96,"byteLength":32}},{{"buffer":0,"byteOffset":128,"byteLength":12}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":{lo:?},"max":{hi:?}}},
+                     {{"bufferView":1,"componentType":5126,"count":4,"type":"VEC3"}},
+                     {{"bufferView":2,"componentType":5126,"count":4,"type":"VEC2"}},
+                     {{"bufferView":3,"componentType":5123,"count":6,"type":"SCALAR"}}]}}"#,
+        len = bin.len(),
+        uri = bin_path.file_name().unwrap().to_str().unwrap(),
+    );
+    std::fs::write(path, json).unwrap();
+}
+
 const FLOOR_Y: Shape = Shape::Plane {
     n: [0.0, 1.0, 0.0],
     d: 0.0,
@@ -381,6 +492,7 @@ fn base(name: &'static str) -> Case {
         objects: Vec::new(),
         lights: Vec::new(),
         bias: 0.0,
+        texture: None,
     }
 }
 
@@ -517,6 +629,49 @@ fn smooth_dielectric_matches_mitsuba() {
     ];
     c.lights = vec![ceiling_light(3.0)];
     c.bias = 0.03;
+    c.check();
+}
+
+/// A model file's textured Lambert floor (glTF base colour texture,
+/// metallic 0, specularFactor 0: the file's `Pbr` becomes the BSDF at each
+/// hit) against Mitsuba's `diffuse` with a `bitmap` reflectance: the same
+/// sRGB decoding, bilinear filter and repeat wrap, v = 0 at the image's
+/// first row in both. Texels of four colours, so that a flip of u or v,
+/// or a texture dropped for the factor, shows.
+#[test]
+fn textured_lambert_from_a_model_file_matches_mitsubas_bitmap() {
+    let mut c = base("textured");
+    c.environment = [0.2, 0.25, 0.3];
+    let palette = [
+        [230u8, 40, 40, 255],
+        [40, 200, 60, 255],
+        [50, 60, 220, 255],
+        [240, 230, 90, 255],
+    ];
+    let texels = (0..16u32)
+        .map(|i| palette[((i % 4) / 2 + 2 * (i / 8)) as usize])
+        .collect();
+    c.texture = Some((4, 4, texels));
+    c.objects = vec![
+        (
+            // The floor y = 0, x and z in [-3, 3]: u along +x, v along -z
+            // (so that it faces +y).
+            Shape::Quad {
+                corner: [-3.0, 0.0, 3.0],
+                eu: [6.0, 0.0, 0.0],
+                ev: [0.0, 0.0, -6.0],
+            },
+            Mat::Textured,
+        ),
+        (
+            Shape::Sphere {
+                c: [0.0, 1.0, 0.0],
+                r: 1.0,
+            },
+            Mat::Lambert([0.7, 0.7, 0.7]),
+        ),
+    ];
+    c.lights = vec![ceiling_light(3.0)];
     c.check();
 }
 

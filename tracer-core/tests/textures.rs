@@ -254,3 +254,43 @@ fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_ra
         "cut {seen_cut}, solid {seen_solid}, lit {lit}, shadowed {shadowed}"
     );
 }
+
+/// The path integrator takes a model file's material as its glTF BSDF at
+/// each hit, and a model scene with no light gets the default sky
+/// (docs/scene-format.md, "Default lighting"): a textured Lambert quad
+/// (metallic 0, specularFactor 0) facing the camera under a uniform sky of
+/// radiance 1 reflects exactly its texture's colour, since every
+/// direction leaving a plane meets the sky (no light, so no shadow ray;
+/// one BSDF sample of weight = albedo). Without the texture (the factor
+/// alone, white) or under the headlight the pixels would differ.
+#[test]
+fn path_traced_textured_lambert_under_the_default_sky_is_its_texture() {
+    let dir = tmpdir("tex-path-sky");
+    let texel = [200u8, 120, 40, 255];
+    write_png(&dir, 1, 1, &[texel]);
+    let model = textured_quad(
+        &dir,
+        1.0,
+        0.0,
+        r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0},"metallicFactor":0},
+            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
+        r#"{"wrapS":33071,"wrapT":33071}"#,
+    );
+    let src = format!(
+        "[render]\nwidth = 16\nheight = 16\nsamples = 4\nintegrator = \"path\"\n\
+         [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 40\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\nlights = true\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    assert!(scene.world.default_lighting);
+    let img = render(&scene);
+    let want = [0, 1, 2].map(|k| srgb(texel[k]));
+    for (i, p) in img.iter().enumerate() {
+        for k in 0..3 {
+            assert!(
+                (p[k] as f64 - want[k]).abs() < 1e-5,
+                "pixel {i}: {p:?}, want the texel {want:?}"
+            );
+        }
+    }
+}

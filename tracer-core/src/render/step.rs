@@ -341,8 +341,8 @@ pub struct Surface<'a, R: Real, P> {
     pub cos_i: R,
     /// The material at this point (textures looked up: [`material_at`]).
     pub m: Material<R>,
-    /// The path integrator's BSDF of the same material.
-    pub bsdf: &'a Bsdf<R>,
+    /// The path integrator's BSDF of the same material at this point.
+    pub bsdf: Bsdf<R>,
     /// Origin for rays leaving on the viewer's side.
     pub above: R::V3,
     _world: std::marker::PhantomData<&'a World<R>>,
@@ -361,31 +361,33 @@ impl<'a, R: Real> Surface<'a, R, PrimId> {
     #[inline]
     pub fn at(world: &'a World<R>, ray: &Ray<R>, (t, id): (R, PrimId)) -> Self {
         let (p, n_out, material) = world.surface(id, ray.at(t));
-        Surface::new(
-            id,
-            p,
-            n_out,
-            ray,
-            material_at(world, id, p, material),
-            &world.bsdfs[material as usize],
-            |n, v| world.shading_normal(id, p, n, v),
-        )
+        let (m, bsdf) = material_at(world, id, p, material);
+        Surface::new(id, p, n_out, ray, m, bsdf, |n, v| {
+            world.shading_normal(id, p, n, v)
+        })
     }
 }
 
 /// The material of primitive `id` (of material index `material`) at the
-/// point `p`: the material itself, or, where a model file's textures or
-/// vertex colours vary over it, the glTF parameters times the textures
-/// there mapped to Whitted's model (`Pbr::at`; docs/meshes.md).
+/// point `p`, and its BSDF: the material itself, or, where a model file's
+/// textures or vertex colours vary over it, the glTF parameters times the
+/// textures there, mapped to Whitted's model and to the BSDF (`Pbr::at`;
+/// docs/meshes.md, docs/path-tracing.md).
 #[inline]
-pub fn material_at<R: Real>(world: &World<R>, id: PrimId, p: R::V3, material: u32) -> Material<R> {
+pub fn material_at<R: Real>(
+    world: &World<R>,
+    id: PrimId,
+    p: R::V3,
+    material: u32,
+) -> (Material<R>, Bsdf<R>) {
     let m = &world.materials[material as usize];
+    let whole = (*m, world.bsdfs[material as usize]);
     if m.pbr == NO_PBR || id.kind() != PrimId::TRIANGLE {
-        return *m;
+        return whole;
     }
     let pbr = &world.pbr[m.pbr as usize];
     if !pbr.varies() {
-        return *m;
+        return whole;
     }
     let (uv, colour) = world.attrs_at(id.index(), p);
     pbr.at(m, uv, colour)
@@ -402,7 +404,7 @@ impl<'a, R: Real, P: Copy> Surface<'a, R, P> {
         n_out: R::V3,
         ray: &Ray<R>,
         m: Material<R>,
-        bsdf: &'a Bsdf<R>,
+        bsdf: Bsdf<R>,
         shading: impl FnOnce(R::V3, R::V3) -> R::V3,
     ) -> Self {
         let v = -ray.dir;

@@ -347,6 +347,12 @@ pub struct WorldDesc {
     /// the path integrator (black when left out; Whitted uses `background`).
     #[serde(default)]
     pub environment: Vec3,
+    /// Set (never read from a file) where the scene got the default
+    /// lighting of model files (`model_scene::headlight`): the path
+    /// integrator then lights it by [`crate::scene::DEFAULT_SKY`]
+    /// instead (docs/scene-format.md, "Lights of a model").
+    #[serde(skip)]
+    pub default_lighting: bool,
 }
 
 /// `[bsdf.NAME]`: the path integrator's BSDF of material NAME given
@@ -1124,6 +1130,7 @@ impl SceneDesc {
         if uses_model_lights && lights.is_empty() && world.ambient.0 == [0.0; 3] {
             lights.push(model_scene::headlight(&camera));
             world.ambient = Vec3([model_scene::DEFAULT_AMBIENT; 3]);
+            world.default_lighting = true;
         }
 
         Ok(SceneDesc {

@@ -17,7 +17,7 @@ pub use desc::{
 pub(crate) use desc::{check_colour, check_weight};
 pub use error::{Location, SceneError};
 pub use model_scene::{
-    AUTO_FOV_Y, CameraPick, DEFAULT_AMBIENT, DIRECTIONAL_DISTANCE, HEADLIGHT, LightsPick,
-    ModelSceneOptions, SceneInput, model_scene_text,
+    AUTO_FOV_Y, CameraPick, DEFAULT_AMBIENT, DEFAULT_SKY, DIRECTIONAL_DISTANCE, HEADLIGHT,
+    LightsPick, ModelSceneOptions, SceneInput, model_scene_text,
 };
 pub use overrides::{RenderOverrides, SettingsError};

@@ -115,6 +115,11 @@ pub const DIRECTIONAL_DISTANCE: f64 = 1000.0;
 /// Default lighting: `world.ambient` and the headlight's colour.
 pub const DEFAULT_AMBIENT: f64 = 0.2;
 pub const HEADLIGHT: f64 = 0.8;
+/// The path integrator's default lighting (instead of the headlight and
+/// the ambient term): a uniform white sky of this radiance, the
+/// environment light of the glTF sample viewer's screenshots at its
+/// simplest (a white Lambert surface under it shows its base colour).
+pub const DEFAULT_SKY: f64 = 1.0;
 
 /// The box of the model's vertices as the object places them (`None` for
 /// a model without vertices).

@@ -30,6 +30,7 @@ pub use instances::{Affine3, Instance, InstancedMesh, Instances};
 
 pub use crate::light::PointLight;
 pub use crate::material::Material;
+use crate::material::{NO_PBR, Pbr};
 
 /// Pinhole camera at the (camera-relative) origin.
 #[derive(Clone, Copy, Debug)]
@@ -267,7 +268,7 @@ impl<R: Real> World<R> {
             accel: None,
             degenerate_triangles: tris.degenerate + tris.instances.dropped,
             instances: tris.instances,
-            bsdfs: bsdfs_of(desc, &materials),
+            bsdfs: bsdfs_of(desc, &materials, &tris.pbr),
             materials,
             pbr: tris.pbr,
             attrs: tris.attrs,
@@ -319,7 +320,7 @@ impl<R: Real> World<R> {
                         accel: None,
                         instances: set.instances,
                         degenerate_triangles: set.degenerate,
-                        bsdfs: bsdfs_of(desc, &mats),
+                        bsdfs: bsdfs_of(desc, &mats, &set.pbr),
                         materials: mats,
                         pbr: set.pbr,
                         attrs: set.attrs,
@@ -347,9 +348,16 @@ impl<R: Real> World<R> {
                     }
                 })
                 .collect();
-            let lights = distributed::lights::<R>(desc, &origin);
+            let mut lights = distributed::lights::<R>(desc, &origin);
+            let mut environment = v::<R>(&desc.world.environment);
+            if path && desc.world.default_lighting {
+                // A model file's default lighting: the sky, not the
+                // headlight (the last light, the only one there is).
+                lights.clear();
+                environment = R::V3::splat(R::from_f64(crate::scene::DEFAULT_SKY));
+            }
             world.dist = Some(Box::new(Distributed {
-                path: path.then(|| PathScene::new(&lights, v::<R>(&desc.world.environment))),
+                path: path.then(|| PathScene::new(&lights, environment)),
                 lights,
                 area_lights,
                 cones,
@@ -446,13 +454,19 @@ impl<R: Real> World<R> {
 }
 
 /// Each material's BSDF: the file's materials come first (in
-/// `desc.materials`' order, with their `[bsdf.NAME]`), model files' after.
-fn bsdfs_of<R: Real>(desc: &SceneDesc, materials: &[Material<R>]) -> Vec<Bsdf<R>> {
+/// `desc.materials`' order, with their `[bsdf.NAME]`), model files' after
+/// (glTF's parameters: `Pbr::bsdf_of`).
+fn bsdfs_of<R: Real>(
+    desc: &SceneDesc,
+    materials: &[Material<R>],
+    pbr: &[std::sync::Arc<Pbr>],
+) -> Vec<Bsdf<R>> {
     materials
         .iter()
         .enumerate()
         .map(|(i, m)| match desc.bsdfs.get(i) {
             Some(Some(b)) => Bsdf::from_desc(b),
+            _ if m.pbr != NO_PBR => pbr[m.pbr as usize].bsdf_of(m),
             _ => Bsdf::from_material(m),
         })
         .collect()

@@ -96,15 +96,10 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
         match prim.src {
             Src::Static => {
                 let (p, n_out, mat) = world.surface(prim.id, ray.at(t));
-                Surface::new(
-                    prim,
-                    p,
-                    n_out,
-                    ray,
-                    step::material_at(world, prim.id, p, mat),
-                    &world.bsdfs[mat as usize],
-                    |n, v| world.shading_normal(prim.id, p, n, v),
-                )
+                let (m, bsdf) = step::material_at(world, prim.id, p, mat);
+                Surface::new(prim, p, n_out, ray, m, bsdf, |n, v| {
+                    world.shading_normal(prim.id, p, n, v)
+                })
             }
             Src::Sphere(i) => {
                 let s = self.dist.moving_spheres[i].at(self.tau);
@@ -115,7 +110,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                     n_out,
                     ray,
                     world.materials[s.material as usize],
-                    &world.bsdfs[s.material as usize],
+                    world.bsdfs[s.material as usize],
                     |n, _| n,
                 )
             }
@@ -125,15 +120,10 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                 let mesh = &self.dist.moving_meshes[k];
                 let off = mesh.delta * self.tau;
                 let (p, n_out, mat) = mesh.world.surface(prim.id, ray.at(t) - off);
-                Surface::new(
-                    prim,
-                    p + off,
-                    n_out,
-                    ray,
-                    step::material_at(&mesh.world, prim.id, p, mat),
-                    &mesh.world.bsdfs[mat as usize],
-                    |n, v| mesh.world.shading_normal(prim.id, p, n, v),
-                )
+                let (m, bsdf) = step::material_at(&mesh.world, prim.id, p, mat);
+                Surface::new(prim, p + off, n_out, ray, m, bsdf, |n, v| {
+                    mesh.world.shading_normal(prim.id, p, n, v)
+                })
             }
         }
     }
