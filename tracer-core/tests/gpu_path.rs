@@ -1,7 +1,8 @@
 //! The path integrator on the GPU (path.wgsl, bsdf.wgsl) against the CPU's
 //! (`render/step.rs` `path`): both draw the same numbers at the same keys
 //! and slots, so their images agree within f32 tolerance; the white
-//! furnace holds on the GPU; and any split of a frame into rectangles and
+//! furnace holds on the GPU; adaptive rounds work with path on both
+//! backends; and any split of a frame into rectangles and
 //! sample ranges merges into the GPU's whole render bit for bit.
 //!
 //! Tolerance (CPU f32 against GPU, every scene here): mean absolute
@@ -23,9 +24,11 @@ mod common;
 use std::sync::OnceLock;
 
 use common::{diff, prereq};
+use tracer_core::adaptive::BlockMask;
 use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::render::adaptive::render_round;
 use tracer_core::render::gpu::{GpuOptions, GpuRenderer};
-use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 use tracer_core::scene::SceneDesc;
 
 fn gpu() -> Option<&'static GpuRenderer> {
@@ -310,4 +313,50 @@ fn any_split_of_a_gpu_path_traced_frame_merges_bit_for_bit() {
     assert_eq!(merged.sums, whole.sums);
     assert_eq!(merged.counts, whole.counts);
     assert_eq!(merged.rays, whole.rays);
+}
+
+/// Adaptive rounds work with `path` on both backends: a round over every
+/// other block gives those blocks exactly the sums of a uniform render of
+/// the same samples (CPU and GPU alike), leaves the others empty, carries
+/// the sums of squares, and the two backends' rounds agree within the
+/// tolerance above.
+#[test]
+fn adaptive_rounds_of_a_path_scene_agree_on_cpu_and_gpu() {
+    let Some(g) = gpu() else { return };
+    let desc = scene(PLASTIC, "");
+    let p = prepared(&desc);
+    let (w, h) = (desc.render.width, desc.render.height);
+    let rect = Rect::full(w, h);
+    let mut mask = BlockMask::all(rect);
+    for (i, a) in mask.active.iter_mut().enumerate() {
+        *a = i % 2 == 0;
+    }
+    let samples = SampleRange::new(2, 8);
+    let gpu_round = g.render_round(&p, 0, &mask, samples, &|_| {}).unwrap();
+    let cpu = Renderer::Cpu(CpuRenderer::new(Some(2)).unwrap());
+    let cpu_round = render_round(&cpu, &p, 0, &mask, samples, &|_| {}).unwrap();
+    let gpu_uniform = gpu_film(g, &desc, rect, samples);
+    let cpu_uniform = CpuRenderer::new(Some(2))
+        .unwrap()
+        .render(&p, 0, rect, samples, &|_| {})
+        .unwrap();
+    assert!(gpu_round.squares.is_some() && cpu_round.squares.is_some());
+    let mut active = 0;
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) as usize;
+            if mask.covers(x, y) {
+                active += 1;
+                assert_eq!(gpu_round.counts[i], 6);
+                assert_eq!(gpu_round.sums[i], gpu_uniform.sums[i], "GPU pixel {x},{y}");
+                assert_eq!(cpu_round.sums[i], cpu_uniform.sums[i], "CPU pixel {x},{y}");
+            } else {
+                assert_eq!((gpu_round.counts[i], cpu_round.counts[i]), (0, 0));
+            }
+        }
+    }
+    assert!(active > 0 && active < w * h);
+    let d = diff(&gpu_round.resolve(), &cpu_round.resolve(), 2.0 / 255.0);
+    assert!(d.mean < 1e-3, "mean |diff| {}", d.mean);
+    assert!(d.over * 100 <= d.pixels, "{} pixels over 2/255", d.over);
 }
