@@ -4,7 +4,7 @@
 # Writes everything under $OUT (or bench-out/device).
 #
 #   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, local-gpu,
-#                                          gpu-tests, against-old, cpu-worker, farm-gpu, multi-gpu
+#                                          gpu-tests, against-old, cpu-worker, farm-gpu, multi-gpu, path
 #
 # `cpu-worker` (issue 15, ~2 min): the 1-worker pairs of `bench farm
 # --repeat 5` between whole `tessera render --threads 2` processes, to tell
@@ -29,6 +29,13 @@
 # `cargo test -p tracer-core --test gpu --no-run`) on the NVIDIA GPU: every
 # GPU path (moving meshes, distributed effects, the GPU resolve) against the
 # CPU reference on real hardware, not only lavapipe.
+#
+# `path` (issue 35; not in the default; ~1 min): `--integrator path` on
+# cornell.toml and distributed.toml at 1920x1080 64 spp, CPU (all cores) and
+# GPU, twice each (the summary line's Mpaths/s and Mrays/s; the first GPU
+# run builds the pipeline), then tracer-core's GPU path tests
+# (.gpu/gpu-path-tests, built by `cargo test -p tracer-core --test gpu_path
+# --no-run`) on the NVIDIA GPU: CPU against GPU images on real hardware.
 #
 # `against-old` (issue 16) times the thesis scenes with .gpu/tessera and an
 # earlier build, .gpu/tessera-old, interleaved run by run (5 each), CPU and
@@ -119,6 +126,24 @@ echo "== tessera bench launch (1080p 4 spp)"
 timeout 300 "$T" bench launch --backend gpu --repeat 3 --out /tmp/bench --cache /tmp/bench-cache \
   > "$OUT/launch-summary.txt" 2> "$OUT/launch-log.txt"
 echo "launch exit $?" >> "$OUT/launch-summary.txt"
+fi
+if has path; then
+{
+  echo "== machine"; nproc; nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
+  for scene in cornell distributed; do
+    for backend in cpu gpu gpu; do
+      echo "== $scene, --integrator path, $backend"
+      "$T" render "examples/$scene.toml" --integrator path --backend "$backend" \
+        --width 1920 --height 1080 --samples 64 -o "/tmp/path-$scene-$backend.png"
+    done
+  done
+} > "$OUT/path.txt" 2>&1
+if [ -x .gpu/gpu-path-tests ]; then
+  [ -e /work/main ] || { mkdir -p /work && ln -s "$PWD" /work/main; }
+  CI=true TESSERA_TEST_ADAPTER=NVIDIA timeout 300 .gpu/gpu-path-tests --nocapture --test-threads 1 \
+    > "$OUT/gpu-path-tests.txt" 2>&1
+  echo "gpu path tests exit $?" >> "$OUT/gpu-path-tests.txt"
+fi
 fi
 if has gpu-tests; then
   # The test binary finds examples/ through the path it was built at.

@@ -22,10 +22,10 @@ fn modules_with(name: &str, text: &str) -> Vec<wgsl::Module> {
 #[test]
 fn every_assembled_module_validates() {
     let modules = wgsl::all_modules(wgsl::FILES);
-    // 4 scene kernel variants, the resolve and the packing.
+    // 4 scene kernel variants, each Whitted and path, the resolve and the packing.
     assert_eq!(
         modules.len(),
-        6,
+        10,
         "{:?}",
         modules.iter().map(|m| &m.name).collect::<Vec<_>>()
     );
@@ -54,12 +54,12 @@ fn a_type_error_in_a_wgsl_file_is_refused() {
         .1;
     let broken = format!("{original}\nfn mistyped() -> u32 {{\n    return 1.5;\n}}\n");
     let report = validate::validate_all(&modules_with("sampling.wgsl", &broken)).unwrap_err();
-    // sampling.wgsl is in every scene kernel: all four are refused.
+    // sampling.wgsl is in every scene kernel: all eight are refused.
     assert_eq!(
         report
             .matches("invalid WGSL in module scene kernel")
             .count(),
-        4,
+        8,
         "{report}"
     );
     assert!(report.contains("return 1.5;"), "{report}");

@@ -10,7 +10,9 @@
 
 use bytemuck::{Pod, Zeroable};
 
+use crate::bsdf::Bsdf;
 use crate::bvh::{Bvh, BvhNode4, STACK};
+use crate::distributed::PathScene;
 use crate::geometry::{Plane, PrimId, Sphere};
 use crate::triangle::TriangleShading;
 use crate::world::{Material, PointLight, World};
@@ -438,6 +440,8 @@ pub struct SceneData {
     pub static_tree: bool,
     /// Distributed effects (`World::dist`), packed as distributed.wgsl reads them.
     pub dist: Option<DistData>,
+    /// The path integrator's words, appended to `dist` (path scenes only).
+    pub path: Option<PathData>,
 }
 
 /// `World::dist` for distributed.wgsl: its `dist` array of vec4 (keep in
@@ -523,6 +527,55 @@ impl DistData {
             has_camera_motion: d.camera_motion.is_some(),
         }
     }
+}
+
+// ---- The path integrator (path.wgsl, bsdf.wgsl) ---------------------------
+
+/// Where the path integrator's words start in `DistData::words` and
+/// whether any light emits (path.wgsl's `PATH_BASE`, `PATH_NEE`). The
+/// words: the environment; per light (its selection probability, the
+/// first 24-bit uniform number that picks past it); per GPU material 4
+/// words of its [`Bsdf`] (path.wgsl `path_bsdf`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PathData {
+    pub base: u32,
+    pub nee: bool,
+}
+
+impl PathData {
+    /// Appends `scene`'s words and `bsdfs` (one per GPU material) to `d`.
+    pub fn append(d: &mut DistData, scene: &PathScene<f32>, bsdfs: &[Bsdf<f32>]) -> Self {
+        let base = d.words.len() as u32;
+        let v4 = |v: glam::Vec3A, w: f32| [v.x, v.y, v.z, w];
+        d.words.push(v4(scene.environment, 0.0));
+        for (i, &p) in scene.light_prob.iter().enumerate() {
+            // PathScene::pick takes the first light whose running sum c
+            // exceeds u = k / 2^24: c <= u exactly when ceil(c 2^24) <= k.
+            let first = scene.light_cdf.get(i).map_or(u32::MAX, |c| {
+                (c * 16_777_216.0).ceil().min(u32::MAX as f64) as u32
+            });
+            d.words.push([p, f32::from_bits(first), 0.0, 0.0]);
+        }
+        for b in bsdfs {
+            d.words.push(v4(b.base_colour, b.metallic));
+            d.words.push(v4(b.specular_colour, b.roughness));
+            d.words.push(v4(b.emission, b.ior));
+            d.words.push([b.transmission, b.specular, b.mirror, 0.0]);
+        }
+        PathData {
+            base,
+            nee: !scene.light_cdf.is_empty(),
+        }
+    }
+}
+
+/// The path integrator's BSDF of material `i` of `w` (worlds made without
+/// BSDFs get Blinn-Phong's mapping, as `World` does).
+fn bsdf_of(w: &World<f32>, i: usize) -> Bsdf<f32> {
+    w.bsdfs
+        .get(i)
+        .copied()
+        .unwrap_or_else(|| Bsdf::from_material(&w.materials[i]))
 }
 
 /// Packed tree data, shared between renders of the same world: equal when
@@ -612,6 +665,10 @@ impl SceneData {
             ..Default::default()
         };
         let mut materials: Vec<GpuMaterial> = w.materials.iter().map(material).collect();
+        // The path integrator's BSDF of each of `materials` (compared too
+        // when a moving mesh's material is matched to the world's).
+        let is_path = w.dist.as_ref().is_some_and(|d| d.path.is_some());
+        let mut bsdfs: Vec<Bsdf<f32>> = (0..w.materials.len()).map(|i| bsdf_of(w, i)).collect();
         // The trees: the world's own, then each moving mesh's, whose
         // materials are the world's so far and then its file's (world/mod.rs):
         // those that differ from the world's get places of their own.
@@ -638,10 +695,12 @@ impl SceneData {
                 .enumerate()
                 .map(|(j, own)| {
                     let g = material(own);
-                    if j < w.materials.len() && materials[j] == g {
+                    let b = bsdf_of(&m.world, j);
+                    if j < w.materials.len() && materials[j] == g && (!is_path || bsdfs[j] == b) {
                         j as u32
                     } else {
                         materials.push(g);
+                        bsdfs.push(b);
                         materials.len() as u32 - 1
                     }
                 })
@@ -698,6 +757,11 @@ impl SceneData {
                 w.triangles.len()
             )));
         }
+        let mut dist = w.dist.as_deref().map(|d| DistData::from_dist(d, &meshes));
+        let path = match (&mut dist, w.dist.as_ref().and_then(|d| d.path.as_ref())) {
+            (Some(d), Some(scene)) => Some(PathData::append(d, scene, &bsdfs)),
+            _ => None,
+        };
         Ok(SceneData {
             frame,
             spheres: non_empty(w.spheres.iter().map(sphere).collect()),
@@ -712,7 +776,8 @@ impl SceneData {
             has_refraction: w.features.refraction,
             tree,
             static_tree: static_tree.is_some(),
-            dist: w.dist.as_deref().map(|d| DistData::from_dist(d, &meshes)),
+            dist,
+            path,
         })
     }
 

@@ -80,10 +80,6 @@ pub enum GpuError {
     #[error("the GPU backend renders in f32 only; use --precision f32 (f64 is the CPU reference)")]
     F64Unsupported,
     #[error(
-        "the GPU backend has no path integrator yet; render --integrator path with --backend cpu"
-    )]
-    PathUnsupported,
-    #[error(
         "the scene's model materials use {0}, which the GPU backend does not render yet; render it with --backend cpu"
     )]
     Materials(String),
@@ -728,9 +724,6 @@ impl GpuRenderer {
             PreparedFrame::F32(w) => w.one_level(),
             PreparedFrame::F64(_) => return Err(GpuError::F64Unsupported),
         };
-        if world.settings.integrator == crate::scene::Integrator::Path {
-            return Err(GpuError::PathUnsupported);
-        }
         if let Some(what) = cpu_only_materials(world) {
             return Err(GpuError::Materials(what));
         }

@@ -102,6 +102,7 @@ impl GpuRenderer {
                 .as_ref()
                 .map_or(crate::bvh::STACK as u32, |t| t.data.stack)
                 + 1,
+            path: data.path.is_some(),
         };
         let source = kernel.source();
         let b = |v: bool| if v { 1.0 } else { 0.0 };
@@ -129,6 +130,10 @@ impl GpuRenderer {
                 all_constants.push(("N_MOVING_MESHES", n_moving_meshes as f64));
             }
         }
+        if let Some(p) = &data.path {
+            all_constants.extend([("PATH_BASE", p.base as f64), ("PATH_NEE", b(p.nee))]);
+        }
+        let entry = kernel.entry_point();
         let old = old.filter(|o| o.options == self.options);
         let same_kernel = old
             .as_ref()
@@ -170,10 +175,10 @@ impl GpuRenderer {
                 let pipeline =
                     self.device
                         .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                            label: Some("tessera whitted"),
+                            label: Some(entry),
                             layout: Some(&self.pipeline_layout),
                             module: &module,
-                            entry_point: Some("render"),
+                            entry_point: Some(entry),
                             compilation_options: wgpu::PipelineCompilationOptions {
                                 constants: &all_constants,
                                 // Only the ray counters live in workgroup memory, and WGSL zeroes them anyway.
@@ -250,7 +255,11 @@ impl GpuRenderer {
                 label: Some("tessera adaptive"),
                 layout: Some(&self.pipeline_layout),
                 module: &scene.module,
-                entry_point: Some("render"),
+                entry_point: Some(if scene.data.path.is_some() {
+                    "render_path"
+                } else {
+                    "render"
+                }),
                 compilation_options: wgpu::PipelineCompilationOptions {
                     constants: &constants,
                     zero_initialize_workgroup_memory: true,

@@ -20,6 +20,7 @@
 pub const FILES: &[(&str, &str)] = &[
     ("accel.wgsl", include_str!("accel.wgsl")),
     ("analytic.wgsl", include_str!("analytic.wgsl")),
+    ("bsdf.wgsl", include_str!("bsdf.wgsl")),
     ("bvh.wgsl", include_str!("bvh.wgsl")),
     ("distributed.wgsl", include_str!("distributed.wgsl")),
     ("geometry.wgsl", include_str!("geometry.wgsl")),
@@ -29,6 +30,7 @@ pub const FILES: &[(&str, &str)] = &[
         include_str!("no_moving_meshes.wgsl"),
     ),
     ("pack.wgsl", include_str!("pack.wgsl")),
+    ("path.wgsl", include_str!("path.wgsl")),
     ("resolve.wgsl", include_str!("resolve.wgsl")),
     ("resolve_linear.wgsl", include_str!("resolve_linear.wgsl")),
     ("sampling.wgsl", include_str!("sampling.wgsl")),
@@ -165,6 +167,9 @@ pub struct Kernel {
     pub stack_cap: u32,
     /// Entries of the BVH traversal stack (at most bvh::STACK + 1).
     pub bvh_stack: u32,
+    /// The path integrator's kernel (path.wgsl, entry `render_path`)
+    /// instead of the Whitted drivers.
+    pub path: bool,
 }
 
 impl Kernel {
@@ -179,13 +184,21 @@ impl Kernel {
             (Tree::MovingOnly, true),
         ]
         .into_iter()
-        .map(|(tree, moving_meshes)| Kernel {
-            tree,
-            moving_meshes,
-            stack_cap: 2,
-            bvh_stack: 25,
+        .flat_map(|(tree, moving_meshes)| {
+            [false, true].map(|path| Kernel {
+                tree,
+                moving_meshes,
+                stack_cap: 2,
+                bvh_stack: 25,
+                path,
+            })
         })
         .collect()
+    }
+
+    /// The scene kernel's entry point (whitted.wgsl or path.wgsl).
+    pub fn entry_point(&self) -> &'static str {
+        if self.path { "render_path" } else { "render" }
     }
 
     /// The kernel's WGSL. Its stacks' capacities must be constant
@@ -212,19 +225,24 @@ impl Kernel {
             files,
             &[SCENE, WAVE_QUEUES, WAVE_ARGS],
             &format!(
-                "scene kernel {:?}{}",
+                "scene kernel {:?}{}{}",
                 self.tree,
                 if self.moving_meshes {
                     "+moving meshes"
                 } else {
                     ""
-                }
+                },
+                if self.path { "+path" } else { "" }
             ),
             &format!(
                 "const STACK_CAP: u32 = {}u;\nconst BVH_STACK: u32 = {}u;\n",
                 self.stack_cap, self.bvh_stack
             ),
-            &[queries, "whitted.wgsl", "wavefront.wgsl", moving],
+            &if self.path {
+                vec![queries, "path.wgsl", moving]
+            } else {
+                vec![queries, "whitted.wgsl", "wavefront.wgsl", moving]
+            },
         )
     }
 }

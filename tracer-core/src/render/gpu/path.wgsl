@@ -1,0 +1,332 @@
+//! import shade.wgsl
+//! import bsdf.wgsl
+//! import sums.wgsl
+// The path integrator on the GPU (`--integrator path`): render/step.rs
+// `path`, one invocation per pixel-sample looping over its segments, with
+// the same random numbers as the CPU (vertex k at key ROOT_KEY followed by
+// k child_key(key, 1) steps, slots SLOT_PATH_*), the same light choice by
+// power, next-event estimation with the power heuristic, Russian roulette
+// after RR_DEPTH segments and the constant environment. A path scene is
+// always a distributed one (World::dist): its lights, lens and motion are
+// distributed.wgsl's. The lights' selection and the materials' BSDFs
+// follow the distributed words at PATH_BASE (layout.rs `PathData`).
+
+override PATH_BASE: u32 = 0u;
+// Some light emits: next-event estimation (PathScene's light_cdf not empty).
+override PATH_NEE: bool = false;
+
+const SLOT_PATH_LIGHT: u32 = 0u;
+const SLOT_PATH_LOBE: u32 = 3u;
+const SLOT_PATH_RR: u32 = 6u;
+// step.rs RR_DEPTH.
+const RR_DEPTH: u32 = 5u;
+
+// dist[PATH_BASE]: environment; then per light (probability, first 24-bit
+// number that picks past it); then 4 words per material.
+fn path_bsdf(material: u32) -> Bsdf {
+    let base = PATH_BASE + 1u + N_DLIGHTS + 4u * material;
+    let a = dist[base];
+    let b = dist[base + 1u];
+    let c = dist[base + 2u];
+    let d = dist[base + 3u];
+    return Bsdf(a.xyz, a.w, b.xyz, b.w, c.xyz, c.w, d.x, d.y, d.z);
+}
+
+fn light_prob(li: u32) -> f32 {
+    return dist[PATH_BASE + 1u + li].x;
+}
+
+// PathScene::pick: the first light whose running sum exceeds u, compared
+// exactly as 24-bit integers (u has 24 bits; the host rounded each sum up).
+fn pick_light(u: f32) -> u32 {
+    let k = u32(u * 16777216.0);
+    var i = 0u;
+    for (var j = 0u; j < N_DLIGHTS; j++) {
+        if (bitcast<u32>(dist[PATH_BASE + 1u + j].y) <= k) {
+            i = j + 1u;
+        }
+    }
+    return min(i, N_DLIGHTS - 1u);
+}
+
+fn power_heuristic(a: f32, b: f32) -> f32 {
+    let a2 = a * a;
+    let b2 = b * b;
+    if (a2 + b2 > 0.0) {
+        return a2 / (a2 + b2);
+    }
+    return 0.0;
+}
+
+fn sphere_t(o: vec3<f32>, d: vec3<f32>, c: vec3<f32>, r: f32) -> f32 {
+    let oc = o - c;
+    let b = dot(oc, d);
+    let disc = b * b - (dot(oc, oc) - r * r);
+    if (disc < 0.0) {
+        return -1.0;
+    }
+    let s = sqrt(disc);
+    let t0 = -b - s;
+    let t1 = -b + s;
+    if (t0 > 0.0) {
+        return t0;
+    }
+    if (t1 > 0.0) {
+        return t1;
+    }
+    return -1.0;
+}
+
+// light.rs `Light::hit`: (t, solid-angle pdf of sampling the light there),
+// t < 0 where the ray does not meet it before t_max.
+fn path_light_hit(li: u32, o: vec3<f32>, d: vec3<f32>, t_max: f32) -> vec2<f32> {
+    let base = DIST_LIGHTS + 5u * li;
+    let e0 = dist[base];
+    let e1 = dist[base + 1u];
+    let kind = bitcast<u32>(e0.w);
+    if (kind == 1u) {
+        let corner = e0.xyz;
+        let eu = e1.xyz;
+        let ev = dist[base + 2u].xyz;
+        let n = cross(eu, ev);
+        let denom = dot(n, d);
+        if (denom == 0.0) {
+            return vec2<f32>(-1.0, 0.0);
+        }
+        let t = dot(n, corner - o) / denom;
+        if (!(t > 0.0 && t < t_max)) {
+            return vec2<f32>(-1.0, 0.0);
+        }
+        let q = o + d * t - corner;
+        let nn = dot(n, n);
+        let a = dot(cross(q, ev), n) / nn;
+        let b = dot(cross(eu, q), n) / nn;
+        if (!(a >= 0.0 && a <= 1.0 && b >= 0.0 && b <= 1.0)) {
+            return vec2<f32>(-1.0, 0.0);
+        }
+        let area = sqrt(nn);
+        let cos_l = abs(denom) / area;
+        return vec2<f32>(t, t * t / (area * cos_l));
+    }
+    if (kind == 2u) {
+        let c = e0.xyz;
+        let r = e1.w;
+        let t = sphere_t(o, d, c, r);
+        if (!(t > 0.0) || !(t < t_max)) {
+            return vec2<f32>(-1.0, 0.0);
+        }
+        let dc = length(c - o);
+        if (!(dc > r)) {
+            return vec2<f32>(t, 0.0);
+        }
+        let cos_max = sqrt(max(1.0 - r * r / (dc * dc), 0.0));
+        return vec2<f32>(t, 1.0 / (BSDF_TWO_PI * (1.0 - cos_max)));
+    }
+    return vec2<f32>(-1.0, 0.0);
+}
+
+// light.rs `LightSample`; ok false where sample_li gives None.
+struct LightSample {
+    wi: vec3<f32>,
+    dist: f32,
+    li: vec3<f32>,
+    pdf: f32,
+    ok: bool,
+}
+
+// light.rs `Light::sample_li`.
+fn path_sample_li(li: u32, p: vec3<f32>, u: f32, v: f32) -> LightSample {
+    let base = DIST_LIGHTS + 5u * li;
+    let e0 = dist[base];
+    let e1 = dist[base + 1u];
+    let radiance = dist[base + 3u].xyz;
+    let kind = bitcast<u32>(e0.w);
+    var out = LightSample(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, false);
+    if (kind == 0u) {
+        let d = e0.xyz - p;
+        let dd = length(d);
+        if (dd > 0.0) {
+            out = LightSample(d * (1.0 / dd), dd, radiance * (1.0 / (dd * dd)), 0.0, true);
+        }
+        return out;
+    }
+    if (kind == 1u) {
+        let eu = e1.xyz;
+        let ev = dist[base + 2u].xyz;
+        let x = e0.xyz + eu * u + ev * v;
+        let d = x - p;
+        let dd = length(d);
+        let n = cross(eu, ev);
+        let area = length(n);
+        if (!(dd > 0.0 && area > 0.0)) {
+            return out;
+        }
+        let wi = d * (1.0 / dd);
+        let cos_l = abs(dot(n, wi)) / area;
+        if (cos_l > 0.0) {
+            out = LightSample(wi, dd, radiance, dd * dd / (area * cos_l), true);
+        }
+        return out;
+    }
+    let c = e0.xyz;
+    let r = e1.w;
+    let d = c - p;
+    let dc = length(d);
+    if (!(dc > r)) {
+        return out;
+    }
+    let axis = d * (1.0 / dc);
+    let sin2 = r * r / (dc * dc);
+    let cos_max = sqrt(max(1.0 - sin2, 0.0));
+    let wi = cone(axis, cos_max, u, v);
+    var t = sphere_t(p, wi, c, r);
+    if (!(t > 0.0)) {
+        t = dc;
+    }
+    return LightSample(wi, t, radiance, 1.0 / (BSDF_TWO_PI * (1.0 - cos_max)), true);
+}
+
+fn path_u(seed: u32, s: u32, key: u32, slot: u32) -> f32 {
+    return uniform01(seed, s, node_dim(key, slot));
+}
+
+// Radiance along the camera ray: render/step.rs `path`, line for line.
+fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32) -> vec3<f32> {
+    var radiance = vec3<f32>(0.0);
+    var throughput = vec3<f32>(1.0);
+    var o = origin;
+    var d = dir;
+    var key = ROOT_KEY;
+    var skip = NONE;
+    var segments = 1u;
+    // Negative: no density (the camera ray, a delta lobe).
+    var bsdf_pdf = -1.0;
+    if (MAX_DEPTH == 0u) {
+        return radiance;
+    }
+    loop {
+        let hit = closest_at(o, d, skip, tau);
+        var t_near = BIG;
+        if (hit.id != NONE) {
+            t_near = hit.t;
+        }
+        var light_hit = NONE;
+        var light_pdf = 0.0;
+        for (var li = 0u; li < N_DLIGHTS; li++) {
+            let lh = path_light_hit(li, o, d, t_near);
+            if (lh.x > 0.0) {
+                t_near = lh.x;
+                light_hit = li;
+                light_pdf = lh.y;
+            }
+        }
+        if (light_hit != NONE) {
+            var w = 1.0;
+            if (bsdf_pdf >= 0.0) {
+                w = power_heuristic(bsdf_pdf, light_prob(light_hit) * light_pdf);
+            }
+            radiance += throughput * dist[DIST_LIGHTS + 5u * light_hit + 3u].xyz * w;
+            break;
+        }
+        if (hit.id == NONE) {
+            radiance += throughput * dist[PATH_BASE].xyz;
+            break;
+        }
+        let sf = surface_at(Ray(o, 1.0, d, 0u, skip, key), hit, tau);
+        let b = path_bsdf(sf.material);
+        if (sf.entering) {
+            radiance += throughput * b.emission;
+        }
+        if (segments >= MAX_DEPTH) {
+            break;
+        }
+        let fr = shading_frame(sf.ns);
+        let wo = to_local(fr, sf.v);
+        let eta = select(1.0 / b.ior, b.ior, sf.entering);
+        if (PATH_NEE && has_smooth_lobe(b)) {
+            let i = pick_light(path_u(seed, s, key, SLOT_PATH_LIGHT));
+            let ls = path_sample_li(i, sf.p, path_u(seed, s, key, SLOT_PATH_LIGHT + 1u), path_u(seed, s, key, SLOT_PATH_LIGHT + 2u));
+            if (ls.ok && dot(ls.wi, sf.n) > 0.0) {
+                let e = bsdf_eval(b, wo, to_local(fr, ls.wi), eta);
+                if (bsdf_max3(e.xyz) > 0.0) {
+                    tally[C_SHADOW] += 1u;
+                    let t_max = ls.dist * (1.0 - SHADOW_SHORTEN);
+                    var blocked = occluded_at(sf.above, ls.wi, t_max, sf.id, tau);
+                    for (var j = 0u; j < N_DLIGHTS; j++) {
+                        if (!blocked && j != i && path_light_hit(j, sf.above, ls.wi, t_max).x > 0.0) {
+                            blocked = true;
+                        }
+                    }
+                    if (!blocked) {
+                        let p_light = light_prob(i);
+                        var c: vec3<f32>;
+                        if (ls.pdf > 0.0) {
+                            let pl = p_light * ls.pdf;
+                            c = e.xyz * ls.li * (power_heuristic(pl, e.w) / pl);
+                        } else {
+                            c = e.xyz * ls.li * (1.0 / p_light);
+                        }
+                        radiance += throughput * c;
+                    }
+                }
+            }
+        }
+        let u = vec3<f32>(
+            path_u(seed, s, key, SLOT_PATH_LOBE),
+            path_u(seed, s, key, SLOT_PATH_LOBE + 1u),
+            path_u(seed, s, key, SLOT_PATH_LOBE + 2u),
+        );
+        let bs = bsdf_sample(b, wo, eta, u);
+        if (!bs.ok) {
+            break;
+        }
+        let wi = to_world(fr, bs.wi);
+        // A direction on the wrong side of the geometric surface (shading
+        // normals) carries nothing.
+        let reflected = bs.wi.z > 0.0;
+        let side = dot(wi, sf.n);
+        if ((reflected && !(side > 0.0)) || (!reflected && !(side < 0.0))) {
+            break;
+        }
+        throughput = throughput * bs.weight;
+        bsdf_pdf = select(bs.pdf, -1.0, bs.delta);
+        segments += 1u;
+        if (segments > RR_DEPTH) {
+            let q = min(bsdf_max3(throughput), 0.95);
+            if (!(path_u(seed, s, key, SLOT_PATH_RR) < q)) {
+                break;
+            }
+            throughput = throughput * (1.0 / q);
+        }
+        if (reflected) {
+            tally[C_REFLECTION] += 1u;
+            o = sf.above;
+        } else {
+            tally[C_REFRACTION] += 1u;
+            o = offset_origin(sf.p, -sf.n);
+        }
+        d = wi;
+        skip = sf.id;
+        key = child_key(key, 1u);
+    }
+    return radiance;
+}
+
+// The path kernel's entry: whitted.wgsl `render` with the path's radiance.
+@compute @workgroup_size(WG_X, WG_Y, 1)
+fn render_path(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let col = gid.x;
+    let row = params.row0 + gid.y;
+    let s = params.sample_start + gid.z;
+    var p = vec4<u32>(0u);
+    if (col < params.rect_w && gid.y < params.rows && row < params.rect_h && s < params.sample_end) {
+        p = grid_pixel(col, row);
+    }
+    if (p.w != 0u) {
+        let seed = pixel_seed(p.x, p.y, params.frame);
+        let ray = camera_ray(p.x, p.y, seed, s);
+        tally[C_PRIMARY] += 1u;
+        add_sample(p.z, path_radiance(ray.origin, ray.dir, seed, s, ray.tau));
+    }
+    flush_tally(lid);
+}

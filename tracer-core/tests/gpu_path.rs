@@ -1,0 +1,362 @@
+//! The path integrator on the GPU (path.wgsl, bsdf.wgsl) against the CPU's
+//! (`render/step.rs` `path`): both draw the same numbers at the same keys
+//! and slots, so their images agree within f32 tolerance; the white
+//! furnace holds on the GPU; adaptive rounds work with path on both
+//! backends; and any split of a frame into rectangles and
+//! sample ranges merges into the GPU's whole render bit for bit.
+//!
+//! Tolerance (CPU f32 against GPU, every scene here): mean absolute
+//! difference below 1/1000 and at most 1% of pixels off by more than
+//! 2/255 (gpu.rs's bound against the f64 reference). Why it holds: the
+//! kernels compute the same f32 formulas; Vulkan's sqrt, division, sin and
+//! cos (the CPU takes sin/cos of a turn in f64) differ by a few ulps, which
+//! moves a path's vertices by ~1e-7 relative; only where such a difference
+//! flips a discrete choice (the lobe, the light, Russian roulette, a
+//! silhouette) does one sample of a pixel take another path, and that
+//! happens for a handful of samples in a frame. A wrong lobe, weight, pdf or
+//! number would move the mean by orders of magnitude more.
+//!
+//! Needs a wgpu adapter (lavapipe): the prerequisite `gpu`, whose absence
+//! fails every test (tests/support/prereq.rs).
+
+mod common;
+
+use std::sync::OnceLock;
+
+use common::{diff, prereq};
+use tracer_core::adaptive::BlockMask;
+use tracer_core::film::{Film, Rect, SampleRange};
+use tracer_core::render::adaptive::render_round;
+use tracer_core::render::gpu::{GpuOptions, GpuRenderer};
+use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
+use tracer_core::scene::SceneDesc;
+
+fn gpu() -> Option<&'static GpuRenderer> {
+    static GPU: OnceLock<Result<GpuRenderer, String>> = OnceLock::new();
+    let r = GPU.get_or_init(|| {
+        GpuRenderer::new(
+            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+            GpuOptions::default(),
+        )
+        .map_err(|e| format!("no GPU adapter could be opened: {e}"))
+    });
+    prereq::require("gpu", r.as_ref())
+}
+
+/// A Cornell-like set: a floor and a back wall of Lambert, a sphere of
+/// `ball` (a `[bsdf.ball]` body), a quad, a sphere and a point light, a sky.
+fn scene(ball: &str, extra_camera: &str) -> SceneDesc {
+    common::scene(&scene_src(ball, extra_camera))
+}
+
+fn scene_src(ball: &str, extra_camera: &str) -> String {
+    format!(
+        r#"
+[render]
+width = 40
+height = 30
+samples = 8
+max_depth = 8
+sampler = "jittered"
+integrator = "path"
+
+[camera]
+position = [0, 1.6, -5]
+look_at = [0, 0.9, 0]
+fov_y = 50
+{extra_camera}
+
+[world]
+environment = [0.15, 0.2, 0.3]
+
+[materials.floor]
+diffuse = [0.7, 0.6, 0.5]
+[materials.wall]
+diffuse = [0.3, 0.5, 0.7]
+[materials.ball]
+[bsdf.ball]
+{ball}
+[materials.lamp]
+[bsdf.lamp]
+base_colour = [0, 0, 0]
+emission = [3, 2, 1]
+
+[[lights]]
+type = "quad"
+corner = [-0.8, 3.5, -0.8]
+edge_u = [1.6, 0, 0]
+edge_v = [0, 0, 1.6]
+diffuse = [4, 4, 4]
+[[lights]]
+type = "sphere"
+center = [2.5, 2, -1]
+radius = 0.25
+diffuse = [6, 5, 4]
+[[lights]]
+position = [-2.5, 2.5, -2]
+diffuse = [3, 3, 3]
+
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+[[objects]]
+type = "plane"
+normal = [0, 0, -1]
+distance = -3
+material = "wall"
+[[objects]]
+type = "sphere"
+center = [0, 0.9, 0]
+radius = 0.9
+material = "ball"
+[[objects]]
+type = "sphere"
+center = [-1.4, 0.3, -1.2]
+radius = 0.3
+material = "lamp"
+"#
+    )
+}
+
+const LAMBERT: &str = "base_colour = [0.8, 0.8, 0.8]\nmetallic = 0\nroughness = 1\nspecular = 0\n";
+const MIRROR: &str = "base_colour = [1, 1, 1]\nmetallic = 1\nroughness = 0\n";
+const ROUGH_CONDUCTOR: &str = "base_colour = [0.9, 0.6, 0.3]\nmetallic = 1\nroughness = 0.4\n";
+const GLASS: &str =
+    "base_colour = [1, 1, 1]\nmetallic = 0\nroughness = 0\ntransmission = 1\nior = 1.5\n";
+const PLASTIC: &str = "base_colour = [0.2, 0.5, 0.2]\nmetallic = 0\nroughness = 0.3\n";
+
+fn prepared(desc: &SceneDesc) -> PreparedFrame {
+    PreparedFrame::build(desc, &desc.render, 0, Precision::F32).unwrap()
+}
+
+fn full(desc: &SceneDesc) -> (Rect, SampleRange) {
+    (
+        Rect::full(desc.render.width, desc.render.height),
+        SampleRange::all(desc.render.samples),
+    )
+}
+
+fn gpu_film(g: &GpuRenderer, desc: &SceneDesc, rect: Rect, samples: SampleRange) -> Film {
+    g.render(&prepared(desc), 0, rect, samples, &|_| {})
+        .unwrap_or_else(|e| panic!("GPU path render failed: {e}"))
+}
+
+fn cpu_film(desc: &SceneDesc) -> Film {
+    let (rect, samples) = full(desc);
+    CpuRenderer::new(Some(2))
+        .unwrap()
+        .render(&prepared(desc), 0, rect, samples, &|_| {})
+        .unwrap()
+}
+
+fn mean(img: &[[f32; 3]]) -> f64 {
+    img.iter().map(|p| (p[0] + p[1] + p[2]) as f64).sum::<f64>() / (3 * img.len()) as f64
+}
+
+/// CPU and GPU path images of `desc` agree within the stated tolerance.
+fn check_against_cpu(name: &str, desc: &SceneDesc) {
+    let Some(g) = gpu() else { return };
+    let (rect, samples) = full(desc);
+    let gf = gpu_film(g, desc, rect, samples);
+    let cf = cpu_film(desc);
+    assert_eq!(gf.rays.primary, cf.rays.primary, "{name}: primary rays");
+    // The CPU's f32 path makes a few non-finite samples in scenes with a
+    // sphere light and 4 or more segments (none in f64; a known bug of the
+    // CPU estimator, not yet found): the GPU, drawing the same samples,
+    // must make exactly as many.
+    assert_eq!(gf.nonfinite, cf.nonfinite, "{name}: non-finite samples");
+    let (gi, ci) = (gf.resolve(), cf.resolve());
+    let d = diff(&gi, &ci, 2.0 / 255.0);
+    eprintln!(
+        "{name}: mean CPU {:.5} GPU {:.5}; |diff| mean {:.2e} max {:.3}; {} of {} pixels over 2/255; rays CPU {:?} GPU {:?}",
+        mean(&ci),
+        mean(&gi),
+        d.mean,
+        d.max,
+        d.over,
+        d.pixels,
+        cf.rays,
+        gf.rays
+    );
+    assert!(
+        mean(&ci) > 0.02,
+        "{name}: the scene is dark ({})",
+        mean(&ci)
+    );
+    assert!(d.mean < 1e-3, "{name}: mean |diff| {}", d.mean);
+    assert!(
+        d.over * 100 <= d.pixels,
+        "{name}: {} of {} pixels differ by more than 2/255",
+        d.over,
+        d.pixels
+    );
+    // Secondary rays: the same paths but for the few flipped samples.
+    let near = |a: u64, b: u64| a.abs_diff(b) * 100 <= b.max(1);
+    assert!(near(gf.rays.shadow, cf.rays.shadow), "{name}: shadow rays");
+    assert!(
+        near(
+            gf.rays.reflection + gf.rays.refraction,
+            cf.rays.reflection + cf.rays.refraction
+        ),
+        "{name}: bounces"
+    );
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_on_lambert_and_every_light_kind() {
+    check_against_cpu("lambert", &scene(LAMBERT, ""));
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_on_a_perfect_mirror() {
+    check_against_cpu("mirror", &scene(MIRROR, ""));
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_on_a_rough_conductor() {
+    check_against_cpu("rough conductor", &scene(ROUGH_CONDUCTOR, ""));
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_on_smooth_glass() {
+    check_against_cpu("glass", &scene(GLASS, ""));
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_on_a_rough_dielectric() {
+    check_against_cpu("plastic", &scene(PLASTIC, ""));
+}
+
+/// The thesis's Blinn-Phong materials through `Bsdf::from_material`
+/// (mirror layer, gloss, transmission), with the lens and motion blur.
+#[test]
+fn gpu_path_matches_the_cpu_with_whitted_materials_lens_and_motion_blur() {
+    let src = scene_src(
+        "",
+        "aperture = 0.1\nfocus_distance = 5\nshutter = [0, 0.5]\n\
+         keyframes = [{ frame = 0, position = [0, 1.6, -5] }, { frame = 1, position = [0.4, 1.6, -5] }]",
+    )
+    .replace("[bsdf.ball]\n", "")
+    .replace(
+        "[materials.ball]\n",
+        "[materials.ball]\ndiffuse = [0.1, 0.1, 0.1]\nreflectivity = 0.6\ntransparency = 0.3\nior = 1.4\n",
+    );
+    let desc = common::scene(&src);
+    check_against_cpu("whitted materials, lens, blur", &desc);
+}
+
+/// A white Lambert sphere in a uniform environment returns the
+/// environment exactly (path_mitsuba.rs's furnace, on the GPU).
+#[test]
+fn gpu_white_furnace_returns_the_environment() {
+    let Some(g) = gpu() else { return };
+    let desc = common::scene(
+        r#"
+[render]
+width = 32
+height = 32
+samples = 16
+max_depth = 6
+sampler = "jittered"
+integrator = "path"
+[camera]
+position = [0, 1, -6]
+look_at = [0, 1, 0]
+fov_y = 40
+[world]
+environment = [0.5, 0.5, 0.5]
+[materials.white]
+[bsdf.white]
+base_colour = [1, 1, 1]
+metallic = 0
+roughness = 1
+specular = 0
+[[objects]]
+type = "sphere"
+center = [0, 1, 0]
+radius = 1.5
+material = "white"
+"#,
+    );
+    let (rect, samples) = full(&desc);
+    let film = gpu_film(g, &desc, rect, samples);
+    assert_eq!(film.nonfinite, 0);
+    let img = film.resolve();
+    for (i, p) in img.iter().enumerate() {
+        for &v in p {
+            assert!((v - 0.5).abs() < 1e-5, "pixel {i}: {p:?}, not 0.5");
+        }
+    }
+}
+
+/// Any split of a GPU path-traced frame into rectangles and sample ranges
+/// merges into the whole render bit for bit.
+#[test]
+fn any_split_of_a_gpu_path_traced_frame_merges_bit_for_bit() {
+    let Some(g) = gpu() else { return };
+    let desc = scene(ROUGH_CONDUCTOR, "");
+    let (w, h, n) = (desc.render.width, desc.render.height, desc.render.samples);
+    let whole = gpu_film(g, &desc, Rect::full(w, h), SampleRange::all(n));
+    assert!(whole.rays.reflection > 0 && whole.rays.shadow > 0);
+    let mut merged = Film::new(Rect::full(w, h));
+    for (rect, samples) in [
+        (Rect::new(0, 0, 13, h), SampleRange::new(0, 3)),
+        (Rect::new(0, 0, 13, h), SampleRange::new(3, n)),
+        (Rect::new(13, 0, w - 13, 11), SampleRange::all(n)),
+        (Rect::new(13, 11, w - 13, h - 11), SampleRange::new(0, 5)),
+        (Rect::new(13, 11, w - 13, h - 11), SampleRange::new(5, n)),
+    ] {
+        merged.merge(&gpu_film(g, &desc, rect, samples)).unwrap();
+    }
+    assert_eq!(merged.sums, whole.sums);
+    assert_eq!(merged.counts, whole.counts);
+    assert_eq!(merged.rays, whole.rays);
+}
+
+/// Adaptive rounds work with `path` on both backends: a round over every
+/// other block gives those blocks exactly the sums of a uniform render of
+/// the same samples (CPU and GPU alike), leaves the others empty, carries
+/// the sums of squares, and the two backends' rounds agree within the
+/// tolerance above.
+#[test]
+fn adaptive_rounds_of_a_path_scene_agree_on_cpu_and_gpu() {
+    let Some(g) = gpu() else { return };
+    let desc = scene(PLASTIC, "");
+    let p = prepared(&desc);
+    let (w, h) = (desc.render.width, desc.render.height);
+    let rect = Rect::full(w, h);
+    let mut mask = BlockMask::all(rect);
+    for (i, a) in mask.active.iter_mut().enumerate() {
+        *a = i % 2 == 0;
+    }
+    let samples = SampleRange::new(2, 8);
+    let gpu_round = g.render_round(&p, 0, &mask, samples, &|_| {}).unwrap();
+    let cpu = Renderer::Cpu(CpuRenderer::new(Some(2)).unwrap());
+    let cpu_round = render_round(&cpu, &p, 0, &mask, samples, &|_| {}).unwrap();
+    let gpu_uniform = gpu_film(g, &desc, rect, samples);
+    let cpu_uniform = CpuRenderer::new(Some(2))
+        .unwrap()
+        .render(&p, 0, rect, samples, &|_| {})
+        .unwrap();
+    assert!(gpu_round.squares.is_some() && cpu_round.squares.is_some());
+    let mut active = 0;
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) as usize;
+            if mask.covers(x, y) {
+                active += 1;
+                assert_eq!(gpu_round.counts[i], 6);
+                assert_eq!(gpu_round.sums[i], gpu_uniform.sums[i], "GPU pixel {x},{y}");
+                assert_eq!(cpu_round.sums[i], cpu_uniform.sums[i], "CPU pixel {x},{y}");
+            } else {
+                assert_eq!((gpu_round.counts[i], cpu_round.counts[i]), (0, 0));
+            }
+        }
+    }
+    assert!(active > 0 && active < w * h);
+    let d = diff(&gpu_round.resolve(), &cpu_round.resolve(), 2.0 / 255.0);
+    assert!(d.mean < 1e-3, "mean |diff| {}", d.mean);
+    assert!(d.over * 100 <= d.pixels, "{} pixels over 2/255", d.over);
+}
