@@ -13,7 +13,7 @@ mod common;
 
 use std::sync::OnceLock;
 
-use common::meshgen::{textured_quad, textured_quad_coloured, tmpdir, write_png};
+use common::meshgen::{colour_texels, textured_quad, textured_quad_coloured, tmpdir, write_png};
 use common::*;
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::gpu::{GpuOptions, GpuRenderer, Strategy};
@@ -93,17 +93,7 @@ fn assert_agree(what: &str, desc: &SceneDesc, max: f32, mean: f64) -> (f32, f64)
 fn gpu_emissive_textured_quad_matches_the_cpu() {
     let dir = tmpdir("gpu-tex-emissive");
     let (tw, th) = (4u32, 3u32);
-    let texels: Vec<[u8; 4]> = (0..tw * th)
-        .map(|i| {
-            [
-                (i * 21 + 3) as u8,
-                (250 - i * 19) as u8,
-                ((i * 97) % 251) as u8,
-                255,
-            ]
-        })
-        .collect();
-    write_png(&dir, tw, th, &texels);
+    write_png(&dir, tw, th, &colour_texels(tw, th));
     let model = textured_quad(
         &dir,
         1.0,

@@ -5,13 +5,11 @@
 //! the camera's projection, the bilinear filter and the sRGB curve,
 //! written out again here in f64.
 
-use std::path::Path;
-
 use tracer_core::render::Precision;
 use tracer_core::scene::SceneDesc;
 
 mod common;
-use common::meshgen::{textured_quad, tmpdir, write_png};
+use common::meshgen::{colour_texels, textured_quad, tmpdir, write_png};
 
 fn render(scene: &SceneDesc) -> Vec<[f32; 3]> {
     common::render_with(scene, &scene.render, Precision::F32).resolve()
@@ -53,16 +51,7 @@ fn bilinear_srgb(w: u32, h: u32, texels: &[[u8; 4]], u: f64, v: f64) -> [f64; 3]
 fn an_emissive_textured_quad_filling_the_view_is_the_texture_resampled_through_the_camera() {
     let dir = tmpdir("tex-emissive");
     let (tw, th) = (4u32, 3u32);
-    let texels: Vec<[u8; 4]> = (0..tw * th)
-        .map(|i| {
-            [
-                (i * 21 + 3) as u8,
-                (250 - i * 19) as u8,
-                ((i * 97) % 251) as u8,
-                255,
-            ]
-        })
-        .collect();
+    let texels = colour_texels(tw, th);
     write_png(&dir, tw, th, &texels);
     let model = textured_quad(
         &dir,

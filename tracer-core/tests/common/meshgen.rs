@@ -251,3 +251,17 @@ pub fn write_png(dir: &Path, w: u32, h: u32, texels: &[[u8; 4]]) {
     let img = image::RgbaImage::from_fn(w, h, |x, y| image::Rgba(texels[(y * w + x) as usize]));
     img.save(dir.join("tex.png")).unwrap();
 }
+
+/// `w` x `h` opaque texels of distinct colours (at most 13 texels).
+pub fn colour_texels(w: u32, h: u32) -> Vec<[u8; 4]> {
+    (0..w * h)
+        .map(|i| {
+            [
+                (i * 21 + 3) as u8,
+                (250 - i * 19) as u8,
+                ((i * 97) % 251) as u8,
+                255,
+            ]
+        })
+        .collect()
+}

@@ -65,6 +65,18 @@ impl GpuRenderer {
                     .as_ref()
                     .map_or(0, |t| std::mem::size_of_val(t.data.shading.as_slice())),
             ),
+            (
+                "the scene's vertex attributes",
+                data.pbr
+                    .as_ref()
+                    .map_or(0, |p| std::mem::size_of_val(p.vertices.as_slice())),
+            ),
+            (
+                "the scene's attribute triangles",
+                data.pbr
+                    .as_ref()
+                    .map_or(0, |p| std::mem::size_of_val(p.tri_attrs.as_slice())),
+            ),
         ] {
             check_size(
                 what,
@@ -90,23 +102,6 @@ impl GpuRenderer {
                         budget_name,
                     });
                 }
-            }
-            for (what, bytes) in [
-                (
-                    "the scene's vertex attributes",
-                    std::mem::size_of_val(p.vertices.as_slice()),
-                ),
-                (
-                    "the scene's attribute triangles",
-                    std::mem::size_of_val(p.tri_attrs.as_slice()),
-                ),
-            ] {
-                check_size(
-                    what,
-                    bytes as u64,
-                    limits.max_storage_buffer_binding_size,
-                    "max_storage_buffer_binding_size",
-                )?;
             }
         }
         let frame = make(
