@@ -113,6 +113,25 @@ fn srgb_table() -> &'static [f32; 256] {
     })
 }
 
+/// The decode tables the GPU filters with (render/gpu/pbr.wgsl): byte ->
+/// linear for sRGB-encoded colour channels, then byte / 255 for data
+/// channels and alpha, the values [`TextureRef::sample`] blends.
+pub fn decode_tables() -> [f32; 512] {
+    let s = srgb_table();
+    std::array::from_fn(|i| {
+        if i < 256 {
+            s[i]
+        } else {
+            linear_byte((i - 256) as u8)
+        }
+    })
+}
+
+#[inline]
+fn linear_byte(c: u8) -> f32 {
+    c as f32 * (1.0 / 255.0)
+}
+
 /// The texel index of integer coordinate `i` in a side of `n` texels.
 #[inline]
 fn wrap_index(i: i64, n: u32, wrap: Wrap) -> u32 {
@@ -143,7 +162,7 @@ impl TextureRef {
     fn texel(&self, x: u32, y: u32) -> [f32; 4] {
         let img = &*self.image;
         let t = img.texels[(y as usize) * img.width as usize + x as usize];
-        let lin = |c: u8| c as f32 * (1.0 / 255.0);
+        let lin = linear_byte;
         if self.srgb {
             let s = srgb_table();
             [

@@ -5,65 +5,14 @@
 //! the camera's projection, the bilinear filter and the sRGB curve,
 //! written out again here in f64.
 
-use std::path::Path;
-
-use base64::Engine as _;
 use tracer_core::render::Precision;
 use tracer_core::scene::SceneDesc;
 
 mod common;
-use common::meshgen::tmpdir;
+use common::meshgen::{colour_texels, textured_quad, tmpdir, write_png};
 
 fn render(scene: &SceneDesc) -> Vec<[f32; 3]> {
     common::render_with(scene, &scene.render, Precision::F32).resolve()
-}
-
-/// A glTF file of the quad [-h, h]^2 at z = `z` facing +Z, with texture
-/// coordinates (0, 0) at its top-left corner (-h, h) and (1, 1) at its
-/// bottom-right one, material `material` (JSON) and the PNG `png` as
-/// image 0 (texture 0, sampler `sampler`).
-fn textured_quad(dir: &Path, h: f32, z: f32, material: &str, sampler: &str) -> String {
-    let mut bin = Vec::new();
-    for c in [-h, -h, z, h, -h, z, h, h, z, -h, h, z] {
-        bin.extend(c.to_le_bytes());
-    }
-    for _ in 0..4 {
-        for c in [0f32, 0., 1.] {
-            bin.extend(c.to_le_bytes());
-        }
-    }
-    for c in [0f32, 1., 1., 1., 1., 0., 0., 0.] {
-        bin.extend(c.to_le_bytes());
-    }
-    for i in [0u16, 1, 2, 0, 2, 3] {
-        bin.extend(i.to_le_bytes());
-    }
-    let uri = base64::engine::general_purpose::STANDARD.encode(&bin);
-    let json = format!(
-        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
-        "nodes":[{{"mesh":0}}],
-        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2}},"indices":3,"material":0}}]}}],
-        "materials":[{material}],
-        "textures":[{{"source":0,"sampler":0}}],
-        "samplers":[{sampler}],
-        "images":[{{"uri":"tex.png"}}],
-        "extensionsUsed":["KHR_materials_specular"],
-        "buffers":[{{"byteLength":{len},"uri":"data:application/octet-stream;base64,{uri}"}}],
-        "bufferViews":[{{"buffer":0,"byteLength":48}},{{"buffer":0,"byteOffset":48,"byteLength":48}},
-                       {{"buffer":0,"byteOffset":96,"byteLength":32}},{{"buffer":0,"byteOffset":128,"byteLength":12}}],
-        "accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[-1,-1,0],"max":[1,1,0]}},
-                     {{"bufferView":1,"componentType":5126,"count":4,"type":"VEC3"}},
-                     {{"bufferView":2,"componentType":5126,"count":4,"type":"VEC2"}},
-                     {{"bufferView":3,"componentType":5123,"count":6,"type":"SCALAR"}}]}}"#,
-        len = bin.len(),
-    );
-    std::fs::write(dir.join("quad.gltf"), json).unwrap();
-    "quad.gltf".into()
-}
-
-fn write_png(dir: &Path, w: u32, h: u32, texels: &[[u8; 4]]) {
-    let img = image::RgbaImage::from_fn(w, h, |x, y| image::Rgba(texels[(y * w + x) as usize]));
-    img.save(dir.join("tex.png")).unwrap();
 }
 
 /// The sRGB curve (IEC 61966-2-1), in f64.
@@ -102,16 +51,7 @@ fn bilinear_srgb(w: u32, h: u32, texels: &[[u8; 4]], u: f64, v: f64) -> [f64; 3]
 fn an_emissive_textured_quad_filling_the_view_is_the_texture_resampled_through_the_camera() {
     let dir = tmpdir("tex-emissive");
     let (tw, th) = (4u32, 3u32);
-    let texels: Vec<[u8; 4]> = (0..tw * th)
-        .map(|i| {
-            [
-                (i * 21 + 3) as u8,
-                (250 - i * 19) as u8,
-                ((i * 97) % 251) as u8,
-                255,
-            ]
-        })
-        .collect();
+    let texels = colour_texels(tw, th);
     write_png(&dir, tw, th, &texels);
     let model = textured_quad(
         &dir,

@@ -175,3 +175,93 @@ pub fn keyframes_along_x(from: f64, to: f64) -> String {
         "[[objects.keyframes]]\nframe = 0\ntranslate = [{from}, 0, 0]\n[[objects.keyframes]]\nframe = 1\ntranslate = [{to}, 0, 0]\n"
     )
 }
+
+/// A glTF file of the quad [-h, h]^2 at z = `z` facing +Z, with texture
+/// coordinates (0, 0) at its top-left corner (-h, h) and (1, 1) at its
+/// bottom-right one, material `material` (JSON) and the PNG `png` as
+/// image 0 (texture 0, sampler `sampler`).
+pub fn textured_quad(dir: &Path, h: f32, z: f32, material: &str, sampler: &str) -> String {
+    textured_quad_coloured(dir, h, z, material, sampler, None)
+}
+
+/// [`textured_quad`] with COLOR_0 (RGBA, one per corner: (-h, -h),
+/// (h, -h), (h, h), (-h, h)) where `colours` is given.
+pub fn textured_quad_coloured(
+    dir: &Path,
+    h: f32,
+    z: f32,
+    material: &str,
+    sampler: &str,
+    colours: Option<[[f32; 4]; 4]>,
+) -> String {
+    use base64::Engine as _;
+    let mut bin = Vec::new();
+    for c in [-h, -h, z, h, -h, z, h, h, z, -h, h, z] {
+        bin.extend(c.to_le_bytes());
+    }
+    for _ in 0..4 {
+        for c in [0f32, 0., 1.] {
+            bin.extend(c.to_le_bytes());
+        }
+    }
+    for c in [0f32, 1., 1., 1., 1., 0., 0., 0.] {
+        bin.extend(c.to_le_bytes());
+    }
+    for i in [0u16, 1, 2, 0, 2, 3] {
+        bin.extend(i.to_le_bytes());
+    }
+    // Padding to 4 bytes, then the colours.
+    bin.extend([0u8; 4]);
+    for c in colours.iter().flatten().flatten() {
+        bin.extend(c.to_le_bytes());
+    }
+    let (colour_attr, colour_view, colour_accessor) = if colours.is_some() {
+        (
+            r#","COLOR_0":4"#,
+            r#",{"buffer":0,"byteOffset":144,"byteLength":64}"#,
+            r#",{"bufferView":4,"componentType":5126,"count":4,"type":"VEC4"}"#,
+        )
+    } else {
+        ("", "", "")
+    };
+    let uri = base64::engine::general_purpose::STANDARD.encode(&bin);
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
+        "nodes":[{{"mesh":0}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2{colour_attr}}},"indices":3,"material":0}}]}}],
+        "materials":[{material}],
+        "textures":[{{"source":0,"sampler":0}}],
+        "samplers":[{sampler}],
+        "images":[{{"uri":"tex.png"}}],
+        "extensionsUsed":["KHR_materials_specular"],
+        "buffers":[{{"byteLength":{len},"uri":"data:application/octet-stream;base64,{uri}"}}],
+        "bufferViews":[{{"buffer":0,"byteLength":48}},{{"buffer":0,"byteOffset":48,"byteLength":48}},
+                       {{"buffer":0,"byteOffset":96,"byteLength":32}},{{"buffer":0,"byteOffset":128,"byteLength":12}}{colour_view}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[-1,-1,0],"max":[1,1,0]}},
+                     {{"bufferView":1,"componentType":5126,"count":4,"type":"VEC3"}},
+                     {{"bufferView":2,"componentType":5126,"count":4,"type":"VEC2"}},
+                     {{"bufferView":3,"componentType":5123,"count":6,"type":"SCALAR"}}{colour_accessor}]}}"#,
+        len = bin.len(),
+    );
+    std::fs::write(dir.join("quad.gltf"), json).unwrap();
+    "quad.gltf".into()
+}
+
+pub fn write_png(dir: &Path, w: u32, h: u32, texels: &[[u8; 4]]) {
+    let img = image::RgbaImage::from_fn(w, h, |x, y| image::Rgba(texels[(y * w + x) as usize]));
+    img.save(dir.join("tex.png")).unwrap();
+}
+
+/// `w` x `h` opaque texels of distinct colours (at most 13 texels).
+pub fn colour_texels(w: u32, h: u32) -> Vec<[u8; 4]> {
+    (0..w * h)
+        .map(|i| {
+            [
+                (i * 21 + 3) as u8,
+                (250 - i * 19) as u8,
+                ((i * 97) % 251) as u8,
+                255,
+            ]
+        })
+        .collect()
+}

@@ -42,6 +42,8 @@ struct TriangleShading {
     n0: vec3<f32>,
     smooth_shaded: u32,
     n1: vec3<f32>,
+    // Its vertex attributes in pbr.wgsl's tri_attrs, or NONE.
+    attrs: u32,
     n2: vec3<f32>,
 }
 
@@ -314,6 +316,20 @@ fn triangle_surface(index: u32, p: vec3<f32>) -> SurfacePoint {
     return SurfacePoint(p - s.normal * dot(s.normal, p - v0), s.normal, s.material);
 }
 
+// triangle.rs Triangle::barycentric: the weights of p on triangle
+// `index`, clamped into the triangle.
+fn triangle_barycentric(index: u32, p: vec3<f32>) -> vec3<f32> {
+    let tri = triangles[index];
+    let e1 = tri.v1 - tri.v0;
+    let e2 = tri.v2 - tri.v0;
+    let dp = p - tri.v0;
+    let c = cross(e1, e2);
+    let cc = dot(c, c);
+    let b1 = clamp(dot(cross(dp, e2), c) / cc, 0.0, 1.0);
+    let b2 = clamp(dot(cross(e1, dp), c) / cc, 0.0, 1.0 - b1);
+    return vec3<f32>(1.0 - b1 - b2, b1, b2);
+}
+
 // world/query.rs shading_normal for triangle `index`: on smooth triangles the
 // interpolated vertex normal, turned to the side of n (the geometric normal
 // facing the viewer), and n itself wherever that would face away from the
@@ -323,17 +339,9 @@ fn triangle_shading_normal(index: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>)
     if (s.smooth_shaded == 0u) {
         return n;
     }
-    // triangle.rs TriangleShading::normal_at: barycentric weights, clamped.
-    let tri = triangles[index];
-    let e1 = tri.v1 - tri.v0;
-    let e2 = tri.v2 - tri.v0;
-    let dp = p - tri.v0;
-    let c = cross(e1, e2);
-    let cc = dot(c, c);
-    let b1 = clamp(dot(cross(dp, e2), c) / cc, 0.0, 1.0);
-    let b2 = clamp(dot(cross(e1, dp), c) / cc, 0.0, 1.0 - b1);
-    let b0 = 1.0 - b1 - b2;
-    let sum = s.n0 * b0 + s.n1 * b1 + s.n2 * b2;
+    // triangle.rs TriangleShading::normal_at.
+    let b = triangle_barycentric(index, p);
+    let sum = s.n0 * b.x + s.n1 * b.y + s.n2 * b.z;
     let len = length(sum);
     var ns = s.normal;
     if (len > 0.0 && len <= BIG) {

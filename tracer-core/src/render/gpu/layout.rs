@@ -135,7 +135,9 @@ pub struct GpuTriangleShading {
     /// 1 when `n0..n2` are vertex normals to interpolate, 0 for flat shading.
     pub smooth_shaded: u32,
     pub n1: [f32; 3],
-    pub _pad1: u32,
+    /// `TriangleShading::attrs`: the triangle's vertex attributes in
+    /// [`PbrData`] (`NO_ATTRS` for none, and for moving meshes' triangles).
+    pub attrs: u32,
     pub n2: [f32; 3],
     pub _pad2: u32,
 }
@@ -316,6 +318,11 @@ impl TreeData {
                         n0: ns[0],
                         smooth_shaded: s.vertex_normals.is_some() as u32,
                         n1: ns[1],
+                        attrs: if part.materials.is_none() {
+                            s.attrs
+                        } else {
+                            crate::triangle::NO_ATTRS
+                        },
                         n2: ns[2],
                         ..Default::default()
                     }
@@ -442,6 +449,9 @@ pub struct SceneData {
     pub dist: Option<DistData>,
     /// The path integrator's words, appended to `dist` (path scenes only).
     pub path: Option<PathData>,
+    /// Model files' materials whose textures, vertex colours, emission or
+    /// cut-outs the kernel looks up per hit (pbr.wgsl), or `None`.
+    pub pbr: Option<std::sync::Arc<PbrData>>,
 }
 
 /// `World::dist` for distributed.wgsl: its `dist` array of vec4 (keep in
@@ -762,6 +772,7 @@ impl SceneData {
             (Some(d), Some(scene)) => Some(PathData::append(d, scene, &bsdfs)),
             _ => None,
         };
+        let pbr = PbrData::from_world(w, materials.len()).map(std::sync::Arc::new);
         Ok(SceneData {
             frame,
             spheres: non_empty(w.spheres.iter().map(sphere).collect()),
@@ -778,6 +789,7 @@ impl SceneData {
             static_tree: static_tree.is_some(),
             dist,
             path,
+            pbr,
         })
     }
 
@@ -791,6 +803,215 @@ impl SceneData {
         } else {
             1
         }
+    }
+}
+
+// ---- Model files' materials (pbr.wgsl) -----------------------------------
+
+/// A texture as a material uses it (`texture::TextureRef`). WGSL (pbr.wgsl): `struct TexRef`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct GpuTexRef {
+    /// Its image's first texel in `PbrData::texels` (after the decode tables).
+    pub offset: u32,
+    pub width: u32,
+    pub height: u32,
+    /// `TEX_*` bits: present, nearest, sRGB, UV set 1, wrap modes.
+    pub flags: u32,
+    /// The `KHR_texture_transform` rows (a, b, c, -) and (d, e, f, -).
+    pub row0: [f32; 4],
+    pub row1: [f32; 4],
+}
+
+pub const TEX_PRESENT: u32 = 1;
+pub const TEX_NEAREST: u32 = 2;
+pub const TEX_SRGB: u32 = 4;
+pub const TEX_UV1: u32 = 8;
+/// Wrap modes (0 repeat, 1 clamp, 2 mirrored repeat) of u at bits 4-5, v at 6-7.
+pub const TEX_WRAP_SHIFT: u32 = 4;
+
+/// A model file's material (`material::Pbr`) as pbr.wgsl reads it. WGSL: `struct Pbr`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct GpuPbr {
+    pub base_color: [f32; 4],
+    /// emissiveFactor x emissiveStrength (`Material::emission` where no texture).
+    pub emissive: [f32; 3],
+    /// `PBR_*` bits.
+    pub flags: u32,
+    pub metallic: f32,
+    pub roughness: f32,
+    pub transmission: f32,
+    pub ior: f32,
+    /// The dielectric's specular colour, 0.04 specularFactor specularColor
+    /// (`Pbr::whitted`'s f0, made in f64 as there).
+    pub f0: [f32; 3],
+    /// The smallest f32 not below alphaCutoff: alpha < it exactly when
+    /// alpha < the f64 cutoff the CPU compares with.
+    pub alpha_cutoff: f32,
+    pub occlusion_strength: f32,
+    pub _pad: [f32; 3],
+    /// Base colour, metallic-roughness, emissive, occlusion, MTL alpha (`PBR_TEX_*`).
+    pub tex: [GpuTexRef; 5],
+}
+
+pub const PBR_MASK: u32 = 1;
+pub const PBR_BLEND: u32 = 2;
+pub const PBR_MTL: u32 = 4;
+/// `Pbr::varies`: hits look the material up (else the material and emission as they are).
+pub const PBR_VARIES: u32 = 8;
+
+/// One vertex's attributes (`VertexAttrs`). WGSL: `struct VertexAttr`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct GpuVertexAttr {
+    pub uv0: [f32; 2],
+    pub uv1: [f32; 2],
+    pub colour: [f32; 4],
+}
+
+const _: () = assert!(size_of::<GpuTexRef>() == 48);
+const _: () = assert!(size_of::<GpuPbr>() == 80 + 5 * 48);
+const _: () = assert!(size_of::<GpuVertexAttr>() == 32);
+
+/// Texels of the decode tables that lead `PbrData::texels`: 256 sRGB
+/// bytes to linear, then 256 bytes / 255 (`texture.rs`'s exact values).
+pub const TEXEL_TABLES: u32 = 512;
+
+/// The world's model materials for pbr.wgsl: per GPU material its
+/// `GpuPbr` (or `NO_PBR`), the materials, the triangles' vertex
+/// attributes and every image once, as the RGBA bytes the CPU filters
+/// (four to a word, little-endian), after the decode tables.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PbrData {
+    pub mat_pbr: Vec<u32>,
+    pub pbrs: Vec<GpuPbr>,
+    /// Three vertex indices per attribute triangle (`VertexAttrs::tri`).
+    pub tri_attrs: Vec<u32>,
+    pub vertices: Vec<GpuVertexAttr>,
+    pub texels: Vec<u32>,
+    /// Some material is alphaMode MASK: every query passes cut-outs.
+    pub cutouts: bool,
+}
+
+impl PbrData {
+    /// The texture bytes on the GPU (images only, the tables left out).
+    pub fn texture_bytes(&self) -> u64 {
+        (self.texels.len() as u64 - TEXEL_TABLES as u64) * 4
+    }
+
+    /// `None` when nothing of `w`'s model materials varies over a surface,
+    /// emits or is cut out: the kernel then renders its materials as
+    /// before model materials existed. `n_materials`: the GPU's materials.
+    pub fn from_world(w: &World<f32>, n_materials: usize) -> Option<Self> {
+        use crate::material::{AlphaMode, NO_PBR};
+        use crate::texture::{TextureRef, Wrap};
+        let used = w.pbr.iter().any(|p| {
+            p.varies() || p.emissive.iter().any(|&e| e != 0.0) || p.alpha_mode == AlphaMode::Mask
+        });
+        if !used {
+            return None;
+        }
+        let mut texels: Vec<u32> = crate::texture::decode_tables()
+            .iter()
+            .map(|v| v.to_bits())
+            .collect();
+        let mut images: Vec<(*const crate::texture::Image, u32)> = Vec::new();
+        let mut tex = |t: &Option<TextureRef>| -> GpuTexRef {
+            let Some(t) = t else {
+                return GpuTexRef::default();
+            };
+            let key = std::sync::Arc::as_ptr(&t.image);
+            let offset = match images.iter().find(|(k, _)| *k == key) {
+                Some((_, o)) => *o,
+                None => {
+                    let o = texels.len() as u32;
+                    texels.extend(t.image.texels.iter().map(|c| u32::from_le_bytes(*c)));
+                    images.push((key, o));
+                    o
+                }
+            };
+            let wrap = |w: Wrap| match w {
+                Wrap::Repeat => 0,
+                Wrap::ClampToEdge => 1,
+                Wrap::MirroredRepeat => 2,
+            };
+            let [a, b] = t.transform;
+            GpuTexRef {
+                offset,
+                width: t.image.width,
+                height: t.image.height,
+                flags: TEX_PRESENT
+                    | if t.nearest { TEX_NEAREST } else { 0 }
+                    | if t.srgb { TEX_SRGB } else { 0 }
+                    | if t.uv_set == 1 { TEX_UV1 } else { 0 }
+                    | wrap(t.wrap[0]) << TEX_WRAP_SHIFT
+                    | wrap(t.wrap[1]) << (TEX_WRAP_SHIFT + 2),
+                row0: [a[0], a[1], a[2], 0.0],
+                row1: [b[0], b[1], b[2], 0.0],
+            }
+        };
+        let pbrs: Vec<GpuPbr> = w
+            .pbr
+            .iter()
+            .map(|p| {
+                let mut cutoff = p.alpha_cutoff as f32;
+                if (cutoff as f64) < p.alpha_cutoff {
+                    cutoff = cutoff.next_up();
+                }
+                GpuPbr {
+                    base_color: p.base_color.map(|c| c as f32),
+                    emissive: p.emissive.map(|c| c as f32),
+                    flags: match p.alpha_mode {
+                        AlphaMode::Opaque => 0,
+                        AlphaMode::Mask => PBR_MASK,
+                        AlphaMode::Blend => PBR_BLEND,
+                    } | if p.mtl { PBR_MTL } else { 0 }
+                        | if p.varies() { PBR_VARIES } else { 0 },
+                    metallic: p.metallic as f32,
+                    roughness: p.roughness as f32,
+                    transmission: p.transmission as f32,
+                    ior: p.ior as f32,
+                    f0: p
+                        .specular_color
+                        .map(|c| (0.04 * p.specular_factor * c) as f32),
+                    alpha_cutoff: cutoff,
+                    occlusion_strength: p.occlusion_strength as f32,
+                    _pad: [0.0; 3],
+                    tex: [
+                        tex(&p.base_color_texture),
+                        tex(&p.metallic_roughness_texture),
+                        tex(&p.emissive_texture),
+                        tex(&p.occlusion_texture),
+                        tex(&p.alpha_texture),
+                    ],
+                }
+            })
+            .collect();
+        let mut mat_pbr: Vec<u32> = w
+            .materials
+            .iter()
+            .map(|m| if m.pbr == NO_PBR { NO_PBR } else { m.pbr })
+            .collect();
+        // Materials only moving meshes use have none here (their triangles
+        // keep no attributes on the GPU).
+        mat_pbr.resize(n_materials.max(1), NO_PBR);
+        let a = &w.attrs;
+        let vertices = (0..a.color.len())
+            .map(|i| GpuVertexAttr {
+                uv0: a.uv[0].get(i).copied().unwrap_or_default(),
+                uv1: a.uv[1].get(i).copied().unwrap_or_default(),
+                colour: a.color[i],
+            })
+            .collect();
+        Some(PbrData {
+            mat_pbr,
+            pbrs: non_empty(pbrs),
+            tri_attrs: non_empty(a.tri.iter().flatten().copied().collect()),
+            vertices: non_empty(vertices),
+            texels,
+            cutouts: a.cutouts,
+        })
     }
 }
 

@@ -84,6 +84,14 @@ pub enum GpuError {
     )]
     Materials(String),
     #[error(
+        "the scene's textures need {needed} bytes on the GPU, over the texture budget of {budget} bytes ({budget_name}); render it with --backend cpu or with smaller textures"
+    )]
+    TextureBudget {
+        needed: u64,
+        budget: u64,
+        budget_name: &'static str,
+    },
+    #[error(
         "the scene's BVH has a node at depth {depth} whose traversal needs more than the GPU traversal stack of {stack} entries; render it with --backend cpu"
     )]
     TreeTooDeep { depth: usize, stack: usize },
@@ -198,6 +206,8 @@ struct SceneState {
     tree: [wgpu::Buffer; 4],
     /// `DistData::words` (a placeholder for scenes without distributed effects).
     dist: wgpu::Buffer,
+    /// `PbrData`'s mat_pbr, pbrs, tri_attrs, vertices, texels (placeholders without).
+    pbr: [wgpu::Buffer; 5],
     wave: Option<WavePipelines>,
 }
 
@@ -847,30 +857,29 @@ fn classify(e: wgpu::Error) -> GpuError {
     }
 }
 
-/// What of a world's model-file materials the WGSL step does not have yet
-/// (textures, vertex colours, emission, cut-outs), named for the error;
-/// `None` when it renders as on the CPU.
+/// What of a world's model-file materials the WGSL step does not have yet,
+/// named for the error; `None` when it renders as on the CPU. Textures,
+/// vertex colours, emission and cut-outs of the static world are
+/// pbr.wgsl's; a moving mesh's model materials keep only their factors
+/// on the GPU, so those that vary, emit or cut out are refused.
 fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
-    let mut what = Vec::new();
-    use crate::material::Pbr;
-    let any = |f: &dyn Fn(&Pbr) -> bool| world.pbr.iter().any(|p| f(p));
-    if any(&|p| {
-        Pbr {
-            vertex_colors: false,
-            ..p.clone()
-        }
-        .varies()
-    }) {
-        what.push("textures");
-    }
-    if any(&|p| p.vertex_colors) {
-        what.push("vertex colours");
-    }
-    if any(&|p| p.emissive.iter().any(|&e| e > 0.0)) {
-        what.push("emission");
-    }
-    if world.attrs.cutouts {
-        what.push("alpha cut-outs");
-    }
-    (!what.is_empty()).then(|| what.join(", "))
+    let moving = world
+        .dist
+        .iter()
+        .flat_map(|d| d.moving_meshes.iter())
+        .flat_map(|m| m.world.pbr.iter())
+        .any(|p| {
+            p.varies()
+                || p.emissive.iter().any(|&e| e != 0.0)
+                || p.alpha_mode == crate::material::AlphaMode::Mask
+        });
+    moving.then(|| {
+        "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
+            .to_string()
+    })
 }
+
+/// Default bytes of texels a scene may hold on the GPU (`GpuRenderer`'s
+/// texture budget, also bounded by the adapter's largest storage binding):
+/// 1 GiB, e.g. 64 textures of 2048x2048.
+pub const TEXTURE_BUDGET: u64 = 1 << 30;

@@ -65,6 +65,18 @@ impl GpuRenderer {
                     .as_ref()
                     .map_or(0, |t| std::mem::size_of_val(t.data.shading.as_slice())),
             ),
+            (
+                "the scene's vertex attributes",
+                data.pbr
+                    .as_ref()
+                    .map_or(0, |p| std::mem::size_of_val(p.vertices.as_slice())),
+            ),
+            (
+                "the scene's attribute triangles",
+                data.pbr
+                    .as_ref()
+                    .map_or(0, |p| std::mem::size_of_val(p.tri_attrs.as_slice())),
+            ),
         ] {
             check_size(
                 what,
@@ -72,6 +84,25 @@ impl GpuRenderer {
                 limits.max_storage_buffer_binding_size,
                 "max_storage_buffer_binding_size",
             )?;
+        }
+        if let Some(p) = &data.pbr {
+            let needed = p.texture_bytes();
+            let table = (layout::TEXEL_TABLES * 4) as u64;
+            for (budget, budget_name) in [
+                (super::TEXTURE_BUDGET, "the default, TEXTURE_BUDGET"),
+                (
+                    limits.max_storage_buffer_binding_size.saturating_sub(table),
+                    "the adapter's max_storage_buffer_binding_size less the decode tables",
+                ),
+            ] {
+                if needed > budget {
+                    return Err(GpuError::TextureBudget {
+                        needed,
+                        budget,
+                        budget_name,
+                    });
+                }
+            }
         }
         let frame = make(
             "frame",
@@ -85,6 +116,27 @@ impl GpuRenderer {
         let dist = match &data.dist {
             Some(d) => make("distributed", bytemuck::cast_slice(&d.words), st),
             None => make("distributed", &[0u8; 64], st),
+        };
+        let pbr = match &data.pbr {
+            Some(p) => [
+                make("material pbr", bytemuck::cast_slice(&p.mat_pbr), st),
+                make("pbr materials", bytemuck::cast_slice(&p.pbrs), st),
+                make(
+                    "attribute triangles",
+                    bytemuck::cast_slice(&p.tri_attrs),
+                    st,
+                ),
+                make("vertex attributes", bytemuck::cast_slice(&p.vertices), st),
+                make("texels", bytemuck::cast_slice(&p.texels), st),
+            ],
+            None => [
+                "material pbr",
+                "pbr materials",
+                "attribute triangles",
+                "vertex attributes",
+                "texels",
+            ]
+            .map(|label| make(label, &[0u8; 512], st)),
         };
         let n_moving_meshes = data.dist.as_ref().map_or(0, |d| d.n_moving_meshes);
         let kernel = Kernel {
@@ -116,7 +168,15 @@ impl GpuRenderer {
             ("WG_X", self.options.workgroup.0 as f64),
             ("WG_Y", self.options.workgroup.1 as f64),
         ];
-        let mut all_constants = constants.to_vec();
+        // Model materials: left out for scenes without (their kernel is as before).
+        let mut constants = constants.to_vec();
+        if let Some(p) = &data.pbr {
+            constants.push(("HAS_PBR", 1.0));
+            if p.cutouts {
+                constants.push(("HAS_CUTOUTS", 1.0));
+            }
+        }
+        let mut all_constants = constants.clone();
         if let Some(d) = &data.dist {
             all_constants.extend([
                 ("DISTRIBUTED", 1.0),
@@ -241,6 +301,7 @@ impl GpuRenderer {
             lights,
             tree,
             dist,
+            pbr,
             wave,
         })
     }

@@ -1,6 +1,7 @@
 //! import scene.wgsl
 //! import geometry.wgsl
 //! import distributed.wgsl
+//! import pbr.wgsl
 // The shading step, once for every driver: what one ray sees and the rays
 // it spawns (render/step.rs `Surface`, `Surface::light` and
 // `add_secondary`; with distributed effects render/cpu/distributed.rs
@@ -85,7 +86,7 @@ fn light_term(sf: Surface, m: Material, pos: vec3<f32>, diffuse: vec3<f32>, spec
         o = offset_origin(p, -n);
     }
     tally[C_SHADOW] += 1u;
-    if (occluded_at(o, l, dist * (1.0 - SHADOW_SHORTEN), sf.id, tau)) {
+    if (occluded_through(o, l, dist * (1.0 - SHADOW_SHORTEN), sf.id, tau)) {
         return vec3<f32>(0.0);
     }
     return contrib;
@@ -94,8 +95,12 @@ fn light_term(sf: Surface, m: Material, pos: vec3<f32>, diffuse: vec3<f32>, spec
 // Ambient plus every light's term: the scene's point lights, or with
 // distributed effects `dist`'s lights, area lights sampled at the ray's
 // node key.
-fn local_colour(sf: Surface, m: Material, key: u32, seed: u32, s: u32, tau: f32) -> vec3<f32> {
+fn local_colour(sf: Surface, look: Looked, key: u32, seed: u32, s: u32, tau: f32) -> vec3<f32> {
+    let m = look.m;
     var local = frame.ambient * m.ambient;
+    if (HAS_PBR && look.emits) {
+        local += look.emission;
+    }
     if (!DISTRIBUTED) {
         for (var li = 0u; li < N_LIGHTS; li++) {
             let light = lights[li];
@@ -144,14 +149,15 @@ fn shade(r: Ray, seed: u32, s: u32, tau: f32) -> Shaded {
     var out: Shaded;
     out.has_refracted = false;
     out.has_reflected = false;
-    let hit = closest_at(r.origin, r.dir, r.skip, tau);
+    let hit = closest_through(r.origin, r.dir, r.skip, tau);
     if (hit.id == NONE) {
         out.colour = frame.background;
         return out;
     }
     let sf = surface_at(r, hit, tau);
-    let m = materials[sf.material];
-    out.colour = local_colour(sf, m, r.key, seed, s, tau);
+    let look = material_at(sf.id, sf.p, sf.material);
+    let m = look.m;
+    out.colour = local_colour(sf, look, r.key, seed, s, tau);
     if (r.depth >= MAX_DEPTH) {
         return out;
     }

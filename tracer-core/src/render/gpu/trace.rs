@@ -162,6 +162,11 @@ impl GpuRenderer {
                     b("active_blocks"),
                     blocks_buffer.as_ref().unwrap_or(&self.no_blocks),
                 ),
+                entire(b("mat_pbr"), &scene.pbr[0]),
+                entire(b("pbrs"), &scene.pbr[1]),
+                entire(b("tri_attrs"), &scene.pbr[2]),
+                entire(b("vertex_attrs"), &scene.pbr[3]),
+                entire(b("texels"), &scene.pbr[4]),
             ],
         });
 

@@ -31,6 +31,7 @@ pub const FILES: &[(&str, &str)] = &[
     ),
     ("pack.wgsl", include_str!("pack.wgsl")),
     ("path.wgsl", include_str!("path.wgsl")),
+    ("pbr.wgsl", include_str!("pbr.wgsl")),
     ("resolve.wgsl", include_str!("resolve.wgsl")),
     ("resolve_linear.wgsl", include_str!("resolve_linear.wgsl")),
     ("sampling.wgsl", include_str!("sampling.wgsl")),
@@ -365,6 +366,12 @@ pub const SCENE: Layout = Layout {
         // An adaptive round's active blocks, each (column | row << 16) in
         // blocks of 8x8 pixels from the film's corner (a placeholder otherwise).
         bind("active_blocks", "array<u32>", Read, "scene.wgsl"),
+        // Model files' materials (layout.rs PbrData; placeholders without).
+        bind("mat_pbr", "array<u32>", Read, "pbr.wgsl"),
+        bind("pbrs", "array<Pbr>", Read, "pbr.wgsl"),
+        bind("tri_attrs", "array<u32>", Read, "pbr.wgsl"),
+        bind("vertex_attrs", "array<VertexAttr>", Read, "pbr.wgsl"),
+        bind("texels", "array<u32>", Read, "pbr.wgsl"),
     ],
 };
 

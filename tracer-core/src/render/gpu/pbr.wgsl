@@ -1,0 +1,309 @@
+//! import scene.wgsl
+//! import bvh.wgsl
+//! import distributed.wgsl
+// Model files' materials on the GPU, written once for every driver: the
+// mirror of render/step.rs `material_at` (material.rs `Pbr::at`,
+// `Pbr::whitted`, `base_color_at`, `cut_away`), texture.rs
+// `TextureRef::sample` (the same bilinear filter, wraps, transform and
+// decode tables, so the same f32 arithmetic) and world/query.rs
+// `attrs_at` and `through_cutouts`. Compiled into every scene kernel;
+// scenes without model materials leave HAS_PBR and HAS_CUTOUTS off and
+// run the step as before.
+
+// ---- Layouts: keep in sync with layout.rs (GpuTexRef, GpuPbr, GpuVertexAttr)
+struct TexRef {
+    offset: u32,
+    width: u32,
+    height: u32,
+    flags: u32,
+    row0: vec4<f32>,
+    row1: vec4<f32>,
+}
+
+struct Pbr {
+    base_color: vec4<f32>,
+    emissive: vec3<f32>,
+    flags: u32,
+    metallic: f32,
+    roughness: f32,
+    transmission: f32,
+    ior: f32,
+    f0: vec3<f32>,
+    alpha_cutoff: f32,
+    occlusion_strength: f32,
+    pad0: f32,
+    pad1: f32,
+    pad2: f32,
+    tex: array<TexRef, 5>,
+}
+
+struct VertexAttr {
+    uv0: vec2<f32>,
+    uv1: vec2<f32>,
+    colour: vec4<f32>,
+}
+
+// Bindings mat_pbr, pbrs, tri_attrs, vertex_attrs, texels: wgsl.rs SCENE.
+
+// layout.rs TEX_* and PBR_*.
+const TEX_PRESENT: u32 = 1u;
+const TEX_NEAREST: u32 = 2u;
+const TEX_SRGB: u32 = 4u;
+const TEX_UV1: u32 = 8u;
+const TEX_WRAP_SHIFT: u32 = 4u;
+const PBR_MASK: u32 = 1u;
+const PBR_BLEND: u32 = 2u;
+const PBR_MTL: u32 = 4u;
+const PBR_VARIES: u32 = 8u;
+const T_BASE: u32 = 0u;
+const T_MR: u32 = 1u;
+const T_EMISSIVE: u32 = 2u;
+const T_OCCLUSION: u32 = 3u;
+const T_ALPHA: u32 = 4u;
+// texels[0..256]: sRGB byte -> linear; [256..512]: byte / 255.
+const TABLE_LINEAR: u32 = 256u;
+// world/query.rs MAX_CUTOUT_LAYERS.
+const MAX_CUTOUT_LAYERS: u32 = 64u;
+// math.rs SPECULAR_FLOOR of f32 (2^-24).
+const SPECULAR_FLOOR_F32: f32 = 5.9604645e-8;
+
+override HAS_PBR: bool = false;
+override HAS_CUTOUTS: bool = false;
+
+fn is_finite_f32(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+// texture.rs wrap_index: integer coordinate i in a side of n texels.
+fn wrap_index(i: i32, n: u32, mode: u32) -> u32 {
+    let m = i32(n);
+    if (mode == 1u) {
+        return u32(clamp(i, 0, m - 1));
+    }
+    if (mode == 2u) {
+        var k = i % (2 * m);
+        k = select(k, k + 2 * m, k < 0);
+        return u32(select(2 * m - 1 - k, k, k < m));
+    }
+    var k = i % m;
+    k = select(k, k + m, k < 0);
+    return u32(k);
+}
+
+// texture.rs TextureRef::texel: one texel decoded to linear values.
+fn texel(t: TexRef, x: u32, y: u32) -> vec4<f32> {
+    let w = texels[t.offset + y * t.width + x];
+    let b = vec4<u32>(w & 255u, (w >> 8u) & 255u, (w >> 16u) & 255u, w >> 24u);
+    let colour = select(vec3<u32>(TABLE_LINEAR), vec3<u32>(0u), (t.flags & TEX_SRGB) != 0u);
+    return vec4<f32>(
+        bitcast<f32>(texels[colour.x + b.x]),
+        bitcast<f32>(texels[colour.y + b.y]),
+        bitcast<f32>(texels[colour.z + b.z]),
+        bitcast<f32>(texels[TABLE_LINEAR + b.w]));
+}
+
+// texture.rs TextureRef::sample at the hit's texture coordinates (its UV set).
+fn tex_sample(t: TexRef, uv0: vec2<f32>, uv1: vec2<f32>) -> vec4<f32> {
+    let uv = select(uv0, uv1, (t.flags & TEX_UV1) != 0u);
+    let u = t.row0.x * uv.x + t.row0.y * uv.y + t.row0.z;
+    let v = t.row1.x * uv.x + t.row1.y * uv.y + t.row1.z;
+    let ws = (t.flags >> TEX_WRAP_SHIFT) & 3u;
+    let wt = (t.flags >> (TEX_WRAP_SHIFT + 2u)) & 3u;
+    var fx = 0.5;
+    if (is_finite_f32(u)) {
+        fx = u * f32(t.width);
+    }
+    var fy = 0.5;
+    if (is_finite_f32(v)) {
+        fy = v * f32(t.height);
+    }
+    fx = clamp(fx, -1e9, 1e9);
+    fy = clamp(fy, -1e9, 1e9);
+    if ((t.flags & TEX_NEAREST) != 0u) {
+        return texel(t, wrap_index(i32(floor(fx)), t.width, ws), wrap_index(i32(floor(fy)), t.height, wt));
+    }
+    let x = fx - 0.5;
+    let y = fy - 0.5;
+    let x0 = floor(x);
+    let y0 = floor(y);
+    let tx = x - x0;
+    let ty = y - y0;
+    let xi = i32(x0);
+    let yi = i32(y0);
+    let xa = wrap_index(xi, t.width, ws);
+    let xb = wrap_index(xi + 1, t.width, ws);
+    let ya = wrap_index(yi, t.height, wt);
+    let yb = wrap_index(yi + 1, t.height, wt);
+    let a = texel(t, xa, ya);
+    let b = texel(t, xb, ya);
+    let c = texel(t, xa, yb);
+    let d = texel(t, xb, yb);
+    let top = a + (b - a) * tx;
+    let bottom = c + (d - c) * tx;
+    return top + (bottom - top) * ty;
+}
+
+// world/query.rs attrs_at: texture coordinates and vertex colour at p on
+// triangle `index`, zeros and white for a triangle without them.
+struct Attrs {
+    uv0: vec2<f32>,
+    uv1: vec2<f32>,
+    colour: vec4<f32>,
+}
+
+fn attrs_at(index: u32, p: vec3<f32>) -> Attrs {
+    let a = shading[index].attrs;
+    if (a == NONE) {
+        return Attrs(vec2<f32>(0.0), vec2<f32>(0.0), vec4<f32>(1.0));
+    }
+    let va = vertex_attrs[tri_attrs[3u * a]];
+    let vb = vertex_attrs[tri_attrs[3u * a + 1u]];
+    let vc = vertex_attrs[tri_attrs[3u * a + 2u]];
+    let b = triangle_barycentric(index, p);
+    return Attrs(
+        va.uv0 * b.x + vb.uv0 * b.y + vc.uv0 * b.z,
+        va.uv1 * b.x + vb.uv1 * b.y + vc.uv1 * b.z,
+        va.colour * b.x + vb.colour * b.y + vc.colour * b.z);
+}
+
+// material.rs Pbr::base_color_at: factor x texture x vertex colour, alpha
+// times the MTL alpha map.
+fn base_color_at(p: Pbr, at: Attrs) -> vec4<f32> {
+    var t = vec4<f32>(1.0);
+    if ((p.tex[T_BASE].flags & TEX_PRESENT) != 0u) {
+        t = tex_sample(p.tex[T_BASE], at.uv0, at.uv1);
+    }
+    var c = p.base_color * t * at.colour;
+    if ((p.tex[T_ALPHA].flags & TEX_PRESENT) != 0u) {
+        let s = tex_sample(p.tex[T_ALPHA], at.uv0, at.uv1);
+        c.w = c.w * (s.x * s.w);
+    }
+    return c;
+}
+
+// world/query.rs cut_away: whether the point p of primitive id is cut
+// away (a MASK material's alpha there below its cutoff).
+fn cut_away(id: u32, p: vec3<f32>) -> bool {
+    if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
+        return false;
+    }
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    let pi = mat_pbr[shading[index].material];
+    if (pi == NONE) {
+        return false;
+    }
+    let pb = pbrs[pi];
+    if ((pb.flags & PBR_MASK) == 0u) {
+        return false;
+    }
+    return base_color_at(pb, attrs_at(index, p)).w < pb.alpha_cutoff;
+}
+
+// world/query.rs closest_hit with cut-outs (through_cutouts): each cut-out
+// hit is left by a ray from it along the same direction, at most
+// MAX_CUTOUT_LAYERS of them (past that the surface counts as hit).
+fn closest_through(o: vec3<f32>, d: vec3<f32>, skip: u32, tau: f32) -> Hit {
+    var h = closest_at(o, d, skip, tau);
+    if (!HAS_CUTOUTS) {
+        return h;
+    }
+    var t0 = 0.0;
+    for (var i = 0u; i < MAX_CUTOUT_LAYERS; i++) {
+        if (h.id == NONE) {
+            return h;
+        }
+        let p = o + d * (t0 + h.t);
+        if (!cut_away(h.id, p)) {
+            return Hit(t0 + h.t, h.id);
+        }
+        t0 += h.t;
+        h = closest_at(p, d, h.id, tau);
+    }
+    if (h.id != NONE) {
+        h.t = t0 + h.t;
+    }
+    return h;
+}
+
+// world/query.rs occluded: whether anything but cut-outs lies on the ray before t_max.
+fn occluded_through(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32, tau: f32) -> bool {
+    if (!HAS_CUTOUTS) {
+        return occluded_at(o, d, t_max, skip, tau);
+    }
+    let h = closest_through(o, d, skip, tau);
+    return h.id != NONE && h.t < t_max;
+}
+
+// A hit's material (render/step.rs material_at) and its emission, added
+// to the ambient term where `emits` (step.rs Surface::ambient: model
+// materials only).
+struct Looked {
+    m: Material,
+    emission: vec3<f32>,
+    emits: bool,
+}
+
+fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
+    let m = materials[material];
+    if (!HAS_PBR || (id >> KIND_SHIFT) != KIND_TRIANGLE) {
+        return Looked(m, vec3<f32>(0.0), false);
+    }
+    let pi = mat_pbr[material];
+    if (pi == NONE) {
+        return Looked(m, vec3<f32>(0.0), false);
+    }
+    let pb = pbrs[pi];
+    if ((pb.flags & PBR_VARIES) == 0u) {
+        return Looked(m, pb.emissive, true);
+    }
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    let at = attrs_at(index, p);
+    let base = base_color_at(pb, at);
+    var emission = pb.emissive;
+    if ((pb.tex[T_EMISSIVE].flags & TEX_PRESENT) != 0u) {
+        emission = pb.emissive * tex_sample(pb.tex[T_EMISSIVE], at.uv0, at.uv1).xyz;
+    }
+    if ((pb.flags & PBR_MTL) != 0u) {
+        var out = m;
+        out.ambient = m.ambient * base.xyz;
+        out.diffuse = m.diffuse * base.xyz;
+        return Looked(out, emission, true);
+    }
+    var metallic = pb.metallic;
+    var roughness = pb.roughness;
+    if ((pb.tex[T_MR].flags & TEX_PRESENT) != 0u) {
+        let s = tex_sample(pb.tex[T_MR], at.uv0, at.uv1);
+        roughness = roughness * s.y;
+        metallic = metallic * s.z;
+    }
+    // material.rs Pbr::whitted, then Material::from_desc.
+    metallic = clamp(metallic, 0.0, 1.0);
+    let rough = clamp(roughness, 0.0, 1.0);
+    let reflectivity = metallic * (1.0 - rough) * (1.0 - rough);
+    let transmission = clamp(pb.transmission, 0.0, 1.0) * (1.0 - metallic);
+    let diffuse = base.xyz * (1.0 - reflectivity) * (1.0 - transmission);
+    var blend = 0.0;
+    if ((pb.flags & PBR_BLEND) != 0u) {
+        blend = clamp(1.0 - base.w, 0.0, 1.0);
+    }
+    let r = max(rough, 0.05);
+    let r2 = r * r;
+    let shininess = max(2.0 / (r2 * r2) - 2.0, 1.0);
+    var ambient = diffuse;
+    if ((pb.tex[T_OCCLUSION].flags & TEX_PRESENT) != 0u) {
+        let o = tex_sample(pb.tex[T_OCCLUSION], at.uv0, at.uv1).x;
+        ambient = diffuse * (1.0 + pb.occlusion_strength * (o - 1.0));
+    }
+    let out = Material(
+        ambient,
+        shininess,
+        diffuse,
+        reflectivity,
+        pb.f0 + (base.xyz - pb.f0) * metallic,
+        max(blend, transmission),
+        pb.ior,
+        pow(SPECULAR_FLOOR_F32, 1.0 / shininess),
+        1.0,
+        1.0);
+    return Looked(out, emission, true);
+}

@@ -1,0 +1,258 @@
+//! Model files' materials on the GPU (issue 34): textures, emission,
+//! alpha cut-outs and vertex colours looked up per hit by pbr.wgsl, checked
+//! against the CPU's render of the same scene (render/step.rs
+//! `material_at`), which tests/textures.rs checks against independent
+//! references. Both render in f32; the GPU's texture filter does the
+//! CPU's arithmetic on the same decode tables, and the Whitted mapping
+//! (`Pbr::whitted`, in f64 on the CPU) is evaluated in f32 on the GPU, so
+//! values agree to a few f32 rounding steps; the real assets add the
+//! triangle edges where the two traversals may pick different triangles.
+//! A missing adapter or asset fails (tests/support/prereq.rs).
+
+mod common;
+
+use std::sync::OnceLock;
+
+use common::meshgen::{colour_texels, textured_quad, textured_quad_coloured, tmpdir, write_png};
+use common::*;
+use tracer_core::film::{Rect, SampleRange};
+use tracer_core::render::gpu::{GpuOptions, GpuRenderer, Strategy};
+use tracer_core::render::{Precision, PreparedFrame};
+use tracer_core::scene::{ModelSceneOptions, SceneDesc};
+
+fn gpu(strategy: Strategy) -> Option<&'static GpuRenderer> {
+    static GPU: [OnceLock<Result<GpuRenderer, String>>; 2] = [OnceLock::new(), OnceLock::new()];
+    let r = GPU[(strategy == Strategy::Wavefront) as usize].get_or_init(|| {
+        GpuRenderer::new(
+            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+            GpuOptions {
+                strategy,
+                ..GpuOptions::default()
+            },
+        )
+        .map_err(|e| format!("no GPU adapter could be opened: {e}"))
+    });
+    prereq::require("gpu", r.as_ref())
+}
+
+/// The CPU's and the GPU's (stack and wavefront kernels) images of `desc`.
+fn cpu_and_gpu(desc: &SceneDesc) -> (Vec<[f32; 3]>, [Vec<[f32; 3]>; 2]) {
+    let s = &desc.render;
+    let cpu = render_with(desc, s, Precision::F32).resolve();
+    let prepared = PreparedFrame::build(desc, s, 0, Precision::F32).expect("valid settings");
+    let gpu = [Strategy::Stack, Strategy::Wavefront].map(|strategy| {
+        let g = gpu(strategy).expect("an adapter");
+        let film = g
+            .render(
+                &prepared,
+                0,
+                Rect::full(s.width, s.height),
+                SampleRange::all(s.samples),
+                &|_| {},
+            )
+            .unwrap_or_else(|e| panic!("GPU render failed: {e}"));
+        assert_eq!(film.nonfinite, 0);
+        film.resolve()
+    });
+    (cpu, gpu)
+}
+
+/// Asserts each GPU image within `max` of the CPU's at every pixel (the
+/// largest channel difference) and within `mean` on average; returns
+/// the worst (max, mean) for the messages.
+fn assert_agree(what: &str, desc: &SceneDesc, max: f32, mean: f64) -> (f32, f64) {
+    let (cpu, gpus) = cpu_and_gpu(desc);
+    assert_finite(&cpu);
+    assert!(
+        cpu.iter().any(|p| p.iter().any(|&c| c > 0.05)),
+        "{what}: the CPU image is black"
+    );
+    let mut worst = (0.0f32, 0.0f64);
+    for (g, kernel) in gpus.iter().zip(["stack", "wavefront"]) {
+        let d = diff(&cpu, g, max);
+        eprintln!(
+            "{what} ({kernel}): max {:.3e}, mean {:.3e}, {} of {} pixels over {max}",
+            d.max, d.mean, d.over, d.pixels
+        );
+        assert!(
+            d.over == 0 && d.mean <= mean,
+            "{what} ({kernel}): max {} (allowed {max}), mean {} (allowed {mean}), {} pixels over",
+            d.max,
+            d.mean,
+            d.over
+        );
+        worst = (worst.0.max(d.max), worst.1.max(d.mean));
+    }
+    worst
+}
+
+/// The emissive-textured quad of tests/textures.rs filling the view, lit
+/// too (a white base colour and a light, so the base colour texture, the
+/// Whitted mapping and the emission all count).
+#[test]
+fn gpu_emissive_textured_quad_matches_the_cpu() {
+    let dir = tmpdir("gpu-tex-emissive");
+    let (tw, th) = (4u32, 3u32);
+    write_png(&dir, tw, th, &colour_texels(tw, th));
+    let model = textured_quad(
+        &dir,
+        1.0,
+        0.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0.5,0.5,0.5,1],"baseColorTexture":{"index":0},"metallicFactor":0.3,"roughnessFactor":0.4},
+            "emissiveFactor":[1,0.5,0.25],"emissiveTexture":{"index":0}}"#,
+        r#"{"wrapS":10497,"wrapT":33648}"#,
+    );
+    let src = format!(
+        "[render]\nwidth = 45\nheight = 37\nsamples = 4\n\
+         [camera]\nposition = [0.3, 0.2, 2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 60\n\
+         [world]\nambient = [0.2, 0.2, 0.2]\n\
+         [[lights]]\nposition = [1, 2, 3]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    assert_agree("emissive textured quad", &scene, 1e-5, 1e-6);
+}
+
+/// The cut-out quad of tests/textures.rs over a lit plane: camera and
+/// shadow rays pass its transparent texels on the GPU as on the CPU.
+#[test]
+fn gpu_cutout_matches_the_cpu_for_camera_and_shadow_rays() {
+    let dir = tmpdir("gpu-tex-cutout");
+    let alpha = [1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0, 1, 1, 0];
+    let texels: Vec<[u8; 4]> = alpha.iter().map(|&a| [255, 255, 255, a * 255]).collect();
+    write_png(&dir, 4, 4, &texels);
+    let model = textured_quad(
+        &dir,
+        0.5,
+        1.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"baseColorTexture":{"index":0},"metallicFactor":0},
+            "emissiveFactor":[1,0,0],"alphaMode":"MASK",
+            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
+        r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
+    );
+    let src = format!(
+        "[render]\nwidth = 64\nheight = 64\nsamples = 1\n\
+         [camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 53.13010235415598\n\
+         [world]\nambient = [0.25, 0.25, 0.25]\nbackground = [0, 0, 1]\n\
+         [materials.white]\nambient = [1, 1, 1]\ndiffuse = [1, 1, 1]\n\
+         [[lights]]\nposition = [1.5, 0, 3]\ndiffuse = [0.5, 0.5, 0.5]\nspecular = [0, 0, 0]\n\
+         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    // Cut and solid texels both seen (the pattern on the quad), and shadows.
+    let (cpu, _) = cpu_and_gpu(&scene);
+    let red = cpu.iter().filter(|p| **p == [1.0, 0.0, 0.0]).count();
+    let blue = cpu.iter().filter(|p| **p == [0.0, 0.0, 1.0]).count();
+    assert!(red > 100 && blue == 0, "red {red}, background {blue}");
+    assert_agree("cut-out quad", &scene, 1e-5, 1e-6);
+}
+
+/// COLOR_0 multiplies the base colour, interpolated over the triangles.
+#[test]
+fn gpu_vertex_colours_match_the_cpu() {
+    let dir = tmpdir("gpu-vertex-colours");
+    write_png(
+        &dir,
+        2,
+        2,
+        &[
+            [255, 255, 255, 255],
+            [128, 200, 64, 255],
+            [30, 60, 90, 255],
+            [255, 0, 128, 255],
+        ],
+    );
+    let model = textured_quad_coloured(
+        &dir,
+        1.0,
+        0.0,
+        r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0},"metallicFactor":0}}"#,
+        r#"{}"#,
+        Some([
+            [1.0, 0.0, 0.0, 1.0],
+            [0.0, 1.0, 0.0, 1.0],
+            [0.0, 0.0, 1.0, 1.0],
+            [1.0, 1.0, 1.0, 1.0],
+        ]),
+    );
+    let src = format!(
+        "[render]\nwidth = 40\nheight = 40\nsamples = 1\n\
+         [camera]\nposition = [0, 0, 2.5]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 50\n\
+         [world]\nambient = [0.3, 0.3, 0.3]\n\
+         [[lights]]\nposition = [0, 1, 3]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let (cpu, _) = cpu_and_gpu(&scene);
+    // The corners' colours differ: red dominates at the bottom-left corner.
+    let bl = cpu[(34 * 40 + 5) as usize];
+    assert!(bl[0] > 2.0 * bl[1] && bl[0] > 2.0 * bl[2], "{bl:?}");
+    assert_agree("vertex colours", &scene, 1e-5, 1e-6);
+}
+
+/// A shared glTF asset rendered as a scene at `w` x `h`.
+fn asset(path: &str, w: u32, h: u32) -> SceneDesc {
+    let p = prereq::shared(path);
+    SceneDesc::load_input(
+        &p,
+        &ModelSceneOptions {
+            width: Some(w),
+            height: Some(h),
+            ..Default::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
+/// The real assets of shared/scenes on the GPU against the CPU, at a
+/// small size, 1 spp. Pixels where the two traversals may meet different
+/// triangles (edges, grazing hits) may differ by a whole texel value, and
+/// the sharpest highlights (Phong exponents up to 320,000 from roughness
+/// 0.05: the GPU's pow is exp2(y log2 x), whose error y multiplies) by
+/// more, so the bound is 1e-2 on 98% of the pixels and 2e-3 on the mean.
+#[test]
+fn gpu_renders_the_shared_gltf_assets_as_the_cpu_does() {
+    for (path, w, h) in [
+        ("scenes/gltf/DamagedHelmet/glTF/DamagedHelmet.gltf", 96, 96),
+        (
+            "scenes/gltf/AlphaBlendModeTest/glTF/AlphaBlendModeTest.gltf",
+            96,
+            64,
+        ),
+        (
+            "scenes/gltf/EmissiveStrengthTest/glTF/EmissiveStrengthTest.gltf",
+            96,
+            48,
+        ),
+        (
+            "scenes/gltf/TextureTransformTest/glTF/TextureTransformTest.gltf",
+            80,
+            80,
+        ),
+        (
+            "scenes/gltf/TextureSettingsTest/glTF/TextureSettingsTest.gltf",
+            96,
+            64,
+        ),
+        ("scenes/gltf/SpecularTest/glTF/SpecularTest.gltf", 96, 48),
+    ] {
+        let scene = asset(path, w, h);
+        let (cpu, gpus) = cpu_and_gpu(&scene);
+        for (g, kernel) in gpus.iter().zip(["stack", "wavefront"]) {
+            let d = diff(&cpu, g, 1e-2);
+            eprintln!(
+                "{path} ({kernel}): max {:.3e}, mean {:.3e}, {} of {} pixels over 1e-2",
+                d.max, d.mean, d.over, d.pixels
+            );
+            assert!(
+                d.over * 50 <= d.pixels && d.mean < 2e-3,
+                "{path} ({kernel}): max {}, mean {}, {} of {} pixels over 1e-2",
+                d.max,
+                d.mean,
+                d.over,
+                d.pixels
+            );
+        }
+    }
+}
