@@ -456,3 +456,140 @@ fn one_worker_alone_cannot_fail_a_job_a_second_failing_the_unit_does() {
         "{error}"
     );
 }
+
+/// `tessera workers --json` of `c`.
+fn workers_json(c: &Coordinator) -> Vec<Value> {
+    let out = ok_stdout(&client(c, &["workers", "--json"]));
+    let v: Value =
+        serde_json::from_str(&out).unwrap_or_else(|e| panic!("workers --json: {e}: {out}"));
+    v.as_array().expect("a list of workers").clone()
+}
+
+/// Labels and requirements: of two real workers, labelled pool=night and
+/// pool=day, only the night one renders a job that requires pool=night
+/// (every unit of it), and a job that no connected worker meets waits and
+/// says why in `status`, `status --json`, `watch` and the monitor's JSON.
+#[test]
+fn a_requirement_routes_a_job_to_the_matching_worker_only_and_a_job_nobody_can_run_says_so() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), &[]);
+    let _night = start_worker_with(
+        dir.path(),
+        &c.grpc,
+        "night",
+        &["--label", "pool=night", "--label", "gpu_memory_gb=80"],
+    );
+    let _day = start_worker_with(dir.path(), &c.grpc, "day", &["--label", "pool=day"]);
+    wait_for("both workers", Duration::from_secs(60), || {
+        workers_json(&c).len() == 2
+    });
+    let ws = workers_json(&c);
+    let night = ws.iter().find(|w| w["name"] == "night").expect("night");
+    // Given and automatic labels, backend and cores from the worker itself.
+    assert_eq!(night["labels"]["pool"], "night", "{night}");
+    assert_eq!(night["labels"]["gpu_memory_gb"], "80", "{night}");
+    assert_eq!(night["labels"]["backend"], "cpu", "{night}");
+    assert_eq!(night["labels"]["cores"], "1", "{night}");
+    assert!(night["labels"]["host"].is_string(), "{night}");
+
+    let scene = repo("examples/resolution.toml");
+    let small = [
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--samples",
+        "2",
+        "--tile-size",
+        "16",
+        "--samples-per-unit",
+        "1",
+    ];
+    let mut args = vec!["submit", scene.to_str().unwrap()];
+    args.extend(small);
+    args.extend([
+        "--require",
+        "pool=night",
+        "--require",
+        "gpu_memory_gb>=40",
+        "--wait",
+    ]);
+    let out = client(&c, &args);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let job = String::from_utf8_lossy(&out.stdout).trim().to_string();
+    let st = job_status(&c, &job);
+    assert_eq!(st["state"], "done", "{st}");
+    assert_eq!(
+        st["requirements"],
+        serde_json::json!(["pool=night", "gpu_memory_gb>=40"])
+    );
+    // 12 tiles by 2 sample batches: all rendered by the night worker.
+    assert_eq!(st["units_total"], 24, "{st}");
+    let ws = workers_json(&c);
+    let done = |name: &str| {
+        ws.iter().find(|w| w["name"] == name).expect("worker")["units_done"]
+            .as_u64()
+            .expect("units_done")
+    };
+    assert_eq!((done("night"), done("day")), (24, 0), "{ws:?}");
+
+    // Nobody has pool=gpu-farm: the job waits and says so.
+    let mut args = vec!["submit", scene.to_str().unwrap()];
+    args.extend(small);
+    args.extend(["--require", "pool=gpu-farm"]);
+    let stuck = ok_stdout(&client(&c, &args)).trim().to_string();
+    let why = "no connected worker meets its requirements (pool=gpu-farm): of 2 connected, 2 lack pool=gpu-farm";
+    let st = job_status(&c, &stuck);
+    assert_eq!(st["state"], "queued", "{st}");
+    assert_eq!(st["unrunnable"], why, "{st}");
+    let text = ok_stdout(&client(&c, &["status", &stuck]));
+    assert!(text.contains("requires:  pool=gpu-farm\n"), "{text}");
+    assert!(text.contains(&format!("waiting:   {why}\n")), "{text}");
+    // `watch` says it (on stderr) instead of waiting silently.
+    let mut watch = Command::new(TESSERA)
+        .args(["watch", &stuck])
+        .env("TESSERA_COORDINATOR", &c.grpc)
+        .env("TESSERA_TOKEN", CLIENT_TOKEN)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("watch");
+    std::thread::sleep(Duration::from_secs(3));
+    watch.kill().expect("stop watch");
+    let o = watch.wait_with_output().expect("watch output");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains(&format!("job {stuck}: {why}")), "{err}");
+    // The monitor's job JSON carries it too.
+    let m = Command::new("curl")
+        .args([
+            "-sf",
+            "-H",
+            &format!("Authorization: Bearer {CLIENT_TOKEN}"),
+        ])
+        .arg(format!("{}/api/jobs/{stuck}", c.http))
+        .output()
+        .expect("curl");
+    let mj: Value = serde_json::from_slice(&m.stdout)
+        .unwrap_or_else(|e| panic!("monitor JSON: {e}: {}", String::from_utf8_lossy(&m.stdout)));
+    assert_eq!(mj["unrunnable"], why, "{mj}");
+    assert_eq!(mj["requirements"], serde_json::json!(["pool=gpu-farm"]));
+    // Nothing of it was leased, to either worker.
+    assert_eq!(job_status(&c, &stuck)["units_done"], 0);
+
+    // A requirement that is not one is refused before anything is sent.
+    let bad = client(
+        &c,
+        &["submit", scene.to_str().unwrap(), "--require", "pool"],
+    );
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains("requirement \"pool\" is neither KEY=VALUE nor KEY>=N"),
+        "{err}"
+    );
+}

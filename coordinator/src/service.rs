@@ -115,6 +115,8 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
                 until_unix_ms: b.until_unix_ms,
             })
             .collect(),
+        requirements: r.requirements.iter().map(ToString::to_string).collect(),
+        unrunnable: v.unrunnable.clone(),
         // Set by the callers that page or send deltas.
         next_frame_page_token: String::new(),
         delta: false,
@@ -263,6 +265,7 @@ impl JobService for Api {
                     gpu_name: w.gpu_name,
                     version: w.version,
                     host_id: w.host_id,
+                    labels: w.labels.into_iter().collect(),
                 }),
                 leases: w.leases,
                 units_done: w.units_done,
@@ -513,13 +516,19 @@ impl WorkerService for Api {
         crate::farm::check_name("GPU name", &caps.gpu_name, 200)?;
         crate::farm::check_name("version", &caps.version, 200)?;
         crate::farm::check_name("host id", &caps.host_id, 200)?;
+        let labels: std::collections::BTreeMap<String, String> = caps.labels.into_iter().collect();
+        tessera_proto::placement::check_labels(&labels)
+            .map_err(|e| Status::invalid_argument(e.to_string()))?;
         let worker_id = self.farm.register(
             name,
-            caps.threads,
-            backend,
-            caps.gpu_name,
-            caps.version,
-            caps.host_id,
+            crate::farm::WorkerCaps {
+                threads: caps.threads,
+                backend,
+                gpu_name: caps.gpu_name,
+                version: caps.version,
+                host_id: caps.host_id,
+                labels,
+            },
         );
         Ok(Response::new(pb::RegisterResponse {
             worker_id,

@@ -255,6 +255,7 @@ impl From<JobSpec> for pb::JobSpec {
             samples_per_unit: j.samples_per_unit.unwrap_or(0),
             max_attempts: j.max_attempts.unwrap_or(0),
             files: Default::default(),
+            requirements: j.requirements,
         }
     }
 }
@@ -280,6 +281,7 @@ impl From<&pb::JobSpec> for JobSpec {
             tile_size: given(j.tile_size),
             samples_per_unit: given(j.samples_per_unit),
             max_attempts: given(j.max_attempts),
+            requirements: j.requirements.clone(),
         }
     }
 }
@@ -313,6 +315,7 @@ mod tests {
             tile_size: Some(32),
             samples_per_unit: None,
             max_attempts: Some(1),
+            requirements: vec!["backend=gpu".into(), "gpu_memory_gb>=40".into()],
         };
         let wire = pb::JobSpec::from(spec.clone());
         assert_eq!(wire.samples_per_unit, 0);

@@ -40,4 +40,8 @@ pub struct JobSpec {
     pub samples_per_unit: Option<u32>,
     /// Failed attempts of one unit before the job fails.
     pub max_attempts: Option<u32>,
+    /// Labels a worker needs to lease the job's units, as given
+    /// (`crate::placement::Requirement` parses them; the coordinator
+    /// refuses the job if one does not).
+    pub requirements: Vec<String>,
 }

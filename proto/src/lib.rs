@@ -8,6 +8,7 @@ pub mod convert;
 pub mod film_codec;
 pub mod job;
 pub use job::JobSpec;
+pub mod placement;
 pub mod transport;
 
 /// Generated messages, clients and servers.

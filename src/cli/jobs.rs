@@ -95,6 +95,12 @@ pub struct SubmitArgs {
     /// Failed attempts of one unit before the job fails, at least 1 [default: the coordinator's, 3]
     #[arg(long, allow_negative_numbers = true, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_attempts: Option<u32>,
+    /// Lease the job's units only to workers with this label, repeatable:
+    /// KEY=VALUE (the label equals VALUE: `pool=night`, `backend=gpu`) or
+    /// KEY>=N (the label is a number of at least N: `gpu_memory_gb>=40`).
+    /// A job no connected worker meets says so in `status` and `watch`
+    #[arg(long = "require", value_name = "REQUIREMENT", value_parser = requirement_parser)]
+    pub require: Vec<String>,
     /// Wait for the job to finish (progress on stderr); the exit code is then
     /// the job's outcome (0 done, 3 failed, 4 cancelled). At the end it
     /// prints the `tessera fetch` command that downloads the frames here
@@ -116,6 +122,13 @@ pub struct SubmitArgs {
     pub format: Format,
     #[command(flatten)]
     pub coordinator: CoordinatorUrl,
+}
+
+/// `--require`: checked here with the coordinator's own parser, sent as typed.
+fn requirement_parser(s: &str) -> Result<String, String> {
+    tessera_proto::placement::Requirement::parse(s)
+        .map(|_| s.to_string())
+        .map_err(|e| e.to_string())
 }
 
 pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
@@ -141,6 +154,7 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
         tile_size: args.tile_size,
         samples_per_unit: args.samples_per_unit,
         max_attempts: args.max_attempts,
+        requirements: args.require.clone(),
     };
     let spec = pb::JobSpec {
         scene: bundle.scene,
@@ -370,6 +384,12 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             j.tile_size,
             j.samples_per_unit
         );
+        if !j.requirements.is_empty() {
+            outln!("requires:  {}", j.requirements.join(", "));
+        }
+        if !j.unrunnable.is_empty() {
+            outln!("waiting:   {}", j.unrunnable);
+        }
         for b in &j.blocklisted {
             let left = (b.until_unix_ms - now_unix_ms()).max(0) / 1000;
             outln!(
@@ -561,7 +581,13 @@ fn show_progress(progress: &Progress, j: &pb::JobStatus, no_workers: bool) {
     } else {
         String::new()
     };
-    let workers = if no_workers { " (no workers)" } else { "" };
+    let workers = if no_workers {
+        " (no workers)"
+    } else if !j.unrunnable.is_empty() {
+        " (no worker meets its requirements)"
+    } else {
+        ""
+    };
     let adaptive = j.adaptive.as_ref().map_or(String::new(), |a| {
         format!(
             " converged {:.1}% est. error {:.2e}",
@@ -609,6 +635,7 @@ async fn watch_job(
     let mut last: Option<pb::JobStatus> = None;
     let mut workers_check = tokio::time::interval(WORKER_CHECK_EVERY);
     let mut no_workers = false;
+    let mut unrunnable = String::new();
     loop {
         let ev = tokio::select! {
             ev = stream.next() => ev,
@@ -650,6 +677,13 @@ async fn watch_job(
             }
         }
         let j = last.as_ref().expect("an event applied");
+        // A job no connected worker can run says why (once each time).
+        if j.unrunnable != unrunnable {
+            if !j.unrunnable.is_empty() {
+                progress.note(&format!("job {id}: {}", j.unrunnable));
+            }
+            unrunnable = j.unrunnable.clone();
+        }
         if format.json {
             print_json(&job_json(j));
         } else {
@@ -895,7 +929,7 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
             return Ok(ExitCode::SUCCESS);
         }
         outln!(
-            "{:<20} {:<20} {:<12} {:<7} {:>7} {:>6} {:>8} {:>12} {:>9}",
+            "{:<20} {:<20} {:<12} {:<7} {:>7} {:>6} {:>8} {:>12} {:>9}  {}",
             "ID",
             "NAME",
             "HOST",
@@ -904,15 +938,24 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
             "LEASES",
             "UNITS",
             "MSAMPLES/S",
-            "MRAYS/S"
+            "MRAYS/S",
+            "LABELS"
         );
         for w in ws {
             let c = w.capabilities.unwrap_or_default();
             let backend = super::output::backend_name(c.backend);
             // Machine ids are 32 hex digits; 12 tell a farm's hosts apart.
             let host: String = printable(&c.host_id).chars().take(12).collect();
+            // Backend and cores are columns already.
+            let mut labels: Vec<String> = c
+                .labels
+                .iter()
+                .filter(|(k, _)| !matches!(k.as_str(), "backend" | "cores"))
+                .map(|(k, v)| printable(&format!("{k}={v}")))
+                .collect();
+            labels.sort();
             outln!(
-                "{:<20} {:<20} {:<12} {:<7} {:>7} {:>6} {:>8} {:>12.2} {:>9.2}",
+                "{:<20} {:<20} {:<12} {:<7} {:>7} {:>6} {:>8} {:>12.2} {:>9.2}  {}",
                 w.worker_id,
                 if w.quarantined_until_unix_ms > 0 {
                     format!("{} (quarantined)", printable(&w.name))
@@ -925,7 +968,8 @@ pub fn workers(args: ListArgs) -> Result<ExitCode> {
                 w.leases,
                 w.units_done,
                 w.samples_per_second / 1e6,
-                w.rays_per_second / 1e6
+                w.rays_per_second / 1e6,
+                labels.join(",")
             );
         }
         Ok(ExitCode::SUCCESS)

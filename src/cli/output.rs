@@ -94,6 +94,8 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
             "converged_share": a.converged_share,
             "estimated_error": a.estimated_error,
         })),
+        "requirements": j.requirements,
+        "unrunnable": (!j.unrunnable.is_empty()).then_some(&j.unrunnable),
         "blocklisted": j.blocklisted.iter().map(|b| json!({
             "worker_id": b.worker_id,
             "name": b.name,
@@ -113,6 +115,7 @@ pub fn worker_json(w: &pb::WorkerInfo) -> Value {
         "gpu": (!c.gpu_name.is_empty()).then_some(&c.gpu_name),
         "threads": c.threads,
         "host_id": (!c.host_id.is_empty()).then_some(&c.host_id),
+        "labels": c.labels.iter().collect::<std::collections::BTreeMap<_, _>>(),
         "version": c.version,
         "leases": w.leases,
         "units_done": w.units_done,

@@ -58,6 +58,25 @@ pub struct WorkerArgs {
     #[arg(long, value_name = "N", default_value_t = 0,
           value_parser = clap::value_parser!(i32).range(0..=19))]
     pub nice: i32,
+    /// A label jobs' requirements (`tessera submit --require`) are matched
+    /// against, repeatable: `--label pool=night`. Beside these, every
+    /// worker reports backend, cores, host and, on a GPU, gpu (the
+    /// adapter's name) and gpu_memory_gb (where nvidia-smi tells it; give
+    /// it here elsewhere). A given host or gpu_memory_gb wins over the
+    /// automatic one; backend and cores cannot be given
+    #[arg(long = "label", value_name = "KEY=VALUE", value_parser = label_parser)]
+    pub labels: Vec<(String, String)>,
+}
+
+/// `--label`: KEY=VALUE, with a key the worker does not set from itself.
+fn label_parser(s: &str) -> Result<(String, String), String> {
+    let (k, v) = tessera_proto::placement::parse_label(s).map_err(|e| e.to_string())?;
+    if k == "backend" || k == "cores" {
+        return Err(format!(
+            "label {k:?} is set from the worker itself (--backend, --threads); it cannot be given"
+        ));
+    }
+    Ok((k, v))
 }
 
 /// The default cache folder: the XDG cache, else ./tessera-cache.
@@ -104,6 +123,7 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
         cache_dir: args.cache.clone().unwrap_or_else(default_cache),
         cache_bytes: args.cache_size,
         backend: args.backend,
+        labels: args.labels.iter().cloned().collect(),
     })?;
     runtime()?.block_on(async move {
         let (drain_tx, drain) = tokio::sync::watch::channel(false);

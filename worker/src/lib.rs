@@ -104,6 +104,9 @@ pub struct WorkerConfig {
     /// Where job files are cached, and the most bytes kept there.
     pub cache_dir: std::path::PathBuf,
     pub cache_bytes: u64,
+    /// `--label KEY=VALUE` (issue 38), already checked; the automatic
+    /// labels (`session::automatic_labels`) are added to them.
+    pub labels: std::collections::BTreeMap<String, String>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -137,7 +140,7 @@ pub struct Worker {
 }
 
 impl Worker {
-    pub fn new(config: WorkerConfig) -> Result<Self, WorkerError> {
+    pub fn new(mut config: WorkerConfig) -> Result<Self, WorkerError> {
         endpoint(&config.coordinator, config.ca_pem.as_deref())?;
         let stamp = VersionStamp::with_token(config.token.as_deref())?;
         let cache = AssetCache::open(&config.cache_dir, config.cache_bytes).map_err(|e| {
@@ -151,6 +154,12 @@ impl Worker {
                 RendererError::GpuNotBuilt => WorkerError::GpuNotBuilt,
                 e => WorkerError::Renderer(e.to_string()),
             })?;
+        // Given labels win: `--label host=render07` names a machine whose
+        // host name says little, `--label gpu_memory_gb=80` one whose GPU
+        // memory cannot be read here.
+        for (k, v) in session::automatic_labels(&renderer) {
+            config.labels.entry(k).or_insert(v);
+        }
         Ok(Worker {
             config,
             renderer: Arc::new(renderer),
@@ -186,7 +195,7 @@ impl Worker {
                     continue;
                 }
             };
-            let caps = capabilities(&self.renderer);
+            let caps = capabilities(&self.renderer, &self.config.labels);
             // The public id: the session itself speaks for the leases.
             let public_id = tessera_proto::transport::public_worker_id(&session.worker_id);
             tracing::info!(worker = %public_id, coordinator = %self.config.coordinator, threads = caps.threads, gpu = %caps.gpu_name, "registered");

@@ -1,7 +1,7 @@
 //! A session with the coordinator: registering, then leasing units and
 //! handing unstarted ones back on drain.
 
-use std::collections::VecDeque;
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
@@ -27,14 +27,63 @@ pub(crate) struct Session {
 }
 
 /// What this worker tells the coordinator it is.
-pub(crate) fn capabilities(renderer: &Renderer) -> pb::Capabilities {
+pub(crate) fn capabilities(
+    renderer: &Renderer,
+    labels: &BTreeMap<String, String>,
+) -> pb::Capabilities {
     pb::Capabilities {
         threads: renderer.threads() as u32,
         backend: pb::Backend::from(renderer.backend()) as i32,
         gpu_name: renderer.adapter_name().unwrap_or_default().to_string(),
         version: env!("CARGO_PKG_VERSION").into(),
         host_id: host_id(),
+        labels: labels.clone().into_iter().collect(),
     }
+}
+
+/// The labels a worker reports of itself beside `backend` and `cores`
+/// (which the coordinator sets from its capabilities): `host` (the host
+/// name), and for a GPU worker `gpu` (the adapter's name) and, where
+/// `nvidia-smi` reports the adapter, `gpu_memory_gb` (whole GiB). wgpu
+/// does not tell an adapter's memory; elsewhere give it with `--label`.
+pub(crate) fn automatic_labels(renderer: &Renderer) -> BTreeMap<String, String> {
+    let mut labels = BTreeMap::new();
+    let host = std::env::var("HOSTNAME")
+        .ok()
+        .or_else(|| std::fs::read_to_string("/etc/hostname").ok())
+        .map(|h| h.trim().to_string())
+        .filter(|h| tessera_proto::placement::check_label("host", h).is_ok());
+    if let Some(h) = host {
+        labels.insert("host".into(), h);
+    }
+    if let Some(name) = renderer.adapter_name() {
+        labels.insert("gpu".into(), name.to_string());
+        if let Some(gb) = nvidia_memory_gb(name) {
+            labels.insert("gpu_memory_gb".into(), gb.to_string());
+        }
+    }
+    labels
+}
+
+/// The memory of the NVIDIA GPU named `adapter`, in whole GiB, as
+/// `nvidia-smi` lists it (None without it, or when no row names it).
+fn nvidia_memory_gb(adapter: &str) -> Option<u64> {
+    let out = std::process::Command::new("nvidia-smi")
+        .args([
+            "--query-gpu=name,memory.total",
+            "--format=csv,noheader,nounits",
+        ])
+        .stderr(std::process::Stdio::null())
+        .output()
+        .ok()
+        .filter(|o| o.status.success())?;
+    String::from_utf8_lossy(&out.stdout).lines().find_map(|l| {
+        let (name, mib) = l.rsplit_once(',')?;
+        let name = name.trim();
+        (!name.is_empty() && (adapter.contains(name) || name.contains(adapter)))
+            .then(|| mib.trim().parse::<u64>().ok().map(|m| m / 1024))
+            .flatten()
+    })
 }
 
 /// This machine, for the coordinator to tell workers that share one:
@@ -65,7 +114,7 @@ impl Worker {
         let mut client = WorkerServiceClient::with_interceptor(channel, self.stamp.clone())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
-        let caps = capabilities(&self.renderer);
+        let caps = capabilities(&self.renderer, &self.config.labels);
         let resp = client
             .register(pb::RegisterRequest {
                 name: self.config.name.clone(),

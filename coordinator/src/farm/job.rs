@@ -376,6 +376,8 @@ impl Job {
             last_result_unix_ms: self.last_result_unix_ms,
             adaptive,
             blocklisted: self.blocklisted(),
+            // Set by `State::view_of`, which sees the workers.
+            unrunnable: String::new(),
         }
     }
 

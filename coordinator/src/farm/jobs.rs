@@ -34,6 +34,8 @@ impl Farm {
         self.check_storage()?;
         check_name("job name", &spec.name, 200)?;
         check_name("scene name", &spec.scene_name, 4096)?;
+        let requirements = tessera_proto::placement::Requirement::parse_all(&spec.requirements)
+            .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
         // The job's files: inline ones stored now, uploaded ones named by
         // hash. The scene is validated from these alone.
         let limits = self.assets.limits;
@@ -233,6 +235,7 @@ impl Farm {
             finished_unix_ms: 0,
             output_dir: output_dir.to_string_lossy().into_owned(),
             adaptive: adaptive.into(),
+            requirements,
         };
         ops.push(Op::PutJob(rec.clone()));
         ops.push(Op::PutCounters {
@@ -263,7 +266,7 @@ impl Farm {
         let st = self.state.lock().expect("state lock");
         st.jobs
             .get(id)
-            .map(Job::view)
+            .map(|j| st.view_of(j, j.view()))
             .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
     }
 
@@ -278,7 +281,10 @@ impl Farm {
         let st = self.state.lock().expect("state lock");
         st.jobs
             .get(id)
-            .map(|j| j.view_page(from, limit))
+            .map(|j| {
+                let (v, next) = j.view_page(from, limit);
+                (st.view_of(j, v), next)
+            })
             .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
     }
 
@@ -289,7 +295,10 @@ impl Farm {
         let st = self.state.lock().expect("state lock");
         st.jobs
             .get(id)
-            .map(|j| j.view_since(since))
+            .map(|j| {
+                let (v, mark) = j.view_since(since);
+                (st.view_of(j, v), mark)
+            })
             .ok_or_else(|| FarmError::NotFound(format!("no job {id:?}")))
     }
 
@@ -302,7 +311,7 @@ impl Farm {
 
     pub fn jobs(&self) -> Vec<JobView> {
         let st = self.state.lock().expect("state lock");
-        let mut v: Vec<_> = st.jobs.values().map(Job::view).collect();
+        let mut v: Vec<_> = st.jobs.values().map(|j| st.view_of(j, j.view())).collect();
         v.sort_by_key(|j| (j.record.submitted_unix_ms, j.record.id.clone()));
         v
     }
@@ -411,6 +420,7 @@ impl Farm {
                     .quarantined_until
                     .filter(|&t| t > now)
                     .map_or(0, |t| now_ms() + t.duration_since(now).as_millis() as i64),
+                labels: w.labels.clone(),
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name).then(a.id.cmp(&b.id)));

@@ -3,17 +3,18 @@
 //! a faster worker, backup leases, the long-poll wait, heartbeats, leases
 //! handed back, withdrawn or expired, and silent workers.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::time::{Duration, Instant};
 
+use tessera_proto::placement::meets;
 use tracer_core::film::{Rect, WorkRegion};
 use tracer_core::render::Backend;
 
 use crate::rate::WorkerSpeed;
 
 use super::{
-    Farm, FarmError, Job, JobState, Lease, LeaseView, State, Worker, now_ms, public_worker_id,
-    random_id,
+    Farm, FarmError, Job, JobState, Lease, LeaseView, State, Worker, WorkerCaps, now_ms,
+    public_worker_id, random_id,
 };
 
 /// The smallest lease, in seconds of the worker it goes to (unless the job
@@ -158,19 +159,31 @@ fn lease_budget(want: f64, speed: f64, busy: f64, farm_end: f64) -> f64 {
 }
 
 impl Farm {
-    pub fn register(
-        &self,
-        name: String,
-        threads: u32,
-        backend: Backend,
-        gpu_name: String,
-        version: String,
-        host_id: String,
-    ) -> String {
-        // The session: 128 random bits that only this worker learns.
+    /// A worker joins: its session (128 random bits that only it learns).
+    /// Its labels are what it sent, `backend` and `cores` set from its
+    /// capabilities (what leases rely on cannot be misnamed by hand) and
+    /// `gpu` from its adapter when it sent none.
+    pub fn register(&self, name: String, caps: WorkerCaps) -> String {
+        let WorkerCaps {
+            threads,
+            backend,
+            gpu_name,
+            version,
+            host_id,
+            mut labels,
+        } = caps;
+        labels.insert("backend".into(), backend.name().into());
+        labels.insert("cores".into(), threads.to_string());
+        if !gpu_name.is_empty() {
+            labels
+                .entry("gpu".into())
+                .or_insert_with(|| gpu_name.clone());
+        }
         let id = random_id("w");
         let mut st = self.state.lock().expect("state lock");
-        tracing::info!(worker = %public_worker_id(&id), name = %name, threads, backend = %backend, "worker joined");
+        tracing::info!(worker = %public_worker_id(&id), name = %name, threads, backend = %backend,
+            labels = %labels.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join(","),
+            "worker joined");
         st.workers.insert(
             id.clone(),
             Worker {
@@ -180,6 +193,7 @@ impl Farm {
                 gpu_name,
                 version,
                 host_id,
+                labels,
                 last_seen: Instant::now(),
                 leases: HashSet::new(),
                 units_done: 0,
@@ -194,6 +208,10 @@ impl Farm {
                 quarantined_until: None,
             },
         );
+        // Jobs that waited for a worker like it say so no more.
+        for j in st.jobs.values().filter(|j| !j.rec.requirements.is_empty()) {
+            j.notify();
+        }
         id
     }
 
@@ -355,7 +373,8 @@ impl Farm {
                 }
             }
         }
-        let others: Vec<(f64, f64)> = st
+        // (speed, seconds of work held, labels) of each measured live other.
+        let others: Vec<(f64, f64, &BTreeMap<String, String>)> = st
             .workers
             .iter()
             .filter(|(id, w)| {
@@ -364,7 +383,7 @@ impl Farm {
             .map(|(id, w)| {
                 let held = busy_of.get(id.as_str()).copied().unwrap_or(0.0);
                 let v = w.farm_speed();
-                (v, held / v)
+                (v, held / v, &w.labels)
             })
             .collect();
         // Leases sized against a worker that may be much faster than its
@@ -383,14 +402,16 @@ impl Farm {
         // The farm's speed: the sum of the measured speeds of the live
         // workers (a worker not yet measured adds nothing until its first
         // result; one gone silent adds nothing either).
-        let farm_speed: f64 = speed + others.iter().map(|&(v, _)| v).sum::<f64>();
+        let farm_speed: f64 = speed + others.iter().map(|&(v, _, _)| v).sum::<f64>();
         let mut held_back = false;
         // Seconds of work this worker holds already, at its speed.
         let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
+        let labels = &st.workers.get(worker_id).expect("worker checked").labels;
         let mut order: Vec<(&String, &Job)> = st
             .jobs
             .iter_mut()
             .filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty())
+            .filter(|(_, j)| meets(&j.rec.requirements, labels))
             .filter_map(|(id, j)| (!j.blocks(worker_id)).then_some((id, &*j)))
             .collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
@@ -441,10 +462,11 @@ impl Farm {
                     // holds. Otherwise it waits for that worker.
                     let finish = busy + rays(first) / speed;
                     let finish_at_best = (busy * speed + rays(first)) / best;
+                    // Held back only for a worker that may take the job.
                     if finish > farm_end
-                        && others
-                            .iter()
-                            .any(|&(v, b)| b + rays(first) / v < finish_at_best)
+                        && others.iter().any(|&(v, b, l)| {
+                            b + rays(first) / v < finish_at_best && meets(&job.rec.requirements, l)
+                        })
                     {
                         held_back = true;
                         break;
@@ -525,17 +547,18 @@ impl Farm {
                         rated: false,
                     },
                 );
-                st.workers
-                    .get_mut(worker_id)
-                    .expect("worker checked")
-                    .leases
-                    .insert(lease_id.clone());
                 out.push(LeaseView { lease_id, ..view });
             }
             if out.len() >= max_units as usize {
                 break;
             }
         }
+        let held = &mut st
+            .workers
+            .get_mut(worker_id)
+            .expect("worker checked")
+            .leases;
+        held.extend(out.iter().map(|l| l.lease_id.clone()));
         if out.is_empty() && !held_back && speed > 0.0 {
             // At its best: a GPU's last units (a job's tail) rate it low.
             out.extend(self.backup_lease(st, worker_id, best, busy));
@@ -571,12 +594,14 @@ impl Farm {
                 f64::INFINITY
             }
         };
+        let labels = &st.workers.get(worker_id)?.labels;
         let mut best: Option<(f64, String)> = None;
         for (id, l) in &st.leases {
             if l.backup
                 || l.backups >= MAX_BACKUPS
                 || st.jobs.get(&l.job).is_none_or(|j| {
                     j.state.is_terminal()
+                        || !meets(&j.rec.requirements, labels)
                         || j.worker_failures
                             .get(worker_id)
                             .and_then(|f| f.blocked_until)
@@ -814,6 +839,10 @@ impl Farm {
         for id in silent {
             if let Some(w) = st.workers.remove(&id) {
                 tracing::info!(worker = %public_worker_id(&id), name = %w.name, units_done = w.units_done, "worker left (no heartbeat)");
+                // A job it alone could run says so now.
+                for j in st.jobs.values().filter(|j| !j.rec.requirements.is_empty()) {
+                    j.notify();
+                }
             }
         }
     }

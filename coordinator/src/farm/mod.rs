@@ -217,6 +217,9 @@ pub struct JobView {
     pub adaptive: AdaptiveProgress,
     /// Workers kept from this job for now (its blocklist).
     pub blocklisted: Vec<BlockedWorker>,
+    /// Non-empty while the job waits and no connected worker meets its
+    /// requirements (`State::unrunnable`): what they lack.
+    pub unrunnable: String,
 }
 
 /// A worker on a job's blocklist.
@@ -229,6 +232,20 @@ pub struct BlockedWorker {
     pub failures: u32,
     /// When it is forgiven (unix ms).
     pub until_unix_ms: i64,
+}
+
+/// What a worker says of itself when it registers.
+#[derive(Clone, Debug)]
+pub struct WorkerCaps {
+    pub threads: u32,
+    pub backend: Backend,
+    pub gpu_name: String,
+    pub version: String,
+    /// The machine it runs on (empty: unknown).
+    pub host_id: String,
+    /// Its labels (`tessera worker --label` and the automatic ones),
+    /// already checked (`tessera_proto::placement::check_labels`).
+    pub labels: BTreeMap<String, String>,
 }
 
 #[derive(Clone, Debug)]
@@ -252,6 +269,8 @@ pub struct WorkerView {
     pub last_seen_unix_ms: i64,
     /// Until when it is quarantined (unix ms; 0: it is not).
     pub quarantined_until_unix_ms: i64,
+    /// The labels jobs' requirements are matched against.
+    pub labels: BTreeMap<String, String>,
 }
 
 /// A leased piece of work as handed to a worker.
@@ -393,6 +412,8 @@ struct Worker {
     version: String,
     /// The machine it runs on, as it says (empty: unknown).
     host_id: String,
+    /// What jobs' requirements are matched against (see `Farm::register`).
+    labels: BTreeMap<String, String>,
     last_seen: Instant,
     leases: HashSet<String>,
     units_done: u64,
@@ -432,6 +453,54 @@ struct State {
     /// that was logged (once per such stretch, not every tick).
     unserved_since: Option<Instant>,
     unserved_warned: bool,
+}
+
+impl State {
+    /// Why no connected worker can run `job` (empty: one can, or the job
+    /// has no requirements or has ended): a job nobody can run says so
+    /// instead of waiting silently.
+    fn unrunnable(&self, job: &Job) -> String {
+        let reqs = &job.rec.requirements;
+        if reqs.is_empty()
+            || job.state.is_terminal()
+            || self
+                .workers
+                .values()
+                .any(|w| tessera_proto::placement::meets(reqs, &w.labels))
+        {
+            return String::new();
+        }
+        let all = reqs
+            .iter()
+            .map(ToString::to_string)
+            .collect::<Vec<_>>()
+            .join(", ");
+        let n = self.workers.len();
+        if n == 0 {
+            return format!(
+                "no worker is connected; the job needs one with {all} (tessera worker --label KEY=VALUE)"
+            );
+        }
+        let lacking = reqs
+            .iter()
+            .map(|r| {
+                let lack = self
+                    .workers
+                    .values()
+                    .filter(|w| !r.met_by(&w.labels))
+                    .count();
+                format!("{lack} lack {r}")
+            })
+            .collect::<Vec<_>>()
+            .join(", ");
+        format!("no connected worker meets its requirements ({all}): of {n} connected, {lacking}")
+    }
+
+    /// A job's view with what only the whole state knows (its placement).
+    fn view_of(&self, job: &Job, mut v: JobView) -> JobView {
+        v.unrunnable = self.unrunnable(job);
+        v
+    }
 }
 
 /// Remembered ended leases, to tell late and duplicate results from unknown ones.

@@ -122,11 +122,14 @@ fn register(farm: &Farm, name: &str, threads: u32) -> String {
 fn register_on(farm: &Farm, name: &str, threads: u32, backend: Backend, host: &str) -> String {
     farm.register(
         name.into(),
-        threads,
-        backend,
-        String::new(),
-        String::new(),
-        host.into(),
+        super::WorkerCaps {
+            threads,
+            backend,
+            gpu_name: String::new(),
+            version: String::new(),
+            host_id: host.into(),
+            labels: Default::default(),
+        },
     )
 }
 

@@ -99,6 +99,10 @@ pub struct JobJson {
     pub frames_next: Option<u32>,
     /// Workers kept from this job for now (docs/operations.md).
     pub blocklisted: Vec<BlockedJson>,
+    /// Labels a worker needs to lease its units (`submit --require`).
+    pub requirements: Vec<String>,
+    /// Non-empty while no connected worker meets the requirements: why.
+    pub unrunnable: String,
 }
 
 /// Most frames a job shows in `/api/jobs` and the events' `farm`
@@ -125,6 +129,8 @@ impl JobJson {
             settings: self.settings.clone(),
             adaptive: self.adaptive.clone(),
             blocklisted: self.blocklisted.clone(),
+            requirements: self.requirements.clone(),
+            unrunnable: self.unrunnable.clone(),
             ..*self
         }
     }
@@ -199,6 +205,8 @@ impl From<&JobView> for JobJson {
                     until_unix_ms: b.until_unix_ms,
                 })
                 .collect(),
+            requirements: r.requirements.iter().map(ToString::to_string).collect(),
+            unrunnable: v.unrunnable.clone(),
             adaptive: v.adaptive.settings.map(|a| AdaptiveJson {
                 target_error: a.target_error,
                 relative_error: a.relative_error,

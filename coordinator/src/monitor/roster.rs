@@ -128,6 +128,7 @@ mod tests {
             samples_per_second: 0.0,
             rays_per_second: 0.0,
             last_seen_unix_ms,
+            labels: Default::default(),
         }
     }
 

@@ -4,6 +4,7 @@ use std::collections::BTreeMap;
 
 use redb::{ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
+use tessera_proto::placement::Requirement;
 use tracer_core::adaptive::AdaptiveSettings;
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{Integrator, RenderSettings};
@@ -59,6 +60,8 @@ pub struct JobRecord {
     pub finished_unix_ms: i64,
     pub output_dir: String,
     pub adaptive: AdaptiveRec,
+    /// Labels a worker needs to lease the job's units (issue 38).
+    pub requirements: Vec<Requirement>,
 }
 
 impl JobRecord {
@@ -186,6 +189,11 @@ pub(super) struct JobRecordJson {
     pub output_dir: String,
     #[serde(flatten)]
     pub adaptive: AdaptiveRec,
+    /// As `tessera submit --require` writes them; absent in earlier
+    /// releases' records and left out when empty, so such records keep
+    /// their shape.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub requirements: Vec<String>,
 }
 
 fn record_version_1() -> u32 {
@@ -296,6 +304,7 @@ impl From<&JobRecord> for JobRecordJson {
             finished_unix_ms: r.finished_unix_ms,
             output_dir: r.output_dir.clone(),
             adaptive: r.adaptive,
+            requirements: r.requirements.iter().map(ToString::to_string).collect(),
         }
     }
 }
@@ -328,6 +337,7 @@ impl TryFrom<JobRecordJson> for JobRecord {
             finished_unix_ms: r.finished_unix_ms,
             output_dir: r.output_dir,
             adaptive: r.adaptive,
+            requirements: Requirement::parse_all(&r.requirements).map_err(|e| e.to_string())?,
         })
     }
 }

@@ -432,6 +432,8 @@ function updateJob(job) {
     <span>Submitted <b>${fmtTime(job.submitted_unix_ms)}</b></span>
     <span>Finished <b>${fmtTime(job.finished_unix_ms)}</b></span>
     <span>Results late/duplicate/rejected <b>${job.results_late}/${job.results_duplicate}/${job.results_rejected}</b></span>
+    ${job.requirements && job.requirements.length ? `<span>Requires <b>${esc(job.requirements.join(", "))}</b></span>` : ""}
+    ${job.unrunnable ? `<span id="job-unrunnable">Waiting <b>${esc(job.unrunnable)}</b></span>` : ""}
     ${job.blocklisted && job.blocklisted.length ? `<span id="job-blocklist">Blocklisted <b>${job.blocklisted
       .map((b) => `${esc(b.name)} (${b.failures} failed, until ${esc(fmtTime(b.until_unix_ms))})`).join(", ")}</b></span>` : ""}
     ${job.adaptive ? `<span>Blocks converged <b id="job-converged">${pct(job.adaptive.converged_share)}</b></span>
