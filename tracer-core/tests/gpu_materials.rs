@@ -113,6 +113,40 @@ fn gpu_emissive_textured_quad_matches_the_cpu() {
     assert_agree("emissive textured quad", &scene, 1e-5, 1e-6);
 }
 
+/// The GPU's path kernel takes each material's BSDF as constant: a
+/// textured model material under `--integrator path` is refused by name
+/// rather than rendered without its texture.
+#[test]
+fn gpu_path_refuses_textured_model_materials_by_name() {
+    let dir = tmpdir("gpu-tex-path");
+    write_png(&dir, 4, 3, &colour_texels(4, 3));
+    let model = textured_quad(
+        &dir,
+        1.0,
+        0.0,
+        r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0}}}"#,
+        r#"{}"#,
+    );
+    let src = format!(
+        "[render]\nwidth = 8\nheight = 8\nsamples = 1\nintegrator = \"path\"\n\
+         [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\n\
+         [[lights]]\nposition = [1, 2, 3]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let s = &scene.render;
+    let prepared = PreparedFrame::build(&scene, s, 0, Precision::F32).expect("valid settings");
+    let e = gpu(Strategy::Stack)
+        .expect("an adapter")
+        .render(&prepared, 0, Rect::full(8, 8), SampleRange::all(1), &|_| {})
+        .expect_err("refused");
+    assert_eq!(
+        e.to_string(),
+        "the scene's model materials use textures, vertex colours or cut-outs under --integrator path, \
+         which the GPU backend does not render yet; render it with --backend cpu"
+    );
+}
+
 /// The cut-out quad of tests/textures.rs over a lit plane: camera and
 /// shadow rays pass its transparent texels on the GPU as on the CPU.
 #[test]

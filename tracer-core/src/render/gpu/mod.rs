@@ -873,8 +873,21 @@ fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
                 || p.emissive.iter().any(|&e| e != 0.0)
                 || p.alpha_mode == crate::material::AlphaMode::Mask
         });
-    moving.then(|| {
-        "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
+    if moving {
+        return Some(
+            "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
+                .into(),
+        );
+    }
+    // The GPU's path kernel takes each material's BSDF as constant and
+    // traces without the cut-out queries (pbr.wgsl serves Whitted's step).
+    let path = world.settings.integrator == crate::scene::Integrator::Path;
+    let per_hit = world
+        .pbr
+        .iter()
+        .any(|p| p.varies() || p.alpha_mode == crate::material::AlphaMode::Mask);
+    (path && per_hit).then(|| {
+        "textures, vertex colours or cut-outs under --integrator path"
             .to_string()
     })
 }
