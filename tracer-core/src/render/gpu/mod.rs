@@ -886,10 +886,8 @@ fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
         .pbr
         .iter()
         .any(|p| p.varies() || p.alpha_mode == crate::material::AlphaMode::Mask);
-    (path && per_hit).then(|| {
-        "textures, vertex colours or cut-outs under --integrator path"
-            .to_string()
-    })
+    (path && per_hit)
+        .then(|| "textures, vertex colours or cut-outs under --integrator path".to_string())
 }
 
 /// Default bytes of texels a scene may hold on the GPU (`GpuRenderer`'s
