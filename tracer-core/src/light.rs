@@ -211,7 +211,7 @@ impl<R: Real> Light<R> {
                     wi,
                     dist: t,
                     li: self.diffuse,
-                    pdf: R::ONE / (R::from_f64(2.0 * std::f64::consts::PI) * (R::ONE - cos_max)),
+                    pdf: cone_pdf(sin2),
                 })
             }
         }
@@ -258,14 +258,21 @@ impl<R: Real> Light<R> {
                 if !(dc > radius) {
                     return Some((t, R::ZERO));
                 }
-                let cos_max = (R::ONE - radius * radius / (dc * dc)).max(R::ZERO).sqrt();
-                Some((
-                    t,
-                    R::ONE / (R::from_f64(2.0 * std::f64::consts::PI) * (R::ONE - cos_max)),
-                ))
+                Some((t, cone_pdf(radius * radius / (dc * dc))))
             }
         }
     }
+}
+
+/// The solid-angle density of a direction drawn uniformly in the cone a
+/// sphere subtends, from sin² of its half-angle: 1 / (2π (1 - cos)),
+/// with 1 - cos written as sin² / (1 + cos). Subtracted directly, it is 0
+/// in f32 once sin² is below 2^-24 (a small light seen from a point far
+/// along a plane), and the density infinite made the path's MIS weights
+/// NaN.
+fn cone_pdf<R: Real>(sin2: R) -> R {
+    let cos_max = (R::ONE - sin2).max(R::ZERO).sqrt();
+    (R::ONE + cos_max) / (R::from_f64(2.0 * std::f64::consts::PI) * sin2)
 }
 
 /// Nearest positive distance along unit `d` from `o` to the sphere.
