@@ -252,6 +252,8 @@ fn punctual_lights_give_radiance_in_the_documented_units() {
                      {"type":"directional","name":"sun","intensity":2},
                      {"type":"spot","name":"spot","intensity":10,"spot":{"innerConeAngle":0.1,"outerConeAngle":0.3}}]"#;
     let cam = r#"{"camera":0,"translation":[0,0,3]}"#;
+    // Under path: the centre pixel of each light's render (direct light).
+    let mut path_centre = Vec::new();
     for (light, want) in [
         (
             0usize,
@@ -288,6 +290,30 @@ fn punctual_lights_give_radiance_in_the_documented_units() {
         } else {
             assert_eq!(l.position, Vec3([0.0, 0.0, 3.0]));
         }
+        // Physical units for the path integrator: candela, and lux times
+        // the square of the directional light's distance.
+        let physical = match light {
+            0 => [10.0, 5.0, 2.5],
+            1 => [2.0 * 2.0e6; 3], // D = 1000 r, r = sqrt 2
+            _ => [10.0; 3],
+        };
+        let got = l.path_radiance.expect("a model light's physical units").0;
+        for k in 0..3 {
+            assert!(
+                (got[k] - physical[k]).abs() < 1e-9 * physical[k],
+                "{got:?} {physical:?}"
+            );
+        }
+        let traced = render(&SceneDesc {
+            render: tracer_core::scene::RenderSettings {
+                samples: 1,
+                max_depth: 2,
+                integrator: tracer_core::scene::Integrator::Path,
+                ..s.render
+            },
+            ..s.clone()
+        });
+        path_centre.push(centre(&traced, 21, 21));
         let img = render(&SceneDesc {
             render: tracer_core::scene::RenderSettings {
                 samples: 1,
@@ -313,6 +339,27 @@ fn punctual_lights_give_radiance_in_the_documented_units() {
             .iter()
             .any(|w| w.contains("1 point or spot light(s) render without inverse-square falloff"));
         assert_eq!(falloff, light != 1, "{:?}", s.warnings);
+    }
+    // Path: the same BRDF at normal incidence under each light, so the
+    // centre pixels are in the ratio of the irradiances: I / d^2 = 10/9
+    // (times the colour) for the point and spot lights at d = 3, 2 lux
+    // for the sun.
+    let irradiance = [
+        [10.0 / 9.0, 5.0 / 9.0, 2.5 / 9.0],
+        [2.0; 3],
+        [10.0 / 9.0; 3],
+    ];
+    for (light, e) in irradiance.iter().enumerate() {
+        for k in 0..3 {
+            let (got, want) = (
+                path_centre[light][k] as f64 / path_centre[1][k] as f64,
+                e[k] / 2.0,
+            );
+            assert!(
+                path_centre[1][k] > 0.0 && (got - want).abs() < 1e-4 * want,
+                "path, light {light} channel {k}: {got} of the sun's, want {want} ({path_centre:?})"
+            );
+        }
     }
 }
 

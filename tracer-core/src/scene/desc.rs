@@ -426,6 +426,12 @@ pub struct LightDesc {
     pub specular: Vec3,
     /// Shadow rays per hit (stratified over the light); 1 for point lights.
     pub samples: u32,
+    /// A model file's light in physical units, for the path integrator,
+    /// whose point lights fall off as 1/d² (its `diffuse` and `specular`
+    /// are scaled for Whitted's lights, which do not): the colour times
+    /// the candela of a point or spot light, or times lux * d² at the
+    /// distance the directional light is placed. `None`: `diffuse`.
+    pub path_radiance: Option<Vec3>,
 }
 
 /// Where a light's points lie.
@@ -953,6 +959,7 @@ impl SceneDesc {
                 diffuse: lv.diffuse,
                 specular: lv.specular,
                 samples,
+                path_radiance: None,
             });
         }
 

@@ -381,12 +381,15 @@ pub(crate) fn file_lights(
             l.kind.name()
         );
         let p = xf.linear * DVec3::from_array(l.position) + xf.translation;
-        let (position, scale) = match l.kind {
+        // (position, Whitted's scale, the path integrator's scale)
+        let (position, scale, path_scale) = match l.kind {
             ModelLightKind::Directional => {
                 let dir = (normal_xf * DVec3::from_array(l.direction)).normalize_or_zero();
+                let d = DIRECTIONAL_DISTANCE * r;
                 (
-                    c - dir * (DIRECTIONAL_DISTANCE * r),
+                    c - dir * d,
                     l.intensity / std::f64::consts::PI,
+                    l.intensity * d * d,
                 )
             }
             ModelLightKind::Point | ModelLightKind::Spot { .. } => {
@@ -399,11 +402,18 @@ pub(crate) fn file_lights(
                     ));
                 }
                 let d2 = (p - c).length_squared() + r * r;
-                (p, l.intensity / (std::f64::consts::PI * d2))
+                (p, l.intensity / (std::f64::consts::PI * d2), l.intensity)
             }
         };
         let colour = Vec3(l.color.map(|v| v * scale));
         check_colour(&colour).map_err(|m| format!("{name}: its radiance {m}"))?;
+        let path_radiance = Vec3(l.color.map(|v| v * path_scale));
+        if !path_radiance.0.iter().all(|v| v.is_finite()) {
+            return Err(format!(
+                "{name}: its radiance in physical units is not finite (intensity {})",
+                l.intensity
+            ));
+        }
         if !position.is_finite() || position.abs().max_element() > 1e15 {
             return Err(format!("{name}: position {position:?} is not finite"));
         }
@@ -413,11 +423,12 @@ pub(crate) fn file_lights(
             diffuse: colour,
             specular: colour,
             samples: 1,
+            path_radiance: Some(path_radiance),
         });
     }
     if falloff > 0 {
         warnings.push(format!(
-            "{falloff} point or spot light(s) render without inverse-square falloff: each at its brightness at one reference distance (docs/scene-format.md, \"Lights of a model\")"
+            "{falloff} point or spot light(s) render without inverse-square falloff: each at its brightness at one reference distance, unless --integrator path (docs/scene-format.md, \"Lights of a model\")"
         ));
     }
     Ok(out)
@@ -433,6 +444,7 @@ pub(crate) fn headlight(camera: &CameraDesc) -> LightDesc {
         diffuse: Vec3([HEADLIGHT; 3]),
         specular: Vec3([HEADLIGHT; 3]),
         samples: 1,
+        path_radiance: None,
     }
 }
 

@@ -349,6 +349,15 @@ impl<R: Real> World<R> {
                 })
                 .collect();
             let mut lights = distributed::lights::<R>(desc, &origin);
+            if path {
+                // A model file's lights in physical units (1/d² falloff).
+                for (l, d) in lights.iter_mut().zip(&desc.lights) {
+                    if let Some(c) = d.path_radiance {
+                        l.diffuse = R::V3::from_array(c.0);
+                        l.specular = l.diffuse;
+                    }
+                }
+            }
             let mut environment = v::<R>(&desc.world.environment);
             if path && desc.world.default_lighting {
                 // A model file's default lighting: the sky, not the
