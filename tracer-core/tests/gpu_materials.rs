@@ -35,13 +35,27 @@ fn gpu(strategy: Strategy) -> Option<&'static GpuRenderer> {
     prereq::require("gpu", r.as_ref())
 }
 
+/// An image's linear RGB pixels.
+type Image = Vec<[f32; 3]>;
+
 /// The CPU's and the GPU's (stack and wavefront kernels) images of `desc`.
-fn cpu_and_gpu(desc: &SceneDesc) -> (Vec<[f32; 3]>, [Vec<[f32; 3]>; 2]) {
+fn cpu_and_gpu(desc: &SceneDesc) -> (Image, [Image; 2]) {
+    let (cpu, gpu, _) = cpu_and_gpu_rays(desc);
+    (cpu, gpu)
+}
+
+/// [`cpu_and_gpu`] with the rays each traced: reflection and refraction
+/// counts show whether the GPU spawns the secondary rays a material's
+/// textures call for at a hit.
+fn cpu_and_gpu_rays(desc: &SceneDesc) -> (Image, [Image; 2], [tracer_core::film::RayCounts; 3]) {
     let s = &desc.render;
-    let cpu = render_with(desc, s, Precision::F32).resolve();
+    let cpu_film = render_with(desc, s, Precision::F32);
+    let mut rays = [cpu_film.rays; 3];
+    let cpu = cpu_film.resolve();
     let prepared = PreparedFrame::build(desc, s, 0, Precision::F32).expect("valid settings");
     let gpu = [Strategy::Stack, Strategy::Wavefront].map(|strategy| {
         let g = gpu(strategy).expect("an adapter");
+        let k = 1 + (strategy == Strategy::Wavefront) as usize;
         let film = g
             .render(
                 &prepared,
@@ -52,9 +66,10 @@ fn cpu_and_gpu(desc: &SceneDesc) -> (Vec<[f32; 3]>, [Vec<[f32; 3]>; 2]) {
             )
             .unwrap_or_else(|e| panic!("GPU render failed: {e}"));
         assert_eq!(film.nonfinite, 0);
+        rays[k] = film.rays;
         film.resolve()
     });
-    (cpu, gpu)
+    (cpu, gpu, rays)
 }
 
 /// Asserts each GPU image within `max` of the CPU's at every pixel (the
@@ -272,8 +287,21 @@ fn gpu_renders_the_shared_gltf_assets_as_the_cpu_does() {
         ("scenes/gltf/SpecularTest/glTF/SpecularTest.gltf", 96, 48),
     ] {
         let scene = asset(path, w, h);
-        let (cpu, gpus) = cpu_and_gpu(&scene);
-        for (g, kernel) in gpus.iter().zip(["stack", "wavefront"]) {
+        let (cpu, gpus, rays) = cpu_and_gpu_rays(&scene);
+        for (k, (g, kernel)) in gpus.iter().zip(["stack", "wavefront"]).enumerate() {
+            // The same secondary rays, within the few hits where the two
+            // traversals part (DamagedHelmet's mirror-smooth texels once
+            // spawned none on the GPU: HAS_REFLECTION was off).
+            let (c, r) = (rays[0], rays[k + 1]);
+            for (what, a, b) in [
+                ("reflection", c.reflection, r.reflection),
+                ("refraction", c.refraction, r.refraction),
+            ] {
+                assert!(
+                    a.abs_diff(b) * 100 <= a.max(1),
+                    "{path} ({kernel}): {what} rays CPU {a} GPU {b}"
+                );
+            }
             let d = diff(&cpu, g, 1e-2);
             eprintln!(
                 "{path} ({kernel}): max {:.3e}, mean {:.3e}, {} of {} pixels over 1e-2",

@@ -70,6 +70,22 @@ impl Features {
         self.reflection |= m.reflectivity > R::ZERO && max_depth > 0;
         self.refraction |= m.transparency > R::ZERO && max_depth > 0;
     }
+
+    /// Notes what a file material's textures may make it reach at some hit
+    /// beyond its factors (`Pbr::whitted` per hit): a metallic-roughness
+    /// texture may lower the roughness of a metal to a mirror, and a
+    /// texture, vertex colours or a lower metallic may make a BLEND or
+    /// transmissive surface see-through. The GPU compiles out what no
+    /// material can reach (`HAS_REFLECTION`, `HAS_REFRACTION`).
+    pub fn note_pbr(&mut self, p: &crate::material::Pbr, max_depth: u32) {
+        let deep = max_depth > 0;
+        self.reflection |= deep && p.metallic > 0.0 && p.metallic_roughness_texture.is_some();
+        let alpha_varies =
+            p.base_color_texture.is_some() || p.vertex_colors || p.alpha_texture.is_some();
+        self.refraction |= deep
+            && ((p.alpha_mode == crate::material::AlphaMode::Blend && alpha_varies)
+                || (p.transmission > 0.0 && p.metallic_roughness_texture.is_some()));
+    }
 }
 
 #[derive(Clone, Debug)]

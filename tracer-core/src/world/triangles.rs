@@ -73,6 +73,7 @@ impl<R: Real> TriangleSet<R> {
                     m.pbr = self.pbr.len() as u32;
                     self.attrs.cutouts |= p.alpha_mode == crate::material::AlphaMode::Mask;
                     self.pbr.push(p.clone());
+                    features.note_pbr(p, max_depth);
                 }
                 features.note(&m, max_depth);
                 materials.push(m);
