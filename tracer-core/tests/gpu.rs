@@ -36,25 +36,6 @@ use tracer_core::scene::{RenderSettings, SceneDesc};
 const W: u32 = 160;
 const H: u32 = 120;
 
-/// The shared renderer (one device for the whole test binary). A missing
-/// adapter fails the test (`None` only if tests/optional.txt made `gpu`
-/// optional).
-fn gpu() -> Option<&'static GpuRenderer> {
-    static GPU: OnceLock<Result<GpuRenderer, String>> = OnceLock::new();
-    let r = GPU.get_or_init(|| {
-        let r = GpuRenderer::new(
-            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
-            GpuOptions::default(),
-        )
-        .map_err(|e| format!("no GPU adapter could be opened: {e}"));
-        if let Ok(r) = &r {
-            eprintln!("GPU tests use adapter {}", r.adapter());
-        }
-        r
-    });
-    prereq::require("gpu", r.as_ref())
-}
-
 fn gpu_render(
     g: &GpuRenderer,
     desc: &SceneDesc,

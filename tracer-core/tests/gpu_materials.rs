@@ -11,29 +11,12 @@
 
 mod common;
 
-use std::sync::OnceLock;
-
 use common::meshgen::{colour_texels, textured_quad, textured_quad_coloured, tmpdir, write_png};
 use common::*;
 use tracer_core::film::{Rect, SampleRange};
-use tracer_core::render::gpu::{GpuOptions, GpuRenderer, Strategy};
+use tracer_core::render::gpu::Strategy;
 use tracer_core::render::{Precision, PreparedFrame};
 use tracer_core::scene::{ModelSceneOptions, SceneDesc};
-
-fn gpu(strategy: Strategy) -> Option<&'static GpuRenderer> {
-    static GPU: [OnceLock<Result<GpuRenderer, String>>; 2] = [OnceLock::new(), OnceLock::new()];
-    let r = GPU[(strategy == Strategy::Wavefront) as usize].get_or_init(|| {
-        GpuRenderer::new(
-            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
-            GpuOptions {
-                strategy,
-                ..GpuOptions::default()
-            },
-        )
-        .map_err(|e| format!("no GPU adapter could be opened: {e}"))
-    });
-    prereq::require("gpu", r.as_ref())
-}
 
 /// An image's linear RGB pixels.
 type Image = Vec<[f32; 3]>;
@@ -54,7 +37,7 @@ fn cpu_and_gpu_rays(desc: &SceneDesc) -> (Image, [Image; 2], [tracer_core::film:
     let cpu = cpu_film.resolve();
     let prepared = PreparedFrame::build(desc, s, 0, Precision::F32).expect("valid settings");
     let gpu = [Strategy::Stack, Strategy::Wavefront].map(|strategy| {
-        let g = gpu(strategy).expect("an adapter");
+        let g = gpu_with(strategy).expect("an adapter");
         let k = 1 + (strategy == Strategy::Wavefront) as usize;
         let film = g
             .render(
@@ -151,7 +134,7 @@ fn gpu_path_refuses_textured_model_materials_by_name() {
     let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
     let s = &scene.render;
     let prepared = PreparedFrame::build(&scene, s, 0, Precision::F32).expect("valid settings");
-    let e = gpu(Strategy::Stack)
+    let e = gpu_with(Strategy::Stack)
         .expect("an adapter")
         .render(&prepared, 0, Rect::full(8, 8), SampleRange::all(1), &|_| {})
         .expect_err("refused");

@@ -21,27 +21,13 @@
 
 mod common;
 
-use std::sync::OnceLock;
-
-use common::{diff, prereq};
+use common::{diff, gpu};
 use tracer_core::adaptive::BlockMask;
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::adaptive::render_round;
-use tracer_core::render::gpu::{GpuOptions, GpuRenderer};
+use tracer_core::render::gpu::GpuRenderer;
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 use tracer_core::scene::SceneDesc;
-
-fn gpu() -> Option<&'static GpuRenderer> {
-    static GPU: OnceLock<Result<GpuRenderer, String>> = OnceLock::new();
-    let r = GPU.get_or_init(|| {
-        GpuRenderer::new(
-            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
-            GpuOptions::default(),
-        )
-        .map_err(|e| format!("no GPU adapter could be opened: {e}"))
-    });
-    prereq::require("gpu", r.as_ref())
-}
 
 /// A Cornell-like set: a floor and a back wall of Lambert, a sphere of
 /// `ball` (a `[bsdf.ball]` body), a quad, a sphere and a point light, a sky.

@@ -9,6 +9,37 @@ use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
+/// The test binary's GPU renderer of `strategy`, opened once (one device
+/// for the whole binary). A missing adapter fails the test (`None` only
+/// if tests/optional.txt made `gpu` optional).
+pub fn gpu_with(
+    strategy: tracer_core::render::gpu::Strategy,
+) -> Option<&'static tracer_core::render::gpu::GpuRenderer> {
+    use std::sync::OnceLock;
+    use tracer_core::render::gpu::{GpuOptions, GpuRenderer, Strategy};
+    static GPU: [OnceLock<Result<GpuRenderer, String>>; 2] = [OnceLock::new(), OnceLock::new()];
+    let r = GPU[(strategy == Strategy::Wavefront) as usize].get_or_init(|| {
+        let r = GpuRenderer::new(
+            std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+            GpuOptions {
+                strategy,
+                ..GpuOptions::default()
+            },
+        )
+        .map_err(|e| format!("no GPU adapter could be opened: {e}"));
+        if let Ok(r) = &r {
+            eprintln!("GPU tests use adapter {}", r.adapter());
+        }
+        r
+    });
+    prereq::require("gpu", r.as_ref())
+}
+
+/// [`gpu_with`] the default (stack) kernel.
+pub fn gpu() -> Option<&'static tracer_core::render::gpu::GpuRenderer> {
+    gpu_with(tracer_core::render::gpu::Strategy::Stack)
+}
+
 pub fn scene(src: &str) -> SceneDesc {
     SceneDesc::parse(src, "test.toml").unwrap_or_else(|e| panic!("test scene does not parse: {e}"))
 }
