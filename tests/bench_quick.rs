@@ -689,3 +689,40 @@ fn multi_gpu_bench_runs_gpu_workers_against_the_ceiling_with_identical_frames() 
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn scale_bench_drives_virtual_workers_through_a_real_coordinator() {
+    let dir = std::env::temp_dir().join(format!("tessera-bench-scale-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let out = bench(
+        &dir,
+        &["scale", "--virtual-workers", "40", "--scale-seconds", "10"],
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "bench scale failed:\n{stderr}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("out/scale.json")).unwrap())
+            .unwrap();
+    let run = &v["runs"][0];
+    let f = |k: &str| {
+        run[k]
+            .as_f64()
+            .unwrap_or_else(|| panic!("scale.json: {k} is {:?}", run[k]))
+    };
+    assert_eq!(run["workers"], 40);
+    // Every black 8x8 tile a virtual worker sent was a valid result, and
+    // every worker got work (the coordinator's TLS, tokens and leases).
+    assert_eq!(run["results_rejected"], 0, "{stderr}");
+    assert!(f("busy_all_s") >= f("busy_99_s"), "{run}");
+    // A result covers one or more units.
+    assert!(f("units_per_s") >= f("results_per_s"), "{run}");
+    // Four of the forty vanish; the others go on.
+    assert_eq!(run["vanished"], 4);
+    assert!(f("units_per_s_after_timeout") > 0.0, "{run}");
+    let per = (f("rss_connected_kib") - f("rss_before_kib")) / 40.0;
+    assert!(
+        (f("rss_per_worker_kib") - per.max(0.0)).abs() < 1e-6,
+        "{run}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -29,8 +29,13 @@ pub struct ChildGuard {
 }
 
 impl ChildGuard {
+    /// The process id.
+    pub fn id(&self) -> u32 {
+        self.child.id()
+    }
+
     /// `Err` with the end of its log if the process has exited.
-    fn check_alive(&mut self) -> Result<()> {
+    pub fn check_alive(&mut self) -> Result<()> {
         if let Some(status) = self.child.try_wait()? {
             bail!(
                 "{} exited ({status}); log {}:\n{}",
@@ -59,7 +64,7 @@ fn tail(log: &Path) -> String {
 /// A command for a farm process. On Linux the child is also killed by the
 /// kernel if this process dies without unwinding (SIGKILL, SIGTERM), which
 /// no drop guard can cover.
-fn farm_command(exe: &Path) -> Command {
+pub fn farm_command(exe: &Path) -> Command {
     #[allow(unused_mut)]
     let mut c = Command::new(exe);
     #[cfg(target_os = "linux")]
@@ -84,6 +89,52 @@ fn log_file(path: &Path) -> Result<std::fs::File> {
         .append(true)
         .open(path)
         .with_context(|| format!("cannot open {}", path.display()))
+}
+
+/// Starts `tessera coordinator` on a free loopback port with its state in
+/// `data`, its log in `log` and `extra` arguments (TLS, tokens, limits);
+/// returns it with the address it bound.
+pub fn start_coordinator(
+    exe: &Path,
+    data: &Path,
+    log: &Path,
+    extra: &[std::ffi::OsString],
+) -> Result<(ChildGuard, String)> {
+    let mut child = farm_command(exe)
+        .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
+        .arg(data)
+        .args(extra)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(log_file(log)?)
+        .spawn()
+        .with_context(|| format!("cannot start {} coordinator", exe.display()))?;
+    let stdout = child.stdout.take().expect("stdout is piped");
+    let mut coordinator = ChildGuard {
+        what: "the coordinator".into(),
+        log: log.to_path_buf(),
+        child,
+    };
+    // The coordinator prints its bound address on stdout; read it on a
+    // thread so a coordinator that never prints cannot hang the bench.
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        let mut r = BufReader::new(stdout);
+        let mut line = String::new();
+        let _ = r.read_line(&mut line);
+        let _ = tx.send(line);
+        // Keep draining so the coordinator never writes into a closed pipe.
+        let _ = std::io::copy(&mut r, &mut std::io::sink());
+    });
+    let line = match rx.recv_timeout(START_TIMEOUT) {
+        Ok(line) => line,
+        Err(_) => bail!("the coordinator did not report its address within {START_TIMEOUT:?}"),
+    };
+    let Some(addr) = line.trim().strip_prefix("listening on ") else {
+        coordinator.check_alive()?;
+        bail!("unexpected first line from the coordinator: {line:?}");
+    };
+    Ok((coordinator, addr.to_string()))
 }
 
 /// The workers of a bench farm.
@@ -146,40 +197,8 @@ impl Farm {
     /// `data`, and the workers of `spec`; returns once every worker is
     /// registered. Logs go to `logs`.STEM.log.
     pub fn start(exe: &Path, data: &Path, logs: &Path, spec: &FarmSpec) -> Result<Farm> {
-        let coord_log = logs.with_extension("coordinator.log");
-        let mut child = farm_command(exe)
-            .args(["coordinator", "--listen", "127.0.0.1:0", "--data"])
-            .arg(data)
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(log_file(&coord_log)?)
-            .spawn()
-            .with_context(|| format!("cannot start {} coordinator", exe.display()))?;
-        let stdout = child.stdout.take().expect("stdout is piped");
-        let mut coordinator = ChildGuard {
-            what: "the coordinator".into(),
-            log: coord_log,
-            child,
-        };
-        // The coordinator prints its bound address on stdout; read it on a
-        // thread so a coordinator that never prints cannot hang the bench.
-        let (tx, rx) = mpsc::channel();
-        std::thread::spawn(move || {
-            let mut r = BufReader::new(stdout);
-            let mut line = String::new();
-            let _ = r.read_line(&mut line);
-            let _ = tx.send(line);
-            // Keep draining so the coordinator never writes into a closed pipe.
-            let _ = std::io::copy(&mut r, &mut std::io::sink());
-        });
-        let line = match rx.recv_timeout(START_TIMEOUT) {
-            Ok(line) => line,
-            Err(_) => bail!("the coordinator did not report its address within {START_TIMEOUT:?}"),
-        };
-        let Some(addr) = line.trim().strip_prefix("listening on ") else {
-            coordinator.check_alive()?;
-            bail!("unexpected first line from the coordinator: {line:?}");
-        };
+        let (coordinator, addr) =
+            start_coordinator(exe, data, &logs.with_extension("coordinator.log"), &[])?;
         let url = format!("http://{addr}");
         let mut farm = Farm {
             exe: exe.to_path_buf(),

@@ -21,6 +21,7 @@ mod reference;
 mod report;
 mod resolution;
 mod samples;
+mod scale;
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -55,8 +56,9 @@ pub const SUITES: &[&str] = &[
 ];
 
 /// Suites run only when named: `multi-gpu` wants a machine of several
-/// GPUs (or `--gpu-adapters 0,0`) and takes its time.
-pub const NAMED_SUITES: &[&str] = &["multi-gpu"];
+/// GPUs (or `--gpu-adapters 0,0`) and takes its time; `scale` measures
+/// the coordinator under thousands of virtual workers, not rendering.
+pub const NAMED_SUITES: &[&str] = &["multi-gpu", "scale"];
 
 /// The depth suite's default reference depth (issue 6 asks for 32). On the
 /// emerald scene depth 24 is within RMSE 4e-6 of it (40x less than f32
@@ -101,6 +103,12 @@ pub struct Config {
     pub gpu_counts: Option<Vec<usize>>,
     /// Multi-gpu suite: cores its mixed runs fill [default: all]; 0: none.
     pub mixed_cores: Option<usize>,
+    /// Scale suite: virtual worker counts, one run each.
+    pub virtual_workers: Vec<usize>,
+    /// Scale suite: seconds each run lasts from the submit.
+    pub scale_seconds: f64,
+    /// Scale suite: how long a virtual worker holds each unit.
+    pub virtual_unit_ms: u64,
 }
 
 /// Runs the configured suites; returns every run.
@@ -158,6 +166,7 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
             },
             "farm" => bench.suite_farm()?,
             "adaptive" => bench.suite_adaptive()?,
+            "scale" => bench.suite_scale()?,
             #[cfg(feature = "gpu")]
             "multi-gpu" => bench.suite_multi_gpu()?,
             #[cfg(not(feature = "gpu"))]

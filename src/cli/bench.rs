@@ -33,7 +33,9 @@ pub struct BenchArgs {
     /// time, and the time adaptive takes to reach uniform 1024 spp's RMSE);
     /// and, run only when named, multi-gpu (1..N GPU workers, one per
     /// --gpu-adapters entry, alone and beside CPU workers, against N
-    /// concurrent local GPU renders)
+    /// concurrent local GPU renders), and scale (the coordinator under
+    /// --virtual-workers virtual workers: time to busy, leases and units
+    /// per second, lease latency, CPU and RSS per worker, 10% vanishing)
     pub suites: Vec<String>,
     /// Where to trace
     #[arg(long, value_enum, default_value_t = BenchBackend::Cpu)]
@@ -115,6 +117,19 @@ pub struct BenchArgs {
     /// worker, one is the coordinator's); 0 skips the mixed runs [default: all cores]
     #[arg(long, value_name = "C")]
     pub mixed_cores: Option<u32>,
+    /// Scale suite: virtual worker counts, one run each (each its own TLS
+    /// connection and session with the worker token, against a real
+    /// coordinator process) [default: 2000; --quick: 100]
+    #[arg(long, value_name = "N,N,...", value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..=20000))]
+    pub virtual_workers: Option<Vec<u32>>,
+    /// Scale suite: seconds each run lasts from the submit (a tenth of the
+    /// workers vanish at 60% of it)
+    #[arg(long, default_value_t = 30.0, value_parser = clap::value_parser!(u32).range(10..=3600).map(f64::from))]
+    pub scale_seconds: f64,
+    /// Scale suite: milliseconds a virtual worker holds each unit before
+    /// answering it (0: at once, the coordinator's ceiling)
+    #[arg(long, default_value_t = 0)]
+    pub virtual_unit_ms: u64,
     #[command(flatten)]
     pub format: super::output::Format,
 }
@@ -171,6 +186,12 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
             .gpu_counts
             .map(|v| v.into_iter().map(|n| n as usize).collect()),
         mixed_cores: args.mixed_cores.map(|n| n as usize),
+        virtual_workers: args.virtual_workers.map_or_else(
+            || vec![if args.quick { 100 } else { 2000 }],
+            |v| v.into_iter().map(|n| n as usize).collect(),
+        ),
+        scale_seconds: args.scale_seconds,
+        virtual_unit_ms: args.virtual_unit_ms,
     })?;
     eprintln!(
         "bench: {} runs written under {}",
@@ -179,7 +200,7 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
     );
     if args.format.json {
         super::output::print_json(&runs.iter().map(bench::run_json).collect());
-    } else {
+    } else if !runs.is_empty() {
         bench::print_summary(&runs);
     }
     Ok(ExitCode::SUCCESS)

@@ -75,7 +75,16 @@ impl Worker {
     /// smoothed speed under-rates it, and CPU workers beside it would take
     /// leases that run past the point where it could have done their work.
     pub(super) fn farm_speed(&self) -> f64 {
-        let k = (-self.peak_at.elapsed().as_secs_f64() / PEAK_MEMORY_SECONDS).exp();
+        self.farm_speed_at(Instant::now())
+    }
+
+    /// [`Worker::farm_speed`] as of `now`.
+    fn farm_speed_at(&self, now: Instant) -> f64 {
+        if self.peak_speed <= self.ray_speed {
+            return self.ray_speed;
+        }
+        let since = now.saturating_duration_since(self.peak_at).as_secs_f64();
+        let k = (-since / PEAK_MEMORY_SECONDS).exp();
         self.ray_speed + (self.peak_speed - self.ray_speed).max(0.0) * k
     }
 
@@ -348,61 +357,77 @@ impl Farm {
         if st.cedes_machine_to_a_gpu(worker_id, best, live) {
             return Ok((Vec::new(), false));
         }
-        // Seconds of work each measured worker holds (leases it renders or
-        // has queued), at its speed: when it could start something new.
-        // One pass over the leases: rays still held by each worker, and
-        // still in flight in each job.
-        let mut busy_of: HashMap<&str, f64> = HashMap::new();
-        // (Job ids owned: leases are added to below while this is read.)
+        // Rays still to trace in a worker's leases (those it renders or has
+        // queued), from its own lease set. This runs for every lease under
+        // the farm's lock: a pass over every lease into maps keyed by worker
+        // cost about 0.3 ms a lease at 2,000 workers (`tessera bench scale`),
+        // so the others' are summed only where a rule reads them.
+        let held_rays_of = |w: &Worker, leases: &HashMap<String, Lease>| -> f64 {
+            w.leases
+                .iter()
+                .filter_map(|id| leases.get(id))
+                .map(Lease::remaining_rays)
+                .sum()
+        };
         // Per job: rays still to trace in its leases, and the leases'
-        // whole expected rays.
-        let mut in_flight_of: HashMap<String, (f64, f64)> = HashMap::new();
-        for l in st.leases.values() {
+        // whole expected rays (one pass, compared with the few jobs' ids).
+        let mut in_flight_of: Vec<(&str, f64, f64)> = Vec::new();
+        for l in st.leases.values().filter(|l| !l.backup) {
+            // A backup's units are in flight under the original.
             let left = l.remaining_rays();
-            *busy_of.entry(l.worker.as_str()).or_default() += left;
-            if l.backup {
-                continue; // its units are in flight under the original
-            }
-            match in_flight_of.get_mut(&l.job) {
-                Some(v) => {
-                    v.0 += left;
-                    v.1 += l.expected_rays;
+            match in_flight_of.iter_mut().find(|e| e.0 == l.job) {
+                Some(e) => {
+                    e.1 += left;
+                    e.2 += l.expected_rays;
                 }
-                None => {
-                    in_flight_of.insert(l.job.clone(), (left, l.expected_rays));
-                }
+                None => in_flight_of.push((l.job.as_str(), left, l.expected_rays)),
             }
         }
-        // (speed, seconds of work held, labels) of each measured live other.
-        let others: Vec<(f64, f64, &BTreeMap<String, String>)> = st
-            .workers
-            .iter()
-            .filter(|(id, w)| {
-                id.as_str() != worker_id && w.ray_speed > 0.0 && w.last_seen.elapsed() < live
-            })
-            .map(|(id, w)| {
-                let held = busy_of.get(id.as_str()).copied().unwrap_or(0.0);
-                let v = w.farm_speed();
-                (v, held / v, &w.labels)
-            })
+        let in_flight_of: HashMap<String, (f64, f64)> = in_flight_of
+            .into_iter()
+            .map(|(j, a, b)| (j.to_string(), (a, b)))
             .collect();
-        // Leases sized against a worker that may be much faster than its
-        // rating would run past the point where it could have done their
-        // work. The first leases of a job beside a GPU measured only on a
-        // warm-up's small tiles (rated ~8x low) made a mixed farm 1.3-1.6x
-        // slower than the GPU alone: while such a worker exists, this one
-        // takes one unit at a time (the other measures itself within its
-        // first lease or two).
-        let one_at_a_time = st.workers.iter().any(|(id, w)| {
-            id.as_str() != worker_id
-                && w.last_seen.elapsed() < live
-                && w.may_be_much_faster(best, busy_of.contains_key(id.as_str()))
-        });
-        let held_rays = busy_of.get(worker_id).copied().unwrap_or(0.0);
+        // One pass over the workers, with one clock reading: the measured
+        // live others as (speed, worker), and whether one of them may be
+        // much faster than its rating. Leases sized against a worker that
+        // may be much faster than its rating would run past the point
+        // where it could have done their work. The first leases of a job
+        // beside a GPU measured only on a warm-up's small tiles (rated ~8x
+        // low) made a mixed farm 1.3-1.6x slower than the GPU alone: while
+        // such a worker exists, this one takes one unit at a time (the
+        // other measures itself within its first lease or two).
+        let now = Instant::now();
+        let me: *const Worker = st.workers.get(worker_id).expect("worker checked");
+        let mut others: Vec<(f64, &Worker)> = Vec::with_capacity(st.workers.len());
+        let mut one_at_a_time = false;
+        for w in st.workers.values() {
+            if std::ptr::eq(w, me) || now.saturating_duration_since(w.last_seen) >= live {
+                continue;
+            }
+            one_at_a_time = one_at_a_time || w.may_be_much_faster(best, !w.leases.is_empty());
+            if w.ray_speed > 0.0 {
+                others.push((w.farm_speed_at(now), w));
+            }
+        }
+        // (speed, seconds of work held, labels) of each measured live
+        // other: read only near a job's end (the hold-back rule below).
+        let others_held = std::cell::OnceCell::new();
+        let others_held = || {
+            others_held.get_or_init(|| {
+                others
+                    .iter()
+                    .map(|&(v, w)| (v, held_rays_of(w, &st.leases) / v, &w.labels))
+                    .collect::<Vec<(f64, f64, &BTreeMap<String, String>)>>()
+            })
+        };
+        let held_rays = held_rays_of(
+            st.workers.get(worker_id).expect("worker checked"),
+            &st.leases,
+        );
         // The farm's speed: the sum of the measured speeds of the live
         // workers (a worker not yet measured adds nothing until its first
         // result; one gone silent adds nothing either).
-        let farm_speed: f64 = speed + others.iter().map(|&(v, _, _)| v).sum::<f64>();
+        let farm_speed: f64 = speed + others.iter().map(|&(v, _)| v).sum::<f64>();
         let mut held_back = false;
         // Seconds of work this worker holds already, at its speed.
         let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
@@ -418,6 +443,8 @@ impl Farm {
         let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
         let max_units = if one_at_a_time { 1 } else { max_units.max(1) };
         let mut out = Vec::new();
+        // Added to `st.leases` after the loop, which reads the others'.
+        let mut new_leases = Vec::new();
         for job_id in order {
             // Rays of the job's leases still being rendered, by anyone.
             let (in_flight, leased) = in_flight_of.get(&job_id).copied().unwrap_or((0.0, 0.0));
@@ -464,7 +491,7 @@ impl Farm {
                     let finish_at_best = (busy * speed + rays(first)) / best;
                     // Held back only for a worker that may take the job.
                     if finish > farm_end
-                        && others.iter().any(|&(v, b, l)| {
+                        && others_held().iter().any(|&(v, b, l)| {
                             b + rays(first) / v < finish_at_best && meets(&job.rec.requirements, l)
                         })
                     {
@@ -530,7 +557,7 @@ impl Farm {
                     units: units.len() as u32,
                 };
                 let lease_id = random_id("l");
-                st.leases.insert(
+                new_leases.push((
                     lease_id.clone(),
                     Lease {
                         worker: worker_id.to_string(),
@@ -546,13 +573,14 @@ impl Farm {
                         backups: 0,
                         rated: false,
                     },
-                );
+                ));
                 out.push(LeaseView { lease_id, ..view });
             }
             if out.len() >= max_units as usize {
                 break;
             }
         }
+        st.leases.extend(new_leases);
         let held = &mut st
             .workers
             .get_mut(worker_id)

@@ -15,6 +15,10 @@ use super::{
     Farm, FarmError, Lease, Outcome, ResultData, State, adaptive, now_ms, public_worker_id,
 };
 
+/// Results of at most this many pixels in all are checked on the async
+/// thread that received them (a few microseconds of work).
+const INLINE_CHECK_PIXELS: u64 = 4096;
+
 impl Farm {
     /// Takes a worker's result: accepted only from the lease's holder, only
     /// once, and only if it is exactly the leased unit's data.
@@ -55,14 +59,23 @@ impl Farm {
         let mut taken: Vec<(ResultData, Taken)> = Vec::new();
         let mut ops: Vec<Op> = Vec::new();
         // Every pixel of a result is checked before the state lock is
-        // taken, off the async threads (see `decode_results` in service.rs).
+        // taken: a large result off the async threads (see
+        // `decode_results` in service.rs), a small one here, where handing
+        // it to the blocking pool would cost more than checking it (two
+        // thread wake-ups for a tile of 64 pixels: `tessera bench scale`).
         let check_start = Instant::now();
-        let (rs, checks) = tokio::task::spawn_blocking(move || {
+        let pixels: u64 = rs.iter().map(|r| r.rect.area() as u64).sum();
+        let (rs, checks) = if pixels <= INLINE_CHECK_PIXELS {
             let checks: Vec<Result<(), String>> = rs.iter().map(check_film).collect();
             (rs, checks)
-        })
-        .await
-        .map_err(|e| FarmError::Internal(format!("result check failed: {e}")))?;
+        } else {
+            tokio::task::spawn_blocking(move || {
+                let checks: Vec<Result<(), String>> = rs.iter().map(check_film).collect();
+                (rs, checks)
+            })
+            .await
+            .map_err(|e| FarmError::Internal(format!("result check failed: {e}")))?
+        };
         let lock_start = Instant::now();
         {
             let mut st = self.state.lock().expect("state lock");
