@@ -458,36 +458,37 @@ fn report(
             "nonfinite_samples": nonfinite,
             "output": output.display().to_string(),
             "adaptive": adaptive.map(|a| {
-                if let Some(r) = image_round {
-                    return serde_json::json!({
-                        "mode": "image",
-                        "target_error": a.target_error,
-                        "relative_error": a.relative_error,
-                        "min_samples": a.min_samples,
-                        "max_samples": a.max_samples,
-                        "rounds": r.round + 1,
-                        "pixel_samples": pixel_samples,
-                        "mean_samples": pixel_samples as f64 / rect.area() as f64,
-                        "estimated_rms_error": r.estimated_rmse,
-                        "target_rms_error": r.target_rmse,
-                        "sample_map": args.sample_map.as_ref().map(|p| p.display().to_string()),
-                    });
-                }
-                let s = last_round.map(|r| r.summary).unwrap_or_default();
-                serde_json::json!({
-                    "mode": "pixel",
+                // The keys both modes report, then each mode's own.
+                let mut o = serde_json::json!({
                     "target_error": a.target_error,
                     "relative_error": a.relative_error,
                     "min_samples": a.min_samples,
                     "max_samples": a.max_samples,
-                    "rounds": last_round.map_or(0, |r| r.round + 1),
                     "pixel_samples": pixel_samples,
                     "mean_samples": pixel_samples as f64 / rect.area() as f64,
-                    "converged_share": s.converged_share(),
-                    "capped_blocks": s.capped_blocks,
-                    "estimated_rms_error": s.rms_error,
                     "sample_map": args.sample_map.as_ref().map(|p| p.display().to_string()),
-                })
+                });
+                let own = if let Some(r) = image_round {
+                    serde_json::json!({
+                        "mode": "image",
+                        "rounds": r.round + 1,
+                        "estimated_rms_error": r.estimated_rmse,
+                        "target_rms_error": r.target_rmse,
+                    })
+                } else {
+                    let s = last_round.map(|r| r.summary).unwrap_or_default();
+                    serde_json::json!({
+                        "mode": "pixel",
+                        "rounds": last_round.map_or(0, |r| r.round + 1),
+                        "converged_share": s.converged_share(),
+                        "capped_blocks": s.capped_blocks,
+                        "estimated_rms_error": s.rms_error,
+                    })
+                };
+                if let (Some(o), serde_json::Value::Object(own)) = (o.as_object_mut(), own) {
+                    o.extend(own);
+                }
+                o
             }),
         }));
     } else {
