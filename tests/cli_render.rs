@@ -473,6 +473,39 @@ fn adaptive_renders_write_sample_and_error_channels_and_a_sample_map() {
     assert_eq!(channel("R").len(), 40 * 30);
     let map = image::open(dir.join("map.png")).unwrap();
     assert_eq!((map.width(), map.height()), (40, 30));
+    // The same render's --json: the per-pixel mode's keys, its sample
+    // count the EXR's.
+    let (out, stdout, stderr) = run(tessera().arg("render").arg(&scene).args([
+        "--target-error",
+        "0.01",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "16",
+        "-o",
+        dir.join("b.exr").to_str().unwrap(),
+        "--json",
+    ]));
+    assert!(out.status.success(), "{stderr}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let a = &v["adaptive"];
+    assert_eq!(a["mode"], "pixel", "{stdout}");
+    assert_eq!(
+        (a["min_samples"].as_u64(), a["max_samples"].as_u64()),
+        (Some(4), Some(16))
+    );
+    let total: f64 = samples.iter().map(|&n| n as f64).sum();
+    assert_eq!(a["pixel_samples"].as_f64(), Some(total), "{stdout}");
+    assert_eq!(
+        a["mean_samples"].as_f64(),
+        Some(total / (40.0 * 30.0)),
+        "{stdout}"
+    );
+    assert_eq!(a["rounds"].as_u64(), Some(3), "{stdout}");
+    let share = a["converged_share"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&share), "{stdout}");
+    assert!(a["estimated_rms_error"].as_f64().unwrap() > 0.0, "{stdout}");
+    assert!(a.get("target_rms_error").is_none(), "{stdout}");
 
     for (args, want) in [
         (
