@@ -16,7 +16,7 @@ use common::*;
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::gpu::Strategy;
 use tracer_core::render::{Precision, PreparedFrame};
-use tracer_core::scene::{ModelSceneOptions, SceneDesc};
+use tracer_core::scene::SceneDesc;
 
 /// An image's linear RGB pixels.
 type Image = Vec<[f32; 3]>;
@@ -111,40 +111,6 @@ fn gpu_emissive_textured_quad_matches_the_cpu() {
     assert_agree("emissive textured quad", &scene, 1e-5, 1e-6);
 }
 
-/// The GPU's path kernel takes each material's BSDF as constant: a
-/// textured model material under `--integrator path` is refused by name
-/// rather than rendered without its texture.
-#[test]
-fn gpu_path_refuses_textured_model_materials_by_name() {
-    let dir = tmpdir("gpu-tex-path");
-    write_png(&dir, 4, 3, &colour_texels(4, 3));
-    let model = textured_quad(
-        &dir,
-        1.0,
-        0.0,
-        r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0}}}"#,
-        r#"{}"#,
-    );
-    let src = format!(
-        "[render]\nwidth = 8\nheight = 8\nsamples = 1\nintegrator = \"path\"\n\
-         [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\n\
-         [[lights]]\nposition = [1, 2, 3]\n\
-         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
-    );
-    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
-    let s = &scene.render;
-    let prepared = PreparedFrame::build(&scene, s, 0, Precision::F32).expect("valid settings");
-    let e = gpu_with(Strategy::Stack)
-        .expect("an adapter")
-        .render(&prepared, 0, Rect::full(8, 8), SampleRange::all(1), &|_| {})
-        .expect_err("refused");
-    assert_eq!(
-        e.to_string(),
-        "the scene's model materials use textures, vertex colours or cut-outs under --integrator path, \
-         which the GPU backend does not render yet; render it with --backend cpu"
-    );
-}
-
 /// The cut-out quad of tests/textures.rs over a lit plane: camera and
 /// shadow rays pass its transparent texels on the GPU as on the CPU.
 #[test]
@@ -223,20 +189,6 @@ fn gpu_vertex_colours_match_the_cpu() {
     assert_agree("vertex colours", &scene, 1e-5, 1e-6);
 }
 
-/// A shared glTF asset rendered as a scene at `w` x `h`.
-fn asset(path: &str, w: u32, h: u32) -> SceneDesc {
-    let p = prereq::shared(path);
-    SceneDesc::load_input(
-        &p,
-        &ModelSceneOptions {
-            width: Some(w),
-            height: Some(h),
-            ..Default::default()
-        },
-    )
-    .unwrap_or_else(|e| panic!("{path}: {e}"))
-}
-
 /// The real assets of shared/scenes on the GPU against the CPU, at a
 /// small size, 1 spp. Pixels where the two traversals may meet different
 /// triangles (edges, grazing hits) may differ by a whole texel value, and
@@ -269,7 +221,7 @@ fn gpu_renders_the_shared_gltf_assets_as_the_cpu_does() {
         ),
         ("scenes/gltf/SpecularTest/glTF/SpecularTest.gltf", 96, 48),
     ] {
-        let scene = asset(path, w, h);
+        let scene = shared_asset(path, w, h);
         let (cpu, gpus, rays) = cpu_and_gpu_rays(&scene);
         for (k, (g, kernel)) in gpus.iter().zip(["stack", "wavefront"]).enumerate() {
             // The same secondary rays, within the few hits where the two

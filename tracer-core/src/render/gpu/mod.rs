@@ -860,8 +860,9 @@ fn classify(e: wgpu::Error) -> GpuError {
 /// What of a world's model-file materials the WGSL step does not have yet,
 /// named for the error; `None` when it renders as on the CPU. Textures,
 /// vertex colours, emission and cut-outs of the static world are
-/// pbr.wgsl's; a moving mesh's model materials keep only their factors
-/// on the GPU, so those that vary, emit or cut out are refused.
+/// pbr.wgsl's, under both integrators (path.wgsl `bsdf_at`); a moving
+/// mesh's model materials keep only their factors on the GPU, so those
+/// that vary, emit or cut out are refused.
 fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
     let moving = world
         .dist
@@ -873,21 +874,10 @@ fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
                 || p.emissive.iter().any(|&e| e != 0.0)
                 || p.alpha_mode == crate::material::AlphaMode::Mask
         });
-    if moving {
-        return Some(
-            "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
-                .into(),
-        );
-    }
-    // The GPU's path kernel takes each material's BSDF as constant and
-    // traces without the cut-out queries (pbr.wgsl serves Whitted's step).
-    let path = world.settings.integrator == crate::scene::Integrator::Path;
-    let per_hit = world
-        .pbr
-        .iter()
-        .any(|p| p.varies() || p.alpha_mode == crate::material::AlphaMode::Mask);
-    (path && per_hit)
-        .then(|| "textures, vertex colours or cut-outs under --integrator path".to_string())
+    moving.then(|| {
+        "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
+            .to_string()
+    })
 }
 
 /// Default bytes of texels a scene may hold on the GPU (`GpuRenderer`'s

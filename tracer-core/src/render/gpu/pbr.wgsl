@@ -243,12 +243,54 @@ struct Looked {
     emits: bool,
 }
 
+// The model material (pbrs index) of a hit on primitive id with material
+// index `material`, NONE where there is none to look up.
+fn pbr_index(id: u32, material: u32) -> u32 {
+    if (!HAS_PBR || (id >> KIND_SHIFT) != KIND_TRIANGLE) {
+        return NONE;
+    }
+    return mat_pbr[material];
+}
+
+// What a model material's textures and vertex colours make of it at the
+// point p of primitive id (material.rs `Pbr::at`, the textures sampled
+// once): the base colour, emission, metallic and roughness, and the
+// ambient term's occlusion factor. The one lookup both integrators take
+// their parameters from: Whitted's material (material_at) and the path
+// integrator's BSDF (path.wgsl `bsdf_at`).
+struct PbrAt {
+    base: vec4<f32>,
+    emission: vec3<f32>,
+    metallic: f32,
+    roughness: f32,
+    occlusion: f32,
+}
+
+fn pbr_at(pb: Pbr, id: u32, p: vec3<f32>) -> PbrAt {
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    let at = attrs_at(index, p);
+    var out = PbrAt(base_color_at(pb, at), pb.emissive, pb.metallic, pb.roughness, 1.0);
+    if ((pb.tex[T_EMISSIVE].flags & TEX_PRESENT) != 0u) {
+        out.emission = pb.emissive * tex_sample(pb.tex[T_EMISSIVE], at.uv0, at.uv1).xyz;
+    }
+    if ((pb.flags & PBR_MTL) != 0u) {
+        return out;
+    }
+    if ((pb.tex[T_MR].flags & TEX_PRESENT) != 0u) {
+        let s = tex_sample(pb.tex[T_MR], at.uv0, at.uv1);
+        out.roughness = out.roughness * s.y;
+        out.metallic = out.metallic * s.z;
+    }
+    if ((pb.tex[T_OCCLUSION].flags & TEX_PRESENT) != 0u) {
+        let o = tex_sample(pb.tex[T_OCCLUSION], at.uv0, at.uv1).x;
+        out.occlusion = 1.0 + pb.occlusion_strength * (o - 1.0);
+    }
+    return out;
+}
+
 fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
     let m = materials[material];
-    if (!HAS_PBR || (id >> KIND_SHIFT) != KIND_TRIANGLE) {
-        return Looked(m, vec3<f32>(0.0), false);
-    }
-    let pi = mat_pbr[material];
+    let pi = pbr_index(id, material);
     if (pi == NONE) {
         return Looked(m, vec3<f32>(0.0), false);
     }
@@ -256,29 +298,18 @@ fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
     if ((pb.flags & PBR_VARIES) == 0u) {
         return Looked(m, pb.emissive, true);
     }
-    let index = id & ((1u << KIND_SHIFT) - 1u);
-    let at = attrs_at(index, p);
-    let base = base_color_at(pb, at);
-    var emission = pb.emissive;
-    if ((pb.tex[T_EMISSIVE].flags & TEX_PRESENT) != 0u) {
-        emission = pb.emissive * tex_sample(pb.tex[T_EMISSIVE], at.uv0, at.uv1).xyz;
-    }
+    let at = pbr_at(pb, id, p);
+    let base = at.base;
+    let emission = at.emission;
     if ((pb.flags & PBR_MTL) != 0u) {
         var out = m;
         out.ambient = m.ambient * base.xyz;
         out.diffuse = m.diffuse * base.xyz;
         return Looked(out, emission, true);
     }
-    var metallic = pb.metallic;
-    var roughness = pb.roughness;
-    if ((pb.tex[T_MR].flags & TEX_PRESENT) != 0u) {
-        let s = tex_sample(pb.tex[T_MR], at.uv0, at.uv1);
-        roughness = roughness * s.y;
-        metallic = metallic * s.z;
-    }
     // material.rs Pbr::whitted, then Material::from_desc.
-    metallic = clamp(metallic, 0.0, 1.0);
-    let rough = clamp(roughness, 0.0, 1.0);
+    let metallic = clamp(at.metallic, 0.0, 1.0);
+    let rough = clamp(at.roughness, 0.0, 1.0);
     let reflectivity = metallic * (1.0 - rough) * (1.0 - rough);
     let transmission = clamp(pb.transmission, 0.0, 1.0) * (1.0 - metallic);
     let diffuse = base.xyz * (1.0 - reflectivity) * (1.0 - transmission);
@@ -291,8 +322,7 @@ fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
     let shininess = max(2.0 / (r2 * r2) - 2.0, 1.0);
     var ambient = diffuse;
     if ((pb.tex[T_OCCLUSION].flags & TEX_PRESENT) != 0u) {
-        let o = tex_sample(pb.tex[T_OCCLUSION], at.uv0, at.uv1).x;
-        ambient = diffuse * (1.0 + pb.occlusion_strength * (o - 1.0));
+        ambient = diffuse * at.occlusion;
     }
     let out = Material(
         ambient,
