@@ -253,3 +253,67 @@ fn gpu_renders_the_shared_gltf_assets_as_the_cpu_does() {
         }
     }
 }
+
+/// The texel-pack cache (layout::TexelPack): another tile or frame of the
+/// same world packs and uploads no texel, and renders as before; a world
+/// of other images packs and uploads its own. A renderer of its own, so
+/// that no other test's scene comes between the renders counted.
+#[test]
+fn a_second_tile_of_a_textured_scene_reuses_the_packed_texels() {
+    use tracer_core::render::gpu::{GpuOptions, GpuRenderer};
+    let g = GpuRenderer::new(
+        std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+        GpuOptions::default(),
+    )
+    .unwrap_or_else(|e| panic!("no GPU adapter could be opened: {e}"));
+    let textured = |tag: &str, texels: &[[u8; 4]]| {
+        let dir = tmpdir(tag);
+        write_png(&dir, 4, 3, texels);
+        let model = textured_quad(
+            &dir,
+            1.0,
+            0.0,
+            r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0},"metallicFactor":0}}"#,
+            r#"{}"#,
+        );
+        let src = format!(
+            "[render]\nwidth = 24\nheight = 16\nsamples = 1\n\
+             [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\n\
+             [[lights]]\nposition = [1, 2, 3]\n\
+             [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+        );
+        SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
+    };
+    let a = textured("texel-cache-a", &colour_texels(4, 3));
+    let b = textured("texel-cache-b", &[[40, 200, 90, 255]; 12]);
+    let render = |desc: &SceneDesc, frame: u32, rect: Rect| {
+        let p = PreparedFrame::build(desc, &desc.render, frame, Precision::F32).unwrap();
+        g.render(&p, frame, rect, SampleRange::all(1), &|_| {})
+            .unwrap_or_else(|e| panic!("GPU render failed: {e}"))
+    };
+    let (left, right) = (Rect::new(0, 0, 12, 16), Rect::new(12, 0, 12, 16));
+    let first = render(&a, 0, left);
+    assert_eq!(g.texel_work(), (1, 1), "the first tile packs and uploads");
+    let second = render(&a, 0, right);
+    let again = render(&a, 0, left);
+    // A new frame of the same scene (the farm's next frame): the same images.
+    let next_frame = render(&a, 1, right);
+    assert_eq!(
+        g.texel_work(),
+        (1, 1),
+        "other tiles and frames of the same world reuse the texels"
+    );
+    assert_eq!(again.sums, first.sums, "a reused pack renders as the first");
+    assert_eq!(next_frame.sums, second.sums);
+    assert_ne!(first.sums, second.sums);
+    let other = render(&b, 0, left);
+    assert_eq!(
+        g.texel_work(),
+        (2, 2),
+        "other images are packed and uploaded"
+    );
+    assert_ne!(other.sums, first.sums);
+    let back = render(&a, 0, left);
+    assert_eq!(g.texel_work(), (3, 3), "one scene is kept at a time");
+    assert_eq!(back.sums, first.sums);
+}

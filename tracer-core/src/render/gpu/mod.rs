@@ -337,6 +337,9 @@ pub struct GpuRenderer {
     packer: Mutex<Option<pack::Packer>>,
     /// Scene kernels compiled so far ([`GpuRenderer::pipelines_built`]).
     pipelines_built: std::sync::atomic::AtomicU64,
+    /// Texels packed on the host and uploaded ([`GpuRenderer::texel_work`]).
+    texel_packs: std::sync::atomic::AtomicU64,
+    texel_uploads: std::sync::atomic::AtomicU64,
     /// Compiled pipelines on disk, where the device has a pipeline cache.
     disk_cache: Option<disk_cache::DiskCache>,
     stats: Mutex<GpuStats>,
@@ -509,6 +512,8 @@ impl GpuRenderer {
             resolver: Mutex::new(None),
             packer: Mutex::new(None),
             pipelines_built: Default::default(),
+            texel_packs: Default::default(),
+            texel_uploads: Default::default(),
             disk_cache,
             stats: Mutex::new(GpuStats::default()),
             no_blocks,
@@ -521,6 +526,17 @@ impl GpuRenderer {
     pub fn pipelines_built(&self) -> u64 {
         self.pipelines_built
             .load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many times this renderer has packed model textures' texels on
+    /// the host and uploaded them, in that order: once per world's set of
+    /// images, not per tile or frame (`layout::TexelPack`).
+    pub fn texel_work(&self) -> (u64, u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (
+            self.texel_packs.load(Relaxed),
+            self.texel_uploads.load(Relaxed),
+        )
     }
 
     /// A post-processing kernel's bind group layout (`bindings`), its
@@ -740,13 +756,27 @@ impl GpuRenderer {
         self.check_fault()?;
         let start = Instant::now();
         // Tiles of one frame reuse the packed tree (packing a million
-        // triangles costs more than tracing them).
-        let packed = self
+        // triangles costs more than tracing them) and the packed texels.
+        let (packed, texels) = self
             .scene
             .lock()
             .ok()
-            .and_then(|s| s.as_ref().and_then(|s| s.data.tree.clone()));
-        let data = SceneData::from_world(world, packed.as_ref())?;
+            .and_then(|s| {
+                s.as_ref().map(|s| {
+                    (
+                        s.data.tree.clone(),
+                        s.data.pbr.as_ref().map(|p| p.texels.clone()),
+                    )
+                })
+            })
+            .unwrap_or_default();
+        let data = SceneData::from_world(world, packed.as_ref(), texels.as_ref())?;
+        if let Some(p) = &data.pbr
+            && !texels.is_some_and(|t| std::sync::Arc::ptr_eq(&t, &p.texels))
+        {
+            self.texel_packs
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
 
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
