@@ -317,3 +317,33 @@ fn a_second_tile_of_a_textured_scene_reuses_the_packed_texels() {
     assert_eq!(g.texel_work(), (3, 3), "one scene is kept at a time");
     assert_eq!(back.sums, first.sums);
 }
+
+/// A normal map (glTF normalTexture with a scale, MikkTSpace tangents) on
+/// the GPU as on the CPU: pbr.wgsl `normal_mapped` against render/step.rs
+/// `shading_normal`, a varied texture bilinearly filtered, under a light
+/// with a specular highlight (the tilted normal moves both terms).
+#[test]
+fn gpu_normal_map_matches_the_cpu() {
+    let dir = tmpdir("gpu-normal-map");
+    let texels: Vec<[u8; 4]> = (0..12u8)
+        .map(|i| [100 + 9 * i, 160 - 7 * i, 230 - (i % 3) * 20, 255])
+        .collect();
+    write_png(&dir, 4, 3, &texels);
+    let model = textured_quad(
+        &dir,
+        1.0,
+        0.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0.8,0.7,0.6,1],"metallicFactor":0.2,"roughnessFactor":0.5},
+            "normalTexture":{"index":0,"scale":0.8}}"#,
+        r#"{}"#,
+    );
+    let src = format!(
+        "[render]\nwidth = 40\nheight = 32\nsamples = 1\n\
+         [camera]\nposition = [0.4, -0.3, 2.2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 55\n\
+         [world]\nambient = [0.1, 0.1, 0.1]\n\
+         [[lights]]\nposition = [1, 1.5, 2.5]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    assert_agree("normal-mapped quad", &scene, 1e-5, 1e-6);
+}

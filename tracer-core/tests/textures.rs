@@ -234,3 +234,72 @@ fn path_traced_textured_lambert_under_the_default_sky_is_its_texture() {
         }
     }
 }
+
+/// A normal-mapped quad (glTF normalTexture; no TANGENT, so MikkTSpace's
+/// tangent: +x along u, and the bitangent +y, up the image) under one far
+/// light is the cosine law with the perturbed normal: every pixel is the
+/// light times the diffuse colour times n.l, n the texel's tangent-space
+/// normal (2 c / 255 - 1, x and y times `scale`) in the frame (x, y, z),
+/// computed here in f64. Two scales, so the scale and both tangent-frame
+/// axes count.
+#[test]
+fn a_normal_mapped_quad_under_one_light_follows_the_cosine_law_with_the_perturbed_normal() {
+    let tilt = {
+        let t = [0.35f64, -0.25, 0.9];
+        let l = (t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt();
+        t.map(|c| c / l)
+    };
+    let texel = tilt.map(|c| ((c + 1.0) / 2.0 * 255.0).round() as u8);
+    let light = [0.7f64, 0.2, 0.5];
+    let far = 1.0e4;
+    for scale in [1.0f64, 0.5] {
+        let dir = tmpdir(&format!("normal-map-{scale}"));
+        write_png(&dir, 2, 2, &[[texel[0], texel[1], texel[2], 255]; 4]);
+        let model = textured_quad(
+            &dir,
+            1.0,
+            0.0,
+            &format!(
+                r#"{{"pbrMetallicRoughness":{{"metallicFactor":0,"roughnessFactor":1}},
+                    "normalTexture":{{"index":0,"scale":{scale}}},
+                    "extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}"#
+            ),
+            r#"{"magFilter":9728}"#,
+        );
+        let src = format!(
+            "[render]\nwidth = 9\nheight = 9\nsamples = 1\n\
+             [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 40\n\
+             [world]\nambient = [0, 0, 0]\n\
+             [[lights]]\nposition = [{}, {}, {}]\ndiffuse = [0.8, 0.8, 0.8]\nspecular = [0, 0, 0]\n\
+             [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n",
+            light[0] * far,
+            light[1] * far,
+            light[2] * far,
+        );
+        let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+        let img = render(&scene);
+        let local: [f64; 3] = std::array::from_fn(|k| {
+            let c = texel[k] as f64 / 255.0 * 2.0 - 1.0;
+            if k < 2 { c * scale } else { c }
+        });
+        let len = local.iter().map(|c| c * c).sum::<f64>().sqrt();
+        let l_len = light.iter().map(|c| c * c).sum::<f64>().sqrt();
+        let cos = (0..3)
+            .map(|k| local[k] / len * light[k] / l_len)
+            .sum::<f64>();
+        let want = 0.8 * cos;
+        let flat = 0.8 * light[2] / l_len;
+        assert!(
+            (want - flat).abs() > 0.05,
+            "the tilt must show: {want} against {flat}"
+        );
+        for (i, p) in img.iter().enumerate() {
+            for c in p {
+                assert!(
+                    (*c as f64 - want).abs() < 2e-4,
+                    "scale {scale}, pixel {i}: {c} against {want} (unmapped {flat})"
+                );
+            }
+        }
+    }
+}

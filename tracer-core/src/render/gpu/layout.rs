@@ -855,9 +855,12 @@ pub struct GpuPbr {
     /// alpha < the f64 cutoff the CPU compares with.
     pub alpha_cutoff: f32,
     pub occlusion_strength: f32,
-    pub _pad: [f32; 3],
-    /// Base colour, metallic-roughness, emissive, occlusion, MTL alpha (`PBR_TEX_*`).
-    pub tex: [GpuTexRef; 5],
+    /// normalTexture.scale.
+    pub normal_scale: f32,
+    pub _pad: [f32; 2],
+    /// Base colour, metallic-roughness, emissive, occlusion, MTL alpha,
+    /// normal (`PBR_TEX_*`).
+    pub tex: [GpuTexRef; 6],
 }
 
 pub const PBR_MASK: u32 = 1;
@@ -873,11 +876,13 @@ pub struct GpuVertexAttr {
     pub uv0: [f32; 2],
     pub uv1: [f32; 2],
     pub colour: [f32; 4],
+    /// `VertexAttrs::tangent` (w 0: unknown).
+    pub tangent: [f32; 4],
 }
 
 const _: () = assert!(size_of::<GpuTexRef>() == 48);
-const _: () = assert!(size_of::<GpuPbr>() == 80 + 5 * 48);
-const _: () = assert!(size_of::<GpuVertexAttr>() == 32);
+const _: () = assert!(size_of::<GpuPbr>() == 80 + 6 * 48);
+const _: () = assert!(size_of::<GpuVertexAttr>() == 48);
 
 /// Texels of the decode tables that lead `PbrData::texels`: 256 sRGB
 /// bytes to linear, then 256 bytes / 255 (`texture.rs`'s exact values).
@@ -988,6 +993,7 @@ impl PbrData {
                 &p.emissive_texture,
                 &p.occlusion_texture,
                 &p.alpha_texture,
+                &p.normal_texture,
             ]
             .into_iter()
             .flatten()
@@ -1054,13 +1060,15 @@ impl PbrData {
                         .map(|c| (0.04 * p.specular_factor * c) as f32),
                     alpha_cutoff: cutoff,
                     occlusion_strength: p.occlusion_strength as f32,
-                    _pad: [0.0; 3],
+                    normal_scale: p.normal_scale as f32,
+                    _pad: [0.0; 2],
                     tex: [
                         tex(&p.base_color_texture),
                         tex(&p.metallic_roughness_texture),
                         tex(&p.emissive_texture),
                         tex(&p.occlusion_texture),
                         tex(&p.alpha_texture),
+                        tex(&p.normal_texture),
                     ],
                 }
             })
@@ -1079,6 +1087,7 @@ impl PbrData {
                 uv0: a.uv[0].get(i).copied().unwrap_or_default(),
                 uv1: a.uv[1].get(i).copied().unwrap_or_default(),
                 colour: a.color[i],
+                tangent: a.tangent.get(i).copied().unwrap_or_default(),
             })
             .collect();
         Some(PbrData {

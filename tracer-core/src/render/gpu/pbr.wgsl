@@ -31,16 +31,17 @@ struct Pbr {
     f0: vec3<f32>,
     alpha_cutoff: f32,
     occlusion_strength: f32,
-    pad0: f32,
+    normal_scale: f32,
     pad1: f32,
     pad2: f32,
-    tex: array<TexRef, 5>,
+    tex: array<TexRef, 6>,
 }
 
 struct VertexAttr {
     uv0: vec2<f32>,
     uv1: vec2<f32>,
     colour: vec4<f32>,
+    tangent: vec4<f32>,
 }
 
 // Bindings mat_pbr, pbrs, tri_attrs, vertex_attrs, texels: wgsl.rs SCENE.
@@ -60,6 +61,7 @@ const T_MR: u32 = 1u;
 const T_EMISSIVE: u32 = 2u;
 const T_OCCLUSION: u32 = 3u;
 const T_ALPHA: u32 = 4u;
+const T_NORMAL: u32 = 5u;
 // texels[0..256]: sRGB byte -> linear; [256..512]: byte / 255.
 const TABLE_LINEAR: u32 = 256u;
 // world/query.rs MAX_CUTOUT_LAYERS.
@@ -336,4 +338,58 @@ fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
         1.0,
         1.0);
     return Looked(out, emission, true);
+}
+
+// render/step.rs shading_normal: `ns` (the shading normal facing the
+// viewer) tilted by a model material's normalTexture, in the frame of the
+// interpolated vertex normal, the tangent made orthogonal to it and
+// w N x T; reversed on a back face; ns where the tilted normal would face
+// away from the viewer v. n: the geometric normal facing the viewer.
+fn normal_mapped(id: u32, p: vec3<f32>, material: u32, n: vec3<f32>, ns: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
+    let pi = pbr_index(id, material);
+    if (pi == NONE) {
+        return ns;
+    }
+    let pb = pbrs[pi];
+    if ((pb.tex[T_NORMAL].flags & TEX_PRESENT) == 0u) {
+        return ns;
+    }
+    // world/query.rs tangent_at.
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    let a = shading[index].attrs;
+    if (a == NONE) {
+        return ns;
+    }
+    let va = vertex_attrs[tri_attrs[3u * a]];
+    let vb = vertex_attrs[tri_attrs[3u * a + 1u]];
+    let vc = vertex_attrs[tri_attrs[3u * a + 2u]];
+    if (va.tangent.w == 0.0 || vb.tangent.w == 0.0 || vc.tangent.w == 0.0) {
+        return ns;
+    }
+    let b = triangle_barycentric(index, p);
+    let t = va.tangent.xyz * b.x + vb.tangent.xyz * b.y + vc.tangent.xyz * b.z;
+    let at = attrs_at(index, p);
+    let c = tex_sample(pb.tex[T_NORMAL], at.uv0, at.uv1);
+    let local = vec3<f32>(
+        (2.0 * c.x - 1.0) * pb.normal_scale,
+        (2.0 * c.y - 1.0) * pb.normal_scale,
+        2.0 * c.z - 1.0);
+    let normal = triangle_normal_at(index, p);
+    let along0 = t - normal * dot(normal, t);
+    let len0 = length(along0);
+    if (!(len0 > 0.0 && len0 <= BIG)) {
+        return ns;
+    }
+    let along = along0 * (1.0 / len0);
+    let across = cross(normal, along) * select(1.0, -1.0, va.tangent.w < 0.0);
+    let tilted0 = along * local.x + across * local.y + normal * local.z;
+    let len = length(tilted0);
+    if (!(len > 0.0 && len <= BIG)) {
+        return ns;
+    }
+    var tilted = tilted0 * (1.0 / len);
+    if (dot(normal, n) < 0.0) {
+        tilted = -tilted;
+    }
+    return select(ns, tilted, dot(tilted, v) > 0.0);
 }
