@@ -11,7 +11,7 @@
 
 mod common;
 
-use common::meshgen::{colour_texels, textured_quad, textured_quad_coloured, tmpdir, write_png};
+use common::meshgen::{colour_texels, textured_quad, textured_quad_with, tmpdir, write_png};
 use common::*;
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::gpu::Strategy;
@@ -161,7 +161,7 @@ fn gpu_vertex_colours_match_the_cpu() {
             [255, 0, 128, 255],
         ],
     );
-    let model = textured_quad_coloured(
+    let model = textured_quad_with(
         &dir,
         1.0,
         0.0,
@@ -173,6 +173,7 @@ fn gpu_vertex_colours_match_the_cpu() {
             [0.0, 0.0, 1.0, 1.0],
             [1.0, 1.0, 1.0, 1.0],
         ]),
+        None,
     );
     let src = format!(
         "[render]\nwidth = 40\nheight = 40\nsamples = 1\n\

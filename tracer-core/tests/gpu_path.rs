@@ -385,7 +385,7 @@ fn gpu_path_matches_the_cpu_on_alpha_cutouts_and_blend() {
 /// texels shade with the texture times the vertex colour.
 #[test]
 fn gpu_path_matches_the_cpu_on_a_textured_vertex_coloured_cutout() {
-    use common::meshgen::{textured_quad_coloured, tmpdir, write_png};
+    use common::meshgen::{textured_quad_with, tmpdir, write_png};
     let dir = tmpdir("gpu-path-cutout");
     let alpha = [1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0, 1, 1, 0];
     let texels: Vec<[u8; 4]> = alpha
@@ -394,7 +394,7 @@ fn gpu_path_matches_the_cpu_on_a_textured_vertex_coloured_cutout() {
         .map(|(i, &a)| [255 - 12 * i as u8, 60 + 10 * i as u8, 200, a * 255])
         .collect();
     write_png(&dir, 4, 4, &texels);
-    let model = textured_quad_coloured(
+    let model = textured_quad_with(
         &dir,
         0.6,
         0.8,
@@ -407,6 +407,7 @@ fn gpu_path_matches_the_cpu_on_a_textured_vertex_coloured_cutout() {
             [0.2, 0.2, 1.0, 1.0],
             [1.0, 1.0, 1.0, 1.0],
         ]),
+        None,
     );
     let src = format!(
         "[render]\nwidth = 48\nheight = 48\nsamples = 4\nintegrator = \"path\"\nmax_depth = 4\n\

@@ -181,24 +181,12 @@ pub fn keyframes_along_x(from: f64, to: f64) -> String {
 /// bottom-right one, material `material` (JSON) and the PNG `png` as
 /// image 0 (texture 0, sampler `sampler`).
 pub fn textured_quad(dir: &Path, h: f32, z: f32, material: &str, sampler: &str) -> String {
-    textured_quad_coloured(dir, h, z, material, sampler, None)
+    textured_quad_with(dir, h, z, material, sampler, None, None)
 }
 
 /// [`textured_quad`] with COLOR_0 (RGBA, one per corner: (-h, -h),
-/// (h, -h), (h, h), (-h, h)) where `colours` is given.
-pub fn textured_quad_coloured(
-    dir: &Path,
-    h: f32,
-    z: f32,
-    material: &str,
-    sampler: &str,
-    colours: Option<[[f32; 4]; 4]>,
-) -> String {
-    textured_quad_with(dir, h, z, material, sampler, colours, None)
-}
-
-/// [`textured_quad_coloured`] with TANGENT (the same at every corner)
-/// where `tangent` is given.
+/// (h, -h), (h, h), (-h, h)) where `colours` is given, and TANGENT (the
+/// same at every corner) where `tangent` is given.
 pub fn textured_quad_with(
     dir: &Path,
     h: f32,
