@@ -297,6 +297,7 @@ impl Pbr {
             || self.emissive_texture.is_some()
             || self.metallic_roughness_texture.is_some()
             || self.occlusion_texture.is_some()
+            || self.normal_texture.is_some()
     }
 }
 

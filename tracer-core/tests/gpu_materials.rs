@@ -11,12 +11,12 @@
 
 mod common;
 
-use common::meshgen::{colour_texels, textured_quad, textured_quad_coloured, tmpdir, write_png};
+use common::meshgen::{colour_texels, textured_quad, textured_quad_with, tmpdir, write_png};
 use common::*;
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::gpu::Strategy;
 use tracer_core::render::{Precision, PreparedFrame};
-use tracer_core::scene::{ModelSceneOptions, SceneDesc};
+use tracer_core::scene::SceneDesc;
 
 /// An image's linear RGB pixels.
 type Image = Vec<[f32; 3]>;
@@ -111,40 +111,6 @@ fn gpu_emissive_textured_quad_matches_the_cpu() {
     assert_agree("emissive textured quad", &scene, 1e-5, 1e-6);
 }
 
-/// The GPU's path kernel takes each material's BSDF as constant: a
-/// textured model material under `--integrator path` is refused by name
-/// rather than rendered without its texture.
-#[test]
-fn gpu_path_refuses_textured_model_materials_by_name() {
-    let dir = tmpdir("gpu-tex-path");
-    write_png(&dir, 4, 3, &colour_texels(4, 3));
-    let model = textured_quad(
-        &dir,
-        1.0,
-        0.0,
-        r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0}}}"#,
-        r#"{}"#,
-    );
-    let src = format!(
-        "[render]\nwidth = 8\nheight = 8\nsamples = 1\nintegrator = \"path\"\n\
-         [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\n\
-         [[lights]]\nposition = [1, 2, 3]\n\
-         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
-    );
-    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
-    let s = &scene.render;
-    let prepared = PreparedFrame::build(&scene, s, 0, Precision::F32).expect("valid settings");
-    let e = gpu_with(Strategy::Stack)
-        .expect("an adapter")
-        .render(&prepared, 0, Rect::full(8, 8), SampleRange::all(1), &|_| {})
-        .expect_err("refused");
-    assert_eq!(
-        e.to_string(),
-        "the scene's model materials use textures, vertex colours or cut-outs under --integrator path, \
-         which the GPU backend does not render yet; render it with --backend cpu"
-    );
-}
-
 /// The cut-out quad of tests/textures.rs over a lit plane: camera and
 /// shadow rays pass its transparent texels on the GPU as on the CPU.
 #[test]
@@ -195,7 +161,7 @@ fn gpu_vertex_colours_match_the_cpu() {
             [255, 0, 128, 255],
         ],
     );
-    let model = textured_quad_coloured(
+    let model = textured_quad_with(
         &dir,
         1.0,
         0.0,
@@ -207,6 +173,7 @@ fn gpu_vertex_colours_match_the_cpu() {
             [0.0, 0.0, 1.0, 1.0],
             [1.0, 1.0, 1.0, 1.0],
         ]),
+        None,
     );
     let src = format!(
         "[render]\nwidth = 40\nheight = 40\nsamples = 1\n\
@@ -221,20 +188,6 @@ fn gpu_vertex_colours_match_the_cpu() {
     let bl = cpu[(34 * 40 + 5) as usize];
     assert!(bl[0] > 2.0 * bl[1] && bl[0] > 2.0 * bl[2], "{bl:?}");
     assert_agree("vertex colours", &scene, 1e-5, 1e-6);
-}
-
-/// A shared glTF asset rendered as a scene at `w` x `h`.
-fn asset(path: &str, w: u32, h: u32) -> SceneDesc {
-    let p = prereq::shared(path);
-    SceneDesc::load_input(
-        &p,
-        &ModelSceneOptions {
-            width: Some(w),
-            height: Some(h),
-            ..Default::default()
-        },
-    )
-    .unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
 /// The real assets of shared/scenes on the GPU against the CPU, at a
@@ -269,7 +222,7 @@ fn gpu_renders_the_shared_gltf_assets_as_the_cpu_does() {
         ),
         ("scenes/gltf/SpecularTest/glTF/SpecularTest.gltf", 96, 48),
     ] {
-        let scene = asset(path, w, h);
+        let scene = shared_asset(path, w, h);
         let (cpu, gpus, rays) = cpu_and_gpu_rays(&scene);
         for (k, (g, kernel)) in gpus.iter().zip(["stack", "wavefront"]).enumerate() {
             // The same secondary rays, within the few hits where the two
@@ -300,4 +253,98 @@ fn gpu_renders_the_shared_gltf_assets_as_the_cpu_does() {
             );
         }
     }
+}
+
+/// The texel-pack cache (layout::TexelPack): another tile or frame of the
+/// same world packs and uploads no texel, and renders as before; a world
+/// of other images packs and uploads its own. A renderer of its own, so
+/// that no other test's scene comes between the renders counted.
+#[test]
+fn a_second_tile_of_a_textured_scene_reuses_the_packed_texels() {
+    use tracer_core::render::gpu::{GpuOptions, GpuRenderer};
+    let g = GpuRenderer::new(
+        std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+        GpuOptions::default(),
+    )
+    .unwrap_or_else(|e| panic!("no GPU adapter could be opened: {e}"));
+    let textured = |tag: &str, texels: &[[u8; 4]]| {
+        let dir = tmpdir(tag);
+        write_png(&dir, 4, 3, texels);
+        let model = textured_quad(
+            &dir,
+            1.0,
+            0.0,
+            r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0},"metallicFactor":0}}"#,
+            r#"{}"#,
+        );
+        let src = format!(
+            "[render]\nwidth = 24\nheight = 16\nsamples = 1\n\
+             [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\n\
+             [[lights]]\nposition = [1, 2, 3]\n\
+             [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+        );
+        SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
+    };
+    let a = textured("texel-cache-a", &colour_texels(4, 3));
+    let b = textured("texel-cache-b", &[[40, 200, 90, 255]; 12]);
+    let render = |desc: &SceneDesc, frame: u32, rect: Rect| {
+        let p = PreparedFrame::build(desc, &desc.render, frame, Precision::F32).unwrap();
+        g.render(&p, frame, rect, SampleRange::all(1), &|_| {})
+            .unwrap_or_else(|e| panic!("GPU render failed: {e}"))
+    };
+    let (left, right) = (Rect::new(0, 0, 12, 16), Rect::new(12, 0, 12, 16));
+    let first = render(&a, 0, left);
+    assert_eq!(g.texel_work(), (1, 1), "the first tile packs and uploads");
+    let second = render(&a, 0, right);
+    let again = render(&a, 0, left);
+    // A new frame of the same scene (the farm's next frame): the same images.
+    let next_frame = render(&a, 1, right);
+    assert_eq!(
+        g.texel_work(),
+        (1, 1),
+        "other tiles and frames of the same world reuse the texels"
+    );
+    assert_eq!(again.sums, first.sums, "a reused pack renders as the first");
+    assert_eq!(next_frame.sums, second.sums);
+    assert_ne!(first.sums, second.sums);
+    let other = render(&b, 0, left);
+    assert_eq!(
+        g.texel_work(),
+        (2, 2),
+        "other images are packed and uploaded"
+    );
+    assert_ne!(other.sums, first.sums);
+    let back = render(&a, 0, left);
+    assert_eq!(g.texel_work(), (3, 3), "one scene is kept at a time");
+    assert_eq!(back.sums, first.sums);
+}
+
+/// A normal map (glTF normalTexture with a scale, MikkTSpace tangents) on
+/// the GPU as on the CPU: pbr.wgsl `normal_mapped` against render/step.rs
+/// `shading_normal`, a varied texture bilinearly filtered, under a light
+/// with a specular highlight (the tilted normal moves both terms).
+#[test]
+fn gpu_normal_map_matches_the_cpu() {
+    let dir = tmpdir("gpu-normal-map");
+    let texels: Vec<[u8; 4]> = (0..12u8)
+        .map(|i| [100 + 9 * i, 160 - 7 * i, 230 - (i % 3) * 20, 255])
+        .collect();
+    write_png(&dir, 4, 3, &texels);
+    let model = textured_quad(
+        &dir,
+        1.0,
+        0.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0.8,0.7,0.6,1],"metallicFactor":0.2,"roughnessFactor":0.5},
+            "normalTexture":{"index":0,"scale":0.8}}"#,
+        r#"{}"#,
+    );
+    let src = format!(
+        "[render]\nwidth = 40\nheight = 32\nsamples = 1\n\
+         [camera]\nposition = [0.4, -0.3, 2.2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 55\n\
+         [world]\nambient = [0.1, 0.1, 0.1]\n\
+         [[lights]]\nposition = [1, 1.5, 2.5]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    assert_agree("normal-mapped quad", &scene, 1e-5, 1e-6);
 }

@@ -9,7 +9,7 @@ use tracer_core::render::Precision;
 use tracer_core::scene::SceneDesc;
 
 mod common;
-use common::meshgen::{colour_texels, textured_quad, tmpdir, write_png};
+use common::meshgen::{colour_texels, textured_quad, textured_quad_with, tmpdir, write_png};
 
 fn render(scene: &SceneDesc) -> Vec<[f32; 3]> {
     common::render_with(scene, &scene.render, Precision::F32).resolve()
@@ -231,6 +231,104 @@ fn path_traced_textured_lambert_under_the_default_sky_is_its_texture() {
                 (p[k] as f64 - want[k]).abs() < 1e-5,
                 "pixel {i}: {p:?}, want the texel {want:?}"
             );
+        }
+    }
+}
+
+/// The centre pixel value of the quad of [`textured_quad_with`] with a
+/// uniform normal texture `texel` (`normalTexture.scale` `scale`,
+/// TANGENT `tangent` or none), Lambert white under a far light along
+/// `light` of diffuse 0.8, no ambient.
+fn normal_mapped_quad(
+    tag: &str,
+    texel: [u8; 3],
+    scale: f64,
+    tangent: Option<[f32; 4]>,
+    light: [f64; 3],
+) -> Vec<[f32; 3]> {
+    let dir = tmpdir(tag);
+    write_png(&dir, 2, 2, &[[texel[0], texel[1], texel[2], 255]; 4]);
+    let model = textured_quad_with(
+        &dir,
+        1.0,
+        0.0,
+        &format!(
+            r#"{{"pbrMetallicRoughness":{{"metallicFactor":0,"roughnessFactor":1}},
+                "normalTexture":{{"index":0,"scale":{scale}}},
+                "extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}"#
+        ),
+        r#"{"magFilter":9728}"#,
+        None,
+        tangent,
+    );
+    let far = 1.0e4;
+    let src = format!(
+        "[render]\nwidth = 9\nheight = 9\nsamples = 1\n\
+         [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 40\n\
+         [world]\nambient = [0, 0, 0]\n\
+         [[lights]]\nposition = [{}, {}, {}]\ndiffuse = [0.8, 0.8, 0.8]\nspecular = [0, 0, 0]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n",
+        light[0] * far,
+        light[1] * far,
+        light[2] * far,
+    );
+    render(&SceneDesc::parse(&src, dir.join("scene.toml")).unwrap())
+}
+
+/// A normal-mapped quad under one far light is the cosine law with the
+/// perturbed normal: every pixel is the light times the diffuse colour
+/// times n.l, n the texel's tangent-space normal (2 c / 255 - 1, x and y
+/// times `scale`) in the frame (T, B, N), computed here in f64. Without
+/// TANGENT, MikkTSpace's frame: T +x along u, B +y (up the image), N +z;
+/// with TANGENT (0, 1, 0, w): T +y and B = w (N x T) = -w x. Two scales,
+/// so the scale and both tangent-frame axes count.
+#[test]
+fn a_normal_mapped_quad_under_one_light_follows_the_cosine_law_with_the_perturbed_normal() {
+    let tilt = {
+        let t = [0.35f64, -0.25, 0.9];
+        let l = (t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt();
+        t.map(|c| c / l)
+    };
+    let texel = tilt.map(|c| ((c + 1.0) / 2.0 * 255.0).round() as u8);
+    let light = [0.7f64, 0.2, 0.5];
+    // (tangent, its frame: the world normal of a tangent-space one).
+    type Frame = fn([f64; 3]) -> [f64; 3];
+    let frames: [(Option<[f32; 4]>, Frame); 3] = [
+        (None, |l| l),
+        (Some([0.0, 1.0, 0.0, 1.0]), |l| [-l[1], l[0], l[2]]),
+        (Some([0.0, 1.0, 0.0, -1.0]), |l| [l[1], l[0], l[2]]),
+    ];
+    for (k, (tangent, frame)) in frames.into_iter().enumerate() {
+        for scale in [1.0f64, 0.5] {
+            let img = normal_mapped_quad(
+                &format!("normal-map-{k}-{scale}"),
+                texel,
+                scale,
+                tangent,
+                light,
+            );
+            let local: [f64; 3] = std::array::from_fn(|k| {
+                let c = texel[k] as f64 / 255.0 * 2.0 - 1.0;
+                if k < 2 { c * scale } else { c }
+            });
+            let n = frame(local);
+            let len = n.iter().map(|c| c * c).sum::<f64>().sqrt();
+            let l_len = light.iter().map(|c| c * c).sum::<f64>().sqrt();
+            let cos = (0..3).map(|k| n[k] / len * light[k] / l_len).sum::<f64>();
+            let want = 0.8 * cos;
+            let flat = 0.8 * light[2] / l_len;
+            assert!(
+                (want - flat).abs() > 0.05,
+                "the tilt must show: {want} against {flat}"
+            );
+            for (i, p) in img.iter().enumerate() {
+                for c in p {
+                    assert!(
+                        (*c as f64 - want).abs() < 2e-4,
+                        "tangent {tangent:?}, scale {scale}, pixel {i}: {c} against {want} (unmapped {flat})"
+                    );
+                }
+            }
         }
     }
 }

@@ -356,6 +356,33 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                     None => uv.extend(std::iter::repeat_n([0.0; 2], positions.len())),
                 }
             }
+            // TANGENT (VEC4 of float; a quantized one is left for MikkTSpace).
+            let tangents = prim.get(&gltf::Semantic::Tangents).filter(|a| {
+                a.dimensions() == gltf::accessor::Dimensions::Vec4
+                    && a.data_type() == gltf::accessor::DataType::F32
+                    && check_accessor(a, &buffers).is_ok()
+            });
+            match tangents.and_then(|_| reader.read_tangents()) {
+                Some(t) => {
+                    geo.any_tangent = true;
+                    let before = geo.tangents.len();
+                    let linear = DMat3::from_mat4(*xf);
+                    let sign = if flip { -1.0 } else { 1.0 };
+                    geo.tangents.extend(t.map(|[x, y, z, w]| {
+                        let v = (linear * DVec3::new(x as f64, y as f64, z as f64))
+                            .normalize_or_zero()
+                            .as_vec3();
+                        let w = if w < 0.0 { -sign } else { sign };
+                        [v.x, v.y, v.z, w]
+                    }));
+                    if geo.tangents.len() - before != positions.len() {
+                        return Err(err(at("TANGENT count differs from position count")));
+                    }
+                }
+                None => geo
+                    .tangents
+                    .extend(std::iter::repeat_n([0.0; 4], positions.len())),
+            }
             match reader.read_colors(0) {
                 Some(c) => {
                     geo.any_color = true;
@@ -416,9 +443,12 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
         }
     }
     main.finish_into(&mut mesh);
+    let pbr = mesh.pbr.clone();
+    super::tangents::complete(&mut mesh, &pbr);
     for (geo, transforms) in parts {
         let mut part = Mesh::default();
         geo.finish_into(&mut part);
+        super::tangents::complete(&mut part, &pbr);
         mesh.instanced.push(super::InstancedPart {
             mesh: part,
             transforms,
@@ -463,8 +493,10 @@ struct Geometry {
     /// vertex list).
     uvs: [Vec<[f32; 2]>; 2],
     colors: Vec<[f32; 4]>,
+    tangents: Vec<[f32; 4]>,
     any_uv: [bool; 2],
     any_color: bool,
+    any_tangent: bool,
 }
 
 impl Geometry {
@@ -484,6 +516,9 @@ impl Geometry {
         }
         if self.any_color {
             out.colors = self.colors;
+        }
+        if self.any_tangent {
+            out.tangents = self.tangents;
         }
     }
 }

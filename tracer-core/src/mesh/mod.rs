@@ -6,6 +6,7 @@
 mod gltf_file;
 mod obj;
 mod ply;
+mod tangents;
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -36,6 +37,10 @@ pub struct Mesh {
     pub uvs: [Vec<[f32; 2]>; 2],
     /// Per vertex linear RGBA colour (COLOR_0), or empty.
     pub colors: Vec<[f32; 4]>,
+    /// Per vertex tangent for normal maps (glTF TANGENT: xyz, w the
+    /// bitangent's sign, +-1), from the file or MikkTSpace (`tangents.rs`);
+    /// w 0 where unknown; empty when no material has a normal map.
+    pub tangents: Vec<[f32; 4]>,
     /// What was read with a default instead of refused (a missing MTL
     /// library, `Ni 0`): shown to the user, the file still renders.
     pub warnings: Vec<String>,
@@ -345,6 +350,12 @@ impl Mesh {
                     uv.len()
                 ));
             }
+        }
+        if !self.tangents.is_empty() && self.tangents.len() != nv {
+            return Err(format!(
+                "{} TANGENT values for {nv} vertices",
+                self.tangents.len()
+            ));
         }
         if !self.colors.is_empty() && self.colors.len() != nv {
             return Err(format!(

@@ -363,7 +363,7 @@ impl<'a, R: Real> Surface<'a, R, PrimId> {
         let (p, n_out, material) = world.surface(id, ray.at(t));
         let (m, bsdf) = material_at(world, id, p, material);
         Surface::new(id, p, n_out, ray, m, bsdf, |n, v| {
-            world.shading_normal(id, p, n, v)
+            shading_normal(world, id, p, material, n, v)
         })
     }
 }
@@ -391,6 +391,67 @@ pub fn material_at<R: Real>(
     }
     let (uv, colour) = world.attrs_at(id.index(), p);
     pbr.at(m, uv, colour)
+}
+
+/// The shading normal at `p` on primitive `id` (of material index
+/// `material`), given `n`, the geometric normal facing the viewer, and `v`,
+/// the direction to the viewer: `World::shading_normal`, tilted by a model
+/// material's glTF `normalTexture` where it has one (docs/meshes.md,
+/// "Normal maps"): the texel's tangent-space normal (2 c - 1, x and y
+/// times `normalTexture.scale`) in the frame of the interpolated vertex
+/// normal N, the tangent T made orthogonal to N, and B = w N x T;
+/// reversed where the viewer is on N's far side (a double-sided back
+/// face); the untilted normal where the tilted one would face away from
+/// the viewer. pbr.wgsl `normal_mapped` is its mirror.
+#[inline]
+pub fn shading_normal<R: Real>(
+    world: &World<R>,
+    id: PrimId,
+    p: R::V3,
+    material: u32,
+    n: R::V3,
+    v: R::V3,
+) -> R::V3 {
+    let ns = world.shading_normal(id, p, n, v);
+    let m = &world.materials[material as usize];
+    if m.pbr == NO_PBR || id.kind() != PrimId::TRIANGLE {
+        return ns;
+    }
+    let pbr = &world.pbr[m.pbr as usize];
+    let Some(tex) = &pbr.normal_texture else {
+        return ns;
+    };
+    let Some((uv, t)) = world.tangent_at(id.index(), p) else {
+        return ns;
+    };
+    let c = tex.sample(uv[tex.uv_set as usize]);
+    let scale = pbr.normal_scale as f32;
+    let local = [
+        (2.0 * c[0] - 1.0) * scale,
+        (2.0 * c[1] - 1.0) * scale,
+        2.0 * c[2] - 1.0,
+    ]
+    .map(|x| R::from_f64(x as f64));
+    let normal = world.triangle_shading[id.index()].normal_at(&world.triangles[id.index()], p);
+    let tangent = R::V3::from_array([t[0], t[1], t[2]].map(f64::from));
+    let along = tangent - normal * normal.dot(tangent);
+    let len = along.length();
+    if !(len > R::ZERO && len.is_finite()) {
+        return ns;
+    }
+    let along = along * (R::ONE / len);
+    let sign = if t[3] < 0.0 { -R::ONE } else { R::ONE };
+    let across = normal.cross(along) * sign;
+    let tilted = along * local[0] + across * local[1] + normal * local[2];
+    let len = tilted.length();
+    if !(len > R::ZERO && len.is_finite()) {
+        return ns;
+    }
+    let mut tilted = tilted * (R::ONE / len);
+    if normal.dot(n) < R::ZERO {
+        tilted = -tilted;
+    }
+    if tilted.dot(v) > R::ZERO { tilted } else { ns }
 }
 
 impl<'a, R: Real, P: Copy> Surface<'a, R, P> {

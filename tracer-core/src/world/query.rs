@@ -115,6 +115,34 @@ impl<R: Real> World<R> {
         ([mix2(&self.attrs.uv[0]), mix2(&self.attrs.uv[1])], colour)
     }
 
+    /// Texture coordinates (both sets) and tangent (`VertexAttrs::tangent`,
+    /// interpolated, w the first vertex's sign) at `p` on triangle `index`;
+    /// `None` without attributes or where a vertex's tangent is unknown.
+    pub fn tangent_at(&self, index: usize, p: R::V3) -> Option<([[f32; 2]; 2], [f32; 4])> {
+        let a = self.triangle_shading[index].attrs;
+        if a == crate::triangle::NO_ATTRS {
+            return None;
+        }
+        let vs = self.attrs.tri[a as usize];
+        let t = vs.map(|v| {
+            self.attrs
+                .tangent
+                .get(v as usize)
+                .copied()
+                .unwrap_or_default()
+        });
+        if t.iter().any(|t| t[3] == 0.0) {
+            return None;
+        }
+        let b = self.triangles[index]
+            .barycentric(p)
+            .map(|w| w.to_f64() as f32);
+        let (uv, _) = self.attrs_at(index, p);
+        let mix: [f32; 3] =
+            std::array::from_fn(|k| t[0][k] * b[0] + t[1][k] * b[1] + t[2][k] * b[2]);
+        Some((uv, [mix[0], mix[1], mix[2], t[0][3]]))
+    }
+
     /// Nearest hit, cut-outs included.
     #[inline(always)]
     fn closest_solid_or_cut(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {

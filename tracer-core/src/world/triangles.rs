@@ -22,6 +22,9 @@ pub struct VertexAttrs {
     pub tri: Vec<[u32; 3]>,
     pub uv: [Vec<[f32; 2]>; 2],
     pub color: Vec<[f32; 4]>,
+    /// Unit tangent and bitangent sign in world space (`Mesh::tangents`),
+    /// w 0 where unknown.
+    pub tangent: Vec<[f32; 4]>,
     /// Whether any material is alphaMode MASK: then every query passes
     /// through cut-outs.
     pub cutouts: bool,
@@ -225,6 +228,21 @@ impl<R: Real> TriangleSet<R> {
                 self.attrs.color.extend_from_slice(&mesh.colors);
             } else {
                 self.attrs.color.extend(std::iter::repeat_n([1.0; 4], nv));
+            }
+            if mesh.tangents.len() == nv {
+                // Tangents move with the surface (the placement's linear
+                // part, the inverse transpose of `nm`); a mirror flips the
+                // bitangent.
+                let linear = nm.inverse().transpose();
+                let sign = if flip { -1.0 } else { 1.0 };
+                self.attrs.tangent.extend(mesh.tangents.iter().map(|t| {
+                    let v = (linear * glam::DVec3::new(t[0] as f64, t[1] as f64, t[2] as f64))
+                        .normalize_or_zero()
+                        .as_vec3();
+                    [v.x, v.y, v.z, t[3] * sign]
+                }));
+            } else {
+                self.attrs.tangent.extend(std::iter::repeat_n([0.0; 4], nv));
             }
         }
         self.triangles.reserve(mesh.triangles.len());

@@ -181,18 +181,20 @@ pub fn keyframes_along_x(from: f64, to: f64) -> String {
 /// bottom-right one, material `material` (JSON) and the PNG `png` as
 /// image 0 (texture 0, sampler `sampler`).
 pub fn textured_quad(dir: &Path, h: f32, z: f32, material: &str, sampler: &str) -> String {
-    textured_quad_coloured(dir, h, z, material, sampler, None)
+    textured_quad_with(dir, h, z, material, sampler, None, None)
 }
 
 /// [`textured_quad`] with COLOR_0 (RGBA, one per corner: (-h, -h),
-/// (h, -h), (h, h), (-h, h)) where `colours` is given.
-pub fn textured_quad_coloured(
+/// (h, -h), (h, h), (-h, h)) where `colours` is given, and TANGENT (the
+/// same at every corner) where `tangent` is given.
+pub fn textured_quad_with(
     dir: &Path,
     h: f32,
     z: f32,
     material: &str,
     sampler: &str,
     colours: Option<[[f32; 4]; 4]>,
+    tangent: Option<[f32; 4]>,
 ) -> String {
     use base64::Engine as _;
     let mut bin = Vec::new();
@@ -224,11 +226,29 @@ pub fn textured_quad_coloured(
     } else {
         ("", "", "")
     };
+    let (tangent_attr, tangent_view, tangent_accessor) = match tangent {
+        Some(t) => {
+            let offset = bin.len();
+            for _ in 0..4 {
+                for c in t {
+                    bin.extend(c.to_le_bytes());
+                }
+            }
+            // Its buffer view and accessor, after the colours' where given.
+            let k = 4 + colours.is_some() as usize;
+            (
+                format!(r#","TANGENT":{k}"#),
+                format!(r#",{{"buffer":0,"byteOffset":{offset},"byteLength":64}}"#),
+                format!(r#",{{"bufferView":{k},"componentType":5126,"count":4,"type":"VEC4"}}"#),
+            )
+        }
+        None => Default::default(),
+    };
     let uri = base64::engine::general_purpose::STANDARD.encode(&bin);
     let json = format!(
         r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
         "nodes":[{{"mesh":0}}],
-        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2{colour_attr}}},"indices":3,"material":0}}]}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2{colour_attr}{tangent_attr}}},"indices":3,"material":0}}]}}],
         "materials":[{material}],
         "textures":[{{"source":0,"sampler":0}}],
         "samplers":[{sampler}],
@@ -236,11 +256,11 @@ pub fn textured_quad_coloured(
         "extensionsUsed":["KHR_materials_specular"],
         "buffers":[{{"byteLength":{len},"uri":"data:application/octet-stream;base64,{uri}"}}],
         "bufferViews":[{{"buffer":0,"byteLength":48}},{{"buffer":0,"byteOffset":48,"byteLength":48}},
-                       {{"buffer":0,"byteOffset":96,"byteLength":32}},{{"buffer":0,"byteOffset":128,"byteLength":12}}{colour_view}],
+                       {{"buffer":0,"byteOffset":96,"byteLength":32}},{{"buffer":0,"byteOffset":128,"byteLength":12}}{colour_view}{tangent_view}],
         "accessors":[{{"bufferView":0,"componentType":5126,"count":4,"type":"VEC3","min":[-1,-1,0],"max":[1,1,0]}},
                      {{"bufferView":1,"componentType":5126,"count":4,"type":"VEC3"}},
                      {{"bufferView":2,"componentType":5126,"count":4,"type":"VEC2"}},
-                     {{"bufferView":3,"componentType":5123,"count":6,"type":"SCALAR"}}{colour_accessor}]}}"#,
+                     {{"bufferView":3,"componentType":5123,"count":6,"type":"SCALAR"}}{colour_accessor}{tangent_accessor}]}}"#,
         len = bin.len(),
     );
     std::fs::write(dir.join("quad.gltf"), json).unwrap();

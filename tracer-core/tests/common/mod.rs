@@ -44,6 +44,21 @@ pub fn scene(src: &str) -> SceneDesc {
     SceneDesc::parse(src, "test.toml").unwrap_or_else(|e| panic!("test scene does not parse: {e}"))
 }
 
+/// A shared glTF asset (a path under shared/) rendered as a scene at
+/// `w` x `h`; a missing asset fails (prereq).
+pub fn shared_asset(path: &str, w: u32, h: u32) -> SceneDesc {
+    let p = prereq::shared(path);
+    SceneDesc::load_input(
+        &p,
+        &tracer_core::scene::ModelSceneOptions {
+            width: Some(w),
+            height: Some(h),
+            ..Default::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
 pub fn examples_dir() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples")
 }

@@ -98,7 +98,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                 let (p, n_out, mat) = world.surface(prim.id, ray.at(t));
                 let (m, bsdf) = step::material_at(world, prim.id, p, mat);
                 Surface::new(prim, p, n_out, ray, m, bsdf, |n, v| {
-                    world.shading_normal(prim.id, p, n, v)
+                    step::shading_normal(world, prim.id, p, mat, n, v)
                 })
             }
             Src::Sphere(i) => {
@@ -122,7 +122,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
                 let (p, n_out, mat) = mesh.world.surface(prim.id, ray.at(t) - off);
                 let (m, bsdf) = step::material_at(&mesh.world, prim.id, p, mat);
                 Surface::new(prim, p + off, n_out, ray, m, bsdf, |n, v| {
-                    mesh.world.shading_normal(prim.id, p, n, v)
+                    step::shading_normal(&mesh.world, prim.id, p, mat, n, v)
                 })
             }
         }

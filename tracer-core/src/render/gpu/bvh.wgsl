@@ -330,23 +330,31 @@ fn triangle_barycentric(index: u32, p: vec3<f32>) -> vec3<f32> {
     return vec3<f32>(1.0 - b1 - b2, b1, b2);
 }
 
+// triangle.rs TriangleShading::normal_at: the vertex normals interpolated
+// at p, or the geometric normal (outward, as the vertex normals are).
+fn triangle_normal_at(index: u32, p: vec3<f32>) -> vec3<f32> {
+    let s = shading[index];
+    if (s.smooth_shaded == 0u) {
+        return s.normal;
+    }
+    let b = triangle_barycentric(index, p);
+    let sum = s.n0 * b.x + s.n1 * b.y + s.n2 * b.z;
+    let len = length(sum);
+    if (len > 0.0 && len <= BIG) {
+        return sum * (1.0 / len);
+    }
+    return s.normal;
+}
+
 // world/query.rs shading_normal for triangle `index`: on smooth triangles the
 // interpolated vertex normal, turned to the side of n (the geometric normal
 // facing the viewer), and n itself wherever that would face away from the
 // viewer v.
 fn triangle_shading_normal(index: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
-    let s = shading[index];
-    if (s.smooth_shaded == 0u) {
+    if (shading[index].smooth_shaded == 0u) {
         return n;
     }
-    // triangle.rs TriangleShading::normal_at.
-    let b = triangle_barycentric(index, p);
-    let sum = s.n0 * b.x + s.n1 * b.y + s.n2 * b.z;
-    let len = length(sum);
-    var ns = s.normal;
-    if (len > 0.0 && len <= BIG) {
-        ns = sum * (1.0 / len);
-    }
+    var ns = triangle_normal_at(index, p);
     if (dot(ns, n) < 0.0) {
         ns = -ns;
     }

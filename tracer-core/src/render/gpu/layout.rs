@@ -619,8 +619,13 @@ fn non_empty<T: Default>(mut v: Vec<T>) -> Vec<T> {
 impl SceneData {
     /// Packs `w`. `packed` is a tree packed earlier, reused (not repacked)
     /// when it was packed from this world's trees (same non-zero `Bvh::id`s
-    /// and primitive counts).
-    pub fn from_world(w: &World<f32>, packed: Option<&SharedTree>) -> Result<Self, GpuError> {
+    /// and primitive counts); `texels`, texels packed earlier, reused when
+    /// packed from this world's images.
+    pub fn from_world(
+        w: &World<f32>,
+        packed: Option<&SharedTree>,
+        texels: Option<&std::sync::Arc<TexelPack>>,
+    ) -> Result<Self, GpuError> {
         let s = &w.settings;
         // 0: the low-discrepancy points (non-square counts, and the
         // progressive sampler whatever the count), as `sample_offset`.
@@ -772,7 +777,7 @@ impl SceneData {
             (Some(d), Some(scene)) => Some(PathData::append(d, scene, &bsdfs)),
             _ => None,
         };
-        let pbr = PbrData::from_world(w, materials.len()).map(std::sync::Arc::new);
+        let pbr = PbrData::from_world(w, materials.len(), texels).map(std::sync::Arc::new);
         Ok(SceneData {
             frame,
             spheres: non_empty(w.spheres.iter().map(sphere).collect()),
@@ -850,9 +855,12 @@ pub struct GpuPbr {
     /// alpha < the f64 cutoff the CPU compares with.
     pub alpha_cutoff: f32,
     pub occlusion_strength: f32,
-    pub _pad: [f32; 3],
-    /// Base colour, metallic-roughness, emissive, occlusion, MTL alpha (`PBR_TEX_*`).
-    pub tex: [GpuTexRef; 5],
+    /// normalTexture.scale.
+    pub normal_scale: f32,
+    pub _pad: [f32; 2],
+    /// Base colour, metallic-roughness, emissive, occlusion, MTL alpha,
+    /// normal (`PBR_TEX_*`).
+    pub tex: [GpuTexRef; 6],
 }
 
 pub const PBR_MASK: u32 = 1;
@@ -868,11 +876,13 @@ pub struct GpuVertexAttr {
     pub uv0: [f32; 2],
     pub uv1: [f32; 2],
     pub colour: [f32; 4],
+    /// `VertexAttrs::tangent` (w 0: unknown).
+    pub tangent: [f32; 4],
 }
 
 const _: () = assert!(size_of::<GpuTexRef>() == 48);
-const _: () = assert!(size_of::<GpuPbr>() == 80 + 5 * 48);
-const _: () = assert!(size_of::<GpuVertexAttr>() == 32);
+const _: () = assert!(size_of::<GpuPbr>() == 80 + 6 * 48);
+const _: () = assert!(size_of::<GpuVertexAttr>() == 48);
 
 /// Texels of the decode tables that lead `PbrData::texels`: 256 sRGB
 /// bytes to linear, then 256 bytes / 255 (`texture.rs`'s exact values).
@@ -889,21 +899,81 @@ pub struct PbrData {
     /// Three vertex indices per attribute triangle (`VertexAttrs::tri`).
     pub tri_attrs: Vec<u32>,
     pub vertices: Vec<GpuVertexAttr>,
-    pub texels: Vec<u32>,
+    pub texels: std::sync::Arc<TexelPack>,
     /// Some material is alphaMode MASK: every query passes cut-outs.
     pub cutouts: bool,
+}
+
+/// The texels binding: the decode tables, then every image of a world's
+/// model materials once, in first-use order, with the images it was
+/// packed from. Kept with the scene between renders, so that another tile
+/// or frame of the same world packs, compares and uploads no texel
+/// (DamagedHelmet's 84 MB cost ~100 ms a call): equal when it is the same
+/// allocation or was packed from the same images (the same `Arc`s, held
+/// here, so no address is reused while it is compared); a world of other
+/// images is packed and uploaded afresh, even if their texels are equal.
+pub struct TexelPack {
+    pub images: Vec<std::sync::Arc<crate::texture::Image>>,
+    pub words: Vec<u32>,
+}
+
+impl TexelPack {
+    /// Packs `images` after the decode tables.
+    fn pack(images: Vec<std::sync::Arc<crate::texture::Image>>) -> Self {
+        let mut words: Vec<u32> = crate::texture::decode_tables()
+            .iter()
+            .map(|v| v.to_bits())
+            .collect();
+        for i in &images {
+            words.extend(i.texels.iter().map(|c| u32::from_le_bytes(*c)));
+        }
+        TexelPack { images, words }
+    }
+
+    /// Whether it was packed from exactly `images` (by identity).
+    fn holds(&self, images: &[std::sync::Arc<crate::texture::Image>]) -> bool {
+        self.images.len() == images.len()
+            && self
+                .images
+                .iter()
+                .zip(images)
+                .all(|(a, b)| std::sync::Arc::ptr_eq(a, b))
+    }
+}
+
+impl PartialEq for TexelPack {
+    fn eq(&self, other: &Self) -> bool {
+        std::ptr::eq(self, other) || self.holds(&other.images)
+    }
+}
+
+impl std::fmt::Debug for TexelPack {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "TexelPack {{ {} images, {} words }}",
+            self.images.len(),
+            self.words.len()
+        )
+    }
 }
 
 impl PbrData {
     /// The texture bytes on the GPU (images only, the tables left out).
     pub fn texture_bytes(&self) -> u64 {
-        (self.texels.len() as u64 - TEXEL_TABLES as u64) * 4
+        (self.texels.words.len() as u64 - TEXEL_TABLES as u64) * 4
     }
 
     /// `None` when nothing of `w`'s model materials varies over a surface,
     /// emits or is cut out: the kernel then renders its materials as
     /// before model materials existed. `n_materials`: the GPU's materials.
-    pub fn from_world(w: &World<f32>, n_materials: usize) -> Option<Self> {
+    /// `packed`: texels packed for an earlier render, reused when they
+    /// were packed from this world's images ([`TexelPack`]).
+    pub fn from_world(
+        w: &World<f32>,
+        n_materials: usize,
+        packed: Option<&std::sync::Arc<TexelPack>>,
+    ) -> Option<Self> {
         use crate::material::{AlphaMode, NO_PBR};
         use crate::texture::{TextureRef, Wrap};
         let used = w.pbr.iter().any(|p| {
@@ -912,25 +982,38 @@ impl PbrData {
         if !used {
             return None;
         }
-        let mut texels: Vec<u32> = crate::texture::decode_tables()
-            .iter()
-            .map(|v| v.to_bits())
-            .collect();
-        let mut images: Vec<(*const crate::texture::Image, u32)> = Vec::new();
-        let mut tex = |t: &Option<TextureRef>| -> GpuTexRef {
+        // Every image once, in first-use order, and its first word.
+        let mut images: Vec<std::sync::Arc<crate::texture::Image>> = Vec::new();
+        let mut offsets: Vec<u32> = Vec::new();
+        let mut next = TEXEL_TABLES;
+        for p in &w.pbr {
+            for t in [
+                &p.base_color_texture,
+                &p.metallic_roughness_texture,
+                &p.emissive_texture,
+                &p.occlusion_texture,
+                &p.alpha_texture,
+                &p.normal_texture,
+            ]
+            .into_iter()
+            .flatten()
+            {
+                if !images.iter().any(|i| std::sync::Arc::ptr_eq(i, &t.image)) {
+                    images.push(t.image.clone());
+                    offsets.push(next);
+                    next += t.image.texels.len() as u32;
+                }
+            }
+        }
+        let tex = |t: &Option<TextureRef>| -> GpuTexRef {
             let Some(t) = t else {
                 return GpuTexRef::default();
             };
-            let key = std::sync::Arc::as_ptr(&t.image);
-            let offset = match images.iter().find(|(k, _)| *k == key) {
-                Some((_, o)) => *o,
-                None => {
-                    let o = texels.len() as u32;
-                    texels.extend(t.image.texels.iter().map(|c| u32::from_le_bytes(*c)));
-                    images.push((key, o));
-                    o
-                }
-            };
+            let at = images
+                .iter()
+                .position(|i| std::sync::Arc::ptr_eq(i, &t.image))
+                .expect("every image was listed");
+            let offset = offsets[at];
             let wrap = |w: Wrap| match w {
                 Wrap::Repeat => 0,
                 Wrap::ClampToEdge => 1,
@@ -977,13 +1060,15 @@ impl PbrData {
                         .map(|c| (0.04 * p.specular_factor * c) as f32),
                     alpha_cutoff: cutoff,
                     occlusion_strength: p.occlusion_strength as f32,
-                    _pad: [0.0; 3],
+                    normal_scale: p.normal_scale as f32,
+                    _pad: [0.0; 2],
                     tex: [
                         tex(&p.base_color_texture),
                         tex(&p.metallic_roughness_texture),
                         tex(&p.emissive_texture),
                         tex(&p.occlusion_texture),
                         tex(&p.alpha_texture),
+                        tex(&p.normal_texture),
                     ],
                 }
             })
@@ -1002,6 +1087,7 @@ impl PbrData {
                 uv0: a.uv[0].get(i).copied().unwrap_or_default(),
                 uv1: a.uv[1].get(i).copied().unwrap_or_default(),
                 colour: a.color[i],
+                tangent: a.tangent.get(i).copied().unwrap_or_default(),
             })
             .collect();
         Some(PbrData {
@@ -1009,7 +1095,10 @@ impl PbrData {
             pbrs: non_empty(pbrs),
             tri_attrs: non_empty(a.tri.iter().flatten().copied().collect()),
             vertices: non_empty(vertices),
-            texels,
+            texels: match packed {
+                Some(t) if t.holds(&images) => t.clone(),
+                _ => std::sync::Arc::new(TexelPack::pack(images)),
+            },
             cutouts: a.cutouts,
         })
     }
@@ -1094,7 +1183,7 @@ translate = [0, 0, 2]
 "#;
         let desc = SceneDesc::parse(src, dir.join("s.toml")).unwrap();
         let w = World::<f32>::build(&desc, &desc.render, 0);
-        let data = SceneData::from_world(&w, None).unwrap();
+        let data = SceneData::from_world(&w, None, None).unwrap();
         let tree = data.tree.as_ref().unwrap().data.clone();
         let meshes = &w.dist.as_ref().unwrap().moving_meshes;
         assert!(data.static_tree);

@@ -337,6 +337,9 @@ pub struct GpuRenderer {
     packer: Mutex<Option<pack::Packer>>,
     /// Scene kernels compiled so far ([`GpuRenderer::pipelines_built`]).
     pipelines_built: std::sync::atomic::AtomicU64,
+    /// Texels packed on the host and uploaded ([`GpuRenderer::texel_work`]).
+    texel_packs: std::sync::atomic::AtomicU64,
+    texel_uploads: std::sync::atomic::AtomicU64,
     /// Compiled pipelines on disk, where the device has a pipeline cache.
     disk_cache: Option<disk_cache::DiskCache>,
     stats: Mutex<GpuStats>,
@@ -509,6 +512,8 @@ impl GpuRenderer {
             resolver: Mutex::new(None),
             packer: Mutex::new(None),
             pipelines_built: Default::default(),
+            texel_packs: Default::default(),
+            texel_uploads: Default::default(),
             disk_cache,
             stats: Mutex::new(GpuStats::default()),
             no_blocks,
@@ -521,6 +526,17 @@ impl GpuRenderer {
     pub fn pipelines_built(&self) -> u64 {
         self.pipelines_built
             .load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many times this renderer has packed model textures' texels on
+    /// the host and uploaded them, in that order: once per world's set of
+    /// images, not per tile or frame (`layout::TexelPack`).
+    pub fn texel_work(&self) -> (u64, u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (
+            self.texel_packs.load(Relaxed),
+            self.texel_uploads.load(Relaxed),
+        )
     }
 
     /// A post-processing kernel's bind group layout (`bindings`), its
@@ -740,13 +756,27 @@ impl GpuRenderer {
         self.check_fault()?;
         let start = Instant::now();
         // Tiles of one frame reuse the packed tree (packing a million
-        // triangles costs more than tracing them).
-        let packed = self
+        // triangles costs more than tracing them) and the packed texels.
+        let (packed, texels) = self
             .scene
             .lock()
             .ok()
-            .and_then(|s| s.as_ref().and_then(|s| s.data.tree.clone()));
-        let data = SceneData::from_world(world, packed.as_ref())?;
+            .and_then(|s| {
+                s.as_ref().map(|s| {
+                    (
+                        s.data.tree.clone(),
+                        s.data.pbr.as_ref().map(|p| p.texels.clone()),
+                    )
+                })
+            })
+            .unwrap_or_default();
+        let data = SceneData::from_world(world, packed.as_ref(), texels.as_ref())?;
+        if let Some(p) = &data.pbr
+            && !texels.is_some_and(|t| std::sync::Arc::ptr_eq(&t, &p.texels))
+        {
+            self.texel_packs
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
 
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -860,8 +890,9 @@ fn classify(e: wgpu::Error) -> GpuError {
 /// What of a world's model-file materials the WGSL step does not have yet,
 /// named for the error; `None` when it renders as on the CPU. Textures,
 /// vertex colours, emission and cut-outs of the static world are
-/// pbr.wgsl's; a moving mesh's model materials keep only their factors
-/// on the GPU, so those that vary, emit or cut out are refused.
+/// pbr.wgsl's, under both integrators (path.wgsl `bsdf_at`); a moving
+/// mesh's model materials keep only their factors on the GPU, so those
+/// that vary, emit or cut out are refused.
 fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
     let moving = world
         .dist
@@ -873,21 +904,10 @@ fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
                 || p.emissive.iter().any(|&e| e != 0.0)
                 || p.alpha_mode == crate::material::AlphaMode::Mask
         });
-    if moving {
-        return Some(
-            "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
-                .into(),
-        );
-    }
-    // The GPU's path kernel takes each material's BSDF as constant and
-    // traces without the cut-out queries (pbr.wgsl serves Whitted's step).
-    let path = world.settings.integrator == crate::scene::Integrator::Path;
-    let per_hit = world
-        .pbr
-        .iter()
-        .any(|p| p.varies() || p.alpha_mode == crate::material::AlphaMode::Mask);
-    (path && per_hit)
-        .then(|| "textures, vertex colours or cut-outs under --integrator path".to_string())
+    moving.then(|| {
+        "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
+            .to_string()
+    })
 }
 
 /// Default bytes of texels a scene may hold on the GPU (`GpuRenderer`'s

@@ -9,7 +9,8 @@
 // after RR_DEPTH segments and the constant environment. A path scene is
 // always a distributed one (World::dist): its lights, lens and motion are
 // distributed.wgsl's. The lights' selection and the materials' BSDFs
-// follow the distributed words at PATH_BASE (layout.rs `PathData`).
+// follow the distributed words at PATH_BASE (layout.rs `PathData`);
+// textured model materials and cut-outs are pbr.wgsl's (`bsdf_at`).
 
 override PATH_BASE: u32 = 0u;
 // Some light emits: next-event estimation (PathScene's light_cdf not empty).
@@ -30,6 +31,39 @@ fn path_bsdf(material: u32) -> Bsdf {
     let c = dist[base + 2u];
     let d = dist[base + 3u];
     return Bsdf(a.xyz, a.w, b.xyz, b.w, c.xyz, c.w, d.x, d.y, d.z);
+}
+
+// render/step.rs `material_at`'s BSDF: the material's, or where a model
+// file's textures or vertex colours vary over it, material.rs `Pbr::bsdf`
+// (an MTL material: `Bsdf::from_material` of the tinted diffuse) of
+// pbr.wgsl's lookup at p.
+fn bsdf_at(id: u32, p: vec3<f32>, material: u32) -> Bsdf {
+    var b = path_bsdf(material);
+    let pi = pbr_index(id, material);
+    if (pi == NONE) {
+        return b;
+    }
+    let pb = pbrs[pi];
+    if ((pb.flags & PBR_VARIES) == 0u) {
+        return b;
+    }
+    let at = pbr_at(pb, id, p);
+    b.emission = at.emission;
+    if ((pb.flags & PBR_MTL) != 0u) {
+        if (!(b.transmission > 0.0)) {
+            b.base = clamp(materials[material].diffuse * at.base.xyz, vec3<f32>(0.0), vec3<f32>(1.0));
+        }
+        return b;
+    }
+    var blend = 0.0;
+    if ((pb.flags & PBR_BLEND) != 0u) {
+        blend = clamp(1.0 - at.base.w, 0.0, 1.0);
+    }
+    b.base = clamp(at.base.xyz, vec3<f32>(0.0), vec3<f32>(1.0));
+    b.metallic = clamp(at.metallic, 0.0, 1.0);
+    b.roughness = clamp(at.roughness, 0.0, 1.0);
+    b.transmission = max(clamp(pb.transmission, 0.0, 1.0), blend);
+    return b;
 }
 
 fn light_prob(li: u32) -> f32 {
@@ -212,7 +246,7 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
         return radiance;
     }
     loop {
-        let hit = closest_at(o, d, skip, tau);
+        let hit = closest_through(o, d, skip, tau);
         var t_near = BIG;
         if (hit.id != NONE) {
             t_near = hit.t;
@@ -240,7 +274,7 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
             break;
         }
         let sf = surface_at(Ray(o, 1.0, d, 0u, skip, key), hit, tau);
-        let b = path_bsdf(sf.material);
+        let b = bsdf_at(sf.id, sf.p, sf.material);
         if (sf.entering) {
             radiance += throughput * b.emission;
         }
@@ -258,7 +292,7 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
                 if (bsdf_max3(e.xyz) > 0.0) {
                     tally[C_SHADOW] += 1u;
                     let t_max = ls.dist * (1.0 - SHADOW_SHORTEN);
-                    var blocked = occluded_at(sf.above, ls.wi, t_max, sf.id, tau);
+                    var blocked = occluded_through(sf.above, ls.wi, t_max, sf.id, tau);
                     for (var j = 0u; j < N_DLIGHTS; j++) {
                         if (!blocked && j != i && path_light_hit(j, sf.above, ls.wi, t_max).x > 0.0) {
                             blocked = true;

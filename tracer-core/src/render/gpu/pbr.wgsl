@@ -31,16 +31,17 @@ struct Pbr {
     f0: vec3<f32>,
     alpha_cutoff: f32,
     occlusion_strength: f32,
-    pad0: f32,
+    normal_scale: f32,
     pad1: f32,
     pad2: f32,
-    tex: array<TexRef, 5>,
+    tex: array<TexRef, 6>,
 }
 
 struct VertexAttr {
     uv0: vec2<f32>,
     uv1: vec2<f32>,
     colour: vec4<f32>,
+    tangent: vec4<f32>,
 }
 
 // Bindings mat_pbr, pbrs, tri_attrs, vertex_attrs, texels: wgsl.rs SCENE.
@@ -60,6 +61,7 @@ const T_MR: u32 = 1u;
 const T_EMISSIVE: u32 = 2u;
 const T_OCCLUSION: u32 = 3u;
 const T_ALPHA: u32 = 4u;
+const T_NORMAL: u32 = 5u;
 // texels[0..256]: sRGB byte -> linear; [256..512]: byte / 255.
 const TABLE_LINEAR: u32 = 256u;
 // world/query.rs MAX_CUTOUT_LAYERS.
@@ -243,12 +245,54 @@ struct Looked {
     emits: bool,
 }
 
+// The model material (pbrs index) of a hit on primitive id with material
+// index `material`, NONE where there is none to look up.
+fn pbr_index(id: u32, material: u32) -> u32 {
+    if (!HAS_PBR || (id >> KIND_SHIFT) != KIND_TRIANGLE) {
+        return NONE;
+    }
+    return mat_pbr[material];
+}
+
+// What a model material's textures and vertex colours make of it at the
+// point p of primitive id (material.rs `Pbr::at`, the textures sampled
+// once): the base colour, emission, metallic and roughness, and the
+// ambient term's occlusion factor. The one lookup both integrators take
+// their parameters from: Whitted's material (material_at) and the path
+// integrator's BSDF (path.wgsl `bsdf_at`).
+struct PbrAt {
+    base: vec4<f32>,
+    emission: vec3<f32>,
+    metallic: f32,
+    roughness: f32,
+    occlusion: f32,
+}
+
+fn pbr_at(pb: Pbr, id: u32, p: vec3<f32>) -> PbrAt {
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    let at = attrs_at(index, p);
+    var out = PbrAt(base_color_at(pb, at), pb.emissive, pb.metallic, pb.roughness, 1.0);
+    if ((pb.tex[T_EMISSIVE].flags & TEX_PRESENT) != 0u) {
+        out.emission = pb.emissive * tex_sample(pb.tex[T_EMISSIVE], at.uv0, at.uv1).xyz;
+    }
+    if ((pb.flags & PBR_MTL) != 0u) {
+        return out;
+    }
+    if ((pb.tex[T_MR].flags & TEX_PRESENT) != 0u) {
+        let s = tex_sample(pb.tex[T_MR], at.uv0, at.uv1);
+        out.roughness = out.roughness * s.y;
+        out.metallic = out.metallic * s.z;
+    }
+    if ((pb.tex[T_OCCLUSION].flags & TEX_PRESENT) != 0u) {
+        let o = tex_sample(pb.tex[T_OCCLUSION], at.uv0, at.uv1).x;
+        out.occlusion = 1.0 + pb.occlusion_strength * (o - 1.0);
+    }
+    return out;
+}
+
 fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
     let m = materials[material];
-    if (!HAS_PBR || (id >> KIND_SHIFT) != KIND_TRIANGLE) {
-        return Looked(m, vec3<f32>(0.0), false);
-    }
-    let pi = mat_pbr[material];
+    let pi = pbr_index(id, material);
     if (pi == NONE) {
         return Looked(m, vec3<f32>(0.0), false);
     }
@@ -256,29 +300,18 @@ fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
     if ((pb.flags & PBR_VARIES) == 0u) {
         return Looked(m, pb.emissive, true);
     }
-    let index = id & ((1u << KIND_SHIFT) - 1u);
-    let at = attrs_at(index, p);
-    let base = base_color_at(pb, at);
-    var emission = pb.emissive;
-    if ((pb.tex[T_EMISSIVE].flags & TEX_PRESENT) != 0u) {
-        emission = pb.emissive * tex_sample(pb.tex[T_EMISSIVE], at.uv0, at.uv1).xyz;
-    }
+    let at = pbr_at(pb, id, p);
+    let base = at.base;
+    let emission = at.emission;
     if ((pb.flags & PBR_MTL) != 0u) {
         var out = m;
         out.ambient = m.ambient * base.xyz;
         out.diffuse = m.diffuse * base.xyz;
         return Looked(out, emission, true);
     }
-    var metallic = pb.metallic;
-    var roughness = pb.roughness;
-    if ((pb.tex[T_MR].flags & TEX_PRESENT) != 0u) {
-        let s = tex_sample(pb.tex[T_MR], at.uv0, at.uv1);
-        roughness = roughness * s.y;
-        metallic = metallic * s.z;
-    }
     // material.rs Pbr::whitted, then Material::from_desc.
-    metallic = clamp(metallic, 0.0, 1.0);
-    let rough = clamp(roughness, 0.0, 1.0);
+    let metallic = clamp(at.metallic, 0.0, 1.0);
+    let rough = clamp(at.roughness, 0.0, 1.0);
     let reflectivity = metallic * (1.0 - rough) * (1.0 - rough);
     let transmission = clamp(pb.transmission, 0.0, 1.0) * (1.0 - metallic);
     let diffuse = base.xyz * (1.0 - reflectivity) * (1.0 - transmission);
@@ -291,8 +324,7 @@ fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
     let shininess = max(2.0 / (r2 * r2) - 2.0, 1.0);
     var ambient = diffuse;
     if ((pb.tex[T_OCCLUSION].flags & TEX_PRESENT) != 0u) {
-        let o = tex_sample(pb.tex[T_OCCLUSION], at.uv0, at.uv1).x;
-        ambient = diffuse * (1.0 + pb.occlusion_strength * (o - 1.0));
+        ambient = diffuse * at.occlusion;
     }
     let out = Material(
         ambient,
@@ -306,4 +338,58 @@ fn material_at(id: u32, p: vec3<f32>, material: u32) -> Looked {
         1.0,
         1.0);
     return Looked(out, emission, true);
+}
+
+// render/step.rs shading_normal: `ns` (the shading normal facing the
+// viewer) tilted by a model material's normalTexture, in the frame of the
+// interpolated vertex normal, the tangent made orthogonal to it and
+// w N x T; reversed on a back face; ns where the tilted normal would face
+// away from the viewer v. n: the geometric normal facing the viewer.
+fn normal_mapped(id: u32, p: vec3<f32>, material: u32, n: vec3<f32>, ns: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
+    let pi = pbr_index(id, material);
+    if (pi == NONE) {
+        return ns;
+    }
+    let pb = pbrs[pi];
+    if ((pb.tex[T_NORMAL].flags & TEX_PRESENT) == 0u) {
+        return ns;
+    }
+    // world/query.rs tangent_at.
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    let a = shading[index].attrs;
+    if (a == NONE) {
+        return ns;
+    }
+    let va = vertex_attrs[tri_attrs[3u * a]];
+    let vb = vertex_attrs[tri_attrs[3u * a + 1u]];
+    let vc = vertex_attrs[tri_attrs[3u * a + 2u]];
+    if (va.tangent.w == 0.0 || vb.tangent.w == 0.0 || vc.tangent.w == 0.0) {
+        return ns;
+    }
+    let b = triangle_barycentric(index, p);
+    let t = va.tangent.xyz * b.x + vb.tangent.xyz * b.y + vc.tangent.xyz * b.z;
+    let at = attrs_at(index, p);
+    let c = tex_sample(pb.tex[T_NORMAL], at.uv0, at.uv1);
+    let local = vec3<f32>(
+        (2.0 * c.x - 1.0) * pb.normal_scale,
+        (2.0 * c.y - 1.0) * pb.normal_scale,
+        2.0 * c.z - 1.0);
+    let normal = triangle_normal_at(index, p);
+    let along0 = t - normal * dot(normal, t);
+    let len0 = length(along0);
+    if (!(len0 > 0.0 && len0 <= BIG)) {
+        return ns;
+    }
+    let along = along0 * (1.0 / len0);
+    let across = cross(normal, along) * select(1.0, -1.0, va.tangent.w < 0.0);
+    let tilted0 = along * local.x + across * local.y + normal * local.z;
+    let len = length(tilted0);
+    if (!(len > 0.0 && len <= BIG)) {
+        return ns;
+    }
+    var tilted = tilted0 * (1.0 / len);
+    if (dot(normal, n) < 0.0) {
+        tilted = -tilted;
+    }
+    return select(ns, tilted, dot(tilted, v) > 0.0);
 }

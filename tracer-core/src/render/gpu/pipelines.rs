@@ -117,27 +117,6 @@ impl GpuRenderer {
             Some(d) => make("distributed", bytemuck::cast_slice(&d.words), st),
             None => make("distributed", &[0u8; 64], st),
         };
-        let pbr = match &data.pbr {
-            Some(p) => [
-                make("material pbr", bytemuck::cast_slice(&p.mat_pbr), st),
-                make("pbr materials", bytemuck::cast_slice(&p.pbrs), st),
-                make(
-                    "attribute triangles",
-                    bytemuck::cast_slice(&p.tri_attrs),
-                    st,
-                ),
-                make("vertex attributes", bytemuck::cast_slice(&p.vertices), st),
-                make("texels", bytemuck::cast_slice(&p.texels), st),
-            ],
-            None => [
-                "material pbr",
-                "pbr materials",
-                "attribute triangles",
-                "vertex attributes",
-                "texels",
-            ]
-            .map(|label| make(label, &[0u8; 512], st)),
-        };
         let n_moving_meshes = data.dist.as_ref().map_or(0, |d| d.n_moving_meshes);
         let kernel = Kernel {
             tree: match (&data.tree, data.static_tree) {
@@ -199,12 +178,48 @@ impl GpuRenderer {
             .as_ref()
             .is_some_and(|o| o.source == source && o.constants == all_constants);
         let same_tree = old.as_ref().is_some_and(|o| o.data.tree == data.tree);
-        let (kept_kernel, kept_tree) = match old {
-            Some(o) => (
-                same_kernel.then_some((o.module, o.pipeline, o.adaptive, o.wave)),
-                same_tree.then_some(o.tree),
-            ),
-            None => (None, None),
+        // The same images (layout::TexelPack): their buffer is kept.
+        let same_texels = old.as_ref().is_some_and(
+            |o| matches!((&o.data.pbr, &data.pbr), (Some(a), Some(b)) if a.texels == b.texels),
+        );
+        let (kept_kernel, kept_tree, kept_texels) = match old {
+            Some(o) => {
+                let [_, _, _, _, texels] = o.pbr;
+                (
+                    same_kernel.then_some((o.module, o.pipeline, o.adaptive, o.wave)),
+                    same_tree.then_some(o.tree),
+                    same_texels.then_some(texels),
+                )
+            }
+            None => (None, None, None),
+        };
+        let pbr = match &data.pbr {
+            Some(p) => [
+                make("material pbr", bytemuck::cast_slice(&p.mat_pbr), st),
+                make("pbr materials", bytemuck::cast_slice(&p.pbrs), st),
+                make(
+                    "attribute triangles",
+                    bytemuck::cast_slice(&p.tri_attrs),
+                    st,
+                ),
+                make("vertex attributes", bytemuck::cast_slice(&p.vertices), st),
+                match kept_texels {
+                    Some(t) => t,
+                    None => {
+                        self.texel_uploads
+                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        make("texels", bytemuck::cast_slice(&p.texels.words), st)
+                    }
+                },
+            ],
+            None => [
+                "material pbr",
+                "pbr materials",
+                "attribute triangles",
+                "vertex attributes",
+                "texels",
+            ]
+            .map(|label| make(label, &[0u8; 512], st)),
         };
         let tree = match kept_tree {
             Some(t) => t,

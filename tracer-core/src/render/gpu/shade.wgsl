@@ -42,7 +42,9 @@ struct Surface {
 fn surface_at(r: Ray, hit: Hit, tau: f32) -> Surface {
     let v = -r.dir;
     let f = facing_at(hit.id, r.origin + r.dir * hit.t, v, tau);
-    return Surface(hit.id, f.p, f.n, f.ns, v, f.entering, dot(f.ns, v), f.material, offset_origin(f.p, f.n));
+    // Normal maps (pbr.wgsl; the shading normal as it is without them).
+    let ns = normal_mapped(hit.id, f.p, f.material, f.n, f.ns, v);
+    return Surface(hit.id, f.p, f.n, ns, v, f.entering, dot(ns, v), f.material, offset_origin(f.p, f.n));
 }
 
 // The term of a light at `pos` (step.rs `light_term`), its shadow ray
