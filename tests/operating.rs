@@ -593,3 +593,80 @@ fn a_requirement_routes_a_job_to_the_matching_worker_only_and_a_job_nobody_can_r
         "{err}"
     );
 }
+
+/// `tessera worker --backend gpu --adapter all`: one worker per GPU in one
+/// process, each named NAME-gpuINDEX and labelled with its adapter's name
+/// (software adapters only where there is no other: lavapipe here), and
+/// together they render a job to the end.
+#[test]
+fn adapter_all_runs_a_worker_per_gpu_each_named_and_labelled_with_it() {
+    if support::gpus().is_none() {
+        return;
+    }
+    let listed: Value = serde_json::from_str(&ok_stdout(
+        &Command::new(TESSERA)
+            .args(["gpus", "--json"])
+            .output()
+            .expect("tessera gpus --json"),
+    ))
+    .expect("gpus --json");
+    let listed = listed.as_array().expect("a list of adapters");
+    let hardware: Vec<&Value> = listed.iter().filter(|a| a["type"] != "Cpu").collect();
+    let expected: Vec<&Value> = if hardware.is_empty() {
+        listed.iter().collect()
+    } else {
+        hardware
+    };
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), &[]);
+    let _w = start_worker_with(
+        dir.path(),
+        &c.grpc,
+        "multi",
+        &["--backend", "gpu", "--adapter", "all"],
+    );
+    wait_for("a worker per GPU", Duration::from_secs(60), || {
+        workers_json(&c).len() == expected.len()
+    });
+    let ws = workers_json(&c);
+    for a in &expected {
+        let name = format!("multi-gpu{}", a["index"]);
+        let w = ws
+            .iter()
+            .find(|w| w["name"] == name.as_str())
+            .unwrap_or_else(|| panic!("no worker {name} in {ws:?}"));
+        assert_eq!(w["backend"], "gpu", "{w}");
+        assert_eq!(w["labels"]["gpu"], a["name"], "{w}");
+        assert_eq!(w["labels"]["backend"], "gpu", "{w}");
+    }
+    let scene = repo("examples/resolution.toml");
+    let o = client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--samples",
+            "2",
+            "--wait",
+        ],
+    );
+    let job = ok_stdout(&o)
+        .lines()
+        .next()
+        .unwrap_or_default()
+        .trim()
+        .to_string();
+    let st = job_status(&c, &job);
+    assert_eq!(st["state"], "done", "{st}");
+    let done: u64 = workers_json(&c)
+        .iter()
+        .map(|w| w["units_done"].as_u64().unwrap())
+        .sum();
+    assert_eq!(done, st["units_total"].as_u64().unwrap(), "{st}");
+    drop(c.proc);
+}

@@ -34,7 +34,11 @@ pub struct WorkerArgs {
     /// CPU threads for --backend cpu, 0..=4096; 0 means all cores [default: all cores]
     #[arg(long, allow_negative_numbers = true, value_parser = super::render::threads_parser())]
     pub threads: Option<usize>,
-    /// GPU adapter for --backend gpu: index or part of the name as `tessera gpus` lists it [default: the best one]
+    /// GPU adapter for --backend gpu: index or part of the name as `tessera
+    /// gpus` lists it, or `all`: one worker per GPU in this process, each
+    /// named NAME-gpuINDEX and labelled with its GPU (software adapters
+    /// such as lavapipe count only where there is no other) [default: the
+    /// best one]
     #[arg(long)]
     pub adapter: Option<String>,
     /// Name shown by `tessera workers` [default: host name and process id]
@@ -91,6 +95,44 @@ fn default_cache() -> PathBuf {
     }
 }
 
+/// `--adapter all`.
+const ALL_ADAPTERS: &str = "all";
+
+/// `--adapter all`: one worker per GPU adapter, each with its own name
+/// (`NAME-gpuINDEX`), cache folder (`CACHE/gpuINDEX`) and adapter (so its
+/// `gpu` label). Software adapters (lavapipe) are left out where a
+/// hardware one exists: they would take work at a fraction of its speed.
+fn every_gpu(config: WorkerConfig) -> Result<Vec<Worker>> {
+    #[cfg(feature = "gpu")]
+    {
+        let all = tracer_core::render::gpu::list_adapters();
+        let hardware: Vec<_> = all.iter().filter(|a| a.device_type != "Cpu").collect();
+        let chosen = if hardware.is_empty() {
+            all.iter().collect()
+        } else {
+            hardware
+        };
+        if chosen.is_empty() {
+            anyhow::bail!("--adapter all: no GPU adapter found (`tessera gpus` lists them)");
+        }
+        chosen
+            .into_iter()
+            .map(|a| {
+                tracing::info!(adapter = a.index, name = %a.name, "a worker for this GPU");
+                Worker::new(WorkerConfig {
+                    name: format!("{}-gpu{}", config.name, a.index),
+                    adapter: Some(a.index.to_string()),
+                    cache_dir: config.cache_dir.join(format!("gpu{}", a.index)),
+                    ..config.clone()
+                })
+                .map_err(Into::into)
+            })
+            .collect()
+    }
+    #[cfg(not(feature = "gpu"))]
+    Err(tracer_core::render::RendererError::GpuNotBuilt.into())
+}
+
 pub fn run(args: WorkerArgs) -> Result<ExitCode> {
     init_logging(args.log_format);
     if args.nice > 0 {
@@ -113,24 +155,36 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
             .unwrap_or_default();
         format!("{}-{}", host.trim(), std::process::id())
     });
-    let worker = Worker::new(WorkerConfig {
+    let cache_dir = args.cache.clone().unwrap_or_else(default_cache);
+    let config = WorkerConfig {
         coordinator: args.coordinator.url.clone(),
         name,
         threads: args.threads,
         adapter: args.adapter.clone(),
         ca_pem: args.coordinator.ca_pem()?,
         token: args.coordinator.token(WORKER_TOKEN_ENV)?,
-        cache_dir: args.cache.clone().unwrap_or_else(default_cache),
+        cache_dir,
         cache_bytes: args.cache_size,
         backend: args.backend,
         labels: args.labels.iter().cloned().collect(),
-    })?;
+    };
+    let workers = if args.adapter.as_deref() == Some(ALL_ADAPTERS) {
+        every_gpu(config)?
+    } else {
+        vec![Worker::new(config)?]
+    };
     runtime()?.block_on(async move {
         let (drain_tx, drain) = tokio::sync::watch::channel(false);
-        let mut run = tokio::spawn(worker.run(drain));
+        let mut running = tokio::task::JoinSet::new();
+        for worker in workers {
+            running.spawn(worker.run(drain.clone()));
+        }
+        // Until a signal, or until a worker stops by itself (refused by
+        // the coordinator, say): that ends them all.
         tokio::select! {
-            r = &mut run => {
-                r??;
+            r = running.join_next() => {
+                r.expect("at least one worker")??;
+                running.abort_all();
                 return Ok(ExitCode::SUCCESS);
             }
             _ = shutdown_signal() => {}
@@ -138,7 +192,12 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
         tracing::info!("draining: finishing the current unit (signal again to stop now)");
         let _ = drain_tx.send(true);
         tokio::select! {
-            r = run => r??,
+            r = async {
+                while let Some(r) = running.join_next().await {
+                    r??;
+                }
+                anyhow::Ok(())
+            } => r?,
             _ = shutdown_signal() => tracing::warn!("stopped without finishing the current unit"),
         }
         Ok(ExitCode::SUCCESS)
