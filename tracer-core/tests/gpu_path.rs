@@ -349,3 +349,36 @@ fn adaptive_rounds_of_a_path_scene_agree_on_cpu_and_gpu() {
     assert!(d.mean < 1e-3, "mean |diff| {}", d.mean);
     assert!(d.over * 100 <= d.pixels, "{} pixels over 2/255", d.over);
 }
+
+/// A scene with emissive triangles under path: the CPU samples them as
+/// lights (`tracer_core::emitters`), the GPU kernel does not yet, so the
+/// GPU refuses it with an error naming them rather than render another
+/// estimator.
+#[test]
+fn gpu_path_refuses_emissive_triangles_by_name() {
+    let Some(g) = gpu() else { return };
+    let dir = common::meshgen::tmpdir("gpu-path-emitters");
+    common::meshgen::write_quad_obj(&dir);
+    let src = format!(
+        "{}\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"lamp\"\n",
+        scene_src(LAMBERT, ""),
+        dir.join("quad.obj")
+    );
+    let desc = common::scene(&src);
+    let (rect, samples) = full(&desc);
+    let err = g
+        .render(&prepared(&desc), 0, rect, samples, &|_| {})
+        .expect_err("the GPU path kernel has no emissive-triangle sampling");
+    assert!(
+        matches!(err, tracer_core::render::gpu::GpuError::PathEmitters(2)),
+        "{err:?}"
+    );
+    assert_eq!(
+        err.to_string(),
+        "the scene has 2 emissive triangles, which --integrator path samples as lights on the CPU but not yet on the GPU; render it with --backend cpu"
+    );
+    // The CPU renders it.
+    let film = cpu_film(&desc);
+    assert_eq!(film.nonfinite, 0);
+    std::fs::remove_dir_all(&dir).ok();
+}

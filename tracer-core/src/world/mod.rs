@@ -381,8 +381,14 @@ impl<R: Real> World<R> {
                 lights.clear();
                 environment = R::V3::splat(R::from_f64(crate::scene::DEFAULT_SKY));
             }
+            let path = path.then(|| {
+                // Emissive triangles are lights too (`crate::emitters`).
+                let power = crate::emitters::material_power(&world);
+                let emitters = crate::emitters::collect(&world, &power);
+                PathScene::new(&lights, environment, emitters, &power)
+            });
             world.dist = Some(Box::new(Distributed {
-                path: path.then(|| PathScene::new(&lights, environment)),
+                path,
                 lights,
                 area_lights,
                 cones,
