@@ -350,35 +350,56 @@ fn adaptive_rounds_of_a_path_scene_agree_on_cpu_and_gpu() {
     assert!(d.over * 100 <= d.pixels, "{} pixels over 2/255", d.over);
 }
 
-/// A scene with emissive triangles under path: the CPU samples them as
-/// lights (`tracer_core::emitters`), the GPU kernel does not yet, so the
-/// GPU refuses it with an error naming them rather than render another
-/// estimator.
-#[test]
-fn gpu_path_refuses_emissive_triangles_by_name() {
-    let Some(g) = gpu() else { return };
-    let dir = common::meshgen::tmpdir("gpu-path-emitters");
-    common::meshgen::write_quad_obj(&dir);
+/// The Cornell-like set with an emissive OBJ quad (two triangles facing
+/// down, `[bsdf.lamp]` emission) above the ball: the GPU samples the
+/// triangles as lights, picking them after the lights by bisection, as
+/// the CPU does (`tracer_core::emitters`), with the lights
+/// (`with_lights`) or as the only emitters.
+fn emissive_mesh_scene(tag: &str, with_lights: bool) -> SceneDesc {
+    let dir = common::meshgen::tmpdir(tag);
+    std::fs::write(
+        dir.join("lamp.obj"),
+        "v -0.3 2.6 -0.3\nv 0.3 2.6 -0.3\nv 0.3 2.6 0.3\nv -0.3 2.6 0.3\nf 1 2 3\nf 1 3 4\n",
+    )
+    .unwrap();
+    let mut src = scene_src(LAMBERT, "");
+    if !with_lights {
+        let (a, b) = (
+            src.find("[[lights]]").unwrap(),
+            src.find("[[objects]]").unwrap(),
+        );
+        src.replace_range(a..b, "");
+    }
     let src = format!(
-        "{}\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"lamp\"\n",
-        scene_src(LAMBERT, ""),
-        dir.join("quad.obj")
+        "{src}\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"lamp\"\n",
+        dir.join("lamp.obj")
     );
     let desc = common::scene(&src);
-    let (rect, samples) = full(&desc);
-    let err = g
-        .render(&prepared(&desc), 0, rect, samples, &|_| {})
-        .expect_err("the GPU path kernel has no emissive-triangle sampling");
-    assert!(
-        matches!(err, tracer_core::render::gpu::GpuError::PathEmitters(2)),
-        "{err:?}"
-    );
+    let frame = prepared(&desc);
+    let PreparedFrame::F32(w) = &frame else {
+        unreachable!()
+    };
+    let path = w.dist.as_ref().and_then(|d| d.path.as_ref()).unwrap();
     assert_eq!(
-        err.to_string(),
-        "the scene has 2 emissive triangles, which --integrator path samples as lights on the CPU but not yet on the GPU; render it with --backend cpu"
+        path.emitters.len(),
+        2,
+        "the quad's two triangles are lights"
     );
-    // The CPU renders it.
-    let film = cpu_film(&desc);
-    assert_eq!(film.nonfinite, 0);
-    std::fs::remove_dir_all(&dir).ok();
+    desc
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_with_emissive_triangles_and_lights() {
+    check_against_cpu(
+        "emissive mesh",
+        &emissive_mesh_scene("emitters-lights", true),
+    );
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_with_emissive_triangles_alone() {
+    check_against_cpu(
+        "emissive mesh alone",
+        &emissive_mesh_scene("emitters-alone", false),
+    );
 }

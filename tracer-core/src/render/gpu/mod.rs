@@ -84,10 +84,6 @@ pub enum GpuError {
     )]
     Materials(String),
     #[error(
-        "the scene has {0} emissive triangles, which --integrator path samples as lights on the CPU but not yet on the GPU; render it with --backend cpu"
-    )]
-    PathEmitters(usize),
-    #[error(
         "the scene's textures need {needed} bytes on the GPU, over the texture budget of {budget} bytes ({budget_name}); render it with --backend cpu or with smaller textures"
     )]
     TextureBudget {
@@ -740,12 +736,6 @@ impl GpuRenderer {
         };
         if let Some(what) = cpu_only_materials(world) {
             return Err(GpuError::Materials(what));
-        }
-        // One estimator on both backends: the GPU path kernel does not
-        // sample emissive triangles, so it refuses rather than differ.
-        let emitters = world.dist.as_ref().and_then(|d| d.path.as_ref());
-        if let Some(n) = emitters.map(|p| p.emitters.len()).filter(|&n| n > 0) {
-            return Err(GpuError::PathEmitters(n));
         }
         self.check_fault()?;
         let start = Instant::now();
