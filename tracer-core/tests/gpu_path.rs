@@ -403,3 +403,52 @@ fn gpu_path_matches_the_cpu_with_emissive_triangles_alone() {
         &emissive_mesh_scene("emitters-alone", false),
     );
 }
+
+/// A model file's spot light (its cone: glTF's smooth falloff) and
+/// directional light, the path integrator's own light kinds, beside the
+/// scene's quad, sphere and point lights: the GPU draws the same samples.
+#[test]
+fn gpu_path_matches_the_cpu_with_spot_and_directional_lights() {
+    let dir = common::meshgen::tmpdir("gpu-path-spot");
+    let spot = r#"{"type":"spot","color":[1,0.9,0.8],"intensity":12,"spot":{"innerConeAngle":0.3,"outerConeAngle":0.5}}"#;
+    let sun = r#"{"type":"directional","color":[0.9,0.9,1],"intensity":1.5}"#;
+    common::meshgen::write_gltf_light(
+        &dir.join("spot.gltf"),
+        spot,
+        [0.5, 3.0, -1.0],
+        [-0.1, -1.0, 0.2],
+    );
+    common::meshgen::write_gltf_light(&dir.join("sun.gltf"), sun, [0.0; 3], [0.5, -0.7, 0.5]);
+    let mut src = scene_src(LAMBERT, "");
+    for f in ["spot.gltf", "sun.gltf"] {
+        src += &format!(
+            "\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nlights = true\n",
+            dir.join(f)
+        );
+    }
+    let desc = common::scene(&src);
+    let frame = prepared(&desc);
+    let PreparedFrame::F32(w) = &frame else {
+        unreachable!()
+    };
+    let kinds: Vec<_> = w
+        .dist
+        .as_ref()
+        .unwrap()
+        .lights
+        .iter()
+        .map(|l| l.geom)
+        .collect();
+    assert!(
+        matches!(
+            kinds[3..],
+            [
+                tracer_core::light::LightGeom::Spot { .. },
+                tracer_core::light::LightGeom::Directional { .. }
+            ]
+        ),
+        "{kinds:?}"
+    );
+    check_against_cpu("spot and directional", &desc);
+    std::fs::remove_dir_all(&dir).ok();
+}

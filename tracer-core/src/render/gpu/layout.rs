@@ -510,6 +510,19 @@ impl DistData {
                     edge_v,
                 } => (1, corner, edge_u, edge_v, 0.0),
                 LightGeom::Sphere { center, radius } => (2, center, zero, zero, radius),
+                LightGeom::Spot {
+                    position,
+                    direction,
+                    scale,
+                    offset,
+                } => (
+                    3,
+                    position,
+                    direction,
+                    glam::Vec3A::new(scale, offset, 0.0),
+                    0.0,
+                ),
+                LightGeom::Directional { direction, radius } => (4, zero, direction, zero, radius),
             };
             words.push(v4(a, u(kind)));
             words.push(v4(b, radius));

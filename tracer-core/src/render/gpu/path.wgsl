@@ -185,6 +185,9 @@ struct LightSample {
     ok: bool,
 }
 
+// light.rs DIRECTIONAL_REACH: a directional light's shadow rays' length.
+const DIRECTIONAL_REACH: f32 = 1e30;
+
 // light.rs `Light::sample_li`.
 fn path_sample_li(li: u32, p: vec3<f32>, u: f32, v: f32) -> LightSample {
     let base = DIST_LIGHTS + 5u * li;
@@ -218,6 +221,25 @@ fn path_sample_li(li: u32, p: vec3<f32>, u: f32, v: f32) -> LightSample {
             out = LightSample(wi, dd, radiance, dd * dd / (area * cos_l), true);
         }
         return out;
+    }
+    if (kind == 3u) {
+        // A spot: a point light times glTF's cone falloff (scale, offset).
+        let sc = dist[base + 2u].xyz;
+        let d = e0.xyz - p;
+        let dd = length(d);
+        if (!(dd > 0.0)) {
+            return out;
+        }
+        let wi = d * (1.0 / dd);
+        let a = min(-dot(e1.xyz, wi) * sc.x + sc.y, 1.0);
+        if (a > 0.0) {
+            out = LightSample(wi, dd, radiance * (a * a / (dd * dd)), 0.0, true);
+        }
+        return out;
+    }
+    if (kind == 4u) {
+        // Directional: the irradiance along its direction, from no distance.
+        return LightSample(-e1.xyz, DIRECTIONAL_REACH, radiance, 0.0, true);
     }
     let c = e0.xyz;
     let r = e1.w;
