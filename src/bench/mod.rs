@@ -15,6 +15,7 @@ mod launch;
 mod metrics;
 #[cfg(feature = "gpu")]
 mod multi_gpu;
+mod path;
 mod plot;
 mod precision;
 mod reference;
@@ -55,8 +56,9 @@ pub const SUITES: &[&str] = &[
 ];
 
 /// Suites run only when named: `multi-gpu` wants a machine of several
-/// GPUs (or `--gpu-adapters 0,0`) and takes its time.
-pub const NAMED_SUITES: &[&str] = &["multi-gpu"];
+/// GPUs (or `--gpu-adapters 0,0`) and takes its time; `path` wants
+/// Mitsuba 3 (python3's `mitsuba`).
+pub const NAMED_SUITES: &[&str] = &["multi-gpu", "path"];
 
 /// The depth suite's default reference depth (issue 6 asks for 32). On the
 /// emerald scene depth 24 is within RMSE 4e-6 of it (40x less than f32
@@ -158,6 +160,7 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
             },
             "farm" => bench.suite_farm()?,
             "adaptive" => bench.suite_adaptive()?,
+            "path" => bench.suite_path()?,
             #[cfg(feature = "gpu")]
             "multi-gpu" => bench.suite_multi_gpu()?,
             #[cfg(not(feature = "gpu"))]

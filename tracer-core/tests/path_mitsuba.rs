@@ -439,6 +439,8 @@ impl Case {
         desc.render.samples = spp;
         let s = desc.render;
         let mut frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+        // Loaded: the files are not needed again (`mitsuba_renders` makes its own).
+        std::fs::remove_dir_all(&dir).ok();
         edit(&mut frame);
         let film = CpuRenderer::new(None)
             .unwrap()
