@@ -110,6 +110,16 @@ enum Light {
         dir: V,
         irradiance: V,
     },
+    /// A glTF parallelogram (uv as [`Shape::Quad`]'s) emitting the case's
+    /// texture from its `eu x ev` side (`emissiveTexture`, factor 1):
+    /// light-sampled as two triangles by their mean texel, radiance the
+    /// texel at the sampled point; Mitsuba: an area emitter whose
+    /// radiance is a `bitmap`.
+    TexturedQuad {
+        corner: V,
+        eu: V,
+        ev: V,
+    },
 }
 
 /// The inner cone angle (radians) of a [`Light::Spot`] of outer angle
@@ -178,7 +188,13 @@ impl Case {
         }
         for (i, (shape, _)) in self.objects.iter().enumerate() {
             if let Shape::Quad { corner, eu, ev } = *shape {
-                write_gltf_quad(&dir.join(format!("o{i}.gltf")), corner, eu, ev);
+                write_gltf_quad(
+                    &dir.join(format!("o{i}.gltf")),
+                    corner,
+                    eu,
+                    ev,
+                    LAMBERT_TEXTURED,
+                );
             }
         }
         for (i, l) in self.lights.iter().enumerate() {
@@ -215,6 +231,9 @@ impl Case {
                     let light =
                         format!(r#"{{"type":"directional","color":{c:?},"intensity":{i}}}"#);
                     common::meshgen::write_gltf_light(&path, &light, [0.0; 3], dir);
+                }
+                Light::TexturedQuad { corner, eu, ev } => {
+                    write_gltf_quad(&path, corner, eu, ev, EMISSIVE_TEXTURED)
                 }
                 _ => {}
             }
@@ -296,6 +315,11 @@ impl Case {
                      emission = {}\n\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"l{i}\"\n",
                     rgb(l),
                     dir.join(format!("l{i}.obj"))
+                ),
+                Light::TexturedQuad { .. } => writeln!(
+                    s,
+                    "[[objects]]\ntype = \"mesh\"\npath = {:?}\n",
+                    dir.join(format!("l{i}.gltf"))
                 ),
                 Light::Spot { .. } | Light::Directional { .. } => writeln!(
                     s,
@@ -406,6 +430,16 @@ impl Case {
                     "'l{i}': {{'type': 'directional', 'direction': {}, 'irradiance': {}}},",
                     rgb(dir),
                     py_rgb(irradiance)
+                ),
+                Light::TexturedQuad { corner, eu, ev } => writeln!(
+                    s,
+                    "'l{i}': {{'type': 'rectangle', 'to_world': T([{}, [0, 0, 0, 1]]), \
+                     'bsdf': {{'type': 'diffuse', 'reflectance': {}}}, \
+                     'emitter': {{'type': 'area', 'radiance': {{'type': 'bitmap', 'filename': {:?}, \
+                     'filter_type': 'bilinear', 'wrap_mode': 'repeat'}}}}}},",
+                    parallelogram(corner, eu, ev),
+                    py_rgb([0.0; 3]),
+                    dir.join("tex.png").to_str().unwrap()
                 ),
                 Light::Quad { corner, eu, ev, l } | Light::Mesh { corner, eu, ev, l } => {
                     writeln!(
@@ -554,10 +588,21 @@ fn parallelogram(corner: V, eu: V, ev: V) -> String {
     rows.join(", ")
 }
 
-/// A glTF file of one parallelogram ([`Shape::Quad`]) whose material is
-/// white Lambert (metallic 0, specularFactor 0) times image `tex.png`
-/// (the default sampler: repeat, bilinear).
-fn write_gltf_quad(path: &std::path::Path, corner: V, eu: V, ev: V) {
+/// [`write_gltf_quad`]'s material for [`Mat::Textured`]: white Lambert
+/// (metallic 0, specularFactor 0) times image `tex.png`.
+const LAMBERT_TEXTURED: &str = r#"{"pbrMetallicRoughness":{"baseColorTexture":{"index":0},"metallicFactor":0},
+    "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#;
+
+/// [`Light::TexturedQuad`]'s material: black, reflecting nothing,
+/// emitting `emissiveFactor` 1 times image `tex.png`.
+const EMISSIVE_TEXTURED: &str = r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"metallicFactor":0},
+    "emissiveFactor":[1,1,1],"emissiveTexture":{"index":0},
+    "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#;
+
+/// A glTF file of one parallelogram ([`Shape::Quad`], [`Light::TexturedQuad`])
+/// of the JSON `material`, whose texture 0 is image `tex.png` (the
+/// default sampler: repeat, bilinear).
+fn write_gltf_quad(path: &std::path::Path, corner: V, eu: V, ev: V, material: &str) {
     let n = norm(cross(eu, ev));
     let p = |a: f64, b: f64| -> V { std::array::from_fn(|k| corner[k] + a * eu[k] + b * ev[k]) };
     let mut bin = Vec::new();
@@ -589,8 +634,7 @@ fn write_gltf_quad(path: &std::path::Path, corner: V, eu: V, ev: V) {
         r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0]}}],
         "nodes":[{{"mesh":0}}],
         "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1,"TEXCOORD_0":2}},"indices":3,"material":0}}]}}],
-        "materials":[{{"pbrMetallicRoughness":{{"baseColorTexture":{{"index":0}},"metallicFactor":0}},
-                      "extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}],
+        "materials":[{material}],
         "textures":[{{"source":0}}],
         "images":[{{"uri":"tex.png"}}],
         "extensionsUsed":["KHR_materials_specular"],
@@ -961,6 +1005,43 @@ fn directional_light_matches_mitsubas_directional() {
     c.lights = vec![Light::Directional {
         dir: norm([0.4, -0.8, 0.45]),
         irradiance: [2.0, 1.9, 1.7],
+    }];
+    c.check();
+}
+
+/// A glTF quad emitting its texture (four colours, one black: where a
+/// sampled point reads the texel, a flipped or averaged texture shows)
+/// lights a Lambert floor and sphere: its triangles are chosen by their
+/// mean texel and their radiance is the texel at the sampled point,
+/// against Mitsuba's area emitter of `bitmap` radiance.
+#[test]
+fn textured_emissive_quad_matches_mitsubas_bitmap_emitter() {
+    let mut c = base("textured-emitter");
+    let palette = [
+        [255u8, 255, 255, 255],
+        [255, 60, 20, 255],
+        [0, 0, 0, 255],
+        [40, 120, 255, 255],
+    ];
+    let texels = (0..16u32)
+        .map(|i| palette[((i % 4) / 2 + 2 * (i / 8)) as usize])
+        .collect();
+    c.texture = Some((4, 4, texels));
+    c.objects = vec![
+        (FLOOR_Y, Mat::Lambert([0.7, 0.7, 0.7])),
+        (
+            Shape::Sphere {
+                c: [0.0, 0.8, 0.0],
+                r: 0.8,
+            },
+            Mat::Lambert([0.8, 0.8, 0.8]),
+        ),
+    ];
+    // 3 x 3 at y = 2.5 facing down (eu x ev = -y).
+    c.lights = vec![Light::TexturedQuad {
+        corner: [-1.5, 2.5, -1.5],
+        eu: [3.0, 0.0, 0.0],
+        ev: [0.0, 0.0, 3.0],
     }];
     c.check();
 }
