@@ -185,8 +185,11 @@ fn mitsuba_dict(size: (u32, u32)) -> String {
 }
 
 /// Mitsuba's renders at each of `counts` samples per pixel (seed 1), each
-/// timed alone after a 1-spp warm-up (scene loading, and the JIT of the
-/// LLVM and CUDA variants, left out): (seconds, linear RGB image).
+/// timed alone after a 1-spp warm-up (scene loading left out; the LLVM
+/// and CUDA variants also render each count once untimed first, leaving
+/// their kernels' compilation out) up to its image evaluated and the
+/// device synchronised (the JIT variants evaluate lazily), not its copy
+/// out: (seconds, linear RGB image).
 fn mitsuba_runs(
     dir: &Path,
     variant: &str,
@@ -195,6 +198,7 @@ fn mitsuba_runs(
 ) -> Result<Vec<(f64, Vec<[f32; 3]>)>> {
     let script = format!(
         "import json, struct, sys, time\n\
+         import drjit as dr\n\
          import mitsuba as mi\n\
          mi.set_variant({variant:?})\n\
          T = mi.ScalarTransform4f\n\
@@ -202,10 +206,15 @@ fn mitsuba_runs(
          mi.render(scene, spp=1)\n\
          times = []\n\
          for spp in {counts:?}:\n\
+         \x20   if not {variant:?}.startswith('scalar'):\n\
+         \x20       dr.eval(mi.render(scene, spp=spp, seed=0))\n\
+         \x20       dr.sync_thread()\n\
          \x20   t = time.perf_counter()\n\
          \x20   img = mi.render(scene, spp=spp, seed=1)\n\
-         \x20   a = [float(x) for x in mi.TensorXf(img).array]\n\
+         \x20   dr.eval(img)\n\
+         \x20   dr.sync_thread()\n\
          \x20   times.append(time.perf_counter() - t)\n\
+         \x20   a = [float(x) for x in mi.TensorXf(img).array]\n\
          \x20   open(sys.argv[1] + '/mitsuba-%d.f32' % spp, 'wb').write(struct.pack('<%df' % len(a), *a))\n\
          print(json.dumps({{'times': times, 'version': mi.__version__}}))\n",
         dict = mitsuba_dict(size),
