@@ -726,3 +726,63 @@ fn scale_bench_drives_virtual_workers_through_a_real_coordinator() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `bench path --quick --backend both --json`: Tessera on the CPU and the
+/// GPU and Mitsuba 3 (`scalar_rgb`; its absence fails the run) on the
+/// Cornell box, each at 4 and 16 spp against one Tessera f64 reference.
+/// Whatever the speed: every run has an RMSE that falls with the samples
+/// about as 1/sqrt(spp) (both renderers unbiased against the reference:
+/// a wrong light, scene or unit in either would leave an error floor), and
+/// Tessera's and Mitsuba's RMSE at equal samples are within 2x.
+#[test]
+fn path_bench_times_tessera_and_mitsuba_against_one_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = bench(
+        dir.path(),
+        &["path", "--quick", "--backend", "both", "--json"],
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let runs: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stdout)));
+    let runs = runs.as_array().expect("an array");
+    assert_eq!(read_csv(dir.path(), "path").len(), runs.len());
+    let rmse = |renderer: &str, backend: &str, spp: u64| -> f64 {
+        let r = runs
+            .iter()
+            .find(|r| {
+                r["extra"]["renderer"] == renderer && r["backend"] == backend && r["samples"] == spp
+            })
+            .unwrap_or_else(|| panic!("no {renderer} {backend} run at {spp} spp: {runs:?}"));
+        assert!(r["seconds"].as_f64().unwrap() > 0.0);
+        r["error"]["rmse"].as_f64().unwrap()
+    };
+    assert_eq!(runs.len(), 6, "{runs:?}");
+    for (renderer, backend) in [
+        ("tessera", "cpu"),
+        ("tessera", "gpu"),
+        ("mitsuba-scalar_rgb", "cpu"),
+    ] {
+        let (e4, e16) = (rmse(renderer, backend, 4), rmse(renderer, backend, 16));
+        let ratio = e4 / e16;
+        assert!(
+            (1.4..3.0).contains(&ratio),
+            "{renderer} {backend}: RMSE {e4} at 4 spp, {e16} at 16 (ratio {ratio}, 2 if unbiased)"
+        );
+    }
+    for spp in [4, 16] {
+        let (t, m) = (
+            rmse("tessera", "cpu", spp),
+            rmse("mitsuba-scalar_rgb", "cpu", spp),
+        );
+        assert!(
+            t < 2.0 * m && m < 2.0 * t,
+            "{spp} spp: Tessera RMSE {t}, Mitsuba {m}"
+        );
+    }
+    assert!(
+        stderr.contains("Mitsuba's speed") || stderr.contains("does not reach"),
+        "{stderr}"
+    );
+    assert!(dir.path().join("out/path/error_vs_time.svg").exists());
+}

@@ -15,6 +15,7 @@ mod launch;
 mod metrics;
 #[cfg(feature = "gpu")]
 mod multi_gpu;
+mod path;
 mod plot;
 mod precision;
 mod reference;
@@ -57,8 +58,9 @@ pub const SUITES: &[&str] = &[
 
 /// Suites run only when named: `multi-gpu` wants a machine of several
 /// GPUs (or `--gpu-adapters 0,0`) and takes its time; `scale` measures
-/// the coordinator under thousands of virtual workers, not rendering.
-pub const NAMED_SUITES: &[&str] = &["multi-gpu", "scale"];
+/// the coordinator under thousands of virtual workers, not rendering;
+/// `path` wants Mitsuba 3 (python3's `mitsuba`).
+pub const NAMED_SUITES: &[&str] = &["multi-gpu", "scale", "path"];
 
 /// The depth suite's default reference depth (issue 6 asks for 32). On the
 /// emerald scene depth 24 is within RMSE 4e-6 of it (40x less than f32
@@ -167,6 +169,7 @@ pub fn run(cfg: Config) -> Result<Vec<Run>> {
             "farm" => bench.suite_farm()?,
             "adaptive" => bench.suite_adaptive()?,
             "scale" => bench.suite_scale()?,
+            "path" => bench.suite_path()?,
             #[cfg(feature = "gpu")]
             "multi-gpu" => bench.suite_multi_gpu()?,
             #[cfg(not(feature = "gpu"))]

@@ -12,6 +12,7 @@
 //! first; a moving mesh keeps its own tree, built at the shutter's opening,
 //! which the ray enters translated by the mesh's displacement.
 
+use crate::emitters::TriEmitter;
 use crate::geometry::Sphere;
 use crate::math::{Ray, Real, Vector3};
 use crate::scene::{CameraPose, LightShape, SceneDesc};
@@ -132,26 +133,45 @@ pub struct Distributed<R: Real> {
 }
 
 /// What the path integrator needs beyond the lights: the environment and
-/// the power-proportional light selection.
+/// the power-proportional light selection, over the lights and then the
+/// emissive triangles (`crate::emitters`).
 #[derive(Clone, Debug)]
 pub struct PathScene<R: Real> {
     pub environment: R::V3,
-    /// Running sums of the lights' selection probabilities (the last is 1);
-    /// empty when no light emits.
+    /// Running sums of the selection probabilities of the lights and then
+    /// the emitters (the last is 1); empty when nothing emits.
     pub light_cdf: Vec<f64>,
     /// Each light's selection probability.
     pub light_prob: Vec<R>,
+    /// The emissive triangles, selected after the lights.
+    pub emitters: Vec<TriEmitter<R>>,
+    /// Each material's probability of selecting a triangle of it per
+    /// unit of its area (0: not light-sampled); empty without emitters.
+    pub emit_density: Vec<R>,
 }
 
 impl<R: Real> PathScene<R> {
-    pub fn new(lights: &[Light<R>], environment: R::V3) -> Self {
-        let power: Vec<f64> = lights.iter().map(|l| l.power()).collect();
+    /// `material_power`: per material, pi x mean emitted luminance
+    /// (`emitters::material_power`), the emitters' power per unit area.
+    pub fn new(
+        lights: &[Light<R>],
+        environment: R::V3,
+        emitters: Vec<TriEmitter<R>>,
+        material_power: &[f64],
+    ) -> Self {
+        let power: Vec<f64> = lights
+            .iter()
+            .map(|l| l.power())
+            .chain(emitters.iter().map(|e| e.power))
+            .collect();
         let total: f64 = power.iter().sum();
         if !(total > 0.0) {
             return PathScene {
                 environment,
                 light_cdf: Vec::new(),
                 light_prob: vec![R::ZERO; lights.len()],
+                emitters: Vec::new(),
+                emit_density: Vec::new(),
             };
         }
         let mut acc = 0.0;
@@ -162,10 +182,23 @@ impl<R: Real> PathScene<R> {
                 acc
             })
             .collect();
+        let emit_density = if emitters.is_empty() {
+            Vec::new()
+        } else {
+            material_power
+                .iter()
+                .map(|p| R::from_f64(p / total))
+                .collect()
+        };
         PathScene {
             environment,
             light_cdf,
-            light_prob: power.iter().map(|p| R::from_f64(p / total)).collect(),
+            light_prob: power[..lights.len()]
+                .iter()
+                .map(|p| R::from_f64(p / total))
+                .collect(),
+            emitters,
+            emit_density,
         }
     }
 

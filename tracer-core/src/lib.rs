@@ -40,6 +40,7 @@ pub mod assets;
 pub mod bsdf;
 pub mod bvh;
 pub mod distributed;
+pub mod emitters;
 pub mod film;
 pub mod geometry;
 pub mod light;

@@ -62,7 +62,29 @@ pub enum LightGeom<R: Real> {
         center: R::V3,
         radius: R,
     },
+    /// The path integrator's spot light (a model file's): a point light
+    /// whose intensity on a direction at cosine cd from unit `direction`
+    /// is scaled by glTF's smooth falloff clamp(cd scale + offset, 0, 1)²
+    /// (scale = 1 / max(0.001, cos inner - cos outer), offset = -cos
+    /// outer x scale: `KHR_lights_punctual`).
+    Spot {
+        position: R::V3,
+        direction: R::V3,
+        scale: R,
+        offset: R,
+    },
+    /// The path integrator's directional light: `diffuse` is the
+    /// irradiance it gives a surface facing it, arriving along unit
+    /// `direction` from no distance; `radius` (of the scene) sizes its
+    /// power.
+    Directional {
+        direction: R::V3,
+        radius: R,
+    },
 }
+
+/// How far a directional light's shadow rays reach: beyond any scene.
+pub const DIRECTIONAL_REACH: f32 = 1e30;
 
 #[derive(Clone, Copy, Debug)]
 pub struct Light<R: Real> {
@@ -80,7 +102,11 @@ impl<R: Real> Light<R> {
     #[inline]
     pub fn point(&self, u: f64, v: f64) -> R::V3 {
         match self.geom {
-            LightGeom::Point(p) => p,
+            LightGeom::Point(p) | LightGeom::Spot { position: p, .. } => p,
+            // Whitted's step never sees one (path only): a point far away.
+            LightGeom::Directional { direction, .. } => {
+                direction * -R::from_f64(DIRECTIONAL_REACH as f64)
+            }
             LightGeom::Quad {
                 corner,
                 edge_u,
@@ -107,7 +133,9 @@ impl<R: Real> Emitter<R> for Light<R> {
     #[inline(always)]
     fn position(&self) -> Option<R::V3> {
         match self.geom {
-            LightGeom::Point(p) => Some(p),
+            LightGeom::Point(_) | LightGeom::Spot { .. } | LightGeom::Directional { .. } => {
+                Some(self.point(0.0, 0.0))
+            }
             _ => None,
         }
     }
@@ -156,6 +184,17 @@ impl<R: Real> Light<R> {
                 let r = radius.to_f64();
                 4.0 * r * r * std::f64::consts::PI * lum
             }
+            // 2 pi (1 - cos) over pi, the cone halfway through the falloff.
+            LightGeom::Spot { scale, offset, .. } => {
+                let (scale, offset) = (scale.to_f64(), offset.to_f64());
+                let cos_mid = (0.5 - offset) / scale;
+                2.0 * (1.0 - cos_mid).clamp(0.0, 2.0) * lum
+            }
+            // The irradiance over the scene's cross-section, pi r², over pi.
+            LightGeom::Directional { radius, .. } => {
+                let r = radius.to_f64();
+                r * r * lum
+            }
         }
     }
 
@@ -163,6 +202,33 @@ impl<R: Real> Light<R> {
     /// uniform by area on a quad, uniform in the cone a sphere subtends.
     pub fn sample_li(&self, p: R::V3, u: f64, v: f64) -> Option<LightSample<R>> {
         match self.geom {
+            LightGeom::Spot {
+                position,
+                direction,
+                scale,
+                offset,
+            } => {
+                let d = position - p;
+                let dist = d.length();
+                if !(dist > R::ZERO) {
+                    return None;
+                }
+                let wi = d * (R::ONE / dist);
+                let a = (-(direction.dot(wi)) * scale + offset).min(R::ONE);
+                // Outside the outer cone it lights nothing: no shadow ray.
+                (a > R::ZERO).then(|| LightSample {
+                    wi,
+                    dist,
+                    li: self.diffuse * (a * a / (dist * dist)),
+                    pdf: R::ZERO,
+                })
+            }
+            LightGeom::Directional { direction, .. } => Some(LightSample {
+                wi: -direction,
+                dist: R::from_f64(DIRECTIONAL_REACH as f64),
+                li: self.diffuse,
+                pdf: R::ZERO,
+            }),
             LightGeom::Point(pos) => {
                 let d = pos - p;
                 let dist = d.length();
@@ -222,7 +288,7 @@ impl<R: Real> Light<R> {
     /// [`Self::sample_li`] has of that direction from `o`.
     pub fn hit(&self, o: R::V3, d: R::V3, t_max: R) -> Option<(R, R)> {
         match self.geom {
-            LightGeom::Point(_) => None,
+            LightGeom::Point(_) | LightGeom::Spot { .. } | LightGeom::Directional { .. } => None,
             LightGeom::Quad {
                 corner,
                 edge_u,

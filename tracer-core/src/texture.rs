@@ -176,6 +176,22 @@ impl TextureRef {
         }
     }
 
+    /// The mean decoded texel (an emissive texture's: its light's power).
+    pub fn mean(&self) -> [f64; 4] {
+        let (w, h) = (self.image.width, self.image.height);
+        let mut sum = [0.0f64; 4];
+        for y in 0..h {
+            for x in 0..w {
+                let t = self.texel(x, y);
+                for k in 0..4 {
+                    sum[k] += t[k] as f64;
+                }
+            }
+        }
+        let n = (w as f64 * h as f64).max(1.0);
+        sum.map(|s| s / n)
+    }
+
     /// The filtered value at texture coordinate `uv` (before the
     /// transform, which is applied here): bilinear between the four
     /// texels around it (texel centres at half-integers), or the nearest

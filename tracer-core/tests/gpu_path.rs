@@ -421,3 +421,146 @@ fn gpu_path_matches_the_cpu_on_a_textured_vertex_coloured_cutout() {
     let desc = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
     check_against_cpu("textured cut-out quad", &desc);
 }
+
+/// A quad emitting a two-colour texture lights the floor in front of it
+/// and nothing else does: the GPU's light samples on its triangles read
+/// the emissive texel at the sampled point, as the CPU's do (with the
+/// emissive factor alone the floor would be lit white).
+#[test]
+fn gpu_path_matches_the_cpu_under_a_textured_emitter() {
+    use common::meshgen::{textured_quad_with, tmpdir, write_png};
+    let dir = tmpdir("gpu-path-textured-emitter");
+    let texels: Vec<[u8; 4]> = (0..16)
+        .map(|i| {
+            if i % 4 < 2 {
+                [255, 40, 10, 255]
+            } else {
+                [10, 60, 255, 255]
+            }
+        })
+        .collect();
+    write_png(&dir, 4, 4, &texels);
+    let model = textured_quad_with(
+        &dir,
+        0.6,
+        0.8,
+        r#"{"emissiveFactor":[1,1,1],"emissiveTexture":{"index":0},
+            "pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"metallicFactor":0}}"#,
+        r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
+        None,
+        None,
+    );
+    let src = format!(
+        "[render]\nwidth = 48\nheight = 48\nsamples = 4\nintegrator = \"path\"\nmax_depth = 3\n\
+         [camera]\nposition = [0, 1.2, 4]\nlook_at = [0, -0.6, 1.4]\nup = [0, 1, 0]\nfov_y = 50\n\
+         [world]\nenvironment = [0, 0, 0]\n\
+         [materials.white]\ndiffuse = [0.8, 0.8, 0.8]\n\
+         [[objects]]\ntype = \"plane\"\nnormal = [0, 1, 0]\ndistance = -0.7\nmaterial = \"white\"\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let desc = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    check_against_cpu("textured emitter", &desc);
+}
+
+/// The Cornell-like set with an emissive OBJ quad (two triangles facing
+/// down, `[bsdf.lamp]` emission) above the ball: the GPU samples the
+/// triangles as lights, picking them after the lights by bisection, as
+/// the CPU does (`tracer_core::emitters`), with the lights
+/// (`with_lights`) or as the only emitters.
+fn emissive_mesh_scene(tag: &str, with_lights: bool) -> SceneDesc {
+    let dir = common::meshgen::tmpdir(tag);
+    std::fs::write(
+        dir.join("lamp.obj"),
+        "v -0.3 2.6 -0.3\nv 0.3 2.6 -0.3\nv 0.3 2.6 0.3\nv -0.3 2.6 0.3\nf 1 2 3\nf 1 3 4\n",
+    )
+    .unwrap();
+    let mut src = scene_src(LAMBERT, "");
+    if !with_lights {
+        let (a, b) = (
+            src.find("[[lights]]").unwrap(),
+            src.find("[[objects]]").unwrap(),
+        );
+        src.replace_range(a..b, "");
+    }
+    let src = format!(
+        "{src}\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"lamp\"\n",
+        dir.join("lamp.obj")
+    );
+    let desc = common::scene(&src);
+    let frame = prepared(&desc);
+    let PreparedFrame::F32(w) = &frame else {
+        unreachable!()
+    };
+    let path = w.dist.as_ref().and_then(|d| d.path.as_ref()).unwrap();
+    assert_eq!(
+        path.emitters.len(),
+        2,
+        "the quad's two triangles are lights"
+    );
+    desc
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_with_emissive_triangles_and_lights() {
+    check_against_cpu(
+        "emissive mesh",
+        &emissive_mesh_scene("emitters-lights", true),
+    );
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_with_emissive_triangles_alone() {
+    check_against_cpu(
+        "emissive mesh alone",
+        &emissive_mesh_scene("emitters-alone", false),
+    );
+}
+
+/// A model file's spot light (its cone: glTF's smooth falloff) and
+/// directional light, the path integrator's own light kinds, beside the
+/// scene's quad, sphere and point lights: the GPU draws the same samples.
+#[test]
+fn gpu_path_matches_the_cpu_with_spot_and_directional_lights() {
+    let dir = common::meshgen::tmpdir("gpu-path-spot");
+    let spot = r#"{"type":"spot","color":[1,0.9,0.8],"intensity":12,"spot":{"innerConeAngle":0.3,"outerConeAngle":0.5}}"#;
+    let sun = r#"{"type":"directional","color":[0.9,0.9,1],"intensity":1.5}"#;
+    common::meshgen::write_gltf_light(
+        &dir.join("spot.gltf"),
+        spot,
+        [0.5, 3.0, -1.0],
+        [-0.1, -1.0, 0.2],
+    );
+    common::meshgen::write_gltf_light(&dir.join("sun.gltf"), sun, [0.0; 3], [0.5, -0.7, 0.5]);
+    let mut src = scene_src(LAMBERT, "");
+    for f in ["spot.gltf", "sun.gltf"] {
+        src += &format!(
+            "\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nlights = true\n",
+            dir.join(f)
+        );
+    }
+    let desc = common::scene(&src);
+    let frame = prepared(&desc);
+    let PreparedFrame::F32(w) = &frame else {
+        unreachable!()
+    };
+    let kinds: Vec<_> = w
+        .dist
+        .as_ref()
+        .unwrap()
+        .lights
+        .iter()
+        .map(|l| l.geom)
+        .collect();
+    assert!(
+        matches!(
+            kinds[3..],
+            [
+                tracer_core::light::LightGeom::Spot { .. },
+                tracer_core::light::LightGeom::Directional { .. }
+            ]
+        ),
+        "{kinds:?}"
+    );
+    check_against_cpu("spot and directional", &desc);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 
 use base64::Engine as _;
 use tracer_core::render::Precision;
-use tracer_core::scene::{LightShape, ModelSceneOptions, SceneDesc, Vec3};
+use tracer_core::scene::{LightShape, ModelSceneOptions, PathLightKind, SceneDesc, Vec3};
 
 mod common;
 use common::meshgen::tmpdir;
@@ -297,6 +297,32 @@ fn punctual_lights_give_radiance_in_the_documented_units() {
             1 => [2.0 * 2.0e6; 3], // D = 1000 r, r = sqrt 2
             _ => [10.0; 3],
         };
+        // Under path, the spot keeps its cone and the sun is directional.
+        let kind = match l.path_kind {
+            None => "point",
+            Some(PathLightKind::Spot {
+                direction,
+                cos_inner,
+                cos_outer,
+            }) => {
+                assert_eq!(direction, Vec3([0.0, 0.0, -1.0]));
+                // The angles as the file's f32s.
+                assert!((cos_inner - 0.1f64.cos()).abs() < 1e-8, "{cos_inner}");
+                assert!((cos_outer - 0.3f64.cos()).abs() < 1e-8, "{cos_outer}");
+                "spot"
+            }
+            Some(PathLightKind::Directional {
+                direction,
+                irradiance,
+                radius,
+            }) => {
+                assert_eq!(direction, Vec3([0.0, 0.0, -1.0]));
+                assert_eq!(irradiance, Vec3([2.0; 3]));
+                assert_eq!(radius, 2f64.sqrt());
+                "directional"
+            }
+        };
+        assert_eq!(kind, ["point", "directional", "spot"][light]);
         let got = l.path_radiance.expect("a model light's physical units").0;
         for k in 0..3 {
             assert!(
@@ -331,7 +357,7 @@ fn punctual_lights_give_radiance_in_the_documented_units() {
             );
         }
         let spot_warning = s.warnings.iter().any(|w| {
-            w.ends_with("light 2 \"spot\" (spot) (cone 5.7..17.2 degrees) renders as a point light, shining every way, until the shading step supports cones")
+            w.ends_with("light 2 \"spot\" (spot) (cone 5.7..17.2 degrees) renders as a point light under Whitted, shining every way (its cone is the path integrator's only)")
         });
         assert_eq!(spot_warning, light == 2, "{:?}", s.warnings);
         let falloff = s

@@ -62,6 +62,11 @@ pub trait Effects<R: Real> {
     fn u(&self, key: Self::Key, slot: u32) -> f32;
     /// The key of child `which` (0 refracted, 1 reflected) of node `key`.
     fn child(key: Self::Key, which: u32) -> Self::Key;
+    /// The id of `prim` in the static world, where it is one (where
+    /// emissive triangles are light-sampled: `crate::emitters`).
+    fn static_prim(&self, _prim: Self::Prim) -> Option<PrimId> {
+        None
+    }
 }
 
 /// The thesis's scenes: the static world, point lights, perfect mirrors
@@ -208,7 +213,16 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
         let s = fx.surface(world, &ray, hit);
         let b = s.bsdf;
         if s.entering {
-            radiance += throughput * b.emission;
+            match emitter_density(world, fx, scene, &s) {
+                // A light-sampled triangle found by a BSDF sample: MIS
+                // against the light pdf of its point (`crate::emitters`).
+                Some(density) if let Some(bp) = bsdf_pdf => {
+                    let t = hit.0;
+                    let pl = density * t * t / s.n.dot(s.v);
+                    radiance += throughput * b.emission * power_heuristic(bp, pl);
+                }
+                _ => radiance += throughput * b.emission,
+            }
         }
         if segments >= max {
             break;
@@ -223,7 +237,20 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
                 fx.u(key, SLOT_PATH_LIGHT + 1),
                 fx.u(key, SLOT_PATH_LIGHT + 2),
             );
-            if let Some(ls) = lights[i].sample_li(s.p, u as f64, v as f64)
+            // A light's sample and its selection probability; an emissive
+            // triangle's density includes its selection already.
+            let sample = match lights.get(i) {
+                Some(l) => l
+                    .sample_li(s.p, u as f64, v as f64)
+                    .map(|ls| (ls, scene.light_prob[i])),
+                None => {
+                    let e = &scene.emitters[i - lights.len()];
+                    let density = scene.emit_density[e.material as usize];
+                    e.sample_li(world, s.p, u, v, density)
+                        .map(|ls| (ls, R::ONE))
+                }
+            };
+            if let Some((ls, p_light)) = sample
                 && ls.wi.dot(s.n) > R::ZERO
             {
                 let (f, pdf_b) = b.eval(wo, frame.to_local(ls.wi), eta);
@@ -236,7 +263,6 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
                             j != i && l.hit(shadow.origin, shadow.dir, t_max).is_some()
                         });
                     if !blocked {
-                        let p_light = scene.light_prob[i];
                         let c = if ls.pdf > R::ZERO {
                             let pl = p_light * ls.pdf;
                             f * ls.li * (power_heuristic(pl, pdf_b) / pl)
@@ -286,6 +312,27 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
         key = E::child(key, 1);
     }
     radiance
+}
+
+/// The selection probability per unit area of the light-sampled emissive
+/// triangle under `s`, or `None` where `s` is no such triangle.
+#[inline]
+fn emitter_density<R: Real, E: Effects<R>>(
+    world: &World<R>,
+    fx: &E,
+    scene: &crate::distributed::PathScene<R>,
+    s: &Surface<'_, R, E::Prim>,
+) -> Option<R> {
+    if scene.emit_density.is_empty() {
+        return None;
+    }
+    let id = fx.static_prim(s.prim)?;
+    if id.kind() != PrimId::TRIANGLE && id.kind() != PrimId::INSTANCE_TRIANGLE {
+        return None;
+    }
+    let material = world.surface(id, s.p).2;
+    let d = scene.emit_density[material as usize];
+    (d > R::ZERO).then_some(d)
 }
 
 /// Adds each light's term at `s` in the lights' order, unless its shadow

@@ -432,6 +432,32 @@ pub struct LightDesc {
     /// the candela of a point or spot light, or times lux * d² at the
     /// distance the directional light is placed. `None`: `diffuse`.
     pub path_radiance: Option<Vec3>,
+    /// A model file's spot or directional light as its own kind for the
+    /// path integrator (Whitted renders it as the point light above).
+    pub path_kind: Option<PathLightKind>,
+}
+
+/// What a model file's spot and directional lights are under the path
+/// integrator (docs/scene-format.md, "Lights of a model").
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PathLightKind {
+    /// A point light at `position` of intensity `path_radiance` (candela)
+    /// on its axis, shining along unit `direction` within its cone:
+    /// glTF's smooth falloff from the cosines of the inner and outer
+    /// cone angles (`KHR_lights_punctual`).
+    Spot {
+        direction: Vec3,
+        cos_inner: f64,
+        cos_outer: f64,
+    },
+    /// Light travelling along unit `direction` with `irradiance` (colour
+    /// x lux) on a surface facing it, from no distance; `radius` bounds
+    /// the scene it lights (its power, for choosing among lights).
+    Directional {
+        direction: Vec3,
+        irradiance: Vec3,
+        radius: f64,
+    },
 }
 
 /// Where a light's points lie.
@@ -960,6 +986,7 @@ impl SceneDesc {
                 specular: lv.specular,
                 samples,
                 path_radiance: None,
+                path_kind: None,
             });
         }
 

@@ -11,8 +11,8 @@ pub use desc::MAX_VALUE;
 pub use desc::{
     Affine, BsdfDesc, CameraDesc, CameraKeyframe, CameraPose, FILE_MATERIALS, Integrator,
     LightDesc, LightShape, MAX_DEPTH, MAX_IMAGE_SIDE, MAX_LIGHT_SAMPLES, MAX_SAMPLES, MaterialDesc,
-    MeshDesc, MeshKeyframe, MeshModel, Num, ObjectDesc, RenderSettings, Rotation, Scale, SceneDesc,
-    SphereKeyframe, Vec3, WorldDesc,
+    MeshDesc, MeshKeyframe, MeshModel, Num, ObjectDesc, PathLightKind, RenderSettings, Rotation,
+    Scale, SceneDesc, SphereKeyframe, Vec3, WorldDesc,
 };
 pub(crate) use desc::{check_colour, check_weight};
 pub use error::{Location, SceneError};

@@ -21,7 +21,7 @@ use glam::{DMat3, DVec3};
 use serde::Deserialize;
 use serde::de::{self, Deserializer, SeqAccess, Visitor};
 
-use super::desc::{CameraDesc, LightDesc, LightShape, Num, Vec3, check_colour};
+use super::desc::{CameraDesc, LightDesc, LightShape, Num, PathLightKind, Vec3, check_colour};
 use super::error::SceneError;
 use super::mesh_desc::Affine;
 use crate::mesh::{Mesh, ModelCamera, ModelLightKind, Projection};
@@ -381,28 +381,45 @@ pub(crate) fn file_lights(
             l.kind.name()
         );
         let p = xf.linear * DVec3::from_array(l.position) + xf.translation;
-        // (position, Whitted's scale, the path integrator's scale)
-        let (position, scale, path_scale) = match l.kind {
+        let dir = (normal_xf * DVec3::from_array(l.direction)).normalize_or_zero();
+        // (position, Whitted's scale, the path integrator's scale and kind)
+        let (position, scale, path_scale, path_kind) = match l.kind {
             ModelLightKind::Directional => {
-                let dir = (normal_xf * DVec3::from_array(l.direction)).normalize_or_zero();
                 let d = DIRECTIONAL_DISTANCE * r;
+                let irradiance = Vec3(l.color.map(|v| v * l.intensity));
                 (
                     c - dir * d,
                     l.intensity / std::f64::consts::PI,
                     l.intensity * d * d,
+                    Some(PathLightKind::Directional {
+                        direction: Vec3(dir.to_array()),
+                        irradiance,
+                        radius: r.max(1e-3),
+                    }),
                 )
             }
             ModelLightKind::Point | ModelLightKind::Spot { .. } => {
                 falloff += 1;
+                let mut kind = None;
                 if let ModelLightKind::Spot { inner, outer } = l.kind {
                     warnings.push(format!(
-                        "{name} (cone {:.1}..{:.1} degrees) renders as a point light, shining every way, until the shading step supports cones",
+                        "{name} (cone {:.1}..{:.1} degrees) renders as a point light under Whitted, shining every way (its cone is the path integrator's only)",
                         inner.to_degrees(),
                         outer.to_degrees()
                     ));
+                    kind = Some(PathLightKind::Spot {
+                        direction: Vec3(dir.to_array()),
+                        cos_inner: inner.cos(),
+                        cos_outer: outer.cos(),
+                    });
                 }
                 let d2 = (p - c).length_squared() + r * r;
-                (p, l.intensity / (std::f64::consts::PI * d2), l.intensity)
+                (
+                    p,
+                    l.intensity / (std::f64::consts::PI * d2),
+                    l.intensity,
+                    kind,
+                )
             }
         };
         let colour = Vec3(l.color.map(|v| v * scale));
@@ -424,6 +441,7 @@ pub(crate) fn file_lights(
             specular: colour,
             samples: 1,
             path_radiance: Some(path_radiance),
+            path_kind,
         });
     }
     if falloff > 0 {
@@ -445,6 +463,7 @@ pub(crate) fn headlight(camera: &CameraDesc) -> LightDesc {
         specular: Vec3([HEADLIGHT; 3]),
         samples: 1,
         path_radiance: None,
+        path_kind: None,
     }
 }
 

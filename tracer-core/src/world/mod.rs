@@ -372,6 +372,38 @@ impl<R: Real> World<R> {
                         l.diffuse = R::V3::from_array(c.0);
                         l.specular = l.diffuse;
                     }
+                    // Spot cones and directional lights: their own kinds.
+                    match d.path_kind {
+                        Some(crate::scene::PathLightKind::Spot {
+                            direction,
+                            cos_inner,
+                            cos_outer,
+                        }) => {
+                            let scale = 1.0 / (cos_inner - cos_outer).max(0.001);
+                            l.geom = crate::light::LightGeom::Spot {
+                                position: rel::<R>(&d.position, &origin),
+                                direction: v::<R>(&direction),
+                                scale: R::from_f64(scale),
+                                offset: R::from_f64(-cos_outer * scale),
+                            };
+                        }
+                        Some(crate::scene::PathLightKind::Directional {
+                            direction,
+                            irradiance,
+                            radius,
+                        }) => {
+                            // Its power covers the whole scene, not only
+                            // its model (which may be a lamp alone).
+                            let radius = radius.max(scene_radius(&world));
+                            l.geom = crate::light::LightGeom::Directional {
+                                direction: v::<R>(&direction),
+                                radius: R::from_f64(radius),
+                            };
+                            l.diffuse = v::<R>(&irradiance);
+                            l.specular = l.diffuse;
+                        }
+                        None => {}
+                    }
                 }
             }
             let mut environment = v::<R>(&desc.world.environment);
@@ -381,8 +413,14 @@ impl<R: Real> World<R> {
                 lights.clear();
                 environment = R::V3::splat(R::from_f64(crate::scene::DEFAULT_SKY));
             }
+            let path = path.then(|| {
+                // Emissive triangles are lights too (`crate::emitters`).
+                let power = crate::emitters::material_power(&world);
+                let emitters = crate::emitters::collect(&world, &power);
+                PathScene::new(&lights, environment, emitters, &power)
+            });
             world.dist = Some(Box::new(Distributed {
-                path: path.then(|| PathScene::new(&lights, environment)),
+                path,
                 lights,
                 area_lights,
                 cones,
@@ -476,6 +514,34 @@ impl<R: Real> World<R> {
             Box::new(w)
         })
     }
+}
+
+/// Half the diagonal of the box around the world's bounded primitives
+/// (spheres, triangles, instances; planes are unbounded): 0 for none.
+fn scene_radius<R: Real>(world: &World<R>) -> f64 {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    let mut add = |p: [f64; 3], r: f64| {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k] - r);
+            hi[k] = hi[k].max(p[k] + r);
+        }
+    };
+    for s in &world.spheres {
+        add(s.center.to_array(), s.radius.to_f64());
+    }
+    for t in &world.triangles {
+        for v in t.vertices() {
+            add(v.to_array(), 0.0);
+        }
+    }
+    for b in world.instances.boxes() {
+        add(b.min.to_array().map(f64::from), 0.0);
+        add(b.max.to_array().map(f64::from), 0.0);
+    }
+    if !(lo[0] <= hi[0]) {
+        return 0.0;
+    }
+    0.5 * (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f64>().sqrt()
 }
 
 /// Each material's BSDF: the file's materials come first (in

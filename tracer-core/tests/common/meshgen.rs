@@ -285,3 +285,29 @@ pub fn colour_texels(w: u32, h: u32) -> Vec<[u8; 4]> {
         })
         .collect()
 }
+
+/// Writes a glTF file with one `KHR_lights_punctual` light (`light`: its
+/// JSON object) on a node at `position` whose -Z axis (the direction glTF
+/// lights shine in) is the unit `direction` (not +Z), and, as a model file
+/// needs triangles, one of no area at the origin (dropped at build).
+pub fn write_gltf_light(path: &Path, light: &str, position: [f64; 3], direction: [f64; 3]) {
+    // The rotation taking -Z to `direction`: axis (-Z) x d, w = 1 + (-Z).d.
+    let d = DVec3::from_array(direction).normalize();
+    let a = DVec3::new(0.0, 0.0, -1.0);
+    let axis = a.cross(d);
+    let q = glam::DVec4::new(axis.x, axis.y, axis.z, 1.0 + a.dot(d)).normalize();
+    let json = format!(
+        r#"{{"asset":{{"version":"2.0"}},"scene":0,"scenes":[{{"nodes":[0,1]}}],
+        "nodes":[{{"extensions":{{"KHR_lights_punctual":{{"light":0}}}},"translation":{:?},"rotation":{:?}}},{{"mesh":0}}],
+        "meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}}}}]}}],
+        "buffers":[{{"byteLength":36,"uri":"data:application/octet-stream;base64,{zeros}"}}],
+        "bufferViews":[{{"buffer":0,"byteLength":36}}],
+        "accessors":[{{"bufferView":0,"componentType":5126,"count":3,"type":"VEC3","min":[0,0,0],"max":[0,0,0]}}],
+        "extensionsUsed":["KHR_lights_punctual"],
+        "extensions":{{"KHR_lights_punctual":{{"lights":[{light}]}}}}}}"#,
+        position,
+        [q.x, q.y, q.z, q.w],
+        zeros = "A".repeat(48),
+    );
+    std::fs::write(path, json).unwrap();
+}

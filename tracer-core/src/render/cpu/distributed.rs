@@ -135,6 +135,10 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
     fn child(key: u32, which: u32) -> u32 {
         child_key(key, which)
     }
+    #[inline(always)]
+    fn static_prim(&self, prim: Prim) -> Option<PrimId> {
+        (prim.src == Src::Static).then_some(prim.id)
+    }
 }
 
 /// Renders one tile of a scene with distributed effects.

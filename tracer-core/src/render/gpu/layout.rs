@@ -510,6 +510,19 @@ impl DistData {
                     edge_v,
                 } => (1, corner, edge_u, edge_v, 0.0),
                 LightGeom::Sphere { center, radius } => (2, center, zero, zero, radius),
+                LightGeom::Spot {
+                    position,
+                    direction,
+                    scale,
+                    offset,
+                } => (
+                    3,
+                    position,
+                    direction,
+                    glam::Vec3A::new(scale, offset, 0.0),
+                    0.0,
+                ),
+                LightGeom::Directional { direction, radius } => (4, zero, direction, zero, radius),
             };
             words.push(v4(a, u(kind)));
             words.push(v4(b, radius));
@@ -545,11 +558,16 @@ impl DistData {
 /// whether any light emits (path.wgsl's `PATH_BASE`, `PATH_NEE`). The
 /// words: the environment; per light (its selection probability, the
 /// first 24-bit uniform number that picks past it); per GPU material 4
-/// words of its [`Bsdf`] (path.wgsl `path_bsdf`).
+/// words of its [`Bsdf`] (path.wgsl `path_bsdf`), the last one's w its
+/// emissive triangles' selection density (`PathScene::emit_density`);
+/// then per emissive triangle 4 words (path.wgsl `emitter_sample`) from
+/// `emit_base` (`PATH_EMIT_BASE`, `PATH_EMITTERS`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PathData {
     pub base: u32,
     pub nee: bool,
+    pub emitters: u32,
+    pub emit_base: u32,
 }
 
 impl PathData {
@@ -558,23 +576,39 @@ impl PathData {
         let base = d.words.len() as u32;
         let v4 = |v: glam::Vec3A, w: f32| [v.x, v.y, v.z, w];
         d.words.push(v4(scene.environment, 0.0));
-        for (i, &p) in scene.light_prob.iter().enumerate() {
-            // PathScene::pick takes the first light whose running sum c
-            // exceeds u = k / 2^24: c <= u exactly when ceil(c 2^24) <= k.
-            let first = scene.light_cdf.get(i).map_or(u32::MAX, |c| {
+        // PathScene::pick takes the first light whose running sum c
+        // exceeds u = k / 2^24: c <= u exactly when ceil(c 2^24) <= k.
+        let first = |i: usize| {
+            let b = scene.light_cdf.get(i).map_or(u32::MAX, |c| {
                 (c * 16_777_216.0).ceil().min(u32::MAX as f64) as u32
             });
-            d.words.push([p, f32::from_bits(first), 0.0, 0.0]);
+            f32::from_bits(b)
+        };
+        for (i, &p) in scene.light_prob.iter().enumerate() {
+            d.words.push([p, first(i), 0.0, 0.0]);
         }
-        for b in bsdfs {
+        for (i, b) in bsdfs.iter().enumerate() {
+            let density = scene.emit_density.get(i).copied().unwrap_or(0.0);
             d.words.push(v4(b.base_colour, b.metallic));
             d.words.push(v4(b.specular_colour, b.roughness));
             d.words.push(v4(b.emission, b.ior));
-            d.words.push([b.transmission, b.specular, b.mirror, 0.0]);
+            d.words
+                .push([b.transmission, b.specular, b.mirror, density]);
+        }
+        let emit_base = d.words.len() as u32;
+        let n_lights = scene.light_prob.len();
+        for (k, e) in scene.emitters.iter().enumerate() {
+            d.words.push(v4(e.a, first(n_lights + k)));
+            d.words.push(v4(e.e1, f32::from_bits(e.material)));
+            // The triangle's id: where a textured emission is read.
+            d.words.push(v4(e.e2, f32::from_bits(e.id.0)));
+            d.words.push(v4(e.n, 0.0));
         }
         PathData {
             base,
             nee: !scene.light_cdf.is_empty(),
+            emitters: scene.emitters.len() as u32,
+            emit_base,
         }
     }
 }

@@ -753,6 +753,17 @@ impl GpuRenderer {
         if let Some(what) = cpu_only_materials(world) {
             return Err(GpuError::Materials(what));
         }
+        if let PreparedFrame::F32(w) = prepared
+            && !w.instances.list.is_empty()
+            && textured_emitters(w)
+        {
+            // The emitters name their triangles in the two-level world;
+            // the copied one the kernels trace numbers them anew.
+            return Err(GpuError::Materials(
+                "textured emissive triangles beside instanced meshes under --integrator path"
+                    .into(),
+            ));
+        }
         self.check_fault()?;
         let start = Instant::now();
         // Tiles of one frame reuse the packed tree (packing a million
@@ -908,6 +919,20 @@ fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
         "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
             .to_string()
     })
+}
+
+/// Whether an emissive triangle light-sampled by the path integrator has
+/// a material whose emission varies over it (read at the sampled point).
+fn textured_emitters(world: &crate::world::World<f32>) -> bool {
+    world
+        .dist
+        .iter()
+        .filter_map(|d| d.path.as_ref())
+        .flat_map(|p| p.emitters.iter())
+        .any(|e| {
+            let pbr = world.materials[e.material as usize].pbr;
+            pbr != crate::material::NO_PBR && world.pbr[pbr as usize].varies()
+        })
 }
 
 /// Default bytes of texels a scene may hold on the GPU (`GpuRenderer`'s

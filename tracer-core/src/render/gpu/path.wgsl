@@ -15,6 +15,10 @@
 override PATH_BASE: u32 = 0u;
 // Some light emits: next-event estimation (PathScene's light_cdf not empty).
 override PATH_NEE: bool = false;
+// Emissive triangles selected after the lights (emitters.rs), 4 words each
+// from PATH_EMIT_BASE (layout.rs `PathData`).
+override PATH_EMITTERS: u32 = 0u;
+override PATH_EMIT_BASE: u32 = 0u;
 
 const SLOT_PATH_LIGHT: u32 = 0u;
 const SLOT_PATH_LOBE: u32 = 3u;
@@ -70,8 +74,9 @@ fn light_prob(li: u32) -> f32 {
     return dist[PATH_BASE + 1u + li].x;
 }
 
-// PathScene::pick: the first light whose running sum exceeds u, compared
-// exactly as 24-bit integers (u has 24 bits; the host rounded each sum up).
+// PathScene::pick: the first light (then emissive triangle) whose running
+// sum exceeds u, compared exactly as 24-bit integers (u has 24 bits; the
+// host rounded each sum up); the triangles' sums by bisection.
 fn pick_light(u: f32) -> u32 {
     let k = u32(u * 16777216.0);
     var i = 0u;
@@ -80,7 +85,57 @@ fn pick_light(u: f32) -> u32 {
             i = j + 1u;
         }
     }
-    return min(i, N_DLIGHTS - 1u);
+    if (PATH_EMITTERS == 0u) {
+        return min(i, N_DLIGHTS - 1u);
+    }
+    if (i < N_DLIGHTS) {
+        return i;
+    }
+    var lo = 0u;
+    var hi = PATH_EMITTERS;
+    while (lo < hi) {
+        let mid = (lo + hi) / 2u;
+        if (bitcast<u32>(dist[PATH_EMIT_BASE + 4u * mid].w) <= k) {
+            lo = mid + 1u;
+        } else {
+            hi = mid;
+        }
+    }
+    return N_DLIGHTS + min(lo, max(PATH_EMITTERS, 1u) - 1u);
+}
+
+// PathScene::emit_density of a GPU material (0: not light-sampled).
+fn emit_density(material: u32) -> f32 {
+    return dist[PATH_BASE + 1u + N_DLIGHTS + 4u * material + 3u].w;
+}
+
+// emitters.rs `TriEmitter::sample_li` of emissive triangle k: a point
+// uniform by area, its pdf the selection's and the point's together.
+fn emitter_sample(k: u32, p: vec3<f32>, u: f32, v: f32) -> LightSample {
+    let base = PATH_EMIT_BASE + 4u * k;
+    let e1 = dist[base + 1u];
+    let e2 = dist[base + 2u].xyz;
+    let n = dist[base + 3u].xyz;
+    let material = bitcast<u32>(e1.w);
+    var out = LightSample(vec3<f32>(0.0), 0.0, vec3<f32>(0.0), 0.0, false);
+    let su = sqrt(u);
+    let b2 = v * su;
+    let x = dist[base].xyz + e1.xyz * (su - b2) + e2 * b2;
+    let d = x - p;
+    let dd = length(d);
+    if (!(dd > 0.0)) {
+        return out;
+    }
+    let wi = d * (1.0 / dd);
+    let cos_l = -dot(n, wi);
+    if (!(cos_l > 0.0)) {
+        return out;
+    }
+    let pdf = emit_density(material) * dd * dd / cos_l;
+    // The emission at the sampled point, as a hit there reads it (a
+    // textured one from its texel: emitters.rs `sample_li`).
+    let id = bitcast<u32>(dist[base + 2u].w);
+    return LightSample(wi, dd, bsdf_at(id, x, material).emission, pdf, true);
 }
 
 fn power_heuristic(a: f32, b: f32) -> f32 {
@@ -167,6 +222,9 @@ struct LightSample {
     ok: bool,
 }
 
+// light.rs DIRECTIONAL_REACH: a directional light's shadow rays' length.
+const DIRECTIONAL_REACH: f32 = 1e30;
+
 // light.rs `Light::sample_li`.
 fn path_sample_li(li: u32, p: vec3<f32>, u: f32, v: f32) -> LightSample {
     let base = DIST_LIGHTS + 5u * li;
@@ -200,6 +258,25 @@ fn path_sample_li(li: u32, p: vec3<f32>, u: f32, v: f32) -> LightSample {
             out = LightSample(wi, dd, radiance, dd * dd / (area * cos_l), true);
         }
         return out;
+    }
+    if (kind == 3u) {
+        // A spot: a point light times glTF's cone falloff (scale, offset).
+        let sc = dist[base + 2u].xyz;
+        let d = e0.xyz - p;
+        let dd = length(d);
+        if (!(dd > 0.0)) {
+            return out;
+        }
+        let wi = d * (1.0 / dd);
+        let a = min(-dot(e1.xyz, wi) * sc.x + sc.y, 1.0);
+        if (a > 0.0) {
+            out = LightSample(wi, dd, radiance * (a * a / (dd * dd)), 0.0, true);
+        }
+        return out;
+    }
+    if (kind == 4u) {
+        // Directional: the irradiance along its direction, from no distance.
+        return LightSample(-e1.xyz, DIRECTIONAL_REACH, radiance, 0.0, true);
     }
     let c = e0.xyz;
     let r = e1.w;
@@ -276,7 +353,18 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
         let sf = surface_at(Ray(o, 1.0, d, 0u, skip, key), hit, tau);
         let b = bsdf_at(sf.id, sf.p, sf.material);
         if (sf.entering) {
-            radiance += throughput * b.emission;
+            // A light-sampled triangle found by a BSDF sample (step.rs
+            // `emitter_density`): MIS against its point's light pdf.
+            var density = 0.0;
+            if (PATH_EMITTERS > 0u && (hit.id >> KIND_SHIFT) == KIND_TRIANGLE && moving_mesh_of(hit.id) == NONE) {
+                density = emit_density(sf.material);
+            }
+            if (density > 0.0 && bsdf_pdf >= 0.0) {
+                let pl = density * hit.t * hit.t / dot(sf.n, sf.v);
+                radiance += throughput * b.emission * power_heuristic(bsdf_pdf, pl);
+            } else {
+                radiance += throughput * b.emission;
+            }
         }
         if (segments >= MAX_DEPTH) {
             break;
@@ -286,7 +374,18 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
         let eta = select(1.0 / b.ior, b.ior, sf.entering);
         if (PATH_NEE && has_smooth_lobe(b)) {
             let i = pick_light(path_u(seed, s, key, SLOT_PATH_LIGHT));
-            let ls = path_sample_li(i, sf.p, path_u(seed, s, key, SLOT_PATH_LIGHT + 1u), path_u(seed, s, key, SLOT_PATH_LIGHT + 2u));
+            let lu = path_u(seed, s, key, SLOT_PATH_LIGHT + 1u);
+            let lv = path_u(seed, s, key, SLOT_PATH_LIGHT + 2u);
+            // A light's sample and selection probability; an emissive
+            // triangle's pdf includes its selection already.
+            var ls: LightSample;
+            var p_light = 1.0;
+            if (i < N_DLIGHTS) {
+                ls = path_sample_li(i, sf.p, lu, lv);
+                p_light = light_prob(i);
+            } else {
+                ls = emitter_sample(i - N_DLIGHTS, sf.p, lu, lv);
+            }
             if (ls.ok && dot(ls.wi, sf.n) > 0.0) {
                 let e = bsdf_eval(b, wo, to_local(fr, ls.wi), eta);
                 if (bsdf_max3(e.xyz) > 0.0) {
@@ -299,7 +398,6 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
                         }
                     }
                     if (!blocked) {
-                        let p_light = light_prob(i);
                         var c: vec3<f32>;
                         if (ls.pdf > 0.0) {
                             let pl = p_light * ls.pdf;

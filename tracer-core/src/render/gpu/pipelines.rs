@@ -171,6 +171,12 @@ impl GpuRenderer {
         }
         if let Some(p) = &data.path {
             all_constants.extend([("PATH_BASE", p.base as f64), ("PATH_NEE", b(p.nee))]);
+            if p.emitters > 0 {
+                all_constants.extend([
+                    ("PATH_EMITTERS", p.emitters as f64),
+                    ("PATH_EMIT_BASE", p.emit_base as f64),
+                ]);
+            }
         }
         let entry = kernel.entry_point();
         let old = old.filter(|o| o.options == self.options);
