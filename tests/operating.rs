@@ -8,6 +8,9 @@
 //! - The per-job blocklist: a worker that reports `--blocklist-after`
 //!   units of a job failed gets none of its units until forgiven, and
 //!   `tessera status` says so.
+//! - Dependencies (`submit --after`): a job waits, none of its units
+//!   leased, until its parent is done, across a restart; it fails with its
+//!   parent's cancellation.
 
 use std::path::Path;
 use std::process::Command;
@@ -174,7 +177,14 @@ fn metrics_are_prometheus_text_behind_the_tokens_and_move_as_a_job_runs() {
             idle["types"]
         );
     }
-    for state in ["queued", "running", "done", "failed", "cancelled"] {
+    for state in [
+        "waiting",
+        "queued",
+        "running",
+        "done",
+        "failed",
+        "cancelled",
+    ] {
         assert_eq!(sample(&idle, "tessera_jobs", &[("state", state)]), 0.0);
     }
     assert_eq!(sample(&idle, "tessera_store_healthy", &[]), 1.0);
@@ -590,6 +600,167 @@ fn a_requirement_routes_a_job_to_the_matching_worker_only_and_a_job_nobody_can_r
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(
         err.contains("requirement \"pool\" is neither KEY=VALUE nor KEY>=N"),
+        "{err}"
+    );
+}
+
+/// A submit of the small resolution scene with `extra` flags: its job id.
+fn submit_small(c: &Coordinator, samples: &str, extra: &[&str]) -> String {
+    let scene = repo("examples/resolution.toml");
+    let mut args = vec![
+        "submit",
+        scene.to_str().unwrap(),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--samples",
+        samples,
+        "--tile-size",
+        "16",
+        "--samples-per-unit",
+        "1",
+    ];
+    args.extend(extra);
+    ok_stdout(&client(c, &args)).trim().to_string()
+}
+
+#[test]
+fn a_job_after_another_waits_unleased_until_it_is_done_across_a_restart_and_fails_with_its_cancellation()
+ {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), &[]);
+
+    // An unknown parent is refused at submit, by name.
+    let scene = repo("examples/resolution.toml");
+    let bad = client(
+        &c,
+        &["submit", scene.to_str().unwrap(), "--after", "jnosuchjob"],
+    );
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains(r#"--after jnosuchjob: no job "jnosuchjob" on this coordinator"#),
+        "{err}"
+    );
+
+    // No worker yet: the parent is queued, the child waits for it.
+    let parent = submit_small(&c, "400", &["--name", "parent"]);
+    let child = submit_small(&c, "2", &["--name", "child", "--after", &parent]);
+    let st = job_status(&c, &child);
+    assert_eq!(st["state"], "waiting", "{st}");
+    assert_eq!(st["after"], serde_json::json!([parent]), "{st}");
+    assert_eq!(st["waiting_for"], serde_json::json!([parent]), "{st}");
+    let text = ok_stdout(&client(&c, &["status", &child]));
+    assert!(text.contains("state:     waiting\n"), "{text}");
+    assert!(
+        text.contains(&format!(
+            "waiting:   for job(s) {parent} to be done (--after)\n"
+        )),
+        "{text}"
+    );
+    let m = scrape(&c, Some(METRICS_TOKEN)).expect("scrape");
+    assert_eq!(sample(&m, "tessera_jobs", &[("state", "waiting")]), 1.0);
+    assert_eq!(sample(&m, "tessera_jobs", &[("state", "queued")]), 1.0);
+    // Only the parent's 12 tiles x 400 batches wait for a worker.
+    assert_eq!(
+        sample(&m, "tessera_units", &[("state", "waiting")]),
+        4800.0,
+        "the waiting job's units are not work a worker could take"
+    );
+
+    // The dependency is stored: after a restart the child still waits.
+    drop(c);
+    let c = start_coordinator(dir.path(), &[]);
+    let st = job_status(&c, &child);
+    assert_eq!(st["state"], "waiting", "{st}");
+    assert_eq!(st["waiting_for"], serde_json::json!([parent]), "{st}");
+    let mj: Value = {
+        let m = Command::new("curl")
+            .args([
+                "-sf",
+                "-H",
+                &format!("Authorization: Bearer {CLIENT_TOKEN}"),
+            ])
+            .arg(format!("{}/api/jobs/{child}", c.http))
+            .output()
+            .expect("curl");
+        serde_json::from_slice(&m.stdout).expect("monitor JSON")
+    };
+    assert_eq!(mj["state"], "waiting", "{mj}");
+    assert_eq!(mj["waiting_for"], serde_json::json!([parent]), "{mj}");
+
+    // A worker: the parent runs; while it does, none of the child's
+    // units is leased.
+    let _w = start_worker(dir.path(), &c.grpc, "w");
+    let mut seen_running = false;
+    loop {
+        // The child first: the parent not done after it means it was
+        // not done when the child was read either.
+        let ch = job_status(&c, &child);
+        let p = job_status(&c, &parent);
+        if p["state"] == "done" {
+            break;
+        }
+        assert!(
+            ["queued", "running"].contains(&p["state"].as_str().unwrap()),
+            "{p}"
+        );
+        seen_running |= p["state"] == "running";
+        assert_eq!(ch["state"], "waiting", "{ch}");
+        assert_eq!(ch["units_done"], 0, "{ch}");
+        assert!(ch["first_lease_unix_ms"].is_null(), "{ch}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(seen_running, "the parent was never seen running");
+    // Then the child runs, its first lease after the parent ended.
+    let out = client(&c, &["watch", &child]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let p = job_status(&c, &parent);
+    let ch = job_status(&c, &child);
+    assert_eq!(ch["state"], "done", "{ch}");
+    assert_eq!(ch["waiting_for"], serde_json::json!([]), "{ch}");
+    assert!(
+        ch["first_lease_unix_ms"].as_i64().unwrap() >= p["finished_unix_ms"].as_i64().unwrap(),
+        "child leased before its parent ended: {ch} {p}"
+    );
+
+    // A parent cancelled: its child fails, naming it, and so does the
+    // child's own child.
+    drop(_w);
+    let p2 = submit_small(&c, "2", &["--name", "doomed"]);
+    let c2 = submit_small(&c, "2", &["--after", &p2]);
+    let g2 = submit_small(&c, "2", &["--after", &c2, "--after", &parent]);
+    assert_eq!(job_status(&c, &g2)["waiting_for"], serde_json::json!([c2]));
+    ok_stdout(&client(&c, &["cancel", &p2]));
+    let st = job_status(&c, &c2);
+    assert_eq!(st["state"], "failed", "{st}");
+    assert_eq!(
+        st["error"],
+        format!("job {p2} (doomed), which this job runs after (--after), was cancelled"),
+        "{st}"
+    );
+    let st = job_status(&c, &g2);
+    assert_eq!(st["state"], "failed", "{st}");
+    assert!(
+        st["error"].as_str().unwrap().starts_with(&format!(
+            "job {c2} (resolution), which this job runs after (--after), failed: job {p2} (doomed)"
+        )),
+        "{st}"
+    );
+    // A failed or cancelled job cannot be a new job's parent.
+    let bad = client(&c, &["submit", scene.to_str().unwrap(), "--after", &p2]);
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains(&format!(
+            "--after {p2}: job {p2} (doomed) has been cancelled, so a job after it would never run"
+        )),
         "{err}"
     );
 }

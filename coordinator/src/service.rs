@@ -42,6 +42,7 @@ impl From<FarmError> for Status {
 
 fn state_pb(s: JobState) -> pb::JobState {
     match s {
+        JobState::Waiting => pb::JobState::Waiting,
         JobState::Queued => pb::JobState::Queued,
         JobState::Running => pb::JobState::Running,
         JobState::Done => pb::JobState::Done,
@@ -117,6 +118,8 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
             .collect(),
         requirements: r.requirements.iter().map(ToString::to_string).collect(),
         unrunnable: v.unrunnable.clone(),
+        after: r.after.clone(),
+        waiting_for: v.waiting_for.clone(),
         // Set by the callers that page or send deltas.
         next_frame_page_token: String::new(),
         delta: false,

@@ -378,6 +378,7 @@ impl Job {
             blocklisted: self.blocklisted(),
             // Set by `State::view_of`, which sees the workers.
             unrunnable: String::new(),
+            waiting_for: Vec::new(),
         }
     }
 

@@ -59,6 +59,7 @@ pub use inspect::{FramePreview, FrameTile, LeaseSummary, TileState, UnitFailure,
 mod adaptive;
 pub use adaptive::AdaptiveProgress;
 
+mod deps;
 mod frames;
 mod job;
 mod jobs;
@@ -173,6 +174,9 @@ pub struct Submission {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum JobState {
+    /// Its units are not leased until every job it runs after
+    /// (`JobRecord::after`) is done (`farm/deps.rs`).
+    Waiting,
     Queued,
     Running,
     Done,
@@ -186,6 +190,11 @@ impl JobState {
             self,
             JobState::Done | JobState::Failed | JobState::Cancelled
         )
+    }
+
+    /// Whether its units may be leased: not ended, not waiting for others.
+    pub fn leasable(self) -> bool {
+        !self.is_terminal() && self != JobState::Waiting
     }
 }
 
@@ -220,6 +229,8 @@ pub struct JobView {
     /// Non-empty while the job waits and no connected worker meets its
     /// requirements (`State::unrunnable`): what they lack.
     pub unrunnable: String,
+    /// While [`JobState::Waiting`]: the jobs it runs after not done yet.
+    pub waiting_for: Vec<String>,
 }
 
 /// A worker on a job's blocklist.
@@ -499,6 +510,7 @@ impl State {
     /// A job's view with what only the whole state knows (its placement).
     fn view_of(&self, job: &Job, mut v: JobView) -> JobView {
         v.unrunnable = self.unrunnable(job);
+        v.waiting_for = self.waiting_for(job);
         v
     }
 }
@@ -728,6 +740,28 @@ impl Farm {
                     to_write.extend(job.complete_frames());
                 }
                 st.jobs.insert(job.rec.id.clone(), job);
+            }
+            // Dependencies are derived, not stored: a job that runs after
+            // others and has not started waits again until they are done
+            // (`farm/deps.rs`), and fails now if one failed meanwhile.
+            for job in st.jobs.values_mut() {
+                if !job.rec.after.is_empty() && job.state == JobState::Queued && job.units_done == 0
+                {
+                    job.state = JobState::Waiting;
+                }
+            }
+            let failed = farm.jobs_ended(&mut st);
+            if !failed.is_empty() {
+                let farm = farm.clone();
+                tokio::spawn(async move {
+                    if let Err(e) = farm
+                        .store
+                        .write(failed.into_iter().map(crate::store::Op::PutJob).collect())
+                        .await
+                    {
+                        tracing::error!(error = %e, "cannot record jobs failed with a job they run after");
+                    }
+                });
             }
         }
         for (job, frame) in to_write {

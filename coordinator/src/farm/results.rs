@@ -96,6 +96,10 @@ impl Farm {
                             self.work_ready.notify_waiters();
                         }
                         outcomes.push(Some(outcome));
+                        if rec.is_some() {
+                            // A job failed: the jobs after it fail too.
+                            ops.extend(self.jobs_ended(&mut st).into_iter().map(Op::PutJob));
+                        }
                         ops.extend(rec.map(Op::PutJob));
                         ops.extend(
                             counters.map(|(job, counters)| Op::PutCounters { job, counters }),

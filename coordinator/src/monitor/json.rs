@@ -67,7 +67,7 @@ pub struct AdaptiveJson {
 pub struct JobJson {
     pub id: String,
     pub name: String,
-    /// "queued", "running", "done", "failed" or "cancelled".
+    /// "waiting", "queued", "running", "done", "failed" or "cancelled".
     pub state: &'static str,
     pub priority: i32,
     /// Share of the job done, 0 to 1: its pixel-samples merged over those
@@ -103,6 +103,10 @@ pub struct JobJson {
     pub requirements: Vec<String>,
     /// Non-empty while no connected worker meets the requirements: why.
     pub unrunnable: String,
+    /// The jobs it runs after (`submit --after`).
+    pub after: Vec<String>,
+    /// While "waiting": those of them not done yet.
+    pub waiting_for: Vec<String>,
 }
 
 /// Most frames a job shows in `/api/jobs` and the events' `farm`
@@ -131,6 +135,8 @@ impl JobJson {
             blocklisted: self.blocklisted.clone(),
             requirements: self.requirements.clone(),
             unrunnable: self.unrunnable.clone(),
+            after: self.after.clone(),
+            waiting_for: self.waiting_for.clone(),
             ..*self
         }
     }
@@ -147,6 +153,7 @@ pub struct BlockedJson {
 
 pub fn state_name(s: JobState) -> &'static str {
     match s {
+        JobState::Waiting => "waiting",
         JobState::Queued => "queued",
         JobState::Running => "running",
         JobState::Done => "done",
@@ -207,6 +214,8 @@ impl From<&JobView> for JobJson {
                 .collect(),
             requirements: r.requirements.iter().map(ToString::to_string).collect(),
             unrunnable: v.unrunnable.clone(),
+            after: r.after.clone(),
+            waiting_for: v.waiting_for.clone(),
             adaptive: v.adaptive.settings.map(|a| AdaptiveJson {
                 target_error: a.target_error,
                 relative_error: a.relative_error,

@@ -62,6 +62,10 @@ pub struct JobRecord {
     pub adaptive: AdaptiveRec,
     /// Labels a worker needs to lease the job's units (issue 38).
     pub requirements: Vec<Requirement>,
+    /// Jobs it runs after (`submit --after`): it waits until all are done.
+    pub after: Vec<String>,
+    /// URLs told when it ends (`submit --on-done`).
+    pub on_done: Vec<String>,
 }
 
 impl JobRecord {
@@ -194,6 +198,12 @@ pub(super) struct JobRecordJson {
     /// their shape.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub requirements: Vec<String>,
+    /// `tessera submit --after` and `--on-done` (issue 38): absent in
+    /// earlier records, left out when empty, as `requirements`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub after: Vec<String>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub on_done: Vec<String>,
 }
 
 fn record_version_1() -> u32 {
@@ -305,6 +315,8 @@ impl From<&JobRecord> for JobRecordJson {
             output_dir: r.output_dir.clone(),
             adaptive: r.adaptive,
             requirements: r.requirements.iter().map(ToString::to_string).collect(),
+            after: r.after.clone(),
+            on_done: r.on_done.clone(),
         }
     }
 }
@@ -338,6 +350,8 @@ impl TryFrom<JobRecordJson> for JobRecord {
             output_dir: r.output_dir,
             adaptive: r.adaptive,
             requirements: Requirement::parse_all(&r.requirements).map_err(|e| e.to_string())?,
+            after: r.after,
+            on_done: r.on_done,
         })
     }
 }
