@@ -11,6 +11,9 @@
 //! - Dependencies (`submit --after`): a job waits, none of its units
 //!   leased, until its parent is done, across a restart; it fails with its
 //!   parent's cancellation.
+//! - Notifications (`submit --on-done`, `coordinator --notify`): a real
+//!   HTTP server in this process receives the signed POSTs, checks the
+//!   HMAC with its own implementation, and fails a first attempt.
 
 use std::path::Path;
 use std::process::Command;
@@ -645,6 +648,23 @@ fn a_job_after_another_waits_unleased_until_it_is_done_across_a_restart_and_fail
         "{err}"
     );
 
+    // Notifications need the coordinator's secret (this one has none).
+    let bad = client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--on-done",
+            "http://127.0.0.1:9/hook",
+        ],
+    );
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains("--on-done: this coordinator has no --notify-secret-file, so it cannot sign notifications"),
+        "{err}"
+    );
+
     // No worker yet: the parent is queued, the child waits for it.
     let parent = submit_small(&c, "400", &["--name", "parent"]);
     let child = submit_small(&c, "2", &["--name", "child", "--after", &parent]);
@@ -762,5 +782,195 @@ fn a_job_after_another_waits_unleased_until_it_is_done_across_a_restart_and_fail
             "--after {p2}: job {p2} (doomed) has been cancelled, so a job after it would never run"
         )),
         "{err}"
+    );
+}
+
+/// HMAC-SHA256 (RFC 2104) written here from SHA-256 alone: the receiver
+/// checks the coordinator's signature (ring's) with its own code.
+fn hmac_sha256(key: &[u8], msg: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    let mut k = [0u8; 64];
+    if key.len() > 64 {
+        k[..32].copy_from_slice(&Sha256::digest(key));
+    } else {
+        k[..key.len()].copy_from_slice(key);
+    }
+    let pad = |b: u8| k.iter().map(|x| x ^ b).collect::<Vec<u8>>();
+    let inner = Sha256::new()
+        .chain_update(pad(0x36))
+        .chain_update(msg)
+        .finalize();
+    let outer = Sha256::new()
+        .chain_update(pad(0x5c))
+        .chain_update(inner)
+        .finalize();
+    outer.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// A request the receiver got: its path, headers (lower-case names), body.
+#[derive(Clone, Debug)]
+struct Received {
+    path: String,
+    headers: std::collections::HashMap<String, String>,
+    body: Vec<u8>,
+}
+
+/// A real HTTP/1.1 server on a loopback port, in a thread of this test:
+/// it records every request and answers 200, except the first request to
+/// `/flaky`, which gets 500.
+fn webhook_receiver() -> (String, std::sync::Arc<std::sync::Mutex<Vec<Received>>>) {
+    use std::io::{BufRead, BufReader, Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    let got = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Received>::new()));
+    let seen = got.clone();
+    std::thread::spawn(move || {
+        for stream in listener.incoming() {
+            let Ok(mut stream) = stream else { continue };
+            let mut r = BufReader::new(stream.try_clone().expect("clone"));
+            let mut line = String::new();
+            r.read_line(&mut line).expect("request line");
+            let mut parts = line.split_whitespace();
+            assert_eq!(parts.next(), Some("POST"), "{line}");
+            let path = parts.next().expect("path").to_string();
+            let mut headers = std::collections::HashMap::new();
+            loop {
+                let mut h = String::new();
+                r.read_line(&mut h).expect("header");
+                let h = h.trim_end();
+                if h.is_empty() {
+                    break;
+                }
+                let (k, v) = h.split_once(':').expect("header line");
+                headers.insert(k.trim().to_ascii_lowercase(), v.trim().to_string());
+            }
+            let len: usize = headers["content-length"].parse().expect("length");
+            let mut body = vec![0; len];
+            r.read_exact(&mut body).expect("body");
+            let first_flaky = {
+                let mut g = seen.lock().unwrap();
+                let first = path == "/flaky" && !g.iter().any(|x| x.path == "/flaky");
+                g.push(Received {
+                    path: path.clone(),
+                    headers,
+                    body,
+                });
+                first
+            };
+            let status = if first_flaky {
+                "500 Internal Server Error"
+            } else {
+                "200 OK"
+            };
+            let _ = write!(
+                stream,
+                "HTTP/1.1 {status}\r\ncontent-length: 0\r\nconnection: close\r\n\r\n"
+            );
+        }
+    });
+    (format!("http://{addr}"), got)
+}
+
+#[test]
+fn a_job_that_ends_is_posted_signed_to_its_on_done_and_the_notify_urls_and_a_failed_post_is_retried()
+ {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (url, got) = webhook_receiver();
+    let secret = "a-notification-secret-of-32-bytes";
+    std::fs::write(dir.path().join("notify.secret"), format!("{secret}\n")).expect("secret");
+    let all = format!("{url}/all");
+    let c = start_coordinator(
+        dir.path(),
+        &[
+            "--notify",
+            &all,
+            "--notify-secret-file",
+            dir.path().join("notify.secret").to_str().unwrap(),
+        ],
+    );
+    let _w = start_worker(dir.path(), &c.grpc, "w");
+
+    // An https receiver is refused at submit, by name.
+    let scene = repo("examples/resolution.toml");
+    let bad = client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--on-done",
+            "https://example.com/hook",
+        ],
+    );
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains(r#"--on-done "https://example.com/hook": https is not supported"#),
+        "{err}"
+    );
+
+    // A job done: its own receiver fails the first POST, the retry lands.
+    let flaky = format!("{url}/flaky");
+    let done = submit_small(&c, "2", &["--on-done", &flaky, "--wait"]);
+    // A job cancelled (nobody can run it): told to --notify only.
+    let stuck = submit_small(&c, "2", &["--require", "pool=none"]);
+    ok_stdout(&client(&c, &["cancel", &stuck]));
+
+    wait_for("the notifications", Duration::from_secs(30), || {
+        let g = got.lock().unwrap();
+        g.iter().filter(|r| r.path == "/flaky").count() >= 2
+            && g.iter().filter(|r| r.path == "/all").count() >= 2
+    });
+    // Nothing more comes: each was delivered once (the flaky one twice).
+    std::thread::sleep(Duration::from_secs(2));
+    let got = got.lock().unwrap().clone();
+    let count = |p: &str| got.iter().filter(|r| r.path == p).count();
+    assert_eq!((count("/flaky"), count("/all")), (2, 2), "{got:?}");
+    let status_done = job_status(&c, &done);
+    let status_stuck = job_status(&c, &stuck);
+    for r in &got {
+        // The signature is the HMAC-SHA256 of the body under the secret
+        // (the file's trailing newline dropped).
+        assert_eq!(
+            r.headers["x-tessera-signature"],
+            format!("sha256={}", hmac_sha256(secret.as_bytes(), &r.body)),
+            "{r:?}"
+        );
+        assert_eq!(r.headers["content-type"], "application/json");
+        let body: Value = serde_json::from_slice(&r.body).expect("JSON body");
+        // The body is the job's `tessera status --json`, whole.
+        let (expected, state) = if body["job_id"] == done.as_str() {
+            (&status_done, "done")
+        } else {
+            (&status_stuck, "cancelled")
+        };
+        assert_eq!(body["state"], state, "{body}");
+        assert_eq!(r.headers["x-tessera-event"], format!("job.{state}"));
+        assert_eq!(r.headers["x-tessera-job"], body["job_id"].as_str().unwrap());
+        assert_eq!(
+            &body, expected,
+            "the POSTed JSON differs from status --json"
+        );
+    }
+    let on_all: Vec<&str> = got
+        .iter()
+        .filter(|r| r.path == "/all")
+        .map(|r| r.headers["x-tessera-job"].as_str())
+        .collect();
+    assert!(
+        on_all.contains(&done.as_str()) && on_all.contains(&stuck.as_str()),
+        "{on_all:?}"
+    );
+    assert!(
+        got.iter()
+            .filter(|r| r.path == "/flaky")
+            .all(|r| r.headers["x-tessera-job"] == done),
+        "{got:?}"
+    );
+    // The retry is in the coordinator's log.
+    let log = c.proc.log();
+    assert!(
+        log.contains("job notification not delivered; retrying"),
+        "{log}"
     );
 }

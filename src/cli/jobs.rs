@@ -106,6 +106,12 @@ pub struct SubmitArgs {
     /// it, if one fails or is cancelled. An unknown JOB is refused
     #[arg(long = "after", value_name = "JOB")]
     pub after: Vec<String>,
+    /// When the job ends (done, failed, cancelled), the coordinator POSTs
+    /// its JSON (as `status --json` prints it) to this http:// URL, signed
+    /// with its --notify-secret-file (`X-Tessera-Signature: sha256=HEX`)
+    /// and retried with back-off; repeatable
+    #[arg(long = "on-done", value_name = "URL")]
+    pub on_done: Vec<String>,
     /// Wait for the job to finish (progress on stderr); the exit code is then
     /// the job's outcome (0 done, 3 failed, 4 cancelled). At the end it
     /// prints the `tessera fetch` command that downloads the frames here
@@ -161,7 +167,7 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
         max_attempts: args.max_attempts,
         requirements: args.require.clone(),
         after: args.after.clone(),
-        on_done: Vec::new(),
+        on_done: args.on_done.clone(),
     };
     let spec = pb::JobSpec {
         scene: bundle.scene,

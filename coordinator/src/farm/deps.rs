@@ -134,12 +134,45 @@ impl Farm {
         Ok(ids)
     }
 
+    /// Checks a submit's `--on-done` URLs: well formed, and a secret to
+    /// sign their notifications with.
+    pub(super) fn check_on_done(&self, urls: &[String]) -> Result<(), FarmError> {
+        for u in urls {
+            crate::notify::check_url("--on-done", u)
+                .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
+        }
+        if !urls.is_empty() && self.notifier.secret.is_none() {
+            return Err(FarmError::FailedPrecondition(
+                "--on-done: this coordinator has no --notify-secret-file, so it cannot sign notifications; \
+                 start it with one (docs/operations.md, \"Notifications\")"
+                    .into(),
+            ));
+        }
+        Ok(())
+    }
+
     /// After jobs ended or were added under the lock: their dependents
-    /// moved on ([`State::settle_dependents`]); the records to store.
+    /// moved on ([`State::settle_dependents`]) and every job that ended
+    /// handed to the notifier (`crate::notify`, which returns at once);
+    /// the records to store.
     pub(super) fn jobs_ended(&self, st: &mut State) -> Vec<JobRecord> {
         let (failed, released) = st.settle_dependents();
         if released {
             self.work_ready.notify_waiters();
+        }
+        let ended: Vec<String> = st
+            .jobs
+            .iter()
+            .filter(|(_, j)| j.state.is_terminal() && !j.announced)
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in ended {
+            let job = st.jobs.get(&id).expect("listed");
+            if self.notifier.wanted(&job.rec.on_done) {
+                let status = crate::service::job_status(&st.view_of(job, job.view()));
+                self.notifier.send(status, &job.rec.on_done);
+            }
+            st.jobs.get_mut(&id).expect("listed").announced = true;
         }
         failed
     }

@@ -135,6 +135,7 @@ impl Job {
             rays_this_run: 0,
             watch: watch::channel(0).0,
             adaptive: adaptive.map(adaptive::AdaptiveJob::new),
+            announced: state.is_terminal(),
         };
         job.adaptive_start();
         job.work_left = job.sum_work_left();

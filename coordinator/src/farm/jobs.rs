@@ -38,6 +38,7 @@ impl Farm {
             .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
         // Before anything is stored: an unknown parent is refused at once.
         let after = self.check_after(&spec.after)?;
+        self.check_on_done(&spec.on_done)?;
         let on_done = spec.on_done.clone();
         // The job's files: inline ones stored now, uploaded ones named by
         // hash. The scene is validated from these alone.

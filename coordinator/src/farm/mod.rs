@@ -104,6 +104,11 @@ pub struct Config {
     pub blocklist_after: u32,
     /// How long a blocklisted worker is kept from the job.
     pub blocklist_for: Duration,
+    /// URLs told of every job's end (`--notify`, `crate::notify`).
+    pub notify: Vec<String>,
+    /// The key notifications are signed with (`--notify-secret-file`);
+    /// None: none can be sent.
+    pub notify_secret: Option<Vec<u8>>,
 }
 
 impl Config {
@@ -131,6 +136,8 @@ impl Config {
             // job until forgiven.
             blocklist_after: 3,
             blocklist_for: Duration::from_secs(30 * 60),
+            notify: Vec::new(),
+            notify_secret: None,
         }
     }
 }
@@ -366,6 +373,9 @@ struct Job {
     /// Failure reports per worker session, and the blocklist they lead
     /// to (see `Job::count_failure`).
     worker_failures: HashMap<String, WorkerFailures>,
+    /// Whether its end was handed to the notifier (`Farm::jobs_ended`);
+    /// a job that had ended before this run is not announced again.
+    announced: bool,
 }
 
 /// One worker's failures of one job's units.
@@ -581,6 +591,8 @@ pub struct Farm {
     work_ready: tokio::sync::Notify,
     /// Prometheus counters and histograms (`crate::metrics`).
     pub metrics: crate::metrics::Metrics,
+    /// Job-end notifications (`crate::notify`).
+    pub notifier: crate::notify::Notifier,
 }
 
 fn now_ms() -> i64 {
@@ -647,6 +659,9 @@ impl Farm {
                     config.data_dir.join("assets").display()
                 ))
             })?;
+        let notifier =
+            crate::notify::Notifier::new(config.notify.clone(), config.notify_secret.clone())
+                .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
         let snap = store.load()?;
         let boot = format!("{:x}", now_ms() as u64 ^ (std::process::id() as u64) << 40);
         let farm = Arc::new(Farm {
@@ -659,6 +674,7 @@ impl Farm {
             boot,
             work_ready: tokio::sync::Notify::new(),
             metrics: crate::metrics::Metrics::new(),
+            notifier,
         });
         let mut to_write = Vec::new();
         {
