@@ -14,6 +14,8 @@
 //! - Notifications (`submit --on-done`, `coordinator --notify`): a real
 //!   HTTP server in this process receives the signed POSTs, checks the
 //!   HMAC with its own implementation, and fails a first attempt.
+//! - Failure classes and a job's own blocklist settings: a scene error
+//!   that a second worker reports fails the job at once.
 
 use std::path::Path;
 use std::process::Command;
@@ -973,4 +975,150 @@ fn a_job_that_ends_is_posted_signed_to_its_on_done_and_the_notify_urls_and_a_fai
         log.contains("job notification not delivered; retrying"),
         "{log}"
     );
+}
+
+/// Reports lease `lease_id` of session `id` failed with `message` of
+/// class `class`.
+async fn fail_with_class(
+    w: &WorkerServiceClient<tonic::transport::Channel>,
+    id: &str,
+    lease_id: String,
+    message: &str,
+    class: tessera_proto::pb::FailureClass,
+) {
+    use tessera_proto::pb;
+    let r = w
+        .clone()
+        .submit_result(pb::SubmitResultRequest {
+            worker_id: id.to_string(),
+            lease_id,
+            failure: message.into(),
+            failure_class: class as i32,
+            ..Default::default()
+        })
+        .await
+        .expect("submit the failure")
+        .into_inner();
+    assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
+}
+
+#[test]
+fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scene_error_on_a_second_worker_fails_the_job()
+ {
+    use tessera_proto::pb::FailureClass;
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The coordinator's default is 3 failures; the job says 1.
+    let c = start_coordinator(dir.path(), &[]);
+    let job = submit_small(
+        &c,
+        "1",
+        &[
+            "--blocklist-after",
+            "1",
+            "--blocklist-forgive",
+            "120",
+            "--max-attempts",
+            "9",
+        ],
+    );
+    let st = job_status(&c, &job);
+    assert_eq!(
+        (
+            st["blocklist_after"].as_u64(),
+            st["blocklist_seconds"].as_f64()
+        ),
+        (Some(1), Some(120.0)),
+        "{st}"
+    );
+    let rt = rt();
+    let (gpu, gpu_id) = rt.block_on(raw_worker(&c.grpc, "gpu-box"));
+    let (a, a_id) = rt.block_on(raw_worker(&c.grpc, "a"));
+    let (b, b_id) = rt.block_on(raw_worker(&c.grpc, "b"));
+    let lease = |w, id| {
+        rt.block_on(raw_lease(w, id))
+            .units
+            .into_iter()
+            .next()
+            .map(|u| u.lease_id)
+    };
+    // One lost GPU: blocklisted from this job after its 1 failure.
+    let l = lease(&gpu, &gpu_id).expect("a unit for gpu-box");
+    rt.block_on(fail_with_class(
+        &gpu,
+        &gpu_id,
+        l,
+        "device lost",
+        FailureClass::GpuLost,
+    ));
+    assert_eq!(
+        lease(&gpu, &gpu_id),
+        None,
+        "blocklisted after the job's 1 failure"
+    );
+    // A scene error on one worker: the job goes on (it may be that worker's).
+    let l = lease(&a, &a_id).expect("a unit for a");
+    rt.block_on(fail_with_class(
+        &a,
+        &a_id,
+        l,
+        "texture wood.png: unsupported format",
+        FailureClass::Scene,
+    ));
+    let st = job_status(&c, &job);
+    assert_eq!(st["state"], "running", "{st}");
+    assert_eq!(
+        st["failure_classes"],
+        serde_json::json!({"gpu_lost": 1, "scene": 1}),
+        "{st}"
+    );
+    // Both kept from the job after their one failure (the job's setting).
+    let names: Vec<&str> = st["blocklisted"]
+        .as_array()
+        .expect("blocklisted")
+        .iter()
+        .map(|b| b["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["a", "gpu-box"], "{st}");
+    let text = ok_stdout(&client(&c, &["status", &job]));
+    assert!(
+        text.contains("failures:  gpu_lost 1, scene 1 (units reported failed by workers, by class); blocklist after 1 of them, forgiven after 120 s\n"),
+        "{text}"
+    );
+    // The monitor shows the classes and the settings too.
+    let m = Command::new("curl")
+        .args([
+            "-sf",
+            "-H",
+            &format!("Authorization: Bearer {CLIENT_TOKEN}"),
+        ])
+        .arg(format!("{}/api/jobs/{job}", c.http))
+        .output()
+        .expect("curl");
+    let mj: Value = serde_json::from_slice(&m.stdout).expect("monitor JSON");
+    assert_eq!(
+        mj["failure_classes"],
+        serde_json::json!({"gpu_lost": 1, "scene": 1}),
+        "{mj}"
+    );
+    assert_eq!(mj["blocklist_after"], 1, "{mj}");
+    // The same scene error on a second worker: failed at once, with the
+    // message (9 attempts were allowed).
+    let l = lease(&b, &b_id).expect("a unit for b");
+    rt.block_on(fail_with_class(
+        &b,
+        &b_id,
+        l,
+        "texture wood.png: unsupported format",
+        FailureClass::Scene,
+    ));
+    let st = job_status(&c, &job);
+    assert_eq!(st["state"], "failed", "{st}");
+    assert_eq!(
+        st["error"],
+        "scene error reproduced on a second worker (a, b): texture wood.png: unsupported format",
+        "{st}"
+    );
+    // Nothing of it is leased any more.
+    assert_eq!(lease(&a, &a_id), None);
 }

@@ -88,5 +88,12 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
     // passes the macro's recursion limit).
     v["after"] = json!(j.after);
     v["waiting_for"] = json!(j.waiting_for);
+    v["blocklist_after"] = json!(j.blocklist_after);
+    v["blocklist_seconds"] = json!(j.blocklist_seconds);
+    v["failure_classes"] = json!(
+        j.failure_classes
+            .iter()
+            .collect::<std::collections::BTreeMap<_, _>>()
+    );
     v
 }

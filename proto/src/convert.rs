@@ -258,6 +258,8 @@ impl From<JobSpec> for pb::JobSpec {
             requirements: j.requirements,
             after: j.after,
             on_done: j.on_done,
+            blocklist_after: j.blocklist_after,
+            blocklist_seconds: j.blocklist_seconds,
         }
     }
 }
@@ -286,6 +288,8 @@ impl From<&pb::JobSpec> for JobSpec {
             requirements: j.requirements.clone(),
             after: j.after.clone(),
             on_done: j.on_done.clone(),
+            blocklist_after: j.blocklist_after,
+            blocklist_seconds: j.blocklist_seconds,
         }
     }
 }
@@ -322,6 +326,8 @@ mod tests {
             requirements: vec!["backend=gpu".into(), "gpu_memory_gb>=40".into()],
             after: vec!["j0123456789".into()],
             on_done: vec!["http://127.0.0.1:9/hook".into()],
+            blocklist_after: Some(0),
+            blocklist_seconds: Some(60.0),
         };
         let wire = pb::JobSpec::from(spec.clone());
         assert_eq!(wire.samples_per_unit, 0);

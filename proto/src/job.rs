@@ -49,4 +49,8 @@ pub struct JobSpec {
     pub after: Vec<String>,
     /// URLs POSTed the job's JSON when it ends (`tessera submit --on-done`).
     pub on_done: Vec<String>,
+    /// This job's blocklist: failed units before a worker is kept from it
+    /// (0: never), and seconds until forgiven. None: the coordinator's.
+    pub blocklist_after: Option<u32>,
+    pub blocklist_seconds: Option<f64>,
 }

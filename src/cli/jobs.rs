@@ -112,6 +112,15 @@ pub struct SubmitArgs {
     /// and retried with back-off; repeatable
     #[arg(long = "on-done", value_name = "URL")]
     pub on_done: Vec<String>,
+    /// Units of this job a worker may report failed before it is kept
+    /// from the job (its blocklist, shown by `status`); 0: never
+    /// [default: the coordinator's --blocklist-after, 3]
+    #[arg(long, value_name = "N")]
+    pub blocklist_after: Option<u32>,
+    /// Seconds a worker blocklisted from this job is kept from it, then
+    /// forgiven [default: the coordinator's --blocklist-seconds, 1800]
+    #[arg(long, value_name = "SECONDS")]
+    pub blocklist_forgive: Option<f64>,
     /// Wait for the job to finish (progress on stderr); the exit code is then
     /// the job's outcome (0 done, 3 failed, 4 cancelled). At the end it
     /// prints the `tessera fetch` command that downloads the frames here
@@ -168,6 +177,8 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
         requirements: args.require.clone(),
         after: args.after.clone(),
         on_done: args.on_done.clone(),
+        blocklist_after: args.blocklist_after,
+        blocklist_seconds: args.blocklist_forgive,
     };
     let spec = pb::JobSpec {
         scene: bundle.scene,
@@ -404,6 +415,20 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
         }
         if !j.unrunnable.is_empty() {
             outln!("waiting:   {}", j.unrunnable);
+        }
+        if !j.failure_classes.is_empty() {
+            let mut by_class: Vec<_> = j.failure_classes.iter().collect();
+            by_class.sort();
+            outln!(
+                "failures:  {} (units reported failed by workers, by class); blocklist after {} of them, forgiven after {} s",
+                by_class
+                    .iter()
+                    .map(|(k, n)| format!("{k} {n}"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                j.blocklist_after,
+                j.blocklist_seconds
+            );
         }
         for b in &j.blocklisted {
             let left = (b.until_unix_ms - now_unix_ms()).max(0) / 1000;

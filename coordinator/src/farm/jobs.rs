@@ -40,6 +40,16 @@ impl Farm {
         let after = self.check_after(&spec.after)?;
         self.check_on_done(&spec.on_done)?;
         let on_done = spec.on_done.clone();
+        let blocklist_after = spec.blocklist_after.unwrap_or(self.config.blocklist_after);
+        let blocklist_seconds = match spec.blocklist_seconds {
+            Some(s) if !(s.is_finite() && s > 0.0) => {
+                return Err(FarmError::InvalidArgument(format!(
+                    "blocklist_seconds must be a positive number of seconds, got {s}"
+                )));
+            }
+            Some(s) => s,
+            None => self.config.blocklist_for.as_secs_f64(),
+        };
         // The job's files: inline ones stored now, uploaded ones named by
         // hash. The scene is validated from these alone.
         let limits = self.assets.limits;
@@ -242,6 +252,8 @@ impl Farm {
             requirements,
             after,
             on_done,
+            blocklist_after: Some(blocklist_after),
+            blocklist_seconds: Some(blocklist_seconds),
         };
         ops.push(Op::PutJob(rec.clone()));
         ops.push(Op::PutCounters {

@@ -238,6 +238,8 @@ pub struct JobView {
     pub unrunnable: String,
     /// While [`JobState::Waiting`]: the jobs it runs after not done yet.
     pub waiting_for: Vec<String>,
+    /// Units' failures reported by workers, by class (this run).
+    pub failures: BTreeMap<&'static str, u64>,
 }
 
 /// A worker on a job's blocklist.
@@ -322,6 +324,34 @@ pub struct ResultData {
     pub packed: Option<tessera_proto::film_codec::Packed>,
     pub render_seconds: f64,
     pub failure: Option<String>,
+    /// With `failure`: its kind, as the worker says.
+    pub failure_class: FailureClass,
+}
+
+/// Why a unit failed on a worker (issue 38): a scene error reported by a
+/// second worker fails the job at once (`Job::scene_error`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum FailureClass {
+    Unspecified,
+    Scene,
+    OutOfMemory,
+    GpuLost,
+    WorkerCrash,
+    Timeout,
+}
+
+impl FailureClass {
+    /// As `status` and the JSON name it.
+    pub fn name(self) -> &'static str {
+        match self {
+            FailureClass::Unspecified => "unspecified",
+            FailureClass::Scene => "scene",
+            FailureClass::OutOfMemory => "out_of_memory",
+            FailureClass::GpuLost => "gpu_lost",
+            FailureClass::WorkerCrash => "worker_crash",
+            FailureClass::Timeout => "timeout",
+        }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -376,6 +406,10 @@ struct Job {
     /// Whether its end was handed to the notifier (`Farm::jobs_ended`);
     /// a job that had ended before this run is not announced again.
     announced: bool,
+    /// Failure reports by class (`FailureClass::name`), this run.
+    failure_classes: BTreeMap<&'static str, u64>,
+    /// The first scene error reported: (worker session, its name, the message).
+    scene_error: Option<(String, String, String)>,
 }
 
 /// One worker's failures of one job's units.
@@ -691,6 +725,12 @@ impl Farm {
                         "job not resumed: its settings exceed what this coordinator accepts");
                     continue;
                 }
+                let mut rec = rec;
+                // Records from before per-job blocklists: the coordinator's.
+                rec.blocklist_after
+                    .get_or_insert(farm.config.blocklist_after);
+                rec.blocklist_seconds
+                    .get_or_insert(farm.config.blocklist_for.as_secs_f64());
                 let mut job = Job::new(rec, counters);
                 if !job.state.is_terminal() {
                     // Derived state, not stored: probed again from the stored scene.

@@ -107,6 +107,12 @@ pub struct JobJson {
     pub after: Vec<String>,
     /// While "waiting": those of them not done yet.
     pub waiting_for: Vec<String>,
+    /// Its blocklist settings: failed units before a worker is kept from
+    /// it (0: never), seconds until forgiven.
+    pub blocklist_after: u32,
+    pub blocklist_seconds: f64,
+    /// Units' failures reported by workers, by class.
+    pub failure_classes: std::collections::BTreeMap<&'static str, u64>,
 }
 
 /// Most frames a job shows in `/api/jobs` and the events' `farm`
@@ -137,6 +143,7 @@ impl JobJson {
             unrunnable: self.unrunnable.clone(),
             after: self.after.clone(),
             waiting_for: self.waiting_for.clone(),
+            failure_classes: self.failure_classes.clone(),
             ..*self
         }
     }
@@ -216,6 +223,9 @@ impl From<&JobView> for JobJson {
             unrunnable: v.unrunnable.clone(),
             after: r.after.clone(),
             waiting_for: v.waiting_for.clone(),
+            blocklist_after: r.blocklist_after.unwrap_or(0),
+            blocklist_seconds: r.blocklist_seconds.unwrap_or(0.0),
+            failure_classes: v.failures.clone(),
             adaptive: v.adaptive.settings.map(|a| AdaptiveJson {
                 target_error: a.target_error,
                 relative_error: a.relative_error,

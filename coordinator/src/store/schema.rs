@@ -66,6 +66,11 @@ pub struct JobRecord {
     pub after: Vec<String>,
     /// URLs told when it ends (`submit --on-done`).
     pub on_done: Vec<String>,
+    /// Its blocklist (`submit --blocklist-after`, `--blocklist-forgive`):
+    /// set at submit (or, for older records, from the coordinator's
+    /// settings when read back).
+    pub blocklist_after: Option<u32>,
+    pub blocklist_seconds: Option<f64>,
 }
 
 impl JobRecord {
@@ -204,6 +209,10 @@ pub(super) struct JobRecordJson {
     pub after: Vec<String>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub on_done: Vec<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blocklist_after: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blocklist_seconds: Option<f64>,
 }
 
 fn record_version_1() -> u32 {
@@ -317,6 +326,8 @@ impl From<&JobRecord> for JobRecordJson {
             requirements: r.requirements.iter().map(ToString::to_string).collect(),
             after: r.after.clone(),
             on_done: r.on_done.clone(),
+            blocklist_after: r.blocklist_after,
+            blocklist_seconds: r.blocklist_seconds,
         }
     }
 }
@@ -352,6 +363,8 @@ impl TryFrom<JobRecordJson> for JobRecord {
             requirements: Requirement::parse_all(&r.requirements).map_err(|e| e.to_string())?,
             after: r.after,
             on_done: r.on_done,
+            blocklist_after: r.blocklist_after,
+            blocklist_seconds: r.blocklist_seconds,
         })
     }
 }
