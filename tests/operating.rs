@@ -71,6 +71,29 @@ fn job_status(c: &Coordinator, job: &str) -> Value {
     serde_json::from_str(&out).unwrap_or_else(|e| panic!("status --json: {e}: {out}"))
 }
 
+/// The monitor's JSON of job `job` (`/api/jobs/{id}`), with the client token.
+fn monitor_job(c: &Coordinator, job: &str) -> Value {
+    let m = Command::new("curl")
+        .args([
+            "-sf",
+            "-H",
+            &format!("Authorization: Bearer {CLIENT_TOKEN}"),
+        ])
+        .arg(format!("{}/api/jobs/{job}", c.http))
+        .output()
+        .expect("curl");
+    serde_json::from_slice(&m.stdout)
+        .unwrap_or_else(|e| panic!("monitor JSON: {e}: {}", String::from_utf8_lossy(&m.stdout)))
+}
+
+/// `tessera ARGS` as a client of `c` must fail, saying `expected`.
+fn refused(c: &Coordinator, args: &[&str], expected: &str) {
+    let o = client(c, args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{args:?} succeeded: {err}");
+    assert!(err.contains(expected), "{err}");
+}
+
 /// A scrape of `c`'s `/metrics` with `token`, parsed by prometheus_client:
 /// Ok(the parsed samples and types) or Err((HTTP status, body)).
 fn scrape(c: &Coordinator, token: Option<&str>) -> Result<Value, (u64, String)> {
@@ -580,32 +603,17 @@ fn a_requirement_routes_a_job_to_the_matching_worker_only_and_a_job_nobody_can_r
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains(&format!("job {stuck}: {why}")), "{err}");
     // The monitor's job JSON carries it too.
-    let m = Command::new("curl")
-        .args([
-            "-sf",
-            "-H",
-            &format!("Authorization: Bearer {CLIENT_TOKEN}"),
-        ])
-        .arg(format!("{}/api/jobs/{stuck}", c.http))
-        .output()
-        .expect("curl");
-    let mj: Value = serde_json::from_slice(&m.stdout)
-        .unwrap_or_else(|e| panic!("monitor JSON: {e}: {}", String::from_utf8_lossy(&m.stdout)));
+    let mj = monitor_job(&c, &stuck);
     assert_eq!(mj["unrunnable"], why, "{mj}");
     assert_eq!(mj["requirements"], serde_json::json!(["pool=gpu-farm"]));
     // Nothing of it was leased, to either worker.
     assert_eq!(job_status(&c, &stuck)["units_done"], 0);
 
     // A requirement that is not one is refused before anything is sent.
-    let bad = client(
+    refused(
         &c,
         &["submit", scene.to_str().unwrap(), "--require", "pool"],
-    );
-    assert!(!bad.status.success());
-    let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(
-        err.contains("requirement \"pool\" is neither KEY=VALUE nor KEY>=N"),
-        "{err}"
+        "requirement \"pool\" is neither KEY=VALUE nor KEY>=N",
     );
 }
 
@@ -639,19 +647,14 @@ fn a_job_after_another_waits_unleased_until_it_is_done_across_a_restart_and_fail
 
     // An unknown parent is refused at submit, by name.
     let scene = repo("examples/resolution.toml");
-    let bad = client(
+    refused(
         &c,
         &["submit", scene.to_str().unwrap(), "--after", "jnosuchjob"],
-    );
-    assert!(!bad.status.success());
-    let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(
-        err.contains(r#"--after jnosuchjob: no job "jnosuchjob" on this coordinator"#),
-        "{err}"
+        r#"--after jnosuchjob: no job "jnosuchjob" on this coordinator"#,
     );
 
     // Notifications need the coordinator's secret (this one has none).
-    let bad = client(
+    refused(
         &c,
         &[
             "submit",
@@ -659,12 +662,7 @@ fn a_job_after_another_waits_unleased_until_it_is_done_across_a_restart_and_fail
             "--on-done",
             "http://127.0.0.1:9/hook",
         ],
-    );
-    assert!(!bad.status.success());
-    let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(
-        err.contains("--on-done: this coordinator has no --notify-secret-file, so it cannot sign notifications"),
-        "{err}"
+        "--on-done: this coordinator has no --notify-secret-file, so it cannot sign notifications",
     );
 
     // No worker yet: the parent is queued, the child waits for it.
@@ -698,18 +696,7 @@ fn a_job_after_another_waits_unleased_until_it_is_done_across_a_restart_and_fail
     let st = job_status(&c, &child);
     assert_eq!(st["state"], "waiting", "{st}");
     assert_eq!(st["waiting_for"], serde_json::json!([parent]), "{st}");
-    let mj: Value = {
-        let m = Command::new("curl")
-            .args([
-                "-sf",
-                "-H",
-                &format!("Authorization: Bearer {CLIENT_TOKEN}"),
-            ])
-            .arg(format!("{}/api/jobs/{child}", c.http))
-            .output()
-            .expect("curl");
-        serde_json::from_slice(&m.stdout).expect("monitor JSON")
-    };
+    let mj = monitor_job(&c, &child);
     assert_eq!(mj["state"], "waiting", "{mj}");
     assert_eq!(mj["waiting_for"], serde_json::json!([parent]), "{mj}");
 
@@ -776,14 +763,12 @@ fn a_job_after_another_waits_unleased_until_it_is_done_across_a_restart_and_fail
         "{st}"
     );
     // A failed or cancelled job cannot be a new job's parent.
-    let bad = client(&c, &["submit", scene.to_str().unwrap(), "--after", &p2]);
-    assert!(!bad.status.success());
-    let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(
-        err.contains(&format!(
+    refused(
+        &c,
+        &["submit", scene.to_str().unwrap(), "--after", &p2],
+        &format!(
             "--after {p2}: job {p2} (doomed) has been cancelled, so a job after it would never run"
-        )),
-        "{err}"
+        ),
     );
 }
 
@@ -895,7 +880,7 @@ fn a_job_that_ends_is_posted_signed_to_its_on_done_and_the_notify_urls_and_a_fai
 
     // An https receiver is refused at submit, by name.
     let scene = repo("examples/resolution.toml");
-    let bad = client(
+    refused(
         &c,
         &[
             "submit",
@@ -903,12 +888,7 @@ fn a_job_that_ends_is_posted_signed_to_its_on_done_and_the_notify_urls_and_a_fai
             "--on-done",
             "https://example.com/hook",
         ],
-    );
-    assert!(!bad.status.success());
-    let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(
-        err.contains(r#"--on-done "https://example.com/hook": https is not supported"#),
-        "{err}"
+        r#"--on-done "https://example.com/hook": https is not supported"#,
     );
 
     // A job done: its own receiver fails the first POST, the retry lands.
@@ -977,31 +957,6 @@ fn a_job_that_ends_is_posted_signed_to_its_on_done_and_the_notify_urls_and_a_fai
     );
 }
 
-/// Reports lease `lease_id` of session `id` failed with `message` of
-/// class `class`.
-async fn fail_with_class(
-    w: &WorkerServiceClient<tonic::transport::Channel>,
-    id: &str,
-    lease_id: String,
-    message: &str,
-    class: tessera_proto::pb::FailureClass,
-) {
-    use tessera_proto::pb;
-    let r = w
-        .clone()
-        .submit_result(pb::SubmitResultRequest {
-            worker_id: id.to_string(),
-            lease_id,
-            failure: message.into(),
-            failure_class: class as i32,
-            ..Default::default()
-        })
-        .await
-        .expect("submit the failure")
-        .into_inner();
-    assert_eq!(r.outcome, pb::ResultOutcome::FailureRecorded as i32);
-}
-
 #[test]
 fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scene_error_on_a_second_worker_fails_the_job()
  {
@@ -1044,7 +999,7 @@ fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scen
     };
     // One lost GPU: blocklisted from this job after its 1 failure.
     let l = lease(&gpu, &gpu_id).expect("a unit for gpu-box");
-    rt.block_on(fail_with_class(
+    rt.block_on(raw_fail_class(
         &gpu,
         &gpu_id,
         l,
@@ -1058,7 +1013,7 @@ fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scen
     );
     // A scene error on one worker: the job goes on (it may be that worker's).
     let l = lease(&a, &a_id).expect("a unit for a");
-    rt.block_on(fail_with_class(
+    rt.block_on(raw_fail_class(
         &a,
         &a_id,
         l,
@@ -1086,16 +1041,7 @@ fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scen
         "{text}"
     );
     // The monitor shows the classes and the settings too.
-    let m = Command::new("curl")
-        .args([
-            "-sf",
-            "-H",
-            &format!("Authorization: Bearer {CLIENT_TOKEN}"),
-        ])
-        .arg(format!("{}/api/jobs/{job}", c.http))
-        .output()
-        .expect("curl");
-    let mj: Value = serde_json::from_slice(&m.stdout).expect("monitor JSON");
+    let mj = monitor_job(&c, &job);
     assert_eq!(
         mj["failure_classes"],
         serde_json::json!({"gpu_lost": 1, "scene": 1}),
@@ -1105,7 +1051,7 @@ fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scen
     // The same scene error on a second worker: failed at once, with the
     // message (9 attempts were allowed).
     let l = lease(&b, &b_id).expect("a unit for b");
-    rt.block_on(fail_with_class(
+    rt.block_on(raw_fail_class(
         &b,
         &b_id,
         l,
