@@ -16,6 +16,8 @@
 //!   HMAC with its own implementation, and fails a first attempt.
 //! - Failure classes and a job's own blocklist settings: a scene error
 //!   that a second worker reports fails the job at once.
+//! - A worker's own `/metrics` (`tessera worker --http`), parsed by the
+//!   same Prometheus client and moving as it renders.
 
 use std::path::Path;
 use std::process::Command;
@@ -97,9 +99,13 @@ fn refused(c: &Coordinator, args: &[&str], expected: &str) {
 /// A scrape of `c`'s `/metrics` with `token`, parsed by prometheus_client:
 /// Ok(the parsed samples and types) or Err((HTTP status, body)).
 fn scrape(c: &Coordinator, token: Option<&str>) -> Result<Value, (u64, String)> {
+    scrape_url(&format!("{}/metrics", c.http), token)
+}
+
+/// [`scrape`] of any `/metrics` URL (a worker's).
+fn scrape_url(url: &str, token: Option<&str>) -> Result<Value, (u64, String)> {
     let mut cmd = Command::new("python3");
-    cmd.arg(repo("tests/python/metrics_scrape.py"))
-        .arg(format!("{}/metrics", c.http));
+    cmd.arg(repo("tests/python/metrics_scrape.py")).arg(url);
     cmd.args(token);
     let o = cmd
         .output()
@@ -1067,4 +1073,57 @@ fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scen
     );
     // Nothing of it is leased any more.
     assert_eq!(lease(&a, &a_id), None);
+}
+
+#[test]
+fn a_worker_serves_its_own_metrics_which_move_as_it_renders() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), &[]);
+    let w = start_worker_with(dir.path(), &c.grpc, "metered", &["--http", "127.0.0.1:0"]);
+    // The address bound is logged.
+    let mut url = String::new();
+    wait_for(
+        "the worker's metrics address",
+        Duration::from_secs(60),
+        || {
+            let log = w.log();
+            match log.split("metrics on ").nth(1) {
+                Some(rest) => {
+                    url = rest.split_whitespace().next().unwrap_or("").to_string();
+                    true
+                }
+                None => false,
+            }
+        },
+    );
+    assert!(
+        url.starts_with("http://127.0.0.1:") && url.ends_with("/metrics"),
+        "{url}"
+    );
+    let m = scrape_url(&url, None).expect("scrape the worker");
+    for (name, kind) in [
+        ("tessera_worker_units", "counter"),
+        ("tessera_worker_leases", "gauge"),
+        ("tessera_worker_threads", "gauge"),
+        ("tessera_worker_info", "gauge"),
+    ] {
+        assert_eq!(m["types"][name], kind, "family {name}: {}", m["types"]);
+    }
+    assert_eq!(sample(&m, "tessera_worker_units_total", &[]), 0.0);
+    assert_eq!(sample(&m, "tessera_worker_threads", &[]), 1.0);
+    assert_eq!(
+        sample(
+            &m,
+            "tessera_worker_info",
+            &[("name", "metered"), ("backend", "cpu"), ("gpu", "")]
+        ),
+        1.0
+    );
+    // A job of 24 units, all this worker's: the counter follows.
+    let job = submit_small(&c, "2", &["--wait"]);
+    assert_eq!(job_status(&c, &job)["state"], "done");
+    let m = scrape_url(&url, None).expect("scrape the worker");
+    assert_eq!(sample(&m, "tessera_worker_units_total", &[]), 24.0);
+    assert_eq!(sample(&m, "tessera_worker_leases", &[]), 0.0);
 }

@@ -66,6 +66,10 @@ pub struct WorkerArgs {
     /// automatic one; backend and cores cannot be given
     #[arg(long = "label", value_name = "KEY=VALUE", value_parser = label_parser)]
     pub labels: Vec<(String, String)>,
+    /// Serve this worker's Prometheus metrics (`GET /metrics`, no token)
+    /// on ADDR, e.g. 127.0.0.1:9100 (port 0: any free one, logged)
+    #[arg(long, value_name = "ADDR")]
+    pub http: Option<std::net::SocketAddr>,
 }
 
 /// `--label`: KEY=VALUE, with a key the worker does not set from itself.
@@ -126,6 +130,9 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
         labels: args.labels.iter().cloned().collect(),
     })?;
     runtime()?.block_on(async move {
+        if let Some(addr) = args.http {
+            worker.serve_metrics(addr).await?;
+        }
         let (drain_tx, drain) = tokio::sync::watch::channel(false);
         let mut run = tokio::spawn(worker.run(drain));
         tokio::select! {
