@@ -8,6 +8,16 @@
 //! - The per-job blocklist: a worker that reports `--blocklist-after`
 //!   units of a job failed gets none of its units until forgiven, and
 //!   `tessera status` says so.
+//! - Dependencies (`submit --after`): a job waits, none of its units
+//!   leased, until its parent is done, across a restart; it fails with its
+//!   parent's cancellation.
+//! - Notifications (`submit --on-done`, `coordinator --notify`): a real
+//!   HTTP server in this process receives the signed POSTs, checks the
+//!   HMAC with its own implementation, and fails a first attempt.
+//! - Failure classes and a job's own blocklist settings: a scene error
+//!   that a second worker reports fails the job at once.
+//! - A worker's own `/metrics` (`tessera worker --http`), parsed by the
+//!   same Prometheus client and moving as it renders.
 
 use std::path::Path;
 use std::process::Command;
@@ -63,12 +73,39 @@ fn job_status(c: &Coordinator, job: &str) -> Value {
     serde_json::from_str(&out).unwrap_or_else(|e| panic!("status --json: {e}: {out}"))
 }
 
+/// The monitor's JSON of job `job` (`/api/jobs/{id}`), with the client token.
+fn monitor_job(c: &Coordinator, job: &str) -> Value {
+    let m = Command::new("curl")
+        .args([
+            "-sf",
+            "-H",
+            &format!("Authorization: Bearer {CLIENT_TOKEN}"),
+        ])
+        .arg(format!("{}/api/jobs/{job}", c.http))
+        .output()
+        .expect("curl");
+    serde_json::from_slice(&m.stdout)
+        .unwrap_or_else(|e| panic!("monitor JSON: {e}: {}", String::from_utf8_lossy(&m.stdout)))
+}
+
+/// `tessera ARGS` as a client of `c` must fail, saying `expected`.
+fn refused(c: &Coordinator, args: &[&str], expected: &str) {
+    let o = client(c, args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{args:?} succeeded: {err}");
+    assert!(err.contains(expected), "{err}");
+}
+
 /// A scrape of `c`'s `/metrics` with `token`, parsed by prometheus_client:
 /// Ok(the parsed samples and types) or Err((HTTP status, body)).
 fn scrape(c: &Coordinator, token: Option<&str>) -> Result<Value, (u64, String)> {
+    scrape_url(&format!("{}/metrics", c.http), token)
+}
+
+/// [`scrape`] of any `/metrics` URL (a worker's).
+fn scrape_url(url: &str, token: Option<&str>) -> Result<Value, (u64, String)> {
     let mut cmd = Command::new("python3");
-    cmd.arg(repo("tests/python/metrics_scrape.py"))
-        .arg(format!("{}/metrics", c.http));
+    cmd.arg(repo("tests/python/metrics_scrape.py")).arg(url);
     cmd.args(token);
     let o = cmd
         .output()
@@ -174,7 +211,14 @@ fn metrics_are_prometheus_text_behind_the_tokens_and_move_as_a_job_runs() {
             idle["types"]
         );
     }
-    for state in ["queued", "running", "done", "failed", "cancelled"] {
+    for state in [
+        "waiting",
+        "queued",
+        "running",
+        "done",
+        "failed",
+        "cancelled",
+    ] {
         assert_eq!(sample(&idle, "tessera_jobs", &[("state", state)]), 0.0);
     }
     assert_eq!(sample(&idle, "tessera_store_healthy", &[]), 1.0);
@@ -565,33 +609,523 @@ fn a_requirement_routes_a_job_to_the_matching_worker_only_and_a_job_nobody_can_r
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains(&format!("job {stuck}: {why}")), "{err}");
     // The monitor's job JSON carries it too.
-    let m = Command::new("curl")
-        .args([
-            "-sf",
-            "-H",
-            &format!("Authorization: Bearer {CLIENT_TOKEN}"),
-        ])
-        .arg(format!("{}/api/jobs/{stuck}", c.http))
-        .output()
-        .expect("curl");
-    let mj: Value = serde_json::from_slice(&m.stdout)
-        .unwrap_or_else(|e| panic!("monitor JSON: {e}: {}", String::from_utf8_lossy(&m.stdout)));
+    let mj = monitor_job(&c, &stuck);
     assert_eq!(mj["unrunnable"], why, "{mj}");
     assert_eq!(mj["requirements"], serde_json::json!(["pool=gpu-farm"]));
     // Nothing of it was leased, to either worker.
     assert_eq!(job_status(&c, &stuck)["units_done"], 0);
 
     // A requirement that is not one is refused before anything is sent.
-    let bad = client(
+    refused(
         &c,
         &["submit", scene.to_str().unwrap(), "--require", "pool"],
+        "requirement \"pool\" is neither KEY=VALUE nor KEY>=N",
     );
-    assert!(!bad.status.success());
-    let err = String::from_utf8_lossy(&bad.stderr);
+}
+
+/// A submit of the small resolution scene with `extra` flags: its job id.
+fn submit_small(c: &Coordinator, samples: &str, extra: &[&str]) -> String {
+    let scene = repo("examples/resolution.toml");
+    let mut args = vec![
+        "submit",
+        scene.to_str().unwrap(),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--samples",
+        samples,
+        "--tile-size",
+        "16",
+        "--samples-per-unit",
+        "1",
+    ];
+    args.extend(extra);
+    ok_stdout(&client(c, &args)).trim().to_string()
+}
+
+#[test]
+fn a_job_after_another_waits_unleased_until_it_is_done_across_a_restart_and_fails_with_its_cancellation()
+ {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), &[]);
+
+    // An unknown parent is refused at submit, by name.
+    let scene = repo("examples/resolution.toml");
+    refused(
+        &c,
+        &["submit", scene.to_str().unwrap(), "--after", "jnosuchjob"],
+        r#"--after jnosuchjob: no job "jnosuchjob" on this coordinator"#,
+    );
+
+    // Notifications need the coordinator's secret (this one has none).
+    refused(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--on-done",
+            "http://127.0.0.1:9/hook",
+        ],
+        "--on-done: this coordinator has no --notify-secret-file, so it cannot sign notifications",
+    );
+
+    // No worker yet: the parent is queued, the child waits for it.
+    let parent = submit_small(&c, "400", &["--name", "parent"]);
+    let child = submit_small(&c, "2", &["--name", "child", "--after", &parent]);
+    let st = job_status(&c, &child);
+    assert_eq!(st["state"], "waiting", "{st}");
+    assert_eq!(st["after"], serde_json::json!([parent]), "{st}");
+    assert_eq!(st["waiting_for"], serde_json::json!([parent]), "{st}");
+    let text = ok_stdout(&client(&c, &["status", &child]));
+    assert!(text.contains("state:     waiting\n"), "{text}");
     assert!(
-        err.contains("requirement \"pool\" is neither KEY=VALUE nor KEY>=N"),
-        "{err}"
+        text.contains(&format!(
+            "waiting:   for job(s) {parent} to be done (--after)\n"
+        )),
+        "{text}"
     );
+    let m = scrape(&c, Some(METRICS_TOKEN)).expect("scrape");
+    assert_eq!(sample(&m, "tessera_jobs", &[("state", "waiting")]), 1.0);
+    assert_eq!(sample(&m, "tessera_jobs", &[("state", "queued")]), 1.0);
+    // Only the parent's 12 tiles x 400 batches wait for a worker.
+    assert_eq!(
+        sample(&m, "tessera_units", &[("state", "waiting")]),
+        4800.0,
+        "the waiting job's units are not work a worker could take"
+    );
+
+    // The dependency is stored: after a restart the child still waits.
+    drop(c);
+    let c = start_coordinator(dir.path(), &[]);
+    let st = job_status(&c, &child);
+    assert_eq!(st["state"], "waiting", "{st}");
+    assert_eq!(st["waiting_for"], serde_json::json!([parent]), "{st}");
+    let mj = monitor_job(&c, &child);
+    assert_eq!(mj["state"], "waiting", "{mj}");
+    assert_eq!(mj["waiting_for"], serde_json::json!([parent]), "{mj}");
+
+    // A worker: the parent runs; while it does, none of the child's
+    // units is leased.
+    let _w = start_worker(dir.path(), &c.grpc, "w");
+    let mut seen_running = false;
+    loop {
+        // The child first: the parent not done after it means it was
+        // not done when the child was read either.
+        let ch = job_status(&c, &child);
+        let p = job_status(&c, &parent);
+        if p["state"] == "done" {
+            break;
+        }
+        assert!(
+            ["queued", "running"].contains(&p["state"].as_str().unwrap()),
+            "{p}"
+        );
+        seen_running |= p["state"] == "running";
+        assert_eq!(ch["state"], "waiting", "{ch}");
+        assert_eq!(ch["units_done"], 0, "{ch}");
+        assert!(ch["first_lease_unix_ms"].is_null(), "{ch}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(seen_running, "the parent was never seen running");
+    // Then the child runs, its first lease after the parent ended.
+    let out = client(&c, &["watch", &child]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let p = job_status(&c, &parent);
+    let ch = job_status(&c, &child);
+    assert_eq!(ch["state"], "done", "{ch}");
+    assert_eq!(ch["waiting_for"], serde_json::json!([]), "{ch}");
+    assert!(
+        ch["first_lease_unix_ms"].as_i64().unwrap() >= p["finished_unix_ms"].as_i64().unwrap(),
+        "child leased before its parent ended: {ch} {p}"
+    );
+
+    // A parent cancelled: its child fails, naming it, and so does the
+    // child's own child.
+    drop(_w);
+    let p2 = submit_small(&c, "2", &["--name", "doomed"]);
+    let c2 = submit_small(&c, "2", &["--after", &p2]);
+    let g2 = submit_small(&c, "2", &["--after", &c2, "--after", &parent]);
+    assert_eq!(job_status(&c, &g2)["waiting_for"], serde_json::json!([c2]));
+    ok_stdout(&client(&c, &["cancel", &p2]));
+    let st = job_status(&c, &c2);
+    assert_eq!(st["state"], "failed", "{st}");
+    assert_eq!(
+        st["error"],
+        format!("job {p2} (doomed), which this job runs after (--after), was cancelled"),
+        "{st}"
+    );
+    let st = job_status(&c, &g2);
+    assert_eq!(st["state"], "failed", "{st}");
+    assert!(
+        st["error"].as_str().unwrap().starts_with(&format!(
+            "job {c2} (resolution), which this job runs after (--after), failed: job {p2} (doomed)"
+        )),
+        "{st}"
+    );
+    // A failed or cancelled job cannot be a new job's parent.
+    refused(
+        &c,
+        &["submit", scene.to_str().unwrap(), "--after", &p2],
+        &format!(
+            "--after {p2}: job {p2} (doomed) has been cancelled, so a job after it would never run"
+        ),
+    );
+}
+
+/// HMAC-SHA256 (RFC 2104) written here from SHA-256 alone: the receiver
+/// checks the coordinator's signature (ring's) with its own code.
+fn hmac_sha256(key: &[u8], msg: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    let mut k = [0u8; 64];
+    if key.len() > 64 {
+        k[..32].copy_from_slice(&Sha256::digest(key));
+    } else {
+        k[..key.len()].copy_from_slice(key);
+    }
+    let pad = |b: u8| k.iter().map(|x| x ^ b).collect::<Vec<u8>>();
+    let inner = Sha256::new()
+        .chain_update(pad(0x36))
+        .chain_update(msg)
+        .finalize();
+    let outer = Sha256::new()
+        .chain_update(pad(0x5c))
+        .chain_update(inner)
+        .finalize();
+    outer.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// A request the receiver got: its path, headers (lower-case names), body.
+#[derive(Clone, Debug)]
+struct Received {
+    path: String,
+    headers: std::collections::HashMap<String, String>,
+    body: Vec<u8>,
+}
+
+/// A real HTTP/1.1 server on a loopback port, in a thread of this test:
+/// it records every request and answers 200, except the first request to
+/// `/flaky`, which gets 500.
+fn webhook_receiver() -> (String, std::sync::Arc<std::sync::Mutex<Vec<Received>>>) {
+    use std::io::{BufRead, BufReader, Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    let got = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Received>::new()));
+    let seen = got.clone();
+    std::thread::spawn(move || {
+        for stream in listener.incoming() {
+            let Ok(mut stream) = stream else { continue };
+            let mut r = BufReader::new(stream.try_clone().expect("clone"));
+            let mut line = String::new();
+            r.read_line(&mut line).expect("request line");
+            let mut parts = line.split_whitespace();
+            assert_eq!(parts.next(), Some("POST"), "{line}");
+            let path = parts.next().expect("path").to_string();
+            let mut headers = std::collections::HashMap::new();
+            loop {
+                let mut h = String::new();
+                r.read_line(&mut h).expect("header");
+                let h = h.trim_end();
+                if h.is_empty() {
+                    break;
+                }
+                let (k, v) = h.split_once(':').expect("header line");
+                headers.insert(k.trim().to_ascii_lowercase(), v.trim().to_string());
+            }
+            let len: usize = headers["content-length"].parse().expect("length");
+            let mut body = vec![0; len];
+            r.read_exact(&mut body).expect("body");
+            let first_flaky = {
+                let mut g = seen.lock().unwrap();
+                let first = path == "/flaky" && !g.iter().any(|x| x.path == "/flaky");
+                g.push(Received {
+                    path: path.clone(),
+                    headers,
+                    body,
+                });
+                first
+            };
+            let status = if first_flaky {
+                "500 Internal Server Error"
+            } else {
+                "200 OK"
+            };
+            let _ = write!(
+                stream,
+                "HTTP/1.1 {status}\r\ncontent-length: 0\r\nconnection: close\r\n\r\n"
+            );
+        }
+    });
+    (format!("http://{addr}"), got)
+}
+
+#[test]
+fn a_job_that_ends_is_posted_signed_to_its_on_done_and_the_notify_urls_and_a_failed_post_is_retried()
+ {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (url, got) = webhook_receiver();
+    let secret = "a-notification-secret-of-32-bytes";
+    std::fs::write(dir.path().join("notify.secret"), format!("{secret}\n")).expect("secret");
+    let all = format!("{url}/all");
+    let c = start_coordinator(
+        dir.path(),
+        &[
+            "--notify",
+            &all,
+            "--notify-secret-file",
+            dir.path().join("notify.secret").to_str().unwrap(),
+        ],
+    );
+    let _w = start_worker(dir.path(), &c.grpc, "w");
+
+    // An https receiver is refused at submit, by name.
+    let scene = repo("examples/resolution.toml");
+    refused(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--on-done",
+            "https://example.com/hook",
+        ],
+        r#"--on-done "https://example.com/hook": https is not supported"#,
+    );
+
+    // A job done: its own receiver fails the first POST, the retry lands.
+    let flaky = format!("{url}/flaky");
+    let done = submit_small(&c, "2", &["--on-done", &flaky, "--wait"]);
+    // A job cancelled (nobody can run it): told to --notify only.
+    let stuck = submit_small(&c, "2", &["--require", "pool=none"]);
+    ok_stdout(&client(&c, &["cancel", &stuck]));
+
+    wait_for("the notifications", Duration::from_secs(30), || {
+        let g = got.lock().unwrap();
+        g.iter().filter(|r| r.path == "/flaky").count() >= 2
+            && g.iter().filter(|r| r.path == "/all").count() >= 2
+    });
+    // Nothing more comes: each was delivered once (the flaky one twice).
+    std::thread::sleep(Duration::from_secs(2));
+    let got = got.lock().unwrap().clone();
+    let count = |p: &str| got.iter().filter(|r| r.path == p).count();
+    assert_eq!((count("/flaky"), count("/all")), (2, 2), "{got:?}");
+    let status_done = job_status(&c, &done);
+    let status_stuck = job_status(&c, &stuck);
+    for r in &got {
+        // The signature is the HMAC-SHA256 of the body under the secret
+        // (the file's trailing newline dropped).
+        assert_eq!(
+            r.headers["x-tessera-signature"],
+            format!("sha256={}", hmac_sha256(secret.as_bytes(), &r.body)),
+            "{r:?}"
+        );
+        assert_eq!(r.headers["content-type"], "application/json");
+        let body: Value = serde_json::from_slice(&r.body).expect("JSON body");
+        // The body is the job's `tessera status --json`, whole.
+        let (expected, state) = if body["job_id"] == done.as_str() {
+            (&status_done, "done")
+        } else {
+            (&status_stuck, "cancelled")
+        };
+        assert_eq!(body["state"], state, "{body}");
+        assert_eq!(r.headers["x-tessera-event"], format!("job.{state}"));
+        assert_eq!(r.headers["x-tessera-job"], body["job_id"].as_str().unwrap());
+        assert_eq!(
+            &body, expected,
+            "the POSTed JSON differs from status --json"
+        );
+    }
+    let on_all: Vec<&str> = got
+        .iter()
+        .filter(|r| r.path == "/all")
+        .map(|r| r.headers["x-tessera-job"].as_str())
+        .collect();
+    assert!(
+        on_all.contains(&done.as_str()) && on_all.contains(&stuck.as_str()),
+        "{on_all:?}"
+    );
+    assert!(
+        got.iter()
+            .filter(|r| r.path == "/flaky")
+            .all(|r| r.headers["x-tessera-job"] == done),
+        "{got:?}"
+    );
+    // The retry is in the coordinator's log.
+    let log = c.proc.log();
+    assert!(
+        log.contains("job notification not delivered; retrying"),
+        "{log}"
+    );
+}
+
+#[test]
+fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scene_error_on_a_second_worker_fails_the_job()
+ {
+    use tessera_proto::pb::FailureClass;
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The coordinator's default is 3 failures; the job says 1.
+    let c = start_coordinator(dir.path(), &[]);
+    let job = submit_small(
+        &c,
+        "1",
+        &[
+            "--blocklist-after",
+            "1",
+            "--blocklist-forgive",
+            "120",
+            "--max-attempts",
+            "9",
+        ],
+    );
+    let st = job_status(&c, &job);
+    assert_eq!(
+        (
+            st["blocklist_after"].as_u64(),
+            st["blocklist_seconds"].as_f64()
+        ),
+        (Some(1), Some(120.0)),
+        "{st}"
+    );
+    let rt = rt();
+    let (gpu, gpu_id) = rt.block_on(raw_worker(&c.grpc, "gpu-box"));
+    let (a, a_id) = rt.block_on(raw_worker(&c.grpc, "a"));
+    let (b, b_id) = rt.block_on(raw_worker(&c.grpc, "b"));
+    let lease = |w, id| {
+        rt.block_on(raw_lease(w, id))
+            .units
+            .into_iter()
+            .next()
+            .map(|u| u.lease_id)
+    };
+    // One lost GPU: blocklisted from this job after its 1 failure.
+    let l = lease(&gpu, &gpu_id).expect("a unit for gpu-box");
+    rt.block_on(raw_fail_class(
+        &gpu,
+        &gpu_id,
+        l,
+        "device lost",
+        FailureClass::GpuLost,
+    ));
+    assert_eq!(
+        lease(&gpu, &gpu_id),
+        None,
+        "blocklisted after the job's 1 failure"
+    );
+    // A scene error on one worker: the job goes on (it may be that worker's).
+    let l = lease(&a, &a_id).expect("a unit for a");
+    rt.block_on(raw_fail_class(
+        &a,
+        &a_id,
+        l,
+        "texture wood.png: unsupported format",
+        FailureClass::Scene,
+    ));
+    let st = job_status(&c, &job);
+    assert_eq!(st["state"], "running", "{st}");
+    assert_eq!(
+        st["failure_classes"],
+        serde_json::json!({"gpu_lost": 1, "scene": 1}),
+        "{st}"
+    );
+    // Both kept from the job after their one failure (the job's setting).
+    let names: Vec<&str> = st["blocklisted"]
+        .as_array()
+        .expect("blocklisted")
+        .iter()
+        .map(|b| b["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["a", "gpu-box"], "{st}");
+    let text = ok_stdout(&client(&c, &["status", &job]));
+    assert!(
+        text.contains("failures:  gpu_lost 1, scene 1 (units reported failed by workers, by class); blocklist after 1 of them, forgiven after 120 s\n"),
+        "{text}"
+    );
+    // The monitor shows the classes and the settings too.
+    let mj = monitor_job(&c, &job);
+    assert_eq!(
+        mj["failure_classes"],
+        serde_json::json!({"gpu_lost": 1, "scene": 1}),
+        "{mj}"
+    );
+    assert_eq!(mj["blocklist_after"], 1, "{mj}");
+    // The same scene error on a second worker: failed at once, with the
+    // message (9 attempts were allowed).
+    let l = lease(&b, &b_id).expect("a unit for b");
+    rt.block_on(raw_fail_class(
+        &b,
+        &b_id,
+        l,
+        "texture wood.png: unsupported format",
+        FailureClass::Scene,
+    ));
+    let st = job_status(&c, &job);
+    assert_eq!(st["state"], "failed", "{st}");
+    assert_eq!(
+        st["error"],
+        "scene error reproduced on a second worker (a, b): texture wood.png: unsupported format",
+        "{st}"
+    );
+    // Nothing of it is leased any more.
+    assert_eq!(lease(&a, &a_id), None);
+}
+
+#[test]
+fn a_worker_serves_its_own_metrics_which_move_as_it_renders() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), &[]);
+    let w = start_worker_with(dir.path(), &c.grpc, "metered", &["--http", "127.0.0.1:0"]);
+    // The address bound is logged.
+    let mut url = String::new();
+    wait_for(
+        "the worker's metrics address",
+        Duration::from_secs(60),
+        || {
+            let log = w.log();
+            match log.split("metrics on ").nth(1) {
+                Some(rest) => {
+                    url = rest.split_whitespace().next().unwrap_or("").to_string();
+                    true
+                }
+                None => false,
+            }
+        },
+    );
+    assert!(
+        url.starts_with("http://127.0.0.1:") && url.ends_with("/metrics"),
+        "{url}"
+    );
+    let m = scrape_url(&url, None).expect("scrape the worker");
+    for (name, kind) in [
+        ("tessera_worker_units", "counter"),
+        ("tessera_worker_leases", "gauge"),
+        ("tessera_worker_threads", "gauge"),
+        ("tessera_worker_info", "gauge"),
+    ] {
+        assert_eq!(m["types"][name], kind, "family {name}: {}", m["types"]);
+    }
+    assert_eq!(sample(&m, "tessera_worker_units_total", &[]), 0.0);
+    assert_eq!(sample(&m, "tessera_worker_threads", &[]), 1.0);
+    assert_eq!(
+        sample(
+            &m,
+            "tessera_worker_info",
+            &[("name", "metered"), ("backend", "cpu"), ("gpu", "")]
+        ),
+        1.0
+    );
+    // A job of 24 units, all this worker's: the counter follows.
+    let job = submit_small(&c, "2", &["--wait"]);
+    assert_eq!(job_status(&c, &job)["state"], "done");
+    let m = scrape_url(&url, None).expect("scrape the worker");
+    assert_eq!(sample(&m, "tessera_worker_units_total", &[]), 24.0);
+    assert_eq!(sample(&m, "tessera_worker_leases", &[]), 0.0);
 }
 
 /// `tessera worker --backend gpu --adapter all`: one worker per GPU in one

@@ -26,7 +26,14 @@ type StateLabel = [(&'static str, &'static str); 1];
 type WorkerLabels = [(&'static str, &'static str); 2];
 
 /// Job states as `tessera_jobs{state}` names them.
-pub const JOB_STATES: [&str; 5] = ["queued", "running", "done", "failed", "cancelled"];
+pub const JOB_STATES: [&str; 6] = [
+    "queued",
+    "running",
+    "done",
+    "failed",
+    "cancelled",
+    "waiting",
+];
 /// Unit states as `tessera_units{state}` names them.
 pub const UNIT_STATES: [&str; 2] = ["waiting", "leased"];
 /// Worker states as `tessera_workers{backend,state}` names them: busy
@@ -37,7 +44,7 @@ pub const WORKER_STATES: [&str; 3] = ["busy", "idle", "quarantined"];
 #[derive(Clone, Debug, Default)]
 pub struct Gauges {
     /// Jobs per state, in the order of [`JOB_STATES`].
-    pub jobs: [i64; 5],
+    pub jobs: [i64; 6],
     /// Units per state, in the order of [`UNIT_STATES`].
     pub units: [i64; 2],
     /// Workers per (backend, state): backend "cpu" or "gpu", state from

@@ -19,7 +19,9 @@ use std::sync::atomic::Ordering;
 use tessera_proto::transport::ASSET_CHUNK_BYTES;
 
 use crate::assets::{AssetStoreError, check_hash};
-use crate::farm::{Farm, FarmError, JobState, JobView, Outcome, ResultData, Submission};
+use crate::farm::{
+    FailureClass, Farm, FarmError, JobState, JobView, Outcome, ResultData, Submission,
+};
 use crate::store::Counters;
 
 impl From<FarmError> for Status {
@@ -42,6 +44,7 @@ impl From<FarmError> for Status {
 
 fn state_pb(s: JobState) -> pb::JobState {
     match s {
+        JobState::Waiting => pb::JobState::Waiting,
         JobState::Queued => pb::JobState::Queued,
         JobState::Running => pb::JobState::Running,
         JobState::Done => pb::JobState::Done,
@@ -117,6 +120,15 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
             .collect(),
         requirements: r.requirements.iter().map(ToString::to_string).collect(),
         unrunnable: v.unrunnable.clone(),
+        after: r.after.clone(),
+        waiting_for: v.waiting_for.clone(),
+        blocklist_after: r.blocklist_after.unwrap_or(0),
+        blocklist_seconds: r.blocklist_seconds.unwrap_or(0.0),
+        failure_classes: v
+            .failures
+            .iter()
+            .map(|(k, n)| (k.to_string(), *n))
+            .collect(),
         // Set by the callers that page or send deltas.
         next_frame_page_token: String::new(),
         delta: false,
@@ -822,6 +834,16 @@ fn result_data(r: pb::SubmitResultRequest) -> ResultData {
         packed,
         render_seconds: r.render_seconds,
         failure: (!r.failure.is_empty()).then_some(r.failure),
+        failure_class: match pb::FailureClass::try_from(r.failure_class)
+            .unwrap_or(pb::FailureClass::Unspecified)
+        {
+            pb::FailureClass::Unspecified => FailureClass::Unspecified,
+            pb::FailureClass::Scene => FailureClass::Scene,
+            pb::FailureClass::OutOfMemory => FailureClass::OutOfMemory,
+            pb::FailureClass::GpuLost => FailureClass::GpuLost,
+            pb::FailureClass::WorkerCrash => FailureClass::WorkerCrash,
+            pb::FailureClass::Timeout => FailureClass::Timeout,
+        },
     }
 }
 

@@ -256,6 +256,10 @@ impl From<JobSpec> for pb::JobSpec {
             max_attempts: j.max_attempts.unwrap_or(0),
             files: Default::default(),
             requirements: j.requirements,
+            after: j.after,
+            on_done: j.on_done,
+            blocklist_after: j.blocklist_after,
+            blocklist_seconds: j.blocklist_seconds,
         }
     }
 }
@@ -282,6 +286,10 @@ impl From<&pb::JobSpec> for JobSpec {
             samples_per_unit: given(j.samples_per_unit),
             max_attempts: given(j.max_attempts),
             requirements: j.requirements.clone(),
+            after: j.after.clone(),
+            on_done: j.on_done.clone(),
+            blocklist_after: j.blocklist_after,
+            blocklist_seconds: j.blocklist_seconds,
         }
     }
 }
@@ -316,6 +324,10 @@ mod tests {
             samples_per_unit: None,
             max_attempts: Some(1),
             requirements: vec!["backend=gpu".into(), "gpu_memory_gb>=40".into()],
+            after: vec!["j0123456789".into()],
+            on_done: vec!["http://127.0.0.1:9/hook".into()],
+            blocklist_after: Some(0),
+            blocklist_seconds: Some(60.0),
         };
         let wire = pb::JobSpec::from(spec.clone());
         assert_eq!(wire.samples_per_unit, 0);

@@ -44,4 +44,13 @@ pub struct JobSpec {
     /// (`crate::placement::Requirement` parses them; the coordinator
     /// refuses the job if one does not).
     pub requirements: Vec<String>,
+    /// Jobs this one runs after (`tessera submit --after`): it waits until
+    /// every one is done, and fails if one fails or is cancelled.
+    pub after: Vec<String>,
+    /// URLs POSTed the job's JSON when it ends (`tessera submit --on-done`).
+    pub on_done: Vec<String>,
+    /// This job's blocklist: failed units before a worker is kept from it
+    /// (0: never), and seconds until forgiven. None: the coordinator's.
+    pub blocklist_after: Option<u32>,
+    pub blocklist_seconds: Option<f64>,
 }

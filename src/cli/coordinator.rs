@@ -130,6 +130,17 @@ pub struct CoordinatorArgs {
     /// Seconds a blocklisted worker is kept from the job (then forgiven)
     #[arg(long, default_value_t = 1800.0)]
     pub blocklist_seconds: f64,
+    /// POST every job's JSON (as `tessera status JOB --json` prints it) to
+    /// this http:// URL when the job ends (done, failed, cancelled),
+    /// signed and retried; repeatable. Needs --notify-secret-file
+    #[arg(long, value_name = "URL")]
+    pub notify: Vec<String>,
+    /// File holding the secret (at least 16 bytes; surrounding whitespace
+    /// dropped) job-end notifications are signed with: the header
+    /// `X-Tessera-Signature: sha256=HEX` is the HMAC-SHA256 of the body
+    /// under it. Needed for --notify and for jobs' `submit --on-done`
+    #[arg(long, value_name = "PATH")]
+    pub notify_secret_file: Option<PathBuf>,
 }
 
 /// Environment variables of the coordinator's tokens.
@@ -160,6 +171,16 @@ pub fn run(args: CoordinatorArgs) -> Result<ExitCode> {
     config.quarantine_after = args.quarantine_after;
     config.blocklist_after = args.blocklist_after;
     config.blocklist_for = secs("blocklist-seconds", args.blocklist_seconds)?;
+    config.notify = args.notify.clone();
+    if let Some(path) = &args.notify_secret_file {
+        let bytes = std::fs::read(path)
+            .with_context(|| format!("--notify-secret-file {}", path.display()))?;
+        config.notify_secret = Some(bytes.trim_ascii().to_vec());
+    }
+    anyhow::ensure!(
+        config.notify.is_empty() || config.notify_secret.is_some(),
+        "--notify needs --notify-secret-file: notifications are always signed (docs/operations.md, \"Notifications\")"
+    );
     config.max_frame_pixels = args.max_frame_pixels;
     config.asset_limits = AssetLimits {
         max_asset_bytes: args.max_asset_bytes,

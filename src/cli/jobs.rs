@@ -101,6 +101,26 @@ pub struct SubmitArgs {
     /// A job no connected worker meets says so in `status` and `watch`
     #[arg(long = "require", value_name = "REQUIREMENT", value_parser = requirement_parser)]
     pub require: Vec<String>,
+    /// Run the job after job JOB is done, repeatable: it stays `waiting`
+    /// (no unit leased) until every named job is done, and fails, naming
+    /// it, if one fails or is cancelled. An unknown JOB is refused
+    #[arg(long = "after", value_name = "JOB")]
+    pub after: Vec<String>,
+    /// When the job ends (done, failed, cancelled), the coordinator POSTs
+    /// its JSON (as `status --json` prints it) to this http:// URL, signed
+    /// with its --notify-secret-file (`X-Tessera-Signature: sha256=HEX`)
+    /// and retried with back-off; repeatable
+    #[arg(long = "on-done", value_name = "URL")]
+    pub on_done: Vec<String>,
+    /// Units of this job a worker may report failed before it is kept
+    /// from the job (its blocklist, shown by `status`); 0: never
+    /// [default: the coordinator's --blocklist-after, 3]
+    #[arg(long, value_name = "N")]
+    pub blocklist_after: Option<u32>,
+    /// Seconds a worker blocklisted from this job is kept from it, then
+    /// forgiven [default: the coordinator's --blocklist-seconds, 1800]
+    #[arg(long, value_name = "SECONDS")]
+    pub blocklist_forgive: Option<f64>,
     /// Wait for the job to finish (progress on stderr); the exit code is then
     /// the job's outcome (0 done, 3 failed, 4 cancelled). At the end it
     /// prints the `tessera fetch` command that downloads the frames here
@@ -155,6 +175,10 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
         samples_per_unit: args.samples_per_unit,
         max_attempts: args.max_attempts,
         requirements: args.require.clone(),
+        after: args.after.clone(),
+        on_done: args.on_done.clone(),
+        blocklist_after: args.blocklist_after,
+        blocklist_seconds: args.blocklist_forgive,
     };
     let spec = pb::JobSpec {
         scene: bundle.scene,
@@ -280,16 +304,7 @@ fn ended(state: i32) -> bool {
     .any(|&s| s as i32 == state)
 }
 
-pub fn state_name(state: i32) -> &'static str {
-    match pb::JobState::try_from(state).unwrap_or(pb::JobState::Unspecified) {
-        pb::JobState::Queued => "queued",
-        pb::JobState::Running => "running",
-        pb::JobState::Done => "done",
-        pb::JobState::Failed => "failed",
-        pb::JobState::Cancelled => "cancelled",
-        pb::JobState::Unspecified => "unknown",
-    }
-}
+pub use tessera_coordinator::status_json::state_name;
 
 /// The job's progress as the coordinator defines it for every view
 /// (sample-weighted), in percent.
@@ -344,8 +359,10 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             print_json(&job_json(&j));
             return Ok(ExitCode::SUCCESS);
         }
-        // A job that waits for workers that are not there says so.
+        // A job that waits for workers that are not there says so (not
+        // one that waits for other jobs: no worker could take it yet).
         let no_workers = !ended(j.state)
+            && j.state != pb::JobState::Waiting as i32
             && client
                 .list_workers(pb::ListWorkersRequest {})
                 .await
@@ -387,8 +404,31 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
         if !j.requirements.is_empty() {
             outln!("requires:  {}", j.requirements.join(", "));
         }
+        if !j.after.is_empty() {
+            outln!("after:     {}", j.after.join(", "));
+        }
+        if !j.waiting_for.is_empty() {
+            outln!(
+                "waiting:   for job(s) {} to be done (--after)",
+                j.waiting_for.join(", ")
+            );
+        }
         if !j.unrunnable.is_empty() {
             outln!("waiting:   {}", j.unrunnable);
+        }
+        if !j.failure_classes.is_empty() {
+            let mut by_class: Vec<_> = j.failure_classes.iter().collect();
+            by_class.sort();
+            outln!(
+                "failures:  {} (units reported failed by workers, by class); blocklist after {} of them, forgiven after {} s",
+                by_class
+                    .iter()
+                    .map(|(k, n)| format!("{k} {n}"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                j.blocklist_after,
+                j.blocklist_seconds
+            );
         }
         for b in &j.blocklisted {
             let left = (b.until_unix_ms - now_unix_ms()).max(0) / 1000;
@@ -581,7 +621,9 @@ fn show_progress(progress: &Progress, j: &pb::JobStatus, no_workers: bool) {
     } else {
         String::new()
     };
-    let workers = if no_workers {
+    let workers = if !j.waiting_for.is_empty() {
+        " (waiting for the jobs it runs after)"
+    } else if no_workers {
         " (no workers)"
     } else if !j.unrunnable.is_empty() {
         " (no worker meets its requirements)"

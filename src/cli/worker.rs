@@ -70,6 +70,10 @@ pub struct WorkerArgs {
     /// automatic one; backend and cores cannot be given
     #[arg(long = "label", value_name = "KEY=VALUE", value_parser = label_parser)]
     pub labels: Vec<(String, String)>,
+    /// Serve this worker's Prometheus metrics (`GET /metrics`, no token)
+    /// on ADDR, e.g. 127.0.0.1:9100 (port 0: any free one, logged)
+    #[arg(long, value_name = "ADDR")]
+    pub http: Option<std::net::SocketAddr>,
 }
 
 /// `--label`: KEY=VALUE, with a key the worker does not set from itself.
@@ -173,7 +177,18 @@ pub fn run(args: WorkerArgs) -> Result<ExitCode> {
     } else {
         vec![Worker::new(config)?]
     };
+    if args.http.is_some() && workers.len() > 1 {
+        // One registry a worker: several on one address would need a label
+        // per worker in every metric.
+        anyhow::bail!(
+            "--http serves one worker's /metrics; with --adapter all ({} GPUs) run a worker process per GPU (--adapter N) with its own --http",
+            workers.len()
+        );
+    }
     runtime()?.block_on(async move {
+        if let (Some(addr), Some(worker)) = (args.http, workers.first()) {
+            worker.serve_metrics(addr).await?;
+        }
         let (drain_tx, drain) = tokio::sync::watch::channel(false);
         let mut running = tokio::task::JoinSet::new();
         for worker in workers {

@@ -290,12 +290,24 @@ pub async fn raw_lease(w: &WorkerServiceClient<Channel>, id: &str) -> pb::LeaseW
 /// Reports lease `lease_id` of session `id` failed with `message`, which
 /// the coordinator must record as a failure.
 pub async fn raw_fail(w: &WorkerServiceClient<Channel>, id: &str, lease_id: String, message: &str) {
+    raw_fail_class(w, id, lease_id, message, pb::FailureClass::Unspecified).await
+}
+
+/// [`raw_fail`] with the failure's class (issue 38).
+pub async fn raw_fail_class(
+    w: &WorkerServiceClient<Channel>,
+    id: &str,
+    lease_id: String,
+    message: &str,
+    class: pb::FailureClass,
+) {
     let r = w
         .clone()
         .submit_result(pb::SubmitResultRequest {
             worker_id: id.to_string(),
             lease_id,
             failure: message.into(),
+            failure_class: class as i32,
             ..Default::default()
         })
         .await

@@ -32,6 +32,7 @@
 
 pub mod cache;
 mod heartbeat;
+mod metrics;
 mod render;
 mod scenes;
 mod sender;
@@ -123,6 +124,8 @@ pub enum WorkerError {
     Renderer(String),
     #[error("the coordinator refused this worker: {0}")]
     Refused(String),
+    #[error("cannot serve metrics on --http {addr}: {message}")]
+    Http { addr: String, message: String },
 }
 
 type Client = WorkerServiceClient<InterceptedService<Channel, VersionStamp>>;

@@ -37,12 +37,28 @@ pub(crate) fn too_large(rect: Rect) -> Option<String> {
     None
 }
 
-/// How rendering a unit ended: its film and render seconds, a failure, or
-/// nothing (the lease went away).
+/// How rendering a unit ended: its film and render seconds, a failure
+/// (its message and class), or nothing (the lease went away).
 pub(crate) enum UnitEnd {
     Film(UnitFilm, f64),
-    Failed(String),
+    Failed(String, pb::FailureClass),
     Abandoned,
+}
+
+/// A renderer's failure, its class read from its message: the GPU
+/// backend's errors (tracer-core, wgpu) carry no kind a caller can match,
+/// but name an exhausted memory or a lost device in their text.
+fn render_failed(message: String) -> UnitEnd {
+    let m = message.to_ascii_lowercase();
+    let class = if m.contains("out of memory") || m.contains("outofmemory") {
+        pb::FailureClass::OutOfMemory
+    } else if m.contains("device lost") || m.contains("devicelost") || m.contains("device was lost")
+    {
+        pb::FailureClass::GpuLost
+    } else {
+        pb::FailureClass::Unspecified
+    };
+    UnitEnd::Failed(message, class)
 }
 
 impl Worker {
@@ -127,7 +143,11 @@ impl Worker {
                 Ok(work) => work,
                 Err(why) => {
                     tracing::warn!(lease = %lease_id, "{why}");
-                    if tx.send(out(UnitEnd::Failed(why))).await.is_err() {
+                    if tx
+                        .send(out(UnitEnd::Failed(why, pb::FailureClass::Unspecified)))
+                        .await
+                        .is_err()
+                    {
                         return Err(tonic::Status::internal("the result sender stopped"));
                     }
                     continue;
@@ -139,7 +159,12 @@ impl Worker {
                 {
                     return Err(e);
                 }
-                Err(e) => UnitEnd::Failed(e.message().to_string()),
+                // The job's scene or files do not load here: a scene error
+                // (one a second worker reproduces fails the job at once).
+                Err(e) if e.code() == tonic::Code::InvalidArgument => {
+                    UnitEnd::Failed(e.message().to_string(), pb::FailureClass::Scene)
+                }
+                Err(e) => UnitEnd::Failed(e.message().to_string(), pb::FailureClass::Unspecified),
                 Ok(prepared) => {
                     let renderer = self.renderer.clone();
                     // Adaptive jobs: the round's active blocks.
@@ -156,9 +181,12 @@ impl Worker {
                         ),
                     });
                     let render = async {
-                        render
-                            .await
-                            .unwrap_or_else(|e| UnitEnd::Failed(format!("render panicked: {e}")))
+                        render.await.unwrap_or_else(|e| {
+                            UnitEnd::Failed(
+                                format!("render panicked: {e}"),
+                                pb::FailureClass::WorkerCrash,
+                            )
+                        })
                     };
                     // Lease the next unit while this one renders, unless draining.
                     if queue.len() < PREFETCH && !*drain.borrow() {
@@ -233,7 +261,7 @@ pub(crate) fn render_unit(
         return match r.render_until(prepared, frame, rect, samples, &progress, cancel) {
             Ok(Some(film)) => rendered(&film, start),
             Ok(None) => UnitEnd::Abandoned,
-            Err(e) => UnitEnd::Failed(e.to_string()),
+            Err(e) => render_failed(e.to_string()),
         };
     }
     let rows = gpu_band_rows(rect, samples);
@@ -247,7 +275,7 @@ pub(crate) fn render_unit(
         }
         return match gpu.render_packed(prepared, frame, rect, samples, &progress) {
             Ok(p) => UnitEnd::Film(UnitFilm::of_gpu(p), start.elapsed().as_secs_f64()),
-            Err(e) => UnitEnd::Failed(e.to_string()),
+            Err(e) => render_failed(e.to_string()),
         };
     }
     let mut film = Film::new(rect);
@@ -264,10 +292,10 @@ pub(crate) fn render_unit(
             }
             Ok(part) => {
                 if let Err(e) = film.merge(&part) {
-                    return UnitEnd::Failed(e.to_string());
+                    return render_failed(e.to_string());
                 }
             }
-            Err(e) => return UnitEnd::Failed(e.to_string()),
+            Err(e) => return render_failed(e.to_string()),
         }
         y += band.height;
     }
@@ -314,7 +342,7 @@ pub(crate) fn render_round_unit(
         },
     ) {
         Ok(film) => rendered(&film, start),
-        Err(e) => UnitEnd::Failed(e.to_string()),
+        Err(e) => render_failed(e.to_string()),
     }
 }
 

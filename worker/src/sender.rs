@@ -89,7 +89,7 @@ pub(crate) async fn send_batch(
                 tracing::info!(lease = %o.lease_id, "lease gone; abandoned its unit");
                 held.lock().expect("held lock").remove(&o.lease_id);
             }
-            UnitEnd::Failed(msg) => {
+            UnitEnd::Failed(msg, _) => {
                 tracing::warn!(lease = %o.lease_id, error = %msg, "unit failed");
                 sent.push(o);
             }
@@ -142,7 +142,10 @@ pub(crate) fn result_request(worker_id: &str, o: &Outgoing) -> pb::SubmitResultR
     };
     match &o.end {
         UnitEnd::Abandoned => {}
-        UnitEnd::Failed(msg) => req.failure = msg.clone(),
+        UnitEnd::Failed(msg, class) => {
+            req.failure = msg.clone();
+            req.failure_class = *class as i32;
+        }
         UnitEnd::Film(film, secs) => {
             film.fill(&mut req);
             req.render_seconds = *secs;

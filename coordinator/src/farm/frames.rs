@@ -198,15 +198,21 @@ impl Farm {
     pub(super) fn check_all_done(self: Arc<Self>) {
         let recs: Vec<JobRecord> = {
             let mut st = self.state.lock().expect("state lock");
-            st.jobs
+            let mut recs: Vec<JobRecord> = st
+                .jobs
                 .values_mut()
-                .filter(|j| !j.state.is_terminal() && j.frames.values().all(|f| f.written.is_some()))
+                .filter(|j| j.state.leasable() && j.frames.values().all(|f| f.written.is_some()))
                 .map(|j| {
                     j.finish(JobState::Done, String::new());
                     tracing::info!(job = %j.rec.id, name = %j.rec.name, units = j.layout.total(), rays = j.counters.rays.iter().sum::<u64>(), "job done");
                     j.rec.clone()
                 })
-                .collect()
+                .collect();
+            if !recs.is_empty() {
+                // Jobs after them may start now.
+                recs.extend(self.jobs_ended(&mut st));
+            }
+            recs
         };
         if !recs.is_empty() {
             let farm = self.clone();

@@ -287,9 +287,12 @@ impl Farm {
                     JobState::Done => 2,
                     JobState::Failed => 3,
                     JobState::Cancelled => 4,
+                    JobState::Waiting => 5,
                 };
                 g.jobs[i] += 1;
-                if !job.state.is_terminal() {
+                // A job waiting for its parents has no unit a worker could
+                // take: an autoscaler must not add workers for it.
+                if !job.state.is_terminal() && job.state != JobState::Waiting {
                     g.units[0] += job.pending.len() as i64;
                 }
             }

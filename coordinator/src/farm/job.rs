@@ -135,6 +135,9 @@ impl Job {
             rays_this_run: 0,
             watch: watch::channel(0).0,
             adaptive: adaptive.map(adaptive::AdaptiveJob::new),
+            announced: state.is_terminal(),
+            failure_classes: Default::default(),
+            scene_error: None,
         };
         job.adaptive_start();
         job.work_left = job.sum_work_left();
@@ -245,6 +248,40 @@ impl Job {
         tracing::error!(job = %self.rec.id, %error, "job failed");
         self.finish(JobState::Failed, error);
         Some(self.rec.clone())
+    }
+
+    /// Counts a failure report of class `class`; for a scene error, fails
+    /// the job (returning its record) when a second worker reports one:
+    /// the scene fails everywhere, retrying it elsewhere is wasted work.
+    pub(super) fn count_class(
+        &mut self,
+        class: super::FailureClass,
+        worker: &str,
+        name: &str,
+        message: &str,
+    ) -> Option<JobRecord> {
+        if self.state.is_terminal() {
+            return None;
+        }
+        *self.failure_classes.entry(class.name()).or_default() += 1;
+        if class != super::FailureClass::Scene {
+            return None;
+        }
+        match &self.scene_error {
+            None => {
+                self.scene_error = Some((worker.into(), name.into(), message.into()));
+                None
+            }
+            Some((first, _, _)) if first == worker => None,
+            Some((_, first_name, first_message)) => {
+                let error = format!(
+                    "scene error reproduced on a second worker ({first_name}, {name}): {first_message}"
+                );
+                tracing::error!(job = %self.rec.id, %error, "job failed");
+                self.finish(JobState::Failed, error);
+                Some(self.rec.clone())
+            }
+        }
     }
 
     /// Records that `frame` changed (see `FrameAcc::changed`).
@@ -378,6 +415,8 @@ impl Job {
             blocklisted: self.blocklisted(),
             // Set by `State::view_of`, which sees the workers.
             unrunnable: String::new(),
+            waiting_for: Vec::new(),
+            failures: self.failure_classes.clone(),
         }
     }
 

@@ -36,6 +36,20 @@ impl Farm {
         check_name("scene name", &spec.scene_name, 4096)?;
         let requirements = tessera_proto::placement::Requirement::parse_all(&spec.requirements)
             .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
+        // Before anything is stored: an unknown parent is refused at once.
+        let after = self.check_after(&spec.after)?;
+        self.check_on_done(&spec.on_done)?;
+        let on_done = spec.on_done.clone();
+        let blocklist_after = spec.blocklist_after.unwrap_or(self.config.blocklist_after);
+        let blocklist_seconds = match spec.blocklist_seconds {
+            Some(s) if !(s.is_finite() && s > 0.0) => {
+                return Err(FarmError::InvalidArgument(format!(
+                    "blocklist_seconds must be a positive number of seconds, got {s}"
+                )));
+            }
+            Some(s) => s,
+            None => self.config.blocklist_for.as_secs_f64(),
+        };
         // The job's files: inline ones stored now, uploaded ones named by
         // hash. The scene is validated from these alone.
         let limits = self.assets.limits;
@@ -236,6 +250,10 @@ impl Farm {
             output_dir: output_dir.to_string_lossy().into_owned(),
             adaptive: adaptive.into(),
             requirements,
+            after,
+            on_done,
+            blocklist_after: Some(blocklist_after),
+            blocklist_seconds: Some(blocklist_seconds),
         };
         ops.push(Op::PutJob(rec.clone()));
         ops.push(Op::PutCounters {
@@ -253,11 +271,20 @@ impl Farm {
         );
         let mut job = Job::with_layout(rec, Counters::default(), layout);
         job.set_tile_rays(tile_rays);
-        self.state
-            .lock()
-            .expect("state lock")
-            .jobs
-            .insert(id.clone(), job);
+        if !job.rec.after.is_empty() {
+            // Queued by `jobs_ended` at once if its parents are done by now.
+            job.state = JobState::Waiting;
+        }
+        let failed = {
+            let mut st = self.state.lock().expect("state lock");
+            st.jobs.insert(id.clone(), job);
+            // A parent may have ended while this submit ran.
+            self.jobs_ended(&mut st)
+        };
+        if !failed.is_empty() {
+            self.commit(failed.into_iter().map(Op::PutJob).collect())
+                .await?;
+        }
         self.work_ready.notify_waiters();
         Ok(id)
     }
@@ -338,10 +365,14 @@ impl Farm {
             job.finish(JobState::Cancelled, "cancelled by request".into());
             let rec = job.rec.clone();
             self.withdraw_leases(&mut st, id);
-            rec
+            // Jobs after it fail with it.
+            let mut recs = vec![rec];
+            recs.extend(self.jobs_ended(&mut st));
+            recs
         };
         tracing::info!(job = %id, "job cancelled");
-        self.commit(vec![Op::PutJob(rec)]).await?;
+        self.commit(rec.into_iter().map(Op::PutJob).collect())
+            .await?;
         self.job(id)
     }
 
@@ -360,6 +391,7 @@ impl Farm {
                     "job {id} is {}; cancel it first (tessera cancel {id})",
                     match job.state {
                         JobState::Queued => "queued",
+                        JobState::Waiting => "waiting",
                         _ => "running",
                     }
                 )));

@@ -435,7 +435,7 @@ impl Farm {
         let mut order: Vec<(&String, &Job)> = st
             .jobs
             .iter_mut()
-            .filter(|(_, j)| !j.state.is_terminal() && !j.pending.is_empty())
+            .filter(|(_, j)| j.state.leasable() && !j.pending.is_empty())
             .filter(|(_, j)| meets(&j.rec.requirements, labels))
             .filter_map(|(id, j)| (!j.blocks(worker_id)).then_some((id, &*j)))
             .collect();
@@ -884,7 +884,7 @@ impl Farm {
         let waiting = st
             .jobs
             .values()
-            .filter(|j| !j.state.is_terminal() && !j.pending.is_empty())
+            .filter(|j| j.state.leasable() && !j.pending.is_empty())
             .count();
         if waiting == 0 || !st.workers.is_empty() {
             if st.unserved_warned && !st.workers.is_empty() {

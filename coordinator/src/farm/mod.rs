@@ -59,6 +59,7 @@ pub use inspect::{FramePreview, FrameTile, LeaseSummary, TileState, UnitFailure,
 mod adaptive;
 pub use adaptive::AdaptiveProgress;
 
+mod deps;
 mod frames;
 mod job;
 mod jobs;
@@ -103,6 +104,11 @@ pub struct Config {
     pub blocklist_after: u32,
     /// How long a blocklisted worker is kept from the job.
     pub blocklist_for: Duration,
+    /// URLs told of every job's end (`--notify`, `crate::notify`).
+    pub notify: Vec<String>,
+    /// The key notifications are signed with (`--notify-secret-file`);
+    /// None: none can be sent.
+    pub notify_secret: Option<Vec<u8>>,
 }
 
 impl Config {
@@ -130,6 +136,8 @@ impl Config {
             // job until forgiven.
             blocklist_after: 3,
             blocklist_for: Duration::from_secs(30 * 60),
+            notify: Vec::new(),
+            notify_secret: None,
         }
     }
 }
@@ -173,6 +181,9 @@ pub struct Submission {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum JobState {
+    /// Its units are not leased until every job it runs after
+    /// (`JobRecord::after`) is done (`farm/deps.rs`).
+    Waiting,
     Queued,
     Running,
     Done,
@@ -186,6 +197,11 @@ impl JobState {
             self,
             JobState::Done | JobState::Failed | JobState::Cancelled
         )
+    }
+
+    /// Whether its units may be leased: not ended, not waiting for others.
+    pub fn leasable(self) -> bool {
+        !self.is_terminal() && self != JobState::Waiting
     }
 }
 
@@ -220,6 +236,10 @@ pub struct JobView {
     /// Non-empty while the job waits and no connected worker meets its
     /// requirements (`State::unrunnable`): what they lack.
     pub unrunnable: String,
+    /// While [`JobState::Waiting`]: the jobs it runs after not done yet.
+    pub waiting_for: Vec<String>,
+    /// Units' failures reported by workers, by class (this run).
+    pub failures: BTreeMap<&'static str, u64>,
 }
 
 /// A worker on a job's blocklist.
@@ -304,6 +324,34 @@ pub struct ResultData {
     pub packed: Option<tessera_proto::film_codec::Packed>,
     pub render_seconds: f64,
     pub failure: Option<String>,
+    /// With `failure`: its kind, as the worker says.
+    pub failure_class: FailureClass,
+}
+
+/// Why a unit failed on a worker (issue 38): a scene error reported by a
+/// second worker fails the job at once (`Job::scene_error`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum FailureClass {
+    Unspecified,
+    Scene,
+    OutOfMemory,
+    GpuLost,
+    WorkerCrash,
+    Timeout,
+}
+
+impl FailureClass {
+    /// As `status` and the JSON name it.
+    pub fn name(self) -> &'static str {
+        match self {
+            FailureClass::Unspecified => "unspecified",
+            FailureClass::Scene => "scene",
+            FailureClass::OutOfMemory => "out_of_memory",
+            FailureClass::GpuLost => "gpu_lost",
+            FailureClass::WorkerCrash => "worker_crash",
+            FailureClass::Timeout => "timeout",
+        }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -355,6 +403,13 @@ struct Job {
     /// Failure reports per worker session, and the blocklist they lead
     /// to (see `Job::count_failure`).
     worker_failures: HashMap<String, WorkerFailures>,
+    /// Whether its end was handed to the notifier (`Farm::jobs_ended`);
+    /// a job that had ended before this run is not announced again.
+    announced: bool,
+    /// Failure reports by class (`FailureClass::name`), this run.
+    failure_classes: BTreeMap<&'static str, u64>,
+    /// The first scene error reported: (worker session, its name, the message).
+    scene_error: Option<(String, String, String)>,
 }
 
 /// One worker's failures of one job's units.
@@ -499,6 +554,7 @@ impl State {
     /// A job's view with what only the whole state knows (its placement).
     fn view_of(&self, job: &Job, mut v: JobView) -> JobView {
         v.unrunnable = self.unrunnable(job);
+        v.waiting_for = self.waiting_for(job);
         v
     }
 }
@@ -569,6 +625,8 @@ pub struct Farm {
     work_ready: tokio::sync::Notify,
     /// Prometheus counters and histograms (`crate::metrics`).
     pub metrics: crate::metrics::Metrics,
+    /// Job-end notifications (`crate::notify`).
+    pub notifier: crate::notify::Notifier,
 }
 
 fn now_ms() -> i64 {
@@ -635,6 +693,9 @@ impl Farm {
                     config.data_dir.join("assets").display()
                 ))
             })?;
+        let notifier =
+            crate::notify::Notifier::new(config.notify.clone(), config.notify_secret.clone())
+                .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
         let snap = store.load()?;
         let boot = format!("{:x}", now_ms() as u64 ^ (std::process::id() as u64) << 40);
         let farm = Arc::new(Farm {
@@ -647,6 +708,7 @@ impl Farm {
             boot,
             work_ready: tokio::sync::Notify::new(),
             metrics: crate::metrics::Metrics::new(),
+            notifier,
         });
         let mut to_write = Vec::new();
         {
@@ -663,6 +725,12 @@ impl Farm {
                         "job not resumed: its settings exceed what this coordinator accepts");
                     continue;
                 }
+                let mut rec = rec;
+                // Records from before per-job blocklists: the coordinator's.
+                rec.blocklist_after
+                    .get_or_insert(farm.config.blocklist_after);
+                rec.blocklist_seconds
+                    .get_or_insert(farm.config.blocklist_for.as_secs_f64());
                 let mut job = Job::new(rec, counters);
                 if !job.state.is_terminal() {
                     // Derived state, not stored: probed again from the stored scene.
@@ -728,6 +796,28 @@ impl Farm {
                     to_write.extend(job.complete_frames());
                 }
                 st.jobs.insert(job.rec.id.clone(), job);
+            }
+            // Dependencies are derived, not stored: a job that runs after
+            // others and has not started waits again until they are done
+            // (`farm/deps.rs`), and fails now if one failed meanwhile.
+            for job in st.jobs.values_mut() {
+                if !job.rec.after.is_empty() && job.state == JobState::Queued && job.units_done == 0
+                {
+                    job.state = JobState::Waiting;
+                }
+            }
+            let failed = farm.jobs_ended(&mut st);
+            if !failed.is_empty() {
+                let farm = farm.clone();
+                tokio::spawn(async move {
+                    if let Err(e) = farm
+                        .store
+                        .write(failed.into_iter().map(crate::store::Op::PutJob).collect())
+                        .await
+                    {
+                        tracing::error!(error = %e, "cannot record jobs failed with a job they run after");
+                    }
+                });
             }
         }
         for (job, frame) in to_write {

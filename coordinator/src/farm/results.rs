@@ -109,6 +109,10 @@ impl Farm {
                             self.work_ready.notify_waiters();
                         }
                         outcomes.push(Some(outcome));
+                        if rec.is_some() {
+                            // A job failed: the jobs after it fail too.
+                            ops.extend(self.jobs_ended(&mut st).into_iter().map(Op::PutJob));
+                        }
                         ops.extend(rec.map(Op::PutJob));
                         ops.extend(
                             counters.map(|(job, counters)| Op::PutCounters { job, counters }),
@@ -341,14 +345,34 @@ impl Farm {
                 },
             );
             tracing::warn!(job = %lease.job, worker = %worker_name, frame = lease.region.frame, rect = ?lease.region.rect, error = %msg, "unit failed on worker");
+            let mut scene_failed = None;
             if let Some(job) = st.jobs.get_mut(&lease.job) {
+                // The job's own blocklist settings (set at submit), else the
+                // coordinator's.
+                let after = job
+                    .rec
+                    .blocklist_after
+                    .unwrap_or(self.config.blocklist_after);
+                let for_ = job
+                    .rec
+                    .blocklist_seconds
+                    .map_or(self.config.blocklist_for, |s| {
+                        std::time::Duration::try_from_secs_f64(s)
+                            .unwrap_or(self.config.blocklist_for)
+                    });
                 job.count_failure(
                     &r.worker_id,
                     &worker_name,
                     lease.units.len() as u32,
-                    self.config.blocklist_after,
-                    self.config.blocklist_for,
+                    after,
+                    for_,
                 );
+                scene_failed = job.count_class(r.failure_class, &r.worker_id, &worker_name, msg);
+            }
+            if let Some(rec) = scene_failed {
+                st.end_lease(r.lease_id.clone(), lease.job.clone(), false);
+                self.withdraw_leases(st, &rec.id);
+                return Err((Outcome::FailureRecorded, Some(rec), None));
             }
             let rec = if st.partner_keeps(&r.lease_id, &lease) {
                 None

@@ -81,6 +81,7 @@ fn result(worker: &str, l: &LeaseView, seconds: f64) -> ResultData {
         packed: None,
         render_seconds: seconds,
         failure: None,
+        failure_class: super::FailureClass::Unspecified,
     }
 }
 

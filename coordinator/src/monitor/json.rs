@@ -67,7 +67,7 @@ pub struct AdaptiveJson {
 pub struct JobJson {
     pub id: String,
     pub name: String,
-    /// "queued", "running", "done", "failed" or "cancelled".
+    /// "waiting", "queued", "running", "done", "failed" or "cancelled".
     pub state: &'static str,
     pub priority: i32,
     /// Share of the job done, 0 to 1: its pixel-samples merged over those
@@ -103,6 +103,16 @@ pub struct JobJson {
     pub requirements: Vec<String>,
     /// Non-empty while no connected worker meets the requirements: why.
     pub unrunnable: String,
+    /// The jobs it runs after (`submit --after`).
+    pub after: Vec<String>,
+    /// While "waiting": those of them not done yet.
+    pub waiting_for: Vec<String>,
+    /// Its blocklist settings: failed units before a worker is kept from
+    /// it (0: never), seconds until forgiven.
+    pub blocklist_after: u32,
+    pub blocklist_seconds: f64,
+    /// Units' failures reported by workers, by class.
+    pub failure_classes: std::collections::BTreeMap<&'static str, u64>,
 }
 
 /// Most frames a job shows in `/api/jobs` and the events' `farm`
@@ -131,6 +141,9 @@ impl JobJson {
             blocklisted: self.blocklisted.clone(),
             requirements: self.requirements.clone(),
             unrunnable: self.unrunnable.clone(),
+            after: self.after.clone(),
+            waiting_for: self.waiting_for.clone(),
+            failure_classes: self.failure_classes.clone(),
             ..*self
         }
     }
@@ -147,6 +160,7 @@ pub struct BlockedJson {
 
 pub fn state_name(s: JobState) -> &'static str {
     match s {
+        JobState::Waiting => "waiting",
         JobState::Queued => "queued",
         JobState::Running => "running",
         JobState::Done => "done",
@@ -207,6 +221,11 @@ impl From<&JobView> for JobJson {
                 .collect(),
             requirements: r.requirements.iter().map(ToString::to_string).collect(),
             unrunnable: v.unrunnable.clone(),
+            after: r.after.clone(),
+            waiting_for: v.waiting_for.clone(),
+            blocklist_after: r.blocklist_after.unwrap_or(0),
+            blocklist_seconds: r.blocklist_seconds.unwrap_or(0.0),
+            failure_classes: v.failures.clone(),
             adaptive: v.adaptive.settings.map(|a| AdaptiveJson {
                 target_error: a.target_error,
                 relative_error: a.relative_error,

@@ -62,6 +62,15 @@ pub struct JobRecord {
     pub adaptive: AdaptiveRec,
     /// Labels a worker needs to lease the job's units (issue 38).
     pub requirements: Vec<Requirement>,
+    /// Jobs it runs after (`submit --after`): it waits until all are done.
+    pub after: Vec<String>,
+    /// URLs told when it ends (`submit --on-done`).
+    pub on_done: Vec<String>,
+    /// Its blocklist (`submit --blocklist-after`, `--blocklist-forgive`):
+    /// set at submit (or, for older records, from the coordinator's
+    /// settings when read back).
+    pub blocklist_after: Option<u32>,
+    pub blocklist_seconds: Option<f64>,
 }
 
 impl JobRecord {
@@ -194,6 +203,16 @@ pub(super) struct JobRecordJson {
     /// their shape.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub requirements: Vec<String>,
+    /// `tessera submit --after` and `--on-done` (issue 38): absent in
+    /// earlier records, left out when empty, as `requirements`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub after: Vec<String>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub on_done: Vec<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blocklist_after: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub blocklist_seconds: Option<f64>,
 }
 
 fn record_version_1() -> u32 {
@@ -305,6 +324,10 @@ impl From<&JobRecord> for JobRecordJson {
             output_dir: r.output_dir.clone(),
             adaptive: r.adaptive,
             requirements: r.requirements.iter().map(ToString::to_string).collect(),
+            after: r.after.clone(),
+            on_done: r.on_done.clone(),
+            blocklist_after: r.blocklist_after,
+            blocklist_seconds: r.blocklist_seconds,
         }
     }
 }
@@ -338,6 +361,10 @@ impl TryFrom<JobRecordJson> for JobRecord {
             output_dir: r.output_dir,
             adaptive: r.adaptive,
             requirements: Requirement::parse_all(&r.requirements).map_err(|e| e.to_string())?,
+            after: r.after,
+            on_done: r.on_done,
+            blocklist_after: r.blocklist_after,
+            blocklist_seconds: r.blocklist_seconds,
         })
     }
 }

@@ -434,6 +434,9 @@ function updateJob(job) {
     <span>Results late/duplicate/rejected <b>${job.results_late}/${job.results_duplicate}/${job.results_rejected}</b></span>
     ${job.requirements && job.requirements.length ? `<span>Requires <b>${esc(job.requirements.join(", "))}</b></span>` : ""}
     ${job.unrunnable ? `<span id="job-unrunnable">Waiting <b>${esc(job.unrunnable)}</b></span>` : ""}
+    ${job.waiting_for && job.waiting_for.length ? `<span id="job-waiting-for">Waiting for <b>${esc(job.waiting_for.join(", "))}</b></span>` : ""}
+    ${job.failure_classes && Object.keys(job.failure_classes).length ? `<span id="job-failure-classes">Failures <b>${Object.entries(job.failure_classes)
+      .map(([k, n]) => `${esc(k)} ${n}`).join(", ")}</b> (blocklist after ${job.blocklist_after})</span>` : ""}
     ${job.blocklisted && job.blocklisted.length ? `<span id="job-blocklist">Blocklisted <b>${job.blocklisted
       .map((b) => `${esc(b.name)} (${b.failures} failed, until ${esc(fmtTime(b.until_unix_ms))})`).join(", ")}</b></span>` : ""}
     ${job.adaptive ? `<span>Blocks converged <b id="job-converged">${pct(job.adaptive.converged_share)}</b></span>
