@@ -17,7 +17,8 @@
 # on the scenes in $ADAPTIVE_SCENES (default distributed; one scene a
 # device call: $ADAPTIVE_SIZE, default 400x300, with an f64 reference of
 # $ADAPTIVE_REFERENCE spp, default 4096), uniform and adaptive on
-# $ADAPTIVE_BACKEND (default both).
+# $ADAPTIVE_BACKEND (default both); $ADAPTIVE_ARGS goes to the command
+# (`--integrator path`: the path-traced case).
 #
 # `local-gpu` (issue 15; ~2 min): a fresh process's small GPU render with
 # the pipeline cache off, empty and warm, against the CPU and against a
@@ -36,6 +37,19 @@
 # run builds the pipeline), then tracer-core's GPU path tests
 # (.gpu/gpu-path-tests, built by `cargo test -p tracer-core --test gpu_path
 # --no-run`) on the NVIDIA GPU: CPU against GPU images on real hardware.
+#
+# `path-bench` (issue 35; not in the default; ~3 min): `tessera bench path
+# --backend both` with Mitsuba 3's cuda_ad_rgb (from .gpu/mitsuba.tar.xz,
+# made by scripts/device-mitsuba.sh) at $PATH_SIZE (default 512x512),
+# samples $PATH_SAMPLES (default 1,4,16,64,256), f64 reference of
+# $PATH_REFERENCE spp (default 1024).
+#
+# `assets` (issues 34 and 35; not in the default; ~3 min): every model file
+# under .gpu/scenes (a copy of ../shared/scenes: ../shared does not travel)
+# rendered as a user would, `tessera render FILE --json` at 800x600, Whitted
+# 16 spp and path 64 spp, on the CPU (all cores) and the GPU, one process
+# each: triangles, textures, load, build and render seconds and peak RSS
+# into assets.jsonl; the path pictures come back as assets/*.png.
 #
 # `against-old` (issue 16) times the thesis scenes with .gpu/tessera and an
 # earlier build, .gpu/tessera-old, interleaved run by run (5 each), CPU and
@@ -70,7 +84,14 @@ OUT=$(realpath -m "${OUT:-bench-out/device}")
 mkdir -p "$OUT"
 printf '{"file_format_version":"1.0.0","ICD":{"library_path":"/usr/local/nvidia/lib64/libEGL_nvidia.so.0","api_version":"1.3"}}' > /tmp/icd.json
 export VK_ICD_FILENAMES=/tmp/icd.json LD_LIBRARY_PATH=$PWD/.gpu:/usr/local/nvidia/lib64${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+# Binaries may travel xz-packed (the call's tree is capped at 64 MiB).
+for x in .gpu/*.xz; do
+  case $x in *.tar.xz) continue ;; esac
+  [ -e "${x%.xz}" ] || { python3 -c 'import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.argv[1]), open(sys.argv[2], "wb"))' "$x" "${x%.xz}" && chmod +x "${x%.xz}"; }
+done
 T=$PWD/.gpu/tessera
+# The tests' shared assets: .gpu/scenes is a copy of ../shared/scenes.
+[ -d .gpu/scenes ] && export TESSERA_SHARED=$PWD/.gpu
 if has bench; then
 {
   echo "== machine"; nproc; grep -m1 'model name' /proc/cpuinfo; nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
@@ -96,7 +117,7 @@ if has adaptive; then
 echo "== tessera bench adaptive --backend ${ADAPTIVE_BACKEND:-both} (${ADAPTIVE_SCENES:-distributed})"
 timeout "${ADAPTIVE_TIMEOUT:-560}" "$T" bench adaptive --backend "${ADAPTIVE_BACKEND:-both}" \
   --adaptive-scenes "${ADAPTIVE_SCENES:-distributed}" \
-  --adaptive-size "${ADAPTIVE_SIZE:-400x300}" --adaptive-reference "${ADAPTIVE_REFERENCE:-4096}" \
+  --adaptive-size "${ADAPTIVE_SIZE:-400x300}" --adaptive-reference "${ADAPTIVE_REFERENCE:-4096}" ${ADAPTIVE_ARGS:-} \
   --out /tmp/bench --cache /tmp/bench-cache > "$OUT/adaptive-summary.txt" 2> "$OUT/adaptive-log.txt"
 echo "adaptive exit $?" >> "$OUT/adaptive-summary.txt"
 mkdir -p "$OUT/adaptive"
@@ -144,6 +165,37 @@ if [ -x .gpu/gpu-path-tests ]; then
     > "$OUT/gpu-path-tests.txt" 2>&1
   echo "gpu path tests exit $?" >> "$OUT/gpu-path-tests.txt"
 fi
+fi
+if has path-bench; then
+mkdir -p /tmp/mi && python3 -c 'import tarfile, sys; tarfile.open(sys.argv[1]).extractall(sys.argv[2])' .gpu/mitsuba.tar.xz /tmp/mi
+{
+  echo "== machine"; nproc; nvidia-smi --query-gpu=name,driver_version --format=csv,noheader; python3 --version
+  PYTHONPATH=/tmp/mi python3 -c "import mitsuba as mi; mi.set_variant('cuda_ad_rgb'); print('mitsuba', mi.__version__, mi.variant())"
+  echo "== tessera bench path --backend both, Mitsuba cuda_ad_rgb, ${PATH_SIZE:-512x512}, samples ${PATH_SAMPLES:-1,4,16,64,256}"
+  PYTHONPATH=/tmp/mi TESSERA_MITSUBA_VARIANT=cuda_ad_rgb timeout "${PATH_TIMEOUT:-400}" "$T" bench path --backend both \
+    --path-size "${PATH_SIZE:-512x512}" --path-samples "${PATH_SAMPLES:-1,4,16,64,256}" \
+    --path-reference "${PATH_REFERENCE:-1024}" --out /tmp/bench --cache /tmp/bench-cache
+  echo "path bench exit $?"
+} > "$OUT/path-bench.txt" 2>&1
+mkdir -p "$OUT/path-bench"
+cp /tmp/bench/path/error_vs_time.* /tmp/bench/path.csv "$OUT/path-bench/" 2>/dev/null
+fi
+if has assets; then
+mkdir -p "$OUT/assets"
+for f in $(find .gpu/scenes -name '*.gltf' -o -name '*.glb' -o -name '*.obj' -o -name '*.obj.gz' | sort); do
+  name=$(basename "${f%%.*}")
+  for backend in cpu gpu; do
+    for spec in "whitted 16" "path 64"; do
+      set -- $spec
+      line=$(timeout 120 "$T" render "$f" --backend "$backend" --integrator "$1" --samples "$2" \
+        --width 800 --height 600 -o "/tmp/asset-$name-$backend-$1.png" --json 2>"/tmp/asset-$name-$backend-$1.err")
+      rc=$?
+      python3 -c 'import json, sys; print(json.dumps({"file": sys.argv[1], "backend": sys.argv[2], "integrator": sys.argv[3], "exit": int(sys.argv[4]), "report": json.loads(sys.argv[5]) if sys.argv[5] else None, "stderr": open(sys.argv[6]).read()[-2000:]}))' \
+        "$f" "$backend" "$1" "$rc" "$line" "/tmp/asset-$name-$backend-$1.err" >> "$OUT/assets.jsonl"
+      [ "$1" = path ] && cp "/tmp/asset-$name-$backend-$1.png" "$OUT/assets/" 2>/dev/null
+    done
+  done
+done
 fi
 if has gpu-tests; then
   # The test binary finds examples/ through the path it was built at.

@@ -647,12 +647,39 @@ fn model_files_render_as_scenes_without_toml() {
         let out = dir.join("out.png");
         let mut cmd = tessera();
         cmd.arg("render").arg(&model).arg("-o").arg(&out);
-        cmd.args(["--width", "64", "--samples", "1", "--threads", "2"]);
+        cmd.args([
+            "--width",
+            "64",
+            "--samples",
+            "1",
+            "--threads",
+            "2",
+            "--json",
+        ]);
         if size.1 != size.0 {
             cmd.args(["--height", "48"]);
         }
-        let (o, _, stderr) = run(&mut cmd);
+        let (o, stdout, stderr) = run(&mut cmd);
         assert!(o.status.success(), "{asset}: {stderr}");
+        // What the frame holds, and what it cost before the first ray.
+        let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        let scene = &v["scene"];
+        assert!(scene["triangles"].as_u64() > Some(0), "{asset}: {stdout}");
+        for key in ["load_seconds", "open_seconds", "prepare_seconds"] {
+            assert!(v[key].as_f64() >= Some(0.0), "{asset}: {key} in {stdout}");
+        }
+        if asset.starts_with("gltf/DamagedHelmet") {
+            // 46,356 indices; five 2048x2048 images (colour, metal and
+            // roughness, normal, occlusion, emission) of 4 bytes a texel,
+            // all held while the process ran.
+            assert_eq!(scene["triangles"], 15_452, "{stdout}");
+            assert_eq!(scene["textures"], 5, "{stdout}");
+            assert_eq!(scene["texture_bytes"], 5 * 2048 * 2048 * 4, "{stdout}");
+            assert!(
+                v["peak_rss_bytes"].as_u64() > Some(5 * 2048 * 2048 * 4),
+                "{stdout}"
+            );
+        }
         let img = image::open(&out).unwrap().to_rgb8();
         assert_eq!(img.dimensions(), size, "{asset}");
         let lit = img.pixels().filter(|p| p.0.iter().any(|&c| c > 40)).count();

@@ -138,6 +138,50 @@ fn a_mesh_placed_by_1000_nodes_renders_in_little_memory() {
     assert!(covered > 160 * 120 / 4, "{covered} pixels covered");
 }
 
+/// `render --json` reports the frame as stored and as placed: an
+/// instanced mesh's triangles once and each placement; the copied file
+/// stores every placement's triangles, and its peak RSS shows it.
+#[test]
+fn render_json_counts_an_instanced_mesh_once_and_each_placement() {
+    let dir = tmpdir("json-stats");
+    let report = |model: &Path| -> serde_json::Value {
+        let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
+            .arg("render")
+            .arg(model)
+            .arg("-o")
+            .arg(dir.join("out.png"))
+            .args(["--samples", "1", "--threads", "2", "--width", "32"])
+            .args(["--height", "24", "--json"])
+            .output()
+            .expect("tessera runs");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{}: {stderr}", model.display());
+        serde_json::from_slice(&out.stdout).expect("one JSON object")
+    };
+    let count = |v: &serde_json::Value, key: &str| v["scene"][key].as_u64().unwrap();
+    let inst = report(&grid_gltf(&dir, "inst", 3, false));
+    let copy = report(&grid_gltf(&dir, "copy", 3, true));
+    let placed = 27 * 19_800;
+    assert_eq!(
+        ["triangles", "placed_triangles", "instances", "textures"].map(|k| count(&inst, k)),
+        [19_800, placed, 27, 0],
+        "{inst}"
+    );
+    assert_eq!(
+        ["triangles", "placed_triangles", "instances"].map(|k| count(&copy, k)),
+        [placed, placed, 0],
+        "{copy}"
+    );
+    // 27 copies of about 3 MB of triangles, shading and tree.
+    let peak = |v: &serde_json::Value| v["peak_rss_bytes"].as_u64().unwrap();
+    assert!(
+        peak(&copy) > peak(&inst) + (27 << 20),
+        "copied {} MB, instanced {} MB",
+        peak(&copy) >> 20,
+        peak(&inst) >> 20
+    );
+}
+
 /// The instanced file renders as the same file with each node's mesh
 /// copied (the one-level path), within rounding: the instanced triangles
 /// are rounded in object space, the copies in world space.

@@ -98,6 +98,11 @@ pub struct Config {
     pub adaptive_reference: u32,
     /// Adaptive suite: which of its scenes (resolution, distributed).
     pub adaptive_scenes: Vec<String>,
+    /// Path suite: image size, sample counts (each rendered once by
+    /// Tessera and by Mitsuba) and its f64 reference's samples.
+    pub path_size: (u32, u32),
+    pub path_samples: Vec<u32>,
+    pub path_reference: u32,
     /// Multi-gpu suite: one GPU worker per entry (adapter index or name;
     /// an index may repeat) [default: every adapter listed].
     pub gpu_adapters: Vec<String>,

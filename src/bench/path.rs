@@ -283,13 +283,12 @@ fn time_to_reach(points: &[(f64, f64)], target: f64) -> Option<f64> {
 impl Bench {
     /// Tessera against Mitsuba 3 on the Cornell box: RMSE against time.
     pub(super) fn suite_path(&self) -> Result<Vec<Run>> {
-        let size = if self.cfg.quick { (32, 32) } else { (128, 128) };
-        let counts: &[u32] = if self.cfg.quick {
-            &[4, 16]
-        } else {
-            &[4, 16, 64, 256]
-        };
-        let ref_samples = if self.cfg.quick { 256 } else { 2048 };
+        let size = self.cfg.path_size;
+        let mut counts = self.cfg.path_samples.clone();
+        counts.sort_unstable();
+        counts.dedup();
+        let counts = &counts[..];
+        let ref_samples = self.cfg.path_reference;
         let variant =
             std::env::var("TESSERA_MITSUBA_VARIANT").unwrap_or_else(|_| "scalar_rgb".into());
         let dir = self.cfg.out.join("path");
@@ -340,7 +339,11 @@ impl Bench {
                 suite: "path",
                 scene: CORNELL.into(),
                 backend: Backend::Cpu,
-                device: format!("Mitsuba 3 {variant} on {}", self.cpu_name),
+                device: if variant.starts_with("cuda") {
+                    format!("Mitsuba 3 {variant} (CUDA GPU)")
+                } else {
+                    format!("Mitsuba 3 {variant} on {}", self.cpu_name)
+                },
                 threads: 0,
                 settings: RenderSettings { samples, ..base },
                 precision: Precision::F32,

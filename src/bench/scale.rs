@@ -42,6 +42,7 @@ use tonic::transport::Channel;
 
 use super::farm::{farm_command, start_coordinator};
 use super::{Bench, Run};
+use crate::cli::output::rss_kib;
 
 /// The coordinator's lease timeout in the run: a vanished worker's leases
 /// go to the others this long after its last heartbeat.
@@ -189,19 +190,6 @@ fn raise_open_files_limit() {
             libc::setrlimit(libc::RLIMIT_NOFILE, &l);
         }
     }
-}
-
-/// A process's resident set and its peak, in KiB.
-fn rss_kib(pid: u32) -> (u64, u64) {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    let field = |name: &str| {
-        status
-            .lines()
-            .find_map(|l| l.strip_prefix(name))
-            .and_then(|v| v.split_whitespace().next()?.parse().ok())
-            .unwrap_or(0)
-    };
-    (field("VmRSS:"), field("VmHWM:"))
 }
 
 /// A process's CPU time (user + system), in seconds.

@@ -103,6 +103,18 @@ pub struct BenchArgs {
     /// distributed (issue 16's effects) and/or quad (resolution-quad.toml: soft shadows)
     #[arg(long, value_name = "SCENE,...", value_delimiter = ',', default_value = "resolution,distributed", value_parser = ["resolution", "distributed", "quad"])]
     pub adaptive_scenes: Vec<String>,
+    /// Path suite: image size, WIDTHxHEIGHT [default: 128x128; with --quick 32x32]
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    pub path_size: Option<(u32, u32)>,
+    /// Path suite: the sample counts Tessera and Mitsuba each render once
+    /// (the headline interpolates Tessera's runs to Mitsuba's RMSE at the
+    /// largest) [default: 4,16,64,256; with --quick 4,16]
+    #[arg(long, value_name = "N,N,...", value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub path_samples: Option<Vec<u32>>,
+    /// Path suite: samples of its converged Tessera f64 reference
+    /// [default: 2048; with --quick 256]
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub path_reference: Option<u32>,
     /// Multi-gpu suite: GPU adapters, one GPU worker on each (index or
     /// name from `tessera gpus`); an index may repeat: 0,0 runs two workers
     /// sharing one GPU [default: every adapter `tessera gpus` lists]
@@ -181,6 +193,19 @@ pub fn run(args: BenchArgs) -> Result<ExitCode> {
         adaptive_size: args.adaptive_size,
         adaptive_reference: args.adaptive_reference,
         adaptive_scenes: args.adaptive_scenes,
+        path_size: args
+            .path_size
+            .unwrap_or(if args.quick { (32, 32) } else { (128, 128) }),
+        path_samples: args.path_samples.unwrap_or_else(|| {
+            if args.quick {
+                vec![4, 16]
+            } else {
+                vec![4, 16, 64, 256]
+            }
+        }),
+        path_reference: args
+            .path_reference
+            .unwrap_or(if args.quick { 256 } else { 2048 }),
         gpu_adapters: args.gpu_adapters,
         gpu_counts: args
             .gpu_counts

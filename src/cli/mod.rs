@@ -9,7 +9,7 @@ mod farm_common;
 #[cfg(feature = "gpu")]
 mod gpus;
 mod jobs;
-mod output;
+pub(crate) mod output;
 mod render;
 mod worker;
 

@@ -29,6 +29,19 @@ pub fn print_json(v: &Value) {
     outln!("{v}");
 }
 
+/// A process's resident set and its peak, in KiB.
+pub fn rss_kib(pid: u32) -> (u64, u64) {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    let field = |name: &str| {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.split_whitespace().next()?.parse().ok())
+            .unwrap_or(0)
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
+
 /// A worker's backend (`Capabilities.backend`) as `tessera workers` prints
 /// it; UNSPECIFIED reads as `cpu`, as the coordinator registers it.
 pub fn backend_name(backend: i32) -> &'static str {

@@ -272,6 +272,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         .unwrap_or_else(|| args.scene.with_extension("png"));
     // Fail on a bad output name before spending time rendering.
     ImageFormat::of(&output)?;
+    let load_start = Instant::now();
     let scene = SceneDesc::load_input(&args.scene, &args.model.options(&args.overrides))?;
     for w in &scene.warnings {
         eprintln!("warning: {w}");
@@ -291,6 +292,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         }
     }
     let precision: Precision = args.precision.into();
+    let load_seconds = load_start.elapsed().as_secs_f64();
 
     #[cfg(feature = "gpu")]
     if args.backend != Backend::Gpu && args.adapter.is_some() {
@@ -303,8 +305,17 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let adapter = args.adapter.as_deref();
     #[cfg(not(feature = "gpu"))]
     let adapter = None;
+    let open_start = Instant::now();
     let renderer = Renderer::open(args.backend, args.threads, adapter)?;
+    let open_seconds = open_start.elapsed().as_secs_f64();
+    let prepare_start = Instant::now();
     let prepared = PreparedFrame::build(&scene, &settings, args.frame, precision)?;
+    let setup = Setup {
+        load_seconds,
+        open_seconds,
+        prepare_seconds: prepare_start.elapsed().as_secs_f64(),
+        stats: prepared.stats(),
+    };
     let total = settings.width as u64 * settings.height as u64 * settings.samples as u64;
     let progress = super::output::Progress::new("render", total, false);
     let start = Instant::now();
@@ -344,7 +355,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
             image_round: None,
         };
         return report(
-            &args, &settings, precision, &renderer, &output, summary, None, None,
+            &args, &settings, precision, &renderer, &output, &setup, summary, None, None,
         );
     }
     let film = match &adaptive {
@@ -399,10 +410,21 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         precision,
         &renderer,
         &output,
+        &setup,
         summary,
         adaptive.as_ref(),
         last_round,
     )
+}
+
+/// What the render cost before its first ray: reading the scene (model
+/// files and textures decoded), opening the backend, building the frame
+/// (placement and the BVH), and what the frame holds.
+struct Setup {
+    load_seconds: f64,
+    open_seconds: f64,
+    prepare_seconds: f64,
+    stats: tracer_core::world::WorldStats,
 }
 
 /// What a finished render reports, whichever way its image came back.
@@ -423,6 +445,7 @@ fn report(
     precision: Precision,
     renderer: &Renderer,
     output: &std::path::Path,
+    setup: &Setup,
     summary: Summary,
     adaptive: Option<&AdaptiveSettings>,
     last_round: Option<adaptive::RoundReport>,
@@ -457,6 +480,20 @@ fn report(
             "paths_per_second": r.primary as f64 / secs,
             "nonfinite_samples": nonfinite,
             "output": output.display().to_string(),
+            "load_seconds": setup.load_seconds,
+            "open_seconds": setup.open_seconds,
+            "prepare_seconds": setup.prepare_seconds,
+            // The process's peak resident set so far (Linux; 0 elsewhere).
+            "peak_rss_bytes": 1024 * super::output::rss_kib(std::process::id()).1,
+            "scene": {
+                "spheres": setup.stats.spheres,
+                "planes": setup.stats.planes,
+                "triangles": setup.stats.triangles,
+                "placed_triangles": setup.stats.placed_triangles,
+                "instances": setup.stats.instances,
+                "textures": setup.stats.textures,
+                "texture_bytes": setup.stats.texture_bytes,
+            },
             "adaptive": adaptive.map(|a| {
                 // The keys both modes report, then each mode's own.
                 let mut o = serde_json::json!({

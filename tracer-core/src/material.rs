@@ -94,6 +94,23 @@ pub struct Pbr {
     pub alpha_texture: Option<TextureRef>,
 }
 
+impl Pbr {
+    /// Every texture it reads, in one order (the GPU's texel pack and
+    /// reports walk them alike).
+    pub fn textures(&self) -> impl Iterator<Item = &TextureRef> {
+        [
+            &self.base_color_texture,
+            &self.metallic_roughness_texture,
+            &self.emissive_texture,
+            &self.occlusion_texture,
+            &self.alpha_texture,
+            &self.normal_texture,
+        ]
+        .into_iter()
+        .flatten()
+    }
+}
+
 impl Default for Pbr {
     fn default() -> Self {
         Pbr {

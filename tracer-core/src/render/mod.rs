@@ -123,6 +123,13 @@ impl PreparedFrame {
         })
     }
 
+    pub fn stats(&self) -> crate::world::WorldStats {
+        match self {
+            PreparedFrame::F32(w) => w.stats(),
+            PreparedFrame::F64(w) => w.stats(),
+        }
+    }
+
     pub fn settings(&self) -> &RenderSettings {
         match self {
             PreparedFrame::F32(w) => &w.settings,

@@ -138,7 +138,52 @@ fn rel<R: Real>(p: &Vec3, origin: &[f64; 3]) -> R::V3 {
     R::V3::from_array([p.0[0] - origin[0], p.0[1] - origin[1], p.0[2] - origin[2]])
 }
 
+/// What a built frame holds, for reports (`tessera render --json`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WorldStats {
+    pub spheres: usize,
+    pub planes: usize,
+    /// Triangles stored: the top level's plus each instanced mesh's once ...
+    pub triangles: usize,
+    /// ... and as the camera sees them: each instanced mesh once per placement.
+    pub placed_triangles: u64,
+    pub instances: usize,
+    /// Distinct texture images, and their texels' bytes (8-bit RGBA).
+    pub textures: usize,
+    pub texture_bytes: u64,
+}
+
 impl<R: Real> World<R> {
+    pub fn stats(&self) -> WorldStats {
+        let mesh_triangles: usize = self
+            .instances
+            .meshes
+            .iter()
+            .map(|m| m.triangles.len())
+            .sum();
+        let placed: u64 = self
+            .instances
+            .list
+            .iter()
+            .map(|i| self.instances.meshes[i.mesh as usize].triangles.len() as u64)
+            .sum();
+        let mut images: Vec<&std::sync::Arc<crate::texture::Image>> = Vec::new();
+        for t in self.pbr.iter().flat_map(|p| p.textures()) {
+            if !images.iter().any(|i| std::sync::Arc::ptr_eq(i, &t.image)) {
+                images.push(&t.image);
+            }
+        }
+        WorldStats {
+            spheres: self.spheres.len(),
+            planes: self.planes.len(),
+            triangles: self.triangles.len() + mesh_triangles,
+            placed_triangles: self.triangles.len() as u64 + placed,
+            instances: self.instances.list.len(),
+            textures: images.len(),
+            texture_bytes: images.iter().map(|i| 4 * i.texels.len() as u64).sum(),
+        }
+    }
+
     /// Builds the render-ready state of `desc` for `settings` (validated by
     /// the caller) and `frame`.
     pub fn build(desc: &SceneDesc, settings: &RenderSettings, frame: u32) -> Self {

@@ -1021,17 +1021,7 @@ impl PbrData {
         let mut offsets: Vec<u32> = Vec::new();
         let mut next = TEXEL_TABLES;
         for p in &w.pbr {
-            for t in [
-                &p.base_color_texture,
-                &p.metallic_roughness_texture,
-                &p.emissive_texture,
-                &p.occlusion_texture,
-                &p.alpha_texture,
-                &p.normal_texture,
-            ]
-            .into_iter()
-            .flatten()
-            {
+            for t in p.textures() {
                 if !images.iter().any(|i| std::sync::Arc::ptr_eq(i, &t.image)) {
                     images.push(t.image.clone());
                     offsets.push(next);
