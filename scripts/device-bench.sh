@@ -48,8 +48,10 @@
 # under .gpu/scenes (a copy of ../shared/scenes: ../shared does not travel)
 # rendered as a user would, `tessera render FILE --json` at 800x600, Whitted
 # 16 spp and path 64 spp, on the CPU (all cores) and the GPU, one process
-# each: triangles, textures, load, build and render seconds and peak RSS
-# into assets.jsonl; the path pictures come back as assets/*.png.
+# each (a GPU render twice, cold and warm pipelines; $ASSET_BACKENDS,
+# default "cpu gpu"): triangles, textures, load, build and render seconds
+# and peak RSS into assets.jsonl; the path pictures come back as
+# assets/*.png.
 #
 # `against-old` (issue 16) times the thesis scenes with .gpu/tessera and an
 # earlier build, .gpu/tessera-old, interleaved run by run (5 each), CPU and
@@ -182,16 +184,22 @@ cp /tmp/bench/path/error_vs_time.* /tmp/bench/path.csv "$OUT/path-bench/" 2>/dev
 fi
 if has assets; then
 mkdir -p "$OUT/assets"
+# A GPU render's seconds include building its pipelines, once per scene
+# variant and process: each GPU render runs twice with one pipeline cache
+# ($TESSERA_PIPELINE_CACHE), "run" 1 (cold) and 2 (warm).
 for f in $(find .gpu/scenes -name '*.gltf' -o -name '*.glb' -o -name '*.obj' -o -name '*.obj.gz' | sort); do
-  name=$(basename "${f%%.*}")
-  for backend in cpu gpu; do
+  name=$(basename "$f"); name=${name%%.*}
+  for backend in ${ASSET_BACKENDS:-cpu gpu}; do
     for spec in "whitted 16" "path 64"; do
       set -- $spec
-      line=$(timeout 120 "$T" render "$f" --backend "$backend" --integrator "$1" --samples "$2" \
-        --width 800 --height 600 -o "/tmp/asset-$name-$backend-$1.png" --json 2>"/tmp/asset-$name-$backend-$1.err")
-      rc=$?
-      python3 -c 'import json, sys; print(json.dumps({"file": sys.argv[1], "backend": sys.argv[2], "integrator": sys.argv[3], "exit": int(sys.argv[4]), "report": json.loads(sys.argv[5]) if sys.argv[5] else None, "stderr": open(sys.argv[6]).read()[-2000:]}))' \
-        "$f" "$backend" "$1" "$rc" "$line" "/tmp/asset-$name-$backend-$1.err" >> "$OUT/assets.jsonl"
+      runs=1; [ "$backend" = gpu ] && runs="1 2"
+      for run in $runs; do
+        line=$(TESSERA_PIPELINE_CACHE=/tmp/asset-pcache timeout 120 "$T" render "$f" --backend "$backend" --integrator "$1" --samples "$2" \
+          --width 800 --height 600 -o "/tmp/asset-$name-$backend-$1.png" --json 2>"/tmp/asset-$name-$backend-$1.err")
+        rc=$?
+        python3 -c 'import json, sys; print(json.dumps({"file": sys.argv[1], "backend": sys.argv[2], "integrator": sys.argv[3], "run": int(sys.argv[7]), "exit": int(sys.argv[4]), "report": json.loads(sys.argv[5]) if sys.argv[5] else None, "stderr": open(sys.argv[6]).read()[-2000:]}))' \
+          "$f" "$backend" "$1" "$rc" "$line" "/tmp/asset-$name-$backend-$1.err" "$run" >> "$OUT/assets.jsonl"
+      done
       [ "$1" = path ] && cp "/tmp/asset-$name-$backend-$1.png" "$OUT/assets/" 2>/dev/null
     done
   done

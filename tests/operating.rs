@@ -1075,6 +1075,93 @@ fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scen
     assert_eq!(lease(&a, &a_id), None);
 }
 
+/// Out of memory on a 24 GB GPU: the unit goes to a bigger GPU, not to
+/// another 24 GB one; its GPU lost there: to a CPU worker, and while none
+/// is connected the job says what it waits for.
+#[test]
+fn units_that_run_out_of_memory_or_lose_their_gpu_go_where_they_can_run() {
+    use tessera_proto::pb::{Backend, Capabilities, FailureClass};
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), &[]);
+    // One unit: 16x16 pixels, one sample.
+    let scene = repo("examples/resolution.toml");
+    let job = ok_stdout(&client(
+        &c,
+        &[
+            "submit",
+            scene.to_str().unwrap(),
+            "--width",
+            "16",
+            "--height",
+            "16",
+            "--samples",
+            "1",
+            "--max-attempts",
+            "9",
+        ],
+    ))
+    .trim()
+    .to_string();
+    let rt = rt();
+    let gpu = |gb: &str| {
+        Some(Capabilities {
+            backend: Backend::Gpu as i32,
+            threads: 1,
+            labels: [("gpu_memory_gb".to_string(), gb.to_string())].into(),
+            ..Default::default()
+        })
+    };
+    let (g24a, a_id) = rt.block_on(raw_worker_with(&c.grpc, "g24-a", gpu("24")));
+    let (g24b, b_id) = rt.block_on(raw_worker_with(&c.grpc, "g24-b", gpu("24")));
+    let (g80, big_id) = rt.block_on(raw_worker_with(&c.grpc, "g80", gpu("80")));
+    let lease = |w, id| {
+        rt.block_on(raw_lease(w, id))
+            .units
+            .into_iter()
+            .next()
+            .map(|u| u.lease_id)
+    };
+    let l = lease(&g24a, &a_id).expect("the unit for g24-a");
+    rt.block_on(raw_fail_class(
+        &g24a,
+        &a_id,
+        l,
+        "render: out of memory allocating the tree",
+        FailureClass::OutOfMemory,
+    ));
+    assert_eq!(lease(&g24b, &b_id), None, "a GPU of as much memory");
+    let l = lease(&g80, &big_id).expect("the bigger GPU takes it");
+    rt.block_on(raw_fail_class(
+        &g80,
+        &big_id,
+        l,
+        "Parent device is lost",
+        FailureClass::GpuLost,
+    ));
+    assert_eq!(lease(&g80, &big_id), None, "its GPU was lost");
+    assert_eq!(lease(&g24b, &b_id), None, "a GPU");
+    let st = job_status(&c, &job);
+    assert_eq!(
+        st["failure_classes"],
+        serde_json::json!({"gpu_lost": 1, "out_of_memory": 1}),
+        "{st}"
+    );
+    assert_eq!(
+        st["unrunnable"],
+        "1 unit(s) that failed for want of memory or a GPU wait for a CPU worker: no connected worker is one",
+        "{st}"
+    );
+    let (cpu, cpu_id) = rt.block_on(raw_worker(&c.grpc, "cpu"));
+    assert!(lease(&cpu, &cpu_id).is_some(), "a CPU worker takes it");
+    let log = c.proc.log();
+    assert!(
+        log.contains("units rerouted after out_of_memory")
+            && log.contains("units rerouted after gpu_lost"),
+        "{log}"
+    );
+}
+
 #[test]
 fn a_worker_serves_its_own_metrics_which_move_as_it_renders() {
     let _serial = serial();

@@ -15,10 +15,17 @@ pub const MAX_LABELS: usize = 64;
 const MAX_VALUE_CHARS: usize = 200;
 
 /// Labels every worker reports of itself: `backend` (cpu, gpu), `gpu`
-/// (the adapter's name), `gpu_memory_gb`, `cores` and `host`. The
-/// coordinator sets `backend` and `cores` from the worker's capabilities,
+/// (the adapter's name), `gpu_memory_gb`, `memory_gb` (the host's, whole
+/// GiB), `cores` and `host`. The coordinator sets `backend` and `cores` from the worker's capabilities,
 /// so they cannot be given by hand.
-pub const AUTOMATIC_LABELS: [&str; 5] = ["backend", "gpu", "gpu_memory_gb", "cores", "host"];
+pub const AUTOMATIC_LABELS: [&str; 6] = [
+    "backend",
+    "gpu",
+    "gpu_memory_gb",
+    "memory_gb",
+    "cores",
+    "host",
+];
 
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum PlacementError {
@@ -163,6 +170,93 @@ impl fmt::Display for Requirement {
     }
 }
 
+/// Where a unit goes after a failure that another worker may not have:
+/// out of memory, or a lost GPU (issue 38). Held per unit by the
+/// coordinator (not persisted: after a restart the unit may go anywhere
+/// again) and checked beside its job's requirements.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Reroute {
+    /// Out of memory on a worker with `key` = `gb` (`gpu_memory_gb` on a
+    /// GPU, `memory_gb` on a CPU): a worker with more of it, or, after a
+    /// GPU's, a CPU worker (which the job's requirements may rule out).
+    MoreMemory { key: &'static str, gb: f64 },
+    /// A lost GPU: a CPU worker.
+    OffGpu,
+    /// Any worker but this session (what the failing one lacked is not
+    /// known: no memory label, or the job must stay on a GPU).
+    NotWorker(String),
+}
+
+impl Reroute {
+    /// After an out-of-memory failure on worker session `worker` with
+    /// `labels`.
+    pub fn out_of_memory(worker: &str, labels: &BTreeMap<String, String>) -> Reroute {
+        let key = if labels.get("backend").is_some_and(|b| b == "gpu") {
+            "gpu_memory_gb"
+        } else {
+            "memory_gb"
+        };
+        match labels.get(key).and_then(|v| v.trim().parse::<f64>().ok()) {
+            Some(gb) if gb.is_finite() => Reroute::MoreMemory { key, gb },
+            _ => Reroute::NotWorker(worker.to_string()),
+        }
+    }
+
+    /// After a lost GPU on worker session `worker` with `labels`, for a
+    /// job with requirements `reqs`: the CPU unless they keep it off one.
+    pub fn gpu_lost(
+        worker: &str,
+        labels: &BTreeMap<String, String>,
+        reqs: &[Requirement],
+    ) -> Reroute {
+        let on_gpu = labels.get("backend").is_some_and(|b| b == "gpu");
+        let cpu_allowed = !reqs.iter().any(|r| match r {
+            Requirement::Equals { key, value } => {
+                (key == "backend" && value != "cpu") || key == "gpu" || key == "gpu_memory_gb"
+            }
+            Requirement::AtLeast { key, .. } => key == "gpu_memory_gb",
+        });
+        if on_gpu && cpu_allowed {
+            Reroute::OffGpu
+        } else {
+            Reroute::NotWorker(worker.to_string())
+        }
+    }
+
+    /// Whether worker session `worker` with `labels` may take the unit.
+    pub fn admits(&self, worker: &str, labels: &BTreeMap<String, String>) -> bool {
+        let cpu = labels.get("backend").is_none_or(|b| b == "cpu");
+        match self {
+            Reroute::MoreMemory { key, gb } => {
+                (*key == "gpu_memory_gb" && cpu)
+                    || labels
+                        .get(*key)
+                        .and_then(|v| v.trim().parse::<f64>().ok())
+                        .is_some_and(|m| m > *gb)
+            }
+            Reroute::OffGpu => cpu,
+            Reroute::NotWorker(w) => w != worker,
+        }
+    }
+}
+
+impl fmt::Display for Reroute {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Reroute::MoreMemory {
+                key: "gpu_memory_gb",
+                gb,
+            } => write!(
+                f,
+                "a GPU with more than {gb} GB (gpu_memory_gb) or a CPU worker"
+            ),
+            Reroute::MoreMemory { key, gb } => write!(f, "a worker with more than {gb} GB ({key})"),
+            Reroute::OffGpu => write!(f, "a CPU worker"),
+            Reroute::NotWorker(_) => write!(f, "another worker"),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -188,6 +282,39 @@ mod tests {
         assert!(!meets(&[gpu], &cpu));
         assert!(!meets(&[mem], &labels(&[("gpu_memory_gb", "lots")])));
         assert!(meets(&[], &cpu));
+    }
+
+    #[test]
+    fn out_of_memory_and_lost_gpus_send_the_unit_where_it_can_run() {
+        let g24 = labels(&[("backend", "gpu"), ("gpu_memory_gb", "24")]);
+        let g80 = labels(&[("backend", "gpu"), ("gpu_memory_gb", "80")]);
+        let gpu_unknown = labels(&[("backend", "gpu")]);
+        let c64 = labels(&[("backend", "cpu"), ("memory_gb", "64")]);
+        let c256 = labels(&[("backend", "cpu"), ("memory_gb", "256")]);
+        // A GPU out of memory: a bigger GPU or a CPU, not a GPU of as much.
+        let r = Reroute::out_of_memory("w1", &g24);
+        assert_eq!(
+            r.to_string(),
+            "a GPU with more than 24 GB (gpu_memory_gb) or a CPU worker"
+        );
+        assert!(r.admits("w2", &g80) && r.admits("w3", &c64));
+        assert!(!r.admits("w4", &g24) && !r.admits("w5", &gpu_unknown));
+        // A CPU out of memory: a CPU with more memory only.
+        let r = Reroute::out_of_memory("w1", &c64);
+        assert!(r.admits("w2", &c256) && !r.admits("w3", &c64) && !r.admits("w4", &g80));
+        // Memory unknown: anyone else.
+        let r = Reroute::out_of_memory("w1", &gpu_unknown);
+        assert_eq!(r, Reroute::NotWorker("w1".into()));
+        assert!(r.admits("w2", &g24) && !r.admits("w1", &g80));
+        // A lost GPU: the CPU where the job allows it, else another worker.
+        let r = Reroute::gpu_lost("w1", &g80, &[]);
+        assert!(r.admits("w2", &c64) && !r.admits("w3", &g80));
+        for req in ["backend=gpu", "gpu_memory_gb>=40", "gpu=NVIDIA H200"] {
+            let reqs = [Requirement::parse(req).unwrap()];
+            let r = Reroute::gpu_lost("w1", &g80, &reqs);
+            assert_eq!(r, Reroute::NotWorker("w1".into()), "{req}");
+            assert!(r.admits("w2", &g24) && !r.admits("w1", &g80));
+        }
     }
 
     #[test]

@@ -259,13 +259,22 @@ pub fn start_worker_with(dir: &Path, url: &str, name: &str, extra: &[&str]) -> P
 /// A worker session speaking the protocol by hand (a real gRPC client, not
 /// a mock): its client and its session id.
 pub async fn raw_worker(url: &str, name: &str) -> (WorkerServiceClient<Channel>, String) {
+    raw_worker_with(url, name, None).await
+}
+
+/// [`raw_worker`] registering with `capabilities` (backend, labels).
+pub async fn raw_worker_with(
+    url: &str,
+    name: &str,
+    capabilities: Option<pb::Capabilities>,
+) -> (WorkerServiceClient<Channel>, String) {
     let mut w = WorkerServiceClient::connect(url.to_string())
         .await
         .expect("connect");
     let id = w
         .register(pb::RegisterRequest {
             name: name.into(),
-            capabilities: None,
+            capabilities,
         })
         .await
         .expect("register")

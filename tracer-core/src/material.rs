@@ -81,6 +81,11 @@ pub struct Pbr {
     pub ior: f64,
     /// KHR_materials_transmission.
     pub transmission: f64,
+    /// KHR_materials_volume: light travelling `attenuation_distance`
+    /// inside keeps `attenuation_color` (infinite: nothing absorbed; the
+    /// thickness is the ray's own distance, so `thicknessFactor` is not read).
+    pub attenuation_color: [f64; 3],
+    pub attenuation_distance: f64,
     /// KHR_materials_specular.
     pub specular_factor: f64,
     pub specular_color: [f64; 3],
@@ -92,23 +97,6 @@ pub struct Pbr {
     pub mtl: bool,
     /// MTL `map_d`: its first channel times its alpha multiplies alpha.
     pub alpha_texture: Option<TextureRef>,
-}
-
-impl Pbr {
-    /// Every texture it reads, in one order (the GPU's texel pack and
-    /// reports walk them alike).
-    pub fn textures(&self) -> impl Iterator<Item = &TextureRef> {
-        [
-            &self.base_color_texture,
-            &self.metallic_roughness_texture,
-            &self.emissive_texture,
-            &self.occlusion_texture,
-            &self.alpha_texture,
-            &self.normal_texture,
-        ]
-        .into_iter()
-        .flatten()
-    }
 }
 
 impl Default for Pbr {
@@ -130,6 +118,8 @@ impl Default for Pbr {
             double_sided: false,
             ior: 1.5,
             transmission: 0.0,
+            attenuation_color: [1.0; 3],
+            attenuation_distance: f64::INFINITY,
             specular_factor: 1.0,
             specular_color: [1.0; 3],
             vertex_colors: false,
@@ -140,6 +130,21 @@ impl Default for Pbr {
 }
 
 impl Pbr {
+    /// Every texture it reads, in one order (the GPU's texel pack and
+    /// reports walk them alike).
+    pub fn textures(&self) -> impl Iterator<Item = &TextureRef> {
+        [
+            &self.base_color_texture,
+            &self.metallic_roughness_texture,
+            &self.emissive_texture,
+            &self.occlusion_texture,
+            &self.alpha_texture,
+            &self.normal_texture,
+        ]
+        .into_iter()
+        .flatten()
+    }
+
     /// The Whitted material of base colour `base` (linear RGBA), `metallic`
     /// and `roughness` (the factors, or at a hit the factors times the
     /// textures): a mirror in Whitted's model is perfectly sharp, so only
@@ -263,6 +268,10 @@ impl Pbr {
             specular_colour: R::V3::from_array(self.specular_color.map(|c| c.max(0.0))),
             emission,
             mirror: R::ZERO,
+            absorption: R::V3::from_array(crate::bsdf::absorption(
+                self.attenuation_color,
+                self.attenuation_distance,
+            )),
         }
     }
 

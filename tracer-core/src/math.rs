@@ -58,6 +58,7 @@ pub trait Real:
     fn is_finite(self) -> bool;
     fn copysign(self, sign: Self) -> Self;
     fn tan(self) -> Self;
+    fn exp(self) -> Self;
     fn from_u32(v: u32) -> Self;
 }
 
@@ -252,6 +253,10 @@ macro_rules! impl_real {
             #[inline(always)]
             fn tan(self) -> Self {
                 <$t>::tan(self)
+            }
+            #[inline(always)]
+            fn exp(self) -> Self {
+                <$t>::exp(self)
             }
             #[inline(always)]
             fn from_u32(v: u32) -> Self {

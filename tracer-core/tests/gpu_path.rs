@@ -111,6 +111,10 @@ const MIRROR: &str = "base_colour = [1, 1, 1]\nmetallic = 1\nroughness = 0\n";
 const ROUGH_CONDUCTOR: &str = "base_colour = [0.9, 0.6, 0.3]\nmetallic = 1\nroughness = 0.4\n";
 const GLASS: &str =
     "base_colour = [1, 1, 1]\nmetallic = 0\nroughness = 0\ntransmission = 1\nior = 1.5\n";
+/// GLASS with `KHR_materials_volume`'s attenuation: a quarter of the red
+/// and most of the blue absorbed over 0.5 units inside the ball.
+const ABSORBING_GLASS: &str = "base_colour = [1, 1, 1]\nmetallic = 0\nroughness = 0\ntransmission = 1\nior = 1.5\n\
+                               attenuation_colour = [0.75, 0.6, 0.2]\nattenuation_distance = 0.5\n";
 const PLASTIC: &str = "base_colour = [0.2, 0.5, 0.2]\nmetallic = 0\nroughness = 0.3\n";
 
 fn prepared(desc: &SceneDesc) -> PreparedFrame {
@@ -211,6 +215,11 @@ fn gpu_path_matches_the_cpu_on_a_rough_conductor() {
 #[test]
 fn gpu_path_matches_the_cpu_on_smooth_glass() {
     check_against_cpu("glass", &scene(GLASS, ""));
+}
+
+#[test]
+fn gpu_path_matches_the_cpu_inside_an_absorbing_glass_ball() {
+    check_against_cpu("absorbing glass", &scene(ABSORBING_GLASS, ""));
 }
 
 #[test]

@@ -59,6 +59,47 @@ fn quad_gltf(dir: &Path, name: &str, nodes: &[&str], cameras: &str, lights: &str
     p
 }
 
+/// `KHR_materials_volume` on a transmissive glTF material becomes the
+/// absorption inside (sigma = -ln(attenuationColor) / attenuationDistance
+/// per channel); without the extension nothing is absorbed.
+#[test]
+fn khr_materials_volume_becomes_the_absorption_inside() {
+    let dir = tmpdir("volume");
+    let plain = quad_gltf(&dir, "plain.gltf", &[], "[]", "[]");
+    let src = std::fs::read_to_string(&plain).unwrap();
+    let material = r#""materials":[{"name":"white","pbrMetallicRoughness":{"metallicFactor":0}}]"#;
+    assert!(src.contains(material));
+    let volume = src.replace(
+        material,
+        r#""materials":[{"name":"white","pbrMetallicRoughness":{"metallicFactor":0},
+            "extensions":{"KHR_materials_transmission":{"transmissionFactor":1},
+                          "KHR_materials_volume":{"thicknessFactor":0.1,"attenuationDistance":2.0,"attenuationColor":[0.5,0.25,1.0]}}}]"#,
+    );
+    let path = dir.join("volume.gltf");
+    std::fs::write(&path, volume).unwrap();
+    let absorption = |p: &Path| {
+        let desc = model(p, &ModelSceneOptions::default()).unwrap();
+        let frame =
+            tracer_core::render::PreparedFrame::build(&desc, &desc.render, 0, Precision::F64)
+                .unwrap();
+        let tracer_core::render::PreparedFrame::F64(w) = frame else {
+            unreachable!()
+        };
+        let i = w
+            .materials
+            .iter()
+            .position(|m| m.pbr != tracer_core::material::NO_PBR)
+            .expect("the file's material");
+        w.bsdfs[i].absorption.to_array()
+    };
+    let a = absorption(&path);
+    let want = [2f64.ln() / 2.0, 4f64.ln() / 2.0, 0.0];
+    for k in 0..3 {
+        assert!((a[k] - want[k]).abs() < 1e-6, "{a:?} against {want:?}");
+    }
+    assert_eq!(absorption(&plain), [0.0; 3]);
+}
+
 /// A perspective camera with tan(yfov / 2) = 0.5 and aspect ratio 1.
 const CAMERA: &str = r#"[{"type":"perspective","name":"front","perspective":{"yfov":0.9272952180016122,"aspectRatio":1.0,"znear":0.1}},
                          {"type":"orthographic","name":"flat","orthographic":{"xmag":1,"ymag":1,"znear":0.1,"zfar":10}}]"#;

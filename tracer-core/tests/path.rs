@@ -165,6 +165,20 @@ fn bsdf_tables_and_the_integrator_are_checked() {
         e.ends_with("bsdf.m.ior: must be a finite number in [1, 10], got 0.5"),
         "{e}"
     );
+    let e = err(&format!(
+        "{base}[bsdf.m]\nattenuation_colour = [0, 0.5, 1]\nattenuation_distance = 1\n"
+    ));
+    assert!(
+        e.ends_with(
+            "bsdf.m.attenuation_colour: must be in (0, 1] (the share of light kept over attenuation_distance), got [0.0, 0.5, 1.0]"
+        ),
+        "{e}"
+    );
+    let e = err(&format!("{base}[bsdf.m]\nattenuation_distance = -2\n"));
+    assert!(
+        e.ends_with("bsdf.m.attenuation_distance: must be a finite distance above 0, got -2"),
+        "{e}"
+    );
     let e = err(&format!("{base}[bsdf.m]\nbase_colour = [2, 0, 0]\n"));
     assert!(e.contains("bsdf.m.base_colour: must be in [0, 1]"), "{e}");
     let e = err(&format!("[render]\nintegrator = \"bidir\"\n{base}"));

@@ -43,7 +43,7 @@ pub(crate) fn capabilities(
 
 /// The labels a worker reports of itself beside `backend` and `cores`
 /// (which the coordinator sets from its capabilities): `host` (the host
-/// name), and for a GPU worker `gpu` (the adapter's name) and, where
+/// name), `memory_gb` (the host's memory), and for a GPU worker `gpu` (the adapter's name) and, where
 /// `nvidia-smi` reports the adapter, `gpu_memory_gb` (whole GiB). wgpu
 /// does not tell an adapter's memory; elsewhere give it with `--label`.
 pub(crate) fn automatic_labels(renderer: &Renderer) -> BTreeMap<String, String> {
@@ -56,6 +56,9 @@ pub(crate) fn automatic_labels(renderer: &Renderer) -> BTreeMap<String, String> 
     if let Some(h) = host {
         labels.insert("host".into(), h);
     }
+    if let Some(gb) = host_memory_gb() {
+        labels.insert("memory_gb".into(), gb.to_string());
+    }
     if let Some(name) = renderer.adapter_name() {
         labels.insert("gpu".into(), name.to_string());
         if let Some(gb) = nvidia_memory_gb(name) {
@@ -63,6 +66,20 @@ pub(crate) fn automatic_labels(renderer: &Renderer) -> BTreeMap<String, String> 
         }
     }
     labels
+}
+
+/// This host's memory in whole GiB (`MemTotal` of /proc/meminfo; None
+/// elsewhere): where a unit that ran out of memory may go next.
+fn host_memory_gb() -> Option<u64> {
+    let info = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let kib: u64 = info
+        .lines()
+        .find_map(|l| l.strip_prefix("MemTotal:"))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    Some(kib >> 20)
 }
 
 /// The memory of the NVIDIA GPU named `adapter`, in whole GiB, as

@@ -121,6 +121,7 @@ impl Job {
             pending,
             failures: HashMap::new(),
             worker_failures: HashMap::new(),
+            reroutes: HashMap::new(),
             frames,
             frame_seq: 0,
             counters,
@@ -248,6 +249,45 @@ impl Job {
         tracing::error!(job = %self.rec.id, %error, "job failed");
         self.finish(JobState::Failed, error);
         Some(self.rec.clone())
+    }
+
+    /// Sends `units`, which failed of `class` on worker session `worker`
+    /// (of `labels`), where that failure may not recur: out of memory to
+    /// a worker with more, a lost GPU to the CPU where the job allows it
+    /// (`placement::Reroute`). Other classes change nothing.
+    pub(super) fn reroute(
+        &mut self,
+        units: &[u32],
+        class: super::FailureClass,
+        worker: &str,
+        name: &str,
+        labels: &std::collections::BTreeMap<String, String>,
+    ) {
+        use tessera_proto::placement::Reroute;
+        let r = match class {
+            super::FailureClass::OutOfMemory => Reroute::out_of_memory(worker, labels),
+            super::FailureClass::GpuLost => {
+                Reroute::gpu_lost(worker, labels, &self.rec.requirements)
+            }
+            _ => return,
+        };
+        tracing::warn!(job = %self.rec.id, worker = %name, units = units.len(), to = %r, "units rerouted after {}", class.name());
+        for &u in units {
+            self.reroutes.insert(u, r.clone());
+        }
+    }
+
+    /// Whether worker session `worker` (of `labels`) may take unit `u`:
+    /// any may, unless the unit was rerouted ([`Job::reroute`]).
+    pub(super) fn admits(
+        &self,
+        u: u32,
+        worker: &str,
+        labels: &std::collections::BTreeMap<String, String>,
+    ) -> bool {
+        self.reroutes
+            .get(&u)
+            .is_none_or(|r| r.admits(worker, labels))
     }
 
     /// Counts a failure report of class `class`; for a scene error, fails

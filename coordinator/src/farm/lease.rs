@@ -450,7 +450,16 @@ impl Farm {
             let (in_flight, leased) = in_flight_of.get(&job_id).copied().unwrap_or((0.0, 0.0));
             while out.len() < max_units as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
-                let Some(&first) = job.pending.iter().next() else {
+                // The first pending unit this worker may take (one rerouted
+                // after a failure may want another: `Job::reroute`).
+                let first = if job.reroutes.is_empty() {
+                    job.pending.iter().next()
+                } else {
+                    job.pending
+                        .iter()
+                        .find(|&&u| job.admits(u, worker_id, labels))
+                };
+                let Some(&first) = first else {
                     break;
                 };
                 let rays = |u: u32| job.unit_work(u);
@@ -509,8 +518,13 @@ impl Farm {
                     } else {
                         self.config.max_tiles_per_lease.min(fit)
                     };
-                    job.layout
-                        .join(first, max_tiles, |u| job.pending.contains(&u), rays, budget)
+                    job.layout.join(
+                        first,
+                        max_tiles,
+                        |u| job.pending.contains(&u) && job.admits(u, worker_id, labels),
+                        rays,
+                        budget,
+                    )
                 } else {
                     // Not measured yet: one tile, whose result measures it.
                     // Once measured workers exist, an unmeasured one asking
@@ -630,6 +644,7 @@ impl Farm {
                 || st.jobs.get(&l.job).is_none_or(|j| {
                     j.state.is_terminal()
                         || !meets(&j.rec.requirements, labels)
+                        || l.units.iter().any(|&u| !j.admits(u, worker_id, labels))
                         || j.worker_failures
                             .get(worker_id)
                             .and_then(|f| f.blocked_until)

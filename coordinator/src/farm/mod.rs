@@ -410,6 +410,10 @@ struct Job {
     failure_classes: BTreeMap<&'static str, u64>,
     /// The first scene error reported: (worker session, its name, the message).
     scene_error: Option<(String, String, String)>,
+    /// Units that ran out of memory or lost their GPU, and where they may
+    /// go next (`Job::reroute`); the lease loop skips them for a worker
+    /// that does not qualify. Not persisted.
+    reroutes: HashMap<u32, tessera_proto::placement::Reroute>,
 }
 
 /// One worker's failures of one job's units.
@@ -516,6 +520,27 @@ impl State {
     /// instead of waiting silently.
     fn unrunnable(&self, job: &Job) -> String {
         let reqs = &job.rec.requirements;
+        if !job.state.is_terminal() {
+            // Rerouted units that no connected worker (meeting the job's
+            // requirements) may take: the job cannot finish until one comes.
+            let stuck = job
+                .reroutes
+                .iter()
+                .filter(|(u, _)| job.pending.contains(u))
+                .filter(|(_, r)| {
+                    !self.workers.iter().any(|(id, w)| {
+                        tessera_proto::placement::meets(reqs, &w.labels) && r.admits(id, &w.labels)
+                    })
+                })
+                .map(|(_, r)| r)
+                .collect::<Vec<_>>();
+            if let Some(r) = stuck.first() {
+                return format!(
+                    "{} unit(s) that failed for want of memory or a GPU wait for {r}: no connected worker is one",
+                    stuck.len()
+                );
+            }
+        }
         if reqs.is_empty()
             || job.state.is_terminal()
             || self

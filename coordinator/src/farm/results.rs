@@ -368,6 +368,15 @@ impl Farm {
                     for_,
                 );
                 scene_failed = job.count_class(r.failure_class, &r.worker_id, &worker_name, msg);
+                if let Some(w) = st.workers.get(&r.worker_id) {
+                    job.reroute(
+                        &lease.units,
+                        r.failure_class,
+                        &r.worker_id,
+                        &worker_name,
+                        &w.labels,
+                    );
+                }
             }
             if let Some(rec) = scene_failed {
                 st.end_lease(r.lease_id.clone(), lease.job.clone(), false);

@@ -893,6 +893,12 @@ fn read_material(m: &gltf::Material, images: &mut Images) -> Pbr {
         transmission: m
             .transmission()
             .map_or(0.0, |t| t.transmission_factor() as f64),
+        attenuation_color: m
+            .volume()
+            .map_or([1.0; 3], |v| v.attenuation_color().map(f64::from)),
+        attenuation_distance: m
+            .volume()
+            .map_or(f64::INFINITY, |v| v.attenuation_distance() as f64),
         specular_factor: specular
             .as_ref()
             .map_or(1.0, |s| s.specular_factor() as f64),

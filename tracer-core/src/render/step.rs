@@ -212,6 +212,11 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
         };
         let s = fx.surface(world, &ray, hit);
         let b = s.bsdf;
+        // Arriving at a back side: the segment ran inside this surface's
+        // volume (closed, not nested: `Bsdf::absorption`).
+        if !s.entering && b.absorption.max_element() > R::ZERO {
+            throughput = throughput * b.transmittance(hit.0);
+        }
         if s.entering {
             match emitter_density(world, fx, scene, &s) {
                 // A light-sampled triangle found by a BSDF sample: MIS

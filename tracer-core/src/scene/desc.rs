@@ -377,6 +377,13 @@ pub struct BsdfDesc {
     pub specular_colour: Vec3,
     #[serde(default)]
     pub emission: Vec3,
+    /// The volume inside (`KHR_materials_volume`'s attenuation): light that
+    /// travels `attenuation_distance` inside keeps `attenuation_colour` of
+    /// itself. Without a distance nothing is absorbed.
+    #[serde(default = "white")]
+    pub attenuation_colour: Vec3,
+    #[serde(default)]
+    pub attenuation_distance: Option<Num>,
 }
 
 fn default_ior() -> Num {
@@ -873,6 +880,28 @@ impl SceneDesc {
                         "must be in [0, 1] (a reflectance), got {:?}",
                         bv.base_colour.0
                     ),
+                ));
+            }
+            if bv
+                .attenuation_colour
+                .0
+                .iter()
+                .any(|&c| !(c > 0.0 && c <= 1.0))
+            {
+                return Err(err(
+                    "attenuation_colour",
+                    format!(
+                        "must be in (0, 1] (the share of light kept over attenuation_distance), got {:?}",
+                        bv.attenuation_colour.0
+                    ),
+                ));
+            }
+            if let Some(d) = bv.attenuation_distance
+                && !(d.0.is_finite() && d.0 > 0.0)
+            {
+                return Err(err(
+                    "attenuation_distance",
+                    format!("must be a finite distance above 0, got {}", d.0),
                 ));
             }
             if !(bv.ior.0.is_finite() && bv.ior.0 >= 1.0 && bv.ior.0 <= 10.0) {

@@ -23,6 +23,8 @@ struct Bsdf {
     transmission: f32,
     specular: f32,
     mirror: f32,
+    // bsdf.rs `absorption`: the volume inside, per unit of distance.
+    absorption: vec3<f32>,
 }
 
 struct BsdfSample {

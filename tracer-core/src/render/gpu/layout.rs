@@ -557,9 +557,10 @@ impl DistData {
 /// Where the path integrator's words start in `DistData::words` and
 /// whether any light emits (path.wgsl's `PATH_BASE`, `PATH_NEE`). The
 /// words: the environment; per light (its selection probability, the
-/// first 24-bit uniform number that picks past it); per GPU material 4
-/// words of its [`Bsdf`] (path.wgsl `path_bsdf`), the last one's w its
-/// emissive triangles' selection density (`PathScene::emit_density`);
+/// first 24-bit uniform number that picks past it); per GPU material
+/// [`PathData::MATERIAL_WORDS`] words of its [`Bsdf`] (path.wgsl
+/// `path_bsdf`), the fourth one's w its emissive triangles' selection
+/// density (`PathScene::emit_density`), the fifth its absorption;
 /// then per emissive triangle 4 words (path.wgsl `emitter_sample`) from
 /// `emit_base` (`PATH_EMIT_BASE`, `PATH_EMITTERS`).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -571,6 +572,9 @@ pub struct PathData {
 }
 
 impl PathData {
+    /// Words per material (path.wgsl `PATH_MATERIAL_WORDS`).
+    pub const MATERIAL_WORDS: u32 = 5;
+
     /// Appends `scene`'s words and `bsdfs` (one per GPU material) to `d`.
     pub fn append(d: &mut DistData, scene: &PathScene<f32>, bsdfs: &[Bsdf<f32>]) -> Self {
         let base = d.words.len() as u32;
@@ -587,6 +591,7 @@ impl PathData {
         for (i, &p) in scene.light_prob.iter().enumerate() {
             d.words.push([p, first(i), 0.0, 0.0]);
         }
+        let materials = d.words.len();
         for (i, b) in bsdfs.iter().enumerate() {
             let density = scene.emit_density.get(i).copied().unwrap_or(0.0);
             d.words.push(v4(b.base_colour, b.metallic));
@@ -594,7 +599,12 @@ impl PathData {
             d.words.push(v4(b.emission, b.ior));
             d.words
                 .push([b.transmission, b.specular, b.mirror, density]);
+            d.words.push(v4(b.absorption, 0.0));
         }
+        debug_assert_eq!(
+            d.words.len() - materials,
+            Self::MATERIAL_WORDS as usize * bsdfs.len()
+        );
         let emit_base = d.words.len() as u32;
         let n_lights = scene.light_prob.len();
         for (k, e) in scene.emitters.iter().enumerate() {

@@ -27,14 +27,16 @@ const SLOT_PATH_RR: u32 = 6u;
 const RR_DEPTH: u32 = 5u;
 
 // dist[PATH_BASE]: environment; then per light (probability, first 24-bit
-// number that picks past it); then 4 words per material.
+// number that picks past it); then PATH_MATERIAL_WORDS words per material
+// (layout.rs `PathData::MATERIAL_WORDS`).
+const PATH_MATERIAL_WORDS: u32 = 5u;
 fn path_bsdf(material: u32) -> Bsdf {
-    let base = PATH_BASE + 1u + N_DLIGHTS + 4u * material;
+    let base = PATH_BASE + 1u + N_DLIGHTS + PATH_MATERIAL_WORDS * material;
     let a = dist[base];
     let b = dist[base + 1u];
     let c = dist[base + 2u];
     let d = dist[base + 3u];
-    return Bsdf(a.xyz, a.w, b.xyz, b.w, c.xyz, c.w, d.x, d.y, d.z);
+    return Bsdf(a.xyz, a.w, b.xyz, b.w, c.xyz, c.w, d.x, d.y, d.z, dist[base + 4u].xyz);
 }
 
 // render/step.rs `material_at`'s BSDF: the material's, or where a model
@@ -106,7 +108,7 @@ fn pick_light(u: f32) -> u32 {
 
 // PathScene::emit_density of a GPU material (0: not light-sampled).
 fn emit_density(material: u32) -> f32 {
-    return dist[PATH_BASE + 1u + N_DLIGHTS + 4u * material + 3u].w;
+    return dist[PATH_BASE + 1u + N_DLIGHTS + PATH_MATERIAL_WORDS * material + 3u].w;
 }
 
 // emitters.rs `TriEmitter::sample_li` of emissive triangle k: a point
@@ -352,6 +354,10 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
         }
         let sf = surface_at(Ray(o, 1.0, d, 0u, skip, key), hit, tau);
         let b = bsdf_at(sf.id, sf.p, sf.material);
+        // step.rs: a back side ends a segment that ran inside its volume.
+        if (!sf.entering && bsdf_max3(b.absorption) > 0.0) {
+            throughput = throughput * exp(-b.absorption * hit.t);
+        }
         if (sf.entering) {
             // A light-sampled triangle found by a BSDF sample (step.rs
             // `emitter_density`): MIS against its point's light pdf.
