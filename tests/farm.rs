@@ -948,6 +948,14 @@ fn malformed_results_are_rejected_and_late_results_dropped() {
         (s.results_rejected, s.results_late, s.units_accepted),
         (3, 1, s.units_total)
     );
+    // The expired lease is counted as a failure of class timeout (at
+    // least it: under a 1 s lease timeout a slow machine may let another
+    // expire too).
+    assert!(
+        s.failure_classes.get("timeout").is_some_and(|&n| n >= 1),
+        "{:?}",
+        s.failure_classes
+    );
     assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, SMALL);
 }
 

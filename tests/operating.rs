@@ -625,14 +625,19 @@ fn a_requirement_routes_a_job_to_the_matching_worker_only_and_a_job_nobody_can_r
 
 /// A submit of the small resolution scene with `extra` flags: its job id.
 fn submit_small(c: &Coordinator, samples: &str, extra: &[&str]) -> String {
+    submit_sized(c, ["64", "48"], samples, extra)
+}
+
+/// [`submit_small`] of `size` pixels (16x16 is one unit a sample).
+fn submit_sized(c: &Coordinator, size: [&str; 2], samples: &str, extra: &[&str]) -> String {
     let scene = repo("examples/resolution.toml");
     let mut args = vec![
         "submit",
         scene.to_str().unwrap(),
         "--width",
-        "64",
+        size[0],
         "--height",
-        "48",
+        size[1],
         "--samples",
         samples,
         "--tile-size",
@@ -996,13 +1001,7 @@ fn a_jobs_own_blocklist_setting_applies_failures_are_counted_by_class_and_a_scen
     let (gpu, gpu_id) = rt.block_on(raw_worker(&c.grpc, "gpu-box"));
     let (a, a_id) = rt.block_on(raw_worker(&c.grpc, "a"));
     let (b, b_id) = rt.block_on(raw_worker(&c.grpc, "b"));
-    let lease = |w, id| {
-        rt.block_on(raw_lease(w, id))
-            .units
-            .into_iter()
-            .next()
-            .map(|u| u.lease_id)
-    };
+    let lease = |w, id| rt.block_on(raw_lease_id(w, id));
     // One lost GPU: blocklisted from this job after its 1 failure.
     let l = lease(&gpu, &gpu_id).expect("a unit for gpu-box");
     rt.block_on(raw_fail_class(
@@ -1085,24 +1084,7 @@ fn units_that_run_out_of_memory_or_lose_their_gpu_go_where_they_can_run() {
     let dir = tempfile::tempdir().expect("tempdir");
     let c = start_coordinator(dir.path(), &[]);
     // One unit: 16x16 pixels, one sample.
-    let scene = repo("examples/resolution.toml");
-    let job = ok_stdout(&client(
-        &c,
-        &[
-            "submit",
-            scene.to_str().unwrap(),
-            "--width",
-            "16",
-            "--height",
-            "16",
-            "--samples",
-            "1",
-            "--max-attempts",
-            "9",
-        ],
-    ))
-    .trim()
-    .to_string();
+    let job = submit_sized(&c, ["16", "16"], "1", &["--max-attempts", "9"]);
     let rt = rt();
     let gpu = |gb: &str| {
         Some(Capabilities {
@@ -1115,13 +1097,7 @@ fn units_that_run_out_of_memory_or_lose_their_gpu_go_where_they_can_run() {
     let (g24a, a_id) = rt.block_on(raw_worker_with(&c.grpc, "g24-a", gpu("24")));
     let (g24b, b_id) = rt.block_on(raw_worker_with(&c.grpc, "g24-b", gpu("24")));
     let (g80, big_id) = rt.block_on(raw_worker_with(&c.grpc, "g80", gpu("80")));
-    let lease = |w, id| {
-        rt.block_on(raw_lease(w, id))
-            .units
-            .into_iter()
-            .next()
-            .map(|u| u.lease_id)
-    };
+    let lease = |w, id| rt.block_on(raw_lease_id(w, id));
     let l = lease(&g24a, &a_id).expect("the unit for g24-a");
     rt.block_on(raw_fail_class(
         &g24a,

@@ -64,10 +64,11 @@ pub struct WorkerArgs {
     pub nice: i32,
     /// A label jobs' requirements (`tessera submit --require`) are matched
     /// against, repeatable: `--label pool=night`. Beside these, every
-    /// worker reports backend, cores, host and, on a GPU, gpu (the
-    /// adapter's name) and gpu_memory_gb (where nvidia-smi tells it; give
-    /// it here elsewhere). A given host or gpu_memory_gb wins over the
-    /// automatic one; backend and cores cannot be given
+    /// worker reports backend, cores, host, memory_gb (the host's) and, on
+    /// a GPU, gpu (the adapter's name) and gpu_memory_gb (where nvidia-smi
+    /// tells it; give it here elsewhere). A given host, memory_gb or
+    /// gpu_memory_gb wins over the automatic one; backend and cores cannot
+    /// be given
     #[arg(long = "label", value_name = "KEY=VALUE", value_parser = label_parser)]
     pub labels: Vec<(String, String)>,
     /// Serve this worker's Prometheus metrics (`GET /metrics`, no token)

@@ -296,6 +296,16 @@ pub async fn raw_lease(w: &WorkerServiceClient<Channel>, id: &str) -> pb::LeaseW
         .into_inner()
 }
 
+/// The lease id of [`raw_lease`]'s one unit, if it got one.
+pub async fn raw_lease_id(w: &WorkerServiceClient<Channel>, id: &str) -> Option<String> {
+    raw_lease(w, id)
+        .await
+        .units
+        .into_iter()
+        .next()
+        .map(|u| u.lease_id)
+}
+
 /// Reports lease `lease_id` of session `id` failed with `message`, which
 /// the coordinator must record as a failure.
 pub async fn raw_fail(w: &WorkerServiceClient<Channel>, id: &str, lease_id: String, message: &str) {

@@ -830,7 +830,13 @@ fn smooth_dielectric_matches_mitsuba() {
     // near grazing and at the critical angle, a share of the light that
     // reaches the camera through a few percent of the pixels: 3% of
     // the mean is allowed.
-    let mut c = base("glass");
+    glass_ball("glass", Mat::Glass(1.5)).check();
+}
+
+/// A ball of radius 1 of `glass` on a grey floor under the ceiling
+/// light and a blue-grey sky, with the Fresnel allowance above.
+fn glass_ball(name: &'static str, glass: Mat) -> Case {
+    let mut c = base(name);
     c.environment = [0.3, 0.3, 0.4];
     c.max_depth = 10;
     c.objects = vec![
@@ -840,12 +846,12 @@ fn smooth_dielectric_matches_mitsuba() {
                 c: [0.0, 1.0, 0.0],
                 r: 1.0,
             },
-            Mat::Glass(1.5),
+            glass,
         ),
     ];
     c.lights = vec![ceiling_light(3.0)];
     c.bias = 0.03;
-    c.check();
+    c
 }
 
 /// Glass around an absorbing volume (`KHR_materials_volume`): each
@@ -858,26 +864,15 @@ fn smooth_dielectric_matches_mitsuba() {
 /// past the allowance of 0.007 + 4 standard errors.)
 #[test]
 fn glass_around_an_absorbing_volume_matches_mitsubas_homogeneous_medium() {
-    let mut c = base("absorbing glass");
-    c.environment = [0.3, 0.3, 0.4];
-    c.max_depth = 10;
-    c.objects = vec![
-        (FLOOR_Y, Mat::Lambert([0.6, 0.6, 0.6])),
-        (
-            Shape::Sphere {
-                c: [0.0, 1.0, 0.0],
-                r: 1.0,
-            },
-            Mat::AbsorbingGlass {
-                ior: 1.5,
-                colour: [0.9, 0.5, 0.2],
-                distance: 1.0,
-            },
-        ),
-    ];
-    c.lights = vec![ceiling_light(3.0)];
-    c.bias = 0.03;
-    c.check();
+    glass_ball(
+        "absorbing glass",
+        Mat::AbsorbingGlass {
+            ior: 1.5,
+            colour: [0.9, 0.5, 0.2],
+            distance: 1.0,
+        },
+    )
+    .check();
 }
 
 /// A model file's textured Lambert floor (glTF base colour texture,

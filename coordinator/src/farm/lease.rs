@@ -864,6 +864,13 @@ impl Farm {
                 w.units_failed += l.units.len() as u64;
                 w.name.clone()
             });
+            // The job counts it as a failure of class timeout (the worker
+            // neither answered nor reported progress in time).
+            if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
+                *job.failure_classes
+                    .entry(super::FailureClass::Timeout.name())
+                    .or_default() += 1;
+            }
             if st.partner_keeps(&id, &l) {
                 tracing::warn!(lease = %id, job = %l.job, worker = %name.unwrap_or_else(|| public_worker_id(&l.worker)), "lease expired; its backup goes on");
             } else if let Some(job) = st.jobs.get_mut(&l.job).filter(|j| !j.state.is_terminal()) {
