@@ -76,6 +76,12 @@ pub fn worker_json(w: &pb::WorkerInfo) -> Value {
 /// Off a terminal, a progress line every this long (and at the end).
 const PLAIN_EVERY: Duration = Duration::from_secs(5);
 
+/// How far back a local render's rate looks for its ETA: recent enough
+/// that a slow start (a GPU's pipelines built in the first chunk) or a
+/// costlier part of the frame (glass below sky) soon shows, as a farm
+/// job's ETA does (`tessera_coordinator::rate`).
+const ETA_WINDOW: Duration = Duration::from_secs(10);
+
 /// Progress of one long piece of work, safe to advance from many threads.
 pub struct Progress {
     what: String,
@@ -83,6 +89,8 @@ pub struct Progress {
     total: u64,
     done: AtomicU64,
     start: Instant,
+    /// The work done over time, for the ETA's recent rate.
+    meter: Mutex<tessera_coordinator::rate::Meter>,
     /// When the last plain line was printed, its message and the progress
     /// it showed.
     last: Mutex<(Instant, String, u64)>,
@@ -107,6 +115,12 @@ impl Progress {
             total: if quiet { 0 } else { total.max(1) },
             done: AtomicU64::new(0),
             start,
+            meter: Mutex::new({
+                // The rate counts from the start, not from the first chunk.
+                let mut m = tessera_coordinator::rate::Meter::new(ETA_WINDOW);
+                m.start(start);
+                m
+            }),
             last: Mutex::new((start, String::new(), u64::MAX)),
         }
     }
@@ -114,6 +128,12 @@ impl Progress {
     /// `n` more units of work done; the ETA comes from the measured rate.
     pub fn inc(&self, n: u64) {
         let done = self.done.fetch_add(n, Ordering::Relaxed) + n;
+        if self.total > 0 {
+            self.meter
+                .lock()
+                .expect("progress meter")
+                .add(Instant::now(), n as f64);
+        }
         if let Some(bar) = &self.bar {
             bar.set_position(done);
             bar.set_message(self.eta_text(done));
@@ -159,14 +179,21 @@ impl Progress {
         }
     }
 
+    /// The work left over the recent rate (the last [`ETA_WINDOW`]).
     fn eta_text(&self, done: u64) -> String {
-        let secs = self.start.elapsed().as_secs_f64();
         // Too early for a rate worth extrapolating.
-        if done == 0 || secs < 1.0 {
+        if done == 0 || self.start.elapsed() < Duration::from_secs(1) {
             return String::new();
         }
-        let left = self.total.saturating_sub(done) as f64 / (done as f64 / secs);
-        format!("eta {left:.0} s")
+        let rate = self
+            .meter
+            .lock()
+            .expect("progress meter")
+            .rate(Instant::now());
+        match tessera_coordinator::rate::eta(self.total.saturating_sub(done) as f64, rate) {
+            Some(left) => format!("eta {left:.0} s"),
+            None => String::new(),
+        }
     }
 
     fn plain(&self, done: u64, message: Option<&str>, last: bool) {
@@ -193,5 +220,31 @@ impl Progress {
             self.what,
             self.start.elapsed().as_secs_f64()
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The ETA is the work left over the recent rate: nothing in the
+    /// first second, then (100 - 20) units at about 20 units in 1.2 s.
+    #[test]
+    fn eta_is_the_work_left_over_the_recent_rate() {
+        let p = Progress::new("test", 100, true);
+        // Quiet progress keeps no total; this one measures.
+        let p = Progress { total: 100, ..p };
+        p.inc(10);
+        assert_eq!(p.eta_text(10), "");
+        std::thread::sleep(Duration::from_millis(1200));
+        p.inc(10);
+        let eta: f64 = p
+            .eta_text(20)
+            .strip_prefix("eta ")
+            .and_then(|t| t.strip_suffix(" s"))
+            .and_then(|t| t.parse().ok())
+            .expect("an ETA");
+        // 80 units at 20 / 1.2 s: 4.8 s (a loaded machine sleeps longer).
+        assert!((4.0..=12.0).contains(&eta), "{eta}");
     }
 }
