@@ -302,8 +302,9 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
         rows[3]["bit_identical"], "",
         "a mixed farm has no single local render"
     );
-    // Ratios printed to 4 decimals from times the CSV rounds too (a ratio
-    // of 0.2 recomputed from them was 0.6% off): equal within 1%.
+    // Ratios printed to 4 decimals, recomputed from times printed to the
+    // microsecond (at 4 decimals a few-ms ceiling put a ratio 1.6% off):
+    // equal within 1%.
     let near = |got: f64, want: f64, what: &str| {
         assert!(
             (got - want).abs() <= 1e-2 * want.abs().max(0.1),

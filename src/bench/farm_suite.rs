@@ -556,14 +556,17 @@ struct FarmColumns<'a> {
 }
 
 fn farm_columns(c: FarmColumns) -> Vec<(&'static str, String)> {
+    // Ratios to 4 decimals; times to the microsecond, as `wall_s` (a quick
+    // run's ceiling of a few ms at 4 decimals put its ratio 1.6% off).
     let f = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.4}"));
+    let secs = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.6}"));
     vec![
         ("workers", c.workers.to_string()),
         ("gpu_workers", c.gpu_workers.to_string()),
         ("worker_threads", c.threads.to_string()),
         ("tile_size", c.tile.to_string()),
         ("local_wall_s", format!("{:.6}", c.local_secs)),
-        ("ceiling_s", f(c.ceiling_secs)),
+        ("ceiling_s", secs(c.ceiling_secs)),
         (
             "of_ceiling",
             f(c.ceiling_secs.map(|t| t / c.result.seconds)),
@@ -574,8 +577,8 @@ fn farm_columns(c: FarmColumns) -> Vec<(&'static str, String)> {
             "bit_identical",
             c.identical.map_or(String::new(), |b| b.to_string()),
         ),
-        ("first_result_s", f(c.result.first_result_s)),
-        ("render_s", f(c.result.render_s)),
+        ("first_result_s", secs(c.result.first_result_s)),
+        ("render_s", secs(c.result.render_s)),
         (
             "throughput_vs_local",
             f((c.result.render_s.is_some())
