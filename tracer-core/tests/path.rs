@@ -188,3 +188,98 @@ fn bsdf_tables_and_the_integrator_are_checked() {
     );
     assert!(e.contains("whitted") && e.contains("path"), "{e}");
 }
+
+/// A TOML spot light (glTF's cone: full inside `inner_cone_angle`, none
+/// past `cone_angle`, the squared linear ramp in the cosine between)
+/// straight above a Lambert floor, seen from above, direct light only:
+/// each pixel's radiance is albedo / pi x I cos / d^2 x the falloff,
+/// computed here in f64.
+#[test]
+fn a_toml_spot_light_lights_its_cone_as_gltf_defines_it() {
+    let src = r#"
+[render]
+width = 33
+height = 33
+samples = 1
+max_depth = 2
+sampler = "grid"
+integrator = "path"
+[camera]
+position = [0, 4, 0]
+look_at = [0, 0, 0]
+up = [0, 0, 1]
+fov_y = 90
+[materials.floor]
+[bsdf.floor]
+base_colour = [0.5, 0.5, 0.5]
+metallic = 0
+specular = 0
+[[lights]]
+type = "spot"
+position = [0, 2, 0]
+direction = [0, -1, 0]
+cone_angle = 30
+inner_cone_angle = 20
+diffuse = [8, 8, 8]
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+"#;
+    let desc = common::scene(src);
+    assert!(
+        desc.warnings
+            .iter()
+            .any(|w| w.contains("lights[0]: a spot light renders as a point light under Whitted")),
+        "{:?}",
+        desc.warnings
+    );
+    let img = common::render_with(&desc, &desc.render, Precision::F64).resolve();
+    // Row 16 is the image's middle; column c's pixel centre looks at the
+    // floor at |x| = |(c + 0.5) / 33 x 8 - 4| (90 degrees from 4 up).
+    let expect = |c: usize| {
+        let x = (c as f64 + 0.5) / 33.0 * 8.0 - 4.0;
+        let d2 = 4.0 + x * x;
+        let cos = 2.0 / d2.sqrt();
+        let (ci, co) = (20f64.to_radians().cos(), 30f64.to_radians().cos());
+        let f = ((cos - co) / (ci - co)).clamp(0.0, 1.0);
+        0.5 / std::f64::consts::PI * 8.0 * cos * f * f / d2
+    };
+    let mut lit = 0;
+    for c in 0..33 {
+        let got = img[16 * 33 + c][0] as f64;
+        let want = expect(c);
+        assert!(
+            (got - want).abs() <= 1e-5 * want.max(1e-3),
+            "column {c}: {got} against {want}"
+        );
+        lit += usize::from(want > 0.0);
+    }
+    // The centre fully lit, the ramp and the dark beyond it all crossed.
+    assert!((5..33).contains(&lit), "{lit} lit columns");
+    assert!(expect(16) > 0.3 && expect(20) > 0.0 && expect(20) < expect(19) && expect(27) == 0.0);
+
+    let err = |extra: &str| {
+        SceneDesc::parse(&src.replace("cone_angle = 30\n", extra), "t.toml")
+            .unwrap_err()
+            .to_string()
+    };
+    let e = err("cone_angle = 95\n");
+    assert!(
+        e.ends_with("lights[0].cone_angle: must be in (0, 90] degrees, got 95"),
+        "{e}"
+    );
+    let e = err("cone_angle = 15\n");
+    assert!(
+        e.ends_with("lights[0].inner_cone_angle: must be in [0, cone_angle = 15) degrees, got 20"),
+        "{e}"
+    );
+    let e = SceneDesc::parse(
+        &src.replace("direction = [0, -1, 0]", "direction = [0, 0, 0]"),
+        "t.toml",
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.ends_with("lights[0].direction: must not be zero"), "{e}");
+}

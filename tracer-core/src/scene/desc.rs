@@ -495,6 +495,7 @@ enum LightType {
     Point,
     Quad,
     Sphere,
+    Spot,
 }
 
 /// A `[[lights]]` entry as written.
@@ -510,6 +511,11 @@ struct LightFile {
     center: Option<Vec3>,
     radius: Option<Num>,
     samples: Option<u32>,
+    /// A spot light's axis and cone half-angles in degrees (glTF's outer
+    /// and inner cone: full light inside the inner, none past the outer).
+    direction: Option<Vec3>,
+    cone_angle: Option<Num>,
+    inner_cone_angle: Option<Num>,
     #[serde(default = "white")]
     diffuse: Vec3,
     #[serde(default = "white")]
@@ -913,6 +919,8 @@ impl SceneDesc {
             bsdfs[i] = Some(bv.clone());
         }
 
+        // What the scene renders with a default for, said to the user.
+        let mut warnings = Vec::new();
         let mut lights = Vec::with_capacity(file.lights.len());
         for (i, l) in file.lights.iter().enumerate() {
             let lv = l.get_ref();
@@ -921,6 +929,7 @@ impl SceneDesc {
                 LightType::Point => "point",
                 LightType::Quad => "quad",
                 LightType::Sphere => "sphere",
+                LightType::Spot => "spot",
             };
             let point = |f: &str, v: Option<Vec3>| -> Result<Vec3, SceneError> {
                 let v = v.ok_or_else(|| err(f, format!("missing (a {kind} light needs it)")))?;
@@ -935,6 +944,7 @@ impl SceneDesc {
                 LightType::Point => &["position"],
                 LightType::Quad => &["corner", "edge_u", "edge_v", "samples"],
                 LightType::Sphere => &["center", "radius", "samples"],
+                LightType::Spot => &["position", "direction", "cone_angle", "inner_cone_angle"],
             };
             for (f, present) in [
                 ("position", lv.position.is_some()),
@@ -944,6 +954,9 @@ impl SceneDesc {
                 ("center", lv.center.is_some()),
                 ("radius", lv.radius.is_some()),
                 ("samples", lv.samples.is_some()),
+                ("direction", lv.direction.is_some()),
+                ("cone_angle", lv.cone_angle.is_some()),
+                ("inner_cone_angle", lv.inner_cone_angle.is_some()),
             ] {
                 if present && !allowed.contains(&f) {
                     return Err(err(
@@ -955,8 +968,40 @@ impl SceneDesc {
                     ));
                 }
             }
+            let mut path_kind = None;
             let (shape, position) = match lv.kind {
                 LightType::Point => (LightShape::Point, point("position", lv.position)?),
+                LightType::Spot => {
+                    let d = point("direction", lv.direction)?;
+                    let len = d.length();
+                    if !(len > 0.0) {
+                        return Err(err("direction", "must not be zero".into()));
+                    }
+                    // glTF's defaults: outer pi/4, inner 0.
+                    let outer = lv.cone_angle.map_or(45.0, |a| a.0);
+                    let inner = lv.inner_cone_angle.map_or(0.0, |a| a.0);
+                    if !(outer > 0.0 && outer <= 90.0) {
+                        return Err(err(
+                            "cone_angle",
+                            format!("must be in (0, 90] degrees, got {outer}"),
+                        ));
+                    }
+                    if !(inner >= 0.0 && inner < outer) {
+                        return Err(err(
+                            "inner_cone_angle",
+                            format!("must be in [0, cone_angle = {outer}) degrees, got {inner}"),
+                        ));
+                    }
+                    path_kind = Some(PathLightKind::Spot {
+                        direction: Vec3(d.0.map(|x| x / len)),
+                        cos_inner: inner.to_radians().cos(),
+                        cos_outer: outer.to_radians().cos(),
+                    });
+                    warnings.push(format!(
+                        "lights[{i}]: a spot light renders as a point light under Whitted, shining every way (its cone is the path integrator's only)"
+                    ));
+                    (LightShape::Point, point("position", lv.position)?)
+                }
                 LightType::Quad => {
                     let corner = point("corner", lv.corner)?;
                     let edge_u = point("edge_u", lv.edge_u)?;
@@ -1015,7 +1060,7 @@ impl SceneDesc {
                 specular: lv.specular,
                 samples,
                 path_radiance: None,
-                path_kind: None,
+                path_kind,
             });
         }
 
@@ -1025,7 +1070,6 @@ impl SceneDesc {
         let mut uses_model_lights = false;
         let mut objects = Vec::with_capacity(file.objects.len());
         let mut object_materials = Vec::with_capacity(file.objects.len());
-        let mut warnings = Vec::new();
         for (i, o) in file.objects.iter().enumerate() {
             let ov = o.get_ref();
             let err = |f: &str, m: String| {
