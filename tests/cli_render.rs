@@ -401,7 +401,7 @@ fn a_typo_in_any_table_is_located_at_its_key_with_a_suggestion() {
         (
             "position = [0, 5, -5]",
             "position = [0, 5, -5]\ncolour = [1, 1, 1]",
-            "bad.toml:13:1: lights[0].colour: unknown field `colour` (valid: `type`, `position`, `corner`, `edge_u`, `edge_v`, `center`, `radius`, `samples`, `diffuse`, `specular`)",
+            "bad.toml:13:1: lights[0].colour: unknown field `colour` (valid: `type`, `position`, `corner`, `edge_u`, `edge_v`, `center`, `radius`, `samples`, `direction`, `cone_angle`, `inner_cone_angle`, `diffuse`, `specular`)",
         ),
         (
             // Equally close to `sampler`: the plural of what was typed wins.
