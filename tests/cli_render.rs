@@ -430,13 +430,16 @@ fn adaptive_renders_write_sample_and_error_channels_and_a_sample_map() {
     let dir = tmpdir("adaptive");
     let scene = dir.join("scene.toml");
     std::fs::write(&scene, GOOD).unwrap();
-    let (out, stdout, stderr) = run(tessera().arg("render").arg(&scene).args([
+    // The same adaptive settings for both renders below.
+    let adaptive = [
         "--target-error",
         "0.01",
         "--min-samples",
         "4",
         "--max-samples",
         "16",
+    ];
+    let (out, stdout, stderr) = run(tessera().arg("render").arg(&scene).args(adaptive).args([
         "-o",
         dir.join("a.exr").to_str().unwrap(),
         "--sample-map",
@@ -475,13 +478,7 @@ fn adaptive_renders_write_sample_and_error_channels_and_a_sample_map() {
     assert_eq!((map.width(), map.height()), (40, 30));
     // The same render's --json: the per-pixel mode's keys, its sample
     // count the EXR's.
-    let (out, stdout, stderr) = run(tessera().arg("render").arg(&scene).args([
-        "--target-error",
-        "0.01",
-        "--min-samples",
-        "4",
-        "--max-samples",
-        "16",
+    let (out, stdout, stderr) = run(tessera().arg("render").arg(&scene).args(adaptive).args([
         "-o",
         dir.join("b.exr").to_str().unwrap(),
         "--json",

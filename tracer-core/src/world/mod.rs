@@ -154,6 +154,19 @@ pub struct WorldStats {
 }
 
 impl<R: Real> World<R> {
+    /// Every image its model materials read, once (a texture shared by
+    /// materials is one `Arc`), in first-use order: what the GPU's texel
+    /// pack uploads and what [`World::stats`] counts.
+    pub fn texture_images(&self) -> Vec<&std::sync::Arc<crate::texture::Image>> {
+        let mut images: Vec<&std::sync::Arc<crate::texture::Image>> = Vec::new();
+        for t in self.pbr.iter().flat_map(|p| p.textures()) {
+            if !images.iter().any(|i| std::sync::Arc::ptr_eq(i, &t.image)) {
+                images.push(&t.image);
+            }
+        }
+        images
+    }
+
     pub fn stats(&self) -> WorldStats {
         let mesh_triangles: usize = self
             .instances
@@ -167,12 +180,7 @@ impl<R: Real> World<R> {
             .iter()
             .map(|i| self.instances.meshes[i.mesh as usize].triangles.len() as u64)
             .sum();
-        let mut images: Vec<&std::sync::Arc<crate::texture::Image>> = Vec::new();
-        for t in self.pbr.iter().flat_map(|p| p.textures()) {
-            if !images.iter().any(|i| std::sync::Arc::ptr_eq(i, &t.image)) {
-                images.push(&t.image);
-            }
-        }
+        let images = self.texture_images();
         WorldStats {
             spheres: self.spheres.len(),
             planes: self.planes.len(),

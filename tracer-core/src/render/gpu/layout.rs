@@ -1027,17 +1027,13 @@ impl PbrData {
             return None;
         }
         // Every image once, in first-use order, and its first word.
-        let mut images: Vec<std::sync::Arc<crate::texture::Image>> = Vec::new();
-        let mut offsets: Vec<u32> = Vec::new();
+        let images: Vec<std::sync::Arc<crate::texture::Image>> =
+            w.texture_images().into_iter().cloned().collect();
+        let mut offsets: Vec<u32> = Vec::with_capacity(images.len());
         let mut next = TEXEL_TABLES;
-        for p in &w.pbr {
-            for t in p.textures() {
-                if !images.iter().any(|i| std::sync::Arc::ptr_eq(i, &t.image)) {
-                    images.push(t.image.clone());
-                    offsets.push(next);
-                    next += t.image.texels.len() as u32;
-                }
-            }
+        for i in &images {
+            offsets.push(next);
+            next += i.texels.len() as u32;
         }
         let tex = |t: &Option<TextureRef>| -> GpuTexRef {
             let Some(t) = t else {
