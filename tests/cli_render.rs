@@ -810,3 +810,68 @@ fn glb_renders_ply_is_refused_and_camera_needs_a_model() {
         "{stderr}"
     );
 }
+
+/// `--environment FILE` and `[world] environment = "FILE"` light a
+/// path-traced scene alike (the same bytes), the image changes the
+/// picture, and a missing file, a file that is no image, a scale without
+/// an image and a value of the wrong type are refused by name.
+#[test]
+fn an_environment_image_lights_the_scene_by_key_or_by_flag() {
+    let dir = tmpdir("environment");
+    support::write_sky_exr(&dir.join("sky.exr"));
+    let path_scene = GOOD.replace("samples = 1", "samples = 4\nintegrator = \"path\"");
+    std::fs::write(dir.join("plain.toml"), &path_scene).unwrap();
+    std::fs::write(
+        dir.join("keyed.toml"),
+        format!("{path_scene}\n[world]\nenvironment = \"sky.exr\"\n"),
+    )
+    .unwrap();
+    let render = |scene: &str, extra: &[&str], out: &str| {
+        let (o, _, stderr) = run(tessera()
+            .arg("render")
+            .arg(dir.join(scene))
+            .arg("-o")
+            .arg(dir.join(out))
+            .args(["--threads", "2"])
+            .args(extra));
+        assert!(o.status.success(), "{scene} {extra:?}: {stderr}");
+        std::fs::read(dir.join(out)).unwrap()
+    };
+    let sky = dir.join("sky.exr");
+    let keyed = render("keyed.toml", &[], "keyed.png");
+    let flagged = render(
+        "plain.toml",
+        &["--environment", sky.to_str().unwrap()],
+        "flagged.png",
+    );
+    let plain = render("plain.toml", &[], "plain.png");
+    assert_eq!(keyed, flagged, "the flag and the key render alike");
+    assert_ne!(keyed, plain, "the image lights the scene");
+
+    expect_failure(
+        &path_scene,
+        &["--environment", "missing.exr"],
+        &["--environment", "missing.exr", "cannot read"],
+    );
+    expect_failure(
+        &format!("{path_scene}\n[world]\nenvironment = \"bad.toml\"\n"),
+        &[],
+        &[
+            "world.environment",
+            "bad.toml: is not an EXR, HDR, PNG or JPEG image",
+        ],
+    );
+    expect_failure(
+        &format!("{path_scene}\n[world]\nenvironment = [0.1, 0.1, 0.1]\nenvironment_scale = 2\n"),
+        &[],
+        &[
+            "world.environment_scale",
+            "applies to an environment image only",
+        ],
+    );
+    expect_failure(
+        &format!("{path_scene}\n[world]\nenvironment = 5\n"),
+        &[],
+        &["a colour [r, g, b] or an equirectangular image file's name"],
+    );
+}

@@ -334,6 +334,101 @@ fn gltf_files_submitted_directly_render_bit_identical_to_tessera_render() {
     }
 }
 
+/// `--environment` travels with the job (issue 35): a TOML scene given
+/// an image by the flag (the job's scene names it), and a model file given
+/// one from outside its folder with `--allow-outside`, render on the farm
+/// bit-identical to `tessera render` with the same flag; without
+/// `--allow-outside` the outside image is refused, naming the flag.
+#[test]
+fn an_environment_image_given_by_flag_travels_with_the_job() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = dir.path().join("scene");
+    std::fs::create_dir_all(&folder).expect("mkdir");
+    let scene = folder.join("balls.toml");
+    std::fs::write(
+        &scene,
+        "# comments and layout do not travel: the job's scene is rewritten
+         [render]
+integrator = \"path\"
+[camera]
+position = [0, 1.5, -6]
+look_at = [0, 1, 0]
+         [materials.white]
+diffuse = [0.8, 0.8, 0.8]
+[materials.chrome]
+reflectivity = 1
+         [[objects]]
+type = \"sphere\"
+center = [-1.1, 1, 0]
+radius = 1
+material = \"white\"
+         [[objects]]
+type = \"sphere\"
+center = [1.1, 1, 0]
+radius = 1
+material = \"chrome\"
+         [[objects]]
+type = \"plane\"
+normal = [0, 1, 0]
+distance = 0
+material = \"white\"
+",
+    )
+    .expect("scene");
+    let sky = folder.join("sky.exr");
+    write_sky_exr(&sky);
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let _w: Vec<Proc> = (0..2)
+        .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
+        .collect();
+    let sky_arg = sky.to_str().expect("path");
+    let settings = [
+        "--width",
+        "48",
+        "--height",
+        "32",
+        "--samples",
+        "8",
+        "--environment",
+        sky_arg,
+    ];
+    let mut args = settings.to_vec();
+    args.extend(["--tile-size", "16"]);
+    let job = submit(&c.url(), &scene, &args);
+    let s = wait_done(&c.url(), &job, Duration::from_secs(300));
+    assert_eq!(s.state, pb::JobState::Done as i32);
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+
+    let model = shared("scenes/gltf/DamagedHelmet/glTF/DamagedHelmet.gltf");
+    let model_arg = model.to_str().expect("path");
+    let refused = tessera(&["submit", model_arg, "--environment", sky_arg], &c.url());
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        err.contains("--environment") && err.contains("is outside the scene's folder"),
+        "{err}"
+    );
+    let settings = [
+        "--width",
+        "48",
+        "--height",
+        "36",
+        "--samples",
+        "4",
+        "--integrator",
+        "path",
+        "--environment",
+        sky_arg,
+    ];
+    let mut args = settings.to_vec();
+    args.extend(["--tile-size", "16", "--allow-outside"]);
+    let job = submit(&c.url(), &model, &args);
+    let s = wait_done(&c.url(), &job, Duration::from_secs(300));
+    assert_eq!(s.state, pb::JobState::Done as i32);
+    assert_frames_match_render(dir.path(), &c.url(), &job, &model, 0..=0, &settings);
+}
+
 /// Adaptive sampling across the farm (issue 17): 1 and 3 CPU workers, tiles
 /// of 16 and 24 pixels, the same image as `tessera render --target-error`
 /// bit for bit and the same number of samples; the job's status carries

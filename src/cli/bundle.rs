@@ -71,6 +71,10 @@ pub fn gather(
             SceneError::Invalid { field, .. } if field.starts_with("objects[") => {
                 field.split(']').next().unwrap_or_default().to_string() + "].path"
             }
+            SceneError::Invalid { field, .. } if field == "world.environment" => field.clone(),
+            SceneError::Input { message, .. } if message.starts_with("--environment") => {
+                "--environment".into()
+            }
             _ => "a file the scene's models refer to".into(),
         };
         bail!(
@@ -80,6 +84,15 @@ pub fn gather(
         );
     }
     let desc = parsed?;
+    // `--environment` on a TOML scene: the job's scene names the image.
+    let scene = match &options.environment {
+        Some(name) if SceneInput::of(path)? == SceneInput::Toml => {
+            tracer_core::scene::with_environment(text, name)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+                .into_bytes()
+        }
+        _ => scene,
+    };
     let files = recorder.into_files();
     for w in &desc.warnings {
         eprintln!("warning: {w}");

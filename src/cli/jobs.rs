@@ -156,7 +156,7 @@ pub fn submit(args: SubmitArgs) -> Result<ExitCode> {
     // bad scene fails before anything is uploaded.
     let bundle = super::bundle::gather(
         &args.scene,
-        &args.model.options(&args.overrides),
+        &args.model.options(&args.scene, &args.overrides),
         args.allow_outside,
     )?;
     let frames = args.frames.unwrap_or(Frames { first: 0, last: 0 });

@@ -1,7 +1,7 @@
 //! `tessera render`: local mode, one process, no set-up.
 
 use super::outln;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -176,7 +176,8 @@ fn backend_parser() -> impl clap::builder::TypedValueParser<Value = Backend> {
     .map(|s| s.parse::<Backend>().expect("one of the possible values"))
 }
 
-/// `--camera` of a model file given as the scene, shared by render and submit.
+/// `--camera` of a model file given as the scene and `--environment`,
+/// shared by render and submit.
 #[derive(Args, Debug, Clone, Default)]
 pub struct ModelArgs {
     /// For a model file given as the scene: the glTF camera to render
@@ -185,17 +186,52 @@ pub struct ModelArgs {
     /// the default scene's first camera, else auto]
     #[arg(long, value_name = "NAME|INDEX")]
     pub camera: Option<String>,
+    /// An equirectangular environment image (EXR, HDR, PNG or JPEG) that
+    /// lights the scene under --integrator path, in place of the scene's
+    /// environment (`[world] environment`; docs/path-tracing.md,
+    /// "Environment"). On the farm it travels with the job: keep it in
+    /// the scene's folder, or pass --allow-outside
+    #[arg(long, value_name = "FILE")]
+    pub environment: Option<PathBuf>,
 }
 
 impl ModelArgs {
-    /// The options of a model scene, with the size flags (they decide the
-    /// image's size before a camera's aspect ratio does).
-    pub fn options(&self, overrides: &OverrideArgs) -> ModelSceneOptions {
+    /// The options of `scene` given as the scene, with the size flags
+    /// (they decide the image's size before a camera's aspect ratio does).
+    pub fn options(&self, scene: &Path, overrides: &OverrideArgs) -> ModelSceneOptions {
         ModelSceneOptions {
             camera: self.camera.clone(),
             width: overrides.width,
             height: overrides.height,
+            environment: self
+                .environment
+                .as_deref()
+                .map(|file| environment_name(scene, file)),
         }
+    }
+}
+
+/// The name a scene at `scene` would give the file `file` (a path as
+/// typed, relative to the working directory): relative to the scene's
+/// folder where the file lies in it, else its absolute path.
+fn environment_name(scene: &Path, file: &Path) -> String {
+    let absolute = |p: &Path| std::fs::canonicalize(p).ok();
+    let folder = scene.parent().filter(|f| !f.as_os_str().is_empty());
+    let folder = absolute(folder.unwrap_or(Path::new(".")));
+    let Some(path) = absolute(file) else {
+        // Missing: the read fails and names it as typed.
+        return std::path::absolute(file)
+            .unwrap_or_else(|_| file.to_owned())
+            .to_string_lossy()
+            .into_owned();
+    };
+    match folder.as_deref().and_then(|f| path.strip_prefix(f).ok()) {
+        Some(inside) => inside
+            .components()
+            .map(|c| c.as_os_str().to_string_lossy())
+            .collect::<Vec<_>>()
+            .join("/"),
+        None => path.to_string_lossy().into_owned(),
     }
 }
 
@@ -273,7 +309,10 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     // Fail on a bad output name before spending time rendering.
     ImageFormat::of(&output)?;
     let load_start = Instant::now();
-    let scene = SceneDesc::load_input(&args.scene, &args.model.options(&args.overrides))?;
+    let scene = SceneDesc::load_input(
+        &args.scene,
+        &args.model.options(&args.scene, &args.overrides),
+    )?;
     for w in &scene.warnings {
         eprintln!("warning: {w}");
     }

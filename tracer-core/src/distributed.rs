@@ -133,11 +133,18 @@ pub struct Distributed<R: Real> {
 }
 
 /// What the path integrator needs beyond the lights: the environment and
-/// the power-proportional light selection, over the lights and then the
-/// emissive triangles (`crate::emitters`).
+/// the power-proportional light selection, over the lights, then the
+/// environment image where there is one, then the emissive triangles
+/// (`crate::emitters`).
 #[derive(Clone, Debug)]
 pub struct PathScene<R: Real> {
+    /// The uniform environment (BSDF-sampled only).
     pub environment: R::V3,
+    /// The environment image, light-sampled as the selection's entry
+    /// right after the lights (`Self::env_index`).
+    pub environment_map: Option<std::sync::Arc<crate::environment::EnvironmentMap>>,
+    /// The image's selection probability (0 without one).
+    pub env_prob: R,
     /// Running sums of the selection probabilities of the lights and then
     /// the emitters (the last is 1); empty when nothing emits.
     pub light_cdf: Vec<f64>,
@@ -153,21 +160,30 @@ pub struct PathScene<R: Real> {
 impl<R: Real> PathScene<R> {
     /// `material_power`: per material, pi x mean emitted luminance
     /// (`emitters::material_power`), the emitters' power per unit area.
+    /// `environment_map`: the image and the scene's radius (its power
+    /// is r^2 times its integral: the flux through the scene's
+    /// cross-section, over pi).
     pub fn new(
         lights: &[Light<R>],
         environment: R::V3,
+        environment_map: Option<(std::sync::Arc<crate::environment::EnvironmentMap>, f64)>,
         emitters: Vec<TriEmitter<R>>,
         material_power: &[f64],
     ) -> Self {
+        let env_power = environment_map.as_ref().map(|(m, r)| r * r * m.integral);
+        let environment_map = environment_map.map(|(m, _)| m);
         let power: Vec<f64> = lights
             .iter()
             .map(|l| l.power())
+            .chain(env_power)
             .chain(emitters.iter().map(|e| e.power))
             .collect();
         let total: f64 = power.iter().sum();
         if !(total > 0.0) {
             return PathScene {
                 environment,
+                environment_map,
+                env_prob: R::ZERO,
                 light_cdf: Vec::new(),
                 light_prob: vec![R::ZERO; lights.len()],
                 emitters: Vec::new(),
@@ -192,6 +208,8 @@ impl<R: Real> PathScene<R> {
         };
         PathScene {
             environment,
+            environment_map,
+            env_prob: env_power.map_or(R::ZERO, |p| R::from_f64(p / total)),
             light_cdf,
             light_prob: power[..lights.len()]
                 .iter()
@@ -200,6 +218,17 @@ impl<R: Real> PathScene<R> {
             emitters,
             emit_density,
         }
+    }
+
+    /// The selection index of the environment image (after the lights),
+    /// or `None` without one.
+    pub fn env_index(&self) -> Option<usize> {
+        self.environment_map.as_ref().map(|_| self.light_prob.len())
+    }
+
+    /// The selection index of the first emissive triangle.
+    pub fn first_emitter(&self) -> usize {
+        self.light_prob.len() + self.environment_map.is_some() as usize
     }
 
     /// The light for uniform `u`: the first whose running sum exceeds it.

@@ -41,6 +41,7 @@ pub mod bsdf;
 pub mod bvh;
 pub mod distributed;
 pub mod emitters;
+pub mod environment;
 pub mod film;
 pub mod geometry;
 pub mod light;

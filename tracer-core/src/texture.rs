@@ -98,19 +98,20 @@ pub struct TextureRef {
 
 pub const IDENTITY_UV: [[f32; 3]; 2] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
 
+/// The linear value of an sRGB-encoded channel `c` in [0, 1] (the
+/// IEC 61966-2-1 curve).
+pub fn srgb_to_linear(c: f64) -> f64 {
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
 /// byte -> linear value of an sRGB-encoded channel, exactly rounded.
 fn srgb_table() -> &'static [f32; 256] {
     static T: OnceLock<[f32; 256]> = OnceLock::new();
-    T.get_or_init(|| {
-        std::array::from_fn(|i| {
-            let c = i as f64 / 255.0;
-            (if c <= 0.04045 {
-                c / 12.92
-            } else {
-                ((c + 0.055) / 1.055).powf(2.4)
-            }) as f32
-        })
-    })
+    T.get_or_init(|| std::array::from_fn(|i| srgb_to_linear(i as f64 / 255.0) as f32))
 }
 
 /// The decode tables the GPU filters with (render/gpu/pbr.wgsl): byte ->

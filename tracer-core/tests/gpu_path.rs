@@ -573,3 +573,79 @@ fn gpu_path_matches_the_cpu_with_spot_and_directional_lights() {
     check_against_cpu("spot and directional", &desc);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The scene with an environment image (`sky.exr`: a gradient sky, a dark
+/// ground and a small bright sun, turned 40 degrees) in place of its sky;
+/// with `with_lights`, its lights and an emissive quad mesh (light-sampled
+/// triangles, selected after the image), else the image alone.
+fn environment_image_scene(tag: &str, ball: &str, with_lights: bool) -> SceneDesc {
+    let dir = common::meshgen::tmpdir(tag);
+    let (w, h) = (24u32, 12u32);
+    let sky = image::Rgb32FImage::from_fn(w, h, |x, y| {
+        let t = y as f32 / (h - 1) as f32;
+        image::Rgb(if (x, y) == (7, 3) {
+            [40.0, 32.0, 20.0]
+        } else if t < 0.5 {
+            [0.2 + 0.6 * t, 0.3 + 0.5 * t, 0.8 - 0.2 * t]
+        } else {
+            [0.15, 0.12, 0.1]
+        })
+    });
+    sky.save(dir.join("sky.exr")).unwrap();
+    let mut src = scene_src(ball, "");
+    if !with_lights {
+        let (a, b) = (
+            src.find("[[lights]]").unwrap(),
+            src.find("[[objects]]").unwrap(),
+        );
+        src.replace_range(a..b, "");
+    }
+    if with_lights {
+        std::fs::write(
+            dir.join("lamp.obj"),
+            "v -0.3 2.6 -0.3\nv 0.3 2.6 -0.3\nv 0.3 2.6 0.3\nv -0.3 2.6 0.3\nf 1 2 3\nf 1 3 4\n",
+        )
+        .unwrap();
+        src.push_str(&format!(
+            "\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"lamp\"\n",
+            dir.join("lamp.obj")
+        ));
+    }
+    let src = src.replace(
+        "environment = [0.15, 0.2, 0.3]",
+        &format!(
+            "environment = {:?}\nenvironment_rotation = 40",
+            dir.join("sky.exr")
+        ),
+    );
+    let desc = common::scene(&src);
+    let frame = prepared(&desc);
+    let PreparedFrame::F32(w) = &frame else {
+        unreachable!()
+    };
+    let path = w.dist.as_ref().and_then(|d| d.path.as_ref()).unwrap();
+    assert!(path.env_prob > 0.0, "the image is light-sampled");
+    assert_eq!(path.emitters.len(), if with_lights { 2 } else { 0 });
+    desc
+}
+
+/// An environment image, selected between the scene's lights and the
+/// emissive triangles: the GPU picks the same light, draws the same
+/// directions from the image, and weighs BSDF samples that leave the
+/// scene by the same density.
+#[test]
+fn gpu_path_matches_the_cpu_under_an_environment_image_and_every_light() {
+    check_against_cpu(
+        "environment image and lights",
+        &environment_image_scene("env-lights", LAMBERT, true),
+    );
+}
+
+/// The image alone, seen in a rough conductor and directly by the camera.
+#[test]
+fn gpu_path_matches_the_cpu_under_an_environment_image_alone() {
+    check_against_cpu(
+        "environment image alone",
+        &environment_image_scene("env-alone", ROUGH_CONDUCTOR, false),
+    );
+}

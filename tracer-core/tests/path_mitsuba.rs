@@ -155,6 +155,9 @@ struct Case {
     bias: f64,
     /// The PNG of [`Mat::Textured`]: width, height, sRGB RGBA texels.
     texture: Option<(u32, u32, Vec<[u8; 4]>)>,
+    /// An environment image (`env.exr`: width, height, linear RGB texels)
+    /// in place of `environment` (Mitsuba: an `envmap` of the same file).
+    env_image: Option<(u32, u32, Vec<[f32; 3]>)>,
 }
 
 fn rgb(v: V) -> String {
@@ -191,6 +194,12 @@ impl Case {
             let img =
                 image::RgbaImage::from_fn(*w, *h, |x, y| image::Rgba(texels[(y * w + x) as usize]));
             img.save(dir.join("tex.png")).unwrap();
+        }
+        if let Some((w, h, texels)) = &self.env_image {
+            let img = image::Rgb32FImage::from_fn(*w, *h, |x, y| {
+                image::Rgb(texels[(y * w + x) as usize])
+            });
+            img.save(dir.join("env.exr")).unwrap();
         }
         for (i, (shape, _)) in self.objects.iter().enumerate() {
             if let Shape::Quad { corner, eu, ev } = *shape {
@@ -261,7 +270,10 @@ impl Case {
             rgb(self.eye),
             rgb(self.look_at),
             self.fov_y,
-            rgb(self.environment)
+            match self.env_image {
+                Some(_) => format!("{:?}", dir.join("env.exr")),
+                None => rgb(self.environment),
+            }
         )
         .unwrap();
         for (i, (shape, mat)) in self.objects.iter().enumerate() {
@@ -366,14 +378,20 @@ impl Case {
                'to_world': T().look_at(origin={eye}, target={look}, up=[0, 1, 0]),\n\
                'film': {{'type': 'hdrfilm', 'width': {size}, 'height': {size}, 'pixel_format': 'rgb', 'rfilter': {{'type': 'box'}}}},\n\
                'sampler': {{'type': 'independent', 'sample_count': {spp}}}}},\n\
-             'env': {{'type': 'constant', 'radiance': {env}}},",
+             'env': {env},",
             depth = self.max_depth,
             fov = self.fov_y,
             eye = rgb(self.eye),
             look = rgb(self.look_at),
             size = self.size,
             spp = self.spp,
-            env = py_rgb(self.environment)
+            env = match self.env_image {
+                Some(_) => format!(
+                    "{{'type': 'envmap', 'filename': {:?}}}",
+                    dir.join("env.exr").to_str().unwrap()
+                ),
+                None => format!("{{'type': 'constant', 'radiance': {}}}", py_rgb(self.environment)),
+            }
         )
         .unwrap();
         for (i, (shape, mat)) in self.objects.iter().enumerate() {
@@ -709,6 +727,7 @@ fn base(name: &'static str) -> Case {
         lights: Vec::new(),
         bias: 0.0,
         texture: None,
+        env_image: None,
     }
 }
 
@@ -747,6 +766,59 @@ fn lambert_surfaces_under_a_point_light_and_the_sky_match_mitsuba() {
         p: [2.0, 4.0, -2.0],
         intensity: [8.0, 8.0, 8.0],
     }];
+    c.check();
+}
+
+/// A sky image: a gradient from a blue zenith to a pale horizon and a
+/// dark ground, and a small bright sun, its columns and rows at texel
+/// resolution (16 x 9: the mapping's texel centres are what is checked).
+fn sky_image() -> (u32, u32, Vec<[f32; 3]>) {
+    let (w, h) = (16u32, 9u32);
+    let texels = (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let t = y as f32 / (h - 1) as f32;
+            if (x, y) == (5, 2) {
+                [12.0, 10.0, 7.0]
+            } else if t < 0.5 {
+                [0.2 + 0.6 * t, 0.3 + 0.5 * t, 0.8 - 0.2 * t]
+            } else {
+                [0.15, 0.12, 0.1]
+            }
+        })
+        .collect();
+    (w, h, texels)
+}
+
+/// An environment image lights Lambert spheres and a mirror ball on a
+/// floor as Mitsuba's `envmap` does with the same EXR file: the same
+/// mapping (camera rays that miss and the mirror see it directly), the
+/// same bilinear radiance, and importance sampling that converges to the
+/// same integral (the sun is one texel: found by the light sampler).
+#[test]
+fn an_environment_image_lights_the_scene_as_mitsubas_envmap() {
+    let mut c = base("envmap");
+    c.env_image = Some(sky_image());
+    c.eye = [0.0, 1.5, -6.0];
+    c.look_at = [0.0, 1.0, 0.0];
+    c.fov_y = 60.0;
+    c.objects = vec![
+        (FLOOR_Y, Mat::Lambert([0.6, 0.6, 0.6])),
+        (
+            Shape::Sphere {
+                c: [-1.2, 1.0, 0.0],
+                r: 1.0,
+            },
+            Mat::Lambert([0.8, 0.8, 0.8]),
+        ),
+        (
+            Shape::Sphere {
+                c: [1.2, 1.0, 0.0],
+                r: 1.0,
+            },
+            Mat::Metal(0.0),
+        ),
+    ];
     c.check();
 }
 
@@ -1003,7 +1075,7 @@ fn light_sampling_emissive_triangles_cuts_the_noise_threefold() {
         let d = w.dist.as_mut().expect("a path-traced world");
         let p = d.path.as_mut().expect("the path integrator's scene");
         assert_eq!(p.emitters.len(), 2, "the mesh's two triangles are lights");
-        *p = PathScene::new(&d.lights, p.environment, Vec::new(), &[]);
+        *p = PathScene::new(&d.lights, p.environment, None, Vec::new(), &[]);
     });
     let (e_nee, e_bsdf) = (rmse(&nee, &reference), rmse(&bsdf_only, &reference));
     let (m_ref, m_bsdf) = (mean(&reference), mean(&bsdf_only));

@@ -208,6 +208,17 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
         }
         let Some(hit) = hit else {
             radiance += throughput * scene.environment;
+            if let Some(env) = &scene.environment_map {
+                let d = ray.dir.to_array();
+                let l = R::V3::from_array(env.radiance(d).map(f64::from));
+                let w = match bsdf_pdf {
+                    Some(b) if scene.env_prob > R::ZERO => {
+                        power_heuristic(b, scene.env_prob * R::from_f64(env.pdf(d)))
+                    }
+                    _ => R::ONE,
+                };
+                radiance += throughput * l * w;
+            }
             break;
         };
         let s = fx.surface(world, &ray, hit);
@@ -248,8 +259,21 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
                 Some(l) => l
                     .sample_li(s.p, u as f64, v as f64)
                     .map(|ls| (ls, scene.light_prob[i])),
+                None if scene.env_index() == Some(i) => scene
+                    .environment_map
+                    .as_ref()
+                    .and_then(|env| env.sample(u, v))
+                    .map(|es| {
+                        let ls = crate::light::LightSample {
+                            wi: R::V3::from_array(es.dir),
+                            dist: R::from_f64(crate::light::DIRECTIONAL_REACH as f64),
+                            li: R::V3::from_array(es.radiance.map(f64::from)),
+                            pdf: R::from_f64(es.pdf),
+                        };
+                        (ls, scene.env_prob)
+                    }),
                 None => {
-                    let e = &scene.emitters[i - lights.len()];
+                    let e = &scene.emitters[i - scene.first_emitter()];
                     let density = scene.emit_density[e.material as usize];
                     e.sample_li(world, s.p, u, v, density)
                         .map(|ls| (ls, R::ONE))

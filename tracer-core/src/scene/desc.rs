@@ -75,6 +75,52 @@ impl<'de> Deserialize<'de> for Vec3 {
     }
 }
 
+/// `[world] environment`: a uniform colour or an image file's name.
+#[derive(Clone, Debug, PartialEq)]
+pub enum EnvironmentDesc {
+    Colour(Vec3),
+    /// A name relative to the scene's folder (`crate::assets::join`).
+    File(String),
+}
+
+impl Default for EnvironmentDesc {
+    fn default() -> Self {
+        EnvironmentDesc::Colour(Vec3::default())
+    }
+}
+
+impl EnvironmentDesc {
+    /// The uniform colour (black under an image: the image is the light).
+    pub fn colour(&self) -> Vec3 {
+        match self {
+            EnvironmentDesc::Colour(c) => *c,
+            EnvironmentDesc::File(_) => Vec3::default(),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for EnvironmentDesc {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> Visitor<'de> for V {
+            type Value = EnvironmentDesc;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str(
+                    "a colour [r, g, b] or an equirectangular image file's name (\"sky.exr\": EXR, HDR, PNG or JPEG)",
+                )
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<EnvironmentDesc, E> {
+                Ok(EnvironmentDesc::File(v.to_string()))
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, seq: A) -> Result<EnvironmentDesc, A::Error> {
+                Vec3::deserialize(de::value::SeqAccessDeserializer::new(seq))
+                    .map(EnvironmentDesc::Colour)
+            }
+        }
+        d.deserialize_any(V)
+    }
+}
+
 impl Vec3 {
     fn is_finite(&self) -> bool {
         self.0.iter().all(|v| v.is_finite())
@@ -344,9 +390,20 @@ pub struct WorldDesc {
     #[serde(default)]
     pub background: Vec3,
     /// Radiance from every direction no surface or light is met in, for
-    /// the path integrator (black when left out; Whitted uses `background`).
+    /// the path integrator (black when left out; Whitted uses
+    /// `background`): a colour, or an equirectangular image file's name
+    /// (`crate::environment`), read when the scene is parsed.
     #[serde(default)]
-    pub environment: Vec3,
+    pub environment: EnvironmentDesc,
+    /// Multiplies an environment image's radiance (default 1).
+    #[serde(default)]
+    pub environment_scale: Option<Num>,
+    /// Turns an environment image about +Y, in degrees (default 0).
+    #[serde(default)]
+    pub environment_rotation: Option<Num>,
+    /// The image `environment` names, decoded (set by the parser).
+    #[serde(skip)]
+    pub environment_map: Option<std::sync::Arc<crate::environment::EnvironmentMap>>,
     /// Set (never read from a file) where the scene got the default
     /// lighting of model files (`model_scene::headlight`): the path
     /// integrator then lights it by [`crate::scene::DEFAULT_SKY`]
@@ -688,7 +745,11 @@ impl SceneDesc {
         options: &ModelSceneOptions,
     ) -> Result<Self, SceneError> {
         if SceneInput::of(path)? == SceneInput::Toml {
-            return Self::parse_from(text, path, files);
+            let mut scene = Self::parse_from(text, path, files)?;
+            if let Some(name) = &options.environment {
+                scene.set_environment(files, name)?;
+            }
+            return Ok(scene);
         }
         let mut scene = Self::parse_from(text, path, files)
             .map_err(|e| model_scene::model_scene_error(e, path, options))?;
@@ -702,6 +763,26 @@ impl SceneDesc {
             }
         }
         Ok(scene)
+    }
+
+    /// `--environment`: the image `name` (relative to the scene's folder)
+    /// as the environment, read from `files`, with the scene's own
+    /// `environment_scale` and `environment_rotation`.
+    pub fn set_environment(
+        &mut self,
+        files: &dyn AssetSource,
+        name: &str,
+    ) -> Result<(), SceneError> {
+        let scale = self.world.environment_scale.map_or(1.0, |n| n.0);
+        let rotation = self.world.environment_rotation.map_or(0.0, |n| n.0);
+        let map =
+            load_environment(files, name, scale, rotation).map_err(|m| SceneError::Input {
+                path: self.path.clone(),
+                message: format!("--environment: {m}"),
+            })?;
+        self.world.environment = EnvironmentDesc::File(name.to_string());
+        self.world.environment_map = Some(std::sync::Arc::new(map));
+        Ok(())
     }
 
     /// [`Self::input_text`] and [`Self::parse_input`] from this machine's
@@ -813,8 +894,48 @@ impl SceneDesc {
             .map_err(|m| invalid(world_span.clone(), "world.ambient".into(), m))?;
         check_colour(&file.world.background)
             .map_err(|m| invalid(world_span.clone(), "world.background".into(), m))?;
-        check_colour(&file.world.environment)
-            .map_err(|m| invalid(world_span, "world.environment".into(), m))?;
+        let mut world = file.world.clone();
+        match &world.environment {
+            EnvironmentDesc::Colour(c) => {
+                check_colour(c)
+                    .map_err(|m| invalid(world_span.clone(), "world.environment".into(), m))?;
+                for (key, given) in [
+                    ("environment_scale", world.environment_scale.is_some()),
+                    ("environment_rotation", world.environment_rotation.is_some()),
+                ] {
+                    if given {
+                        return Err(invalid(
+                            world_span.clone(),
+                            format!("world.{key}"),
+                            "applies to an environment image only (environment = \"sky.exr\")"
+                                .into(),
+                        ));
+                    }
+                }
+            }
+            EnvironmentDesc::File(f) => {
+                let scale = world.environment_scale.map_or(1.0, |n| n.0);
+                if !(scale.is_finite() && (0.0..=MAX_VALUE).contains(&scale)) {
+                    return Err(invalid(
+                        world_span.clone(),
+                        "world.environment_scale".into(),
+                        format!("must be a finite number >= 0 and at most 1e6, got {scale}"),
+                    ));
+                }
+                let rotation = world.environment_rotation.map_or(0.0, |n| n.0);
+                if !(rotation.is_finite() && rotation.abs() <= 360.0) {
+                    return Err(invalid(
+                        world_span.clone(),
+                        "world.environment_rotation".into(),
+                        format!("must be degrees in [-360, 360], got {rotation}"),
+                    ));
+                }
+                world.environment_map = Some(std::sync::Arc::new(
+                    load_environment(files, f, scale, rotation)
+                        .map_err(|m| invalid(world_span.clone(), "world.environment".into(), m))?,
+                ));
+            }
+        }
 
         let mut materials = Vec::with_capacity(file.materials.len());
         for (name, m) in &file.materials {
@@ -1233,7 +1354,6 @@ impl SceneDesc {
         };
         // Lights from models come after the file's own, in object order.
         lights.extend(model_lights);
-        let mut world = file.world;
         if uses_model_lights && lights.is_empty() && world.ambient.0 == [0.0; 3] {
             lights.push(model_scene::headlight(&camera));
             world.ambient = Vec3([model_scene::DEFAULT_AMBIENT; 3]);
@@ -1374,6 +1494,20 @@ fn key_offset(src: &str, span: std::ops::Range<usize>, key: &str) -> Option<usiz
 /// (f32::MAX is 3.4e38): a product of a few values this size stays finite,
 /// where 1e39 would already be infinite when converted.
 pub const MAX_VALUE: f64 = 1e6;
+
+/// The environment image `file` (as written in the scene: relative to its
+/// folder) read from `files`, decoded; the error says which file and why.
+fn load_environment(
+    files: &dyn AssetSource,
+    file: &str,
+    scale: f64,
+    rotation: f64,
+) -> Result<crate::environment::EnvironmentMap, String> {
+    let name = join("", file);
+    let bytes = files.read(&name).map_err(|e| e.to_string())?;
+    crate::environment::EnvironmentMap::decode(&name, &bytes, scale, rotation)
+        .map_err(|m| format!("{name}: {m}"))
+}
 
 pub(crate) fn check_colour(c: &Vec3) -> Result<(), String> {
     if c.is_finite() && c.0.iter().all(|&v| (0.0..=MAX_VALUE).contains(&v)) {

@@ -476,6 +476,10 @@ pub struct ModelSceneOptions {
     /// aspect ratio decides only what is not given.
     pub width: Option<u32>,
     pub height: Option<u32>,
+    /// `--environment`: an environment image in place of the scene's
+    /// environment, by name as the scene would write it (relative to its
+    /// folder, or absolute).
+    pub environment: Option<String>,
 }
 
 /// What a path given as the scene holds.
@@ -543,6 +547,9 @@ pub fn model_scene_text(path: &Path, options: &ModelSceneOptions) -> String {
             s.push_str(&format!("height = {h}\n"));
         }
     }
+    if let Some(env) = &options.environment {
+        s.push_str(&format!("[world]\nenvironment = {}\n", toml_string(env)));
+    }
     let camera = match options.camera.as_deref() {
         None => toml_string("default"),
         Some(c) => match c.trim().parse::<u32>() {
@@ -555,6 +562,21 @@ pub fn model_scene_text(path: &Path, options: &ModelSceneOptions) -> String {
         toml_string(&file_name(path))
     ));
     s
+}
+
+/// TOML scene text with `[world] environment` set to the image `name`
+/// (`--environment` on a TOML scene, for the farm: the job carries the
+/// scene it renders). The scene's comments and layout are not kept.
+pub fn with_environment(text: &str, name: &str) -> Result<String, String> {
+    let mut table: toml::Table = text.parse().map_err(|e: toml::de::Error| e.to_string())?;
+    let world = table
+        .entry("world")
+        .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+    let Some(world) = world.as_table_mut() else {
+        return Err("`world` is not a table".into());
+    };
+    world.insert("environment".into(), toml::Value::String(name.to_string()));
+    Ok(table.to_string())
 }
 
 /// A model scene's error said in the model's and the flags' terms: the
@@ -577,6 +599,8 @@ pub(crate) fn model_scene_error(
             Some(c) => format!("--camera {c}: {message}"),
             None => message,
         }
+    } else if field.starts_with("world.environment") {
+        format!("--environment: {message}")
     } else if field.starts_with("render.") {
         format!("--{}: {message}", field.trim_start_matches("render."))
     } else {

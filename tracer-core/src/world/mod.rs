@@ -459,18 +459,24 @@ impl<R: Real> World<R> {
                     }
                 }
             }
-            let mut environment = v::<R>(&desc.world.environment);
+            let mut environment = v::<R>(&desc.world.environment.colour());
+            let map = desc.world.environment_map.clone();
             if path && desc.world.default_lighting {
-                // A model file's default lighting: the sky, not the
-                // headlight (the last light, the only one there is).
+                // A model file's default lighting: the sky (or the image
+                // given), not the headlight (the last light, the only one).
                 lights.clear();
-                environment = R::V3::splat(R::from_f64(crate::scene::DEFAULT_SKY));
+                if map.is_none() {
+                    environment = R::V3::splat(R::from_f64(crate::scene::DEFAULT_SKY));
+                }
             }
             let path = path.then(|| {
                 // Emissive triangles are lights too (`crate::emitters`).
                 let power = crate::emitters::material_power(&world);
                 let emitters = crate::emitters::collect(&world, &power);
-                PathScene::new(&lights, environment, emitters, &power)
+                // A world of planes alone has no size: the unit sphere
+                // then stands for it (the image is still light-sampled).
+                let map = map.map(|m| (m, scene_radius(&world).max(1.0)));
+                PathScene::new(&lights, environment, map, emitters, &power)
             });
             world.dist = Some(Box::new(Distributed {
                 path,

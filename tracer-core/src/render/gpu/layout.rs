@@ -562,13 +562,21 @@ impl DistData {
 /// `path_bsdf`), the fourth one's w its emissive triangles' selection
 /// density (`PathScene::emit_density`), the fifth its absorption;
 /// then per emissive triangle 4 words (path.wgsl `emitter_sample`) from
-/// `emit_base` (`PATH_EMIT_BASE`, `PATH_EMITTERS`).
+/// `emit_base` (`PATH_EMIT_BASE`, `PATH_EMITTERS`); then, where there is
+/// an environment image (`crate::environment`), from `env_base`
+/// (`PATH_ENV_BASE`, 0 without one): a header (the first 24-bit number
+/// that picks past it, W and H as bits, the rotation in turns), W x H
+/// texels (linear RGB, and in w the density of the cell whose top-left
+/// corner the texel is: 0 on the last row), the cells' row CDFs and the
+/// rows' marginal CDF, 4 to a word. The first word's w is the image's
+/// selection probability.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PathData {
     pub base: u32,
     pub nee: bool,
     pub emitters: u32,
     pub emit_base: u32,
+    pub env_base: u32,
 }
 
 impl PathData {
@@ -579,7 +587,7 @@ impl PathData {
     pub fn append(d: &mut DistData, scene: &PathScene<f32>, bsdfs: &[Bsdf<f32>]) -> Self {
         let base = d.words.len() as u32;
         let v4 = |v: glam::Vec3A, w: f32| [v.x, v.y, v.z, w];
-        d.words.push(v4(scene.environment, 0.0));
+        d.words.push(v4(scene.environment, scene.env_prob));
         // PathScene::pick takes the first light whose running sum c
         // exceeds u = k / 2^24: c <= u exactly when ceil(c 2^24) <= k.
         let first = |i: usize| {
@@ -606,19 +614,45 @@ impl PathData {
             Self::MATERIAL_WORDS as usize * bsdfs.len()
         );
         let emit_base = d.words.len() as u32;
-        let n_lights = scene.light_prob.len();
+        let first_emitter = scene.first_emitter();
         for (k, e) in scene.emitters.iter().enumerate() {
-            d.words.push(v4(e.a, first(n_lights + k)));
+            d.words.push(v4(e.a, first(first_emitter + k)));
             d.words.push(v4(e.e1, f32::from_bits(e.material)));
             // The triangle's id: where a textured emission is read.
             d.words.push(v4(e.e2, f32::from_bits(e.id.0)));
             d.words.push(v4(e.n, 0.0));
+        }
+        let mut env_base = 0;
+        if let (Some(env), Some(i)) = (&scene.environment_map, scene.env_index()) {
+            env_base = d.words.len() as u32;
+            d.words.push([
+                first(i),
+                f32::from_bits(env.width),
+                f32::from_bits(env.height),
+                env.u_offset as f32,
+            ]);
+            let w = env.width as usize;
+            d.words.extend(
+                env.texels
+                    .iter()
+                    .enumerate()
+                    .map(|(i, t)| [t[0], t[1], t[2], env.density.get(i).copied().unwrap_or(0.0)]),
+            );
+            for floats in [&env.row_cdf, &env.marginal_cdf] {
+                d.words.extend(
+                    floats
+                        .chunks(4)
+                        .map(|c| std::array::from_fn(|k| c.get(k).copied().unwrap_or(1.0))),
+                );
+            }
+            debug_assert_eq!(env.density.len(), w * (env.height as usize - 1));
         }
         PathData {
             base,
             nee: !scene.light_cdf.is_empty(),
             emitters: scene.emitters.len() as u32,
             emit_base,
+            env_base,
         }
     }
 }

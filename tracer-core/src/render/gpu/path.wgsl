@@ -6,7 +6,8 @@
 // the same random numbers as the CPU (vertex k at key ROOT_KEY followed by
 // k child_key(key, 1) steps, slots SLOT_PATH_*), the same light choice by
 // power, next-event estimation with the power heuristic, Russian roulette
-// after RR_DEPTH segments and the constant environment. A path scene is
+// after RR_DEPTH segments and the environment (a colour, and an image
+// light-sampled as a light: environment.rs). A path scene is
 // always a distributed one (World::dist): its lights, lens and motion are
 // distributed.wgsl's. The lights' selection and the materials' BSDFs
 // follow the distributed words at PATH_BASE (layout.rs `PathData`);
@@ -20,13 +21,16 @@ override PATH_NEE: bool = false;
 override PATH_EMITTERS: u32 = 0u;
 override PATH_EMIT_BASE: u32 = 0u;
 
+// The environment image's words (layout.rs `PathData`; 0: none).
+override PATH_ENV_BASE: u32 = 0u;
+
 const SLOT_PATH_LIGHT: u32 = 0u;
 const SLOT_PATH_LOBE: u32 = 3u;
 const SLOT_PATH_RR: u32 = 6u;
 // step.rs RR_DEPTH.
 const RR_DEPTH: u32 = 5u;
 
-// dist[PATH_BASE]: environment; then per light (probability, first 24-bit
+// dist[PATH_BASE]: environment (w: the image's selection probability); then per light (probability, first 24-bit
 // number that picks past it); then PATH_MATERIAL_WORDS words per material
 // (layout.rs `PathData::MATERIAL_WORDS`).
 const PATH_MATERIAL_WORDS: u32 = 5u;
@@ -87,11 +91,16 @@ fn pick_light(u: f32) -> u32 {
             i = j + 1u;
         }
     }
+    // The environment image's entry follows the lights.
+    let first_emitter = path_first_emitter();
     if (PATH_EMITTERS == 0u) {
-        return min(i, N_DLIGHTS - 1u);
+        return min(i, first_emitter - 1u);
     }
     if (i < N_DLIGHTS) {
         return i;
+    }
+    if (PATH_ENV_BASE != 0u && bitcast<u32>(dist[PATH_ENV_BASE].x) > k) {
+        return N_DLIGHTS;
     }
     var lo = 0u;
     var hi = PATH_EMITTERS;
@@ -103,7 +112,175 @@ fn pick_light(u: f32) -> u32 {
             hi = mid;
         }
     }
-    return N_DLIGHTS + min(lo, max(PATH_EMITTERS, 1u) - 1u);
+    return first_emitter + min(lo, max(PATH_EMITTERS, 1u) - 1u);
+}
+
+// PathScene::first_emitter: the selection index of the first emissive triangle.
+fn path_first_emitter() -> u32 {
+    return N_DLIGHTS + select(0u, 1u, PATH_ENV_BASE != 0u);
+}
+
+// ---- The environment image: environment.rs, line for line ----------------
+
+fn env_w() -> u32 {
+    return bitcast<u32>(dist[PATH_ENV_BASE].y);
+}
+
+fn env_h() -> u32 {
+    return bitcast<u32>(dist[PATH_ENV_BASE].z);
+}
+
+// Float i of the floats packed 4 to a word from word `start`.
+fn env_float(start: u32, i: u32) -> f32 {
+    return dist[start + i / 4u][i % 4u];
+}
+
+fn env_row_cdf_start() -> u32 {
+    return PATH_ENV_BASE + 1u + env_w() * env_h();
+}
+
+fn env_marginal_start() -> u32 {
+    return env_row_cdf_start() + (env_w() * (env_h() - 1u) + 3u) / 4u;
+}
+
+// EnvironmentMap::uv_of.
+fn env_uv(d: vec3<f32>) -> vec2<f32> {
+    var u = atan2(d.x, -d.z) / BSDF_TWO_PI - dist[PATH_ENV_BASE].w;
+    u = u - floor(u);
+    return vec2<f32>(u, acos(clamp(d.y, -1.0, 1.0)) / BSDF_PI);
+}
+
+// EnvironmentMap::lookup: bilinear, columns centred, rows at the poles.
+fn env_lookup(uv: vec2<f32>) -> vec3<f32> {
+    let w = env_w();
+    let h = env_h();
+    var xf = uv.x - 0.5 / f32(w);
+    xf = (xf - floor(xf)) * f32(w);
+    let x0 = min(u32(floor(xf)), w - 1u);
+    let x1 = (x0 + 1u) % w;
+    let fx = xf - f32(x0);
+    let yf = clamp(uv.y, 0.0, 1.0) * f32(h - 1u);
+    let y0 = min(u32(floor(yf)), h - 2u);
+    let fy = yf - f32(y0);
+    let t = PATH_ENV_BASE + 1u;
+    let top = mix(dist[t + y0 * w + x0].xyz, dist[t + y0 * w + x1].xyz, fx);
+    let bottom = mix(dist[t + (y0 + 1u) * w + x0].xyz, dist[t + (y0 + 1u) * w + x1].xyz, fx);
+    return mix(top, bottom, fy);
+}
+
+fn env_radiance(d: vec3<f32>) -> vec3<f32> {
+    return env_lookup(env_uv(d));
+}
+
+// EnvironmentMap::pdf: the density at d over 2 pi^2 sin theta.
+fn env_pdf(d: vec3<f32>) -> f32 {
+    let uv = env_uv(d);
+    let sin_t = sqrt(d.x * d.x + d.z * d.z);
+    if (!(sin_t > 0.0)) {
+        return 0.0;
+    }
+    let w = env_w();
+    let rows = env_h() - 1u;
+    var xf = uv.x - 0.5 / f32(w);
+    xf = (xf - floor(xf)) * f32(w);
+    let x = min(u32(floor(xf)), w - 1u);
+    let yf = clamp(uv.y, 0.0, 1.0) * f32(rows);
+    let y = min(u32(floor(yf)), rows - 1u);
+    return env_density_at(x, y, xf - f32(x), yf - f32(y)) / (2.0 * BSDF_PI * BSDF_PI * sin_t);
+}
+
+// EnvironmentMap::corners: the luminances of cell (x, y)'s corners.
+fn env_corners(x: u32, y: u32) -> vec4<f32> {
+    let w = env_w();
+    let t = PATH_ENV_BASE + 1u;
+    let x1 = (x + 1u) % w;
+    let third = vec3<f32>(1.0 / 3.0);
+    return vec4<f32>(
+        dot(dist[t + y * w + x].xyz, third),
+        dot(dist[t + y * w + x1].xyz, third),
+        dot(dist[t + (y + 1u) * w + x].xyz, third),
+        dot(dist[t + (y + 1u) * w + x1].xyz, third),
+    );
+}
+
+// EnvironmentMap::density_at: the density over (u, v) within cell (x, y).
+fn env_density_at(x: u32, y: u32, fx: f32, fy: f32) -> f32 {
+    let cell = dist[PATH_ENV_BASE + 1u + y * env_w() + x].w;
+    if (!(cell > 0.0)) {
+        return 0.0;
+    }
+    let c = env_corners(x, y);
+    let mean = (c.x + c.y + c.z + c.w) / 4.0;
+    return cell * mix(mix(c.x, c.y, fx), mix(c.z, c.w, fx), fy) / mean;
+}
+
+// environment.rs `sample_linear`.
+fn env_linear(u: f32, a: f32, b: f32) -> f32 {
+    if (!(a + b > 0.0) || (u == 0.0 && a == 0.0)) {
+        return u;
+    }
+    let x = u * (a + b) / (a + sqrt(mix(a * a, b * b, u)));
+    return min(x, 0.99999994);
+}
+
+// environment.rs `pick`: the first of n running sums from float `first` of
+// the floats at `start` above u, and where u lies in its step.
+fn env_pick(start: u32, first: u32, n: u32, u: f32) -> vec2<f32> {
+    var lo = 0u;
+    var hi = n;
+    while (lo < hi) {
+        let mid = (lo + hi) / 2u;
+        if (env_float(start, first + mid) <= u) {
+            lo = mid + 1u;
+        } else {
+            hi = mid;
+        }
+    }
+    let i = min(lo, n - 1u);
+    var below = 0.0;
+    if (i > 0u) {
+        below = env_float(start, first + i - 1u);
+    }
+    let above = env_float(start, first + i);
+    var f = 0.5;
+    if (above > below) {
+        f = clamp((u - below) / (above - below), 0.0, 0.99999994);
+    }
+    return vec2<f32>(f32(i), f);
+}
+
+// EnvironmentMap::sample: a cell by the CDFs, a point in it by its
+// corners' bilinear luminance.
+fn env_sample(a: f32, b: f32) -> LightSample {
+    var ls: LightSample;
+    ls.ok = false;
+    let w = env_w();
+    let rows = env_h() - 1u;
+    let ry = env_pick(env_marginal_start(), 0u, rows, a);
+    let y = u32(ry.x);
+    let rx = env_pick(env_row_cdf_start(), y * w, w, b);
+    let x = u32(rx.x);
+    let c = env_corners(x, y);
+    let fy = env_linear(ry.y, c.x + c.y, c.z + c.w);
+    let fx = env_linear(rx.y, mix(c.x, c.z, fy), mix(c.y, c.w, fy));
+    let density = env_density_at(x, y, fx, fy);
+    if (!(density > 0.0)) {
+        return ls;
+    }
+    let u = (f32(x) + 0.5 + fx) / f32(w);
+    let v = (f32(y) + fy) / f32(rows);
+    let theta = v * BSDF_PI;
+    let sin_t = sin(theta);
+    if (!(sin_t > 0.0)) {
+        return ls;
+    }
+    let phi = BSDF_TWO_PI * (u + dist[PATH_ENV_BASE].w);
+    ls.wi = vec3<f32>(sin(phi) * sin_t, cos(theta), -cos(phi) * sin_t);
+    ls.dist = DIRECTIONAL_REACH;
+    ls.li = env_lookup(vec2<f32>(u - floor(u), v));
+    ls.pdf = density / (2.0 * BSDF_PI * BSDF_PI * sin_t);
+    ls.ok = true;
+    return ls;
 }
 
 // PathScene::emit_density of a GPU material (0: not light-sampled).
@@ -350,6 +527,14 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
         }
         if (hit.id == NONE) {
             radiance += throughput * dist[PATH_BASE].xyz;
+            if (PATH_ENV_BASE != 0u) {
+                var w = 1.0;
+                let pe = dist[PATH_BASE].w;
+                if (bsdf_pdf >= 0.0 && pe > 0.0) {
+                    w = power_heuristic(bsdf_pdf, pe * env_pdf(d));
+                }
+                radiance += throughput * env_radiance(d) * w;
+            }
             break;
         }
         let sf = surface_at(Ray(o, 1.0, d, 0u, skip, key), hit, tau);
@@ -389,8 +574,11 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
             if (i < N_DLIGHTS) {
                 ls = path_sample_li(i, sf.p, lu, lv);
                 p_light = light_prob(i);
+            } else if (PATH_ENV_BASE != 0u && i == N_DLIGHTS) {
+                ls = env_sample(lu, lv);
+                p_light = dist[PATH_BASE].w;
             } else {
-                ls = emitter_sample(i - N_DLIGHTS, sf.p, lu, lv);
+                ls = emitter_sample(i - path_first_emitter(), sf.p, lu, lv);
             }
             if (ls.ok && dot(ls.wi, sf.n) > 0.0) {
                 let e = bsdf_eval(b, wo, to_local(fr, ls.wi), eta);

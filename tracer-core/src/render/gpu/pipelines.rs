@@ -177,6 +177,9 @@ impl GpuRenderer {
                     ("PATH_EMIT_BASE", p.emit_base as f64),
                 ]);
             }
+            if p.env_base > 0 {
+                all_constants.push(("PATH_ENV_BASE", p.env_base as f64));
+            }
         }
         let entry = kernel.entry_point();
         let old = old.filter(|o| o.options == self.options);
