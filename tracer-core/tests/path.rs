@@ -189,6 +189,74 @@ fn bsdf_tables_and_the_integrator_are_checked() {
     assert!(e.contains("whitted") && e.contains("path"), "{e}");
 }
 
+/// A TOML directional light (`type = "directional"`: `diffuse` is the
+/// irradiance on a surface facing it) over a Lambert floor seen from
+/// above, direct light only: every pixel is albedo / pi x E cos, computed
+/// here in f64; under Whitted it is a far point light. Its fields are
+/// checked by name.
+#[test]
+fn a_toml_directional_light_gives_every_point_its_irradiance() {
+    let src = r#"
+[render]
+width = 9
+height = 9
+samples = 1
+max_depth = 2
+sampler = "grid"
+integrator = "path"
+[camera]
+position = [0, 4, 0]
+look_at = [0, 0, 0]
+up = [0, 0, 1]
+fov_y = 60
+[materials.floor]
+diffuse = [0.5, 0.5, 0.5]
+[bsdf.floor]
+base_colour = [0.5, 0.5, 0.5]
+metallic = 0
+specular = 0
+[[lights]]
+type = "directional"
+direction = [1, -2, 0.5]
+diffuse = [3, 2, 1]
+[[objects]]
+type = "plane"
+normal = [0, 1, 0]
+distance = 0
+material = "floor"
+"#;
+    let desc = common::scene(src);
+    let img = common::render_with(&desc, &desc.render, Precision::F64).resolve();
+    let cos = 2.0 / (1.0f64 + 4.0 + 0.25).sqrt();
+    for (i, p) in img.iter().enumerate() {
+        for (k, e) in [3.0, 2.0, 1.0].into_iter().enumerate() {
+            let want = 0.5 / std::f64::consts::PI * e * cos;
+            let got = p[k] as f64;
+            assert!(
+                (got - want).abs() <= 1e-6,
+                "pixel {i} channel {k}: {got} against {want}"
+            );
+        }
+    }
+    let mut whitted = desc.clone();
+    whitted.render.integrator = tracer_core::scene::Integrator::Whitted;
+    let lit = common::render_with(&whitted, &whitted.render, Precision::F64).resolve();
+    assert!(lit.iter().all(|p| p[0] > 0.1), "Whitted: a far point light");
+
+    let err = |from: &str, to: &str| {
+        SceneDesc::parse(&src.replace(from, to), "t.toml")
+            .unwrap_err()
+            .to_string()
+    };
+    let e = err("direction = [1, -2, 0.5]", "position = [0, 5, 0]");
+    assert!(
+        e.ends_with("lights[0].position: not a field of a directional light (type = \"directional\" takes direction)"),
+        "{e}"
+    );
+    let e = err("direction = [1, -2, 0.5]", "direction = [0, 0, 0]");
+    assert!(e.ends_with("lights[0].direction: must not be zero"), "{e}");
+}
+
 /// A TOML spot light (glTF's cone: full inside `inner_cone_angle`, none
 /// past `cone_angle`, the squared linear ramp in the cosine between)
 /// straight above a Lambert floor, seen from above, direct light only:

@@ -553,7 +553,13 @@ enum LightType {
     Quad,
     Sphere,
     Spot,
+    Directional,
 }
+
+/// Where a TOML directional light stands for Whitted: this far along its
+/// reversed direction (its light then arrives parallel to within a
+/// millionth of a radian over a scene of unit size).
+pub const DIRECTIONAL_STAND_IN: f64 = 1e6;
 
 /// A `[[lights]]` entry as written.
 #[derive(Clone, Debug, Deserialize)]
@@ -1051,6 +1057,7 @@ impl SceneDesc {
                 LightType::Quad => "quad",
                 LightType::Sphere => "sphere",
                 LightType::Spot => "spot",
+                LightType::Directional => "directional",
             };
             let point = |f: &str, v: Option<Vec3>| -> Result<Vec3, SceneError> {
                 let v = v.ok_or_else(|| err(f, format!("missing (a {kind} light needs it)")))?;
@@ -1066,6 +1073,7 @@ impl SceneDesc {
                 LightType::Quad => &["corner", "edge_u", "edge_v", "samples"],
                 LightType::Sphere => &["center", "radius", "samples"],
                 LightType::Spot => &["position", "direction", "cone_angle", "inner_cone_angle"],
+                LightType::Directional => &["direction"],
             };
             for (f, present) in [
                 ("position", lv.position.is_some()),
@@ -1122,6 +1130,24 @@ impl SceneDesc {
                         "lights[{i}]: a spot light renders as a point light under Whitted, shining every way (its cone is the path integrator's only)"
                     ));
                     (LightShape::Point, point("position", lv.position)?)
+                }
+                LightType::Directional => {
+                    let d = point("direction", lv.direction)?;
+                    let len = d.length();
+                    if !(len > 0.0) {
+                        return Err(err("direction", "must not be zero".into()));
+                    }
+                    let direction = Vec3(d.0.map(|x| x / len));
+                    // The world gives it the scene's radius (its power).
+                    path_kind = Some(PathLightKind::Directional {
+                        direction,
+                        irradiance: lv.diffuse,
+                        radius: 0.0,
+                    });
+                    (
+                        LightShape::Point,
+                        Vec3(direction.0.map(|x| -x * DIRECTIONAL_STAND_IN)),
+                    )
                 }
                 LightType::Quad => {
                     let corner = point("corner", lv.corner)?;

@@ -448,6 +448,8 @@ impl<R: Real> World<R> {
                             // Its power covers the whole scene, not only
                             // its model (which may be a lamp alone).
                             let radius = radius.max(scene_radius(&world));
+                            // A world of planes alone: the unit sphere.
+                            let radius = if radius > 0.0 { radius } else { 1.0 };
                             l.geom = crate::light::LightGeom::Directional {
                                 direction: v::<R>(&direction),
                                 radius: R::from_f64(radius),

@@ -48,6 +48,13 @@ impl GpuRenderer {
                 std::mem::size_of_val(data.lights.as_slice()),
             ),
             (
+                // An environment image's texels and CDFs are most of it.
+                "the scene's distributed and path data (an environment image: 20 bytes a texel)",
+                data.dist
+                    .as_ref()
+                    .map_or(0, |d| std::mem::size_of_val(d.words.as_slice())),
+            ),
+            (
                 "the scene's BVH nodes",
                 data.tree
                     .as_ref()
