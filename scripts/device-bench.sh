@@ -53,6 +53,17 @@
 # and peak RSS into assets.jsonl; the path pictures come back as
 # assets/*.png.
 #
+# `environment` (issue 35; not in the default; ~2 min): DamagedHelmet
+# path-traced at 1920x1080 64 spp under its default sky and under
+# .gpu/sky.exr (scripts/sky-exr.py: 512x256, a sun), on the CPU (all
+# cores) and the GPU (twice: cold and warm pipelines), `--json` lines into
+# environment.jsonl: what importance-sampling an image costs; the GPU's
+# picture comes back.
+#
+# `scale` (issue 38; not in the default; ~2 min): `tessera bench scale
+# --virtual-workers 2000` with units of 0 and 200 ms on this machine's
+# cores.
+#
 # `against-old` (issue 16) times the thesis scenes with .gpu/tessera and an
 # earlier build, .gpu/tessera-old, interleaved run by run (5 each), CPU and
 # GPU, from the summary line's in-process seconds: a scene without the new
@@ -204,6 +215,22 @@ for f in $(find .gpu/scenes -name '*.gltf' -o -name '*.glb' -o -name '*.obj' -o 
     done
   done
 done
+fi
+if has environment; then
+H=.gpu/scenes/gltf/DamagedHelmet/glTF/DamagedHelmet.gltf
+for env in sky image; do
+  flag=(); [ "$env" = image ] && flag=(--environment .gpu/sky.exr)
+  for b in cpu gpu gpu; do
+    echo "{\"environment\": \"$env\", \"backend\": \"$b\", \"render\": $("$T" render "$H" --integrator path --width 1920 --height 1080 --samples 64 --backend $b "${flag[@]}" --json -o /tmp/env-$env-$b.png 2>/tmp/env.err || cat /tmp/env.err)}"
+  done
+done > "$OUT/environment.jsonl"
+cp /tmp/env-image-gpu.png "$OUT/helmet-environment-gpu.png" 2>/dev/null
+fi
+if has scale; then
+for ms in 0 200; do
+  timeout 200 "$T" bench scale --virtual-workers 2000 --scale-seconds 30 --virtual-unit-ms $ms --out /tmp/scale-$ms 2>&1 | grep -v '^bench:'
+  cp /tmp/scale-$ms/scale.json "$OUT/scale-$ms.json" 2>/dev/null
+done > "$OUT/scale.txt"
 fi
 if has gpu-tests; then
   # The test binary finds examples/ through the path it was built at.
