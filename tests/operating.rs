@@ -817,8 +817,13 @@ struct Received {
 /// it records every request and answers 200, except the first request to
 /// `/flaky`, which gets 500.
 fn webhook_receiver() -> (String, std::sync::Arc<std::sync::Mutex<Vec<Received>>>) {
+    webhook_receiver_at("127.0.0.1:0")
+}
+
+/// [`webhook_receiver`] listening on `addr`.
+fn webhook_receiver_at(addr: &str) -> (String, std::sync::Arc<std::sync::Mutex<Vec<Received>>>) {
     use std::io::{BufRead, BufReader, Read, Write};
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let listener = std::net::TcpListener::bind(addr).expect("bind");
     let addr = listener.local_addr().expect("addr");
     let got = std::sync::Arc::new(std::sync::Mutex::new(Vec::<Received>::new()));
     let seen = got.clone();
@@ -965,6 +970,68 @@ fn a_job_that_ends_is_posted_signed_to_its_on_done_and_the_notify_urls_and_a_fai
     assert!(
         log.contains("job notification not delivered; retrying"),
         "{log}"
+    );
+}
+
+/// A job that ends while its receiver is down, and a coordinator killed
+/// while it retries: the restarted coordinator sends the notification
+/// (the job's record says it is pending), once; a further restart sends
+/// nothing (delivered, the record says so).
+#[test]
+fn a_notification_not_yet_delivered_when_the_coordinator_dies_is_sent_after_the_restart() {
+    let _serial = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    // A loopback port with nobody on it (yet): every POST is refused.
+    let addr = std::net::TcpListener::bind("127.0.0.1:0")
+        .expect("bind")
+        .local_addr()
+        .expect("addr")
+        .to_string();
+    let secret = dir.path().join("notify.secret");
+    std::fs::write(&secret, "a-notification-secret-of-32-bytes").expect("secret");
+    let url = format!("http://{addr}/late");
+    let args = [
+        "--notify",
+        url.as_str(),
+        "--notify-secret-file",
+        secret.to_str().unwrap(),
+    ];
+    let mut c = start_coordinator(dir.path(), &args);
+    // Ends at once: cancelled, nobody could run it.
+    let job = submit_small(&c, "2", &["--require", "pool=none"]);
+    ok_stdout(&client(&c, &["cancel", &job]));
+    wait_for("a refused delivery", Duration::from_secs(10), || {
+        c.proc
+            .log()
+            .contains("job notification not delivered; retrying")
+    });
+    c.proc.sigkill();
+
+    let (_, got) = webhook_receiver_at(&addr);
+    let c = start_coordinator(dir.path(), &args);
+    wait_for(
+        "the notification after the restart",
+        Duration::from_secs(20),
+        || !got.lock().unwrap().is_empty(),
+    );
+    wait_for("its settling", Duration::from_secs(10), || {
+        c.proc.log().contains("job notification delivered")
+    });
+    // Settled means stored: give the writer its commit, then restart again.
+    std::thread::sleep(Duration::from_secs(1));
+    drop(c);
+    let c = start_coordinator(dir.path(), &args);
+    std::thread::sleep(Duration::from_secs(2));
+    let got = got.lock().unwrap().clone();
+    assert_eq!(got.len(), 1, "{got:?}");
+    assert_eq!(got[0].path, "/late");
+    assert_eq!(got[0].headers["x-tessera-job"], job);
+    assert_eq!(got[0].headers["x-tessera-event"], "job.cancelled");
+    let body: Value = serde_json::from_slice(&got[0].body).expect("JSON body");
+    assert_eq!(
+        body,
+        job_status(&c, &job),
+        "the POST is the job's status --json"
     );
 }
 

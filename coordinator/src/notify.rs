@@ -112,8 +112,14 @@ impl Notifier {
     }
 
     /// Sends `status` (an ended job's) to `on_done` and the `--notify`
-    /// URLs, on tasks of their own: returns at once.
-    pub fn send(&self, status: pb::JobStatus, on_done: &[String]) {
+    /// URLs, on tasks of their own: returns at once. `settled` runs once
+    /// every URL has answered or been given up.
+    pub fn send(
+        &self,
+        status: pb::JobStatus,
+        on_done: &[String],
+        settled: impl FnOnce() + Send + 'static,
+    ) {
         let Some(secret) = self.secret.clone() else {
             return;
         };
@@ -131,14 +137,19 @@ impl Notifier {
             );
             let sig = signature(&secret, &body);
             let state = crate::status_json::state_name(status.state);
+            let mut deliveries = Vec::new();
             for url in urls {
                 let (body, sig, slots) = (body.clone(), sig.clone(), slots.clone());
                 let (job, state) = (status.job_id.clone(), state);
-                tokio::spawn(async move {
+                deliveries.push(tokio::spawn(async move {
                     let _slot = slots.acquire_owned().await;
                     deliver(&url, &job, state, body, &sig).await;
-                });
+                }));
             }
+            for d in deliveries {
+                let _ = d.await;
+            }
+            settled();
         });
     }
 }

@@ -166,14 +166,47 @@ impl Farm {
             .filter(|(_, j)| j.state.is_terminal() && !j.announced)
             .map(|(id, _)| id.clone())
             .collect();
+        let mut recs = failed;
         for id in ended {
             let job = st.jobs.get(&id).expect("listed");
             if self.notifier.wanted(&job.rec.on_done) {
                 let status = crate::service::job_status(&st.view_of(job, job.view()));
-                self.notifier.send(status, &job.rec.on_done);
+                let notified = self.notified.clone();
+                let job_id = id.clone();
+                self.notifier.send(status, &job.rec.on_done, move || {
+                    let _ = notified.send(job_id);
+                });
+                // Stored with its end: a restart before every delivery is
+                // settled sends them again.
+                let job = st.jobs.get_mut(&id).expect("listed");
+                if !job.rec.notify_pending {
+                    job.rec.notify_pending = true;
+                    recs.push(job.rec.clone());
+                }
             }
             st.jobs.get_mut(&id).expect("listed").announced = true;
         }
-        failed
+        recs
+    }
+
+    /// Every notification of job `id` delivered or given up: its record no
+    /// longer asks a restart to send them.
+    pub(super) async fn notifications_settled(&self, id: &str) {
+        let rec = {
+            let Ok(mut st) = self.state.lock() else {
+                return;
+            };
+            let Some(job) = st.jobs.get_mut(id) else {
+                return;
+            };
+            if !job.rec.notify_pending {
+                return;
+            }
+            job.rec.notify_pending = false;
+            job.rec.clone()
+        };
+        if let Err(e) = self.store.write(vec![crate::store::Op::PutJob(rec)]).await {
+            tracing::error!(job = id, error = %e, "cannot record that the job's notifications are settled; a restart sends them again");
+        }
     }
 }

@@ -76,6 +76,7 @@ impl Job {
     /// a submit builds it once, for its cost probe and the job.
     pub(super) fn with_layout(rec: JobRecord, counters: Counters, layout: Layout) -> Self {
         let adaptive = rec.adaptive();
+        let rec_notify_pending = rec.notify_pending;
         let total = layout.total();
         let state = match rec.state {
             JobStateRec::Active => JobState::Running,
@@ -136,7 +137,9 @@ impl Job {
             rays_this_run: 0,
             watch: watch::channel(0).0,
             adaptive: adaptive.map(adaptive::AdaptiveJob::new),
-            announced: state.is_terminal(),
+            // Ended before this run: announced, unless its notifications
+            // were still out when the last run stopped (sent again).
+            announced: state.is_terminal() && !rec_notify_pending,
             failure_classes: Default::default(),
             scene_error: None,
         };

@@ -254,6 +254,7 @@ impl Farm {
             on_done,
             blocklist_after: Some(blocklist_after),
             blocklist_seconds: Some(blocklist_seconds),
+            notify_pending: false,
         };
         ops.push(Op::PutJob(rec.clone()));
         ops.push(Op::PutCounters {

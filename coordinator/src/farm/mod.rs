@@ -652,6 +652,9 @@ pub struct Farm {
     pub metrics: crate::metrics::Metrics,
     /// Job-end notifications (`crate::notify`).
     pub notifier: crate::notify::Notifier,
+    /// Jobs whose notifications are all delivered or given up: the task
+    /// [`Farm::open`] starts clears their stored `notify_pending`.
+    notified: tokio::sync::mpsc::UnboundedSender<String>,
 }
 
 fn now_ms() -> i64 {
@@ -722,6 +725,7 @@ impl Farm {
             crate::notify::Notifier::new(config.notify.clone(), config.notify_secret.clone())
                 .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
         let snap = store.load()?;
+        let (notified, mut settled) = tokio::sync::mpsc::unbounded_channel::<String>();
         let boot = format!("{:x}", now_ms() as u64 ^ (std::process::id() as u64) << 40);
         let farm = Arc::new(Farm {
             config,
@@ -734,7 +738,17 @@ impl Farm {
             work_ready: tokio::sync::Notify::new(),
             metrics: crate::metrics::Metrics::new(),
             notifier,
+            notified,
         });
+        if let Ok(rt) = tokio::runtime::Handle::try_current() {
+            let weak = Arc::downgrade(&farm);
+            rt.spawn(async move {
+                while let Some(id) = settled.recv().await {
+                    let Some(farm) = weak.upgrade() else { return };
+                    farm.notifications_settled(&id).await;
+                }
+            });
+        }
         let mut to_write = Vec::new();
         {
             let mut st = farm.state.lock().expect("state lock");

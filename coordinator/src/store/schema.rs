@@ -71,6 +71,10 @@ pub struct JobRecord {
     /// settings when read back).
     pub blocklist_after: Option<u32>,
     pub blocklist_seconds: Option<f64>,
+    /// It ended and its notifications (`--on-done`, `--notify`) are not
+    /// all delivered or given up yet: a coordinator that restarts sends
+    /// them again (at least once, never lost).
+    pub notify_pending: bool,
 }
 
 impl JobRecord {
@@ -213,6 +217,9 @@ pub(super) struct JobRecordJson {
     pub blocklist_after: Option<u32>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub blocklist_seconds: Option<f64>,
+    /// Absent in earlier records, left out when false.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub notify_pending: bool,
 }
 
 fn record_version_1() -> u32 {
@@ -328,6 +335,7 @@ impl From<&JobRecord> for JobRecordJson {
             on_done: r.on_done.clone(),
             blocklist_after: r.blocklist_after,
             blocklist_seconds: r.blocklist_seconds,
+            notify_pending: r.notify_pending,
         }
     }
 }
@@ -365,6 +373,7 @@ impl TryFrom<JobRecordJson> for JobRecord {
             on_done: r.on_done,
             blocklist_after: r.blocklist_after,
             blocklist_seconds: r.blocklist_seconds,
+            notify_pending: r.notify_pending,
         })
     }
 }
