@@ -846,6 +846,27 @@ fn an_environment_image_lights_the_scene_by_key_or_by_flag() {
     );
     let plain = render("plain.toml", &[], "plain.png");
     assert_eq!(keyed, flagged, "the flag and the key render alike");
+    // --json names the image and what it holds: 32 x 16 texels of 12
+    // bytes, and 32 x 15 cells of a density and a CDF entry (4 bytes each).
+    let (o, stdout, stderr) = run(tessera()
+        .arg("render")
+        .arg(dir.join("keyed.toml"))
+        .arg("-o")
+        .arg(dir.join("json.png"))
+        .arg("--json"));
+    assert!(o.status.success(), "{stderr}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let env = &v["scene"]["environment"];
+    assert_eq!(env["name"], "sky.exr", "{stdout}");
+    assert_eq!(
+        (env["width"].as_u64(), env["height"].as_u64()),
+        (Some(32), Some(16))
+    );
+    assert_eq!(
+        env["bytes"].as_u64(),
+        Some(32 * 16 * 12 + 32 * 15 * 8),
+        "{stdout}"
+    );
     assert_ne!(keyed, plain, "the image lights the scene");
 
     expect_failure(

@@ -532,6 +532,9 @@ fn report(
                 "instances": setup.stats.instances,
                 "textures": setup.stats.textures,
                 "texture_bytes": setup.stats.texture_bytes,
+                "environment": setup.stats.environment.as_ref().map(|(name, w, h, bytes)| {
+                    serde_json::json!({ "name": name, "width": w, "height": h, "bytes": bytes })
+                }),
             },
             "adaptive": adaptive.map(|a| {
                 // The keys both modes report, then each mode's own.

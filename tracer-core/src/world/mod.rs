@@ -139,7 +139,7 @@ fn rel<R: Real>(p: &Vec3, origin: &[f64; 3]) -> R::V3 {
 }
 
 /// What a built frame holds, for reports (`tessera render --json`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct WorldStats {
     pub spheres: usize,
     pub planes: usize,
@@ -151,6 +151,9 @@ pub struct WorldStats {
     /// Distinct texture images, and their texels' bytes (8-bit RGBA).
     pub textures: usize,
     pub texture_bytes: u64,
+    /// The path integrator's environment image, where it has one: its
+    /// name, width, height and bytes held (texels and sampling tables).
+    pub environment: Option<(String, u32, u32, u64)>,
 }
 
 impl<R: Real> World<R> {
@@ -189,6 +192,12 @@ impl<R: Real> World<R> {
             instances: self.instances.list.len(),
             textures: images.len(),
             texture_bytes: images.iter().map(|i| 4 * i.texels.len() as u64).sum(),
+            environment: self
+                .dist
+                .as_ref()
+                .and_then(|d| d.path.as_ref())
+                .and_then(|p| p.environment_map.as_ref())
+                .map(|e| (e.name.clone(), e.width, e.height, e.bytes() as u64)),
         }
     }
 
