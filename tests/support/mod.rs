@@ -1,6 +1,8 @@
 //! Helpers shared by the end-to-end test files (each `mod support;`s it).
 #![allow(dead_code)]
 
+pub mod sky;
+
 use std::io::{BufRead as _, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
@@ -62,23 +64,13 @@ impl Drop for Proc {
     }
 }
 
-/// A small equirectangular sky as an EXR file at `path`: a gradient from
-/// a blue zenith to a pale horizon, a dark ground, and a one-texel sun.
-#[allow(dead_code)] // not every test binary lights a scene with it
+/// A 32 x 16 [`sky`] as an EXR file at `path`.
 pub fn write_sky_exr(path: &Path) {
     let (w, h) = (32u32, 16u32);
-    image::Rgb32FImage::from_fn(w, h, |x, y| {
-        let t = y as f32 / (h - 1) as f32;
-        image::Rgb(if (x, y) == (9, 4) {
-            [30.0, 25.0, 18.0]
-        } else if t < 0.5 {
-            [0.2 + 0.6 * t, 0.3 + 0.5 * t, 0.8 - 0.2 * t]
-        } else {
-            [0.15, 0.12, 0.1]
-        })
-    })
-    .save(path)
-    .expect("write the sky");
+    let texels = sky::texels(w, h, (9, 4), [30.0, 25.0, 18.0]);
+    image::Rgb32FImage::from_fn(w, h, |x, y| image::Rgb(texels[(y * w + x) as usize]))
+        .save(path)
+        .expect("write the sky");
 }
 
 pub fn rand_suffix() -> u128 {

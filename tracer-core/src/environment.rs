@@ -87,13 +87,7 @@ impl EnvironmentMap {
                 "is a {format:?} image; an environment is an EXR, HDR, PNG or JPEG file"
             ));
         }
-        let mut reader = image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
-        let mut limits = image::Limits::default();
-        limits.max_image_width = Some(MAX_SIDE);
-        limits.max_image_height = Some(MAX_SIDE);
-        limits.max_alloc = Some(2 << 30);
-        reader.limits(limits);
-        let decoded = reader.decode().map_err(|e| format!("cannot decode: {e}"))?;
+        let decoded = crate::texture::decode_within(bytes, format, MAX_SIDE, 2 << 30)?;
         let encoded = !matches!(format, F::OpenExr | F::Hdr);
         let rgb = decoded.to_rgb32f();
         let (width, height) = rgb.dimensions();

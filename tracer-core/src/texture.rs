@@ -55,16 +55,7 @@ impl Image {
                 "is a {format:?} image; Tessera decodes PNG and JPEG textures"
             ));
         }
-        let mut reader = image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
-        let mut limits = image::Limits::default();
-        limits.max_image_width = Some(MAX_SIDE);
-        limits.max_image_height = Some(MAX_SIDE);
-        limits.max_alloc = Some(1 << 30);
-        reader.limits(limits);
-        let img = reader
-            .decode()
-            .map_err(|e| format!("cannot be decoded: {e}"))?
-            .into_rgba8();
+        let img = decode_within(bytes, format, MAX_SIDE, 1 << 30)?.into_rgba8();
         let (width, height) = img.dimensions();
         if width == 0 || height == 0 {
             return Err("has no texels".into());
@@ -106,6 +97,26 @@ pub fn srgb_to_linear(c: f64) -> f64 {
     } else {
         ((c + 0.055) / 1.055).powf(2.4)
     }
+}
+
+/// Decodes an image file's bytes in `format`, refusing (before
+/// allocating) a side over `max_side` or more than `max_alloc` bytes: a
+/// hostile header cannot exhaust memory. The error says why.
+pub(crate) fn decode_within(
+    bytes: &[u8],
+    format: image::ImageFormat,
+    max_side: u32,
+    max_alloc: u64,
+) -> Result<image::DynamicImage, String> {
+    let mut reader = image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(max_side);
+    limits.max_image_height = Some(max_side);
+    limits.max_alloc = Some(max_alloc);
+    reader.limits(limits);
+    reader
+        .decode()
+        .map_err(|e| format!("cannot be decoded: {e}"))
 }
 
 /// byte -> linear value of an sRGB-encoded channel, exactly rounded.

@@ -581,16 +581,8 @@ fn gpu_path_matches_the_cpu_with_spot_and_directional_lights() {
 fn environment_image_scene(tag: &str, ball: &str, with_lights: bool) -> SceneDesc {
     let dir = common::meshgen::tmpdir(tag);
     let (w, h) = (24u32, 12u32);
-    let sky = image::Rgb32FImage::from_fn(w, h, |x, y| {
-        let t = y as f32 / (h - 1) as f32;
-        image::Rgb(if (x, y) == (7, 3) {
-            [40.0, 32.0, 20.0]
-        } else if t < 0.5 {
-            [0.2 + 0.6 * t, 0.3 + 0.5 * t, 0.8 - 0.2 * t]
-        } else {
-            [0.15, 0.12, 0.1]
-        })
-    });
+    let texels = common::sky::texels(w, h, (7, 3), [40.0, 32.0, 20.0]);
+    let sky = image::Rgb32FImage::from_fn(w, h, |x, y| image::Rgb(texels[(y * w + x) as usize]));
     sky.save(dir.join("sky.exr")).unwrap();
     let mut src = scene_src(ball, "");
     if !with_lights {

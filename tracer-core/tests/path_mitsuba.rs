@@ -773,21 +773,7 @@ fn lambert_surfaces_under_a_point_light_and_the_sky_match_mitsuba() {
 /// dark ground, and a small bright sun, its columns and rows at texel
 /// resolution (16 x 9: the mapping's texel centres are what is checked).
 fn sky_image() -> (u32, u32, Vec<[f32; 3]>) {
-    let (w, h) = (16u32, 9u32);
-    let texels = (0..w * h)
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            let t = y as f32 / (h - 1) as f32;
-            if (x, y) == (5, 2) {
-                [12.0, 10.0, 7.0]
-            } else if t < 0.5 {
-                [0.2 + 0.6 * t, 0.3 + 0.5 * t, 0.8 - 0.2 * t]
-            } else {
-                [0.15, 0.12, 0.1]
-            }
-        })
-        .collect();
-    (w, h, texels)
+    (16, 9, common::sky::texels(16, 9, (5, 2), [12.0, 10.0, 7.0]))
 }
 
 /// An environment image lights Lambert spheres and a mirror ball on a

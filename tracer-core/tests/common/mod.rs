@@ -4,6 +4,8 @@
 pub mod meshgen;
 #[path = "../../../tests/support/prereq.rs"]
 pub mod prereq;
+#[path = "../../../tests/support/sky.rs"]
+pub mod sky;
 
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
