@@ -114,9 +114,13 @@ pub(crate) fn decode_within(
     limits.max_image_height = Some(max_side);
     limits.max_alloc = Some(max_alloc);
     reader.limits(limits);
-    reader
-        .decode()
-        .map_err(|e| format!("cannot be decoded: {e}"))
+    reader.decode().map_err(|e| match e {
+        image::ImageError::Limits(_) => format!(
+            "is over the limits of {max_side} texels a side and {} MiB decoded ({e})",
+            max_alloc >> 20
+        ),
+        e => format!("cannot be decoded: {e}"),
+    })
 }
 
 /// byte -> linear value of an sRGB-encoded channel, exactly rounded.
