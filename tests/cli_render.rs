@@ -868,6 +868,20 @@ fn an_environment_image_lights_the_scene_by_key_or_by_flag() {
         "{stdout}"
     );
     assert_ne!(keyed, plain, "the image lights the scene");
+    // Under Whitted the image lights nothing, and the render says so.
+    let (o, _, stderr) = run(tessera()
+        .arg("render")
+        .arg(dir.join("keyed.toml"))
+        .arg("-o")
+        .arg(dir.join("whitted.png"))
+        .args(["--integrator", "whitted"]));
+    assert!(o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(
+            "warning: the environment image sky.exr lights the path integrator only; this render is whitted"
+        ),
+        "{stderr}"
+    );
 
     expect_failure(
         &path_scene,

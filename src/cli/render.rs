@@ -317,6 +317,14 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         eprintln!("warning: {w}");
     }
     let (settings, adaptive) = resolve(&scene, &args.overrides, &args.adaptive)?;
+    if let Some(env) = &scene.world.environment_map
+        && settings.integrator == Integrator::Whitted
+    {
+        eprintln!(
+            "warning: the environment image {} lights the path integrator only; this render is whitted (give --integrator path)",
+            env.name
+        );
+    }
     if args.adaptive_mode == AdaptiveMode::Image && adaptive.is_none() {
         bail!(
             "--adaptive-mode image needs a target: give --target-error (an RMSE) or --relative-error"

@@ -437,6 +437,9 @@ mod tests {
         // A header declaring 16384 x 8192 texels: refused before allocating.
         let hdr = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 8192 +X 16384\n".to_vec();
         let e = EnvironmentMap::decode("t", &hdr, 1.0, 0.0).unwrap_err();
-        assert!(e.starts_with("is over the limits of 8192 texels a side"), "{e}");
+        assert!(
+            e.starts_with("is over the limits of 8192 texels a side"),
+            "{e}"
+        );
     }
 }
