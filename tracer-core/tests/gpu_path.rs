@@ -634,10 +634,27 @@ fn gpu_path_matches_the_cpu_under_an_environment_image_and_every_light() {
 }
 
 /// The image alone, seen in a rough conductor and directly by the camera.
+/// Tiles of one frame upload its words (the image) once.
 #[test]
 fn gpu_path_matches_the_cpu_under_an_environment_image_alone() {
-    check_against_cpu(
-        "environment image alone",
-        &environment_image_scene("env-alone", ROUGH_CONDUCTOR, false),
-    );
+    let desc = environment_image_scene("env-alone", ROUGH_CONDUCTOR, false);
+    check_against_cpu("environment image alone", &desc);
+    // A renderer of its own: the binary's shared one serves other tests' scenes between tiles.
+    let g = GpuRenderer::new(
+        std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+        Default::default(),
+    )
+    .unwrap_or_else(|e| panic!("no GPU adapter could be opened: {e}"));
+    let frame = prepared(&desc);
+    for (x, y) in [(0, 0), (20, 0), (0, 15), (20, 15)] {
+        g.render(
+            &frame,
+            0,
+            Rect::new(x, y, 20, 15),
+            SampleRange::all(2),
+            &|_| {},
+        )
+        .expect("a tile");
+    }
+    assert_eq!(g.dist_uploads(), 1, "the words of 4 tiles of one frame");
 }

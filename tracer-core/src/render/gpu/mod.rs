@@ -340,6 +340,8 @@ pub struct GpuRenderer {
     /// Texels packed on the host and uploaded ([`GpuRenderer::texel_work`]).
     texel_packs: std::sync::atomic::AtomicU64,
     texel_uploads: std::sync::atomic::AtomicU64,
+    /// Distributed words uploaded ([`GpuRenderer::dist_uploads`]).
+    dist_uploads: std::sync::atomic::AtomicU64,
     /// Compiled pipelines on disk, where the device has a pipeline cache.
     disk_cache: Option<disk_cache::DiskCache>,
     stats: Mutex<GpuStats>,
@@ -514,6 +516,7 @@ impl GpuRenderer {
             pipelines_built: Default::default(),
             texel_packs: Default::default(),
             texel_uploads: Default::default(),
+            dist_uploads: Default::default(),
             disk_cache,
             stats: Mutex::new(GpuStats::default()),
             no_blocks,
@@ -537,6 +540,13 @@ impl GpuRenderer {
             self.texel_packs.load(Relaxed),
             self.texel_uploads.load(Relaxed),
         )
+    }
+
+    /// How many times this renderer has uploaded a scene's distributed
+    /// words (lights, materials and an environment image of the path
+    /// integrator): once per world, not per tile.
+    pub fn dist_uploads(&self) -> u64 {
+        self.dist_uploads.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// A post-processing kernel's bind group layout (`bindings`), its

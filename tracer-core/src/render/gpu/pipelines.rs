@@ -120,10 +120,6 @@ impl GpuRenderer {
         let planes = make("planes", bytemuck::cast_slice(&data.planes), st);
         let materials = make("materials", bytemuck::cast_slice(&data.materials), st);
         let lights = make("lights", bytemuck::cast_slice(&data.lights), st);
-        let dist = match &data.dist {
-            Some(d) => make("distributed", bytemuck::cast_slice(&d.words), st),
-            None => make("distributed", &[0u8; 64], st),
-        };
         let n_moving_meshes = data.dist.as_ref().map_or(0, |d| d.n_moving_meshes);
         let kernel = Kernel {
             tree: match (&data.tree, data.static_tree) {
@@ -198,16 +194,37 @@ impl GpuRenderer {
         let same_texels = old.as_ref().is_some_and(
             |o| matches!((&o.data.pbr, &data.pbr), (Some(a), Some(b)) if a.texels == b.texels),
         );
-        let (kept_kernel, kept_tree, kept_texels) = match old {
+        // The same distributed words (every tile of a frame; an
+        // environment image is most of them): their buffer is kept.
+        let same_dist = old
+            .as_ref()
+            .is_some_and(|o| match (&o.data.dist, &data.dist) {
+                (Some(a), Some(b)) => {
+                    bytemuck::cast_slice::<_, u8>(&a.words)
+                        == bytemuck::cast_slice::<_, u8>(&b.words)
+                }
+                _ => false,
+            });
+        let (kept_kernel, kept_tree, kept_texels, kept_dist) = match old {
             Some(o) => {
                 let [_, _, _, _, texels] = o.pbr;
                 (
                     same_kernel.then_some((o.module, o.pipeline, o.adaptive, o.wave)),
                     same_tree.then_some(o.tree),
                     same_texels.then_some(texels),
+                    same_dist.then_some(o.dist),
                 )
             }
-            None => (None, None, None),
+            None => (None, None, None, None),
+        };
+        let dist = match (kept_dist, &data.dist) {
+            (Some(kept), _) => kept,
+            (None, Some(d)) => {
+                self.dist_uploads
+                    .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                make("distributed", bytemuck::cast_slice(&d.words), st)
+            }
+            (None, None) => make("distributed", &[0u8; 64], st),
         };
         let pbr = match &data.pbr {
             Some(p) => [
