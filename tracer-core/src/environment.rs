@@ -137,17 +137,14 @@ impl EnvironmentMap {
             ));
         }
         let (w, h) = (width as usize, height as usize);
-        let lum = |x: usize, y: usize| {
-            let t = texels[y * w + x % w];
-            (t[0] as f64 + t[1] as f64 + t[2] as f64) / 3.0
-        };
         let rows = h - 1;
         let mut weights = vec![0.0f64; w * rows];
         let mut row_totals = vec![0.0f64; rows];
         for y in 0..rows {
             let sin = ((y as f64 + 0.5) / rows as f64 * PI).sin();
             for x in 0..w {
-                let mean = (lum(x, y) + lum(x + 1, y) + lum(x, y + 1) + lum(x + 1, y + 1)) / 4.0;
+                let c = corner_luminances(&texels, w, x, y);
+                let mean = (c[0] + c[1] + c[2] + c[3]) / 4.0;
                 weights[y * w + x] = mean * sin;
                 row_totals[y] += mean * sin;
             }
@@ -212,15 +209,9 @@ impl EnvironmentMap {
 
     /// Bilinear radiance at (u, v) of the image.
     fn lookup(&self, u: f64, v: f64) -> [f32; 3] {
-        let (w, h) = (self.width as usize, self.height as usize);
-        let mut xf = u - 0.5 / w as f64;
-        xf = (xf - xf.floor()) * w as f64;
-        let x0 = (xf.floor() as usize).min(w - 1);
+        let w = self.width as usize;
+        let (x0, y0, fx, fy) = self.cell_at(u, v);
         let x1 = (x0 + 1) % w;
-        let fx = xf - x0 as f64;
-        let yf = v.clamp(0.0, 1.0) * (h - 1) as f64;
-        let y0 = (yf.floor() as usize).min(h - 2);
-        let fy = yf - y0 as f64;
         let t = |x: usize, y: usize| self.texels[y * w + x];
         let (a, b, c, d) = (t(x0, y0), t(x1, y0), t(x0, y0 + 1), t(x1, y0 + 1));
         std::array::from_fn(|k| {
@@ -230,6 +221,20 @@ impl EnvironmentMap {
         })
     }
 
+    /// The cell holding (u, v) (its top-left texel, the cell's column and
+    /// row; the texel columns are centred, the rows at the poles) and
+    /// where (u, v) lies in it, in [0, 1) each: the one place radiance
+    /// lookups and densities find their cell.
+    fn cell_at(&self, u: f64, v: f64) -> (usize, usize, f64, f64) {
+        let (w, rows) = (self.width as usize, self.height as usize - 1);
+        let mut xf = u - 0.5 / w as f64;
+        xf = (xf - xf.floor()) * w as f64;
+        let x = (xf.floor() as usize).min(w - 1);
+        let yf = v.clamp(0.0, 1.0) * rows as f64;
+        let y = (yf.floor() as usize).min(rows - 1);
+        (x, y, xf - x as f64, yf - y as f64)
+    }
+
     /// The solid-angle density of [`Self::sample`] drawing unit direction `d`.
     pub fn pdf(&self, d: [f64; 3]) -> f64 {
         let (u, v) = self.uv_of(d);
@@ -237,24 +242,12 @@ impl EnvironmentMap {
         if !(sin > 0.0) {
             return 0.0;
         }
-        let (w, rows) = (self.width as usize, self.height as usize - 1);
-        let mut xf = u - 0.5 / w as f64;
-        xf = (xf - xf.floor()) * w as f64;
-        let x = (xf.floor() as usize).min(w - 1);
-        let yf = v.clamp(0.0, 1.0) * rows as f64;
-        let y = (yf.floor() as usize).min(rows - 1);
-        self.density_at(x, y, xf - x as f64, yf - y as f64) / (2.0 * PI * PI * sin)
+        let (x, y, fx, fy) = self.cell_at(u, v);
+        self.density_at(x, y, fx, fy) / (2.0 * PI * PI * sin)
     }
 
-    /// The luminances of cell (x, y)'s corners: (x, y), (x + 1, y),
-    /// (x, y + 1), (x + 1, y + 1), wrapping in x.
     fn corners(&self, x: usize, y: usize) -> [f64; 4] {
-        let w = self.width as usize;
-        let lum = |x: usize, y: usize| {
-            let t = self.texels[y * w + x % w];
-            (t[0] as f64 + t[1] as f64 + t[2] as f64) / 3.0
-        };
-        [lum(x, y), lum(x + 1, y), lum(x, y + 1), lum(x + 1, y + 1)]
+        corner_luminances(&self.texels, self.width as usize, x, y)
     }
 
     /// The density over (u, v) at (fx, fy) within cell (x, y).
@@ -301,6 +294,18 @@ impl EnvironmentMap {
     pub fn bytes(&self) -> usize {
         self.texels.len() * 12 + (self.density.len() + self.row_cdf.len()) * 4
     }
+}
+
+/// The luminances (the mean of R, G and B) of the corners of cell (x, y)
+/// of `texels` (`w` wide): (x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1),
+/// wrapping in x. The cells' weights and densities both come from these
+/// (path.wgsl `env_corners` is its mirror).
+fn corner_luminances(texels: &[[f32; 3]], w: usize, x: usize, y: usize) -> [f64; 4] {
+    let lum = |x: usize, y: usize| {
+        let t = texels[y * w + x % w];
+        (t[0] as f64 + t[1] as f64 + t[2] as f64) / 3.0
+    };
+    [lum(x, y), lum(x + 1, y), lum(x, y + 1), lum(x + 1, y + 1)]
 }
 
 fn lerp(t: f64, a: f64, b: f64) -> f64 {

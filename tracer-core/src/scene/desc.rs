@@ -1067,6 +1067,15 @@ impl SceneDesc {
                     Err(err(f, format!("must be finite, got {:?}", v.0)))
                 }
             };
+            // A spot's axis, a directional light's way: unit, from `direction`.
+            let unit_direction = || -> Result<Vec3, SceneError> {
+                let d = point("direction", lv.direction)?;
+                let len = d.length();
+                if !(len > 0.0) {
+                    return Err(err("direction", "must not be zero".into()));
+                }
+                Ok(Vec3(d.0.map(|x| x / len)))
+            };
             // Fields of the other light types are mistakes, said as such.
             let allowed: &[&str] = match lv.kind {
                 LightType::Point => &["position"],
@@ -1101,11 +1110,7 @@ impl SceneDesc {
             let (shape, position) = match lv.kind {
                 LightType::Point => (LightShape::Point, point("position", lv.position)?),
                 LightType::Spot => {
-                    let d = point("direction", lv.direction)?;
-                    let len = d.length();
-                    if !(len > 0.0) {
-                        return Err(err("direction", "must not be zero".into()));
-                    }
+                    let direction = unit_direction()?;
                     // glTF's defaults: outer pi/4, inner 0.
                     let outer = lv.cone_angle.map_or(45.0, |a| a.0);
                     let inner = lv.inner_cone_angle.map_or(0.0, |a| a.0);
@@ -1122,7 +1127,7 @@ impl SceneDesc {
                         ));
                     }
                     path_kind = Some(PathLightKind::Spot {
-                        direction: Vec3(d.0.map(|x| x / len)),
+                        direction,
                         cos_inner: inner.to_radians().cos(),
                         cos_outer: outer.to_radians().cos(),
                     });
@@ -1132,12 +1137,7 @@ impl SceneDesc {
                     (LightShape::Point, point("position", lv.position)?)
                 }
                 LightType::Directional => {
-                    let d = point("direction", lv.direction)?;
-                    let len = d.length();
-                    if !(len > 0.0) {
-                        return Err(err("direction", "must not be zero".into()));
-                    }
-                    let direction = Vec3(d.0.map(|x| x / len));
+                    let direction = unit_direction()?;
                     // The world gives it the scene's radius (its power).
                     path_kind = Some(PathLightKind::Directional {
                         direction,
