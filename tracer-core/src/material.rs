@@ -314,6 +314,15 @@ impl Pbr {
             && (self.base_color_at(uv, color)[3] as f64) < self.alpha_cutoff
     }
 
+    /// Whether its back faces are cut away for every ray (glTF's
+    /// `doubleSided` false, the default): a single-sided surface seen
+    /// from behind is not there, as a rasterizer culls it. Transmissive
+    /// surfaces keep both faces: a ray refracted inside must meet the
+    /// far side to leave.
+    pub fn culls_back_faces(&self) -> bool {
+        !self.double_sided && self.transmission == 0.0
+    }
+
     /// Whether anything of it varies over the surface (a texture or vertex
     /// colours): then hits on it need their texture coordinates.
     pub fn varies(&self) -> bool {
@@ -484,6 +493,24 @@ fn exp2_f32(y: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// glTF's default is single-sided; `doubleSided` and transmission (a
+    /// refracted ray must leave through the far side) keep back faces.
+    #[test]
+    fn back_faces_are_culled_for_opaque_single_sided_materials_only() {
+        let single = Pbr::default();
+        assert!(single.culls_back_faces());
+        let double = Pbr {
+            double_sided: true,
+            ..Pbr::default()
+        };
+        assert!(!double.culls_back_faces());
+        let glass = Pbr {
+            transmission: 1.0,
+            ..Pbr::default()
+        };
+        assert!(!glass.culls_back_faces());
+    }
 
     /// The f32 specular power against f64 `powf` over the whole range shading
     /// uses (x above the specular floor, integer and fractional shininess).

@@ -55,40 +55,13 @@ fn golden_name(path: &Path) -> String {
 
 #[test]
 fn example_scenes_match_their_golden_images() {
-    let golden_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden");
-    let bless = std::env::var_os("TESSERA_BLESS").is_some();
     let mut failures = vec![];
     for path in example_scenes() {
         let desc = SceneDesc::load(&path).unwrap();
         let film = render_with(&desc, &small(&desc), Precision::F32);
         let got = to_srgb8(&film.resolve());
-        let file = golden_dir.join(golden_name(&path));
-        if bless {
-            std::fs::create_dir_all(&golden_dir).unwrap();
-            image::RgbImage::from_raw(W, H, got)
-                .unwrap()
-                .save(&file)
-                .unwrap();
-            continue;
-        }
-        let want = image::open(&file)
-            .unwrap_or_else(|e| panic!("{}: {e} (bless with TESSERA_BLESS=1)", file.display()))
-            .to_rgb8()
-            .into_raw();
-        // Tolerance: 8-bit values may move by 2 levels (f32 rounding differences
-        // between compilers and CPUs near a rounding boundary); at most 0.1% of
-        // pixels (silhouette samples that flip) may move more.
-        let mut over = 0;
-        for (a, b) in got.chunks(3).zip(want.chunks(3)) {
-            if a.iter().zip(b).any(|(x, y)| x.abs_diff(*y) > 2) {
-                over += 1;
-            }
-        }
-        if over * 1000 > (W * H) as usize {
-            failures.push(format!(
-                "{}: {over} pixels differ by more than 2/255",
-                path.display()
-            ));
+        if let Err(e) = check_golden(&golden_name(&path), W, H, got, 1) {
+            failures.push(format!("{}: {e}", path.display()));
         }
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));

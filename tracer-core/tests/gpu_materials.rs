@@ -11,7 +11,9 @@
 
 mod common;
 
-use common::meshgen::{colour_texels, textured_quad, textured_quad_with, tmpdir, write_png};
+use common::meshgen::{
+    colour_texels, set_quad_node, textured_quad, textured_quad_with, tmpdir, write_png,
+};
 use common::*;
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::gpu::Strategy;
@@ -144,6 +146,41 @@ fn gpu_cutout_matches_the_cpu_for_camera_and_shadow_rays() {
     let blue = cpu.iter().filter(|p| **p == [0.0, 0.0, 1.0]).count();
     assert!(red > 100 && blue == 0, "red {red}, background {blue}");
     assert_agree("cut-out quad", &scene, 1e-5, 1e-6);
+}
+
+/// Single-sided quads (glTF `doubleSided` false) over a lit plane, one
+/// facing the camera (its back to the light's shadow rays) and one turned
+/// away by a mirror: back faces are cut away on the GPU as on the CPU,
+/// for camera and shadow rays.
+#[test]
+fn gpu_single_sided_quads_match_the_cpu_from_front_and_back() {
+    for (case, z, node) in [
+        ("facing the camera", 1.0, r#"{"mesh":0}"#),
+        ("mirrored away", -1.0, r#"{"mesh":0,"scale":[1,1,-1]}"#),
+    ] {
+        let dir = tmpdir("gpu-single-sided");
+        write_png(&dir, 1, 1, &[[255; 4]]);
+        let model = textured_quad(
+            &dir,
+            0.5,
+            z,
+            r#"{"pbrMetallicRoughness":{"baseColorFactor":[0.2,0.6,0.3,1],"metallicFactor":0},
+                "emissiveFactor":[1,0,0]}"#,
+            "{}",
+        );
+        set_quad_node(&dir, &model, node);
+        let src = format!(
+            "[render]\nwidth = 48\nheight = 48\nsamples = 1\n\
+             [camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 53.13010235415598\n\
+             [world]\nambient = [0.25, 0.25, 0.25]\nbackground = [0, 0, 1]\n\
+             [materials.white]\nambient = [1, 1, 1]\ndiffuse = [1, 1, 1]\n\
+             [[lights]]\nposition = [1.5, 0, 3]\ndiffuse = [0.5, 0.5, 0.5]\nspecular = [0, 0, 0]\n\
+             [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
+             [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+        );
+        let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+        assert_agree(case, &scene, 1e-5, 1e-6);
+    }
 }
 
 /// COLOR_0 multiplies the base colour, interpolated over the triangles.

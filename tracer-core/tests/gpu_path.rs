@@ -431,6 +431,36 @@ fn gpu_path_matches_the_cpu_on_a_textured_vertex_coloured_cutout() {
     check_against_cpu("textured cut-out quad", &desc);
 }
 
+/// A single-sided glossy quad turned away from the camera by a mirror,
+/// between a point light and a Lambert floor: camera and bounce rays
+/// meeting its back pass through, next-event shadow rays from the floor
+/// meet its front and are blocked, on the GPU as on the CPU.
+#[test]
+fn gpu_path_matches_the_cpu_on_a_single_sided_quad_seen_from_behind() {
+    use common::meshgen::{set_quad_node, textured_quad, tmpdir, write_png};
+    let dir = tmpdir("gpu-path-single-sided");
+    write_png(&dir, 1, 1, &[[255; 4]]);
+    let model = textured_quad(
+        &dir,
+        0.6,
+        -0.8,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0.9,0.5,0.2,1],"metallicFactor":0.3,"roughnessFactor":0.4}}"#,
+        "{}",
+    );
+    set_quad_node(&dir, &model, r#"{"mesh":0,"scale":[1,1,-1]}"#);
+    let src = format!(
+        "[render]\nwidth = 48\nheight = 48\nsamples = 4\nintegrator = \"path\"\nmax_depth = 4\n\
+         [camera]\nposition = [0.4, 0.3, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 45\n\
+         [world]\nenvironment = [0.1, 0.1, 0.15]\n\
+         [materials.white]\ndiffuse = [0.8, 0.8, 0.8]\n\
+         [[lights]]\nposition = [0.8, 0.5, 3.5]\ndiffuse = [6, 6, 6]\n\
+         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    let desc = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    check_against_cpu("single-sided quad from behind", &desc);
+}
+
 /// A quad emitting a two-colour texture lights the floor in front of it
 /// and nothing else does: the GPU's light samples on its triangles read
 /// the emissive texel at the sampled point, as the CPU's do (with the

@@ -568,3 +568,81 @@ fn a_ply_is_refused_as_a_scene_with_the_toml_to_write() {
     let s = scene(&dir, &toml.replace("bunny.ply", "tri.obj")).unwrap();
     assert_eq!(s.lights.len(), 1, "default lighting");
 }
+
+/// The real assets of ../shared/scenes, rendered from their files with no
+/// TOML (automatic camera or the file's own, default lighting), each
+/// pinned by its own golden image in tests/golden/ (`asset-*.png`; see
+/// tests/examples.rs for re-blessing): Whitted at 4 spp for every asset,
+/// the path integrator at 16 spp for those whose look depends on it
+/// (textures, cut-outs and blending, emission, Sibenik's interior). The
+/// path images are noisy but deterministic (the same seeds); their
+/// tolerance allows 1% of pixels to take another path, Whitted's 0.1%.
+#[test]
+fn shared_assets_match_their_golden_images() {
+    use tracer_core::film::to_srgb8;
+    use tracer_core::scene::Integrator;
+    let assets = [
+        (
+            "DamagedHelmet",
+            "gltf/DamagedHelmet/glTF/DamagedHelmet.gltf",
+            true,
+        ),
+        (
+            "AlphaBlendModeTest",
+            "gltf/AlphaBlendModeTest/glTF/AlphaBlendModeTest.gltf",
+            true,
+        ),
+        (
+            "TextureTransformTest",
+            "gltf/TextureTransformTest/glTF/TextureTransformTest.gltf",
+            false,
+        ),
+        (
+            "TextureSettingsTest",
+            "gltf/TextureSettingsTest/glTF/TextureSettingsTest.gltf",
+            false,
+        ),
+        (
+            "EmissiveStrengthTest",
+            "gltf/EmissiveStrengthTest/glTF/EmissiveStrengthTest.gltf",
+            true,
+        ),
+        (
+            "SpecularTest",
+            "gltf/SpecularTest/glTF/SpecularTest.gltf",
+            false,
+        ),
+        ("Cameras", "gltf/Cameras/glTF/Cameras.gltf", false),
+        ("Sibenik", "obj/Sibenik_Cathedral/sibenik.obj.gz", true),
+    ];
+    let mut failures = vec![];
+    for (name, file, path_too) in assets {
+        let integrators: &[(Integrator, u32, &str, usize)] = if path_too {
+            &[
+                (Integrator::Whitted, 4, "whitted", 1),
+                (Integrator::Path, 16, "path", 10),
+            ]
+        } else {
+            &[(Integrator::Whitted, 4, "whitted", 1)]
+        };
+        for &(integrator, samples, tag, per_mille) in integrators {
+            // Cameras.gltf's camera has aspect ratio 1.
+            let (w, h) = if name == "Cameras" {
+                (120, 120)
+            } else {
+                (160, 120)
+            };
+            let mut desc = common::shared_asset(&format!("scenes/{file}"), w, h);
+            desc.render.integrator = integrator;
+            desc.render.samples = samples;
+            let (w, h) = (desc.render.width, desc.render.height);
+            let got = to_srgb8(&render(&desc));
+            if let Err(e) =
+                common::check_golden(&format!("asset-{name}-{tag}.png"), w, h, got, per_mille)
+            {
+                failures.push(e);
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}

@@ -9,7 +9,9 @@ use tracer_core::render::Precision;
 use tracer_core::scene::SceneDesc;
 
 mod common;
-use common::meshgen::{colour_texels, textured_quad, textured_quad_with, tmpdir, write_png};
+use common::meshgen::{
+    colour_texels, set_quad_node, textured_quad, textured_quad_with, tmpdir, write_png,
+};
 
 fn render(scene: &SceneDesc) -> Vec<[f32; 3]> {
     common::render_with(scene, &scene.render, Precision::F32).resolve()
@@ -93,29 +95,28 @@ fn an_emissive_textured_quad_filling_the_view_is_the_texture_resampled_through_t
     assert!(worst < 2e-5, "largest difference {worst}");
 }
 
-/// alphaMode MASK: camera rays see the background through the texels
-/// whose alpha is below the cutoff and the quad elsewhere; shadow rays
-/// towards a light pass through exactly those texels, so the plane
-/// behind is lit where the shadow ray, traced here, crosses the quad at
-/// a cut texel or misses it, and holds only the ambient term elsewhere.
-#[test]
-fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_rays() {
-    let dir = tmpdir("tex-cutout");
-    // 4x4 texels, alpha 0 or 255 in a pattern; NEAREST, so each texel is a square.
-    let alpha = [1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0, 1, 1, 0];
-    let texels: Vec<[u8; 4]> = alpha.iter().map(|&a| [255, 255, 255, a * 255]).collect();
-    write_png(&dir, 4, 4, &texels);
-    // The quad [-0.5, 0.5]^2 at z = 1, emissive red, over the white plane z = 0.
-    let model = textured_quad(
-        &dir,
-        0.5,
-        1.0,
-        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"baseColorTexture":{"index":0},"metallicFactor":0},
-            "emissiveFactor":[1,0,0],"alphaMode":"MASK",
-            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
-        r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
-    );
-    let light = [1.5f64, 0.0, 3.0];
+/// Where the quad [-0.5, 0.5]^2 at z = 1 is solid at (x, y), for
+/// [`quad_over_lit_plane`]'s checks: `None` where rounding may decide.
+type Solid<'a> = &'a dyn Fn(f64, f64) -> Option<bool>;
+
+/// The light of [`quad_over_lit_plane`]'s scene.
+const QUAD_LIGHT: [f64; 3] = [1.5, 0.0, 3.0];
+
+/// The white plane z = 0 under the quad of model file `model` (emissive
+/// red, at z = 1), seen from (0, 0, 4) over [-2, 2]^2 at 64x64, lit by one
+/// point light at [`QUAD_LIGHT`] (diffuse 0.5) and an ambient 0.25, on a
+/// blue background. Checks every pixel: where `camera_solid` says the
+/// camera ray meets the quad solid, the quad's red; elsewhere the plane,
+/// lit where the shadow ray (traced here) crosses z = 1 where
+/// `shadow_solid` says the quad is not solid, else only the ambient term.
+/// Returns (quad seen, plane seen through the quad's square, lit, shadowed).
+fn quad_over_lit_plane(
+    dir: &std::path::Path,
+    model: &str,
+    camera_solid: Solid,
+    shadow_solid: Solid,
+) -> [usize; 4] {
+    let light = QUAD_LIGHT;
     let (w, h) = (64u32, 64u32);
     let t = 0.5f64; // view [-2, 2]^2 at z = 0 from 4 away
     let src = format!(
@@ -133,18 +134,7 @@ fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_ra
     );
     let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
     let img = render(&scene);
-    // Whether the quad is solid at (x, y) (z = 1): `None` within 0.05
-    // texels of a texel's edge, where rounding may decide either way.
-    let texel = |x: f64, y: f64| -> Option<bool> {
-        let (u, v) = ((x + 0.5) * 4.0, (0.5 - y) * 4.0);
-        let outside = (-u).max(u - 4.0).max(-v).max(v - 4.0);
-        if outside > 0.0 {
-            return (outside > 0.05).then_some(false);
-        }
-        let edge = (u - u.round()).abs().min((v - v.round()).abs());
-        (edge > 0.05).then_some(alpha[(v as usize) * 4 + u as usize] == 1)
-    };
-    let (mut seen_cut, mut seen_solid, mut lit, mut shadowed) = (0, 0, 0, 0);
+    let [mut seen_solid, mut seen_cut, mut lit, mut shadowed] = [0; 4];
     for y in 0..h {
         for x in 0..w {
             let a = 2.0 * (x as f64 + 0.5) / w as f64 - 1.0;
@@ -152,7 +142,7 @@ fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_ra
             let got = img[(y * w + x) as usize];
             // The camera ray meets z = 1 at 3/4 of the way to z = 0.
             let (qx, qy) = (4.0 * a * t * 0.75, 4.0 * b * t * 0.75);
-            let Some(solid) = texel(qx, qy) else {
+            let Some(solid) = camera_solid(qx, qy) else {
                 continue;
             };
             if solid {
@@ -160,7 +150,7 @@ fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_ra
                 assert_eq!(got, [1.0, 0.0, 0.0], "pixel ({x}, {y}) sees the quad");
                 continue;
             }
-            // Through a cut texel (or beside the quad) to the plane.
+            // Through the quad (or beside it) to the plane.
             let p = [4.0 * a * t, 4.0 * b * t, 0.0];
             if qx.abs() < 0.5 && qy.abs() < 0.5 {
                 seen_cut += 1;
@@ -168,7 +158,7 @@ fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_ra
             // Its shadow ray meets z = 1 at s = 1 / light_z of the way.
             let s = 1.0 / light[2];
             let (sx, sy) = (p[0] + (light[0] - p[0]) * s, p[1] + (light[1] - p[1]) * s);
-            let Some(blocked) = texel(sx, sy) else {
+            let Some(blocked) = shadow_solid(sx, sy) else {
                 continue;
             };
             let d = [light[0] - p[0], light[1] - p[1], light[2] - p[2]];
@@ -189,10 +179,126 @@ fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_ra
             }
         }
     }
-    assert!(
-        seen_cut > 100 && seen_solid > 100 && lit > 200 && shadowed > 50,
-        "cut {seen_cut}, solid {seen_solid}, lit {lit}, shadowed {shadowed}"
+    [seen_solid, seen_cut, lit, shadowed]
+}
+
+/// Whether (x, y) at z = 1 lies on the quad [-0.5, 0.5]^2: `None` within
+/// 0.0125 (a twentieth of a 4x4 texture's texel) of its edge.
+fn on_square(x: f64, y: f64) -> Option<bool> {
+    let outside = (x.abs() - 0.5).max(y.abs() - 0.5);
+    (outside.abs() > 0.0125).then_some(outside < 0.0)
+}
+
+/// alphaMode MASK: camera rays see the background through the texels
+/// whose alpha is below the cutoff and the quad elsewhere; shadow rays
+/// towards a light pass through exactly those texels, so the plane
+/// behind is lit where the shadow ray, traced here, crosses the quad at
+/// a cut texel or misses it, and holds only the ambient term elsewhere.
+/// (The quad is double-sided: the shadow rays meet its back.)
+#[test]
+fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_rays() {
+    let dir = tmpdir("tex-cutout");
+    // 4x4 texels, alpha 0 or 255 in a pattern; NEAREST, so each texel is a square.
+    let alpha = [1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0, 1, 1, 0];
+    let texels: Vec<[u8; 4]> = alpha.iter().map(|&a| [255, 255, 255, a * 255]).collect();
+    write_png(&dir, 4, 4, &texels);
+    // The quad [-0.5, 0.5]^2 at z = 1, emissive red, over the white plane z = 0.
+    let model = textured_quad(
+        &dir,
+        0.5,
+        1.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"baseColorTexture":{"index":0},"metallicFactor":0},
+            "emissiveFactor":[1,0,0],"alphaMode":"MASK","doubleSided":true,
+            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
+        r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
     );
+    let texel = |x: f64, y: f64| -> Option<bool> {
+        let (u, v) = ((x + 0.5) * 4.0, (0.5 - y) * 4.0);
+        let outside = (-u).max(u - 4.0).max(-v).max(v - 4.0);
+        if outside > 0.0 {
+            return (outside > 0.05).then_some(false);
+        }
+        let edge = (u - u.round()).abs().min((v - v.round()).abs());
+        (edge > 0.05).then_some(alpha[(v as usize) * 4 + u as usize] == 1)
+    };
+    let [solid, cut, lit, shadowed] = quad_over_lit_plane(&dir, &model, &texel, &texel);
+    assert!(
+        cut > 100 && solid > 100 && lit > 200 && shadowed > 50,
+        "cut {cut}, solid {solid}, lit {lit}, shadowed {shadowed}"
+    );
+}
+
+/// glTF `doubleSided` false (the default): a ray meeting the back face of
+/// a single-sided surface passes through it, camera and shadow rays
+/// alike, whichever way the node turns the quad (a rotation, or a mirror
+/// whose negative determinant reverses the winding that makes the front);
+/// a double-sided quad is solid from both sides. The quad lies between
+/// the camera (and the light, on the camera's side) and the plane.
+#[test]
+fn a_single_sided_surface_is_cut_away_from_behind_for_camera_and_shadow_rays() {
+    let never = |_: f64, _: f64| Some(false);
+    for (case, z, node, double_sided, front_to_camera) in [
+        ("facing the camera", 1.0, r#"{"mesh":0}"#, false, true),
+        (
+            "turned away",
+            -1.0,
+            r#"{"mesh":0,"rotation":[1,0,0,0]}"#,
+            false,
+            false,
+        ),
+        (
+            "mirrored away",
+            -1.0,
+            r#"{"mesh":0,"scale":[1,1,-1]}"#,
+            false,
+            false,
+        ),
+        (
+            "double-sided, turned away",
+            -1.0,
+            r#"{"mesh":0,"rotation":[1,0,0,0]}"#,
+            true,
+            false,
+        ),
+    ] {
+        let dir = tmpdir("single-sided");
+        write_png(&dir, 1, 1, &[[255; 4]]);
+        let model = textured_quad(
+            &dir,
+            0.5,
+            z,
+            &format!(
+                r#"{{"pbrMetallicRoughness":{{"baseColorFactor":[0,0,0,1],"metallicFactor":0}},
+                    "emissiveFactor":[1,0,0],"doubleSided":{double_sided},
+                    "extensions":{{"KHR_materials_specular":{{"specularFactor":0}}}}}}"#
+            ),
+            "{}",
+        );
+        set_quad_node(&dir, &model, node);
+        // The camera sees the front, or the back of a double-sided quad;
+        // the shadow rays (going up to the light) meet the side facing
+        // away from the camera.
+        let camera: Solid = if front_to_camera || double_sided {
+            &on_square
+        } else {
+            &never
+        };
+        let shadow: Solid = if !front_to_camera || double_sided {
+            &on_square
+        } else {
+            &never
+        };
+        let [solid, through, lit, shadowed] = quad_over_lit_plane(&dir, &model, camera, shadow);
+        let seen = front_to_camera || double_sided;
+        let casts = !front_to_camera || double_sided;
+        assert!(
+            (solid > 300) == seen
+                && (through > 300) != seen
+                && lit > 300
+                && (shadowed > 100) == casts,
+            "{case}: quad seen in {solid} pixels, plane through its square in {through}, lit {lit}, shadowed {shadowed}"
+        );
+    }
 }
 
 /// The path integrator takes a model file's material as its glTF BSDF at

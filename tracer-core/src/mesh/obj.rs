@@ -481,6 +481,8 @@ fn mtl_maps(m: &tobj::Material, images: &mut MtlImages) -> Option<Pbr> {
         alpha_texture: alpha,
         emissive,
         emissive_texture,
+        // OBJ has no notion of sidedness: both faces render.
+        double_sided: true,
         ..Pbr::default()
     })
 }

@@ -62,7 +62,7 @@ impl<R: Real> World<R> {
         for _ in 0..MAX_CUTOUT_LAYERS {
             let (t, id) = hit?;
             let p = ray.at(t0 + t);
-            if !self.cut_away(id, p) {
+            if !self.cut_away(id, p, ray.dir) {
                 return Some((t0 + t, id));
             }
             t0 += t;
@@ -71,21 +71,40 @@ impl<R: Real> World<R> {
         hit.map(|(t, id)| (t0 + t, id))
     }
 
-    /// Whether the point `p` of primitive `id` is cut away (a MASK
-    /// material's alpha there is below its cutoff).
-    pub fn cut_away(&self, id: PrimId, p: R::V3) -> bool {
-        if id.kind() != PrimId::TRIANGLE {
-            return false;
-        }
-        let m = &self.materials[self.triangle_shading[id.index()].material as usize];
+    /// Whether the point `p` of primitive `id`, met along `dir`, is cut
+    /// away: a MASK material's alpha there is below its cutoff, or `dir`
+    /// meets the back face of a single-sided surface
+    /// (`Pbr::culls_back_faces`).
+    pub fn cut_away(&self, id: PrimId, p: R::V3, dir: R::V3) -> bool {
+        let (material, normal) = match id.kind() {
+            PrimId::TRIANGLE => {
+                let s = &self.triangle_shading[id.index()];
+                (s.material, s.normal)
+            }
+            PrimId::INSTANCE_TRIANGLE => {
+                let (_, n, material) = self.instances.surface(id.index(), p);
+                (material, n)
+            }
+            _ => return false,
+        };
+        let m = &self.materials[material as usize];
         if m.pbr == crate::material::NO_PBR {
             return false;
         }
         let pbr = &self.pbr[m.pbr as usize];
+        if pbr.culls_back_faces() && normal.dot(dir) > R::ZERO {
+            return true;
+        }
         if pbr.alpha_mode != crate::material::AlphaMode::Mask {
             return false;
         }
-        let (uv, colour) = self.attrs_at(id.index(), p);
+        // An instance's triangles keep no attributes (textured meshes are
+        // copied): its alpha is the factor's.
+        let (uv, colour) = if id.kind() == PrimId::TRIANGLE {
+            self.attrs_at(id.index(), p)
+        } else {
+            ([[0.0; 2]; 2], [1.0; 4])
+        };
         pbr.cut_away(uv, colour)
     }
 
@@ -253,10 +272,11 @@ impl<R: Real> World<R> {
     /// `out[j] = self.closest_hit(&rays[j], skip)` for every ray, the same
     /// answers; in `f32` with a tree, packets of [`bvh::PACKET`] rays go
     /// through the tree together ([`bvh::closest_hits`]), which pays for
-    /// coherent rays (neighbouring camera rays).
+    /// coherent rays (neighbouring camera rays). A packet's hit on a
+    /// cut-out goes on alone, as `closest_hit` does.
     pub fn closest_hits(&self, rays: &[Ray<R>], skip: PrimId, out: &mut [Option<(R, PrimId)>]) {
         assert_eq!(rays.len(), out.len());
-        let Some((w, tree)) = self.f32_tree().filter(|_| !self.attrs.cutouts) else {
+        let Some((w, tree)) = self.f32_tree() else {
             for (o, r) in out.iter_mut().zip(rays) {
                 *o = self.closest_hit(r, skip);
             }
@@ -279,17 +299,24 @@ impl<R: Real> World<R> {
             bvh::closest_hits(w, tree, rays, &mut best[..n], &mut found[..n], skip);
             for j in 0..n {
                 let hit = (found[j] != PrimId::NONE).then_some((best[j], found[j]));
-                out[j] = w.resolve(&rays[j], hit, skip);
+                let hit = w.resolve(&rays[j], hit, skip);
+                out[j] = if w.attrs.cutouts {
+                    w.through_cutouts(&rays[j], hit)
+                } else {
+                    hit
+                };
             }
         }
     }
 
     /// `out[j] = self.occluded(&rays[j], t_max[j], skip[j])` for every ray,
     /// the same answers; in `f32` with a tree, packets of [`bvh::PACKET`]
-    /// rays go through the tree together ([`bvh::occluded_hits`]).
+    /// rays go through the tree together ([`bvh::occluded_hits`]). Where
+    /// cut-outs may have blocked a ray, it is asked again alone (a cut-out
+    /// only ever takes a hit away).
     pub fn occluded_many(&self, rays: &[Ray<R>], t_max: &[R], skip: &[PrimId], out: &mut [bool]) {
         assert!(rays.len() == t_max.len() && rays.len() == skip.len() && rays.len() == out.len());
-        let Some((w, tree)) = self.f32_tree().filter(|_| !self.attrs.cutouts) else {
+        let Some((w, tree)) = self.f32_tree() else {
             for j in 0..rays.len() {
                 out[j] = self.occluded(&rays[j], t_max[j], skip[j]);
             }
@@ -310,7 +337,11 @@ impl<R: Real> World<R> {
         {
             let blocked = bvh::occluded_hits(w, tree, rays, t_max, skip);
             for (j, o) in out.iter_mut().enumerate() {
-                *o = (blocked >> j) & 1 != 0
+                let mut hit = (blocked >> j) & 1 != 0;
+                if hit && w.attrs.cutouts {
+                    hit = w.occluded(&rays[j], t_max[j], skip[j]);
+                }
+                *o = hit
                     || w.planes.iter().enumerate().any(|(i, p)| {
                         p.intersect(
                             &rays[j],

@@ -25,7 +25,8 @@ pub struct VertexAttrs {
     /// Unit tangent and bitangent sign in world space (`Mesh::tangents`),
     /// w 0 where unknown.
     pub tangent: Vec<[f32; 4]>,
-    /// Whether any material is alphaMode MASK: then every query passes
+    /// Whether any material cuts surface away (alphaMode MASK, or
+    /// single-sided: `Pbr::culls_back_faces`): then every query passes
     /// through cut-outs.
     pub cutouts: bool,
 }
@@ -74,7 +75,8 @@ impl<R: Real> TriangleSet<R> {
                 if let Some(Some(p)) = mesh.pbr.get(i) {
                     m.emission = R::V3::from_array(p.emissive);
                     m.pbr = self.pbr.len() as u32;
-                    self.attrs.cutouts |= p.alpha_mode == crate::material::AlphaMode::Mask;
+                    self.attrs.cutouts |=
+                        p.alpha_mode == crate::material::AlphaMode::Mask || p.culls_back_faces();
                     self.pbr.push(p.clone());
                     features.note_pbr(p, max_depth);
                 }

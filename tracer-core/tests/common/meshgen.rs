@@ -267,6 +267,16 @@ pub fn textured_quad_with(
     "quad.gltf".into()
 }
 
+/// Gives the node of `dir`/`model` (a [`textured_quad`]) the JSON `node`
+/// (a rotation, a scale) in place of its bare `{"mesh":0}`.
+pub fn set_quad_node(dir: &Path, model: &str, node: &str) {
+    let file = dir.join(model);
+    let json = std::fs::read_to_string(&file).unwrap();
+    let bare = r#""nodes":[{"mesh":0}]"#;
+    assert!(json.contains(bare), "{model}: no bare node");
+    std::fs::write(&file, json.replace(bare, &format!(r#""nodes":[{node}]"#))).unwrap();
+}
+
 pub fn write_png(dir: &Path, w: u32, h: u32, texels: &[[u8; 4]]) {
     let img = image::RgbaImage::from_fn(w, h, |x, y| image::Rgba(texels[(y * w + x) as usize]));
     img.save(dir.join("tex.png")).unwrap();

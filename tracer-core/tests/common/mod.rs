@@ -381,3 +381,49 @@ pub fn assert_bad_regions_refused(render: impl Fn(Rect, SampleRange) -> String) 
         "sample range 2..5 is empty or outside 0..4"
     );
 }
+
+/// Compares the 8-bit sRGB image `got` (`w` x `h`, RGB) with the golden
+/// image `name` in tests/golden/, or writes it there when TESSERA_BLESS is
+/// set. Tolerance: a channel may move by 2 levels (f32 rounding
+/// differences between compilers and CPUs near a rounding boundary); at
+/// most `per_mille` pixels in a thousand (samples that flip to another
+/// primitive or path) may move more. `Err` says how many did.
+pub fn check_golden(
+    name: &str,
+    w: u32,
+    h: u32,
+    got: Vec<u8>,
+    per_mille: usize,
+) -> Result<(), String> {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden");
+    let file = dir.join(name);
+    if std::env::var_os("TESSERA_BLESS").is_some() {
+        std::fs::create_dir_all(&dir).unwrap();
+        image::RgbImage::from_raw(w, h, got)
+            .unwrap()
+            .save(&file)
+            .unwrap();
+        return Ok(());
+    }
+    let want = image::open(&file)
+        .unwrap_or_else(|e| panic!("{}: {e} (bless with TESSERA_BLESS=1)", file.display()))
+        .to_rgb8();
+    if want.dimensions() != (w, h) {
+        return Err(format!(
+            "{name}: golden is {:?}, the render {w}x{h}",
+            want.dimensions()
+        ));
+    }
+    let over = got
+        .chunks(3)
+        .zip(want.as_raw().chunks(3))
+        .filter(|(a, b)| a.iter().zip(b.iter()).any(|(x, y)| x.abs_diff(*y) > 2))
+        .count();
+    if over * 1000 > (w * h) as usize * per_mille {
+        return Err(format!(
+            "{name}: {over} of {} pixels differ by more than 2/255",
+            w * h
+        ));
+    }
+    Ok(())
+}

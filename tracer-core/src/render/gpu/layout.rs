@@ -946,6 +946,8 @@ pub const PBR_BLEND: u32 = 2;
 pub const PBR_MTL: u32 = 4;
 /// `Pbr::varies`: hits look the material up (else the material and emission as they are).
 pub const PBR_VARIES: u32 = 8;
+/// `Pbr::culls_back_faces`: a back face is cut away for every ray.
+pub const PBR_CULL: u32 = 16;
 
 /// One vertex's attributes (`VertexAttrs`). WGSL: `struct VertexAttr`.
 #[repr(C)]
@@ -1043,7 +1045,8 @@ impl PbrData {
     }
 
     /// `None` when nothing of `w`'s model materials varies over a surface,
-    /// emits or is cut out: the kernel then renders its materials as
+    /// emits or is cut out (alpha MASK, or single-sided:
+    /// `Pbr::culls_back_faces`): the kernel then renders its materials as
     /// before model materials existed. `n_materials`: the GPU's materials.
     /// `packed`: texels packed for an earlier render, reused when they
     /// were packed from this world's images ([`TexelPack`]).
@@ -1055,7 +1058,10 @@ impl PbrData {
         use crate::material::{AlphaMode, NO_PBR};
         use crate::texture::{TextureRef, Wrap};
         let used = w.pbr.iter().any(|p| {
-            p.varies() || p.emissive.iter().any(|&e| e != 0.0) || p.alpha_mode == AlphaMode::Mask
+            p.varies()
+                || p.emissive.iter().any(|&e| e != 0.0)
+                || p.alpha_mode == AlphaMode::Mask
+                || p.culls_back_faces()
         });
         if !used {
             return None;
@@ -1114,7 +1120,8 @@ impl PbrData {
                         AlphaMode::Mask => PBR_MASK,
                         AlphaMode::Blend => PBR_BLEND,
                     } | if p.mtl { PBR_MTL } else { 0 }
-                        | if p.varies() { PBR_VARIES } else { 0 },
+                        | if p.varies() { PBR_VARIES } else { 0 }
+                        | if p.culls_back_faces() { PBR_CULL } else { 0 },
                     metallic: p.metallic as f32,
                     roughness: p.roughness as f32,
                     transmission: p.transmission as f32,

@@ -56,6 +56,7 @@ const PBR_MASK: u32 = 1u;
 const PBR_BLEND: u32 = 2u;
 const PBR_MTL: u32 = 4u;
 const PBR_VARIES: u32 = 8u;
+const PBR_CULL: u32 = 16u;
 const T_BASE: u32 = 0u;
 const T_MR: u32 = 1u;
 const T_EMISSIVE: u32 = 2u;
@@ -183,18 +184,23 @@ fn base_color_at(p: Pbr, at: Attrs) -> vec4<f32> {
     return c;
 }
 
-// world/query.rs cut_away: whether the point p of primitive id is cut
-// away (a MASK material's alpha there below its cutoff).
-fn cut_away(id: u32, p: vec3<f32>) -> bool {
+// world/query.rs cut_away: whether the point p of primitive id, met along
+// d, is cut away (a MASK material's alpha there below its cutoff, or d
+// meets the back face of a single-sided surface).
+fn cut_away(id: u32, p: vec3<f32>, d: vec3<f32>) -> bool {
     if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
         return false;
     }
     let index = id & ((1u << KIND_SHIFT) - 1u);
-    let pi = mat_pbr[shading[index].material];
+    let s = shading[index];
+    let pi = mat_pbr[s.material];
     if (pi == NONE) {
         return false;
     }
     let pb = pbrs[pi];
+    if ((pb.flags & PBR_CULL) != 0u && dot(s.normal, d) > 0.0) {
+        return true;
+    }
     if ((pb.flags & PBR_MASK) == 0u) {
         return false;
     }
@@ -215,7 +221,7 @@ fn closest_through(o: vec3<f32>, d: vec3<f32>, skip: u32, tau: f32) -> Hit {
             return h;
         }
         let p = o + d * (t0 + h.t);
-        if (!cut_away(h.id, p)) {
+        if (!cut_away(h.id, p, d)) {
             return Hit(t0 + h.t, h.id);
         }
         t0 += h.t;
