@@ -5,12 +5,14 @@
 //! signs in with the client token, reads a failed job's worker message,
 //! watches a job appear, list its settings, progress and fill in, reads
 //! the workers' rows, kills a worker mid-job and sees it gone, downloads
-//! the frame, cancels a second job from the page and picks a frame of an
-//! animation by its thumbnail. This side then checks what the browser
-//! showed against the farm: the last preview the page drew and each
-//! thumbnail equal, pixel for pixel, the frames `tessera fetch` returns,
-//! the downloaded PNG is the fetched file, and the cancelled job is
-//! cancelled.
+//! the frame, cancels a second job from the page, picks a frame of an
+//! animation by its thumbnail and shows a textured glTF asset
+//! (DamagedHelmet, submitted as it is) path-traced on the farm. This side
+//! then checks what the browser showed against the farm: the last
+//! preview the page drew, each thumbnail and the asset's frame equal,
+//! pixel for pixel, the frames `tessera fetch` returns (the asset's also
+//! equals `tessera render`'s), the downloaded PNG is the fetched file,
+//! and the cancelled job is cancelled.
 //!
 //! Chromium, chromedriver, Firefox, geckodriver and Selenium come from
 //! `scripts/test` (Debian's `chromium`, `chromium-driver` and `firefox-esr`,
@@ -250,6 +252,27 @@ fn monitor_test(browser: Browser) {
         "--frames",
         "1..3",
     ];
+    // A textured glTF asset submitted as it is (its textures travel with
+    // it): the page shows the frame the farm made of it.
+    let model = shared("scenes/gltf/DamagedHelmet/glTF/DamagedHelmet.gltf");
+    let model_settings = [
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--samples",
+        "16",
+        "--integrator",
+        "path",
+    ];
+    // Named from the repository's root where it is beside it (../shared),
+    // as for the other scenes.
+    let model = model.canonicalize().expect("the model's path");
+    let beside = repo("").canonicalize().expect("the repository's path");
+    let model_arg = match model.strip_prefix(beside.parent().expect("a parent")) {
+        Ok(rel) => Path::new("..").join(rel),
+        Err(_) => model.clone(),
+    };
     let out = dir.path().join("browser");
     std::fs::create_dir_all(&out).expect("out dir");
     let json = |a: &[&str]| serde_json::to_string(a).expect("json");
@@ -277,6 +300,9 @@ fn monitor_test(browser: Browser) {
         ])
         .args(["--anim-scene", "examples/animation.toml"])
         .args(["--anim-settings", &json(&anim)])
+        .arg("--model-scene")
+        .arg(&model_arg)
+        .args(["--model-settings", &json(&model_settings)])
         .args([
             "--victim-pid",
             &victim.child.id().to_string(),
@@ -372,6 +398,35 @@ fn monitor_test(browser: Browser) {
         );
     }
 
+    // The model's frame as the page showed it is the farm's frame, and
+    // that is `tessera render`'s of the same file, bit for bit (the
+    // textures' look is pinned by tracer-core's golden images).
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("model.json")).expect("model.json"))
+            .expect("model.json");
+    let model_dir = dir.path().join("fetched-model");
+    let o = Command::new(TESSERA)
+        .args(["fetch", meta["job"].as_str().expect("job"), "-o"])
+        .arg(&model_dir)
+        .env("TESSERA_COORDINATOR", &c.grpc)
+        .env("TESSERA_TOKEN", TOKEN)
+        .output()
+        .expect("tessera fetch");
+    ok_stdout(&o);
+    let fetched = image::open(model_dir.join("frame_0000.png"))
+        .expect("fetched frame")
+        .to_rgba8();
+    let shown = std::fs::read(out.join("model.rgba")).expect("model pixels");
+    assert!(
+        shown == fetched.as_raw().as_slice(),
+        "the page's frame of the model differs from the fetched frame"
+    );
+    assert!(
+        pixels(&model_dir.join("frame_0000.png"))
+            == reference(dir.path(), &model, 0, &model_settings),
+        "the farm's frame of the model differs from `tessera render`'s"
+    );
+
     // The job cancelled from the page is cancelled in the farm.
     let cancelled: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("cancelled.json")).expect("cancelled.json"))
@@ -399,6 +454,7 @@ fn monitor_test(browser: Browser) {
             "workers-gone.png",
             "jobs-phone.png",
             "job-dark.png",
+            "job-model.png",
         ] {
             std::fs::copy(out.join(f), to.join(f)).unwrap_or_else(|e| panic!("{f}: {e}"));
         }

@@ -193,6 +193,8 @@ def main():
     ap.add_argument("--failed-message", required=True, help="the worker's message that failed it")
     ap.add_argument("--anim-scene", required=True, help="an animated scene, for the frame thumbnails")
     ap.add_argument("--anim-settings", required=True, help="JSON list of submit arguments for it (--frames A..B)")
+    ap.add_argument("--model-scene", help="a textured model file (glTF) submitted directly, shown whole in the preview")
+    ap.add_argument("--model-settings", default="[]", help="JSON list of submit arguments for it")
     ap.add_argument("--victim-pid", type=int, required=True, help="a worker to SIGKILL mid-job")
     ap.add_argument("--victim-name", required=True)
     ap.add_argument("--out", required=True, help="folder for results and screenshots")
@@ -480,6 +482,28 @@ def main():
         if p.image_pixels("#preview")[2] != thumbs[pick][2]:
             fail(f"the preview of frame {pick} after a click differs from its thumbnail")
         step(f"{len(frames)} thumbnails, one per frame; a click shows frame {pick}")
+
+        # -- a textured model file, submitted as it is: its finished frame --
+        if a.model_scene:
+            job4 = submit(json.loads(a.model_settings), "monitor-model", a.model_scene)
+            step(f"submitted {job4} ({a.model_scene})")
+            p.go(f"{a.http}/#/jobs/{job4}")
+            wait("the model job done", 120, lambda: p.attr("#job-state", "data-state") == "done")
+            shown = wait("the settings list", 10, lambda: p.settings())
+            given = dict(zip(json.loads(a.model_settings)[::2], json.loads(a.model_settings)[1::2]))
+            want = {"Scene": a.model_scene, "Integrator": given.get("--integrator", "whitted"),
+                    "Samples": given.get("--samples")}
+            wrong = {k: (v, shown.get(k)) for k, v in want.items() if shown.get(k) != v}
+            if wrong:
+                fail(f"the model job's settings shown differ (wanted, shown): {wrong}")
+            px = wait("the model's written frame", 20,
+                      lambda: (lambda x: x if x and x[5] else None)(p.preview_pixels()))
+            with open(os.path.join(a.out, "model.rgba"), "wb") as f:
+                f.write(px[2])
+            with open(os.path.join(a.out, "model.json"), "w") as f:
+                json.dump({"job": job4, "width": px[0], "height": px[1]}, f)
+            shot(p, "job-model.png")
+            step(f"the model's frame shown, {px[0]}x{px[1]}")
 
         # -- a phone-width look at the jobs page ------------------------------
         p.d.set_window_size(390, 844)

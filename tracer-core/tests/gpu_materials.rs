@@ -154,9 +154,9 @@ fn gpu_cutout_matches_the_cpu_for_camera_and_shadow_rays() {
 /// for camera and shadow rays.
 #[test]
 fn gpu_single_sided_quads_match_the_cpu_from_front_and_back() {
-    for (case, z, node) in [
-        ("facing the camera", 1.0, r#"{"mesh":0}"#),
-        ("mirrored away", -1.0, r#"{"mesh":0,"scale":[1,1,-1]}"#),
+    for (case, z, nodes) in [
+        ("facing the camera", 1.0, [r#"{"mesh":0}"#]),
+        ("mirrored away", -1.0, [r#"{"mesh":0,"scale":[1,1,-1]}"#]),
     ] {
         let dir = tmpdir("gpu-single-sided");
         write_png(&dir, 1, 1, &[[255; 4]]);
@@ -168,7 +168,7 @@ fn gpu_single_sided_quads_match_the_cpu_from_front_and_back() {
                 "emissiveFactor":[1,0,0]}"#,
             "{}",
         );
-        set_quad_node(&dir, &model, node);
+        set_quad_node(&dir, &model, &nodes);
         let src = format!(
             "[render]\nwidth = 48\nheight = 48\nsamples = 1\n\
              [camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 53.13010235415598\n\

@@ -447,7 +447,7 @@ fn gpu_path_matches_the_cpu_on_a_single_sided_quad_seen_from_behind() {
         r#"{"pbrMetallicRoughness":{"baseColorFactor":[0.9,0.5,0.2,1],"metallicFactor":0.3,"roughnessFactor":0.4}}"#,
         "{}",
     );
-    set_quad_node(&dir, &model, r#"{"mesh":0,"scale":[1,1,-1]}"#);
+    set_quad_node(&dir, &model, &[r#"{"mesh":0,"scale":[1,1,-1]}"#]);
     let src = format!(
         "[render]\nwidth = 48\nheight = 48\nsamples = 4\nintegrator = \"path\"\nmax_depth = 4\n\
          [camera]\nposition = [0.4, 0.3, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 45\n\

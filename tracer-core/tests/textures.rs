@@ -237,29 +237,32 @@ fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_ra
 #[test]
 fn a_single_sided_surface_is_cut_away_from_behind_for_camera_and_shadow_rays() {
     let never = |_: f64, _: f64| Some(false);
-    for (case, z, node, double_sided, front_to_camera) in [
-        ("facing the camera", 1.0, r#"{"mesh":0}"#, false, true),
+    let away = r#"{"mesh":0,"rotation":[1,0,0,0]}"#;
+    for (case, z, nodes, double_sided, front_to_camera) in [
         (
-            "turned away",
-            -1.0,
-            r#"{"mesh":0,"rotation":[1,0,0,0]}"#,
+            "facing the camera",
+            1.0,
+            &[r#"{"mesh":0}"#][..],
             false,
-            false,
+            true,
         ),
+        ("turned away", -1.0, &[away][..], false, false),
         (
             "mirrored away",
             -1.0,
-            r#"{"mesh":0,"scale":[1,1,-1]}"#,
+            &[r#"{"mesh":0,"scale":[1,1,-1]}"#][..],
             false,
             false,
         ),
+        // Two nodes place one mesh: stored once, instanced.
         (
-            "double-sided, turned away",
+            "instanced, turned away",
             -1.0,
-            r#"{"mesh":0,"rotation":[1,0,0,0]}"#,
-            true,
+            &[away, away][..],
+            false,
             false,
         ),
+        ("double-sided, turned away", -1.0, &[away][..], true, false),
     ] {
         let dir = tmpdir("single-sided");
         write_png(&dir, 1, 1, &[[255; 4]]);
@@ -274,7 +277,16 @@ fn a_single_sided_surface_is_cut_away_from_behind_for_camera_and_shadow_rays() {
             ),
             "{}",
         );
-        set_quad_node(&dir, &model, node);
+        set_quad_node(&dir, &model, nodes);
+        if nodes.len() > 1 {
+            let scene = SceneDesc::parse(
+                &format!("[camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\n[[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"),
+                dir.join("scene.toml"),
+            )
+            .unwrap();
+            let world = tracer_core::world::World::<f32>::build(&scene, &scene.render, 0);
+            assert_eq!(world.instances.list.len(), nodes.len(), "{case}");
+        }
         // The camera sees the front, or the back of a double-sided quad;
         // the shadow rays (going up to the light) meet the side facing
         // away from the camera.

@@ -43,6 +43,8 @@ pub struct SettingsJson {
     pub width: u32,
     pub height: u32,
     pub samples: u32,
+    /// "whitted" or "path".
+    pub integrator: String,
     pub max_depth: u32,
     pub sampler: String,
     pub first_frame: u32,
@@ -201,6 +203,7 @@ impl From<&JobView> for JobJson {
                 width: v.settings.width,
                 height: v.settings.height,
                 samples: v.settings.samples,
+                integrator: v.settings.integrator.name().into(),
                 max_depth: v.settings.max_depth,
                 sampler: v.settings.sampler.name().into(),
                 first_frame: r.first_frame,

@@ -267,14 +267,25 @@ pub fn textured_quad_with(
     "quad.gltf".into()
 }
 
-/// Gives the node of `dir`/`model` (a [`textured_quad`]) the JSON `node`
-/// (a rotation, a scale) in place of its bare `{"mesh":0}`.
-pub fn set_quad_node(dir: &Path, model: &str, node: &str) {
+/// Gives `dir`/`model` (a [`textured_quad`]) the nodes `nodes` (JSON
+/// objects placing mesh 0: a rotation, a scale; all in the scene) in
+/// place of its one bare `{"mesh":0}`.
+pub fn set_quad_node(dir: &Path, model: &str, nodes: &[&str]) {
     let file = dir.join(model);
     let json = std::fs::read_to_string(&file).unwrap();
-    let bare = r#""nodes":[{"mesh":0}]"#;
-    assert!(json.contains(bare), "{model}: no bare node");
-    std::fs::write(&file, json.replace(bare, &format!(r#""nodes":[{node}]"#))).unwrap();
+    let (bare, scene) = (r#""nodes":[{"mesh":0}]"#, r#""scenes":[{"nodes":[0]}]"#);
+    assert!(
+        json.contains(bare) && json.contains(scene),
+        "{model}: no bare node"
+    );
+    let listed: Vec<String> = (0..nodes.len()).map(|i| i.to_string()).collect();
+    let json = json
+        .replace(bare, &format!(r#""nodes":[{}]"#, nodes.join(",")))
+        .replace(
+            scene,
+            &format!(r#""scenes":[{{"nodes":[{}]}}]"#, listed.join(",")),
+        );
+    std::fs::write(&file, json).unwrap();
 }
 
 pub fn write_png(dir: &Path, w: u32, h: u32, texels: &[[u8; 4]]) {

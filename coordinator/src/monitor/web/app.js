@@ -450,7 +450,7 @@ function updateJob(job) {
     : [["Samples", s.samples]];
   $("#settings").innerHTML = [
     ["Scene", s.scene], ["Size", `${s.width} × ${s.height}`], ...samples,
-    ["Max depth", s.max_depth], ["Sampler", s.sampler],
+    ["Integrator", s.integrator], ["Max depth", s.max_depth], ["Sampler", s.sampler],
     ["Frames", s.first_frame === s.last_frame ? s.first_frame : `${s.first_frame}–${s.last_frame}`],
     ["Tile size", s.tile_size], ["Samples a unit", s.samples_per_unit], ["Attempts a unit", s.max_attempts],
   ].map(([k, v]) => `<dt>${esc(k)}</dt><dd>${esc(v)}</dd>`).join("");
