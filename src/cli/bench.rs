@@ -41,8 +41,8 @@ pub struct BenchArgs {
     #[arg(long, value_enum, default_value_t = BenchBackend::Cpu)]
     pub backend: BenchBackend,
     /// How light is integrated in the resolution, samples, complexity,
-    /// depth, precision, distributed and multi-gpu suites: whitted or path
-    /// (the CPU backend only, for now; docs/path-tracing.md)
+    /// depth, precision, distributed, adaptive and multi-gpu suites:
+    /// whitted or path, on either backend (docs/path-tracing.md)
     #[arg(long, default_value = "whitted", value_parser = clap::builder::PossibleValuesParser::new(["whitted", "path"]).map(|s| s.parse::<tracer_core::scene::Integrator>().unwrap()))]
     pub integrator: tracer_core::scene::Integrator,
     /// Output directory: one CSV per suite, the images, and plots (PNG and SVG)

@@ -183,6 +183,58 @@ fn gpu_single_sided_quads_match_the_cpu_from_front_and_back() {
     }
 }
 
+/// A moving mesh's model materials keep only their factors on the GPU
+/// (distributed effects): a single-sided glTF quad on one, whose back
+/// faces the CPU cuts away, is refused by name; the same quad
+/// double-sided renders as on the CPU.
+#[test]
+fn gpu_refuses_a_moving_single_sided_mesh_and_renders_a_double_sided_one() {
+    for double_sided in [false, true] {
+        let dir = tmpdir("gpu-moving-sided");
+        write_png(&dir, 1, 1, &[[255; 4]]);
+        let model = textured_quad(
+            &dir,
+            0.5,
+            0.0,
+            &format!(
+                r#"{{"pbrMetallicRoughness":{{"baseColorFactor":[0.8,0.3,0.2,1],"metallicFactor":0}},
+                    "doubleSided":{double_sided}}}"#
+            ),
+            "{}",
+        );
+        let src = format!(
+            "[render]\nwidth = 24\nheight = 24\nsamples = 4\n\
+             [camera]\nposition = [0, 0, 3]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 40\nshutter = [0, 1]\n\
+             [world]\nambient = [0.3, 0.3, 0.3]\n\
+             [[lights]]\nposition = [0, 1, 3]\n\
+             [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n{}",
+            common::meshgen::keyframes_along_x(-0.3, 0.3)
+        );
+        let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+        let prepared = PreparedFrame::build(&scene, &scene.render, 0, Precision::F32).unwrap();
+        let got = gpu_with(Strategy::Stack).expect("an adapter").render(
+            &prepared,
+            0,
+            Rect::full(24, 24),
+            SampleRange::all(4),
+            &|_| {},
+        );
+        if double_sided {
+            assert!(got.is_ok(), "{:?}", got.err());
+            assert_agree("moving double-sided quad", &scene, 1e-5, 1e-6);
+        } else {
+            let Err(e) = got else {
+                panic!("a moving single-sided mesh was not refused")
+            };
+            let e = e.to_string();
+            assert!(
+                e.contains("single-sided surfaces (glTF doubleSided false) on a moving mesh"),
+                "{e}"
+            );
+        }
+    }
+}
+
 /// COLOR_0 multiplies the base colour, interpolated over the triangles.
 #[test]
 fn gpu_vertex_colours_match_the_cpu() {

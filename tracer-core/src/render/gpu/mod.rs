@@ -913,7 +913,8 @@ fn classify(e: wgpu::Error) -> GpuError {
 /// vertex colours, emission and cut-outs of the static world are
 /// pbr.wgsl's, under both integrators (path.wgsl `bsdf_at`); a moving
 /// mesh's model materials keep only their factors on the GPU, so those
-/// that vary, emit or cut out are refused.
+/// that vary, emit or cut out (a single-sided one cuts its back faces
+/// away) are refused.
 fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
     let moving = world
         .dist
@@ -924,9 +925,10 @@ fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
             p.varies()
                 || p.emissive.iter().any(|&e| e != 0.0)
                 || p.alpha_mode == crate::material::AlphaMode::Mask
+                || p.culls_back_faces()
         });
     moving.then(|| {
-        "textures, vertex colours, emission or cut-outs on a moving mesh (distributed effects)"
+        "textures, vertex colours, emission, cut-outs or single-sided surfaces (glTF doubleSided false) on a moving mesh (distributed effects)"
             .to_string()
     })
 }
