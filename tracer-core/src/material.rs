@@ -97,6 +97,13 @@ pub struct Pbr {
     pub mtl: bool,
     /// MTL `map_d`: its first channel times its alpha multiplies alpha.
     pub alpha_texture: Option<TextureRef>,
+    /// MTL `bump`/`map_Bump`: a height field (its first channel) that
+    /// displaces the surface along its normal by `bump_scale` (`-bm`, 1 by
+    /// default) times its value, in the surface's units; the shading
+    /// normal is the displaced surface's (`render::step::shading_normal`),
+    /// as Mitsuba's `bumpmap` makes it. Never set beside `normal_texture`.
+    pub bump_texture: Option<TextureRef>,
+    pub bump_scale: f64,
 }
 
 impl Default for Pbr {
@@ -125,6 +132,8 @@ impl Default for Pbr {
             vertex_colors: false,
             mtl: false,
             alpha_texture: None,
+            bump_texture: None,
+            bump_scale: 1.0,
         }
     }
 }
@@ -140,6 +149,7 @@ impl Pbr {
             &self.occlusion_texture,
             &self.alpha_texture,
             &self.normal_texture,
+            &self.bump_texture,
         ]
         .into_iter()
         .flatten()
@@ -333,6 +343,7 @@ impl Pbr {
             || self.metallic_roughness_texture.is_some()
             || self.occlusion_texture.is_some()
             || self.normal_texture.is_some()
+            || self.bump_texture.is_some()
     }
 }
 

@@ -235,6 +235,17 @@ fn gpu_refuses_a_moving_single_sided_mesh_and_renders_a_double_sided_one() {
     }
 }
 
+/// OBJ bump maps (tests/textures.rs checks the CPU against the displaced
+/// surface's normal) and a `norm` map beside one, on the GPU as on the CPU.
+#[test]
+fn gpu_obj_bump_and_norm_maps_match_the_cpu() {
+    let light = [-0.6, 0.3, 1.0];
+    for (tag, norm) in [("gpu-bump", None), ("gpu-bump-norm", Some([150, 110, 240]))] {
+        let scene = bumped_obj_quad(tag, 0.75, norm, light);
+        assert_agree(tag, &scene, 1e-5, 1e-6);
+    }
+}
+
 /// COLOR_0 multiplies the base colour, interpolated over the triangles.
 #[test]
 fn gpu_vertex_colours_match_the_cpu() {

@@ -450,3 +450,59 @@ fn a_normal_mapped_quad_under_one_light_follows_the_cosine_law_with_the_perturbe
         }
     }
 }
+
+/// An MTL bump map displaces the surface along its normal by `-bm` times
+/// the height (docs/meshes.md, "Bump maps"): on the quad of
+/// [`bumped_obj_quad`] the ramp rises 16/15 per unit of u, u spans 2 units
+/// of x, so the displaced surface z = bm (16/15) x / 2 has the normal
+/// (-s, 0, 1) / |.| with s = bm 8 / 15, and the centre pixel is 0.8 n.l,
+/// computed here in f64, for both signs of `-bm` and two lights. A `norm`
+/// map given beside it wins (the texel's normal, flat here).
+#[test]
+fn an_obj_bump_map_tilts_the_normal_as_the_displaced_surface_does() {
+    let centre = |img: &[[f32; 3]]| img[15 * 31 + 15];
+    for (k, (bm, light)) in [
+        (0.25, [1.0, 0.0, 1.0]),
+        (-0.5, [1.0, 0.0, 1.0]),
+        (0.75, [-0.6, 0.3, 1.0]),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let img = render(&common::bumped_obj_quad(
+            &format!("bump-{k}"),
+            bm,
+            None,
+            light,
+        ));
+        let s = bm * 8.0 / 15.0;
+        let n = [-s, 0.0, 1.0];
+        let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let want = 0.8 * dot(n, light) / (dot(n, n) * dot(light, light)).sqrt();
+        let got = centre(&img);
+        for c in got {
+            assert!(
+                (c as f64 - want).abs() < 1e-5,
+                "bm {bm}, light {light:?}: {got:?}, want {want}"
+            );
+        }
+    }
+    // `norm` (the flat normal (0, 0, 1) as 128, 128, 255) takes the place
+    // of the bump map: the plain cosine law.
+    let light = [1.0, 0.0, 1.0];
+    let img = render(&common::bumped_obj_quad(
+        "bump-norm",
+        0.75,
+        Some([128, 128, 255]),
+        light,
+    ));
+    let got = centre(&img);
+    // x and y are 128 / 255 * 2 - 1 = 1 / 255, z is 1.
+    let xy = 128.0f64 / 255.0 * 2.0 - 1.0;
+    let n = [xy, xy, 1.0];
+    let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+    let want = 0.8 * (n[0] + n[2]) / len / 2f64.sqrt();
+    for c in got {
+        assert!((c as f64 - want).abs() < 1e-4, "norm: {got:?}, want {want}");
+    }
+}

@@ -140,6 +140,9 @@ pub(super) fn load(
     if need_default {
         mesh.materials.push(("default".into(), default_material()));
     }
+    // `norm` maps need tangents: OBJ has none, so MikkTSpace's.
+    let pbr = mesh.pbr.clone();
+    super::tangents::complete(&mut mesh, &pbr);
     Ok(mesh)
 }
 
@@ -448,8 +451,8 @@ fn map_material(m: &tobj::Material) -> MaterialDesc {
 /// `map_Kd` (multiplying Kd and Ka), `Ke` and `map_Ke` (emission),
 /// `map_d` (a cut-out where its value is below 0.5), each with the `-s`
 /// and `-o` options (scale and offset of the texture coordinates) and
-/// `-clamp on`. `bump`/`map_Bump`/`norm` are not read yet (the shading
-/// step does not perturb normals).
+/// `-clamp on`; `norm` (a tangent-space normal map, as glTF's) or else
+/// `bump`/`map_Bump` (a height field, scaled by its `-bm`).
 fn mtl_maps(m: &tobj::Material, images: &mut MtlImages) -> Option<Pbr> {
     let what = |slot: &str| format!("material {:?} {slot}", m.name);
     let param = |k: &str| m.unknown_param.get(k).map(String::as_str);
@@ -459,6 +462,14 @@ fn mtl_maps(m: &tobj::Material, images: &mut MtlImages) -> Option<Pbr> {
     let base = tex(m.diffuse_texture.as_deref(), true, "map_Kd");
     let emissive_texture = tex(param("map_Ke"), true, "map_Ke");
     let alpha = tex(m.dissolve_texture.as_deref(), false, "map_d");
+    let normal_texture = tex(param("norm"), false, "norm");
+    let (bump_texture, bump_scale) = match (&normal_texture, m.normal_texture.as_deref()) {
+        (None, Some(spec)) => (
+            tex(Some(spec), false, "bump"),
+            map_options(spec).map_or(1.0, |o| o.bm),
+        ),
+        _ => (None, 1.0),
+    };
     let emissive = m
         .emissive
         .map_or([0.0; 3], |e| e.map(|c| f64::from(c).max(0.0)));
@@ -467,7 +478,13 @@ fn mtl_maps(m: &tobj::Material, images: &mut MtlImages) -> Option<Pbr> {
     } else {
         emissive
     };
-    if base.is_none() && emissive_texture.is_none() && alpha.is_none() && emissive == [0.0; 3] {
+    if base.is_none()
+        && emissive_texture.is_none()
+        && alpha.is_none()
+        && normal_texture.is_none()
+        && bump_texture.is_none()
+        && emissive == [0.0; 3]
+    {
         return None;
     }
     Some(Pbr {
@@ -481,6 +498,9 @@ fn mtl_maps(m: &tobj::Material, images: &mut MtlImages) -> Option<Pbr> {
         alpha_texture: alpha,
         emissive,
         emissive_texture,
+        normal_texture,
+        bump_texture,
+        bump_scale,
         // OBJ has no notion of sidedness: both faces render.
         double_sided: true,
         ..Pbr::default()
@@ -499,7 +519,12 @@ impl MtlImages<'_> {
     /// The map statement's arguments `spec` (options, then the file) as a
     /// texture, or `None` with a warning naming the file.
     fn texture(&mut self, spec: &str, srgb: bool, slot: &str) -> Option<TextureRef> {
-        let (file, transform, clamp) = match map_options(spec) {
+        let MapOptions {
+            file,
+            transform,
+            clamp,
+            ..
+        } = match map_options(spec) {
             Ok(o) => o,
             Err(e) => {
                 self.warnings
@@ -549,9 +574,9 @@ impl MtlImages<'_> {
 /// coordinates and whether `-clamp on` is given. The transform acts on
 /// OBJ's coordinates (v up): u' = s_u u + o_u, v' = s_v v + o_v, written
 /// in texture space (v down, v = 1 - v_obj).
-fn map_options(spec: &str) -> Result<(String, [[f32; 3]; 2], bool), String> {
+fn map_options(spec: &str) -> Result<MapOptions, String> {
     let words: Vec<&str> = spec.split_whitespace().collect();
-    let (mut s, mut o, mut clamp) = ([1.0f32; 3], [0.0f32; 3], false);
+    let (mut s, mut o, mut clamp, mut bm) = ([1.0f32; 3], [0.0f32; 3], false, 1.0f64);
     let mut i = 0;
     // Options and how many values each takes (at most).
     let takes = |opt: &str| match opt {
@@ -594,6 +619,11 @@ fn map_options(spec: &str) -> Result<(String, [[f32; 3]; 2], bool), String> {
                 clamp = words.get(i).is_some_and(|w| *w == "on");
                 i += 1;
             }
+            "-bm" => {
+                if let Some(&v) = vals.first() {
+                    bm = v as f64;
+                }
+            }
             "-imfchan" | "-type" => i += 1,
             _ => {}
         }
@@ -609,5 +639,20 @@ fn map_options(spec: &str) -> Result<(String, [[f32; 3]; 2], bool), String> {
     } else {
         [[s[0], 0.0, o[0]], [0.0, s[1], 1.0 - s[1] - o[1]]]
     };
-    Ok((file, transform, clamp))
+    Ok(MapOptions {
+        file,
+        transform,
+        clamp,
+        bm,
+    })
+}
+
+/// What a map statement says: its file, the `-o`/`-s` transform of the
+/// texture coordinates (see [`map_options`]), `-clamp on`, and `-bm` (a
+/// bump map's multiplier, 1 by default).
+struct MapOptions {
+    file: String,
+    transform: [[f32; 3]; 2],
+    clamp: bool,
+    bm: f64,
 }

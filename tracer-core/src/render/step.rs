@@ -475,10 +475,11 @@ pub fn material_at<R: Real>(
 /// material's glTF `normalTexture` where it has one (docs/meshes.md,
 /// "Normal maps"): the texel's tangent-space normal (2 c - 1, x and y
 /// times `normalTexture.scale`) in the frame of the interpolated vertex
-/// normal N, the tangent T made orthogonal to N, and B = w N x T;
-/// reversed where the viewer is on N's far side (a double-sided back
-/// face); the untilted normal where the tilted one would face away from
-/// the viewer. pbr.wgsl `normal_mapped` is its mirror.
+/// normal N, the tangent T made orthogonal to N, and B = w N x T; or by
+/// an MTL bump map ([`bumped_normal`]). Reversed where the viewer is on
+/// N's far side (a double-sided back face); the untilted normal where the
+/// tilted one would face away from the viewer. pbr.wgsl `normal_mapped`
+/// is its mirror.
 #[inline]
 pub fn shading_normal<R: Real>(
     world: &World<R>,
@@ -494,31 +495,40 @@ pub fn shading_normal<R: Real>(
         return ns;
     }
     let pbr = &world.pbr[m.pbr as usize];
-    let Some(tex) = &pbr.normal_texture else {
-        return ns;
-    };
-    let Some((uv, t)) = world.tangent_at(id.index(), p) else {
-        return ns;
-    };
-    let c = tex.sample(uv[tex.uv_set as usize]);
-    let scale = pbr.normal_scale as f32;
-    let local = [
-        (2.0 * c[0] - 1.0) * scale,
-        (2.0 * c[1] - 1.0) * scale,
-        2.0 * c[2] - 1.0,
-    ]
-    .map(|x| R::from_f64(x as f64));
-    let normal = world.triangle_shading[id.index()].normal_at(&world.triangles[id.index()], p);
-    let tangent = R::V3::from_array([t[0], t[1], t[2]].map(f64::from));
-    let along = tangent - normal * normal.dot(tangent);
-    let len = along.length();
-    if !(len > R::ZERO && len.is_finite()) {
+    if pbr.normal_texture.is_none() && pbr.bump_texture.is_none() {
         return ns;
     }
-    let along = along * (R::ONE / len);
-    let sign = if t[3] < 0.0 { -R::ONE } else { R::ONE };
-    let across = normal.cross(along) * sign;
-    let tilted = along * local[0] + across * local[1] + normal * local[2];
+    let normal = world.triangle_shading[id.index()].normal_at(&world.triangles[id.index()], p);
+    let tilted = if let Some(tex) = &pbr.normal_texture {
+        let Some((uv, t)) = world.tangent_at(id.index(), p) else {
+            return ns;
+        };
+        let c = tex.sample(uv[tex.uv_set as usize]);
+        let scale = pbr.normal_scale as f32;
+        let local = [
+            (2.0 * c[0] - 1.0) * scale,
+            (2.0 * c[1] - 1.0) * scale,
+            2.0 * c[2] - 1.0,
+        ]
+        .map(|x| R::from_f64(x as f64));
+        let tangent = R::V3::from_array([t[0], t[1], t[2]].map(f64::from));
+        let along = tangent - normal * normal.dot(tangent);
+        let len = along.length();
+        if !(len > R::ZERO && len.is_finite()) {
+            return ns;
+        }
+        let along = along * (R::ONE / len);
+        let sign = if t[3] < 0.0 { -R::ONE } else { R::ONE };
+        let across = normal.cross(along) * sign;
+        along * local[0] + across * local[1] + normal * local[2]
+    } else if let Some(tex) = &pbr.bump_texture {
+        match bumped_normal(world, id.index(), p, tex, pbr.bump_scale, normal) {
+            Some(b) => b,
+            None => return ns,
+        }
+    } else {
+        return ns;
+    };
     let len = tilted.length();
     if !(len > R::ZERO && len.is_finite()) {
         return ns;
@@ -528,6 +538,53 @@ pub fn shading_normal<R: Real>(
         tilted = -tilted;
     }
     if tilted.dot(v) > R::ZERO { tilted } else { ns }
+}
+
+/// The normal (not unit) of triangle `index`'s surface displaced along its
+/// unit normal `normal` by `scale` x the bump map `tex` (a height field,
+/// first channel) at `p`: (dp/du + h_u scale N) x (dp/dv + h_v scale N),
+/// turned to N's side, with dp/du and dp/dv from the triangle's corners
+/// and texture coordinates and the height's derivatives by central
+/// differences one texel apart through the texture's filter (Mitsuba's
+/// `bumpmap`). `None` where the triangle's texture coordinates span no
+/// area. pbr.wgsl `bumped_normal` is its mirror.
+fn bumped_normal<R: Real>(
+    world: &World<R>,
+    index: usize,
+    p: R::V3,
+    tex: &crate::texture::TextureRef,
+    scale: f64,
+    normal: R::V3,
+) -> Option<R::V3> {
+    let a = world.triangle_shading[index].attrs;
+    if a == crate::triangle::NO_ATTRS {
+        return None;
+    }
+    let set = tex.uv_set as usize;
+    let uvs = world.attrs.tri[a as usize].map(|k| world.attrs.uv[set][k as usize]);
+    let [p0, p1, p2] = world.triangles[index].vertices();
+    let (e1, e2) = (p1 - p0, p2 - p0);
+    let d1 = [uvs[1][0] - uvs[0][0], uvs[1][1] - uvs[0][1]];
+    let d2 = [uvs[2][0] - uvs[0][0], uvs[2][1] - uvs[0][1]];
+    let det = d1[0] * d2[1] - d2[0] * d1[1];
+    if !(det != 0.0 && det.is_finite()) {
+        return None;
+    }
+    let f = |x: f32| R::from_f64(x as f64);
+    let inv = f(1.0 / det);
+    let dpdu = (e1 * f(d2[1]) - e2 * f(d1[1])) * inv;
+    let dpdv = (e2 * f(d1[0]) - e1 * f(d2[0])) * inv;
+    let (uv, _) = world.attrs_at(index, p);
+    let [u, v] = uv[set];
+    let (du, dv) = (1.0 / tex.image.width as f32, 1.0 / tex.image.height as f32);
+    let h = |u: f32, v: f32| tex.sample([u, v])[0];
+    let hu = (h(u + du, v) - h(u - du, v)) / (2.0 * du);
+    let hv = (h(u, v + dv) - h(u, v - dv)) / (2.0 * dv);
+    let k = scale as f32;
+    let pu = dpdu + normal * f(hu * k);
+    let pv = dpdv + normal * f(hv * k);
+    let b = pu.cross(pv);
+    Some(if b.dot(normal) < R::ZERO { -b } else { b })
 }
 
 impl<'a, R: Real, P: Copy> Surface<'a, R, P> {

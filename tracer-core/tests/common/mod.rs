@@ -427,3 +427,42 @@ pub fn check_golden(
     }
     Ok(())
 }
+
+/// An OBJ quad (x, y in [-1, 1], z = 0, u along x, v up y) whose MTL has
+/// `bump -bm {bm} ramp.png` (and a `norm` map where `norm` is given), a
+/// white `Kd`, no ambient, under one far light along `light` of diffuse
+/// 0.8; rendered 31x31 from (0, 0, 2): the centre pixel sees (0, 0, 0).
+pub fn bumped_obj_quad(tag: &str, bm: f64, norm: Option<[u8; 3]>, light: [f64; 3]) -> SceneDesc {
+    let dir = meshgen::tmpdir(tag);
+    // The height ramp: 16 texels across, value x / 15 at texel x.
+    let ramp = image::RgbaImage::from_fn(16, 4, |x, _| {
+        let h = (x * 17) as u8;
+        image::Rgba([h, h, h, 255])
+    });
+    ramp.save(dir.join("ramp.png")).unwrap();
+    let mut mtl = format!("newmtl bumpy\nKd 1 1 1\nKa 0 0 0\nKs 0 0 0\nbump -bm {bm} ramp.png\n");
+    if let Some(c) = norm {
+        meshgen::write_png(&dir, 1, 1, &[[c[0], c[1], c[2], 255]]);
+        mtl.push_str("norm tex.png\n");
+    }
+    std::fs::write(dir.join("quad.mtl"), mtl).unwrap();
+    std::fs::write(
+        dir.join("quad.obj"),
+        "mtllib quad.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\n\
+         vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\nusemtl bumpy\n\
+         f 1/1/1 2/2/1 3/3/1\nf 1/1/1 3/3/1 4/4/1\n",
+    )
+    .unwrap();
+    let far = 1.0e4;
+    let src = format!(
+        "[render]\nwidth = 31\nheight = 31\nsamples = 1\n\
+         [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 40\n\
+         [world]\nambient = [0, 0, 0]\n\
+         [[lights]]\nposition = [{}, {}, {}]\ndiffuse = [0.8, 0.8, 0.8]\nspecular = [0, 0, 0]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"quad.obj\"\n",
+        light[0] * far,
+        light[1] * far,
+        light[2] * far,
+    );
+    SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
+}

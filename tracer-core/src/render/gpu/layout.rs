@@ -935,9 +935,11 @@ pub struct GpuPbr {
     pub occlusion_strength: f32,
     /// normalTexture.scale.
     pub normal_scale: f32,
-    pub _pad: [f32; 2],
+    /// An MTL bump map's `-bm` (`Pbr::bump_scale`).
+    pub bump_scale: f32,
+    pub _pad: f32,
     /// Base colour, metallic-roughness, emissive, occlusion, MTL alpha,
-    /// normal (`PBR_TEX_*`).
+    /// normal or bump (`PBR_BUMP`) (`PBR_TEX_*`).
     pub tex: [GpuTexRef; 6],
 }
 
@@ -948,6 +950,8 @@ pub const PBR_MTL: u32 = 4;
 pub const PBR_VARIES: u32 = 8;
 /// `Pbr::culls_back_faces`: a back face is cut away for every ray.
 pub const PBR_CULL: u32 = 16;
+/// The normal slot holds an MTL bump map (`Pbr::bump_texture`).
+pub const PBR_BUMP: u32 = 32;
 
 /// One vertex's attributes (`VertexAttrs`). WGSL: `struct VertexAttr`.
 #[repr(C)]
@@ -1121,7 +1125,12 @@ impl PbrData {
                         AlphaMode::Blend => PBR_BLEND,
                     } | if p.mtl { PBR_MTL } else { 0 }
                         | if p.varies() { PBR_VARIES } else { 0 }
-                        | if p.culls_back_faces() { PBR_CULL } else { 0 },
+                        | if p.culls_back_faces() { PBR_CULL } else { 0 }
+                        | if p.bump_texture.is_some() {
+                            PBR_BUMP
+                        } else {
+                            0
+                        },
                     metallic: p.metallic as f32,
                     roughness: p.roughness as f32,
                     transmission: p.transmission as f32,
@@ -1132,14 +1141,19 @@ impl PbrData {
                     alpha_cutoff: cutoff,
                     occlusion_strength: p.occlusion_strength as f32,
                     normal_scale: p.normal_scale as f32,
-                    _pad: [0.0; 2],
+                    bump_scale: p.bump_scale as f32,
+                    _pad: 0.0,
                     tex: [
                         tex(&p.base_color_texture),
                         tex(&p.metallic_roughness_texture),
                         tex(&p.emissive_texture),
                         tex(&p.occlusion_texture),
                         tex(&p.alpha_texture),
-                        tex(&p.normal_texture),
+                        tex(if p.normal_texture.is_some() {
+                            &p.normal_texture
+                        } else {
+                            &p.bump_texture
+                        }),
                     ],
                 }
             })

@@ -32,8 +32,8 @@ struct Pbr {
     alpha_cutoff: f32,
     occlusion_strength: f32,
     normal_scale: f32,
-    pad1: f32,
-    pad2: f32,
+    bump_scale: f32,
+    pad: f32,
     tex: array<TexRef, 6>,
 }
 
@@ -57,6 +57,7 @@ const PBR_BLEND: u32 = 2u;
 const PBR_MTL: u32 = 4u;
 const PBR_VARIES: u32 = 8u;
 const PBR_CULL: u32 = 16u;
+const PBR_BUMP: u32 = 32u;
 const T_BASE: u32 = 0u;
 const T_MR: u32 = 1u;
 const T_EMISSIVE: u32 = 2u;
@@ -369,26 +370,35 @@ fn normal_mapped(id: u32, p: vec3<f32>, material: u32, n: vec3<f32>, ns: vec3<f3
     let va = vertex_attrs[tri_attrs[3u * a]];
     let vb = vertex_attrs[tri_attrs[3u * a + 1u]];
     let vc = vertex_attrs[tri_attrs[3u * a + 2u]];
-    if (va.tangent.w == 0.0 || vb.tangent.w == 0.0 || vc.tangent.w == 0.0) {
-        return ns;
-    }
-    let b = triangle_barycentric(index, p);
-    let t = va.tangent.xyz * b.x + vb.tangent.xyz * b.y + vc.tangent.xyz * b.z;
-    let at = attrs_at(index, p);
-    let c = tex_sample(pb.tex[T_NORMAL], at.uv0, at.uv1);
-    let local = vec3<f32>(
-        (2.0 * c.x - 1.0) * pb.normal_scale,
-        (2.0 * c.y - 1.0) * pb.normal_scale,
-        2.0 * c.z - 1.0);
     let normal = triangle_normal_at(index, p);
-    let along0 = t - normal * dot(normal, t);
-    let len0 = length(along0);
-    if (!(len0 > 0.0 && len0 <= BIG)) {
-        return ns;
+    var tilted0: vec3<f32>;
+    if ((pb.flags & PBR_BUMP) != 0u) {
+        let bumped = bumped_normal(pb, index, p, va, vb, vc, normal);
+        if (!bumped.ok) {
+            return ns;
+        }
+        tilted0 = bumped.n;
+    } else {
+        if (va.tangent.w == 0.0 || vb.tangent.w == 0.0 || vc.tangent.w == 0.0) {
+            return ns;
+        }
+        let b = triangle_barycentric(index, p);
+        let t = va.tangent.xyz * b.x + vb.tangent.xyz * b.y + vc.tangent.xyz * b.z;
+        let at = attrs_at(index, p);
+        let c = tex_sample(pb.tex[T_NORMAL], at.uv0, at.uv1);
+        let local = vec3<f32>(
+            (2.0 * c.x - 1.0) * pb.normal_scale,
+            (2.0 * c.y - 1.0) * pb.normal_scale,
+            2.0 * c.z - 1.0);
+        let along0 = t - normal * dot(normal, t);
+        let len0 = length(along0);
+        if (!(len0 > 0.0 && len0 <= BIG)) {
+            return ns;
+        }
+        let along = along0 * (1.0 / len0);
+        let across = cross(normal, along) * select(1.0, -1.0, va.tangent.w < 0.0);
+        tilted0 = along * local.x + across * local.y + normal * local.z;
     }
-    let along = along0 * (1.0 / len0);
-    let across = cross(normal, along) * select(1.0, -1.0, va.tangent.w < 0.0);
-    let tilted0 = along * local.x + across * local.y + normal * local.z;
     let len = length(tilted0);
     if (!(len > 0.0 && len <= BIG)) {
         return ns;
@@ -398,4 +408,48 @@ fn normal_mapped(id: u32, p: vec3<f32>, material: u32, n: vec3<f32>, ns: vec3<f3
         tilted = -tilted;
     }
     return select(ns, tilted, dot(tilted, v) > 0.0);
+}
+
+struct Bumped {
+    n: vec3<f32>,
+    ok: bool,
+}
+
+// render/step.rs bumped_normal: the normal (not unit) of triangle index's
+// surface displaced along its unit normal by bump_scale x the bump map
+// (the normal slot, first channel) at p, turned to the normal's side;
+// ok false where its texture coordinates span no area.
+fn bumped_normal(pb: Pbr, index: u32, p: vec3<f32>, va: VertexAttr, vb: VertexAttr, vc: VertexAttr, normal: vec3<f32>) -> Bumped {
+    let t = pb.tex[T_NORMAL];
+    let set1 = (t.flags & TEX_UV1) != 0u;
+    let ua = select(va.uv0, va.uv1, set1);
+    let ub = select(vb.uv0, vb.uv1, set1);
+    let uc = select(vc.uv0, vc.uv1, set1);
+    let tri = triangles[index];
+    let e1 = tri.v1 - tri.v0;
+    let e2 = tri.v2 - tri.v0;
+    let d1 = ub - ua;
+    let d2 = uc - ua;
+    let det = d1.x * d2.y - d2.x * d1.y;
+    if (!(det != 0.0 && abs(det) <= BIG)) {
+        return Bumped(normal, false);
+    }
+    let inv = 1.0 / det;
+    let dpdu = (e1 * d2.y - e2 * d1.y) * inv;
+    let dpdv = (e2 * d1.x - e1 * d2.x) * inv;
+    let at = attrs_at(index, p);
+    let uv = select(at.uv0, at.uv1, set1);
+    let du = 1.0 / f32(t.width);
+    let dv = 1.0 / f32(t.height);
+    let hu = (height_at(t, uv + vec2<f32>(du, 0.0)) - height_at(t, uv - vec2<f32>(du, 0.0))) / (2.0 * du);
+    let hv = (height_at(t, uv + vec2<f32>(0.0, dv)) - height_at(t, uv - vec2<f32>(0.0, dv))) / (2.0 * dv);
+    let pu = dpdu + normal * (hu * pb.bump_scale);
+    let pv = dpdv + normal * (hv * pb.bump_scale);
+    let b = cross(pu, pv);
+    return Bumped(select(b, -b, dot(b, normal) < 0.0), true);
+}
+
+// A bump map's height (first channel) at uv (of its own set).
+fn height_at(t: TexRef, uv: vec2<f32>) -> f32 {
+    return tex_sample(t, uv, uv).x;
 }
