@@ -183,6 +183,57 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
     assert_eq!((png.width(), png.height()), (900, 600));
     let headline = std::fs::read_to_string(dir.join("out/adaptive/headline.txt")).unwrap();
     assert_eq!(headline.lines().count(), 4, "{headline}");
+    // The Corona table (issue 36): each scene, backend and mode's time to
+    // 8, 4, 2 and 1% relative error. A uniform time is interpolated
+    // between its own runs (or bounded by the first), so it lies within
+    // their times; a lower error never takes less time.
+    let corona = std::fs::read_to_string(dir.join("out/adaptive/corona.md")).unwrap();
+    let table: Vec<Vec<String>> = corona
+        .lines()
+        .skip(2)
+        .map(|l| {
+            l.trim_matches('|')
+                .split('|')
+                .map(|c| c.trim().to_string())
+                .collect()
+        })
+        .collect();
+    assert_eq!(table.len(), 2 * 2 * 4, "{corona}");
+    for row in &table {
+        let times: Vec<Option<f64>> = row[4..8]
+            .iter()
+            .map(|c| {
+                c.trim_start_matches("≤ ")
+                    .strip_suffix(" s")
+                    .map(|t| t.parse::<f64>().unwrap())
+            })
+            .collect();
+        let known: Vec<f64> = times.iter().flatten().copied().collect();
+        assert!(known.windows(2).all(|w| w[0] <= w[1]), "{row:?}");
+        // Levels a mode reached come before those it did not.
+        assert!(
+            times.windows(2).all(|w| w[0].is_some() || w[1].is_none()),
+            "{row:?}"
+        );
+        if row[2] == "uniform" {
+            let own: Vec<f64> = rows
+                .iter()
+                .filter(|r| {
+                    r["scene"] == row[0] && r["backend"] == row[1] && r["mode"] == "uniform"
+                })
+                .map(|r| num(r, "wall_s"))
+                .collect();
+            let (lo, hi) = own
+                .iter()
+                .fold((f64::MAX, 0f64), |(l, h), &t| (l.min(t), h.max(t)));
+            for t in &known {
+                assert!(
+                    *t >= lo * 0.999 && *t <= hi * 1.001,
+                    "{row:?}: {t} outside its runs' {lo}..{hi}"
+                );
+            }
+        }
+    }
     // The headline plot (issue 6's "done when"): CPU and GPU curves for the
     // resolution scene, each point's error measured (every samples.csv row
     // has its RMSE, checked above).

@@ -113,6 +113,7 @@ impl Bench {
         };
         let mut runs = vec![];
         let mut headlines = vec![];
+        let mut corona = vec![];
         for (name, file) in SCENES {
             if !self.cfg.adaptive_scenes.iter().any(|s| s == name) {
                 continue;
@@ -179,6 +180,34 @@ impl Bench {
                     |c: &[(f64, f64, f64)]| c.iter().map(|p| (p.0, p.2)).collect::<Vec<_>>();
                 let by_rays =
                     |c: &[(f64, f64, f64)]| c.iter().map(|p| (p.1, p.2)).collect::<Vec<_>>();
+                // Time to each relative error, by mode (the Corona table).
+                let mean = reference
+                    .iter()
+                    .flat_map(|p| p.iter().map(|&c| c as f64))
+                    .sum::<f64>()
+                    / (3 * reference.len()).max(1) as f64;
+                let uniform_curve: Vec<(f64, f64)> =
+                    uniform.iter().map(|(_, p)| (p.0, p.2)).collect();
+                let by_mode = [
+                    uniform_curve,
+                    by_time(&curves[0]),
+                    by_time(&curves[1]),
+                    by_time(&curves[2]),
+                ];
+                for (mode, curve) in MODES.iter().zip(&by_mode) {
+                    corona.push(CoronaRow {
+                        scene: name.to_string(),
+                        backend: b,
+                        mode,
+                        mean,
+                        seconds: CORONA_LEVELS.map(|l| {
+                            // Where even its cheapest run is below the
+                            // level, that run's time is only a bound.
+                            let first = curve.iter().map(|p| p.1).fold(0.0, f64::max);
+                            time_to_reach(curve, l * mean).map(|t| (t, first <= l * mean))
+                        }),
+                    });
+                }
                 let rmse = top_point.2;
                 headlines.push(Headline {
                     scene: name.to_string(),
@@ -235,6 +264,9 @@ impl Bench {
         }
         std::fs::create_dir_all(&dir)?;
         std::fs::write(dir.join("headline.txt"), text)?;
+        let table = corona_table(&corona);
+        eprint!("{table}");
+        std::fs::write(dir.join("corona.md"), table)?;
         Ok(runs)
     }
 
@@ -503,6 +535,55 @@ fn headline_line(h: &Headline) -> String {
         xr(h.rmse_rays),
         xr(h.oracle_rays),
     )
+}
+
+/// The relative errors of the Corona table: RMSE over the reference's
+/// mean (all pixels and channels).
+pub const CORONA_LEVELS: [f64; 4] = [0.08, 0.04, 0.02, 0.01];
+
+/// One row of the Corona table: a scene, backend and mode's time to
+/// reach each of [`CORONA_LEVELS`] (`None`: its runs did not reach it),
+/// and whether that time is only an upper bound (its cheapest run was
+/// already below the level).
+#[derive(Clone, Debug)]
+pub struct CoronaRow {
+    pub scene: String,
+    pub backend: Backend,
+    pub mode: &'static str,
+    /// The reference's mean value, which the levels are relative to.
+    pub mean: f64,
+    pub seconds: [Option<(f64, bool)>; 4],
+}
+
+/// The rows as a Markdown table (docs/benchmarks.md "Adaptive
+/// sampling"): the time each mode takes to reach 8, 4, 2 and 1% relative
+/// error, log-log interpolated between its runs ([`time_to_reach`]); "-"
+/// where its runs did not get there, "≤ t" where its cheapest run (time
+/// t) was already below the level.
+pub fn corona_table(rows: &[CoronaRow]) -> String {
+    let mut t = String::from(
+        "| scene | backend | mode | reference mean | 8% | 4% | 2% | 1% |\n|---|---|---|---:|---:|---:|---:|---:|\n",
+    );
+    for r in rows {
+        let cells: Vec<String> = r
+            .seconds
+            .iter()
+            .map(|s| match s {
+                None => "-".into(),
+                Some((t, false)) => format!("{t:.3} s"),
+                Some((t, true)) => format!("≤ {t:.3} s"),
+            })
+            .collect();
+        t.push_str(&format!(
+            "| {} | {} | {} | {:.4} | {} |\n",
+            r.scene,
+            r.backend.name(),
+            r.mode,
+            r.mean,
+            cells.join(" | ")
+        ));
+    }
+    t
 }
 
 /// The time at which a curve of (seconds, rmse) points first reaches
