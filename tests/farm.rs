@@ -2618,6 +2618,7 @@ fn json_output_and_plain_progress_lines_for_scripts() {
     assert_eq!(j["state"], "done");
     assert_eq!(j["progress"], 1.0);
     assert_eq!(j["width"], 96);
+    assert_eq!(j["integrator"], "whitted");
     assert_eq!(j["frames"][0]["output"], "frame_0000.png");
     assert_eq!(j["error"], serde_json::Value::Null);
     assert_eq!(json(&["status", &job, "--json"]), *j);

@@ -86,6 +86,8 @@ pub fn job_json(j: &pb::JobStatus) -> Value {
     });
     // Issue 38's dependencies (beside the rest: one `json!` this long
     // passes the macro's recursion limit).
+    v["integrator"] =
+        json!(tessera_proto::convert::integrator_from_pb(s.integrator).map(|i| i.name()));
     v["after"] = json!(j.after);
     v["waiting_for"] = json!(j.waiting_for);
     v["blocklist_after"] = json!(j.blocklist_after);

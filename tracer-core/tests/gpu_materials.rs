@@ -130,16 +130,7 @@ fn gpu_cutout_matches_the_cpu_for_camera_and_shadow_rays() {
             "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
         r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
     );
-    let src = format!(
-        "[render]\nwidth = 64\nheight = 64\nsamples = 1\n\
-         [camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 53.13010235415598\n\
-         [world]\nambient = [0.25, 0.25, 0.25]\nbackground = [0, 0, 1]\n\
-         [materials.white]\nambient = [1, 1, 1]\ndiffuse = [1, 1, 1]\n\
-         [[lights]]\nposition = [1.5, 0, 3]\ndiffuse = [0.5, 0.5, 0.5]\nspecular = [0, 0, 0]\n\
-         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
-         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
-    );
-    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let scene = quad_over_lit_plane_scene(&dir, &model, 64);
     // Cut and solid texels both seen (the pattern on the quad), and shadows.
     let (cpu, _) = cpu_and_gpu(&scene);
     let red = cpu.iter().filter(|p| **p == [1.0, 0.0, 0.0]).count();
@@ -169,16 +160,7 @@ fn gpu_single_sided_quads_match_the_cpu_from_front_and_back() {
             "{}",
         );
         set_quad_node(&dir, &model, &nodes);
-        let src = format!(
-            "[render]\nwidth = 48\nheight = 48\nsamples = 1\n\
-             [camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 53.13010235415598\n\
-             [world]\nambient = [0.25, 0.25, 0.25]\nbackground = [0, 0, 1]\n\
-             [materials.white]\nambient = [1, 1, 1]\ndiffuse = [1, 1, 1]\n\
-             [[lights]]\nposition = [1.5, 0, 3]\ndiffuse = [0.5, 0.5, 0.5]\nspecular = [0, 0, 0]\n\
-             [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
-             [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
-        );
-        let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+        let scene = quad_over_lit_plane_scene(&dir, &model, 48);
         assert_agree(case, &scene, 1e-5, 1e-6);
     }
 }

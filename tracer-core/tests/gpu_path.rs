@@ -388,6 +388,21 @@ fn gpu_path_matches_the_cpu_on_alpha_cutouts_and_blend() {
     check_against_cpu("AlphaBlendModeTest", &path_traced(desc, 2));
 }
 
+/// The path-traced scene of the quad tests below: model file `model` in
+/// `dir` between a point light and a Lambert floor, 48x48, 4 spp, depth 4.
+fn quad_between_light_and_floor(dir: &std::path::Path, model: &str) -> SceneDesc {
+    let src = format!(
+        "[render]\nwidth = 48\nheight = 48\nsamples = 4\nintegrator = \"path\"\nmax_depth = 4\n\
+         [camera]\nposition = [0.4, 0.3, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 45\n\
+         [world]\nenvironment = [0.1, 0.1, 0.15]\n\
+         [materials.white]\ndiffuse = [0.8, 0.8, 0.8]\n\
+         [[lights]]\nposition = [0.8, 0.5, 3.5]\ndiffuse = [6, 6, 6]\n\
+         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
+}
+
 /// A textured, vertex-coloured cut-out quad between a point light and a
 /// Lambert floor: the quad's cut texels let camera rays through to the
 /// floor and next-event shadow rays through to the light, and its solid
@@ -418,16 +433,7 @@ fn gpu_path_matches_the_cpu_on_a_textured_vertex_coloured_cutout() {
         ]),
         None,
     );
-    let src = format!(
-        "[render]\nwidth = 48\nheight = 48\nsamples = 4\nintegrator = \"path\"\nmax_depth = 4\n\
-         [camera]\nposition = [0.4, 0.3, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 45\n\
-         [world]\nenvironment = [0.1, 0.1, 0.15]\n\
-         [materials.white]\ndiffuse = [0.8, 0.8, 0.8]\n\
-         [[lights]]\nposition = [0.8, 0.5, 3.5]\ndiffuse = [6, 6, 6]\n\
-         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
-         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
-    );
-    let desc = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let desc = quad_between_light_and_floor(&dir, &model);
     check_against_cpu("textured cut-out quad", &desc);
 }
 
@@ -448,16 +454,7 @@ fn gpu_path_matches_the_cpu_on_a_single_sided_quad_seen_from_behind() {
         "{}",
     );
     set_quad_node(&dir, &model, &[r#"{"mesh":0,"scale":[1,1,-1]}"#]);
-    let src = format!(
-        "[render]\nwidth = 48\nheight = 48\nsamples = 4\nintegrator = \"path\"\nmax_depth = 4\n\
-         [camera]\nposition = [0.4, 0.3, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = 45\n\
-         [world]\nenvironment = [0.1, 0.1, 0.15]\n\
-         [materials.white]\ndiffuse = [0.8, 0.8, 0.8]\n\
-         [[lights]]\nposition = [0.8, 0.5, 3.5]\ndiffuse = [6, 6, 6]\n\
-         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
-         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
-    );
-    let desc = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let desc = quad_between_light_and_floor(&dir, &model);
     check_against_cpu("single-sided quad from behind", &desc);
 }
 

@@ -99,13 +99,9 @@ fn an_emissive_textured_quad_filling_the_view_is_the_texture_resampled_through_t
 /// [`quad_over_lit_plane`]'s checks: `None` where rounding may decide.
 type Solid<'a> = &'a dyn Fn(f64, f64) -> Option<bool>;
 
-/// The light of [`quad_over_lit_plane`]'s scene.
-const QUAD_LIGHT: [f64; 3] = [1.5, 0.0, 3.0];
-
 /// The white plane z = 0 under the quad of model file `model` (emissive
-/// red, at z = 1), seen from (0, 0, 4) over [-2, 2]^2 at 64x64, lit by one
-/// point light at [`QUAD_LIGHT`] (diffuse 0.5) and an ambient 0.25, on a
-/// blue background. Checks every pixel: where `camera_solid` says the
+/// red, at z = 1) of `common::quad_over_lit_plane_scene` at 64x64.
+/// Checks every pixel: where `camera_solid` says the
 /// camera ray meets the quad solid, the quad's red; elsewhere the plane,
 /// lit where the shadow ray (traced here) crosses z = 1 where
 /// `shadow_solid` says the quad is not solid, else only the ambient term.
@@ -116,23 +112,10 @@ fn quad_over_lit_plane(
     camera_solid: Solid,
     shadow_solid: Solid,
 ) -> [usize; 4] {
-    let light = QUAD_LIGHT;
+    let light = common::QUAD_LIGHT;
     let (w, h) = (64u32, 64u32);
     let t = 0.5f64; // view [-2, 2]^2 at z = 0 from 4 away
-    let src = format!(
-        "[render]\nwidth = {w}\nheight = {h}\nsamples = 1\n\
-         [camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = {fov}\n\
-         [world]\nambient = [0.25, 0.25, 0.25]\nbackground = [0, 0, 1]\n\
-         [materials.white]\nambient = [1, 1, 1]\ndiffuse = [1, 1, 1]\n\
-         [[lights]]\nposition = [{lx}, {ly}, {lz}]\ndiffuse = [0.5, 0.5, 0.5]\nspecular = [0, 0, 0]\n\
-         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
-         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n",
-        fov = 2.0 * t.atan().to_degrees(),
-        lx = light[0],
-        ly = light[1],
-        lz = light[2],
-    );
-    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let scene = common::quad_over_lit_plane_scene(dir, model, w);
     let img = render(&scene);
     let [mut seen_solid, mut seen_cut, mut lit, mut shadowed] = [0; 4];
     for y in 0..h {

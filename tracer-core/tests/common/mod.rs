@@ -466,3 +466,26 @@ pub fn bumped_obj_quad(tag: &str, bm: f64, norm: Option<[u8; 3]>, light: [f64; 3
     );
     SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
 }
+
+/// The light of [`quad_over_lit_plane_scene`].
+pub const QUAD_LIGHT: [f64; 3] = [1.5, 0.0, 3.0];
+
+/// A model file `model` in `dir` (a quad at z = 1) over the white plane
+/// z = 0, seen from (0, 0, 4) over [-2, 2]^2 at `size` x `size`, 1 spp, lit
+/// by one point light at [`QUAD_LIGHT`] (diffuse 0.5, no specular) and an
+/// ambient 0.25, on a blue background: the cut-out and single-sided
+/// scenes of tests/textures.rs and tests/gpu_materials.rs.
+pub fn quad_over_lit_plane_scene(dir: &std::path::Path, model: &str, size: u32) -> SceneDesc {
+    let [lx, ly, lz] = QUAD_LIGHT;
+    let src = format!(
+        "[render]\nwidth = {size}\nheight = {size}\nsamples = 1\n\
+         [camera]\nposition = [0, 0, 4]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = {fov}\n\
+         [world]\nambient = [0.25, 0.25, 0.25]\nbackground = [0, 0, 1]\n\
+         [materials.white]\nambient = [1, 1, 1]\ndiffuse = [1, 1, 1]\n\
+         [[lights]]\nposition = [{lx}, {ly}, {lz}]\ndiffuse = [0.5, 0.5, 0.5]\nspecular = [0, 0, 0]\n\
+         [[objects]]\ntype = \"plane\"\nnormal = [0, 0, 1]\ndistance = 0\nmaterial = \"white\"\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n",
+        fov = 2.0 * 0.5f64.atan().to_degrees(),
+    );
+    SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
+}
