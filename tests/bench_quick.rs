@@ -427,6 +427,53 @@ fn quick_bench_writes_parseable_csv_images_and_plots() {
 
 /// Without a GPU backend the launch suite is skipped with a message; the
 /// run as a whole succeeds.
+/// `--integrator path` reaches the adaptive suite's renders and its
+/// reference (cached under the integrator's name): the same uniform run
+/// of the quad scene differs from the Whitted one.
+#[test]
+fn the_adaptive_suite_renders_with_the_integrator_asked_for() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |integrator: &str| {
+        let out = Command::new(env!("CARGO_BIN_EXE_tessera"))
+            .args(["bench", "adaptive", "--quick", "--backend", "cpu"])
+            .args(["--adaptive-scenes", "quad", "--integrator", integrator])
+            .arg("--out")
+            .arg(dir.path().join(integrator))
+            .arg("--cache")
+            .arg(dir.path().join("cache"))
+            .arg("--examples")
+            .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("examples"))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        image::open(
+            dir.path()
+                .join(integrator)
+                .join("adaptive/quad-uniform-s16-cpu.png"),
+        )
+        .unwrap()
+        .to_rgb8()
+    };
+    let (whitted, path) = (run("whitted"), run("path"));
+    assert_ne!(whitted, path, "the path-traced run is the Whitted one");
+    let cached: Vec<String> = std::fs::read_dir(dir.path().join("cache"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    for integrator in ["whitted", "path"] {
+        assert!(
+            cached
+                .iter()
+                .any(|f| f.starts_with(&format!("adaptive-quad-{integrator}-"))),
+            "no {integrator} reference in {cached:?}"
+        );
+    }
+}
+
 #[test]
 fn launch_suite_on_the_cpu_backend_is_skipped_with_a_message() {
     let dir = tempfile::tempdir().unwrap();

@@ -124,6 +124,7 @@ impl Bench {
                 height,
                 samples: MAX_SAMPLES,
                 sampler: tracer_core::sampling::Sampler::Progressive,
+                integrator: self.cfg.integrator,
                 ..desc.render
             };
             let reference = self.offset_reference(name, &desc, &base, ref_samples)?;
@@ -291,7 +292,8 @@ impl Bench {
         samples: u32,
     ) -> Result<Vec<[f32; 3]>> {
         let file = self.cfg.cache.join(format!(
-            "adaptive-{name}-{}x{}-d{}-o{REFERENCE_OFFSET}-s{samples}-{:016x}.exr",
+            "adaptive-{name}-{}-{}x{}-d{}-o{REFERENCE_OFFSET}-s{samples}-{:016x}.exr",
+            base.integrator.name(),
             base.width,
             base.height,
             base.max_depth,
