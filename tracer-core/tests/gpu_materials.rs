@@ -113,23 +113,13 @@ fn gpu_emissive_textured_quad_matches_the_cpu() {
     assert_agree("emissive textured quad", &scene, 1e-5, 1e-6);
 }
 
-/// The cut-out quad of tests/textures.rs over a lit plane: camera and
-/// shadow rays pass its transparent texels on the GPU as on the CPU.
+/// The cut-out quad of tests/textures.rs (`common::cutout_quad`) over a
+/// lit plane: camera and shadow rays pass its transparent texels on the
+/// GPU as on the CPU.
 #[test]
 fn gpu_cutout_matches_the_cpu_for_camera_and_shadow_rays() {
     let dir = tmpdir("gpu-tex-cutout");
-    let alpha = [1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0, 1, 1, 0];
-    let texels: Vec<[u8; 4]> = alpha.iter().map(|&a| [255, 255, 255, a * 255]).collect();
-    write_png(&dir, 4, 4, &texels);
-    let model = textured_quad(
-        &dir,
-        0.5,
-        1.0,
-        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"baseColorTexture":{"index":0},"metallicFactor":0},
-            "emissiveFactor":[1,0,0],"alphaMode":"MASK",
-            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
-        r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
-    );
+    let (model, _) = cutout_quad(&dir);
     let scene = quad_over_lit_plane_scene(&dir, &model, 64);
     // Cut and solid texels both seen (the pattern on the quad), and shadows.
     let (cpu, _) = cpu_and_gpu(&scene);

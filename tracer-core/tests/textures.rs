@@ -181,20 +181,7 @@ fn on_square(x: f64, y: f64) -> Option<bool> {
 #[test]
 fn a_cutout_lets_exactly_its_transparent_texels_through_for_camera_and_shadow_rays() {
     let dir = tmpdir("tex-cutout");
-    // 4x4 texels, alpha 0 or 255 in a pattern; NEAREST, so each texel is a square.
-    let alpha = [1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0, 1, 1, 0];
-    let texels: Vec<[u8; 4]> = alpha.iter().map(|&a| [255, 255, 255, a * 255]).collect();
-    write_png(&dir, 4, 4, &texels);
-    // The quad [-0.5, 0.5]^2 at z = 1, emissive red, over the white plane z = 0.
-    let model = textured_quad(
-        &dir,
-        0.5,
-        1.0,
-        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"baseColorTexture":{"index":0},"metallicFactor":0},
-            "emissiveFactor":[1,0,0],"alphaMode":"MASK","doubleSided":true,
-            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
-        r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
-    );
+    let (model, alpha) = common::cutout_quad(&dir);
     let texel = |x: f64, y: f64| -> Option<bool> {
         let (u, v) = ((x + 0.5) * 4.0, (0.5 - y) * 4.0);
         let outside = (-u).max(u - 4.0).max(-v).max(v - 4.0);

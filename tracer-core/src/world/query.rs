@@ -46,7 +46,13 @@ impl<R: Real> World<R> {
     /// through.
     #[inline(always)]
     pub fn closest_hit(&self, ray: &Ray<R>, skip: PrimId) -> Option<(R, PrimId)> {
-        let hit = self.closest_solid_or_cut(ray, skip);
+        self.past_cutouts(ray, self.closest_solid_or_cut(ray, skip))
+    }
+
+    /// `hit` (the nearest, cut-outs included) where the world has no
+    /// cut-outs, else the first hit beyond them ([`Self::through_cutouts`]).
+    #[inline(always)]
+    fn past_cutouts(&self, ray: &Ray<R>, hit: Option<(R, PrimId)>) -> Option<(R, PrimId)> {
         if !self.attrs.cutouts {
             return hit;
         }
@@ -200,9 +206,7 @@ impl<R: Real> World<R> {
     #[inline(always)]
     pub fn occluded(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
         if self.attrs.cutouts {
-            return self
-                .through_cutouts(ray, self.closest_solid_or_cut(ray, skip))
-                .is_some_and(|(t, _)| t < t_max);
+            return self.closest_hit(ray, skip).is_some_and(|(t, _)| t < t_max);
         }
         self.occluded_solid_or_cut(ray, t_max, skip)
     }
@@ -299,12 +303,7 @@ impl<R: Real> World<R> {
             bvh::closest_hits(w, tree, rays, &mut best[..n], &mut found[..n], skip);
             for j in 0..n {
                 let hit = (found[j] != PrimId::NONE).then_some((best[j], found[j]));
-                let hit = w.resolve(&rays[j], hit, skip);
-                out[j] = if w.attrs.cutouts {
-                    w.through_cutouts(&rays[j], hit)
-                } else {
-                    hit
-                };
+                out[j] = w.past_cutouts(&rays[j], w.resolve(&rays[j], hit, skip));
             }
         }
     }

@@ -489,3 +489,23 @@ pub fn quad_over_lit_plane_scene(dir: &std::path::Path, model: &str, size: u32) 
     );
     SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
 }
+
+/// The cut-out quad of the MASK tests, written into `dir`: [-0.5, 0.5]^2
+/// at z = 1, emissive red, double-sided, cut by a 4x4 NEAREST texture whose
+/// alpha is 0 or 255 by the returned pattern (row by row). Returns the
+/// model file's name and the pattern.
+pub fn cutout_quad(dir: &std::path::Path) -> (String, [u8; 16]) {
+    let alpha = [1, 0, 1, 1, 0, 0, 1, 0, 1, 1, 0, 1, 0, 1, 1, 0];
+    let texels: Vec<[u8; 4]> = alpha.iter().map(|&a| [255, 255, 255, a * 255]).collect();
+    meshgen::write_png(dir, 4, 4, &texels);
+    let model = meshgen::textured_quad(
+        dir,
+        0.5,
+        1.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"baseColorTexture":{"index":0},"metallicFactor":0},
+            "emissiveFactor":[1,0,0],"alphaMode":"MASK","doubleSided":true,
+            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
+        r#"{"magFilter":9728,"wrapS":33071,"wrapT":33071}"#,
+    );
+    (model, alpha)
+}
