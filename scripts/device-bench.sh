@@ -134,7 +134,7 @@ timeout "${ADAPTIVE_TIMEOUT:-560}" "$T" bench adaptive --backend "${ADAPTIVE_BAC
   --out /tmp/bench --cache /tmp/bench-cache > "$OUT/adaptive-summary.txt" 2> "$OUT/adaptive-log.txt"
 echo "adaptive exit $?" >> "$OUT/adaptive-summary.txt"
 mkdir -p "$OUT/adaptive"
-cp /tmp/bench/adaptive.csv /tmp/bench/adaptive/error_vs_time.* /tmp/bench/adaptive/headline.txt "$OUT/adaptive/" 2>/dev/null
+cp /tmp/bench/adaptive.csv /tmp/bench/adaptive/error_vs_time.* /tmp/bench/adaptive/headline.txt /tmp/bench/adaptive/corona.md "$OUT/adaptive/" 2>/dev/null
 fi
 if has local-gpu; then
 ms() { local t0 t1; t0=$(date +%s%N); "$@" > /dev/null 2>&1; local rc=$?; t1=$(date +%s%N); echo "$(( (t1 - t0) / 1000000 )) ms (rc $rc)"; }

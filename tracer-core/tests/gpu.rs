@@ -2147,6 +2147,159 @@ fn gpu_adaptive_rounds_trace_only_active_blocks_with_exact_squares() {
 /// never above max), and with a target no pixel meets, every pixel reaches
 /// max and the image is the uniform render at max, ray counts included.
 #[test]
+fn gpu_blocks_over_their_own_ranges_in_one_grid_equal_one_round_per_range() {
+    // render_blocks (one grid, each block its own first and last sample)
+    // against one adaptive round per distinct range, merged: the same
+    // sums, squares, counts and rays.
+    use tracer_core::adaptive::BlockMask;
+    use tracer_core::render::adaptive;
+    if gpu().is_none() {
+        return;
+    }
+    let Some(tracer_core::render::Renderer::Gpu(g)) = gpu_renderer() else {
+        unreachable!("a GPU renderer")
+    };
+    let r = gpu_renderer().expect("opened above");
+    let desc = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();
+    let s = RenderSettings {
+        width: 43,
+        height: 21,
+        samples: 40,
+        sampler: tracer_core::sampling::Sampler::Progressive,
+        ..desc.render
+    };
+    let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+    let rect = Rect::full(s.width, s.height);
+    let blocks = BlockMask::none(rect).active.len();
+    assert_eq!(blocks, 6 * 3);
+    // Ranges of every kind: empty, from 0, from the middle, to the end.
+    let from: Vec<u32> = (0..blocks as u32)
+        .map(|i| [0, 0, 3, 8, 17, 5][i as usize % 6])
+        .collect();
+    let to: Vec<u32> = (0..blocks as u32)
+        .map(|i| [0, 4, 9, 40, 18, 5 + i][i as usize % 6])
+        .collect();
+    let got = g
+        .render_blocks(&prepared, 0, rect, &from, &to, &|_| {})
+        .unwrap();
+    let mut want = Film::with_squares(rect);
+    let mut ranges: std::collections::BTreeMap<(u32, u32), BlockMask> = Default::default();
+    for i in 0..blocks {
+        if to[i] > from[i] {
+            ranges
+                .entry((from[i], to[i]))
+                .or_insert_with(|| BlockMask::none(rect))
+                .active[i] = true;
+        }
+    }
+    assert!(ranges.len() >= 5);
+    for ((a, b), mask) in ranges {
+        let f = adaptive::render_round(r, &prepared, 0, &mask, SampleRange::new(a, b), &|_| {})
+            .unwrap();
+        want.merge(&f).unwrap();
+    }
+    assert_eq!(got.counts, want.counts, "counts");
+    assert_eq!(got.sums, want.sums, "sums");
+    assert_eq!(got.squares, want.squares, "squares");
+    assert_eq!(got.rays, want.rays, "rays");
+    assert!(got.counts.contains(&0) && got.counts.contains(&32));
+}
+
+#[test]
+fn gpu_rounds_decided_on_the_gpu_match_the_hosts_decisions() {
+    // The resident render (converge.wgsl between rounds, no read-back)
+    // against rounds decided on the host from the read-back film (f64):
+    // the same blocks stop at the same counts, and each round's report
+    // says what the host's summary of its film says.
+    use tracer_core::adaptive::{AdaptiveSettings, next_active, summarize};
+    use tracer_core::render::adaptive;
+    if gpu().is_none() {
+        return;
+    }
+    let r = gpu_renderer().expect("the adapter opened once already");
+    let desc = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();
+    for (target, relative) in [(0.02, 0.0), (0.0, 0.05), (1e-9, 0.0)] {
+        let a = AdaptiveSettings {
+            target_error: target,
+            relative_error: relative,
+            min_samples: 4,
+            max_samples: 64,
+        };
+        let base = RenderSettings {
+            width: 61,
+            height: 43,
+            ..desc.render
+        };
+        let s = a.render_settings(base);
+        let prepared = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
+        let mut reports = vec![];
+        let film = adaptive::render(r, &prepared, 0, &a, &|_| {}, &mut |rep| reports.push(*rep))
+            .unwrap_or_else(|e| panic!("GPU adaptive render: {e}"));
+        let rect = film.rect;
+        let mut host = Film::with_squares(rect);
+        let mut host_reports = vec![];
+        for (round, samples) in a.rounds().into_iter().enumerate() {
+            let mask = next_active(&host, rect, samples, a.target());
+            if mask.active_count() == 0 {
+                break;
+            }
+            let f = adaptive::render_round(r, &prepared, 0, &mask, samples, &|_| {}).unwrap();
+            host.merge(&f).unwrap();
+            host_reports.push((round, mask.active_count(), summarize(&host, rect, &a)));
+        }
+        let label = format!("target {target}, relative {relative}");
+        assert_eq!(film.counts, host.counts, "{label}: each block's count");
+        assert_eq!(film.sums, host.sums, "{label}: sums");
+        assert_eq!(film.squares, host.squares, "{label}: squares");
+        assert_eq!(film.rays, host.rays, "{label}: ray counts");
+        assert_eq!(reports.len(), host_reports.len(), "{label}: rounds");
+        for (got, (round, active, summary)) in reports.iter().zip(&host_reports) {
+            assert_eq!((got.round, got.active_blocks), (*round, *active), "{label}");
+            let g = &got.summary;
+            assert_eq!(
+                (
+                    g.blocks,
+                    g.converged_blocks,
+                    g.capped_blocks,
+                    g.samples_done,
+                    g.samples_expected
+                ),
+                (
+                    summary.blocks,
+                    summary.converged_blocks,
+                    summary.capped_blocks,
+                    summary.samples_done,
+                    summary.samples_expected
+                ),
+                "{label}: round {round}"
+            );
+            // The GPU sums variances in f32.
+            let rel = (g.rms_error - summary.rms_error).abs() / summary.rms_error.max(1e-30);
+            assert!(
+                rel < 1e-4,
+                "{label}: round {round}: rms error {} against {}",
+                g.rms_error,
+                summary.rms_error
+            );
+        }
+        if target == 1e-9 {
+            // Only blocks whose samples all agree (the sky) stop before max.
+            assert!(
+                film.counts.iter().filter(|&&n| n == 64).count() > film.counts.len() / 2,
+                "{label}: a target no noisy block meets: those at max"
+            );
+        } else {
+            assert!(
+                reports.len() >= 3
+                    && reports.last().unwrap().active_blocks < reports[0].active_blocks,
+                "{label}: blocks stop along the way: {:?}",
+                reports.iter().map(|r| r.active_blocks).collect::<Vec<_>>()
+            );
+        }
+    }
+}
+
+#[test]
 fn gpu_adaptive_renders_are_uniform_renders_of_each_pixels_count() {
     use tracer_core::adaptive::AdaptiveSettings;
     use tracer_core::render::adaptive;

@@ -258,42 +258,74 @@ impl Summary {
     }
 }
 
+/// One block's error, what a [`Summary`] is made of: from a film on the
+/// host ([`summarize`]) or from the GPU's convergence test.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BlockStatus {
+    /// Pixels of the block.
+    pub area: u64,
+    /// Samples each of its pixels has (0: not started).
+    pub samples: u32,
+    /// Sum over its pixels and channels of the finite variances of the mean.
+    pub variance_sum: f64,
+    /// Its pixels' largest variance of the mean over their limit (at most
+    /// 1: converged).
+    pub worst: f64,
+}
+
 /// Summarises `film` (which must cover `rect`, a block-aligned rect with
 /// every pixel past round 0 or not started at all).
 pub fn summarize(film: &Film, rect: Rect, a: &AdaptiveSettings) -> Summary {
-    let mut out = Summary::default();
     let mask = BlockMask::none(rect);
+    let squares = film.squares.as_ref().expect("adaptive film");
+    let blocks = (0..mask.active.len()).map(|i| {
+        let b = mask.block_rect(i);
+        let first = ((b.y - film.rect.y) * film.rect.width + (b.x - film.rect.x)) as usize;
+        let mut e = BlockStatus {
+            area: b.area() as u64,
+            samples: film.counts[first],
+            variance_sum: 0.0,
+            worst: 0.0,
+        };
+        if e.samples > 0 {
+            for y in b.y..b.y + b.height {
+                for x in b.x..b.x + b.width {
+                    let j = ((y - film.rect.y) * film.rect.width + (x - film.rect.x)) as usize;
+                    let v = variance_of_mean(film.counts[j], &film.sums[j], &squares[j]);
+                    e.variance_sum += v.iter().filter(|v| v.is_finite()).sum::<f64>();
+                    e.worst = e.worst.max(error_ratio(
+                        film.counts[j],
+                        &film.sums[j],
+                        &squares[j],
+                        a.target(),
+                    ));
+                }
+            }
+        }
+        e
+    });
+    summarize_blocks(blocks, a)
+}
+
+/// Summarises an image from its blocks' errors.
+pub fn summarize_blocks(
+    blocks: impl IntoIterator<Item = BlockStatus>,
+    a: &AdaptiveSettings,
+) -> Summary {
+    let mut out = Summary::default();
     let mut sq_err = 0.0f64;
     let mut pixels = 0u64;
-    for i in 0..mask.active.len() {
-        let b = mask.block_rect(i);
+    for b in blocks {
         out.blocks += 1;
-        let first = ((b.y - film.rect.y) * film.rect.width + (b.x - film.rect.x)) as usize;
-        let n = film.counts[first];
-        let area = b.area() as u64;
+        let (n, area) = (b.samples, b.area);
         out.samples_done += n as u64 * area;
         if n == 0 {
             out.samples_expected += a.min_samples as u64 * area;
             continue;
         }
-        // The largest variance over its limit, over the block's pixels.
-        let mut worst = 0.0f64;
-        for y in b.y..b.y + b.height {
-            for x in b.x..b.x + b.width {
-                let j = ((y - film.rect.y) * film.rect.width + (x - film.rect.x)) as usize;
-                let squares = film.squares.as_ref().expect("adaptive film");
-                let v = variance_of_mean(film.counts[j], &film.sums[j], &squares[j]);
-                let v = v.map(|v| if v.is_finite() { v } else { 0.0 });
-                sq_err += v[0] + v[1] + v[2];
-                pixels += 1;
-                worst = worst.max(error_ratio(
-                    film.counts[j],
-                    &film.sums[j],
-                    &squares[j],
-                    a.target(),
-                ));
-            }
-        }
+        sq_err += b.variance_sum;
+        pixels += area;
+        let worst = b.worst;
         let expected = if worst <= 1.0 {
             out.converged_blocks += 1;
             n

@@ -2,7 +2,8 @@
 //! ([`render_round`]) the active blocks of a [`BlockMask`] over a range of
 //! sample indices, on the CPU ([`super::cpu::adaptive`], over the ordinary
 //! tile renderer and so the one shading step) or the GPU (its adaptive
-//! kernel). The blocks, masks and the rule that picks them are
+//! kernel). On the GPU, [`render`] chains the rounds there, a kernel
+//! deciding between them (`GpuRenderer::render_adaptive`). The blocks, masks and the rule that picks them are
 //! [`crate::adaptive`]'s.
 
 use crate::adaptive::optimal::{
@@ -49,6 +50,17 @@ pub fn render(
     progress: &(dyn Fn(u64) + Sync),
     on_round: &mut dyn FnMut(&RoundReport),
 ) -> Result<Film, RendererError> {
+    // The GPU decides between its rounds itself (render::gpu converge.rs):
+    // no read-back of the film per round.
+    #[cfg(feature = "gpu")]
+    if let Renderer::Gpu(r) = renderer {
+        let on_round = std::sync::Mutex::new(on_round);
+        return Ok(r.render_adaptive(prepared, frame, a, progress, &|report| {
+            if let Ok(mut f) = on_round.lock() {
+                f(report)
+            }
+        })?);
+    }
     let s = prepared.settings();
     let rect = Rect::full(s.width, s.height);
     let mut film = Film::with_squares(rect);
@@ -96,8 +108,8 @@ pub fn render_round_costed(
 }
 
 /// Takes each block `i` of the frame from `from[i]` to `to[i]` samples
-/// (one renderer call per distinct pair), adding to `film` and booking
-/// the costs in `costs`.
+/// (on the CPU one renderer call per distinct pair, on the GPU one call),
+/// adding to `film` and booking the costs in `costs`.
 #[allow(clippy::too_many_arguments)]
 pub fn render_blocks(
     renderer: &Renderer,
@@ -110,6 +122,15 @@ pub fn render_blocks(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<(), RendererError> {
     let rect = film.rect;
+    // The GPU takes every block over its own range in one grid (and
+    // reports no per-block cost).
+    #[cfg(feature = "gpu")]
+    if let Renderer::Gpu(r) = renderer {
+        let f = r.render_blocks(prepared, frame, rect, from, to, progress)?;
+        film.merge(&f)
+            .expect("the blocks' film lies inside the frame and sums cannot overflow");
+        return Ok(());
+    }
     let mut groups: std::collections::BTreeMap<(u32, u32), BlockMask> = Default::default();
     for (i, (&a, &b)) in from.iter().zip(to).enumerate() {
         if b > a {

@@ -59,7 +59,10 @@ pub struct DispatchParams {
     /// 8 rows per active block instead (sums.wgsl `grid_pixel`).
     pub film_w: u32,
     pub film_h: u32,
-    pub _pad: u32,
+    /// 1: an adaptive render whose blocks each take their own range of
+    /// samples (`block_ranges`); `sample_start..sample_end` are then
+    /// offsets into each block's range.
+    pub ranged: u32,
 }
 
 /// WGSL: `struct Sphere`.
@@ -155,6 +158,38 @@ pub const SUM_WORDS: usize = 6;
 /// (the `u128` of [`crate::film::Film::squares`]). WGSL: `sum_stride()`.
 pub const ADAPTIVE_SUM_WORDS: usize = 18;
 
+/// Parameters of the convergence test after an adaptive round on the GPU.
+/// WGSL (converge.wgsl): `struct ConvergeParams`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct ConvergeParams {
+    pub film_w: u32,
+    pub film_h: u32,
+    /// Blocks per row of the film, and in all.
+    pub cols: u32,
+    pub blocks: u32,
+    /// Samples each pixel of a block active in the round has after it.
+    pub samples: u32,
+    pub _pad: u32,
+    /// The target: a pixel's limit is max(absolute, relative x its
+    /// brightest channel mean) (`scene::adaptive::Target`).
+    pub absolute: f32,
+    pub relative: f32,
+}
+
+/// One block's statistics after its last round, written by converge.wgsl
+/// (`block_stats`): f32 bits of its pixels' summed variances of the mean
+/// (finite ones, over the three channels) and of its worst error ratio
+/// (above 1: not converged; `f32::MAX`-like: infinite), then its samples.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq, Eq)]
+pub struct GpuBlockStats {
+    pub variance_sum: u32,
+    pub worst: u32,
+    pub samples: u32,
+    pub _pad: u32,
+}
+
 /// Parameters of the GPU resolve of a film's sums. WGSL (resolve.wgsl):
 /// `struct ResolveParams`.
 #[repr(C)]
@@ -210,6 +245,8 @@ const _: () = assert!(size_of::<GpuTriangle>() == 48);
 const _: () = assert!(size_of::<GpuTriangleShading>() == 64);
 const _: () = assert!(size_of::<GpuBvhNode>() == 128);
 const _: () = assert!(size_of::<ResolveParams>() == 16);
+const _: () = assert!(size_of::<ConvergeParams>() == 32);
+const _: () = assert!(size_of::<GpuBlockStats>() == 16);
 
 /// The trees of a world and what their leaves refer to, for scenes that
 /// have one: the static world's (meshes, or many spheres: the pipeline then

@@ -16,7 +16,10 @@
 //! An adaptive round ([`GpuRenderer::render_round`]) traces a grid over
 //! the active blocks only (their positions in a storage buffer) with the
 //! same kernel compiled with `ADAPTIVE`, which also sums each pixel's
-//! squared fixed-point samples (four carried u32 words a channel).
+//! squared fixed-point samples (four carried u32 words a channel). A whole
+//! adaptive render ([`GpuRenderer::render_adaptive`], `converge.rs`)
+//! chains its rounds on the GPU, a kernel retiring converged blocks
+//! between them.
 //!
 //! WGSL: `wgsl.rs` assembles each module from the .wgsl files' explicit
 //! `//! import` lines and declares every bind group layout once (build.rs
@@ -29,6 +32,7 @@
 //! public calls; `adapter.rs` finds and names adapters; `pipelines.rs`
 //! assembles the WGSL for a scene and builds its pipelines and buffers;
 //! `plan.rs` splits a render into bounded dispatches and submissions;
+//! `converge.rs` runs an adaptive render's rounds without the host;
 //! `trace.rs` runs one render (the dispatches, then the read-back into a
 //! film or image); `readback.rs` waits, maps buffers and resolves on the
 //! GPU (to 8-bit sRGB for PNG, to f32 for EXR); `disk_cache.rs` keeps
@@ -36,6 +40,7 @@
 //! benches share.
 
 mod adapter;
+mod converge;
 mod disk_cache;
 pub mod launch;
 pub mod layout;
@@ -271,7 +276,7 @@ enum Resolve {
 }
 
 /// What a render traces and reads back.
-#[derive(Clone, Copy, PartialEq, Eq)]
+#[derive(Clone, Copy)]
 enum Readout<'a> {
     /// The fixed-point sums: a [`Film`] that merges exactly (farm results).
     Sums,
@@ -282,6 +287,14 @@ enum Readout<'a> {
     /// An adaptive round: only the blocks of the mask, each pixel's sums
     /// and sums of squares (a [`Film::with_squares`]).
     Adaptive(&'a BlockMask),
+    /// A whole adaptive render, its rounds chained on the GPU
+    /// (`converge.rs`): the film with sums of squares, each block at the
+    /// samples it stopped at.
+    Resident(&'a converge::Resident<'a>),
+    /// Blocks each over their own range of samples, in one grid: the
+    /// blocks of the mask, block i (of the mask's rect) from `ranges[i].0`
+    /// to `ranges[i].1`.
+    Ranged(&'a BlockMask, &'a [(u32, u32)]),
 }
 
 enum Rendered {
@@ -335,6 +348,7 @@ pub struct GpuRenderer {
     wave: Mutex<Option<WaveBuffers>>,
     resolver: Mutex<Option<Resolver>>,
     packer: Mutex<Option<pack::Packer>>,
+    converger: Mutex<Option<converge::Converger>>,
     /// Scene kernels compiled so far ([`GpuRenderer::pipelines_built`]).
     pipelines_built: std::sync::atomic::AtomicU64,
     /// Texels packed on the host and uploaded ([`GpuRenderer::texel_work`]).
@@ -513,6 +527,7 @@ impl GpuRenderer {
             wave: Mutex::new(None),
             resolver: Mutex::new(None),
             packer: Mutex::new(None),
+            converger: Mutex::new(None),
             pipelines_built: Default::default(),
             texel_packs: Default::default(),
             texel_uploads: Default::default(),
@@ -739,6 +754,88 @@ impl GpuRenderer {
             samples,
             progress,
             Readout::Adaptive(mask),
+        )? {
+            Rendered::Film(f) => Ok(f),
+            _ => unreachable!("asked for sums"),
+        }
+    }
+
+    /// A whole adaptive render (see [`crate::adaptive`]) with its rounds
+    /// chained on the GPU: after each round a kernel tests every active
+    /// block against the target and retires the converged ones, and the
+    /// next round is queued at once. `on_round` is told after each round,
+    /// one round behind the GPU; `progress` gets pixel-samples. `prepared`
+    /// must have been built with [`AdaptiveSettings::render_settings`].
+    /// Each block's pixels equal [`GpuRenderer::render`]'s at the samples
+    /// the block stopped at.
+    pub fn render_adaptive(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        settings: &crate::adaptive::AdaptiveSettings,
+        progress: &(dyn Fn(u64) + Sync),
+        on_round: &dyn Fn(&super::adaptive::RoundReport),
+    ) -> Result<Film, GpuError> {
+        let s = prepared.settings();
+        let rect = Rect::full(s.width, s.height);
+        let resident = converge::Resident {
+            settings,
+            mask: BlockMask::all(rect),
+            on_round,
+        };
+        let samples = SampleRange::new(0, settings.max_samples);
+        match self.render_readout(
+            prepared,
+            frame,
+            rect,
+            samples,
+            progress,
+            Readout::Resident(&resident),
+        )? {
+            Rendered::Film(f) => Ok(f),
+            _ => unreachable!("asked for sums"),
+        }
+    }
+
+    /// Each block `i` of `rect` (block-aligned) over its own sample indices
+    /// `from[i]..to[i]`, all in one grid: into a film of `rect` with sums of
+    /// squares, each pixel of block `i` at `to[i] - from[i]` samples. Sums
+    /// equal [`GpuRenderer::render`]'s over the same pixels and samples.
+    pub fn render_blocks(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rect: Rect,
+        from: &[u32],
+        to: &[u32],
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<Film, GpuError> {
+        let mut mask = BlockMask::none(rect);
+        assert_eq!(
+            (from.len(), to.len()),
+            (mask.active.len(), mask.active.len()),
+            "a range per block"
+        );
+        let mut ranges = Vec::with_capacity(from.len());
+        let mut longest = 0;
+        for (i, (&a, &b)) in from.iter().zip(to).enumerate() {
+            mask.active[i] = b > a;
+            ranges.push((a, b.max(a)));
+            if b > a {
+                longest = longest.max(b - a);
+                prepared.check_request(rect, SampleRange::new(a, b))?;
+            }
+        }
+        if longest == 0 {
+            return Ok(Film::with_squares(rect));
+        }
+        match self.render_readout(
+            prepared,
+            frame,
+            rect,
+            SampleRange::new(0, longest),
+            progress,
+            Readout::Ranged(&mask, &ranges),
         )? {
             Rendered::Film(f) => Ok(f),
             _ => unreachable!("asked for sums"),

@@ -650,10 +650,14 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
 fn render_path(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let col = gid.x;
     let row = params.row0 + gid.y;
-    let s = params.sample_start + gid.z;
+    var s = params.sample_start + gid.z;
     var p = vec4<u32>(0u);
     if (col < params.rect_w && gid.y < params.rows && row < params.rect_h && s < params.sample_end) {
         p = grid_pixel(col, row);
+        s = block_sample(row, s);
+        if (s == NO_SAMPLE) {
+            p = vec4<u32>(0u);
+        }
     }
     if (p.w != 0u) {
         let seed = pixel_seed(p.x, p.y, params.frame);

@@ -53,7 +53,7 @@ pub(super) fn plan(
                     frame,
                     film_w: film.0,
                     film_h: film.1,
-                    _pad: 0,
+                    ranged: 0,
                 });
             in_group += work;
             s = e;

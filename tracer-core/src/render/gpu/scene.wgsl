@@ -36,6 +36,9 @@ struct Dispatch {
     // 8 rows per active block, not the film (see grid_pixel).
     film_w: u32,
     film_h: u32,
+    // 1: an adaptive render's blocks each over their own range of samples
+    // (block_ranges); the dispatch's samples are offsets into it.
+    ranged: u32,
 }
 
 struct Sphere {

@@ -102,17 +102,35 @@ fn add_sample(word: u32, c: vec3<f32>) {
     }
 }
 
+const NO_SAMPLE: u32 = 0xffffffffu;
+
+// The sample index that offset `k` of grid row `row` traces: `k` itself,
+// or in a ranged adaptive render (params.ranged) the block's first sample
+// plus `k`, NO_SAMPLE past its last.
+fn block_sample(row: u32, k: u32) -> u32 {
+    if (!ADAPTIVE || params.ranged == 0u) {
+        return k;
+    }
+    let r = block_ranges[row / 8u];
+    return select(NO_SAMPLE, r.x + k, r.x + k < r.y);
+}
+
 // The pixel that column `col`, row `row` of the dispatch grid traces:
 // (x, y, its first sums word, 1), or w = 0 for none (an adaptive round's
 // block cut by the film's edge). Uniform renders: the grid is the film.
-// Adaptive rounds: 8 columns, and rows 8b..8b+8 are active block b's.
+// Adaptive rounds: 8 columns, and rows 8b..8b+8 are active block b's
+// (none where the block is retired: bit 31, converge.wgsl).
 fn grid_pixel(col: u32, row: u32) -> vec4<u32> {
     if (!ADAPTIVE) {
         return vec4<u32>(params.rect_x + col, params.rect_y + row, (row * params.rect_w + col) * 6u, 1u);
     }
     let b = active_blocks[row / 8u];
+    // A block the GPU's convergence test retired (converge.wgsl).
+    if ((b & 0x80000000u) != 0u) {
+        return vec4<u32>(0u);
+    }
     let fx = (b & 0xffffu) * 8u + col;
-    let fy = (b >> 16u) * 8u + row % 8u;
+    let fy = ((b >> 16u) & 0x7fffu) * 8u + row % 8u;
     if (fx >= params.film_w || fy >= params.film_h) {
         return vec4<u32>(0u);
     }

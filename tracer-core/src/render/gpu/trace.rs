@@ -44,8 +44,29 @@ impl GpuRenderer {
         }
         let mask = match readout {
             Readout::Adaptive(m) => Some(m),
+            Readout::Resident(r) => Some(&r.mask),
+            Readout::Ranged(m, _) => Some(m),
             _ => None,
         };
+        // A ranged render's (first, end) per listed block.
+        let ranges = match readout {
+            Readout::Ranged(m, r) => Some(
+                m.active
+                    .iter()
+                    .zip(r)
+                    .filter(|(a, _)| **a)
+                    .map(|(_, &(a, b))| [a, b])
+                    .collect::<Vec<[u32; 2]>>(),
+            ),
+            _ => None,
+        };
+        let resident = match readout {
+            Readout::Resident(r) => Some(r),
+            _ => None,
+        };
+        // A resident adaptive render runs all its rounds here; any other
+        // render is one range of samples.
+        let rounds = resident.map_or_else(|| vec![samples], |r| r.settings.rounds());
         if mask.is_some() {
             let scene = scene_guard.as_mut().expect("just set");
             if scene.adaptive.is_none() {
@@ -95,6 +116,14 @@ impl GpuRenderer {
                 .map(|(i, _)| (i % cols) as u32 | ((i / cols) as u32) << 16)
                 .collect()
         });
+        let ranges_buffer = ranges.as_ref().map(|r| {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("block ranges"),
+                    contents: bytemuck::cast_slice(r),
+                    usage: wgpu::BufferUsages::STORAGE,
+                })
+        });
         let blocks_buffer = mask.map(|_| {
             self.device
                 .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -107,17 +136,27 @@ impl GpuRenderer {
             Some(_) => Rect::new(rect.x, rect.y, BLOCK, BLOCK * blocks.len() as u32),
             None => rect,
         };
-        // Pixels of the film a band of the grid's rows holds (blocks cut by
-        // the film's edge hold fewer than their 64 grid cells).
-        let band_pixels = |row0: u32, rows: u32| -> u64 {
+        // Pixel-samples a dispatch traces: the film's pixels in its band of
+        // the grid's rows (blocks cut by the film's edge hold fewer than
+        // their 64 grid cells) times its samples (in a ranged render, those
+        // of each block's range).
+        let dispatch_work = |d: &DispatchParams| -> u64 {
+            let n = (d.sample_end - d.sample_start) as u64;
             match mask {
-                None => rect.width as u64 * rows as u64,
-                Some(_) => (row0..row0 + rows)
+                None => rect.width as u64 * d.rows as u64 * n,
+                Some(_) => (d.row0..d.row0 + d.rows)
                     .map(|r| {
                         let b = blocks[(r / BLOCK) as usize];
                         let (fx, fy) = ((b & 0xffff) * BLOCK, (b >> 16) * BLOCK + r % BLOCK);
+                        let samples = match &ranges {
+                            Some(rs) => {
+                                let [a, e] = rs[(r / BLOCK) as usize];
+                                d.sample_end.min(e - a).saturating_sub(d.sample_start) as u64
+                            }
+                            None => n,
+                        };
                         if fy < rect.height {
-                            (rect.width - fx).min(BLOCK) as u64
+                            (rect.width - fx).min(BLOCK) as u64 * samples
                         } else {
                             0
                         }
@@ -161,6 +200,10 @@ impl GpuRenderer {
                 entire(
                     b("active_blocks"),
                     blocks_buffer.as_ref().unwrap_or(&self.no_blocks),
+                ),
+                entire(
+                    b("block_ranges"),
+                    ranges_buffer.as_ref().unwrap_or(&self.no_blocks),
                 ),
                 entire(b("mat_pbr"), &scene.pbr[0]),
                 entire(b("pbrs"), &scene.pbr[1]),
@@ -215,18 +258,31 @@ impl GpuRenderer {
             Some((p, _)) => budget.min(p.queue_cap / 2).max(1),
             None => budget,
         };
-        let groups = plan(
-            grid,
-            (rect.width, rect.height),
-            samples,
-            frame,
-            GpuOptions {
-                dispatch_pixel_samples: budget,
-                ..self.options
-            },
-        );
-        let query = self.timestamps.then(|| {
-            let n = (groups.len() * 2) as u32;
+        let plans: Vec<_> = rounds
+            .iter()
+            .map(|&round| {
+                let mut groups = plan(
+                    grid,
+                    (rect.width, rect.height),
+                    round,
+                    frame,
+                    GpuOptions {
+                        dispatch_pixel_samples: budget,
+                        ..self.options
+                    },
+                );
+                if ranges.is_some() {
+                    for d in groups.iter_mut().flatten() {
+                        d.ranged = 1;
+                    }
+                }
+                groups
+            })
+            .collect();
+        // Timestamps time the submissions of one range (not a resident
+        // render's rounds, which are not waited for one by one).
+        let query = (self.timestamps && resident.is_none()).then(|| {
+            let n = (plans[0].len() * 2) as u32;
             let set = self.device.create_query_set(&wgpu::QuerySetDescriptor {
                 label: Some("tessera timestamps"),
                 ty: wgpu::QueryType::Timestamp,
@@ -256,88 +312,119 @@ impl GpuRenderer {
             enc.clear_buffer(&w.as_ref().expect("set").state, 0, None);
         }
         let mut dispatches = 0u32;
+        let mut submissions = 0u32;
         let trace_start = Instant::now();
         self.queue.submit([enc.finish()]);
-        for (g, group) in groups.iter().enumerate() {
-            let mut params = vec![0u8; group.len() * PARAMS_STRIDE as usize];
-            for (i, d) in group.iter().enumerate() {
-                let at = i * PARAMS_STRIDE as usize;
-                params[at..at + size_of::<DispatchParams>()].copy_from_slice(bytemuck::bytes_of(d));
+        let mut chain = match resident {
+            Some(r) => Some(
+                self.start_rounds(
+                    r,
+                    rect,
+                    &out.sums,
+                    sums_bytes,
+                    blocks_buffer
+                        .as_ref()
+                        .expect("a resident render has a block list"),
+                )?,
+            ),
+            None => None,
+        };
+        for (round, groups) in plans.iter().enumerate() {
+            if chain.as_ref().is_some_and(|c| c.done) {
+                break;
             }
-            self.queue.write_buffer(&out.params, 0, &params);
-            let mut enc = self
-                .device
-                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("tessera trace"),
-                });
-            {
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("tessera trace"),
-                    timestamp_writes: query.as_ref().map(|(set, ..)| {
-                        wgpu::ComputePassTimestampWrites {
-                            query_set: set,
-                            beginning_of_pass_write_index: Some(2 * g as u32),
-                            end_of_pass_write_index: Some(2 * g as u32 + 1),
-                        }
-                    }),
-                });
-                match (&wave, &wave_groups) {
-                    (Some((p, w)), Some((to_a, a_to_b))) => {
-                        let w = w.as_ref().expect("set");
-                        let threads = wx * wy;
-                        for (i, d) in group.iter().enumerate() {
-                            pass.set_bind_group(
-                                0,
-                                &bind_group,
-                                &[(i as u64 * PARAMS_STRIDE) as u32],
-                            );
-                            pass.set_bind_group(1, to_a, &[]);
-                            pass.set_bind_group(2, &w.args_group, &[]);
-                            let n = d.rect_w * d.rows * (d.sample_end - d.sample_start);
-                            pass.set_pipeline(&p.primary);
-                            pass.dispatch_workgroups(n.div_ceil(threads), 1, 1);
-                            // Generation g reads the queue generation g-1 wrote.
-                            for g in 0..=scene.data.max_depth {
-                                pass.set_pipeline(&p.swap);
-                                pass.dispatch_workgroups(1, 1, 1);
-                                pass.set_bind_group(1, if g % 2 == 0 { a_to_b } else { to_a }, &[]);
-                                pass.set_pipeline(&p.shade);
-                                pass.dispatch_workgroups_indirect(&w.args, 0);
-                                dispatches += 2;
+            for (g, group) in groups.iter().enumerate() {
+                let mut params = vec![0u8; group.len() * PARAMS_STRIDE as usize];
+                for (i, d) in group.iter().enumerate() {
+                    let at = i * PARAMS_STRIDE as usize;
+                    params[at..at + size_of::<DispatchParams>()]
+                        .copy_from_slice(bytemuck::bytes_of(d));
+                }
+                self.queue.write_buffer(&out.params, 0, &params);
+                let mut enc = self
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("tessera trace"),
+                    });
+                {
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("tessera trace"),
+                        timestamp_writes: query.as_ref().map(|(set, ..)| {
+                            wgpu::ComputePassTimestampWrites {
+                                query_set: set,
+                                beginning_of_pass_write_index: Some(2 * g as u32),
+                                end_of_pass_write_index: Some(2 * g as u32 + 1),
                             }
-                            dispatches += 1;
+                        }),
+                    });
+                    match (&wave, &wave_groups) {
+                        (Some((p, w)), Some((to_a, a_to_b))) => {
+                            let w = w.as_ref().expect("set");
+                            let threads = wx * wy;
+                            for (i, d) in group.iter().enumerate() {
+                                pass.set_bind_group(
+                                    0,
+                                    &bind_group,
+                                    &[(i as u64 * PARAMS_STRIDE) as u32],
+                                );
+                                pass.set_bind_group(1, to_a, &[]);
+                                pass.set_bind_group(2, &w.args_group, &[]);
+                                let n = d.rect_w * d.rows * (d.sample_end - d.sample_start);
+                                pass.set_pipeline(&p.primary);
+                                pass.dispatch_workgroups(n.div_ceil(threads), 1, 1);
+                                // Generation g reads the queue generation g-1 wrote.
+                                for g in 0..=scene.data.max_depth {
+                                    pass.set_pipeline(&p.swap);
+                                    pass.dispatch_workgroups(1, 1, 1);
+                                    pass.set_bind_group(
+                                        1,
+                                        if g % 2 == 0 { a_to_b } else { to_a },
+                                        &[],
+                                    );
+                                    pass.set_pipeline(&p.shade);
+                                    pass.dispatch_workgroups_indirect(&w.args, 0);
+                                    dispatches += 2;
+                                }
+                                dispatches += 1;
+                            }
                         }
-                    }
-                    _ => {
-                        pass.set_pipeline(match mask {
-                            Some(_) => scene.adaptive.as_ref().expect("made above"),
-                            None => &scene.pipeline,
-                        });
-                        for (i, d) in group.iter().enumerate() {
-                            pass.set_bind_group(
-                                0,
-                                &bind_group,
-                                &[(i as u64 * PARAMS_STRIDE) as u32],
-                            );
-                            // One invocation per pixel-sample.
-                            pass.dispatch_workgroups(
-                                d.rect_w.div_ceil(wx),
-                                d.rows.div_ceil(wy),
-                                d.sample_end - d.sample_start,
-                            );
-                            dispatches += 1;
+                        _ => {
+                            pass.set_pipeline(match mask {
+                                Some(_) => scene.adaptive.as_ref().expect("made above"),
+                                None => &scene.pipeline,
+                            });
+                            for (i, d) in group.iter().enumerate() {
+                                pass.set_bind_group(
+                                    0,
+                                    &bind_group,
+                                    &[(i as u64 * PARAMS_STRIDE) as u32],
+                                );
+                                // One invocation per pixel-sample.
+                                pass.dispatch_workgroups(
+                                    d.rect_w.div_ceil(wx),
+                                    d.rows.div_ceil(wy),
+                                    d.sample_end - d.sample_start,
+                                );
+                                dispatches += 1;
+                            }
                         }
                     }
                 }
+                let index = self.queue.submit([enc.finish()]);
+                submissions += 1;
+                // A resident render's rounds run back to back; its progress
+                // comes with each round's report.
+                if chain.is_none() {
+                    self.wait(index)?;
+                    progress(group.iter().map(dispatch_work).sum());
+                }
             }
-            let index = self.queue.submit([enc.finish()]);
-            self.wait(index)?;
-            progress(
-                group
-                    .iter()
-                    .map(|d| band_pixels(d.row0, d.rows) * (d.sample_end - d.sample_start) as u64)
-                    .sum(),
-            );
+            if let Some(c) = chain.as_mut() {
+                self.end_round(c, round, progress)?;
+            }
+        }
+        if let Some(c) = chain.as_mut() {
+            self.finish_rounds(c, progress)?;
         }
         let trace_wall = trace_start.elapsed();
         let readback_start = Instant::now();
@@ -348,7 +435,7 @@ impl GpuRenderer {
                 label: Some("tessera read-back"),
             });
         let (resolver, packer) = match readout {
-            Readout::Sums | Readout::Adaptive(_) => {
+            Readout::Sums | Readout::Adaptive(_) | Readout::Resident(_) | Readout::Ranged(..) => {
                 enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
                 (None, None)
             }
@@ -454,8 +541,29 @@ impl GpuRenderer {
                         }
                     }
                 })?;
-                match mask {
-                    Some(m) => {
+                match (mask, &chain) {
+                    // Each block at the samples it stopped at.
+                    (Some(m), Some(c)) => {
+                        for (i, st) in c.last.iter().enumerate() {
+                            let b = m.block_rect(i);
+                            for y in b.y..b.y + b.height {
+                                let row = ((y - rect.y) * rect.width + (b.x - rect.x)) as usize;
+                                film.counts[row..row + b.width as usize].fill(st.samples);
+                            }
+                        }
+                    }
+                    (Some(m), None) if ranges.is_some() => {
+                        if let Readout::Ranged(_, r) = readout {
+                            for (i, &(a, e)) in r.iter().enumerate().filter(|(i, _)| m.active[*i]) {
+                                let b = m.block_rect(i);
+                                for y in b.y..b.y + b.height {
+                                    let row = ((y - rect.y) * rect.width + (b.x - rect.x)) as usize;
+                                    film.counts[row..row + b.width as usize].fill(e - a);
+                                }
+                            }
+                        }
+                    }
+                    (Some(m), None) => {
                         for b in m.active_rects() {
                             for y in b.y..b.y + b.height {
                                 let row = ((y - rect.y) * rect.width + (b.x - rect.x)) as usize;
@@ -463,7 +571,7 @@ impl GpuRenderer {
                             }
                         }
                     }
-                    None => film.counts.fill(samples.len()),
+                    (None, _) => film.counts.fill(samples.len()),
                 }
                 film.rays = rays;
                 film.nonfinite = nonfinite;
@@ -491,7 +599,7 @@ impl GpuRenderer {
                 trace_wall,
                 total_wall: start.elapsed(),
                 dispatches,
-                submissions: groups.len() as u32,
+                submissions,
                 overflow_retries: 0,
                 readback,
             };

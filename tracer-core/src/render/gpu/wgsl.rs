@@ -22,6 +22,7 @@ pub const FILES: &[(&str, &str)] = &[
     ("analytic.wgsl", include_str!("analytic.wgsl")),
     ("bsdf.wgsl", include_str!("bsdf.wgsl")),
     ("bvh.wgsl", include_str!("bvh.wgsl")),
+    ("converge.wgsl", include_str!("converge.wgsl")),
     ("distributed.wgsl", include_str!("distributed.wgsl")),
     ("geometry.wgsl", include_str!("geometry.wgsl")),
     ("moving_meshes.wgsl", include_str!("moving_meshes.wgsl")),
@@ -258,12 +259,18 @@ pub fn pack_module(files: &Files<'_>) -> Module {
     assemble(files, &[PACK], "pack", "", &["pack.wgsl"])
 }
 
+/// An adaptive render's convergence test, between rounds on the GPU.
+pub fn converge_module(files: &Files<'_>) -> Module {
+    assemble(files, &[CONVERGE], "converge", "", &["converge.wgsl"])
+}
+
 /// Every module the backend compiles: what build.rs validates.
 #[allow(dead_code)] // build.rs
 pub fn all_modules(files: &Files<'_>) -> Vec<Module> {
     let mut all: Vec<Module> = Kernel::variants().iter().map(|k| k.module(files)).collect();
     all.push(resolve_module(files));
     all.push(pack_module(files));
+    all.push(converge_module(files));
     all
 }
 
@@ -366,6 +373,9 @@ pub const SCENE: Layout = Layout {
         // An adaptive round's active blocks, each (column | row << 16) in
         // blocks of 8x8 pixels from the film's corner (a placeholder otherwise).
         bind("active_blocks", "array<u32>", Read, "scene.wgsl"),
+        // A ranged adaptive render's samples per listed block: (first,
+        // end) (a placeholder otherwise).
+        bind("block_ranges", "array<vec2<u32>>", Read, "scene.wgsl"),
         // Model files' materials (layout.rs PbrData; placeholders without).
         bind("mat_pbr", "array<u32>", Read, "pbr.wgsl"),
         bind("pbrs", "array<Pbr>", Read, "pbr.wgsl"),
@@ -427,5 +437,28 @@ pub const PACK: Layout = Layout {
         bind("width", "atomic<u32>", ReadWrite, "pack.wgsl"),
         // The packed bytes, four to a word (little-endian); 4 pixels make 3 * width words.
         bind("packed", "array<u32>", ReadWrite, "pack.wgsl"),
+    ],
+};
+
+/// The convergence test between the rounds of an adaptive render on the
+/// GPU (converge.wgsl).
+pub const CONVERGE: Layout = Layout {
+    group: 0,
+    bindings: &[
+        bind("params", "ConvergeParams", Uniform, "converge.wgsl"),
+        // The film's sums in the adaptive layout, 18 words a pixel.
+        bind("sums", "array<u32>", Read, "converge.wgsl"),
+        // Every block of the film, (column | row << 16), bit 31 set once
+        // the block has converged: the trace kernel's `active_blocks`.
+        bind("active_blocks", "array<u32>", ReadWrite, "converge.wgsl"),
+        // Per block, after its last round: the f32 bits of the sum of its
+        // pixels' variances of the mean (finite ones), of its worst error
+        // ratio, and its samples (render::adaptive's summaries).
+        bind(
+            "block_stats",
+            "array<vec4<u32>>",
+            ReadWrite,
+            "converge.wgsl",
+        ),
     ],
 };
