@@ -685,3 +685,68 @@ fn gpu_path_matches_the_cpu_under_an_environment_image_alone() {
     }
     assert_eq!(g.dist_uploads(), 1, "the words of 4 tiles of one frame");
 }
+
+/// The wavefront driver (path_wave.wgsl: one segment of every path a
+/// dispatch, paths that go on queued for the next) runs the stack
+/// driver's step in the same order: the same sums, bit for bit, and the
+/// same rays, with lens and motion blur, absorbing glass, emissive
+/// triangles, an environment image and every light.
+#[test]
+fn the_wavefront_path_driver_renders_the_stack_drivers_sums() {
+    use tracer_core::render::gpu::{GpuOptions, Strategy};
+    let Some(g) = gpu() else { return };
+    let wave = GpuRenderer::new(
+        Some(&g.adapter().index.to_string()),
+        GpuOptions {
+            strategy: Strategy::Wavefront,
+            // Several dispatches a frame, each its own queues' run.
+            dispatch_pixel_samples: 3000,
+            ..GpuOptions::default()
+        },
+    )
+    .unwrap();
+    let blur = common::scene(
+        &scene_src(
+            "",
+            "aperture = 0.1\nfocus_distance = 5\nshutter = [0, 0.5]\n\
+             keyframes = [{ frame = 0, position = [0, 1.6, -5] }, { frame = 1, position = [0.4, 1.6, -5] }]",
+        )
+        .replace("[bsdf.ball]\n", "")
+        .replace(
+            "[materials.ball]\n",
+            "[materials.ball]\ndiffuse = [0.1, 0.1, 0.1]\nreflectivity = 0.6\ntransparency = 0.3\nior = 1.4\n",
+        ),
+    );
+    let scenes = [
+        ("lens and blur", blur),
+        ("absorbing glass", scene(ABSORBING_GLASS, "")),
+        ("emitters", emissive_mesh_scene("wave-emitters", true)),
+        (
+            "environment image",
+            environment_image_scene("wave-env", ROUGH_CONDUCTOR, true),
+        ),
+    ];
+    for (name, desc) in &scenes {
+        let (rect, samples) = full(desc);
+        let stack = gpu_film(g, desc, rect, samples);
+        let waved = gpu_film(&wave, desc, rect, samples);
+        assert!(
+            wave.last_stats().dispatches > 3 * stack_dispatches(desc),
+            "{name}: the wavefront ran ({} dispatches)",
+            wave.last_stats().dispatches
+        );
+        assert_eq!(waved.rays, stack.rays, "{name}: rays");
+        assert_eq!(
+            waved.nonfinite, stack.nonfinite,
+            "{name}: non-finite samples"
+        );
+        assert_eq!(waved.sums, stack.sums, "{name}: sums");
+        assert!(mean(&stack.resolve()) > 0.02, "{name}: lit");
+    }
+}
+
+/// Dispatches of the stack kernel for `desc` at the wavefront test's budget.
+fn stack_dispatches(desc: &SceneDesc) -> u32 {
+    let (rect, samples) = full(desc);
+    (rect.area() as u64 * samples.len() as u64).div_ceil(3000) as u32
+}

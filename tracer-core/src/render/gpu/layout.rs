@@ -230,6 +230,9 @@ pub const COUNTER_NONFINITE: usize = 4;
 
 /// A ray task of the wavefront strategy. WGSL (wavefront.wgsl): `struct WaveTask`.
 pub const WAVE_TASK_BYTES: u64 = 48;
+/// A path of the path integrator's wavefront. WGSL (path_wave.wgsl):
+/// `struct WaveTask` (path.wgsl `PathState`, then four words).
+pub const PATH_WAVE_TASK_BYTES: u64 = 80;
 /// WGSL: `struct WaveState` (count_in, count_out, overflow), padded.
 pub const WAVE_STATE_BYTES: u64 = 16;
 /// WGSL: `wave_args_out: array<u32, 3>`, an indirect dispatch's x, y, z.

@@ -222,11 +222,14 @@ struct WavePipelines {
     shade: wgpu::ComputePipeline,
     /// Tasks one queue holds.
     queue_cap: u64,
+    /// Bytes of one task (Whitted's rays or the path integrator's paths).
+    task_bytes: u64,
 }
 
 /// The wavefront's task queues and state, grown on demand.
 struct WaveBuffers {
-    queue_cap: u64,
+    /// Bytes of each queue.
+    queue_bytes: u64,
     a: wgpu::Buffer,
     b: wgpu::Buffer,
     state: wgpu::Buffer,

@@ -487,162 +487,182 @@ fn path_u(seed: u32, s: u32, key: u32, slot: u32) -> f32 {
     return uniform01(seed, s, node_dim(key, slot));
 }
 
-// Radiance along the camera ray: render/step.rs `path`, line for line.
-fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32) -> vec3<f32> {
-    var radiance = vec3<f32>(0.0);
-    var throughput = vec3<f32>(1.0);
-    var o = origin;
-    var d = dir;
-    var key = ROOT_KEY;
-    var skip = NONE;
-    var segments = 1u;
+// A path between segments: render/step.rs `path`'s loop state.
+struct PathState {
+    o: vec3<f32>,
     // Negative: no density (the camera ray, a delta lobe).
-    var bsdf_pdf = -1.0;
+    bsdf_pdf: f32,
+    d: vec3<f32>,
+    key: u32,
+    throughput: vec3<f32>,
+    skip: u32,
+    radiance: vec3<f32>,
+    segments: u32,
+}
+
+fn path_start(origin: vec3<f32>, dir: vec3<f32>) -> PathState {
+    return PathState(origin, -1.0, dir, ROOT_KEY, vec3<f32>(1.0), NONE, vec3<f32>(0.0), 1u);
+}
+
+// One segment of a path: render/step.rs `path`'s loop body, line for line.
+// Returns whether the path goes on; either way `st.radiance` holds what it
+// has gathered. The stack driver (`path_radiance`) loops over it, the
+// wavefront driver (path_wave.wgsl) runs it once a generation.
+fn path_step(st: ptr<function, PathState>, seed: u32, s: u32, tau: f32) -> bool {
+    let hit = closest_through(st.o, st.d, st.skip, tau);
+    var t_near = BIG;
+    if (hit.id != NONE) {
+        t_near = hit.t;
+    }
+    var light_hit = NONE;
+    var light_pdf = 0.0;
+    for (var li = 0u; li < N_DLIGHTS; li++) {
+        let lh = path_light_hit(li, st.o, st.d, t_near);
+        if (lh.x > 0.0) {
+            t_near = lh.x;
+            light_hit = li;
+            light_pdf = lh.y;
+        }
+    }
+    if (light_hit != NONE) {
+        var w = 1.0;
+        if (st.bsdf_pdf >= 0.0) {
+            w = power_heuristic(st.bsdf_pdf, light_prob(light_hit) * light_pdf);
+        }
+        st.radiance += st.throughput * dist[DIST_LIGHTS + 5u * light_hit + 3u].xyz * w;
+        return false;
+    }
+    if (hit.id == NONE) {
+        st.radiance += st.throughput * dist[PATH_BASE].xyz;
+        if (PATH_ENV_BASE != 0u) {
+            var w = 1.0;
+            let pe = dist[PATH_BASE].w;
+            if (st.bsdf_pdf >= 0.0 && pe > 0.0) {
+                w = power_heuristic(st.bsdf_pdf, pe * env_pdf(st.d));
+            }
+            st.radiance += st.throughput * env_radiance(st.d) * w;
+        }
+        return false;
+    }
+    let sf = surface_at(Ray(st.o, 1.0, st.d, 0u, st.skip, st.key), hit, tau);
+    let b = bsdf_at(sf.id, sf.p, sf.material);
+    // step.rs: a back side ends a segment that ran inside its volume.
+    if (!sf.entering && bsdf_max3(b.absorption) > 0.0) {
+        st.throughput = st.throughput * exp(-b.absorption * hit.t);
+    }
+    if (sf.entering) {
+        // A light-sampled triangle found by a BSDF sample (step.rs
+        // `emitter_density`): MIS against its point's light pdf.
+        var density = 0.0;
+        if (PATH_EMITTERS > 0u && (hit.id >> KIND_SHIFT) == KIND_TRIANGLE && moving_mesh_of(hit.id) == NONE) {
+            density = emit_density(sf.material);
+        }
+        if (density > 0.0 && st.bsdf_pdf >= 0.0) {
+            let pl = density * hit.t * hit.t / dot(sf.n, sf.v);
+            st.radiance += st.throughput * b.emission * power_heuristic(st.bsdf_pdf, pl);
+        } else {
+            st.radiance += st.throughput * b.emission;
+        }
+    }
+    if (st.segments >= MAX_DEPTH) {
+        return false;
+    }
+    let fr = shading_frame(sf.ns);
+    let wo = to_local(fr, sf.v);
+    let eta = select(1.0 / b.ior, b.ior, sf.entering);
+    if (PATH_NEE && has_smooth_lobe(b)) {
+        let i = pick_light(path_u(seed, s, st.key, SLOT_PATH_LIGHT));
+        let lu = path_u(seed, s, st.key, SLOT_PATH_LIGHT + 1u);
+        let lv = path_u(seed, s, st.key, SLOT_PATH_LIGHT + 2u);
+        // A light's sample and selection probability; an emissive
+        // triangle's pdf includes its selection already.
+        var ls: LightSample;
+        var p_light = 1.0;
+        if (i < N_DLIGHTS) {
+            ls = path_sample_li(i, sf.p, lu, lv);
+            p_light = light_prob(i);
+        } else if (PATH_ENV_BASE != 0u && i == N_DLIGHTS) {
+            ls = env_sample(lu, lv);
+            p_light = dist[PATH_BASE].w;
+        } else {
+            ls = emitter_sample(i - path_first_emitter(), sf.p, lu, lv);
+        }
+        if (ls.ok && dot(ls.wi, sf.n) > 0.0) {
+            let e = bsdf_eval(b, wo, to_local(fr, ls.wi), eta);
+            if (bsdf_max3(e.xyz) > 0.0) {
+                tally[C_SHADOW] += 1u;
+                let t_max = ls.dist * (1.0 - SHADOW_SHORTEN);
+                var blocked = occluded_through(sf.above, ls.wi, t_max, sf.id, tau);
+                for (var j = 0u; j < N_DLIGHTS; j++) {
+                    if (!blocked && j != i && path_light_hit(j, sf.above, ls.wi, t_max).x > 0.0) {
+                        blocked = true;
+                    }
+                }
+                if (!blocked) {
+                    var c: vec3<f32>;
+                    if (ls.pdf > 0.0) {
+                        let pl = p_light * ls.pdf;
+                        c = e.xyz * ls.li * (power_heuristic(pl, e.w) / pl);
+                    } else {
+                        c = e.xyz * ls.li * (1.0 / p_light);
+                    }
+                    st.radiance += st.throughput * c;
+                }
+            }
+        }
+    }
+    let u = vec3<f32>(
+        path_u(seed, s, st.key, SLOT_PATH_LOBE),
+        path_u(seed, s, st.key, SLOT_PATH_LOBE + 1u),
+        path_u(seed, s, st.key, SLOT_PATH_LOBE + 2u),
+    );
+    let bs = bsdf_sample(b, wo, eta, u);
+    if (!bs.ok) {
+        return false;
+    }
+    let wi = to_world(fr, bs.wi);
+    // A direction on the wrong side of the geometric surface (shading
+    // normals) carries nothing.
+    let reflected = bs.wi.z > 0.0;
+    let side = dot(wi, sf.n);
+    if ((reflected && !(side > 0.0)) || (!reflected && !(side < 0.0))) {
+        return false;
+    }
+    st.throughput = st.throughput * bs.weight;
+    st.bsdf_pdf = select(bs.pdf, -1.0, bs.delta);
+    st.segments += 1u;
+    if (st.segments > RR_DEPTH) {
+        let q = min(bsdf_max3(st.throughput), 0.95);
+        if (!(path_u(seed, s, st.key, SLOT_PATH_RR) < q)) {
+            return false;
+        }
+        st.throughput = st.throughput * (1.0 / q);
+    }
+    if (reflected) {
+        tally[C_REFLECTION] += 1u;
+        st.o = sf.above;
+    } else {
+        tally[C_REFRACTION] += 1u;
+        st.o = offset_origin(sf.p, -sf.n);
+    }
+    st.d = wi;
+    st.skip = sf.id;
+    st.key = child_key(st.key, 1u);
+    return true;
+}
+
+// Radiance along the camera ray: render/step.rs `path`.
+fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32) -> vec3<f32> {
+    var st = path_start(origin, dir);
     if (MAX_DEPTH == 0u) {
-        return radiance;
+        return st.radiance;
     }
     loop {
-        let hit = closest_through(o, d, skip, tau);
-        var t_near = BIG;
-        if (hit.id != NONE) {
-            t_near = hit.t;
-        }
-        var light_hit = NONE;
-        var light_pdf = 0.0;
-        for (var li = 0u; li < N_DLIGHTS; li++) {
-            let lh = path_light_hit(li, o, d, t_near);
-            if (lh.x > 0.0) {
-                t_near = lh.x;
-                light_hit = li;
-                light_pdf = lh.y;
-            }
-        }
-        if (light_hit != NONE) {
-            var w = 1.0;
-            if (bsdf_pdf >= 0.0) {
-                w = power_heuristic(bsdf_pdf, light_prob(light_hit) * light_pdf);
-            }
-            radiance += throughput * dist[DIST_LIGHTS + 5u * light_hit + 3u].xyz * w;
+        if (!path_step(&st, seed, s, tau)) {
             break;
         }
-        if (hit.id == NONE) {
-            radiance += throughput * dist[PATH_BASE].xyz;
-            if (PATH_ENV_BASE != 0u) {
-                var w = 1.0;
-                let pe = dist[PATH_BASE].w;
-                if (bsdf_pdf >= 0.0 && pe > 0.0) {
-                    w = power_heuristic(bsdf_pdf, pe * env_pdf(d));
-                }
-                radiance += throughput * env_radiance(d) * w;
-            }
-            break;
-        }
-        let sf = surface_at(Ray(o, 1.0, d, 0u, skip, key), hit, tau);
-        let b = bsdf_at(sf.id, sf.p, sf.material);
-        // step.rs: a back side ends a segment that ran inside its volume.
-        if (!sf.entering && bsdf_max3(b.absorption) > 0.0) {
-            throughput = throughput * exp(-b.absorption * hit.t);
-        }
-        if (sf.entering) {
-            // A light-sampled triangle found by a BSDF sample (step.rs
-            // `emitter_density`): MIS against its point's light pdf.
-            var density = 0.0;
-            if (PATH_EMITTERS > 0u && (hit.id >> KIND_SHIFT) == KIND_TRIANGLE && moving_mesh_of(hit.id) == NONE) {
-                density = emit_density(sf.material);
-            }
-            if (density > 0.0 && bsdf_pdf >= 0.0) {
-                let pl = density * hit.t * hit.t / dot(sf.n, sf.v);
-                radiance += throughput * b.emission * power_heuristic(bsdf_pdf, pl);
-            } else {
-                radiance += throughput * b.emission;
-            }
-        }
-        if (segments >= MAX_DEPTH) {
-            break;
-        }
-        let fr = shading_frame(sf.ns);
-        let wo = to_local(fr, sf.v);
-        let eta = select(1.0 / b.ior, b.ior, sf.entering);
-        if (PATH_NEE && has_smooth_lobe(b)) {
-            let i = pick_light(path_u(seed, s, key, SLOT_PATH_LIGHT));
-            let lu = path_u(seed, s, key, SLOT_PATH_LIGHT + 1u);
-            let lv = path_u(seed, s, key, SLOT_PATH_LIGHT + 2u);
-            // A light's sample and selection probability; an emissive
-            // triangle's pdf includes its selection already.
-            var ls: LightSample;
-            var p_light = 1.0;
-            if (i < N_DLIGHTS) {
-                ls = path_sample_li(i, sf.p, lu, lv);
-                p_light = light_prob(i);
-            } else if (PATH_ENV_BASE != 0u && i == N_DLIGHTS) {
-                ls = env_sample(lu, lv);
-                p_light = dist[PATH_BASE].w;
-            } else {
-                ls = emitter_sample(i - path_first_emitter(), sf.p, lu, lv);
-            }
-            if (ls.ok && dot(ls.wi, sf.n) > 0.0) {
-                let e = bsdf_eval(b, wo, to_local(fr, ls.wi), eta);
-                if (bsdf_max3(e.xyz) > 0.0) {
-                    tally[C_SHADOW] += 1u;
-                    let t_max = ls.dist * (1.0 - SHADOW_SHORTEN);
-                    var blocked = occluded_through(sf.above, ls.wi, t_max, sf.id, tau);
-                    for (var j = 0u; j < N_DLIGHTS; j++) {
-                        if (!blocked && j != i && path_light_hit(j, sf.above, ls.wi, t_max).x > 0.0) {
-                            blocked = true;
-                        }
-                    }
-                    if (!blocked) {
-                        var c: vec3<f32>;
-                        if (ls.pdf > 0.0) {
-                            let pl = p_light * ls.pdf;
-                            c = e.xyz * ls.li * (power_heuristic(pl, e.w) / pl);
-                        } else {
-                            c = e.xyz * ls.li * (1.0 / p_light);
-                        }
-                        radiance += throughput * c;
-                    }
-                }
-            }
-        }
-        let u = vec3<f32>(
-            path_u(seed, s, key, SLOT_PATH_LOBE),
-            path_u(seed, s, key, SLOT_PATH_LOBE + 1u),
-            path_u(seed, s, key, SLOT_PATH_LOBE + 2u),
-        );
-        let bs = bsdf_sample(b, wo, eta, u);
-        if (!bs.ok) {
-            break;
-        }
-        let wi = to_world(fr, bs.wi);
-        // A direction on the wrong side of the geometric surface (shading
-        // normals) carries nothing.
-        let reflected = bs.wi.z > 0.0;
-        let side = dot(wi, sf.n);
-        if ((reflected && !(side > 0.0)) || (!reflected && !(side < 0.0))) {
-            break;
-        }
-        throughput = throughput * bs.weight;
-        bsdf_pdf = select(bs.pdf, -1.0, bs.delta);
-        segments += 1u;
-        if (segments > RR_DEPTH) {
-            let q = min(bsdf_max3(throughput), 0.95);
-            if (!(path_u(seed, s, key, SLOT_PATH_RR) < q)) {
-                break;
-            }
-            throughput = throughput * (1.0 / q);
-        }
-        if (reflected) {
-            tally[C_REFLECTION] += 1u;
-            o = sf.above;
-        } else {
-            tally[C_REFRACTION] += 1u;
-            o = offset_origin(sf.p, -sf.n);
-        }
-        d = wi;
-        skip = sf.id;
-        key = child_key(key, 1u);
     }
-    return radiance;
+    return st.radiance;
 }
 
 // The path kernel's entry: whitted.wgsl `render` with the path's radiance.

@@ -294,16 +294,23 @@ impl GpuRenderer {
                             },
                             cache: self.pipeline_cache(),
                         });
-                // Distributed effects run on the stack kernel only.
-                let wave = (self.options.strategy == Strategy::Wavefront && data.dist.is_none())
+                // Whitted's distributed effects run on the stack kernel only;
+                // the path integrator has a wavefront of its own (path_wave.wgsl).
+                let wave = (self.options.strategy == Strategy::Wavefront
+                    && (data.dist.is_none() || kernel.path))
                     .then(|| {
+                        let task_bytes = if kernel.path {
+                            layout::PATH_WAVE_TASK_BYTES
+                        } else {
+                            layout::WAVE_TASK_BYTES
+                        };
                         // Twice the largest dispatch's primary tasks, within one indirect dispatch.
                         let (wx, wy) = self.options.workgroup;
                         let max_groups = limits.max_compute_workgroups_per_dimension as u64;
                         let queue_cap = (2 * self.options.dispatch_pixel_samples)
                             .min(max_groups * (wx * wy) as u64)
-                            .min(limits.max_storage_buffer_binding_size / layout::WAVE_TASK_BYTES);
-                        let mut wave_constants = constants.to_vec();
+                            .min(limits.max_storage_buffer_binding_size / task_bytes);
+                        let mut wave_constants = all_constants.clone();
                         wave_constants.push(("QUEUE_CAP", queue_cap as f64));
                         let make = |entry: &str, layout: &wgpu::PipelineLayout| {
                             self.device
@@ -319,11 +326,17 @@ impl GpuRenderer {
                                     cache: self.pipeline_cache(),
                                 })
                         };
+                        let (primary, shade) = if kernel.path {
+                            ("path_wave_primary", "path_wave_shade")
+                        } else {
+                            ("wave_primary", "wave_shade")
+                        };
                         WavePipelines {
-                            primary: make("wave_primary", &self.wave_pipeline_layout),
+                            primary: make(primary, &self.wave_pipeline_layout),
                             swap: make("wave_swap", &self.wave_swap_layout),
-                            shade: make("wave_shade", &self.wave_pipeline_layout),
+                            shade: make(shade, &self.wave_pipeline_layout),
                             queue_cap,
+                            task_bytes,
                         }
                     });
                 self.pipelines_built

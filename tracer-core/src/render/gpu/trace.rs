@@ -221,15 +221,15 @@ impl GpuRenderer {
                     .wave
                     .lock()
                     .map_err(|_| GpuError::Device("wavefront cache poisoned".into()))?;
-                if guard.as_ref().is_none_or(|w| w.queue_cap < p.queue_cap) {
-                    let bytes = p.queue_cap * layout::WAVE_TASK_BYTES;
+                let bytes = p.queue_cap * p.task_bytes;
+                if guard.as_ref().is_none_or(|w| w.queue_bytes < bytes) {
                     check_size(
                         "a wavefront task queue",
                         bytes,
                         limits.max_storage_buffer_binding_size,
                         "max_storage_buffer_binding_size",
                     )?;
-                    *guard = Some(self.create_wave_buffers(p.queue_cap));
+                    *guard = Some(self.create_wave_buffers(bytes));
                 }
                 Some((p, guard))
             }
@@ -629,7 +629,7 @@ impl GpuRenderer {
         }
     }
 
-    pub(super) fn create_wave_buffers(&self, queue_cap: u64) -> WaveBuffers {
+    pub(super) fn create_wave_buffers(&self, queue_bytes: u64) -> WaveBuffers {
         use wgpu::BufferUsages as U;
         let args = self.buffer(
             "wavefront args",
@@ -642,17 +642,9 @@ impl GpuRenderer {
             entries: &[entire(wgsl::WAVE_ARGS.binding("wave_args_out"), &args)],
         });
         WaveBuffers {
-            queue_cap,
-            a: self.buffer(
-                "wavefront queue a",
-                queue_cap * layout::WAVE_TASK_BYTES,
-                U::STORAGE,
-            ),
-            b: self.buffer(
-                "wavefront queue b",
-                queue_cap * layout::WAVE_TASK_BYTES,
-                U::STORAGE,
-            ),
+            queue_bytes,
+            a: self.buffer("wavefront queue a", queue_bytes, U::STORAGE),
+            b: self.buffer("wavefront queue b", queue_bytes, U::STORAGE),
             state: self.buffer(
                 "wavefront state",
                 layout::WAVE_STATE_BYTES,

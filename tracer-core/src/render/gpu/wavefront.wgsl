@@ -1,5 +1,6 @@
 //! import shade.wgsl
 //! import sums.wgsl
+//! import wave_queue.wgsl
 // The thesis's weighted ray tasks as a wavefront: instead of one thread
 // walking a sample's whole ray tree, each generation of rays is a queue of
 // tasks (pixel, weight, ray, depth, skip); one dispatch shades a whole
@@ -17,24 +18,6 @@ struct WaveTask {
     skip: u32,
     // Index of the task's pixel in the film (row-major over the rect).
     pixel: u32,
-}
-
-// Keep in sync with layout.rs WaveState.
-struct WaveState {
-    // Tasks in the input queue, the output queue's append cursor.
-    count_in: atomic<u32>,
-    count_out: atomic<u32>,
-    // Set when a generation had more children than the queue holds.
-    overflow: atomic<u32>,
-}
-
-override QUEUE_CAP: u32 = 1u;
-
-// Groups 1 (queue_in, queue_out, wave) and 2 (wave_args_out): wgsl.rs
-// WAVE_QUEUES and WAVE_ARGS.
-
-fn wave_args(n: u32) -> vec3<u32> {
-    return vec3<u32>((n + WG_X * WG_Y - 1u) / (WG_X * WG_Y), 1u, 1u);
 }
 
 // Primary tasks of the dispatch's band of rows x range of samples, written
@@ -60,30 +43,6 @@ fn wave_primary(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_in
         atomicStore(&wave.count_out, n);
     }
     flush_tally(lid);
-}
-
-// Between generations (one invocation): the output queue becomes the next
-// input; its length sets the next shade dispatch's size.
-@compute @workgroup_size(1, 1, 1)
-fn wave_swap() {
-    let produced = atomicLoad(&wave.count_out);
-    let n = min(produced, QUEUE_CAP);
-    if (produced > QUEUE_CAP) {
-        atomicStore(&wave.overflow, 1u);
-    }
-    atomicStore(&wave.count_in, n);
-    atomicStore(&wave.count_out, 0u);
-    let args = wave_args(n);
-    wave_args_out[0] = args.x;
-    wave_args_out[1] = args.y;
-    wave_args_out[2] = args.z;
-}
-
-fn push(t: WaveTask) {
-    let at = atomicAdd(&wave.count_out, 1u);
-    if (at < QUEUE_CAP) {
-        queue_out[at] = t;
-    }
 }
 
 // One generation: every task of queue_in, shaded as render/step.rs does.

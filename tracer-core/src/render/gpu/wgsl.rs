@@ -32,6 +32,7 @@ pub const FILES: &[(&str, &str)] = &[
     ),
     ("pack.wgsl", include_str!("pack.wgsl")),
     ("path.wgsl", include_str!("path.wgsl")),
+    ("path_wave.wgsl", include_str!("path_wave.wgsl")),
     ("pbr.wgsl", include_str!("pbr.wgsl")),
     ("resolve.wgsl", include_str!("resolve.wgsl")),
     ("resolve_linear.wgsl", include_str!("resolve_linear.wgsl")),
@@ -39,6 +40,7 @@ pub const FILES: &[(&str, &str)] = &[
     ("scene.wgsl", include_str!("scene.wgsl")),
     ("shade.wgsl", include_str!("shade.wgsl")),
     ("sums.wgsl", include_str!("sums.wgsl")),
+    ("wave_queue.wgsl", include_str!("wave_queue.wgsl")),
     ("wavefront.wgsl", include_str!("wavefront.wgsl")),
     ("whitted.wgsl", include_str!("whitted.wgsl")),
     ("wide_int.wgsl", include_str!("wide_int.wgsl")),
@@ -241,7 +243,7 @@ impl Kernel {
                 self.stack_cap, self.bvh_stack
             ),
             &if self.path {
-                vec![queries, "path.wgsl", moving]
+                vec![queries, "path.wgsl", "path_wave.wgsl", moving]
             } else {
                 vec![queries, "whitted.wgsl", "wavefront.wgsl", moving]
             },
@@ -389,9 +391,9 @@ pub const SCENE: Layout = Layout {
 pub const WAVE_QUEUES: Layout = Layout {
     group: 1,
     bindings: &[
-        bind("queue_in", "array<WaveTask>", Read, "wavefront.wgsl"),
-        bind("queue_out", "array<WaveTask>", ReadWrite, "wavefront.wgsl"),
-        bind("wave", "WaveState", ReadWrite, "wavefront.wgsl"),
+        bind("queue_in", "array<WaveTask>", Read, "wave_queue.wgsl"),
+        bind("queue_out", "array<WaveTask>", ReadWrite, "wave_queue.wgsl"),
+        bind("wave", "WaveState", ReadWrite, "wave_queue.wgsl"),
     ],
 };
 
@@ -404,7 +406,7 @@ pub const WAVE_ARGS: Layout = Layout {
         "wave_args_out",
         "array<u32, 3>",
         ReadWrite,
-        "wavefront.wgsl",
+        "wave_queue.wgsl",
     )],
 };
 
