@@ -38,6 +38,10 @@
 # (.gpu/gpu-path-tests, built by `cargo test -p tracer-core --test gpu_path
 # --no-run`) on the NVIDIA GPU: CPU against GPU images on real hardware.
 #
+# `launch-path` (issue 35; not in the default; ~3 min): `tessera bench
+# launch --integrator path --backend gpu`: the stack and wavefront path
+# drivers over launch shapes (launch-path-*.txt, launch-path.csv).
+#
 # `path-bench` (issue 35; not in the default; ~3 min): `tessera bench path
 # --backend both` with Mitsuba 3's cuda_ad_rgb (from .gpu/mitsuba.tar.xz,
 # made by scripts/device-mitsuba.sh) at $PATH_SIZE (default 512x512),
@@ -178,6 +182,14 @@ if [ -x .gpu/gpu-path-tests ]; then
     > "$OUT/gpu-path-tests.txt" 2>&1
   echo "gpu path tests exit $?" >> "$OUT/gpu-path-tests.txt"
 fi
+fi
+if has launch-path; then
+# Issue 35's wavefront path driver against the stack driver: the launch
+# sweep (1080p 4 spp, resolution and glass-9) with --integrator path.
+timeout "${LAUNCH_PATH_TIMEOUT:-300}" "$T" bench launch --integrator path --backend gpu --repeat 3 \
+  --out /tmp/bench-lp --cache /tmp/bench-cache > "$OUT/launch-path-summary.txt" 2> "$OUT/launch-path-log.txt"
+echo "launch-path exit $?" >> "$OUT/launch-path-summary.txt"
+cp /tmp/bench-lp/launch.csv "$OUT/launch-path.csv" 2>/dev/null
 fi
 if has path-bench; then
 mkdir -p /tmp/mi && python3 -c 'import tarfile, sys; tarfile.open(sys.argv[1]).extractall(sys.argv[2])' .gpu/mitsuba.tar.xz /tmp/mi

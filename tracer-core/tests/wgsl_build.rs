@@ -22,10 +22,11 @@ fn modules_with(name: &str, text: &str) -> Vec<wgsl::Module> {
 #[test]
 fn every_assembled_module_validates() {
     let modules = wgsl::all_modules(wgsl::FILES);
-    // 4 scene kernel variants, each Whitted and path, the resolve and the packing.
+    // 4 scene kernel variants, each Whitted and path, the resolve, the
+    // packing and the adaptive convergence test.
     assert_eq!(
         modules.len(),
-        10,
+        11,
         "{:?}",
         modules.iter().map(|m| &m.name).collect::<Vec<_>>()
     );
