@@ -42,6 +42,7 @@
 mod adapter;
 mod converge;
 mod disk_cache;
+mod grid;
 pub mod launch;
 pub mod layout;
 mod pack;

@@ -4,20 +4,43 @@
 
 use std::time::{Duration, Instant};
 
-use wgpu::util::DeviceExt as _;
-
-use super::layout::{self, ADAPTIVE_SUM_WORDS, COUNTERS, DispatchParams, SUM_WORDS, SceneData};
+use super::grid::Grid;
+use super::layout::{self, COUNTERS, DispatchParams, GpuBlockStats, SUM_WORDS, SceneData};
 use super::plan::plan;
 use super::readback::linear_pixels;
 use super::wgsl;
 use super::{
     GpuError, GpuOptions, GpuRenderer, GpuStats, LinearImage, Outputs, PARAMS_SLOTS, PARAMS_STRIDE,
-    PackedSums, Readout, Rendered, Resolve, Srgb8Image, WaveBuffers, check_size, entire,
+    PackedSums, Readout, Rendered, Resolve, SceneState, Srgb8Image, WaveBuffers, WavePipelines,
+    check_size, entire,
 };
-use crate::adaptive::BLOCK;
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 
+/// Which driver a render's dispatches run: the stack kernel (its plain or
+/// adaptive pipeline), or the wavefront's passes with its queues and their
+/// two bind groups.
+enum Driver<'a> {
+    Stack(&'a wgpu::ComputePipeline),
+    Wave(
+        &'a WavePipelines,
+        &'a WaveBuffers,
+        &'a (wgpu::BindGroup, wgpu::BindGroup),
+    ),
+}
+
+/// A render's timestamp queries: a begin and an end per submission.
+struct Timestamps {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    read: wgpu::Buffer,
+    count: u32,
+}
+
 impl GpuRenderer {
+    /// One render: the scene's state, the grid, the planned dispatches in
+    /// bounded submissions (a resident adaptive render's rounds chained,
+    /// `converge.rs`), then the read-back. `None`: the wavefront's queues
+    /// overflowed, and the caller renders again in smaller dispatches.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn render_inner(
         &self,
@@ -31,6 +54,7 @@ impl GpuRenderer {
         readout: Readout<'_>,
     ) -> Result<Option<Rendered>, GpuError> {
         let limits = self.device.limits();
+        let grid = Grid::new(&self.device, readout, rect);
         let mut scene_guard = self
             .scene
             .lock()
@@ -42,24 +66,13 @@ impl GpuRenderer {
             let old = scene_guard.take();
             *scene_guard = Some(self.upload_scene(data, &limits, old)?);
         }
-        let mask = match readout {
-            Readout::Adaptive(m) => Some(m),
-            Readout::Resident(r) => Some(&r.mask),
-            Readout::Ranged(m, _) => Some(m),
-            _ => None,
-        };
-        // A ranged render's (first, end) per listed block.
-        let ranges = match readout {
-            Readout::Ranged(m, r) => Some(
-                m.active
-                    .iter()
-                    .zip(r)
-                    .filter(|(a, _)| **a)
-                    .map(|(_, &(a, b))| [a, b])
-                    .collect::<Vec<[u32; 2]>>(),
-            ),
-            _ => None,
-        };
+        if grid.mask.is_some() {
+            let scene = scene_guard.as_mut().expect("just set");
+            if scene.adaptive.is_none() {
+                scene.adaptive = Some(self.adaptive_pipeline(scene));
+            }
+        }
+        let scene = scene_guard.as_ref().expect("just set");
         let resident = match readout {
             Readout::Resident(r) => Some(r),
             _ => None,
@@ -67,33 +80,19 @@ impl GpuRenderer {
         // A resident adaptive render runs all its rounds here; any other
         // render is one range of samples.
         let rounds = resident.map_or_else(|| vec![samples], |r| r.settings.rounds());
-        if mask.is_some() {
-            let scene = scene_guard.as_mut().expect("just set");
-            if scene.adaptive.is_none() {
-                scene.adaptive = Some(self.adaptive_pipeline(scene));
-            }
-        }
-        let scene = scene_guard.as_ref().expect("just set");
 
         let pixels = rect.area();
-        let stride = if mask.is_some() {
-            ADAPTIVE_SUM_WORDS
-        } else {
-            SUM_WORDS
-        };
+        let stride = grid.sum_words();
         let sums_bytes = (pixels * stride * 4) as u64;
-        check_size(
-            "the film's per-pixel sums",
-            sums_bytes,
-            limits.max_storage_buffer_binding_size,
-            "max_storage_buffer_binding_size",
-        )?;
-        check_size(
-            "the film's per-pixel sums",
-            sums_bytes,
-            limits.max_buffer_size,
-            "max_buffer_size",
-        )?;
+        for limit in [
+            (
+                limits.max_storage_buffer_binding_size,
+                "max_storage_buffer_binding_size",
+            ),
+            (limits.max_buffer_size, "max_buffer_size"),
+        ] {
+            check_size("the film's per-pixel sums", sums_bytes, limit.0, limit.1)?;
+        }
         let mut out_guard = self
             .outputs
             .lock()
@@ -105,68 +104,293 @@ impl GpuRenderer {
             *out_guard = Some(self.create_outputs(pixels * stride));
         }
         let out = out_guard.as_ref().expect("just set");
-        // An adaptive round's grid: 8 columns, 8 rows per active block
-        // (sums.wgsl grid_pixel), its blocks listed as column | row << 16.
-        let blocks: Vec<u32> = mask.map_or_else(Vec::new, |m| {
-            let cols = m.cols() as usize;
-            m.active
-                .iter()
-                .enumerate()
-                .filter(|(_, a)| **a)
-                .map(|(i, _)| (i % cols) as u32 | ((i / cols) as u32) << 16)
-                .collect()
-        });
-        let ranges_buffer = ranges.as_ref().map(|r| {
-            self.device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("block ranges"),
-                    contents: bytemuck::cast_slice(r),
-                    usage: wgpu::BufferUsages::STORAGE,
-                })
-        });
-        let blocks_buffer = mask.map(|_| {
-            self.device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("active blocks"),
-                    contents: bytemuck::cast_slice(&blocks),
-                    usage: wgpu::BufferUsages::STORAGE,
-                })
-        });
-        let grid = match mask {
-            Some(_) => Rect::new(rect.x, rect.y, BLOCK, BLOCK * blocks.len() as u32),
-            None => rect,
+        let bind_group = self.scene_bind_group(scene, out, sums_bytes, &grid);
+
+        // Adaptive renders run on the stack kernel (as Whitted's distributed
+        // effects do).
+        let wave = match scene.wave.as_ref().filter(|_| grid.mask.is_none()) {
+            Some(p) => Some((p, self.wave_queues(p, &limits)?)),
+            None => None,
         };
-        // Pixel-samples a dispatch traces: the film's pixels in its band of
-        // the grid's rows (blocks cut by the film's edge hold fewer than
-        // their 64 grid cells) times its samples (in a ranged render, those
-        // of each block's range).
-        let dispatch_work = |d: &DispatchParams| -> u64 {
-            let n = (d.sample_end - d.sample_start) as u64;
-            match mask {
-                None => rect.width as u64 * d.rows as u64 * n,
-                Some(_) => (d.row0..d.row0 + d.rows)
-                    .map(|r| {
-                        let b = blocks[(r / BLOCK) as usize];
-                        let (fx, fy) = ((b & 0xffff) * BLOCK, (b >> 16) * BLOCK + r % BLOCK);
-                        let samples = match &ranges {
-                            Some(rs) => {
-                                let [a, e] = rs[(r / BLOCK) as usize];
-                                d.sample_end.min(e - a).saturating_sub(d.sample_start) as u64
+        let wave_groups = wave
+            .as_ref()
+            .map(|(_, w)| self.wave_groups(w.as_ref().expect("just set")));
+        // Each wavefront dispatch's primary tasks must fit a queue, and a
+        // queue's tasks one indirect dispatch.
+        let budget = match &wave {
+            Some((p, _)) => budget.min(p.queue_cap / 2).max(1),
+            None => budget,
+        };
+        let plans: Vec<_> = rounds
+            .iter()
+            .map(|&round| {
+                let mut groups = plan(
+                    grid.rect(),
+                    (rect.width, rect.height),
+                    round,
+                    frame,
+                    GpuOptions {
+                        dispatch_pixel_samples: budget,
+                        ..self.options
+                    },
+                );
+                if grid.ranged() {
+                    for d in groups.iter_mut().flatten() {
+                        d.ranged = 1;
+                    }
+                }
+                groups
+            })
+            .collect();
+        // Timestamps time the submissions of one range (not a resident
+        // render's rounds, which are not waited for one by one).
+        let query = (self.timestamps && resident.is_none())
+            .then(|| self.timestamp_query((plans[0].len() * 2) as u32));
+
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera clear"),
+            });
+        enc.clear_buffer(&out.sums, 0, Some(sums_bytes));
+        enc.clear_buffer(&out.counters, 0, None);
+        if let Some((_, w)) = &wave {
+            enc.clear_buffer(&w.as_ref().expect("set").state, 0, None);
+        }
+        let mut dispatches = 0u32;
+        let mut submissions = 0u32;
+        let trace_start = Instant::now();
+        self.queue.submit([enc.finish()]);
+        let mut chain = match resident {
+            Some(r) => Some(
+                self.start_rounds(
+                    r,
+                    rect,
+                    &out.sums,
+                    sums_bytes,
+                    grid.blocks_buffer
+                        .as_ref()
+                        .expect("a resident render has a block list"),
+                )?,
+            ),
+            None => None,
+        };
+        let kernel = match (&wave, &wave_groups) {
+            (Some((p, w)), Some(groups)) => Driver::Wave(p, w.as_ref().expect("set"), groups),
+            _ => Driver::Stack(match grid.mask {
+                Some(_) => scene.adaptive.as_ref().expect("made above"),
+                None => &scene.pipeline,
+            }),
+        };
+        for (round, groups) in plans.iter().enumerate() {
+            if chain.as_ref().is_some_and(|c| c.done) {
+                break;
+            }
+            for (g, group) in groups.iter().enumerate() {
+                let mut params = vec![0u8; group.len() * PARAMS_STRIDE as usize];
+                for (i, d) in group.iter().enumerate() {
+                    let at = i * PARAMS_STRIDE as usize;
+                    params[at..at + size_of::<DispatchParams>()]
+                        .copy_from_slice(bytemuck::bytes_of(d));
+                }
+                self.queue.write_buffer(&out.params, 0, &params);
+                let mut enc = self
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("tessera trace"),
+                    });
+                {
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("tessera trace"),
+                        timestamp_writes: query.as_ref().map(|q| {
+                            wgpu::ComputePassTimestampWrites {
+                                query_set: &q.set,
+                                beginning_of_pass_write_index: Some(2 * g as u32),
+                                end_of_pass_write_index: Some(2 * g as u32 + 1),
                             }
-                            None => n,
-                        };
-                        if fy < rect.height {
-                            (rect.width - fx).min(BLOCK) as u64 * samples
-                        } else {
-                            0
-                        }
-                    })
-                    .sum(),
+                        }),
+                    });
+                    dispatches += self.encode_group(
+                        &mut pass,
+                        group,
+                        &bind_group,
+                        &kernel,
+                        scene.data.max_depth,
+                    );
+                }
+                let index = self.queue.submit([enc.finish()]);
+                submissions += 1;
+                // A resident render's rounds run back to back; its progress
+                // comes with each round's report.
+                if chain.is_none() {
+                    self.wait(index)?;
+                    progress(group.iter().map(|d| grid.work(d)).sum());
+                }
+            }
+            if let Some(c) = chain.as_mut() {
+                self.end_round(c, round, progress)?;
+            }
+        }
+        if let Some(c) = chain.as_mut() {
+            self.finish_rounds(c, progress)?;
+        }
+        let trace_wall = trace_start.elapsed();
+        let readback_start = Instant::now();
+
+        let rendered = self.read_back(
+            readout,
+            out,
+            sums_bytes,
+            samples.len(),
+            &grid,
+            chain.as_ref().map(|c| c.last.as_slice()),
+            wave.as_ref().map(|(_, w)| w.as_ref().expect("set")),
+            query.as_ref(),
+        )?;
+        let Some(rendered) = rendered else {
+            return Ok(None);
+        };
+        let gpu_time = match &query {
+            Some(q) => Some(self.gpu_time(q)?),
+            None => None,
+        };
+        let readback = readback_start.elapsed();
+        if let Ok(mut s) = self.stats.lock() {
+            *s = GpuStats {
+                gpu_time,
+                trace_wall,
+                total_wall: start.elapsed(),
+                dispatches,
+                submissions,
+                overflow_retries: 0,
+                readback,
+            };
+        }
+        Ok(Some(rendered))
+    }
+
+    /// The read-back after a render's dispatches: its sums into a film
+    /// (counts from `grid`; a resident render's blocks at the samples they
+    /// `stopped` at), or the image resolved on the GPU, or the sums packed;
+    /// the ray counters; the wavefront's overflow flag (`None`: overflowed)
+    /// and the timestamps. Every pixel has `samples` samples but where the
+    /// grid says otherwise.
+    #[allow(clippy::too_many_arguments)]
+    fn read_back(
+        &self,
+        readout: Readout<'_>,
+        out: &Outputs,
+        sums_bytes: u64,
+        samples: u32,
+        grid: &Grid<'_>,
+        stopped: Option<&[GpuBlockStats]>,
+        wave: Option<&WaveBuffers>,
+        query: Option<&Timestamps>,
+    ) -> Result<Option<Rendered>, GpuError> {
+        let rect = grid.film;
+        let pixels = rect.area();
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera read-back"),
+            });
+        let (resolver, packer) = match readout {
+            Readout::Sums | Readout::Adaptive(_) | Readout::Resident(_) | Readout::Ranged(..) => {
+                enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
+                (None, None)
+            }
+            Readout::Image(to) => (
+                Some((
+                    to,
+                    self.encode_resolve(&mut enc, &out.sums, sums_bytes, pixels, to, samples)?,
+                )),
+                None,
+            ),
+            Readout::Packed => (
+                None,
+                Some(self.encode_pack(&mut enc, &out.sums, sums_bytes, pixels)?),
+            ),
+        };
+        enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
+        if let Some(w) = wave {
+            enc.copy_buffer_to_buffer(&w.state, 0, &w.state_read, 0, None);
+        }
+        if let Some(q) = query {
+            enc.resolve_query_set(&q.set, 0..q.count, &q.resolve, 0);
+            enc.copy_buffer_to_buffer(&q.resolve, 0, &q.read, 0, None);
+        }
+        let index = self.queue.submit([enc.finish()]);
+        self.wait(index)?;
+
+        if let Some(w) = wave {
+            let state: Vec<u32> = self.read(&w.state_read, layout::WAVE_STATE_BYTES)?;
+            if state[2] != 0 {
+                return Ok(None);
+            }
+        }
+        let counters: Vec<u32> = self.read(&out.counters_read, (COUNTERS * 8) as u64)?;
+        let counter = |k: usize| counters[2 * k] as u64 | (counters[2 * k + 1] as u64) << 32;
+        let rays = RayCounts {
+            primary: counter(layout::COUNTER_PRIMARY),
+            shadow: counter(layout::COUNTER_SHADOW),
+            reflection: counter(layout::COUNTER_REFLECTION),
+            refraction: counter(layout::COUNTER_REFRACTION),
+        };
+        let nonfinite = counter(layout::COUNTER_NONFINITE);
+        let rendered = match (&resolver, &packer) {
+            (_, Some(p)) => {
+                let (sum_bytes, sums) =
+                    self.read_packed(p.as_ref().expect("made by encode_pack"), pixels)?;
+                Rendered::Packed(PackedSums {
+                    rect,
+                    samples,
+                    sum_bytes,
+                    sums,
+                    rays,
+                    nonfinite,
+                })
+            }
+            (Some((to, r)), _) => {
+                let r = r.as_ref().expect("made by encode_resolve");
+                let bytes = to.image_bytes(pixels);
+                match to {
+                    Resolve::Srgb8 => Rendered::Srgb8(Srgb8Image {
+                        rect,
+                        rgb: self.read_with(&r.image_read, bytes, |b| b[..pixels * 3].to_vec())?,
+                        rays,
+                        nonfinite,
+                    }),
+                    Resolve::Linear => Rendered::Linear(LinearImage {
+                        rect,
+                        rgb: self.read_with(&r.image_read, bytes, |b| linear_pixels(b, pixels))?,
+                        rays,
+                        nonfinite,
+                    }),
+                }
+            }
+            (None, None) => {
+                let mut film = self.read_film(&out.sums_read, sums_bytes, grid)?;
+                grid.fill_counts(&mut film, samples, stopped);
+                film.rays = rays;
+                film.nonfinite = nonfinite;
+                Rendered::Film(film)
             }
         };
+        drop(resolver);
+        drop(packer);
+        Ok(Some(rendered))
+    }
 
+    /// The scene kernel's group 0 for one render.
+    fn scene_bind_group(
+        &self,
+        scene: &SceneState,
+        out: &Outputs,
+        sums_bytes: u64,
+        grid: &Grid<'_>,
+    ) -> wgpu::BindGroup {
         let b = |name| wgsl::SCENE.binding(name);
-        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("tessera render"),
             layout: &self.layout,
             entries: &[
@@ -199,11 +423,11 @@ impl GpuRenderer {
                 entire(b("dist"), &scene.dist),
                 entire(
                     b("active_blocks"),
-                    blocks_buffer.as_ref().unwrap_or(&self.no_blocks),
+                    grid.blocks_buffer.as_ref().unwrap_or(&self.no_blocks),
                 ),
                 entire(
                     b("block_ranges"),
-                    ranges_buffer.as_ref().unwrap_or(&self.no_blocks),
+                    grid.ranges_buffer.as_ref().unwrap_or(&self.no_blocks),
                 ),
                 entire(b("mat_pbr"), &scene.pbr[0]),
                 entire(b("pbrs"), &scene.pbr[1]),
@@ -211,400 +435,162 @@ impl GpuRenderer {
                 entire(b("vertex_attrs"), &scene.pbr[3]),
                 entire(b("texels"), &scene.pbr[4]),
             ],
-        });
+        })
+    }
 
+    /// The wavefront's queues, grown to `p`'s capacity.
+    fn wave_queues(
+        &self,
+        p: &WavePipelines,
+        limits: &wgpu::Limits,
+    ) -> Result<std::sync::MutexGuard<'_, Option<WaveBuffers>>, GpuError> {
+        let mut guard = self
+            .wave
+            .lock()
+            .map_err(|_| GpuError::Device("wavefront cache poisoned".into()))?;
+        let bytes = p.queue_cap * p.task_bytes;
+        if guard.as_ref().is_none_or(|w| w.queue_bytes < bytes) {
+            check_size(
+                "a wavefront task queue",
+                bytes,
+                limits.max_storage_buffer_binding_size,
+                "max_storage_buffer_binding_size",
+            )?;
+            *guard = Some(self.create_wave_buffers(bytes));
+        }
+        Ok(guard)
+    }
+
+    /// The wavefront's group 1 both ways: primary tasks go to A
+    /// (B -> A), then generations alternate A -> B, B -> A.
+    fn wave_groups(&self, w: &WaveBuffers) -> (wgpu::BindGroup, wgpu::BindGroup) {
+        let q = |name| wgsl::WAVE_QUEUES.binding(name);
+        let group = |inq: &wgpu::Buffer, outq: &wgpu::Buffer| {
+            self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("tessera wavefront queues"),
+                layout: &self.wave_layout,
+                entries: &[
+                    entire(q("queue_in"), inq),
+                    entire(q("queue_out"), outq),
+                    entire(q("wave"), &w.state),
+                ],
+            })
+        };
+        (group(&w.b, &w.a), group(&w.a, &w.b))
+    }
+
+    /// Records one submission's dispatches (`group`, each at its slot of
+    /// the params buffer); returns how many dispatches that made.
+    fn encode_group(
+        &self,
+        pass: &mut wgpu::ComputePass<'_>,
+        group: &[DispatchParams],
+        bind_group: &wgpu::BindGroup,
+        kernel: &Driver<'_>,
+        max_depth: u32,
+    ) -> u32 {
         let (wx, wy) = self.options.workgroup;
-        // Adaptive rounds run on the stack kernel (as distributed effects do).
-        let wave = match scene.wave.as_ref().filter(|_| mask.is_none()) {
-            Some(p) => {
-                let mut guard = self
-                    .wave
-                    .lock()
-                    .map_err(|_| GpuError::Device("wavefront cache poisoned".into()))?;
-                let bytes = p.queue_cap * p.task_bytes;
-                if guard.as_ref().is_none_or(|w| w.queue_bytes < bytes) {
-                    check_size(
-                        "a wavefront task queue",
-                        bytes,
-                        limits.max_storage_buffer_binding_size,
-                        "max_storage_buffer_binding_size",
-                    )?;
-                    *guard = Some(self.create_wave_buffers(bytes));
+        let mut dispatches = 0;
+        match kernel {
+            Driver::Wave(p, w, (to_a, a_to_b)) => {
+                for (i, d) in group.iter().enumerate() {
+                    pass.set_bind_group(0, bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
+                    pass.set_bind_group(1, to_a, &[]);
+                    pass.set_bind_group(2, &w.args_group, &[]);
+                    let n = d.rect_w * d.rows * (d.sample_end - d.sample_start);
+                    pass.set_pipeline(&p.primary);
+                    pass.dispatch_workgroups(n.div_ceil(wx * wy), 1, 1);
+                    // Generation g reads the queue generation g-1 wrote.
+                    for g in 0..=max_depth {
+                        pass.set_pipeline(&p.swap);
+                        pass.dispatch_workgroups(1, 1, 1);
+                        pass.set_bind_group(1, if g % 2 == 0 { a_to_b } else { to_a }, &[]);
+                        pass.set_pipeline(&p.shade);
+                        pass.dispatch_workgroups_indirect(&w.args, 0);
+                        dispatches += 2;
+                    }
+                    dispatches += 1;
                 }
-                Some((p, guard))
             }
-            None => None,
+            Driver::Stack(pipeline) => {
+                pass.set_pipeline(pipeline);
+                for (i, d) in group.iter().enumerate() {
+                    pass.set_bind_group(0, bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
+                    // One invocation per pixel-sample.
+                    pass.dispatch_workgroups(
+                        d.rect_w.div_ceil(wx),
+                        d.rows.div_ceil(wy),
+                        d.sample_end - d.sample_start,
+                    );
+                    dispatches += 1;
+                }
+            }
+        }
+        dispatches
+    }
+
+    /// A film of `grid`'s rect from its read-back sums (and squares, in an
+    /// adaptive render), straight from the mapped buffer; counts unset.
+    fn read_film(
+        &self,
+        sums_read: &wgpu::Buffer,
+        sums_bytes: u64,
+        grid: &Grid<'_>,
+    ) -> Result<Film, GpuError> {
+        let stride = grid.sum_words();
+        let mut film = match grid.mask {
+            Some(_) => Film::with_squares(grid.film),
+            None => Film::new(grid.film),
         };
-        let wave_groups = wave.as_ref().map(|(_, w)| {
-            let w = w.as_ref().expect("just set");
-            let q = |name| wgsl::WAVE_QUEUES.binding(name);
-            let group = |inq: &wgpu::Buffer, outq: &wgpu::Buffer| {
-                self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("tessera wavefront queues"),
-                    layout: &self.wave_layout,
-                    entries: &[
-                        entire(q("queue_in"), inq),
-                        entire(q("queue_out"), outq),
-                        entire(q("wave"), &w.state),
-                    ],
-                })
-            };
-            // Primary tasks go to A; generations then alternate A->B, B->A.
-            (group(&w.b, &w.a), group(&w.a, &w.b))
-        });
-        // Each wavefront dispatch's primary tasks must fit a queue, and a
-        // queue's tasks one indirect dispatch.
-        let budget = match &wave {
-            Some((p, _)) => budget.min(p.queue_cap / 2).max(1),
-            None => budget,
-        };
-        let plans: Vec<_> = rounds
-            .iter()
-            .map(|&round| {
-                let mut groups = plan(
-                    grid,
-                    (rect.width, rect.height),
-                    round,
-                    frame,
-                    GpuOptions {
-                        dispatch_pixel_samples: budget,
-                        ..self.options
-                    },
-                );
-                if ranges.is_some() {
-                    for d in groups.iter_mut().flatten() {
-                        d.ranged = 1;
+        self.read_with(sums_read, sums_bytes, |bytes| {
+            let words: &[u32] = bytemuck::cast_slice(bytes);
+            for (px, w) in film.sums.iter_mut().zip(words.chunks_exact(stride)) {
+                for c in 0..3 {
+                    px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
+                }
+            }
+            if let Some(squares) = film.squares.as_mut() {
+                for (px, w) in squares.iter_mut().zip(words.chunks_exact(stride)) {
+                    for c in 0..3 {
+                        let q = &w[SUM_WORDS + 4 * c..SUM_WORDS + 4 * c + 4];
+                        px[c] = q.iter().rev().fold(0u128, |acc, &x| acc << 32 | x as u128);
                     }
                 }
-                groups
-            })
-            .collect();
-        // Timestamps time the submissions of one range (not a resident
-        // render's rounds, which are not waited for one by one).
-        let query = (self.timestamps && resident.is_none()).then(|| {
-            let n = (plans[0].len() * 2) as u32;
-            let set = self.device.create_query_set(&wgpu::QuerySetDescriptor {
+            }
+        })?;
+        Ok(film)
+    }
+
+    fn timestamp_query(&self, count: u32) -> Timestamps {
+        Timestamps {
+            set: self.device.create_query_set(&wgpu::QuerySetDescriptor {
                 label: Some("tessera timestamps"),
                 ty: wgpu::QueryType::Timestamp,
-                count: n,
-            });
-            let resolve = self.buffer(
+                count,
+            }),
+            resolve: self.buffer(
                 "timestamps",
-                n as u64 * 8,
+                count as u64 * 8,
                 wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-            );
-            let read = self.buffer(
+            ),
+            read: self.buffer(
                 "timestamps read",
-                n as u64 * 8,
+                count as u64 * 8,
                 wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            );
-            (set, resolve, read, n)
-        });
-
-        let mut enc = self
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("tessera clear"),
-            });
-        enc.clear_buffer(&out.sums, 0, Some(sums_bytes));
-        enc.clear_buffer(&out.counters, 0, None);
-        if let Some((_, w)) = &wave {
-            enc.clear_buffer(&w.as_ref().expect("set").state, 0, None);
-        }
-        let mut dispatches = 0u32;
-        let mut submissions = 0u32;
-        let trace_start = Instant::now();
-        self.queue.submit([enc.finish()]);
-        let mut chain = match resident {
-            Some(r) => Some(
-                self.start_rounds(
-                    r,
-                    rect,
-                    &out.sums,
-                    sums_bytes,
-                    blocks_buffer
-                        .as_ref()
-                        .expect("a resident render has a block list"),
-                )?,
             ),
-            None => None,
-        };
-        for (round, groups) in plans.iter().enumerate() {
-            if chain.as_ref().is_some_and(|c| c.done) {
-                break;
-            }
-            for (g, group) in groups.iter().enumerate() {
-                let mut params = vec![0u8; group.len() * PARAMS_STRIDE as usize];
-                for (i, d) in group.iter().enumerate() {
-                    let at = i * PARAMS_STRIDE as usize;
-                    params[at..at + size_of::<DispatchParams>()]
-                        .copy_from_slice(bytemuck::bytes_of(d));
-                }
-                self.queue.write_buffer(&out.params, 0, &params);
-                let mut enc = self
-                    .device
-                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                        label: Some("tessera trace"),
-                    });
-                {
-                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                        label: Some("tessera trace"),
-                        timestamp_writes: query.as_ref().map(|(set, ..)| {
-                            wgpu::ComputePassTimestampWrites {
-                                query_set: set,
-                                beginning_of_pass_write_index: Some(2 * g as u32),
-                                end_of_pass_write_index: Some(2 * g as u32 + 1),
-                            }
-                        }),
-                    });
-                    match (&wave, &wave_groups) {
-                        (Some((p, w)), Some((to_a, a_to_b))) => {
-                            let w = w.as_ref().expect("set");
-                            let threads = wx * wy;
-                            for (i, d) in group.iter().enumerate() {
-                                pass.set_bind_group(
-                                    0,
-                                    &bind_group,
-                                    &[(i as u64 * PARAMS_STRIDE) as u32],
-                                );
-                                pass.set_bind_group(1, to_a, &[]);
-                                pass.set_bind_group(2, &w.args_group, &[]);
-                                let n = d.rect_w * d.rows * (d.sample_end - d.sample_start);
-                                pass.set_pipeline(&p.primary);
-                                pass.dispatch_workgroups(n.div_ceil(threads), 1, 1);
-                                // Generation g reads the queue generation g-1 wrote.
-                                for g in 0..=scene.data.max_depth {
-                                    pass.set_pipeline(&p.swap);
-                                    pass.dispatch_workgroups(1, 1, 1);
-                                    pass.set_bind_group(
-                                        1,
-                                        if g % 2 == 0 { a_to_b } else { to_a },
-                                        &[],
-                                    );
-                                    pass.set_pipeline(&p.shade);
-                                    pass.dispatch_workgroups_indirect(&w.args, 0);
-                                    dispatches += 2;
-                                }
-                                dispatches += 1;
-                            }
-                        }
-                        _ => {
-                            pass.set_pipeline(match mask {
-                                Some(_) => scene.adaptive.as_ref().expect("made above"),
-                                None => &scene.pipeline,
-                            });
-                            for (i, d) in group.iter().enumerate() {
-                                pass.set_bind_group(
-                                    0,
-                                    &bind_group,
-                                    &[(i as u64 * PARAMS_STRIDE) as u32],
-                                );
-                                // One invocation per pixel-sample.
-                                pass.dispatch_workgroups(
-                                    d.rect_w.div_ceil(wx),
-                                    d.rows.div_ceil(wy),
-                                    d.sample_end - d.sample_start,
-                                );
-                                dispatches += 1;
-                            }
-                        }
-                    }
-                }
-                let index = self.queue.submit([enc.finish()]);
-                submissions += 1;
-                // A resident render's rounds run back to back; its progress
-                // comes with each round's report.
-                if chain.is_none() {
-                    self.wait(index)?;
-                    progress(group.iter().map(dispatch_work).sum());
-                }
-            }
-            if let Some(c) = chain.as_mut() {
-                self.end_round(c, round, progress)?;
-            }
+            count,
         }
-        if let Some(c) = chain.as_mut() {
-            self.finish_rounds(c, progress)?;
-        }
-        let trace_wall = trace_start.elapsed();
-        let readback_start = Instant::now();
+    }
 
-        let mut enc = self
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("tessera read-back"),
-            });
-        let (resolver, packer) = match readout {
-            Readout::Sums | Readout::Adaptive(_) | Readout::Resident(_) | Readout::Ranged(..) => {
-                enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
-                (None, None)
-            }
-            Readout::Image(to) => (
-                Some((
-                    to,
-                    self.encode_resolve(
-                        &mut enc,
-                        &out.sums,
-                        sums_bytes,
-                        pixels,
-                        to,
-                        samples.len(),
-                    )?,
-                )),
-                None,
-            ),
-            Readout::Packed => (
-                None,
-                Some(self.encode_pack(&mut enc, &out.sums, sums_bytes, pixels)?),
-            ),
-        };
-        enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
-        if let Some((_, w)) = &wave {
-            let w = w.as_ref().expect("set");
-            enc.copy_buffer_to_buffer(&w.state, 0, &w.state_read, 0, None);
-        }
-        if let Some((set, resolve, read, n)) = &query {
-            enc.resolve_query_set(set, 0..*n, resolve, 0);
-            enc.copy_buffer_to_buffer(resolve, 0, read, 0, None);
-        }
-        let index = self.queue.submit([enc.finish()]);
-        self.wait(index)?;
-
-        if let Some((_, w)) = &wave {
-            let state: Vec<u32> = self.read(
-                &w.as_ref().expect("set").state_read,
-                layout::WAVE_STATE_BYTES,
-            )?;
-            if state[2] != 0 {
-                return Ok(None);
-            }
-        }
-        let counters: Vec<u32> = self.read(&out.counters_read, (COUNTERS * 8) as u64)?;
-        let counter = |k: usize| counters[2 * k] as u64 | (counters[2 * k + 1] as u64) << 32;
-        let rays = RayCounts {
-            primary: counter(layout::COUNTER_PRIMARY),
-            shadow: counter(layout::COUNTER_SHADOW),
-            reflection: counter(layout::COUNTER_REFLECTION),
-            refraction: counter(layout::COUNTER_REFRACTION),
-        };
-        let nonfinite = counter(layout::COUNTER_NONFINITE);
-        let rendered = match (&resolver, &packer) {
-            (_, Some(p)) => {
-                let (sum_bytes, sums) =
-                    self.read_packed(p.as_ref().expect("made by encode_pack"), pixels)?;
-                Rendered::Packed(PackedSums {
-                    rect,
-                    samples: samples.len(),
-                    sum_bytes,
-                    sums,
-                    rays,
-                    nonfinite,
-                })
-            }
-            (Some((to, r)), _) => {
-                let r = r.as_ref().expect("made by encode_resolve");
-                let bytes = to.image_bytes(pixels);
-                match to {
-                    Resolve::Srgb8 => Rendered::Srgb8(Srgb8Image {
-                        rect,
-                        rgb: self.read_with(&r.image_read, bytes, |b| b[..pixels * 3].to_vec())?,
-                        rays,
-                        nonfinite,
-                    }),
-                    Resolve::Linear => Rendered::Linear(LinearImage {
-                        rect,
-                        rgb: self.read_with(&r.image_read, bytes, |b| linear_pixels(b, pixels))?,
-                        rays,
-                        nonfinite,
-                    }),
-                }
-            }
-            (None, None) => {
-                let mut film = match mask {
-                    Some(_) => Film::with_squares(rect),
-                    None => Film::new(rect),
-                };
-                // Straight from the mapped buffer into the film: no intermediate copy.
-                self.read_with(&out.sums_read, sums_bytes, |bytes| {
-                    let words: &[u32] = bytemuck::cast_slice(bytes);
-                    for (px, w) in film.sums.iter_mut().zip(words.chunks_exact(stride)) {
-                        for c in 0..3 {
-                            px[c] = w[2 * c] as u64 | (w[2 * c + 1] as u64) << 32;
-                        }
-                    }
-                    if let Some(squares) = film.squares.as_mut() {
-                        for (px, w) in squares.iter_mut().zip(words.chunks_exact(stride)) {
-                            for c in 0..3 {
-                                let q = &w[SUM_WORDS + 4 * c..SUM_WORDS + 4 * c + 4];
-                                px[c] = q.iter().rev().fold(0u128, |acc, &x| acc << 32 | x as u128);
-                            }
-                        }
-                    }
-                })?;
-                match (mask, &chain) {
-                    // Each block at the samples it stopped at.
-                    (Some(m), Some(c)) => {
-                        for (i, st) in c.last.iter().enumerate() {
-                            let b = m.block_rect(i);
-                            for y in b.y..b.y + b.height {
-                                let row = ((y - rect.y) * rect.width + (b.x - rect.x)) as usize;
-                                film.counts[row..row + b.width as usize].fill(st.samples);
-                            }
-                        }
-                    }
-                    (Some(m), None) if ranges.is_some() => {
-                        if let Readout::Ranged(_, r) = readout {
-                            for (i, &(a, e)) in r.iter().enumerate().filter(|(i, _)| m.active[*i]) {
-                                let b = m.block_rect(i);
-                                for y in b.y..b.y + b.height {
-                                    let row = ((y - rect.y) * rect.width + (b.x - rect.x)) as usize;
-                                    film.counts[row..row + b.width as usize].fill(e - a);
-                                }
-                            }
-                        }
-                    }
-                    (Some(m), None) => {
-                        for b in m.active_rects() {
-                            for y in b.y..b.y + b.height {
-                                let row = ((y - rect.y) * rect.width + (b.x - rect.x)) as usize;
-                                film.counts[row..row + b.width as usize].fill(samples.len());
-                            }
-                        }
-                    }
-                    (None, _) => film.counts.fill(samples.len()),
-                }
-                film.rays = rays;
-                film.nonfinite = nonfinite;
-                Rendered::Film(film)
-            }
-        };
-        drop(resolver);
-        drop(packer);
-        let gpu_time = match &query {
-            Some((_, _, read, n)) => {
-                let ticks: Vec<u64> = self.read(read, *n as u64 * 8)?;
-                let period = self.queue.get_timestamp_period() as f64;
-                let ns: f64 = ticks
-                    .chunks_exact(2)
-                    .map(|p| p[1].saturating_sub(p[0]) as f64 * period)
-                    .sum();
-                Some(Duration::from_nanos(ns as u64))
-            }
-            None => None,
-        };
-        let readback = readback_start.elapsed();
-        if let Ok(mut s) = self.stats.lock() {
-            *s = GpuStats {
-                gpu_time,
-                trace_wall,
-                total_wall: start.elapsed(),
-                dispatches,
-                submissions,
-                overflow_retries: 0,
-                readback,
-            };
-        }
-        Ok(Some(rendered))
+    /// The GPU time between each pass's begin and end timestamps, summed.
+    fn gpu_time(&self, q: &Timestamps) -> Result<Duration, GpuError> {
+        let ticks: Vec<u64> = self.read(&q.read, q.count as u64 * 8)?;
+        let period = self.queue.get_timestamp_period() as f64;
+        let ns: f64 = ticks
+            .chunks_exact(2)
+            .map(|p| p[1].saturating_sub(p[0]) as f64 * period)
+            .sum();
+        Ok(Duration::from_nanos(ns as u64))
     }
 
     pub(super) fn create_outputs(&self, sum_words: usize) -> Outputs {
