@@ -32,6 +32,8 @@
 //! public calls; `adapter.rs` finds and names adapters; `pipelines.rs`
 //! assembles the WGSL for a scene and builds its pipelines and buffers;
 //! `plan.rs` splits a render into bounded dispatches and submissions;
+//! `grid.rs` is what a render's grid covers (the film, or an adaptive
+//! render's listed blocks);
 //! `converge.rs` runs an adaptive render's rounds without the host;
 //! `trace.rs` runs one render (the dispatches, then the read-back into a
 //! film or image); `readback.rs` waits, maps buffers and resolves on the
