@@ -231,6 +231,12 @@ fn gpu_path_matches_the_cpu_on_a_rough_dielectric() {
 /// (mirror layer, gloss, transmission), with the lens and motion blur.
 #[test]
 fn gpu_path_matches_the_cpu_with_whitted_materials_lens_and_motion_blur() {
+    check_against_cpu("whitted materials, lens, blur", &lens_and_blur_scene());
+}
+
+/// The set with a Blinn-Phong ball (mirror layer, gloss, transmission), a
+/// lens and a moving camera.
+fn lens_and_blur_scene() -> SceneDesc {
     let src = scene_src(
         "",
         "aperture = 0.1\nfocus_distance = 5\nshutter = [0, 0.5]\n\
@@ -241,8 +247,7 @@ fn gpu_path_matches_the_cpu_with_whitted_materials_lens_and_motion_blur() {
         "[materials.ball]\n",
         "[materials.ball]\ndiffuse = [0.1, 0.1, 0.1]\nreflectivity = 0.6\ntransparency = 0.3\nior = 1.4\n",
     );
-    let desc = common::scene(&src);
-    check_against_cpu("whitted materials, lens, blur", &desc);
+    common::scene(&src)
 }
 
 /// A white Lambert sphere in a uniform environment returns the
@@ -705,20 +710,8 @@ fn the_wavefront_path_driver_renders_the_stack_drivers_sums() {
         },
     )
     .unwrap();
-    let blur = common::scene(
-        &scene_src(
-            "",
-            "aperture = 0.1\nfocus_distance = 5\nshutter = [0, 0.5]\n\
-             keyframes = [{ frame = 0, position = [0, 1.6, -5] }, { frame = 1, position = [0.4, 1.6, -5] }]",
-        )
-        .replace("[bsdf.ball]\n", "")
-        .replace(
-            "[materials.ball]\n",
-            "[materials.ball]\ndiffuse = [0.1, 0.1, 0.1]\nreflectivity = 0.6\ntransparency = 0.3\nior = 1.4\n",
-        ),
-    );
     let scenes = [
-        ("lens and blur", blur),
+        ("lens and blur", lens_and_blur_scene()),
         ("absorbing glass", scene(ABSORBING_GLASS, "")),
         ("emitters", emissive_mesh_scene("wave-emitters", true)),
         (

@@ -16,7 +16,7 @@ use std::time::Instant;
 use wgpu::util::DeviceExt as _;
 
 use super::layout::{ConvergeParams, GpuBlockStats};
-use super::{GpuError, GpuRenderer, entire, wgsl};
+use super::{GpuError, GpuRenderer, entire, sized, wgsl};
 use crate::adaptive::{AdaptiveSettings, BLOCK, BlockMask, BlockStatus, summarize_blocks};
 use crate::film::{Rect, SampleRange};
 use crate::render::adaptive::RoundReport;
@@ -133,14 +133,7 @@ impl GpuRenderer {
             layout: &c.layout,
             entries: &[
                 entire(b("params"), &params),
-                wgpu::BindGroupEntry {
-                    binding: b("sums"),
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: sums,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(sums_bytes),
-                    }),
-                },
+                sized(b("sums"), sums, sums_bytes),
                 entire(b("active_blocks"), blocks),
                 entire(b("block_stats"), &stats),
             ],
@@ -218,7 +211,9 @@ impl GpuRenderer {
         self.wait(index.clone())?;
         let read = &rounds.reads[round];
         let bytes = (rounds.last.len() * size_of::<GpuBlockStats>()) as u64;
-        rounds.last = self.read_done(read, bytes, index)?;
+        rounds.last = self.read_after(read, bytes, Some(index), |b| {
+            bytemuck::pod_collect_to_vec::<u8, GpuBlockStats>(b)
+        })?;
         let range = rounds.rounds[round];
         let mask = &rounds.resident.mask;
         let a = rounds.resident.settings;
@@ -266,33 +261,5 @@ impl GpuRenderer {
         });
         rounds.reported_at = now;
         Ok(())
-    }
-
-    /// Maps the first `bytes` of `buffer`, last written by submission
-    /// `index` (already done), without waiting for later submissions.
-    fn read_done<T: bytemuck::Pod>(
-        &self,
-        buffer: &wgpu::Buffer,
-        bytes: u64,
-        index: wgpu::SubmissionIndex,
-    ) -> Result<Vec<T>, GpuError> {
-        let (tx, rx) = std::sync::mpsc::channel();
-        buffer.map_async(wgpu::MapMode::Read, 0..bytes, move |r| {
-            let _ = tx.send(r);
-        });
-        self.wait(index)?;
-        match rx.recv_timeout(super::SUBMISSION_TIMEOUT) {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => return Err(GpuError::Readback(e.to_string())),
-            Err(_) => return Err(GpuError::Readback("mapping never completed".into())),
-        }
-        let out = {
-            let view = buffer
-                .get_mapped_range(0..bytes)
-                .map_err(|e| GpuError::Readback(e.to_string()))?;
-            bytemuck::pod_collect_to_vec::<u8, T>(&view)
-        };
-        buffer.unmap();
-        Ok(out)
     }
 }

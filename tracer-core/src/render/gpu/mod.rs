@@ -986,6 +986,19 @@ fn entire(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
     }
 }
 
+/// The first `bytes` of `buffer` at `binding` (buffers are reused at their
+/// largest size; a binding sees only what this render uses).
+fn sized(binding: u32, buffer: &wgpu::Buffer, bytes: u64) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer,
+            offset: 0,
+            size: wgpu::BufferSize::new(bytes),
+        }),
+    }
+}
+
 fn check_size(
     what: &'static str,
     needed: u64,

@@ -2,7 +2,7 @@
 //! (`tessera_proto::film_codec`): a GPU worker reads back only those bytes
 //! and sends them as they are.
 
-use super::{GpuError, GpuRenderer, entire, wgsl};
+use super::{GpuError, GpuRenderer, entire, sized, wgsl};
 use crate::film::{RayCounts, Rect};
 
 /// A render's sums in the compact layout: each R, G, B sum of each pixel
@@ -71,14 +71,7 @@ impl GpuRenderer {
             layout: &p.layout,
             entries: &[
                 entire(b("params"), &p.params),
-                wgpu::BindGroupEntry {
-                    binding: b("sums"),
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: sums,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(sums_bytes),
-                    }),
-                },
+                sized(b("sums"), sums, sums_bytes),
                 entire(b("width"), &p.width),
                 entire(b("packed"), &p.packed),
             ],

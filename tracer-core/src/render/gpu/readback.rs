@@ -6,7 +6,7 @@ use std::sync::mpsc;
 use wgpu::util::DeviceExt as _;
 
 use super::layout::ResolveParams;
-use super::{GpuError, GpuRenderer, Resolve, Resolver, SUBMISSION_TIMEOUT, entire, wgsl};
+use super::{GpuError, GpuRenderer, Resolve, Resolver, SUBMISSION_TIMEOUT, entire, sized, wgsl};
 
 impl Resolve {
     fn entry_point(self) -> &'static str {
@@ -88,14 +88,7 @@ impl GpuRenderer {
             layout: &r.layout,
             entries: &[
                 entire(b("params"), &r.params),
-                wgpu::BindGroupEntry {
-                    binding: b("sums"),
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: sums,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(sums_bytes),
-                    }),
-                },
+                sized(b("sums"), sums, sums_bytes),
                 entire(b("thresholds"), &r.thresholds),
                 entire(b("image"), &r.image),
             ],
@@ -257,12 +250,24 @@ impl GpuRenderer {
         bytes: u64,
         f: impl FnOnce(&[u8]) -> R,
     ) -> Result<R, GpuError> {
+        self.read_after(buffer, bytes, None, f)
+    }
+
+    /// [`GpuRenderer::read_with`], waiting only for submission `after`
+    /// (which last wrote `buffer`), not for later ones, where given.
+    pub(super) fn read_after<R>(
+        &self,
+        buffer: &wgpu::Buffer,
+        bytes: u64,
+        after: Option<wgpu::SubmissionIndex>,
+        f: impl FnOnce(&[u8]) -> R,
+    ) -> Result<R, GpuError> {
         let (tx, rx) = mpsc::channel();
         buffer.map_async(wgpu::MapMode::Read, 0..bytes, move |r| {
             let _ = tx.send(r);
         });
         let r = self.device.poll(wgpu::PollType::Wait {
-            submission_index: None,
+            submission_index: after,
             timeout: Some(SUBMISSION_TIMEOUT),
         });
         self.check_fault()?;

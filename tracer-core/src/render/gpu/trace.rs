@@ -12,7 +12,7 @@ use super::wgsl;
 use super::{
     GpuError, GpuOptions, GpuRenderer, GpuStats, LinearImage, Outputs, PARAMS_SLOTS, PARAMS_STRIDE,
     PackedSums, Readout, Rendered, Resolve, SceneState, Srgb8Image, WaveBuffers, WavePipelines,
-    check_size, entire,
+    check_size, entire, sized,
 };
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 
@@ -395,26 +395,12 @@ impl GpuRenderer {
             layout: &self.layout,
             entries: &[
                 entire(b("frame"), &scene.frame),
-                wgpu::BindGroupEntry {
-                    binding: b("params"),
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: &out.params,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(size_of::<DispatchParams>() as u64),
-                    }),
-                },
+                sized(b("params"), &out.params, size_of::<DispatchParams>() as u64),
                 entire(b("spheres"), &scene.spheres),
                 entire(b("planes"), &scene.planes),
                 entire(b("materials"), &scene.materials),
                 entire(b("lights"), &scene.lights),
-                wgpu::BindGroupEntry {
-                    binding: b("sums"),
-                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                        buffer: &out.sums,
-                        offset: 0,
-                        size: wgpu::BufferSize::new(sums_bytes),
-                    }),
-                },
+                sized(b("sums"), &out.sums, sums_bytes),
                 entire(b("counters"), &out.counters),
                 entire(b("nodes"), &scene.tree[0]),
                 entire(b("prims"), &scene.tree[1]),

@@ -39,6 +39,19 @@ fn wave_swap() {
     wave_args_out[2] = args.z;
 }
 
+// Primary tasks of a dispatch: its band of rows x its range of samples.
+fn primary_tasks() -> u32 {
+    return params.rect_w * params.rows * (params.sample_end - params.sample_start);
+}
+
+// Primary task i (< primary_tasks()): its pixel's column and row in the
+// rect, and its sample index.
+fn primary_task(i: u32) -> vec3<u32> {
+    let per_sample = params.rect_w * params.rows;
+    let k = i % per_sample;
+    return vec3<u32>(k % params.rect_w, params.row0 + k / params.rect_w, params.sample_start + i / per_sample);
+}
+
 fn push(t: WaveTask) {
     let at = atomicAdd(&wave.count_out, 1u);
     if (at < QUEUE_CAP) {

@@ -24,14 +24,13 @@ struct WaveTask {
 // to queue_out (the host then binds it as the next pass's queue_in).
 @compute @workgroup_size(WG_X * WG_Y, 1, 1)
 fn wave_primary(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
-    let per_sample = params.rect_w * params.rows;
-    let n = per_sample * (params.sample_end - params.sample_start);
+    let n = primary_tasks();
     let i = gid.x;
     if (i < n) {
-        let s = params.sample_start + i / per_sample;
-        let k = i % per_sample;
-        let col = k % params.rect_w;
-        let row = params.row0 + k / params.rect_w;
+        let task = primary_task(i);
+        let col = task.x;
+        let row = task.y;
+        let s = task.z;
         let px = params.rect_x + col;
         let py = params.rect_y + row;
         let ray = camera_ray(px, py, pixel_seed(px, py, params.frame), s);
