@@ -25,18 +25,12 @@ fn path_wave_primary(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(loc
     let n = primary_tasks();
     let i = gid.x;
     if (i < n) {
-        let task = primary_task(i);
-        let col = task.x;
-        let row = task.y;
-        let s = task.z;
-        let px = params.rect_x + col;
-        let py = params.rect_y + row;
-        let seed = pixel_seed(px, py, params.frame);
-        let ray = camera_ray(px, py, seed, s);
+        let t = primary_task(i);
+        let ray = camera_ray(t.px, t.py, t.seed, t.sample);
         tally[C_PRIMARY] += 1u;
         // No segment at depth 0: the path adds nothing (path_radiance).
         if (MAX_DEPTH != 0u) {
-            queue_out[i] = WaveTask(path_start(ray.origin, ray.dir), (row * params.rect_w + col) * 6u, seed, s, ray.tau);
+            queue_out[i] = WaveTask(path_start(ray.origin, ray.dir), t.index * 6u, t.seed, t.sample, ray.tau);
         }
     }
     if (i == 0u) {

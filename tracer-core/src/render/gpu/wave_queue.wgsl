@@ -44,12 +44,25 @@ fn primary_tasks() -> u32 {
     return params.rect_w * params.rows * (params.sample_end - params.sample_start);
 }
 
-// Primary task i (< primary_tasks()): its pixel's column and row in the
-// rect, and its sample index.
-fn primary_task(i: u32) -> vec3<u32> {
+// Primary task i (< primary_tasks()) of a dispatch: its pixel (in the
+// image, and its index in the film, row-major over the rect), its
+// sample and the pixel's seed.
+struct Primary {
+    px: u32,
+    py: u32,
+    index: u32,
+    sample: u32,
+    seed: u32,
+}
+
+fn primary_task(i: u32) -> Primary {
     let per_sample = params.rect_w * params.rows;
     let k = i % per_sample;
-    return vec3<u32>(k % params.rect_w, params.row0 + k / params.rect_w, params.sample_start + i / per_sample);
+    let col = k % params.rect_w;
+    let row = params.row0 + k / params.rect_w;
+    let px = params.rect_x + col;
+    let py = params.rect_y + row;
+    return Primary(px, py, row * params.rect_w + col, params.sample_start + i / per_sample, pixel_seed(px, py, params.frame));
 }
 
 fn push(t: WaveTask) {

@@ -27,15 +27,9 @@ fn wave_primary(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_in
     let n = primary_tasks();
     let i = gid.x;
     if (i < n) {
-        let task = primary_task(i);
-        let col = task.x;
-        let row = task.y;
-        let s = task.z;
-        let px = params.rect_x + col;
-        let py = params.rect_y + row;
-        let ray = camera_ray(px, py, pixel_seed(px, py, params.frame), s);
-        let d = ray.dir;
-        queue_out[i] = WaveTask(vec3<f32>(0.0), 1.0, d, 0u, NONE, row * params.rect_w + col);
+        let t = primary_task(i);
+        let ray = camera_ray(t.px, t.py, t.seed, t.sample);
+        queue_out[i] = WaveTask(vec3<f32>(0.0), 1.0, ray.dir, 0u, NONE, t.index);
         tally[C_PRIMARY] += 1u;
     }
     if (i == 0u) {
