@@ -535,3 +535,52 @@ fn the_rmse_mode_stops_at_its_target_and_its_estimate_is_honest() {
     assert_eq!(again.sums, film.sums);
     assert_eq!(again.counts, film.counts);
 }
+
+/// `render_blocks` takes every block over its own range in one parallel
+/// pass: the film and the costs booked (rays per run, so the error-optimal
+/// mode's allocation) are those of one round per distinct range, merged.
+#[test]
+fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
+    use tracer_core::adaptive::optimal::Costs;
+    use tracer_core::render::adaptive::{render_blocks, render_round_costed};
+    let desc = scene(NOISY);
+    let a = settings(0.01, 4, 40);
+    let frame = prepared(&desc, &a, 0);
+    let rect = Rect::full(desc.render.width, desc.render.height);
+    let n = BlockMask::none(rect).active.len();
+    assert_eq!(n, 3 * 2);
+    let from = [0, 0, 3, 8, 17, 5];
+    let to = [0, 4, 9, 40, 18, 9];
+    let r = cpu(2);
+    let mut got = Film::with_squares(rect);
+    let mut got_costs = Costs::new(rect);
+    render_blocks(&r, &frame, 0, &from, &to, &mut got, &mut got_costs, &|_| {}).unwrap();
+    let mut want = Film::with_squares(rect);
+    let mut want_costs = Costs::new(rect);
+    for i in 0..n {
+        if to[i] > from[i] {
+            let mut mask = BlockMask::none(rect);
+            mask.active[i] = true;
+            let (f, runs) = render_round_costed(
+                &r,
+                &frame,
+                0,
+                &mask,
+                SampleRange::new(from[i], to[i]),
+                &|_| {},
+            )
+            .unwrap();
+            want.merge(&f).unwrap();
+            for (run, rays) in runs {
+                want_costs.book(rect, run, rays, to[i] - from[i]);
+            }
+        }
+    }
+    assert_eq!(got.counts, want.counts);
+    assert_eq!(got.sums, want.sums);
+    assert_eq!(got.squares, want.squares);
+    assert_eq!(got.rays, want.rays);
+    assert_eq!(got_costs.rays, want_costs.rays);
+    assert_eq!(got_costs.pixel_samples, want_costs.pixel_samples);
+    assert!(got.counts.contains(&0) && got.counts.contains(&32));
+}

@@ -108,8 +108,8 @@ pub fn render_round_costed(
 }
 
 /// Takes each block `i` of the frame from `from[i]` to `to[i]` samples
-/// (on the CPU one renderer call per distinct pair, on the GPU one call),
-/// adding to `film` and booking the costs in `costs`.
+/// in one renderer call (every block over its own range), adding to
+/// `film` and booking the CPU's costs in `costs`.
 #[allow(clippy::too_many_arguments)]
 pub fn render_blocks(
     renderer: &Renderer,
@@ -122,38 +122,22 @@ pub fn render_blocks(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<(), RendererError> {
     let rect = film.rect;
-    // The GPU takes every block over its own range in one grid (and
-    // reports no per-block cost).
-    #[cfg(feature = "gpu")]
-    if let Renderer::Gpu(r) = renderer {
-        let f = r.render_blocks(prepared, frame, rect, from, to, progress)?;
-        film.merge(&f)
-            .expect("the blocks' film lies inside the frame and sums cannot overflow");
-        return Ok(());
-    }
-    let mut groups: std::collections::BTreeMap<(u32, u32), BlockMask> = Default::default();
-    for (i, (&a, &b)) in from.iter().zip(to).enumerate() {
-        if b > a {
-            groups
-                .entry((a, b))
-                .or_insert_with(|| BlockMask::none(rect))
-                .active[i] = true;
-        }
-    }
-    for ((a, b), mask) in groups {
-        let (f, runs) = render_round_costed(
-            renderer,
-            prepared,
-            frame,
-            &mask,
-            SampleRange::new(a, b),
-            progress,
-        )?;
-        film.merge(&f)
-            .expect("a round's film lies inside the frame and sums cannot overflow");
-        for (run, rays) in runs {
-            costs.book(rect, run, rays, b - a);
-        }
+    // Every block over its own range in one call (the GPU reports no
+    // per-block cost).
+    let (f, runs) = match renderer {
+        Renderer::Cpu(r) => super::cpu::adaptive::render_blocks_costed(
+            r, prepared, frame, rect, from, to, progress,
+        )?,
+        #[cfg(feature = "gpu")]
+        Renderer::Gpu(r) => (
+            r.render_blocks(prepared, frame, rect, from, to, progress)?,
+            vec![],
+        ),
+    };
+    film.merge(&f)
+        .expect("the blocks' film lies inside the frame and sums cannot overflow");
+    for (run, rays, samples) in runs {
+        costs.book(rect, run, rays, samples);
     }
     Ok(())
 }

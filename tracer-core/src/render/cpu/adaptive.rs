@@ -1,5 +1,6 @@
-//! A round of adaptive sampling on the CPU: the active blocks, in runs of
-//! up to four along a row, are rendered one sample index at a time by the ordinary tile renderer
+//! A round of adaptive sampling on the CPU: the active blocks (or every
+//! block over its own range, [`render_blocks_costed`]), in runs of up to
+//! four along a row, are rendered one sample index at a time by the ordinary tile renderer
 //! ([`super::render_tile`], so the stream, recursive and
 //! distributed paths all apply unchanged), and each single-sample film's
 //! fixed-point values are added to the block's sums and, squared, to its
@@ -43,14 +44,58 @@ fn round_world<R: Real>(
     samples: SampleRange,
     progress: &(dyn Fn(u64) + Sync),
 ) -> (Film, Vec<(Rect, u64)>) {
-    let blocks = runs(mask);
+    let ranges: Vec<Option<SampleRange>> =
+        mask.active.iter().map(|&a| a.then_some(samples)).collect();
+    let (film, runs) = blocks_world(renderer, world, frame, mask.rect, &ranges, progress);
+    (
+        film,
+        runs.into_iter().map(|(r, rays, _)| (r, rays)).collect(),
+    )
+}
+
+/// Renders each block `i` of `rect` (block-aligned) over its own range
+/// `from[i]..to[i]` (none where equal), all in one parallel pass: what
+/// [`render_round_costed`] per distinct range would give, merged, bit for
+/// bit, with the same runs (a run joins neighbours of one range). Also
+/// returns each run with its rays and samples per pixel.
+pub fn render_blocks_costed(
+    renderer: &CpuRenderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    rect: Rect,
+    from: &[u32],
+    to: &[u32],
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<(Film, Vec<(Rect, u64, u32)>), RenderError> {
+    let mut ranges = Vec::with_capacity(from.len());
+    for (&a, &b) in from.iter().zip(to) {
+        ranges.push((b > a).then(|| SampleRange::new(a, b)));
+        if b > a {
+            prepared.check_request(rect, SampleRange::new(a, b))?;
+        }
+    }
+    Ok(match prepared {
+        PreparedFrame::F32(w) => blocks_world(renderer, w, frame, rect, &ranges, progress),
+        PreparedFrame::F64(w) => blocks_world(renderer, w, frame, rect, &ranges, progress),
+    })
+}
+
+fn blocks_world<R: Real>(
+    renderer: &CpuRenderer,
+    world: &World<R>,
+    frame: u32,
+    rect: Rect,
+    ranges: &[Option<SampleRange>],
+    progress: &(dyn Fn(u64) + Sync),
+) -> (Film, Vec<(Rect, u64, u32)>) {
+    let blocks = runs(rect, ranges);
     let films: Vec<Film> = renderer.pool().install(|| {
         blocks
             .par_iter()
             // One run a piece, as the renderer's tiles (render/cpu): no
             // thread waits on another's last few runs.
             .with_max_len(1)
-            .map(|&b| {
+            .map(|&(b, samples)| {
                 let mut acc = Film::with_squares(b);
                 for k in samples.start..samples.end {
                     add_single(
@@ -63,12 +108,16 @@ fn round_world<R: Real>(
             })
             .collect()
     });
-    let mut out = Film::with_squares(mask.rect);
+    let mut out = Film::with_squares(rect);
     for f in &films {
         out.merge(f)
             .expect("blocks lie inside their rect and sums cannot overflow");
     }
-    let costs = films.iter().map(|f| (f.rect, f.rays.total())).collect();
+    let costs = films
+        .iter()
+        .zip(&blocks)
+        .map(|(f, (_, s))| (f.rect, f.rays.total(), s.len()))
+        .collect();
     (out, costs)
 }
 
@@ -76,19 +125,25 @@ fn round_world<R: Real>(
 /// batch of the stream renderer (a lone block would be a quarter batch).
 const RUN_BLOCKS: usize = 4;
 
-/// The active blocks of `mask` joined into runs of up to [`RUN_BLOCKS`]
-/// neighbours along a row of blocks: the rects each call renders.
-fn runs(mask: &BlockMask) -> Vec<Rect> {
-    let mut out: Vec<Rect> = Vec::new();
+/// The blocks of `rect` that have a range joined into runs of up to
+/// [`RUN_BLOCKS`] neighbours of one range along a row of blocks: the rects
+/// (and ranges) each call renders.
+fn runs(rect: Rect, ranges: &[Option<SampleRange>]) -> Vec<(Rect, SampleRange)> {
+    let mask = BlockMask::none(rect);
+    let mut out: Vec<(Rect, SampleRange)> = Vec::new();
     let mut len = 0;
-    for b in mask.active_rects() {
+    for (i, range) in ranges.iter().enumerate() {
+        let Some(range) = *range else { continue };
+        let b = mask.block_rect(i);
         match out.last_mut() {
-            Some(r) if len < RUN_BLOCKS && r.y == b.y && r.x + r.width == b.x => {
+            Some((r, s))
+                if len < RUN_BLOCKS && *s == range && r.y == b.y && r.x + r.width == b.x =>
+            {
                 r.width += b.width;
                 len += 1;
             }
             _ => {
-                out.push(b);
+                out.push((b, range));
                 len = 1;
             }
         }
