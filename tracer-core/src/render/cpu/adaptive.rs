@@ -66,7 +66,7 @@ pub fn render_blocks_costed(
     from: &[u32],
     to: &[u32],
     progress: &(dyn Fn(u64) + Sync),
-) -> Result<(Film, Vec<(Rect, u64, u32)>), RenderError> {
+) -> Result<(Film, Vec<RunCost>), RenderError> {
     let mut ranges = Vec::with_capacity(from.len());
     for (&a, &b) in from.iter().zip(to) {
         ranges.push((b > a).then(|| SampleRange::new(a, b)));
@@ -87,7 +87,7 @@ fn blocks_world<R: Real>(
     rect: Rect,
     ranges: &[Option<SampleRange>],
     progress: &(dyn Fn(u64) + Sync),
-) -> (Film, Vec<(Rect, u64, u32)>) {
+) -> (Film, Vec<RunCost>) {
     let blocks = runs(rect, ranges);
     let films: Vec<Film> = renderer.pool().install(|| {
         blocks
@@ -120,6 +120,10 @@ fn blocks_world<R: Real>(
         .collect();
     (out, costs)
 }
+
+/// A run of blocks rendered together, the rays it traced and its samples
+/// per pixel: what the error-optimal mode books as its cost.
+pub type RunCost = (Rect, u64, u32);
 
 /// Most blocks rendered together: 4 blocks of 8x8 are 256 pixels, one
 /// batch of the stream renderer (a lone block would be a quarter batch).
