@@ -62,8 +62,9 @@ impl RmseSettings {
     /// The count a block at `n` samples goes to next when the allocation
     /// wants `want`: at most double (so the estimates it rests on are
     /// renewed before they are trusted further), rounded up to the grid
-    /// `min * 2^(k/4)` (so few distinct sample ranges, each one call of the
-    /// renderer, make up a round), at most `max_samples`.
+    /// `min * 2^(k/4)` (so a round has few distinct sample ranges and
+    /// neighbouring blocks share runs of the renderer), at most
+    /// `max_samples`.
     pub fn step(&self, n: u32, want: u32) -> u32 {
         if want <= n || n >= self.max_samples {
             return n;
