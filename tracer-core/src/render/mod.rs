@@ -155,6 +155,34 @@ impl PreparedFrame {
         }
         Ok(())
     }
+
+    /// Each block `i` of `rect` (block-aligned) over `from[i]..to[i]`:
+    /// its range, checked as a request, or none where `to[i] <= from[i]`.
+    /// What both backends' `render_blocks` take.
+    pub fn block_ranges(
+        &self,
+        rect: Rect,
+        from: &[u32],
+        to: &[u32],
+    ) -> Result<Vec<Option<SampleRange>>, RenderError> {
+        let blocks = crate::adaptive::BlockMask::none(rect).active.len();
+        assert_eq!(
+            (from.len(), to.len()),
+            (blocks, blocks),
+            "a range per block"
+        );
+        from.iter()
+            .zip(to)
+            .map(|(&a, &b)| {
+                let r = SampleRange::new(a, b.max(a));
+                if r.is_empty() {
+                    return Ok(None);
+                }
+                self.check_request(rect, r)?;
+                Ok(Some(r))
+            })
+            .collect()
+    }
 }
 
 #[derive(Debug, thiserror::Error)]

@@ -67,13 +67,7 @@ pub fn render_blocks_costed(
     to: &[u32],
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<(Film, Vec<RunCost>), RenderError> {
-    let mut ranges = Vec::with_capacity(from.len());
-    for (&a, &b) in from.iter().zip(to) {
-        ranges.push((b > a).then(|| SampleRange::new(a, b)));
-        if b > a {
-            prepared.check_request(rect, SampleRange::new(a, b))?;
-        }
-    }
+    let ranges = prepared.block_ranges(rect, from, to)?;
     Ok(match prepared {
         PreparedFrame::F32(w) => blocks_world(renderer, w, frame, rect, &ranges, progress),
         PreparedFrame::F64(w) => blocks_world(renderer, w, frame, rect, &ranges, progress),

@@ -208,7 +208,7 @@ impl GpuRenderer {
         (round, index): (usize, wgpu::SubmissionIndex),
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<(), GpuError> {
-        self.wait(index.clone())?;
+        // read_after waits for the round's submission, and no later one.
         let read = &rounds.reads[round];
         let bytes = (rounds.last.len() * size_of::<GpuBlockStats>()) as u64;
         rounds.last = self.read_after(read, bytes, Some(index), |b| {

@@ -39,12 +39,10 @@ impl<'a> Grid<'a> {
                 .collect()
         });
         let ranges = match readout {
-            Readout::Ranged(m, r) => Some(
-                m.active
-                    .iter()
-                    .zip(r)
-                    .filter(|(a, _)| **a)
-                    .map(|(_, &(a, b))| [a, b])
+            Readout::Ranged(_, r) => Some(
+                r.iter()
+                    .flatten()
+                    .map(|r| [r.start, r.end])
                     .collect::<Vec<[u32; 2]>>(),
             ),
             _ => None,

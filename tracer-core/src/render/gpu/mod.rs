@@ -300,7 +300,7 @@ enum Readout<'a> {
     /// Blocks each over their own range of samples, in one grid: the
     /// blocks of the mask, block i (of the mask's rect) from `ranges[i].0`
     /// to `ranges[i].1`.
-    Ranged(&'a BlockMask, &'a [(u32, u32)]),
+    Ranged(&'a BlockMask, &'a [Option<SampleRange>]),
 }
 
 enum Rendered {
@@ -816,22 +816,12 @@ impl GpuRenderer {
         to: &[u32],
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<Film, GpuError> {
-        let mut mask = BlockMask::none(rect);
-        assert_eq!(
-            (from.len(), to.len()),
-            (mask.active.len(), mask.active.len()),
-            "a range per block"
-        );
-        let mut ranges = Vec::with_capacity(from.len());
-        let mut longest = 0;
-        for (i, (&a, &b)) in from.iter().zip(to).enumerate() {
-            mask.active[i] = b > a;
-            ranges.push((a, b.max(a)));
-            if b > a {
-                longest = longest.max(b - a);
-                prepared.check_request(rect, SampleRange::new(a, b))?;
-            }
-        }
+        let ranges = prepared.block_ranges(rect, from, to)?;
+        let mask = BlockMask {
+            rect,
+            active: ranges.iter().map(Option::is_some).collect(),
+        };
+        let longest = ranges.iter().flatten().map(|r| r.len()).max().unwrap_or(0);
         if longest == 0 {
             return Ok(Film::with_squares(rect));
         }
