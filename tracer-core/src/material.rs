@@ -11,7 +11,7 @@ use std::any::TypeId;
 use crate::bsdf::Bsdf;
 use crate::math::{Real, Vector3};
 use crate::scene::MaterialDesc;
-use crate::texture::TextureRef;
+use crate::texture::{SurfaceAttrs, TextureRef};
 
 /// Index of no [`Pbr`] (`Material::pbr` of a TOML material).
 pub const NO_PBR: u32 = u32::MAX;
@@ -196,24 +196,19 @@ impl Pbr {
         }
     }
 
-    /// The material at a point with texture coordinates `uv` (both sets)
-    /// and vertex colour `color`, for both integrators, the textures
-    /// sampled once: Whitted's [`Material`], the factors times the textures
+    /// The material at a point with texture coordinates, vertex colour and
+    /// footprint `at`, for both integrators, the textures sampled once
+    /// (trilinear: `TextureRef::sample_at`): Whitted's [`Material`], the factors times the textures
     /// through [`Pbr::whitted`], the ambient term darkened by the
     /// occlusion texture (glTF's occlusion darkens indirect light, which
     /// the ambient term stands for), the emission times the emissive
     /// texture; and the path integrator's [`Bsdf`] ([`Pbr::bsdf`]). `m` is
     /// the material of the factors alone.
-    pub fn at<R: Real>(
-        &self,
-        m: &Material<R>,
-        uv: [[f32; 2]; 2],
-        color: [f32; 4],
-    ) -> (Material<R>, Bsdf<R>) {
-        let base = self.base_color_at(uv, color);
+    pub fn at<R: Real>(&self, m: &Material<R>, at: &SurfaceAttrs) -> (Material<R>, Bsdf<R>) {
+        let base = self.base_color_at(at);
         let emission = match &self.emissive_texture {
             Some(t) => {
-                let e = t.sample(uv[t.uv_set as usize]);
+                let e = t.sample_at(at);
                 R::V3::from_array(std::array::from_fn(|i| self.emissive[i] * e[i] as f64))
             }
             None => m.emission,
@@ -230,14 +225,14 @@ impl Pbr {
         }
         let (mut metallic, mut roughness) = (self.metallic, self.roughness);
         if let Some(t) = &self.metallic_roughness_texture {
-            let s = t.sample(uv[t.uv_set as usize]);
+            let s = t.sample_at(at);
             roughness *= s[1] as f64;
             metallic *= s[2] as f64;
         }
         let base = base.map(f64::from);
         let mut desc = self.whitted(base, metallic, roughness);
         if let Some(t) = &self.occlusion_texture {
-            let o = t.sample(uv[t.uv_set as usize])[0] as f64;
+            let o = t.sample_at(at)[0] as f64;
             let k = 1.0 + self.occlusion_strength * (o - 1.0);
             desc.ambient.0 = desc.ambient.0.map(|c| c * k);
         }
@@ -304,14 +299,15 @@ impl Pbr {
     }
 
     /// Base colour (linear RGBA) at a point: factor x texture x vertex colour.
-    pub fn base_color_at(&self, uv: [[f32; 2]; 2], color: [f32; 4]) -> [f32; 4] {
+    pub fn base_color_at(&self, at: &SurfaceAttrs) -> [f32; 4] {
         let t = match &self.base_color_texture {
-            Some(t) => t.sample(uv[t.uv_set as usize]),
+            Some(t) => t.sample_at(at),
             None => [1.0; 4],
         };
-        let mut c: [f32; 4] = std::array::from_fn(|i| self.base_color[i] as f32 * t[i] * color[i]);
+        let mut c: [f32; 4] =
+            std::array::from_fn(|i| self.base_color[i] as f32 * t[i] * at.colour[i]);
         if let Some(a) = &self.alpha_texture {
-            let s = a.sample(uv[a.uv_set as usize]);
+            let s = a.sample_at(at);
             c[3] *= s[0] * s[3];
         }
         c
@@ -319,9 +315,8 @@ impl Pbr {
 
     /// Whether a point is cut away (alphaMode MASK, alpha below the cutoff):
     /// every ray passes through it.
-    pub fn cut_away(&self, uv: [[f32; 2]; 2], color: [f32; 4]) -> bool {
-        self.alpha_mode == AlphaMode::Mask
-            && (self.base_color_at(uv, color)[3] as f64) < self.alpha_cutoff
+    pub fn cut_away(&self, at: &SurfaceAttrs) -> bool {
+        self.alpha_mode == AlphaMode::Mask && (self.base_color_at(at)[3] as f64) < self.alpha_cutoff
     }
 
     /// Whether its back faces are cut away for every ray (glTF's

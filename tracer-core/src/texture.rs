@@ -4,11 +4,17 @@
 //!
 //! Texture space is glTF's: (0, 0) is the top-left corner of the image,
 //! u to the right, v down (OBJ's v is flipped when it is read). The
-//! filter is bilinear over the full-resolution image, with the sampler's
-//! wrap modes, in linear values: colour textures are decoded from sRGB
-//! exactly (the IEC 61966-2-1 curve, in f64, rounded once to f32) before
-//! they are blended, data textures (metallic-roughness, normal,
-//! occlusion, alpha) are byte / 255.
+//! filter is trilinear: bilinear within a mip level, with the sampler's
+//! wrap modes, in linear values, and linear between the two levels around
+//! the level of detail a hit's footprint asks for ([`SurfaceAttrs::lod`]);
+//! a footprint under a texel reads the full-resolution image, bilinear
+//! (or nearest, for a NEAREST sampler). Colour textures are decoded from
+//! sRGB exactly (the IEC 61966-2-1 curve, in f64, rounded once to f32)
+//! before they are blended, data textures (metallic-roughness, normal,
+//! occlusion, alpha) are byte / 255. Mip levels are made once per image
+//! and decoding ([`Image::levels`]), box-filtered in linear values and
+//! stored as bytes like the image, so the CPU and the GPU filter the same
+//! texels (render/gpu/pbr.wgsl `tex_sample`).
 
 use std::sync::{Arc, OnceLock};
 
@@ -25,10 +31,29 @@ pub enum Wrap {
 /// A decoded image: RGBA, 8 bits a channel as stored in the file (colour
 /// channels still sRGB-encoded where the texture holds colour), rows from
 /// the top.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub struct Image {
     /// The file it came from (for messages).
     pub name: String,
+    pub width: u32,
+    pub height: u32,
+    pub texels: Vec<[u8; 4]>,
+    /// Mip levels 1.. for data decoding (`[0]`) and sRGB colour (`[1]`),
+    /// made on first use ([`Image::levels`]).
+    mips: [OnceLock<Vec<Level>>; 2],
+}
+
+impl PartialEq for Image {
+    fn eq(&self, o: &Self) -> bool {
+        (&self.name, self.width, self.height, &self.texels)
+            == (&o.name, o.width, o.height, &o.texels)
+    }
+}
+
+/// One level of a mip chain below the image: half the level above it in
+/// each side (rounded down, at least 1), texels as the image stores them.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Level {
     pub width: u32,
     pub height: u32,
     pub texels: Vec<[u8; 4]>,
@@ -61,13 +86,85 @@ impl Image {
             return Err("has no texels".into());
         }
         let texels = img.pixels().map(|p| p.0).collect();
-        Ok(Image {
+        Ok(Image::new(name, width, height, texels))
+    }
+
+    /// An image of `width` x `height` texels, rows from the top.
+    pub fn new(name: &str, width: u32, height: u32, texels: Vec<[u8; 4]>) -> Image {
+        assert_eq!(texels.len(), width as usize * height as usize);
+        Image {
             name: name.to_string(),
             width,
             height,
             texels,
-        })
+            mips: Default::default(),
+        }
     }
+
+    /// Its mip levels below the image (level 1 first, down to 1 x 1) for
+    /// colour channels decoded as sRGB (`srgb`) or as data: each texel of
+    /// a level is the mean of the texels of the level above that it
+    /// covers (2 x 2, or 3 along an odd side's last texel), in linear
+    /// values, encoded back to a byte (sRGB or linear) rounded to nearest.
+    /// Made once, on first use.
+    pub fn levels(&self, srgb: bool) -> &[Level] {
+        self.mips[srgb as usize].get_or_init(|| mip_chain(self, srgb))
+    }
+}
+
+/// [`Image::levels`], made.
+fn mip_chain(img: &Image, srgb: bool) -> Vec<Level> {
+    let decode = |t: [u8; 4]| -> [f64; 4] {
+        let s = srgb_table();
+        std::array::from_fn(|k| {
+            if srgb && k < 3 {
+                s[t[k] as usize] as f64
+            } else {
+                t[k] as f64 / 255.0
+            }
+        })
+    };
+    let encode = |c: [f64; 4]| -> [u8; 4] {
+        std::array::from_fn(|k| {
+            let v = if srgb && k < 3 {
+                linear_to_srgb(c[k])
+            } else {
+                c[k]
+            };
+            (v.clamp(0.0, 1.0) * 255.0).round() as u8
+        })
+    };
+    let mut out: Vec<Level> = Vec::new();
+    let (mut w, mut h) = (img.width as usize, img.height as usize);
+    while w > 1 || h > 1 {
+        let (nw, nh) = ((w / 2).max(1), (h / 2).max(1));
+        let above = out.last().map_or(&img.texels[..], |l| &l.texels[..]);
+        let mut texels = Vec::with_capacity(nw * nh);
+        for y in 0..nh {
+            let rows = y * h / nh..(y + 1) * h / nh;
+            for x in 0..nw {
+                let cols = x * w / nw..(x + 1) * w / nw;
+                let mut sum = [0.0f64; 4];
+                for yy in rows.clone() {
+                    for xx in cols.clone() {
+                        let d = decode(above[yy * w + xx]);
+                        for k in 0..4 {
+                            sum[k] += d[k];
+                        }
+                    }
+                }
+                let n = (rows.len() * cols.len()) as f64;
+                texels.push(encode(sum.map(|s| s / n)));
+            }
+        }
+        out.push(Level {
+            width: nw as u32,
+            height: nh as u32,
+            texels,
+        });
+        (w, h) = (nw, nh);
+    }
+    out
 }
 
 /// A texture as a material uses it: an image, its sampler, whether its
@@ -123,6 +220,16 @@ pub(crate) fn decode_within(
     })
 }
 
+/// The sRGB encoding of a linear channel `c` in [0, 1] (the inverse of
+/// [`srgb_to_linear`]).
+pub fn linear_to_srgb(c: f64) -> f64 {
+    if c <= 0.0031308 {
+        c * 12.92
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
+    }
+}
+
 /// byte -> linear value of an sRGB-encoded channel, exactly rounded.
 fn srgb_table() -> &'static [f32; 256] {
     static T: OnceLock<[f32; 256]> = OnceLock::new();
@@ -173,11 +280,10 @@ impl TextureRef {
         ]
     }
 
-    /// One texel, decoded to linear values.
+    /// One texel of `texels` (a level `width` wide), decoded to linear values.
     #[inline]
-    fn texel(&self, x: u32, y: u32) -> [f32; 4] {
-        let img = &*self.image;
-        let t = img.texels[(y as usize) * img.width as usize + x as usize];
+    fn texel(&self, texels: &[[u8; 4]], width: u32, x: u32, y: u32) -> [f32; 4] {
+        let t = texels[(y as usize) * width as usize + x as usize];
         let lin = linear_byte;
         if self.srgb {
             let s = srgb_table();
@@ -194,11 +300,12 @@ impl TextureRef {
 
     /// The mean decoded texel (an emissive texture's: its light's power).
     pub fn mean(&self) -> [f64; 4] {
-        let (w, h) = (self.image.width, self.image.height);
+        let img = &*self.image;
+        let (w, h) = (img.width, img.height);
         let mut sum = [0.0f64; 4];
         for y in 0..h {
             for x in 0..w {
-                let t = self.texel(x, y);
+                let t = self.texel(&img.texels, w, x, y);
                 for k in 0..4 {
                     sum[k] += t[k] as f64;
                 }
@@ -208,22 +315,74 @@ impl TextureRef {
         sum.map(|s| s / n)
     }
 
-    /// The filtered value at texture coordinate `uv` (before the
-    /// transform, which is applied here): bilinear between the four
-    /// texels around it (texel centres at half-integers), or the nearest
-    /// texel for a NEAREST sampler. Non-finite coordinates read texel (0, 0).
+    /// The filtered value of the full-resolution image at texture
+    /// coordinate `uv` (before the transform, which is applied here):
+    /// bilinear between the four texels around it (texel centres at
+    /// half-integers), or the nearest texel for a NEAREST sampler.
+    /// Non-finite coordinates read texel (0, 0).
     pub fn sample(&self, uv: [f32; 2]) -> [f32; 4] {
+        let img = &*self.image;
+        self.filter(&img.texels, img.width, img.height, self.nearest, uv)
+    }
+
+    /// The trilinear filter at a hit ([`SurfaceAttrs`]): level of detail
+    /// λ = the hit's `lod` for this texture's UV set + ½ log2(texels x the
+    /// transform's area scale); λ ≤ 0 (or unknown) is [`Self::sample`],
+    /// else the levels ⌊λ⌋ and ⌊λ⌋ + 1 of [`Image::levels`] (level 0 the
+    /// image), each bilinear, blended by λ's fraction, λ clamped to the
+    /// last level. pbr.wgsl `tex_sample` is its mirror.
+    pub fn sample_at(&self, at: &SurfaceAttrs) -> [f32; 4] {
+        let set = self.uv_set as usize;
+        let uv = at.uv[set];
+        let lod = at.lod[set] + self.lod_offset();
+        if !(lod > 0.0) {
+            return self.sample(uv);
+        }
+        let img = &*self.image;
+        let levels = img.levels(self.srgb);
+        let lod = lod.min(levels.len() as f32);
+        let k = lod.floor();
+        let frac = lod - k;
+        let level = |k: usize| -> [f32; 4] {
+            match k {
+                0 => self.filter(&img.texels, img.width, img.height, false, uv),
+                k => {
+                    let l = &levels[k - 1];
+                    self.filter(&l.texels, l.width, l.height, false, uv)
+                }
+            }
+        };
+        let k = k as usize;
+        let a = level(k);
+        if frac == 0.0 || k == levels.len() {
+            return a;
+        }
+        let b = level(k + 1);
+        std::array::from_fn(|i| a[i] + (b[i] - a[i]) * frac)
+    }
+
+    /// ½ log2 of the texels a unit of texture-coordinate area covers:
+    /// the image's texels times the transform's area scale (-∞ where the
+    /// transform collapses the plane).
+    #[inline]
+    pub fn lod_offset(&self) -> f32 {
+        let [a, b] = self.transform;
+        let det = (a[0] * b[1] - a[1] * b[0]).abs();
+        0.5 * (det * self.image.width as f32 * self.image.height as f32).log2()
+    }
+
+    /// Bilinear (or nearest) filter over one level's `texels`.
+    fn filter(&self, texels: &[[u8; 4]], w: u32, h: u32, nearest: bool, uv: [f32; 2]) -> [f32; 4] {
         let [u, v] = self.transform_uv(uv);
-        let (w, h) = (self.image.width, self.image.height);
         let fx = if u.is_finite() { u * w as f32 } else { 0.5 };
         let fy = if v.is_finite() { v * h as f32 } else { 0.5 };
         // Clamped far beyond any image so the integer conversion is exact.
         let fx = fx.clamp(-1e9, 1e9);
         let fy = fy.clamp(-1e9, 1e9);
-        if self.nearest {
+        if nearest {
             let x = wrap_index(fx.floor() as i64, w, self.wrap[0]);
             let y = wrap_index(fy.floor() as i64, h, self.wrap[1]);
-            return self.texel(x, y);
+            return self.texel(texels, w, x, y);
         }
         let (x, y) = (fx - 0.5, fy - 0.5);
         let (x0, y0) = (x.floor(), y.floor());
@@ -237,16 +396,37 @@ impl TextureRef {
             wrap_index(y0, h, self.wrap[1]),
             wrap_index(y0 + 1, h, self.wrap[1]),
         ];
-        let a = self.texel(xs[0], ys[0]);
-        let b = self.texel(xs[1], ys[0]);
-        let c = self.texel(xs[0], ys[1]);
-        let d = self.texel(xs[1], ys[1]);
+        let a = self.texel(texels, w, xs[0], ys[0]);
+        let b = self.texel(texels, w, xs[1], ys[0]);
+        let c = self.texel(texels, w, xs[0], ys[1]);
+        let d = self.texel(texels, w, xs[1], ys[1]);
         std::array::from_fn(|i| {
             let top = a[i] + (b[i] - a[i]) * tx;
             let bottom = c[i] + (d[i] - c[i]) * tx;
             top + (bottom - top) * ty
         })
     }
+}
+
+/// What a textured surface point gives its textures: texture coordinates
+/// (sets 0 and 1), the vertex colour, and per set the level of detail of
+/// the pixel's footprint there, log2 of its side in texture coordinates
+/// (world/query.rs `attrs_at`; -∞ where unknown: the full-resolution
+/// image). pbr.wgsl `Attrs` is its mirror.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceAttrs {
+    pub uv: [[f32; 2]; 2],
+    pub colour: [f32; 4],
+    pub lod: [f32; 2],
+}
+
+impl SurfaceAttrs {
+    /// A point without attributes: zero coordinates, white, no footprint.
+    pub const NONE: SurfaceAttrs = SurfaceAttrs {
+        uv: [[0.0; 2]; 2],
+        colour: [1.0; 4],
+        lod: [f32::NEG_INFINITY; 2],
+    };
 }
 
 /// The `KHR_texture_transform` matrix: translation * rotation * scale,
@@ -268,12 +448,7 @@ mod tests {
 
     fn tex(w: u32, h: u32, texels: Vec<[u8; 4]>, srgb: bool) -> TextureRef {
         TextureRef {
-            image: Arc::new(Image {
-                name: "t".into(),
-                width: w,
-                height: h,
-                texels,
-            }),
+            image: Arc::new(Image::new("t", w, h, texels)),
             wrap: [Wrap::Repeat; 2],
             nearest: false,
             srgb,

@@ -113,6 +113,19 @@ fn gpu_emissive_textured_quad_matches_the_cpu() {
     assert_agree("emissive textured quad", &scene, 1e-5, 1e-6);
 }
 
+/// The minified checkerboard of tests/textures.rs
+/// (`common::minified_checker_scene`): from 2 away each pixel blends the
+/// image with its mip level 1 by the footprint's level of detail, from 6
+/// away it reads level 2 and 3; the GPU's levels, offsets and λ (f32) are
+/// the CPU's.
+#[test]
+fn gpu_minified_checkerboard_reads_the_cpus_mip_levels() {
+    for distance in [2.0, 6.0] {
+        let scene = common::minified_checker_scene("gpu-tex-mips", distance, 32);
+        assert_agree(&format!("checkerboard from {distance}"), &scene, 1e-5, 1e-6);
+    }
+}
+
 /// The cut-out quad of tests/textures.rs (`common::cutout_quad`) over a
 /// lit plane: camera and shadow rays pass its transparent texels on the
 /// GPU as on the CPU.

@@ -465,8 +465,7 @@ pub fn material_at<R: Real>(
     if !pbr.varies() {
         return whole;
     }
-    let (uv, colour) = world.attrs_at(id.index(), p);
-    pbr.at(m, uv, colour)
+    pbr.at(m, &world.attrs_at(id.index(), p))
 }
 
 /// The shading normal at `p` on primitive `id` (of material index
@@ -500,10 +499,10 @@ pub fn shading_normal<R: Real>(
     }
     let normal = world.triangle_shading[id.index()].normal_at(&world.triangles[id.index()], p);
     let tilted = if let Some(tex) = &pbr.normal_texture {
-        let Some((uv, t)) = world.tangent_at(id.index(), p) else {
+        let Some((at, t)) = world.tangent_at(id.index(), p) else {
             return ns;
         };
-        let c = tex.sample(uv[tex.uv_set as usize]);
+        let c = tex.sample_at(&at);
         let scale = pbr.normal_scale as f32;
         let local = [
             (2.0 * c[0] - 1.0) * scale,
@@ -574,8 +573,7 @@ fn bumped_normal<R: Real>(
     let inv = f(1.0 / det);
     let dpdu = (e1 * f(d2[1]) - e2 * f(d1[1])) * inv;
     let dpdv = (e2 * f(d1[0]) - e1 * f(d2[0])) * inv;
-    let (uv, _) = world.attrs_at(index, p);
-    let [u, v] = uv[set];
+    let [u, v] = world.attrs_at(index, p).uv[set];
     let (du, dv) = (1.0 / tex.image.width as f32, 1.0 / tex.image.height as f32);
     let h = |u: f32, v: f32| tex.sample([u, v])[0];
     let hu = (h(u + du, v) - h(u - du, v)) / (2.0 * du);

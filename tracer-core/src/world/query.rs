@@ -8,6 +8,7 @@
 use crate::bvh::{self, Bvh};
 use crate::geometry::PrimId;
 use crate::math::{Lanes4, Ray, Real, Vector3};
+use crate::texture::SurfaceAttrs;
 use crate::triangle::{Triangle, TriangleRay};
 
 use super::World;
@@ -106,21 +107,22 @@ impl<R: Real> World<R> {
         }
         // An instance's triangles keep no attributes (textured meshes are
         // copied): its alpha is the factor's.
-        let (uv, colour) = if id.kind() == PrimId::TRIANGLE {
+        let at = if id.kind() == PrimId::TRIANGLE {
             self.attrs_at(id.index(), p)
         } else {
-            ([[0.0; 2]; 2], [1.0; 4])
+            SurfaceAttrs::NONE
         };
-        pbr.cut_away(uv, colour)
+        pbr.cut_away(&at)
     }
 
     /// Texture coordinates (sets 0 and 1) and vertex colour at `p` on
-    /// triangle `index`, interpolated by barycentric weights; zeros and
-    /// white for a triangle without them.
-    pub fn attrs_at(&self, index: usize, p: R::V3) -> ([[f32; 2]; 2], [f32; 4]) {
+    /// triangle `index`, interpolated by barycentric weights, and the
+    /// footprint's level of detail in each set ([`World::texture_lod`]);
+    /// [`SurfaceAttrs::NONE`] for a triangle without them.
+    pub fn attrs_at(&self, index: usize, p: R::V3) -> SurfaceAttrs {
         let a = self.triangle_shading[index].attrs;
         if a == crate::triangle::NO_ATTRS {
-            return ([[0.0; 2]; 2], [1.0; 4]);
+            return SurfaceAttrs::NONE;
         }
         let vs = self.attrs.tri[a as usize];
         let b = self.triangles[index]
@@ -137,13 +139,56 @@ impl<R: Real> World<R> {
         let colour = std::array::from_fn(|k| {
             c[vs[0] as usize][k] * b[0] + c[vs[1] as usize][k] * b[1] + c[vs[2] as usize][k] * b[2]
         });
-        ([mix2(&self.attrs.uv[0]), mix2(&self.attrs.uv[1])], colour)
+        SurfaceAttrs {
+            uv: [mix2(&self.attrs.uv[0]), mix2(&self.attrs.uv[1])],
+            colour,
+            lod: self.texture_lod(index, p, vs),
+        }
     }
 
-    /// Texture coordinates (both sets) and tangent (`VertexAttrs::tangent`,
+    /// The level of detail of a pixel's footprint at `p` on triangle
+    /// `index` (of attribute vertices `vs`), per UV set: log2 of the
+    /// footprint's side in texture coordinates (docs/meshes.md, "Texture
+    /// filtering"). The footprint is the camera's: a cone of one pixel's
+    /// angle from the camera (this world's origin) to `p`, whatever path
+    /// the ray took (pbrt-v4 approximates every ray after the camera's so,
+    /// `Camera::Approximate_dp_dxy`), narrowed as pbrt-v4 does where a
+    /// pixel takes many samples: its side times max(1/8, 1/√spp), the
+    /// samples then covering the pixel between them. On the surface its area grows by
+    /// 1/|cos| of the angle to the normal (the geometric mean of the
+    /// ellipse's axes: an isotropic filter's compromise between blur and
+    /// aliasing at grazing angles), and in texture space by the triangle's
+    /// texture-coordinate area over its area. pbr.wgsl `texture_lod` is its
+    /// mirror (in f32).
+    pub fn texture_lod(&self, index: usize, p: R::V3, vs: [u32; 3]) -> [f32; 2] {
+        let [p0, p1, p2] = self.triangles[index].vertices();
+        let c = (p1 - p0).cross(p2 - p0);
+        let area = c.length().to_f64();
+        let dist = p.length().to_f64();
+        let cos = (c.dot(p).to_f64() / (area * dist)).abs().max(1e-4);
+        let spread = 2.0 * self.camera.up.length().to_f64() * self.camera.inv_height.to_f64();
+        let per_sample = (1.0 / self.settings.samples.max(1) as f64).max(1.0 / 64.0);
+        let foot = spread * spread * dist * dist / cos * per_sample;
+        std::array::from_fn(|set| {
+            let uv = vs.map(|v| self.attrs.uv[set][v as usize]);
+            let (d1, d2) = (
+                [uv[1][0] - uv[0][0], uv[1][1] - uv[0][1]],
+                [uv[2][0] - uv[0][0], uv[2][1] - uv[0][1]],
+            );
+            let uv_area = (d1[0] as f64 * d2[1] as f64 - d2[0] as f64 * d1[1] as f64).abs();
+            let lod = 0.5 * (foot * uv_area / area).log2();
+            if lod.is_nan() {
+                f32::NEG_INFINITY
+            } else {
+                lod as f32
+            }
+        })
+    }
+
+    /// The attributes (`attrs_at`) and tangent (`VertexAttrs::tangent`,
     /// interpolated, w the first vertex's sign) at `p` on triangle `index`;
     /// `None` without attributes or where a vertex's tangent is unknown.
-    pub fn tangent_at(&self, index: usize, p: R::V3) -> Option<([[f32; 2]; 2], [f32; 4])> {
+    pub fn tangent_at(&self, index: usize, p: R::V3) -> Option<(SurfaceAttrs, [f32; 4])> {
         let a = self.triangle_shading[index].attrs;
         if a == crate::triangle::NO_ATTRS {
             return None;
@@ -162,10 +207,10 @@ impl<R: Real> World<R> {
         let b = self.triangles[index]
             .barycentric(p)
             .map(|w| w.to_f64() as f32);
-        let (uv, _) = self.attrs_at(index, p);
+        let at = self.attrs_at(index, p);
         let mix: [f32; 3] =
             std::array::from_fn(|k| t[0][k] * b[0] + t[1][k] * b[1] + t[2][k] * b[2]);
-        Some((uv, [mix[0], mix[1], mix[2], t[0][3]]))
+        Some((at, [mix[0], mix[1], mix[2], t[0][3]]))
     }
 
     /// Nearest hit, cut-outs included.

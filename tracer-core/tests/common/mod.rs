@@ -509,3 +509,49 @@ pub fn cutout_quad(dir: &std::path::Path) -> (String, [u8; 16]) {
     );
     (model, alpha)
 }
+
+/// Texels of the minified-checker scene's texture (a side).
+pub const CHECKER_SIDE: u32 = 64;
+/// tan(fov_y / 2) of its camera.
+pub const CHECKER_TAN: f64 = 0.45;
+
+/// A `CHECKER_SIDE`-texel square checkerboard of black and white texels,
+/// black at (0, 0).
+pub fn checker_texels() -> Vec<[u8; 4]> {
+    let n = CHECKER_SIDE;
+    (0..n * n)
+        .map(|i| {
+            let c = if (i % n + i / n).is_multiple_of(2) { 0 } else { 255 };
+            [c, c, c, 255]
+        })
+        .collect()
+}
+
+/// The emissive quad [-1, 1]^2 at z = 0 under a `CHECKER_SIDE`-texel
+/// checkerboard of black and white texels (sRGB, clamped), seen head on
+/// from `distance` on +z at `size` x `size` pixels, one sample each
+/// (tan(fov_y / 2) = `CHECKER_TAN`): nothing but the emission adds. Its
+/// texture is minified (a pixel covers about 1.8 texels per unit of
+/// distance / 2), so every pixel reads mip levels.
+pub fn minified_checker_scene(tag: &str, distance: f64, size: u32) -> SceneDesc {
+    let dir = meshgen::tmpdir(tag);
+    let n = CHECKER_SIDE;
+    meshgen::write_png(&dir, n, n, &checker_texels());
+    let model = meshgen::textured_quad(
+        &dir,
+        1.0,
+        0.0,
+        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"metallicFactor":0},
+            "emissiveFactor":[1,1,1],"emissiveTexture":{"index":0},
+            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
+        r#"{"wrapS":33071,"wrapT":33071}"#,
+    );
+    let fov = 2.0 * CHECKER_TAN.atan().to_degrees();
+    let src = format!(
+        "[render]\nwidth = {size}\nheight = {size}\nsamples = 1\n\
+         [camera]\nposition = [0, 0, {distance}]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = {fov}\n\
+         [[lights]]\nposition = [0, 0, 5]\ndiffuse = [0, 0, 0]\nspecular = [0, 0, 0]\n\
+         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
+    );
+    SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
+}

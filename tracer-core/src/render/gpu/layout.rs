@@ -941,9 +941,15 @@ pub struct GpuTexRef {
     pub height: u32,
     /// `TEX_*` bits: present, nearest, sRGB, UV set 1, wrap modes.
     pub flags: u32,
-    /// The `KHR_texture_transform` rows (a, b, c, -) and (d, e, f, -).
-    pub row0: [f32; 4],
-    pub row1: [f32; 4],
+    /// The `KHR_texture_transform` rows (a, b, c) ...
+    pub row0: [f32; 3],
+    /// ... the first texel of its mip level 1 (`Image::levels` for its
+    /// decoding, one level after another) ...
+    pub mips: u32,
+    /// ... (d, e, f) ...
+    pub row1: [f32; 3],
+    /// ... and how many levels lie below the image.
+    pub levels: u32,
 }
 
 pub const TEX_PRESENT: u32 = 1;
@@ -1014,8 +1020,9 @@ pub const TEXEL_TABLES: u32 = 512;
 
 /// The world's model materials for pbr.wgsl: per GPU material its
 /// `GpuPbr` (or `NO_PBR`), the materials, the triangles' vertex
-/// attributes and every image once, as the RGBA bytes the CPU filters
-/// (four to a word, little-endian), after the decode tables.
+/// attributes and every image once per decoding with its mip levels, as
+/// the RGBA bytes the CPU filters (four to a word, little-endian), after
+/// the decode tables.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PbrData {
     pub mat_pbr: Vec<u32>,
@@ -1029,39 +1036,45 @@ pub struct PbrData {
 }
 
 /// The texels binding: the decode tables, then every image of a world's
-/// model materials once, in first-use order, with the images it was
-/// packed from. Kept with the scene between renders, so that another tile
+/// model materials once per decoding (sRGB colour or data), in first-use
+/// order, each followed by its mip levels for that decoding
+/// (`Image::levels`), with the images it was packed from. Kept with the scene between renders, so that another tile
 /// or frame of the same world packs, compares and uploads no texel
 /// (DamagedHelmet's 84 MB cost ~100 ms a call): equal when it is the same
 /// allocation or was packed from the same images (the same `Arc`s, held
 /// here, so no address is reused while it is compared); a world of other
 /// images is packed and uploaded afresh, even if their texels are equal.
 pub struct TexelPack {
-    pub images: Vec<std::sync::Arc<crate::texture::Image>>,
+    /// Each image with its decoding (sRGB colour channels or not).
+    pub images: Vec<(std::sync::Arc<crate::texture::Image>, bool)>,
     pub words: Vec<u32>,
 }
 
 impl TexelPack {
     /// Packs `images` after the decode tables.
-    fn pack(images: Vec<std::sync::Arc<crate::texture::Image>>) -> Self {
+    fn pack(images: Vec<(std::sync::Arc<crate::texture::Image>, bool)>) -> Self {
         let mut words: Vec<u32> = crate::texture::decode_tables()
             .iter()
             .map(|v| v.to_bits())
             .collect();
-        for i in &images {
-            words.extend(i.texels.iter().map(|c| u32::from_le_bytes(*c)));
+        let le = |c: &[u8; 4]| u32::from_le_bytes(*c);
+        for (i, srgb) in &images {
+            words.extend(i.texels.iter().map(le));
+            for l in i.levels(*srgb) {
+                words.extend(l.texels.iter().map(le));
+            }
         }
         TexelPack { images, words }
     }
 
     /// Whether it was packed from exactly `images` (by identity).
-    fn holds(&self, images: &[std::sync::Arc<crate::texture::Image>]) -> bool {
+    fn holds(&self, images: &[(std::sync::Arc<crate::texture::Image>, bool)]) -> bool {
         self.images.len() == images.len()
             && self
                 .images
                 .iter()
                 .zip(images)
-                .all(|(a, b)| std::sync::Arc::ptr_eq(a, b))
+                .all(|((a, sa), (b, sb))| std::sync::Arc::ptr_eq(a, b) && sa == sb)
     }
 }
 
@@ -1110,14 +1123,26 @@ impl PbrData {
         if !used {
             return None;
         }
-        // Every image once, in first-use order, and its first word.
-        let images: Vec<std::sync::Arc<crate::texture::Image>> =
-            w.texture_images().into_iter().cloned().collect();
+        // Every image once per decoding, in first-use order, and its first word.
+        let mut images: Vec<(std::sync::Arc<crate::texture::Image>, bool)> = Vec::new();
+        for t in w.pbr.iter().flat_map(|p| p.textures()) {
+            if !images
+                .iter()
+                .any(|(i, srgb)| std::sync::Arc::ptr_eq(i, &t.image) && *srgb == t.srgb)
+            {
+                images.push((t.image.clone(), t.srgb));
+            }
+        }
         let mut offsets: Vec<u32> = Vec::with_capacity(images.len());
         let mut next = TEXEL_TABLES;
-        for i in &images {
+        for (i, srgb) in &images {
             offsets.push(next);
             next += i.texels.len() as u32;
+            next += i
+                .levels(*srgb)
+                .iter()
+                .map(|l| l.texels.len() as u32)
+                .sum::<u32>();
         }
         let tex = |t: &Option<TextureRef>| -> GpuTexRef {
             let Some(t) = t else {
@@ -1125,7 +1150,7 @@ impl PbrData {
             };
             let at = images
                 .iter()
-                .position(|i| std::sync::Arc::ptr_eq(i, &t.image))
+                .position(|(i, srgb)| std::sync::Arc::ptr_eq(i, &t.image) && *srgb == t.srgb)
                 .expect("every image was listed");
             let offset = offsets[at];
             let wrap = |w: Wrap| match w {
@@ -1144,8 +1169,10 @@ impl PbrData {
                     | if t.uv_set == 1 { TEX_UV1 } else { 0 }
                     | wrap(t.wrap[0]) << TEX_WRAP_SHIFT
                     | wrap(t.wrap[1]) << (TEX_WRAP_SHIFT + 2),
-                row0: [a[0], a[1], a[2], 0.0],
-                row1: [b[0], b[1], b[2], 0.0],
+                row0: a,
+                mips: offset + t.image.texels.len() as u32,
+                row1: b,
+                levels: t.image.levels(t.srgb).len() as u32,
             }
         };
         let pbrs: Vec<GpuPbr> = w

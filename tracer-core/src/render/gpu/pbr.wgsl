@@ -16,8 +16,10 @@ struct TexRef {
     width: u32,
     height: u32,
     flags: u32,
-    row0: vec4<f32>,
-    row1: vec4<f32>,
+    row0: vec3<f32>,
+    mips: u32,
+    row1: vec3<f32>,
+    levels: u32,
 }
 
 struct Pbr {
@@ -94,9 +96,10 @@ fn wrap_index(i: i32, n: u32, mode: u32) -> u32 {
     return u32(k);
 }
 
-// texture.rs TextureRef::texel: one texel decoded to linear values.
-fn texel(t: TexRef, x: u32, y: u32) -> vec4<f32> {
-    let w = texels[t.offset + y * t.width + x];
+// texture.rs TextureRef::texel: one texel of the level at word `offset`,
+// `width` texels wide, decoded to linear values.
+fn texel(t: TexRef, offset: u32, width: u32, x: u32, y: u32) -> vec4<f32> {
+    let w = texels[offset + y * width + x];
     let b = vec4<u32>(w & 255u, (w >> 8u) & 255u, (w >> 16u) & 255u, w >> 24u);
     let colour = select(vec3<u32>(TABLE_LINEAR), vec3<u32>(0u), (t.flags & TEX_SRGB) != 0u);
     return vec4<f32>(
@@ -106,25 +109,32 @@ fn texel(t: TexRef, x: u32, y: u32) -> vec4<f32> {
         bitcast<f32>(texels[TABLE_LINEAR + b.w]));
 }
 
-// texture.rs TextureRef::sample at the hit's texture coordinates (its UV set).
-fn tex_sample(t: TexRef, uv0: vec2<f32>, uv1: vec2<f32>) -> vec4<f32> {
-    let uv = select(uv0, uv1, (t.flags & TEX_UV1) != 0u);
+// One mip level of a texture: its first word and size.
+struct TexLevel {
+    offset: u32,
+    width: u32,
+    height: u32,
+}
+
+// texture.rs TextureRef::filter: bilinear (or nearest) over one level at
+// texture coordinate uv (before the transform, which is applied here).
+fn tex_filter(t: TexRef, l: TexLevel, nearest: bool, uv: vec2<f32>) -> vec4<f32> {
     let u = t.row0.x * uv.x + t.row0.y * uv.y + t.row0.z;
     let v = t.row1.x * uv.x + t.row1.y * uv.y + t.row1.z;
     let ws = (t.flags >> TEX_WRAP_SHIFT) & 3u;
     let wt = (t.flags >> (TEX_WRAP_SHIFT + 2u)) & 3u;
     var fx = 0.5;
     if (is_finite_f32(u)) {
-        fx = u * f32(t.width);
+        fx = u * f32(l.width);
     }
     var fy = 0.5;
     if (is_finite_f32(v)) {
-        fy = v * f32(t.height);
+        fy = v * f32(l.height);
     }
     fx = clamp(fx, -1e9, 1e9);
     fy = clamp(fy, -1e9, 1e9);
-    if ((t.flags & TEX_NEAREST) != 0u) {
-        return texel(t, wrap_index(i32(floor(fx)), t.width, ws), wrap_index(i32(floor(fy)), t.height, wt));
+    if (nearest) {
+        return texel(t, l.offset, l.width, wrap_index(i32(floor(fx)), l.width, ws), wrap_index(i32(floor(fy)), l.height, wt));
     }
     let x = fx - 0.5;
     let y = fy - 0.5;
@@ -134,31 +144,75 @@ fn tex_sample(t: TexRef, uv0: vec2<f32>, uv1: vec2<f32>) -> vec4<f32> {
     let ty = y - y0;
     let xi = i32(x0);
     let yi = i32(y0);
-    let xa = wrap_index(xi, t.width, ws);
-    let xb = wrap_index(xi + 1, t.width, ws);
-    let ya = wrap_index(yi, t.height, wt);
-    let yb = wrap_index(yi + 1, t.height, wt);
-    let a = texel(t, xa, ya);
-    let b = texel(t, xb, ya);
-    let c = texel(t, xa, yb);
-    let d = texel(t, xb, yb);
+    let xa = wrap_index(xi, l.width, ws);
+    let xb = wrap_index(xi + 1, l.width, ws);
+    let ya = wrap_index(yi, l.height, wt);
+    let yb = wrap_index(yi + 1, l.height, wt);
+    let a = texel(t, l.offset, l.width, xa, ya);
+    let b = texel(t, l.offset, l.width, xb, ya);
+    let c = texel(t, l.offset, l.width, xa, yb);
+    let d = texel(t, l.offset, l.width, xb, yb);
     let top = a + (b - a) * tx;
     let bottom = c + (d - c) * tx;
     return top + (bottom - top) * ty;
 }
 
-// world/query.rs attrs_at: texture coordinates and vertex colour at p on
-// triangle `index`, zeros and white for a triangle without them.
+// Level k of texture t (0: the image; texture.rs Image::levels: each side
+// half the last, rounded down, at least 1, one level after another).
+fn tex_level(t: TexRef, k: u32) -> TexLevel {
+    if (k == 0u) {
+        return TexLevel(t.offset, t.width, t.height);
+    }
+    var l = TexLevel(t.mips, max(t.width / 2u, 1u), max(t.height / 2u, 1u));
+    for (var i = 1u; i < k; i++) {
+        l.offset += l.width * l.height;
+        l.width = max(l.width / 2u, 1u);
+        l.height = max(l.height / 2u, 1u);
+    }
+    return l;
+}
+
+// texture.rs TextureRef::sample: the full-resolution image at uv.
+fn tex_sample_uv(t: TexRef, uv: vec2<f32>) -> vec4<f32> {
+    return tex_filter(t, tex_level(t, 0u), (t.flags & TEX_NEAREST) != 0u, uv);
+}
+
+// texture.rs TextureRef::sample_at: trilinear at the hit's texture
+// coordinates (its UV set) and level of detail.
+fn tex_sample(t: TexRef, at: Attrs) -> vec4<f32> {
+    let set1 = (t.flags & TEX_UV1) != 0u;
+    let uv = select(at.uv0, at.uv1, set1);
+    let det = abs(t.row0.x * t.row1.y - t.row0.y * t.row1.x);
+    let offset = 0.5 * log2(det * f32(t.width) * f32(t.height));
+    var lod = select(at.lod.x, at.lod.y, set1) + offset;
+    if (!(lod > 0.0)) {
+        return tex_sample_uv(t, uv);
+    }
+    lod = min(lod, f32(t.levels));
+    let k = floor(lod);
+    let frac = lod - k;
+    let a = tex_filter(t, tex_level(t, u32(k)), false, uv);
+    if (frac == 0.0 || u32(k) == t.levels) {
+        return a;
+    }
+    let b = tex_filter(t, tex_level(t, u32(k) + 1u), false, uv);
+    return a + (b - a) * frac;
+}
+
+// world/query.rs attrs_at (texture.rs SurfaceAttrs): texture coordinates,
+// vertex colour and the footprint's level of detail per set at p on
+// triangle `index`; zeros, white and no footprint for a triangle without them.
 struct Attrs {
     uv0: vec2<f32>,
     uv1: vec2<f32>,
     colour: vec4<f32>,
+    lod: vec2<f32>,
 }
 
 fn attrs_at(index: u32, p: vec3<f32>) -> Attrs {
     let a = shading[index].attrs;
     if (a == NONE) {
-        return Attrs(vec2<f32>(0.0), vec2<f32>(0.0), vec4<f32>(1.0));
+        return Attrs(vec2<f32>(0.0), vec2<f32>(0.0), vec4<f32>(1.0), vec2<f32>(-BIG));
     }
     let va = vertex_attrs[tri_attrs[3u * a]];
     let vb = vertex_attrs[tri_attrs[3u * a + 1u]];
@@ -167,7 +221,32 @@ fn attrs_at(index: u32, p: vec3<f32>) -> Attrs {
     return Attrs(
         va.uv0 * b.x + vb.uv0 * b.y + vc.uv0 * b.z,
         va.uv1 * b.x + vb.uv1 * b.y + vc.uv1 * b.z,
-        va.colour * b.x + vb.colour * b.y + vc.colour * b.z);
+        va.colour * b.x + vb.colour * b.y + vc.colour * b.z,
+        texture_lod(index, p, va, vb, vc));
+}
+
+// world/query.rs texture_lod: log2 of the side of the camera's pixel
+// footprint at p in each UV set's texture coordinates (-BIG: none).
+fn texture_lod(index: u32, p: vec3<f32>, va: VertexAttr, vb: VertexAttr, vc: VertexAttr) -> vec2<f32> {
+    let tri = triangles[index];
+    let c = cross(tri.v1 - tri.v0, tri.v2 - tri.v0);
+    let area = length(c);
+    let dist = length(p);
+    var cosine = abs(dot(c, p) / (area * dist));
+    if (!(cosine >= 1e-4)) {
+        cosine = 1e-4;
+    }
+    let spread = 2.0 * length(frame.up) * frame.inv_height;
+    let per_sample = max(1.0 / f32(max(frame.samples, 1u)), 1.0 / 64.0);
+    let foot = spread * spread * dist * dist / cosine * per_sample;
+    let d0 = vb.uv0 - va.uv0;
+    let e0 = vc.uv0 - va.uv0;
+    let d1 = vb.uv1 - va.uv1;
+    let e1 = vc.uv1 - va.uv1;
+    let uv_area = abs(vec2<f32>(d0.x * e0.y - e0.x * d0.y, d1.x * e1.y - e1.x * d1.y));
+    let lod = 0.5 * log2(foot * uv_area / area);
+    // NaN (0/0) and -inf read the image itself, as -BIG does.
+    return select(vec2<f32>(-BIG), lod, lod > vec2<f32>(-BIG));
 }
 
 // material.rs Pbr::base_color_at: factor x texture x vertex colour, alpha
@@ -175,11 +254,11 @@ fn attrs_at(index: u32, p: vec3<f32>) -> Attrs {
 fn base_color_at(p: Pbr, at: Attrs) -> vec4<f32> {
     var t = vec4<f32>(1.0);
     if ((p.tex[T_BASE].flags & TEX_PRESENT) != 0u) {
-        t = tex_sample(p.tex[T_BASE], at.uv0, at.uv1);
+        t = tex_sample(p.tex[T_BASE], at);
     }
     var c = p.base_color * t * at.colour;
     if ((p.tex[T_ALPHA].flags & TEX_PRESENT) != 0u) {
-        let s = tex_sample(p.tex[T_ALPHA], at.uv0, at.uv1);
+        let s = tex_sample(p.tex[T_ALPHA], at);
         c.w = c.w * (s.x * s.w);
     }
     return c;
@@ -280,18 +359,18 @@ fn pbr_at(pb: Pbr, id: u32, p: vec3<f32>) -> PbrAt {
     let at = attrs_at(index, p);
     var out = PbrAt(base_color_at(pb, at), pb.emissive, pb.metallic, pb.roughness, 1.0);
     if ((pb.tex[T_EMISSIVE].flags & TEX_PRESENT) != 0u) {
-        out.emission = pb.emissive * tex_sample(pb.tex[T_EMISSIVE], at.uv0, at.uv1).xyz;
+        out.emission = pb.emissive * tex_sample(pb.tex[T_EMISSIVE], at).xyz;
     }
     if ((pb.flags & PBR_MTL) != 0u) {
         return out;
     }
     if ((pb.tex[T_MR].flags & TEX_PRESENT) != 0u) {
-        let s = tex_sample(pb.tex[T_MR], at.uv0, at.uv1);
+        let s = tex_sample(pb.tex[T_MR], at);
         out.roughness = out.roughness * s.y;
         out.metallic = out.metallic * s.z;
     }
     if ((pb.tex[T_OCCLUSION].flags & TEX_PRESENT) != 0u) {
-        let o = tex_sample(pb.tex[T_OCCLUSION], at.uv0, at.uv1).x;
+        let o = tex_sample(pb.tex[T_OCCLUSION], at).x;
         out.occlusion = 1.0 + pb.occlusion_strength * (o - 1.0);
     }
     return out;
@@ -385,7 +464,7 @@ fn normal_mapped(id: u32, p: vec3<f32>, material: u32, n: vec3<f32>, ns: vec3<f3
         let b = triangle_barycentric(index, p);
         let t = va.tangent.xyz * b.x + vb.tangent.xyz * b.y + vc.tangent.xyz * b.z;
         let at = attrs_at(index, p);
-        let c = tex_sample(pb.tex[T_NORMAL], at.uv0, at.uv1);
+        let c = tex_sample(pb.tex[T_NORMAL], at);
         let local = vec3<f32>(
             (2.0 * c.x - 1.0) * pb.normal_scale,
             (2.0 * c.y - 1.0) * pb.normal_scale,
@@ -451,5 +530,5 @@ fn bumped_normal(pb: Pbr, index: u32, p: vec3<f32>, va: VertexAttr, vb: VertexAt
 
 // A bump map's height (first channel) at uv (of its own set).
 fn height_at(t: TexRef, uv: vec2<f32>) -> f32 {
-    return tex_sample(t, uv, uv).x;
+    return tex_sample_uv(t, uv).x;
 }
