@@ -129,6 +129,8 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
             .iter()
             .map(|(k, n)| (k.to_string(), *n))
             .collect(),
+        scene: r.scene_name.clone(),
+        max_attempts: r.max_attempts,
         // Set by the callers that page or send deltas.
         next_frame_page_token: String::new(),
         delta: false,

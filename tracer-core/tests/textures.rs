@@ -51,30 +51,12 @@ fn bilinear_srgb(w: u32, h: u32, texels: &[[u8; 4]], u: f64, v: f64) -> [f64; 3]
 /// else adds (black base colour, no specular layer, no light, no ambient).
 #[test]
 fn an_emissive_textured_quad_filling_the_view_is_the_texture_resampled_through_the_camera() {
-    let dir = tmpdir("tex-emissive");
     let (tw, th) = (4u32, 3u32);
     let texels = colour_texels(tw, th);
-    write_png(&dir, tw, th, &texels);
-    let model = textured_quad(
-        &dir,
-        1.0,
-        0.0,
-        r#"{"pbrMetallicRoughness":{"baseColorFactor":[0,0,0,1],"metallicFactor":0},
-            "emissiveFactor":[1,1,1],"emissiveTexture":{"index":0},
-            "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
-        r#"{"wrapS":33071,"wrapT":33071}"#,
-    );
     // tan(fov_y / 2) = 0.45 from 2 away: the view is [-0.9, 0.9]^2 at z = 0.
-    let t = 0.45f64;
-    let fov = 2.0 * t.atan().to_degrees();
+    let t = common::EMISSIVE_VIEW_TAN;
     let (w, h) = (31u32, 31u32);
-    let src = format!(
-        "[render]\nwidth = {w}\nheight = {h}\nsamples = 1\n\
-         [camera]\nposition = [0, 0, 2]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = {fov}\n\
-         [[lights]]\nposition = [0, 0, 5]\ndiffuse = [0, 0, 0]\nspecular = [0, 0, 0]\n\
-         [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
-    );
-    let scene = SceneDesc::parse(&src, dir.join("scene.toml")).unwrap();
+    let scene = common::emissive_texture_scene("tex-emissive", (tw, th), &texels, 2.0, w);
     let img = render(&scene);
     let mut worst = 0.0f64;
     for y in 0..h {
@@ -111,7 +93,7 @@ fn a_minified_texture_is_filtered_by_the_pixels_footprint_through_its_mip_levels
     let texels = common::checker_texels();
     let byte = (255.0 * (1.055 * 0.5f64.powf(1.0 / 2.4) - 0.055)).round() as u8;
     let grey = srgb(byte);
-    let t = common::CHECKER_TAN;
+    let t = common::EMISSIVE_VIEW_TAN;
     let size = 32u32;
     for (distance, lods) in [(2.0f64, 0.8..1.25), (6.0, 2.0..3.0)] {
         let scene = common::minified_checker_scene("tex-mips", distance, size);

@@ -186,6 +186,7 @@ fn frame_json(m: &Monitor, id: String, frame: u32) -> Result<Vec<u8>, ApiError> 
             units_total: f.1,
             units_done: f.2,
             progress: v.frames_progress[i],
+            output: f.3.clone(),
             written: f.3.is_some(),
         },
         width: v.settings.width,

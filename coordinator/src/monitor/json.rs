@@ -5,7 +5,9 @@
 use serde::Serialize;
 use tracer_core::film::Rect;
 
-use crate::farm::{FrameTile, JobState, JobView, TileState, UnitFailure, WorkerView};
+pub use crate::status_json::{FrameJson, JobJson};
+
+use crate::farm::{FrameTile, JobView, TileState, UnitFailure, WorkerView};
 
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct RectJson {
@@ -26,97 +28,6 @@ impl From<Rect> for RectJson {
     }
 }
 
-#[derive(Clone, Debug, Serialize, PartialEq)]
-pub struct FrameJson {
-    pub frame: u32,
-    pub units_total: u64,
-    pub units_done: u64,
-    /// Share of the frame done, 0 to 1 (sample-weighted, as the job's).
-    pub progress: f64,
-    /// The frame's image is written (viewable full size and downloadable).
-    pub written: bool,
-}
-
-#[derive(Clone, Debug, Serialize, PartialEq)]
-pub struct SettingsJson {
-    pub scene: String,
-    pub width: u32,
-    pub height: u32,
-    pub samples: u32,
-    /// "whitted" or "path".
-    pub integrator: String,
-    pub max_depth: u32,
-    pub sampler: String,
-    pub first_frame: u32,
-    pub last_frame: u32,
-    pub tile_size: u32,
-    pub samples_per_unit: u32,
-    pub max_attempts: u32,
-}
-
-/// An adaptive job's targets and where it stands (`null` for uniform jobs).
-#[derive(Clone, Debug, Serialize, PartialEq)]
-pub struct AdaptiveJson {
-    pub target_error: f64,
-    pub relative_error: f64,
-    pub min_samples: u32,
-    pub max_samples: u32,
-    pub converged_share: f64,
-    pub estimated_error: f64,
-}
-
-#[derive(Clone, Debug, Serialize, PartialEq)]
-pub struct JobJson {
-    pub id: String,
-    pub name: String,
-    /// "waiting", "queued", "running", "done", "failed" or "cancelled".
-    pub state: &'static str,
-    pub priority: i32,
-    /// Share of the job done, 0 to 1: its pixel-samples merged over those
-    /// it will trace, the figure `tessera status` and `watch` show.
-    pub progress: f64,
-    pub units_total: u64,
-    pub units_done: u64,
-    pub samples_total: u64,
-    pub samples_done: u64,
-    pub rays_per_second: f64,
-    /// Seconds left; null while unknown (no rate measured yet).
-    pub eta_seconds: Option<f64>,
-    pub submitted_unix_ms: i64,
-    /// null until the job ends.
-    pub finished_unix_ms: Option<i64>,
-    pub first_result_unix_ms: Option<i64>,
-    pub error: String,
-    pub results_rejected: u64,
-    pub results_late: u64,
-    pub results_duplicate: u64,
-    pub settings: SettingsJson,
-    pub adaptive: Option<AdaptiveJson>,
-    /// One page of the job's frames (see [`JobJson::paged`]).
-    pub frames: Vec<FrameJson>,
-    /// How many frames the job has.
-    pub frames_total: u32,
-    /// The first frame of the next page (`?frames_from=` of
-    /// `/api/jobs/{id}`); null when `frames` runs to the job's last frame.
-    pub frames_next: Option<u32>,
-    /// Workers kept from this job for now (docs/operations.md).
-    pub blocklisted: Vec<BlockedJson>,
-    /// Labels a worker needs to lease its units (`submit --require`).
-    pub requirements: Vec<String>,
-    /// Non-empty while no connected worker meets the requirements: why.
-    pub unrunnable: String,
-    /// The jobs it runs after (`submit --after`).
-    pub after: Vec<String>,
-    /// While "waiting": those of them not done yet.
-    pub waiting_for: Vec<String>,
-    /// Its blocklist settings: failed units before a worker is kept from
-    /// it (0: never), seconds until forgiven.
-    pub blocklist_after: u32,
-    pub blocklist_seconds: f64,
-    /// Units' failures reported by workers, by class.
-    pub failure_classes: std::collections::BTreeMap<&'static str, u64>,
-}
-
 /// Most frames a job shows in `/api/jobs` and the events' `farm`
 /// snapshot, and by default in `/api/jobs/{id}`: a job's JSON no longer
 /// grows with its frame count (a 100k-frame job was 6.3 MB), as GetJob's
@@ -125,133 +36,12 @@ pub const FRAMES_PAGE: usize = 1000;
 /// The largest page `?frames_max=` may ask for.
 pub const FRAMES_PAGE_MAX: usize = 10_000;
 
-impl JobJson {
-    /// The job with only its frames numbered `from` on, at most `max` of
-    /// them, and where the next page starts.
-    pub fn paged(&self, from: u32, max: usize) -> JobJson {
-        let start = self.frames.partition_point(|f| f.frame < from);
-        let end = start.saturating_add(max).min(self.frames.len());
-        // Every field but the frames copied (they are what is paged).
-        JobJson {
-            frames: self.frames[start..end].to_vec(),
-            frames_next: self.frames.get(end).map(|f| f.frame),
-            id: self.id.clone(),
-            name: self.name.clone(),
-            error: self.error.clone(),
-            settings: self.settings.clone(),
-            adaptive: self.adaptive.clone(),
-            blocklisted: self.blocklisted.clone(),
-            requirements: self.requirements.clone(),
-            unrunnable: self.unrunnable.clone(),
-            after: self.after.clone(),
-            waiting_for: self.waiting_for.clone(),
-            failure_classes: self.failure_classes.clone(),
-            ..*self
-        }
-    }
-}
-
-/// A worker on a job's blocklist.
-#[derive(Clone, Debug, Serialize, PartialEq)]
-pub struct BlockedJson {
-    pub worker_id: String,
-    pub name: String,
-    pub failures: u32,
-    pub until_unix_ms: i64,
-}
-
-pub fn state_name(s: JobState) -> &'static str {
-    match s {
-        JobState::Waiting => "waiting",
-        JobState::Queued => "queued",
-        JobState::Running => "running",
-        JobState::Done => "done",
-        JobState::Failed => "failed",
-        JobState::Cancelled => "cancelled",
-    }
-}
-
-fn nonzero(ms: i64) -> Option<i64> {
-    (ms != 0).then_some(ms)
-}
-
+/// A job as the monitor serves it: the one job JSON of the CLI and the
+/// notifications (`status_json::JobJson`), from the farm's view through
+/// the wire's status (`service::job_status`), converted at this edge only.
 impl From<&JobView> for JobJson {
     fn from(v: &JobView) -> Self {
-        let r = &v.record;
-        JobJson {
-            id: r.id.clone(),
-            name: r.name.clone(),
-            state: state_name(v.state),
-            priority: r.priority,
-            progress: v.progress,
-            units_total: v.units_total,
-            units_done: v.units_done,
-            samples_total: v.samples_total,
-            samples_done: v.samples_done,
-            rays_per_second: v.rays_per_second,
-            eta_seconds: (v.eta_seconds >= 0.0 && v.eta_seconds.is_finite())
-                .then_some(v.eta_seconds),
-            submitted_unix_ms: r.submitted_unix_ms,
-            finished_unix_ms: nonzero(r.finished_unix_ms),
-            first_result_unix_ms: nonzero(v.first_result_unix_ms),
-            error: r.error.clone(),
-            results_rejected: v.counters.results_rejected,
-            results_late: v.counters.results_late,
-            results_duplicate: v.counters.results_duplicate,
-            settings: SettingsJson {
-                scene: r.scene_name.clone(),
-                width: v.settings.width,
-                height: v.settings.height,
-                samples: v.settings.samples,
-                integrator: v.settings.integrator.name().into(),
-                max_depth: v.settings.max_depth,
-                sampler: v.settings.sampler.name().into(),
-                first_frame: r.first_frame,
-                last_frame: r.last_frame,
-                tile_size: r.tile_size,
-                samples_per_unit: r.samples_per_unit,
-                max_attempts: r.max_attempts,
-            },
-            blocklisted: v
-                .blocklisted
-                .iter()
-                .map(|b| BlockedJson {
-                    worker_id: b.id.clone(),
-                    name: b.name.clone(),
-                    failures: b.failures,
-                    until_unix_ms: b.until_unix_ms,
-                })
-                .collect(),
-            requirements: r.requirements.iter().map(ToString::to_string).collect(),
-            unrunnable: v.unrunnable.clone(),
-            after: r.after.clone(),
-            waiting_for: v.waiting_for.clone(),
-            blocklist_after: r.blocklist_after.unwrap_or(0),
-            blocklist_seconds: r.blocklist_seconds.unwrap_or(0.0),
-            failure_classes: v.failures.clone(),
-            adaptive: v.adaptive.settings.map(|a| AdaptiveJson {
-                target_error: a.target_error,
-                relative_error: a.relative_error,
-                min_samples: a.min_samples,
-                max_samples: a.max_samples,
-                converged_share: v.adaptive.converged_share,
-                estimated_error: v.adaptive.estimated_error,
-            }),
-            frames: v
-                .frames
-                .iter()
-                .zip(&v.frames_progress)
-                .map(|((frame, total, done, out), progress)| FrameJson {
-                    frame: *frame,
-                    units_total: *total,
-                    units_done: *done,
-                    progress: *progress,
-                    written: out.is_some(),
-                })
-                .collect(),
-            frames_total: v.frames.len() as u32,
-            frames_next: None,
-        }
+        JobJson::from(&crate::service::job_status(v))
     }
 }
 

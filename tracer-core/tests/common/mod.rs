@@ -512,8 +512,8 @@ pub fn cutout_quad(dir: &std::path::Path) -> (String, [u8; 16]) {
 
 /// Texels of the minified-checker scene's texture (a side).
 pub const CHECKER_SIDE: u32 = 64;
-/// tan(fov_y / 2) of its camera.
-pub const CHECKER_TAN: f64 = 0.45;
+/// tan(fov_y / 2) of [`emissive_texture_scene`]'s camera.
+pub const EMISSIVE_VIEW_TAN: f64 = 0.45;
 
 /// A `CHECKER_SIDE`-texel square checkerboard of black and white texels,
 /// black at (0, 0).
@@ -527,16 +527,20 @@ pub fn checker_texels() -> Vec<[u8; 4]> {
         .collect()
 }
 
-/// The emissive quad [-1, 1]^2 at z = 0 under a `CHECKER_SIDE`-texel
-/// checkerboard of black and white texels (sRGB, clamped), seen head on
-/// from `distance` on +z at `size` x `size` pixels, one sample each
-/// (tan(fov_y / 2) = `CHECKER_TAN`): nothing but the emission adds. Its
-/// texture is minified (a pixel covers about 1.8 texels per unit of
-/// distance / 2), so every pixel reads mip levels.
-pub fn minified_checker_scene(tag: &str, distance: f64, size: u32) -> SceneDesc {
+/// The emissive quad [-1, 1]^2 at z = 0 under the `w` x `h` texture
+/// `texels` (sRGB, clamped), seen head on from `distance` on +z at `size`
+/// x `size` pixels, one sample each through its centre (tan(fov_y / 2) =
+/// `EMISSIVE_VIEW_TAN`): nothing but the emission adds (black base colour, no
+/// specular layer, a black light, no ambient).
+pub fn emissive_texture_scene(
+    tag: &str,
+    (w, h): (u32, u32),
+    texels: &[[u8; 4]],
+    distance: f64,
+    size: u32,
+) -> SceneDesc {
     let dir = meshgen::tmpdir(tag);
-    let n = CHECKER_SIDE;
-    meshgen::write_png(&dir, n, n, &checker_texels());
+    meshgen::write_png(&dir, w, h, texels);
     let model = meshgen::textured_quad(
         &dir,
         1.0,
@@ -546,7 +550,7 @@ pub fn minified_checker_scene(tag: &str, distance: f64, size: u32) -> SceneDesc 
             "extensions":{"KHR_materials_specular":{"specularFactor":0}}}"#,
         r#"{"wrapS":33071,"wrapT":33071}"#,
     );
-    let fov = 2.0 * CHECKER_TAN.atan().to_degrees();
+    let fov = 2.0 * EMISSIVE_VIEW_TAN.atan().to_degrees();
     let src = format!(
         "[render]\nwidth = {size}\nheight = {size}\nsamples = 1\n\
          [camera]\nposition = [0, 0, {distance}]\nlook_at = [0, 0, 0]\nup = [0, 1, 0]\nfov_y = {fov}\n\
@@ -554,4 +558,13 @@ pub fn minified_checker_scene(tag: &str, distance: f64, size: u32) -> SceneDesc 
          [[objects]]\ntype = \"mesh\"\npath = \"{model}\"\n"
     );
     SceneDesc::parse(&src, dir.join("scene.toml")).unwrap()
+}
+
+/// [`emissive_texture_scene`] under a `CHECKER_SIDE`-texel checkerboard
+/// ([`checker_texels`]), whose texture is minified (a pixel covers about
+/// 1.8 texels per unit of distance / 2 at 32 pixels), so every pixel
+/// reads mip levels.
+pub fn minified_checker_scene(tag: &str, distance: f64, size: u32) -> SceneDesc {
+    let n = CHECKER_SIDE;
+    emissive_texture_scene(tag, (n, n), &checker_texels(), distance, size)
 }
