@@ -521,7 +521,11 @@ pub fn checker_texels() -> Vec<[u8; 4]> {
     let n = CHECKER_SIDE;
     (0..n * n)
         .map(|i| {
-            let c = if (i % n + i / n).is_multiple_of(2) { 0 } else { 255 };
+            let c = if (i % n + i / n).is_multiple_of(2) {
+                0
+            } else {
+                255
+            };
             [c, c, c, 255]
         })
         .collect()
