@@ -536,9 +536,9 @@ mod tests {
                 / 6.0
         };
         let got = levels[0].texels[0];
-        for k in 0..3 {
+        for (k, &channel) in got.iter().take(3).enumerate() {
             assert_eq!(
-                got[k],
+                channel,
                 (linear_to_srgb(mean(k, true)) * 255.0).round() as u8,
                 "channel {k}"
             );
