@@ -170,6 +170,19 @@ impl<R: Real> World<R> {
         images
     }
 
+    /// Makes the mip levels of every texture its model materials read
+    /// (`Image::levels`, made once an image), textures and rows in
+    /// parallel: a renderer calls it before tracing, in its own threads,
+    /// so that no thread waits while another makes them at its first hit.
+    pub fn make_texture_levels(&self) {
+        use rayon::prelude::*;
+        let textures: Vec<&crate::texture::TextureRef> =
+            self.pbr.iter().flat_map(|p| p.textures()).collect();
+        textures.par_iter().for_each(|t| {
+            t.image.levels(t.srgb);
+        });
+    }
+
     pub fn stats(&self) -> WorldStats {
         let mesh_triangles: usize = self
             .instances

@@ -110,6 +110,7 @@ impl CpuRenderer {
         progress: &(dyn Fn(u64) + Sync),
         cancel: &AtomicBool,
     ) -> Option<Film> {
+        self.pool.install(|| world.make_texture_levels());
         let tiles = rect.tiles(TILE);
         let films: Vec<Option<Film>> = self.pool.install(|| {
             tiles
