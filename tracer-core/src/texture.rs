@@ -112,13 +112,16 @@ impl Image {
     }
 }
 
-/// [`Image::levels`], made: each level's rows in parallel, decoding by
-/// table and encoding sRGB by a search of the bytes' midpoints (what
+/// [`Image::levels`], made on the calling thread, decoding by table and encoding sRGB by a search of the bytes' midpoints (what
 /// rounding [`linear_to_srgb`] to a byte gives, without a power a texel:
 /// DamagedHelmet's five 2048-texel maps took 0.5 s with one), data bytes
-/// averaged as integers.
+/// averaged as integers. Never in parallel: a rayon task waiting inside
+/// the `OnceLock`'s initialiser may steal another task that asks for the
+/// same image's levels, a re-entrant initialisation that deadlocks (a
+/// CPU render of Sibenik hung so, once in 16 runs, when the rows were
+/// made in parallel); `World::make_texture_levels` makes the images'
+/// chains in parallel instead, each once.
 fn mip_chain(img: &Image, srgb: bool) -> Vec<Level> {
-    use rayon::prelude::*;
     // The mean of texels: sRGB channels' decoded values summed in f64 and
     // encoded by the midpoints; data channels' bytes summed as integers,
     // rounded half up (the f64 rounding of their mean).
@@ -150,7 +153,7 @@ fn mip_chain(img: &Image, srgb: bool) -> Vec<Level> {
         let (nw, nh) = ((w / 2).max(1), (h / 2).max(1));
         let above = out.last().map_or(&img.texels[..], |l| &l.texels[..]);
         let mut texels = vec![[0u8; 4]; nw * nh];
-        texels.par_chunks_mut(nw).enumerate().for_each(|(y, row)| {
+        texels.chunks_mut(nw).enumerate().for_each(|(y, row)| {
             let rows = y * h / nh..(y + 1) * h / nh;
             for (x, texel) in row.iter_mut().enumerate() {
                 let cols = x * w / nw..(x + 1) * w / nw;

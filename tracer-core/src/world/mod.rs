@@ -171,15 +171,24 @@ impl<R: Real> World<R> {
     }
 
     /// Makes the mip levels of every texture its model materials read
-    /// (`Image::levels`, made once an image), textures and rows in
+    /// (`Image::levels`, made once an image and decoding), the images in
     /// parallel: a renderer calls it before tracing, in its own threads,
     /// so that no thread waits while another makes them at its first hit.
     pub fn make_texture_levels(&self) {
         use rayon::prelude::*;
-        let textures: Vec<&crate::texture::TextureRef> =
-            self.pbr.iter().flat_map(|p| p.textures()).collect();
-        textures.par_iter().for_each(|t| {
-            t.image.levels(t.srgb);
+        // Each image and decoding once: two tasks on one chain would wait
+        // on each other's `OnceLock` instead of working.
+        let mut chains: Vec<(&std::sync::Arc<crate::texture::Image>, bool)> = Vec::new();
+        for t in self.pbr.iter().flat_map(|p| p.textures()) {
+            if !chains
+                .iter()
+                .any(|(i, srgb)| std::sync::Arc::ptr_eq(i, &t.image) && *srgb == t.srgb)
+            {
+                chains.push((&t.image, t.srgb));
+            }
+        }
+        chains.par_iter().for_each(|(image, srgb)| {
+            image.levels(*srgb);
         });
     }
 
