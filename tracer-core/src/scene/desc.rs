@@ -833,25 +833,9 @@ impl SceneDesc {
                 message,
             }
         })?;
-        // Points at the offending key's line when it is written inside the
-        // span (`radius = -1`), else at the start of the span (its table).
-        let invalid = |span: std::ops::Range<usize>, field: String, message: String| {
-            let key = field.rsplit('.').next().unwrap_or("");
-            let offset = key_offset(src, span.clone(), key).unwrap_or(span.start);
-            SceneError::Invalid {
-                path: path.clone(),
-                location: Location::of_offset(src, offset),
-                field,
-                message,
-            }
-        };
-        // Spans of the top-level tables, for errors about values in them.
-        let table_span = |name: &str| -> std::ops::Range<usize> {
-            let header = format!("[{name}]");
-            src.find(&header)
-                .map(|i| i..i + header.len())
-                .unwrap_or(0..0)
-        };
+        let sp = Spans { src, path: &path };
+        let invalid = |span, field, message| sp.invalid(span, field, message);
+        let table_span = |name: &str| sp.table(name);
 
         let mut render = RenderSettings::default();
         let mut adaptive = super::adaptive::AdaptiveSpec::default();
@@ -895,320 +879,16 @@ impl SceneDesc {
             check_camera(cam).map_err(|(f, m)| cam_err(&f, m))?;
         }
 
-        let world_span = table_span("world");
-        check_colour(&file.world.ambient)
-            .map_err(|m| invalid(world_span.clone(), "world.ambient".into(), m))?;
-        check_colour(&file.world.background)
-            .map_err(|m| invalid(world_span.clone(), "world.background".into(), m))?;
-        let mut world = file.world.clone();
-        match &world.environment {
-            EnvironmentDesc::Colour(c) => {
-                check_colour(c)
-                    .map_err(|m| invalid(world_span.clone(), "world.environment".into(), m))?;
-                for (key, given) in [
-                    ("environment_scale", world.environment_scale.is_some()),
-                    ("environment_rotation", world.environment_rotation.is_some()),
-                ] {
-                    if given {
-                        return Err(invalid(
-                            world_span.clone(),
-                            format!("world.{key}"),
-                            "applies to an environment image only (environment = \"sky.exr\")"
-                                .into(),
-                        ));
-                    }
-                }
-            }
-            EnvironmentDesc::File(f) => {
-                let scale = world.environment_scale.map_or(1.0, |n| n.0);
-                if !(scale.is_finite() && (0.0..=MAX_VALUE).contains(&scale)) {
-                    return Err(invalid(
-                        world_span.clone(),
-                        "world.environment_scale".into(),
-                        format!("must be a finite number >= 0 and at most 1e6, got {scale}"),
-                    ));
-                }
-                let rotation = world.environment_rotation.map_or(0.0, |n| n.0);
-                if !(rotation.is_finite() && rotation.abs() <= 360.0) {
-                    return Err(invalid(
-                        world_span.clone(),
-                        "world.environment_rotation".into(),
-                        format!("must be degrees in [-360, 360], got {rotation}"),
-                    ));
-                }
-                world.environment_map = Some(std::sync::Arc::new(
-                    load_environment(files, f, scale, rotation)
-                        .map_err(|m| invalid(world_span.clone(), "world.environment".into(), m))?,
-                ));
-            }
-        }
+        let mut world = world_of(&file.world, files, &sp)?;
 
-        let mut materials = Vec::with_capacity(file.materials.len());
-        for (name, m) in &file.materials {
-            let field = |f: &str| format!("materials.{name}.{f}");
-            let err = |f: &str, msg: String| invalid(m.span(), field(f), msg);
-            let mv = m.get_ref();
-            for (f, c) in [
-                ("ambient", &mv.ambient),
-                ("diffuse", &mv.diffuse),
-                ("specular", &mv.specular),
-            ] {
-                check_colour(c).map_err(|msg| err(f, msg))?;
-            }
-            for (f, v) in [
-                ("shininess", mv.shininess),
-                ("reflectivity", mv.reflectivity),
-                ("transparency", mv.transparency),
-            ] {
-                check_weight(v.0).map_err(|m| err(f, m))?;
-            }
-            for (f, v) in [("gloss", mv.gloss), ("translucency", mv.translucency)] {
-                if !(v.0 >= 0.0 && v.0 < 90.0) {
-                    return Err(err(
-                        f,
-                        format!("must be a half-angle in degrees in [0, 90), got {}", v.0),
-                    ));
-                }
-            }
-            if !(mv.ior.0.is_finite() && mv.ior.0 > 0.0) {
-                return Err(err(
-                    "ior",
-                    format!("must be a finite number > 0, got {}", mv.ior.0),
-                ));
-            }
-            materials.push((name.clone(), mv.clone()));
-        }
-        let mut bsdfs = vec![None; materials.len()];
-        for (name, b) in &file.bsdf {
-            let err = |f: &str, msg: String| invalid(b.span(), format!("bsdf.{name}.{f}"), msg);
-            let Some(i) = materials.iter().position(|(n, _)| n == name) else {
-                return Err(invalid(
-                    b.span(),
-                    format!("bsdf.{name}"),
-                    format!("names no material: [materials.{name}] is missing"),
-                ));
-            };
-            let bv = b.get_ref();
-            for (f, c) in [
-                ("base_colour", &bv.base_colour),
-                ("specular_colour", &bv.specular_colour),
-                ("emission", &bv.emission),
-            ] {
-                check_colour(c).map_err(|m| err(f, m))?;
-            }
-            for (f, v) in [
-                ("metallic", bv.metallic),
-                ("roughness", bv.roughness),
-                ("transmission", bv.transmission),
-                ("specular", bv.specular),
-            ] {
-                if !(0.0..=1.0).contains(&v.0) {
-                    return Err(err(f, format!("must be in [0, 1], got {}", v.0)));
-                }
-            }
-            if bv.base_colour.0.iter().any(|&c| c > 1.0) {
-                return Err(err(
-                    "base_colour",
-                    format!(
-                        "must be in [0, 1] (a reflectance), got {:?}",
-                        bv.base_colour.0
-                    ),
-                ));
-            }
-            if bv
-                .attenuation_colour
-                .0
-                .iter()
-                .any(|&c| !(c > 0.0 && c <= 1.0))
-            {
-                return Err(err(
-                    "attenuation_colour",
-                    format!(
-                        "must be in (0, 1] (the share of light kept over attenuation_distance), got {:?}",
-                        bv.attenuation_colour.0
-                    ),
-                ));
-            }
-            if let Some(d) = bv.attenuation_distance
-                && !(d.0.is_finite() && d.0 > 0.0)
-            {
-                return Err(err(
-                    "attenuation_distance",
-                    format!("must be a finite distance above 0, got {}", d.0),
-                ));
-            }
-            if !(bv.ior.0.is_finite() && bv.ior.0 >= 1.0 && bv.ior.0 <= 10.0) {
-                return Err(err(
-                    "ior",
-                    format!("must be a finite number in [1, 10], got {}", bv.ior.0),
-                ));
-            }
-            bsdfs[i] = Some(bv.clone());
-        }
+        let materials = materials_of(&file.materials, &sp)?;
+        let bsdfs = bsdfs_of(&file.bsdf, &materials, &sp)?;
 
         // What the scene renders with a default for, said to the user.
         let mut warnings = Vec::new();
         let mut lights = Vec::with_capacity(file.lights.len());
         for (i, l) in file.lights.iter().enumerate() {
-            let lv = l.get_ref();
-            let err = |f: &str, m: String| invalid(l.span(), format!("lights[{i}].{f}"), m);
-            let kind = match lv.kind {
-                LightType::Point => "point",
-                LightType::Quad => "quad",
-                LightType::Sphere => "sphere",
-                LightType::Spot => "spot",
-                LightType::Directional => "directional",
-            };
-            let point = |f: &str, v: Option<Vec3>| -> Result<Vec3, SceneError> {
-                let v = v.ok_or_else(|| err(f, format!("missing (a {kind} light needs it)")))?;
-                if v.is_finite() && v.0.iter().all(|x| x.abs() <= 1e15) {
-                    Ok(v)
-                } else {
-                    Err(err(f, format!("must be finite, got {:?}", v.0)))
-                }
-            };
-            // A spot's axis, a directional light's way: unit, from `direction`.
-            let unit_direction = || -> Result<Vec3, SceneError> {
-                let d = point("direction", lv.direction)?;
-                let len = d.length();
-                if !(len > 0.0) {
-                    return Err(err("direction", "must not be zero".into()));
-                }
-                Ok(Vec3(d.0.map(|x| x / len)))
-            };
-            // Fields of the other light types are mistakes, said as such.
-            let allowed: &[&str] = match lv.kind {
-                LightType::Point => &["position"],
-                LightType::Quad => &["corner", "edge_u", "edge_v", "samples"],
-                LightType::Sphere => &["center", "radius", "samples"],
-                LightType::Spot => &["position", "direction", "cone_angle", "inner_cone_angle"],
-                LightType::Directional => &["direction"],
-            };
-            for (f, present) in [
-                ("position", lv.position.is_some()),
-                ("corner", lv.corner.is_some()),
-                ("edge_u", lv.edge_u.is_some()),
-                ("edge_v", lv.edge_v.is_some()),
-                ("center", lv.center.is_some()),
-                ("radius", lv.radius.is_some()),
-                ("samples", lv.samples.is_some()),
-                ("direction", lv.direction.is_some()),
-                ("cone_angle", lv.cone_angle.is_some()),
-                ("inner_cone_angle", lv.inner_cone_angle.is_some()),
-            ] {
-                if present && !allowed.contains(&f) {
-                    return Err(err(
-                        f,
-                        format!(
-                            "not a field of a {kind} light (type = \"{kind}\" takes {})",
-                            allowed.join(", ")
-                        ),
-                    ));
-                }
-            }
-            let mut path_kind = None;
-            let (shape, position) = match lv.kind {
-                LightType::Point => (LightShape::Point, point("position", lv.position)?),
-                LightType::Spot => {
-                    let direction = unit_direction()?;
-                    // glTF's defaults: outer pi/4, inner 0.
-                    let outer = lv.cone_angle.map_or(45.0, |a| a.0);
-                    let inner = lv.inner_cone_angle.map_or(0.0, |a| a.0);
-                    if !(outer > 0.0 && outer <= 90.0) {
-                        return Err(err(
-                            "cone_angle",
-                            format!("must be in (0, 90] degrees, got {outer}"),
-                        ));
-                    }
-                    if !(inner >= 0.0 && inner < outer) {
-                        return Err(err(
-                            "inner_cone_angle",
-                            format!("must be in [0, cone_angle = {outer}) degrees, got {inner}"),
-                        ));
-                    }
-                    path_kind = Some(PathLightKind::Spot {
-                        direction,
-                        cos_inner: inner.to_radians().cos(),
-                        cos_outer: outer.to_radians().cos(),
-                    });
-                    warnings.push(format!(
-                        "lights[{i}]: a spot light renders as a point light under Whitted, shining every way (its cone is the path integrator's only)"
-                    ));
-                    (LightShape::Point, point("position", lv.position)?)
-                }
-                LightType::Directional => {
-                    let direction = unit_direction()?;
-                    // The world gives it the scene's radius (its power).
-                    path_kind = Some(PathLightKind::Directional {
-                        direction,
-                        irradiance: lv.diffuse,
-                        radius: 0.0,
-                    });
-                    (
-                        LightShape::Point,
-                        Vec3(direction.0.map(|x| -x * DIRECTIONAL_STAND_IN)),
-                    )
-                }
-                LightType::Quad => {
-                    let corner = point("corner", lv.corner)?;
-                    let edge_u = point("edge_u", lv.edge_u)?;
-                    let edge_v = point("edge_v", lv.edge_v)?;
-                    let area = edge_u.cross(&edge_v).length();
-                    if !(area > 1e-12 * edge_u.length() * edge_v.length()) || area == 0.0 {
-                        return Err(err(
-                            "edge_v",
-                            format!(
-                                "edge_u {:?} and edge_v {:?} must span a parallelogram (non-zero, not parallel)",
-                                edge_u.0, edge_v.0
-                            ),
-                        ));
-                    }
-                    let centre = Vec3(std::array::from_fn(|k| {
-                        corner.0[k] + 0.5 * edge_u.0[k] + 0.5 * edge_v.0[k]
-                    }));
-                    (
-                        LightShape::Quad {
-                            corner,
-                            edge_u,
-                            edge_v,
-                        },
-                        centre,
-                    )
-                }
-                LightType::Sphere => {
-                    let center = point("center", lv.center)?;
-                    let radius = lv
-                        .radius
-                        .ok_or_else(|| err("radius", "missing (a sphere light needs it)".into()))?
-                        .0;
-                    if !(radius.is_finite() && radius > 0.0 && radius <= 1e15) {
-                        return Err(err(
-                            "radius",
-                            format!("must be a finite number > 0, got {radius}"),
-                        ));
-                    }
-                    (LightShape::Sphere { center, radius }, center)
-                }
-            };
-            let samples = lv.samples.unwrap_or(1);
-            if !(1..=MAX_LIGHT_SAMPLES).contains(&samples) {
-                return Err(err(
-                    "samples",
-                    format!("must be in 1..={MAX_LIGHT_SAMPLES}, got {samples}"),
-                ));
-            }
-            for (f, c) in [("diffuse", &lv.diffuse), ("specular", &lv.specular)] {
-                check_colour(c).map_err(|m| err(f, m))?;
-            }
-            lights.push(LightDesc {
-                shape,
-                position,
-                diffuse: lv.diffuse,
-                specular: lv.specular,
-                samples,
-                path_radiance: None,
-                path_kind,
-            });
+            lights.push(light_of(i, l, &sp, &mut warnings)?);
         }
 
         // The camera and lights mesh objects give (`camera`, `lights`).
@@ -1490,6 +1170,388 @@ fn check_camera(cam: &CameraDesc) -> Result<(), (String, String)> {
         ));
     }
     Ok(())
+}
+
+/// A scene file's text and name, for errors that point at a place in it.
+struct Spans<'a> {
+    src: &'a str,
+    path: &'a Path,
+}
+
+impl Spans<'_> {
+    /// An invalid value: points at the offending key's line when it is
+    /// written inside `span` (`radius = -1`), else at the start of the span
+    /// (its table).
+    fn invalid(&self, span: std::ops::Range<usize>, field: String, message: String) -> SceneError {
+        let key = field.rsplit('.').next().unwrap_or("");
+        let offset = key_offset(self.src, span.clone(), key).unwrap_or(span.start);
+        SceneError::Invalid {
+            path: self.path.to_path_buf(),
+            location: Location::of_offset(self.src, offset),
+            field,
+            message,
+        }
+    }
+
+    /// The span of top-level table `name`'s header, for errors about
+    /// values in it (0..0 where the file has none).
+    fn table(&self, name: &str) -> std::ops::Range<usize> {
+        let header = format!("[{name}]");
+        self.src
+            .find(&header)
+            .map(|i| i..i + header.len())
+            .unwrap_or(0..0)
+    }
+}
+
+/// `[world]` checked, its environment image loaded from `files`.
+fn world_of(
+    desc: &WorldDesc,
+    files: &dyn AssetSource,
+    sp: &Spans,
+) -> Result<WorldDesc, SceneError> {
+    let invalid = |span, field, message| sp.invalid(span, field, message);
+    let world_span = sp.table("world");
+    check_colour(&desc.ambient)
+        .map_err(|m| invalid(world_span.clone(), "world.ambient".into(), m))?;
+    check_colour(&desc.background)
+        .map_err(|m| invalid(world_span.clone(), "world.background".into(), m))?;
+    let mut world = desc.clone();
+    match &world.environment {
+        EnvironmentDesc::Colour(c) => {
+            check_colour(c)
+                .map_err(|m| invalid(world_span.clone(), "world.environment".into(), m))?;
+            for (key, given) in [
+                ("environment_scale", world.environment_scale.is_some()),
+                ("environment_rotation", world.environment_rotation.is_some()),
+            ] {
+                if given {
+                    return Err(invalid(
+                        world_span.clone(),
+                        format!("world.{key}"),
+                        "applies to an environment image only (environment = \"sky.exr\")".into(),
+                    ));
+                }
+            }
+        }
+        EnvironmentDesc::File(f) => {
+            let scale = world.environment_scale.map_or(1.0, |n| n.0);
+            if !(scale.is_finite() && (0.0..=MAX_VALUE).contains(&scale)) {
+                return Err(invalid(
+                    world_span.clone(),
+                    "world.environment_scale".into(),
+                    format!("must be a finite number >= 0 and at most 1e6, got {scale}"),
+                ));
+            }
+            let rotation = world.environment_rotation.map_or(0.0, |n| n.0);
+            if !(rotation.is_finite() && rotation.abs() <= 360.0) {
+                return Err(invalid(
+                    world_span.clone(),
+                    "world.environment_rotation".into(),
+                    format!("must be degrees in [-360, 360], got {rotation}"),
+                ));
+            }
+            world.environment_map = Some(std::sync::Arc::new(
+                load_environment(files, f, scale, rotation)
+                    .map_err(|m| invalid(world_span.clone(), "world.environment".into(), m))?,
+            ));
+        }
+    }
+
+    Ok(world)
+}
+
+/// `[materials.NAME]` checked, in name order.
+fn materials_of(
+    file: &BTreeMap<String, Spanned<MaterialDesc>>,
+    sp: &Spans,
+) -> Result<Vec<(String, MaterialDesc)>, SceneError> {
+    let invalid = |span, field, message| sp.invalid(span, field, message);
+    let mut materials = Vec::with_capacity(file.len());
+    for (name, m) in file {
+        let field = |f: &str| format!("materials.{name}.{f}");
+        let err = |f: &str, msg: String| invalid(m.span(), field(f), msg);
+        let mv = m.get_ref();
+        for (f, c) in [
+            ("ambient", &mv.ambient),
+            ("diffuse", &mv.diffuse),
+            ("specular", &mv.specular),
+        ] {
+            check_colour(c).map_err(|msg| err(f, msg))?;
+        }
+        for (f, v) in [
+            ("shininess", mv.shininess),
+            ("reflectivity", mv.reflectivity),
+            ("transparency", mv.transparency),
+        ] {
+            check_weight(v.0).map_err(|m| err(f, m))?;
+        }
+        for (f, v) in [("gloss", mv.gloss), ("translucency", mv.translucency)] {
+            if !(v.0 >= 0.0 && v.0 < 90.0) {
+                return Err(err(
+                    f,
+                    format!("must be a half-angle in degrees in [0, 90), got {}", v.0),
+                ));
+            }
+        }
+        if !(mv.ior.0.is_finite() && mv.ior.0 > 0.0) {
+            return Err(err(
+                "ior",
+                format!("must be a finite number > 0, got {}", mv.ior.0),
+            ));
+        }
+        materials.push((name.clone(), mv.clone()));
+    }
+    Ok(materials)
+}
+
+/// `[bsdf.NAME]` checked, each at its material's index (`None`: mapped
+/// from the Blinn-Phong material).
+fn bsdfs_of(
+    file: &BTreeMap<String, Spanned<BsdfDesc>>,
+    materials: &[(String, MaterialDesc)],
+    sp: &Spans,
+) -> Result<Vec<Option<BsdfDesc>>, SceneError> {
+    let invalid = |span, field, message| sp.invalid(span, field, message);
+    let mut bsdfs = vec![None; materials.len()];
+    for (name, b) in file {
+        let err = |f: &str, msg: String| invalid(b.span(), format!("bsdf.{name}.{f}"), msg);
+        let Some(i) = materials.iter().position(|(n, _)| n == name) else {
+            return Err(invalid(
+                b.span(),
+                format!("bsdf.{name}"),
+                format!("names no material: [materials.{name}] is missing"),
+            ));
+        };
+        let bv = b.get_ref();
+        for (f, c) in [
+            ("base_colour", &bv.base_colour),
+            ("specular_colour", &bv.specular_colour),
+            ("emission", &bv.emission),
+        ] {
+            check_colour(c).map_err(|m| err(f, m))?;
+        }
+        for (f, v) in [
+            ("metallic", bv.metallic),
+            ("roughness", bv.roughness),
+            ("transmission", bv.transmission),
+            ("specular", bv.specular),
+        ] {
+            if !(0.0..=1.0).contains(&v.0) {
+                return Err(err(f, format!("must be in [0, 1], got {}", v.0)));
+            }
+        }
+        if bv.base_colour.0.iter().any(|&c| c > 1.0) {
+            return Err(err(
+                "base_colour",
+                format!(
+                    "must be in [0, 1] (a reflectance), got {:?}",
+                    bv.base_colour.0
+                ),
+            ));
+        }
+        if bv
+            .attenuation_colour
+            .0
+            .iter()
+            .any(|&c| !(c > 0.0 && c <= 1.0))
+        {
+            return Err(err(
+                "attenuation_colour",
+                format!(
+                    "must be in (0, 1] (the share of light kept over attenuation_distance), got {:?}",
+                    bv.attenuation_colour.0
+                ),
+            ));
+        }
+        if let Some(d) = bv.attenuation_distance
+            && !(d.0.is_finite() && d.0 > 0.0)
+        {
+            return Err(err(
+                "attenuation_distance",
+                format!("must be a finite distance above 0, got {}", d.0),
+            ));
+        }
+        if !(bv.ior.0.is_finite() && bv.ior.0 >= 1.0 && bv.ior.0 <= 10.0) {
+            return Err(err(
+                "ior",
+                format!("must be a finite number in [1, 10], got {}", bv.ior.0),
+            ));
+        }
+        bsdfs[i] = Some(bv.clone());
+    }
+
+    Ok(bsdfs)
+}
+
+/// `[[lights]]` entry `i` checked: its shape and the path integrator's
+/// kind; what renders differently under Whitted goes to `warnings`.
+fn light_of(
+    i: usize,
+    l: &Spanned<LightFile>,
+    sp: &Spans,
+    warnings: &mut Vec<String>,
+) -> Result<LightDesc, SceneError> {
+    let invalid = |span, field, message| sp.invalid(span, field, message);
+    let lv = l.get_ref();
+    let err = |f: &str, m: String| invalid(l.span(), format!("lights[{i}].{f}"), m);
+    let kind = match lv.kind {
+        LightType::Point => "point",
+        LightType::Quad => "quad",
+        LightType::Sphere => "sphere",
+        LightType::Spot => "spot",
+        LightType::Directional => "directional",
+    };
+    let point = |f: &str, v: Option<Vec3>| -> Result<Vec3, SceneError> {
+        let v = v.ok_or_else(|| err(f, format!("missing (a {kind} light needs it)")))?;
+        if v.is_finite() && v.0.iter().all(|x| x.abs() <= 1e15) {
+            Ok(v)
+        } else {
+            Err(err(f, format!("must be finite, got {:?}", v.0)))
+        }
+    };
+    // A spot's axis, a directional light's way: unit, from `direction`.
+    let unit_direction = || -> Result<Vec3, SceneError> {
+        let d = point("direction", lv.direction)?;
+        let len = d.length();
+        if !(len > 0.0) {
+            return Err(err("direction", "must not be zero".into()));
+        }
+        Ok(Vec3(d.0.map(|x| x / len)))
+    };
+    // Fields of the other light types are mistakes, said as such.
+    let allowed: &[&str] = match lv.kind {
+        LightType::Point => &["position"],
+        LightType::Quad => &["corner", "edge_u", "edge_v", "samples"],
+        LightType::Sphere => &["center", "radius", "samples"],
+        LightType::Spot => &["position", "direction", "cone_angle", "inner_cone_angle"],
+        LightType::Directional => &["direction"],
+    };
+    for (f, present) in [
+        ("position", lv.position.is_some()),
+        ("corner", lv.corner.is_some()),
+        ("edge_u", lv.edge_u.is_some()),
+        ("edge_v", lv.edge_v.is_some()),
+        ("center", lv.center.is_some()),
+        ("radius", lv.radius.is_some()),
+        ("samples", lv.samples.is_some()),
+        ("direction", lv.direction.is_some()),
+        ("cone_angle", lv.cone_angle.is_some()),
+        ("inner_cone_angle", lv.inner_cone_angle.is_some()),
+    ] {
+        if present && !allowed.contains(&f) {
+            return Err(err(
+                f,
+                format!(
+                    "not a field of a {kind} light (type = \"{kind}\" takes {})",
+                    allowed.join(", ")
+                ),
+            ));
+        }
+    }
+    let mut path_kind = None;
+    let (shape, position) = match lv.kind {
+        LightType::Point => (LightShape::Point, point("position", lv.position)?),
+        LightType::Spot => {
+            let direction = unit_direction()?;
+            // glTF's defaults: outer pi/4, inner 0.
+            let outer = lv.cone_angle.map_or(45.0, |a| a.0);
+            let inner = lv.inner_cone_angle.map_or(0.0, |a| a.0);
+            if !(outer > 0.0 && outer <= 90.0) {
+                return Err(err(
+                    "cone_angle",
+                    format!("must be in (0, 90] degrees, got {outer}"),
+                ));
+            }
+            if !(inner >= 0.0 && inner < outer) {
+                return Err(err(
+                    "inner_cone_angle",
+                    format!("must be in [0, cone_angle = {outer}) degrees, got {inner}"),
+                ));
+            }
+            path_kind = Some(PathLightKind::Spot {
+                direction,
+                cos_inner: inner.to_radians().cos(),
+                cos_outer: outer.to_radians().cos(),
+            });
+            warnings.push(format!(
+                "lights[{i}]: a spot light renders as a point light under Whitted, shining every way (its cone is the path integrator's only)"
+            ));
+            (LightShape::Point, point("position", lv.position)?)
+        }
+        LightType::Directional => {
+            let direction = unit_direction()?;
+            // The world gives it the scene's radius (its power).
+            path_kind = Some(PathLightKind::Directional {
+                direction,
+                irradiance: lv.diffuse,
+                radius: 0.0,
+            });
+            (
+                LightShape::Point,
+                Vec3(direction.0.map(|x| -x * DIRECTIONAL_STAND_IN)),
+            )
+        }
+        LightType::Quad => {
+            let corner = point("corner", lv.corner)?;
+            let edge_u = point("edge_u", lv.edge_u)?;
+            let edge_v = point("edge_v", lv.edge_v)?;
+            let area = edge_u.cross(&edge_v).length();
+            if !(area > 1e-12 * edge_u.length() * edge_v.length()) || area == 0.0 {
+                return Err(err(
+                    "edge_v",
+                    format!(
+                        "edge_u {:?} and edge_v {:?} must span a parallelogram (non-zero, not parallel)",
+                        edge_u.0, edge_v.0
+                    ),
+                ));
+            }
+            let centre = Vec3(std::array::from_fn(|k| {
+                corner.0[k] + 0.5 * edge_u.0[k] + 0.5 * edge_v.0[k]
+            }));
+            (
+                LightShape::Quad {
+                    corner,
+                    edge_u,
+                    edge_v,
+                },
+                centre,
+            )
+        }
+        LightType::Sphere => {
+            let center = point("center", lv.center)?;
+            let radius = lv
+                .radius
+                .ok_or_else(|| err("radius", "missing (a sphere light needs it)".into()))?
+                .0;
+            if !(radius.is_finite() && radius > 0.0 && radius <= 1e15) {
+                return Err(err(
+                    "radius",
+                    format!("must be a finite number > 0, got {radius}"),
+                ));
+            }
+            (LightShape::Sphere { center, radius }, center)
+        }
+    };
+    let samples = lv.samples.unwrap_or(1);
+    if !(1..=MAX_LIGHT_SAMPLES).contains(&samples) {
+        return Err(err(
+            "samples",
+            format!("must be in 1..={MAX_LIGHT_SAMPLES}, got {samples}"),
+        ));
+    }
+    for (f, c) in [("diffuse", &lv.diffuse), ("specular", &lv.specular)] {
+        check_colour(c).map_err(|m| err(f, m))?;
+    }
+    Ok(LightDesc {
+        shape,
+        position,
+        diffuse: lv.diffuse,
+        specular: lv.specular,
+        samples,
+        path_radiance: None,
+        path_kind,
+    })
 }
 
 /// Byte offset of a line `key = ...` in the table that starts at `span`
