@@ -4,6 +4,7 @@
 
 use std::path::PathBuf;
 use std::process::{Command, Output};
+use tracer_core::film::WorkRegion;
 
 mod support;
 
@@ -153,9 +154,7 @@ fn render_backend_gpu_to_exr_equals_the_sums_path() {
         let film = gpu
             .render(
                 &prepared,
-                0,
-                Rect::full(width, height),
-                SampleRange::all(samples),
+                WorkRegion::new(0, Rect::full(width, height), SampleRange::all(samples)),
                 &|_| {},
             )
             .unwrap();

@@ -13,6 +13,7 @@
 //! interpolation between the two runs that bracket the RMSE).
 
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use anyhow::Result;
 use tracer_core::adaptive::AdaptiveSettings;
@@ -315,9 +316,11 @@ impl Bench {
         let frame = PreparedFrame::build(desc, base, 0, Precision::F64)?;
         let film = self.cpu.render(
             &frame,
-            0,
-            Rect::full(base.width, base.height),
-            SampleRange::new(REFERENCE_OFFSET, REFERENCE_OFFSET + samples),
+            WorkRegion::new(
+                0,
+                Rect::full(base.width, base.height),
+                SampleRange::new(REFERENCE_OFFSET, REFERENCE_OFFSET + samples),
+            ),
             &|_| {},
         )?;
         let linear = film.resolve();
@@ -375,9 +378,11 @@ impl Bench {
         let rect = Rect::full(base.width, base.height);
         let once = || -> Result<Film> {
             Ok(match mode {
-                Mode::Uniform(n) => {
-                    renderer.render(&frame, 0, rect, SampleRange::all(*n), &|_| {})?
-                }
+                Mode::Uniform(n) => renderer.render(
+                    &frame,
+                    WorkRegion::new(0, rect, SampleRange::all(*n)),
+                    &|_| {},
+                )?,
                 Mode::PerPixel(a) => {
                     adaptive::render(renderer, &frame, 0, a, &|_| {}, &mut |_| {})?
                 }

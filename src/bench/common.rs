@@ -3,6 +3,7 @@
 
 use std::path::PathBuf;
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use anyhow::Result;
 use tracer_core::film::{Film, RayCounts, Rect, SampleRange};
@@ -107,14 +108,18 @@ impl Bench {
         );
         let once = || -> Result<(Film, Option<f64>)> {
             Ok(match backend {
-                Backend::Cpu => (self.cpu.render(&frame, 0, rect, samples, &|_| {})?, None),
+                Backend::Cpu => (
+                    self.cpu
+                        .render(&frame, WorkRegion::new(0, rect, samples), &|_| {})?,
+                    None,
+                ),
                 #[cfg(feature = "gpu")]
                 Backend::Gpu => {
                     let gpu = self
                         .gpu
                         .as_ref()
                         .expect("GPU renderer made when the GPU backend is selected");
-                    let film = gpu.render(&frame, 0, rect, samples, &|_| {})?;
+                    let film = gpu.render(&frame, WorkRegion::new(0, rect, samples), &|_| {})?;
                     (film, gpu.last_stats().gpu_time.map(|d| d.as_secs_f64()))
                 }
                 #[cfg(not(feature = "gpu"))]

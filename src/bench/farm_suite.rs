@@ -3,6 +3,7 @@
 //! ceiling.
 
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use anyhow::{Context, Result};
 // The GPU cases only.
@@ -54,9 +55,7 @@ impl Bench {
         let start = Instant::now();
         let film = local.render(
             &frame,
-            0,
-            Rect::full(width, height),
-            SampleRange::all(s.samples),
+            WorkRegion::new(0, Rect::full(width, height), SampleRange::all(s.samples)),
             &|_| {},
         )?;
         let local_secs = start.elapsed().as_secs_f64();
@@ -169,11 +168,19 @@ impl Bench {
             let (pairs, diff_bytes) =
                 farm::interleaved_runs(&run, &spec, self.cfg.repeat as usize, &local_srgb, || {
                     let start = Instant::now();
-                    local.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
+                    local.render(
+                        &frame,
+                        WorkRegion::new(0, full, SampleRange::all(s.samples)),
+                        &|_| {},
+                    )?;
                     let whole = start.elapsed().as_secs_f64();
                     let start = Instant::now();
                     for &u in &units {
-                        local.render(&frame, 0, u, SampleRange::all(s.samples), &|_| {})?;
+                        local.render(
+                            &frame,
+                            WorkRegion::new(0, u, SampleRange::all(s.samples)),
+                            &|_| {},
+                        )?;
                     }
                     by_units.push(start.elapsed().as_secs_f64());
                     Ok(whole)
@@ -322,9 +329,17 @@ impl Bench {
         let frame = PreparedFrame::build(desc, &s, 0, Precision::F32)?;
         let full = Rect::full(width, height);
         // Warm-up (pipelines, buffers), then the timed call.
-        gpu.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
+        gpu.render(
+            &frame,
+            WorkRegion::new(0, full, SampleRange::all(s.samples)),
+            &|_| {},
+        )?;
         let start = Instant::now();
-        let film = gpu.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
+        let film = gpu.render(
+            &frame,
+            WorkRegion::new(0, full, SampleRange::all(s.samples)),
+            &|_| {},
+        )?;
         let local_secs = start.elapsed().as_secs_f64();
         let local_rays_per_s = film.rays.total() as f64 / local_secs;
         let local_srgb = tracer_core::film::to_srgb8(&film.resolve());
@@ -460,7 +475,11 @@ impl Bench {
                     &local_srgb,
                     || {
                         let start = Instant::now();
-                        gpu.render(&frame, 0, full, SampleRange::all(s.samples), &|_| {})?;
+                        gpu.render(
+                            &frame,
+                            WorkRegion::new(0, full, SampleRange::all(s.samples)),
+                            &|_| {},
+                        )?;
                         Ok(start.elapsed().as_secs_f64())
                     },
                 )?;
@@ -527,8 +546,9 @@ fn machine_ceiling(
             .enumerate()
             .filter_map(|(k, r)| {
                 let range = SampleRange::new((k * total / n) as u32, ((k + 1) * total / n) as u32);
-                (!range.is_empty())
-                    .then(|| scope.spawn(move || r.render(frame, 0, full, range, &|_| {})))
+                (!range.is_empty()).then(|| {
+                    scope.spawn(move || r.render(frame, WorkRegion::new(0, full, range), &|_| {}))
+                })
             })
             .collect();
         for h in handles {

@@ -23,6 +23,7 @@
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use anyhow::{Context, Result, bail};
 use tracer_core::film::{RayCounts, Rect, SampleRange};
@@ -381,7 +382,7 @@ fn local_render(
     let full = Rect::full(s.width, s.height);
     let samples = SampleRange::all(s.samples);
     let (f0, p0) = &prepared[0];
-    gpu.render(p0, *f0, full, samples, &|_| {})?;
+    gpu.render(p0, WorkRegion::new(*f0, full, samples), &|_| {})?;
     let mut out = LocalRender {
         seconds: 0.0,
         images: Vec::with_capacity(prepared.len()),
@@ -389,7 +390,7 @@ fn local_render(
     };
     for (f, p) in prepared {
         let start = Instant::now();
-        let film = gpu.render(p, *f, full, samples, &|_| {})?;
+        let film = gpu.render(p, WorkRegion::new(*f, full, samples), &|_| {})?;
         out.seconds += start.elapsed().as_secs_f64();
         // Resolved outside the timing, and kept 8-bit: 24 films of sums
         // at 1080p would take gigabytes.
@@ -426,7 +427,7 @@ fn gpu_ceiling(
                             share.frames.clone()
                         };
                         for (f, p) in &prepared[frames] {
-                            gpu.render(p, *f, full, share.samples, &|_| {})?;
+                            gpu.render(p, WorkRegion::new(*f, full, share.samples), &|_| {})?;
                         }
                         Ok(())
                     })

@@ -5,6 +5,7 @@
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use anyhow::{Context, Result};
 use tracer_core::film::{Rect, SampleRange};
@@ -118,9 +119,11 @@ impl ReferenceCache {
         let frame = PreparedFrame::build(scene, &settings, 0, Precision::F64)?;
         let film = self.renderer.render(
             &frame,
-            0,
-            Rect::full(settings.width, settings.height),
-            SampleRange::all(samples),
+            WorkRegion::new(
+                0,
+                Rect::full(settings.width, settings.height),
+                SampleRange::all(samples),
+            ),
             &|_| {},
         )?;
         let linear = film.resolve();

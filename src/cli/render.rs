@@ -4,6 +4,7 @@ use super::outln;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use anyhow::{Result, bail};
 use clap::builder::TypedValueParser as _;
@@ -370,29 +371,37 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let samples = SampleRange::all(settings.samples);
     let mut last_round = None;
     let mut image_round = None;
-    // A uniform GPU render resolves on the GPU and reads back only the
-    // image: 8-bit for PNG, f32 for EXR (an adaptive render's EXR also has
-    // per-pixel samples and errors, from the sums).
-    #[cfg(feature = "gpu")]
-    if let (Renderer::Gpu(gpu), None) = (&renderer, &adaptive) {
+    // A uniform render asks for the image itself: the GPU resolves it on
+    // the device and reads back only it, 8-bit for PNG, f32 for EXR (an
+    // adaptive render's EXR also has per-pixel samples and errors, from the
+    // sums); the CPU resolves its film.
+    let Some(a) = adaptive.as_ref() else {
         use tracer_core::film::image::{write_exr, write_png};
+        use tracer_core::render::{Output, Rendered};
         let inc = |n| progress.inc(n);
+        let region = WorkRegion::new(args.frame, rect, samples);
+        let never = std::sync::atomic::AtomicBool::new(false);
+        let format = ImageFormat::of(&output)?;
+        let out = match format {
+            ImageFormat::Png => Output::Srgb8,
+            ImageFormat::Exr => Output::Linear,
+        };
+        let image = renderer
+            .render_as(&prepared, region, out, &inc, &never)?
+            .expect("never cancelled");
         // The time is the render's, the file's writing left out (as below).
-        let (secs, rays, nonfinite) = match ImageFormat::of(&output)? {
-            ImageFormat::Png => {
-                let image = gpu.render_srgb8(&prepared, args.frame, rect, samples, &inc)?;
-                let secs = start.elapsed().as_secs_f64();
-                progress.finish();
-                write_png(&output, rect.width, rect.height, &image.rgb)?;
-                (secs, image.rays, image.nonfinite)
+        let secs = start.elapsed().as_secs_f64();
+        progress.finish();
+        let (rays, nonfinite) = match image {
+            Rendered::Srgb8(i) => {
+                write_png(&output, rect.width, rect.height, &i.rgb)?;
+                (i.rays, i.nonfinite)
             }
-            ImageFormat::Exr => {
-                let image = gpu.render_linear(&prepared, args.frame, rect, samples, &inc)?;
-                let secs = start.elapsed().as_secs_f64();
-                progress.finish();
-                write_exr(&output, rect.width, rect.height, &image.rgb)?;
-                (secs, image.rays, image.nonfinite)
+            Rendered::Linear(i) => {
+                write_exr(&output, rect.width, rect.height, &i.rgb)?;
+                (i.rays, i.nonfinite)
             }
+            _ => unreachable!("asked for an image"),
         };
         let summary = Summary {
             secs,
@@ -404,10 +413,9 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         return report(
             &args, &settings, precision, &renderer, &output, &setup, summary, None, None,
         );
-    }
-    let film = match &adaptive {
-        None => renderer.render(&prepared, args.frame, rect, samples, &|n| progress.inc(n))?,
-        Some(a) if args.adaptive_mode == AdaptiveMode::Image => adaptive::render_rmse(
+    };
+    let film = if args.adaptive_mode == AdaptiveMode::Image {
+        adaptive::render_rmse(
             &renderer,
             &prepared,
             args.frame,
@@ -425,8 +433,9 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
                 ));
                 image_round = Some(*r);
             },
-        )?,
-        Some(a) => adaptive::render(
+        )?
+    } else {
+        adaptive::render(
             &renderer,
             &prepared,
             args.frame,
@@ -436,7 +445,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
                 progress.note(&round_line(r));
                 last_round = Some(*r);
             },
-        )?,
+        )?
     };
     let secs = start.elapsed().as_secs_f64();
     progress.finish();

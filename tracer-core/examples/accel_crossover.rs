@@ -8,6 +8,7 @@
 
 use std::fmt::Write as _;
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, PreparedFrame};
@@ -64,9 +65,11 @@ fn main() {
                     let film = renderer
                         .render(
                             &frame,
-                            0,
-                            Rect::full(desc.render.width, desc.render.height),
-                            SampleRange::all(1),
+                            WorkRegion::new(
+                                0,
+                                Rect::full(desc.render.width, desc.render.height),
+                                SampleRange::all(1),
+                            ),
                             &|_| {},
                         )
                         .expect("valid request");

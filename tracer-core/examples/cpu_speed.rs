@@ -6,6 +6,7 @@
 //!   cargo run --release -p tracer-core --no-default-features --example cpu_speed -- [SCENE] [THREADS...]
 
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
@@ -51,7 +52,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let (mut wall, mut cpu, mut rays, mut counts) = (f64::MAX, f64::MAX, 0, Default::default());
         for _ in 0..REPEATS {
             let (t, c) = (Instant::now(), cpu_seconds());
-            let film = r.render(&prepared, 0, rect, samples, &|_| {})?;
+            let film = r.render(&prepared, WorkRegion::new(0, rect, samples), &|_| {})?;
             wall = wall.min(t.elapsed().as_secs_f64());
             cpu = cpu.min(cpu_seconds() - c);
             rays = film.rays.total();

@@ -13,6 +13,7 @@
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
+use tracer_core::film::WorkRegion;
 
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::gpu::{GpuOptions, GpuRenderer, Strategy, launch};
@@ -176,8 +177,11 @@ fn real_main() -> Result<(), Box<dyn std::error::Error>> {
             // CPU: all scenes at 800x600, the resolution scene at both sizes.
             let cpu_cols = if args.cpu && (h == sizes[0].1 || name == "resolution.toml") {
                 let t = Instant::now();
-                let cf =
-                    cpu.render(&prepared, 0, Rect::full(w, h), SampleRange::all(4), &|_| {})?;
+                let cf = cpu.render(
+                    &prepared,
+                    WorkRegion::new(0, Rect::full(w, h), SampleRange::all(4)),
+                    &|_| {},
+                )?;
                 let ct = t.elapsed();
                 format!(
                     "{} | {:.0} | {:.2}x | {:.1e}",

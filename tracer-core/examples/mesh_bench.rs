@@ -21,6 +21,7 @@
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+use tracer_core::film::WorkRegion;
 
 use glam::Vec3A;
 use rayon::prelude::*;
@@ -474,8 +475,12 @@ fn gpu_bench(path: &Path, cam: [f64; 3], look_at: [f64; 3]) -> Result<(), String
             .map_err(|e| e.to_string())?;
         let build = t.elapsed();
         let render = || {
-            g.render(&frame, 0, Rect::full(w, h), SampleRange::all(spp), &|_| {})
-                .map_err(|e| e.to_string())
+            g.render(
+                &frame,
+                WorkRegion::new(0, Rect::full(w, h), SampleRange::all(spp)),
+                &|_| {},
+            )
+            .map_err(|e| e.to_string())
         };
         let t = Instant::now();
         let first = render()?;
@@ -519,11 +524,19 @@ fn gpu_bench(path: &Path, cam: [f64; 3], look_at: [f64; 3]) -> Result<(), String
         let frame = PreparedFrame::build(&small, &small.render, 0, Precision::F32)
             .map_err(|e| e.to_string())?;
         let gf = g
-            .render(&frame, 0, Rect::full(cw, ch), SampleRange::all(1), &|_| {})
+            .render(
+                &frame,
+                WorkRegion::new(0, Rect::full(cw, ch), SampleRange::all(1)),
+                &|_| {},
+            )
             .map_err(|e| e.to_string())?;
         let cf = CpuRenderer::new(None)
             .map_err(|e| e.to_string())?
-            .render(&frame, 0, Rect::full(cw, ch), SampleRange::all(1), &|_| {})
+            .render(
+                &frame,
+                WorkRegion::new(0, Rect::full(cw, ch), SampleRange::all(1)),
+                &|_| {},
+            )
             .map_err(|e| e.to_string())?;
         let (a, b) = (gf.resolve(), cf.resolve());
         let mut mean = 0.0f64;

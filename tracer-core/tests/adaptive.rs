@@ -11,6 +11,7 @@ use common::{NOISY, scene};
 use tracer_core::adaptive::{
     self, AdaptiveSettings, BLOCK, BlockMask, next_active, variance_of_mean,
 };
+use tracer_core::film::WorkRegion;
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame, Renderer};
 use tracer_core::scene::SceneDesc;
@@ -127,9 +128,7 @@ fn uniform(desc: &SceneDesc, a: &AdaptiveSettings, n: u32, frame: u32) -> Film {
     cpu(2)
         .render(
             &p,
-            frame,
-            Rect::full(s.width, s.height),
-            SampleRange::all(n),
+            WorkRegion::new(frame, Rect::full(s.width, s.height), SampleRange::all(n)),
             &|_| {},
         )
         .unwrap()

@@ -6,6 +6,7 @@
 mod common;
 
 use common::{examples_dir, render_with, scene};
+use tracer_core::film::WorkRegion;
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
@@ -979,7 +980,11 @@ fn distributed_renders_are_independent_of_tiles_and_sample_ranges() {
     let r1 = CpuRenderer::new(Some(1)).unwrap();
     let r2 = CpuRenderer::new(Some(2)).unwrap();
     let whole = r2
-        .render(&frame, 0, Rect::full(40, 30), SampleRange::all(6), &|_| {})
+        .render(
+            &frame,
+            WorkRegion::new(0, Rect::full(40, 30), SampleRange::all(6)),
+            &|_| {},
+        )
         .unwrap();
     let mut parts = Film::new(Rect::full(40, 30));
     for rect in [
@@ -993,7 +998,10 @@ fn distributed_renders_are_independent_of_tiles_and_sample_ranges() {
             SampleRange::new(4, 6),
         ] {
             parts
-                .merge(&r1.render(&frame, 0, rect, range, &|_| {}).unwrap())
+                .merge(
+                    &r1.render(&frame, WorkRegion::new(0, rect, range), &|_| {})
+                        .unwrap(),
+                )
                 .unwrap();
         }
     }

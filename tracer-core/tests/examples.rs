@@ -9,6 +9,7 @@
 mod common;
 
 use std::path::{Path, PathBuf};
+use tracer_core::film::WorkRegion;
 
 use common::*;
 use tracer_core::film::{Film, Rect, SampleRange, to_srgb8};
@@ -112,9 +113,7 @@ fn tiles_and_sample_ranges_add_up_to_the_whole_render_exactly() {
                 .unwrap()
                 .render(
                     &frame,
-                    3,
-                    Rect::full(67, 41),
-                    SampleRange::all(samples),
+                    WorkRegion::new(3, Rect::full(67, 41), SampleRange::all(samples)),
                     &|_| {},
                 )
                 .unwrap();
@@ -131,7 +130,10 @@ fn tiles_and_sample_ranges_add_up_to_the_whole_render_exactly() {
                     SampleRange::new(2, 3),
                     SampleRange::new(3, samples),
                 ] {
-                    parts.push(one.render(&frame, 3, rect, range, &|_| {}).unwrap());
+                    parts.push(
+                        one.render(&frame, WorkRegion::new(3, rect, range), &|_| {})
+                            .unwrap(),
+                    );
                 }
             }
             let mut merged = Film::new(Rect::full(67, 41));
@@ -160,7 +162,7 @@ fn render_requests_outside_the_image_are_refused() {
     let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
     let r = CpuRenderer::new(Some(1)).unwrap();
     assert_bad_regions_refused(|rect, samples| {
-        r.render(&frame, 0, rect, samples, &|_| {})
+        r.render(&frame, WorkRegion::new(0, rect, samples), &|_| {})
             .unwrap_err()
             .to_string()
     });

@@ -21,6 +21,8 @@
 mod common;
 
 use std::sync::OnceLock;
+use tracer_core::film::WorkRegion;
+use tracer_core::render::{Output, Rendered};
 
 use common::meshgen::{
     icosphere, keyframes_along_x, pathological_obj, tmpdir, write_obj, write_quad_obj,
@@ -47,7 +49,7 @@ fn gpu_render(
     let prepared =
         PreparedFrame::build(desc, settings, frame, Precision::F32).expect("valid settings");
     let film = g
-        .render(&prepared, frame, rect, samples, &|_| {})
+        .render(&prepared, WorkRegion::new(frame, rect, samples), &|_| {})
         .unwrap_or_else(|e| panic!("GPU render failed: {e}"));
     assert_eq!(
         film.nonfinite, 0,
@@ -998,9 +1000,7 @@ fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
             .unwrap()
             .render(
                 &f64_frame,
-                3,
-                Rect::full(67, 41),
-                SampleRange::all(samples),
+                WorkRegion::new(3, Rect::full(67, 41), SampleRange::all(samples)),
                 &|_| {},
             )
             .unwrap();
@@ -1033,9 +1033,7 @@ fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
     let split = small
         .render(
             &prepared,
-            0,
-            Rect::full(67, 41),
-            SampleRange::all(4),
+            WorkRegion::new(0, Rect::full(67, 41), SampleRange::all(4)),
             &|_| {},
         )
         .unwrap();
@@ -1044,9 +1042,7 @@ fn gpu_tiles_sample_ranges_and_dispatch_splits_add_up_exactly() {
     let whole = g
         .render(
             &prepared,
-            0,
-            Rect::full(67, 41),
-            SampleRange::all(4),
+            WorkRegion::new(0, Rect::full(67, 41), SampleRange::all(4)),
             &|_| {},
         )
         .unwrap();
@@ -1068,9 +1064,7 @@ fn gpu_progress_reports_every_pixel_sample() {
     let done = std::sync::atomic::AtomicU64::new(0);
     g.render(
         &prepared,
-        0,
-        Rect::new(5, 5, 40, 20),
-        SampleRange::new(1, 3),
+        WorkRegion::new(0, Rect::new(5, 5, 40, 20), SampleRange::new(1, 3)),
         &|n| {
             done.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
         },
@@ -1092,7 +1086,7 @@ fn resolve_test_frame(scene: &str) -> PreparedFrame {
     PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap()
 }
 
-/// The GPU's own resolve (`render_srgb8`, what `tessera render --backend
+/// The GPU's own resolve (`render_as` with `Output::Srgb8`, what `tessera render --backend
 /// gpu` writes to PNG) gives exactly the host's 8-bit sRGB of the film the
 /// same call returns: several scenes (mirrors, glass, meshes), sample
 /// counts whose reciprocals round differently, and rectangles whose pixel
@@ -1129,10 +1123,16 @@ fn gpu_resolve_to_srgb8_equals_the_hosts_bit_for_bit() {
         ),
     ] {
         let prepared = resolve_test_frame(scene);
-        let film = g.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
-        let image = g
-            .render_srgb8(&prepared, 0, rect, samples, &|_| {})
+        let film = g
+            .render(&prepared, WorkRegion::new(0, rect, samples), &|_| {})
             .unwrap();
+        let region = WorkRegion::new(0, rect, samples);
+        let Rendered::Srgb8(image) = g
+            .render_as(&prepared, region, Output::Srgb8, &|_| {})
+            .unwrap()
+        else {
+            unreachable!("asked for the 8-bit image")
+        };
         let what = format!("{scene} {rect:?} {samples:?}");
         assert_eq!(image.rect, rect, "{what}");
         assert_eq!(image.rays, film.rays, "{what}");
@@ -1304,7 +1304,7 @@ fn gpu_linear_resolve_kernel_equals_the_hosts_bit_for_bit() {
     assert!(ties >= 1000, "only {ties} ties were checked");
 }
 
-/// `render_linear` (what `tessera render --backend gpu` writes to EXR)
+/// `render_as` with `Output::Linear` (what `tessera render --backend gpu` writes to EXR)
 /// gives exactly the host's resolve of the film `render` returns for the
 /// same call: several scenes, sample counts, and rectangles of odd sizes.
 #[test]
@@ -1333,10 +1333,16 @@ fn gpu_resolve_to_linear_equals_the_hosts_bit_for_bit() {
         ),
     ] {
         let prepared = resolve_test_frame(scene);
-        let film = g.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
-        let image = g
-            .render_linear(&prepared, 0, rect, samples, &|_| {})
+        let film = g
+            .render(&prepared, WorkRegion::new(0, rect, samples), &|_| {})
             .unwrap();
+        let region = WorkRegion::new(0, rect, samples);
+        let Rendered::Linear(image) = g
+            .render_as(&prepared, region, Output::Linear, &|_| {})
+            .unwrap()
+        else {
+            unreachable!("asked for the linear image")
+        };
         let what = format!("{scene} {rect:?} {samples:?}");
         assert_eq!(image.rect, rect, "{what}");
         assert_eq!(image.rays, film.rays, "{what}");
@@ -1384,9 +1390,7 @@ fn compiled_pipelines_are_cached_on_disk_and_damaged_caches_ignored() {
         let film = r
             .render(
                 &prepared,
-                0,
-                Rect::full(40, 30),
-                SampleRange::all(2),
+                WorkRegion::new(0, Rect::full(40, 30), SampleRange::all(2)),
                 &|_| {},
             )
             .unwrap_or_else(|e| panic!("{label}: {e}"));
@@ -1430,9 +1434,7 @@ fn compiled_pipelines_are_cached_on_disk_and_damaged_caches_ignored() {
     let film = r
         .render(
             &prepared,
-            0,
-            Rect::full(40, 30),
-            SampleRange::all(2),
+            WorkRegion::new(0, Rect::full(40, 30), SampleRange::all(2)),
             &|_| {},
         )
         .unwrap();
@@ -1454,9 +1456,7 @@ fn gpu_refuses_f64_and_requests_outside_the_image() {
     let e = g
         .render(
             &f64_frame,
-            0,
-            Rect::full(16, 16),
-            SampleRange::all(4),
+            WorkRegion::new(0, Rect::full(16, 16), SampleRange::all(4)),
             &|_| {},
         )
         .unwrap_err();
@@ -1467,13 +1467,17 @@ fn gpu_refuses_f64_and_requests_outside_the_image() {
     );
     let frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
     assert_bad_regions_refused(|rect, samples| {
-        g.render(&frame, 0, rect, samples, &|_| {})
+        g.render(&frame, WorkRegion::new(0, rect, samples), &|_| {})
             .unwrap_err()
             .to_string()
     });
     // The renderer still works after refusing.
     let ok = g
-        .render(&frame, 0, Rect::full(16, 16), SampleRange::all(4), &|_| {})
+        .render(
+            &frame,
+            WorkRegion::new(0, Rect::full(16, 16), SampleRange::all(4)),
+            &|_| {},
+        )
         .unwrap();
     assert!(ok.counts.iter().all(|&n| n == 4));
 }
@@ -1925,7 +1929,11 @@ fn gpu_refuses_a_tree_deeper_than_its_stack() {
         id: 0,
     });
     let e = g
-        .render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {})
+        .render(
+            &frame,
+            WorkRegion::new(0, Rect::full(16, 16), SampleRange::all(1)),
+            &|_| {},
+        )
         .unwrap_err();
     // Node i has 3 (i + 1) entries on the stack once it has pushed: 99 > 96 at depth 32.
     assert!(
@@ -1949,13 +1957,21 @@ fn gpu_refuses_a_tree_deeper_than_its_stack() {
     let tree = w.accel.as_mut().unwrap();
     tree.nodes.truncate(3);
     let e = g
-        .render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {})
+        .render(
+            &frame,
+            WorkRegion::new(0, Rect::full(16, 16), SampleRange::all(1)),
+            &|_| {},
+        )
         .unwrap_err();
     assert!(matches!(e, GpuError::BadTree(_)), "{e}");
     // The same scene with the tree the builder makes renders.
     w_rebuild(&mut frame);
     let film = g
-        .render(&frame, 0, Rect::full(16, 16), SampleRange::all(1), &|_| {})
+        .render(
+            &frame,
+            WorkRegion::new(0, Rect::full(16, 16), SampleRange::all(1)),
+            &|_| {},
+        )
         .unwrap();
     assert_eq!(film.rays.primary, 256);
 }
@@ -2011,7 +2027,11 @@ fn gpu_mesh_tiles_of_one_prepared_frame_add_up_exactly() {
     };
     let mut frame = PreparedFrame::build(&desc, &s, 0, Precision::F32).unwrap();
     let whole = g
-        .render(&frame, 0, Rect::full(48, 40), SampleRange::all(2), &|_| {})
+        .render(
+            &frame,
+            WorkRegion::new(0, Rect::full(48, 40), SampleRange::all(2)),
+            &|_| {},
+        )
         .unwrap();
     let mut merged = Film::new(Rect::full(48, 40));
     for rect in [
@@ -2021,8 +2041,12 @@ fn gpu_mesh_tiles_of_one_prepared_frame_add_up_exactly() {
     ] {
         merged
             .merge(
-                &g.render(&frame, 0, rect, SampleRange::all(2), &|_| {})
-                    .unwrap(),
+                &g.render(
+                    &frame,
+                    WorkRegion::new(0, rect, SampleRange::all(2)),
+                    &|_| {},
+                )
+                .unwrap(),
             )
             .unwrap();
     }
@@ -2031,7 +2055,11 @@ fn gpu_mesh_tiles_of_one_prepared_frame_add_up_exactly() {
     // Dropping the tree and rebuilding it gives a new id: same image.
     w_rebuild(&mut frame);
     let again = g
-        .render(&frame, 0, Rect::full(48, 40), SampleRange::all(2), &|_| {})
+        .render(
+            &frame,
+            WorkRegion::new(0, Rect::full(48, 40), SampleRange::all(2)),
+            &|_| {},
+        )
         .unwrap();
     assert_eq!(again.sums, whole.sums);
 }
@@ -2090,11 +2118,17 @@ fn gpu_adaptive_rounds_trace_only_active_blocks_with_exact_squares() {
             mask.active_pixels() * 4,
             "{name}: progress"
         );
-        let uniform = g.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
+        let uniform = g
+            .render(&prepared, WorkRegion::new(0, rect, samples), &|_| {})
+            .unwrap();
         let singles: Vec<Film> = (samples.start..samples.end)
             .map(|k| {
-                g.render(&prepared, 0, rect, SampleRange::new(k, k + 1), &|_| {})
-                    .unwrap()
+                g.render(
+                    &prepared,
+                    WorkRegion::new(0, rect, SampleRange::new(k, k + 1)),
+                    &|_| {},
+                )
+                .unwrap()
             })
             .collect();
         let squares = film.squares.as_ref().expect("an adaptive film");

@@ -15,6 +15,7 @@ use common::meshgen::{
     colour_texels, set_quad_node, textured_quad, textured_quad_with, tmpdir, write_png,
 };
 use common::*;
+use tracer_core::film::WorkRegion;
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::gpu::Strategy;
 use tracer_core::render::{Precision, PreparedFrame};
@@ -44,9 +45,11 @@ fn cpu_and_gpu_rays(desc: &SceneDesc) -> (Image, [Image; 2], [tracer_core::film:
         let film = g
             .render(
                 &prepared,
-                0,
-                Rect::full(s.width, s.height),
-                SampleRange::all(s.samples),
+                WorkRegion::new(
+                    0,
+                    Rect::full(s.width, s.height),
+                    SampleRange::all(s.samples),
+                ),
                 &|_| {},
             )
             .unwrap_or_else(|e| panic!("GPU render failed: {e}"));
@@ -199,9 +202,7 @@ fn gpu_refuses_a_moving_single_sided_mesh_and_renders_a_double_sided_one() {
         let prepared = PreparedFrame::build(&scene, &scene.render, 0, Precision::F32).unwrap();
         let got = gpu_with(Strategy::Stack).expect("an adapter").render(
             &prepared,
-            0,
-            Rect::full(24, 24),
-            SampleRange::all(4),
+            WorkRegion::new(0, Rect::full(24, 24), SampleRange::all(4)),
             &|_| {},
         );
         if double_sided {
@@ -374,8 +375,12 @@ fn a_second_tile_of_a_textured_scene_reuses_the_packed_texels() {
     let b = textured("texel-cache-b", &[[40, 200, 90, 255]; 12]);
     let render = |desc: &SceneDesc, frame: u32, rect: Rect| {
         let p = PreparedFrame::build(desc, &desc.render, frame, Precision::F32).unwrap();
-        g.render(&p, frame, rect, SampleRange::all(1), &|_| {})
-            .unwrap_or_else(|e| panic!("GPU render failed: {e}"))
+        g.render(
+            &p,
+            WorkRegion::new(frame, rect, SampleRange::all(1)),
+            &|_| {},
+        )
+        .unwrap_or_else(|e| panic!("GPU render failed: {e}"))
     };
     let (left, right) = (Rect::new(0, 0, 12, 16), Rect::new(12, 0, 12, 16));
     let first = render(&a, 0, left);

@@ -23,6 +23,7 @@ mod common;
 
 use common::{diff, gpu};
 use tracer_core::adaptive::BlockMask;
+use tracer_core::film::WorkRegion;
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::adaptive::render_round;
 use tracer_core::render::gpu::GpuRenderer;
@@ -129,7 +130,7 @@ fn full(desc: &SceneDesc) -> (Rect, SampleRange) {
 }
 
 fn gpu_film(g: &GpuRenderer, desc: &SceneDesc, rect: Rect, samples: SampleRange) -> Film {
-    g.render(&prepared(desc), 0, rect, samples, &|_| {})
+    g.render(&prepared(desc), WorkRegion::new(0, rect, samples), &|_| {})
         .unwrap_or_else(|e| panic!("GPU path render failed: {e}"))
 }
 
@@ -137,7 +138,7 @@ fn cpu_film(desc: &SceneDesc) -> Film {
     let (rect, samples) = full(desc);
     CpuRenderer::new(Some(2))
         .unwrap()
-        .render(&prepared(desc), 0, rect, samples, &|_| {})
+        .render(&prepared(desc), WorkRegion::new(0, rect, samples), &|_| {})
         .unwrap()
 }
 
@@ -341,7 +342,7 @@ fn adaptive_rounds_of_a_path_scene_agree_on_cpu_and_gpu() {
     let gpu_uniform = gpu_film(g, &desc, rect, samples);
     let cpu_uniform = CpuRenderer::new(Some(2))
         .unwrap()
-        .render(&p, 0, rect, samples, &|_| {})
+        .render(&p, WorkRegion::new(0, rect, samples), &|_| {})
         .unwrap();
     assert!(gpu_round.squares.is_some() && cpu_round.squares.is_some());
     let mut active = 0;
@@ -681,9 +682,7 @@ fn gpu_path_matches_the_cpu_under_an_environment_image_alone() {
     for (x, y) in [(0, 0), (20, 0), (0, 15), (20, 15)] {
         g.render(
             &frame,
-            0,
-            Rect::new(x, y, 20, 15),
-            SampleRange::all(2),
+            WorkRegion::new(0, Rect::new(x, y, 20, 15), SampleRange::all(2)),
             &|_| {},
         )
         .expect("a tile");

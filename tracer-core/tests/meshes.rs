@@ -5,6 +5,7 @@
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use tracer_core::film::WorkRegion;
 
 use glam::DVec3;
 use tracer_core::assets::Bundle;
@@ -54,9 +55,11 @@ fn render(scene: &SceneDesc, precision: Precision) -> (Vec<[f32; 3]>, Film) {
         .unwrap()
         .render(
             &frame,
-            0,
-            Rect::full(r.width, r.height),
-            SampleRange::all(r.samples),
+            WorkRegion::new(
+                0,
+                Rect::full(r.width, r.height),
+                SampleRange::all(r.samples),
+            ),
             &|_| {},
         )
         .unwrap();
@@ -605,8 +608,12 @@ fn sphere_scenes_render_identically_with_and_without_the_bvh() {
             };
             let r = CpuRenderer::new(Some(2)).unwrap();
             let all = (Rect::full(80, 60), SampleRange::all(scene.render.samples));
-            let a = r.render(&with, 0, all.0, all.1, &|_| {}).unwrap();
-            let b = r.render(&without, 0, all.0, all.1, &|_| {}).unwrap();
+            let a = r
+                .render(&with, WorkRegion::new(0, all.0, all.1), &|_| {})
+                .unwrap();
+            let b = r
+                .render(&without, WorkRegion::new(0, all.0, all.1), &|_| {})
+                .unwrap();
             assert!(
                 a.sums == b.sums && a.counts == b.counts,
                 "{name} {precision:?}: films differ"

@@ -6,6 +6,7 @@
 
 mod common;
 
+use tracer_core::film::WorkRegion;
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{Integrator, SceneDesc};
@@ -85,7 +86,7 @@ fn render(desc: &SceneDesc, rect: Rect, samples: SampleRange) -> Film {
     let frame = PreparedFrame::build(desc, &desc.render, 0, Precision::F32).unwrap();
     CpuRenderer::new(Some(2))
         .unwrap()
-        .render(&frame, 0, rect, samples, &|_| {})
+        .render(&frame, WorkRegion::new(0, rect, samples), &|_| {})
         .unwrap()
 }
 

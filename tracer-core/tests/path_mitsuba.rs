@@ -24,6 +24,7 @@ mod common;
 
 use std::fmt::Write as _;
 use std::process::Command;
+use tracer_core::film::WorkRegion;
 
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
@@ -537,9 +538,11 @@ impl Case {
             .unwrap()
             .render(
                 &frame,
-                0,
-                Rect::full(s.width, s.height),
-                SampleRange::all(s.samples),
+                WorkRegion::new(
+                    0,
+                    Rect::full(s.width, s.height),
+                    SampleRange::all(s.samples),
+                ),
                 &|_| {},
             )
             .unwrap();

@@ -10,7 +10,7 @@ use tessera_proto::pb;
 use tokio::sync::{mpsc, watch};
 use tracer_core::adaptive::BlockMask;
 use tracer_core::film::{Film, Rect, SampleRange, WorkRegion};
-use tracer_core::render::{PreparedFrame, Renderer};
+use tracer_core::render::{Output, PreparedFrame, Rendered, Renderer};
 
 use crate::sender::Outgoing;
 use crate::session::{Session, lease};
@@ -254,30 +254,27 @@ pub(crate) fn render_unit(
     let progress = |n| {
         samples_done.fetch_add(n, Ordering::Relaxed);
     };
-    // The CPU renderer takes the whole unit in one parallel pass and
-    // checks `cancel` before each of its tiles: bands would each end in a
-    // barrier where one thread waits for another's last tile.
-    if let Renderer::Cpu(r) = renderer {
-        return match r.render_until(prepared, frame, rect, samples, &progress, cancel) {
-            Ok(Some(film)) => rendered(&film, start),
+    // The whole unit in one call: on the CPU one parallel pass that checks
+    // `cancel` before each of its tiles (bands would each end in a barrier
+    // where one thread waits for another's last tile); on the GPU a unit
+    // of one band, packed there, only its bytes read back.
+    #[cfg(feature = "gpu")]
+    let whole = matches!(renderer, Renderer::Cpu(_)) || gpu_band_rows(rect, samples) >= rect.height;
+    #[cfg(not(feature = "gpu"))]
+    let whole = true;
+    if whole {
+        return match renderer.render_as(prepared, region, Output::FarmResult, &progress, cancel) {
+            Ok(Some(Rendered::Film(film))) => rendered(&film, start),
+            #[cfg(feature = "gpu")]
+            Ok(Some(Rendered::Packed(p))) => {
+                UnitEnd::Film(UnitFilm::of_gpu(p), start.elapsed().as_secs_f64())
+            }
+            Ok(Some(_)) => unreachable!("asked for the farm's result"),
             Ok(None) => UnitEnd::Abandoned,
             Err(e) => render_failed(e.to_string()),
         };
     }
     let rows = gpu_band_rows(rect, samples);
-    // A unit of one band: packed on the GPU, only its bytes read back.
-    #[cfg(feature = "gpu")]
-    if let Renderer::Gpu(gpu) = renderer
-        && rows >= rect.height
-    {
-        if cancel.load(Ordering::Relaxed) {
-            return UnitEnd::Abandoned;
-        }
-        return match gpu.render_packed(prepared, frame, rect, samples, &progress) {
-            Ok(p) => UnitEnd::Film(UnitFilm::of_gpu(p), start.elapsed().as_secs_f64()),
-            Err(e) => render_failed(e.to_string()),
-        };
-    }
     let mut film = Film::new(rect);
     let mut y = rect.y;
     while y < rect.y + rect.height {
@@ -285,7 +282,7 @@ pub(crate) fn render_unit(
             return UnitEnd::Abandoned;
         }
         let band = Rect::new(rect.x, y, rect.width, rows.min(rect.y + rect.height - y));
-        match renderer.render(prepared, frame, band, samples, &progress) {
+        match renderer.render(prepared, WorkRegion::new(frame, band, samples), &progress) {
             // The whole unit in one call: no copy into the unit's film.
             Ok(part) if band == rect => {
                 film = part;
@@ -403,7 +400,9 @@ mod tests {
             ),
         ] {
             let region = WorkRegion::new(0, rect, samples);
-            let film = gpu.render(&prepared, 0, rect, samples, &|_| {}).unwrap();
+            let film = gpu
+                .render(&prepared, WorkRegion::new(0, rect, samples), &|_| {})
+                .unwrap();
             let want = UnitFilm::of_film(&film);
             let done = AtomicU64::new(0);
             match render_unit(&renderer, &prepared, region, &AtomicBool::new(false), &done) {
@@ -431,7 +430,7 @@ mod tests {
         let rect = Rect::new(8, 4, 70, 50);
         let samples = SampleRange { start: 1, end: 3 };
         let want = renderer
-            .render(&prepared, 0, rect, samples, &|_| {})
+            .render(&prepared, WorkRegion::new(0, rect, samples), &|_| {})
             .unwrap();
         let done = AtomicU64::new(0);
         let never = AtomicBool::new(false);

@@ -1,5 +1,7 @@
-//! Renderers: any rectangle of any frame for any range of sample indices,
-//! returning a [`Film`] of per-pixel sums and counts.
+//! Renderers: any [`WorkRegion`] (a rectangle of a frame over a range of
+//! sample indices), returning a [`Film`] of per-pixel sums and counts, or
+//! what [`Output`] asks for ([`Renderer::render_as`]: the image resolved,
+//! or the farm's result).
 //!
 //! Backends share the scene contract ([`World`]) and the sampling
 //! ([`crate::sampling`]), so a sample traced anywhere has the same value
@@ -11,7 +13,7 @@ pub mod cpu;
 pub mod gpu;
 pub mod step;
 
-use crate::film::{Film, Rect, SampleRange};
+use crate::film::{Film, RayCounts, Rect, SampleRange, WorkRegion};
 use crate::scene::{RenderSettings, SceneDesc};
 use crate::world::World;
 
@@ -195,6 +197,73 @@ pub enum RenderError {
     Threads(String),
 }
 
+/// What a render hands back ([`Renderer::render_as`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Output {
+    /// The film's fixed-point sums: what merges exactly (tiles, bands).
+    Sums,
+    /// The image resolved and sRGB-encoded to 8 bits (a PNG's bytes):
+    /// exactly `Film::srgb8` of the sums; the GPU resolves it on the
+    /// device and reads back 3 bytes a pixel instead of 24.
+    Srgb8,
+    /// The image resolved to linear f32 RGB (an EXR's), exactly
+    /// `Film::resolve` of the sums, on the GPU resolved on the device.
+    Linear,
+    /// A farm unit's result: on the GPU the sums packed on the device
+    /// into the wire's compact layout (`Rendered::Packed`); on the CPU the
+    /// film, which the worker encodes.
+    FarmResult,
+}
+
+/// A render as [`Output`] asked for it.
+pub enum Rendered {
+    Film(Film),
+    Srgb8(Srgb8Image),
+    Linear(LinearImage),
+    #[cfg(feature = "gpu")]
+    Packed(gpu::PackedSums),
+}
+
+/// A render resolved to 8-bit sRGB ([`Output::Srgb8`]).
+pub struct Srgb8Image {
+    pub rect: Rect,
+    /// RGB bytes, row-major: exactly `Film::srgb8` of the render's film.
+    pub rgb: Vec<u8>,
+    pub rays: RayCounts,
+    pub nonfinite: u64,
+}
+
+/// A render resolved to linear f32 RGB ([`Output::Linear`]).
+pub struct LinearImage {
+    pub rect: Rect,
+    /// Row-major: exactly `Film::resolve` of the render's film, bit for bit.
+    pub rgb: Vec<[f32; 3]>,
+    pub rays: RayCounts,
+    pub nonfinite: u64,
+}
+
+impl Rendered {
+    /// `film` as `output` asks for it, resolved on the host (what the CPU
+    /// backend returns; the GPU's are these, made on the device).
+    pub fn of_film(film: Film, output: Output) -> Rendered {
+        match output {
+            Output::Sums | Output::FarmResult => Rendered::Film(film),
+            Output::Srgb8 => Rendered::Srgb8(Srgb8Image {
+                rect: film.rect,
+                rgb: film.srgb8(),
+                rays: film.rays,
+                nonfinite: film.nonfinite,
+            }),
+            Output::Linear => Rendered::Linear(LinearImage {
+                rect: film.rect,
+                rgb: film.resolve(),
+                rays: film.rays,
+                nonfinite: film.nonfinite,
+            }),
+        }
+    }
+}
+
 /// A renderer of either backend, chosen at run time: the one interface
 /// `tessera render` and farm workers render through.
 pub enum Renderer {
@@ -246,19 +315,43 @@ impl Renderer {
         }
     }
 
-    /// Renders `rect` of `frame` over `samples`, as [`CpuRenderer::render`].
+    /// Renders `region`'s sums, as [`CpuRenderer::render`].
     pub fn render(
         &self,
         prepared: &PreparedFrame,
-        frame: u32,
-        rect: Rect,
-        samples: SampleRange,
+        region: WorkRegion,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<Film, RendererError> {
         Ok(match self {
-            Renderer::Cpu(r) => r.render(prepared, frame, rect, samples, progress)?,
+            Renderer::Cpu(r) => r.render(prepared, region, progress)?,
             #[cfg(feature = "gpu")]
-            Renderer::Gpu(r) => r.render(prepared, frame, rect, samples, progress)?,
+            Renderer::Gpu(r) => r.render(prepared, region, progress)?,
+        })
+    }
+
+    /// Renders `region` as `output` asks: the one entry point of `tessera
+    /// render` and the farm's workers. `None` once `cancel` is set (the CPU
+    /// checks it before each tile; a GPU submission, once queued, runs to
+    /// its end).
+    pub fn render_as(
+        &self,
+        prepared: &PreparedFrame,
+        region: WorkRegion,
+        output: Output,
+        progress: &(dyn Fn(u64) + Sync),
+        cancel: &std::sync::atomic::AtomicBool,
+    ) -> Result<Option<Rendered>, RendererError> {
+        Ok(match self {
+            Renderer::Cpu(r) => r
+                .render_until(prepared, region, progress, cancel)?
+                .map(|film| Rendered::of_film(film, output)),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => {
+                if cancel.load(std::sync::atomic::Ordering::Relaxed) {
+                    return Ok(None);
+                }
+                Some(r.render_as(prepared, region, output, progress)?)
+            }
         })
     }
 

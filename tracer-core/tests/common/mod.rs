@@ -7,6 +7,7 @@ pub mod prereq;
 #[path = "../../../tests/support/sky.rs"]
 pub mod sky;
 
+use tracer_core::film::WorkRegion;
 use tracer_core::film::{Film, Rect, SampleRange};
 use tracer_core::render::{CpuRenderer, Precision, PreparedFrame};
 use tracer_core::scene::{RenderSettings, SceneDesc};
@@ -72,9 +73,11 @@ pub fn render_with(desc: &SceneDesc, settings: &RenderSettings, precision: Preci
         .unwrap()
         .render(
             &frame,
-            0,
-            Rect::full(settings.width, settings.height),
-            SampleRange::all(settings.samples),
+            WorkRegion::new(
+                0,
+                Rect::full(settings.width, settings.height),
+                SampleRange::all(settings.samples),
+            ),
             &|_| {},
         )
         .unwrap();

@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use super::step::{Static, Surface};
 use super::{PreparedFrame, RenderError};
-use crate::film::{Film, RayCounts, Rect, SampleRange};
+use crate::film::{Film, RayCounts, Rect, SampleRange, WorkRegion};
 use crate::geometry::PrimId;
 use crate::math::{Ray, Real, Vector3};
 use crate::sampling::{pixel_seed, sample_offset};
@@ -65,20 +65,18 @@ impl CpuRenderer {
         &self.pool
     }
 
-    /// Renders `rect` of `frame` over sample indices `samples`. `progress` is
-    /// called from the worker threads with the number of pixel-samples each
-    /// finished tile covered.
+    /// Renders `region` (its rect of its frame over its sample indices).
+    /// `progress` is called from the worker threads with the number of
+    /// pixel-samples each finished tile covered.
     pub fn render(
         &self,
         prepared: &PreparedFrame,
-        frame: u32,
-        rect: Rect,
-        samples: SampleRange,
+        region: WorkRegion,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<Film, RenderError> {
         let never = AtomicBool::new(false);
         Ok(self
-            .render_until(prepared, frame, rect, samples, progress, &never)?
+            .render_until(prepared, region, progress, &never)?
             .expect("never cancelled"))
     }
 
@@ -88,12 +86,15 @@ impl CpuRenderer {
     pub fn render_until(
         &self,
         prepared: &PreparedFrame,
-        frame: u32,
-        rect: Rect,
-        samples: SampleRange,
+        region: WorkRegion,
         progress: &(dyn Fn(u64) + Sync),
         cancel: &AtomicBool,
     ) -> Result<Option<Film>, RenderError> {
+        let WorkRegion {
+            frame,
+            rect,
+            samples,
+        } = region;
         prepared.check_request(rect, samples)?;
         Ok(match prepared {
             PreparedFrame::F32(w) => self.render_world(w, frame, rect, samples, progress, cancel),

@@ -6,6 +6,8 @@
 //! because both reach tracer-core (the example cannot depend on the
 //! `tessera` binary crate).
 
+use crate::film::WorkRegion;
+use crate::render::{Output, Rendered};
 use std::time::{Duration, Instant};
 
 use super::{GpuError, GpuOptions, GpuRenderer, Strategy};
@@ -62,18 +64,18 @@ pub fn run_interleaved(
     let mut firsts = vec![];
     for g in rs {
         let t = Instant::now();
-        films.push(g.render(prepared, 0, rect, samples, &|_| {})?);
+        films.push(g.render(prepared, WorkRegion::new(0, rect, samples), &|_| {})?);
         firsts.push(t.elapsed());
     }
     for _ in 1..WARMUP {
         for g in rs {
-            g.render(prepared, 0, rect, samples, &|_| {})?;
+            g.render(prepared, WorkRegion::new(0, rect, samples), &|_| {})?;
         }
     }
     let mut stats = vec![Samples::default(); rs.len()];
     for _ in 0..reps.max(1) {
         for (i, g) in rs.iter().enumerate() {
-            films[i] = g.render(prepared, 0, rect, samples, &|_| {})?;
+            films[i] = g.render(prepared, WorkRegion::new(0, rect, samples), &|_| {})?;
             let st = g.last_stats();
             let t = &mut stats[i];
             t.gpu.push(st.gpu_time.unwrap_or(st.trace_wall));
@@ -123,15 +125,16 @@ pub fn readout_timing(
     reps: usize,
 ) -> Result<ReadoutTiming, GpuError> {
     let samples = SampleRange::all(samples);
-    let sums = || g.render(prepared, 0, rect, samples, &|_| {});
+    let sums = || g.render(prepared, WorkRegion::new(0, rect, samples), &|_| {});
     let bits = |v: &[[f32; 3]]| -> Vec<u32> { v.iter().flatten().map(|x| x.to_bits()).collect() };
-    let srgb8_on_gpu = || {
-        g.render_srgb8(prepared, 0, rect, samples, &|_| {})
-            .map(|i| i.rgb)
+    let region = WorkRegion::new(0, rect, samples);
+    let srgb8_on_gpu = || match g.render_as(prepared, region, Output::Srgb8, &|_| {})? {
+        Rendered::Srgb8(i) => Ok::<_, GpuError>(i.rgb),
+        _ => unreachable!("asked for the 8-bit image"),
     };
-    let linear_on_gpu = || {
-        g.render_linear(prepared, 0, rect, samples, &|_| {})
-            .map(|i| i.rgb)
+    let linear_on_gpu = || match g.render_as(prepared, region, Output::Linear, &|_| {})? {
+        Rendered::Linear(i) => Ok::<_, GpuError>(i.rgb),
+        _ => unreachable!("asked for the linear image"),
     };
     let mut identical = true;
     for _ in 0..WARMUP {

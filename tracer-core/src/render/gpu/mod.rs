@@ -63,9 +63,9 @@ use std::time::{Duration, Instant};
 
 use self::adapter::{adapters, instance, summary, type_rank};
 use self::layout::SceneData;
-use super::{PreparedFrame, RenderError};
+use super::{LinearImage, Output, PreparedFrame, RenderError, Rendered, Srgb8Image};
 use crate::adaptive::BlockMask;
-use crate::film::{Film, RayCounts, Rect, SampleRange};
+use crate::film::{Film, Rect, SampleRange, WorkRegion};
 
 /// Dynamic uniform offsets must be multiples of this (256 is the largest
 /// alignment any adapter asks for).
@@ -252,26 +252,6 @@ struct Outputs {
     params: wgpu::Buffer,
 }
 
-/// A render resolved to 8-bit sRGB on the GPU ([`GpuRenderer::render_srgb8`]).
-pub struct Srgb8Image {
-    pub rect: Rect,
-    /// RGB bytes, row-major: exactly `Film::srgb8` of the film that
-    /// [`GpuRenderer::render`] returns for the same call.
-    pub rgb: Vec<u8>,
-    pub rays: RayCounts,
-    pub nonfinite: u64,
-}
-
-/// A render resolved to linear f32 RGB on the GPU ([`GpuRenderer::render_linear`]).
-pub struct LinearImage {
-    pub rect: Rect,
-    /// Row-major: exactly `Film::resolve` of the film that
-    /// [`GpuRenderer::render`] returns for the same call, bit for bit.
-    pub rgb: Vec<[f32; 3]>,
-    pub rays: RayCounts,
-    pub nonfinite: u64,
-}
-
 /// What the GPU resolves a film's sums to.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Resolve {
@@ -301,13 +281,6 @@ enum Readout<'a> {
     /// blocks of the mask, block i (of the mask's rect) from `ranges[i].0`
     /// to `ranges[i].1`.
     Ranged(&'a BlockMask, &'a [Option<SampleRange>]),
-}
-
-enum Rendered {
-    Film(Film),
-    Srgb8(Srgb8Image),
-    Linear(LinearImage),
-    Packed(PackedSums),
 }
 
 /// The resolve pipelines and their buffers, made on first use (farm
@@ -663,76 +636,41 @@ impl GpuRenderer {
         }
     }
 
-    /// Renders `rect` of `frame` over sample indices `samples`, like
-    /// [`super::CpuRenderer::render`]. `progress` gets the pixel-samples of
-    /// each finished submission.
+    /// Renders `region`'s sums, like [`super::CpuRenderer::render`].
+    /// `progress` gets the pixel-samples of each finished submission.
     pub fn render(
         &self,
         prepared: &PreparedFrame,
-        frame: u32,
-        rect: Rect,
-        samples: SampleRange,
+        region: WorkRegion,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<Film, GpuError> {
-        match self.render_readout(prepared, frame, rect, samples, progress, Readout::Sums)? {
+        match self.render_readout(prepared, region, progress, Readout::Sums)? {
             Rendered::Film(f) => Ok(f),
             _ => unreachable!("asked for sums"),
         }
     }
 
-    /// Renders like [`GpuRenderer::render`], then resolves and sRGB-encodes
-    /// on the GPU and reads back only the 8-bit image: a local render to PNG
-    /// moves 3 bytes a pixel over the bus instead of 24.
-    pub fn render_srgb8(
+    /// Renders `region` as `output` asks, made on the GPU: the sums; the
+    /// image resolved (and sRGB-encoded) on the device, read back at 3 or
+    /// 12 bytes a pixel instead of 24 (a local render to PNG or EXR); or
+    /// the sums packed on the device into the farm's compact layout
+    /// (`Rendered::Packed`: 15 bytes a pixel at 64 samples, no packing on
+    /// the host). Each is exactly what the host makes of [`Self::render`]'s
+    /// film (`Film::srgb8`, `Film::resolve`, the wire's `pack`).
+    pub fn render_as(
         &self,
         prepared: &PreparedFrame,
-        frame: u32,
-        rect: Rect,
-        samples: SampleRange,
+        region: WorkRegion,
+        output: Output,
         progress: &(dyn Fn(u64) + Sync),
-    ) -> Result<Srgb8Image, GpuError> {
-        let readout = Readout::Image(Resolve::Srgb8);
-        match self.render_readout(prepared, frame, rect, samples, progress, readout)? {
-            Rendered::Srgb8(i) => Ok(i),
-            _ => unreachable!("asked for the 8-bit image"),
-        }
-    }
-
-    /// Renders like [`GpuRenderer::render`], then resolves on the GPU and
-    /// reads back only the linear f32 image, bit for bit `Film::resolve` of
-    /// the sums: a local render to EXR moves 12 bytes a pixel over the bus
-    /// instead of 24, and resolves nothing on the host.
-    pub fn render_linear(
-        &self,
-        prepared: &PreparedFrame,
-        frame: u32,
-        rect: Rect,
-        samples: SampleRange,
-        progress: &(dyn Fn(u64) + Sync),
-    ) -> Result<LinearImage, GpuError> {
-        let readout = Readout::Image(Resolve::Linear);
-        match self.render_readout(prepared, frame, rect, samples, progress, readout)? {
-            Rendered::Linear(i) => Ok(i),
-            _ => unreachable!("asked for the linear image"),
-        }
-    }
-
-    /// Renders like [`GpuRenderer::render`], then packs the sums on the GPU
-    /// into the farm's compact layout and reads back only those bytes: a
-    /// farm worker's result (15 bytes a pixel at 64 samples instead of the
-    /// 24 of [`GpuRenderer::render`]'s read-back, and no packing on the host).
-    pub fn render_packed(
-        &self,
-        prepared: &PreparedFrame,
-        frame: u32,
-        rect: Rect,
-        samples: SampleRange,
-        progress: &(dyn Fn(u64) + Sync),
-    ) -> Result<PackedSums, GpuError> {
-        match self.render_readout(prepared, frame, rect, samples, progress, Readout::Packed)? {
-            Rendered::Packed(p) => Ok(p),
-            _ => unreachable!("asked for packed sums"),
-        }
+    ) -> Result<Rendered, GpuError> {
+        let readout = match output {
+            Output::Sums => Readout::Sums,
+            Output::Srgb8 => Readout::Image(Resolve::Srgb8),
+            Output::Linear => Readout::Image(Resolve::Linear),
+            Output::FarmResult => Readout::Packed,
+        };
+        self.render_readout(prepared, region, progress, readout)
     }
 
     /// One round of adaptive sampling (see [`crate::adaptive`]): the blocks
@@ -755,9 +693,7 @@ impl GpuRenderer {
         }
         match self.render_readout(
             prepared,
-            frame,
-            mask.rect,
-            samples,
+            WorkRegion::new(frame, mask.rect, samples),
             progress,
             Readout::Adaptive(mask),
         )? {
@@ -792,9 +728,7 @@ impl GpuRenderer {
         let samples = SampleRange::new(0, settings.max_samples);
         match self.render_readout(
             prepared,
-            frame,
-            rect,
-            samples,
+            WorkRegion::new(frame, rect, samples),
             progress,
             Readout::Resident(&resident),
         )? {
@@ -827,9 +761,7 @@ impl GpuRenderer {
         }
         match self.render_readout(
             prepared,
-            frame,
-            rect,
-            SampleRange::new(0, longest),
+            WorkRegion::new(frame, rect, SampleRange::new(0, longest)),
             progress,
             Readout::Ranged(&mask, &ranges),
         )? {
@@ -841,12 +773,15 @@ impl GpuRenderer {
     fn render_readout(
         &self,
         prepared: &PreparedFrame,
-        frame: u32,
-        rect: Rect,
-        samples: SampleRange,
+        region: WorkRegion,
         progress: &(dyn Fn(u64) + Sync),
         readout: Readout<'_>,
     ) -> Result<Rendered, GpuError> {
+        let WorkRegion {
+            frame,
+            rect,
+            samples,
+        } = region;
         prepared.check_request(rect, samples)?;
         let world = match prepared {
             // The kernels trace one level: instances copied (made once a world).
@@ -884,6 +819,9 @@ impl GpuRenderer {
                 })
             })
             .unwrap_or_default();
+        // The textures' mip levels, each image's on its own thread (the
+        // texel pack reads them).
+        world.make_texture_levels();
         let data = SceneData::from_world(world, packed.as_ref(), texels.as_ref())?;
         if let Some(p) = &data.pbr
             && !texels.is_some_and(|t| std::sync::Arc::ptr_eq(&t, &p.texels))

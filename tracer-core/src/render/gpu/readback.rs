@@ -107,7 +107,7 @@ impl GpuRenderer {
     }
 
     /// Test hook: resolves `sums` (each pixel of `n` samples) to linear f32
-    /// on the GPU, as [`GpuRenderer::render_linear`] does after tracing, so
+    /// on the GPU, as [`GpuRenderer::render_as`] does for `Output::Linear` after tracing, so
     /// that the kernel can be checked against the host on crafted sums.
     #[doc(hidden)]
     pub fn resolve_linear_sums(
