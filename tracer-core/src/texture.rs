@@ -108,20 +108,29 @@ impl Image {
     /// values, encoded back to a byte (sRGB or linear) rounded to nearest.
     /// Made once, on first use.
     pub fn levels(&self, srgb: bool) -> &[Level] {
-        self.mips[srgb as usize].get_or_init(|| mip_chain(self, srgb))
+        let cell = &self.mips[srgb as usize];
+        if let Some(levels) = cell.get() {
+            return levels;
+        }
+        // Made outside the cell's initialiser, which must not wait on
+        // rayon: a task waiting there may steal another that asks for the
+        // same levels, a re-entrant initialisation that deadlocks (the
+        // likely cause of a CPU render of Sibenik on 16 threads that hung
+        // once in 56 runs). Two threads that ask at once may both make
+        // them; one is kept.
+        let levels = mip_chain(self, srgb);
+        let _ = cell.set(levels);
+        cell.get().expect("set above")
     }
 }
 
-/// [`Image::levels`], made on the calling thread, decoding by table and encoding sRGB by a search of the bytes' midpoints (what
-/// rounding [`linear_to_srgb`] to a byte gives, without a power a texel:
-/// DamagedHelmet's five 2048-texel maps took 0.5 s with one), data bytes
-/// averaged as integers. Never in parallel: a rayon task waiting inside
-/// the `OnceLock`'s initialiser may steal another task that asks for the
-/// same image's levels, a re-entrant initialisation that deadlocks (a
-/// CPU render of Sibenik hung so, once in 16 runs, when the rows were
-/// made in parallel); `World::make_texture_levels` makes the images'
-/// chains in parallel instead, each once.
+/// [`Image::levels`], made: each level's rows in parallel (never inside a
+/// `OnceLock` initialiser: see there), decoding by table and encoding sRGB
+/// by a search of the bytes' midpoints (what rounding [`linear_to_srgb`]
+/// to a byte gives, without a power a texel: DamagedHelmet's five
+/// 2048-texel maps took 0.5 s with one), data bytes averaged as integers.
 fn mip_chain(img: &Image, srgb: bool) -> Vec<Level> {
+    use rayon::prelude::*;
     // The mean of texels: sRGB channels' decoded values summed in f64 and
     // encoded by the midpoints; data channels' bytes summed as integers,
     // rounded half up (the f64 rounding of their mean).
@@ -153,7 +162,7 @@ fn mip_chain(img: &Image, srgb: bool) -> Vec<Level> {
         let (nw, nh) = ((w / 2).max(1), (h / 2).max(1));
         let above = out.last().map_or(&img.texels[..], |l| &l.texels[..]);
         let mut texels = vec![[0u8; 4]; nw * nh];
-        texels.chunks_mut(nw).enumerate().for_each(|(y, row)| {
+        texels.par_chunks_mut(nw).enumerate().for_each(|(y, row)| {
             let rows = y * h / nh..(y + 1) * h / nh;
             for (x, texel) in row.iter_mut().enumerate() {
                 let cols = x * w / nw..(x + 1) * w / nw;

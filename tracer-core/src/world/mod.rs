@@ -176,8 +176,8 @@ impl<R: Real> World<R> {
     /// so that no thread waits while another makes them at its first hit.
     pub fn make_texture_levels(&self) {
         use rayon::prelude::*;
-        // Each image and decoding once: two tasks on one chain would wait
-        // on each other's `OnceLock` instead of working.
+        // Each image and decoding once: two tasks on one chain would both
+        // make it.
         let mut chains: Vec<(&std::sync::Arc<crate::texture::Image>, bool)> = Vec::new();
         for t in self.pbr.iter().flat_map(|p| p.textures()) {
             if !chains
