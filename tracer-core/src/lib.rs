@@ -3,12 +3,13 @@
 //!
 //! Data flow: [`scene::SceneDesc`] (parsed, validated, `f64`) ->
 //! [`render::PreparedFrame`] (render-ready [`world::World`] for one frame
-//! and precision, camera-relative) -> a renderer renders any [`film::Rect`]
-//! over any [`film::SampleRange`] into a [`film::Film`] of fixed-point
+//! and precision, camera-relative) -> a renderer renders any
+//! [`film::WorkRegion`] (a [`film::Rect`] of a frame over a
+//! [`film::SampleRange`]) into a [`film::Film`] of fixed-point
 //! per-pixel sums -> films add up exactly -> [`film::Film::resolve`].
 //!
 //! ```
-//! use tracer_core::{film::{Rect, SampleRange}, render::{CpuRenderer, PreparedFrame, Precision}, scene::SceneDesc};
+//! use tracer_core::{film::{Rect, SampleRange, WorkRegion}, render::{CpuRenderer, PreparedFrame, Precision}, scene::SceneDesc};
 //! let scene = SceneDesc::parse(r#"
 //!     [render]
 //!     width = 8
@@ -28,7 +29,7 @@
 //! "#, "doc.toml").unwrap();
 //! let frame = PreparedFrame::build(&scene, &scene.render, 0, Precision::F32).unwrap();
 //! let film = CpuRenderer::new(Some(1)).unwrap()
-//!     .render(&frame, 0, Rect::full(8, 6), SampleRange::all(4), &|_| {}).unwrap();
+//!     .render(&frame, WorkRegion::new(0, Rect::full(8, 6), SampleRange::all(4)), &|_| {}).unwrap();
 //! let image = film.resolve();
 //! assert!(image[2 * 8 + 3][0] > 0.5); // the sphere in the middle is lit red
 //! assert_eq!(image[0], [0.0; 3]);       // the corner sees the black background
