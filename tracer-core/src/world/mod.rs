@@ -178,18 +178,27 @@ impl<R: Real> World<R> {
         use rayon::prelude::*;
         // Each image and decoding once: two tasks on one chain would both
         // make it.
-        let mut chains: Vec<(&std::sync::Arc<crate::texture::Image>, bool)> = Vec::new();
+        self.texture_decodings()
+            .par_iter()
+            .for_each(|(image, srgb)| {
+                image.levels(*srgb);
+            });
+    }
+
+    /// Every image its model materials read with each decoding it is read
+    /// with (sRGB colour or data), once, in first-use order: one mip chain
+    /// each, and what the GPU's texel pack holds.
+    pub fn texture_decodings(&self) -> Vec<(&std::sync::Arc<crate::texture::Image>, bool)> {
+        let mut out: Vec<(&std::sync::Arc<crate::texture::Image>, bool)> = Vec::new();
         for t in self.pbr.iter().flat_map(|p| p.textures()) {
-            if !chains
+            if !out
                 .iter()
                 .any(|(i, srgb)| std::sync::Arc::ptr_eq(i, &t.image) && *srgb == t.srgb)
             {
-                chains.push((&t.image, t.srgb));
+                out.push((&t.image, t.srgb));
             }
         }
-        chains.par_iter().for_each(|(image, srgb)| {
-            image.levels(*srgb);
-        });
+        out
     }
 
     pub fn stats(&self) -> WorldStats {

@@ -1124,15 +1124,11 @@ impl PbrData {
             return None;
         }
         // Every image once per decoding, in first-use order, and its first word.
-        let mut images: Vec<(std::sync::Arc<crate::texture::Image>, bool)> = Vec::new();
-        for t in w.pbr.iter().flat_map(|p| p.textures()) {
-            if !images
-                .iter()
-                .any(|(i, srgb)| std::sync::Arc::ptr_eq(i, &t.image) && *srgb == t.srgb)
-            {
-                images.push((t.image.clone(), t.srgb));
-            }
-        }
+        let images: Vec<(std::sync::Arc<crate::texture::Image>, bool)> = w
+            .texture_decodings()
+            .into_iter()
+            .map(|(i, srgb)| (i.clone(), srgb))
+            .collect();
         let mut offsets: Vec<u32> = Vec::with_capacity(images.len());
         let mut next = TEXEL_TABLES;
         for (i, srgb) in &images {
