@@ -64,6 +64,10 @@
 # environment.jsonl: what importance-sampling an image costs; the GPU's
 # picture comes back.
 #
+# `instancing` (issue 34; not in the default; ~2 min): one torus placed
+# by 1 to 1,000 nodes, instanced and copied, CPU and GPU (`--json`: peak
+# RSS, gpu_scene_bytes, seconds) into instancing.jsonl.
+#
 # `scale` (issue 38; not in the default; ~2 min): `tessera bench scale
 # --virtual-workers 2000` with units of 0 and 200 ms on this machine's
 # cores.
@@ -237,6 +241,27 @@ for env in sky image; do
   done
 done > "$OUT/environment.jsonl"
 cp /tmp/env-image-gpu.png "$OUT/helmet-environment-gpu.png" 2>/dev/null
+fi
+if has instancing; then
+# One 19,800-triangle torus placed by 1, 10, 100 and 1,000 nodes (and the
+# same files with the mesh copied per node, up to 100), scripts/torus-grid.py:
+# `tessera render --json` at 1920x1080 16 spp on the CPU (all cores) and the
+# GPU (twice: cold and warm pipelines): peak RSS, the GPU's scene bytes,
+# prepare and render seconds, one line each into instancing.jsonl.
+for n in 1 10 100 1000; do
+  for form in instanced copied; do
+    [ "$form" = copied ] && [ "$n" -gt 100 ] && continue
+    [ "$form" = copied ] && [ "$n" = 1 ] && continue
+    python3 scripts/torus-grid.py "/tmp/grid-$n-$form.gltf" "$n" "$form"
+    for b in cpu gpu gpu; do
+      line=$(TESSERA_PIPELINE_CACHE=/tmp/inst-pcache timeout 300 "$T" render "/tmp/grid-$n-$form.gltf" --backend $b \
+        --width 1920 --height 1080 --samples 16 --json -o /tmp/grid.png 2>/tmp/grid.err) \
+        || line="\"failed: $(tail -c 300 /tmp/grid.err | tr -d '\n"\\')\""
+      echo "{\"nodes\": $n, \"form\": \"$form\", \"backend\": \"$b\", \"render\": $line}"
+    done
+  done
+done > "$OUT/instancing.jsonl"
+cp /tmp/grid.png "$OUT/instancing-grid.png" 2>/dev/null
 fi
 if has scale; then
 for ms in 0 200; do

@@ -541,6 +541,8 @@ fn report(
             "prepare_seconds": setup.prepare_seconds,
             // The process's peak resident set so far (Linux; 0 elsewhere).
             "peak_rss_bytes": 1024 * super::output::rss_kib(std::process::id()).1,
+            // The scene's buffers on the GPU (null on the CPU).
+            "gpu_scene_bytes": renderer.device_scene_bytes(),
             "scene": {
                 "spheres": setup.stats.spheres,
                 "planes": setup.stats.planes,

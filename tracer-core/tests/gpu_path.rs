@@ -508,8 +508,10 @@ fn gpu_path_matches_the_cpu_under_a_textured_emitter() {
 /// down, `[bsdf.lamp]` emission) above the ball: the GPU samples the
 /// triangles as lights, picking them after the lights by bisection, as
 /// the CPU does (`tracer_core::emitters`), with the lights
-/// (`with_lights`) or as the only emitters.
-fn emissive_mesh_scene(tag: &str, with_lights: bool) -> SceneDesc {
+/// (`with_lights`) or as the only emitters. `instances`: the quad is
+/// instead placed three times by a TOML `instances` list, stored once,
+/// its six placed triangles the lights.
+fn emissive_mesh_scene(tag: &str, with_lights: bool, instances: bool) -> SceneDesc {
     let dir = common::meshgen::tmpdir(tag);
     std::fs::write(
         dir.join("lamp.obj"),
@@ -524,8 +526,14 @@ fn emissive_mesh_scene(tag: &str, with_lights: bool) -> SceneDesc {
         );
         src.replace_range(a..b, "");
     }
+    let placed = if instances {
+        "instances = [{ translate = [-1.2, 0, 0.5] }, { translate = [1.2, -0.3, 0], scale = 0.8 }, \
+         { translate = [0, 0.2, -0.6], rotate_euler = [0, 45, 0] }]\n"
+    } else {
+        ""
+    };
     let src = format!(
-        "{src}\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"lamp\"\n",
+        "{src}\n[[objects]]\ntype = \"mesh\"\npath = {:?}\nmaterial = \"lamp\"\n{placed}",
         dir.join("lamp.obj")
     );
     let desc = common::scene(&src);
@@ -534,11 +542,17 @@ fn emissive_mesh_scene(tag: &str, with_lights: bool) -> SceneDesc {
         unreachable!()
     };
     let path = w.dist.as_ref().and_then(|d| d.path.as_ref()).unwrap();
-    assert_eq!(
-        path.emitters.len(),
-        2,
-        "the quad's two triangles are lights"
-    );
+    let kinds: Vec<u32> = path.emitters.iter().map(|e| e.id.kind()).collect();
+    if instances {
+        assert_eq!(
+            kinds,
+            [tracer_core::geometry::PrimId::INSTANCE_TRIANGLE; 6],
+            "the three placed quads' triangles are lights"
+        );
+        assert!(w.triangles.is_empty(), "the quad is stored once");
+    } else {
+        assert_eq!(kinds.len(), 2, "the quad's two triangles are lights");
+    }
     desc
 }
 
@@ -546,7 +560,18 @@ fn emissive_mesh_scene(tag: &str, with_lights: bool) -> SceneDesc {
 fn gpu_path_matches_the_cpu_with_emissive_triangles_and_lights() {
     check_against_cpu(
         "emissive mesh",
-        &emissive_mesh_scene("emitters-lights", true),
+        &emissive_mesh_scene("emitters-lights", true, false),
+    );
+}
+
+/// Instanced emitters (instances.wgsl): light samples on placed
+/// triangles, and BSDF samples that hit them weighed against those
+/// samples' density (path.wgsl, `KIND_INSTANCE_TRIANGLE`).
+#[test]
+fn gpu_path_matches_the_cpu_with_instanced_emissive_triangles() {
+    check_against_cpu(
+        "instanced emissive mesh",
+        &emissive_mesh_scene("emitters-instanced", false, true),
     );
 }
 
@@ -554,7 +579,7 @@ fn gpu_path_matches_the_cpu_with_emissive_triangles_and_lights() {
 fn gpu_path_matches_the_cpu_with_emissive_triangles_alone() {
     check_against_cpu(
         "emissive mesh alone",
-        &emissive_mesh_scene("emitters-alone", false),
+        &emissive_mesh_scene("emitters-alone", false, false),
     );
 }
 
@@ -712,7 +737,14 @@ fn the_wavefront_path_driver_renders_the_stack_drivers_sums() {
     let scenes = [
         ("lens and blur", lens_and_blur_scene()),
         ("absorbing glass", scene(ABSORBING_GLASS, "")),
-        ("emitters", emissive_mesh_scene("wave-emitters", true)),
+        (
+            "emitters",
+            emissive_mesh_scene("wave-emitters", true, false),
+        ),
+        (
+            "instanced emitters",
+            emissive_mesh_scene("wave-emitters-instanced", true, true),
+        ),
         (
             "environment image",
             environment_image_scene("wave-env", ROUGH_CONDUCTOR, true),

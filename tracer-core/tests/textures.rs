@@ -516,3 +516,48 @@ fn an_obj_bump_map_tilts_the_normal_as_the_displaced_surface_does() {
         assert!((c as f64 - want).abs() < 1e-4, "norm: {got:?}, want {want}");
     }
 }
+
+/// A textured mesh placed by several nodes is stored once (its triangles,
+/// vertex attributes and tree in its own space) and renders as the same
+/// file with the mesh copied per node, within rounding: DamagedHelmet
+/// three times, one turned and scaled, one mirrored (which flips its
+/// tangent frame's bitangent), under textures, its normal map and its
+/// emission. Pixels where the instanced and copied triangles (rounded in
+/// object and world space) part may differ; the mean stays at rounding.
+#[test]
+fn a_textured_mesh_placed_by_three_nodes_is_stored_once_and_renders_as_copies() {
+    let dir = common::meshgen::tmpdir("three-helmets");
+    let (inst, copies) = (
+        common::three_helmets(&dir, false, 120, 48),
+        common::three_helmets(&dir, true, 120, 48),
+    );
+    let prepared =
+        tracer_core::render::PreparedFrame::build(&inst, &inst.render, 0, Precision::F32).unwrap();
+    let tracer_core::render::PreparedFrame::F32(w) = &prepared else {
+        unreachable!()
+    };
+    assert_eq!((w.instances.list.len(), w.instances.meshes.len()), (3, 1));
+    let stored = w.instances.meshes[0].triangles.len();
+    assert!(w.triangles.is_empty(), "the helmet is not copied");
+    assert_eq!(w.attrs.tri.len(), stored, "its attributes are stored once");
+    let s = &inst.render;
+    let (a, b) = (
+        common::render_with(&inst, s, Precision::F32).resolve(),
+        common::render_with(&copies, &copies.render, Precision::F32).resolve(),
+    );
+    // The helmets fill much of the view (two black images would agree too).
+    let covered = a.iter().filter(|p| **p != a[0]).count();
+    assert!(covered > a.len() / 5, "{covered} pixels covered");
+    let d = common::diff(&a, &b, 2.0 / 255.0);
+    eprintln!(
+        "instanced vs copied helmets: mean {:.2e}, max {:.3}, {} of {} pixels over 2/255",
+        d.mean, d.max, d.over, d.pixels
+    );
+    assert!(
+        d.mean < 1e-4 && d.over * 100 <= covered,
+        "mean {}, {} of {} pixels over 2/255",
+        d.mean,
+        d.over,
+        d.pixels
+    );
+}

@@ -92,3 +92,46 @@ fn bindings_are_declared_from_the_one_table() {
         )
     );
 }
+
+/// bvh.wgsl's `specialise` line: the traversal written once, generated a
+/// second time for instanced meshes with `mesh_prim` for `hit_prim` (so
+/// the world's traversal can call it without recursion), and a line
+/// naming a function that does not exist fails the assembly.
+#[test]
+fn the_mesh_traversal_is_generated_from_the_worlds() {
+    let kernel = wgsl::Kernel::variants()
+        .into_iter()
+        .find(|k| k.tree == wgsl::Tree::Static)
+        .unwrap()
+        .module(wgsl::FILES);
+    let body = |name: &str| {
+        let start = kernel.text.find(&format!("fn {name}(")).unwrap();
+        let end = start + kernel.text[start..].find("\n}\n").unwrap();
+        kernel.text[start..end].to_string()
+    };
+    let (world, mesh) = (body("tree_closest"), body("mesh_closest"));
+    assert!(world.contains(" hit_prim(") && !world.contains("mesh_prim("));
+    assert!(mesh.contains(" mesh_prim(") && !mesh.contains("hit_prim("));
+    assert_eq!(
+        world
+            .replace("tree_closest", "mesh_closest")
+            .replace("hit_prim", "mesh_prim"),
+        mesh
+    );
+    // The generated text is located as bvh.wgsl's.
+    let at = kernel.text.find("fn mesh_closest(").unwrap();
+    assert_eq!(kernel.locate(at).0, "bvh.wgsl (generated mesh_closest)");
+
+    let bvh = wgsl::FILES
+        .iter()
+        .find(|(n, _)| *n == "bvh.wgsl")
+        .unwrap()
+        .1;
+    let broken = bvh.replace("specialise tree_closest as", "specialise tree_nearest as");
+    let err = std::panic::catch_unwind(|| modules_with("bvh.wgsl", &broken)).unwrap_err();
+    let msg = err.downcast_ref::<String>().unwrap();
+    assert_eq!(
+        msg,
+        "WGSL: no function tree_nearest to specialise as mesh_closest"
+    );
+}

@@ -373,6 +373,16 @@ impl Renderer {
         }
     }
 
+    /// Bytes of the last rendered scene's buffers on the GPU (`None` for
+    /// the CPU backend).
+    pub fn device_scene_bytes(&self) -> Option<u64> {
+        match self {
+            Renderer::Cpu(_) => None,
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(r) => Some(r.last_stats().scene_bytes),
+        }
+    }
+
     /// `cpu:Nt` or `gpu:ADAPTER`, for summaries and logs.
     pub fn describe(&self) -> String {
         match self.adapter_name() {

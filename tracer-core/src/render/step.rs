@@ -343,6 +343,12 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
     radiance
 }
 
+/// Whether `id` is a triangle: the world's or an instance's.
+#[inline]
+fn is_triangle(id: PrimId) -> bool {
+    id.kind() == PrimId::TRIANGLE || id.kind() == PrimId::INSTANCE_TRIANGLE
+}
+
 /// The selection probability per unit area of the light-sampled emissive
 /// triangle under `s`, or `None` where `s` is no such triangle.
 #[inline]
@@ -356,7 +362,7 @@ fn emitter_density<R: Real, E: Effects<R>>(
         return None;
     }
     let id = fx.static_prim(s.prim)?;
-    if id.kind() != PrimId::TRIANGLE && id.kind() != PrimId::INSTANCE_TRIANGLE {
+    if !is_triangle(id) {
         return None;
     }
     let material = world.surface(id, s.p).2;
@@ -458,14 +464,14 @@ pub fn material_at<R: Real>(
 ) -> (Material<R>, Bsdf<R>) {
     let m = &world.materials[material as usize];
     let whole = (*m, world.bsdfs[material as usize]);
-    if m.pbr == NO_PBR || id.kind() != PrimId::TRIANGLE {
+    if m.pbr == NO_PBR || !is_triangle(id) {
         return whole;
     }
     let pbr = &world.pbr[m.pbr as usize];
     if !pbr.varies() {
         return whole;
     }
-    pbr.at(m, &world.attrs_at(id.index(), p))
+    pbr.at(m, &world.attrs_at(id, p))
 }
 
 /// The shading normal at `p` on primitive `id` (of material index
@@ -490,16 +496,19 @@ pub fn shading_normal<R: Real>(
 ) -> R::V3 {
     let ns = world.shading_normal(id, p, n, v);
     let m = &world.materials[material as usize];
-    if m.pbr == NO_PBR || id.kind() != PrimId::TRIANGLE {
+    if m.pbr == NO_PBR {
         return ns;
     }
     let pbr = &world.pbr[m.pbr as usize];
     if pbr.normal_texture.is_none() && pbr.bump_texture.is_none() {
         return ns;
     }
-    let normal = world.triangle_shading[id.index()].normal_at(&world.triangles[id.index()], p);
+    let Some(tri) = world.placed_triangle(id) else {
+        return ns;
+    };
+    let normal = tri.normal_at(p);
     let tilted = if let Some(tex) = &pbr.normal_texture {
-        let Some((at, t)) = world.tangent_at(id.index(), p) else {
+        let Some((at, t)) = world.tangent_at(id, p) else {
             return ns;
         };
         let c = tex.sample_at(&at);
@@ -521,7 +530,7 @@ pub fn shading_normal<R: Real>(
         let across = normal.cross(along) * sign;
         along * local[0] + across * local[1] + normal * local[2]
     } else if let Some(tex) = &pbr.bump_texture {
-        match bumped_normal(world, id.index(), p, tex, pbr.bump_scale, normal) {
+        match bumped_normal(world, id, p, tex, pbr.bump_scale, normal) {
             Some(b) => b,
             None => return ns,
         }
@@ -539,7 +548,7 @@ pub fn shading_normal<R: Real>(
     if tilted.dot(v) > R::ZERO { tilted } else { ns }
 }
 
-/// The normal (not unit) of triangle `index`'s surface displaced along its
+/// The normal (not unit) of triangle `id`'s surface displaced along its
 /// unit normal `normal` by `scale` x the bump map `tex` (a height field,
 /// first channel) at `p`: (dp/du + h_u scale N) x (dp/dv + h_v scale N),
 /// turned to N's side, with dp/du and dp/dv from the triangle's corners
@@ -549,19 +558,20 @@ pub fn shading_normal<R: Real>(
 /// area. pbr.wgsl `bumped_normal` is its mirror.
 fn bumped_normal<R: Real>(
     world: &World<R>,
-    index: usize,
+    id: PrimId,
     p: R::V3,
     tex: &crate::texture::TextureRef,
     scale: f64,
     normal: R::V3,
 ) -> Option<R::V3> {
-    let a = world.triangle_shading[index].attrs;
+    let tri = world.placed_triangle(id)?;
+    let a = tri.shading.attrs;
     if a == crate::triangle::NO_ATTRS {
         return None;
     }
     let set = tex.uv_set as usize;
     let uvs = world.attrs.tri[a as usize].map(|k| world.attrs.uv[set][k as usize]);
-    let [p0, p1, p2] = world.triangles[index].vertices();
+    let [p0, p1, p2] = tri.corners();
     let (e1, e2) = (p1 - p0, p2 - p0);
     let d1 = [uvs[1][0] - uvs[0][0], uvs[1][1] - uvs[0][1]];
     let d2 = [uvs[2][0] - uvs[0][0], uvs[2][1] - uvs[0][1]];
@@ -573,7 +583,7 @@ fn bumped_normal<R: Real>(
     let inv = f(1.0 / det);
     let dpdu = (e1 * f(d2[1]) - e2 * f(d1[1])) * inv;
     let dpdv = (e2 * f(d1[0]) - e1 * f(d2[0])) * inv;
-    let [u, v] = world.attrs_at(index, p).uv[set];
+    let [u, v] = world.attrs_at(id, p).uv[set];
     let (du, dv) = (1.0 / tex.image.width as f32, 1.0 / tex.image.height as f32);
     let h = |u: f32, v: f32| tex.sample([u, v])[0];
     let hu = (h(u + du, v) - h(u - du, v)) / (2.0 * du);

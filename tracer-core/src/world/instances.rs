@@ -56,6 +56,14 @@ impl<R: Real> Affine3<R> {
     }
 }
 
+impl<R: Real> Instance<R> {
+    /// Whether it mirrors (its linear part's determinant is negative).
+    pub fn mirrors(&self) -> bool {
+        let c = |k: usize| self.to_world.col(k);
+        c(0).cross(c(1)).dot(c(2)) < R::ZERO
+    }
+}
+
 /// One placement of a mesh.
 #[derive(Clone, Copy, Debug)]
 pub struct Instance<R: Real> {
@@ -174,7 +182,7 @@ impl<R: Real> Instances<R> {
 
     /// Instance and local triangle of an `INSTANCE_TRIANGLE` id's index.
     #[inline]
-    fn locate(&self, index: usize) -> (&Instance<R>, &InstancedMesh<R>, usize) {
+    pub(crate) fn locate(&self, index: usize) -> (&Instance<R>, &InstancedMesh<R>, usize) {
         let i = self.list.partition_point(|l| l.first as usize <= index) - 1;
         let inst = &self.list[i];
         (
@@ -233,33 +241,6 @@ impl<R: Real> Instances<R> {
         s.vertex_normals?;
         let ns = s.normal_at(&m.triangles[k], inst.to_object.point(p));
         Some(inst.to_object.transposed(ns).normalize())
-    }
-
-    /// Every placed triangle in the world's space with its shading, in id
-    /// order: the one-level form, for renderers that trace no instances.
-    pub fn flattened(&self) -> (Vec<Triangle<R>>, Vec<TriangleShading<R>>) {
-        let (mut tris, mut shading) = (Vec::new(), Vec::new());
-        for inst in &self.list {
-            let m = &self.meshes[inst.mesh as usize];
-            let n = |v: R::V3| inst.to_object.transposed(v).normalize();
-            for (t, s) in m.triangles.iter().zip(&m.shading) {
-                let v = t.vertices().map(|v| inst.to_world.point(v));
-                // A mirroring map reverses the winding: restored, so the
-                // geometric normal stays outward.
-                let mirrored = (v[1] - v[0]).cross(v[2] - v[0]).dot(n(s.normal)) < R::ZERO;
-                tris.push(Triangle::new(if mirrored { [v[0], v[2], v[1]] } else { v }));
-                shading.push(TriangleShading {
-                    normal: n(s.normal),
-                    vertex_normals: s.vertex_normals.map(|ns| {
-                        let ns = ns.map(n);
-                        if mirrored { [ns[0], ns[2], ns[1]] } else { ns }
-                    }),
-                    material: s.material,
-                    attrs: s.attrs,
-                });
-            }
-        }
-        (tris, shading)
     }
 }
 

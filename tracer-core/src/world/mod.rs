@@ -27,6 +27,7 @@ use triangles::TriangleSet;
 pub use triangles::VertexAttrs;
 
 pub use instances::{Affine3, Instance, InstancedMesh, Instances};
+pub use query::PlacedTriangle;
 
 pub use crate::light::PointLight;
 pub use crate::material::Material;
@@ -125,9 +126,6 @@ pub struct World<R: Real> {
     /// Distributed ray tracing (area lights, cones, lens, motion), only
     /// for scenes that use it: they render through its own path.
     pub dist: Option<Box<Distributed<R>>>,
-    /// This world with its instances copied into its triangles, made once
-    /// on first use ([`World::one_level`]).
-    one_level: std::sync::OnceLock<Box<World<R>>>,
 }
 
 fn v<R: Real>(a: &Vec3) -> R::V3 {
@@ -389,7 +387,6 @@ impl<R: Real> World<R> {
             features,
             camera_position: origin,
             dist: None,
-            one_level: Default::default(),
         };
         world.set_accel(None);
 
@@ -586,34 +583,7 @@ impl<R: Real> World<R> {
             features: self.features,
             camera_position: self.camera_position,
             dist: None,
-            one_level: Default::default(),
         }
-    }
-
-    /// This world, or where it has instances, a copy with every placed
-    /// triangle in its triangles and one tree over them: for renderers
-    /// that trace one level only (the GPU). Made once, on first use.
-    pub fn one_level(&self) -> &World<R> {
-        if self.instances.list.is_empty() {
-            return self;
-        }
-        self.one_level.get_or_init(|| {
-            let (tris, shading) = self.instances.flattened();
-            let mut w = World {
-                spheres: self.spheres.clone(),
-                sphere_packs: self.sphere_packs.clone(),
-                planes: self.planes.clone(),
-                triangles: [self.triangles.as_slice(), &tris].concat(),
-                triangle_shading: [self.triangle_shading.as_slice(), &shading].concat(),
-                materials: self.materials.clone(),
-                lights: self.lights.clone(),
-                degenerate_triangles: self.degenerate_triangles,
-                dist: self.dist.clone(),
-                ..self.clone_settings()
-            };
-            w.set_accel(None);
-            Box::new(w)
-        })
     }
 }
 

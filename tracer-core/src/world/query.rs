@@ -105,29 +105,46 @@ impl<R: Real> World<R> {
         if pbr.alpha_mode != crate::material::AlphaMode::Mask {
             return false;
         }
-        // An instance's triangles keep no attributes (textured meshes are
-        // copied): its alpha is the factor's.
-        let at = if id.kind() == PrimId::TRIANGLE {
-            self.attrs_at(id.index(), p)
-        } else {
-            SurfaceAttrs::NONE
-        };
-        pbr.cut_away(&at)
+        pbr.cut_away(&self.attrs_at(id, p))
+    }
+
+    /// The hit triangle `id` (a world triangle or an instance's) as
+    /// shading sees it, or `None` for other primitives.
+    #[inline]
+    pub fn placed_triangle(&self, id: PrimId) -> Option<PlacedTriangle<'_, R>> {
+        match id.kind() {
+            PrimId::TRIANGLE => Some(PlacedTriangle {
+                triangle: &self.triangles[id.index()],
+                shading: &self.triangle_shading[id.index()],
+                instance: None,
+            }),
+            PrimId::INSTANCE_TRIANGLE => {
+                let (instance, mesh, k) = self.instances.locate(id.index());
+                Some(PlacedTriangle {
+                    triangle: &mesh.triangles[k],
+                    shading: &mesh.shading[k],
+                    instance: Some(instance),
+                })
+            }
+            _ => None,
+        }
     }
 
     /// Texture coordinates (sets 0 and 1) and vertex colour at `p` on
-    /// triangle `index`, interpolated by barycentric weights, and the
-    /// footprint's level of detail in each set ([`World::texture_lod`]);
-    /// [`SurfaceAttrs::NONE`] for a triangle without them.
-    pub fn attrs_at(&self, index: usize, p: R::V3) -> SurfaceAttrs {
-        let a = self.triangle_shading[index].attrs;
+    /// triangle `id` (a world triangle or an instance's), interpolated by
+    /// barycentric weights, and the footprint's level of detail in each
+    /// set ([`World::texture_lod`]); [`SurfaceAttrs::NONE`] for a triangle
+    /// without them and for other primitives.
+    pub fn attrs_at(&self, id: PrimId, p: R::V3) -> SurfaceAttrs {
+        let Some(t) = self.placed_triangle(id) else {
+            return SurfaceAttrs::NONE;
+        };
+        let a = t.shading.attrs;
         if a == crate::triangle::NO_ATTRS {
             return SurfaceAttrs::NONE;
         }
         let vs = self.attrs.tri[a as usize];
-        let b = self.triangles[index]
-            .barycentric(p)
-            .map(|w| w.to_f64() as f32);
+        let b = t.barycentric(p).map(|w| w.to_f64() as f32);
         let mix2 = |v: &[[f32; 2]]| -> [f32; 2] {
             std::array::from_fn(|k| {
                 v[vs[0] as usize][k] * b[0]
@@ -142,12 +159,12 @@ impl<R: Real> World<R> {
         SurfaceAttrs {
             uv: [mix2(&self.attrs.uv[0]), mix2(&self.attrs.uv[1])],
             colour,
-            lod: self.texture_lod(index, p, vs),
+            lod: self.texture_lod(t.corners(), p, vs),
         }
     }
 
-    /// The level of detail of a pixel's footprint at `p` on triangle
-    /// `index` (of attribute vertices `vs`), per UV set: log2 of the
+    /// The level of detail of a pixel's footprint at `p` on the triangle
+    /// of world-space `corners` (of attribute vertices `vs`), per UV set: log2 of the
     /// footprint's side in texture coordinates (docs/meshes.md, "Texture
     /// filtering"). The footprint is the camera's: a cone of one pixel's
     /// angle from the camera (this world's origin) to `p`, whatever path
@@ -160,8 +177,8 @@ impl<R: Real> World<R> {
     /// aliasing at grazing angles), and in texture space by the triangle's
     /// texture-coordinate area over its area. pbr.wgsl `texture_lod` is its
     /// mirror (in f32).
-    pub fn texture_lod(&self, index: usize, p: R::V3, vs: [u32; 3]) -> [f32; 2] {
-        let [p0, p1, p2] = self.triangles[index].vertices();
+    pub fn texture_lod(&self, corners: [R::V3; 3], p: R::V3, vs: [u32; 3]) -> [f32; 2] {
+        let [p0, p1, p2] = corners;
         let c = (p1 - p0).cross(p2 - p0);
         let area = c.length().to_f64();
         let dist = p.length().to_f64();
@@ -186,31 +203,43 @@ impl<R: Real> World<R> {
     }
 
     /// The attributes (`attrs_at`) and tangent (`VertexAttrs::tangent`,
-    /// interpolated, w the first vertex's sign) at `p` on triangle `index`;
-    /// `None` without attributes or where a vertex's tangent is unknown.
-    pub fn tangent_at(&self, index: usize, p: R::V3) -> Option<(SurfaceAttrs, [f32; 4])> {
-        let a = self.triangle_shading[index].attrs;
+    /// interpolated, in the world's space, w the first vertex's sign, turned
+    /// by a mirroring instance) at `p` on triangle `id`; `None` without
+    /// attributes or where a vertex's tangent is unknown.
+    pub fn tangent_at(&self, id: PrimId, p: R::V3) -> Option<(SurfaceAttrs, [f32; 4])> {
+        let t = self.placed_triangle(id)?;
+        let a = t.shading.attrs;
         if a == crate::triangle::NO_ATTRS {
             return None;
         }
         let vs = self.attrs.tri[a as usize];
-        let t = vs.map(|v| {
+        let tangents = vs.map(|v| {
             self.attrs
                 .tangent
                 .get(v as usize)
                 .copied()
                 .unwrap_or_default()
         });
-        if t.iter().any(|t| t[3] == 0.0) {
+        if tangents.iter().any(|t| t[3] == 0.0) {
             return None;
         }
-        let b = self.triangles[index]
-            .barycentric(p)
-            .map(|w| w.to_f64() as f32);
-        let at = self.attrs_at(index, p);
-        let mix: [f32; 3] =
-            std::array::from_fn(|k| t[0][k] * b[0] + t[1][k] * b[1] + t[2][k] * b[2]);
-        Some((at, [mix[0], mix[1], mix[2], t[0][3]]))
+        let b = t.barycentric(p).map(|w| w.to_f64() as f32);
+        let at = self.attrs_at(id, p);
+        let mix: [f32; 3] = std::array::from_fn(|k| {
+            tangents[0][k] * b[0] + tangents[1][k] * b[1] + tangents[2][k] * b[2]
+        });
+        let Some(inst) = t.instance else {
+            return Some((at, [mix[0], mix[1], mix[2], tangents[0][3]]));
+        };
+        // Tangents move with the surface (the placement's linear part); a
+        // mirror flips the bitangent, as for a copied mesh.
+        let v = inst
+            .to_world
+            .vector(R::V3::from_array(mix.map(f64::from)))
+            .to_array()
+            .map(|x| x as f32);
+        let sign = if inst.mirrors() { -1.0 } else { 1.0 };
+        Some((at, [v[0], v[1], v[2], tangents[0][3] * sign]))
     }
 
     /// Nearest hit, cut-outs included.
@@ -546,5 +575,50 @@ impl<R: Real> bvh::Primitives<R> for World<R> {
     #[inline(always)]
     fn triangles(&self) -> &[Triangle<R>] {
         &self.triangles
+    }
+}
+
+/// A hit triangle as shading sees it ([`World::placed_triangle`]): a world
+/// triangle, or an instance's in its mesh's space with the instance that
+/// places it.
+#[derive(Clone, Copy)]
+pub struct PlacedTriangle<'a, R: Real> {
+    pub triangle: &'a Triangle<R>,
+    pub shading: &'a crate::triangle::TriangleShading<R>,
+    pub instance: Option<&'a super::Instance<R>>,
+}
+
+impl<R: Real> PlacedTriangle<'_, R> {
+    /// Barycentric weights of world point `p` (taken in the triangle's own
+    /// space: an affine map keeps them).
+    #[inline]
+    pub fn barycentric(&self, p: R::V3) -> [R; 3] {
+        match self.instance {
+            None => self.triangle.barycentric(p),
+            Some(i) => self.triangle.barycentric(i.to_object.point(p)),
+        }
+    }
+
+    /// Its corners in the world's space, in its attribute vertices' order.
+    #[inline]
+    pub fn corners(&self) -> [R::V3; 3] {
+        let v = self.triangle.vertices();
+        match self.instance {
+            None => v,
+            Some(i) => v.map(|v| i.to_world.point(v)),
+        }
+    }
+
+    /// Its interpolated vertex normal (or geometric normal, when flat) at
+    /// world point `p`, unit, in the world's space.
+    #[inline]
+    pub fn normal_at(&self, p: R::V3) -> R::V3 {
+        match self.instance {
+            None => self.shading.normal_at(self.triangle, p),
+            Some(i) => {
+                let n = self.shading.normal_at(self.triangle, i.to_object.point(p));
+                i.to_object.transposed(n).normalize()
+            }
+        }
     }
 }

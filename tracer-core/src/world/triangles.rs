@@ -143,9 +143,9 @@ impl<R: Real> TriangleSet<R> {
 
     /// Adds `mesh` placed by each of `list` (object space to the
     /// camera-relative world): stored once and instanced, or copied when
-    /// this set does not instance (or the ids run out).
-    /// Textured meshes are copied: an instance's triangles keep no vertex
-    /// attributes of their own yet.
+    /// this set does not instance (or the ids run out). A textured mesh's
+    /// vertex attributes join the set's once, in the mesh's space
+    /// (`World::tangent_at` moves its tangents with each instance).
     fn add_placed(
         &mut self,
         mesh: &crate::mesh::Mesh,
@@ -154,7 +154,7 @@ impl<R: Real> TriangleSet<R> {
         varies: &[bool],
     ) {
         let mut id = None;
-        if self.instancing && !varies.iter().any(|&v| v) {
+        if self.instancing {
             // The mesh once, in its own space, with its own tree.
             let mut own = TriangleSet::default();
             own.add_geometry(
@@ -166,6 +166,21 @@ impl<R: Real> TriangleSet<R> {
                 varies,
             );
             self.degenerate += own.degenerate * list.len();
+            let (tri0, vertex0) = (self.attrs.tri.len() as u32, self.attrs.uv[0].len() as u32);
+            for s in &mut own.shading {
+                if s.attrs != NO_ATTRS {
+                    s.attrs += tri0;
+                }
+            }
+            let a = own.attrs;
+            self.attrs
+                .tri
+                .extend(a.tri.iter().map(|t| t.map(|v| v + vertex0)));
+            for (set, uv) in self.attrs.uv.iter_mut().zip(a.uv) {
+                set.extend(uv);
+            }
+            self.attrs.color.extend(a.color);
+            self.attrs.tangent.extend(a.tangent);
             id = Some(self.instances.add_mesh(own.triangles, own.shading));
         }
         for &m in list {

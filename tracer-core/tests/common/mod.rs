@@ -575,3 +575,58 @@ pub fn minified_checker_scene(tag: &str, distance: f64, size: u32) -> SceneDesc 
     let n = CHECKER_SIDE;
     emissive_texture_scene(tag, (n, n), &checker_texels(), distance, size)
 }
+
+/// DamagedHelmet (textures of every kind, a normal map, tangents by
+/// MikkTSpace) placed by three nodes, the third mirrored, as a scene of
+/// `w` x `h`: written into `dir` with the asset's buffer and images
+/// beside it. `copied`: each node gets a mesh entry of its own over the
+/// same accessors, which the loader copies (the one-level form); else
+/// the three nodes share mesh 0, which is stored once and instanced.
+pub fn three_helmets(dir: &std::path::Path, copied: bool, w: u32, h: u32) -> SceneDesc {
+    let src = prereq::shared("scenes/gltf/DamagedHelmet/glTF/DamagedHelmet.gltf");
+    let folder = src.parent().unwrap();
+    for f in std::fs::read_dir(folder).unwrap() {
+        let f = f.unwrap().path();
+        if f.extension().is_some_and(|e| e != "gltf") {
+            std::fs::copy(&f, dir.join(f.file_name().unwrap())).unwrap();
+        }
+    }
+    let mut json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&src).unwrap()).unwrap();
+    let mesh = json["meshes"][0].clone();
+    let turn = [0.70710677, 0.0, 0.0, 0.70710677];
+    let nodes = serde_json::json!([
+        {"mesh": 0, "rotation": turn, "translation": [-2.2, 0.0, 0.0]},
+        {"mesh": if copied { 1 } else { 0 }, "rotation": [0.5, 0.5, -0.5, 0.5],
+         "translation": [0.0, 0.3, -0.5], "scale": [0.9, 0.9, 0.9]},
+        {"mesh": if copied { 2 } else { 0 }, "rotation": turn,
+         "translation": [2.2, 0.0, 0.0], "scale": [-1.0, 1.0, 1.0]},
+    ]);
+    json["nodes"] = nodes;
+    json["scenes"][0]["nodes"] = serde_json::json!([0, 1, 2]);
+    json["meshes"] = serde_json::json!(if copied {
+        vec![mesh.clone(), mesh.clone(), mesh]
+    } else {
+        vec![mesh]
+    });
+    let path = dir.join(if copied {
+        "copied.gltf"
+    } else {
+        "instanced.gltf"
+    });
+    std::fs::write(&path, json.to_string()).unwrap();
+    let mut desc = SceneDesc::load_input(
+        &path,
+        &tracer_core::scene::ModelSceneOptions {
+            width: Some(w),
+            height: Some(h),
+            ..Default::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    // Closer than the automatic camera, which frames the row's bounding
+    // sphere: the helmets fill the width.
+    desc.camera.position = tracer_core::scene::Vec3([0.0, 0.1, 4.0]);
+    desc.camera.look_at = tracer_core::scene::Vec3([0.0, 0.1, 0.0]);
+    desc
+}

@@ -1,12 +1,13 @@
 //! import geometry.wgsl
 //! import bvh.wgsl
-// Scene queries for worlds with a BVH (world/query.rs): planes by loop, spheres
-// and triangles through the tree, whose root is node 0. The host's
+// Scene queries for worlds with a BVH (world/query.rs): planes by loop, spheres,
+// triangles and instances (instances.wgsl) through the tree, whose root is node 0. The host's
 // choice for such worlds instead of analytic.wgsl.
 
 // world/query.rs closest_hit_accel: planes by loop, then the tree.
 fn closest_hit(o: vec3<f32>, d: vec3<f32>, skip: u32) -> Hit {
-    return tree_closest(0u, o, d, skip, planes_closest(o, d, skip, Hit(BIG, NONE)));
+    let h = tree_closest(0u, o, d, skip, planes_closest(o, d, skip, Hit(BIG, NONE)));
+    return resolve_instance(h, o, d, skip);
 }
 
 fn occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
@@ -16,16 +17,24 @@ fn occluded(o: vec3<f32>, d: vec3<f32>, t_max: f32, skip: u32) -> bool {
 // world/query.rs surface; for triangles (triangle_surface there) the point
 // snapped onto the triangle's plane and its outward geometric normal.
 fn surface(id: u32, p: vec3<f32>) -> SurfacePoint {
-    if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
-        return analytic_surface(id, p);
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    if ((id >> KIND_SHIFT) == KIND_TRIANGLE) {
+        return triangle_surface(index, p);
     }
-    return triangle_surface(id & ((1u << KIND_SHIFT) - 1u), p);
+    if (HAS_INSTANCES && (id >> KIND_SHIFT) == KIND_INSTANCE_TRIANGLE) {
+        return instance_surface(index, p);
+    }
+    return analytic_surface(id, p);
 }
 
 // world/query.rs shading_normal: spheres shade with their geometric normal.
 fn shading_normal(id: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
-    if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
-        return n;
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    if ((id >> KIND_SHIFT) == KIND_TRIANGLE) {
+        return triangle_shading_normal(index, p, n, v);
     }
-    return triangle_shading_normal(id & ((1u << KIND_SHIFT) - 1u), p, n, v);
+    if (HAS_INSTANCES && (id >> KIND_SHIFT) == KIND_INSTANCE_TRIANGLE) {
+        return instance_shading_normal(index, p, n, v);
+    }
+    return n;
 }

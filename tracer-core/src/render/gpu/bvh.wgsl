@@ -1,4 +1,6 @@
 //! import geometry.wgsl
+//! import instances.wgsl
+//! specialise tree_closest as mesh_closest: hit_prim -> mesh_prim
 // Tree traversal on the GPU (bvh/, triangle.rs): the 4-wide node layout,
 // the same slab test with planes chosen by the direction's sign, the same
 // near-first order and culling, `Triangle::intersect` (the watertight test)
@@ -9,6 +11,11 @@
 // from node 0, every moving mesh's after it, its node, leaf and triangle
 // indices rebased by the host (layout.rs TreeData::pack), so a traversal
 // takes the index of its root and a triangle's index is unique across trees.
+// Instanced meshes' trees lie there too (instances.wgsl), walked by
+// `mesh_closest`: `tree_closest` with `mesh_prim` for `hit_prim`, which the
+// assembler generates (wgsl.rs, the `specialise` line above), as Rust
+// instantiates bvh/traverse.rs's generic traversal for the world and for
+// an instanced mesh.
 //
 // The traversal stack has BVH_STACK entries: one more than the most any of
 // the trees can need on any path (a node pushes all its met slots but the
@@ -176,13 +183,23 @@ fn hit_triangle(tri: Triangle, r: TriRay, t_max: f32) -> f32 {
 fn hit_prim(id: u32, o: vec3<f32>, d: vec3<f32>, tr: TriRay, t_max: f32, skip: u32) -> f32 {
     let index = id & ((1u << KIND_SHIFT) - 1u);
     if ((id >> KIND_SHIFT) == KIND_TRIANGLE) {
-        // A ray leaving a triangle cannot hit that (flat) triangle again.
-        if (id == skip) {
-            return MISS;
-        }
-        return hit_triangle(triangles[index], tr, t_max);
+        return mesh_prim(id, o, d, tr, t_max, skip);
+    }
+    if (HAS_INSTANCES && (id >> KIND_SHIFT) == KIND_INSTANCE) {
+        let h = instance_closest(index, o, d, t_max, skip);
+        return select(MISS, h.t, h.id != NONE);
     }
     return hit_sphere(spheres[index], o, d, t_max, id == skip);
+}
+
+// world/instances.rs InstancedMesh's Primitives::intersect: a mesh's tree
+// holds triangles only.
+fn mesh_prim(id: u32, o: vec3<f32>, d: vec3<f32>, tr: TriRay, t_max: f32, skip: u32) -> f32 {
+    // A ray leaving a triangle cannot hit that (flat) triangle again.
+    if (id == skip) {
+        return MISS;
+    }
+    return hit_triangle(triangles[id & ((1u << KIND_SHIFT) - 1u)], tr, t_max);
 }
 
 // bvh/traverse.rs closest_hit: nearest hit of the primitives of the tree rooted at
@@ -354,9 +371,12 @@ fn triangle_shading_normal(index: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>)
     if (shading[index].smooth_shaded == 0u) {
         return n;
     }
-    var ns = triangle_normal_at(index, p);
-    if (dot(ns, n) < 0.0) {
-        ns = -ns;
-    }
-    return select(n, ns, dot(ns, v) > 0.0);
+    return facing_normal(triangle_normal_at(index, p), n, v);
+}
+
+// The interpolated normal ns turned to the side of n, or n itself where
+// it would face away from the viewer v (world/query.rs shading_normal).
+fn facing_normal(ns: vec3<f32>, n: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
+    let turned = select(ns, -ns, dot(ns, n) < 0.0);
+    return select(n, turned, dot(turned, v) > 0.0);
 }

@@ -14,8 +14,8 @@ use crate::bsdf::Bsdf;
 use crate::bvh::{Bvh, BvhNode4, STACK};
 use crate::distributed::PathScene;
 use crate::geometry::{Plane, PrimId, Sphere};
-use crate::triangle::TriangleShading;
-use crate::world::{Material, PointLight, World};
+use crate::triangle::{Triangle, TriangleShading};
+use crate::world::{InstancedMesh, Instances, Material, PointLight, World};
 
 use super::GpuError;
 
@@ -145,6 +145,29 @@ pub struct GpuTriangleShading {
     pub _pad2: u32,
 }
 
+/// One placement of an instanced mesh (`world::Instance`). WGSL
+/// (instances.wgsl): `struct Instance`. Its maps as columns, the
+/// translation last (`Affine3`), with the mesh's tree and ids in the
+/// fourth lanes: 128 bytes an instance.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct GpuInstance {
+    pub w0: [f32; 3],
+    /// The mesh's root node in [`TreeData::nodes`].
+    pub root: u32,
+    pub w1: [f32; 3],
+    /// The mesh's first triangle in [`TreeData::triangles`].
+    pub tri0: u32,
+    pub w2: [f32; 3],
+    /// `Instance::first`: the id index of its first placed triangle.
+    pub first: u32,
+    pub w3: [f32; 3],
+    /// The mesh's triangles.
+    pub count: u32,
+    /// `to_object`'s columns.
+    pub o: [[f32; 4]; 4],
+}
+
 /// The BVH node is uploaded as is: `bvh::BvhNode4` (128 bytes) is already
 /// the WGSL `struct BvhNode4` (six vec4<f32> rows of the four slots' boxes,
 /// then vec4<u32> child and count).
@@ -247,6 +270,7 @@ const _: () = assert!(size_of::<GpuLight>() == 48);
 const _: () = assert!(size_of::<GpuTriangle>() == 48);
 const _: () = assert!(size_of::<GpuTriangleShading>() == 64);
 const _: () = assert!(size_of::<GpuBvhNode>() == 128);
+const _: () = assert!(size_of::<GpuInstance>() == 128);
 const _: () = assert!(size_of::<ResolveParams>() == 16);
 const _: () = assert!(size_of::<ConvergeParams>() == 32);
 const _: () = assert!(size_of::<GpuBlockStats>() == 16);
@@ -272,6 +296,11 @@ pub struct TreeData {
     pub stack: u32,
     /// Where each tree starts, in the order packed.
     pub places: Vec<TreePlace>,
+    /// The world's instances (its tree's `PrimId::INSTANCE`s), their
+    /// meshes' trees packed after the parts' (one unused element when
+    /// there are none).
+    pub instances: Vec<GpuInstance>,
+    pub n_instances: u32,
 }
 
 /// Where one tree lies in [`TreeData`]'s arrays.
@@ -283,13 +312,43 @@ pub struct TreePlace {
     pub first_triangle: u32,
 }
 
-/// A tree to pack: its world (triangles and their shading), and for a
-/// moving mesh, whose world has its own materials, the index in the GPU's
+/// A tree to pack: its triangles and their shading, how many spheres and
+/// instances its leaves may name (the world's own tree), and for a moving
+/// mesh, whose world has its own materials, the index in the GPU's
 /// materials of each of them.
 pub struct TreePart<'a> {
-    pub world: &'a World<f32>,
+    pub triangles: &'a [Triangle<f32>],
+    pub shading: &'a [TriangleShading<f32>],
+    pub spheres: usize,
+    pub instances: usize,
     pub tree: &'a Bvh,
     pub materials: Option<&'a [u32]>,
+}
+
+impl<'a> TreePart<'a> {
+    /// A world's tree (the static world's, or a moving mesh's).
+    pub fn world(w: &'a World<f32>, tree: &'a Bvh, materials: Option<&'a [u32]>) -> Self {
+        TreePart {
+            triangles: &w.triangles,
+            shading: &w.triangle_shading,
+            spheres: w.spheres.len(),
+            instances: w.instances.list.len(),
+            tree,
+            materials,
+        }
+    }
+
+    /// An instanced mesh's tree (its triangles in object space).
+    pub fn mesh(m: &'a InstancedMesh<f32>) -> Self {
+        TreePart {
+            triangles: &m.triangles,
+            shading: &m.shading,
+            spheres: 0,
+            instances: 0,
+            tree: &m.tree,
+            materials: None,
+        }
+    }
 }
 
 impl TreeData {
@@ -298,8 +357,9 @@ impl TreeData {
     /// pushes more than `STACK` entries, since the kernel's traversal stack
     /// has `STACK` entries. The builder guarantees both; this refuses a tree
     /// from anywhere else rather than render a wrong image. The first tree
-    /// is packed as is (its root is node 0).
-    pub fn pack(parts: &[TreePart]) -> Result<Self, GpuError> {
+    /// is packed as is (its root is node 0). `instances`: the first part's
+    /// (the world's), whose meshes' trees follow the parts'.
+    pub fn pack(parts: &[TreePart], instances: &Instances<f32>) -> Result<Self, GpuError> {
         let mut data = TreeData {
             nodes: Vec::new(),
             prims: Vec::new(),
@@ -308,10 +368,17 @@ impl TreeData {
             n_triangles: 0,
             stack: 0,
             places: Vec::new(),
+            instances: Vec::new(),
+            n_instances: 0,
         };
-        for part in parts {
-            let (w, tree) = (part.world, part.tree);
-            let stack = check_tree(&tree.nodes, &tree.prims, w.spheres.len(), w.triangles.len())?;
+        let meshes: Vec<TreePart> = instances.meshes.iter().map(TreePart::mesh).collect();
+        for part in parts.iter().chain(&meshes) {
+            let tree = part.tree;
+            let stack = check_tree(
+                &tree.nodes,
+                &tree.prims,
+                [part.spheres, part.triangles.len(), part.instances],
+            )?;
             data.stack = data.stack.max(stack);
             let (node0, prim0, tri0) = (
                 data.nodes.len() as u32,
@@ -338,7 +405,7 @@ impl TreeData {
                     p.0
                 }
             }));
-            data.triangles.extend(w.triangles.iter().map(|t| {
+            data.triangles.extend(part.triangles.iter().map(|t| {
                 let [v0, v1, v2] = t.vertices().map(a3);
                 GpuTriangle {
                     v0,
@@ -348,7 +415,7 @@ impl TreeData {
                 }
             }));
             data.shading
-                .extend(w.triangle_shading.iter().map(|s: &TriangleShading<f32>| {
+                .extend(part.shading.iter().map(|s: &TriangleShading<f32>| {
                     let ns = s.vertex_normals.map(|n| n.map(a3)).unwrap_or([[0.0; 3]; 3]);
                     GpuTriangleShading {
                         normal: a3(s.normal),
@@ -377,6 +444,32 @@ impl TreeData {
                 data.triangles.len()
             )));
         }
+        let mesh_places = &data.places[parts.len()..];
+        data.instances = instances
+            .list
+            .iter()
+            .map(|i| {
+                let place = mesh_places[i.mesh as usize];
+                let (w, o) = (i.to_world.0, i.to_object.0);
+                let col = |m: [f32; 12], c: usize| [m[3 * c], m[3 * c + 1], m[3 * c + 2]];
+                GpuInstance {
+                    w0: col(w, 0),
+                    root: place.root,
+                    w1: col(w, 1),
+                    tri0: place.first_triangle,
+                    w2: col(w, 2),
+                    first: i.first,
+                    w3: col(w, 3),
+                    count: instances.meshes[i.mesh as usize].triangles.len() as u32,
+                    o: std::array::from_fn(|c| {
+                        let [x, y, z] = col(o, c);
+                        [x, y, z, 0.0]
+                    }),
+                }
+            })
+            .collect();
+        data.n_instances = data.instances.len() as u32;
+        data.instances = non_empty(data.instances);
         data.n_triangles = data.triangles.len() as u32;
         data.triangles = non_empty(data.triangles);
         data.shading = non_empty(data.shading);
@@ -392,8 +485,7 @@ impl TreeData {
 fn check_tree(
     nodes: &[BvhNode4],
     prims: &[PrimId],
-    spheres: usize,
-    triangles: usize,
+    [spheres, triangles, instances]: [usize; 3],
 ) -> Result<u32, GpuError> {
     let bad = |why: String| Err(GpuError::BadTree(why));
     if nodes.is_empty() {
@@ -450,11 +542,12 @@ fn check_tree(
                 let ok = match p.kind() {
                     PrimId::SPHERE => p.index() < spheres,
                     PrimId::TRIANGLE => p.index() < triangles,
+                    PrimId::INSTANCE => p.index() < instances,
                     _ => false,
                 };
                 if !ok {
                     return bad(format!(
-                        "node {i} has a leaf that refers to {p:?}, which is not a sphere or triangle of the scene"
+                        "node {i} has a leaf that refers to {p:?}, which is not a sphere, triangle or instance of the scene"
                     ));
                 }
             }
@@ -841,19 +934,20 @@ impl SceneData {
             moving.push((i, &m.world, t, map));
         }
         let parts: Vec<TreePart> = static_tree
-            .map(|t| TreePart {
-                world: w,
-                tree: t,
-                materials: None,
-            })
+            .map(|t| TreePart::world(w, t, None))
             .into_iter()
-            .chain(moving.iter().map(|(_, world, tree, map)| TreePart {
-                world,
-                tree,
-                materials: Some(map),
-            }))
+            .chain(
+                moving
+                    .iter()
+                    .map(|(_, world, tree, map)| TreePart::world(world, tree, Some(map))),
+            )
             .collect();
-        let ids: Vec<u64> = parts.iter().map(|p| p.tree.id).collect();
+        let instances = &w.instances;
+        let ids: Vec<u64> = parts
+            .iter()
+            .map(|p| p.tree.id)
+            .chain(instances.meshes.iter().map(|m| m.tree.id))
+            .collect();
         let tree = if parts.is_empty() {
             None
         } else {
@@ -862,15 +956,26 @@ impl SceneData {
                     if ids.iter().all(|&id| id != 0)
                         && p.ids == ids
                         && p.data.n_triangles as usize
-                            == parts.iter().map(|p| p.world.triangles.len()).sum::<usize>()
+                            == parts.iter().map(|p| p.triangles.len()).sum::<usize>()
+                                + instances
+                                    .meshes
+                                    .iter()
+                                    .map(|m| m.triangles.len())
+                                    .sum::<usize>()
                         && p.data.prims.len()
-                            == parts.iter().map(|p| p.tree.prims.len()).sum::<usize>() =>
+                            == parts.iter().map(|p| p.tree.prims.len()).sum::<usize>()
+                                + instances
+                                    .meshes
+                                    .iter()
+                                    .map(|m| m.tree.prims.len())
+                                    .sum::<usize>()
+                        && p.data.n_instances as usize == instances.list.len() =>
                 {
                     Some(p.clone())
                 }
                 _ => Some(SharedTree {
                     ids,
-                    data: std::sync::Arc::new(TreeData::pack(&parts)?),
+                    data: std::sync::Arc::new(TreeData::pack(&parts, instances)?),
                 }),
             }
         };
@@ -914,6 +1019,36 @@ impl SceneData {
             path,
             pbr,
         })
+    }
+
+    /// Bytes of the scene's buffers on the device (placeholders for absent
+    /// kinds included): its geometry, trees, instances, distributed and
+    /// path words, model materials and texels.
+    pub fn device_bytes(&self) -> u64 {
+        use std::mem::size_of_val as bytes;
+        let mut n = bytes(self.spheres.as_slice())
+            + bytes(self.planes.as_slice())
+            + bytes(self.materials.as_slice())
+            + bytes(self.lights.as_slice());
+        if let Some(t) = &self.tree {
+            let t = &t.data;
+            n += bytes(t.nodes.as_slice())
+                + bytes(t.prims.as_slice())
+                + bytes(t.triangles.as_slice())
+                + bytes(t.shading.as_slice())
+                + bytes(t.instances.as_slice());
+        }
+        if let Some(d) = &self.dist {
+            n += bytes(d.words.as_slice());
+        }
+        if let Some(p) = &self.pbr {
+            n += bytes(p.mat_pbr.as_slice())
+                + bytes(p.pbrs.as_slice())
+                + bytes(p.tri_attrs.as_slice())
+                + bytes(p.vertices.as_slice())
+                + bytes(p.texels.words.as_slice());
+        }
+        n as u64
     }
 
     /// Entries of the per-thread task stack the kernel needs: the kernel

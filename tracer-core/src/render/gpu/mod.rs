@@ -189,6 +189,8 @@ pub struct GpuStats {
     pub submissions: u32,
     /// Times the wavefront's queues overflowed and the render was redone in smaller dispatches.
     pub overflow_retries: u32,
+    /// Bytes of the scene's buffers on the device (`SceneData::device_bytes`).
+    pub scene_bytes: u64,
 }
 
 /// Scene state kept between renders: buffers and the specialised pipeline.
@@ -209,9 +211,9 @@ struct SceneState {
     planes: wgpu::Buffer,
     materials: wgpu::Buffer,
     lights: wgpu::Buffer,
-    /// BVH nodes, leaf references, triangles, triangle shading (one-element
-    /// placeholders for scenes without a tree, whose kernel never reads them).
-    tree: [wgpu::Buffer; 4],
+    /// BVH nodes, leaf references, triangles, triangle shading, instances
+    /// (placeholders for scenes without a tree, whose kernel never reads them).
+    tree: [wgpu::Buffer; 5],
     /// `DistData::words` (a placeholder for scenes without distributed effects).
     dist: wgpu::Buffer,
     /// `PbrData`'s mat_pbr, pbrs, tri_attrs, vertices, texels (placeholders without).
@@ -784,23 +786,11 @@ impl GpuRenderer {
         } = region;
         prepared.check_request(rect, samples)?;
         let world = match prepared {
-            // The kernels trace one level: instances copied (made once a world).
-            PreparedFrame::F32(w) => w.one_level(),
+            PreparedFrame::F32(w) => w,
             PreparedFrame::F64(_) => return Err(GpuError::F64Unsupported),
         };
         if let Some(what) = cpu_only_materials(world) {
             return Err(GpuError::Materials(what));
-        }
-        if let PreparedFrame::F32(w) = prepared
-            && !w.instances.list.is_empty()
-            && textured_emitters(w)
-        {
-            // The emitters name their triangles in the two-level world;
-            // the copied one the kernels trace numbers them anew.
-            return Err(GpuError::Materials(
-                "textured emissive triangles beside instanced meshes under --integrator path"
-                    .into(),
-            ));
         }
         self.check_fault()?;
         let start = Instant::now();
@@ -975,20 +965,6 @@ fn cpu_only_materials(world: &crate::world::World<f32>) -> Option<String> {
         "textures, vertex colours, emission, cut-outs or single-sided surfaces (glTF doubleSided false) on a moving mesh (distributed effects)"
             .to_string()
     })
-}
-
-/// Whether an emissive triangle light-sampled by the path integrator has
-/// a material whose emission varies over it (read at the sampled point).
-fn textured_emitters(world: &crate::world::World<f32>) -> bool {
-    world
-        .dist
-        .iter()
-        .filter_map(|d| d.path.as_ref())
-        .flat_map(|p| p.emitters.iter())
-        .any(|e| {
-            let pbr = world.materials[e.material as usize].pbr;
-            pbr != crate::material::NO_PBR && world.pbr[pbr as usize].varies()
-        })
 }
 
 /// Default bytes of texels a scene may hold on the GPU (`GpuRenderer`'s

@@ -554,7 +554,8 @@ fn path_step(st: ptr<function, PathState>, seed: u32, s: u32, tau: f32) -> bool 
         // A light-sampled triangle found by a BSDF sample (step.rs
         // `emitter_density`): MIS against its point's light pdf.
         var density = 0.0;
-        if (PATH_EMITTERS > 0u && (hit.id >> KIND_SHIFT) == KIND_TRIANGLE && moving_mesh_of(hit.id) == NONE) {
+        let kind = hit.id >> KIND_SHIFT;
+        if (PATH_EMITTERS > 0u && ((kind == KIND_TRIANGLE && moving_mesh_of(hit.id) == NONE) || kind == KIND_INSTANCE_TRIANGLE)) {
             density = emit_density(sf.material);
         }
         if (density > 0.0 && st.bsdf_pdf >= 0.0) {

@@ -199,9 +199,9 @@ fn tex_sample(t: TexRef, at: Attrs) -> vec4<f32> {
     return a + (b - a) * frac;
 }
 
-// world/query.rs attrs_at (texture.rs SurfaceAttrs): texture coordinates,
-// vertex colour and the footprint's level of detail per set at p on
-// triangle `index`; zeros, white and no footprint for a triangle without them.
+// texture.rs SurfaceAttrs: texture coordinates, vertex colour and the
+// footprint's level of detail per set at a point of a triangle; zeros,
+// white and no footprint for a triangle without them.
 struct Attrs {
     uv0: vec2<f32>,
     uv1: vec2<f32>,
@@ -209,26 +209,37 @@ struct Attrs {
     lod: vec2<f32>,
 }
 
-fn attrs_at(index: u32, p: vec3<f32>) -> Attrs {
-    let a = shading[index].attrs;
+// SurfaceAttrs::NONE: no texture coordinates, white, no footprint.
+fn no_attrs() -> Attrs {
+    return Attrs(vec2<f32>(0.0), vec2<f32>(0.0), vec4<f32>(1.0), vec2<f32>(-BIG));
+}
+
+// world/query.rs attrs_at: at p on triangle id (a world triangle or an
+// instance's).
+fn attrs_at(id: u32, p: vec3<f32>) -> Attrs {
+    let t = placed_triangle(id, p);
+    if (t.tri == NONE) {
+        return no_attrs();
+    }
+    let a = shading[t.tri].attrs;
     if (a == NONE) {
-        return Attrs(vec2<f32>(0.0), vec2<f32>(0.0), vec4<f32>(1.0), vec2<f32>(-BIG));
+        return no_attrs();
     }
     let va = vertex_attrs[tri_attrs[3u * a]];
     let vb = vertex_attrs[tri_attrs[3u * a + 1u]];
     let vc = vertex_attrs[tri_attrs[3u * a + 2u]];
-    let b = triangle_barycentric(index, p);
+    let b = triangle_barycentric(t.tri, t.q);
     return Attrs(
         va.uv0 * b.x + vb.uv0 * b.y + vc.uv0 * b.z,
         va.uv1 * b.x + vb.uv1 * b.y + vc.uv1 * b.z,
         va.colour * b.x + vb.colour * b.y + vc.colour * b.z,
-        texture_lod(index, p, va, vb, vc));
+        texture_lod(placed_corners(t), p, va, vb, vc));
 }
 
 // world/query.rs texture_lod: log2 of the side of the camera's pixel
-// footprint at p in each UV set's texture coordinates (-BIG: none).
-fn texture_lod(index: u32, p: vec3<f32>, va: VertexAttr, vb: VertexAttr, vc: VertexAttr) -> vec2<f32> {
-    let tri = triangles[index];
+// footprint at p, on the triangle of world-space corners `tri`, in each
+// UV set's texture coordinates (-BIG: none).
+fn texture_lod(tri: Triangle, p: vec3<f32>, va: VertexAttr, vb: VertexAttr, vc: VertexAttr) -> vec2<f32> {
     let c = cross(tri.v1 - tri.v0, tri.v2 - tri.v0);
     let area = length(c);
     let dist = length(p);
@@ -268,23 +279,31 @@ fn base_color_at(p: Pbr, at: Attrs) -> vec4<f32> {
 // d, is cut away (a MASK material's alpha there below its cutoff, or d
 // meets the back face of a single-sided surface).
 fn cut_away(id: u32, p: vec3<f32>, d: vec3<f32>) -> bool {
-    if ((id >> KIND_SHIFT) != KIND_TRIANGLE) {
+    let index = id & ((1u << KIND_SHIFT) - 1u);
+    var material: u32;
+    var normal: vec3<f32>;
+    if ((id >> KIND_SHIFT) == KIND_TRIANGLE) {
+        material = shading[index].material;
+        normal = shading[index].normal;
+    } else if (HAS_INSTANCES && (id >> KIND_SHIFT) == KIND_INSTANCE_TRIANGLE) {
+        let sp = instance_surface(index, p);
+        material = sp.material;
+        normal = sp.n;
+    } else {
         return false;
     }
-    let index = id & ((1u << KIND_SHIFT) - 1u);
-    let s = shading[index];
-    let pi = mat_pbr[s.material];
+    let pi = mat_pbr[material];
     if (pi == NONE) {
         return false;
     }
     let pb = pbrs[pi];
-    if ((pb.flags & PBR_CULL) != 0u && dot(s.normal, d) > 0.0) {
+    if ((pb.flags & PBR_CULL) != 0u && dot(normal, d) > 0.0) {
         return true;
     }
     if ((pb.flags & PBR_MASK) == 0u) {
         return false;
     }
-    return base_color_at(pb, attrs_at(index, p)).w < pb.alpha_cutoff;
+    return base_color_at(pb, attrs_at(id, p)).w < pb.alpha_cutoff;
 }
 
 // world/query.rs closest_hit with cut-outs (through_cutouts): each cut-out
@@ -334,7 +353,8 @@ struct Looked {
 // The model material (pbrs index) of a hit on primitive id with material
 // index `material`, NONE where there is none to look up.
 fn pbr_index(id: u32, material: u32) -> u32 {
-    if (!HAS_PBR || (id >> KIND_SHIFT) != KIND_TRIANGLE) {
+    let kind = id >> KIND_SHIFT;
+    if (!HAS_PBR || (kind != KIND_TRIANGLE && kind != KIND_INSTANCE_TRIANGLE)) {
         return NONE;
     }
     return mat_pbr[material];
@@ -355,8 +375,7 @@ struct PbrAt {
 }
 
 fn pbr_at(pb: Pbr, id: u32, p: vec3<f32>) -> PbrAt {
-    let index = id & ((1u << KIND_SHIFT) - 1u);
-    let at = attrs_at(index, p);
+    let at = attrs_at(id, p);
     var out = PbrAt(base_color_at(pb, at), pb.emissive, pb.metallic, pb.roughness, 1.0);
     if ((pb.tex[T_EMISSIVE].flags & TEX_PRESENT) != 0u) {
         out.emission = pb.emissive * tex_sample(pb.tex[T_EMISSIVE], at).xyz;
@@ -441,18 +460,21 @@ fn normal_mapped(id: u32, p: vec3<f32>, material: u32, n: vec3<f32>, ns: vec3<f3
         return ns;
     }
     // world/query.rs tangent_at.
-    let index = id & ((1u << KIND_SHIFT) - 1u);
-    let a = shading[index].attrs;
+    let placed = placed_triangle(id, p);
+    if (placed.tri == NONE) {
+        return ns;
+    }
+    let a = shading[placed.tri].attrs;
     if (a == NONE) {
         return ns;
     }
     let va = vertex_attrs[tri_attrs[3u * a]];
     let vb = vertex_attrs[tri_attrs[3u * a + 1u]];
     let vc = vertex_attrs[tri_attrs[3u * a + 2u]];
-    let normal = triangle_normal_at(index, p);
+    let normal = placed_normal_at(placed);
     var tilted0: vec3<f32>;
     if ((pb.flags & PBR_BUMP) != 0u) {
-        let bumped = bumped_normal(pb, index, p, va, vb, vc, normal);
+        let bumped = bumped_normal(pb, id, placed, p, va, vb, vc, normal);
         if (!bumped.ok) {
             return ns;
         }
@@ -461,9 +483,10 @@ fn normal_mapped(id: u32, p: vec3<f32>, material: u32, n: vec3<f32>, ns: vec3<f3
         if (va.tangent.w == 0.0 || vb.tangent.w == 0.0 || vc.tangent.w == 0.0) {
             return ns;
         }
-        let b = triangle_barycentric(index, p);
-        let t = va.tangent.xyz * b.x + vb.tangent.xyz * b.y + vc.tangent.xyz * b.z;
-        let at = attrs_at(index, p);
+        let b = triangle_barycentric(placed.tri, placed.q);
+        let tw = placed_tangent(placed, vec4<f32>(va.tangent.xyz * b.x + vb.tangent.xyz * b.y + vc.tangent.xyz * b.z, va.tangent.w));
+        let t = tw.xyz;
+        let at = attrs_at(id, p);
         let c = tex_sample(pb.tex[T_NORMAL], at);
         let local = vec3<f32>(
             (2.0 * c.x - 1.0) * pb.normal_scale,
@@ -475,7 +498,7 @@ fn normal_mapped(id: u32, p: vec3<f32>, material: u32, n: vec3<f32>, ns: vec3<f3
             return ns;
         }
         let along = along0 * (1.0 / len0);
-        let across = cross(normal, along) * select(1.0, -1.0, va.tangent.w < 0.0);
+        let across = cross(normal, along) * select(1.0, -1.0, tw.w < 0.0);
         tilted0 = along * local.x + across * local.y + normal * local.z;
     }
     let len = length(tilted0);
@@ -494,17 +517,17 @@ struct Bumped {
     ok: bool,
 }
 
-// render/step.rs bumped_normal: the normal (not unit) of triangle index's
-// surface displaced along its unit normal by bump_scale x the bump map
-// (the normal slot, first channel) at p, turned to the normal's side;
-// ok false where its texture coordinates span no area.
-fn bumped_normal(pb: Pbr, index: u32, p: vec3<f32>, va: VertexAttr, vb: VertexAttr, vc: VertexAttr, normal: vec3<f32>) -> Bumped {
+// render/step.rs bumped_normal: the normal (not unit) of triangle id's
+// surface (`placed` at p) displaced along its unit normal by bump_scale x
+// the bump map (the normal slot, first channel) at p, turned to the
+// normal's side; ok false where its texture coordinates span no area.
+fn bumped_normal(pb: Pbr, id: u32, placed: Placed, p: vec3<f32>, va: VertexAttr, vb: VertexAttr, vc: VertexAttr, normal: vec3<f32>) -> Bumped {
     let t = pb.tex[T_NORMAL];
     let set1 = (t.flags & TEX_UV1) != 0u;
     let ua = select(va.uv0, va.uv1, set1);
     let ub = select(vb.uv0, vb.uv1, set1);
     let uc = select(vc.uv0, vc.uv1, set1);
-    let tri = triangles[index];
+    let tri = placed_corners(placed);
     let e1 = tri.v1 - tri.v0;
     let e2 = tri.v2 - tri.v0;
     let d1 = ub - ua;
@@ -516,7 +539,7 @@ fn bumped_normal(pb: Pbr, index: u32, p: vec3<f32>, va: VertexAttr, vb: VertexAt
     let inv = 1.0 / det;
     let dpdu = (e1 * d2.y - e2 * d1.y) * inv;
     let dpdv = (e2 * d1.x - e1 * d2.x) * inv;
-    let at = attrs_at(index, p);
+    let at = attrs_at(id, p);
     let uv = select(at.uv0, at.uv1, set1);
     let du = 1.0 / f32(t.width);
     let dv = 1.0 / f32(t.height);

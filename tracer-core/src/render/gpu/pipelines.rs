@@ -73,6 +73,12 @@ impl GpuRenderer {
                     .map_or(0, |t| std::mem::size_of_val(t.data.shading.as_slice())),
             ),
             (
+                "the scene's instances",
+                data.tree
+                    .as_ref()
+                    .map_or(0, |t| std::mem::size_of_val(t.data.instances.as_slice())),
+            ),
+            (
                 "the scene's vertex attributes",
                 data.pbr
                     .as_ref()
@@ -152,6 +158,9 @@ impl GpuRenderer {
         ];
         // Model materials: left out for scenes without (their kernel is as before).
         let mut constants = constants.to_vec();
+        if data.tree.as_ref().is_some_and(|t| t.data.n_instances > 0) {
+            constants.push(("HAS_INSTANCES", 1.0));
+        }
         if let Some(p) = &data.pbr {
             constants.push(("HAS_PBR", 1.0));
             if p.cutouts {
@@ -266,9 +275,16 @@ impl GpuRenderer {
                         bytemuck::cast_slice(&t.data.shading),
                         st,
                     ),
+                    make("instances", bytemuck::cast_slice(&t.data.instances), st),
                 ],
-                None => ["bvh nodes", "bvh prims", "triangles", "triangle shading"]
-                    .map(|label| make(label, &[0u8; 64], st)),
+                None => [
+                    "bvh nodes",
+                    "bvh prims",
+                    "triangles",
+                    "triangle shading",
+                    "instances",
+                ]
+                .map(|label| make(label, &[0u8; 128], st)),
             },
         };
         let (module, pipeline, adaptive, wave) = match kept_kernel {

@@ -109,6 +109,8 @@ const KIND_SHIFT: u32 = 28u;
 const KIND_SPHERE: u32 = 0u;
 const KIND_PLANE: u32 = 1u;
 const KIND_TRIANGLE: u32 = 2u;
+const KIND_INSTANCE: u32 = 3u;
+const KIND_INSTANCE_TRIANGLE: u32 = 4u;
 
 fn offset_origin(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     let a = abs(p);

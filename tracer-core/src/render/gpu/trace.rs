@@ -264,6 +264,7 @@ impl GpuRenderer {
                 submissions,
                 overflow_retries: 0,
                 readback,
+                scene_bytes: scene.data.device_bytes(),
             };
         }
         Ok(Some(rendered))
@@ -406,6 +407,7 @@ impl GpuRenderer {
                 entire(b("prims"), &scene.tree[1]),
                 entire(b("triangles"), &scene.tree[2]),
                 entire(b("shading"), &scene.tree[3]),
+                entire(b("instances"), &scene.tree[4]),
                 entire(b("dist"), &scene.dist),
                 entire(
                     b("active_blocks"),

@@ -11,6 +11,12 @@
 //! or accel.wgsl; the moving meshes' queries); the files that call them say
 //! so in a `//! uses` line, and the host names the chosen one as a root.
 //!
+//! A file's `//! specialise F as G: A -> B` lines generate, after the
+//! file, function `G`: `F`'s text with every call of `A` made a call of
+//! `B` (bvh.wgsl's traversal for the world's tree and for an instanced
+//! mesh's, as Rust instantiates one generic function twice; WGSL has
+//! neither generics nor recursion).
+//!
 //! Each bind group layout is declared once, below ([`SCENE`] and kin):
 //! the host's layout entries and binding numbers and the WGSL `var`
 //! declarations (generated after the file that uses each binding) come
@@ -25,6 +31,7 @@ pub const FILES: &[(&str, &str)] = &[
     ("converge.wgsl", include_str!("converge.wgsl")),
     ("distributed.wgsl", include_str!("distributed.wgsl")),
     ("geometry.wgsl", include_str!("geometry.wgsl")),
+    ("instances.wgsl", include_str!("instances.wgsl")),
     ("moving_meshes.wgsl", include_str!("moving_meshes.wgsl")),
     (
         "no_moving_meshes.wgsl",
@@ -86,6 +93,56 @@ pub fn imports(text: &str) -> impl Iterator<Item = &str> {
         .map(str::trim)
 }
 
+/// The file's `//! specialise F as G: A -> B` lines, as (F, G, A, B).
+pub fn specialisations(text: &str) -> impl Iterator<Item = [&str; 4]> {
+    text.lines()
+        .take_while(|l| l.starts_with("//"))
+        .filter_map(|l| l.strip_prefix("//! specialise "))
+        .map(|l| {
+            let parse = || {
+                let (f, rest) = l.split_once(" as ")?;
+                let (g, rest) = rest.split_once(':')?;
+                let (a, b) = rest.split_once("->")?;
+                Some([f, g, a, b].map(str::trim))
+            };
+            parse().unwrap_or_else(|| panic!("WGSL: malformed line `//! specialise {l}`"))
+        })
+}
+
+/// Function `f` of `text` (from `fn f(` to its closing brace) renamed `g`,
+/// with each call of `a` made a call of `b`. Panics where `text` has no
+/// such function: build.rs assembles every module, so the build fails.
+pub fn specialise(text: &str, [f, g, a, b]: [&str; 4]) -> String {
+    let head = format!("fn {f}(");
+    let start = text
+        .find(&head)
+        .unwrap_or_else(|| panic!("WGSL: no function {f} to specialise as {g}"));
+    let mut depth = 0;
+    let mut end = None;
+    for (i, c) in text[start..].char_indices() {
+        match c {
+            '{' => depth += 1,
+            '}' => {
+                depth -= 1;
+                if depth == 0 {
+                    end = Some(start + i + 1);
+                    break;
+                }
+            }
+            _ => {}
+        }
+    }
+    let body = &text[start..end.unwrap_or_else(|| panic!("WGSL: function {f} never closes"))];
+    let call = format!("{a}(");
+    assert!(body.contains(&call), "WGSL: {f} never calls {a}");
+    format!(
+        "// {f} with {b} for {a} (generated: a `specialise` line)\n{}\n",
+        body.replacen(&head, &format!("fn {g}("), 1)
+            .replace(&format!(" {call}"), &format!(" {b}("))
+            .replace(&format!("({call}"), &format!("({b}("))
+    )
+}
+
 /// `roots` and every file they import, each once, each after its imports,
 /// after `prelude` (generated constants). Panics on an import of a file
 /// that does not exist or an import cycle: build.rs assembles every module
@@ -131,6 +188,11 @@ pub fn assemble(
         m.parts.push((m.text.len(), file.to_string()));
         m.text.push_str(text);
         m.text.push('\n');
+        for spec in specialisations(text) {
+            m.parts
+                .push((m.text.len(), format!("{file} (generated {})", spec[1])));
+            m.text.push_str(&specialise(text, spec));
+        }
         // The file's bindings, generated from their one declaration.
         for layout in layouts {
             m.text.push_str(&layout.declarations(file));
@@ -384,6 +446,8 @@ pub const SCENE: Layout = Layout {
         bind("tri_attrs", "array<u32>", Read, "pbr.wgsl"),
         bind("vertex_attrs", "array<VertexAttr>", Read, "pbr.wgsl"),
         bind("texels", "array<u32>", Read, "pbr.wgsl"),
+        // Instanced meshes' placements (a placeholder without).
+        bind("instances", "array<Instance>", Read, "instances.wgsl"),
     ],
 };
 
