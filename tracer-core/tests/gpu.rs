@@ -1631,6 +1631,34 @@ fn check_tree_scene(what: &str, desc: &SceneDesc, s: &RenderSettings) -> Option<
     Some(got)
 }
 
+/// The mesh scenes' render settings (`MESH_SCENE_HEAD`, before their
+/// camera) and their world, materials and two lights (`MESH_SCENE_LOOKS`).
+const MESH_SCENE_HEAD: &str = "\n[render]\nwidth = 96\nheight = 72\nsamples = 4\nmax_depth = 5\n";
+const MESH_SCENE_LOOKS: &str = r#"[world]
+ambient = [0.1, 0.1, 0.1]
+background = [0.05, 0.1, 0.2]
+[materials.clay]
+ambient = [0.8, 0.5, 0.4]
+diffuse = [0.8, 0.5, 0.4]
+specular = [0.6, 0.6, 0.6]
+shininess = 40
+[materials.glass]
+diffuse = [0, 0, 0]
+specular = [1, 1, 1]
+shininess = 120
+reflectivity = 0.1
+transparency = 0.9
+ior = 1.5
+[materials.mirror]
+diffuse = [0.05, 0.05, 0.05]
+reflectivity = 0.8
+[[lights]]
+position = [-4, 6, -5]
+[[lights]]
+position = [3, 4, -2]
+diffuse = [0.5, 0.5, 0.6]
+"#;
+
 /// A generated mesh scene covering what the kernel's mesh path does: a
 /// smooth sphere mesh (5120 triangles, vertex normals), a flat one (1280)
 /// as glass, a mirror box made of triangles (material overrides), an
@@ -1659,42 +1687,13 @@ fn gpu_generated_mesh_scene_matches_the_cpu() {
         .flat_map(|q: &[u32; 4]| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
         .collect();
     write_obj(&dir.join("cube.obj"), &cube_v, &cube_f, false);
-    let src = r#"
-[render]
-width = 96
-height = 72
-samples = 4
-max_depth = 5
-[camera]
-position = [0, 1.5, -6]
-look_at = [0, 0.4, 0]
-fov_y = 45
-[world]
-ambient = [0.1, 0.1, 0.1]
-background = [0.05, 0.1, 0.2]
-[materials.clay]
-ambient = [0.8, 0.5, 0.4]
-diffuse = [0.8, 0.5, 0.4]
-specular = [0.6, 0.6, 0.6]
-shininess = 40
-[materials.glass]
-diffuse = [0, 0, 0]
-specular = [1, 1, 1]
-shininess = 120
-reflectivity = 0.1
-transparency = 0.9
-ior = 1.5
-[materials.mirror]
-diffuse = [0.05, 0.05, 0.05]
-reflectivity = 0.8
+    let src = MESH_SCENE_HEAD.to_string()
+        + "[camera]\nposition = [0, 1.5, -6]\nlook_at = [0, 0.4, 0]\nfov_y = 45\n"
+        + MESH_SCENE_LOOKS
+        + r#"
 [materials.floor]
 ambient = [0.4, 0.4, 0.4]
 diffuse = [0.6, 0.6, 0.6]
-[[lights]]
-position = [-4, 6, -5]
-[[lights]]
-position = [3, 4, -2]
-diffuse = [0.5, 0.5, 0.6]
 [[objects]]
 type = "mesh"
 path = "smooth.obj"
@@ -1725,7 +1724,7 @@ normal = [0, 1, 0]
 distance = 0
 material = "floor"
 "#;
-    let desc = SceneDesc::parse(src, dir.join("gen.toml")).unwrap();
+    let desc = SceneDesc::parse(&src, dir.join("gen.toml")).unwrap();
     let s = desc.render;
     let Some(film) = check_tree_scene("generated meshes", &desc, &s) else {
         return;
@@ -1786,40 +1785,11 @@ fn gpu_instanced_meshes_are_traced_in_two_levels_and_match_the_cpu() {
         })
         .collect();
     let src = format!(
-        r#"
-[render]
-width = 96
-height = 72
-samples = 4
-max_depth = 5
-[camera]
+        r#"{MESH_SCENE_HEAD}[camera]
 position = [0, 2.5, -5]
 look_at = [0, 0.4, 0.4]
 fov_y = 50
-[world]
-ambient = [0.1, 0.1, 0.1]
-background = [0.05, 0.1, 0.2]
-[materials.clay]
-ambient = [0.8, 0.5, 0.4]
-diffuse = [0.8, 0.5, 0.4]
-specular = [0.6, 0.6, 0.6]
-shininess = 40
-[materials.glass]
-diffuse = [0, 0, 0]
-specular = [1, 1, 1]
-shininess = 120
-reflectivity = 0.1
-transparency = 0.9
-ior = 1.5
-[materials.mirror]
-diffuse = [0.05, 0.05, 0.05]
-reflectivity = 0.8
-[[lights]]
-position = [-4, 6, -5]
-[[lights]]
-position = [3, 4, -2]
-diffuse = [0.5, 0.5, 0.6]
-[[objects]]
+{MESH_SCENE_LOOKS}[[objects]]
 type = "mesh"
 path = "smooth.obj"
 material = "clay"

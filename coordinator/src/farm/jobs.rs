@@ -8,8 +8,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use tokio::sync::watch;
+use tracer_core::adaptive::AdaptiveSettings;
 use tracer_core::assets::Bundle;
-use tracer_core::scene::SceneDesc;
+use tracer_core::scene::{RenderSettings, SceneDesc};
 
 use crate::assets::{AssetStoreError, sha256_hex};
 use crate::store::{Counters, JobRecord, JobStateRec, Op};
@@ -50,37 +51,7 @@ impl Farm {
             Some(s) => s,
             None => self.config.blocklist_for.as_secs_f64(),
         };
-        // The job's files: inline ones stored now, uploaded ones named by
-        // hash. The scene is validated from these alone.
-        let limits = self.assets.limits;
-        let mut files = BTreeMap::new();
-        let mut job_bytes = s.scene.len() as u64;
-        for (name, content) in &s.assets {
-            check_file_name(name)?;
-            let sha256 = self.assets.put(content).map_err(asset_error)?;
-            job_bytes += content.len() as u64;
-            files.insert(name.clone(), sha256);
-        }
-        for (name, sha256) in &s.files {
-            check_file_name(name)?;
-            crate::assets::check_hash(sha256)
-                .map_err(|e| FarmError::InvalidArgument(format!("files[{name:?}]: {e}")))?;
-            // Held (its retention clock restarted) before anything else:
-            // the collector leaves it for the retention time from now.
-            let size = self.assets.hold(sha256).ok_or_else(|| {
-                FarmError::FailedPrecondition(format!(
-                    "files[{name:?}]: asset {sha256} is not on the coordinator; upload it first (UploadAsset)"
-                ))
-            })?;
-            job_bytes += size;
-            files.insert(name.clone(), sha256.clone());
-        }
-        if job_bytes > limits.max_job_bytes {
-            return Err(FarmError::ResourceExhausted(format!(
-                "the job's files are {job_bytes} bytes, over the coordinator's limit of {} bytes a job (--max-job-bytes)",
-                limits.max_job_bytes
-            )));
-        }
+        let files = self.store_files(&s)?;
         let bundle = {
             let farm = self.clone();
             let files = files.clone();
@@ -104,89 +75,13 @@ impl Farm {
             .overrides
             .resolve(&scene, &spec.adaptive)
             .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
-        let (first, last) = (spec.first_frame, spec.last_frame);
-        if first > last {
-            return Err(FarmError::InvalidArgument(format!(
-                "frame range {first}..{last} is empty (first frame after last)"
-            )));
-        }
-        if last - first >= 100_000 {
-            return Err(FarmError::InvalidArgument(format!(
-                "frame range {first}..{last} has more than 100000 frames"
-            )));
-        }
-        let tile_size = spec.tile_size.unwrap_or(DEFAULT_TILE_SIZE);
-        if !(8..=4096).contains(&tile_size) {
-            return Err(FarmError::InvalidArgument(format!(
-                "tile_size must be in 8..=4096, got {tile_size}"
-            )));
-        }
-        let block = tracer_core::adaptive::BLOCK;
-        if adaptive.is_some() && !tile_size.is_multiple_of(block) {
-            return Err(FarmError::InvalidArgument(format!(
-                "tile_size must be a multiple of {block} for adaptive sampling (target_error, relative_error), which decides per {block}x{block} block; got {tile_size}"
-            )));
-        }
-        let samples_per_unit = spec.samples_per_unit.unwrap_or(DEFAULT_SAMPLES_PER_UNIT);
-        // An adaptive job's sample batches are its rounds.
-        let batches = adaptive.map(|a| a.rounds());
-        let max_attempts = spec.max_attempts.unwrap_or(DEFAULT_MAX_ATTEMPTS);
-        let pixels = u64::from(settings.width) * u64::from(settings.height);
-        if pixels > self.config.max_frame_pixels {
-            return Err(FarmError::InvalidArgument(format!(
-                "a {}x{} frame has {pixels} pixels, over the coordinator's limit of {} (--max-frame-pixels): \
-                 the coordinator holds a frame's sums while it fills, {:.1} GB for this one",
-                settings.width,
-                settings.height,
-                self.config.max_frame_pixels,
-                (pixels * RESULT_BYTES_PER_PIXEL) as f64 / 1e9
-            )));
-        }
-        // One tile's result must fit one message.
-        let tile_pixels =
-            u64::from(tile_size.min(settings.width)) * u64::from(tile_size.min(settings.height));
-        let max_pixels = self.max_result_pixels();
-        if tile_pixels > max_pixels {
-            let side = (max_pixels as f64).sqrt() as u64 / 8 * 8;
-            return Err(FarmError::InvalidArgument(format!(
-                "tile_size {tile_size} makes results of {} bytes, over the coordinator's message limit of {} bytes \
-                 (--max-message-bytes); use tiles of at most {side} px",
-                tile_pixels * RESULT_BYTES_PER_PIXEL,
-                self.config.max_message_bytes
-            )));
-        }
-        let units = match &batches {
-            None => unit_count(
-                settings.width,
-                settings.height,
-                settings.samples,
-                last - first + 1,
-                tile_size,
-                samples_per_unit,
-            ),
-            Some(b) => {
-                unit_count(
-                    settings.width,
-                    settings.height,
-                    1,
-                    last - first + 1,
-                    tile_size,
-                    1,
-                ) * b.len() as u64
-            }
-        };
-        if units == 0 || units > MAX_UNITS {
-            return Err(FarmError::InvalidArgument(format!(
-                "the job would have {units} work units (the limit is {MAX_UNITS}); use larger tiles or sample batches"
-            )));
-        }
-        let layout = super::job::job_layout(
-            settings,
-            (first, last),
+        let Plan {
+            frames: (first, last),
             tile_size,
             samples_per_unit,
-            adaptive.as_ref(),
-        );
+            max_attempts,
+            layout,
+        } = self.plan(spec, settings, adaptive.as_ref())?;
         // Off the async threads: it traces a few rays of every tile.
         let tile_rays = {
             let layout = layout.clone();
@@ -288,6 +183,144 @@ impl Farm {
         }
         self.work_ready.notify_waiters();
         Ok(id)
+    }
+
+    /// The job's files, checked and held: inline ones stored now, uploaded
+    /// ones named by hash (each held, its retention clock restarted),
+    /// within the coordinator's bytes a job. The scene is validated from
+    /// these alone.
+    fn store_files(&self, s: &Submission) -> Result<BTreeMap<String, String>, FarmError> {
+        let limits = self.assets.limits;
+        let mut files = BTreeMap::new();
+        let mut job_bytes = s.scene.len() as u64;
+        for (name, content) in &s.assets {
+            check_file_name(name)?;
+            let sha256 = self.assets.put(content).map_err(asset_error)?;
+            job_bytes += content.len() as u64;
+            files.insert(name.clone(), sha256);
+        }
+        for (name, sha256) in &s.files {
+            check_file_name(name)?;
+            crate::assets::check_hash(sha256)
+                .map_err(|e| FarmError::InvalidArgument(format!("files[{name:?}]: {e}")))?;
+            // Held (its retention clock restarted) before anything else:
+            // the collector leaves it for the retention time from now.
+            let size = self.assets.hold(sha256).ok_or_else(|| {
+                FarmError::FailedPrecondition(format!(
+                    "files[{name:?}]: asset {sha256} is not on the coordinator; upload it first (UploadAsset)"
+                ))
+            })?;
+            job_bytes += size;
+            files.insert(name.clone(), sha256.clone());
+        }
+        if job_bytes > limits.max_job_bytes {
+            return Err(FarmError::ResourceExhausted(format!(
+                "the job's files are {job_bytes} bytes, over the coordinator's limit of {} bytes a job (--max-job-bytes)",
+                limits.max_job_bytes
+            )));
+        }
+        Ok(files)
+    }
+
+    /// A submission's frames, tiles and sample batches, checked against
+    /// the coordinator's limits (frame size, message size, units): its
+    /// layout, before anything is stored.
+    fn plan(
+        &self,
+        spec: &tessera_proto::JobSpec,
+        settings: RenderSettings,
+        adaptive: Option<&AdaptiveSettings>,
+    ) -> Result<Plan, FarmError> {
+        let (first, last) = (spec.first_frame, spec.last_frame);
+        if first > last {
+            return Err(FarmError::InvalidArgument(format!(
+                "frame range {first}..{last} is empty (first frame after last)"
+            )));
+        }
+        if last - first >= 100_000 {
+            return Err(FarmError::InvalidArgument(format!(
+                "frame range {first}..{last} has more than 100000 frames"
+            )));
+        }
+        let tile_size = spec.tile_size.unwrap_or(DEFAULT_TILE_SIZE);
+        if !(8..=4096).contains(&tile_size) {
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size must be in 8..=4096, got {tile_size}"
+            )));
+        }
+        let block = tracer_core::adaptive::BLOCK;
+        if adaptive.is_some() && !tile_size.is_multiple_of(block) {
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size must be a multiple of {block} for adaptive sampling (target_error, relative_error), which decides per {block}x{block} block; got {tile_size}"
+            )));
+        }
+        let samples_per_unit = spec.samples_per_unit.unwrap_or(DEFAULT_SAMPLES_PER_UNIT);
+        // An adaptive job's sample batches are its rounds.
+        let batches = adaptive.map(|a| a.rounds());
+        let max_attempts = spec.max_attempts.unwrap_or(DEFAULT_MAX_ATTEMPTS);
+        let pixels = u64::from(settings.width) * u64::from(settings.height);
+        if pixels > self.config.max_frame_pixels {
+            return Err(FarmError::InvalidArgument(format!(
+                "a {}x{} frame has {pixels} pixels, over the coordinator's limit of {} (--max-frame-pixels): \
+                 the coordinator holds a frame's sums while it fills, {:.1} GB for this one",
+                settings.width,
+                settings.height,
+                self.config.max_frame_pixels,
+                (pixels * RESULT_BYTES_PER_PIXEL) as f64 / 1e9
+            )));
+        }
+        // One tile's result must fit one message.
+        let tile_pixels =
+            u64::from(tile_size.min(settings.width)) * u64::from(tile_size.min(settings.height));
+        let max_pixels = self.max_result_pixels();
+        if tile_pixels > max_pixels {
+            let side = (max_pixels as f64).sqrt() as u64 / 8 * 8;
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size {tile_size} makes results of {} bytes, over the coordinator's message limit of {} bytes \
+                 (--max-message-bytes); use tiles of at most {side} px",
+                tile_pixels * RESULT_BYTES_PER_PIXEL,
+                self.config.max_message_bytes
+            )));
+        }
+        let units = match &batches {
+            None => unit_count(
+                settings.width,
+                settings.height,
+                settings.samples,
+                last - first + 1,
+                tile_size,
+                samples_per_unit,
+            ),
+            Some(b) => {
+                unit_count(
+                    settings.width,
+                    settings.height,
+                    1,
+                    last - first + 1,
+                    tile_size,
+                    1,
+                ) * b.len() as u64
+            }
+        };
+        if units == 0 || units > MAX_UNITS {
+            return Err(FarmError::InvalidArgument(format!(
+                "the job would have {units} work units (the limit is {MAX_UNITS}); use larger tiles or sample batches"
+            )));
+        }
+        let layout = super::job::job_layout(
+            settings,
+            (first, last),
+            tile_size,
+            samples_per_unit,
+            adaptive,
+        );
+        Ok(Plan {
+            frames: (first, last),
+            tile_size,
+            samples_per_unit,
+            max_attempts,
+            layout,
+        })
     }
 
     pub fn job(&self, id: &str) -> Result<JobView, FarmError> {
@@ -555,4 +588,14 @@ fn check_file_name(name: &str) -> Result<(), FarmError> {
         )));
     }
     Ok(())
+}
+
+/// What [`Farm::plan`] makes of a submission: its frame range, tiles,
+/// samples per unit, attempts per unit and the unit layout.
+struct Plan {
+    frames: (u32, u32),
+    tile_size: u32,
+    samples_per_unit: u32,
+    max_attempts: u32,
+    layout: crate::units::Layout,
 }

@@ -167,6 +167,239 @@ fn lease_budget(want: f64, speed: f64, busy: f64, farm_end: f64) -> f64 {
     want.min(speed * until_end)
 }
 
+/// What the leasing policy decides for one unit of a job.
+enum Pick {
+    /// Lease these units (the first, joined with neighbours).
+    Units(Vec<u32>),
+    /// Leave the unit to a faster worker, expected to finish it sooner.
+    HoldBack,
+    /// The asker is not measured yet: the caller decides (one tile, or
+    /// nothing while measured workers exist).
+    Wait,
+}
+
+/// A measured live other worker near a job's end: its speed, the seconds
+/// of work it holds, its labels.
+type Held<'a> = (f64, f64, &'a BTreeMap<String, String>);
+
+/// What the leasing policy reads of the farm for one lease request,
+/// taken once under the farm's lock: the asker's speeds and labels, the
+/// live others, the work in flight per job. Read only: `Farm::grant`
+/// makes the state changes.
+struct Policy<'a> {
+    worker_id: &'a str,
+    labels: &'a BTreeMap<String, String>,
+    /// The asker's smoothed speed (rays a second; 0 until measured), its
+    /// best of late (never below it) and its ramp: while its last lease
+    /// took under a quarter of the target, the next may be eight times as
+    /// large (0: no ramp).
+    speed: f64,
+    best: f64,
+    ramp: f64,
+    /// The sum of the live workers' measured speeds (a worker not yet
+    /// measured adds nothing until its first result; one gone silent
+    /// adds nothing either).
+    farm_speed: f64,
+    /// A live other may be much faster than its rating: one unit at a time.
+    one_at_a_time: bool,
+    /// Per job: rays still to trace in its leases, and the leases' whole
+    /// expected rays.
+    in_flight_of: HashMap<String, (f64, f64)>,
+    /// The measured live others as (speed, worker).
+    others: Vec<(f64, &'a Worker)>,
+    leases: &'a HashMap<String, Lease>,
+    /// (speed, seconds of work held, labels) of each of `others`: read
+    /// only near a job's end (the hold-back rule).
+    others_held: std::cell::OnceCell<Vec<Held<'a>>>,
+    /// Workers registered, live or not.
+    workers: usize,
+    target_unit_seconds: f64,
+    max_tiles_per_lease: u32,
+}
+
+impl<'a> Policy<'a> {
+    /// The policy's view for `worker_id` (registered) among `workers`,
+    /// those seen within `live` counting as live.
+    fn new(
+        workers: &'a HashMap<String, Worker>,
+        leases: &'a HashMap<String, Lease>,
+        worker_id: &'a str,
+        live: Duration,
+        config: &super::Config,
+    ) -> Self {
+        let worker = &workers[worker_id];
+        let speed = worker.ray_speed;
+        // This worker at its best (never below `speed`), as the others are
+        // rated when it is held back for them: rated on one scale, the
+        // worker that would finish first is never held back, so not all
+        // of them are.
+        let best = worker.farm_speed();
+        // A worker's speed is measured on small leases first, where fixed
+        // costs (a GPU call, a result message) weigh most: while its last
+        // lease took under a quarter of the target, the next may be eight
+        // times as large, so a GPU reaches frame-sized leases within a few.
+        let ramp = if worker.last_seconds > 0.0
+            && worker.last_seconds < 0.25 * config.target_unit_seconds
+        {
+            8.0 * worker.last_rays
+        } else {
+            0.0
+        };
+        // Per job: rays still to trace in its leases, and the leases'
+        // whole expected rays (one pass, compared with the few jobs' ids).
+        let mut in_flight: Vec<(&str, f64, f64)> = Vec::new();
+        for l in leases.values().filter(|l| !l.backup) {
+            // A backup's units are in flight under the original.
+            let left = l.remaining_rays();
+            match in_flight.iter_mut().find(|e| e.0 == l.job) {
+                Some(e) => {
+                    e.1 += left;
+                    e.2 += l.expected_rays;
+                }
+                None => in_flight.push((l.job.as_str(), left, l.expected_rays)),
+            }
+        }
+        let in_flight_of = in_flight
+            .into_iter()
+            .map(|(j, a, b)| (j.to_string(), (a, b)))
+            .collect();
+        // One pass over the workers, with one clock reading: the measured
+        // live others as (speed, worker), and whether one of them may be
+        // much faster than its rating. Leases sized against a worker that
+        // may be much faster than its rating would run past the point
+        // where it could have done their work. The first leases of a job
+        // beside a GPU measured only on a warm-up's small tiles (rated ~8x
+        // low) made a mixed farm 1.3-1.6x slower than the GPU alone: while
+        // such a worker exists, this one takes one unit at a time (the
+        // other measures itself within its first lease or two).
+        let now = Instant::now();
+        let mut others: Vec<(f64, &Worker)> = Vec::with_capacity(workers.len());
+        let mut one_at_a_time = false;
+        for w in workers.values() {
+            if std::ptr::eq(w, worker) || now.saturating_duration_since(w.last_seen) >= live {
+                continue;
+            }
+            one_at_a_time = one_at_a_time || w.may_be_much_faster(best, !w.leases.is_empty());
+            if w.ray_speed > 0.0 {
+                others.push((w.farm_speed_at(now), w));
+            }
+        }
+        Policy {
+            worker_id,
+            labels: &worker.labels,
+            speed,
+            best,
+            ramp,
+            farm_speed: speed + others.iter().map(|&(v, _)| v).sum::<f64>(),
+            one_at_a_time,
+            in_flight_of,
+            others,
+            leases,
+            others_held: std::cell::OnceCell::new(),
+            workers: workers.len(),
+            target_unit_seconds: config.target_unit_seconds,
+            max_tiles_per_lease: config.max_tiles_per_lease,
+        }
+    }
+
+    /// Rays still to trace in a worker's leases (those it renders or has
+    /// queued), from its own lease set. This runs for every lease under
+    /// the farm's lock: a pass over every lease into maps keyed by worker
+    /// cost about 0.3 ms a lease at 2,000 workers (`tessera bench scale`),
+    /// so the others' are summed only where a rule reads them.
+    fn held_rays_of(w: &Worker, leases: &HashMap<String, Lease>) -> f64 {
+        w.leases
+            .iter()
+            .filter_map(|id| leases.get(id))
+            .map(Lease::remaining_rays)
+            .sum()
+    }
+
+    fn others_held(&self) -> &[Held<'a>] {
+        self.others_held.get_or_init(|| {
+            self.others
+                .iter()
+                .map(|&(v, w)| (v, Self::held_rays_of(w, self.leases) / v, &w.labels))
+                .collect()
+        })
+    }
+
+    /// The units of `job` to lease from its pending unit `first`, for an
+    /// asker holding `busy` seconds of work: about the target seconds of
+    /// work at its speed (or its ramp), neighbouring tiles joined, less
+    /// near the job's end, where a unit another worker would finish sooner
+    /// is held back for it.
+    fn units(&self, farm: &Farm, job_id: &str, job: &Job, first: u32, busy: f64) -> Pick {
+        let (speed, farm_speed) = (self.speed, self.farm_speed);
+        if !(speed > 0.0 && farm_speed > 0.0) {
+            return Pick::Wait;
+        }
+        // Rays of the job's leases still being rendered, by anyone.
+        let (in_flight, leased) = self.in_flight_of.get(job_id).copied().unwrap_or((0.0, 0.0));
+        let rays = |u: u32| job.unit_work(u);
+        let want = (speed * self.target_unit_seconds).max(self.ramp);
+        // When the farm, every worker at its measured speed, would finish
+        // the job (pending and in-flight work). Beyond `enough` no rule
+        // below can bind. This runs for every lease, under the lock, and a
+        // long animation has millions of pending units: no pass over them.
+        let enough = farm_speed * (2.0 * (want / speed + busy) + rays(first) / speed);
+        let remaining = if job.adaptive.is_none() {
+            // A uniform job's units not done are pending or leased: its
+            // pending work without a pass over them.
+            in_flight + (job.work_left - leased).max(0.0)
+        } else {
+            // Later rounds are not pending yet: only the pending.
+            let mut r = in_flight;
+            for &u in &job.pending {
+                r += rays(u);
+                if r >= enough {
+                    break;
+                }
+            }
+            r
+        };
+        let farm_end = if remaining < enough {
+            remaining / farm_speed
+        } else {
+            f64::INFINITY
+        };
+        // Leases go by expected finish time: near a job's end (when the
+        // farm would finish before this worker could finish the next unit)
+        // a unit goes to this worker only if no other would finish it
+        // sooner, after the work it holds. Otherwise it waits for that
+        // worker.
+        let finish = busy + rays(first) / speed;
+        let finish_at_best = (busy * speed + rays(first)) / self.best;
+        // Held back only for a worker that may take the job.
+        if finish > farm_end
+            && self.others_held().iter().any(|&(v, b, l)| {
+                b + rays(first) / v < finish_at_best && meets(&job.rec.requirements, l)
+            })
+        {
+            return Pick::HoldBack;
+        }
+        let budget = lease_budget(want, speed, busy, farm_end);
+        // A lease's result must fit one message, and be small enough to
+        // travel while the next is rendered.
+        let tile = u64::from(job.layout.tile_size).pow(2).max(1);
+        let fit = (farm.max_result_pixels().min(MAX_LEASE_PIXELS) / tile)
+            .clamp(1, u64::from(u32::MAX)) as u32;
+        let max_tiles = if self.one_at_a_time {
+            1
+        } else {
+            self.max_tiles_per_lease.min(fit)
+        };
+        let worker_id = self.worker_id;
+        Pick::Units(job.layout.join(
+            first,
+            max_tiles,
+            |u| job.pending.contains(&u) && job.admits(u, worker_id, self.labels),
+            rays,
+            budget,
+        ))
+    }
+}
+
 impl Farm {
     /// A worker joins: its session (128 random bits that only it learns).
     /// Its labels are what it sent, `backend` and `cores` set from its
@@ -335,119 +568,39 @@ impl Farm {
         if !self.store.health.ok() {
             return Ok((Vec::new(), false));
         }
-        let speed = worker.ray_speed;
-        // This worker at its best (never below `speed`), as the others are
-        // rated when it is held back for them: rated on one scale, the
-        // worker that would finish first is never held back, so not all
-        // of them are.
         let best = worker.farm_speed();
-        // A worker's speed is measured on small leases first, where fixed
-        // costs (a GPU call, a result message) weigh most: while its last
-        // lease took under a quarter of the target, the next may be eight
-        // times as large, so a GPU reaches frame-sized leases within a few.
-        let ramp = if worker.last_seconds > 0.0
-            && worker.last_seconds < 0.25 * self.config.target_unit_seconds
-        {
-            8.0 * worker.last_rays
-        } else {
-            0.0
-        };
         // Workers silent for two heartbeats may be gone: no work waits for them.
         let live = 2 * self.config.heartbeat_interval;
         if st.cedes_machine_to_a_gpu(worker_id, best, live) {
             return Ok((Vec::new(), false));
         }
-        // Rays still to trace in a worker's leases (those it renders or has
-        // queued), from its own lease set. This runs for every lease under
-        // the farm's lock: a pass over every lease into maps keyed by worker
-        // cost about 0.3 ms a lease at 2,000 workers (`tessera bench scale`),
-        // so the others' are summed only where a rule reads them.
-        let held_rays_of = |w: &Worker, leases: &HashMap<String, Lease>| -> f64 {
-            w.leases
-                .iter()
-                .filter_map(|id| leases.get(id))
-                .map(Lease::remaining_rays)
-                .sum()
-        };
-        // Per job: rays still to trace in its leases, and the leases'
-        // whole expected rays (one pass, compared with the few jobs' ids).
-        let mut in_flight_of: Vec<(&str, f64, f64)> = Vec::new();
-        for l in st.leases.values().filter(|l| !l.backup) {
-            // A backup's units are in flight under the original.
-            let left = l.remaining_rays();
-            match in_flight_of.iter_mut().find(|e| e.0 == l.job) {
-                Some(e) => {
-                    e.1 += left;
-                    e.2 += l.expected_rays;
-                }
-                None => in_flight_of.push((l.job.as_str(), left, l.expected_rays)),
-            }
-        }
-        let in_flight_of: HashMap<String, (f64, f64)> = in_flight_of
-            .into_iter()
-            .map(|(j, a, b)| (j.to_string(), (a, b)))
-            .collect();
-        // One pass over the workers, with one clock reading: the measured
-        // live others as (speed, worker), and whether one of them may be
-        // much faster than its rating. Leases sized against a worker that
-        // may be much faster than its rating would run past the point
-        // where it could have done their work. The first leases of a job
-        // beside a GPU measured only on a warm-up's small tiles (rated ~8x
-        // low) made a mixed farm 1.3-1.6x slower than the GPU alone: while
-        // such a worker exists, this one takes one unit at a time (the
-        // other measures itself within its first lease or two).
-        let now = Instant::now();
-        let me: *const Worker = st.workers.get(worker_id).expect("worker checked");
-        let mut others: Vec<(f64, &Worker)> = Vec::with_capacity(st.workers.len());
-        let mut one_at_a_time = false;
-        for w in st.workers.values() {
-            if std::ptr::eq(w, me) || now.saturating_duration_since(w.last_seen) >= live {
-                continue;
-            }
-            one_at_a_time = one_at_a_time || w.may_be_much_faster(best, !w.leases.is_empty());
-            if w.ray_speed > 0.0 {
-                others.push((w.farm_speed_at(now), w));
-            }
-        }
-        // (speed, seconds of work held, labels) of each measured live
-        // other: read only near a job's end (the hold-back rule below).
-        let others_held = std::cell::OnceCell::new();
-        let others_held = || {
-            others_held.get_or_init(|| {
-                others
-                    .iter()
-                    .map(|&(v, w)| (v, held_rays_of(w, &st.leases) / v, &w.labels))
-                    .collect::<Vec<(f64, f64, &BTreeMap<String, String>)>>()
-            })
-        };
-        let held_rays = held_rays_of(
-            st.workers.get(worker_id).expect("worker checked"),
-            &st.leases,
-        );
-        // The farm's speed: the sum of the measured speeds of the live
-        // workers (a worker not yet measured adds nothing until its first
-        // result; one gone silent adds nothing either).
-        let farm_speed: f64 = speed + others.iter().map(|&(v, _)| v).sum::<f64>();
-        let mut held_back = false;
+        let policy = Policy::new(&st.workers, &st.leases, worker_id, live, &self.config);
+        let speed = policy.speed;
         // Seconds of work this worker holds already, at its speed.
-        let mut busy = if speed > 0.0 { held_rays / speed } else { 0.0 };
-        let labels = &st.workers.get(worker_id).expect("worker checked").labels;
+        let mut busy = if speed > 0.0 {
+            Policy::held_rays_of(&st.workers[worker_id], &st.leases) / speed
+        } else {
+            0.0
+        };
         let mut order: Vec<(&String, &Job)> = st
             .jobs
             .iter_mut()
             .filter(|(_, j)| j.state.leasable() && !j.pending.is_empty())
-            .filter(|(_, j)| meets(&j.rec.requirements, labels))
+            .filter(|(_, j)| meets(&j.rec.requirements, policy.labels))
             .filter_map(|(id, j)| (!j.blocks(worker_id)).then_some((id, &*j)))
             .collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
         let order: Vec<String> = order.into_iter().map(|(id, _)| id.clone()).collect();
-        let max_units = if one_at_a_time { 1 } else { max_units.max(1) };
+        let max_units = if policy.one_at_a_time {
+            1
+        } else {
+            max_units.max(1)
+        };
+        let mut held_back = false;
         let mut out = Vec::new();
         // Added to `st.leases` after the loop, which reads the others'.
         let mut new_leases = Vec::new();
-        for job_id in order {
-            // Rays of the job's leases still being rendered, by anyone.
-            let (in_flight, leased) = in_flight_of.get(&job_id).copied().unwrap_or((0.0, 0.0));
+        'jobs: for job_id in order {
             while out.len() < max_units as usize {
                 let job = st.jobs.get_mut(&job_id).expect("listed job");
                 // The first pending unit this worker may take (one rerouted
@@ -457,141 +610,36 @@ impl Farm {
                 } else {
                     job.pending
                         .iter()
-                        .find(|&&u| job.admits(u, worker_id, labels))
+                        .find(|&&u| job.admits(u, worker_id, policy.labels))
                 };
                 let Some(&first) = first else {
                     break;
                 };
-                let rays = |u: u32| job.unit_work(u);
-                let units = if speed > 0.0 && farm_speed > 0.0 {
-                    let want = (speed * self.config.target_unit_seconds).max(ramp);
-                    // When the farm, every worker at its measured speed,
-                    // would finish the job (pending and in-flight work).
-                    // Beyond `enough` no rule below can bind. This runs for
-                    // every lease, under the lock, and a long animation has
-                    // millions of pending units: no pass over them.
-                    let enough = farm_speed * (2.0 * (want / speed + busy) + rays(first) / speed);
-                    let remaining = if job.adaptive.is_none() {
-                        // A uniform job's units not done are pending or
-                        // leased: its pending work without a pass over them.
-                        in_flight + (job.work_left - leased).max(0.0)
-                    } else {
-                        // Later rounds are not pending yet: only the pending.
-                        let mut r = in_flight;
-                        for &u in &job.pending {
-                            r += rays(u);
-                            if r >= enough {
-                                break;
-                            }
-                        }
-                        r
-                    };
-                    let farm_end = if remaining < enough {
-                        remaining / farm_speed
-                    } else {
-                        f64::INFINITY
-                    };
-                    // Leases go by expected finish time: near a job's end
-                    // (when the farm would finish before this worker could
-                    // finish the next unit) a unit goes to this worker only
-                    // if no other would finish it sooner, after the work it
-                    // holds. Otherwise it waits for that worker.
-                    let finish = busy + rays(first) / speed;
-                    let finish_at_best = (busy * speed + rays(first)) / best;
-                    // Held back only for a worker that may take the job.
-                    if finish > farm_end
-                        && others_held().iter().any(|&(v, b, l)| {
-                            b + rays(first) / v < finish_at_best && meets(&job.rec.requirements, l)
-                        })
-                    {
+                let units = match policy.units(self, &job_id, job, first, busy) {
+                    Pick::Units(units) => units,
+                    Pick::HoldBack => {
                         held_back = true;
                         break;
                     }
-                    let budget = lease_budget(want, speed, busy, farm_end);
-                    // A lease's result must fit one message, and be small
-                    // enough to travel while the next is rendered.
-                    let tile = u64::from(job.layout.tile_size).pow(2).max(1);
-                    let fit = (self.max_result_pixels().min(MAX_LEASE_PIXELS) / tile)
-                        .clamp(1, u64::from(u32::MAX)) as u32;
-                    let max_tiles = if one_at_a_time {
-                        1
-                    } else {
-                        self.config.max_tiles_per_lease.min(fit)
-                    };
-                    job.layout.join(
-                        first,
-                        max_tiles,
-                        |u| job.pending.contains(&u) && job.admits(u, worker_id, labels),
-                        rays,
-                        budget,
-                    )
-                } else {
-                    // Not measured yet: one tile, whose result measures it.
-                    // Once measured workers exist, an unmeasured one asking
-                    // ahead waits (its first tile may be slow).
-                    if (ahead || !out.is_empty()) && job.pending.len() < st.workers.len() {
-                        break;
+                    Pick::Wait => {
+                        // Not measured yet: one tile, whose result measures
+                        // it. Once measured workers exist, an unmeasured one
+                        // asking ahead waits (its first tile may be slow).
+                        if (ahead || !out.is_empty()) && job.pending.len() < policy.workers {
+                            break;
+                        }
+                        vec![first]
                     }
-                    vec![first]
                 };
-                let expected_rays: f64 = units.iter().map(|&u| rays(u)).sum();
+                let (view, lease) = self.grant(job, &job_id, worker_id, units);
                 if speed > 0.0 {
-                    busy += expected_rays / speed;
+                    busy += lease.expected_rays / speed;
                 }
-                for u in &units {
-                    job.pending.remove(u);
-                }
-                let u0 = job.layout.unit(first);
-                let t0 = job.layout.tiles[u0.tile as usize];
-                let t1 = job.layout.tiles
-                    [job.layout.unit(*units.last().expect("non-empty")).tile as usize];
-                let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
-                let region = WorkRegion::new(u0.frame, rect, job.layout.batches[u0.batch as usize]);
-                let active = job.adaptive_mask(u0.frame, rect, u0.batch);
-                if job.state == JobState::Queued {
-                    job.state = JobState::Running;
-                    job.notify();
-                }
-                if job.started.is_none() {
-                    job.started = Some(Instant::now());
-                }
-                if job.first_lease_unix_ms == 0 {
-                    job.first_lease_unix_ms = now_ms();
-                }
-                job.meter.start(Instant::now());
-                let view = LeaseView {
-                    lease_id: String::new(),
-                    job_id: job_id.clone(),
-                    scene_name: job.rec.scene_name.clone(),
-                    scene_sha256: job.rec.scene_sha256.clone(),
-                    assets: job.rec.assets.clone(),
-                    settings: job.rec.settings,
-                    region,
-                    active: active.clone(),
-                    units: units.len() as u32,
-                };
-                let lease_id = random_id("l");
-                new_leases.push((
-                    lease_id.clone(),
-                    Lease {
-                        worker: worker_id.to_string(),
-                        job: job_id.clone(),
-                        units,
-                        region,
-                        deadline: Instant::now() + self.config.lease_timeout,
-                        progress: 0,
-                        expected_rays,
-                        active,
-                        partners: Vec::new(),
-                        backup: false,
-                        backups: 0,
-                        rated: false,
-                    },
-                ));
-                out.push(LeaseView { lease_id, ..view });
+                new_leases.push((view.lease_id.clone(), lease));
+                out.push(view);
             }
             if out.len() >= max_units as usize {
-                break;
+                break 'jobs;
             }
         }
         st.leases.extend(new_leases);
@@ -606,6 +654,66 @@ impl Farm {
             out.extend(self.backup_lease(st, worker_id, best, busy));
         }
         Ok((out, held_back))
+    }
+
+    /// A lease of `units` (first the unit the policy picked; neighbouring
+    /// tiles of one frame and batch) of job `job_id` for `worker_id`: the
+    /// units leave the job's pending set, the job starts running. The state
+    /// changes of leasing, apart from the policy ([`Policy::units`]).
+    fn grant(
+        &self,
+        job: &mut Job,
+        job_id: &str,
+        worker_id: &str,
+        units: Vec<u32>,
+    ) -> (LeaseView, Lease) {
+        let expected_rays: f64 = units.iter().map(|&u| job.unit_work(u)).sum();
+        for u in &units {
+            job.pending.remove(u);
+        }
+        let u0 = job.layout.unit(units[0]);
+        let t0 = job.layout.tiles[u0.tile as usize];
+        let t1 = job.layout.tiles[job.layout.unit(*units.last().expect("non-empty")).tile as usize];
+        let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
+        let region = WorkRegion::new(u0.frame, rect, job.layout.batches[u0.batch as usize]);
+        let active = job.adaptive_mask(u0.frame, rect, u0.batch);
+        if job.state == JobState::Queued {
+            job.state = JobState::Running;
+            job.notify();
+        }
+        if job.started.is_none() {
+            job.started = Some(Instant::now());
+        }
+        if job.first_lease_unix_ms == 0 {
+            job.first_lease_unix_ms = now_ms();
+        }
+        job.meter.start(Instant::now());
+        let view = LeaseView {
+            lease_id: random_id("l"),
+            job_id: job_id.to_string(),
+            scene_name: job.rec.scene_name.clone(),
+            scene_sha256: job.rec.scene_sha256.clone(),
+            assets: job.rec.assets.clone(),
+            settings: job.rec.settings,
+            region,
+            active: active.clone(),
+            units: units.len() as u32,
+        };
+        let lease = Lease {
+            worker: worker_id.to_string(),
+            job: job_id.to_string(),
+            units,
+            region,
+            deadline: Instant::now() + self.config.lease_timeout,
+            progress: 0,
+            expected_rays,
+            active,
+            partners: Vec::new(),
+            backup: false,
+            backups: 0,
+            rated: false,
+        };
+        (view, lease)
     }
 
     /// Nothing is pending: a lease of another worker that this one would
