@@ -42,7 +42,9 @@ impl From<FarmError> for Status {
     }
 }
 
-fn state_pb(s: JobState) -> pb::JobState {
+/// The farm's job state on the wire (the one conversion; its names are
+/// `status_json::state_name`'s).
+pub(crate) fn state_pb(s: JobState) -> pb::JobState {
     match s {
         JobState::Waiting => pb::JobState::Waiting,
         JobState::Queued => pb::JobState::Queued,

@@ -423,11 +423,7 @@ impl Farm {
             if !job.state.is_terminal() {
                 return Err(FarmError::FailedPrecondition(format!(
                     "job {id} is {}; cancel it first (tessera cancel {id})",
-                    match job.state {
-                        JobState::Queued => "queued",
-                        JobState::Waiting => "waiting",
-                        _ => "running",
-                    }
+                    crate::status_json::state_name(crate::service::state_pb(job.state) as i32)
                 )));
             }
             PathBuf::from(&job.rec.output_dir)
