@@ -1844,16 +1844,9 @@ material = "mirror"
         "{:?}",
         film.rays
     );
-    let g = GpuRenderer::new(
-        std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
-        GpuOptions {
-            strategy: Strategy::Wavefront,
-            ..GpuOptions::default()
-        },
-    )
-    .unwrap();
+    let g = gpu_with(Strategy::Wavefront).expect("an adapter");
     assert_eq!(
-        gpu_whole(&g, &desc, &s).rays,
+        gpu_whole(g, &desc, &s).rays,
         film.rays,
         "wavefront and stack kernels traced different rays"
     );
