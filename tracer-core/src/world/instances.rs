@@ -231,17 +231,6 @@ impl<R: Real> Instances<R> {
         let n = inst.to_object.transposed(s.normal).normalize();
         (inst.to_world.point(q), n, s.material)
     }
-
-    /// The interpolated vertex normal at world point `p` of a smooth
-    /// triangle, in the world's space, or `None` for a flat one.
-    #[inline]
-    pub fn vertex_normal(&self, index: usize, p: R::V3) -> Option<R::V3> {
-        let (inst, m, k) = self.locate(index);
-        let s = &m.shading[k];
-        s.vertex_normals?;
-        let ns = s.normal_at(&m.triangles[k], inst.to_object.point(p));
-        Some(inst.to_object.transposed(ns).normalize())
-    }
 }
 
 /// A mesh's tree holds its triangles only.

@@ -527,20 +527,13 @@ impl<R: Real> World<R> {
     /// so that no reflected ray is sent into the surface.
     #[inline(always)]
     pub fn shading_normal(&self, id: PrimId, p: R::V3, n: R::V3, v: R::V3) -> R::V3 {
-        let ns = match id.kind() {
-            PrimId::TRIANGLE => {
-                let s = &self.triangle_shading[id.index()];
-                if s.vertex_normals.is_none() {
-                    return n;
-                }
-                s.normal_at(&self.triangles[id.index()], p)
-            }
-            PrimId::INSTANCE_TRIANGLE => match self.instances.vertex_normal(id.index(), p) {
-                Some(ns) => ns,
-                None => return n,
-            },
-            _ => return n,
+        let Some(t) = self.placed_triangle(id) else {
+            return n;
         };
+        if t.shading.vertex_normals.is_none() {
+            return n;
+        }
+        let ns = t.normal_at(p);
         let ns = if ns.dot(n) < R::ZERO { -ns } else { ns };
         if ns.dot(v) > R::ZERO { ns } else { n }
     }
