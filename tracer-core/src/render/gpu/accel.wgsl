@@ -34,7 +34,11 @@ fn shading_normal(id: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>) -> vec3<f32
         return triangle_shading_normal(index, p, n, v);
     }
     if (HAS_INSTANCES && (id >> KIND_SHIFT) == KIND_INSTANCE_TRIANGLE) {
-        return instance_shading_normal(index, p, n, v);
+        let t = placed_triangle(id, p);
+        if (shading[t.tri].smooth_shaded == 0u) {
+            return n;
+        }
+        return facing_normal(placed_normal_at(t), n, v);
     }
     return n;
 }

@@ -117,19 +117,6 @@ fn instance_surface(index: u32, p: vec3<f32>) -> SurfacePoint {
     return SurfacePoint(to_world_point(m, q), normalize(normal_to_world(m, s.normal)), s.material);
 }
 
-// world/query.rs shading_normal for a placed triangle: its interpolated
-// vertex normal (Instances::vertex_normal) facing as bvh.wgsl's
-// `facing_normal` turns it, or n for a flat one.
-fn instance_shading_normal(index: u32, p: vec3<f32>, n: vec3<f32>, v: vec3<f32>) -> vec3<f32> {
-    let m = instances[instance_of(index)];
-    let tri = m.tri0 + index - m.first;
-    if (shading[tri].smooth_shaded == 0u) {
-        return n;
-    }
-    let ns = normalize(normal_to_world(m, triangle_normal_at(tri, to_object_point(m, p))));
-    return facing_normal(ns, n, v);
-}
-
 // world/query.rs PlacedTriangle: a hit triangle as shading sees it, a
 // world triangle or an instance's: its index in bvh.wgsl's arrays (NONE
 // for other primitives), the hit point in its own space (barycentric
