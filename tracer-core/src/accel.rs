@@ -32,7 +32,7 @@ pub(crate) fn build<R: Real>(
     spheres: &[Sphere<R>],
     instances: &[Aabb],
     triangles: &mut Vec<Triangle<R>>,
-    shading: &mut Vec<TriangleShading<R>>,
+    shading: &mut Vec<TriangleShading>,
     force: Option<bool>,
 ) -> Option<Bvh> {
     let wanted = force.unwrap_or(

@@ -95,7 +95,7 @@ pub fn collect<R: Real>(world: &World<R>, power: &[f64]) -> Vec<TriEmitter<R>> {
         if power[s.material as usize] > 0.0 {
             push(
                 t.vertices(),
-                s.normal,
+                t.normal(),
                 s.material,
                 PrimId::new(PrimId::TRIANGLE, i as u32),
             );
@@ -108,7 +108,7 @@ pub fn collect<R: Real>(world: &World<R>, power: &[f64]) -> Vec<TriEmitter<R>> {
             if power[s.material as usize] > 0.0 {
                 push(
                     t.vertices().map(|v| placed.to_world.point(v)),
-                    placed.to_object.transposed(s.normal).normalize(),
+                    placed.to_object.transposed(t.normal()).normalize(),
                     s.material,
                     PrimId::new(PrimId::INSTANCE_TRIANGLE, placed.first + k as u32),
                 );

@@ -20,18 +20,24 @@ pub struct Triangle<R: Real> {
     axes: [R::V3; 3],
 }
 
-/// What shading needs of a triangle once it has been hit.
-#[derive(Clone, Copy, Debug)]
-pub struct TriangleShading<R: Real> {
-    /// Unit geometric normal, outward by the winding (counter-clockwise seen from outside).
-    pub normal: R::V3,
-    /// Unit vertex normals for smooth shading, or `None` for flat shading.
-    pub vertex_normals: Option<[R::V3; 3]>,
+/// What shading needs of a triangle once it has been hit (20 bytes: a
+/// big mesh keeps one a triangle, so its vertex normals are shared by
+/// index and its geometric normal is computed from its vertices,
+/// [`Triangle::normal`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TriangleShading {
+    /// Its corners' unit vertex normals for smooth shading, as indices in
+    /// its mesh's vertex normals (the world's `vertex_normals`, or an
+    /// instanced mesh's), or [`FLAT`].
+    pub normals: [u32; 3],
     pub material: u32,
     /// Index of its vertices' texture coordinates and colours in the
     /// world's `VertexAttrs`, or [`NO_ATTRS`] (a material without textures).
     pub attrs: u32,
 }
+
+/// `TriangleShading::normals` of a flat-shaded triangle.
+pub const FLAT: [u32; 3] = [u32::MAX; 3];
 
 /// `TriangleShading::attrs` of a triangle whose material has no textures.
 pub const NO_ATTRS: u32 = u32::MAX;
@@ -153,6 +159,14 @@ impl<R: Real> Triangle<R> {
     pub fn cross(&self) -> R::V3 {
         let v = self.vertices();
         (v[1] - v[0]).cross(v[2] - v[0])
+    }
+
+    /// Unit geometric normal, outward by the winding (a triangle with
+    /// area, as every stored one has).
+    #[inline(always)]
+    pub fn normal(&self) -> R::V3 {
+        let c = self.cross();
+        c * (R::ONE / c.length())
     }
 }
 
@@ -314,21 +328,29 @@ impl<R: Real> Triangle<R> {
     }
 }
 
-impl<R: Real> TriangleShading<R> {
-    /// Shading normal at `p` (a point on `tri`): the vertex normals
-    /// interpolated by barycentric weights, or the geometric normal.
+impl TriangleShading {
+    /// Whether it is shaded smoothly (it has vertex normals).
     #[inline(always)]
-    pub fn normal_at(&self, tri: &Triangle<R>, p: R::V3) -> R::V3 {
-        let Some(ns) = self.vertex_normals else {
-            return self.normal;
-        };
+    pub fn smooth(&self) -> bool {
+        self.normals != FLAT
+    }
+
+    /// Shading normal at `p` (a point on `tri`): its vertex normals (in
+    /// `normals`, its mesh's) interpolated by barycentric weights, or the
+    /// geometric normal.
+    #[inline(always)]
+    pub fn normal_at<R: Real>(&self, tri: &Triangle<R>, normals: &[R::V3], p: R::V3) -> R::V3 {
+        if !self.smooth() {
+            return tri.normal();
+        }
+        let ns = self.normals.map(|i| normals[i as usize]);
         let [b0, b1, b2] = tri.barycentric(p);
         let s = ns[0] * b0 + ns[1] * b1 + ns[2] * b2;
         let len = s.length();
         if len > R::ZERO && len.is_finite() {
             s * (R::ONE / len)
         } else {
-            self.normal
+            tri.normal()
         }
     }
 }
@@ -337,6 +359,45 @@ impl<R: Real> TriangleShading<R> {
 mod tests {
     use super::*;
     use glam::{DVec3, Vec3A};
+
+    /// A big mesh keeps one of each a triangle (docs/meshes.md, "Big
+    /// scenes"): 48 + 20 bytes in `f32`.
+    #[test]
+    fn a_triangle_takes_68_bytes_in_f32() {
+        assert_eq!(std::mem::size_of::<Triangle<f32>>(), 48);
+        assert_eq!(std::mem::size_of::<TriangleShading>(), 20);
+    }
+
+    /// The shading normal interpolates the normals its indices name, and
+    /// a flat triangle's is the geometric normal.
+    #[test]
+    fn vertex_normals_are_read_by_index() {
+        let tri = Triangle::<f32>::new([Vec3A::ZERO, Vec3A::X, Vec3A::Y]);
+        let normals = [Vec3A::Z, Vec3A::X, Vec3A::new(0.0, 0.6, 0.8), Vec3A::Y];
+        let s = TriangleShading {
+            normals: [3, 3, 3],
+            material: 0,
+            attrs: NO_ATTRS,
+        };
+        assert_eq!(
+            s.normal_at(&tri, &normals, Vec3A::new(0.2, 0.2, 0.0)),
+            Vec3A::Y
+        );
+        let s = TriangleShading {
+            normals: [0, 0, 2],
+            ..s
+        };
+        let n = s.normal_at(&tri, &normals, Vec3A::new(0.0, 0.5, 0.0));
+        let want = (Vec3A::Z * 0.5 + Vec3A::new(0.0, 0.6, 0.8) * 0.5).normalize();
+        assert!((n - want).length() < 1e-6, "{n}");
+        let flat = TriangleShading { normals: FLAT, ..s };
+        assert!(!flat.smooth());
+        assert_eq!(
+            flat.normal_at(&tri, &normals, Vec3A::new(0.2, 0.2, 0.0)),
+            Vec3A::Z
+        );
+        assert_eq!(tri.normal(), Vec3A::Z);
+    }
 
     fn tri64(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> Triangle<f64> {
         Triangle::new([

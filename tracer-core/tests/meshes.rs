@@ -433,8 +433,8 @@ fn transforms_place_vertices_as_documented() {
     };
     // Outward = away from the model origin (which maps to the translation).
     let origin = DVec3::new(10.0, 20.0, 30.0) - cam;
-    assert!(wm.triangle_shading[0].normal.dot(c(&wm) - origin) > 0.0);
-    assert!(wp.triangle_shading[0].normal.dot(c(&wp) - origin) > 0.0);
+    assert!(wm.triangles[0].normal().dot(c(&wm) - origin) > 0.0);
+    assert!(wp.triangles[0].normal().dot(c(&wp) - origin) > 0.0);
 }
 
 fn scene_err(src: &str, dir: &Path) -> String {

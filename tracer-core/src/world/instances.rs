@@ -19,7 +19,9 @@ use crate::triangle::{Triangle, TriangleRay, TriangleShading};
 #[derive(Clone, Debug, Default)]
 pub struct InstancedMesh<R: Real> {
     pub triangles: Vec<Triangle<R>>,
-    pub shading: Vec<TriangleShading<R>>,
+    pub shading: Vec<TriangleShading>,
+    /// Unit vertex normals in object space, which `shading` names.
+    pub vertex_normals: Vec<R::V3>,
     pub tree: Bvh,
     /// The bounds of its triangles, in object space, in `f64`.
     pub lo: [f64; 3],
@@ -90,12 +92,13 @@ pub struct Instances<R: Real> {
 pub(crate) const MAX_PLACED: u64 = 1 << 28;
 
 impl<R: Real> Instances<R> {
-    /// Adds a mesh (triangles and shading in object space) with its tree;
-    /// returns its index.
+    /// Adds a mesh (triangles, shading and vertex normals in object
+    /// space) with its tree; returns its index.
     pub(crate) fn add_mesh(
         &mut self,
         mut triangles: Vec<Triangle<R>>,
-        mut shading: Vec<TriangleShading<R>>,
+        mut shading: Vec<TriangleShading>,
+        vertex_normals: Vec<R::V3>,
     ) -> u32 {
         let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
         for t in &triangles {
@@ -112,6 +115,7 @@ impl<R: Real> Instances<R> {
         self.meshes.push(InstancedMesh {
             triangles,
             shading,
+            vertex_normals,
             tree,
             lo,
             hi,
@@ -224,12 +228,12 @@ impl<R: Real> Instances<R> {
     #[inline]
     pub fn surface(&self, index: usize, p: R::V3) -> (R::V3, R::V3, u32) {
         let (inst, m, k) = self.locate(index);
-        let s = &m.shading[k];
-        let v0 = m.triangles[k].vertices()[0];
+        let t = &m.triangles[k];
+        let (v0, normal) = (t.vertices()[0], t.normal());
         let q = inst.to_object.point(p);
-        let q = q - s.normal * s.normal.dot(q - v0);
-        let n = inst.to_object.transposed(s.normal).normalize();
-        (inst.to_world.point(q), n, s.material)
+        let q = q - normal * normal.dot(q - v0);
+        let n = inst.to_object.transposed(normal).normalize();
+        (inst.to_world.point(q), n, m.shading[k].material)
     }
 }
 

@@ -97,8 +97,10 @@ pub struct World<R: Real> {
     pub planes: Vec<Plane<R>>,
     /// Mesh triangles (vertices only: what traversal touches) ...
     pub triangles: Vec<Triangle<R>>,
-    /// ... and, at the same index, what shading needs.
-    pub triangle_shading: Vec<TriangleShading<R>>,
+    /// ... and, at the same index, what shading needs ...
+    pub triangle_shading: Vec<TriangleShading>,
+    /// ... with the vertex normals it names.
+    pub vertex_normals: Vec<R::V3>,
     /// Bounding volume hierarchy over spheres and triangles, when the scene
     /// has meshes or many spheres (see `accel.rs`); planes stay outside it.
     pub accel: Option<Bvh>,
@@ -372,6 +374,7 @@ impl<R: Real> World<R> {
             planes,
             triangles: tris.triangles,
             triangle_shading: tris.shading,
+            vertex_normals: tris.vertex_normals,
             accel: None,
             degenerate_triangles: tris.degenerate + tris.instances.dropped,
             instances: tris.instances,
@@ -423,6 +426,7 @@ impl<R: Real> World<R> {
                         planes: Vec::new(),
                         triangles: set.triangles,
                         triangle_shading: set.shading,
+                        vertex_normals: set.vertex_normals,
                         accel: None,
                         instances: set.instances,
                         degenerate_triangles: set.degenerate,
@@ -554,10 +558,12 @@ impl<R: Real> World<R> {
         );
     }
 
-    /// Bytes of the triangle data (intersection + shading arrays).
+    /// Bytes of the triangle data (intersection and shading arrays, and
+    /// the vertex normals).
     pub fn triangle_bytes(&self) -> usize {
         self.triangles.len()
-            * (std::mem::size_of::<Triangle<R>>() + std::mem::size_of::<TriangleShading<R>>())
+            * (std::mem::size_of::<Triangle<R>>() + std::mem::size_of::<TriangleShading>())
+            + std::mem::size_of_val(self.vertex_normals.as_slice())
     }
 
     /// A world with this one's settings, camera and colours and nothing in it.
@@ -568,6 +574,7 @@ impl<R: Real> World<R> {
             planes: Vec::new(),
             triangles: Vec::new(),
             triangle_shading: Vec::new(),
+            vertex_normals: Vec::new(),
             accel: None,
             instances: Instances::default(),
             degenerate_triangles: 0,

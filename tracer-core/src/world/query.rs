@@ -84,10 +84,10 @@ impl<R: Real> World<R> {
     /// (`Pbr::culls_back_faces`).
     pub fn cut_away(&self, id: PrimId, p: R::V3, dir: R::V3) -> bool {
         let (material, normal) = match id.kind() {
-            PrimId::TRIANGLE => {
-                let s = &self.triangle_shading[id.index()];
-                (s.material, s.normal)
-            }
+            PrimId::TRIANGLE => (
+                self.triangle_shading[id.index()].material,
+                self.triangles[id.index()].normal(),
+            ),
             PrimId::INSTANCE_TRIANGLE => {
                 let (_, n, material) = self.instances.surface(id.index(), p);
                 (material, n)
@@ -116,6 +116,7 @@ impl<R: Real> World<R> {
             PrimId::TRIANGLE => Some(PlacedTriangle {
                 triangle: &self.triangles[id.index()],
                 shading: &self.triangle_shading[id.index()],
+                vertex_normals: &self.vertex_normals,
                 instance: None,
             }),
             PrimId::INSTANCE_TRIANGLE => {
@@ -123,6 +124,7 @@ impl<R: Real> World<R> {
                 Some(PlacedTriangle {
                     triangle: &mesh.triangles[k],
                     shading: &mesh.shading[k],
+                    vertex_normals: &mesh.vertex_normals,
                     instance: Some(instance),
                 })
             }
@@ -514,10 +516,10 @@ impl<R: Real> World<R> {
     /// Point snapped onto the triangle's plane, its outward geometric normal, and material.
     #[inline]
     fn triangle_surface(&self, index: usize, p: R::V3) -> (R::V3, R::V3, u32) {
-        let s = &self.triangle_shading[index];
-        let v0 = self.triangles[index].vertices()[0];
-        let p = p - s.normal * s.normal.dot(p - v0);
-        (p, s.normal, s.material)
+        let t = &self.triangles[index];
+        let (v0, normal) = (t.vertices()[0], t.normal());
+        let p = p - normal * normal.dot(p - v0);
+        (p, normal, self.triangle_shading[index].material)
     }
 
     /// Normal to shade with at `p` on primitive `id`: for smooth triangles the
@@ -530,7 +532,7 @@ impl<R: Real> World<R> {
         let Some(t) = self.placed_triangle(id) else {
             return n;
         };
-        if t.shading.vertex_normals.is_none() {
+        if !t.shading.smooth() {
             return n;
         }
         let ns = t.normal_at(p);
@@ -577,7 +579,9 @@ impl<R: Real> bvh::Primitives<R> for World<R> {
 #[derive(Clone, Copy)]
 pub struct PlacedTriangle<'a, R: Real> {
     pub triangle: &'a Triangle<R>,
-    pub shading: &'a crate::triangle::TriangleShading<R>,
+    pub shading: &'a crate::triangle::TriangleShading,
+    /// The vertex normals its shading names (its mesh's).
+    pub vertex_normals: &'a [R::V3],
     pub instance: Option<&'a super::Instance<R>>,
 }
 
@@ -607,9 +611,15 @@ impl<R: Real> PlacedTriangle<'_, R> {
     #[inline]
     pub fn normal_at(&self, p: R::V3) -> R::V3 {
         match self.instance {
-            None => self.shading.normal_at(self.triangle, p),
+            None => self
+                .shading
+                .normal_at(self.triangle, self.vertex_normals, p),
             Some(i) => {
-                let n = self.shading.normal_at(self.triangle, i.to_object.point(p));
+                let n = self.shading.normal_at(
+                    self.triangle,
+                    self.vertex_normals,
+                    i.to_object.point(p),
+                );
                 i.to_object.transposed(n).normalize()
             }
         }

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use crate::material::{NO_PBR, Pbr};
 use crate::math::{Real, Vector3};
 use crate::scene::MeshDesc;
-use crate::triangle::{NO_ATTRS, Triangle, TriangleShading};
+use crate::triangle::{FLAT, NO_ATTRS, Triangle, TriangleShading};
 
 use super::instances::Instances;
 
@@ -35,7 +35,9 @@ pub struct VertexAttrs {
 #[derive(Default)]
 pub(crate) struct TriangleSet<R: Real> {
     pub triangles: Vec<Triangle<R>>,
-    pub shading: Vec<TriangleShading<R>>,
+    pub shading: Vec<TriangleShading>,
+    /// Unit vertex normals, which `shading` names by index.
+    pub vertex_normals: Vec<R::V3>,
     /// Triangles dropped because they have no area in the render precision.
     pub degenerate: usize,
     /// The textures and glTF parameters of the file materials added
@@ -181,7 +183,10 @@ impl<R: Real> TriangleSet<R> {
             }
             self.attrs.color.extend(a.color);
             self.attrs.tangent.extend(a.tangent);
-            id = Some(self.instances.add_mesh(own.triangles, own.shading));
+            id = Some(
+                self.instances
+                    .add_mesh(own.triangles, own.shading, own.vertex_normals),
+            );
         }
         for &m in list {
             if let Some(id) = id
@@ -217,19 +222,19 @@ impl<R: Real> TriangleSet<R> {
             .iter()
             .map(|&p| R::V3::from_array(place(p).to_array()))
             .collect();
-        let normals: Vec<R::V3> = mesh
-            .normals
-            .iter()
-            .map(|&n| {
-                let n = nm * glam::DVec3::from_array(n.map(f64::from));
-                let l = n.length();
-                R::V3::from_array(if l > 0.0 && l.is_finite() {
-                    (n / l).to_array()
-                } else {
-                    [0.0; 3]
-                })
+        // The mesh's vertex normals join the set's, placed; a zero one is
+        // unknown.
+        let first_normal = self.vertex_normals.len() as u32;
+        self.vertex_normals.extend(mesh.normals.iter().map(|&n| {
+            let n = nm * glam::DVec3::from_array(n.map(f64::from));
+            let l = n.length();
+            R::V3::from_array(if l > 0.0 && l.is_finite() {
+                (n / l).to_array()
+            } else {
+                [0.0; 3]
             })
-            .collect();
+        }));
+        let normals = &self.vertex_normals[first_normal as usize..];
         let first_vertex = self.attrs.uv[0].len() as u32;
         if varies.iter().any(|&v| v) {
             let nv = mesh.positions.len();
@@ -275,14 +280,14 @@ impl<R: Real> TriangleSet<R> {
                 self.degenerate += 1;
                 continue;
             }
-            let vertex_normals = if normals.is_empty() {
-                None
+            // Any unknown (zero) vertex normal: shade this triangle flat.
+            let smooth = !normals.is_empty()
+                && t.iter()
+                    .all(|&i| normals[i as usize].length_squared() > R::ZERO);
+            let vertex_normals = if smooth {
+                t.map(|i| first_normal + i)
             } else {
-                let ns = t.map(|i| normals[i as usize]);
-                // Any unknown (zero) vertex normal: shade this triangle flat.
-                ns.iter()
-                    .all(|n| n.length_squared() > R::ZERO)
-                    .then_some(ns)
+                FLAT
             };
             let attrs = if varies[m as usize] {
                 self.attrs.tri.push(t.map(|i| first_vertex + i));
@@ -292,8 +297,7 @@ impl<R: Real> TriangleSet<R> {
             };
             self.triangles.push(tri);
             self.shading.push(TriangleShading {
-                normal: cross * (R::ONE / len),
-                vertex_normals,
+                normals: vertex_normals,
                 material: mats[m as usize],
                 attrs,
             });

@@ -318,7 +318,8 @@ pub struct TreePlace {
 /// materials of each of them.
 pub struct TreePart<'a> {
     pub triangles: &'a [Triangle<f32>],
-    pub shading: &'a [TriangleShading<f32>],
+    pub shading: &'a [TriangleShading],
+    pub vertex_normals: &'a [glam::Vec3A],
     pub spheres: usize,
     pub instances: usize,
     pub tree: &'a Bvh,
@@ -331,6 +332,7 @@ impl<'a> TreePart<'a> {
         TreePart {
             triangles: &w.triangles,
             shading: &w.triangle_shading,
+            vertex_normals: &w.vertex_normals,
             spheres: w.spheres.len(),
             instances: w.instances.list.len(),
             tree,
@@ -343,6 +345,7 @@ impl<'a> TreePart<'a> {
         TreePart {
             triangles: &m.triangles,
             shading: &m.shading,
+            vertex_normals: &m.vertex_normals,
             spheres: 0,
             instances: 0,
             tree: &m.tree,
@@ -415,25 +418,31 @@ impl TreeData {
                 }
             }));
             data.shading
-                .extend(part.shading.iter().map(|s: &TriangleShading<f32>| {
-                    let ns = s.vertex_normals.map(|n| n.map(a3)).unwrap_or([[0.0; 3]; 3]);
-                    GpuTriangleShading {
-                        normal: a3(s.normal),
-                        material: part
-                            .materials
-                            .map_or(s.material, |m| m[s.material as usize]),
-                        n0: ns[0],
-                        smooth_shaded: s.vertex_normals.is_some() as u32,
-                        n1: ns[1],
-                        attrs: if part.materials.is_none() {
-                            s.attrs
+                .extend(part.shading.iter().zip(part.triangles).map(
+                    |(s, t): (&TriangleShading, &Triangle<f32>)| {
+                        let ns = if s.smooth() {
+                            s.normals.map(|i| a3(part.vertex_normals[i as usize]))
                         } else {
-                            crate::triangle::NO_ATTRS
-                        },
-                        n2: ns[2],
-                        ..Default::default()
-                    }
-                }));
+                            [[0.0; 3]; 3]
+                        };
+                        GpuTriangleShading {
+                            normal: a3(t.normal()),
+                            material: part
+                                .materials
+                                .map_or(s.material, |m| m[s.material as usize]),
+                            n0: ns[0],
+                            smooth_shaded: s.smooth() as u32,
+                            n1: ns[1],
+                            attrs: if part.materials.is_none() {
+                                s.attrs
+                            } else {
+                                crate::triangle::NO_ATTRS
+                            },
+                            n2: ns[2],
+                            ..Default::default()
+                        }
+                    },
+                ));
         }
         // The kernel's stack refers to a leaf as node << 2 | slot in 31 bits,
         // and a PrimId holds a triangle's index in 28.
