@@ -27,13 +27,17 @@ pub const SPHERE_BVH_MIN: usize = 10;
 /// (`force`: always, never, or `None` for triangles, instances or at least
 /// [`SPHERE_BVH_MIN`] spheres), else `None`. Reorders `triangles` and
 /// their `shading` to the tree's leaf order (so a leaf's triangles are
-/// neighbours in memory), which the tree's ids then follow.
+/// neighbours in memory), which the tree's ids then follow. With
+/// `give_up_triangles`, a tree of `f32` triangles alone takes them into its
+/// packets and leaves `triangles` empty (`Bvh::triangle` reads one back):
+/// a big mesh is then held once, not twice.
 pub(crate) fn build<R: Real>(
     spheres: &[Sphere<R>],
     instances: &[Aabb],
     triangles: &mut Vec<Triangle<R>>,
     shading: &mut Vec<TriangleShading>,
     force: Option<bool>,
+    give_up_triangles: bool,
 ) -> Option<Bvh> {
     let wanted = force.unwrap_or(
         !triangles.is_empty() || !instances.is_empty() || spheres.len() >= SPHERE_BVH_MIN,
@@ -81,14 +85,18 @@ pub(crate) fn build<R: Real>(
     // The 4-wide triangle test (f32 only) wants the leaves' triangles packed.
     // Not with spheres: packing them too (NaN lanes sent to the sphere test)
     // made the bunny scene (a glass sphere in the tree) 9% slower.
-    if std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>()
-        && spheres.is_empty()
-        && instances.is_empty()
-    {
-        // SAFETY: R is f32, so this is the same type.
-        let tris =
-            unsafe { &*(triangles.as_slice() as *const [Triangle<R>] as *const [Triangle<f32>]) };
-        tree.pack_triangles(tris);
+    if spheres.is_empty() && instances.is_empty() {
+        let any: &mut dyn std::any::Any = triangles;
+        if let Some(tris) = any.downcast_mut::<Vec<Triangle<f32>>>() {
+            if give_up_triangles {
+                if let Err(back) = tree.pack_triangles_owned(std::mem::take(tris)) {
+                    *tris = back;
+                    tree.pack_triangles(tris);
+                }
+            } else {
+                tree.pack_triangles(tris);
+            }
+        }
     }
     Some(tree)
 }
@@ -137,6 +145,66 @@ mod tests {
         super::reorder(&mut t, &mut s, src.clone());
         assert_eq!(t, src);
         assert_eq!(s, src.iter().map(|&x| x as u64 * 3).collect::<Vec<_>>());
+    }
+
+    /// Triangles given up to the tree are its packets alone, which are
+    /// those made from a kept copy, and read back bit for bit; with a
+    /// sphere in the tree they stay where they were. 100,000 triangles:
+    /// more than one chunk of the back-to-front packing.
+    #[test]
+    fn triangles_given_up_to_the_packets_read_back_exactly() {
+        use crate::geometry::Sphere;
+        use crate::triangle::{Triangle, TriangleShading};
+        use glam::Vec3A;
+        let mut seed = 7u64;
+        let mut r = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 40) as f32 / (1u64 << 24) as f32
+        };
+        let tris: Vec<Triangle<f32>> = (0..100_000)
+            .map(|_| {
+                let c = Vec3A::new(r(), r(), r()) * 100.0;
+                Triangle::new([
+                    c,
+                    c + Vec3A::new(r(), 0.0, 0.1),
+                    c + Vec3A::new(0.0, r(), r()),
+                ])
+            })
+            .collect();
+        let shading: Vec<TriangleShading> = (0..tris.len() as u32)
+            .map(|i| TriangleShading {
+                normals: crate::triangle::FLAT,
+                material: i,
+                attrs: 0,
+            })
+            .collect();
+        let (mut kept, mut kept_s) = (tris.clone(), shading.clone());
+        let a = super::build::<f32>(&[], &[], &mut kept, &mut kept_s, None, false).unwrap();
+        let (mut given, mut given_s) = (tris.clone(), shading.clone());
+        let b = super::build::<f32>(&[], &[], &mut given, &mut given_s, None, true).unwrap();
+        assert!(given.is_empty() && kept.len() == tris.len());
+        assert_eq!(given_s, kept_s);
+        assert!(a.slots.is_empty() && b.slots.len() == tris.len());
+        assert!(a.packets == b.packets, "the same packets");
+        for (i, t) in kept.iter().enumerate() {
+            let back = b.triangle(i).vertices();
+            for (u, v) in back.iter().zip(t.vertices()) {
+                assert_eq!(
+                    u.to_array().map(f32::to_bits),
+                    v.to_array().map(f32::to_bits)
+                );
+            }
+        }
+        let sphere = [Sphere::<f32> {
+            center: Vec3A::ZERO,
+            radius: 1.0,
+            material: 0,
+        }];
+        let (mut with_sphere, mut s) = (tris.clone(), shading.clone());
+        let c = super::build::<f32>(&sphere, &[], &mut with_sphere, &mut s, None, true).unwrap();
+        assert!(with_sphere.len() == tris.len() && c.slots.is_empty() && c.packets.is_empty());
     }
 
     #[test]

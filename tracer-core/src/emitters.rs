@@ -86,12 +86,7 @@ pub fn collect<R: Real>(world: &World<R>, power: &[f64]) -> Vec<TriEmitter<R>> {
             });
         }
     };
-    for (i, (t, s)) in world
-        .triangles
-        .iter()
-        .zip(&world.triangle_shading)
-        .enumerate()
-    {
+    for (i, (t, s)) in world.triangles().zip(&world.triangle_shading).enumerate() {
         if power[s.material as usize] > 0.0 {
             push(
                 t.vertices(),

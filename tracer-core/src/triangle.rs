@@ -225,6 +225,14 @@ impl Triangle4 {
             }
         }
     }
+
+    /// The triangle in lane `j`, as [`Triangle4::set`] was given it.
+    #[inline]
+    pub fn triangle(&self, j: usize) -> Triangle<f32> {
+        let r =
+            |i: usize| glam::Vec3A::new(self.rows[i][j], self.rows[i + 1][j], self.rows[i + 2][j]);
+        Triangle::new([r(0), r(3), r(6)])
+    }
 }
 
 /// What the 4-wide pass leaves to finish lane by lane: `candidates`, lanes

@@ -1619,7 +1619,7 @@ fn check_tree_scene(what: &str, desc: &SceneDesc, s: &RenderSettings) -> Option<
         .unwrap_or_else(|| panic!("{what}: the scene got no BVH, so the test would not test it"));
     eprintln!(
         "{what}: {} triangles, {} spheres, tree depth {}",
-        w.triangles.len(),
+        w.triangle_count(),
         w.spheres.len(),
         tree.stats.depth
     );
@@ -2021,6 +2021,7 @@ fn gpu_refuses_a_tree_deeper_than_its_stack() {
         nodes,
         prims,
         packets: Vec::new(),
+        slots: Vec::new(),
         stats: Default::default(),
         id: 0,
     });

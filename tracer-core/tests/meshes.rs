@@ -168,7 +168,7 @@ fn closed_sphere_mesh_never_leaks_through_edges_or_vertices() {
     let scene = SceneDesc::parse(&src, dir.join("leak.toml")).unwrap();
     let w32 = world_of::<f32>(&scene);
     let w64 = world_of::<f64>(&scene);
-    assert_eq!(w32.triangles.len(), f.len());
+    assert_eq!(w32.triangle_count(), f.len());
     assert!(w32.accel.is_some());
     assert_eq!(count_leaks(&w32, &v, &f, center, scale), 0, "f32 leaks");
     assert_eq!(count_leaks(&w64, &v, &f, center, scale), 0, "f64 leaks");
@@ -401,7 +401,8 @@ fn transforms_place_vertices_as_documented() {
     let scene = SceneDesc::parse(&src, dir.join("t.toml")).unwrap();
     let w = world_of::<f64>(&scene);
     let cam = DVec3::from_array(w.camera_position);
-    let got: Vec<[f64; 3]> = w.triangles[0]
+    let got: Vec<[f64; 3]> = w
+        .triangle(0)
         .vertices()
         .iter()
         .map(|p| (*p + cam).to_array())
@@ -428,13 +429,13 @@ fn transforms_place_vertices_as_documented() {
     .unwrap();
     let wp = world_of::<f64>(&plain);
     let c = |w: &World<f64>| {
-        let v = w.triangles[0].vertices();
+        let v = w.triangle(0).vertices();
         (v[0] + v[1] + v[2]) * (1.0 / 3.0)
     };
     // Outward = away from the model origin (which maps to the translation).
     let origin = DVec3::new(10.0, 20.0, 30.0) - cam;
-    assert!(wm.triangles[0].normal().dot(c(&wm) - origin) > 0.0);
-    assert!(wp.triangles[0].normal().dot(c(&wp) - origin) > 0.0);
+    assert!(wm.triangle(0).normal().dot(c(&wm) - origin) > 0.0);
+    assert!(wp.triangle(0).normal().dot(c(&wp) - origin) > 0.0);
 }
 
 fn scene_err(src: &str, dir: &Path) -> String {
@@ -859,8 +860,7 @@ fn packets_of_rays_answer_as_single_rays_bit_for_bit() {
             for r in &packet {
                 let tr = TriangleRay::new(r);
                 let mut d: Vec<u32> = world
-                    .triangles
-                    .iter()
+                    .triangles()
                     .filter_map(|t| t.intersect(&tr, f32::INFINITY))
                     .map(f32::to_bits)
                     .collect();
@@ -1711,7 +1711,7 @@ fn instances_equal_brute_force_and_copied_objects() {
         assert_eq!(tree.instances.list.len(), 9);
         assert_eq!(tree.instances.meshes.len(), 1);
         assert!(
-            tree.triangles.is_empty(),
+            tree.triangle_count() == 0,
             "the ball is stored once, not copied"
         );
         let mut brute = tree.clone();

@@ -156,6 +156,7 @@ impl Bvh {
             nodes,
             prims,
             packets: Vec::new(),
+            slots: Vec::new(),
             stats,
             id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
         }
@@ -167,9 +168,7 @@ impl Bvh {
     /// Only for trees over triangles alone; others keep none.
     pub fn pack_triangles(&mut self, triangles: &[Triangle<f32>]) {
         self.packets.clear();
-        if self.prims.iter().any(|p| {
-            *p != PrimId::NONE && (p.kind() != PrimId::TRIANGLE || p.index() >= triangles.len())
-        }) {
+        if !self.packable(triangles.len()) {
             return;
         }
         self.packets = self
@@ -185,6 +184,81 @@ impl Bvh {
             })
             .collect();
         self.stats.bytes += self.packets.len() * std::mem::size_of::<Triangle4>();
+    }
+
+    /// [`Bvh::pack_triangles`] taking the triangles, which the packets then
+    /// hold alone: [`Bvh::triangle`] reads one back through
+    /// [`Bvh::slots`]. The triangles must be in leaf order (each id at a
+    /// later slot than the one before, as `accel::build` leaves them). The
+    /// packets are made from the last back and the triangles cut behind
+    /// them as they go, so the two are never both held whole (a big mesh's
+    /// peak memory). Gives the triangles back, unpacked, for a tree that
+    /// holds other primitives or is not in leaf order.
+    pub fn pack_triangles_owned(
+        &mut self,
+        mut triangles: Vec<Triangle<f32>>,
+    ) -> Result<(), Vec<Triangle<f32>>> {
+        self.packets.clear();
+        self.slots.clear();
+        let n = triangles.len();
+        let in_order = self
+            .prims
+            .iter()
+            .filter(|id| **id != PrimId::NONE)
+            .enumerate()
+            .all(|(k, id)| id.index() == k);
+        if !self.packable(n) || !in_order || self.prims.len() >= u32::MAX as usize {
+            return Err(triangles);
+        }
+        // Zeroed memory is not resident until written: the packets' pages
+        // come as they are filled.
+        let mut packets: Vec<Triangle4> = bytemuck::zeroed_vec(self.prims.len().div_ceil(4));
+        let mut slots: Vec<u32> = bytemuck::zeroed_vec(n);
+        const CHUNK: usize = 1 << 14;
+        let mut end = packets.len();
+        while end > 0 {
+            let start = end.saturating_sub(CHUNK);
+            for i in (start..end).rev() {
+                let mut p = Triangle4::default();
+                for (j, id) in self.prims[4 * i..(4 * i + 4).min(self.prims.len())]
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, id)| **id != PrimId::NONE)
+                {
+                    p.set(j, &triangles[id.index()]);
+                    p.ids[j] = id.0;
+                    slots[id.index()] = (4 * i + j) as u32;
+                }
+                packets[i] = p;
+            }
+            // Every triangle from the first of packet `start` on is packed.
+            let first = self.prims[4 * start..]
+                .iter()
+                .find(|id| **id != PrimId::NONE)
+                .map_or(n, |id| id.index());
+            triangles.truncate(first);
+            triangles.shrink_to_fit();
+            end = start;
+        }
+        self.packets = packets;
+        self.slots = slots;
+        self.stats.bytes += self.packets.len() * std::mem::size_of::<Triangle4>()
+            + self.slots.len() * std::mem::size_of::<u32>();
+        Ok(())
+    }
+
+    /// Whether `prims` names triangles below `n` alone (or nothing).
+    fn packable(&self, n: usize) -> bool {
+        self.prims
+            .iter()
+            .all(|p| *p == PrimId::NONE || (p.kind() == PrimId::TRIANGLE && p.index() < n))
+    }
+
+    /// Triangle `index` of a tree packed by [`Bvh::pack_triangles_owned`].
+    #[inline]
+    pub fn triangle(&self, index: usize) -> Triangle<f32> {
+        let slot = self.slots[index] as usize;
+        self.packets[slot / 4].triangle(slot % 4)
     }
 }
 

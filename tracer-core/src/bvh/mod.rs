@@ -67,6 +67,10 @@ pub struct Bvh {
     /// For trees over `f32` triangles alone (else empty): the triangles of
     /// `prims[4 i .. 4 i + 4]` as packet i, for the 4-wide triangle test (CPU only).
     pub packets: Vec<Triangle4>,
+    /// For trees whose packets alone hold the triangles
+    /// ([`Bvh::pack_triangles_owned`]; else empty): each triangle's slot
+    /// in `prims` (packet `slot / 4`, lane `slot % 4`).
+    pub slots: Vec<u32>,
     pub stats: BvhStats,
     /// Unique per build (never 0 for a built tree; 0 for a tree made any
     /// other way): lets a GPU renderer keep an uploaded tree while the

@@ -9,7 +9,7 @@ use std::mem::MaybeUninit;
 use super::{Bvh, BvhNode4, STACK};
 use crate::geometry::PrimId;
 use crate::math::{Ray, Real, Vector3};
-use crate::triangle::{Triangle, TriangleRay, finish};
+use crate::triangle::{TriangleRay, finish};
 
 /// What traversal needs from the primitives that a tree's [`PrimId`]s name.
 /// Implemented by the store that owns them (`World`); traversal is generic
@@ -29,11 +29,6 @@ pub trait Primitives<R: Real> {
         t_max: R,
         skip: PrimId,
     ) -> Option<R>;
-
-    /// The triangles that `PrimId::TRIANGLE` ids index: the 4-wide packet
-    /// test ([`Bvh::packets`]) finishes the lanes it leaves undecided with
-    /// their scalar test, bit for bit as [`Primitives::intersect`] would.
-    fn triangles(&self) -> &[Triangle<R>];
 }
 
 /// Exit distances are widened by this factor (Ize 2013, "Robust BVH ray
@@ -185,10 +180,9 @@ pub(super) fn leaf<R: Real, P: Primitives<R>, const ANY: bool>(
         && (first + count).div_ceil(4) <= bvh.packets.len()
     {
         // SAFETY: R is f32, so these are the same types.
-        let (tr, tris, best) = unsafe {
+        let (tr, best) = unsafe {
             (
                 &*(tr as *const TriangleRay<R> as *const TriangleRay<f32>),
-                &*(view.triangles() as *const [Triangle<R>] as *const [Triangle<f32>]),
                 &mut *(best as *mut R as *mut f32),
             )
         };
@@ -207,7 +201,9 @@ pub(super) fn leaf<R: Real, P: Primitives<R>, const ANY: bool>(
                     continue;
                 }
                 let t = if (e.exact >> j) & 1 != 0 {
-                    tris[id.index()].distance(tr, *best)
+                    // The packet holds the triangle itself (it may be the
+                    // only copy: `Bvh::pack_triangles_owned`).
+                    packet.triangle(j).distance(tr, *best)
                 } else {
                     finish(e.t_scaled[j], e.det[j], *best)
                 };

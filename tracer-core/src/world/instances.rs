@@ -110,7 +110,7 @@ impl<R: Real> Instances<R> {
                 }
             }
         }
-        let tree = crate::accel::build(&[], &[], &mut triangles, &mut shading, Some(true))
+        let tree = crate::accel::build(&[], &[], &mut triangles, &mut shading, Some(true), false)
             .unwrap_or_default();
         self.meshes.push(InstancedMesh {
             triangles,
@@ -252,10 +252,5 @@ impl<R: Real> bvh::Primitives<R> for InstancedMesh<R> {
             return None;
         }
         self.triangles[id.index()].distance(tri, t_max)
-    }
-
-    #[inline(always)]
-    fn triangles(&self) -> &[Triangle<R>] {
-        &self.triangles
     }
 }

@@ -95,14 +95,18 @@ pub struct World<R: Real> {
     /// The same spheres four to a pack, for the intersection loops.
     pub sphere_packs: Vec<SpherePack<R>>,
     pub planes: Vec<Plane<R>>,
-    /// Mesh triangles (vertices only: what traversal touches) ...
-    pub triangles: Vec<Triangle<R>>,
+    /// Mesh triangles (vertices only: what traversal touches), unless the
+    /// tree's packets hold them alone (`f32` worlds of triangles only:
+    /// `Bvh::pack_triangles_owned`); read them by [`World::triangle`] ...
+    unpacked_triangles: Vec<Triangle<R>>,
     /// ... and, at the same index, what shading needs ...
     pub triangle_shading: Vec<TriangleShading>,
     /// ... with the vertex normals it names.
     pub vertex_normals: Vec<R::V3>,
     /// Bounding volume hierarchy over spheres and triangles, when the scene
     /// has meshes or many spheres (see `accel.rs`); planes stay outside it.
+    /// Its packets may be the only copy of the triangles: change it
+    /// through [`World::set_accel`], which takes them back first.
     pub accel: Option<Bvh>,
     /// Meshes placed many times, stored once (the tree's `PrimId::INSTANCE`s).
     pub instances: Instances<R>,
@@ -218,8 +222,8 @@ impl<R: Real> World<R> {
         WorldStats {
             spheres: self.spheres.len(),
             planes: self.planes.len(),
-            triangles: self.triangles.len() + mesh_triangles,
-            placed_triangles: self.triangles.len() as u64 + placed,
+            triangles: self.triangle_count() + mesh_triangles,
+            placed_triangles: self.triangle_count() as u64 + placed,
             instances: self.instances.list.len(),
             textures: images.len(),
             texture_bytes: images.iter().map(|i| 4 * i.texels.len() as u64).sum(),
@@ -372,7 +376,7 @@ impl<R: Real> World<R> {
             sphere_packs: SpherePack::pack(&spheres),
             spheres,
             planes,
-            triangles: tris.triangles,
+            unpacked_triangles: tris.triangles,
             triangle_shading: tris.shading,
             vertex_normals: tris.vertex_normals,
             accel: None,
@@ -424,7 +428,7 @@ impl<R: Real> World<R> {
                         sphere_packs: Vec::new(),
                         spheres: Vec::new(),
                         planes: Vec::new(),
-                        triangles: set.triangles,
+                        unpacked_triangles: set.triangles,
                         triangle_shading: set.shading,
                         vertex_normals: set.vertex_normals,
                         accel: None,
@@ -440,7 +444,7 @@ impl<R: Real> World<R> {
                     };
                     own.set_accel(None);
                     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-                    for t in &own.triangles {
+                    for t in own.triangles() {
                         for v in t.vertices() {
                             let v = v.to_array();
                             for k in 0..3 {
@@ -549,20 +553,53 @@ impl<R: Real> World<R> {
     /// the acceleration structure. Without one, every query tests every
     /// primitive: the brute-force reference the tree is checked against.
     pub fn set_accel(&mut self, force: Option<bool>) {
+        if self.unpacked_triangles.is_empty() && self.triangle_count() > 0 {
+            self.unpacked_triangles = self.triangles().collect();
+        }
         self.accel = crate::accel::build(
             &self.spheres,
             &self.instances.boxes(),
-            &mut self.triangles,
+            &mut self.unpacked_triangles,
             &mut self.triangle_shading,
             force,
+            true,
         );
     }
 
+    /// How many triangles the world holds itself (instanced meshes' apart).
+    #[inline]
+    pub fn triangle_count(&self) -> usize {
+        match &self.accel {
+            Some(tree) if self.unpacked_triangles.is_empty() => tree.slots.len(),
+            _ => self.unpacked_triangles.len(),
+        }
+    }
+
+    /// Triangle `index` of the world's own (by value: the tree's packets
+    /// may hold it alone).
+    #[inline]
+    pub fn triangle(&self, index: usize) -> Triangle<R> {
+        if let Some(t) = self.unpacked_triangles.get(index) {
+            return *t;
+        }
+        let tree = self.accel.as_ref().expect("a triangle of the world");
+        let t = tree.triangle(index);
+        *(&t as &dyn std::any::Any)
+            .downcast_ref::<Triangle<R>>()
+            .expect("only f32 worlds keep their triangles in packets alone")
+    }
+
+    /// Every triangle of the world's own, in id order.
+    pub fn triangles(&self) -> impl ExactSizeIterator<Item = Triangle<R>> + '_ {
+        (0..self.triangle_count()).map(|i| self.triangle(i))
+    }
+
     /// Bytes of the triangle data (intersection and shading arrays, and
-    /// the vertex normals).
+    /// the vertex normals; triangles held by the tree's packets alone are
+    /// the tree's bytes).
     pub fn triangle_bytes(&self) -> usize {
-        self.triangles.len()
-            * (std::mem::size_of::<Triangle<R>>() + std::mem::size_of::<TriangleShading>())
+        std::mem::size_of_val(self.unpacked_triangles.as_slice())
+            + std::mem::size_of_val(self.triangle_shading.as_slice())
             + std::mem::size_of_val(self.vertex_normals.as_slice())
     }
 
@@ -572,7 +609,7 @@ impl<R: Real> World<R> {
             spheres: Vec::new(),
             sphere_packs: Vec::new(),
             planes: Vec::new(),
-            triangles: Vec::new(),
+            unpacked_triangles: Vec::new(),
             triangle_shading: Vec::new(),
             vertex_normals: Vec::new(),
             accel: None,
@@ -607,7 +644,7 @@ fn scene_radius<R: Real>(world: &World<R>) -> f64 {
     for s in &world.spheres {
         add(s.center.to_array(), s.radius.to_f64());
     }
-    for t in &world.triangles {
+    for t in world.triangles() {
         for v in t.vertices() {
             add(v.to_array(), 0.0);
         }

@@ -86,7 +86,7 @@ impl<R: Real> World<R> {
         let (material, normal) = match id.kind() {
             PrimId::TRIANGLE => (
                 self.triangle_shading[id.index()].material,
-                self.triangles[id.index()].normal(),
+                self.triangle(id.index()).normal(),
             ),
             PrimId::INSTANCE_TRIANGLE => {
                 let (_, n, material) = self.instances.surface(id.index(), p);
@@ -114,7 +114,7 @@ impl<R: Real> World<R> {
     pub fn placed_triangle(&self, id: PrimId) -> Option<PlacedTriangle<'_, R>> {
         match id.kind() {
             PrimId::TRIANGLE => Some(PlacedTriangle {
-                triangle: &self.triangles[id.index()],
+                triangle: self.triangle(id.index()),
                 shading: &self.triangle_shading[id.index()],
                 vertex_normals: &self.vertex_normals,
                 instance: None,
@@ -122,7 +122,7 @@ impl<R: Real> World<R> {
             PrimId::INSTANCE_TRIANGLE => {
                 let (instance, mesh, k) = self.instances.locate(id.index());
                 Some(PlacedTriangle {
-                    triangle: &mesh.triangles[k],
+                    triangle: mesh.triangles[k],
                     shading: &mesh.shading[k],
                     vertex_normals: &mesh.vertex_normals,
                     instance: Some(instance),
@@ -250,7 +250,7 @@ impl<R: Real> World<R> {
         if let Some(tree) = &self.accel {
             return self.closest_hit_accel(tree, ray, skip);
         }
-        if !self.triangles.is_empty() || !self.instances.list.is_empty() {
+        if self.triangle_count() > 0 || !self.instances.list.is_empty() {
             return self.closest_hit_brute(ray, skip);
         }
         let mut best = R::INFINITY;
@@ -293,7 +293,7 @@ impl<R: Real> World<R> {
         if let Some(tree) = &self.accel {
             return self.occluded_accel(tree, ray, t_max, skip);
         }
-        if !self.triangles.is_empty() || !self.instances.list.is_empty() {
+        if self.triangle_count() > 0 || !self.instances.list.is_empty() {
             return self.occluded_brute(ray, t_max, skip);
         }
         let (o, d) = Self::splat_ray(ray);
@@ -473,7 +473,7 @@ impl<R: Real> World<R> {
             }
         }
         let tr = TriangleRay::new(ray);
-        for (i, t) in self.triangles.iter().enumerate() {
+        for (i, t) in self.triangles().enumerate() {
             let pid = PrimId::new(PrimId::TRIANGLE, i as u32);
             if pid == skip {
                 continue;
@@ -499,7 +499,7 @@ impl<R: Real> World<R> {
 
     fn occluded_brute(&self, ray: &Ray<R>, t_max: R, skip: PrimId) -> bool {
         let tr = TriangleRay::new(ray);
-        self.triangles.iter().enumerate().any(|(i, t)| {
+        self.triangles().enumerate().any(|(i, t)| {
             PrimId::new(PrimId::TRIANGLE, i as u32) != skip && t.intersect(&tr, t_max).is_some()
         }) || (0..self.instances.list.len())
             .any(|i| self.instances.closest(i, ray, t_max, skip).is_some())
@@ -516,7 +516,7 @@ impl<R: Real> World<R> {
     /// Point snapped onto the triangle's plane, its outward geometric normal, and material.
     #[inline]
     fn triangle_surface(&self, index: usize, p: R::V3) -> (R::V3, R::V3, u32) {
-        let t = &self.triangles[index];
+        let t = self.triangle(index);
         let (v0, normal) = (t.vertices()[0], t.normal());
         let p = p - normal * normal.dot(p - v0);
         (p, normal, self.triangle_shading[index].material)
@@ -557,7 +557,7 @@ impl<R: Real> bvh::Primitives<R> for World<R> {
             if id == skip {
                 return None;
             }
-            self.triangles[id.index()].distance(tri, t_max)
+            self.triangle(id.index()).distance(tri, t_max)
         } else if id.kind() == PrimId::INSTANCE {
             self.instances
                 .closest(id.index(), ray, t_max, skip)
@@ -566,11 +566,6 @@ impl<R: Real> bvh::Primitives<R> for World<R> {
             self.spheres[id.index()].intersect(ray, R::INFINITY, id == skip)
         }
     }
-
-    #[inline(always)]
-    fn triangles(&self) -> &[Triangle<R>] {
-        &self.triangles
-    }
 }
 
 /// A hit triangle as shading sees it ([`World::placed_triangle`]): a world
@@ -578,7 +573,7 @@ impl<R: Real> bvh::Primitives<R> for World<R> {
 /// places it.
 #[derive(Clone, Copy)]
 pub struct PlacedTriangle<'a, R: Real> {
-    pub triangle: &'a Triangle<R>,
+    pub triangle: Triangle<R>,
     pub shading: &'a crate::triangle::TriangleShading,
     /// The vertex normals its shading names (its mesh's).
     pub vertex_normals: &'a [R::V3],
@@ -613,10 +608,10 @@ impl<R: Real> PlacedTriangle<'_, R> {
         match self.instance {
             None => self
                 .shading
-                .normal_at(self.triangle, self.vertex_normals, p),
+                .normal_at(&self.triangle, self.vertex_normals, p),
             Some(i) => {
                 let n = self.shading.normal_at(
-                    self.triangle,
+                    &self.triangle,
                     self.vertex_normals,
                     i.to_object.point(p),
                 );

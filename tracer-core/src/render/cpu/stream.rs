@@ -36,7 +36,7 @@ pub use crate::simd::SimdLevel;
 
 /// Whether the stream renderer handles this world.
 pub fn supports(world: &World<f32>) -> bool {
-    world.accel.is_none() && world.triangles.is_empty() && world.instances.list.is_empty()
+    world.accel.is_none() && world.triangle_count() == 0 && world.instances.list.is_empty()
 }
 
 /// Renders one tile with the stream renderer at SIMD level `level`, which

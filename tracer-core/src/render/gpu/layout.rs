@@ -317,7 +317,9 @@ pub struct TreePlace {
 /// mesh, whose world has its own materials, the index in the GPU's
 /// materials of each of them.
 pub struct TreePart<'a> {
-    pub triangles: &'a [Triangle<f32>],
+    /// Borrowed, or read out of a world's tree, whose packets may hold
+    /// them alone.
+    pub triangles: std::borrow::Cow<'a, [Triangle<f32>]>,
     pub shading: &'a [TriangleShading],
     pub vertex_normals: &'a [glam::Vec3A],
     pub spheres: usize,
@@ -330,7 +332,7 @@ impl<'a> TreePart<'a> {
     /// A world's tree (the static world's, or a moving mesh's).
     pub fn world(w: &'a World<f32>, tree: &'a Bvh, materials: Option<&'a [u32]>) -> Self {
         TreePart {
-            triangles: &w.triangles,
+            triangles: w.triangles().collect(),
             shading: &w.triangle_shading,
             vertex_normals: &w.vertex_normals,
             spheres: w.spheres.len(),
@@ -343,7 +345,7 @@ impl<'a> TreePart<'a> {
     /// An instanced mesh's tree (its triangles in object space).
     pub fn mesh(m: &'a InstancedMesh<f32>) -> Self {
         TreePart {
-            triangles: &m.triangles,
+            triangles: std::borrow::Cow::Borrowed(&m.triangles),
             shading: &m.shading,
             vertex_normals: &m.vertex_normals,
             spheres: 0,
@@ -418,7 +420,7 @@ impl TreeData {
                 }
             }));
             data.shading
-                .extend(part.shading.iter().zip(part.triangles).map(
+                .extend(part.shading.iter().zip(part.triangles.iter()).map(
                     |(s, t): (&TriangleShading, &Triangle<f32>)| {
                         let ns = if s.smooth() {
                             s.normals.map(|i| a3(part.vertex_normals[i as usize]))
@@ -915,12 +917,12 @@ impl SceneData {
             .flat_map(|d| d.moving_meshes.iter().enumerate())
         {
             let Some(t) = m.world.accel.as_ref().filter(|t| !t.nodes.is_empty()) else {
-                if m.world.triangles.is_empty() {
+                if m.world.triangle_count() == 0 {
                     continue; // nothing to hit
                 }
                 return Err(GpuError::BadTree(format!(
                     "a moving mesh has {} triangles but no BVH over them",
-                    m.world.triangles.len()
+                    m.world.triangle_count()
                 )));
             };
             let map: Vec<u32> = m
@@ -996,12 +998,12 @@ impl SceneData {
                 .collect(),
             None => Vec::new(),
         };
-        if static_tree.is_none() && !w.triangles.is_empty() {
+        if static_tree.is_none() && w.triangle_count() > 0 {
             // Worlds always get a tree with their triangles (accel.rs); the
             // kernel has no loop over triangles.
             return Err(GpuError::BadTree(format!(
                 "the scene has {} triangles but no BVH over them",
-                w.triangles.len()
+                w.triangle_count()
             )));
         }
         let mut dist = w.dist.as_deref().map(|d| DistData::from_dist(d, &meshes));
@@ -1488,7 +1490,7 @@ translate = [0, 0, 2]
         for (k, m) in meshes.iter().enumerate() {
             let place = tree.places[k + 1];
             let first = place.first_triangle as usize;
-            let end = first + m.world.triangles.len();
+            let end = first + m.world.triangle_count();
             assert_eq!(
                 tree.places
                     .get(k + 2)
@@ -1503,7 +1505,7 @@ translate = [0, 0, 2]
             assert_eq!(words[1][3].to_bits(), place.first_triangle);
             assert_eq!(words[2][..3], a3(m.delta));
             // Walk from the root: every triangle of the mesh, once.
-            let mut seen = vec![0; m.world.triangles.len()];
+            let mut seen = vec![0; m.world.triangle_count()];
             let mut todo = vec![place.root as usize];
             while let Some(i) = todo.pop() {
                 let n = &tree.nodes[i];
@@ -1522,7 +1524,7 @@ translate = [0, 0, 2]
                 }
             }
             assert!(seen.iter().all(|&c| c == 1), "mesh {k}: {seen:?}");
-            for (j, t) in m.world.triangles.iter().enumerate() {
+            for (j, t) in m.world.triangles().enumerate() {
                 let g = tree.triangles[first + j];
                 assert_eq!([g.v0, g.v1, g.v2], t.vertices().map(a3));
                 let mat = &m.world.materials[m.world.triangle_shading[j].material as usize];
