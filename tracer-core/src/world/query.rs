@@ -529,12 +529,20 @@ impl<R: Real> World<R> {
     /// so that no reflected ray is sent into the surface.
     #[inline(always)]
     pub fn shading_normal(&self, id: PrimId, p: R::V3, n: R::V3, v: R::V3) -> R::V3 {
-        let Some(t) = self.placed_triangle(id) else {
+        // Flat triangles (most of a mesh without normals) and other
+        // primitives are answered from the shading record alone, before the
+        // triangle is read (from a packet, maybe).
+        let smooth = match id.kind() {
+            PrimId::TRIANGLE => self.triangle_shading[id.index()].smooth(),
+            PrimId::INSTANCE_TRIANGLE => {
+                let (_, mesh, k) = self.instances.locate(id.index());
+                mesh.shading[k].smooth()
+            }
+            _ => false,
+        };
+        let Some(t) = self.placed_triangle(id).filter(|_| smooth) else {
             return n;
         };
-        if !t.shading.smooth() {
-            return n;
-        }
         let ns = t.normal_at(p);
         let ns = if ns.dot(n) < R::ZERO { -ns } else { ns };
         if ns.dot(v) > R::ZERO { ns } else { n }
