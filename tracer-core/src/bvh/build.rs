@@ -201,12 +201,18 @@ impl Bvh {
         self.packets.clear();
         self.slots.clear();
         let n = triangles.len();
+        // Each triangle once, in id order: the cut behind the packets then
+        // drops only packed ones.
+        let mut named = 0;
         let in_order = self
             .prims
             .iter()
             .filter(|id| **id != PrimId::NONE)
-            .enumerate()
-            .all(|(k, id)| id.index() == k);
+            .all(|id| {
+                named += 1;
+                id.index() == named - 1
+            })
+            && named == n;
         if !self.packable(n) || !in_order || self.prims.len() >= u32::MAX as usize {
             return Err(triangles);
         }
@@ -769,5 +775,28 @@ mod tests {
             "{:?}",
             bounded.stats
         );
+    }
+
+    /// A tree that names some triangles only keeps them all: packing them
+    /// away would drop the unnamed ones.
+    #[test]
+    fn triangles_the_tree_does_not_name_are_not_given_up() {
+        let tri = |x: f32| {
+            Triangle::<f32>::new([
+                Vec3A::new(x, 0.0, 0.0),
+                Vec3A::new(x + 1.0, 0.0, 0.0),
+                Vec3A::Y,
+            ])
+        };
+        let tris = vec![tri(0.0), tri(2.0), tri(4.0)];
+        let boxes = [
+            unit_box([0.5, 0.5, 0.0], 1.0),
+            unit_box([2.5, 0.5, 0.0], 1.0),
+        ];
+        let ids = [0, 1].map(|i| PrimId::new(PrimId::TRIANGLE, i));
+        let mut tree = Bvh::build(&boxes, &ids);
+        let back = tree.pack_triangles_owned(tris).unwrap_err();
+        assert_eq!(back.len(), 3);
+        assert!(tree.packets.is_empty() && tree.slots.is_empty());
     }
 }
