@@ -594,6 +594,16 @@ impl<R: Real> World<R> {
         (0..self.triangle_count()).map(|i| self.triangle(i))
     }
 
+    /// The same as one array: borrowed where the world holds them itself,
+    /// copied out of the tree's packets where those hold them alone.
+    pub fn triangle_array(&self) -> std::borrow::Cow<'_, [Triangle<R>]> {
+        if self.unpacked_triangles.len() == self.triangle_count() {
+            std::borrow::Cow::Borrowed(&self.unpacked_triangles)
+        } else {
+            self.triangles().collect()
+        }
+    }
+
     /// Bytes of the triangle data (intersection and shading arrays, and
     /// the vertex normals; triangles held by the tree's packets alone are
     /// the tree's bytes).

@@ -529,18 +529,13 @@ impl<R: Real> World<R> {
     /// so that no reflected ray is sent into the surface.
     #[inline(always)]
     pub fn shading_normal(&self, id: PrimId, p: R::V3, n: R::V3, v: R::V3) -> R::V3 {
-        // Flat triangles (most of a mesh without normals) and other
-        // primitives are answered from the shading record alone, before the
-        // triangle is read (from a packet, maybe).
-        let smooth = match id.kind() {
-            PrimId::TRIANGLE => self.triangle_shading[id.index()].smooth(),
-            PrimId::INSTANCE_TRIANGLE => {
-                let (_, mesh, k) = self.instances.locate(id.index());
-                mesh.shading[k].smooth()
-            }
-            _ => false,
-        };
-        let Some(t) = self.placed_triangle(id).filter(|_| smooth) else {
+        // A flat world triangle (most of a mesh without normals) is
+        // answered from its shading record, before the triangle is read
+        // (from a packet, maybe); an instance's is read from its mesh.
+        if id.kind() == PrimId::TRIANGLE && !self.triangle_shading[id.index()].smooth() {
+            return n;
+        }
+        let Some(t) = self.placed_triangle(id).filter(|t| t.shading.smooth()) else {
             return n;
         };
         let ns = t.normal_at(p);

@@ -332,7 +332,7 @@ impl<'a> TreePart<'a> {
     /// A world's tree (the static world's, or a moving mesh's).
     pub fn world(w: &'a World<f32>, tree: &'a Bvh, materials: Option<&'a [u32]>) -> Self {
         TreePart {
-            triangles: w.triangles().collect(),
+            triangles: w.triangle_array(),
             shading: &w.triangle_shading,
             vertex_normals: &w.vertex_normals,
             spheres: w.spheres.len(),
