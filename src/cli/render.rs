@@ -357,7 +357,8 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
     let renderer = Renderer::open(args.backend, args.threads, adapter)?;
     let open_seconds = open_start.elapsed().as_secs_f64();
     let prepare_start = Instant::now();
-    let prepared = PreparedFrame::build(&scene, &settings, args.frame, precision)?;
+    // The scene is not read again: its models are freed before the tree's build.
+    let prepared = PreparedFrame::build_owned(scene, &settings, args.frame, precision)?;
     let setup = Setup {
         load_seconds,
         open_seconds,

@@ -8,7 +8,7 @@
 //! (`world/query.rs`, where the world is the tree's `bvh::Primitives`
 //! view), depends on it and not the other way round.
 
-use crate::bvh::{Aabb, Bvh};
+use crate::bvh::{Aabb, BuildBox, Bvh};
 use crate::geometry::{PrimId, Sphere};
 use crate::math::{Real, Vector3};
 use crate::triangle::{Triangle, TriangleShading};
@@ -45,29 +45,38 @@ pub(crate) fn build<R: Real>(
     if !wanted || (triangles.is_empty() && spheres.is_empty() && instances.is_empty()) {
         return None;
     }
+    // Ids are spheres', then instances', then triangles', in that order.
+    let (first_instance, first_triangle) = (
+        spheres.len() as u32,
+        (spheres.len() + instances.len()) as u32,
+    );
+    let id = |i: u32| {
+        if i < first_instance {
+            PrimId::new(PrimId::SPHERE, i)
+        } else if i < first_triangle {
+            PrimId::new(PrimId::INSTANCE, i - first_instance)
+        } else {
+            PrimId::new(PrimId::TRIANGLE, i - first_triangle)
+        }
+    };
     let mut boxes = Vec::with_capacity(spheres.len() + instances.len() + triangles.len());
-    let mut ids = Vec::with_capacity(boxes.capacity());
-    for (i, s) in spheres.iter().enumerate() {
+    for s in spheres {
         let c = s.center.to_array();
         let r = s.radius.to_f64();
-        boxes.push(Aabb::outward(c.map(|x| x - r), c.map(|x| x + r)));
-        ids.push(PrimId::new(PrimId::SPHERE, i as u32));
+        boxes.push(BuildBox::of(&Aabb::outward(
+            c.map(|x| x - r),
+            c.map(|x| x + r),
+        )));
     }
-    for (i, b) in instances.iter().enumerate() {
-        boxes.push(*b);
-        ids.push(PrimId::new(PrimId::INSTANCE, i as u32));
-    }
-    for (i, t) in triangles.iter().enumerate() {
+    boxes.extend(instances.iter().map(BuildBox::of));
+    for t in triangles.iter() {
         let v = t.vertices();
         let lo = v[0].min(v[1]).min(v[2]).to_array();
         let hi = v[0].max(v[1]).max(v[2]).to_array();
-        boxes.push(Aabb::outward(lo, hi));
-        ids.push(PrimId::new(PrimId::TRIANGLE, i as u32));
+        boxes.push(BuildBox::of(&Aabb::outward(lo, hi)));
     }
-    // The boxes are partitioned in place, and the ids dropped before the
-    // reordering: peak memory.
-    let mut tree = Bvh::build_owned(boxes, &ids);
-    drop(ids);
+    // The boxes are partitioned in place (one array of them at the peak).
+    let mut tree = Bvh::build_owned(boxes, &id);
     let n = triangles.len();
     if n > 0 {
         // src[j]: the triangle that goes to place j, in leaf order.

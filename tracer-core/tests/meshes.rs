@@ -5,6 +5,7 @@
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use tracer_core::film::WorkRegion;
 
 use glam::DVec3;
@@ -579,6 +580,45 @@ fn cornell_example_renders_its_coloured_walls() {
         "block front {:?}",
         px(24, 30)
     );
+}
+
+/// A scene rendered once (`PreparedFrame::build_owned`, what `tessera
+/// render` uses) frees its models before the tree's build and renders the
+/// same film, bit for bit, as one built from a kept description.
+#[test]
+fn a_scene_built_once_frees_its_models_and_renders_the_same() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cornell.toml");
+    let mut scene = SceneDesc::load(&path).unwrap();
+    scene.render.width = 32;
+    scene.render.height = 32;
+    scene.render.samples = 2;
+    let (kept, _) = render(&scene, Precision::F32);
+    let owned = scene.clone();
+    let weak: Vec<_> = owned
+        .objects
+        .iter()
+        .filter_map(|o| match o {
+            tracer_core::scene::ObjectDesc::Mesh(m) => m.model.0.as_ref().map(Arc::downgrade),
+            _ => None,
+        })
+        .collect();
+    assert!(!weak.is_empty(), "the Cornell box is a model file");
+    drop(scene);
+    let settings = owned.render;
+    let frame = PreparedFrame::build_owned(owned, &settings, 0, Precision::F32).unwrap();
+    assert!(
+        weak.iter().all(|w| w.upgrade().is_none()),
+        "no model outlives the build"
+    );
+    let film = CpuRenderer::new(Some(2))
+        .unwrap()
+        .render(
+            &frame,
+            WorkRegion::new(0, Rect::full(32, 32), SampleRange::all(2)),
+            &|_| {},
+        )
+        .unwrap();
+    assert!(film.resolve() == kept, "the same film");
 }
 
 #[test]

@@ -32,24 +32,51 @@ const PARALLEL_MIN: usize = 4096;
 /// Source of [`Bvh::id`].
 static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
-/// Build-time tree before flattening.
+/// Build-time tree before flattening. Kept small (40 bytes a node, a
+/// box of 24): a big mesh's build holds about one node a triangle, beside
+/// the triangles themselves, and that is its peak memory.
 enum BuildNode {
     Leaf {
-        bounds: Aabb,
-        start: usize,
-        count: usize,
+        bounds: BuildBox,
+        start: u32,
+        count: u32,
     },
     Inner {
-        bounds: Aabb,
+        bounds: BuildBox,
         children: Box<[BuildNode; 2]>,
         median: bool,
     },
 }
 
 impl BuildNode {
-    fn bounds(&self) -> &Aabb {
+    fn bounds(&self) -> Aabb {
         match self {
-            BuildNode::Leaf { bounds, .. } | BuildNode::Inner { bounds, .. } => bounds,
+            BuildNode::Leaf { bounds, .. } | BuildNode::Inner { bounds, .. } => bounds.aabb(),
+        }
+    }
+}
+
+/// An [`Aabb`] as the build stores it, 24 bytes without its SIMD
+/// alignment's padding (32): the build holds one a primitive and one a
+/// node, the peak memory of a big mesh.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BuildBox {
+    min: [f32; 3],
+    max: [f32; 3],
+}
+
+impl BuildBox {
+    pub fn of(b: &Aabb) -> BuildBox {
+        BuildBox {
+            min: b.min.to_array(),
+            max: b.max.to_array(),
+        }
+    }
+    #[inline(always)]
+    pub fn aabb(&self) -> Aabb {
+        Aabb {
+            min: Vec3A::from_array(self.min),
+            max: Vec3A::from_array(self.max),
         }
     }
 }
@@ -60,7 +87,7 @@ impl BuildNode {
 /// memory (an index array into 28 MB of boxes misses the cache on every
 /// access for a large mesh).
 struct Prims<'a> {
-    boxes: &'a mut [Aabb],
+    boxes: &'a mut [BuildBox],
     order: &'a mut [u32],
 }
 
@@ -99,19 +126,22 @@ impl Bvh {
     /// levels deep (`depth` at least 2 + ceil(log2(n)) for n primitives), so
     /// that traversal needs at most [`stack_for_depth`]`(depth)` entries.
     pub fn build_with_depth(boxes: &[Aabb], ids: &[PrimId], depth: usize) -> Bvh {
-        Self::build_inner(boxes.to_vec(), ids, depth)
+        assert_eq!(boxes.len(), ids.len());
+        let work = boxes.iter().map(BuildBox::of).collect();
+        Self::build_inner(work, &|i| ids[i as usize], depth)
     }
 
-    /// As [`Bvh::build`], partitioning `boxes` itself rather than a copy
-    /// (a big scene's peak memory holds one array of boxes, not two).
-    pub fn build_owned(boxes: Vec<Aabb>, ids: &[PrimId]) -> Bvh {
-        Self::build_inner(boxes, ids, MAX_DEPTH)
+    /// As [`Bvh::build`], partitioning `boxes` itself rather than a copy,
+    /// with primitive i's id `id(i)` rather than an array of them (a big
+    /// scene's peak memory holds one array of boxes and none of ids).
+    pub fn build_owned(boxes: Vec<BuildBox>, id: &dyn Fn(u32) -> PrimId) -> Bvh {
+        Self::build_inner(boxes, id, MAX_DEPTH)
     }
 
-    fn build_inner(mut work: Vec<Aabb>, ids: &[PrimId], depth: usize) -> Bvh {
+    fn build_inner(mut work: Vec<BuildBox>, ids: &dyn Fn(u32) -> PrimId, depth: usize) -> Bvh {
         let stack = depth;
         let n = work.len();
-        assert_eq!(n, ids.len());
+        assert!(n <= u32::MAX as usize, "{n} primitives: ids are 32-bit");
         assert!(
             stack >= 2 + ceil_log2(n),
             "a depth of {stack} cannot hold a tree over {} primitives",
@@ -268,10 +298,11 @@ impl Bvh {
     }
 }
 
-fn bounds_of(boxes: &[Aabb]) -> (Aabb, Aabb) {
+fn bounds_of(boxes: &[BuildBox]) -> (Aabb, Aabb) {
     let mut b = Aabb::EMPTY;
     let mut c = Aabb::EMPTY;
     for p in boxes {
+        let p = &p.aabb();
         b.grow(p);
         c.grow_point(p.centroid());
     }
@@ -293,8 +324,8 @@ fn build_node(
     let n = prims.len();
     if n == 1 {
         return BuildNode::Leaf {
-            bounds,
-            start: offset,
+            bounds: BuildBox::of(&bounds),
+            start: offset as u32,
             count: 1,
         };
     }
@@ -310,9 +341,9 @@ fn build_node(
     let (mid, lb, rb) = match split {
         Some(Split::Leaf) => {
             return BuildNode::Leaf {
-                bounds,
-                start: offset,
-                count: n,
+                bounds: BuildBox::of(&bounds),
+                start: offset as u32,
+                count: n as u32,
             };
         }
         Some(Split::Bin {
@@ -330,9 +361,9 @@ fn build_node(
         None => {
             if !median && n <= MAX_LEAF {
                 return BuildNode::Leaf {
-                    bounds,
-                    start: offset,
-                    count: n,
+                    bounds: BuildBox::of(&bounds),
+                    start: offset as u32,
+                    count: n as u32,
                 };
             }
             let mid = median_split(&mut prims, &cbounds);
@@ -352,7 +383,7 @@ fn build_node(
         (build_l(), build_r())
     };
     BuildNode::Inner {
-        bounds,
+        bounds: BuildBox::of(&bounds),
         children: Box::new([l, r]),
         median,
     }
@@ -403,7 +434,7 @@ struct Bin {
 /// Best binned SAH split over the three axes, `Leaf` when a leaf is cheaper
 /// (and allowed), `None` when the centroids cannot be separated by bins.
 /// One pass over the primitives bins all three axes at once.
-fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
+fn sah_split(boxes: &[BuildBox], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
     let n = boxes.len();
     let lo = cbounds.min;
     // Bins in use: as many as primitives, from 4 up to BINS (small nodes,
@@ -427,6 +458,7 @@ fn sah_split(boxes: &[Aabb], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
     };
     let mut bins = [[empty; BINS]; 3];
     for b in boxes {
+        let b = &b.aabb();
         let k = bins_of(b.centroid(), lo, scale, top);
         for axis in 0..3 {
             let bin = &mut bins[axis][k[axis]];
@@ -505,8 +537,8 @@ fn partition_bins(
 ) -> (usize, Aabb, Aabb) {
     let (mut lc, mut rc) = (Aabb::EMPTY, Aabb::EMPTY);
     // Classifies a box, growing its side's centroid bounds.
-    let mut left = |b: &Aabb| {
-        let c = b.centroid();
+    let mut left = |b: &BuildBox| {
+        let c = b.aabb().centroid();
         let l = bins_of(c, lo, scale, top)[axis] < bin;
         if l {
             lc.grow_point(c)
@@ -555,14 +587,14 @@ fn median_split(prims: &mut Prims, cbounds: &Aabb) -> usize {
         2
     };
     if ext[axis] > 0.0 {
-        let mut pairs: Vec<(Aabb, u32)> = prims
+        let mut pairs: Vec<(BuildBox, u32)> = prims
             .boxes
             .iter()
             .copied()
             .zip(prims.order.iter().copied())
             .collect();
         pairs.select_nth_unstable_by(mid, |a, b| {
-            a.0.centroid()[axis].total_cmp(&b.0.centroid()[axis])
+            a.0.aabb().centroid()[axis].total_cmp(&b.0.aabb().centroid()[axis])
         });
         for (k, (b, o)) in pairs.into_iter().enumerate() {
             prims.boxes[k] = b;
@@ -621,22 +653,23 @@ fn flatten4(node: &BuildNode, depth: usize, need: usize, out: &mut Flat) -> u32 
     stats.stack = stats.stack.max(need);
     let mut node = BvhNode4::EMPTY;
     for (k, c) in slots[..n].iter().flatten().enumerate() {
-        node.set_box(k, c.bounds());
+        node.set_box(k, &c.bounds());
         match c {
             BuildNode::Leaf { start, count, .. } => {
                 let stats = &mut out.stats;
                 stats.leaves += 1;
                 stats.depth = stats.depth.max(depth + 1);
-                stats.max_leaf_size = stats.max_leaf_size.max(*count);
+                let (start, count) = (*start as usize, *count as usize);
+                stats.max_leaf_size = stats.max_leaf_size.max(count);
                 let first = out.prims.len().next_multiple_of(4);
                 out.prims.resize(first, PrimId::NONE);
                 out.prims.extend(
-                    out.order[*start..*start + *count]
+                    out.order[start..start + count]
                         .iter()
-                        .map(|&i| out.ids[i as usize]),
+                        .map(|&i| (out.ids)(i)),
                 );
                 node.child[k] = first as u32;
-                node.count[k] = *count as u32;
+                node.count[k] = count as u32;
             }
             BuildNode::Inner { .. } => node.child[k] = flatten4(c, depth + 1, need, out),
         }
@@ -652,7 +685,7 @@ struct Flat<'a> {
     stats: BvhStats,
     /// The build's order: leaf `start..start + count` covers `ids[order[start..start + count]]`.
     order: &'a [u32],
-    ids: &'a [PrimId],
+    ids: &'a dyn Fn(u32) -> PrimId,
 }
 
 #[cfg(test)]
@@ -713,6 +746,13 @@ mod tests {
         }
         assert_eq!(most, bvh.stats.stack);
         assert!(seen.iter().all(|&s| s == 1));
+    }
+
+    /// The build tree's node stays at 40 bytes (a big mesh's build holds
+    /// about one a triangle: docs/meshes.md, "Big scenes").
+    #[test]
+    fn a_build_node_takes_40_bytes() {
+        assert_eq!(std::mem::size_of::<BuildNode>(), 40);
     }
 
     #[test]

@@ -29,6 +29,7 @@ use std::time::Duration;
 use crate::geometry::PrimId;
 use crate::triangle::Triangle4;
 
+pub use build::BuildBox;
 pub use node::{Aabb, BvhNode4, MAX_DEPTH, STACK, stack_for_depth};
 pub use packet::{
     PACKET, closest_hits, closest_hits_at, occluded_hits, occluded_hits_at, render_level,

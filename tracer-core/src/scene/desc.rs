@@ -702,6 +702,20 @@ pub struct SceneDesc {
 }
 
 impl SceneDesc {
+    /// Takes the objects' loaded models out (object i's at i, `None` for
+    /// objects without one), leaving the description without them: for
+    /// `World::build_from`, which then holds a model's only reference and
+    /// frees it before the tree's build.
+    pub fn take_models(&mut self) -> Vec<Option<std::sync::Arc<crate::mesh::Mesh>>> {
+        self.objects
+            .iter_mut()
+            .map(|o| match o {
+                ObjectDesc::Mesh(m) => m.model.0.take(),
+                _ => None,
+            })
+            .collect()
+    }
+
     /// Reads and validates a scene file and the files it references from
     /// this machine's disk (paths relative to the scene's folder).
     pub fn load(path: impl AsRef<Path>) -> Result<Self, SceneError> {

@@ -239,6 +239,29 @@ impl<R: Real> World<R> {
     /// Builds the render-ready state of `desc` for `settings` (validated by
     /// the caller) and `frame`.
     pub fn build(desc: &SceneDesc, settings: &RenderSettings, frame: u32) -> Self {
+        let models = desc
+            .objects
+            .iter()
+            .map(|o| match o {
+                ObjectDesc::Mesh(m) => m.model.0.clone(),
+                _ => None,
+            })
+            .collect();
+        Self::build_from(desc, models, settings, frame)
+    }
+
+    /// As [`World::build`], with the objects' loaded models given apart
+    /// (`models[i]`: object i's; `desc`'s own are not read). They are
+    /// dropped once their triangles are placed, before the tree is built:
+    /// given the only references (`SceneDesc::take_models`), a big model's
+    /// memory is free again for the build, the peak of a big mesh's render.
+    pub fn build_from(
+        desc: &SceneDesc,
+        models: Vec<Option<std::sync::Arc<crate::mesh::Mesh>>>,
+        settings: &RenderSettings,
+        frame: u32,
+    ) -> Self {
+        assert_eq!(models.len(), desc.objects.len(), "a model per object");
         // The shutter's opening; [0, 0] (the default) is the frame itself.
         let time = Timing::of(desc, frame);
         let cam = desc.camera.at_time(time.open);
@@ -272,7 +295,8 @@ impl<R: Real> World<R> {
             ..Default::default()
         };
         let mut features = Features::default();
-        for (o, &mat) in desc.objects.iter().zip(&desc.object_materials) {
+        for ((o, &mat), model) in desc.objects.iter().zip(&desc.object_materials).zip(&models) {
+            let model = model.as_deref();
             if mat != FILE_MATERIALS {
                 features.note(&materials[mat as usize], settings.max_depth);
             }
@@ -318,6 +342,7 @@ impl<R: Real> World<R> {
                 }
                 ObjectDesc::Mesh(m) if m.keyframes.is_empty() => tris.add_mesh(
                     m,
+                    model,
                     mat,
                     &mut materials,
                     &mut features,
@@ -331,6 +356,7 @@ impl<R: Real> World<R> {
                     if t1 == placed.translate {
                         tris.add_mesh(
                             &placed,
+                            model,
                             mat,
                             &mut materials,
                             &mut features,
@@ -344,6 +370,7 @@ impl<R: Real> World<R> {
                         let mut own_materials = materials.clone();
                         own.add_mesh(
                             &placed,
+                            model,
                             mat,
                             &mut own_materials,
                             &mut features,
@@ -356,6 +383,7 @@ impl<R: Real> World<R> {
                 }
             }
         }
+        drop(models);
         // Total internal reflection sends transparency into a reflected ray.
         if features.refraction {
             features.reflection = true;

@@ -52,20 +52,23 @@ pub(crate) struct TriangleSet<R: Real> {
 }
 
 impl<R: Real> TriangleSet<R> {
-    /// Adds the triangles of a mesh object, placed by its transform and made
-    /// relative to `origin` (the camera). `material` is the object's material
-    /// index, or `FILE_MATERIALS`: then the file's materials are appended to
+    /// Adds the triangles of a mesh object (`desc`, whose loaded model is
+    /// `mesh`), placed by its transform and made relative to `origin` (the
+    /// camera). `material` is the object's material index, or
+    /// `FILE_MATERIALS`: then the file's materials are appended to
     /// `materials` (and `features` updated) and used per triangle.
+    #[allow(clippy::too_many_arguments)]
     pub fn add_mesh(
         &mut self,
         desc: &MeshDesc,
+        mesh: Option<&crate::mesh::Mesh>,
         material: u32,
         materials: &mut Vec<Material<R>>,
         features: &mut Features,
         max_depth: u32,
         origin: [f64; 3],
     ) {
-        let Some(mesh) = desc.model.0.as_deref() else {
+        let Some(mesh) = mesh else {
             return;
         };
         let xf = desc.transform();
