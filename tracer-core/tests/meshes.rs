@@ -621,6 +621,25 @@ fn a_scene_built_once_frees_its_models_and_renders_the_same() {
     assert!(film.resolve() == kept, "the same film");
 }
 
+/// A small world keeps its triangles' unit normals (computed once, after
+/// the tree's reordering): each equals, bit for bit, the normal computed
+/// from the triangle at a hit, as a big world does.
+#[test]
+fn kept_triangle_normals_are_the_computed_ones() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cornell.toml");
+    let scene = SceneDesc::load(&path).unwrap();
+    let world = world_of::<f32>(&scene);
+    assert!(world.triangle_count() > 0);
+    assert!(world.triangle_count() < tracer_core::world::GIVE_UP_TRIANGLES_FROM);
+    for i in 0..world.triangle_count() {
+        assert_eq!(
+            world.triangle_normal(i).to_array().map(f64::to_bits),
+            world.triangle(i).normal().to_array().map(f64::to_bits),
+            "triangle {i}"
+        );
+    }
+}
+
 #[test]
 fn sphere_scenes_render_identically_with_and_without_the_bvh() {
     // The complexity scenes (9 spheres and a floor) with a BVH forced on,

@@ -86,7 +86,7 @@ impl<R: Real> World<R> {
         let (material, normal) = match id.kind() {
             PrimId::TRIANGLE => (
                 self.triangle_shading[id.index()].material,
-                self.triangle(id.index()).normal(),
+                self.triangle_normal(id.index()),
             ),
             PrimId::INSTANCE_TRIANGLE => {
                 let (_, n, material) = self.instances.surface(id.index(), p);
@@ -516,8 +516,10 @@ impl<R: Real> World<R> {
     /// Point snapped onto the triangle's plane, its outward geometric normal, and material.
     #[inline]
     fn triangle_surface(&self, index: usize, p: R::V3) -> (R::V3, R::V3, u32) {
-        let t = self.triangle(index);
-        let (v0, normal) = (t.vertices()[0], t.normal());
+        let (v0, normal) = (
+            self.triangle(index).vertices()[0],
+            self.triangle_normal(index),
+        );
         let p = p - normal * normal.dot(p - v0);
         (p, normal, self.triangle_shading[index].material)
     }
