@@ -275,25 +275,51 @@ if has gpu-tests; then
   CI=true TESSERA_TEST_ADAPTER=NVIDIA timeout 300 .gpu/gpu-tests --test-threads 4 > "$OUT/gpu-tests.txt" 2>&1
   echo "gpu tests exit $?" >> "$OUT/gpu-tests.txt"
 fi
-if has against-old; then
-secs() { "$@" 2>/dev/null | grep -o '  [0-9.]* s  ' | head -1 | tr -d ' s'; }
-{
+# Times "SCENE BACKEND W H SPP [ARGS...]" specs with the old and the new
+# build, interleaved (6 pairs, the first left out), from the summary line.
+against_old() {
+  secs() { "$@" 2>/dev/null | grep -o '  [0-9.]* s  ' | head -1 | tr -d ' s'; }
   echo "== old: $(.gpu/tessera-old --version 2>&1 | head -1); new: $("$T" --version 2>&1 | head -1)"
-  for spec in "resolution.toml cpu 800 600 4" "complexity/glass-9.toml cpu 800 600 4" "depth.toml cpu 800 600 4" \
-              "resolution.toml gpu 1920 1080 64" "complexity/glass-9.toml gpu 1920 1080 16" "depth.toml gpu 1920 1080 16"; do
+  for spec in "$@"; do
     set -- $spec
-    old=(); new=()
+    local scene=$1 backend=$2 w=$3 h=$4 spp=$5; shift 5
+    local old=() new=()
     for i in 1 2 3 4 5 6; do
-      o=$(secs .gpu/tessera-old render "examples/$1" --backend "$2" --width "$3" --height "$4" --samples "$5" -o /tmp/old.exr)
-      n=$(secs "$T" render "examples/$1" --backend "$2" --width "$3" --height "$4" --samples "$5" -o /tmp/new.exr)
+      o=$(secs .gpu/tessera-old render "$scene" --backend "$backend" --width "$w" --height "$h" --samples "$spp" "$@" -o /tmp/old.exr)
+      n=$(secs "$T" render "$scene" --backend "$backend" --width "$w" --height "$h" --samples "$spp" "$@" -o /tmp/new.exr)
       # The first pair warms caches (files, the driver's shader cache).
       [ "$i" = 1 ] || { old+=("$o"); new+=("$n"); }
     done
-    echo "$1 $2 ${3}x$4 $5 spp: old ${old[*]} s; new ${new[*]} s"
+    echo "$scene $backend ${w}x$h $spp spp $*: old ${old[*]} s; new ${new[*]} s"
     printf '%s\n' "${old[@]}" | sort -n | sed -n 3p | xargs -I{} echo "  median old {} s"
     printf '%s\n' "${new[@]}" | sort -n | sed -n 3p | xargs -I{} echo "  median new {} s"
   done
-} > "$OUT/against-old.txt" 2>&1
+}
+if has against-old; then
+against_old "examples/resolution.toml cpu 800 600 4" "examples/complexity/glass-9.toml cpu 800 600 4" "examples/depth.toml cpu 800 600 4" \
+  "examples/resolution.toml gpu 1920 1080 64" "examples/complexity/glass-9.toml gpu 1920 1080 16" "examples/depth.toml gpu 1920 1080 16" \
+  > "$OUT/against-old.txt" 2>&1
+fi
+# `meshes-against-old` (issue 34; ~2 min): the same for small meshes, whose
+# hits read the triangle array and kept normals (World::triangle_normal).
+if has meshes-against-old; then
+H=.gpu/scenes/gltf/DamagedHelmet/glTF/DamagedHelmet.gltf
+against_old "examples/cornell.toml cpu 800 600 16 --integrator path" "examples/cornell.toml cpu 800 600 16" \
+  "$H cpu 800 600 16 --integrator path" "$H cpu 800 600 16" \
+  "examples/cornell.toml gpu 1920 1080 64 --integrator path" "$H gpu 1920 1080 64 --integrator path" \
+  > "$OUT/meshes-against-old.txt" 2>&1
+fi
+# `big-mesh` (issue 34; ~2 min): a heightfield of $BIG_MESH triangles
+# (default 10000000; scripts/heightfield.py, which needs numpy) rendered
+# 160x120 1 spp on all cores and on the GPU, `--json` (peak RSS, prepare
+# seconds, gpu_scene_bytes) into big-mesh.jsonl.
+if has big-mesh; then
+{
+  python3 scripts/heightfield.py "${BIG_MESH:-10000000}" /tmp/big.gltf
+  for backend in cpu gpu; do
+    "$T" render /tmp/big.gltf --backend $backend --width 160 --height 120 --samples 1 -o /tmp/big-$backend.png --json
+  done
+} > "$OUT/big-mesh.jsonl" 2> "$OUT/big-mesh-log.txt"
 fi
 if has cpu-worker; then
 # Issue 15's 1-worker target: the local render in the bench's own process
