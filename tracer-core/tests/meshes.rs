@@ -545,13 +545,19 @@ fn committed_models_load_with_their_materials() {
     }
 }
 
-#[test]
-fn cornell_example_renders_its_coloured_walls() {
+/// examples/cornell.toml (a model file) at `size` x `size`, `samples` spp.
+fn cornell(size: u32, samples: u32) -> SceneDesc {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cornell.toml");
     let mut scene = SceneDesc::load(&path).unwrap();
-    scene.render.width = 48;
-    scene.render.height = 48;
-    scene.render.samples = 1;
+    scene.render.width = size;
+    scene.render.height = size;
+    scene.render.samples = samples;
+    scene
+}
+
+#[test]
+fn cornell_example_renders_its_coloured_walls() {
+    let scene = cornell(48, 1);
     let (img, film) = render(&scene, Precision::F32);
     assert_eq!(film.nonfinite, 0);
     let px = |x: usize, y: usize| img[y * 48 + x];
@@ -587,20 +593,14 @@ fn cornell_example_renders_its_coloured_walls() {
 /// same film, bit for bit, as one built from a kept description.
 #[test]
 fn a_scene_built_once_frees_its_models_and_renders_the_same() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cornell.toml");
-    let mut scene = SceneDesc::load(&path).unwrap();
-    scene.render.width = 32;
-    scene.render.height = 32;
-    scene.render.samples = 2;
+    let scene = cornell(32, 2);
     let (kept, _) = render(&scene, Precision::F32);
     let owned = scene.clone();
     let weak: Vec<_> = owned
-        .objects
+        .models()
         .iter()
-        .filter_map(|o| match o {
-            tracer_core::scene::ObjectDesc::Mesh(m) => m.model.0.as_ref().map(Arc::downgrade),
-            _ => None,
-        })
+        .flatten()
+        .map(Arc::downgrade)
         .collect();
     assert!(!weak.is_empty(), "the Cornell box is a model file");
     drop(scene);
@@ -626,9 +626,7 @@ fn a_scene_built_once_frees_its_models_and_renders_the_same() {
 /// from the triangle at a hit, as a big world does.
 #[test]
 fn kept_triangle_normals_are_the_computed_ones() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/cornell.toml");
-    let scene = SceneDesc::load(&path).unwrap();
-    let world = world_of::<f32>(&scene);
+    let world = world_of::<f32>(&cornell(32, 1));
     assert!(world.triangle_count() > 0);
     assert!(world.triangle_count() < tracer_core::world::GIVE_UP_TRIANGLES_FROM);
     for i in 0..world.triangle_count() {

@@ -114,15 +114,7 @@ impl PreparedFrame {
         frame: u32,
         precision: Precision,
     ) -> Result<Self, RenderError> {
-        debug_assert_eq!(
-            settings.validate(),
-            Ok(()),
-            "settings are validated where parsed"
-        );
-        Ok(match precision {
-            Precision::F32 => PreparedFrame::F32(World::build(desc, settings, frame)),
-            Precision::F64 => PreparedFrame::F64(World::build(desc, settings, frame)),
-        })
+        Self::build_from(desc, desc.models(), settings, frame, precision)
     }
 
     /// As [`PreparedFrame::build`] for a scene rendered once: `desc` is
@@ -135,15 +127,25 @@ impl PreparedFrame {
         frame: u32,
         precision: Precision,
     ) -> Result<Self, RenderError> {
+        let models = desc.take_models();
+        Self::build_from(&desc, models, settings, frame, precision)
+    }
+
+    fn build_from(
+        desc: &SceneDesc,
+        models: Vec<Option<std::sync::Arc<crate::mesh::Mesh>>>,
+        settings: &RenderSettings,
+        frame: u32,
+        precision: Precision,
+    ) -> Result<Self, RenderError> {
         debug_assert_eq!(
             settings.validate(),
             Ok(()),
             "settings are validated where parsed"
         );
-        let models = desc.take_models();
         Ok(match precision {
-            Precision::F32 => PreparedFrame::F32(World::build_from(&desc, models, settings, frame)),
-            Precision::F64 => PreparedFrame::F64(World::build_from(&desc, models, settings, frame)),
+            Precision::F32 => PreparedFrame::F32(World::build_from(desc, models, settings, frame)),
+            Precision::F64 => PreparedFrame::F64(World::build_from(desc, models, settings, frame)),
         })
     }
 

@@ -702,18 +702,30 @@ pub struct SceneDesc {
 }
 
 impl SceneDesc {
+    /// The objects' loaded models (object i's at i, `None` for objects
+    /// without one), shared.
+    pub fn models(&self) -> Vec<Option<std::sync::Arc<crate::mesh::Mesh>>> {
+        self.objects
+            .iter()
+            .map(|o| match o {
+                ObjectDesc::Mesh(m) => m.model.0.clone(),
+                _ => None,
+            })
+            .collect()
+    }
+
     /// Takes the objects' loaded models out (object i's at i, `None` for
     /// objects without one), leaving the description without them: for
     /// `World::build_from`, which then holds a model's only reference and
     /// frees it before the tree's build.
     pub fn take_models(&mut self) -> Vec<Option<std::sync::Arc<crate::mesh::Mesh>>> {
-        self.objects
-            .iter_mut()
-            .map(|o| match o {
-                ObjectDesc::Mesh(m) => m.model.0.take(),
-                _ => None,
-            })
-            .collect()
+        let models = self.models();
+        for o in &mut self.objects {
+            if let ObjectDesc::Mesh(m) = o {
+                m.model.0 = None;
+            }
+        }
+        models
     }
 
     /// Reads and validates a scene file and the files it references from

@@ -251,15 +251,7 @@ impl<R: Real> World<R> {
     /// Builds the render-ready state of `desc` for `settings` (validated by
     /// the caller) and `frame`.
     pub fn build(desc: &SceneDesc, settings: &RenderSettings, frame: u32) -> Self {
-        let models = desc
-            .objects
-            .iter()
-            .map(|o| match o {
-                ObjectDesc::Mesh(m) => m.model.0.clone(),
-                _ => None,
-            })
-            .collect();
-        Self::build_from(desc, models, settings, frame)
+        Self::build_from(desc, desc.models(), settings, frame)
     }
 
     /// As [`World::build`], with the objects' loaded models given apart
