@@ -665,6 +665,12 @@ fn model_files_render_as_scenes_without_toml() {
         for key in ["load_seconds", "open_seconds", "prepare_seconds"] {
             assert!(v[key].as_f64() >= Some(0.0), "{asset}: {key} in {stdout}");
         }
+        // The trees' build is part of the frame's preparation.
+        let tree = v["tree_seconds"].as_f64().unwrap();
+        assert!(
+            tree > 0.0 && Some(tree) <= v["prepare_seconds"].as_f64(),
+            "{asset}: tree_seconds in {stdout}"
+        );
         if asset.starts_with("gltf/DamagedHelmet") {
             // 46,356 indices; five 2048x2048 images (colour, metal and
             // roughness, normal, occlusion, emission) of 4 bytes a texel,

@@ -540,6 +540,7 @@ fn report(
             "load_seconds": setup.load_seconds,
             "open_seconds": setup.open_seconds,
             "prepare_seconds": setup.prepare_seconds,
+            "tree_seconds": setup.stats.tree_build_time.as_secs_f64(),
             // The process's peak resident set so far (Linux; 0 elsewhere).
             "peak_rss_bytes": 1024 * super::output::rss_kib(std::process::id()).1,
             // The scene's buffers on the GPU (null on the CPU).
