@@ -434,6 +434,7 @@ cp /tmp/bench/multi-gpu.csv "$OUT/" 2>/dev/null
 cp /tmp/bench/cpu-farm/farm.csv "$OUT/cpu-farm.csv" 2>/dev/null
 tar czf "$OUT/multi-gpu-logs.tar.gz" -C /tmp/bench/multi-gpu --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' --exclude='*.png' --exclude='*.svg' . 2>/dev/null
 fi
-# CSVs and plots only: the per-run images are many and large.
-tar czf "$OUT/bench-$PHASE.tar.gz" -C /tmp/bench --exclude='*-*x*-s*.png' --exclude='frames-*' --exclude='data-*' .
+# CSVs and plots only: the per-run images are many and large (phases
+# that ran no bench suite have none).
+[ -d /tmp/bench ] && tar czf "$OUT/bench-$PHASE.tar.gz" -C /tmp/bench --exclude='*-*x*-s*.png' --exclude='frames-*' --exclude='data-*' .
 ls -la "$OUT"
