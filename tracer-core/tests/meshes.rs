@@ -51,11 +51,16 @@ position = [-4, 5, -4]
 
 fn render(scene: &SceneDesc, precision: Precision) -> (Vec<[f32; 3]>, Film) {
     let frame = PreparedFrame::build(scene, &scene.render, 0, precision).unwrap();
-    let r = &scene.render;
+    render_frame(&frame)
+}
+
+/// The whole frame, on 2 CPU threads: its resolved pixels and its film.
+fn render_frame(frame: &PreparedFrame) -> (Vec<[f32; 3]>, Film) {
+    let r = frame.settings();
     let film = CpuRenderer::new(Some(2))
         .unwrap()
         .render(
-            &frame,
+            frame,
             WorkRegion::new(
                 0,
                 Rect::full(r.width, r.height),
@@ -610,15 +615,7 @@ fn a_scene_built_once_frees_its_models_and_renders_the_same() {
         weak.iter().all(|w| w.upgrade().is_none()),
         "no model outlives the build"
     );
-    let film = CpuRenderer::new(Some(2))
-        .unwrap()
-        .render(
-            &frame,
-            WorkRegion::new(0, Rect::full(32, 32), SampleRange::all(2)),
-            &|_| {},
-        )
-        .unwrap();
-    assert!(film.resolve() == kept, "the same film");
+    assert!(render_frame(&frame).0 == kept, "the same film");
 }
 
 /// A small world keeps its triangles' unit normals (computed once, after

@@ -646,10 +646,15 @@ impl<R: Real> World<R> {
     /// kept for a small world, computed for a big one.
     #[inline]
     pub fn triangle_normal(&self, index: usize) -> R::V3 {
-        match self.unit_normals.get(index) {
-            Some(&n) => n,
-            None => self.triangle(index).normal(),
-        }
+        self.kept_normal(index)
+            .unwrap_or_else(|| self.triangle(index).normal())
+    }
+
+    /// Triangle `index`'s unit normal where the world keeps it (for a
+    /// caller that holds the triangle already and computes it otherwise).
+    #[inline]
+    pub(crate) fn kept_normal(&self, index: usize) -> Option<R::V3> {
+        self.unit_normals.get(index).copied()
     }
 
     /// Every triangle of the world's own, in id order.

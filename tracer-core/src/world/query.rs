@@ -516,10 +516,10 @@ impl<R: Real> World<R> {
     /// Point snapped onto the triangle's plane, its outward geometric normal, and material.
     #[inline]
     fn triangle_surface(&self, index: usize, p: R::V3) -> (R::V3, R::V3, u32) {
-        let (v0, normal) = (
-            self.triangle(index).vertices()[0],
-            self.triangle_normal(index),
-        );
+        // The triangle read once (a big world's, from its packet).
+        let t = self.triangle(index);
+        let normal = self.kept_normal(index).unwrap_or_else(|| t.normal());
+        let v0 = t.vertices()[0];
         let p = p - normal * normal.dot(p - v0);
         (p, normal, self.triangle_shading[index].material)
     }
