@@ -21,30 +21,51 @@ use crate::triangle::{Triangle, TriangleShading};
 /// from 10 on (20 vs 23; 9 vs 21 at 64). Re-measure when either gets faster.
 pub const SPHERE_BVH_MIN: usize = 10;
 
+/// A world's triangles as the tree's build takes them: vertex positions,
+/// each triangle's corners (indices into them) and shading record, and
+/// the triangles themselves (gathered from their corners), or none.
+pub(crate) struct TriangleArrays<'a, R: Real> {
+    pub positions: &'a Vec<R::V3>,
+    pub corners: &'a mut Vec<[u32; 3]>,
+    pub shading: &'a mut Vec<TriangleShading>,
+    /// Every triangle, or none: a big mesh of `f32` triangles alone (no
+    /// spheres or instances) is built over its corners
+    /// (`Bvh::build_indexed`), without boxes, and traversed without
+    /// packets, its triangles read from their corners at each test.
+    pub triangles: &'a mut Vec<Triangle<R>>,
+}
+
 /// The tree over `spheres`, `instances` (the boxes of a world's instanced
 /// meshes as placed: `PrimId::INSTANCE` i for box i, the top level of
-/// its two-level tree) and `triangles` when the scene needs one
-/// (`force`: always, never, or `None` for triangles, instances or at least
-/// [`SPHERE_BVH_MIN`] spheres), else `None`. Reorders `triangles` and
-/// their `shading` to the tree's leaf order (so a leaf's triangles are
-/// neighbours in memory), which the tree's ids then follow. With
-/// `give_up_triangles`, a tree of `f32` triangles alone takes them into its
-/// packets and leaves `triangles` empty (`Bvh::triangle` reads one back):
-/// a big mesh is then held once, not twice.
+/// its two-level tree) and `tris` when the scene needs one (`force`:
+/// always, never, or `None` for triangles, instances or at least
+/// [`SPHERE_BVH_MIN`] spheres), else `None`. Reorders the triangles (their
+/// corners, shading and the triangles themselves) to the tree's leaf
+/// order, so a leaf's triangles are neighbours in memory, which the
+/// tree's ids then follow.
 pub(crate) fn build<R: Real>(
     spheres: &[Sphere<R>],
     instances: &[Aabb],
-    triangles: &mut Vec<Triangle<R>>,
-    shading: &mut Vec<TriangleShading>,
+    tris: TriangleArrays<'_, R>,
     force: Option<bool>,
-    give_up_triangles: bool,
 ) -> Option<Bvh> {
-    let wanted = force.unwrap_or(
-        !triangles.is_empty() || !instances.is_empty() || spheres.len() >= SPHERE_BVH_MIN,
-    );
-    if !wanted || (triangles.is_empty() && spheres.is_empty() && instances.is_empty()) {
+    let n = tris.corners.len();
+    let wanted = force.unwrap_or(n > 0 || !instances.is_empty() || spheres.len() >= SPHERE_BVH_MIN);
+    if !wanted || (n == 0 && spheres.is_empty() && instances.is_empty()) {
         return None;
     }
+    if n > 0 && tris.triangles.is_empty() {
+        let positions: &dyn std::any::Any = tris.positions;
+        let positions = positions
+            .downcast_ref::<Vec<glam::Vec3A>>()
+            .expect("only f32 triangles are built over their corners");
+        assert!(
+            spheres.is_empty() && instances.is_empty(),
+            "a tree over corners holds triangles alone"
+        );
+        return Some(Bvh::build_indexed(positions, tris.corners, tris.shading));
+    }
+    assert_eq!(tris.triangles.len(), n, "every triangle, or none");
     // Ids are spheres', then instances', then triangles', in that order.
     let (first_instance, first_triangle) = (
         spheres.len() as u32,
@@ -59,7 +80,7 @@ pub(crate) fn build<R: Real>(
             PrimId::new(PrimId::TRIANGLE, i - first_triangle)
         }
     };
-    let mut boxes = Vec::with_capacity(spheres.len() + instances.len() + triangles.len());
+    let mut boxes = Vec::with_capacity(spheres.len() + instances.len() + n);
     for s in spheres {
         let c = s.center.to_array();
         let r = s.radius.to_f64();
@@ -69,7 +90,7 @@ pub(crate) fn build<R: Real>(
         )));
     }
     boxes.extend(instances.iter().map(BuildBox::of));
-    for t in triangles.iter() {
+    for t in tris.triangles.iter() {
         let v = t.vertices();
         let lo = v[0].min(v[1]).min(v[2]).to_array();
         let hi = v[0].max(v[1]).max(v[2]).to_array();
@@ -77,7 +98,6 @@ pub(crate) fn build<R: Real>(
     }
     // The boxes are partitioned in place (one array of them at the peak).
     let mut tree = Bvh::build_owned(boxes, &id);
-    let n = triangles.len();
     if n > 0 {
         // src[j]: the triangle that goes to place j, in leaf order.
         let mut src = Vec::with_capacity(n);
@@ -89,33 +109,33 @@ pub(crate) fn build<R: Real>(
             src.push(id.index() as u32);
             *id = PrimId::new(PrimId::TRIANGLE, src.len() as u32 - 1);
         }
-        reorder(triangles, shading, src);
+        reorder(tris.triangles, tris.corners, tris.shading, src);
     }
     // The 4-wide triangle test (f32 only) wants the leaves' triangles packed.
     // Not with spheres: packing them too (NaN lanes sent to the sphere test)
     // made the bunny scene (a glass sphere in the tree) 9% slower.
     if spheres.is_empty() && instances.is_empty() {
-        let any: &mut dyn std::any::Any = triangles;
-        if let Some(tris) = any.downcast_mut::<Vec<Triangle<f32>>>() {
-            if give_up_triangles {
-                if let Err(back) = tree.pack_triangles_owned(std::mem::take(tris)) {
-                    *tris = back;
-                    tree.pack_triangles(tris);
-                }
-            } else {
-                tree.pack_triangles(tris);
-            }
+        let any: &dyn std::any::Any = &*tris.triangles;
+        if let Some(triangles) = any.downcast_ref::<Vec<Triangle<f32>>>() {
+            tree.pack_triangles(triangles);
         }
     }
     Some(tree)
 }
 
-/// Puts `src[j]`'s triangle (and shading) at place j, in place (cycle by
-/// cycle), without a second copy of the arrays; triangles that no place
-/// takes (none, when every triangle is in the tree) are dropped.
-fn reorder<T: Copy, S: Copy>(triangles: &mut Vec<T>, shading: &mut Vec<S>, mut src: Vec<u32>) {
+/// Puts `src[j]`'s triangle (its corners and shading too) at place j, in
+/// place (cycle by cycle), without a second copy of the arrays; triangles
+/// that no place takes (none, when every triangle is in the tree) are
+/// dropped.
+fn reorder<T: Copy, C: Copy, S: Copy>(
+    triangles: &mut Vec<T>,
+    corners: &mut Vec<C>,
+    shading: &mut Vec<S>,
+    mut src: Vec<u32>,
+) {
     if src.len() != triangles.len() {
         *triangles = src.iter().map(|&i| triangles[i as usize]).collect();
+        *corners = src.iter().map(|&i| corners[i as usize]).collect();
         *shading = src.iter().map(|&i| shading[i as usize]).collect();
         return;
     }
@@ -123,23 +143,24 @@ fn reorder<T: Copy, S: Copy>(triangles: &mut Vec<T>, shading: &mut Vec<S>, mut s
         if src[i] as usize == i {
             continue;
         }
-        let (t, s) = (triangles[i], shading[i]);
+        let (t, c, s) = (triangles[i], corners[i], shading[i]);
         let mut j = i;
         loop {
             let k = src[j] as usize;
             src[j] = j as u32;
             if k == i {
                 triangles[j] = t;
+                corners[j] = c;
                 shading[j] = s;
                 break;
             }
             triangles[j] = triangles[k];
+            corners[j] = corners[k];
             shading[j] = shading[k];
             j = k;
         }
     }
 }
-
 #[cfg(test)]
 mod tests {
     /// The layering in the module docs, checked on the sources: neither the
@@ -149,21 +170,25 @@ mod tests {
     fn reorder_in_place_is_a_gather() {
         let n = 1000u32;
         let src: Vec<u32> = (0..n).map(|j| (j * 7919 + 13) % n).collect();
-        let (mut t, mut s): (Vec<u32>, Vec<u64>) =
-            ((0..n).collect(), (0..n as u64).map(|x| x * 3).collect());
-        super::reorder(&mut t, &mut s, src.clone());
+        let (mut t, mut c, mut s): (Vec<u32>, Vec<i32>, Vec<u64>) = (
+            (0..n).collect(),
+            (0..n as i32).map(|x| -x).collect(),
+            (0..n as u64).map(|x| x * 3).collect(),
+        );
+        super::reorder(&mut t, &mut c, &mut s, src.clone());
         assert_eq!(t, src);
+        assert_eq!(c, src.iter().map(|&x| -(x as i32)).collect::<Vec<_>>());
         assert_eq!(s, src.iter().map(|&x| x as u64 * 3).collect::<Vec<_>>());
     }
 
-    /// Triangles given up to the tree are its packets alone, which are
-    /// those made from a kept copy, and read back bit for bit; with a
-    /// sphere in the tree they stay where they were. 100,000 triangles:
-    /// more than one chunk of the back-to-front packing.
+    /// A big mesh's tree, built over its corners, is the tree its
+    /// gathered triangles get (the same nodes), and both leave the
+    /// corners and shading in the same leaf order; the gathered build's
+    /// triangles are those corners' (100,000 random triangles over shared
+    /// vertices).
     #[test]
-    fn triangles_given_up_to_the_packets_read_back_exactly() {
-        use crate::geometry::Sphere;
-        use crate::triangle::{Triangle, TriangleShading};
+    fn a_tree_over_corners_is_the_tree_over_triangles() {
+        use crate::triangle::{TriangleShading, gather};
         use glam::Vec3A;
         let mut seed = 7u64;
         let mut r = || {
@@ -172,48 +197,53 @@ mod tests {
                 .wrapping_add(1442695040888963407);
             (seed >> 40) as f32 / (1u64 << 24) as f32
         };
-        let tris: Vec<Triangle<f32>> = (0..100_000)
-            .map(|_| {
-                let c = Vec3A::new(r(), r(), r()) * 100.0;
-                Triangle::new([
-                    c,
-                    c + Vec3A::new(r(), 0.0, 0.1),
-                    c + Vec3A::new(0.0, r(), r()),
-                ])
-            })
+        let positions: Vec<Vec3A> = (0..60_000)
+            .map(|_| Vec3A::new(r(), r(), r()) * 100.0)
             .collect();
-        let shading: Vec<TriangleShading> = (0..tris.len() as u32)
+        let mut pick = || (r() * 59_999.0) as u32;
+        let corners: Vec<[u32; 3]> = (0..100_000).map(|_| [pick(), pick(), pick()]).collect();
+        let shading: Vec<TriangleShading> = (0..corners.len() as u32)
             .map(|i| TriangleShading {
-                normals: crate::triangle::FLAT,
                 material: i,
                 attrs: 0,
             })
             .collect();
-        let (mut kept, mut kept_s) = (tris.clone(), shading.clone());
-        let a = super::build::<f32>(&[], &[], &mut kept, &mut kept_s, None, false).unwrap();
-        let (mut given, mut given_s) = (tris.clone(), shading.clone());
-        let b = super::build::<f32>(&[], &[], &mut given, &mut given_s, None, true).unwrap();
-        assert!(given.is_empty() && kept.len() == tris.len());
-        assert_eq!(given_s, kept_s);
-        assert!(a.slots.is_empty() && b.slots.len() == tris.len());
-        assert!(a.packets == b.packets, "the same packets");
-        for (i, t) in kept.iter().enumerate() {
-            let back = b.triangle(i).vertices();
-            for (u, v) in back.iter().zip(t.vertices()) {
-                assert_eq!(
-                    u.to_array().map(f32::to_bits),
-                    v.to_array().map(f32::to_bits)
-                );
-            }
+        let (mut c1, mut s1) = (corners.clone(), shading.clone());
+        let mut gathered: Vec<_> = corners
+            .iter()
+            .map(|&c| gather::<f32>(&positions, c))
+            .collect();
+        let a = super::build::<f32>(
+            &[],
+            &[],
+            super::TriangleArrays {
+                positions: &positions,
+                corners: &mut c1,
+                shading: &mut s1,
+                triangles: &mut gathered,
+            },
+            None,
+        )
+        .unwrap();
+        let (mut c2, mut s2) = (corners.clone(), shading.clone());
+        let b = super::build::<f32>(
+            &[],
+            &[],
+            super::TriangleArrays {
+                positions: &positions,
+                corners: &mut c2,
+                shading: &mut s2,
+                triangles: &mut Vec::new(),
+            },
+            None,
+        )
+        .unwrap();
+        assert!(a.nodes == b.nodes && a.prims == b.prims, "the same tree");
+        assert!(c1 == c2 && s1 == s2, "the same leaf order");
+        assert!(!a.packets.is_empty() && b.packets.is_empty());
+        for (t, &c) in gathered.iter().zip(&c1) {
+            assert_eq!(t.vertices(), gather::<f32>(&positions, c).vertices());
         }
-        let sphere = [Sphere::<f32> {
-            center: Vec3A::ZERO,
-            radius: 1.0,
-            material: 0,
-        }];
-        let (mut with_sphere, mut s) = (tris.clone(), shading.clone());
-        let c = super::build::<f32>(&sphere, &[], &mut with_sphere, &mut s, None, true).unwrap();
-        assert!(with_sphere.len() == tris.len() && c.slots.is_empty() && c.packets.is_empty());
     }
 
     #[test]

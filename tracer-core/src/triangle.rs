@@ -20,27 +20,67 @@ pub struct Triangle<R: Real> {
     axes: [R::V3; 3],
 }
 
-/// What shading needs of a triangle once it has been hit (20 bytes: a
-/// big mesh keeps one a triangle, so its vertex normals are shared by
-/// index and its geometric normal is computed from its vertices,
-/// [`Triangle::normal`]).
+/// What shading needs of a triangle once it has been hit, beyond its
+/// corners (8 bytes: a big mesh keeps one a triangle; its vertex normals
+/// are its mesh's, named by the corners' vertex indices,
+/// [`VertexNormals`], and its geometric normal is computed from its
+/// vertices, [`Triangle::normal`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TriangleShading {
-    /// Its corners' unit vertex normals for smooth shading, as indices in
-    /// its mesh's vertex normals (the world's `vertex_normals`, or an
-    /// instanced mesh's), or [`FLAT`].
-    pub normals: [u32; 3],
     pub material: u32,
     /// Index of its vertices' texture coordinates and colours in the
     /// world's `VertexAttrs`, or [`NO_ATTRS`] (a material without textures).
     pub attrs: u32,
 }
 
-/// `TriangleShading::normals` of a flat-shaded triangle.
-pub const FLAT: [u32; 3] = [u32::MAX; 3];
-
 /// `TriangleShading::attrs` of a triangle whose material has no textures.
 pub const NO_ATTRS: u32 = u32::MAX;
+
+/// A mesh's unit vertex normals, at the same indices as its vertex
+/// positions (a triangle's corners name both), or none at all when no
+/// part of it has normals. A zero normal is unknown: a triangle with one
+/// at a corner is shaded flat.
+#[derive(Clone, Copy, Debug)]
+pub struct VertexNormals<'a, R: Real>(pub &'a [R::V3]);
+
+impl<R: Real> VertexNormals<'_, R> {
+    /// Whether the triangle with these corners is shaded smoothly: all
+    /// three of its vertex normals are known.
+    #[inline(always)]
+    pub fn smooth(&self, corners: [u32; 3]) -> bool {
+        !self.0.is_empty()
+            && corners
+                .iter()
+                .all(|&i| self.0[i as usize].length_squared() > R::ZERO)
+    }
+
+    /// Shading normal at `p` (a point on `tri`, whose corners these are):
+    /// its vertex normals interpolated by barycentric weights, or the
+    /// geometric normal.
+    #[inline(always)]
+    pub fn normal_at(&self, tri: &Triangle<R>, corners: [u32; 3], p: R::V3) -> R::V3 {
+        if !self.smooth(corners) {
+            return tri.normal();
+        }
+        let ns = corners.map(|i| self.0[i as usize]);
+        let [b0, b1, b2] = tri.barycentric(p);
+        let s = ns[0] * b0 + ns[1] * b1 + ns[2] * b2;
+        let len = s.length();
+        if len > R::ZERO && len.is_finite() {
+            s * (R::ONE / len)
+        } else {
+            tri.normal()
+        }
+    }
+}
+
+/// A triangle of indexed vertices: its corners' positions gathered
+/// (the world keeps a big mesh this way, 12 bytes a triangle and its
+/// shared vertices, rather than as 48-byte [`Triangle`]s).
+#[inline(always)]
+pub fn gather<R: Real>(positions: &[R::V3], corners: [u32; 3]) -> Triangle<R> {
+    Triangle::new(corners.map(|i| positions[i as usize]))
+}
 
 /// Per-ray precomputation of the watertight test: the axes in the ray's
 /// order (kx, ky, kz), and the origin and shear along them, each splatted
@@ -336,75 +376,56 @@ impl<R: Real> Triangle<R> {
     }
 }
 
-impl TriangleShading {
-    /// Whether it is shaded smoothly (it has vertex normals).
-    #[inline(always)]
-    pub fn smooth(&self) -> bool {
-        self.normals != FLAT
-    }
-
-    /// Shading normal at `p` (a point on `tri`): its vertex normals (in
-    /// `normals`, its mesh's) interpolated by barycentric weights, or the
-    /// geometric normal.
-    #[inline(always)]
-    pub fn normal_at<R: Real>(&self, tri: &Triangle<R>, normals: &[R::V3], p: R::V3) -> R::V3 {
-        if !self.smooth() {
-            return tri.normal();
-        }
-        let ns = self.normals.map(|i| normals[i as usize]);
-        let [b0, b1, b2] = tri.barycentric(p);
-        let s = ns[0] * b0 + ns[1] * b1 + ns[2] * b2;
-        let len = s.length();
-        if len > R::ZERO && len.is_finite() {
-            s * (R::ONE / len)
-        } else {
-            tri.normal()
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use glam::{DVec3, Vec3A};
 
-    /// A big mesh keeps one of each a triangle (docs/meshes.md, "Big
-    /// scenes"): 48 + 20 bytes in `f32`.
+    /// A big mesh keeps its corners (12 bytes) and one of these a
+    /// triangle (docs/meshes.md, "Big scenes"); small ones their
+    /// `Triangle`s too (48 in `f32`).
     #[test]
-    fn a_triangle_takes_68_bytes_in_f32() {
+    fn a_triangle_takes_20_bytes_beside_its_vertices() {
         assert_eq!(std::mem::size_of::<Triangle<f32>>(), 48);
-        assert_eq!(std::mem::size_of::<TriangleShading>(), 20);
+        assert_eq!(std::mem::size_of::<TriangleShading>(), 8);
     }
 
-    /// The shading normal interpolates the normals its indices name, and
-    /// a flat triangle's is the geometric normal.
+    /// The shading normal interpolates the normals its corners name, and
+    /// a triangle with an unknown (zero) one, or of a mesh without
+    /// normals, is flat: its geometric normal.
     #[test]
-    fn vertex_normals_are_read_by_index() {
+    fn vertex_normals_are_read_by_corner() {
         let tri = Triangle::<f32>::new([Vec3A::ZERO, Vec3A::X, Vec3A::Y]);
-        let normals = [Vec3A::Z, Vec3A::X, Vec3A::new(0.0, 0.6, 0.8), Vec3A::Y];
-        let s = TriangleShading {
-            normals: [3, 3, 3],
-            material: 0,
-            attrs: NO_ATTRS,
-        };
+        let normals = [
+            Vec3A::Z,
+            Vec3A::X,
+            Vec3A::new(0.0, 0.6, 0.8),
+            Vec3A::Y,
+            Vec3A::ZERO,
+        ];
+        let ns = VertexNormals::<f32>(&normals);
         assert_eq!(
-            s.normal_at(&tri, &normals, Vec3A::new(0.2, 0.2, 0.0)),
+            ns.normal_at(&tri, [3, 3, 3], Vec3A::new(0.2, 0.2, 0.0)),
             Vec3A::Y
         );
-        let s = TriangleShading {
-            normals: [0, 0, 2],
-            ..s
-        };
-        let n = s.normal_at(&tri, &normals, Vec3A::new(0.0, 0.5, 0.0));
+        let n = ns.normal_at(&tri, [0, 0, 2], Vec3A::new(0.0, 0.5, 0.0));
         let want = (Vec3A::Z * 0.5 + Vec3A::new(0.0, 0.6, 0.8) * 0.5).normalize();
         assert!((n - want).length() < 1e-6, "{n}");
-        let flat = TriangleShading { normals: FLAT, ..s };
-        assert!(!flat.smooth());
+        assert!(ns.smooth([0, 1, 2]) && !ns.smooth([0, 4, 2]));
         assert_eq!(
-            flat.normal_at(&tri, &normals, Vec3A::new(0.2, 0.2, 0.0)),
+            ns.normal_at(&tri, [0, 4, 2], Vec3A::new(0.2, 0.2, 0.0)),
+            Vec3A::Z
+        );
+        let none = VertexNormals::<f32>(&[]);
+        assert!(!none.smooth([0, 1, 2]));
+        assert_eq!(
+            none.normal_at(&tri, [0, 1, 2], Vec3A::new(0.2, 0.2, 0.0)),
             Vec3A::Z
         );
         assert_eq!(tri.normal(), Vec3A::Z);
+        let positions = [Vec3A::ZERO, Vec3A::Y, Vec3A::X];
+        let t = gather::<f32>(&positions, [0, 2, 1]);
+        assert_eq!(t.vertices(), tri.vertices());
     }
 
     fn tri64(a: [f64; 3], b: [f64; 3], c: [f64; 3]) -> Triangle<f64> {

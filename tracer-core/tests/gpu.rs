@@ -2021,7 +2021,6 @@ fn gpu_refuses_a_tree_deeper_than_its_stack() {
         nodes,
         prims,
         packets: Vec::new(),
-        slots: Vec::new(),
         stats: Default::default(),
         id: 0,
     });

@@ -305,6 +305,13 @@ fn smooth_mesh_sphere_renders_like_the_analytic_sphere() {
         dir.join("s.toml"),
     )
     .unwrap();
+    // The same ball without its normals, shaded flat.
+    write_obj(&dir.join("facets.obj"), &v, &f, false);
+    let facets = SceneDesc::parse(
+        &format!("{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"facets.obj\"\nmaterial = \"white\"\n{rest}"),
+        dir.join("f.toml"),
+    )
+    .unwrap();
     for precision in [Precision::F32, Precision::F64] {
         let (a, fa) = render(&mesh, precision);
         let (b, _) = render(&sphere, precision);
@@ -315,6 +322,13 @@ fn smooth_mesh_sphere_renders_like_the_analytic_sphere() {
         assert!(
             mean < 0.004 && off < 0.03,
             "{precision:?}: mean {mean}, {off} of pixels off by > 0.05"
+        );
+        // Its vertex normals are used: the flat-shaded facets are
+        // measurably farther from the sphere (their highlights step).
+        let (flat, _) = compare(&render(&facets, precision).0, &b, 0.05);
+        assert!(
+            flat > 2.0 * mean,
+            "{precision:?}: smooth {mean} against flat {flat}"
         );
     }
 }
@@ -616,6 +630,100 @@ fn a_scene_built_once_frees_its_models_and_renders_the_same() {
         "no model outlives the build"
     );
     assert!(render_frame(&frame).0 == kept, "the same film");
+}
+
+/// A big world (at least `GIVE_UP_TRIANGLES_FROM` `f32` triangles) holds
+/// them as corners into shared vertices alone, its tree built over those
+/// and tested without packets: every ray finds the hit the brute-force
+/// test of every triangle finds, bit for bit, its shadow rays agree, and
+/// its vertex normals shade it smoothly. A 370 x 370 wavy grid with
+/// normals: 273,800 triangles.
+#[test]
+fn a_big_world_hits_as_the_brute_force_from_its_corners() {
+    let dir = tmpdir("big-world");
+    let n = 370u32;
+    let mut v = Vec::new();
+    for j in 0..=n {
+        for i in 0..=n {
+            let (x, z) = (
+                i as f64 / n as f64 * 4.0 - 2.0,
+                j as f64 / n as f64 * 4.0 - 2.0,
+            );
+            v.push([x, 0.2 * (3.0 * x).sin() * (2.0 * z).cos() - 1.0, z]);
+        }
+    }
+    let at = |i: u32, j: u32| j * (n + 1) + i;
+    let mut f = Vec::new();
+    for j in 0..n {
+        for i in 0..n {
+            f.push([at(i, j), at(i, j + 1), at(i + 1, j)]);
+            f.push([at(i + 1, j), at(i, j + 1), at(i + 1, j + 1)]);
+        }
+    }
+    // Normals: write_obj's `vn` repeats the vertex; the grid's own go here.
+    let mut obj = String::new();
+    for p in &v {
+        writeln!(obj, "v {} {} {}", p[0], p[1], p[2]).unwrap();
+        let (x, z) = (p[0], p[2]);
+        let (dx, dz) = (
+            0.6 * (3.0 * x).cos() * (2.0 * z).cos(),
+            -0.4 * (3.0 * x).sin() * (2.0 * z).sin(),
+        );
+        writeln!(obj, "vn {} 1 {}", -dx, -dz).unwrap();
+    }
+    for t in &f {
+        let [a, b, c] = t.map(|i| i + 1);
+        writeln!(obj, "f {a}//{a} {b}//{b} {c}//{c}").unwrap();
+    }
+    std::fs::write(dir.join("grid.obj"), obj).unwrap();
+    let scene = SceneDesc::parse(
+        &format!(
+            "{HEADER}\n[[objects]]\ntype = \"mesh\"\npath = \"grid.obj\"\nmaterial = \"white\"\n"
+        ),
+        dir.join("grid.toml"),
+    )
+    .unwrap();
+    let world = world_of::<f32>(&scene);
+    assert!(world.triangle_count() >= tracer_core::world::GIVE_UP_TRIANGLES_FROM);
+    let tree = world.accel.as_ref().expect("a tree");
+    assert!(tree.packets.is_empty(), "a big world's tree has no packets");
+    assert!(
+        matches!(world.triangle_array(), std::borrow::Cow::Owned(_)),
+        "nor gathered triangles"
+    );
+    let mut brute = world.clone();
+    brute.set_accel(Some(false));
+    assert!(brute.accel.is_none());
+    let mut hits = 0;
+    for i in 0..600u32 {
+        let u = |k: u32| hash_u32(i * 8 + k) as f64 / u32::MAX as f64;
+        // From above the grid, down at it, in the camera-relative world.
+        let o = [u(0) * 4.0 - 2.0, 1.5 + u(1), u(2) * 4.0 - 2.0 + 5.0];
+        // (The grid lies at y = -1.5 there, z from 3 to 7.)
+        let target = [u(3) * 4.0 - 2.0, -1.5, u(4) * 4.0 - 2.0 + 5.0];
+        let ray = ray_to::<f32>(o, target);
+        let a = world.closest_hit(&ray, PrimId::NONE);
+        assert_eq!(a, brute.closest_hit(&ray, PrimId::NONE), "ray {i}");
+        if let Some((t, id)) = a {
+            hits += 1;
+            assert_eq!(
+                world.occluded(&ray, t * 0.999, PrimId::NONE),
+                brute.occluded(&ray, t * 0.999, PrimId::NONE),
+                "ray {i}"
+            );
+            let p = ray.at(t);
+            let n = world.triangle_normal(id.index());
+            let v = -ray.dir;
+            let n = if n.dot(v) < 0.0 { -n } else { n };
+            // Smooth: the interpolated normal, not the facet's.
+            let s = world.shading_normal(id, p, n, v);
+            assert!(
+                s != n && (s.length() - 1.0).abs() < 1e-5,
+                "ray {i}: {s} {n}"
+            );
+        }
+    }
+    assert!(hits > 500, "too few hits ({hits}) to test much");
 }
 
 /// A small world keeps its triangles' unit normals (computed once, after

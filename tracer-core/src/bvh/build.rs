@@ -81,21 +81,43 @@ impl BuildBox {
     }
 }
 
-/// The primitives of a subtree under construction: their boxes and their
-/// indices into the caller's arrays, permuted together. Boxes are moved
-/// rather than indexed so that binning and partitioning stream through
-/// memory (an index array into 28 MB of boxes misses the cache on every
-/// access for a large mesh).
+/// The primitives of a subtree under construction, as the build sees
+/// them: each one's box, permuted in place as the build partitions them.
+/// The same partitions of the same boxes give the same tree whatever
+/// holds them.
+trait BuildPrims: Send + Sized {
+    fn len(&self) -> usize;
+    fn bbox(&self, i: usize) -> Aabb;
+    fn swap(&mut self, i: usize, j: usize);
+    fn split_at(self, mid: usize) -> (Self, Self);
+    /// Puts the primitive at `from[k]` at place k, for every k.
+    fn permute(&mut self, from: &[u32]);
+}
+
+/// Boxes and their indices into the caller's arrays, permuted together.
+/// Boxes are moved rather than indexed so that binning and partitioning
+/// stream through memory (an index array into 28 MB of boxes misses the
+/// cache on every access for a large mesh).
 struct Prims<'a> {
     boxes: &'a mut [BuildBox],
     order: &'a mut [u32],
 }
 
-impl<'a> Prims<'a> {
+impl BuildPrims for Prims<'_> {
+    #[inline(always)]
     fn len(&self) -> usize {
         self.boxes.len()
     }
-    fn split_at(self, mid: usize) -> (Prims<'a>, Prims<'a>) {
+    #[inline(always)]
+    fn bbox(&self, i: usize) -> Aabb {
+        self.boxes[i].aabb()
+    }
+    #[inline(always)]
+    fn swap(&mut self, i: usize, j: usize) {
+        self.boxes.swap(i, j);
+        self.order.swap(i, j);
+    }
+    fn split_at(self, mid: usize) -> (Self, Self) {
         let (bl, br) = self.boxes.split_at_mut(mid);
         let (ol, or) = self.order.split_at_mut(mid);
         (
@@ -109,6 +131,75 @@ impl<'a> Prims<'a> {
             },
         )
     }
+    fn permute(&mut self, from: &[u32]) {
+        permute(self.boxes, from);
+        permute(self.order, from);
+    }
+}
+
+/// Triangles as their corners' indices into shared vertex positions, with
+/// a record each (`payload`) that moves with them: the build permutes
+/// both in place, into leaf order, and computes a triangle's box from its
+/// vertices where it needs it. A big mesh's build then holds no array of
+/// boxes (24 bytes a triangle) and no order (4).
+struct IndexedPrims<'a, S> {
+    positions: &'a [Vec3A],
+    corners: &'a mut [[u32; 3]],
+    payload: &'a mut [S],
+}
+
+impl<S: Copy + Send> BuildPrims for IndexedPrims<'_, S> {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        self.corners.len()
+    }
+    #[inline(always)]
+    fn bbox(&self, i: usize) -> Aabb {
+        triangle_box(self.corners[i].map(|v| self.positions[v as usize]))
+    }
+    #[inline(always)]
+    fn swap(&mut self, i: usize, j: usize) {
+        self.corners.swap(i, j);
+        self.payload.swap(i, j);
+    }
+    fn split_at(self, mid: usize) -> (Self, Self) {
+        let (cl, cr) = self.corners.split_at_mut(mid);
+        let (pl, pr) = self.payload.split_at_mut(mid);
+        let positions = self.positions;
+        (
+            IndexedPrims {
+                positions,
+                corners: cl,
+                payload: pl,
+            },
+            IndexedPrims {
+                positions,
+                corners: cr,
+                payload: pr,
+            },
+        )
+    }
+    fn permute(&mut self, from: &[u32]) {
+        permute(self.corners, from);
+        permute(self.payload, from);
+    }
+}
+
+/// The box of a triangle's vertices, as `accel.rs` boxes an `f32`
+/// triangle (its vertices are `f32`, so the outward rounding is exact):
+/// both builds see the same boxes.
+#[inline(always)]
+pub fn triangle_box([a, b, c]: [Vec3A; 3]) -> Aabb {
+    Aabb {
+        min: a.min(b).min(c),
+        max: a.max(b).max(c),
+    }
+}
+
+/// `items[k] = items[from[k]]` for every k, through a copy.
+fn permute<T: Copy>(items: &mut [T], from: &[u32]) {
+    let moved: Vec<T> = from.iter().map(|&i| items[i as usize]).collect();
+    items.copy_from_slice(&moved);
 }
 
 fn ceil_log2(n: usize) -> usize {
@@ -139,57 +230,49 @@ impl Bvh {
     }
 
     fn build_inner(mut work: Vec<BuildBox>, ids: &dyn Fn(u32) -> PrimId, depth: usize) -> Bvh {
-        let stack = depth;
-        let n = work.len();
-        assert!(n <= u32::MAX as usize, "{n} primitives: ids are 32-bit");
-        assert!(
-            stack >= 2 + ceil_log2(n),
-            "a depth of {stack} cannot hold a tree over {} primitives",
-            n
-        );
         let start = Instant::now();
-        if n == 0 {
-            return Bvh::default();
-        }
+        let n = work.len();
         let mut order: Vec<u32> = (0..n as u32).collect();
-        let (bounds, cbounds) = bounds_of(&work);
-        let prims = Prims {
-            boxes: &mut work,
-            order: &mut order,
-        };
-        let root = build_node(stack, prims, 0, 0, bounds, cbounds);
-        drop(work);
-
-        let mut flat = Flat {
-            nodes: Vec::with_capacity(n / 2 + 1),
-            prims: Vec::with_capacity(n * 3 / 2),
-            stats: BvhStats {
-                primitives: n,
-                ..Default::default()
+        let root = binary_tree(
+            Prims {
+                boxes: &mut work,
+                order: &mut order,
             },
-            order: &order,
-            ids,
-        };
-        flatten4(&root, 0, 0, &mut flat);
-        let Flat {
-            nodes,
-            prims,
-            mut stats,
-            ..
-        } = flat;
-        stats.nodes = nodes.len();
-        stats.bytes = nodes.len() * std::mem::size_of::<BvhNode4>()
-            + prims.len() * std::mem::size_of::<PrimId>();
-        stats.build_time = start.elapsed();
-        debug_assert!(stats.stack <= stack_for_depth(stack));
-        Bvh {
-            nodes,
-            prims,
-            packets: Vec::new(),
-            slots: Vec::new(),
-            stats,
-            id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
-        }
+            depth,
+        );
+        drop(work);
+        flatten(root.as_ref(), n, depth, &|k| ids(order[k as usize]), start)
+    }
+
+    /// A tree over triangles given as `corners` into `positions` (`f32`
+    /// vertices), built as [`Bvh::build`] builds it over their boxes (the
+    /// same tree), without holding their boxes: `corners` and `payload`
+    /// (a record a triangle) are permuted into leaf order in place, and the
+    /// leaves name triangle k as `PrimId::TRIANGLE` k of that order. A big
+    /// mesh's build holds its corners and the binary tree alone.
+    pub fn build_indexed<S: Copy + Send>(
+        positions: &[Vec3A],
+        corners: &mut [[u32; 3]],
+        payload: &mut [S],
+    ) -> Bvh {
+        assert_eq!(corners.len(), payload.len());
+        let start = Instant::now();
+        let n = corners.len();
+        let root = binary_tree(
+            IndexedPrims {
+                positions,
+                corners,
+                payload,
+            },
+            MAX_DEPTH,
+        );
+        flatten(
+            root.as_ref(),
+            n,
+            MAX_DEPTH,
+            &|k| PrimId::new(PrimId::TRIANGLE, k),
+            start,
+        )
     }
 
     /// Fills [`Bvh::packets`] from `triangles` (the world's, in `f32`, which
@@ -216,93 +299,78 @@ impl Bvh {
         self.stats.bytes += self.packets.len() * std::mem::size_of::<Triangle4>();
     }
 
-    /// [`Bvh::pack_triangles`] taking the triangles, which the packets then
-    /// hold alone: [`Bvh::triangle`] reads one back through
-    /// [`Bvh::slots`]. The triangles must be in leaf order (each id at a
-    /// later slot than the one before, as `accel::build` leaves them). The
-    /// packets are made from the last back and the triangles cut behind
-    /// them as they go, so the two are never both held whole (a big mesh's
-    /// peak memory). Gives the triangles back, unpacked, for a tree that
-    /// holds other primitives or is not in leaf order.
-    pub fn pack_triangles_owned(
-        &mut self,
-        mut triangles: Vec<Triangle<f32>>,
-    ) -> Result<(), Vec<Triangle<f32>>> {
-        self.packets.clear();
-        self.slots.clear();
-        let n = triangles.len();
-        // Each triangle once, in id order: the cut behind the packets then
-        // drops only packed ones.
-        let mut named = 0;
-        let in_order = self
-            .prims
-            .iter()
-            .filter(|id| **id != PrimId::NONE)
-            .all(|id| {
-                named += 1;
-                id.index() == named - 1
-            })
-            && named == n;
-        if !self.packable(n) || !in_order || self.prims.len() >= u32::MAX as usize {
-            return Err(triangles);
-        }
-        // Zeroed memory is not resident until written: the packets' pages
-        // come as they are filled.
-        let mut packets: Vec<Triangle4> = bytemuck::zeroed_vec(self.prims.len().div_ceil(4));
-        let mut slots: Vec<u32> = bytemuck::zeroed_vec(n);
-        const CHUNK: usize = 1 << 14;
-        let mut end = packets.len();
-        while end > 0 {
-            let start = end.saturating_sub(CHUNK);
-            for i in (start..end).rev() {
-                let mut p = Triangle4::default();
-                for (j, id) in self.prims[4 * i..(4 * i + 4).min(self.prims.len())]
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, id)| **id != PrimId::NONE)
-                {
-                    p.set(j, &triangles[id.index()]);
-                    p.ids[j] = id.0;
-                    slots[id.index()] = (4 * i + j) as u32;
-                }
-                packets[i] = p;
-            }
-            // Every triangle from the first of packet `start` on is packed.
-            let first = self.prims[4 * start..]
-                .iter()
-                .find(|id| **id != PrimId::NONE)
-                .map_or(n, |id| id.index());
-            triangles.truncate(first);
-            triangles.shrink_to_fit();
-            end = start;
-        }
-        self.packets = packets;
-        self.slots = slots;
-        self.stats.bytes += self.packets.len() * std::mem::size_of::<Triangle4>()
-            + self.slots.len() * std::mem::size_of::<u32>();
-        Ok(())
-    }
-
     /// Whether `prims` names triangles below `n` alone (or nothing).
     fn packable(&self, n: usize) -> bool {
         self.prims
             .iter()
             .all(|p| *p == PrimId::NONE || (p.kind() == PrimId::TRIANGLE && p.index() < n))
     }
+}
 
-    /// Triangle `index` of a tree packed by [`Bvh::pack_triangles_owned`].
-    #[inline]
-    pub fn triangle(&self, index: usize) -> Triangle<f32> {
-        let slot = self.slots[index] as usize;
-        self.packets[slot / 4].triangle(slot % 4)
+/// The binary tree over `prims` within `depth` binary levels (`None` for
+/// no primitives).
+fn binary_tree<P: BuildPrims>(prims: P, depth: usize) -> Option<BuildNode> {
+    let n = prims.len();
+    assert!(n <= u32::MAX as usize, "{n} primitives: ids are 32-bit");
+    assert!(
+        depth >= 2 + ceil_log2(n),
+        "a depth of {depth} cannot hold a tree over {n} primitives"
+    );
+    if n == 0 {
+        return None;
+    }
+    let (bounds, cbounds) = bounds_of(&prims, 0..n);
+    Some(build_node(depth, prims, 0, 0, bounds, cbounds))
+}
+
+/// The 4-wide tree of the binary tree `root` (an empty tree for `None`),
+/// whose leaf places k name `id_at(k)`; `start`: when its build began.
+fn flatten(
+    root: Option<&BuildNode>,
+    n: usize,
+    depth: usize,
+    id_at: &dyn Fn(u32) -> PrimId,
+    start: Instant,
+) -> Bvh {
+    let Some(root) = root else {
+        return Bvh::default();
+    };
+    let mut flat = Flat {
+        nodes: Vec::with_capacity(n / 2 + 1),
+        prims: Vec::with_capacity(n * 3 / 2),
+        stats: BvhStats {
+            primitives: n,
+            ..Default::default()
+        },
+        id_at,
+    };
+    flatten4(root, 0, 0, &mut flat);
+    let Flat {
+        nodes,
+        prims,
+        mut stats,
+        ..
+    } = flat;
+    stats.nodes = nodes.len();
+    stats.bytes =
+        nodes.len() * std::mem::size_of::<BvhNode4>() + prims.len() * std::mem::size_of::<PrimId>();
+    stats.build_time = start.elapsed();
+    debug_assert!(stats.stack <= stack_for_depth(depth));
+    Bvh {
+        nodes,
+        prims,
+        packets: Vec::new(),
+        stats,
+        id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
     }
 }
 
-fn bounds_of(boxes: &[BuildBox]) -> (Aabb, Aabb) {
+/// The bounds of the boxes and of the centroids of `prims[range]`.
+fn bounds_of<P: BuildPrims>(prims: &P, range: std::ops::Range<usize>) -> (Aabb, Aabb) {
     let mut b = Aabb::EMPTY;
     let mut c = Aabb::EMPTY;
-    for p in boxes {
-        let p = &p.aabb();
+    for i in range {
+        let p = &prims.bbox(i);
         b.grow(p);
         c.grow_point(p.centroid());
     }
@@ -313,9 +381,9 @@ fn bounds_of(boxes: &[BuildBox]) -> (Aabb, Aabb) {
 /// order), at depth `depth`, partitioning them in place. `bounds` and
 /// `cbounds` bound the primitives' boxes and centroids; `stack` is the
 /// traversal stack size (leaves at most `stack - 1` deep).
-fn build_node(
+fn build_node<P: BuildPrims>(
     stack: usize,
-    prims: Prims,
+    prims: P,
     offset: usize,
     depth: usize,
     bounds: Aabb,
@@ -335,7 +403,7 @@ fn build_node(
     let split = if median {
         None
     } else {
-        sah_split(prims.boxes, &bounds, &cbounds)
+        sah_split(&prims, &bounds, &cbounds)
     };
     let mut prims = prims;
     let (mid, lb, rb) = match split {
@@ -367,11 +435,7 @@ fn build_node(
                 };
             }
             let mid = median_split(&mut prims, &cbounds);
-            (
-                mid,
-                bounds_of(&prims.boxes[..mid]),
-                bounds_of(&prims.boxes[mid..]),
-            )
+            (mid, bounds_of(&prims, 0..mid), bounds_of(&prims, mid..n))
         }
     };
     let (left, right) = prims.split_at(mid);
@@ -434,8 +498,8 @@ struct Bin {
 /// Best binned SAH split over the three axes, `Leaf` when a leaf is cheaper
 /// (and allowed), `None` when the centroids cannot be separated by bins.
 /// One pass over the primitives bins all three axes at once.
-fn sah_split(boxes: &[BuildBox], bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
-    let n = boxes.len();
+fn sah_split<P: BuildPrims>(prims: &P, bounds: &Aabb, cbounds: &Aabb) -> Option<Split> {
+    let n = prims.len();
     let lo = cbounds.min;
     // Bins in use: as many as primitives, from 4 up to BINS (small nodes,
     // which are most nodes, then sweep fewer empty bins).
@@ -457,8 +521,8 @@ fn sah_split(boxes: &[BuildBox], bounds: &Aabb, cbounds: &Aabb) -> Option<Split>
         count: 0,
     };
     let mut bins = [[empty; BINS]; 3];
-    for b in boxes {
-        let b = &b.aabb();
+    for i in 0..n {
+        let b = &prims.bbox(i);
         let k = bins_of(b.centroid(), lo, scale, top);
         for axis in 0..3 {
             let bin = &mut bins[axis][k[axis]];
@@ -527,8 +591,8 @@ fn sah_split(boxes: &[BuildBox], bounds: &Aabb, cbounds: &Aabb) -> Option<Split>
 /// centroid bounds of both sides (gathered here rather than per bin: one
 /// box grow per primitive instead of three). Bins are computed exactly as
 /// in [`sah_split`], so the counts match.
-fn partition_bins(
-    prims: &mut Prims,
+fn partition_bins<P: BuildPrims>(
+    prims: &mut P,
     axis: usize,
     bin: usize,
     lo: Vec3A,
@@ -537,8 +601,8 @@ fn partition_bins(
 ) -> (usize, Aabb, Aabb) {
     let (mut lc, mut rc) = (Aabb::EMPTY, Aabb::EMPTY);
     // Classifies a box, growing its side's centroid bounds.
-    let mut left = |b: &BuildBox| {
-        let c = b.aabb().centroid();
+    let mut left = |b: Aabb| {
+        let c = b.centroid();
         let l = bins_of(c, lo, scale, top)[axis] < bin;
         if l {
             lc.grow_point(c)
@@ -550,7 +614,7 @@ fn partition_bins(
     // Hoare's scheme: each primitive is classified once, each misplaced pair swapped once.
     let (mut i, mut j) = (0, prims.len());
     loop {
-        while i < j && left(&prims.boxes[i]) {
+        while i < j && left(prims.bbox(i)) {
             i += 1;
         }
         if i == j {
@@ -558,14 +622,13 @@ fn partition_bins(
         }
         // boxes[i] goes right (and is counted so); find a left one from the end.
         j -= 1;
-        while i < j && !left(&prims.boxes[j]) {
+        while i < j && !left(prims.bbox(j)) {
             j -= 1;
         }
         if i == j {
             break;
         }
-        prims.boxes.swap(i, j);
-        prims.order.swap(i, j);
+        prims.swap(i, j);
         i += 1;
     }
     debug_assert!(i > 0 && i < prims.len());
@@ -576,7 +639,7 @@ fn partition_bins(
 /// current order when all centroids coincide): always makes progress,
 /// whatever the geometry. Rare (degenerate or depth-limited subtrees), so it
 /// sorts pairs in a scratch vector.
-fn median_split(prims: &mut Prims, cbounds: &Aabb) -> usize {
+fn median_split<P: BuildPrims>(prims: &mut P, cbounds: &Aabb) -> usize {
     let mid = prims.len() / 2;
     let ext = cbounds.max - cbounds.min;
     let axis = if ext.x >= ext.y && ext.x >= ext.z {
@@ -587,19 +650,12 @@ fn median_split(prims: &mut Prims, cbounds: &Aabb) -> usize {
         2
     };
     if ext[axis] > 0.0 {
-        let mut pairs: Vec<(BuildBox, u32)> = prims
-            .boxes
-            .iter()
-            .copied()
-            .zip(prims.order.iter().copied())
+        let mut keys: Vec<(f32, u32)> = (0..prims.len())
+            .map(|i| (prims.bbox(i).centroid()[axis], i as u32))
             .collect();
-        pairs.select_nth_unstable_by(mid, |a, b| {
-            a.0.aabb().centroid()[axis].total_cmp(&b.0.aabb().centroid()[axis])
-        });
-        for (k, (b, o)) in pairs.into_iter().enumerate() {
-            prims.boxes[k] = b;
-            prims.order[k] = o;
-        }
+        keys.select_nth_unstable_by(mid, |a, b| a.0.total_cmp(&b.0));
+        let from: Vec<u32> = keys.into_iter().map(|(_, i)| i).collect();
+        prims.permute(&from);
     }
     mid
 }
@@ -663,11 +719,8 @@ fn flatten4(node: &BuildNode, depth: usize, need: usize, out: &mut Flat) -> u32 
                 stats.max_leaf_size = stats.max_leaf_size.max(count);
                 let first = out.prims.len().next_multiple_of(4);
                 out.prims.resize(first, PrimId::NONE);
-                out.prims.extend(
-                    out.order[start..start + count]
-                        .iter()
-                        .map(|&i| (out.ids)(i)),
-                );
+                out.prims
+                    .extend((start..start + count).map(|k| (out.id_at)(k as u32)));
                 node.child[k] = first as u32;
                 node.count[k] = count as u32;
             }
@@ -683,9 +736,8 @@ struct Flat<'a> {
     nodes: Vec<BvhNode4>,
     prims: Vec<PrimId>,
     stats: BvhStats,
-    /// The build's order: leaf `start..start + count` covers `ids[order[start..start + count]]`.
-    order: &'a [u32],
-    ids: &'a dyn Fn(u32) -> PrimId,
+    /// What leaf place k (of the build's final order) names.
+    id_at: &'a dyn Fn(u32) -> PrimId,
 }
 
 #[cfg(test)]
@@ -817,26 +869,58 @@ mod tests {
         );
     }
 
-    /// A tree that names some triangles only keeps them all: packing them
-    /// away would drop the unnamed ones.
+    /// Built over corners into shared vertices, a mesh gets the tree its
+    /// triangles' boxes get: the same nodes, its leaves naming the same
+    /// triangles, which (with their records) are permuted into that leaf
+    /// order. The mesh: a wavy grid, and a pile of copies of one triangle
+    /// (one centroid: the median splits).
     #[test]
-    fn triangles_the_tree_does_not_name_are_not_given_up() {
-        let tri = |x: f32| {
-            Triangle::<f32>::new([
-                Vec3A::new(x, 0.0, 0.0),
-                Vec3A::new(x + 1.0, 0.0, 0.0),
-                Vec3A::Y,
-            ])
-        };
-        let tris = vec![tri(0.0), tri(2.0), tri(4.0)];
-        let boxes = [
-            unit_box([0.5, 0.5, 0.0], 1.0),
-            unit_box([2.5, 0.5, 0.0], 1.0),
-        ];
-        let ids = [0, 1].map(|i| PrimId::new(PrimId::TRIANGLE, i));
-        let mut tree = Bvh::build(&boxes, &ids);
-        let back = tree.pack_triangles_owned(tris).unwrap_err();
-        assert_eq!(back.len(), 3);
-        assert!(tree.packets.is_empty() && tree.slots.is_empty());
+    fn an_indexed_build_is_the_box_build() {
+        let side = 48u32;
+        let mut positions = Vec::new();
+        for y in 0..=side {
+            for x in 0..=side {
+                let h = crate::sampling::hash_u32(y * 1000 + x) as f32 / u32::MAX as f32;
+                positions.push(Vec3A::new(x as f32, y as f32, (x as f32 * 0.3).sin() + h));
+            }
+        }
+        let at = |x: u32, y: u32| y * (side + 1) + x;
+        let mut corners = Vec::new();
+        for y in 0..side {
+            for x in 0..side {
+                corners.push([at(x, y), at(x + 1, y), at(x, y + 1)]);
+                corners.push([at(x + 1, y), at(x + 1, y + 1), at(x, y + 1)]);
+            }
+        }
+        corners.extend(std::iter::repeat_n([0, 1, at(0, 1)], 300));
+        let n = corners.len();
+        let boxes: Vec<Aabb> = corners
+            .iter()
+            .map(|c| triangle_box(c.map(|i| positions[i as usize])))
+            .collect();
+        let ids: Vec<PrimId> = (0..n as u32)
+            .map(|i| PrimId::new(PrimId::TRIANGLE, i))
+            .collect();
+        let by_boxes = Bvh::build(&boxes, &ids);
+        check(&by_boxes, &boxes, STACK);
+        assert!(by_boxes.stats.leaves > 100, "{:?}", by_boxes.stats);
+        let mut leaf_order = corners.clone();
+        let mut original: Vec<u32> = (0..n as u32).collect();
+        let by_corners = Bvh::build_indexed(&positions, &mut leaf_order, &mut original);
+        assert!(by_corners.nodes == by_boxes.nodes, "the same nodes");
+        assert_eq!(by_corners.prims.len(), by_boxes.prims.len());
+        let mut named = 0;
+        for (a, b) in by_corners.prims.iter().zip(&by_boxes.prims) {
+            if *b == PrimId::NONE {
+                assert_eq!(*a, PrimId::NONE);
+                continue;
+            }
+            // Leaf place k names triangle k of the permuted arrays.
+            assert_eq!(a.index(), named);
+            named += 1;
+            assert_eq!(original[a.index()] as usize, b.index());
+            assert_eq!(leaf_order[a.index()], corners[b.index()]);
+        }
+        assert_eq!(named, n);
     }
 }

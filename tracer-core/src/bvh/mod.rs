@@ -8,7 +8,8 @@
 //! - `node.rs`: the layout the GPU shares ([`BvhNode4`], [`Aabb`]) and the
 //!   depth and stack bounds ([`MAX_DEPTH`], [`STACK`]);
 //! - `build.rs`: [`Bvh::build`] (binned SAH, the depth limit, the collapse
-//!   to 4-wide nodes, flattening) and [`Bvh::pack_triangles`];
+//!   to 4-wide nodes, flattening), [`Bvh::build_indexed`] (the same over
+//!   indexed triangles, without their boxes) and [`Bvh::pack_triangles`];
 //! - `traverse.rs`: one ray at a time ([`closest_hit`], [`occluded`]);
 //! - `packet.rs`: up to [`PACKET`] coherent rays at once.
 //!
@@ -29,7 +30,7 @@ use std::time::Duration;
 use crate::geometry::PrimId;
 use crate::triangle::Triangle4;
 
-pub use build::BuildBox;
+pub use build::{BuildBox, triangle_box};
 pub use node::{Aabb, BvhNode4, MAX_DEPTH, STACK, stack_for_depth};
 pub use packet::{
     PACKET, closest_hits, closest_hits_at, occluded_hits, occluded_hits_at, render_level,
@@ -66,12 +67,11 @@ pub struct Bvh {
     /// multiple of 4 (`PrimId::NONE` between leaves).
     pub prims: Vec<PrimId>,
     /// For trees over `f32` triangles alone (else empty): the triangles of
-    /// `prims[4 i .. 4 i + 4]` as packet i, for the 4-wide triangle test (CPU only).
+    /// `prims[4 i .. 4 i + 4]` as packet i, for the 4-wide triangle test
+    /// (CPU only). A big mesh's tree has none (`Bvh::build_indexed`): its
+    /// leaves are tested through the [`Primitives`] view, which reads
+    /// each triangle from its corners.
     pub packets: Vec<Triangle4>,
-    /// For trees whose packets alone hold the triangles
-    /// ([`Bvh::pack_triangles_owned`]; else empty): each triangle's slot
-    /// in `prims` (packet `slot / 4`, lane `slot % 4`).
-    pub slots: Vec<u32>,
     pub stats: BvhStats,
     /// Unique per build (never 0 for a built tree; 0 for a tree made any
     /// other way): lets a GPU renderer keep an uploaded tree while the

@@ -201,8 +201,7 @@ pub(super) fn leaf<R: Real, P: Primitives<R>, const ANY: bool>(
                     continue;
                 }
                 let t = if (e.exact >> j) & 1 != 0 {
-                    // The packet holds the triangle itself (it may be the
-                    // only copy: `Bvh::pack_triangles_owned`).
+                    // The packet holds the triangle itself.
                     packet.triangle(j).distance(tr, *best)
                 } else {
                     finish(e.t_scaled[j], e.det[j], *best)

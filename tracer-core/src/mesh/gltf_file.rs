@@ -306,17 +306,20 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                 check_accessor(&acc, &buffers).map_err(|m| err(at(&m)))?;
             }
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| d.as_slice()));
-            let positions: Vec<[f32; 3]> = prim
+            let mut positions: Vec<[f32; 3]> = prim
                 .get(&gltf::Semantic::Positions)
                 .and_then(|a| read_vec3(&a, &buffers))
                 .ok_or_else(|| err(at("positions are missing or lie outside their buffer")))?;
             let base = geo.mesh.positions.len() as u32;
             let n = positions.len() as u32;
-            geo.mesh.positions.extend(positions.iter().map(|p| {
-                xf.transform_point3(DVec3::from_array(p.map(f64::from)))
+            let nv = positions.len();
+            for p in &mut positions {
+                *p = xf
+                    .transform_point3(DVec3::from_array(p.map(f64::from)))
                     .as_vec3()
-                    .to_array()
-            }));
+                    .to_array();
+            }
+            append(&mut geo.mesh.positions, positions);
             let read_normals = match prim.get(&gltf::Semantic::Normals) {
                 Some(a) => Some(
                     read_vec3(&a, &buffers)
@@ -324,37 +327,25 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                 ),
                 None => None,
             };
-            match read_normals {
-                Some(ns) => {
-                    geo.any_normals = true;
-                    let before = geo.normals.len();
-                    geo.normals.extend(ns.into_iter().map(|v| {
-                        (normal_xf * DVec3::from_array(v.map(f64::from)))
-                            .as_vec3()
-                            .to_array()
-                    }));
-                    if geo.normals.len() - before != positions.len() {
-                        return Err(err(at("normal count differs from position count")));
-                    }
+            let normals = read_normals.map(|mut ns| {
+                for v in &mut ns {
+                    *v = (normal_xf * DVec3::from_array(v.map(f64::from)))
+                        .as_vec3()
+                        .to_array();
                 }
-                None => geo
-                    .normals
-                    .extend(std::iter::repeat_n([0.0; 3], positions.len())),
-            }
+                ns
+            });
+            per_vertex(&mut geo.normals, base as usize, nv, [0.0; 3], normals)
+                .map_err(|_| err(at("normal count differs from position count")))?;
             for (k, uv) in geo.uvs.iter_mut().enumerate() {
-                match reader.read_tex_coords(k as u32) {
-                    Some(t) => {
-                        geo.any_uv[k] = true;
-                        let before = uv.len();
-                        uv.extend(t.into_f32());
-                        if uv.len() - before != positions.len() {
-                            return Err(err(at(&format!(
-                                "TEXCOORD_{k} count differs from position count"
-                            ))));
-                        }
-                    }
-                    None => uv.extend(std::iter::repeat_n([0.0; 2], positions.len())),
-                }
+                let read = reader
+                    .read_tex_coords(k as u32)
+                    .map(|t| t.into_f32().collect());
+                per_vertex(uv, base as usize, nv, [0.0; 2], read).map_err(|_| {
+                    err(at(&format!(
+                        "TEXCOORD_{k} count differs from position count"
+                    )))
+                })?;
             }
             // TANGENT (VEC4 of float; a quantized one is left for MikkTSpace).
             let tangents = prim.get(&gltf::Semantic::Tangents).filter(|a| {
@@ -362,70 +353,29 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                     && a.data_type() == gltf::accessor::DataType::F32
                     && check_accessor(a, &buffers).is_ok()
             });
-            match tangents.and_then(|_| reader.read_tangents()) {
-                Some(t) => {
-                    geo.any_tangent = true;
-                    let before = geo.tangents.len();
-                    let linear = DMat3::from_mat4(*xf);
-                    let sign = if flip { -1.0 } else { 1.0 };
-                    geo.tangents.extend(t.map(|[x, y, z, w]| {
-                        let v = (linear * DVec3::new(x as f64, y as f64, z as f64))
-                            .normalize_or_zero()
-                            .as_vec3();
-                        let w = if w < 0.0 { -sign } else { sign };
-                        [v.x, v.y, v.z, w]
-                    }));
-                    if geo.tangents.len() - before != positions.len() {
-                        return Err(err(at("TANGENT count differs from position count")));
-                    }
-                }
-                None => geo
-                    .tangents
-                    .extend(std::iter::repeat_n([0.0; 4], positions.len())),
+            let read = tangents.and_then(|_| reader.read_tangents()).map(|t| {
+                let linear = DMat3::from_mat4(*xf);
+                let sign = if flip { -1.0 } else { 1.0 };
+                t.map(|[x, y, z, w]| {
+                    let v = (linear * DVec3::new(x as f64, y as f64, z as f64))
+                        .normalize_or_zero()
+                        .as_vec3();
+                    let w = if w < 0.0 { -sign } else { sign };
+                    [v.x, v.y, v.z, w]
+                })
+                .collect()
+            });
+            per_vertex(&mut geo.tangents, base as usize, nv, [0.0; 4], read)
+                .map_err(|_| err(at("TANGENT count differs from position count")))?;
+            let read: Option<Vec<[f32; 4]>> =
+                reader.read_colors(0).map(|c| c.into_rgba_f32().collect());
+            if read.is_some()
+                && let Some(Some(p)) = prim.material().index().and_then(|i| mesh.pbr.get_mut(i))
+            {
+                Arc::make_mut(p).vertex_colors = true;
             }
-            match reader.read_colors(0) {
-                Some(c) => {
-                    geo.any_color = true;
-                    let before = geo.colors.len();
-                    geo.colors.extend(c.into_rgba_f32());
-                    if geo.colors.len() - before != positions.len() {
-                        return Err(err(at("COLOR_0 count differs from position count")));
-                    }
-                    if let Some(Some(p)) = prim.material().index().and_then(|i| mesh.pbr.get_mut(i))
-                    {
-                        Arc::make_mut(p).vertex_colors = true;
-                    }
-                }
-                None => geo
-                    .colors
-                    .extend(std::iter::repeat_n([1.0; 4], positions.len())),
-            }
-            let indices: Vec<u32> = match reader.read_indices() {
-                Some(i) => i.into_u32().collect(),
-                None => (0..n).collect(),
-            };
-            if let Some(bad) = indices.iter().find(|&&i| i >= n) {
-                return Err(err(at(&format!("index {bad} out of range ({n} vertices)"))));
-            }
-            let tris: Vec<[u32; 3]> = match prim.mode() {
-                Mode::Triangles => indices
-                    .chunks_exact(3)
-                    .map(|t| [t[0], t[1], t[2]])
-                    .collect(),
-                // Strips alternate winding; fans share their first vertex.
-                Mode::TriangleStrip => (2..indices.len())
-                    .map(|i| {
-                        if i % 2 == 0 {
-                            [indices[i - 2], indices[i - 1], indices[i]]
-                        } else {
-                            [indices[i - 1], indices[i - 2], indices[i]]
-                        }
-                    })
-                    .collect(),
-                _ => (2..indices.len())
-                    .map(|i| [indices[0], indices[i - 1], indices[i]])
-                    .collect(),
-            };
+            per_vertex(&mut geo.colors, base as usize, nv, [1.0; 4], read)
+                .map_err(|_| err(at("COLOR_0 count differs from position count")))?;
             let material = match prim.material().index() {
                 Some(i) => i as u32,
                 None => {
@@ -433,12 +383,72 @@ pub(super) fn load(source: &dyn AssetSource, name: &str, bytes: &[u8]) -> Result
                     default_index
                 }
             };
-            for t in tris {
+            let out = &mut geo.mesh;
+            if prim.mode() == Mode::Triangles {
+                let count = prim.indices().map_or(n as usize, |a| a.count()) / 3;
+                out.triangles.reserve(count);
+                out.triangle_materials.reserve(count);
+            }
+            let mut push = |t: [u32; 3]| -> Result<(), MeshError> {
+                if let Some(bad) = t.iter().find(|&&i| i >= n) {
+                    return Err(err(at(&format!("index {bad} out of range ({n} vertices)"))));
+                }
                 let t = t.map(|i| base + i);
-                geo.mesh
-                    .triangles
+                out.triangles
                     .push(if flip { [t[0], t[2], t[1]] } else { t });
-                geo.mesh.triangle_materials.push(material);
+                out.triangle_materials.push(material);
+                Ok(())
+            };
+            match (prim.mode(), reader.read_indices()) {
+                // A list's triangles straight from the buffer (a big
+                // mesh's load holds no copy of its indices).
+                (Mode::Triangles, Some(i)) => {
+                    let mut i = i.into_u32();
+                    while let Some(a) = i.next() {
+                        match (i.next(), i.next()) {
+                            (Some(b), Some(c)) => push([a, b, c])?,
+                            // Indices left over past the last whole
+                            // triangle draw nothing, but are checked.
+                            (b, _) => {
+                                if let Some(bad) =
+                                    [Some(a), b].into_iter().flatten().find(|&i| i >= n)
+                                {
+                                    return Err(err(at(&format!(
+                                        "index {bad} out of range ({n} vertices)"
+                                    ))));
+                                }
+                            }
+                        }
+                    }
+                }
+                (mode, read) => {
+                    let indices: Vec<u32> = match read {
+                        Some(i) => i.into_u32().collect(),
+                        None => (0..n).collect(),
+                    };
+                    match mode {
+                        Mode::Triangles => {
+                            for t in indices.chunks_exact(3) {
+                                push([t[0], t[1], t[2]])?;
+                            }
+                        }
+                        // Strips alternate winding; fans share their first vertex.
+                        Mode::TriangleStrip => {
+                            for i in 2..indices.len() {
+                                push(if i % 2 == 0 {
+                                    [indices[i - 2], indices[i - 1], indices[i]]
+                                } else {
+                                    [indices[i - 1], indices[i - 2], indices[i]]
+                                })?;
+                            }
+                        }
+                        _ => {
+                            for i in 2..indices.len() {
+                                push([indices[0], indices[i - 1], indices[i]])?;
+                            }
+                        }
+                    }
+                }
             }
         }
     }
@@ -482,43 +492,69 @@ fn check_before_validation(root: &gltf::json::Root) -> Result<(), String> {
     Ok(())
 }
 
-/// Geometry being read: the model's own, or an instanced part's.
+/// Geometry being read: the model's own, or an instanced part's. Its
+/// optional per-vertex attributes stay empty while no primitive has them
+/// ([`per_vertex`]).
 #[derive(Default)]
 struct Geometry {
     mesh: Mesh,
     normals: Vec<[f32; 3]>,
-    any_normals: bool,
     /// Texture coordinates and colours of this target's vertices (each
     /// target, the placed-once triangles or an instanced part, has its own
     /// vertex list).
     uvs: [Vec<[f32; 2]>; 2],
     colors: Vec<[f32; 4]>,
     tangents: Vec<[f32; 4]>,
-    any_uv: [bool; 2],
-    any_color: bool,
-    any_tangent: bool,
 }
 
 impl Geometry {
-    /// Moves the geometry read into `out` (normals only when some
-    /// primitive had them).
-    fn finish_into(mut self, out: &mut Mesh) {
+    /// Moves the geometry read into `out`.
+    fn finish_into(self, out: &mut Mesh) {
         out.positions = self.mesh.positions;
         out.triangles = self.mesh.triangles;
         out.triangle_materials = self.mesh.triangle_materials;
-        if self.any_normals {
-            out.normals = self.normals;
+        out.normals = self.normals;
+        out.uvs = self.uvs;
+        out.colors = self.colors;
+        out.tangents = self.tangents;
+    }
+}
+
+/// Appends `values` to `list`, taking them whole when `list` is empty (a
+/// big mesh's one primitive is then never copied).
+fn append<T: Copy>(list: &mut Vec<T>, values: Vec<T>) {
+    if list.is_empty() {
+        *list = values;
+    } else {
+        list.extend_from_slice(&values);
+    }
+}
+
+/// Appends one primitive's values of an optional per-vertex attribute
+/// (its `n` vertices follow `before` earlier ones): its own, or `default`
+/// for each vertex where it has none but an earlier primitive had some.
+/// A list no primitive has values for stays empty; the first primitive
+/// that has some fills in `default` for the vertices before its own.
+/// Err when it has other than `n` values.
+fn per_vertex<T: Copy>(
+    list: &mut Vec<T>,
+    before: usize,
+    n: usize,
+    default: T,
+    values: Option<Vec<T>>,
+) -> Result<(), ()> {
+    match values {
+        Some(v) if v.len() != n => Err(()),
+        Some(v) => {
+            list.resize(before, default);
+            append(list, v);
+            Ok(())
         }
-        for k in 0..2 {
-            if self.any_uv[k] {
-                out.uvs[k] = std::mem::take(&mut self.uvs[k]);
+        None => {
+            if !list.is_empty() {
+                list.resize(before + n, default);
             }
-        }
-        if self.any_color {
-            out.colors = self.colors;
-        }
-        if self.any_tangent {
-            out.tangents = self.tangents;
+            Ok(())
         }
     }
 }

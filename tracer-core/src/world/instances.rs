@@ -19,8 +19,12 @@ use crate::triangle::{Triangle, TriangleRay, TriangleShading};
 #[derive(Clone, Debug, Default)]
 pub struct InstancedMesh<R: Real> {
     pub triangles: Vec<Triangle<R>>,
+    /// Their corners' indices in its vertices (which name their normals) ...
+    pub corners: Vec<[u32; 3]>,
+    /// ... and their shading.
     pub shading: Vec<TriangleShading>,
-    /// Unit vertex normals in object space, which `shading` names.
+    /// Unit vertex normals in object space, or none
+    /// ([`crate::triangle::VertexNormals`]).
     pub vertex_normals: Vec<R::V3>,
     pub tree: Bvh,
     /// The bounds of its triangles, in object space, in `f64`.
@@ -92,11 +96,12 @@ pub struct Instances<R: Real> {
 pub(crate) const MAX_PLACED: u64 = 1 << 28;
 
 impl<R: Real> Instances<R> {
-    /// Adds a mesh (triangles, shading and vertex normals in object
-    /// space) with its tree; returns its index.
+    /// Adds a mesh (triangles, their corners and shading, and vertex
+    /// normals in object space) with its tree; returns its index.
     pub(crate) fn add_mesh(
         &mut self,
         mut triangles: Vec<Triangle<R>>,
+        mut corners: Vec<[u32; 3]>,
         mut shading: Vec<TriangleShading>,
         vertex_normals: Vec<R::V3>,
     ) -> u32 {
@@ -110,10 +115,23 @@ impl<R: Real> Instances<R> {
                 }
             }
         }
-        let tree = crate::accel::build(&[], &[], &mut triangles, &mut shading, Some(true), false)
-            .unwrap_or_default();
+        // Its tree over its triangles (kept: instances are tested through
+        // their packets); the positions are needed for none of it.
+        let tree = crate::accel::build(
+            &[],
+            &[],
+            crate::accel::TriangleArrays {
+                positions: &Vec::new(),
+                corners: &mut corners,
+                shading: &mut shading,
+                triangles: &mut triangles,
+            },
+            Some(true),
+        )
+        .unwrap_or_default();
         self.meshes.push(InstancedMesh {
             triangles,
+            corners,
             shading,
             vertex_normals,
             tree,

@@ -22,7 +22,7 @@ use crate::distributed::{self, Distributed, Lens, MovingMesh, MovingSphere, Path
 use crate::geometry::{Plane, Sphere, SpherePack};
 use crate::math::{Ray, Real, Vector3};
 use crate::scene::{FILE_MATERIALS, Integrator, ObjectDesc, RenderSettings, SceneDesc, Vec3};
-use crate::triangle::{Triangle, TriangleShading};
+use crate::triangle::{Triangle, TriangleShading, gather};
 use triangles::TriangleSet;
 pub use triangles::VertexAttrs;
 
@@ -95,9 +95,15 @@ pub struct World<R: Real> {
     /// The same spheres four to a pack, for the intersection loops.
     pub sphere_packs: Vec<SpherePack<R>>,
     pub planes: Vec<Plane<R>>,
-    /// Mesh triangles (vertices only: what traversal touches), unless the
-    /// tree's packets hold them alone (`f32` worlds of triangles only:
-    /// `Bvh::pack_triangles_owned`); read them by [`World::triangle`] ...
+    /// Mesh triangles' vertex positions (shared by the triangles that
+    /// meet there) ...
+    pub(crate) positions: Vec<R::V3>,
+    /// ... each triangle's corners in them (and in `vertex_normals`) ...
+    pub(crate) corners: Vec<[u32; 3]>,
+    /// ... and the triangles gathered (what traversal touches), except in
+    /// a big world (at least [`GIVE_UP_TRIANGLES_FROM`] `f32` triangles
+    /// and no spheres or instances), whose tree reads them from their
+    /// corners at each test: read them by [`World::triangle`] ...
     unpacked_triangles: Vec<Triangle<R>>,
     /// Their unit geometric normals, where the world keeps its triangles
     /// in the array (below [`GIVE_UP_TRIANGLES_FROM`]; else empty and
@@ -105,12 +111,13 @@ pub struct World<R: Real> {
     unit_normals: Vec<R::V3>,
     /// ... and, at the same index, what shading needs ...
     pub triangle_shading: Vec<TriangleShading>,
-    /// ... with the vertex normals it names.
+    /// Unit vertex normals at the positions' indices, or none
+    /// ([`crate::triangle::VertexNormals`]).
     pub vertex_normals: Vec<R::V3>,
     /// Bounding volume hierarchy over spheres and triangles, when the scene
     /// has meshes or many spheres (see `accel.rs`); planes stay outside it.
-    /// Its packets may be the only copy of the triangles: change it
-    /// through [`World::set_accel`], which takes them back first.
+    /// Its leaf order is the triangles': change it through
+    /// [`World::set_accel`], which reorders them with it.
     pub accel: Option<Bvh>,
     /// Meshes placed many times, stored once (the tree's `PrimId::INSTANCE`s).
     pub instances: Instances<R>,
@@ -167,12 +174,15 @@ pub struct WorldStats {
     pub tree_build_time: std::time::Duration,
 }
 
-/// Worlds of at least this many triangles hold them in the tree's packets
-/// alone (`Bvh::pack_triangles_owned`) and compute a hit's geometric
-/// normal: 64 bytes a triangle less. Smaller ones keep the array and the
-/// unit normals beside the packets, for speed: with both, the Cornell box
-/// took 3.7% less time path-traced and 2.7% less Whitted, DamagedHelmet
-/// path-traced 1.5% (2-core VM, medians of 8-12 interleaved runs).
+/// `f32` worlds of at least this many triangles (and no spheres or
+/// instances) hold them as corners into shared vertices alone, their
+/// tree built over those (`Bvh::build_indexed`) and tested without
+/// packets, and compute a hit's geometric normal: 104 bytes a triangle
+/// less (gathered triangle 48, packet 40, unit normal 16). Smaller ones
+/// keep the gathered triangles, their packets and unit normals, for
+/// speed: with the latter two, the Cornell box took 3.7% less time
+/// path-traced and 2.7% less Whitted, DamagedHelmet path-traced 1.5%
+/// (2-core VM, medians of 8-12 interleaved runs).
 pub const GIVE_UP_TRIANGLES_FROM: usize = 1 << 18;
 
 impl<R: Real> World<R> {
@@ -396,7 +406,9 @@ impl<R: Real> World<R> {
                 }
             }
         }
+
         drop(models);
+
         // Total internal reflection sends transparency into a reflected ray.
         if features.refraction {
             features.reflection = true;
@@ -417,7 +429,9 @@ impl<R: Real> World<R> {
             sphere_packs: SpherePack::pack(&spheres),
             spheres,
             planes,
-            unpacked_triangles: tris.triangles,
+            positions: tris.positions,
+            corners: tris.corners,
+            unpacked_triangles: Vec::new(),
             unit_normals: Vec::new(),
             triangle_shading: tris.shading,
             vertex_normals: tris.vertex_normals,
@@ -470,7 +484,9 @@ impl<R: Real> World<R> {
                         sphere_packs: Vec::new(),
                         spheres: Vec::new(),
                         planes: Vec::new(),
-                        unpacked_triangles: set.triangles,
+                        positions: set.positions,
+                        corners: set.corners,
+                        unpacked_triangles: Vec::new(),
                         unit_normals: Vec::new(),
                         triangle_shading: set.shading,
                         vertex_normals: set.vertex_normals,
@@ -596,50 +612,60 @@ impl<R: Real> World<R> {
     /// the acceleration structure. Without one, every query tests every
     /// primitive: the brute-force reference the tree is checked against.
     pub fn set_accel(&mut self, force: Option<bool>) {
-        if self.unpacked_triangles.is_empty() && self.triangle_count() > 0 {
-            self.unpacked_triangles = self.triangles().collect();
+        let n = self.corners.len();
+        // A big mesh is held as corners into shared vertices alone
+        // (memory); a small one's triangles are gathered once, for the
+        // packets' 4-wide test and for hits that read them directly.
+        let big = std::any::TypeId::of::<R>() == std::any::TypeId::of::<f32>()
+            && n >= GIVE_UP_TRIANGLES_FROM
+            && self.spheres.is_empty()
+            && self.instances.list.is_empty()
+            && force != Some(false);
+        if big {
+            self.unpacked_triangles = Vec::new();
+        } else if self.unpacked_triangles.len() != n {
+            self.unpacked_triangles = self
+                .corners
+                .iter()
+                .map(|&c| gather(&self.positions, c))
+                .collect();
         }
-        // A big mesh's triangles live in the tree's packets alone (memory);
-        // a small one's stay in their array too, where a hit reads its
-        // triangle directly rather than through the slot table.
-        let give_up = self.unpacked_triangles.len() >= GIVE_UP_TRIANGLES_FROM;
         self.accel = crate::accel::build(
             &self.spheres,
             &self.instances.boxes(),
-            &mut self.unpacked_triangles,
-            &mut self.triangle_shading,
+            crate::accel::TriangleArrays {
+                positions: &self.positions,
+                corners: &mut self.corners,
+                shading: &mut self.triangle_shading,
+                triangles: &mut self.unpacked_triangles,
+            },
             force,
-            give_up,
         );
         // The same f32 (or f64) operations a hit would do, once.
-        self.unit_normals = if give_up {
-            Vec::new()
-        } else {
-            self.unpacked_triangles.iter().map(|t| t.normal()).collect()
-        };
+        self.unit_normals = self.unpacked_triangles.iter().map(|t| t.normal()).collect();
     }
 
     /// How many triangles the world holds itself (instanced meshes' apart).
     #[inline]
     pub fn triangle_count(&self) -> usize {
-        match &self.accel {
-            Some(tree) if self.unpacked_triangles.is_empty() => tree.slots.len(),
-            _ => self.unpacked_triangles.len(),
+        self.corners.len()
+    }
+
+    /// Triangle `index` of the world's own (by value: a big world's is
+    /// gathered from its corners).
+    #[inline]
+    pub fn triangle(&self, index: usize) -> Triangle<R> {
+        match self.unpacked_triangles.get(index) {
+            Some(t) => *t,
+            None => gather(&self.positions, self.corners[index]),
         }
     }
 
-    /// Triangle `index` of the world's own (by value: the tree's packets
-    /// may hold it alone).
+    /// Triangle `index`'s corners: its vertices' indices in the world's
+    /// positions and `vertex_normals`.
     #[inline]
-    pub fn triangle(&self, index: usize) -> Triangle<R> {
-        if let Some(t) = self.unpacked_triangles.get(index) {
-            return *t;
-        }
-        let tree = self.accel.as_ref().expect("a triangle of the world");
-        let t = tree.triangle(index);
-        *(&t as &dyn std::any::Any)
-            .downcast_ref::<Triangle<R>>()
-            .expect("only f32 worlds keep their triangles in packets alone")
+    pub fn corners(&self, index: usize) -> [u32; 3] {
+        self.corners[index]
     }
 
     /// Triangle `index`'s unit geometric normal (`Triangle::normal`):
@@ -662,8 +688,8 @@ impl<R: Real> World<R> {
         (0..self.triangle_count()).map(|i| self.triangle(i))
     }
 
-    /// The same as one array: borrowed where the world holds them itself,
-    /// copied out of the tree's packets where those hold them alone.
+    /// The same as one array: borrowed where the world holds them
+    /// gathered, gathered here for a big world.
     pub fn triangle_array(&self) -> std::borrow::Cow<'_, [Triangle<R>]> {
         if self.unpacked_triangles.len() == self.triangle_count() {
             std::borrow::Cow::Borrowed(&self.unpacked_triangles)
@@ -672,11 +698,13 @@ impl<R: Real> World<R> {
         }
     }
 
-    /// Bytes of the triangle data (intersection and shading arrays, and
-    /// the vertex normals; triangles held by the tree's packets alone are
-    /// the tree's bytes).
+    /// Bytes of the triangle data (vertices, corners, the gathered
+    /// triangles and their normals where kept, shading and the vertex
+    /// normals; the tree's packets are the tree's bytes).
     pub fn triangle_bytes(&self) -> usize {
-        std::mem::size_of_val(self.unpacked_triangles.as_slice())
+        std::mem::size_of_val(self.positions.as_slice())
+            + std::mem::size_of_val(self.corners.as_slice())
+            + std::mem::size_of_val(self.unpacked_triangles.as_slice())
             + std::mem::size_of_val(self.unit_normals.as_slice())
             + std::mem::size_of_val(self.triangle_shading.as_slice())
             + std::mem::size_of_val(self.vertex_normals.as_slice())
@@ -688,6 +716,8 @@ impl<R: Real> World<R> {
             spheres: Vec::new(),
             sphere_packs: Vec::new(),
             planes: Vec::new(),
+            positions: Vec::new(),
+            corners: Vec::new(),
             unpacked_triangles: Vec::new(),
             unit_normals: Vec::new(),
             triangle_shading: Vec::new(),

@@ -9,7 +9,7 @@ use crate::bvh::{self, Bvh};
 use crate::geometry::PrimId;
 use crate::math::{Lanes4, Ray, Real, Vector3};
 use crate::texture::SurfaceAttrs;
-use crate::triangle::{Triangle, TriangleRay};
+use crate::triangle::{Triangle, TriangleRay, VertexNormals};
 
 use super::World;
 
@@ -115,6 +115,7 @@ impl<R: Real> World<R> {
         match id.kind() {
             PrimId::TRIANGLE => Some(PlacedTriangle {
                 triangle: self.triangle(id.index()),
+                corners: self.corners[id.index()],
                 shading: &self.triangle_shading[id.index()],
                 vertex_normals: &self.vertex_normals,
                 instance: None,
@@ -123,6 +124,7 @@ impl<R: Real> World<R> {
                 let (instance, mesh, k) = self.instances.locate(id.index());
                 Some(PlacedTriangle {
                     triangle: mesh.triangles[k],
+                    corners: mesh.corners[k],
                     shading: &mesh.shading[k],
                     vertex_normals: &mesh.vertex_normals,
                     instance: Some(instance),
@@ -531,13 +533,15 @@ impl<R: Real> World<R> {
     /// so that no reflected ray is sent into the surface.
     #[inline(always)]
     pub fn shading_normal(&self, id: PrimId, p: R::V3, n: R::V3, v: R::V3) -> R::V3 {
-        // A flat world triangle (most of a mesh without normals) is
-        // answered from its shading record, before the triangle is read
-        // (from a packet, maybe); an instance's is read from its mesh.
-        if id.kind() == PrimId::TRIANGLE && !self.triangle_shading[id.index()].smooth() {
+        // A flat world triangle (a mesh without normals) is answered from
+        // its corners' normals, before the triangle is read (gathered,
+        // maybe); an instance's is read from its mesh.
+        if id.kind() == PrimId::TRIANGLE
+            && !VertexNormals::<R>(&self.vertex_normals).smooth(self.corners[id.index()])
+        {
             return n;
         }
-        let Some(t) = self.placed_triangle(id).filter(|t| t.shading.smooth()) else {
+        let Some(t) = self.placed_triangle(id).filter(|t| t.smooth()) else {
             return n;
         };
         let ns = t.normal_at(p);
@@ -579,13 +583,21 @@ impl<R: Real> bvh::Primitives<R> for World<R> {
 #[derive(Clone, Copy)]
 pub struct PlacedTriangle<'a, R: Real> {
     pub triangle: Triangle<R>,
+    /// Its vertices' indices in its mesh's vertex normals (and positions).
+    pub corners: [u32; 3],
     pub shading: &'a crate::triangle::TriangleShading,
-    /// The vertex normals its shading names (its mesh's).
+    /// Its mesh's vertex normals.
     pub vertex_normals: &'a [R::V3],
     pub instance: Option<&'a super::Instance<R>>,
 }
 
 impl<R: Real> PlacedTriangle<'_, R> {
+    /// Whether it is shaded smoothly (its corners' vertex normals known).
+    #[inline]
+    pub fn smooth(&self) -> bool {
+        VertexNormals::<R>(self.vertex_normals).smooth(self.corners)
+    }
+
     /// Barycentric weights of world point `p` (taken in the triangle's own
     /// space: an affine map keeps them).
     #[inline]
@@ -611,13 +623,13 @@ impl<R: Real> PlacedTriangle<'_, R> {
     #[inline]
     pub fn normal_at(&self, p: R::V3) -> R::V3 {
         match self.instance {
-            None => self
-                .shading
-                .normal_at(&self.triangle, self.vertex_normals, p),
+            None => {
+                VertexNormals::<R>(self.vertex_normals).normal_at(&self.triangle, self.corners, p)
+            }
             Some(i) => {
-                let n = self.shading.normal_at(
+                let n = VertexNormals::<R>(self.vertex_normals).normal_at(
                     &self.triangle,
-                    self.vertex_normals,
+                    self.corners,
                     i.to_object.point(p),
                 );
                 i.to_object.transposed(n).normalize()

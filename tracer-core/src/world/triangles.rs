@@ -7,7 +7,7 @@ use std::sync::Arc;
 use crate::material::{NO_PBR, Pbr};
 use crate::math::{Real, Vector3};
 use crate::scene::MeshDesc;
-use crate::triangle::{FLAT, NO_ATTRS, Triangle, TriangleShading};
+use crate::triangle::{NO_ATTRS, Triangle, TriangleShading, gather};
 
 use super::instances::Instances;
 
@@ -34,10 +34,14 @@ pub struct VertexAttrs {
 /// Triangles of a world under construction.
 #[derive(Default)]
 pub(crate) struct TriangleSet<R: Real> {
-    pub triangles: Vec<Triangle<R>>,
-    pub shading: Vec<TriangleShading>,
-    /// Unit vertex normals, which `shading` names by index.
+    /// Vertex positions ...
+    pub positions: Vec<R::V3>,
+    /// ... their unit normals, at the same indices (a zero one unknown),
+    /// or none while no mesh added has normals ...
     pub vertex_normals: Vec<R::V3>,
+    /// ... and each triangle's corners in them, and its shading.
+    pub corners: Vec<[u32; 3]>,
+    pub shading: Vec<TriangleShading>,
     /// Triangles dropped because they have no area in the render precision.
     pub degenerate: usize,
     /// The textures and glTF parameters of the file materials added
@@ -52,6 +56,14 @@ pub(crate) struct TriangleSet<R: Real> {
 }
 
 impl<R: Real> TriangleSet<R> {
+    /// Every triangle, gathered from its corners.
+    pub fn triangles(&self) -> Vec<Triangle<R>> {
+        self.corners
+            .iter()
+            .map(|&c| gather(&self.positions, c))
+            .collect()
+    }
+
     /// Adds the triangles of a mesh object (`desc`, whose loaded model is
     /// `mesh`), placed by its transform and made relative to `origin` (the
     /// camera). `material` is the object's material index, or
@@ -177,6 +189,7 @@ impl<R: Real> TriangleSet<R> {
                     s.attrs += tri0;
                 }
             }
+            let triangles = own.triangles();
             let a = own.attrs;
             self.attrs
                 .tri
@@ -186,10 +199,12 @@ impl<R: Real> TriangleSet<R> {
             }
             self.attrs.color.extend(a.color);
             self.attrs.tangent.extend(a.tangent);
-            id = Some(
-                self.instances
-                    .add_mesh(own.triangles, own.shading, own.vertex_normals),
-            );
+            id = Some(self.instances.add_mesh(
+                triangles,
+                own.corners,
+                own.shading,
+                own.vertex_normals,
+            ));
         }
         for &m in list {
             if let Some(id) = id
@@ -220,24 +235,33 @@ impl<R: Real> TriangleSet<R> {
         mats: &[u32],
         varies: &[bool],
     ) {
-        let verts: Vec<R::V3> = mesh
-            .positions
-            .iter()
-            .map(|&p| R::V3::from_array(place(p).to_array()))
-            .collect();
-        // The mesh's vertex normals join the set's, placed; a zero one is
-        // unknown.
-        let first_normal = self.vertex_normals.len() as u32;
-        self.vertex_normals.extend(mesh.normals.iter().map(|&n| {
-            let n = nm * glam::DVec3::from_array(n.map(f64::from));
-            let l = n.length();
-            R::V3::from_array(if l > 0.0 && l.is_finite() {
-                (n / l).to_array()
-            } else {
-                [0.0; 3]
-            })
-        }));
-        let normals = &self.vertex_normals[first_normal as usize..];
+        let first = self.positions.len() as u32;
+        let nv = mesh.positions.len();
+        self.positions.extend(
+            mesh.positions
+                .iter()
+                .map(|&p| R::V3::from_array(place(p).to_array())),
+        );
+        // The mesh's vertex normals join the set's, placed, at its
+        // vertices' indices; a zero one is unknown. A set without any
+        // keeps none.
+        if !mesh.normals.is_empty() || !self.vertex_normals.is_empty() {
+            // The vertices before this mesh's, unknown if they had none.
+            self.vertex_normals
+                .resize(first as usize, R::V3::splat(R::ZERO));
+            self.vertex_normals
+                .extend(mesh.normals.iter().take(nv).map(|&n| {
+                    let n = nm * glam::DVec3::from_array(n.map(f64::from));
+                    let l = n.length();
+                    R::V3::from_array(if l > 0.0 && l.is_finite() {
+                        (n / l).to_array()
+                    } else {
+                        [0.0; 3]
+                    })
+                }));
+            self.vertex_normals
+                .resize(first as usize + nv, R::V3::splat(R::ZERO));
+        }
         let first_vertex = self.attrs.uv[0].len() as u32;
         if varies.iter().any(|&v| v) {
             let nv = mesh.positions.len();
@@ -270,37 +294,27 @@ impl<R: Real> TriangleSet<R> {
                 self.attrs.tangent.extend(std::iter::repeat_n([0.0; 4], nv));
             }
         }
-        self.triangles.reserve(mesh.triangles.len());
+        self.corners.reserve(mesh.triangles.len());
         self.shading.reserve(mesh.triangles.len());
         for (t, &m) in mesh.triangles.iter().zip(&mesh.triangle_materials) {
             // A mirroring transform reverses the winding: restore it, so the
             // geometric normal stays outward.
             let t = if flip { [t[0], t[2], t[1]] } else { *t };
-            let tri: Triangle<R> = Triangle::new(t.map(|i| verts[i as usize]));
-            let cross = tri.cross();
+            let corners = t.map(|i| first + i);
+            let cross = gather::<R>(&self.positions, corners).cross();
             let len = cross.length();
             if !(len > R::ZERO && len.is_finite()) {
                 self.degenerate += 1;
                 continue;
             }
-            // Any unknown (zero) vertex normal: shade this triangle flat.
-            let smooth = !normals.is_empty()
-                && t.iter()
-                    .all(|&i| normals[i as usize].length_squared() > R::ZERO);
-            let vertex_normals = if smooth {
-                t.map(|i| first_normal + i)
-            } else {
-                FLAT
-            };
             let attrs = if varies[m as usize] {
                 self.attrs.tri.push(t.map(|i| first_vertex + i));
                 self.attrs.tri.len() as u32 - 1
             } else {
                 NO_ATTRS
             };
-            self.triangles.push(tri);
+            self.corners.push(corners);
             self.shading.push(TriangleShading {
-                normals: vertex_normals,
                 material: mats[m as usize],
                 attrs,
             });

@@ -317,9 +317,10 @@ pub struct TreePlace {
 /// mesh, whose world has its own materials, the index in the GPU's
 /// materials of each of them.
 pub struct TreePart<'a> {
-    /// Borrowed, or read out of a world's tree, whose packets may hold
-    /// them alone.
+    /// Borrowed, or gathered from a big world's corners.
     pub triangles: std::borrow::Cow<'a, [Triangle<f32>]>,
+    /// Their corners, which name their vertex normals.
+    pub corners: &'a [[u32; 3]],
     pub shading: &'a [TriangleShading],
     pub vertex_normals: &'a [glam::Vec3A],
     pub spheres: usize,
@@ -333,6 +334,7 @@ impl<'a> TreePart<'a> {
     pub fn world(w: &'a World<f32>, tree: &'a Bvh, materials: Option<&'a [u32]>) -> Self {
         TreePart {
             triangles: w.triangle_array(),
+            corners: &w.corners,
             shading: &w.triangle_shading,
             vertex_normals: &w.vertex_normals,
             spheres: w.spheres.len(),
@@ -346,6 +348,7 @@ impl<'a> TreePart<'a> {
     pub fn mesh(m: &'a InstancedMesh<f32>) -> Self {
         TreePart {
             triangles: std::borrow::Cow::Borrowed(&m.triangles),
+            corners: &m.corners,
             shading: &m.shading,
             vertex_normals: &m.vertex_normals,
             spheres: 0,
@@ -419,11 +422,16 @@ impl TreeData {
                     ..Default::default()
                 }
             }));
-            data.shading
-                .extend(part.shading.iter().zip(part.triangles.iter()).map(
-                    |(s, t): (&TriangleShading, &Triangle<f32>)| {
-                        let ns = if s.smooth() {
-                            s.normals.map(|i| a3(part.vertex_normals[i as usize]))
+            let normals = crate::triangle::VertexNormals::<f32>(part.vertex_normals);
+            data.shading.extend(
+                part.shading
+                    .iter()
+                    .zip(part.triangles.iter())
+                    .zip(part.corners)
+                    .map(|((s, t), &c): ((&TriangleShading, &Triangle<f32>), _)| {
+                        let smooth = normals.smooth(c);
+                        let ns = if smooth {
+                            c.map(|i| a3(part.vertex_normals[i as usize]))
                         } else {
                             [[0.0; 3]; 3]
                         };
@@ -433,7 +441,7 @@ impl TreeData {
                                 .materials
                                 .map_or(s.material, |m| m[s.material as usize]),
                             n0: ns[0],
-                            smooth_shaded: s.smooth() as u32,
+                            smooth_shaded: smooth as u32,
                             n1: ns[1],
                             attrs: if part.materials.is_none() {
                                 s.attrs
@@ -443,8 +451,8 @@ impl TreeData {
                             n2: ns[2],
                             ..Default::default()
                         }
-                    },
-                ));
+                    }),
+            );
         }
         // The kernel's stack refers to a leaf as node << 2 | slot in 31 bits,
         // and a PrimId holds a triangle's index in 28.
