@@ -28,13 +28,18 @@ const COST_TRAVERSE: f32 = 3.0;
 const COST_INTERSECT: f32 = 1.0;
 /// Subtrees larger than this are built on another rayon task.
 const PARALLEL_MIN: usize = 4096;
+/// Subtrees of at least this many primitives are flattened as soon as
+/// they are built (when they head a 4-wide node), and their binary nodes
+/// freed: a big mesh's build then never holds its whole binary tree
+/// beside its flattened one (24 and 20 bytes a triangle).
+const FLATTEN_MIN: usize = 1 << 14;
 
 /// Source of [`Bvh::id`].
 static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 /// Build-time tree before flattening. Kept small (40 bytes a node, a
-/// box of 24): a big mesh's build holds about one node a triangle, beside
-/// the triangles themselves, and that is its peak memory.
+/// box of 24): a subtree's build holds about one node a triangle until
+/// it is flattened.
 enum BuildNode {
     Leaf {
         bounds: BuildBox,
@@ -46,12 +51,17 @@ enum BuildNode {
         children: Box<[BuildNode; 2]>,
         median: bool,
     },
+    /// A subtree flattened already ([`FLATTEN_MIN`]), its leaves naming
+    /// build places.
+    Flat { bounds: BuildBox, chunk: Box<Flat> },
 }
 
 impl BuildNode {
     fn bounds(&self) -> Aabb {
         match self {
-            BuildNode::Leaf { bounds, .. } | BuildNode::Inner { bounds, .. } => bounds.aabb(),
+            BuildNode::Leaf { bounds, .. }
+            | BuildNode::Inner { bounds, .. }
+            | BuildNode::Flat { bounds, .. } => bounds.aabb(),
         }
     }
 }
@@ -230,18 +240,30 @@ impl Bvh {
     }
 
     fn build_inner(mut work: Vec<BuildBox>, ids: &dyn Fn(u32) -> PrimId, depth: usize) -> Bvh {
+        Self::build_flattening(&mut work, ids, depth, FLATTEN_MIN)
+    }
+
+    /// [`Bvh::build_inner`] flattening subtrees of `flatten_min`
+    /// primitives or more as they are built (`usize::MAX`: none).
+    fn build_flattening(
+        work: &mut Vec<BuildBox>,
+        ids: &dyn Fn(u32) -> PrimId,
+        depth: usize,
+        flatten_min: usize,
+    ) -> Bvh {
         let start = Instant::now();
         let n = work.len();
         let mut order: Vec<u32> = (0..n as u32).collect();
         let root = binary_tree(
             Prims {
-                boxes: &mut work,
+                boxes: work,
                 order: &mut order,
             },
             depth,
+            flatten_min,
         );
-        drop(work);
-        flatten(root.as_ref(), n, depth, &|k| ids(order[k as usize]), start)
+        *work = Vec::new();
+        flatten(root, n, depth, &|k| ids(order[k as usize]), start)
     }
 
     /// A tree over triangles given as `corners` into `positions` (`f32`
@@ -265,9 +287,10 @@ impl Bvh {
                 payload,
             },
             MAX_DEPTH,
+            FLATTEN_MIN,
         );
         flatten(
-            root.as_ref(),
+            root,
             n,
             MAX_DEPTH,
             &|k| PrimId::new(PrimId::TRIANGLE, k),
@@ -309,7 +332,7 @@ impl Bvh {
 
 /// The binary tree over `prims` within `depth` binary levels (`None` for
 /// no primitives).
-fn binary_tree<P: BuildPrims>(prims: P, depth: usize) -> Option<BuildNode> {
+fn binary_tree<P: BuildPrims>(prims: P, depth: usize, flatten_min: usize) -> Option<BuildNode> {
     let n = prims.len();
     assert!(n <= u32::MAX as usize, "{n} primitives: ids are 32-bit");
     assert!(
@@ -320,13 +343,17 @@ fn binary_tree<P: BuildPrims>(prims: P, depth: usize) -> Option<BuildNode> {
         return None;
     }
     let (bounds, cbounds) = bounds_of(&prims, 0..n);
-    Some(build_node(depth, prims, 0, 0, bounds, cbounds))
+    let limits = Limits {
+        stack: depth,
+        flatten_min,
+    };
+    Some(build_node(limits, prims, 0, 0, bounds, cbounds))
 }
 
 /// The 4-wide tree of the binary tree `root` (an empty tree for `None`),
 /// whose leaf places k name `id_at(k)`; `start`: when its build began.
 fn flatten(
-    root: Option<&BuildNode>,
+    root: Option<BuildNode>,
     n: usize,
     depth: usize,
     id_at: &dyn Fn(u32) -> PrimId,
@@ -338,19 +365,20 @@ fn flatten(
     let mut flat = Flat {
         nodes: Vec::with_capacity(n / 2 + 1),
         prims: Vec::with_capacity(n * 3 / 2),
-        stats: BvhStats {
-            primitives: n,
-            ..Default::default()
-        },
-        id_at,
+        stats: BvhStats::default(),
     };
     flatten4(root, 0, 0, &mut flat);
     let Flat {
         nodes,
-        prims,
+        mut prims,
         mut stats,
-        ..
     } = flat;
+    // The leaves name build places until here.
+    for p in prims.iter_mut().filter(|p| **p != PrimId::NONE) {
+        *p = id_at(p.0);
+    }
+    stats.primitives = n;
+
     stats.nodes = nodes.len();
     stats.bytes =
         nodes.len() * std::mem::size_of::<BvhNode4>() + prims.len() * std::mem::size_of::<PrimId>();
@@ -377,12 +405,19 @@ fn bounds_of<P: BuildPrims>(prims: &P, range: std::ops::Range<usize>) -> (Aabb, 
     (b, c)
 }
 
+/// What bounds a build: the traversal stack (leaves at most `stack - 1`
+/// deep) and the size from which subtrees are flattened as built.
+#[derive(Clone, Copy)]
+struct Limits {
+    stack: usize,
+    flatten_min: usize,
+}
+
 /// Builds the subtree over `prims` (which start at `offset` in the final
 /// order), at depth `depth`, partitioning them in place. `bounds` and
-/// `cbounds` bound the primitives' boxes and centroids; `stack` is the
-/// traversal stack size (leaves at most `stack - 1` deep).
+/// `cbounds` bound the primitives' boxes and centroids.
 fn build_node<P: BuildPrims>(
-    stack: usize,
+    limits: Limits,
     prims: P,
     offset: usize,
     depth: usize,
@@ -399,7 +434,7 @@ fn build_node<P: BuildPrims>(
     }
     // Depth budget: median splits finish any subtree within ceil(log2 n)
     // more levels, so use them once the SAH could overrun the stack.
-    let median = depth + ceil_log2(n) >= stack - 1;
+    let median = depth + ceil_log2(n) >= limits.stack - 1;
     let split = if median {
         None
     } else {
@@ -439,18 +474,31 @@ fn build_node<P: BuildPrims>(
         }
     };
     let (left, right) = prims.split_at(mid);
-    let build_l = move || build_node(stack, left, offset, depth + 1, lb.0, lb.1);
-    let build_r = move || build_node(stack, right, offset + mid, depth + 1, rb.0, rb.1);
+    let build_l = move || build_node(limits, left, offset, depth + 1, lb.0, lb.1);
+    let build_r = move || build_node(limits, right, offset + mid, depth + 1, rb.0, rb.1);
     let (l, r) = if n >= PARALLEL_MIN {
         rayon::join(build_l, build_r)
     } else {
         (build_l(), build_r())
     };
-    BuildNode::Inner {
+    let node = BuildNode::Inner {
         bounds: BuildBox::of(&bounds),
         children: Box::new([l, r]),
         median,
+    };
+    // A big subtree that heads a 4-wide node (every 4-wide node is a
+    // binary node at an even depth: its slots are its grandchildren) is
+    // flattened now, its binary nodes freed; the wide tree that contains
+    // it copies it in ([`Flat::append`]).
+    if n >= limits.flatten_min && depth > 0 && depth.is_multiple_of(2) {
+        let mut chunk = Flat::default();
+        flatten4(node, 0, 0, &mut chunk);
+        return BuildNode::Flat {
+            bounds: BuildBox::of(&bounds),
+            chunk: Box::new(chunk),
+        };
     }
+    node
 }
 
 enum Split {
@@ -666,34 +714,43 @@ fn median_split<P: BuildPrims>(prims: &mut P, cbounds: &Aabb) -> usize {
 /// itself where that is a leaf: each wide level is two binary levels, so
 /// the depth bound of the binary build carries over (see [`super::STACK`]).
 /// `need` is the traversal stack occupancy on arrival at this node. Leaves
-/// get their primitives copied to `out.prims` in this depth-first order,
-/// each leaf starting at a multiple of 4 (padded with `PrimId::NONE`), so
-/// that a leaf's triangles fill whole [`Triangle4`] packets.
-fn flatten4(node: &BuildNode, depth: usize, need: usize, out: &mut Flat) -> u32 {
+/// get their primitives' build places (`PrimId(k)`, made ids by
+/// [`flatten`]) written to `out.prims` in this depth-first order, each
+/// leaf starting at a multiple of 4 (padded with `PrimId::NONE`), so
+/// that a leaf's triangles fill whole [`Triangle4`] packets. A subtree
+/// flattened already is copied in as it is ([`Flat::append`]): the same
+/// nodes and places as flattening it here.
+fn flatten4(node: BuildNode, depth: usize, need: usize, out: &mut Flat) -> u32 {
     let at = out.nodes.len();
     out.nodes.push(BvhNode4::EMPTY);
     let stats = &mut out.stats;
-    let mut slots: [Option<&BuildNode>; 4] = [None; 4];
+    // The tree is consumed as it is written: each subtree's binary nodes
+    // (or flattened copy) are freed once it is in `out`.
+    let mut slots: [Option<BuildNode>; 4] = [None, None, None, None];
     let mut n = 0;
     match node {
         BuildNode::Leaf { .. } => {
             slots[0] = Some(node);
             n = 1;
         }
+        // Only a slot (a grandchild) is flattened before its parent.
+        BuildNode::Flat { .. } => unreachable!("a flattened subtree is copied, not flattened"),
         BuildNode::Inner {
             children, median, ..
         } => {
-            stats.depth_limited |= *median;
-            for c in children.iter() {
+            stats.depth_limited |= median;
+            let [a, b] = *children;
+            for c in [a, b] {
                 match c {
                     BuildNode::Inner {
                         children: grand,
                         median,
                         ..
                     } => {
-                        stats.depth_limited |= *median;
-                        slots[n] = Some(&grand[0]);
-                        slots[n + 1] = Some(&grand[1]);
+                        stats.depth_limited |= median;
+                        let [g0, g1] = *grand;
+                        slots[n] = Some(g0);
+                        slots[n + 1] = Some(g1);
                         n += 2;
                     }
                     leaf => {
@@ -708,36 +765,71 @@ fn flatten4(node: &BuildNode, depth: usize, need: usize, out: &mut Flat) -> u32 
     let need = need + n - 1;
     stats.stack = stats.stack.max(need);
     let mut node = BvhNode4::EMPTY;
-    for (k, c) in slots[..n].iter().flatten().enumerate() {
+    for (k, c) in slots.into_iter().flatten().enumerate() {
         node.set_box(k, &c.bounds());
         match c {
             BuildNode::Leaf { start, count, .. } => {
                 let stats = &mut out.stats;
                 stats.leaves += 1;
                 stats.depth = stats.depth.max(depth + 1);
-                let (start, count) = (*start as usize, *count as usize);
+                let (start, count) = (start as usize, count as usize);
                 stats.max_leaf_size = stats.max_leaf_size.max(count);
                 let first = out.prims.len().next_multiple_of(4);
                 out.prims.resize(first, PrimId::NONE);
                 out.prims
-                    .extend((start..start + count).map(|k| (out.id_at)(k as u32)));
+                    .extend((start..start + count).map(|k| PrimId(k as u32)));
                 node.child[k] = first as u32;
                 node.count[k] = count as u32;
             }
             BuildNode::Inner { .. } => node.child[k] = flatten4(c, depth + 1, need, out),
+            BuildNode::Flat { chunk, .. } => node.child[k] = out.append(&chunk, depth + 1, need),
         }
     }
     out.nodes[at] = node;
     at as u32
 }
 
-/// The flattened tree as it is written, and what the leaves refer to.
-struct Flat<'a> {
+/// A flattened tree (or subtree) as it is written: its nodes from its
+/// root (index 0) on, its leaves' places from 0 on, and its figures.
+#[derive(Default)]
+struct Flat {
     nodes: Vec<BvhNode4>,
     prims: Vec<PrimId>,
     stats: BvhStats,
-    /// What leaf place k (of the build's final order) names.
-    id_at: &'a dyn Fn(u32) -> PrimId,
+}
+
+impl Flat {
+    /// Copies the flattened subtree `sub` in, as [`flatten4`] would have
+    /// written it at 4-wide depth `depth` with `need` stack entries on
+    /// arrival; returns the index of its root. Its nodes' references move
+    /// by where its nodes and places land; its places start at a multiple
+    /// of 4, as its first leaf's would, so every leaf keeps its padding.
+    fn append(&mut self, sub: &Flat, depth: usize, need: usize) -> u32 {
+        let (node0, prim0) = (
+            self.nodes.len() as u32,
+            self.prims.len().next_multiple_of(4),
+        );
+        self.prims.resize(prim0, PrimId::NONE);
+        self.prims.extend_from_slice(&sub.prims);
+        self.nodes.extend(sub.nodes.iter().map(|n| {
+            let mut n = *n;
+            for k in 0..4 {
+                if n.count[k] > 0 {
+                    n.child[k] += prim0 as u32;
+                } else if n.child[k] != 0 {
+                    n.child[k] += node0;
+                }
+            }
+            n
+        }));
+        let (s, t) = (&mut self.stats, &sub.stats);
+        s.leaves += t.leaves;
+        s.depth = s.depth.max(depth + t.depth);
+        s.max_leaf_size = s.max_leaf_size.max(t.max_leaf_size);
+        s.stack = s.stack.max(need + t.stack);
+        s.depth_limited |= t.depth_limited;
+        node0
+    }
 }
 
 #[cfg(test)]
@@ -867,6 +959,59 @@ mod tests {
             "{:?}",
             bounded.stats
         );
+    }
+
+    /// Subtrees flattened as they are built and copied in give the tree
+    /// flattened in one pass: the same nodes, places and figures, for
+    /// scattered boxes, boxes in one spot (median splits) and a chain
+    /// under a depth limit (subtrees of 16 primitives and more flattened
+    /// early: many, nested).
+    #[test]
+    fn subtrees_flattened_early_give_the_same_tree() {
+        let scattered: Vec<Aabb> = (0..5000u32)
+            .map(|i| {
+                let h = crate::sampling::hash_u32(i);
+                unit_box(
+                    [
+                        (h & 1023) as f32,
+                        ((h >> 10) & 1023) as f32,
+                        ((h >> 20) & 1023) as f32,
+                    ],
+                    0.5,
+                )
+            })
+            .collect();
+        let same = vec![unit_box([1.0, 2.0, 3.0], 0.0); 3000];
+        let chain: Vec<Aabb> = (0..120)
+            .map(|i| unit_box([2f32.powi(i), 0.0, 0.0], 1e-3))
+            .collect();
+        for (boxes, depth) in [(&scattered, MAX_DEPTH), (&same, MAX_DEPTH), (&chain, 12)] {
+            let ids: Vec<PrimId> = (0..boxes.len() as u32)
+                .map(|i| PrimId::new(PrimId::TRIANGLE, i))
+                .collect();
+            let build = |flatten_min| {
+                let mut work: Vec<BuildBox> = boxes.iter().map(BuildBox::of).collect();
+                Bvh::build_flattening(&mut work, &|i| ids[i as usize], depth, flatten_min)
+            };
+            let (once, early) = (build(usize::MAX), build(16));
+            check(&early, boxes, stack_for_depth(depth));
+            assert!(once.nodes == early.nodes, "the same nodes");
+            assert_eq!(once.prims, early.prims);
+            let figures = |b: &Bvh| {
+                let s = b.stats;
+                (
+                    s.nodes,
+                    s.leaves,
+                    s.primitives,
+                    s.depth,
+                    s.stack,
+                    s.max_leaf_size,
+                    s.bytes,
+                    s.depth_limited,
+                )
+            };
+            assert_eq!(figures(&once), figures(&early));
+        }
     }
 
     /// Built over corners into shared vertices, a mesh gets the tree its
