@@ -2,11 +2,15 @@
 //! (subtrees of many primitives on other rayon tasks), held within
 //! [`MAX_DEPTH`] binary levels by median splits where the SAH would go
 //! deeper, then collapsed into the 4-wide tree (a node's slots are its
-//! binary grandchildren) and flattened into [`BvhNode4`]s depth first.
+//! binary grandchildren) and flattened into [`BvhNode4`]s depth first
+//! (big subtrees as soon as they are built, [`FLATTEN_MIN`]).
 //!
 //! The build sees only boxes and ids ([`Bvh::build`]): what the boxes bound
 //! is the caller's business (`accel.rs` boxes a world's spheres and
-//! triangles).
+//! triangles), or triangles as corners into shared vertices
+//! ([`Bvh::build_indexed`], a big mesh: the same tree, its boxes computed
+//! where they are read). Both go through [`BuildPrims`], so they make the
+//! same partitions of the same boxes.
 
 use std::time::Instant;
 
