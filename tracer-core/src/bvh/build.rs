@@ -896,16 +896,9 @@ mod tests {
         assert!(seen.iter().all(|&s| s == 1));
     }
 
-    /// The build tree's node stays at 40 bytes (a big mesh's build holds
-    /// about one a triangle: docs/meshes.md, "Big scenes").
-    #[test]
-    fn a_build_node_takes_40_bytes() {
-        assert_eq!(std::mem::size_of::<BuildNode>(), 40);
-    }
-
-    #[test]
-    fn builds_a_valid_tree_over_scattered_boxes() {
-        let boxes: Vec<Aabb> = (0..5000u32)
+    /// `n` unit boxes at hashed points of a 1024-cube.
+    fn scattered_boxes(n: u32) -> Vec<Aabb> {
+        (0..n)
             .map(|i| {
                 let h = crate::sampling::hash_u32(i);
                 unit_box(
@@ -917,7 +910,19 @@ mod tests {
                     0.5,
                 )
             })
-            .collect();
+            .collect()
+    }
+
+    /// The build tree's node stays at 40 bytes (a big mesh's build holds
+    /// about one a triangle: docs/meshes.md, "Big scenes").
+    #[test]
+    fn a_build_node_takes_40_bytes() {
+        assert_eq!(std::mem::size_of::<BuildNode>(), 40);
+    }
+
+    #[test]
+    fn builds_a_valid_tree_over_scattered_boxes() {
+        let boxes = scattered_boxes(5000);
         let ids: Vec<PrimId> = (0..boxes.len() as u32)
             .map(|i| PrimId::new(PrimId::SPHERE, i))
             .collect();
@@ -972,19 +977,7 @@ mod tests {
     /// early: many, nested).
     #[test]
     fn subtrees_flattened_early_give_the_same_tree() {
-        let scattered: Vec<Aabb> = (0..5000u32)
-            .map(|i| {
-                let h = crate::sampling::hash_u32(i);
-                unit_box(
-                    [
-                        (h & 1023) as f32,
-                        ((h >> 10) & 1023) as f32,
-                        ((h >> 20) & 1023) as f32,
-                    ],
-                    0.5,
-                )
-            })
-            .collect();
+        let scattered = scattered_boxes(5000);
         let same = vec![unit_box([1.0, 2.0, 3.0], 0.0); 3000];
         let chain: Vec<Aabb> = (0..120)
             .map(|i| unit_box([2f32.powi(i), 0.0, 0.0], 1e-3))
