@@ -188,7 +188,7 @@ mod tests {
     /// vertices).
     #[test]
     fn a_tree_over_corners_is_the_tree_over_triangles() {
-        use crate::triangle::{TriangleShading, gather};
+        use crate::triangle::{TriangleShading, gather, gather_all};
         use glam::Vec3A;
         let mut seed = 7u64;
         let mut r = || {
@@ -209,10 +209,7 @@ mod tests {
             })
             .collect();
         let (mut c1, mut s1) = (corners.clone(), shading.clone());
-        let mut gathered: Vec<_> = corners
-            .iter()
-            .map(|&c| gather::<f32>(&positions, c))
-            .collect();
+        let mut gathered = gather_all::<f32>(&positions, &corners);
         let a = super::build::<f32>(
             &[],
             &[],

@@ -82,6 +82,11 @@ pub fn gather<R: Real>(positions: &[R::V3], corners: [u32; 3]) -> Triangle<R> {
     Triangle::new(corners.map(|i| positions[i as usize]))
 }
 
+/// Every triangle of `corners`, gathered ([`gather`]).
+pub fn gather_all<R: Real>(positions: &[R::V3], corners: &[[u32; 3]]) -> Vec<Triangle<R>> {
+    corners.iter().map(|&c| gather(positions, c)).collect()
+}
+
 /// Per-ray precomputation of the watertight test: the axes in the ray's
 /// order (kx, ky, kz), and the origin and shear along them, each splatted
 /// over three lanes, so that a triangle's sheared vertices are

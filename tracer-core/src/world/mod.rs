@@ -22,7 +22,7 @@ use crate::distributed::{self, Distributed, Lens, MovingMesh, MovingSphere, Path
 use crate::geometry::{Plane, Sphere, SpherePack};
 use crate::math::{Ray, Real, Vector3};
 use crate::scene::{FILE_MATERIALS, Integrator, ObjectDesc, RenderSettings, SceneDesc, Vec3};
-use crate::triangle::{Triangle, TriangleShading, gather};
+use crate::triangle::{Triangle, TriangleShading, gather, gather_all};
 use triangles::TriangleSet;
 pub use triangles::VertexAttrs;
 
@@ -624,11 +624,7 @@ impl<R: Real> World<R> {
         if big {
             self.unpacked_triangles = Vec::new();
         } else if self.unpacked_triangles.len() != n {
-            self.unpacked_triangles = self
-                .corners
-                .iter()
-                .map(|&c| gather(&self.positions, c))
-                .collect();
+            self.unpacked_triangles = gather_all(&self.positions, &self.corners);
         }
         self.accel = crate::accel::build(
             &self.spheres,
@@ -659,13 +655,6 @@ impl<R: Real> World<R> {
             Some(t) => *t,
             None => gather(&self.positions, self.corners[index]),
         }
-    }
-
-    /// Triangle `index`'s corners: its vertices' indices in the world's
-    /// positions and `vertex_normals`.
-    #[inline]
-    pub fn corners(&self, index: usize) -> [u32; 3] {
-        self.corners[index]
     }
 
     /// Triangle `index`'s unit geometric normal (`Triangle::normal`):

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use crate::material::{NO_PBR, Pbr};
 use crate::math::{Real, Vector3};
 use crate::scene::MeshDesc;
-use crate::triangle::{NO_ATTRS, Triangle, TriangleShading, gather};
+use crate::triangle::{NO_ATTRS, Triangle, TriangleShading, gather, gather_all};
 
 use super::instances::Instances;
 
@@ -58,10 +58,7 @@ pub(crate) struct TriangleSet<R: Real> {
 impl<R: Real> TriangleSet<R> {
     /// Every triangle, gathered from its corners.
     pub fn triangles(&self) -> Vec<Triangle<R>> {
-        self.corners
-            .iter()
-            .map(|&c| gather(&self.positions, c))
-            .collect()
+        gather_all(&self.positions, &self.corners)
     }
 
     /// Adds the triangles of a mesh object (`desc`, whose loaded model is
