@@ -1834,8 +1834,8 @@ material = "mirror"
     let data = tracer_core::render::gpu::layout::SceneData::from_world(w, None, None).unwrap();
     let tree = data.tree.as_ref().unwrap();
     let (n3, n2) = (icosphere(3).1.len(), icosphere(2).1.len());
-    assert_eq!(tree.data.n_triangles as usize, n2 + n3 + n2);
-    assert_eq!(tree.data.n_instances, 12);
+    assert_eq!(tree.layout.n_triangles as usize, n2 + n3 + n2);
+    assert_eq!(tree.layout.n_instances, 12);
     let Some(film) = check_tree_scene("instanced meshes", &desc, &s) else {
         return;
     };
@@ -1886,6 +1886,28 @@ material = "floor"
     );
     let desc = SceneDesc::parse(&src, "box.toml").unwrap();
     check_tree_scene("Box.gltf", &desc, &desc.render);
+    // Tiles of one frame write its tree to the device once (the renderer
+    // keeps where it lies, not the arrays), and add up to the whole frame.
+    // A renderer of its own: the binary's shared one serves other tests'
+    // scenes between tiles.
+    let g = GpuRenderer::new(
+        std::env::var("TESSERA_TEST_ADAPTER").ok().as_deref(),
+        Default::default(),
+    )
+    .unwrap_or_else(|e| panic!("no GPU adapter could be opened: {e}"));
+    let frame = PreparedFrame::build(&desc, &desc.render, 0, Precision::F32).unwrap();
+    let mut merged = Film::new(Rect::full(80, 60));
+    for (x, y) in [(0, 0), (40, 0), (0, 30), (40, 30)] {
+        let region = WorkRegion::new(0, Rect::new(x, y, 40, 30), SampleRange::all(4));
+        merged
+            .merge(&g.render(&frame, region, &|_| {}).expect("a tile"))
+            .unwrap();
+    }
+    assert_eq!(g.tree_uploads(), 1, "the tree of 4 tiles of one frame");
+    let region = WorkRegion::new(0, Rect::full(80, 60), SampleRange::all(4));
+    let whole = g.render(&frame, region, &|_| {}).expect("the frame");
+    assert_eq!(g.tree_uploads(), 1, "the tree of the same frame again");
+    assert_eq!(merged.sums, whole.sums, "tiles against the whole frame");
 }
 
 /// More than `SPHERE_BVH_MIN` spheres get a tree: spheres inside the BVH

@@ -677,14 +677,11 @@ impl<R: Real> World<R> {
         (0..self.triangle_count()).map(|i| self.triangle(i))
     }
 
-    /// The same as one array: borrowed where the world holds them
-    /// gathered, gathered here for a big world.
-    pub fn triangle_array(&self) -> std::borrow::Cow<'_, [Triangle<R>]> {
-        if self.unpacked_triangles.len() == self.triangle_count() {
-            std::borrow::Cow::Borrowed(&self.unpacked_triangles)
-        } else {
-            self.triangles().collect()
-        }
+    /// The triangles as one array, where the world keeps them gathered
+    /// (`None` for a big world, which keeps only their corners).
+    pub fn gathered_triangles(&self) -> Option<&[Triangle<R>]> {
+        (self.unpacked_triangles.len() == self.triangle_count())
+            .then_some(self.unpacked_triangles.as_slice())
     }
 
     /// Bytes of the triangle data (vertices, corners, the gathered

@@ -275,24 +275,49 @@ const _: () = assert!(size_of::<ResolveParams>() == 16);
 const _: () = assert!(size_of::<ConvergeParams>() == 32);
 const _: () = assert!(size_of::<GpuBlockStats>() == 16);
 
+/// The arrays of packed trees that grow with their triangles.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TreeArray {
+    /// The flattened 4-wide nodes exactly as the CPU traverses them, child
+    /// and leaf indices rebased by the trees packed before.
+    Nodes,
+    /// Leaf references: packed `PrimId`s (kind << 28 | index), triangle
+    /// indices rebased like the nodes, so each names one triangle of one tree.
+    Prims,
+    Triangles,
+    Shading,
+}
+
+impl TreeArray {
+    pub const ALL: [TreeArray; 4] = [Self::Nodes, Self::Prims, Self::Triangles, Self::Shading];
+
+    /// Bytes of one element.
+    pub fn element_bytes(self) -> usize {
+        match self {
+            Self::Nodes => size_of::<GpuBvhNode>(),
+            Self::Prims => size_of::<u32>(),
+            Self::Triangles => size_of::<GpuTriangle>(),
+            Self::Shading => size_of::<GpuTriangleShading>(),
+        }
+    }
+}
+
 /// The trees of a world and what their leaves refer to, for scenes that
 /// have one: the static world's (meshes, or many spheres: the pipeline then
 /// compiles `bvh.wgsl` and `accel.wgsl`) and each moving mesh's
 /// (`distributed::MovingMesh`: then `bvh.wgsl` and `moving_meshes.wgsl`),
-/// one after another in the same arrays.
+/// one after another in the same arrays ([`TreeArray`]), then the
+/// instanced meshes'. This is what a renderer keeps of them: where each
+/// lies and how long the arrays are. The arrays themselves are written
+/// from the world's trees in pieces ([`TreePack::write`]) straight to the
+/// device, so a big mesh's never exist whole on the host (a 10 M-triangle
+/// mesh's are 1.3 GB).
 #[derive(Clone, Debug, PartialEq)]
-pub struct TreeData {
-    /// The flattened 4-wide nodes exactly as the CPU traverses them, child
-    /// and leaf indices rebased by the trees packed before.
-    pub nodes: Vec<GpuBvhNode>,
-    /// Leaf references: packed `PrimId`s (kind << 28 | index), triangle
-    /// indices rebased like the nodes, so each names one triangle of one tree.
-    pub prims: Vec<u32>,
-    /// Never empty (one unused element when the trees hold only spheres).
-    pub triangles: Vec<GpuTriangle>,
-    pub shading: Vec<GpuTriangleShading>,
+pub struct TreeLayout {
+    pub n_nodes: u32,
+    pub n_prims: u32,
     pub n_triangles: u32,
-    /// Traversal stack entries the deepest tree needs, as measured at upload.
+    /// Traversal stack entries the deepest tree needs, as measured at packing.
     pub stack: u32,
     /// Where each tree starts, in the order packed.
     pub places: Vec<TreePlace>,
@@ -303,7 +328,25 @@ pub struct TreeData {
     pub n_instances: u32,
 }
 
-/// Where one tree lies in [`TreeData`]'s arrays.
+impl TreeLayout {
+    /// Elements of `array` as uploaded: never 0 (bindings must not be
+    /// empty; one unused element when the trees hold only spheres).
+    pub fn len(&self, array: TreeArray) -> usize {
+        let n = match array {
+            TreeArray::Nodes => self.n_nodes,
+            TreeArray::Prims => self.n_prims,
+            TreeArray::Triangles | TreeArray::Shading => self.n_triangles,
+        };
+        (n as usize).max(1)
+    }
+
+    /// Bytes of `array` as uploaded.
+    pub fn bytes(&self, array: TreeArray) -> u64 {
+        (self.len(array) * array.element_bytes()) as u64
+    }
+}
+
+/// Where one tree lies in the packed arrays.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct TreePlace {
     /// Its root node.
@@ -312,13 +355,43 @@ pub struct TreePlace {
     pub first_triangle: u32,
 }
 
+/// A tree's triangles as packing reads them: gathered, or a big world's
+/// corners into its vertices, gathered one at a time as they are packed.
+#[derive(Clone, Copy)]
+pub enum TriangleSource<'a> {
+    Gathered(&'a [Triangle<f32>]),
+    Corners {
+        positions: &'a [glam::Vec3A],
+        corners: &'a [[u32; 3]],
+    },
+}
+
+impl TriangleSource<'_> {
+    pub fn len(&self) -> usize {
+        match self {
+            Self::Gathered(t) => t.len(),
+            Self::Corners { corners, .. } => corners.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    fn get(&self, i: usize) -> Triangle<f32> {
+        match self {
+            Self::Gathered(t) => t[i],
+            Self::Corners { positions, corners } => crate::triangle::gather(positions, corners[i]),
+        }
+    }
+}
+
 /// A tree to pack: its triangles and their shading, how many spheres and
 /// instances its leaves may name (the world's own tree), and for a moving
 /// mesh, whose world has its own materials, the index in the GPU's
 /// materials of each of them.
 pub struct TreePart<'a> {
-    /// Borrowed, or gathered from a big world's corners.
-    pub triangles: std::borrow::Cow<'a, [Triangle<f32>]>,
+    pub triangles: TriangleSource<'a>,
     /// Their corners, which name their vertex normals.
     pub corners: &'a [[u32; 3]],
     pub shading: &'a [TriangleShading],
@@ -326,14 +399,20 @@ pub struct TreePart<'a> {
     pub spheres: usize,
     pub instances: usize,
     pub tree: &'a Bvh,
-    pub materials: Option<&'a [u32]>,
+    pub materials: Option<Vec<u32>>,
 }
 
 impl<'a> TreePart<'a> {
     /// A world's tree (the static world's, or a moving mesh's).
-    pub fn world(w: &'a World<f32>, tree: &'a Bvh, materials: Option<&'a [u32]>) -> Self {
+    pub fn world(w: &'a World<f32>, tree: &'a Bvh, materials: Option<Vec<u32>>) -> Self {
         TreePart {
-            triangles: w.triangle_array(),
+            triangles: match w.gathered_triangles() {
+                Some(t) => TriangleSource::Gathered(t),
+                None => TriangleSource::Corners {
+                    positions: &w.positions,
+                    corners: &w.corners,
+                },
+            },
             corners: &w.corners,
             shading: &w.triangle_shading,
             vertex_normals: &w.vertex_normals,
@@ -347,7 +426,7 @@ impl<'a> TreePart<'a> {
     /// An instanced mesh's tree (its triangles in object space).
     pub fn mesh(m: &'a InstancedMesh<f32>) -> Self {
         TreePart {
-            triangles: std::borrow::Cow::Borrowed(&m.triangles),
+            triangles: TriangleSource::Gathered(&m.triangles),
             corners: &m.corners,
             shading: &m.shading,
             vertex_normals: &m.vertex_normals,
@@ -357,114 +436,117 @@ impl<'a> TreePart<'a> {
             materials: None,
         }
     }
+
+    /// The packed records of triangles `range`.
+    fn pack_triangles(
+        &self,
+        range: std::ops::Range<usize>,
+        triangles: &mut Vec<GpuTriangle>,
+        shading: &mut Vec<GpuTriangleShading>,
+    ) {
+        let normals = crate::triangle::VertexNormals::<f32>(self.vertex_normals);
+        for i in range {
+            let t = self.triangles.get(i);
+            let [v0, v1, v2] = t.vertices().map(a3);
+            triangles.push(GpuTriangle {
+                v0,
+                v1,
+                v2,
+                ..Default::default()
+            });
+            let (s, c) = (self.shading[i], self.corners[i]);
+            let smooth = normals.smooth(c);
+            let ns = if smooth {
+                c.map(|i| a3(self.vertex_normals[i as usize]))
+            } else {
+                [[0.0; 3]; 3]
+            };
+            shading.push(GpuTriangleShading {
+                normal: a3(t.normal()),
+                material: self
+                    .materials
+                    .as_ref()
+                    .map_or(s.material, |m| m[s.material as usize]),
+                n0: ns[0],
+                smooth_shaded: smooth as u32,
+                n1: ns[1],
+                attrs: if self.materials.is_none() {
+                    s.attrs
+                } else {
+                    crate::triangle::NO_ATTRS
+                },
+                n2: ns[2],
+                ..Default::default()
+            });
+        }
+    }
 }
 
-impl TreeData {
-    /// Packs the trees one after another after checking that the GPU can
-    /// traverse each: every index in range and no path from the root that
-    /// pushes more than `STACK` entries, since the kernel's traversal stack
-    /// has `STACK` entries. The builder guarantees both; this refuses a tree
-    /// from anywhere else rather than render a wrong image. The first tree
-    /// is packed as is (its root is node 0). `instances`: the first part's
-    /// (the world's), whose meshes' trees follow the parts'.
-    pub fn pack(parts: &[TreePart], instances: &Instances<f32>) -> Result<Self, GpuError> {
-        let mut data = TreeData {
-            nodes: Vec::new(),
-            prims: Vec::new(),
-            triangles: Vec::new(),
-            shading: Vec::new(),
-            n_triangles: 0,
-            stack: 0,
-            places: Vec::new(),
-            instances: Vec::new(),
-            n_instances: 0,
-        };
-        let meshes: Vec<TreePart> = instances.meshes.iter().map(TreePart::mesh).collect();
-        for part in parts.iter().chain(&meshes) {
+/// Trees to pack, checked, and where each goes ([`TreeLayout`]).
+pub struct TreePack<'a> {
+    /// The world's parts, then the instanced meshes'.
+    parts: Vec<TreePart<'a>>,
+    /// Each part's first node, leaf reference and triangle.
+    bases: Vec<(u32, u32, u32)>,
+    pub layout: TreeLayout,
+}
+
+/// The arrays of a [`TreePack`] whole, as the device receives them
+/// ([`TreePack::arrays`]: what tests check on the host).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TreeData {
+    pub layout: TreeLayout,
+    pub nodes: Vec<GpuBvhNode>,
+    pub prims: Vec<u32>,
+    pub triangles: Vec<GpuTriangle>,
+    pub shading: Vec<GpuTriangleShading>,
+}
+
+impl<'a> TreePack<'a> {
+    /// Lays out the trees one after another after checking that the GPU
+    /// can traverse each: every index in range and no path from the root
+    /// that pushes more than `STACK` entries, since the kernel's traversal
+    /// stack has `STACK` entries. The builder guarantees both; this refuses
+    /// a tree from anywhere else rather than render a wrong image. The
+    /// first tree is packed as is (its root is node 0). `instances`: the
+    /// first part's (the world's), whose meshes' trees follow the parts'.
+    pub fn new(
+        mut parts: Vec<TreePart<'a>>,
+        instances: &'a Instances<f32>,
+    ) -> Result<Self, GpuError> {
+        let n_parts = parts.len();
+        parts.extend(instances.meshes.iter().map(TreePart::mesh));
+        let (mut nodes, mut prims, mut triangles, mut stack) = (0usize, 0usize, 0usize, 0u32);
+        let mut places = Vec::with_capacity(parts.len());
+        let mut bases = Vec::with_capacity(parts.len());
+        for part in &parts {
             let tree = part.tree;
-            let stack = check_tree(
+            let need = check_tree(
                 &tree.nodes,
                 &tree.prims,
                 [part.spheres, part.triangles.len(), part.instances],
             )?;
-            data.stack = data.stack.max(stack);
-            let (node0, prim0, tri0) = (
-                data.nodes.len() as u32,
-                data.prims.len() as u32,
-                data.triangles.len() as u32,
-            );
-            data.places.push(TreePlace {
-                root: node0,
-                first_triangle: tri0,
+            stack = stack.max(need);
+            // The kernel's stack refers to a leaf as node << 2 | slot in
+            // 31 bits, and a PrimId holds a triangle's index in 28.
+            if nodes + tree.nodes.len() >= 1 << 29 || triangles + part.triangles.len() >= 1 << 28 {
+                return Err(GpuError::BadTree(format!(
+                    "the trees have {} nodes and {} triangles in all, more than the kernel can refer to",
+                    nodes + tree.nodes.len(),
+                    triangles + part.triangles.len()
+                )));
+            }
+            bases.push((nodes as u32, prims as u32, triangles as u32));
+            places.push(TreePlace {
+                root: nodes as u32,
+                first_triangle: triangles as u32,
             });
-            data.nodes.extend(tree.nodes.iter().map(|n| {
-                let mut n = *n;
-                for k in 0..4 {
-                    if !n.is_empty(k) {
-                        n.child[k] += if n.count[k] == 0 { node0 } else { prim0 };
-                    }
-                }
-                n
-            }));
-            data.prims.extend(tree.prims.iter().map(|p| {
-                if *p != PrimId::NONE && p.kind() == PrimId::TRIANGLE {
-                    p.0 + tri0
-                } else {
-                    p.0
-                }
-            }));
-            data.triangles.extend(part.triangles.iter().map(|t| {
-                let [v0, v1, v2] = t.vertices().map(a3);
-                GpuTriangle {
-                    v0,
-                    v1,
-                    v2,
-                    ..Default::default()
-                }
-            }));
-            let normals = crate::triangle::VertexNormals::<f32>(part.vertex_normals);
-            data.shading.extend(
-                part.shading
-                    .iter()
-                    .zip(part.triangles.iter())
-                    .zip(part.corners)
-                    .map(|((s, t), &c): ((&TriangleShading, &Triangle<f32>), _)| {
-                        let smooth = normals.smooth(c);
-                        let ns = if smooth {
-                            c.map(|i| a3(part.vertex_normals[i as usize]))
-                        } else {
-                            [[0.0; 3]; 3]
-                        };
-                        GpuTriangleShading {
-                            normal: a3(t.normal()),
-                            material: part
-                                .materials
-                                .map_or(s.material, |m| m[s.material as usize]),
-                            n0: ns[0],
-                            smooth_shaded: smooth as u32,
-                            n1: ns[1],
-                            attrs: if part.materials.is_none() {
-                                s.attrs
-                            } else {
-                                crate::triangle::NO_ATTRS
-                            },
-                            n2: ns[2],
-                            ..Default::default()
-                        }
-                    }),
-            );
+            nodes += tree.nodes.len();
+            prims += tree.prims.len();
+            triangles += part.triangles.len();
         }
-        // The kernel's stack refers to a leaf as node << 2 | slot in 31 bits,
-        // and a PrimId holds a triangle's index in 28.
-        if data.nodes.len() >= 1 << 29 || data.triangles.len() >= 1 << 28 {
-            return Err(GpuError::BadTree(format!(
-                "the trees have {} nodes and {} triangles in all, more than the kernel can refer to",
-                data.nodes.len(),
-                data.triangles.len()
-            )));
-        }
-        let mesh_places = &data.places[parts.len()..];
-        data.instances = instances
+        let mesh_places = &places[n_parts..];
+        let list: Vec<GpuInstance> = instances
             .list
             .iter()
             .map(|i| {
@@ -487,13 +569,102 @@ impl TreeData {
                 }
             })
             .collect();
-        data.n_instances = data.instances.len() as u32;
-        data.instances = non_empty(data.instances);
-        data.n_triangles = data.triangles.len() as u32;
-        data.triangles = non_empty(data.triangles);
-        data.shading = non_empty(data.shading);
-        data.prims = non_empty(data.prims);
-        Ok(data)
+        let layout = TreeLayout {
+            n_nodes: nodes as u32,
+            n_prims: prims as u32,
+            n_triangles: triangles as u32,
+            stack,
+            places,
+            n_instances: list.len() as u32,
+            instances: non_empty(list),
+        };
+        Ok(TreePack {
+            parts,
+            bases,
+            layout,
+        })
+    }
+
+    /// Writes the arrays in order, each in pieces of at most `piece`
+    /// elements: `sink(array, first element, bytes)`. A part's triangles
+    /// and their shading are made together; nothing is made twice.
+    pub fn write<E>(
+        &self,
+        piece: usize,
+        mut sink: impl FnMut(TreeArray, usize, &[u8]) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let piece = piece.max(1);
+        let (mut nodes, mut prims) = (Vec::new(), Vec::new());
+        let (mut triangles, mut shading) = (Vec::new(), Vec::new());
+        for (part, &(node0, prim0, tri0)) in self.parts.iter().zip(&self.bases) {
+            let tree = part.tree;
+            for (k, chunk) in tree.nodes.chunks(piece).enumerate() {
+                nodes.clear();
+                nodes.extend(chunk.iter().map(|n| {
+                    let mut n = *n;
+                    for k in 0..4 {
+                        if !n.is_empty(k) {
+                            n.child[k] += if n.count[k] == 0 { node0 } else { prim0 };
+                        }
+                    }
+                    n
+                }));
+                let at = node0 as usize + k * piece;
+                sink(TreeArray::Nodes, at, bytemuck::cast_slice(&nodes))?;
+            }
+            for (k, chunk) in tree.prims.chunks(piece).enumerate() {
+                prims.clear();
+                prims.extend(chunk.iter().map(|p| {
+                    if *p != PrimId::NONE && p.kind() == PrimId::TRIANGLE {
+                        p.0 + tri0
+                    } else {
+                        p.0
+                    }
+                }));
+                let at = prim0 as usize + k * piece;
+                sink(TreeArray::Prims, at, bytemuck::cast_slice(&prims))?;
+            }
+            let n = part.triangles.len();
+            for start in (0..n).step_by(piece) {
+                triangles.clear();
+                shading.clear();
+                part.pack_triangles(start..n.min(start + piece), &mut triangles, &mut shading);
+                let at = tri0 as usize + start;
+                sink(TreeArray::Triangles, at, bytemuck::cast_slice(&triangles))?;
+                sink(TreeArray::Shading, at, bytemuck::cast_slice(&shading))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The arrays whole, each at least one element long as uploaded.
+    pub fn arrays(&self) -> TreeData {
+        self.arrays_in(1 << 12)
+    }
+
+    /// The arrays whole, written in pieces of `piece` elements.
+    fn arrays_in(&self, piece: usize) -> TreeData {
+        let l = &self.layout;
+        let mut d = TreeData {
+            layout: l.clone(),
+            nodes: vec![GpuBvhNode::zeroed(); l.len(TreeArray::Nodes)],
+            prims: vec![0; l.len(TreeArray::Prims)],
+            triangles: vec![GpuTriangle::default(); l.len(TreeArray::Triangles)],
+            shading: vec![GpuTriangleShading::default(); l.len(TreeArray::Shading)],
+        };
+        self.write(piece, |array, at, bytes| {
+            let out: &mut [u8] = match array {
+                TreeArray::Nodes => bytemuck::cast_slice_mut(&mut d.nodes),
+                TreeArray::Prims => bytemuck::cast_slice_mut(&mut d.prims),
+                TreeArray::Triangles => bytemuck::cast_slice_mut(&mut d.triangles),
+                TreeArray::Shading => bytemuck::cast_slice_mut(&mut d.shading),
+            };
+            let at = at * array.element_bytes();
+            out[at..at + bytes.len()].copy_from_slice(bytes);
+            Ok::<(), std::convert::Infallible>(())
+        })
+        .unwrap_or_else(|e| match e {});
+        d
     }
 }
 
@@ -818,20 +989,24 @@ fn bsdf_of(w: &World<f32>, i: usize) -> Bsdf<f32> {
         .unwrap_or_else(|| Bsdf::from_material(&w.materials[i]))
 }
 
-/// Packed tree data, shared between renders of the same world: equal when
-/// it is the same allocation (no O(n) comparison) or has equal contents.
+/// Packed trees as a renderer keeps them, shared between renders of the
+/// same world (every tile of a frame): equal when it is the same
+/// allocation, or was packed from the same trees (`Bvh::id`s, none
+/// unknown) into the same layout.
 #[derive(Clone, Debug)]
 pub struct SharedTree {
     /// `Bvh::id` of each tree it was packed from, in order (0: unknown,
     /// never reused).
     pub ids: Vec<u64>,
-    pub data: std::sync::Arc<TreeData>,
+    pub layout: std::sync::Arc<TreeLayout>,
 }
 
 impl PartialEq for SharedTree {
     fn eq(&self, other: &Self) -> bool {
-        std::sync::Arc::ptr_eq(&self.data, &other.data)
-            || (self.ids == other.ids && self.data == other.data)
+        std::sync::Arc::ptr_eq(&self.layout, &other.layout)
+            || (self.ids.iter().all(|&id| id != 0)
+                && self.ids == other.ids
+                && self.layout == other.layout)
     }
 }
 
@@ -846,7 +1021,93 @@ fn non_empty<T: Default>(mut v: Vec<T>) -> Vec<T> {
     v
 }
 
+/// The GPU's record of a material.
+fn gpu_material(m: &Material<f32>) -> GpuMaterial {
+    GpuMaterial {
+        ambient: a3(m.ambient),
+        shininess: m.shininess,
+        diffuse: a3(m.diffuse),
+        reflectivity: m.reflectivity,
+        specular: a3(m.specular),
+        transparency: m.transparency,
+        ior: m.ior,
+        specular_cos_min: m.specular_cos_min,
+        gloss_cos: m.gloss_cos,
+        translucency_cos: m.translucency_cos,
+    }
+}
+
+/// The trees of `w` to pack: the world's own, then each moving mesh's,
+/// whose materials are the world's so far and then its file's
+/// (world/mod.rs): those that differ from the world's get places of their
+/// own in `materials` and `bsdfs` (the world's, on entry). Also the index
+/// in `moving_meshes` of each moving part.
+fn tree_parts<'w>(
+    w: &'w World<f32>,
+    materials: &mut Vec<GpuMaterial>,
+    bsdfs: &mut Vec<Bsdf<f32>>,
+) -> Result<(Vec<TreePart<'w>>, Vec<usize>), GpuError> {
+    // The path integrator's BSDFs are compared too when a moving mesh's
+    // material is matched to the world's.
+    let is_path = w.dist.as_ref().is_some_and(|d| d.path.is_some());
+    let mut parts: Vec<TreePart<'w>> = w
+        .accel
+        .as_ref()
+        .filter(|t| !t.nodes.is_empty())
+        .map(|t| TreePart::world(w, t, None))
+        .into_iter()
+        .collect();
+    let mut moving = Vec::new();
+    for (i, m) in w
+        .dist
+        .iter()
+        .flat_map(|d| d.moving_meshes.iter().enumerate())
+    {
+        let Some(t) = m.world.accel.as_ref().filter(|t| !t.nodes.is_empty()) else {
+            if m.world.triangle_count() == 0 {
+                continue; // nothing to hit
+            }
+            return Err(GpuError::BadTree(format!(
+                "a moving mesh has {} triangles but no BVH over them",
+                m.world.triangle_count()
+            )));
+        };
+        let map: Vec<u32> = m
+            .world
+            .materials
+            .iter()
+            .enumerate()
+            .map(|(j, own)| {
+                let g = gpu_material(own);
+                let b = bsdf_of(&m.world, j);
+                if j < w.materials.len() && materials[j] == g && (!is_path || bsdfs[j] == b) {
+                    j as u32
+                } else {
+                    materials.push(g);
+                    bsdfs.push(b);
+                    materials.len() as u32 - 1
+                }
+            })
+            .collect();
+        parts.push(TreePart::world(&m.world, t, Some(map)));
+        moving.push(i);
+    }
+    Ok((parts, moving))
+}
+
 impl SceneData {
+    /// The trees of `w` to write to the device, laid out as
+    /// [`SceneData::from_world`] lays them out (`None`: `w` has none).
+    pub fn tree_pack(w: &World<f32>) -> Result<Option<TreePack<'_>>, GpuError> {
+        let mut materials: Vec<GpuMaterial> = w.materials.iter().map(gpu_material).collect();
+        let mut bsdfs: Vec<Bsdf<f32>> = (0..w.materials.len()).map(|i| bsdf_of(w, i)).collect();
+        let (parts, _) = tree_parts(w, &mut materials, &mut bsdfs)?;
+        if parts.is_empty() {
+            return Ok(None);
+        }
+        TreePack::new(parts, &w.instances).map(Some)
+    }
+
     /// Packs `w`. `packed` is a tree packed earlier, reused (not repacked)
     /// when it was packed from this world's trees (same non-zero `Bvh::id`s
     /// and primitive counts); `texels`, texels packed earlier, reused when
@@ -891,76 +1152,16 @@ impl SceneData {
             material: p.material,
             _pad: [0; 3],
         };
-        let material = |m: &Material<f32>| GpuMaterial {
-            ambient: a3(m.ambient),
-            shininess: m.shininess,
-            diffuse: a3(m.diffuse),
-            reflectivity: m.reflectivity,
-            specular: a3(m.specular),
-            transparency: m.transparency,
-            ior: m.ior,
-            specular_cos_min: m.specular_cos_min,
-            gloss_cos: m.gloss_cos,
-            translucency_cos: m.translucency_cos,
-        };
         let light = |l: &PointLight<f32>| GpuLight {
             position: a3(l.position),
             diffuse: a3(l.diffuse),
             specular: a3(l.specular),
             ..Default::default()
         };
-        let mut materials: Vec<GpuMaterial> = w.materials.iter().map(material).collect();
-        // The path integrator's BSDF of each of `materials` (compared too
-        // when a moving mesh's material is matched to the world's).
-        let is_path = w.dist.as_ref().is_some_and(|d| d.path.is_some());
+        let mut materials: Vec<GpuMaterial> = w.materials.iter().map(gpu_material).collect();
         let mut bsdfs: Vec<Bsdf<f32>> = (0..w.materials.len()).map(|i| bsdf_of(w, i)).collect();
-        // The trees: the world's own, then each moving mesh's, whose
-        // materials are the world's so far and then its file's (world/mod.rs):
-        // those that differ from the world's get places of their own.
+        let (parts, moving) = tree_parts(w, &mut materials, &mut bsdfs)?;
         let static_tree = w.accel.as_ref().filter(|t| !t.nodes.is_empty());
-        let mut moving = Vec::new();
-        for (i, m) in w
-            .dist
-            .iter()
-            .flat_map(|d| d.moving_meshes.iter().enumerate())
-        {
-            let Some(t) = m.world.accel.as_ref().filter(|t| !t.nodes.is_empty()) else {
-                if m.world.triangle_count() == 0 {
-                    continue; // nothing to hit
-                }
-                return Err(GpuError::BadTree(format!(
-                    "a moving mesh has {} triangles but no BVH over them",
-                    m.world.triangle_count()
-                )));
-            };
-            let map: Vec<u32> = m
-                .world
-                .materials
-                .iter()
-                .enumerate()
-                .map(|(j, own)| {
-                    let g = material(own);
-                    let b = bsdf_of(&m.world, j);
-                    if j < w.materials.len() && materials[j] == g && (!is_path || bsdfs[j] == b) {
-                        j as u32
-                    } else {
-                        materials.push(g);
-                        bsdfs.push(b);
-                        materials.len() as u32 - 1
-                    }
-                })
-                .collect();
-            moving.push((i, &m.world, t, map));
-        }
-        let parts: Vec<TreePart> = static_tree
-            .map(|t| TreePart::world(w, t, None))
-            .into_iter()
-            .chain(
-                moving
-                    .iter()
-                    .map(|(_, world, tree, map)| TreePart::world(world, tree, Some(map))),
-            )
-            .collect();
         let instances = &w.instances;
         let ids: Vec<u64> = parts
             .iter()
@@ -974,35 +1175,35 @@ impl SceneData {
                 Some(p)
                     if ids.iter().all(|&id| id != 0)
                         && p.ids == ids
-                        && p.data.n_triangles as usize
+                        && p.layout.n_triangles as usize
                             == parts.iter().map(|p| p.triangles.len()).sum::<usize>()
                                 + instances
                                     .meshes
                                     .iter()
                                     .map(|m| m.triangles.len())
                                     .sum::<usize>()
-                        && p.data.prims.len()
+                        && p.layout.n_prims as usize
                             == parts.iter().map(|p| p.tree.prims.len()).sum::<usize>()
                                 + instances
                                     .meshes
                                     .iter()
                                     .map(|m| m.tree.prims.len())
                                     .sum::<usize>()
-                        && p.data.n_instances as usize == instances.list.len() =>
+                        && p.layout.n_instances as usize == instances.list.len() =>
                 {
                     Some(p.clone())
                 }
                 _ => Some(SharedTree {
                     ids,
-                    data: std::sync::Arc::new(TreeData::pack(&parts, instances)?),
+                    layout: std::sync::Arc::new(TreePack::new(parts, instances)?.layout),
                 }),
             }
         };
         let meshes: Vec<(usize, TreePlace)> = match &tree {
             Some(t) => moving
                 .iter()
-                .zip(&t.data.places[static_tree.is_some() as usize..])
-                .map(|((i, ..), place)| (*i, *place))
+                .zip(&t.layout.places[static_tree.is_some() as usize..])
+                .map(|(i, place)| (*i, *place))
                 .collect(),
             None => Vec::new(),
         };
@@ -1050,12 +1251,11 @@ impl SceneData {
             + bytes(self.materials.as_slice())
             + bytes(self.lights.as_slice());
         if let Some(t) = &self.tree {
-            let t = &t.data;
-            n += bytes(t.nodes.as_slice())
-                + bytes(t.prims.as_slice())
-                + bytes(t.triangles.as_slice())
-                + bytes(t.shading.as_slice())
-                + bytes(t.instances.as_slice());
+            n += TreeArray::ALL
+                .iter()
+                .map(|&a| t.layout.bytes(a) as usize)
+                .sum::<usize>()
+                + bytes(t.layout.instances.as_slice());
         }
         if let Some(d) = &self.dist {
             n += bytes(d.words.as_slice());
@@ -1486,23 +1686,26 @@ translate = [0, 0, 2]
         let desc = SceneDesc::parse(src, dir.join("s.toml")).unwrap();
         let w = World::<f32>::build(&desc, &desc.render, 0);
         let data = SceneData::from_world(&w, None, None).unwrap();
-        let tree = data.tree.as_ref().unwrap().data.clone();
+        let tree = SceneData::tree_pack(&w).unwrap().unwrap().arrays();
+        assert_eq!(&tree.layout, &*data.tree.as_ref().unwrap().layout);
         let meshes = &w.dist.as_ref().unwrap().moving_meshes;
         assert!(data.static_tree);
-        assert_eq!(tree.places.len(), 3);
+        assert_eq!(tree.layout.places.len(), 3);
         let own = w.accel.as_ref().unwrap();
-        assert_eq!(tree.places[0], TreePlace::default());
+        assert_eq!(tree.layout.places[0], TreePlace::default());
         assert_eq!(&tree.nodes[..own.nodes.len()], &own.nodes[..]);
         let dist = data.dist.as_ref().unwrap();
         assert_eq!(dist.n_moving_meshes, 2);
         for (k, m) in meshes.iter().enumerate() {
-            let place = tree.places[k + 1];
+            let place = tree.layout.places[k + 1];
             let first = place.first_triangle as usize;
             let end = first + m.world.triangle_count();
             assert_eq!(
-                tree.places
+                tree.layout
+                    .places
                     .get(k + 2)
-                    .map_or(tree.n_triangles as usize, |p| p.first_triangle as usize),
+                    .map_or(tree.layout.n_triangles as usize, |p| p.first_triangle
+                        as usize),
                 end
             );
             // The mesh's words in `dist`: after 6 camera words, 5 a light
@@ -1542,9 +1745,66 @@ translate = [0, 0, 2]
         }
         // The red file material has a place of its own: the world's
         // material at that index is the static blue mesh's.
-        let red = tree.shading[tree.places[1].first_triangle as usize].material as usize;
+        let red = tree.shading[tree.layout.places[1].first_triangle as usize].material as usize;
         assert_eq!(data.materials[red].diffuse, [1.0, 0.0, 0.0]);
         assert!(red >= w.materials.len());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+    /// A big world keeps only its triangles' corners into its vertices:
+    /// packing gathers each triangle from them, with its vertex normals by
+    /// corner, and the pieces the arrays are written in change nothing.
+    #[test]
+    fn a_big_world_is_packed_from_its_corners() {
+        let dir = std::env::temp_dir().join(format!("tessera-pack-big-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let n = 363; // 2 n^2 triangles: a big world
+        let mut obj = String::new();
+        for y in 0..=n {
+            for x in 0..=n {
+                let z = ((x * 7 + y * 3) % 5) as f32 * 0.1;
+                obj += &format!(
+                    "v {x} {y} {z}\nvn {} {} 1\n",
+                    (x % 3) as f32 * 0.2,
+                    (y % 4) as f32 * 0.1
+                );
+            }
+        }
+        let at = |x: u32, y: u32| y * (n + 1) + x + 1;
+        for y in 0..n {
+            for x in 0..n {
+                let (a, b, c, d) = (at(x, y), at(x + 1, y), at(x + 1, y + 1), at(x, y + 1));
+                obj += &format!("f {a}//{a} {b}//{b} {c}//{c}\nf {a}//{a} {c}//{c} {d}//{d}\n");
+            }
+        }
+        std::fs::write(dir.join("big.obj"), obj).unwrap();
+        let src = r#"
+[camera]
+position = [180, 180, -400]
+look_at = [180, 180, 0]
+[materials.grey]
+diffuse = [0.5, 0.5, 0.5]
+[[objects]]
+type = "mesh"
+path = "big.obj"
+material = "grey"
+"#;
+        let desc = SceneDesc::parse(src, dir.join("s.toml")).unwrap();
+        let w = World::<f32>::build(&desc, &desc.render, 0);
+        assert!(w.triangle_count() >= crate::world::GIVE_UP_TRIANGLES_FROM);
+        assert!(w.gathered_triangles().is_none(), "a big world");
+        let pack = SceneData::tree_pack(&w).unwrap().unwrap();
+        let whole = pack.arrays();
+        assert_eq!(whole.layout.n_triangles as usize, w.triangle_count());
+        assert_eq!(&whole.nodes[..], &w.accel.as_ref().unwrap().nodes[..]);
+        for (i, t) in w.triangles().enumerate() {
+            let (g, s) = (whole.triangles[i], whole.shading[i]);
+            assert_eq!([g.v0, g.v1, g.v2], t.vertices().map(a3), "triangle {i}");
+            assert_eq!(s.normal, a3(t.normal()), "triangle {i}");
+            assert_eq!(s.smooth_shaded, 1, "triangle {i}");
+            let ns = w.corners[i].map(|k| a3(w.vertex_normals[k as usize]));
+            assert_eq!([s.n0, s.n1, s.n2], ns, "triangle {i}");
+        }
+        assert!(pack.arrays_in(7_777) == whole, "pieces of 7,777 elements");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -108,13 +108,15 @@ pub enum GpuError {
     #[error(transparent)]
     Request(#[from] RenderError),
     #[error(
-        "{what} needs {needed} bytes but the GPU allows at most {limit} ({limit_name}); render a smaller rectangle"
+        "{what} needs {needed} bytes but the GPU allows at most {limit} ({limit_name}); {advice}"
     )]
     TooLarge {
         what: &'static str,
         needed: u64,
         limit: u64,
         limit_name: &'static str,
+        /// What to do instead (a smaller rectangle, or the CPU backend).
+        advice: &'static str,
     },
     #[error(
         "invalid workgroup shape {x}x{y}: need 1..={max} invocations and each side within the adapter's limits"
@@ -337,6 +339,8 @@ pub struct GpuRenderer {
     texel_uploads: std::sync::atomic::AtomicU64,
     /// Distributed words uploaded ([`GpuRenderer::dist_uploads`]).
     dist_uploads: std::sync::atomic::AtomicU64,
+    /// Trees written to the device ([`GpuRenderer::tree_uploads`]).
+    tree_uploads: std::sync::atomic::AtomicU64,
     /// Compiled pipelines on disk, where the device has a pipeline cache.
     disk_cache: Option<disk_cache::DiskCache>,
     stats: Mutex<GpuStats>,
@@ -513,6 +517,7 @@ impl GpuRenderer {
             texel_packs: Default::default(),
             texel_uploads: Default::default(),
             dist_uploads: Default::default(),
+            tree_uploads: Default::default(),
             disk_cache,
             stats: Mutex::new(GpuStats::default()),
             no_blocks,
@@ -543,6 +548,13 @@ impl GpuRenderer {
     /// integrator): once per world, not per tile.
     pub fn dist_uploads(&self) -> u64 {
         self.dist_uploads.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many times this renderer has written a scene's trees (BVH
+    /// nodes, triangles and their shading) to the device: once per world,
+    /// not per tile.
+    pub fn tree_uploads(&self) -> u64 {
+        self.tree_uploads.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// A post-processing kernel's bind group layout (`bindings`), its
@@ -829,6 +841,7 @@ impl GpuRenderer {
         let result = loop {
             match self.render_inner(
                 data.clone(),
+                world,
                 frame,
                 rect,
                 samples,
@@ -922,6 +935,7 @@ fn check_size(
     needed: u64,
     limit: u64,
     limit_name: &'static str,
+    advice: &'static str,
 ) -> Result<(), GpuError> {
     if needed > limit {
         Err(GpuError::TooLarge {
@@ -929,6 +943,7 @@ fn check_size(
             needed,
             limit,
             limit_name,
+            advice,
         })
     } else {
         Ok(())

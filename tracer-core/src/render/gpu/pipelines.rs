@@ -4,9 +4,17 @@
 
 use wgpu::util::DeviceExt as _;
 
-use super::layout::{self, SceneData};
+use super::layout::{self, SceneData, TreeArray};
 use super::wgsl::{Kernel, Tree};
 use super::{GpuError, GpuRenderer, SceneState, Strategy, WavePipelines, check_size};
+use crate::world::World;
+
+/// Elements a piece of a tree's array is written in, and the bytes of
+/// pieces submitted at once: wgpu stages each write until its submission
+/// is done, so this bounds the host memory an upload takes however big
+/// the mesh.
+const TREE_PIECE: usize = 1 << 16;
+const TREE_FLUSH_BYTES: u64 = 64 << 20;
 
 impl GpuRenderer {
     /// The scene's buffers and its specialised pipelines. The pipelines of
@@ -18,6 +26,7 @@ impl GpuRenderer {
     pub(super) fn upload_scene(
         &self,
         data: SceneData,
+        world: &World<f32>,
         limits: &wgpu::Limits,
         old: Option<SceneState>,
     ) -> Result<SceneState, GpuError> {
@@ -58,25 +67,25 @@ impl GpuRenderer {
                 "the scene's BVH nodes",
                 data.tree
                     .as_ref()
-                    .map_or(0, |t| std::mem::size_of_val(t.data.nodes.as_slice())),
+                    .map_or(0, |t| t.layout.bytes(layout::TreeArray::Nodes) as usize),
             ),
             (
                 "the scene's triangles",
                 data.tree
                     .as_ref()
-                    .map_or(0, |t| std::mem::size_of_val(t.data.triangles.as_slice())),
+                    .map_or(0, |t| t.layout.bytes(layout::TreeArray::Triangles) as usize),
             ),
             (
                 "the scene's triangle shading data",
                 data.tree
                     .as_ref()
-                    .map_or(0, |t| std::mem::size_of_val(t.data.shading.as_slice())),
+                    .map_or(0, |t| t.layout.bytes(layout::TreeArray::Shading) as usize),
             ),
             (
                 "the scene's instances",
                 data.tree
                     .as_ref()
-                    .map_or(0, |t| std::mem::size_of_val(t.data.instances.as_slice())),
+                    .map_or(0, |t| std::mem::size_of_val(t.layout.instances.as_slice())),
             ),
             (
                 "the scene's vertex attributes",
@@ -96,6 +105,7 @@ impl GpuRenderer {
                 bytes as u64,
                 limits.max_storage_buffer_binding_size,
                 "max_storage_buffer_binding_size",
+                "render the scene with --backend cpu, or on a GPU that allows larger buffers",
             )?;
         }
         if let Some(p) = &data.pbr {
@@ -140,7 +150,7 @@ impl GpuRenderer {
             bvh_stack: data
                 .tree
                 .as_ref()
-                .map_or(crate::bvh::STACK as u32, |t| t.data.stack)
+                .map_or(crate::bvh::STACK as u32, |t| t.layout.stack)
                 + 1,
             path: data.path.is_some(),
         };
@@ -158,7 +168,7 @@ impl GpuRenderer {
         ];
         // Model materials: left out for scenes without (their kernel is as before).
         let mut constants = constants.to_vec();
-        if data.tree.as_ref().is_some_and(|t| t.data.n_instances > 0) {
+        if data.tree.as_ref().is_some_and(|t| t.layout.n_instances > 0) {
             constants.push(("HAS_INSTANCES", 1.0));
         }
         if let Some(p) = &data.pbr {
@@ -266,17 +276,13 @@ impl GpuRenderer {
         let tree = match kept_tree {
             Some(t) => t,
             None => match &data.tree {
-                Some(t) => [
-                    make("bvh nodes", bytemuck::cast_slice(&t.data.nodes), st),
-                    make("bvh prims", bytemuck::cast_slice(&t.data.prims), st),
-                    make("triangles", bytemuck::cast_slice(&t.data.triangles), st),
-                    make(
-                        "triangle shading",
-                        bytemuck::cast_slice(&t.data.shading),
-                        st,
-                    ),
-                    make("instances", bytemuck::cast_slice(&t.data.instances), st),
-                ],
+                Some(t) => {
+                    let written = self.write_tree(world, &t.layout)?;
+                    let [nodes, prims, triangles, shading] = written;
+                    let instances =
+                        make("instances", bytemuck::cast_slice(&t.layout.instances), st);
+                    [nodes, prims, triangles, shading, instances]
+                }
                 None => [
                     "bvh nodes",
                     "bvh prims",
@@ -381,6 +387,51 @@ impl GpuRenderer {
             pbr,
             wave,
         })
+    }
+
+    /// The arrays of `world`'s trees laid out as `layout` (`SceneData::tree`),
+    /// written to new buffers in pieces ([`layout::TreePack::write`]), a
+    /// submission every [`TREE_FLUSH_BYTES`]: the host never holds them
+    /// whole (a 10 M-triangle mesh's are 1.3 GB).
+    fn write_tree(
+        &self,
+        world: &World<f32>,
+        layout: &layout::TreeLayout,
+    ) -> Result<[wgpu::Buffer; 4], GpuError> {
+        let pack = SceneData::tree_pack(world)?
+            .filter(|p| p.layout == *layout)
+            .ok_or_else(|| {
+                GpuError::BadTree(
+                    "the world's trees are not those its scene data was packed from".into(),
+                )
+            })?;
+        let buffers = TreeArray::ALL.map(|array| {
+            self.buffer(
+                match array {
+                    TreeArray::Nodes => "bvh nodes",
+                    TreeArray::Prims => "bvh prims",
+                    TreeArray::Triangles => "triangles",
+                    TreeArray::Shading => "triangle shading",
+                },
+                layout.bytes(array),
+                wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            )
+        });
+        self.tree_uploads
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let mut staged = 0u64;
+        pack.write(TREE_PIECE, |array, at, bytes| {
+            let offset = (at * array.element_bytes()) as u64;
+            self.queue
+                .write_buffer(&buffers[array as usize], offset, bytes);
+            staged += bytes.len() as u64;
+            if staged >= TREE_FLUSH_BYTES {
+                staged = 0;
+                self.wait(self.queue.submit([]))?;
+            }
+            Ok::<(), GpuError>(())
+        })?;
+        Ok(buffers)
     }
 
     /// The scene's kernel for adaptive rounds: its pipeline with `ADAPTIVE`.

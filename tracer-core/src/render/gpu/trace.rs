@@ -45,6 +45,7 @@ impl GpuRenderer {
     pub(super) fn render_inner(
         &self,
         data: SceneData,
+        world: &crate::world::World<f32>,
         frame: u32,
         rect: Rect,
         samples: SampleRange,
@@ -64,7 +65,7 @@ impl GpuRenderer {
             .is_none_or(|s| s.data != data || s.options != self.options)
         {
             let old = scene_guard.take();
-            *scene_guard = Some(self.upload_scene(data, &limits, old)?);
+            *scene_guard = Some(self.upload_scene(data, world, &limits, old)?);
         }
         if grid.mask.is_some() {
             let scene = scene_guard.as_mut().expect("just set");
@@ -91,7 +92,13 @@ impl GpuRenderer {
             ),
             (limits.max_buffer_size, "max_buffer_size"),
         ] {
-            check_size("the film's per-pixel sums", sums_bytes, limit.0, limit.1)?;
+            check_size(
+                "the film's per-pixel sums",
+                sums_bytes,
+                limit.0,
+                limit.1,
+                "render a smaller rectangle",
+            )?;
         }
         let mut out_guard = self
             .outputs
@@ -443,6 +450,7 @@ impl GpuRenderer {
                 bytes,
                 limits.max_storage_buffer_binding_size,
                 "max_storage_buffer_binding_size",
+                "render with --backend cpu",
             )?;
             *guard = Some(self.create_wave_buffers(bytes));
         }
