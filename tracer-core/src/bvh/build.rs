@@ -33,10 +33,17 @@ const COST_INTERSECT: f32 = 1.0;
 /// Subtrees larger than this are built on another rayon task.
 const PARALLEL_MIN: usize = 4096;
 /// Subtrees of at least this many primitives are flattened as soon as
-/// they are built (when they head a 4-wide node), and their binary nodes
-/// freed: a big mesh's build then never holds its whole binary tree
-/// beside its flattened one (24 and 20 bytes a triangle).
-const FLATTEN_MIN: usize = 1 << 14;
+/// they are built (when they head a 4-wide node and hold no such subtree
+/// themselves), and their binary nodes freed: a big mesh's build then
+/// never holds its whole binary tree beside its flattened one (24 and 20
+/// bytes a triangle). 8 K: a 1 M-triangle mesh peaks at 75.8 MB on 2 or
+/// 16 build threads (79.0 and 81.8 MB at 16 K, 83.4 and 91.3 at 64 K).
+const FLATTEN_MIN: usize = 1 << 13;
+
+/// Bytes from which glibc maps an allocation of its own (the threshold
+/// `src/main.rs` fixes): reserved at least this big, a flattened subtree's
+/// arrays are given back to the system when freed, not kept in the heap.
+const MAPPED_MIN: usize = 1 << 20;
 
 /// Source of [`Bvh::id`].
 static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
@@ -54,6 +61,8 @@ enum BuildNode {
         bounds: BuildBox,
         children: Box<[BuildNode; 2]>,
         median: bool,
+        /// Whether a subtree below it is flattened already.
+        holds_flat: bool,
     },
     /// A subtree flattened already ([`FLATTEN_MIN`]), its leaves naming
     /// build places.
@@ -61,6 +70,14 @@ enum BuildNode {
 }
 
 impl BuildNode {
+    fn holds_flat(&self) -> bool {
+        match self {
+            BuildNode::Leaf { .. } => false,
+            BuildNode::Inner { holds_flat, .. } => *holds_flat,
+            BuildNode::Flat { .. } => true,
+        }
+    }
+
     fn bounds(&self) -> Aabb {
         match self {
             BuildNode::Leaf { bounds, .. }
@@ -366,11 +383,7 @@ fn flatten(
     let Some(root) = root else {
         return Bvh::default();
     };
-    let mut flat = Flat {
-        nodes: Vec::with_capacity(n / 2 + 1),
-        prims: Vec::with_capacity(n * 3 / 2),
-        stats: BvhStats::default(),
-    };
+    let mut flat = Flat::for_primitives(n);
     flatten4(root, 0, 0, &mut flat);
     let Flat {
         nodes,
@@ -485,17 +498,22 @@ fn build_node<P: BuildPrims>(
     } else {
         (build_l(), build_r())
     };
+    let holds_flat = l.holds_flat() || r.holds_flat();
     let node = BuildNode::Inner {
         bounds: BuildBox::of(&bounds),
         children: Box::new([l, r]),
         median,
+        holds_flat,
     };
     // A big subtree that heads a 4-wide node (every 4-wide node is a
     // binary node at an even depth: its slots are its grandchildren) is
     // flattened now, its binary nodes freed; the wide tree that contains
-    // it copies it in ([`Flat::append`]).
-    if n >= limits.flatten_min && depth > 0 && depth.is_multiple_of(2) {
-        let mut chunk = Flat::default();
+    // it copies it in ([`Flat::append`]). Only the lowest such subtrees:
+    // flattened again above them, their nodes would be copied once a
+    // level, and on many threads those copies coexist (a 1 M-triangle
+    // mesh's render peaked at 98.6 MB with 16 build threads, 75.7 with 2).
+    if n >= limits.flatten_min && depth > 0 && depth.is_multiple_of(2) && !holds_flat {
+        let mut chunk = Flat::for_subtree(n);
         flatten4(node, 0, 0, &mut chunk);
         return BuildNode::Flat {
             bounds: BuildBox::of(&bounds),
@@ -803,6 +821,28 @@ struct Flat {
 }
 
 impl Flat {
+    /// Room for a tree over `n` primitives, reserved rather than grown
+    /// (pages never written are never resident).
+    fn for_primitives(n: usize) -> Flat {
+        Flat {
+            nodes: Vec::with_capacity(n / 2 + 1),
+            prims: Vec::with_capacity(n * 3 / 2),
+            stats: BvhStats::default(),
+        }
+    }
+
+    /// The same for a subtree flattened early, at least [`MAPPED_MIN`]
+    /// bytes an array: each then has a mapping of its own, given back to
+    /// the system when the tree that contains it has copied it, instead of
+    /// staying in the heap beside the arrays it is copied into.
+    fn for_subtree(n: usize) -> Flat {
+        Flat {
+            nodes: Vec::with_capacity((n / 2 + 1).max(MAPPED_MIN / size_of::<BvhNode4>())),
+            prims: Vec::with_capacity((n * 3 / 2).max(MAPPED_MIN / size_of::<PrimId>())),
+            stats: BvhStats::default(),
+        }
+    }
+
     /// Copies the flattened subtree `sub` in, as [`flatten4`] would have
     /// written it at 4-wide depth `depth` with `need` stack entries on
     /// arrival; returns the index of its root. Its nodes' references move
@@ -973,8 +1013,8 @@ mod tests {
     /// Subtrees flattened as they are built and copied in give the tree
     /// flattened in one pass: the same nodes, places and figures, for
     /// scattered boxes, boxes in one spot (median splits) and a chain
-    /// under a depth limit (subtrees of 16 primitives and more flattened
-    /// early: many, nested).
+    /// under a depth limit (the lowest subtrees of 16 primitives and more
+    /// flattened early: many).
     #[test]
     fn subtrees_flattened_early_give_the_same_tree() {
         let scattered = scattered_boxes(5000);
