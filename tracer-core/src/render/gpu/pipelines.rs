@@ -14,7 +14,7 @@ use crate::world::World;
 /// is done, so this bounds the host memory an upload takes however big
 /// the mesh.
 const TREE_PIECE: usize = 1 << 16;
-const TREE_FLUSH_BYTES: u64 = 64 << 20;
+const TREE_FLUSH_BYTES: u64 = 16 << 20;
 
 impl GpuRenderer {
     /// The scene's buffers and its specialised pipelines. The pipelines of
