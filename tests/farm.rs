@@ -334,6 +334,45 @@ fn gltf_files_submitted_directly_render_bit_identical_to_tessera_render() {
     }
 }
 
+/// A big model (at least `GIVE_UP_TRIANGLES_FROM` triangles) is not kept
+/// in a worker's scene cache: its models are freed before its tree is
+/// built, and its next frame parses its files again. Two frames of a
+/// 263 K-triangle OBJ, on two workers: both equal `tessera render`'s.
+#[test]
+fn a_big_model_renders_on_the_farm_as_locally_frame_after_frame() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let n = 363u32; // 2 n^2 triangles
+    assert!(2 * (n * n) as usize >= tracer_core::world::GIVE_UP_TRIANGLES_FROM);
+    let mut obj = String::new();
+    for y in 0..=n {
+        for x in 0..=n {
+            let z = ((x * 7 + y * 3) % 11) as f32 * 0.05;
+            obj += &format!("v {x} {z} {y}\n");
+        }
+    }
+    let at = |x: u32, y: u32| y * (n + 1) + x + 1;
+    for y in 0..n {
+        for x in 0..n {
+            let (a, b, c, d) = (at(x, y), at(x + 1, y), at(x + 1, y + 1), at(x, y + 1));
+            obj += &format!("f {a} {c} {b}\nf {a} {d} {c}\n");
+        }
+    }
+    let scene = dir.path().join("big.obj");
+    std::fs::write(&scene, obj).expect("obj");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let _w: Vec<Proc> = (0..2)
+        .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
+        .collect();
+    let settings = ["--width", "48", "--height", "32", "--samples", "2"];
+    let mut args = settings.to_vec();
+    args.extend(["--tile-size", "16", "--frames", "0..1"]);
+    let job = submit(&c.url(), &scene, &args);
+    let s = wait_done(&c.url(), &job, Duration::from_secs(300));
+    assert_eq!(s.state, pb::JobState::Done as i32);
+    assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=1, &settings);
+}
+
 /// `--environment` travels with the job (issue 35): a TOML scene given
 /// an image by the flag (the job's scene names it), and a model file given
 /// one from outside its folder with `--allow-outside`, render on the farm

@@ -33,8 +33,19 @@ impl Worker {
             .chain(job.files.iter().flat_map(|(n, h)| [n.as_str(), h.as_str()]))
             .collect::<Vec<_>>()
             .join("\n");
-        let scene = match self.scenes.iter().find(|(k, _)| *k == scene_key) {
-            Some((_, s)) => s.clone(),
+        let settings = job.settings;
+        let cached = self
+            .scenes
+            .iter()
+            .find(|(k, _)| *k == scene_key)
+            .map(|(_, s)| s.clone());
+        let built = match cached {
+            Some(scene) => {
+                tokio::task::spawn_blocking(move || {
+                    PreparedFrame::build(&scene, &settings, frame, Precision::F32)
+                })
+                .await
+            }
             None => {
                 let content = self.fetch(client, &job.scene_sha256).await?;
                 let text = String::from_utf8(content).map_err(|e| {
@@ -54,21 +65,32 @@ impl Worker {
                 .await
                 .map_err(|e| tonic::Status::internal(e.to_string()))?
                 .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
-                let scene = Arc::new(scene);
-                self.scenes.push_back((scene_key, scene.clone()));
-                if self.scenes.len() > PREPARED_CACHE {
-                    self.scenes.pop_front();
+                // A big scene is not kept: its models (28 bytes a
+                // triangle) are freed before its tree is built, as
+                // `tessera render` frees them, and its next frame parses
+                // its files again (from the asset cache: cheaper than the
+                // build, and the prepared frames are cached anyway).
+                if model_triangles(&scene) >= tracer_core::world::GIVE_UP_TRIANGLES_FROM {
+                    tokio::task::spawn_blocking(move || {
+                        PreparedFrame::build_owned(scene, &settings, frame, Precision::F32)
+                    })
+                    .await
+                } else {
+                    let scene = Arc::new(scene);
+                    self.scenes.push_back((scene_key, scene.clone()));
+                    if self.scenes.len() > PREPARED_CACHE {
+                        self.scenes.pop_front();
+                    }
+                    tokio::task::spawn_blocking(move || {
+                        PreparedFrame::build(&scene, &settings, frame, Precision::F32)
+                    })
+                    .await
                 }
-                scene
             }
         };
-        let settings = job.settings;
-        let prepared = tokio::task::spawn_blocking(move || {
-            PreparedFrame::build(&scene, &settings, frame, Precision::F32)
-        })
-        .await
-        .map_err(|e| tonic::Status::internal(e.to_string()))?
-        .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
+        let prepared = built
+            .map_err(|e| tonic::Status::internal(e.to_string()))?
+            .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
         let prepared = Arc::new(prepared);
         self.prepared.push_back((key, prepared.clone()));
         if self.prepared.len() > PREPARED_CACHE {
@@ -146,4 +168,14 @@ impl Worker {
         .map_err(|e| tonic::Status::internal(e.to_string()))?;
         Ok(data)
     }
+}
+
+/// Triangles of the scene's loaded models (as loaded, before placement).
+fn model_triangles(scene: &SceneDesc) -> usize {
+    scene
+        .models()
+        .iter()
+        .flatten()
+        .map(|m| m.triangles.len())
+        .sum()
 }
