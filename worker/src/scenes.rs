@@ -39,13 +39,8 @@ impl Worker {
             .iter()
             .find(|(k, _)| *k == scene_key)
             .map(|(_, s)| s.clone());
-        let built = match cached {
-            Some(scene) => {
-                tokio::task::spawn_blocking(move || {
-                    PreparedFrame::build(&scene, &settings, frame, Precision::F32)
-                })
-                .await
-            }
+        let scene = match cached {
+            Some(scene) => scene,
             None => {
                 let content = self.fetch(client, &job.scene_sha256).await?;
                 let text = String::from_utf8(content).map_err(|e| {
@@ -65,29 +60,27 @@ impl Worker {
                 .await
                 .map_err(|e| tonic::Status::internal(e.to_string()))?
                 .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
+                let scene = Arc::new(scene);
                 // A big scene is not kept: its models (28 bytes a
                 // triangle) are freed before its tree is built, as
                 // `tessera render` frees them, and its next frame parses
                 // its files again (from the asset cache: cheaper than the
                 // build, and the prepared frames are cached anyway).
-                if model_triangles(&scene) >= tracer_core::world::GIVE_UP_TRIANGLES_FROM {
-                    tokio::task::spawn_blocking(move || {
-                        PreparedFrame::build_owned(scene, &settings, frame, Precision::F32)
-                    })
-                    .await
-                } else {
-                    let scene = Arc::new(scene);
+                if model_triangles(&scene) < tracer_core::world::GIVE_UP_TRIANGLES_FROM {
                     self.scenes.push_back((scene_key, scene.clone()));
                     if self.scenes.len() > PREPARED_CACHE {
                         self.scenes.pop_front();
                     }
-                    tokio::task::spawn_blocking(move || {
-                        PreparedFrame::build(&scene, &settings, frame, Precision::F32)
-                    })
-                    .await
                 }
+                scene
             }
         };
+        // Held here alone (a big scene, not cached), the scene is consumed.
+        let built = tokio::task::spawn_blocking(move || match Arc::try_unwrap(scene) {
+            Ok(owned) => PreparedFrame::build_owned(owned, &settings, frame, Precision::F32),
+            Err(shared) => PreparedFrame::build(&shared, &settings, frame, Precision::F32),
+        })
+        .await;
         let prepared = built
             .map_err(|e| tonic::Status::internal(e.to_string()))?
             .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?;
