@@ -1614,17 +1614,40 @@ mod tests {
     /// OBJ text of an n x n grid of unit quads at z = 0, two triangles each
     /// (enough for a tree of several nodes), with `head` first.
     fn grid(n: u32, head: &str) -> String {
+        grid_with(n, head, |_, _| (0.0, None))
+    }
+
+    /// The same grid, vertex (x, y) at the height `vertex` gives, with the
+    /// vertex normal it gives (every vertex or none).
+    fn grid_with(
+        n: u32,
+        head: &str,
+        vertex: impl Fn(u32, u32) -> (f32, Option<[f32; 3]>),
+    ) -> String {
         let mut s = head.to_string();
+        let mut normals = false;
         for y in 0..=n {
             for x in 0..=n {
-                s += &format!("v {x} {y} 0\n");
+                let (z, normal) = vertex(x, y);
+                s += &format!("v {x} {y} {z}\n");
+                if let Some([nx, ny, nz]) = normal {
+                    s += &format!("vn {nx} {ny} {nz}\n");
+                    normals = true;
+                }
             }
         }
         let at = |x: u32, y: u32| y * (n + 1) + x + 1;
+        let c = |i: u32| {
+            if normals {
+                format!("{i}//{i}")
+            } else {
+                i.to_string()
+            }
+        };
         for y in 0..n {
             for x in 0..n {
-                let (a, b, c, d) = (at(x, y), at(x + 1, y), at(x + 1, y + 1), at(x, y + 1));
-                s += &format!("f {a} {b} {c}\nf {a} {c} {d}\n");
+                let [a, b, cc, d] = [at(x, y), at(x + 1, y), at(x + 1, y + 1), at(x, y + 1)].map(c);
+                s += &format!("f {a} {b} {cc}\nf {a} {cc} {d}\n");
             }
         }
         s
@@ -1757,25 +1780,11 @@ translate = [0, 0, 2]
     fn a_big_world_is_packed_from_its_corners() {
         let dir = std::env::temp_dir().join(format!("tessera-pack-big-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let n = 363; // 2 n^2 triangles: a big world
-        let mut obj = String::new();
-        for y in 0..=n {
-            for x in 0..=n {
-                let z = ((x * 7 + y * 3) % 5) as f32 * 0.1;
-                obj += &format!(
-                    "v {x} {y} {z}\nvn {} {} 1\n",
-                    (x % 3) as f32 * 0.2,
-                    (y % 4) as f32 * 0.1
-                );
-            }
-        }
-        let at = |x: u32, y: u32| y * (n + 1) + x + 1;
-        for y in 0..n {
-            for x in 0..n {
-                let (a, b, c, d) = (at(x, y), at(x + 1, y), at(x + 1, y + 1), at(x, y + 1));
-                obj += &format!("f {a}//{a} {b}//{b} {c}//{c}\nf {a}//{a} {c}//{c} {d}//{d}\n");
-            }
-        }
+        // 2 n^2 triangles: a big world.
+        let obj = grid_with(363, "", |x, y| {
+            let z = ((x * 7 + y * 3) % 5) as f32 * 0.1;
+            (z, Some([(x % 3) as f32 * 0.2, (y % 4) as f32 * 0.1, 1.0]))
+        });
         std::fs::write(dir.join("big.obj"), obj).unwrap();
         let src = r#"
 [camera]

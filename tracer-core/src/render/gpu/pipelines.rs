@@ -277,8 +277,7 @@ impl GpuRenderer {
             Some(t) => t,
             None => match &data.tree {
                 Some(t) => {
-                    let written = self.write_tree(world, &t.layout)?;
-                    let [nodes, prims, triangles, shading] = written;
+                    let [nodes, prims, triangles, shading] = self.write_tree(world, &t.layout)?;
                     let instances =
                         make("instances", bytemuck::cast_slice(&t.layout.instances), st);
                     [nodes, prims, triangles, shading, instances]
