@@ -66,7 +66,7 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
         name: r.name.clone(),
         state: state_pb(v.state) as i32,
         priority: r.priority,
-        settings: Some(v.settings.into()),
+        settings: Some(v.record.settings.into()),
         first_frame: r.first_frame,
         last_frame: r.last_frame,
         units_total: v.units_total,
@@ -594,27 +594,7 @@ impl WorkerService for Api {
         } else {
             10
         };
-        let units = leases
-            .into_iter()
-            .map(|l| {
-                let mut unit = pb::WorkUnit {
-                    lease_id: l.lease_id,
-                    job: Some(pb::JobContext {
-                        job_id: l.job_id,
-                        scene_name: l.scene_name,
-                        scene_sha256: l.scene_sha256,
-                        assets: l.assets.into_iter().collect(),
-                        settings: Some(l.settings.into()),
-                    }),
-                    adaptive: l.active.is_some(),
-                    active_blocks: l.active.map(|m| m.to_bytes()).unwrap_or_default(),
-                    units: l.units,
-                    ..Default::default()
-                };
-                unit.set_region(l.region);
-                unit
-            })
-            .collect();
+        let units = leases.into_iter().map(pb::WorkUnit::from).collect();
         Ok(Response::new(pb::LeaseWorkResponse {
             units,
             retry_after_ms,

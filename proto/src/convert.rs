@@ -1,13 +1,14 @@
 //! Conversions between protobuf messages and Rust types (tracer-core's
 //! and [`JobSpec`]): the one place each wire message meets its Rust shape.
 
-use tracer_core::adaptive::AdaptiveSpec;
+use tracer_core::adaptive::{AdaptiveSpec, BlockMask};
 use tracer_core::film::{RayCounts, Rect, SampleRange, WorkRegion};
 use tracer_core::render::Backend;
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{Integrator, RenderOverrides, RenderSettings};
 
 use crate::job::JobSpec;
+use crate::lease::{LeasedJob, LeasedUnit, MalformedUnit};
 use crate::pb;
 
 /// A message from the wire that does not make a valid value.
@@ -71,6 +72,76 @@ impl pb::WorkUnit {
         self.frame = r.frame;
         self.rect = Some(r.rect.into());
         self.samples = Some(r.samples.into());
+    }
+}
+
+impl From<LeasedUnit> for pb::WorkUnit {
+    fn from(l: LeasedUnit) -> Self {
+        let j = l.job;
+        let mut unit = pb::WorkUnit {
+            lease_id: l.lease_id,
+            job: Some(pb::JobContext {
+                job_id: j.job_id,
+                scene_name: j.scene_name,
+                scene_sha256: j.scene_sha256,
+                assets: j.files.into_iter().collect(),
+                settings: Some(j.settings.into()),
+            }),
+            adaptive: l.active.is_some(),
+            active_blocks: l.active.map(|m| m.to_bytes()).unwrap_or_default(),
+            units: l.units,
+            ..Default::default()
+        };
+        unit.set_region(l.region);
+        unit
+    }
+}
+
+/// A worker's reading of a leased unit. A unit that does not decode keeps
+/// its lease, region and unit count, so its failure can be reported.
+impl TryFrom<pb::WorkUnit> for LeasedUnit {
+    type Error = MalformedUnit;
+    fn try_from(u: pb::WorkUnit) -> Result<Self, MalformedUnit> {
+        let region = u.region();
+        // 0 from an older coordinator: count 1.
+        let units = u.units.max(1);
+        let decoded = u
+            .job
+            .ok_or_else(|| "work unit without job context".to_string())
+            .and_then(|j| {
+                let settings = RenderSettings::try_from(j.settings.unwrap_or_default())
+                    .map_err(|e| e.to_string())?;
+                Ok(LeasedJob {
+                    job_id: j.job_id,
+                    scene_name: j.scene_name,
+                    scene_sha256: j.scene_sha256,
+                    files: j.assets.into_iter().collect(),
+                    settings,
+                })
+            })
+            .and_then(|job| {
+                let active = u
+                    .adaptive
+                    .then(|| BlockMask::from_bytes(region.rect, &u.active_blocks))
+                    .transpose()
+                    .map_err(|e| e.to_string())?;
+                Ok((job, active))
+            });
+        match decoded {
+            Ok((job, active)) => Ok(LeasedUnit {
+                lease_id: u.lease_id,
+                job,
+                region,
+                active,
+                units,
+            }),
+            Err(why) => Err(MalformedUnit {
+                lease_id: u.lease_id,
+                region,
+                units,
+                why,
+            }),
+        }
     }
 }
 
@@ -297,6 +368,78 @@ impl From<&pb::JobSpec> for JobSpec {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn leased_unit() -> LeasedUnit {
+        LeasedUnit {
+            lease_id: "l1".into(),
+            job: LeasedJob {
+                job_id: "j1".into(),
+                scene_name: "s.toml".into(),
+                scene_sha256: "ab".into(),
+                files: [("m.obj".to_string(), "cd".to_string())].into(),
+                settings: RenderSettings {
+                    width: 64,
+                    height: 32,
+                    samples: 4,
+                    max_depth: 3,
+                    sampler: Sampler::Grid,
+                    integrator: Integrator::Path,
+                },
+            },
+            region: WorkRegion::new(2, Rect::new(16, 8, 32, 16), SampleRange::new(0, 4)),
+            active: None,
+            units: 3,
+        }
+    }
+
+    #[test]
+    fn leased_units_round_trip_uniform_and_adaptive() {
+        let l = leased_unit();
+        assert_eq!(
+            LeasedUnit::try_from(pb::WorkUnit::from(l.clone())),
+            Ok(l.clone())
+        );
+        let mut mask = BlockMask::none(l.region.rect);
+        mask.active[1] = true;
+        let adaptive = LeasedUnit {
+            active: Some(mask),
+            ..l
+        };
+        assert_eq!(
+            LeasedUnit::try_from(pb::WorkUnit::from(adaptive.clone())),
+            Ok(adaptive)
+        );
+    }
+
+    #[test]
+    fn a_malformed_unit_keeps_its_lease_region_and_count_and_says_why() {
+        let l = leased_unit();
+        let malformed = |why: &str| MalformedUnit {
+            lease_id: "l1".into(),
+            region: l.region,
+            units: 3,
+            why: why.into(),
+        };
+        let mut w = pb::WorkUnit::from(l.clone());
+        w.job = None;
+        assert_eq!(
+            LeasedUnit::try_from(w),
+            Err(malformed("work unit without job context"))
+        );
+        let mut w = pb::WorkUnit::from(l.clone());
+        w.job.as_mut().unwrap().settings.as_mut().unwrap().width = 0;
+        let e = LeasedUnit::try_from(w).unwrap_err();
+        assert_eq!((e.lease_id.as_str(), e.units), ("l1", 3));
+        assert!(e.why.contains("width"), "{}", e.why);
+        let mut w = pb::WorkUnit::from(l.clone());
+        w.adaptive = true;
+        w.active_blocks = vec![0xff; 99];
+        assert_eq!(LeasedUnit::try_from(w).unwrap_err().lease_id, "l1");
+        // An older coordinator's 0 counts as one unit.
+        let mut w = pb::WorkUnit::from(l);
+        w.units = 0;
+        assert_eq!(LeasedUnit::try_from(w).map(|u| u.units), Ok(1));
+    }
 
     #[test]
     fn job_specs_round_trip() {

@@ -8,6 +8,8 @@ pub mod convert;
 pub mod film_codec;
 pub mod job;
 pub use job::JobSpec;
+pub mod lease;
+pub use lease::{LeasedJob, LeasedUnit, MalformedUnit};
 pub mod placement;
 pub mod transport;
 

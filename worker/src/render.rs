@@ -14,7 +14,7 @@ use tracer_core::render::{Output, PreparedFrame, Rendered, Renderer};
 
 use crate::sender::Outgoing;
 use crate::session::{Session, lease};
-use crate::unit::{LeasedUnit, UnitFilm};
+use crate::unit::{self, Queued, UnitFilm};
 use crate::{GPU_BAND_PIXEL_SAMPLES, IDLE_LEASE_WAIT, MAX_MESSAGE_BYTES, PREFETCH, Worker};
 
 /// Why a unit's rectangle is refused: its result would not fit one
@@ -68,7 +68,7 @@ impl Worker {
         drain: &mut watch::Receiver<bool>,
         lost: &AtomicBool,
         tx: &mpsc::Sender<Outgoing>,
-        queue: &mut VecDeque<LeasedUnit>,
+        queue: &mut VecDeque<Queued>,
         sender: &mut tokio::task::JoinHandle<Result<(), tonic::Status>>,
     ) -> Result<(), tonic::Status> {
         let mut client = s.client.clone();
@@ -113,22 +113,20 @@ impl Worker {
                 .held
                 .lock()
                 .expect("held lock")
-                .get(&unit.lease_id)
+                .get(unit::lease_id(&unit))
                 .map(|h| (h.cancel.clone(), h.samples_done.clone()))
             else {
                 continue;
             };
-            let LeasedUnit {
-                lease_id,
-                region,
-                work,
-                units,
-            } = unit;
+            let (lease_id, region, units, work) = match unit {
+                Ok(u) => (u.lease_id, u.region, u.units, Ok((u.job, u.active))),
+                Err(m) => (m.lease_id, m.region, m.units, Err(m.why)),
+            };
             let out = |end| Outgoing {
                 lease_id: lease_id.clone(),
                 region,
                 end,
-                units,
+                units: units.into(),
             };
             if cancel.load(Ordering::Relaxed) {
                 // Gone while queued (expired, cancelled): nothing to send.
@@ -139,7 +137,7 @@ impl Worker {
             // A lease this worker cannot hold or send back (a coordinator
             // gone wrong), or one that came malformed: a failure the
             // coordinator counts, not an abort.
-            let work = match too_large(region.rect).map_or(work, Err) {
+            let (job, active) = match too_large(region.rect).map_or(work, Err) {
                 Ok(work) => work,
                 Err(why) => {
                     tracing::warn!(lease = %lease_id, "{why}");
@@ -153,7 +151,7 @@ impl Worker {
                     continue;
                 }
             };
-            let end = match self.prepare(&mut client, &work.job, region.frame).await {
+            let end = match self.prepare(&mut client, &job, region.frame).await {
                 Err(e)
                     if e.code() == tonic::Code::Unavailable || e.code() == tonic::Code::Unknown =>
                 {
@@ -168,7 +166,7 @@ impl Worker {
                 Ok(prepared) => {
                     let renderer = self.renderer.clone();
                     // Adaptive jobs: the round's active blocks.
-                    let render = tokio::task::spawn_blocking(move || match work.active {
+                    let render = tokio::task::spawn_blocking(move || match active {
                         None => render_unit(&renderer, &prepared, region, &cancel, &samples_done),
                         Some(mask) => render_round_unit(
                             &renderer,

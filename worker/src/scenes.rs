@@ -5,13 +5,12 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use tessera_proto::pb;
+use tessera_proto::{LeasedJob, pb};
 use tracer_core::assets::Bundle;
 use tracer_core::render::{Precision, PreparedFrame};
 use tracer_core::scene::SceneDesc;
 
 use crate::cache;
-use crate::unit::JobInfo;
 use crate::{Client, PREPARED_CACHE, Worker};
 
 impl Worker {
@@ -20,7 +19,7 @@ impl Worker {
     pub(crate) async fn prepare(
         &mut self,
         client: &mut Client,
-        job: &JobInfo,
+        job: &LeasedJob,
         frame: u32,
     ) -> Result<Arc<PreparedFrame>, tonic::Status> {
         let key = (job.job_id.clone(), frame);

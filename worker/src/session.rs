@@ -14,7 +14,9 @@ use tracer_core::render::Renderer;
 
 use crate::heartbeat::{Held, HeldMap};
 use crate::sender::send_results;
-use crate::unit::LeasedUnit;
+use tessera_proto::LeasedUnit;
+
+use crate::unit::{self, Queued};
 use crate::{Client, MAX_MESSAGE_BYTES, SEND_QUEUE, SENDER_GRACE, Worker, WorkerError};
 
 pub(crate) struct Session {
@@ -222,7 +224,7 @@ pub(crate) async fn lease(
     client: &mut Client,
     worker_id: &str,
     held: &HeldMap,
-    queue: &mut VecDeque<LeasedUnit>,
+    queue: &mut VecDeque<Queued>,
     ahead: bool,
     wait: Duration,
     rendered: &mut Vec<pb::RenderedUnit>,
@@ -247,7 +249,7 @@ pub(crate) async fn lease(
                 samples_done: Arc::default(),
             },
         );
-        queue.push_back(LeasedUnit::from(unit));
+        queue.push_back(LeasedUnit::try_from(unit));
     }
     Ok(Duration::from_millis(
         resp.retry_after_ms.clamp(10, 5000) as u64
@@ -259,13 +261,16 @@ pub(crate) async fn lease(
 pub(crate) async fn return_leases(
     client: &mut Client,
     worker_id: &str,
-    queue: &mut VecDeque<LeasedUnit>,
+    queue: &mut VecDeque<Queued>,
     held: &HeldMap,
 ) {
     if queue.is_empty() {
         return;
     }
-    let lease_ids: Vec<String> = queue.drain(..).map(|u| u.lease_id).collect();
+    let lease_ids: Vec<String> = queue
+        .drain(..)
+        .map(|u| unit::lease_id(&u).to_string())
+        .collect();
     {
         let mut h = held.lock().expect("held lock");
         for id in &lease_ids {

@@ -1,27 +1,22 @@
-//! A leased unit as the worker renders it. The wire's `WorkUnit` is
-//! converted here when it is leased (**API boundary**): the render loop,
-//! the scene and frame caches and the renderers see only these types,
-//! never a prost message.
+//! A leased unit as the worker queues it, and a rendered one as it goes
+//! back. The wire's `WorkUnit` becomes the shared
+//! [`tessera_proto::LeasedUnit`] when it is leased (**API boundary**): the
+//! render loop, the scene and frame caches and the renderers never see a
+//! prost message.
 
-use std::collections::BTreeMap;
+use tessera_proto::{LeasedUnit, MalformedUnit, film_codec, pb};
+use tracer_core::film::{Film, RayCounts};
 
-use tessera_proto::{film_codec, pb};
-use tracer_core::adaptive::BlockMask;
-use tracer_core::film::{Film, RayCounts, WorkRegion};
-use tracer_core::scene::RenderSettings;
+/// A unit this worker holds a lease on, as read from the wire: a unit
+/// that came malformed is still held, and its failure sent back.
+pub(crate) type Queued = Result<LeasedUnit, MalformedUnit>;
 
-/// A unit this worker holds a lease on.
-#[derive(Debug)]
-pub(crate) struct LeasedUnit {
-    pub lease_id: String,
-    /// The frame, pixels and samples to render.
-    pub region: WorkRegion,
-    /// What rendering needs, or why the unit cannot be rendered (it came
-    /// malformed): sent back as the unit's failure, which the coordinator
-    /// counts like any other.
-    pub work: Result<UnitWork, String>,
-    /// The job's work units the lease covers (counted as done on acceptance).
-    pub units: u64,
+/// The lease of a queued unit, malformed or not.
+pub(crate) fn lease_id(q: &Queued) -> &str {
+    match q {
+        Ok(u) => &u.lease_id,
+        Err(m) => &m.lease_id,
+    }
 }
 
 /// A rendered unit as it goes on the wire: packed once, where it was
@@ -75,134 +70,5 @@ impl UnitFilm {
         }
         req.rays = Some(self.rays.into());
         req.nonfinite = self.nonfinite;
-    }
-}
-
-/// What rendering a unit needs besides its region.
-#[derive(Debug)]
-pub(crate) struct UnitWork {
-    pub job: JobInfo,
-    /// Adaptive jobs: the blocks of the region's rect this round samples.
-    pub active: Option<BlockMask>,
-}
-
-/// The job a unit belongs to, as a worker needs it.
-#[derive(Debug)]
-pub(crate) struct JobInfo {
-    pub job_id: String,
-    /// The scene file's name, for messages.
-    pub scene_name: String,
-    /// SHA-256 of the scene TOML.
-    pub scene_sha256: String,
-    /// Name -> SHA-256 of the files the scene references, in name order.
-    pub files: BTreeMap<String, String>,
-    pub settings: RenderSettings,
-}
-
-impl From<pb::WorkUnit> for LeasedUnit {
-    fn from(u: pb::WorkUnit) -> Self {
-        let region = u.region();
-        let work = u
-            .job
-            .ok_or_else(|| "work unit without job context".to_string())
-            .and_then(JobInfo::try_from)
-            .and_then(|job| {
-                let active = u
-                    .adaptive
-                    .then(|| BlockMask::from_bytes(region.rect, &u.active_blocks))
-                    .transpose()
-                    .map_err(|e| e.to_string())?;
-                Ok(UnitWork { job, active })
-            });
-        LeasedUnit {
-            lease_id: u.lease_id,
-            region,
-            work,
-            units: u.units.max(1) as u64,
-        }
-    }
-}
-
-impl TryFrom<pb::JobContext> for JobInfo {
-    type Error = String;
-    fn try_from(j: pb::JobContext) -> Result<Self, String> {
-        let settings =
-            RenderSettings::try_from(j.settings.unwrap_or_default()).map_err(|e| e.to_string())?;
-        Ok(JobInfo {
-            job_id: j.job_id,
-            scene_name: j.scene_name,
-            scene_sha256: j.scene_sha256,
-            files: j.assets.into_iter().collect(),
-            settings,
-        })
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use tracer_core::film::{Rect, SampleRange};
-    use tracer_core::sampling::Sampler;
-
-    fn settings() -> RenderSettings {
-        RenderSettings {
-            width: 64,
-            height: 32,
-            samples: 4,
-            max_depth: 3,
-            sampler: Sampler::Grid,
-            integrator: Default::default(),
-        }
-    }
-
-    fn wire_unit() -> pb::WorkUnit {
-        let mut u = pb::WorkUnit {
-            lease_id: "l1".into(),
-            job: Some(pb::JobContext {
-                job_id: "j1".into(),
-                scene_name: "s.toml".into(),
-                scene_sha256: "ab".into(),
-                assets: [("m.obj".to_string(), "cd".to_string())].into(),
-                settings: Some(settings().into()),
-            }),
-            ..Default::default()
-        };
-        u.set_region(WorkRegion::new(
-            2,
-            Rect::new(16, 8, 32, 16),
-            SampleRange::new(0, 4),
-        ));
-        u
-    }
-
-    #[test]
-    fn a_wire_unit_becomes_the_workers_own() {
-        let u = LeasedUnit::from(wire_unit());
-        assert_eq!(u.lease_id, "l1");
-        assert_eq!(
-            u.region,
-            WorkRegion::new(2, Rect::new(16, 8, 32, 16), SampleRange::new(0, 4))
-        );
-        let work = u.work.expect("well-formed");
-        assert_eq!(work.job.job_id, "j1");
-        assert_eq!(work.job.files["m.obj"], "cd");
-        assert_eq!(work.job.settings, settings());
-        assert!(work.active.is_none());
-    }
-
-    #[test]
-    fn a_malformed_wire_unit_keeps_its_lease_and_says_why() {
-        let mut w = wire_unit();
-        w.job = None;
-        let u = LeasedUnit::from(w);
-        assert_eq!(u.lease_id, "l1");
-        assert_eq!(u.work.unwrap_err(), "work unit without job context");
-        let mut w = wire_unit();
-        w.job.as_mut().unwrap().settings.as_mut().unwrap().width = 0;
-        assert!(LeasedUnit::from(w).work.is_err());
-        let mut w = wire_unit();
-        w.adaptive = true;
-        w.active_blocks = vec![0xff; 99];
-        assert!(LeasedUnit::from(w).work.is_err());
     }
 }

@@ -5,6 +5,7 @@
 use std::collections::{BTreeSet, HashMap};
 use std::time::Instant;
 
+use tessera_proto::LeasedJob;
 use tokio::sync::watch;
 use tracer_core::adaptive::AdaptiveSettings;
 use tracer_core::scene::RenderSettings;
@@ -61,11 +62,22 @@ fn layout_of(rec: &JobRecord) -> Layout {
         (rec.first_frame, rec.last_frame),
         rec.tile_size,
         rec.samples_per_unit,
-        rec.adaptive().as_ref(),
+        rec.adaptive.as_ref(),
     )
 }
 
 impl Job {
+    /// What a worker leasing a unit of this job (`job_id`) needs of it.
+    pub(super) fn leased(&self, job_id: &str) -> LeasedJob {
+        LeasedJob {
+            job_id: job_id.to_string(),
+            scene_name: self.rec.scene_name.clone(),
+            scene_sha256: self.rec.scene_sha256.clone(),
+            files: self.rec.assets.clone(),
+            settings: self.rec.settings,
+        }
+    }
+
     /// A stored job, its layout derived from its record.
     pub(super) fn new(rec: JobRecord, counters: Counters) -> Self {
         let layout = layout_of(&rec);
@@ -75,7 +87,7 @@ impl Job {
     /// A job whose layout ([`job_layout`] of its record) is already built:
     /// a submit builds it once, for its cost probe and the job.
     pub(super) fn with_layout(rec: JobRecord, counters: Counters, layout: Layout) -> Self {
-        let adaptive = rec.adaptive();
+        let adaptive = rec.adaptive;
         let rec_notify_pending = rec.notify_pending;
         let total = layout.total();
         let state = match rec.state {
@@ -439,7 +451,6 @@ impl Job {
             frames_progress,
             record: self.rec.clone(),
             state: self.state,
-            settings: self.rec.settings,
             counters: self.counters.clone(),
             units_total: self.layout.total() as u64,
             units_done: self.units_done,

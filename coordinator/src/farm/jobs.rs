@@ -143,7 +143,7 @@ impl Farm {
             submitted_unix_ms: now_ms(),
             finished_unix_ms: 0,
             output_dir: output_dir.to_string_lossy().into_owned(),
-            adaptive: adaptive.into(),
+            adaptive,
             requirements,
             after,
             on_done,
@@ -161,8 +161,10 @@ impl Farm {
             job = %id, name = %rec.name, scene = %rec.scene_name,
             width = settings.width, height = settings.height, samples = settings.samples,
             frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
-            target_error = rec.adaptive.target_error, relative_error = rec.adaptive.relative_error,
-            min_samples = rec.adaptive.min_samples, max_samples = rec.adaptive.max_samples,
+            target_error = rec.adaptive.map_or(0.0, |a| a.target_error),
+            relative_error = rec.adaptive.map_or(0.0, |a| a.relative_error),
+            min_samples = rec.adaptive.map_or(0, |a| a.min_samples),
+            max_samples = rec.adaptive.map_or(0, |a| a.max_samples),
             "job accepted"
         );
         let mut job = Job::with_layout(rec, Counters::default(), layout);

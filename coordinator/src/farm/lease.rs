@@ -6,6 +6,7 @@
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::time::{Duration, Instant};
 
+use tessera_proto::LeasedUnit;
 use tessera_proto::placement::meets;
 use tracer_core::film::{Rect, WorkRegion};
 use tracer_core::render::Backend;
@@ -13,8 +14,8 @@ use tracer_core::render::Backend;
 use crate::rate::WorkerSpeed;
 
 use super::{
-    Farm, FarmError, Job, JobState, Lease, LeaseView, State, Worker, WorkerCaps, now_ms,
-    public_worker_id, random_id,
+    Farm, FarmError, Job, JobState, Lease, State, Worker, WorkerCaps, now_ms, public_worker_id,
+    random_id,
 };
 
 /// The smallest lease, in seconds of the worker it goes to (unless the job
@@ -534,7 +535,7 @@ impl Farm {
         worker_id: &str,
         max_units: u32,
         ahead: bool,
-    ) -> Result<Vec<LeaseView>, FarmError> {
+    ) -> Result<Vec<LeasedUnit>, FarmError> {
         self.lease_or_hold(worker_id, max_units, ahead)
             .map(|(leases, _)| leases)
     }
@@ -547,7 +548,7 @@ impl Farm {
         worker_id: &str,
         max_units: u32,
         ahead: bool,
-    ) -> Result<(Vec<LeaseView>, bool), FarmError> {
+    ) -> Result<(Vec<LeasedUnit>, bool), FarmError> {
         let mut st = self.state.lock().expect("state lock");
         let st = &mut *st;
         let worker = st
@@ -666,7 +667,7 @@ impl Farm {
         job_id: &str,
         worker_id: &str,
         units: Vec<u32>,
-    ) -> (LeaseView, Lease) {
+    ) -> (LeasedUnit, Lease) {
         let expected_rays: f64 = units.iter().map(|&u| job.unit_work(u)).sum();
         for u in &units {
             job.pending.remove(u);
@@ -688,13 +689,9 @@ impl Farm {
             job.first_lease_unix_ms = now_ms();
         }
         job.meter.start(Instant::now());
-        let view = LeaseView {
+        let view = LeasedUnit {
             lease_id: random_id("l"),
-            job_id: job_id.to_string(),
-            scene_name: job.rec.scene_name.clone(),
-            scene_sha256: job.rec.scene_sha256.clone(),
-            assets: job.rec.assets.clone(),
-            settings: job.rec.settings,
+            job: job.leased(job_id),
             region,
             active: active.clone(),
             units: units.len() as u32,
@@ -728,7 +725,7 @@ impl Farm {
         worker_id: &str,
         speed: f64,
         busy: f64,
-    ) -> Option<LeaseView> {
+    ) -> Option<LeasedUnit> {
         // Seconds of held work of each worker, at its measured speed.
         let mut held: HashMap<&str, f64> = HashMap::new();
         for l in st.leases.values() {
@@ -806,13 +803,9 @@ impl Farm {
         };
         let job = st.jobs.get(&lease.job).expect("checked");
         tracing::debug!(lease = %lease_id, backs_up = %original, job = %lease.job, rect = ?lease.region.rect, "backup lease");
-        let view = LeaseView {
+        let view = LeasedUnit {
             lease_id: lease_id.clone(),
-            job_id: lease.job.clone(),
-            scene_name: job.rec.scene_name.clone(),
-            scene_sha256: job.rec.scene_sha256.clone(),
-            assets: job.rec.assets.clone(),
-            settings: job.rec.settings,
+            job: job.leased(&lease.job),
             region: lease.region,
             active: lease.active.clone(),
             units: lease.units.len() as u32,
@@ -835,11 +828,11 @@ impl Farm {
         max_units: u32,
         ahead: bool,
         wait: Duration,
-    ) -> Result<Vec<LeaseView>, FarmError> {
+    ) -> Result<Vec<LeasedUnit>, FarmError> {
         // Registered before looking, so a wake-up between the look and the
         // wait is not missed.
         let start = Instant::now();
-        let granted = |leases: Vec<LeaseView>| {
+        let granted = |leases: Vec<LeasedUnit>| {
             if !leases.is_empty() {
                 self.metrics.lease_granted(start.elapsed().as_secs_f64());
             }

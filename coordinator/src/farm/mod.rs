@@ -46,7 +46,6 @@ use tokio::sync::watch;
 use tracer_core::adaptive::BlockMask;
 use tracer_core::film::{Film, RayCounts, Rect, SampleRange, WorkRegion};
 use tracer_core::render::Backend;
-use tracer_core::scene::RenderSettings;
 
 use crate::assets::{AssetLimits, AssetStore, AssetStoreError};
 use crate::rate::{Meter, WorkerSpeed};
@@ -213,9 +212,10 @@ pub struct JobView {
     pub progress: f64,
     /// Each frame's progress, 0 to 1, in the order of `frames`.
     pub frames_progress: Vec<f64>,
+    /// The job as accepted; its `settings` are what every frame renders
+    /// with.
     pub record: JobRecord,
     pub state: JobState,
-    pub settings: RenderSettings,
     pub counters: Counters,
     pub units_total: u64,
     pub units_done: u64,
@@ -291,23 +291,6 @@ pub struct WorkerView {
     pub quarantined_until_unix_ms: i64,
     /// The labels jobs' requirements are matched against.
     pub labels: BTreeMap<String, String>,
-}
-
-/// A leased piece of work as handed to a worker.
-#[derive(Clone, Debug)]
-pub struct LeaseView {
-    pub lease_id: String,
-    pub job_id: String,
-    pub scene_name: String,
-    pub scene_sha256: String,
-    pub assets: BTreeMap<String, String>,
-    pub settings: RenderSettings,
-    pub region: WorkRegion,
-    /// Adaptive jobs: the blocks of `region.rect` this round samples.
-    pub active: Option<BlockMask>,
-    /// How many of the job's work units the lease covers (a fast worker
-    /// leases several tiles at once): what `tessera workers` counts.
-    pub units: u32,
 }
 
 /// A worker's result, unpacked from the wire (sizes already checked against `rect`).

@@ -1,6 +1,7 @@
 use super::*;
 use crate::store::Op;
 use std::future::Future as _;
+use tessera_proto::LeasedUnit;
 use tracer_core::scene::RenderOverrides;
 
 const SCENE: &str = r#"
@@ -66,7 +67,7 @@ async fn submits_too_large_to_hold_or_to_count_are_refused_with_the_limit_named(
 }
 
 /// A well-formed result for a lease, as a worker taking `seconds` would send.
-fn result(worker: &str, l: &LeaseView, seconds: f64) -> ResultData {
+fn result(worker: &str, l: &LeasedUnit, seconds: f64) -> ResultData {
     let mut film = Film::new(l.region.rect);
     film.counts
         .iter_mut()
@@ -429,7 +430,7 @@ async fn a_waiting_lease_request_gets_work_submitted_meanwhile() {
         "woken by the submit, not by the timeout"
     );
     assert_eq!(leases.len(), 1);
-    assert_eq!(leases[0].job_id, job);
+    assert_eq!(leases[0].job.job_id, job);
 }
 
 /// A worker killed while its result is being committed makes the gRPC
@@ -1047,7 +1048,7 @@ async fn a_unit_reported_rendered_rates_its_worker_before_its_result_comes() {
     let (fast, slow) = gpu_rated_on_a_tile_beside_a_cpu(&farm).await;
     let f2 = farm.lease(&fast, 1, false).unwrap().remove(0);
     let tiles = (f2.region.rect.area() / (16 * 16)) as f64;
-    let rays = |l: &LeaseView| l.region.rect.area() as u64 * l.region.samples.len() as u64;
+    let rays = |l: &LeasedUnit| l.region.rect.area() as u64 * l.region.samples.len() as u64;
     let speed_of = |w: &str| {
         let st = farm.state.lock().unwrap();
         (st.workers[w].ray_speed, st.workers[w].last_seconds)
@@ -1200,7 +1201,7 @@ async fn a_worker_sending_malformed_results_is_quarantined_and_cannot_fail_the_j
         farm.workers().iter().all(|w| w.id != bad && w.id != good),
         "views show public ids, never a session"
     );
-    let malformed = |l: &LeaseView| {
+    let malformed = |l: &LeasedUnit| {
         let mut r = result(&bad, l, 0.01);
         r.film.as_mut().unwrap().counts[0] = 7;
         r

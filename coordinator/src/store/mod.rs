@@ -35,7 +35,7 @@ use tokio::sync::oneshot;
 use tracer_core::film::Film;
 
 use schema::{ASSETS, COUNTERS, FRAMES_WRITTEN, JOBS, UNIT_FILMS};
-pub use schema::{AdaptiveRec, Counters, JobRecord, JobStateRec};
+pub use schema::{Counters, JobRecord, JobStateRec};
 pub use tessera_proto::film_codec::{EncodedFilm, decode_film, encode_film, encode_film_part};
 pub use writer::{Op, RESULTS_DURABLE_WITHIN, StorageHealth, StoredFilm};
 use writer::{Request, Shared};

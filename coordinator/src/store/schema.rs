@@ -59,7 +59,8 @@ pub struct JobRecord {
     pub submitted_unix_ms: i64,
     pub finished_unix_ms: i64,
     pub output_dir: String,
-    pub adaptive: AdaptiveRec,
+    /// Adaptive sampling's settings; `None`: a uniform job.
+    pub adaptive: Option<AdaptiveSettings>,
     /// Labels a worker needs to lease the job's units (issue 38).
     pub requirements: Vec<Requirement>,
     /// Jobs it runs after (`submit --after`): it waits until all are done.
@@ -88,17 +89,12 @@ impl JobRecord {
         let json: JobRecordJson = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
         JobRecord::try_from(json)
     }
-
-    /// The job's adaptive settings, if it is adaptive.
-    pub fn adaptive(&self) -> Option<AdaptiveSettings> {
-        self.adaptive.settings()
-    }
 }
 
 /// Adaptive sampling (issue 17) as a record keeps it: the error targets,
 /// absolute and relative (both 0: a uniform job), and the sample bounds.
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq)]
-pub struct AdaptiveRec {
+pub(super) struct AdaptiveRec {
     #[serde(default)]
     pub target_error: f64,
     #[serde(default)]
@@ -329,7 +325,7 @@ impl From<&JobRecord> for JobRecordJson {
             submitted_unix_ms: r.submitted_unix_ms,
             finished_unix_ms: r.finished_unix_ms,
             output_dir: r.output_dir.clone(),
-            adaptive: r.adaptive,
+            adaptive: r.adaptive.into(),
             requirements: r.requirements.iter().map(ToString::to_string).collect(),
             after: r.after.clone(),
             on_done: r.on_done.clone(),
@@ -367,7 +363,7 @@ impl TryFrom<JobRecordJson> for JobRecord {
             submitted_unix_ms: r.submitted_unix_ms,
             finished_unix_ms: r.finished_unix_ms,
             output_dir: r.output_dir,
-            adaptive: r.adaptive,
+            adaptive: r.adaptive.settings(),
             requirements: Requirement::parse_all(&r.requirements).map_err(|e| e.to_string())?,
             after: r.after,
             on_done: r.on_done,

@@ -38,7 +38,7 @@ fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
     assert_eq!((rec.first_frame, rec.last_frame, rec.priority), (1, 3, -2));
     assert_eq!(rec.state, JobStateRec::Active);
     assert_eq!(
-        rec.adaptive(),
+        rec.adaptive,
         Some(AdaptiveSettings {
             target_error: 0.01,
             relative_error: 0.0,
@@ -69,7 +69,7 @@ fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
     before.insert("sampler".into(), "jittered".into());
     let rec = JobRecord::from_json(&serde_json::to_vec(&before).unwrap()).unwrap();
     assert_eq!(rec.settings.sampler, Sampler::Jittered);
-    assert_eq!(rec.adaptive(), None);
+    assert_eq!(rec.adaptive, None);
     for s in ["grid", "jittered", "progressive"] {
         let v = serde_json::to_value(SettingsRec::from(RenderSettings {
             sampler: s.parse().unwrap(),

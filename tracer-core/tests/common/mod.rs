@@ -130,6 +130,31 @@ pub fn assert_finite(img: &[[f32; 3]]) {
     }
 }
 
+/// [`HUGE_SPHERE_FLOOR_SCENE`]'s image (`what` names the render): the
+/// light is behind the small sphere, so its shadow falls towards the
+/// camera, centred on (0, 0, -1.2), which projects to pixel (64, 60), and
+/// is ambient only. The floor nearer the camera (rows 86..96, z < -3.3) is
+/// outside the shadow and lit at N.L > 0.25: every pixel must be, or it is
+/// acne (an acne pixel is ambient only, 0.1).
+#[allow(dead_code)] // not every test binary has this case
+pub fn assert_huge_sphere_floor_lit_without_acne(what: &str, img: &[[f32; 3]]) {
+    let shadow = img[60 * 128 + 64];
+    assert!(
+        (shadow[0] - 0.1).abs() < 1e-5,
+        "{what}: floor in the sphere's shadow = {shadow:?}, want ambient 0.1"
+    );
+    let lit_min = 0.1 + 0.8 * 0.2;
+    for y in 86..96 {
+        for x in 0..128 {
+            let v = img[y * 128 + x][0];
+            assert!(
+                v as f64 > lit_min,
+                "{what}: floor pixel ({x}, {y}) = {v}: shadow acne"
+            );
+        }
+    }
+}
+
 /// A radius-1e6 sphere as the ground with a small sphere on it, lit from behind
 /// the small sphere so its shadow falls towards the camera (hard cases, CPU and GPU).
 pub const HUGE_SPHERE_FLOOR_SCENE: &str = r#"

@@ -1,6 +1,7 @@
 //! import shade.wgsl
 //! import bsdf.wgsl
 //! import sums.wgsl
+//! import stack.wgsl
 // The path integrator on the GPU (`--integrator path`): render/step.rs
 // `path`, one invocation per pixel-sample looping over its segments, with
 // the same random numbers as the CPU (vertex k at key ROOT_KEY followed by
@@ -506,7 +507,7 @@ fn path_start(origin: vec3<f32>, dir: vec3<f32>) -> PathState {
 
 // One segment of a path: render/step.rs `path`'s loop body, line for line.
 // Returns whether the path goes on; either way `st.radiance` holds what it
-// has gathered. The stack driver (`path_radiance`) loops over it, the
+// has gathered. The stack driver (`radiance`) loops over it, the
 // wavefront driver (path_wave.wgsl) runs it once a generation.
 fn path_step(st: ptr<function, PathState>, seed: u32, s: u32, tau: f32) -> bool {
     let hit = closest_through(st.o, st.d, st.skip, tau);
@@ -652,8 +653,9 @@ fn path_step(st: ptr<function, PathState>, seed: u32, s: u32, tau: f32) -> bool 
     return true;
 }
 
-// Radiance along the camera ray: render/step.rs `path`.
-fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32) -> vec3<f32> {
+// Radiance along the camera ray (stack.wgsl's `radiance`): render/step.rs
+// `path`.
+fn radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32) -> vec3<f32> {
     var st = path_start(origin, dir);
     if (MAX_DEPTH == 0u) {
         return st.radiance;
@@ -664,27 +666,4 @@ fn path_radiance(origin: vec3<f32>, dir: vec3<f32>, seed: u32, s: u32, tau: f32)
         }
     }
     return st.radiance;
-}
-
-// The path kernel's entry: whitted.wgsl `render` with the path's radiance.
-@compute @workgroup_size(WG_X, WG_Y, 1)
-fn render_path(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
-    let col = gid.x;
-    let row = params.row0 + gid.y;
-    var s = params.sample_start + gid.z;
-    var p = vec4<u32>(0u);
-    if (col < params.rect_w && gid.y < params.rows && row < params.rect_h && s < params.sample_end) {
-        p = grid_pixel(col, row);
-        s = block_sample(row, s);
-        if (s == NO_SAMPLE) {
-            p = vec4<u32>(0u);
-        }
-    }
-    if (p.w != 0u) {
-        let seed = pixel_seed(p.x, p.y, params.frame);
-        let ray = camera_ray(p.x, p.y, seed, s);
-        tally[C_PRIMARY] += 1u;
-        add_sample(p.z, path_radiance(ray.origin, ray.dir, seed, s, ray.tau));
-    }
-    flush_tally(lid);
 }

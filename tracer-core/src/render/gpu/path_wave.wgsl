@@ -5,7 +5,7 @@
 // generation is a queue of paths between two segments; one dispatch runs
 // path.wgsl's `path_step` once for every path of a generation and appends
 // those that go on to the next queue, and a path that ends adds its
-// radiance to its pixel. The step is the stack driver's (`path_radiance`
+// radiance to its pixel. The step is the stack driver's (`radiance`
 // loops over it), in the same order: a pixel's sums are the stack kernel's.
 
 // Keep in sync with layout.rs PATH_WAVE_TASK_BYTES (80 bytes).
@@ -28,7 +28,7 @@ fn path_wave_primary(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(loc
         let t = primary_task(i);
         let ray = camera_ray(t.px, t.py, t.seed, t.sample);
         tally[C_PRIMARY] += 1u;
-        // No segment at depth 0: the path adds nothing (path_radiance).
+        // No segment at depth 0: the path adds nothing (path.wgsl `radiance`).
         if (MAX_DEPTH != 0u) {
             queue_out[i] = WaveTask(path_start(ray.origin, ray.dir), t.index * 6u, t.seed, t.sample, ray.tau);
         }

@@ -5,7 +5,7 @@
 use wgpu::util::DeviceExt as _;
 
 use super::layout::{self, SceneData, TreeArray};
-use super::wgsl::{Kernel, Tree};
+use super::wgsl::{self, Kernel, Tree};
 use super::{GpuError, GpuRenderer, SceneState, Strategy, WavePipelines, check_size};
 use crate::world::World;
 
@@ -203,7 +203,7 @@ impl GpuRenderer {
                 all_constants.push(("PATH_ENV_BASE", p.env_base as f64));
             }
         }
-        let entry = kernel.entry_point();
+        let entry = wgsl::STACK_ENTRY;
         let old = old.filter(|o| o.options == self.options);
         let same_kernel = old
             .as_ref()
@@ -443,11 +443,7 @@ impl GpuRenderer {
                 label: Some("tessera adaptive"),
                 layout: Some(&self.pipeline_layout),
                 module: &scene.module,
-                entry_point: Some(if scene.data.path.is_some() {
-                    "render_path"
-                } else {
-                    "render"
-                }),
+                entry_point: Some(wgsl::STACK_ENTRY),
                 compilation_options: wgpu::PipelineCompilationOptions {
                     constants: &constants,
                     zero_initialize_workgroup_memory: true,

@@ -22,6 +22,9 @@
 //! declarations (generated after the file that uses each binding) come
 //! from that one table, so they cannot disagree.
 
+/// The stack driver's entry point (stack.wgsl), for either integrator.
+pub const STACK_ENTRY: &str = "render";
+
 /// Every .wgsl file, by name.
 pub const FILES: &[(&str, &str)] = &[
     ("accel.wgsl", include_str!("accel.wgsl")),
@@ -46,6 +49,7 @@ pub const FILES: &[(&str, &str)] = &[
     ("sampling.wgsl", include_str!("sampling.wgsl")),
     ("scene.wgsl", include_str!("scene.wgsl")),
     ("shade.wgsl", include_str!("shade.wgsl")),
+    ("stack.wgsl", include_str!("stack.wgsl")),
     ("sums.wgsl", include_str!("sums.wgsl")),
     ("wave_queue.wgsl", include_str!("wave_queue.wgsl")),
     ("wavefront.wgsl", include_str!("wavefront.wgsl")),
@@ -233,7 +237,7 @@ pub struct Kernel {
     pub stack_cap: u32,
     /// Entries of the BVH traversal stack (at most bvh::STACK + 1).
     pub bvh_stack: u32,
-    /// The path integrator's kernel (path.wgsl, entry `render_path`)
+    /// The path integrator's kernel (path.wgsl and path_wave.wgsl)
     /// instead of the Whitted drivers.
     pub path: bool,
 }
@@ -260,11 +264,6 @@ impl Kernel {
             })
         })
         .collect()
-    }
-
-    /// The scene kernel's entry point (whitted.wgsl or path.wgsl).
-    pub fn entry_point(&self) -> &'static str {
-        if self.path { "render_path" } else { "render" }
     }
 
     /// The kernel's WGSL. Its stacks' capacities must be constant
