@@ -26,22 +26,98 @@ use super::{
 
 impl Farm {
     /// Validates and queues a job. Bad scenes are refused with the message
-    /// `tessera render` prints for them.
+    /// `tessera render` prints for them. Nothing is stored before every
+    /// check has passed; the job is queued once its record is committed.
     pub async fn submit(self: &Arc<Self>, s: Submission) -> Result<String, FarmError> {
         let spec = &s.spec;
         let text = std::str::from_utf8(&s.scene).map_err(|e| {
             FarmError::InvalidArgument(format!("{}: scene is not UTF-8 text: {e}", spec.scene_name))
         })?;
         self.check_storage()?;
+        let checked = self.check_spec(spec)?;
+        let files = self.store_files(&s)?;
+        let scene = self.parse_scene(text, &spec.scene_name, &files).await?;
+        // The job's settings, parsed from the request: checked here, once.
+        let (settings, adaptive) = spec
+            .overrides
+            .resolve(&scene, &spec.adaptive)
+            .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
+        let plan = self.plan(spec, settings, adaptive.as_ref())?;
+        // Off the async threads: it traces a few rays of every tile.
+        let tile_rays = {
+            let layout = plan.layout.clone();
+            tokio::task::spawn_blocking(move || crate::cost::probe(&scene, &settings, &layout))
+                .await
+                .map_err(|e| FarmError::Internal(format!("cost probe: {e}")))?
+        };
+        let scene_sha256 = self.hold_job_files(spec, &s.scene, &files)?;
+        let id = self.new_job_id(&scene_sha256);
+        let output_dir = self.config.data_dir.join("outputs").join(&id);
+        std::fs::create_dir_all(&output_dir).map_err(|e| {
+            FarmError::Internal(format!("cannot create {}: {e}", output_dir.display()))
+        })?;
+        // The spec, resolved: what the job renders, kept across restarts.
+        let rec = JobRecord {
+            id: id.clone(),
+            name: job_name(spec),
+            scene_name: spec.scene_name.clone(),
+            scene_sha256,
+            assets: files,
+            settings,
+            first_frame: plan.frames.0,
+            last_frame: plan.frames.1,
+            priority: spec.priority,
+            tile_size: plan.tile_size,
+            samples_per_unit: plan.samples_per_unit,
+            max_attempts: plan.max_attempts,
+            state: JobStateRec::Active,
+            error: String::new(),
+            submitted_unix_ms: now_ms(),
+            finished_unix_ms: 0,
+            output_dir: output_dir.to_string_lossy().into_owned(),
+            adaptive,
+            requirements: checked.requirements,
+            after: checked.after,
+            on_done: spec.on_done.clone(),
+            blocklist_after: Some(checked.blocklist_after),
+            blocklist_seconds: Some(checked.blocklist_seconds),
+            notify_pending: false,
+        };
+        self.commit(vec![
+            Op::PutJob(rec.clone()),
+            Op::PutCounters {
+                job: id.clone(),
+                counters: Counters::default(),
+            },
+        ])
+        .await?;
+        tracing::info!(
+            job = %id, name = %rec.name, scene = %rec.scene_name,
+            width = settings.width, height = settings.height, samples = settings.samples,
+            frames = %format!("{}..{}", plan.frames.0, plan.frames.1), units = plan.layout.total(),
+            priority = rec.priority,
+            target_error = rec.adaptive.map_or(0.0, |a| a.target_error),
+            relative_error = rec.adaptive.map_or(0.0, |a| a.relative_error),
+            min_samples = rec.adaptive.map_or(0, |a| a.min_samples),
+            max_samples = rec.adaptive.map_or(0, |a| a.max_samples),
+            "job accepted"
+        );
+        let mut job = Job::with_layout(rec, Counters::default(), plan.layout);
+        job.set_tile_rays(tile_rays);
+        self.enqueue(id.clone(), job).await?;
+        Ok(id)
+    }
+
+    /// The spec's fields beside its scene and settings, checked before
+    /// anything is stored (an unknown parent job is refused at once), with
+    /// the coordinator's defaults for what it leaves out.
+    fn check_spec(&self, spec: &tessera_proto::JobSpec) -> Result<CheckedSpec, FarmError> {
         check_name("job name", &spec.name, 200)?;
         check_name("scene name", &spec.scene_name, 4096)?;
         let requirements = tessera_proto::placement::Requirement::parse_all(&spec.requirements)
             .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
-        // Before anything is stored: an unknown parent is refused at once.
         let after = self.check_after(&spec.after)?;
         self.check_on_done(&spec.on_done)?;
-        let on_done = spec.on_done.clone();
-        let blocklist_after = spec.blocklist_after.unwrap_or(self.config.blocklist_after);
         let blocklist_seconds = match spec.blocklist_seconds {
             Some(s) if !(s.is_finite() && s > 0.0) => {
                 return Err(FarmError::InvalidArgument(format!(
@@ -51,7 +127,22 @@ impl Farm {
             Some(s) => s,
             None => self.config.blocklist_for.as_secs_f64(),
         };
-        let files = self.store_files(&s)?;
+        Ok(CheckedSpec {
+            requirements,
+            after,
+            blocklist_after: spec.blocklist_after.unwrap_or(self.config.blocklist_after),
+            blocklist_seconds,
+        })
+    }
+
+    /// The job's scene, parsed (off the async threads) from its stored
+    /// files alone, as a worker will parse it; its warnings logged.
+    async fn parse_scene(
+        self: &Arc<Self>,
+        text: &str,
+        scene_name: &str,
+        files: &BTreeMap<String, String>,
+    ) -> Result<SceneDesc, FarmError> {
         let bundle = {
             let farm = self.clone();
             let files = files.clone();
@@ -61,38 +152,29 @@ impl Farm {
         };
         let scene = {
             let text = text.to_string();
-            let scene_name = spec.scene_name.clone();
+            let scene_name = scene_name.to_string();
             tokio::task::spawn_blocking(move || SceneDesc::parse_from(&text, &scene_name, &bundle))
                 .await
                 .map_err(|e| FarmError::Internal(format!("scene validation: {e}")))?
                 .map_err(|e| FarmError::InvalidArgument(e.to_string()))?
         };
         for w in &scene.warnings {
-            tracing::warn!(scene = %spec.scene_name, "{w}");
+            tracing::warn!(scene = %scene_name, "{w}");
         }
-        // The job's settings, parsed from the request: checked here, once.
-        let (settings, adaptive) = spec
-            .overrides
-            .resolve(&scene, &spec.adaptive)
-            .map_err(|e| FarmError::InvalidArgument(e.to_string()))?;
-        let Plan {
-            frames: (first, last),
-            tile_size,
-            samples_per_unit,
-            max_attempts,
-            layout,
-        } = self.plan(spec, settings, adaptive.as_ref())?;
-        // Off the async threads: it traces a few rays of every tile.
-        let tile_rays = {
-            let layout = layout.clone();
-            tokio::task::spawn_blocking(move || crate::cost::probe(&scene, &settings, &layout))
-                .await
-                .map_err(|e| FarmError::Internal(format!("cost probe: {e}")))?
-        };
-        let scene_sha256 = self.assets.put(&s.scene).map_err(asset_error)?;
-        // Held again, now that the job is about to name them: a retention
-        // shorter than this submit took must not leave a job whose files
-        // are gone.
+        Ok(scene)
+    }
+
+    /// Stores the scene file and holds it and the job's `files` again, now
+    /// that the job is about to name them: a retention shorter than this
+    /// submit took must not leave a job whose files are gone. The scene's
+    /// hash.
+    fn hold_job_files(
+        &self,
+        spec: &tessera_proto::JobSpec,
+        scene: &[u8],
+        files: &BTreeMap<String, String>,
+    ) -> Result<String, FarmError> {
+        let scene_sha256 = self.assets.put(scene).map_err(asset_error)?;
         for (name, sha256) in files.iter().chain([(&spec.scene_name, &scene_sha256)]) {
             if self.assets.hold(sha256).is_none() {
                 return Err(FarmError::FailedPrecondition(format!(
@@ -101,81 +183,31 @@ impl Farm {
                 )));
             }
         }
-        let assets = files;
-        let mut ops = Vec::new();
-        let id = {
-            let mut st = self.state.lock().expect("state lock");
-            st.next_id += 1;
-            format!(
-                "j{}",
-                &sha256_hex(
-                    format!("{scene_sha256}{}{}{}", self.boot, st.next_id, now_ms()).as_bytes()
-                )[..10]
-            )
-        };
-        let name = if spec.name.is_empty() {
-            std::path::Path::new(&spec.scene_name)
-                .file_stem()
-                .map_or("job".into(), |n| n.to_string_lossy().into_owned())
-        } else {
-            spec.name.clone()
-        };
-        let output_dir = self.config.data_dir.join("outputs").join(&id);
-        std::fs::create_dir_all(&output_dir).map_err(|e| {
-            FarmError::Internal(format!("cannot create {}: {e}", output_dir.display()))
-        })?;
-        // The spec, resolved: what the job renders, kept across restarts.
-        let rec = JobRecord {
-            id: id.clone(),
-            name,
-            scene_name: spec.scene_name.clone(),
-            scene_sha256,
-            assets,
-            settings,
-            first_frame: first,
-            last_frame: last,
-            priority: spec.priority,
-            tile_size,
-            samples_per_unit,
-            max_attempts,
-            state: JobStateRec::Active,
-            error: String::new(),
-            submitted_unix_ms: now_ms(),
-            finished_unix_ms: 0,
-            output_dir: output_dir.to_string_lossy().into_owned(),
-            adaptive,
-            requirements,
-            after,
-            on_done,
-            blocklist_after: Some(blocklist_after),
-            blocklist_seconds: Some(blocklist_seconds),
-            notify_pending: false,
-        };
-        ops.push(Op::PutJob(rec.clone()));
-        ops.push(Op::PutCounters {
-            job: id.clone(),
-            counters: Counters::default(),
-        });
-        self.commit(ops).await?;
-        tracing::info!(
-            job = %id, name = %rec.name, scene = %rec.scene_name,
-            width = settings.width, height = settings.height, samples = settings.samples,
-            frames = %format!("{first}..{last}"), units = layout.total(), priority = rec.priority,
-            target_error = rec.adaptive.map_or(0.0, |a| a.target_error),
-            relative_error = rec.adaptive.map_or(0.0, |a| a.relative_error),
-            min_samples = rec.adaptive.map_or(0, |a| a.min_samples),
-            max_samples = rec.adaptive.map_or(0, |a| a.max_samples),
-            "job accepted"
-        );
-        let mut job = Job::with_layout(rec, Counters::default(), layout);
-        job.set_tile_rays(tile_rays);
+        Ok(scene_sha256)
+    }
+
+    /// A new job's id: unique to this coordinator's run and its data.
+    fn new_job_id(&self, scene_sha256: &str) -> String {
+        let mut st = self.state.lock().expect("state lock");
+        st.next_id += 1;
+        format!(
+            "j{}",
+            &sha256_hex(
+                format!("{scene_sha256}{}{}{}", self.boot, st.next_id, now_ms()).as_bytes()
+            )[..10]
+        )
+    }
+
+    /// A committed job joins the farm: waiting for its parents (queued at
+    /// once by `jobs_ended` if they are done by now), else queued; idle
+    /// workers are woken.
+    async fn enqueue(&self, id: String, mut job: Job) -> Result<(), FarmError> {
         if !job.rec.after.is_empty() {
-            // Queued by `jobs_ended` at once if its parents are done by now.
             job.state = JobState::Waiting;
         }
         let failed = {
             let mut st = self.state.lock().expect("state lock");
-            st.jobs.insert(id.clone(), job);
+            st.jobs.insert(id, job);
             // A parent may have ended while this submit ran.
             self.jobs_ended(&mut st)
         };
@@ -184,7 +216,7 @@ impl Farm {
                 .await?;
         }
         self.work_ready.notify_waiters();
-        Ok(id)
+        Ok(())
     }
 
     /// The job's files, checked and held: inline ones stored now, uploaded
@@ -586,6 +618,25 @@ fn check_file_name(name: &str) -> Result<(), FarmError> {
         )));
     }
     Ok(())
+}
+
+/// What [`Farm::check_spec`] makes of a spec's fields beside its scene.
+struct CheckedSpec {
+    requirements: Vec<tessera_proto::placement::Requirement>,
+    after: Vec<String>,
+    blocklist_after: u32,
+    blocklist_seconds: f64,
+}
+
+/// The job's name: as given, else its scene file's stem.
+fn job_name(spec: &tessera_proto::JobSpec) -> String {
+    if spec.name.is_empty() {
+        std::path::Path::new(&spec.scene_name)
+            .file_stem()
+            .map_or("job".into(), |n| n.to_string_lossy().into_owned())
+    } else {
+        spec.name.clone()
+    }
 }
 
 /// What [`Farm::plan`] makes of a submission: its frame range, tiles,

@@ -833,71 +833,17 @@ impl SceneDesc {
         files: &dyn AssetSource,
     ) -> Result<Self, SceneError> {
         let path = path.as_ref().to_path_buf();
-        let file: SceneFile = toml::from_str(src).map_err(|e| {
-            if let Err((offset, message)) = locate_parse_error(src) {
-                return SceneError::Parse {
-                    path: path.clone(),
-                    location: Location::of_offset(src, offset),
-                    message,
-                };
-            }
-            let start = e.span().map_or(0, |s| s.start);
-            let mut message = e.message().trim_end().to_string();
-            // Errors inside an array-of-tables element point at its header:
-            // say which element, since the header line is the same for all.
-            if let Some(name) = src
-                .get(start..)
-                .and_then(|r| r.strip_prefix("[["))
-                .and_then(|r| r.split("]]").next())
-            {
-                let index = src[..start].matches(&format!("[[{name}]]")).count();
-                message = format!("{name}[{index}]: {message}");
-            }
-            SceneError::Parse {
-                path: path.clone(),
-                location: Location::of_offset(src, start),
-                message,
-            }
-        })?;
+        let file = parse_toml(src, &path)?;
         let sp = Spans { src, path: &path };
         let invalid = |span, field, message| sp.invalid(span, field, message);
         let table_span = |name: &str| sp.table(name);
 
-        let mut render = RenderSettings::default();
-        let mut adaptive = super::adaptive::AdaptiveSpec::default();
-        if let Some(t) = &file.render {
-            adaptive = super::adaptive::AdaptiveSpec {
-                target_error: t.target_error.map(|n| n.0),
-                relative_error: t.relative_error.map(|n| n.0),
-                min_samples: t.min_samples,
-                max_samples: t.max_samples,
-            };
-            adaptive
-                .check()
-                .map_err(|(key, m)| invalid(table_span("render"), format!("render.{key}"), m))?;
-        }
+        let (mut render, adaptive) = render_of(file.render.as_ref(), &sp)?;
         // What `[render]` gives of the size: a model camera's aspect ratio decides the rest.
         let given_size = file
             .render
             .as_ref()
             .map_or((None, None), |t| (t.width, t.height));
-        if let Some(t) = file.render {
-            // The file's table overrides the defaults as flags override the file.
-            render = super::RenderOverrides {
-                width: t.width,
-                height: t.height,
-                samples: t.samples,
-                max_depth: t.max_depth,
-                sampler: t.sampler,
-                integrator: t.integrator,
-            }
-            .over(&render);
-        }
-        render.validate().map_err(|m| {
-            // "samples must be ...": the field, then what is wrong with it.
-            let (key, what) = m.split_once(' ').unwrap_or(("", &m));
-            invalid(table_span("render"), format!("render.{key}"), what.into())
-        })?;
 
         let cam_err =
             |field: &str, m: String| invalid(table_span("camera"), format!("camera.{field}"), m);
@@ -930,59 +876,8 @@ impl SceneDesc {
             };
             let mut ov = ov.clone();
             match &mut ov {
-                ObjectDesc::Sphere {
-                    center,
-                    radius,
-                    keyframes,
-                    ..
-                } => {
-                    if !center.is_finite() {
-                        return Err(err("center", format!("must be finite, got {:?}", center.0)));
-                    }
-                    for (k, key) in keyframes.iter().enumerate() {
-                        if !key.center.is_finite() {
-                            return Err(err(
-                                &format!("keyframes[{k}].center"),
-                                format!("must be finite, got {:?}", key.center.0),
-                            ));
-                        }
-                        if k > 0 && key.frame <= keyframes[k - 1].frame {
-                            return Err(err(
-                                &format!("keyframes[{k}].frame"),
-                                format!(
-                                    "keyframes must be in increasing frame order, got frame {} after frame {}",
-                                    key.frame,
-                                    keyframes[k - 1].frame
-                                ),
-                            ));
-                        }
-                    }
-                    if !(radius.0.is_finite() && radius.0 > 0.0) {
-                        return Err(err(
-                            "radius",
-                            format!("must be a finite number > 0, got {}", radius.0),
-                        ));
-                    }
-                }
-                ObjectDesc::Plane {
-                    normal, distance, ..
-                } => {
-                    let len = normal.length();
-                    if !normal.is_finite() || !(len > 0.0) {
-                        return Err(err(
-                            "normal",
-                            format!("must be a finite, non-zero vector, got {:?}", normal.0),
-                        ));
-                    }
-                    if !distance.0.is_finite() {
-                        return Err(err(
-                            "distance",
-                            format!("must be finite, got {}", distance.0),
-                        ));
-                    }
-                    // Normalise: { p : p.n = d } is the same plane as { p : p.(n/|n|) = d/|n| }.
-                    normal.0 = normal.0.map(|v| v / len);
-                    distance.0 /= len;
+                ObjectDesc::Sphere { .. } | ObjectDesc::Plane { .. } => {
+                    check_analytic(&mut ov).map_err(|(f, m)| err(&f, m))?;
                 }
                 ObjectDesc::Mesh(m) => {
                     m.validate().map_err(|(f, msg)| err(f, msg))?;
@@ -1228,6 +1123,140 @@ impl Spans<'_> {
             .map(|i| i..i + header.len())
             .unwrap_or(0..0)
     }
+}
+
+/// The scene file's TOML, or an error at its line and column (an element
+/// of an array of tables named with its index).
+fn parse_toml(src: &str, path: &Path) -> Result<SceneFile, SceneError> {
+    toml::from_str(src).map_err(|e| {
+        if let Err((offset, message)) = locate_parse_error(src) {
+            return SceneError::Parse {
+                path: path.to_path_buf(),
+                location: Location::of_offset(src, offset),
+                message,
+            };
+        }
+        let start = e.span().map_or(0, |s| s.start);
+        let mut message = e.message().trim_end().to_string();
+        // Errors inside an array-of-tables element point at its header:
+        // say which element, since the header line is the same for all.
+        if let Some(name) = src
+            .get(start..)
+            .and_then(|r| r.strip_prefix("[["))
+            .and_then(|r| r.split("]]").next())
+        {
+            let index = src[..start].matches(&format!("[[{name}]]")).count();
+            message = format!("{name}[{index}]: {message}");
+        }
+        SceneError::Parse {
+            path: path.to_path_buf(),
+            location: Location::of_offset(src, start),
+            message,
+        }
+    })
+}
+
+/// `[render]`'s settings over the defaults, and its adaptive keys, checked.
+fn render_of(
+    table: Option<&RenderTable>,
+    sp: &Spans<'_>,
+) -> Result<(RenderSettings, super::adaptive::AdaptiveSpec), SceneError> {
+    let invalid = |field: String, message| sp.invalid(sp.table("render"), field, message);
+    let mut render = RenderSettings::default();
+    let mut adaptive = super::adaptive::AdaptiveSpec::default();
+    if let Some(t) = table {
+        adaptive = super::adaptive::AdaptiveSpec {
+            target_error: t.target_error.map(|n| n.0),
+            relative_error: t.relative_error.map(|n| n.0),
+            min_samples: t.min_samples,
+            max_samples: t.max_samples,
+        };
+        adaptive
+            .check()
+            .map_err(|(key, m)| invalid(format!("render.{key}"), m))?;
+        // The file's table overrides the defaults as flags override the file.
+        render = super::RenderOverrides {
+            width: t.width,
+            height: t.height,
+            samples: t.samples,
+            max_depth: t.max_depth,
+            sampler: t.sampler,
+            integrator: t.integrator,
+        }
+        .over(&render);
+    }
+    render.validate().map_err(|m| {
+        // "samples must be ...": the field, then what is wrong with it.
+        let (key, what) = m.split_once(' ').unwrap_or(("", &m));
+        invalid(format!("render.{key}"), what.into())
+    })?;
+    Ok((render, adaptive))
+}
+
+/// A sphere's or a plane's values checked (the field at fault and why),
+/// a plane's normal made unit length.
+fn check_analytic(o: &mut ObjectDesc) -> Result<(), (String, String)> {
+    match o {
+        ObjectDesc::Sphere {
+            center,
+            radius,
+            keyframes,
+            ..
+        } => {
+            if !center.is_finite() {
+                return Err((
+                    "center".into(),
+                    format!("must be finite, got {:?}", center.0),
+                ));
+            }
+            for (k, key) in keyframes.iter().enumerate() {
+                if !key.center.is_finite() {
+                    return Err((
+                        format!("keyframes[{k}].center"),
+                        format!("must be finite, got {:?}", key.center.0),
+                    ));
+                }
+                if k > 0 && key.frame <= keyframes[k - 1].frame {
+                    return Err((
+                        format!("keyframes[{k}].frame"),
+                        format!(
+                            "keyframes must be in increasing frame order, got frame {} after frame {}",
+                            key.frame,
+                            keyframes[k - 1].frame
+                        ),
+                    ));
+                }
+            }
+            if !(radius.0.is_finite() && radius.0 > 0.0) {
+                return Err((
+                    "radius".into(),
+                    format!("must be a finite number > 0, got {}", radius.0),
+                ));
+            }
+        }
+        ObjectDesc::Plane {
+            normal, distance, ..
+        } => {
+            let len = normal.length();
+            if !normal.is_finite() || !(len > 0.0) {
+                return Err((
+                    "normal".into(),
+                    format!("must be a finite, non-zero vector, got {:?}", normal.0),
+                ));
+            }
+            if !distance.0.is_finite() {
+                return Err((
+                    "distance".into(),
+                    format!("must be finite, got {}", distance.0),
+                ));
+            }
+            // Normalise: { p : p.n = d } is the same plane as { p : p.(n/|n|) = d/|n| }.
+            normal.0 = normal.0.map(|v| v / len);
+            distance.0 /= len;
+        }
+        _ => {}
+    }
+    Ok(())
 }
 
 /// `[world]` checked, its environment image loaded from `files`.
