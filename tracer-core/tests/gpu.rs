@@ -2344,6 +2344,101 @@ fn gpu_blocks_over_their_own_ranges_in_one_grid_equal_one_round_per_range() {
 }
 
 #[test]
+fn gpu_rmse_rounds_keep_the_film_on_the_gpu_and_estimate_as_the_host() {
+    // The error-optimal mode on the GPU keeps its film there and decides
+    // each round from 16 bytes a block. Its film must be the blocks'
+    // uniform samples at the counts it stopped at (the ranged render of
+    // those counts from zero, bit for bit), and its statistics what the
+    // host's f64 statistics of that film say: each round's estimated RMSE
+    // and the image mean, within f32 summing.
+    use tracer_core::adaptive::BlockMask;
+    use tracer_core::adaptive::optimal::{RmseSettings, block_stats, estimated_mse, image_mean};
+    use tracer_core::render::adaptive;
+    if gpu().is_none() {
+        return;
+    }
+    let r = gpu_renderer().expect("the adapter opened once already");
+    let desc = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();
+    for (target, relative) in [(0.01, 0.0), (0.0, 0.02)] {
+        let o = RmseSettings {
+            target_rmse: target,
+            relative_rmse: relative,
+            min_samples: 4,
+            max_samples: 64,
+        };
+        let base = RenderSettings {
+            width: 61,
+            height: 43,
+            ..desc.render
+        };
+        let prepared =
+            PreparedFrame::build(&desc, &o.render_settings(base), 0, Precision::F32).unwrap();
+        let mut reports = vec![];
+        let film =
+            adaptive::render_rmse(r, &prepared, 0, &o, &|_| {}, &mut |rep| reports.push(*rep))
+                .unwrap_or_else(|e| panic!("GPU error-optimal render: {e}"));
+        let label = format!("target {target}, relative {relative}");
+        eprintln!(
+            "{label}: {} rounds, last {:?}",
+            reports.len(),
+            reports.last()
+        );
+        let rect = film.rect;
+        let blocks = BlockMask::none(rect);
+        let counts: Vec<u32> = (0..blocks.active.len())
+            .map(|i| {
+                let b = blocks.block_rect(i);
+                film.counts[((b.y - rect.y) * rect.width + (b.x - rect.x)) as usize]
+            })
+            .collect();
+        let mut host = Film::with_squares(rect);
+        let mut costs = tracer_core::adaptive::optimal::Costs::new(rect);
+        adaptive::render_blocks(
+            r,
+            &prepared,
+            0,
+            &vec![0; counts.len()],
+            &counts,
+            &mut host,
+            &mut costs,
+            &|_| {},
+        )
+        .unwrap();
+        assert_eq!(film.counts, host.counts, "{label}: counts");
+        assert_eq!(film.sums, host.sums, "{label}: sums");
+        assert_eq!(film.squares, host.squares, "{label}: squares");
+        assert_eq!(film.rays, host.rays, "{label}: ray counts");
+        let last = reports.last().expect("a round at least");
+        let host_rmse = estimated_mse(&block_stats(&host, rect, None)).sqrt();
+        let rel = (last.estimated_rmse - host_rmse).abs() / host_rmse;
+        assert!(
+            rel < 1e-4,
+            "{label}: estimated RMSE {} against the host's {host_rmse}",
+            last.estimated_rmse
+        );
+        let want_target = o.target_mse(image_mean(&host)).sqrt();
+        let rel = (last.target_rmse - want_target).abs() / want_target;
+        assert!(
+            rel < 1e-4,
+            "{label}: target {} against {want_target}",
+            last.target_rmse
+        );
+        assert!(
+            last.estimated_rmse <= last.target_rmse || counts.iter().all(|&n| n == 64),
+            "{label}: {last:?}"
+        );
+        assert!(reports.len() >= 2, "{label}: {reports:?}");
+        let pixel_samples: u64 = film.counts.iter().map(|&n| n as u64).sum();
+        assert_eq!(last.pixel_samples, pixel_samples, "{label}");
+        let (lo, hi) = (counts.iter().min().unwrap(), counts.iter().max().unwrap());
+        assert!(
+            hi > lo,
+            "{label}: samples go where the noise is: {lo}..{hi}"
+        );
+    }
+}
+
+#[test]
 fn gpu_rounds_decided_on_the_gpu_match_the_hosts_decisions() {
     // The resident render (converge.wgsl between rounds, no read-back)
     // against rounds decided on the host from the read-back film (f64):

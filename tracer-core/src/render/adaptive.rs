@@ -7,7 +7,7 @@
 //! [`crate::adaptive`]'s.
 
 use crate::adaptive::optimal::{
-    Costs, RmseSettings, allocate, block_stats, estimated_mse, image_mean,
+    BlockStats, Costs, RmseSettings, allocate, block_stats, estimated_mse, image_mean,
 };
 use crate::adaptive::{AdaptiveSettings, BlockMask, Summary, next_active, summarize};
 use crate::film::{Film, Rect, SampleRange};
@@ -155,11 +155,91 @@ pub struct RmseRound {
     pub target_rmse: f64,
 }
 
+/// The error-optimal mode's decisions, one for its CPU and GPU drivers:
+/// `min_samples` everywhere first; after each round, from the blocks'
+/// statistics, the round's report and either the end (the estimated image
+/// RMSE is at most the target, or no block may grow) or each block's next
+/// count, towards its share of the cheapest allocation meeting the
+/// target.
+pub struct RmseRounds<'a> {
+    settings: &'a RmseSettings,
+    /// Each block's samples so far, and after the next round.
+    n: Vec<u32>,
+    next: Vec<u32>,
+    round: usize,
+    started: std::time::Instant,
+    // Shared, not `FnMut`, so that the GPU's driver can hold these rounds
+    // for a shorter borrow than their own.
+    on_round: &'a dyn Fn(&RmseRound),
+}
+
+impl<'a> RmseRounds<'a> {
+    pub fn new(
+        settings: &'a RmseSettings,
+        blocks: usize,
+        on_round: &'a dyn Fn(&RmseRound),
+    ) -> Self {
+        RmseRounds {
+            settings,
+            n: vec![0; blocks],
+            next: vec![settings.min_samples; blocks],
+            round: 0,
+            started: std::time::Instant::now(),
+            on_round,
+        }
+    }
+
+    /// The next round, block `i` from `from[i]` to `to[i]` samples; `None`
+    /// once the render is done.
+    pub fn pending(&self) -> Option<(&[u32], &[u32])> {
+        self.n
+            .iter()
+            .zip(&self.next)
+            .any(|(a, b)| b > a)
+            .then_some((&self.n, &self.next))
+    }
+
+    /// After the pending round: the blocks' statistics (at their new
+    /// counts) and the image's mean decide the next one, and the round is
+    /// reported.
+    pub fn after_round(&mut self, stats: &[BlockStats], image_mean: f64) {
+        let active_blocks = self.n.iter().zip(&self.next).filter(|(a, b)| b > a).count();
+        self.n.clone_from(&self.next);
+        let o = self.settings;
+        let mse = estimated_mse(stats);
+        let target = o.target_mse(image_mean);
+        let now = std::time::Instant::now();
+        (self.on_round)(&RmseRound {
+            round: self.round,
+            active_blocks,
+            seconds: (now - self.started).as_secs_f64(),
+            pixel_samples: stats
+                .iter()
+                .map(|s| s.rect.area() as u64 * s.n as u64)
+                .sum(),
+            estimated_rmse: mse.sqrt(),
+            target_rmse: target.sqrt(),
+        });
+        self.started = now;
+        self.round += 1;
+        if mse > target {
+            // Aim a little below the target: a round that lands just above
+            // it would cost a whole further round for a few samples.
+            let want = allocate(stats, &self.n, 0.9 * target, o.max_samples);
+            self.next = self
+                .n
+                .iter()
+                .zip(&want)
+                .map(|(&n, &w)| o.step(n, w))
+                .collect();
+        }
+    }
+}
+
 /// Renders a whole frame in the error-optimal mode (see
-/// [`crate::adaptive::optimal`]): `min_samples` everywhere, then rounds
-/// that move each block towards its share of the cheapest allocation
-/// meeting the target (re-estimated after each round), until the
-/// estimated image RMSE is at most the target or no block may grow.
+/// [`crate::adaptive::optimal`] and [`RmseRounds`]). On the GPU the
+/// film stays there between rounds, and only each block's statistics come
+/// back (`GpuRenderer::render_rmse`).
 /// `prepared` must have been built with [`RmseSettings::render_settings`].
 pub fn render_rmse(
     renderer: &Renderer,
@@ -171,40 +251,28 @@ pub fn render_rmse(
 ) -> Result<Film, RendererError> {
     let s = prepared.settings();
     let rect = Rect::full(s.width, s.height);
-    let mut film = Film::with_squares(rect);
     let mut costs = Costs::new(rect);
-    let blocks = costs.rays.len();
-    let mut n = vec![0u32; blocks];
-    let mut next = vec![o.min_samples; blocks];
-    for round in 0.. {
-        let active_blocks = n.iter().zip(&next).filter(|(a, b)| b > a).count();
-        if active_blocks == 0 {
-            break;
+    let on_round = std::sync::Mutex::new(on_round);
+    let report = |r: &RmseRound| {
+        if let Ok(mut f) = on_round.lock() {
+            f(r)
         }
-        let start = std::time::Instant::now();
+    };
+    let rounds = RmseRounds::new(o, costs.rays.len(), &report);
+    #[cfg(feature = "gpu")]
+    if let Renderer::Gpu(r) = renderer {
+        return Ok(r.render_rmse(prepared, frame, rounds, progress)?);
+    }
+    let mut rounds = rounds;
+    let mut film = Film::with_squares(rect);
+    while let Some((from, to)) = rounds.pending() {
+        let (from, to) = (from.to_vec(), to.to_vec());
         render_blocks(
-            renderer, prepared, frame, &n, &next, &mut film, &mut costs, progress,
+            renderer, prepared, frame, &from, &to, &mut film, &mut costs, progress,
         )?;
-        n.clone_from(&next);
         let measured = costs.rays.iter().any(|&r| r > 0.0);
         let stats = block_stats(&film, rect, measured.then_some(&costs));
-        let mse = estimated_mse(&stats);
-        let target = o.target_mse(image_mean(&film));
-        on_round(&RmseRound {
-            round,
-            active_blocks,
-            seconds: start.elapsed().as_secs_f64(),
-            pixel_samples: film.counts.iter().map(|&c| c as u64).sum(),
-            estimated_rmse: mse.sqrt(),
-            target_rmse: target.sqrt(),
-        });
-        if mse <= target {
-            break;
-        }
-        // Aim a little below the target: a round that lands just above it
-        // would cost a whole further round for a few samples.
-        let want = allocate(&stats, &n, 0.9 * target, o.max_samples);
-        next = n.iter().zip(&want).map(|(&n, &w)| o.step(n, w)).collect();
+        rounds.after_round(&stats, image_mean(&film));
     }
     Ok(film)
 }

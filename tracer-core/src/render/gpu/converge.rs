@@ -11,15 +11,18 @@
 //! uses f64, so only a block whose error lies within f32 rounding of the
 //! target can go the other way.
 
+use std::sync::Mutex;
 use std::time::Instant;
 
 use wgpu::util::DeviceExt as _;
 
+use super::grid::Grid;
 use super::layout::{ConvergeParams, GpuBlockStats};
 use super::{GpuError, GpuRenderer, entire, sized, wgsl};
+use crate::adaptive::optimal::BlockStats;
 use crate::adaptive::{AdaptiveSettings, BLOCK, BlockMask, BlockStatus, summarize_blocks};
 use crate::film::{Rect, SampleRange};
-use crate::render::adaptive::RoundReport;
+use crate::render::adaptive::{RmseRounds, RoundReport};
 
 /// What an adaptive render on the GPU is given: its settings, every block
 /// of the frame, and who is told after each round.
@@ -27,6 +30,25 @@ pub(super) struct Resident<'a> {
     pub settings: &'a AdaptiveSettings,
     pub mask: BlockMask,
     pub on_round: &'a dyn Fn(&RoundReport),
+}
+
+/// What an error-optimal render on the GPU is given: every block of the
+/// frame and the mode's decisions, taken on the host from the blocks'
+/// statistics after each round.
+pub(super) struct RmseResident<'a> {
+    pub mask: BlockMask,
+    pub rounds: Mutex<RmseRounds<'a>>,
+}
+
+/// An error-optimal render's rounds in flight.
+pub(super) struct RmseChain<'a> {
+    resident: &'a RmseResident<'a>,
+    group: wgpu::BindGroup,
+    _params: wgpu::Buffer,
+    stats: wgpu::Buffer,
+    read: wgpu::Buffer,
+    /// The latest statistics: each block's samples.
+    pub last: Vec<GpuBlockStats>,
 }
 
 /// The convergence kernel, made on first use.
@@ -80,6 +102,173 @@ impl GpuRenderer {
         Ok(guard)
     }
 
+    fn converge_group(
+        &self,
+        params: &wgpu::Buffer,
+        sums: &wgpu::Buffer,
+        sums_bytes: u64,
+        blocks: &wgpu::Buffer,
+        stats: &wgpu::Buffer,
+        ranges: &wgpu::Buffer,
+    ) -> Result<wgpu::BindGroup, GpuError> {
+        let guard = self.converger()?;
+        let c = guard.as_ref().expect("just made");
+        let b = |name| wgsl::CONVERGE.binding(name);
+        Ok(self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tessera converge"),
+            layout: &c.layout,
+            entries: &[
+                entire(b("params"), params),
+                sized(b("sums"), sums, sums_bytes),
+                entire(b("active_blocks"), blocks),
+                entire(b("block_stats"), stats),
+                entire(b("count_ranges"), ranges),
+            ],
+        }))
+    }
+
+    /// The convergence kernel over every block of the group's film, then
+    /// its statistics copied to `read`; submitted.
+    fn encode_stats(
+        &self,
+        group: &wgpu::BindGroup,
+        blocks: u32,
+        stats: &wgpu::Buffer,
+        read: &wgpu::Buffer,
+    ) -> Result<wgpu::SubmissionIndex, GpuError> {
+        let guard = self.converger()?;
+        let c = guard.as_ref().expect("made at start");
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera converge"),
+            });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("tessera converge"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&c.pipeline);
+            pass.set_bind_group(0, group, &[]);
+            self.dispatch_groups(&mut pass, blocks);
+        }
+        enc.copy_buffer_to_buffer(stats, 0, read, 0, None);
+        Ok(self.queue.submit([enc.finish()]))
+    }
+
+    /// Sets up the error-optimal rounds of `resident` over the film `rect`
+    /// (sums `sums`; `blocks` and `ranges` the grid's lists of every block).
+    pub(super) fn start_rmse_rounds<'a>(
+        &self,
+        resident: &'a RmseResident<'a>,
+        rect: Rect,
+        sums: &wgpu::Buffer,
+        sums_bytes: u64,
+        blocks: &wgpu::Buffer,
+        ranges: &wgpu::Buffer,
+    ) -> Result<RmseChain<'a>, GpuError> {
+        let n = resident.mask.active.len();
+        let params = ConvergeParams {
+            film_w: rect.width,
+            film_h: rect.height,
+            cols: rect.width.div_ceil(BLOCK),
+            blocks: n as u32,
+            samples: 0,
+            ranged: 1,
+            absolute: 0.0,
+            relative: 0.0,
+        };
+        let params = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("converge params"),
+                contents: bytemuck::bytes_of(&params),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+        let bytes = (n * size_of::<GpuBlockStats>()) as u64;
+        let stats = self.buffer(
+            "block stats",
+            bytes,
+            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        );
+        let read = self.buffer(
+            "block stats read",
+            bytes,
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        );
+        let group = self.converge_group(&params, sums, sums_bytes, blocks, &stats, ranges)?;
+        Ok(RmseChain {
+            resident,
+            group,
+            _params: params,
+            stats,
+            read,
+            last: Vec::new(),
+        })
+    }
+
+    /// After an error-optimal round's dispatches (submitted, taking each
+    /// block over its range of `grid`): its statistics, read back (16 bytes
+    /// a block), decide the next round on the host ([`RmseRounds`]), whose
+    /// ranges then go to the grid. The next round's longest range; `None`
+    /// when the render is done.
+    pub(super) fn end_rmse_round(
+        &self,
+        chain: &mut RmseChain<'_>,
+        grid: &mut Grid<'_>,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<Option<SampleRange>, GpuError> {
+        let mask = &chain.resident.mask;
+        let n = mask.active.len();
+        let index = self.encode_stats(&chain.group, n as u32, &chain.stats, &chain.read)?;
+        let bytes = (n * size_of::<GpuBlockStats>()) as u64;
+        chain.last = self.read_after(&chain.read, bytes, Some(index), |b| {
+            bytemuck::pod_collect_to_vec::<u8, GpuBlockStats>(b)
+        })?;
+        let ranges = grid.ranges().expect("a ranged grid");
+        progress(
+            ranges
+                .iter()
+                .enumerate()
+                .map(|(i, r)| mask.block_rect(i).area() as u64 * (r[1] - r[0]) as u64)
+                .sum(),
+        );
+        let (mut mean_sum, mut pixels) = (0.0f64, 0u64);
+        let stats: Vec<BlockStats> = chain
+            .last
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let rect = mask.block_rect(i);
+                let area = rect.area() as u64;
+                mean_sum += f32::from_bits(s.mean_sum) as f64;
+                pixels += area;
+                BlockStats {
+                    rect,
+                    n: s.samples,
+                    w: f32::from_bits(s.variance_sum) as f64 * s.samples as f64 / (3 * area) as f64,
+                    // The GPU measures no cost per block.
+                    cost: 1.0,
+                }
+            })
+            .collect();
+        let mut rounds = chain
+            .resident
+            .rounds
+            .lock()
+            .map_err(|_| GpuError::Device("error-optimal rounds poisoned".into()))?;
+        rounds.after_round(&stats, mean_sum / (3 * pixels.max(1)) as f64);
+        Ok(match rounds.pending() {
+            None => None,
+            Some((from, to)) => {
+                let next: Vec<[u32; 2]> = from.iter().zip(to).map(|(&a, &b)| [a, b]).collect();
+                let longest = next.iter().map(|r| r[1] - r[0]).max().unwrap_or(0);
+                grid.set_ranges(&self.queue, next);
+                Some(SampleRange::new(0, longest))
+            }
+        })
+    }
+
     /// Sets up the rounds of `resident` over the film `rect` whose sums are
     /// `sums` and whose block list (every block, in mask order) is `blocks`.
     pub(super) fn start_rounds<'a>(
@@ -99,7 +288,7 @@ impl GpuRenderer {
             cols: rect.width.div_ceil(BLOCK),
             blocks: n as u32,
             samples: 0,
-            _pad: 0,
+            ranged: 0,
             absolute: target.absolute as f32,
             relative: target.relative as f32,
         };
@@ -125,19 +314,9 @@ impl GpuRenderer {
                 )
             })
             .collect();
-        let guard = self.converger()?;
-        let c = guard.as_ref().expect("just made");
-        let b = |name| wgsl::CONVERGE.binding(name);
-        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("tessera converge"),
-            layout: &c.layout,
-            entries: &[
-                entire(b("params"), &params),
-                sized(b("sums"), sums, sums_bytes),
-                entire(b("active_blocks"), blocks),
-                entire(b("block_stats"), &stats),
-            ],
-        });
+        // The per-pixel test reads no ranges: a stand-in binding.
+        let no_ranges = self.buffer("no ranges", 8, wgpu::BufferUsages::STORAGE);
+        let group = self.converge_group(&params, sums, sums_bytes, blocks, &stats, &no_ranges)?;
         Ok(Rounds {
             resident,
             rounds,
@@ -165,24 +344,12 @@ impl GpuRenderer {
         // `samples` is the 5th word of ConvergeParams.
         self.queue
             .write_buffer(&rounds.params, 16, bytemuck::bytes_of(&samples));
-        let guard = self.converger()?;
-        let c = guard.as_ref().expect("made at start");
-        let mut enc = self
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("tessera converge"),
-            });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("tessera converge"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&c.pipeline);
-            pass.set_bind_group(0, &rounds.group, &[]);
-            self.dispatch_groups(&mut pass, rounds.last.len() as u32);
-        }
-        enc.copy_buffer_to_buffer(&rounds.stats, 0, &rounds.reads[round], 0, None);
-        let index = self.queue.submit([enc.finish()]);
+        let index = self.encode_stats(
+            &rounds.group,
+            rounds.last.len() as u32,
+            &rounds.stats,
+            &rounds.reads[round],
+        )?;
         if let Some(before) = rounds.pending.replace((round, index)) {
             self.report_round(rounds, before, progress)?;
         }

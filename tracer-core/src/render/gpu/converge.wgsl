@@ -19,7 +19,10 @@ struct ConvergeParams {
     blocks: u32,
     // Samples every pixel of a block active in this round has now.
     samples: u32,
-    _pad: u32,
+    // 1: the error-optimal mode's statistics (layout.rs ConvergeParams):
+    // each block at the end of its own range, none retired, with the sum
+    // of its pixels' channel means.
+    ranged: u32,
     // The target (scene::adaptive Target): a pixel's limit is
     // max(absolute, relative * its brightest channel mean).
     absolute: f32,
@@ -35,6 +38,7 @@ const HUGE: f32 = 3.4e38;
 
 var<workgroup> wg_worst: atomic<u32>;
 var<workgroup> wg_variance: array<f32, 64>;
+var<workgroup> wg_mean: array<f32, 64>;
 
 // a * b for a 128-bit a (four words, least significant first) and a u32 b;
 // all ones where the product does not fit (the host saturates too).
@@ -126,6 +130,20 @@ fn pixel_error(pixel: u32, n: u32) -> vec2<f32> {
     return vec2<f32>(min(worst / limit_sq, HUGE), total);
 }
 
+// The sum of pixel `pixel`'s three channel means at `n` samples
+// (adaptive::optimal `image_mean`'s terms); 0 without samples.
+fn pixel_mean_sum(pixel: u32, n: u32) -> f32 {
+    if n == 0u {
+        return 0.0;
+    }
+    let base = pixel * 18u;
+    var sum = 0.0;
+    for (var c = 0u; c < 3u; c++) {
+        sum += f32(sums[base + 2u * c + 1u]) + f32(sums[base + 2u * c]) * 2.3283064365386963e-10;
+    }
+    return sum / f32(n);
+}
+
 // One workgroup per block (workgroups in rows past the per-dimension
 // limit continue the list), one invocation per pixel of it.
 @compute @workgroup_size(64)
@@ -144,26 +162,39 @@ fn converge(
     workgroupBarrier();
     let x = (block % params.cols) * 8u + local % 8u;
     let y = (block / params.cols) * 8u + local / 8u;
+    var n = params.samples;
+    if params.ranged != 0u {
+        n = count_ranges[block].y;
+    }
     var e = vec2<f32>(0.0);
+    var mean = 0.0;
     if x < params.film_w && y < params.film_h {
-        e = pixel_error(y * params.film_w + x, params.samples);
+        e = pixel_error(y * params.film_w + x, n);
+        mean = pixel_mean_sum(y * params.film_w + x, n);
     }
     // Non-negative floats order as their bits do.
     atomicMax(&wg_worst, bitcast<u32>(e.x));
     wg_variance[local] = e.y;
+    wg_mean[local] = mean;
     workgroupBarrier();
     if local == 0u {
         let entry = active_blocks[block];
-        if (entry & RETIRED) != 0u {
+        if params.ranged == 0u && (entry & RETIRED) != 0u {
             return;
         }
-        // A fixed order: the sum is the same on every run.
+        // A fixed order: the sums are the same on every run.
         var total = 0.0;
+        var means = 0.0;
         for (var i = 0u; i < 64u; i++) {
             total += wg_variance[i];
+            means += wg_mean[i];
         }
         let worst = bitcast<f32>(atomicLoad(&wg_worst));
-        block_stats[block] = vec4<u32>(bitcast<u32>(total), bitcast<u32>(worst), params.samples, 0u);
+        if params.ranged != 0u {
+            block_stats[block] = vec4<u32>(bitcast<u32>(total), bitcast<u32>(worst), n, bitcast<u32>(means));
+            return;
+        }
+        block_stats[block] = vec4<u32>(bitcast<u32>(total), bitcast<u32>(worst), n, 0u);
         if worst <= 1.0 {
             active_blocks[block] = entry | RETIRED;
         }

@@ -27,6 +27,7 @@ impl<'a> Grid<'a> {
         let mask = match readout {
             Readout::Adaptive(m) | Readout::Ranged(m, _) => Some(m),
             Readout::Resident(r) => Some(&r.mask),
+            Readout::Rmse(r) => Some(&r.mask),
             _ => None,
         };
         let blocks: Vec<u32> = mask.map_or_else(Vec::new, |m| {
@@ -45,13 +46,19 @@ impl<'a> Grid<'a> {
                     .map(|r| [r.start, r.end])
                     .collect::<Vec<[u32; 2]>>(),
             ),
+            // Every block, the first round's range (rewritten each round).
+            Readout::Rmse(r) => r.rounds.lock().ok().and_then(|rounds| {
+                rounds
+                    .pending()
+                    .map(|(from, to)| from.iter().zip(to).map(|(&a, &b)| [a, b]).collect())
+            }),
             _ => None,
         };
         let storage = |label, contents: &[u8]| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
                 contents,
-                usage: wgpu::BufferUsages::STORAGE,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             })
         };
         Grid {
@@ -77,6 +84,19 @@ impl<'a> Grid<'a> {
             ),
             None => self.film,
         }
+    }
+
+    /// Each listed block's range, in a ranged render.
+    pub fn ranges(&self) -> Option<&[[u32; 2]]> {
+        self.ranges.as_deref()
+    }
+
+    /// The listed blocks' ranges for the next dispatches (as many as
+    /// before): written to the device's copy behind the work queued so far.
+    pub fn set_ranges(&mut self, queue: &wgpu::Queue, ranges: Vec<[u32; 2]>) {
+        let buffer = self.ranges_buffer.as_ref().expect("a ranged grid");
+        queue.write_buffer(buffer, 0, bytemuck::cast_slice(&ranges));
+        self.ranges = Some(ranges);
     }
 
     /// Whether each listed block takes its own range of samples (the

@@ -193,7 +193,10 @@ pub struct ConvergeParams {
     pub blocks: u32,
     /// Samples each pixel of a block active in the round has after it.
     pub samples: u32,
-    pub _pad: u32,
+    /// 1: the error-optimal mode's statistics, each block at the end of
+    /// its own range (`count_ranges`), nothing retired; 0: the per-pixel
+    /// test at `samples`.
+    pub ranged: u32,
     /// The target: a pixel's limit is max(absolute, relative x its
     /// brightest channel mean) (`scene::adaptive::Target`).
     pub absolute: f32,
@@ -203,14 +206,15 @@ pub struct ConvergeParams {
 /// One block's statistics after its last round, written by converge.wgsl
 /// (`block_stats`): f32 bits of its pixels' summed variances of the mean
 /// (finite ones, over the three channels) and of its worst error ratio
-/// (above 1: not converged; `f32::MAX`-like: infinite), then its samples.
+/// (above 1: not converged; `f32::MAX`-like: infinite), then its samples,
+/// then (ranged) f32 bits of its pixels' summed channel means.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq, Eq)]
 pub struct GpuBlockStats {
     pub variance_sum: u32,
     pub worst: u32,
     pub samples: u32,
-    pub _pad: u32,
+    pub mean_sum: u32,
 }
 
 /// Parameters of the GPU resolve of a film's sums. WGSL (resolve.wgsl):

@@ -285,6 +285,10 @@ enum Readout<'a> {
     /// blocks of the mask, block i (of the mask's rect) from `ranges[i].0`
     /// to `ranges[i].1`.
     Ranged(&'a BlockMask, &'a [Option<SampleRange>]),
+    /// A whole error-optimal render (`converge.rs`): every block over its
+    /// own range a round, the film kept on the GPU between rounds and each
+    /// round decided on the host from the blocks' statistics.
+    Rmse(&'a converge::RmseResident<'a>),
 }
 
 /// The resolve pipelines and their buffers, made on first use (farm
@@ -745,6 +749,47 @@ impl GpuRenderer {
             WorkRegion::new(frame, rect, samples),
             progress,
             Readout::Resident(&resident),
+        )? {
+            Rendered::Film(f) => Ok(f),
+            _ => unreachable!("asked for sums"),
+        }
+    }
+
+    /// A whole frame in the error-optimal mode, `rounds` deciding each
+    /// round (`render::adaptive::render_rmse`): the film stays on the GPU,
+    /// and after each round only its blocks' statistics (16 bytes a block)
+    /// come back for the decision. Each block's pixels equal
+    /// [`GpuRenderer::render`]'s at the samples the block stopped at.
+    pub fn render_rmse(
+        &self,
+        prepared: &PreparedFrame,
+        frame: u32,
+        rounds: super::adaptive::RmseRounds<'_>,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Result<Film, GpuError> {
+        let s = prepared.settings();
+        let rect = Rect::full(s.width, s.height);
+        let resident = converge::RmseResident {
+            mask: BlockMask::all(rect),
+            rounds: std::sync::Mutex::new(rounds),
+        };
+        let longest = resident
+            .rounds
+            .lock()
+            .ok()
+            .and_then(|r| {
+                r.pending()
+                    .map(|(_, to)| to.iter().copied().max().unwrap_or(0))
+            })
+            .unwrap_or(0);
+        if longest == 0 {
+            return Ok(Film::with_squares(rect));
+        }
+        match self.render_readout(
+            prepared,
+            WorkRegion::new(frame, rect, SampleRange::new(0, longest)),
+            progress,
+            Readout::Rmse(&resident),
         )? {
             Rendered::Film(f) => Ok(f),
             _ => unreachable!("asked for sums"),

@@ -55,7 +55,7 @@ impl GpuRenderer {
         readout: Readout<'_>,
     ) -> Result<Option<Rendered>, GpuError> {
         let limits = self.device.limits();
-        let grid = Grid::new(&self.device, readout, rect);
+        let mut grid = Grid::new(&self.device, readout, rect);
         let mut scene_guard = self
             .scene
             .lock()
@@ -128,30 +128,36 @@ impl GpuRenderer {
             Some((p, _)) => budget.min(p.queue_cap / 2).max(1),
             None => budget,
         };
-        let plans: Vec<_> = rounds
-            .iter()
-            .map(|&round| {
-                let mut groups = plan(
-                    grid.rect(),
-                    (rect.width, rect.height),
-                    round,
-                    frame,
-                    GpuOptions {
-                        dispatch_pixel_samples: budget,
-                        ..self.options
-                    },
-                );
-                if grid.ranged() {
-                    for d in groups.iter_mut().flatten() {
-                        d.ranged = 1;
-                    }
+        let ranged = grid.ranged();
+        let grid_rect = grid.rect();
+        let plan_of = |round: SampleRange| {
+            let mut groups = plan(
+                grid_rect,
+                (rect.width, rect.height),
+                round,
+                frame,
+                GpuOptions {
+                    dispatch_pixel_samples: budget,
+                    ..self.options
+                },
+            );
+            if ranged {
+                for d in groups.iter_mut().flatten() {
+                    d.ranged = 1;
                 }
-                groups
-            })
-            .collect();
+            }
+            groups
+        };
+        // An error-optimal render plans each round once the one before has
+        // decided it.
+        let mut plans: Vec<_> = rounds.iter().map(|&round| plan_of(round)).collect();
         // Timestamps time the submissions of one range (not a resident
         // render's rounds, which are not waited for one by one).
-        let query = (self.timestamps && resident.is_none())
+        let rmse = match readout {
+            Readout::Rmse(r) => Some(r),
+            _ => None,
+        };
+        let query = (self.timestamps && resident.is_none() && rmse.is_none())
             .then(|| self.timestamp_query((plans[0].len() * 2) as u32));
 
         let mut enc = self
@@ -182,6 +188,23 @@ impl GpuRenderer {
             ),
             None => None,
         };
+        let mut rmse_chain = match rmse {
+            Some(r) => Some(
+                self.start_rmse_rounds(
+                    r,
+                    rect,
+                    &out.sums,
+                    sums_bytes,
+                    grid.blocks_buffer
+                        .as_ref()
+                        .expect("a ranged render has a block list"),
+                    grid.ranges_buffer
+                        .as_ref()
+                        .expect("a ranged render has ranges"),
+                )?,
+            ),
+            None => None,
+        };
         let kernel = match (&wave, &wave_groups) {
             (Some((p, w)), Some(groups)) => Driver::Wave(p, w.as_ref().expect("set"), groups),
             _ => Driver::Stack(match grid.mask {
@@ -189,10 +212,12 @@ impl GpuRenderer {
                 None => &scene.pipeline,
             }),
         };
-        for (round, groups) in plans.iter().enumerate() {
+        let mut round = 0;
+        while round < plans.len() {
             if chain.as_ref().is_some_and(|c| c.done) {
                 break;
             }
+            let groups = &plans[round];
             for (g, group) in groups.iter().enumerate() {
                 let mut params = vec![0u8; group.len() * PARAMS_STRIDE as usize];
                 for (i, d) in group.iter().enumerate() {
@@ -229,7 +254,7 @@ impl GpuRenderer {
                 submissions += 1;
                 // A resident render's rounds run back to back; its progress
                 // comes with each round's report.
-                if chain.is_none() {
+                if chain.is_none() && rmse_chain.is_none() {
                     self.wait(index)?;
                     progress(group.iter().map(|d| grid.work(d)).sum());
                 }
@@ -237,6 +262,12 @@ impl GpuRenderer {
             if let Some(c) = chain.as_mut() {
                 self.end_round(c, round, progress)?;
             }
+            if let Some(c) = rmse_chain.as_mut()
+                && let Some(next) = self.end_rmse_round(c, &mut grid, progress)?
+            {
+                plans.push(plan_of(next));
+            }
+            round += 1;
         }
         if let Some(c) = chain.as_mut() {
             self.finish_rounds(c, progress)?;
@@ -250,7 +281,10 @@ impl GpuRenderer {
             sums_bytes,
             samples.len(),
             &grid,
-            chain.as_ref().map(|c| c.last.as_slice()),
+            chain
+                .as_ref()
+                .map(|c| c.last.as_slice())
+                .or(rmse_chain.as_ref().map(|c| c.last.as_slice())),
             wave.as_ref().map(|(_, w)| w.as_ref().expect("set")),
             query.as_ref(),
         )?;
@@ -303,7 +337,11 @@ impl GpuRenderer {
                 label: Some("tessera read-back"),
             });
         let (resolver, packer) = match readout {
-            Readout::Sums | Readout::Adaptive(_) | Readout::Resident(_) | Readout::Ranged(..) => {
+            Readout::Sums
+            | Readout::Adaptive(_)
+            | Readout::Resident(_)
+            | Readout::Ranged(..)
+            | Readout::Rmse(_) => {
                 enc.copy_buffer_to_buffer(&out.sums, 0, &out.sums_read, 0, Some(sums_bytes));
                 (None, None)
             }

@@ -518,12 +518,17 @@ pub const CONVERGE: Layout = Layout {
         bind("active_blocks", "array<u32>", ReadWrite, "converge.wgsl"),
         // Per block, after its last round: the f32 bits of the sum of its
         // pixels' variances of the mean (finite ones), of its worst error
-        // ratio, and its samples (render::adaptive's summaries).
+        // ratio, its samples, and (ranged: the error-optimal mode) of the
+        // sum of its pixels' channel means (render::adaptive's summaries).
         bind(
             "block_stats",
             "array<vec4<u32>>",
             ReadWrite,
             "converge.wgsl",
         ),
+        // Ranged (`ConvergeParams::ranged`): every block's (first, end)
+        // sample of its last round, the trace kernel's `block_ranges`; its
+        // pixels have `end` samples. Else unread.
+        bind("count_ranges", "array<vec2<u32>>", Read, "converge.wgsl"),
     ],
 };
