@@ -47,6 +47,10 @@ pub(super) struct RmseChain<'a> {
     _params: wgpu::Buffer,
     stats: wgpu::Buffer,
     read: wgpu::Buffer,
+    /// The round's range of every block, in the mask's order, and the
+    /// convergence kernel's copy (`count_ranges`).
+    counts: Vec<[u32; 2]>,
+    ranges: wgpu::Buffer,
     /// The latest statistics: each block's samples.
     pub last: Vec<GpuBlockStats>,
 }
@@ -157,7 +161,7 @@ impl GpuRenderer {
     }
 
     /// Sets up the error-optimal rounds of `resident` over the film `rect`
-    /// (sums `sums`; `blocks` and `ranges` the grid's lists of every block).
+    /// (sums `sums`; `blocks` the grid's list of every block).
     pub(super) fn start_rmse_rounds<'a>(
         &self,
         resident: &'a RmseResident<'a>,
@@ -165,9 +169,24 @@ impl GpuRenderer {
         sums: &wgpu::Buffer,
         sums_bytes: u64,
         blocks: &wgpu::Buffer,
-        ranges: &wgpu::Buffer,
     ) -> Result<RmseChain<'a>, GpuError> {
         let n = resident.mask.active.len();
+        // The first round's ranges in the mask's order (the grid lists its
+        // blocks longest range first).
+        let counts: Vec<[u32; 2]> = resident
+            .rounds
+            .lock()
+            .map_err(|_| GpuError::Device("error-optimal rounds poisoned".into()))?
+            .pending()
+            .map(|(from, to)| from.iter().zip(to).map(|(&a, &b)| [a, b]).collect())
+            .unwrap_or_else(|| vec![[0, 0]; n]);
+        let ranges = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("count ranges"),
+                contents: bytemuck::cast_slice(&counts),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            });
         let params = ConvergeParams {
             film_w: rect.width,
             film_h: rect.height,
@@ -196,13 +215,15 @@ impl GpuRenderer {
             bytes,
             wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
         );
-        let group = self.converge_group(&params, sums, sums_bytes, blocks, &stats, ranges)?;
+        let group = self.converge_group(&params, sums, sums_bytes, blocks, &stats, &ranges)?;
         Ok(RmseChain {
             resident,
             group,
             _params: params,
             stats,
             read,
+            counts,
+            ranges,
             last: Vec::new(),
         })
     }
@@ -225,9 +246,9 @@ impl GpuRenderer {
         chain.last = self.read_after(&chain.read, bytes, Some(index), |b| {
             bytemuck::pod_collect_to_vec::<u8, GpuBlockStats>(b)
         })?;
-        let ranges = grid.ranges().expect("a ranged grid");
         progress(
-            ranges
+            chain
+                .counts
                 .iter()
                 .enumerate()
                 .map(|(i, r)| mask.block_rect(i).area() as u64 * (r[1] - r[0]) as u64)
@@ -263,7 +284,10 @@ impl GpuRenderer {
             Some((from, to)) => {
                 let next: Vec<[u32; 2]> = from.iter().zip(to).map(|(&a, &b)| [a, b]).collect();
                 let longest = next.iter().map(|r| r[1] - r[0]).max().unwrap_or(0);
-                grid.set_ranges(&self.queue, next);
+                self.queue
+                    .write_buffer(&chain.ranges, 0, bytemuck::cast_slice(&next));
+                grid.set_ranges(&self.queue, &next);
+                chain.counts = next;
                 Some(SampleRange::new(0, longest))
             }
         })

@@ -54,6 +54,16 @@ impl<'a> Grid<'a> {
             }),
             _ => None,
         };
+        // A ranged grid lists its blocks longest range first, for
+        // `plan_bands`: where a block lies is in its entry, so the film's
+        // sums are the same in any order.
+        let (blocks, ranges) = match ranges {
+            Some(r) => {
+                let (b, r) = by_length(&blocks, &r);
+                (b, Some(r))
+            }
+            None => (blocks, None),
+        };
         let storage = |label, contents: &[u8]| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
@@ -86,23 +96,30 @@ impl<'a> Grid<'a> {
         }
     }
 
-    /// Each listed block's range, in a ranged render.
-    pub fn ranges(&self) -> Option<&[[u32; 2]]> {
-        self.ranges.as_deref()
+    /// A ranged grid's range lengths, in its order (longest first).
+    pub fn lengths(&self) -> Option<Vec<u32>> {
+        self.ranges
+            .as_ref()
+            .map(|r| r.iter().map(|[a, b]| b - a).collect())
     }
 
-    /// The listed blocks' ranges for the next dispatches (as many as
-    /// before): written to the device's copy behind the work queued so far.
-    pub fn set_ranges(&mut self, queue: &wgpu::Queue, ranges: Vec<[u32; 2]>) {
-        let buffer = self.ranges_buffer.as_ref().expect("a ranged grid");
-        queue.write_buffer(buffer, 0, bytemuck::cast_slice(&ranges));
+    /// Every block's range for the next dispatches, in the mask's order
+    /// (every block of the mask listed): the grid's lists, reordered
+    /// longest first, written to the device's copies behind the work
+    /// queued so far.
+    pub fn set_ranges(&mut self, queue: &wgpu::Queue, ranges: &[[u32; 2]]) {
+        let m = self.mask.expect("a ranged grid");
+        let cols = m.cols() as usize;
+        let entries: Vec<u32> = (0..ranges.len())
+            .map(|i| (i % cols) as u32 | ((i / cols) as u32) << 16)
+            .collect();
+        let (blocks, ranges) = by_length(&entries, ranges);
+        let buffers = self.blocks_buffer.as_ref().zip(self.ranges_buffer.as_ref());
+        let (b, r) = buffers.expect("a ranged grid has both lists");
+        queue.write_buffer(b, 0, bytemuck::cast_slice(&blocks));
+        queue.write_buffer(r, 0, bytemuck::cast_slice(&ranges));
+        self.blocks = blocks;
         self.ranges = Some(ranges);
-    }
-
-    /// Whether each listed block takes its own range of samples (the
-    /// dispatches' samples are offsets into it).
-    pub fn ranged(&self) -> bool {
-        self.ranges.is_some()
     }
 
     /// u32 words of a pixel's sums: with sums of squares in an adaptive render.
@@ -166,13 +183,21 @@ impl<'a> Grid<'a> {
             }
             return;
         }
-        let listed = m.active.iter().enumerate().filter(|(_, a)| **a);
-        for (k, (i, _)) in listed.enumerate() {
+        let cols = m.cols();
+        for (k, &b) in self.blocks.iter().enumerate() {
             let n = match &self.ranges {
                 Some(rs) => rs[k][1] - rs[k][0],
                 None => samples,
             };
-            fill(m.block_rect(i), n);
+            fill(m.block_rect(((b >> 16) * cols + (b & 0xffff)) as usize), n);
         }
     }
+}
+
+/// Block entries and their ranges, longest range first (stable: equal
+/// lengths keep their order).
+fn by_length(blocks: &[u32], ranges: &[[u32; 2]]) -> (Vec<u32>, Vec<[u32; 2]>) {
+    let mut order: Vec<usize> = (0..blocks.len()).collect();
+    order.sort_by_key(|&k| std::cmp::Reverse(ranges[k][1] - ranges[k][0]));
+    order.iter().map(|&k| (blocks[k], ranges[k])).unzip()
 }

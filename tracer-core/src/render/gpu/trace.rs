@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use super::grid::Grid;
 use super::layout::{self, COUNTERS, DispatchParams, GpuBlockStats, SUM_WORDS, SceneData};
-use super::plan::plan;
+use super::plan::{plan, plan_bands};
 use super::readback::linear_pixels;
 use super::wgsl;
 use super::{
@@ -128,29 +128,23 @@ impl GpuRenderer {
             Some((p, _)) => budget.min(p.queue_cap / 2).max(1),
             None => budget,
         };
-        let ranged = grid.ranged();
         let grid_rect = grid.rect();
-        let plan_of = |round: SampleRange| {
-            let mut groups = plan(
-                grid_rect,
-                (rect.width, rect.height),
-                round,
-                frame,
-                GpuOptions {
-                    dispatch_pixel_samples: budget,
-                    ..self.options
-                },
-            );
-            if ranged {
-                for d in groups.iter_mut().flatten() {
-                    d.ranged = 1;
-                }
-            }
-            groups
+        let options = GpuOptions {
+            dispatch_pixel_samples: budget,
+            ..self.options
+        };
+        // A ranged grid (each block its own range) goes in bands of alike
+        // ranges; any other over the round's samples.
+        let plan_of = |round: SampleRange, lengths: Option<Vec<u32>>| match lengths {
+            Some(l) => plan_bands(grid_rect, (rect.width, rect.height), &l, frame, options),
+            None => plan(grid_rect, (rect.width, rect.height), round, frame, options),
         };
         // An error-optimal render plans each round once the one before has
         // decided it.
-        let mut plans: Vec<_> = rounds.iter().map(|&round| plan_of(round)).collect();
+        let mut plans: Vec<_> = rounds
+            .iter()
+            .map(|&round| plan_of(round, grid.lengths()))
+            .collect();
         // Timestamps time the submissions of one range (not a resident
         // render's rounds, which are not waited for one by one).
         let rmse = match readout {
@@ -198,9 +192,6 @@ impl GpuRenderer {
                     grid.blocks_buffer
                         .as_ref()
                         .expect("a ranged render has a block list"),
-                    grid.ranges_buffer
-                        .as_ref()
-                        .expect("a ranged render has ranges"),
                 )?,
             ),
             None => None,
@@ -265,7 +256,7 @@ impl GpuRenderer {
             if let Some(c) = rmse_chain.as_mut()
                 && let Some(next) = self.end_rmse_round(c, &mut grid, progress)?
             {
-                plans.push(plan_of(next));
+                plans.push(plan_of(next, grid.lengths()));
             }
             round += 1;
         }
