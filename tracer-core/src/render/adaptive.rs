@@ -199,6 +199,12 @@ impl<'a> RmseRounds<'a> {
             .then_some((&self.n, &self.next))
     }
 
+    /// [`RmseRounds::pending`] as each block's (from, to).
+    pub fn pending_ranges(&self) -> Option<Vec<[u32; 2]>> {
+        self.pending()
+            .map(|(from, to)| from.iter().zip(to).map(|(&a, &b)| [a, b]).collect())
+    }
+
     /// After the pending round: the blocks' statistics (at their new
     /// counts) and the image's mean decide the next one, and the round is
     /// reported.

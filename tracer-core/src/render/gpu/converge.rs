@@ -11,7 +11,7 @@
 //! uses f64, so only a block whose error lies within f32 rounding of the
 //! target can go the other way.
 
-use std::sync::Mutex;
+use std::cell::RefCell;
 use std::time::Instant;
 
 use wgpu::util::DeviceExt as _;
@@ -37,7 +37,7 @@ pub(super) struct Resident<'a> {
 /// statistics after each round.
 pub(super) struct RmseResident<'a> {
     pub mask: BlockMask,
-    pub rounds: Mutex<RmseRounds<'a>>,
+    pub rounds: RefCell<RmseRounds<'a>>,
 }
 
 /// An error-optimal render's rounds in flight.
@@ -173,12 +173,10 @@ impl GpuRenderer {
         let n = resident.mask.active.len();
         // The first round's ranges in the mask's order (the grid lists its
         // blocks longest range first).
-        let counts: Vec<[u32; 2]> = resident
+        let counts = resident
             .rounds
-            .lock()
-            .map_err(|_| GpuError::Device("error-optimal rounds poisoned".into()))?
-            .pending()
-            .map(|(from, to)| from.iter().zip(to).map(|(&a, &b)| [a, b]).collect())
+            .borrow()
+            .pending_ranges()
             .unwrap_or_else(|| vec![[0, 0]; n]);
         let ranges = self
             .device
@@ -231,14 +229,13 @@ impl GpuRenderer {
     /// After an error-optimal round's dispatches (submitted, taking each
     /// block over its range of `grid`): its statistics, read back (16 bytes
     /// a block), decide the next round on the host ([`RmseRounds`]), whose
-    /// ranges then go to the grid. The next round's longest range; `None`
-    /// when the render is done.
+    /// ranges then go to the grid. Whether there is a next round.
     pub(super) fn end_rmse_round(
         &self,
         chain: &mut RmseChain<'_>,
         grid: &mut Grid<'_>,
         progress: &(dyn Fn(u64) + Sync),
-    ) -> Result<Option<SampleRange>, GpuError> {
+    ) -> Result<bool, GpuError> {
         let mask = &chain.resident.mask;
         let n = mask.active.len();
         let index = self.encode_stats(&chain.group, n as u32, &chain.stats, &chain.read)?;
@@ -273,24 +270,16 @@ impl GpuRenderer {
                 }
             })
             .collect();
-        let mut rounds = chain
-            .resident
-            .rounds
-            .lock()
-            .map_err(|_| GpuError::Device("error-optimal rounds poisoned".into()))?;
+        let mut rounds = chain.resident.rounds.borrow_mut();
         rounds.after_round(&stats, mean_sum / (3 * pixels.max(1)) as f64);
-        Ok(match rounds.pending() {
-            None => None,
-            Some((from, to)) => {
-                let next: Vec<[u32; 2]> = from.iter().zip(to).map(|(&a, &b)| [a, b]).collect();
-                let longest = next.iter().map(|r| r[1] - r[0]).max().unwrap_or(0);
-                self.queue
-                    .write_buffer(&chain.ranges, 0, bytemuck::cast_slice(&next));
-                grid.set_ranges(&self.queue, &next);
-                chain.counts = next;
-                Some(SampleRange::new(0, longest))
-            }
-        })
+        let Some(next) = rounds.pending_ranges() else {
+            return Ok(false);
+        };
+        self.queue
+            .write_buffer(&chain.ranges, 0, bytemuck::cast_slice(&next));
+        grid.set_ranges(&self.queue, &next);
+        chain.counts = next;
+        Ok(true)
     }
 
     /// Sets up the rounds of `resident` over the film `rect` whose sums are

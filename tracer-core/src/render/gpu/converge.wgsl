@@ -170,7 +170,9 @@ fn converge(
     var mean = 0.0;
     if x < params.film_w && y < params.film_h {
         e = pixel_error(y * params.film_w + x, n);
-        mean = pixel_mean_sum(y * params.film_w + x, n);
+        if params.ranged != 0u {
+            mean = pixel_mean_sum(y * params.film_w + x, n);
+        }
     }
     // Non-negative floats order as their bits do.
     atomicMax(&wg_worst, bitcast<u32>(e.x));
@@ -190,12 +192,9 @@ fn converge(
             means += wg_mean[i];
         }
         let worst = bitcast<f32>(atomicLoad(&wg_worst));
-        if params.ranged != 0u {
-            block_stats[block] = vec4<u32>(bitcast<u32>(total), bitcast<u32>(worst), n, bitcast<u32>(means));
-            return;
-        }
-        block_stats[block] = vec4<u32>(bitcast<u32>(total), bitcast<u32>(worst), n, 0u);
-        if worst <= 1.0 {
+        let mean_bits = select(0u, bitcast<u32>(means), params.ranged != 0u);
+        block_stats[block] = vec4<u32>(bitcast<u32>(total), bitcast<u32>(worst), n, mean_bits);
+        if params.ranged == 0u && worst <= 1.0 {
             active_blocks[block] = entry | RETIRED;
         }
     }

@@ -47,11 +47,7 @@ impl<'a> Grid<'a> {
                     .collect::<Vec<[u32; 2]>>(),
             ),
             // Every block, the first round's range (rewritten each round).
-            Readout::Rmse(r) => r.rounds.lock().ok().and_then(|rounds| {
-                rounds
-                    .pending()
-                    .map(|(from, to)| from.iter().zip(to).map(|(&a, &b)| [a, b]).collect())
-            }),
+            Readout::Rmse(r) => r.rounds.borrow().pending_ranges(),
             _ => None,
         };
         // A ranged grid lists its blocks longest range first, for

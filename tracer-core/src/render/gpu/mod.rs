@@ -662,10 +662,7 @@ impl GpuRenderer {
         region: WorkRegion,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<Film, GpuError> {
-        match self.render_readout(prepared, region, progress, Readout::Sums)? {
-            Rendered::Film(f) => Ok(f),
-            _ => unreachable!("asked for sums"),
-        }
+        self.render_film(prepared, region, progress, Readout::Sums)
     }
 
     /// Renders `region` as `output` asks, made on the GPU: the sums; the
@@ -709,15 +706,12 @@ impl GpuRenderer {
             prepared.check_request(mask.rect, samples)?;
             return Ok(Film::with_squares(mask.rect));
         }
-        match self.render_readout(
+        self.render_film(
             prepared,
             WorkRegion::new(frame, mask.rect, samples),
             progress,
             Readout::Adaptive(mask),
-        )? {
-            Rendered::Film(f) => Ok(f),
-            _ => unreachable!("asked for sums"),
-        }
+        )
     }
 
     /// A whole adaptive render (see [`crate::adaptive`]) with its rounds
@@ -744,15 +738,12 @@ impl GpuRenderer {
             on_round,
         };
         let samples = SampleRange::new(0, settings.max_samples);
-        match self.render_readout(
+        self.render_film(
             prepared,
             WorkRegion::new(frame, rect, samples),
             progress,
             Readout::Resident(&resident),
-        )? {
-            Rendered::Film(f) => Ok(f),
-            _ => unreachable!("asked for sums"),
-        }
+        )
     }
 
     /// A whole frame in the error-optimal mode, `rounds` deciding each
@@ -771,29 +762,22 @@ impl GpuRenderer {
         let rect = Rect::full(s.width, s.height);
         let resident = converge::RmseResident {
             mask: BlockMask::all(rect),
-            rounds: std::sync::Mutex::new(rounds),
+            rounds: std::cell::RefCell::new(rounds),
         };
         let longest = resident
             .rounds
-            .lock()
-            .ok()
-            .and_then(|r| {
-                r.pending()
-                    .map(|(_, to)| to.iter().copied().max().unwrap_or(0))
-            })
-            .unwrap_or(0);
+            .borrow()
+            .pending()
+            .map_or(0, |(_, to)| to.iter().copied().max().unwrap_or(0));
         if longest == 0 {
             return Ok(Film::with_squares(rect));
         }
-        match self.render_readout(
+        self.render_film(
             prepared,
             WorkRegion::new(frame, rect, SampleRange::new(0, longest)),
             progress,
             Readout::Rmse(&resident),
-        )? {
-            Rendered::Film(f) => Ok(f),
-            _ => unreachable!("asked for sums"),
-        }
+        )
     }
 
     /// Each block `i` of `rect` (block-aligned) over its own sample indices
@@ -818,12 +802,24 @@ impl GpuRenderer {
         if longest == 0 {
             return Ok(Film::with_squares(rect));
         }
-        match self.render_readout(
+        self.render_film(
             prepared,
             WorkRegion::new(frame, rect, SampleRange::new(0, longest)),
             progress,
             Readout::Ranged(&mask, &ranges),
-        )? {
+        )
+    }
+
+    /// [`GpuRenderer::render_readout`] of a readout that comes back as
+    /// sums: the film.
+    fn render_film(
+        &self,
+        prepared: &PreparedFrame,
+        region: WorkRegion,
+        progress: &(dyn Fn(u64) + Sync),
+        readout: Readout<'_>,
+    ) -> Result<Film, GpuError> {
+        match self.render_readout(prepared, region, progress, readout)? {
             Rendered::Film(f) => Ok(f),
             _ => unreachable!("asked for sums"),
         }

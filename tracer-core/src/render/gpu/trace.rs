@@ -254,9 +254,9 @@ impl GpuRenderer {
                 self.end_round(c, round, progress)?;
             }
             if let Some(c) = rmse_chain.as_mut()
-                && let Some(next) = self.end_rmse_round(c, &mut grid, progress)?
+                && self.end_rmse_round(c, &mut grid, progress)?
             {
-                plans.push(plan_of(next, grid.lengths()));
+                plans.push(plan_of(samples, grid.lengths()));
             }
             round += 1;
         }
