@@ -12,8 +12,12 @@
 //! Lambert spheres and a small emissive quad under the ceiling (two
 //! triangles of an OBJ file with `[bsdf] emission` for Tessera, which
 //! samples them as lights; a one-sided `rectangle` area emitter for
-//! Mitsuba). Both use independent uniform samples per pixel (Tessera's
-//! `jittered`, Mitsuba's `independent`) and a box filter of one pixel.
+//! Mitsuba) and a box filter of one pixel. Tessera's sampler is
+//! `jittered`: at a square sample count the pixel position and each path
+//! vertex's light point and BSDF direction are stratified
+//! (`sampling::uniform_pair`); Mitsuba's is `$TESSERA_MITSUBA_SAMPLER`,
+//! default `independent` (its default; `stratified`, `multijitter` and
+//! `ldsampler` are its stratified ones).
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -122,13 +126,13 @@ fn lamp_obj() -> String {
 }
 
 /// Mitsuba's scene dict (Python), `T` being `mi.ScalarTransform4f`.
-fn mitsuba_dict(size: (u32, u32)) -> String {
+fn mitsuba_dict(size: (u32, u32), sampler: &str) -> String {
     let mut s = format!(
         "{{'type': 'scene', 'integrator': {{'type': 'path', 'max_depth': {MAX_DEPTH}}},\n\
          'sensor': {{'type': 'perspective', 'fov': {FOV_Y}, 'fov_axis': 'y',\n\
            'to_world': T().look_at(origin={}, target={}, up=[0, 1, 0]),\n\
            'film': {{'type': 'hdrfilm', 'width': {}, 'height': {}, 'pixel_format': 'rgb', 'rfilter': {{'type': 'box'}}}},\n\
-           'sampler': {{'type': 'independent', 'sample_count': 1}}}},\n",
+           'sampler': {{'type': '{sampler}', 'sample_count': 1}}}},\n",
         rgb(EYE),
         rgb(LOOK_AT),
         size.0,
@@ -199,6 +203,7 @@ fn mitsuba_dict(size: (u32, u32)) -> String {
 fn mitsuba_runs(
     dir: &Path,
     variant: &str,
+    sampler: &str,
     size: (u32, u32),
     counts: &[u32],
 ) -> Result<Vec<(f64, Vec<[f32; 3]>)>> {
@@ -223,7 +228,7 @@ fn mitsuba_runs(
          \x20   a = [float(x) for x in mi.TensorXf(img).array]\n\
          \x20   open(sys.argv[1] + '/mitsuba-%d.f32' % spp, 'wb').write(struct.pack('<%df' % len(a), *a))\n\
          print(json.dumps({{'times': times, 'version': mi.__version__}}))\n",
-        dict = mitsuba_dict(size),
+        dict = mitsuba_dict(size, sampler),
     );
     let out = std::process::Command::new("python3")
         .arg("-c")
@@ -330,7 +335,20 @@ impl Bench {
             }
         }
         let start = Instant::now();
-        let mitsuba = mitsuba_runs(&dir, &variant, size, counts)?;
+        let sampler =
+            std::env::var("TESSERA_MITSUBA_SAMPLER").unwrap_or_else(|_| "independent".into());
+        // It goes into the Python script's dict literal.
+        if sampler.is_empty() || !sampler.bytes().all(|b| b.is_ascii_lowercase() || b == b'_') {
+            bail!(
+                "TESSERA_MITSUBA_SAMPLER {sampler:?} is no Mitsuba sampler name (lowercase letters and _)"
+            );
+        }
+        let mitsuba = mitsuba_runs(&dir, &variant, &sampler, size, counts)?;
+        let variant = if sampler == "independent" {
+            variant
+        } else {
+            format!("{variant}-{sampler}")
+        };
         eprintln!(
             "bench: path: Mitsuba 3 ({variant}) took {:.1} s in all",
             start.elapsed().as_secs_f64()

@@ -138,11 +138,10 @@ impl<R: Real> TriEmitter<R> {
         if !(cos_l > R::ZERO) {
             return None;
         }
-        let (_, bsdf) = crate::render::step::material_at(world, self.id, x, self.material);
         Some(LightSample {
             wi,
             dist,
-            li: bsdf.emission,
+            li: crate::render::step::emission_at(world, self.id, x, self.material),
             pdf: density * dist * dist / cos_l,
         })
     }

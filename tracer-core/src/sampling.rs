@@ -1,9 +1,10 @@
 //! Where in a pixel each sample goes, deterministically.
 //!
 //! Every random number is a pure function of (pixel, sample index, frame,
-//! dimension), computed with 32-bit integer hashing only, so the CPU (f32 and
-//! f64) and the GPU (WGSL has `u32` but no `u64`) produce the same positions,
-//! and any tile or sample range traced anywhere gives the same values.
+//! dimension; and the sample count, for stratified ones), computed with
+//! 32-bit integer hashing only, so the CPU (f32 and f64) and the GPU (WGSL
+//! has `u32` but no `u64`) produce the same positions, and any tile or
+//! sample range traced anywhere gives the same values.
 //! Keep in sync with `render/gpu/sampling.wgsl`.
 
 use serde::{Deserialize, Serialize};
@@ -79,6 +80,83 @@ pub fn uniform(seed: u32, sample: u32, dim: u32) -> f32 {
     (h >> 8) as f32 * (1.0 / 16_777_216.0)
 }
 
+/// Element `i` of the permutation of [0, n) that `seed` picks (Kensler
+/// 2013, "Correlated Multi-Jittered Sampling", `permute`): integer hashing
+/// of i within the next power of two, repeated until it lands below n.
+/// `n` > 0.
+#[inline]
+pub fn permute(i: u32, n: u32, seed: u32) -> u32 {
+    let mut w = n - 1;
+    w |= w >> 1;
+    w |= w >> 2;
+    w |= w >> 4;
+    w |= w >> 8;
+    w |= w >> 16;
+    let mut i = i;
+    loop {
+        i ^= seed;
+        i = i.wrapping_mul(0xe170_893d);
+        i ^= seed >> 16;
+        i ^= (i & w) >> 4;
+        i ^= seed >> 8;
+        i = i.wrapping_mul(0x0929_eb3f);
+        i ^= seed >> 23;
+        i ^= (i & w) >> 1;
+        i = i.wrapping_mul(1 | seed >> 27);
+        i = i.wrapping_mul(0x6935_fa69);
+        i ^= (i & w) >> 11;
+        i = i.wrapping_mul(0x74dc_b303);
+        i ^= (i & w) >> 2;
+        i = i.wrapping_mul(0x9e50_1cc3);
+        i ^= (i & w) >> 2;
+        i = i.wrapping_mul(0xc860_a3df);
+        i &= w;
+        i ^= i >> 5;
+        if i < n {
+            break;
+        }
+    }
+    i.wrapping_add(seed) % n
+}
+
+/// The side of the grid a render's sample pairs are stratified over: the
+/// square root of a square sample count, except for the progressive
+/// sampler (whose counts are open-ended); 0: no strata. The GPU's
+/// `FrameUniform::grid_n`.
+pub fn strata_side(sampler: Sampler, count: u32) -> u32 {
+    match sampler {
+        Sampler::Progressive => 0,
+        Sampler::Grid | Sampler::Jittered => exact_sqrt(count).unwrap_or(0),
+    }
+}
+
+/// The largest f32 below 1.
+const BELOW_ONE: f32 = 1.0 - 1.0 / 16_777_216.0;
+
+/// Two numbers in [0, 1) for dimensions `dim` and `dim + 1` of sample
+/// `sample`: with `side` > 0 (the sample count being side^2:
+/// [`strata_side`]) the pixel's samples take one cell each of the
+/// side x side grid, dealt out by a permutation drawn per pixel and pair
+/// ([`permute`]), at a uniform point inside it (stratified sampling, as
+/// Mitsuba's `stratified` sampler); with 0, `uniform` of each dimension.
+#[inline]
+pub fn uniform_pair(seed: u32, sample: u32, side: u32, dim: u32) -> (f32, f32) {
+    let (u, v) = (uniform(seed, sample, dim), uniform(seed, sample, dim + 1));
+    if side == 0 {
+        return (u, v);
+    }
+    let cell = permute(
+        sample,
+        side * side,
+        hash_u32(seed ^ hash_u32(dim ^ 0x0b5c_9d2f)),
+    );
+    let n = side as f32;
+    (
+        (((cell % side) as f32 + u) / n).min(BELOW_ONE),
+        (((cell / side) as f32 + v) / n).min(BELOW_ONE),
+    )
+}
+
 /// Random-number dimensions of distributed ray tracing (see
 /// `docs/scene-format.md`, "Random numbers"). 0 and 1 place the sample in
 /// its pixel; the camera takes [`DIM_LENS`] (two) and [`DIM_TIME`]; every
@@ -127,38 +205,55 @@ pub fn stratified(i: u32, n: u32, u1: f32, u2: f32) -> (f64, f64) {
     }
 }
 
-/// (sin, cos) of 2 pi x from + - * / only (no libm), so every machine gets
-/// the same bits; absolute error below 1e-15.
+/// Taylor coefficients (-1)^k / (2k+1)! of sin a / a and (-1)^k / (2k)!
+/// of cos a, as powers of a^2: on [-pi/4, pi/4] the first terms left out
+/// are below 1e-16.
+const SIN_TAYLOR: [f64; 8] = taylor(1);
+const COS_TAYLOR: [f64; 9] = taylor(0);
+
+const fn taylor<const N: usize>(first: u64) -> [f64; N] {
+    let mut c = [0.0; N];
+    // fact = n! for n = first + 2k.
+    let (mut k, mut fact, mut n) = (0, 1.0f64, first);
+    while k < N {
+        c[k] = if k % 2 == 0 { 1.0 / fact } else { -1.0 / fact };
+        fact *= ((n + 1) * (n + 2)) as f64;
+        n += 2;
+        k += 1;
+    }
+    c
+}
+
+/// (sin, cos) of 2 pi x from + - * only (no libm), so every machine gets
+/// the same bits; absolute error below 1e-15. Branch-free (the path
+/// integrator calls it at every bounce with a random `x`, where a jump on
+/// the quadrant would be mispredicted): the nearest quarter turn q, then
+/// polynomials of the remaining angle in [-pi/4, pi/4], swapped and
+/// negated by q.
+#[inline]
 pub fn sin_cos_turns(x: f64) -> (f64, f64) {
-    // Reduce to [0, 1) turns, then to an eighth of a turn.
-    let x = x - x.floor();
-    let x8 = x * 8.0;
-    let oct = (x8.floor() as i32).clamp(0, 7);
-    let r = (x8 - oct as f64) * 0.125; // [0, 1/8) turns
-    // angle in [0, pi/4): Taylor series to order 17 and 18.
-    let a = r * std::f64::consts::TAU;
+    // Quarter turns to the nearest multiple; |x| below 2^60 turns.
+    let q4 = x * 4.0;
+    let t = q4 as i64;
+    let f = q4 - t as f64; // in (-1, 1)
+    let q = t + (f >= 0.5) as i64 - (f < -0.5) as i64;
+    let a = (q4 - q as f64) * std::f64::consts::FRAC_PI_2;
     let a2 = a * a;
-    let (mut s, mut c) = (0.0f64, 0.0f64);
-    for k in (0..9).rev() {
-        // s = sum (-1)^k a^(2k+1)/(2k+1)!, c = sum (-1)^k a^(2k)/(2k)!
-        let sk = (2 * k + 2) as f64 * (2 * k + 3) as f64;
-        let ck = (2 * k + 1) as f64 * (2 * k + 2) as f64;
-        s = 1.0 - a2 / sk * s;
-        c = 1.0 - a2 / ck * c;
+    let mut s = SIN_TAYLOR[7];
+    for &k in SIN_TAYLOR[..7].iter().rev() {
+        s = s * a2 + k;
+    }
+    let mut c = COS_TAYLOR[8];
+    for &k in COS_TAYLOR[..8].iter().rev() {
+        c = c * a2 + k;
     }
     let s = s * a;
-    // Octant symmetries: angle = oct * pi/4 + a.
-    let h = std::f64::consts::FRAC_1_SQRT_2;
-    match oct {
-        0 => (s, c),
-        1 => (h * (s + c), h * (c - s)),
-        2 => (c, -s),
-        3 => (h * (c - s), -h * (s + c)),
-        4 => (-s, -c),
-        5 => (-h * (s + c), h * (s - c)),
-        6 => (-c, s),
-        _ => (h * (s - c), h * (s + c)),
-    }
+    // angle = q pi/2 + a: quadrant 1 (sin, cos) = (c, -s), 2 (-s, -c), 3 (-c, s).
+    let q = q & 3;
+    let (sin, cos) = if q & 1 == 1 { (c, s) } else { (s, c) };
+    let sin = if q >= 2 { -sin } else { sin };
+    let cos = if q == 1 || q == 2 { -cos } else { cos };
+    (sin, cos)
 }
 
 /// Integer square root if `n` is a perfect square.
@@ -327,6 +422,62 @@ mod tests {
             sample_offset(Sampler::Progressive, 16, seed, 3),
             sample_offset(Sampler::Grid, 8, seed, 3)
         );
+    }
+
+    #[test]
+    fn permute_is_a_permutation_for_any_count() {
+        for n in 1..=70u32 {
+            for seed in [0, 1, 0x9e37_79b9, hash_u32(n)] {
+                let mut seen = vec![false; n as usize];
+                for i in 0..n {
+                    let p = permute(i, n, seed) as usize;
+                    assert!(p < n as usize && !seen[p], "n {n} seed {seed}: {i} -> {p}");
+                    seen[p] = true;
+                }
+            }
+        }
+    }
+
+    /// A pixel's side^2 samples take one cell each of the side x side
+    /// grid, in an order that differs between pixels and between pairs;
+    /// without strata the pair is `uniform`'s two numbers.
+    #[test]
+    fn uniform_pair_puts_one_sample_in_each_cell() {
+        for side in [1u32, 2, 4, 16] {
+            let n = side * side;
+            let mut orders = std::collections::HashSet::new();
+            for (seed, dim) in [
+                (pixel_seed(3, 5, 0), 100),
+                (pixel_seed(4, 5, 0), 100),
+                (pixel_seed(3, 5, 0), 200),
+            ] {
+                let mut seen = vec![false; n as usize];
+                let mut order = vec![];
+                for k in 0..n {
+                    let (u, v) = uniform_pair(seed, k, side, dim);
+                    assert!((0.0..1.0).contains(&u) && (0.0..1.0).contains(&v));
+                    let cell = (v * side as f32) as u32 * side + (u * side as f32) as u32;
+                    assert!(
+                        !seen[cell as usize],
+                        "side {side}: two samples in cell {cell}"
+                    );
+                    seen[cell as usize] = true;
+                    order.push(cell);
+                }
+                orders.insert(order);
+            }
+            if side >= 4 {
+                assert_eq!(orders.len(), 3, "side {side}: orders repeat");
+            }
+            assert_eq!(
+                uniform_pair(7, 3, 0, 40),
+                (uniform(7, 3, 40), uniform(7, 3, 41))
+            );
+        }
+        assert_eq!(strata_side(Sampler::Jittered, 64), 8);
+        assert_eq!(strata_side(Sampler::Grid, 16), 4);
+        assert_eq!(strata_side(Sampler::Jittered, 32), 0);
+        assert_eq!(strata_side(Sampler::Progressive, 64), 0);
     }
 
     #[test]

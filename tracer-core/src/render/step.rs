@@ -60,6 +60,13 @@ pub trait Effects<R: Real> {
     ) -> Surface<'a, R, Self::Prim>;
     /// Uniform number `slot` of the node `key` (area-light points, cones).
     fn u(&self, key: Self::Key, slot: u32) -> f32;
+    /// Numbers `slot` and `slot + 1` of the node `key` as a pair: a path
+    /// vertex's light point and BSDF direction, stratified over the
+    /// pixel's samples where the driver stratifies
+    /// ([`crate::sampling::uniform_pair`]).
+    fn u2(&self, key: Self::Key, slot: u32) -> (f32, f32) {
+        (self.u(key, slot), self.u(key, slot + 1))
+    }
     /// The key of child `which` (0 refracted, 1 reflected) of node `key`.
     fn child(key: Self::Key, which: u32) -> Self::Key;
     /// The id of `prim` in the static world, where it is one (where
@@ -249,10 +256,7 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
         let eta = if s.entering { b.ior } else { R::ONE / b.ior };
         if !scene.light_cdf.is_empty() && b.has_smooth_lobe() {
             let i = scene.pick(fx.u(key, SLOT_PATH_LIGHT));
-            let (u, v) = (
-                fx.u(key, SLOT_PATH_LIGHT + 1),
-                fx.u(key, SLOT_PATH_LIGHT + 2),
-            );
+            let (u, v) = fx.u2(key, SLOT_PATH_LIGHT + 1);
             // A light's sample and its selection probability; an emissive
             // triangle's density includes its selection already.
             let sample = match lights.get(i) {
@@ -303,11 +307,8 @@ pub fn path<R: Real, E: Effects<R, Light = crate::light::Light<R>>>(
                 }
             }
         }
-        let u = [
-            fx.u(key, SLOT_PATH_LOBE),
-            fx.u(key, SLOT_PATH_LOBE + 1),
-            fx.u(key, SLOT_PATH_LOBE + 2),
-        ];
+        let (u1, u2) = fx.u2(key, SLOT_PATH_LOBE + 1);
+        let u = [fx.u(key, SLOT_PATH_LOBE), u1, u2];
         let Some(bs) = b.sample(wo, eta, u) else {
             break;
         };
@@ -472,6 +473,18 @@ pub fn material_at<R: Real>(
         return whole;
     }
     pbr.at(m, &world.attrs_at(id, p))
+}
+
+/// The emitted radiance of primitive `id` at `p`: [`material_at`]'s
+/// emission, without copying a material where nothing varies over it
+/// (light sampling asks at every path vertex).
+#[inline]
+pub fn emission_at<R: Real>(world: &World<R>, id: PrimId, p: R::V3, material: u32) -> R::V3 {
+    let m = &world.materials[material as usize];
+    if m.pbr == NO_PBR || !is_triangle(id) || !world.pbr[m.pbr as usize].varies() {
+        return world.bsdfs[material as usize].emission;
+    }
+    material_at(world, id, p, material).1.emission
 }
 
 /// The shading normal at `p` on primitive `id` (of material index

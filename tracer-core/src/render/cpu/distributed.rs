@@ -22,7 +22,7 @@ use crate::math::{Ray, Real, Vector3};
 use crate::render::step::{self, Effects, Surface};
 use crate::sampling::{
     DIM_LENS, DIM_TIME, ROOT_KEY, child_key, node_dim, pixel_seed, sample_offset, sin_cos_turns,
-    uniform,
+    strata_side, uniform, uniform_pair,
 };
 use crate::world::World;
 
@@ -59,6 +59,9 @@ pub struct Sampled<'a, R: Real> {
     pub index: u32,
     /// Fraction of the shutter, in [0, 1).
     pub tau: R,
+    /// The side of the grid [`Effects::u2`]'s pairs are stratified over
+    /// (`sampling::strata_side`; 0: none).
+    pub side: u32,
 }
 
 impl<R: Real> Sampled<'_, R> {
@@ -131,6 +134,10 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
     fn u(&self, key: u32, slot: u32) -> f32 {
         self.uniform(node_dim(key, slot))
     }
+    #[inline]
+    fn u2(&self, key: u32, slot: u32) -> (f32, f32) {
+        uniform_pair(self.seed, self.index, self.side, node_dim(key, slot))
+    }
     #[inline(always)]
     fn child(key: u32, which: u32) -> u32 {
         child_key(key, which)
@@ -188,6 +195,7 @@ pub fn sample_colour<R: Real>(
         } else {
             R::ZERO
         },
+        side: strata_side(s.sampler, s.samples),
     };
     let ray = camera_ray(world, dist, sx, sy, &sample);
     rays.primary += 1;

@@ -63,6 +63,11 @@ fn bsdf_is_delta(b: Bsdf) -> bool {
     return bsdf_alpha(b) < DELTA_ALPHA;
 }
 
+// bsdf.rs `is_lambert`: the Lambert lobe is all there is.
+fn bsdf_is_lambert(b: Bsdf) -> bool {
+    return b.specular == 0.0 && b.metallic == 0.0 && b.mirror == 0.0 && b.transmission == 0.0;
+}
+
 fn has_smooth_lobe(b: Bsdf) -> bool {
     let diffuse = (1.0 - b.mirror) * (1.0 - b.metallic) * (1.0 - b.transmission) * bsdf_max3(b.base);
     return diffuse > 0.0 || !bsdf_is_delta(b);
@@ -136,6 +141,13 @@ fn bsdf_eval(b: Bsdf, wo: vec3<f32>, wi: vec3<f32>, eta: f32) -> vec4<f32> {
     let co = wo.z;
     let ci = wi.z;
     if (!(co > 0.0 && ci > 0.0)) {
+        return vec4<f32>(0.0);
+    }
+    if (bsdf_is_lambert(b)) {
+        let pdf = ci * BSDF_INV_PI;
+        if (bsdf_lum(b.base) > 0.0) {
+            return vec4<f32>(b.base * pdf, pdf);
+        }
         return vec4<f32>(0.0);
     }
     let lobes = bsdf_lobes(b, co, eta);
@@ -215,6 +227,15 @@ fn bsdf_sample(b: Bsdf, wo: vec3<f32>, eta: f32, u: vec3<f32>) -> BsdfSample {
     let co = wo.z;
     if (!(co > 0.0)) {
         return no_sample();
+    }
+    if (bsdf_is_lambert(b)) {
+        // f cos / pdf = base exactly.
+        let wi = cosine_hemisphere(u.y, u.z);
+        let pdf = wi.z * BSDF_INV_PI;
+        if (!(pdf > 0.0 && bsdf_lum(b.base) > 0.0)) {
+            return no_sample();
+        }
+        return BsdfSample(wi, b.base, pdf, false, true);
     }
     let lobes = bsdf_lobes(b, co, eta);
     let pick = u.x;

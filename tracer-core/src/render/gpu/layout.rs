@@ -1123,11 +1123,9 @@ impl SceneData {
     ) -> Result<Self, GpuError> {
         let s = &w.settings;
         // 0: the low-discrepancy points (non-square counts, and the
-        // progressive sampler whatever the count), as `sample_offset`.
-        let grid_n = match s.sampler {
-            crate::sampling::Sampler::Progressive => 0,
-            _ => crate::sampling::exact_sqrt(s.samples).unwrap_or(0),
-        };
+        // progressive sampler whatever the count), as `sample_offset`,
+        // and no strata for the path integrator's pairs.
+        let grid_n = crate::sampling::strata_side(s.sampler, s.samples);
         let frame = FrameUniform {
             forward: a3(w.camera.forward),
             inv_width: w.camera.inv_width,

@@ -488,6 +488,12 @@ fn path_u(seed: u32, s: u32, key: u32, slot: u32) -> f32 {
     return uniform01(seed, s, node_dim(key, slot));
 }
 
+// step.rs `Effects::u2` as `Sampled` draws it: slots slot and slot + 1
+// stratified over frame.grid_n (sampling.rs `strata_side`).
+fn path_u2(seed: u32, s: u32, key: u32, slot: u32) -> vec2<f32> {
+    return uniform_pair(seed, s, frame.grid_n, node_dim(key, slot));
+}
+
 // A path between segments: render/step.rs `path`'s loop state.
 struct PathState {
     o: vec3<f32>,
@@ -574,8 +580,9 @@ fn path_step(st: ptr<function, PathState>, seed: u32, s: u32, tau: f32) -> bool 
     let eta = select(1.0 / b.ior, b.ior, sf.entering);
     if (PATH_NEE && has_smooth_lobe(b)) {
         let i = pick_light(path_u(seed, s, st.key, SLOT_PATH_LIGHT));
-        let lu = path_u(seed, s, st.key, SLOT_PATH_LIGHT + 1u);
-        let lv = path_u(seed, s, st.key, SLOT_PATH_LIGHT + 2u);
+        let luv = path_u2(seed, s, st.key, SLOT_PATH_LIGHT + 1u);
+        let lu = luv.x;
+        let lv = luv.y;
         // A light's sample and selection probability; an emissive
         // triangle's pdf includes its selection already.
         var ls: LightSample;
@@ -615,8 +622,7 @@ fn path_step(st: ptr<function, PathState>, seed: u32, s: u32, tau: f32) -> bool 
     }
     let u = vec3<f32>(
         path_u(seed, s, st.key, SLOT_PATH_LOBE),
-        path_u(seed, s, st.key, SLOT_PATH_LOBE + 1u),
-        path_u(seed, s, st.key, SLOT_PATH_LOBE + 2u),
+        path_u2(seed, s, st.key, SLOT_PATH_LOBE + 1u),
     );
     let bs = bsdf_sample(b, wo, eta, u);
     if (!bs.ok) {

@@ -23,6 +23,55 @@ fn uniform01(seed: u32, sample: u32, dim: u32) -> f32 {
     return f32(h >> 8u) * (1.0 / 16777216.0);
 }
 
+// sampling.rs `permute`: element i of the permutation of [0, n) seed picks
+// (Kensler 2013).
+fn permute(i0: u32, n: u32, seed: u32) -> u32 {
+    var w = n - 1u;
+    w |= w >> 1u;
+    w |= w >> 2u;
+    w |= w >> 4u;
+    w |= w >> 8u;
+    w |= w >> 16u;
+    var i = i0;
+    loop {
+        i ^= seed;
+        i *= 0xe170893du;
+        i ^= seed >> 16u;
+        i ^= (i & w) >> 4u;
+        i ^= seed >> 8u;
+        i *= 0x0929eb3fu;
+        i ^= seed >> 23u;
+        i ^= (i & w) >> 1u;
+        i *= 1u | (seed >> 27u);
+        i *= 0x6935fa69u;
+        i ^= (i & w) >> 11u;
+        i *= 0x74dcb303u;
+        i ^= (i & w) >> 2u;
+        i *= 0x9e501cc3u;
+        i ^= (i & w) >> 2u;
+        i *= 0xc860a3dfu;
+        i &= w;
+        i ^= i >> 5u;
+        if (i < n) {
+            break;
+        }
+    }
+    return (i + seed) % n;
+}
+
+// sampling.rs `uniform_pair`: dimensions dim and dim + 1 of a sample,
+// stratified over side x side cells (side > 0: the sample count is side^2).
+fn uniform_pair(seed: u32, sample: u32, side: u32, dim: u32) -> vec2<f32> {
+    let uv = vec2<f32>(uniform01(seed, sample, dim), uniform01(seed, sample, dim + 1u));
+    if (side == 0u) {
+        return uv;
+    }
+    let cell = permute(sample, side * side, hash_u32(seed ^ hash_u32(dim ^ 0x0b5c9d2fu)));
+    let n = f32(side);
+    let c = vec2<f32>(f32(cell % side), f32(cell / side));
+    return min((c + uv) / n, vec2<f32>(0.99999994));
+}
+
 const R2_A1: u32 = 3242174889u;
 const R2_A2: u32 = 2447445413u;
 
