@@ -90,12 +90,26 @@ fn render(desc: &SceneDesc, rect: Rect, samples: SampleRange) -> Film {
         .unwrap()
 }
 
+/// Any split merges to the whole, at 5 spp (pairs drawn independently)
+/// and at 9 (3 x 3 strata of each path vertex's pairs, which depend on the
+/// frame's count as well as the sample's index).
 #[test]
 fn any_split_of_a_path_traced_frame_merges_bit_for_bit() {
-    let desc = common::scene(SCENE);
+    for n in [5, 9] {
+        let mut desc = common::scene(SCENE);
+        desc.render.samples = n;
+        split_merges_bit_for_bit(&desc);
+    }
+}
+
+fn split_merges_bit_for_bit(desc: &SceneDesc) {
     assert_eq!(desc.render.integrator, Integrator::Path);
     let (w, h, n) = (desc.render.width, desc.render.height, desc.render.samples);
-    let whole = render(&desc, Rect::full(w, h), SampleRange::all(n));
+    assert_eq!(
+        tracer_core::sampling::strata_side(desc.render.sampler, n),
+        if n == 9 { 3 } else { 0 }
+    );
+    let whole = render(desc, Rect::full(w, h), SampleRange::all(n));
     assert_eq!(whole.nonfinite, 0);
     assert!(whole.rays.reflection > 0 && whole.rays.refraction > 0 && whole.rays.shadow > 0);
     // Odd rectangles and sample ranges, merged.
@@ -107,7 +121,7 @@ fn any_split_of_a_path_traced_frame_merges_bit_for_bit() {
         (Rect::new(7, 9, w - 7, h - 9), SampleRange::new(0, 3)),
         (Rect::new(7, 9, w - 7, h - 9), SampleRange::new(3, n)),
     ] {
-        merged.merge(&render(&desc, rect, samples)).unwrap();
+        merged.merge(&render(desc, rect, samples)).unwrap();
     }
     assert_eq!(merged.sums, whole.sums);
     assert_eq!(merged.counts, whole.counts);
