@@ -119,10 +119,11 @@ pub fn permute(i: u32, n: u32, seed: u32) -> u32 {
     i.wrapping_add(seed) % n
 }
 
-/// The side of the grid a render's sample pairs are stratified over: the
-/// square root of a square sample count, except for the progressive
-/// sampler (whose counts are open-ended); 0: no strata. The GPU's
-/// `FrameUniform::grid_n`.
+/// The side of the grid a render's samples are stratified over (pixel
+/// positions, [`sample_offset`]; the path integrator's pairs,
+/// [`uniform_pair`]): the square root of a square sample count, except for
+/// the progressive sampler (whose counts are open-ended); 0: no strata.
+/// The GPU's `FrameUniform::grid_n`.
 pub fn strata_side(sampler: Sampler, count: u32) -> u32 {
     match sampler {
         Sampler::Progressive => 0,
@@ -276,12 +277,8 @@ pub fn same_in_every_pixel(sampler: Sampler, count: u32) -> bool {
 /// Offset of sample `sample` (of `count`) inside its pixel, each coordinate in [0, 1).
 #[inline]
 pub fn sample_offset(sampler: Sampler, count: u32, seed: u32, sample: u32) -> (f32, f32) {
-    let grid = match sampler {
-        Sampler::Progressive => None,
-        Sampler::Grid | Sampler::Jittered => exact_sqrt(count),
-    };
-    match grid {
-        Some(n) => {
+    match strata_side(sampler, count) {
+        n if n > 0 => {
             let (i, j) = (sample % n, sample / n);
             let (jx, jy) = match sampler {
                 Sampler::Grid => (0.5, 0.5),
@@ -291,7 +288,7 @@ pub fn sample_offset(sampler: Sampler, count: u32, seed: u32, sample: u32) -> (f
             };
             ((i as f32 + jx) / n as f32, (j as f32 + jy) / n as f32)
         }
-        None => {
+        _ => {
             // Low-discrepancy points, rotated per pixel so neighbours decorrelate.
             let rx = hash_u32(seed ^ 0x5bd1_e995);
             let ry = hash_u32(seed ^ 0x1b87_3593);

@@ -29,7 +29,7 @@ use crate::bsdf::Frame;
 use crate::film::RayCounts;
 use crate::geometry::PrimId;
 use crate::light::Emitter;
-use crate::material::{Material, NO_PBR, reflect};
+use crate::material::{Material, NO_PBR, Pbr, reflect};
 use crate::math::{Ray, Real, Vector3, offset_origin};
 use crate::sampling::{
     SLOT_GLOSS, SLOT_LIGHTS, SLOT_PATH_LIGHT, SLOT_PATH_LOBE, SLOT_PATH_RR, SLOT_TRANSLUCENCY,
@@ -464,15 +464,10 @@ pub fn material_at<R: Real>(
     material: u32,
 ) -> (Material<R>, Bsdf<R>) {
     let m = &world.materials[material as usize];
-    let whole = (*m, world.bsdfs[material as usize]);
-    if m.pbr == NO_PBR || !is_triangle(id) {
-        return whole;
+    match varying_pbr(world, id, material) {
+        Some(pbr) => pbr.at(m, &world.attrs_at(id, p)),
+        None => (*m, world.bsdfs[material as usize]),
     }
-    let pbr = &world.pbr[m.pbr as usize];
-    if !pbr.varies() {
-        return whole;
-    }
-    pbr.at(m, &world.attrs_at(id, p))
 }
 
 /// The emitted radiance of primitive `id` at `p`: [`material_at`]'s
@@ -480,11 +475,23 @@ pub fn material_at<R: Real>(
 /// (light sampling asks at every path vertex).
 #[inline]
 pub fn emission_at<R: Real>(world: &World<R>, id: PrimId, p: R::V3, material: u32) -> R::V3 {
-    let m = &world.materials[material as usize];
-    if m.pbr == NO_PBR || !is_triangle(id) || !world.pbr[m.pbr as usize].varies() {
-        return world.bsdfs[material as usize].emission;
+    match varying_pbr(world, id, material) {
+        Some(_) => material_at(world, id, p, material).1.emission,
+        None => world.bsdfs[material as usize].emission,
     }
-    material_at(world, id, p, material).1.emission
+}
+
+/// The glTF parameters of material index `material` where textures or
+/// vertex colours make them vary over primitive `id` (a triangle); `None`
+/// where the material is the same all over it.
+#[inline]
+fn varying_pbr<R: Real>(world: &World<R>, id: PrimId, material: u32) -> Option<&Pbr> {
+    let m = &world.materials[material as usize];
+    if m.pbr == NO_PBR || !is_triangle(id) {
+        return None;
+    }
+    let pbr = &world.pbr[m.pbr as usize];
+    pbr.varies().then_some(&**pbr)
 }
 
 /// The shading normal at `p` on primitive `id` (of material index
