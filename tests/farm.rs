@@ -668,6 +668,31 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
     gpu_adaptive.extend(["--backend", "gpu", "--adapter", "0"]);
     assert_frames_match_render(dir.path(), &c.url(), &job, &dist, 0..=0, &gpu_adaptive);
 
+    // The image mode on the GPU worker: its units' blocks each over their
+    // own range (one ranged grid a lease), no runs (its blocks cost the
+    // same), the frame-wide rounds to the target.
+    let mut args = adaptive.to_vec();
+    args[5] = "0.01"; // --target-error: 0.02 is met by round 0 already
+    args.extend(["--adaptive-mode", "image", "--tile-size", "32", "--wait"]);
+    let job = submit(&c.url(), &dist, &args);
+    let s = status(&c.url(), &job);
+    assert_eq!(
+        (s.state, s.results_rejected),
+        (pb::JobState::Done as i32, 0),
+        "{}",
+        gpu.log()
+    );
+    let a = s.adaptive.expect("an adaptive job's status");
+    assert_eq!(a.mode, pb::AdaptiveMode::Image as i32);
+    assert!(
+        a.estimated_error > 0.0 && a.estimated_error <= 0.01,
+        "{a:?}"
+    );
+    assert!(
+        s.samples_done > 64 * 48 * 4 && s.samples_done < 64 * 48 * 32,
+        "{s:?}"
+    );
+
     // With a CPU worker beside it, units go to both, and the image is the
     // CPU render within the GPU's f32 rounding.
     let _cpu = start_worker(dir.path(), &c.url(), "cpu");
@@ -962,6 +987,151 @@ fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
     );
     // Units of rounds no block needed are done without a result.
     assert!(s.units_accepted < total, "{}", s.units_accepted);
+    assert!(c.proc.log().contains("job restored"));
+    assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
+}
+
+/// The error-optimal mode (`--adaptive-mode image`) on the farm: each
+/// frame's rounds are decided frame-wide once all its tiles are in, blocks
+/// take their own ranges, the workers' runs are booked as the local render
+/// books its own, so the image, the sample count and the estimated RMSE
+/// are `tessera render`'s, bit for bit, on one and three workers with
+/// tiles of 64 and 32. Tiles off the 32-pixel grid are refused.
+#[test]
+fn image_mode_adaptive_jobs_on_one_and_three_workers_match_tessera_render() {
+    let _g = serial();
+    let scene = repo("examples/distributed.toml");
+    let settings = [
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--adaptive-mode",
+        "image",
+        "--target-error",
+        "0.006",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "64",
+    ];
+    let dir = tempfile::tempdir().expect("tempdir");
+    let json = render_json(dir.path(), &scene, &settings);
+    assert_eq!(json["adaptive"]["mode"], "image", "{json}");
+    let local_samples = json["adaptive"]["pixel_samples"]
+        .as_u64()
+        .expect("pixel_samples");
+    let local_error = json["adaptive"]["estimated_rms_error"]
+        .as_f64()
+        .expect("estimated_rms_error");
+    let rounds = json["adaptive"]["rounds"].as_u64().expect("rounds");
+    // Blocks took different counts in more than two rounds: a real
+    // allocation, not uniform sampling.
+    assert!(rounds > 2, "{json}");
+    assert!(
+        local_samples > 96 * 72 * 4 && local_samples < 96 * 72 * 64,
+        "{json}"
+    );
+    assert!(local_error <= 0.006, "{json}");
+    for (workers, tile) in [(1, "64"), (3, "32")] {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+        let _w: Vec<Proc> = (0..workers)
+            .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
+            .collect();
+        let mut args = settings.to_vec();
+        args.extend(["--tile-size", tile]);
+        let job = submit(&c.url(), &scene, &args);
+        let s = wait_done(&c.url(), &job, Duration::from_secs(300));
+        assert_eq!(s.state, pb::JobState::Done as i32);
+        assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+        assert_eq!(
+            (s.samples_done, s.samples_total),
+            (local_samples, local_samples),
+            "{workers} workers, tiles of {tile}"
+        );
+        let a = s.adaptive.expect("adaptive status");
+        assert_eq!(a.mode, pb::AdaptiveMode::Image as i32);
+        assert_eq!(
+            (a.target_error, a.min_samples, a.max_samples),
+            (0.006, 4, 64)
+        );
+        assert_eq!(a.estimated_error, local_error, "{a:?}");
+        assert_eq!(a.converged_share, 1.0, "{a:?}");
+        // `status` says which target it is.
+        let out = ok_stdout(&tessera(&["status", &job], &c.url()));
+        assert!(
+            out.contains("adaptive:  image mode, image RMSE 0.006 (4..64 spp): 100.0% of blocks settled, estimated image RMSE"),
+            "{out}"
+        );
+        if workers == 3 {
+            let refused = tessera(
+                &["submit", scene.to_str().expect("path"), "--tile-size", "48"]
+                    .into_iter()
+                    .chain(settings)
+                    .collect::<Vec<_>>(),
+                &c.url(),
+            );
+            assert!(!refused.status.success());
+            let err = String::from_utf8_lossy(&refused.stderr);
+            assert!(
+                err.contains("tile_size must be a multiple of 32 for the image adaptive mode"),
+                "{err}"
+            );
+        }
+    }
+}
+
+/// An image-mode adaptive job survives a coordinator restart: the stored
+/// rounds are replayed in order (their films merged, their runs booked,
+/// each round decided again), nothing is rendered twice, and the frames
+/// are still `tessera render --adaptive-mode image`'s bit for bit.
+#[test]
+fn a_coordinator_killed_mid_image_mode_job_replays_its_rounds() {
+    let _g = serial();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
+    let addr = c.addr.clone();
+    let url = c.url();
+    let _w: Vec<Proc> = (0..2)
+        .map(|i| start_worker(dir.path(), &url, &format!("w{i}")))
+        .collect();
+    let scene = repo("examples/animation.toml");
+    let settings = [
+        "--width",
+        "192",
+        "--height",
+        "128",
+        "--adaptive-mode",
+        "image",
+        "--target-error",
+        "0.003",
+        "--min-samples",
+        "4",
+        "--max-samples",
+        "64",
+    ];
+    let mut args = settings.to_vec();
+    args.extend(["--frames", "1..3", "--tile-size", "32"]);
+    let job = submit(&url, &scene, &args);
+    let total = status(&url, &job).units_total;
+    let mut before = 0;
+    wait_for("some rounds", Duration::from_secs(60), || {
+        let s = status(&url, &job);
+        before = s.units_accepted;
+        // Past round 0 of some frame: a decided round to replay.
+        before > 3 * 24
+    });
+    std::thread::sleep(Duration::from_millis(300));
+    c.proc.sigkill();
+    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
+    let restored = status(&url, &job);
+    assert!(restored.units_done >= before && restored.units_done < total);
+    let s = wait_done(&url, &job, Duration::from_secs(180));
+    assert_eq!(
+        (s.units_done, s.units_total, s.results_duplicate),
+        (total, total, 0)
+    );
     assert!(c.proc.log().contains("job restored"));
     assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }

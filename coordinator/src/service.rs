@@ -109,6 +109,7 @@ pub fn job_status(v: &JobView) -> pb::JobStatus {
             max_samples: a.max_samples,
             converged_share: v.adaptive.converged_share,
             estimated_error: v.adaptive.estimated_error,
+            mode: tessera_proto::convert::adaptive_mode_to_pb(a.mode) as i32,
         }),
         blocklisted: v
             .blocklisted
@@ -282,6 +283,7 @@ impl JobService for Api {
                     version: w.version,
                     host_id: w.host_id,
                     labels: w.labels.into_iter().collect(),
+                    block_ranges: w.block_ranges,
                 }),
                 leases: w.leases,
                 units_done: w.units_done,
@@ -544,6 +546,7 @@ impl WorkerService for Api {
                 version: caps.version,
                 host_id: caps.host_id,
                 labels,
+                block_ranges: caps.block_ranges,
             },
         );
         Ok(Response::new(pb::RegisterResponse {
@@ -796,6 +799,11 @@ fn result_data(r: pb::SubmitResultRequest) -> ResultData {
                 r.rays.unwrap_or_default().into(),
                 r.nonfinite,
             )
+        })
+        .map(|mut f| {
+            // Checked against the lease's blocks (farm::adaptive::check_runs).
+            f.runs = r.runs.iter().map(Into::into).collect();
+            f
         })
         .map_err(|e| e.to_string());
     // The fields decoded: they are the film in the store's layout too

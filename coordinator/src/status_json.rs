@@ -147,6 +147,8 @@ pub struct AdaptiveJson {
     pub max_samples: u32,
     pub converged_share: f64,
     pub estimated_error: f64,
+    /// "pixel" (each pixel's error) or "image" (the image's RMSE).
+    pub mode: &'static str,
 }
 
 /// A worker on a job's blocklist.
@@ -251,6 +253,10 @@ impl From<&pb::JobStatus> for JobJson {
                 max_samples: a.max_samples,
                 converged_share: a.converged_share,
                 estimated_error: a.estimated_error,
+                mode: match pb::AdaptiveMode::try_from(a.mode) {
+                    Ok(pb::AdaptiveMode::Image) => "image",
+                    _ => "pixel",
+                },
             }),
             requirements: j.requirements.clone(),
             unrunnable: non_empty(&j.unrunnable),

@@ -1,8 +1,8 @@
 //! Conversions between protobuf messages and Rust types (tracer-core's
 //! and [`JobSpec`]): the one place each wire message meets its Rust shape.
 
-use tracer_core::adaptive::{AdaptiveSpec, BlockMask};
-use tracer_core::film::{RayCounts, Rect, SampleRange, WorkRegion};
+use tracer_core::adaptive::{AdaptiveMode, AdaptiveSpec, BlockMask};
+use tracer_core::film::{RayCounts, Rect, RunCost, SampleRange, WorkRegion};
 use tracer_core::render::Backend;
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{Integrator, RenderOverrides, RenderSettings};
@@ -49,6 +49,26 @@ impl From<SampleRange> for pb::SampleRange {
     }
 }
 
+impl From<RunCost> for pb::RunCost {
+    fn from(r: RunCost) -> Self {
+        pb::RunCost {
+            rect: Some(r.rect.into()),
+            rays: r.rays,
+            samples: r.samples,
+        }
+    }
+}
+
+impl From<&pb::RunCost> for RunCost {
+    fn from(r: &pb::RunCost) -> Self {
+        RunCost {
+            rect: r.rect.unwrap_or_default().into(),
+            rays: r.rays,
+            samples: r.samples,
+        }
+    }
+}
+
 impl From<pb::SampleRange> for SampleRange {
     fn from(s: pb::SampleRange) -> Self {
         SampleRange::new(s.start, s.end)
@@ -89,6 +109,10 @@ impl From<LeasedUnit> for pb::WorkUnit {
             }),
             adaptive: l.active.is_some(),
             active_blocks: l.active.map(|m| m.to_bytes()).unwrap_or_default(),
+            block_samples: l
+                .ranges
+                .map(|r| r.into_iter().map(Into::into).collect())
+                .unwrap_or_default(),
             units: l.units,
             ..Default::default()
         };
@@ -125,14 +149,16 @@ impl TryFrom<pb::WorkUnit> for LeasedUnit {
                     .then(|| BlockMask::from_bytes(region.rect, &u.active_blocks))
                     .transpose()
                     .map_err(|e| e.to_string())?;
-                Ok((job, active))
+                let ranges = block_ranges(&u.block_samples, active.as_ref(), region)?;
+                Ok((job, active, ranges))
             });
         match decoded {
-            Ok((job, active)) => Ok(LeasedUnit {
+            Ok((job, active, ranges)) => Ok(LeasedUnit {
                 lease_id: u.lease_id,
                 job,
                 region,
                 active,
+                ranges,
                 units,
             }),
             Err(why) => Err(MalformedUnit {
@@ -143,6 +169,47 @@ impl TryFrom<pb::WorkUnit> for LeasedUnit {
             }),
         }
     }
+}
+
+/// A unit's per-block ranges (`WorkUnit.block_samples`), checked against
+/// its active blocks and sample range: `None` where there are none.
+fn block_ranges(
+    wire: &[pb::SampleRange],
+    active: Option<&BlockMask>,
+    region: WorkRegion,
+) -> Result<Option<Vec<SampleRange>>, String> {
+    if wire.is_empty() {
+        return Ok(None);
+    }
+    let Some(mask) = active else {
+        return Err("block_samples in a unit that is not adaptive".into());
+    };
+    if wire.len() != mask.active.len() {
+        return Err(format!(
+            "block_samples has {} ranges, the rect has {} blocks",
+            wire.len(),
+            mask.active.len()
+        ));
+    }
+    let hull = region.samples;
+    let ranges: Vec<SampleRange> = wire.iter().map(|&r| r.into()).collect();
+    for (i, (r, &on)) in ranges.iter().zip(&mask.active).enumerate() {
+        if r.start > r.end || (!r.is_empty() && (r.start < hull.start || r.end > hull.end)) {
+            return Err(format!(
+                "block {i}'s samples {}..{} do not lie in the unit's {}..{}",
+                r.start, r.end, hull.start, hull.end
+            ));
+        }
+        if r.is_empty() == on {
+            return Err(format!(
+                "block {i} is {} but its samples are {}..{}",
+                if on { "active" } else { "inactive" },
+                r.start,
+                r.end
+            ));
+        }
+    }
+    Ok(Some(ranges))
 }
 
 impl From<RayCounts> for pb::RayCounts {
@@ -282,6 +349,11 @@ impl From<&pb::RenderOverrides> for AdaptiveSpec {
             relative_error: o.relative_error,
             min_samples: o.min_samples,
             max_samples: o.max_samples,
+            mode: match pb::AdaptiveMode::try_from(o.adaptive_mode) {
+                Ok(pb::AdaptiveMode::Pixel) => Some(AdaptiveMode::Pixel),
+                Ok(pb::AdaptiveMode::Image) => Some(AdaptiveMode::Image),
+                _ => None,
+            },
         }
     }
 }
@@ -305,7 +377,18 @@ impl From<(RenderOverrides, AdaptiveSpec)> for pb::RenderOverrides {
             relative_error: a.relative_error,
             min_samples: a.min_samples,
             max_samples: a.max_samples,
+            adaptive_mode: a
+                .mode
+                .map_or(pb::AdaptiveMode::Unspecified, adaptive_mode_to_pb)
+                as i32,
         }
+    }
+}
+
+pub fn adaptive_mode_to_pb(m: AdaptiveMode) -> pb::AdaptiveMode {
+    match m {
+        AdaptiveMode::Pixel => pb::AdaptiveMode::Pixel,
+        AdaptiveMode::Image => pb::AdaptiveMode::Image,
     }
 }
 
@@ -388,6 +471,7 @@ mod tests {
             },
             region: WorkRegion::new(2, Rect::new(16, 8, 32, 16), SampleRange::new(0, 4)),
             active: None,
+            ranges: None,
             units: 3,
         }
     }
@@ -402,12 +486,45 @@ mod tests {
         let mut mask = BlockMask::none(l.region.rect);
         mask.active[1] = true;
         let adaptive = LeasedUnit {
-            active: Some(mask),
-            ..l
+            active: Some(mask.clone()),
+            ..l.clone()
         };
         assert_eq!(
             LeasedUnit::try_from(pb::WorkUnit::from(adaptive.clone())),
-            Ok(adaptive)
+            Ok(adaptive.clone())
+        );
+        // The image mode: each block its own range inside the unit's.
+        let mut ranges = vec![SampleRange::new(0, 0); mask.active.len()];
+        ranges[1] = SampleRange::new(1, 3);
+        let ranged = LeasedUnit {
+            ranges: Some(ranges.clone()),
+            ..adaptive.clone()
+        };
+        assert_eq!(
+            LeasedUnit::try_from(pb::WorkUnit::from(ranged.clone())),
+            Ok(ranged.clone())
+        );
+        // Ranges that disagree with the mask or the unit's range are refused.
+        let why = |ranges: Vec<SampleRange>| {
+            LeasedUnit::try_from(pb::WorkUnit::from(LeasedUnit {
+                ranges: Some(ranges),
+                ..adaptive.clone()
+            }))
+            .unwrap_err()
+            .why
+        };
+        let mut r = ranges.clone();
+        r[1] = SampleRange::new(2, 5);
+        assert_eq!(
+            why(r),
+            "block 1's samples 2..5 do not lie in the unit's 0..4"
+        );
+        let mut r = ranges.clone();
+        r[0] = SampleRange::new(0, 1);
+        assert_eq!(why(r), "block 0 is inactive but its samples are 0..1");
+        assert_eq!(
+            why(ranges[..2].to_vec()),
+            "block_samples has 2 ranges, the rect has 8 blocks"
         );
     }
 
@@ -459,6 +576,7 @@ mod tests {
                 relative_error: None,
                 min_samples: Some(4),
                 max_samples: None,
+                mode: Some(AdaptiveMode::Image),
             },
             first_frame: 2,
             last_frame: 5,

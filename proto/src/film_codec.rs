@@ -308,6 +308,7 @@ pub fn unpack_with(
         rays,
         nonfinite,
         squares: None,
+        runs: Vec::new(),
     })
 }
 

@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 
 use tracer_core::adaptive::BlockMask;
-use tracer_core::film::WorkRegion;
+use tracer_core::film::{SampleRange, WorkRegion};
 use tracer_core::scene::RenderSettings;
 
 /// A unit of work held under a lease: which pixels and samples of which
@@ -23,6 +23,11 @@ pub struct LeasedUnit {
     /// Adaptive jobs: the 8x8 blocks of `region.rect` this round samples
     /// (the result then carries sums of squares). `None`: every pixel.
     pub active: Option<BlockMask>,
+    /// Adaptive jobs in the image mode: per block of `region.rect`, the
+    /// sample indices it takes (empty where `active` has it off), all
+    /// inside `region.samples`. `None`: every active block takes
+    /// `region.samples`.
+    pub ranges: Option<Vec<SampleRange>>,
     /// How many of the job's work units (tiles by sample batches) the
     /// lease covers, at least 1: what an accepted result counts as done.
     pub units: u32,

@@ -154,6 +154,7 @@ impl Bench {
                         relative_error: 0.0,
                         min_samples: min,
                         max_samples: 4 * top,
+                        mode: tracer_core::adaptive::AdaptiveMode::Pixel,
                     };
                     curves[0].push(run(Mode::PerPixel(a), &mut runs)?);
                 }

@@ -8,6 +8,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use tessera_proto::{JobSpec, pb};
 use tokio_stream::StreamExt as _;
+use tracer_core::adaptive::AdaptiveMode;
 
 use super::farm_common::{CoordinatorUrl, JobClient, connect, rpc, runtime};
 use super::output::{Format, Progress, job_json, print_json, worker_json};
@@ -447,22 +448,36 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
             j.rays_per_second / 1e6
         );
         if let Some(a) = &j.adaptive {
-            outln!(
-                "adaptive:  {} ({}..{} spp): {:.1}% of blocks converged, estimated RMS error {:.2e}, {} of {} expected pixel-samples",
-                tracer_core::adaptive::AdaptiveSettings {
-                    target_error: a.target_error,
-                    relative_error: a.relative_error,
-                    min_samples: a.min_samples,
-                    max_samples: a.max_samples,
-                }
-                .describe_target(),
-                a.min_samples,
-                a.max_samples,
-                100.0 * a.converged_share,
-                a.estimated_error,
-                j.samples_done,
-                j.samples_total
-            );
+            let settings = tracer_core::adaptive::AdaptiveSettings {
+                target_error: a.target_error,
+                relative_error: a.relative_error,
+                min_samples: a.min_samples,
+                max_samples: a.max_samples,
+                mode: adaptive_mode(a),
+            };
+            if settings.mode == AdaptiveMode::Image {
+                outln!(
+                    "adaptive:  image mode, {} ({}..{} spp): {:.1}% of blocks settled, estimated image RMSE {:.2e}, {} of {} expected pixel-samples",
+                    settings.describe_target(),
+                    a.min_samples,
+                    a.max_samples,
+                    100.0 * a.converged_share,
+                    a.estimated_error,
+                    j.samples_done,
+                    j.samples_total
+                );
+            } else {
+                outln!(
+                    "adaptive:  {} ({}..{} spp): {:.1}% of blocks converged, estimated RMS error {:.2e}, {} of {} expected pixel-samples",
+                    settings.describe_target(),
+                    a.min_samples,
+                    a.max_samples,
+                    100.0 * a.converged_share,
+                    a.estimated_error,
+                    j.samples_done,
+                    j.samples_total
+                );
+            }
         }
         if !ended(j.state) {
             if j.eta_seconds >= 0.0 {
@@ -631,11 +646,19 @@ fn show_progress(progress: &Progress, j: &pb::JobStatus, no_workers: bool) {
         ""
     };
     let adaptive = j.adaptive.as_ref().map_or(String::new(), |a| {
-        format!(
-            " converged {:.1}% est. error {:.2e}",
-            100.0 * a.converged_share,
-            a.estimated_error
-        )
+        if adaptive_mode(a) == AdaptiveMode::Image {
+            format!(
+                " settled {:.1}% est. image RMSE {:.2e}",
+                100.0 * a.converged_share,
+                a.estimated_error
+            )
+        } else {
+            format!(
+                " converged {:.1}% est. error {:.2e}",
+                100.0 * a.converged_share,
+                a.estimated_error
+            )
+        }
     });
     progress.set(
         (percent(j) * 10.0) as u64,
@@ -1023,4 +1046,13 @@ fn now_unix_ms() -> i64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_millis() as i64)
+}
+
+/// What an adaptive job's target bounds, as its status says (a
+/// coordinator of an earlier release says nothing: per pixel).
+fn adaptive_mode(a: &pb::AdaptiveStatus) -> AdaptiveMode {
+    match pb::AdaptiveMode::try_from(a.mode) {
+        Ok(pb::AdaptiveMode::Image) => AdaptiveMode::Image,
+        _ => AdaptiveMode::Pixel,
+    }
 }

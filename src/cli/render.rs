@@ -9,7 +9,7 @@ use tracer_core::film::WorkRegion;
 use anyhow::{Result, bail};
 use clap::builder::TypedValueParser as _;
 use clap::{Args, ValueEnum};
-use tracer_core::adaptive::{AdaptiveSettings, AdaptiveSpec};
+use tracer_core::adaptive::{AdaptiveMode, AdaptiveSettings, AdaptiveSpec};
 use tracer_core::film::{Rect, SampleRange};
 use tracer_core::render::adaptive;
 use tracer_core::render::cpu::MAX_THREADS;
@@ -103,6 +103,33 @@ pub struct AdaptiveArgs {
     /// max_samples, else 1024]
     #[arg(long, value_name = "N")]
     pub max_samples: Option<u32>,
+    /// Adaptive sampling: what the target bounds. `pixel`: every pixel's
+    /// standard error. `image`: the image's estimated RMSE (--target-error
+    /// as an RMSE, --relative-error as a share of the image's mean), with
+    /// each 8x8 block's samples in proportion to its noise over the square
+    /// root of its cost in rays, the cheapest way to that error
+    /// (docs/adaptive-sampling.md) [default: the scene's [render]
+    /// adaptive_mode, else pixel]
+    #[arg(long, value_enum)]
+    pub adaptive_mode: Option<AdaptiveModeArg>,
+}
+
+/// What an adaptive render's target bounds (`--adaptive-mode`).
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+pub enum AdaptiveModeArg {
+    /// Every pixel's standard error (the meaning of --target-error).
+    Pixel,
+    /// The whole image's estimated RMSE, reached the cheapest way.
+    Image,
+}
+
+impl From<AdaptiveModeArg> for AdaptiveMode {
+    fn from(m: AdaptiveModeArg) -> Self {
+        match m {
+            AdaptiveModeArg::Pixel => AdaptiveMode::Pixel,
+            AdaptiveModeArg::Image => AdaptiveMode::Image,
+        }
+    }
 }
 
 impl From<&AdaptiveArgs> for AdaptiveSpec {
@@ -112,6 +139,7 @@ impl From<&AdaptiveArgs> for AdaptiveSpec {
             relative_error: a.relative_error,
             min_samples: a.min_samples,
             max_samples: a.max_samples,
+            mode: a.adaptive_mode.map(Into::into),
         }
     }
 }
@@ -136,16 +164,6 @@ fn resolve(
             ),
             e => e.into(),
         })
-}
-
-/// What an adaptive render's target bounds (`--adaptive-mode`).
-#[derive(Copy, Clone, Debug, Default, PartialEq, Eq, ValueEnum)]
-pub enum AdaptiveMode {
-    /// Every pixel's standard error (the meaning of --target-error).
-    #[default]
-    Pixel,
-    /// The whole image's estimated RMSE, reached the cheapest way.
-    Image,
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
@@ -254,14 +272,6 @@ pub struct RenderArgs {
     /// dark blue at --min-samples to yellow at --max-samples, log scale)
     #[arg(long, value_name = "FILE.png")]
     pub sample_map: Option<PathBuf>,
-    /// Adaptive renders: what the target bounds. `pixel`: every pixel's
-    /// standard error. `image`: the image's estimated RMSE (--target-error
-    /// as an RMSE, --relative-error as a share of the image's mean), with
-    /// each 8x8 block's samples in proportion to its noise over the square
-    /// root of its cost in rays, the cheapest way to that error (local
-    /// renders; docs/adaptive-sampling.md)
-    #[arg(long, value_enum, default_value_t = AdaptiveMode::Pixel)]
-    pub adaptive_mode: AdaptiveMode,
     /// CPU threads for --backend cpu, 0..=4096; 0 means all cores [default: all cores]
     #[arg(long, allow_negative_numbers = true, value_parser = threads_parser())]
     pub threads: Option<usize>,
@@ -324,11 +334,6 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
         eprintln!(
             "warning: the environment image {} lights the path integrator only; this render is whitted (give --integrator path)",
             env.name
-        );
-    }
-    if args.adaptive_mode == AdaptiveMode::Image && adaptive.is_none() {
-        bail!(
-            "--adaptive-mode image needs a target: give --target-error (an RMSE) or --relative-error"
         );
     }
     if let Some(map) = &args.sample_map {
@@ -415,17 +420,12 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
             &args, &settings, precision, &renderer, &output, &setup, summary, None, None,
         );
     };
-    let film = if args.adaptive_mode == AdaptiveMode::Image {
+    let film = if a.mode == AdaptiveMode::Image {
         adaptive::render_rmse(
             &renderer,
             &prepared,
             args.frame,
-            &tracer_core::adaptive::optimal::RmseSettings {
-                target_rmse: a.target_error,
-                relative_rmse: a.relative_error,
-                min_samples: a.min_samples,
-                max_samples: a.max_samples,
-            },
+            &tracer_core::adaptive::optimal::RmseSettings::from(a),
             &|n| progress.inc(n),
             &mut |r| {
                 progress.note(&format!(

@@ -90,6 +90,7 @@ fn settings(target: f64, min: u32, max: u32) -> AdaptiveSettings {
         relative_error: 0.0,
         min_samples: min,
         max_samples: max,
+        mode: tracer_core::adaptive::AdaptiveMode::Pixel,
     }
 }
 
@@ -399,6 +400,52 @@ fn adaptive_keys_in_the_scene_file_are_checked() {
         d.adaptive.resolve(&bad).unwrap_err(),
         "relative_error must be a finite number above 0, got 0"
     );
+    // The mode: the file's key, the command line over it, named in errors.
+    use tracer_core::adaptive::AdaptiveMode;
+    let image = scene(&with("target_error = 0.003\nadaptive_mode = \"image\""));
+    let a = image
+        .adaptive
+        .resolve(&Default::default())
+        .unwrap()
+        .unwrap();
+    assert_eq!(a.mode, AdaptiveMode::Image);
+    assert_eq!(a.describe_target(), "image RMSE 0.003");
+    let pixel = adaptive::AdaptiveSpec {
+        mode: Some(AdaptiveMode::Pixel),
+        ..Default::default()
+    };
+    let a = image.adaptive.resolve(&pixel).unwrap().unwrap();
+    assert_eq!(a.mode, AdaptiveMode::Pixel);
+    assert_eq!(
+        d.adaptive
+            .resolve(&Default::default())
+            .unwrap()
+            .unwrap()
+            .mode,
+        AdaptiveMode::Pixel
+    );
+    let e = SceneDesc::parse(&with("adaptive_mode = \"frame\""), "t.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("render.adaptive_mode") && e.contains("pixel"),
+        "{e}"
+    );
+    // The file's mode waits for a target (a uniform render without one);
+    // the command line's needs one.
+    let untargeted = scene(&with("adaptive_mode = \"image\""));
+    assert_eq!(untargeted.adaptive.resolve(&Default::default()), Ok(None));
+    let image_flag = adaptive::AdaptiveSpec {
+        mode: Some(AdaptiveMode::Image),
+        ..Default::default()
+    };
+    assert!(
+        scene(EDGE)
+            .adaptive
+            .resolve(&image_flag)
+            .unwrap_err()
+            .starts_with("--adaptive-mode image needs a target")
+    );
 }
 
 /// The relative rule on pixels of known statistics: a pixel's limit is
@@ -541,7 +588,7 @@ fn the_rmse_mode_stops_at_its_target_and_its_estimate_is_honest() {
 #[test]
 fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
     use tracer_core::adaptive::optimal::Costs;
-    use tracer_core::render::adaptive::{render_blocks, render_round_costed};
+    use tracer_core::render::adaptive::{render_blocks, render_round};
     let desc = scene(NOISY);
     let a = settings(0.01, 4, 40);
     let frame = prepared(&desc, &a, 0);
@@ -560,7 +607,7 @@ fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
         if to[i] > from[i] {
             let mut mask = BlockMask::none(rect);
             mask.active[i] = true;
-            let (f, runs) = render_round_costed(
+            let f = render_round(
                 &r,
                 &frame,
                 0,
@@ -570,9 +617,7 @@ fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
             )
             .unwrap();
             want.merge(&f).unwrap();
-            for (run, rays) in runs {
-                want_costs.book(rect, run, rays, to[i] - from[i]);
-            }
+            want_costs.book_runs(rect, &f.runs);
         }
     }
     assert_eq!(got.counts, want.counts);
@@ -582,4 +627,55 @@ fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
     assert_eq!(got_costs.rays, want_costs.rays);
     assert_eq!(got_costs.pixel_samples, want_costs.pixel_samples);
     assert!(got.counts.contains(&0) && got.counts.contains(&32));
+}
+
+/// Runs of blocks (the costs the error-optimal mode books) never cross a
+/// multiple of `RUN_ALIGN` pixels of the image's columns, so a farm's
+/// tiles on that grid render the same runs, with the same rays, as the
+/// whole frame: the costs, and so the rounds, of a farm's image-mode job
+/// are the local render's.
+#[test]
+fn runs_are_cut_alike_in_a_frame_and_in_its_aligned_tiles() {
+    use tracer_core::render::adaptive::render_ranges;
+    use tracer_core::render::cpu::adaptive::RUN_ALIGN;
+    let desc = scene(PENUMBRA);
+    let a = settings(0.01, 4, 40);
+    let frame = prepared(&desc, &a, 0);
+    let full = Rect::full(desc.render.width, desc.render.height);
+    assert_eq!((full.width, RUN_ALIGN), (40, 32));
+    let n = BlockMask::none(full).active.len();
+    assert_eq!(n, 5 * 4);
+    // Equal ranges along each row: the runs are as long as they may be.
+    let from = vec![2; n];
+    let to: Vec<u32> = (0..n).map(|i| if i % 5 == 2 { 2 } else { 6 }).collect();
+    let r = cpu(2);
+    let whole = render_ranges(&r, &frame, 0, full, &from, &to, &|_| {}).unwrap();
+    assert!(
+        whole
+            .runs
+            .iter()
+            .all(|run| { run.rect.x / RUN_ALIGN == (run.rect.x + run.rect.width - 1) / RUN_ALIGN })
+    );
+    assert!(whole.runs.iter().any(|run| run.rect.width == 16));
+    let mut tiled = Vec::new();
+    for tile in full.tiles(RUN_ALIGN) {
+        let mask = BlockMask::none(tile);
+        let index = |i: usize| {
+            let b = mask.block_rect(i);
+            ((b.y / 8) * 5 + b.x / 8) as usize
+        };
+        let (f, t): (Vec<u32>, Vec<u32>) = (0..mask.active.len())
+            .map(|i| (from[index(i)], to[index(i)]))
+            .unzip();
+        tiled.extend(
+            render_ranges(&r, &frame, 0, tile, &f, &t, &|_| {})
+                .unwrap()
+                .runs,
+        );
+    }
+    let key = |r: &tracer_core::film::RunCost| (r.rect.y, r.rect.x);
+    let mut want = whole.runs.clone();
+    want.sort_by_key(key);
+    tiled.sort_by_key(key);
+    assert_eq!(tiled, want);
 }

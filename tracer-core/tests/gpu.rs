@@ -2457,6 +2457,7 @@ fn gpu_rounds_decided_on_the_gpu_match_the_hosts_decisions() {
             relative_error: relative,
             min_samples: 4,
             max_samples: 64,
+            mode: tracer_core::adaptive::AdaptiveMode::Pixel,
         };
         let base = RenderSettings {
             width: 61,
@@ -2548,6 +2549,7 @@ fn gpu_adaptive_renders_are_uniform_renders_of_each_pixels_count() {
             relative_error: 0.0,
             min_samples: 4,
             max_samples: 32,
+            mode: tracer_core::adaptive::AdaptiveMode::Pixel,
         };
         let base = RenderSettings {
             width: desc.render.width.min(48),

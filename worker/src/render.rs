@@ -119,7 +119,12 @@ impl Worker {
                 continue;
             };
             let (lease_id, region, units, work) = match unit {
-                Ok(u) => (u.lease_id, u.region, u.units, Ok((u.job, u.active))),
+                Ok(u) => (
+                    u.lease_id,
+                    u.region,
+                    u.units,
+                    Ok((u.job, u.active, u.ranges)),
+                ),
                 Err(m) => (m.lease_id, m.region, m.units, Err(m.why)),
             };
             let out = |end| Outgoing {
@@ -137,7 +142,7 @@ impl Worker {
             // A lease this worker cannot hold or send back (a coordinator
             // gone wrong), or one that came malformed: a failure the
             // coordinator counts, not an abort.
-            let (job, active) = match too_large(region.rect).map_or(work, Err) {
+            let (job, active, ranges) = match too_large(region.rect).map_or(work, Err) {
                 Ok(work) => work,
                 Err(why) => {
                     tracing::warn!(lease = %lease_id, "{why}");
@@ -165,15 +170,26 @@ impl Worker {
                 Err(e) => UnitEnd::Failed(e.message().to_string(), pb::FailureClass::Unspecified),
                 Ok(prepared) => {
                     let renderer = self.renderer.clone();
-                    // Adaptive jobs: the round's active blocks.
-                    let render = tokio::task::spawn_blocking(move || match active {
-                        None => render_unit(&renderer, &prepared, region, &cancel, &samples_done),
-                        Some(mask) => render_round_unit(
+                    // Adaptive jobs: the round's active blocks (in the image
+                    // mode, each over its own range).
+                    let render = tokio::task::spawn_blocking(move || match (active, ranges) {
+                        (None, _) => {
+                            render_unit(&renderer, &prepared, region, &cancel, &samples_done)
+                        }
+                        (Some(mask), None) => render_round_unit(
                             &renderer,
                             &prepared,
                             region.frame,
                             &mask,
                             region.samples,
+                            &cancel,
+                            &samples_done,
+                        ),
+                        (Some(_), Some(ranges)) => render_ranges_unit(
+                            &renderer,
+                            &prepared,
+                            region,
+                            &ranges,
                             &cancel,
                             &samples_done,
                         ),
@@ -332,6 +348,44 @@ pub(crate) fn render_round_unit(
         frame,
         mask,
         samples,
+        &|n| {
+            samples_done.fetch_add(n, Ordering::Relaxed);
+        },
+    ) {
+        Ok(mut film) => {
+            // Costs are the image mode's; a per-pixel round sends none.
+            film.runs.clear();
+            rendered(&film, start)
+        }
+        Err(e) => render_failed(e.to_string()),
+    }
+}
+
+/// Renders a round of an image-mode unit: each block of the rect over its
+/// own range, in one call (`tracer_core::render::adaptive::render_ranges`);
+/// the result carries the runs of blocks with their rays (the blocks'
+/// costs). Not cancelled midway, as a round.
+pub(crate) fn render_ranges_unit(
+    renderer: &Renderer,
+    prepared: &PreparedFrame,
+    region: WorkRegion,
+    ranges: &[SampleRange],
+    cancel: &AtomicBool,
+    samples_done: &AtomicU64,
+) -> UnitEnd {
+    if cancel.load(Ordering::Relaxed) {
+        return UnitEnd::Abandoned;
+    }
+    let start = Instant::now();
+    let from: Vec<u32> = ranges.iter().map(|r| r.start).collect();
+    let to: Vec<u32> = ranges.iter().map(|r| r.end).collect();
+    match tracer_core::render::adaptive::render_ranges(
+        renderer,
+        prepared,
+        region.frame,
+        region.rect,
+        &from,
+        &to,
         &|n| {
             samples_done.fetch_add(n, Ordering::Relaxed);
         },

@@ -40,6 +40,7 @@ pub(crate) fn capabilities(
         version: env!("CARGO_PKG_VERSION").into(),
         host_id: host_id(),
         labels: labels.clone().into_iter().collect(),
+        block_ranges: true,
     }
 }
 

@@ -5,7 +5,7 @@
 //! prost message.
 
 use tessera_proto::{LeasedUnit, MalformedUnit, film_codec, pb};
-use tracer_core::film::{Film, RayCounts};
+use tracer_core::film::{Film, RayCounts, RunCost};
 
 /// A unit this worker holds a lease on, as read from the wire: a unit
 /// that came malformed is still held, and its failure sent back.
@@ -29,6 +29,9 @@ pub(crate) struct UnitFilm {
     pub squares: Option<(u8, film_codec::Bytes)>,
     pub rays: RayCounts,
     pub nonfinite: u64,
+    /// Image-mode units rendered on the CPU: the runs of blocks with their
+    /// rays.
+    pub runs: Vec<RunCost>,
 }
 
 impl UnitFilm {
@@ -38,6 +41,7 @@ impl UnitFilm {
             squares: film_codec::pack_squares_part(film, film.rect).map(|(n, b)| (n, b.into())),
             rays: film.rays,
             nonfinite: film.nonfinite,
+            runs: film.runs.clone(),
         }
     }
 
@@ -55,6 +59,7 @@ impl UnitFilm {
             squares: None,
             rays: p.rays,
             nonfinite: p.nonfinite,
+            runs: Vec::new(),
         }
     }
 
@@ -70,5 +75,6 @@ impl UnitFilm {
         }
         req.rays = Some(self.rays.into());
         req.nonfinite = self.nonfinite;
+        req.runs = self.runs.iter().map(|&r| r.into()).collect();
     }
 }

@@ -13,11 +13,29 @@
 //! Nothing here is stored: the rounds' films are stored as any unit's
 //! (with their sums of squares), and after a restart the pending rounds
 //! and skipped units are derived again from the merged films.
+//!
+//! In the image mode (`AdaptiveMode::Image`, the error-optimal mode of
+//! issue 36) a round is frame-wide: its decision needs every block's
+//! statistics and cost, so round r+1 of a frame is decided once every
+//! tile of round r is merged (the barrier), by the
+//! [`RmseSchedule`] that `tessera render --adaptive-mode image` runs, from
+//! the frame's film and the costs its CPU workers measured (each result's
+//! runs of blocks with their rays, booked as the local render books its
+//! own: `Costs::book_runs`). Each block then has its own sample range; a
+//! lease carries its blocks' ranges, and a tile none of whose blocks grows
+//! is done for that round without work. The runs are stored with each
+//! round's film, so a restart replays the rounds, in order, to the same
+//! schedule and costs.
 
 use std::collections::HashMap;
 
-use tracer_core::adaptive::{AdaptiveSettings, BlockMask, Summary, next_active, summarize};
-use tracer_core::film::{FIXED_ONE, Film, MAX_SAMPLE_VALUE, Rect};
+use tracer_core::adaptive::optimal::{
+    Costs, RmseSchedule, RmseSettings, RmseStep, block_stats, image_mean,
+};
+use tracer_core::adaptive::{
+    AdaptiveMode, AdaptiveSettings, BLOCK, BlockMask, Summary, next_active, summarize,
+};
+use tracer_core::film::{FIXED_ONE, Film, MAX_SAMPLE_VALUE, Rect, SampleRange};
 
 use super::{Job, Lease};
 use crate::units::Unit;
@@ -27,6 +45,44 @@ pub(super) struct AdaptiveJob {
     pub settings: AdaptiveSettings,
     /// Summary of each tile that has merged a round, by (frame, tile).
     tiles: HashMap<(u32, u32), Summary>,
+    /// The image mode: each started frame's rounds.
+    frames: HashMap<u32, ImageFrame>,
+}
+
+/// A frame of an image-mode job: its rounds' schedule and the costs booked.
+struct ImageFrame {
+    schedule: RmseSchedule,
+    costs: Costs,
+    /// The last decided round's outcome (progress).
+    last: Option<RmseStep>,
+    /// Pixel-samples the frame has after the pending round.
+    expected: u64,
+    /// Blocks the pending round leaves alone (all, once the frame is done).
+    settled: u64,
+    /// The schedule ended: its blocks' state is dropped (a long
+    /// animation's frames would otherwise each keep it).
+    ended: bool,
+}
+
+impl ImageFrame {
+    fn new(settings: &AdaptiveSettings, width: u32, height: u32) -> Self {
+        let rect = Rect::full(width, height);
+        let costs = Costs::new(rect);
+        ImageFrame {
+            schedule: RmseSchedule::new(RmseSettings::from(settings), costs.rays.len()),
+            costs,
+            last: None,
+            expected: settings.min_samples as u64 * rect.area() as u64,
+            settled: 0,
+            ended: false,
+        }
+    }
+}
+
+/// Index in the frame's blocks (row-major over a `width`-wide image) of
+/// the block whose top left pixel is (x, y).
+fn frame_block(width: u32, x: u32, y: u32) -> usize {
+    ((y / BLOCK) * width.div_ceil(BLOCK) + x / BLOCK) as usize
 }
 
 /// The whole job's standing, for progress logs and `watch`.
@@ -48,7 +104,12 @@ impl AdaptiveJob {
         AdaptiveJob {
             settings,
             tiles: HashMap::new(),
+            frames: HashMap::new(),
         }
+    }
+
+    pub fn image_mode(&self) -> bool {
+        self.settings.mode == AdaptiveMode::Image
     }
 }
 
@@ -111,12 +172,17 @@ impl Job {
     }
 
     /// After a restart: every tile of every unwritten frame takes up where
-    /// its merged rounds left it.
-    pub(super) fn adaptive_restore(&mut self) {
+    /// its merged rounds left it. An image-mode job's stored films (by
+    /// their first unit, their units marked done, not merged) are replayed
+    /// round by round instead ([`Job::image_replay`]).
+    pub(super) fn adaptive_restore(&mut self, image_films: Vec<(u32, Film)>) -> Result<(), String> {
         if self.adaptive.is_none() {
-            return;
+            return Ok(());
         }
         self.adaptive_start();
+        if self.image_mode() {
+            return self.image_replay(image_films);
+        }
         let frames: Vec<u32> = self
             .frames
             .iter()
@@ -128,6 +194,187 @@ impl Job {
                 self.adaptive_advance(frame, tile);
             }
         }
+        Ok(())
+    }
+
+    /// Whether this is an adaptive job in the image mode.
+    pub(super) fn image_mode(&self) -> bool {
+        self.adaptive.as_ref().is_some_and(AdaptiveJob::image_mode)
+    }
+
+    /// Merges a result of round `round` of an image-mode job into its
+    /// frame, booking its runs first (the film's runs are taken).
+    pub(super) fn image_merge(&mut self, frame: u32, film: &mut Film) -> Result<(), String> {
+        let (w, h) = (self.layout.width, self.layout.height);
+        let runs = std::mem::take(&mut film.runs);
+        let a = self.adaptive.as_mut().expect("adaptive");
+        let settings = a.settings;
+        let f = a
+            .frames
+            .entry(frame)
+            .or_insert_with(|| ImageFrame::new(&settings, w, h));
+        if !f.ended {
+            f.costs.book_runs(Rect::full(w, h), &runs);
+        }
+        let acc = self.frames.get(&frame).ok_or("frame of a unit")?;
+        acc.film
+            .lock()
+            .expect("frame film lock")
+            .get_or_insert_with(|| super::frames::new_frame_film(w, h, true))
+            .merge(film)
+            .map_err(|e| e.to_string())
+    }
+
+    /// After a result of round `round` of `frame` was merged (image mode):
+    /// once every tile of the round is done, the frame's schedule decides
+    /// the next round from the frame's film and costs; its tiles with a
+    /// growing block become pending, the others are done for that round
+    /// without work, and when the schedule ends every later round is.
+    /// Returns whether a unit became pending.
+    pub(super) fn image_advance(&mut self, frame: u32, round: u32) -> bool {
+        let tiles = self.layout.tiles.len() as u32;
+        let rounds = self.layout.batches.len() as u32;
+        let unit =
+            |layout: &crate::units::Layout, tile, batch| layout.index(Unit { frame, tile, batch });
+        if (0..tiles).any(|t| !self.done[unit(&self.layout, t, round) as usize]) {
+            return false;
+        }
+        let Some(frame_film) = self.frames.get(&frame).map(|f| f.film.clone()) else {
+            return false;
+        };
+        let (w, h) = (self.layout.width, self.layout.height);
+        let a = self.adaptive.as_mut().expect("adaptive");
+        let settings = a.settings;
+        let f = a
+            .frames
+            .entry(frame)
+            .or_insert_with(|| ImageFrame::new(&settings, w, h));
+        // Decided once: a restart's replay and a late duplicate ask again.
+        if f.ended || f.schedule.round() != round {
+            return false;
+        }
+        {
+            let guard = frame_film.lock().expect("frame film lock");
+            let Some(film) = guard.as_ref() else {
+                return false;
+            };
+            let stats = block_stats(film, film.rect, f.costs.measured().then_some(&f.costs));
+            f.last = Some(f.schedule.after_round(&stats, image_mean(film)));
+        }
+        let next = round + 1;
+        let mut grows = vec![false; tiles as usize];
+        let going_on = f.schedule.pending().is_some() && next < rounds;
+        if going_on {
+            let full = BlockMask::none(Rect::full(w, h));
+            f.expected = (0..full.active.len())
+                .map(|i| full.block_rect(i).area() as u64 * f.schedule.block(i).1 as u64)
+                .sum();
+            f.settled = (0..full.active.len())
+                .filter(|&i| {
+                    let (n, to) = f.schedule.block(i);
+                    to <= n
+                })
+                .count() as u64;
+            for (t, rect) in self.layout.tiles.iter().enumerate() {
+                let mask = BlockMask::none(*rect);
+                grows[t] = (0..mask.active.len()).any(|i| {
+                    let b = mask.block_rect(i);
+                    let (n, to) = f.schedule.block(frame_block(w, b.x, b.y));
+                    to > n
+                });
+            }
+        } else {
+            f.expected = f.last.map_or(0, |s| s.pixel_samples);
+            f.settled = f.costs.rays.len() as u64;
+            f.ended = true;
+            f.schedule = RmseSchedule::new(RmseSettings::from(&settings), 0);
+            f.costs = Costs::new(Rect::full(0, 0));
+        }
+        let mut queued = false;
+        for r in next..rounds {
+            for t in 0..tiles {
+                let u = unit(&self.layout, t, r);
+                if going_on && r == next && grows[t as usize] {
+                    queued |= !self.done[u as usize] && self.pending.insert(u);
+                } else if !going_on || r == next {
+                    self.skip_unit(u);
+                }
+            }
+            if going_on {
+                break;
+            }
+        }
+        queued
+    }
+
+    /// Marks a unit done without work (no samples traced).
+    fn skip_unit(&mut self, u: u32) {
+        if self.done[u as usize] {
+            return;
+        }
+        self.mark_done(u);
+        let unit = self.layout.unit(u);
+        self.correct_samples(unit.frame, self.layout.unit_samples(unit), 0);
+    }
+
+    /// After a restart (image mode): the stored films, merged round by
+    /// round in each frame with their runs booked, and each round decided
+    /// as it was: the same schedule, costs and pending tiles.
+    fn image_replay(&mut self, mut films: Vec<(u32, Film)>) -> Result<(), String> {
+        let key = |layout: &crate::units::Layout, u: u32| {
+            let unit = layout.unit(u);
+            (unit.frame, unit.batch)
+        };
+        films.sort_by_key(|(u, _)| (key(&self.layout, *u), *u));
+        let mut i = 0;
+        while i < films.len() {
+            let (frame, round) = key(&self.layout, films[i].0);
+            while i < films.len() && key(&self.layout, films[i].0) == (frame, round) {
+                self.image_merge(frame, &mut films[i].1)?;
+                i += 1;
+            }
+            self.image_advance(frame, round);
+        }
+        Ok(())
+    }
+
+    /// A lease of `rect` in `frame` (image mode, its pending round): each
+    /// block's range, the blocks that take samples, and the smallest range
+    /// holding them all.
+    pub(super) fn image_ranges(
+        &mut self,
+        frame: u32,
+        rect: Rect,
+    ) -> (BlockMask, Vec<SampleRange>, SampleRange) {
+        let (w, h) = (self.layout.width, self.layout.height);
+        let a = self.adaptive.as_mut().expect("adaptive");
+        let settings = a.settings;
+        let f = a
+            .frames
+            .entry(frame)
+            .or_insert_with(|| ImageFrame::new(&settings, w, h));
+        let mut mask = BlockMask::none(rect);
+        let ranges: Vec<SampleRange> = (0..mask.active.len())
+            .map(|i| {
+                let b = mask.block_rect(i);
+                let (n, to) = f.schedule.block(frame_block(w, b.x, b.y));
+                if to > n {
+                    SampleRange::new(n, to)
+                } else {
+                    SampleRange::new(0, 0)
+                }
+            })
+            .collect();
+        let mut hull: Option<SampleRange> = None;
+        for (on, r) in mask.active.iter_mut().zip(&ranges) {
+            *on = !r.is_empty();
+            if *on {
+                hull = Some(hull.map_or(*r, |h| {
+                    SampleRange::new(h.start.min(r.start), h.end.max(r.end))
+                }));
+            }
+        }
+        (mask, ranges, hull.unwrap_or(SampleRange::new(0, 0)))
     }
 
     /// The active blocks of a lease of `rect` in `frame` at round `batch`
@@ -172,6 +419,13 @@ impl Job {
     /// Pixel-samples expected of `frame` in all (0 for a uniform job).
     pub(super) fn adaptive_frame_expected(&self, frame: u32) -> u64 {
         let Some(a) = &self.adaptive else { return 0 };
+        if a.image_mode() {
+            let pixels = self.layout.width as u64 * self.layout.height as u64;
+            return a
+                .frames
+                .get(&frame)
+                .map_or(a.settings.min_samples as u64 * pixels, |f| f.expected);
+        }
         (self.layout.tiles.iter().enumerate())
             .map(|(t, rect)| Self::tile_expected(a, frame, t, rect))
             .sum()
@@ -186,6 +440,38 @@ impl Job {
             settings: Some(a.settings),
             ..Default::default()
         };
+        if a.image_mode() {
+            // Each frame's blocks and estimated RMSE once it has decided a
+            // round; the error is the RMS over those frames.
+            let blocks_per_frame =
+                BlockMask::none(Rect::full(self.layout.width, self.layout.height))
+                    .active
+                    .len();
+            let (mut blocks, mut settled, mut sq, mut decided) = (0u64, 0u64, 0.0f64, 0u64);
+            for f in self.frames.keys() {
+                out.samples_expected += self.adaptive_frame_expected(*f);
+                blocks += blocks_per_frame as u64;
+                if let Some(fr) = a.frames.get(f)
+                    && let Some(last) = fr.last
+                {
+                    out.samples_done += last.pixel_samples;
+                    settled += fr.settled;
+                    sq += last.estimated_rmse * last.estimated_rmse;
+                    decided += 1;
+                }
+            }
+            out.converged_share = if blocks == 0 {
+                0.0
+            } else {
+                settled as f64 / blocks as f64
+            };
+            out.estimated_error = if decided == 0 {
+                0.0
+            } else {
+                (sq / decided as f64).sqrt()
+            };
+            return out;
+        }
         let (mut blocks, mut converged, mut sq, mut pixels) = (0u64, 0u64, 0.0f64, 0u64);
         for f in self.frames.keys() {
             out.samples_expected += self.adaptive_frame_expected(*f);
@@ -223,7 +509,7 @@ impl Job {
 /// squares present exactly when the lease is adaptive, none where a pixel
 /// has no samples, and each within what `n` samples can reach.
 pub(super) fn check_result(lease: &Lease, film: &Film) -> Result<(), String> {
-    let (Some(mask), Some(squares)) = (&lease.active, &film.squares) else {
+    let (Some(_), Some(squares)) = (&lease.active, &film.squares) else {
         return match (&lease.active, &film.squares) {
             (Some(_), None) => Err("the adaptive unit's result has no sums of squares".into()),
             (None, Some(_)) => Err("the uniform unit's result has sums of squares".into()),
@@ -231,13 +517,12 @@ pub(super) fn check_result(lease: &Lease, film: &Film) -> Result<(), String> {
         };
     };
     let one = (MAX_SAMPLE_VALUE * FIXED_ONE) as u128;
-    let most = one * one * lease.region.samples.len() as u128;
     for (i, s) in squares.iter().enumerate() {
         let (x, y) = (
             lease.region.rect.x + i as u32 % lease.region.rect.width,
             lease.region.rect.y + i as u32 / lease.region.rect.width,
         );
-        let limit = if mask.covers(x, y) { most } else { 0 };
+        let limit = one * one * expected_count(lease, x, y) as u128;
         if s.iter().any(|&v| v > limit) {
             return Err(format!(
                 "pixel ({x}, {y}) has a sum of squares beyond what its samples can reach"
@@ -248,18 +533,84 @@ pub(super) fn check_result(lease: &Lease, film: &Film) -> Result<(), String> {
 }
 
 /// Samples a pixel of the lease must have: the round's count in active
-/// blocks, none elsewhere.
+/// blocks (in the image mode, its block's own), none elsewhere.
 pub(super) fn expected_count(lease: &Lease, x: u32, y: u32) -> u32 {
-    match &lease.active {
-        Some(m) if !m.covers(x, y) => 0,
+    match (&lease.active, &lease.ranges) {
+        (Some(m), _) if !m.covers(x, y) => 0,
+        (Some(m), Some(ranges)) => {
+            let (bx, by) = ((x - m.rect.x) / BLOCK, (y - m.rect.y) / BLOCK);
+            ranges[(by * m.rect.width.div_ceil(BLOCK) + bx) as usize].len()
+        }
         _ => lease.region.samples.len(),
     }
 }
 
-/// Pixels the lease samples.
-pub(super) fn sampled_pixels(lease: &Lease) -> u64 {
-    lease
-        .active
-        .as_ref()
-        .map_or(lease.region.rect.area() as u64, BlockMask::active_pixels)
+/// Pixel-samples the lease traces (its primary rays).
+pub(super) fn sampled_pixel_samples(lease: &Lease) -> u64 {
+    match (&lease.active, &lease.ranges) {
+        (Some(m), Some(ranges)) => (0..m.active.len())
+            .map(|i| m.block_rect(i).area() as u64 * ranges[i].len() as u64)
+            .sum(),
+        (Some(m), None) => m.active_pixels() * lease.region.samples.len() as u64,
+        (None, _) => lease.region.rect.area() as u64 * lease.region.samples.len() as u64,
+    }
+}
+
+/// The runs of an image-mode result: whole blocks of the lease's rect in
+/// one row, each block's range as long as the run's samples, their rays
+/// adding up to the film's; none from a GPU worker. A result of any other
+/// unit has none.
+pub(super) fn check_runs(lease: &Lease, film: &Film) -> Result<(), String> {
+    let Some(ranges) = &lease.ranges else {
+        return match film.runs.is_empty() {
+            true => Ok(()),
+            false => Err("the result has runs of blocks, which only image-mode units take".into()),
+        };
+    };
+    if film.runs.is_empty() {
+        return Ok(());
+    }
+    let rect = lease.region.rect;
+    let mut rays = 0u64;
+    for r in &film.runs {
+        let on_grid = |start: u32, len: u32, end_of: u32| {
+            start.is_multiple_of(BLOCK)
+                && ((start + len).is_multiple_of(BLOCK) || start + len == end_of)
+        };
+        if !rect.contains(&r.rect)
+            || r.rect.width == 0
+            || !on_grid(r.rect.x, r.rect.width, rect.x + rect.width)
+            || !on_grid(r.rect.y, r.rect.height, rect.y + rect.height)
+            || r.rect.height > BLOCK
+        {
+            return Err(format!(
+                "run {:?} is not a row of whole blocks of the leased rect {rect:?}",
+                r.rect
+            ));
+        }
+        let cols = rect.width.div_ceil(BLOCK);
+        let by = (r.rect.y - rect.y) / BLOCK;
+        let mut x = r.rect.x;
+        while x < r.rect.x + r.rect.width {
+            let i = (by * cols + (x - rect.x) / BLOCK) as usize;
+            if ranges[i].len() != r.samples {
+                return Err(format!(
+                    "run {:?} has {} samples a pixel, its block at ({x}, {}) takes {}",
+                    r.rect,
+                    r.samples,
+                    r.rect.y,
+                    ranges[i].len()
+                ));
+            }
+            x += BLOCK;
+        }
+        rays = rays.saturating_add(r.rays);
+    }
+    if rays != film.rays.total() {
+        return Err(format!(
+            "the runs count {rays} rays, the result {}",
+            film.rays.total()
+        ));
+    }
+    Ok(())
 }

@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use tokio::sync::watch;
-use tracer_core::adaptive::AdaptiveSettings;
+use tracer_core::adaptive::{AdaptiveMode, AdaptiveSettings};
 use tracer_core::assets::Bundle;
 use tracer_core::scene::{RenderSettings, SceneDesc};
 
@@ -288,6 +288,14 @@ impl Farm {
                 "tile_size must be a multiple of {block} for adaptive sampling (target_error, relative_error), which decides per {block}x{block} block; got {tile_size}"
             )));
         }
+        let align = tracer_core::render::cpu::adaptive::RUN_ALIGN;
+        if adaptive.is_some_and(|a| a.mode == AdaptiveMode::Image)
+            && !tile_size.is_multiple_of(align)
+        {
+            return Err(FarmError::InvalidArgument(format!(
+                "tile_size must be a multiple of {align} for the image adaptive mode, whose blocks' costs are measured in runs of {align} pixels (so that the farm measures what a local render does); got {tile_size}"
+            )));
+        }
         let samples_per_unit = spec.samples_per_unit.unwrap_or(DEFAULT_SAMPLES_PER_UNIT);
         // An adaptive job's sample batches are its rounds.
         let batches = adaptive.map(|a| a.rounds());
@@ -517,6 +525,7 @@ impl Farm {
                     .filter(|&t| t > now)
                     .map_or(0, |t| now_ms() + t.duration_since(now).as_millis() as i64),
                 labels: w.labels.clone(),
+                block_ranges: w.block_ranges,
             })
             .collect();
         v.sort_by(|a, b| a.name.cmp(&b.name).then(a.id.cmp(&b.id)));
@@ -584,6 +593,7 @@ impl Farm {
             if let Some(a) = v.adaptive.settings {
                 tracing::info!(
                     job = %job.rec.id,
+                    mode = a.mode.name(),
                     target_error = a.target_error,
                     relative_error = a.relative_error,
                     converged = format!("{:.1}%", 100.0 * v.adaptive.converged_share),

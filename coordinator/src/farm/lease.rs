@@ -414,6 +414,7 @@ impl Farm {
             version,
             host_id,
             mut labels,
+            block_ranges,
         } = caps;
         labels.insert("backend".into(), backend.name().into());
         labels.insert("cores".into(), threads.to_string());
@@ -437,6 +438,7 @@ impl Farm {
                 version,
                 host_id,
                 labels,
+                block_ranges,
                 last_seen: Instant::now(),
                 leases: HashSet::new(),
                 units_done: 0,
@@ -556,6 +558,7 @@ impl Farm {
             .get_mut(worker_id)
             .ok_or_else(|| unknown_worker(worker_id))?;
         worker.last_seen = Instant::now();
+        let block_ranges = worker.block_ranges;
         match worker.quarantined_until {
             Some(until) if until > Instant::now() => return Ok((Vec::new(), false)),
             Some(_) => {
@@ -588,6 +591,8 @@ impl Farm {
             .iter_mut()
             .filter(|(_, j)| j.state.leasable() && !j.pending.is_empty())
             .filter(|(_, j)| meets(&j.rec.requirements, policy.labels))
+            // An older worker cannot render the image mode's block ranges.
+            .filter(|(_, j)| block_ranges || !j.image_mode())
             .filter_map(|(id, j)| (!j.blocks(worker_id)).then_some((id, &*j)))
             .collect();
         order.sort_by_key(|(_, j)| (-(j.rec.priority as i64), j.rec.submitted_unix_ms));
@@ -676,8 +681,20 @@ impl Farm {
         let t0 = job.layout.tiles[u0.tile as usize];
         let t1 = job.layout.tiles[job.layout.unit(*units.last().expect("non-empty")).tile as usize];
         let rect = Rect::new(t0.x, t0.y, t1.x + t1.width - t0.x, t1.y + t1.height - t0.y);
-        let region = WorkRegion::new(u0.frame, rect, job.layout.batches[u0.batch as usize]);
-        let active = job.adaptive_mask(u0.frame, rect, u0.batch);
+        let (region, active, ranges) = if job.image_mode() {
+            let (mask, ranges, hull) = job.image_ranges(u0.frame, rect);
+            (
+                WorkRegion::new(u0.frame, rect, hull),
+                Some(mask),
+                Some(ranges),
+            )
+        } else {
+            (
+                WorkRegion::new(u0.frame, rect, job.layout.batches[u0.batch as usize]),
+                job.adaptive_mask(u0.frame, rect, u0.batch),
+                None,
+            )
+        };
         if job.state == JobState::Queued {
             job.state = JobState::Running;
             job.notify();
@@ -694,6 +711,7 @@ impl Farm {
             job: job.leased(job_id),
             region,
             active: active.clone(),
+            ranges: ranges.clone(),
             units: units.len() as u32,
         };
         let lease = Lease {
@@ -705,6 +723,7 @@ impl Farm {
             progress: 0,
             expected_rays,
             active,
+            ranges,
             partners: Vec::new(),
             backup: false,
             backups: 0,
@@ -742,6 +761,7 @@ impl Farm {
             }
         };
         let labels = &st.workers.get(worker_id)?.labels;
+        let block_ranges = st.workers.get(worker_id)?.block_ranges;
         let mut best: Option<(f64, String)> = None;
         for (id, l) in &st.leases {
             if l.backup
@@ -749,6 +769,7 @@ impl Farm {
                 || st.jobs.get(&l.job).is_none_or(|j| {
                     j.state.is_terminal()
                         || !meets(&j.rec.requirements, labels)
+                        || (!block_ranges && j.image_mode())
                         || l.units.iter().any(|&u| !j.admits(u, worker_id, labels))
                         || j.worker_failures
                             .get(worker_id)
@@ -796,6 +817,7 @@ impl Farm {
             progress: 0,
             expected_rays: o.expected_rays,
             active: o.active.clone(),
+            ranges: o.ranges.clone(),
             partners,
             backup: true,
             backups: 0,
@@ -808,6 +830,7 @@ impl Farm {
             job: job.leased(&lease.job),
             region: lease.region,
             active: lease.active.clone(),
+            ranges: lease.ranges.clone(),
             units: lease.units.len() as u32,
         };
         st.leases.insert(lease_id.clone(), lease);

@@ -266,6 +266,9 @@ pub struct WorkerCaps {
     /// Its labels (`tessera worker --label` and the automatic ones),
     /// already checked (`tessera_proto::placement::check_labels`).
     pub labels: BTreeMap<String, String>,
+    /// Whether it renders units whose blocks have their own ranges (the
+    /// image mode's rounds); an older worker gets none of them.
+    pub block_ranges: bool,
 }
 
 #[derive(Clone, Debug)]
@@ -291,6 +294,8 @@ pub struct WorkerView {
     pub quarantined_until_unix_ms: i64,
     /// The labels jobs' requirements are matched against.
     pub labels: BTreeMap<String, String>,
+    /// See [`WorkerCaps::block_ranges`].
+    pub block_ranges: bool,
 }
 
 /// A worker's result, unpacked from the wire (sizes already checked against `rect`).
@@ -431,6 +436,9 @@ struct Lease {
     expected_rays: f64,
     /// Adaptive jobs: the blocks of `region.rect` this round samples.
     active: Option<BlockMask>,
+    /// Image-mode adaptive jobs: each block's own range (see
+    /// `LeasedUnit::ranges`).
+    ranges: Option<Vec<tracer_core::film::SampleRange>>,
     /// The other leases of the same units, when backups duplicate a lease
     /// (faster idle workers taking a slower worker's lease at a job's end):
     /// the first result wins and the others are withdrawn.
@@ -456,6 +464,8 @@ struct Worker {
     host_id: String,
     /// What jobs' requirements are matched against (see `Farm::register`).
     labels: BTreeMap<String, String>,
+    /// See [`WorkerCaps::block_ranges`].
+    block_ranges: bool,
     last_seen: Instant,
     leases: HashSet<String>,
     units_done: u64,
@@ -774,6 +784,8 @@ impl Farm {
                         f.written = Some(file);
                     }
                 }
+                let image_mode = job.image_mode();
+                let mut replay = Vec::new();
                 for (u, film) in films.remove(&job.rec.id).unwrap_or_default() {
                     let job_id = job.rec.id.clone();
                     let corrupt = |message: String| StoreError::Corrupt {
@@ -793,6 +805,11 @@ impl Farm {
                     for &u in &units {
                         job.mark_done(u);
                     }
+                    if image_mode {
+                        // Merged round by round, its runs booked, below.
+                        replay.push((u, film));
+                        continue;
+                    }
                     let frame = job.layout.unit(u).frame;
                     let (w, h) = (job.layout.width, job.layout.height);
                     let adaptive = job.adaptive.is_some();
@@ -803,8 +820,18 @@ impl Farm {
                         .merge(&film)
                         .map_err(|e| corrupt(e.to_string()))?;
                 }
+                let id = job.rec.id.clone();
+                let corrupt = |message: String| StoreError::Corrupt {
+                    what: format!("rounds of {id}"),
+                    message,
+                };
                 if !job.state.is_terminal() {
-                    job.adaptive_restore();
+                    job.adaptive_restore(replay).map_err(corrupt)?;
+                } else {
+                    for (u, mut film) in replay {
+                        let frame = job.layout.unit(u).frame;
+                        job.image_merge(frame, &mut film).map_err(corrupt)?;
+                    }
                 }
                 if job.state == JobState::Running && job.units_done == 0 {
                     job.state = JobState::Queued;

@@ -456,7 +456,7 @@ impl Farm {
         let Some(job) = st.jobs.get_mut(&t.job) else {
             return Ok(Outcome::Late("the job no longer exists".into()));
         };
-        let film = r.film.expect("validated");
+        let mut film = r.film.expect("validated");
         job.counters.units_accepted += t.units.len() as u64;
         let mut samples = 0;
         let work_before = job.work_left;
@@ -491,8 +491,18 @@ impl Farm {
         let result_rays = film.rays.total();
         if !job.state.is_terminal() {
             let (w, h) = (job.layout.width, job.layout.height);
-            let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
-            if job.adaptive.is_some() {
+            if job.image_mode() {
+                // The image mode: its runs booked and merged under the
+                // lock, and the frame's next round decided once every tile
+                // of this one is in (the barrier).
+                job.image_merge(t.frame, &mut film)
+                    .map_err(FarmError::Internal)?;
+                let round = job.layout.unit(t.units[0]).batch;
+                if job.image_advance(t.frame, round) {
+                    self.work_ready.notify_waiters();
+                }
+            } else if job.adaptive.is_some() {
+                let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
                 // Adaptive jobs merge now, under the state lock: a tile's
                 // next round is decided from its merged film (tiles are
                 // small, so this holds the lock briefly).
@@ -510,6 +520,7 @@ impl Farm {
                     self.work_ready.notify_waiters();
                 }
             } else {
+                let acc = job.frames.get_mut(&t.frame).expect("frame of a unit");
                 acc.merging += 1;
                 merges.push(Merge {
                     job: t.job.clone(),
@@ -655,7 +666,8 @@ fn validate_result(
     } else {
         film_check?;
     }
-    let primary = adaptive::sampled_pixels(lease) * lease.region.samples.len() as u64;
+    adaptive::check_runs(lease, film)?;
+    let primary = adaptive::sampled_pixel_samples(lease);
     if film.rays.primary != primary {
         return Err(format!(
             "result counts {} primary rays, the unit has {primary}",

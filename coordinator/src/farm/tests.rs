@@ -131,6 +131,7 @@ fn register_on(farm: &Farm, name: &str, threads: u32, backend: Backend, host: &s
             version: String::new(),
             host_id: host.into(),
             labels: Default::default(),
+            block_ranges: true,
         },
     )
 }

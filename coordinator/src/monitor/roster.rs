@@ -129,6 +129,7 @@ mod tests {
             rays_per_second: 0.0,
             last_seen_unix_ms,
             labels: Default::default(),
+            block_ranges: true,
         }
     }
 

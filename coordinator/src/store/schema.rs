@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use redb::{ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
 use tessera_proto::placement::Requirement;
-use tracer_core::adaptive::AdaptiveSettings;
+use tracer_core::adaptive::{AdaptiveMode, AdaptiveSettings};
 use tracer_core::sampling::Sampler;
 use tracer_core::scene::{Integrator, RenderSettings};
 
@@ -103,6 +103,13 @@ pub(super) struct AdaptiveRec {
     pub max_samples: u32,
     #[serde(default)]
     pub relative_error: f64,
+    /// Absent in records of earlier releases: per pixel.
+    #[serde(default, skip_serializing_if = "is_pixel_mode")]
+    pub mode: AdaptiveMode,
+}
+
+fn is_pixel_mode(m: &AdaptiveMode) -> bool {
+    *m == AdaptiveMode::Pixel
 }
 
 impl AdaptiveRec {
@@ -113,6 +120,7 @@ impl AdaptiveRec {
             relative_error: self.relative_error,
             min_samples: self.min_samples,
             max_samples: self.max_samples,
+            mode: self.mode,
         })
     }
 }
@@ -124,6 +132,7 @@ impl From<Option<AdaptiveSettings>> for AdaptiveRec {
             min_samples: a.min_samples,
             max_samples: a.max_samples,
             relative_error: a.relative_error,
+            mode: a.mode,
         })
     }
 }

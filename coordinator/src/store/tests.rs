@@ -44,6 +44,7 @@ fn job_records_of_earlier_releases_still_load_and_keep_their_shape() {
             relative_error: 0.0,
             min_samples: 16,
             max_samples: 1024,
+            mode: tracer_core::adaptive::AdaptiveMode::Pixel,
         })
     );
     // Written back, it is the same JSON object: same names, the

@@ -5,7 +5,7 @@
 //! stored. Its pixels are decoded by the same [`super::unpack_film`] as
 //! the wire's.
 
-use tracer_core::film::{Film, RayCounts, Rect};
+use tracer_core::film::{Film, RayCounts, Rect, RunCost};
 
 use crate::film_codec;
 
@@ -17,6 +17,12 @@ pub const COMPACT_MAGIC: [u8; 4] = *b"TFC2";
 /// The compact layout of an adaptive film: one more header byte, the
 /// squares' width, and the sums of squares after the counts.
 pub const ADAPTIVE_MAGIC: [u8; 4] = *b"TFA1";
+/// An adaptive film with the runs it was rendered in ([`Film::runs`]):
+/// the adaptive layout, then the runs (a u32 count, then each run's rect
+/// as four u32, rays as u64 and samples as u32).
+pub const RUNS_MAGIC: [u8; 4] = *b"TFR1";
+/// Bytes of one run in the trailer.
+const RUN_BYTES: usize = 16 + 8 + 4;
 /// Bytes before the pixels: the magic, the rect, ray counts and the
 /// non-finite count, then the encoding (sum bytes, uniform flag, count).
 const COMPACT_HEADER: usize = 4 + 16 + 40 + 1 + 1 + 4;
@@ -40,6 +46,7 @@ pub struct EncodedFilm {
     header: Vec<u8>,
     packed: film_codec::Packed,
     squares: Vec<u8>,
+    runs: Vec<u8>,
 }
 
 impl EncodedFilm {
@@ -87,7 +94,27 @@ impl EncodedFilm {
             header,
             packed,
             squares,
+            runs: Vec::new(),
         }
+    }
+
+    /// With the runs an adaptive film was rendered in (none: unchanged).
+    pub fn with_runs(mut self, runs: &[RunCost]) -> EncodedFilm {
+        if runs.is_empty() || !self.header.starts_with(&ADAPTIVE_MAGIC) {
+            return self;
+        }
+        self.header[..4].copy_from_slice(&RUNS_MAGIC);
+        let mut out = Vec::with_capacity(4 + runs.len() * RUN_BYTES);
+        out.extend_from_slice(&(runs.len() as u32).to_le_bytes());
+        for r in runs {
+            for v in [r.rect.x, r.rect.y, r.rect.width, r.rect.height] {
+                out.extend_from_slice(&v.to_le_bytes());
+            }
+            out.extend_from_slice(&r.rays.to_le_bytes());
+            out.extend_from_slice(&r.samples.to_le_bytes());
+        }
+        self.runs = out;
+        self
     }
 
     /// The part of `film` inside `rect` (which lies inside it), packed,
@@ -102,27 +129,29 @@ impl EncodedFilm {
         )
     }
 
-    /// A whole film, packed (with its sums of squares if it has them).
+    /// A whole film, packed (with its sums of squares and runs if it has
+    /// them).
     pub fn of_film(f: &Film) -> EncodedFilm {
-        EncodedFilm::of_part(f, f.rect, f.rays, f.nonfinite)
+        EncodedFilm::of_part(f, f.rect, f.rays, f.nonfinite).with_runs(&f.runs)
     }
 
     /// Bytes of the encoded film.
     pub fn len(&self) -> usize {
-        self.header.len() + self.packed.sums.len() + self.packed.counts.len() + self.squares.len()
+        self.parts().iter().map(|p| p.len()).sum()
     }
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
-    /// The encoded film's bytes, in four parts.
-    pub fn parts(&self) -> [&[u8]; 4] {
+    /// The encoded film's bytes, in five parts.
+    pub fn parts(&self) -> [&[u8]; 5] {
         [
             &self.header,
             &self.packed.sums,
             &self.packed.counts,
             &self.squares,
+            &self.runs,
         ]
     }
 
@@ -146,7 +175,8 @@ impl EncodedFilm {
 /// A stored film, in the compact layout or in the original one (56-byte
 /// header, then 28 bytes a pixel) that earlier versions stored.
 pub fn decode_film(b: &[u8]) -> Result<Film, String> {
-    let adaptive = b.starts_with(&ADAPTIVE_MAGIC);
+    let with_runs = b.starts_with(&RUNS_MAGIC);
+    let adaptive = with_runs || b.starts_with(&ADAPTIVE_MAGIC);
     let compact = adaptive || b.starts_with(&COMPACT_MAGIC);
     let header = match (compact, adaptive) {
         (_, true) => COMPACT_HEADER + 1,
@@ -197,11 +227,21 @@ pub fn decode_film(b: &[u8]) -> Result<Film, String> {
             .map(|n| split + n)
             .filter(|&end| end <= b.len())
             .ok_or_else(|| format!("{} bytes is too short for the counts", b.len()))?;
-        (end, Some((u32::from(b[COMPACT_HEADER]), &b[end..])))
+        let width = u32::from(b[COMPACT_HEADER]);
+        let squares_end = if with_runs {
+            (rect.area() * 3)
+                .checked_mul(width as usize)
+                .map(|n| end + n)
+                .filter(|&e| e <= b.len())
+                .ok_or_else(|| format!("{} bytes is too short for the squares", b.len()))?
+        } else {
+            b.len()
+        };
+        (end, Some((width, &b[end..squares_end])))
     } else {
         (b.len(), None)
     };
-    film_codec::unpack_film(
+    let mut film = film_codec::unpack_film(
         rect,
         encoding,
         &b[header..split],
@@ -210,12 +250,83 @@ pub fn decode_film(b: &[u8]) -> Result<Film, String> {
         rays,
         nonfinite,
     )
-    .map_err(|e| e.to_string())
+    .map_err(|e| e.to_string())?;
+    if with_runs {
+        let at = counts_end + squares.map_or(0, |(_, s)| s.len());
+        film.runs = decode_runs(&b[at..])?;
+        film.validate().map_err(|e| format!("its runs: {e}"))?;
+    }
+    Ok(film)
+}
+
+/// The runs' trailer of a [`RUNS_MAGIC`] film.
+fn decode_runs(b: &[u8]) -> Result<Vec<RunCost>, String> {
+    let n = b
+        .get(..4)
+        .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes")) as usize)
+        .ok_or("the runs' count is missing")?;
+    let body = &b[4..];
+    if n.checked_mul(RUN_BYTES) != Some(body.len()) {
+        return Err(format!(
+            "{} bytes of runs for {n} runs of {RUN_BYTES} bytes",
+            body.len()
+        ));
+    }
+    Ok(body
+        .chunks_exact(RUN_BYTES)
+        .map(|c| {
+            let u32_at = |i: usize| u32::from_le_bytes(c[i..i + 4].try_into().expect("4 bytes"));
+            RunCost {
+                rect: Rect::new(u32_at(0), u32_at(4), u32_at(8), u32_at(12)),
+                rays: u64::from_le_bytes(c[16..24].try_into().expect("8 bytes")),
+                samples: u32_at(24),
+            }
+        })
+        .collect())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An adaptive film's runs (the error-optimal mode's costs) are kept
+    /// by the store's container, exactly; a cut trailer is refused.
+    #[test]
+    fn an_adaptive_films_runs_round_trip_in_the_container() {
+        let rect = Rect::new(32, 8, 40, 16);
+        let mut f = Film::with_squares(rect);
+        f.counts.iter_mut().for_each(|c| *c = 3);
+        f.squares.as_mut().unwrap()[7] = [1 << 90, 2, 3];
+        f.runs = vec![
+            RunCost {
+                rect: Rect::new(32, 8, 32, 8),
+                rays: u64::MAX - 5,
+                samples: 3,
+            },
+            RunCost {
+                rect: Rect::new(64, 16, 8, 8),
+                rays: 17,
+                samples: 3,
+            },
+        ];
+        let bytes = encode_film(&f);
+        assert!(bytes.starts_with(&RUNS_MAGIC));
+        assert_eq!(decode_film(&bytes), Ok(f.clone()));
+        assert_eq!(
+            decode_film(&bytes[..bytes.len() - 1]),
+            Err("55 bytes of runs for 2 runs of 28 bytes".into())
+        );
+        // A run outside the film is refused.
+        f.runs[1].rect.x = 72;
+        assert!(
+            decode_film(&encode_film(&f))
+                .unwrap_err()
+                .starts_with("its runs")
+        );
+        // Without runs the film stays in the adaptive layout.
+        f.runs.clear();
+        assert!(encode_film(&f).starts_with(&ADAPTIVE_MAGIC));
+    }
 
     /// One codec: a film's fields as a result carries them on the wire and
     /// the same fields in the store's container decode to the same film,

@@ -34,7 +34,8 @@ use crate::film::{FIXED_ONE, Film, Rect, SampleRange};
 pub mod optimal;
 
 pub use crate::scene::adaptive::{
-    AdaptiveError, AdaptiveSettings, AdaptiveSpec, DEFAULT_MAX_SAMPLES, DEFAULT_MIN_SAMPLES, Target,
+    AdaptiveError, AdaptiveMode, AdaptiveSettings, AdaptiveSpec, DEFAULT_MAX_SAMPLES,
+    DEFAULT_MIN_SAMPLES, Target,
 };
 
 /// Side of the square blocks a decision is made for. Per pixel would stop

@@ -13,8 +13,8 @@
 //! converged film) and the driver (`render::adaptive::render_rmse`) share
 //! them.
 
-use super::{BLOCK, BlockMask};
-use crate::film::{FIXED_ONE, Film, Rect, variance_of_mean};
+use super::{AdaptiveSettings, BLOCK, BlockMask};
+use crate::film::{FIXED_ONE, Film, Rect, RunCost, variance_of_mean};
 use crate::sampling::Sampler;
 use crate::scene::RenderSettings;
 use crate::scene::adaptive::AdaptiveError;
@@ -32,13 +32,39 @@ pub struct RmseSettings {
     pub max_samples: u32,
 }
 
+impl From<&AdaptiveSettings> for RmseSettings {
+    /// The image mode's reading of adaptive settings: the targets are the
+    /// image's.
+    fn from(a: &AdaptiveSettings) -> Self {
+        RmseSettings {
+            target_rmse: a.target_error,
+            relative_rmse: a.relative_error,
+            min_samples: a.min_samples,
+            max_samples: a.max_samples,
+        }
+    }
+}
+
 impl RmseSettings {
+    /// Most rounds a render takes, round 0 included: twice the steps of
+    /// the grid from `min` to `max` ([`RmseSettings::step`]), and one.
+    /// Each round after the first takes some block at least one step up,
+    /// so a render whose allocation settles stops far sooner; the bound
+    /// makes the number of rounds (the farm's units of a frame) finite
+    /// whatever the estimates do, and local and farm renders stop alike.
+    pub fn max_rounds(&self) -> u32 {
+        let ratio = self.max_samples.max(1) as f64 / self.min_samples.max(1) as f64;
+        let steps = (4.0 * ratio.log2()).ceil().max(0.0) as u32;
+        2 * (steps + 1) + 1
+    }
+
     pub fn validate(&self) -> Result<(), AdaptiveError> {
         super::AdaptiveSettings {
             target_error: self.target_rmse,
             relative_error: self.relative_rmse,
             min_samples: self.min_samples,
             max_samples: self.max_samples,
+            mode: super::AdaptiveMode::Image,
         }
         .validate()
     }
@@ -141,13 +167,38 @@ impl Costs {
         }
     }
 
-    /// Block `i`'s cost of one pixel-sample; 1 where nothing was measured.
-    pub fn cost(&self, i: usize) -> f64 {
-        if self.pixel_samples[i] > 0.0 && self.rays[i] > 0.0 {
-            self.rays[i] / self.pixel_samples[i]
-        } else {
-            1.0
+    /// Books a film's runs ([`Film::runs`]) over the blocks of `frame`.
+    pub fn book_runs(&mut self, frame: Rect, runs: &[RunCost]) {
+        for r in runs {
+            self.book(frame, r.rect, r.rays, r.samples);
         }
+    }
+
+    /// Whether any block's cost was measured.
+    pub fn measured(&self) -> bool {
+        self.rays.iter().any(|&r| r > 0.0)
+    }
+
+    /// Each block's cost of one pixel-sample: its measured mean, or where
+    /// nothing was measured for it (a GPU's blocks beside a CPU's on a
+    /// mixed farm) the mean over the blocks that were; 1 where none was.
+    pub fn per_block(&self) -> Vec<f64> {
+        let measured = |i: usize| self.pixel_samples[i] > 0.0 && self.rays[i] > 0.0;
+        let (mut rays, mut samples) = (0.0, 0.0);
+        for i in (0..self.rays.len()).filter(|&i| measured(i)) {
+            rays += self.rays[i];
+            samples += self.pixel_samples[i];
+        }
+        let fallback = if samples > 0.0 { rays / samples } else { 1.0 };
+        (0..self.rays.len())
+            .map(|i| {
+                if measured(i) {
+                    self.rays[i] / self.pixel_samples[i]
+                } else {
+                    fallback
+                }
+            })
+            .collect()
     }
 }
 
@@ -157,6 +208,7 @@ impl Costs {
 pub fn block_stats(film: &Film, rect: Rect, costs: Option<&Costs>) -> Vec<BlockStats> {
     let squares = film.squares.as_ref().expect("adaptive film");
     let mask = BlockMask::none(rect);
+    let costs = costs.map(Costs::per_block);
     (0..mask.active.len())
         .map(|i| {
             let b = mask.block_rect(i);
@@ -176,7 +228,7 @@ pub fn block_stats(film: &Film, rect: Rect, costs: Option<&Costs>) -> Vec<BlockS
                 rect: b,
                 n,
                 w: sum / (3 * b.area()) as f64,
-                cost: costs.map_or(1.0, |c| c.cost(i)),
+                cost: costs.as_ref().map_or(1.0, |c| c[i]),
             }
         })
         .collect()
@@ -234,6 +286,104 @@ pub fn allocate(stats: &[BlockStats], lo: &[u32], target_mse: f64, max: u32) -> 
         }
     }
     at(b)
+}
+
+/// The error-optimal mode's rounds as decisions alone, one for the local
+/// drivers (`render::adaptive::render_rmse`, CPU and GPU) and the farm's
+/// coordinator: `min_samples` everywhere first; after each round, from the
+/// blocks' statistics and the image's mean, either the end (the estimated
+/// image RMSE is at most the target, no block may grow, or
+/// [`RmseSettings::max_rounds`] were taken) or each block's next count,
+/// towards its share of the cheapest allocation meeting the target.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RmseSchedule {
+    settings: RmseSettings,
+    /// Each block's samples so far, and after the pending round.
+    n: Vec<u32>,
+    next: Vec<u32>,
+    /// The pending round's index.
+    round: u32,
+}
+
+/// What a round of [`RmseSchedule`] ended with.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RmseStep {
+    pub round: u32,
+    /// Blocks the round sampled.
+    pub active_blocks: usize,
+    /// Pixel-samples of the image after the round.
+    pub pixel_samples: u64,
+    /// The image's estimated RMSE after the round, and the target.
+    pub estimated_rmse: f64,
+    pub target_rmse: f64,
+}
+
+impl RmseSchedule {
+    pub fn new(settings: RmseSettings, blocks: usize) -> Self {
+        RmseSchedule {
+            settings,
+            n: vec![0; blocks],
+            next: vec![settings.min_samples; blocks],
+            round: 0,
+        }
+    }
+
+    pub fn settings(&self) -> &RmseSettings {
+        &self.settings
+    }
+
+    /// The pending round's index (the rounds taken so far).
+    pub fn round(&self) -> u32 {
+        self.round
+    }
+
+    /// The next round, block `i` from `from[i]` to `to[i]` samples; `None`
+    /// once the render is done.
+    pub fn pending(&self) -> Option<(&[u32], &[u32])> {
+        self.n
+            .iter()
+            .zip(&self.next)
+            .any(|(a, b)| b > a)
+            .then_some((&self.n, &self.next))
+    }
+
+    /// Block `i`'s samples so far and after the pending round.
+    pub fn block(&self, i: usize) -> (u32, u32) {
+        (self.n[i], self.next[i])
+    }
+
+    /// After the pending round: the blocks' statistics (at their new
+    /// counts) and the image's mean decide the next one.
+    pub fn after_round(&mut self, stats: &[BlockStats], image_mean: f64) -> RmseStep {
+        let active_blocks = self.n.iter().zip(&self.next).filter(|(a, b)| b > a).count();
+        self.n.clone_from(&self.next);
+        let o = self.settings;
+        let mse = estimated_mse(stats);
+        let target = o.target_mse(image_mean);
+        let step = RmseStep {
+            round: self.round,
+            active_blocks,
+            pixel_samples: stats
+                .iter()
+                .map(|s| s.rect.area() as u64 * s.n as u64)
+                .sum(),
+            estimated_rmse: mse.sqrt(),
+            target_rmse: target.sqrt(),
+        };
+        self.round += 1;
+        if mse > target && self.round < o.max_rounds() {
+            // Aim a little below the target: a round that lands just above
+            // it would cost a whole further round for a few samples.
+            let want = allocate(stats, &self.n, 0.9 * target, o.max_samples);
+            self.next = self
+                .n
+                .iter()
+                .zip(&want)
+                .map(|(&n, &w)| o.step(n, w))
+                .collect();
+        }
+        step
+    }
 }
 
 #[cfg(test)]

@@ -162,6 +162,21 @@ pub struct Film {
     /// [`crate::adaptive`] estimates the error of the mean. `None` for
     /// uniform renders, which stay as they were on the wire and on disk.
     pub squares: Option<Vec<[u128; 3]>>,
+    /// Renders by blocks over their own ranges (the error-optimal mode's
+    /// rounds, on the CPU): each run of blocks rendered together, with the
+    /// rays it traced, what the mode books as the blocks' cost. Empty
+    /// otherwise. Describes this film's own render: [`Film::merge`] does
+    /// not carry it (a caller books each film's runs as it merges it).
+    pub runs: Vec<RunCost>,
+}
+
+/// A run of blocks rendered together, the rays it traced and its samples
+/// per pixel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RunCost {
+    pub rect: Rect,
+    pub rays: u64,
+    pub samples: u32,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -211,6 +226,7 @@ impl Film {
             rays: RayCounts::default(),
             nonfinite: 0,
             squares: None,
+            runs: Vec::new(),
         }
     }
 
@@ -244,6 +260,12 @@ impl Film {
                     got,
                 });
             }
+        }
+        if let Some(r) = self.runs.iter().find(|r| !self.rect.contains(&r.rect)) {
+            return Err(FilmError::OutOfBounds {
+                tile: r.rect,
+                film: self.rect,
+            });
         }
         Ok(())
     }

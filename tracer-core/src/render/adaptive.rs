@@ -7,7 +7,7 @@
 //! [`crate::adaptive`]'s.
 
 use crate::adaptive::optimal::{
-    BlockStats, Costs, RmseSettings, allocate, block_stats, estimated_mse, image_mean,
+    BlockStats, Costs, RmseSchedule, RmseSettings, block_stats, image_mean,
 };
 use crate::adaptive::{AdaptiveSettings, BlockMask, Summary, next_active, summarize};
 use crate::film::{Film, Rect, SampleRange};
@@ -15,7 +15,10 @@ use crate::render::{PreparedFrame, Renderer, RendererError};
 
 /// Renders one round: the blocks of `mask` over the sample indices
 /// `samples`, into a film of `mask.rect` with sums of squares (pixels of
-/// inactive blocks stay at zero samples). `progress` gets pixel-samples.
+/// inactive blocks stay at zero samples), and on the CPU the runs of
+/// blocks it rendered with their rays ([`Film::runs`]; the GPU reports
+/// none, its blocks then all costing the same). `progress` gets
+/// pixel-samples.
 pub fn render_round(
     renderer: &Renderer,
     prepared: &PreparedFrame,
@@ -24,7 +27,13 @@ pub fn render_round(
     samples: SampleRange,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Film, RendererError> {
-    render_round_costed(renderer, prepared, frame, mask, samples, progress).map(|(film, _)| film)
+    match renderer {
+        Renderer::Cpu(r) => Ok(super::cpu::adaptive::render_round(
+            r, prepared, frame, mask, samples, progress,
+        )?),
+        #[cfg(feature = "gpu")]
+        Renderer::Gpu(r) => Ok(r.render_round(prepared, frame, mask, samples, progress)?),
+    }
 }
 
 /// A round's report to [`render`]'s caller.
@@ -84,32 +93,32 @@ pub fn render(
     Ok(film)
 }
 
-/// [`render_round`], also returning the runs of blocks rendered with the
-/// rays each traced (the CPU's; none from the GPU, whose blocks then all
-/// cost the same).
-pub fn render_round_costed(
+/// Takes each block `i` of `rect` (block-aligned) from `from[i]` to
+/// `to[i]` samples in one renderer call (every block over its own range):
+/// the film of `rect` with sums of squares, and on the CPU its runs
+/// ([`Film::runs`]). A round of the error-optimal mode, locally or on a
+/// farm's worker.
+#[allow(clippy::too_many_arguments)]
+pub fn render_ranges(
     renderer: &Renderer,
     prepared: &PreparedFrame,
     frame: u32,
-    mask: &BlockMask,
-    samples: SampleRange,
+    rect: Rect,
+    from: &[u32],
+    to: &[u32],
     progress: &(dyn Fn(u64) + Sync),
-) -> Result<(Film, Vec<(Rect, u64)>), RendererError> {
+) -> Result<Film, RendererError> {
     match renderer {
-        Renderer::Cpu(r) => Ok(super::cpu::adaptive::render_round_costed(
-            r, prepared, frame, mask, samples, progress,
+        Renderer::Cpu(r) => Ok(super::cpu::adaptive::render_blocks(
+            r, prepared, frame, rect, from, to, progress,
         )?),
         #[cfg(feature = "gpu")]
-        Renderer::Gpu(r) => Ok((
-            r.render_round(prepared, frame, mask, samples, progress)?,
-            vec![],
-        )),
+        Renderer::Gpu(r) => Ok(r.render_blocks(prepared, frame, rect, from, to, progress)?),
     }
 }
 
-/// Takes each block `i` of the frame from `from[i]` to `to[i]` samples
-/// in one renderer call (every block over its own range), adding to
-/// `film` and booking the CPU's costs in `costs`.
+/// [`render_ranges`] over the whole of `film`, added to it, its runs
+/// booked in `costs`.
 #[allow(clippy::too_many_arguments)]
 pub fn render_blocks(
     renderer: &Renderer,
@@ -122,23 +131,10 @@ pub fn render_blocks(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<(), RendererError> {
     let rect = film.rect;
-    // Every block over its own range in one call (the GPU reports no
-    // per-block cost).
-    let (f, runs) = match renderer {
-        Renderer::Cpu(r) => super::cpu::adaptive::render_blocks_costed(
-            r, prepared, frame, rect, from, to, progress,
-        )?,
-        #[cfg(feature = "gpu")]
-        Renderer::Gpu(r) => (
-            r.render_blocks(prepared, frame, rect, from, to, progress)?,
-            vec![],
-        ),
-    };
+    let f = render_ranges(renderer, prepared, frame, rect, from, to, progress)?;
+    costs.book_runs(rect, &f.runs);
     film.merge(&f)
         .expect("the blocks' film lies inside the frame and sums cannot overflow");
-    for (run, rays, samples) in runs {
-        costs.book(rect, run, rays, samples);
-    }
     Ok(())
 }
 
@@ -155,18 +151,11 @@ pub struct RmseRound {
     pub target_rmse: f64,
 }
 
-/// The error-optimal mode's decisions, one for its CPU and GPU drivers:
-/// `min_samples` everywhere first; after each round, from the blocks'
-/// statistics, the round's report and either the end (the estimated image
-/// RMSE is at most the target, or no block may grow) or each block's next
-/// count, towards its share of the cheapest allocation meeting the
-/// target.
+/// The error-optimal mode's rounds as its local drivers (CPU and GPU) run
+/// them: the decisions of an [`RmseSchedule`], each round timed and
+/// reported.
 pub struct RmseRounds<'a> {
-    settings: &'a RmseSettings,
-    /// Each block's samples so far, and after the next round.
-    n: Vec<u32>,
-    next: Vec<u32>,
-    round: usize,
+    schedule: RmseSchedule,
     started: std::time::Instant,
     // Shared, not `FnMut`, so that the GPU's driver can hold these rounds
     // for a shorter borrow than their own.
@@ -180,10 +169,7 @@ impl<'a> RmseRounds<'a> {
         on_round: &'a dyn Fn(&RmseRound),
     ) -> Self {
         RmseRounds {
-            settings,
-            n: vec![0; blocks],
-            next: vec![settings.min_samples; blocks],
-            round: 0,
+            schedule: RmseSchedule::new(*settings, blocks),
             started: std::time::Instant::now(),
             on_round,
         }
@@ -192,11 +178,7 @@ impl<'a> RmseRounds<'a> {
     /// The next round, block `i` from `from[i]` to `to[i]` samples; `None`
     /// once the render is done.
     pub fn pending(&self) -> Option<(&[u32], &[u32])> {
-        self.n
-            .iter()
-            .zip(&self.next)
-            .any(|(a, b)| b > a)
-            .then_some((&self.n, &self.next))
+        self.schedule.pending()
     }
 
     /// [`RmseRounds::pending`] as each block's (from, to).
@@ -209,36 +191,17 @@ impl<'a> RmseRounds<'a> {
     /// counts) and the image's mean decide the next one, and the round is
     /// reported.
     pub fn after_round(&mut self, stats: &[BlockStats], image_mean: f64) {
-        let active_blocks = self.n.iter().zip(&self.next).filter(|(a, b)| b > a).count();
-        self.n.clone_from(&self.next);
-        let o = self.settings;
-        let mse = estimated_mse(stats);
-        let target = o.target_mse(image_mean);
+        let step = self.schedule.after_round(stats, image_mean);
         let now = std::time::Instant::now();
         (self.on_round)(&RmseRound {
-            round: self.round,
-            active_blocks,
+            round: step.round as usize,
+            active_blocks: step.active_blocks,
             seconds: (now - self.started).as_secs_f64(),
-            pixel_samples: stats
-                .iter()
-                .map(|s| s.rect.area() as u64 * s.n as u64)
-                .sum(),
-            estimated_rmse: mse.sqrt(),
-            target_rmse: target.sqrt(),
+            pixel_samples: step.pixel_samples,
+            estimated_rmse: step.estimated_rmse,
+            target_rmse: step.target_rmse,
         });
         self.started = now;
-        self.round += 1;
-        if mse > target {
-            // Aim a little below the target: a round that lands just above
-            // it would cost a whole further round for a few samples.
-            let want = allocate(stats, &self.n, 0.9 * target, o.max_samples);
-            self.next = self
-                .n
-                .iter()
-                .zip(&want)
-                .map(|(&n, &w)| o.step(n, w))
-                .collect();
-        }
     }
 }
 
@@ -276,8 +239,7 @@ pub fn render_rmse(
         render_blocks(
             renderer, prepared, frame, &from, &to, &mut film, &mut costs, progress,
         )?;
-        let measured = costs.rays.iter().any(|&r| r > 0.0);
-        let stats = block_stats(&film, rect, measured.then_some(&costs));
+        let stats = block_stats(&film, rect, costs.measured().then_some(&costs));
         rounds.after_round(&stats, image_mean(&film));
     }
     Ok(film)

@@ -12,6 +12,43 @@ use crate::sampling::Sampler;
 pub const DEFAULT_MIN_SAMPLES: u32 = 16;
 pub const DEFAULT_MAX_SAMPLES: u32 = 1024;
 
+/// What an adaptive render's target bounds.
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum AdaptiveMode {
+    /// Every pixel's standard error (issue 17): the meaning of
+    /// `target_error` and `relative_error` per pixel.
+    #[default]
+    Pixel,
+    /// The image's estimated RMSE (issue 36): `target_error` an RMSE,
+    /// `relative_error` a share of the image's mean, each 8x8 block's
+    /// samples in proportion to its noise over the square root of its cost
+    /// (`crate::adaptive::optimal`).
+    Image,
+}
+
+impl AdaptiveMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            AdaptiveMode::Pixel => "pixel",
+            AdaptiveMode::Image => "image",
+        }
+    }
+}
+
+impl std::str::FromStr for AdaptiveMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "pixel" => Ok(AdaptiveMode::Pixel),
+            "image" => Ok(AdaptiveMode::Image),
+            _ => Err(format!("unknown adaptive mode {s:?} (pixel or image)")),
+        }
+    }
+}
+
 /// The error target and the sample bounds of an adaptive render.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AdaptiveSettings {
@@ -23,6 +60,8 @@ pub struct AdaptiveSettings {
     pub relative_error: f64,
     pub min_samples: u32,
     pub max_samples: u32,
+    /// What the targets bound: each pixel's error or the image's.
+    pub mode: AdaptiveMode,
 }
 
 /// When a pixel is converged: its standard error in every channel is at
@@ -87,11 +126,15 @@ impl AdaptiveSettings {
         Ok(())
     }
 
-    /// The target in words: "target error E", "relative error R", or both.
+    /// The target in words: "target error E", "relative error R", or both
+    /// ("image RMSE E", "relative image RMSE R" in the image mode).
     pub fn describe_target(&self) -> String {
-        let abs = (self.target_error > 0.0).then(|| format!("target error {}", self.target_error));
-        let rel =
-            (self.relative_error > 0.0).then(|| format!("relative error {}", self.relative_error));
+        let (abs, rel) = match self.mode {
+            AdaptiveMode::Pixel => ("target error", "relative error"),
+            AdaptiveMode::Image => ("image RMSE", "relative image RMSE"),
+        };
+        let abs = (self.target_error > 0.0).then(|| format!("{abs} {}", self.target_error));
+        let rel = (self.relative_error > 0.0).then(|| format!("{rel} {}", self.relative_error));
         [abs, rel]
             .into_iter()
             .flatten()
@@ -106,8 +149,23 @@ impl AdaptiveSettings {
         }
     }
 
-    /// The sample range of each round: `0..min`, then doubling up to `max`.
+    /// The sample range of each round: `0..min`, then doubling up to
+    /// `max`. In the image mode each block has its own range from round 1
+    /// on; the rounds are then `0..min` and as many more as the mode may
+    /// take ([`crate::adaptive::optimal::RmseSettings::max_rounds`]), each
+    /// nominally `min` samples a pixel (what the farm's lease sizing
+    /// expects of it before it is decided).
     pub fn rounds(&self) -> Vec<SampleRange> {
+        if self.mode == AdaptiveMode::Image {
+            let min = self.min_samples;
+            let rounds = crate::adaptive::optimal::RmseSettings::from(self).max_rounds();
+            let mut out = vec![SampleRange::new(0, min)];
+            out.resize(
+                rounds as usize,
+                SampleRange::new(min, min.saturating_mul(2)),
+            );
+            return out;
+        }
         let mut out = vec![SampleRange::new(0, self.min_samples)];
         let mut end = self.min_samples;
         while end < self.max_samples {
@@ -137,6 +195,7 @@ pub struct AdaptiveSpec {
     pub relative_error: Option<f64>,
     pub min_samples: Option<u32>,
     pub max_samples: Option<u32>,
+    pub mode: Option<AdaptiveMode>,
 }
 
 impl AdaptiveSpec {
@@ -148,6 +207,7 @@ impl AdaptiveSpec {
             relative_error: self.relative_error.unwrap_or(0.0),
             min_samples: self.min_samples.unwrap_or(2),
             max_samples: self.max_samples.unwrap_or(MAX_SAMPLES),
+            mode: AdaptiveMode::Pixel,
         };
         check_given_relative(self.relative_error)
             .and_then(|()| full.validate())
@@ -174,7 +234,17 @@ impl AdaptiveSpec {
         let target_error = over.target_error.or(self.target_error);
         let relative_error = over.relative_error.or(self.relative_error);
         check_given_relative(relative_error).map_err(|e| e.to_string())?;
+        let mode = over.mode.or(self.mode);
         if target_error.is_none() && relative_error.is_none() {
+            // As the sample bounds: the file's mode waits for a target
+            // from the command line; the command line's needs one.
+            if over.mode == Some(AdaptiveMode::Image) {
+                return Err(
+                    "--adaptive-mode image needs a target: \
+                            give --target-error (an RMSE) or --relative-error (or [render] target_error or relative_error)"
+                        .into(),
+                );
+            }
             if over.min_samples.is_some() || over.max_samples.is_some() {
                 return Err(
                     "--min-samples and --max-samples apply to adaptive sampling: \
@@ -196,6 +266,7 @@ impl AdaptiveSpec {
                 .max_samples
                 .or(self.max_samples)
                 .unwrap_or(DEFAULT_MAX_SAMPLES.max(min_samples)),
+            mode: mode.unwrap_or_default(),
         };
         a.validate().map_err(|e| e.to_string())?;
         Ok(Some(a))
@@ -221,6 +292,7 @@ mod tests {
             relative_error: 0.0,
             min_samples: min,
             max_samples: max,
+            mode: AdaptiveMode::Pixel,
         }
     }
 

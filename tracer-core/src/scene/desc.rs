@@ -245,6 +245,7 @@ struct RenderTable {
     relative_error: Option<Num>,
     min_samples: Option<u32>,
     max_samples: Option<u32>,
+    adaptive_mode: Option<super::adaptive::AdaptiveMode>,
 }
 
 #[derive(Clone, Debug, Deserialize, PartialEq)]
@@ -696,7 +697,7 @@ pub struct SceneDesc {
     /// object and the file); the scene renders, the user is told.
     pub warnings: Vec<String>,
     /// `[render]`'s adaptive-sampling keys (`target_error`,
-    /// `relative_error`, `min_samples`, `max_samples`), each checked on its own; the command line may add
+    /// `relative_error`, `min_samples`, `max_samples`, `adaptive_mode`), each checked on its own; the command line may add
     /// to them (see [`super::adaptive::AdaptiveSpec::resolve`]).
     pub adaptive: super::adaptive::AdaptiveSpec,
 }
@@ -1170,6 +1171,7 @@ fn render_of(
             relative_error: t.relative_error.map(|n| n.0),
             min_samples: t.min_samples,
             max_samples: t.max_samples,
+            mode: t.adaptive_mode,
         };
         adaptive
             .check()

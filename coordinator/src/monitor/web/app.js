@@ -439,8 +439,10 @@ function updateJob(job) {
       .map(([k, n]) => `${esc(k)} ${n}`).join(", ")}</b> (blocklist after ${job.blocklist_after})</span>` : ""}
     ${job.blocklisted && job.blocklisted.length ? `<span id="job-blocklist">Blocklisted <b>${job.blocklisted
       .map((b) => `${esc(b.name)} (${b.failures} failed, until ${esc(fmtTime(b.until_unix_ms))})`).join(", ")}</b></span>` : ""}
-    ${job.adaptive ? `<span>Blocks converged <b id="job-converged">${pct(job.adaptive.converged_share)}</b></span>
-    <span>Estimated error <b>${job.adaptive.estimated_error.toExponential(2)}</b></span>` : ""}`;
+    ${job.adaptive && job.adaptive.mode === "image" ? `<span>Blocks settled <b id="job-converged">${pct(job.adaptive.converged_share)}</b></span>
+    <span>Estimated image RMSE <b id="job-estimated-error">${job.adaptive.estimated_error.toExponential(2)}</b></span>`
+    : job.adaptive ? `<span>Blocks converged <b id="job-converged">${pct(job.adaptive.converged_share)}</b></span>
+    <span>Estimated error <b id="job-estimated-error">${job.adaptive.estimated_error.toExponential(2)}</b></span>` : ""}`;
   const s = job.settings;
   const a = job.adaptive;
   // An adaptive job's samples are its bounds and its target decides.

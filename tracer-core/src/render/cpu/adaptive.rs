@@ -1,5 +1,5 @@
 //! A round of adaptive sampling on the CPU: the active blocks (or every
-//! block over its own range, [`render_blocks_costed`]), in runs of up to
+//! block over its own range, [`render_blocks`]), in runs of up to
 //! four along a row, are rendered one sample index at a time by the ordinary tile renderer
 //! ([`super::render_tile`], so the stream, recursive and
 //! distributed paths all apply unchanged), and each single-sample film's
@@ -10,55 +10,40 @@
 use rayon::prelude::*;
 
 use super::render_tile;
-use crate::adaptive::BlockMask;
-use crate::film::{Film, Rect, SampleRange};
+use crate::adaptive::{BLOCK, BlockMask};
+use crate::film::{Film, Rect, RunCost, SampleRange};
 use crate::math::Real;
 use crate::render::{CpuRenderer, PreparedFrame, RenderError};
 use crate::world::World;
 
 /// Renders the blocks of `mask` over `samples` (see
-/// [`crate::render::adaptive::render_round`]), also returning each run of
-/// blocks it rendered with the rays it traced: the cost the error-optimal
-/// mode allocates by (rays, not seconds, so the allocation is the same on
-/// every machine).
-pub fn render_round_costed(
+/// [`crate::render::adaptive::render_round`]); the film's `runs` are the
+/// runs of blocks it rendered with the rays each traced: the cost the
+/// error-optimal mode allocates by (rays, not seconds, so the allocation
+/// is the same on every machine).
+pub fn render_round(
     renderer: &CpuRenderer,
     prepared: &PreparedFrame,
     frame: u32,
     mask: &BlockMask,
     samples: SampleRange,
     progress: &(dyn Fn(u64) + Sync),
-) -> Result<(Film, Vec<(Rect, u64)>), RenderError> {
+) -> Result<Film, RenderError> {
     prepared.check_request(mask.rect, samples)?;
-    Ok(match prepared {
-        PreparedFrame::F32(w) => round_world(renderer, w, frame, mask, samples, progress),
-        PreparedFrame::F64(w) => round_world(renderer, w, frame, mask, samples, progress),
-    })
-}
-
-fn round_world<R: Real>(
-    renderer: &CpuRenderer,
-    world: &World<R>,
-    frame: u32,
-    mask: &BlockMask,
-    samples: SampleRange,
-    progress: &(dyn Fn(u64) + Sync),
-) -> (Film, Vec<(Rect, u64)>) {
     let ranges: Vec<Option<SampleRange>> =
         mask.active.iter().map(|&a| a.then_some(samples)).collect();
-    let (film, runs) = blocks_world(renderer, world, frame, mask.rect, &ranges, progress);
-    (
-        film,
-        runs.into_iter().map(|(r, rays, _)| (r, rays)).collect(),
-    )
+    Ok(match prepared {
+        PreparedFrame::F32(w) => blocks_world(renderer, w, frame, mask.rect, &ranges, progress),
+        PreparedFrame::F64(w) => blocks_world(renderer, w, frame, mask.rect, &ranges, progress),
+    })
 }
 
 /// Renders each block `i` of `rect` (block-aligned) over its own range
 /// `from[i]..to[i]` (none where equal), all in one parallel pass: what
-/// [`render_round_costed`] per distinct range would give, merged, bit for
-/// bit, with the same runs (a run joins neighbours of one range). Also
-/// returns each run with its rays and samples per pixel.
-pub fn render_blocks_costed(
+/// [`render_round`] per distinct range would give, merged, bit for
+/// bit, with the same runs (a run joins neighbours of one range), each
+/// with its rays and samples per pixel in the film's `runs`.
+pub fn render_blocks(
     renderer: &CpuRenderer,
     prepared: &PreparedFrame,
     frame: u32,
@@ -66,7 +51,7 @@ pub fn render_blocks_costed(
     from: &[u32],
     to: &[u32],
     progress: &(dyn Fn(u64) + Sync),
-) -> Result<(Film, Vec<RunCost>), RenderError> {
+) -> Result<Film, RenderError> {
     let ranges = prepared.block_ranges(rect, from, to)?;
     Ok(match prepared {
         PreparedFrame::F32(w) => blocks_world(renderer, w, frame, rect, &ranges, progress),
@@ -81,7 +66,7 @@ fn blocks_world<R: Real>(
     rect: Rect,
     ranges: &[Option<SampleRange>],
     progress: &(dyn Fn(u64) + Sync),
-) -> (Film, Vec<RunCost>) {
+) -> Film {
     let blocks = runs(rect, ranges);
     let films: Vec<Film> = renderer.pool().install(|| {
         blocks
@@ -107,43 +92,48 @@ fn blocks_world<R: Real>(
         out.merge(f)
             .expect("blocks lie inside their rect and sums cannot overflow");
     }
-    let costs = films
+    out.runs = films
         .iter()
         .zip(&blocks)
-        .map(|(f, (_, s))| (f.rect, f.rays.total(), s.len()))
+        .map(|(f, (_, s))| RunCost {
+            rect: f.rect,
+            rays: f.rays.total(),
+            samples: s.len(),
+        })
         .collect();
-    (out, costs)
+    out
 }
-
-/// A run of blocks rendered together, the rays it traced and its samples
-/// per pixel: what the error-optimal mode books as its cost.
-pub type RunCost = (Rect, u64, u32);
 
 /// Most blocks rendered together: 4 blocks of 8x8 are 256 pixels, one
 /// batch of the stream renderer (a lone block would be a quarter batch).
-const RUN_BLOCKS: usize = 4;
+const RUN_BLOCKS: u32 = 4;
+/// Runs never cross a multiple of this many pixels of the image's columns,
+/// so that any rect whose columns start and end on such multiples (or at
+/// the image's edge) is cut into the same runs as the whole frame: the
+/// farm's tiles of the error-optimal mode book the costs a local render
+/// books.
+pub const RUN_ALIGN: u32 = RUN_BLOCKS * BLOCK;
 
-/// The blocks of `rect` that have a range joined into runs of up to
-/// [`RUN_BLOCKS`] neighbours of one range along a row of blocks: the rects
-/// (and ranges) each call renders.
+/// The blocks of `rect` that have a range joined into runs of
+/// neighbours of one range along a row of blocks, within one
+/// [`RUN_ALIGN`]-pixel column of the image: the rects (and ranges) each
+/// call renders.
 fn runs(rect: Rect, ranges: &[Option<SampleRange>]) -> Vec<(Rect, SampleRange)> {
     let mask = BlockMask::none(rect);
     let mut out: Vec<(Rect, SampleRange)> = Vec::new();
-    let mut len = 0;
     for (i, range) in ranges.iter().enumerate() {
         let Some(range) = *range else { continue };
         let b = mask.block_rect(i);
         match out.last_mut() {
             Some((r, s))
-                if len < RUN_BLOCKS && *s == range && r.y == b.y && r.x + r.width == b.x =>
+                if *s == range
+                    && r.y == b.y
+                    && r.x + r.width == b.x
+                    && !b.x.is_multiple_of(RUN_ALIGN) =>
             {
                 r.width += b.width;
-                len += 1;
             }
-            _ => {
-                out.push((b, range));
-                len = 1;
-            }
+            _ => out.push((b, range)),
         }
     }
     out
