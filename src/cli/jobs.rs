@@ -455,29 +455,20 @@ pub fn status(args: JobArg) -> Result<ExitCode> {
                 max_samples: a.max_samples,
                 mode: adaptive_mode(a),
             };
-            if settings.mode == AdaptiveMode::Image {
-                outln!(
-                    "adaptive:  image mode, {} ({}..{} spp): {:.1}% of blocks settled, estimated image RMSE {:.2e}, {} of {} expected pixel-samples",
-                    settings.describe_target(),
-                    a.min_samples,
-                    a.max_samples,
-                    100.0 * a.converged_share,
-                    a.estimated_error,
-                    j.samples_done,
-                    j.samples_total
-                );
-            } else {
-                outln!(
-                    "adaptive:  {} ({}..{} spp): {:.1}% of blocks converged, estimated RMS error {:.2e}, {} of {} expected pixel-samples",
-                    settings.describe_target(),
-                    a.min_samples,
-                    a.max_samples,
-                    100.0 * a.converged_share,
-                    a.estimated_error,
-                    j.samples_done,
-                    j.samples_total
-                );
-            }
+            let (mode, blocks, error) = match settings.mode {
+                AdaptiveMode::Image => ("image mode, ", "settled", "estimated image RMSE"),
+                AdaptiveMode::Pixel => ("", "converged", "estimated RMS error"),
+            };
+            outln!(
+                "adaptive:  {mode}{} ({}..{} spp): {:.1}% of blocks {blocks}, {error} {:.2e}, {} of {} expected pixel-samples",
+                settings.describe_target(),
+                a.min_samples,
+                a.max_samples,
+                100.0 * a.converged_share,
+                a.estimated_error,
+                j.samples_done,
+                j.samples_total
+            );
         }
         if !ended(j.state) {
             if j.eta_seconds >= 0.0 {
@@ -646,19 +637,15 @@ fn show_progress(progress: &Progress, j: &pb::JobStatus, no_workers: bool) {
         ""
     };
     let adaptive = j.adaptive.as_ref().map_or(String::new(), |a| {
-        if adaptive_mode(a) == AdaptiveMode::Image {
-            format!(
-                " settled {:.1}% est. image RMSE {:.2e}",
-                100.0 * a.converged_share,
-                a.estimated_error
-            )
-        } else {
-            format!(
-                " converged {:.1}% est. error {:.2e}",
-                100.0 * a.converged_share,
-                a.estimated_error
-            )
-        }
+        let (blocks, error) = match adaptive_mode(a) {
+            AdaptiveMode::Image => ("settled", "est. image RMSE"),
+            AdaptiveMode::Pixel => ("converged", "est. error"),
+        };
+        format!(
+            " {blocks} {:.1}% {error} {:.2e}",
+            100.0 * a.converged_share,
+            a.estimated_error
+        )
     });
     progress.set(
         (percent(j) * 10.0) as u64,

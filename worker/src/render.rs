@@ -172,24 +172,14 @@ impl Worker {
                     let renderer = self.renderer.clone();
                     // Adaptive jobs: the round's active blocks (in the image
                     // mode, each over its own range).
-                    let render = tokio::task::spawn_blocking(move || match (active, ranges) {
-                        (None, _) => {
-                            render_unit(&renderer, &prepared, region, &cancel, &samples_done)
-                        }
-                        (Some(mask), None) => render_round_unit(
-                            &renderer,
-                            &prepared,
-                            region.frame,
-                            &mask,
-                            region.samples,
-                            &cancel,
-                            &samples_done,
-                        ),
-                        (Some(_), Some(ranges)) => render_ranges_unit(
+                    let render = tokio::task::spawn_blocking(move || match active {
+                        None => render_unit(&renderer, &prepared, region, &cancel, &samples_done),
+                        Some(mask) => render_round_unit(
                             &renderer,
                             &prepared,
                             region,
-                            &ranges,
+                            &mask,
+                            ranges.as_deref(),
                             &cancel,
                             &samples_done,
                         ),
@@ -326,15 +316,17 @@ pub(crate) fn rendered(film: &Film, start: Instant) -> UnitEnd {
     UnitEnd::Film(film, seconds)
 }
 
-/// Renders a round of an adaptive unit: its active blocks, in one call
-/// (`tracer_core::render::adaptive::render_round`), unless the lease is gone before
-/// it starts (a round is short, so it is not cancelled midway).
+/// Renders a round of an adaptive unit in one call: its active blocks
+/// over the unit's samples (`tracer_core::render::adaptive::render_round`),
+/// or in the image mode each block over its own range (`render_ranges`,
+/// whose result carries the runs of blocks with their rays: the blocks'
+/// costs). Not cancelled midway (a round is short), only before it starts.
 pub(crate) fn render_round_unit(
     renderer: &Renderer,
     prepared: &PreparedFrame,
-    frame: u32,
+    region: WorkRegion,
     mask: &BlockMask,
-    samples: SampleRange,
+    ranges: Option<&[SampleRange]>,
     cancel: &AtomicBool,
     samples_done: &AtomicU64,
 ) -> UnitEnd {
@@ -342,54 +334,38 @@ pub(crate) fn render_round_unit(
         return UnitEnd::Abandoned;
     }
     let start = Instant::now();
-    match tracer_core::render::adaptive::render_round(
-        renderer,
-        prepared,
-        frame,
-        mask,
-        samples,
-        &|n| {
-            samples_done.fetch_add(n, Ordering::Relaxed);
-        },
-    ) {
-        Ok(mut film) => {
+    let progress = |n| {
+        samples_done.fetch_add(n, Ordering::Relaxed);
+    };
+    use tracer_core::render::adaptive::{render_ranges, render_round};
+    let film = match ranges {
+        None => render_round(
+            renderer,
+            prepared,
+            region.frame,
+            mask,
+            region.samples,
+            &progress,
+        )
+        .map(|mut film| {
             // Costs are the image mode's; a per-pixel round sends none.
             film.runs.clear();
-            rendered(&film, start)
+            film
+        }),
+        Some(ranges) => {
+            let (from, to): (Vec<u32>, Vec<u32>) = ranges.iter().map(|r| (r.start, r.end)).unzip();
+            render_ranges(
+                renderer,
+                prepared,
+                region.frame,
+                region.rect,
+                &from,
+                &to,
+                &progress,
+            )
         }
-        Err(e) => render_failed(e.to_string()),
-    }
-}
-
-/// Renders a round of an image-mode unit: each block of the rect over its
-/// own range, in one call (`tracer_core::render::adaptive::render_ranges`);
-/// the result carries the runs of blocks with their rays (the blocks'
-/// costs). Not cancelled midway, as a round.
-pub(crate) fn render_ranges_unit(
-    renderer: &Renderer,
-    prepared: &PreparedFrame,
-    region: WorkRegion,
-    ranges: &[SampleRange],
-    cancel: &AtomicBool,
-    samples_done: &AtomicU64,
-) -> UnitEnd {
-    if cancel.load(Ordering::Relaxed) {
-        return UnitEnd::Abandoned;
-    }
-    let start = Instant::now();
-    let from: Vec<u32> = ranges.iter().map(|r| r.start).collect();
-    let to: Vec<u32> = ranges.iter().map(|r| r.end).collect();
-    match tracer_core::render::adaptive::render_ranges(
-        renderer,
-        prepared,
-        region.frame,
-        region.rect,
-        &from,
-        &to,
-        &|n| {
-            samples_done.fetch_add(n, Ordering::Relaxed);
-        },
-    ) {
+    };
+    match film {
         Ok(film) => rendered(&film, start),
         Err(e) => render_failed(e.to_string()),
     }

@@ -79,6 +79,20 @@ impl ImageFrame {
     }
 }
 
+/// Image mode: frame `frame`'s rounds, started if they were not (a free
+/// function: its callers go on to read the job's layout).
+fn image_frame<'a>(
+    adaptive: &'a mut Option<AdaptiveJob>,
+    layout: &crate::units::Layout,
+    frame: u32,
+) -> &'a mut ImageFrame {
+    let a = adaptive.as_mut().expect("adaptive");
+    let settings = a.settings;
+    a.frames
+        .entry(frame)
+        .or_insert_with(|| ImageFrame::new(&settings, layout.width, layout.height))
+}
+
 /// Index in the frame's blocks (row-major over a `width`-wide image) of
 /// the block whose top left pixel is (x, y).
 fn frame_block(width: u32, x: u32, y: u32) -> usize {
@@ -163,10 +177,7 @@ impl Job {
             return self.pending.insert(units[next]);
         }
         for &u in &units[next..] {
-            self.mark_done(u);
-            // No samples were traced for a skipped round.
-            let unit = self.layout.unit(u);
-            self.correct_samples(unit.frame, self.layout.unit_samples(unit), 0);
+            self.skip_unit(u);
         }
         false
     }
@@ -207,12 +218,7 @@ impl Job {
     pub(super) fn image_merge(&mut self, frame: u32, film: &mut Film) -> Result<(), String> {
         let (w, h) = (self.layout.width, self.layout.height);
         let runs = std::mem::take(&mut film.runs);
-        let a = self.adaptive.as_mut().expect("adaptive");
-        let settings = a.settings;
-        let f = a
-            .frames
-            .entry(frame)
-            .or_insert_with(|| ImageFrame::new(&settings, w, h));
+        let f = image_frame(&mut self.adaptive, &self.layout, frame);
         if !f.ended {
             f.costs.book_runs(Rect::full(w, h), &runs);
         }
@@ -243,12 +249,8 @@ impl Job {
             return false;
         };
         let (w, h) = (self.layout.width, self.layout.height);
-        let a = self.adaptive.as_mut().expect("adaptive");
-        let settings = a.settings;
-        let f = a
-            .frames
-            .entry(frame)
-            .or_insert_with(|| ImageFrame::new(&settings, w, h));
+        let settings = self.adaptive.as_ref().expect("adaptive").settings;
+        let f = image_frame(&mut self.adaptive, &self.layout, frame);
         // Decided once: a restart's replay and a late duplicate ask again.
         if f.ended || f.schedule.round() != round {
             return false;
@@ -346,13 +348,8 @@ impl Job {
         frame: u32,
         rect: Rect,
     ) -> (BlockMask, Vec<SampleRange>, SampleRange) {
-        let (w, h) = (self.layout.width, self.layout.height);
-        let a = self.adaptive.as_mut().expect("adaptive");
-        let settings = a.settings;
-        let f = a
-            .frames
-            .entry(frame)
-            .or_insert_with(|| ImageFrame::new(&settings, w, h));
+        let w = self.layout.width;
+        let f = image_frame(&mut self.adaptive, &self.layout, frame);
         let mut mask = BlockMask::none(rect);
         let ranges: Vec<SampleRange> = (0..mask.active.len())
             .map(|i| {
@@ -440,53 +437,40 @@ impl Job {
             settings: Some(a.settings),
             ..Default::default()
         };
+        // Blocks in all and settled; squared errors summed with weights.
+        let (mut blocks, mut settled, mut sq, mut weight) = (0u64, 0u64, 0.0f64, 0.0f64);
         if a.image_mode() {
             // Each frame's blocks and estimated RMSE once it has decided a
             // round; the error is the RMS over those frames.
-            let blocks_per_frame =
-                BlockMask::none(Rect::full(self.layout.width, self.layout.height))
-                    .active
-                    .len();
-            let (mut blocks, mut settled, mut sq, mut decided) = (0u64, 0u64, 0.0f64, 0u64);
+            let per_frame = BlockMask::none(Rect::full(self.layout.width, self.layout.height))
+                .active
+                .len() as u64;
             for f in self.frames.keys() {
                 out.samples_expected += self.adaptive_frame_expected(*f);
-                blocks += blocks_per_frame as u64;
+                blocks += per_frame;
                 if let Some(fr) = a.frames.get(f)
                     && let Some(last) = fr.last
                 {
                     out.samples_done += last.pixel_samples;
                     settled += fr.settled;
                     sq += last.estimated_rmse * last.estimated_rmse;
-                    decided += 1;
+                    weight += 1.0;
                 }
             }
-            out.converged_share = if blocks == 0 {
-                0.0
-            } else {
-                settled as f64 / blocks as f64
-            };
-            out.estimated_error = if decided == 0 {
-                0.0
-            } else {
-                (sq / decided as f64).sqrt()
-            };
-            return out;
-        }
-        let (mut blocks, mut converged, mut sq, mut pixels) = (0u64, 0u64, 0.0f64, 0u64);
-        for f in self.frames.keys() {
-            out.samples_expected += self.adaptive_frame_expected(*f);
-            for (t, rect) in self.layout.tiles.iter().enumerate() {
-                match a.tiles.get(&(*f, t as u32)) {
-                    Some(s) => {
-                        blocks += s.blocks;
-                        converged += s.converged_blocks;
-                        out.samples_done += s.samples_done;
-                        sq += s.rms_error * s.rms_error * rect.area() as f64;
-                        pixels += rect.area() as u64;
-                    }
-                    None => {
-                        let b = BlockMask::all(*rect).active.len() as u64;
-                        blocks += b;
+        } else {
+            // Each tile's converged blocks and RMS error, by area.
+            for f in self.frames.keys() {
+                out.samples_expected += self.adaptive_frame_expected(*f);
+                for (t, rect) in self.layout.tiles.iter().enumerate() {
+                    match a.tiles.get(&(*f, t as u32)) {
+                        Some(s) => {
+                            blocks += s.blocks;
+                            settled += s.converged_blocks;
+                            out.samples_done += s.samples_done;
+                            sq += s.rms_error * s.rms_error * rect.area() as f64;
+                            weight += rect.area() as f64;
+                        }
+                        None => blocks += BlockMask::all(*rect).active.len() as u64,
                     }
                 }
             }
@@ -494,12 +478,12 @@ impl Job {
         out.converged_share = if blocks == 0 {
             0.0
         } else {
-            converged as f64 / blocks as f64
+            settled as f64 / blocks as f64
         };
-        out.estimated_error = if pixels == 0 {
+        out.estimated_error = if weight == 0.0 {
             0.0
         } else {
-            (sq / pixels as f64).sqrt()
+            (sq / weight).sqrt()
         };
         out
     }
@@ -572,6 +556,8 @@ pub(super) fn check_runs(lease: &Lease, film: &Film) -> Result<(), String> {
     }
     let rect = lease.region.rect;
     let mut rays = 0u64;
+    // A block is booked by one run at most.
+    let mut booked = vec![false; ranges.len()];
     for r in &film.runs {
         let on_grid = |start: u32, len: u32, end_of: u32| {
             start.is_multiple_of(BLOCK)
@@ -579,6 +565,7 @@ pub(super) fn check_runs(lease: &Lease, film: &Film) -> Result<(), String> {
         };
         if !rect.contains(&r.rect)
             || r.rect.width == 0
+            || r.rect.height == 0
             || !on_grid(r.rect.x, r.rect.width, rect.x + rect.width)
             || !on_grid(r.rect.y, r.rect.height, rect.y + rect.height)
             || r.rect.height > BLOCK
@@ -593,7 +580,13 @@ pub(super) fn check_runs(lease: &Lease, film: &Film) -> Result<(), String> {
         let mut x = r.rect.x;
         while x < r.rect.x + r.rect.width {
             let i = (by * cols + (x - rect.x) / BLOCK) as usize;
-            if ranges[i].len() != r.samples {
+            if std::mem::replace(&mut booked[i], true) {
+                return Err(format!(
+                    "run {:?} covers the block at ({x}, {}) that another run covers",
+                    r.rect, r.rect.y
+                ));
+            }
+            if r.samples == 0 || ranges[i].len() != r.samples {
                 return Err(format!(
                     "run {:?} has {} samples a pixel, its block at ({x}, {}) takes {}",
                     r.rect,

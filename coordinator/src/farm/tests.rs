@@ -1266,3 +1266,135 @@ async fn a_worker_sending_malformed_results_is_quarantined_and_cannot_fail_the_j
         v.record.error
     );
 }
+
+/// An image-mode adaptive job (the error-optimal mode): a lease carries
+/// each block's range and goes only to workers that render ranges; a
+/// result's runs of blocks are checked against those ranges (whole blocks,
+/// each booked once, with the block's sample count, their rays adding up
+/// to the result's) before they are booked as the blocks' costs.
+#[tokio::test]
+async fn image_mode_leases_carry_block_ranges_and_results_runs_are_checked() {
+    use tracer_core::adaptive::{AdaptiveMode, AdaptiveSpec};
+    use tracer_core::film::RunCost;
+    let dir = tempfile::tempdir().unwrap();
+    let farm = Farm::open(Config::new(dir.path().to_path_buf())).unwrap();
+    let submit = |tile: u32| {
+        farm.submit(Submission {
+            spec: JobSpec {
+                name: "t".into(),
+                scene_name: "t.toml".into(),
+                overrides: RenderOverrides {
+                    width: Some(64),
+                    height: Some(16),
+                    ..Default::default()
+                },
+                adaptive: AdaptiveSpec {
+                    target_error: Some(1e-9),
+                    min_samples: Some(2),
+                    max_samples: Some(8),
+                    mode: Some(AdaptiveMode::Image),
+                    ..Default::default()
+                },
+                tile_size: Some(tile),
+                max_attempts: Some(10),
+                ..Default::default()
+            },
+            scene: SCENE.as_bytes().to_vec(),
+            ..Default::default()
+        })
+    };
+    let e = submit(16).await.unwrap_err().to_string();
+    assert!(
+        e.contains("tile_size must be a multiple of 32 for the image adaptive mode"),
+        "{e}"
+    );
+    submit(32).await.unwrap();
+    // A worker of an earlier release (no block_ranges) gets none of it.
+    let old = farm.register(
+        "old".into(),
+        super::WorkerCaps {
+            threads: 1,
+            backend: Backend::Cpu,
+            gpu_name: String::new(),
+            version: String::new(),
+            host_id: String::new(),
+            labels: Default::default(),
+            block_ranges: false,
+        },
+    );
+    assert!(farm.lease(&old, 1, false).unwrap().is_empty());
+    let w = register(&farm, "w", 1);
+    let mut l = farm.lease(&w, 1, false).unwrap().remove(0);
+    let rect = l.region.rect;
+    assert_eq!((rect.width, rect.height), (32, 16));
+    assert_eq!(l.region.samples, SampleRange::new(0, 2));
+    assert_eq!(l.ranges, Some(vec![SampleRange::new(0, 2); 8]));
+    // What a CPU worker sends: its film, squares and the runs (4 blocks
+    // wide, one a row of blocks) with their rays.
+    let sent = |l: &LeasedUnit, runs: Vec<RunCost>| {
+        let mut r = result(&w, l, 0.01);
+        let film = r.film.as_mut().unwrap();
+        // Sums 0, squares not: every block has a variance.
+        film.squares = Some(vec![[1 << 64; 3]; rect.area()]);
+        film.rays.shadow = 1000;
+        film.runs = runs;
+        r
+    };
+    let total = (rect.area() * 2) as u64 + 1000;
+    let run = |y: u32, width: u32, rays: u64, samples: u32| RunCost {
+        rect: Rect::new(rect.x, y, width, 8),
+        rays,
+        samples,
+    };
+    let half = total / 2;
+    for (runs, why) in [
+        (
+            vec![run(0, 32, half, 2), run(8, 32, total - half, 3)],
+            "run Rect { x: 0, y: 8, width: 32, height: 8 } has 3 samples a pixel, its block at (0, 8) takes 2",
+        ),
+        (
+            vec![run(0, 32, half, 2), run(0, 16, total - half, 2)],
+            "run Rect { x: 0, y: 0, width: 16, height: 8 } covers the block at (0, 0) that another run covers",
+        ),
+        (
+            vec![run(0, 32, half, 2), run(8, 32, 1, 2)],
+            &format!("the runs count {} rays, the result {total}", half + 1),
+        ),
+        (
+            vec![run(0, 32, half, 2), run(4, 32, total - half, 2)],
+            "run Rect { x: 0, y: 4, width: 32, height: 8 } is not a row of whole blocks",
+        ),
+    ] {
+        let o = farm.submit_result(sent(&l, runs)).await.unwrap();
+        assert!(
+            matches!(&o, Outcome::Rejected(m) if m.contains(why)),
+            "{o:?} lacks {why:?}"
+        );
+        l = farm.lease(&w, 1, false).unwrap().remove(0);
+        assert_eq!(l.region.rect, rect, "the unit is leased again");
+    }
+    // Well-formed runs are taken; a GPU worker's result has none.
+    let o = farm
+        .submit_result(sent(
+            &l,
+            vec![run(0, 32, half, 2), run(8, 32, total - half, 2)],
+        ))
+        .await
+        .unwrap();
+    assert_eq!(o, Outcome::Accepted);
+    let other = farm.lease(&w, 1, false).unwrap().remove(0);
+    assert_eq!(other.region.rect.x, 32);
+    assert_eq!(
+        farm.submit_result(sent(&other, vec![])).await.unwrap(),
+        Outcome::Accepted
+    );
+    // Round 0 is in for the whole frame: round 1 is decided, each block
+    // from 2 towards the allocation's count (the target is out of reach:
+    // doubling, on the grid 2 * 2^(k/4)).
+    let next = farm.lease(&w, 1, false).unwrap().remove(0);
+    let ranges = next.ranges.expect("ranges");
+    assert!(
+        ranges.iter().all(|r| *r == SampleRange::new(2, 4)),
+        "{ranges:?}"
+    );
+}
