@@ -3,7 +3,7 @@
 # prebuilt binaries in .gpu/ (tessera, result_load, libvulkan.so.1), no cargo.
 # Writes everything under $OUT (or bench-out/device).
 #
-#   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, local-gpu,
+#   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, farm-image, local-gpu,
 #                                          gpu-tests, against-old, cpu-worker, farm-gpu, multi-gpu, path
 #
 # `cpu-worker` (issue 15, ~2 min): the 1-worker pairs of `bench farm
@@ -436,6 +436,50 @@ echo "cpu farm exit $?" >> "$OUT/multi-gpu-cpu-farm.txt"
 cp /tmp/bench/multi-gpu.csv "$OUT/" 2>/dev/null
 cp /tmp/bench/cpu-farm/farm.csv "$OUT/cpu-farm.csv" 2>/dev/null
 tar czf "$OUT/multi-gpu-logs.tar.gz" -C /tmp/bench/multi-gpu --exclude='frames-*' --exclude='data-*' --exclude='*cache-*' --exclude='*.png' --exclude='*.svg' . 2>/dev/null
+fi
+if has farm-image; then
+# Issue 36: the error-optimal adaptive mode (`--adaptive-mode image`) on
+# the farm against the local render of the same settings: the time from
+# submit to done with 1 worker of all cores, 4 of 4 threads and 8 of 2
+# (each frame's rounds wait for their last tile), and whether the fetched
+# frame is the local image bit for bit. $FARM_IMAGE_ARGS replaces the
+# render settings.
+S=examples/distributed.toml
+FI_ARGS=${FARM_IMAGE_ARGS:---integrator path --width 640 --height 480 --adaptive-mode image --target-error 0.00075 --min-samples 16 --max-samples 1024}
+{
+  echo "== machine"; nproc; grep -m1 'model name' /proc/cpuinfo
+  echo "== settings: $S $FI_ARGS"
+  for i in 1 2; do
+    s=$EPOCHREALTIME
+    "$T" render $S $FI_ARGS -o /tmp/fi-local.png --json > /tmp/fi-local.json 2>/dev/null
+    e=$EPOCHREALTIME
+    python3 -c "
+import json, sys
+j = json.load(open('/tmp/fi-local.json')); a = j['adaptive']
+print('local render %d (all cores): %.2f s (process %.2f s), %d rounds, mean %.1f spp, estimated image RMSE %.3e' % ($i, j['seconds'], $e - $s, a['rounds'], a['mean_samples'], a['estimated_rms_error']))"
+  done
+  for cfg in "1 $(nproc)" "4 $(( $(nproc) / 4 ))" "8 $(( $(nproc) / 8 ))"; do
+    set -- $cfg
+    rm -rf /tmp/fi-data /tmp/fi-frames
+    "$T" coordinator --listen 127.0.0.1:7997 --data /tmp/fi-data > /dev/null 2>/tmp/fi-coord.log &
+    C=$!; sleep 0.5
+    W=()
+    for w in $(seq 1 "$1"); do
+      "$T" worker --coordinator http://127.0.0.1:7997 --threads "$2" --name "w$w" --cache "/tmp/fi-cache-$w" 2>/dev/null & W+=($!)
+    done
+    sleep 2
+    s=$EPOCHREALTIME
+    id=$("$T" submit $S $FI_ARGS --tile-size 64 --coordinator http://127.0.0.1:7997 --wait 2>/dev/null)
+    e=$EPOCHREALTIME
+    "$T" fetch "$id" -o /tmp/fi-frames --coordinator http://127.0.0.1:7997 > /dev/null 2>&1
+    same=$(cmp -s /tmp/fi-frames/frame_0000.png /tmp/fi-local.png && echo "the local image, byte for byte" || echo "DIFFERS from the local image")
+    "$T" status "$id" --coordinator http://127.0.0.1:7997 --json | python3 -c "
+import json, sys
+j = json.load(sys.stdin); a = j['adaptive']
+print('farm, $1 workers of $2 threads: submit to done %.2f s, first lease to last result %.2f s, %d pixel-samples, estimated image RMSE %.3e; frame: $same' % ($e - $s, (j['last_result_unix_ms'] - j['first_lease_unix_ms']) / 1000, j['samples_done'], a['estimated_error']))"
+    kill "${W[@]}" $C 2>/dev/null; wait 2>/dev/null
+  done
+} > "$OUT/farm-image.txt" 2>&1
 fi
 # CSVs and plots only: the per-run images are many and large (phases
 # that ran no bench suite have none).
