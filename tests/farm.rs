@@ -730,6 +730,26 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
         "{off} of {} pixels differ by more than 2/255",
         got.len() / 3
     );
+
+    // The image mode on both: the CPU worker's runs are booked, the GPU
+    // worker's blocks cost their mean (`Costs::per_block`); the rounds
+    // still reach the target, no result refused.
+    let mut args = adaptive.to_vec();
+    args[5] = "0.01";
+    args.extend(["--adaptive-mode", "image", "--tile-size", "32", "--wait"]);
+    let job = submit(&c.url(), &dist, &args);
+    let s = status(&c.url(), &job);
+    assert_eq!(
+        (s.state, s.results_rejected),
+        (pb::JobState::Done as i32, 0),
+        "{}",
+        gpu.log()
+    );
+    let a = s.adaptive.expect("an adaptive job's status");
+    assert!(
+        a.estimated_error > 0.0 && a.estimated_error <= 0.01,
+        "{a:?}"
+    );
 }
 
 #[test]

@@ -390,6 +390,32 @@ impl RmseSchedule {
 mod tests {
     use super::*;
 
+    /// Costs booked by runs (shared by area), and blocks nothing measured
+    /// (a GPU worker's beside CPU workers' on a farm) at the mean of the
+    /// measured ones; all 1 when none was.
+    #[test]
+    fn blocks_cost_their_runs_share_and_unmeasured_ones_the_mean() {
+        let frame = Rect::full(32, 8);
+        let mut c = Costs::new(frame);
+        assert_eq!(c.per_block(), vec![1.0; 4]);
+        assert!(!c.measured());
+        // Blocks 0 and 1 in one run: 1280 rays for 2 x 64 pixels x 2 samples.
+        c.book_runs(
+            frame,
+            &[RunCost {
+                rect: Rect::new(0, 0, 16, 8),
+                rays: 1280,
+                samples: 2,
+            }],
+        );
+        // Block 3 alone: 64 pixels x 1 sample, 256 rays.
+        c.book(frame, Rect::new(24, 0, 8, 8), 256, 1);
+        assert!(c.measured());
+        // Measured: 5, 5 and 4 rays a pixel-sample; block 2 the mean,
+        // (1280 + 256) / (256 + 64).
+        assert_eq!(c.per_block(), vec![5.0, 5.0, 1536.0 / 320.0, 4.0]);
+    }
+
     fn stats(w: &[f64], cost: &[f64]) -> Vec<BlockStats> {
         w.iter()
             .zip(cost)
