@@ -253,10 +253,10 @@ impl From<&pb::JobStatus> for JobJson {
                 max_samples: a.max_samples,
                 converged_share: a.converged_share,
                 estimated_error: a.estimated_error,
-                mode: match pb::AdaptiveMode::try_from(a.mode) {
-                    Ok(pb::AdaptiveMode::Image) => "image",
-                    _ => "pixel",
-                },
+                // An earlier coordinator says nothing: per pixel.
+                mode: tessera_proto::convert::adaptive_mode_from_pb(a.mode)
+                    .unwrap_or_default()
+                    .name(),
             }),
             requirements: j.requirements.clone(),
             unrunnable: non_empty(&j.unrunnable),

@@ -349,11 +349,7 @@ impl From<&pb::RenderOverrides> for AdaptiveSpec {
             relative_error: o.relative_error,
             min_samples: o.min_samples,
             max_samples: o.max_samples,
-            mode: match pb::AdaptiveMode::try_from(o.adaptive_mode) {
-                Ok(pb::AdaptiveMode::Pixel) => Some(AdaptiveMode::Pixel),
-                Ok(pb::AdaptiveMode::Image) => Some(AdaptiveMode::Image),
-                _ => None,
-            },
+            mode: adaptive_mode_from_pb(o.adaptive_mode),
         }
     }
 }
@@ -382,6 +378,16 @@ impl From<(RenderOverrides, AdaptiveSpec)> for pb::RenderOverrides {
                 .map_or(pb::AdaptiveMode::Unspecified, adaptive_mode_to_pb)
                 as i32,
         }
+    }
+}
+
+/// A wire `AdaptiveMode`; `None` where it is unspecified (or unknown: a
+/// newer peer's).
+pub fn adaptive_mode_from_pb(m: i32) -> Option<AdaptiveMode> {
+    match pb::AdaptiveMode::try_from(m) {
+        Ok(pb::AdaptiveMode::Pixel) => Some(AdaptiveMode::Pixel),
+        Ok(pb::AdaptiveMode::Image) => Some(AdaptiveMode::Image),
+        _ => None,
     }
 }
 

@@ -1038,8 +1038,5 @@ fn now_unix_ms() -> i64 {
 /// What an adaptive job's target bounds, as its status says (a
 /// coordinator of an earlier release says nothing: per pixel).
 fn adaptive_mode(a: &pb::AdaptiveStatus) -> AdaptiveMode {
-    match pb::AdaptiveMode::try_from(a.mode) {
-        Ok(pb::AdaptiveMode::Image) => AdaptiveMode::Image,
-        _ => AdaptiveMode::Pixel,
-    }
+    tessera_proto::convert::adaptive_mode_from_pb(a.mode).unwrap_or_default()
 }

@@ -110,26 +110,8 @@ pub struct AdaptiveArgs {
     /// root of its cost in rays, the cheapest way to that error
     /// (docs/adaptive-sampling.md) [default: the scene's [render]
     /// adaptive_mode, else pixel]
-    #[arg(long, value_enum)]
-    pub adaptive_mode: Option<AdaptiveModeArg>,
-}
-
-/// What an adaptive render's target bounds (`--adaptive-mode`).
-#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
-pub enum AdaptiveModeArg {
-    /// Every pixel's standard error (the meaning of --target-error).
-    Pixel,
-    /// The whole image's estimated RMSE, reached the cheapest way.
-    Image,
-}
-
-impl From<AdaptiveModeArg> for AdaptiveMode {
-    fn from(m: AdaptiveModeArg) -> Self {
-        match m {
-            AdaptiveModeArg::Pixel => AdaptiveMode::Pixel,
-            AdaptiveModeArg::Image => AdaptiveMode::Image,
-        }
-    }
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["pixel", "image"]).map(|s| s.parse::<AdaptiveMode>().unwrap()))]
+    pub adaptive_mode: Option<AdaptiveMode>,
 }
 
 impl From<&AdaptiveArgs> for AdaptiveSpec {
@@ -139,7 +121,7 @@ impl From<&AdaptiveArgs> for AdaptiveSpec {
             relative_error: a.relative_error,
             min_samples: a.min_samples,
             max_samples: a.max_samples,
-            mode: a.adaptive_mode.map(Into::into),
+            mode: a.adaptive_mode,
         }
     }
 }

@@ -33,7 +33,8 @@ use tracer_core::adaptive::optimal::{
     Costs, RmseSchedule, RmseSettings, RmseStep, block_stats, image_mean,
 };
 use tracer_core::adaptive::{
-    AdaptiveMode, AdaptiveSettings, BLOCK, BlockMask, Summary, next_active, summarize,
+    AdaptiveMode, AdaptiveSettings, BLOCK, BlockMask, Summary, block_index, check_rect,
+    next_active, summarize,
 };
 use tracer_core::film::{FIXED_ONE, Film, MAX_SAMPLE_VALUE, Rect, SampleRange};
 
@@ -91,12 +92,6 @@ fn image_frame<'a>(
     a.frames
         .entry(frame)
         .or_insert_with(|| ImageFrame::new(&settings, layout.width, layout.height))
-}
-
-/// Index in the frame's blocks (row-major over a `width`-wide image) of
-/// the block whose top left pixel is (x, y).
-fn frame_block(width: u32, x: u32, y: u32) -> usize {
-    ((y / BLOCK) * width.div_ceil(BLOCK) + x / BLOCK) as usize
 }
 
 /// The whole job's standing, for progress logs and `watch`.
@@ -260,7 +255,7 @@ impl Job {
             let Some(film) = guard.as_ref() else {
                 return false;
             };
-            let stats = block_stats(film, film.rect, f.costs.measured().then_some(&f.costs));
+            let stats = block_stats(film, film.rect, Some(&f.costs));
             f.last = Some(f.schedule.after_round(&stats, image_mean(film)));
         }
         let next = round + 1;
@@ -281,7 +276,7 @@ impl Job {
                 let mask = BlockMask::none(*rect);
                 grows[t] = (0..mask.active.len()).any(|i| {
                     let b = mask.block_rect(i);
-                    let (n, to) = f.schedule.block(frame_block(w, b.x, b.y));
+                    let (n, to) = f.schedule.block(block_index(full.rect, b.x, b.y));
                     to > n
                 });
             }
@@ -348,13 +343,13 @@ impl Job {
         frame: u32,
         rect: Rect,
     ) -> (BlockMask, Vec<SampleRange>, SampleRange) {
-        let w = self.layout.width;
+        let full = Rect::full(self.layout.width, self.layout.height);
         let f = image_frame(&mut self.adaptive, &self.layout, frame);
         let mut mask = BlockMask::none(rect);
         let ranges: Vec<SampleRange> = (0..mask.active.len())
             .map(|i| {
                 let b = mask.block_rect(i);
-                let (n, to) = f.schedule.block(frame_block(w, b.x, b.y));
+                let (n, to) = f.schedule.block(block_index(full, b.x, b.y));
                 if to > n {
                     SampleRange::new(n, to)
                 } else {
@@ -521,10 +516,7 @@ pub(super) fn check_result(lease: &Lease, film: &Film) -> Result<(), String> {
 pub(super) fn expected_count(lease: &Lease, x: u32, y: u32) -> u32 {
     match (&lease.active, &lease.ranges) {
         (Some(m), _) if !m.covers(x, y) => 0,
-        (Some(m), Some(ranges)) => {
-            let (bx, by) = ((x - m.rect.x) / BLOCK, (y - m.rect.y) / BLOCK);
-            ranges[(by * m.rect.width.div_ceil(BLOCK) + bx) as usize].len()
-        }
+        (Some(m), Some(ranges)) => ranges[block_index(m.rect, x, y)].len(),
         _ => lease.region.samples.len(),
     }
 }
@@ -559,15 +551,12 @@ pub(super) fn check_runs(lease: &Lease, film: &Film) -> Result<(), String> {
     // A block is booked by one run at most.
     let mut booked = vec![false; ranges.len()];
     for r in &film.runs {
-        let on_grid = |start: u32, len: u32, end_of: u32| {
-            start.is_multiple_of(BLOCK)
-                && ((start + len).is_multiple_of(BLOCK) || start + len == end_of)
-        };
+        // On the block grid and ending on it or at the rect's edge.
+        let (right, bottom) = (rect.x + rect.width, rect.y + rect.height);
         if !rect.contains(&r.rect)
             || r.rect.width == 0
             || r.rect.height == 0
-            || !on_grid(r.rect.x, r.rect.width, rect.x + rect.width)
-            || !on_grid(r.rect.y, r.rect.height, rect.y + rect.height)
+            || check_rect(r.rect, right, bottom).is_err()
             || r.rect.height > BLOCK
         {
             return Err(format!(
@@ -575,11 +564,9 @@ pub(super) fn check_runs(lease: &Lease, film: &Film) -> Result<(), String> {
                 r.rect
             ));
         }
-        let cols = rect.width.div_ceil(BLOCK);
-        let by = (r.rect.y - rect.y) / BLOCK;
         let mut x = r.rect.x;
         while x < r.rect.x + r.rect.width {
-            let i = (by * cols + (x - rect.x) / BLOCK) as usize;
+            let i = block_index(rect, x, r.rect.y);
             if std::mem::replace(&mut booked[i], true) {
                 return Err(format!(
                     "run {:?} covers the block at ({x}, {}) that another run covers",

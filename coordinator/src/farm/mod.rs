@@ -784,7 +784,9 @@ impl Farm {
                         f.written = Some(file);
                     }
                 }
-                let image_mode = job.image_mode();
+                // An unfinished image-mode job's rounds are replayed below;
+                // an ended one's films only merge.
+                let replaying = job.image_mode() && !job.state.is_terminal();
                 let mut replay = Vec::new();
                 for (u, film) in films.remove(&job.rec.id).unwrap_or_default() {
                     let job_id = job.rec.id.clone();
@@ -805,7 +807,7 @@ impl Farm {
                     for &u in &units {
                         job.mark_done(u);
                     }
-                    if image_mode {
+                    if replaying {
                         // Merged round by round, its runs booked, below.
                         replay.push((u, film));
                         continue;
@@ -820,18 +822,13 @@ impl Farm {
                         .merge(&film)
                         .map_err(|e| corrupt(e.to_string()))?;
                 }
-                let id = job.rec.id.clone();
-                let corrupt = |message: String| StoreError::Corrupt {
-                    what: format!("rounds of {id}"),
-                    message,
-                };
                 if !job.state.is_terminal() {
-                    job.adaptive_restore(replay).map_err(corrupt)?;
-                } else {
-                    for (u, mut film) in replay {
-                        let frame = job.layout.unit(u).frame;
-                        job.image_merge(frame, &mut film).map_err(corrupt)?;
-                    }
+                    let id = job.rec.id.clone();
+                    job.adaptive_restore(replay)
+                        .map_err(|message| StoreError::Corrupt {
+                            what: format!("rounds of {id}"),
+                            message,
+                        })?;
                 }
                 if job.state == JobState::Running && job.units_done == 0 {
                     job.state = JobState::Queued;

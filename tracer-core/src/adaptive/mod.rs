@@ -127,8 +127,7 @@ impl BlockMask {
 
     /// Whether pixel `(x, y)` (image coordinates, inside the rect) is active.
     pub fn covers(&self, x: u32, y: u32) -> bool {
-        let (bx, by) = ((x - self.rect.x) / BLOCK, (y - self.rect.y) / BLOCK);
-        self.active[(by * self.cols() + bx) as usize]
+        self.active[block_index(self.rect, x, y)]
     }
 
     /// One bit per block, row-major, least significant bit first: how a mask
@@ -155,6 +154,13 @@ impl BlockMask {
             active: (0..n).map(|i| bytes[i / 8] & (1 << (i % 8)) != 0).collect(),
         })
     }
+}
+
+/// The index (row-major over the blocks of block-aligned `rect`) of the
+/// block holding pixel `(x, y)` (image coordinates, inside the rect).
+pub fn block_index(rect: Rect, x: u32, y: u32) -> usize {
+    let (bx, by) = ((x - rect.x) / BLOCK, (y - rect.y) / BLOCK);
+    (by * rect.width.div_ceil(BLOCK) + bx) as usize
 }
 
 fn blocks_of(rect: Rect) -> usize {

@@ -174,11 +174,6 @@ impl Costs {
         }
     }
 
-    /// Whether any block's cost was measured.
-    pub fn measured(&self) -> bool {
-        self.rays.iter().any(|&r| r > 0.0)
-    }
-
     /// Each block's cost of one pixel-sample: its measured mean, or where
     /// nothing was measured for it (a GPU's blocks beside a CPU's on a
     /// mixed farm) the mean over the blocks that were; 1 where none was.
@@ -328,10 +323,6 @@ impl RmseSchedule {
         }
     }
 
-    pub fn settings(&self) -> &RmseSettings {
-        &self.settings
-    }
-
     /// The pending round's index (the rounds taken so far).
     pub fn round(&self) -> u32 {
         self.round
@@ -398,7 +389,6 @@ mod tests {
         let frame = Rect::full(32, 8);
         let mut c = Costs::new(frame);
         assert_eq!(c.per_block(), vec![1.0; 4]);
-        assert!(!c.measured());
         // Blocks 0 and 1 in one run: 1280 rays for 2 x 64 pixels x 2 samples.
         c.book_runs(
             frame,
@@ -410,7 +400,6 @@ mod tests {
         );
         // Block 3 alone: 64 pixels x 1 sample, 256 rays.
         c.book(frame, Rect::new(24, 0, 8, 8), 256, 1);
-        assert!(c.measured());
         // Measured: 5, 5 and 4 rays a pixel-sample; block 2 the mean,
         // (1280 + 256) / (256 + 64).
         assert_eq!(c.per_block(), vec![5.0, 5.0, 1536.0 / 320.0, 4.0]);
