@@ -488,6 +488,49 @@ fn render_json(dir: &Path, scene: &Path, settings: &[&str]) -> serde_json::Value
     serde_json::from_str(&ok_stdout(&o)).expect("json")
 }
 
+/// `tessera submit` of `scene` with `settings` in tiles of `tile`, which
+/// must fail: its error output.
+fn refused_submit(url: &str, scene: &Path, tile: &str, settings: &[&str]) -> String {
+    let mut args = vec!["submit", scene.to_str().expect("path"), "--tile-size", tile];
+    args.extend_from_slice(settings);
+    let refused = tessera(&args, url);
+    assert!(!refused.status.success());
+    String::from_utf8_lossy(&refused.stderr).into_owned()
+}
+
+/// A job done on a fresh farm, kept up while this lives.
+struct FarmJob {
+    dir: tempfile::TempDir,
+    c: Coordinator,
+    _workers: Vec<Proc>,
+    job: String,
+    status: pb::JobStatus,
+}
+
+/// `scene` with `settings` in tiles of `tile` on a fresh farm of
+/// `workers` CPU workers, waited for: done, its frame 0 `tessera
+/// render`'s with `settings` bit for bit.
+fn farm_job(workers: usize, tile: &str, scene: &Path, settings: &[&str]) -> FarmJob {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
+    let _workers: Vec<Proc> = (0..workers)
+        .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
+        .collect();
+    let mut args = settings.to_vec();
+    args.extend(["--tile-size", tile]);
+    let job = submit(&c.url(), scene, &args);
+    let status = wait_done(&c.url(), &job, Duration::from_secs(300));
+    assert_eq!(status.state, pb::JobState::Done as i32);
+    assert_frames_match_render(dir.path(), &c.url(), &job, scene, 0..=0, settings);
+    FarmJob {
+        dir,
+        c,
+        _workers,
+        job,
+        status,
+    }
+}
+
 #[test]
 fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_render() {
     let _g = serial();
@@ -515,17 +558,13 @@ fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_rend
         "{json}"
     );
     for (workers, tile) in [(1, "16"), (3, "24")] {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
-        let _w: Vec<Proc> = (0..workers)
-            .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
-            .collect();
-        let mut args = settings.to_vec();
-        args.extend(["--tile-size", tile]);
-        let job = submit(&c.url(), &scene, &args);
-        let s = wait_done(&c.url(), &job, Duration::from_secs(300));
-        assert_eq!(s.state, pb::JobState::Done as i32);
-        assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+        let FarmJob {
+            dir,
+            c,
+            _workers,
+            job: _,
+            status: s,
+        } = farm_job(workers, tile, &scene, &settings);
         assert_eq!(
             s.samples_done, local_samples,
             "{workers} workers, tiles of {tile}"
@@ -539,15 +578,7 @@ fn adaptive_jobs_on_one_and_three_workers_with_two_tile_sizes_match_tessera_rend
         assert!(a.converged_share > 0.0 && a.converged_share <= 1.0, "{a:?}");
         assert!(a.estimated_error > 0.0 && a.estimated_error < 0.02, "{a:?}");
         if workers == 3 {
-            let refused = tessera(
-                &["submit", scene.to_str().expect("path"), "--tile-size", "20"]
-                    .into_iter()
-                    .chain(settings)
-                    .collect::<Vec<_>>(),
-                &c.url(),
-            );
-            assert!(!refused.status.success());
-            let err = String::from_utf8_lossy(&refused.stderr);
+            let err = refused_submit(&c.url(), &scene, "20", &settings);
             assert!(
                 err.contains("tile_size must be a multiple of 8 for adaptive sampling"),
                 "{err}"
@@ -652,42 +683,49 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
         "--max-samples",
         "32",
     ];
-    let mut args = adaptive.to_vec();
-    args.extend(["--tile-size", "16", "--wait"]);
-    let job = submit(&c.url(), &dist, &args);
-    let s = status(&c.url(), &job);
-    assert_eq!(
-        (s.state, s.results_rejected),
-        (pb::JobState::Done as i32, 0),
-        "{}",
-        gpu.log()
-    );
+    // A job of the scene with `settings` then `extra`, waited for: done,
+    // no result refused.
+    let done_job = |settings: &[&str], extra: &[&str]| {
+        let mut args = [settings, extra].concat();
+        args.push("--wait");
+        let job = submit(&c.url(), &dist, &args);
+        let s = status(&c.url(), &job);
+        assert_eq!(
+            (s.state, s.results_rejected),
+            (pb::JobState::Done as i32, 0),
+            "{}",
+            gpu.log()
+        );
+        (job, s)
+    };
+    let (job, s) = done_job(&adaptive, &["--tile-size", "16"]);
     let a = s.adaptive.expect("an adaptive job's status");
     assert!(a.converged_share > 0.0 && a.converged_share < 1.0, "{a:?}");
     let mut gpu_adaptive = adaptive.to_vec();
     gpu_adaptive.extend(["--backend", "gpu", "--adapter", "0"]);
     assert_frames_match_render(dir.path(), &c.url(), &job, &dist, 0..=0, &gpu_adaptive);
 
-    // The image mode on the GPU worker: its units' blocks each over their
-    // own range (one ranged grid a lease), no runs (its blocks cost the
-    // same), the frame-wide rounds to the target.
-    let mut args = adaptive.to_vec();
-    args[5] = "0.01"; // --target-error: 0.02 is met by round 0 already
-    args.extend(["--adaptive-mode", "image", "--tile-size", "32", "--wait"]);
-    let job = submit(&c.url(), &dist, &args);
-    let s = status(&c.url(), &job);
-    assert_eq!(
-        (s.state, s.results_rejected),
-        (pb::JobState::Done as i32, 0),
-        "{}",
-        gpu.log()
-    );
-    let a = s.adaptive.expect("an adaptive job's status");
-    assert_eq!(a.mode, pb::AdaptiveMode::Image as i32);
-    assert!(
-        a.estimated_error > 0.0 && a.estimated_error <= 0.01,
-        "{a:?}"
-    );
+    // An image-mode job on the farm as it stands: done to its target
+    // (0.01: 0.02 is met by round 0 already), no result refused.
+    let image_job = || {
+        let mut settings = adaptive.to_vec();
+        settings[5] = "0.01";
+        let (_, s) = done_job(
+            &settings,
+            &["--adaptive-mode", "image", "--tile-size", "32"],
+        );
+        let a = s.adaptive.expect("an adaptive job's status");
+        assert_eq!(a.mode, pb::AdaptiveMode::Image as i32);
+        assert!(
+            a.estimated_error > 0.0 && a.estimated_error <= 0.01,
+            "{a:?}"
+        );
+        s
+    };
+    // On the GPU worker: its units' blocks each over their own range (one
+    // ranged grid a lease), no runs (its blocks cost the same), the
+    // frame-wide rounds to the target.
+    let s = image_job();
     assert!(
         s.samples_done > 64 * 48 * 4 && s.samples_done < 64 * 48 * 32,
         "{s:?}"
@@ -732,24 +770,8 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
     );
 
     // The image mode on both: the CPU worker's runs are booked, the GPU
-    // worker's blocks cost their mean (`Costs::per_block`); the rounds
-    // still reach the target, no result refused.
-    let mut args = adaptive.to_vec();
-    args[5] = "0.01";
-    args.extend(["--adaptive-mode", "image", "--tile-size", "32", "--wait"]);
-    let job = submit(&c.url(), &dist, &args);
-    let s = status(&c.url(), &job);
-    assert_eq!(
-        (s.state, s.results_rejected),
-        (pb::JobState::Done as i32, 0),
-        "{}",
-        gpu.log()
-    );
-    let a = s.adaptive.expect("an adaptive job's status");
-    assert!(
-        a.estimated_error > 0.0 && a.estimated_error <= 0.01,
-        "{a:?}"
-    );
+    // worker's blocks cost their mean (`Costs::per_block`).
+    image_job();
 }
 
 #[test]
@@ -959,13 +981,18 @@ fn a_coordinator_stopped_with_sigterm_keeps_every_result_it_reported() {
     drop(c);
 }
 
-/// An adaptive job survives a coordinator restart: the rounds still to do
-/// and the tiles already finished are derived again from the stored
-/// films, nothing is rendered twice, and the frames are still
-/// `tessera render --target-error`'s bit for bit.
-#[test]
-fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
-    let _g = serial();
+/// An adaptive job of frames 1..3 of the animation scene (`settings`, in
+/// tiles of `tile`) on two workers, its coordinator killed by SIGKILL once
+/// `past` gives the count of finished units to keep (`Some`), then started
+/// again on the same data: the restored job has them and is not done,
+/// it ends with every unit done and none rendered twice, the log says the
+/// job was restored, and its frames are `tessera render`'s with
+/// `settings` bit for bit. Returns the job's last status.
+fn adaptive_job_survives_a_kill(
+    settings: &[&str],
+    tile: &str,
+    past: impl Fn(&pb::JobStatus) -> Option<u64>,
+) -> pb::JobStatus {
     let dir = tempfile::tempdir().expect("tempdir");
     let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
     let addr = c.addr.clone();
@@ -974,6 +1001,36 @@ fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
         .map(|i| start_worker(dir.path(), &url, &format!("w{i}")))
         .collect();
     let scene = repo("examples/animation.toml");
+    let mut args = settings.to_vec();
+    args.extend(["--frames", "1..3", "--tile-size", tile]);
+    let job = submit(&url, &scene, &args);
+    let total = status(&url, &job).units_total;
+    let mut before = 0;
+    wait_for("some rounds", Duration::from_secs(60), || {
+        past(&status(&url, &job)).inspect(|&n| before = n).is_some()
+    });
+    std::thread::sleep(Duration::from_millis(400));
+    c.proc.sigkill();
+    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
+    let restored = status(&url, &job);
+    assert!(restored.units_done >= before && restored.units_done < total);
+    let s = wait_done(&url, &job, Duration::from_secs(180));
+    assert_eq!(
+        (s.units_done, s.units_total, s.results_duplicate),
+        (total, total, 0)
+    );
+    assert!(c.proc.log().contains("job restored"));
+    assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, settings);
+    s
+}
+
+/// An adaptive job survives a coordinator restart: the rounds still to do
+/// and the tiles already finished are derived again from the stored
+/// films, nothing is rendered twice, and the frames are still
+/// `tessera render --target-error`'s bit for bit.
+#[test]
+fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
+    let _g = serial();
     let settings = [
         "--width",
         "192",
@@ -986,29 +1043,13 @@ fn a_coordinator_killed_mid_adaptive_job_resumes_its_rounds() {
         "--max-samples",
         "64",
     ];
-    let mut args = settings.to_vec();
-    args.extend(["--frames", "1..3", "--tile-size", "16"]);
-    let job = submit(&url, &scene, &args);
     let total = 3 * 108 * 5; // frames x tiles x rounds (4, 8, 16, 32, 64)
-    let mut before = 0;
-    wait_for("some rounds", Duration::from_secs(60), || {
-        before = status(&url, &job).units_done;
-        before >= total / 4
+    let s = adaptive_job_survives_a_kill(&settings, "16", |s| {
+        (s.units_done >= total / 4).then_some(s.units_done)
     });
-    std::thread::sleep(Duration::from_millis(400));
-    c.proc.sigkill();
-    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
-    let restored = status(&url, &job);
-    assert!(restored.units_done >= before && restored.units_done < total);
-    let s = wait_done(&url, &job, Duration::from_secs(180));
-    assert_eq!(
-        (s.units_done, s.units_total, s.results_duplicate),
-        (total, total, 0)
-    );
+    assert_eq!(s.units_total, total);
     // Units of rounds no block needed are done without a result.
     assert!(s.units_accepted < total, "{}", s.units_accepted);
-    assert!(c.proc.log().contains("job restored"));
-    assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 
 /// The error-optimal mode (`--adaptive-mode image`) on the farm: each
@@ -1054,17 +1095,13 @@ fn image_mode_adaptive_jobs_on_one_and_three_workers_match_tessera_render() {
     );
     assert!(local_error <= 0.006, "{json}");
     for (workers, tile) in [(1, "64"), (3, "32")] {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let c = start_coordinator(dir.path(), "127.0.0.1:0", &[]);
-        let _w: Vec<Proc> = (0..workers)
-            .map(|i| start_worker(dir.path(), &c.url(), &format!("w{i}")))
-            .collect();
-        let mut args = settings.to_vec();
-        args.extend(["--tile-size", tile]);
-        let job = submit(&c.url(), &scene, &args);
-        let s = wait_done(&c.url(), &job, Duration::from_secs(300));
-        assert_eq!(s.state, pb::JobState::Done as i32);
-        assert_frames_match_render(dir.path(), &c.url(), &job, &scene, 0..=0, &settings);
+        let FarmJob {
+            dir: _dir,
+            c,
+            _workers,
+            job,
+            status: s,
+        } = farm_job(workers, tile, &scene, &settings);
         assert_eq!(
             (s.samples_done, s.samples_total),
             (local_samples, local_samples),
@@ -1085,15 +1122,7 @@ fn image_mode_adaptive_jobs_on_one_and_three_workers_match_tessera_render() {
             "{out}"
         );
         if workers == 3 {
-            let refused = tessera(
-                &["submit", scene.to_str().expect("path"), "--tile-size", "48"]
-                    .into_iter()
-                    .chain(settings)
-                    .collect::<Vec<_>>(),
-                &c.url(),
-            );
-            assert!(!refused.status.success());
-            let err = String::from_utf8_lossy(&refused.stderr);
+            let err = refused_submit(&c.url(), &scene, "48", &settings);
             assert!(
                 err.contains("tile_size must be a multiple of 32 for the image adaptive mode"),
                 "{err}"
@@ -1109,14 +1138,6 @@ fn image_mode_adaptive_jobs_on_one_and_three_workers_match_tessera_render() {
 #[test]
 fn a_coordinator_killed_mid_image_mode_job_replays_its_rounds() {
     let _g = serial();
-    let dir = tempfile::tempdir().expect("tempdir");
-    let mut c = start_coordinator(dir.path(), "127.0.0.1:0", &["--heartbeat-interval", "0.3"]);
-    let addr = c.addr.clone();
-    let url = c.url();
-    let _w: Vec<Proc> = (0..2)
-        .map(|i| start_worker(dir.path(), &url, &format!("w{i}")))
-        .collect();
-    let scene = repo("examples/animation.toml");
     let settings = [
         "--width",
         "192",
@@ -1131,29 +1152,10 @@ fn a_coordinator_killed_mid_image_mode_job_replays_its_rounds() {
         "--max-samples",
         "64",
     ];
-    let mut args = settings.to_vec();
-    args.extend(["--frames", "1..3", "--tile-size", "32"]);
-    let job = submit(&url, &scene, &args);
-    let total = status(&url, &job).units_total;
-    let mut before = 0;
-    wait_for("some rounds", Duration::from_secs(60), || {
-        let s = status(&url, &job);
-        before = s.units_accepted;
-        // Past round 0 of some frame: a decided round to replay.
-        before > 3 * 24
+    // Past round 0 of every frame (3 x 24 tiles): a decided round to replay.
+    adaptive_job_survives_a_kill(&settings, "32", |s| {
+        (s.units_accepted > 3 * 24).then_some(s.units_accepted)
     });
-    std::thread::sleep(Duration::from_millis(300));
-    c.proc.sigkill();
-    let c = start_coordinator(dir.path(), &addr, &["--heartbeat-interval", "0.3"]);
-    let restored = status(&url, &job);
-    assert!(restored.units_done >= before && restored.units_done < total);
-    let s = wait_done(&url, &job, Duration::from_secs(180));
-    assert_eq!(
-        (s.units_done, s.units_total, s.results_duplicate),
-        (total, total, 0)
-    );
-    assert!(c.proc.log().contains("job restored"));
-    assert_frames_match_render(dir.path(), &url, &job, &scene, 1..=3, &settings);
 }
 
 /// A result for unit `u` from session `id`, as a worker would send it:
