@@ -21,8 +21,8 @@ use crate::light::Light;
 use crate::math::{Ray, Real, Vector3};
 use crate::render::step::{self, Effects, Surface};
 use crate::sampling::{
-    DIM_LENS, DIM_TIME, ROOT_KEY, child_key, node_dim, pixel_seed, sample_offset, sin_cos_turns,
-    strata_side, uniform, uniform_pair,
+    DIM_LENS, DIM_TIME, ROOT_KEY, Strata, child_key, node_dim, pixel_seed, sample_offset,
+    sin_cos_turns, strata_side, uniform, uniform_pair,
 };
 use crate::world::World;
 
@@ -59,9 +59,9 @@ pub struct Sampled<'a, R: Real> {
     pub index: u32,
     /// Fraction of the shutter, in [0, 1).
     pub tau: R,
-    /// The side of the grid [`Effects::u2`]'s pairs are stratified over
-    /// (`sampling::strata_side`; 0: none).
-    pub side: u32,
+    /// The grid [`Effects::u2`]'s pairs are stratified over
+    /// (`sampling::strata_side`).
+    pub strata: Strata,
 }
 
 impl<R: Real> Sampled<'_, R> {
@@ -136,7 +136,7 @@ impl<'d, R: Real> Effects<R> for Sampled<'d, R> {
     }
     #[inline]
     fn u2(&self, key: u32, slot: u32) -> (f32, f32) {
-        uniform_pair(self.seed, self.index, self.side, node_dim(key, slot))
+        uniform_pair(self.seed, self.index, self.strata, node_dim(key, slot))
     }
     #[inline(always)]
     fn child(key: u32, which: u32) -> u32 {
@@ -158,12 +158,13 @@ pub fn render_tile<R: Real>(
 ) -> Film {
     let mut film = Film::new(tile);
     let mut rays = RayCounts::default();
+    let strata = Strata::new(strata_side(world.settings.sampler, world.settings.samples));
     for y in tile.y..tile.y + tile.height {
         for x in tile.x..tile.x + tile.width {
             let i = ((y - tile.y) * tile.width + (x - tile.x)) as usize;
             let seed = pixel_seed(x, y, frame);
             for index in samples.start..samples.end {
-                let c = sample_colour(world, dist, x, y, seed, index, &mut rays);
+                let c = sample_colour(world, dist, strata, (x, y), seed, index, &mut rays);
                 film.add_sample::<R>(i, [c.x(), c.y(), c.z()]);
             }
         }
@@ -172,12 +173,13 @@ pub fn render_tile<R: Real>(
     film
 }
 
-/// The colour of sample `index` of pixel (x, y).
+/// The colour of sample `index` of pixel (x, y); `strata` are the
+/// render's (`strata_side` of its sampler and count).
 pub fn sample_colour<R: Real>(
     world: &World<R>,
     dist: &Distributed<R>,
-    x: u32,
-    y: u32,
+    strata: Strata,
+    (x, y): (u32, u32),
     seed: u32,
     index: u32,
     rays: &mut RayCounts,
@@ -195,7 +197,7 @@ pub fn sample_colour<R: Real>(
         } else {
             R::ZERO
         },
-        side: strata_side(s.sampler, s.samples),
+        strata,
     };
     let ray = camera_ray(world, dist, sx, sy, &sample);
     rays.primary += 1;
