@@ -4,7 +4,7 @@
 # Writes everything under $OUT (or bench-out/device).
 #
 #   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, farm-image, local-gpu,
-#                                          gpu-tests, against-old, cpu-worker, farm-gpu, multi-gpu, path
+#                                          gpu-tests, against-old, cpu-worker, farm-gpu, multi-gpu, path, image-rounds
 #
 # `cpu-worker` (issue 15, ~2 min): the 1-worker pairs of `bench farm
 # --repeat 5` between whole `tessera render --threads 2` processes, to tell
@@ -19,6 +19,15 @@
 # $ADAPTIVE_REFERENCE spp, default 4096), uniform and adaptive on
 # $ADAPTIVE_BACKEND (default both); $ADAPTIVE_ARGS goes to the command
 # (`--integrator path`: the path-traced case).
+#
+# `image-rounds` (issue 36; not in the default; ~4 min): the error-optimal
+# mode's CPU rounds against uniform sampling, one `tessera render` at a
+# time on all cores, for each binary in $IMAGE_ROUNDS_BINS (default
+# "tessera"; e.g. "tessera tessera-base" for a before/after, interleaved,
+# twice each): per case in $IMAGE_ROUNDS_CASES ("scene:target[:args]";
+# default the H200 tables' distributed and quad scenes, Whitted and path,
+# at uniform 1024 spp's RMSE) uniform 1024 spp and `--adaptive-mode image`
+# at that target, 16..4096 spp, $IMAGE_ROUNDS_SIZE (default 320x240).
 #
 # `local-gpu` (issue 15; ~2 min): a fresh process's small GPU render with
 # the pipeline cache off, empty and warm, against the CPU and against a
@@ -194,6 +203,29 @@ timeout "${LAUNCH_PATH_TIMEOUT:-300}" "$T" bench launch --integrator path --back
   --out /tmp/bench-lp --cache /tmp/bench-cache > "$OUT/launch-path-summary.txt" 2> "$OUT/launch-path-log.txt"
 echo "launch-path exit $?" >> "$OUT/launch-path-summary.txt"
 cp /tmp/bench-lp/launch.csv "$OUT/launch-path.csv" 2>/dev/null
+fi
+if has image-rounds; then
+size=${IMAGE_ROUNDS_SIZE:-320x240}
+cases=${IMAGE_ROUNDS_CASES:-"distributed:1.126e-3 resolution-quad:4.949e-4 distributed:3.793e-4:--integrator=path resolution-quad:8.039e-4:--integrator=path"}
+{
+  echo "== machine"; nproc; grep -m1 'model name' /proc/cpuinfo
+  for c in $cases; do
+    IFS=: read -r scene target args <<< "$c"
+    args=${args//=/ }
+    for b in ${IMAGE_ROUNDS_BINS:-tessera}; do
+      echo "== $scene $args $b uniform 1024 spp"
+      .gpu/$b render "examples/$scene.toml" --width "${size%x*}" --height "${size#*x}" --samples 1024 \
+        --sampler progressive $args -o /tmp/ir-u.png 2>&1 | grep -E 'cpu:'
+    done
+    for rep in 1 2; do
+      for b in ${IMAGE_ROUNDS_BINS:-tessera}; do
+        echo "== $scene $args $b image mode, target $target (run $rep)"
+        .gpu/$b render "examples/$scene.toml" --width "${size%x*}" --height "${size#*x}" --target-error "$target" \
+          --adaptive-mode image --min-samples 16 --max-samples 4096 $args -o "/tmp/ir-$b.png" 2>&1 | grep -E 'cpu:|^adaptive'
+      done
+    done
+  done
+} > "$OUT/image-rounds.txt" 2>&1
 fi
 if has path-bench; then
 mkdir -p /tmp/mi && python3 -c 'import tarfile, sys; tarfile.open(sys.argv[1]).extractall(sys.argv[2])' .gpu/mitsuba.tar.xz /tmp/mi

@@ -629,6 +629,48 @@ fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
     assert!(got.counts.contains(&0) && got.counts.contains(&32));
 }
 
+/// A block given many samples in one pass is rendered in pieces of its
+/// range on several threads (`render/cpu/adaptive.rs`, `PIECE`): its
+/// sums, squares, rays and booked cost are those of one-sample rounds.
+#[test]
+fn a_long_range_rendered_in_pieces_equals_its_samples_one_by_one() {
+    use tracer_core::adaptive::optimal::Costs;
+    use tracer_core::render::adaptive::{render_blocks, render_round};
+    let desc = scene(NOISY);
+    let a = settings(0.01, 4, 200);
+    let frame = prepared(&desc, &a, 0);
+    let rect = Rect::full(desc.render.width, desc.render.height);
+    let n = BlockMask::none(rect).active.len();
+    // A lone block (a run of 64 pixels: pieces of 64 samples) over 150
+    // samples, its neighbour over 3 and one over 64..200.
+    let from = [0, 0, 0, 0, 64, 0];
+    let to = [150, 0, 3, 0, 200, 0];
+    assert_eq!(n, from.len());
+    let r = cpu(3);
+    let mut got = Film::with_squares(rect);
+    let mut got_costs = Costs::new(rect);
+    render_blocks(&r, &frame, 0, &from, &to, &mut got, &mut got_costs, &|_| {}).unwrap();
+    let mut want = Film::with_squares(rect);
+    let mut want_costs = Costs::new(rect);
+    for i in 0..n {
+        for k in from[i]..to[i] {
+            let mut mask = BlockMask::none(rect);
+            mask.active[i] = true;
+            let f =
+                render_round(&r, &frame, 0, &mask, SampleRange::new(k, k + 1), &|_| {}).unwrap();
+            want.merge(&f).unwrap();
+            want_costs.book_runs(rect, &f.runs);
+        }
+    }
+    assert_eq!(got.counts, want.counts);
+    assert_eq!(got.sums, want.sums);
+    assert_eq!(got.squares, want.squares);
+    assert_eq!(got.rays, want.rays);
+    assert_eq!(got_costs.rays, want_costs.rays);
+    assert_eq!(got_costs.pixel_samples, want_costs.pixel_samples);
+    assert!(got.counts.contains(&150) && got.counts.contains(&136));
+}
+
 /// Runs of blocks (the costs the error-optimal mode books) never cross a
 /// multiple of `RUN_ALIGN` pixels of the image's columns, so a farm's
 /// tiles on that grid render the same runs, with the same rays, as the

@@ -1,6 +1,7 @@
 //! A round of adaptive sampling on the CPU: the active blocks (or every
 //! block over its own range, [`render_blocks`]), in runs of up to
-//! four along a row, are rendered one sample index at a time by the ordinary tile renderer
+//! four along a row (a run's range cut into pieces of [`PIECE`]
+//! pixel-samples, each a task of its own), are rendered one sample index at a time by the ordinary tile renderer
 //! ([`super::render_tile`], so the stream, recursive and
 //! distributed paths all apply unchanged), and each single-sample film's
 //! fixed-point values are added to the block's sums and, squared, to its
@@ -68,13 +69,29 @@ fn blocks_world<R: Real>(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Film {
     let blocks = runs(rect, ranges);
+    // A run's samples in pieces of about PIECE pixel-samples, each its own
+    // task: the error-optimal mode gives a few blocks hundreds of samples
+    // in a round where most get a few, and a run rendered whole would
+    // leave the other threads idle at the round's end. Sums are integers,
+    // so a run's pieces merge into what the run renders whole, bit for bit.
+    let pieces: Vec<(usize, SampleRange)> = blocks
+        .iter()
+        .enumerate()
+        .flat_map(|(i, &(b, samples))| {
+            let step = (PIECE / b.area()).max(1) as u32;
+            (samples.start..samples.end)
+                .step_by(step as usize)
+                .map(move |k| (i, SampleRange::new(k, (k + step).min(samples.end))))
+        })
+        .collect();
     let films: Vec<Film> = renderer.pool().install(|| {
-        blocks
+        pieces
             .par_iter()
-            // One run a piece, as the renderer's tiles (render/cpu): no
-            // thread waits on another's last few runs.
+            // One piece a task, as the renderer's tiles (render/cpu): no
+            // thread waits on another's last few pieces.
             .with_max_len(1)
-            .map(|&(b, samples)| {
+            .map(|&(i, samples)| {
+                let b = blocks[i].0;
                 let mut acc = Film::with_squares(b);
                 for k in samples.start..samples.end {
                     add_single(
@@ -88,21 +105,26 @@ fn blocks_world<R: Real>(
             .collect()
     });
     let mut out = Film::with_squares(rect);
-    for f in &films {
+    let mut rays = vec![0u64; blocks.len()];
+    for (f, &(i, _)) in films.iter().zip(&pieces) {
         out.merge(f)
             .expect("blocks lie inside their rect and sums cannot overflow");
+        rays[i] += f.rays.total();
     }
-    out.runs = films
+    out.runs = blocks
         .iter()
-        .zip(&blocks)
-        .map(|(f, (_, s))| RunCost {
-            rect: f.rect,
-            rays: f.rays.total(),
+        .zip(rays)
+        .map(|(&(rect, s), rays)| RunCost {
+            rect,
+            rays,
             samples: s.len(),
         })
         .collect();
     out
 }
+
+/// Pixel-samples of a piece of a run (16 samples of a run of four blocks).
+const PIECE: usize = 16 * (RUN_BLOCKS * BLOCK * BLOCK) as usize;
 
 /// Most blocks rendered together: 4 blocks of 8x8 are 256 pixels, one
 /// batch of the stream renderer (a lone block would be a quarter batch).
