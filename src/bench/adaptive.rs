@@ -28,11 +28,15 @@ use super::plot::{LinePlot, Series};
 use super::{Bench, Run, compare};
 
 /// The suite's scenes: `--adaptive-scenes` names and files.
-const SCENES: [(&str, &str); 3] = [
+const SCENES: [(&str, &str); 4] = [
     ("resolution", "resolution.toml"),
     ("distributed", "distributed.toml"),
     // Soft shadows of one quad light: the 2-core VM's case of issue 36.
     ("quad", "resolution-quad.toml"),
+    // The README's picture (gem spheres, glass, a mirror floor under point
+    // lights): noise only on edges and in reflections, issue 36's
+    // gallery-like case.
+    ("gallery", "showcase.toml"),
 ];
 
 /// First sample index of the oracle's statistics (independent of the

@@ -101,7 +101,8 @@ pub struct BenchArgs {
     pub adaptive_reference: u32,
     /// Adaptive suite: its scenes, resolution (the thesis's) and/or
     /// distributed (issue 16's effects) and/or quad (resolution-quad.toml: soft shadows)
-    #[arg(long, value_name = "SCENE,...", value_delimiter = ',', default_value = "resolution,distributed", value_parser = ["resolution", "distributed", "quad"])]
+    /// and/or gallery (showcase.toml: edges and reflections under point lights)
+    #[arg(long, value_name = "SCENE,...", value_delimiter = ',', default_value = "resolution,distributed", value_parser = ["resolution", "distributed", "quad", "gallery"])]
     pub adaptive_scenes: Vec<String>,
     /// Path suite: image size, WIDTHxHEIGHT [default: 128x128; with --quick 32x32]
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
