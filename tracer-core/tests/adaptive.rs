@@ -585,37 +585,31 @@ fn the_rmse_mode_stops_at_its_target_and_its_estimate_is_honest() {
 /// `render_blocks` takes every block over its own range in one parallel
 /// pass: the film and the costs booked (rays per run, so the error-optimal
 /// mode's allocation) are those of one round per distinct range, merged.
-#[test]
-fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
+/// Renders NOISY's blocks over their own ranges `from[i]..to[i]` in one
+/// pass (`render_blocks`, on `threads`) and again as rounds of one block
+/// over `step` samples at a time (`render_round`), and checks that both
+/// gave the same film (sums, squares, counts, rays) and booked the same
+/// costs; returns the one pass's film.
+fn blocks_against_rounds(max: u32, from: &[u32], to: &[u32], threads: usize, step: u32) -> Film {
     use tracer_core::adaptive::optimal::Costs;
     use tracer_core::render::adaptive::{render_blocks, render_round};
     let desc = scene(NOISY);
-    let a = settings(0.01, 4, 40);
-    let frame = prepared(&desc, &a, 0);
+    let frame = prepared(&desc, &settings(0.01, 4, max), 0);
     let rect = Rect::full(desc.render.width, desc.render.height);
     let n = BlockMask::none(rect).active.len();
-    assert_eq!(n, 3 * 2);
-    let from = [0, 0, 3, 8, 17, 5];
-    let to = [0, 4, 9, 40, 18, 9];
-    let r = cpu(2);
+    assert_eq!((n, from.len(), to.len()), (3 * 2, n, n));
+    let r = cpu(threads);
     let mut got = Film::with_squares(rect);
     let mut got_costs = Costs::new(rect);
-    render_blocks(&r, &frame, 0, &from, &to, &mut got, &mut got_costs, &|_| {}).unwrap();
+    render_blocks(&r, &frame, 0, from, to, &mut got, &mut got_costs, &|_| {}).unwrap();
     let mut want = Film::with_squares(rect);
     let mut want_costs = Costs::new(rect);
     for i in 0..n {
-        if to[i] > from[i] {
+        for k in (from[i]..to[i]).step_by(step as usize) {
             let mut mask = BlockMask::none(rect);
             mask.active[i] = true;
-            let f = render_round(
-                &r,
-                &frame,
-                0,
-                &mask,
-                SampleRange::new(from[i], to[i]),
-                &|_| {},
-            )
-            .unwrap();
+            let samples = SampleRange::new(k, k.saturating_add(step).min(to[i]));
+            let f = render_round(&r, &frame, 0, &mask, samples, &|_| {}).unwrap();
             want.merge(&f).unwrap();
             want_costs.book_runs(rect, &f.runs);
         }
@@ -626,6 +620,13 @@ fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
     assert_eq!(got.rays, want.rays);
     assert_eq!(got_costs.rays, want_costs.rays);
     assert_eq!(got_costs.pixel_samples, want_costs.pixel_samples);
+    got
+}
+
+#[test]
+fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
+    let (from, to) = ([0, 0, 3, 8, 17, 5], [0, 4, 9, 40, 18, 9]);
+    let got = blocks_against_rounds(40, &from, &to, 2, u32::MAX);
     assert!(got.counts.contains(&0) && got.counts.contains(&32));
 }
 
@@ -634,40 +635,10 @@ fn blocks_over_their_own_ranges_in_one_pass_equal_one_round_per_range() {
 /// sums, squares, rays and booked cost are those of one-sample rounds.
 #[test]
 fn a_long_range_rendered_in_pieces_equals_its_samples_one_by_one() {
-    use tracer_core::adaptive::optimal::Costs;
-    use tracer_core::render::adaptive::{render_blocks, render_round};
-    let desc = scene(NOISY);
-    let a = settings(0.01, 4, 200);
-    let frame = prepared(&desc, &a, 0);
-    let rect = Rect::full(desc.render.width, desc.render.height);
-    let n = BlockMask::none(rect).active.len();
-    // A lone block (a run of 64 pixels: pieces of 64 samples) over 150
-    // samples, its neighbour over 3 and one over 64..200.
-    let from = [0, 0, 0, 0, 64, 0];
-    let to = [150, 0, 3, 0, 200, 0];
-    assert_eq!(n, from.len());
-    let r = cpu(3);
-    let mut got = Film::with_squares(rect);
-    let mut got_costs = Costs::new(rect);
-    render_blocks(&r, &frame, 0, &from, &to, &mut got, &mut got_costs, &|_| {}).unwrap();
-    let mut want = Film::with_squares(rect);
-    let mut want_costs = Costs::new(rect);
-    for i in 0..n {
-        for k in from[i]..to[i] {
-            let mut mask = BlockMask::none(rect);
-            mask.active[i] = true;
-            let f =
-                render_round(&r, &frame, 0, &mask, SampleRange::new(k, k + 1), &|_| {}).unwrap();
-            want.merge(&f).unwrap();
-            want_costs.book_runs(rect, &f.runs);
-        }
-    }
-    assert_eq!(got.counts, want.counts);
-    assert_eq!(got.sums, want.sums);
-    assert_eq!(got.squares, want.squares);
-    assert_eq!(got.rays, want.rays);
-    assert_eq!(got_costs.rays, want_costs.rays);
-    assert_eq!(got_costs.pixel_samples, want_costs.pixel_samples);
+    // Lone blocks (runs of 64 pixels: pieces of 64 samples): block 0 over
+    // 150 samples, block 2 over 3, block 4 over 64..200.
+    let (from, to) = ([0, 0, 0, 0, 64, 0], [150, 0, 3, 0, 200, 0]);
+    let got = blocks_against_rounds(200, &from, &to, 3, 1);
     assert!(got.counts.contains(&150) && got.counts.contains(&136));
 }
 
