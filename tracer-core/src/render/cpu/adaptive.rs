@@ -69,16 +69,23 @@ fn blocks_world<R: Real>(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Film {
     let blocks = runs(rect, ranges);
-    // A run's samples in pieces of about PIECE pixel-samples, each its own
-    // task: the error-optimal mode gives a few blocks hundreds of samples
-    // in a round where most get a few, and a run rendered whole would
-    // leave the other threads idle at the round's end. Sums are integers,
-    // so a run's pieces merge into what the run renders whole, bit for bit.
+    // A run's samples in pieces of at most PIECE pixel-samples (fewer in
+    // a small round: about 8 pieces a thread), each its own task: the
+    // error-optimal mode gives a few blocks hundreds of samples in a round
+    // where most get a few, and a run rendered whole would leave the other
+    // threads idle at the round's end. Sums are integers, so a run's
+    // pieces merge into what the run renders whole, bit for bit, whatever
+    // the pieces.
+    let work: usize = blocks
+        .iter()
+        .map(|(b, s)| b.area() * s.len() as usize)
+        .sum();
+    let piece = (work / (8 * renderer.threads())).clamp(1, PIECE);
     let pieces: Vec<(usize, SampleRange)> = blocks
         .iter()
         .enumerate()
         .flat_map(|(i, &(b, samples))| {
-            let step = (PIECE / b.area()).max(1) as u32;
+            let step = (piece / b.area()).max(1) as u32;
             (samples.start..samples.end)
                 .step_by(step as usize)
                 .map(move |k| (i, SampleRange::new(k, (k + step).min(samples.end))))
@@ -123,7 +130,7 @@ fn blocks_world<R: Real>(
     out
 }
 
-/// Pixel-samples of a piece of a run (16 samples of a run of four blocks).
+/// Most pixel-samples of a piece of a run (16 samples of a run of four blocks).
 const PIECE: usize = 16 * (RUN_BLOCKS * BLOCK * BLOCK) as usize;
 
 /// Most blocks rendered together: 4 blocks of 8x8 are 256 pixels, one
