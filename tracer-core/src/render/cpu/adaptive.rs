@@ -1,7 +1,7 @@
 //! A round of adaptive sampling on the CPU: the active blocks (or every
 //! block over its own range, [`render_blocks`]), in runs of up to
-//! four along a row (a run's range cut into pieces of [`PIECE`]
-//! pixel-samples, each a task of its own), are rendered one sample index at a time by the ordinary tile renderer
+//! four along a row (a run's range cut into pieces of at most
+//! [`PIECE`] pixel-samples, each a task of its own), are rendered one sample index at a time by the ordinary tile renderer
 //! ([`super::render_tile`], so the stream, recursive and
 //! distributed paths all apply unchanged), and each single-sample film's
 //! fixed-point values are added to the block's sums and, squared, to its
