@@ -161,7 +161,7 @@ pub fn permute(i: u32, n: Divisor, seed: u32) -> u32 {
 
 /// The grid a render's pairs are stratified over ([`uniform_pair`]): its
 /// side (`strata_side`) and its cell count as [`Divisor`]s, set up once a
-/// render; `None`: no strata.
+/// tile rather than at every pair; `None`: no strata.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Strata(Option<(Divisor, Divisor)>);
 
