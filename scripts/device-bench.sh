@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The benchmark run on the NVIDIA benchmark machine (see ../shared/GPU.md):
 # prebuilt binaries in .gpu/ (tessera, result_load, libvulkan.so.1), no cargo.
-# Writes everything under $OUT (or bench-out/device).
+# Writes everything under $OUT (or bench-out/device). $TESSERA_BIN names
+# another binary of .gpu/ to run (e.g. tessera-base, a before/after).
 #
 #   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, farm-image, local-gpu,
 #                                          gpu-tests, against-old, cpu-worker, farm-gpu, multi-gpu, path, image-rounds
@@ -119,7 +120,7 @@ for x in .gpu/*.xz; do
   case $x in *.tar.xz) continue ;; esac
   [ -e "${x%.xz}" ] || { python3 -c 'import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.argv[1]), open(sys.argv[2], "wb"))' "$x" "${x%.xz}" && chmod +x "${x%.xz}"; }
 done
-T=$PWD/.gpu/tessera
+T=$PWD/.gpu/${TESSERA_BIN:-tessera}
 # The tests' shared assets: .gpu/scenes is a copy of ../shared/scenes.
 [ -d .gpu/scenes ] && export TESSERA_SHARED=$PWD/.gpu
 if has bench; then

@@ -2439,6 +2439,99 @@ fn gpu_rmse_rounds_keep_the_film_on_the_gpu_and_estimate_as_the_host() {
 }
 
 #[test]
+fn gpu_rmse_rounds_decided_on_the_gpu_take_the_hosts_decisions() {
+    // The error-optimal mode's rounds chained on the GPU (allocate.wgsl
+    // deciding between them, nothing read back but a log a round) against
+    // the same rounds decided on the host (`RmseSchedule`, f64, from the
+    // read-back film of each round's ranged render): the same counts, the
+    // same film, and each round's report what the host's says (RMSE and
+    // target within f32 summing). Also in slices and submissions far
+    // smaller than a round, so that a round's indirect dispatches span
+    // several parameter batches.
+    use tracer_core::adaptive::optimal::{
+        Costs, RmseSchedule, RmseSettings, block_stats, image_mean,
+    };
+    use tracer_core::render::adaptive;
+    let Some(g) = gpu() else {
+        return;
+    };
+    let shared = gpu_renderer().expect("the adapter opened once already");
+    let small = tracer_core::render::Renderer::Gpu(Box::new(
+        GpuRenderer::new(
+            Some(&g.adapter().index.to_string()),
+            GpuOptions {
+                workgroup: (16, 4),
+                dispatch_pixel_samples: 64 * 4 * 16,
+                submit_pixel_samples: 64 * 4 * 16 * 4,
+                ..GpuOptions::default()
+            },
+        )
+        .unwrap(),
+    ));
+    let desc = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();
+    for (r, target, relative) in [
+        (shared, 0.01, 0.0),
+        (shared, 0.0, 0.02),
+        (&small, 0.006, 0.0),
+    ] {
+        let o = RmseSettings {
+            target_rmse: target,
+            relative_rmse: relative,
+            min_samples: 4,
+            max_samples: 64,
+        };
+        let base = RenderSettings {
+            width: 61,
+            height: 43,
+            ..desc.render
+        };
+        let prepared =
+            PreparedFrame::build(&desc, &o.render_settings(base), 0, Precision::F32).unwrap();
+        let mut reports = vec![];
+        let film =
+            adaptive::render_rmse(r, &prepared, 0, &o, &|_| {}, &mut |rep| reports.push(*rep))
+                .unwrap_or_else(|e| panic!("GPU error-optimal render: {e}"));
+        let rect = film.rect;
+        let mut costs = Costs::new(rect);
+        let mut schedule = RmseSchedule::new(o, costs.rays.len());
+        let mut host = Film::with_squares(rect);
+        let mut steps = vec![];
+        while let Some((from, to)) = schedule.pending() {
+            let (from, to) = (from.to_vec(), to.to_vec());
+            adaptive::render_blocks(r, &prepared, 0, &from, &to, &mut host, &mut costs, &|_| {})
+                .unwrap();
+            // The GPU measures no cost per block: every block costs 1.
+            let stats = block_stats(&host, rect, None);
+            steps.push(schedule.after_round(&stats, image_mean(&host)));
+        }
+        let label = format!("target {target}, relative {relative}");
+        assert_eq!(film.counts, host.counts, "{label}: each block's count");
+        assert_eq!(film.sums, host.sums, "{label}: sums");
+        assert_eq!(film.squares, host.squares, "{label}: squares");
+        assert_eq!(film.rays, host.rays, "{label}: ray counts");
+        assert_eq!(reports.len(), steps.len(), "{label}: rounds");
+        assert!(steps.len() >= 3, "{label}: {steps:?}");
+        for (got, want) in reports.iter().zip(&steps) {
+            assert_eq!(
+                (got.round, got.active_blocks, got.pixel_samples),
+                (want.round as usize, want.active_blocks, want.pixel_samples),
+                "{label}"
+            );
+            for (g, w) in [
+                (got.estimated_rmse, want.estimated_rmse),
+                (got.target_rmse, want.target_rmse),
+            ] {
+                assert!(
+                    (g - w).abs() <= 1e-4 * w,
+                    "{label}: round {}: {g} against the host's {w}",
+                    got.round
+                );
+            }
+        }
+    }
+}
+
+#[test]
 fn gpu_rounds_decided_on_the_gpu_match_the_hosts_decisions() {
     // The resident render (converge.wgsl between rounds, no read-back)
     // against rounds decided on the host from the read-back film (f64):

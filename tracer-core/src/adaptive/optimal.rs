@@ -323,6 +323,10 @@ impl RmseSchedule {
         }
     }
 
+    pub fn settings(&self) -> &RmseSettings {
+        &self.settings
+    }
+
     /// The pending round's index (the rounds taken so far).
     pub fn round(&self) -> u32 {
         self.round

@@ -7,7 +7,7 @@
 //! [`crate::adaptive`]'s.
 
 use crate::adaptive::optimal::{
-    BlockStats, Costs, RmseSchedule, RmseSettings, block_stats, image_mean,
+    BlockStats, Costs, RmseSchedule, RmseSettings, RmseStep, block_stats, image_mean,
 };
 use crate::adaptive::{AdaptiveSettings, BlockMask, Summary, next_active, summarize};
 use crate::film::{Film, Rect, SampleRange};
@@ -187,11 +187,21 @@ impl<'a> RmseRounds<'a> {
             .map(|(from, to)| from.iter().zip(to).map(|(&a, &b)| [a, b]).collect())
     }
 
+    pub fn settings(&self) -> &RmseSettings {
+        self.schedule.settings()
+    }
+
     /// After the pending round: the blocks' statistics (at their new
     /// counts) and the image's mean decide the next one, and the round is
     /// reported.
     pub fn after_round(&mut self, stats: &[BlockStats], image_mean: f64) {
         let step = self.schedule.after_round(stats, image_mean);
+        self.report(&step);
+    }
+
+    /// Reports a round decided elsewhere (on the GPU: allocate.wgsl), timed
+    /// from the last report.
+    pub fn report(&mut self, step: &RmseStep) {
         let now = std::time::Instant::now();
         (self.on_round)(&RmseRound {
             round: step.round as usize,

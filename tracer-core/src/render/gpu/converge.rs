@@ -10,6 +10,14 @@
 //! of each variance exactly, in 128-bit integers, then f32 where the host
 //! uses f64, so only a block whose error lies within f32 rounding of the
 //! target can go the other way.
+//!
+//! The error-optimal mode chains its rounds the same way
+//! ([`GpuRenderer::run_rmse_rounds`]): after each round's listed
+//! dispatches, converge.wgsl (ranged) writes each block's statistics and
+//! allocate.wgsl takes the host's decision (`RmseSchedule::after_round`)
+//! from them, writing the next round's ranges, items and indirect
+//! dispatch arguments; the host reads 32 bytes a round ([`RoundLog`]),
+//! one round behind, for the reports and to stop queueing.
 
 use std::cell::RefCell;
 use std::time::Instant;
@@ -17,9 +25,12 @@ use std::time::Instant;
 use wgpu::util::DeviceExt as _;
 
 use super::grid::Grid;
-use super::layout::{ConvergeParams, GpuBlockStats};
-use super::{GpuError, GpuRenderer, entire, sized, wgsl};
-use crate::adaptive::optimal::BlockStats;
+use super::layout::{AllocateParams, ConvergeParams, DispatchParams, GpuBlockStats, RoundLog};
+use super::plan::{LISTED_CHUNK, dispatch_work, listed_groups, listed_slice, slice_items};
+use super::{
+    GpuError, GpuOptions, GpuRenderer, Outputs, PARAMS_SLOTS, PARAMS_STRIDE, entire, sized, wgsl,
+};
+use crate::adaptive::optimal::RmseStep;
 use crate::adaptive::{AdaptiveSettings, BLOCK, BlockMask, BlockStatus, summarize_blocks};
 use crate::film::{Rect, SampleRange};
 use crate::render::adaptive::{RmseRounds, RoundReport};
@@ -33,32 +44,19 @@ pub(super) struct Resident<'a> {
 }
 
 /// What an error-optimal render on the GPU is given: every block of the
-/// frame and the mode's decisions, taken on the host from the blocks'
-/// statistics after each round.
+/// frame and the mode's rounds (their settings, the first round's ranges,
+/// and who is told of each round).
 pub(super) struct RmseResident<'a> {
     pub mask: BlockMask,
     pub rounds: RefCell<RmseRounds<'a>>,
 }
 
-/// An error-optimal render's rounds in flight.
-pub(super) struct RmseChain<'a> {
-    resident: &'a RmseResident<'a>,
-    group: wgpu::BindGroup,
-    _params: wgpu::Buffer,
-    stats: wgpu::Buffer,
-    read: wgpu::Buffer,
-    /// The round's range of every block, in the mask's order, and the
-    /// convergence kernel's copy (`count_ranges`).
-    counts: Vec<[u32; 2]>,
-    ranges: wgpu::Buffer,
-    /// The latest statistics: each block's samples.
-    pub last: Vec<GpuBlockStats>,
-}
-
-/// The convergence kernel, made on first use.
+/// The convergence and allocation kernels, made on first use.
 pub(super) struct Converger {
     layout: wgpu::BindGroupLayout,
     pipeline: wgpu::ComputePipeline,
+    allocate_layout: wgpu::BindGroupLayout,
+    allocate: wgpu::ComputePipeline,
 }
 
 /// One render's rounds in flight.
@@ -86,22 +84,38 @@ impl GpuRenderer {
             .lock()
             .map_err(|_| GpuError::Device("convergence kernel cache poisoned".into()))?;
         if guard.is_none() {
-            let (layout, pipeline_layout, module) = self.compute_kernel(
+            let kernel = |label, layout: &wgsl::Layout, module, entry| {
+                let (layout, pipeline_layout, module) = self.compute_kernel(label, layout, module);
+                let pipeline =
+                    self.device
+                        .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                            label: Some(label),
+                            layout: Some(&pipeline_layout),
+                            module: &module,
+                            entry_point: Some(entry),
+                            compilation_options: Default::default(),
+                            cache: self.pipeline_cache(),
+                        });
+                (layout, pipeline)
+            };
+            let (layout, pipeline) = kernel(
                 "tessera converge",
                 &wgsl::CONVERGE,
                 wgsl::converge_module(wgsl::FILES),
+                "converge",
             );
-            let pipeline = self
-                .device
-                .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some("tessera converge"),
-                    layout: Some(&pipeline_layout),
-                    module: &module,
-                    entry_point: Some("converge"),
-                    compilation_options: Default::default(),
-                    cache: self.pipeline_cache(),
-                });
-            *guard = Some(Converger { layout, pipeline });
+            let (allocate_layout, allocate) = kernel(
+                "tessera allocate",
+                &wgsl::ALLOCATE,
+                wgsl::allocate_module(wgsl::FILES),
+                "allocate",
+            );
+            *guard = Some(Converger {
+                layout,
+                pipeline,
+                allocate_layout,
+                allocate,
+            });
         }
         Ok(guard)
     }
@@ -160,126 +174,279 @@ impl GpuRenderer {
         Ok(self.queue.submit([enc.finish()]))
     }
 
-    /// Sets up the error-optimal rounds of `resident` over the film `rect`
-    /// (sums `sums`; `blocks` the grid's list of every block).
-    pub(super) fn start_rmse_rounds<'a>(
+    /// An error-optimal render's rounds over `grid` (listed: every block of
+    /// the film in the mask's order, the first round's ranges), chained on
+    /// the GPU: each round its slices' indirect dispatches of the trace
+    /// kernel (`pipeline`, group `scene_group`), then converge.wgsl
+    /// (ranged) and allocate.wgsl, which write the next round's ranges and
+    /// arguments; each round's [`RoundLog`] is read one round behind, for
+    /// its report, until one says the render is done. Each block's final
+    /// statistics (its samples: the counts the film has).
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn run_rmse_rounds(
         &self,
-        resident: &'a RmseResident<'a>,
-        rect: Rect,
-        sums: &wgpu::Buffer,
+        resident: &RmseResident<'_>,
+        grid: &Grid<'_>,
+        out: &Outputs,
         sums_bytes: u64,
-        blocks: &wgpu::Buffer,
-    ) -> Result<RmseChain<'a>, GpuError> {
+        scene_group: &wgpu::BindGroup,
+        pipeline: &wgpu::ComputePipeline,
+        frame: u32,
+        options: GpuOptions,
+        progress: &(dyn Fn(u64) + Sync),
+        (dispatches, submissions): (&mut u32, &mut u32),
+    ) -> Result<Vec<GpuBlockStats>, GpuError> {
         let n = resident.mask.active.len();
-        // The first round's ranges in the mask's order (the grid lists its
-        // blocks longest range first).
-        let counts = resident
-            .rounds
-            .borrow()
-            .pending_ranges()
-            .unwrap_or_else(|| vec![[0, 0]; n]);
-        let ranges = self
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("count ranges"),
-                contents: bytemuck::cast_slice(&counts),
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
-            });
-        let params = ConvergeParams {
-            film_w: rect.width,
-            film_h: rect.height,
-            cols: rect.width.div_ceil(BLOCK),
+        let film = grid.film;
+        let settings = *resident.rounds.borrow().settings();
+        let max_rounds = settings.max_rounds();
+        let ranges = grid.ranges_buffer.as_ref().expect("a listed grid");
+        let blocks = grid.blocks_buffer.as_ref().expect("a listed grid");
+        let first_items = grid.items().expect("a listed grid");
+        // A round's items are at most every block's max_samples: that many
+        // slices a round, those past its items dispatching nothing.
+        let per = slice_items(options);
+        let bound = n as u64 * settings.max_samples.div_ceil(LISTED_CHUNK) as u64;
+        let slices = bound.div_ceil(per as u64).max(1) as u32;
+        let (wx, wy) = self.options.workgroup;
+        let args: Vec<u32> = (0..slices)
+            .flat_map(|s| {
+                let start = s.saturating_mul(per).min(first_items);
+                let (x, y) = listed_groups(per.min(first_items - start), wx * wy);
+                [x, y, 1]
+            })
+            .collect();
+        let init = |label, contents: &[u8], usage| {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents,
+                    usage,
+                })
+        };
+        use wgpu::BufferUsages as U;
+        let args = init(
+            "rmse dispatch args",
+            bytemuck::cast_slice(&args),
+            U::STORAGE | U::INDIRECT,
+        );
+        let log_bytes = size_of::<RoundLog>() as u64;
+        let log = self.buffer(
+            "rmse round log",
+            max_rounds as u64 * log_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
+        let reads =
+            [0, 1].map(|_| self.buffer("rmse round read", log_bytes, U::MAP_READ | U::COPY_DST));
+        let stats_bytes = (n * size_of::<GpuBlockStats>()) as u64;
+        let stats = self.buffer("block stats", stats_bytes, U::STORAGE | U::COPY_SRC);
+        let converge_params = ConvergeParams {
+            film_w: film.width,
+            film_h: film.height,
+            cols: film.width.div_ceil(BLOCK),
             blocks: n as u32,
             samples: 0,
             ranged: 1,
             absolute: 0.0,
             relative: 0.0,
         };
-        let params = self
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("converge params"),
-                contents: bytemuck::bytes_of(&params),
-                usage: wgpu::BufferUsages::UNIFORM,
-            });
-        let bytes = (n * size_of::<GpuBlockStats>()) as u64;
-        let stats = self.buffer(
-            "block stats",
-            bytes,
-            wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        let converge_params = init(
+            "converge params",
+            bytemuck::bytes_of(&converge_params),
+            U::UNIFORM,
         );
-        let read = self.buffer(
-            "block stats read",
-            bytes,
-            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        let mut allocate_params = AllocateParams {
+            film_w: film.width,
+            film_h: film.height,
+            cols: film.width.div_ceil(BLOCK),
+            blocks: n as u32,
+            min_samples: settings.min_samples,
+            max_samples: settings.max_samples,
+            max_rounds,
+            round: 0,
+            chunk: LISTED_CHUNK,
+            slices,
+            slice_items: per,
+            group_invocations: wx * wy,
+            target_rmse: settings.target_rmse as f32,
+            relative_rmse: settings.relative_rmse as f32,
+        };
+        let allocate_params_buffer = init(
+            "allocate params",
+            bytemuck::bytes_of(&allocate_params),
+            U::UNIFORM | U::COPY_DST,
         );
-        let group = self.converge_group(&params, sums, sums_bytes, blocks, &stats, &ranges)?;
-        Ok(RmseChain {
-            resident,
-            group,
-            _params: params,
-            stats,
-            read,
-            counts,
+        let converge_group = self.converge_group(
+            &converge_params,
+            &out.sums,
+            sums_bytes,
+            blocks,
+            &stats,
             ranges,
-            last: Vec::new(),
+        )?;
+        let guard = self.converger()?;
+        let c = guard.as_ref().expect("made above");
+        let a = |name| wgsl::ALLOCATE.binding(name);
+        let allocate_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("tessera allocate"),
+            layout: &c.allocate_layout,
+            entries: &[
+                entire(a("params"), &allocate_params_buffer),
+                entire(a("block_stats"), &stats),
+                entire(a("ranges"), ranges),
+                entire(a("dispatch_args"), &args),
+                entire(a("round_log"), &log),
+            ],
+        });
+
+        // The slices' parameters, in submissions within the budgets.
+        let rect = grid.rect();
+        let slice_params: Vec<DispatchParams> = (0..slices)
+            .map(|s| {
+                let start = s.saturating_mul(per);
+                listed_slice(
+                    rect,
+                    (film.width, film.height),
+                    frame,
+                    start,
+                    start.saturating_add(per),
+                )
+            })
+            .collect();
+        let batch = (options.submit_pixel_samples / dispatch_work(&slice_params[0]).max(1))
+            .clamp(1, PARAMS_SLOTS as u64) as usize;
+        let batches: Vec<&[DispatchParams]> = slice_params.chunks(batch).collect();
+        let params_of = |batch: &[DispatchParams]| {
+            let mut bytes = vec![0u8; batch.len() * PARAMS_STRIDE as usize];
+            for (i, d) in batch.iter().enumerate() {
+                let at = i * PARAMS_STRIDE as usize;
+                bytes[at..at + size_of::<DispatchParams>()].copy_from_slice(bytemuck::bytes_of(d));
+            }
+            bytes
+        };
+        if batches.len() == 1 {
+            self.queue
+                .write_buffer(&out.params, 0, &params_of(batches[0]));
+        }
+
+        let mut reported = 0u64;
+        let mut pending: Option<(u32, wgpu::SubmissionIndex)> = None;
+        let mut done = false;
+        let mut round = 0;
+        while round < max_rounds && !done {
+            allocate_params.round = round;
+            self.queue.write_buffer(
+                &allocate_params_buffer,
+                0,
+                bytemuck::bytes_of(&allocate_params),
+            );
+            let mut index = None;
+            for (k, b) in batches.iter().enumerate() {
+                if batches.len() > 1 {
+                    self.queue.write_buffer(&out.params, 0, &params_of(b));
+                }
+                let mut enc = self
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("tessera rmse round"),
+                    });
+                {
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("tessera trace"),
+                        timestamp_writes: None,
+                    });
+                    pass.set_pipeline(pipeline);
+                    for i in 0..b.len() {
+                        pass.set_bind_group(0, scene_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
+                        let slice = (k * batch + i) as u64;
+                        pass.dispatch_workgroups_indirect(&args, slice * 12);
+                        *dispatches += 1;
+                    }
+                }
+                if k + 1 == batches.len() {
+                    // The round's decision, after its last slice.
+                    {
+                        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("tessera converge"),
+                            timestamp_writes: None,
+                        });
+                        pass.set_pipeline(&c.pipeline);
+                        pass.set_bind_group(0, &converge_group, &[]);
+                        self.dispatch_groups(&mut pass, n as u32);
+                    }
+                    {
+                        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("tessera allocate"),
+                            timestamp_writes: None,
+                        });
+                        pass.set_pipeline(&c.allocate);
+                        pass.set_bind_group(0, &allocate_group, &[]);
+                        pass.dispatch_workgroups(1, 1, 1);
+                    }
+                    enc.copy_buffer_to_buffer(
+                        &log,
+                        round as u64 * log_bytes,
+                        &reads[round as usize % 2],
+                        0,
+                        log_bytes,
+                    );
+                }
+                index = Some(self.queue.submit([enc.finish()]));
+                *submissions += 1;
+            }
+            let index = index.expect("a batch at least");
+            if let Some(before) = pending.replace((round, index)) {
+                done = self.report_rmse_round(resident, &reads, before, &mut reported, progress)?;
+            }
+            round += 1;
+        }
+        if let Some(last) = pending.take()
+            && !done
+        {
+            self.report_rmse_round(resident, &reads, last, &mut reported, progress)?;
+        }
+        drop(guard);
+        // The blocks' final counts, from the last statistics.
+        let read = self.buffer("block stats read", stats_bytes, U::MAP_READ | U::COPY_DST);
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("tessera rmse counts"),
+            });
+        enc.copy_buffer_to_buffer(&stats, 0, &read, 0, stats_bytes);
+        let index = self.queue.submit([enc.finish()]);
+        self.read_after(&read, stats_bytes, Some(index), |b| {
+            bytemuck::pod_collect_to_vec::<u8, GpuBlockStats>(b)
         })
     }
 
-    /// After an error-optimal round's dispatches (submitted, taking each
-    /// block over its range of `grid`): its statistics, read back (16 bytes
-    /// a block), decide the next round on the host ([`RmseRounds`]), whose
-    /// ranges then go to the grid. Whether there is a next round.
-    pub(super) fn end_rmse_round(
+    /// Reads round `round`'s log (its submission `index`), reports it and
+    /// its pixel-samples; whether it was the last round with samples.
+    fn report_rmse_round(
         &self,
-        chain: &mut RmseChain<'_>,
-        grid: &mut Grid<'_>,
+        resident: &RmseResident<'_>,
+        reads: &[wgpu::Buffer; 2],
+        (round, index): (u32, wgpu::SubmissionIndex),
+        reported: &mut u64,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Result<bool, GpuError> {
-        let mask = &chain.resident.mask;
-        let n = mask.active.len();
-        let index = self.encode_stats(&chain.group, n as u32, &chain.stats, &chain.read)?;
-        let bytes = (n * size_of::<GpuBlockStats>()) as u64;
-        chain.last = self.read_after(&chain.read, bytes, Some(index), |b| {
-            bytemuck::pod_collect_to_vec::<u8, GpuBlockStats>(b)
-        })?;
-        progress(
-            chain
-                .counts
-                .iter()
-                .enumerate()
-                .map(|(i, r)| mask.block_rect(i).area() as u64 * (r[1] - r[0]) as u64)
-                .sum(),
-        );
-        let (mut mean_sum, mut pixels) = (0.0f64, 0u64);
-        let stats: Vec<BlockStats> = chain
-            .last
-            .iter()
-            .enumerate()
-            .map(|(i, s)| {
-                let rect = mask.block_rect(i);
-                let area = rect.area() as u64;
-                mean_sum += f32::from_bits(s.mean_sum) as f64;
-                pixels += area;
-                BlockStats {
-                    rect,
-                    n: s.samples,
-                    w: f32::from_bits(s.variance_sum) as f64 * s.samples as f64 / (3 * area) as f64,
-                    // The GPU measures no cost per block.
-                    cost: 1.0,
-                }
-            })
-            .collect();
-        let mut rounds = chain.resident.rounds.borrow_mut();
-        rounds.after_round(&stats, mean_sum / (3 * pixels.max(1)) as f64);
-        let Some(next) = rounds.pending_ranges() else {
-            return Ok(false);
-        };
-        self.queue
-            .write_buffer(&chain.ranges, 0, bytemuck::cast_slice(&next));
-        grid.set_ranges(&self.queue, &next);
-        chain.counts = next;
-        Ok(true)
+        let log = self.read_after(
+            &reads[round as usize % 2],
+            size_of::<RoundLog>() as u64,
+            Some(index),
+            bytemuck::pod_read_unaligned::<RoundLog>,
+        )?;
+        let pixel_samples = log.samples[0] as u64 | (log.samples[1] as u64) << 32;
+        progress(pixel_samples.saturating_sub(*reported));
+        *reported = pixel_samples;
+        resident.rounds.borrow_mut().report(&RmseStep {
+            round,
+            active_blocks: log.active_blocks as usize,
+            pixel_samples,
+            estimated_rmse: (log.estimated_mse as f64).sqrt(),
+            target_rmse: (log.target_mse as f64).sqrt(),
+        });
+        Ok(log.next_items == 0)
     }
 
     /// Sets up the rounds of `resident` over the film `rect` whose sums are
@@ -328,7 +495,7 @@ impl GpuRenderer {
             })
             .collect();
         // The per-pixel test reads no ranges: a stand-in binding.
-        let no_ranges = self.buffer("no ranges", 8, wgpu::BufferUsages::STORAGE);
+        let no_ranges = self.buffer("no ranges", 16, wgpu::BufferUsages::STORAGE);
         let group = self.converge_group(&params, sums, sums_bytes, blocks, &stats, &no_ranges)?;
         Ok(Rounds {
             resident,

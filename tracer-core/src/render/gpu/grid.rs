@@ -1,11 +1,13 @@
 //! What one render's dispatch grid covers: the film, or an adaptive
 //! render's listed blocks (8 columns, 8 rows a block: sums.wgsl
-//! `grid_pixel`), each over the render's samples or its own range.
+//! `grid_pixel`), each over the render's samples or its own range (a
+//! listed grid: sums.wgsl `listed_work`).
 
 use wgpu::util::DeviceExt as _;
 
 use super::Readout;
 use super::layout::{ADAPTIVE_SUM_WORDS, DispatchParams, GpuBlockStats, SUM_WORDS};
+use super::plan::LISTED_CHUNK;
 use crate::adaptive::{BLOCK, BlockMask};
 use crate::film::{Film, Rect};
 
@@ -16,8 +18,9 @@ pub(super) struct Grid<'a> {
     pub mask: Option<&'a BlockMask>,
     /// The listed blocks, each column | row << 16.
     blocks: Vec<u32>,
-    /// A ranged render's (first, end) per listed block.
-    ranges: Option<Vec<[u32; 2]>>,
+    /// A ranged render's (first, end, first item, 0) per listed block,
+    /// and an entry with the items in all ([`listed`]).
+    ranges: Option<Vec<[u32; 4]>>,
     pub blocks_buffer: Option<wgpu::Buffer>,
     pub ranges_buffer: Option<wgpu::Buffer>,
 }
@@ -46,20 +49,12 @@ impl<'a> Grid<'a> {
                     .map(|r| [r.start, r.end])
                     .collect::<Vec<[u32; 2]>>(),
             ),
-            // Every block, the first round's range (rewritten each round).
+            // Every block, the first round's range (the GPU writes the
+            // later rounds', allocate.wgsl).
             Readout::Rmse(r) => r.rounds.borrow().pending_ranges(),
             _ => None,
-        };
-        // A ranged grid lists its blocks longest range first, for
-        // `plan_bands`: where a block lies is in its entry, so the film's
-        // sums are the same in any order.
-        let (blocks, ranges) = match ranges {
-            Some(r) => {
-                let (b, r) = by_length(&blocks, &r);
-                (b, Some(r))
-            }
-            None => (blocks, None),
-        };
+        }
+        .map(|r| listed(&r));
         let storage = |label, contents: &[u8]| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
@@ -92,30 +87,9 @@ impl<'a> Grid<'a> {
         }
     }
 
-    /// A ranged grid's range lengths, in its order (longest first).
-    pub fn lengths(&self) -> Option<Vec<u32>> {
-        self.ranges
-            .as_ref()
-            .map(|r| r.iter().map(|[a, b]| b - a).collect())
-    }
-
-    /// Every block's range for the next dispatches, in the mask's order
-    /// (every block of the mask listed): the grid's lists, reordered
-    /// longest first, written to the device's copies behind the work
-    /// queued so far.
-    pub fn set_ranges(&mut self, queue: &wgpu::Queue, ranges: &[[u32; 2]]) {
-        let m = self.mask.expect("a ranged grid");
-        let cols = m.cols() as usize;
-        let entries: Vec<u32> = (0..ranges.len())
-            .map(|i| (i % cols) as u32 | ((i / cols) as u32) << 16)
-            .collect();
-        let (blocks, ranges) = by_length(&entries, ranges);
-        let buffers = self.blocks_buffer.as_ref().zip(self.ranges_buffer.as_ref());
-        let (b, r) = buffers.expect("a ranged grid has both lists");
-        queue.write_buffer(b, 0, bytemuck::cast_slice(&blocks));
-        queue.write_buffer(r, 0, bytemuck::cast_slice(&ranges));
-        self.blocks = blocks;
-        self.ranges = Some(ranges);
+    /// A listed grid's items in all.
+    pub fn items(&self) -> Option<u32> {
+        self.ranges.as_ref().map(|r| r[r.len() - 1][2])
     }
 
     /// u32 words of a pixel's sums: with sums of squares in an adaptive render.
@@ -134,21 +108,32 @@ impl<'a> Grid<'a> {
     pub fn work(&self, d: &DispatchParams) -> u64 {
         let n = (d.sample_end - d.sample_start) as u64;
         let film = self.film;
-        match self.mask {
-            None => film.width as u64 * d.rows as u64 * n,
-            Some(_) => (d.row0..d.row0 + d.rows)
+        let pixels = |b: u32| {
+            let (fx, fy) = ((b & 0xffff) * BLOCK, (b >> 16) * BLOCK);
+            (film.width.saturating_sub(fx).min(BLOCK) * film.height.saturating_sub(fy).min(BLOCK))
+                as u64
+        };
+        match (self.mask, &self.ranges) {
+            (None, _) => film.width as u64 * d.rows as u64 * n,
+            // Each listed block's items among the dispatch's, as samples.
+            (Some(_), Some(rs)) => (0..self.blocks.len())
+                .map(|k| {
+                    let [first, end, item, _] = rs[k];
+                    let (a, b) = (d.sample_start.max(item), d.sample_end.min(rs[k + 1][2]));
+                    if a >= b {
+                        return 0;
+                    }
+                    let from = first + (a - item) * d.chunk;
+                    let to = (first + (b - item) * d.chunk).min(end);
+                    pixels(self.blocks[k]) * (to - from) as u64
+                })
+                .sum(),
+            (Some(_), None) => (d.row0..d.row0 + d.rows)
                 .map(|r| {
                     let b = self.blocks[(r / BLOCK) as usize];
                     let (fx, fy) = ((b & 0xffff) * BLOCK, (b >> 16) * BLOCK + r % BLOCK);
-                    let samples = match &self.ranges {
-                        Some(rs) => {
-                            let [a, e] = rs[(r / BLOCK) as usize];
-                            d.sample_end.min(e - a).saturating_sub(d.sample_start) as u64
-                        }
-                        None => n,
-                    };
                     if fy < film.height {
-                        (film.width - fx).min(BLOCK) as u64 * samples
+                        (film.width - fx).min(BLOCK) as u64 * n
                     } else {
                         0
                     }
@@ -190,10 +175,19 @@ impl<'a> Grid<'a> {
     }
 }
 
-/// Block entries and their ranges, longest range first (stable: equal
-/// lengths keep their order).
-fn by_length(blocks: &[u32], ranges: &[[u32; 2]]) -> (Vec<u32>, Vec<[u32; 2]>) {
-    let mut order: Vec<usize> = (0..blocks.len()).collect();
-    order.sort_by_key(|&k| std::cmp::Reverse(ranges[k][1] - ranges[k][0]));
-    order.iter().map(|&k| (blocks[k], ranges[k])).unzip()
+/// Listed blocks' ranges (first, end) as the trace kernel reads them:
+/// (first, end, first item, 0), each block [`LISTED_CHUNK`] samples an
+/// item, then an entry whose third word is the items in all.
+pub fn listed(ranges: &[[u32; 2]]) -> Vec<[u32; 4]> {
+    let mut item = 0;
+    let mut out: Vec<[u32; 4]> = ranges
+        .iter()
+        .map(|&[a, b]| {
+            let first = item;
+            item += (b - a).div_ceil(LISTED_CHUNK);
+            [a, b, first, 0]
+        })
+        .collect();
+    out.push([0, 0, item, 0]);
+    out
 }

@@ -59,10 +59,13 @@ pub struct DispatchParams {
     /// 8 rows per active block instead (sums.wgsl `grid_pixel`).
     pub film_w: u32,
     pub film_h: u32,
-    /// 1: an adaptive render whose blocks each take their own range of
-    /// samples (`block_ranges`); `sample_start..sample_end` are then
-    /// offsets into each block's range.
+    /// 1: a listed dispatch, an adaptive render whose blocks each take
+    /// their own range of samples (`block_ranges`, sums.wgsl
+    /// `listed_work`): `sample_start..sample_end` are then the items it
+    /// traces, each a block's chunk of `chunk` samples, 64 invocations
+    /// an item.
     pub ranged: u32,
+    pub chunk: u32,
 }
 
 /// WGSL: `struct Sphere`.
@@ -217,6 +220,50 @@ pub struct GpuBlockStats {
     pub mean_sum: u32,
 }
 
+/// Parameters of the error-optimal mode's decision between rounds on the
+/// GPU. WGSL (allocate.wgsl): `struct AllocateParams`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct AllocateParams {
+    pub film_w: u32,
+    pub film_h: u32,
+    /// Blocks per row of the film, and in all.
+    pub cols: u32,
+    pub blocks: u32,
+    pub min_samples: u32,
+    pub max_samples: u32,
+    /// `RmseSettings::max_rounds`, and the round the dispatch ends
+    /// (rewritten before each round).
+    pub max_rounds: u32,
+    pub round: u32,
+    /// Samples a listed item ([`super::plan::LISTED_CHUNK`]).
+    pub chunk: u32,
+    /// The trace's slices a round, items a slice, and invocations a
+    /// workgroup of the trace kernel.
+    pub slices: u32,
+    pub slice_items: u32,
+    pub group_invocations: u32,
+    pub target_rmse: f32,
+    pub relative_rmse: f32,
+}
+
+/// What a round of the error-optimal mode on the GPU ended with, written
+/// by allocate.wgsl (`round_log`, one a round). WGSL: `struct RoundLog`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable, PartialEq)]
+pub struct RoundLog {
+    /// Blocks the round sampled.
+    pub active_blocks: u32,
+    /// Pixel-samples of the image after the round, low and high words.
+    pub samples: [u32; 2],
+    /// Items of the next round: 0 once the render is done.
+    pub next_items: u32,
+    /// The image's estimated MSE after the round, and the target MSE.
+    pub estimated_mse: f32,
+    pub target_mse: f32,
+    pub _pad: [u32; 2],
+}
+
 /// Parameters of the GPU resolve of a film's sums. WGSL (resolve.wgsl):
 /// `struct ResolveParams`.
 #[repr(C)]
@@ -266,7 +313,7 @@ pub const WAVE_STATE_BYTES: u64 = 16;
 pub const WAVE_ARGS_BYTES: u64 = 12;
 
 const _: () = assert!(size_of::<FrameUniform>() == 80);
-const _: () = assert!(size_of::<DispatchParams>() == 48);
+const _: () = assert!(size_of::<DispatchParams>() == 52);
 const _: () = assert!(size_of::<GpuSphere>() == 32);
 const _: () = assert!(size_of::<GpuPlane>() == 32);
 const _: () = assert!(size_of::<GpuMaterial>() == 64);
@@ -278,6 +325,8 @@ const _: () = assert!(size_of::<GpuInstance>() == 128);
 const _: () = assert!(size_of::<ResolveParams>() == 16);
 const _: () = assert!(size_of::<ConvergeParams>() == 32);
 const _: () = assert!(size_of::<GpuBlockStats>() == 16);
+const _: () = assert!(size_of::<AllocateParams>() == 56);
+const _: () = assert!(size_of::<RoundLog>() == 32);
 
 /// The arrays of packed trees that grow with their triangles.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

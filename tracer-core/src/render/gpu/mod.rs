@@ -286,8 +286,8 @@ enum Readout<'a> {
     /// to `ranges[i].1`.
     Ranged(&'a BlockMask, &'a [Option<SampleRange>]),
     /// A whole error-optimal render (`converge.rs`): every block over its
-    /// own range a round, the film kept on the GPU between rounds and each
-    /// round decided on the host from the blocks' statistics.
+    /// own range a round, the film kept on the GPU and each round decided
+    /// there (allocate.wgsl), as `rounds`' schedule decides on the host.
     Rmse(&'a converge::RmseResident<'a>),
 }
 
@@ -746,10 +746,11 @@ impl GpuRenderer {
         )
     }
 
-    /// A whole frame in the error-optimal mode, `rounds` deciding each
-    /// round (`render::adaptive::render_rmse`): the film stays on the GPU,
-    /// and after each round only its blocks' statistics (16 bytes a block)
-    /// come back for the decision. Each block's pixels equal
+    /// A whole frame in the error-optimal mode
+    /// (`render::adaptive::render_rmse`), its rounds chained on the GPU:
+    /// the film stays there, allocate.wgsl takes `rounds`' decisions
+    /// between rounds, and only a log a round comes back, for `rounds`'
+    /// reports (`converge.rs` `run_rmse_rounds`). Each block's pixels equal
     /// [`GpuRenderer::render`]'s at the samples the block stopped at.
     pub fn render_rmse(
         &self,

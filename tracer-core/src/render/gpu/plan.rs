@@ -2,7 +2,6 @@
 
 use super::layout::DispatchParams;
 use super::{GpuOptions, PARAMS_SLOTS};
-use crate::adaptive::BLOCK;
 use crate::film::{Rect, SampleRange};
 
 /// Splits a render into dispatches (bands of rows x ranges of samples, each
@@ -43,6 +42,7 @@ pub(super) fn plan(
                 film_w: film.0,
                 film_h: film.1,
                 ranged: 0,
+                chunk: 0,
             });
             s = e;
         }
@@ -51,41 +51,77 @@ pub(super) fn plan(
     group(dispatches, o)
 }
 
-/// A ranged grid's dispatches (`rect`: 8 grid rows a listed block),
-/// `lengths` being each listed block's range length in the grid's order,
-/// longest first. The blocks go in bands whose lengths are within a
-/// factor of 2, each dispatched over its longest range's samples, so that
-/// threads past their own block's range (which return at once) are at
-/// most half of a band's, rather than most of the grid's when a few
-/// blocks take many more samples than the rest; blocks with nothing to
-/// render get no dispatch. Each dispatch flagged `ranged`.
-pub(super) fn plan_bands(
+/// Samples one invocation of a listed dispatch traces (sums.wgsl
+/// `listed_work`), summed in registers before its pixel's atomic
+/// additions: a quarter of the additions to the film, spread over fewer
+/// invocations of each pixel at once.
+pub(super) const LISTED_CHUNK: u32 = 4;
+
+/// A listed dispatch's slices: items a slice within the dispatch budget
+/// (64 pixels by `LISTED_CHUNK` samples an item).
+pub(super) fn slice_items(o: GpuOptions) -> u32 {
+    (o.dispatch_pixel_samples / (64 * LISTED_CHUNK as u64)).clamp(1, 1 << 24) as u32
+}
+
+/// Workgroups (x, y) of `group` invocations for `items` listed items (64
+/// invocations each), x at most 65535. allocate.wgsl computes the same
+/// for its indirect arguments.
+pub(super) fn listed_groups(items: u32, group: u32) -> (u32, u32) {
+    let groups = (items as u64 * 64).div_ceil(group as u64) as u32;
+    let x = groups.min(65_535);
+    (x, if x == 0 { 0 } else { groups.div_ceil(x) })
+}
+
+/// A listed grid's dispatches (`rect`: 8 grid rows a listed block; each
+/// block its own range, `items` in all): slices of at most
+/// [`slice_items`] items, each flagged `ranged`, in bounded submissions.
+pub(super) fn plan_listed(
     rect: Rect,
     film: (u32, u32),
-    lengths: &[u32],
+    items: u32,
     frame: u32,
     o: GpuOptions,
 ) -> Vec<Vec<DispatchParams>> {
-    let mut dispatches = Vec::new();
-    let mut b = 0;
-    while b < lengths.len() && lengths[b] > 0 {
-        let longest = lengths[b];
-        let mut e = b + 1;
-        while e < lengths.len() && 2 * lengths[e] > longest {
-            e += 1;
-        }
-        let band = Rect::new(rect.x, rect.y, rect.width, BLOCK * (e - b) as u32);
-        for group in plan(band, film, SampleRange::new(0, longest), frame, o) {
-            for mut d in group {
-                d.row0 += BLOCK * b as u32;
-                d.rect_h = rect.height;
-                d.ranged = 1;
-                dispatches.push(d);
-            }
-        }
-        b = e;
-    }
+    let per = slice_items(o);
+    let dispatches = (0..items.div_ceil(per))
+        .map(|s| listed_slice(rect, film, frame, s * per, ((s + 1) * per).min(items)))
+        .collect();
     group(dispatches, o)
+}
+
+/// The dispatch of items `start..end` of a listed grid.
+pub(super) fn listed_slice(
+    rect: Rect,
+    film: (u32, u32),
+    frame: u32,
+    start: u32,
+    end: u32,
+) -> DispatchParams {
+    DispatchParams {
+        rect_x: rect.x,
+        rect_y: rect.y,
+        rect_w: rect.width,
+        rect_h: rect.height,
+        row0: 0,
+        rows: 0,
+        sample_start: start,
+        sample_end: end,
+        frame,
+        film_w: film.0,
+        film_h: film.1,
+        ranged: 1,
+        chunk: LISTED_CHUNK,
+    }
+}
+
+/// Pixel-samples dispatch `d` traces at most: a listed one's items whole.
+pub(super) fn dispatch_work(d: &DispatchParams) -> u64 {
+    let n = (d.sample_end - d.sample_start) as u64;
+    if d.ranged != 0 {
+        n * 64 * d.chunk as u64
+    } else {
+        d.rect_w as u64 * d.rows as u64 * n
+    }
 }
 
 /// Dispatches in order, grouped into submissions of at most
@@ -94,7 +130,7 @@ fn group(dispatches: Vec<DispatchParams>, o: GpuOptions) -> Vec<Vec<DispatchPara
     let mut groups: Vec<Vec<DispatchParams>> = vec![Vec::new()];
     let mut in_group = 0u64;
     for d in dispatches {
-        let work = d.rect_w as u64 * d.rows as u64 * (d.sample_end - d.sample_start) as u64;
+        let work = dispatch_work(&d);
         let last = groups.last_mut().expect("never empty");
         if !last.is_empty()
             && (in_group + work > o.submit_pixel_samples || last.len() == PARAMS_SLOTS)
@@ -111,6 +147,7 @@ fn group(dispatches: Vec<DispatchParams>, o: GpuOptions) -> Vec<Vec<DispatchPara
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::adaptive::BLOCK;
     use crate::render::gpu::Strategy;
 
     #[test]
@@ -159,41 +196,34 @@ mod tests {
     }
 
     #[test]
-    fn bands_dispatch_each_block_over_its_range_at_most_twice_over() {
+    fn listed_slices_cover_the_items_once_within_budgets() {
         let o = GpuOptions {
-            workgroup: (8, 8),
-            dispatch_pixel_samples: 700,
-            submit_pixel_samples: 3000,
+            workgroup: (8, 4),
+            dispatch_pixel_samples: 64 * LISTED_CHUNK as u64 * 10,
+            submit_pixel_samples: 64 * LISTED_CHUNK as u64 * 25,
             strategy: Strategy::Stack,
         };
-        // Longest first, as a ranged grid lists them; the zeros get nothing.
-        let lengths = [40, 33, 21, 20, 11, 3, 2, 1, 0, 0];
-        let rect = Rect::new(5, 9, BLOCK, BLOCK * lengths.len() as u32);
-        let groups = plan_bands(rect, (64, 48), &lengths, 3, o);
-        // Samples offered to each grid row (a thread past its block's
-        // range returns at once).
-        let mut offered = vec![0u32; rect.height as usize];
+        let rect = Rect::new(5, 9, BLOCK, BLOCK * 7);
+        let groups = plan_listed(rect, (64, 48), 93, 3, o);
+        let mut next = 0;
         for g in &groups {
             assert!(g.len() <= PARAMS_SLOTS);
+            assert!(g.iter().map(dispatch_work).sum::<u64>() <= o.submit_pixel_samples);
             for d in g {
                 assert_eq!(
-                    (d.rect_x, d.rect_y, d.rect_h, d.ranged),
-                    (5, 9, rect.height, 1)
+                    (d.rect_x, d.rect_h, d.ranged, d.frame),
+                    (5, rect.height, 1, 3)
                 );
-                for r in d.row0..d.row0 + d.rows {
-                    offered[r as usize] += d.sample_end - d.sample_start;
-                }
+                assert_eq!(d.sample_start, next);
+                assert!(d.sample_end - d.sample_start <= 10);
+                next = d.sample_end;
+                // Enough 32-invocation workgroups for 64 invocations an item.
+                let (x, y) = listed_groups(d.sample_end - d.sample_start, 32);
+                assert!(x * y * 32 >= 64 * (d.sample_end - d.sample_start));
             }
         }
-        for (b, &len) in lengths.iter().enumerate() {
-            for r in 0..BLOCK as usize {
-                let got = offered[b * BLOCK as usize + r];
-                if len == 0 {
-                    assert_eq!(got, 0, "block {b}: nothing to render");
-                } else {
-                    assert!(got >= len && got < 2 * len, "block {b} ({len}): {got}");
-                }
-            }
-        }
+        assert_eq!(next, 93);
+        assert_eq!(listed_groups(0, 64), (0, 0));
+        assert_eq!(listed_groups(70_000, 64), (65_535, 2));
     }
 }

@@ -36,9 +36,12 @@ struct Dispatch {
     // 8 rows per active block, not the film (see grid_pixel).
     film_w: u32,
     film_h: u32,
-    // 1: an adaptive render's blocks each over their own range of samples
-    // (block_ranges); the dispatch's samples are offsets into it.
+    // 1: a listed dispatch, an adaptive render's blocks each over their
+    // own range of samples (block_ranges, sums.wgsl listed_work); the
+    // dispatch's "samples" are then items, each a block's chunk of `chunk`
+    // samples.
     ranged: u32,
+    chunk: u32,
 }
 
 struct Sphere {

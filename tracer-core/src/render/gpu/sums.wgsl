@@ -72,11 +72,11 @@ fn add_carrying(base: u32, k: u32, v: u32) {
     }
 }
 
-// Adds the square of a fixed-point sample f = hi * 2^32 + lo to the 128-bit
-// sum at sums[base]: exactly the CPU's `s as u128 * s as u128`. hi is at
-// most 65504 (to_fixed's clamp), so the square fits 96 bits:
+// The square of a fixed-point sample f = hi * 2^32 + lo as its three low
+// words (exactly the CPU's `s as u128 * s as u128`). hi is at most 65504
+// (to_fixed's clamp), so the square fits 96 bits:
 // lo^2 + 2 hi lo 2^32 + hi^2 2^64, with 2 hi lo below 2^49.
-fn add_square(base: u32, f: vec2<u32>) {
+fn square_words(f: vec2<u32>) -> vec3<u32> {
     let l = mul_wide(f.x, f.x);
     let m = mul_wide(f.y, f.x);
     let d0 = m.x << 1u;
@@ -85,9 +85,15 @@ fn add_square(base: u32, f: vec2<u32>) {
     let carry = select(0u, 1u, w1 < l.y);
     // hi^2 + d1 + carry < 65504^2 + 2^17 + 1 < 2^32: no carry out.
     let w2 = f.y * f.y + d1 + carry;
-    add_carrying(base, 0u, l.x);
-    add_carrying(base, 1u, w1);
-    add_carrying(base, 2u, w2);
+    return vec3<u32>(l.x, w1, w2);
+}
+
+// Adds the square of a fixed-point sample to the 128-bit sum at sums[base].
+fn add_square(base: u32, f: vec2<u32>) {
+    let q = square_words(f);
+    add_carrying(base, 0u, q.x);
+    add_carrying(base, 1u, q.y);
+    add_carrying(base, 2u, q.z);
 }
 
 // Adds one sample's colour to the pixel whose sums start at sums[word]
@@ -104,15 +110,97 @@ fn add_sample(word: u32, c: vec3<f32>) {
 
 const NO_SAMPLE: u32 = 0xffffffffu;
 
-// The sample index that offset `k` of grid row `row` traces: `k` itself,
-// or in a ranged adaptive render (params.ranged) the block's first sample
-// plus `k`, NO_SAMPLE past its last.
-fn block_sample(row: u32, k: u32) -> u32 {
-    if (!ADAPTIVE || params.ranged == 0u) {
-        return k;
+// A pixel's sums over some of its samples, kept in registers before they
+// go to the film in one go (a listed dispatch's invocation: several
+// samples of one pixel). Integer sums: the film's are the same bits as
+// with one atomic addition a sample.
+struct PixelSums {
+    // Per channel the 64-bit sum (low, high) and the 128-bit sum of squares.
+    sum: array<vec2<u32>, 3>,
+    squares: array<vec4<u32>, 3>,
+}
+
+fn add_64(a: vec2<u32>, b: vec2<u32>) -> vec2<u32> {
+    let lo = a.x + b.x;
+    return vec2<u32>(lo, a.y + b.y + select(0u, 1u, lo < a.x));
+}
+
+// a (four words) plus b (three low words), modulo 2^128.
+fn add_128(a: vec4<u32>, b: vec3<u32>) -> vec4<u32> {
+    var out = a;
+    var carry = 0u;
+    for (var i = 0u; i < 3u; i++) {
+        let s = a[i] + b[i];
+        let t = s + carry;
+        carry = select(0u, 1u, s < a[i]) + select(0u, 1u, t < s);
+        out[i] = t;
     }
-    let r = block_ranges[row / 8u];
-    return select(NO_SAMPLE, r.x + k, r.x + k < r.y);
+    out[3] = a[3] + carry;
+    return out;
+}
+
+// `acc` with one more sample of colour `c`.
+fn accumulate(acc: PixelSums, c: vec3<f32>) -> PixelSums {
+    var out = acc;
+    for (var ch = 0u; ch < 3u; ch++) {
+        let f = to_fixed(c[ch]);
+        out.sum[ch] = add_64(out.sum[ch], f);
+        if (ADAPTIVE) {
+            out.squares[ch] = add_128(out.squares[ch], square_words(f));
+        }
+    }
+    return out;
+}
+
+// Adds `acc` to the pixel whose sums start at sums[word].
+fn add_sums(word: u32, acc: PixelSums) {
+    for (var ch = 0u; ch < 3u; ch++) {
+        add_fixed_pair(word + 2u * ch, acc.sum[ch]);
+        if (ADAPTIVE) {
+            for (var k = 0u; k < 4u; k++) {
+                add_carrying(word + 6u + 4u * ch, k, acc.squares[ch][k]);
+            }
+        }
+    }
+}
+
+// What one invocation of a listed dispatch traces: its pixel (as
+// grid_pixel's) and its samples first..end.
+struct ListedWork {
+    pixel: vec4<u32>,
+    first: u32,
+    end: u32,
+}
+
+// Invocation `t` of a listed dispatch (params.ranged: an adaptive render
+// whose blocks each take their own range). The items are (listed block,
+// chunk of `params.chunk` samples of its range), block by block:
+// block_ranges[b] = (first, end, its first item), and entry `blocks` (past
+// the last listed block) holds the items in all. 64 invocations an item,
+// one a pixel of the block; the dispatch traces items
+// sample_start..sample_end.
+fn listed_work(t: u32) -> ListedWork {
+    let item = params.sample_start + t / 64u;
+    let blocks = params.rect_h / 8u;
+    if (item >= params.sample_end || item >= block_ranges[blocks].z) {
+        return ListedWork(vec4<u32>(0u), 0u, 0u);
+    }
+    // The last block whose first item is at most `item` (blocks with no
+    // items share their first item with the next).
+    var lo = 0u;
+    var hi = blocks;
+    while (hi - lo > 1u) {
+        let mid = (lo + hi) / 2u;
+        if (block_ranges[mid].z <= item) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let r = block_ranges[lo];
+    let first = r.x + (item - r.z) * params.chunk;
+    let pixel = t % 64u;
+    return ListedWork(grid_pixel(pixel % 8u, 8u * lo + pixel / 8u), first, min(first + params.chunk, r.y));
 }
 
 // The pixel that column `col`, row `row` of the dispatch grid traces:

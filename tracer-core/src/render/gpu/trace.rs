@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use super::grid::Grid;
 use super::layout::{self, COUNTERS, DispatchParams, GpuBlockStats, SUM_WORDS, SceneData};
-use super::plan::{plan, plan_bands};
+use super::plan::{listed_groups, plan, plan_listed};
 use super::readback::linear_pixels;
 use super::wgsl;
 use super::{
@@ -55,7 +55,7 @@ impl GpuRenderer {
         readout: Readout<'_>,
     ) -> Result<Option<Rendered>, GpuError> {
         let limits = self.device.limits();
-        let mut grid = Grid::new(&self.device, readout, rect);
+        let grid = Grid::new(&self.device, readout, rect);
         let mut scene_guard = self
             .scene
             .lock()
@@ -133,24 +133,29 @@ impl GpuRenderer {
             dispatch_pixel_samples: budget,
             ..self.options
         };
-        // A ranged grid (each block its own range) goes in bands of alike
-        // ranges; any other over the round's samples.
-        let plan_of = |round: SampleRange, lengths: Option<Vec<u32>>| match lengths {
-            Some(l) => plan_bands(grid_rect, (rect.width, rect.height), &l, frame, options),
-            None => plan(grid_rect, (rect.width, rect.height), round, frame, options),
-        };
-        // An error-optimal render plans each round once the one before has
-        // decided it.
-        let mut plans: Vec<_> = rounds
-            .iter()
-            .map(|&round| plan_of(round, grid.lengths()))
-            .collect();
-        // Timestamps time the submissions of one range (not a resident
-        // render's rounds, which are not waited for one by one).
+        // A listed grid (each block its own range) goes in slices of its
+        // items; any other over the round's samples. An error-optimal
+        // render's rounds are planned on the GPU (`converge.rs`).
         let rmse = match readout {
             Readout::Rmse(r) => Some(r),
             _ => None,
         };
+        let plans: Vec<_> = match (rmse, grid.items()) {
+            (Some(_), _) => Vec::new(),
+            (None, Some(items)) => vec![plan_listed(
+                grid_rect,
+                (rect.width, rect.height),
+                items,
+                frame,
+                options,
+            )],
+            (None, None) => rounds
+                .iter()
+                .map(|&round| plan(grid_rect, (rect.width, rect.height), round, frame, options))
+                .collect(),
+        };
+        // Timestamps time the submissions of one range (not a resident
+        // render's rounds, which are not waited for one by one).
         let query = (self.timestamps && resident.is_none() && rmse.is_none())
             .then(|| self.timestamp_query((plans[0].len() * 2) as u32));
 
@@ -182,26 +187,27 @@ impl GpuRenderer {
             ),
             None => None,
         };
-        let mut rmse_chain = match rmse {
-            Some(r) => Some(
-                self.start_rmse_rounds(
-                    r,
-                    rect,
-                    &out.sums,
-                    sums_bytes,
-                    grid.blocks_buffer
-                        .as_ref()
-                        .expect("a ranged render has a block list"),
-                )?,
-            ),
-            None => None,
-        };
         let kernel = match (&wave, &wave_groups) {
             (Some((p, w)), Some(groups)) => Driver::Wave(p, w.as_ref().expect("set"), groups),
             _ => Driver::Stack(match grid.mask {
                 Some(_) => scene.adaptive.as_ref().expect("made above"),
                 None => &scene.pipeline,
             }),
+        };
+        let rmse_last = match (rmse, &kernel) {
+            (Some(r), Driver::Stack(pipeline)) => Some(self.run_rmse_rounds(
+                r,
+                &grid,
+                out,
+                sums_bytes,
+                &bind_group,
+                pipeline,
+                frame,
+                options,
+                progress,
+                (&mut dispatches, &mut submissions),
+            )?),
+            _ => None,
         };
         let mut round = 0;
         while round < plans.len() {
@@ -245,18 +251,13 @@ impl GpuRenderer {
                 submissions += 1;
                 // A resident render's rounds run back to back; its progress
                 // comes with each round's report.
-                if chain.is_none() && rmse_chain.is_none() {
+                if chain.is_none() {
                     self.wait(index)?;
                     progress(group.iter().map(|d| grid.work(d)).sum());
                 }
             }
             if let Some(c) = chain.as_mut() {
                 self.end_round(c, round, progress)?;
-            }
-            if let Some(c) = rmse_chain.as_mut()
-                && self.end_rmse_round(c, &mut grid, progress)?
-            {
-                plans.push(plan_of(samples, grid.lengths()));
             }
             round += 1;
         }
@@ -275,7 +276,7 @@ impl GpuRenderer {
             chain
                 .as_ref()
                 .map(|c| c.last.as_slice())
-                .or(rmse_chain.as_ref().map(|c| c.last.as_slice())),
+                .or(rmse_last.as_deref()),
             wave.as_ref().map(|(_, w)| w.as_ref().expect("set")),
             query.as_ref(),
         )?;
@@ -541,12 +542,18 @@ impl GpuRenderer {
                 pass.set_pipeline(pipeline);
                 for (i, d) in group.iter().enumerate() {
                     pass.set_bind_group(0, bind_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
-                    // One invocation per pixel-sample.
-                    pass.dispatch_workgroups(
-                        d.rect_w.div_ceil(wx),
-                        d.rows.div_ceil(wy),
-                        d.sample_end - d.sample_start,
-                    );
+                    if d.ranged != 0 {
+                        // 64 invocations a listed item.
+                        let (x, y) = listed_groups(d.sample_end - d.sample_start, wx * wy);
+                        pass.dispatch_workgroups(x, y, 1);
+                    } else {
+                        // One invocation per pixel-sample.
+                        pass.dispatch_workgroups(
+                            d.rect_w.div_ceil(wx),
+                            d.rows.div_ceil(wy),
+                            d.sample_end - d.sample_start,
+                        );
+                    }
                     dispatches += 1;
                 }
             }

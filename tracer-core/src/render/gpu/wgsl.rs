@@ -28,6 +28,7 @@ pub const STACK_ENTRY: &str = "render";
 /// Every .wgsl file, by name.
 pub const FILES: &[(&str, &str)] = &[
     ("accel.wgsl", include_str!("accel.wgsl")),
+    ("allocate.wgsl", include_str!("allocate.wgsl")),
     ("analytic.wgsl", include_str!("analytic.wgsl")),
     ("bsdf.wgsl", include_str!("bsdf.wgsl")),
     ("bvh.wgsl", include_str!("bvh.wgsl")),
@@ -327,6 +328,11 @@ pub fn converge_module(files: &Files<'_>) -> Module {
     assemble(files, &[CONVERGE], "converge", "", &["converge.wgsl"])
 }
 
+/// The error-optimal mode's decision between its rounds on the GPU.
+pub fn allocate_module(files: &Files<'_>) -> Module {
+    assemble(files, &[ALLOCATE], "allocate", "", &["allocate.wgsl"])
+}
+
 /// Every module the backend compiles: what build.rs validates.
 #[allow(dead_code)] // build.rs
 pub fn all_modules(files: &Files<'_>) -> Vec<Module> {
@@ -334,6 +340,7 @@ pub fn all_modules(files: &Files<'_>) -> Vec<Module> {
     all.push(resolve_module(files));
     all.push(pack_module(files));
     all.push(converge_module(files));
+    all.push(allocate_module(files));
     all
 }
 
@@ -436,9 +443,11 @@ pub const SCENE: Layout = Layout {
         // An adaptive round's active blocks, each (column | row << 16) in
         // blocks of 8x8 pixels from the film's corner (a placeholder otherwise).
         bind("active_blocks", "array<u32>", Read, "scene.wgsl"),
-        // A ranged adaptive render's samples per listed block: (first,
-        // end) (a placeholder otherwise).
-        bind("block_ranges", "array<vec2<u32>>", Read, "scene.wgsl"),
+        // A ranged adaptive render's listed blocks (a placeholder
+        // otherwise): each (first sample, end, first item, 0), then one
+        // entry whose third word is the items in all (sums.wgsl
+        // listed_work).
+        bind("block_ranges", "array<vec4<u32>>", Read, "scene.wgsl"),
         // Model files' materials (layout.rs PbrData; placeholders without).
         bind("mat_pbr", "array<u32>", Read, "pbr.wgsl"),
         bind("pbrs", "array<Pbr>", Read, "pbr.wgsl"),
@@ -526,9 +535,28 @@ pub const CONVERGE: Layout = Layout {
             ReadWrite,
             "converge.wgsl",
         ),
-        // Ranged (`ConvergeParams::ranged`): every block's (first, end)
-        // sample of its last round, the trace kernel's `block_ranges`; its
-        // pixels have `end` samples. Else unread.
-        bind("count_ranges", "array<vec2<u32>>", Read, "converge.wgsl"),
+        // Ranged (`ConvergeParams::ranged`): every block's (first, end,
+        // ..) sample of its last round, the trace kernel's `block_ranges`;
+        // its pixels have `end` samples. Else unread.
+        bind("count_ranges", "array<vec4<u32>>", Read, "converge.wgsl"),
+    ],
+};
+
+/// The error-optimal mode's decision between its rounds on the GPU
+/// (allocate.wgsl).
+pub const ALLOCATE: Layout = Layout {
+    group: 0,
+    bindings: &[
+        bind("params", "AllocateParams", Uniform, "allocate.wgsl"),
+        // converge.wgsl's `block_stats` (ranged).
+        bind("block_stats", "array<vec4<u32>>", Read, "allocate.wgsl"),
+        // The trace kernel's `block_ranges` over every block of the film:
+        // read as the round's, written as the next round's.
+        bind("ranges", "array<vec4<u32>>", ReadWrite, "allocate.wgsl"),
+        // The next round's slices' indirect dispatch arguments, three
+        // words each.
+        bind("dispatch_args", "array<u32>", ReadWrite, "allocate.wgsl"),
+        // One entry a round (layout.rs RoundLog).
+        bind("round_log", "array<RoundLog>", ReadWrite, "allocate.wgsl"),
     ],
 };
