@@ -2445,9 +2445,9 @@ fn gpu_rmse_rounds_decided_on_the_gpu_take_the_hosts_decisions() {
     // the same rounds decided on the host (`RmseSchedule`, f64, from the
     // read-back film of each round's ranged render): the same counts, the
     // same film, and each round's report what the host's says (RMSE and
-    // target within f32 summing). Also in slices and submissions far
-    // smaller than a round, so that a round's indirect dispatches span
-    // several parameter batches.
+    // target within f32 summing). Also in slices far smaller than a
+    // round, so that a round's indirect dispatches span several
+    // submissions.
     use tracer_core::adaptive::optimal::{
         Costs, RmseSchedule, RmseSettings, block_stats, image_mean,
     };
@@ -2461,8 +2461,9 @@ fn gpu_rmse_rounds_decided_on_the_gpu_take_the_hosts_decisions() {
             Some(&g.adapter().index.to_string()),
             GpuOptions {
                 workgroup: (16, 4),
-                dispatch_pixel_samples: 64 * 4 * 16,
-                submit_pixel_samples: 64 * 4 * 16 * 4,
+                // Four 4-sample items a slice: up to 192 slices a round,
+                // in submissions of 64.
+                dispatch_pixel_samples: 64 * 4 * 4,
                 ..GpuOptions::default()
             },
         )

@@ -26,7 +26,7 @@ use wgpu::util::DeviceExt as _;
 
 use super::grid::Grid;
 use super::layout::{AllocateParams, ConvergeParams, DispatchParams, GpuBlockStats, RoundLog};
-use super::plan::{LISTED_CHUNK, dispatch_work, listed_groups, listed_slice, slice_items};
+use super::plan::{LISTED_CHUNK, listed_groups, listed_slice, slice_items};
 use super::{
     GpuError, GpuOptions, GpuRenderer, Outputs, PARAMS_SLOTS, PARAMS_STRIDE, entire, sized, wgsl,
 };
@@ -299,7 +299,8 @@ impl GpuRenderer {
             ],
         });
 
-        // The slices' parameters, in submissions within the budgets.
+        // The slices' parameters, PARAMS_SLOTS a submission (the dispatch
+        // budget bounds each slice; how many have work the GPU decides).
         let rect = grid.rect();
         let slice_params: Vec<DispatchParams> = (0..slices)
             .map(|s| {
@@ -313,9 +314,6 @@ impl GpuRenderer {
                 )
             })
             .collect();
-        let batch = (options.submit_pixel_samples / dispatch_work(&slice_params[0]).max(1))
-            .clamp(1, PARAMS_SLOTS as u64) as usize;
-        let batches: Vec<&[DispatchParams]> = slice_params.chunks(batch).collect();
         let params_of = |batch: &[DispatchParams]| {
             let mut bytes = vec![0u8; batch.len() * PARAMS_STRIDE as usize];
             for (i, d) in batch.iter().enumerate() {
@@ -324,11 +322,23 @@ impl GpuRenderer {
             }
             bytes
         };
-        if batches.len() == 1 {
+        let one_batch = slice_params.len() <= PARAMS_SLOTS;
+        if one_batch {
             self.queue
-                .write_buffer(&out.params, 0, &params_of(batches[0]));
+                .write_buffer(&out.params, 0, &params_of(&slice_params));
         }
+        // A block's count after round r is at most c_r (c_0 = min, c_{r+1}
+        // the step from c_r towards max: `step` grows with the count), and
+        // a round adds at most its blocks' counts after it: the slices
+        // round r may need.
+        let mut most = settings.min_samples;
+        let mut slices_of = move || {
+            let items = n as u64 * most.div_ceil(LISTED_CHUNK) as u64;
+            most = settings.step(most, settings.max_samples);
+            items.div_ceil(per as u64).clamp(1, slices as u64) as usize
+        };
 
+        let mut capacity = Vec::new();
         let mut reported = 0u64;
         let mut pending: Option<(u32, wgpu::SubmissionIndex)> = None;
         let mut done = false;
@@ -340,9 +350,13 @@ impl GpuRenderer {
                 0,
                 bytemuck::bytes_of(&allocate_params),
             );
+            let used = slices_of();
+            capacity.push(used as u64 * per as u64);
+            let batches: Vec<&[DispatchParams]> =
+                slice_params[..used].chunks(PARAMS_SLOTS).collect();
             let mut index = None;
             for (k, b) in batches.iter().enumerate() {
-                if batches.len() > 1 {
+                if !one_batch {
                     self.queue.write_buffer(&out.params, 0, &params_of(b));
                 }
                 let mut enc = self
@@ -358,7 +372,7 @@ impl GpuRenderer {
                     pass.set_pipeline(pipeline);
                     for i in 0..b.len() {
                         pass.set_bind_group(0, scene_group, &[(i as u64 * PARAMS_STRIDE) as u32]);
-                        let slice = (k * batch + i) as u64;
+                        let slice = (k * PARAMS_SLOTS + i) as u64;
                         pass.dispatch_workgroups_indirect(&args, slice * 12);
                         *dispatches += 1;
                     }
@@ -396,7 +410,16 @@ impl GpuRenderer {
             }
             let index = index.expect("a batch at least");
             if let Some(before) = pending.replace((round, index)) {
-                done = self.report_rmse_round(resident, &reads, before, &mut reported, progress)?;
+                let next =
+                    self.report_rmse_round(resident, &reads, before, &mut reported, progress)?;
+                // The round queued after it must have held its items.
+                if next as u64 > capacity[round as usize] {
+                    return Err(GpuError::Device(format!(
+                        "error-optimal round {round} has {next} items, over the {} its dispatches cover",
+                        capacity[round as usize]
+                    )));
+                }
+                done = next == 0;
             }
             round += 1;
         }
@@ -421,7 +444,7 @@ impl GpuRenderer {
     }
 
     /// Reads round `round`'s log (its submission `index`), reports it and
-    /// its pixel-samples; whether it was the last round with samples.
+    /// its pixel-samples; the next round's items (0: the render is done).
     fn report_rmse_round(
         &self,
         resident: &RmseResident<'_>,
@@ -429,7 +452,7 @@ impl GpuRenderer {
         (round, index): (u32, wgpu::SubmissionIndex),
         reported: &mut u64,
         progress: &(dyn Fn(u64) + Sync),
-    ) -> Result<bool, GpuError> {
+    ) -> Result<u32, GpuError> {
         let log = self.read_after(
             &reads[round as usize % 2],
             size_of::<RoundLog>() as u64,
@@ -446,7 +469,7 @@ impl GpuRenderer {
             estimated_rmse: (log.estimated_mse as f64).sqrt(),
             target_rmse: (log.target_mse as f64).sqrt(),
         });
-        Ok(log.next_items == 0)
+        Ok(log.next_items)
     }
 
     /// Sets up the rounds of `resident` over the film `rect` whose sums are
