@@ -2343,6 +2343,42 @@ fn gpu_blocks_over_their_own_ranges_in_one_grid_equal_one_round_per_range() {
     assert!(got.counts.contains(&0) && got.counts.contains(&32));
 }
 
+/// The distributed scene at 61x43 in the error-optimal mode on `r`
+/// (4..64 samples, the targets given): its settings, frame, film and
+/// round reports.
+fn gpu_rmse_render(
+    r: &tracer_core::render::Renderer,
+    target: f64,
+    relative: f64,
+) -> (
+    tracer_core::adaptive::optimal::RmseSettings,
+    PreparedFrame,
+    Film,
+    Vec<tracer_core::render::adaptive::RmseRound>,
+) {
+    let desc = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();
+    let o = tracer_core::adaptive::optimal::RmseSettings {
+        target_rmse: target,
+        relative_rmse: relative,
+        min_samples: 4,
+        max_samples: 64,
+    };
+    let base = RenderSettings {
+        width: 61,
+        height: 43,
+        ..desc.render
+    };
+    let prepared =
+        PreparedFrame::build(&desc, &o.render_settings(base), 0, Precision::F32).unwrap();
+    let mut reports = vec![];
+    let film =
+        tracer_core::render::adaptive::render_rmse(r, &prepared, 0, &o, &|_| {}, &mut |rep| {
+            reports.push(*rep)
+        })
+        .unwrap_or_else(|e| panic!("GPU error-optimal render: {e}"));
+    (o, prepared, film, reports)
+}
+
 #[test]
 fn gpu_rmse_rounds_keep_the_film_on_the_gpu_and_estimate_as_the_host() {
     // The error-optimal mode on the GPU keeps its film there and decides
@@ -2352,31 +2388,14 @@ fn gpu_rmse_rounds_keep_the_film_on_the_gpu_and_estimate_as_the_host() {
     // host's f64 statistics of that film say: each round's estimated RMSE
     // and the image mean, within f32 summing.
     use tracer_core::adaptive::BlockMask;
-    use tracer_core::adaptive::optimal::{RmseSettings, block_stats, estimated_mse, image_mean};
+    use tracer_core::adaptive::optimal::{block_stats, estimated_mse, image_mean};
     use tracer_core::render::adaptive;
     if gpu().is_none() {
         return;
     }
     let r = gpu_renderer().expect("the adapter opened once already");
-    let desc = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();
     for (target, relative) in [(0.01, 0.0), (0.0, 0.02)] {
-        let o = RmseSettings {
-            target_rmse: target,
-            relative_rmse: relative,
-            min_samples: 4,
-            max_samples: 64,
-        };
-        let base = RenderSettings {
-            width: 61,
-            height: 43,
-            ..desc.render
-        };
-        let prepared =
-            PreparedFrame::build(&desc, &o.render_settings(base), 0, Precision::F32).unwrap();
-        let mut reports = vec![];
-        let film =
-            adaptive::render_rmse(r, &prepared, 0, &o, &|_| {}, &mut |rep| reports.push(*rep))
-                .unwrap_or_else(|e| panic!("GPU error-optimal render: {e}"));
+        let (o, prepared, film, reports) = gpu_rmse_render(r, target, relative);
         let label = format!("target {target}, relative {relative}");
         eprintln!(
             "{label}: {} rounds, last {:?}",
@@ -2448,9 +2467,7 @@ fn gpu_rmse_rounds_decided_on_the_gpu_take_the_hosts_decisions() {
     // target within f32 summing). Also in slices far smaller than a
     // round, so that a round's indirect dispatches span several
     // submissions.
-    use tracer_core::adaptive::optimal::{
-        Costs, RmseSchedule, RmseSettings, block_stats, image_mean,
-    };
+    use tracer_core::adaptive::optimal::{Costs, RmseSchedule, block_stats, image_mean};
     use tracer_core::render::adaptive;
     let Some(g) = gpu() else {
         return;
@@ -2469,29 +2486,12 @@ fn gpu_rmse_rounds_decided_on_the_gpu_take_the_hosts_decisions() {
         )
         .unwrap(),
     ));
-    let desc = SceneDesc::load(examples_dir().join("distributed.toml")).unwrap();
     for (r, target, relative) in [
         (shared, 0.01, 0.0),
         (shared, 0.0, 0.02),
         (&small, 0.006, 0.0),
     ] {
-        let o = RmseSettings {
-            target_rmse: target,
-            relative_rmse: relative,
-            min_samples: 4,
-            max_samples: 64,
-        };
-        let base = RenderSettings {
-            width: 61,
-            height: 43,
-            ..desc.render
-        };
-        let prepared =
-            PreparedFrame::build(&desc, &o.render_settings(base), 0, Precision::F32).unwrap();
-        let mut reports = vec![];
-        let film =
-            adaptive::render_rmse(r, &prepared, 0, &o, &|_| {}, &mut |rep| reports.push(*rep))
-                .unwrap_or_else(|e| panic!("GPU error-optimal render: {e}"));
+        let (o, prepared, film, reports) = gpu_rmse_render(r, target, relative);
         let rect = film.rect;
         let mut costs = Costs::new(rect);
         let mut schedule = RmseSchedule::new(o, costs.rays.len());
