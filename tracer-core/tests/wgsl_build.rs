@@ -23,10 +23,11 @@ fn modules_with(name: &str, text: &str) -> Vec<wgsl::Module> {
 fn every_assembled_module_validates() {
     let modules = wgsl::all_modules(wgsl::FILES);
     // 4 scene kernel variants, each Whitted and path, the resolve, the
-    // packing and the adaptive convergence test.
+    // packing, the adaptive convergence test and the error-optimal mode's
+    // allocation.
     assert_eq!(
         modules.len(),
-        11,
+        12,
         "{:?}",
         modules.iter().map(|m| &m.name).collect::<Vec<_>>()
     );
