@@ -2320,6 +2320,29 @@ fn gpu_blocks_over_their_own_ranges_in_one_grid_equal_one_round_per_range() {
     let got = g
         .render_blocks(&prepared, 0, rect, &from, &to, &|_| {})
         .unwrap();
+    // The same in slices of two 4-sample items: the film, and progress
+    // adding up to every pixel-sample once.
+    let small = GpuRenderer::new(
+        Some(&g.adapter().index.to_string()),
+        GpuOptions {
+            dispatch_pixel_samples: 64 * 4 * 2,
+            ..GpuOptions::default()
+        },
+    )
+    .unwrap();
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let sliced = small
+        .render_blocks(&prepared, 0, rect, &from, &to, &|n| {
+            done.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+        })
+        .unwrap();
+    assert_eq!(sliced.sums, got.sums, "sliced sums");
+    assert_eq!(sliced.squares, got.squares, "sliced squares");
+    assert_eq!(
+        done.into_inner(),
+        got.counts.iter().map(|&n| n as u64).sum::<u64>(),
+        "progress over the slices"
+    );
     let mut want = Film::with_squares(rect);
     let mut ranges: std::collections::BTreeMap<(u32, u32), BlockMask> = Default::default();
     for i in 0..blocks {

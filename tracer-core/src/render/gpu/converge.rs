@@ -28,7 +28,8 @@ use super::grid::Grid;
 use super::layout::{AllocateParams, ConvergeParams, DispatchParams, GpuBlockStats, RoundLog};
 use super::plan::{LISTED_CHUNK, listed_groups, listed_slice, slice_items};
 use super::{
-    GpuError, GpuOptions, GpuRenderer, Outputs, PARAMS_SLOTS, PARAMS_STRIDE, entire, sized, wgsl,
+    GpuError, GpuOptions, GpuRenderer, Outputs, PARAMS_SLOTS, PARAMS_STRIDE, entire, params_bytes,
+    sized, wgsl,
 };
 use crate::adaptive::optimal::RmseStep;
 use crate::adaptive::{AdaptiveSettings, BLOCK, BlockMask, BlockStatus, summarize_blocks};
@@ -145,6 +146,25 @@ impl GpuRenderer {
         }))
     }
 
+    /// A pass of `pipeline` with `group` over `groups` workgroups (rows of
+    /// them past the per-dimension limit).
+    fn encode_pass(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        label: &str,
+        pipeline: &wgpu::ComputePipeline,
+        group: &wgpu::BindGroup,
+        groups: u32,
+    ) {
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, group, &[]);
+        self.dispatch_groups(&mut pass, groups);
+    }
+
     /// The convergence kernel over every block of the group's film, then
     /// its statistics copied to `read`; submitted.
     fn encode_stats(
@@ -161,15 +181,7 @@ impl GpuRenderer {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("tessera converge"),
             });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("tessera converge"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&c.pipeline);
-            pass.set_bind_group(0, group, &[]);
-            self.dispatch_groups(&mut pass, blocks);
-        }
+        self.encode_pass(&mut enc, "tessera converge", &c.pipeline, group, blocks);
         enc.copy_buffer_to_buffer(stats, 0, read, 0, None);
         Ok(self.queue.submit([enc.finish()]))
     }
@@ -314,18 +326,10 @@ impl GpuRenderer {
                 )
             })
             .collect();
-        let params_of = |batch: &[DispatchParams]| {
-            let mut bytes = vec![0u8; batch.len() * PARAMS_STRIDE as usize];
-            for (i, d) in batch.iter().enumerate() {
-                let at = i * PARAMS_STRIDE as usize;
-                bytes[at..at + size_of::<DispatchParams>()].copy_from_slice(bytemuck::bytes_of(d));
-            }
-            bytes
-        };
         let one_batch = slice_params.len() <= PARAMS_SLOTS;
         if one_batch {
             self.queue
-                .write_buffer(&out.params, 0, &params_of(&slice_params));
+                .write_buffer(&out.params, 0, &params_bytes(&slice_params));
         }
         // A block's count after round r is at most c_r (c_0 = min, c_{r+1}
         // the step from c_r towards max: `step` grows with the count), and
@@ -357,7 +361,7 @@ impl GpuRenderer {
             let mut index = None;
             for (k, b) in batches.iter().enumerate() {
                 if !one_batch {
-                    self.queue.write_buffer(&out.params, 0, &params_of(b));
+                    self.queue.write_buffer(&out.params, 0, &params_bytes(b));
                 }
                 let mut enc = self
                     .device
@@ -379,24 +383,21 @@ impl GpuRenderer {
                 }
                 if k + 1 == batches.len() {
                     // The round's decision, after its last slice.
-                    {
-                        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                            label: Some("tessera converge"),
-                            timestamp_writes: None,
-                        });
-                        pass.set_pipeline(&c.pipeline);
-                        pass.set_bind_group(0, &converge_group, &[]);
-                        self.dispatch_groups(&mut pass, n as u32);
-                    }
-                    {
-                        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                            label: Some("tessera allocate"),
-                            timestamp_writes: None,
-                        });
-                        pass.set_pipeline(&c.allocate);
-                        pass.set_bind_group(0, &allocate_group, &[]);
-                        pass.dispatch_workgroups(1, 1, 1);
-                    }
+                    let converge = &converge_group;
+                    self.encode_pass(
+                        &mut enc,
+                        "tessera converge",
+                        &c.pipeline,
+                        converge,
+                        n as u32,
+                    );
+                    self.encode_pass(
+                        &mut enc,
+                        "tessera allocate",
+                        &c.allocate,
+                        &allocate_group,
+                        1,
+                    );
                     enc.copy_buffer_to_buffer(
                         &log,
                         round as u64 * log_bytes,

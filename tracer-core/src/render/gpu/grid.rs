@@ -115,8 +115,13 @@ impl<'a> Grid<'a> {
         };
         match (self.mask, &self.ranges) {
             (None, _) => film.width as u64 * d.rows as u64 * n,
-            // Each listed block's items among the dispatch's, as samples.
-            (Some(_), Some(rs)) => (0..self.blocks.len())
+            // The items of the listed blocks the dispatch's items overlap
+            // (from the last block starting at or before its first), as
+            // samples.
+            (Some(_), Some(rs)) => (rs[..self.blocks.len()]
+                .partition_point(|r| r[2] <= d.sample_start)
+                .saturating_sub(1)..self.blocks.len())
+                .take_while(|&k| rs[k][2] < d.sample_end)
                 .map(|k| {
                     let [first, end, item, _] = rs[k];
                     let (a, b) = (d.sample_start.max(item), d.sample_end.min(rs[k + 1][2]));

@@ -72,6 +72,17 @@ use crate::film::{Film, Rect, SampleRange, WorkRegion};
 const PARAMS_STRIDE: u64 = 256;
 /// Dispatch parameter slots per submission.
 const PARAMS_SLOTS: usize = 64;
+/// The params buffer's bytes for one submission's dispatches, each at its
+/// slot ([`PARAMS_STRIDE`] apart).
+fn params_bytes(group: &[layout::DispatchParams]) -> Vec<u8> {
+    let mut bytes = vec![0u8; group.len() * PARAMS_STRIDE as usize];
+    for (i, d) in group.iter().enumerate() {
+        let at = i * PARAMS_STRIDE as usize;
+        bytes[at..at + size_of::<layout::DispatchParams>()].copy_from_slice(bytemuck::bytes_of(d));
+    }
+    bytes
+}
+
 /// How long to wait for one submission before calling the device hung.
 const SUBMISSION_TIMEOUT: Duration = Duration::from_secs(120);
 

@@ -88,27 +88,11 @@ fn square_words(f: vec2<u32>) -> vec3<u32> {
     return vec3<u32>(l.x, w1, w2);
 }
 
-// Adds the square of a fixed-point sample to the 128-bit sum at sums[base].
-fn add_square(base: u32, f: vec2<u32>) {
-    let q = square_words(f);
-    add_carrying(base, 0u, q.x);
-    add_carrying(base, 1u, q.y);
-    add_carrying(base, 2u, q.z);
-}
-
 // Adds one sample's colour to the pixel whose sums start at sums[word]
 // (and its squares, in an adaptive round).
 fn add_sample(word: u32, c: vec3<f32>) {
-    for (var ch = 0u; ch < 3u; ch++) {
-        let f = to_fixed(c[ch]);
-        add_fixed_pair(word + 2u * ch, f);
-        if (ADAPTIVE) {
-            add_square(word + 6u + 4u * ch, f);
-        }
-    }
+    add_sums(word, accumulate(PixelSums(), c));
 }
-
-const NO_SAMPLE: u32 = 0xffffffffu;
 
 // A pixel's sums over some of its samples, kept in registers before they
 // go to the film in one go (a listed dispatch's invocation: several

@@ -12,7 +12,7 @@ use super::wgsl;
 use super::{
     GpuError, GpuOptions, GpuRenderer, GpuStats, LinearImage, Outputs, PARAMS_SLOTS, PARAMS_STRIDE,
     PackedSums, Readout, Rendered, Resolve, SceneState, Srgb8Image, WaveBuffers, WavePipelines,
-    check_size, entire, sized,
+    check_size, entire, params_bytes, sized,
 };
 use crate::film::{Film, RayCounts, Rect, SampleRange};
 
@@ -216,13 +216,8 @@ impl GpuRenderer {
             }
             let groups = &plans[round];
             for (g, group) in groups.iter().enumerate() {
-                let mut params = vec![0u8; group.len() * PARAMS_STRIDE as usize];
-                for (i, d) in group.iter().enumerate() {
-                    let at = i * PARAMS_STRIDE as usize;
-                    params[at..at + size_of::<DispatchParams>()]
-                        .copy_from_slice(bytemuck::bytes_of(d));
-                }
-                self.queue.write_buffer(&out.params, 0, &params);
+                self.queue
+                    .write_buffer(&out.params, 0, &params_bytes(group));
                 let mut enc = self
                     .device
                     .create_command_encoder(&wgpu::CommandEncoderDescriptor {
