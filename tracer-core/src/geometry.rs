@@ -183,6 +183,56 @@ impl<R: Real> SpherePack<R> {
     }
 }
 
+/// Four planes in structure-of-arrays form, for the loops that test a ray
+/// against every plane (planes are unbounded, so they stay outside the
+/// tree): one division for four planes. Each lane does `Plane::intersect`'s
+/// operations in its order, so a lane's distance is the scalar test's, bit
+/// for bit.
+#[derive(Clone, Copy, Debug)]
+pub struct PlanePack<R: Real> {
+    pub nx: R::V4,
+    pub ny: R::V4,
+    pub nz: R::V4,
+    pub distance: R::V4,
+}
+
+impl<R: Real> PlanePack<R> {
+    /// Packs planes four by four; pack `i` lane `j` is plane `4i + j`. A
+    /// missing plane's lanes are zero: 0/0, which no test accepts.
+    pub fn pack(planes: &[Plane<R>]) -> Vec<Self> {
+        planes
+            .chunks(4)
+            .map(|c| {
+                let lane = |f: &dyn Fn(&Plane<R>) -> R| {
+                    let mut a = [R::ZERO; 4];
+                    for (j, p) in c.iter().enumerate() {
+                        a[j] = f(p);
+                    }
+                    R::V4::from_array(a)
+                };
+                PlanePack {
+                    nx: lane(&|p| p.normal.x()),
+                    ny: lane(&|p| p.normal.y()),
+                    nz: lane(&|p| p.normal.z()),
+                    distance: lane(&|p| p.distance),
+                }
+            })
+            .collect()
+    }
+
+    /// Per-lane hit distance, +inf where there is none in (0, t_max) or
+    /// where the lane is `self_lane` (the plane the ray starts on; 4: none).
+    #[inline(always)]
+    pub fn intersect(&self, o: [R::V4; 3], d: [R::V4; 3], t_max: R, self_lane: usize) -> R::V4 {
+        let denom = self.nx * d[0] + self.ny * d[1] + self.nz * d[2];
+        let t = (self.distance - (self.nx * o[0] + self.ny * o[1] + self.nz * o[2])) / denom;
+        // A ray parallel to a plane gives +-inf or NaN: both fail the test.
+        let inf = R::V4::splat(R::INFINITY);
+        let valid = t.cmpgt(R::V4::splat(R::ZERO)) & t.cmplt(R::V4::splat(t_max));
+        R::V4::select(R::V4::lane(self_lane), inf, R::V4::select(valid, t, inf))
+    }
+}
+
 impl<R: Real> Plane<R> {
     /// Nearest hit in (0, t_max). A ray starting on the plane never hits it again.
     #[inline(always)]
@@ -243,6 +293,61 @@ mod tests {
             }
         }
         assert!(hits > 300, "the rays should hit something: {hits}");
+    }
+
+    #[test]
+    fn plane_packs_give_the_scalar_tests_bits() {
+        // Six planes (two packs, the second half empty), rays from inside
+        // and outside the box they make, every plane the skipped one in turn.
+        let planes: Vec<Plane<f32>> = [
+            ([0.0, 1.0, 0.0], 0.0),
+            ([0.0, -1.0, 0.0], -2.0),
+            ([0.0, 0.0, -1.0], -1.0),
+            ([1.0, 0.0, 0.0], -1.0),
+            ([-0.6, 0.0, 0.8], -1.3),
+            ([0.267, 0.535, 0.802], 0.7),
+        ]
+        .iter()
+        .map(|&(n, d)| Plane {
+            normal: glam::Vec3A::from_array(n),
+            distance: d,
+            material: 0,
+        })
+        .collect();
+        let packs = PlanePack::pack(&planes);
+        assert_eq!(packs.len(), 2);
+        let (mut hits, mut misses) = (0, 0);
+        for k in 0..3000u32 {
+            let a = k as f32 * 0.013;
+            let dir = glam::Vec3A::new(a.sin(), (a * 1.7).cos(), (a * 0.3).cos() - 0.5).normalize();
+            let origin = glam::Vec3A::new((a * 2.3).sin() * 3.0, 1.0, (a * 0.7).cos());
+            let ray = Ray::<f32>::new(origin, dir);
+            let s = |v: glam::Vec3A| [v.x, v.y, v.z].map(|x: f32| glam::Vec4::new(x, x, x, x));
+            let t_max = if k % 3 == 0 { 2.5 } else { f32::INFINITY };
+            for skip in 0..=planes.len() {
+                for (i, p) in planes.iter().enumerate() {
+                    let want = p.intersect(&ray, t_max, i == skip);
+                    let lane = if skip / 4 == i / 4 { skip % 4 } else { 4 };
+                    let got = packs[i / 4]
+                        .intersect(s(origin), s(dir), t_max, lane)
+                        .to_array()[i % 4];
+                    match want {
+                        Some(t) => {
+                            hits += 1;
+                            assert_eq!(t.to_bits(), got.to_bits(), "plane {i}")
+                        }
+                        None => {
+                            misses += 1;
+                            assert_eq!(got, f32::INFINITY, "plane {i}")
+                        }
+                    }
+                }
+            }
+        }
+        assert!(
+            hits > 10_000 && misses > 10_000,
+            "{hits} hits, {misses} misses"
+        );
     }
 
     // The scalar sphere and plane tests against a table of cases, with the

@@ -19,7 +19,7 @@ mod triangles;
 use crate::bsdf::Bsdf;
 use crate::bvh::Bvh;
 use crate::distributed::{self, Distributed, Lens, MovingMesh, MovingSphere, PathScene, Timing};
-use crate::geometry::{Plane, Sphere, SpherePack};
+use crate::geometry::{Plane, PlanePack, Sphere, SpherePack};
 use crate::math::{Ray, Real, Vector3};
 use crate::scene::{FILE_MATERIALS, Integrator, ObjectDesc, RenderSettings, SceneDesc, Vec3};
 use crate::triangle::{Triangle, TriangleShading, gather, gather_all};
@@ -95,6 +95,8 @@ pub struct World<R: Real> {
     /// The same spheres four to a pack, for the intersection loops.
     pub sphere_packs: Vec<SpherePack<R>>,
     pub planes: Vec<Plane<R>>,
+    /// The same planes four to a pack, for the intersection loops.
+    pub plane_packs: Vec<PlanePack<R>>,
     /// Mesh triangles' vertex positions (shared by the triangles that
     /// meet there) ...
     pub(crate) positions: Vec<R::V3>,
@@ -428,6 +430,7 @@ impl<R: Real> World<R> {
         let mut world = World {
             sphere_packs: SpherePack::pack(&spheres),
             spheres,
+            plane_packs: PlanePack::pack(&planes),
             planes,
             positions: tris.positions,
             corners: tris.corners,
@@ -484,6 +487,7 @@ impl<R: Real> World<R> {
                         sphere_packs: Vec::new(),
                         spheres: Vec::new(),
                         planes: Vec::new(),
+                        plane_packs: Vec::new(),
                         positions: set.positions,
                         corners: set.corners,
                         unpacked_triangles: Vec::new(),
@@ -702,6 +706,7 @@ impl<R: Real> World<R> {
             spheres: Vec::new(),
             sphere_packs: Vec::new(),
             planes: Vec::new(),
+            plane_packs: Vec::new(),
             positions: Vec::new(),
             corners: Vec::new(),
             unpacked_triangles: Vec::new(),
