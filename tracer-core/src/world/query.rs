@@ -17,23 +17,29 @@ use super::World;
 const MAX_CUTOUT_LAYERS: usize = 64;
 
 impl<R: Real> World<R> {
-    /// Lane of the starting sphere within pack `pack`, or 4 (none).
+    /// Lane of `skip` (the primitive a ray starts on) within pack `pack`
+    /// of the primitives of `kind` (spheres or planes), or 4 (none).
     #[inline(always)]
-    fn self_lane(skip: PrimId, pack: usize) -> usize {
-        if skip.kind() == PrimId::SPHERE && skip.index() / 4 == pack {
+    fn self_lane(skip: PrimId, kind: u32, pack: usize) -> usize {
+        if skip.kind() == kind && skip.index() / 4 == pack {
             skip.index() % 4
         } else {
             4
         }
     }
 
-    /// Lane of the plane `skip` in plane pack `pack`, or 4 (none).
+    /// Takes each finite lane of `t` (pack `pack` of the primitives of
+    /// `kind`) that is strictly nearer than `best`, in lane order: the
+    /// scalar loop's answer, ties to the lower index.
     #[inline(always)]
-    fn self_plane_lane(skip: PrimId, pack: usize) -> usize {
-        if skip.kind() == PrimId::PLANE && skip.index() / 4 == pack {
-            skip.index() % 4
-        } else {
-            4
+    fn take_nearer(t: R::V4, kind: u32, pack: usize, best: &mut R, id: &mut PrimId) {
+        if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
+            for (j, tj) in t.to_array().into_iter().enumerate() {
+                if tj < *best {
+                    *best = tj;
+                    *id = PrimId::new(kind, (pack * 4 + j) as u32);
+                }
+            }
         }
     }
 
@@ -49,15 +55,8 @@ impl<R: Real> World<R> {
         skip: PrimId,
     ) -> (R, PrimId) {
         for (pi, pack) in self.plane_packs.iter().enumerate() {
-            let t = pack.intersect(o, d, best, Self::self_plane_lane(skip, pi));
-            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
-                for (j, tj) in t.to_array().into_iter().enumerate() {
-                    if tj < best {
-                        best = tj;
-                        id = PrimId::new(PrimId::PLANE, (pi * 4 + j) as u32);
-                    }
-                }
-            }
+            let t = pack.intersect(o, d, best, Self::self_lane(skip, PrimId::PLANE, pi));
+            Self::take_nearer(t, PrimId::PLANE, pi, &mut best, &mut id);
         }
         (best, id)
     }
@@ -66,7 +65,7 @@ impl<R: Real> World<R> {
     #[inline(always)]
     fn plane_blocks(&self, (o, d): ([R::V4; 3], [R::V4; 3]), t_max: R, skip: PrimId) -> bool {
         self.plane_packs.iter().enumerate().any(|(pi, pack)| {
-            let t = pack.intersect(o, d, t_max, Self::self_plane_lane(skip, pi));
+            let t = pack.intersect(o, d, t_max, Self::self_lane(skip, PrimId::PLANE, pi));
             R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0
         })
     }
@@ -303,16 +302,9 @@ impl<R: Real> World<R> {
         let mut id = PrimId::NONE;
         let (o, d) = Self::splat_ray(ray);
         for (pi, pack) in self.sphere_packs.iter().enumerate() {
-            let t = pack.intersect(o, d, best, Self::self_lane(skip, pi));
+            let t = pack.intersect(o, d, best, Self::self_lane(skip, PrimId::SPHERE, pi));
             // Every finite lane is closer than `best`; take the nearest.
-            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
-                for (j, tj) in t.to_array().into_iter().enumerate() {
-                    if tj < best {
-                        best = tj;
-                        id = PrimId::new(PrimId::SPHERE, (pi * 4 + j) as u32);
-                    }
-                }
-            }
+            Self::take_nearer(t, PrimId::SPHERE, pi, &mut best, &mut id);
         }
         let (best, id) = self.nearest_plane((o, d), best, id, skip);
         (id != PrimId::NONE).then_some((best, id))
@@ -338,7 +330,7 @@ impl<R: Real> World<R> {
         }
         let (o, d) = Self::splat_ray(ray);
         for (pi, pack) in self.sphere_packs.iter().enumerate() {
-            let t = pack.intersect(o, d, t_max, Self::self_lane(skip, pi));
+            let t = pack.intersect(o, d, t_max, Self::self_lane(skip, PrimId::SPHERE, pi));
             if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
                 return true;
             }
