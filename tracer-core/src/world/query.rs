@@ -28,12 +28,18 @@ impl<R: Real> World<R> {
         }
     }
 
+    /// Whether any lane of a pack's distances is a hit (finite).
+    #[inline(always)]
+    fn any_hit(t: R::V4) -> bool {
+        R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0
+    }
+
     /// Takes each finite lane of `t` (pack `pack` of the primitives of
     /// `kind`) that is strictly nearer than `best`, in lane order: the
     /// scalar loop's answer, ties to the lower index.
     #[inline(always)]
     fn take_nearer(t: R::V4, kind: u32, pack: usize, best: &mut R, id: &mut PrimId) {
-        if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
+        if Self::any_hit(t) {
             for (j, tj) in t.to_array().into_iter().enumerate() {
                 if tj < *best {
                     *best = tj;
@@ -66,7 +72,7 @@ impl<R: Real> World<R> {
     fn plane_blocks(&self, (o, d): ([R::V4; 3], [R::V4; 3]), t_max: R, skip: PrimId) -> bool {
         self.plane_packs.iter().enumerate().any(|(pi, pack)| {
             let t = pack.intersect(o, d, t_max, Self::self_lane(skip, PrimId::PLANE, pi));
-            R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0
+            Self::any_hit(t)
         })
     }
 
@@ -331,7 +337,7 @@ impl<R: Real> World<R> {
         let (o, d) = Self::splat_ray(ray);
         for (pi, pack) in self.sphere_packs.iter().enumerate() {
             let t = pack.intersect(o, d, t_max, Self::self_lane(skip, PrimId::SPHERE, pi));
-            if R::V4::bitmask(t.cmplt(R::V4::splat(R::INFINITY))) != 0 {
+            if Self::any_hit(t) {
                 return true;
             }
         }
@@ -515,10 +521,7 @@ impl<R: Real> World<R> {
                 s.intersect(ray, t_max, PrimId::new(PrimId::SPHERE, i as u32) == skip)
                     .is_some()
             })
-            || self.planes.iter().enumerate().any(|(i, p)| {
-                p.intersect(ray, t_max, PrimId::new(PrimId::PLANE, i as u32) == skip)
-                    .is_some()
-            })
+            || self.plane_blocks(Self::splat_ray(ray), t_max, skip)
     }
 
     /// Point snapped onto the triangle's plane, its outward geometric normal, and material.

@@ -383,12 +383,11 @@ impl GpuRenderer {
                 }
                 if k + 1 == batches.len() {
                     // The round's decision, after its last slice.
-                    let converge = &converge_group;
                     self.encode_pass(
                         &mut enc,
                         "tessera converge",
                         &c.pipeline,
-                        converge,
+                        &converge_group,
                         n as u32,
                     );
                     self.encode_pass(
