@@ -723,8 +723,9 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
         s
     };
     // On the GPU worker: its units' blocks each over their own range (one
-    // ranged grid a lease), no runs (its blocks cost the same), the
-    // frame-wide rounds to the target.
+    // ranged grid a lease), a run a block with the rays the GPU counted
+    // (checked by the coordinator, `check_runs`), the frame-wide rounds to
+    // the target.
     let s = image_job();
     assert!(
         s.samples_done > 64 * 48 * 4 && s.samples_done < 64 * 48 * 32,
@@ -769,8 +770,8 @@ fn a_gpu_worker_renders_bit_identical_to_tessera_render_on_the_gpu_and_works_bes
         got.len() / 3
     );
 
-    // The image mode on both: the CPU worker's runs are booked, the GPU
-    // worker's blocks cost their mean (`Costs::per_block`).
+    // The image mode on both: the CPU worker's runs and the GPU worker's
+    // (a block each) are booked alike.
     image_job();
 }
 

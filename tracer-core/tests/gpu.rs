@@ -2522,10 +2522,23 @@ fn gpu_rmse_rounds_decided_on_the_gpu_take_the_hosts_decisions() {
         let mut steps = vec![];
         while let Some((from, to)) = schedule.pending() {
             let (from, to) = (from.to_vec(), to.to_vec());
-            adaptive::render_blocks(r, &prepared, 0, &from, &to, &mut host, &mut costs, &|_| {})
-                .unwrap();
-            // The GPU measures no cost per block: every block costs 1.
-            let stats = block_stats(&host, rect, None);
+            // A ranged GPU round reports each block's rays (the cost the
+            // chained rounds' allocate.wgsl reads from the trace kernel):
+            // one run a block, adding up to the round's rays.
+            let round =
+                adaptive::render_ranges(r, &prepared, 0, rect, &from, &to, &|_| {}).unwrap();
+            let listed = from.iter().zip(&to).filter(|(a, b)| b > a).count();
+            assert_eq!(round.runs.len(), listed, "one run a block of the round");
+            assert!(round.runs.iter().all(|run| run.rect.width <= 8
+                && run.rect.height <= 8
+                && run.rays >= run.rect.area() as u64 * run.samples as u64));
+            assert_eq!(
+                round.runs.iter().map(|run| run.rays).sum::<u64>(),
+                round.rays.total()
+            );
+            costs.book_runs(rect, &round.runs);
+            host.merge(&round).unwrap();
+            let stats = block_stats(&host, rect, Some(&costs));
             steps.push(schedule.after_round(&stats, image_mean(&host)));
         }
         let label = format!("target {target}, relative {relative}");

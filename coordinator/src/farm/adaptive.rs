@@ -534,7 +534,8 @@ pub(super) fn sampled_pixel_samples(lease: &Lease) -> u64 {
 
 /// The runs of an image-mode result: whole blocks of the lease's rect in
 /// one row, each block's range as long as the run's samples, their rays
-/// adding up to the film's; none from a GPU worker. A result of any other
+/// adding up to the film's (a GPU worker's runs are a block each; a worker
+/// that measures nothing sends none). A result of any other
 /// unit has none.
 pub(super) fn check_runs(lease: &Lease, film: &Film) -> Result<(), String> {
     let Some(ranges) = &lease.ranges else {

@@ -175,8 +175,9 @@ impl Costs {
     }
 
     /// Each block's cost of one pixel-sample: its measured mean, or where
-    /// nothing was measured for it (a GPU's blocks beside a CPU's on a
-    /// mixed farm) the mean over the blocks that were; 1 where none was.
+    /// nothing was measured for it (a block of a worker that sends no
+    /// runs) the mean over the blocks that were; 1 where none was.
+    /// allocate.wgsl computes the same on the GPU.
     pub fn per_block(&self) -> Vec<f64> {
         let measured = |i: usize| self.pixel_samples[i] > 0.0 && self.rays[i] > 0.0;
         let (mut rays, mut samples) = (0.0, 0.0);

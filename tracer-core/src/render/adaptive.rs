@@ -249,7 +249,6 @@ pub fn render_rmse(
         render_blocks(
             renderer, prepared, frame, &from, &to, &mut film, &mut costs, progress,
         )?;
-        // Unmeasured costs (the GPU's) are 1 a block: `Costs::per_block`.
         let stats = block_stats(&film, rect, Some(&costs));
         rounds.after_round(&stats, image_mean(&film));
     }

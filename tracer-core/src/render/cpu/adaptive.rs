@@ -70,7 +70,9 @@ fn blocks_world<R: Real>(
 ) -> Film {
     let blocks = runs(rect, ranges);
     // A run's samples in pieces of at most PIECE pixel-samples (fewer in
-    // a small round: about 8 pieces a thread), each its own task: the
+    // a small round: about 32 pieces a thread, so that a round's last
+    // pieces leave the other threads idle for little, which the
+    // error-optimal mode's many rounds pay for each), each its own task: the
     // error-optimal mode gives a few blocks hundreds of samples in a round
     // where most get a few, and a run rendered whole would leave the other
     // threads idle at the round's end. Sums are integers, so a run's
@@ -80,7 +82,7 @@ fn blocks_world<R: Real>(
         .iter()
         .map(|(b, s)| b.area() * s.len() as usize)
         .sum();
-    let piece = (work / (8 * renderer.threads())).clamp(1, PIECE);
+    let piece = (work / (32 * renderer.threads())).clamp(1, PIECE);
     let pieces: Vec<(usize, SampleRange)> = blocks
         .iter()
         .enumerate()

@@ -2,13 +2,14 @@
 // adaptive/optimal.rs `RmseSchedule::after_round` from the blocks'
 // statistics (converge.wgsl, ranged), so that its rounds chain without
 // the host. One workgroup: the image's estimated MSE and mean, the stop
-// test, the allocation n_b = clamp(ceil(lambda sqrt(w_b))) with lambda by
+// test, the allocation n_b = clamp(ceil(lambda sqrt(w_b / c_b))) with lambda by
 // the host's bracket and bisection, each block's next count on the
 // host's grid (`RmseSettings::step`), then the next round's listed items
 // (sums.wgsl listed_work) and its slices' indirect dispatch arguments.
 // What the host reads back is one RoundLog a round. Sums are f32 where
-// the host's are f64; every block costs 1 (the GPU measures no cost per
-// block, as on the host's GPU rounds).
+// the host's are f64. A block's cost is its rays a pixel-sample, counted
+// by the trace kernel (stack.wgsl, `block_rays`) as the host books a
+// ranged GPU render's runs (optimal.rs Costs::per_block).
 
 struct AllocateParams {
     film_w: u32,
@@ -51,6 +52,9 @@ struct RoundLog {
 const T: u32 = 256u;
 
 var<workgroup> red_f: array<f32, 256>;
+// Costs::per_block's cost of a block nothing was measured for: the mean
+// over the measured ones, 1 where none was. The same in every invocation.
+var<private> fallback_cost: f32 = 1.0;
 var<workgroup> red_u: array<u32, 256>;
 var<workgroup> wg_total: u32;
 
@@ -66,6 +70,23 @@ fn block_area(b: u32) -> u32 {
 fn block_w(b: u32) -> f32 {
     let n = ranges[b].y;
     return bitcast<f32>(block_stats[b].x) * f32(n) / (3.0 * f32(block_area(b)));
+}
+
+// Block `b`'s rays so far and its pixel-samples (the samples of each of
+// its pixels now, as the host books each round's).
+fn rays_of(b: u32) -> f32 {
+    return f32(block_rays[2u * b]) + f32(block_rays[2u * b + 1u]) * 4294967296.0;
+}
+
+fn pixel_samples_of(b: u32) -> f32 {
+    return f32(block_area(b)) * f32(ranges[b].y);
+}
+
+// Block `b`'s cost of one pixel-sample (Costs::per_block).
+fn cost_of(b: u32) -> f32 {
+    let rays = rays_of(b);
+    let samples = pixel_samples_of(b);
+    return select(fallback_cost, rays / samples, rays > 0.0 && samples > 0.0);
 }
 
 // Sums of every invocation's `v`, in a fixed order; every invocation gets
@@ -102,7 +123,7 @@ fn sum_u32(lid: u32, v: u32) -> u32 {
 // ceil(lambda sqrt(w / cost)) within [its count, max].
 fn count_at(b: u32, lambda: f32) -> u32 {
     let lo = ranges[b].y;
-    let want = lambda * sqrt(max(block_w(b), 0.0));
+    let want = lambda * sqrt(max(block_w(b), 0.0) / max(cost_of(b), 1e-12));
     let n = u32(min(ceil(want), f32(params.max_samples)));
     return min(max(n, lo), max(params.max_samples, lo));
 }
@@ -152,6 +173,8 @@ fn allocate(@builtin(local_invocation_index) lid: u32) {
     var mean_part = 0.0;
     var pixels_part = 0u;
     var active_part = 0u;
+    var rays_part = 0.0;
+    var measured_part = 0.0;
     // Pixel-samples (a block's at most 64 x max_samples) as (low, high).
     var samples_lo = 0u;
     var samples_hi = 0u;
@@ -162,6 +185,10 @@ fn allocate(@builtin(local_invocation_index) lid: u32) {
         mean_part += bitcast<f32>(block_stats[b].w);
         pixels_part += area;
         active_part += select(0u, 1u, r.y > r.x);
+        if (rays_of(b) > 0.0 && pixel_samples_of(b) > 0.0) {
+            rays_part += rays_of(b);
+            measured_part += pixel_samples_of(b);
+        }
         let lo = samples_lo + area * r.y;
         samples_hi += select(0u, 1u, lo < samples_lo);
         samples_lo = lo;
@@ -170,6 +197,9 @@ fn allocate(@builtin(local_invocation_index) lid: u32) {
     let mse = sum_f32(lid, mse_part) / pixels;
     let mean = sum_f32(lid, mean_part) / (3.0 * pixels);
     let active_blocks = sum_u32(lid, active_part);
+    let measured = sum_f32(lid, measured_part);
+    let rays = sum_f32(lid, rays_part);
+    fallback_cost = select(1.0, rays / measured, measured > 0.0);
     // The low words' 16-bit halves sum without overflow.
     let lo_lo = sum_u32(lid, samples_lo & 0xffffu);
     let lo_hi = sum_u32(lid, samples_lo >> 16u);

@@ -308,6 +308,10 @@ impl GpuRenderer {
                 entire(a("ranges"), ranges),
                 entire(a("dispatch_args"), &args),
                 entire(a("round_log"), &log),
+                entire(
+                    a("block_rays"),
+                    grid.rays_buffer.as_ref().expect("a listed grid"),
+                ),
             ],
         });
 

@@ -9,7 +9,7 @@ use super::Readout;
 use super::layout::{ADAPTIVE_SUM_WORDS, DispatchParams, GpuBlockStats, SUM_WORDS};
 use super::plan::LISTED_CHUNK;
 use crate::adaptive::{BLOCK, BlockMask};
-use crate::film::{Film, Rect};
+use crate::film::{Film, Rect, RunCost};
 
 pub(super) struct Grid<'a> {
     /// The film's rect.
@@ -23,6 +23,9 @@ pub(super) struct Grid<'a> {
     ranges: Option<Vec<[u32; 4]>>,
     pub blocks_buffer: Option<wgpu::Buffer>,
     pub ranges_buffer: Option<wgpu::Buffer>,
+    /// A ranged render's rays per listed block, (low, high) words, zeroed:
+    /// the trace kernel's `block_rays`.
+    pub rays_buffer: Option<wgpu::Buffer>,
 }
 
 impl<'a> Grid<'a> {
@@ -59,7 +62,9 @@ impl<'a> Grid<'a> {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some(label),
                 contents,
-                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_DST
+                    | wgpu::BufferUsages::COPY_SRC,
             })
         };
         Grid {
@@ -69,6 +74,9 @@ impl<'a> Grid<'a> {
             ranges_buffer: ranges
                 .as_ref()
                 .map(|r| storage("block ranges", bytemuck::cast_slice(r))),
+            rays_buffer: ranges
+                .as_ref()
+                .map(|r| storage("block rays", bytemuck::cast_slice(&vec![0u32; 2 * r.len()]))),
             blocks,
             ranges,
         }
@@ -85,6 +93,32 @@ impl<'a> Grid<'a> {
             ),
             None => self.film,
         }
+    }
+
+    /// Bytes of [`Grid::rays_buffer`].
+    pub fn rays_bytes(&self) -> u64 {
+        self.ranges.as_ref().map_or(0, |r| 8 * r.len() as u64)
+    }
+
+    /// A ranged render's cost of each listed block, from the words of its
+    /// [`Grid::rays_buffer`]: one run a block, its rays and the samples
+    /// each of its pixels took (the film's `runs`, as a CPU's round
+    /// books them, there by runs of blocks).
+    pub fn runs(&self, rays: &[u32]) -> Vec<RunCost> {
+        let (Some(m), Some(rs)) = (self.mask, &self.ranges) else {
+            return Vec::new();
+        };
+        let cols = m.cols();
+        self.blocks
+            .iter()
+            .zip(rs)
+            .zip(rays.chunks_exact(2))
+            .map(|((&b, r), w)| RunCost {
+                rect: m.block_rect(((b >> 16) * cols + (b & 0xffff)) as usize),
+                rays: w[0] as u64 | (w[1] as u64) << 32,
+                samples: r[1] - r[0],
+            })
+            .collect()
     }
 
     /// A listed grid's items in all.

@@ -362,6 +362,9 @@ pub struct GpuRenderer {
     /// Bound at binding 13 (an adaptive round's active blocks) by every
     /// render that is not one: made once, not per render.
     no_blocks: wgpu::Buffer,
+    /// `block_rays` where the grid has none: a buffer of its own, as it is
+    /// written where `no_blocks` is read.
+    no_rays: wgpu::Buffer,
 }
 
 impl GpuRenderer {
@@ -507,6 +510,12 @@ impl GpuRenderer {
             usage: wgpu::BufferUsages::STORAGE,
             mapped_at_creation: false,
         });
+        let no_rays = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("no block rays"),
+            size: 16,
+            usage: wgpu::BufferUsages::STORAGE,
+            mapped_at_creation: false,
+        });
         let disk_cache =
             cache_dir.and_then(|d| disk_cache::DiskCache::open(&device, &chosen.get_info(), d));
         Ok(GpuRenderer {
@@ -536,6 +545,7 @@ impl GpuRenderer {
             disk_cache,
             stats: Mutex::new(GpuStats::default()),
             no_blocks,
+            no_rays,
         })
     }
 

@@ -26,6 +26,16 @@ fn render(
                 acc = accumulate(acc, radiance(ray.origin, ray.dir, seed, s, ray.tau));
             }
             add_sums(w.pixel.z, acc);
+            // The rays it traced, booked to its block: the error-optimal
+            // mode's cost of a block (optimal.rs Costs), as the CPU books
+            // its runs'. The tally held nothing before the loop.
+            let rays = tally[C_PRIMARY] + tally[C_SHADOW] + tally[C_REFLECTION] + tally[C_REFRACTION];
+            if (rays != 0u) {
+                let old = atomicAdd(&block_rays[2u * w.block], rays);
+                if (old + rays < old) {
+                    atomicAdd(&block_rays[2u * w.block + 1u], 1u);
+                }
+            }
         }
         flush_tally(lid);
         return;

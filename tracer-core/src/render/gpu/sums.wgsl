@@ -149,11 +149,12 @@ fn add_sums(word: u32, acc: PixelSums) {
 }
 
 // What one invocation of a listed dispatch traces: its pixel (as
-// grid_pixel's) and its samples first..end.
+// grid_pixel's), its samples first..end, and its listed block.
 struct ListedWork {
     pixel: vec4<u32>,
     first: u32,
     end: u32,
+    block: u32,
 }
 
 // Invocation `t` of a listed dispatch (params.ranged: an adaptive render
@@ -167,7 +168,7 @@ fn listed_work(t: u32) -> ListedWork {
     let item = params.sample_start + t / 64u;
     let blocks = params.rect_h / 8u;
     if (item >= params.sample_end || item >= block_ranges[blocks].z) {
-        return ListedWork(vec4<u32>(0u), 0u, 0u);
+        return ListedWork(vec4<u32>(0u), 0u, 0u, 0u);
     }
     // The last block whose first item is at most `item` (blocks with no
     // items share their first item with the next).
@@ -184,7 +185,7 @@ fn listed_work(t: u32) -> ListedWork {
     let r = block_ranges[lo];
     let first = r.x + (item - r.z) * params.chunk;
     let pixel = t % 64u;
-    return ListedWork(grid_pixel(pixel % 8u, 8u * lo + pixel / 8u), first, min(first + params.chunk, r.y));
+    return ListedWork(grid_pixel(pixel % 8u, 8u * lo + pixel / 8u), first, min(first + params.chunk, r.y), lo);
 }
 
 // The pixel that column `col`, row `row` of the dispatch grid traces:

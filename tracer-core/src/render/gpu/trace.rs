@@ -345,6 +345,19 @@ impl GpuRenderer {
             ),
         };
         enc.copy_buffer_to_buffer(&out.counters, 0, &out.counters_read, 0, None);
+        // A ranged round's rays per block: the film's runs.
+        let rays_read = match (readout, &grid.rays_buffer) {
+            (Readout::Ranged(..), Some(b)) => {
+                let read = self.buffer(
+                    "block rays read",
+                    grid.rays_bytes(),
+                    wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                );
+                enc.copy_buffer_to_buffer(b, 0, &read, 0, None);
+                Some(read)
+            }
+            _ => None,
+        };
         if let Some(w) = wave {
             enc.copy_buffer_to_buffer(&w.state, 0, &w.state_read, 0, None);
         }
@@ -406,6 +419,10 @@ impl GpuRenderer {
                 grid.fill_counts(&mut film, samples, stopped);
                 film.rays = rays;
                 film.nonfinite = nonfinite;
+                if let Some(read) = &rays_read {
+                    let words: Vec<u32> = self.read(read, grid.rays_bytes())?;
+                    film.runs = grid.runs(&words);
+                }
                 Rendered::Film(film)
             }
         };
@@ -448,6 +465,10 @@ impl GpuRenderer {
                 entire(
                     b("block_ranges"),
                     grid.ranges_buffer.as_ref().unwrap_or(&self.no_blocks),
+                ),
+                entire(
+                    b("block_rays"),
+                    grid.rays_buffer.as_ref().unwrap_or(&self.no_rays),
                 ),
                 entire(b("mat_pbr"), &scene.pbr[0]),
                 entire(b("pbrs"), &scene.pbr[1]),

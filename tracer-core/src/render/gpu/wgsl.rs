@@ -448,6 +448,10 @@ pub const SCENE: Layout = Layout {
         // entry whose third word is the items in all (sums.wgsl
         // listed_work).
         bind("block_ranges", "array<vec4<u32>>", Read, "scene.wgsl"),
+        // A ranged render's rays per listed block, (low, high) words,
+        // added by stack.wgsl's listed dispatches (a placeholder
+        // otherwise): the blocks' measured costs.
+        bind("block_rays", "array<atomic<u32>>", ReadWrite, "scene.wgsl"),
         // Model files' materials (layout.rs PbrData; placeholders without).
         bind("mat_pbr", "array<u32>", Read, "pbr.wgsl"),
         bind("pbrs", "array<Pbr>", Read, "pbr.wgsl"),
@@ -558,5 +562,8 @@ pub const ALLOCATE: Layout = Layout {
         bind("dispatch_args", "array<u32>", ReadWrite, "allocate.wgsl"),
         // One entry a round (layout.rs RoundLog).
         bind("round_log", "array<RoundLog>", ReadWrite, "allocate.wgsl"),
+        // The trace kernel's `block_rays`: each block's rays so far,
+        // (low, high) words.
+        bind("block_rays", "array<u32>", Read, "allocate.wgsl"),
     ],
 };
