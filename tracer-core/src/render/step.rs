@@ -160,6 +160,21 @@ pub const RR_DEPTH: u32 = 5;
 /// The power heuristic's weight of a strategy of density `a` against one of `b`.
 #[inline]
 fn power_heuristic<R: Real>(a: R, b: R) -> R {
+    // Densities past 1e18 square past f32's range (a quad light seen
+    // edge-on from a grazing camera ray: 2e19 and 3e23 on
+    // examples/distributed.toml), and inf / inf made the sample NaN: there
+    // the same weight as a ratio, which cannot overflow. Below it the
+    // squares as they always were (path.wgsl the same).
+    let big = R::from_f64(POWER_HEURISTIC_RATIO_ABOVE);
+    if a > big || b > big {
+        return if a >= b {
+            let r = b / a;
+            R::ONE / (R::ONE + r * r)
+        } else {
+            let r = a / b;
+            r * r / (R::ONE + r * r)
+        };
+    }
     let (a2, b2) = (a * a, b * b);
     if a2 + b2 > R::ZERO {
         a2 / (a2 + b2)
@@ -167,6 +182,10 @@ fn power_heuristic<R: Real>(a: R, b: R) -> R {
         R::ZERO
     }
 }
+
+/// Where [`power_heuristic`] takes its ratio form (path.wgsl
+/// POWER_HEURISTIC_RATIO_ABOVE).
+const POWER_HEURISTIC_RATIO_ABOVE: f64 = 1e18;
 
 /// Radiance along the camera ray `ray` (starting on `skip`) by
 /// unidirectional path tracing (docs/path-tracing.md): at each vertex,
@@ -779,4 +798,29 @@ fn in_cone<R: Real, E: Effects<R>>(
         side < R::ZERO
     };
     ok.then_some(d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::power_heuristic;
+
+    #[test]
+    fn the_power_heuristic_holds_for_densities_whose_squares_overflow_f32() {
+        // The NaN examples/distributed.toml made with --integrator path: a
+        // quad light's density 2.1e19 seen edge-on against a BSDF's 0.0127.
+        let (light, bsdf) = (2.121_869_9e19f32, 0.012_712_306f32);
+        assert!((light * light).is_infinite(), "the case overflows f32");
+        assert_eq!(power_heuristic(light, bsdf), 1.0);
+        let w = power_heuristic(bsdf, light);
+        assert!((0.0..1e-40).contains(&w), "{w}");
+        assert_eq!(power_heuristic(3e23f32, 3e23), 0.5);
+        assert_eq!(power_heuristic(f32::INFINITY, 1.0), 1.0);
+        // Below the switch the squares as before, bit for bit.
+        for (a, b) in [(3.0f32, 4.0f32), (0.25, 1e9), (9e17, 2.0), (0.0, 0.0)] {
+            let (a2, b2) = (a * a, b * b);
+            let old = if a2 + b2 > 0.0 { a2 / (a2 + b2) } else { 0.0 };
+            assert_eq!(power_heuristic(a, b).to_bits(), old.to_bits(), "{a}, {b}");
+        }
+        assert_eq!(power_heuristic(3.0f64, 4.0), 9.0 / 25.0);
+    }
 }

@@ -318,7 +318,18 @@ fn emitter_sample(k: u32, p: vec3<f32>, u: f32, v: f32) -> LightSample {
     return LightSample(wi, dd, bsdf_at(id, x, material).emission, pdf, true);
 }
 
+// step.rs POWER_HEURISTIC_RATIO_ABOVE: past it the squares could overflow.
+const POWER_HEURISTIC_RATIO_ABOVE: f32 = 1e18;
+
 fn power_heuristic(a: f32, b: f32) -> f32 {
+    if (a > POWER_HEURISTIC_RATIO_ABOVE || b > POWER_HEURISTIC_RATIO_ABOVE) {
+        if (a >= b) {
+            let r = b / a;
+            return 1.0 / (1.0 + r * r);
+        }
+        let r = a / b;
+        return r * r / (1.0 + r * r);
+    }
     let a2 = a * a;
     let b2 = b * b;
     if (a2 + b2 > 0.0) {
