@@ -2,8 +2,8 @@
 // adaptive/optimal.rs `RmseSchedule::after_round` from the blocks'
 // statistics (converge.wgsl, ranged), so that its rounds chain without
 // the host. One workgroup: the image's estimated MSE and mean, the stop
-// test, the allocation n_b = clamp(ceil(lambda sqrt(w_b / c_b))) with lambda by
-// the host's bracket and bisection, each block's next count on the
+// test, the allocation n_b = clamp(ceil(lambda sqrt(w_b / c_b))) with
+// lambda by the host's bracket and bisection, each block's next count on the
 // host's grid (`RmseSettings::step`), then the next round's listed items
 // (sums.wgsl listed_work) and its slices' indirect dispatch arguments.
 // What the host reads back is one RoundLog a round. Sums are f32 where
@@ -185,9 +185,11 @@ fn allocate(@builtin(local_invocation_index) lid: u32) {
         mean_part += bitcast<f32>(block_stats[b].w);
         pixels_part += area;
         active_part += select(0u, 1u, r.y > r.x);
-        if (rays_of(b) > 0.0 && pixel_samples_of(b) > 0.0) {
-            rays_part += rays_of(b);
-            measured_part += pixel_samples_of(b);
+        let rays = rays_of(b);
+        let samples = pixel_samples_of(b);
+        if (rays > 0.0 && samples > 0.0) {
+            rays_part += rays;
+            measured_part += samples;
         }
         let lo = samples_lo + area * r.y;
         samples_hi += select(0u, 1u, lo < samples_lo);

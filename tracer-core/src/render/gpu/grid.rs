@@ -95,11 +95,6 @@ impl<'a> Grid<'a> {
         }
     }
 
-    /// Bytes of [`Grid::rays_buffer`].
-    pub fn rays_bytes(&self) -> u64 {
-        self.ranges.as_ref().map_or(0, |r| 8 * r.len() as u64)
-    }
-
     /// A ranged render's cost of each listed block, from the words of its
     /// [`Grid::rays_buffer`]: one run a block, its rays and the samples
     /// each of its pixels took (the film's `runs`, as a CPU's round
@@ -108,13 +103,12 @@ impl<'a> Grid<'a> {
         let (Some(m), Some(rs)) = (self.mask, &self.ranges) else {
             return Vec::new();
         };
-        let cols = m.cols();
         self.blocks
             .iter()
             .zip(rs)
             .zip(rays.chunks_exact(2))
             .map(|((&b, r), w)| RunCost {
-                rect: m.block_rect(((b >> 16) * cols + (b & 0xffff)) as usize),
+                rect: m.block_rect(listed_index(m, b)),
                 rays: w[0] as u64 | (w[1] as u64) << 32,
                 samples: r[1] - r[0],
             })
@@ -203,15 +197,19 @@ impl<'a> Grid<'a> {
             }
             return;
         }
-        let cols = m.cols();
         for (k, &b) in self.blocks.iter().enumerate() {
             let n = match &self.ranges {
                 Some(rs) => rs[k][1] - rs[k][0],
                 None => samples,
             };
-            fill(m.block_rect(((b >> 16) * cols + (b & 0xffff)) as usize), n);
+            fill(m.block_rect(listed_index(m, b)), n);
         }
     }
+}
+
+/// The index in `m` of a listed block (column | row << 16).
+fn listed_index(m: &BlockMask, b: u32) -> usize {
+    ((b >> 16) * m.cols() + (b & 0xffff)) as usize
 }
 
 /// Listed blocks' ranges (first, end) as the trace kernel reads them:

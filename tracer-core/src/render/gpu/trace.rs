@@ -350,7 +350,7 @@ impl GpuRenderer {
             (Readout::Ranged(..), Some(b)) => {
                 let read = self.buffer(
                     "block rays read",
-                    grid.rays_bytes(),
+                    b.size(),
                     wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 );
                 enc.copy_buffer_to_buffer(b, 0, &read, 0, None);
@@ -420,7 +420,7 @@ impl GpuRenderer {
                 film.rays = rays;
                 film.nonfinite = nonfinite;
                 if let Some(read) = &rays_read {
-                    let words: Vec<u32> = self.read(read, grid.rays_bytes())?;
+                    let words: Vec<u32> = self.read(read, read.size())?;
                     film.runs = grid.runs(&words);
                 }
                 Rendered::Film(film)
