@@ -86,7 +86,8 @@ const ETA_WINDOW: Duration = Duration::from_secs(10);
 pub struct Progress {
     what: String,
     bar: Option<ProgressBar>,
-    total: u64,
+    /// Units of work in all (0: quiet); an adaptive render re-estimates it.
+    total: AtomicU64,
     done: AtomicU64,
     start: Instant,
     /// The work done over time, for the ETA's recent rate.
@@ -112,7 +113,7 @@ impl Progress {
         Progress {
             what: what.to_string(),
             bar,
-            total: if quiet { 0 } else { total.max(1) },
+            total: AtomicU64::new(if quiet { 0 } else { total.max(1) }),
             done: AtomicU64::new(0),
             start,
             meter: Mutex::new({
@@ -125,10 +126,29 @@ impl Progress {
         }
     }
 
+    fn total(&self) -> u64 {
+        self.total.load(Ordering::Relaxed)
+    }
+
+    /// A new estimate of the work in all: an adaptive render's, which its
+    /// rounds revise as they learn where the image is noisy (its bound,
+    /// every pixel at `--max-samples`, would make the ETA many times too
+    /// long). Never below the work done; nothing for quiet progress.
+    pub fn set_total(&self, total: u64) {
+        if self.total() == 0 {
+            return;
+        }
+        let total = total.max(self.done.load(Ordering::Relaxed)).max(1);
+        self.total.store(total, Ordering::Relaxed);
+        if let Some(bar) = &self.bar {
+            bar.set_length(total);
+        }
+    }
+
     /// `n` more units of work done; the ETA comes from the measured rate.
     pub fn inc(&self, n: u64) {
         let done = self.done.fetch_add(n, Ordering::Relaxed) + n;
-        if self.total > 0 {
+        if self.total() > 0 {
             self.meter
                 .lock()
                 .expect("progress meter")
@@ -158,7 +178,7 @@ impl Progress {
     pub fn note(&self, line: &str) {
         match &self.bar {
             Some(bar) => bar.println(line),
-            None if self.total > 0 => eprintln!("{line}"),
+            None if self.total() > 0 => eprintln!("{line}"),
             None => {}
         }
     }
@@ -190,14 +210,14 @@ impl Progress {
             .lock()
             .expect("progress meter")
             .rate(Instant::now());
-        match tessera_coordinator::rate::eta(self.total.saturating_sub(done) as f64, rate) {
+        match tessera_coordinator::rate::eta(self.total().saturating_sub(done) as f64, rate) {
             Some(left) => format!("eta {left:.0} s"),
             None => String::new(),
         }
     }
 
     fn plain(&self, done: u64, message: Option<&str>, last: bool) {
-        if self.total == 0 {
+        if self.total() == 0 {
             return;
         }
         let mut l = self.last.lock().expect("progress lock");
@@ -214,7 +234,7 @@ impl Progress {
             return;
         }
         *l = (Instant::now(), message.clone(), done);
-        let pct = 100.0 * done as f64 / self.total as f64;
+        let pct = 100.0 * done as f64 / self.total() as f64;
         eprintln!(
             "{}: {pct:.1}% {message} ({:.0} s)",
             self.what,
@@ -233,7 +253,10 @@ mod tests {
     fn eta_is_the_work_left_over_the_recent_rate() {
         let p = Progress::new("test", 100, true);
         // Quiet progress keeps no total; this one measures.
-        let p = Progress { total: 100, ..p };
+        let p = Progress {
+            total: AtomicU64::new(100),
+            ..p
+        };
         p.inc(10);
         assert_eq!(p.eta_text(10), "");
         std::thread::sleep(Duration::from_millis(1200));

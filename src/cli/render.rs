@@ -414,6 +414,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
                     "round {}: {} blocks active, {:.1} s; estimated image RMSE {:.2e} (target {:.2e})",
                     r.round, r.active_blocks, r.seconds, r.estimated_rmse, r.target_rmse
                 ));
+                progress.set_total(r.expected_pixel_samples);
                 image_round = Some(*r);
             },
         )?
@@ -426,6 +427,7 @@ pub fn run(args: RenderArgs) -> Result<ExitCode> {
             &|n| progress.inc(n),
             &mut |r| {
                 progress.note(&round_line(r));
+                progress.set_total(r.summary.samples_expected);
                 last_round = Some(*r);
             },
         )?

@@ -2564,6 +2564,17 @@ fn gpu_rmse_rounds_decided_on_the_gpu_take_the_hosts_decisions() {
                     got.round
                 );
             }
+            // The progress estimate: the same allocation, its lambda and
+            // sums in f32 (a block may differ by a sample).
+            let (g, w) = (
+                got.expected_pixel_samples as f64,
+                want.expected_pixel_samples as f64,
+            );
+            assert!(
+                (g - w).abs() <= 1e-3 * w,
+                "{label}: round {}: expected pixel-samples {g} against the host's {w}",
+                got.round
+            );
         }
     }
 }

@@ -263,9 +263,12 @@ impl Job {
         let going_on = f.schedule.pending().is_some() && next < rounds;
         if going_on {
             let full = BlockMask::none(Rect::full(w, h));
-            f.expected = (0..full.active.len())
-                .map(|i| full.block_rect(i).area() as u64 * f.schedule.block(i).1 as u64)
-                .sum();
+            // The allocation meeting the target, not only the next round.
+            f.expected = f.last.map_or(0, |s| s.expected_pixel_samples).max(
+                (0..full.active.len())
+                    .map(|i| full.block_rect(i).area() as u64 * f.schedule.block(i).1 as u64)
+                    .sum(),
+            );
             f.settled = (0..full.active.len())
                 .filter(|&i| {
                     let (n, to) = f.schedule.block(i);

@@ -108,15 +108,30 @@ impl RmseSettings {
 }
 
 /// The mean of an image (over pixels with samples and channels), linear.
+/// Summed in parallel over fixed chunks, then the chunks in order: the
+/// same bits whatever the threads, as the farm's coordinator and a local
+/// render must decide alike.
 pub fn image_mean(film: &Film) -> f64 {
-    let mut sum = 0.0;
-    let mut pixels = 0usize;
-    for (s, &n) in film.sums.iter().zip(&film.counts) {
-        if n > 0 {
-            sum += (s[0] + s[1] + s[2]) as f64 / (n as f64 * FIXED_ONE);
-            pixels += 1;
-        }
-    }
+    use rayon::prelude::*;
+    const CHUNK: usize = 4096;
+    let (sum, pixels) = film
+        .sums
+        .par_chunks(CHUNK)
+        .zip(film.counts.par_chunks(CHUNK))
+        .map(|(sums, counts)| {
+            let mut sum = 0.0;
+            let mut pixels = 0usize;
+            for (s, &n) in sums.iter().zip(counts) {
+                if n > 0 {
+                    sum += (s[0] + s[1] + s[2]) as f64 / (n as f64 * FIXED_ONE);
+                    pixels += 1;
+                }
+            }
+            (sum, pixels)
+        })
+        .collect::<Vec<_>>()
+        .into_iter()
+        .fold((0.0, 0), |(s, p), (cs, cp)| (s + cs, p + cp));
     sum / (3 * pixels.max(1)) as f64
 }
 
@@ -202,10 +217,14 @@ impl Costs {
 /// `film.rect`, every block's pixels at one count), costs from `costs`
 /// (`None`: every block costs 1).
 pub fn block_stats(film: &Film, rect: Rect, costs: Option<&Costs>) -> Vec<BlockStats> {
+    use rayon::prelude::*;
     let squares = film.squares.as_ref().expect("adaptive film");
     let mask = BlockMask::none(rect);
     let costs = costs.map(Costs::per_block);
+    // Each block on its own, so in parallel (a whole frame's pixels
+    // between two rounds, while the renderer's threads wait).
     (0..mask.active.len())
+        .into_par_iter()
         .map(|i| {
             let b = mask.block_rect(i);
             let mut sum = 0.0;
@@ -312,6 +331,11 @@ pub struct RmseStep {
     /// The image's estimated RMSE after the round, and the target.
     pub estimated_rmse: f64,
     pub target_rmse: f64,
+    /// Pixel-samples the render is expected to take in all: the cheapest
+    /// allocation meeting the target from this round's statistics (what
+    /// progress and its ETA are measured against), or `pixel_samples`
+    /// once the render ends.
+    pub expected_pixel_samples: u64,
 }
 
 impl RmseSchedule {
@@ -356,15 +380,20 @@ impl RmseSchedule {
         let o = self.settings;
         let mse = estimated_mse(stats);
         let target = o.target_mse(image_mean);
-        let step = RmseStep {
+        let pixel_samples = |n: &[u32]| -> u64 {
+            stats
+                .iter()
+                .zip(n)
+                .map(|(s, &n)| s.rect.area() as u64 * n as u64)
+                .sum()
+        };
+        let mut step = RmseStep {
             round: self.round,
             active_blocks,
-            pixel_samples: stats
-                .iter()
-                .map(|s| s.rect.area() as u64 * s.n as u64)
-                .sum(),
+            pixel_samples: pixel_samples(&self.n),
             estimated_rmse: mse.sqrt(),
             target_rmse: target.sqrt(),
+            expected_pixel_samples: pixel_samples(&self.n),
         };
         self.round += 1;
         if mse > target && self.round < o.max_rounds() {
@@ -377,6 +406,9 @@ impl RmseSchedule {
                 .zip(&want)
                 .map(|(&n, &w)| o.step(n, w))
                 .collect();
+            // The steps round each count up to the grid: at least the
+            // next round's.
+            step.expected_pixel_samples = pixel_samples(&want).max(pixel_samples(&self.next));
         }
         step
     }

@@ -130,11 +130,20 @@ pub fn render_blocks(
     costs: &mut Costs,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<(), RendererError> {
-    let rect = film.rect;
-    let f = render_ranges(renderer, prepared, frame, rect, from, to, progress)?;
-    costs.book_runs(rect, &f.runs);
-    film.merge(&f)
-        .expect("the blocks' film lies inside the frame and sums cannot overflow");
+    let runs = match renderer {
+        // Added to `film` in place: no second whole-frame film a round.
+        Renderer::Cpu(r) => {
+            super::cpu::adaptive::add_blocks(r, prepared, frame, from, to, film, progress)?
+        }
+        #[cfg(feature = "gpu")]
+        Renderer::Gpu(r) => {
+            let mut f = r.render_blocks(prepared, frame, film.rect, from, to, progress)?;
+            film.merge(&f)
+                .expect("the blocks' film lies inside the frame and sums cannot overflow");
+            std::mem::take(&mut f.runs)
+        }
+    };
+    costs.book_runs(film.rect, &runs);
     Ok(())
 }
 
@@ -149,6 +158,9 @@ pub struct RmseRound {
     /// The image's estimated RMSE after this round, and the target.
     pub estimated_rmse: f64,
     pub target_rmse: f64,
+    /// Pixel-samples the render is expected to take in all
+    /// (`RmseStep::expected_pixel_samples`).
+    pub expected_pixel_samples: u64,
 }
 
 /// The error-optimal mode's rounds as its local drivers (CPU and GPU) run
@@ -210,6 +222,7 @@ impl<'a> RmseRounds<'a> {
             pixel_samples: step.pixel_samples,
             estimated_rmse: step.estimated_rmse,
             target_rmse: step.target_rmse,
+            expected_pixel_samples: step.expected_pixel_samples,
         });
         self.started = now;
     }
@@ -249,8 +262,11 @@ pub fn render_rmse(
         render_blocks(
             renderer, prepared, frame, &from, &to, &mut film, &mut costs, progress,
         )?;
-        let stats = block_stats(&film, rect, Some(&costs));
-        rounds.after_round(&stats, image_mean(&film));
+        // The statistics on the renderer's threads (they are idle between
+        // rounds), not on a pool of every core.
+        let (stats, mean) =
+            renderer.install(|| (block_stats(&film, rect, Some(&costs)), image_mean(&film)));
+        rounds.after_round(&stats, mean);
     }
     Ok(film)
 }

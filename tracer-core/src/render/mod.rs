@@ -339,6 +339,17 @@ impl Renderer {
         }
     }
 
+    /// Runs `f` on the CPU renderer's threads (its rayon pool), so that
+    /// host work between a render's rounds uses the threads the user gave
+    /// it; on the GPU's, on the caller's pool.
+    pub fn install<T: Send>(&self, f: impl FnOnce() -> T + Send) -> T {
+        match self {
+            Renderer::Cpu(r) => r.pool().install(f),
+            #[cfg(feature = "gpu")]
+            Renderer::Gpu(_) => f(),
+        }
+    }
+
     /// Renders `region`'s sums, as [`CpuRenderer::render`].
     pub fn render(
         &self,

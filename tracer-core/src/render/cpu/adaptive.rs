@@ -33,10 +33,9 @@ pub fn render_round(
     prepared.check_request(mask.rect, samples)?;
     let ranges: Vec<Option<SampleRange>> =
         mask.active.iter().map(|&a| a.then_some(samples)).collect();
-    Ok(match prepared {
-        PreparedFrame::F32(w) => blocks_world(renderer, w, frame, mask.rect, &ranges, progress),
-        PreparedFrame::F64(w) => blocks_world(renderer, w, frame, mask.rect, &ranges, progress),
-    })
+    let mut film = Film::with_squares(mask.rect);
+    film.runs = add_ranges(renderer, prepared, frame, &ranges, &mut film, progress);
+    Ok(film)
 }
 
 /// Renders each block `i` of `rect` (block-aligned) over its own range
@@ -53,21 +52,55 @@ pub fn render_blocks(
     to: &[u32],
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Film, RenderError> {
-    let ranges = prepared.block_ranges(rect, from, to)?;
-    Ok(match prepared {
-        PreparedFrame::F32(w) => blocks_world(renderer, w, frame, rect, &ranges, progress),
-        PreparedFrame::F64(w) => blocks_world(renderer, w, frame, rect, &ranges, progress),
-    })
+    let mut film = Film::with_squares(rect);
+    film.runs = add_blocks(renderer, prepared, frame, from, to, &mut film, progress)?;
+    Ok(film)
 }
 
+/// [`render_blocks`] over the whole of `film` (an adaptive film), added
+/// to it in place: the runs it rendered are returned, not put in `film`.
+/// The local error-optimal driver's round, which would otherwise merge a
+/// second whole-frame film into its own each round, on one thread.
+pub fn add_blocks(
+    renderer: &CpuRenderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    from: &[u32],
+    to: &[u32],
+    film: &mut Film,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Vec<RunCost>, RenderError> {
+    let ranges = prepared.block_ranges(film.rect, from, to)?;
+    Ok(add_ranges(
+        renderer, prepared, frame, &ranges, film, progress,
+    ))
+}
+
+fn add_ranges(
+    renderer: &CpuRenderer,
+    prepared: &PreparedFrame,
+    frame: u32,
+    ranges: &[Option<SampleRange>],
+    film: &mut Film,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Vec<RunCost> {
+    match prepared {
+        PreparedFrame::F32(w) => blocks_world(renderer, w, frame, ranges, film, progress),
+        PreparedFrame::F64(w) => blocks_world(renderer, w, frame, ranges, film, progress),
+    }
+}
+
+/// Renders block `i` of `out.rect` over `ranges[i]` and adds it to `out`;
+/// returns the runs rendered, with their rays.
 fn blocks_world<R: Real>(
     renderer: &CpuRenderer,
     world: &World<R>,
     frame: u32,
-    rect: Rect,
     ranges: &[Option<SampleRange>],
+    out: &mut Film,
     progress: &(dyn Fn(u64) + Sync),
-) -> Film {
+) -> Vec<RunCost> {
+    let rect = out.rect;
     let blocks = runs(rect, ranges);
     // A run's samples in pieces of at most PIECE pixel-samples (fewer in
     // a small round: about 32 pieces a thread, so that a round's last
@@ -93,8 +126,17 @@ fn blocks_world<R: Real>(
                 .map(move |k| (i, SampleRange::new(k, (k + step).min(samples.end))))
         })
         .collect();
+    // Runs, and so pieces, come in row order: the pieces of each band of
+    // one block row, which are added to that band of `out` by one task.
+    let band_of = |piece: &(usize, SampleRange)| ((blocks[piece.0].0.y - rect.y) / BLOCK) as usize;
+    let bands = rect.height.div_ceil(BLOCK) as usize;
+    let band_starts: Vec<usize> = (0..=bands)
+        .map(|band| pieces.partition_point(|p| band_of(p) < band))
+        .collect();
+    let w = rect.width as usize;
+    let band_pixels = BLOCK as usize * w;
     let films: Vec<Film> = renderer.pool().install(|| {
-        pieces
+        let films: Vec<Film> = pieces
             .par_iter()
             // One piece a task, as the renderer's tiles (render/cpu): no
             // thread waits on another's last few pieces.
@@ -111,16 +153,43 @@ fn blocks_world<R: Real>(
                 progress(b.area() as u64 * samples.len() as u64);
                 acc
             })
-            .collect()
+            .collect();
+        // Into `out` band by band, in parallel: a round's thousand pieces
+        // added on one thread cost the other threads' time too.
+        let squares = out.squares.as_mut().expect("adaptive film");
+        out.sums
+            .par_chunks_mut(band_pixels)
+            .zip(out.counts.par_chunks_mut(band_pixels))
+            .zip(squares.par_chunks_mut(band_pixels))
+            .enumerate()
+            .for_each(|(band, ((sums, counts), squares))| {
+                for f in &films[band_starts[band]..band_starts[band + 1]] {
+                    let r = f.rect;
+                    let f_squares = f.squares.as_ref().expect("adaptive film");
+                    for row in 0..r.height as usize {
+                        let dst = (r.y - rect.y) as usize % BLOCK as usize * w
+                            + row * w
+                            + (r.x - rect.x) as usize;
+                        let src = row * r.width as usize;
+                        for col in 0..r.width as usize {
+                            for c in 0..3 {
+                                sums[dst + col][c] += f.sums[src + col][c];
+                                squares[dst + col][c] += f_squares[src + col][c];
+                            }
+                            counts[dst + col] += f.counts[src + col];
+                        }
+                    }
+                }
+            });
+        films
     });
-    let mut out = Film::with_squares(rect);
     let mut rays = vec![0u64; blocks.len()];
     for (f, &(i, _)) in films.iter().zip(&pieces) {
-        out.merge(f)
-            .expect("blocks lie inside their rect and sums cannot overflow");
+        out.rays.add(&f.rays);
+        out.nonfinite += f.nonfinite;
         rays[i] += f.rays.total();
     }
-    out.runs = blocks
+    blocks
         .iter()
         .zip(rays)
         .map(|(&(rect, s), rays)| RunCost {
@@ -128,8 +197,7 @@ fn blocks_world<R: Real>(
             rays,
             samples: s.len(),
         })
-        .collect();
-    out
+        .collect()
 }
 
 /// Most pixel-samples of a piece of a run (16 samples of a run of four blocks).

@@ -44,7 +44,10 @@ struct RoundLog {
     next_items: u32,
     estimated_mse: f32,
     target_mse: f32,
-    _pad: vec2<u32>,
+    // Pixel-samples the render is expected to take in all: the
+    // allocation meeting the target, at least the next round's counts.
+    expected_samples: f32,
+    _pad: u32,
 }
 
 // Bindings: wgsl.rs ALLOCATE.
@@ -248,11 +251,17 @@ fn allocate(@builtin(local_invocation_index) lid: u32) {
     let first = min(lid * per, params.blocks);
     let end = min(first + per, params.blocks);
     var items = 0u;
+    var expected_part = 0.0;
+    var next_part = 0.0;
     for (var b = first; b < end; b++) {
         let n = ranges[b].y;
-        let next = select(n, step_to(n, count_at(b, lambda)), go);
+        let want = select(n, count_at(b, lambda), go);
+        let next = select(n, step_to(n, want), go);
         items += items_of(n, next);
+        expected_part += f32(block_area(b)) * f32(want);
+        next_part += f32(block_area(b)) * f32(next);
     }
+    let expected = max(sum_f32(lid, expected_part), sum_f32(lid, next_part));
     red_u[lid] = items;
     workgroupBarrier();
     if (lid == 0u) {
@@ -294,7 +303,8 @@ fn allocate(@builtin(local_invocation_index) lid: u32) {
             total,
             mse,
             target_mse,
-            vec2<u32>(0u),
+            expected,
+            0u,
         );
     }
 }

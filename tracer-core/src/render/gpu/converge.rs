@@ -472,6 +472,7 @@ impl GpuRenderer {
             pixel_samples,
             estimated_rmse: (log.estimated_mse as f64).sqrt(),
             target_rmse: (log.target_mse as f64).sqrt(),
+            expected_pixel_samples: (log.expected_samples as f64).max(pixel_samples as f64) as u64,
         });
         Ok(log.next_items)
     }

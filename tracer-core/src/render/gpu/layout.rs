@@ -261,7 +261,10 @@ pub struct RoundLog {
     /// The image's estimated MSE after the round, and the target MSE.
     pub estimated_mse: f32,
     pub target_mse: f32,
-    pub _pad: [u32; 2],
+    /// Pixel-samples the render is expected to take in all (f32: an
+    /// estimate for progress; `RmseStep::expected_pixel_samples`).
+    pub expected_samples: f32,
+    pub _pad: u32,
 }
 
 /// Parameters of the GPU resolve of a film's sums. WGSL (resolve.wgsl):
