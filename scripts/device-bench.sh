@@ -14,6 +14,10 @@
 # logs, their timelines and the store writer's busy time per job
 # (scripts/writer-busy.py).
 #
+# At most 8 files come back from a device call's $OUT: a call that runs
+# two phases (each `adaptive` run leaves 7 and a tarball) must keep only
+# what it needs (headline, summary, csv, corona) or pack them.
+#
 # `adaptive` (issue 17; not in the default) runs `tessera bench adaptive`
 # on the scenes in $ADAPTIVE_SCENES (default distributed; one scene a
 # device call: $ADAPTIVE_SIZE, default 400x300, with an f64 reference of
