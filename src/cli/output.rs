@@ -269,5 +269,25 @@ mod tests {
             .expect("an ETA");
         // 80 units at 20 / 1.2 s: 4.8 s (a loaded machine sleeps longer).
         assert!((4.0..=12.0).contains(&eta), "{eta}");
+        // An adaptive render's revised total: 20 units left, a quarter of
+        // the ETA; never below the work done.
+        let eta_of = |p: &Progress| -> f64 {
+            p.eta_text(20)
+                .strip_prefix("eta ")
+                .and_then(|t| t.strip_suffix(" s"))
+                .and_then(|t| t.parse().ok())
+                .expect("an ETA")
+        };
+        p.set_total(40);
+        let revised = eta_of(&p);
+        assert!(
+            (revised - eta / 4.0).abs() <= 0.25 * eta / 4.0 + 1.0,
+            "{revised} against {eta} / 4"
+        );
+        p.set_total(5);
+        assert_eq!(p.total(), 20);
+        let quiet = Progress::new("quiet", 100, true);
+        quiet.set_total(40);
+        assert_eq!(quiet.total(), 0, "quiet progress stays quiet");
     }
 }
