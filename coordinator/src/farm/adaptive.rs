@@ -263,12 +263,9 @@ impl Job {
         let going_on = f.schedule.pending().is_some() && next < rounds;
         if going_on {
             let full = BlockMask::none(Rect::full(w, h));
-            // The allocation meeting the target, not only the next round.
-            f.expected = f.last.map_or(0, |s| s.expected_pixel_samples).max(
-                (0..full.active.len())
-                    .map(|i| full.block_rect(i).area() as u64 * f.schedule.block(i).1 as u64)
-                    .sum(),
-            );
+            // The allocation meeting the target (at least the next round's
+            // counts: the schedule's step says so), not only the next round.
+            f.expected = f.last.map_or(0, |s| s.expected_pixel_samples);
             f.settled = (0..full.active.len())
                 .filter(|&i| {
                     let (n, to) = f.schedule.block(i);
