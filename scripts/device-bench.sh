@@ -56,6 +56,9 @@
 # launch --integrator path --backend gpu`: the stack and wavefront path
 # drivers over launch shapes (launch-path-*.txt, launch-path.csv).
 #
+# `uniform` (~3 min with two binaries): uniform CPU renders on all cores,
+# before/after across $UNIFORM_BINS (see the phase for its variables).
+#
 # `path-bench` (issue 35; not in the default; ~3 min): `tessera bench path
 # --backend both` with Mitsuba 3's cuda_ad_rgb (from .gpu/mitsuba.tar.xz,
 # made by scripts/device-mitsuba.sh) at $PATH_SIZE (default 512x512),
@@ -231,6 +234,27 @@ cases=${IMAGE_ROUNDS_CASES:-"distributed:1.126e-3 resolution-quad:4.949e-4 distr
     done
   done
 } > "$OUT/image-rounds.txt" 2>&1
+fi
+if has uniform; then
+# Uniform CPU renders on all cores, one process each, interleaved across
+# the binaries of $UNIFORM_BINS (default "tessera"; "tessera tessera-base"
+# for a before/after), $UNIFORM_REPEAT times (default 5): per case of
+# $UNIFORM_CASES ("scene:WxH:spp[:args]") the summary line.
+cases=${UNIFORM_CASES:-"distributed:320x240:1024 resolution-quad:320x240:1024 resolution:320x240:1024 distributed:320x240:1024:--integrator=path distributed:640x480:256"}
+{
+  echo "== machine"; nproc; grep -m1 'model name' /proc/cpuinfo
+  for c in $cases; do
+    IFS=: read -r scene size spp args <<< "$c"
+    args=${args//=/ }
+    for rep in $(seq "${UNIFORM_REPEAT:-5}"); do
+      for b in ${UNIFORM_BINS:-tessera}; do
+        echo "== $scene $size $spp spp $args $b (run $rep)"
+        .gpu/$b render "examples/$scene.toml" --width "${size%x*}" --height "${size#*x}" --samples "$spp" \
+          $args -o /tmp/uniform.png 2>&1 | grep -E 'cpu:|^path'
+      done
+    done
+  done
+} > "$OUT/uniform.txt" 2>&1
 fi
 if has path-bench; then
 mkdir -p /tmp/mi && python3 -c 'import tarfile, sys; tarfile.open(sys.argv[1]).extractall(sys.argv[2])' .gpu/mitsuba.tar.xz /tmp/mi

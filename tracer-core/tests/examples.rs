@@ -150,6 +150,53 @@ fn tiles_and_sample_ranges_add_up_to_the_whole_render_exactly() {
     }
 }
 
+/// A small frame on many threads is rendered in slices of its samples
+/// (`render::cpu`'s pieces): the film must be its tiles rendered whole.
+#[test]
+fn renders_cut_into_sample_slices_are_their_tiles_rendered_whole() {
+    use tracer_core::render::cpu::{TILE, render_tile};
+    for (scene, sampler) in [
+        ("resolution.toml", "jittered"),
+        ("distributed.toml", "grid"),
+    ] {
+        let desc = SceneDesc::load(examples_dir().join(scene)).unwrap();
+        let settings = RenderSettings {
+            width: 67,
+            height: 41,
+            samples: 9,
+            sampler: sampler.parse().unwrap(),
+            ..desc.render
+        };
+        let rect = Rect::full(67, 41);
+        for precision in [Precision::F32, Precision::F64] {
+            let frame = PreparedFrame::build(&desc, &settings, 2, precision).unwrap();
+            let mut whole = Film::new(rect);
+            for tile in rect.tiles(TILE) {
+                let film = match &frame {
+                    PreparedFrame::F32(w) => render_tile(w, 2, tile, SampleRange::all(9)),
+                    PreparedFrame::F64(w) => render_tile(w, 2, tile, SampleRange::all(9)),
+                };
+                whole.merge(&film).unwrap();
+            }
+            // 15 tiles: one thread takes 3 slices of each, 64 threads 9.
+            for threads in [1, 2, 64] {
+                let film = CpuRenderer::new(Some(threads))
+                    .unwrap()
+                    .render(
+                        &frame,
+                        WorkRegion::new(2, rect, SampleRange::all(9)),
+                        &|_| {},
+                    )
+                    .unwrap();
+                let case = format!("{scene} {precision:?} on {threads} threads");
+                assert_eq!(film.sums, whole.sums, "{case}: sums differ");
+                assert_eq!(film.counts, whole.counts, "{case}");
+                assert_eq!(film.rays, whole.rays, "{case}");
+            }
+        }
+    }
+}
+
 #[test]
 fn render_requests_outside_the_image_are_refused() {
     let desc = SceneDesc::load(examples_dir().join("resolution.toml")).unwrap();

@@ -10,7 +10,7 @@
 
 use rayon::prelude::*;
 
-use super::render_tile;
+use super::{TASKS_PER_THREAD, render_tile};
 use crate::adaptive::{BLOCK, BlockMask};
 use crate::film::{Film, Rect, RunCost, SampleRange};
 use crate::math::Real;
@@ -115,7 +115,7 @@ fn blocks_world<R: Real>(
         .iter()
         .map(|(b, s)| b.area() * s.len() as usize)
         .sum();
-    let piece = (work / (32 * renderer.threads())).clamp(1, PIECE);
+    let piece = (work / (TASKS_PER_THREAD * renderer.threads())).clamp(1, PIECE);
     let pieces: Vec<(usize, SampleRange)> = blocks
         .iter()
         .enumerate()

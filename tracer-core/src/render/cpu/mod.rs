@@ -112,17 +112,17 @@ impl CpuRenderer {
         cancel: &AtomicBool,
     ) -> Option<Film> {
         self.pool.install(|| world.make_texture_levels());
-        let tiles = rect.tiles(TILE);
+        let pieces = pieces(rect, samples, self.threads());
         let films: Vec<Option<Film>> = self.pool.install(|| {
-            tiles
+            pieces
                 .par_iter()
-                // One tile a piece: rayon would otherwise stop splitting at
+                // One piece a task: rayon would otherwise stop splitting at
                 // a few pieces a thread, and a thread that finished its own
                 // waited for the other's last piece (up to a quarter of the
                 // rect with two threads: a farm unit took 7% longer than
                 // its share of one call over the frame).
                 .with_max_len(1)
-                .map(|&tile| {
+                .map(|&(tile, samples)| {
                     if cancel.load(Ordering::Relaxed) {
                         return None;
                     }
@@ -144,6 +144,34 @@ impl CpuRenderer {
         Some(out)
     }
 }
+
+/// The tasks of a render of `rect` over `samples` on `threads`: its
+/// tiles, each over all the samples where there are at least
+/// [`TASKS_PER_THREAD`] tiles a thread, else over as many slices of the
+/// samples as bring the count there. A small frame on many threads (320x240
+/// is 300 tiles, 19 for each of 16) otherwise ends with threads idle behind
+/// a few costly tiles. Sums are integers and each sample index draws the
+/// same numbers whatever the slice, so the film is the same bit for bit.
+fn pieces(rect: Rect, samples: SampleRange, threads: usize) -> Vec<(Rect, SampleRange)> {
+    let tiles = rect.tiles(TILE);
+    let want = TASKS_PER_THREAD * threads.max(1);
+    let slices = want
+        .div_ceil(tiles.len().max(1))
+        .clamp(1, samples.len().max(1) as usize) as u32;
+    let step = samples.len().div_ceil(slices).max(1);
+    tiles
+        .into_iter()
+        .flat_map(|tile| {
+            (samples.start..samples.end)
+                .step_by(step as usize)
+                .map(move |k| (tile, SampleRange::new(k, (k + step).min(samples.end))))
+        })
+        .collect()
+}
+
+/// Tasks a thread should have for the last ones to leave little idle: the
+/// adaptive rounds' pieces take the same figure.
+pub(crate) const TASKS_PER_THREAD: usize = 32;
 
 /// Renders one tile on the calling thread: the stream renderer where it
 /// applies (at the best SIMD level of this CPU), else [`render_tile_recursive`].
@@ -260,4 +288,44 @@ pub fn render_tile_recursive<R: Real>(
     }
     film.rays = rays;
     film
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every pixel-sample once, in as many tasks as `TASKS_PER_THREAD`
+    /// asks where the samples allow.
+    #[test]
+    fn pieces_cover_each_pixel_sample_once() {
+        let rect = Rect::new(3, 5, 70, 40);
+        for (samples, threads) in [(1, 1), (9, 1), (9, 16), (1024, 16), (1024, 10_000)] {
+            let range = SampleRange::new(7, 7 + samples);
+            let pieces = pieces(rect, range, threads);
+            let mut hits = vec![0u32; rect.area() * samples as usize];
+            for (tile, s) in &pieces {
+                assert!(rect.contains(tile) && !s.is_empty() && s.start >= 7 && s.end <= range.end);
+                for y in tile.y..tile.y + tile.height {
+                    for x in tile.x..tile.x + tile.width {
+                        for k in s.start..s.end {
+                            let p =
+                                (y - rect.y) as usize * rect.width as usize + (x - rect.x) as usize;
+                            hits[p * samples as usize + (k - 7) as usize] += 1;
+                        }
+                    }
+                }
+            }
+            assert!(
+                hits.iter().all(|&h| h == 1),
+                "{samples} spp, {threads} threads"
+            );
+            let tiles = rect.tiles(TILE).len();
+            let want = (TASKS_PER_THREAD * threads).min(tiles * samples as usize);
+            assert!(
+                pieces.len() >= want,
+                "{samples} spp, {threads} threads: {} pieces",
+                pieces.len()
+            );
+        }
+    }
 }
