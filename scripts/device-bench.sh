@@ -5,7 +5,9 @@
 # another binary of .gpu/ to run (e.g. tessera-base, a before/after).
 #
 #   scripts/device-bench.sh [PHASE...]     phases: bench depth farm (default: all three), adaptive, farm-image, local-gpu,
-#                                          gpu-tests, against-old, cpu-worker, farm-gpu, multi-gpu, path, image-rounds
+#                                          gpu-tests, against-old, meshes-against-old, cpu-worker, farm-gpu, multi-gpu,
+#                                          path, launch-path, path-bench, assets, environment, instancing, big-mesh,
+#                                          scale, image-rounds, uniform
 #
 # `cpu-worker` (issue 15, ~2 min): the 1-worker pairs of `bench farm
 # --repeat 5` between whole `tessera render --threads 2` processes, to tell
