@@ -74,9 +74,8 @@ impl Layout {
     ) -> Self {
         let tiles = Rect::full(width, height).tiles(tile_size);
         let tiles_per_row = width.div_ceil(tile_size.max(1));
-        let per = samples_per_unit.max(1);
-        let batches = (0..samples.div_ceil(per))
-            .map(|b| SampleRange::new(b * per, ((b + 1) * per).min(samples)))
+        let batches = SampleRange::all(samples)
+            .batches(samples_per_unit)
             .collect();
         Layout {
             first_frame,

@@ -94,6 +94,14 @@ impl SampleRange {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+    /// Consecutive batches of at most `per` (at least 1) indices covering
+    /// the range in order: a job's sample batches, a tile's slices.
+    pub fn batches(self, per: u32) -> impl Iterator<Item = SampleRange> {
+        let per = per.max(1);
+        (self.start..self.end)
+            .step_by(per as usize)
+            .map(move |k| SampleRange::new(k, k.saturating_add(per).min(self.end)))
+    }
 }
 
 /// The pixels and samples of one frame that a piece of work covers: the

@@ -120,10 +120,9 @@ fn blocks_world<R: Real>(
         .iter()
         .enumerate()
         .flat_map(|(i, &(b, samples))| {
-            let step = (piece / b.area()).max(1) as u32;
-            (samples.start..samples.end)
-                .step_by(step as usize)
-                .map(move |k| (i, SampleRange::new(k, (k + step).min(samples.end))))
+            samples
+                .batches((piece / b.area()) as u32)
+                .map(move |s| (i, s))
         })
         .collect();
     // Runs, and so pieces, come in row order: the pieces of each band of

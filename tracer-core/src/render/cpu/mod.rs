@@ -158,14 +158,10 @@ fn pieces(rect: Rect, samples: SampleRange, threads: usize) -> Vec<(Rect, Sample
     let slices = want
         .div_ceil(tiles.len().max(1))
         .clamp(1, samples.len().max(1) as usize) as u32;
-    let step = samples.len().div_ceil(slices).max(1);
+    let step = samples.len().div_ceil(slices);
     tiles
         .into_iter()
-        .flat_map(|tile| {
-            (samples.start..samples.end)
-                .step_by(step as usize)
-                .map(move |k| (tile, SampleRange::new(k, (k + step).min(samples.end))))
-        })
+        .flat_map(|tile| samples.batches(step).map(move |s| (tile, s)))
         .collect()
 }
 
